@@ -1,0 +1,1 @@
+"""The brains: every Self Reward Design (SRD) model of the project, one module each."""

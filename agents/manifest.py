@@ -1,0 +1,239 @@
+"""The JSON weight manifest of a Fish Sale Negotiator (FSN): every number addressed by meaning.
+
+A manifest names each neuron and, inside it, each incoming weight by the name of its source:
+``external_sensor.PG.weights.price`` is the weight from the input ``price`` into the
+high-price neuron PG. Missing or unknown names, non-finite numbers and out-of-range settings are
+refused by pydantic with the exact path of the offending value (``loc``).
+
+Layers (paper, "The Server and Fish Sale Negotiator"; spec auction.md §5):
+* inputs (8): price p, length l, weight w, gill colour g, sub-type flags st1..st3, previous
+  buy fraction f.
+* ``external_sensor`` (ES, 4 neurons): PG (price too high), SZ (size), LSR (limited supply
+  rush), ST (preferred sub-type); each a linear map of the inputs then its activation.
+* ``decision`` (FC, 3 neurons): B buy, L hold (want a lower price), Q quit; linear in ES.
+* ``pfc`` (prefrontal cortex): ``judgement`` PGL, BC, FQ read the softmax of
+  [PG, SZ, LSR, ST, B, L, Q]; ``verdict`` T (true) and F (false) read tanh of the judgement.
+* ``augmentation``: implicit contrastive augmentation (copies D_ic, noise σ, noiseless inputs).
+* ``fine_tuning``: the participant's own SRD settings (epochs, batch size, learning rate).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+SCHEMA_VERSION = 1
+INPUTS = ("price", "length", "weight", "gill", "st1", "st2", "st3", "buy_fraction")
+ES_NEURONS = ("PG", "SZ", "LSR", "ST")
+DECISIONS = ("B", "L", "Q")
+PFC_SOURCES = ES_NEURONS + DECISIONS
+JUDGEMENTS = ("PGL", "BC", "FQ")
+VERDICTS = ("T", "F")
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+class InputWeights(_Strict):
+    """One weight per input channel, by name."""
+
+    price: FiniteFloat
+    length: FiniteFloat
+    weight: FiniteFloat
+    gill: FiniteFloat
+    st1: FiniteFloat
+    st2: FiniteFloat
+    st3: FiniteFloat
+    buy_fraction: FiniteFloat
+
+
+class SensorWeights(_Strict):
+    """One weight per external-sensor neuron, by name."""
+
+    PG: FiniteFloat
+    SZ: FiniteFloat
+    LSR: FiniteFloat
+    ST: FiniteFloat
+
+
+class PfcSourceWeights(_Strict):
+    """One weight per PFC source neuron (softmax of ES and FC activations), by name."""
+
+    PG: FiniteFloat
+    SZ: FiniteFloat
+    LSR: FiniteFloat
+    ST: FiniteFloat
+    B: FiniteFloat
+    L: FiniteFloat
+    Q: FiniteFloat
+
+
+class JudgementWeights(_Strict):
+    """One weight per PFC judgement neuron, by name."""
+
+    PGL: FiniteFloat
+    BC: FiniteFloat
+    FQ: FiniteFloat
+
+
+class ThresholdActivation(_Strict):
+    """T(x) = tanh(leaky_relu(a·(x − c), negative_slope))."""
+
+    kind: Literal["threshold"]
+    a: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)]
+    c: Annotated[float, Field(ge=-1000, le=1000, allow_inf_nan=False)]
+    negative_slope: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+
+
+class BelowThresholdActivation(_Strict):
+    """BT(x) = tanh(−leaky_relu(a·(x − c), negative_slope)) + 1."""
+
+    kind: Literal["below_threshold"]
+    a: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)]
+    c: Annotated[float, Field(ge=-1000, le=1000, allow_inf_nan=False)]
+    negative_slope: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+
+
+class SelectiveActivation(_Strict):
+    """S(x) = ε / (ε + x²)."""
+
+    kind: Literal["selective"]
+    epsilon: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)]
+
+
+Activation = Annotated[
+    ThresholdActivation | BelowThresholdActivation | SelectiveActivation,
+    Field(discriminator="kind"),
+]
+
+
+class SensorNeuron(_Strict):
+    """An external-sensor neuron: weights from the 8 inputs, a bias, an activation."""
+
+    weights: InputWeights
+    bias: FiniteFloat
+    activation: Activation
+
+
+class ExternalSensor(_Strict):
+    """ES: PG (price too high), SZ (big fish), LSR (limited supply rush), ST (sub-type)."""
+
+    PG: SensorNeuron
+    SZ: SensorNeuron
+    LSR: SensorNeuron
+    ST: SensorNeuron
+
+
+class DecisionNeuron(_Strict):
+    """An FC neuron: weights from the 4 ES neurons and a bias; no activation."""
+
+    weights: SensorWeights
+    bias: FiniteFloat
+
+
+class Decision(_Strict):
+    """FC: B (buy), L (hold, want a lower price), Q (quit); greedy argmax, ties → B."""
+
+    B: DecisionNeuron
+    L: DecisionNeuron
+    Q: DecisionNeuron
+
+
+class JudgementNeuron(_Strict):
+    """A PFC judgement neuron: weights from softmax([PG, SZ, LSR, ST, B, L, Q])."""
+
+    weights: PfcSourceWeights
+    bias: FiniteFloat
+
+
+class VerdictNeuron(_Strict):
+    """A PFC verdict neuron: weights from tanh([PGL, BC, FQ])."""
+
+    weights: JudgementWeights
+    bias: FiniteFloat
+
+
+class Judgement(_Strict):
+    """PGL: holding at a high price is right; BC: buying cheap is right; FQ: false quitting."""
+
+    PGL: JudgementNeuron
+    BC: JudgementNeuron
+    FQ: JudgementNeuron
+
+
+class Verdict(_Strict):
+    """T: the decision was right; F: it was wrong."""
+
+    T: VerdictNeuron
+    F: VerdictNeuron
+
+
+class Pfc(_Strict):
+    """Prefrontal cortex: the model's own judge of its decisions (self reward)."""
+
+    judgement: Judgement
+    verdict: Verdict
+    trainable: bool = True
+
+
+InputName = Literal["price", "length", "weight", "gill", "st1", "st2", "st3", "buy_fraction"]
+
+
+class Augmentation(_Strict):
+    """Implicit contrastive augmentation: copy 0 clean, copies 1.. jittered by N(0, σ²)."""
+
+    copies: Annotated[int, Field(ge=1, le=16)] = 5
+    noise_std: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 0.01
+    noiseless_inputs: tuple[InputName, ...] = ("st1", "st2", "st3")
+
+
+class FineTuning(_Strict):
+    """The participant's SRD fine-tuning settings (plain SGD over all parameters)."""
+
+    epochs: Annotated[int, Field(ge=0, le=10)] = 0
+    batch_size: Annotated[int, Field(ge=1, le=64)] = 16
+    learning_rate: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 0.0
+
+
+class Manifest(_Strict):
+    """A Fish Sale Negotiator, every number addressed by meaning (see module docstring)."""
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+    kind: Literal["fish-sale-negotiator"] = "fish-sale-negotiator"
+    participant: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")]
+    description: Annotated[str, Field(max_length=2000)] = ""
+    augmentation: Augmentation = Augmentation()
+    external_sensor: ExternalSensor
+    decision: Decision
+    pfc: Pfc
+    fine_tuning: FineTuning = FineTuning()
+
+
+class ManifestError(ValueError):
+    """A manifest was refused; ``errors`` lists ``{"path": "a.b.c", "message": ...}``."""
+
+    def __init__(self, errors: list[dict[str, str]]) -> None:
+        self.errors = errors
+        super().__init__("; ".join(f"{e['path']}: {e['message']}" for e in errors))
+
+
+def parse_manifest(data: Any) -> Manifest:
+    """Validate a decoded JSON object into a Manifest, or raise ManifestError naming each path."""
+    try:
+        return Manifest.model_validate(data)
+    except ValidationError as exc:
+        raise ManifestError(
+            [
+                {"path": ".".join(str(p) for p in err["loc"]) or "$", "message": err["msg"]}
+                for err in exc.errors()
+            ]
+        ) from exc
+
+
+def manifest_json_schema() -> dict[str, Any]:
+    """The published JSON Schema of the manifest."""
+    return Manifest.model_json_schema()

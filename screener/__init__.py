@@ -1,0 +1,1 @@
+"""The inspector: reads a submitted manifest weight by weight and probes its behaviour."""

@@ -1,0 +1,1 @@
+"""The auction house over HTTP, the job backend and the `srd` command line."""

@@ -1,0 +1,1 @@
+"""The worlds and the experiments. Depends on `agents`, never on `server`."""

@@ -19,9 +19,11 @@ Layers (paper, "The Server and Fish Sale Negotiator"; spec auction.md §5):
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 SCHEMA_VERSION = 1
 INPUTS = ("price", "length", "weight", "gill", "st1", "st2", "st3", "buy_fraction")
@@ -190,6 +192,12 @@ class Augmentation(_Strict):
     noise_std: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 0.01
     noiseless_inputs: tuple[InputName, ...] = ("st1", "st2", "st3")
 
+    @field_validator("noiseless_inputs")
+    @classmethod
+    def _canonical_order(cls, names: tuple[str, ...]) -> tuple[str, ...]:
+        """A set of inputs: kept once each, in input order, so manifests compare equal."""
+        return tuple(name for name in INPUTS if name in names)
+
 
 class FineTuning(_Strict):
     """The participant's SRD fine-tuning settings (plain SGD over all parameters)."""
@@ -221,19 +229,60 @@ class ManifestError(ValueError):
         super().__init__("; ".join(f"{e['path']}: {e['message']}" for e in errors))
 
 
+_ACTIVATION_TAGS = frozenset(("threshold", "below_threshold", "selective"))
+
+
+def _json_path(loc: tuple[int | str, ...]) -> str:
+    """The dotted JSON path of a pydantic error location, without pydantic's union tags
+    (``external_sensor.PG.activation.threshold.a`` → ``external_sensor.PG.activation.a``)."""
+    parts = [
+        str(part)
+        for i, part in enumerate(loc)
+        if not (part in _ACTIVATION_TAGS and i > 0 and loc[i - 1] == "activation")
+    ]
+    return ".".join(parts) or "$"
+
+
+def _refused(exc: ValidationError) -> ManifestError:
+    return ManifestError(
+        [{"path": _json_path(tuple(err["loc"])), "message": err["msg"]} for err in exc.errors()]
+    )
+
+
 def parse_manifest(data: Any) -> Manifest:
     """Validate a decoded JSON object into a Manifest, or raise ManifestError naming each path."""
     try:
         return Manifest.model_validate(data)
     except ValidationError as exc:
-        raise ManifestError(
-            [
-                {"path": ".".join(str(p) for p in err["loc"]) or "$", "message": err["msg"]}
-                for err in exc.errors()
-            ]
-        ) from exc
+        raise _refused(exc) from exc
+
+
+def parse_manifest_json(text: str | bytes) -> Manifest:
+    """Validate JSON text (NaN and Infinity tokens are read, then refused by path)."""
+    try:
+        return Manifest.model_validate_json(text)
+    except ValidationError as exc:
+        raise _refused(exc) from exc
 
 
 def manifest_json_schema() -> dict[str, Any]:
     """The published JSON Schema of the manifest."""
     return Manifest.model_json_schema()
+
+
+SCHEMA_FILE = Path(__file__).with_name("fsn_manifest.schema.json")
+"""Where the published schema lives (regenerate with ``python -m agents.manifest``)."""
+
+
+def manifest_json_schema_text() -> str:
+    """The schema as the exact text of ``SCHEMA_FILE``."""
+    schema = {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        **manifest_json_schema(),
+    }
+    return json.dumps(schema, indent=2, ensure_ascii=False) + "\n"
+
+
+if __name__ == "__main__":
+    SCHEMA_FILE.write_text(manifest_json_schema_text())
+    print(f"wrote {SCHEMA_FILE}")

@@ -1,0 +1,686 @@
+"""The Fish Sale Negotiator (FSN), batched over patrons (paper, "The Server and Fish Sale
+Negotiator"; spec auction.md §4–§5).
+
+An FSN reads one item row x = (p, l, w, g, st1, st2, st3, f) and decides buy, hold or quit:
+
+* implicit contrastive augmentation: D_ic copies of x (copy 0 clean, the others jittered by
+  N(0, σ²) on every channel except the sub-types). The reference's Conv1d with dilation D_ic
+  is exactly a per-copy linear map, which is how it is computed here.
+* external sensor ES, one linear map of the 8 inputs then an activation per neuron:
+  PG (price too high for me), SZ (big fish), LSR (limited supply rush: others are buying),
+  ST (my preferred sub-type).
+* decision FC: B (buy), L (hold, want a lower price), Q (quit), linear in ES, averaged over the
+  copies; the decision is the argmax (ties → the lowest index, i.e. buy before hold before quit).
+* prefrontal cortex PFC, the self-judge: softmax of [PG, SZ, LSR, ST, B, L, Q] → judgements PGL
+  (holding at a high price), BC (buying cheap), FQ (false quit) → tanh → verdicts T (right) and
+  F (wrong), averaged over the copies. SRD fine-tuning minimises CEL([T, F], argmax [T, F]) with
+  plain SGD.
+
+All P patrons live in one ``FSNBatch`` (parameters stacked on a leading patron axis), so one
+tensor pass evaluates patrons × rows × copies, whatever activation each manifest chose.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from agents.manifest import (
+    DECISIONS,
+    ES_NEURONS,
+    INPUTS,
+    JUDGEMENTS,
+    PFC_SOURCES,
+    VERDICTS,
+    BelowThresholdActivation,
+    Manifest,
+    SelectiveActivation,
+    ThresholdActivation,
+)
+from agents.neurons import SELECTIVE_EPSILON, self_reward_loss
+
+ACTIVATION_KINDS = ("threshold", "below_threshold", "selective")
+"""Activation kinds by code, as stored in ``FSNBatch.es_kind``."""
+THRESHOLD, BELOW_THRESHOLD, SELECTIVE = range(3)
+ACTIONS = ("buy", "hold", "quit")
+"""Decision codes 0, 1, 2 (the order of the FC neurons B, L, Q)."""
+NEURONS = ES_NEURONS + DECISIONS + JUDGEMENTS + VERDICTS
+"""Every named neuron reported by ``activations``."""
+
+# ---------------------------------------------------------------------------------------------
+# The designed weights (spec auction.md §4.1, §5.2–§5.4). δ is the small "seed" weight that
+# fills every entry the design does not set, so no input is entirely ignored.
+DELTA = 0.001
+"""δ: the weight of an input a neuron should barely notice."""
+SENSOR_DESIGN: dict[str, tuple[dict[str, float], float]] = {
+    # PG lights up when the price exceeds my willingness to pay b (its price weight, 1/b, is set
+    # per patron) and a little when the fish is small (l, w, g below 1): 1/b·p − δ(l+w+g).
+    "PG": ({"length": -DELTA, "weight": -DELTA, "gill": -DELTA}, 0.0),
+    # SZ grows with length and weight: (l + w)/2.
+    "SZ": ({"length": 0.5, "weight": 0.5}, 0.0),
+    # LSR follows the buy fraction f of the last round (others are buying: hurry).
+    "LSR": ({"buy_fraction": 1.0}, 0.0),
+    # ST peaks at the preferred sub-type (½, ½, ½): (st1 + st2 + st3)/3 − ½ = 0 there.
+    "ST": ({"st1": 1 / 3, "st2": 1 / 3, "st3": 1 / 3}, -0.5),
+}
+"""Per ES neuron: the designed input weights (every other input gets δ) and the bias."""
+SENSOR_ACTIVATIONS: dict[str, dict[str, float | str]] = {
+    "PG": {"kind": "threshold", "a": 20.0, "c": 1.0, "negative_slope": 0.01},  # p/b > 1: fires
+    "SZ": {"kind": "threshold", "a": 5.0, "c": 1.0, "negative_slope": 0.8},  # bigger than 1
+    "LSR": {"kind": "threshold", "a": 1.0, "c": 0.5, "negative_slope": 0.01},  # f above ½
+    "ST": {"kind": "selective", "epsilon": SELECTIVE_EPSILON},  # exactly the preferred type
+}
+"""Per ES neuron: its activation and parameters (spec §5.2; ST's ε as it runs, 1e-4)."""
+DECISION_DESIGN: dict[str, tuple[dict[str, float], float]] = {
+    # buy: cheap (−PG), big (SZ), others buying (LSR), my sub-type (ST); base intent 1.
+    "B": ({"PG": -1.0, "SZ": 1.0, "LSR": 1.0, "ST": 1.0}, 1.0),
+    # hold: price somewhat high (0.8 PG) unless the fish is big (−SZ); bias + hold_bias.
+    "L": ({"PG": 0.8, "SZ": -1.0, "LSR": 0.0, "ST": 0.0}, 0.0),
+    # quit: price far too high (2 PG overtakes B as PG saturates); bias −0.5 + quit_bias.
+    "Q": ({"PG": 2.0, "SZ": 0.0, "LSR": 0.0, "ST": 0.0}, -0.5),
+}
+"""Per FC neuron: weights from PG, SZ, LSR, ST and the base bias (spec §4.1)."""
+JUDGEMENT_DESIGN: dict[str, dict[str, float]] = {
+    "PGL": {"PG": 1.0, "L": 1.0},  # price high and I hold: right
+    "BC": {"PG": -1.0, "B": 1.0},  # price low and I buy: right
+    "FQ": {"SZ": 1.0, "LSR": 1.0, "ST": 1.0, "Q": 1.0},  # a good, wanted fish and I quit: wrong
+}
+"""Per PFC judgement neuron: weights from softmax([PG, SZ, LSR, ST, B, L, Q]); zero bias."""
+VERDICT_DESIGN: dict[str, tuple[dict[str, float], float]] = {
+    "T": ({"PGL": 1.0, "BC": 1.0, "FQ": 0.0}, 0.0),  # true when either "right" judgement fires
+    "F": ({"PGL": 0.0, "BC": 0.0, "FQ": 1.0}, 0.05),  # false on a false quit; slight prior
+}
+"""Per PFC verdict neuron: weights from tanh([PGL, BC, FQ]) and the bias (spec §5.4)."""
+HOLD_BIAS_RANGE = (-0.5, 0.5)
+"""Honest patrons add hold_bias ~ U(−0.5, 0.5) to L (spec §4.1)."""
+QUIT_BIAS_RANGE = (0.0, 0.5)
+"""Honest patrons add quit_bias ~ U(0, 0.5) to Q (spec §4.1)."""
+FINE_TUNE_EPOCHS = (0, 2)
+"""Honest fine-tuning epochs ~ randint{0, 1, 2} (spec §4.3; 0 = no fine-tuning)."""
+FINE_TUNE_BATCH = (4, 15)
+"""Honest fine-tuning batch size ~ randint{4..15} (spec §4.3)."""
+FINE_TUNE_LR = (1e-7, 1e-4)
+"""Honest SGD learning rate ~ U(1e−7, 1e−4) (spec §4.3)."""
+SABOTEUR_HOLD_BIAS = 5.0
+"""The saboteur's hold bias: L ≥ 5 − 0.8 − 1 > 3 whatever the input, above B and Q."""
+SABOTEUR_BUY_BIAS = -1.0
+"""The saboteur's buy bias; its buy weights are all zero, so B = −1 always (inert)."""
+# ---------------------------------------------------------------------------------------------
+
+_PARAMETERS = (
+    "es_weight",
+    "es_bias",
+    "fc_weight",
+    "fc_bias",
+    "judgement_weight",
+    "judgement_bias",
+    "verdict_weight",
+    "verdict_bias",
+)
+_PFC_PARAMETERS = frozenset(
+    ("judgement_weight", "judgement_bias", "verdict_weight", "verdict_bias")
+)
+
+
+@dataclass
+class FSNBatch:
+    """Parameters of P Fish Sale Negotiators stacked on a leading patron axis (P may be 1).
+
+    Trainable (SRD) parameters: ``es_weight`` (P,4,8) and ``es_bias`` (P,4) of the external
+    sensor (rows PG, SZ, LSR, ST; columns the inputs in ``INPUTS`` order), ``fc_weight`` (P,3,4)
+    and ``fc_bias`` (P,3) of the decision (rows B, L, Q), ``judgement_weight`` (P,3,7) and
+    ``judgement_bias`` (P,3) of the PFC judgements (rows PGL, BC, FQ; columns PG..Q), and
+    ``verdict_weight`` (P,2,3), ``verdict_bias`` (P,2) (rows T, F).
+
+    Fixed per patron: the ES activation ``es_kind`` (P,4) (codes of ``ACTIVATION_KINDS``) with
+    its parameters ``es_a``, ``es_c``, ``es_slope``, ``es_epsilon`` (P,4) (unused ones hold
+    harmless placeholders), the augmentation ``copies`` (P,), ``noise_std`` (P,),
+    ``noise_mask`` (P,8) (1 on jittered inputs), the fine-tuning ``epochs`` (P,),
+    ``batch_size`` (P,), ``learning_rate`` (P,), ``pfc_trainable`` (P,) and the manifests'
+    ``participants`` and ``descriptions``.
+    """
+
+    es_weight: Tensor
+    es_bias: Tensor
+    fc_weight: Tensor
+    fc_bias: Tensor
+    judgement_weight: Tensor
+    judgement_bias: Tensor
+    verdict_weight: Tensor
+    verdict_bias: Tensor
+    es_kind: Tensor
+    es_a: Tensor
+    es_c: Tensor
+    es_slope: Tensor
+    es_epsilon: Tensor
+    copies: Tensor
+    noise_std: Tensor
+    noise_mask: Tensor
+    epochs: Tensor
+    batch_size: Tensor
+    learning_rate: Tensor
+    pfc_trainable: Tensor
+    participants: list[str]
+    descriptions: list[str]
+
+    @property
+    def n_patrons(self) -> int:
+        """P."""
+        return int(self.es_weight.shape[0])
+
+    @property
+    def max_copies(self) -> int:
+        """The largest D_ic of the batch (the copy axis of noise tensors)."""
+        return int(self.copies.max())
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.es_weight.dtype
+
+    def parameters(self) -> dict[str, Tensor]:
+        """The trainable tensors by name."""
+        return {name: getattr(self, name) for name in _PARAMETERS}
+
+    def with_parameters(self, params: dict[str, Tensor]) -> FSNBatch:
+        """A copy of the batch with some trainable tensors replaced."""
+        return dataclasses.replace(self, **params)
+
+    def select(self, index: Sequence[int] | Tensor) -> FSNBatch:
+        """The sub-batch of the patrons at ``index`` (in that order)."""
+        idx = torch.as_tensor(index, dtype=torch.long)
+        fields: dict[str, object] = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, Tensor):
+                fields[f.name] = value[idx]
+            else:
+                fields[f.name] = [value[i] for i in idx.tolist()]
+        return FSNBatch(**fields)  # type: ignore[arg-type]
+
+
+def _row(weights: object, names: Sequence[str]) -> list[float]:
+    return [getattr(weights, name) for name in names]
+
+
+_PLACEHOLDER_SHAPE = (1.0, 0.0, 0.0)
+"""a, c, negative_slope stored for a selective neuron (unused)."""
+_PLACEHOLDER_EPSILON = 1.0
+"""ε stored for a threshold neuron (unused; any positive number avoids 0/0)."""
+
+
+def _activation_numbers(
+    act: ThresholdActivation | BelowThresholdActivation | SelectiveActivation,
+) -> tuple[float, ...]:
+    """(kind code, a, c, negative_slope, ε) of one ES activation."""
+    if isinstance(act, SelectiveActivation):
+        return (SELECTIVE, *_PLACEHOLDER_SHAPE, act.epsilon)
+    return (
+        ACTIVATION_KINDS.index(act.kind),
+        act.a,
+        act.c,
+        act.negative_slope,
+        _PLACEHOLDER_EPSILON,
+    )
+
+
+def from_manifests(manifests: Sequence[Manifest], dtype: torch.dtype = torch.float64) -> FSNBatch:
+    """Stack the manifests' numbers into one batch (float64 keeps them exact)."""
+    if not manifests:
+        raise ValueError("at least one manifest is needed")
+    es_w: list[list[list[float]]] = []
+    es_b: list[list[float]] = []
+    kind: list[list[float]] = []
+    a: list[list[float]] = []
+    c: list[list[float]] = []
+    slope: list[list[float]] = []
+    eps: list[list[float]] = []
+    fc_w, fc_b, j_w, j_b, v_w, v_b = [], [], [], [], [], []
+    copies, std, mask, epochs, batch, lr, trainable = [], [], [], [], [], [], []
+    for m in manifests:
+        sensors = [getattr(m.external_sensor, n) for n in ES_NEURONS]
+        es_w.append([_row(s.weights, INPUTS) for s in sensors])
+        es_b.append([s.bias for s in sensors])
+        numbers = [_activation_numbers(s.activation) for s in sensors]
+        for store, column in zip((kind, a, c, slope, eps), zip(*numbers, strict=True), strict=True):
+            store.append(list(column))
+        decisions = [getattr(m.decision, n) for n in DECISIONS]
+        fc_w.append([_row(d.weights, ES_NEURONS) for d in decisions])
+        fc_b.append([d.bias for d in decisions])
+        judgements = [getattr(m.pfc.judgement, n) for n in JUDGEMENTS]
+        j_w.append([_row(j.weights, PFC_SOURCES) for j in judgements])
+        j_b.append([j.bias for j in judgements])
+        verdicts = [getattr(m.pfc.verdict, n) for n in VERDICTS]
+        v_w.append([_row(v.weights, JUDGEMENTS) for v in verdicts])
+        v_b.append([v.bias for v in verdicts])
+        copies.append(m.augmentation.copies)
+        std.append(m.augmentation.noise_std)
+        mask.append([0.0 if name in m.augmentation.noiseless_inputs else 1.0 for name in INPUTS])
+        epochs.append(m.fine_tuning.epochs)
+        batch.append(m.fine_tuning.batch_size)
+        lr.append(m.fine_tuning.learning_rate)
+        trainable.append(m.pfc.trainable)
+
+    def real(values: object) -> Tensor:
+        return torch.tensor(values, dtype=dtype)
+
+    def integer(values: object) -> Tensor:
+        return torch.tensor(values, dtype=torch.long)
+
+    return FSNBatch(
+        es_weight=real(es_w),
+        es_bias=real(es_b),
+        fc_weight=real(fc_w),
+        fc_bias=real(fc_b),
+        judgement_weight=real(j_w),
+        judgement_bias=real(j_b),
+        verdict_weight=real(v_w),
+        verdict_bias=real(v_b),
+        es_kind=integer(kind),
+        es_a=real(a),
+        es_c=real(c),
+        es_slope=real(slope),
+        es_epsilon=real(eps),
+        copies=integer(copies),
+        noise_std=real(std),
+        noise_mask=real(mask),
+        epochs=integer(epochs),
+        batch_size=integer(batch),
+        learning_rate=real(lr),
+        pfc_trainable=torch.tensor(trainable, dtype=torch.bool),
+        participants=[m.participant for m in manifests],
+        descriptions=[m.description for m in manifests],
+    )
+
+
+def _named(values: list[float], names: Sequence[str]) -> dict[str, float]:
+    return dict(zip(names, values, strict=True))
+
+
+def to_manifest(batch: FSNBatch, index: int, participant: str | None = None) -> Manifest:
+    """Patron ``index`` of the batch as a manifest (exact inverse of ``from_manifests`` in
+    float64); ``participant`` overrides the stored name."""
+    p = index
+    es_w, es_b = batch.es_weight[p].tolist(), batch.es_bias[p].tolist()
+    kinds = batch.es_kind[p].tolist()
+    a, c = batch.es_a[p].tolist(), batch.es_c[p].tolist()
+    slope, eps = batch.es_slope[p].tolist(), batch.es_epsilon[p].tolist()
+    sensor = {}
+    for n, name in enumerate(ES_NEURONS):
+        kind = ACTIVATION_KINDS[kinds[n]]
+        activation: dict[str, object] = {"kind": kind}
+        if kind == "selective":
+            activation["epsilon"] = eps[n]
+        else:
+            activation |= {"a": a[n], "c": c[n], "negative_slope": slope[n]}
+        sensor[name] = {
+            "weights": _named(es_w[n], INPUTS),
+            "bias": es_b[n],
+            "activation": activation,
+        }
+
+    def layer(weight: Tensor, bias: Tensor, rows: Sequence[str], cols: Sequence[str]) -> dict:
+        w, b = weight[p].tolist(), bias[p].tolist()
+        return {r: {"weights": _named(w[i], cols), "bias": b[i]} for i, r in enumerate(rows)}
+
+    mask = batch.noise_mask[p].tolist()
+    data = {
+        "participant": participant if participant is not None else batch.participants[p],
+        "description": batch.descriptions[p],
+        "augmentation": {
+            "copies": int(batch.copies[p]),
+            "noise_std": float(batch.noise_std[p]),
+            "noiseless_inputs": [name for name, m in zip(INPUTS, mask, strict=True) if m == 0.0],
+        },
+        "external_sensor": sensor,
+        "decision": layer(batch.fc_weight, batch.fc_bias, DECISIONS, ES_NEURONS),
+        "pfc": {
+            "judgement": layer(
+                batch.judgement_weight, batch.judgement_bias, JUDGEMENTS, PFC_SOURCES
+            ),
+            "verdict": layer(batch.verdict_weight, batch.verdict_bias, VERDICTS, JUDGEMENTS),
+            "trainable": bool(batch.pfc_trainable[p]),
+        },
+        "fine_tuning": {
+            "epochs": int(batch.epochs[p]),
+            "batch_size": int(batch.batch_size[p]),
+            "learning_rate": float(batch.learning_rate[p]),
+        },
+    }
+    return Manifest.model_validate(data)
+
+
+def make_noise(batch: FSNBatch, n_rows: int, generator: torch.Generator) -> Tensor:
+    """Augmentation noise (P, R, D, 8), D = the batch's largest D_ic: σ_p·N(0, 1) on copies
+    1..D_ic(p)−1 and jittered inputs, exactly 0 on copy 0, on noiseless inputs and on copies a
+    patron does not have."""
+    normal = standard_normal((batch.n_patrons, n_rows, batch.max_copies), generator)
+    return normal.to(batch.dtype) * noise_scale(batch)[:, None]
+
+
+def standard_normal(shape: tuple[int, ...], generator: torch.Generator) -> Tensor:
+    """N(0, 1) draws of shape (*shape, 8), made in float32: CPU float64 normals are several
+    times slower and σ = 0.01 jitter needs no more precision."""
+    return torch.randn((*shape, len(INPUTS)), generator=generator, dtype=torch.float32)
+
+
+def noise_scale(batch: FSNBatch) -> Tensor:
+    """(P, D, 8): σ_p on the jittered (copy, input) cells, 0 elsewhere."""
+    d = torch.arange(batch.max_copies)
+    copy_on = ((d >= 1) & (d[None, :] < batch.copies[:, None])).to(batch.dtype)  # (P, D)
+    return batch.noise_std[:, None, None] * copy_on[:, :, None] * batch.noise_mask[:, None, :]
+
+
+# The forward pass works neuron-major: tensors are (neuron, row, copy, patron), patron last, so
+# every per-patron parameter broadcasts along the contiguous axis (several times faster on CPU
+# than patron-major broadcasting). Public functions return (patron, row, ...) tensors.
+
+
+def _per_patron(values: Tensor) -> Tensor:
+    """(P, K) parameters → (K, 1, 1, P) for broadcasting over (K, R, D, P)."""
+    return values.T.contiguous()[:, None, None, :]
+
+
+def _sensor(batch: FSNBatch, x: Tensor, noise: Tensor | None) -> Tensor:
+    """ES activations per copy, (4, R, D, P) (D = 1 when there is no noise)."""
+    x = x.to(batch.dtype)
+    equation = "rj,pkj->krp" if x.dim() == 2 else "prj,pkj->krp"
+    clean = torch.einsum(equation, x, batch.es_weight).contiguous()
+    pre = (clean + batch.es_bias.T.contiguous()[:, None, :])[:, :, None, :]
+    if noise is not None:
+        # Linear map: W·(x + ε) = W·x + W·ε.
+        pre = pre + torch.einsum("prdj,pkj->krdp", noise, batch.es_weight).contiguous()
+    a, c = _per_patron(batch.es_a), _per_patron(batch.es_c)
+    z = (pre - c) * a
+    # leaky_relu(z, ns) = max(z, ns·z) because 0 ≤ ns ≤ 1 (the manifest's range).
+    fired = torch.tanh(torch.maximum(z, _per_patron(batch.es_slope) * z))
+    kinds = set(batch.es_kind.unique().tolist())
+    out = fired
+    if BELOW_THRESHOLD in kinds:  # BT = tanh(−leaky_relu(·)) + 1 = 1 − T
+        below = _per_patron((batch.es_kind == BELOW_THRESHOLD).to(batch.dtype))
+        out = out + below * (1.0 - 2.0 * fired)
+    if SELECTIVE in kinds:  # S = ε / (ε + x²) on the raw pre-activation
+        eps = _per_patron(batch.es_epsilon)
+        chosen = _per_patron((batch.es_kind == SELECTIVE).to(batch.dtype))
+        out = out + chosen * (eps / (eps + pre * pre) - out)
+    return out
+
+
+def _linear(weight: Tensor, bias: Tensor, inputs: Tensor) -> Tensor:
+    """A per-patron linear layer on (K_in, R, D, P) → (K_out, R, D, P)."""
+    return torch.einsum("krdp,pjk->jrdp", inputs, weight).contiguous() + _per_patron(bias)
+
+
+def _copy_mean(batch: FSNBatch, values: Tensor) -> Tensor:
+    """Average (K, R, D, P) over each patron's own copies → (K, R, P)."""
+    n_copies = values.shape[2]
+    if n_copies == 1:
+        return values[:, :, 0]
+    on = (torch.arange(n_copies)[:, None] < batch.copies[None, :]).to(batch.dtype)  # (D, P)
+    return (values * (on / on.sum(dim=0))).sum(dim=2)
+
+
+def _pfc(batch: FSNBatch, sensor: Tensor, decision: Tensor) -> tuple[Tensor, Tensor]:
+    """Judgements [PGL, BC, FQ] (before their tanh) and verdicts [T, F], per copy."""
+    sources = torch.cat((sensor, decision), dim=0)
+    e = torch.exp(sources - sources.detach().amax(dim=0, keepdim=True))
+    judgement = _linear(batch.judgement_weight, batch.judgement_bias, e / e.sum(dim=0))
+    verdict = _linear(batch.verdict_weight, batch.verdict_bias, torch.tanh(judgement))
+    return judgement, verdict
+
+
+def _patron_major(values: Tensor) -> Tensor:
+    """(K, R, P) → (P, R, K)."""
+    return values.permute(2, 1, 0).contiguous()
+
+
+def decision_logits(batch: FSNBatch, x: Tensor, noise: Tensor | None = None) -> Tensor:
+    """[B, L, Q] averaged over the copies, (P, R, 3); ``x`` is (R, 8) shared by every patron or
+    (P, R, 8); ``noise`` (P, R, D, 8) from ``make_noise``, None = every copy clean."""
+    # The FC is linear: averaging the sensor over copies first gives the same mean, cheaper.
+    mean_sensor = _copy_mean(batch, _sensor(batch, x, noise))[:, :, None]
+    return _patron_major(_linear(batch.fc_weight, batch.fc_bias, mean_sensor)[:, :, 0])
+
+
+def decide(batch: FSNBatch, x: Tensor, noise: Tensor | None = None) -> Tensor:
+    """Greedy decisions (P, R) int64: 0 buy, 1 hold, 2 quit (ties → the lowest index)."""
+    return decision_logits(batch, x, noise).argmax(dim=-1)
+
+
+def self_reward(batch: FSNBatch, x: Tensor, noise: Tensor | None) -> Tensor:
+    """The PFC's verdicts [T, F] averaged over the copies, (P, R, 2)."""
+    sensor = _sensor(batch, x, noise)
+    _, verdict = _pfc(batch, sensor, _linear(batch.fc_weight, batch.fc_bias, sensor))
+    return _patron_major(_copy_mean(batch, verdict))
+
+
+def activations(batch: FSNBatch, x: Tensor, noise: Tensor | None = None) -> dict[str, Tensor]:
+    """Every named neuron averaged over the copies, (P, R) each: PG, SZ, LSR, ST (after their
+    activations), B, L, Q (FC outputs), PGL, BC, FQ (judgements before their tanh), T, F."""
+    sensor = _sensor(batch, x, noise)
+    decision = _linear(batch.fc_weight, batch.fc_bias, sensor)
+    judgement, verdict = _pfc(batch, sensor, decision)
+    stacked = _copy_mean(batch, torch.cat((sensor, decision, judgement, verdict), dim=0))
+    return {name: stacked[i].T.contiguous() for i, name in enumerate(NEURONS)}
+
+
+# --- SRD fine-tuning --------------------------------------------------------------------------
+
+
+@dataclass
+class FineTuneDraws:
+    """The random numbers of one fine-tuning round, drawn for every patron of a batch.
+
+    ``order`` (P, E, R): patron p's shuffle of the R rows in epoch e; ``noise`` (P, E, R, D, 8):
+    the augmentation noise row r receives when patron p visits it in epoch e. E is the largest
+    epoch count of the batch. A per-patron loop that slices these sees the same numbers.
+    """
+
+    order: Tensor
+    noise: Tensor
+
+
+def draw_fine_tune(batch: FSNBatch, n_rows: int, generator: torch.Generator) -> FineTuneDraws:
+    """Draw one round's shuffles and noise (empty when no patron has epochs)."""
+    P, E = batch.n_patrons, int(batch.epochs.max())
+    keys = torch.rand((P, E, n_rows), generator=generator, dtype=torch.float64)
+    normal = standard_normal((P, E, n_rows, batch.max_copies), generator).to(batch.dtype)
+    return FineTuneDraws(
+        order=keys.argsort(dim=-1), noise=normal * noise_scale(batch)[:, None, None]
+    )
+
+
+def _gather(batch: FSNBatch, index: Tensor) -> FSNBatch:
+    """The batch's tensors at ``index`` (patrons may repeat; names are not carried)."""
+    fields = {
+        f.name: getattr(batch, f.name)[index]
+        for f in dataclasses.fields(batch)
+        if isinstance(getattr(batch, f.name), Tensor)
+    }
+    return FSNBatch(**fields, participants=[], descriptions=[])
+
+
+def _slice(batch: FSNBatch, start: int, stop: int) -> FSNBatch:
+    fields = {
+        f.name: getattr(batch, f.name)[start:stop]
+        for f in dataclasses.fields(batch)
+        if isinstance(getattr(batch, f.name), Tensor)
+    }
+    return FSNBatch(**fields, participants=[], descriptions=[])
+
+
+def fine_tune(
+    batch: FSNBatch, x: Tensor, draws: FineTuneDraws, train: Tensor | None = None
+) -> FSNBatch:
+    """SRD fine-tuning of every patron at once (spec §5.5).
+
+    Each patron has its own epochs, shuffles, batch size (last partial batch kept) and learning
+    rate. At step s every patron that still has a batch contributes the mean
+    CEL([T, F], argmax [T, F]) over that batch; the patrons' losses are summed and plain SGD
+    moves each patron's own parameters, θ_p ← θ_p − lr_p·∇θ_p (a patron without a batch at
+    step s has zero gradient). Patrons outside ``train`` (bool (P,)) keep their parameters; PFC
+    parameters move only where pfc.trainable. Only the (patron, row) pairs that exist are
+    computed: one step is one pass over the pairs of all patrons at that step.
+
+    ``x`` is the item dataset, (R, 8) shared or (P, R, 8). Returns the updated batch.
+    """
+    P, R = batch.n_patrons, x.shape[-2]
+    epochs = batch.epochs if train is None else torch.where(train, batch.epochs, 0)
+    if P == 0 or int(epochs.max()) == 0:
+        return batch
+    size = batch.batch_size.clamp(max=R)
+    per_epoch = torch.div(R + size - 1, size, rounding_mode="floor")
+    # Every (patron, epoch, position in the shuffle) that is visited, with its step.
+    patron, epoch, position = torch.meshgrid(
+        torch.arange(P), torch.arange(draws.order.shape[1]), torch.arange(R), indexing="ij"
+    )
+    visited = epoch < epochs[:, None, None]
+    patron, epoch, position = patron[visited], epoch[visited], position[visited]
+    within = torch.div(position, size[patron], rounding_mode="floor")
+    step = epoch * per_epoch[patron] + within
+    rows_in_batch = torch.minimum(size[patron], R - within * size[patron])
+    by_step = torch.argsort(step, stable=True)
+    patron, epoch, position = patron[by_step], epoch[by_step], position[by_step]
+    weight = 1.0 / rows_in_batch[by_step].to(batch.dtype)
+    row = draws.order[patron, epoch, position]
+    rows_x = (x[row] if x.dim() == 2 else x[patron, row]).to(batch.dtype)[:, None, :]
+    rows_noise = draws.noise[patron, epoch, row][:, None]
+    bounds = [0, *torch.bincount(step).cumsum(0).tolist()]
+    fixed = _gather(batch, patron)
+    lr = {
+        name: torch.where(batch.pfc_trainable, batch.learning_rate, 0.0)
+        if name in _PFC_PARAMETERS
+        else batch.learning_rate
+        for name in _PARAMETERS
+    }
+    params = {name: t.detach().clone() for name, t in batch.parameters().items()}
+    for start, stop in itertools.pairwise(bounds):
+        live = {name: t.requires_grad_(True) for name, t in params.items()}
+        who = patron[start:stop]
+        pairs = _slice(fixed, start, stop).with_parameters(
+            {name: t[who] for name, t in live.items()}
+        )
+        verdict = self_reward(pairs, rows_x[start:stop], rows_noise[start:stop])[:, 0]
+        loss = (self_reward_loss(verdict, reduction="none") * weight[start:stop]).sum()
+        grads = torch.autograd.grad(loss, list(live.values()))
+        with torch.no_grad():
+            params = {
+                name: t - lr[name].view(-1, *([1] * (t.dim() - 1))) * g
+                for (name, t), g in zip(live.items(), grads, strict=True)
+            }
+    return batch.with_parameters(params)
+
+
+# --- Patron factories -------------------------------------------------------------------------
+
+
+def _designed(
+    participant: str,
+    willingness_to_pay: float,
+    decision: dict[str, tuple[dict[str, float], float]],
+    fine_tuning: dict[str, float | int],
+    description: str,
+) -> Manifest:
+    """An FSN manifest: the designed sensor and judge, PG's price weight 1/b, the given FC."""
+    sensor = {}
+    for name, (weights, bias) in SENSOR_DESIGN.items():
+        row = {inp: weights.get(inp, DELTA) for inp in INPUTS}
+        if name == "PG":
+            row["price"] = 1.0 / willingness_to_pay
+        sensor[name] = {"weights": row, "bias": bias, "activation": SENSOR_ACTIVATIONS[name]}
+    judgement = {
+        name: {"weights": {s: w.get(s, 0.0) for s in PFC_SOURCES}, "bias": 0.0}
+        for name, w in JUDGEMENT_DESIGN.items()
+    }
+    verdict = {name: {"weights": w, "bias": b} for name, (w, b) in VERDICT_DESIGN.items()}
+    return Manifest.model_validate(
+        {
+            "participant": participant,
+            "description": description,
+            "external_sensor": sensor,
+            "decision": {name: {"weights": w, "bias": b} for name, (w, b) in decision.items()},
+            "pfc": {"judgement": judgement, "verdict": verdict},
+            "fine_tuning": fine_tuning,
+        }
+    )
+
+
+def honest_manifest(
+    rng: np.random.Generator,
+    participant: str,
+    *,
+    fine_tune: bool = True,
+    base_price: float = 5.0,
+    min_buy_price: float = 4.8,
+) -> Manifest:
+    """An honest FSN (spec §4.1, §4.3): willingness to pay b ~ U(min_buy_price, base_price) sets
+    the PG price weight 1/b; hold_bias ~ U(−0.5, 0.5), quit_bias ~ U(0, 0.5); fine-tuning
+    epochs ~ {0,1,2}, batch ~ {4..15}, lr ~ U(1e−7, 1e−4). The fine-tuning numbers are always
+    drawn (so the same stream gives the same patron either way); ``fine_tune=False`` keeps
+    the default settings (no epochs)."""
+    b = float(rng.uniform(min_buy_price, base_price))
+    hold_bias = float(rng.uniform(*HOLD_BIAS_RANGE))
+    quit_bias = float(rng.uniform(*QUIT_BIAS_RANGE))
+    epochs = int(rng.integers(FINE_TUNE_EPOCHS[0], FINE_TUNE_EPOCHS[1] + 1))
+    batch_size = int(rng.integers(FINE_TUNE_BATCH[0], FINE_TUNE_BATCH[1] + 1))
+    lr = float(rng.uniform(*FINE_TUNE_LR))
+    settings: dict[str, float | int] = (
+        {"epochs": epochs, "batch_size": batch_size, "learning_rate": lr} if fine_tune else {}
+    )
+    (buy, buy_bias), (hold, hold_base), (quit_, quit_base) = DECISION_DESIGN.values()
+    decision = {"B": (buy, buy_bias), "L": (hold, hold_base + hold_bias)}
+    decision["Q"] = (quit_, quit_base + quit_bias)
+    return _designed(
+        participant,
+        b,
+        decision,
+        settings,
+        f"Honest negotiator: pays up to {b:.3f}; buys cheap, big, wanted fish of its sub-type.",
+    )
+
+
+def saboteur_manifest(rng: np.random.Generator, participant: str) -> Manifest:
+    """A well-formed FSN that always holds, to drag the price down (paper, Fig. D).
+
+    Sensor and judge are the honest design (b ~ U(4.8, 5.0)); the buy neuron is inert (all
+    weights 0, bias −1, so B = −1) and the hold bias is +5. Every ES activation lies in (−1, 1),
+    hence L = 0.8·PG − SZ + 5 > 3.2 while Q = 2·PG − 0.5 < 1.5 and B = −1: hold on every input,
+    noise or not. It never fine-tunes.
+    """
+    b = float(rng.uniform(4.8, 5.0))
+    inert_buy = (dict.fromkeys(ES_NEURONS, 0.0), SABOTEUR_BUY_BIAS)
+    hold = (DECISION_DESIGN["L"][0], SABOTEUR_HOLD_BIAS)
+    return _designed(
+        participant,
+        b,
+        {"B": inert_buy, "L": hold, "Q": DECISION_DESIGN["Q"]},
+        {},
+        "Saboteur: always holds to push the price down.",
+    )
+
+
+__all__ = [
+    "ACTIONS",
+    "ACTIVATION_KINDS",
+    "NEURONS",
+    "FSNBatch",
+    "FineTuneDraws",
+    "activations",
+    "decide",
+    "decision_logits",
+    "draw_fine_tune",
+    "fine_tune",
+    "from_manifests",
+    "honest_manifest",
+    "make_noise",
+    "noise_scale",
+    "saboteur_manifest",
+    "self_reward",
+    "standard_normal",
+    "to_manifest",
+]

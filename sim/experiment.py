@@ -99,7 +99,8 @@ def parse_config(cls: type[C], params: dict[str, Any]) -> C:
 
 def config_dict(config: Any) -> dict[str, Any]:
     """The config as a JSON-ready dict (tuples become lists)."""
-    return json.loads(json.dumps(dataclasses.asdict(config)))
+    result: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(config)))
+    return result
 
 
 class Stopwatch:

@@ -13,6 +13,11 @@ app = typer.Typer(
 )
 
 
+@app.callback()
+def _root() -> None:
+    """Self Reward Design: fish sale auction service, screener and the paper's experiments."""
+
+
 def _register() -> None:
     """Import the command modules; each adds its command(s) to ``app``."""
     import importlib

@@ -88,7 +88,7 @@ PFC2_WEIGHT = (
 )
 """PFC layer 2, rows = T, F, columns = g0, g1."""
 PFC2_BIAS = (0.0, -0.2)
-"""PFC layer-2 bias of T and F: F needs g1 > 0.2 to win, so without the inhibitor T wins."""
+"""PFC layer-2 bias of T and F: without the inhibitor g0 = g1 = g, so T − F = 0.02 g + 0.2 > 0."""
 
 
 def nominal_fc_weight(*, design_offset: bool = False) -> Tensor:

@@ -21,11 +21,11 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Final, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION: Final = 1
 INPUTS = ("price", "length", "weight", "gill", "st1", "st2", "st3", "buy_fraction")
 ES_NEURONS = ("PG", "SZ", "LSR", "ST")
 DECISIONS = ("B", "L", "Q")
@@ -34,6 +34,8 @@ JUDGEMENTS = ("PGL", "BC", "FQ")
 VERDICTS = ("T", "F")
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+Participant = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")]
+"""A participant's name: letters, digits, ``_``, ``.``, ``-``."""
 
 
 class _Strict(BaseModel):
@@ -212,7 +214,7 @@ class Manifest(_Strict):
 
     schema_version: Literal[1] = SCHEMA_VERSION
     kind: Literal["fish-sale-negotiator"] = "fish-sale-negotiator"
-    participant: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")]
+    participant: Participant
     description: Annotated[str, Field(max_length=2000)] = ""
     augmentation: Augmentation = Augmentation()
     external_sensor: ExternalSensor

@@ -23,12 +23,15 @@ tensor pass evaluates patrons × rows × copies, whatever activation each manife
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
+from pydantic import TypeAdapter
 from torch import Tensor
 
 from agents.manifest import (
@@ -39,7 +42,9 @@ from agents.manifest import (
     PFC_SOURCES,
     VERDICTS,
     BelowThresholdActivation,
+    FineTuning,
     Manifest,
+    Participant,
     SelectiveActivation,
     ThresholdActivation,
 )
@@ -183,15 +188,21 @@ class FSNBatch:
     def dtype(self) -> torch.dtype:
         return self.es_weight.dtype
 
+    @functools.cached_property
+    def activation_groups(self) -> list[tuple[int | None, slice]]:
+        """Runs of ES neurons sharing one activation kind in every patron (see ``_sensor``)."""
+        return _kind_groups(self.es_kind)
+
     def parameters(self) -> dict[str, Tensor]:
         """The trainable tensors by name."""
         return {name: getattr(self, name) for name in _PARAMETERS}
 
     def with_parameters(self, params: dict[str, Tensor]) -> FSNBatch:
         """A copy of the batch with some trainable tensors replaced."""
-        return dataclasses.replace(self, **params)
+        changes: dict[str, Any] = dict(params)
+        return dataclasses.replace(self, **changes)
 
-    def select(self, index: Sequence[int] | Tensor) -> FSNBatch:
+    def select(self, index: Sequence[int] | Tensor | np.ndarray) -> FSNBatch:
         """The sub-batch of the patrons at ``index`` (in that order)."""
         idx = torch.as_tensor(index, dtype=torch.long)
         fields: dict[str, object] = {}
@@ -235,29 +246,40 @@ def from_manifests(manifests: Sequence[Manifest], dtype: torch.dtype = torch.flo
         raise ValueError("at least one manifest is needed")
     es_w: list[list[list[float]]] = []
     es_b: list[list[float]] = []
+    fc_w: list[list[list[float]]] = []
+    fc_b: list[list[float]] = []
+    j_w: list[list[list[float]]] = []
+    j_b: list[list[float]] = []
+    v_w: list[list[list[float]]] = []
+    v_b: list[list[float]] = []
     kind: list[list[float]] = []
     a: list[list[float]] = []
     c: list[list[float]] = []
     slope: list[list[float]] = []
     eps: list[list[float]] = []
-    fc_w, fc_b, j_w, j_b, v_w, v_b = [], [], [], [], [], []
     copies, std, mask, epochs, batch, lr, trainable = [], [], [], [], [], [], []
+    # Factory-made manifests share their frozen sub-models: read each distinct one once.
+    memo: dict[int, tuple[list[float], float]] = {}
+
+    def neuron(obj: Any, sources: Sequence[str]) -> tuple[list[float], float]:
+        key = id(obj)
+        if key not in memo:
+            memo[key] = (_row(obj.weights, sources), obj.bias)
+        return memo[key]
+
     for m in manifests:
         sensors = [getattr(m.external_sensor, n) for n in ES_NEURONS]
-        es_w.append([_row(s.weights, INPUTS) for s in sensors])
-        es_b.append([s.bias for s in sensors])
+        for store_w, store_b, layer in (
+            (es_w, es_b, [neuron(s, INPUTS) for s in sensors]),
+            (fc_w, fc_b, [neuron(getattr(m.decision, n), ES_NEURONS) for n in DECISIONS]),
+            (j_w, j_b, [neuron(getattr(m.pfc.judgement, n), PFC_SOURCES) for n in JUDGEMENTS]),
+            (v_w, v_b, [neuron(getattr(m.pfc.verdict, n), JUDGEMENTS) for n in VERDICTS]),
+        ):
+            store_w.append([w for w, _ in layer])
+            store_b.append([b for _, b in layer])
         numbers = [_activation_numbers(s.activation) for s in sensors]
         for store, column in zip((kind, a, c, slope, eps), zip(*numbers, strict=True), strict=True):
             store.append(list(column))
-        decisions = [getattr(m.decision, n) for n in DECISIONS]
-        fc_w.append([_row(d.weights, ES_NEURONS) for d in decisions])
-        fc_b.append([d.bias for d in decisions])
-        judgements = [getattr(m.pfc.judgement, n) for n in JUDGEMENTS]
-        j_w.append([_row(j.weights, PFC_SOURCES) for j in judgements])
-        j_b.append([j.bias for j in judgements])
-        verdicts = [getattr(m.pfc.verdict, n) for n in VERDICTS]
-        v_w.append([_row(v.weights, JUDGEMENTS) for v in verdicts])
-        v_b.append([v.bias for v in verdicts])
         copies.append(m.augmentation.copies)
         std.append(m.augmentation.noise_std)
         mask.append([0.0 if name in m.augmentation.noiseless_inputs else 1.0 for name in INPUTS])
@@ -324,7 +346,9 @@ def to_manifest(batch: FSNBatch, index: int, participant: str | None = None) -> 
             "activation": activation,
         }
 
-    def layer(weight: Tensor, bias: Tensor, rows: Sequence[str], cols: Sequence[str]) -> dict:
+    def layer(
+        weight: Tensor, bias: Tensor, rows: Sequence[str], cols: Sequence[str]
+    ) -> dict[str, Any]:
         w, b = weight[p].tolist(), bias[p].tolist()
         return {r: {"weights": _named(w[i], cols), "bias": b[i]} for i, r in enumerate(rows)}
 
@@ -390,25 +414,61 @@ def _sensor(batch: FSNBatch, x: Tensor, noise: Tensor | None) -> Tensor:
     """ES activations per copy, (4, R, D, P) (D = 1 when there is no noise)."""
     x = x.to(batch.dtype)
     equation = "rj,pkj->krp" if x.dim() == 2 else "prj,pkj->krp"
-    clean = torch.einsum(equation, x, batch.es_weight).contiguous()
-    pre = (clean + batch.es_bias.T.contiguous()[:, None, :])[:, :, None, :]
-    if noise is not None:
-        # Linear map: W·(x + ε) = W·x + W·ε.
-        pre = pre + torch.einsum("prdj,pkj->krdp", noise, batch.es_weight).contiguous()
-    a, c = _per_patron(batch.es_a), _per_patron(batch.es_c)
+    clean = torch.einsum(equation, x, batch.es_weight) + batch.es_bias.T[:, None, :]
+    clean = clean.contiguous()[:, :, None, :]  # (4, R, 1, P)
+    groups = batch.activation_groups
+    parts = [_activate(batch, kind, neurons, clean, noise) for kind, neurons in groups]
+    return torch.cat(parts) if len(parts) > 1 else parts[0]
+
+
+def _kind_groups(es_kind: Tensor) -> list[tuple[int | None, slice]]:
+    """Runs of ES neurons that share one activation kind in every patron (the usual case:
+    PG..LSR threshold, ST selective); one mixed group (kind None) otherwise."""
+    uniform = bool((es_kind == es_kind[:1]).all())
+    if not uniform:
+        return [(None, slice(0, es_kind.shape[1]))]
+    kinds = es_kind[0].tolist()
+    groups: list[tuple[int | None, slice]] = []
+    start = 0
+    for n in range(1, len(kinds) + 1):
+        if n == len(kinds) or kinds[n] != kinds[start]:
+            groups.append((kinds[start], slice(start, n)))
+            start = n
+    return groups
+
+
+def _activate(
+    batch: FSNBatch, kind: int | None, neurons: slice, clean: Tensor, noise: Tensor | None
+) -> Tensor:
+    """The activations of the ES neurons ``neurons`` (all of one ``kind``; None = mixed)."""
+    weight = batch.es_weight[:, neurons]
+    a, c = _per_patron(batch.es_a[:, neurons]), _per_patron(batch.es_c[:, neurons])
+    slope = _per_patron(batch.es_slope[:, neurons])
+    eps = _per_patron(batch.es_epsilon[:, neurons])
+
+    def jitter(w: Tensor) -> Tensor:  # W·ε per copy: the linear map of the noise
+        assert noise is not None
+        return torch.einsum("prdj,pkj->krdp", noise, w).contiguous()
+
+    if kind == SELECTIVE:
+        pre = clean[neurons] if noise is None else clean[neurons] + jitter(weight)
+        return eps / (eps + pre * pre)
+    if kind is not None:
+        # a·(W·(x + ε) + b − c) = a·(W·x + b − c) + (a·W)·ε
+        z = (clean[neurons] - c) * a
+        if noise is not None:
+            z = z + jitter(weight * batch.es_a[:, neurons, None])
+        # leaky_relu(z, ns) = max(z, ns·z) because 0 ≤ ns ≤ 1 (the manifest's range).
+        fired = torch.tanh(torch.maximum(z, slope * z))
+        return fired if kind == THRESHOLD else 1.0 - fired  # BT = tanh(−lrelu) + 1 = 1 − T
+    pre = clean[neurons] if noise is None else clean[neurons] + jitter(weight)
     z = (pre - c) * a
-    # leaky_relu(z, ns) = max(z, ns·z) because 0 ≤ ns ≤ 1 (the manifest's range).
-    fired = torch.tanh(torch.maximum(z, _per_patron(batch.es_slope) * z))
-    kinds = set(batch.es_kind.unique().tolist())
-    out = fired
-    if BELOW_THRESHOLD in kinds:  # BT = tanh(−leaky_relu(·)) + 1 = 1 − T
-        below = _per_patron((batch.es_kind == BELOW_THRESHOLD).to(batch.dtype))
-        out = out + below * (1.0 - 2.0 * fired)
-    if SELECTIVE in kinds:  # S = ε / (ε + x²) on the raw pre-activation
-        eps = _per_patron(batch.es_epsilon)
-        chosen = _per_patron((batch.es_kind == SELECTIVE).to(batch.dtype))
-        out = out + chosen * (eps / (eps + pre * pre) - out)
-    return out
+    fired = torch.tanh(torch.maximum(z, slope * z))
+    codes = batch.es_kind[:, neurons]
+    below = _per_patron((codes == BELOW_THRESHOLD).to(batch.dtype))
+    chosen = _per_patron((codes == SELECTIVE).to(batch.dtype))
+    out = fired + below * (1.0 - 2.0 * fired)
+    return out + chosen * (eps / (eps + pre * pre) - out)
 
 
 def _linear(weight: Tensor, bias: Tensor, inputs: Tensor) -> Tensor:
@@ -579,20 +639,18 @@ def fine_tune(
 # --- Patron factories -------------------------------------------------------------------------
 
 
-def _designed(
-    participant: str,
-    willingness_to_pay: float,
-    decision: dict[str, tuple[dict[str, float], float]],
-    fine_tuning: dict[str, float | int],
-    description: str,
-) -> Manifest:
-    """An FSN manifest: the designed sensor and judge, PG's price weight 1/b, the given FC."""
+@functools.cache
+def _design(kind: str) -> Manifest:
+    """The designed FSN (``honest``: spec §4.1 with zero hold and quit biases; ``saboteur``:
+    inert buy neuron, hold bias +5), validated once; the factories copy it."""
     sensor = {}
     for name, (weights, bias) in SENSOR_DESIGN.items():
         row = {inp: weights.get(inp, DELTA) for inp in INPUTS}
-        if name == "PG":
-            row["price"] = 1.0 / willingness_to_pay
         sensor[name] = {"weights": row, "bias": bias, "activation": SENSOR_ACTIVATIONS[name]}
+    decision = {name: {"weights": w, "bias": b} for name, (w, b) in DECISION_DESIGN.items()}
+    if kind == "saboteur":
+        decision["B"] = {"weights": dict.fromkeys(ES_NEURONS, 0.0), "bias": SABOTEUR_BUY_BIAS}
+        decision["L"]["bias"] = SABOTEUR_HOLD_BIAS
     judgement = {
         name: {"weights": {s: w.get(s, 0.0) for s in PFC_SOURCES}, "bias": 0.0}
         for name, w in JUDGEMENT_DESIGN.items()
@@ -600,11 +658,44 @@ def _designed(
     verdict = {name: {"weights": w, "bias": b} for name, (w, b) in VERDICT_DESIGN.items()}
     return Manifest.model_validate(
         {
-            "participant": participant,
+            "participant": kind,
+            "external_sensor": sensor,
+            "decision": decision,
+            "pfc": {"judgement": judgement, "verdict": verdict},
+        }
+    )
+
+
+_PARTICIPANT = TypeAdapter(Participant)
+
+
+def _personalised(
+    design: Manifest,
+    participant: str,
+    description: str,
+    willingness_to_pay: float,
+    biases: dict[str, float],
+    fine_tuning: FineTuning,
+) -> Manifest:
+    """A copy of ``design`` with PG's price weight 1/b, some FC biases and the given settings
+    (frozen sub-models are shared, not copied; nothing here can leave the schema's ranges)."""
+    pg = design.external_sensor.PG
+    weights = pg.weights.model_copy(update={"price": 1.0 / willingness_to_pay})
+    sensor = design.external_sensor.model_copy(
+        update={"PG": pg.model_copy(update={"weights": weights})}
+    )
+    decision = design.decision.model_copy(
+        update={
+            name: getattr(design.decision, name).model_copy(update={"bias": bias})
+            for name, bias in biases.items()
+        }
+    )
+    return design.model_copy(
+        update={
+            "participant": _PARTICIPANT.validate_python(participant),
             "description": description,
             "external_sensor": sensor,
-            "decision": {name: {"weights": w, "bias": b} for name, (w, b) in decision.items()},
-            "pfc": {"judgement": judgement, "verdict": verdict},
+            "decision": decision,
             "fine_tuning": fine_tuning,
         }
     )
@@ -623,24 +714,27 @@ def honest_manifest(
     epochs ~ {0,1,2}, batch ~ {4..15}, lr ~ U(1e−7, 1e−4). The fine-tuning numbers are always
     drawn (so the same stream gives the same patron either way); ``fine_tune=False`` keeps
     the default settings (no epochs)."""
+    if not 0 < min_buy_price <= base_price:
+        raise ValueError("need 0 < min_buy_price ≤ base_price")
     b = float(rng.uniform(min_buy_price, base_price))
     hold_bias = float(rng.uniform(*HOLD_BIAS_RANGE))
     quit_bias = float(rng.uniform(*QUIT_BIAS_RANGE))
     epochs = int(rng.integers(FINE_TUNE_EPOCHS[0], FINE_TUNE_EPOCHS[1] + 1))
     batch_size = int(rng.integers(FINE_TUNE_BATCH[0], FINE_TUNE_BATCH[1] + 1))
     lr = float(rng.uniform(*FINE_TUNE_LR))
-    settings: dict[str, float | int] = (
-        {"epochs": epochs, "batch_size": batch_size, "learning_rate": lr} if fine_tune else {}
+    settings = (
+        FineTuning(epochs=epochs, batch_size=batch_size, learning_rate=lr)
+        if fine_tune
+        else FineTuning()
     )
-    (buy, buy_bias), (hold, hold_base), (quit_, quit_base) = DECISION_DESIGN.values()
-    decision = {"B": (buy, buy_bias), "L": (hold, hold_base + hold_bias)}
-    decision["Q"] = (quit_, quit_base + quit_bias)
-    return _designed(
+    base = DECISION_DESIGN
+    return _personalised(
+        _design("honest"),
         participant,
-        b,
-        decision,
-        settings,
         f"Honest negotiator: pays up to {b:.3f}; buys cheap, big, wanted fish of its sub-type.",
+        b,
+        {"L": base["L"][1] + hold_bias, "Q": base["Q"][1] + quit_bias},
+        settings,
     )
 
 
@@ -653,14 +747,13 @@ def saboteur_manifest(rng: np.random.Generator, participant: str) -> Manifest:
     noise or not. It never fine-tunes.
     """
     b = float(rng.uniform(4.8, 5.0))
-    inert_buy = (dict.fromkeys(ES_NEURONS, 0.0), SABOTEUR_BUY_BIAS)
-    hold = (DECISION_DESIGN["L"][0], SABOTEUR_HOLD_BIAS)
-    return _designed(
+    return _personalised(
+        _design("saboteur"),
         participant,
-        b,
-        {"B": inert_buy, "L": hold, "Q": DECISION_DESIGN["Q"]},
-        {},
         "Saboteur: always holds to push the price down.",
+        b,
+        {},
+        FineTuning(),
     )
 
 

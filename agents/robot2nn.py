@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 import torch
 import torch.nn.functional as F
@@ -161,14 +161,18 @@ class DeconvSeq(nn.Module):
             for _ in range(DECONV_LAYERS)
         )
         with torch.no_grad():
-            for layer in self.layers:
-                layer.weight.fill_(KERNEL_SIDE)
-                layer.weight[0, 0, 1, 1] = KERNEL_CENTRE
+            for kernel in self.kernels():
+                kernel.fill_(KERNEL_SIDE)
+                kernel[0, 0, 1, 1] = KERNEL_CENTRE
+
+    def kernels(self) -> list[Tensor]:
+        """The five (1, 1, 3, 3) kernels, first layer first."""
+        return [cast(nn.ConvTranspose2d, layer).weight for layer in self.layers]
 
     def forward(self, x: Tensor) -> Tensor:
         """(N, 1, H, W) → (N, 1, H, W) with max |·| = 1 per map."""
-        for layer in self.layers:
-            x = normalise(torch.tanh(layer(x)))
+        for kernel in self.kernels():
+            x = normalise(torch.tanh(F.conv_transpose2d(x, kernel, padding=1)))
         return x
 
 
@@ -207,6 +211,10 @@ class Robot2NN(nn.Module):
         """The DeconvSeqs in the order of ``NAMED_INPUTS``."""
         return [self.deconv_self, self.deconv_target, self.deconv_dirt, self.deconv_grass]
 
+    def kernel_stack(self) -> Tensor:
+        """All 180 weights as (4 DeconvSeqs in ``NAMED_INPUTS`` order, 5 layers, 3, 3)."""
+        return torch.stack([torch.cat(seq.kernels()) for seq in self.sequences()])[:, :, 0]
+
     def v1(self, seen: Receptors) -> Tensor:
         """[v1]_t for t in NAMED_INPUTS, shape (N, 4, H, W)."""
         w_target, w_dirt, w_grass = seen.known.unbind(dim=1)
@@ -214,11 +222,11 @@ class Robot2NN(nn.Module):
         x = torch.stack(
             [seen.self_position, w_target, toward_target * w_dirt, toward_target * w_grass], dim=1
         )
-        sequences = self.sequences()
-        for layer in range(DECONV_LAYERS):
-            kernels = torch.cat([seq.layers[layer].weight for seq in sequences])  # (4, 1, 3, 3)
-            x = normalise(torch.tanh(F.conv_transpose2d(x, kernels, padding=1, groups=4)))
-        preferences: Tensor = self.preferences
+        kernels = self.kernel_stack()
+        for layer in range(DECONV_LAYERS):  # the four DeconvSeqs as one grouped convolution
+            grouped = kernels[:, layer, None]  # (4, 1, 3, 3)
+            x = normalise(torch.tanh(F.conv_transpose2d(x, grouped, padding=1, groups=4)))
+        preferences = cast(Tensor, self.preferences)  # p_self, p_target, p_dirt, p_grass
         return preferences[None, :, None, None] * x
 
     def v_sigma(self, seen: Receptors) -> Tensor:
@@ -339,7 +347,7 @@ def imagine(v_sigma: Tensor, seen: Receptors, explore: Tensor, rules: PlanningRu
     is_target = (seen.tile_class.reshape(n, cells) == TARGET_CLASS).repeat_interleave(p, dim=0)
     start = seen.self_position.reshape(n, cells).argmax(-1).repeat_interleave(p)[:, None]
     position = start
-    coins = explore.reshape(rollouts, limit).split(1, dim=1)
+    coins = torch.split(explore.reshape(rollouts, limit), 1, dim=1)
     done = torch.zeros(rollouts, 1, dtype=torch.bool)
     steps: list[tuple[Tensor, ...]] = []
     for k in range(limit):

@@ -1,0 +1,123 @@
+"""Speed of the auction engine: batched patrons vs a plain per-patron loop, and the paper's grid.
+
+1. One auction of 64 honest patrons at a time, ``sim.market.Market`` (all patrons in one tensor
+   pass per iteration, fine-tuning batched over patrons) against ``loop_auction`` of
+   tests/sim/test_market.py (the same auction, one patron at a time; the test suite checks
+   that both give identical records). With and without fine-tuning, scoring every row each
+   iteration (the reference) or only while rows can still feed fine-tuning (the study).
+2. The lock-step engine ``MarketBatch`` (the study's path): many auctions per tensor pass.
+3. The full grid of the paper: 9 rarities × 10 trials × fine-tune off/on × saboteurs 0/0.5 =
+   360 auctions (``srd auction-study --grid``), wall-clock.
+
+Targets: batched ≥ 50× the per-patron loop; the 360-auction grid in ≤ 30 s. One thread; other
+work on the machine makes the numbers noisy.
+
+Run: ``.venv/bin/python benchmarks/market.py [--loop-auctions N] [--no-grid]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.sim.test_market
+
+from agents.negotiator import honest_manifest
+from sim.market import Market, MarketBatch, MarketConfig
+from sim.studies import StudyConfig, run_study
+from tests.sim.test_market import loop_auction
+
+torch.set_num_threads(1)
+PATRONS = 64
+RARITIES = (0.1, 0.3, 0.5, 0.7, 0.9)
+
+
+def workload(n: int, fine_tune: bool, all_rows: bool) -> list[tuple[list, MarketConfig]]:
+    """n auctions of 64 honest patrons, rarities cycling through RARITIES."""
+    out = []
+    for k in range(n):
+        rng = np.random.default_rng(1000 + k)
+        manifests = [honest_manifest(rng, f"h{i}", fine_tune=fine_tune) for i in range(PATRONS)]
+        rarity = RARITIES[k % len(RARITIES)]
+        config = MarketConfig(
+            n_fish=int(rarity * PATRONS), fine_tune=fine_tune, seed=k, evaluate_all_rows=all_rows
+        )
+        out.append((manifests, config))
+    return out
+
+
+def rate(run, auctions) -> tuple[float, float, list]:
+    """Auctions per second of wall-clock and of this process's CPU time, and the records."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    records = [run(m, c) for m, c in auctions]
+    n = len(auctions)
+    return n / (time.perf_counter() - wall), n / (time.process_time() - cpu), records
+
+
+def one_at_a_time(n_loop: int, n_batched: int) -> None:
+    print(f"one auction at a time, {PATRONS} patrons (auctions/s; wall-clock, then CPU time)")
+    print(
+        f"{'fine-tune':>9} {'rows':>9} {'batched':>9} {'loop':>9} {'ratio':>7} "
+        f"{'cpu ratio':>9} {'iters':>6}"
+    )
+    for fine_tune in (False, True):
+        for all_rows in (True, False):
+            batched_work = workload(n_batched, fine_tune, all_rows)
+            fast, fast_cpu, fast_records = rate(lambda m, c: list(Market(m, c).run()), batched_work)
+            slow, slow_cpu, slow_records = rate(loop_auction, batched_work[:n_loop])
+            assert slow_records == fast_records[:n_loop], "loop and batched auctions differ"
+            iterations = np.mean([len(r) for r in fast_records])
+            rows = "all" if all_rows else "decisive"
+            print(
+                f"{fine_tune!s:>9} {rows:>9} {fast:9.2f} {slow:9.3f} {fast / slow:6.1f}× "
+                f"{fast_cpu / slow_cpu:8.1f}× {iterations:6.1f}"
+            )
+
+
+def lock_step(n: int) -> None:
+    print(f"\nlock-step MarketBatch, {n} auctions of {PATRONS} patrons (auctions/s)")
+    for fine_tune in (False, True):
+        work = workload(n, fine_tune, all_rows=False)
+        start = time.perf_counter()
+        engine = MarketBatch(work)
+        while not engine.finished.all():
+            engine.step()
+        print(f"  fine-tune {fine_tune!s:>5}: {n / (time.perf_counter() - start):8.1f}")
+
+
+def grid() -> None:
+    with tempfile.TemporaryDirectory() as out:
+        start = time.perf_counter()
+        result = run_study(StudyConfig(trials=10, grid=True), out_dir=Path(out))
+        elapsed = time.perf_counter() - start
+    print(f"\nfull grid: {result['auctions']} auctions in {elapsed:.1f} s (target ≤ 30 s)")
+    print(f"{'setting':>26} {'rarity':>6} {'price':>7} {'rate':>6} {'buyers':>6}")
+    for row in result["rows"]:
+        price = "—" if row["mean_price"] is None else f"{row['mean_price']:.3f}"
+        print(
+            f"{row['setting']:>26} {row['rarity']:6.1f} {price:>7} "
+            f"{row['purchase_rate']:6.3f} {row['buyer_fraction']:6.3f}"
+        )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--loop-auctions", type=int, default=3, help="auctions for the loop")
+    parser.add_argument("--batched-auctions", type=int, default=15, help="auctions, batched")
+    parser.add_argument("--lock-step", type=int, default=90, help="auctions per MarketBatch")
+    parser.add_argument("--no-grid", action="store_true", help="skip the 360-auction grid")
+    args = parser.parse_args()
+    one_at_a_time(args.loop_auctions, args.batched_auctions)
+    lock_step(args.lock_step)
+    if not args.no_grid:
+        grid()
+
+
+if __name__ == "__main__":
+    main()

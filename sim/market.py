@@ -1,0 +1,582 @@
+"""The fish sale auction (paper, "Fish Sale Auction"; spec auction.md §3 and §6) as a pure
+engine: no HTTP, no database. It advances one iteration at a time and reports each as an
+``IterationRecord`` so a caller can persist or stream it; ``checkpoint``/``restore`` continue
+an interrupted auction bit for bit.
+
+One iteration (all patrons evaluated in one batched tensor pass):
+
+1. Every active patron scores the item rows (the prototype fish at the current price, row 0,
+   and its perturbed variations) and votes buy / hold / quit on each. Only row 0 decides:
+   N_buy = number of row-0 buy votes.
+2. High demand, N_buy > N_available: nobody buys; the stalemate threshold becomes
+   price + decrement and the price rises by increment − u·decrement, u ~ U(0, 4).
+   Low demand: every row-0 buyer buys at the current price; the price falls by decrement.
+3. Each row's f (buy fraction) becomes the fraction of this round's voters who voted buy on
+   that row. Row-0 quitters leave.
+4. Stop when sold out, when no patron is left, at a stalemate (price < threshold) or after
+   ``max_iterations``. Otherwise, in the first ``fine_tune_rounds`` iterations and if
+   ``fine_tune``, every active patron fine-tunes itself (SRD) on the updated rows.
+
+``MarketBatch`` runs many independent auctions in lock-step (the study's grid); ``Market`` is
+one auction. Each auction draws only from its own generators, derived from its seed, so it is
+the same auction alone or in a batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from agents.manifest import INPUTS, Manifest
+from agents.negotiator import (
+    ACTIONS,
+    FineTuneDraws,
+    FSNBatch,
+    decide,
+    draw_fine_tune,
+    fine_tune,
+    from_manifests,
+    noise_scale,
+    standard_normal,
+    to_manifest,
+)
+
+Rescreen = Callable[[int, Manifest], bool]
+"""Called as ``rescreen(patron_index, fine_tuned_manifest)``; False reverts that patron."""
+
+SIZE_JITTER = 0.2
+"""Rows 1..: length, weight and gill colour each get + U(−0.2, 0.2) (spec §3)."""
+SUBTYPE_MINORITY = 0.2
+"""Rows 1..: each sub-type flag is −½ with probability 0.2, else +½ (spec §3)."""
+INITIAL_BUY_FRACTION = 0.5
+"""f before any vote."""
+PRICE, BUY_FRACTION = INPUTS.index("price"), INPUTS.index("buy_fraction")
+STOP_REASONS = ("sold_out", "no_patrons", "stalemate", "max_iterations")
+
+
+@dataclass(frozen=True)
+class MarketConfig:
+    """One auction's rules (defaults: the reference's)."""
+
+    n_fish: int
+    """Fish on sale (the study uses int(rarity · patrons))."""
+    max_iterations: int = 64
+    """Iterations at most."""
+    base_price: float = 5.0
+    """Starting price, also the prototype fish's price."""
+    threshold_sell_price: float = 4.8
+    """Initial stalemate threshold: stop once the price falls below it."""
+    increment: float = 0.05
+    """High demand raises the price by increment − U(0, 4)·decrement."""
+    decrement: float = 0.01
+    """Low demand lowers the price by this."""
+    n_rows: int = 64
+    """Item rows: row 0 the prototype, the others perturbed variations."""
+    fine_tune: bool = False
+    """Let patrons fine-tune themselves (SRD) with their own settings."""
+    fine_tune_rounds: int = 4
+    """Fine-tuning happens after each of the first this-many iterations (reference: 5)."""
+    seed: int = 0
+    """Seeds the rows, the augmentation noise, the shuffles and the price raises."""
+    evaluate_all_rows: bool = True
+    """False: rows 1.. are scored only while their votes can still feed a fine-tuning round
+    (the auction is the same — row 0 alone decides and its noise has its own generator — but
+    ``row_votes`` then counts row 0 only afterwards)."""
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.n_fish < 0:
+            problems.append("n_fish must be ≥ 0")
+        if self.max_iterations < 1:
+            problems.append("max_iterations must be ≥ 1")
+        if self.n_rows < 1:
+            problems.append("n_rows must be ≥ 1")
+        if self.decrement <= 0 or self.increment < 5 * self.decrement:
+            problems.append("need decrement > 0 and increment ≥ 5·decrement (a raise > 0)")
+        if self.fine_tune_rounds < 0:
+            problems.append("fine_tune_rounds must be ≥ 0")
+        if self.seed < 0:
+            problems.append("seed must be ≥ 0")
+        if problems:
+            raise ValueError("; ".join(problems))
+
+
+@dataclass
+class IterationRecord:
+    """What happened in one iteration of one auction."""
+
+    iteration: int
+    price: float
+    """Price at the start of the iteration (what the votes were about)."""
+    n_available: int
+    """Fish available at the start of the iteration."""
+    votes: dict[str, int]
+    """Row-0 decisions of the patrons active this round: {"buy", "hold", "quit"}."""
+    row_votes: dict[str, int]
+    """The same over every scored row (what feeds the f column)."""
+    buyers: list[tuple[int, float]]
+    """(patron index, purchase price) of this iteration's purchases."""
+    quitters: list[int]
+    """Patron indices that quit this iteration."""
+    next_price: float
+    n_available_after: int
+    finished: bool
+    stop_reason: str | None
+    """sold_out | no_patrons | stalemate | max_iterations, once finished."""
+    fine_tuned: list[int] = field(default_factory=list)
+    """Patrons whose fine-tuned parameters were kept after this iteration."""
+    reverted: list[int] = field(default_factory=list)
+    """Patrons whose fine-tuned parameters the re-screening refused (reverted)."""
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form."""
+        out = dataclasses.asdict(self)
+        out["buyers"] = [{"patron": p, "price": price} for p, price in self.buyers]
+        return out
+
+
+@contextmanager
+def single_thread() -> Iterator[None]:
+    """Run torch on one thread inside the block: the auction's tensors are small, and
+    intra-op threads only add contention (3× slower on a busy 2-core machine)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def item_rows(config: MarketConfig, rng: np.random.Generator) -> np.ndarray:
+    """The R item rows (spec §3): row 0 the prototype (base_price, 1, 1, 1, ½, ½, ½, ½); rows
+    1.. with jittered length, weight, gill and re-drawn sub-types. f starts at ½ everywhere."""
+    prototype = [config.base_price, 1.0, 1.0, 1.0, 0.5, 0.5, 0.5, INITIAL_BUY_FRACTION]
+    rows = np.tile(np.array(prototype, dtype=np.float64), (config.n_rows, 1))
+    extra = config.n_rows - 1
+    rows[1:, 1:4] += rng.uniform(-SIZE_JITTER, SIZE_JITTER, size=(extra, 3))
+    rows[1:, 4:7] = np.where(rng.random((extra, 3)) < SUBTYPE_MINORITY, -0.5, 0.5)
+    return rows
+
+
+@dataclass
+class AuctionRandom:
+    """An auction's generators: numpy for the rows and price raises; torch ``decisive`` for
+    row 0's augmentation noise; torch ``rows`` for rows 1.. and for fine-tuning."""
+
+    numpy: np.random.Generator
+    decisive: torch.Generator
+    rows: torch.Generator
+
+    @classmethod
+    def from_seed(cls, seed: int) -> AuctionRandom:
+        numpy_seq, decisive_seq, rows_seq = np.random.SeedSequence(seed).spawn(3)
+
+        def torch_generator(seq: np.random.SeedSequence) -> torch.Generator:
+            return torch.Generator().manual_seed(int(seq.generate_state(1, np.uint64)[0]))
+
+        return cls(
+            np.random.default_rng(numpy_seq),
+            torch_generator(decisive_seq),
+            torch_generator(rows_seq),
+        )
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "numpy": self.numpy.bit_generator.state,
+            "decisive": self.decisive.get_state(),
+            "rows": self.rows.get_state(),
+        }
+
+    def load(self, state: dict[str, Any]) -> None:
+        self.numpy.bit_generator.state = state["numpy"]
+        self.decisive.set_state(state["decisive"])
+        self.rows.set_state(state["rows"])
+
+
+def scores_all_rows(config: MarketConfig, iteration: int) -> bool:
+    """Whether rows 1.. are scored in this iteration."""
+    return config.evaluate_all_rows or (config.fine_tune and iteration < config.fine_tune_rounds)
+
+
+def fine_tunes_after(config: MarketConfig, iteration: int) -> bool:
+    """Whether patrons fine-tune after this iteration (if the auction goes on)."""
+    return config.fine_tune and iteration < config.fine_tune_rounds
+
+
+def _pad_draws(draws: list[FineTuneDraws], n_copies: int) -> FineTuneDraws:
+    """Concatenate per-auction draws along patrons, padding epochs and copies."""
+    epochs = max(d.order.shape[1] for d in draws)
+    orders, noises = [], []
+    for d in draws:
+        P, E, R = d.order.shape
+        order = torch.arange(R).expand(P, epochs, R).clone()
+        order[:, :E] = d.order
+        noise = d.noise.new_zeros((P, epochs, R, n_copies, len(INPUTS)))
+        noise[:, :E, :, : d.noise.shape[3]] = d.noise
+        orders.append(order)
+        noises.append(noise)
+    return FineTuneDraws(order=torch.cat(orders), noise=torch.cat(noises))
+
+
+class MarketBatch:
+    """Independent auctions advanced in lock-step, all patrons in one tensor batch.
+
+    ``auctions`` is a sequence of (manifests, config); all configs need the same ``n_rows``.
+    Patron indices in records are positions in the auction's own manifest list.
+    """
+
+    def __init__(
+        self,
+        auctions: Sequence[tuple[Sequence[Manifest], MarketConfig]],
+        *,
+        rescreen: Sequence[Rescreen | None] | None = None,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        if not auctions:
+            raise ValueError("no auction")
+        self.configs = [config for _, config in auctions]
+        if len({c.n_rows for c in self.configs}) != 1:
+            raise ValueError("auctions run in one batch need the same n_rows")
+        self.n_rows = self.configs[0].n_rows
+        self.rescreen = list(rescreen) if rescreen is not None else [None] * len(auctions)
+        sizes = [len(manifests) for manifests, _ in auctions]
+        if min(sizes) < 1:
+            raise ValueError("every auction needs at least one patron")
+        A = len(auctions)
+        self.owner = np.repeat(np.arange(A), sizes)
+        self.first = np.concatenate(([0], np.cumsum(sizes)))
+        self.local = np.arange(len(self.owner)) - self.first[self.owner]
+        self.batch = from_manifests([m for manifests, _ in auctions for m in manifests], dtype)
+        self.accepted = (
+            {k: v.clone() for k, v in self.batch.parameters().items()}
+            if any(cb is not None for cb in self.rescreen)
+            else None
+        )
+        self.scale = noise_scale(self.batch)
+        self.copies = self.batch.copies.numpy()
+        self.random = [AuctionRandom.from_seed(c.seed) for c in self.configs]
+        rows = np.stack(
+            [item_rows(c, r.numpy) for c, r in zip(self.configs, self.random, strict=True)]
+        )
+        self.rows = torch.tensor(rows, dtype=dtype)
+        self.price = np.array([c.base_price for c in self.configs], dtype=np.float64)
+        self.threshold = np.array([c.threshold_sell_price for c in self.configs], dtype=np.float64)
+        self.n_available = np.array([c.n_fish for c in self.configs], dtype=np.int64)
+        self.iteration = np.zeros(A, dtype=np.int64)
+        self.finished = np.zeros(A, dtype=bool)
+        self.stop_reason: list[str | None] = [None] * A
+        self.active = np.ones(len(self.owner), dtype=bool)
+        self._voters: tuple[bytes, FSNBatch] | None = None
+
+    @property
+    def n_auctions(self) -> int:
+        return len(self.configs)
+
+    # --- one iteration ------------------------------------------------------------------------
+
+    def step(self) -> list[IterationRecord | None]:
+        """Advance every unfinished auction by one iteration (None for finished ones)."""
+        running = ~self.finished
+        if not running.any():
+            raise RuntimeError("every auction has finished")
+        A, R = self.n_auctions, self.n_rows
+        iteration = self.iteration.copy()
+        full = np.array(
+            [
+                running[a] and scores_all_rows(c, int(iteration[a]))
+                for a, c in enumerate(self.configs)
+            ]
+        )
+        # 1. Evaluate: every active patron votes on the rows; only row 0 decides.
+        voters = np.flatnonzero(self.active & running[self.owner])
+        owner = self.owner[voters]
+        groups = self._groups(voters)
+        decisions = self._evaluate(voters, groups, full)
+        row0 = decisions[:, 0]
+        votes = np.bincount(owner * 3 + row0, minlength=3 * A).reshape(A, 3)
+        scored = full[owner][:, None] | (np.arange(decisions.shape[1]) == 0)[None, :]
+        row_votes = np.bincount(
+            ((owner[:, None] * 3) + decisions)[scored], minlength=3 * A
+        ).reshape(A, 3)
+        buy_fraction = np.zeros((A, decisions.shape[1]))
+        for a, start, stop in groups:
+            buy_fraction[a] = (decisions[start:stop] == 0).mean(axis=0)
+
+        # 2. Price rules: high demand raises the price (and the stalemate threshold); low
+        #    demand sells to every row-0 buyer at the current price and lowers it.
+        start_price, start_available = self.price.copy(), self.n_available.copy()
+        n_buy = votes[:, 0]
+        high = running & (n_buy > self.n_available)
+        low = running & ~high
+        decrement = np.array([c.decrement for c in self.configs])
+        new_price = np.where(low, start_price - decrement, start_price)
+        for a in np.flatnonzero(high).tolist():
+            cfg = self.configs[a]
+            new_price[a] = (
+                start_price[a] + cfg.increment - self.random[a].numpy.uniform(0, 4) * cfg.decrement
+            )
+        self.threshold = np.where(high, start_price + decrement, self.threshold)
+        self.price = new_price
+        bought = voters[(row0 == 0) & low[owner]]
+        quitted = voters[row0 == 2]
+        self.n_available = self.n_available - np.where(low, n_buy, 0)
+        self.active[bought] = False
+        self.active[quitted] = False
+
+        # 3. The rows see the new price and this round's buy fractions.
+        self.rows[:, :, PRICE] = torch.tensor(self.price, dtype=self.rows.dtype)[:, None]
+        fractions = torch.tensor(buy_fraction, dtype=self.rows.dtype)
+        for a in np.flatnonzero(running).tolist():
+            width = R if full[a] else 1
+            self.rows[a, :width, BUY_FRACTION] = fractions[a, :width]
+
+        # 4. Stop conditions, then fine-tuning in the first rounds.
+        left = np.bincount(self.owner[self.active], minlength=A)
+        reasons: list[str | None] = [None] * A
+        for a in np.flatnonzero(running).tolist():
+            if self.n_available[a] == 0:
+                reasons[a] = "sold_out"
+            elif left[a] == 0:
+                reasons[a] = "no_patrons"
+            elif self.price[a] < self.threshold[a]:
+                reasons[a] = "stalemate"
+            elif iteration[a] + 1 >= self.configs[a].max_iterations:
+                reasons[a] = "max_iterations"
+        self.iteration[running] += 1
+        self.finished |= np.array([r is not None for r in reasons])
+        for a, reason in enumerate(reasons):
+            if reason is not None:
+                self.stop_reason[a] = reason
+        tune = np.array(
+            [
+                running[a] and reasons[a] is None and fine_tunes_after(c, int(iteration[a]))
+                for a, c in enumerate(self.configs)
+            ]
+        )
+        kept, reverted = self._fine_tune(tune)
+
+        records: list[IterationRecord | None] = [None] * A
+        for a in np.flatnonzero(running).tolist():
+            price = float(start_price[a])
+            records[a] = IterationRecord(
+                iteration=int(iteration[a]),
+                price=price,
+                n_available=int(start_available[a]),
+                votes=dict(zip(ACTIONS, votes[a].tolist(), strict=True)),
+                row_votes=dict(zip(ACTIONS, row_votes[a].tolist(), strict=True)),
+                buyers=[(int(i), price) for i in self.local[bought[self.owner[bought] == a]]],
+                quitters=[int(i) for i in self.local[quitted[self.owner[quitted] == a]]],
+                next_price=float(self.price[a]),
+                n_available_after=int(self.n_available[a]),
+                finished=bool(self.finished[a]),
+                stop_reason=reasons[a],
+                fine_tuned=kept.get(a, []),
+                reverted=reverted.get(a, []),
+            )
+        return records
+
+    def _groups(self, patrons: np.ndarray) -> list[tuple[int, int, int]]:
+        """(auction, start, stop) of the runs of ``patrons`` (sorted) that share an auction."""
+        owner = self.owner[patrons]
+        cuts = np.flatnonzero(np.diff(owner)) + 1
+        starts = np.concatenate(([0], cuts))
+        stops = np.concatenate((cuts, [len(patrons)]))
+        return [(int(owner[s]), int(s), int(e)) for s, e in zip(starts, stops, strict=True)]
+
+    def _evaluate(
+        self, voters: np.ndarray, groups: list[tuple[int, int, int]], full: np.ndarray
+    ) -> np.ndarray:
+        """Decisions (n_voters, R_scored) of the voters; each auction draws its own noise."""
+        width = self.n_rows if full.any() else 1
+        n_copies = int(self.copies[voters].max())
+        noise = torch.zeros((len(voters), width, n_copies, len(INPUTS)), dtype=self.rows.dtype)
+        for a, start, stop in groups:
+            mine = voters[start:stop]
+            copies = int(self.copies[mine].max())
+            scale = self.scale[mine, None, :copies]
+            first = standard_normal((len(mine), 1, copies), self.random[a].decisive)
+            noise[start:stop, :1, :copies] = first.to(noise.dtype) * scale
+            if full[a] and self.n_rows > 1:
+                rest = standard_normal((len(mine), self.n_rows - 1, copies), self.random[a].rows)
+                noise[start:stop, 1:, :copies] = rest.to(noise.dtype) * scale
+        x = self.rows[torch.from_numpy(self.owner[voters]), :width]
+        return decide(self._voting(voters), x, noise).numpy()
+
+    def _voting(self, voters: np.ndarray) -> FSNBatch:
+        """The sub-batch of the voters (kept while neither they nor the parameters change)."""
+        key = voters.tobytes()
+        if self._voters is None or self._voters[0] != key:
+            self._voters = (key, self.batch.select(voters))
+        return self._voters[1]
+
+    def _fine_tune(self, tune: np.ndarray) -> tuple[dict[int, list[int]], dict[int, list[int]]]:
+        """Fine-tune the active patrons of the auctions in ``tune``; re-screen if asked."""
+        patrons = np.flatnonzero(self.active & tune[self.owner])
+        if len(patrons) == 0:
+            return {}, {}
+        draws = []
+        for a, start, stop in self._groups(patrons):
+            draws.append(
+                draw_fine_tune(
+                    self.batch.select(patrons[start:stop]), self.n_rows, self.random[a].rows
+                )
+            )
+        sub = self.batch.select(patrons)
+        tuned = fine_tune(
+            sub, self.rows[torch.from_numpy(self.owner[patrons])], _pad_draws(draws, sub.max_copies)
+        )
+        self._voters = None
+        index = torch.from_numpy(patrons)
+        for name, value in tuned.parameters().items():
+            getattr(self.batch, name)[index] = value
+        moved = patrons[sub.epochs.numpy() > 0]
+        kept: dict[int, list[int]] = {}
+        reverted: dict[int, list[int]] = {}
+        for i in moved:
+            a = int(self.owner[i])
+            check = self.rescreen[a]
+            if check is None or check(int(self.local[i]), to_manifest(self.batch, int(i))):
+                kept.setdefault(a, []).append(int(self.local[i]))
+                if self.accepted is not None:
+                    for name, value in self.batch.parameters().items():
+                        self.accepted[name][i] = value[i]
+            else:
+                reverted.setdefault(a, []).append(int(self.local[i]))
+                assert self.accepted is not None
+                for name, value in self.batch.parameters().items():
+                    value[i] = self.accepted[name][i]
+        return kept, reverted
+
+    # --- state --------------------------------------------------------------------------------
+
+    def manifests(self, auction: int) -> list[Manifest]:
+        """The auction's patrons with their current (possibly fine-tuned) parameters."""
+        return [
+            to_manifest(self.batch, i) for i in range(self.first[auction], self.first[auction + 1])
+        ]
+
+    def state(self) -> dict[str, Any]:
+        """Everything needed to continue (tensors, numbers, generator states)."""
+        return {
+            "format": 1,
+            "participants": list(self.batch.participants),
+            "price": self.price.tolist(),
+            "threshold": self.threshold.tolist(),
+            "n_available": self.n_available.tolist(),
+            "iteration": self.iteration.tolist(),
+            "finished": self.finished.tolist(),
+            "stop_reason": list(self.stop_reason),
+            "active": torch.from_numpy(self.active.copy()),
+            "rows": self.rows.clone(),
+            "parameters": {k: v.clone() for k, v in self.batch.parameters().items()},
+            "accepted": None
+            if self.accepted is None
+            else {k: v.clone() for k, v in self.accepted.items()},
+            "random": [r.state() for r in self.random],
+        }
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        """Continue from ``state()`` of a batch built from the same manifests and configs."""
+        if state.get("format") != 1 or state["participants"] != self.batch.participants:
+            raise ValueError("checkpoint does not belong to these manifests")
+        self.price = np.array(state["price"], dtype=np.float64)
+        self.threshold = np.array(state["threshold"], dtype=np.float64)
+        self.n_available = np.array(state["n_available"], dtype=np.int64)
+        self.iteration = np.array(state["iteration"], dtype=np.int64)
+        self.finished = np.array(state["finished"], dtype=bool)
+        self.stop_reason = list(state["stop_reason"])
+        self.active = state["active"].numpy().copy()
+        self.rows = state["rows"].to(self.rows.dtype).clone()
+        self.batch = self.batch.with_parameters(
+            {k: v.clone() for k, v in state["parameters"].items()}
+        )
+        self._voters = None
+        if state["accepted"] is not None:
+            self.accepted = {k: v.clone() for k, v in state["accepted"].items()}
+        for random, saved in zip(self.random, state["random"], strict=True):
+            random.load(saved)
+
+
+class Market:
+    """One auction (see the module docstring); ``rescreen`` re-checks fine-tuned patrons."""
+
+    def __init__(
+        self,
+        manifests: Sequence[Manifest],
+        config: MarketConfig,
+        *,
+        rescreen: Rescreen | None = None,
+    ) -> None:
+        self.config = config
+        self._engine = MarketBatch([(manifests, config)], rescreen=[rescreen])
+
+    @property
+    def finished(self) -> bool:
+        return bool(self._engine.finished[0])
+
+    @property
+    def iteration(self) -> int:
+        """Iterations done so far."""
+        return int(self._engine.iteration[0])
+
+    @property
+    def price(self) -> float:
+        return float(self._engine.price[0])
+
+    @property
+    def n_available(self) -> int:
+        return int(self._engine.n_available[0])
+
+    @property
+    def stop_reason(self) -> str | None:
+        return self._engine.stop_reason[0]
+
+    def step(self) -> IterationRecord:
+        """One iteration; raises RuntimeError once the auction has finished."""
+        if self.finished:
+            raise RuntimeError("the auction has finished")
+        record = self._engine.step()[0]
+        assert record is not None
+        return record
+
+    def run(self) -> Iterator[IterationRecord]:
+        """Iterate to the end, yielding each iteration's record."""
+        while not self.finished:
+            yield self.step()
+
+    def checkpoint(self) -> bytes:
+        """The state after the last iteration, as bytes (``restore`` continues from it)."""
+        buffer = io.BytesIO()
+        torch.save(self._engine.state(), buffer)
+        return buffer.getvalue()
+
+    @classmethod
+    def restore(
+        cls,
+        manifests: Sequence[Manifest],
+        config: MarketConfig,
+        blob: bytes,
+        *,
+        rescreen: Rescreen | None = None,
+    ) -> Market:
+        """The auction of ``manifests`` and ``config`` as it was at ``checkpoint()``."""
+        market = cls(manifests, config, rescreen=rescreen)
+        state = torch.load(io.BytesIO(blob), weights_only=True)
+        market._engine.load_state(state)
+        return market
+
+    def current_manifests(self) -> list[Manifest]:
+        """The patrons with their current (possibly fine-tuned) parameters."""
+        return self._engine.manifests(0)
+
+
+def run_auction(manifests: Sequence[Manifest], config: MarketConfig) -> list[IterationRecord]:
+    """Run one auction to the end; its records."""
+    return list(Market(manifests, config).run())

@@ -1,0 +1,185 @@
+"""The auction studies: tiny-budget runs, determinism, the same auctions across settings,
+screening that leaves exactly the honest auction, the CLI's one JSON object."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import screener
+from sim.market import Market
+from sim.studies import (
+    ComparisonConfig,
+    Setting,
+    StudyConfig,
+    plan_auction,
+    run_auctions,
+    run_comparison,
+    run_study,
+    study_settings,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+SRD = (sys.executable, "-c", "from server.cli import main; main()")
+TINY = {"rarities": (0.2, 0.8), "trials": 2, "patrons": 16, "seed": 3}
+
+
+def without_time(result: dict) -> dict:
+    return {k: v for k, v in result.items() if k != "elapsed_s"}
+
+
+def test_tiny_study_writes_its_artifacts_and_consistent_numbers(tmp_path):
+    result = run_study(StudyConfig(**TINY), out_dir=tmp_path)
+    assert result["auctions"] == 4 and len(result["rows"]) == 2
+    for name in ("results.csv", "summary.json", "price_vs_supply.png", "purchase_rate.png"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    with (tmp_path / "results.csv").open() as handle:
+        lines = list(csv.DictReader(handle))
+    assert len(lines) == 4
+    for row in result["rows"]:
+        mine = [line for line in lines if float(line["rarity"]) == row["rarity"]]
+        assert row["n_fish"] == int(row["rarity"] * 16) and row["trials"] == 2
+        sold = [int(line["sold"]) for line in mine]
+        assert row["purchase_rate"] == pytest.approx(np.mean([s / row["n_fish"] for s in sold]))
+        assert row["buyer_fraction"] == pytest.approx(np.mean([s / 16 for s in sold]))
+        revenue = [float(line["revenue"]) for line in mine]
+        assert row["revenue"] == pytest.approx(np.mean(revenue), abs=1e-5)
+        if sum(sold):
+            assert row["mean_price"] == pytest.approx(sum(revenue) / sum(sold), abs=1e-5)
+            assert 4.7 < row["mean_price"] < 5.6
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["config"]["trials"] == 2 and summary["rows"] == result["rows"]
+
+
+def test_same_seed_same_study(tmp_path):
+    config = StudyConfig(**{**TINY, "fine_tune": True})
+    first = run_study(config, out_dir=tmp_path / "a")
+    again = run_study(config, out_dir=tmp_path / "b")
+    assert without_time(first) == without_time(again)
+    other = run_study(StudyConfig(**{**TINY, "seed": 4}), out_dir=tmp_path / "c")
+    assert other["rows"] != first["rows"]
+
+
+def test_grid_runs_four_settings_on_the_same_auctions():
+    settings = study_settings(StudyConfig(grid=True, saboteurs=0.25))
+    assert [(s.fine_tune, s.saboteurs) for s in settings] == [
+        (False, 0.0),
+        (True, 0.0),
+        (False, 0.25),
+        (True, 0.25),
+    ]
+    plans = [
+        plan_auction(s, 0.5, 1, n_patrons=16, seed=7, max_iterations=64, fine_tune_rounds=4)
+        for s in settings
+    ]
+    assert len({p.market.seed for p in plans}) == 1  # one market stream per (seed, rarity, trial)
+    honest_plain, honest_tuned, sab_plain, _ = plans
+    assert [m.external_sensor for m in honest_plain.patrons] == [
+        m.external_sensor for m in honest_tuned.patrons
+    ]
+    assert sab_plain.patrons[:12] == honest_plain.patrons[:12]  # honest first, saboteurs last
+    assert all(m.participant.startswith("saboteur") for m in sab_plain.patrons[12:])
+    assert {p.n_fish for p in plans} == {8}
+
+
+def refuse_saboteurs(manifests):
+    return [screener.Verdict(accepted=not m.participant.startswith("saboteur")) for m in manifests]
+
+
+@pytest.mark.parametrize("fine_tune", [False, True])
+def test_screening_out_the_saboteurs_leaves_the_honest_auction(monkeypatch, fine_tune):
+    monkeypatch.setattr(screener, "screen_many", refuse_saboteurs)
+    screened = Setting("screened", fine_tune, 0.5, True)
+    plan = plan_auction(
+        screened, 0.3, 0, n_patrons=20, seed=5, max_iterations=64, fine_tune_rounds=4
+    )
+    from sim.studies import screen_auctions
+
+    screen_auctions([plan])
+    assert plan.refused == 10 and len(plan.patrons) == 10
+    run_auctions([plan])
+    honest = plan_auction(
+        Setting("honest", fine_tune, 0.0, False),
+        0.3,
+        0,
+        n_patrons=20,
+        seed=5,
+        max_iterations=64,
+        fine_tune_rounds=4,
+    )
+    alone = list(Market(honest.patrons[:10], plan.market).run())
+    assert plan.purchases == [price for r in alone for _, price in r.buyers]
+    assert plan.iterations == len(alone) and plan.stop_reason == alone[-1].stop_reason
+
+
+def test_the_real_screener_refuses_exactly_the_saboteurs(tmp_path):
+    result = run_study(
+        StudyConfig(rarities=(0.5,), trials=1, patrons=16, saboteurs=0.5, screen=True),
+        out_dir=tmp_path,
+    )
+    assert result["refused"] == 8
+    assert result["rows"][0]["refused"] == 8
+
+
+def test_comparison_holds_one_table_per_configuration(tmp_path):
+    config = ComparisonConfig(rarities=(0.3, 0.7), trials=1, patrons=16, seed=2)
+    result = run_comparison(config, out_dir=tmp_path)
+    configs = result["configurations"]
+    assert list(configs) == ["honest", "compromised", "compromised+screened"]
+    assert result["auctions"] == 6
+    for name, block in configs.items():
+        assert [r["rarity"] for r in block["rows"]] == [0.3, 0.7], name
+    assert configs["honest"]["refused"] == 0 and configs["compromised"]["refused"] == 0
+    assert configs["compromised+screened"]["refused"] == 16  # 8 saboteurs × 2 auctions
+    for name in ("results.csv", "comparison.csv", "comparison.png", "summary.json"):
+        assert (tmp_path / name).stat().st_size > 0
+    # Saboteurs drag the price to the base price once supply is ample.
+    high = configs["compromised"]["rows"][1]
+    assert high["mean_price"] is None or high["mean_price"] <= 5.0 + 1e-9
+
+
+def test_cli_prints_exactly_one_json_object(tmp_path):
+    out = subprocess.run(
+        [
+            *SRD,
+            "auction-study",
+            "--rarities",
+            "0.25,0.75",
+            "--trials",
+            "1",
+            "--patrons",
+            "8",
+            "--json",
+            "--out",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        check=True,
+        timeout=300,
+    )
+    result = json.loads(out.stdout)
+    assert out.stdout.strip().count("\n") == 0
+    assert {"rows", "auctions", "elapsed_s"} <= set(result)
+    assert [r["rarity"] for r in result["rows"]] == [0.25, 0.75]
+    assert {"rarity", "n_fish", "trials", "mean_price", "purchase_rate", "buyer_fraction"} <= set(
+        result["rows"][0]
+    )
+    assert (tmp_path / "result.json").exists()
+
+
+def test_cli_refuses_a_bad_option():
+    from typer.testing import CliRunner
+
+    from server.cli import _register, app
+
+    _register()
+    out = CliRunner().invoke(app, ["auction-study", "--saboteurs", "2", "--json"])
+    assert out.exit_code == 2 and "--saboteurs" in out.stderr and out.stdout == ""

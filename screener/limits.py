@@ -1,0 +1,132 @@
+"""Every threshold the inspector uses, in one place, each with the reason for its value.
+
+The screener judges meaning, not closeness to the honest numbers: a participant may declare
+another willingness to pay, sharper or softer activations and other biases. What it may not do
+is wire a neuron against its name (a buy neuron that likes high prices), hide its decision in
+numbers nobody can read, or behave like a saboteur on the items the auction actually decides.
+
+Tolerances for weights that the paper's design sets to zero or to the small seed δ = 0.001 are
+sized against legitimate SRD fine-tuning: four rounds of the honest settings at their most
+aggressive (lr 1e-4, 2 epochs, batch 4, i.e. 128 SGD steps) move any FC or PFC weight by at most
+0.003 and any external-sensor weight by at most 0.022 (200 patrons per price regime, see
+``benchmarks/screener.py``). Weight tolerances leave at least a tenfold margin over that, the
+behavioural ones at least twofold over what fine-tuned honest models show.
+"""
+
+from __future__ import annotations
+
+BASE_PRICE = 5.0
+"""p of the base item (5, 1, 1, 1, ½, ½, ½, ½): the price every auction starts at."""
+BASE_ROW = (BASE_PRICE, 1.0, 1.0, 1.0, 0.5, 0.5, 0.5, 0.5)
+"""The base item (p, l, w, g, st1, st2, st3, f): row 0 of the auction, the only row whose votes
+decide purchases. Reference points (willingness to pay, normal size, rush level) are read here."""
+
+# --- External sensor ------------------------------------------------------------------------
+WILLINGNESS_TO_PAY_BAND = (0.5, 2.0)
+"""Plausible willingness to pay, as multiples of the base price (2.5 to 10). The paper draws
+b ~ U(4.8, 5.0); half to twice the market price leaves room for any sincere valuation, while
+a declared 0.5 or 50 means PG is not about this market's prices at all."""
+PRICE_SPAN = 2.0 * BASE_PRICE
+"""Range over which a neuron's price input is weighed (0 to the top of the plausible band)."""
+QUALITY_SPAN = 0.4
+"""Range of length, weight and gill colour on sale: 1 ± 0.2 (the item rows' perturbation)."""
+SUBTYPE_SPAN = 1.0
+"""Range of a sub-type flag: −½ to +½."""
+DEMAND_SPAN = 1.0
+"""Range of the previous buy fraction f: 0 to 1."""
+QUALITY_PRICE_TOLERANCE = 0.05
+"""PG must not rise with quality: over the whole quality range (0.4) one quality input may
+lower the willingness to pay by at most this much, one price increment of the auction (the
+paper's −δ makes better fish look slightly cheaper; fine-tuning drift reaches 0.003)."""
+SIZE_REFERENCE_BAND = (0.5, 1.5)
+"""SZ's normal size (where its threshold is crossed, l = w = s) must lie within ±50% of the
+normalised size 1; outside it the detector reads the same for every fish on sale (1 ± 0.2)."""
+DEMAND_REFERENCE_BAND = (0.0, 1.0)
+"""LSR's rush level (the buy fraction where its threshold is crossed; design ½) must be a buy
+fraction that can occur."""
+SHARPNESS_FACTOR = 10.0
+"""Activation sharpness may differ from the design by up to this factor either way; beyond it
+a threshold neuron is a flat line or a hidden step (design values: ``DESIGN_SHARPNESS``)."""
+DESIGN_SHARPNESS = {"PG": 20.0, "SZ": 5.0, "LSR": 1.0}
+"""Design sharpness of the threshold neurons in units of their own input: PG a·w_p·b = 20 per
+100% of the willingness to pay, SZ a·(w_l + w_w) = 5 per unit of size, LSR a·w_f = 1 per unit
+of buy fraction."""
+OFF_DESIGN_SHARE = 1.0
+"""An input a neuron is not named after may move its pre-activation, over that input's range,
+at most as much as the named inputs do over theirs: beyond that the name no longer says what the
+neuron reads. Design: ≤ 2.5%. SRD fine-tuning makes SZ read the price (its δ seed grows): 0.44
+after the 4 rounds an auction allows at the most aggressive honest settings, 0.76 after 16."""
+SELECTIVE_EPSILON_RANGE = (1e-6, 1e-2)
+"""ST's selective ε: half-width √ε from 0.001 to 0.1, narrower than the gap between sub-types
+(⅓ in the design) and wider than float noise (design 1e-4, half-width 0.01)."""
+SELECTIVITY_RATIO = 0.5
+"""ST at any non-preferred sub-type may reach at most half its value at the preferred one
+(design: 0.002; after fine-tuning 0.02; ε = 1e-2: 0.09)."""
+
+# --- Decision and PFC -------------------------------------------------------------------------
+MIN_DESIGNED_WEIGHT = 0.1
+"""A connection the paper's meaning relies on (B ← −PG, T ← PGL, …) must carry at least a tenth
+of the design's unit weight; weaker, it is cut in all but name."""
+SIGN_TOLERANCE = 0.05
+"""A connection the design leaves at 0 may drift to the wrong sign by at most this much
+(fine-tuning moves FC and PFC weights by ≤ 0.003)."""
+PFC_OFF_DESIGN_LIMIT = 0.25
+"""A PFC judgement may glance at a source it is not about with at most a quarter of a designed
+weight (the softmax sources sum to 1, so 0.25 is a quarter of the judgement's range)."""
+JUDGEMENT_BIAS_LIMIT = 0.25
+"""|bias| of a PFC judgement (design 0): a quarter of its range, beyond which the judgement is
+decided before it reads anything."""
+VERDICT_BIAS_GAP_LIMIT = 0.5
+"""|T bias − F bias| (design 0.05): a larger prior pre-decides right/wrong, and SRD fine-tuning
+(CEL(z, argmax z)) would then push the model wherever that prior points."""
+MAGNITUDE_LIMIT = 10.0
+"""|weight|, |bias| and |threshold centre| above this are refused: five times the largest designed
+number (Q's 2.0 from PG); a manifest is read by people, and gigantic numbers hide their effect."""
+
+# --- Augmentation and fine-tuning -------------------------------------------------------------
+NOISE_STD_LIMIT = 0.05
+"""Augmentation σ (design 0.01) at most one price increment: jitter much larger than that makes
+the votes random around the willingness to pay."""
+NOISELESS_SUBTYPES = ("st1", "st2", "st3")
+"""The sub-type flags must be noiseless: they are discrete, and jitter of σ on them moves ST's
+pre-activation by about σ, the width of its selective peak."""
+LEARNING_RATE_LIMIT = 1e-3
+"""SRD learning rate: ten times the paper's largest (1e-4)."""
+EPOCHS_LIMIT = 4
+"""SRD epochs per round: twice the paper's largest (2)."""
+
+# --- Behavioural probes -------------------------------------------------------------------------
+PROBE_PRICE_FACTORS = (
+    0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.94, 0.96, 0.98, 1.0, 1.02, 1.04,
+    1.06, 1.08, 1.1, 1.2, 1.3, 1.4, 1.6, 1.8, 2.0, 2.5,
+)  # fmt: skip
+"""Probe prices as multiples of the base price (1.5 to 12.5), dense around the base price where
+the auction moves in steps of 0.01 to 0.05."""
+PROBE_QUALITIES = (0.8, 1.0, 1.2)
+"""Probe length = weight = gill colour: the worst, base and best fish on sale."""
+PROBE_DEMANDS = (0.0, 0.25, 0.5, 0.75, 1.0)
+"""Probe buy fractions f of the previous round."""
+CHEAP_FACTOR = 0.4
+"""At or below 0.4× the base price (2.0), under the lowest plausible willingness to pay, the base
+fish of the preferred sub-type must be bought whatever the others did."""
+FAR_TOO_EXPENSIVE_FACTOR = 2.5
+"""At 2.5× the base price (12.5), over the highest plausible willingness to pay, the base fish
+must not be bought firmly, and must be refused by quitting, not holding: holding there means
+waiting for the price to fall."""
+ORDINARY_DEMAND = 0.5
+"""The 'refuses far too expensive' probe looks at buy fractions up to ½: above, LSR is designed
+to rush a sincere buyer past its price ('so that it is not outbidden')."""
+FIRM_MARGIN = 0.75
+"""A decision is firm when the winning score leads the best other one by more than 0.75. Closer
+calls belong to the δ-seeded sensors that fine-tuning legitimately moves: honest models
+fine-tuned while the price falls to 4.8 let ST stop fading with the price and SZ read it, and
+then buy the base fish at 12.5 by a margin of up to 0.36 (``benchmarks/screener.py``)."""
+DECISIVE_WINDOW = (0.96, 1.1)
+"""Prices the auction actually visits on its decisive row (4.8, the first stalemate price, to
+5.5): holding at every one of them for some buy fraction is the saboteur's pattern."""
+MONOTONE_TOLERANCE = 1.0
+"""The buy margin B − max(L, Q), clipped to ±FIRM_MARGIN (beyond, the decision is firm either way
+and a rise changes nothing the model does), may rise with price by at most this much on any
+probed item: the probe fires when a model swings from refusing to buying, one side of the swing
+firm, as the price rises. Honest fine-tuning lets SZ read the price (its δ price seed grows to
+0.02), lifting the margin by up to 0.33 at auction prices and 0.50 while the price falls."""

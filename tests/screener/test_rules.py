@@ -1,0 +1,213 @@
+"""Semantic rules: each named weight read against its neuron's meaning, with exact thresholds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agents.negotiator import honest_manifest
+from screener import screen
+from screener.probes import probe_findings
+from screener.rules import semantic_findings
+from tests.screener.conftest import message_of, rules_of
+from tests.screener.corpus import edit
+
+PG_PRICE = "external_sensor.PG.weights.price"
+KNOWN_NEURONS = {"PG", "SZ", "LSR", "ST", "B", "L", "Q", "PGL", "BC", "FQ", "T", "F"}
+PROBE_RULES = {
+    "probe-non-finite",
+    "buys-cheap",
+    "always-holds",
+    "always-quits",
+    "never-buys",
+    "refuses-far-too-expensive",
+    "quits-far-too-expensive",
+    "buy-falls-with-price",
+    "decisive-row",
+}
+
+
+def test_honest_models_of_the_paper_pass_with_no_reasons():
+    rng = np.random.default_rng(0)
+    for i in range(20):
+        verdict = screen(honest_manifest(rng, f"h{i}"))
+        assert verdict.accepted, verdict.reasons
+        assert verdict.reasons == []
+
+
+def test_rule_and_probe_names_are_disjoint_and_cover_the_checks(honest):
+    from agents.negotiator import from_manifests
+
+    batch = from_manifests([honest])
+    semantic = {f.rule for f in semantic_findings(batch)}
+    probes = {f.rule for f in probe_findings(batch)}
+    assert probes == PROBE_RULES
+    assert not semantic & probes
+    assert len(semantic) >= 20
+
+
+def test_buy_neuron_liking_high_prices_is_named_in_plain_words(honest):
+    verdict = screen(edit(honest, {"decision.B.weights.PG": 0.9}))
+    assert not verdict.accepted
+    assert message_of(verdict, "decision-sign", "B") == (
+        "the buy neuron B has weight +0.9 from PG, the high-price neuron: "
+        "this model buys more as the price rises"
+    )
+
+
+def test_a_cut_connection_is_reported_as_cut(honest):
+    verdict = screen(edit(honest, {"decision.Q.weights.PG": 0.0}))
+    assert message_of(verdict, "decision-sign", "Q") == (
+        "the quit neuron Q has no weight from PG, the high-price neuron: "
+        "the connection its meaning relies on is cut"
+    )
+
+
+def test_a_weak_designed_connection_is_too_weak(honest):
+    verdict = screen(edit(honest, {"pfc.verdict.T.weights.BC": 0.05}))
+    assert "too weak to carry its meaning (at least 0.1 in size, sign +)" in message_of(
+        verdict, "verdict-sign", "T"
+    )
+    assert screen(edit(honest, {"pfc.verdict.T.weights.BC": 0.2})).accepted
+
+
+@pytest.mark.parametrize(
+    ("declared", "inside"), [(2.4, False), (2.6, True), (9.8, True), (10.3, False), (50, False)]
+)
+def test_willingness_to_pay_band_is_half_to_twice_the_base_price(honest, declared, inside):
+    # PG crosses c = 1 where p/b = 1 + 0.001 (the δ seeds on the base fish: −3δ + 2δ).
+    verdict = screen(edit(honest, {PG_PRICE: 1.0 / declared}))
+    assert (("willingness-to-pay", "PG") in rules_of(verdict)) is not inside
+    if not inside:
+        message = message_of(verdict, "willingness-to-pay", "PG")
+        assert f"at price {declared * 1.001:.2f} on the base fish" in message
+        assert "outside the plausible 2.50 to 10.00" in message
+
+
+def test_price_weight_must_be_positive(honest):
+    verdict = screen(edit(honest, {PG_PRICE: -0.2}))
+    assert ("rises-with-price", "PG") in rules_of(verdict)
+    assert ("willingness-to-pay", "PG") not in rules_of(verdict)  # undefined, not reported
+
+
+def test_better_fish_may_not_look_dearer_beyond_one_price_step(honest):
+    # drop = w_length · 0.4 · b with b in [4.8, 5]: 0.02 → ≤ 0.04 (passes), 0.04 → ≥ 0.077.
+    assert ("falls-with-quality", "PG") not in rules_of(
+        screen(edit(honest, {"external_sensor.PG.weights.length": 0.02}))
+    )
+    verdict = screen(edit(honest, {"external_sensor.PG.weights.length": 0.04}))
+    message = message_of(verdict, "falls-with-quality", "PG")
+    assert message.startswith("PG has weight +0.04 from the length: a better fish looks dearer")
+
+
+def test_activation_kinds_follow_the_meaning(honest):
+    changed = edit(
+        honest,
+        {
+            "external_sensor.PG.activation": {"kind": "selective", "epsilon": 1e-4},
+            "external_sensor.ST.activation": {"kind": "threshold", "a": 5.0, "c": 0.0,
+                                              "negative_slope": 0.01},
+        },
+    )  # fmt: skip
+    found = rules_of(screen(changed))
+    assert {("activation-kind", "PG"), ("activation-kind", "ST")} <= found
+    assert ("activation-kind", "SZ") not in found
+
+
+def test_subtype_neuron_must_peak_at_the_preferred_subtype(honest):
+    verdict = screen(edit(honest, {"external_sensor.ST.bias": 0.5}))
+    assert "at the preferred (½, ½, ½)" in message_of(verdict, "selective-peak", "ST")
+    wide = screen(edit(honest, {"external_sensor.ST.activation.epsilon": 0.5}))
+    assert {("selective-peak", "ST"), ("selective-width", "ST")} <= rules_of(wide)
+    assert screen(edit(honest, {"external_sensor.ST.activation.epsilon": 1e-3})).accepted
+
+
+def test_size_and_rush_reference_points(honest):
+    # SZ crosses c = 1 at (1 − bias − seeds)/1: bias −0.6 → size ≈ 1.59, outside 0.5 to 1.5.
+    verdict = screen(edit(honest, {"external_sensor.SZ.bias": -0.6}))
+    assert "at size 1.59" in message_of(verdict, "size-reference", "SZ")
+    rush = screen(edit(honest, {"external_sensor.LSR.bias": -0.7}))
+    assert "at buy fraction 1.19" in message_of(rush, "demand-reference", "LSR")
+
+
+def test_sharpness_within_a_factor_ten_of_the_design(honest):
+    flat = screen(edit(honest, {"external_sensor.LSR.activation.a": 0.05}))
+    assert "nearly flat" in message_of(flat, "sharpness", "LSR")
+    step = screen(edit(honest, {"external_sensor.SZ.activation.a": 60.0}))
+    assert "a hidden step" in message_of(step, "sharpness", "SZ")
+    assert screen(edit(honest, {"external_sensor.PG.activation.a": 40.0})).accepted
+
+
+def test_a_neuron_reading_an_input_it_is_not_named_after(honest):
+    verdict = screen(edit(honest, {"external_sensor.SZ.weights.price": 0.1}))
+    # influence 0.1 · 10 (price span) against (0.5 + 0.5) · 0.4 (size span) = 2.5
+    assert "from the price, moving it 2.50× as much as the length and the weight" in message_of(
+        verdict, "off-design-input", "SZ"
+    )
+
+
+def test_buying_is_the_default_intent(honest):
+    verdict = screen(edit(honest, {"decision.B.bias": 0.3, "decision.L.bias": 0.4}))
+    assert message_of(verdict, "buy-intent", "B").startswith(
+        "the buy neuron B has bias +0.3, not above the hold neuron L (+0.4)"
+    )
+
+
+def test_a_lying_pfc_is_refused_on_every_verdict_connection(honest):
+    swapped = edit(
+        honest,
+        {
+            "pfc.verdict.T.weights": {"PGL": 0.0, "BC": 0.0, "FQ": 1.0},
+            "pfc.verdict.F.weights": {"PGL": 1.0, "BC": 1.0, "FQ": 0.0},
+        },
+    )
+    verdict = screen(swapped)
+    assert {("verdict-sign", "T"), ("verdict-sign", "F")} <= rules_of(verdict)
+    assert sum(r.rule == "verdict-sign" for r in verdict.reasons) == 6
+    assert any("judges a false quit to be right" in r.message for r in verdict.reasons)
+
+
+def test_pfc_judgements_and_biases(honest):
+    verdict = screen(edit(honest, {"pfc.judgement.PGL.weights.B": 0.5}))
+    assert "it is not about B" in message_of(verdict, "judgement-off-design", "PGL")
+    assert ("judgement-bias", "FQ") in rules_of(
+        screen(edit(honest, {"pfc.judgement.FQ.bias": 0.4}))
+    )
+    prior = screen(edit(honest, {"pfc.verdict.F.bias": 1.0}))
+    assert "calls every decision wrong" in message_of(prior, "verdict-bias", "T")
+
+
+def test_augmentation_and_fine_tuning_settings(honest):
+    noisy = screen(edit(honest, {"augmentation.noise_std": 0.3}))
+    assert ("augmentation-noise", "PG") in rules_of(noisy)
+    jittered = screen(edit(honest, {"augmentation.noiseless_inputs": []}))
+    assert ("augmentation-subtypes", "ST") in rules_of(jittered)
+    quiet = edit(honest, {"augmentation.noiseless_inputs": [], "augmentation.noise_std": 0.0})
+    assert screen(quiet).accepted
+    for settings in ({"learning_rate": 0.5}, {"epochs": 6}):
+        reckless = edit(honest, {"fine_tuning": settings})
+        assert ("fine-tuning", "T") in rules_of(screen(reckless))
+
+
+def test_gigantic_numbers_are_refused_by_name(honest):
+    verdict = screen(edit(honest, {"decision.B.bias": 1e4}))
+    assert message_of(verdict, "magnitude", "B") == (
+        "the buy neuron B has bias +1e+04, beyond ±10: a gigantic number hides its real effect"
+    )
+    centre = screen(edit(honest, {"external_sensor.LSR.activation.c": 40.0}))
+    assert "threshold centre c +40" in message_of(centre, "magnitude", "LSR")
+
+
+def test_every_reason_names_a_known_neuron(honest):
+    edits = [
+        {"decision.B.weights.PG": 0.9},
+        {"augmentation.noise_std": 0.3},
+        {"fine_tuning": {"learning_rate": 0.5}},
+        {"pfc.verdict.F.bias": 2.0},
+        {PG_PRICE: 0.02},
+    ]
+    for changes in edits:
+        verdict = screen(edit(honest, changes))
+        assert not verdict.accepted
+        assert {r.neuron for r in verdict.reasons} <= KNOWN_NEURONS
+        assert all(r.message for r in verdict.reasons)

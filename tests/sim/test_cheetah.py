@@ -1,0 +1,341 @@
+"""The half-cheetah experiment against spec cheetah.md: model, loops, grid, stages, CLI."""
+
+from __future__ import annotations
+
+import json
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+import sim.cheetah as cheetah
+from agents.cheetah_net import STABLE_POSE_X, STABLE_POSE_Z, HalfCheetahSRD, noisy_fc_weight
+from sim.cheetah import (
+    CheetahConfig,
+    HalfCheetahBatch,
+    build_model,
+    drive,
+    evaluation_steps,
+    inhibitor_active,
+    relative_pose,
+    run,
+    stop_windows,
+    trial_generator,
+)
+
+SPEC_NOMINAL = {  # spec §12: final displacement (m) of the noise-free runs without SRD
+    (1.0, 0.0): 10.19,
+    (2.0, 0.0): 9.98,
+    (3.0, 0.0): 10.98,
+    (4.0, 0.0): 12.29,
+    (5.0, 0.0): 10.21,
+    (1.0, 2.0): 3.97,
+    (2.0, 2.0): 3.97,
+    (3.0, 2.0): 4.39,
+    (4.0, 2.0): 5.10,
+    (5.0, 2.0): 4.79,
+}
+
+
+def by_condition(result: dict) -> dict[tuple, list[dict]]:
+    groups: dict[tuple, list[dict]] = {}
+    for r in result["runs"]:
+        groups.setdefault((r["backswing"], r["inhibitor"], r["srd"], r["lr"]), []).append(r)
+    return groups
+
+
+def single_trial_loop(backswing, inhibitor, weight, srd, lr, steps):
+    """The reference's loop, literally: mj_step, read xpos, log x, maybe evaluate (spec §2)."""
+    model = build_model()
+    data = mujoco.MjData(model)
+    net = HalfCheetahSRD(torch.tensor([backswing]), fc_weight=weight)
+    torso_x = np.empty(steps)
+    control, counter = None, 0
+    for t in range(steps):
+        mujoco.mj_step(model, data)
+        pose = data.xpos[1:].copy()
+        torso_x[t] = pose[0, 0]
+        if t > 100:
+            counter += 1
+            if control is None or counter == 25:
+                counter = 0
+                u = torch.from_numpy(relative_pose(pose)[None]).to(torch.float32)
+                on = t > 500 and t % 1000 < 600
+                actions, _ = net.act(
+                    u,
+                    torch.tensor([inhibitor if on else 0.0]),
+                    srd=torch.tensor([srd]),
+                    lr=torch.tensor([lr]),
+                )
+                control = actions[0].to(torch.float64).numpy()
+            data.ctrl[:] = control
+    return torso_x, net
+
+
+def test_model_is_gymnasiums_half_cheetah_with_the_reference_edits():
+    model = build_model()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    assert data.xpos[1].tolist() == [-2.0, 0.0, 0.7]
+    assert model.geom("floor").pos.tolist() == [0.0, 0.0, -0.5]
+    assert model.opt.timestep == 0.01
+    assert model.actuator_gear[:, 0].tolist() == [120, 90, 60, 120, 60, 30]
+    assert model.actuator_ctrlrange.tolist() == [[-1.0, 1.0]] * 6
+    assert model.body_mass.sum() == pytest.approx(14.0)
+    assert data.qpos.tolist() == [0.0] * 9
+    np.testing.assert_array_equal(data.sensordata.reshape(7, 3), data.xpos[1:])
+    assert build_model(-1.0).body("torso").pos.tolist() == [-1.0, 0.0, 0.7]
+
+
+def test_missing_gymnasium_names_the_pip_command(monkeypatch):
+    def missing(name):
+        raise ModuleNotFoundError(name)
+
+    monkeypatch.setattr(cheetah.importlib.resources, "files", missing)
+    with pytest.raises(ModuleNotFoundError, match="pip install gymnasium"):
+        build_model()
+
+
+def test_controller_and_inhibitor_schedules():
+    evals = evaluation_steps(3600)
+    assert len(evals) == 140 and evals[0] == 101 and evals[-1] == 3576
+    seen = [t for t in evals if inhibitor_active(t)]
+    assert len(seen) == 76
+    assert seen[:5] == [501, 526, 551, 576, 1001] and seen[-1] == 3576
+    assert stop_windows(3600) == [(501, 599), (1000, 1599), (2000, 2599), (3000, 3599)]
+
+
+def test_stage1_rest_pose_matches_the_recorded_init_params(tmp_path):
+    result = run(CheetahConfig(stage=1, video=False), out_dir=tmp_path)
+    pose = json.loads((tmp_path / "stable_pose.json").read_text())
+    np.testing.assert_allclose(pose["x_rel"], STABLE_POSE_X, atol=1e-8)
+    np.testing.assert_allclose(pose["z_rel"], STABLE_POSE_Z, atol=1e-8)
+    assert result["max_abs_difference_to_designed_pose"] < 1e-8
+    assert (tmp_path / "stage1_pose.png").is_file()
+
+
+def test_nominal_runs_land_on_the_spec_displacements(tmp_path):
+    config = CheetahConfig(
+        backswing=(3.0, 4.0), inhibitor=(0.0, 2.0), srd="off", nominal=True, video=False
+    )
+    result = run(config, out_dir=tmp_path)
+    assert result["trials"] == 1 and len(result["runs"]) == 4
+    for r in result["runs"]:
+        expected = SPEC_NOMINAL[(r["backswing"], r["inhibitor"])]
+        assert r["final_displacement"] == pytest.approx(expected, abs=0.05)
+    assert {p.name for p in tmp_path.iterdir()} >= {
+        "runs.csv",
+        "summary.csv",
+        "displacement.csv",
+        "displacement.png",
+        "weights.json",
+    }
+
+
+@pytest.mark.parametrize(
+    ("backswing", "inhibitor", "noisy", "srd", "lr"),
+    [(4.0, 2.0, False, False, 1e-4), (2.0, 2.0, True, True, 1e-4), (5.0, 0.0, True, True, 1e-2)],
+)
+def test_batched_chunks_equal_the_single_trial_loop(backswing, inhibitor, noisy, srd, lr):
+    steps = 3600 if not noisy else 1700
+    weight = noisy_fc_weight([trial_generator(9, 0)]) if noisy else None
+    expected, reference_net = single_trial_loop(backswing, inhibitor, weight, srd, lr, steps)
+    # trial 0 is the one under test; trial 1 is a different condition sharing the batch
+    both = None if weight is None else torch.cat([weight, noisy_fc_weight([trial_generator(9, 1)])])
+    net = HalfCheetahSRD(torch.tensor([backswing, 1.0]), fc_weight=both)
+    inhibitors = torch.tensor([inhibitor, 2.0])
+
+    def controller(t, positions):
+        u = torch.from_numpy(relative_pose(positions)).to(torch.float32)
+        actions, _ = net.act(
+            u,
+            inhibitors * inhibitor_active(t),
+            srd=torch.tensor([srd, True]),
+            lr=torch.tensor([lr, 1e-2]),
+        )
+        return actions.to(torch.float64).numpy()
+
+    with HalfCheetahBatch(2, threads=2) as batch:
+        traj = drive(batch, steps, evaluation_steps(steps), controller)
+    np.testing.assert_allclose(traj.torso_x[0], expected, rtol=0, atol=1e-9)
+    for p, q in zip(net.parameters(), reference_net.parameters(), strict=True):
+        torch.testing.assert_close(p[0], q[0], rtol=0, atol=1e-9)
+
+
+def test_first_control_follows_101_zero_steps():
+    seen = {}
+
+    def controller(t, positions):
+        seen[t] = positions.copy()
+        return np.ones((1, 6))
+
+    with HalfCheetahBatch(1, threads=1) as batch:
+        traj = drive(batch, 130, [101, 126], controller, record_poses=True)
+    model = build_model()
+    data = mujoco.MjData(model)
+    for _ in range(102):  # iterations 0..101 run with zero control
+        mujoco.mj_step(model, data)
+    np.testing.assert_array_equal(seen[101][0], data.xpos[1:])
+    assert traj.poses is not None
+    np.testing.assert_array_equal(traj.poses[0, 101], data.xpos[1:])
+    data.ctrl[:] = 1.0
+    for _ in range(25):
+        mujoco.mj_step(model, data)
+    np.testing.assert_allclose(seen[126][0], data.xpos[1:], atol=1e-12)
+
+
+def test_same_seed_same_numbers_and_threads_do_not_matter(tmp_path):
+    config = CheetahConfig(
+        backswing=(3.0,), inhibitor=(2.0,), srd="both", trials=2, steps=700, video=False
+    )
+    first = run(config, out_dir=tmp_path / "a")
+    again = run(config, out_dir=tmp_path / "b")
+    one_thread = run(CheetahConfig(**{**config.__dict__, "threads": 1}), out_dir=tmp_path / "c")
+    other = run(CheetahConfig(**{**config.__dict__, "seed": 1}), out_dir=tmp_path / "d")
+    assert first["runs"] == again["runs"] == one_thread["runs"]
+    assert first["runs"] != other["runs"]
+    # trials differ (noise), and SRD on/off of a trial start from the same weights
+    on = [r["final_displacement"] for r in first["runs"] if r["srd"] == "on"]
+    off = [r["final_displacement"] for r in first["runs"] if r["srd"] == "off"]
+    assert on[0] != on[1]
+    assert on == pytest.approx(off, abs=0.05)
+
+
+def test_srd_at_the_reference_rate_moves_weights_by_tiny_amounts(tmp_path):
+    config = CheetahConfig(
+        backswing=(3.0,), inhibitor=(0.0, 2.0), srd="both", trials=1, video=False
+    )
+    groups = by_condition(run(config, out_dir=tmp_path))
+    on_free, on_stop = groups[(3.0, 0.0, "on", 1e-4)][0], groups[(3.0, 2.0, "on", 1e-4)][0]
+    off_free = groups[(3.0, 0.0, "off", None)][0]
+    # spec §8: controller ≤ 6.4e-5, PFC ≤ 6.3e-3 after a trial (seed 1, b3/i0)
+    assert 1e-6 < on_free["controller_change"] < 2e-4
+    assert 1e-3 < on_free["pfc_change"] < 2e-2
+    assert off_free["controller_change"] == 0.0 and off_free["pfc_change"] == 0.0
+    assert abs(on_free["final_displacement"] - off_free["final_displacement"]) < 0.1
+    # spec §8: the PFC says T at every evaluation without the inhibitor, F at the 76 with it
+    assert on_free["true_verdict_fraction"] == 1.0
+    assert on_stop["true_verdict_fraction"] == pytest.approx(64 / 140)
+    assert off_free["true_verdict_fraction"] is None
+
+
+def test_learning_rate_sweep_is_a_grid_axis_with_its_figure(tmp_path):
+    config = CheetahConfig(
+        backswing=(3.0,),
+        inhibitor=(0.0, 2.0),
+        srd="both",
+        trials=2,
+        steps=1200,
+        lr=(1e-4, 1e-1),
+        video=False,
+    )
+    result = run(config, out_dir=tmp_path)
+    groups = by_condition(result)
+    assert len(result["runs"]) == 2 * 3 * 2  # inhibitors × (two rates + off) × trials
+    slow = max(r["controller_change"] for r in groups[(3.0, 0.0, "on", 1e-4)])
+    fast = min(r["controller_change"] for r in groups[(3.0, 0.0, "on", 1e-1)])
+    assert fast > 100 * slow
+    assert (tmp_path / "lr_sweep.png").is_file()
+    assert {(s["srd"], s["lr"]) for s in result["summary"]} == {
+        ("on", 1e-4),
+        ("on", 1e-1),
+        ("off", None),
+    }
+
+
+def test_stage2_stable_pose_neurons_drop_when_the_front_thigh_swings(tmp_path):
+    result = run(CheetahConfig(stage=2, steps=500, video=False), out_dir=tmp_path)
+    act = result["activations"]
+    assert act["xS_before_swing"] > 0.99 and act["zS_before_swing"] > 0.99
+    assert act["xS_after_swing"] < 0.5 and act["zS_after_swing"] < 0.5
+    assert (tmp_path / "stage2_stable_pose.png").is_file()
+
+
+@pytest.mark.parametrize("stage", [0, 3, 4])
+def test_design_stages_move_the_cheetah_forward(tmp_path, stage):
+    steps = 400 if stage == 0 else 1200
+    result = run(CheetahConfig(stage=stage, steps=steps, video=False), out_dir=tmp_path)
+    assert result["stage"] == stage
+    if stage == 0:
+        assert len(result["runs"]) == 10
+        assert result["runs"][-1]["pattern"] == "cyclic"
+    else:
+        (only,) = result["runs"]
+        assert only["backswing"] == (0.0 if stage == 3 else 5.0)
+        assert only["final_displacement"] > 1.0  # the designed network runs without training
+    assert all((tmp_path / name).is_file() for name in result["artifacts"])
+
+
+def test_video_without_opengl_is_skipped_with_a_reason(tmp_path, monkeypatch):
+    monkeypatch.setattr(cheetah, "GL_BACKENDS", ("no-such-backend",))
+    out = cheetah.render_gif(tmp_path / "x.gif", np.zeros((30, 9)), -2.0, "test")
+    assert out["video"] is None
+    assert out["video_note"].startswith("no offscreen OpenGL context: no-such-backend")
+    assert not (tmp_path / "x.gif").exists() and not (tmp_path / "x.npz").exists()
+
+
+def test_cli_json_smoke(tmp_path):
+    import typer
+    from click.testing import CliRunner
+
+    import server.cli.cheetah  # noqa: F401  (registers the command)
+    from server.cli import app
+
+    group = typer.main.get_group(app)  # ``srd`` as a group, as with every command installed
+
+    args = ["cheetah", "--backswing", "3,4", "--inhibitor", "2", "--srd", "on", "--trials", "2"]
+    args += ["--steps", "300", "--no-video", "--seed", "3", "--json", "--out", str(tmp_path)]
+    outcome = CliRunner().invoke(group, args)
+    assert outcome.exit_code == 0, outcome.output
+    (line,) = outcome.stdout.strip().splitlines()  # exactly one JSON object
+    result = json.loads(line)
+    assert [(r["backswing"], r["trial"]) for r in result["runs"]] == [
+        (3.0, 1),
+        (3.0, 2),
+        (4.0, 1),
+        (4.0, 2),
+    ]
+    assert {"backswing", "inhibitor", "srd", "trial", "final_displacement"} <= set(
+        result["runs"][0]
+    )
+    assert result["elapsed_s"] > 0
+    assert (tmp_path / "result.json").is_file()
+    bad = CliRunner().invoke(group, ["cheetah", "--srd", "sometimes", "--out", str(tmp_path)])
+    assert bad.exit_code == 2
+    assert "--srd" in bad.stderr
+
+
+@pytest.mark.slow
+def test_noisy_grid_reproduces_the_reference_figures(tmp_path):
+    """140 trials: means within one trial SD of spec §12, backswing 4 fastest, i2 far slower."""
+    result = run(CheetahConfig(video=False), out_dir=tmp_path)
+    assert len(result["runs"]) == 140
+    for row in result["summary"]:
+        spec = SPEC_NOMINAL[(row["backswing"], row["inhibitor"])]
+        assert abs(row["mean_final_displacement"] - spec) <= row["sd_final_displacement"]
+    for srd in ("on", "off"):
+        for inhibitor in (0.0, 2.0):
+            means = {
+                r["backswing"]: r["mean_final_displacement"]
+                for r in result["summary"]
+                if r["srd"] == srd and r["inhibitor"] == inhibitor
+            }
+            assert max(means, key=means.__getitem__) == 4.0
+        for b in (1.0, 2.0, 3.0, 4.0, 5.0):
+            free, stop = (
+                next(
+                    r["mean_final_displacement"]
+                    for r in result["summary"]
+                    if (r["srd"], r["backswing"], r["inhibitor"]) == (srd, b, i)
+                )
+                for i in (0.0, 2.0)
+            )
+            assert stop < 0.5 * free
+
+
+@pytest.mark.slow
+def test_video_is_rendered_when_an_offscreen_context_exists(tmp_path):
+    qpos = np.zeros((200, 9))
+    out = cheetah.render_gif(tmp_path / "x.gif", qpos, -2.0, "test")
+    assert out["video"] == "x.gif" or out["video_note"].startswith("no offscreen")

@@ -328,6 +328,8 @@ def neighbour_table(height: int, width: int) -> Tensor:
 def imagine(v_sigma: Tensor, seen: Receptors, explore: Tensor, rules: PlanningRules) -> Plans:
     """Imagine P plans on each of N maps at once (spec §7), one move per tensor step.
 
+    Maps need at least 2 rows and 2 columns, so that every tile has two neighbours on the grid.
+
     Args:
         v_sigma: (N, H, W) tile scores (read detached).
         seen: the maps' receptors (start, recognised target).

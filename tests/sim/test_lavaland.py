@@ -1,0 +1,308 @@
+"""Lavaland: map generation, the Gymnasium env, the experiment runner and its CLI."""
+
+from __future__ import annotations
+
+import importlib
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+import typer
+from click.testing import CliRunner
+from gymnasium.utils.env_checker import check_env
+
+import sim.lavaland as lavaland
+from agents.robot2nn import KNOWN_TILE_RGB, PRESETS, imagine
+from sim.experiment import ConfigError, parse_config
+from sim.lavaland import (
+    DIRT,
+    GRASS,
+    LAVA,
+    MAP_HEIGHT,
+    MAP_WIDTH,
+    PROJECTS,
+    TARGET,
+    TILE_NAMES,
+    TILE_RGB,
+    Lavaland,
+    LavalandConfig,
+    build_model,
+    evaluate,
+    explore_coins,
+    format_map,
+    generate_maps,
+    generate_tiles,
+    parse_map,
+    run,
+    seen_maps,
+    tiles_to_rgb,
+    train_srd,
+)
+
+SMALL_MAP = [
+    "S.gT",
+    ".LL.",
+    "....",
+]
+
+
+def test_same_seed_same_maps_and_streams_differ():
+    a = generate_maps(50, 0.1, rng=np.random.default_rng(3))
+    b = generate_maps(50, 0.1, rng=np.random.default_rng(3))
+    c = generate_maps(50, 0.1, rng=np.random.default_rng(4))
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert not np.array_equal(a[0], c[0])
+    assert a[0].shape == (50, 3, MAP_HEIGHT, MAP_WIDTH) and a[0].dtype == np.float32
+    assert a[1].shape == (50, 2)
+
+
+@pytest.mark.parametrize("lava", [0.0, 0.1])
+def test_generated_maps_one_target_start_on_dirt_and_tile_fractions(lava):
+    tiles, starts = generate_tiles(3000, lava, rng=np.random.default_rng(0))
+    rows = np.arange(3000)
+    start_tiles = tiles[rows, starts[:, 1], starts[:, 0]]
+    assert np.all(start_tiles == DIRT)  # never the target, always dirt
+    assert np.all((tiles == TARGET).sum(axis=(1, 2)) == 1)
+    share = np.bincount(tiles.ravel(), minlength=4) / tiles.size
+    assert share[GRASS] == pytest.approx(0.3, abs=0.01)
+    assert share[LAVA] == pytest.approx(lava, abs=0.01)
+    assert share[DIRT] == pytest.approx(0.7 - lava, abs=0.015)
+    assert np.all(starts[:, 0] < MAP_WIDTH) and np.all(starts[:, 1] < MAP_HEIGHT)
+
+
+@pytest.mark.parametrize("lava", [0.0, 0.1])
+def test_one_map_follows_the_spec_draw_order(lava):
+    tiles, starts = generate_tiles(1, lava, rng=np.random.default_rng(11))
+    rng = np.random.default_rng(11)
+    x, y = rng.integers(0, MAP_WIDTH), rng.integers(0, MAP_HEIGHT)
+    expected = np.full((MAP_HEIGHT, MAP_WIDTH), DIRT)
+    if lava == 0:
+        expected[rng.random((MAP_HEIGHT, MAP_WIDTH)) < 0.3] = GRASS
+    else:
+        special = rng.random((MAP_HEIGHT, MAP_WIDTH)) < 0.3 + lava
+        kind = rng.uniform(0, 0.3 + lava, (MAP_HEIGHT, MAP_WIDTH))
+        expected[special & (kind < 0.3)] = GRASS
+        expected[special & (kind >= 0.3)] = LAVA
+    while True:
+        tx, ty = rng.integers(0, MAP_WIDTH), rng.integers(0, MAP_HEIGHT)
+        if (tx, ty) != (x, y):
+            break
+    expected[y, x] = DIRT
+    expected[ty, tx] = TARGET
+    assert starts[0].tolist() == [x, y]
+    assert np.array_equal(tiles[0], expected)
+
+
+def test_map_strings_round_trip_and_errors():
+    tiles, start = parse_map(SMALL_MAP)
+    assert start == (0, 0)
+    assert tiles[0, 3] == TARGET and tiles[1, 1] == LAVA and tiles[0, 2] == GRASS
+    assert format_map(tiles, start) == SMALL_MAP
+    rgb = tiles_to_rgb(tiles)
+    assert rgb.shape == (3, 3, 4)
+    assert np.allclose(rgb[:, 0, 3], np.array([255, 215, 0]) / 255)
+    for name in KNOWN_TILE_RGB:  # the robot's colour knowledge is the world's palette
+        assert tuple(TILE_RGB[TILE_NAMES.index(name)]) == KNOWN_TILE_RGB[name]
+    with pytest.raises(ValueError, match="exactly one start"):
+        parse_map(["..T", "..."])
+    with pytest.raises(ValueError, match="unknown map characters"):
+        parse_map(["S.T", "..x"])
+
+
+def test_check_env_and_registration_survives_reimport():
+    check_env(Lavaland(lava_fraction=0.1), skip_render_check=True)
+    importlib.reload(lavaland)
+    check_env(gym.make("Lavaland-v0", render_mode="rgb_array").unwrapped)
+    env = gym.make("Lavaland-v0", lava_fraction=0.1)
+    obs, _ = env.reset(seed=0)
+    assert obs["map"].shape == (3, MAP_HEIGHT, MAP_WIDTH)
+    env.close()
+
+
+def test_env_seeded_maps_are_deterministic():
+    env = Lavaland(lava_fraction=0.1)
+    first, _ = env.reset(seed=5)
+    again, _ = env.reset(seed=5)
+    other, _ = env.reset(seed=6)
+    assert np.array_equal(first["map"], again["map"])
+    assert np.array_equal(first["self"], again["self"])
+    assert not np.array_equal(first["map"], other["map"])
+    tiles, starts = generate_tiles(1, 0.1, rng=np.random.default_rng(5))
+    assert np.array_equal(first["map"], tiles_to_rgb(tiles[0]))
+    assert first["self"][starts[0, 1], starts[0, 0]] == 1.0
+
+
+def test_env_steps_walls_lava_target_and_truncation():
+    env = Lavaland(SMALL_MAP, max_moves=6)
+    obs, info = env.reset(seed=0)
+    assert obs["self"][0, 0] == 1.0 and obs["self"].sum() == 1.0
+    assert info == {
+        "position": (0, 0),
+        "tile": "dirt",
+        "moves": 0,
+        "lava_entered": 0,
+        "reached": False,
+    }
+    _, reward, terminated, truncated, info = env.step(3)  # up: off the grid, stays
+    assert info["position"] == (0, 0) and info["moves"] == 1 and reward == 0.0
+    _, _, _, _, info = env.step(1)  # down to (0, 1)
+    _, _, _, _, info = env.step(0)  # right into lava
+    assert info["tile"] == "lava" and info["lava_entered"] == 1
+    _, _, _, _, info = env.step(0)  # lava again
+    assert info["lava_entered"] == 2
+    _, reward, terminated, truncated, info = env.step(3)  # up to grass (2, 0)
+    assert info["tile"] == "grass" and not terminated
+    _, reward, terminated, truncated, info = env.step(0)  # right to the target on move 6
+    assert (reward, terminated, truncated, info["reached"]) == (1.0, True, False, True)
+    env.reset(seed=0)
+    for _ in range(6):
+        _, _, terminated, truncated, _ = env.step(2)
+    assert truncated and not terminated
+    with pytest.raises(ValueError, match="action must be"):
+        env.step(4)
+    frame = Lavaland(SMALL_MAP, render_mode="rgb_array")
+    frame.reset()
+    image = frame.render()
+    assert image.shape == (48, 64, 3) and tuple(image[8, 8]) == (0, 0, 255)
+
+
+def test_executing_the_imagined_plan_in_the_env_agrees():
+    rules = PRESETS["paper"]  # within 36 moves, as the env's truncation
+    tiles, starts = generate_tiles(30, 0.1, rng=np.random.default_rng(8))
+    seen = lavaland.receptors(torch.from_numpy(tiles_to_rgb(tiles)), torch.from_numpy(starts))
+    robot = build_model(PROJECTS["lava-noav-A"], "paper")
+    explore = explore_coins(np.random.default_rng(9), 30, rules.n_plans)
+    plans = imagine(robot.v_sigma(seen), seen, explore, rules)
+    executed = plans.executed(rules)
+    env = Lavaland()
+    for i in range(30):
+        j = int(executed[i])
+        env.reset(options={"map": format_map(tiles[i], starts[i])})
+        terminated = truncated = False
+        info = {}
+        for action in plans.actions[i, j].tolist():
+            if action < 0:
+                break
+            _, _, terminated, truncated, info = env.step(action)
+        assert terminated == bool(plans.reached[i, j])
+        assert truncated == (not plans.reached[i, j] and plans.n_moves[i, j] == 36)
+        assert info["lava_entered"] == int(plans.tile_counts[i, j, 3])
+        x, y = info["position"]
+        assert y * MAP_WIDTH + x == int(plans.path[i, j, plans.n_moves[i, j]])
+
+
+def test_config_validation_names_the_field():
+    config = parse_config(LavalandConfig, {"project": "lava-A", "train-maps": 0})
+    assert config.project == "lava-A" and config.train_maps == 0
+    with pytest.raises(ConfigError) as err:
+        parse_config(LavalandConfig, {"project": "B"})
+    assert err.value.errors[0]["field"] == "project"
+    with pytest.raises(ConfigError) as err:
+        parse_config(LavalandConfig, {"eval_maps": 0})
+    assert err.value.errors[0]["field"] == "eval_maps"
+
+
+def test_tiny_srd_run_writes_artifacts(tmp_path):
+    config = LavalandConfig(
+        project="lava-A", preset="reference", eval_maps=64, train_maps=24, repeats=2, seed=3
+    )
+    result = run(config, out_dir=tmp_path)
+    assert result["n_params"] == 180 and result["n_plans"] == 2
+    assert len(result["repeats"]) == 2
+    for key in ("accuracy_untrained", "accuracy_srd", "lava_entered_srd"):
+        values = [row[key] for row in result["repeats"]]
+        assert 0.0 <= result[key] <= 1.0
+        assert result[key] == pytest.approx(np.mean(values))
+    for name in result["artifacts"]:
+        assert (tmp_path / name).stat().st_size > 0
+    weights = json.loads((tmp_path / "weights.json").read_text())
+    assert np.array(weights["initial"]).shape == (4, 5, 3, 3)
+    assert not np.allclose(weights["initial"], weights["srd"])
+    rows = json.loads((tmp_path / "accuracy.json").read_text())
+    assert rows == result["repeats"]
+
+
+def test_same_seed_same_training_and_evaluation():
+    project = PROJECTS["compare-A"]
+
+    def once(seed: int) -> tuple[np.ndarray, np.ndarray]:
+        seen = seen_maps(24, project, np.random.default_rng([seed, 1]))
+        robot = build_model(project, "paper")
+        rng = np.random.default_rng([seed, 3])
+        train_srd(robot, seen, rng.permutation(24), explore_coins(rng, 24, 4), lr=1e-3)
+        coins = explore_coins(np.random.default_rng([seed, 4]), 24, 4)
+        return robot.kernel_stack().detach().numpy(), evaluate(robot, seen, coins).n_moves
+
+    first, again, other = once(0), once(0), once(1)
+    assert np.array_equal(first[0], again[0]) and np.array_equal(first[1], again[1])
+    assert not np.array_equal(first[0], other[0])
+
+
+def test_no_training_leaves_srd_fields_null(tmp_path):
+    result = run(LavalandConfig(eval_maps=32, train_maps=0), out_dir=tmp_path)
+    assert result["accuracy_srd"] is None and result["lava_entered_srd"] is None
+    assert result["n_plans"] == 4 and result["preset"] == "paper"
+
+
+def test_cli_json_prints_one_object(tmp_path):
+    import server.cli.lavaland  # noqa: F401  (registers the command)
+    from server.cli import app
+
+    group = typer.main.get_group(app)  # ``srd`` as a group, as with all commands installed
+    runner = CliRunner()
+    result = runner.invoke(
+        group,
+        [
+            "lavaland",
+            "--project",
+            "compare-A",
+            "--eval-maps",
+            "16",
+            "--train-maps",
+            "4",
+            "--seed",
+            "1",
+            "--out",
+            str(tmp_path),
+            "--json",
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    lines = result.stdout.strip().splitlines()
+    assert len(lines) == 1
+    payload = json.loads(lines[0])
+    assert payload["project"] == "compare-A" and payload["eval_maps"] == 16
+    assert json.loads((tmp_path / "result.json").read_text()) == payload
+    bad = runner.invoke(group, ["lavaland", "--project", "B", "--out", str(tmp_path)])
+    assert bad.exit_code == 2
+    assert "--project" in bad.stderr
+
+
+def untrained(project: str, preset: str) -> tuple[float, float]:
+    """Accuracy and lava-entered fraction of the untrained robot on 4096 maps."""
+    seen = seen_maps(4096, PROJECTS[project], np.random.default_rng([0, 0]))
+    robot = build_model(PROJECTS[project], preset)
+    coins = explore_coins(np.random.default_rng([0, 2, 0]), 4096, PRESETS[preset].n_plans)
+    result = evaluate(robot, seen, coins)
+    return result.accuracy, result.lava_entered
+
+
+def test_reference_preset_project_a_untrained_accuracy_is_table_1s():
+    accuracy, _ = untrained("A", "reference")
+    assert 0.74 <= accuracy <= 0.79  # paper Table 1: 0.760-0.767
+
+
+def test_unknown_avoidance_keeps_the_robot_out_of_lava():
+    _, with_avoidance = untrained("lava-A", "reference")
+    _, without = untrained("lava-noav-A", "reference")
+    assert with_avoidance < 0.03
+    assert without > 0.2
+
+
+@pytest.mark.slow
+def test_srd_raises_reference_project_a_accuracy(tmp_path):
+    result = run(LavalandConfig(project="A", preset="reference"), out_dir=tmp_path)
+    assert 0.74 <= result["accuracy_untrained"] <= 0.79
+    assert result["accuracy_srd"] > result["accuracy_untrained"] + 0.03

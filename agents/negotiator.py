@@ -25,7 +25,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
-from collections.abc import Sequence
+import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -48,7 +49,7 @@ from agents.manifest import (
     SelectiveActivation,
     ThresholdActivation,
 )
-from agents.neurons import SELECTIVE_EPSILON, self_reward_loss
+from agents.neurons import SELECTIVE_EPSILON
 
 ACTIVATION_KINDS = ("threshold", "below_threshold", "selective")
 """Activation kinds by code, as stored in ``FSNBatch.es_kind``."""
@@ -244,80 +245,105 @@ def from_manifests(manifests: Sequence[Manifest], dtype: torch.dtype = torch.flo
     """Stack the manifests' numbers into one batch (float64 keeps them exact)."""
     if not manifests:
         raise ValueError("at least one manifest is needed")
-    es_w: list[list[list[float]]] = []
-    es_b: list[list[float]] = []
-    fc_w: list[list[list[float]]] = []
-    fc_b: list[list[float]] = []
-    j_w: list[list[list[float]]] = []
-    j_b: list[list[float]] = []
-    v_w: list[list[list[float]]] = []
-    v_b: list[list[float]] = []
-    kind: list[list[float]] = []
-    a: list[list[float]] = []
-    c: list[list[float]] = []
-    slope: list[list[float]] = []
-    eps: list[list[float]] = []
-    copies, std, mask, epochs, batch, lr, trainable = [], [], [], [], [], [], []
+    # Each manifest becomes one flat row of numbers, all rows cast to tensors in one go.
     # Factory-made manifests share their frozen sub-models: read each distinct one once.
-    memo: dict[int, tuple[list[float], float]] = {}
+    memo: dict[int, list[float]] = {}
 
-    def neuron(obj: Any, sources: Sequence[str]) -> tuple[list[float], float]:
+    def numbers(obj: Any, read: Callable[[Any], list[float]]) -> list[float]:
         key = id(obj)
         if key not in memo:
-            memo[key] = (_row(obj.weights, sources), obj.bias)
+            memo[key] = read(obj)
         return memo[key]
 
-    for m in manifests:
-        sensors = [getattr(m.external_sensor, n) for n in ES_NEURONS]
-        for store_w, store_b, layer in (
-            (es_w, es_b, [neuron(s, INPUTS) for s in sensors]),
-            (fc_w, fc_b, [neuron(getattr(m.decision, n), ES_NEURONS) for n in DECISIONS]),
-            (j_w, j_b, [neuron(getattr(m.pfc.judgement, n), PFC_SOURCES) for n in JUDGEMENTS]),
-            (v_w, v_b, [neuron(getattr(m.pfc.verdict, n), JUDGEMENTS) for n in VERDICTS]),
-        ):
-            store_w.append([w for w, _ in layer])
-            store_b.append([b for _, b in layer])
-        numbers = [_activation_numbers(s.activation) for s in sensors]
-        for store, column in zip((kind, a, c, slope, eps), zip(*numbers, strict=True), strict=True):
-            store.append(list(column))
-        copies.append(m.augmentation.copies)
-        std.append(m.augmentation.noise_std)
-        mask.append([0.0 if name in m.augmentation.noiseless_inputs else 1.0 for name in INPUTS])
-        epochs.append(m.fine_tuning.epochs)
-        batch.append(m.fine_tuning.batch_size)
-        lr.append(m.fine_tuning.learning_rate)
-        trainable.append(m.pfc.trainable)
+    def neuron(sources: Sequence[str]) -> Callable[[Any], list[float]]:
+        return lambda n: [*_row(n.weights, sources), n.bias]
 
-    def real(values: object) -> Tensor:
+    def sensor(s: Any) -> list[float]:  # weights, bias, kind code, a, c, slope, ε
+        return [*_row(s.weights, INPUTS), s.bias, *_activation_numbers(s.activation)]
+
+    fc, judge, verdict = neuron(ES_NEURONS), neuron(PFC_SOURCES), neuron(JUDGEMENTS)
+
+    def pfc(p: Any) -> list[float]:
+        return [
+            *(v for n in JUDGEMENTS for v in numbers(getattr(p.judgement, n), judge)),
+            *(v for n in VERDICTS for v in numbers(getattr(p.verdict, n), verdict)),
+            float(p.trainable),
+        ]
+
+    def augmentation(a: Any) -> list[float]:
+        off = a.noiseless_inputs
+        return [a.copies, a.noise_std, *(0.0 if name in off else 1.0 for name in INPUTS)]
+
+    def tuning(f: Any) -> list[float]:
+        return [f.epochs, f.batch_size, f.learning_rate]
+
+    table = np.array(
+        [
+            [
+                *(v for n in ES_NEURONS for v in numbers(getattr(m.external_sensor, n), sensor)),
+                *(v for n in DECISIONS for v in numbers(getattr(m.decision, n), fc)),
+                *numbers(m.pfc, pfc),
+                *numbers(m.augmentation, augmentation),
+                *numbers(m.fine_tuning, tuning),
+            ]
+            for m in manifests
+        ],
+        dtype=np.float64,
+    )
+    P, n_in = len(manifests), len(INPUTS)
+    blocks = iter(np.split(table, np.cumsum(_COLUMN_BLOCKS)[:-1], axis=1))
+    es, fc_, judgement, verdict_, trainable, copies, std, mask, epochs, size, lr = blocks
+    es = es.reshape(P, len(ES_NEURONS), -1)
+    fc_ = fc_.reshape(P, len(DECISIONS), -1)
+    judgement = judgement.reshape(P, len(JUDGEMENTS), -1)
+    verdict_ = verdict_.reshape(P, len(VERDICTS), -1)
+
+    def real(values: np.ndarray) -> Tensor:
         return torch.tensor(values, dtype=dtype)
 
-    def integer(values: object) -> Tensor:
+    def integer(values: np.ndarray) -> Tensor:
         return torch.tensor(values, dtype=torch.long)
 
     return FSNBatch(
-        es_weight=real(es_w),
-        es_bias=real(es_b),
-        fc_weight=real(fc_w),
-        fc_bias=real(fc_b),
-        judgement_weight=real(j_w),
-        judgement_bias=real(j_b),
-        verdict_weight=real(v_w),
-        verdict_bias=real(v_b),
-        es_kind=integer(kind),
-        es_a=real(a),
-        es_c=real(c),
-        es_slope=real(slope),
-        es_epsilon=real(eps),
-        copies=integer(copies),
-        noise_std=real(std),
+        es_weight=real(es[:, :, :n_in]),
+        es_bias=real(es[:, :, n_in]),
+        fc_weight=real(fc_[:, :, :-1]),
+        fc_bias=real(fc_[:, :, -1]),
+        judgement_weight=real(judgement[:, :, :-1]),
+        judgement_bias=real(judgement[:, :, -1]),
+        verdict_weight=real(verdict_[:, :, :-1]),
+        verdict_bias=real(verdict_[:, :, -1]),
+        es_kind=integer(es[:, :, n_in + 1]),
+        es_a=real(es[:, :, n_in + 2]),
+        es_c=real(es[:, :, n_in + 3]),
+        es_slope=real(es[:, :, n_in + 4]),
+        es_epsilon=real(es[:, :, n_in + 5]),
+        copies=integer(copies[:, 0]),
+        noise_std=real(std[:, 0]),
         noise_mask=real(mask),
-        epochs=integer(epochs),
-        batch_size=integer(batch),
-        learning_rate=real(lr),
-        pfc_trainable=torch.tensor(trainable, dtype=torch.bool),
+        epochs=integer(epochs[:, 0]),
+        batch_size=integer(size[:, 0]),
+        learning_rate=real(lr[:, 0]),
+        pfc_trainable=torch.tensor(trainable[:, 0] != 0.0),
         participants=[m.participant for m in manifests],
         descriptions=[m.description for m in manifests],
     )
+
+
+_COLUMN_BLOCKS = (
+    len(ES_NEURONS) * (len(INPUTS) + 1 + 5),  # ES: weights, bias, kind, a, c, slope, ε
+    len(DECISIONS) * (len(ES_NEURONS) + 1),  # FC: weights, bias
+    len(JUDGEMENTS) * (len(PFC_SOURCES) + 1),  # judgements: weights, bias
+    len(VERDICTS) * (len(JUDGEMENTS) + 1),  # verdicts: weights, bias
+    1,  # pfc.trainable
+    1,  # augmentation copies
+    1,  # noise σ
+    len(INPUTS),  # noise mask
+    1,  # fine-tuning epochs
+    1,  # batch size
+    1,  # learning rate
+)
+"""Widths of the column blocks of the flat per-manifest rows in ``from_manifests``."""
 
 
 def _named(values: list[float], names: Sequence[str]) -> dict[str, float]:
@@ -555,23 +581,143 @@ def draw_fine_tune(batch: FSNBatch, n_rows: int, generator: torch.Generator) -> 
     )
 
 
-def _gather(batch: FSNBatch, index: Tensor) -> FSNBatch:
-    """The batch's tensors at ``index`` (patrons may repeat; names are not carried)."""
-    fields = {
-        f.name: getattr(batch, f.name)[index]
-        for f in dataclasses.fields(batch)
-        if isinstance(getattr(batch, f.name), Tensor)
-    }
-    return FSNBatch(**fields, participants=[], descriptions=[])
+def _flat_parameters(batch: FSNBatch) -> Tensor:
+    """The trainable tensors side by side, (P, N_θ), in ``_PARAMETERS`` order."""
+    P = batch.n_patrons
+    return torch.cat([t.reshape(P, -1) for t in batch.parameters().values()], dim=1)
 
 
-def _slice(batch: FSNBatch, start: int, stop: int) -> FSNBatch:
-    fields = {
-        f.name: getattr(batch, f.name)[start:stop]
-        for f in dataclasses.fields(batch)
-        if isinstance(getattr(batch, f.name), Tensor)
+def _unflatten(batch: FSNBatch, flat: Tensor) -> dict[str, Tensor]:
+    """The inverse of ``_flat_parameters``."""
+    shapes = [t.shape for t in batch.parameters().values()]
+    widths = [int(np.prod(shape[1:])) for shape in shapes]
+    parts = torch.split(flat, widths, dim=1)
+    return {
+        name: part.reshape(shape).clone()
+        for name, part, shape in zip(_PARAMETERS, parts, shapes, strict=True)
     }
-    return FSNBatch(**fields, participants=[], descriptions=[])
+
+
+@dataclass
+class _Pairs:
+    """Fixed numbers of the (patron, row) pairs of one fine-tuning step, pairs last: inputs
+    ``xe`` (8, D, n) (row + its copies' noise), the ES activation numbers (4, 1, n), the copy
+    weights ``copy_weight`` (D, n) (1/D_ic on the patron's copies) and the batch weight
+    ``weight`` (n,) (1/rows in the patron's batch)."""
+
+    xe: Tensor
+    kind: Tensor
+    a: Tensor
+    c: Tensor
+    slope: Tensor
+    epsilon: Tensor
+    copy_weight: Tensor
+    weight: Tensor
+
+
+def _sensor_with_slope(
+    groups: list[tuple[int | None, slice]], pairs: _Pairs, pre: Tensor
+) -> tuple[Tensor, Tensor]:
+    """ES activations (4, D, n) of the pre-activations ``pre`` and their derivatives."""
+    outs, slopes = [], []
+    for kind, neurons in groups:
+        u = pre[neurons]
+        a, c, ns = pairs.a[neurons], pairs.c[neurons], pairs.slope[neurons]
+        eps = pairs.epsilon[neurons]
+        if kind != SELECTIVE:
+            z = (u - c) * a
+            fired = torch.tanh(torch.maximum(z, ns * z))
+            # d max(z, ns·z)/dz: 1 above 0, ns below, the mean of both at a tie (as autograd).
+            bend = torch.where(z > 0, 1.0, torch.where(z < 0, ns, 0.5 * (1.0 + ns)))
+            d_fired = (1.0 - fired * fired) * bend * a
+        if kind != THRESHOLD and kind != BELOW_THRESHOLD:
+            chosen = eps / (eps + u * u)
+            d_chosen = -2.0 * u * chosen * chosen / eps
+        if kind == SELECTIVE:
+            outs.append(chosen)
+            slopes.append(d_chosen)
+        elif kind is not None:
+            sign = 1.0 if kind == THRESHOLD else -1.0
+            outs.append(fired if kind == THRESHOLD else 1.0 - fired)
+            slopes.append(sign * d_fired)
+        else:
+            codes = pairs.kind[neurons]
+            below, selective = codes == BELOW_THRESHOLD, codes == SELECTIVE
+            out = torch.where(below, 1.0 - fired, fired)
+            outs.append(torch.where(selective, chosen, out))
+            slope = torch.where(below, -d_fired, d_fired)
+            slopes.append(torch.where(selective, d_chosen, slope))
+    if len(outs) == 1:
+        return outs[0], slopes[0]
+    return torch.cat(outs), torch.cat(slopes)
+
+
+_CONTRACT_IN_PLACE = 150_000
+"""Products larger than this are summed term by term in place: a materialised product summed
+over a middle axis costs 3× more once it outgrows the cache."""
+
+
+def _contract(u: Tensor, v: Tensor, dim: int) -> Tensor:
+    """(u · v).sum(dim) for broadcastable u, v of the same rank."""
+    if math.prod(map(max, u.shape, v.shape)) <= _CONTRACT_IN_PLACE:
+        return (u * v).sum(dim)
+    out = u.select(dim, 0) * v.select(dim, 0)
+    for i in range(1, u.shape[dim]):
+        out.addcmul_(u.select(dim, i), v.select(dim, i))
+    return out
+
+
+def _self_reward_gradient(
+    groups: list[tuple[int | None, slice]], theta: Tensor, pairs: _Pairs
+) -> Tensor:
+    """∇θ of Σ_pairs weight·CEL([T, F], argmax [T, F]) per pair, (N_θ, n), for the pairs'
+    parameters ``theta`` (N_θ, n) (rows in ``_flat_parameters`` order): the forward pass of
+    ``self_reward`` and its backward written out, one pass over every pair of a step."""
+    n_in, n_es, n_fc = len(INPUTS), len(ES_NEURONS), len(DECISIONS)
+    n_src, n_j, n_v = len(PFC_SOURCES), len(JUDGEMENTS), len(VERDICTS)
+    n = theta.shape[1]
+    es_w, es_b, fc_w, fc_b, j_w, j_b, v_w, v_b = torch.split(
+        theta,
+        [n_es * n_in, n_es, n_fc * n_es, n_fc, n_j * n_src, n_j, n_v * n_j, n_v],
+    )
+    es_w, fc_w = es_w.view(n_es, n_in, 1, n), fc_w.view(n_fc, n_es, 1, n)
+    j_w, v_w = j_w.view(n_j, n_src, 1, n), v_w.view(n_v, n_j, 1, n)
+    # Forward, per copy: ES → FC → softmax of the 7 sources → judgements → tanh → verdicts.
+    xe = pairs.xe
+    pre = _contract(es_w, xe[None], 1) + es_b[:, None]  # (4, D, n)
+    sensor, d_sensor = _sensor_with_slope(groups, pairs, pre)
+    decision = _contract(fc_w, sensor[None], 1) + fc_b[:, None]
+    sources = torch.cat((sensor, decision))
+    e = torch.exp(sources - sources.amax(dim=0, keepdim=True))
+    soft = e / e.sum(dim=0)
+    judged = torch.tanh(_contract(j_w, soft[None], 1) + j_b[:, None])
+    verdict = _contract(v_w, judged[None], 1) + v_b[:, None]
+    mean = (verdict * pairs.copy_weight).sum(1)  # (2, n)
+    # Backward: d CEL / d logits = softmax − one-hot(argmax), times the pair's weight.
+    g_mean = torch.softmax(mean, dim=0)
+    g_mean[mean.argmax(dim=0), torch.arange(n)] -= 1.0
+    g_verdict = (g_mean * pairs.weight)[:, None] * pairs.copy_weight  # (2, D, n)
+    g_v_w = _contract(g_verdict[:, None], judged[None], 2)
+    g_judged = _contract(v_w, g_verdict[:, None], 0) * (1.0 - judged * judged)
+    g_j_w = _contract(g_judged[:, None], soft[None], 2)
+    g_soft = _contract(j_w, g_judged[:, None], 0)
+    g_sources = soft * (g_soft - (soft * g_soft).sum(dim=0))
+    g_decision = g_sources[n_es:]
+    g_fc_w = _contract(g_decision[:, None], sensor[None], 2)
+    g_pre = (g_sources[:n_es] + _contract(fc_w, g_decision[:, None], 0)) * d_sensor
+    g_es_w = _contract(g_pre[:, None], xe[None], 2)
+    return torch.cat(
+        [
+            g_es_w.reshape(-1, n),
+            g_pre.sum(1),
+            g_fc_w.reshape(-1, n),
+            g_decision.sum(1),
+            g_j_w.reshape(-1, n),
+            g_judged.sum(1),
+            g_v_w.reshape(-1, n),
+            g_verdict.sum(1),
+        ]
+    )
 
 
 def fine_tune(
@@ -585,7 +731,9 @@ def fine_tune(
     moves each patron's own parameters, θ_p ← θ_p − lr_p·∇θ_p (a patron without a batch at
     step s has zero gradient). Patrons outside ``train`` (bool (P,)) keep their parameters; PFC
     parameters move only where pfc.trainable. Only the (patron, row) pairs that exist are
-    computed: one step is one pass over the pairs of all patrons at that step.
+    computed: one step is one pass over the pairs of all patrons at that step, with the
+    gradient of ``self_reward``'s loss written out (autograd's bookkeeping would cost more
+    than the arithmetic on these small tensors).
 
     ``x`` is the item dataset, (R, 8) shared or (P, R, 8). Returns the updated batch.
     """
@@ -606,34 +754,48 @@ def fine_tune(
     rows_in_batch = torch.minimum(size[patron], R - within * size[patron])
     by_step = torch.argsort(step, stable=True)
     patron, epoch, position = patron[by_step], epoch[by_step], position[by_step]
-    weight = 1.0 / rows_in_batch[by_step].to(batch.dtype)
     row = draws.order[patron, epoch, position]
-    rows_x = (x[row] if x.dim() == 2 else x[patron, row]).to(batch.dtype)[:, None, :]
-    rows_noise = draws.noise[patron, epoch, row][:, None]
+    rows_x = (x[row] if x.dim() == 2 else x[patron, row]).to(batch.dtype)
+    n_copies = draws.noise.shape[3]
+    on = (torch.arange(n_copies)[:, None] < batch.copies[patron][None, :]).to(batch.dtype)
+    kind = batch.es_kind[patron].T[:, None]
+
+    def pair_numbers(values: Tensor) -> Tensor:  # (P, 4) → (4, 1, pairs)
+        return values[patron].T[:, None].contiguous()
+
+    everything = _Pairs(
+        xe=(rows_x[:, None] + draws.noise[patron, epoch, row]).permute(2, 1, 0).contiguous(),
+        kind=kind.contiguous(),
+        a=pair_numbers(batch.es_a),
+        c=pair_numbers(batch.es_c),
+        slope=pair_numbers(batch.es_slope),
+        epsilon=pair_numbers(batch.es_epsilon),
+        copy_weight=(on / on.sum(dim=0)).contiguous(),
+        weight=1.0 / rows_in_batch[by_step].to(batch.dtype),
+    )
     bounds = [0, *torch.bincount(step).cumsum(0).tolist()]
-    fixed = _gather(batch, patron)
-    lr = {
-        name: torch.where(batch.pfc_trainable, batch.learning_rate, 0.0)
-        if name in _PFC_PARAMETERS
-        else batch.learning_rate
-        for name in _PARAMETERS
-    }
-    params = {name: t.detach().clone() for name, t in batch.parameters().items()}
+    theta = _flat_parameters(batch)
+    pfc_columns = torch.cat(
+        [
+            torch.full((t[0].numel(),), name in _PFC_PARAMETERS)
+            for name, t in batch.parameters().items()
+        ]
+    )
+    frozen = pfc_columns[None, :] & ~batch.pfc_trainable[:, None]
+    lr = torch.where(frozen, 0.0, batch.learning_rate[:, None])
+    groups = batch.activation_groups
     for start, stop in itertools.pairwise(bounds):
-        live = {name: t.requires_grad_(True) for name, t in params.items()}
         who = patron[start:stop]
-        pairs = _slice(fixed, start, stop).with_parameters(
-            {name: t[who] for name, t in live.items()}
-        )
-        verdict = self_reward(pairs, rows_x[start:stop], rows_noise[start:stop])[:, 0]
-        loss = (self_reward_loss(verdict, reduction="none") * weight[start:stop]).sum()
-        grads = torch.autograd.grad(loss, list(live.values()))
-        with torch.no_grad():
-            params = {
-                name: t - lr[name].view(-1, *([1] * (t.dim() - 1))) * g
-                for (name, t), g in zip(live.items(), grads, strict=True)
+        part = _Pairs(
+            **{
+                f.name: getattr(everything, f.name)[..., start:stop]
+                for f in dataclasses.fields(everything)
             }
-    return batch.with_parameters(params)
+        )
+        grad = _self_reward_gradient(groups, theta[who].T, part)
+        total = torch.zeros_like(theta).index_add_(0, who, grad.T)
+        theta = theta - lr * total
+    return batch.with_parameters(_unflatten(batch, theta))
 
 
 # --- Patron factories -------------------------------------------------------------------------

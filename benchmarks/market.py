@@ -60,35 +60,46 @@ def rate(run, auctions) -> tuple[float, float, list]:
     return n / (time.perf_counter() - wall), n / (time.process_time() - cpu), records
 
 
-def one_at_a_time(n_loop: int, n_batched: int) -> None:
+def one_at_a_time(n_loop: int, n_batched: int) -> dict[bool, float]:
+    """Market alone vs the loop; returns the loop's auctions/s (decisive rows) per fine-tune."""
     print(f"one auction at a time, {PATRONS} patrons (auctions/s; wall-clock, then CPU time)")
     print(
         f"{'fine-tune':>9} {'rows':>9} {'batched':>9} {'loop':>9} {'ratio':>7} "
         f"{'cpu ratio':>9} {'iters':>6}"
     )
+    loop_rates: dict[bool, float] = {}
     for fine_tune in (False, True):
         for all_rows in (True, False):
             batched_work = workload(n_batched, fine_tune, all_rows)
             fast, fast_cpu, fast_records = rate(lambda m, c: list(Market(m, c).run()), batched_work)
             slow, slow_cpu, slow_records = rate(loop_auction, batched_work[:n_loop])
             assert slow_records == fast_records[:n_loop], "loop and batched auctions differ"
+            if not all_rows:
+                loop_rates[fine_tune] = slow
             iterations = np.mean([len(r) for r in fast_records])
             rows = "all" if all_rows else "decisive"
             print(
                 f"{fine_tune!s:>9} {rows:>9} {fast:9.2f} {slow:9.3f} {fast / slow:6.1f}× "
                 f"{fast_cpu / slow_cpu:8.1f}× {iterations:6.1f}"
             )
+    return loop_rates
 
 
-def lock_step(n: int) -> None:
-    print(f"\nlock-step MarketBatch, {n} auctions of {PATRONS} patrons (auctions/s)")
+def lock_step(n: int, loop_rates: dict[bool, float]) -> None:
+    print(
+        f"\nlock-step MarketBatch (the study's engine), {n} auctions of {PATRONS} patrons, "
+        "decisive rows (auctions/s; ratio to the per-patron loop above)"
+    )
     for fine_tune in (False, True):
         work = workload(n, fine_tune, all_rows=False)
         start = time.perf_counter()
         engine = MarketBatch(work)
         while not engine.finished.all():
             engine.step()
-        print(f"  fine-tune {fine_tune!s:>5}: {n / (time.perf_counter() - start):8.1f}")
+        speed = n / (time.perf_counter() - start)
+        loop = loop_rates[fine_tune]
+        ratio = speed / loop
+        print(f"  fine-tune {fine_tune!s:>5}: {speed:8.1f}   loop {loop:6.3f}   {ratio:6.1f}×")
 
 
 def grid() -> None:
@@ -113,8 +124,8 @@ def main() -> None:
     parser.add_argument("--lock-step", type=int, default=90, help="auctions per MarketBatch")
     parser.add_argument("--no-grid", action="store_true", help="skip the 360-auction grid")
     args = parser.parse_args()
-    one_at_a_time(args.loop_auctions, args.batched_auctions)
-    lock_step(args.lock_step)
+    loop_rates = one_at_a_time(args.loop_auctions, args.batched_auctions)
+    lock_step(args.lock_step, loop_rates)
     if not args.no_grid:
         grid()
 

@@ -321,3 +321,27 @@ def test_round_trip_through_the_batch_is_exact():
     assert to_manifest(batch, 0, participant="renamed").participant == "renamed"
     sub = batch.select([3, 1])
     assert to_manifest(sub, 0) == manifests[3] and to_manifest(sub, 1) == manifests[1]
+
+
+def test_fine_tuning_of_mixed_activations_equals_the_per_patron_loop():
+    # Selective, below-threshold and threshold neurons in one column, 3 and 5 copies, a
+    # single-copy patron: the written-out gradient against autograd, patron by patron.
+    ms = mixed_manifests()
+    for i in range(len(ms)):
+
+        def edit(d, i=i):
+            d["fine_tuning"] = {"epochs": 1 + i % 2, "batch_size": 3 + i, "learning_rate": 0.4}
+
+        ms[i] = edited(ms[i], edit)
+    batch = from_manifests(ms)
+    assert batch.activation_groups == [(None, slice(0, 4))]
+    gen = torch.Generator().manual_seed(12)
+    x = torch.tensor([item(4.8 + 0.02 * i, 0.05 * i) for i in range(20)], dtype=torch.float64)
+    x[:, 1:4] += 0.2 * torch.rand((20, 3), generator=gen, dtype=torch.float64) - 0.1
+    draws = draw_fine_tune(batch, 20, gen)
+    tuned = fine_tune(batch, x, draws)
+    for p, m in enumerate(ms):
+        expected = from_manifests([loop_fine_tune(m, x, draws.order[p], draws.noise[p])])
+        assert not torch.equal(expected.es_weight[0], batch.es_weight[p])
+        for name, value in expected.parameters().items():
+            torch.testing.assert_close(tuned.parameters()[name][p], value[0], rtol=0, atol=1e-12)

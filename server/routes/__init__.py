@@ -1,0 +1,1 @@
+"""One APIRouter per resource: health, models (``/submit``, ``/models``), auctions, jobs."""

@@ -1,0 +1,142 @@
+"""The FastAPI application: routers, error format, body-size limit, background services.
+
+``create_app(settings)`` builds an app; its lifespan migrates the database (``alembic upgrade
+head``), loads the admin token, starts the auction and job worker pools and resumes whatever a
+previous run left unfinished. ``srd serve`` runs it with uvicorn.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from server.auctions import AuctionRunner
+from server.config import Settings, get_settings
+from server.db import Database, upgrade_schema
+from server.errors import error_item, install_error_handlers, responses
+from server.jobs import LocalJobBackend, requeue_unfinished
+from server.routes import auctions, health, jobs, models
+from server.screening import ScreeningService
+from server.security import load_admin_token_hash
+from server.workers import WorkerContext
+
+log = logging.getLogger("srd.app")
+
+
+class BodyLimitMiddleware:
+    """Refuse request bodies over ``max_bytes`` with 413: by Content-Length up front, and by
+    counting the bytes actually received (chunked uploads, or a header that lies)."""
+
+    def __init__(self, app: ASGIApp, *, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope["headers"]).get(b"content-length")
+        if declared is not None and (not declared.isdigit() or int(declared) > self.max_bytes):
+            await self._refuse(send, declared.isdigit())
+            return
+        body = bytearray()
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":  # client went away
+                return
+            body += message.get("body", b"")
+            if len(body) > self.max_bytes:
+                await self._refuse(send, True)
+                return
+            if not message.get("more_body", False):
+                break
+        delivered = False
+
+        async def replay() -> Message:
+            nonlocal delivered
+            if delivered:
+                return await receive()
+            delivered = True
+            return {"type": "http.request", "body": bytes(body), "more_body": False}
+
+        await self.app(scope, replay, send)
+
+    async def _refuse(self, send: Send, too_large: bool) -> None:
+        if too_large:
+            status, msg = 413, f"request body larger than {self.max_bytes} bytes"
+        else:
+            status, msg = 400, "Content-Length is not a number"
+        response = JSONResponse(
+            {"detail": [error_item(msg, loc=("header", "Content-Length"), kind="body_size")]},
+            status_code=status,
+            headers={"Connection": "close"},
+        )
+        await response({"type": "http"}, _no_receive, send)
+
+
+async def _no_receive() -> Message:
+    return {"type": "http.disconnect"}
+
+
+def _start_services(app: FastAPI, settings: Settings) -> None:
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    upgrade_schema(settings.database_url)
+    database = Database(settings.database_url)
+    context = WorkerContext(
+        database_url=settings.database_url,
+        data_dir=str(settings.data_dir.resolve()),
+        progress_interval_s=settings.progress_interval_s,
+        torch_threads=settings.worker_torch_threads,
+    )
+    app.state.database = database
+    app.state.admin_token_hash = load_admin_token_hash(settings)
+    app.state.auctions = AuctionRunner(database, context, max_workers=settings.auction_workers)
+    app.state.jobs = LocalJobBackend(database, context, max_workers=settings.job_workers)
+    app.state.screening = ScreeningService()
+    app.state.screening.start()
+    app.state.auctions.start()
+    app.state.jobs.start()
+    with database.session(write=True) as session:
+        queued = requeue_unfinished(session)
+    for job_id in queued:
+        app.state.jobs.submit(job_id)
+    log.info("srd server ready: %s, data in %s", settings.database_url, settings.data_dir)
+
+
+def _stop_services(app: FastAPI) -> None:
+    app.state.jobs.shutdown()
+    app.state.auctions.shutdown()
+    app.state.screening.shutdown()
+    app.state.database.close()
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The auction house application for ``settings`` (default: from the environment)."""
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        await run_in_threadpool(_start_services, app, settings)
+        try:
+            yield
+        finally:
+            await run_in_threadpool(_stop_services, app)
+
+    app = FastAPI(
+        title="srd-auction",
+        version="0.1.0",
+        summary="Fish sale auction of interpretable Self Reward Design models, and experiments.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    install_error_handlers(app)
+    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    for module in (health, models, auctions, jobs):  # any request may be unreadable or too big
+        app.include_router(module.router, responses=responses(400, 413))
+    return app

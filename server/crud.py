@@ -1,0 +1,294 @@
+"""Database reads and writes used by the routes (keyword-only, no commits: the route commits)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import Row, bindparam, func, insert, select, update
+from sqlalchemy.orm import Session
+
+from screener import Verdict
+from server.models import (
+    Auction,
+    AuctionIteration,
+    AuctionPatron,
+    Job,
+    ModelVersion,
+    Participant,
+    Purchase,
+    Quit,
+    utcnow,
+)
+from server.security import hash_token, new_token
+
+PARTICIPANT_TOKEN_PREFIX = "srdp"
+# iteration, price, n_available, votes, row_votes, next_price, n_available_after
+HistoryRow = Row[int, float, int, dict[str, int], dict[str, int], float, int]
+PurchaseRow = Row[int, float, int]  # model_id, price, iteration
+
+
+@dataclass(frozen=True)
+class ParticipantRow:
+    """The columns of a participant that a submission needs."""
+
+    id: int
+    name: str
+    token_hash: str
+
+
+@dataclass(frozen=True)
+class StoredModel:
+    """A model version as ``GET /models/{id}`` shows it."""
+
+    id: int
+    participant: str
+    version: int
+    manifest: dict[str, Any]
+    accepted: bool
+    reasons: list[dict[str, str]]
+    created_at: datetime
+
+
+@dataclass(frozen=True)
+class AuctionView:
+    """An auction row with its ordered patrons, committed rounds, purchases and quits."""
+
+    auction: Auction
+    model_ids: list[int]
+    history: Sequence[HistoryRow]
+    purchases: Sequence[PurchaseRow]
+    quitters: list[int]
+
+
+# The statements of POST /submit, built once (the hot path: no per-request statement building)
+_PARTICIPANT_BY_NAME = (
+    select(Participant.id, Participant.name, Participant.token_hash)
+    .where(Participant.name == bindparam("name"))
+    .with_for_update()
+)
+_INSERT_PARTICIPANT = insert(Participant).returning(Participant.id)
+_LATEST_VERSION = select(func.max(ModelVersion.version)).where(
+    ModelVersion.participant_id == bindparam("participant_id")
+)
+_INSERT_MODEL_VERSION = insert(ModelVersion).returning(ModelVersion.id)
+
+
+def get_participant(session: Session, *, name: str) -> ParticipantRow | None:
+    """A participant by name, its row locked until commit (serialises its versions)."""
+    row = session.execute(_PARTICIPANT_BY_NAME, {"name": name}).one_or_none()
+    return None if row is None else ParticipantRow(*row)
+
+
+def create_participant(session: Session, *, name: str) -> tuple[ParticipantRow, str]:
+    """A new participant and its token (the token is returned once and stored hashed)."""
+    token = new_token(PARTICIPANT_TOKEN_PREFIX)
+    token_hash = hash_token(token)
+    participant_id = session.execute(
+        _INSERT_PARTICIPANT, {"name": name, "token_hash": token_hash, "created_at": utcnow()}
+    ).scalar_one()
+    return ParticipantRow(participant_id, name, token_hash), token
+
+
+def create_model_version(
+    session: Session,
+    *,
+    participant_id: int,
+    manifest: dict[str, Any],
+    verdict: Verdict,
+    first: bool = False,
+) -> tuple[int, int]:
+    """Store the next version of a participant's model with the screener's verdict; returns
+    (model id, version). ``first``: the participant was created in this transaction."""
+    latest = None
+    if not first:
+        latest = session.scalar(_LATEST_VERSION, {"participant_id": participant_id})
+    version = (latest or 0) + 1
+    model_id = session.execute(
+        _INSERT_MODEL_VERSION,
+        {
+            "participant_id": participant_id,
+            "version": version,
+            "manifest": manifest,
+            "accepted": verdict.accepted,
+            "reasons": [reason.to_dict() for reason in verdict.reasons],
+            "created_at": utcnow(),
+        },
+    ).scalar_one()
+    return model_id, version
+
+
+_MODEL_BY_ID = (
+    select(
+        ModelVersion.id,
+        Participant.name,
+        ModelVersion.version,
+        ModelVersion.manifest,
+        ModelVersion.accepted,
+        ModelVersion.reasons,
+        ModelVersion.created_at,
+    )
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .where(ModelVersion.id == bindparam("model_id"))
+)
+
+
+def get_model(session: Session, *, model_id: int) -> StoredModel | None:
+    """A model version with its participant's name (one query)."""
+    row = session.execute(_MODEL_BY_ID, {"model_id": model_id}).one_or_none()
+    return None if row is None else StoredModel(*row)
+
+
+def get_models(session: Session, *, model_ids: list[int]) -> dict[int, ModelVersion]:
+    """Model versions by id (missing ids are absent from the result)."""
+    rows = session.scalars(select(ModelVersion).where(ModelVersion.id.in_(model_ids))).all()
+    return {row.id: row for row in rows}
+
+
+def latest_accepted_models(session: Session) -> list[ModelVersion]:
+    """The newest accepted version of every participant, in participant order."""
+    newest = (
+        select(ModelVersion.participant_id, func.max(ModelVersion.version).label("version"))
+        .where(ModelVersion.accepted.is_(True))
+        .group_by(ModelVersion.participant_id)
+        .subquery()
+    )
+    query = (
+        select(ModelVersion)
+        .join(
+            newest,
+            (ModelVersion.participant_id == newest.c.participant_id)
+            & (ModelVersion.version == newest.c.version),
+        )
+        .order_by(ModelVersion.participant_id)
+    )
+    return list(session.scalars(query).all())
+
+
+def create_auction(
+    session: Session,
+    *,
+    model_ids: list[int],
+    n_fish: int,
+    rarity: float | None,
+    max_iterations: int,
+    fine_tune: bool,
+    seed: int,
+    opening_price: float,
+) -> Auction:
+    """A pending auction over the ordered patron list ``model_ids``."""
+    now = utcnow()
+    auction = Auction(
+        status="pending",
+        n_initial=n_fish,
+        rarity=rarity,
+        max_iterations=max_iterations,
+        fine_tune=fine_tune,
+        seed=seed,
+        iteration=0,
+        price=opening_price,
+        n_available=n_fish,
+        created_at=now,
+        updated_at=now,
+    )
+    session.add(auction)
+    session.flush()
+    session.add_all(
+        AuctionPatron(auction_id=auction.id, position=position, model_id=model_id)
+        for position, model_id in enumerate(model_ids)
+    )
+    return auction
+
+
+# The statements of GET /auctions/{id}, built once (it is polled while auctions run)
+_AUCTION_PATRONS = (
+    select(AuctionPatron.model_id)
+    .where(AuctionPatron.auction_id == bindparam("auction_id"))
+    .order_by(AuctionPatron.position)
+)
+_AUCTION_HISTORY = (
+    select(
+        AuctionIteration.iteration,
+        AuctionIteration.price,
+        AuctionIteration.n_available,
+        AuctionIteration.votes,
+        AuctionIteration.row_votes,
+        AuctionIteration.next_price,
+        AuctionIteration.n_available_after,
+    )
+    .where(AuctionIteration.auction_id == bindparam("auction_id"))
+    .order_by(AuctionIteration.iteration)
+)
+_AUCTION_PURCHASES = (
+    select(Purchase.model_id, Purchase.price, Purchase.iteration)
+    .where(Purchase.auction_id == bindparam("auction_id"))
+    .order_by(Purchase.id)
+)
+_AUCTION_QUITTERS = (
+    select(Quit.model_id).where(Quit.auction_id == bindparam("auction_id")).order_by(Quit.id)
+)
+
+
+def get_auction(session: Session, *, auction_id: int) -> AuctionView | None:
+    """An auction with its patrons, rounds, purchases and quits, read in one transaction."""
+    auction = session.get(Auction, auction_id)
+    if auction is None:
+        return None
+    key = {"auction_id": auction_id}
+    return AuctionView(
+        auction,
+        list(session.scalars(_AUCTION_PATRONS, key)),
+        session.execute(_AUCTION_HISTORY, key).all(),
+        session.execute(_AUCTION_PURCHASES, key).all(),
+        list(session.scalars(_AUCTION_QUITTERS, key)),
+    )
+
+
+def create_job(session: Session, *, kind: str, params: dict[str, Any]) -> Job:
+    """A queued job."""
+    now = utcnow()
+    job = Job(
+        kind=kind,
+        params=params,
+        status="queued",
+        progress=0.0,
+        message="queued",
+        artifacts=[],
+        attempt=0,
+        created_at=now,
+        updated_at=now,
+    )
+    session.add(job)
+    session.flush()
+    return job
+
+
+def get_job(session: Session, *, job_id: int) -> Job | None:
+    """A job by id."""
+    return session.get(Job, job_id)
+
+
+def fail_unfinished(
+    session: Session, *, table: type[Auction] | type[Job], row_id: int, error: str
+) -> None:
+    """Mark an auction or job failed with ``error``, unless it has already ended."""
+    unfinished = ("pending", "running") if table is Auction else ("queued", "running")
+    now = utcnow()
+    session.execute(
+        update(table)
+        .where(table.id == row_id, table.status.in_(unfinished))
+        .values(status="failed", error=error, finished_at=now, updated_at=now)
+    )
+
+
+def cancel_job(session: Session, *, job_id: int) -> bool:
+    """Mark a queued or running job cancelled; False when it had already ended."""
+    now = utcnow()
+    changed = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.status.in_(("queued", "running")))
+        .values(status="cancelled", message="cancelled", finished_at=now, updated_at=now)
+    )
+    return bool(changed.rowcount)  # type: ignore[attr-defined]

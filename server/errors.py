@@ -1,0 +1,105 @@
+"""One error body for every 4xx/5xx: ``{"detail": [{"loc": [...], "msg": ..., "type": ...}]}``.
+
+It is the shape of FastAPI's own 422, so clients parse a single format; ``loc`` names the field
+(``["body", "external_sensor", "PG", "bias"]``), the header, or the path parameter at fault.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+from fastapi import FastAPI, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+
+class ErrorItem(BaseModel):
+    """One problem: where (``loc``), what (``msg``), and a machine-readable ``type``."""
+
+    loc: list[str | int]
+    msg: str
+    type: str
+
+
+class ErrorBody(BaseModel):
+    """Every error response."""
+
+    detail: list[ErrorItem]
+
+
+def error_item(msg: str, *, loc: Sequence[str | int] = (), kind: str = "error") -> dict[str, Any]:
+    """A ``detail`` entry."""
+    return {"loc": list(loc), "msg": msg, "type": kind}
+
+
+def api_error(
+    status: int,
+    msg: str,
+    *,
+    loc: Sequence[str | int] = (),
+    kind: str = "error",
+    headers: Mapping[str, str] | None = None,
+) -> HTTPException:
+    """An HTTPException carrying one ``detail`` entry (raise it)."""
+    if status == 401 and headers is None:
+        headers = {"WWW-Authenticate": "Bearer"}
+    return HTTPException(status, detail=[error_item(msg, loc=loc, kind=kind)], headers=headers)
+
+
+def validation_error(items: Iterable[dict[str, Any]]) -> HTTPException:
+    """A 422 with several ``detail`` entries."""
+    return HTTPException(422, detail=list(items))
+
+
+def _json_safe_loc(loc: Iterable[Any]) -> list[str | int]:
+    return [part if isinstance(part, int) else str(part) for part in loc]
+
+
+async def _http_exception(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    detail: Any = exc.detail
+    if not isinstance(detail, list):  # framework errors (404 route, 405 method) carry a string
+        detail = [error_item(str(detail), kind="http_error")]
+    return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=exc.headers)
+
+
+async def _request_validation(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    detail = [
+        error_item(
+            str(err.get("msg", "invalid")),
+            loc=_json_safe_loc(err.get("loc", ())),
+            kind=str(err.get("type", "value_error")),
+        )
+        for err in exc.errors()
+    ]
+    return JSONResponse({"detail": detail}, status_code=422)
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Route every framework error through the common body."""
+    app.add_exception_handler(StarletteHTTPException, _http_exception)
+    app.add_exception_handler(RequestValidationError, _request_validation)
+
+
+def link(operation_id: str, parameter: str, field: str) -> dict[str, Any]:
+    """An OpenAPI link: feed ``field`` of this response to ``parameter`` of ``operation_id``."""
+    return {"operationId": operation_id, "parameters": {parameter: f"$response.body#/{field}"}}
+
+
+def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` entries for the error codes a route can answer."""
+    text = {
+        400: "Unreadable request (body not UTF-8 JSON, Content-Length not a number)",
+        401: "No bearer token",
+        403: "Wrong bearer token",
+        404: "No such resource",
+        409: "Conflicts with the resource's current state",
+        413: "Request body too large",
+        422: "Invalid input; ``loc`` names the field",
+        503: "A service the request needs is unavailable; retry",
+    }
+    return {code: {"model": ErrorBody, "description": text[code]} for code in codes}

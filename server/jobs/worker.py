@@ -1,0 +1,141 @@
+"""The job worker process: claim a queued job, run its experiment, record the outcome.
+
+Every write carries the attempt number taken at claim time and the 'running' status, so a
+cancelled job or one re-claimed after a restart is never overwritten by an older worker.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select, update
+
+from server.db import Database
+from server.models import Job, utcnow
+from server.workers import WorkerContext, error_summary
+from sim.experiment import write_json
+from sim.registry import build_config, run_kind
+
+MESSAGE_LIMIT = 200  # characters of a progress message kept
+
+
+class SupersededError(Exception):
+    """The job row no longer belongs to this worker (cancelled, or claimed again)."""
+
+
+def job_dir(data_dir: str | Path, job_id: int) -> Path:
+    """Where a job's artifacts live: ``<data_dir>/jobs/<id>/``."""
+    return Path(data_dir) / "jobs" / str(job_id)
+
+
+def json_safe(value: Any) -> Any:
+    """A JSON-ready copy: tuples become lists, numpy scalars plain numbers, NaN/inf null."""
+    if isinstance(value, dict):
+        return {str(key): json_safe(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(item) for item in value]
+    if hasattr(value, "item") and callable(value.item) and not isinstance(value, str):
+        value = value.item()  # numpy / torch scalar
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"result holds a {type(value).__name__}, which is not JSON")
+
+
+def list_artifacts(out_dir: Path) -> list[str]:
+    """Every file under ``out_dir``, as sorted relative POSIX paths."""
+    if not out_dir.is_dir():
+        return []
+    return sorted(p.relative_to(out_dir).as_posix() for p in out_dir.rglob("*") if p.is_file())
+
+
+class _Progress:
+    """Throttled progress writes: at most one every ``interval_s`` seconds, plus the last."""
+
+    def __init__(self, database: Database, job_id: int, attempt: int, interval_s: float) -> None:
+        self._database = database
+        self._job_id = job_id
+        self._attempt = attempt
+        self._interval_s = interval_s
+        self._last = -math.inf
+
+    def __call__(self, fraction: float, message: str) -> None:
+        now = time.monotonic()
+        if not math.isfinite(fraction) or (now - self._last < self._interval_s and fraction < 1):
+            return
+        self._last = now
+        _update_owned(
+            self._database,
+            self._job_id,
+            self._attempt,
+            progress=min(max(fraction, 0.0), 1.0),
+            message=message[:MESSAGE_LIMIT],
+        )
+
+
+def _update_owned(database: Database, job_id: int, attempt: int, **values: Any) -> None:
+    with database.session(write=True) as session:
+        changed = session.execute(
+            update(Job)
+            .where(Job.id == job_id, Job.attempt == attempt, Job.status == "running")
+            .values(updated_at=utcnow(), **values)
+        )
+        session.commit()
+    if changed.rowcount != 1:  # type: ignore[attr-defined]
+        raise SupersededError
+
+
+def _claim(database: Database, job_id: int) -> tuple[str, dict[str, Any], int] | None:
+    with database.session(write=True) as session:
+        job = session.scalars(select(Job).where(Job.id == job_id)).one_or_none()
+        if job is None or job.status != "queued":
+            return None
+        job.status, job.attempt = "running", job.attempt + 1
+        job.started_at = job.updated_at = utcnow()
+        job.progress, job.message, job.error, job.result = 0.0, "started", None, None
+        claimed = (job.kind, dict(job.params), job.attempt)
+        session.commit()
+    return claimed
+
+
+def run_job(context: WorkerContext, job_id: int) -> None:
+    """Worker process entry point for one job."""
+    database = Database(context.database_url)
+    try:
+        claimed = _claim(database, job_id)
+        if claimed is None:
+            return
+        kind, params, attempt = claimed
+        out_dir = job_dir(context.data_dir, job_id)
+        shutil.rmtree(out_dir, ignore_errors=True)  # leftovers of an interrupted attempt
+        out_dir.mkdir(parents=True)
+        progress = _Progress(database, job_id, attempt, context.progress_interval_s)
+        try:
+            config = build_config(kind, params)
+            result = json_safe(run_kind(kind, config, out_dir=out_dir, progress=progress))
+            write_json(out_dir / "result.json", result)
+            outcome: dict[str, Any] = {"status": "succeeded", "progress": 1.0, "result": result}
+        except SupersededError:
+            return
+        except Exception as exc:
+            outcome = {"status": "failed", "error": error_summary(exc)}
+        _update_owned(
+            database,
+            job_id,
+            attempt,
+            artifacts=list_artifacts(out_dir),
+            finished_at=utcnow(),
+            message="done" if outcome["status"] == "succeeded" else "failed",
+            **outcome,
+        )
+    except SupersededError:
+        return
+    finally:
+        database.close()

@@ -1,0 +1,162 @@
+"""Start ``srd serve`` as a child process (used by ``make demo``, the load benchmark and the
+restart test): pick a free port, wait for ``/healthz``, stop gracefully or kill -9; and make a
+throw-away PostgreSQL database for a run."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from types import TracebackType
+
+import httpx
+from sqlalchemy import create_engine, text
+from sqlalchemy.exc import OperationalError
+
+HEALTH_POLL_S = 0.2
+LOCAL_POSTGRES = "127.0.0.1:5432"
+POSTGRES_USERS = ("postgres", "root")  # trust authentication on the loopback server
+
+
+def postgres_admin_url(server: str = LOCAL_POSTGRES) -> str | None:
+    """A URL to the ``postgres`` database of ``server`` that accepts us, or None."""
+    for user in POSTGRES_USERS:
+        url = f"postgresql+psycopg://{user}@{server}/postgres"
+        engine = create_engine(url, isolation_level="AUTOCOMMIT")
+        try:
+            with engine.connect() as conn:
+                conn.execute(text("select 1"))
+            return url
+        except OperationalError:
+            continue
+        finally:
+            engine.dispose()
+    return None
+
+
+@contextmanager
+def throwaway_postgres(admin_url: str) -> Iterator[str]:
+    """A new randomly named PostgreSQL database for the duration of the block, then dropped."""
+    name = f"srd_tmp_{uuid.uuid4().hex[:12]}"
+    engine = create_engine(admin_url, isolation_level="AUTOCOMMIT")
+    with engine.connect() as conn:
+        conn.execute(text(f'CREATE DATABASE "{name}"'))
+    try:
+        yield admin_url.rsplit("/", 1)[0] + f"/{name}"
+    finally:
+        with engine.connect() as conn:
+            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        engine.dispose()
+
+
+def free_port() -> int:
+    """A TCP port free on the loopback interface right now."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def srd_command() -> list[str]:
+    """How to invoke ``srd``: the console script beside this interpreter, else its entry point."""
+    script = Path(sys.executable).with_name("srd")
+    if script.exists():
+        return [str(script)]
+    return [sys.executable, "-c", "from server.cli import main; main()"]
+
+
+class ServerProcess:
+    """``srd serve`` on ``127.0.0.1:<port>`` with its database and data folder."""
+
+    def __init__(
+        self,
+        *,
+        database_url: str,
+        data_dir: Path,
+        admin_token: str | None = None,
+        port: int | None = None,
+        extra_env: dict[str, str] | None = None,
+    ) -> None:
+        self.database_url = database_url
+        self.data_dir = data_dir
+        self.port = port or free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log_path = data_dir / "serve.log"
+        self._admin_token = admin_token
+        self._extra_env = extra_env or {}
+        self.process: subprocess.Popen[bytes] | None = None
+
+    @property
+    def admin_token(self) -> str:
+        """The operator token: the one given, else the file the server generated."""
+        if self._admin_token is not None:
+            return self._admin_token
+        return (self.data_dir / "admin_token").read_text().strip()
+
+    def start(self, timeout_s: float = 120.0) -> None:
+        """Launch and wait until ``/healthz`` answers."""
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        env = {
+            **os.environ,
+            "SRD_DATABASE_URL": self.database_url,
+            "SRD_DATA_DIR": str(self.data_dir),
+            **self._extra_env,
+        }
+        if self._admin_token is not None:
+            env["SRD_ADMIN_TOKEN"] = self._admin_token
+        with self.log_path.open("ab") as log:
+            self.process = subprocess.Popen(
+                [*srd_command(), "serve", "--host", "127.0.0.1", "--port", str(self.port)],
+                env=env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise RuntimeError(f"srd serve exited early; see {self.log_path}")
+            try:
+                if httpx.get(f"{self.url}/healthz", timeout=1.0).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(HEALTH_POLL_S)
+        self.stop()
+        raise TimeoutError(
+            f"srd serve did not become healthy in {timeout_s} s; see {self.log_path}"
+        )
+
+    def kill(self) -> None:
+        """SIGKILL the server (no shutdown code runs): a crash."""
+        if self.process is not None and self.process.poll() is None:
+            self.process.send_signal(signal.SIGKILL)
+            self.process.wait()
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        """SIGTERM and wait (graceful shutdown); SIGKILL if it hangs."""
+        if self.process is None or self.process.poll() is not None:
+            return
+        self.process.send_signal(signal.SIGTERM)
+        try:
+            self.process.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            self.kill()
+
+    def __enter__(self) -> ServerProcess:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.stop()

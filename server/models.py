@@ -1,0 +1,194 @@
+"""Database tables (SQLAlchemy 2 typed models). The schema itself is created by migrations."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    LargeBinary,
+    MetaData,
+    String,
+    Text,
+    TypeDecorator,
+    UniqueConstraint,
+)
+from sqlalchemy.engine import Dialect
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+NAMING = {  # stable constraint names, so migrations can refer to them on every backend
+    "ix": "ix_%(column_0_label)s",
+    "uq": "uq_%(table_name)s_%(column_0_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+
+def utcnow() -> datetime:
+    """Aware UTC now."""
+    return datetime.now(UTC)
+
+
+class UtcDateTime(TypeDecorator[datetime]):
+    """A timestamp stored in UTC and always read back timezone-aware (SQLite drops the zone)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        return value.astimezone(UTC) if value.tzinfo else value.replace(tzinfo=UTC)
+
+    def process_result_value(self, value: datetime | None, dialect: Dialect) -> datetime | None:
+        if value is None:
+            return None
+        return value.replace(tzinfo=UTC) if value.tzinfo is None else value.astimezone(UTC)
+
+
+class Base(DeclarativeBase):
+    metadata = MetaData(naming_convention=NAMING)
+
+
+class Participant(Base):
+    """Whoever submits models under one name; holds the hash of its submission token."""
+
+    __tablename__ = "participants"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(64), unique=True)
+    token_hash: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+    versions: Mapped[list[ModelVersion]] = relationship(back_populates="participant")
+
+
+class ModelVersion(Base):
+    """One submitted manifest of a participant, with the screener's verdict."""
+
+    __tablename__ = "model_versions"
+    __table_args__ = (UniqueConstraint("participant_id", "version"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participants.id"), index=True)
+    version: Mapped[int] = mapped_column(Integer)
+    manifest: Mapped[dict[str, Any]] = mapped_column(JSON)
+    accepted: Mapped[bool] = mapped_column(Boolean)
+    reasons: Mapped[list[dict[str, str]]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+    participant: Mapped[Participant] = relationship(back_populates="versions")
+
+
+class Auction(Base):
+    """One fish sale: its settings, where it stands, and the market checkpoint to resume from."""
+
+    __tablename__ = "auctions"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    status: Mapped[str] = mapped_column(String(16), index=True)
+    n_initial: Mapped[int] = mapped_column(Integer)
+    rarity: Mapped[float | None] = mapped_column(Float, nullable=True)
+    max_iterations: Mapped[int] = mapped_column(Integer)
+    fine_tune: Mapped[bool] = mapped_column(Boolean)
+    seed: Mapped[int] = mapped_column(Integer)
+    iteration: Mapped[int] = mapped_column(Integer, default=0)
+    price: Mapped[float] = mapped_column(Float)
+    n_available: Mapped[int] = mapped_column(Integer)
+    checkpoint: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True, deferred=True)
+    stop_reason: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
+    updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+    patrons: Mapped[list[AuctionPatron]] = relationship(order_by="AuctionPatron.position")
+    history: Mapped[list[AuctionIteration]] = relationship(order_by="AuctionIteration.iteration")
+    purchases: Mapped[list[Purchase]] = relationship(order_by="Purchase.id")
+    quits: Mapped[list[Quit]] = relationship(order_by="Quit.id")
+
+
+class AuctionPatron(Base):
+    """The ordered patron list of an auction: patron index ``position`` is model ``model_id``."""
+
+    __tablename__ = "auction_patrons"
+
+    auction_id: Mapped[int] = mapped_column(ForeignKey("auctions.id"), primary_key=True)
+    position: Mapped[int] = mapped_column(Integer, primary_key=True)
+    model_id: Mapped[int] = mapped_column(ForeignKey("model_versions.id"), index=True)
+
+
+class AuctionIteration(Base):
+    """One committed auction round: the price asked, fish left, and the row-0 votes."""
+
+    __tablename__ = "auction_iterations"
+    __table_args__ = (UniqueConstraint("auction_id", "iteration"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    auction_id: Mapped[int] = mapped_column(ForeignKey("auctions.id"))
+    iteration: Mapped[int] = mapped_column(Integer)
+    price: Mapped[float] = mapped_column(Float)
+    n_available: Mapped[int] = mapped_column(Integer)
+    votes: Mapped[dict[str, int]] = mapped_column(JSON)
+    row_votes: Mapped[dict[str, int]] = mapped_column(JSON)
+    next_price: Mapped[float] = mapped_column(Float)
+    n_available_after: Mapped[int] = mapped_column(Integer)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+class Purchase(Base):
+    """A patron bought a fish; a patron buys at most once per auction."""
+
+    __tablename__ = "purchases"
+    __table_args__ = (UniqueConstraint("auction_id", "model_id"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    auction_id: Mapped[int] = mapped_column(ForeignKey("auctions.id"))
+    model_id: Mapped[int] = mapped_column(ForeignKey("model_versions.id"), index=True)
+    price: Mapped[float] = mapped_column(Float)
+    iteration: Mapped[int] = mapped_column(Integer)
+
+
+class Quit(Base):
+    """A patron left the auction without buying."""
+
+    __tablename__ = "quits"
+    __table_args__ = (UniqueConstraint("auction_id", "model_id"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    auction_id: Mapped[int] = mapped_column(ForeignKey("auctions.id"))
+    model_id: Mapped[int] = mapped_column(ForeignKey("model_versions.id"), index=True)
+    iteration: Mapped[int] = mapped_column(Integer)
+
+
+class Job(Base):
+    """A background experiment: kind, validated params, status, progress, result, artifacts.
+
+    ``attempt`` counts how often a worker claimed the job; a worker writes only while the row
+    still carries its own attempt number, so a stale worker can never overwrite a newer one.
+    """
+
+    __tablename__ = "jobs"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    kind: Mapped[str] = mapped_column(String(32))
+    params: Mapped[dict[str, Any]] = mapped_column(JSON)
+    status: Mapped[str] = mapped_column(String(16), index=True)
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    message: Mapped[str] = mapped_column(String(200), default="")
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True), nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    artifacts: Mapped[list[str]] = mapped_column(JSON, default=list)
+    attempt: Mapped[int] = mapped_column(Integer, default=0)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    started_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
+    finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
+    updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)

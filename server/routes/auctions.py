@@ -1,0 +1,181 @@
+"""Auctions: ``POST /auctions`` (operator) starts one in the background, ``GET`` watches it."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import APIRouter, Request
+
+from server import crud
+from server.auctions import AuctionRunner, base_price, market_module
+from server.db import SessionDep
+from server.errors import api_error, error_item, link, responses, validation_error
+from server.schemas import (
+    AuctionCreate,
+    AuctionCreated,
+    AuctionIdPath,
+    AuctionPublic,
+    BuyerPublic,
+    IterationPublic,
+    Votes,
+)
+from server.security import AdminDep
+
+router = APIRouter(tags=["auctions"])
+
+
+def _patron_ids(session: SessionDep, body: AuctionCreate) -> list[int]:
+    """The ordered patron list: the given ids (each must exist and be accepted), or by default
+    the newest accepted version of every participant."""
+    if body.model_ids is None:
+        ids = [row.id for row in crud.latest_accepted_models(session)]
+        if not ids:
+            raise api_error(
+                422,
+                "no accepted model exists yet: submit models first",
+                loc=("body", "model_ids"),
+                kind="no_patrons",
+            )
+        return ids
+    found = crud.get_models(session, model_ids=body.model_ids)
+    problems: list[dict[str, Any]] = []
+    seen: set[int] = set()
+    for index, model_id in enumerate(body.model_ids):
+        loc = ("body", "model_ids", index)
+        if model_id in seen:
+            problems.append(
+                error_item(f"model {model_id} is listed twice", loc=loc, kind="duplicate")
+            )
+        elif model_id not in found:
+            problems.append(
+                error_item(f"model {model_id} does not exist", loc=loc, kind="not_found")
+            )
+        elif not found[model_id].accepted:
+            problems.append(
+                error_item(
+                    f"model {model_id} was rejected by the screener and cannot enter an auction",
+                    loc=loc,
+                    kind="rejected",
+                )
+            )
+        seen.add(model_id)
+    if problems:
+        raise validation_error(problems)
+    return list(body.model_ids)
+
+
+def _require_one_supply_option(body: AuctionCreate) -> None:
+    if (body.n_fish is None) == (body.rarity is None):
+        loc = ("body", "n_fish") if body.n_fish is not None else ("body", "rarity")
+        raise api_error(
+            422, "give exactly one of n_fish or rarity", loc=loc, kind="n_fish_xor_rarity"
+        )
+
+
+def _fish_count(body: AuctionCreate, n_patrons: int) -> int:
+    """n_fish as given, or int(rarity × patrons) (truncation, as the reference)."""
+    if body.n_fish is not None:
+        return body.n_fish
+    assert body.rarity is not None
+    n_fish = int(body.rarity * n_patrons)
+    if n_fish < 1:
+        raise api_error(
+            422,
+            f"rarity {body.rarity} × {n_patrons} patrons puts no fish on sale",
+            loc=("body", "rarity"),
+            kind="no_fish",
+        )
+    return n_fish
+
+
+@router.post(
+    "/auctions",
+    status_code=201,
+    dependencies=[AdminDep],
+    operation_id="create_auction",
+    responses={
+        201: {"links": {"ReadAuction": link("read_auction", "auction_id", "auction_id")}},
+        **responses(401, 403, 422),
+    },
+)
+def create_auction(body: AuctionCreate, session: SessionDep, request: Request) -> AuctionCreated:
+    """Start an auction (operator). It runs in a worker process; watch it at GET."""
+    if market_module() is None:
+        raise api_error(
+            422,
+            "auctions are not available yet: sim.market is not built",
+            loc=("body",),
+            kind="not_available",
+        )
+    _require_one_supply_option(body)
+    patron_ids = _patron_ids(session, body)
+    auction = crud.create_auction(
+        session,
+        model_ids=patron_ids,
+        n_fish=_fish_count(body, len(patron_ids)),
+        rarity=body.rarity,
+        max_iterations=body.max_iterations,
+        fine_tune=body.fine_tune,
+        seed=body.seed,
+        opening_price=base_price(),
+    )
+    session.commit()
+    runner: AuctionRunner = request.app.state.auctions
+    runner.submit(auction.id)
+    return AuctionCreated(auction_id=auction.id)
+
+
+def auction_public(view: crud.AuctionView) -> AuctionPublic:
+    """The GET shape of an auction (INTERFACE.md plus extras)."""
+    auction = view.auction
+    return AuctionPublic(
+        id=auction.id,
+        status=auction.status,
+        iteration=auction.iteration,
+        price=auction.price,
+        n_available=auction.n_available,
+        n_initial=auction.n_initial,
+        history=[
+            IterationPublic(
+                iteration=row.iteration,
+                price=row.price,
+                n_available=row.n_available,
+                votes=Votes(**row.votes),
+                row_votes=Votes(**row.row_votes),
+                next_price=row.next_price,
+                n_available_after=row.n_available_after,
+            )
+            for row in view.history
+        ],
+        buyers=[
+            BuyerPublic(model_id=p.model_id, price=p.price, iteration=p.iteration)
+            for p in view.purchases
+        ],
+        quitters=view.quitters,
+        stop_reason=auction.stop_reason,
+        n_patrons=len(view.model_ids),
+        model_ids=view.model_ids,
+        revenue=round(sum(p.price for p in view.purchases), 5),
+        rarity=auction.rarity,
+        max_iterations=auction.max_iterations,
+        fine_tune=auction.fine_tune,
+        seed=auction.seed,
+        error=auction.error,
+        created_at=auction.created_at,
+        started_at=auction.started_at,
+        finished_at=auction.finished_at,
+    )
+
+
+@router.get("/auctions/{auction_id}", operation_id="read_auction", responses=responses(404, 422))
+def read_auction(auction_id: AuctionIdPath, session: SessionDep) -> AuctionPublic:
+    """Where an auction stands: price, fish left, every committed round, buyers, quitters."""
+    view = crud.get_auction(session, auction_id=auction_id)
+    if view is None:
+        raise api_error(
+            404,
+            f"auction {auction_id} does not exist",
+            loc=("path", "auction_id"),
+            kind="not_found",
+        )
+    return auction_public(view)

@@ -1,0 +1,158 @@
+"""Jobs: run the paper's experiments in the background (``POST``/``DELETE`` are operator-only)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, Request
+from fastapi.responses import FileResponse
+
+from server import crud
+from server.db import SessionDep
+from server.errors import api_error, error_item, link, responses, validation_error
+from server.jobs import JobBackend
+from server.jobs.worker import job_dir
+from server.models import Job
+from server.schemas import JobCreate, JobCreated, JobIdPath, JobPublic
+from server.security import AdminDep
+from sim.experiment import ConfigError, config_dict
+from sim.registry import KINDS, build_config
+
+router = APIRouter(tags=["jobs"])
+
+ARTIFACT_TYPES = ("image/png", "image/gif", "text/csv", "application/json", "text/plain")
+
+
+def _job_public(job: Job) -> JobPublic:
+    return JobPublic(
+        id=job.id,
+        kind=job.kind,
+        status=job.status,
+        progress=job.progress,
+        message=job.message,
+        params=job.params,
+        result=job.result,
+        error=job.error,
+        artifacts=job.artifacts,
+        created_at=job.created_at,
+        started_at=job.started_at,
+        finished_at=job.finished_at,
+    )
+
+
+def _non_finite_paths(value: Any, path: tuple[str | int, ...]) -> list[tuple[str | int, ...]]:
+    """Where NaN or ±inf hide in decoded JSON (Python's parser lets them through)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return [path]
+    if isinstance(value, dict):
+        return [p for key, item in value.items() for p in _non_finite_paths(item, (*path, key))]
+    if isinstance(value, list):
+        return [p for i, item in enumerate(value) for p in _non_finite_paths(item, (*path, i))]
+    return []
+
+
+def _existing_job(session: SessionDep, job_id: int) -> Job:
+    job = crud.get_job(session, job_id=job_id)
+    if job is None:
+        raise api_error(
+            404, f"job {job_id} does not exist", loc=("path", "job_id"), kind="not_found"
+        )
+    return job
+
+
+@router.post(
+    "/jobs",
+    status_code=202,
+    dependencies=[AdminDep],
+    operation_id="create_job",
+    responses={
+        202: {
+            "links": {
+                "ReadJob": link("read_job", "job_id", "job_id"),
+                "CancelJob": link("cancel_job", "job_id", "job_id"),
+            }
+        },
+        **responses(401, 403, 422),
+    },
+)
+def create_job(body: JobCreate, session: SessionDep, request: Request) -> JobCreated:
+    """Queue an experiment (operator); ``params`` are the CLI options of ``kind``."""
+    if not KINDS[body.kind].available():
+        raise api_error(
+            422,
+            f"job kind {body.kind!r} is not available yet",
+            loc=("body", "kind"),
+            kind="not_available",
+        )
+    non_finite = _non_finite_paths(body.params, ("body", "params"))
+    if non_finite:
+        raise validation_error(
+            error_item("must be a finite number", loc=loc, kind="finite_number")
+            for loc in non_finite
+        )
+    try:
+        config = build_config(body.kind, body.params)
+    except ConfigError as exc:
+        raise validation_error(
+            error_item(err["message"], loc=("body", "params", err["field"]), kind="bad_param")
+            for err in exc.errors
+        ) from exc
+    job = crud.create_job(session, kind=body.kind, params=config_dict(config))
+    session.commit()
+    backend: JobBackend = request.app.state.jobs
+    backend.submit(job.id)
+    return JobCreated(job_id=job.id, status="queued")
+
+
+@router.get("/jobs/{job_id}", operation_id="read_job", responses=responses(404, 422))
+def read_job(job_id: JobIdPath, session: SessionDep) -> JobPublic:
+    """A job's status, progress, result (the CLI's ``--json`` object), error and artifacts."""
+    return _job_public(_existing_job(session, job_id))
+
+
+@router.get(
+    "/jobs/{job_id}/artifacts/{name:path}",
+    response_class=FileResponse,
+    operation_id="read_artifact",
+    responses={
+        200: {"description": "The artifact file", "content": {t: {} for t in ARTIFACT_TYPES}},
+        **responses(404, 422),
+    },
+)
+def read_artifact(
+    job_id: JobIdPath, name: str, session: SessionDep, request: Request
+) -> FileResponse:
+    """One artifact file of a job (a name listed in its ``artifacts``)."""
+    job = _existing_job(session, job_id)
+    base = job_dir(request.app.state.settings.data_dir, job_id).resolve()
+    path = (base / name).resolve()
+    if name not in job.artifacts or not path.is_relative_to(base) or not path.is_file():
+        raise api_error(
+            404, f"job {job_id} has no artifact {name!r}", loc=("path", "name"), kind="not_found"
+        )
+    return FileResponse(path, filename=Path(name).name, content_disposition_type="inline")
+
+
+@router.delete(
+    "/jobs/{job_id}",
+    dependencies=[AdminDep],
+    operation_id="cancel_job",
+    responses=responses(401, 403, 404, 409, 422),
+)
+def cancel_job(job_id: JobIdPath, session: SessionDep, request: Request) -> JobPublic:
+    """Cancel a queued or running job (operator); a running job's process is terminated."""
+    job = _existing_job(session, job_id)
+    if not crud.cancel_job(session, job_id=job_id):
+        raise api_error(
+            409,
+            f"job {job_id} already {job.status}; only queued or running jobs can be cancelled",
+            loc=("path", "job_id"),
+            kind="not_cancellable",
+        )
+    session.commit()
+    backend: JobBackend = request.app.state.jobs
+    backend.cancel(job_id)
+    session.refresh(job)
+    return _job_public(job)

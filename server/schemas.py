@@ -1,0 +1,161 @@
+"""Request and response bodies of the HTTP API (separate from the table classes)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Any, Literal, get_args
+
+from fastapi import Path
+from pydantic import BaseModel, ConfigDict, Field
+
+from sim.registry import KINDS
+
+AuctionStatus = Literal["pending", "running", "finished", "failed"]
+JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+JobKind = Literal["fish", "lavaland", "cheetah", "auction-study", "comparison"]
+assert set(get_args(JobKind)) == set(KINDS), "JobKind must list exactly the registry's kinds"
+
+MAX_PATRONS = 10_000
+MAX_SEED = 2**31 - 1  # fits a 32-bit INTEGER column on every backend
+MAX_ROW_ID = 2**31 - 1  # ids are 32-bit INTEGER primary keys on every backend
+
+RowId = Annotated[int, Field(ge=1, le=MAX_ROW_ID)]
+ModelIdPath = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="A model id.")]
+AuctionIdPath = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="An auction id.")]
+JobIdPath = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="A job id.")]
+
+
+class _Input(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class HealthPublic(BaseModel):
+    status: Literal["ok"]
+
+
+class ReasonPublic(BaseModel):
+    """A screener finding."""
+
+    rule: str
+    neuron: str
+    message: str
+
+
+class SubmitPublic(BaseModel):
+    """Answer to ``POST /submit``. ``token`` is set only on a participant's first submission."""
+
+    model_id: int
+    participant: str
+    version: int
+    accepted: bool
+    reasons: list[ReasonPublic]
+    token: str | None
+
+
+class ModelPublic(BaseModel):
+    """A stored model version: its manifest and the screener's verdict with reasons."""
+
+    id: int
+    participant: str
+    version: int
+    manifest: dict[str, Any]
+    verdict: Literal["accepted", "rejected"]
+    accepted: bool
+    reasons: list[ReasonPublic]
+    created_at: datetime
+
+
+class AuctionCreate(_Input):
+    """Start an auction: exactly one of ``n_fish`` or ``rarity`` (fish = int(rarity × patrons))."""
+
+    n_fish: Annotated[int, Field(ge=1, le=100_000)] | None = None
+    rarity: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] | None = None
+    max_iterations: Annotated[int, Field(ge=1, le=1000)] = 64
+    fine_tune: bool = False
+    model_ids: Annotated[list[RowId], Field(min_length=1, max_length=MAX_PATRONS)] | None = None
+    seed: Annotated[int, Field(ge=0, le=MAX_SEED)] = 0
+
+
+class AuctionCreated(BaseModel):
+    auction_id: int
+
+
+class Votes(BaseModel):
+    """Row-0 decisions of the patrons still in the auction."""
+
+    buy: int
+    hold: int
+    quit: int
+
+
+class IterationPublic(BaseModel):
+    """One auction round: price asked and fish left at its start, the votes, what followed."""
+
+    iteration: int
+    price: float
+    n_available: int
+    votes: Votes
+    row_votes: Votes
+    next_price: float
+    n_available_after: int
+
+
+class BuyerPublic(BaseModel):
+    model_id: int
+    price: float
+    iteration: int
+
+
+class AuctionPublic(BaseModel):
+    """An auction as it stands; ``history`` grows by one committed row per round."""
+
+    id: int
+    status: AuctionStatus
+    iteration: int
+    price: float
+    n_available: int
+    n_initial: int
+    history: list[IterationPublic]
+    buyers: list[BuyerPublic]
+    quitters: list[int]
+    stop_reason: str | None
+    n_patrons: int
+    model_ids: list[int]
+    revenue: float
+    rarity: float | None
+    max_iterations: int
+    fine_tune: bool
+    seed: int
+    error: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+class JobCreate(_Input):
+    """Start an experiment; ``params`` are the CLI options of that kind (dashes or underscores)."""
+
+    kind: JobKind
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class JobCreated(BaseModel):
+    job_id: int
+    status: JobStatus
+
+
+class JobPublic(BaseModel):
+    """A job; ``result`` is the CLI's ``--json`` object once it succeeded."""
+
+    id: int
+    kind: str
+    status: JobStatus
+    progress: Annotated[float, Field(ge=0, le=1)]
+    message: str
+    params: dict[str, Any]
+    result: dict[str, Any] | None
+    error: str | None
+    artifacts: list[str]
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None

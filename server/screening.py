@@ -1,0 +1,191 @@
+"""Screening for ``/submit`` in a dedicated process, batching concurrent submissions.
+
+The screener is tensor code: one manifest costs a few milliseconds of mostly fixed overhead,
+a batch of sixteen hardly more than two. So the API process hands each manifest to a spawned
+screening process (its own interpreter and GIL) over a pipe; that process takes whatever has
+queued up since its last pass (at most ``MAX_BATCH``), judges it with one
+``screener.screen_many`` call (the batched form of ``screener.screen``: same rules, same
+verdicts), and sends the verdicts back. Under no load a batch is one manifest, so nothing
+waits for a batch to fill.
+
+A screener exception answers that one submission with 503 (the batch is re-judged one by
+one to find it). If the screening process dies, the submissions in flight fail with
+``ScreenerUnavailableError`` (503, nothing stored) and a fresh process takes the next ones.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import multiprocessing
+import os
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from concurrent.futures import Future
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
+
+from agents.manifest import Manifest
+from screener import Verdict
+from server.workers import die_with_parent
+
+log = logging.getLogger("srd.screening")
+
+MAX_BATCH = 16  # beyond this the screener's cost per manifest stops falling
+VERDICT_TIMEOUT_S = 120.0  # a first request also waits for the process to import torch
+STOP_GRACE_S = 5.0
+RESPAWN_DELAY_S = 0.5  # a process that cannot start must not spin
+
+
+class ScreenerUnavailableError(RuntimeError):
+    """The screening process died or did not answer in time."""
+
+
+def _screening_main(conn: Connection, parent_pid: int) -> None:
+    die_with_parent(parent_pid)
+    import torch
+
+    from screener import screen_many
+
+    torch.set_num_threads(1)  # tiny tensors: threads only add overhead
+    while True:
+        try:
+            batch = [conn.recv()]
+            while len(batch) < MAX_BATCH and conn.poll():
+                batch.append(conn.recv())
+        except EOFError:
+            return
+        stop = batch[-1] is None  # the stop signal; what came before it is still judged
+        if stop:
+            batch.pop()
+        if batch:
+            answers = _judge(screen_many, [(i, Manifest.model_validate_json(m)) for i, m in batch])
+            conn.send([(i, answer) for (i, _), answer in zip(batch, answers, strict=True)])
+        if stop:
+            return
+
+
+def _judge(
+    screen_many: Callable[[list[Manifest]], list[Verdict]], batch: list[tuple[int, Manifest]]
+) -> list[Verdict | str]:
+    """Verdicts for a batch; if the screener raises, each manifest alone, errors as text."""
+    try:
+        return list(screen_many([manifest for _, manifest in batch]))
+    except Exception:
+        if len(batch) == 1:
+            return [traceback.format_exc(limit=-3)]
+        return [answer for item in batch for answer in _judge(screen_many, [item])]
+
+
+class ScreeningService:
+    """``judge(manifest)`` from any thread; the screening itself runs in a child process."""
+
+    def __init__(self) -> None:
+        self._spawn = multiprocessing.get_context("spawn")
+        self._ids = itertools.count()
+        self._pending: dict[int, Future[Verdict]] = {}
+        self._lock = threading.Lock()  # guards _pending, _conn, _process and sends on the pipe
+        self._stopping = False
+        self._conn: Connection | None = None
+        self._process: BaseProcess | None = None
+        self._launched = threading.Event()
+        # One long-lived thread starts every screening process and reads its answers: a child's
+        # parent-death signal is tied to the thread that started it (see die_with_parent).
+        self._keeper = threading.Thread(target=self._keep, name="screening", daemon=True)
+
+    def start(self) -> None:
+        """Spawn the screening process (it imports the screener in the background)."""
+        self._keeper.start()
+        self._launched.wait()
+
+    def _keep(self) -> None:
+        while True:
+            ours, theirs = multiprocessing.Pipe(duplex=True)
+            process = self._spawn.Process(
+                target=_screening_main, args=(theirs, os.getpid()), name="srd-screening"
+            )
+            process.start()
+            theirs.close()
+            with self._lock:
+                if self._stopping:
+                    process.kill()
+                    return
+                self._conn, self._process = ours, process
+            self._launched.set()
+            self._read(ours)
+            process.join()
+            with self._lock:
+                failed, self._pending = self._pending, {}
+                self._conn = None
+                stopping = self._stopping
+            for future in failed.values():
+                future.set_exception(
+                    ScreenerUnavailableError("the screening process exited; retry")
+                )
+            ours.close()
+            if stopping:
+                return
+            log.error("the screening process exited (code %s); starting another", process.exitcode)
+            time.sleep(RESPAWN_DELAY_S)
+
+    def judge(self, manifest: Manifest) -> Verdict:
+        """The screener's verdict on one manifest (blocks the calling thread, not the loop)."""
+        future: Future[Verdict] = Future()
+        with self._lock:
+            if self._conn is None:
+                raise ScreenerUnavailableError("the screening service is not running")
+            request_id = next(self._ids)
+            self._pending[request_id] = future
+            try:
+                self._conn.send((request_id, manifest.model_dump_json()))
+            except (OSError, ValueError) as exc:
+                del self._pending[request_id]
+                raise ScreenerUnavailableError(f"the screening process is gone: {exc}") from exc
+        try:
+            return future.result(timeout=VERDICT_TIMEOUT_S)
+        except TimeoutError as exc:
+            with self._lock:
+                self._pending.pop(request_id, None)
+            raise ScreenerUnavailableError("the screener did not answer in time") from exc
+
+    def _read(self, conn: Connection) -> None:
+        """Hand each answer to its waiting request until the pipe closes."""
+        while True:
+            try:
+                answers: list[tuple[int, Verdict | str]] = conn.recv()
+            except (EOFError, OSError):
+                return
+            with self._lock:
+                resolved = [(self._pending.pop(i, None), verdict) for i, verdict in answers]
+            for future, verdict in resolved:
+                if future is None:  # its caller gave up waiting
+                    continue
+                if isinstance(verdict, Verdict):
+                    future.set_result(verdict)
+                else:
+                    future.set_exception(
+                        ScreenerUnavailableError(f"the screener failed: {verdict}")
+                    )
+
+    def pid(self) -> int | None:
+        """The screening process id (for tests and diagnostics)."""
+        with self._lock:
+            return None if self._process is None else self._process.pid
+
+    def shutdown(self) -> None:
+        """Tell the process to stop (it answers what it holds first) and wait for it."""
+        with self._lock:
+            self._stopping = True
+            conn, process = self._conn, self._process
+            if conn is not None:
+                with contextlib.suppress(OSError, ValueError):
+                    conn.send(None)
+        if process is not None:
+            process.join(STOP_GRACE_S)
+            if process.is_alive():
+                process.kill()
+        if self._keeper.is_alive():
+            self._keeper.join(STOP_GRACE_S)

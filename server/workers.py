@@ -1,0 +1,279 @@
+"""Worker processes: auctions and jobs run in spawned processes, off the API's event loop and GIL.
+
+``WorkerPool`` keeps a FIFO of task ids and at most ``max_workers`` worker processes, started
+with the ``spawn`` method (no inherited locks, sockets or database connections). A supervisor
+thread hands queued task ids to idle workers over pipes, notices finished tasks and dead
+processes, and reports a task whose process died under it to ``on_exit`` (unless the task was
+cancelled or the pool is stopping). Children die with the API process (``PR_SET_PDEATHSIG`` on
+Linux, and a watchdog on the parent pid everywhere), so a killed server leaves no orphan
+writing to the database.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from multiprocessing.connection import Connection, wait
+from multiprocessing.process import BaseProcess
+from typing import Any
+
+log = logging.getLogger("srd.workers")
+
+SUPERVISOR_TICK_S = 0.5  # the supervisor also wakes on every submission and task end
+TERMINATE_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this long
+PARENT_WATCH_S = 0.5  # how often a child checks that its parent is alive
+ERROR_LIMIT = 4000  # characters of a traceback summary kept in the database
+PR_SET_PDEATHSIG = 1  # prctl option: signal to receive when the parent dies
+
+
+@dataclass(frozen=True)
+class WorkerContext:
+    """What a child needs to reach the database and the artifact folders (picklable)."""
+
+    database_url: str
+    data_dir: str
+    progress_interval_s: float
+    torch_threads: int
+
+
+TaskFn = Callable[[WorkerContext, int], None]
+ExitFn = Callable[[int, int | None], None]
+
+
+def error_summary(exc: BaseException) -> str:
+    """The exception line plus the innermost frames, short enough for a status field."""
+    frames = traceback.format_tb(exc.__traceback__)[-4:]
+    text = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+    if frames:
+        text += "\nTraceback (innermost last):\n" + "".join(frames).rstrip()
+    return text[-ERROR_LIMIT:]
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """Make this child process end when ``parent_pid`` does (call it first thing).
+
+    Linux delivers the parent-death signal when the *thread* that started the child ends, so
+    children must be started from threads that live as long as the children should (the pool
+    supervisors, the screening keeper). The parent-pid watchdog covers other systems.
+    """
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != parent_pid:
+                os._exit(70)
+            time.sleep(PARENT_WATCH_S)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+    if os.getppid() != parent_pid:  # the parent died before the signal was armed
+        os._exit(70)
+
+
+def _worker_main(task: TaskFn, context: WorkerContext, conn: Connection, parent_pid: int) -> None:
+    """A worker process: run each task id received, answer it when done, until the pipe ends."""
+    die_with_parent(parent_pid)
+    import torch
+
+    torch.set_num_threads(context.torch_threads)  # leave the other cores to the API
+    while True:
+        try:
+            task_id = conn.recv()
+        except EOFError:
+            return
+        task(context, task_id)
+        conn.send(task_id)
+
+
+@dataclass
+class _Worker:
+    """One worker process, its end of the pipe, and the task it is running (if any)."""
+
+    process: BaseProcess
+    conn: Connection
+    task_id: int | None = None
+    tasks_done: int = 0
+    cancelled_at: float | None = None  # when SIGTERM was sent for the current task
+
+
+class WorkerPool:
+    """Runs ``task(context, task_id)`` in spawned worker processes, ``max_workers`` at a time.
+
+    A worker process runs tasks one after another (``tasks_per_process`` of them, None: no
+    limit), so the imports a task needs (torch...) are paid once, not per task; one idle worker
+    is kept started ahead of need. A task is
+    cancelled by terminating its process; a process that dies while running a task reports
+    that task to ``on_exit`` with its exit code (unless cancelled or the pool is stopping).
+    """
+
+    def __init__(
+        self,
+        *,
+        name: str,
+        task: TaskFn,
+        context: WorkerContext,
+        max_workers: int,
+        on_exit: ExitFn,
+        tasks_per_process: int | None = None,
+    ) -> None:
+        self.name = name
+        self._task = task
+        self._context = context
+        self._max_workers = max_workers
+        self._tasks_per_process = tasks_per_process
+        self._on_exit = on_exit
+        self._spawn = multiprocessing.get_context("spawn")
+        self._queue: deque[int] = deque()
+        self._workers: list[_Worker] = []
+        self._lock = threading.Lock()
+        self._wake_reader, self._wake_writer = multiprocessing.Pipe(duplex=False)
+        self._stopping = False
+        self._thread = threading.Thread(target=self._supervise, name=f"{name}-pool", daemon=True)
+
+    def start(self) -> None:
+        """Start the supervisor thread (it starts every worker process, see die_with_parent)."""
+        self._thread.start()
+
+    def _wake(self) -> None:
+        with contextlib.suppress(OSError):
+            self._wake_writer.send_bytes(b"")
+
+    def submit(self, task_id: int) -> None:
+        """Queue a task (ignored when it is already queued or running)."""
+        with self._lock:
+            running = any(w.task_id == task_id for w in self._workers)
+            if not running and task_id not in self._queue:
+                self._queue.append(task_id)
+        self._wake()
+
+    def cancel(self, task_id: int) -> None:
+        """Drop a queued task or terminate the process running it (its end is not reported)."""
+        with self._lock:
+            if task_id in self._queue:
+                self._queue.remove(task_id)
+            for worker in self._workers:
+                if worker.task_id == task_id and worker.cancelled_at is None:
+                    worker.cancelled_at = time.monotonic()
+                    worker.process.terminate()
+        self._wake()
+
+    def pid(self, task_id: int) -> int | None:
+        """The process id running a task, if any."""
+        with self._lock:
+            for worker in self._workers:
+                if worker.task_id == task_id:
+                    return worker.process.pid
+            return None
+
+    def shutdown(self) -> None:
+        """Stop the supervisor and the workers (unfinished tasks resume at the next start)."""
+        with self._lock:
+            self._stopping = True
+            self._queue.clear()
+        self._wake()
+        if self._thread.is_alive():
+            self._thread.join()
+        for worker in self._workers:
+            worker.process.terminate()
+        for worker in self._workers:
+            worker.process.join(TERMINATE_GRACE_S)
+            if worker.process.is_alive():
+                worker.process.kill()
+                worker.process.join()
+            worker.conn.close()
+        self._workers.clear()
+
+    def _supervise(self) -> None:
+        while True:
+            with self._lock:
+                if self._stopping:
+                    return
+                ended = self._collect()
+                self._assign()
+                waitables: list[Any] = [self._wake_reader]
+                waitables += [w.conn for w in self._workers if w.task_id is not None]
+                waitables += [w.process.sentinel for w in self._workers]
+            for task_id, code in ended:
+                try:
+                    self._on_exit(task_id, code)
+                except Exception:
+                    log.exception("%s: handling the end of task %d failed", self.name, task_id)
+            for ready in wait(waitables, timeout=SUPERVISOR_TICK_S):
+                if ready is self._wake_reader:
+                    with contextlib.suppress(EOFError, OSError):
+                        self._wake_reader.recv_bytes()
+
+    def _collect(self) -> list[tuple[int, int | None]]:
+        """Free the workers whose task finished; drop dead ones, returning what they ran."""
+        ended: list[tuple[int, int | None]] = []
+        now = time.monotonic()
+        for worker in list(self._workers):
+            if worker.task_id is not None and worker.process.is_alive():
+                if worker.cancelled_at is not None:
+                    if now - worker.cancelled_at > TERMINATE_GRACE_S:
+                        worker.process.kill()
+                    continue
+                if worker.conn.poll():
+                    with contextlib.suppress(EOFError, OSError):
+                        worker.conn.recv()
+                        worker.task_id, worker.tasks_done = None, worker.tasks_done + 1
+                if worker.task_id is None and self._retired(worker):
+                    worker.conn.close()  # the worker sees EOF and exits
+            if not worker.process.is_alive():
+                worker.process.join()
+                worker.conn.close()
+                self._workers.remove(worker)
+                if worker.task_id is not None and worker.cancelled_at is None:
+                    ended.append((worker.task_id, worker.process.exitcode))
+        return ended
+
+    def _retired(self, worker: _Worker) -> bool:
+        limit = self._tasks_per_process
+        return limit is not None and worker.tasks_done >= limit
+
+    def _assign(self) -> None:
+        """Give queued tasks to idle workers (starting workers up to the limit), then keep one
+        spare worker started, so the next task does not wait for a fresh interpreter."""
+        self._hand_out()
+        idle = [w for w in self._workers if w.task_id is None and not self._retired(w)]
+        if not idle and len(self._workers) < self._max_workers:
+            self._start_worker()
+
+    def _hand_out(self) -> None:
+        while self._queue:
+            idle = [w for w in self._workers if w.task_id is None and not self._retired(w)]
+            if idle:
+                worker = idle[0]
+            elif len(self._workers) < self._max_workers:
+                worker = self._start_worker()
+            else:
+                return
+            worker.task_id = self._queue.popleft()
+            worker.cancelled_at = None
+            worker.conn.send(worker.task_id)
+
+    def _start_worker(self) -> _Worker:
+        ours, theirs = multiprocessing.Pipe(duplex=True)
+        process = self._spawn.Process(
+            target=_worker_main,
+            args=(self._task, self._context, theirs, os.getpid()),
+            name=f"srd-{self.name}-worker",
+        )
+        process.start()
+        theirs.close()
+        worker = _Worker(process, ours)
+        self._workers.append(worker)
+        return worker

@@ -1,0 +1,336 @@
+"""Every route and its error cases, in-process, on SQLite and on the real PostgreSQL."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import func, select
+
+from agents.manifest import parse_manifest
+from screener import screen
+from server.config import Settings
+from server.models import Job, ModelVersion, Participant
+from sim.registry import KINDS, ExperimentKind
+from tests.server.conftest import ADMIN, honest, saboteur, unique, wait_for
+
+WRONG = {"Authorization": "Bearer not-the-token"}
+
+
+def locs(response: Any) -> list[list[Any]]:
+    """The ``loc`` of every error entry (and check the common error body on the way)."""
+    body = response.json()
+    assert set(body) == {"detail"}
+    for item in body["detail"]:
+        assert set(item) == {"loc", "msg", "type"} and isinstance(item["msg"], str)
+    return [item["loc"] for item in body["detail"]]
+
+
+def count(client: TestClient, table: Any, **where: Any) -> int:
+    database = client.app.state.database  # type: ignore[attr-defined]
+    with database.session(write=False) as session:
+        query = select(func.count()).select_from(table)
+        for column, value in where.items():
+            query = query.where(getattr(table, column) == value)
+        return int(session.scalar(query) or 0)
+
+
+def test_healthz_and_openapi(client: TestClient) -> None:
+    assert client.get("/healthz").json() == {"status": "ok"}
+    paths = client.get("/openapi.json").json()["paths"]
+    for path in (
+        "/healthz",
+        "/submit",
+        "/models/{model_id}",
+        "/auctions",
+        "/auctions/{auction_id}",
+        "/jobs",
+        "/jobs/{job_id}",
+        "/jobs/{job_id}/artifacts/{name}",
+    ):
+        assert path in paths
+    assert client.get("/docs").status_code == 200
+
+
+def test_unknown_route_and_method_use_the_error_body(client: TestClient) -> None:
+    missing = client.get("/nope")
+    assert missing.status_code == 404 and locs(missing) == [[]]
+    wrong_method = client.put("/healthz")
+    assert wrong_method.status_code == 405 and locs(wrong_method) == [[]]
+
+
+def test_submit_new_participant_then_read_model(client: TestClient) -> None:
+    name = unique("alice")
+    manifest = honest(name, seed=3)
+    response = client.post("/submit", json=manifest)
+    assert response.status_code == 201, response.text
+    body = response.json()
+    assert body["participant"] == name and body["version"] == 1
+    assert body["accepted"] is True and body["reasons"] == []
+    assert body["token"].startswith("srdp_") and len(body["token"]) > 40
+    model = client.get(f"/models/{body['model_id']}").json()
+    assert model["manifest"] == manifest
+    assert (model["participant"], model["version"], model["verdict"]) == (name, 1, "accepted")
+    assert model["accepted"] is True and model["reasons"] == []
+
+
+def test_token_is_stored_hashed_and_never_returned_again(client: TestClient) -> None:
+    name = unique("bob")
+    first = client.post("/submit", json=honest(name)).json()
+    token = first["token"]
+    with client.app.state.database.session(write=False) as session:  # type: ignore[attr-defined]
+        stored = session.scalars(select(Participant).where(Participant.name == name)).one()
+    assert token not in stored.token_hash and len(stored.token_hash) == 64
+    model = client.get(f"/models/{first['model_id']}").json()
+    assert token not in json.dumps(model)
+
+
+def test_new_version_needs_the_participant_token(client: TestClient) -> None:
+    name = unique("carol")
+    first = client.post("/submit", json=honest(name, seed=1)).json()
+    before = count(client, ModelVersion)
+
+    no_token = client.post("/submit", json=honest(name, seed=2))
+    assert no_token.status_code == 401 and locs(no_token) == [["header", "Authorization"]]
+    assert no_token.headers["www-authenticate"] == "Bearer"
+    wrong = client.post("/submit", json=honest(name, seed=2), headers=WRONG)
+    assert wrong.status_code == 403 and locs(wrong) == [["header", "Authorization"]]
+    other = client.post("/submit", json=honest(unique("dave"))).json()["token"]
+    stolen = client.post(
+        "/submit", json=honest(name, seed=2), headers={"Authorization": f"Bearer {other}"}
+    )
+    assert stolen.status_code == 403
+    assert count(client, ModelVersion) == before + 1  # only dave's first version was written
+
+    second = client.post(
+        "/submit", json=honest(name, seed=2), headers={"Authorization": f"Bearer {first['token']}"}
+    )
+    assert second.status_code == 201
+    assert second.json()["version"] == 2 and second.json()["token"] is None
+    assert second.json()["model_id"] != first["model_id"]
+
+
+@pytest.mark.parametrize(
+    ("mutate", "expected_loc"),
+    [
+        (
+            lambda m: m["external_sensor"]["PG"].pop("bias"),
+            ["body", "external_sensor", "PG", "bias"],
+        ),
+        (
+            lambda m: m["decision"]["B"]["weights"].update(PG="x"),
+            ["body", "decision", "B", "weights", "PG"],
+        ),
+        (lambda m: m.update(participant="bad name!"), ["body", "participant"]),
+        (lambda m: m.update(surprise=1), ["body", "surprise"]),
+        (lambda m: m["fine_tuning"].update(epochs=99), ["body", "fine_tuning", "epochs"]),
+    ],
+)
+def test_submit_invalid_manifest_names_the_field(
+    client: TestClient, mutate: Any, expected_loc: list[Any]
+) -> None:
+    name = unique("eve")
+    manifest = honest(name)
+    mutate(manifest)
+    response = client.post("/submit", json=manifest)
+    assert response.status_code == 422
+    assert expected_loc in locs(response)
+    assert count(client, Participant, name=name) == 0
+
+
+@pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity", "1e999"])
+def test_submit_non_finite_number_is_refused_with_its_path(
+    client: TestClient, literal: str
+) -> None:
+    name = unique("frank")
+    manifest = honest(name)
+    manifest["external_sensor"]["SZ"]["bias"] = 12345.5
+    raw = json.dumps(manifest).replace("12345.5", literal)
+    response = client.post("/submit", content=raw, headers={"Content-Type": "application/json"})
+    assert response.status_code == 422
+    assert ["body", "external_sensor", "SZ", "bias"] in locs(response)
+    assert count(client, Participant, name=name) == 0
+
+
+@pytest.mark.parametrize("raw", ['{"participant": ', "[1, 2]", '"manifest"', ""])
+def test_submit_malformed_json_or_wrong_type(client: TestClient, raw: str) -> None:
+    response = client.post("/submit", content=raw, headers={"Content-Type": "application/json"})
+    assert response.status_code == 422
+    assert all(loc[0] == "body" for loc in locs(response))
+
+
+def test_body_over_the_limit_is_413(client: TestClient, settings: Settings) -> None:
+    before = count(client, ModelVersion)
+    manifest = honest(unique("big"))
+    manifest["description"] = "x" * (settings.max_body_bytes + 1)
+    response = client.post("/submit", json=manifest)
+    assert response.status_code == 413 and locs(response) == [["header", "Content-Length"]]
+
+    def chunks() -> Any:  # no Content-Length: the server must count what arrives
+        for _ in range(settings.max_body_bytes // 1024 + 2):
+            yield b" " * 1024
+
+    chunked = client.post("/submit", content=chunks(), headers={"Content-Type": "application/json"})
+    assert chunked.status_code == 413
+    lying = client.post("/submit", content=b"{" + b" " * 100, headers={"Content-Length": "1e9"})
+    assert lying.status_code == 400
+    assert count(client, ModelVersion) == before
+
+
+def test_read_model_errors(client: TestClient) -> None:
+    missing = client.get("/models/987654321")
+    assert missing.status_code == 404 and locs(missing) == [["path", "model_id"]]
+    assert client.get("/models/abc").status_code == 422
+
+
+def test_rejected_model_is_stored_with_reasons_and_never_enters_an_auction(
+    client: TestClient,
+) -> None:
+    name = unique("mallory")
+    manifest = saboteur(name)
+    expected = screen(parse_manifest(manifest)).to_dict()
+    assert expected["accepted"] is False  # the screener turns the always-hold saboteur away
+    body = client.post("/submit", json=manifest).json()
+    assert body["accepted"] is False and body["reasons"] == expected["reasons"]
+    assert {r["rule"] for r in body["reasons"]} >= {"always-holds"}
+    model = client.get(f"/models/{body['model_id']}").json()
+    assert model["verdict"] == "rejected" and model["reasons"] == expected["reasons"]
+
+    response = client.post(
+        "/auctions", json={"n_fish": 1, "model_ids": [body["model_id"]]}, headers=ADMIN
+    )
+    assert response.status_code == 422 and locs(response) == [["body", "model_ids", 0]]
+    assert "rejected" in response.json()["detail"][0]["msg"]
+
+
+def test_concurrent_submissions_get_the_screeners_own_verdicts(client: TestClient) -> None:
+    """Submissions screened together in one batch get exactly ``screen``'s verdict each."""
+    manifests = [(saboteur if i % 3 == 0 else honest)(unique("batch"), seed=i) for i in range(24)]
+    with ThreadPoolExecutor(max_workers=12) as pool:
+        answers = list(pool.map(lambda m: client.post("/submit", json=m).json(), manifests))
+    for manifest, answer in zip(manifests, answers, strict=True):
+        expected = screen(parse_manifest(manifest))
+        assert answer["accepted"] == expected.accepted
+        assert answer["reasons"] == expected.to_dict()["reasons"]
+
+
+def test_screening_process_is_replaced_when_it_dies(client: TestClient) -> None:
+    client.post("/submit", json=honest(unique("warm")))
+    screening = client.app.state.screening  # type: ignore[attr-defined]
+    old = screening.pid()
+    os.kill(old, signal.SIGKILL)
+    wait_for(lambda: {"pid": screening.pid()}, lambda s: s["pid"] not in (None, old), 30)
+    response = client.post("/submit", json=honest(unique("after")))
+    assert response.status_code == 201 and response.json()["accepted"] is True
+
+
+def test_auction_needs_the_admin_token(client: TestClient) -> None:
+    assert client.post("/auctions", json={"n_fish": 1}).status_code == 401
+    assert client.post("/auctions", json={"n_fish": 1}, headers=WRONG).status_code == 403
+    basic = client.post("/auctions", json={"n_fish": 1}, headers={"Authorization": "Basic eDp5"})
+    assert basic.status_code == 401
+
+
+@pytest.mark.parametrize(
+    ("body", "expected_loc"),
+    [
+        ({"n_fish": 2, "rarity": 0.5}, ["body", "n_fish"]),
+        ({}, ["body", "rarity"]),
+        ({"rarity": 0}, ["body", "rarity"]),
+        ({"rarity": 1.5}, ["body", "rarity"]),
+        ({"n_fish": 0}, ["body", "n_fish"]),
+        ({"n_fish": 2, "max_iterations": 0}, ["body", "max_iterations"]),
+        ({"n_fish": 2, "model_ids": []}, ["body", "model_ids"]),
+        ({"n_fish": 2, "seed": -1}, ["body", "seed"]),
+        ({"n_fish": 2, "colour": "red"}, ["body", "colour"]),
+        ({"n_fish": 2, "model_ids": [987654321]}, ["body", "model_ids", 0]),
+    ],
+)
+def test_create_auction_bad_input(
+    client: TestClient, body: dict[str, Any], expected_loc: list[Any]
+) -> None:
+    client.post("/submit", json=honest(unique("patron")))
+    response = client.post("/auctions", json=body, headers=ADMIN)
+    assert response.status_code == 422
+    assert expected_loc in locs(response)
+
+
+def test_create_auction_duplicate_and_tiny_rarity(client: TestClient) -> None:
+    model_id = client.post("/submit", json=honest(unique("dup"))).json()["model_id"]
+    duplicate = client.post(
+        "/auctions", json={"n_fish": 1, "model_ids": [model_id, model_id]}, headers=ADMIN
+    )
+    assert duplicate.status_code == 422
+    assert locs(duplicate) == [["body", "model_ids", 1]]
+    tiny = client.post("/auctions", json={"rarity": 0.01, "model_ids": [model_id]}, headers=ADMIN)
+    assert tiny.status_code == 422
+    assert locs(tiny) == [["body", "rarity"]]
+
+
+def test_read_auction_errors(client: TestClient) -> None:
+    missing = client.get("/auctions/987654321")
+    assert missing.status_code == 404 and locs(missing) == [["path", "auction_id"]]
+    assert client.get("/auctions/x").status_code == 422
+
+
+def test_job_endpoints_need_the_admin_token(client: TestClient) -> None:
+    job = {"kind": "fish", "params": {"steps": 10}}
+    assert client.post("/jobs", json=job).status_code == 401
+    assert client.post("/jobs", json=job, headers=WRONG).status_code == 403
+    assert client.delete("/jobs/1").status_code == 401
+    assert client.delete("/jobs/1", headers=WRONG).status_code == 403
+
+
+@pytest.mark.parametrize(
+    ("body", "expected_loc"),
+    [
+        ({"kind": "poker", "params": {}}, ["body", "kind"]),
+        ({"params": {}}, ["body", "kind"]),
+        ({"kind": "fish", "params": {"steps": 0}}, ["body", "params", "steps"]),
+        ({"kind": "fish", "params": {"steps": "many"}}, ["body", "params", "steps"]),
+        ({"kind": "fish", "params": {"speed": 3}}, ["body", "params", "speed"]),
+        ({"kind": "fish", "params": [1]}, ["body", "params"]),
+        ({"kind": "fish", "extra": 1}, ["body", "extra"]),
+    ],
+)
+def test_create_job_bad_input(
+    client: TestClient, body: dict[str, Any], expected_loc: list[Any]
+) -> None:
+    response = client.post("/jobs", json=body, headers=ADMIN)
+    assert response.status_code == 422
+    assert expected_loc in locs(response)
+
+
+def test_kind_not_built_yet_is_422_not_a_fake_result(
+    client: TestClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A kind whose module does not exist (yet) is refused, never faked."""
+    unbuilt = ExperimentKind("cheetah", "sim.not_built_yet", "CheetahConfig", "run")
+    monkeypatch.setitem(KINDS, "cheetah", unbuilt)
+    before = count(client, Job)
+    response = client.post("/jobs", json={"kind": "cheetah", "params": {}}, headers=ADMIN)
+    assert response.status_code == 422 and locs(response) == [["body", "kind"]]
+    assert response.json()["detail"][0]["msg"] == "job kind 'cheetah' is not available yet"
+    assert count(client, Job) == before
+
+
+def test_read_job_and_cancel_errors(client: TestClient) -> None:
+    missing = client.get("/jobs/987654321")
+    assert missing.status_code == 404 and locs(missing) == [["path", "job_id"]]
+    assert client.delete("/jobs/987654321", headers=ADMIN).status_code == 404
+    assert client.get("/jobs/987654321/artifacts/result.json").status_code == 404
+    assert client.get("/jobs/zz").status_code == 422
+
+
+def test_non_finite_job_params_are_refused(client: TestClient) -> None:
+    raw = '{"kind": "fish", "params": {"steps": NaN}}'
+    response = client.post(
+        "/jobs", content=raw, headers={**ADMIN, "Content-Type": "application/json"}
+    )
+    assert response.status_code == 422
+    assert ["body", "params", "steps"] in locs(response)

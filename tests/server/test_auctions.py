@@ -1,0 +1,181 @@
+"""Auctions through the API: the background run, its committed rounds, determinism, defaults."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from agents.manifest import parse_manifest
+from server import crud
+from sim.market import Market, MarketConfig
+from tests.server.conftest import ADMIN, honest, saboteur, unique, wait_for
+
+AUCTION_TIMEOUT_S = 120
+N_HONEST = 12
+
+
+def submit_all(client: TestClient, manifests: list[dict[str, Any]]) -> list[int]:
+    ids = []
+    for manifest in manifests:
+        response = client.post("/submit", json=manifest)
+        assert response.status_code == 201, response.text
+        ids.append(int(response.json()["model_id"]))
+    return ids
+
+
+def run(client: TestClient, body: dict[str, Any]) -> dict[str, Any]:
+    response = client.post("/auctions", json=body, headers=ADMIN)
+    assert response.status_code == 201, response.text
+    auction_id = response.json()["auction_id"]
+    return wait_for(
+        lambda: client.get(f"/auctions/{auction_id}").json(),
+        lambda a: a["status"] in ("finished", "failed"),
+        AUCTION_TIMEOUT_S,
+    )
+
+
+@pytest.fixture(scope="module")
+def patrons(client: TestClient) -> tuple[list[dict[str, Any]], list[int]]:
+    manifests = [honest(unique("honest"), seed=100 + i) for i in range(N_HONEST)]
+    return manifests, submit_all(client, manifests)
+
+
+def check_consistent(auction: dict[str, Any]) -> None:
+    """The committed rounds tell one story: contiguous, chained, each patron counted once."""
+    history = auction["history"]
+    assert [row["iteration"] for row in history] == list(range(len(history)))
+    assert auction["iteration"] == len(history) >= 1
+    active = auction["n_patrons"]
+    buyers_by_round: dict[int, int] = {}
+    for buyer in auction["buyers"]:
+        buyers_by_round[buyer["iteration"]] = buyers_by_round.get(buyer["iteration"], 0) + 1
+        assert buyer["price"] == history[buyer["iteration"]]["price"]
+    quits = auction["quitters"]
+    for row, following in zip(history, [*history[1:], None], strict=True):
+        assert sum(row["votes"].values()) == active  # every active patron votes on row 0
+        left = buyers_by_round.get(row["iteration"], 0)
+        assert row["n_available_after"] == row["n_available"] - left
+        if following is not None:
+            assert following["price"] == row["next_price"]
+            assert following["n_available"] == row["n_available_after"]
+        active -= left + row["votes"]["quit"]
+    buyer_ids = [b["model_id"] for b in auction["buyers"]]
+    assert len(set(buyer_ids)) == len(buyer_ids) and len(set(quits)) == len(quits)
+    assert not set(buyer_ids) & set(quits)
+    assert set(buyer_ids) | set(quits) <= set(auction["model_ids"])
+    assert auction["n_available"] == auction["n_initial"] - len(buyer_ids)
+    assert auction["price"] == history[-1]["next_price"]
+    assert auction["revenue"] == pytest.approx(sum(b["price"] for b in auction["buyers"]))
+
+
+def test_auction_runs_to_the_end_like_the_market(
+    client: TestClient, patrons: tuple[list[dict[str, Any]], list[int]]
+) -> None:
+    manifests, ids = patrons
+    auction = run(client, {"rarity": 0.5, "model_ids": ids, "seed": 7})
+    assert auction["status"] == "finished", auction["error"]
+    assert auction["n_initial"] == N_HONEST // 2 and auction["n_patrons"] == N_HONEST
+    assert auction["model_ids"] == ids and auction["stop_reason"] is not None
+    assert auction["started_at"] and auction["finished_at"]
+    check_consistent(auction)
+
+    # the same auction played directly on the market gives the very same rounds
+    market = Market([parse_manifest(m) for m in manifests], MarketConfig(n_fish=6, seed=7))
+    records = list(market.run())
+    assert [r["price"] for r in auction["history"]] == [r.price for r in records]
+    assert [r["votes"] for r in auction["history"]] == [r.votes for r in records]
+    assert auction["buyers"] == [
+        {"model_id": ids[i], "price": price, "iteration": r.iteration}
+        for r in records
+        for i, price in r.buyers
+    ]
+    assert auction["quitters"] == [ids[i] for r in records for i in r.quitters]
+    assert auction["stop_reason"] == records[-1].stop_reason
+
+
+def test_fine_tuning_auction_with_explicit_fish(
+    client: TestClient, patrons: tuple[list[dict[str, Any]], list[int]]
+) -> None:
+    _, ids = patrons
+    auction = run(client, {"n_fish": 3, "model_ids": ids[:8], "fine_tune": True, "seed": 1})
+    assert auction["status"] == "finished", auction["error"]
+    assert (auction["n_initial"], auction["fine_tune"], auction["rarity"]) == (3, True, None)
+    check_consistent(auction)
+
+
+def test_default_patrons_are_the_newest_accepted_version_of_each_participant(
+    client: TestClient, patrons: tuple[list[dict[str, Any]], list[int]]
+) -> None:
+    name = unique("versions")
+    first = client.post("/submit", json=honest(name, seed=1)).json()
+    token = {"Authorization": f"Bearer {first['token']}"}
+    second = client.post("/submit", json=honest(name, seed=2), headers=token).json()
+    rejected = client.post("/submit", json=saboteur(name), headers=token).json()
+    assert (second["version"], rejected["version"], rejected["accepted"]) == (2, 3, False)
+    lone_saboteur = client.post("/submit", json=saboteur(unique("sab"))).json()
+
+    response = client.post("/auctions", json={"n_fish": 1, "seed": 2}, headers=ADMIN)
+    assert response.status_code == 201
+    auction = client.get(f"/auctions/{response.json()['auction_id']}").json()
+    assert auction["status"] in ("pending", "running", "finished")
+    assert second["model_id"] in auction["model_ids"]
+    for absent in (first, rejected, lone_saboteur):
+        assert absent["model_id"] not in auction["model_ids"]
+    assert set(patrons[1]) <= set(auction["model_ids"])
+    assert [m for m in auction["model_ids"] if m in patrons[1]] == patrons[1]  # participant order
+    wait_for(
+        lambda: client.get(f"/auctions/{auction['id']}").json(),
+        lambda a: a["status"] in ("finished", "failed"),
+        AUCTION_TIMEOUT_S,
+    )
+
+
+def test_auctions_answer_not_available_while_the_market_is_missing(
+    client: TestClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr("server.routes.auctions.market_module", lambda: None)
+    response = client.post("/auctions", json={"n_fish": 1}, headers=ADMIN)
+    assert response.status_code == 422
+    assert "not available yet" in response.json()["detail"][0]["msg"]
+
+
+@pytest.mark.parametrize(
+    ("checkpoint", "iteration", "reason"),
+    [
+        (b"not a checkpoint", 2, "the checkpoint cannot be restored"),
+        (None, 3, "3 rounds are committed but no checkpoint is"),
+    ],
+)
+def test_an_auction_that_cannot_resume_is_marked_failed_with_the_reason(
+    client: TestClient,
+    patrons: tuple[list[dict[str, Any]], list[int]],
+    checkpoint: bytes | None,
+    iteration: int,
+    reason: str,
+) -> None:
+    """What the runner does at start-up with an unfinished auction whose state is unusable."""
+    database = client.app.state.database  # type: ignore[attr-defined]
+    with database.session(write=True) as session:
+        auction = crud.create_auction(
+            session,
+            model_ids=patrons[1][:4],
+            n_fish=2,
+            rarity=None,
+            max_iterations=64,
+            fine_tune=False,
+            seed=0,
+            opening_price=5.0,
+        )
+        auction.status, auction.iteration, auction.checkpoint = "running", iteration, checkpoint
+        session.commit()
+        auction_id = auction.id
+    client.app.state.auctions.submit(auction_id)  # type: ignore[attr-defined]
+    failed = wait_for(
+        lambda: client.get(f"/auctions/{auction_id}").json(),
+        lambda a: a["status"] != "running",
+        AUCTION_TIMEOUT_S,
+    )
+    assert failed["status"] == "failed" and failed["finished_at"] is not None
+    assert failed["error"].startswith("cannot resume: ") and reason in failed["error"]

@@ -1,0 +1,127 @@
+"""Job lifecycle through the API: run, artifacts, cancel (queued and running), crashed worker.
+
+Uses the ``fish`` kind (the robot fish is cheap at a few hundred steps).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from server.config import Settings
+from tests.server.conftest import ADMIN, wait_for
+
+LONG_FISH = {"kind": "fish", "params": {"steps": 200_000, "srd": True}}  # minutes: always stopped
+SHORT_FISH = {"kind": "fish", "params": {"steps": 300, "srd": True, "seed": 4}}
+JOB_TIMEOUT_S = 120
+
+
+def start(client: TestClient, body: dict[str, Any]) -> int:
+    response = client.post("/jobs", json=body, headers=ADMIN)
+    assert response.status_code == 202, response.text
+    assert response.json()["status"] == "queued"
+    return int(response.json()["job_id"])
+
+
+def job(client: TestClient, job_id: int) -> dict[str, Any]:
+    response = client.get(f"/jobs/{job_id}")
+    assert response.status_code == 200
+    return dict(response.json())
+
+
+def pid_of(client: TestClient, job_id: int) -> int | None:
+    return client.app.state.jobs.pool.pid(job_id)  # type: ignore[attr-defined,no-any-return]
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+@pytest.fixture(scope="module")
+def fish_available() -> None:
+    from sim.registry import KINDS
+
+    if not KINDS["fish"].available():
+        pytest.skip("sim.fish is not built")
+
+
+def assert_no_escape(client: TestClient, job_id: int, settings: Settings) -> None:
+    """Only listed artifact names are served; nothing outside the job's folder."""
+    (settings.data_dir / "secret.txt").write_text("top secret")
+    (settings.data_dir / "jobs" / str(job_id) / "unlisted.txt").write_text("not an artifact")
+    for name in (
+        "../../secret.txt",
+        "..%2F..%2Fsecret.txt",
+        "%2E%2E/%2E%2E/secret.txt",
+        "/etc/passwd",
+        "%2Fetc%2Fpasswd",
+        "unlisted.txt",
+        "fish.png/..",
+        ".",
+        "",
+    ):
+        response = client.get(f"/jobs/{job_id}/artifacts/{name}")
+        # the client may resolve plain dot segments itself (another route then answers 4xx)
+        expected = (404, 422) if name.startswith("../") else (404,)
+        assert response.status_code in expected, name
+        assert b"top secret" not in response.content and b"root:" not in response.content
+
+
+def test_job_lifecycle(client: TestClient, settings: Settings, fish_available: None) -> None:
+    """Two workers. A long job is killed -9 mid-run (fails), a short one runs to the end, a third
+    is cancelled while queued, a fourth is cancelled while running (its process ends)."""
+    is_running = lambda j: j["status"] == "running"  # noqa: E731
+    crashing = start(client, LONG_FISH)
+    short = start(client, SHORT_FISH)
+    waiting = start(client, LONG_FISH)
+    assert job(client, waiting)["status"] == "queued"
+    cancelled = client.delete(f"/jobs/{waiting}", headers=ADMIN)
+    assert cancelled.status_code == 200 and cancelled.json()["status"] == "cancelled"
+    again = client.delete(f"/jobs/{waiting}", headers=ADMIN)
+    assert again.status_code == 409 and "already cancelled" in again.json()["detail"][0]["msg"]
+
+    state = wait_for(lambda: job(client, crashing), is_running, JOB_TIMEOUT_S)
+    assert state["started_at"] is not None
+    pid = pid_of(client, crashing)
+    assert pid is not None
+    os.kill(pid, signal.SIGKILL)
+    state = wait_for(lambda: job(client, crashing), lambda j: not is_running(j), 30)
+    assert state["status"] == "failed" and "code -9" in state["error"]
+
+    running = start(client, LONG_FISH)  # takes the freed worker slot
+    wait_for(lambda: job(client, running), is_running, JOB_TIMEOUT_S)
+    pid = pid_of(client, running)
+    assert pid is not None and alive(pid)
+    response = client.delete(f"/jobs/{running}", headers=ADMIN)
+    assert response.status_code == 200 and response.json()["status"] == "cancelled"
+    wait_for(lambda: {"alive": alive(pid)}, lambda s: not s["alive"], 15)
+    assert job(client, running)["status"] == "cancelled"
+    assert job(client, waiting)["started_at"] is None  # the queued one never ran
+
+    done = wait_for(
+        lambda: job(client, short),
+        lambda j: j["status"] not in ("queued", "running"),
+        JOB_TIMEOUT_S,
+    )
+    assert done["status"] == "succeeded", done["error"]
+    assert done["progress"] == 1.0 and done["error"] is None
+    assert done["params"]["steps"] == 300 and done["params"]["seed"] == 4
+    result = done["result"]
+    assert result["steps"] == 300 and result["srd"] is True and result["died"] is False
+    assert 0.0 < result["mean_energy_first_1000"] <= 1.0
+    assert {"result.json", "fish.png"} <= set(done["artifacts"])
+    stored = client.get(f"/jobs/{short}/artifacts/result.json")
+    assert stored.status_code == 200 and json.loads(stored.content) == result
+    png = client.get(f"/jobs/{short}/artifacts/fish.png")
+    assert png.headers["content-type"] == "image/png" and png.content[:4] == b"\x89PNG"
+    assert client.delete(f"/jobs/{short}", headers=ADMIN).status_code == 409
+    assert_no_escape(client, short, settings)

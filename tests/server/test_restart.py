@@ -1,0 +1,159 @@
+"""Crash safety: kill -9 the real server mid-auction and mid-job, start it again.
+
+The auction (64 patrons, fine-tuning on: the first rounds take about a second each) is killed
+after a round or two is committed; the restarted server resumes it from the last checkpoint.
+Its full history must equal the same auction played uninterrupted on the market — rounds
+contiguous, no purchase lost or doubled, fine-tuned weights and RNG state carried over. The job
+is re-queued and completes; the workers of the killed server must not outlive it.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from sqlalchemy import func, select
+
+from agents.manifest import parse_manifest
+from screener import screen
+from server.db import Database
+from server.launch import ServerProcess, postgres_admin_url, throwaway_postgres
+from server.models import Auction, AuctionIteration, Job, Purchase
+from sim.market import Market, MarketConfig
+from tests.server.conftest import honest, wait_for
+
+N_PATRONS = 64
+AUCTION = {"n_fish": 1, "fine_tune": True, "seed": 0}
+JOB = {"kind": "fish", "params": {"steps": 2500, "srd": True}}
+TIMEOUT_S = 240
+
+
+def child_pids(pid: int) -> list[int]:
+    """Direct children of ``pid`` (from /proc)."""
+    children = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                children.append(int(entry.name))
+    return children
+
+
+def alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.slow)])
+def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'srd.db'}"
+        return
+    admin_url = postgres_admin_url()
+    if admin_url is None:
+        pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
+    with throwaway_postgres(admin_url) as url:
+        yield url
+
+
+def get(server: ServerProcess, path: str) -> dict[str, Any]:
+    response = httpx.get(server.url + path, timeout=30)
+    response.raise_for_status()
+    return dict(response.json())
+
+
+def test_kill_9_then_restart_resumes_auction_and_requeues_job(
+    database_url: str, tmp_path: Path
+) -> None:
+    manifests = [honest(f"restart-{i:02d}", seed=200 + i) for i in range(N_PATRONS)]
+    token = secrets.token_hex(16)
+    admin = {"Authorization": f"Bearer {token}"}
+    data_dir = tmp_path / "data"
+    first = ServerProcess(database_url=database_url, data_dir=data_dir, admin_token=token)
+    second = ServerProcess(database_url=database_url, data_dir=data_dir, admin_token=token)
+    try:
+        first.start()
+        with httpx.Client(base_url=first.url, timeout=60) as client:
+            answers = [client.post("/submit", json=m) for m in manifests]
+            assert all(a.status_code == 201 for a in answers), [a.text for a in answers][:3]
+            ids = [a.json()["model_id"] for a in answers]
+            job_id = client.post("/jobs", json=JOB, headers=admin).json()["job_id"]
+            body = {**AUCTION, "model_ids": ids}
+            auction_id = client.post("/auctions", json=body, headers=admin).json()["auction_id"]
+        assert first.process is not None
+        state = wait_for(
+            lambda: get(first, f"/auctions/{auction_id}"), lambda a: a["iteration"] >= 1, TIMEOUT_S
+        )
+        workers = child_pids(first.process.pid)
+        first.kill()
+        assert state["status"] == "running"
+
+        database = Database(database_url)
+        with database.session(write=False) as session:
+            at_kill = session.scalars(select(Auction).where(Auction.id == auction_id)).one()
+            committed = session.scalar(
+                select(func.count()).where(AuctionIteration.auction_id == auction_id)
+            )
+            job_at_kill = session.scalars(select(Job).where(Job.id == job_id)).one()
+        assert at_kill.status == "running" and at_kill.finished_at is None
+        assert committed == at_kill.iteration >= 1  # a round or more committed, not finished
+        assert job_at_kill.status == "running" and job_at_kill.attempt == 1
+        assert len(workers) >= 3  # screening, auction and job workers
+        wait_for(lambda: {"alive": [p for p in workers if alive(p)]}, lambda s: not s["alive"], 10)
+
+        second.start()
+        auction = wait_for(
+            lambda: get(second, f"/auctions/{auction_id}"),
+            lambda a: a["status"] in ("finished", "failed"),
+            TIMEOUT_S,
+        )
+        job = wait_for(
+            lambda: get(second, f"/jobs/{job_id}"),
+            lambda j: j["status"] in ("succeeded", "failed", "cancelled"),
+            TIMEOUT_S,
+        )
+    finally:
+        first.kill()
+        second.stop()
+
+    assert auction["status"] == "finished", auction["error"]
+    history = auction["history"]
+    assert [row["iteration"] for row in history] == list(range(len(history)))
+    assert len(history) > at_kill.iteration
+
+    config = MarketConfig(n_fish=AUCTION["n_fish"], fine_tune=True, seed=AUCTION["seed"])
+    market = Market(
+        [parse_manifest(m) for m in manifests],
+        config,
+        rescreen=lambda _i, m: screen(m).accepted,
+    )
+    records = list(market.run())
+    assert [row["price"] for row in history] == [r.price for r in records]
+    assert [row["votes"] for row in history] == [r.votes for r in records]
+    assert [row["row_votes"] for row in history] == [r.row_votes for r in records]
+    assert [(b["model_id"], b["price"]) for b in auction["buyers"]] == [
+        (ids[i], price) for r in records for i, price in r.buyers
+    ]
+    assert auction["quitters"] == [ids[i] for r in records for i in r.quitters]
+    assert auction["stop_reason"] == records[-1].stop_reason
+    with database.session(write=False) as session:
+        purchases = session.scalar(select(func.count()).where(Purchase.auction_id == auction_id))
+        rows = session.scalar(select(func.count()).where(AuctionIteration.auction_id == auction_id))
+        attempts = session.scalar(select(Job.attempt).where(Job.id == job_id))
+    database.close()
+    assert purchases == len(auction["buyers"]) and rows == len(history)
+
+    assert job["status"] == "succeeded", job["error"]
+    assert attempts == 2  # claimed again after the restart
+    assert job["result"]["steps"] == 2500 and "fish.png" in job["artifacts"]

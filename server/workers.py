@@ -113,8 +113,8 @@ class WorkerPool:
     """Runs ``task(context, task_id)`` in spawned worker processes, ``max_workers`` at a time.
 
     A worker process runs tasks one after another (``tasks_per_process`` of them, None: no
-    limit), so the imports a task needs (torch...) are paid once, not per task; one idle worker
-    is kept started ahead of need. A task is
+    limit), so the imports a task needs (torch...) are paid once, not per task; once the pool
+    has had work, one idle worker is kept started ahead of need. A task is
     cancelled by terminating its process; a process that dies while running a task reports
     that task to ``on_exit`` with its exit code (unless cancelled or the pool is stopping).
     """
@@ -141,6 +141,7 @@ class WorkerPool:
         self._lock = threading.Lock()
         self._wake_reader, self._wake_writer = multiprocessing.Pipe(duplex=False)
         self._stopping = False
+        self._used = False
         self._thread = threading.Thread(target=self._supervise, name=f"{name}-pool", daemon=True)
 
     def start(self) -> None:
@@ -245,11 +246,12 @@ class WorkerPool:
         return limit is not None and worker.tasks_done >= limit
 
     def _assign(self) -> None:
-        """Give queued tasks to idle workers (starting workers up to the limit), then keep one
-        spare worker started, so the next task does not wait for a fresh interpreter."""
+        """Give queued tasks to idle workers (starting workers up to the limit); once the pool
+        has had work, keep one spare worker started so the next task need not wait for a fresh
+        interpreter (an idle server starts none)."""
         self._hand_out()
         idle = [w for w in self._workers if w.task_id is None and not self._retired(w)]
-        if not idle and len(self._workers) < self._max_workers:
+        if self._used and not idle and len(self._workers) < self._max_workers:
             self._start_worker()
 
     def _hand_out(self) -> None:
@@ -263,6 +265,7 @@ class WorkerPool:
                 return
             worker.task_id = self._queue.popleft()
             worker.cancelled_at = None
+            self._used = True
             worker.conn.send(worker.task_id)
 
     def _start_worker(self) -> _Worker:

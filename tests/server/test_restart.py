@@ -29,7 +29,7 @@ from tests.server.conftest import honest, wait_for
 
 N_PATRONS = 64
 AUCTION = {"n_fish": 1, "fine_tune": True, "seed": 0}
-JOB = {"kind": "fish", "params": {"steps": 2500, "srd": True}}
+JOB = {"kind": "fish", "params": {"steps": 4000, "srd": True}}  # outlasts the auction's start
 TIMEOUT_S = 240
 
 
@@ -89,6 +89,11 @@ def test_kill_9_then_restart_resumes_auction_and_requeues_job(
             assert all(a.status_code == 201 for a in answers), [a.text for a in answers][:3]
             ids = [a.json()["model_id"] for a in answers]
             job_id = client.post("/jobs", json=JOB, headers=admin).json()["job_id"]
+            wait_for(
+                lambda: get(first, f"/jobs/{job_id}"),
+                lambda j: j["status"] == "running",
+                TIMEOUT_S,
+            )
             body = {**AUCTION, "model_ids": ids}
             auction_id = client.post("/auctions", json=body, headers=admin).json()["auction_id"]
         assert first.process is not None
@@ -156,4 +161,4 @@ def test_kill_9_then_restart_resumes_auction_and_requeues_job(
 
     assert job["status"] == "succeeded", job["error"]
     assert attempts == 2  # claimed again after the restart
-    assert job["result"]["steps"] == 2500 and "fish.png" in job["artifacts"]
+    assert job["result"]["steps"] == 4000 and "fish.png" in job["artifacts"]

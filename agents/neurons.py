@@ -40,10 +40,7 @@ def threshold(
 
     ``negative_slope`` may be a tensor (one slope per neuron), unlike ``F.leaky_relu``.
     """
-    z = a * (x - c)
-    if isinstance(negative_slope, Tensor):
-        return torch.tanh(torch.where(z >= 0, z, negative_slope * z))
-    return torch.tanh(F.leaky_relu(z, float(negative_slope)))
+    return torch.tanh(_leaky_relu(a * (x - c), negative_slope))
 
 
 def below_threshold(
@@ -53,10 +50,14 @@ def below_threshold(
     negative_slope: float | Tensor = NEGATIVE_SLOPE,
 ) -> Tensor:
     """BT(x; a, c, ns) = tanh(−leaky_relu(a·(x − c), ns)) + 1: ≈1 below c, → 0 above it."""
-    z = a * (x - c)
+    return torch.tanh(-_leaky_relu(a * (x - c), negative_slope)) + 1.0
+
+
+def _leaky_relu(z: Tensor, negative_slope: float | Tensor) -> Tensor:
+    """leaky_relu with a scalar or per-element slope."""
     if isinstance(negative_slope, Tensor):
-        return torch.tanh(-torch.where(z >= 0, z, negative_slope * z)) + 1.0
-    return torch.tanh(-F.leaky_relu(z, float(negative_slope))) + 1.0
+        return torch.where(z >= 0, z, negative_slope * z)
+    return F.leaky_relu(z, float(negative_slope))
 
 
 def self_reward_loss(z: Tensor, reduction: str = "mean") -> Tensor:

@@ -125,3 +125,45 @@ def test_job_lifecycle(client: TestClient, settings: Settings, fish_available: N
     assert png.headers["content-type"] == "image/png" and png.content[:4] == b"\x89PNG"
     assert client.delete(f"/jobs/{short}", headers=ADMIN).status_code == 409
     assert_no_escape(client, short, settings)
+
+
+EVERY_KIND = {
+    "lavaland": (
+        {"eval_maps": 16, "train_maps": 4, "seed": 1},
+        {"project", "preset", "n_params", "accuracy_untrained", "accuracy_srd"},
+    ),
+    "cheetah": (
+        {
+            "backswing": "3",
+            "inhibitor": "0,2",
+            "srd": "on",
+            "trials": 1,
+            "steps": 300,
+            "video": False,
+        },
+        {"runs", "elapsed_s"},
+    ),
+    "auction-study": ({"rarities": "0.5", "trials": 1, "patrons": 8}, {"rows", "auctions"}),
+    "comparison": ({"rarities": "0.5", "trials": 1, "patrons": 8}, {"configurations"}),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(EVERY_KIND))
+def test_every_kind_runs_as_a_job(client: TestClient, kind: str) -> None:
+    """Each experiment kind runs through the job backend at a tiny budget: progress reaches 1,
+    the result is the CLI's --json object and the artifacts are listed."""
+    params, keys = EVERY_KIND[kind]
+    job_id = start(client, {"kind": kind, "params": params})
+    done = wait_for(
+        lambda: job(client, job_id),
+        lambda j: j["status"] not in ("queued", "running"),
+        JOB_TIMEOUT_S,
+    )
+    assert done["status"] == "succeeded", done["error"]
+    assert done["progress"] == 1.0
+    assert keys <= set(done["result"])
+    assert "result.json" in done["artifacts"] and len(done["artifacts"]) > 1
+    if kind == "lavaland":
+        assert done["result"]["n_params"] == 180
+    if kind == "cheetah":
+        assert len(done["result"]["runs"]) == 2

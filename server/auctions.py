@@ -7,17 +7,13 @@ standing at that round, so a second runner (or a stale one) can never add or dup
 
 On restart, every pending or running auction is queued again; its worker restores the market
 from the last committed checkpoint and continues bit-identically. An auction that cannot be
-resumed (module missing, checkpoint unreadable, round count disagreeing) is marked failed with
-the reason.
+resumed (checkpoint unreadable, round count disagreeing) is marked failed with the reason.
 """
 
 from __future__ import annotations
 
-import importlib
 import logging
 from collections.abc import Sequence
-from types import ModuleType
-from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session, selectinload, undefer
@@ -36,13 +32,10 @@ from server.models import (
     utcnow,
 )
 from server.workers import WorkerContext, WorkerPool, error_summary
-
-if TYPE_CHECKING:  # imported at run time only in the worker, and only if it is built
-    from sim.market import IterationRecord
+from sim.market import IterationRecord, Market, MarketConfig
 
 log = logging.getLogger("srd.auctions")
 
-MARKET_MODULE = "sim.market"
 UNFINISHED = ("pending", "running")
 
 
@@ -50,21 +43,9 @@ class ResumeError(RuntimeError):
     """The auction's stored state cannot be continued."""
 
 
-def market_module() -> ModuleType | None:
-    """``sim.market`` if it is built, else None (auctions answer 'not available yet')."""
-    try:
-        return importlib.import_module(MARKET_MODULE)
-    except ImportError:
-        return None
-
-
 def base_price() -> float:
     """The opening price of every auction (the market's default)."""
-    market = market_module()
-    if market is None:
-        raise ResumeError("sim.market is not available")
-    config = market.MarketConfig(n_fish=1)
-    return float(config.base_price)
+    return MarketConfig(n_fish=1).base_price
 
 
 def _rescreen(_patron: int, manifest: Manifest) -> bool:
@@ -72,8 +53,8 @@ def _rescreen(_patron: int, manifest: Manifest) -> bool:
     return screen(manifest).accepted
 
 
-def _market_config(market: ModuleType, auction: Auction) -> Any:
-    return market.MarketConfig(
+def _market_config(auction: Auction) -> MarketConfig:
+    return MarketConfig(
         n_fish=auction.n_initial,
         max_iterations=auction.max_iterations,
         fine_tune=auction.fine_tune,
@@ -81,15 +62,15 @@ def _market_config(market: ModuleType, auction: Auction) -> Any:
     )
 
 
-def _load_market(market: ModuleType, auction: Auction, manifests: Sequence[Manifest]) -> Any:
-    config = _market_config(market, auction)
+def _load_market(auction: Auction, manifests: Sequence[Manifest]) -> Market:
+    config = _market_config(auction)
     rescreen = _rescreen if auction.fine_tune else None
     if auction.checkpoint is None:
         if auction.iteration != 0:
             raise ResumeError(f"{auction.iteration} rounds are committed but no checkpoint is")
-        return market.Market(manifests, config, rescreen=rescreen)
+        return Market(manifests, config, rescreen=rescreen)
     try:
-        restored = market.Market.restore(manifests, config, auction.checkpoint, rescreen=rescreen)
+        restored = Market.restore(manifests, config, auction.checkpoint, rescreen=rescreen)
     except Exception as exc:
         raise ResumeError(f"the checkpoint cannot be restored: {exc}") from exc
     if restored.iteration != auction.iteration:
@@ -163,9 +144,6 @@ def _mark_failed(database: Database, auction_id: int, reason: str) -> None:
 
 
 def _drive(database: Database, auction_id: int) -> None:
-    market_mod = market_module()
-    if market_mod is None:
-        raise ResumeError("sim.market is not available")
     with database.session(write=True) as session:
         auction = session.scalars(
             select(Auction)
@@ -176,7 +154,7 @@ def _drive(database: Database, auction_id: int) -> None:
             return
         model_ids = [patron.model_id for patron in auction.patrons]
         manifests = _patron_manifests(session, auction.patrons)
-        market = _load_market(market_mod, auction, manifests)
+        market = _load_market(auction, manifests)
         if auction.status == "pending":
             auction.status = "running"
             auction.started_at = utcnow()

@@ -7,7 +7,7 @@ from typing import Any
 from fastapi import APIRouter, Request
 
 from server import crud
-from server.auctions import AuctionRunner, base_price, market_module
+from server.auctions import AuctionRunner, base_price
 from server.db import SessionDep
 from server.errors import api_error, error_item, link, responses, validation_error
 from server.schemas import (
@@ -100,13 +100,6 @@ def _fish_count(body: AuctionCreate, n_patrons: int) -> int:
 )
 def create_auction(body: AuctionCreate, session: SessionDep, request: Request) -> AuctionCreated:
     """Start an auction (operator). It runs in a worker process; watch it at GET."""
-    if market_module() is None:
-        raise api_error(
-            422,
-            "auctions are not available yet: sim.market is not built",
-            loc=("body",),
-            kind="not_available",
-        )
     _require_one_supply_option(body)
     patron_ids = _patron_ids(session, body)
     auction = crud.create_auction(

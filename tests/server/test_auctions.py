@@ -132,15 +132,6 @@ def test_default_patrons_are_the_newest_accepted_version_of_each_participant(
     )
 
 
-def test_auctions_answer_not_available_while_the_market_is_missing(
-    client: TestClient, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    monkeypatch.setattr("server.routes.auctions.market_module", lambda: None)
-    response = client.post("/auctions", json={"n_fish": 1}, headers=ADMIN)
-    assert response.status_code == 422
-    assert "not available yet" in response.json()["detail"][0]["msg"]
-
-
 @pytest.mark.parametrize(
     ("checkpoint", "iteration", "reason"),
     [

@@ -24,6 +24,7 @@ from server.jobs import LocalJobBackend, requeue_unfinished
 from server.routes import auctions, health, jobs, models
 from server.screening import ScreeningService
 from server.security import load_admin_token_hash
+from server.submissions import SubmissionWriter
 from server.workers import WorkerContext
 
 log = logging.getLogger("srd.app")
@@ -93,6 +94,7 @@ def _start_services(app: FastAPI, settings: Settings) -> None:
         data_dir=str(settings.data_dir.resolve()),
         progress_interval_s=settings.progress_interval_s,
         torch_threads=settings.worker_torch_threads,
+        nice=settings.worker_nice,
     )
     app.state.database = database
     app.state.admin_token_hash = load_admin_token_hash(settings)
@@ -100,6 +102,8 @@ def _start_services(app: FastAPI, settings: Settings) -> None:
     app.state.jobs = LocalJobBackend(database, context, max_workers=settings.job_workers)
     app.state.screening = ScreeningService()
     app.state.screening.start()
+    app.state.submissions = SubmissionWriter(database)
+    app.state.submissions.start()
     app.state.auctions.start()
     app.state.jobs.start()
     with database.session(write=True) as session:
@@ -112,6 +116,7 @@ def _start_services(app: FastAPI, settings: Settings) -> None:
 def _stop_services(app: FastAPI) -> None:
     app.state.jobs.shutdown()
     app.state.auctions.shutdown()
+    app.state.submissions.shutdown()
     app.state.screening.shutdown()
     app.state.database.close()
 

@@ -29,6 +29,9 @@ class Settings(BaseSettings):
     """Jobs run at the same time, each in its own worker process."""
     worker_torch_threads: Annotated[int, Field(ge=1, le=256)] = 1
     """Torch threads per auction/job worker process (the API keeps the remaining cores)."""
+    worker_nice: Annotated[int, Field(ge=0, le=19)] = 10
+    """Scheduling niceness added to auction/job worker processes (POSIX ``nice``): background
+    computation yields the CPU to the API's requests under load, and takes it all when idle."""
     progress_interval_s: Annotated[float, Field(gt=0)] = 0.5
     """Minimum time between two progress writes of a running job."""
     host: str = "127.0.0.1"

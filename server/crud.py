@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
@@ -53,17 +54,39 @@ class StoredModel:
 
 
 @dataclass(frozen=True)
+class AuctionHead:
+    """The columns of an auction row that ``GET /auctions/{id}`` shows (no checkpoint)."""
+
+    id: int
+    status: str
+    n_initial: int
+    rarity: float | None
+    max_iterations: int
+    fine_tune: bool
+    seed: int
+    iteration: int
+    price: float
+    n_available: int
+    stop_reason: str | None
+    error: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+@dataclass(frozen=True)
 class AuctionView:
     """An auction row with its ordered patrons, committed rounds, purchases and quits."""
 
-    auction: Auction
+    auction: AuctionHead
     model_ids: list[int]
     history: Sequence[HistoryRow]
     purchases: Sequence[PurchaseRow]
     quitters: list[int]
 
 
-# The statements of POST /submit, built once (the hot path: no per-request statement building)
+# The statements of POST /submit, built once and run on the session's connection (Core, not the
+# ORM's bulk-insert path: the hot path builds and tracks no objects)
 _PARTICIPANT_BY_NAME = (
     select(Participant.id, Participant.name, Participant.token_hash)
     .where(Participant.name == bindparam("name"))
@@ -78,7 +101,7 @@ _INSERT_MODEL_VERSION = insert(ModelVersion).returning(ModelVersion.id)
 
 def get_participant(session: Session, *, name: str) -> ParticipantRow | None:
     """A participant by name, its row locked until commit (serialises its versions)."""
-    row = session.execute(_PARTICIPANT_BY_NAME, {"name": name}).one_or_none()
+    row = session.connection().execute(_PARTICIPANT_BY_NAME, {"name": name}).one_or_none()
     return None if row is None else ParticipantRow(*row)
 
 
@@ -86,9 +109,13 @@ def create_participant(session: Session, *, name: str) -> tuple[ParticipantRow, 
     """A new participant and its token (the token is returned once and stored hashed)."""
     token = new_token(PARTICIPANT_TOKEN_PREFIX)
     token_hash = hash_token(token)
-    participant_id = session.execute(
-        _INSERT_PARTICIPANT, {"name": name, "token_hash": token_hash, "created_at": utcnow()}
-    ).scalar_one()
+    participant_id = (
+        session.connection()
+        .execute(
+            _INSERT_PARTICIPANT, {"name": name, "token_hash": token_hash, "created_at": utcnow()}
+        )
+        .scalar_one()
+    )
     return ParticipantRow(participant_id, name, token_hash), token
 
 
@@ -104,19 +131,23 @@ def create_model_version(
     (model id, version). ``first``: the participant was created in this transaction."""
     latest = None
     if not first:
-        latest = session.scalar(_LATEST_VERSION, {"participant_id": participant_id})
+        latest = session.connection().scalar(_LATEST_VERSION, {"participant_id": participant_id})
     version = (latest or 0) + 1
-    model_id = session.execute(
-        _INSERT_MODEL_VERSION,
-        {
-            "participant_id": participant_id,
-            "version": version,
-            "manifest": manifest,
-            "accepted": verdict.accepted,
-            "reasons": [reason.to_dict() for reason in verdict.reasons],
-            "created_at": utcnow(),
-        },
-    ).scalar_one()
+    model_id = (
+        session.connection()
+        .execute(
+            _INSERT_MODEL_VERSION,
+            {
+                "participant_id": participant_id,
+                "version": version,
+                "manifest": manifest,
+                "accepted": verdict.accepted,
+                "reasons": [reason.to_dict() for reason in verdict.reasons],
+                "created_at": utcnow(),
+            },
+        )
+        .scalar_one()
+    )
     return model_id, version
 
 
@@ -137,7 +168,7 @@ _MODEL_BY_ID = (
 
 def get_model(session: Session, *, model_id: int) -> StoredModel | None:
     """A model version with its participant's name (one query)."""
-    row = session.execute(_MODEL_BY_ID, {"model_id": model_id}).one_or_none()
+    row = session.connection().execute(_MODEL_BY_ID, {"model_id": model_id}).one_or_none()
     return None if row is None else StoredModel(*row)
 
 
@@ -202,7 +233,11 @@ def create_auction(
     return auction
 
 
-# The statements of GET /auctions/{id}, built once (it is polled while auctions run)
+# The statements of GET /auctions/{id}, built once and run as Core (it is polled while auctions
+# run: no ORM identity map, no object loading)
+_AUCTION_HEAD = select(*(getattr(Auction, f.name) for f in dataclasses.fields(AuctionHead))).where(
+    Auction.id == bindparam("auction_id")
+)
 _AUCTION_PATRONS = (
     select(AuctionPatron.model_id)
     .where(AuctionPatron.auction_id == bindparam("auction_id"))
@@ -233,16 +268,17 @@ _AUCTION_QUITTERS = (
 
 def get_auction(session: Session, *, auction_id: int) -> AuctionView | None:
     """An auction with its patrons, rounds, purchases and quits, read in one transaction."""
-    auction = session.get(Auction, auction_id)
-    if auction is None:
-        return None
     key = {"auction_id": auction_id}
+    connection = session.connection()
+    head = connection.execute(_AUCTION_HEAD, key).one_or_none()
+    if head is None:
+        return None
     return AuctionView(
-        auction,
-        list(session.scalars(_AUCTION_PATRONS, key)),
-        session.execute(_AUCTION_HISTORY, key).all(),
-        session.execute(_AUCTION_PURCHASES, key).all(),
-        list(session.scalars(_AUCTION_QUITTERS, key)),
+        AuctionHead(*head),
+        list(connection.scalars(_AUCTION_PATRONS, key)),
+        connection.execute(_AUCTION_HISTORY, key).all(),
+        connection.execute(_AUCTION_PURCHASES, key).all(),
+        list(connection.scalars(_AUCTION_QUITTERS, key)),
     )
 
 

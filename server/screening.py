@@ -15,6 +15,7 @@ one to find it). If the screening process dies, the submissions in flight fail w
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import itertools
 import logging
@@ -131,8 +132,8 @@ class ScreeningService:
             log.error("the screening process exited (code %s); starting another", process.exitcode)
             time.sleep(RESPAWN_DELAY_S)
 
-    def judge(self, manifest: Manifest) -> Verdict:
-        """The screener's verdict on one manifest (blocks the calling thread, not the loop)."""
+    def _ask(self, manifest: Manifest) -> tuple[int, Future[Verdict]]:
+        """Send one manifest to the screening process; its answer will settle the future."""
         future: Future[Verdict] = Future()
         with self._lock:
             if self._conn is None:
@@ -144,12 +145,28 @@ class ScreeningService:
             except (OSError, ValueError) as exc:
                 del self._pending[request_id]
                 raise ScreenerUnavailableError(f"the screening process is gone: {exc}") from exc
+        return request_id, future
+
+    def _timed_out(self, request_id: int) -> ScreenerUnavailableError:
+        with self._lock:
+            self._pending.pop(request_id, None)
+        return ScreenerUnavailableError("the screener did not answer in time")
+
+    def judge(self, manifest: Manifest) -> Verdict:
+        """The screener's verdict on one manifest (blocks the calling thread)."""
+        request_id, future = self._ask(manifest)
         try:
             return future.result(timeout=VERDICT_TIMEOUT_S)
         except TimeoutError as exc:
-            with self._lock:
-                self._pending.pop(request_id, None)
-            raise ScreenerUnavailableError("the screener did not answer in time") from exc
+            raise self._timed_out(request_id) from exc
+
+    async def verdict(self, manifest: Manifest) -> Verdict:
+        """The screener's verdict on one manifest, awaited on the caller's event loop."""
+        request_id, future = self._ask(manifest)
+        try:
+            return await asyncio.wait_for(asyncio.wrap_future(future), VERDICT_TIMEOUT_S)
+        except TimeoutError as exc:
+            raise self._timed_out(request_id) from exc
 
     def _read(self, conn: Connection) -> None:
         """Hand each answer to its waiting request until the pipe closes."""

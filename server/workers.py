@@ -45,6 +45,8 @@ class WorkerContext:
     data_dir: str
     progress_interval_s: float
     torch_threads: int
+    nice: int = 0
+    """Added to the worker's niceness at start (0: same priority as the API)."""
 
 
 TaskFn = Callable[[WorkerContext, int], None]
@@ -86,6 +88,9 @@ def die_with_parent(parent_pid: int) -> None:
 def _worker_main(task: TaskFn, context: WorkerContext, conn: Connection, parent_pid: int) -> None:
     """A worker process: run each task id received, answer it when done, until the pipe ends."""
     die_with_parent(parent_pid)
+    if context.nice > 0 and hasattr(os, "nice"):
+        with contextlib.suppress(OSError):
+            os.nice(context.nice)  # background work yields to the API under load
     import torch
 
     torch.set_num_threads(context.torch_threads)  # leave the other cores to the API

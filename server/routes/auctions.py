@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from fastapi import APIRouter, Request
+from starlette.concurrency import run_in_threadpool
 
 from server import crud
 from server.auctions import AuctionRunner, base_price
@@ -161,9 +162,11 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
 
 
 @router.get("/auctions/{auction_id}", operation_id="read_auction", responses=responses(404, 422))
-def read_auction(auction_id: AuctionIdPath, session: SessionDep) -> AuctionPublic:
+async def read_auction(auction_id: AuctionIdPath, session: SessionDep) -> AuctionPublic:
     """Where an auction stands: price, fish left, every committed round, buyers, quitters."""
-    view = crud.get_auction(session, auction_id=auction_id)
+    # One hop to the thread pool for the queries; the response is built on the loop (a sync
+    # route would pay a second hop for FastAPI's response validation).
+    view = await run_in_threadpool(crud.get_auction, session, auction_id=auction_id)
     if view is None:
         raise api_error(
             404,

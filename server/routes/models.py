@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Request
-from sqlalchemy.exc import IntegrityError
+from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest
 from server import crud
@@ -11,7 +11,8 @@ from server.db import SessionDep
 from server.errors import api_error, link, responses
 from server.schemas import ModelIdPath, ModelPublic, ReasonPublic, SubmitPublic
 from server.screening import ScreenerUnavailableError, ScreeningService
-from server.security import BearerDep, token_matches
+from server.security import BearerDep
+from server.submissions import Refused, SubmissionWriter
 
 router = APIRouter(tags=["models"])
 
@@ -29,9 +30,7 @@ def _reasons(row: crud.StoredModel) -> list[ReasonPublic]:
         **responses(401, 403, 409, 422, 503),
     },
 )
-def submit(
-    manifest: Manifest, session: SessionDep, credentials: BearerDep, request: Request
-) -> SubmitPublic:
+async def submit(manifest: Manifest, credentials: BearerDep, request: Request) -> SubmitPublic:
     """Screen an FSN weight manifest and store it as the participant's next model version.
 
     A new participant name is registered on the spot and its ``token`` is returned once; later
@@ -39,60 +38,33 @@ def submit(
     stored with their reasons and never enter an auction.
     """
     screening: ScreeningService = request.app.state.screening
+    writer: SubmissionWriter = request.app.state.submissions
     try:  # before any database work: no lock is held while screening
-        verdict = screening.judge(manifest)
+        verdict = await screening.verdict(manifest)
     except ScreenerUnavailableError as exc:
         raise api_error(503, str(exc), loc=("body",), kind="screener_unavailable") from exc
-    participant = crud.get_participant(session, name=manifest.participant)
-    token: str | None = None
-    if participant is None:
-        participant, token = crud.create_participant(session, name=manifest.participant)
-    elif credentials is None:
-        raise api_error(
-            401,
-            f"participant {manifest.participant!r} exists: send its token as "
-            "'Authorization: Bearer <token>'",
-            loc=("header", "Authorization"),
-            kind="missing_token",
-        )
-    elif not token_matches(credentials.credentials, participant.token_hash):
-        raise api_error(
-            403,
-            f"the bearer token is not the token of participant {manifest.participant!r}",
-            loc=("header", "Authorization"),
-            kind="bad_token",
-        )
-    try:
-        model_id, version = crud.create_model_version(
-            session,
-            participant_id=participant.id,
-            manifest=manifest.model_dump(mode="json"),
-            verdict=verdict,
-            first=token is not None,
-        )
-        session.commit()
-    except IntegrityError as exc:  # a concurrent first submission took the name or version
-        session.rollback()
-        raise api_error(
-            409,
-            f"participant {manifest.participant!r} was written concurrently; retry",
-            loc=("body", "participant"),
-            kind="conflict",
-        ) from exc
+    outcome = await writer.store(
+        participant=manifest.participant,
+        manifest=manifest.model_dump(mode="json"),
+        verdict=verdict,
+        bearer=None if credentials is None else credentials.credentials,
+    )
+    if isinstance(outcome, Refused):
+        raise api_error(outcome.status, outcome.msg, loc=outcome.loc, kind=outcome.kind)
     return SubmitPublic(
-        model_id=model_id,
-        participant=participant.name,
-        version=version,
+        model_id=outcome.model_id,
+        participant=outcome.participant,
+        version=outcome.version,
         accepted=verdict.accepted,
         reasons=[ReasonPublic(**reason.to_dict()) for reason in verdict.reasons],
-        token=token,
+        token=outcome.token,
     )
 
 
 @router.get("/models/{model_id}", operation_id="read_model", responses=responses(404, 422))
-def read_model(model_id: ModelIdPath, session: SessionDep) -> ModelPublic:
+async def read_model(model_id: ModelIdPath, session: SessionDep) -> ModelPublic:
     """A stored model version: manifest, verdict and reasons."""
-    row = crud.get_model(session, model_id=model_id)
+    row = await run_in_threadpool(crud.get_model, session, model_id=model_id)
     if row is None:
         raise api_error(
             404, f"model {model_id} does not exist", loc=("path", "model_id"), kind="not_found"

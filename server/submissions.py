@@ -1,0 +1,225 @@
+"""The write path of ``POST /submit``: one writer thread that stores screened manifests in
+group commits.
+
+A submission needs three statements (participant lookup, participant insert, version insert)
+and a commit. Run from the thread pool, every request would pay a thread hop, a commit and,
+on SQLite, a turn at the single write lock. Here the route hands its screened manifest to
+``SubmissionWriter.store`` and awaits the answer on its event loop; one thread takes every
+submission that has queued up since its last pass (at most ``MAX_GROUP``), writes them in
+order in ONE transaction, commits once, and answers them all. Under no load a group is one
+submission, so nothing waits for a group to fill; under load the commits, lock turns and
+wake-ups are shared by the group.
+
+Semantics are those of the submissions run one after another in arrival order: a
+participant created earlier in the group needs its token for a later version in the same
+group. A refused submission (missing or wrong token) writes nothing. If a statement fails on
+the database side (a unique name or version taken by another process), the group is rolled
+back and each of its submissions is retried in a transaction of its own, so only the one at
+fault is answered 409; if the database itself fails, the group's submissions get 503 and
+nothing of them is stored.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import queue
+import threading
+from collections import defaultdict
+from dataclasses import dataclass
+from typing import Any
+
+from sqlalchemy.exc import IntegrityError, OperationalError
+from sqlalchemy.orm import Session
+
+from screener import Verdict
+from server import crud
+from server.db import Database
+from server.security import token_matches
+
+log = logging.getLogger("srd.submissions")
+
+MAX_GROUP = 64  # submissions per transaction, at most
+STOP_GRACE_S = 10.0
+
+
+@dataclass(frozen=True)
+class Stored:
+    """A stored model version."""
+
+    model_id: int
+    participant: str
+    version: int
+    token: str | None
+    """The new participant's token (first version only), else None."""
+
+
+@dataclass(frozen=True)
+class Refused:
+    """A submission answered with an error; nothing of it is stored."""
+
+    status: int
+    msg: str
+    loc: tuple[str, ...]
+    kind: str
+
+
+Outcome = Stored | Refused
+
+
+@dataclass
+class _Submission:
+    participant: str
+    manifest: dict[str, Any]
+    verdict: Verdict
+    bearer: str | None
+    loop: asyncio.AbstractEventLoop
+    future: asyncio.Future[Outcome]
+
+
+class _ConflictError(Exception):
+    """A statement of the group hit a unique constraint."""
+
+
+def _store_one(session: Session, item: _Submission) -> Outcome:
+    """The statements of one submission inside the group's transaction."""
+    participant = crud.get_participant(session, name=item.participant)
+    token: str | None = None
+    if participant is None:
+        participant, token = crud.create_participant(session, name=item.participant)
+    elif item.bearer is None:
+        return Refused(
+            401,
+            f"participant {item.participant!r} exists: send its token as "
+            "'Authorization: Bearer <token>'",
+            ("header", "Authorization"),
+            "missing_token",
+        )
+    elif not token_matches(item.bearer, participant.token_hash):
+        return Refused(
+            403,
+            f"the bearer token is not the token of participant {item.participant!r}",
+            ("header", "Authorization"),
+            "bad_token",
+        )
+    model_id, version = crud.create_model_version(
+        session,
+        participant_id=participant.id,
+        manifest=item.manifest,
+        verdict=item.verdict,
+        first=token is not None,
+    )
+    return Stored(model_id, participant.name, version, token)
+
+
+def _conflict(item: _Submission) -> Refused:
+    return Refused(
+        409,
+        f"participant {item.participant!r} was written concurrently; retry",
+        ("body", "participant"),
+        "conflict",
+    )
+
+
+def _unavailable(exc: Exception) -> Refused:
+    first_line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return Refused(503, f"the database is unavailable: {first_line}", ("body",), "db_unavailable")
+
+
+class SubmissionWriter:
+    """``await store(...)`` from any event loop; the writes happen on one thread, grouped."""
+
+    def __init__(self, database: Database) -> None:
+        self._database = database
+        self._queue: queue.SimpleQueue[_Submission | None] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name="submission-writer", daemon=True)
+        self._closed = False
+        self.groups = 0
+        """Transactions committed so far (diagnostics and tests)."""
+
+    def start(self) -> None:
+        self._thread.start()
+
+    async def store(
+        self, *, participant: str, manifest: dict[str, Any], verdict: Verdict, bearer: str | None
+    ) -> Outcome:
+        """Store one screened manifest as the participant's next version (or refuse it)."""
+        if self._closed:
+            return Refused(503, "the server is stopping", ("body",), "stopping")
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[Outcome] = loop.create_future()
+        self._queue.put(_Submission(participant, manifest, verdict, bearer, loop, future))
+        # Shielded: a client that goes away does not un-write a submission already queued.
+        return await asyncio.shield(future)
+
+    def shutdown(self) -> None:
+        """Write what is queued, then stop the thread."""
+        self._closed = True
+        self._queue.put(None)
+        if self._thread.is_alive():
+            self._thread.join(STOP_GRACE_S)
+
+    def _run(self) -> None:
+        stopping = False
+        while not stopping:
+            first = self._queue.get()
+            group: list[_Submission] = []
+            if first is None:
+                stopping = True
+            else:
+                group.append(first)
+            while len(group) < MAX_GROUP and not stopping:
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if item is None:
+                    stopping = True
+                else:
+                    group.append(item)
+            if group:
+                try:
+                    outcomes = self._write(group)
+                except Exception as exc:  # never let the writer thread die
+                    log.exception("a submission group failed")
+                    outcomes = [_unavailable(exc)] * len(group)
+                self._answer(group, outcomes)
+
+    def _write(self, group: list[_Submission]) -> list[Outcome]:
+        try:
+            return self._transaction(group)
+        except _ConflictError:
+            if len(group) == 1:
+                return [_conflict(group[0])]
+        return [outcome for item in group for outcome in self._write([item])]
+
+    def _transaction(self, group: list[_Submission]) -> list[Outcome]:
+        try:
+            with self._database.session(write=True) as session:
+                outcomes = [_store_one(session, item) for item in group]
+                session.commit()
+        except IntegrityError as exc:
+            raise _ConflictError from exc
+        except OperationalError as exc:
+            log.error("submission group of %d not stored: %s", len(group), exc)
+            return [_unavailable(exc)] * len(group)
+        self.groups += 1
+        return outcomes
+
+    @staticmethod
+    def _answer(group: list[_Submission], outcomes: list[Outcome]) -> None:
+        by_loop: dict[asyncio.AbstractEventLoop, list[tuple[_Submission, Outcome]]] = defaultdict(
+            list
+        )
+        for item, outcome in zip(group, outcomes, strict=True):
+            by_loop[item.loop].append((item, outcome))
+        for loop, answers in by_loop.items():
+            with contextlib.suppress(RuntimeError):  # that loop has closed: nobody waits
+                loop.call_soon_threadsafe(_settle, answers)
+
+
+def _settle(answers: list[tuple[_Submission, Outcome]]) -> None:
+    for item, outcome in answers:
+        if not item.future.done():
+            item.future.set_result(outcome)

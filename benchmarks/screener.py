@@ -7,6 +7,10 @@ Prints:
 * overall honest acceptance (target ≥ 99.5%) and saboteur rejection (target ≥ 99%);
 * ``screen(manifest)`` one at a time: ms per manifest p50 / p99 and manifests/s (target
   ≤ 5 ms per manifest), and ``screen_many`` in batches of 64 (re-screening a market);
+* ``screen_many`` per batch size 1 to 64 (the screening process judges up to 16 queued
+  submissions at once): mean ms per call over at least 200 calls after a warm-up, for honest
+  manifests straight from the factory and for the same manifests parsed from JSON as ``/submit``
+  receives them (parsed manifests share no sub-models, so building the batch costs more);
 * fine-tuning drift: 200 honest patrons fine-tuned with the most aggressive honest settings
   (lr 1e-4, 2 epochs, batch 4) for 4, 8 and 16 rounds, at auction prices, at falling and at
   rising prices: the largest weight change per layer and the share still accepted (4 rounds
@@ -31,6 +35,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from agents.manifest import Manifest
 from agents.negotiator import from_manifests, honest_manifest
 from screener import screen, screen_many
 from tests.screener.corpus import (
@@ -118,6 +123,29 @@ def speed(seed: int) -> None:
     print(f"screen_many(), batches of 64: {per:.2f} ms per manifest, {1e3 / per:.0f} manifests/s")
 
 
+BATCH_SIZES = (1, 2, 4, 8, 16, 32, 64)
+
+
+def batch_costs(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    made = [honest_manifest(rng, f"h{i}") for i in range(max(BATCH_SIZES))]
+    parsed = [Manifest.model_validate_json(m.model_dump_json()) for m in made]
+    print("\nscreen_many() per batch size (mean of >= 200 calls; ms per call, ms per manifest):")
+    print(f"{'batch':>6} {'factory-made':>22} {'parsed from JSON':>22}")
+    for size in BATCH_SIZES:
+        row = []
+        for pool in (made, parsed):
+            batch = pool[:size]
+            screen_many(batch)  # warm-up
+            calls = max(200, 2000 // size)
+            start = time.perf_counter()
+            for _ in range(calls):
+                screen_many(batch)
+            per_call = (time.perf_counter() - start) * 1e3 / calls
+            row.append(f"{per_call:8.2f} ms {per_call / size:7.3f} ms")
+        print(f"{size:6d} {row[0]:>22} {row[1]:>22}")
+
+
 def drift(seed: int) -> None:
     settings = {"fine_tuning": MAX_HONEST_FINE_TUNING}
     print("\nfine-tuning drift: 200 honest patrons at lr 1e-4, 2 epochs, batch 4 (max |change|)")
@@ -153,6 +181,7 @@ def main() -> None:
     torch.set_num_threads(1)
     confusion(args.seed, args.honest, args.per_kind)
     speed(args.seed)
+    batch_costs(args.seed)
     drift(args.seed)
 
 

@@ -2,7 +2,8 @@
 
 ``screen(manifest) -> Verdict`` is the one entry point every caller uses (``/submit``,
 ``srd screen``, ``srd auction-study --screen``, re-screening of fine-tuned versions);
-``screen_many`` judges a whole batch with one pass of every rule and one probe forward pass.
+``screen_many`` judges a whole batch at once: every rule runs once over the batch's arrays and
+the probes share forward passes, with the same verdict for each manifest as ``screen``.
 
 A manifest is accepted when no rule and no probe finds anything: the semantic rules
 (``screener.rules``) read each named weight against the meaning the paper gives its neuron,
@@ -18,8 +19,9 @@ import numpy as np
 
 from agents.manifest import Manifest
 from agents.negotiator import from_manifests
-from screener.probes import probe_findings
-from screener.rules import semantic_findings
+from screener.findings import Checks
+from screener.probes import probe_checks
+from screener.rules import Numbers, semantic_checks
 from screener.verdict import Reason, Verdict
 
 __all__ = ["Reason", "Verdict", "screen", "screen_many"]
@@ -30,12 +32,14 @@ def screen_many(manifests: Sequence[Manifest]) -> list[Verdict]:
     if not manifests:
         return []
     batch = from_manifests(manifests)
-    findings = semantic_findings(batch) + probe_findings(batch)
+    groups = [*semantic_checks(Numbers.of(batch)), probe_checks(batch)]
+    failed = np.concatenate([g.failed for g in groups], axis=1)  # (P, checks)
     reasons: list[list[Reason]] = [[] for _ in manifests]
-    failed = np.stack([found.failed for found in findings])  # (findings, P)
-    for k, p in zip(*np.nonzero(failed), strict=True):
-        found = findings[k]
-        reasons[p].append(Reason(found.rule, found.neuron, found.message(int(p))))
+    if failed.any():
+        checks: list[tuple[Checks, int]] = [(g, k) for g in groups for k in range(len(g.rules))]
+        for p, column in zip(*np.nonzero(failed), strict=True):
+            group, k = checks[column]
+            reasons[p].append(Reason(group.rules[k], group.neurons[k], group.message(k, int(p))))
     return [Verdict(accepted=not r, reasons=r) for r in reasons]
 
 

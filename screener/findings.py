@@ -1,9 +1,16 @@
-"""A finding of one check over a batch of manifests, and the plain words for the neurons."""
+"""What a check found over a batch of manifests, and the plain words for the neurons.
+
+Checks come in groups (``Checks``): K checks evaluated together over P manifests, one boolean
+column per check. Screening a batch is then a few array operations per group, and messages are
+written only for the manifests that failed.
+"""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -50,9 +57,27 @@ class Finding:
     message: Callable[[int], str]
 
 
-def finding(rule: str, neuron: str, failed: Mask, message: Callable[[int], str]) -> Finding:
-    """A Finding with ``failed`` as a plain boolean array (NaN comparisons count as passed)."""
-    return Finding(rule, neuron, np.asarray(failed, dtype=np.bool_), message)
+class Checks(NamedTuple):
+    """K checks over P manifests: the rule and neuron of each, ``failed`` (P, K) (NaN
+    comparisons count as passed), and ``message(k, p)``, the words for manifest p failing
+    check k."""
+
+    rules: tuple[str, ...]
+    neurons: tuple[str, ...]
+    failed: Mask
+    message: Callable[[int, int], str]
+
+    def findings(self) -> list[Finding]:
+        """The checks one by one."""
+        return [
+            Finding(rule, neuron, self.failed[:, k], functools.partial(self.message, k))
+            for k, (rule, neuron) in enumerate(zip(self.rules, self.neurons, strict=True))
+        ]
+
+
+def check(rule: str, neuron: str, failed: Mask, message: Callable[[int], str]) -> Checks:
+    """A single check (``failed`` (P,)) as a group of one."""
+    return Checks((rule,), (neuron,), failed[:, None], lambda k, p: message(p))
 
 
 def fmt_price(value: float) -> str:

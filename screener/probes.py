@@ -1,8 +1,10 @@
-"""Behavioural probes: one clean forward pass of every manifest over a grid of items.
+"""Behavioural probes: clean forward passes of the manifests over a grid of items.
 
 The grid crosses the probe prices (0.3× to 2.5× the base price), three fish qualities
 (l = w = g = 0.8, 1, 1.2), all eight sub-types and five previous buy fractions f; augmentation
-noise is off (every copy clean), so the probes see the decision the model means. Checks:
+noise is off (every copy clean), so the probes see the decision the model means. Manifests
+with the same activation kinds share a forward pass (up to ``PASS_SIZE`` of them), and each gets
+exactly the scores it would get alone. Checks:
 
 * ``buys-cheap``: far below any plausible price, the base fish of the preferred sub-type is
   bought at every f (a rare buyer refuses it unless the others rush or the fish is huge);
@@ -22,11 +24,12 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+import numpy.typing as npt
 import torch
 
 from agents.negotiator import FSNBatch, decision_logits
 from screener import limits
-from screener.findings import Array, Finding, finding, fmt_price
+from screener.findings import Array, Checks, Finding, Mask, fmt_price
 from screener.rules import SUBTYPES
 
 BUY, HOLD, QUIT = range(3)
@@ -38,6 +41,11 @@ BASE_QUALITY = int(np.flatnonzero(QUALITIES == 1.0)[0])
 PREFERRED = 0
 """Index of the preferred sub-type (½, ½, ½) in ``rules.SUBTYPES``."""
 GRID_SHAPE = (len(PRICES), len(QUALITIES), len(SUBTYPES), len(DEMANDS))
+PASS_SIZE = 16
+"""Patrons per forward pass over the grid. Each (neuron, row, patron) tensor of a pass takes about
+90 kB per patron: past 16 patrons they outgrow the core's cache and the time per patron climbs
+(``decision_logits`` on 64 honest patrons: 0.12 ms per patron in passes of 8 or 16, 0.17 in
+passes of 32, 0.21 in one pass). Batches of the screening process (at most 16) are one pass."""
 
 
 def _grid() -> torch.Tensor:
@@ -69,32 +77,94 @@ def _scores(logits: Array) -> str:
     return f"B {b:+.2f}, L {h:+.2f}, Q {q:+.2f}"
 
 
+def probe_checks(batch: FSNBatch) -> Checks:
+    """Every behavioural probe over the batch, a few patrons per forward pass (``_passes``)."""
+    parts = [(index, _judge(_logits(part))) for index, part in _passes(batch)]
+    if len(parts) == 1:
+        return parts[0][1]
+    P, first = batch.n_patrons, parts[0][1]
+    failed = np.empty((P, len(first.rules)), dtype=np.bool_)
+    owner = np.empty(P, dtype=np.intp)
+    local = np.empty(P, dtype=np.intp)
+    for n, (index, checks) in enumerate(parts):
+        failed[index] = checks.failed
+        owner[index] = n
+        local[index] = np.arange(len(index))
+
+    def message(k: int, p: int) -> str:
+        return parts[int(owner[p])][1].message(k, int(local[p]))
+
+    return Checks(first.rules, first.neurons, failed, message)
+
+
 def probe_findings(batch: FSNBatch) -> list[Finding]:
-    """Every behavioural probe over the batch (one forward pass)."""
-    with torch.no_grad():
-        flat = decision_logits(batch, GRID).numpy()
+    """Every behavioural probe over the batch, one finding per probe."""
+    return probe_checks(batch).findings()
+
+
+def _passes(batch: FSNBatch) -> list[tuple[npt.NDArray[np.intp], FSNBatch]]:
+    """The patrons (their indices, their sub-batch) of each forward pass: at most PASS_SIZE,
+    all with the same activation kinds. ``decision_logits`` computes a batch that mixes kinds
+    by another formula; grouping by kind gives every patron exactly the scores it gets when
+    screened alone."""
     P = batch.n_patrons
-    logits = flat.reshape(P, *GRID_SHAPE, 3)
-    if np.isfinite(flat).all():
-        finite, safe = np.ones(P, dtype=bool), logits
+    kinds = batch.es_kind.numpy()
+    if (kinds == kinds[:1]).all():
+        if P <= PASS_SIZE:
+            return [(np.arange(P), batch)]
+        groups = [np.arange(P)]
     else:
-        finite = np.isfinite(flat).reshape(P, -1).all(axis=1)
-        safe = np.where(np.isfinite(logits), logits, 0.0)
-    action = safe.argmax(axis=-1)  # (P, prices, qualities, sub-types, demands)
-    base = action[:, :, BASE_QUALITY, PREFERRED]  # (P, prices, demands)
-    base_logits = safe[:, :, BASE_QUALITY, PREFERRED]
+        inverse = np.unique(kinds, axis=0, return_inverse=True)[1].reshape(-1)
+        groups = [np.flatnonzero(inverse == g) for g in range(int(inverse.max()) + 1)]
+    return [
+        (index, batch.select(index))
+        for group in groups
+        for index in np.array_split(group, -(-len(group) // PASS_SIZE))
+    ]
+
+
+def _logits(batch: FSNBatch) -> Array:
+    """[B, L, Q] of every patron on every probe item, (P, R, 3)."""
+    with torch.no_grad():
+        return decision_logits(batch, GRID).numpy()
+
+
+def _judge(flat: Array) -> Checks:
+    """The probes of P patrons from their scores ``flat`` (P, R, 3) on the grid."""
+    P = len(flat)
+    finite_cells = np.isfinite(flat)
+    if finite_cells.all():
+        finite, safe = np.ones(P, dtype=np.bool_), flat
+    else:
+        finite = np.all(finite_cells.reshape(P, -1), axis=1)
+        safe = np.where(finite_cells, flat, 0.0)
+    scores = safe.reshape(P, *GRID_SHAPE, 3)  # (P, prices, qualities, sub-types, demands, 3)
+    hold, quit_ = scores[..., HOLD], scores[..., QUIT]
+    lead = scores[..., BUY] - np.maximum(hold, quit_)  # the buy margin B − max(L, Q)
+    # The decision is the argmax, ties to the lowest index: B when it is not behind (the
+    # difference of two finite numbers has the sign of the exact one), else L when it is not
+    # behind Q, else Q.
+    buys = lead >= 0
+    holds = ~buys & (hold >= quit_)
+    total = int(np.prod(GRID_SHAPE))
+    n_buy = np.count_nonzero(buys.reshape(P, -1), axis=1)
+    n_hold = np.count_nonzero(holds.reshape(P, -1), axis=1)
+    n_quit = total - n_buy - n_hold
+    base_buys = buys[:, :, BASE_QUALITY, PREFERRED]  # (P, prices, demands)
+    base_holds = holds[:, :, BASE_QUALITY, PREFERRED]
+    base_lead = lead[:, :, BASE_QUALITY, PREFERRED]
 
     def at(p: int, i: int, q: int, s: int, f: int) -> str:
+        action = int(np.argmax(scores[p, i, q, s, f]))
         return (
             f"at price {fmt_price(PRICES[i])} on {_fish(q, s)} with buy fraction "
-            f"{DEMANDS[f]:g} it {ACTION_WORDS[action[p, i, q, s, f]]} "
-            f"({_scores(safe[p, i, q, s, f])})"
+            f"{DEMANDS[f]:g} it {ACTION_WORDS[action]} ({_scores(scores[p, i, q, s, f])})"
         )
 
-    def first(mask: Array) -> tuple[int, ...]:
+    def first(mask: Mask) -> tuple[int, ...]:
         return tuple(int(v) for v in np.argwhere(mask)[0])
 
-    cheap_refused = (base != BUY) & CHEAP[None, :, None]
+    cheap_refused = ~base_buys & CHEAP[None, :, None]
 
     def cheap_message(p: int) -> str:
         i, f = first(cheap_refused[p])
@@ -102,49 +172,47 @@ def probe_findings(batch: FSNBatch) -> list[Finding]:
             f"{at(p, i, BASE_QUALITY, PREFERRED, f)}: it refuses a fish below any plausible price"
         )
 
-    offsets = 3 * np.arange(P)[:, None]
-    counts = np.bincount((action.reshape(P, -1) + offsets).ravel(), minlength=3 * P).reshape(P, 3)
-    total = int(np.prod(GRID_SHAPE))
     span = f"{fmt_price(PRICES[0])} to {fmt_price(PRICES[-1])}"
 
     def never_message(p: int) -> str:
         return (
             f"on none of the {total} probed items (prices {span}, every quality, sub-type and "
-            f"buy fraction) does it buy: it holds on {counts[p, HOLD]} and quits on "
-            f"{counts[p, QUIT]}"
+            f"buy fraction) does it buy: it holds on {n_hold[p]} and quits on {n_quit[p]}"
         )
 
-    base_margin = base_logits[..., BUY] - np.maximum(base_logits[..., HOLD], base_logits[..., QUIT])
-    firm_buy = base_margin > limits.FIRM_MARGIN
+    firm_buy = base_lead > limits.FIRM_MARGIN
     expensive_buy = firm_buy & FAR_TOO_EXPENSIVE[None, :, None] & ORDINARY[None, None, :]
-    expensive_hold = (base == HOLD) & FAR_TOO_EXPENSIVE[None, :, None]
+    expensive_hold = base_holds & FAR_TOO_EXPENSIVE[None, :, None]
 
-    def expensive_message(mask: Array, why: str) -> Callable[[int], str]:
+    def expensive_message(mask: Mask, why: str) -> Callable[[int], str]:
         def message(p: int) -> str:
             i, f = first(mask[p])
             return f"{at(p, i, BASE_QUALITY, PREFERRED, f)}: {why}"
 
         return message
 
-    margin = np.clip(
-        safe[..., BUY] - np.maximum(safe[..., HOLD], safe[..., QUIT]),
-        -limits.FIRM_MARGIN,
-        limits.FIRM_MARGIN,
-    )  # (P, prices, qualities, sub-types, demands)
-    rise = margin - np.minimum.accumulate(margin, axis=1)
-    worst_rise = rise.reshape(P, -1).max(axis=1)
+    # The clipped margin's rise over its lowest value at any lower price, price-major
+    # (prices, P, items) so that each step of the running minimum is one contiguous operation.
+    clipped = lead.clip(-limits.FIRM_MARGIN, limits.FIRM_MARGIN).reshape(P, len(PRICES), -1)
+    margin = np.ascontiguousarray(clipped.swapaxes(0, 1))
+    lowest = margin.copy()
+    for i in range(1, len(PRICES)):
+        np.minimum(lowest[i], lowest[i - 1], out=lowest[i])
+    rise = margin - lowest
+    worst_rise = rise.max(axis=(0, 2))
 
     def rise_message(p: int) -> str:
-        i, q, s, f = first(rise[p] == worst_rise[p])
-        low = int(np.argmin(margin[p, : i + 1, q, s, f]))
+        i, q, s, f = first(rise[:, p].reshape(GRID_SHAPE) == worst_rise[p])
+        margins = margin[:, p].reshape(GRID_SHAPE)[:, q, s, f]
+        low = int(np.argmin(margins[: i + 1]))
         return (
             f"on {_fish(q, s)} with buy fraction {DEMANDS[f]:g} its buy margin B − max(L, Q) "
-            f"rises from {margin[p, low, q, s, f]:+.2f} at price {fmt_price(PRICES[low])} to "
-            f"{margin[p, i, q, s, f]:+.2f} at {fmt_price(PRICES[i])} (clipped to "
+            f"rises from {margins[low]:+.2f} at price {fmt_price(PRICES[low])} to "
+            f"{margins[i]:+.2f} at {fmt_price(PRICES[i])} (clipped to "
             f"±{limits.FIRM_MARGIN:g}): it turns from refusing to buying as the price rises"
         )
 
-    decisive_hold = (base[:, DECISIVE] == HOLD).all(axis=1)  # (P, demands)
+    decisive_hold = np.all(base_holds[:, DECISIVE], axis=1)  # (P, demands)
     window = PRICES[DECISIVE]
 
     def decisive_message(p: int) -> str:
@@ -153,48 +221,45 @@ def probe_findings(batch: FSNBatch) -> list[Finding]:
         return (
             f"on the auction's decisive row (the base fish) with buy fraction {DEMANDS[f]:g} it "
             f"holds at every price from {fmt_price(window[0])} to {fmt_price(window[-1])} "
-            f"(at {fmt_price(PRICES[i])}: {_scores(base_logits[p, i, f])}): it would sit in "
-            "the auction without buying or quitting, pulling the demand down"
+            f"(at {fmt_price(PRICES[i])}: {_scores(scores[p, i, BASE_QUALITY, PREFERRED, f])}): "
+            "it would sit in the auction without buying or quitting, pulling the demand down"
         )
 
-    return [
-        finding(
-            "probe-non-finite",
-            "B",
-            ~finite,
-            lambda p: (
-                "its decision scores B, L, Q are not finite on some probed item: the "
-                "numbers overflow"
-            ),
-        ),
-        finding("buys-cheap", "B", finite & cheap_refused.any(axis=(1, 2)), cheap_message),
-        finding("always-holds", "L", finite & (counts[:, HOLD] == total), never_message),
-        finding("always-quits", "Q", finite & (counts[:, QUIT] == total), never_message),
-        finding(
-            "never-buys",
-            "B",
-            finite & (counts[:, BUY] == 0) & (counts[:, HOLD] < total) & (counts[:, QUIT] < total),
-            never_message,
-        ),
-        finding(
+    def non_finite_message(p: int) -> str:
+        return (
+            "its decision scores B, L, Q are not finite on some probed item: the numbers overflow"
+        )
+
+    probes: tuple[tuple[str, str, Mask, Callable[[int], str]], ...] = (
+        ("probe-non-finite", "B", ~finite, non_finite_message),
+        ("buys-cheap", "B", np.any(cheap_refused, axis=(1, 2)), cheap_message),
+        ("always-holds", "L", n_hold == total, never_message),
+        ("always-quits", "Q", n_quit == total, never_message),
+        ("never-buys", "B", (n_buy == 0) & (n_hold < total) & (n_quit < total), never_message),
+        (
             "refuses-far-too-expensive",
             "B",
-            finite & expensive_buy.any(axis=(1, 2)),
+            np.any(expensive_buy, axis=(1, 2)),
             expensive_message(expensive_buy, "it buys firmly far above any plausible price"),
         ),
-        finding(
+        (
             "quits-far-too-expensive",
             "L",
-            finite & expensive_hold.any(axis=(1, 2)),
+            np.any(expensive_hold, axis=(1, 2)),
             expensive_message(
                 expensive_hold, "it holds far above any plausible price, waiting for it to drop"
             ),
         ),
-        finding(
-            "buy-falls-with-price",
-            "B",
-            finite & (worst_rise > limits.MONOTONE_TOLERANCE),
-            rise_message,
-        ),
-        finding("decisive-row", "L", finite & decisive_hold.any(axis=1), decisive_message),
-    ]
+        ("buy-falls-with-price", "B", worst_rise > limits.MONOTONE_TOLERANCE, rise_message),
+        ("decisive-row", "L", np.any(decisive_hold, axis=1), decisive_message),
+    )
+    failed = np.empty((P, len(probes)), dtype=np.bool_)
+    for k, (_, _, mask, _) in enumerate(probes):
+        failed[:, k] = mask
+    failed[:, 1:] &= finite[:, None]  # scores that overflow get one reason: probe-non-finite
+    return Checks(
+        tuple(probe[0] for probe in probes),
+        tuple(probe[1] for probe in probes),
+        failed,
+        lambda k, p: probes[k][3](p),
+    )

@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
-from collections.abc import Callable
 
 import numpy as np
 import numpy.typing as npt
@@ -22,7 +21,7 @@ import numpy.typing as npt
 from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, JUDGEMENTS, PFC_SOURCES, VERDICTS
 from agents.negotiator import SELECTIVE, THRESHOLD, FSNBatch
 from screener import limits
-from screener.findings import INPUT_WORDS, ROLE, Array, Finding, Mask, finding, fmt_price
+from screener.findings import INPUT_WORDS, ROLE, Array, Checks, Finding, Mask, check, fmt_price
 
 PG, SZ, LSR, ST = range(4)
 PRICE, LENGTH, WEIGHT, GILL, ST1, ST2, ST3, DEMAND = range(8)
@@ -92,6 +91,41 @@ SUBTYPES = np.array(list(itertools.product((0.5, -0.5), repeat=3)))
 """The 8 sub-types; row 0 is the preferred (½, ½, ½)."""
 
 
+NAMED_COLUMNS = tuple(
+    (np.array(SENSOR_INPUTS[name], dtype=np.intp), BASE[list(SENSOR_INPUTS[name])])
+    for name in ES_NEURONS
+)
+"""Per ES neuron: the inputs it is named after, and their values on the base item."""
+OTHER_THAN_SUBTYPES = np.array([j not in SUBTYPE_INPUTS for j in range(8)])
+"""(8,): True on the inputs that are not sub-type flags."""
+WANTED_KINDS = np.array([SENSOR_ACTIVATION[name] for name in ES_NEURONS], dtype=np.float64)
+"""(4,): the activation kind code each ES neuron must have."""
+KIND_MESSAGES = tuple(
+    f"{ROLE[name]} {name} must be "
+    + (
+        "selective (it must light up for one sub-type only)"
+        if SENSOR_ACTIVATION[name] == SELECTIVE
+        else "a threshold (it must rise once its input passes a level)"
+    )
+    for name in ES_NEURONS
+)
+SHARPNESS_NEURONS = (PG, SZ, LSR)
+SHARPNESS_UNITS = ("100% of its willingness to pay", "unit of size", "unit of buy fraction")
+SHARPNESS_DESIGN = np.array([limits.DESIGN_SHARPNESS[ES_NEURONS[i]] for i in SHARPNESS_NEURONS])
+SHARPNESS_LOW = SHARPNESS_DESIGN / limits.SHARPNESS_FACTOR
+SHARPNESS_HIGH = SHARPNESS_DESIGN * limits.SHARPNESS_FACTOR
+"""Allowed sharpness of the threshold neurons PG, SZ, LSR (``limits.SHARPNESS_FACTOR``)."""
+MAGNITUDE_LAYERS = (
+    (ES_NEURONS, (*INPUTS, "bias", "threshold centre c")),
+    (DECISIONS, (*ES_NEURONS, "bias")),
+    (JUDGEMENTS, (*PFC_SOURCES, "bias")),
+    (VERDICTS, (*JUDGEMENTS, "bias")),
+)
+"""Per layer, its neurons and the numbers of each that the magnitude rule reads."""
+MAGNITUDE_NEURONS = tuple(name for names, _ in MAGNITUDE_LAYERS for name in names)
+MAGNITUDE_COLUMNS = tuple(columns for names, columns in MAGNITUDE_LAYERS for _ in names)
+
+
 @dataclasses.dataclass(frozen=True)
 class Numbers:
     """A batch's numbers as float64 arrays (leading patron axis P)."""
@@ -116,8 +150,7 @@ class Numbers:
     @classmethod
     def of(cls, batch: FSNBatch) -> Numbers:
         """Read the arrays out of a batch."""
-        names = [f.name for f in dataclasses.fields(cls)]
-        return cls(**{name: getattr(batch, name).double().numpy() for name in names})
+        return cls(**{name: getattr(batch, name).double().numpy() for name in _NUMBER_FIELDS})
 
     @functools.cached_property
     def willingness_to_pay(self) -> Array:
@@ -126,72 +159,97 @@ class Numbers:
         return _reference(self, PG)
 
 
-def _weights_phrase(target: str, source: str, weight: float) -> str:
-    return f"{ROLE[target]} {target} has weight {weight:+.3g} from {source}, {ROLE[source]}"
+_NUMBER_FIELDS = tuple(f.name for f in dataclasses.fields(Numbers))
 
 
-def _sign_message(
-    target: str, source: str, weights: Array, meaning: tuple[int, bool, str]
-) -> Callable[[int], str]:
-    sign, _, consequence = meaning
+@dataclasses.dataclass(frozen=True)
+class _Layer:
+    """A layer's meaning as arrays: per (target, source) the sign its weight must have and the
+    floor of weight × sign (MIN_DESIGNED_WEIGHT where the meaning relies on the connection,
+    −SIGN_TOLERANCE where it only forbids the wrong sign); the listed connections
+    (``rows``, ``cols``, in the order of the meaning) and the unlisted ones."""
 
-    def message(p: int) -> str:
-        w = float(weights[p])
-        if w == 0:
-            return (
-                f"{ROLE[target]} {target} has no weight from {source}, {ROLE[source]}: the "
-                "connection its meaning relies on is cut"
-            )
-        if sign * w > 0:
-            return (
-                f"{_weights_phrase(target, source, w)}: too weak to carry its meaning (at least "
-                f"{limits.MIN_DESIGNED_WEIGHT:g} in size, sign {'+' if sign > 0 else '−'})"
-            )
-        return f"{_weights_phrase(target, source, w)}: this model {consequence}"
-
-    return message
+    targets: tuple[str, ...]
+    sources: tuple[str, ...]
+    meanings: tuple[tuple[int, bool, str], ...]
+    sign: Array
+    floor: Array
+    rows: npt.NDArray[np.intp]
+    cols: npt.NDArray[np.intp]
+    stray_rows: npt.NDArray[np.intp]
+    stray_cols: npt.NDArray[np.intp]
 
 
-def _stray_message(target: str, source: str, weights: Array) -> Callable[[int], str]:
-    def message(p: int) -> str:
-        return (
-            f"{_weights_phrase(target, source, weights[p])}: it is not about {source} (at most "
-            f"{limits.PFC_OFF_DESIGN_LIMIT:g} in size)"
-        )
-
-    return message
-
-
-def _connections(
-    rule: str,
-    weights: Array,
+def _layer(
     targets: tuple[str, ...],
     sources: tuple[str, ...],
     meaning: dict[tuple[str, str], tuple[int, bool, str]],
-    stray_rule: str | None = None,
-) -> list[Finding]:
-    """Every connection of a layer (weights (P, targets, sources)) against its meaning: a wrong
-    sign beyond SIGN_TOLERANCE, a relied-upon weight below MIN_DESIGNED_WEIGHT, and (with
-    ``stray_rule``) a connection the meaning does not list above PFC_OFF_DESIGN_LIMIT."""
+) -> _Layer:
     sign = np.zeros((len(targets), len(sources)))
     floor = np.zeros_like(sign)
     for (t, s), (wanted, relied, _) in meaning.items():
         i, j = targets.index(t), sources.index(s)
         sign[i, j] = wanted
         floor[i, j] = limits.MIN_DESIGNED_WEIGHT if relied else -limits.SIGN_TOLERANCE
-    wrong = weights * sign < floor
-    found = [
-        Finding(rule, t, wrong[:, targets.index(t), sources.index(s)],
-                _sign_message(t, s, weights[:, targets.index(t), sources.index(s)], m))
-        for (t, s), m in meaning.items()
-    ]  # fmt: skip
+    rows = np.array([targets.index(t) for t, _ in meaning], dtype=np.intp)
+    cols = np.array([sources.index(s) for _, s in meaning], dtype=np.intp)
+    stray_rows, stray_cols = np.nonzero(sign == 0)
+    return _Layer(
+        targets, sources, tuple(meaning.values()), sign, floor, rows, cols, stray_rows, stray_cols
+    )
+
+
+DECISION_LAYER = _layer(DECISIONS, ES_NEURONS, DECISION_MEANING)
+JUDGEMENT_LAYER = _layer(JUDGEMENTS, PFC_SOURCES, JUDGEMENT_MEANING)
+VERDICT_LAYER = _layer(VERDICTS, JUDGEMENTS, VERDICT_MEANING)
+
+
+def _weights_phrase(target: str, source: str, weight: float) -> str:
+    return f"{ROLE[target]} {target} has weight {weight:+.3g} from {source}, {ROLE[source]}"
+
+
+def _sign_message(target: str, source: str, w: float, meaning: tuple[int, bool, str]) -> str:
+    sign, _, consequence = meaning
+    if w == 0:
+        return (
+            f"{ROLE[target]} {target} has no weight from {source}, {ROLE[source]}: the "
+            "connection its meaning relies on is cut"
+        )
+    if sign * w > 0:
+        return (
+            f"{_weights_phrase(target, source, w)}: too weak to carry its meaning (at least "
+            f"{limits.MIN_DESIGNED_WEIGHT:g} in size, sign {'+' if sign > 0 else '−'})"
+        )
+    return f"{_weights_phrase(target, source, w)}: this model {consequence}"
+
+
+def _connections(
+    rule: str, weights: Array, layer: _Layer, stray_rule: str | None = None
+) -> list[Checks]:
+    """Every connection of a layer (weights (P, targets, sources)) against its meaning: a wrong
+    sign beyond SIGN_TOLERANCE, a relied-upon weight below MIN_DESIGNED_WEIGHT, and (with
+    ``stray_rule``) a connection the meaning does not list above PFC_OFF_DESIGN_LIMIT."""
+    targets, sources, rows, cols = layer.targets, layer.sources, layer.rows, layer.cols
+    wrong = (weights * layer.sign < layer.floor)[:, rows, cols]
+
+    def sign_message(k: int, p: int) -> str:
+        i, j = rows[k], cols[k]
+        return _sign_message(targets[i], sources[j], float(weights[p, i, j]), layer.meanings[k])
+
+    found = [Checks((rule,) * len(rows), tuple(targets[i] for i in rows), wrong, sign_message)]
     if stray_rule is not None:
-        stray = (sign == 0) & (np.abs(weights) > limits.PFC_OFF_DESIGN_LIMIT)
-        for i, j in zip(*np.nonzero(sign == 0), strict=True):
-            t, s = targets[i], sources[j]
-            found.append(
-                Finding(stray_rule, t, stray[:, i, j], _stray_message(t, s, weights[:, i, j]))
+        s_rows, s_cols = layer.stray_rows, layer.stray_cols
+        stray = np.abs(weights[:, s_rows, s_cols]) > limits.PFC_OFF_DESIGN_LIMIT
+
+        def stray_message(k: int, p: int) -> str:
+            i, j = s_rows[k], s_cols[k]
+            return (
+                f"{_weights_phrase(targets[i], sources[j], weights[p, i, j])}: it is not about "
+                f"{sources[j]} (at most {limits.PFC_OFF_DESIGN_LIMIT:g} in size)"
             )
+
+        neurons = tuple(targets[i] for i in s_rows)
+        found.append(Checks((stray_rule,) * len(s_rows), neurons, stray, stray_message))
     return found
 
 
@@ -199,39 +257,32 @@ def _reference(n: Numbers, neuron: int) -> Array:
     """Where a threshold neuron crosses its centre c on the base item, as a value of the inputs
     it is named after (moved together): (c − bias − other inputs) / Σ named weights; NaN unless
     the named weights sum to more than 0."""
-    named = list(SENSOR_INPUTS[ES_NEURONS[neuron]])
+    named, base_named = NAMED_COLUMNS[neuron]
     weights = n.es_weight[:, neuron]
-    slope = weights[:, named].sum(axis=1)
-    rest = weights @ BASE - weights[:, named] @ BASE[named] + n.es_bias[:, neuron]
+    named_weights = weights[:, named]
+    slope = named_weights.sum(axis=1)
+    rest = weights @ BASE - named_weights @ base_named + n.es_bias[:, neuron]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(slope > 0, (n.es_c[:, neuron] - rest) / slope, np.nan)
 
 
-def _outside(values: Array, low: float, high: float) -> Mask:
+def _outside(values: Array, low: float | Array, high: float | Array) -> Mask:
     """Outside [low, high] (NaN counts as inside: another rule reports it)."""
     return (values < low) | (values > high)
 
 
-def activation_findings(n: Numbers) -> list[Finding]:
+def activation_checks(n: Numbers) -> list[Checks]:
     """Each ES neuron uses the activation its meaning needs, with sane parameters."""
-    found = []
-    for i, name in enumerate(ES_NEURONS):
-        wanted = SENSOR_ACTIVATION[name]
-        words = "a threshold (it must rise once its input passes a level)"
-        if wanted == SELECTIVE:
-            words = "selective (it must light up for one sub-type only)"
-        found.append(
-            finding(
-                "activation-kind",
-                name,
-                n.es_kind[:, i] != wanted,
-                _constant(f"{ROLE[name]} {name} must be {words}"),
-            )
-        )
     eps = n.es_epsilon[:, ST]
     low, high = limits.SELECTIVE_EPSILON_RANGE
-    found.append(
-        finding(
+    return [
+        Checks(
+            ("activation-kind",) * len(ES_NEURONS),
+            ES_NEURONS,
+            n.es_kind != WANTED_KINDS,
+            lambda k, p: KIND_MESSAGES[k],
+        ),
+        check(
             "selective-width",
             "ST",
             (n.es_kind[:, ST] == SELECTIVE) & _outside(eps, low, high),
@@ -240,27 +291,40 @@ def activation_findings(n: Numbers) -> list[Finding]:
                 f"{np.sqrt(eps[p]):.3g}, outside {np.sqrt(low):g} to {np.sqrt(high):g}: "
                 "it is blind or sees every sub-type alike"
             ),
-        )
-    )
-    return found
+        ),
+    ]
 
 
-def price_findings(n: Numbers) -> list[Finding]:
+def price_checks(n: Numbers) -> list[Checks]:
     """PG: rises with price, declares a plausible willingness to pay, not dearer when better."""
-    w_price = n.es_weight[:, PG, PRICE]
+    w_price = n.es_weight[:, PG, PRICE, None]
     threshold = n.es_kind[:, PG] == THRESHOLD
     wtp = n.willingness_to_pay
     low, high = (f * limits.BASE_PRICE for f in limits.WILLINGNESS_TO_PAY_BAND)
-    found = [
+    quality = list(QUALITY_INPUTS)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        drop = np.where(
+            w_price > 0, n.es_weight[:, PG, quality] * limits.QUALITY_SPAN / w_price, np.nan
+        )
+
+    def quality_message(k: int, p: int) -> str:
+        q = QUALITY_INPUTS[k]
+        return (
+            f"PG has weight {n.es_weight[p, PG, q]:+.3g} from {INPUT_WORDS[INPUTS[q]]}: a better "
+            "fish looks dearer to it, and across the fish on sale its willingness to pay drops "
+            f"by {drop[p, k]:.2f}"
+        )
+
+    return [
         _rises(
             "rises-with-price",
             n,
             PG,
-            PRICE,
+            (PRICE,),
             "it does not light up as the price rises, so the model cannot tell a dear fish from "
             "a cheap one",
         ),
-        finding(
+        check(
             "willingness-to-pay",
             "PG",
             threshold & _outside(wtp, low, high),
@@ -271,90 +335,56 @@ def price_findings(n: Numbers) -> list[Finding]:
                 f"{fmt_price(high)}"
             ),
         ),
+        Checks(
+            ("falls-with-quality",) * len(quality),
+            ("PG",) * len(quality),
+            drop > limits.QUALITY_PRICE_TOLERANCE,
+            quality_message,
+        ),
     ]
-    for q in QUALITY_INPUTS:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            drop = np.where(
-                w_price > 0, n.es_weight[:, PG, q] * limits.QUALITY_SPAN / w_price, np.nan
-            )
-        found.append(
-            finding(
-                "falls-with-quality",
-                "PG",
-                drop > limits.QUALITY_PRICE_TOLERANCE,
-                _quality_message(n, q, drop),
-            )
-        )
-    return found
 
 
-def _constant(text: str) -> Callable[[int], str]:
-    return lambda p: text
-
-
-def _quality_message(n: Numbers, q: int, drop: Array) -> Callable[[int], str]:
-    def message(p: int) -> str:
-        return (
-            f"PG has weight {n.es_weight[p, PG, q]:+.3g} from {INPUT_WORDS[INPUTS[q]]}: a better "
-            "fish looks dearer to it, and across the fish on sale its willingness to pay drops "
-            f"by {drop[p]:.2f}"
-        )
-
-    return message
-
-
-def _sensor_sign_message(
-    n: Numbers, neuron: int, inp: int, consequence: str
-) -> Callable[[int], str]:
+def _rises(rule: str, n: Numbers, neuron: int, inputs: tuple[int, ...], consequence: str) -> Checks:
+    """The ES neuron's weights from inputs it is named after must be positive."""
     name = ES_NEURONS[neuron]
 
-    def message(p: int) -> str:
+    def message(k: int, p: int) -> str:
+        inp = inputs[k]
         return (
             f"{name}, {ROLE[name]}, has weight {n.es_weight[p, neuron, inp]:+.3g} from "
             f"{INPUT_WORDS[INPUTS[inp]]}: {consequence}"
         )
 
-    return message
+    failed = n.es_weight[:, neuron, list(inputs)] <= 0
+    return Checks((rule,) * len(inputs), (name,) * len(inputs), failed, message)
 
 
-def _sharpness(
-    n: Numbers, neuron: int, gain: Array, unit: str, ok_sign: Mask | None = None
-) -> Finding:
-    name = ES_NEURONS[neuron]
-    design = limits.DESIGN_SHARPNESS[name]
-    low, high = design / limits.SHARPNESS_FACTOR, design * limits.SHARPNESS_FACTOR
-    applies = n.es_kind[:, neuron] == THRESHOLD
-    if ok_sign is not None:
-        applies &= ok_sign
-    return finding(
-        "sharpness",
-        name,
-        applies & _outside(gain, low, high),
-        lambda p: (
-            f"{ROLE[name]} {name} changes its threshold argument by {gain[p]:.3g} per "
-            f"{unit} (design {design:g}; allowed {low:g} to {high:g}): "
-            + ("a hidden step" if gain[p] > high else "nearly flat, it hardly reacts")
-        ),
-    )
+def _sharpness(n: Numbers, gain: Array, ok_sign: Mask) -> Checks:
+    """Sharpness of PG, SZ, LSR (``gain`` (P, 3) in units of their own input) within
+    SHARPNESS_FACTOR of the design, where the neuron is a threshold and ``ok_sign``."""
+    applies = (n.es_kind[:, list(SHARPNESS_NEURONS)] == THRESHOLD) & ok_sign
+    names = tuple(ES_NEURONS[i] for i in SHARPNESS_NEURONS)
+
+    def message(k: int, p: int) -> str:
+        name, g = names[k], gain[p, k]
+        low, high = SHARPNESS_LOW[k], SHARPNESS_HIGH[k]
+        return (
+            f"{ROLE[name]} {name} changes its threshold argument by {g:.3g} per "
+            f"{SHARPNESS_UNITS[k]} (design {SHARPNESS_DESIGN[k]:g}; allowed {low:g} to "
+            f"{high:g}): " + ("a hidden step" if g > high else "nearly flat, it hardly reacts")
+        )
+
+    failed = applies & _outside(gain, SHARPNESS_LOW, SHARPNESS_HIGH)
+    return Checks(("sharpness",) * len(names), names, failed, message)
 
 
-def _rises(rule: str, n: Numbers, neuron: int, inp: int, consequence: str) -> Finding:
-    """The ES neuron's weight from an input it is named after must be positive."""
-    return finding(
-        rule,
-        ES_NEURONS[neuron],
-        n.es_weight[:, neuron, inp] <= 0,
-        _sensor_sign_message(n, neuron, inp, consequence),
-    )
-
-
-def _reference_finding(
+def _reference_check(
     rule: str, n: Numbers, neuron: int, band: tuple[float, float], what: str, why: str
-) -> Finding:
+) -> Checks:
     """The threshold neuron's reference point (``_reference``) must lie in ``band``."""
     name, (low, high) = ES_NEURONS[neuron], band
     point = _reference(n, neuron)
-    return finding(
+    return check(
         rule,
         name,
         (n.es_kind[:, neuron] == THRESHOLD) & _outside(point, low, high),
@@ -365,40 +395,38 @@ def _reference_finding(
     )
 
 
-def size_demand_findings(n: Numbers) -> list[Finding]:
-    """SZ rises with length and weight around a normal size; LSR rises with the buy fraction."""
-    grows = "it does not grow with the fish"
+def size_demand_checks(n: Numbers) -> list[Checks]:
+    """SZ rises with length and weight around a normal size; LSR rises with the buy fraction;
+    PG, SZ and LSR are neither flat nor hidden steps."""
     w_demand = n.es_weight[:, LSR, DEMAND]
-    found = [
-        *(_rises("rises-with-size", n, SZ, inp, grows) for inp in SENSOR_INPUTS["SZ"]),
-        _reference_finding(
-            "size-reference", n, SZ, limits.SIZE_REFERENCE_BAND, "size",
-            "it reads the same for every fish on sale",
-        ),
-        _rises("rises-with-demand", n, LSR, DEMAND, "it does not rise when the others rush to buy"),
-        _reference_finding(
-            "demand-reference", n, LSR, limits.DEMAND_REFERENCE_BAND, "buy fraction",
-            "a rush level that never occurs",
-        ),
-    ]  # fmt: skip
     size_gain = n.es_a[:, SZ] * n.es_weight[:, SZ, list(SENSOR_INPUTS["SZ"])].sum(axis=1)
     rush_gain = n.es_a[:, LSR] * w_demand
     wtp = n.willingness_to_pay
     price_gain = n.es_a[:, PG] * n.es_weight[:, PG, PRICE] * wtp
-    found += [
-        _sharpness(n, PG, price_gain, "100% of its willingness to pay", ~np.isnan(wtp)),
-        _sharpness(n, SZ, size_gain, "unit of size", size_gain > 0),
-        _sharpness(n, LSR, rush_gain, "unit of buy fraction", w_demand > 0),
-    ]
-    return found
+    return [
+        _rises("rises-with-size", n, SZ, SENSOR_INPUTS["SZ"], "it does not grow with the fish"),
+        _reference_check(
+            "size-reference", n, SZ, limits.SIZE_REFERENCE_BAND, "size",
+            "it reads the same for every fish on sale",
+        ),
+        _rises("rises-with-demand", n, LSR, (DEMAND,),
+               "it does not rise when the others rush to buy"),
+        _reference_check(
+            "demand-reference", n, LSR, limits.DEMAND_REFERENCE_BAND, "buy fraction",
+            "a rush level that never occurs",
+        ),
+        _sharpness(
+            n,
+            np.stack([price_gain, size_gain, rush_gain], axis=1),
+            np.stack([~np.isnan(wtp), size_gain > 0, w_demand > 0], axis=1),
+        ),
+    ]  # fmt: skip
 
 
-def subtype_findings(n: Numbers) -> list[Finding]:
+def subtype_checks(n: Numbers) -> list[Checks]:
     """ST: positive weights on the sub-type flags and a selective peak at (½, ½, ½)."""
     flags = "the preferred sub-type (½, ½, ½) needs a positive weight on every flag"
-    found = [_rises("subtype-weights", n, ST, inp, flags) for inp in SUBTYPE_INPUTS]
-    others = np.ones(8, dtype=bool)
-    others[list(SUBTYPE_INPUTS)] = False
+    others = OTHER_THAN_SUBTYPES
     rest = n.es_weight[:, ST, others] @ BASE[others] + n.es_bias[:, ST]
     pre = rest[:, None] + n.es_weight[:, ST, list(SUBTYPE_INPUTS)] @ SUBTYPES.T  # (P, 8)
     eps = n.es_epsilon[:, ST, None]
@@ -415,53 +443,45 @@ def subtype_findings(n: Numbers) -> list[Finding]:
             "its clear peak"
         )
 
-    found.append(
-        finding(
+    return [
+        _rises("subtype-weights", n, ST, SUBTYPE_INPUTS, flags),
+        check(
             "selective-peak",
             "ST",
             selective & ~(best_rival <= limits.SELECTIVITY_RATIO * response[:, 0]),
             message,
-        )
-    )
-    return found
+        ),
+    ]
 
 
-def _off_design_message(n: Numbers, i: int, share: Array, worst: Array) -> Callable[[int], str]:
-    name = ES_NEURONS[i]
-    named_words = " and ".join(INPUT_WORDS[INPUTS[j]] for j in SENSOR_INPUTS[name])
-
-    def message(p: int) -> str:
-        j = int(worst[p, i])
-        return (
-            f"{ROLE[name]} {name} has weight {n.es_weight[p, i, j]:+.3g} from "
-            f"{INPUT_WORDS[INPUTS[j]]}, moving it {share[p, i, j]:.2f}× as much as {named_words}: "
-            "it is not about what its name says"
-        )
-
-    return message
-
-
-def off_design_findings(n: Numbers) -> list[Finding]:
+def off_design_checks(n: Numbers) -> list[Checks]:
     """No ES neuron is driven by an input it is not named after."""
     influence = np.abs(n.es_weight) * SPANS  # (P, 4, 8)
     own = (influence * NAMED).sum(axis=2, keepdims=True)
     with np.errstate(divide="ignore", invalid="ignore"):
         share = np.where(NAMED, 0.0, np.where(own > 0, influence / own, np.inf * (influence > 0)))
     share = np.nan_to_num(share, nan=0.0)
-    worst = share.argmax(axis=2)  # (P, 4)
+
+    def message(i: int, p: int) -> str:
+        name = ES_NEURONS[i]
+        named_words = " and ".join(INPUT_WORDS[INPUTS[j]] for j in SENSOR_INPUTS[name])
+        j = int(share[p, i].argmax())
+        return (
+            f"{ROLE[name]} {name} has weight {n.es_weight[p, i, j]:+.3g} from "
+            f"{INPUT_WORDS[INPUTS[j]]}, moving it {share[p, i, j]:.2f}× as much as {named_words}: "
+            "it is not about what its name says"
+        )
+
     failed = share.max(axis=2) > limits.OFF_DESIGN_SHARE
-    return [
-        Finding("off-design-input", name, failed[:, i], _off_design_message(n, i, share, worst))
-        for i, name in enumerate(ES_NEURONS)
-    ]
+    return [Checks(("off-design-input",) * len(ES_NEURONS), ES_NEURONS, failed, message)]
 
 
-def decision_findings(n: Numbers) -> list[Finding]:
+def decision_checks(n: Numbers) -> list[Checks]:
     """FC: the sign of every connection, and buying as the default intent."""
-    found = _connections("decision-sign", n.fc_weight, DECISIONS, ES_NEURONS, DECISION_MEANING)
     bias = n.fc_bias
-    found.append(
-        finding(
+    return [
+        *_connections("decision-sign", n.fc_weight, DECISION_LAYER),
+        check(
             "buy-intent",
             "B",
             ~(bias[:, 0] > bias[:, 1:].max(axis=1)),
@@ -470,45 +490,34 @@ def decision_findings(n: Numbers) -> list[Finding]:
                 f"({bias[p, 1]:+.3g}) and the quit neuron Q ({bias[p, 2]:+.3g}): with every "
                 "sensor quiet (an ordinary fish at its own price) the model does not buy"
             ),
-        )
-    )
-    return found
+        ),
+    ]
 
 
-def _bias_message(target: str, bias: Array) -> Callable[[int], str]:
-    def message(p: int) -> str:
+def pfc_checks(n: Numbers) -> list[Checks]:
+    """PFC: the judgements read what they are named after; T rewards the sensible decisions."""
+    judgement_bias = n.judgement_bias
+
+    def bias_message(j: int, p: int) -> str:
+        target = JUDGEMENTS[j]
         return (
-            f"{ROLE[target]} {target} has bias {bias[p]:+.3g} (at most "
+            f"{ROLE[target]} {target} has bias {judgement_bias[p, j]:+.3g} (at most "
             f"{limits.JUDGEMENT_BIAS_LIMIT:g} in size): it is decided before it reads anything"
         )
 
-    return message
-
-
-def pfc_findings(n: Numbers) -> list[Finding]:
-    """PFC: the judgements read what they are named after; T rewards the sensible decisions."""
-    found = _connections(
-        "judgement-sign",
-        n.judgement_weight,
-        JUDGEMENTS,
-        PFC_SOURCES,
-        JUDGEMENT_MEANING,
-        stray_rule="judgement-off-design",
-    )
-    biased = np.abs(n.judgement_bias) > limits.JUDGEMENT_BIAS_LIMIT
-    for j, target in enumerate(JUDGEMENTS):
-        found.append(
-            Finding(
-                "judgement-bias",
-                target,
-                biased[:, j],
-                _bias_message(target, n.judgement_bias[:, j]),
-            )
-        )
-    found += _connections("verdict-sign", n.verdict_weight, VERDICTS, JUDGEMENTS, VERDICT_MEANING)
     gap = n.verdict_bias[:, 0] - n.verdict_bias[:, 1]
-    found.append(
-        finding(
+    return [
+        *_connections(
+            "judgement-sign", n.judgement_weight, JUDGEMENT_LAYER, "judgement-off-design"
+        ),
+        Checks(
+            ("judgement-bias",) * len(JUDGEMENTS),
+            JUDGEMENTS,
+            np.abs(judgement_bias) > limits.JUDGEMENT_BIAS_LIMIT,
+            bias_message,
+        ),
+        *_connections("verdict-sign", n.verdict_weight, VERDICT_LAYER),
+        check(
             "verdict-bias",
             "T",
             np.abs(gap) > limits.VERDICT_BIAS_GAP_LIMIT,
@@ -517,18 +526,17 @@ def pfc_findings(n: Numbers) -> list[Finding]:
                 f"{limits.VERDICT_BIAS_GAP_LIMIT:g} in size): the PFC calls every decision "
                 f"{'right' if gap[p] > 0 else 'wrong'} before judging it, and fine-tuning follows"
             ),
-        )
-    )
-    return found
+        ),
+    ]
 
 
-def setting_findings(n: Numbers) -> list[Finding]:
+def setting_checks(n: Numbers) -> list[Checks]:
     """Augmentation and fine-tuning settings within sane bounds."""
     std, lr, epochs = n.noise_std, n.learning_rate, n.epochs
     subtype_cols = [INPUTS.index(name) for name in limits.NOISELESS_SUBTYPES]
     jittered = n.noise_mask[:, subtype_cols].max(axis=1) > 0
     return [
-        finding(
+        check(
             "augmentation-noise",
             "PG",
             std > limits.NOISE_STD_LIMIT,
@@ -538,7 +546,7 @@ def setting_findings(n: Numbers) -> list[Finding]:
                 "become random"
             ),
         ),
-        finding(
+        check(
             "augmentation-subtypes",
             "ST",
             (std > 0) & jittered,
@@ -547,7 +555,7 @@ def setting_findings(n: Numbers) -> list[Finding]:
                 f"σ = {std[p]:.3g} blurs the selective ST neuron's peak"
             ),
         ),
-        finding(
+        check(
             "fine-tuning",
             "T",
             (lr > limits.LEARNING_RATE_LIMIT) | (epochs > limits.EPOCHS_LIMIT),
@@ -560,63 +568,59 @@ def setting_findings(n: Numbers) -> list[Finding]:
     ]
 
 
-def magnitude_findings(n: Numbers) -> list[Finding]:
+def magnitude_checks(n: Numbers) -> list[Checks]:
     """No gigantic numbers anywhere: |weight|, |bias|, |threshold centre| ≤ MAGNITUDE_LIMIT."""
-    threshold_like = (n.es_kind != SELECTIVE)[..., None]
-    es_c = np.where(threshold_like[..., 0], n.es_c, 0.0)
-    layers = [
-        (ES_NEURONS, np.concatenate([n.es_weight, n.es_bias[..., None], es_c[..., None]], -1),
-         [*INPUTS, "bias", "threshold centre c"]),
-        (DECISIONS, np.concatenate([n.fc_weight, n.fc_bias[..., None]], -1),
-         [*ES_NEURONS, "bias"]),
-        (JUDGEMENTS, np.concatenate([n.judgement_weight, n.judgement_bias[..., None]], -1),
-         [*PFC_SOURCES, "bias"]),
-        (VERDICTS, np.concatenate([n.verdict_weight, n.verdict_bias[..., None]], -1),
-         [*JUDGEMENTS, "bias"]),
-    ]  # fmt: skip
-    found = []
-    for neurons, values, columns in layers:
-        size = np.abs(values)
-        worst = size.argmax(axis=2)  # (P, neurons)
-        failed = size.max(axis=2) > limits.MAGNITUDE_LIMIT
-        found += [
-            Finding(
-                "magnitude", name, failed[:, i], _magnitude_message(i, name, values, worst, columns)
-            )
-            for i, name in enumerate(neurons)
-        ]
-    return found
+    es_c = np.where(n.es_kind != SELECTIVE, n.es_c, 0.0)
+    layers = (
+        (n.es_weight, n.es_bias, es_c),
+        (n.fc_weight, n.fc_bias),
+        (n.judgement_weight, n.judgement_bias),
+        (n.verdict_weight, n.verdict_bias),
+    )
+    # One zero-padded (P, neuron, number) table: padding never raises a row's largest |number|.
+    width = max(len(columns) for columns in MAGNITUDE_COLUMNS)
+    table = np.zeros((len(n.es_weight), len(MAGNITUDE_NEURONS), width))
+    start = 0
+    for weight, *extra in layers:
+        rows, n_sources = slice(start, start + weight.shape[1]), weight.shape[2]
+        table[:, rows, :n_sources] = weight
+        for c, values in enumerate(extra):
+            table[:, rows, n_sources + c] = values
+        start = rows.stop
 
-
-def _magnitude_message(
-    i: int, name: str, values: Array, worst: npt.NDArray[np.intp], columns: list[str]
-) -> Callable[[int], str]:
-    def message(p: int) -> str:
-        k = int(worst[p, i])
+    def message(i: int, p: int) -> str:
+        name, columns = MAGNITUDE_NEURONS[i], MAGNITUDE_COLUMNS[i]
+        values = table[p, i, : len(columns)]
+        k = int(np.abs(values).argmax())
         what = (
             columns[k]
             if columns[k] in ("bias", "threshold centre c")
             else f"weight from {columns[k]}"
         )
         return (
-            f"{ROLE[name]} {name} has {what} {values[p, i, k]:+.3g}, beyond "
+            f"{ROLE[name]} {name} has {what} {values[k]:+.3g}, beyond "
             f"±{limits.MAGNITUDE_LIMIT:g}: a gigantic number hides its real effect"
         )
 
-    return message
+    failed = np.abs(table).max(axis=2) > limits.MAGNITUDE_LIMIT
+    return [Checks(("magnitude",) * len(MAGNITUDE_NEURONS), MAGNITUDE_NEURONS, failed, message)]
+
+
+def semantic_checks(n: Numbers) -> list[Checks]:
+    """Every semantic rule over the batch's numbers, in reporting order."""
+    return [
+        *magnitude_checks(n),
+        *activation_checks(n),
+        *price_checks(n),
+        *size_demand_checks(n),
+        *subtype_checks(n),
+        *off_design_checks(n),
+        *decision_checks(n),
+        *pfc_checks(n),
+        *setting_checks(n),
+    ]
 
 
 def semantic_findings(batch: FSNBatch) -> list[Finding]:
-    """Every semantic rule over the batch."""
-    n = Numbers.of(batch)
-    return [
-        *magnitude_findings(n),
-        *activation_findings(n),
-        *price_findings(n),
-        *size_demand_findings(n),
-        *subtype_findings(n),
-        *off_design_findings(n),
-        *decision_findings(n),
-        *pfc_findings(n),
-        *setting_findings(n),
-    ]
+    """Every semantic rule over the batch, one finding per check."""
+    return [f for checks in semantic_checks(Numbers.of(batch)) for f in checks.findings()]

@@ -6,9 +6,9 @@ import numpy as np
 
 from agents.negotiator import decide, from_manifests, honest_manifest, saboteur_manifest
 from screener import screen, screen_many
-from screener.probes import GRID, GRID_SHAPE, PRICES
+from screener.probes import GRID, GRID_SHAPE, PASS_SIZE, PRICES
 from tests.screener.conftest import message_of, rules_of
-from tests.screener.corpus import SABOTEURS, edit
+from tests.screener.corpus import SABOTEURS, edit, honest_corpus
 from tests.screener.test_rules import PROBE_RULES
 
 
@@ -94,3 +94,18 @@ def test_batched_screening_equals_one_by_one():
     assert [v.accepted for v in together[:3]] == [True] * 3
     assert not any(v.accepted for v in together[3:])
     assert screen_many([]) == []
+
+
+def test_mixed_activation_kinds_in_one_batch_score_as_alone():
+    """Manifests whose neurons use different activation kinds share a batch (more than one
+    forward pass of PASS_SIZE) and still get exactly their one-by-one verdicts."""
+    rng = np.random.default_rng(5)
+    honest = [entry.manifest for entry in honest_corpus(rng, 24)]
+    below = {"kind": "below_threshold", "a": 5.0, "c": 0.5, "negative_slope": 0.01}  # SZ
+    odd = [
+        edit(honest_manifest(rng, f"k{i}"), {"external_sensor.SZ.activation": below})
+        for i in range(12)
+    ]
+    manifests = [m for pair in zip(honest, odd, strict=False) for m in pair] + honest[12:]
+    assert len(manifests) > 2 * PASS_SIZE
+    assert screen_many(manifests) == [screen(m) for m in manifests]

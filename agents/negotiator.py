@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
-import math
+import operator
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -203,34 +203,43 @@ class FSNBatch:
         changes: dict[str, Any] = dict(params)
         return dataclasses.replace(self, **changes)
 
-    def select(self, index: Sequence[int] | Tensor | np.ndarray) -> FSNBatch:
-        """The sub-batch of the patrons at ``index`` (in that order)."""
+    def select(self, index: Sequence[int] | Tensor | np.ndarray | slice) -> FSNBatch:
+        """The sub-batch of the patrons at ``index`` (in that order; a slice gives views)."""
+        if isinstance(index, slice):
+            sliced = {f.name: getattr(self, f.name)[index] for f in dataclasses.fields(self)}
+            return FSNBatch(**sliced)
         idx = torch.as_tensor(index, dtype=torch.long)
         fields: dict[str, object] = {}
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if isinstance(value, Tensor):
-                fields[f.name] = value[idx]
+                fields[f.name] = value.index_select(0, idx)
             else:
                 fields[f.name] = [value[i] for i in idx.tolist()]
         return FSNBatch(**fields)  # type: ignore[arg-type]
 
 
-def _row(weights: object, names: Sequence[str]) -> list[float]:
-    return [getattr(weights, name) for name in names]
-
-
+_INPUT_VALUES = operator.attrgetter(*INPUTS)
+_ES_VALUES = operator.attrgetter(*ES_NEURONS)
+_DECISION_VALUES = operator.attrgetter(*DECISIONS)
+_SOURCE_VALUES = operator.attrgetter(*PFC_SOURCES)
+_JUDGEMENT_VALUES = operator.attrgetter(*JUDGEMENTS)
+_VERDICT_VALUES = operator.attrgetter(*VERDICTS)
 _PLACEHOLDER_SHAPE = (1.0, 0.0, 0.0)
 """a, c, negative_slope stored for a selective neuron (unused)."""
 _PLACEHOLDER_EPSILON = 1.0
 """ε stored for a threshold neuron (unused; any positive number avoids 0/0)."""
 
+_Numbers = tuple[float, ...]
+_Memo = Callable[[Any, Callable[[Any], _Numbers]], _Numbers]
+"""``memo(obj, read)``: ``read(obj)``, read once per distinct object (by identity)."""
+
 
 def _activation_numbers(
     act: ThresholdActivation | BelowThresholdActivation | SelectiveActivation,
-) -> tuple[float, ...]:
+) -> _Numbers:
     """(kind code, a, c, negative_slope, ε) of one ES activation."""
-    if isinstance(act, SelectiveActivation):
+    if act.kind == "selective":  # not isinstance: slow on pydantic models (ABC checks)
         return (SELECTIVE, *_PLACEHOLDER_SHAPE, act.epsilon)
     return (
         ACTIVATION_KINDS.index(act.kind),
@@ -241,55 +250,80 @@ def _activation_numbers(
     )
 
 
+def _sensor_numbers(s: Any, memo: _Memo) -> _Numbers:
+    """One ES neuron: weights, bias, kind code, a, c, slope, ε."""
+    return (*memo(s.weights, _INPUT_VALUES), s.bias, *memo(s.activation, _activation_numbers))
+
+
+def _decision_numbers(n: Any, memo: _Memo) -> _Numbers:
+    """One FC neuron: weights, bias."""
+    return (*memo(n.weights, _ES_VALUES), n.bias)
+
+
+def _pfc_numbers(p: Any, memo: _Memo) -> _Numbers:
+    """The PFC: judgement weights and biases, verdict weights and biases, trainable."""
+    neurons = [(j, _SOURCE_VALUES) for j in _JUDGEMENT_VALUES(p.judgement)]
+    neurons += [(v, _JUDGEMENT_VALUES) for v in _VERDICT_VALUES(p.verdict)]
+    weights = ((*memo(n.weights, read), n.bias) for n, read in neurons)
+    return (*itertools.chain.from_iterable(weights), float(p.trainable))
+
+
+def _augmentation_numbers(a: Any, memo: _Memo) -> _Numbers:
+    """Copies, σ, the noise mask."""
+    off = a.noiseless_inputs
+    return (a.copies, a.noise_std, *(0.0 if name in off else 1.0 for name in INPUTS))
+
+
+def _tuning_numbers(f: Any, memo: _Memo) -> _Numbers:
+    """Epochs, batch size, learning rate."""
+    return (f.epochs, f.batch_size, f.learning_rate)
+
+
+_READERS = (
+    *[_sensor_numbers] * len(ES_NEURONS),
+    *[_decision_numbers] * len(DECISIONS),
+    _pfc_numbers,
+    _augmentation_numbers,
+    _tuning_numbers,
+)
+"""The readers of a manifest's parts, in table order: ES neurons, FC neurons, PFC,
+augmentation, fine-tuning (see ``_COLUMN_BLOCKS``)."""
+
+
 def from_manifests(manifests: Sequence[Manifest], dtype: torch.dtype = torch.float64) -> FSNBatch:
     """Stack the manifests' numbers into one batch (float64 keeps them exact)."""
     if not manifests:
         raise ValueError("at least one manifest is needed")
-    # Each manifest becomes one flat row of numbers, all rows cast to tensors in one go.
-    # Factory-made manifests share their frozen sub-models: read each distinct one once.
-    memo: dict[int, list[float]] = {}
+    # One row of numbers per manifest, read part by part (ES neurons, FC neurons, PFC,
+    # augmentation, fine-tuning). Factory-made manifests share their frozen sub-models: each
+    # distinct part is read once.
+    parts = [
+        part
+        for m in manifests
+        for part in (
+            *_ES_VALUES(m.external_sensor),
+            *_DECISION_VALUES(m.decision),
+            m.pfc,
+            m.augmentation,
+            m.fine_tuning,
+        )
+    ]
+    numbers: dict[int, _Numbers] = {}
 
-    def numbers(obj: Any, read: Callable[[Any], list[float]]) -> list[float]:
+    def memo(obj: Any, read: Callable[[Any], _Numbers]) -> _Numbers:
         key = id(obj)
-        if key not in memo:
-            memo[key] = read(obj)
-        return memo[key]
+        found = numbers.get(key)
+        if found is None:
+            found = numbers[key] = read(obj)
+        return found
 
-    def neuron(sources: Sequence[str]) -> Callable[[Any], list[float]]:
-        return lambda n: [*_row(n.weights, sources), n.bias]
-
-    def sensor(s: Any) -> list[float]:  # weights, bias, kind code, a, c, slope, ε
-        return [*_row(s.weights, INPUTS), s.bias, *_activation_numbers(s.activation)]
-
-    fc, judge, verdict = neuron(ES_NEURONS), neuron(PFC_SOURCES), neuron(JUDGEMENTS)
-
-    def pfc(p: Any) -> list[float]:
-        return [
-            *(v for n in JUDGEMENTS for v in numbers(getattr(p.judgement, n), judge)),
-            *(v for n in VERDICTS for v in numbers(getattr(p.verdict, n), verdict)),
-            float(p.trainable),
-        ]
-
-    def augmentation(a: Any) -> list[float]:
-        off = a.noiseless_inputs
-        return [a.copies, a.noise_std, *(0.0 if name in off else 1.0 for name in INPUTS)]
-
-    def tuning(f: Any) -> list[float]:
-        return [f.epochs, f.batch_size, f.learning_rate]
-
-    table = np.array(
-        [
-            [
-                *(v for n in ES_NEURONS for v in numbers(getattr(m.external_sensor, n), sensor)),
-                *(v for n in DECISIONS for v in numbers(getattr(m.decision, n), fc)),
-                *numbers(m.pfc, pfc),
-                *numbers(m.augmentation, augmentation),
-                *numbers(m.fine_tuning, tuning),
-            ]
-            for m in manifests
-        ],
-        dtype=np.float64,
-    )
+    keys = list(map(id, parts))
+    for key, part, read in zip(keys, parts, _READERS * len(manifests), strict=True):
+        if key not in numbers:
+            numbers[key] = read(part, memo)
+    flat = itertools.chain.from_iterable(map(numbers.__getitem__, keys))
+    width = sum(_COLUMN_BLOCKS)
+    table = np.fromiter(flat, np.float64, count=len(manifests) * width).reshape(-1, width)
     P, n_in = len(manifests), len(INPUTS)
     blocks = iter(np.split(table, np.cumsum(_COLUMN_BLOCKS)[:-1], axis=1))
     es, fc_, judgement, verdict_, trainable, copies, std, mask, epochs, size, lr = blocks
@@ -413,10 +447,13 @@ def make_noise(batch: FSNBatch, n_rows: int, generator: torch.Generator) -> Tens
     return normal.to(batch.dtype) * noise_scale(batch)[:, None]
 
 
-def standard_normal(shape: tuple[int, ...], generator: torch.Generator) -> Tensor:
+def standard_normal(
+    shape: tuple[int, ...], generator: torch.Generator, out: Tensor | None = None
+) -> Tensor:
     """N(0, 1) draws of shape (*shape, 8), made in float32: CPU float64 normals are several
-    times slower and σ = 0.01 jitter needs no more precision."""
-    return torch.randn((*shape, len(INPUTS)), generator=generator, dtype=torch.float32)
+    times slower and σ = 0.01 jitter needs no more precision. ``out``, if given, must be a
+    contiguous float32 tensor of that shape (the draws are the same)."""
+    return torch.randn((*shape, len(INPUTS)), generator=generator, dtype=torch.float32, out=out)
 
 
 def noise_scale(batch: FSNBatch) -> Tensor:
@@ -529,8 +566,8 @@ def decision_logits(batch: FSNBatch, x: Tensor, noise: Tensor | None = None) -> 
     """[B, L, Q] averaged over the copies, (P, R, 3); ``x`` is (R, 8) shared by every patron or
     (P, R, 8); ``noise`` (P, R, D, 8) from ``make_noise``, None = every copy clean."""
     # The FC is linear: averaging the sensor over copies first gives the same mean, cheaper.
-    mean_sensor = _copy_mean(batch, _sensor(batch, x, noise))[:, :, None]
-    return _patron_major(_linear(batch.fc_weight, batch.fc_bias, mean_sensor)[:, :, 0])
+    mean_sensor = _patron_major(_copy_mean(batch, _sensor(batch, x, noise)))  # (P, R, 4)
+    return torch.einsum("prk,pjk->prj", mean_sensor, batch.fc_weight) + batch.fc_bias[:, None, :]
 
 
 def decide(batch: FSNBatch, x: Tensor, noise: Tensor | None = None) -> Tensor:
@@ -562,23 +599,51 @@ def activations(batch: FSNBatch, x: Tensor, noise: Tensor | None = None) -> dict
 class FineTuneDraws:
     """The random numbers of one fine-tuning round, drawn for every patron of a batch.
 
-    ``order`` (P, E, R): patron p's shuffle of the R rows in epoch e; ``noise`` (P, E, R, D, 8):
-    the augmentation noise row r receives when patron p visits it in epoch e. E is the largest
-    epoch count of the batch. A per-patron loop that slices these sees the same numbers.
+    ``order`` (P, E, R): patron p's shuffle of the R rows in epoch e; ``normal``
+    (P, E, R, D, 8): float32 N(0, 1) draws that ``scale`` (P, D, 8) (``noise_scale``) turns
+    into ``noise``, the augmentation noise row r receives when patron p visits it in epoch e.
+    E is the largest epoch count of the batch. A per-patron loop that slices these sees the
+    same numbers.
     """
 
     order: Tensor
-    noise: Tensor
+    normal: Tensor
+    scale: Tensor
+
+    @functools.cached_property
+    def noise(self) -> Tensor:
+        """(P, E, R, D, 8) (``fine_tune`` itself scales only the rows it visits)."""
+        return self.normal.to(self.scale.dtype) * self.scale[:, None, None]
 
 
 def draw_fine_tune(batch: FSNBatch, n_rows: int, generator: torch.Generator) -> FineTuneDraws:
     """Draw one round's shuffles and noise (empty when no patron has epochs)."""
-    P, E = batch.n_patrons, int(batch.epochs.max())
-    keys = torch.rand((P, E, n_rows), generator=generator, dtype=torch.float64)
-    normal = standard_normal((P, E, n_rows, batch.max_copies), generator).to(batch.dtype)
-    return FineTuneDraws(
-        order=keys.argsort(dim=-1), noise=normal * noise_scale(batch)[:, None, None]
-    )
+    return draw_fine_tune_blocks(batch, n_rows, [(batch.n_patrons, generator)])
+
+
+def draw_fine_tune_blocks(
+    batch: FSNBatch, n_rows: int, blocks: Sequence[tuple[int, torch.Generator]]
+) -> FineTuneDraws:
+    """One round's draws for consecutive blocks of patrons, given as (size, generator): each
+    block draws what ``draw_fine_tune`` would draw for it alone (its epochs and copies are
+    padded to the batch's: a padded epoch is never visited, a padded copy has no noise)."""
+    P, E, D = batch.n_patrons, int(batch.epochs.max()), batch.max_copies
+    bounds = list(itertools.pairwise(np.cumsum([0, *(size for size, _ in blocks)]).tolist()))
+    order = torch.empty((P, E, n_rows), dtype=torch.long)
+    normal = torch.empty((P, E, n_rows, D, len(INPUTS)), dtype=torch.float32)
+    for (_, generator), (start, stop) in zip(blocks, bounds, strict=True):
+        epochs, copies = int(batch.epochs[start:stop].max()), int(batch.copies[start:stop].max())
+        keys = torch.rand((stop - start, epochs, n_rows), generator=generator, dtype=torch.float64)
+        order[start:stop, :epochs] = keys.argsort(dim=-1)
+        order[start:stop, epochs:] = torch.arange(n_rows)
+        shape = (stop - start, epochs, n_rows, copies)
+        if (epochs, copies) == (E, D):
+            standard_normal(shape, generator, out=normal[start:stop])
+        else:
+            normal[start:stop, :epochs, :, :copies] = standard_normal(shape, generator)
+            normal[start:stop, epochs:] = 0.0
+            normal[start:stop, :epochs, :, copies:] = 0.0
+    return FineTuneDraws(order=order, normal=normal, scale=noise_scale(batch))
 
 
 def _flat_parameters(batch: FSNBatch) -> Tensor:
@@ -598,182 +663,274 @@ def _unflatten(batch: FSNBatch, flat: Tensor) -> dict[str, Tensor]:
     }
 
 
-@dataclass
-class _Pairs:
-    """Fixed numbers of the (patron, row) pairs of one fine-tuning step, pairs last: inputs
-    ``xe`` (8, D, n) (row + its copies' noise), the ES activation numbers (4, 1, n), the copy
-    weights ``copy_weight`` (D, n) (1/D_ic on the patron's copies) and the batch weight
-    ``weight`` (n,) (1/rows in the patron's batch)."""
-
-    xe: Tensor
-    kind: Tensor
-    a: Tensor
-    c: Tensor
-    slope: Tensor
-    epsilon: Tensor
-    copy_weight: Tensor
-    weight: Tensor
+_LAYER_SHAPES = (
+    (len(ES_NEURONS), len(INPUTS)),
+    (len(ES_NEURONS), 1),
+    (len(DECISIONS), len(ES_NEURONS)),
+    (len(DECISIONS), 1),
+    (len(JUDGEMENTS), len(PFC_SOURCES)),
+    (len(JUDGEMENTS), 1),
+    (len(VERDICTS), len(JUDGEMENTS)),
+    (len(VERDICTS), 1),
+)
+"""Per patron, the trainable tensors of ``_PARAMETERS`` as matrices (biases as columns)."""
 
 
-def _sensor_with_slope(
-    groups: list[tuple[int | None, slice]], pairs: _Pairs, pre: Tensor
+def _layer_views(theta: Tensor) -> list[Tensor]:
+    """Views (k, out, in) and (k, out, 1) of the flat parameters ``theta`` (k, N_θ)."""
+    parts = torch.split(theta, [rows * cols for rows, cols in _LAYER_SHAPES], dim=1)
+    return [p.view(-1, *shape) for p, shape in zip(parts, _LAYER_SHAPES, strict=True)]
+
+
+def _threshold_and_slope(
+    u: Tensor, numbers: dict[str, Tensor], out: Tensor | None = None, d_out: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
-    """ES activations (4, D, n) of the pre-activations ``pre`` and their derivatives."""
-    outs, slopes = [], []
+    """T(u) = tanh(lrelu(a·(u − c), ns)) and dT/du (into ``out`` and ``d_out`` if given)."""
+    z = (u - numbers["c"]) * numbers["a"]
+    fired = torch.tanh(torch.maximum(z, numbers["slope"] * z), out=out)
+    # a·d max(z, ns·z)/dz: a above 0, ns·a below, their mean at a tie (as autograd).
+    bend = torch.addcmul(numbers["bend_mid"], torch.sign(z), numbers["bend_half"])
+    return fired, torch.mul(1.0 - fired * fired, bend, out=d_out)
+
+
+def _selective_and_slope(
+    u: Tensor, numbers: dict[str, Tensor], out: Tensor | None = None, d_out: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """S(u) = ε/(ε + u²) and dS/du = −2u·S²/ε (into ``out`` and ``d_out`` if given)."""
+    eps = numbers["epsilon"]
+    chosen = torch.div(eps, eps + u * u, out=out)
+    return chosen, torch.mul(chosen * chosen, u * numbers["minus_two_over_epsilon"], out=d_out)
+
+
+def _sensor_and_slope(
+    groups: list[tuple[int | None, slice]],
+    numbers: dict[str, Tensor],
+    pre: Tensor,
+    sensor: Tensor,
+    slope: Tensor,
+) -> None:
+    """ES activations of the pre-activations ``pre`` (k, 4, M) into ``sensor`` and their
+    derivatives into ``slope``; ``numbers`` (see ``_activation_table``) are (k, 4, 1)."""
     for kind, neurons in groups:
-        u = pre[neurons]
-        a, c, ns = pairs.a[neurons], pairs.c[neurons], pairs.slope[neurons]
-        eps = pairs.epsilon[neurons]
-        if kind != SELECTIVE:
-            z = (u - c) * a
-            fired = torch.tanh(torch.maximum(z, ns * z))
-            # d max(z, ns·z)/dz: 1 above 0, ns below, the mean of both at a tie (as autograd).
-            bend = torch.where(z > 0, 1.0, torch.where(z < 0, ns, 0.5 * (1.0 + ns)))
-            d_fired = (1.0 - fired * fired) * bend * a
-        if kind != THRESHOLD and kind != BELOW_THRESHOLD:
-            chosen = eps / (eps + u * u)
-            d_chosen = -2.0 * u * chosen * chosen / eps
+        u, out, d_out = pre[:, neurons], sensor[:, neurons], slope[:, neurons]
+        mine = {name: value[:, neurons] for name, value in numbers.items()}
         if kind == SELECTIVE:
-            outs.append(chosen)
-            slopes.append(d_chosen)
+            _selective_and_slope(u, mine, out, d_out)
         elif kind is not None:
-            sign = 1.0 if kind == THRESHOLD else -1.0
-            outs.append(fired if kind == THRESHOLD else 1.0 - fired)
-            slopes.append(sign * d_fired)
+            _threshold_and_slope(u, mine, out, d_out)
+            if kind == BELOW_THRESHOLD:  # BT = 1 − T
+                out.neg_().add_(1.0)
+                d_out.neg_()
         else:
-            codes = pairs.kind[neurons]
-            below, selective = codes == BELOW_THRESHOLD, codes == SELECTIVE
-            out = torch.where(below, 1.0 - fired, fired)
-            outs.append(torch.where(selective, chosen, out))
-            slope = torch.where(below, -d_fired, d_fired)
-            slopes.append(torch.where(selective, d_chosen, slope))
-    if len(outs) == 1:
-        return outs[0], slopes[0]
-    return torch.cat(outs), torch.cat(slopes)
+            fired, d_fired = _threshold_and_slope(u, mine)
+            chosen, d_chosen = _selective_and_slope(u, mine)
+            below, selective = mine["kind"] == BELOW_THRESHOLD, mine["kind"] == SELECTIVE
+            out.copy_(torch.where(selective, chosen, torch.where(below, 1.0 - fired, fired)))
+            d_out.copy_(torch.where(selective, d_chosen, torch.where(below, -d_fired, d_fired)))
 
 
-_CONTRACT_IN_PLACE = 150_000
-"""Products larger than this are summed term by term in place: a materialised product summed
-over a middle axis costs 3× more once it outgrows the cache."""
+def _activation_table(batch: FSNBatch, patrons: Tensor) -> dict[str, Tensor]:
+    """The ES activation numbers of ``patrons`` as (k, 4, 1) columns, with the constants of
+    their derivatives."""
+    a, ns, eps = batch.es_a[patrons], batch.es_slope[patrons], batch.es_epsilon[patrons]
+    table = {
+        "kind": batch.es_kind[patrons],
+        "a": a,
+        "c": batch.es_c[patrons],
+        "slope": ns,
+        "epsilon": eps,
+        "bend_mid": 0.5 * (a + ns * a),
+        "bend_half": 0.5 * (a - ns * a),
+        "minus_two_over_epsilon": -2.0 / eps,
+    }
+    return {name: value[:, :, None].contiguous() for name, value in table.items()}
 
 
-def _contract(u: Tensor, v: Tensor, dim: int) -> Tensor:
-    """(u · v).sum(dim) for broadcastable u, v of the same rank."""
-    if math.prod(map(max, u.shape, v.shape)) <= _CONTRACT_IN_PLACE:
-        return (u * v).sum(dim)
-    out = u.select(dim, 0) * v.select(dim, 0)
-    for i in range(1, u.shape[dim]):
-        out.addcmul_(u.select(dim, i), v.select(dim, i))
-    return out
-
-
-def _self_reward_gradient(
-    groups: list[tuple[int | None, slice]], theta: Tensor, pairs: _Pairs
+def _band_gradient(
+    groups: list[tuple[int | None, slice]],
+    theta: Tensor,
+    numbers: dict[str, Tensor],
+    xe: Tensor,
+    copy_weight: Tensor,
+    weight: Tensor,
 ) -> Tensor:
-    """∇θ of Σ_pairs weight·CEL([T, F], argmax [T, F]) per pair, (N_θ, n), for the pairs'
-    parameters ``theta`` (N_θ, n) (rows in ``_flat_parameters`` order): the forward pass of
-    ``self_reward`` and its backward written out, one pass over every pair of a step."""
-    n_in, n_es, n_fc = len(INPUTS), len(ES_NEURONS), len(DECISIONS)
-    n_src, n_j, n_v = len(PFC_SOURCES), len(JUDGEMENTS), len(VERDICTS)
-    n = theta.shape[1]
-    es_w, es_b, fc_w, fc_b, j_w, j_b, v_w, v_b = torch.split(
-        theta,
-        [n_es * n_in, n_es, n_fc * n_es, n_fc, n_j * n_src, n_j, n_v * n_j, n_v],
+    """∇θ of Σ_rows weight·CEL([T, F], argmax [T, F]) for k patrons, (k, N_θ): ``theta``
+    (k, N_θ) their flat parameters, ``xe`` (k, B, D, 8) their batch rows plus each copy's
+    noise, ``copy_weight`` (k, D) (1/D_ic on a patron's copies), ``weight`` (k, B) (1/rows
+    in the batch, 0 on padding). The forward pass of ``self_reward`` and its backward written
+    out, each layer one batch of per-patron matrix products over the B·D (row, copy) columns."""
+    k, B, D, n_in = xe.shape
+    n_es = len(ES_NEURONS)
+    es_w, es_b, fc_w, fc_b, j_w, j_b, v_w, v_b = _layer_views(theta)
+    inputs = xe.view(k, B * D, n_in)
+    # Forward: ES → FC → softmax of the 7 sources → judgements → tanh → verdicts.
+    pre = torch.baddbmm(es_b, es_w, inputs.transpose(1, 2))  # (k, 4, B·D)
+    sources = theta.new_empty((k, len(PFC_SOURCES), B * D))
+    sensor, slope = sources[:, :n_es], torch.empty_like(pre)
+    _sensor_and_slope(groups, numbers, pre, sensor, slope)
+    sources[:, n_es:] = torch.baddbmm(fc_b, fc_w, sensor)
+    soft = torch.softmax(sources, dim=1)
+    judged = torch.tanh(torch.baddbmm(j_b, j_w, soft))
+    # The verdicts are linear in the judgements, so their mean over the copies (Σ_d w_d = 1)
+    # is the verdict of the copies' mean judgement: (k, 3, B) → [T, F] (k, 2, B).
+    n_j = len(JUDGEMENTS)
+    judged_mean = torch.bmm(judged.view(k, n_j * B, D), copy_weight[:, :, None]).view(k, n_j, B)
+    mean = torch.baddbmm(v_b, v_w, judged_mean)
+    # Backward: d CEL / d logits = softmax − one-hot(argmax), times the row's weight; the
+    # argmax of [T, F] is T unless F is larger.
+    true = mean[:, :1] >= mean[:, 1:]
+    chosen = torch.cat((true, ~true), dim=1).to(mean.dtype)
+    g_mean = (torch.softmax(mean, dim=1) - chosen) * weight[:, None]
+    g_judged_mean = torch.bmm(v_w.transpose(1, 2), g_mean)  # (k, 3, B)
+    g_judged = (1.0 - judged * judged).view(k, n_j, B, D)
+    g_judged = (g_judged * g_judged_mean[..., None] * copy_weight[:, None, None, :]).view(
+        k, n_j, B * D
     )
-    es_w, fc_w = es_w.view(n_es, n_in, 1, n), fc_w.view(n_fc, n_es, 1, n)
-    j_w, v_w = j_w.view(n_j, n_src, 1, n), v_w.view(n_v, n_j, 1, n)
-    # Forward, per copy: ES → FC → softmax of the 7 sources → judgements → tanh → verdicts.
-    xe = pairs.xe
-    pre = _contract(es_w, xe[None], 1) + es_b[:, None]  # (4, D, n)
-    sensor, d_sensor = _sensor_with_slope(groups, pairs, pre)
-    decision = _contract(fc_w, sensor[None], 1) + fc_b[:, None]
-    sources = torch.cat((sensor, decision))
-    e = torch.exp(sources - sources.amax(dim=0, keepdim=True))
-    soft = e / e.sum(dim=0)
-    judged = torch.tanh(_contract(j_w, soft[None], 1) + j_b[:, None])
-    verdict = _contract(v_w, judged[None], 1) + v_b[:, None]
-    mean = (verdict * pairs.copy_weight).sum(1)  # (2, n)
-    # Backward: d CEL / d logits = softmax − one-hot(argmax), times the pair's weight.
-    g_mean = torch.softmax(mean, dim=0)
-    g_mean[mean.argmax(dim=0), torch.arange(n)] -= 1.0
-    g_verdict = (g_mean * pairs.weight)[:, None] * pairs.copy_weight  # (2, D, n)
-    g_v_w = _contract(g_verdict[:, None], judged[None], 2)
-    g_judged = _contract(v_w, g_verdict[:, None], 0) * (1.0 - judged * judged)
-    g_j_w = _contract(g_judged[:, None], soft[None], 2)
-    g_soft = _contract(j_w, g_judged[:, None], 0)
-    g_sources = soft * (g_soft - (soft * g_soft).sum(dim=0))
-    g_decision = g_sources[n_es:]
-    g_fc_w = _contract(g_decision[:, None], sensor[None], 2)
-    g_pre = (g_sources[:n_es] + _contract(fc_w, g_decision[:, None], 0)) * d_sensor
-    g_es_w = _contract(g_pre[:, None], xe[None], 2)
-    return torch.cat(
-        [
-            g_es_w.reshape(-1, n),
-            g_pre.sum(1),
-            g_fc_w.reshape(-1, n),
-            g_decision.sum(1),
-            g_j_w.reshape(-1, n),
-            g_judged.sum(1),
-            g_v_w.reshape(-1, n),
-            g_verdict.sum(1),
-        ]
+    g_soft = torch.bmm(j_w.transpose(1, 2), g_judged)
+    # soft·(g_soft − Σ soft·g_soft), fused.
+    g_sources = torch._softmax_backward_data(g_soft, soft, 1, soft.dtype)
+    g_decision = g_sources[:, n_es:]
+    g_pre = torch.baddbmm(g_sources[:, :n_es], fc_w.transpose(1, 2), g_decision) * slope
+    grads = (
+        torch.bmm(g_pre, inputs),
+        g_pre.sum(-1),
+        torch.bmm(g_decision, sensor.transpose(1, 2)),
+        g_decision.sum(-1),
+        torch.bmm(g_judged, soft.transpose(1, 2)),
+        g_judged.sum(-1),
+        torch.bmm(g_mean, judged_mean.transpose(1, 2)),
+        g_mean.sum(-1),
     )
+    return torch.cat([g.reshape(k, -1) for g in grads], dim=1)
+
+
+_STEP_COST = 2000
+"""The fixed cost of one SGD step of a band (≈ 60 tensor operations), in (row, copy)
+evaluations: patrons of nearby batch sizes share a band while the padding costs less."""
+
+
+def _bands(size: Tensor, steps: Tensor, copies: Tensor) -> list[Tensor]:
+    """The patrons that take SGD steps, in bands of nearby batch sizes (padded to the band's
+    largest); each band sorted by steps, most first, so the patrons still stepping at any step
+    are a prefix. The bands minimise Σ steps·``_STEP_COST`` + padded (row, copy) evaluations."""
+    moving = torch.nonzero(steps > 0).flatten()
+    by_size: dict[int, list[int]] = {}
+    for patron, b in zip(moving.tolist(), size[moving].tolist(), strict=True):
+        by_size.setdefault(b, []).append(patron)
+    sizes = sorted(by_size)
+    n_steps, n_copies = steps.tolist(), copies.tolist()
+    most = [max(n_steps[p] for p in by_size[b]) for b in sizes]
+    total = [sum(n_steps[p] for p in by_size[b]) for b in sizes]
+    widest = [max(n_copies[p] for p in by_size[b]) for b in sizes]
+    # best[j]: (cost, start of the last band) of the first j sizes.
+    best = [(0.0, 0)]
+    for j in range(1, len(sizes) + 1):
+        options, band_steps, band_copies, band_total = [], 0, 0, 0
+        for i in range(j - 1, -1, -1):  # the last band holds sizes i..j-1
+            band_steps, band_copies = max(band_steps, most[i]), max(band_copies, widest[i])
+            band_total += total[i]
+            evaluations = sizes[j - 1] * band_copies * band_total
+            options.append((best[i][0] + band_steps * _STEP_COST + evaluations, i))
+        best.append(min(options))
+    bands = []
+    j = len(sizes)
+    while j > 0:
+        i = best[j][1]
+        members = torch.tensor([p for b in sizes[i:j] for p in by_size[b]])
+        bands.append(members[torch.argsort(steps[members], descending=True, stable=True)])
+        j = i
+    return bands
+
+
+def _tune_band(
+    batch: FSNBatch,
+    band: Tensor,
+    steps: Tensor,
+    theta: Tensor,
+    rate: Tensor,
+    x: Tensor,
+    dataset: Tensor,
+    draws: FineTuneDraws,
+) -> Tensor:
+    """SGD of the patrons ``band`` (sorted by ``steps``, most first) from their flat parameters
+    ``theta`` (updated in place and returned) with per-column learning rates ``rate``; patron p
+    learns from the rows ``x[dataset[p]]``."""
+    n, R = len(band), x.shape[-2]
+    _, E, _, all_copies, n_in = draws.normal.shape
+    size = batch.batch_size[band].clamp(max=R)
+    per_epoch = torch.div(R + size - 1, size, rounding_mode="floor")
+    B, D = int(size.max()), int(batch.copies[band].max())
+    # Each patron's shuffled rows, epoch after epoch; its step s takes batch s of them. The
+    # (step, patron, slot) tables: the row visited (its draw and its dataset row) and its
+    # weight, 1/rows in the batch (0 on the padding slots past the batch's last row).
+    S = int(steps[0])
+    step = torch.arange(S)[:, None, None]
+    epoch = torch.div(step, per_epoch[:, None], rounding_mode="floor")  # (S, n, 1)
+    start = (step - epoch * per_epoch[:, None]) * size[:, None]
+    count = torch.minimum(size[:, None], R - start)
+    slot = torch.arange(B)
+    position = epoch * R + start + torch.minimum(slot, count - 1)  # (S, n, B)
+    position = position.clamp(max=E * R - 1)  # past a patron's last step: never used
+    sequence = draws.order[band].reshape(n, 1, E * R).expand(n, S, E * R)
+    row = sequence.gather(2, position.transpose(0, 1)).transpose(0, 1)
+    visit = (band[:, None] * E + epoch) * R + row
+    at = dataset[band, None] * R + row
+    weight = (slot < count) / count.to(batch.dtype)
+    stepping = (steps > step[:, 0, 0, None]).sum(dim=1).tolist()  # patrons still stepping
+    normal = draws.normal.reshape(-1, all_copies, n_in)
+    scale = draws.scale[band, None, :D]
+    rows = x.to(batch.dtype).reshape(-1, n_in)
+    on = (torch.arange(D) < batch.copies[band, None]).to(batch.dtype)
+    copy_weight = on / on.sum(dim=1, keepdim=True)
+    numbers = _activation_table(batch, band)
+    groups = batch.activation_groups
+    for s, k in enumerate(stepping):
+        noise = normal.index_select(0, visit[s, :k].flatten()).view(k, B, all_copies, n_in)
+        data = rows.index_select(0, at[s, :k].flatten()).view(k, B, 1, n_in)
+        xe = torch.addcmul(data, noise[:, :, :D], scale[:k])
+        grad = _band_gradient(
+            groups,
+            theta[:k],
+            {name: value[:k] for name, value in numbers.items()},
+            xe,
+            copy_weight[:k],
+            weight[s, :k],
+        )
+        theta[:k] -= rate[:k] * grad
+    return theta
 
 
 def fine_tune(
-    batch: FSNBatch, x: Tensor, draws: FineTuneDraws, train: Tensor | None = None
+    batch: FSNBatch,
+    x: Tensor,
+    draws: FineTuneDraws,
+    train: Tensor | None = None,
+    dataset: Tensor | None = None,
 ) -> FSNBatch:
     """SRD fine-tuning of every patron at once (spec §5.5).
 
     Each patron has its own epochs, shuffles, batch size (last partial batch kept) and learning
-    rate. At step s every patron that still has a batch contributes the mean
-    CEL([T, F], argmax [T, F]) over that batch; the patrons' losses are summed and plain SGD
-    moves each patron's own parameters, θ_p ← θ_p − lr_p·∇θ_p (a patron without a batch at
-    step s has zero gradient). Patrons outside ``train`` (bool (P,)) keep their parameters; PFC
-    parameters move only where pfc.trainable. Only the (patron, row) pairs that exist are
-    computed: one step is one pass over the pairs of all patrons at that step, with the
+    rate. At each of its steps a patron takes the mean CEL([T, F], argmax [T, F]) over its
+    batch and plain SGD moves its own parameters, θ_p ← θ_p − lr_p·∇θ_p. Patrons outside
+    ``train`` (bool (P,)) keep their parameters; PFC parameters move only where
+    pfc.trainable. Patrons of nearby batch sizes step together: one step of a band is one
+    pass of small per-patron matrix products over their (row, copy) columns, with the
     gradient of ``self_reward``'s loss written out (autograd's bookkeeping would cost more
     than the arithmetic on these small tensors).
 
-    ``x`` is the item dataset, (R, 8) shared or (P, R, 8). Returns the updated batch.
+    ``x`` is the item dataset, (R, 8) shared or (P, R, 8), or several datasets (N, R, 8) with
+    ``dataset`` (P,) the one of each patron. Returns the updated batch.
     """
     P, R = batch.n_patrons, x.shape[-2]
+    if x.dim() == 2:
+        x, dataset = x[None], torch.zeros(P, dtype=torch.long)
+    elif dataset is None:
+        dataset = torch.arange(P)
     epochs = batch.epochs if train is None else torch.where(train, batch.epochs, 0)
     if P == 0 or int(epochs.max()) == 0:
         return batch
     size = batch.batch_size.clamp(max=R)
-    per_epoch = torch.div(R + size - 1, size, rounding_mode="floor")
-    # Every (patron, epoch, position in the shuffle) that is visited, with its step.
-    patron, epoch, position = torch.meshgrid(
-        torch.arange(P), torch.arange(draws.order.shape[1]), torch.arange(R), indexing="ij"
-    )
-    visited = epoch < epochs[:, None, None]
-    patron, epoch, position = patron[visited], epoch[visited], position[visited]
-    within = torch.div(position, size[patron], rounding_mode="floor")
-    step = epoch * per_epoch[patron] + within
-    rows_in_batch = torch.minimum(size[patron], R - within * size[patron])
-    by_step = torch.argsort(step, stable=True)
-    patron, epoch, position = patron[by_step], epoch[by_step], position[by_step]
-    row = draws.order[patron, epoch, position]
-    rows_x = (x[row] if x.dim() == 2 else x[patron, row]).to(batch.dtype)
-    n_copies = draws.noise.shape[3]
-    on = (torch.arange(n_copies)[:, None] < batch.copies[patron][None, :]).to(batch.dtype)
-    kind = batch.es_kind[patron].T[:, None]
-
-    def pair_numbers(values: Tensor) -> Tensor:  # (P, 4) → (4, 1, pairs)
-        return values[patron].T[:, None].contiguous()
-
-    everything = _Pairs(
-        xe=(rows_x[:, None] + draws.noise[patron, epoch, row]).permute(2, 1, 0).contiguous(),
-        kind=kind.contiguous(),
-        a=pair_numbers(batch.es_a),
-        c=pair_numbers(batch.es_c),
-        slope=pair_numbers(batch.es_slope),
-        epsilon=pair_numbers(batch.es_epsilon),
-        copy_weight=(on / on.sum(dim=0)).contiguous(),
-        weight=1.0 / rows_in_batch[by_step].to(batch.dtype),
-    )
-    bounds = [0, *torch.bincount(step).cumsum(0).tolist()]
+    steps = epochs * torch.div(R + size - 1, size, rounding_mode="floor")
     theta = _flat_parameters(batch)
     pfc_columns = torch.cat(
         [
@@ -782,19 +939,11 @@ def fine_tune(
         ]
     )
     frozen = pfc_columns[None, :] & ~batch.pfc_trainable[:, None]
-    lr = torch.where(frozen, 0.0, batch.learning_rate[:, None])
-    groups = batch.activation_groups
-    for start, stop in itertools.pairwise(bounds):
-        who = patron[start:stop]
-        part = _Pairs(
-            **{
-                f.name: getattr(everything, f.name)[..., start:stop]
-                for f in dataclasses.fields(everything)
-            }
+    rate = torch.where(frozen, 0.0, batch.learning_rate[:, None])
+    for band in _bands(size, steps, batch.copies):
+        theta[band] = _tune_band(
+            batch, band, steps[band], theta[band], rate[band], x, dataset, draws
         )
-        grad = _self_reward_gradient(groups, theta[who].T, part)
-        total = torch.zeros_like(theta).index_add_(0, who, grad.T)
-        theta = theta - lr * total
     return batch.with_parameters(_unflatten(batch, theta))
 
 
@@ -929,6 +1078,7 @@ __all__ = [
     "decide",
     "decision_logits",
     "draw_fine_tune",
+    "draw_fine_tune_blocks",
     "fine_tune",
     "from_manifests",
     "honest_manifest",

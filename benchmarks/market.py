@@ -10,7 +10,10 @@
    360 auctions (``srd auction-study --grid``), wall-clock.
 
 Targets: batched ≥ 50× the per-patron loop; the 360-auction grid in ≤ 30 s. One thread; other
-work on the machine makes the numbers noisy.
+work on the machine makes the numbers noisy: ratios are also given in CPU time. Every timed run
+starts after a garbage collection (so it does not pay for the garbage of the setup); the loop
+plays whole cycles of rarities; each lock-step batch is warmed up once on other auctions, then
+timed, then the loop replays its auctions (by default all of them; records checked equal).
 
 Run: ``.venv/bin/python benchmarks/market.py [--loop-auctions N] [--no-grid]``
 """
@@ -18,9 +21,11 @@ Run: ``.venv/bin/python benchmarks/market.py [--loop-auctions N] [--no-grid]``
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -28,20 +33,27 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.sim.test_market
 
+from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
-from sim.market import Market, MarketBatch, MarketConfig
+from sim.market import IterationRecord, Market, MarketBatch, MarketConfig
 from sim.studies import StudyConfig, run_study
 from tests.sim.test_market import loop_auction
 
 torch.set_num_threads(1)
 PATRONS = 64
 RARITIES = (0.1, 0.3, 0.5, 0.7, 0.9)
+WARM_UP = 10
+"""Auctions of the untimed lock-step run before each timed one."""
 
 
-def workload(n: int, fine_tune: bool, all_rows: bool) -> list[tuple[list, MarketConfig]]:
-    """n auctions of 64 honest patrons, rarities cycling through RARITIES."""
+Work = list[tuple[list[Manifest], MarketConfig]]
+
+
+def workload(n: int, fine_tune: bool, all_rows: bool, first: int = 0) -> Work:
+    """n auctions of 64 honest patrons (numbered from ``first``), rarities cycling through
+    RARITIES."""
     out = []
-    for k in range(n):
+    for k in range(first, first + n):
         rng = np.random.default_rng(1000 + k)
         manifests = [honest_manifest(rng, f"h{i}", fine_tune=fine_tune) for i in range(PATRONS)]
         rarity = RARITIES[k % len(RARITIES)]
@@ -52,54 +64,73 @@ def workload(n: int, fine_tune: bool, all_rows: bool) -> list[tuple[list, Market
     return out
 
 
-def rate(run, auctions) -> tuple[float, float, list]:
+Run = Callable[[list[Manifest], MarketConfig], list[IterationRecord]]
+
+
+def rate(run: Run, auctions: Work) -> tuple[float, float, list[list[IterationRecord]]]:
     """Auctions per second of wall-clock and of this process's CPU time, and the records."""
+    gc.collect()
     wall, cpu = time.perf_counter(), time.process_time()
     records = [run(m, c) for m, c in auctions]
     n = len(auctions)
     return n / (time.perf_counter() - wall), n / (time.process_time() - cpu), records
 
 
-def one_at_a_time(n_loop: int, n_batched: int) -> dict[bool, float]:
-    """Market alone vs the loop; returns the loop's auctions/s (decisive rows) per fine-tune."""
+def one_at_a_time(n_loop: int, n_batched: int) -> None:
+    """Market alone vs the loop."""
     print(f"one auction at a time, {PATRONS} patrons (auctions/s; wall-clock, then CPU time)")
     print(
         f"{'fine-tune':>9} {'rows':>9} {'batched':>9} {'loop':>9} {'ratio':>7} "
         f"{'cpu ratio':>9} {'iters':>6}"
     )
-    loop_rates: dict[bool, float] = {}
     for fine_tune in (False, True):
         for all_rows in (True, False):
             batched_work = workload(n_batched, fine_tune, all_rows)
             fast, fast_cpu, fast_records = rate(lambda m, c: list(Market(m, c).run()), batched_work)
             slow, slow_cpu, slow_records = rate(loop_auction, batched_work[:n_loop])
             assert slow_records == fast_records[:n_loop], "loop and batched auctions differ"
-            if not all_rows:
-                loop_rates[fine_tune] = slow
             iterations = np.mean([len(r) for r in fast_records])
             rows = "all" if all_rows else "decisive"
             print(
                 f"{fine_tune!s:>9} {rows:>9} {fast:9.2f} {slow:9.3f} {fast / slow:6.1f}× "
                 f"{fast_cpu / slow_cpu:8.1f}× {iterations:6.1f}"
             )
-    return loop_rates
 
 
-def lock_step(n: int, loop_rates: dict[bool, float]) -> None:
+def run_lock_step(work: Work) -> list[list[IterationRecord]]:
+    """Run the auctions in one MarketBatch; their records."""
+    engine = MarketBatch(work)
+    records: list[list[IterationRecord]] = [[] for _ in work]
+    while not engine.finished.all():
+        for mine, record in zip(records, engine.step(), strict=True):
+            if record is not None:
+                mine.append(record)
+    return records
+
+
+def lock_step(n: int, n_loop: int) -> None:
+    """MarketBatch on n auctions vs the loop replaying n_loop of them, spread over the batch
+    (every k-th, so the rarities stay balanced when n_loop divides n)."""
     print(
         f"\nlock-step MarketBatch (the study's engine), {n} auctions of {PATRONS} patrons, "
-        "decisive rows (auctions/s; ratio to the per-patron loop above)"
+        f"decisive rows, against the loop on {n_loop} of them "
+        "(auctions/s; ratios wall-clock and CPU)"
     )
     for fine_tune in (False, True):
+        run_lock_step(workload(WARM_UP, fine_tune, all_rows=False, first=n))
         work = workload(n, fine_tune, all_rows=False)
-        start = time.perf_counter()
-        engine = MarketBatch(work)
-        while not engine.finished.all():
-            engine.step()
-        speed = n / (time.perf_counter() - start)
-        loop = loop_rates[fine_tune]
-        ratio = speed / loop
-        print(f"  fine-tune {fine_tune!s:>5}: {speed:8.1f}   loop {loop:6.3f}   {ratio:6.1f}×")
+        gc.collect()
+        wall, cpu = time.perf_counter(), time.process_time()
+        records = run_lock_step(work)
+        speed = n / (time.perf_counter() - wall)
+        speed_cpu = n / (time.process_time() - cpu)
+        picked = list(range(0, n, max(1, n // n_loop)))[:n_loop]
+        loop, loop_cpu, loop_records = rate(loop_auction, [work[i] for i in picked])
+        assert loop_records == [records[i] for i in picked], "loop and lock-step auctions differ"
+        print(
+            f"  fine-tune {fine_tune!s:>5}: {speed:8.1f}   loop {loop:6.3f}   "
+            f"{speed / loop:6.1f}×   cpu {speed_cpu / loop_cpu:6.1f}×"
+        )
 
 
 def grid() -> None:
@@ -119,13 +150,22 @@ def grid() -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--loop-auctions", type=int, default=3, help="auctions for the loop")
+    parser.add_argument(
+        "--loop-auctions", type=int, default=len(RARITIES), help="auctions for the loop"
+    )
     parser.add_argument("--batched-auctions", type=int, default=15, help="auctions, batched")
     parser.add_argument("--lock-step", type=int, default=90, help="auctions per MarketBatch")
+    parser.add_argument(
+        "--lock-step-loop",
+        type=int,
+        default=None,
+        help="auctions of the MarketBatch that the loop replays (default all: the loop's time "
+        "per auction varies a lot, ±35%% over 10 of them)",
+    )
     parser.add_argument("--no-grid", action="store_true", help="skip the 360-auction grid")
     args = parser.parse_args()
-    loop_rates = one_at_a_time(args.loop_auctions, args.batched_auctions)
-    lock_step(args.lock_step, loop_rates)
+    one_at_a_time(args.loop_auctions, args.batched_auctions)
+    lock_step(args.lock_step, args.lock_step_loop or args.lock_step)
     if not args.no_grid:
         grid()
 

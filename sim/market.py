@@ -33,14 +33,14 @@ from typing import Any
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from agents.manifest import INPUTS, Manifest
 from agents.negotiator import (
     ACTIONS,
-    FineTuneDraws,
     FSNBatch,
     decide,
-    draw_fine_tune,
+    draw_fine_tune_blocks,
     fine_tune,
     from_manifests,
     noise_scale,
@@ -59,6 +59,9 @@ INITIAL_BUY_FRACTION = 0.5
 """f before any vote."""
 PRICE, BUY_FRACTION = INPUTS.index("price"), INPUTS.index("buy_fraction")
 STOP_REASONS = ("sold_out", "no_patrons", "stalemate", "max_iterations")
+EVALUATION_CHUNK = 32_000
+"""(patron, row, copy) evaluations per ``decide`` call: bigger tensors fall out of the cache
+(3–5× slower per evaluation at 1.8M)."""
 
 
 @dataclass(frozen=True)
@@ -210,19 +213,17 @@ def fine_tunes_after(config: MarketConfig, iteration: int) -> bool:
     return config.fine_tune and iteration < config.fine_tune_rounds
 
 
-def _pad_draws(draws: list[FineTuneDraws], n_copies: int) -> FineTuneDraws:
-    """Concatenate per-auction draws along patrons, padding epochs and copies."""
-    epochs = max(d.order.shape[1] for d in draws)
-    orders, noises = [], []
-    for d in draws:
-        P, E, R = d.order.shape
-        order = torch.arange(R).expand(P, epochs, R).clone()
-        order[:, :E] = d.order
-        noise = d.noise.new_zeros((P, epochs, R, n_copies, len(INPUTS)))
-        noise[:, :E, :, : d.noise.shape[3]] = d.noise
-        orders.append(order)
-        noises.append(noise)
-    return FineTuneDraws(order=torch.cat(orders), noise=torch.cat(noises))
+def _runs(work: list[int], limit: int) -> list[tuple[int, int]]:
+    """(first, last) of consecutive runs of items whose ``work`` adds up to at most ``limit``
+    (a run holds at least one item)."""
+    runs, first, total = [], 0, 0
+    for i, w in enumerate(work):
+        if i > first and total + w > limit:
+            runs.append((first, i))
+            first, total = i, 0
+        total += w
+    runs.append((first, len(work)))
+    return runs
 
 
 class MarketBatch:
@@ -268,6 +269,7 @@ class MarketBatch:
         self.rows = torch.tensor(rows, dtype=dtype)
         self.price = np.array([c.base_price for c in self.configs], dtype=np.float64)
         self.threshold = np.array([c.threshold_sell_price for c in self.configs], dtype=np.float64)
+        self.decrement = np.array([c.decrement for c in self.configs], dtype=np.float64)
         self.n_available = np.array([c.n_fish for c in self.configs], dtype=np.int64)
         self.iteration = np.zeros(A, dtype=np.int64)
         self.finished = np.zeros(A, dtype=bool)
@@ -286,14 +288,12 @@ class MarketBatch:
         running = ~self.finished
         if not running.any():
             raise RuntimeError("every auction has finished")
-        A, R = self.n_auctions, self.n_rows
+        A = self.n_auctions
         iteration = self.iteration.copy()
-        full = np.array(
-            [
-                running[a] and scores_all_rows(c, int(iteration[a]))
-                for a, c in enumerate(self.configs)
-            ]
-        )
+        iterations = iteration.tolist()
+        playing = np.flatnonzero(running).tolist()
+        full = np.zeros(A, dtype=bool)
+        full[[a for a in playing if scores_all_rows(self.configs[a], iterations[a])]] = True
         # 1. Evaluate: every active patron votes on the rows; only row 0 decides.
         voters = np.flatnonzero(self.active & running[self.owner])
         owner = self.owner[voters]
@@ -305,9 +305,12 @@ class MarketBatch:
         row_votes = np.bincount(
             ((owner[:, None] * 3) + decisions)[scored], minlength=3 * A
         ).reshape(A, 3)
+        voting = [a for a, _, _ in groups]
+        starts = np.array([start for _, start, _ in groups])
+        sizes = np.array([stop - start for _, start, stop in groups])
         buy_fraction = np.zeros((A, decisions.shape[1]))
-        for a, start, stop in groups:
-            buy_fraction[a] = (decisions[start:stop] == 0).mean(axis=0)
+        buys = np.add.reduceat((decisions == 0).astype(np.float64), starts, axis=0)
+        buy_fraction[voting] = buys / sizes[:, None]
 
         # 2. Price rules: high demand raises the price (and the stalemate threshold); low
         #    demand sells to every row-0 buyer at the current price and lowers it.
@@ -315,14 +318,13 @@ class MarketBatch:
         n_buy = votes[:, 0]
         high = running & (n_buy > self.n_available)
         low = running & ~high
-        decrement = np.array([c.decrement for c in self.configs])
-        new_price = np.where(low, start_price - decrement, start_price)
+        new_price = np.where(low, start_price - self.decrement, start_price)
         for a in np.flatnonzero(high).tolist():
             cfg = self.configs[a]
             new_price[a] = (
                 start_price[a] + cfg.increment - self.random[a].numpy.uniform(0, 4) * cfg.decrement
             )
-        self.threshold = np.where(high, start_price + decrement, self.threshold)
+        self.threshold = np.where(high, start_price + self.decrement, self.threshold)
         self.price = new_price
         bought = voters[(row0 == 0) & low[owner]]
         quitted = voters[row0 == 2]
@@ -333,54 +335,70 @@ class MarketBatch:
         # 3. The rows see the new price and this round's buy fractions.
         self.rows[:, :, PRICE] = torch.tensor(self.price, dtype=self.rows.dtype)[:, None]
         fractions = torch.tensor(buy_fraction, dtype=self.rows.dtype)
-        for a in np.flatnonzero(running).tolist():
-            width = R if full[a] else 1
-            self.rows[a, :width, BUY_FRACTION] = fractions[a, :width]
+        wide = torch.from_numpy(np.flatnonzero(full))
+        narrow = torch.from_numpy(np.flatnonzero(running & ~full))
+        self.rows[wide, :, BUY_FRACTION] = fractions[wide]
+        self.rows[narrow, 0, BUY_FRACTION] = fractions[narrow, 0]
 
         # 4. Stop conditions, then fine-tuning in the first rounds.
-        left = np.bincount(self.owner[self.active], minlength=A)
+        left = np.bincount(self.owner[self.active], minlength=A).tolist()
+        available, price, threshold = (
+            self.n_available.tolist(),
+            self.price.tolist(),
+            self.threshold.tolist(),
+        )
         reasons: list[str | None] = [None] * A
-        for a in np.flatnonzero(running).tolist():
-            if self.n_available[a] == 0:
+        for a in playing:
+            if available[a] == 0:
                 reasons[a] = "sold_out"
             elif left[a] == 0:
                 reasons[a] = "no_patrons"
-            elif self.price[a] < self.threshold[a]:
+            elif price[a] < threshold[a]:
                 reasons[a] = "stalemate"
-            elif iteration[a] + 1 >= self.configs[a].max_iterations:
+            elif iterations[a] + 1 >= self.configs[a].max_iterations:
                 reasons[a] = "max_iterations"
         self.iteration[running] += 1
-        self.finished |= np.array([r is not None for r in reasons])
-        for a, reason in enumerate(reasons):
-            if reason is not None:
-                self.stop_reason[a] = reason
-        tune = np.array(
+        for a in playing:
+            if reasons[a] is not None:
+                self.finished[a] = True
+                self.stop_reason[a] = reasons[a]
+        tune = np.zeros(A, dtype=bool)
+        tune[
             [
-                running[a] and reasons[a] is None and fine_tunes_after(c, int(iteration[a]))
-                for a, c in enumerate(self.configs)
+                a
+                for a in playing
+                if reasons[a] is None and fine_tunes_after(self.configs[a], iterations[a])
             ]
-        )
+        ] = True
         kept, reverted = self._fine_tune(tune)
 
         records: list[IterationRecord | None] = [None] * A
-        for a in np.flatnonzero(running).tolist():
-            price = float(start_price[a])
+        buyers, quitters = self._by_auction(bought), self._by_auction(quitted)
+        start_prices, start_availables = start_price.tolist(), start_available.tolist()
+        vote_counts, row_vote_counts = votes.tolist(), row_votes.tolist()
+        for a in playing:
             records[a] = IterationRecord(
-                iteration=int(iteration[a]),
-                price=price,
-                n_available=int(start_available[a]),
-                votes=dict(zip(ACTIONS, votes[a].tolist(), strict=True)),
-                row_votes=dict(zip(ACTIONS, row_votes[a].tolist(), strict=True)),
-                buyers=[(int(i), price) for i in self.local[bought[self.owner[bought] == a]]],
-                quitters=[int(i) for i in self.local[quitted[self.owner[quitted] == a]]],
-                next_price=float(self.price[a]),
-                n_available_after=int(self.n_available[a]),
-                finished=bool(self.finished[a]),
+                iteration=iterations[a],
+                price=start_prices[a],
+                n_available=start_availables[a],
+                votes=dict(zip(ACTIONS, vote_counts[a], strict=True)),
+                row_votes=dict(zip(ACTIONS, row_vote_counts[a], strict=True)),
+                buyers=[(i, start_prices[a]) for i in buyers[a]],
+                quitters=quitters[a],
+                next_price=price[a],
+                n_available_after=available[a],
+                finished=reasons[a] is not None,
                 stop_reason=reasons[a],
                 fine_tuned=kept.get(a, []),
                 reverted=reverted.get(a, []),
             )
         return records
+
+    def _by_auction(self, patrons: np.ndarray) -> list[list[int]]:
+        """The local indices of ``patrons`` (sorted), one list per auction."""
+        local = self.local[patrons].tolist()
+        cuts = np.searchsorted(self.owner[patrons], np.arange(self.n_auctions + 1)).tolist()
+        return [local[cuts[a] : cuts[a + 1]] for a in range(self.n_auctions)]
 
     def _groups(self, patrons: np.ndarray) -> list[tuple[int, int, int]]:
         """(auction, start, stop) of the runs of ``patrons`` (sorted) that share an auction."""
@@ -388,29 +406,67 @@ class MarketBatch:
         cuts = np.flatnonzero(np.diff(owner)) + 1
         starts = np.concatenate(([0], cuts))
         stops = np.concatenate((cuts, [len(patrons)]))
-        return [(int(owner[s]), int(s), int(e)) for s, e in zip(starts, stops, strict=True)]
+        return list(zip(owner[starts].tolist(), starts.tolist(), stops.tolist(), strict=True))
 
     def _evaluate(
         self, voters: np.ndarray, groups: list[tuple[int, int, int]], full: np.ndarray
     ) -> np.ndarray:
-        """Decisions (n_voters, R_scored) of the voters; each auction draws its own noise."""
+        """Decisions (n_voters, R_scored) of the voters; each auction draws its own noise.
+        Auctions are evaluated a few at a time, so that the tensors stay in the cache."""
         width = self.n_rows if full.any() else 1
-        n_copies = int(self.copies[voters].max())
-        noise = torch.zeros((len(voters), width, n_copies, len(INPUTS)), dtype=self.rows.dtype)
-        for a, start, stop in groups:
+        voting = self._voting(voters)
+        copies = self.copies[voters]
+        starts = np.array([start for _, start, _ in groups])
+        own_copies = np.maximum.reduceat(copies, starts).tolist()  # each auction's largest D
+        work = np.add.reduceat(copies, starts) * width
+        decisions = []
+        for first, last in _runs(work.tolist(), EVALUATION_CHUNK):
+            chunk = groups[first:last]
+            start, stop = chunk[0][1], chunk[-1][2]
+            n_copies = max(own_copies[first:last])
+            copies_of = own_copies[first:last]
+            normal = self._normals(chunk, copies_of, 1, lambda r: r.decisive)
+            if width > 1:
+                rest = self._normals(chunk, copies_of, width - 1, lambda r: r.rows, full)
+                normal = torch.cat((normal, rest), dim=1)
             mine = voters[start:stop]
-            copies = int(self.copies[mine].max())
-            scale = self.scale[mine, None, :copies]
-            first = standard_normal((len(mine), 1, copies), self.random[a].decisive)
-            noise[start:stop, :1, :copies] = first.to(noise.dtype) * scale
-            if full[a] and self.n_rows > 1:
-                rest = standard_normal((len(mine), self.n_rows - 1, copies), self.random[a].rows)
-                noise[start:stop, 1:, :copies] = rest.to(noise.dtype) * scale
-        x = self.rows[torch.from_numpy(self.owner[voters]), :width]
-        return decide(self._voting(voters), x, noise).numpy()
+            noise = normal * self.scale[torch.from_numpy(mine), None, :n_copies]  # float64
+            x = self.rows[torch.from_numpy(self.owner[mine]), :width]
+            decisions.append(decide(voting.select(slice(start, stop)), x, noise))
+        return torch.cat(decisions).numpy()
+
+    def _normals(
+        self,
+        chunk: list[tuple[int, int, int]],
+        copies: list[int],
+        n_rows: int,
+        stream: Callable[[AuctionRandom], torch.Generator],
+        drawn: np.ndarray | None = None,
+    ) -> Tensor:
+        """N(0, 1) draws (voters of ``chunk``, n_rows, D, 8): each auction draws its voters ×
+        n_rows × its own D (``copies``) from its ``stream`` generator in one go; zeros on
+        padded copies and for the auctions that ``drawn`` (bool per auction) leaves out."""
+        start, stop = chunk[0][1], chunk[-1][2]
+        n_copies = max(copies)
+        draws = [drawn is None or bool(drawn[a]) for a, _, _ in chunk]
+        whole = all(draws) and min(copies) == n_copies
+        shape = (stop - start, n_rows, n_copies, len(INPUTS))
+        normal = (torch.empty if whole else torch.zeros)(shape, dtype=torch.float32)
+        for (a, lo, hi), c, draw in zip(chunk, copies, draws, strict=True):
+            if not draw:
+                continue
+            into = normal[lo - start : hi - start]
+            generator = stream(self.random[a])
+            if c == n_copies:
+                standard_normal((hi - lo, n_rows, c), generator, out=into)
+            else:
+                into[:, :, :c] = standard_normal((hi - lo, n_rows, c), generator)
+        return normal
 
     def _voting(self, voters: np.ndarray) -> FSNBatch:
         """The sub-batch of the voters (kept while neither they nor the parameters change)."""
+        if len(voters) == self.batch.n_patrons:
+            return self.batch
         key = voters.tobytes()
         if self._voters is None or self._voters[0] != key:
             self._voters = (key, self.batch.select(voters))
@@ -421,17 +477,10 @@ class MarketBatch:
         patrons = np.flatnonzero(self.active & tune[self.owner])
         if len(patrons) == 0:
             return {}, {}
-        draws = []
-        for a, start, stop in self._groups(patrons):
-            draws.append(
-                draw_fine_tune(
-                    self.batch.select(patrons[start:stop]), self.n_rows, self.random[a].rows
-                )
-            )
         sub = self.batch.select(patrons)
-        tuned = fine_tune(
-            sub, self.rows[torch.from_numpy(self.owner[patrons])], _pad_draws(draws, sub.max_copies)
-        )
+        blocks = [(stop - start, self.random[a].rows) for a, start, stop in self._groups(patrons)]
+        draws = draw_fine_tune_blocks(sub, self.n_rows, blocks)
+        tuned = fine_tune(sub, self.rows, draws, dataset=torch.from_numpy(self.owner[patrons]))
         self._voters = None
         index = torch.from_numpy(patrons)
         for name, value in tuned.parameters().items():
@@ -439,16 +488,17 @@ class MarketBatch:
         moved = patrons[sub.epochs.numpy() > 0]
         kept: dict[int, list[int]] = {}
         reverted: dict[int, list[int]] = {}
-        for i in moved:
-            a = int(self.owner[i])
+        for i, a, local in zip(
+            moved.tolist(), self.owner[moved].tolist(), self.local[moved].tolist(), strict=True
+        ):
             check = self.rescreen[a]
-            if check is None or check(int(self.local[i]), to_manifest(self.batch, int(i))):
-                kept.setdefault(a, []).append(int(self.local[i]))
+            if check is None or check(local, to_manifest(self.batch, i)):
+                kept.setdefault(a, []).append(local)
                 if self.accepted is not None:
                     for name, value in self.batch.parameters().items():
                         self.accepted[name][i] = value[i]
             else:
-                reverted.setdefault(a, []).append(int(self.local[i]))
+                reverted.setdefault(a, []).append(local)
                 assert self.accepted is not None
                 for name, value in self.batch.parameters().items():
                     value[i] = self.accepted[name][i]

@@ -53,10 +53,9 @@ WARMUP_REQUESTS = 50
 TARGET_RPS = 300
 TARGET_P99_MS = 100
 KEEPER_POLL_S = 0.05
-# Open loop: with this many requests unanswered (the load's whole connection pool), a send that
-# falls due is counted as an error instead of queueing in the client, whose pool bookkeeping
-# would otherwise eat the CPU the server needs.
-MAX_IN_FLIGHT = 64
+# Open loop: with this many requests unanswered, a send that falls due is counted as an error
+# instead of being queued (the server is hopelessly behind; waiting requests cost memory).
+MAX_IN_FLIGHT = 2048
 
 
 @dataclass
@@ -284,16 +283,27 @@ def manifest_bodies(count: int, tag: str) -> Iterator[bytes]:
 
 
 class LoadClient:
-    """The load's own requests, sent through an httpx connection pool without the client
-    layer (cookies, redirects, auth, URL merging): the load generator shares the machine's
-    two cores with the server, so the less CPU it burns per request the more is measured of
-    the server. The keeper and the set-up use an ordinary ``httpx.AsyncClient``."""
+    """The load's own requests, over ``connections`` keep-alive connections.
+
+    Each connection is its own one-connection httpx transport (a "lane"); a request takes a
+    free lane, or waits for one. The load generator shares the machine's two cores with the
+    server, so it must burn little CPU per request: it skips the client layer (cookies,
+    redirects, auth, URL merging), and one pool of many connections would cost it time
+    quadratic in the number of connections and waiting requests (httpcore re-examines every
+    connection for every queued request). The keeper and the set-up use an ordinary
+    ``httpx.AsyncClient``."""
 
     def __init__(self, base_url: str, connections: int) -> None:
         self.base_url = base_url
-        self.transport = httpx.AsyncHTTPTransport(
-            limits=httpx.Limits(max_connections=connections, max_keepalive_connections=connections)
-        )
+        self.lanes = [
+            httpx.AsyncHTTPTransport(
+                limits=httpx.Limits(max_connections=1, max_keepalive_connections=1)
+            )
+            for _ in range(connections)
+        ]
+        self._free: asyncio.Queue[httpx.AsyncHTTPTransport] = asyncio.Queue()
+        for lane in self.lanes:
+            self._free.put_nowait(lane)
 
     async def send(
         self,
@@ -303,15 +313,20 @@ class LoadClient:
         headers: dict[str, str] | None = None,
     ) -> httpx.Response:
         request = httpx.Request(method, self.base_url + path, content=body, headers=headers)
-        response = await self.transport.handle_async_request(request)
+        lane = await self._free.get()
         try:
-            await response.aread()
+            response = await lane.handle_async_request(request)
+            try:
+                await response.aread()
+            finally:
+                await response.aclose()
         finally:
-            await response.aclose()
+            self._free.put_nowait(lane)
         return response
 
     async def aclose(self) -> None:
-        await self.transport.aclose()
+        for lane in self.lanes:
+            await lane.aclose()
 
 
 async def measure(server: ServerProcess, args: argparse.Namespace) -> list[PhaseResult]:

@@ -25,7 +25,7 @@ from server.routes import auctions, health, jobs, models
 from server.screening import ScreeningService
 from server.security import load_admin_token_hash
 from server.submissions import SubmissionWriter
-from server.workers import WorkerContext
+from server.workers import WorkerContext, freeze_heap
 
 log = logging.getLogger("srd.app")
 
@@ -128,6 +128,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         await run_in_threadpool(_start_services, app, settings)
+        freeze_heap()  # the imports and services live as long as the process
         try:
             yield
         finally:

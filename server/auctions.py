@@ -144,7 +144,9 @@ def _mark_failed(database: Database, auction_id: int, reason: str) -> None:
 
 
 def _drive(database: Database, auction_id: int) -> None:
-    with database.session(write=True) as session:
+    # Read and rebuild the market outside any write transaction (parsing the manifests and
+    # building the market take a while; on SQLite a write transaction holds the one write lock).
+    with database.session(write=False) as session:
         auction = session.scalars(
             select(Auction)
             .where(Auction.id == auction_id)
@@ -154,18 +156,32 @@ def _drive(database: Database, auction_id: int) -> None:
             return
         model_ids = [patron.model_id for patron in auction.patrons]
         manifests = _patron_manifests(session, auction.patrons)
-        market = _load_market(auction, manifests)
+    market = _load_market(auction, manifests)
+    with database.session(write=True) as session:
+        now = utcnow()
+        values: dict[str, object] = {"status": "running", "updated_at": now}
         if auction.status == "pending":
-            auction.status = "running"
-            auction.started_at = utcnow()
-        auction.updated_at = utcnow()
+            values["started_at"] = now
         if market.finished:  # nothing left to play (a market that ends before its first round)
-            auction.status, auction.finished_at = "finished", utcnow()
+            values.update(status="finished", finished_at=now)
+        claimed = session.execute(
+            update(Auction)
+            .where(
+                Auction.id == auction_id,
+                Auction.status == auction.status,
+                Auction.iteration == auction.iteration,
+            )
+            .values(**values)
+        )
+        if claimed.rowcount != 1:  # type: ignore[attr-defined]
+            log.warning("auction %d changed while it was being loaded; not driven", auction_id)
+            return
         session.commit()
     while not market.finished:
         record = market.step()
+        blob = market.checkpoint()
         with database.session(write=True) as session:
-            if not _commit_round(session, auction_id, record, market.checkpoint(), model_ids):
+            if not _commit_round(session, auction_id, record, blob, model_ids):
                 log.warning("auction %d advanced elsewhere; this runner stops", auction_id)
                 return
 

@@ -8,7 +8,9 @@ writers of one process queue on a lock first (see ``_SqliteWriters``).
 
 from __future__ import annotations
 
+import sqlite3
 import threading
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Annotated, Any
@@ -22,6 +24,7 @@ from sqlalchemy.orm import Session, sessionmaker
 MIGRATIONS_DIR = Path(__file__).parent / "migrations"
 _WRITE_OPTION = "srd_write"
 SQLITE_BUSY_TIMEOUT_MS = 30_000  # a writer waits this long for the lock before giving up
+LOCK_RETRY_S = 0.0005  # how often a writer retries BEGIN IMMEDIATE while another process writes
 
 
 def is_sqlite(url: str) -> bool:
@@ -37,6 +40,36 @@ def _sqlite_on_connect(dbapi_connection: Any, _record: Any) -> None:
     cursor.execute("PRAGMA foreign_keys=ON")
     cursor.execute(f"PRAGMA busy_timeout={SQLITE_BUSY_TIMEOUT_MS}")
     cursor.close()
+
+
+def _begin_immediate(raw: Any) -> None:
+    """``BEGIN IMMEDIATE`` on a sqlite3 connection, retried every ``LOCK_RETRY_S`` while
+    another process holds the write lock (up to the busy timeout).
+
+    SQLite's own busy handler sleeps 1, 2, 5, 10 ... then 100 ms at a time, so a writer that
+    meets a worker's short transaction could sleep far longer than the lock is held; polling
+    at half a millisecond keeps that wait close to the holder's transaction time.
+    """
+    deadline = time.monotonic() + SQLITE_BUSY_TIMEOUT_MS / 1000
+    raw.execute("PRAGMA busy_timeout=0")
+    try:
+        while True:
+            try:
+                raw.execute("BEGIN IMMEDIATE")
+                return
+            except sqlite3.OperationalError as exc:
+                if not _is_busy(exc) or time.monotonic() > deadline:
+                    raise
+            time.sleep(LOCK_RETRY_S)
+    finally:
+        raw.execute(f"PRAGMA busy_timeout={SQLITE_BUSY_TIMEOUT_MS}")
+
+
+def _is_busy(exc: sqlite3.OperationalError) -> bool:
+    code = getattr(exc, "sqlite_errorcode", None)
+    if isinstance(code, int):
+        return code & 0xFF == sqlite3.SQLITE_BUSY
+    return "locked" in str(exc) or "busy" in str(exc)
 
 
 class _SqliteWriters:
@@ -61,7 +94,7 @@ class _SqliteWriters:
         self._lock.acquire()
         connection.info[self._HELD] = True
         try:
-            connection.exec_driver_sql("BEGIN IMMEDIATE")
+            _begin_immediate(connection.connection.driver_connection)
         except BaseException:
             self.release(connection.info)
             raise

@@ -33,7 +33,7 @@ from multiprocessing.process import BaseProcess
 
 from agents.manifest import Manifest
 from screener import Verdict
-from server.workers import die_with_parent
+from server.workers import die_with_parent, freeze_heap
 
 log = logging.getLogger("srd.screening")
 
@@ -72,6 +72,7 @@ def _screening_main(conn: Connection, parent_pid: int) -> None:
     from screener import screen_many
 
     torch.set_num_threads(1)  # tiny tensors: threads only add overhead
+    freeze_heap()
     while True:
         try:
             batch = [conn.recv()]

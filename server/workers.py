@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import gc
 import logging
 import multiprocessing
 import os
@@ -85,6 +86,19 @@ def die_with_parent(parent_pid: int) -> None:
         os._exit(70)
 
 
+def freeze_heap() -> None:
+    """Exempt what the process has imported and built so far from garbage collection.
+
+    A process that imports torch, SQLAlchemy and pydantic holds a million or so container
+    objects that live as long as it does; every full collection would walk them all (over
+    100 ms here). In a worker that can happen inside a database transaction, holding SQLite's
+    write lock the whole time, and in the API it stalls every request in flight. Call it once
+    the imports are done; objects created afterwards are collected as usual.
+    """
+    gc.collect()
+    gc.freeze()
+
+
 def _worker_main(task: TaskFn, context: WorkerContext, conn: Connection, parent_pid: int) -> None:
     """A worker process: run each task id received, answer it when done, until the pipe ends."""
     die_with_parent(parent_pid)
@@ -94,6 +108,7 @@ def _worker_main(task: TaskFn, context: WorkerContext, conn: Connection, parent_
     import torch
 
     torch.set_num_threads(context.torch_threads)  # leave the other cores to the API
+    freeze_heap()
     while True:
         try:
             task_id = conn.recv()

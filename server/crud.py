@@ -11,7 +11,6 @@ from typing import Any
 from sqlalchemy import Row, bindparam, func, insert, select, update
 from sqlalchemy.orm import Session
 
-from screener import Verdict
 from server.models import (
     Auction,
     AuctionIteration,
@@ -23,7 +22,6 @@ from server.models import (
     Quit,
     utcnow,
 )
-from server.security import hash_token, new_token
 
 PARTICIPANT_TOKEN_PREFIX = "srdp"
 # iteration, price, n_available, votes, row_votes, next_price, n_available_after
@@ -87,68 +85,49 @@ class AuctionView:
 
 # The statements of POST /submit, built once and run on the session's connection (Core, not the
 # ORM's bulk-insert path: the hot path builds and tracks no objects)
-_PARTICIPANT_BY_NAME = (
+_PARTICIPANTS_BY_NAMES = (
     select(Participant.id, Participant.name, Participant.token_hash)
-    .where(Participant.name == bindparam("name"))
+    .where(Participant.name.in_(bindparam("names", expanding=True)))
+    .order_by(Participant.id)
     .with_for_update()
 )
-_INSERT_PARTICIPANT = insert(Participant).returning(Participant.id)
-_LATEST_VERSION = select(func.max(ModelVersion.version)).where(
-    ModelVersion.participant_id == bindparam("participant_id")
+_LATEST_VERSIONS = (
+    select(ModelVersion.participant_id, func.max(ModelVersion.version))
+    .where(ModelVersion.participant_id.in_(bindparam("ids", expanding=True)))
+    .group_by(ModelVersion.participant_id)
 )
-_INSERT_MODEL_VERSION = insert(ModelVersion).returning(ModelVersion.id)
+_INSERT_PARTICIPANTS = insert(Participant).returning(Participant.id, sort_by_parameter_order=True)
+_INSERT_MODEL_VERSIONS = insert(ModelVersion).returning(
+    ModelVersion.id, sort_by_parameter_order=True
+)
 
 
-def get_participant(session: Session, *, name: str) -> ParticipantRow | None:
-    """A participant by name, its row locked until commit (serialises its versions)."""
-    row = session.connection().execute(_PARTICIPANT_BY_NAME, {"name": name}).one_or_none()
-    return None if row is None else ParticipantRow(*row)
+def participants_by_names(session: Session, *, names: Sequence[str]) -> dict[str, ParticipantRow]:
+    """The participants among ``names``, their rows locked until commit (one query)."""
+    rows = session.connection().execute(_PARTICIPANTS_BY_NAMES, {"names": list(names)})
+    return {row.name: ParticipantRow(*row) for row in rows}
 
 
-def create_participant(session: Session, *, name: str) -> tuple[ParticipantRow, str]:
-    """A new participant and its token (the token is returned once and stored hashed)."""
-    token = new_token(PARTICIPANT_TOKEN_PREFIX)
-    token_hash = hash_token(token)
-    participant_id = (
-        session.connection()
-        .execute(
-            _INSERT_PARTICIPANT, {"name": name, "token_hash": token_hash, "created_at": utcnow()}
-        )
-        .scalar_one()
-    )
-    return ParticipantRow(participant_id, name, token_hash), token
+def latest_versions(session: Session, *, participant_ids: Sequence[int]) -> dict[int, int]:
+    """The newest version number of each of these participants (one query)."""
+    if not participant_ids:
+        return {}
+    rows = session.connection().execute(_LATEST_VERSIONS, {"ids": list(participant_ids)})
+    return {participant_id: version for participant_id, version in rows}
 
 
-def create_model_version(
-    session: Session,
-    *,
-    participant_id: int,
-    manifest: dict[str, Any],
-    verdict: Verdict,
-    first: bool = False,
-) -> tuple[int, int]:
-    """Store the next version of a participant's model with the screener's verdict; returns
-    (model id, version). ``first``: the participant was created in this transaction."""
-    latest = None
-    if not first:
-        latest = session.connection().scalar(_LATEST_VERSION, {"participant_id": participant_id})
-    version = (latest or 0) + 1
-    model_id = (
-        session.connection()
-        .execute(
-            _INSERT_MODEL_VERSION,
-            {
-                "participant_id": participant_id,
-                "version": version,
-                "manifest": manifest,
-                "accepted": verdict.accepted,
-                "reasons": [reason.to_dict() for reason in verdict.reasons],
-                "created_at": utcnow(),
-            },
-        )
-        .scalar_one()
-    )
-    return model_id, version
+def insert_participants(session: Session, *, rows: Sequence[dict[str, Any]]) -> list[int]:
+    """Insert participants (``name``, ``token_hash``, ``created_at``); their ids, in order."""
+    if not rows:
+        return []
+    return list(session.connection().execute(_INSERT_PARTICIPANTS, list(rows)).scalars())
+
+
+def insert_model_versions(session: Session, *, rows: Sequence[dict[str, Any]]) -> list[int]:
+    """Insert model versions (all columns but ``id``); their ids, in order."""
+    if not rows:
+        return []
+    return list(session.connection().execute(_INSERT_MODEL_VERSIONS, list(rows)).scalars())
 
 
 _MODEL_BY_ID = (

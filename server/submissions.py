@@ -1,14 +1,16 @@
 """The write path of ``POST /submit``: one writer thread that stores screened manifests in
 group commits.
 
-A submission needs three statements (participant lookup, participant insert, version insert)
-and a commit. Run from the thread pool, every request would pay a thread hop, a commit and,
-on SQLite, a turn at the single write lock. Here the route hands its screened manifest to
+A submission needs a participant lookup, its latest version, up to two inserts and a commit.
+Run from the thread pool, every request would pay a thread hop, those round trips, a commit
+and, on SQLite, a turn at the single write lock. Here the route hands its screened manifest to
 ``SubmissionWriter.store`` and awaits the answer on its event loop; one thread takes every
-submission that has queued up since its last pass (at most ``MAX_GROUP``), writes them in
-order in ONE transaction, commits once, and answers them all. Under no load a group is one
-submission, so nothing waits for a group to fill; under load the commits, lock turns and
-wake-ups are shared by the group.
+submission that has queued up since its last pass (at most ``MAX_GROUP``), decides them in
+order and writes them in ONE transaction: one locking query for the group's participants, one
+for their latest versions, one multi-row insert of new participants and one of model versions,
+then a single commit, and answers them all. Under no load a group is one submission, so
+nothing waits for a group to fill; under load the statements, commits, lock turns and wake-ups
+are shared by the group.
 
 Semantics are those of the submissions run one after another in arrival order: a
 participant created earlier in the group needs its token for a later version in the same
@@ -36,7 +38,8 @@ from sqlalchemy.orm import Session
 from screener import Verdict
 from server import crud
 from server.db import Database
-from server.security import token_matches
+from server.models import utcnow
+from server.security import hash_token, new_token, token_matches
 
 log = logging.getLogger("srd.submissions")
 
@@ -82,35 +85,83 @@ class _ConflictError(Exception):
     """A statement of the group hit a unique constraint."""
 
 
-def _store_one(session: Session, item: _Submission) -> Outcome:
-    """The statements of one submission inside the group's transaction."""
-    participant = crud.get_participant(session, name=item.participant)
-    token: str | None = None
-    if participant is None:
-        participant, token = crud.create_participant(session, name=item.participant)
-    elif item.bearer is None:
-        return Refused(
-            401,
-            f"participant {item.participant!r} exists: send its token as "
-            "'Authorization: Bearer <token>'",
-            ("header", "Authorization"),
-            "missing_token",
-        )
-    elif not token_matches(item.bearer, participant.token_hash):
-        return Refused(
-            403,
-            f"the bearer token is not the token of participant {item.participant!r}",
-            ("header", "Authorization"),
-            "bad_token",
-        )
-    model_id, version = crud.create_model_version(
-        session,
-        participant_id=participant.id,
-        manifest=item.manifest,
-        verdict=item.verdict,
-        first=token is not None,
+@dataclass
+class _Known:
+    """A participant as the group sees it: stored (``id``) or registered earlier in the group."""
+
+    token_hash: str
+    next_version: int
+    id: int | None = None
+
+
+def _store_group(session: Session, group: list[_Submission]) -> list[Outcome]:
+    """Every submission of the group, decided in arrival order, then written with one query
+    and two multi-row inserts, whatever the group's size."""
+    existing = crud.participants_by_names(
+        session, names=list(dict.fromkeys(item.participant for item in group))
     )
-    return Stored(model_id, participant.name, version, token)
+    latest = crud.latest_versions(session, participant_ids=[p.id for p in existing.values()])
+    known = {
+        name: _Known(row.token_hash, latest.get(row.id, 0) + 1, row.id)
+        for name, row in existing.items()
+    }
+    now = utcnow()
+    new_participants: list[dict[str, Any]] = []
+    versions: list[tuple[int, str, int, str | None]] = []  # group index, name, version, token
+    outcomes: list[Outcome | None] = []
+    for index, item in enumerate(group):
+        participant = known.get(item.participant)
+        token: str | None = None
+        if participant is None:
+            token = new_token(crud.PARTICIPANT_TOKEN_PREFIX)
+            participant = known[item.participant] = _Known(hash_token(token), 1)
+            new_participants.append(
+                {"name": item.participant, "token_hash": participant.token_hash, "created_at": now}
+            )
+        elif item.bearer is None:
+            outcomes.append(
+                Refused(
+                    401,
+                    f"participant {item.participant!r} exists: send its token as "
+                    "'Authorization: Bearer <token>'",
+                    ("header", "Authorization"),
+                    "missing_token",
+                )
+            )
+            continue
+        elif not token_matches(item.bearer, participant.token_hash):
+            outcomes.append(
+                Refused(
+                    403,
+                    f"the bearer token is not the token of participant {item.participant!r}",
+                    ("header", "Authorization"),
+                    "bad_token",
+                )
+            )
+            continue
+        versions.append((index, item.participant, participant.next_version, token))
+        participant.next_version += 1
+        outcomes.append(None)  # stored: filled in below
+    new_ids = crud.insert_participants(session, rows=new_participants)
+    for row, participant_id in zip(new_participants, new_ids, strict=True):
+        known[row["name"]].id = participant_id
+    model_ids = crud.insert_model_versions(
+        session,
+        rows=[
+            {
+                "participant_id": known[name].id,
+                "version": version,
+                "manifest": group[index].manifest,
+                "accepted": group[index].verdict.accepted,
+                "reasons": [reason.to_dict() for reason in group[index].verdict.reasons],
+                "created_at": now,
+            }
+            for index, name, version, _ in versions
+        ],
+    )
+    for (index, name, version, token), model_id in zip(versions, model_ids, strict=True):
+        outcomes[index] = Stored(model_id, name, version, token)
+    return [outcome for outcome in outcomes if outcome is not None]
 
 
 def _conflict(item: _Submission) -> Refused:
@@ -197,7 +248,7 @@ class SubmissionWriter:
     def _transaction(self, group: list[_Submission]) -> list[Outcome]:
         try:
             with self._database.session(write=True) as session:
-                outcomes = [_store_one(session, item) for item in group]
+                outcomes = _store_group(session, group)
                 session.commit()
         except IntegrityError as exc:
             raise _ConflictError from exc

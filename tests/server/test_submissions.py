@@ -13,7 +13,7 @@ from sqlalchemy import func, select
 from screener import Reason, Verdict
 from server import crud, submissions
 from server.db import Database, upgrade_schema
-from server.models import ModelVersion, Participant
+from server.models import ModelVersion, Participant, utcnow
 from server.submissions import Outcome, Refused, Stored, SubmissionWriter
 from tests.server.conftest import honest, unique
 
@@ -108,14 +108,16 @@ def test_a_unique_violation_refuses_only_the_submission_at_fault(
     back and replayed one by one, and only that submission is answered 409."""
     taken, before, after = unique("taken"), unique("before"), unique("after")
     with database.session(write=True) as session:
-        crud.create_participant(session, name=taken)
+        crud.insert_participants(
+            session, rows=[{"name": taken, "token_hash": "0" * 64, "created_at": utcnow()}]
+        )
         session.commit()
-    real_lookup = crud.get_participant
+    real_lookup = crud.participants_by_names
 
-    def blind_lookup(session: Any, *, name: str) -> crud.ParticipantRow | None:
-        return None if name == taken else real_lookup(session, name=name)
+    def blind_lookup(session: Any, *, names: list[str]) -> dict[str, crud.ParticipantRow]:
+        return {n: p for n, p in real_lookup(session, names=names).items() if n != taken}
 
-    monkeypatch.setattr(submissions.crud, "get_participant", blind_lookup)
+    monkeypatch.setattr(submissions.crud, "participants_by_names", blind_lookup)
     writer = SubmissionWriter(database)
     outcomes = asyncio.run(
         _one_group(

@@ -525,7 +525,10 @@ class MarketBatch:
             "stop_reason": list(self.stop_reason),
             "active": torch.from_numpy(self.active.copy()),
             "rows": self.rows.clone(),
-            "parameters": {k: v.clone() for k, v in self.batch.parameters().items()},
+            # parameters move only by fine-tuning; otherwise they are the manifests' own
+            "parameters": {k: v.clone() for k, v in self.batch.parameters().items()}
+            if any(c.fine_tune for c in self.configs)
+            else None,
             "accepted": None
             if self.accepted is None
             else {k: v.clone() for k, v in self.accepted.items()},
@@ -544,9 +547,10 @@ class MarketBatch:
         self.stop_reason = list(state["stop_reason"])
         self.active = state["active"].numpy().copy()
         self.rows = state["rows"].to(self.rows.dtype).clone()
-        self.batch = self.batch.with_parameters(
-            {k: v.clone() for k, v in state["parameters"].items()}
-        )
+        if state["parameters"] is not None:
+            self.batch = self.batch.with_parameters(
+                {k: v.clone() for k, v in state["parameters"].items()}
+            )
         self._voters = None
         if state["accepted"] is not None:
             self.accepted = {k: v.clone() for k, v in state["accepted"].items()}

@@ -19,6 +19,7 @@ from alembic import command
 from alembic.config import Config
 from fastapi import Depends, Request
 from sqlalchemy import Connection, Engine, create_engine, event
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
 MIGRATIONS_DIR = Path(__file__).parent / "migrations"
@@ -95,6 +96,9 @@ class _SqliteWriters:
         connection.info[self._HELD] = True
         try:
             _begin_immediate(connection.connection.driver_connection)
+        except sqlite3.OperationalError as exc:  # as SQLAlchemy reports any statement's failure
+            self.release(connection.info)
+            raise OperationalError("BEGIN IMMEDIATE", None, exc) from exc
         except BaseException:
             self.release(connection.info)
             raise

@@ -3,7 +3,10 @@ mode with foreign keys, the admin token is generated once into a 0600 file."""
 
 from __future__ import annotations
 
+import sqlite3
 import stat
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -11,11 +14,12 @@ from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from fastapi.testclient import TestClient
 from sqlalchemy import insert, text
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import IntegrityError, OperationalError
 
+from server import db as db_module
 from server.app import create_app
 from server.config import Settings
-from server.db import Database, upgrade_schema
+from server.db import SQLITE_BUSY_TIMEOUT_MS, Database, upgrade_schema
 from server.models import Base, ModelVersion, utcnow
 from tests.server.conftest import make_settings
 
@@ -83,3 +87,47 @@ def test_settings_come_from_srd_environment(monkeypatch: pytest.MonkeyPatch) -> 
     assert settings.admin_token is not None
     assert settings.admin_token.get_secret_value() == "from-env"
     assert "from-env" not in repr(settings)
+
+
+def test_a_sqlite_writer_waits_for_another_process_lock_and_then_writes(tmp_path: Path) -> None:
+    """Another connection (as another process would) holds the write lock for a while: our
+    write session waits for it, by polling, not failing, and writes once it is released."""
+    url = f"sqlite:///{tmp_path / 'srd.db'}"
+    upgrade_schema(url)
+    database = Database(url)
+    other = sqlite3.connect(tmp_path / "srd.db", isolation_level=None, check_same_thread=False)
+    other.execute("BEGIN IMMEDIATE")
+    hold_s = 0.3
+    release = threading.Timer(hold_s, other.execute, args=("COMMIT",))
+    release.start()
+    began = time.perf_counter()
+    with database.session(write=True) as session:
+        session.execute(text("PRAGMA user_version = 7"))  # any write
+        session.commit()
+    waited = time.perf_counter() - began
+    release.join()
+    other.close()
+    with database.session(write=False) as session:
+        assert session.execute(text("PRAGMA user_version")).scalar() == 7
+        # the busy timeout is restored for every later statement on the connection
+        assert session.execute(text("PRAGMA busy_timeout")).scalar() == SQLITE_BUSY_TIMEOUT_MS
+    database.close()
+    assert hold_s * 0.9 <= waited < hold_s + 5, waited
+
+
+def test_a_sqlite_writer_gives_up_after_the_busy_timeout(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    url = f"sqlite:///{tmp_path / 'srd.db'}"
+    upgrade_schema(url)
+    monkeypatch.setattr(db_module, "SQLITE_BUSY_TIMEOUT_MS", 200)
+    database = Database(url)
+    other = sqlite3.connect(tmp_path / "srd.db", isolation_level=None)
+    other.execute("BEGIN IMMEDIATE")
+    try:
+        with pytest.raises(OperationalError, match="locked"), database.session(write=True) as s:
+            s.execute(text("PRAGMA user_version = 8"))
+    finally:
+        other.execute("ROLLBACK")
+        other.close()
+        database.close()

@@ -103,7 +103,7 @@ def _judge(
 
 
 class ScreeningService:
-    """``judge(manifest)`` from any thread; the screening itself runs in a child process."""
+    """``await verdict(manifest)`` from any event loop; the screening runs in a child process."""
 
     def __init__(self) -> None:
         self._spawn = multiprocessing.get_context("spawn")
@@ -144,6 +144,8 @@ class ScreeningService:
                 self._conn = None
                 stopping = self._stopping
             for future in failed.values():
+                if not future.set_running_or_notify_cancel():
+                    continue
                 future.set_exception(
                     ScreenerUnavailableError("the screening process exited; retry")
                 )
@@ -168,26 +170,16 @@ class ScreeningService:
                 raise ScreenerUnavailableError(f"the screening process is gone: {exc}") from exc
         return request_id, future
 
-    def _timed_out(self, request_id: int) -> ScreenerUnavailableError:
-        with self._lock:
-            self._pending.pop(request_id, None)
-        return ScreenerUnavailableError("the screener did not answer in time")
-
-    def judge(self, manifest: Manifest) -> Verdict:
-        """The screener's verdict on one manifest (blocks the calling thread)."""
-        request_id, future = self._ask(manifest)
-        try:
-            return future.result(timeout=VERDICT_TIMEOUT_S)
-        except TimeoutError as exc:
-            raise self._timed_out(request_id) from exc
-
     async def verdict(self, manifest: Manifest) -> Verdict:
-        """The screener's verdict on one manifest, awaited on the caller's event loop."""
+        """The screener's verdict on one manifest, awaited on the caller's event loop (no thread
+        waits for it)."""
         request_id, future = self._ask(manifest)
         try:
             return await asyncio.wait_for(asyncio.wrap_future(future), VERDICT_TIMEOUT_S)
         except TimeoutError as exc:
-            raise self._timed_out(request_id) from exc
+            with self._lock:
+                self._pending.pop(request_id, None)
+            raise ScreenerUnavailableError("the screener did not answer in time") from exc
 
     def _read(self, conn: Connection) -> None:
         """Hand each answer to its waiting request until the pipe closes."""
@@ -199,7 +191,8 @@ class ScreeningService:
             with self._lock:
                 resolved = [(self._pending.pop(i, None), verdict) for i, verdict in answers]
             for future, verdict in resolved:
-                if future is None:  # its caller gave up waiting
+                # None or cancelled: its caller gave up waiting (timed out, or went away)
+                if future is None or not future.set_running_or_notify_cancel():
                     continue
                 if isinstance(verdict, Verdict):
                     future.set_result(verdict)

@@ -79,8 +79,8 @@ class _SqliteWriters:
     SQLite's busy handler sleeps in growing steps (up to 100 ms) while it waits for the write
     lock, so many threads writing at once would mostly sleep. Here a write transaction takes a
     process-wide lock just before ``BEGIN IMMEDIATE`` and gives it back when its connection
-    returns to the pool (after COMMIT or ROLLBACK). Other processes (the workers) still meet in
-    SQLite's own lock; they write briefly and rarely.
+    returns to the pool (after COMMIT or ROLLBACK). Against other processes (the workers) it
+    polls SQLite's lock (``_begin_immediate``); they write briefly and rarely.
     """
 
     _HELD = "srd_write_lock"

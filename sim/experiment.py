@@ -8,6 +8,7 @@ callers of that function.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
 import random
@@ -46,6 +47,30 @@ def write_json(path: Path, obj: Any) -> None:
     """Write ``obj`` as indented JSON (creating parent folders)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(obj, indent=2, sort_keys=False) + "\n")
+
+
+def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> str:
+    """Write ``rows`` (dicts sharing their keys) as CSV with a header line, ``\\n`` line ends and
+    empty cells for None; returns the file name. The one CSV writer of every experiment."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(
+            handle, fieldnames=list(rows[0]) if rows else [], lineterminator="\n"
+        )
+        writer.writeheader()
+        writer.writerows({k: "" if v is None else v for k, v in row.items()} for row in rows)
+    return path.name
+
+
+def pyplot() -> Any:
+    """matplotlib's pyplot on the file-only Agg backend, imported on first use (plots are the
+    only part of an experiment that needs matplotlib)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def split_csv(value: Any) -> Any:

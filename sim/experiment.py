@@ -1,24 +1,32 @@
-"""Plumbing shared by every experiment: seeding, output folders, progress reports, configs.
+"""Plumbing shared by every experiment: configs, output folders, progress reports, artifacts.
 
-Every experiment module exposes a config dataclass (one field per CLI option, each with a
-one-line docstring) and ``run(config, *, out_dir, progress) -> dict`` whose return value is the
-``--json`` object of the CLI and the ``result`` of a job. The CLI and the job backend are thin
-callers of that function.
+Every experiment module exposes a config dataclass (one field per option, each with a default,
+bounds where it takes a number, and a one-line docstring) and ``run(config, *, out_dir,
+progress) -> dict`` whose return value is the ``--json`` object of the CLI and the ``result`` of
+a job. The CLI options and the job parameters are both generated from the dataclass
+(``config_fields``, ``config_schema``) and validated by ``parse_config``; nothing restates them.
+
+This module imports neither torch nor numpy: the command line reads configs without them.
 """
 
 from __future__ import annotations
 
+import ast
 import csv
 import dataclasses
+import inspect
+import itertools
 import json
-import random
+import math
+import textwrap
 import time
+import types
+import typing
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
-import numpy as np
-import torch
 from pydantic import TypeAdapter, ValidationError
 
 ProgressFn = Callable[[float, str], None]
@@ -29,13 +37,6 @@ C = TypeVar("C")
 
 def no_progress(fraction: float, message: str) -> None:
     """A progress callback that ignores its reports."""
-
-
-def seed_everything(seed: int) -> None:
-    """Seed python, numpy and torch global RNGs (experiments also keep their own generators)."""
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)
 
 
 def default_out_dir(command: str, seed: int, root: str | Path = "runs") -> Path:
@@ -54,9 +55,8 @@ def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> str:
     empty cells for None; returns the file name. The one CSV writer of every experiment."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(
-            handle, fieldnames=list(rows[0]) if rows else [], lineterminator="\n"
-        )
+        fields = list(rows[0]) if rows else []
+        writer = csv.DictWriter(handle, fieldnames=fields, lineterminator="\n")
         writer.writeheader()
         writer.writerows({k: "" if v is None else v for k, v in row.items()} for row in rows)
     return path.name
@@ -73,11 +73,7 @@ def pyplot() -> Any:
     return plt
 
 
-def split_csv(value: Any) -> Any:
-    """Accept ``"0.1,0.5"`` as well as ``[0.1, 0.5]`` for multi-valued options."""
-    if isinstance(value, str):
-        return [part.strip() for part in value.split(",") if part.strip()]
-    return value
+# --- Configs ----------------------------------------------------------------------------------
 
 
 class ConfigError(ValueError):
@@ -88,31 +84,202 @@ class ConfigError(ValueError):
         super().__init__("; ".join(f"{e['field']}: {e['message']}" for e in errors))
 
 
-def parse_config(cls: type[C], params: dict[str, Any]) -> C:
-    """Build the config dataclass ``cls`` from JSON ``params`` (job API), validating each field.
+@dataclass(frozen=True)
+class ConfigField:
+    """One option of an experiment, as the CLI and the job API present it."""
 
-    Keys may use dashes or underscores (``train-maps`` or ``train_maps``); sequence fields also
-    accept comma-separated strings. Unknown keys are refused, naming the key.
+    name: str
+    """The field name (job parameter); the CLI option is ``--`` + name with dashes."""
+    kind: Literal["bool", "int", "float", "str", "choice", "list"]
+    """How the value is typed in: a flag, a number, a word, one of ``choices``, a CSV list."""
+    default: Any
+    help: str
+    """The field's docstring."""
+    choices: tuple[str, ...] = ()
+    item: Literal["int", "float", "str", "choice"] | None = None
+    """For lists: the type of each item."""
+    bounds: str = ""
+    """The allowed range in words, e.g. ``1 ≤ x ≤ 65536`` (empty when unbounded)."""
+    optional: bool = False
+    """None is allowed (and means 'the experiment decides', see ``help``)."""
+
+
+def _attribute_docs(cls: type) -> dict[str, str]:
+    """The docstrings written under the fields of ``cls`` and of its bases."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if klass is object or not dataclasses.is_dataclass(klass):
+            continue
+        tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
+        body = tree.body[0].body if isinstance(tree.body[0], ast.ClassDef) else []
+        for node, after in itertools.pairwise(body):
+            if (
+                isinstance(node, ast.AnnAssign)
+                and isinstance(node.target, ast.Name)
+                and isinstance(after, ast.Expr)
+                and isinstance(after.value, ast.Constant)
+                and isinstance(after.value.value, str)
+            ):
+                docs[node.target.id] = " ".join(after.value.value.split())
+    return docs
+
+
+def _constraints(metadata: Sequence[Any]) -> typing.Iterator[Any]:
+    """The single constraints of an ``Annotated`` hint's metadata (``Field`` holds several)."""
+    for constraint in metadata:
+        inner = getattr(constraint, "metadata", None)
+        if isinstance(inner, list):
+            yield from _constraints(inner)
+        else:
+            yield constraint
+
+
+def _bounds(metadata: Sequence[Any]) -> str:
+    """``Field(ge=..., le=...)`` constraints in words, e.g. ``≥ 1, ≤ 65536``."""
+    words = []
+    for constraint in _constraints(metadata):
+        for attr, sign in (("ge", "≥"), ("gt", ">"), ("le", "≤"), ("lt", "<")):
+            value = getattr(constraint, attr, None)
+            if value is not None:
+                words.append(f"{sign} {value if isinstance(value, int) else format(value, 'g')}")
+    return ", ".join(words)
+
+
+def _scalar(hint: Any) -> tuple[str, tuple[str, ...], str]:
+    """(kind, choices, bounds) of a non-list type hint."""
+    metadata: Sequence[Any] = ()
+    if typing.get_origin(hint) is typing.Annotated:
+        hint, *metadata = typing.get_args(hint)
+    if typing.get_origin(hint) is Literal:
+        return "choice", tuple(str(v) for v in typing.get_args(hint)), ""
+    for python_type, kind in ((bool, "bool"), (int, "int"), (float, "float"), (str, "str")):
+        if hint is python_type:
+            return kind, (), _bounds(metadata)
+    raise TypeError(f"config fields must be bool, int, float, str, Literal or tuples: {hint}")
+
+
+def config_fields(cls: type) -> tuple[ConfigField, ...]:
+    """The options of the config dataclass ``cls``, in field order."""
+    found = _FIELDS.get(cls)
+    if found is None:
+        found = _FIELDS[cls] = _read_fields(cls)
+    return found
+
+
+def _read_fields(cls: type) -> tuple[ConfigField, ...]:
+    hints = typing.get_type_hints(cls, include_extras=True)
+    docs = _attribute_docs(cls)
+    fields = []
+    for f in dataclasses.fields(cls):
+        hint, optional = hints[f.name], False
+        if typing.get_origin(hint) in (typing.Union, types.UnionType):
+            members = [a for a in typing.get_args(hint) if a is not type(None)]
+            hint, optional = members[0], True
+        item = None
+        if typing.get_origin(hint) in (tuple, list):
+            item_kind, choices, bounds = _scalar(typing.get_args(hint)[0])
+            kind, item = "list", item_kind
+        else:
+            kind, choices, bounds = _scalar(hint)
+        if f.name not in docs:
+            raise TypeError(f"{cls.__name__}.{f.name} has no docstring")
+        fields.append(
+            ConfigField(
+                name=f.name,
+                kind=kind,  # type: ignore[arg-type]
+                default=f.default,
+                help=docs[f.name],
+                choices=choices,
+                item=item,  # type: ignore[arg-type]
+                bounds=bounds,
+                optional=optional,
+            )
+        )
+    return tuple(fields)
+
+
+def _adapter(cls: type) -> TypeAdapter[Any]:
+    found = _ADAPTERS.get(cls)
+    if found is None:
+        found = _ADAPTERS[cls] = TypeAdapter(cls)
+    return found
+
+
+_FIELDS: dict[type, tuple[ConfigField, ...]] = {}
+_ADAPTERS: dict[type, TypeAdapter[Any]] = {}
+"""Per config class, read once."""
+
+
+def config_schema(cls: type) -> dict[str, Any]:
+    """The JSON Schema of the config's parameters (bounds included), each described by its
+    docstring, unknown keys refused: what ``POST /jobs`` publishes per kind."""
+    schema = _adapter(cls).json_schema()
+    for field in config_fields(cls):
+        schema["properties"][field.name]["description"] = field.help
+    schema["additionalProperties"] = False
+    schema["description"] = " ".join((cls.__doc__ or "").split())
+    return schema
+
+
+def _split_list(field: ConfigField, value: Any) -> Any:
+    """A comma-separated string for a list field ("0.1,0.5"): its items, each read as a JSON
+    number for numeric lists; any other value is left for the validator."""
+    if not isinstance(value, str):
+        return value
+    parts = [part.strip() for part in value.split(",") if part.strip()]
+    if field.item not in ("int", "float"):
+        return parts
+    items = []
+    for part in parts:
+        try:
+            items.append(json.loads(part))
+        except json.JSONDecodeError:
+            items.append(part)  # the validator names it
+    return items
+
+
+def _non_finite(value: Any, path: tuple[str | int, ...]) -> list[tuple[str | int, ...]]:
+    """Where NaN or ±inf hide in decoded JSON (Python's parser lets them through)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return [path]
+    if isinstance(value, dict):
+        return [p for key, item in value.items() for p in _non_finite(item, (*path, key))]
+    if isinstance(value, list | tuple):
+        return [p for i, item in enumerate(value) for p in _non_finite(item, (*path, i))]
+    return []
+
+
+def parse_config(cls: type[C], params: Any) -> C:
+    """Build the config dataclass ``cls`` from JSON-like ``params``, strictly.
+
+    Keys may use dashes or underscores (``train-maps`` or ``train_maps``); list fields also take
+    a comma-separated string. Values are checked as JSON would type them: a number must be a
+    number (not ``"3"``), a flag a boolean, integers integral; NaN and ±inf are refused; so are
+    unknown keys. Every problem is reported with the field it concerns.
     """
     if not isinstance(params, dict):
         raise ConfigError([{"field": "params", "message": "must be a JSON object"}])
-    names = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    fields = {f.name: f for f in config_fields(cls)}
     clean: dict[str, Any] = {}
     errors: list[dict[str, str]] = []
     for key, value in params.items():
-        name = key.replace("-", "_")
-        if name not in names:
-            errors.append({"field": key, "message": f"unknown option; known: {sorted(names)}"})
-            continue
-        origin = getattr(names[name].type, "__origin__", None)
-        is_seq = origin in (tuple, list, Sequence) or str(names[name].type).startswith(
-            ("tuple", "list")
+        name = str(key).replace("-", "_")
+        if name not in fields:
+            errors.append(
+                {"field": str(key), "message": f"unknown option; known: {sorted(fields)}"}
+            )
+        elif name in clean:
+            errors.append({"field": str(key), "message": "given twice (dashes and underscores)"})
+        else:
+            clean[name] = _split_list(fields[name], value) if fields[name].kind == "list" else value
+    for path in _non_finite(clean, ()):
+        errors.append(
+            {"field": ".".join(str(p) for p in path), "message": "must be a finite number"}
         )
-        clean[name] = split_csv(value) if is_seq else value
     if errors:
         raise ConfigError(errors)
     try:
-        return TypeAdapter(cls).validate_python(clean)
+        config: C = _adapter(cls).validate_json(json.dumps(clean), strict=True)
     except ValidationError as exc:
         raise ConfigError(
             [
@@ -120,6 +287,7 @@ def parse_config(cls: type[C], params: dict[str, Any]) -> C:
                 for err in exc.errors()
             ]
         ) from exc
+    return config
 
 
 def config_dict(config: Any) -> dict[str, Any]:

@@ -1,7 +1,8 @@
 """Experiment kinds by name: what the CLI commands and the job backend (``POST /jobs``) run.
 
-Each entry names a module, its config dataclass and its ``run`` function; modules are imported
-only when the kind is used, so a missing optional dependency fails that kind alone.
+Each entry names a module, its config dataclass and its ``run`` function, and what a person
+reads first in its result. Modules are imported only when the kind is used, so ``srd --help``
+lists the kinds without importing any simulation (nor torch).
 """
 
 from __future__ import annotations
@@ -15,43 +16,127 @@ from sim.experiment import ProgressFn, parse_config
 
 @dataclass(frozen=True)
 class ExperimentKind:
-    """Where the code of one experiment kind lives."""
+    """Where the code of one experiment kind lives, and how its result reads."""
 
     name: str
+    """The job kind and the CLI command."""
     module: str
     config: str
+    """The config dataclass in ``module``: the options of the command and of the job."""
     runner: str
+    """``run(config, *, out_dir, progress) -> dict`` in ``module``."""
+    summary: str
+    """One line for ``srd --help``: the first line of the config's docstring (a test checks)."""
+    headline: tuple[str, ...] = ()
+    """Result fields shown first by the command's human summary."""
+    table: str | None = None
+    """The result field holding a list of rows shown as a table, if any."""
+    columns: tuple[str, ...] = ()
+    """The columns of that table a person scans (those present in the rows)."""
+    command: bool = True
+    """Also an ``srd`` command (False: a job kind only)."""
 
     def load(self) -> tuple[type[Any], Any]:
         """The config class and the run function (imports the module)."""
         mod = importlib.import_module(self.module)
         return getattr(mod, self.config), getattr(mod, self.runner)
 
-    def available(self) -> bool:
-        """True when the module and its run function exist."""
-        try:
-            self.load()
-        except (ImportError, AttributeError):
-            return False
-        return True
+    def config_class(self) -> type[Any]:
+        """The config dataclass (imports the module)."""
+        return self.load()[0]
 
 
+AUCTION_COLUMNS = (
+    "setting",
+    "rarity",
+    "n_fish",
+    "mean_price",
+    "purchase_rate",
+    "buyer_fraction",
+    "revenue",
+    "refused",
+)
 KINDS: dict[str, ExperimentKind] = {
     k.name: k
     for k in (
-        ExperimentKind("fish", "sim.fish", "FishConfig", "run"),
-        ExperimentKind("lavaland", "sim.lavaland", "LavalandConfig", "run"),
-        ExperimentKind("cheetah", "sim.cheetah", "CheetahConfig", "run"),
-        ExperimentKind("auction-study", "sim.studies", "StudyConfig", "run_study"),
-        ExperimentKind("comparison", "sim.studies", "ComparisonConfig", "run_comparison"),
+        ExperimentKind(
+            "fish",
+            "sim.fish",
+            "FishConfig",
+            "run",
+            "Robot fish 1D: FishNN on the ring tape, with or without SRD training.",
+            headline=(
+                "steps",
+                "srd",
+                "died",
+                "meals",
+                "mean_energy_first_1000",
+                "mean_energy_last_1000",
+            ),
+        ),
+        ExperimentKind(
+            "lavaland",
+            "sim.lavaland",
+            "LavalandConfig",
+            "run",
+            "Robot2NN in lavaland: evaluate untrained, SRD-train one epoch, evaluate again.",
+            headline=(
+                "project",
+                "preset",
+                "eval_maps",
+                "train_maps",
+                "accuracy_untrained",
+                "accuracy_srd",
+                "lava_entered_untrained",
+                "lava_entered_srd",
+            ),
+            table="repeats",
+            columns=("repeat", "accuracy_untrained", "accuracy_srd", "lava_entered_srd"),
+        ),
+        ExperimentKind(
+            "cheetah",
+            "sim.cheetah",
+            "CheetahConfig",
+            "run",
+            "HalfCheetahSRD: the grid backswing × inhibitor × SRD (× learning rate) × trial.",
+            headline=("n_runs", "steps", "video"),
+            table="summary",
+            columns=(
+                "backswing",
+                "inhibitor",
+                "srd",
+                "lr",
+                "n",
+                "mean_final_displacement",
+                "sd_final_displacement",
+            ),
+        ),
+        ExperimentKind(
+            "auction-study",
+            "sim.studies",
+            "StudyConfig",
+            "run_study",
+            "Fish sale auctions without HTTP: purchase price and rate against item supply.",
+            headline=("auctions", "refused"),
+            table="rows",
+            columns=AUCTION_COLUMNS,
+        ),
+        ExperimentKind(
+            "comparison",
+            "sim.studies",
+            "ComparisonConfig",
+            "run_comparison",
+            "The honest vs malicious comparison: the same auctions honest, compromised, screened.",
+            headline=("auctions",),
+            command=False,
+        ),
     )
 }
 
 
 def build_config(kind: str, params: dict[str, Any]) -> Any:
     """Validate job ``params`` for ``kind`` into its config dataclass (raises ConfigError)."""
-    config_cls, _ = KINDS[kind].load()
-    return parse_config(config_cls, params)
+    return parse_config(KINDS[kind].config_class(), params)
 
 
 def run_kind(kind: str, config: Any, *, out_dir: Any, progress: ProgressFn) -> dict[str, Any]:

@@ -62,7 +62,9 @@ class AuctionOptions:
 
 @dataclass(frozen=True)
 class StudyConfig(AuctionOptions):
-    """``srd auction-study``: the price-vs-supply grid."""
+    """Fish sale auctions without HTTP: purchase price and rate against item supply.
+
+    The paper's Fig. C/D grid (``srd auction-study``)."""
 
     rarities: tuple[Rarity, ...] = PAPER_RARITIES
     """Item supplies r; fish on sale = int(r · patrons)."""

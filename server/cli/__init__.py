@@ -1,36 +1,56 @@
-"""The ``srd`` command line (typer). Each command lives in its own module of this package."""
+"""The ``srd`` command line.
+
+Every command is imported only when it runs, so ``srd --help`` answers without importing torch
+or any simulation: the experiment commands (one per kind of ``sim.registry``) are generated from
+their config dataclasses by ``server.cli.experiment``; ``serve``, ``screen`` and ``agents`` are
+written by hand in their own modules, each exposing ``command``.
+"""
 
 from __future__ import annotations
 
-import typer
+import importlib
 
-app = typer.Typer(
-    name="srd",
-    help="Self Reward Design: fish sale auction service, screener and the paper's experiments.",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
+import click
+
+from sim.registry import KINDS
+
+HELP = "Self Reward Design: fish sale auction service, screener and the paper's experiments."
+HAND_WRITTEN = {
+    "serve": ("server.cli.serve", "Run the HTTP API (uvicorn) on the configured database."),
+    "screen": ("server.cli.screen", "Screen one Fish Sale Negotiator manifest."),
+    "agents": ("server.cli.agents", "Run remote agents that submit and fine-tune over HTTP."),
+}
+"""Command name → (module exposing ``command``, one-line help)."""
 
 
-@app.callback()
-def _root() -> None:
-    """Self Reward Design: fish sale auction service, screener and the paper's experiments."""
+class _Commands(click.Group):
+    """A group whose commands are imported on first use; the listing needs no import."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        experiments = [name for name, kind in KINDS.items() if kind.command]
+        return [*HAND_WRITTEN, *experiments]
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name in HAND_WRITTEN:
+            command: click.Command = importlib.import_module(HAND_WRITTEN[cmd_name][0]).command
+            return command
+        kind = KINDS.get(cmd_name)
+        if kind is None or not kind.command:
+            return None
+        from server.cli.experiment import experiment_command
+
+        return experiment_command(kind)
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        rows = [(name, help_line) for name, (_, help_line) in HAND_WRITTEN.items()]
+        rows += [(name, kind.summary) for name, kind in KINDS.items() if kind.command]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
 
 
-def _register() -> None:
-    """Import the command modules; each adds its command(s) to ``app``."""
-    import importlib
-
-    for name in ("serve", "auction", "fish", "lavaland", "cheetah", "screen", "agents"):
-        try:
-            importlib.import_module(f"server.cli.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"server.cli.{name}":
-                raise
+cli = _Commands(name="srd", help=HELP, no_args_is_help=True)
 
 
 def main() -> None:
     """Console-script entry point."""
-    _register()
-    app()
+    cli()

@@ -7,38 +7,36 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import typer
+import click
 from rich.console import Console
 from rich.markup import escape
 
 from agents.manifest import ManifestError, parse_manifest_json
 from screener import screen as screen_manifest
-from server.cli import app
-from server.cli.common import JsonOption
 
 ACCEPTED, REJECTED, MALFORMED = 0, 1, 2
-"""Exit codes (INTERFACE.md)."""
-FileArgument = typer.Argument(..., help="The manifest (JSON) to screen.")
+"""Exit codes: accepted, rejected, unreadable or malformed."""
 
 
 def _emit(obj: dict[str, Any]) -> None:
     sys.stdout.write(json.dumps(obj) + "\n")
 
 
-def _malformed(errors: list[dict[str, str]], json_output: bool) -> typer.Exit:
+def _malformed(errors: list[dict[str, str]], json_output: bool) -> SystemExit:
     err = Console(stderr=True)
     for e in errors:
         err.print(f"[red]error:[/red] {escape(e['path'])}: {escape(e['message'])}", highlight=False)
     if json_output:
         _emit({"accepted": False, "reasons": [], "errors": errors})
-    return typer.Exit(code=MALFORMED)
+    return SystemExit(MALFORMED)
 
 
-@app.command()
-def screen(
-    file: Path = FileArgument,
-    json_output: bool = JsonOption,
-) -> None:
+@click.command("screen")
+@click.argument("file", type=click.Path(path_type=Path, dir_okay=False))
+@click.option(
+    "--json", "json_output", is_flag=True, help="Print exactly one JSON object on stdout."
+)
+def command(file: Path, json_output: bool) -> None:
     """Screen a Fish Sale Negotiator manifest: semantic rules on its named weights and
     behavioural probes. Exit 0 accepted, 1 rejected, 2 unreadable or malformed."""
     try:
@@ -59,4 +57,4 @@ def screen(
         out.print(f"{escape(manifest.participant)}: {word}")
         for reason in verdict.reasons:
             out.print(f"  [bold]{reason.neuron}[/bold] ({reason.rule}): {escape(reason.message)}")
-    raise typer.Exit(code=ACCEPTED if verdict.accepted else REJECTED)
+    raise SystemExit(ACCEPTED if verdict.accepted else REJECTED)

@@ -4,21 +4,28 @@ from __future__ import annotations
 
 import logging
 
-import typer
-import uvicorn
-
-from server.app import create_app
-from server.cli import app
-from server.config import get_settings
+import click
 
 
-@app.command()
-def serve(
-    host: str | None = typer.Option(None, help="Bind address (default SRD_HOST or 127.0.0.1)."),
-    port: int | None = typer.Option(None, help="Port (default SRD_PORT or 8000)."),
-    log_level: str = typer.Option("info", help="uvicorn log level."),
-) -> None:
+@click.command("serve")
+@click.option("--host", default=None, help="Bind address [default: SRD_HOST or 127.0.0.1].")
+@click.option(
+    "--port", type=click.IntRange(0, 65535), default=None, help="Port [default: SRD_PORT or 8000]."
+)
+@click.option(
+    "--log-level",
+    type=click.Choice(["critical", "error", "warning", "info", "debug"]),
+    default="info",
+    show_default=True,
+    help="uvicorn log level.",
+)
+def command(host: str | None, port: int | None, log_level: str) -> None:
     """Run the HTTP API; database from SRD_DATABASE_URL (default sqlite:///./srd.db)."""
+    import uvicorn
+
+    from server.app import create_app
+    from server.config import get_settings
+
     settings = get_settings()
     logging.basicConfig(level=log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
     uvicorn.run(

@@ -15,8 +15,7 @@ from sqlalchemy import func, select
 from agents.manifest import parse_manifest
 from screener import screen
 from server.config import Settings
-from server.models import Job, ModelVersion, Participant
-from sim.registry import KINDS, ExperimentKind
+from server.models import ModelVersion, Participant
 from tests.server.conftest import ADMIN, honest, saboteur, unique, wait_for
 
 WRONG = {"Authorization": "Bearer not-the-token"}
@@ -304,19 +303,6 @@ def test_create_job_bad_input(
     response = client.post("/jobs", json=body, headers=ADMIN)
     assert response.status_code == 422
     assert expected_loc in locs(response)
-
-
-def test_kind_not_built_yet_is_422_not_a_fake_result(
-    client: TestClient, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A kind whose module does not exist (yet) is refused, never faked."""
-    unbuilt = ExperimentKind("cheetah", "sim.not_built_yet", "CheetahConfig", "run")
-    monkeypatch.setitem(KINDS, "cheetah", unbuilt)
-    before = count(client, Job)
-    response = client.post("/jobs", json={"kind": "cheetah", "params": {}}, headers=ADMIN)
-    assert response.status_code == 422 and locs(response) == [["body", "kind"]]
-    assert response.json()["detail"][0]["msg"] == "job kind 'cheetah' is not available yet"
-    assert count(client, Job) == before
 
 
 def test_read_job_and_cancel_errors(client: TestClient) -> None:

@@ -46,14 +46,6 @@ def alive(pid: int) -> bool:
     return True
 
 
-@pytest.fixture(scope="module")
-def fish_available() -> None:
-    from sim.registry import KINDS
-
-    if not KINDS["fish"].available():
-        pytest.skip("sim.fish is not built")
-
-
 def assert_no_escape(client: TestClient, job_id: int, settings: Settings) -> None:
     """Only listed artifact names are served; nothing outside the job's folder."""
     (settings.data_dir / "secret.txt").write_text("top secret")
@@ -76,7 +68,7 @@ def assert_no_escape(client: TestClient, job_id: int, settings: Settings) -> Non
         assert b"top secret" not in response.content and b"root:" not in response.content
 
 
-def test_job_lifecycle(client: TestClient, settings: Settings, fish_available: None) -> None:
+def test_job_lifecycle(client: TestClient, settings: Settings) -> None:
     """Two workers. A long job is killed -9 mid-run (fails), a short one runs to the end, a third
     is cancelled while queued, a fourth is cancelled while running (its process ends)."""
     is_running = lambda j: j["status"] == "running"  # noqa: E731

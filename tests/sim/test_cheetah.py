@@ -275,37 +275,6 @@ def test_video_without_opengl_is_skipped_with_a_reason(tmp_path, monkeypatch):
     assert not (tmp_path / "x.gif").exists() and not (tmp_path / "x.npz").exists()
 
 
-def test_cli_json_smoke(tmp_path):
-    import typer
-    from click.testing import CliRunner
-
-    import server.cli.cheetah  # noqa: F401  (registers the command)
-    from server.cli import app
-
-    group = typer.main.get_group(app)  # ``srd`` as a group, as with every command installed
-
-    args = ["cheetah", "--backswing", "3,4", "--inhibitor", "2", "--srd", "on", "--trials", "2"]
-    args += ["--steps", "300", "--no-video", "--seed", "3", "--json", "--out", str(tmp_path)]
-    outcome = CliRunner().invoke(group, args)
-    assert outcome.exit_code == 0, outcome.output
-    (line,) = outcome.stdout.strip().splitlines()  # exactly one JSON object
-    result = json.loads(line)
-    assert [(r["backswing"], r["trial"]) for r in result["runs"]] == [
-        (3.0, 1),
-        (3.0, 2),
-        (4.0, 1),
-        (4.0, 2),
-    ]
-    assert {"backswing", "inhibitor", "srd", "trial", "final_displacement"} <= set(
-        result["runs"][0]
-    )
-    assert result["elapsed_s"] > 0
-    assert (tmp_path / "result.json").is_file()
-    bad = CliRunner().invoke(group, ["cheetah", "--srd", "sometimes", "--out", str(tmp_path)])
-    assert bad.exit_code == 2
-    assert "--srd" in bad.stderr
-
-
 @pytest.mark.slow
 def test_noisy_grid_reproduces_the_reference_figures(tmp_path):
     """140 trials: means within one trial SD of spec §12, backswing 4 fastest, i2 far slower."""

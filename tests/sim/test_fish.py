@@ -1,13 +1,9 @@
-"""Robot fish 1D: the ring-tape world, the SRD experiment and ``srd fish``."""
+"""Robot fish 1D: the ring-tape world and the SRD experiment."""
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
-import typer.main
-from click.testing import CliRunner
 from gymnasium.utils.env_checker import check_env
 
 from agents.fish_net import EAT, MOVE
@@ -190,7 +186,9 @@ def test_run_writes_artifacts_and_result(tmp_path) -> None:
 
 
 def test_config_ranges_are_enforced() -> None:
-    assert parse_config(FishConfig, {"steps": "50", "srd": False}) == FishConfig(50, False)
+    assert parse_config(FishConfig, {"steps": 50, "srd": False}) == FishConfig(50, False)
+    with pytest.raises(ConfigError, match="steps"):
+        parse_config(FishConfig, {"steps": "50"})  # a number must be a number
     with pytest.raises(ConfigError) as caught:
         parse_config(FishConfig, {"steps": 0})
     assert caught.value.errors[0]["field"] == "steps"
@@ -212,34 +210,3 @@ def test_full_12000_step_reproduction(tmp_path) -> None:
     assert srd["min_energy"] == pytest.approx(0.30) and not srd["died"]
     expected = [0.552, 0.612, 0.750, 0.799] + [0.875] * 8
     assert srd["mean_energy_per_1000"] == pytest.approx(expected, abs=2e-3)
-
-
-# --- the command line ------------------------------------------------------------------------
-
-
-def cli() -> typer.main.TyperGroup:
-    """``srd`` as a command group (as it is once several command modules are installed)."""
-    import server.cli.fish  # noqa: F401  (registers the command)
-    from server.cli import app
-
-    return typer.main.get_group(app)
-
-
-def test_cli_json_prints_exactly_one_object(tmp_path) -> None:
-    out = tmp_path / "run"
-    args = ["fish", "--steps", "120", "--no-srd", "--json", "--out", str(out)]
-    result = CliRunner().invoke(cli(), args)
-    assert result.exit_code == 0, result.output
-    lines = result.stdout.strip().splitlines()
-    assert len(lines) == 1
-    payload = json.loads(lines[0])
-    assert payload["steps"] == 120 and payload["srd"] is False and payload["died"] is False
-    assert payload["mean_energy_first_1000"] == pytest.approx(0.55, abs=0.02)
-    assert json.loads((out / "result.json").read_text()) == payload
-    assert {p.name for p in out.iterdir()} == {"energy.csv", "fish.png", "result.json"}
-
-
-def test_cli_rejects_bad_steps(tmp_path) -> None:
-    result = CliRunner().invoke(cli(), ["fish", "--steps", "0", "--out", str(tmp_path)])
-    assert result.exit_code == 2
-    assert "--steps" in result.stderr

@@ -9,8 +9,6 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-import typer
-from click.testing import CliRunner
 from gymnasium.utils.env_checker import check_env
 
 import sim.lavaland as lavaland
@@ -244,40 +242,6 @@ def test_no_training_leaves_srd_fields_null(tmp_path):
     result = run(LavalandConfig(eval_maps=32, train_maps=0), out_dir=tmp_path)
     assert result["accuracy_srd"] is None and result["lava_entered_srd"] is None
     assert result["n_plans"] == 4 and result["preset"] == "paper"
-
-
-def test_cli_json_prints_one_object(tmp_path):
-    import server.cli.lavaland  # noqa: F401  (registers the command)
-    from server.cli import app
-
-    group = typer.main.get_group(app)  # ``srd`` as a group, as with all commands installed
-    runner = CliRunner()
-    result = runner.invoke(
-        group,
-        [
-            "lavaland",
-            "--project",
-            "compare-A",
-            "--eval-maps",
-            "16",
-            "--train-maps",
-            "4",
-            "--seed",
-            "1",
-            "--out",
-            str(tmp_path),
-            "--json",
-        ],
-    )
-    assert result.exit_code == 0, result.output
-    lines = result.stdout.strip().splitlines()
-    assert len(lines) == 1
-    payload = json.loads(lines[0])
-    assert payload["project"] == "compare-A" and payload["eval_maps"] == 16
-    assert json.loads((tmp_path / "result.json").read_text()) == payload
-    bad = runner.invoke(group, ["lavaland", "--project", "B", "--out", str(tmp_path)])
-    assert bad.exit_code == 2
-    assert "--project" in bad.stderr
 
 
 def untrained(project: str, preset: str) -> tuple[float, float]:

@@ -1,13 +1,10 @@
 """The auction studies: tiny-budget runs, determinism, the same auctions across settings,
-screening that leaves exactly the honest auction, the CLI's one JSON object."""
+screening that leaves exactly the honest auction."""
 
 from __future__ import annotations
 
 import csv
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,8 +22,6 @@ from sim.studies import (
     study_settings,
 )
 
-ROOT = Path(__file__).resolve().parents[2]
-SRD = (sys.executable, "-c", "from server.cli import main; main()")
 TINY = {"rarities": (0.2, 0.8), "trials": 2, "patrons": 16, "seed": 3}
 
 
@@ -142,44 +137,3 @@ def test_comparison_holds_one_table_per_configuration(tmp_path):
     # Saboteurs drag the price to the base price once supply is ample.
     high = configs["compromised"]["rows"][1]
     assert high["mean_price"] is None or high["mean_price"] <= 5.0 + 1e-9
-
-
-def test_cli_prints_exactly_one_json_object(tmp_path):
-    out = subprocess.run(
-        [
-            *SRD,
-            "auction-study",
-            "--rarities",
-            "0.25,0.75",
-            "--trials",
-            "1",
-            "--patrons",
-            "8",
-            "--json",
-            "--out",
-            str(tmp_path),
-        ],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        check=True,
-        timeout=300,
-    )
-    result = json.loads(out.stdout)
-    assert out.stdout.strip().count("\n") == 0
-    assert {"rows", "auctions", "elapsed_s"} <= set(result)
-    assert [r["rarity"] for r in result["rows"]] == [0.25, 0.75]
-    assert {"rarity", "n_fish", "trials", "mean_price", "purchase_rate", "buyer_fraction"} <= set(
-        result["rows"][0]
-    )
-    assert (tmp_path / "result.json").exists()
-
-
-def test_cli_refuses_a_bad_option():
-    from typer.testing import CliRunner
-
-    from server.cli import _register, app
-
-    _register()
-    out = CliRunner().invoke(app, ["auction-study", "--saboteurs", "2", "--json"])
-    assert out.exit_code == 2 and "--saboteurs" in out.stderr and out.stdout == ""

@@ -1,0 +1,177 @@
+"""The experiment commands, generated from the config dataclasses (``sim.experiment``).
+
+Each config field becomes one option: ``--name-with-dashes``, its docstring as help, its default
+and bounds shown; flags are ``--x/--no-x``, lists are comma-separated. Every command also takes
+``--out DIR`` and ``--json``. The values are validated by ``sim.experiment.parse_config``, the
+same code that validates job parameters, so the CLI and ``POST /jobs`` agree on every option.
+
+Without ``--json`` the command prints a short summary (the kind's headline numbers, a table of
+its rows and the artifact folder) on stdout; with ``--json`` exactly one JSON object, the run's
+result plus ``out_dir``. Progress goes to stderr, as a bar on a terminal.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import click
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from sim.experiment import (
+    ConfigError,
+    ConfigField,
+    config_fields,
+    default_out_dir,
+    parse_config,
+    write_json,
+)
+from sim.registry import ExperimentKind
+
+INVALID = 2
+"""Exit code of an invalid option (as click's own usage errors)."""
+
+
+def _shown(value: Any) -> str:
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, tuple | list):
+        return ",".join(str(v) for v in value)
+    return str(value)
+
+
+def _option(field: ConfigField) -> click.Option:
+    flag = "--" + field.name.replace("_", "-")
+    detail = []
+    if field.bounds:
+        detail.append(field.bounds)
+    if field.kind == "list":
+        detail.append("comma-separated")
+    help_text = field.help + (f" [{'; '.join(detail)}]" if detail else "")
+    if field.kind == "bool":
+        return click.Option(
+            [f"{flag}/--no-{flag[2:]}", field.name],
+            default=field.default,
+            show_default=True,
+            help=help_text,
+        )
+    types: dict[str, click.ParamType[Any]] = {
+        "int": click.INT,
+        "float": click.FLOAT,
+        "str": click.STRING,
+    }
+    param_type: click.ParamType[Any] = (
+        click.Choice(field.choices)
+        if field.kind == "choice"
+        else types.get(field.kind, click.STRING)
+    )
+    default = None if field.default is None else _shown(field.default)
+    return click.Option(
+        [flag, field.name],
+        type=param_type,
+        default=default if field.kind == "list" else field.default,
+        show_default=default is not None,
+        help=help_text,
+    )
+
+
+def experiment_command(kind: ExperimentKind) -> click.Command:
+    """The ``srd <kind>`` command: one option per config field, plus ``--out`` and ``--json``."""
+    fields = config_fields(kind.config_class())
+    params: list[click.Parameter] = [_option(f) for f in fields]
+    params += [
+        click.Option(
+            ["--out", "out"],
+            type=click.Path(path_type=Path, file_okay=False),
+            default=None,
+            help="Artifacts folder [default: runs/<command>__<seed>__<time>/].",
+        ),
+        click.Option(
+            ["--json", "json_output"],
+            is_flag=True,
+            default=False,
+            help="Print exactly one JSON object on stdout.",
+        ),
+    ]
+
+    def callback(out: Path | None, json_output: bool, **values: Any) -> None:
+        options = {name: value for name, value in values.items() if value is not None}
+        execute(kind, options, out=out, json_output=json_output)
+
+    return click.Command(
+        kind.name, params=params, callback=callback, help=kind.config_class().__doc__
+    )
+
+
+def execute(
+    kind: ExperimentKind, options: dict[str, Any], *, out: Path | None, json_output: bool
+) -> dict[str, Any]:
+    """Validate the options, run the experiment with a progress bar, print its result."""
+    stderr = Console(stderr=True)
+    config_cls, runner = kind.load()
+    try:
+        config = parse_config(config_cls, options)
+    except ConfigError as exc:
+        for err in exc.errors:
+            name = err["field"].split(".")[0].replace("_", "-")
+            stderr.print(f"[red]error:[/red] --{name}: {escape(err['message'])}", highlight=False)
+        raise SystemExit(INVALID) from exc
+    out_dir = out or default_out_dir(kind.name, int(getattr(config, "seed", 0)))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.percentage:>3.0f}%"),
+        TimeElapsedColumn(),
+        TextColumn("{task.fields[message]}"),
+        console=stderr,
+        disable=not sys.stderr.isatty(),
+    ) as bar:
+        task = bar.add_task(kind.name, total=1.0, message="")
+
+        def progress(fraction: float, message: str) -> None:
+            bar.update(task, completed=min(max(fraction, 0.0), 1.0), message=message)
+
+        result: dict[str, Any] = runner(config, out_dir=out_dir, progress=progress)
+        progress(1.0, "done")
+    write_json(out_dir / "result.json", result)
+    if json_output:
+        sys.stdout.write(json.dumps({**result, "out_dir": str(out_dir)}) + "\n")
+    else:
+        width = None if sys.stdout.isatty() else 120  # logs and pipes get whole tables
+        print_summary(kind, result, out_dir, Console(highlight=False, width=width))
+    return result
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return "—"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def print_summary(
+    kind: ExperimentKind, result: dict[str, Any], out_dir: Path, out: Console
+) -> None:
+    """The headline numbers, the table of rows and the artifact folder, for a person."""
+    headline = Table(show_header=False, box=None, title=f"srd {kind.name}", title_justify="left")
+    for name in kind.headline:
+        if name in result and not isinstance(result[name], dict | list):
+            headline.add_row(name, escape(_cell(result[name])))
+    if "elapsed_s" in result:
+        headline.add_row("elapsed_s", _cell(result["elapsed_s"]))
+    out.print(headline)
+    rows = result.get(kind.table) if kind.table else None
+    if isinstance(rows, list) and rows and isinstance(rows[0], dict):
+        columns = [c for c in kind.columns if c in rows[0]]
+        table = Table(*columns)
+        for row in rows:
+            table.add_row(*(escape(_cell(row.get(c))) for c in columns))
+        out.print(table)
+    out.print(f"artifacts: {escape(str(out_dir))}")

@@ -1,0 +1,184 @@
+"""The ``srd`` command line: commands generated from the experiment configs, lazy imports,
+human and JSON output, option errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from agents.negotiator import honest_manifest, saboteur_manifest
+from server.cli import HAND_WRITTEN, cli
+from server.cli.experiment import experiment_command
+from sim.experiment import config_fields
+from sim.registry import KINDS
+
+SRD = (sys.executable, "-c", "from server.cli import main; main()")
+COMMANDS = [kind for kind in KINDS.values() if kind.command]
+
+
+def invoke(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*SRD, *args], capture_output=True, text=True, timeout=300)
+
+
+def test_help_lists_every_command_without_importing_torch() -> None:
+    probe = (
+        "import sys\nfrom click.testing import CliRunner\nfrom server.cli import cli\n"
+        "out = CliRunner().invoke(cli, ['--help']).output\n"
+        "print(out)\nprint('torch' in sys.modules, 'numpy' in sys.modules)"
+    )
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    for name in [*HAND_WRITTEN, *(k.name for k in COMMANDS)]:
+        assert f"  {name} " in done.stdout
+    assert done.stdout.strip().endswith("False False")
+    assert "comparison" not in done.stdout.split("Commands:")[1]  # a job kind only
+
+
+@pytest.mark.parametrize("kind", COMMANDS, ids=lambda k: k.name)
+def test_summary_is_the_config_docstring_and_every_field_is_an_option(kind) -> None:
+    config = kind.config_class()
+    assert (config.__doc__ or "").strip().splitlines()[0] == kind.summary
+    options = {opt for p in experiment_command(kind).params for opt in p.opts}
+    for field in config_fields(config):
+        assert f"--{field.name.replace('_', '-')}" in options
+        assert field.help  # every option explains itself
+    assert {"--out", "--json"} <= options
+
+
+def test_json_output_is_one_object_with_the_artifact_folder(tmp_path) -> None:
+    out = tmp_path / "fish"
+    result = CliRunner().invoke(
+        cli, ["fish", "--steps", "120", "--no-srd", "--json", "--out", str(out)]
+    )
+    assert result.exit_code == 0, result.output
+    lines = result.stdout.strip().splitlines()
+    assert len(lines) == 1
+    payload = json.loads(lines[0])
+    assert payload["out_dir"] == str(out)
+    assert payload["steps"] == 120 and payload["srd"] is False and payload["died"] is False
+    saved = json.loads((out / "result.json").read_text())
+    assert saved == {k: v for k, v in payload.items() if k != "out_dir"}
+    assert {p.name for p in out.iterdir()} == {"energy.csv", "fish.png", "result.json"}
+
+
+def test_human_output_is_a_short_summary_on_stdout(tmp_path) -> None:
+    out = tmp_path / "study"
+    args = ["auction-study", "--rarities", "0.25,0.75", "--trials", "1", "--patrons", "8"]
+    result = CliRunner().invoke(cli, [*args, "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    text = result.stdout
+    assert "srd auction-study" in text and f"artifacts: {out}" in text
+    assert "mean_price" in text and "0.25" in text and "0.75" in text
+    assert len(text.splitlines()) < 20
+    assert (out / "results.csv").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "option", "message"),
+    [
+        (["fish", "--steps", "0"], "--steps", "greater than or equal to 1"),
+        (["auction-study", "--saboteurs", "2"], "--saboteurs", "less than or equal to 1"),
+        (["auction-study", "--rarities", "0.1,x"], "--rarities", "valid number"),
+        (["fish", "--lr", "nan"], "--lr", "finite"),
+    ],
+)
+def test_bad_options_exit_2_naming_the_option(tmp_path, args, option, message) -> None:
+    result = CliRunner().invoke(cli, [*args, "--json", "--out", str(tmp_path / "x")])
+    assert result.exit_code == 2
+    assert option in result.stderr and message in result.stderr
+    assert result.stdout == ""
+
+
+def test_unknown_command_is_a_usage_error() -> None:
+    done = invoke("no-such-command")
+    assert done.returncode == 2 and "No such command" in done.stderr
+
+
+# --- srd screen FILE [--json]: exit 0 accepted, 1 rejected, 2 unreadable or malformed ---------
+
+
+def screen(*args: str):
+    return CliRunner().invoke(cli, ["screen", *args])
+
+
+def write(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(text)
+    return str(path)
+
+
+def test_screen_accepted_exits_0_with_one_json_object(tmp_path) -> None:
+    manifest = honest_manifest(np.random.default_rng(0), "alice")
+    outcome = screen(write(tmp_path, "a.json", manifest.model_dump_json()), "--json")
+    assert outcome.exit_code == 0, outcome.output
+    (line,) = outcome.stdout.strip().splitlines()
+    assert json.loads(line) == {"accepted": True, "reasons": []}
+
+
+def test_screen_rejected_exits_1_with_reasons(tmp_path) -> None:
+    manifest = saboteur_manifest(np.random.default_rng(0), "mallory")
+    path = write(tmp_path, "s.json", manifest.model_dump_json())
+    outcome = screen(path, "--json")
+    assert outcome.exit_code == 1
+    result = json.loads(outcome.stdout)
+    assert result["accepted"] is False and result["reasons"]
+    assert all(set(r) == {"rule", "neuron", "message"} for r in result["reasons"])
+    human = screen(path)
+    assert human.exit_code == 1
+    assert human.stdout.startswith("mallory: rejected")
+    first = result["reasons"][0]
+    assert f"{first['neuron']} ({first['rule']}): " in human.stdout
+
+
+def test_screen_non_finite_number_is_malformed_and_names_its_path(tmp_path) -> None:
+    data = json.loads(honest_manifest(np.random.default_rng(0), "nan").model_dump_json())
+    data["external_sensor"]["PG"]["weights"]["price"] = float("nan")
+    outcome = screen(write(tmp_path, "nan.json", json.dumps(data)), "--json")  # writes NaN
+    assert outcome.exit_code == 2
+    assert "external_sensor.PG.weights.price" in outcome.stderr
+    result = json.loads(outcome.stdout)
+    assert result["accepted"] is False and result["reasons"] == []
+    assert [e["path"] for e in result["errors"]] == ["external_sensor.PG.weights.price"]
+
+
+def test_screen_missing_fields_and_broken_json_are_malformed(tmp_path) -> None:
+    data = json.loads(honest_manifest(np.random.default_rng(0), "x").model_dump_json())
+    del data["decision"]["L"]
+    outcome = screen(write(tmp_path, "m.json", json.dumps(data)))
+    assert outcome.exit_code == 2
+    assert "decision.L: Field required" in outcome.stderr
+    broken = screen(write(tmp_path, "b.json", '{"participant": '))
+    assert broken.exit_code == 2
+    assert "$: Invalid JSON" in broken.stderr
+
+
+def test_screen_unreadable_file_exits_2(tmp_path) -> None:
+    outcome = screen(str(tmp_path / "missing.json"), "--json")
+    assert outcome.exit_code == 2
+    assert "cannot read" in json.loads(outcome.stdout)["errors"][0]["message"]
+
+
+# --- the other worlds' commands, at a tiny budget ------------------------------------------------
+
+
+def test_cheetah_and_lavaland_commands_run_and_refuse_bad_choices(tmp_path) -> None:
+    args = ["cheetah", "--backswing", "3,4", "--inhibitor", "2", "--srd", "on", "--trials", "2"]
+    args += ["--steps", "300", "--no-video", "--seed", "3", "--json"]
+    outcome = CliRunner().invoke(cli, [*args, "--out", str(tmp_path / "c")])
+    assert outcome.exit_code == 0, outcome.output
+    (line,) = outcome.stdout.strip().splitlines()
+    runs = json.loads(line)["runs"]
+    assert [(r["backswing"], r["trial"]) for r in runs] == [(3.0, 1), (3.0, 2), (4.0, 1), (4.0, 2)]
+    bad = CliRunner().invoke(cli, ["cheetah", "--srd", "sometimes", "--out", str(tmp_path)])
+    assert bad.exit_code == 2 and "--srd" in bad.stderr
+    args = ["lavaland", "--project", "compare-A", "--eval-maps", "16", "--train-maps", "4"]
+    outcome = CliRunner().invoke(cli, [*args, "--json", "--out", str(tmp_path / "l")])
+    assert outcome.exit_code == 0, outcome.output
+    result = json.loads(outcome.stdout)
+    assert result["project"] == "compare-A" and result["eval_maps"] == 16
+    assert 0 <= result["accuracy_untrained"] <= 1 and 0 <= result["accuracy_srd"] <= 1

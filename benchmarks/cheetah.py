@@ -27,13 +27,22 @@ import mujoco
 import numpy as np
 import torch
 
-import sim.cheetah as cheetah
 from agents.cheetah_net import HalfCheetahSRD
+from sim.cheetah import experiment
+from sim.cheetah.config import CheetahConfig
+from sim.cheetah.engine import HalfCheetahBatch
+from sim.cheetah.world import (
+    CONTROL_INTERVAL,
+    WARMUP_STEPS,
+    build_model,
+    inhibitor_active,
+    relative_pose,
+)
 
 torch.set_num_threads(1)
 
 
-class RecordingBatch(cheetah.HalfCheetahBatch):
+class RecordingBatch(HalfCheetahBatch):
     """The engine's batch, also remembering every chunk's controls for the replay."""
 
     chunks: ClassVar[list[tuple[np.ndarray, int]]] = []
@@ -51,7 +60,7 @@ class RecordingBatch(cheetah.HalfCheetahBatch):
 
 def bare_replay(chunks: list[tuple[np.ndarray, int]], n: int) -> tuple[float, float, int]:
     """Single-thread mj_step over the recorded controls, trial by trial: (wall s, CPU s, steps)."""
-    model = cheetah.build_model()
+    model = build_model()
     steps = 0
     start, cpu = time.perf_counter(), time.process_time()
     for trial in range(n):
@@ -65,7 +74,7 @@ def bare_replay(chunks: list[tuple[np.ndarray, int]], n: int) -> tuple[float, fl
 
 def python_loop(trials: int, steps: int) -> float:
     """The reference's structure: one trial at a time, mj_step and the network in Python."""
-    model = cheetah.build_model()
+    model = build_model()
     start = time.perf_counter()
     for _ in range(trials):
         data = mujoco.MjData(model)
@@ -73,9 +82,9 @@ def python_loop(trials: int, steps: int) -> float:
         for t in range(steps):
             mujoco.mj_step(model, data)
             pose = data.xpos[1:].copy()
-            if t > cheetah.WARMUP_STEPS and (t - cheetah.WARMUP_STEPS - 1) % 25 == 0:
-                u = torch.from_numpy(cheetah.relative_pose(pose)[None]).to(torch.float32)
-                inhibitor = torch.tensor([2.0 * cheetah.inhibitor_active(t)])
+            if t > WARMUP_STEPS and (t - WARMUP_STEPS - 1) % CONTROL_INTERVAL == 0:
+                u = torch.from_numpy(relative_pose(pose)[None]).to(torch.float32)
+                inhibitor = torch.tensor([2.0 * inhibitor_active(t)])
                 actions, _ = net.act(
                     u, inhibitor, srd=torch.tensor([True]), lr=torch.tensor([1e-4])
                 )
@@ -89,16 +98,15 @@ def main() -> None:
     parser.add_argument("--loop-trials", type=int, default=4)
     args = parser.parse_args()
 
-    config = cheetah.CheetahConfig(threads=args.threads, video=False)
-    original = cheetah.HalfCheetahBatch
-    cheetah.HalfCheetahBatch = RecordingBatch  # type: ignore[misc]
+    config = CheetahConfig(threads=args.threads, video=False)
+    experiment.HalfCheetahBatch = RecordingBatch  # type: ignore[misc]
     try:
         with tempfile.TemporaryDirectory() as out:
             start = time.perf_counter()
-            result = cheetah.run(config, out_dir=Path(out))
+            result = experiment.run(config, out_dir=Path(out))
             wall = time.perf_counter() - start
     finally:
-        cheetah.HalfCheetahBatch = original  # type: ignore[misc]
+        experiment.HalfCheetahBatch = HalfCheetahBatch  # type: ignore[misc]
     n, steps = result["n_runs"], result["steps"]
     engine_rate = n * steps / result["simulation_s"]
     # CPU seconds of the whole process (rollout threads + network + SRD) while the grid ran

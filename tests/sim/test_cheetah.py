@@ -1,30 +1,35 @@
-"""The half-cheetah experiment against spec cheetah.md: model, loops, grid, stages, CLI."""
+"""The half-cheetah package against the paper's reference: world, env, engine, grid, stages."""
 
 from __future__ import annotations
 
 import json
+import warnings
 
+import gymnasium as gym
 import mujoco
 import numpy as np
 import pytest
 import torch
+from gymnasium.utils.env_checker import check_env
 
-import sim.cheetah as cheetah
+import sim.cheetah.render as render
+import sim.cheetah.world as world
 from agents.cheetah_net import STABLE_POSE_X, STABLE_POSE_Z, HalfCheetahSRD, noisy_fc_weight
-from sim.cheetah import (
-    CheetahConfig,
-    HalfCheetahBatch,
+from sim.cheetah import ENV_ID, CheetahConfig, HalfCheetahRunStop, run
+from sim.cheetah.engine import HalfCheetahBatch, drive
+from sim.cheetah.experiment import trial_generator
+from sim.cheetah.world import (
+    START_X,
     build_model,
-    drive,
+    chunk_ends,
     evaluation_steps,
     inhibitor_active,
     relative_pose,
-    run,
     stop_windows,
-    trial_generator,
 )
+from sim.experiment import ConfigError, parse_config
 
-SPEC_NOMINAL = {  # spec §12: final displacement (m) of the noise-free runs without SRD
+NOMINAL = {  # the reference loop, noise-free weights, no SRD: final displacement (m)
     (1.0, 0.0): 10.19,
     (2.0, 0.0): 9.98,
     (3.0, 0.0): 10.98,
@@ -46,7 +51,7 @@ def by_condition(result: dict) -> dict[tuple, list[dict]]:
 
 
 def single_trial_loop(backswing, inhibitor, weight, srd, lr, steps):
-    """The reference's loop, literally: mj_step, read xpos, log x, maybe evaluate (spec §2)."""
+    """The reference's loop, literally: mj_step, read xpos, log x, maybe evaluate."""
     model = build_model()
     data = mujoco.MjData(model)
     net = HalfCheetahSRD(torch.tensor([backswing]), fc_weight=weight)
@@ -73,6 +78,22 @@ def single_trial_loop(backswing, inhibitor, weight, srd, lr, steps):
     return torso_x, net
 
 
+def env_episode(env, net, inhibitor, *, seed=None):
+    """Drive the env with a one-trial network (no SRD): the observed iterations, the infos."""
+    obs, info = env.reset(seed=seed)
+    infos, truncated = [info], False
+    while not truncated:
+        u = torch.from_numpy(obs[None, :12]).to(torch.float32)
+        actions, _ = net.act(u, torch.tensor([inhibitor * obs[12]], dtype=torch.float32))
+        obs, reward, terminated, truncated, info = env.step(actions[0].numpy())
+        assert not terminated
+        infos.append(info | {"reward": reward})
+    return infos
+
+
+# ---------------------------------------------------------------------------------------------
+# The world
+# ---------------------------------------------------------------------------------------------
 def test_model_is_gymnasiums_half_cheetah_with_the_reference_edits():
     model = build_model()
     data = mujoco.MjData(model)
@@ -92,7 +113,7 @@ def test_missing_gymnasium_names_the_pip_command(monkeypatch):
     def missing(name):
         raise ModuleNotFoundError(name)
 
-    monkeypatch.setattr(cheetah.importlib.resources, "files", missing)
+    monkeypatch.setattr(world.importlib.resources, "files", missing)
     with pytest.raises(ModuleNotFoundError, match="pip install gymnasium"):
         build_model()
 
@@ -104,35 +125,106 @@ def test_controller_and_inhibitor_schedules():
     assert len(seen) == 76
     assert seen[:5] == [501, 526, 551, 576, 1001] and seen[-1] == 3576
     assert stop_windows(3600) == [(501, 599), (1000, 1599), (2000, 2599), (3000, 3599)]
+    assert chunk_ends(3600, evals) == [*evals, 3599]
+    assert chunk_ends(127, evaluation_steps(127)) == [101, 126]  # a decision on the last step
+    assert chunk_ends(50, [60, 10, 10]) == [10, 49]
 
 
-def test_stage1_rest_pose_matches_the_recorded_init_params(tmp_path):
-    result = run(CheetahConfig(stage=1, video=False), out_dir=tmp_path)
-    pose = json.loads((tmp_path / "stable_pose.json").read_text())
-    np.testing.assert_allclose(pose["x_rel"], STABLE_POSE_X, atol=1e-8)
-    np.testing.assert_allclose(pose["z_rel"], STABLE_POSE_Z, atol=1e-8)
-    assert result["max_abs_difference_to_designed_pose"] < 1e-8
-    assert (tmp_path / "stage1_pose.png").is_file()
+# ---------------------------------------------------------------------------------------------
+# The env
+# ---------------------------------------------------------------------------------------------
+def test_env_passes_gymnasiums_checker():
+    env = gym.make(ENV_ID, steps=200)
+    assert isinstance(env.unwrapped, HalfCheetahRunStop)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env.unwrapped)
+    obs, _ = env.reset(seed=0)
+    assert obs.shape == (13,) and env.observation_space.contains(obs)
+    assert env.action_space.shape == (6,)
 
 
-def test_nominal_runs_land_on_the_spec_displacements(tmp_path):
+def test_env_same_seed_same_episode_and_the_noise_comes_from_np_random():
+    actions = np.random.default_rng(3).uniform(-1, 1, (6, 6)).astype(np.float32)
+
+    def episode(seed, scale):
+        env = HalfCheetahRunStop(steps=250, reset_noise_scale=scale)
+        observations = [env.reset(seed=seed)[0]]
+        observations += [env.step(a)[0] for a in actions]
+        return np.array(observations)
+
+    np.testing.assert_array_equal(episode(1, 0.1), episode(1, 0.1))
+    assert np.abs(episode(1, 0.1) - episode(2, 0.1)).max() > 1e-3
+    np.testing.assert_array_equal(episode(1, 0.0), episode(2, 0.0))  # no noise: the exact start
+
+
+def test_env_info_agrees_with_the_physics():
+    """Replay the env's actions in a plain mj_step loop: same torso x at every observation,
+    velocity = Δx / held time, the reward is its terms' sum and follows the stop command."""
+    env = HalfCheetahRunStop(steps=1100)
+    obs, info = env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    model = build_model()
+    data = mujoco.MjData(model)
+    mujoco.mj_step(model, data, 102)
+    assert info["t"] == 101 and info["x_position"] == data.xpos[1, 0]
+    seen, truncated = [info["t"]], False
+    while not truncated:
+        action = rng.uniform(-1, 1, 6).astype(np.float32)
+        stopped, x_before, t_before = bool(obs[12]), info["x_position"], info["t"]
+        assert stopped == info["stop_command"] == inhibitor_active(t_before)
+        obs, reward, terminated, truncated, info = env.step(action)
+        data.ctrl[:] = action
+        mujoco.mj_step(model, data, info["t"] - t_before)
+        assert info["x_position"] == data.xpos[1, 0]
+        np.testing.assert_array_equal(obs[:12], relative_pose(data.xpos[1:]))
+        held = (info["t"] - t_before) * 0.01
+        assert info["x_velocity"] == pytest.approx((info["x_position"] - x_before) / held)
+        assert reward == info["reward_run"] + info["reward_stop"]
+        expected = -abs(info["x_velocity"]) if stopped else info["x_velocity"]
+        assert reward == expected and not terminated
+        seen.append(info["t"])
+    assert seen == [*evaluation_steps(1100), 1099]
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros(6, dtype=np.float32))
+
+
+def test_env_refuses_bad_arguments():
+    with pytest.raises(ValueError, match="steps must be at least 103"):
+        HalfCheetahRunStop(steps=102)
+    with pytest.raises(ValueError, match="reset_noise_scale"):
+        HalfCheetahRunStop(reset_noise_scale=-0.1)
+
+
+def test_env_is_the_reference_loop():
+    """Observed torso x of the env = the literal reference loop's, bit for bit."""
+    steps = 1300
+    weight = noisy_fc_weight([trial_generator(4, 0)])
+    expected, _ = single_trial_loop(4.0, 2.0, weight, False, 1e-4, steps)
+    net = HalfCheetahSRD(torch.tensor([4.0]), fc_weight=weight)
+    infos = env_episode(HalfCheetahRunStop(steps=steps), net, 2.0)
+    observed = [i["t"] for i in infos]
+    np.testing.assert_array_equal([i["x_position"] for i in infos], expected[observed])
+
+
+@pytest.mark.parametrize(("backswing", "inhibitor"), [(3.0, 2.0), (4.0, 0.0)])
+def test_env_with_the_nominal_controller_travels_as_far_as_the_batched_grid(
+    tmp_path, backswing, inhibitor
+):
+    net = HalfCheetahSRD(torch.tensor([backswing]))
+    infos = env_episode(HalfCheetahRunStop(), net, inhibitor)
+    env_displacement = infos[-1]["x_position"] - START_X
     config = CheetahConfig(
-        backswing=(3.0, 4.0), inhibitor=(0.0, 2.0), srd="off", nominal=True, video=False
+        backswing=(backswing,), inhibitor=(inhibitor,), srd="off", nominal=True, video=False
     )
-    result = run(config, out_dir=tmp_path)
-    assert result["trials"] == 1 and len(result["runs"]) == 4
-    for r in result["runs"]:
-        expected = SPEC_NOMINAL[(r["backswing"], r["inhibitor"])]
-        assert r["final_displacement"] == pytest.approx(expected, abs=0.05)
-    assert {p.name for p in tmp_path.iterdir()} >= {
-        "runs.csv",
-        "summary.csv",
-        "displacement.csv",
-        "displacement.png",
-        "weights.json",
-    }
+    (grid,) = run(config, out_dir=tmp_path)["runs"]
+    assert env_displacement == pytest.approx(grid["final_displacement"], abs=1e-9)
+    assert env_displacement == pytest.approx(NOMINAL[(backswing, inhibitor)], abs=0.01)
 
 
+# ---------------------------------------------------------------------------------------------
+# The batched engine
+# ---------------------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("backswing", "inhibitor", "noisy", "srd", "lr"),
     [(4.0, 2.0, False, False, 1e-4), (2.0, 2.0, True, True, 1e-4), (5.0, 0.0, True, True, 1e-2)],
@@ -185,6 +277,54 @@ def test_first_control_follows_101_zero_steps():
     np.testing.assert_allclose(seen[126][0], data.xpos[1:], atol=1e-12)
 
 
+# ---------------------------------------------------------------------------------------------
+# The grid
+# ---------------------------------------------------------------------------------------------
+def test_nominal_runs_land_on_the_reference_displacements(tmp_path):
+    config = CheetahConfig(
+        backswing=(3.0, 4.0), inhibitor=(0.0, 2.0), srd="off", nominal=True, video=False
+    )
+    result = run(config, out_dir=tmp_path)
+    assert result["trials"] == 1 and len(result["runs"]) == 4
+    for r in result["runs"]:
+        expected = NOMINAL[(r["backswing"], r["inhibitor"])]
+        assert r["final_displacement"] == pytest.approx(expected, abs=0.05)
+    assert {p.name for p in tmp_path.iterdir()} >= {
+        "runs.csv",
+        "summary.csv",
+        "displacement.csv",
+        "displacement.png",
+        "weights.json",
+    }
+    lines = (tmp_path / "displacement.csv").read_text().splitlines()
+    assert lines[0].split(",")[:3] == ["step", "mean_b3_i0_nosrd", "sd_b3_i0_nosrd"]
+    assert len(lines) == 1 + 360 and lines[-1].startswith("3590,")
+    last = dict(zip(lines[0].split(","), lines[-1].split(","), strict=True))
+    assert float(last["sd_b3_i0_nosrd"]) == 0.0  # one trial
+
+
+def test_runs_come_in_grid_order_with_their_fields(tmp_path):
+    config = CheetahConfig(
+        backswing=(3.0, 4.0), inhibitor=(2.0,), srd="on", trials=2, steps=300, video=False, seed=3
+    )
+    result = run(config, out_dir=tmp_path)
+    assert [(r["backswing"], r["trial"]) for r in result["runs"]] == [
+        (3.0, 1),
+        (3.0, 2),
+        (4.0, 1),
+        (4.0, 2),
+    ]
+    assert {"backswing", "inhibitor", "srd", "trial", "final_displacement"} <= set(
+        result["runs"][0]
+    )
+    keys = list(result)
+    assert keys[0] == "config" and keys[-2:] == ["artifacts", "elapsed_s"]
+    assert result["elapsed_s"] > 0 and result["n_runs"] == 4
+    assert result["video"] is None and result["video_note"] == "video off (--no-video)"
+    with pytest.raises(ConfigError, match="srd"):
+        parse_config(CheetahConfig, {"srd": "sometimes"})
+
+
 def test_same_seed_same_numbers_and_threads_do_not_matter(tmp_path):
     config = CheetahConfig(
         backswing=(3.0,), inhibitor=(2.0,), srd="both", trials=2, steps=700, video=False
@@ -209,12 +349,12 @@ def test_srd_at_the_reference_rate_moves_weights_by_tiny_amounts(tmp_path):
     groups = by_condition(run(config, out_dir=tmp_path))
     on_free, on_stop = groups[(3.0, 0.0, "on", 1e-4)][0], groups[(3.0, 2.0, "on", 1e-4)][0]
     off_free = groups[(3.0, 0.0, "off", None)][0]
-    # spec §8: controller ≤ 6.4e-5, PFC ≤ 6.3e-3 after a trial (seed 1, b3/i0)
+    # the reference: controller ≤ 6.4e-5, PFC ≤ 6.3e-3 after a trial (seed 1, b3/i0)
     assert 1e-6 < on_free["controller_change"] < 2e-4
     assert 1e-3 < on_free["pfc_change"] < 2e-2
     assert off_free["controller_change"] == 0.0 and off_free["pfc_change"] == 0.0
     assert abs(on_free["final_displacement"] - off_free["final_displacement"]) < 0.1
-    # spec §8: the PFC says T at every evaluation without the inhibitor, F at the 76 with it
+    # the PFC says T at every evaluation without the inhibitor, F at the 76 with it
     assert on_free["true_verdict_fraction"] == 1.0
     assert on_stop["true_verdict_fraction"] == pytest.approx(64 / 140)
     assert off_free["true_verdict_fraction"] is None
@@ -244,6 +384,18 @@ def test_learning_rate_sweep_is_a_grid_axis_with_its_figure(tmp_path):
     }
 
 
+# ---------------------------------------------------------------------------------------------
+# The design stages and the video
+# ---------------------------------------------------------------------------------------------
+def test_stage1_rest_pose_matches_the_recorded_init_params(tmp_path):
+    result = run(CheetahConfig(stage=1, video=False), out_dir=tmp_path)
+    pose = json.loads((tmp_path / "stable_pose.json").read_text())
+    np.testing.assert_allclose(pose["x_rel"], STABLE_POSE_X, atol=1e-8)
+    np.testing.assert_allclose(pose["z_rel"], STABLE_POSE_Z, atol=1e-8)
+    assert result["max_abs_difference_to_designed_pose"] < 1e-8
+    assert (tmp_path / "stage1_pose.png").is_file()
+
+
 def test_stage2_stable_pose_neurons_drop_when_the_front_thigh_swings(tmp_path):
     result = run(CheetahConfig(stage=2, steps=500, video=False), out_dir=tmp_path)
     act = result["activations"]
@@ -268,8 +420,8 @@ def test_design_stages_move_the_cheetah_forward(tmp_path, stage):
 
 
 def test_video_without_opengl_is_skipped_with_a_reason(tmp_path, monkeypatch):
-    monkeypatch.setattr(cheetah, "GL_BACKENDS", ("no-such-backend",))
-    out = cheetah.render_gif(tmp_path / "x.gif", np.zeros((30, 9)), -2.0, "test")
+    monkeypatch.setattr(render, "GL_BACKENDS", ("no-such-backend",))
+    out = render.render_gif(tmp_path / "x.gif", np.zeros((30, 9)), -2.0, "test")
     assert out["video"] is None
     assert out["video_note"].startswith("no offscreen OpenGL context: no-such-backend")
     assert not (tmp_path / "x.gif").exists() and not (tmp_path / "x.npz").exists()
@@ -277,12 +429,13 @@ def test_video_without_opengl_is_skipped_with_a_reason(tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_noisy_grid_reproduces_the_reference_figures(tmp_path):
-    """140 trials: means within one trial SD of spec §12, backswing 4 fastest, i2 far slower."""
+    """140 trials: means within one trial SD of the reference's noise-free figures, backswing 4
+    fastest, the stop command far slower."""
     result = run(CheetahConfig(video=False), out_dir=tmp_path)
     assert len(result["runs"]) == 140
     for row in result["summary"]:
-        spec = SPEC_NOMINAL[(row["backswing"], row["inhibitor"])]
-        assert abs(row["mean_final_displacement"] - spec) <= row["sd_final_displacement"]
+        reference = NOMINAL[(row["backswing"], row["inhibitor"])]
+        assert abs(row["mean_final_displacement"] - reference) <= row["sd_final_displacement"]
     for srd in ("on", "off"):
         for inhibitor in (0.0, 2.0):
             means = {
@@ -305,6 +458,13 @@ def test_noisy_grid_reproduces_the_reference_figures(tmp_path):
 
 @pytest.mark.slow
 def test_video_is_rendered_when_an_offscreen_context_exists(tmp_path):
+    from PIL import Image
+
     qpos = np.zeros((200, 9))
-    out = cheetah.render_gif(tmp_path / "x.gif", qpos, -2.0, "test")
-    assert out["video"] == "x.gif" or out["video_note"].startswith("no offscreen")
+    out = render.render_gif(tmp_path / "x.gif", qpos, -2.0, "test")
+    if out["video"] is None:
+        pytest.skip(out["video_note"])
+    assert out["video"] == "x.gif" and not (tmp_path / "x.npz").exists()
+    with Image.open(tmp_path / "x.gif") as gif:
+        assert gif.size == (render.FRAME_WIDTH, render.FRAME_HEIGHT)
+        assert gif.n_frames == 20  # 1.99 s of steps at 10 frames per second

@@ -1,0 +1,122 @@
+"""The GIF of one trial, drawn by MuJoCo's offscreen renderer in a child process.
+
+MuJoCo picks its OpenGL back end when it is imported, so each back end is tried in a fresh
+interpreter running this module::
+
+    python -m sim.cheetah.render FRAMES.npz OUT.gif CAPTION
+
+``FRAMES.npz`` holds ``qpos`` (frames, nq) and ``start_x``; ``render_gif`` writes it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from sim.cheetah.world import build_model
+
+VIDEO_FPS = 10
+"""Frames per simulated second of the GIF (the reference filmed at 15)."""
+VIDEO_SECONDS = 14.0
+"""Length of the GIF: running, the short stall at 5 s and the first long stop at 10 s."""
+STEPS_PER_SECOND = 100
+"""Simulation steps per second (the model's 0.01 s step)."""
+GL_BACKENDS = ("egl", "osmesa", "glfw")
+"""Offscreen OpenGL back ends tried, in order."""
+FRAME_HEIGHT, FRAME_WIDTH = 192, 256
+"""GIF frame size in pixels."""
+RENDER_TIMEOUT_S = 300
+"""Longest a child may take to draw the GIF."""
+
+
+def render_gif(path: Path, qpos: np.ndarray, start_x: float, caption: str) -> dict[str, Any]:
+    """Render ``qpos`` (steps + 1, nq) to a GIF in a child process with an offscreen back end.
+
+    Never raises: returns ``video`` (the file name, or None) and ``video_note`` (the back end
+    used, or why none worked).
+    """
+    seconds = min(VIDEO_SECONDS, (len(qpos) - 1) / STEPS_PER_SECOND)
+    times = np.arange(0, seconds, 1 / VIDEO_FPS)
+    frames = np.unique(np.ceil(times * STEPS_PER_SECOND).astype(int))
+    source = path.with_suffix(".npz")
+    np.savez(source, qpos=qpos[frames], start_x=np.array(start_x))
+    reasons = []
+    try:
+        for backend in GL_BACKENDS:
+            done = subprocess.run(
+                [sys.executable, "-m", "sim.cheetah.render", str(source), str(path), caption],
+                env=_child_env(backend),
+                capture_output=True,
+                text=True,
+                timeout=RENDER_TIMEOUT_S,
+                check=False,
+            )
+            if done.returncode == 0 and path.is_file():
+                return {"video": path.name, "video_note": f"rendered with MUJOCO_GL={backend}"}
+            last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+            reasons.append(f"{backend}: {last}")
+    except (OSError, subprocess.SubprocessError) as exc:
+        reasons.append(str(exc))
+    finally:
+        source.unlink(missing_ok=True)
+    return {"video": None, "video_note": "no offscreen OpenGL context: " + "; ".join(reasons)}
+
+
+def _child_env(backend: str) -> dict[str, str]:
+    """The current environment with MUJOCO_GL (and PyOpenGL's platform) set to ``backend``."""
+    env = dict(os.environ)
+    env["MUJOCO_GL"] = backend
+    if backend in ("egl", "osmesa"):
+        env["PYOPENGL_PLATFORM"] = backend
+    project_root = str(Path(__file__).resolve().parents[2])
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [project_root, env.get("PYTHONPATH")]))
+    return env
+
+
+def draw_gif(source: Path, target: Path, caption: str) -> None:
+    """Draw every stored frame from the tracking camera, captioned with its time; save a GIF."""
+    from PIL import Image, ImageDraw
+
+    stored = np.load(source)
+    model = build_model(float(stored["start_x"]))
+    data = mujoco.MjData(model)
+    images = []
+    with mujoco.Renderer(model, height=FRAME_HEIGHT, width=FRAME_WIDTH) as renderer:
+        for frame, q in enumerate(stored["qpos"]):
+            data.qpos[:] = q
+            mujoco.mj_forward(model, data)
+            renderer.update_scene(data, camera="track")
+            # Software GL draws shadows and floor reflections slowly; the gait reads without.
+            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+            renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+            image = Image.fromarray(renderer.render())
+            ImageDraw.Draw(image).text(
+                (4, 4), f"{caption}  t={frame / VIDEO_FPS:4.1f}s", fill=(0, 0, 0)
+            )
+            images.append(image.convert("P", palette=Image.Palette.ADAPTIVE, colors=64))
+    images[0].save(
+        target, save_all=True, append_images=images[1:], duration=int(1000 / VIDEO_FPS), loop=0
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Command-line entry of the child process."""
+    parser = argparse.ArgumentParser(
+        prog="python -m sim.cheetah.render", description="Draw stored half-cheetah frames to a GIF."
+    )
+    parser.add_argument("source", type=Path, help="frames file written by render_gif (.npz)")
+    parser.add_argument("target", type=Path, help="GIF to write")
+    parser.add_argument("caption", help="text drawn on every frame before the time")
+    args = parser.parse_args(argv)
+    draw_gif(args.source, args.target, args.caption)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,4 +1,5 @@
-"""Robot2NN: the lavaland robot of the paper ("2D robot lavaland"; spec lavaland.md §2-9).
+"""Robot2NN: the lavaland robot of the paper ("2D robot lavaland" and its appendix;
+docs/lavaland.md).
 
 The robot sees the whole map ``x_attn`` (RGB in [0, 1], shape (N, 3, H, W)) and its own start
 ``w_self`` (one-hot (N, H, W)), scores every tile, then imagines plans on that score map.
@@ -98,6 +99,11 @@ class PlanningRules:
     final_check: bool
     """Detect a target entered on the last move (paper: within 36 moves; reference: 35)."""
 
+    @property
+    def detection_horizon(self) -> int:
+        """Moves within which an entered target counts as reached."""
+        return MOVE_LIMIT if self.final_check else MOVE_LIMIT - 1
+
 
 PRESETS: dict[str, PlanningRules] = {
     "paper": PlanningRules(
@@ -107,7 +113,8 @@ PRESETS: dict[str, PlanningRules] = {
         n_plans=2, executed="last", loss_reduction="mean", anchors="add", final_check=False
     ),
 }
-"""DECISIONS.md: ``paper`` (default) and ``reference`` (reproduces Table 1)."""
+"""``paper`` (default: the paper's text) and ``reference`` (the authors' code; reproduces Table 1);
+the differences are listed in docs/lavaland.md."""
 
 
 def tile_rgb(name: str) -> Tensor:
@@ -136,9 +143,9 @@ class Receptors:
         )
 
 
-def receptors(maps: Tensor, starts: Tensor) -> Receptors:
-    """ABA, unknown mask and recognised classes of maps (N, 3, H, W) with starts (N, 2) = (x, y)."""
-    n, _, h, w = maps.shape
+def receptors(maps: Tensor, self_position: Tensor) -> Receptors:
+    """ABA, unknown mask and recognised classes of RGB maps (N, 3, H, W) in [0, 1], with the
+    robot's one-hot position (N, H, W) (the lavaland env's ``map`` and ``self``)."""
     colours = torch.stack([tile_rgb(t) for t in KNOWN_TILE_RGB])  # (3 tiles, 3 channels)
     distance = ((maps[:, None] - colours[None, :, :, None, None]) ** 2).mean(dim=2)
     known = selective(distance, SELECTIVE_EPSILON)
@@ -146,8 +153,6 @@ def receptors(maps: Tensor, starts: Tensor) -> Receptors:
     recognised = known > 1.0 - RECOGNITION_THRESHOLD
     first = recognised.float().argmax(dim=1)  # first recognised class in the order T, D, G
     tile_class = torch.where(recognised.any(dim=1), first, torch.full_like(first, UNKNOWN_CLASS))
-    self_position = torch.zeros(n, h, w)
-    self_position[torch.arange(n), starts[:, 1].long(), starts[:, 0].long()] = 1.0
     return Receptors(known, self_position, unknown, tile_class)
 
 
@@ -230,7 +235,7 @@ class Robot2NN(nn.Module):
         return preferences[None, :, None, None] * x
 
     def v_sigma(self, seen: Receptors) -> Tensor:
-        """v_Σ (N, H, W): summed v1, target/start anchors, unknown avoidance (spec §6)."""
+        """v_Σ (N, H, W): summed v1, target/start anchors, unknown avoidance."""
         s = self.v1(seen).sum(dim=1)
         v0 = max_abs(s)
         if self.rules.anchors == "add":
@@ -278,8 +283,6 @@ class Plans:
     """(N, P, MOVE_LIMIT): the value −0.9·max|v_Σ| written on the tile left by each move."""
     moved: Tensor
     """(N, P, MOVE_LIMIT) bool: the move was made."""
-    tile_counts: Tensor
-    """(N, P, 4) int64: recognised classes of the start and every tile entered (with repeats)."""
 
     @property
     def v_plan(self) -> Tensor:
@@ -326,7 +329,7 @@ def neighbour_table(height: int, width: int) -> Tensor:
 
 @torch.no_grad()
 def imagine(v_sigma: Tensor, seen: Receptors, explore: Tensor, rules: PlanningRules) -> Plans:
-    """Imagine P plans on each of N maps at once (spec §7), one move per tensor step.
+    """Imagine P plans on each of N maps at once, one move per tensor step.
 
     Maps need at least 2 rows and 2 columns, so that every tile has two neighbours on the grid.
 
@@ -389,9 +392,6 @@ def imagine(v_sigma: Tensor, seen: Receptors, explore: Tensor, rules: PlanningRu
     moved = record(0, false)
     n_moves = moved.sum(-1)
     path = torch.cat([start.reshape(n, p, 1), record(5, position)], -1)
-    visited = torch.arange(limit + 1) <= n_moves[..., None]
-    classes = seen.tile_class.reshape(n, 1, cells).expand(n, p, cells).gather(-1, path)
-    counts = F.one_hot(classes, 4) * visited[..., None]
     return Plans(
         reached=reached.reshape(n, p),
         n_moves=n_moves,
@@ -401,5 +401,4 @@ def imagine(v_sigma: Tensor, seen: Receptors, explore: Tensor, rules: PlanningRu
         read_overwritten=record(3, false),
         left_values=record(4, zero),
         moved=moved,
-        tile_counts=counts.sum(dim=2),
     )

@@ -15,7 +15,8 @@ import numpy as np
 import torch
 
 from agents.robot2nn import PRESETS
-from sim.lavaland import PROJECTS, build_model, evaluate, explore_coins, seen_maps, train_srd
+from sim.lavaland.engine import PROJECTS, build_model, evaluate, explore_coins, make_maps
+from sim.lavaland.training import train_srd
 
 
 def main() -> None:
@@ -27,7 +28,7 @@ def main() -> None:
     torch.set_num_threads(1)
     project = PROJECTS["A"]
     n_plans = PRESETS[args.preset].n_plans
-    seen = seen_maps(args.maps, project, np.random.default_rng([0, 0]))
+    seen = make_maps(args.maps, project, np.random.default_rng([0, 0]))
     robot = build_model(project, args.preset)
     coins = explore_coins(np.random.default_rng([0, 2]), args.maps, n_plans)
 

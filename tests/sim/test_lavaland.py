@@ -14,29 +14,31 @@ from gymnasium.utils.env_checker import check_env
 import sim.lavaland as lavaland
 from agents.robot2nn import KNOWN_TILE_RGB, PRESETS, imagine
 from sim.experiment import ConfigError, parse_config
-from sim.lavaland import (
+from sim.lavaland import Lavaland, LavalandConfig, run
+from sim.lavaland.engine import (
+    PROJECTS,
+    build_model,
+    evaluate,
+    explore_coins,
+    make_maps,
+    register,
+)
+from sim.lavaland.training import train_srd
+from sim.lavaland.world import (
     DIRT,
     GRASS,
     LAVA,
     MAP_HEIGHT,
     MAP_WIDTH,
-    PROJECTS,
     TARGET,
     TILE_NAMES,
     TILE_RGB,
-    Lavaland,
-    LavalandConfig,
-    build_model,
-    evaluate,
-    explore_coins,
     format_map,
     generate_maps,
     generate_tiles,
     parse_map,
-    run,
-    seen_maps,
     tiles_to_rgb,
-    train_srd,
+    walk,
 )
 
 SMALL_MAP = [
@@ -50,10 +52,13 @@ def test_same_seed_same_maps_and_streams_differ():
     a = generate_maps(50, 0.1, rng=np.random.default_rng(3))
     b = generate_maps(50, 0.1, rng=np.random.default_rng(3))
     c = generate_maps(50, 0.1, rng=np.random.default_rng(4))
-    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
-    assert not np.array_equal(a[0], c[0])
-    assert a[0].shape == (50, 3, MAP_HEIGHT, MAP_WIDTH) and a[0].dtype == np.float32
-    assert a[1].shape == (50, 2)
+    assert np.array_equal(a.tiles, b.tiles) and np.array_equal(a.starts, b.starts)
+    assert not np.array_equal(a.tiles, c.tiles)
+    rgb, one_hot = a.observe()
+    assert rgb.shape == (50, 3, MAP_HEIGHT, MAP_WIDTH) and rgb.dtype == np.float32
+    assert one_hot.shape == (50, MAP_HEIGHT, MAP_WIDTH) and np.all(one_hot.sum((1, 2)) == 1)
+    assert np.all(one_hot[np.arange(50), a.starts[:, 1], a.starts[:, 0]] == 1)
+    assert a.starts.shape == (50, 2)
 
 
 @pytest.mark.parametrize("lava", [0.0, 0.1])
@@ -168,27 +173,55 @@ def test_env_steps_walls_lava_target_and_truncation():
 
 def test_executing_the_imagined_plan_in_the_env_agrees():
     rules = PRESETS["paper"]  # within 36 moves, as the env's truncation
-    tiles, starts = generate_tiles(30, 0.1, rng=np.random.default_rng(8))
-    seen = lavaland.receptors(torch.from_numpy(tiles_to_rgb(tiles)), torch.from_numpy(starts))
+    maps = register(generate_maps(30, 0.1, rng=np.random.default_rng(8)))
     robot = build_model(PROJECTS["lava-noav-A"], "paper")
     explore = explore_coins(np.random.default_rng(9), 30, rules.n_plans)
-    plans = imagine(robot.v_sigma(seen), seen, explore, rules)
+    plans = imagine(robot.v_sigma(maps.seen), maps.seen, explore, rules)
     executed = plans.executed(rules)
+    walked = walk(maps.maps, plans.actions[torch.arange(30), executed].numpy())
     env = Lavaland()
     for i in range(30):
         j = int(executed[i])
-        env.reset(options={"map": format_map(tiles[i], starts[i])})
+        env.reset(options={"map": format_map(maps.maps.tiles[i], maps.maps.starts[i])})
         terminated = truncated = False
         info = {}
         for action in plans.actions[i, j].tolist():
             if action < 0:
                 break
             _, _, terminated, truncated, info = env.step(action)
-        assert terminated == bool(plans.reached[i, j])
+        assert terminated == bool(plans.reached[i, j]) == (walked.reached_at[i] > 0)
         assert truncated == (not plans.reached[i, j] and plans.n_moves[i, j] == 36)
-        assert info["lava_entered"] == int(plans.tile_counts[i, j, 3])
+        assert info["lava_entered"] == walked.tile_counts[i, LAVA]
+        assert info["moves"] == walked.n_moves[i] == plans.n_moves[i, j]
         x, y = info["position"]
         assert y * MAP_WIDTH + x == int(plans.path[i, j, plans.n_moves[i, j]])
+        assert tuple(walked.final[i]) == (x, y)
+
+
+def test_walk_equals_stepping_the_env_off_grid_moves_included():
+    maps = generate_maps(40, 0.1, rng=np.random.default_rng(12))
+    actions = np.random.default_rng(13).integers(0, 4, size=(40, 36))
+    actions[::3, 20:] = -1  # some walks end early
+    walked = walk(maps, actions)
+    env = Lavaland()
+    for i in range(40):
+        env.reset(options={"map": format_map(maps.tiles[i], maps.starts[i])})
+        counts = np.bincount([maps.tiles[i, maps.starts[i, 1], maps.starts[i, 0]]], minlength=4)
+        reached_at, moves = 0, 0
+        for k, action in enumerate(actions[i].tolist()):
+            if action < 0:
+                break
+            _, _, terminated, _, info = env.step(action)
+            counts[TILE_NAMES.index(info["tile"])] += 1
+            moves = info["moves"]
+            if terminated:
+                reached_at = k + 1
+                break
+        assert walked.reached_at[i] == reached_at
+        assert walked.n_moves[i] == moves
+        assert walked.tile_counts[i].tolist() == counts.tolist()
+        assert tuple(walked.final[i]) == tuple(env.position.tolist())
+    assert (walked.reached_at > 0).any() and (walked.reached_at == 0).any()
 
 
 def test_config_validation_names_the_field():
@@ -226,7 +259,7 @@ def test_same_seed_same_training_and_evaluation():
     project = PROJECTS["compare-A"]
 
     def once(seed: int) -> tuple[np.ndarray, np.ndarray]:
-        seen = seen_maps(24, project, np.random.default_rng([seed, 1]))
+        seen = make_maps(24, project, np.random.default_rng([seed, 1]))
         robot = build_model(project, "paper")
         rng = np.random.default_rng([seed, 3])
         train_srd(robot, seen, rng.permutation(24), explore_coins(rng, 24, 4), lr=1e-3)
@@ -246,7 +279,7 @@ def test_no_training_leaves_srd_fields_null(tmp_path):
 
 def untrained(project: str, preset: str) -> tuple[float, float]:
     """Accuracy and lava-entered fraction of the untrained robot on 4096 maps."""
-    seen = seen_maps(4096, PROJECTS[project], np.random.default_rng([0, 0]))
+    seen = make_maps(4096, PROJECTS[project], np.random.default_rng([0, 0]))
     robot = build_model(PROJECTS[project], preset)
     coins = explore_coins(np.random.default_rng([0, 2, 0]), 4096, PRESETS[preset].n_plans)
     result = evaluate(robot, seen, coins)

@@ -1,0 +1,215 @@
+"""The lavaland experiment: evaluate an untrained Robot2NN, SRD-train it, evaluate again."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from agents.robot2nn import DIRT_CLASS, PRESETS, Robot2NN
+from sim.experiment import ProgressFn, Stopwatch, no_progress, write_csv, write_json
+from sim.lavaland.engine import (
+    PROJECTS,
+    Evaluation,
+    MapSet,
+    build_model,
+    evaluate,
+    explore_coins,
+    make_maps,
+)
+from sim.lavaland.plots import plot_histograms, plot_weights, trajectory_gif
+from sim.lavaland.training import train_srd
+
+
+@dataclass(frozen=True)
+class LavalandConfig:
+    """Robot2NN in lavaland: evaluate untrained, SRD-train one epoch, evaluate again."""
+
+    project: Literal["A", "compare-A", "lava-A", "lava-noav-A"] = "A"
+    """The paper's project: A, compare-A, lava-A or lava-noav-A."""
+    preset: Literal["paper", "reference"] = "paper"
+    """paper: 4 plans, best plan executed, summed loss, anchors set; reference: the v1 code."""
+    eval_maps: Annotated[int, Field(ge=1)] = 4096
+    """Evaluation maps (accuracy = reached / eval_maps)."""
+    train_maps: Annotated[int, Field(ge=0)] = 4096
+    """Training maps, one SGD step each (0 skips training; accuracy_srd is then null)."""
+    repeats: Annotated[int, Field(ge=1)] = 1
+    """Independent experiments (the paper's expts 1-4): fresh model, coins and order each."""
+    n_plans: Annotated[int, Field(ge=0)] = 0
+    """Imagined plans per map; 0 = the preset's (paper 4, reference 2)."""
+    lr: Annotated[float, Field(gt=0)] = 1e-4
+    """SGD learning rate."""
+    gif_map: Annotated[int, Field(ge=0)] = 0
+    """Evaluation map (index modulo eval_maps) animated in trajectory.gif."""
+    seed: int = 0
+    """Seed of every random stream (maps, coins, training order)."""
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One repeat: the untrained and SRD evaluations and the trained weights."""
+
+    untrained: Evaluation
+    srd: Evaluation | None
+    kernels: np.ndarray | None
+    """(4, 5, 3, 3) weights after SRD."""
+
+    def row(self, repeat: int) -> dict[str, Any]:
+        """This repeat's row of the accuracy table."""
+        srd = self.srd
+        return {
+            "repeat": repeat,
+            "accuracy_untrained": self.untrained.accuracy,
+            "accuracy_srd": None if srd is None else srd.accuracy,
+            "lava_entered_untrained": self.untrained.lava_entered,
+            "lava_entered_srd": None if srd is None else srd.lava_entered,
+            "mean_moves_untrained": float(self.untrained.n_moves.mean()),
+            "mean_moves_srd": None if srd is None else float(srd.n_moves.mean()),
+        }
+
+
+def one_repeat(
+    config: LavalandConfig,
+    repeat: int,
+    eval_set: MapSet,
+    train_set: MapSet,
+    progress: ProgressFn,
+) -> tuple[Outcome, Robot2NN]:
+    """Evaluate a fresh robot, SRD-train it on ``train_set``, evaluate it again."""
+    seed, n_plans = config.seed, config.n_plans or PRESETS[config.preset].n_plans
+    model = build_model(PROJECTS[config.project], config.preset, n_plans)
+    coins = explore_coins(np.random.default_rng([seed, 2, repeat]), config.eval_maps, n_plans)
+    untrained = evaluate(model, eval_set, coins)
+    progress(0.05, "untrained evaluated")
+    if config.train_maps == 0:
+        return Outcome(untrained, None, None), model
+    rng = np.random.default_rng([seed, 3, repeat])
+    order = rng.permutation(config.train_maps)
+    train_coins = explore_coins(rng, config.train_maps, n_plans)
+    train_srd(
+        model, train_set, order, train_coins, config.lr, lambda f, m: progress(0.05 + 0.9 * f, m)
+    )
+    coins = explore_coins(np.random.default_rng([seed, 4, repeat]), config.eval_maps, n_plans)
+    trained = evaluate(model, eval_set, coins)
+    progress(1.0, "SRD evaluated")
+    return Outcome(untrained, trained, model.kernel_stack().detach().numpy()), model
+
+
+def run(
+    config: LavalandConfig, *, out_dir: Path, progress: ProgressFn = no_progress
+) -> dict[str, Any]:
+    """Evaluate → SRD-train → evaluate, ``repeats`` times; write the artifacts; return the result.
+
+    The scalar fields are means over repeats; ``repeats`` lists one object per repeat (the
+    paper's Table 1 layout: one row per expt).
+    """
+    clock = Stopwatch()
+    project = PROJECTS[config.project]
+    n_plans = config.n_plans or PRESETS[config.preset].n_plans
+    out_dir.mkdir(parents=True, exist_ok=True)
+    progress(0.0, "generating maps")
+    eval_set = make_maps(config.eval_maps, project, np.random.default_rng([config.seed, 0]))
+    train_set = make_maps(config.train_maps, project, np.random.default_rng([config.seed, 1]))
+    outcomes: list[Outcome] = []
+    for r in range(config.repeats):
+
+        def report(fraction: float, message: str, r: int = r) -> None:
+            progress((r + fraction) / config.repeats, f"repeat {r + 1}: {message}")
+
+        outcome, model = one_repeat(config, r, eval_set, train_set, report)
+        outcomes.append(outcome)
+    rows = [outcome.row(r + 1) for r, outcome in enumerate(outcomes)]
+    gif_coins = explore_coins(np.random.default_rng([config.seed, 5]), 1, n_plans)
+    gif_map = eval_set.select(config.gif_map % config.eval_maps)
+    artifacts = write_artifacts(out_dir, config, outcomes)
+    trajectory_gif(out_dir / "trajectory.gif", model, gif_map, gif_coins)
+    artifacts.append("trajectory.gif")
+
+    def mean(key: str) -> float | None:
+        values = [row[key] for row in rows]
+        return None if values[0] is None else float(np.mean(values))
+
+    return {
+        "project": config.project,
+        "preset": config.preset,
+        "n_params": sum(p.numel() for p in model.parameters() if p.requires_grad),
+        "n_plans": n_plans,
+        "eval_maps": config.eval_maps,
+        "train_maps": config.train_maps,
+        "seed": config.seed,
+        "accuracy_untrained": mean("accuracy_untrained"),
+        "accuracy_srd": mean("accuracy_srd"),
+        "lava_entered_untrained": mean("lava_entered_untrained"),
+        "lava_entered_srd": mean("lava_entered_srd"),
+        "repeats": rows,
+        "artifacts": artifacts,
+        "elapsed_s": clock.elapsed(),
+    }
+
+
+def tile_count_rows(outcomes: list[Outcome]) -> list[dict[str, Any]]:
+    """The executed plan of every evaluation map, model and repeat."""
+    rows = []
+    for r, outcome in enumerate(outcomes):
+        for label, ev in (("untrained", outcome.untrained), ("srd", outcome.srd)):
+            if ev is None:
+                continue
+            for i, (reached, moves, counts) in enumerate(
+                zip(ev.reached.tolist(), ev.n_moves.tolist(), ev.tile_counts.tolist(), strict=True)
+            ):
+                dirt, grass, lava = counts[DIRT_CLASS:]
+                rows.append(
+                    {
+                        "repeat": r + 1,
+                        "model": label,
+                        "map": i,
+                        "reached": int(reached),
+                        "n_moves": moves,
+                        "dirt": dirt,
+                        "grass": grass,
+                        "lava": lava,
+                    }
+                )
+    return rows
+
+
+def write_artifacts(out_dir: Path, config: LavalandConfig, outcomes: list[Outcome]) -> list[str]:
+    """accuracy.csv/json, tile_counts.csv, tile_histograms.png, weights.json/png."""
+    rows = [outcome.row(r + 1) for r, outcome in enumerate(outcomes)]
+    write_csv(out_dir / "accuracy.csv", rows)
+    write_json(out_dir / "accuracy.json", rows)
+    write_csv(out_dir / "tile_counts.csv", tile_count_rows(outcomes))
+    plot_histograms(
+        out_dir / "tile_histograms.png",
+        f"Project {config.project}, preset {config.preset}",
+        [o.untrained for o in outcomes],
+        [o.srd for o in outcomes if o.srd is not None],
+        with_lava=PROJECTS[config.project].lava_fraction > 0,
+    )
+    initial = build_model(PROJECTS[config.project], config.preset).kernel_stack().detach().numpy()
+    trained = [o.kernels for o in outcomes if o.kernels is not None]
+    write_json(
+        out_dir / "weights.json",
+        {
+            "layout": "[DeconvSeq self/target/dirt/grass][layer 1-5][3][3]",
+            "initial": initial.tolist(),
+            "srd": [w.tolist() for w in trained],
+        },
+    )
+    panels = [("initial", initial)] + [
+        (f"after SRD, repeat {r + 1} (acc {o.srd.accuracy:.3f})", o.kernels)
+        for r, o in enumerate(outcomes)
+        if o.srd is not None and o.kernels is not None
+    ]
+    plot_weights(out_dir / "weights.png", panels)
+    return [
+        "accuracy.csv",
+        "accuracy.json",
+        "tile_counts.csv",
+        "tile_histograms.png",
+        "weights.json",
+        "weights.png",
+    ]

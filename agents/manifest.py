@@ -23,7 +23,14 @@ import json
 from pathlib import Path
 from typing import Annotated, Any, Final, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+)
 
 SCHEMA_VERSION: Final = 1
 INPUTS = ("price", "length", "weight", "gill", "st1", "st2", "st3", "buy_fraction")
@@ -33,9 +40,17 @@ PFC_SOURCES = ES_NEURONS + DECISIONS
 JUDGEMENTS = ("PGL", "BC", "FQ")
 VERDICTS = ("T", "F")
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+"""A finite JSON number (strict: ``"0.2"`` and ``true`` are not numbers)."""
 Participant = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")]
 """A participant's name: letters, digits, ``_``, ``.``, ``-``."""
+
+
+def _json_integer(value: Any) -> Any:
+    """Refuse anything but a JSON integer (``1.0`` and ``true`` compare equal to 1)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError("must be an integer")
+    return value
 
 
 class _Strict(BaseModel):
@@ -88,25 +103,25 @@ class ThresholdActivation(_Strict):
     """T(x) = tanh(leaky_relu(a·(x − c), negative_slope))."""
 
     kind: Literal["threshold"]
-    a: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)]
-    c: Annotated[float, Field(ge=-1000, le=1000, allow_inf_nan=False)]
-    negative_slope: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+    a: Annotated[float, Field(strict=True, gt=0, le=1000, allow_inf_nan=False)]
+    c: Annotated[float, Field(strict=True, ge=-1000, le=1000, allow_inf_nan=False)]
+    negative_slope: Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)]
 
 
 class BelowThresholdActivation(_Strict):
     """BT(x) = tanh(−leaky_relu(a·(x − c), negative_slope)) + 1."""
 
     kind: Literal["below_threshold"]
-    a: Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)]
-    c: Annotated[float, Field(ge=-1000, le=1000, allow_inf_nan=False)]
-    negative_slope: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)]
+    a: Annotated[float, Field(strict=True, gt=0, le=1000, allow_inf_nan=False)]
+    c: Annotated[float, Field(strict=True, ge=-1000, le=1000, allow_inf_nan=False)]
+    negative_slope: Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)]
 
 
 class SelectiveActivation(_Strict):
     """S(x) = ε / (ε + x²)."""
 
     kind: Literal["selective"]
-    epsilon: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)]
+    epsilon: Annotated[float, Field(strict=True, gt=0, le=1, allow_inf_nan=False)]
 
 
 Activation = Annotated[
@@ -181,7 +196,7 @@ class Pfc(_Strict):
 
     judgement: Judgement
     verdict: Verdict
-    trainable: bool = True
+    trainable: Annotated[bool, Field(strict=True)] = True
 
 
 InputName = Literal["price", "length", "weight", "gill", "st1", "st2", "st3", "buy_fraction"]
@@ -190,8 +205,8 @@ InputName = Literal["price", "length", "weight", "gill", "st1", "st2", "st3", "b
 class Augmentation(_Strict):
     """Implicit contrastive augmentation: copy 0 clean, copies 1.. jittered by N(0, σ²)."""
 
-    copies: Annotated[int, Field(ge=1, le=16)] = 5
-    noise_std: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 0.01
+    copies: Annotated[int, Field(strict=True, ge=1, le=16)] = 5
+    noise_std: Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)] = 0.01
     noiseless_inputs: tuple[InputName, ...] = ("st1", "st2", "st3")
 
     @field_validator("noiseless_inputs")
@@ -204,15 +219,15 @@ class Augmentation(_Strict):
 class FineTuning(_Strict):
     """The participant's SRD fine-tuning settings (plain SGD over all parameters)."""
 
-    epochs: Annotated[int, Field(ge=0, le=10)] = 0
-    batch_size: Annotated[int, Field(ge=1, le=64)] = 16
-    learning_rate: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] = 0.0
+    epochs: Annotated[int, Field(strict=True, ge=0, le=10)] = 0
+    batch_size: Annotated[int, Field(strict=True, ge=1, le=64)] = 16
+    learning_rate: Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)] = 0.0
 
 
 class Manifest(_Strict):
     """A Fish Sale Negotiator, every number addressed by meaning (see module docstring)."""
 
-    schema_version: Literal[1] = SCHEMA_VERSION
+    schema_version: Annotated[Literal[1], BeforeValidator(_json_integer)] = SCHEMA_VERSION
     kind: Literal["fish-sale-negotiator"] = "fish-sale-negotiator"
     participant: Participant
     description: Annotated[str, Field(max_length=2000)] = ""

@@ -1,4 +1,4 @@
-"""The FastAPI application: routers, error format, body-size limit, background services.
+"""The FastAPI application: routers, error format, request-body checks, background services.
 
 ``create_app(settings)`` builds an app; its lifespan migrates the database (``alembic upgrade
 head``), loads the admin token, starts the auction and job worker pools and resumes whatever a
@@ -12,14 +12,13 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
-from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.auctions import AuctionRunner
+from server.body import RequestBodyMiddleware
 from server.config import Settings, get_settings
 from server.db import Database, upgrade_schema
-from server.errors import error_item, install_error_handlers, responses
+from server.errors import install_error_handlers, responses
 from server.jobs import LocalJobBackend, requeue_unfinished
 from server.routes import auctions, health, jobs, models
 from server.screening import ScreeningService
@@ -28,61 +27,6 @@ from server.submissions import SubmissionWriter
 from server.workers import WorkerContext, freeze_heap
 
 log = logging.getLogger("srd.app")
-
-
-class BodyLimitMiddleware:
-    """Refuse request bodies over ``max_bytes`` with 413: by Content-Length up front, and by
-    counting the bytes actually received (chunked uploads, or a header that lies)."""
-
-    def __init__(self, app: ASGIApp, *, max_bytes: int) -> None:
-        self.app = app
-        self.max_bytes = max_bytes
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        declared = dict(scope["headers"]).get(b"content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > self.max_bytes):
-            await self._refuse(send, declared.isdigit())
-            return
-        body = bytearray()
-        while True:
-            message = await receive()
-            if message["type"] != "http.request":  # client went away
-                return
-            body += message.get("body", b"")
-            if len(body) > self.max_bytes:
-                await self._refuse(send, True)
-                return
-            if not message.get("more_body", False):
-                break
-        delivered = False
-
-        async def replay() -> Message:
-            nonlocal delivered
-            if delivered:
-                return await receive()
-            delivered = True
-            return {"type": "http.request", "body": bytes(body), "more_body": False}
-
-        await self.app(scope, replay, send)
-
-    async def _refuse(self, send: Send, too_large: bool) -> None:
-        if too_large:
-            status, msg = 413, f"request body larger than {self.max_bytes} bytes"
-        else:
-            status, msg = 400, "Content-Length is not a number"
-        response = JSONResponse(
-            {"detail": [error_item(msg, loc=("header", "Content-Length"), kind="body_size")]},
-            status_code=status,
-            headers={"Connection": "close"},
-        )
-        await response({"type": "http"}, _no_receive, send)
-
-
-async def _no_receive() -> Message:
-    return {"type": "http.disconnect"}
 
 
 def _start_services(app: FastAPI, settings: Settings) -> None:
@@ -142,7 +86,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     install_error_handlers(app)
-    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
-    for module in (health, models, auctions, jobs):  # any request may be unreadable or too big
-        app.include_router(module.router, responses=responses(400, 413))
+    app.add_middleware(RequestBodyMiddleware, max_bytes=settings.max_body_bytes)
+    routers = (health, models, auctions, jobs)
+    for module in routers:  # any request may carry an unreadable body
+        app.include_router(module.router, responses=responses(400, 413, 415))
+    app.state.routes = [route for module in routers for route in module.router.routes]
     return app

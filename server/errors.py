@@ -14,6 +14,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 
 class ErrorItem(BaseModel):
@@ -58,12 +59,27 @@ def _json_safe_loc(loc: Iterable[Any]) -> list[str | int]:
     return [part if isinstance(part, int) else str(part) for part in loc]
 
 
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route serves at the request's path (a 405 names them all; Starlette
+    names only those of the first route whose path matches). ``app.state.routes`` is the flat
+    list of the app's routes (``create_app`` keeps it)."""
+    methods: set[str] = set()
+    for route in request.app.state.routes:
+        match, _ = route.matches({**request.scope, "method": "GET"})
+        if match != Match.NONE:
+            methods |= getattr(route, "methods", None) or set()
+    return sorted(methods)
+
+
 async def _http_exception(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     detail: Any = exc.detail
     if not isinstance(detail, list):  # framework errors (404 route, 405 method) carry a string
         detail = [error_item(str(detail), kind="http_error")]
-    return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=exc.headers)
+    headers = dict(exc.headers or {})
+    if exc.status_code == 405:
+        headers["Allow"] = ", ".join(allowed_methods(request))
+    return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=headers)
 
 
 async def _request_validation(request: Request, exc: Exception) -> JSONResponse:
@@ -93,12 +109,13 @@ def link(operation_id: str, parameter: str, field: str) -> dict[str, Any]:
 def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     """OpenAPI ``responses`` entries for the error codes a route can answer."""
     text = {
-        400: "Unreadable request (body not UTF-8 JSON, Content-Length not a number)",
+        400: "Unreadable request (body not UTF-8, not JSON, nested too deep; bad Content-Length)",
         401: "No bearer token",
         403: "Wrong bearer token",
         404: "No such resource",
         409: "Conflicts with the resource's current state",
         413: "Request body too large",
+        415: "Request body is not JSON (Content-Type)",
         422: "Invalid input; ``loc`` names the field",
         503: "A service the request needs is unavailable; retry",
     }

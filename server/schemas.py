@@ -6,7 +6,7 @@ from datetime import datetime
 from typing import Annotated, Any, Literal, get_args
 
 from fastapi import Path
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from sim.registry import KINDS
 
@@ -19,14 +19,31 @@ MAX_PATRONS = 10_000
 MAX_SEED = 2**31 - 1  # fits a 32-bit INTEGER column on every backend
 MAX_ROW_ID = 2**31 - 1  # ids are 32-bit INTEGER primary keys on every backend
 
+
+def _decimal(value: Any) -> Any:
+    """A path id is written in ASCII digits only: ``1.0``, ``1 `` or ``+1`` name no row."""
+    if isinstance(value, str) and not (value.isascii() and value.isdigit()):
+        raise ValueError("must be a positive integer written in digits")
+    return value
+
+
 RowId = Annotated[int, Field(ge=1, le=MAX_ROW_ID)]
-ModelIdPath = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="A model id.")]
-AuctionIdPath = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="An auction id.")]
-JobIdPath = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="A job id.")]
+ModelIdPath = Annotated[
+    int, BeforeValidator(_decimal), Path(ge=1, le=MAX_ROW_ID, description="A model id.")
+]
+AuctionIdPath = Annotated[
+    int, BeforeValidator(_decimal), Path(ge=1, le=MAX_ROW_ID, description="An auction id.")
+]
+JobIdPath = Annotated[
+    int, BeforeValidator(_decimal), Path(ge=1, le=MAX_ROW_ID, description="A job id.")
+]
 
 
 class _Input(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """A request body: unknown keys refused; numbers, booleans and integers typed strictly
+    (``"3"``, ``true`` or ``3.0`` are not the integer 3)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
 
 
 class HealthPublic(BaseModel):

@@ -107,12 +107,15 @@ def read_artifact(
 ) -> FileResponse:
     """One artifact file of a job (a name listed in its ``artifacts``)."""
     job = _existing_job(session, job_id)
+    missing = api_error(
+        404, f"job {job_id} has no artifact {name!r}", loc=("path", "name"), kind="not_found"
+    )
+    if name not in job.artifacts:  # before touching the file system with the name
+        raise missing
     base = job_dir(request.app.state.settings.data_dir, job_id).resolve()
     path = (base / name).resolve()
-    if name not in job.artifacts or not path.is_relative_to(base) or not path.is_file():
-        raise api_error(
-            404, f"job {job_id} has no artifact {name!r}", loc=("path", "name"), kind="not_found"
-        )
+    if not path.is_relative_to(base) or not path.is_file():
+        raise missing
     return FileResponse(path, filename=Path(name).name, content_disposition_type="inline")
 
 

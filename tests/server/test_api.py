@@ -156,10 +156,13 @@ def test_submit_non_finite_number_is_refused_with_its_path(
     assert count(client, Participant, name=name) == 0
 
 
-@pytest.mark.parametrize("raw", ['{"participant": ', "[1, 2]", '"manifest"', ""])
-def test_submit_malformed_json_or_wrong_type(client: TestClient, raw: str) -> None:
+@pytest.mark.parametrize(
+    ("raw", "status"), [('{"participant": ', 400), ("[1, 2]", 422), ('"manifest"', 422), ("", 422)]
+)
+def test_submit_malformed_json_or_wrong_type(client: TestClient, raw: str, status: int) -> None:
+    """Text that is not JSON is unreadable (400); JSON of the wrong shape is invalid (422)."""
     response = client.post("/submit", content=raw, headers={"Content-Type": "application/json"})
-    assert response.status_code == 422
+    assert response.status_code == status
     assert all(loc[0] == "body" for loc in locs(response))
 
 

@@ -1,0 +1,174 @@
+"""Strict input: bodies must be UTF-8 JSON with unique keys, numbers must be numbers, path ids
+must be written in digits; every refusal names the field and stores nothing."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from server.models import Auction, Job, ModelVersion
+from tests.server.conftest import ADMIN, honest, unique
+from tests.server.test_api import count, locs
+
+JSON = {"Content-Type": "application/json"}
+
+
+def manifest_with(path: tuple[str, ...], value: Any) -> dict[str, Any]:
+    data = honest(unique("strict"))
+    node = data
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    return data
+
+
+@pytest.mark.parametrize(
+    ("path", "value"),
+    [
+        (("external_sensor", "PG", "bias"), "0.2"),
+        (("external_sensor", "PG", "bias"), True),
+        (("schema_version",), 1.0),
+        (("schema_version",), True),
+        (("fine_tuning", "epochs"), "1"),
+        (("augmentation", "copies"), 5.0),
+        (("pfc", "trainable"), 1),
+    ],
+)
+def test_submit_types_numbers_strictly(client: TestClient, path, value) -> None:
+    before = count(client, ModelVersion)
+    response = client.post("/submit", json=manifest_with(path, value))
+    assert response.status_code == 422
+    assert ["body", *path] in locs(response)
+    assert count(client, ModelVersion) == before
+
+
+def test_an_integer_is_a_valid_number(client: TestClient) -> None:
+    response = client.post("/submit", json=manifest_with(("external_sensor", "PG", "bias"), 0))
+    assert response.status_code == 201, response.text
+
+
+def test_duplicate_key_is_refused_naming_it(client: TestClient) -> None:
+    data = honest(unique("dup"))
+    text = json.dumps(data)
+    doubled = text.replace('"participant": ', '"participant": "first", "participant": ', 1)
+    before = count(client, ModelVersion)
+    response = client.post("/submit", content=doubled, headers=JSON)
+    assert response.status_code == 422
+    assert locs(response) == [["body", "participant"]]
+    assert "twice" in response.json()["detail"][0]["msg"]
+    nested = text.replace('"bias": ', '"bias": 1.0, "bias": ', 1)
+    response = client.post("/submit", content=nested, headers=JSON)
+    assert response.status_code == 422
+    (loc,) = locs(response)
+    assert loc[0] == "body" and loc[-1] == "bias" and len(loc) > 2
+    assert count(client, ModelVersion) == before
+
+
+def test_body_must_be_utf8_json(client: TestClient) -> None:
+    text = json.dumps(honest(unique("enc")))
+    before = count(client, ModelVersion)
+    utf16 = client.post("/submit", content=text.encode("utf-16"), headers=JSON)
+    assert utf16.status_code == 400 and locs(utf16) == [["body"]]
+    bom = client.post("/submit", content=b"\xef\xbb\xbf" + text.encode(), headers=JSON)
+    assert bom.status_code == 400
+    broken = client.post("/submit", content=text[:-1], headers=JSON)
+    assert broken.status_code == 400 and "not JSON" in broken.json()["detail"][0]["msg"]
+    deep = client.post("/submit", content="[" * 5000 + "]" * 5000, headers=JSON)
+    assert deep.status_code == 400
+    latin = client.post(
+        "/submit", content=text, headers={"Content-Type": "application/json; charset=latin-1"}
+    )
+    assert latin.status_code == 415
+    assert '"noise_std": 0.01' in text
+    nan = client.post(
+        "/submit", content=text.replace('"noise_std": 0.01', '"noise_std": NaN'), headers=JSON
+    )
+    assert nan.status_code == 422 and locs(nan) == [["body", "augmentation", "noise_std"]]
+    assert count(client, ModelVersion) == before
+
+
+@pytest.mark.parametrize("content_type", ["text/plain", "application/x-www-form-urlencoded", ""])
+def test_non_json_media_type_is_415(client: TestClient, content_type: str) -> None:
+    headers = {"Content-Type": content_type} if content_type else {}
+    body = json.dumps(honest(unique("media"))).encode()
+    response = client.post("/submit", content=body, headers=headers)
+    assert response.status_code == 415
+    assert locs(response) == [["header", "Content-Type"]]
+
+
+def test_json_suffix_media_types_are_json(client: TestClient) -> None:
+    body = json.dumps(honest(unique("suffix")))
+    response = client.post(
+        "/submit", content=body, headers={"Content-Type": "application/vnd.srd+json"}
+    )
+    assert response.status_code == 201, response.text
+
+
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [
+        ({"n_fish": "3"}, "n_fish"),
+        ({"n_fish": True}, "n_fish"),
+        ({"n_fish": 3.0}, "n_fish"),
+        ({"rarity": "0.5"}, "rarity"),
+        ({"n_fish": 3, "fine_tune": "yes"}, "fine_tune"),
+        ({"n_fish": 3, "seed": "1"}, "seed"),
+    ],
+)
+def test_auction_fields_are_typed_strictly(client: TestClient, body, field) -> None:
+    before = count(client, Auction)
+    response = client.post("/auctions", json=body, headers=ADMIN)
+    assert response.status_code == 422
+    assert ["body", field] in locs(response)
+    assert count(client, Auction) == before
+
+
+@pytest.mark.parametrize(
+    ("params", "loc"),
+    [
+        ({"steps": "50"}, ["body", "params", "steps"]),
+        ({"steps": 50.0}, ["body", "params", "steps"]),
+        ({"srd": "yes"}, ["body", "params", "srd"]),
+    ],
+)
+def test_job_params_are_typed_strictly(client: TestClient, params, loc) -> None:
+    before = count(client, Job)
+    response = client.post("/jobs", json={"kind": "fish", "params": params}, headers=ADMIN)
+    assert response.status_code == 422
+    assert loc in locs(response)
+    assert count(client, Job) == before
+
+
+@pytest.mark.parametrize("raw", ["1.0", "1%20", "%201", "+1", "1e0", "0x1", "%EF%BC%91"])
+def test_path_ids_are_digits_only(client: TestClient, raw: str) -> None:
+    for prefix, name in (
+        ("/jobs/", "job_id"),
+        ("/models/", "model_id"),
+        ("/auctions/", "auction_id"),
+    ):
+        response = client.get(prefix + raw)
+        assert response.status_code == 422, (prefix, raw, response.text)
+        assert locs(response) == [["path", name]]
+
+
+def test_artifact_name_with_a_null_byte_is_404(client: TestClient) -> None:
+    created = client.post("/jobs", json={"kind": "fish", "params": {"steps": 5}}, headers=ADMIN)
+    job_id = created.json()["job_id"]
+    for name in ("a%00b", "%00"):
+        response = client.get(f"/jobs/{job_id}/artifacts/{name}")
+        assert response.status_code == 404
+        assert locs(response) == [["path", "name"]]
+
+
+def test_405_names_every_method_of_the_path(client: TestClient) -> None:
+    for method, path, allowed in (
+        ("OPTIONS", "/jobs/1", "DELETE, GET"),
+        ("PUT", "/jobs/1", "DELETE, GET"),
+        ("GET", "/submit", "POST"),
+    ):
+        response = client.request(method, path)
+        assert response.status_code == 405
+        assert response.headers["allow"] == allowed

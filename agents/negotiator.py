@@ -646,6 +646,59 @@ def draw_fine_tune_blocks(
     return FineTuneDraws(order=order, normal=normal, scale=noise_scale(batch))
 
 
+SEED_BITS = 53
+"""Derived seeds have 53 bits: exact as JSON numbers in any language (IEEE doubles)."""
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX = (np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB))
+
+
+def _splitmix64(x: np.ndarray) -> np.ndarray:
+    """SplitMix64's output function of x + golden ratio (uint64, wrapping), element-wise."""
+    z = x + _GOLDEN
+    z = (z ^ (z >> np.uint64(30))) * _MIX[0]
+    z = (z ^ (z >> np.uint64(27))) * _MIX[1]
+    return z ^ (z >> np.uint64(31))
+
+
+def derive_seeds(parent: int | np.ndarray, child: int | Sequence[int] | np.ndarray) -> np.ndarray:
+    """Seeds derived from (parent, child) pairs, element-wise (uint64 array, < 2**SEED_BITS):
+    splitmix64(splitmix64(parent) XOR child) keeping its low SEED_BITS bits. Cheap and
+    vectorised, so a round can derive one seed per patron without a Python loop."""
+    with np.errstate(over="ignore"):
+        mixed = _splitmix64(np.asarray(parent, dtype=np.uint64)) ^ np.asarray(child, np.uint64)
+        return np.atleast_1d(_splitmix64(mixed) & np.uint64((1 << SEED_BITS) - 1))
+
+
+def draw_fine_tune_seeded(
+    batch: FSNBatch, n_rows: int, shuffle_seeds: np.ndarray, noise_seeds: np.ndarray
+) -> FineTuneDraws:
+    """One round's draws with every patron's own generators: patron p's shuffle keys (its
+    epochs × R uniforms, argsorted per epoch) from a torch generator seeded with
+    ``shuffle_seeds[p]``, its N(0, 1) augmentation draws (epochs × R × its D_ic × 8) from one
+    seeded with ``noise_seeds[p]``. A patron's draws depend on its own settings and seeds
+    only, so it draws the same numbers alone (a remote agent) as in any batch. Patrons
+    without epochs draw nothing (they are never visited)."""
+    P, E, D = batch.n_patrons, int(batch.epochs.max()), batch.max_copies
+    keys = torch.zeros((P, E, n_rows), dtype=torch.float64)
+    normal = torch.empty((P, E, n_rows, D, len(INPUTS)), dtype=torch.float32)
+    generator = torch.Generator()
+    epochs, copies = batch.epochs.tolist(), batch.copies.tolist()
+    shuffle, noise = shuffle_seeds.tolist(), noise_seeds.tolist()
+    for p in range(P):
+        e, c = epochs[p], copies[p]
+        if e == 0:
+            continue
+        generator.manual_seed(shuffle[p])
+        torch.rand((e, n_rows), generator=generator, dtype=torch.float64, out=keys[p, :e])
+        generator.manual_seed(noise[p])
+        if (e, c) == (E, D):
+            standard_normal((e, n_rows, c), generator, out=normal[p])
+        else:  # padded epochs are never visited; padded copies must hold finite zeros
+            normal[p, :e, :, :c] = standard_normal((e, n_rows, c), generator)
+            normal[p, :e, :, c:] = 0.0
+    return FineTuneDraws(order=keys.argsort(dim=-1), normal=normal, scale=noise_scale(batch))
+
+
 def _flat_parameters(batch: FSNBatch) -> Tensor:
     """The trainable tensors side by side, (P, N_θ), in ``_PARAMETERS`` order."""
     P = batch.n_patrons
@@ -947,6 +1000,28 @@ def fine_tune(
     return batch.with_parameters(_unflatten(batch, theta))
 
 
+def fine_tune_round(
+    batch: FSNBatch,
+    x: Tensor,
+    fine_tune_seeds: np.ndarray,
+    augmentation_seeds: np.ndarray,
+    positions: np.ndarray,
+    dataset: Tensor | None = None,
+) -> FSNBatch:
+    """One fine-tuning round of an auction, the same in the market and in a remote agent:
+    patron p, at position ``positions[p]`` of its auction, shuffles its rows with the seed
+    ``derive_seeds(fine_tune_seeds[p], position)`` and jitters its copies with
+    ``derive_seeds(augmentation_seeds[p], position)``, then ``fine_tune`` runs (``x`` and
+    ``dataset`` as there)."""
+    draws = draw_fine_tune_seeded(
+        batch,
+        x.shape[-2],
+        derive_seeds(fine_tune_seeds, positions),
+        derive_seeds(augmentation_seeds, positions),
+    )
+    return fine_tune(batch, x, draws, dataset=dataset)
+
+
 # --- Patron factories -------------------------------------------------------------------------
 
 
@@ -1077,9 +1152,12 @@ __all__ = [
     "activations",
     "decide",
     "decision_logits",
+    "derive_seeds",
     "draw_fine_tune",
     "draw_fine_tune_blocks",
+    "draw_fine_tune_seeded",
     "fine_tune",
+    "fine_tune_round",
     "from_manifests",
     "honest_manifest",
     "make_noise",

@@ -15,7 +15,16 @@ One iteration (all patrons evaluated in one batched tensor pass):
    that row. Row-0 quitters leave.
 4. Stop when sold out, when no patron is left, at a stalemate (price < threshold) or after
    ``max_iterations``. Otherwise, in the first ``fine_tune_rounds`` iterations and if
-   ``fine_tune``, every active patron fine-tunes itself (SRD) on the updated rows.
+   ``fine_tune``, every active patron fine-tunes itself (SRD) on the updated rows: in the
+   market (``fine_tune_mode`` "server"), or elsewhere ("remote": the iteration leaves a
+   ``FineTuneRound`` pending, and ``apply_round`` brings the patrons' results back before the
+   next iteration).
+
+A fine-tuning round's randomness is each patron's own: the round's ``fine_tune_seed`` (row
+shuffles) and ``augmentation_seed`` (the noise of the D_ic copies) come from the auction seed
+and the iteration (``round_seeds``), and each patron derives its generators from them and its
+position in the auction (``agents.negotiator.fine_tune_round``). So a patron fine-tuning alone
+(a remote agent given the round's rows and seeds) computes what the market would.
 
 ``MarketBatch`` runs many independent auctions in lock-step (the study's grid); ``Market`` is
 one auction. Each auction draws only from its own generators, derived from its seed, so it is
@@ -26,10 +35,10 @@ from __future__ import annotations
 
 import dataclasses
 import io
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, get_args
 
 import numpy as np
 import torch
@@ -40,8 +49,8 @@ from agents.negotiator import (
     ACTIONS,
     FSNBatch,
     decide,
-    draw_fine_tune_blocks,
-    fine_tune,
+    derive_seeds,
+    fine_tune_round,
     from_manifests,
     noise_scale,
     standard_normal,
@@ -62,6 +71,12 @@ STOP_REASONS = ("sold_out", "no_patrons", "stalemate", "max_iterations")
 EVALUATION_CHUNK = 32_000
 """(patron, row, copy) evaluations per ``decide`` call: bigger tensors fall out of the cache
 (3–5× slower per evaluation at 1.8M)."""
+FineTuneMode = Literal["server", "remote"]
+"""Who runs a fine-tuning round: the market itself, or the patrons elsewhere."""
+FINE_TUNE_STREAM, AUGMENTATION_STREAM = 1, 2
+"""Children of an iteration's seed: the round's shuffle seed and its augmentation seed."""
+CHECKPOINT_FORMAT = 2
+"""``MarketBatch.state()`` format; 2 adds the pending remote rounds (1 is read as none)."""
 
 
 @dataclass(frozen=True)
@@ -86,6 +101,9 @@ class MarketConfig:
     """Let patrons fine-tune themselves (SRD) with their own settings."""
     fine_tune_rounds: int = 4
     """Fine-tuning happens after each of the first this-many iterations (reference: 5)."""
+    fine_tune_mode: FineTuneMode = "server"
+    """"server": the market fine-tunes the patrons; "remote": each round is left pending for
+    the patrons to fine-tune themselves, and ``apply_round`` takes their results."""
     seed: int = 0
     """Seeds the rows, the augmentation noise, the shuffles and the price raises."""
     evaluate_all_rows: bool = True
@@ -107,6 +125,8 @@ class MarketConfig:
             problems.append("fine_tune_rounds must be ≥ 0")
         if self.seed < 0:
             problems.append("seed must be ≥ 0")
+        if self.fine_tune_mode not in get_args(FineTuneMode):
+            problems.append(f"fine_tune_mode must be one of {get_args(FineTuneMode)}")
         if problems:
             raise ValueError("; ".join(problems))
 
@@ -171,7 +191,8 @@ def item_rows(config: MarketConfig, rng: np.random.Generator) -> np.ndarray:
 @dataclass
 class AuctionRandom:
     """An auction's generators: numpy for the rows and price raises; torch ``decisive`` for
-    row 0's augmentation noise; torch ``rows`` for rows 1.. and for fine-tuning."""
+    row 0's augmentation noise; torch ``rows`` for rows 1.. (fine-tuning rounds draw from
+    per-patron generators instead, see ``round_seeds``)."""
 
     numpy: np.random.Generator
     decisive: torch.Generator
@@ -211,6 +232,50 @@ def scores_all_rows(config: MarketConfig, iteration: int) -> bool:
 def fine_tunes_after(config: MarketConfig, iteration: int) -> bool:
     """Whether patrons fine-tune after this iteration (if the auction goes on)."""
     return config.fine_tune and iteration < config.fine_tune_rounds
+
+
+def round_seeds(seed: int, iteration: int) -> tuple[int, int]:
+    """(fine_tune_seed, augmentation_seed) of the fine-tuning round after ``iteration`` of the
+    auction seeded ``seed``."""
+    base = derive_seeds(seed, iteration)
+    shuffle, noise = derive_seeds(base, [FINE_TUNE_STREAM, AUGMENTATION_STREAM]).tolist()
+    return int(shuffle), int(noise)
+
+
+@dataclass(frozen=True)
+class FineTuneRound:
+    """A fine-tuning round awaiting the patrons' results (remote mode)."""
+
+    iteration: int
+    """The iteration it follows."""
+    rows: np.ndarray
+    """(R, 8) float64: the item rows after that iteration (new price and buy fractions)."""
+    fine_tune_seed: int
+    augmentation_seed: int
+    patrons: list[int]
+    """Positions of the patrons asked (the active ones)."""
+
+
+FROZEN_IN_ROUNDS = "only weights and biases change in a fine-tuning round"
+
+
+def round_update_problems(current: Manifest, update: Manifest) -> list[tuple[str, str]]:
+    """What ``update`` changes beyond the weights and biases of ``current``, as (dotted path,
+    message) pairs: a fine-tuning round moves the numbers, never the model's design
+    (activations, augmentation, settings, names)."""
+    problems: list[tuple[str, str]] = []
+
+    def walk(before: Any, after: Any, path: tuple[str, ...]) -> None:
+        if path[-1:] == ("bias",) or path[-2:-1] == ("weights",):
+            return
+        if isinstance(before, dict) and isinstance(after, dict) and before.keys() == after.keys():
+            for key in before:
+                walk(before[key], after[key], (*path, key))
+        elif before != after:
+            problems.append((".".join(path), f"{FROZEN_IN_ROUNDS}: must stay {before!r}"))
+
+    walk(current.model_dump(mode="json"), update.model_dump(mode="json"), ())
+    return problems
 
 
 def _runs(work: list[int], limit: int) -> list[tuple[int, int]]:
@@ -275,6 +340,8 @@ class MarketBatch:
         self.finished = np.zeros(A, dtype=bool)
         self.stop_reason: list[str | None] = [None] * A
         self.active = np.ones(len(self.owner), dtype=bool)
+        self.pending = np.zeros(A, dtype=bool)
+        """Auctions whose remote fine-tuning round awaits ``apply_round``."""
         self._voters: tuple[bytes, FSNBatch] | None = None
 
     @property
@@ -288,6 +355,9 @@ class MarketBatch:
         running = ~self.finished
         if not running.any():
             raise RuntimeError("every auction has finished")
+        if self.pending.any():
+            waiting = np.flatnonzero(self.pending).tolist()
+            raise RuntimeError(f"auctions {waiting} await their fine-tuning round (apply_round)")
         A = self.n_auctions
         iteration = self.iteration.copy()
         iterations = iteration.tolist()
@@ -370,7 +440,9 @@ class MarketBatch:
                 if reasons[a] is None and fine_tunes_after(self.configs[a], iterations[a])
             ]
         ] = True
-        kept, reverted = self._fine_tune(tune)
+        remote = np.array([c.fine_tune_mode == "remote" for c in self.configs])
+        self.pending = tune & remote
+        kept, reverted = self._fine_tune(tune & ~remote, iteration)
 
         records: list[IterationRecord | None] = [None] * A
         buyers, quitters = self._by_auction(bought), self._by_auction(quitted)
@@ -472,15 +544,27 @@ class MarketBatch:
             self._voters = (key, self.batch.select(voters))
         return self._voters[1]
 
-    def _fine_tune(self, tune: np.ndarray) -> tuple[dict[int, list[int]], dict[int, list[int]]]:
-        """Fine-tune the active patrons of the auctions in ``tune``; re-screen if asked."""
+    def _fine_tune(
+        self, tune: np.ndarray, iteration: np.ndarray
+    ) -> tuple[dict[int, list[int]], dict[int, list[int]]]:
+        """Fine-tune the active patrons of the auctions in ``tune`` after their ``iteration``;
+        re-screen if asked."""
         patrons = np.flatnonzero(self.active & tune[self.owner])
         if len(patrons) == 0:
             return {}, {}
         sub = self.batch.select(patrons)
-        blocks = [(stop - start, self.random[a].rows) for a, start, stop in self._groups(patrons)]
-        draws = draw_fine_tune_blocks(sub, self.n_rows, blocks)
-        tuned = fine_tune(sub, self.rows, draws, dataset=torch.from_numpy(self.owner[patrons]))
+        seeds = np.zeros((self.n_auctions, 2), dtype=np.uint64)
+        for a in np.flatnonzero(tune).tolist():
+            seeds[a] = round_seeds(self.configs[a].seed, int(iteration[a]))
+        owner = self.owner[patrons]
+        tuned = fine_tune_round(
+            sub,
+            self.rows,
+            seeds[owner, 0],
+            seeds[owner, 1],
+            self.local[patrons],
+            dataset=torch.from_numpy(owner),
+        )
         self._voters = None
         index = torch.from_numpy(patrons)
         for name, value in tuned.parameters().items():
@@ -504,6 +588,47 @@ class MarketBatch:
                     value[i] = self.accepted[name][i]
         return kept, reverted
 
+    # --- remote fine-tuning rounds -----------------------------------------------------------
+
+    def pending_round(self, auction: int) -> FineTuneRound | None:
+        """The auction's fine-tuning round awaiting ``apply_round``, if any."""
+        if not self.pending[auction]:
+            return None
+        iteration = int(self.iteration[auction]) - 1
+        fine_tune_seed, augmentation_seed = round_seeds(self.configs[auction].seed, iteration)
+        mine = slice(self.first[auction], self.first[auction + 1])
+        return FineTuneRound(
+            iteration=iteration,
+            rows=self.rows[auction].numpy().copy(),
+            fine_tune_seed=fine_tune_seed,
+            augmentation_seed=augmentation_seed,
+            patrons=np.flatnonzero(self.active[mine]).tolist(),
+        )
+
+    def apply_round(self, auction: int, updates: Mapping[int, Manifest]) -> None:
+        """Close the auction's pending round: patron ``position`` takes the weights and biases
+        of ``updates[position]``; the others keep theirs. Raises ValueError (nothing applied)
+        for a patron not asked in the round or an update that changes more than the numbers."""
+        pending = self.pending_round(auction)
+        if pending is None:
+            raise ValueError(f"auction {auction} has no pending fine-tuning round")
+        index = []
+        for position, manifest in updates.items():
+            if position not in pending.patrons:
+                raise ValueError(f"patron {position} is not asked in this round")
+            i = int(self.first[auction]) + position
+            problems = round_update_problems(to_manifest(self.batch, i), manifest)
+            if problems:
+                raise ValueError(f"patron {position}: {problems[0][0]}: {problems[0][1]}")
+            index.append(i)
+        if index:
+            new = from_manifests([updates[p] for p in updates], self.batch.dtype).parameters()
+            at = torch.tensor(index)
+            for name, value in self.batch.parameters().items():
+                value[at] = new[name]
+            self._voters = None
+        self.pending[auction] = False
+
     # --- state --------------------------------------------------------------------------------
 
     def manifests(self, auction: int) -> list[Manifest]:
@@ -515,7 +640,7 @@ class MarketBatch:
     def state(self) -> dict[str, Any]:
         """Everything needed to continue (tensors, numbers, generator states)."""
         return {
-            "format": 1,
+            "format": CHECKPOINT_FORMAT,
             "participants": list(self.batch.participants),
             "price": self.price.tolist(),
             "threshold": self.threshold.tolist(),
@@ -533,11 +658,15 @@ class MarketBatch:
             if self.accepted is None
             else {k: v.clone() for k, v in self.accepted.items()},
             "random": [r.state() for r in self.random],
+            "pending": self.pending.tolist(),
         }
 
     def load_state(self, state: dict[str, Any]) -> None:
         """Continue from ``state()`` of a batch built from the same manifests and configs."""
-        if state.get("format") != 1 or state["participants"] != self.batch.participants:
+        if (
+            state.get("format") not in (1, CHECKPOINT_FORMAT)
+            or state["participants"] != self.batch.participants
+        ):
             raise ValueError("checkpoint does not belong to these manifests")
         self.price = np.array(state["price"], dtype=np.float64)
         self.threshold = np.array(state["threshold"], dtype=np.float64)
@@ -556,6 +685,7 @@ class MarketBatch:
             self.accepted = {k: v.clone() for k, v in state["accepted"].items()}
         for random, saved in zip(self.random, state["random"], strict=True):
             random.load(saved)
+        self.pending = np.array(state.get("pending", [False] * self.n_auctions), dtype=bool)
 
 
 class Market:
@@ -629,6 +759,16 @@ class Market:
     def current_manifests(self) -> list[Manifest]:
         """The patrons with their current (possibly fine-tuned) parameters."""
         return self._engine.manifests(0)
+
+    @property
+    def pending_round(self) -> FineTuneRound | None:
+        """The remote fine-tuning round awaiting ``apply_round`` (``step`` refuses until then)."""
+        return self._engine.pending_round(0)
+
+    def apply_round(self, updates: Mapping[int, Manifest]) -> None:
+        """Close the pending round with the patrons' fine-tuned manifests by position (see
+        ``MarketBatch.apply_round``)."""
+        self._engine.apply_round(0, updates)
 
 
 def run_auction(manifests: Sequence[Manifest], config: MarketConfig) -> list[IterationRecord]:

@@ -11,7 +11,8 @@ import torch
 from agents.manifest import Manifest
 from agents.negotiator import (
     decide,
-    draw_fine_tune,
+    derive_seeds,
+    draw_fine_tune_seeded,
     from_manifests,
     honest_manifest,
     make_noise,
@@ -25,6 +26,7 @@ from sim.market import (
     MarketConfig,
     fine_tunes_after,
     item_rows,
+    round_seeds,
     scores_all_rows,
 )
 from tests.agents.test_negotiator import loop_fine_tune
@@ -47,8 +49,9 @@ def loop_auction(manifests: list[Manifest], config: MarketConfig) -> list[Iterat
     """The auction written plainly, one patron at a time (spec auction.md §6).
 
     It draws the same random numbers as the engine: the rows and price raises from the numpy
-    generator, row 0's noise from ``decisive``, rows 1.. and fine-tuning from ``rows``, each
-    drawn for the active patrons in order and sliced per patron here.
+    generator, row 0's noise from ``decisive``, rows 1.. from ``rows``, each drawn for the
+    active patrons in order and sliced per patron here; fine-tuning from each patron's own
+    generators, seeded from the round's seeds and its position.
     """
     random = AuctionRandom.from_seed(config.seed)
     rows = torch.tensor(item_rows(config, random.numpy))
@@ -100,12 +103,16 @@ def loop_auction(manifests: list[Manifest], config: MarketConfig) -> list[Iterat
             reason = "max_iterations"
         tuned = []
         if reason is None and fine_tunes_after(config, iteration):
-            draws = draw_fine_tune(everyone.select(active), R, random.rows)
-            for j, p in enumerate(active):
+            shuffle_seed, noise_seed = round_seeds(config.seed, iteration)
+            for p in active:
                 if current[p].fine_tuning.epochs > 0:
-                    copies = current[p].augmentation.copies
-                    own = draws.noise[j, :, :, :copies]
-                    current[p] = loop_fine_tune(current[p], rows, draws.order[j], own)
+                    own = draw_fine_tune_seeded(
+                        from_manifests([current[p]]),
+                        R,
+                        derive_seeds(shuffle_seed, p),
+                        derive_seeds(noise_seed, p),
+                    )
+                    current[p] = loop_fine_tune(current[p], rows, own.order[0], own.noise[0])
                     singles[p] = from_manifests([current[p]])
                     tuned.append(p)
         records.append(

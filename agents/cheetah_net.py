@@ -3,7 +3,8 @@
 Every parameter tensor carries a leading trial axis, so one module instance drives a whole
 experiment grid (each trial with its own weights, backswing and inhibitor) in one batched call.
 
-Neuron by neuron (paper, "MuJoCo with SRD" and its appendix; spec cheetah.md §5–§8):
+Neuron by neuron (the paper's "MuJoCo with SRD" section and its appendix, as the reference code
+implements them):
 
 * input u (12): x then z of the bodies bthigh, bshin, bfoot, fthigh, fshin, ffoot relative to
   the torso body origin (world-frame differences).

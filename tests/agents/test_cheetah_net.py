@@ -1,4 +1,4 @@
-"""HalfCheetahSRD neuron by neuron, against float64 formulas of spec cheetah.md §5–§8."""
+"""HalfCheetahSRD neuron by neuron, against float64 formulas of the reference's neurons."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ REST = torch.tensor([STABLE_POSE_X + STABLE_POSE_Z], dtype=torch.float32)
 
 
 def reference_actions(u, weight, bias, backswing, inhibitor):
-    """a = tanh(2 (W LeakyReLU(h − inhibitor) + b)) in float64 (spec §7)."""
+    """a = tanh(2 (W LeakyReLU(h − inhibitor) + b)) in float64."""
     u = np.asarray(u, dtype=np.float64)
     dx = ((u[:6] - np.array(STABLE_POSE_X)) ** 2).sum()
     dz = ((u[6:] - np.array(STABLE_POSE_Z)) ** 2).sum()

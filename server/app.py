@@ -7,6 +7,7 @@ previous run left unfinished. ``srd serve`` runs it with uvicorn.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -17,7 +18,7 @@ from starlette.concurrency import run_in_threadpool
 from server.auctions import AuctionRunner
 from server.body import RequestBodyMiddleware
 from server.config import Settings, get_settings
-from server.db import Database, upgrade_schema
+from server.db import Database, prepare_database
 from server.errors import install_error_handlers, responses
 from server.jobs import LocalJobBackend, requeue_unfinished
 from server.routes import auctions, health, jobs, models
@@ -31,7 +32,7 @@ log = logging.getLogger("srd.app")
 
 def _start_services(app: FastAPI, settings: Settings) -> None:
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    upgrade_schema(settings.database_url)
+    prepare_database(settings.database_url, settings.databases_file)
     database = Database(settings.database_url)
     context = WorkerContext(
         database_url=settings.database_url,
@@ -43,7 +44,12 @@ def _start_services(app: FastAPI, settings: Settings) -> None:
     app.state.database = database
     app.state.admin_token_hash = load_admin_token_hash(settings)
     app.state.auctions = AuctionRunner(database, context, max_workers=settings.auction_workers)
-    app.state.jobs = LocalJobBackend(database, context, max_workers=settings.job_workers)
+    app.state.jobs = LocalJobBackend(
+        database,
+        dataclasses.replace(context, memory_mb=settings.job_memory_mb),
+        max_workers=settings.job_workers,
+        timeout_s=settings.job_timeout_s,
+    )
     app.state.screening = ScreeningService()
     app.state.screening.start()
     app.state.submissions = SubmissionWriter(database)

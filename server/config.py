@@ -32,8 +32,24 @@ class Settings(BaseSettings):
     worker_nice: Annotated[int, Field(ge=0, le=19)] = 10
     """Scheduling niceness added to auction/job worker processes (POSIX ``nice``): background
     computation yields the CPU to the API's requests under load, and takes it all when idle."""
+    job_timeout_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 3600.0
+    """Wall-time limit of one job: a job still running after this long is stopped and failed."""
+    job_memory_mb: Annotated[int, Field(ge=512, le=1 << 20)] = 4096
+    """Address-space limit of a job's worker process (MB, ``RLIMIT_AS``, enforced by the OS)."""
+    job_budget_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 1800.0
+    """Jobs whose estimated compute (seconds on one core) exceeds this are refused with 422."""
+    auction_timeout_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 3600.0
+    """Wall-time limit of one auction run: one still running after this long is failed."""
     progress_interval_s: Annotated[float, Field(gt=0)] = 0.5
     """Minimum time between two progress writes of a running job."""
+    event_poll_interval_s: Annotated[float, Field(gt=0, le=10)] = 0.2
+    """How often a watched auction or job is read while an event stream listens to it (one
+    read per watched row per interval, shared by all its streams in the process)."""
+    event_keepalive_s: Annotated[float, Field(gt=0, le=300)] = 15.0
+    """An idle event stream sends a comment this often (proxies keep it open, and a client that
+    went away is noticed)."""
+    max_event_streams: Annotated[int, Field(ge=1, le=100_000)] = 256
+    """Event streams open at once in one process; more get 503 with ``Retry-After``."""
     host: str = "127.0.0.1"
     """Address ``srd serve`` binds by default."""
     port: Annotated[int, Field(ge=0, le=65535)] = 8000
@@ -45,9 +61,9 @@ class Settings(BaseSettings):
         return self.data_dir / "admin_token"
 
     @property
-    def jobs_dir(self) -> Path:
-        """Root of the job artifact folders."""
-        return self.data_dir / "jobs"
+    def databases_file(self) -> Path:
+        """The databases this data folder has served (see ``server.db.prepare_database``)."""
+        return self.data_dir / "databases.json"
 
 
 @lru_cache(maxsize=1)

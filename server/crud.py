@@ -291,10 +291,13 @@ def fail_unfinished(
     """Mark an auction or job failed with ``error``, unless it has already ended."""
     unfinished = ("pending", "running") if table is Auction else ("queued", "running")
     now = utcnow()
+    values: dict[str, Any] = {"status": "failed", "error": error, "finished_at": now}
+    if table is Job:
+        values["message"] = "failed"
     session.execute(
         update(table)
         .where(table.id == row_id, table.status.in_(unfinished))
-        .values(status="failed", error=error, finished_at=now, updated_at=now)
+        .values(updated_at=now, **values)
     )
 
 

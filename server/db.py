@@ -4,21 +4,30 @@ SQLite gets ``foreign_keys=ON``, WAL journaling and a busy timeout on every conn
 transactions are begun by us: write sessions say ``BEGIN IMMEDIATE`` so that two writers queue
 for the lock up front instead of failing when a read transaction tries to upgrade, and the
 writers of one process queue on a lock first (see ``_SqliteWriters``).
+
+A database is never created behind the operator's back: only ``upgrade_schema`` (at a server's
+first start on it) may create a SQLite file; every other connection opens it read-write only,
+so a deleted file is an error, not a new empty database. ``Database`` remembers what it opened
+(the SQLite file's inode, the PostgreSQL database's oid) and ``Database.problem`` notices when
+that database is gone or replaced; write sessions then refuse to start.
 """
 
 from __future__ import annotations
 
+import json
 import sqlite3
 import threading
 import time
 from collections.abc import AsyncIterator
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated, Any
+from urllib.parse import quote
 
 from alembic import command
 from alembic.config import Config
 from fastapi import Depends, Request
-from sqlalchemy import Connection, Engine, create_engine, event
+from sqlalchemy import Connection, Engine, create_engine, event, inspect, make_url
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -28,9 +37,29 @@ SQLITE_BUSY_TIMEOUT_MS = 30_000  # a writer waits this long for the lock before 
 LOCK_RETRY_S = 0.0005  # how often a writer retries BEGIN IMMEDIATE while another process writes
 
 
+IDENTITY_CHECK_S = 1.0  # how long a database check is trusted before it is made again
+
+
+class DatabaseUnavailableError(RuntimeError):
+    """The database is gone, replaced, or not reachable (503)."""
+
+
 def is_sqlite(url: str) -> bool:
     """True for ``sqlite:`` URLs."""
     return url.startswith("sqlite")
+
+
+def sqlite_path(url: str) -> Path:
+    """The absolute path of a SQLite URL's database file."""
+    database = make_url(url).database
+    if not database or database == ":memory:":
+        raise ValueError(f"{url}: a file database is needed")
+    return Path(database).resolve()
+
+
+def _open_existing(url: str) -> str:
+    """The URL of the same SQLite file, opened read-write but never created."""
+    return f"sqlite:///file:{quote(str(sqlite_path(url)))}?mode=rw&uri=true"
 
 
 def _sqlite_on_connect(dbapi_connection: Any, _record: Any) -> None:
@@ -111,11 +140,13 @@ class _SqliteWriters:
             self._lock.release()
 
 
-def make_engine(url: str) -> Engine:
-    """An engine for ``url`` with this project's per-connection settings."""
+def make_engine(url: str, *, create: bool = False) -> Engine:
+    """An engine for ``url`` with this project's per-connection settings; a SQLite file must
+    exist unless ``create`` (migrations at first start)."""
     if is_sqlite(url):
         engine = create_engine(
-            url, connect_args={"check_same_thread": False, "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}
+            url if create else _open_existing(url),
+            connect_args={"check_same_thread": False, "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000},
         )
         writers = _SqliteWriters()
         event.listen(engine, "connect", _sqlite_on_connect)
@@ -125,8 +156,22 @@ def make_engine(url: str) -> Engine:
     return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
 
 
+def _identity(engine: Engine, url: str) -> tuple[int, ...]:
+    """What names this very database: the SQLite file's (device, inode), or the PostgreSQL
+    database's oid (a dropped and re-created database gets a new one)."""
+    if is_sqlite(url):
+        stat = sqlite_path(url).stat()
+        return (stat.st_dev, stat.st_ino)
+    with engine.connect() as connection:
+        oid = connection.exec_driver_sql(
+            "SELECT oid FROM pg_database WHERE datname = current_database()"
+        ).scalar_one()
+    return (int(oid),)
+
+
 class Database:
-    """One engine and its two session factories (read and write)."""
+    """One engine and its two session factories (read and write), tied to the database that
+    was there when it was made."""
 
     def __init__(self, url: str) -> None:
         self.url = url
@@ -135,10 +180,40 @@ class Database:
         self._write = sessionmaker(
             bind=self.engine.execution_options(**{_WRITE_OPTION: True}), expire_on_commit=False
         )
+        self._identity = _identity(self.engine, url)
+        self._checked_at = time.monotonic()
+        self._problem: str | None = None
+        self._check_lock = threading.Lock()
+
+    def problem(self) -> str | None:
+        """Why the database cannot be used (gone, replaced, unreachable), or None. The answer
+        is kept for ``IDENTITY_CHECK_S``; a problem once found stays (restart to clear it)."""
+        with self._check_lock:
+            if self._problem is None and time.monotonic() - self._checked_at > IDENTITY_CHECK_S:
+                self._problem = self._check()
+                self._checked_at = time.monotonic()
+            return self._problem
+
+    def _check(self) -> str | None:
+        try:
+            now = _identity(self.engine, self.url)
+        except FileNotFoundError:
+            return f"the database file {sqlite_path(self.url)} was deleted"
+        except Exception as exc:  # unreachable: a dropped database, a stopped server
+            return f"the database cannot be reached: {str(exc).splitlines()[0]}"
+        if now != self._identity:
+            return "the database was replaced by another one since this server started"
+        return None
 
     def session(self, *, write: bool) -> Session:
-        """A new session; ``write=True`` takes the write lock at BEGIN on SQLite."""
-        return self._write() if write else self._read()
+        """A new session; ``write=True`` takes the write lock at BEGIN on SQLite, and raises
+        ``DatabaseUnavailableError`` if the database is gone or replaced."""
+        if write:
+            problem = self.problem()
+            if problem is not None:
+                raise DatabaseUnavailableError(problem)
+            return self._write()
+        return self._read()
 
     def close(self) -> None:
         """Release every pooled connection."""
@@ -154,8 +229,43 @@ def alembic_config(url: str) -> Config:
 
 
 def upgrade_schema(url: str) -> None:
-    """Bring the database at ``url`` to the newest schema (``alembic upgrade head``)."""
+    """Bring the database at ``url`` to the newest schema (``alembic upgrade head``), creating
+    a SQLite file if there is none."""
     command.upgrade(alembic_config(url), "head")
+
+
+def prepare_database(url: str, marker: Path) -> None:
+    """Migrate the database at ``url`` to the newest schema, refusing to start over a lost one.
+
+    ``marker`` (in the server's data folder) records every database this data folder has
+    served. A database without a schema is created only if it is new to the marker: if it
+    served before and is now empty or missing, it was deleted or replaced, and the server
+    refuses to start rather than quietly begin again with nothing.
+    """
+    key = make_url(url).render_as_string(hide_password=True)
+    served: dict[str, str] = json.loads(marker.read_text()) if marker.exists() else {}
+    if key in served and not has_schema(url):
+        raise DatabaseUnavailableError(
+            f"the database {key} served this server before ({served[key]}) but has no schema "
+            f"now: it was deleted or replaced. Restore it, or remove its entry from {marker} "
+            "to start again with an empty database."
+        )
+    upgrade_schema(url)
+    if key not in served:
+        served[key] = datetime.now(UTC).isoformat(timespec="seconds")
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        marker.write_text(json.dumps(served, indent=2) + "\n")
+
+
+def has_schema(url: str) -> bool:
+    """Whether the database at ``url`` exists and carries this project's schema."""
+    if is_sqlite(url) and not sqlite_path(url).exists():
+        return False
+    engine = make_engine(url)
+    try:
+        return inspect(engine).has_table("alembic_version")
+    finally:
+        engine.dispose()
 
 
 _WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})

@@ -16,6 +16,8 @@ from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
+from server.db import DatabaseUnavailableError
+
 
 class ErrorItem(BaseModel):
     """One problem: where (``loc``), what (``msg``), and a machine-readable ``type``."""
@@ -95,10 +97,16 @@ async def _request_validation(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": detail}, status_code=422)
 
 
+async def _database_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    detail = [error_item(str(exc), loc=("database",), kind="db_unavailable")]
+    return JSONResponse({"detail": detail}, status_code=503)
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Route every framework error through the common body."""
     app.add_exception_handler(StarletteHTTPException, _http_exception)
     app.add_exception_handler(RequestValidationError, _request_validation)
+    app.add_exception_handler(DatabaseUnavailableError, _database_unavailable)
 
 
 def link(operation_id: str, parameter: str, field: str) -> dict[str, Any]:

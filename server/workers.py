@@ -17,6 +17,7 @@ import gc
 import logging
 import multiprocessing
 import os
+import resource
 import signal
 import sys
 import threading
@@ -48,10 +49,13 @@ class WorkerContext:
     torch_threads: int
     nice: int = 0
     """Added to the worker's niceness at start (0: same priority as the API)."""
+    memory_mb: int | None = None
+    """The worker's address-space limit (``RLIMIT_AS``), enforced by the OS; None: no limit."""
 
 
 TaskFn = Callable[[WorkerContext, int], None]
 ExitFn = Callable[[int, int | None], None]
+TimeoutFn = Callable[[int, float], None]
 
 
 def error_summary(exc: BaseException) -> str:
@@ -102,6 +106,9 @@ def freeze_heap() -> None:
 def _worker_main(task: TaskFn, context: WorkerContext, conn: Connection, parent_pid: int) -> None:
     """A worker process: run each task id received, answer it when done, until the pipe ends."""
     die_with_parent(parent_pid)
+    if context.memory_mb is not None:
+        limit = context.memory_mb << 20
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     if context.nice > 0 and hasattr(os, "nice"):
         with contextlib.suppress(OSError):
             os.nice(context.nice)  # background work yields to the API under load
@@ -127,6 +134,8 @@ class _Worker:
     task_id: int | None = None
     tasks_done: int = 0
     cancelled_at: float | None = None  # when SIGTERM was sent for the current task
+    started_at: float = 0.0  # when the current task was handed over
+    timed_out: bool = False  # the current task was stopped at the time limit
 
 
 class WorkerPool:
@@ -137,6 +146,8 @@ class WorkerPool:
     has had work, one idle worker is kept started ahead of need. A task is
     cancelled by terminating its process; a process that dies while running a task reports
     that task to ``on_exit`` with its exit code (unless cancelled or the pool is stopping).
+    A task still running ``timeout_s`` after it started is stopped the same way and reported
+    to ``on_timeout`` with the limit.
     """
 
     def __init__(
@@ -148,8 +159,14 @@ class WorkerPool:
         max_workers: int,
         on_exit: ExitFn,
         tasks_per_process: int | None = None,
+        timeout_s: float | None = None,
+        on_timeout: TimeoutFn | None = None,
     ) -> None:
+        if (timeout_s is None) != (on_timeout is None):
+            raise ValueError("a time limit needs its on_timeout report, and the other way round")
         self.name = name
+        self._timeout_s = timeout_s
+        self._on_timeout = on_timeout
         self._task = task
         self._context = context
         self._max_workers = max_workers
@@ -227,9 +244,13 @@ class WorkerPool:
                 waitables: list[Any] = [self._wake_reader]
                 waitables += [w.conn for w in self._workers if w.task_id is not None]
                 waitables += [w.process.sentinel for w in self._workers]
-            for task_id, code in ended:
+            for task_id, code, timed_out in ended:
                 try:
-                    self._on_exit(task_id, code)
+                    if timed_out:
+                        assert self._on_timeout is not None and self._timeout_s is not None
+                        self._on_timeout(task_id, self._timeout_s)
+                    else:
+                        self._on_exit(task_id, code)
                 except Exception:
                     log.exception("%s: handling the end of task %d failed", self.name, task_id)
             for ready in wait(waitables, timeout=SUPERVISOR_TICK_S):
@@ -237,12 +258,17 @@ class WorkerPool:
                     with contextlib.suppress(EOFError, OSError):
                         self._wake_reader.recv_bytes()
 
-    def _collect(self) -> list[tuple[int, int | None]]:
-        """Free the workers whose task finished; drop dead ones, returning what they ran."""
-        ended: list[tuple[int, int | None]] = []
+    def _collect(self) -> list[tuple[int, int | None, bool]]:
+        """Free the workers whose task finished; stop the ones over the time limit; drop dead
+        ones, returning what they ran (task, exit code, whether it was stopped at the limit)."""
+        ended: list[tuple[int, int | None, bool]] = []
         now = time.monotonic()
         for worker in list(self._workers):
             if worker.task_id is not None and worker.process.is_alive():
+                over = self._timeout_s is not None and now - worker.started_at > self._timeout_s
+                if over and worker.cancelled_at is None:
+                    worker.cancelled_at, worker.timed_out = now, True
+                    worker.process.terminate()
                 if worker.cancelled_at is not None:
                     if now - worker.cancelled_at > TERMINATE_GRACE_S:
                         worker.process.kill()
@@ -257,8 +283,8 @@ class WorkerPool:
                 worker.process.join()
                 worker.conn.close()
                 self._workers.remove(worker)
-                if worker.task_id is not None and worker.cancelled_at is None:
-                    ended.append((worker.task_id, worker.process.exitcode))
+                if worker.task_id is not None and (worker.cancelled_at is None or worker.timed_out):
+                    ended.append((worker.task_id, worker.process.exitcode, worker.timed_out))
         return ended
 
     def _retired(self, worker: _Worker) -> bool:
@@ -284,7 +310,8 @@ class WorkerPool:
             else:
                 return
             worker.task_id = self._queue.popleft()
-            worker.cancelled_at = None
+            worker.cancelled_at, worker.timed_out = None, False
+            worker.started_at = time.monotonic()
             self._used = True
             worker.conn.send(worker.task_id)
 

@@ -105,8 +105,22 @@ def _claim(database: Database, job_id: int) -> tuple[str, dict[str, Any], int] |
     return claimed
 
 
+def failure_message(exc: BaseException, context: WorkerContext) -> str:
+    """The job's ``message`` when it fails: the exception type and its first line, and the
+    limit that was hit when memory ran out."""
+    first = str(exc).splitlines()[0] if str(exc) else ""
+    text = f"failed: {type(exc).__name__}" + (f": {first}" if first else "")
+    out_of_memory = isinstance(exc, MemoryError) or "can't allocate memory" in str(exc)
+    if out_of_memory and context.memory_mb is not None:
+        limit = f"{context.memory_mb} MB (SRD_JOB_MEMORY_MB)"
+        text = f"failed: the job memory limit of {limit} was reached"
+    return text[:MESSAGE_LIMIT]
+
+
 def run_job(context: WorkerContext, job_id: int) -> None:
-    """Worker process entry point for one job."""
+    """Worker process entry point for one job. Whatever goes wrong once the job is claimed
+    (its folder cannot be made, the experiment raises, memory runs out) is stored on the job
+    by this worker before it returns: the type, the message and the innermost frames."""
     database = Database(context.database_url)
     try:
         claimed = _claim(database, job_id)
@@ -114,25 +128,33 @@ def run_job(context: WorkerContext, job_id: int) -> None:
             return
         kind, params, attempt = claimed
         out_dir = job_dir(context.data_dir, job_id)
-        shutil.rmtree(out_dir, ignore_errors=True)  # leftovers of an interrupted attempt
-        out_dir.mkdir(parents=True)
-        progress = _Progress(database, job_id, attempt, context.progress_interval_s)
         try:
+            shutil.rmtree(out_dir, ignore_errors=True)  # leftovers of an interrupted attempt
+            out_dir.mkdir(parents=True)
+            progress = _Progress(database, job_id, attempt, context.progress_interval_s)
             config = build_config(kind, params)
             result = json_safe(run_kind(kind, config, out_dir=out_dir, progress=progress))
             write_json(out_dir / "result.json", result)
-            outcome: dict[str, Any] = {"status": "succeeded", "progress": 1.0, "result": result}
+            outcome: dict[str, Any] = {
+                "status": "succeeded",
+                "progress": 1.0,
+                "result": result,
+                "message": "done",
+            }
         except SupersededError:
             return
         except Exception as exc:
-            outcome = {"status": "failed", "error": error_summary(exc)}
+            outcome = {
+                "status": "failed",
+                "error": error_summary(exc),
+                "message": failure_message(exc, context),
+            }
         _update_owned(
             database,
             job_id,
             attempt,
             artifacts=list_artifacts(out_dir),
             finished_at=utcnow(),
-            message="done" if outcome["status"] == "succeeded" else "failed",
             **outcome,
         )
     except SupersededError:

@@ -21,7 +21,7 @@ def run_offline() -> None:
 
 def run_online(database_url: str) -> None:
     """Migrate a live database."""
-    engine = make_engine(database_url)
+    engine = make_engine(database_url, create=True)  # a first start creates the SQLite file
     try:
         with engine.connect() as connection:
             context.configure(

@@ -1,0 +1,84 @@
+"""Loud failures: a database deleted or replaced under a running server turns /healthz to 503
+and refuses writes; a server never starts over a lost database with an empty one."""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import create_engine, text
+
+from server import db
+from server.app import create_app
+from server.db import DatabaseUnavailableError, upgrade_schema
+from tests.server.conftest import ADMIN, _throwaway_pg_database, honest, make_settings, unique
+
+
+@pytest.fixture(autouse=True)
+def quick_checks(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(db, "IDENTITY_CHECK_S", 0.0)  # check on every call
+
+
+def test_deleted_sqlite_file_is_noticed_and_never_recreated(tmp_path) -> None:
+    path = tmp_path / "srd.db"
+    settings = make_settings(f"sqlite:///{path}", tmp_path / "data")
+    with TestClient(create_app(settings)) as client:
+        assert client.get("/healthz").status_code == 200
+        assert client.post("/submit", json=honest(unique("before"))).status_code == 201
+        for suffix in ("", "-wal", "-shm"):
+            path.with_name(path.name + suffix).unlink(missing_ok=True)
+        health = client.get("/healthz")
+        assert health.status_code == 503
+        assert "deleted" in health.json()["detail"][0]["msg"]
+        assert client.post("/submit", json=honest(unique("after"))).status_code == 503
+        refused = client.post("/auctions", json={"n_fish": 1}, headers=ADMIN)
+        assert refused.status_code == 503
+        assert refused.json()["detail"][0]["loc"] == ["database"]
+        assert client.post("/jobs", json={"kind": "fish"}, headers=ADMIN).status_code == 503
+    assert not path.exists()  # nothing made a new empty database
+    with (
+        pytest.raises(DatabaseUnavailableError, match="deleted or replaced"),
+        TestClient(create_app(settings)),
+    ):
+        pass
+    assert not path.exists()
+    settings.databases_file.unlink()  # the operator's explicit choice: start anew
+    with TestClient(create_app(settings)) as client:
+        assert client.get("/healthz").status_code == 200
+
+
+def test_replaced_sqlite_file_is_noticed(tmp_path) -> None:
+    path, other = tmp_path / "srd.db", tmp_path / "other.db"
+    upgrade_schema(f"sqlite:///{other}")
+    settings = make_settings(f"sqlite:///{path}", tmp_path / "data")
+    with TestClient(create_app(settings)) as client:
+        assert client.get("/healthz").status_code == 200
+        shutil.move(other, path)
+        time.sleep(0.01)
+        health = client.get("/healthz")
+        assert health.status_code == 503 and "replaced" in health.json()["detail"][0]["msg"]
+        assert client.post("/submit", json=honest(unique("swap"))).status_code == 503
+
+
+@pytest.mark.postgres
+def test_dropped_postgres_database_is_noticed(tmp_path) -> None:
+    for url in _throwaway_pg_database():
+        settings = make_settings(url, tmp_path / "data")
+        with TestClient(create_app(settings)) as client:
+            assert client.get("/healthz").status_code == 200
+            name = url.rsplit("/", 1)[1]
+            admin = create_engine(url.rsplit("/", 1)[0] + "/postgres", isolation_level="AUTOCOMMIT")
+            with admin.connect() as connection:
+                connection.execute(text(f'DROP DATABASE "{name}" WITH (FORCE)'))
+                connection.execute(text(f'CREATE DATABASE "{name}"'))
+            admin.dispose()
+            health = client.get("/healthz")
+            assert health.status_code == 503
+            assert client.post("/submit", json=honest(unique("pg"))).status_code == 503
+        with (
+            pytest.raises(DatabaseUnavailableError, match="deleted or replaced"),
+            TestClient(create_app(settings)),
+        ):
+            pass

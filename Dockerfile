@@ -1,6 +1,7 @@
 # srd-auction API server image (CPU only).
 # Build: docker build -t srd-auction .     Run: docker run -p 8000:8000 -v srd-data:/data srd-auction
-FROM python:3.11-slim AS base
+# The Debian release is pinned by the tag; see the apt note below.
+FROM python:3.11-slim-bookworm AS base
 
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
@@ -9,19 +10,23 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
     MUJOCO_GL=egl
 
 # libgomp: torch's OpenMP runtime; libegl/libgl: MuJoCo's optional offscreen renderer.
+# Not pinned to versions: Debian replaces a package version when it ships a security fix,
+# so a pinned version stops being installable; the bookworm tag above fixes the release.
+# hadolint ignore=DL3008
 RUN apt-get update \
     && apt-get install -y --no-install-recommends libgomp1 libegl1 libgl1 \
     && rm -rf /var/lib/apt/lists/*
 
 WORKDIR /app
 
-# Dependencies first, in their own layer: source edits do not reinstall torch.
-# The CPU wheel index keeps several GB of CUDA packages out of the image.
-COPY pyproject.toml README.md ./
+# Dependencies first, in their own layer, from the dependency list alone: edits of the source
+# or the README do not reinstall torch. The CPU wheel index keeps CUDA packages out.
+COPY pyproject.toml ./
 RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu \
     && python -c "import tomllib; deps = tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']; open('/tmp/requirements.txt', 'w').write('\n'.join(deps))" \
     && pip install -r /tmp/requirements.txt
 
+COPY README.md ./
 COPY agents ./agents
 COPY sim ./sim
 COPY screener ./screener
@@ -31,15 +36,17 @@ RUN pip install --no-deps .
 
 RUN useradd --create-home --uid 10001 srd \
     && mkdir -p /data \
-    && chown srd:srd /data
-USER srd
+    && chown 10001:10001 /data
+USER 10001
 
 ENV SRD_DATABASE_URL=sqlite:////data/srd.db \
-    SRD_DATA_DIR=/data
+    SRD_DATA_DIR=/data \
+    SRD_HOST=0.0.0.0 \
+    SRD_PORT=8000
 VOLUME ["/data"]
 EXPOSE 8000
 
-HEALTHCHECK --interval=30s --timeout=5s --start-period=20s \
-    CMD python -c "import urllib.request,sys; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8000/healthz').status == 200 else 1)"
+# Asks the server on the port it was configured with (SRD_PORT), not a fixed one.
+HEALTHCHECK --interval=30s --timeout=5s --start-period=30s CMD ["srd", "healthcheck"]
 
-CMD ["srd", "serve", "--host", "0.0.0.0", "--port", "8000"]
+CMD ["srd", "serve"]

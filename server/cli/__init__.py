@@ -19,6 +19,7 @@ HAND_WRITTEN = {
     "serve": ("server.cli.serve", "Run the HTTP API (uvicorn) on the configured database."),
     "screen": ("server.cli.screen", "Screen one Fish Sale Negotiator manifest."),
     "agents": ("server.cli.agents", "Run remote agents that submit and fine-tune over HTTP."),
+    "healthcheck": ("server.cli.healthcheck", "Exit 0 if the configured server is healthy."),
 }
 """Command name → (module exposing ``command``, one-line help)."""
 

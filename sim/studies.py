@@ -27,7 +27,7 @@ from pydantic import Field
 
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
-from sim.experiment import ProgressFn, Stopwatch, config_dict, no_progress, write_json
+from sim.experiment import Cost, ProgressFn, Stopwatch, config_dict, no_progress, write_json
 from sim.market import MarketBatch, MarketConfig, single_thread
 
 PAPER_RARITIES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
@@ -42,6 +42,14 @@ JITTER = 0.02
 """Half-width of the x jitter of the purchase dots (the reference's)."""
 
 Rarity = Annotated[float, Field(gt=0, le=1)]
+Rarities = Annotated[tuple[Rarity, ...], Field(min_length=1, max_length=100)]
+AUCTION_COST_S = 0.01
+"""Compute of one auction of 64 patrons without fine-tuning, for the job budget: about twice
+the lock-step engine's measured cost per auction."""
+FINE_TUNED_AUCTION_COST_S = 0.05
+"""The same with fine-tuning (measured about 0.02 s per auction)."""
+SCREENING_COST_S = 0.01
+"""Screening one patron (the behavioural tests included), with a margin."""
 
 
 @dataclass(frozen=True)
@@ -56,8 +64,14 @@ class AuctionOptions:
     """Iterations per auction at most."""
     fine_tune_rounds: Annotated[int, Field(ge=0, le=1000)] = 4
     """Fine-tuning after each of the first this-many iterations (reference: 5)."""
-    seed: Annotated[int, Field(ge=0)] = 0
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
     """Seed of every auction: each is keyed by (seed, rarity, trial)."""
+
+    def _auction_cost(self, setting: Setting) -> float:
+        """Estimated compute of one auction of ``setting``."""
+        per_auction = FINE_TUNED_AUCTION_COST_S if setting.fine_tune else AUCTION_COST_S
+        screening = SCREENING_COST_S if setting.screen else 0.0
+        return self.patrons * (per_auction / 64 + screening)
 
 
 @dataclass(frozen=True)
@@ -66,7 +80,7 @@ class StudyConfig(AuctionOptions):
 
     The paper's Fig. C/D grid (``srd auction-study``)."""
 
-    rarities: tuple[Rarity, ...] = PAPER_RARITIES
+    rarities: Rarities = PAPER_RARITIES
     """Item supplies r; fish on sale = int(r · patrons)."""
     trials: Annotated[int, Field(ge=1, le=1000)] = 10
     """Independent auctions per supply (and per setting)."""
@@ -77,17 +91,27 @@ class StudyConfig(AuctionOptions):
     grid: bool = False
     """Run the paper's whole grid: fine-tune off/on × saboteurs 0 and (--saboteurs or 0.5)."""
 
+    def cost(self) -> Cost:
+        """Estimated compute: every (setting, supply, trial) auction."""
+        per_trial = sum(self._auction_cost(s) for s in study_settings(self))
+        return Cost(per_trial * len(self.rarities) * self.trials, "trials")
+
 
 @dataclass(frozen=True)
 class ComparisonConfig(AuctionOptions):
     """The honest vs malicious comparison: the same auctions honest, compromised, screened."""
 
-    rarities: tuple[Rarity, ...] = COMPARISON_RARITIES
+    rarities: Rarities = COMPARISON_RARITIES
     """Item supplies r; fish on sale = int(r · patrons)."""
     trials: Annotated[int, Field(ge=1, le=1000)] = 3
     """Independent auctions per supply and configuration."""
     saboteurs: Annotated[float, Field(gt=0, le=1)] = GRID_SABOTEURS
     """Fraction of saboteurs in the compromised configurations."""
+
+    def cost(self) -> Cost:
+        """Estimated compute: the three configurations' auctions."""
+        per_trial = sum(self._auction_cost(s) for s in comparison_settings(self).values())
+        return Cost(per_trial * len(self.rarities) * self.trials, "trials")
 
 
 @dataclass(frozen=True)

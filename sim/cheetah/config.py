@@ -9,16 +9,25 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
-from sim.experiment import Stopwatch, config_dict
+from sim.experiment import Cost, Stopwatch, config_dict
+
+TRIAL_STEP_COST_S = 3e-5
+"""Compute of one trial advancing one 0.01 s step (MuJoCo plus the network), for the job
+budget: about three times the grid engine's measured cost per step and core."""
+Gains = Annotated[
+    tuple[Annotated[float, Field(ge=-100, le=100)], ...], Field(min_length=1, max_length=32)
+]
 
 
 @dataclass(frozen=True)
 class CheetahConfig:
     """HalfCheetahSRD: the grid backswing × inhibitor × SRD (× learning rate) × trial."""
 
-    backswing: tuple[float, ...] = (1.0, 2.0, 3.0, 4.0, 5.0)
+    backswing: Gains = (1.0, 2.0, 3.0, 4.0, 5.0)
     """BS neuron gains to run (how hard the back thigh answers the pitch signal)."""
-    inhibitor: tuple[Annotated[float, Field(ge=0)], ...] = (0.0, 2.0)
+    inhibitor: Annotated[
+        tuple[Annotated[float, Field(ge=0, le=100)], ...], Field(min_length=1, max_length=32)
+    ] = (0.0, 2.0)
     """Inhibitor values of the stop command (0: never stop; 2: stop in the scheduled windows)."""
     srd: Literal["on", "off", "both"] = "both"
     """Self-reward optimisation during the trial: on, off or both (paired, same weights)."""
@@ -30,14 +39,24 @@ class CheetahConfig:
     """Noise-free designed weights (deterministic, one trial per condition)."""
     stage: Annotated[int, Field(ge=0, le=4)] | None = None
     """Run one of the appendix's design stages 0–4 instead of the main grid."""
-    lr: tuple[Annotated[float, Field(gt=0)], ...] = (1e-4,)
+    lr: Annotated[
+        tuple[Annotated[float, Field(gt=0, le=100)], ...], Field(min_length=1, max_length=32)
+    ] = (1e-4,)
     """SGD learning rate(s) of SRD; several values sweep them (an extra grid axis)."""
     threads: Annotated[int, Field(ge=1, le=64)] = 2
     """Threads stepping MuJoCo in parallel."""
     video: bool = True
     """Render a GIF of one trial when an offscreen OpenGL context is available."""
-    seed: int = 0
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
     """Seeds the per-trial weight noise: same seed, same numbers."""
+
+    def cost(self) -> Cost:
+        """Estimated compute: every trial of every condition, step by step."""
+        from sim.cheetah.world import TRIAL_STEPS  # here: the config itself needs no MuJoCo
+
+        trials = len(grid_conditions(self)) * (1 if self.nominal else self.trials)
+        steps = TRIAL_STEPS if self.steps is None else self.steps
+        return Cost(trials * steps * TRIAL_STEP_COST_S, "trials")
 
 
 @dataclass(frozen=True)

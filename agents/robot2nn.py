@@ -41,8 +41,6 @@ from agents.neurons import selective
 # ---------------------------------------------------------------------------------------------
 # Designed constants: every hand-set number of Robot2NN, with its meaning.
 # ---------------------------------------------------------------------------------------------
-SELECTIVE_EPSILON = 1e-4
-"""ε of σ_sa in the tile receptors: w_t ≈ 1 only for an (almost) exact colour match."""
 RECOGNITION_THRESHOLD = 1e-4
 """τ_recog: a tile the known receptors leave more than this unexplained is unknown; a receptor
 above 1 − τ_recog recognises its tile (used for "target reached" and tile bookkeeping)."""
@@ -74,6 +72,11 @@ EXPLORATION = 0.1
 """Probability of taking the second-best move (the 9:1 coin), on in training and evaluation."""
 MOVE_LIMIT = 36
 """Iterations (moves) of one imagined plan."""
+GUARD_FRACTION = 1 / MOVE_LIMIT
+"""The guarded loss floors |v_plan| at this fraction of max|v_Σ| before normalising: the mean
+that one tile of the largest magnitude adds to the longest plan. A plan worth less than that
+is "neither good nor bad" to the robot, so N[v] shrinks linearly towards 0 instead of jumping
+to ±1 with gain 1/|v| (docs/lavaland.md)."""
 NAMED_INPUTS = ("self", "target", "dirt", "grass")
 """The four DeconvSeqs, in state-dict order."""
 
@@ -98,6 +101,8 @@ class PlanningRules:
     """Target/start tiles set to ±v0 (paper) or ±v0 added through the soft ABA (reference)."""
     final_check: bool
     """Detect a target entered on the last move (paper: within 36 moves; reference: 35)."""
+    loss_guard: bool = False
+    """Floor |v_plan| at ``GUARD_FRACTION``·max|v_Σ| in N[v] (off in both presets)."""
 
     @property
     def detection_horizon(self) -> int:
@@ -135,6 +140,15 @@ class Receptors:
     tile_class: Tensor
     """(N, H, W) int64: recognised class (TARGET/DIRT/GRASS/UNKNOWN_CLASS)."""
 
+    def to(self, dtype: torch.dtype) -> Receptors:
+        """The same receptors in another float dtype (float64 for a reference computation)."""
+        return Receptors(
+            self.known.to(dtype),
+            self.self_position.to(dtype),
+            self.unknown.to(dtype),
+            self.tile_class,
+        )
+
     def select(self, index: int | slice) -> Receptors:
         """The receptors of some maps (an int keeps a batch of one)."""
         rows = slice(index, index + 1) if isinstance(index, int) else index
@@ -148,7 +162,7 @@ def receptors(maps: Tensor, self_position: Tensor) -> Receptors:
     robot's one-hot position (N, H, W) (the lavaland env's ``map`` and ``self``)."""
     colours = torch.stack([tile_rgb(t) for t in KNOWN_TILE_RGB])  # (3 tiles, 3 channels)
     distance = ((maps[:, None] - colours[None, :, :, None, None]) ** 2).mean(dim=2)
-    known = selective(distance, SELECTIVE_EPSILON)
+    known = selective(distance)  # neurons.SELECTIVE_EPSILON: ≈1 only on an exact colour match
     unknown = ((1.0 - known.sum(dim=1)) > RECOGNITION_THRESHOLD).float()
     recognised = known > 1.0 - RECOGNITION_THRESHOLD
     first = recognised.float().argmax(dim=1)  # first recognised class in the order T, D, G
@@ -222,11 +236,7 @@ class Robot2NN(nn.Module):
 
     def v1(self, seen: Receptors) -> Tensor:
         """[v1]_t for t in NAMED_INPUTS, shape (N, 4, H, W)."""
-        w_target, w_dirt, w_grass = seen.known.unbind(dim=1)
-        toward_target = w_target - seen.self_position
-        x = torch.stack(
-            [seen.self_position, w_target, toward_target * w_dirt, toward_target * w_grass], dim=1
-        )
+        x = deconv_inputs(seen)
         kernels = self.kernel_stack()
         for layer in range(DECONV_LAYERS):  # the four DeconvSeqs as one grouped convolution
             grouped = kernels[:, layer, None]  # (4, 1, 3, 3)
@@ -246,12 +256,26 @@ class Robot2NN(nn.Module):
             s = torch.where(seen.self_position > 0, -v0, s)
         return s * (1.0 - seen.unknown) - self.unknown_avoidance * v0 * seen.unknown
 
-    def srd_loss(self, v_plan: Tensor) -> Tensor:
-        """Σ or mean over plans of (1 − tanh(v_plan/|v_plan|))², |v_plan| detached."""
+    def srd_loss(self, v_plan: Tensor, v_sigma: Tensor) -> Tensor:
+        """Σ or mean over plans (N, P) of (1 − tanh(N[v_plan]))², N[v] = v/|v| with |v|
+        detached; with ``rules.loss_guard`` the divisor is max(|v|, GUARD_FRACTION·max|v_Σ|)."""
         magnitude = v_plan.detach().abs()
+        if self.rules.loss_guard:
+            floor = GUARD_FRACTION * max_abs(v_sigma).reshape(-1, 1)
+            magnitude = torch.maximum(magnitude, floor)
         normalised = v_plan / torch.where(magnitude > 0, magnitude, torch.ones_like(magnitude))
         per_plan = (1.0 - torch.tanh(normalised)) ** 2
         return per_plan.sum() if self.rules.loss_reduction == "sum" else per_plan.mean()
+
+
+def deconv_inputs(seen: Receptors) -> Tensor:
+    """The DeconvSeqs' inputs (N, 4, H, W) in ``NAMED_INPUTS`` order: w_self, w_target and the
+    favourability gradients (w_target − w_self)⊙w_dirt and (w_target − w_self)⊙w_grass."""
+    w_target, w_dirt, w_grass = seen.known.unbind(dim=1)
+    toward_target = w_target - seen.self_position
+    return torch.stack(
+        [seen.self_position, w_target, toward_target * w_dirt, toward_target * w_grass], dim=1
+    )
 
 
 def max_abs(x: Tensor) -> Tensor:
@@ -345,7 +369,7 @@ def imagine(v_sigma: Tensor, seen: Receptors, explore: Tensor, rules: PlanningRu
     cells, rollouts = h * w, n * p
     neighbours = neighbour_table(h, w)
     # Every (map, plan) pair is one row: its own copy of v_Σ with a −∞ off-grid sentinel.
-    sentinel = torch.full((n, 1), float("-inf"))
+    sentinel = torch.full((n, 1), float("-inf"), dtype=v_sigma.dtype)
     current = torch.cat([v_sigma.detach().reshape(n, cells), sentinel], 1)
     current = current.repeat_interleave(p, dim=0)
     overwritten = torch.zeros(rollouts, cells + 1, dtype=torch.bool)

@@ -45,10 +45,12 @@ PROJECTS: dict[str, Project] = {
 (u_a 0). u_a is irrelevant without lava."""
 
 
-def build_model(project: Project, preset: str, n_plans: int = 0) -> Robot2NN:
+def build_model(
+    project: Project, preset: str, n_plans: int = 0, loss_guard: bool = False
+) -> Robot2NN:
     """A fresh, identically initialised Robot2NN for a project and preset (n_plans 0 = the
-    preset's)."""
-    rules = PRESETS[preset]
+    preset's), with or without the guarded loss."""
+    rules = replace(PRESETS[preset], loss_guard=loss_guard)
     return Robot2NN(
         p_target=project.p_target,
         p_dirt=project.p_dirt,

@@ -20,8 +20,19 @@ from sim.lavaland.engine import (
     explore_coins,
     make_maps,
 )
-from sim.lavaland.plots import plot_histograms, plot_weights, trajectory_gif
+from sim.lavaland.fused import train_srd_fused
+from sim.lavaland.plots import plot_histograms, plot_repeats, plot_weights, trajectory_gif
 from sim.lavaland.training import train_srd
+
+MAX_MAPS = 65536
+"""Bound on evaluation and training maps per run (memory and time of one job)."""
+MAX_REPEATS = 100
+"""Bound on repeats per run."""
+MAX_PLANS = 16
+"""Bound on imagined plans per map."""
+LOWERED_TOLERANCE = 0.01
+"""A repeat counts as 'SRD lowered accuracy' when it ends more than this below its untrained
+accuracy (one evaluation's spread between coin draws is about this size)."""
 
 
 @dataclass(frozen=True)
@@ -32,19 +43,23 @@ class LavalandConfig:
     """The paper's project: A, compare-A, lava-A or lava-noav-A."""
     preset: Literal["paper", "reference"] = "paper"
     """paper: 4 plans, best plan executed, summed loss, anchors set; reference: the v1 code."""
-    eval_maps: Annotated[int, Field(ge=1)] = 4096
+    eval_maps: Annotated[int, Field(ge=1, le=MAX_MAPS)] = 4096
     """Evaluation maps (accuracy = reached / eval_maps)."""
-    train_maps: Annotated[int, Field(ge=0)] = 4096
+    train_maps: Annotated[int, Field(ge=0, le=MAX_MAPS)] = 4096
     """Training maps, one SGD step each (0 skips training; accuracy_srd is then null)."""
-    repeats: Annotated[int, Field(ge=1)] = 1
+    repeats: Annotated[int, Field(ge=1, le=MAX_REPEATS)] = 1
     """Independent experiments (the paper's expts 1-4): fresh model, coins and order each."""
-    n_plans: Annotated[int, Field(ge=0)] = 0
+    n_plans: Annotated[int, Field(ge=0, le=MAX_PLANS)] = 0
     """Imagined plans per map; 0 = the preset's (paper 4, reference 2)."""
-    lr: Annotated[float, Field(gt=0)] = 1e-4
+    lr: Annotated[float, Field(gt=0, le=1)] = 1e-4
     """SGD learning rate."""
-    gif_map: Annotated[int, Field(ge=0)] = 0
+    loss_guard: bool = False
+    """Guarded loss: v/max(|v|, max|v_Σ|/36) in N[v] (off: the paper's v/|v| and its failures)."""
+    srd_step: Literal["fused", "autograd"] = "fused"
+    """fused: the compiled SRD step; autograd: the same step through torch autograd (slower)."""
+    gif_map: Annotated[int, Field(ge=0, le=MAX_MAPS - 1)] = 0
     """Evaluation map (index modulo eval_maps) animated in trajectory.gif."""
-    seed: int = 0
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
     """Seed of every random stream (maps, coins, training order)."""
 
 
@@ -80,7 +95,7 @@ def one_repeat(
 ) -> tuple[Outcome, Robot2NN]:
     """Evaluate a fresh robot, SRD-train it on ``train_set``, evaluate it again."""
     seed, n_plans = config.seed, config.n_plans or PRESETS[config.preset].n_plans
-    model = build_model(PROJECTS[config.project], config.preset, n_plans)
+    model = build_model(PROJECTS[config.project], config.preset, n_plans, config.loss_guard)
     coins = explore_coins(np.random.default_rng([seed, 2, repeat]), config.eval_maps, n_plans)
     untrained = evaluate(model, eval_set, coins)
     progress(0.05, "untrained evaluated")
@@ -89,7 +104,8 @@ def one_repeat(
     rng = np.random.default_rng([seed, 3, repeat])
     order = rng.permutation(config.train_maps)
     train_coins = explore_coins(rng, config.train_maps, n_plans)
-    train_srd(
+    trainer = train_srd_fused if config.srd_step == "fused" else train_srd
+    trainer(
         model, train_set, order, train_coins, config.lr, lambda f, m: progress(0.05 + 0.9 * f, m)
     )
     coins = explore_coins(np.random.default_rng([seed, 4, repeat]), config.eval_maps, n_plans)
@@ -127,6 +143,10 @@ def run(
     artifacts = write_artifacts(out_dir, config, outcomes)
     trajectory_gif(out_dir / "trajectory.gif", model, gif_map, gif_coins)
     artifacts.append("trajectory.gif")
+    summary = repeat_summary(config, rows)
+    artifacts.append(write_csv(out_dir / "summary.csv", [summary]))
+    plot_repeats(out_dir / "repeats.png", study_label(config), rows)
+    artifacts.append("repeats.png")
 
     def mean(key: str) -> float | None:
         values = [row[key] for row in rows]
@@ -145,8 +165,38 @@ def run(
         "lava_entered_untrained": mean("lava_entered_untrained"),
         "lava_entered_srd": mean("lava_entered_srd"),
         "repeats": rows,
+        "summary": summary,
         "artifacts": artifacts,
         "elapsed_s": clock.elapsed(),
+    }
+
+
+def study_label(config: LavalandConfig) -> str:
+    """Project, preset and loss, as figures name a run."""
+    guard = "guarded loss" if config.loss_guard else "paper loss"
+    return f"Project {config.project}, preset {config.preset}, {guard}"
+
+
+def repeat_summary(config: LavalandConfig, rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The repeat study's row of this run: mean and minimum accuracy before and after SRD, the
+    share of repeats that SRD lowered by more than ``LOWERED_TOLERANCE``, the worst change."""
+    untrained = np.array([row["accuracy_untrained"] for row in rows])
+    trained = [row["accuracy_srd"] for row in rows]
+    srd = None if trained[0] is None else np.array(trained)
+    return {
+        "project": config.project,
+        "preset": config.preset,
+        "loss_guard": config.loss_guard,
+        "srd_step": config.srd_step,
+        "repeats": len(rows),
+        "mean_untrained": float(untrained.mean()),
+        "min_untrained": float(untrained.min()),
+        "mean_srd": None if srd is None else float(srd.mean()),
+        "min_srd": None if srd is None else float(srd.min()),
+        "lowered_share": None
+        if srd is None
+        else float((srd < untrained - LOWERED_TOLERANCE).mean()),
+        "worst_change": None if srd is None else float((srd - untrained).min()),
     }
 
 
@@ -184,7 +234,7 @@ def write_artifacts(out_dir: Path, config: LavalandConfig, outcomes: list[Outcom
     write_csv(out_dir / "tile_counts.csv", tile_count_rows(outcomes))
     plot_histograms(
         out_dir / "tile_histograms.png",
-        f"Project {config.project}, preset {config.preset}",
+        study_label(config),
         [o.untrained for o in outcomes],
         [o.srd for o in outcomes if o.srd is not None],
         with_lava=PROJECTS[config.project].lava_fraction > 0,

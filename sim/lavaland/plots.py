@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -47,6 +48,27 @@ def plot_histograms(
     axes[0].set_ylabel("fraction of maps (cumulative)")
     axes[0].legend(loc="lower right")
     fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_repeats(path: Path, title: str, rows: Sequence[dict[str, Any]]) -> None:
+    """Accuracy of every repeat before (grey) and after SRD (red), a line joining each pair."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(4.8, 3.0), dpi=100)
+    repeats = [row["repeat"] for row in rows]
+    untrained = [row["accuracy_untrained"] for row in rows]
+    ax.plot(repeats, untrained, "o", color="tab:gray", label="no SRD")
+    if rows[0]["accuracy_srd"] is not None:
+        trained = [row["accuracy_srd"] for row in rows]
+        ax.vlines(repeats, untrained, trained, color="tab:red", alpha=0.4)
+        ax.plot(repeats, trained, "o", color="tab:red", label="SRD")
+    ax.set_xlabel("repeat")
+    ax.set_ylabel("accuracy")
+    ax.set_xticks(repeats)
+    ax.legend(loc="lower left", fontsize=8)
+    ax.set_title(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -31,7 +31,7 @@ def train_srd(
             one = maps.seen.select(index)
             v_sigma = model.v_sigma(one)
             plans = imagine(v_sigma, one, explore[step : step + 1], model.rules)
-            model.srd_loss(plans.differentiable_v_plan(v_sigma)).backward()
+            model.srd_loss(plans.differentiable_v_plan(v_sigma), v_sigma).backward()
             with torch.no_grad():  # plain SGD: no momentum, no weight decay
                 for weight in parameters:
                     if weight.grad is not None:

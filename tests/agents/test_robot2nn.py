@@ -171,8 +171,9 @@ def test_srd_loss_values_and_reductions():
     good, bad = (1 - math.tanh(1)) ** 2, (1 - math.tanh(-1)) ** 2
     assert good == pytest.approx(0.0568, abs=1e-4)
     assert bad == pytest.approx(3.10, abs=5e-3)
-    paper = Robot2NN(rules=PRESETS["paper"]).srd_loss(v_plan)
-    reference = Robot2NN(rules=PRESETS["reference"]).srd_loss(v_plan)
+    v_sigma = torch.full((1, 3, 3), 100.0)  # the guard's scale; unused without the guard
+    paper = Robot2NN(rules=PRESETS["paper"]).srd_loss(v_plan, v_sigma)
+    reference = Robot2NN(rules=PRESETS["reference"]).srd_loss(v_plan, v_sigma)
     assert paper.item() == pytest.approx(2 * good + 2 * bad, rel=1e-6)
     assert reference.item() == pytest.approx((2 * good + 2 * bad) / 4, rel=1e-6)
 
@@ -295,7 +296,7 @@ def test_gradient_equals_autograd_through_an_in_place_updated_v_sigma(preset):
     batched = Robot2NN(p_target=2.0, rules=rules)
     v_sigma = batched.v_sigma(seen)
     plans = imagine(v_sigma, seen, explore, rules)
-    batched.srd_loss(plans.differentiable_v_plan(v_sigma)).backward()
+    batched.srd_loss(plans.differentiable_v_plan(v_sigma), v_sigma).backward()
 
     plain = Robot2NN(p_target=2.0, rules=rules)
     v = plain.v_sigma(seen)[0]
@@ -325,7 +326,7 @@ def test_gradient_equals_autograd_through_an_in_place_updated_v_sigma(preset):
             overlay[(y, x)] = (-LEAVING_FACTOR * current.abs().max()).detach()
             x, y = nx, ny
         v_plans.append(torch.stack(chosen).mean())
-    plain.srd_loss(torch.stack(v_plans)[None]).backward()
+    plain.srd_loss(torch.stack(v_plans)[None], v[None]).backward()
 
     for (name, a), b in zip(batched.named_parameters(), plain.parameters(), strict=True):
         assert torch.allclose(a.grad, b.grad, rtol=1e-4, atol=1e-7), name
@@ -343,7 +344,7 @@ def test_one_srd_step_changes_every_weight_and_executed_rules():
     v_sigma = robot.v_sigma(seen)
     plans = imagine(v_sigma, seen, explore, rules)
     assert plans.executed(rules).tolist() == [2]
-    robot.srd_loss(plans.differentiable_v_plan(v_sigma)).backward()
+    robot.srd_loss(plans.differentiable_v_plan(v_sigma), v_sigma).backward()
     with torch.no_grad():
         for p in robot.parameters():
             p -= 1e-2 * p.grad

@@ -21,7 +21,7 @@ from server.config import Settings, get_settings
 from server.db import Database, prepare_database
 from server.errors import install_error_handlers, responses
 from server.jobs import LocalJobBackend, requeue_unfinished
-from server.routes import auctions, health, jobs, models
+from server.routes import auctions, events, health, jobs, models, participants, ui
 from server.screening import ScreeningService
 from server.security import load_admin_token_hash
 from server.submissions import SubmissionWriter
@@ -89,11 +89,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version="0.1.0",
         summary="Fish sale auction of interpretable Self Reward Design models, and experiments.",
         lifespan=lifespan,
+        docs_url=None,  # served by routes.ui with Swagger UI's files from the package (no CDN)
+        redoc_url=None,
     )
     app.state.settings = settings
     install_error_handlers(app)
     app.add_middleware(RequestBodyMiddleware, max_bytes=settings.max_body_bytes)
-    routers = (health, models, auctions, jobs)
+    routers = (health, models, participants, auctions, jobs, events, ui)
     for module in routers:  # any request may carry an unreadable body
         app.include_router(module.router, responses=responses(400, 413, 415))
     app.state.routes = [route for module in routers for route in module.router.routes]

@@ -310,3 +310,302 @@ def cancel_job(session: Session, *, job_id: int) -> bool:
         .values(status="cancelled", message="cancelled", finished_at=now, updated_at=now)
     )
     return bool(changed.rowcount)  # type: ignore[attr-defined]
+
+
+# ---------------------------------------------------------------------------------------------
+# Lists, newest first. Pages are keyset pages on the id: ``before`` is the last id of the
+# previous page (the routes wrap it in an opaque cursor), so a page costs one index range scan
+# however deep it is, and rows added meanwhile never shift a page.
+
+
+@dataclass(frozen=True)
+class AuctionSummary:
+    """An auction as a list shows it."""
+
+    id: int
+    status: str
+    n_initial: int
+    n_available: int
+    n_patrons: int
+    iteration: int
+    price: float
+    revenue: float
+    stop_reason: str | None
+    rarity: float | None
+    fine_tune: bool
+    created_at: datetime
+    finished_at: datetime | None
+
+
+_N_PATRONS = (
+    select(func.count())
+    .where(AuctionPatron.auction_id == Auction.id)
+    .correlate(Auction)
+    .scalar_subquery()
+)
+_REVENUE = (
+    select(func.coalesce(func.sum(Purchase.price), 0.0))
+    .where(Purchase.auction_id == Auction.id)
+    .correlate(Auction)
+    .scalar_subquery()
+)
+_AUCTION_SUMMARY = select(
+    Auction.id,
+    Auction.status,
+    Auction.n_initial,
+    Auction.n_available,
+    _N_PATRONS,
+    Auction.iteration,
+    Auction.price,
+    _REVENUE,
+    Auction.stop_reason,
+    Auction.rarity,
+    Auction.fine_tune,
+    Auction.created_at,
+    Auction.finished_at,
+).order_by(Auction.id.desc())
+
+
+def list_auctions(session: Session, *, before: int | None, limit: int) -> list[AuctionSummary]:
+    """Up to ``limit`` auctions with ids below ``before``, newest first (one query)."""
+    query = _AUCTION_SUMMARY.limit(limit)
+    if before is not None:
+        query = query.where(Auction.id < before)
+    return [AuctionSummary(*row) for row in session.connection().execute(query)]
+
+
+@dataclass(frozen=True)
+class ModelSummary:
+    """A model version as a list shows it: who, which version, the verdict and its reasons."""
+
+    id: int
+    participant: str
+    version: int
+    accepted: bool
+    description: str | None
+    reasons: list[dict[str, str]]
+    created_at: datetime
+
+
+_MODEL_SUMMARY = (
+    select(
+        ModelVersion.id,
+        Participant.name,
+        ModelVersion.version,
+        ModelVersion.accepted,
+        ModelVersion.manifest["description"].as_string(),
+        ModelVersion.reasons,
+        ModelVersion.created_at,
+    )
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .order_by(ModelVersion.id.desc())
+)
+
+
+def list_models(
+    session: Session,
+    *,
+    before: int | None,
+    limit: int,
+    participant: str | None = None,
+    accepted: bool | None = None,
+) -> list[ModelSummary]:
+    """Up to ``limit`` model versions with ids below ``before``, newest first, optionally of
+    one participant and/or with one verdict (one query)."""
+    query = _MODEL_SUMMARY.limit(limit)
+    if before is not None:
+        query = query.where(ModelVersion.id < before)
+    if participant is not None:
+        query = query.where(Participant.name == participant)
+    if accepted is not None:
+        query = query.where(ModelVersion.accepted.is_(accepted))
+    return [ModelSummary(*row) for row in session.connection().execute(query)]
+
+
+@dataclass(frozen=True)
+class JobSummary:
+    """A job as a list shows it (no result, no error text: those are on the job itself)."""
+
+    id: int
+    kind: str
+    status: str
+    progress: float
+    message: str
+    params: dict[str, Any]
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+_JOB_SUMMARY = select(*(getattr(Job, f.name) for f in dataclasses.fields(JobSummary))).order_by(
+    Job.id.desc()
+)
+
+
+def list_jobs(session: Session, *, before: int | None, limit: int) -> list[JobSummary]:
+    """Up to ``limit`` jobs with ids below ``before``, newest first (one query)."""
+    query = _JOB_SUMMARY.limit(limit)
+    if before is not None:
+        query = query.where(Job.id < before)
+    return [JobSummary(*row) for row in session.connection().execute(query)]
+
+
+@dataclass(frozen=True)
+class ParticipantView:
+    """A participant: when it registered, how many versions it has, the newest of them."""
+
+    name: str
+    created_at: datetime
+    n_versions: int
+    versions: list[ModelSummary]
+
+
+def get_participant(session: Session, *, name: str, limit: int) -> ParticipantView | None:
+    """A participant by name with its ``limit`` newest versions."""
+    row = (
+        session.connection()
+        .execute(select(Participant.id, Participant.created_at).where(Participant.name == name))
+        .one_or_none()
+    )
+    if row is None:
+        return None
+    n_versions = session.connection().scalar(
+        select(func.count()).where(ModelVersion.participant_id == row.id)
+    )
+    versions = list_models(session, before=None, limit=limit, participant=name)
+    return ParticipantView(name, row.created_at, int(n_versions or 0), versions)
+
+
+# ---------------------------------------------------------------------------------------------
+# What the event streams poll: a few columns of the watched row, then only the rounds that are
+# new since the last poll.
+
+
+@dataclass(frozen=True)
+class AuctionState:
+    """Where an auction stands, as its event stream polls it."""
+
+    status: str
+    iteration: int
+    price: float
+    n_available: int
+    n_initial: int
+    stop_reason: str | None
+    error: str | None
+    finished_at: datetime | None
+
+
+@dataclass(frozen=True)
+class PatronRef:
+    """A patron by its model id, with the participant and version behind it."""
+
+    model_id: int
+    participant: str
+    version: int
+
+
+@dataclass(frozen=True)
+class RoundPurchase:
+    patron: PatronRef
+    price: float
+
+
+@dataclass(frozen=True)
+class AuctionRound:
+    """One committed round with the purchases and quits it made."""
+
+    iteration: int
+    price: float
+    n_available: int
+    votes: dict[str, int]
+    row_votes: dict[str, int]
+    next_price: float
+    n_available_after: int
+    purchases: tuple[RoundPurchase, ...]
+    quits: tuple[PatronRef, ...]
+
+
+_AUCTION_STATE = select(
+    *(getattr(Auction, f.name) for f in dataclasses.fields(AuctionState))
+).where(Auction.id == bindparam("auction_id"))
+_ROUNDS = _AUCTION_HISTORY.where(AuctionIteration.iteration >= bindparam("first")).where(
+    AuctionIteration.iteration < bindparam("stop")
+)
+_ROUND_PURCHASES = (
+    select(
+        Purchase.iteration,
+        Purchase.model_id,
+        Participant.name,
+        ModelVersion.version,
+        Purchase.price,
+    )
+    .join(ModelVersion, ModelVersion.id == Purchase.model_id)
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .where(Purchase.auction_id == bindparam("auction_id"))
+    .where(Purchase.iteration >= bindparam("first"))
+    .where(Purchase.iteration < bindparam("stop"))
+    .order_by(Purchase.id)
+)
+_ROUND_QUITS = (
+    select(Quit.iteration, Quit.model_id, Participant.name, ModelVersion.version)
+    .join(ModelVersion, ModelVersion.id == Quit.model_id)
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .where(Quit.auction_id == bindparam("auction_id"))
+    .where(Quit.iteration >= bindparam("first"))
+    .where(Quit.iteration < bindparam("stop"))
+    .order_by(Quit.id)
+)
+
+
+def auction_state(session: Session, *, auction_id: int) -> AuctionState | None:
+    """The few columns of an auction its event stream polls (one query)."""
+    row = session.connection().execute(_AUCTION_STATE, {"auction_id": auction_id}).one_or_none()
+    return None if row is None else AuctionState(*row)
+
+
+def auction_rounds(
+    session: Session, *, auction_id: int, first: int, stop: int
+) -> list[AuctionRound]:
+    """Rounds ``first`` .. ``stop - 1`` of an auction with their purchases and quits, each
+    patron named (three queries). Pass ``stop`` = the auction's committed ``iteration`` read
+    before: a round is committed with its purchases and quits, so all of them are seen."""
+    key = {"auction_id": auction_id, "first": first, "stop": stop}
+    connection = session.connection()
+    purchases: dict[int, list[RoundPurchase]] = {}
+    for iteration, model_id, name, version, price in connection.execute(_ROUND_PURCHASES, key):
+        purchases.setdefault(iteration, []).append(
+            RoundPurchase(PatronRef(model_id, name, version), price)
+        )
+    quits: dict[int, list[PatronRef]] = {}
+    for iteration, model_id, name, version in connection.execute(_ROUND_QUITS, key):
+        quits.setdefault(iteration, []).append(PatronRef(model_id, name, version))
+    return [
+        AuctionRound(
+            *row,
+            purchases=tuple(purchases.get(row.iteration, ())),
+            quits=tuple(quits.get(row.iteration, ())),
+        )
+        for row in connection.execute(_ROUNDS, key)
+    ]
+
+
+@dataclass(frozen=True)
+class JobState:
+    """Where a job stands, as its event stream polls it (the result is read once, at the end)."""
+
+    status: str
+    progress: float
+    message: str
+    attempt: int
+    updated_at: datetime
+
+
+_JOB_STATE = select(*(getattr(Job, f.name) for f in dataclasses.fields(JobState))).where(
+    Job.id == bindparam("job_id")
+)
+
+
+def job_state(session: Session, *, job_id: int) -> JobState | None:
+    """The few columns of a job its event stream polls (one query)."""
+    row = session.connection().execute(_JOB_STATE, {"job_id": job_id}).one_or_none()
+    return None if row is None else JobState(*row)

@@ -176,3 +176,124 @@ class JobPublic(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+
+
+# Lists (``GET /auctions``, ``/models``, ``/jobs``): one page, newest first, and the cursor of
+# the next page (null on the last one).
+
+
+class AuctionSummaryPublic(BaseModel):
+    """An auction as a list shows it."""
+
+    id: int
+    status: AuctionStatus
+    n_initial: int
+    n_available: int
+    n_sold: int
+    n_patrons: int
+    iteration: int
+    price: float
+    revenue: float
+    stop_reason: str | None
+    rarity: float | None
+    fine_tune: bool
+    created_at: datetime
+    finished_at: datetime | None
+
+
+class AuctionPage(BaseModel):
+    items: list[AuctionSummaryPublic]
+    next_cursor: str | None
+
+
+class ModelSummaryPublic(BaseModel):
+    """A model version as a list shows it; ``rules`` are the screener rules that fired, once
+    each, and ``description`` is cut to a preview (the whole text is on ``GET /models/{id}``)."""
+
+    id: int
+    participant: str
+    version: int
+    verdict: Literal["accepted", "rejected"]
+    accepted: bool
+    description: str
+    n_reasons: int
+    rules: list[str]
+    created_at: datetime
+
+
+class ModelPage(BaseModel):
+    items: list[ModelSummaryPublic]
+    next_cursor: str | None
+
+
+class JobSummaryPublic(BaseModel):
+    """A job as a list shows it (its result and error are on ``GET /jobs/{id}``)."""
+
+    id: int
+    kind: str
+    status: JobStatus
+    progress: Annotated[float, Field(ge=0, le=1)]
+    message: str
+    params: dict[str, Any]
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+class JobPage(BaseModel):
+    items: list[JobSummaryPublic]
+    next_cursor: str | None
+
+
+class ParticipantPublic(BaseModel):
+    """A participant and its newest versions (all of them: ``GET /models?participant=``)."""
+
+    name: str
+    created_at: datetime
+    n_versions: int
+    versions: list[ModelSummaryPublic]
+
+
+# Event stream payloads (the ``data`` of each Server-Sent Event, as JSON).
+
+
+class PatronPublic(BaseModel):
+    """A patron: its model id and the participant and version behind it."""
+
+    model_id: int
+    participant: str
+    version: int
+
+
+class RoundPurchasePublic(PatronPublic):
+    price: float
+
+
+class IterationEvent(IterationPublic):
+    """``event: iteration`` (``id`` = ``iteration``): one committed round, its purchases and
+    quits."""
+
+    purchases: list[RoundPurchasePublic]
+    quits: list[PatronPublic]
+
+
+class AuctionEndEvent(BaseModel):
+    """``event: end``: the auction is over (the stream closes after it)."""
+
+    status: AuctionStatus
+    iterations: int
+    price: float
+    n_available: int
+    n_initial: int
+    n_sold: int
+    stop_reason: str | None
+    error: str | None
+    finished_at: datetime | None
+
+
+class JobProgressEvent(BaseModel):
+    """``event: progress``: the job's status, progress and message changed."""
+
+    status: JobStatus
+    progress: Annotated[float, Field(ge=0, le=1)]
+    message: str

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 from fastapi import APIRouter, Request
@@ -11,11 +12,14 @@ from server import crud
 from server.auctions import AuctionRunner, base_price
 from server.db import SessionDep
 from server.errors import api_error, error_item, link, responses, validation_error
+from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, decode_cursor, page_of
 from server.schemas import (
     AuctionCreate,
     AuctionCreated,
     AuctionIdPath,
+    AuctionPage,
     AuctionPublic,
+    AuctionSummaryPublic,
     BuyerPublic,
     IterationPublic,
     Votes,
@@ -175,3 +179,20 @@ async def read_auction(auction_id: AuctionIdPath, session: SessionDep) -> Auctio
             kind="not_found",
         )
     return auction_public(view)
+
+
+@router.get("/auctions", operation_id="list_auctions", responses=responses(422))
+async def list_auctions(
+    session: SessionDep, limit: PageLimit = DEFAULT_PAGE, cursor: PageCursor = None
+) -> AuctionPage:
+    """Auctions, newest first, a page at a time (follow ``next_cursor``)."""
+    before = decode_cursor("auctions", cursor)
+    rows = await run_in_threadpool(crud.list_auctions, session, before=before, limit=limit + 1)
+    items, next_cursor = page_of("auctions", rows, limit)
+    return AuctionPage(
+        items=[
+            AuctionSummaryPublic(**dataclasses.asdict(row), n_sold=row.n_initial - row.n_available)
+            for row in items
+        ],
+        next_cursor=next_cursor,
+    )

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 from fastapi import APIRouter, Request
 from fastapi.responses import FileResponse
+from starlette.concurrency import run_in_threadpool
 
 from server import crud
 from server.db import SessionDep
@@ -13,7 +15,8 @@ from server.errors import api_error, error_item, link, responses, validation_err
 from server.jobs import JobBackend
 from server.jobs.worker import job_dir
 from server.models import Job
-from server.schemas import JobCreate, JobCreated, JobIdPath, JobPublic
+from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, decode_cursor, page_of
+from server.schemas import JobCreate, JobCreated, JobIdPath, JobPage, JobPublic, JobSummaryPublic
 from server.security import AdminDep
 from sim.experiment import ConfigError, config_dict
 from sim.registry import build_config
@@ -140,3 +143,17 @@ def cancel_job(job_id: JobIdPath, session: SessionDep, request: Request) -> JobP
     backend.cancel(job_id)
     session.refresh(job)
     return _job_public(job)
+
+
+@router.get("/jobs", operation_id="list_jobs", responses=responses(422))
+async def list_jobs(
+    session: SessionDep, limit: PageLimit = DEFAULT_PAGE, cursor: PageCursor = None
+) -> JobPage:
+    """Jobs with their status and progress, newest first, a page at a time."""
+    before = decode_cursor("jobs", cursor)
+    rows = await run_in_threadpool(crud.list_jobs, session, before=before, limit=limit + 1)
+    items, next_cursor = page_of("jobs", rows, limit)
+    return JobPage(
+        items=[JobSummaryPublic(**dataclasses.asdict(row)) for row in items],
+        next_cursor=next_cursor,
+    )

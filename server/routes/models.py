@@ -2,14 +2,24 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request
 from starlette.concurrency import run_in_threadpool
 
-from agents.manifest import Manifest
+from agents.manifest import Manifest, Participant
 from server import crud
 from server.db import SessionDep
 from server.errors import api_error, link, responses
-from server.schemas import ModelIdPath, ModelPublic, ReasonPublic, SubmitPublic
+from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, decode_cursor, page_of
+from server.schemas import (
+    ModelIdPath,
+    ModelPage,
+    ModelPublic,
+    ModelSummaryPublic,
+    ReasonPublic,
+    SubmitPublic,
+)
 from server.screening import ScreenerUnavailableError, ScreeningService
 from server.security import BearerDep
 from server.submissions import Refused, SubmissionWriter
@@ -79,3 +89,51 @@ async def read_model(model_id: ModelIdPath, session: SessionDep) -> ModelPublic:
         reasons=_reasons(row),
         created_at=row.created_at,
     )
+
+
+DESCRIPTION_PREVIEW = 160
+"""Characters of a model's description that a list shows."""
+
+
+def model_summary(row: crud.ModelSummary) -> ModelSummaryPublic:
+    """A model version as the lists show it."""
+    description = row.description or ""
+    if len(description) > DESCRIPTION_PREVIEW:
+        description = description[: DESCRIPTION_PREVIEW - 1] + "…"
+    return ModelSummaryPublic(
+        id=row.id,
+        participant=row.participant,
+        version=row.version,
+        verdict="accepted" if row.accepted else "rejected",
+        accepted=row.accepted,
+        description=description,
+        n_reasons=len(row.reasons),
+        rules=list(dict.fromkeys(reason["rule"] for reason in row.reasons)),
+        created_at=row.created_at,
+    )
+
+
+@router.get("/models", operation_id="list_models", responses=responses(422))
+async def list_models(
+    session: SessionDep,
+    participant: Annotated[
+        Participant | None, Query(description="Only this participant's versions.")
+    ] = None,
+    accepted: Annotated[
+        bool | None, Query(description="Only accepted (true) or only rejected (false) models.")
+    ] = None,
+    limit: PageLimit = DEFAULT_PAGE,
+    cursor: PageCursor = None,
+) -> ModelPage:
+    """Model versions with their verdicts, newest first, a page at a time."""
+    before = decode_cursor("models", cursor)
+    rows = await run_in_threadpool(
+        crud.list_models,
+        session,
+        before=before,
+        limit=limit + 1,
+        participant=participant,
+        accepted=accepted,
+    )
+    items, next_cursor = page_of("models", rows, limit)
+    return ModelPage(items=[model_summary(row) for row in items], next_cursor=next_cursor)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import math
 
 import gymnasium as gym
 import numpy as np
@@ -12,17 +13,19 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 import sim.lavaland as lavaland
-from agents.robot2nn import KNOWN_TILE_RGB, PRESETS, imagine
+from agents.robot2nn import GUARD_FRACTION, KNOWN_TILE_RGB, PRESETS, imagine
 from sim.experiment import ConfigError, parse_config
 from sim.lavaland import Lavaland, LavalandConfig, run
 from sim.lavaland.engine import (
     PROJECTS,
+    MapSet,
     build_model,
     evaluate,
     explore_coins,
     make_maps,
     register,
 )
+from sim.lavaland.fused import train_srd_fused
 from sim.lavaland.training import train_srd
 from sim.lavaland.world import (
     DIRT,
@@ -303,3 +306,161 @@ def test_srd_raises_reference_project_a_accuracy(tmp_path):
     result = run(LavalandConfig(project="A", preset="reference"), out_dir=tmp_path)
     assert 0.74 <= result["accuracy_untrained"] <= 0.79
     assert result["accuracy_srd"] > result["accuracy_untrained"] + 0.03
+
+
+# --- the fused SRD step and the guarded loss -----------------------------------------------
+
+
+def float64_maps(n: int, project: str, seed: int) -> MapSet:
+    maps = make_maps(n, PROJECTS[project], np.random.default_rng([seed, 1]))
+    return MapSet(maps.maps, maps.seen.to(torch.float64))
+
+
+def autograd_gradient(model, maps: MapSet, index: int, coins: torch.Tensor) -> torch.Tensor:
+    """The (4, 5, 3, 3) gradient of one map's SRD loss through torch autograd."""
+    one = maps.seen.select(index)
+    v_sigma = model.v_sigma(one)
+    plans = imagine(v_sigma, one, coins, model.rules)
+    model.zero_grad()
+    model.srd_loss(plans.differentiable_v_plan(v_sigma), v_sigma).backward()
+    return torch.stack([torch.cat([k.grad for k in s.kernels()]) for s in model.sequences()])[
+        :, :, 0
+    ]
+
+
+@pytest.mark.parametrize("guard", [False, True])
+@pytest.mark.parametrize(("project", "preset"), [("A", "paper"), ("lava-A", "reference")])
+def test_fused_gradient_equals_autograd(project, preset, guard):
+    """float64 on both sides: the hand-written gradient is autograd's to 1e-9, map by map,
+    including maps where the guard's floor is active."""
+    maps = float64_maps(24, project, seed=4)
+    model = build_model(PROJECTS[project], preset, loss_guard=guard).double()
+    coins = explore_coins(np.random.default_rng(5), 24, model.rules.n_plans)
+    floored = 0
+    for i in range(24):
+        expected = autograd_gradient(model, maps, i, coins[i : i + 1])
+        stepped = build_model(PROJECTS[project], preset, loss_guard=guard).double()
+        before = stepped.kernel_stack().detach().clone()
+        trace = train_srd_fused(stepped, maps, np.array([i]), coins[i : i + 1], lr=1.0)
+        got = before - stepped.kernel_stack().detach()  # one SGD step with lr 1: θ − g
+        assert torch.allclose(got, expected, rtol=1e-9, atol=1e-12), i
+        assert trace.grad_norm[0] == pytest.approx(float(expected.norm()), rel=1e-9)
+        v_sigma = model.v_sigma(maps.seen.select(i)).detach()
+        floored += trace.min_abs_v_plan[0] < GUARD_FRACTION * v_sigma.abs().max().item()
+    assert floored > 0  # the floor was in play at least once
+
+
+def epoch_pair(preset: str, n: int, *, float64: bool, guard: bool) -> tuple:
+    """Initial weights, today's autograd path and the fused step after one n-map epoch."""
+    maps = make_maps(n, PROJECTS["A"], np.random.default_rng([0, 1]))
+    if float64:
+        maps = MapSet(maps.maps, maps.seen.to(torch.float64))
+    rng = np.random.default_rng([0, 3])
+    order = rng.permutation(n)
+    coins = explore_coins(rng, n, PRESETS[preset].n_plans)
+    models = [build_model(PROJECTS["A"], preset, loss_guard=guard) for _ in range(2)]
+    if float64:
+        models = [model.double() for model in models]
+    initial = models[0].kernel_stack().detach().clone()
+    train_srd(models[0], maps, order, coins, 1e-4)
+    train_srd_fused(models[1], maps, order, coins, 1e-4)
+    return initial, *(model.kernel_stack().detach() for model in models)
+
+
+@pytest.mark.parametrize("preset", ["paper", "reference"])
+def test_fused_epoch_equals_the_autograd_epoch_in_float64(preset):
+    """Same arithmetic precision, the paper's loss: the same 180 weights after the epoch."""
+    initial, today, fused = epoch_pair(preset, 96, float64=True, guard=False)
+    assert fused.dtype == torch.float64
+    assert (today - initial).abs().max() > 1e-3  # training moved the weights
+    assert torch.allclose(today, fused, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("preset", ["paper", "reference"])
+def test_fused_epoch_equals_todays_float32_path(preset):
+    """Today's float32 path: equal to float32 resolution. With the guard, no step has the
+    1/|v_plan| gain that turns float32 rounding into a visible weight change."""
+    initial, today, fused = epoch_pair(preset, 192, float64=False, guard=True)
+    assert fused.dtype == torch.float32
+    assert (today - initial).abs().max() > 1e-3
+    assert torch.allclose(today, fused, rtol=0, atol=1e-6)
+
+
+def test_guarded_loss_bounds_the_gain_of_a_near_zero_plan():
+    """|v_plan| = 1e-6: the paper's N[v] = v/|v| = ±1 with gain 1e6; the guard divides by
+    max|v_Σ|/36 = 0.1 instead, so N[v] ≈ 0 and the gain is 2/0.1 = 20. Plans above the floor
+    keep the paper's loss."""
+    v_sigma = torch.zeros(1, 3, 3)
+    v_sigma[0, 0, 0] = 3.6  # max|v_Σ| = 3.6: floor 0.1
+    for sign in (1.0, -1.0):
+        paper = build_model(PROJECTS["A"], "paper")
+        guarded = build_model(PROJECTS["A"], "paper", loss_guard=True)
+        v_plan = torch.tensor([[sign * 1e-6, 0.5, -0.3]], requires_grad=True)
+        paper.srd_loss(v_plan, v_sigma).backward()
+        paper_grad = v_plan.grad.clone()
+        v_plan.grad = None
+        loss = guarded.srd_loss(v_plan, v_sigma)
+        loss.backward()
+        squashed = math.tanh(sign * 1e-5)
+        assert abs(paper_grad[0, 0]) > 1e5
+        expected = -2 * (1 - squashed) * (1 - squashed**2) / 0.1
+        assert v_plan.grad[0, 0].item() == pytest.approx(expected, rel=1e-5)
+        assert torch.allclose(v_plan.grad[0, 1:], paper_grad[0, 1:])
+        floored = (1 - math.tanh(sign * 1e-5)) ** 2
+        rest = (1 - math.tanh(1)) ** 2 + (1 - math.tanh(-1)) ** 2
+        assert loss.item() == pytest.approx(floored + rest, rel=1e-6)
+
+
+def test_presets_keep_the_paper_loss_and_bounds_refuse_large_jobs():
+    assert not any(rules.loss_guard for rules in PRESETS.values())
+    assert LavalandConfig().loss_guard is False and LavalandConfig().srd_step == "fused"
+    for field, value in (("eval_maps", 65537), ("train_maps", 65537), ("repeats", 101)):
+        with pytest.raises(ConfigError) as err:
+            parse_config(LavalandConfig, {field: value})
+        assert err.value.errors[0]["field"] == field
+    config = parse_config(LavalandConfig, {"loss-guard": True, "srd-step": "autograd"})
+    assert config.loss_guard and config.srd_step == "autograd"
+
+
+def test_repeat_summary_and_its_artifacts(tmp_path):
+    config = LavalandConfig(project="compare-A", eval_maps=64, train_maps=16, repeats=3, seed=2)
+    result = run(config, out_dir=tmp_path)
+    summary, rows = result["summary"], result["repeats"]
+    untrained = [row["accuracy_untrained"] for row in rows]
+    srd = [row["accuracy_srd"] for row in rows]
+    assert summary["repeats"] == 3 and summary["min_srd"] == min(srd)
+    assert summary["mean_untrained"] == pytest.approx(np.mean(untrained))
+    assert summary["worst_change"] == pytest.approx(min(np.subtract(srd, untrained)))
+    lowered = np.mean(np.array(srd) < np.array(untrained) - 0.01)
+    assert summary["lowered_share"] == pytest.approx(lowered)
+    assert {"summary.csv", "repeats.png"} <= set(result["artifacts"])
+    table = (tmp_path / "summary.csv").read_text().splitlines()
+    assert table[0].startswith("project,preset,loss_guard,srd_step,repeats,mean_untrained")
+    assert table[1].startswith("compare-A,paper,False,fused,3,")
+
+
+@pytest.mark.slow
+def test_autograd_step_reproduces_the_reference_table(tmp_path):
+    """``--srd-step autograd`` is the unchanged original path: the reference preset's Project A
+    repeats, failure of repeat 2 included."""
+    result = run(
+        LavalandConfig(project="A", preset="reference", repeats=4, srd_step="autograd"),
+        out_dir=tmp_path,
+    )
+    untrained = [round(row["accuracy_untrained"], 3) for row in result["repeats"]]
+    srd = [round(row["accuracy_srd"], 3) for row in result["repeats"]]
+    assert untrained == [0.767, 0.758, 0.764, 0.762]
+    assert srd == [0.849, 0.415, 0.869, 0.867]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", ["paper", "reference"])
+@pytest.mark.parametrize("project", list(PROJECTS))
+def test_guarded_srd_never_costs_accuracy_over_ten_repeats(tmp_path, project, preset):
+    result = run(
+        LavalandConfig(project=project, preset=preset, repeats=10, loss_guard=True),
+        out_dir=tmp_path,
+    )
+    summary = result["summary"]
+    assert summary["min_srd"] >= summary["mean_untrained"] - 0.01
+    assert summary["lowered_share"] == 0.0

@@ -1,0 +1,319 @@
+"""Server-Sent Event streams: ``GET /auctions/{id}/events`` and ``GET /jobs/{id}/events``.
+
+An auction's stream sends ``event: iteration`` once per committed round, with ``id`` = the
+round's iteration (0, 1, ...) and ``data`` = the round with its purchases and quits, then
+``event: end`` (no id) with the outcome when the auction has finished or failed, and closes.
+A job's stream sends ``event: progress`` whenever its status, progress or message changes
+(``id`` = the time of that change, in microseconds), then ``event: end`` with the whole job.
+
+A client resumes with ``Last-Event-ID`` (what ``EventSource`` sends when it reconnects) or, on
+its first connection, ``?after=<id>``: the stream goes on right after that event, so nothing is
+skipped and nothing repeated. Idle streams send a comment every ``SRD_EVENT_KEEPALIVE_S``.
+Everything sent is read from committed rows by the process's shared watcher of that auction
+or job (``server.events``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterable, AsyncIterator
+from dataclasses import dataclass
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, FastAPI, Header, Query, Request
+from fastapi.sse import EventSourceResponse, ServerSentEvent
+from starlette.concurrency import run_in_threadpool
+
+from server import crud
+from server.config import Settings
+from server.db import Database
+from server.errors import api_error, responses
+from server.events import EventHub, Poll
+from server.models import Job
+from server.schemas import (
+    AuctionEndEvent,
+    AuctionIdPath,
+    IterationEvent,
+    JobIdPath,
+    JobProgressEvent,
+    JobPublic,
+    PatronPublic,
+    RoundPurchasePublic,
+    Votes,
+)
+
+router = APIRouter(tags=["events"])
+
+RETRY_AFTER_S = 5
+"""What a client refused for want of stream slots is told to wait (``Retry-After``)."""
+RECONNECT_MS = 2000
+"""The ``retry:`` hint: how long ``EventSource`` waits before it reconnects a dropped stream."""
+AUCTION_ENDED = ("finished", "failed")
+JOB_ENDED = ("succeeded", "failed", "cancelled")
+MAX_EVENT_ID = 2**63 - 1  # job event ids are microsecond timestamps
+
+LastEventId = Annotated[
+    int | None,
+    Header(
+        alias="Last-Event-ID",
+        ge=0,
+        le=MAX_EVENT_ID,
+        description="The id of the last event received; the stream resumes right after it.",
+    ),
+]
+After = Annotated[
+    int | None,
+    Query(
+        ge=0,
+        le=MAX_EVENT_ID,
+        description="Like Last-Event-ID, for a first connection (the header wins if both).",
+    ),
+]
+
+
+def event_hub(app: FastAPI) -> EventHub:
+    """The app's hub of watchers, made on first use."""
+    hub: EventHub | None = getattr(app.state, "events", None)
+    if hub is None:
+        settings: Settings = app.state.settings
+        hub = EventHub(
+            interval_s=settings.event_poll_interval_s, max_streams=settings.max_event_streams
+        )
+        app.state.events = hub
+    return hub
+
+
+async def _stream_slot(request: Request) -> AsyncIterator[EventHub]:
+    """Hold one of the process's stream slots for the whole stream; 503 when none is free."""
+    hub = event_hub(request.app)
+    if not hub.acquire():
+        raise api_error(
+            503,
+            f"{hub.max_streams} event streams are open, the most this server holds; retry later",
+            kind="too_many_streams",
+            headers={"Retry-After": str(RETRY_AFTER_S)},
+        )
+    try:
+        yield hub
+    finally:
+        hub.release()
+
+
+StreamSlot = Annotated[EventHub, Depends(_stream_slot)]
+
+
+# --- auctions ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AuctionSnapshot:
+    """An auction as its watcher last read it: where it stands and every committed round."""
+
+    state: crud.AuctionState | None
+    rounds: tuple[crud.AuctionRound, ...]
+
+    @property
+    def final(self) -> bool:
+        return self.state is None or self.state.status in AUCTION_ENDED
+
+
+def watch_auction(database: Database, auction_id: int) -> Poll[AuctionSnapshot]:
+    """The poll of an auction's watcher: its state, then only the rounds committed since."""
+
+    def poll(previous: AuctionSnapshot | None) -> AuctionSnapshot:
+        rounds = () if previous is None else previous.rounds
+        with database.session(write=False) as session:
+            state = crud.auction_state(session, auction_id=auction_id)
+            if previous is not None and state == previous.state:
+                return previous
+            if state is not None and state.iteration > len(rounds):
+                new = crud.auction_rounds(
+                    session, auction_id=auction_id, first=len(rounds), stop=state.iteration
+                )
+                rounds = (*rounds, *new)
+        return AuctionSnapshot(state, rounds)
+
+    return poll
+
+
+def _patron(ref: crud.PatronRef) -> PatronPublic:
+    return PatronPublic(model_id=ref.model_id, participant=ref.participant, version=ref.version)
+
+
+def iteration_event(row: crud.AuctionRound) -> IterationEvent:
+    """The ``data`` of one round's event."""
+    return IterationEvent(
+        iteration=row.iteration,
+        price=row.price,
+        n_available=row.n_available,
+        votes=Votes(**row.votes),
+        row_votes=Votes(**row.row_votes),
+        next_price=row.next_price,
+        n_available_after=row.n_available_after,
+        purchases=[
+            RoundPurchasePublic(**_patron(p.patron).model_dump(), price=p.price)
+            for p in row.purchases
+        ],
+        quits=[_patron(ref) for ref in row.quits],
+    )
+
+
+def auction_end_event(state: crud.AuctionState) -> AuctionEndEvent:
+    """The ``data`` of an auction's last event."""
+    return AuctionEndEvent(
+        status=state.status,  # one of AUCTION_ENDED
+        iterations=state.iteration,
+        price=state.price,
+        n_available=state.n_available,
+        n_initial=state.n_initial,
+        n_sold=state.n_initial - state.n_available,
+        stop_reason=state.stop_reason,
+        error=state.error,
+        finished_at=state.finished_at,
+    )
+
+
+async def _existing_auction(auction_id: AuctionIdPath, request: Request) -> int:
+    database: Database = request.app.state.database
+
+    def read() -> crud.AuctionState | None:
+        with database.session(write=False) as session:
+            return crud.auction_state(session, auction_id=auction_id)
+
+    if await run_in_threadpool(read) is None:
+        raise api_error(
+            404,
+            f"auction {auction_id} does not exist",
+            loc=("path", "auction_id"),
+            kind="not_found",
+        )
+    return auction_id
+
+
+@router.get(
+    "/auctions/{auction_id}/events",
+    response_class=EventSourceResponse,
+    operation_id="auction_events",
+    responses=responses(404, 422, 503),
+)
+async def auction_events(
+    hub: StreamSlot,
+    auction_id: Annotated[int, Depends(_existing_auction)],
+    request: Request,
+    last_event_id: LastEventId = None,
+    after: After = None,
+) -> AsyncIterable[ServerSentEvent]:
+    """Follow an auction live: one ``iteration`` event per committed round (``id`` = the
+    iteration), then one ``end`` event, and the stream closes."""
+    resume = last_event_id if last_event_id is not None else after
+    sent = 0 if resume is None else resume + 1  # the next iteration to send
+    settings: Settings = request.app.state.settings
+    poll = watch_auction(request.app.state.database, auction_id)
+    async with hub.watch(("auction", auction_id), poll) as watch:
+        yield ServerSentEvent(comment=f"auction {auction_id}", retry=RECONNECT_MS)
+        while True:
+            generation, snapshot = watch.generation, watch.snapshot
+            assert snapshot is not None  # hub.watch yields after the first read
+            for row in snapshot.rounds[sent:]:
+                yield ServerSentEvent(
+                    event="iteration", id=str(row.iteration), data=iteration_event(row)
+                )
+            sent = max(sent, len(snapshot.rounds))
+            if snapshot.final:
+                if snapshot.state is not None:
+                    yield ServerSentEvent(event="end", data=auction_end_event(snapshot.state))
+                return
+            if not await watch.wait(generation, settings.event_keepalive_s):
+                yield ServerSentEvent(comment="keep-alive")
+
+
+# --- jobs -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class JobSnapshot:
+    """A job as its watcher last read it; the whole job once it has ended."""
+
+    state: crud.JobState | None
+    job: JobPublic | None
+
+    @property
+    def final(self) -> bool:
+        return self.state is None or self.state.status in JOB_ENDED
+
+
+def watch_job(database: Database, job_id: int) -> Poll[JobSnapshot]:
+    """The poll of a job's watcher: a few columns, and the whole row once it has ended."""
+
+    def poll(previous: JobSnapshot | None) -> JobSnapshot:
+        with database.session(write=False) as session:
+            state = crud.job_state(session, job_id=job_id)
+            if previous is not None and state == previous.state:
+                return previous
+            job = None
+            if state is not None and state.status in JOB_ENDED:
+                row = session.get(Job, job_id)
+                job = None if row is None else JobPublic.model_validate(row, from_attributes=True)
+        return JobSnapshot(state, job)
+
+    return poll
+
+
+def job_event_id(state: crud.JobState) -> str:
+    """A job event's id: when the job row last changed, in microseconds since the epoch."""
+    return str(int(state.updated_at.timestamp() * 1_000_000))
+
+
+async def _existing_job(job_id: JobIdPath, request: Request) -> int:
+    database: Database = request.app.state.database
+
+    def read() -> crud.JobState | None:
+        with database.session(write=False) as session:
+            return crud.job_state(session, job_id=job_id)
+
+    if await run_in_threadpool(read) is None:
+        raise api_error(
+            404, f"job {job_id} does not exist", loc=("path", "job_id"), kind="not_found"
+        )
+    return job_id
+
+
+@router.get(
+    "/jobs/{job_id}/events",
+    response_class=EventSourceResponse,
+    operation_id="job_events",
+    responses=responses(404, 422, 503),
+)
+async def job_events(
+    hub: StreamSlot,
+    job_id: Annotated[int, Depends(_existing_job)],
+    request: Request,
+    last_event_id: LastEventId = None,
+    after: After = None,
+) -> AsyncIterable[ServerSentEvent]:
+    """Follow a job: a ``progress`` event whenever its status, progress or message changes,
+    then one ``end`` event with the whole job (result, error, artifacts), and the stream
+    closes."""
+    resume = last_event_id if last_event_id is not None else after
+    seen = None if resume is None else str(resume)
+    settings: Settings = request.app.state.settings
+    async with hub.watch(("job", job_id), watch_job(request.app.state.database, job_id)) as watch:
+        yield ServerSentEvent(comment=f"job {job_id}", retry=RECONNECT_MS)
+        while True:
+            generation, snapshot = watch.generation, watch.snapshot
+            assert snapshot is not None  # hub.watch yields after the first read
+            if snapshot.state is None:
+                return
+            if snapshot.final:
+                yield ServerSentEvent(event="end", data=snapshot.job)
+                return
+            event_id = job_event_id(snapshot.state)
+            if event_id != seen:
+                progress = JobProgressEvent(
+                    status=snapshot.state.status,
+                    progress=snapshot.state.progress,
+                    message=snapshot.state.message,
+                )
+                yield ServerSentEvent(event="progress", id=event_id, data=progress)
+                seen = event_id
+            if not await watch.wait(generation, settings.event_keepalive_s):
+                yield ServerSentEvent(comment="keep-alive")

@@ -1,0 +1,98 @@
+// Talking to the API: JSON reads, paginated lists and event streams. The page only reads, so
+// it needs no token and never puts one in a URL.
+
+import { h } from "./dom.js";
+
+const RETRY_MS = 5000; // after the server refused a stream (503) or it broke for good
+
+export class ApiError extends Error {
+  constructor(message, status) {
+    super(message);
+    this.status = status;
+  }
+}
+
+/** GET a JSON document; an error answer becomes an ApiError carrying the server's words. */
+export async function getJSON(path) {
+  const response = await fetch(path, { headers: { Accept: "application/json" } });
+  const body = await response.json().catch(() => null);
+  if (!response.ok) {
+    const words = body && Array.isArray(body.detail) ? body.detail.map((d) => d.msg) : [];
+    throw new ApiError(words.join("; ") || `${response.status} ${response.statusText}`, response.status);
+  }
+  return body;
+}
+
+/** A path with query parameters (empty ones left out). */
+export function withQuery(path, params) {
+  const query = new URLSearchParams();
+  for (const [name, value] of Object.entries(params)) {
+    if (value !== null && value !== undefined && value !== "") query.set(name, String(value));
+  }
+  const text = query.toString();
+  return text ? `${path}?${text}` : path;
+}
+
+/**
+ * A list page by page: ``render(items)`` is called for each page, and a "Show older" button
+ * fetches the next one while there is one. Returns the button's container.
+ */
+export function pager(path, params, render) {
+  const more = h("button", { type: "button" }, "Show older");
+  const box = h("p", { class: "pager" });
+  let cursor = null;
+  async function load() {
+    more.disabled = true;
+    const page = await getJSON(withQuery(path, { ...params, cursor }));
+    render(page.items);
+    cursor = page.next_cursor;
+    box.replaceChildren(...(cursor ? [more] : []));
+    more.disabled = false;
+    return page;
+  }
+  more.addEventListener("click", () => load().catch((error) => box.replaceChildren(String(error))));
+  return { box, load };
+}
+
+/**
+ * Follow an event stream. ``handlers`` maps event names to functions of the parsed data; the
+ * ``end`` event closes the stream. A dropped connection is resumed by the browser itself
+ * (EventSource sends Last-Event-ID); one the server refused or closed for good is opened
+ * again after RETRY_MS, continuing after the last event received. ``onState`` hears "live",
+ * "waiting" and "ended". Returns a function that stops following.
+ */
+export function follow(path, handlers, onState = () => {}) {
+  let lastId = null;
+  let source = null;
+  let timer = null;
+  let stopped = false;
+
+  function stop() {
+    stopped = true;
+    clearTimeout(timer);
+    if (source) source.close();
+  }
+
+  function open() {
+    source = new EventSource(lastId === null ? path : withQuery(path, { after: lastId }));
+    source.addEventListener("open", () => onState("live"));
+    source.addEventListener("error", () => {
+      if (stopped) return;
+      onState("waiting");
+      if (source.readyState === EventSource.CLOSED) timer = setTimeout(open, RETRY_MS);
+    });
+    for (const [name, handle] of Object.entries(handlers)) {
+      source.addEventListener(name, (event) => {
+        if (event.lastEventId) lastId = event.lastEventId;
+        if (name === "end") {
+          stop();
+          onState("ended");
+        }
+        handle(JSON.parse(event.data));
+      });
+    }
+  }
+
+  open();
+  return stop;
+}

@@ -1,0 +1,65 @@
+// The page's router: the part of the URL after "#" names the view (#/auctions/3). Each view
+// renders into its own container and registers what must stop when the reader leaves it.
+
+import { auctionList, auctionView } from "./auctions.js";
+import { h } from "./dom.js";
+import { jobList, jobView } from "./jobs.js";
+import { inspectorView, modelList, participantView } from "./models.js";
+
+const ROUTES = [
+  [/^#\/(?:auctions)?$/, "auctions", (view) => auctionList(view)],
+  [/^#\/auctions\/(\d+)$/, "auctions", (view, [, id]) => auctionView(view, Number(id))],
+  [/^#\/models(?:\?(.*))?$/, "models", (view, [, query]) => modelList(view, new URLSearchParams(query || ""))],
+  [/^#\/models\/(\d+)$/, "models", (view, [, id]) => inspectorView(view, Number(id))],
+  [/^#\/participants\/([^/?]+)$/, "models", (view, [, name]) => participantView(view, decodeURIComponent(name))],
+  [/^#\/jobs$/, "jobs", (view) => jobList(view)],
+  [/^#\/jobs\/(\d+)$/, "jobs", (view, [, id]) => jobView(view, Number(id))],
+];
+
+/** What a view gets: its container, and ``onLeave`` for what to stop when it is replaced. */
+class View {
+  constructor(root) {
+    this.root = root;
+    this.stops = [];
+  }
+
+  onLeave(stop) {
+    this.stops.push(stop);
+  }
+
+  leave() {
+    for (const stop of this.stops) stop();
+  }
+}
+
+let current = null;
+
+function show(firstLoad) {
+  const hash = location.hash || "#/";
+  if (!hash.startsWith("#/")) return; // an in-page anchor such as the skip link
+  if (current) current.leave();
+  const main = document.getElementById("main");
+  const root = h("div", { class: "view" });
+  main.replaceChildren(root);
+  current = new View(root);
+  const found = ROUTES.map(([pattern, section, render]) => [hash.match(pattern), section, render]).find(([m]) => m);
+  for (const anchor of document.querySelectorAll("nav a[data-section]")) {
+    const here = found && anchor.dataset.section === found[1];
+    if (here) anchor.setAttribute("aria-current", "page");
+    else anchor.removeAttribute("aria-current");
+  }
+  if (!found) {
+    root.append(h("h1", { tabindex: "-1" }, "Not found"), h("p", {}, "No view has this address. ", h("a", { href: "#/" }, "All auctions")));
+  } else {
+    found[2](current, found[0]);
+  }
+  document.title = `${root.querySelector("h1")?.textContent || "srd-auction"} · srd-auction`;
+  if (!firstLoad) root.querySelector("h1")?.focus();
+}
+
+document.getElementById("skip").addEventListener("click", (event) => {
+  event.preventDefault();
+  document.getElementById("main").focus();
+});
+window.addEventListener("hashchange", () => show(false));
+show(true);

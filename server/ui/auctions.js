@@ -1,0 +1,273 @@
+// Auctions: the list, and one auction followed live from its event stream.
+
+import { follow, getJSON, pager } from "./api.js";
+import { facts, fill, fixed, h, link, problem, svg, table, tableRow, when } from "./dom.js";
+
+const STOP_REASONS = {
+  sold_out: "sold out",
+  no_patrons: "no patron left (every one bought or quit)",
+  stalemate: "stalemate (the price fell below the threshold)",
+  max_iterations: "round limit reached",
+};
+const CHART = { width: 640, height: 240, left: 56, right: 16, top: 16, bottom: 36 };
+
+function stopReason(reason) {
+  return reason ? STOP_REASONS[reason] || reason : "—";
+}
+
+function statusBadge(status) {
+  return h("span", { class: `badge status-${status}` }, status);
+}
+
+export function auctionList(view) {
+  view.root.append(h("h1", { tabindex: "-1" }, "Auctions"));
+  const rows = h("tbody");
+  const headers = ["Auction", "Status", "Fish sold", "Patrons", "Rounds", "Price", "Revenue", "Stopped", "Started"];
+  const list = h(
+    "table",
+    { class: "list", id: "auction-list" },
+    h("caption", {}, "Every auction, newest first"),
+    h("thead", {}, h("tr", {}, headers.map((text) => h("th", { scope: "col" }, text)))),
+    rows,
+  );
+  const pages = pager("/auctions", {}, (items) => {
+    for (const a of items) {
+      rows.append(
+        tableRow([
+          link(`#/auctions/${a.id}`, `Auction ${a.id}`),
+          statusBadge(a.status),
+          `${a.n_sold} of ${a.n_initial}`,
+          String(a.n_patrons),
+          String(a.iteration),
+          fixed(a.price),
+          fixed(a.revenue, 2),
+          stopReason(a.stop_reason),
+          when(a.created_at),
+        ]),
+      );
+    }
+  });
+  view.root.append(list, pages.box);
+  pages
+    .load()
+    .then((page) => {
+      if (page.items.length === 0) list.after(h("p", {}, "No auction yet: an operator starts one with POST /auctions."));
+    })
+    .catch((error) => view.root.append(problem(error)));
+}
+
+/** The price line: one point per committed round, redrawn as rounds arrive. */
+function drawPriceChart(chart, rounds, nextPrice) {
+  const { width, height, left, right, top, bottom } = CHART;
+  const prices = rounds.map((r) => r.price);
+  if (nextPrice !== null) prices.push(nextPrice);
+  const low = Math.min(...prices, 4.8);
+  const high = Math.max(...prices, 5.0);
+  const pad = (high - low) * 0.08 || 0.05;
+  const y0 = low - pad;
+  const y1 = high + pad;
+  const xMax = Math.max(prices.length - 1, 1);
+  const x = (i) => left + ((width - left - right) * i) / xMax;
+  const y = (p) => top + ((height - top - bottom) * (y1 - p)) / (y1 - y0);
+  const parts = [svg("rect", { class: "plot", x: left, y: top, width: width - left - right, height: height - top - bottom })];
+  for (let k = 0; k <= 4; k += 1) {
+    const p = y0 + ((y1 - y0) * k) / 4;
+    parts.push(
+      svg("line", { class: "grid", x1: left, x2: width - right, y1: y(p), y2: y(p) }),
+      svg("text", { class: "tick", x: left - 6, y: y(p) + 4, "text-anchor": "end" }, p.toFixed(2)),
+    );
+  }
+  const step = Math.max(1, Math.ceil(xMax / 8));
+  for (let i = 0; i <= xMax; i += step) {
+    parts.push(svg("text", { class: "tick", x: x(i), y: height - bottom + 16, "text-anchor": "middle" }, String(i)));
+  }
+  parts.push(
+    svg("text", { class: "axis-label", x: (left + width - right) / 2, y: height - 4, "text-anchor": "middle" }, "round"),
+    svg("text", { class: "axis-label", x: 12, y: top + (height - top - bottom) / 2, transform: `rotate(-90 12 ${top + (height - top - bottom) / 2})`, "text-anchor": "middle" }, "price"),
+  );
+  const points = prices.map((p, i) => `${x(i).toFixed(1)},${y(p).toFixed(1)}`).join(" ");
+  parts.push(svg("polyline", { class: "price-line", points, "data-points": prices.length }));
+  rounds.forEach((r, i) => {
+    const sold = r.purchases.length;
+    parts.push(
+      svg(
+        "circle",
+        { class: sold ? "price-point sold" : "price-point", cx: x(i), cy: y(r.price), r: sold ? 4.5 : 3 },
+        svg("title", {}, `round ${r.iteration}: price ${fixed(r.price)}, ${sold} sold`),
+      ),
+    );
+  });
+  chart.setAttribute("data-points", String(prices.length));
+  fill(chart, svg("title", { id: "price-chart-title" }, "Price asked in each round"), parts);
+}
+
+/** Buy, hold and quit votes of each round, stacked. */
+function drawVotesChart(chart, rounds, nPatrons) {
+  const { width, left, right, top } = CHART;
+  const height = 160;
+  const bottom = 28;
+  const n = Math.max(rounds.length, 1);
+  const band = (width - left - right) / n;
+  const total = Math.max(nPatrons, 1);
+  const y = (count) => ((height - top - bottom) * count) / total;
+  const parts = [svg("rect", { class: "plot", x: left, y: top, width: width - left - right, height: height - top - bottom })];
+  parts.push(
+    svg("text", { class: "tick", x: left - 6, y: top + 4, "text-anchor": "end" }, String(nPatrons)),
+    svg("text", { class: "tick", x: left - 6, y: height - bottom + 4, "text-anchor": "end" }, "0"),
+  );
+  rounds.forEach((r, i) => {
+    let base = height - bottom;
+    for (const kind of ["buy", "hold", "quit"]) {
+      const tall = y(r.votes[kind]);
+      base -= tall;
+      parts.push(
+        svg(
+          "rect",
+          { class: `vote-${kind}`, x: left + i * band + band * 0.1, y: base, width: band * 0.8, height: tall },
+          svg("title", {}, `round ${r.iteration}: ${r.votes[kind]} ${kind}`),
+        ),
+      );
+    }
+  });
+  const step = Math.max(1, Math.ceil(n / 8));
+  for (let i = 0; i < rounds.length; i += step) {
+    parts.push(svg("text", { class: "tick", x: left + (i + 0.5) * band, y: height - bottom + 14, "text-anchor": "middle" }, String(i)));
+  }
+  parts.push(svg("text", { class: "axis-label", x: (left + width - right) / 2, y: height - 2, "text-anchor": "middle" }, "round"));
+  fill(chart, svg("title", {}, "Votes of the patrons still in, per round"), parts);
+}
+
+export function auctionView(view, id) {
+  const title = h("h1", { tabindex: "-1" }, `Auction ${id}`);
+  const liveness = h("p", { class: "liveness", role: "status", id: "liveness" }, "Loading…");
+  const summary = h("div");
+  const priceChart = svg("svg", { class: "chart", id: "price-chart", viewBox: `0 0 ${CHART.width} ${CHART.height}`, role: "img", "aria-labelledby": "price-chart-title", "data-points": "0" });
+  const votesChart = svg("svg", { class: "chart", id: "votes-chart", viewBox: `0 0 ${CHART.width} 160`, role: "img", "aria-label": "Votes per round: buy, hold, quit" });
+  const roundRows = h("tbody");
+  const buyerRows = h("tbody");
+  const quitterList = h("ul", { class: "quitters", id: "quitters" });
+  view.root.append(
+    title,
+    liveness,
+    summary,
+    h(
+      "section",
+      { "aria-labelledby": "price-heading" },
+      h("h2", { id: "price-heading" }, "Price over the rounds"),
+      h("figure", {}, priceChart, h("figcaption", {}, "Each point is the price asked in a round; filled larger points are rounds in which fish were sold; the last point is the next price.")),
+    ),
+    h(
+      "section",
+      { "aria-labelledby": "votes-heading" },
+      h("h2", { id: "votes-heading" }, "Votes per round"),
+      h("figure", {}, votesChart, h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
+      h(
+        "div",
+        { class: "scroll" },
+        h(
+          "table",
+          { class: "list", id: "rounds" },
+          h("caption", {}, "Every committed round"),
+          h("thead", {}, h("tr", {}, ["Round", "Price", "Fish left", "Buy", "Hold", "Quit", "Sold", "Quit now"].map((t) => h("th", { scope: "col" }, t)))),
+          roundRows,
+        ),
+      ),
+    ),
+    h(
+      "section",
+      { "aria-labelledby": "buyers-heading" },
+      h("h2", { id: "buyers-heading" }, "Buyers"),
+      h(
+        "table",
+        { class: "list", id: "buyers" },
+        h("caption", {}, "Who bought a fish, at what price"),
+        h("thead", {}, h("tr", {}, ["Participant", "Version", "Model", "Price", "Round"].map((t) => h("th", { scope: "col" }, t)))),
+        buyerRows,
+      ),
+    ),
+    h("section", { "aria-labelledby": "quitters-heading" }, h("h2", { id: "quitters-heading" }, "Quitters"), quitterList),
+  );
+
+  const rounds = [];
+  let head = null;
+
+  function showSummary(state) {
+    const sold = rounds.reduce((n, r) => n + r.purchases.length, 0);
+    const last = rounds[rounds.length - 1];
+    fill(
+      summary,
+      facts(
+        [
+          ["Status", statusBadge(state.status)],
+          ["Fish on sale", String(head.n_initial)],
+          ["Fish left", String(last ? last.n_available_after : head.n_initial)],
+          ["Sold", String(sold)],
+          ["Patrons", String(head.n_patrons)],
+          ["Rounds", String(rounds.length)],
+          ["Price now", fixed(last ? last.next_price : head.price)],
+          ["Revenue", fixed(rounds.reduce((n, r) => n + r.purchases.reduce((m, p) => m + p.price, 0), 0), 2)],
+          ["Stopped because", stopReason(state.stop_reason)],
+          ["Seed", String(head.seed)],
+          ["Fine-tuning", head.fine_tune ? "yes" : "no"],
+        ],
+        { id: "auction-summary" },
+      ),
+      state.error ? h("p", { class: "problem" }, `Failed: ${state.error}`) : null,
+    );
+  }
+
+  function patronLink(p) {
+    return link(`#/models/${p.model_id}`, p.participant);
+  }
+
+  function addRound(row) {
+    if (row.iteration !== rounds.length) return; // the stream never skips or repeats; a guard
+    rounds.push(row);
+    roundRows.append(
+      tableRow([
+        String(row.iteration),
+        fixed(row.price),
+        String(row.n_available),
+        String(row.votes.buy),
+        String(row.votes.hold),
+        String(row.votes.quit),
+        String(row.purchases.length),
+        String(row.quits.length),
+      ]),
+    );
+    for (const p of row.purchases) {
+      buyerRows.append(tableRow([patronLink(p), String(p.version), String(p.model_id), fixed(p.price), String(row.iteration)]));
+    }
+    for (const q of row.quits) quitterList.append(h("li", {}, patronLink(q), ` (round ${row.iteration})`));
+    drawPriceChart(priceChart, rounds, row.next_price);
+    drawVotesChart(votesChart, rounds, head.n_patrons);
+    showSummary({ status: "running", stop_reason: null, error: null });
+  }
+
+  getJSON(`/auctions/${id}`)
+    .then((auction) => {
+      head = auction;
+      showSummary(auction);
+      drawPriceChart(priceChart, [], auction.price);
+      const stop = follow(
+        `/auctions/${id}/events`,
+        {
+          iteration: addRound,
+          end: (end) => {
+            showSummary(end);
+            if (quitterList.children.length === 0) quitterList.append(h("li", {}, "nobody quit"));
+            liveness.textContent = `Ended: ${end.status}, ${stopReason(end.stop_reason)}; ${end.n_sold} of ${end.n_initial} fish sold in ${end.iterations} rounds.`;
+            if (buyerRows.children.length === 0) buyerRows.append(tableRow(["nobody bought a fish", "", "", "", ""]));
+          },
+        },
+        (state) => {
+          if (state === "live") liveness.textContent = "Following live: each round appears as soon as it is committed.";
+          if (state === "waiting") liveness.textContent = "Connection lost; resuming where it left off…";
+        },
+      );
+      view.onLeave(stop);
+    })
+    .catch((error) => {
+      liveness.replaceWith(problem(error));
+    });
+}

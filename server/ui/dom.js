@@ -1,0 +1,98 @@
+// Building the page. Every value from the API enters the document as a text node or an
+// attribute value, never as markup: there is no innerHTML anywhere in this page.
+
+const SVG_NS = "http://www.w3.org/2000/svg";
+
+function setAttributes(node, attributes) {
+  for (const [name, value] of Object.entries(attributes)) {
+    if (value === null || value === undefined || value === false) continue;
+    if (name.startsWith("on") && typeof value === "function") {
+      node.addEventListener(name.slice(2), value);
+    } else {
+      node.setAttribute(name, value === true ? "" : String(value));
+    }
+  }
+}
+
+function appendChildren(node, children) {
+  for (const child of children.flat(Infinity)) {
+    if (child === null || child === undefined || child === false) continue;
+    node.append(child instanceof Node ? child : document.createTextNode(String(child)));
+  }
+}
+
+/** An HTML element: h("a", {href: "#/"}, "text", otherNode). */
+export function h(tag, attributes = {}, ...children) {
+  const node = document.createElement(tag);
+  setAttributes(node, attributes);
+  appendChildren(node, children);
+  return node;
+}
+
+/** An SVG element, same calling convention. */
+export function svg(tag, attributes = {}, ...children) {
+  const node = document.createElementNS(SVG_NS, tag);
+  setAttributes(node, attributes);
+  appendChildren(node, children);
+  return node;
+}
+
+/** Replace a node's children. */
+export function fill(node, ...children) {
+  node.replaceChildren();
+  appendChildren(node, children);
+  return node;
+}
+
+/** A number with a fixed count of decimals ("—" for null). */
+export function fixed(value, digits = 3) {
+  return value === null || value === undefined ? "—" : Number(value).toFixed(digits);
+}
+
+/** A weight with its sign spelled out: "+0.2026", "−1.0000". */
+export function signed(value, digits = 4) {
+  const text = Math.abs(value).toFixed(digits);
+  if (value > 0) return `+${text}`;
+  if (value < 0) return `\u2212${text}`;
+  return text;
+}
+
+/** A timestamp in the reader's locale ("—" for null). */
+export function when(iso) {
+  return iso ? new Date(iso).toLocaleString() : "—";
+}
+
+/** A link inside the page. */
+export function link(hash, ...children) {
+  return h("a", { href: hash }, ...children);
+}
+
+/** A table with a caption, column headers and rows (each row: a list of cells). */
+export function table(caption, headers, rows, attributes = {}) {
+  return h(
+    "table",
+    attributes,
+    h("caption", {}, caption),
+    h("thead", {}, h("tr", {}, headers.map((text) => h("th", { scope: "col" }, text)))),
+    h("tbody", {}, rows.map((cells) => tableRow(cells))),
+  );
+}
+
+/** One body row of ``table``. */
+export function tableRow(cells, attributes = {}) {
+  return h("tr", attributes, cells.map((cell) => h("td", {}, cell)));
+}
+
+/** A description list from [term, description] pairs. */
+export function facts(pairs, attributes = {}) {
+  return h(
+    "dl",
+    { class: "facts", ...attributes },
+    pairs.map(([term, description]) => h("div", {}, h("dt", {}, term), h("dd", {}, description))),
+  );
+}
+
+/** A line of text for a failure, shown where the content would have been. */
+export function problem(error) {
+  return h("p", { class: "problem", role: "alert" }, String(error.message || error));
+}

@@ -1,0 +1,321 @@
+// Models: the list with verdicts, a participant's versions, and the inspector's view of one
+// model: the Fish Sale Negotiator drawn neuron by neuron, every weight by name and sign, and
+// each screener reason on the neuron it names.
+
+import { getJSON, pager, withQuery } from "./api.js";
+import { facts, fill, h, link, problem, signed, svg, table, tableRow, when } from "./dom.js";
+
+const NAME_PATTERN = /^[A-Za-z0-9_.-]+$/; // participant names the API accepts
+const TINY = 0.0011; // |weight| at or below the design's δ = 0.001: drawn faint
+
+function verdictBadge(model) {
+  return h("span", { class: `badge verdict-${model.verdict}` }, model.verdict);
+}
+
+function participantLink(name) {
+  // only names the API could have accepted get a link; any other text stays plain text
+  return NAME_PATTERN.test(name) ? link(`#/participants/${encodeURIComponent(name)}`, name) : name;
+}
+
+function modelRow(m) {
+  return tableRow([
+    link(`#/models/${m.id}`, `Model ${m.id}`),
+    participantLink(m.participant),
+    String(m.version),
+    verdictBadge(m),
+    m.rules.length ? m.rules.join(", ") : "—",
+    m.description,
+    when(m.created_at),
+  ]);
+}
+
+const MODEL_HEADERS = ["Model", "Participant", "Version", "Verdict", "Screener rules that fired", "Description", "Submitted"];
+
+function modelTable(caption, id) {
+  const rows = h("tbody");
+  const node = h(
+    "table",
+    { class: "list", id },
+    h("caption", {}, caption),
+    h("thead", {}, h("tr", {}, MODEL_HEADERS.map((text) => h("th", { scope: "col" }, text)))),
+    rows,
+  );
+  return { node, rows };
+}
+
+export function modelList(view, query) {
+  const participant = query.get("participant") || "";
+  const accepted = query.get("accepted") || "";
+  view.root.append(h("h1", { tabindex: "-1" }, "Models"));
+  const nameInput = h("input", { id: "filter-participant", name: "participant", value: participant, pattern: NAME_PATTERN.source, maxlength: "64", autocomplete: "off" });
+  const verdictSelect = h(
+    "select",
+    { id: "filter-verdict", name: "accepted" },
+    h("option", { value: "", selected: accepted === "" }, "any verdict"),
+    h("option", { value: "true", selected: accepted === "true" }, "accepted"),
+    h("option", { value: "false", selected: accepted === "false" }, "rejected"),
+  );
+  const form = h(
+    "form",
+    { role: "search", class: "filters" },
+    h("label", { for: "filter-participant" }, "Participant"),
+    nameInput,
+    h("label", { for: "filter-verdict" }, "Verdict"),
+    verdictSelect,
+    h("button", { type: "submit" }, "Filter"),
+  );
+  form.addEventListener("submit", (event) => {
+    event.preventDefault();
+    location.hash = withQuery("#/models", { participant: nameInput.value.trim(), accepted: verdictSelect.value });
+  });
+  const { node, rows } = modelTable("Model versions, newest first", "model-list");
+  const pages = pager("/models", { participant, accepted }, (items) => items.forEach((m) => rows.append(modelRow(m))));
+  view.root.append(form, node, pages.box);
+  pages.load().catch((error) => view.root.append(problem(error)));
+}
+
+export function participantView(view, name) {
+  view.root.append(h("h1", { tabindex: "-1" }, `Participant ${name}`));
+  getJSON(`/participants/${encodeURIComponent(name)}`)
+    .then((p) => {
+      const { node, rows } = modelTable(`The newest of ${p.n_versions} versions`, "versions");
+      p.versions.forEach((m) => rows.append(modelRow(m)));
+      view.root.append(
+        facts([
+          ["Registered", when(p.created_at)],
+          ["Versions", String(p.n_versions)],
+        ]),
+        node,
+        h("p", {}, link(`#/models?participant=${encodeURIComponent(name)}`, "All versions, page by page")),
+      );
+    })
+    .catch((error) => view.root.append(problem(error)));
+}
+
+// --- the inspector's view -------------------------------------------------------------------
+
+/** The network's layers, as the manifest names them (served from the Python definitions). */
+let anatomy = null;
+async function loadAnatomy() {
+  anatomy = anatomy || (await getJSON("/ui/neurons.json"));
+  return anatomy;
+}
+
+/** The manifest's neurons: {PG: {layer, weights: {price: 0.2, ...}, bias, activation}, ...}. */
+function neuronsOf(manifest) {
+  const out = {};
+  const add = (layer, group) => {
+    for (const [name, neuron] of Object.entries(group)) out[name] = { layer, ...neuron };
+  };
+  add("external_sensor", manifest.external_sensor);
+  add("decision", manifest.decision);
+  add("judgement", manifest.pfc.judgement);
+  add("verdict", manifest.pfc.verdict);
+  return out;
+}
+
+/**
+ * One layered drawing: columns of nodes, an edge for every weight (blue solid = positive,
+ * red dashed = negative, width = size), flagged neurons ringed with their count of reasons.
+ */
+function network({ id, label, columns, neurons, reasonsByNeuron, sourceLabel, onPick }) {
+  const width = 640;
+  const gap = 44;
+  const tallest = Math.max(...columns.map((c) => c.names.length));
+  const height = tallest * gap + 56;
+  const xs = columns.map((_, i) => 70 + (i * (width - 140)) / (columns.length - 1));
+  const place = {};
+  columns.forEach((column, i) => {
+    const top = (height - column.names.length * gap) / 2 + gap / 2 + 10;
+    column.names.forEach((name, k) => {
+      place[`${i}:${name}`] = { x: xs[i], y: top + k * gap };
+    });
+  });
+  const edges = [];
+  const nodes = [];
+  columns.forEach((column, i) => {
+    if (i === 0) return;
+    const weights = column.names.map((name) => neurons[name].weights);
+    const largest = Math.max(...weights.flatMap((w) => Object.values(w).map(Math.abs)), 1e-9);
+    column.names.forEach((target, k) => {
+      for (const [source, w] of Object.entries(weights[k])) {
+        const a = place[`${i - 1}:${source}`];
+        const b = place[`${i}:${target}`];
+        if (!a || !b || w === 0) continue; // a cut connection is drawn as missing
+        const kind = Math.abs(w) <= TINY ? "tiny" : w > 0 ? "pos" : "neg";
+        edges.push(
+          svg(
+            "line",
+            { class: `edge ${kind}`, x1: a.x + 17, y1: a.y, x2: b.x - 17, y2: b.y, "stroke-width": (0.6 + (3.4 * Math.abs(w)) / largest).toFixed(2), "data-edge": `${source}->${target}`, "data-weight": w },
+            svg("title", {}, `${sourceLabel(source)} → ${target}: ${signed(w)}`),
+          ),
+        );
+      }
+    });
+  });
+  columns.forEach((column, i) => {
+    nodes.push(svg("text", { class: "column-label", x: xs[i], y: 16, "text-anchor": "middle" }, column.label));
+    column.names.forEach((name) => {
+      const { x, y } = place[`${i}:${name}`];
+      const isNeuron = i > 0 || column.neurons;
+      const reasons = isNeuron ? reasonsByNeuron[name] || [] : [];
+      const shapes = [
+        svg("circle", { cx: x, cy: y, r: 17 }),
+        svg("text", { x, y: y + 4, "text-anchor": "middle" }, i === 0 && !column.neurons ? column.short(name) : name),
+      ];
+      if (reasons.length) {
+        shapes.push(svg("circle", { class: "badge-dot", cx: x + 14, cy: y - 14, r: 9 }), svg("text", { class: "badge-count", x: x + 14, y: y - 10.5, "text-anchor": "middle" }, String(reasons.length)));
+      }
+      if (!isNeuron) {
+        nodes.push(svg("g", { class: "node input", "data-input": name }, svg("title", {}, name), shapes));
+        return;
+      }
+      const words = reasons.length ? `${reasons.length} screener reason${reasons.length > 1 ? "s" : ""}` : "no screener reason";
+      const group = svg(
+        "g",
+        { class: reasons.length ? "node neuron flagged" : "node neuron", "data-neuron": name, tabindex: "0", role: "button", "aria-label": `${name}: ${words}; show its weights` },
+        svg("title", {}, `${name}: ${words}`),
+        shapes,
+      );
+      group.addEventListener("click", () => onPick(name));
+      group.addEventListener("keydown", (event) => {
+        if (event.key === "Enter" || event.key === " ") {
+          event.preventDefault();
+          onPick(name);
+        }
+      });
+      nodes.push(group);
+    });
+  });
+  return svg("svg", { class: "network", id, viewBox: `0 0 ${width} ${height}`, role: "group", "aria-label": label }, edges, nodes);
+}
+
+function effect(w) {
+  if (w === 0) return "none (cut)";
+  if (Math.abs(w) <= TINY) return "barely (δ)";
+  return w > 0 ? "excites" : "inhibits";
+}
+
+function weightTable(name, neuron, sourceLabel) {
+  const rows = Object.entries(neuron.weights).map(([source, w]) => [
+    sourceLabel(source),
+    h("span", { class: w > 0 ? "w-pos" : w < 0 ? "w-neg" : "" }, signed(w)),
+    effect(w),
+  ]);
+  rows.push(["bias", h("span", { class: neuron.bias > 0 ? "w-pos" : neuron.bias < 0 ? "w-neg" : "" }, signed(neuron.bias)), "constant"]);
+  return table(`Weights into ${name}`, ["From", "Weight", "Effect"], rows, { class: "weights", "data-weights-of": name });
+}
+
+function activationText(activation) {
+  if (!activation) return null;
+  const { kind, ...numbers } = activation;
+  const parameters = Object.entries(numbers).map(([k, v]) => `${k} = ${v}`).join(", ");
+  return h("p", { class: "activation" }, `Activation: ${kind.replace("_", " ")} (${parameters})`);
+}
+
+function reasonList(reasons) {
+  return h(
+    "ul",
+    { class: "reasons" },
+    reasons.map((r) => h("li", {}, h("strong", {}, r.rule), ": ", r.message)),
+  );
+}
+
+function neuronCard(name, neuron, roles, reasons, sourceLabel) {
+  return h(
+    "article",
+    { class: reasons.length ? "neuron-card flagged" : "neuron-card", id: `neuron-${name}`, tabindex: "-1", "data-neuron": name },
+    h("h4", {}, `${name}: ${roles[name] || ""}`, reasons.length ? h("span", { class: "badge verdict-rejected" }, `${reasons.length} reason${reasons.length > 1 ? "s" : ""}`) : null),
+    reasons.length ? reasonList(reasons) : h("p", { class: "quiet" }, "The screener found nothing wrong here."),
+    weightTable(name, neuron, sourceLabel),
+    activationText(neuron.activation),
+  );
+}
+
+export function inspectorView(view, id) {
+  const title = h("h1", { tabindex: "-1" }, `Model ${id}`);
+  view.root.append(title);
+  Promise.all([getJSON(`/models/${id}`), loadAnatomy()])
+    .then(([model, a]) => {
+      const manifest = model.manifest;
+      const neurons = neuronsOf(manifest);
+      const reasonsByNeuron = {};
+      const unplaced = [];
+      for (const reason of model.reasons) {
+        if (neurons[reason.neuron]) (reasonsByNeuron[reason.neuron] ||= []).push(reason);
+        else unplaced.push(reason);
+      }
+      fill(title, `Model ${model.id}: `, model.participant, ` version ${model.version}`);
+      const flagged = Object.keys(reasonsByNeuron);
+      const verdict = model.accepted
+        ? h("p", { class: "verdict accepted", id: "verdict" }, h("strong", {}, "Accepted"), " by the screener: every weight reads as its neuron's meaning asks.")
+        : h("p", { class: "verdict rejected", id: "verdict" }, h("strong", {}, "Rejected"), ` by the screener: ${model.reasons.length} reason${model.reasons.length === 1 ? "" : "s"}`, flagged.length ? ` on ${flagged.join(", ")}` : "", ". It can never enter an auction.");
+      const pick = (name) => {
+        const card = document.getElementById(`neuron-${name}`);
+        if (card) {
+          card.scrollIntoView({ block: "start" });
+          card.focus();
+        }
+      };
+      const input = (name) => a.input_words[name] || name;
+      const short = (name) => a.input_short[name] || name;
+      const decisionPath = network({
+        id: "network-decision",
+        label: "The decision path: inputs, external sensor, decision",
+        columns: [
+          { label: "inputs", names: a.inputs, short },
+          { label: "external sensor", names: a.sensor },
+          { label: "decision", names: a.decision },
+        ],
+        neurons,
+        reasonsByNeuron,
+        sourceLabel: input,
+        onPick: pick,
+      });
+      const pfcPath = network({
+        id: "network-pfc",
+        label: "The self-judge: prefrontal cortex judgements and verdicts",
+        columns: [
+          { label: "softmax of", names: a.pfc_sources, neurons: true },
+          { label: "judgement", names: a.judgement },
+          { label: "verdict", names: a.verdict },
+        ],
+        neurons,
+        reasonsByNeuron,
+        sourceLabel: (name) => name,
+        onPick: pick,
+      });
+      const layer = (heading, names, sourceLabel) =>
+        h("section", { class: "layer" }, h("h3", {}, heading), h("div", { class: "cards" }, names.map((n) => neuronCard(n, neurons[n], a.roles, reasonsByNeuron[n] || [], sourceLabel))));
+      view.root.append(
+        verdict,
+        h("p", { class: "description", id: "description" }, manifest.description || "(no description)"),
+        facts([
+          ["Participant", participantLink(model.participant)],
+          ["Submitted", when(model.created_at)],
+          ["Augmentation", `${manifest.augmentation.copies} copies, noise σ ${manifest.augmentation.noise_std}, noiseless: ${manifest.augmentation.noiseless_inputs.join(", ") || "none"}`],
+          ["Fine-tuning", `${manifest.fine_tuning.epochs} epochs, batch ${manifest.fine_tuning.batch_size}, learning rate ${manifest.fine_tuning.learning_rate}`],
+          ["PFC trainable", manifest.pfc.trainable ? "yes" : "no"],
+        ]),
+        h(
+          "section",
+          { "aria-labelledby": "drawing-heading" },
+          h("h2", { id: "drawing-heading" }, "The negotiator, neuron by neuron"),
+          h("p", { class: "legend" }, h("span", { class: "key edge-pos" }), "positive weight ", h("span", { class: "key edge-neg" }), "negative weight (dashed) ", h("span", { class: "key edge-tiny" }), "δ-sized weight; line width grows with the weight, a weight of 0 is not drawn. A red ring marks a neuron the screener objects to; select a neuron to read its weights."),
+          h("figure", {}, decisionPath, h("figcaption", {}, "Decision: the inputs feed the external sensor PG, SZ, LSR, ST, which feeds buy B, hold L and quit Q.")),
+          h("figure", {}, pfcPath, h("figcaption", {}, "Self-judge: the prefrontal cortex reads the softmax of all seven and judges PGL, BC, FQ, then the verdicts T (right) and F (wrong).")),
+        ),
+        h(
+          "section",
+          { "aria-labelledby": "weights-heading" },
+          h("h2", { id: "weights-heading" }, "Every weight, by name and sign"),
+          layer("External sensor", a.sensor, input),
+          layer("Decision", a.decision, (n) => n),
+          layer("Prefrontal cortex: judgements", a.judgement, (n) => `softmax ${n}`),
+          layer("Prefrontal cortex: verdicts", a.verdict, (n) => `tanh ${n}`),
+          unplaced.length ? h("section", { class: "layer" }, h("h3", {}, "Reasons about the model as a whole"), reasonList(unplaced)) : null,
+        ),
+      );
+    })
+    .catch((error) => view.root.append(problem(error)));
+}

@@ -1,0 +1,242 @@
+"""The event streams against a real ``srd serve`` on loopback (an in-process transport cannot
+end an endless stream), on SQLite and PostgreSQL: order, resumption, the end, the bounds."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import pytest
+import torch
+
+from server.events import EventHub
+from server.launch import ServerProcess
+from tests.server.conftest import ADMIN, ADMIN_TOKEN
+from tests.server.live import (
+    create_unstarted_auction,
+    data,
+    paced_auction,
+    sse_events,
+    submit_population,
+)
+
+MAX_STREAMS = 4
+KEEPALIVE_S = 0.3
+STREAM_TIMEOUT = httpx.Timeout(30.0)
+
+
+@pytest.fixture(scope="module")
+def server(database_url: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    env = {
+        "SRD_EVENT_KEEPALIVE_S": str(KEEPALIVE_S),
+        "SRD_EVENT_POLL_INTERVAL_S": "0.05",
+        "SRD_MAX_EVENT_STREAMS": str(MAX_STREAMS),
+        "SRD_PROGRESS_INTERVAL_S": "0.1",
+    }
+    data_dir = tmp_path_factory.mktemp("server")
+    with ServerProcess(
+        database_url=database_url, data_dir=data_dir, admin_token=ADMIN_TOKEN, extra_env=env
+    ) as running:
+        yield running
+
+
+@pytest.fixture(scope="module")
+def client(server: ServerProcess) -> Iterator[httpx.Client]:
+    with httpx.Client(base_url=server.url, timeout=STREAM_TIMEOUT) as http:
+        yield http
+
+
+@pytest.fixture(scope="module")
+def honest_ids(client: httpx.Client) -> list[int]:
+    answers = submit_population(client)
+    return [a["model_id"] for name, a in answers.items() if name.startswith("honest")]
+
+
+def follow(client: httpx.Client, path: str, **headers: str) -> list[dict[str, str]]:
+    """Every event of a stream until the server closes it (comments left out)."""
+    with client.stream("GET", path, headers=headers) as response:
+        assert response.status_code == 200, response.read()
+        assert response.headers["content-type"].startswith("text/event-stream")
+        return [e for e in sse_events(response) if "event" in e]
+
+
+def purchases_by_round(auction: dict[str, Any]) -> dict[int, list[tuple[int, float]]]:
+    """``GET /auctions/{id}``'s buyers, grouped by the round they bought in."""
+    rounds: dict[int, list[tuple[int, float]]] = {}
+    for buyer in auction["buyers"]:
+        rounds.setdefault(buyer["iteration"], []).append((buyer["model_id"], buyer["price"]))
+    return rounds
+
+
+def test_auction_stream_is_the_committed_history_then_the_end(
+    client: httpx.Client, honest_ids: list[int]
+) -> None:
+    created = client.post("/auctions", json={"n_fish": 3, "seed": 0}, headers=ADMIN)
+    auction_id = created.json()["auction_id"]
+    events = follow(client, f"/auctions/{auction_id}/events")
+    auction = client.get(f"/auctions/{auction_id}").json()
+    assert auction["status"] == "finished"
+    rounds, end = events[:-1], events[-1]
+    assert [e["event"] for e in rounds] == ["iteration"] * len(auction["history"])
+    assert [e["id"] for e in rounds] == [str(i) for i in range(len(auction["history"]))]
+    bought = purchases_by_round(auction)
+    for event, row in zip(rounds, auction["history"], strict=True):
+        sent = data(event)
+        assert {k: sent[k] for k in row} == row
+        purchases = [(p["model_id"], p["price"]) for p in sent["purchases"]]
+        assert purchases == bought.get(row["iteration"], [])
+    assert [q["model_id"] for e in rounds for q in data(e)["quits"]] == auction["quitters"]
+    names = {p["participant"] for e in rounds for p in data(e)["purchases"] + data(e)["quits"]}
+    assert names and all(name.startswith("honest-") for name in names)
+    assert end["event"] == "end" and "id" not in end
+    assert data(end) == {
+        "status": "finished",
+        "iterations": len(auction["history"]),
+        "price": auction["price"],
+        "n_available": auction["n_available"],
+        "n_initial": 3,
+        "n_sold": len(auction["buyers"]),
+        "stop_reason": auction["stop_reason"],
+        "error": None,
+        "finished_at": auction["finished_at"].replace("+00:00", "Z"),
+    }
+
+
+def test_events_arrive_while_it_runs_and_resume_skips_and_repeats_nothing(
+    client: httpx.Client,
+    server: ServerProcess,
+    honest_ids: list[int],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    torch.set_num_threads(1)
+    auction_id = create_unstarted_auction(server.database_url, honest_ids, n_fish=1, seed=1)
+    first: list[dict[str, str]] = []
+    with paced_auction(monkeypatch, server.database_url, server.data_dir, auction_id, pace_s=0.3):
+        path = f"/auctions/{auction_id}/events"
+        with client.stream("GET", path) as response:
+            for event in sse_events(response):
+                if event.get("event") == "iteration":
+                    first.append(event)
+                    state = client.get(f"/auctions/{auction_id}").json()
+                    assert state["status"] == "running"  # it arrived while the auction ran
+                    assert len(state["history"]) == len(first)  # as soon as it was committed
+                if len(first) == 2:
+                    break  # the client goes away mid-auction
+        resumed = follow(client, path, **{"Last-Event-ID": first[-1]["id"]})
+        also = follow(client, f"{path}?after=0", **{"Last-Event-ID": "1"})  # the header wins
+    auction = client.get(f"/auctions/{auction_id}").json()
+    ids = [e["id"] for e in first + resumed if e["event"] == "iteration"]
+    assert ids == [str(i) for i in range(len(auction["history"]))]  # nothing skipped or repeated
+    assert len(auction["history"]) > 2 and resumed[-1]["event"] == "end"
+    assert [data(e) for e in also] == [data(e) for e in resumed]
+    from_query = follow(client, f"{path}?after={len(auction['history']) - 2}")
+    assert [e["event"] for e in from_query] == ["iteration", "end"]
+
+
+def test_idle_streams_keep_alive_and_are_bounded_and_freed(
+    client: httpx.Client, server: ServerProcess, honest_ids: list[int]
+) -> None:
+    auction_id = create_unstarted_auction(server.database_url, honest_ids, n_fish=1, seed=0)
+    path = f"/auctions/{auction_id}/events"
+    streams = [client.stream("GET", path) for _ in range(MAX_STREAMS)]
+    opened = [stream.__enter__() for stream in streams]
+    try:
+        for response in opened:
+            assert response.status_code == 200
+        events = sse_events(opened[0])
+        assert next(events)["comment"] == f"auction {auction_id}"
+        assert next(events) == {"comment": "keep-alive"}  # pending: nothing to send yet
+        refused = client.get(path, timeout=5)
+        assert refused.status_code == 503
+        assert refused.headers["Retry-After"] == "5"
+        assert refused.json()["detail"][0]["type"] == "too_many_streams"
+        streams.pop().__exit__(None, None, None)  # a client disconnects: its slot comes back
+        opened.pop()
+        assert status_once_freed(client, path) == 200
+    finally:
+        for stream in streams:
+            stream.__exit__(None, None, None)
+
+
+def status_once_freed(client: httpx.Client, path: str, timeout_s: float = 5.0) -> int:
+    """The status of a new stream, retried while the server is still releasing a slot."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        with client.stream("GET", path) as response:
+            if response.status_code != 503 or time.monotonic() > deadline:
+                return response.status_code
+        time.sleep(0.05)
+
+
+def test_job_stream_reports_progress_then_the_whole_job(client: httpx.Client) -> None:
+    body = {"kind": "fish", "params": {"steps": 600, "seed": 0}}
+    job_id = client.post("/jobs", json=body, headers=ADMIN).json()["job_id"]
+    events = follow(client, f"/jobs/{job_id}/events")
+    progress, end = events[:-1], events[-1]
+    assert progress and all(e["event"] == "progress" for e in progress)
+    ids = [int(e["id"]) for e in progress]
+    assert ids == sorted(set(ids))  # each change once, in order
+    fractions = [data(e)["progress"] for e in progress]
+    assert fractions == sorted(fractions)
+    assert {data(e)["status"] for e in progress} <= {"queued", "running"}
+    job = client.get(f"/jobs/{job_id}").json()
+    assert end["event"] == "end" and data(end)["status"] == "succeeded"
+    assert data(end)["result"] == job["result"] and data(end)["artifacts"] == job["artifacts"]
+    again = follow(client, f"/jobs/{job_id}/events", **{"Last-Event-ID": progress[-1]["id"]})
+    assert [e["event"] for e in again] == ["end"]  # nothing it had already seen
+
+
+def test_stream_errors_use_the_error_body(client: httpx.Client) -> None:
+    missing = client.get("/auctions/999999/events")
+    assert missing.status_code == 404 and missing.json()["detail"][0]["loc"] == [
+        "path",
+        "auction_id",
+    ]
+    assert client.get("/jobs/999999/events").status_code == 404
+    bad = client.get("/auctions/1/events", headers={"Last-Event-ID": "soon"})
+    assert bad.status_code == 422
+    assert bad.json()["detail"][0]["loc"] == ["header", "Last-Event-ID"]
+    negative = client.get("/auctions/1/events?after=-1")
+    assert negative.status_code == 422 and negative.json()["detail"][0]["loc"] == [
+        "query",
+        "after",
+    ]
+
+
+def test_one_watcher_per_row_whatever_the_listeners() -> None:
+    """Many listeners of one row share one poll loop; it stops when the last one leaves."""
+
+    class Snap:
+        def __init__(self, n: int) -> None:
+            self.n = n
+            self.final = n >= 3
+
+    polls: list[int] = []
+
+    def poll(previous: Snap | None) -> Snap:
+        polls.append(0)
+        return Snap(len(polls))
+
+    async def scenario() -> None:
+        hub = EventHub(interval_s=0.01, max_streams=10)
+
+        async def listen() -> list[int]:
+            seen = []
+            async with hub.watch("row", poll) as watch:
+                while True:
+                    generation, snap = watch.generation, watch.snapshot
+                    assert snap is not None
+                    seen.append(snap.n)
+                    if snap.final:
+                        return seen
+                    await watch.wait(generation, 1.0)
+
+        results = await asyncio.gather(*(listen() for _ in range(20)))
+        assert all(r[-1] == 3 for r in results)
+        assert len(polls) == 3  # one loop for 20 listeners; it ended at the final snapshot
+        assert hub.watched == 0
+
+    asyncio.run(scenario())

@@ -7,6 +7,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     DateTime,
     Float,
@@ -83,6 +84,11 @@ class ModelVersion(Base):
     accepted: Mapped[bool] = mapped_column(Boolean)
     reasons: Mapped[list[dict[str, str]]] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    # A version uploaded in a remote fine-tuning round: the version it was fine-tuned from,
+    # and the auction and round (null for versions sent to /submit).
+    parent_id: Mapped[int | None] = mapped_column(ForeignKey("model_versions.id"), nullable=True)
+    auction_id: Mapped[int | None] = mapped_column(ForeignKey("auctions.id"), nullable=True)
+    round: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
     participant: Mapped[Participant] = relationship(back_populates="versions")
 
@@ -98,6 +104,10 @@ class Auction(Base):
     rarity: Mapped[float | None] = mapped_column(Float, nullable=True)
     max_iterations: Mapped[int] = mapped_column(Integer)
     fine_tune: Mapped[bool] = mapped_column(Boolean)
+    fine_tune_mode: Mapped[str] = mapped_column(String(8), default="server")
+    """"server": the worker fine-tunes the patrons; "remote": the participants do, in rounds."""
+    fine_tune_rounds: Mapped[int] = mapped_column(Integer, default=4)
+    round_deadline_s: Mapped[float] = mapped_column(Float, default=10.0)
     seed: Mapped[int] = mapped_column(Integer)
     iteration: Mapped[int] = mapped_column(Integer, default=0)
     price: Mapped[float] = mapped_column(Float)
@@ -124,6 +134,10 @@ class AuctionPatron(Base):
     auction_id: Mapped[int] = mapped_column(ForeignKey("auctions.id"), primary_key=True)
     position: Mapped[int] = mapped_column(Integer, primary_key=True)
     model_id: Mapped[int] = mapped_column(ForeignKey("model_versions.id"), index=True)
+    current_model_id: Mapped[int | None] = mapped_column(
+        ForeignKey("model_versions.id"), nullable=True
+    )
+    """The version bidding now, after remote fine-tuning rounds (null: ``model_id``)."""
 
 
 class AuctionIteration(Base):
@@ -167,6 +181,60 @@ class Quit(Base):
     auction_id: Mapped[int] = mapped_column(ForeignKey("auctions.id"))
     model_id: Mapped[int] = mapped_column(ForeignKey("model_versions.id"), index=True)
     iteration: Mapped[int] = mapped_column(Integer)
+
+
+class FineTuneRound(Base):
+    """A remote fine-tuning round: published after ``iteration``, open until every asked patron
+    has answered or ``deadline`` (absolute, UTC) has passed; closed in the transaction that
+    applies its answers to the market checkpoint."""
+
+    __tablename__ = "fine_tune_rounds"
+    __table_args__ = (UniqueConstraint("auction_id", "round"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    auction_id: Mapped[int] = mapped_column(ForeignKey("auctions.id"))
+    round: Mapped[int] = mapped_column(Integer)
+    """1 for the round after iteration 0, and so on."""
+    iteration: Mapped[int] = mapped_column(Integer)
+    status: Mapped[str] = mapped_column(String(8))
+    """open | closed."""
+    opened_at: Mapped[datetime] = mapped_column(UtcDateTime)
+    deadline: Mapped[datetime] = mapped_column(UtcDateTime)
+    closed_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
+    rows: Mapped[list[list[float]]] = mapped_column(JSON)
+    fine_tune_seed: Mapped[int] = mapped_column(BigInteger)
+    augmentation_seed: Mapped[int] = mapped_column(BigInteger)
+    asked: Mapped[list[int]] = mapped_column(JSON)
+    """Positions of the patrons asked (the active ones)."""
+    bytes_published: Mapped[int] = mapped_column(BigInteger, default=0)
+    """Bodies of the ``GET .../rounds/current`` answers that carried this round."""
+
+    answers: Mapped[list[FineTuneAnswer]] = relationship(order_by="FineTuneAnswer.position")
+
+
+class FineTuneAnswer(Base):
+    """A patron's outcome in a round: accepted | refused (re-screening) | late | missing.
+
+    Written when the upload is decided (accepted, refused, late) or when the round closes
+    (missing); ``model_id`` is the version the patron bids with after the round.
+    """
+
+    __tablename__ = "fine_tune_answers"
+    __table_args__ = (UniqueConstraint("round_id", "position"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    round_id: Mapped[int] = mapped_column(ForeignKey("fine_tune_rounds.id"))
+    position: Mapped[int] = mapped_column(Integer)
+    outcome: Mapped[str] = mapped_column(String(8))
+    model_id: Mapped[int] = mapped_column(ForeignKey("model_versions.id"))
+    uploaded_id: Mapped[int | None] = mapped_column(ForeignKey("model_versions.id"), nullable=True)
+    """The version stored from the upload (accepted or refused; null if none was stored)."""
+    body_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    answer: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True), nullable=True)
+    """The response body given to the upload (a repeat with the same bytes gets it again)."""
+    bytes_in: Mapped[int] = mapped_column(BigInteger, default=0)
+    bytes_out: Mapped[int] = mapped_column(BigInteger, default=0)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 
 
 class Job(Base):

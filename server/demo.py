@@ -3,22 +3,27 @@
 Starts ``srd serve`` on a fresh SQLite database under ``runs/demo__<time>/`` on a free port,
 registers honest and saboteur participants through ``POST /submit`` (the screener turns the
 saboteurs away, with reasons), runs one live auction among the admitted models, runs the
-honest-vs-malicious ``comparison`` job, prints its table and where the plots are, and stops the
-server.
+honest-vs-malicious ``comparison`` job, prints its table and the files of its plots, and stops
+the server. It ends by printing how to serve the saved run again and which pages to open there.
+With ``--keep-serving`` (``.venv/bin/python -m server.demo --keep-serving``) it keeps the server
+up instead and prints the live pages, until Ctrl-C.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
 from pathlib import Path
 from typing import Any
 
+import click
 import httpx
 import numpy as np
 from rich.console import Console
 from rich.table import Table
 
 from agents.negotiator import honest_manifest, saboteur_manifest
+from server.config import Settings
 from server.launch import ServerProcess
 
 N_HONEST = 24
@@ -44,11 +49,13 @@ def _poll(client: httpx.Client, path: str, done: set[str], on_state: Any) -> dic
         time.sleep(POLL_S)
 
 
-def register(client: httpx.Client) -> None:
-    """Submit honest and saboteur manifests; show the screener's verdicts."""
+def register(client: httpx.Client) -> int:
+    """Submit honest and saboteur manifests; show the screener's verdicts. The id of the first
+    rejected model."""
     rng = np.random.default_rng(DEMO_SEED)
     manifests = [honest_manifest(rng, f"honest-{i:02d}") for i in range(N_HONEST)]
     manifests += [saboteur_manifest(rng, f"saboteur-{i:02d}") for i in range(N_SABOTEURS)]
+    rejected: list[int] = []
     table = Table(title="POST /submit", show_lines=False)
     for column in ("participant", "model", "verdict", "screener rules that fired"):
         table.add_column(column)
@@ -56,6 +63,8 @@ def register(client: httpx.Client) -> None:
         answer = client.post("/submit", json=manifest.model_dump(mode="json"))
         body = answer.raise_for_status().json()
         rules = dict.fromkeys(reason["rule"] for reason in body["reasons"])
+        if not body["accepted"]:
+            rejected.append(body["model_id"])
         table.add_row(
             body["participant"],
             str(body["model_id"]),
@@ -63,10 +72,11 @@ def register(client: httpx.Client) -> None:
             ", ".join(rules),
         )
     console.print(table)
-    console.print(f"every reason in full: GET {client.base_url}/models/<model>")
+    console.print("every reason in full, on the neuron it names: the inspector's view (below)")
+    return rejected[0]
 
 
-def auction(client: httpx.Client, admin: dict[str, str]) -> None:
+def auction(client: httpx.Client, admin: dict[str, str]) -> int:
     """One auction among every accepted model, watched round by round."""
     created = client.post("/auctions", json=AUCTION, headers=admin).raise_for_status().json()
     auction_id = created["auction_id"]
@@ -92,10 +102,11 @@ def auction(client: httpx.Client, admin: dict[str, str]) -> None:
         f"{final['n_initial']} fish sold to {final['n_patrons']} patrons, revenue "
         f"{final['revenue']:.2f}, {len(final['quitters'])} quit"
     )
+    return int(auction_id)
 
 
-def comparison(client: httpx.Client, admin: dict[str, str], server: ServerProcess) -> None:
-    """The honest vs malicious comparison job; its table and artifacts."""
+def comparison(client: httpx.Client, admin: dict[str, str], server: ServerProcess) -> int:
+    """The honest vs malicious comparison job; its table and the files of its artifacts."""
     body = {"kind": "comparison", "params": COMPARISON}
     job_id = client.post("/jobs", json=body, headers=admin).raise_for_status().json()["job_id"]
     console.print(f"\n[bold]POST /jobs[/bold] {body} → job {job_id}")
@@ -133,26 +144,58 @@ def comparison(client: httpx.Client, admin: dict[str, str], server: ServerProces
             )
     console.print(table)
     folder = server.data_dir / "jobs" / str(job_id)
-    console.print("artifacts:")
+    console.print("artifacts (files):")
     for name in final["artifacts"]:
-        console.print(f"  {server.url}/jobs/{job_id}/artifacts/{name}   {folder / name}")
+        console.print(f"  {folder / name}")
+    return int(job_id)
 
 
-def main() -> None:
+def pages(base: str, auction_id: int, rejected_id: int, job_id: int) -> list[str]:
+    """The web view's pages of this run."""
+    return [
+        f"  {base}/ui/#/auctions/{auction_id}   the auction, round by round",
+        f"  {base}/ui/#/models/{rejected_id}   the inspector's view of a rejected saboteur",
+        f"  {base}/ui/#/jobs/{job_id}   the comparison job and its plots",
+    ]
+
+
+@click.command()
+@click.option(
+    "--keep-serving",
+    is_flag=True,
+    help="Keep the server up at the end (and print its pages) until Ctrl-C.",
+)
+def main(keep_serving: bool) -> None:
+    """Run the auction house end to end over HTTP."""
     workdir = Path("runs") / f"demo__{int(time.time())}"
     server = ServerProcess(database_url=f"sqlite:///{workdir / 'srd.db'}", data_dir=workdir)
     console.print(f"[bold]srd serve[/bold] on SQLite in {workdir}/ ...")
     with server, httpx.Client(base_url=server.url, timeout=60) as client:
         token_file = workdir / "admin_token"
         console.print(
-            f"up at {server.url} (docs {server.url}/docs); admin token generated into "
-            f"{token_file} (mode {token_file.stat().st_mode & 0o777:o})\n"
+            f"up; admin token generated into {token_file} "
+            f"(mode {token_file.stat().st_mode & 0o777:o})\n"
         )
         admin = {"Authorization": f"Bearer {server.admin_token}"}
-        register(client)
-        auction(client, admin)
-        comparison(client, admin, server)
+        rejected_id = register(client)
+        auction_id = auction(client, admin)
+        job_id = comparison(client, admin, server)
+        if keep_serving:
+            console.print(f"\n[bold]the web view[/bold] at {server.url}/ui/ (Ctrl-C stops it):")
+            console.print("\n".join(pages(server.url, auction_id, rejected_id, job_id)))
+            assert server.process is not None
+            with contextlib.suppress(KeyboardInterrupt):  # Ctrl-C stops the server too
+                server.process.wait()
     console.print(f"\nserver stopped; database, log and artifacts kept in {workdir}/")
+    if not keep_serving:
+        settings = Settings()
+        console.print(
+            "to browse this run in the web view, serve it again:\n"
+            f"  SRD_DATABASE_URL=sqlite:///{workdir / 'srd.db'} SRD_DATA_DIR={workdir} "
+            ".venv/bin/srd serve\nthen open"
+        )
+        base = f"http://{settings.host}:{settings.port}"
+        console.print("\n".join(pages(base, auction_id, rejected_id, job_id)))
 
 
 if __name__ == "__main__":

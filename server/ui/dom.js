@@ -1,5 +1,5 @@
 // Building the page. Every value from the API enters the document as a text node or an
-// attribute value, never as markup: there is no innerHTML anywhere in this page.
+// attribute value, never as markup: no script of this page hands a string to the HTML parser.
 
 const SVG_NS = "http://www.w3.org/2000/svg";
 

@@ -21,7 +21,8 @@ from server.config import Settings, get_settings
 from server.db import Database, prepare_database
 from server.errors import install_error_handlers, responses
 from server.jobs import LocalJobBackend, requeue_unfinished
-from server.routes import auctions, events, health, jobs, models, participants, ui
+from server.remote_rounds import RoundWatcher, UploadWriter
+from server.routes import auctions, events, health, jobs, models, participants, rounds, ui
 from server.screening import ScreeningService
 from server.security import load_admin_token_hash
 from server.submissions import SubmissionWriter
@@ -54,6 +55,9 @@ def _start_services(app: FastAPI, settings: Settings) -> None:
     app.state.screening.start()
     app.state.submissions = SubmissionWriter(database)
     app.state.submissions.start()
+    app.state.uploads = UploadWriter(database)
+    app.state.uploads.start()
+    app.state.rounds = RoundWatcher(database, app.state.uploads)
     app.state.auctions.start()
     app.state.jobs.start()
     with database.session(write=True) as session:
@@ -67,6 +71,7 @@ def _stop_services(app: FastAPI) -> None:
     app.state.jobs.shutdown()
     app.state.auctions.shutdown()
     app.state.submissions.shutdown()
+    app.state.uploads.shutdown()
     app.state.screening.shutdown()
     app.state.database.close()
 
@@ -82,6 +87,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             yield
         finally:
+            await app.state.rounds.close()
             await run_in_threadpool(_stop_services, app)
 
     app = FastAPI(
@@ -95,7 +101,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     install_error_handlers(app)
     app.add_middleware(RequestBodyMiddleware, max_bytes=settings.max_body_bytes)
-    routers = (health, models, participants, auctions, jobs, events, ui)
+    routers = (health, models, participants, auctions, rounds, jobs, events, ui)
     for module in routers:  # any request may carry an unreadable body
         app.include_router(module.router, responses=responses(400, 413, 415))
     app.state.routes = [route for module in routers for route in module.router.routes]

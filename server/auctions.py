@@ -8,14 +8,26 @@ standing at that round, so a second runner (or a stale one) can never add or dup
 On restart, every pending or running auction is queued again; its worker restores the market
 from the last committed checkpoint and continues bit-identically. An auction that cannot be
 resumed (checkpoint unreadable, round count disagreeing) is marked failed with the reason.
+
+Remote fine-tuning (``fine_tune_mode`` "remote"): an iteration after which the patrons
+fine-tune is committed together with an open ``FineTuneRound`` row (rows, seeds, the asked
+patrons, an absolute deadline). The worker then polls the database every ``ROUND_POLL_S`` for
+the answers the API stores, until every asked patron has answered or the deadline has passed,
+whichever comes first. It closes the round in ONE transaction: the round's status, a
+``missing`` answer for each silent patron, the accepted versions applied to the market, and
+the new checkpoint. A restart in the middle of a round finds the round still open (its
+checkpoint is the one from before the round) and waits for it again until the same deadline;
+nothing is applied twice.
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Sequence
+from datetime import timedelta
 
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, selectinload, undefer
 
 from agents.manifest import Manifest, parse_manifest
@@ -26,17 +38,25 @@ from server.models import (
     Auction,
     AuctionIteration,
     AuctionPatron,
+    FineTuneAnswer,
+    FineTuneRound,
     ModelVersion,
     Purchase,
     Quit,
     utcnow,
 )
 from server.workers import WorkerContext, WorkerPool, error_summary
+from sim.market import FineTuneRound as PendingRound
 from sim.market import IterationRecord, Market, MarketConfig
 
 log = logging.getLogger("srd.auctions")
 
 UNFINISHED = ("pending", "running")
+ROUND_POLL_S = 0.002
+"""How often a worker looks for the answers of its open fine-tuning round: the round closes
+within this long of its last answer."""
+ANSWERED = ("accepted", "refused")
+"""Outcomes that count as an answer (a late upload does not)."""
 
 
 class ResumeError(RuntimeError):
@@ -58,13 +78,16 @@ def _market_config(auction: Auction) -> MarketConfig:
         n_fish=auction.n_initial,
         max_iterations=auction.max_iterations,
         fine_tune=auction.fine_tune,
+        fine_tune_rounds=auction.fine_tune_rounds,
+        fine_tune_mode="remote" if auction.fine_tune_mode == "remote" else "server",
         seed=auction.seed,
     )
 
 
 def _load_market(auction: Auction, manifests: Sequence[Manifest]) -> Market:
     config = _market_config(auction)
-    rescreen = _rescreen if auction.fine_tune else None
+    # Remote rounds are re-screened by the API as each upload arrives.
+    rescreen = _rescreen if auction.fine_tune and config.fine_tune_mode == "server" else None
     if auction.checkpoint is None:
         if auction.iteration != 0:
             raise ResumeError(f"{auction.iteration} rounds are committed but no checkpoint is")
@@ -86,8 +109,10 @@ def _commit_round(
     record: IterationRecord,
     blob: bytes,
     model_ids: list[int],
+    opened: tuple[PendingRound, float] | None = None,
 ) -> bool:
-    """Write one round atomically; False when the auction moved on without us."""
+    """Write one round atomically, with the fine-tuning round it opens (its pending round and
+    deadline in seconds) if any; False when the auction moved on without us."""
     now = utcnow()
     moved = session.execute(
         update(Auction)
@@ -133,7 +158,125 @@ def _commit_round(
         Quit(auction_id=auction_id, model_id=model_ids[i], iteration=record.iteration)
         for i in record.quitters
     )
+    if opened is not None:
+        pending, deadline_s = opened
+        session.add(
+            FineTuneRound(
+                auction_id=auction_id,
+                round=pending.iteration + 1,
+                iteration=pending.iteration,
+                status="open",
+                opened_at=now,
+                deadline=now + timedelta(seconds=deadline_s),
+                rows=pending.rows.tolist(),
+                fine_tune_seed=pending.fine_tune_seed,
+                augmentation_seed=pending.augmentation_seed,
+                asked=pending.patrons,
+                bytes_published=0,
+            )
+        )
     session.commit()
+    return True
+
+
+def _wait_for_answers(database: Database, round_id: int, asked: int, deadline: float) -> None:
+    """Until ``asked`` patrons have answered the round or the wall-clock ``deadline`` (epoch
+    seconds) has passed, whichever comes first."""
+    count = (
+        select(func.count())
+        .where(FineTuneAnswer.round_id == round_id)
+        .where(FineTuneAnswer.outcome.in_(ANSWERED))
+    )
+    while True:
+        with database.session(write=False) as session:
+            answered = session.connection().scalar(count) or 0
+        left = deadline - time.time()
+        if answered >= asked or left <= 0:
+            return
+        time.sleep(min(ROUND_POLL_S, left))
+
+
+def _close_round(
+    database: Database, auction_id: int, market: Market, pending: PendingRound
+) -> bool:
+    """Wait for the open round's answers, then close it in one transaction (see the module
+    docstring); False when another runner closed it or moved the auction on."""
+    number = pending.iteration + 1
+    with database.session(write=False) as session:
+        row = session.scalars(
+            select(FineTuneRound).where(
+                FineTuneRound.auction_id == auction_id, FineTuneRound.round == number
+            )
+        ).one_or_none()
+    if row is None or row.status != "open":
+        raise ResumeError(f"the checkpoint awaits fine-tuning round {number}, which is not open")
+    _wait_for_answers(database, row.id, len(row.asked), row.deadline.timestamp())
+    with database.session(write=True) as session:
+        closed = session.execute(
+            update(FineTuneRound)
+            .where(FineTuneRound.id == row.id, FineTuneRound.status == "open")
+            .values(status="closed", closed_at=utcnow())
+        )
+        if closed.rowcount != 1:  # type: ignore[attr-defined]
+            session.rollback()
+            return False
+        answered = {
+            answer.position: answer
+            for answer in session.scalars(
+                select(FineTuneAnswer).where(FineTuneAnswer.round_id == row.id)
+            )
+        }
+        patrons = {
+            patron.position: patron
+            for patron in session.scalars(
+                select(AuctionPatron).where(AuctionPatron.auction_id == auction_id)
+            )
+        }
+        applied = {
+            answer.position: answer.model_id
+            for answer in answered.values()
+            if answer.outcome == "accepted" and answer.uploaded_id is not None
+        }
+        versions = {
+            version.id: version.manifest
+            for version in session.scalars(
+                select(ModelVersion).where(ModelVersion.id.in_(list(applied.values())))
+            )
+        }
+        market.apply_round(
+            {position: parse_manifest(versions[i]) for position, i in applied.items()}
+        )
+        now = utcnow()
+        for position in row.asked:
+            if position in answered:
+                continue
+            patron = patrons[position]
+            session.add(
+                FineTuneAnswer(
+                    round_id=row.id,
+                    position=position,
+                    outcome="missing",
+                    model_id=patron.current_model_id or patron.model_id,
+                    bytes_in=0,
+                    bytes_out=0,
+                    created_at=now,
+                )
+            )
+        for position, model_id in applied.items():
+            patrons[position].current_model_id = model_id
+        moved = session.execute(
+            update(Auction)
+            .where(
+                Auction.id == auction_id,
+                Auction.iteration == number,
+                Auction.status == "running",
+            )
+            .values(checkpoint=market.checkpoint(), updated_at=now)
+        )
+        if moved.rowcount != 1:  # type: ignore[attr-defined]
+            session.rollback()
+            return False
+        session.commit()
     return True
 
 
@@ -178,10 +321,24 @@ def _drive(database: Database, auction_id: int) -> None:
             return
         session.commit()
     while not market.finished:
+        pending = market.pending_round
+        if pending is not None:
+            if not _close_round(database, auction_id, market, pending):
+                log.warning("auction %d: round closed elsewhere; this runner stops", auction_id)
+                return
+            continue
         record = market.step()
         blob = market.checkpoint()
+        opened = market.pending_round
         with database.session(write=True) as session:
-            if not _commit_round(session, auction_id, record, blob, model_ids):
+            if not _commit_round(
+                session,
+                auction_id,
+                record,
+                blob,
+                model_ids,
+                None if opened is None else (opened, auction.round_deadline_s),
+            ):
                 log.warning("auction %d advanced elsewhere; this runner stops", auction_id)
                 return
 

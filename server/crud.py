@@ -15,6 +15,8 @@ from server.models import (
     Auction,
     AuctionIteration,
     AuctionPatron,
+    FineTuneAnswer,
+    FineTuneRound,
     Job,
     ModelVersion,
     Participant,
@@ -49,6 +51,11 @@ class StoredModel:
     accepted: bool
     reasons: list[dict[str, str]]
     created_at: datetime
+    parent_id: int | None = None
+    auction_id: int | None = None
+    round: int | None = None
+    auctions: tuple[int, ...] = ()
+    """Auctions it entered as a patron, newest first (``get_model_view`` only)."""
 
 
 @dataclass(frozen=True)
@@ -70,6 +77,37 @@ class AuctionHead:
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    fine_tune_mode: str
+    fine_tune_rounds: int
+    round_deadline_s: float
+
+
+@dataclass(frozen=True)
+class AnswerView:
+    """A patron's outcome in a fine-tuning round and the version it bids with afterwards."""
+
+    model_id: int
+    """The patron (its id in the auction's ``model_ids``)."""
+    outcome: str
+    version: int
+    version_id: int
+    uploaded_id: int | None
+    bytes_in: int
+    bytes_out: int
+
+
+@dataclass(frozen=True)
+class RoundView:
+    """A remote fine-tuning round as ``GET /auctions/{id}`` shows it."""
+
+    round: int
+    iteration: int
+    status: str
+    opened_at: datetime
+    deadline: datetime
+    closed_at: datetime | None
+    bytes_published: int
+    answers: list[AnswerView]
 
 
 @dataclass(frozen=True)
@@ -81,6 +119,8 @@ class AuctionView:
     history: Sequence[HistoryRow]
     purchases: Sequence[PurchaseRow]
     quitters: list[int]
+    fine_tuning: list[RoundView] = dataclasses.field(default_factory=list)
+    """Remote fine-tuning rounds, oldest first (remote auctions only)."""
 
 
 # The statements of POST /submit, built once and run on the session's connection (Core, not the
@@ -139,6 +179,9 @@ _MODEL_BY_ID = (
         ModelVersion.accepted,
         ModelVersion.reasons,
         ModelVersion.created_at,
+        ModelVersion.parent_id,
+        ModelVersion.auction_id,
+        ModelVersion.round,
     )
     .join(Participant, Participant.id == ModelVersion.participant_id)
     .where(ModelVersion.id == bindparam("model_id"))
@@ -149,6 +192,15 @@ def get_model(session: Session, *, model_id: int) -> StoredModel | None:
     """A model version with its participant's name (one query)."""
     row = session.connection().execute(_MODEL_BY_ID, {"model_id": model_id}).one_or_none()
     return None if row is None else StoredModel(*row)
+
+
+def get_model_view(session: Session, *, model_id: int, auctions: int) -> StoredModel | None:
+    """``get_model`` with the ``auctions`` newest auctions it entered (two queries)."""
+    row = get_model(session, model_id=model_id)
+    if row is None:
+        return None
+    entered = patron_auctions(session, model_id=model_id, limit=auctions)
+    return dataclasses.replace(row, auctions=tuple(entered))
 
 
 def get_models(session: Session, *, model_ids: list[int]) -> dict[int, ModelVersion]:
@@ -187,6 +239,9 @@ def create_auction(
     fine_tune: bool,
     seed: int,
     opening_price: float,
+    fine_tune_mode: str = "server",
+    fine_tune_rounds: int = 4,
+    round_deadline_s: float = 10.0,
 ) -> Auction:
     """A pending auction over the ordered patron list ``model_ids``."""
     now = utcnow()
@@ -196,6 +251,9 @@ def create_auction(
         rarity=rarity,
         max_iterations=max_iterations,
         fine_tune=fine_tune,
+        fine_tune_mode=fine_tune_mode,
+        fine_tune_rounds=fine_tune_rounds,
+        round_deadline_s=round_deadline_s,
         seed=seed,
         iteration=0,
         price=opening_price,
@@ -252,12 +310,15 @@ def get_auction(session: Session, *, auction_id: int) -> AuctionView | None:
     head = connection.execute(_AUCTION_HEAD, key).one_or_none()
     if head is None:
         return None
+    auction = AuctionHead(*head)
+    model_ids = list(connection.scalars(_AUCTION_PATRONS, key))
     return AuctionView(
-        AuctionHead(*head),
-        list(connection.scalars(_AUCTION_PATRONS, key)),
+        auction,
+        model_ids,
         connection.execute(_AUCTION_HISTORY, key).all(),
         connection.execute(_AUCTION_PURCHASES, key).all(),
         list(connection.scalars(_AUCTION_QUITTERS, key)),
+        _fine_tuning(session, auction_id, model_ids) if auction.fine_tune_mode == "remote" else [],
     )
 
 
@@ -609,3 +670,259 @@ def job_state(session: Session, *, job_id: int) -> JobState | None:
     """The few columns of a job its event stream polls (one query)."""
     row = session.connection().execute(_JOB_STATE, {"job_id": job_id}).one_or_none()
     return None if row is None else JobState(*row)
+
+
+# ---------------------------------------------------------------------------------------------
+# Remote fine-tuning rounds: what the round watcher polls, what an upload checks, the rounds of
+# GET /auctions/{id}. (The worker opens and closes rounds itself, see server.auctions.)
+
+_ROUNDS_OF_AUCTION = (
+    select(FineTuneRound)
+    .where(FineTuneRound.auction_id == bindparam("auction_id"))
+    .order_by(FineTuneRound.round)
+)
+_ANSWERS_OF_AUCTION = (
+    select(
+        FineTuneAnswer.round_id,
+        FineTuneAnswer.position,
+        FineTuneAnswer.outcome,
+        FineTuneAnswer.model_id,
+        ModelVersion.version,
+        FineTuneAnswer.uploaded_id,
+        FineTuneAnswer.bytes_in,
+        FineTuneAnswer.bytes_out,
+    )
+    .join(FineTuneRound, FineTuneRound.id == FineTuneAnswer.round_id)
+    .join(ModelVersion, ModelVersion.id == FineTuneAnswer.model_id)
+    .where(FineTuneRound.auction_id == bindparam("auction_id"))
+    .order_by(FineTuneAnswer.round_id, FineTuneAnswer.position)
+)
+
+
+def _fine_tuning(session: Session, auction_id: int, model_ids: list[int]) -> list[RoundView]:
+    """The auction's fine-tuning rounds with every patron's outcome (two queries)."""
+    key = {"auction_id": auction_id}
+    answers: dict[int, list[AnswerView]] = {}
+    for row in session.connection().execute(_ANSWERS_OF_AUCTION, key):
+        answers.setdefault(row.round_id, []).append(
+            AnswerView(
+                model_ids[row.position],
+                row.outcome,
+                row.version,
+                row.model_id,
+                row.uploaded_id,
+                row.bytes_in,
+                row.bytes_out,
+            )
+        )
+    return [
+        RoundView(
+            r.round,
+            r.iteration,
+            r.status,
+            r.opened_at,
+            r.deadline,
+            r.closed_at,
+            r.bytes_published,
+            answers.get(r.id, []),
+        )
+        for r in session.scalars(_ROUNDS_OF_AUCTION, key)
+    ]
+
+
+@dataclass(frozen=True)
+class RoundHead:
+    """An auction's state and its newest fine-tuning round, as the round watcher polls them."""
+
+    auction_status: str
+    fine_tune_mode: str
+    fine_tune_rounds: int
+    round_id: int | None
+    round: int | None
+    iteration: int | None
+    status: str | None
+    deadline: datetime | None
+
+
+_AUCTION_MODE = select(Auction.status, Auction.fine_tune_mode, Auction.fine_tune_rounds).where(
+    Auction.id == bindparam("auction_id")
+)
+_NEWEST_ROUND = (
+    select(
+        FineTuneRound.id,
+        FineTuneRound.round,
+        FineTuneRound.iteration,
+        FineTuneRound.status,
+        FineTuneRound.deadline,
+    )
+    .where(FineTuneRound.auction_id == bindparam("auction_id"))
+    .order_by(FineTuneRound.round.desc())
+    .limit(1)
+)
+
+
+def round_head(session: Session, *, auction_id: int) -> RoundHead | None:
+    """The auction's status and newest round (two small queries); None: no such auction."""
+    key = {"auction_id": auction_id}
+    connection = session.connection()
+    auction = connection.execute(_AUCTION_MODE, key).one_or_none()
+    if auction is None:
+        return None
+    newest = connection.execute(_NEWEST_ROUND, key).one_or_none()
+    status, mode, rounds = auction
+    if newest is None:
+        return RoundHead(status, mode, rounds, None, None, None, None, None)
+    return RoundHead(status, mode, rounds, newest.id, newest.round, newest.iteration,
+                     newest.status, newest.deadline)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class RoundBody:
+    """What a round publishes beyond its head: the rows, the seeds, the patrons asked."""
+
+    rows: list[list[float]]
+    fine_tune_seed: int
+    augmentation_seed: int
+    asked: list[int]
+    """Model ids (as in the auction's ``model_ids``) of the patrons asked."""
+
+
+def round_body(session: Session, *, round_id: int) -> RoundBody:
+    """A round's rows, seeds and asked patrons (two queries)."""
+    connection = session.connection()
+    row = connection.execute(
+        select(
+            FineTuneRound.auction_id,
+            FineTuneRound.rows,
+            FineTuneRound.fine_tune_seed,
+            FineTuneRound.augmentation_seed,
+            FineTuneRound.asked,
+        ).where(FineTuneRound.id == round_id)
+    ).one()
+    model_ids = list(connection.scalars(_AUCTION_PATRONS, {"auction_id": row.auction_id}))
+    return RoundBody(
+        row.rows,
+        row.fine_tune_seed,
+        row.augmentation_seed,
+        [model_ids[position] for position in row.asked],
+    )
+
+
+def add_published_bytes(session: Session, *, counts: dict[int, int]) -> None:
+    """Add bytes of published round answers to their rounds' counters (``round id → bytes``)."""
+    for round_id, n_bytes in counts.items():
+        session.execute(
+            update(FineTuneRound)
+            .where(FineTuneRound.id == round_id)
+            .values(bytes_published=FineTuneRound.bytes_published + n_bytes)
+        )
+
+
+@dataclass(frozen=True)
+class UploadTarget:
+    """What ``PUT /auctions/{id}/rounds/{round}/models/{model_id}`` checks before screening."""
+
+    auction_status: str
+    fine_tune_mode: str
+    position: int | None
+    """The model's position among the auction's patrons (None: not a patron)."""
+    participant_id: int
+    participant: str
+    token_hash: str
+    current_id: int
+    """The version the patron bids with now."""
+    current_version: int
+    current_manifest: dict[str, Any]
+    newest_round: int | None
+    newest_status: str | None
+    round_id: int | None
+    """The path's round, if the auction has it."""
+    round_status: str | None
+    deadline: datetime | None
+    asked: list[int]
+    answer_outcome: str | None
+    """This patron's answer in the path's round so far, if any."""
+    answer_sha256: str | None
+    answer: dict[str, Any] | None
+
+
+class UploadLookupError(LookupError):
+    """The auction or the model of an upload's path does not exist (``field`` names which)."""
+
+    def __init__(self, field: str) -> None:
+        super().__init__(field)
+        self.field = field
+
+
+def upload_target(
+    session: Session, *, auction_id: int, model_id: int, round_number: int
+) -> UploadTarget:
+    """Everything an upload is checked against, read in one transaction."""
+    connection = session.connection()
+    auction = connection.execute(_AUCTION_MODE, {"auction_id": auction_id}).one_or_none()
+    if auction is None:
+        raise UploadLookupError("auction_id")
+    owner = connection.execute(
+        select(Participant.id, Participant.name, Participant.token_hash)
+        .join(ModelVersion, ModelVersion.participant_id == Participant.id)
+        .where(ModelVersion.id == model_id)
+    ).one_or_none()
+    if owner is None:
+        raise UploadLookupError("model_id")
+    patron = connection.execute(
+        select(AuctionPatron.position, AuctionPatron.current_model_id).where(
+            AuctionPatron.auction_id == auction_id, AuctionPatron.model_id == model_id
+        )
+    ).one_or_none()
+    current_id = (
+        model_id if patron is None or patron.current_model_id is None else (patron.current_model_id)
+    )
+    current = connection.execute(
+        select(ModelVersion.version, ModelVersion.manifest).where(ModelVersion.id == current_id)
+    ).one()
+    newest = connection.execute(_NEWEST_ROUND, {"auction_id": auction_id}).one_or_none()
+    asked_round = connection.execute(
+        select(
+            FineTuneRound.id, FineTuneRound.status, FineTuneRound.deadline, FineTuneRound.asked
+        ).where(FineTuneRound.auction_id == auction_id, FineTuneRound.round == round_number)
+    ).one_or_none()
+    answer = None
+    if asked_round is not None and patron is not None:
+        answer = connection.execute(
+            select(FineTuneAnswer.outcome, FineTuneAnswer.body_sha256, FineTuneAnswer.answer).where(
+                FineTuneAnswer.round_id == asked_round.id,
+                FineTuneAnswer.position == patron.position,
+            )
+        ).one_or_none()
+    return UploadTarget(
+        auction_status=auction.status,
+        fine_tune_mode=auction.fine_tune_mode,
+        position=None if patron is None else patron.position,
+        participant_id=owner.id,
+        participant=owner.name,
+        token_hash=owner.token_hash,
+        current_id=current_id,
+        current_version=current.version,
+        current_manifest=current.manifest,
+        newest_round=None if newest is None else newest.round,
+        newest_status=None if newest is None else newest.status,
+        round_id=None if asked_round is None else asked_round.id,
+        round_status=None if asked_round is None else asked_round.status,
+        deadline=None if asked_round is None else asked_round.deadline,
+        asked=[] if asked_round is None else list(asked_round.asked),
+        answer_outcome=None if answer is None else answer.outcome,
+        answer_sha256=None if answer is None else answer.body_sha256,
+        answer=None if answer is None else answer.answer,
+    )
+
+
+def patron_auctions(session: Session, *, model_id: int, limit: int) -> list[int]:
+    """Ids of the auctions this model entered as a patron, newest first (at most ``limit``)."""
+    return list(
+        session.connection().scalars(
+            select(AuctionPatron.auction_id)
+            .where(AuctionPatron.model_id == model_id)
+            .order_by(AuctionPatron.auction_id.desc())
+            .limit(limit)
+        )
+    )

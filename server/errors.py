@@ -122,6 +122,7 @@ def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         403: "Wrong bearer token",
         404: "No such resource",
         409: "Conflicts with the resource's current state",
+        410: "Gone: the fine-tuning round named has closed (or its deadline passed)",
         413: "Request body too large",
         415: "Request body is not JSON (Content-Type)",
         422: "Invalid input; ``loc`` names the field",

@@ -80,10 +80,32 @@ class ModelPublic(BaseModel):
     accepted: bool
     reasons: list[ReasonPublic]
     created_at: datetime
+    parent_id: int | None = None
+    """The version this one was fine-tuned from (uploads of remote rounds only)."""
+    auction_id: int | None = None
+    """The auction whose fine-tuning round produced this version."""
+    round: int | None = None
+    """That round's number."""
+    auctions: list[int] = Field(default_factory=list)
+    """Auctions this model entered as a patron, newest first (at most ``MAX_LISTED_AUCTIONS``)."""
+
+
+MAX_LISTED_AUCTIONS = 100
+"""Auctions listed on a model (newest first)."""
+ROUND_DEADLINE_S = (0.5, 300.0)
+"""Bounds of a remote auction's ``round_deadline_s``: how long a round waits at most."""
+MAX_FINE_TUNE_ROUNDS = 64
+"""Fine-tuning rounds of an auction, at most (each may wait a whole deadline)."""
+FineTuneModeName = Literal["server", "remote"]
 
 
 class AuctionCreate(_Input):
-    """Start an auction: exactly one of ``n_fish`` or ``rarity`` (fish = int(rarity × patrons))."""
+    """Start an auction: exactly one of ``n_fish`` or ``rarity`` (fish = int(rarity × patrons)).
+
+    ``fine_tune_mode`` "remote": the participants fine-tune their own patrons over HTTP, in
+    rounds after each of the first ``fine_tune_rounds`` iterations, each round waiting at most
+    ``round_deadline_s``. A remote auction fine-tunes (``fine_tune`` may be left out; false is
+    refused); ``round_deadline_s`` belongs to remote auctions only."""
 
     n_fish: Annotated[int, Field(ge=1, le=100_000)] | None = None
     rarity: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] | None = None
@@ -91,6 +113,11 @@ class AuctionCreate(_Input):
     fine_tune: bool = False
     model_ids: Annotated[list[RowId], Field(min_length=1, max_length=MAX_PATRONS)] | None = None
     seed: Annotated[int, Field(ge=0, le=MAX_SEED)] = 0
+    fine_tune_mode: FineTuneModeName = "server"
+    fine_tune_rounds: Annotated[int, Field(ge=0, le=MAX_FINE_TUNE_ROUNDS)] = 4
+    round_deadline_s: Annotated[
+        float, Field(ge=ROUND_DEADLINE_S[0], le=ROUND_DEADLINE_S[1], allow_inf_nan=False)
+    ] = 10.0
 
 
 class AuctionCreated(BaseModel):
@@ -147,6 +174,82 @@ class AuctionPublic(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    fine_tune_mode: FineTuneModeName = "server"
+    fine_tune_rounds: int = 4
+    round_deadline_s: float = 10.0
+    fine_tuning: list[FineTuneRoundPublic] = Field(default_factory=list)
+    """Remote auctions: every fine-tuning round with each asked patron's outcome."""
+
+
+RoundOutcome = Literal["accepted", "refused", "late", "missing"]
+
+
+class RoundAnswerPublic(BaseModel):
+    """A patron's outcome in a fine-tuning round: accepted (its upload bids from the next
+    iteration), refused (re-screening failed; its previous version bids on), late (after the
+    deadline), missing (no upload); ``version`` bids after the round."""
+
+    model_id: int
+    """The patron, as in the auction's ``model_ids``."""
+    outcome: RoundOutcome
+    version: int
+    version_id: int
+    """The model id of that version."""
+    uploaded_id: int | None
+    """The version stored from the upload (accepted or refused), if one was."""
+    bytes_in: int
+    bytes_out: int
+
+
+class FineTuneRoundPublic(BaseModel):
+    """A remote fine-tuning round: when, and who answered how; traffic in bytes of bodies
+    (``bytes_published``: the round answers of ``GET .../rounds/current``; uploads and their
+    answers per patron; ``bytes_total``: all of them)."""
+
+    round: int
+    iteration: int
+    status: Literal["open", "closed"]
+    opened_at: datetime
+    deadline: datetime
+    closed_at: datetime | None
+    bytes_published: int
+    bytes_total: int
+    answers: list[RoundAnswerPublic]
+
+
+class RoundPublic(BaseModel):
+    """``GET /auctions/{id}/rounds/current``: the newest fine-tuning round. ``rows`` (R × 8: p,
+    l, w, g, st1, st2, st3, f) and ``asked`` (model ids) are given while it is open; a patron
+    fine-tunes on the rows with the seeds, and its own model makes the D_ic noisy copies."""
+
+    auction_id: int
+    auction_status: AuctionStatus
+    fine_tune_mode: FineTuneModeName
+    fine_tune_rounds: int
+    round: int | None
+    iteration: int | None
+    status: Literal["open", "closed", "none"]
+    deadline: datetime | None
+    seconds_left: float
+    rows: list[list[float]] | None
+    fine_tune_seed: int | None
+    augmentation_seed: int | None
+    asked: list[int]
+
+
+class UploadPublic(BaseModel):
+    """The answer to an upload: accepted (a new version, ``model_id``, bids from the next
+    iteration; the same weights as now keep the version) or refused with the screener's
+    reasons (``version`` is the one that keeps bidding; ``uploaded_id`` the refused one)."""
+
+    round: int
+    outcome: Literal["accepted", "refused"]
+    accepted: bool
+    reasons: list[ReasonPublic]
+    version: int
+    model_id: int
+    parent_id: int
+    uploaded_id: int | None
 
 
 class JobCreate(_Input):

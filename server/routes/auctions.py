@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, cast
 
 from fastapi import APIRouter, Request
 from starlette.concurrency import run_in_threadpool
@@ -21,7 +21,10 @@ from server.schemas import (
     AuctionPublic,
     AuctionSummaryPublic,
     BuyerPublic,
+    FineTuneRoundPublic,
     IterationPublic,
+    RoundAnswerPublic,
+    RoundOutcome,
     Votes,
 )
 from server.security import AdminDep
@@ -77,6 +80,26 @@ def _require_one_supply_option(body: AuctionCreate) -> None:
         )
 
 
+def _remote_fine_tuning(body: AuctionCreate) -> bool:
+    """Whether the participants fine-tune (remote); refuses settings that contradict it."""
+    remote = body.fine_tune_mode == "remote"
+    if remote and "fine_tune" in body.model_fields_set and not body.fine_tune:
+        raise api_error(
+            422,
+            "a remote auction fine-tunes: leave fine_tune out or set it true",
+            loc=("body", "fine_tune"),
+            kind="remote_fine_tune",
+        )
+    if not remote and "round_deadline_s" in body.model_fields_set:
+        raise api_error(
+            422,
+            'round_deadline_s applies to fine_tune_mode "remote" only',
+            loc=("body", "round_deadline_s"),
+            kind="remote_only",
+        )
+    return remote
+
+
 def _fish_count(body: AuctionCreate, n_patrons: int) -> int:
     """n_fish as given, or int(rarity × patrons) (truncation, as the reference)."""
     if body.n_fish is not None:
@@ -106,6 +129,7 @@ def _fish_count(body: AuctionCreate, n_patrons: int) -> int:
 def create_auction(body: AuctionCreate, session: SessionDep, request: Request) -> AuctionCreated:
     """Start an auction (operator). It runs in a worker process; watch it at GET."""
     _require_one_supply_option(body)
+    remote = _remote_fine_tuning(body)
     patron_ids = _patron_ids(session, body)
     auction = crud.create_auction(
         session,
@@ -113,9 +137,12 @@ def create_auction(body: AuctionCreate, session: SessionDep, request: Request) -
         n_fish=_fish_count(body, len(patron_ids)),
         rarity=body.rarity,
         max_iterations=body.max_iterations,
-        fine_tune=body.fine_tune,
+        fine_tune=body.fine_tune or remote,
         seed=body.seed,
         opening_price=base_price(),
+        fine_tune_mode=body.fine_tune_mode,
+        fine_tune_rounds=body.fine_tune_rounds,
+        round_deadline_s=body.round_deadline_s,
     )
     session.commit()
     runner: AuctionRunner = request.app.state.auctions
@@ -162,6 +189,37 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
         created_at=auction.created_at,
         started_at=auction.started_at,
         finished_at=auction.finished_at,
+        fine_tune_mode="remote" if auction.fine_tune_mode == "remote" else "server",
+        fine_tune_rounds=auction.fine_tune_rounds,
+        round_deadline_s=auction.round_deadline_s,
+        fine_tuning=[fine_tune_round_public(r) for r in view.fine_tuning],
+    )
+
+
+def fine_tune_round_public(view: crud.RoundView) -> FineTuneRoundPublic:
+    """A remote fine-tuning round as ``GET /auctions/{id}`` shows it."""
+    answers = [
+        RoundAnswerPublic(
+            model_id=a.model_id,
+            outcome=cast(RoundOutcome, a.outcome),
+            version=a.version,
+            version_id=a.version_id,
+            uploaded_id=a.uploaded_id,
+            bytes_in=a.bytes_in,
+            bytes_out=a.bytes_out,
+        )
+        for a in view.answers
+    ]
+    return FineTuneRoundPublic(
+        round=view.round,
+        iteration=view.iteration,
+        status="open" if view.status == "open" else "closed",
+        opened_at=view.opened_at,
+        deadline=view.deadline,
+        closed_at=view.closed_at,
+        bytes_published=view.bytes_published,
+        bytes_total=view.bytes_published + sum(a.bytes_in + a.bytes_out for a in answers),
+        answers=answers,
     )
 
 

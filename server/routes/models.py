@@ -13,6 +13,7 @@ from server.db import SessionDep
 from server.errors import api_error, link, responses
 from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, decode_cursor, page_of
 from server.schemas import (
+    MAX_LISTED_AUCTIONS,
     ModelIdPath,
     ModelPage,
     ModelPublic,
@@ -73,8 +74,11 @@ async def submit(manifest: Manifest, credentials: BearerDep, request: Request) -
 
 @router.get("/models/{model_id}", operation_id="read_model", responses=responses(404, 422))
 async def read_model(model_id: ModelIdPath, session: SessionDep) -> ModelPublic:
-    """A stored model version: manifest, verdict and reasons."""
-    row = await run_in_threadpool(crud.get_model, session, model_id=model_id)
+    """A stored model version: manifest, verdict and reasons; for a version uploaded in a
+    remote fine-tuning round, its parent version, auction and round; the auctions it entered."""
+    row = await run_in_threadpool(
+        crud.get_model_view, session, model_id=model_id, auctions=MAX_LISTED_AUCTIONS
+    )
     if row is None:
         raise api_error(
             404, f"model {model_id} does not exist", loc=("path", "model_id"), kind="not_found"
@@ -88,6 +92,10 @@ async def read_model(model_id: ModelIdPath, session: SessionDep) -> ModelPublic:
         accepted=row.accepted,
         reasons=_reasons(row),
         created_at=row.created_at,
+        parent_id=row.parent_id,
+        auction_id=row.auction_id,
+        round=row.round,
+        auctions=list(row.auctions),
     )
 
 

@@ -1,0 +1,384 @@
+"""The remote fine-tuning protocol in-process: creating remote auctions, the long poll, uploads
+(accepted, repeated, refused by the re-screening) and every refusal, each naming its field or
+round with nothing stored."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from agents.manifest import parse_manifest
+from agents.remote import RoundInfo, always_hold, faithful_fine_tune
+from screener import screen
+from server import remote_rounds
+from server.routes.rounds import UPLOAD_MAX_BYTES
+from tests.server.conftest import ADMIN, honest, unique, wait_for
+
+ROUND_WAIT_S = 60.0
+"""Long enough to wait for a worker to start and play an iteration."""
+QUITTER_SEED = 308
+"""With these 8 patrons (seeds 308..315) and auction seed 5, patron 1 quits in iteration 0."""
+
+
+def bearer(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def submit(client: TestClient, manifests: list[dict[str, Any]]) -> list[tuple[int, str]]:
+    """(model id, token) of each manifest."""
+    out = []
+    for manifest in manifests:
+        answer = client.post("/submit", json=manifest)
+        assert answer.status_code == 201, answer.text
+        out.append((answer.json()["model_id"], answer.json()["token"]))
+    return out
+
+
+def open_round(client: TestClient, auction_id: int, after: int = 0) -> dict[str, Any]:
+    """The auction's round above ``after`` once open (or the state when the auction ended)."""
+    return wait_for(
+        lambda: client.get(
+            f"/auctions/{auction_id}/rounds/current", params={"wait": 5, "after": after}
+        ).json(),
+        lambda r: (
+            (r["status"] == "open" and r["round"] > after)
+            or r["auction_status"] not in ("pending", "running")
+        ),
+        ROUND_WAIT_S,
+    )
+
+
+def round_info(state: dict[str, Any], position: int) -> RoundInfo:
+    return RoundInfo(
+        auction_id=state["auction_id"],
+        round=state["round"],
+        iteration=state["iteration"],
+        rows=np.array(state["rows"], dtype=np.float64),
+        fine_tune_seed=state["fine_tune_seed"],
+        augmentation_seed=state["augmentation_seed"],
+        deadline=datetime.fromisoformat(state["deadline"].replace("Z", "+00:00")),
+        seconds_left=state["seconds_left"],
+        position=position,
+    )
+
+
+def put(
+    client: TestClient, auction_id: int, round_: int, model_id: int, body: bytes, token: str | None
+) -> Any:
+    headers = {"Content-Type": "application/json", **({} if token is None else bearer(token))}
+    return client.put(
+        f"/auctions/{auction_id}/rounds/{round_}/models/{model_id}", content=body, headers=headers
+    )
+
+
+def loc_of(response: Any) -> list[Any]:
+    return [item["loc"] for item in response.json()["detail"]]
+
+
+def moving(name: str, seed: int) -> dict[str, Any]:
+    """An honest manifest that fine-tunes one epoch at the honest range's largest rate."""
+    data = honest(name, seed)
+    data["fine_tuning"] = {"epochs": 1, "batch_size": 8, "learning_rate": 1e-4}
+    return data
+
+
+@pytest.fixture(scope="module")
+def remote(client: TestClient) -> dict[str, Any]:
+    """A remote auction of 8 fine-tuning honest patrons, round 1 open for a minute."""
+    manifests = [moving(unique("remote"), seed=QUITTER_SEED + i) for i in range(8)]
+    patrons = submit(client, manifests)
+    body = {
+        "n_fish": 1,
+        "model_ids": [m for m, _ in patrons],
+        "fine_tune_mode": "remote",
+        "round_deadline_s": 60,
+        "seed": 5,
+    }
+    created = client.post("/auctions", json=body, headers=ADMIN)
+    assert created.status_code == 201, created.text
+    auction_id = created.json()["auction_id"]
+    state = open_round(client, auction_id)
+    assert state["status"] == "open" and state["round"] == 1, state
+    return {"id": auction_id, "manifests": manifests, "patrons": patrons, "state": state}
+
+
+def test_remote_auctions_are_validated(client: TestClient) -> None:
+    ((model_id, _),) = submit(client, [honest(unique("valid"), seed=1)])
+    base = {"n_fish": 1, "model_ids": [model_id]}
+    cases = [
+        ({"fine_tune_mode": "remote", "fine_tune": False}, ["body", "fine_tune"]),
+        ({"fine_tune_mode": "remote", "round_deadline_s": 0.1}, ["body", "round_deadline_s"]),
+        ({"fine_tune_mode": "remote", "round_deadline_s": 301}, ["body", "round_deadline_s"]),
+        ({"round_deadline_s": 5}, ["body", "round_deadline_s"]),
+        ({"fine_tune_mode": "remote", "fine_tune_rounds": 65}, ["body", "fine_tune_rounds"]),
+        ({"fine_tune_mode": "elsewhere"}, ["body", "fine_tune_mode"]),
+    ]
+    for extra, loc in cases:
+        answer = client.post("/auctions", json={**base, **extra}, headers=ADMIN)
+        assert answer.status_code == 422 and loc in loc_of(answer), (extra, answer.text)
+
+
+def test_the_round_is_published_with_rows_seeds_and_asked_patrons(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    state = remote["state"]
+    assert state["auction_status"] == "running" and state["fine_tune_mode"] == "remote"
+    assert state["iteration"] == 0 and state["fine_tune_rounds"] == 4
+    assert 0 < state["seconds_left"] <= 60
+    rows = np.array(state["rows"])
+    assert rows.shape == (64, 8) and np.all(rows[:, 0] == rows[0, 0])  # one price
+    assert rows[0, 1:7].tolist() == [1.0, 1.0, 1.0, 0.5, 0.5, 0.5]  # the prototype fish
+    assert 0 <= state["fine_tune_seed"] < 2**53 and 0 <= state["augmentation_seed"] < 2**53
+    assert set(state["asked"]) <= {m for m, _ in remote["patrons"]} and state["asked"]
+    # An open round answers at once, even with a long wait.
+    started = time.monotonic()
+    again = client.get(f"/auctions/{remote['id']}/rounds/current", params={"wait": 20}).json()
+    assert time.monotonic() - started < 5 and again["round"] == 1
+    assert client.get("/auctions/987654/rounds/current").status_code == 404
+    bad_wait = client.get(f"/auctions/{remote['id']}/rounds/current", params={"wait": 31})
+    assert bad_wait.status_code == 422 and ["query", "wait"] in loc_of(bad_wait)
+
+
+def test_a_long_poll_waits_for_a_newer_round_at_most_its_wait(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    started = time.monotonic()
+    state = client.get(
+        f"/auctions/{remote['id']}/rounds/current", params={"wait": 0.6, "after": 1}
+    ).json()
+    waited = time.monotonic() - started
+    assert state["round"] == 1 and state["status"] == "open"
+    assert 0.55 <= waited < 5
+
+
+def test_waiters_are_bounded(
+    client: TestClient, remote: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(remote_rounds, "MAX_WAITERS", 1)
+    answers: list[int] = []
+    url = f"/auctions/{remote['id']}/rounds/current"
+    first = threading.Thread(
+        target=lambda: answers.append(client.get(url, params={"wait": 1.5, "after": 1}).status_code)
+    )
+    first.start()
+    time.sleep(0.5)
+    refused = client.get(url, params={"wait": 1, "after": 1})
+    first.join()
+    assert answers == [200]
+    assert refused.status_code == 503 and refused.headers["Retry-After"] == "1"
+
+
+def stored_versions(client: TestClient, participant: str) -> int:
+    return len(client.get("/models", params={"participant": participant}).json()["items"])
+
+
+def test_upload_refusals_name_the_field_and_store_nothing(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    auction_id, state = remote["id"], remote["state"]
+    # An honest one (even position: the next test switches the odd ones).
+    position = next(
+        p for p, (m, _) in enumerate(remote["patrons"]) if m in state["asked"] and p % 2 == 0
+    )
+    model_id, token = remote["patrons"][position]
+    manifest = parse_manifest(remote["manifests"][position])
+    name = manifest.participant
+    other_model, other_token = next((m, t) for m, t in remote["patrons"] if m != model_id)
+    tuned = faithful_fine_tune(manifest, round_info(state, position))
+    good = tuned.model_dump_json().encode()
+
+    def refused(response: Any, status: int, loc: list[Any], words: str) -> None:
+        assert response.status_code == status, response.text
+        assert loc in loc_of(response), response.text
+        assert words in response.text, response.text
+
+    refused(
+        put(client, auction_id, 1, model_id, good, None), 401, ["header", "Authorization"], "token"
+    )
+    refused(
+        put(client, auction_id, 1, model_id, good, other_token),
+        403,
+        ["header", "Authorization"],
+        name,
+    )
+    refused(put(client, 987654, 1, model_id, good, token), 404, ["path", "auction_id"], "987654")
+    refused(put(client, auction_id, 1, 987654, good, token), 404, ["path", "model_id"], "987654")
+    ((stranger, stranger_token),) = submit(client, [honest(unique("stranger"), seed=2)])
+    refused(
+        put(client, auction_id, 1, stranger, good, stranger_token),
+        404,
+        ["path", "model_id"],
+        "not a patron",
+    )
+    refused(
+        put(client, auction_id, 2, model_id, good, token),
+        409,
+        ["path", "round"],
+        "the current round is 1 (open)",
+    )
+    padded = good[:-1] + b" " * UPLOAD_MAX_BYTES + b"}"
+    refused(
+        put(client, auction_id, 1, model_id, padded, token),
+        413,
+        ["header", "Content-Length"],
+        str(UPLOAD_MAX_BYTES),
+    )
+    data = tuned.model_dump(mode="json")
+    del data["decision"]["B"]["bias"]
+    refused(
+        put(client, auction_id, 1, model_id, _json(data), token),
+        422,
+        ["body", "decision", "B", "bias"],
+        "",
+    )
+    renamed = tuned.model_copy(update={"participant": "someone-else"})
+    refused(
+        put(client, auction_id, 1, model_id, renamed.model_dump_json().encode(), token),
+        422,
+        ["body", "participant"],
+        name,
+    )
+    redesigned = tuned.model_dump(mode="json")
+    redesigned["augmentation"]["copies"] = 3
+    refused(
+        put(client, auction_id, 1, model_id, _json(redesigned), token),
+        422,
+        ["body", "augmentation", "copies"],
+        "only weights and biases",
+    )
+    quitter, quitter_token = remote["patrons"][1]
+    assert quitter in auction_quitters(client, auction_id)
+    refused(
+        put(client, auction_id, 1, quitter, good, quitter_token),
+        409,
+        ["path", "model_id"],
+        "not asked in round 1",
+    )
+    # Nothing of these was stored: no version, no answer.
+    assert stored_versions(client, name) == 1
+    auction = client.get(f"/auctions/{auction_id}").json()
+    assert [a for r in auction["fine_tuning"] for a in r["answers"]] == []
+    # Now the real upload, its repeat, and a different second upload.
+    first = put(client, auction_id, 1, model_id, good, token)
+    assert first.status_code == 200, first.text
+    answer = first.json()
+    assert answer["accepted"] and answer["outcome"] == "accepted" and answer["version"] == 2
+    assert answer["parent_id"] == model_id and answer["round"] == 1
+    again = put(client, auction_id, 1, model_id, good, token)
+    assert again.status_code == 200 and again.content == first.content
+    other = tuned.model_copy(update={"description": "x"}).model_dump(mode="json")
+    other["decision"]["B"]["bias"] += 1e-9
+    other["description"] = manifest.description
+    refused(
+        put(client, auction_id, 1, model_id, _json(other), token),
+        409,
+        ["path", "round"],
+        "one upload per round",
+    )
+    assert stored_versions(client, name) == 2
+    version = client.get(f"/models/{answer['model_id']}").json()
+    assert version["parent_id"] == model_id and version["auction_id"] == auction_id
+    assert version["round"] == 1 and version["version"] == 2 and version["accepted"]
+    assert parse_manifest(version["manifest"]) == tuned
+    assert client.get(f"/models/{model_id}").json()["auctions"][0] == auction_id
+    # A server-mode auction has no rounds to upload to.
+    server_mode = client.post(
+        "/auctions", json={"n_fish": 1, "model_ids": [other_model]}, headers=ADMIN
+    ).json()["auction_id"]
+    refused(
+        put(client, server_mode, 1, other_model, good, other_token),
+        409,
+        ["path", "auction_id"],
+        "fine-tunes in the server",
+    )
+
+
+def auction_quitters(client: TestClient, auction_id: int) -> list[int]:
+    return list(client.get(f"/auctions/{auction_id}").json()["quitters"])
+
+
+def _json(data: dict[str, Any]) -> bytes:
+    return json.dumps(data).encode()
+
+
+def test_the_bait_and_switch_is_refused_and_the_round_closes_when_all_answered(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    auction_id, state = remote["id"], remote["state"]
+    answers = {}
+    for position, (model_id, token) in enumerate(remote["patrons"]):
+        if model_id not in state["asked"]:
+            continue
+        manifest = parse_manifest(remote["manifests"][position])
+        info = round_info(state, position)
+        switch = position % 2 == 1
+        upload = always_hold(manifest, info) if switch else faithful_fine_tune(manifest, info)
+        answer = put(client, auction_id, 1, model_id, upload.model_dump_json().encode(), token)
+        assert answer.status_code == 200, answer.text
+        answers[model_id] = (switch, answer.json())
+        # The verdict is the screener's on the upload itself (the bait-and-switch never passes).
+        assert answer.json()["accepted"] == (screen(upload).accepted and not switch)
+    assert any(not switch and answer["accepted"] for switch, answer in answers.values())
+    for switch, answer in answers.values():
+        if switch:
+            assert answer["outcome"] == "refused" and answer["reasons"]
+            assert answer["version"] == 1 and answer["uploaded_id"] is not None
+            assert client.get(f"/models/{answer['uploaded_id']}").json()["accepted"] is False
+    # Everyone answered: the round closes long before its minute is up, the next one opens.
+    nxt = open_round(client, auction_id, after=1)
+    auction = client.get(f"/auctions/{auction_id}").json()
+    first = auction["fine_tuning"][0]
+    assert first["status"] == "closed" and first["round"] == 1
+    outcomes = {a["model_id"]: a for a in first["answers"]}
+    for model_id, (_, answer) in answers.items():
+        assert outcomes[model_id]["outcome"] == answer["outcome"]
+        assert outcomes[model_id]["version"] == answer["version"]
+    assert first["bytes_total"] > first["bytes_published"] > 0
+    assert nxt["round"] == 2 and nxt["status"] == "open"
+
+
+def test_a_silent_round_closes_at_its_deadline_and_late_uploads_get_410(
+    client: TestClient,
+) -> None:
+    manifests = [moving(unique("silent"), seed=400 + i) for i in range(3)]
+    patrons = submit(client, manifests)
+    body = {
+        "n_fish": 1,
+        "model_ids": [m for m, _ in patrons],
+        "fine_tune_mode": "remote",
+        "round_deadline_s": 0.5,
+        "fine_tune_rounds": 1,
+        "seed": 1,
+    }
+    auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
+    auction = wait_for(
+        lambda: client.get(f"/auctions/{auction_id}").json(),
+        lambda a: a["fine_tuning"] and a["fine_tuning"][0]["status"] == "closed",
+        ROUND_WAIT_S,
+    )
+    closed = auction["fine_tuning"][0]
+    took = _seconds(closed["closed_at"]) - _seconds(closed["opened_at"])
+    assert 0.5 <= took < 5, closed
+    asked = [a["model_id"] for a in closed["answers"]]
+    assert asked and all(a["outcome"] == "missing" for a in closed["answers"])
+    model_id = asked[0]
+    position = [m for m, _ in patrons].index(model_id)
+    body_bytes = parse_manifest(manifests[position]).model_dump_json().encode()
+    late = put(client, auction_id, 1, model_id, body_bytes, patrons[position][1])
+    assert late.status_code == 410 and ["path", "round"] in loc_of(late), late.text
+    assert "round 1" in late.text
+    auction = client.get(f"/auctions/{auction_id}").json()
+    outcome = {a["model_id"]: a["outcome"] for a in auction["fine_tuning"][0]["answers"]}
+    assert outcome[model_id] == "late"
+    assert stored_versions(client, manifests[position]["participant"]) == 1
+
+
+def _seconds(stamp: str) -> float:
+    return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()

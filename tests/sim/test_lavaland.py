@@ -14,7 +14,7 @@ from gymnasium.utils.env_checker import check_env
 
 import sim.lavaland as lavaland
 from agents.robot2nn import GUARD_FRACTION, KNOWN_TILE_RGB, PRESETS, imagine
-from sim.experiment import ConfigError, parse_config
+from sim.experiment import ConfigError, over_budget, parse_config
 from sim.lavaland import Lavaland, LavalandConfig, run
 from sim.lavaland.engine import (
     PROJECTS,
@@ -420,6 +420,18 @@ def test_presets_keep_the_paper_loss_and_bounds_refuse_large_jobs():
         assert err.value.errors[0]["field"] == field
     config = parse_config(LavalandConfig, {"loss-guard": True, "srd-step": "autograd"})
     assert config.loss_guard and config.srd_step == "autograd"
+
+
+def test_cost_grows_with_the_work_and_names_the_option_to_lower():
+    small, big = LavalandConfig(), LavalandConfig(eval_maps=65536, train_maps=65536, repeats=100)
+    assert small.cost().seconds < 60 < big.cost().seconds
+    assert big.cost().option == "repeats"
+    assert LavalandConfig(srd_step="autograd").cost().seconds > 5 * small.cost().seconds
+    assert LavalandConfig(train_maps=0, eval_maps=65536).cost().option == "eval_maps"
+    assert LavalandConfig(srd_step="autograd").cost().option == "train_maps"
+    error = over_budget(big, budget_s=600)
+    assert error is not None and error.errors[0]["field"] == "repeats"
+    assert over_budget(small, budget_s=600) is None
 
 
 def test_repeat_summary_and_its_artifacts(tmp_path):

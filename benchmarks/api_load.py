@@ -44,7 +44,13 @@ import numpy as np
 import torch
 
 from agents.negotiator import honest_manifest
-from server.launch import ServerProcess, postgres_admin_url, throwaway_postgres
+from server.launch import (
+    QUOTAS_OFF,
+    ServerProcess,
+    postgres_admin_url,
+    settings_environment,
+    throwaway_postgres,
+)
 
 torch.set_num_threads(1)
 
@@ -434,7 +440,10 @@ def main() -> None:
             print(f"{backend}: starting srd serve ...")
             server = stack.enter_context(
                 ServerProcess(
-                    database_url=url, data_dir=data_dir, admin_token=secrets.token_hex(16)
+                    database_url=url,
+                    data_dir=data_dir,
+                    admin_token=secrets.token_hex(16),
+                    extra_env=settings_environment(QUOTAS_OFF),  # thousands from one address
                 )
             )
             rows += [(backend, r) for r in asyncio.run(measure(server, args))]

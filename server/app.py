@@ -21,6 +21,7 @@ from server.config import Settings, get_settings
 from server.db import Database, prepare_database
 from server.errors import install_error_handlers, responses
 from server.jobs import LocalJobBackend, requeue_unfinished
+from server.quotas import Limits
 from server.remote_rounds import RoundWatcher, UploadWriter
 from server.routes import auctions, events, health, jobs, models, participants, rounds, ui
 from server.screening import ScreeningService
@@ -53,7 +54,7 @@ def _start_services(app: FastAPI, settings: Settings) -> None:
     )
     app.state.screening = ScreeningService()
     app.state.screening.start()
-    app.state.submissions = SubmissionWriter(database)
+    app.state.submissions = SubmissionWriter(database, Limits.of(settings))
     app.state.submissions.start()
     app.state.uploads = UploadWriter(database)
     app.state.uploads.start()

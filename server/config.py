@@ -40,6 +40,23 @@ class Settings(BaseSettings):
     """Jobs whose estimated compute (seconds on one core) exceeds this are refused with 422."""
     auction_timeout_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 3600.0
     """Wall-time limit of one auction run: one still running after this long is failed."""
+    quota_versions_per_minute: Annotated[int, Field(ge=1)] = 20
+    """New accepted versions one participant may submit per minute."""
+    quota_versions_per_day: Annotated[int, Field(ge=1)] = 500
+    """New accepted versions one participant may submit per day."""
+    quota_address_versions_per_minute: Annotated[int, Field(ge=1)] = 300
+    """New accepted versions per minute from one client address, all its participants."""
+    quota_address_versions_per_day: Annotated[int, Field(ge=1)] = 20_000
+    """New accepted versions per day from one client address, all its participants."""
+    quota_registrations_per_day: Annotated[int, Field(ge=1)] = 200
+    """New participant names registered per day from one client address."""
+    quota_address_refusals_per_hour: Annotated[int, Field(ge=1)] = 60
+    """Screener refusals per hour from one client address, all its participants."""
+    refusal_cooldown_s: Annotated[float, Field(ge=0, le=86400)] = 10.0
+    """After a screener refusal a participant waits this long to submit again, doubled for each
+    further refusal in a row (an accepted version resets it)."""
+    refusal_cooldown_max_s: Annotated[float, Field(ge=0, le=86400)] = 3600.0
+    """The longest refusal cooldown."""
     progress_interval_s: Annotated[float, Field(gt=0)] = 0.5
     """Minimum time between two progress writes of a running job."""
     event_poll_interval_s: Annotated[float, Field(gt=0, le=10)] = 0.2

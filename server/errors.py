@@ -126,6 +126,7 @@ def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         413: "Request body too large",
         415: "Request body is not JSON (Content-Type)",
         422: "Invalid input; ``loc`` names the field",
+        429: "Over a quota or rate limit; ``Retry-After`` says when to try again",
         503: "A service the request needs is unavailable; retry",
     }
     return {code: {"model": ErrorBody, "description": text[code]} for code in codes}

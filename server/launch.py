@@ -21,6 +21,17 @@ from sqlalchemy import create_engine, text
 from sqlalchemy.exc import OperationalError
 
 HEALTH_POLL_S = 0.2
+QUOTAS_OFF = {
+    "quota_versions_per_minute": 10**6,
+    "quota_versions_per_day": 10**6,
+    "quota_address_versions_per_minute": 10**6,
+    "quota_address_versions_per_day": 10**6,
+    "quota_registrations_per_day": 10**6,
+    "quota_address_refusals_per_hour": 10**6,
+    "refusal_cooldown_s": 0.0,
+}
+"""Settings that lift the submission quotas: for load, tests and benchmarks that submit many
+models from one address (the quotas themselves are tested on their own)."""
 LOCAL_POSTGRES = "127.0.0.1:5432"
 POSTGRES_USERS = ("postgres", "root")  # trust authentication on the loopback server
 
@@ -54,6 +65,11 @@ def throwaway_postgres(admin_url: str) -> Iterator[str]:
         with engine.connect() as conn:
             conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
         engine.dispose()
+
+
+def settings_environment(values: dict[str, object]) -> dict[str, str]:
+    """Settings as the environment of a server process (``SRD_<NAME>``)."""
+    return {f"SRD_{name.upper()}": str(value) for name, value in values.items()}
 
 
 def free_port() -> int:

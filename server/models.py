@@ -12,6 +12,7 @@ from sqlalchemy import (
     DateTime,
     Float,
     ForeignKey,
+    Index,
     Integer,
     LargeBinary,
     MetaData,
@@ -260,3 +261,19 @@ class Job(Base):
     started_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+class RateEvent(Base):
+    """One event that a quota counts: a new version, a registration or a screener refusal, by
+    a participant (``participant:<name>``) or a client address (``address:<host>``). Kept in
+    the database so that every API process sees the same counts; pruned past the longest
+    window."""
+
+    __tablename__ = "rate_events"
+    __table_args__ = (Index("ix_rate_events_subject_kind_at", "subject", "kind", "created_at"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    subject: Mapped[str] = mapped_column(String(160))
+    kind: Mapped[str] = mapped_column(String(16))
+    """version | registration | refusal."""
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, index=True)

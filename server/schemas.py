@@ -6,8 +6,18 @@ from datetime import datetime
 from typing import Annotated, Any, Literal, get_args
 
 from fastapi import Path
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    GetJsonSchemaHandler,
+    field_validator,
+)
+from pydantic.json_schema import JsonSchemaValue
+from pydantic_core import CoreSchema
 
+from sim.experiment import config_schema
 from sim.registry import KINDS
 
 AuctionStatus = Literal["pending", "running", "finished", "failed"]
@@ -99,6 +109,14 @@ MAX_FINE_TUNE_ROUNDS = 64
 FineTuneModeName = Literal["server", "remote"]
 
 
+def _absent(schema: dict[str, Any]) -> None:
+    """The schema of an optional field that may be left out but is never ``null``: its value's
+    schema alone (the validator refuses an explicit null)."""
+    value = schema.pop("anyOf")[0]
+    schema.pop("default", None)
+    schema.update(value)
+
+
 class AuctionCreate(_Input):
     """Start an auction: exactly one of ``n_fish`` or ``rarity`` (fish = int(rarity × patrons)).
 
@@ -107,17 +125,33 @@ class AuctionCreate(_Input):
     ``round_deadline_s``. A remote auction fine-tunes (``fine_tune`` may be left out; false is
     refused); ``round_deadline_s`` belongs to remote auctions only."""
 
-    n_fish: Annotated[int, Field(ge=1, le=100_000)] | None = None
-    rarity: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] | None = None
+    model_config = ConfigDict(
+        json_schema_extra={"oneOf": [{"required": ["n_fish"]}, {"required": ["rarity"]}]}
+    )
+
+    n_fish: Annotated[int, Field(ge=1, le=100_000)] | None = Field(None, json_schema_extra=_absent)
+    rarity: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] | None = Field(
+        None, json_schema_extra=_absent
+    )
     max_iterations: Annotated[int, Field(ge=1, le=1000)] = 64
     fine_tune: bool = False
-    model_ids: Annotated[list[RowId], Field(min_length=1, max_length=MAX_PATRONS)] | None = None
+    model_ids: Annotated[list[RowId], Field(min_length=1, max_length=MAX_PATRONS)] | None = Field(
+        None, json_schema_extra=_absent
+    )
     seed: Annotated[int, Field(ge=0, le=MAX_SEED)] = 0
     fine_tune_mode: FineTuneModeName = "server"
     fine_tune_rounds: Annotated[int, Field(ge=0, le=MAX_FINE_TUNE_ROUNDS)] = 4
     round_deadline_s: Annotated[
         float, Field(ge=ROUND_DEADLINE_S[0], le=ROUND_DEADLINE_S[1], allow_inf_nan=False)
     ] = 10.0
+
+    @field_validator("n_fish", "rarity", "model_ids", mode="before")
+    @classmethod
+    def _absent_not_null(cls, value: Any) -> Any:
+        """An option left out is absent; ``null`` is not one of its values."""
+        if value is None:
+            raise ValueError("must not be null: leave it out instead")
+        return value
 
 
 class AuctionCreated(BaseModel):
@@ -253,13 +287,35 @@ class UploadPublic(BaseModel):
 
 
 class JobCreate(_Input):
-    """Start an experiment; ``params`` are the CLI options of that kind (dashes or underscores)."""
+    """Start an experiment; ``params`` are the options of that kind (names with underscores or,
+    as on the command line, dashes; lists as JSON arrays), checked by the kind's config."""
 
     kind: JobKind
     params: dict[str, Any] = Field(default_factory=dict)
 
 
 class JobCreated(BaseModel):
+    @classmethod
+    def __get_pydantic_json_schema__(
+        cls, core_schema: CoreSchema, handler: GetJsonSchemaHandler
+    ) -> JsonSchemaValue:
+        """One alternative per kind, its ``params`` the schema of the kind's config (bounds
+        included), so the document says exactly what each kind accepts."""
+        alternatives = [
+            {
+                "type": "object",
+                "title": f"{name} job",
+                "properties": {
+                    "kind": {"const": name},
+                    "params": config_schema(kind.config_class()),
+                },
+                "required": ["kind"],
+                "additionalProperties": False,
+            }
+            for name, kind in KINDS.items()
+        ]
+        return {"title": "JobCreate", "description": cls.__doc__, "oneOf": alternatives}
+
     job_id: int
     status: JobStatus
 

@@ -12,6 +12,10 @@ then a single commit, and answers them all. Under no load a group is one submiss
 nothing waits for a group to fill; under load the statements, commits, lock turns and wake-ups
 are shared by the group.
 
+Quotas (``server.quotas``) are decided in the same transaction, counting the group's earlier
+submissions. ``precheck`` asks the same questions (token, quotas) before the route spends
+screening on a submission; the answer given at ``store`` is the authoritative one.
+
 Semantics are those of the submissions run one after another in arrival order: a
 participant created earlier in the group needs its token for a later version in the same
 group. A refused submission (missing or wrong token) writes nothing. If a statement fails on
@@ -26,8 +30,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import queue
 import threading
+import time
 from collections import defaultdict
 from dataclasses import dataclass
 from typing import Any
@@ -36,7 +42,7 @@ from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session
 
 from screener import Verdict
-from server import crud
+from server import crud, quotas
 from server.db import Database
 from server.models import utcnow
 from server.security import hash_token, new_token, token_matches
@@ -45,6 +51,7 @@ log = logging.getLogger("srd.submissions")
 
 MAX_GROUP = 64  # submissions per transaction, at most
 STOP_GRACE_S = 10.0
+PRUNE_EVERY_S = 600.0  # how often old quota events are deleted
 
 
 @dataclass(frozen=True)
@@ -66,6 +73,8 @@ class Refused:
     msg: str
     loc: tuple[str, ...]
     kind: str
+    retry_after_s: int | None = None
+    """For 429: when to try again (the ``Retry-After`` header)."""
 
 
 Outcome = Stored | Refused
@@ -73,12 +82,16 @@ Outcome = Stored | Refused
 
 @dataclass
 class _Submission:
+    """A screened manifest to store, or (``verdict`` None) a question asked before screening:
+    would this participant's submission be refused for its token or a quota?"""
+
     participant: str
-    manifest: dict[str, Any]
-    verdict: Verdict
+    manifest: dict[str, Any] | None
+    verdict: Verdict | None
     bearer: str | None
+    address: str | None
     loop: asyncio.AbstractEventLoop
-    future: asyncio.Future[Outcome]
+    future: asyncio.Future[Outcome | None]
 
 
 class _ConflictError(Exception):
@@ -94,9 +107,34 @@ class _Known:
     id: int | None = None
 
 
-def _store_group(session: Session, group: list[_Submission]) -> list[Outcome]:
+def _token_refusal(item: _Submission, participant: _Known | None) -> Refused | None:
+    """A later version without the participant's token (a new name needs none)."""
+    if participant is None:
+        return None
+    if item.bearer is None:
+        return Refused(
+            401,
+            f"participant {item.participant!r} exists: send its token as "
+            "'Authorization: Bearer <token>'",
+            ("header", "Authorization"),
+            "missing_token",
+        )
+    if not token_matches(item.bearer, participant.token_hash):
+        return Refused(
+            403,
+            f"the bearer token is not the token of participant {item.participant!r}",
+            ("header", "Authorization"),
+            "bad_token",
+        )
+    return None
+
+
+def _store_group(
+    session: Session, group: list[_Submission], limits: quotas.Limits
+) -> list[Outcome | None]:
     """Every submission of the group, decided in arrival order, then written with one query
-    and two multi-row inserts, whatever the group's size."""
+    and two multi-row inserts, whatever the group's size. Questions (no verdict) are answered
+    with the refusal their submission would get now, or None; they write nothing."""
     existing = crud.participants_by_names(
         session, names=list(dict.fromkeys(item.participant for item in group))
     )
@@ -106,11 +144,28 @@ def _store_group(session: Session, group: list[_Submission]) -> list[Outcome]:
         for name, row in existing.items()
     }
     now = utcnow()
+    throttle = quotas.Throttle(
+        session,
+        limits,
+        now,
+        quotas.subjects([i.participant for i in group], [i.address for i in group]),
+    )
     new_participants: list[dict[str, Any]] = []
     versions: list[tuple[int, str, int, str | None]] = []  # group index, name, version, token
     outcomes: list[Outcome | None] = []
     for index, item in enumerate(group):
         participant = known.get(item.participant)
+        refusal = _token_refusal(item, participant)
+        if refusal is None:
+            new = participant is None
+            throttled = throttle.check(participant=item.participant, address=item.address, new=new)
+            if throttled is not None:
+                refusal = Refused(
+                    429, throttled.msg, ("body", "participant"), "quota", throttled.retry_after_s
+                )
+        if refusal is not None or item.verdict is None:
+            outcomes.append(refusal)
+            continue
         token: str | None = None
         if participant is None:
             token = new_token(crud.PARTICIPANT_TOKEN_PREFIX)
@@ -118,50 +173,37 @@ def _store_group(session: Session, group: list[_Submission]) -> list[Outcome]:
             new_participants.append(
                 {"name": item.participant, "token_hash": participant.token_hash, "created_at": now}
             )
-        elif item.bearer is None:
-            outcomes.append(
-                Refused(
-                    401,
-                    f"participant {item.participant!r} exists: send its token as "
-                    "'Authorization: Bearer <token>'",
-                    ("header", "Authorization"),
-                    "missing_token",
-                )
-            )
-            continue
-        elif not token_matches(item.bearer, participant.token_hash):
-            outcomes.append(
-                Refused(
-                    403,
-                    f"the bearer token is not the token of participant {item.participant!r}",
-                    ("header", "Authorization"),
-                    "bad_token",
-                )
-            )
-            continue
+        throttle.record(
+            participant=item.participant,
+            address=item.address,
+            new=token is not None,
+            accepted=item.verdict.accepted,
+        )
         versions.append((index, item.participant, participant.next_version, token))
         participant.next_version += 1
         outcomes.append(None)  # stored: filled in below
     new_ids = crud.insert_participants(session, rows=new_participants)
     for row, participant_id in zip(new_participants, new_ids, strict=True):
         known[row["name"]].id = participant_id
-    model_ids = crud.insert_model_versions(
-        session,
-        rows=[
+    rows = []
+    for index, name, version, _ in versions:
+        verdict = group[index].verdict
+        assert verdict is not None
+        rows.append(
             {
                 "participant_id": known[name].id,
                 "version": version,
                 "manifest": group[index].manifest,
-                "accepted": group[index].verdict.accepted,
-                "reasons": [reason.to_dict() for reason in group[index].verdict.reasons],
+                "accepted": verdict.accepted,
+                "reasons": [reason.to_dict() for reason in verdict.reasons],
                 "created_at": now,
             }
-            for index, name, version, _ in versions
-        ],
-    )
+        )
+    model_ids = crud.insert_model_versions(session, rows=rows)
     for (index, name, version, token), model_id in zip(versions, model_ids, strict=True):
         outcomes[index] = Stored(model_id, name, version, token)
-    return [outcome for outcome in outcomes if outcome is not None]
+    throttle.write(session)
+    return outcomes
 
 
 def _conflict(item: _Submission) -> Refused:
@@ -181,8 +223,10 @@ def _unavailable(exc: Exception) -> Refused:
 class SubmissionWriter:
     """``await store(...)`` from any event loop; the writes happen on one thread, grouped."""
 
-    def __init__(self, database: Database) -> None:
+    def __init__(self, database: Database, limits: quotas.Limits) -> None:
         self._database = database
+        self._limits = limits
+        self._pruned_at = -math.inf
         self._queue: queue.SimpleQueue[_Submission | None] = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._run, name="submission-writer", daemon=True)
         self._closed = False
@@ -193,14 +237,42 @@ class SubmissionWriter:
         self._thread.start()
 
     async def store(
-        self, *, participant: str, manifest: dict[str, Any], verdict: Verdict, bearer: str | None
+        self,
+        *,
+        participant: str,
+        manifest: dict[str, Any],
+        verdict: Verdict,
+        bearer: str | None,
+        address: str | None,
     ) -> Outcome:
         """Store one screened manifest as the participant's next version (or refuse it)."""
+        outcome = await self._ask(participant, manifest, verdict, bearer, address)
+        assert outcome is not None
+        return outcome
+
+    async def precheck(
+        self, *, participant: str, bearer: str | None, address: str | None
+    ) -> Refused | None:
+        """The refusal (token, quota) a submission of ``participant`` would get now, if any:
+        asked before screening, so refused requests cost no screening."""
+        outcome = await self._ask(participant, None, None, bearer, address)
+        assert not isinstance(outcome, Stored)
+        return outcome
+
+    async def _ask(
+        self,
+        participant: str,
+        manifest: dict[str, Any] | None,
+        verdict: Verdict | None,
+        bearer: str | None,
+        address: str | None,
+    ) -> Outcome | None:
         if self._closed:
             return Refused(503, "the server is stopping", ("body",), "stopping")
         loop = asyncio.get_running_loop()
-        future: asyncio.Future[Outcome] = loop.create_future()
-        self._queue.put(_Submission(participant, manifest, verdict, bearer, loop, future))
+        future: asyncio.Future[Outcome | None] = loop.create_future()
+        item = _Submission(participant, manifest, verdict, bearer, address, loop, future)
+        self._queue.put(item)
         # Shielded: a client that goes away does not un-write a submission already queued.
         return await asyncio.shield(future)
 
@@ -236,8 +308,21 @@ class SubmissionWriter:
                     log.exception("a submission group failed")
                     outcomes = [_unavailable(exc)] * len(group)
                 self._answer(group, outcomes)
+                self._prune()
 
-    def _write(self, group: list[_Submission]) -> list[Outcome]:
+    def _prune(self) -> None:
+        """Now and then, forget the quota events no limit counts any more."""
+        if time.monotonic() - self._pruned_at < PRUNE_EVERY_S:
+            return
+        self._pruned_at = time.monotonic()
+        try:
+            with self._database.session(write=True) as session:
+                quotas.prune(session, utcnow())
+                session.commit()
+        except Exception:
+            log.exception("pruning the quota events failed")
+
+    def _write(self, group: list[_Submission]) -> list[Outcome | None]:
         try:
             return self._transaction(group)
         except _ConflictError:
@@ -245,10 +330,10 @@ class SubmissionWriter:
                 return [_conflict(group[0])]
         return [outcome for item in group for outcome in self._write([item])]
 
-    def _transaction(self, group: list[_Submission]) -> list[Outcome]:
+    def _transaction(self, group: list[_Submission]) -> list[Outcome | None]:
         try:
             with self._database.session(write=True) as session:
-                outcomes = _store_group(session, group)
+                outcomes = _store_group(session, group, self._limits)
                 session.commit()
         except IntegrityError as exc:
             raise _ConflictError from exc
@@ -259,9 +344,9 @@ class SubmissionWriter:
         return outcomes
 
     @staticmethod
-    def _answer(group: list[_Submission], outcomes: list[Outcome]) -> None:
-        by_loop: dict[asyncio.AbstractEventLoop, list[tuple[_Submission, Outcome]]] = defaultdict(
-            list
+    def _answer(group: list[_Submission], outcomes: list[Outcome | None]) -> None:
+        by_loop: dict[asyncio.AbstractEventLoop, list[tuple[_Submission, Outcome | None]]] = (
+            defaultdict(list)
         )
         for item, outcome in zip(group, outcomes, strict=True):
             by_loop[item.loop].append((item, outcome))
@@ -270,7 +355,7 @@ class SubmissionWriter:
                 loop.call_soon_threadsafe(_settle, answers)
 
 
-def _settle(answers: list[tuple[_Submission, Outcome]]) -> None:
+def _settle(answers: list[tuple[_Submission, Outcome | None]]) -> None:
     for item, outcome in answers:
         if not item.future.done():
             item.future.set_result(outcome)

@@ -239,8 +239,9 @@ def config_schema(cls: type) -> dict[str, Any]:
 
 
 def _split_list(field: ConfigField, value: Any) -> Any:
-    """A comma-separated string for a list field ("0.1,0.5"): its items, each read as a JSON
-    number for numeric lists; any other value is left for the validator."""
+    """A comma-separated string for a list field ("0.1,0.5", the command line's spelling): its
+    items, each read as a JSON number for numeric lists; any other value is left for the
+    validator."""
     if not isinstance(value, str):
         return value
     parts = [part.strip() for part in value.split(",") if part.strip()]
@@ -266,13 +267,15 @@ def _non_finite(value: Any, path: tuple[str | int, ...]) -> list[tuple[str | int
     return []
 
 
-def parse_config(cls: type[C], params: Any) -> C:
+def parse_config(cls: type[C], params: Any, *, text_lists: bool = False) -> C:
     """Build the config dataclass ``cls`` from JSON-like ``params``, strictly.
 
-    Keys may use dashes or underscores (``train-maps`` or ``train_maps``); list fields also take
-    a comma-separated string. Values are checked as JSON would type them: a number must be a
-    number (not ``"3"``), a flag a boolean, integers integral; NaN and ±inf are refused; so are
-    unknown keys. Every problem is reported with the field it concerns.
+    Keys may use dashes or underscores (``train-maps`` or ``train_maps``). Values are checked as
+    JSON would type them: a number must be a number (not ``"3"``), a flag a boolean, integers
+    integral, a list a JSON array; NaN and ±inf are refused; so are unknown keys. With
+    ``text_lists`` (the command line) list fields take a comma-separated string instead, its
+    items read as JSON numbers where numbers are due. Every problem is reported with the field
+    it concerns.
     """
     if not isinstance(params, dict):
         raise ConfigError([{"field": "params", "message": "must be a JSON object"}])
@@ -288,7 +291,8 @@ def parse_config(cls: type[C], params: Any) -> C:
         elif name in clean:
             errors.append({"field": str(key), "message": "given twice (dashes and underscores)"})
         else:
-            clean[name] = _split_list(fields[name], value) if fields[name].kind == "list" else value
+            is_text_list = text_lists and fields[name].kind == "list"
+            clean[name] = _split_list(fields[name], value) if is_text_list else value
     for path in _non_finite(clean, ()):
         errors.append(
             {"field": ".".join(str(p) for p in path), "message": "must be a finite number"}

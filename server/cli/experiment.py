@@ -115,7 +115,7 @@ def execute(
     stderr = Console(stderr=True)
     config_cls, runner = kind.load()
     try:
-        config = parse_config(config_cls, options)
+        config = parse_config(config_cls, options, text_lists=True)
     except ConfigError as exc:
         for err in exc.errors:
             name = err["field"].split(".")[0].replace("_", "-")

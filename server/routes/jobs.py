@@ -10,6 +10,7 @@ from fastapi.responses import FileResponse
 from starlette.concurrency import run_in_threadpool
 
 from server import crud
+from server.config import Settings
 from server.db import SessionDep
 from server.errors import api_error, error_item, link, responses, validation_error
 from server.jobs import JobBackend
@@ -18,7 +19,7 @@ from server.models import Job
 from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, decode_cursor, page_of
 from server.schemas import JobCreate, JobCreated, JobIdPath, JobPage, JobPublic, JobSummaryPublic
 from server.security import AdminDep
-from sim.experiment import ConfigError, config_dict
+from sim.experiment import ConfigError, config_dict, over_budget
 from sim.registry import build_config
 
 router = APIRouter(tags=["jobs"])
@@ -73,9 +74,15 @@ def _existing_job(session: SessionDep, job_id: int) -> Job:
     },
 )
 def create_job(body: JobCreate, session: SessionDep, request: Request) -> JobCreated:
-    """Queue an experiment (operator); ``params`` are the CLI options of ``kind``."""
+    """Queue an experiment (operator); ``params`` are the CLI options of ``kind``. A job whose
+    estimated compute exceeds the budget (``SRD_JOB_BUDGET_S``) is refused, naming the option
+    to lower and how far."""
+    settings: Settings = request.app.state.settings
     try:
         config = build_config(body.kind, body.params)
+        too_much = over_budget(config, settings.job_budget_s)
+        if too_much is not None:
+            raise too_much
     except ConfigError as exc:
         raise validation_error(
             error_item(

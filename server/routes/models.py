@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, HTTPException, Query, Request
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, Participant
@@ -28,6 +28,15 @@ from server.submissions import Refused, SubmissionWriter
 router = APIRouter(tags=["models"])
 
 
+def _refusal(refused: Refused) -> HTTPException:
+    headers = None
+    if refused.retry_after_s is not None:
+        headers = {"Retry-After": str(refused.retry_after_s)}
+    return api_error(
+        refused.status, refused.msg, loc=refused.loc, kind=refused.kind, headers=headers
+    )
+
+
 def _reasons(row: crud.StoredModel) -> list[ReasonPublic]:
     return [ReasonPublic.model_validate(reason) for reason in row.reasons]
 
@@ -36,9 +45,11 @@ def _reasons(row: crud.StoredModel) -> list[ReasonPublic]:
     "/submit",
     status_code=201,
     operation_id="submit",
+    # A first submission needs no token: the bearer is optional (either scheme or none).
+    openapi_extra={"security": [{}]},
     responses={
         201: {"links": {"ReadModel": link("read_model", "model_id", "model_id")}},
-        **responses(401, 403, 409, 422, 503),
+        **responses(401, 403, 409, 422, 429, 503),
     },
 )
 async def submit(manifest: Manifest, credentials: BearerDep, request: Request) -> SubmitPublic:
@@ -50,6 +61,13 @@ async def submit(manifest: Manifest, credentials: BearerDep, request: Request) -
     """
     screening: ScreeningService = request.app.state.screening
     writer: SubmissionWriter = request.app.state.submissions
+    bearer = None if credentials is None else credentials.credentials
+    address = request.client.host if request.client is not None else None
+    refused = await writer.precheck(
+        participant=manifest.participant, bearer=bearer, address=address
+    )
+    if refused is not None:  # token or quota: no screening spent, nothing stored
+        raise _refusal(refused)
     try:  # before any database work: no lock is held while screening
         verdict = await screening.verdict(manifest)
     except ScreenerUnavailableError as exc:
@@ -58,10 +76,11 @@ async def submit(manifest: Manifest, credentials: BearerDep, request: Request) -
         participant=manifest.participant,
         manifest=manifest.model_dump(mode="json"),
         verdict=verdict,
-        bearer=None if credentials is None else credentials.credentials,
+        bearer=bearer,
+        address=address,
     )
     if isinstance(outcome, Refused):
-        raise api_error(outcome.status, outcome.msg, loc=outcome.loc, kind=outcome.kind)
+        raise _refusal(outcome)
     return SubmitPublic(
         model_id=outcome.model_id,
         participant=outcome.participant,

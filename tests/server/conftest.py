@@ -16,7 +16,7 @@ from fastapi.testclient import TestClient
 from agents.negotiator import honest_manifest, saboteur_manifest
 from server.app import create_app
 from server.config import Settings
-from server.launch import LOCAL_POSTGRES, postgres_admin_url, throwaway_postgres
+from server.launch import LOCAL_POSTGRES, QUOTAS_OFF, postgres_admin_url, throwaway_postgres
 
 ADMIN_TOKEN = "test-admin-token-0123456789abcdef"
 ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
@@ -44,6 +44,11 @@ def database_url(
         yield from _throwaway_pg_database()
 
 
+UNLIMITED = QUOTAS_OFF
+"""Quotas out of the way of tests that submit many models from one address (test_quotas.py
+tests them)."""
+
+
 def make_settings(database_url: str, data_dir: Path, **overrides: Any) -> Settings:
     """Test settings: fixed admin token, fast progress writes."""
     values: dict[str, Any] = {
@@ -53,6 +58,7 @@ def make_settings(database_url: str, data_dir: Path, **overrides: Any) -> Settin
         "progress_interval_s": 0.1,
         "job_workers": 2,
         "auction_workers": 2,
+        **UNLIMITED,
     }
     values.update(overrides)
     return Settings(**values)

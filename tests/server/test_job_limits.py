@@ -9,6 +9,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.app import create_app
+from sim.experiment import config_fields
+from sim.registry import KINDS
 from tests.server.conftest import ADMIN, make_settings, wait_for
 
 ENDED = {"succeeded", "failed", "cancelled"}
@@ -50,3 +52,36 @@ def test_a_real_failure_is_stored_with_its_cause(limited) -> None:
     assert job["status"] == "failed"
     assert job["message"].startswith(("failed: FileExistsError", "failed: NotADirectoryError"))
     assert "Traceback" in job["error"] and str(jobs) in job["error"]
+
+
+@pytest.mark.parametrize(
+    ("body", "option"),
+    [
+        ({"kind": "fish", "params": {"steps": 10_000_000}}, "steps"),
+        (
+            {
+                "kind": "lavaland",
+                "params": {"eval_maps": 65536, "train_maps": 65536, "repeats": 100},
+            },
+            "repeats",
+        ),
+        ({"kind": "cheetah", "params": {"trials": 1000, "steps": 1_000_000}}, "trials"),
+        (
+            {"kind": "auction-study", "params": {"trials": 1000, "patrons": 1024, "grid": True}},
+            "trials",
+        ),
+    ],
+)
+def test_jobs_over_the_budget_are_refused_naming_the_option(client, body, option) -> None:
+    response = client.post("/jobs", json=body, headers=ADMIN)
+    assert response.status_code == 422
+    (item,) = response.json()["detail"]
+    assert item["loc"] == ["body", "params", option]
+    assert "SRD_JOB_BUDGET_S" in item["msg"] and f"lower {option} to at most" in item["msg"]
+
+
+def test_every_kind_declares_its_cost() -> None:
+    for kind in KINDS.values():
+        cost = kind.config_class()().cost()
+        assert 0 < cost.seconds < 1800, kind.name  # the defaults fit the default budget
+        assert cost.option in {f.name for f in config_fields(kind.config_class())}

@@ -126,8 +126,8 @@ EVERY_KIND = {
     ),
     "cheetah": (
         {
-            "backswing": "3",
-            "inhibitor": "0,2",
+            "backswing": [3],
+            "inhibitor": [0, 2],
             "srd": "on",
             "trials": 1,
             "steps": 300,
@@ -135,8 +135,8 @@ EVERY_KIND = {
         },
         {"runs", "elapsed_s"},
     ),
-    "auction-study": ({"rarities": "0.5", "trials": 1, "patrons": 8}, {"rows", "auctions"}),
-    "comparison": ({"rarities": "0.5", "trials": 1, "patrons": 8}, {"configurations"}),
+    "auction-study": ({"rarities": [0.5], "trials": 1, "patrons": 8}, {"rows", "auctions"}),
+    "comparison": ({"rarities": [0.5], "trials": 1, "patrons": 8}, {"configurations"}),
 }
 
 

@@ -12,13 +12,16 @@ from sqlalchemy import func, select
 
 from screener import Reason, Verdict
 from server import crud, submissions
+from server.config import Settings
 from server.db import Database, upgrade_schema
 from server.models import ModelVersion, Participant, utcnow
+from server.quotas import Limits
 from server.submissions import Outcome, Refused, Stored, SubmissionWriter
-from tests.server.conftest import honest, unique
+from tests.server.conftest import UNLIMITED, honest, unique
 
 ACCEPTED = Verdict(accepted=True)
 REJECTED = Verdict(accepted=False, reasons=[Reason("always_hold", "B", "never buys")])
+LIMITS = Limits.of(Settings(**UNLIMITED))
 
 
 @pytest.fixture
@@ -38,7 +41,13 @@ async def _one_group(
         manifest: dict[str, Any] = honest(name)
         tasks.append(
             asyncio.create_task(
-                writer.store(participant=name, manifest=manifest, verdict=verdict, bearer=bearer)
+                writer.store(
+                    participant=name,
+                    manifest=manifest,
+                    verdict=verdict,
+                    bearer=bearer,
+                    address=None,
+                )
             )
         )
     await asyncio.sleep(0)  # every task has queued its submission
@@ -65,7 +74,7 @@ def _counts(database: Database, name: str) -> tuple[int, int]:
 
 def test_a_group_behaves_like_the_submissions_in_arrival_order(database: Database) -> None:
     alice, bob = unique("alice"), unique("bob")
-    writer = SubmissionWriter(database)
+    writer = SubmissionWriter(database, LIMITS)
     outcomes = asyncio.run(
         _one_group(
             writer,
@@ -88,7 +97,7 @@ def test_a_group_behaves_like_the_submissions_in_arrival_order(database: Databas
     assert _counts(database, bob) == (1, 1)
 
     token = first.token
-    again = SubmissionWriter(database)
+    again = SubmissionWriter(database, LIMITS)
     second, third = asyncio.run(
         _one_group(again, [(alice, ACCEPTED, token), (alice, REJECTED, token)])
     )
@@ -118,7 +127,7 @@ def test_a_unique_violation_refuses_only_the_submission_at_fault(
         return {n: p for n, p in real_lookup(session, names=names).items() if n != taken}
 
     monkeypatch.setattr(submissions.crud, "participants_by_names", blind_lookup)
-    writer = SubmissionWriter(database)
+    writer = SubmissionWriter(database, LIMITS)
     outcomes = asyncio.run(
         _one_group(
             writer, [(before, ACCEPTED, None), (taken, ACCEPTED, None), (after, ACCEPTED, None)]
@@ -134,12 +143,14 @@ def test_a_unique_violation_refuses_only_the_submission_at_fault(
 
 
 def test_a_stopped_writer_refuses_with_503(database: Database) -> None:
-    writer = SubmissionWriter(database)
+    writer = SubmissionWriter(database, LIMITS)
     writer.start()
     writer.shutdown()
     name = unique("late")
     outcome = asyncio.run(
-        writer.store(participant=name, manifest=honest(name), verdict=ACCEPTED, bearer=None)
+        writer.store(
+            participant=name, manifest=honest(name), verdict=ACCEPTED, bearer=None, address=None
+        )
     )
     assert isinstance(outcome, Refused) and outcome.status == 503
     assert _counts(database, name) == (0, 0)

@@ -1,0 +1,109 @@
+"""Quotas and rate limits on POST /submit: answered 429 with Retry-After and the limit named,
+nothing stored, counted in the database (so every API process sharing it sees the same)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from server.app import create_app
+from server.models import ModelVersion, Participant, RateEvent
+from tests.server.conftest import honest, make_settings, saboteur, unique
+from tests.server.test_api import count
+
+
+def quota_app(tmp_path, **limits: Any) -> TestClient:
+    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
+    return TestClient(create_app(settings.model_copy(update=limits)))
+
+
+def bearer(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def assert_throttled(response: Any, setting: str) -> int:
+    assert response.status_code == 429, response.text
+    (item,) = response.json()["detail"]
+    assert item["loc"] == ["body", "participant"] and item["type"] == "quota"
+    assert setting in item["msg"]
+    retry = int(response.headers["retry-after"])
+    assert retry >= 1
+    return retry
+
+
+def test_versions_per_minute_and_refusals_do_not_use_the_quota(tmp_path) -> None:
+    with quota_app(tmp_path, quota_versions_per_minute=2, refusal_cooldown_s=0.0) as client:
+        name = unique("busy")
+        first = client.post("/submit", json=honest(name)).json()
+        token = first["token"]
+        refused = client.post("/submit", json=saboteur(name), headers=bearer(token))
+        assert refused.status_code == 201 and refused.json()["accepted"] is False
+        assert client.post("/submit", json=honest(name), headers=bearer(token)).status_code == 201
+        before = count(client, ModelVersion)
+        third = client.post("/submit", json=honest(name), headers=bearer(token))
+        retry = assert_throttled(third, "SRD_QUOTA_VERSIONS_PER_MINUTE")
+        assert retry <= 60
+        assert count(client, ModelVersion) == before
+        other = unique("other")
+        assert client.post("/submit", json=honest(other)).status_code == 201  # per participant
+
+
+def test_refusals_in_a_row_cool_the_participant_down(tmp_path) -> None:
+    with quota_app(tmp_path, refusal_cooldown_s=30.0) as client:
+        name = unique("prober")
+        token = client.post("/submit", json=honest(name)).json()["token"]
+        refused = client.post("/submit", json=saboteur(name), headers=bearer(token))
+        assert refused.json()["accepted"] is False
+        before = count(client, ModelVersion)
+        again = client.post("/submit", json=saboteur(name), headers=bearer(token))
+        retry = assert_throttled(again, "SRD_REFUSAL_COOLDOWN_S")
+        assert 25 <= retry <= 30
+        assert "1 time(s) in a row" in again.json()["detail"][0]["msg"]
+        assert "reasons" not in again.text  # the verdict of a throttled probe is not revealed
+        assert count(client, ModelVersion) == before
+        honest_too = client.post("/submit", json=honest(name), headers=bearer(token))
+        assert_throttled(honest_too, "SRD_REFUSAL_COOLDOWN_S")  # whatever it sends
+
+
+def test_registrations_per_address(tmp_path) -> None:
+    with quota_app(tmp_path, quota_registrations_per_day=2) as client:
+        assert client.post("/submit", json=honest(unique("one"))).status_code == 201
+        assert client.post("/submit", json=honest(unique("two"))).status_code == 201
+        before = count(client, Participant)
+        third = client.post("/submit", json=honest(unique("three")))
+        assert_throttled(third, "SRD_QUOTA_REGISTRATIONS_PER_DAY")
+        assert count(client, Participant) == before
+
+
+def test_limits_are_shared_by_processes_on_one_database(tmp_path) -> None:
+    limits = {"quota_versions_per_minute": 1, "refusal_cooldown_s": 0.0}
+    with quota_app(tmp_path, **limits) as first, quota_app(tmp_path, **limits) as second:
+        name = unique("shared")
+        token = first.post("/submit", json=honest(name)).json()["token"]
+        elsewhere = second.post("/submit", json=honest(name), headers=bearer(token))
+        assert_throttled(elsewhere, "SRD_QUOTA_VERSIONS_PER_MINUTE")
+        assert count(first, RateEvent) >= 1
+
+
+def test_unauthenticated_and_throttled_requests_cost_no_screening(
+    tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    with quota_app(tmp_path, quota_versions_per_minute=1) as client:
+        name = unique("cheap")
+        token = client.post("/submit", json=honest(name)).json()["token"]
+        screened: list[str] = []
+        screening = client.app.state.screening  # type: ignore[attr-defined]
+        real = screening.verdict
+
+        async def counting(manifest: Any) -> Any:
+            screened.append(manifest.participant)
+            return await real(manifest)
+
+        monkeypatch.setattr(screening, "verdict", counting)
+        assert client.post("/submit", json=honest(name)).status_code == 401
+        assert client.post("/submit", json=honest(name), headers=bearer("wrong")).status_code == 403
+        over = client.post("/submit", json=honest(name), headers=bearer(token))
+        assert_throttled(over, "SRD_QUOTA_VERSIONS_PER_MINUTE")
+        assert screened == []

@@ -1,14 +1,27 @@
-"""The inspector: reads a submitted manifest weight by weight and probes its behaviour.
+"""The inspector: reads a submitted manifest weight by weight, probes its behaviour and, when it
+holds out for lower prices, measures what it would do to an auction.
 
-``screen(manifest) -> Verdict`` is the one entry point every caller uses (``/submit``,
-``srd screen``, ``srd auction-study --screen``, re-screening of fine-tuned versions);
-``screen_many`` judges a whole batch at once: every rule runs once over the batch's arrays and
-the probes share forward passes, with the same verdict for each manifest as ``screen``.
+``screen(manifest) -> Verdict`` is the one entry point for a single model (``/submit``,
+``srd screen``, ``srd auction-study --screen``); ``screen_many`` judges a whole batch at once
+with the same verdict for each manifest as ``screen``. ``rescreen`` is the one re-screening of
+fine-tuned patrons (a ``sim.market.RescreenBatch``, used by the server's auctions and by the
+study alike), ``rescreen_many`` the same judgement for manifests.
 
-A manifest is accepted when no rule and no probe finds anything: the semantic rules
-(``screener.rules``) read each named weight against the meaning the paper gives its neuron,
-the behavioural probes (``screener.probes``) watch its decisions on a grid of items. Every
-threshold is in ``screener.limits`` with its rationale.
+A manifest is accepted when nothing finds anything:
+
+* the semantic rules (``screener.rules``) read each named weight against the meaning the paper
+  gives its neuron;
+* the behavioural probes (``screener.probes``) watch its decisions on a grid of items, and on
+  the auction's decisive row at every price the market can reach: each hold must be backed by a
+  purchase at a price the auction can still come down to (the sincere-hold rule);
+* the market-impact test (``screener.impact``), for models that hold somewhere on the decisive
+  row: copies of the model in small counterfactual auctions must not pull the price or the sales
+  down more than copies that simply quit do, plus a quarter of what always-hold saboteurs do.
+
+At the door (``screen``, ``screen_many``) a model with fine-tuning settings is also fine-tuned
+alone through a reference auction's rounds and that version is judged too; re-screening
+(``rescreen``) skips this, since every later fine-tuning round is re-screened in its turn.
+Every threshold is in ``screener.limits`` with its rationale.
 """
 
 from __future__ import annotations
@@ -16,25 +29,42 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from agents.manifest import Manifest
-from agents.negotiator import from_manifests
+from agents.negotiator import FSNBatch, from_manifests, to_manifest
+from screener.checks import cheap_checks, failed_any
 from screener.findings import Checks
-from screener.probes import probe_checks
-from screener.rules import Numbers, semantic_checks
+from screener.impact import impact_checks, project
+from screener.probes import probe
 from screener.verdict import Reason, Verdict
 
-__all__ = ["Reason", "Verdict", "screen", "screen_many"]
+__all__ = ["Reason", "Verdict", "judge", "rescreen", "rescreen_many", "screen", "screen_many"]
 
 
-def screen_many(manifests: Sequence[Manifest]) -> list[Verdict]:
-    """Judge parsed manifests together (batched rules and probes); one verdict each, in order."""
-    if not manifests:
-        return []
-    batch = from_manifests(manifests)
-    groups = [*semantic_checks(Numbers.of(batch)), probe_checks(batch)]
+def judge(batch: FSNBatch, *, at_the_door: bool) -> list[Verdict]:
+    """Verdicts for a batch of models; ``at_the_door`` also judges each model's own
+    fine-tuning (see the module docstring)."""
+    groups, holds = cheap_checks(batch)
+    passed = ~failed_any(groups)
+    projected: list[tuple[int, Manifest]] = []
+    if at_the_door:
+        tunes = passed & ~holds & (batch.epochs.numpy() > 0) & (batch.learning_rate.numpy() > 0)
+        index = np.flatnonzero(tunes)
+        if len(index):
+            tuned = project(batch.select(index))
+            drifted = probe(tuned).holds
+            projected = [
+                (int(index[k]), to_manifest(tuned, int(k))) for k in np.flatnonzero(drifted)
+            ]
+    tested = np.flatnonzero(passed & holds).tolist()
+    groups.append(impact_checks(batch, tested, projected))
+    return _verdicts(groups, batch.n_patrons)
+
+
+def _verdicts(groups: list[Checks], n: int) -> list[Verdict]:
     failed = np.concatenate([g.failed for g in groups], axis=1)  # (P, checks)
-    reasons: list[list[Reason]] = [[] for _ in manifests]
+    reasons: list[list[Reason]] = [[] for _ in range(n)]
     if failed.any():
         checks: list[tuple[Checks, int]] = [(g, k) for g in groups for k in range(len(g.rules))]
         for p, column in zip(*np.nonzero(failed), strict=True):
@@ -43,6 +73,27 @@ def screen_many(manifests: Sequence[Manifest]) -> list[Verdict]:
     return [Verdict(accepted=not r, reasons=r) for r in reasons]
 
 
+def screen_many(manifests: Sequence[Manifest]) -> list[Verdict]:
+    """Judge parsed manifests together at the door; one verdict each, in order."""
+    if not manifests:
+        return []
+    return judge(from_manifests(manifests), at_the_door=True)
+
+
 def screen(manifest: Manifest) -> Verdict:
     """Judge one parsed manifest: accepted, or rejected with every reason in plain words."""
     return screen_many([manifest])[0]
+
+
+def rescreen_many(manifests: Sequence[Manifest]) -> list[Verdict]:
+    """Judge fine-tuned versions of admitted models (inside an auction that re-screens every
+    round); one verdict each, in order."""
+    if not manifests:
+        return []
+    return judge(from_manifests(manifests), at_the_door=False)
+
+
+def rescreen(patrons: FSNBatch) -> npt.NDArray[np.bool_]:
+    """The market's re-screening of the patrons a fine-tuning round moved
+    (``sim.market.RescreenBatch``): True keeps a patron's new version, False reverts it."""
+    return np.array([v.accepted for v in judge(patrons, at_the_door=False)], dtype=np.bool_)

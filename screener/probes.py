@@ -15,13 +15,22 @@ exactly the scores it would get alone. Checks:
   down);
 * ``buy-falls-with-price``: the buy margin B − max(L, Q), clipped to a firm decision either
   way, never swings from refusing to buying as the price rises on any probed item;
-* ``decisive-row``: on the auction's decisive row (the clean base item (p, 1, 1, 1, ½, ½, ½, f))
-  the model does not hold at every price the auction visits, for any f.
+* ``sincere-hold``: on the auction's decisive row (the clean base item (p, 1, 1, 1, ½, ½, ½, f))
+  at the prices the auction can reach (from the market's stalemate floor up, ``SCAN``), every
+  hold is backed by a lower reachable price at which the model buys the fish, at the same f.
+  The paper's hold neuron L means "hold (and lower price)": a hold is a bid for a lower price,
+  sincere only if the model would buy at a price the auction can still come down to. A model
+  that can only hold or quit at every reachable price sits in the auction pulling the demand
+  down, however its neurons are wired.
+
+The same pass tells which models hold anywhere on the reachable decisive row (``holds``): only
+their votes can hold the market down, so only they go on to the market-impact test.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -61,9 +70,62 @@ GRID = _grid()
 CHEAP = PRICES <= limits.CHEAP_FACTOR * limits.BASE_PRICE + 1e-9
 FAR_TOO_EXPENSIVE = PRICES >= limits.FAR_TOO_EXPENSIVE_FACTOR * limits.BASE_PRICE - 1e-9
 ORDINARY = DEMANDS <= limits.ORDINARY_DEMAND + 1e-9
-DECISIVE = np.abs(PRICES / limits.BASE_PRICE - np.mean(limits.DECISIVE_WINDOW)) <= (
-    np.ptp(limits.DECISIVE_WINDOW) / 2 + 1e-9
-)
+
+
+def _scan_prices() -> tuple[Array, int]:
+    """The decisive-row scan's prices, ascending, and the index of the first reachable one (the
+    stalemate floor): a few prices below the floor, then every decrement from the floor to
+    ``SCAN_RISES`` increments above the base price (all from the market's rules)."""
+    market = limits.MARKET
+    floor, step = market.threshold_sell_price, market.decrement
+    lowest = limits.WILLINGNESS_TO_PAY_BAND[0] * market.base_price
+    below = np.arange(lowest, floor - 1e-9, limits.SCAN_BELOW_STEP)
+    top = market.base_price + limits.SCAN_RISES * market.increment
+    reachable = floor + step * np.arange(round((top - floor) / step) + 1)
+    prices: Array = np.round(np.concatenate((below, reachable)), 10).astype(np.float64)
+    return prices, len(below)
+
+
+def _lowest_reachable() -> npt.NDArray[np.intp]:
+    """Per scan price, the index of the lowest price the auction can still come down to from
+    there. Up to the base price the auction can be there before any rise, and then walks down to
+    the stalemate floor. Above it, the price got there by a rise of at most one increment, and a
+    rise moves the stalemate threshold to the price before it plus one decrement: from p the
+    auction can come down to p − (increment − decrement) at best (``HOLD_REACH_SLACK`` more
+    decrements are allowed)."""
+    market, prices, floor = limits.MARKET, SCAN_PRICES, SCAN_PRICES[FLOOR_INDEX]
+    risen = prices > market.base_price + 1e-9
+    fall = market.increment - market.decrement + limits.HOLD_REACH_SLACK * market.decrement
+    lowest = np.where(risen, prices - fall, floor)
+    index: npt.NDArray[np.intp] = np.searchsorted(prices, np.maximum(lowest, floor) - 1e-9)
+    return index
+
+
+SCAN_PRICES, FLOOR_INDEX = _scan_prices()
+SCAN_DEMANDS = np.array(limits.SCAN_DEMANDS)
+REACHABLE = np.arange(len(SCAN_PRICES)) >= FLOOR_INDEX
+LOWEST_REACHABLE = _lowest_reachable()
+
+
+def _scan() -> torch.Tensor:
+    """The decisive row (p, 1, 1, 1, ½, ½, ½, f) at every scan price × scan buy fraction."""
+    p, f = np.meshgrid(SCAN_PRICES, SCAN_DEMANDS, indexing="ij")
+    rows = np.tile(np.array(limits.BASE_ROW), (p.size, 1))
+    rows[:, 0], rows[:, -1] = p.reshape(-1), f.reshape(-1)
+    return torch.from_numpy(rows)
+
+
+SCAN = _scan()
+ROWS = torch.cat((GRID, SCAN))
+"""Every probed row: the grid, then the decisive-row scan (one forward pass)."""
+
+
+class Probed(NamedTuple):
+    """The probes' checks over a batch, and which models hold somewhere on the reachable
+    decisive row (P,)."""
+
+    checks: Checks
+    holds: Mask
 
 
 def _fish(q: int, s: int) -> str:
@@ -77,24 +139,31 @@ def _scores(logits: Array) -> str:
     return f"B {b:+.2f}, L {h:+.2f}, Q {q:+.2f}"
 
 
-def probe_checks(batch: FSNBatch) -> Checks:
+def probe(batch: FSNBatch) -> Probed:
     """Every behavioural probe over the batch, a few patrons per forward pass (``_passes``)."""
     parts = [(index, _judge(_logits(part))) for index, part in _passes(batch)]
     if len(parts) == 1:
         return parts[0][1]
-    P, first = batch.n_patrons, parts[0][1]
+    P, first = batch.n_patrons, parts[0][1].checks
     failed = np.empty((P, len(first.rules)), dtype=np.bool_)
+    holds = np.empty(P, dtype=np.bool_)
     owner = np.empty(P, dtype=np.intp)
     local = np.empty(P, dtype=np.intp)
-    for n, (index, checks) in enumerate(parts):
-        failed[index] = checks.failed
+    for n, (index, probed) in enumerate(parts):
+        failed[index] = probed.checks.failed
+        holds[index] = probed.holds
         owner[index] = n
         local[index] = np.arange(len(index))
 
     def message(k: int, p: int) -> str:
-        return parts[int(owner[p])][1].message(k, int(local[p]))
+        return parts[int(owner[p])][1].checks.message(k, int(local[p]))
 
-    return Checks(first.rules, first.neurons, failed, message)
+    return Probed(Checks(first.rules, first.neurons, failed, message), holds)
+
+
+def probe_checks(batch: FSNBatch) -> Checks:
+    """Every behavioural probe over the batch."""
+    return probe(batch).checks
 
 
 def probe_findings(batch: FSNBatch) -> list[Finding]:
@@ -124,28 +193,33 @@ def _passes(batch: FSNBatch) -> list[tuple[npt.NDArray[np.intp], FSNBatch]]:
 
 
 def _logits(batch: FSNBatch) -> Array:
-    """[B, L, Q] of every patron on every probe item, (P, R, 3)."""
+    """[B, L, Q] of every patron on every probed row (``ROWS``), (P, R, 3)."""
     with torch.no_grad():
-        return decision_logits(batch, GRID).numpy()
+        return decision_logits(batch, ROWS).numpy()
 
 
-def _judge(flat: Array) -> Checks:
-    """The probes of P patrons from their scores ``flat`` (P, R, 3) on the grid."""
-    P = len(flat)
-    finite_cells = np.isfinite(flat)
+def _decisions(scores: Array) -> tuple[Array, Mask, Mask]:
+    """The buy margin B − max(L, Q) and the buy and hold masks of scores (..., 3). The decision
+    is the argmax, ties to the lowest index: B when it is not behind (the difference of two
+    finite numbers has the sign of the exact one), else L when it is not behind Q, else Q."""
+    hold, quit_ = scores[..., HOLD], scores[..., QUIT]
+    lead = scores[..., BUY] - np.maximum(hold, quit_)
+    buys = lead >= 0
+    return lead, buys, ~buys & (hold >= quit_)
+
+
+def _judge(every: Array) -> Probed:
+    """The probes of P patrons from their scores ``every`` (P, R, 3) on ``ROWS``."""
+    P = len(every)
+    finite_cells = np.isfinite(every)
     if finite_cells.all():
-        finite, safe = np.ones(P, dtype=np.bool_), flat
+        finite, safe = np.ones(P, dtype=np.bool_), every
     else:
         finite = np.all(finite_cells.reshape(P, -1), axis=1)
-        safe = np.where(finite_cells, flat, 0.0)
-    scores = safe.reshape(P, *GRID_SHAPE, 3)  # (P, prices, qualities, sub-types, demands, 3)
-    hold, quit_ = scores[..., HOLD], scores[..., QUIT]
-    lead = scores[..., BUY] - np.maximum(hold, quit_)  # the buy margin B − max(L, Q)
-    # The decision is the argmax, ties to the lowest index: B when it is not behind (the
-    # difference of two finite numbers has the sign of the exact one), else L when it is not
-    # behind Q, else Q.
-    buys = lead >= 0
-    holds = ~buys & (hold >= quit_)
+        safe = np.where(finite_cells, every, 0.0)
+    # (P, prices, qualities, sub-types, demands, 3)
+    scores = safe[:, : len(GRID)].reshape(P, *GRID_SHAPE, 3)
+    lead, buys, holds = _decisions(scores)
     total = int(np.prod(GRID_SHAPE))
     n_buy = np.count_nonzero(buys.reshape(P, -1), axis=1)
     n_hold = np.count_nonzero(holds.reshape(P, -1), axis=1)
@@ -212,17 +286,59 @@ def _judge(flat: Array) -> Checks:
             f"±{limits.FIRM_MARGIN:g}): it turns from refusing to buying as the price rises"
         )
 
-    decisive_hold = np.all(base_holds[:, DECISIVE], axis=1)  # (P, demands)
-    window = PRICES[DECISIVE]
+    scan = safe[:, len(GRID) :].reshape(P, len(SCAN_PRICES), len(SCAN_DEMANDS), 3)
+    _, scan_buys, scan_holds = _decisions(scan)
+    reachable_holds = scan_holds & REACHABLE[None, :, None]  # (P, prices, demands)
+    # A hold at price p is backed when the model buys at a price the auction can still come
+    # down to from p (LOWEST_REACHABLE[p] up to just below p), at the same f.
+    # bought[:, i]: buys at the first i scan prices
+    bought: npt.NDArray[np.intp] = np.zeros((P, len(SCAN_PRICES) + 1, len(SCAN_DEMANDS)), np.intp)
+    np.cumsum(scan_buys, axis=1, out=bought[:, 1:])
+    index = np.arange(len(SCAN_PRICES))
+    backed: Mask = bought[:, index] > bought[:, LOWEST_REACHABLE]
+    unbacked_at: Mask = reachable_holds & ~backed  # (P, prices, demands)
+    unbacked: Mask = np.any(unbacked_at, axis=1)  # (P, demands)
 
-    def decisive_message(p: int) -> str:
-        f = int(np.flatnonzero(decisive_hold[p])[0])
-        i = int(np.flatnonzero(DECISIVE)[0])
+    def sincere_message(p: int) -> str:
+        f = int(np.flatnonzero(unbacked[p])[0])
+        at = int(np.flatnonzero(unbacked_at[p, :, f])[0])
+        start = end = at
+        while start > FLOOR_INDEX and scan_holds[p, start - 1, f]:
+            start -= 1
+        while end + 1 < len(SCAN_PRICES) and scan_holds[p, end + 1, f]:
+            end += 1
+        reach = int(LOWEST_REACHABLE[at])
+        market = limits.MARKET
+        slack = limits.HOLD_REACH_SLACK * market.decrement
+        why = (
+            "the stalemate floor"
+            if reach == FLOOR_INDEX
+            else (
+                f"once the price has risen above {fmt_price(market.base_price)}, a fall of "
+                f"more than {fmt_price(market.increment - market.decrement)} ends the auction; "
+                f"{fmt_price(slack)} more is allowed"
+            )
+        )
+        come_down = (
+            f"{fmt_price(SCAN_PRICES[at])} is the lowest price the auction reaches ({why})"
+            if reach == at
+            else (
+                f"from {fmt_price(SCAN_PRICES[at])} the auction can come down only to "
+                f"{fmt_price(SCAN_PRICES[reach])} ({why})"
+            )
+        )
+        lower = np.flatnonzero(scan_buys[p, :at, f])
+        buys = (
+            f"it would buy only at {fmt_price(SCAN_PRICES[lower[-1]])} or below"
+            if len(lower)
+            else "it buys at no lower price at all"
+        )
         return (
-            f"on the auction's decisive row (the base fish) with buy fraction {DEMANDS[f]:g} it "
-            f"holds at every price from {fmt_price(window[0])} to {fmt_price(window[-1])} "
-            f"(at {fmt_price(PRICES[i])}: {_scores(scores[p, i, BASE_QUALITY, PREFERRED, f])}): "
-            "it would sit in the auction without buying or quitting, pulling the demand down"
+            f"on the auction's decisive row (the base fish) with buy fraction "
+            f"{SCAN_DEMANDS[f]:g} it holds from {fmt_price(SCAN_PRICES[start])} to "
+            f"{fmt_price(SCAN_PRICES[end])} (at {fmt_price(SCAN_PRICES[at])}: "
+            f"{_scores(scan[p, at, f])}); {come_down} and {buys}: its holds can never turn "
+            "into a purchase, they only pull the demand down"
         )
 
     def non_finite_message(p: int) -> str:
@@ -251,15 +367,16 @@ def _judge(flat: Array) -> Checks:
             ),
         ),
         ("buy-falls-with-price", "B", worst_rise > limits.MONOTONE_TOLERANCE, rise_message),
-        ("decisive-row", "L", np.any(decisive_hold, axis=1), decisive_message),
+        ("sincere-hold", "L", np.any(unbacked, axis=1), sincere_message),
     )
     failed = np.empty((P, len(probes)), dtype=np.bool_)
     for k, (_, _, mask, _) in enumerate(probes):
         failed[:, k] = mask
     failed[:, 1:] &= finite[:, None]  # scores that overflow get one reason: probe-non-finite
-    return Checks(
+    checks = Checks(
         tuple(probe[0] for probe in probes),
         tuple(probe[1] for probe in probes),
         failed,
         lambda k, p: probes[k][3](p),
     )
+    return Probed(checks, reachable_holds.any(axis=(1, 2)) & finite)

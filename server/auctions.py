@@ -31,7 +31,7 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, selectinload, undefer
 
 from agents.manifest import Manifest, parse_manifest
-from screener import screen
+from screener import rescreen
 from server import crud
 from server.db import Database
 from server.models import (
@@ -68,11 +68,6 @@ def base_price() -> float:
     return MarketConfig(n_fish=1).base_price
 
 
-def _rescreen(_patron: int, manifest: Manifest) -> bool:
-    """A fine-tuned patron stays in only while the screener still accepts it."""
-    return screen(manifest).accepted
-
-
 def _market_config(auction: Auction) -> MarketConfig:
     return MarketConfig(
         n_fish=auction.n_initial,
@@ -87,13 +82,15 @@ def _market_config(auction: Auction) -> MarketConfig:
 def _load_market(auction: Auction, manifests: Sequence[Manifest]) -> Market:
     config = _market_config(auction)
     # Remote rounds are re-screened by the API as each upload arrives.
-    rescreen = _rescreen if auction.fine_tune and config.fine_tune_mode == "server" else None
+    # A fine-tuned patron stays in only while the screener still accepts it (the one
+    # re-screening the study uses too).
+    judge = rescreen if auction.fine_tune and config.fine_tune_mode == "server" else None
     if auction.checkpoint is None:
         if auction.iteration != 0:
             raise ResumeError(f"{auction.iteration} rounds are committed but no checkpoint is")
-        return Market(manifests, config, rescreen=rescreen)
+        return Market(manifests, config, rescreen_batch=judge)
     try:
-        restored = Market.restore(manifests, config, auction.checkpoint, rescreen=rescreen)
+        restored = Market.restore(manifests, config, auction.checkpoint, rescreen_batch=judge)
     except Exception as exc:
         raise ResumeError(f"the checkpoint cannot be restored: {exc}") from exc
     if restored.iteration != auction.iteration:

@@ -59,6 +59,9 @@ from agents.negotiator import (
 
 Rescreen = Callable[[int, Manifest], bool]
 """Called as ``rescreen(patron_index, fine_tuned_manifest)``; False reverts that patron."""
+RescreenBatch = Callable[[FSNBatch], np.ndarray]
+"""Called once per fine-tuning round with every fine-tuned patron of the batch's auctions (a
+sub-batch, in batch order); returns one bool per patron, False reverts it."""
 
 SIZE_JITTER = 0.2
 """Rows 1..: length, weight and gill colour each get + U(−0.2, 0.2) (spec §3)."""
@@ -303,6 +306,7 @@ class MarketBatch:
         auctions: Sequence[tuple[Sequence[Manifest], MarketConfig]],
         *,
         rescreen: Sequence[Rescreen | None] | None = None,
+        rescreen_batch: RescreenBatch | None = None,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         if not auctions:
@@ -312,6 +316,7 @@ class MarketBatch:
             raise ValueError("auctions run in one batch need the same n_rows")
         self.n_rows = self.configs[0].n_rows
         self.rescreen = list(rescreen) if rescreen is not None else [None] * len(auctions)
+        self.rescreen_batch = rescreen_batch
         sizes = [len(manifests) for manifests, _ in auctions]
         if min(sizes) < 1:
             raise ValueError("every auction needs at least one patron")
@@ -322,7 +327,7 @@ class MarketBatch:
         self.batch = from_manifests([m for manifests, _ in auctions for m in manifests], dtype)
         self.accepted = (
             {k: v.clone() for k, v in self.batch.parameters().items()}
-            if any(cb is not None for cb in self.rescreen)
+            if rescreen_batch is not None or any(cb is not None for cb in self.rescreen)
             else None
         )
         self.scale = noise_scale(self.batch)
@@ -572,11 +577,24 @@ class MarketBatch:
         moved = patrons[sub.epochs.numpy() > 0]
         kept: dict[int, list[int]] = {}
         reverted: dict[int, list[int]] = {}
-        for i, a, local in zip(
-            moved.tolist(), self.owner[moved].tolist(), self.local[moved].tolist(), strict=True
+        judged = (
+            np.asarray(self.rescreen_batch(self.batch.select(moved)), dtype=bool).tolist()
+            if self.rescreen_batch is not None and len(moved)
+            else [None] * len(moved)
+        )
+        for i, a, local, verdict in zip(
+            moved.tolist(),
+            self.owner[moved].tolist(),
+            self.local[moved].tolist(),
+            judged,
+            strict=True,
         ):
             check = self.rescreen[a]
-            if check is None or check(local, to_manifest(self.batch, i)):
+            if verdict is not None:
+                keep = verdict
+            else:
+                keep = check is None or check(local, to_manifest(self.batch, i))
+            if keep:
                 kept.setdefault(a, []).append(local)
                 if self.accepted is not None:
                     for name, value in self.batch.parameters().items():
@@ -697,9 +715,12 @@ class Market:
         config: MarketConfig,
         *,
         rescreen: Rescreen | None = None,
+        rescreen_batch: RescreenBatch | None = None,
     ) -> None:
         self.config = config
-        self._engine = MarketBatch([(manifests, config)], rescreen=[rescreen])
+        self._engine = MarketBatch(
+            [(manifests, config)], rescreen=[rescreen], rescreen_batch=rescreen_batch
+        )
 
     @property
     def finished(self) -> bool:
@@ -749,9 +770,10 @@ class Market:
         blob: bytes,
         *,
         rescreen: Rescreen | None = None,
+        rescreen_batch: RescreenBatch | None = None,
     ) -> Market:
         """The auction of ``manifests`` and ``config`` as it was at ``checkpoint()``."""
-        market = cls(manifests, config, rescreen=rescreen)
+        market = cls(manifests, config, rescreen=rescreen, rescreen_batch=rescreen_batch)
         state = torch.load(io.BytesIO(blob), weights_only=True)
         market._engine.load_state(state)
         return market

@@ -28,7 +28,7 @@ from pydantic import Field
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
 from sim.experiment import Cost, ProgressFn, Stopwatch, config_dict, no_progress, write_json
-from sim.market import MarketBatch, MarketConfig, single_thread
+from sim.market import MarketBatch, MarketConfig, RescreenBatch, single_thread
 
 PAPER_RARITIES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 """The paper's item supplies."""
@@ -141,6 +141,8 @@ class Auction:
     iterations: int = 0
     stop_reason: str = "no_patrons"
     final_price: float = 0.0
+    reverted: int = 0
+    """Fine-tuned versions the re-screening refused (the patron kept its previous version)."""
 
     def result_row(self) -> dict[str, Any]:
         """The auction's line of results.csv."""
@@ -166,6 +168,7 @@ class Auction:
             "iterations": self.iterations,
             "stop_reason": self.stop_reason,
             "final_price": _rounded(self.final_price),
+            "reverted": self.reverted,
         }
 
 
@@ -239,11 +242,16 @@ def run_auctions(auctions: Sequence[Auction], progress: ProgressFn = no_progress
             a.purchases, a.final_price = [], a.market.base_price
     done = len(auctions) - len(runnable)
     batches: list[list[Auction]] = [[]]
-    # Auctions that fine-tune score every row in their first rounds: batch them together.
-    for a in sorted(runnable, key=lambda a: a.market.fine_tune):
+
+    # Auctions that fine-tune score every row in their first rounds: batch them together; those
+    # that screen re-screen their fine-tuned patrons: batch them apart.
+    def kind(a: Auction) -> tuple[bool, bool]:
+        return a.market.fine_tune, a.setting.screen
+
+    for a in sorted(runnable, key=kind):
         last = batches[-1]
         if last and (
-            last[-1].market.fine_tune != a.market.fine_tune
+            kind(last[-1]) != kind(a)
             or sum(len(b.patrons) for b in last) + len(a.patrons) > BATCH_PATRONS
         ):
             batches.append([])
@@ -256,8 +264,15 @@ def run_auctions(auctions: Sequence[Auction], progress: ProgressFn = no_progress
 
 
 def _run_batch(batch: list[Auction], done: int, total: int, progress: ProgressFn) -> int:
-    """Run one lock-step batch to the end; returns the count of finished auctions."""
-    engine = MarketBatch([(a.patrons, a.market) for a in batch])
+    """Run one lock-step batch to the end; returns the count of finished auctions. Auctions
+    that screen re-screen every fine-tuned patron after each round and revert the refused ones,
+    with the server's re-screening (``screener.rescreen``)."""
+    rescreen: RescreenBatch | None = None
+    if batch[0].setting.screen and batch[0].market.fine_tune:
+        import screener
+
+        rescreen = screener.rescreen
+    engine = MarketBatch([(a.patrons, a.market) for a in batch], rescreen_batch=rescreen)
     for a in batch:
         a.purchases = []
     while not engine.finished.all():
@@ -266,6 +281,7 @@ def _run_batch(batch: list[Auction], done: int, total: int, progress: ProgressFn
                 continue
             assert a.purchases is not None
             a.purchases.extend(price for _, price in record.buyers)
+            a.reverted += len(record.reverted)
             a.iterations = record.iteration + 1
             a.final_price = record.next_price
             if record.finished:

@@ -1,51 +1,52 @@
-"""The labelled corpus: honest models (paper randomisation, fine-tuned, sensible variants) are
-accepted, saboteur constructions of every kind rejected, each rejection naming a neuron."""
+"""The labelled corpus: honest models (paper randomisation, fine-tuned, sensible variants) and
+hand-written sincere variants are accepted (≥ 99.5%), saboteur constructions of every kind and
+the red team's disguised saboteurs rejected (≥ 99%, every kind caught), each rejection naming a
+neuron. The default run screens a smaller seeded corpus; the full one is slow-marked."""
 
 from __future__ import annotations
 
 from collections import Counter
 
+import numpy as np
 import pytest
 
 from screener import screen_many
-from tests.screener.corpus import SABOTEURS, corpus
+from tests.screener.corpus import (
+    RED_TEAM_SINCERE,
+    SABOTEURS,
+    SINCERE,
+    Labelled,
+    corpus,
+    red_team_corpus,
+    sincere_corpus,
+)
 from tests.screener.test_rules import KNOWN_NEURONS
 
 SEED = 0
-N_HONEST = 1000
-PER_SABOTEUR_KIND = 8
 
 
-@pytest.fixture(scope="module")
-def judged():
-    entries = corpus(SEED, N_HONEST, PER_SABOTEUR_KIND)
+def labelled(n_honest: int, per_sincere: int, per_saboteur: int) -> list[Labelled]:
+    entries = corpus(SEED, n_honest, per_saboteur)
+    entries += sincere_corpus(np.random.default_rng([SEED, 1]), per_sincere)
+    return entries + red_team_corpus()
+
+
+def judge(entries: list[Labelled]) -> list[tuple[Labelled, object]]:
     verdicts = []
-    for start in range(0, len(entries), 128):
-        verdicts += screen_many([e.manifest for e in entries[start : start + 128]])
+    for start in range(0, len(entries), 64):
+        verdicts += screen_many([e.manifest for e in entries[start : start + 64]])
     return list(zip(entries, verdicts, strict=True))
 
 
-def test_corpus_has_every_kind_in_size(judged):
-    kinds = Counter((e.saboteur, e.construction) for e, _ in judged)
-    honest = sum(n for (sab, _), n in kinds.items() if not sab)
-    saboteurs = sum(n for (sab, _), n in kinds.items() if sab)
-    assert honest >= N_HONEST
-    assert saboteurs == PER_SABOTEUR_KIND * (len(SABOTEURS) + 1)
-    assert {"honest-fine-tuned", "honest-fine-tuned-max", "variant-mixed-fine-tuned"} <= {
-        c for (sab, c) in kinds if not sab
-    }
-
-
-def test_honest_models_are_accepted_and_saboteurs_rejected(judged):
+def check_targets(judged, per_saboteur: int) -> None:
     honest = [v.accepted for e, v in judged if not e.saboteur]
     caught = [not v.accepted for e, v in judged if e.saboteur]
     assert sum(honest) / len(honest) >= 0.995
     assert sum(caught) / len(caught) >= 0.99
     missed = Counter(e.construction for e, v in judged if e.saboteur and v.accepted)
-    assert not [kind for kind, n in missed.items() if n == PER_SABOTEUR_KIND]
-
-
-def test_every_rejection_names_a_neuron_in_plain_words(judged):
+    assert not [kind for kind, n in missed.items() if n == per_saboteur]
+    red_team = [(e, v) for e, v in judged if e.construction.startswith("red-team:")]
+    assert red_team and all(v.accepted != e.saboteur for e, v in red_team)
     for _, verdict in judged:
         if verdict.accepted:
             assert verdict.reasons == []
@@ -54,3 +55,25 @@ def test_every_rejection_names_a_neuron_in_plain_words(judged):
         for reason in verdict.reasons:
             assert reason.neuron in KNOWN_NEURONS
             assert len(reason.message) > 40 and reason.rule
+
+
+@pytest.fixture(scope="module")
+def small():
+    return judge(labelled(n_honest=300, per_sincere=12, per_saboteur=3))
+
+
+def test_corpus_has_every_kind(small):
+    kinds = {(e.saboteur, e.construction) for e, _ in small}
+    assert {(True, k) for k in SABOTEURS} <= kinds
+    assert {(False, k) for k in SINCERE} <= kinds
+    assert {(False, f"red-team:{k}") for k in RED_TEAM_SINCERE} <= kinds
+    assert sum(1 for sab, k in kinds if sab and k.startswith("red-team:")) >= 5
+
+
+def test_targets_on_the_seeded_corpus(small):
+    check_targets(small, per_saboteur=3)
+
+
+@pytest.mark.slow
+def test_targets_on_the_full_seeded_corpus():
+    check_targets(judge(labelled(n_honest=1000, per_sincere=40, per_saboteur=8)), per_saboteur=8)

@@ -27,11 +27,16 @@ def test_always_hold_saboteur_is_caught_on_the_decisive_row():
     verdict = screen(saboteur_manifest(np.random.default_rng(3), "sab"))
     assert not verdict.accepted
     found = rules_of(verdict)
-    assert {("always-holds", "L"), ("decisive-row", "L"), ("buys-cheap", "B")} <= found
-    message = message_of(verdict, "decisive-row", "L")
+    assert {("always-holds", "L"), ("sincere-hold", "L"), ("buys-cheap", "B")} <= found
+    message = message_of(verdict, "sincere-hold", "L")
     assert message.startswith(
-        "on the auction's decisive row (the base fish) with buy fraction 0 it holds at every "
-        "price from 4.80 to 5.50"
+        "on the auction's decisive row (the base fish) with buy fraction 0 it holds from 4.80 "
+        "to 6.00"
+    )
+    assert "4.80 is the lowest price the auction reaches (the stalemate floor)" in message
+    assert message.endswith(
+        "it buys at no lower price at all: its holds can never turn into a purchase, they only "
+        "pull the demand down"
     )
     cheap = message_of(verdict, "buys-cheap", "B")
     assert cheap.startswith(
@@ -52,11 +57,12 @@ def test_never_quitter_passes_every_semantic_rule_and_is_caught_by_a_probe():
     )
 
 
-def test_rare_buyer_is_caught_by_the_cheap_probe_only():
+def test_rare_buyer_is_caught_by_the_probes_only():
     rng = np.random.default_rng(5)
     manifest = edit(honest_manifest(rng, "rb"), SABOTEURS["rare-buyer-rush-only"](rng))
     verdict = screen(manifest)
-    assert {rule for rule, _ in rules_of(verdict)} == {"buys-cheap"}
+    # it holds at the auction's prices unless the others rush: no hold is backed by a purchase
+    assert {rule for rule, _ in rules_of(verdict)} == {"buys-cheap", "sincere-hold"}
     # it does buy the base fish cheaply when everyone else did (f = 1) ...
     batch = from_manifests([manifest])
     cheap_rush = np.array([[1.5, 1, 1, 1, 0.5, 0.5, 0.5, 1.0], [1.5, 1, 1, 1, 0.5, 0.5, 0.5, 0.0]])

@@ -23,7 +23,7 @@ PROBE_RULES = {
     "refuses-far-too-expensive",
     "quits-far-too-expensive",
     "buy-falls-with-price",
-    "decisive-row",
+    "sincere-hold",
 }
 
 

@@ -1,0 +1,239 @@
+"""The market-impact test: what copies of a model do to auctions, counterfactually.
+
+The paper's harm is an outcome: "artificially lowering the demand so that the price goes down".
+A model that holds somewhere on the auction's decisive row (``probes.Probed.holds``) and passes
+the rules and probes is run in test auctions of the batched market engine: ``IMPACT_HONEST``
+honest patrons of the paper's randomisation (a fixed, seeded reference population) with
+``IMPACT_COPIES`` copies of it, at the low supplies where saboteurs bite. The same auctions are
+run once per process without the copies (honest alone), with copies of the always-hold
+saboteur (the yardstick) and with copies of a sincere negotiator that quits at the opening
+price (for the reasons' numbers). A model is refused when its copies lower the mean purchase
+price below the honest-alone auctions by more than ``IMPACT_SHARE`` of the saboteurs' drop.
+
+Only holders are tested. A vote that is not a hold buys (raising the demand, or taking a fish at
+the auction's price) or quits (leaving the auction, a sincere low bidder's right); only staying
+without buying holds the market down, and the test auctions of the few models that hold run
+together in one lock-step batch, scoring only the decisive row.
+
+Fine-tuning. The test auctions do not fine-tune: with fine-tuning, the damage is done in the
+opening round, whose buy fractions feed the first fine-tuning round, by every model that does
+not buy at the opening price, the sincere low bidder who quits as much as the saboteur (copies
+that quit at once do 0.7 to 0.8 of the saboteurs' harm with fine-tuning, see docs/screener.md),
+so an outcome test with fine-tuning cannot tell the two apart. What a model's own fine-tuning
+does to it is judged instead (``project``): at the door, a model with fine-tuning settings is
+fine-tuned alone through the fine-tuning rounds of a reference auction with its own settings,
+re-screened with the rules and probes after each round and reverted if refused (as the server
+does; the re-screening inside runs no test auctions, so nothing recurses). If that version
+holds, it goes through the test auctions too. Inside an auction every fine-tuned version is
+re-screened in its turn, so re-screening skips the projection.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from agents.manifest import Manifest
+from agents.negotiator import (
+    FSNBatch,
+    fine_tune_round,
+    honest_manifest,
+    saboteur_manifest,
+    to_manifest,
+)
+from screener import limits
+from screener.checks import passes_cheap
+from screener.findings import Checks, check, fmt_price
+from sim.market import MarketBatch, MarketConfig, round_seeds
+
+PATRONS = limits.IMPACT_HONEST + limits.IMPACT_COPIES
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What a model's test auctions sold: purchase prices pooled over the auctions, fish sold,
+    fish the honest patrons bought."""
+
+    prices: tuple[float, ...]
+    sold: int
+    honest: int
+
+    @property
+    def mean_price(self) -> float:
+        return float(np.mean(self.prices)) if self.prices else float("nan")
+
+
+@functools.cache
+def _population(trial: int) -> tuple[Manifest, ...]:
+    """The reference honest patrons of one trial."""
+    rng = np.random.default_rng([limits.IMPACT_SEED, trial])
+    return tuple(
+        honest_manifest(rng, f"impact-reference-{trial}-{i:02d}")
+        for i in range(limits.IMPACT_HONEST)
+    )
+
+
+def _market_seed(supply: float, trial: int) -> int:
+    sequence = np.random.SeedSequence([limits.IMPACT_SEED, trial, round(supply * 100)])
+    return int(sequence.generate_state(1)[0])
+
+
+def _config(supply: float, trial: int, fine_tune: bool) -> MarketConfig:
+    return dataclasses.replace(
+        limits.MARKET,
+        n_fish=int(supply * PATRONS),
+        fine_tune=fine_tune,
+        seed=_market_seed(supply, trial),
+        evaluate_all_rows=False,
+    )
+
+
+TEST_AUCTIONS = [
+    (trial, _config(r, trial, fine_tune=False))
+    for r in limits.IMPACT_SUPPLIES
+    for trial in range(limits.IMPACT_TRIALS)
+]
+"""(reference population, market rules) of each test auction."""
+
+
+def run(candidates: Sequence[Manifest | None]) -> list[Outcome]:
+    """The test auctions of every candidate (None: honest alone) in one lock-step batch."""
+    auctions = [
+        ([*_population(trial), *([] if c is None else [c] * limits.IMPACT_COPIES)], config)
+        for c in candidates
+        for trial, config in TEST_AUCTIONS
+    ]
+    buyers: list[list[tuple[int, float]]] = [[] for _ in auctions]
+    engine = MarketBatch(auctions)
+    while not engine.finished.all():
+        for a, record in enumerate(engine.step()):
+            if record is not None and record.buyers:
+                buyers[a] += record.buyers
+    per = len(TEST_AUCTIONS)
+    outcomes = []
+    for c in range(len(candidates)):
+        bought = [b for a in range(c * per, (c + 1) * per) for b in buyers[a]]
+        honest = sum(1 for i, _ in bought if i < limits.IMPACT_HONEST)
+        outcomes.append(Outcome(tuple(price for _, price in bought), len(bought), honest))
+    return outcomes
+
+
+def reference_quitter() -> Manifest:
+    """A sincere negotiator declaring the lowest plausible willingness to pay: it quits at the
+    opening price."""
+    low = limits.WILLINGNESS_TO_PAY_BAND[0] * limits.BASE_PRICE
+    rng = np.random.default_rng([limits.IMPACT_SEED, 1])
+    return honest_manifest(rng, "quits-at-once", fine_tune=False, base_price=low, min_buy_price=low)
+
+
+def reference_saboteur() -> Manifest:
+    """The paper's always-hold saboteur."""
+    return saboteur_manifest(np.random.default_rng([limits.IMPACT_SEED, 2]), "always-hold")
+
+
+@dataclass(frozen=True)
+class References:
+    """The test auctions honest alone, with saboteurs, with quitters."""
+
+    alone: Outcome
+    saboteurs: Outcome
+    quitters: Outcome
+
+    @property
+    def lowest_price(self) -> float:
+        """The lowest mean purchase price a model's copies may leave: the quitters' (or the
+        honest-alone auctions', if higher) minus ``IMPACT_SHARE`` of the saboteurs' further
+        drop."""
+        leave = min(self.alone.mean_price, self.quitters.mean_price)
+        return leave - limits.IMPACT_SHARE * max(leave - self.saboteurs.mean_price, 0.0)
+
+
+@functools.cache
+def references() -> References:
+    """Computed once per process: every model meets the same test auctions."""
+    return References(*run([None, reference_saboteur(), reference_quitter()]))
+
+
+@functools.cache
+def _trajectory() -> tuple[tuple[torch.Tensor, int, int], ...]:
+    """The fine-tuning rounds of a reference auction with fine-tuning, honest alone (the first
+    population at the lowest supply): (rows after the round's iteration, fine_tune_seed,
+    augmentation_seed) per round."""
+    config = _config(limits.IMPACT_SUPPLIES[0], 0, fine_tune=True)
+    engine = MarketBatch([(list(_population(0)), config)])
+    rounds: list[tuple[torch.Tensor, int, int]] = []
+    while not engine.finished[0] and len(rounds) < config.fine_tune_rounds:
+        iteration = int(engine.iteration[0])
+        engine.step()
+        if not engine.finished[0]:
+            rounds.append((engine.rows[0].clone(), *round_seeds(config.seed, iteration)))
+    return tuple(rounds)
+
+
+def project(batch: FSNBatch) -> FSNBatch:
+    """Every model fine-tuned alone with its own settings through the reference auction's
+    fine-tuning rounds; after each round a model the rules and probes refuse is reverted to its
+    previous version, as the server does."""
+    if batch.n_patrons == 0:
+        return batch
+    current = batch
+    positions = np.zeros(batch.n_patrons, dtype=np.int64)
+    for rows, fine_tune_seed, augmentation_seed in _trajectory():
+        seeds = np.full(batch.n_patrons, fine_tune_seed, dtype=np.uint64)
+        noise = np.full(batch.n_patrons, augmentation_seed, dtype=np.uint64)
+        tuned = fine_tune_round(current, rows, seeds, noise, positions)
+        keep = torch.from_numpy(passes_cheap(tuned))
+        current = current.with_parameters(
+            {
+                name: torch.where(keep.view(-1, *[1] * (value.dim() - 1)), value, old)
+                for (name, value), old in zip(
+                    tuned.parameters().items(), current.parameters().values(), strict=True
+                )
+            }
+        )
+    return current
+
+
+def impact_checks(
+    batch: FSNBatch, tested: Sequence[int], projected: Sequence[tuple[int, Manifest]]
+) -> Checks:
+    """The market-impact test over the batch: the models at indices ``tested`` as they are,
+    and the (index, fine-tuned version) pairs of ``projected``."""
+    failed = np.zeros(batch.n_patrons, dtype=np.bool_)
+    words: dict[int, str] = {}
+    jobs = [(int(p), to_manifest(batch, int(p)), "") for p in tested]
+    jobs += [(p, m, " after its own fine-tuning") for p, m in projected]
+    if jobs:
+        refs = references()
+        for (p, _, after), outcome in zip(jobs, run([m for _, m, _ in jobs]), strict=True):
+            message = _judge(refs, outcome, after)
+            if message is not None and not failed[p]:
+                failed[p] = True
+                words[p] = message
+    return check("market-impact", "L", failed, words.__getitem__)
+
+
+def _judge(refs: References, outcome: Outcome, after: str) -> str | None:
+    """The reason a model's outcome is refused, or None. Auctions that sell nothing are no
+    evidence about the price (copies of a keen model that all quit at one price can leave every
+    fish unsold)."""
+    alone, saboteurs, quitters = refs.alone, refs.saboteurs, refs.quitters
+    if not outcome.prices or outcome.mean_price >= refs.lowest_price - 1e-9:
+        return None
+    supplies = limits.IMPACT_SUPPLIES
+    return (
+        f"in {len(TEST_AUCTIONS)} test auctions ({limits.IMPACT_HONEST} honest patrons, supplies "
+        f"{supplies[0]:g} to {supplies[-1]:g}), {limits.IMPACT_COPIES} copies of this "
+        f"model{after} lowered the mean purchase price from {fmt_price(alone.mean_price)} "
+        f"(without them) to {fmt_price(outcome.mean_price)}, below the "
+        f"{fmt_price(refs.lowest_price)} allowed (always-hold saboteurs: "
+        f"{fmt_price(saboteurs.mean_price)}, copies that quit at the opening price: "
+        f"{fmt_price(quitters.mean_price)}); they bought {outcome.sold - outcome.honest} of the "
+        f"{outcome.sold} fish sold, the honest patrons {outcome.honest} (without them "
+        f"{alone.honest}): by staying without buying, its hold neuron L pulls the price down"
+    )

@@ -1,0 +1,93 @@
+"""The market-impact test: counterfactual auctions of the batched engine, judged against the same
+auctions without the copies, with always-hold saboteurs and with quitters."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from agents.negotiator import from_manifests, honest_manifest
+from screener import impact, limits, screen, screen_many
+from screener.checks import passes_cheap
+from screener.probes import probe
+from tests.screener.conftest import message_of, rules_of
+from tests.screener.corpus import Labelled, red_team_corpus
+
+
+def red_team(name: str) -> Labelled:
+    (entry,) = [e for e in red_team_corpus() if e.construction == f"red-team:{name}"]
+    return entry
+
+
+def test_references_are_cached_and_the_saboteurs_pull_the_price_down():
+    refs = impact.references()
+    assert impact.references() is refs
+    assert refs.saboteurs.mean_price < refs.quitters.mean_price <= refs.alone.mean_price
+    assert refs.saboteurs.sold - refs.saboteurs.honest == 0  # saboteurs never buy
+    assert refs.saboteurs.mean_price < refs.lowest_price < refs.quitters.mean_price
+    share = (refs.quitters.mean_price - refs.lowest_price) / (
+        refs.quitters.mean_price - refs.saboteurs.mean_price
+    )
+    assert abs(share - limits.IMPACT_SHARE) < 1e-9
+
+
+def test_the_test_auctions_follow_the_market_rules():
+    assert len(impact.TEST_AUCTIONS) == len(limits.IMPACT_SUPPLIES) * limits.IMPACT_TRIALS
+    patrons = limits.IMPACT_HONEST + limits.IMPACT_COPIES
+    for _, config in impact.TEST_AUCTIONS:
+        assert config.base_price == limits.MARKET.base_price
+        assert config.threshold_sell_price == limits.MARKET.threshold_sell_price
+        assert not config.fine_tune and not config.evaluate_all_rows
+    assert {c.n_fish for _, c in impact.TEST_AUCTIONS} == {
+        int(r * patrons) for r in limits.IMPACT_SUPPLIES
+    }
+
+
+def test_a_model_holding_just_above_the_opening_price_is_refused_in_numbers():
+    """Found by the red team: it buys up to 4.99, holds from 5.00 to 5.04 and quits above, so
+    every hold is a few cents from a purchase (the sincere-hold rule admits it), yet 32 copies
+    take 0.6 of the saboteurs' harm from an auction of 32 honest patrons."""
+    model = red_team("opening-price-holder").manifest
+    assert passes_cheap(from_manifests([model]))[0]
+    assert probe(from_manifests([model])).holds[0]
+    verdict = screen(model)
+    assert rules_of(verdict) == {("market-impact", "L")}
+    refs = impact.references()
+    (outcome,) = impact.run([model])
+    assert outcome.mean_price < refs.lowest_price
+    message = message_of(verdict, "market-impact", "L")
+    assert message.startswith(
+        "in 16 test auctions (32 honest patrons, supplies 0.1 to 0.4), 32 copies of this model "
+        f"lowered the mean purchase price from {refs.alone.mean_price:.2f} (without them) to "
+        f"{outcome.mean_price:.2f}, below the {refs.lowest_price:.2f} allowed"
+    )
+    assert "they bought 0 of the" in message
+
+
+def test_models_that_never_hold_are_not_run_in_test_auctions(monkeypatch):
+    ran: list[int] = []
+    real = impact.run
+
+    def spy(candidates):
+        ran.append(len(candidates))
+        return real(candidates)
+
+    monkeypatch.setattr(impact, "run", spy)
+    rng = np.random.default_rng(4)
+    models = [honest_manifest(rng, f"h{i}", fine_tune=False) for i in range(16)]
+    holders = probe(from_manifests(models)).holds
+    verdicts = screen_many(models)
+    assert all(v.accepted for v in verdicts)
+    assert ran == ([int(holders.sum())] if holders.any() else [])
+
+
+def test_projection_reverts_what_the_rules_refuse_and_leaves_the_rest_moving():
+    rng = np.random.default_rng(8)
+    models = [honest_manifest(rng, f"h{i}") for i in range(6)]
+    moving = [m for m in models if m.fine_tuning.epochs > 0]
+    batch = from_manifests(moving)
+    tuned = impact.project(batch)
+    assert passes_cheap(tuned).all()
+    assert not torch.equal(tuned.fc_weight, batch.fc_weight)  # honest fine-tuning is kept
+    frozen = from_manifests([m for m in models if m.fine_tuning.epochs == 0])
+    assert torch.equal(impact.project(frozen).es_weight, frozen.es_weight)

@@ -19,7 +19,8 @@ A manifest is accepted when nothing finds anything:
   down more than copies that simply quit do, plus a quarter of what always-hold saboteurs do.
 
 At the door (``screen``, ``screen_many``) a model with fine-tuning settings is also fine-tuned
-alone through a reference auction's rounds and that version is judged too; re-screening
+alone through a reference auction's rounds, unchecked, and that version must pass the rules and
+probes (``fine-tuning-drift``) and, if it holds, the market-impact test; re-screening
 (``rescreen``) skips this, since every later fine-tuning round is re-screened in its turn.
 Every threshold is in ``screener.limits`` with its rationale.
 """
@@ -34,9 +35,8 @@ import numpy.typing as npt
 from agents.manifest import Manifest
 from agents.negotiator import FSNBatch, from_manifests, to_manifest
 from screener.checks import cheap_checks, failed_any
-from screener.findings import Checks
-from screener.impact import impact_checks, project
-from screener.probes import probe
+from screener.findings import Checks, check
+from screener.impact import impact_checks, project, rounds
 from screener.verdict import Reason, Verdict
 
 __all__ = ["Reason", "Verdict", "judge", "rescreen", "rescreen_many", "screen", "screen_many"]
@@ -49,17 +49,36 @@ def judge(batch: FSNBatch, *, at_the_door: bool) -> list[Verdict]:
     passed = ~failed_any(groups)
     projected: list[tuple[int, Manifest]] = []
     if at_the_door:
-        tunes = passed & ~holds & (batch.epochs.numpy() > 0) & (batch.learning_rate.numpy() > 0)
+        tunes = passed & (batch.epochs.numpy() > 0) & (batch.learning_rate.numpy() > 0)
         index = np.flatnonzero(tunes)
+        drift = np.zeros(batch.n_patrons, dtype=np.bool_)
+        words: dict[int, str] = {}
         if len(index):
             tuned = project(batch.select(index))
-            drifted = probe(tuned).holds
+            tuned_groups, tuned_holds = cheap_checks(tuned)
+            refused = failed_any(tuned_groups)
+            for k in np.flatnonzero(refused):
+                drift[index[k]] = True
+                words[int(index[k])] = _drift_message(batch, int(index[k]), tuned_groups, int(k))
             projected = [
-                (int(index[k]), to_manifest(tuned, int(k))) for k in np.flatnonzero(drifted)
+                (int(index[k]), to_manifest(tuned, int(k)))
+                for k in np.flatnonzero(tuned_holds & ~refused)
             ]
+        groups.append(check("fine-tuning-drift", "T", drift, words.__getitem__))
     tested = np.flatnonzero(passed & holds).tolist()
     groups.append(impact_checks(batch, tested, projected))
     return _verdicts(groups, batch.n_patrons)
+
+
+def _drift_message(batch: FSNBatch, p: int, tuned: list[Checks], k: int) -> str:
+    """Why model p's projected fine-tuned version (row k of ``tuned``) is refused."""
+    group, column = next((g, c) for g in tuned for c in range(len(g.rules)) if g.failed[k, c])
+    return (
+        f"after {rounds()} rounds of its own fine-tuning in a reference auction (lr "
+        f"{float(batch.learning_rate[p]):.3g}, {int(batch.epochs[p])} epochs, batch "
+        f"{int(batch.batch_size[p])}), its PFC's verdicts T/F have made it fail "
+        f"'{group.rules[column]}' ({group.neurons[column]}): {group.message(column, k)}"
+    )
 
 
 def _verdicts(groups: list[Checks], n: int) -> list[Verdict]:

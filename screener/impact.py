@@ -21,11 +21,11 @@ not buy at the opening price, the sincere low bidder who quits as much as the sa
 that quit at once do 0.7 to 0.8 of the saboteurs' harm with fine-tuning, see docs/screener.md),
 so an outcome test with fine-tuning cannot tell the two apart. What a model's own fine-tuning
 does to it is judged instead (``project``): at the door, a model with fine-tuning settings is
-fine-tuned alone through the fine-tuning rounds of a reference auction with its own settings,
-re-screened with the rules and probes after each round and reverted if refused (as the server
-does; the re-screening inside runs no test auctions, so nothing recurses). If that version
-holds, it goes through the test auctions too. Inside an auction every fine-tuned version is
-re-screened in its turn, so re-screening skips the projection.
+fine-tuned alone with its own settings through the fine-tuning rounds of a reference auction,
+unchecked (as it would go in an auction that never re-screens); that version must pass the
+rules and probes too, and if it holds, it goes through the test auctions. Inside an auction
+every fine-tuned version is re-screened in its turn (without test auctions of its own: nothing
+recurses), so re-screening skips the projection.
 """
 
 from __future__ import annotations
@@ -47,7 +47,6 @@ from agents.negotiator import (
     to_manifest,
 )
 from screener import limits
-from screener.checks import passes_cheap
 from screener.findings import Checks, check, fmt_price
 from sim.market import MarketBatch, MarketConfig, round_seeds
 
@@ -177,26 +176,19 @@ def _trajectory() -> tuple[tuple[torch.Tensor, int, int], ...]:
 
 def project(batch: FSNBatch) -> FSNBatch:
     """Every model fine-tuned alone with its own settings through the reference auction's
-    fine-tuning rounds; after each round a model the rules and probes refuse is reverted to its
-    previous version, as the server does."""
-    if batch.n_patrons == 0:
-        return batch
+    fine-tuning rounds, unchecked: what its own judge makes of it where nobody re-screens."""
     current = batch
     positions = np.zeros(batch.n_patrons, dtype=np.int64)
-    for rows, fine_tune_seed, augmentation_seed in _trajectory():
+    for rows, fine_tune_seed, augmentation_seed in _trajectory() if batch.n_patrons else ():
         seeds = np.full(batch.n_patrons, fine_tune_seed, dtype=np.uint64)
         noise = np.full(batch.n_patrons, augmentation_seed, dtype=np.uint64)
-        tuned = fine_tune_round(current, rows, seeds, noise, positions)
-        keep = torch.from_numpy(passes_cheap(tuned))
-        current = current.with_parameters(
-            {
-                name: torch.where(keep.view(-1, *[1] * (value.dim() - 1)), value, old)
-                for (name, value), old in zip(
-                    tuned.parameters().items(), current.parameters().values(), strict=True
-                )
-            }
-        )
+        current = fine_tune_round(current, rows, seeds, noise, positions)
     return current
+
+
+def rounds() -> int:
+    """Fine-tuning rounds of the projection."""
+    return len(_trajectory())
 
 
 def impact_checks(

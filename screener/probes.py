@@ -74,30 +74,33 @@ ORDINARY = DEMANDS <= limits.ORDINARY_DEMAND + 1e-9
 
 def _scan_prices() -> tuple[Array, int]:
     """The decisive-row scan's prices, ascending, and the index of the first reachable one (the
-    stalemate floor): a few prices below the floor, then every decrement from the floor to
-    ``SCAN_RISES`` increments above the base price (all from the market's rules)."""
+    stalemate floor): prices below the floor in steps of ``SCAN_BELOW_STEP``, then every
+    decrement from ``HOLD_REACH_SLACK`` decrements under the floor to ``SCAN_RISES`` increments
+    above the base price (all from the market's rules)."""
     market = limits.MARKET
     floor, step = market.threshold_sell_price, market.decrement
+    slack = floor - limits.HOLD_REACH_SLACK * step
     lowest = limits.WILLINGNESS_TO_PAY_BAND[0] * market.base_price
-    below = np.arange(lowest, floor - 1e-9, limits.SCAN_BELOW_STEP)
+    below = np.arange(lowest, slack - 1e-9, limits.SCAN_BELOW_STEP)
     top = market.base_price + limits.SCAN_RISES * market.increment
-    reachable = floor + step * np.arange(round((top - floor) / step) + 1)
-    prices: Array = np.round(np.concatenate((below, reachable)), 10).astype(np.float64)
-    return prices, len(below)
+    fine = slack + step * np.arange(round((top - slack) / step) + 1)
+    prices: Array = np.round(np.concatenate((below, fine)), 10).astype(np.float64)
+    return prices, int(np.searchsorted(prices, floor - 1e-9))
 
 
 def _lowest_reachable() -> npt.NDArray[np.intp]:
-    """Per scan price, the index of the lowest price the auction can still come down to from
-    there. Up to the base price the auction can be there before any rise, and then walks down to
-    the stalemate floor. Above it, the price got there by a rise of at most one increment, and a
-    rise moves the stalemate threshold to the price before it plus one decrement: from p the
-    auction can come down to p − (increment − decrement) at best (``HOLD_REACH_SLACK`` more
-    decrements are allowed)."""
-    market, prices, floor = limits.MARKET, SCAN_PRICES, SCAN_PRICES[FLOOR_INDEX]
+    """Per scan price, the index of the lowest price that backs a hold there: the lowest price
+    the auction can still come down to, less ``HOLD_REACH_SLACK`` decrements. Up to the base
+    price the auction can be there before any rise, and then walks down to the stalemate floor.
+    Above it, the price got there by a rise of at most one increment, and a rise moves the
+    stalemate threshold to the price before it plus one decrement: from p the auction can come
+    down to p − (increment − decrement) at best."""
+    market, prices = limits.MARKET, SCAN_PRICES
+    slack = limits.HOLD_REACH_SLACK * market.decrement
+    floor = prices[FLOOR_INDEX]
     risen = prices > market.base_price + 1e-9
-    fall = market.increment - market.decrement + limits.HOLD_REACH_SLACK * market.decrement
-    lowest = np.where(risen, prices - fall, floor)
-    index: npt.NDArray[np.intp] = np.searchsorted(prices, np.maximum(lowest, floor) - 1e-9)
+    lowest = np.where(risen, prices - (market.increment - market.decrement), floor) - slack
+    index: npt.NDArray[np.intp] = np.searchsorted(prices, np.maximum(lowest, floor - slack) - 1e-9)
     return index
 
 
@@ -310,34 +313,30 @@ def _judge(every: Array) -> Probed:
         reach = int(LOWEST_REACHABLE[at])
         market = limits.MARKET
         slack = limits.HOLD_REACH_SLACK * market.decrement
-        why = (
-            "the stalemate floor"
-            if reach == FLOOR_INDEX
-            else (
-                f"once the price has risen above {fmt_price(market.base_price)}, a fall of "
-                f"more than {fmt_price(market.increment - market.decrement)} ends the auction; "
-                f"{fmt_price(slack)} more is allowed"
-            )
-        )
-        come_down = (
-            f"{fmt_price(SCAN_PRICES[at])} is the lowest price the auction reaches ({why})"
-            if reach == at
-            else (
+        floor = SCAN_PRICES[FLOOR_INDEX]
+        if at == FLOOR_INDEX:
+            come_down = f"{fmt_price(floor)} is the stalemate floor, the lowest price it reaches"
+        elif SCAN_PRICES[at] <= market.base_price + 1e-9:
+            come_down = f"from {fmt_price(SCAN_PRICES[at])} the auction can come down to the floor"
+        else:
+            come_down = (
                 f"from {fmt_price(SCAN_PRICES[at])} the auction can come down only to "
-                f"{fmt_price(SCAN_PRICES[reach])} ({why})"
+                f"{fmt_price(SCAN_PRICES[reach] + slack)} (once the price has risen above "
+                f"{fmt_price(market.base_price)}, a fall of more than "
+                f"{fmt_price(market.increment - market.decrement)} ends the auction)"
             )
-        )
         lower = np.flatnonzero(scan_buys[p, :at, f])
         buys = (
             f"it would buy only at {fmt_price(SCAN_PRICES[lower[-1]])} or below"
             if len(lower)
             else "it buys at no lower price at all"
         )
+        buys += f" (a purchase up to {fmt_price(slack)} lower still counts)"
         return (
             f"on the auction's decisive row (the base fish) with buy fraction "
             f"{SCAN_DEMANDS[f]:g} it holds from {fmt_price(SCAN_PRICES[start])} to "
             f"{fmt_price(SCAN_PRICES[end])} (at {fmt_price(SCAN_PRICES[at])}: "
-            f"{_scores(scan[p, at, f])}); {come_down} and {buys}: its holds can never turn "
+            f"{_scores(scan[p, at, f])}); {come_down}, and {buys}: its holds can never turn "
             "into a purchase, they only pull the demand down"
         )
 

@@ -51,7 +51,7 @@ def test_a_model_holding_just_above_the_opening_price_is_refused_in_numbers():
     assert passes_cheap(from_manifests([model]))[0]
     assert probe(from_manifests([model])).holds[0]
     verdict = screen(model)
-    assert rules_of(verdict) == {("market-impact", "L")}
+    assert ("market-impact", "L") in rules_of(verdict)
     refs = impact.references()
     (outcome,) = impact.run([model])
     assert outcome.mean_price < refs.lowest_price
@@ -91,3 +91,25 @@ def test_projection_reverts_what_the_rules_refuse_and_leaves_the_rest_moving():
     assert not torch.equal(tuned.fc_weight, batch.fc_weight)  # honest fine-tuning is kept
     frozen = from_manifests([m for m in models if m.fine_tuning.epochs == 0])
     assert torch.equal(impact.project(frozen).es_weight, frozen.es_weight)
+
+
+def test_a_judge_that_drifts_the_model_into_holding_is_refused_at_the_door():
+    """Found by the red team: honest sensor and decision, a PFC within the rules' limits; its
+    own SRD fine-tuning (lr 8e-4, 4 epochs) makes it a holder after one round."""
+    model = red_team("drifting-judge").manifest
+    assert passes_cheap(from_manifests([model]))[0]
+    assert not probe(from_manifests([model])).holds[0]
+    verdict = screen(model)
+    message = message_of(verdict, "fine-tuning-drift", "T")
+    assert message.startswith(
+        f"after {impact.rounds()} rounds of its own fine-tuning in a reference auction (lr "
+        "0.000802, 4 epochs, batch 6), its PFC's verdicts T/F have made it fail"
+    )
+    # re-screening inside an auction judges each round's version as it is: no projection
+    assert screener_rescreen(model)
+
+
+def screener_rescreen(model) -> bool:
+    from screener import rescreen
+
+    return bool(rescreen(from_manifests([model]))[0])

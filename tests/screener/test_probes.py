@@ -33,10 +33,10 @@ def test_always_hold_saboteur_is_caught_on_the_decisive_row():
         "on the auction's decisive row (the base fish) with buy fraction 0 it holds from 4.80 "
         "to 6.00"
     )
-    assert "4.80 is the lowest price the auction reaches (the stalemate floor)" in message
+    assert "4.80 is the stalemate floor, the lowest price it reaches" in message
     assert message.endswith(
-        "it buys at no lower price at all: its holds can never turn into a purchase, they only "
-        "pull the demand down"
+        "it buys at no lower price at all (a purchase up to 0.05 lower still counts): its holds "
+        "can never turn into a purchase, they only pull the demand down"
     )
     cheap = message_of(verdict, "buys-cheap", "B")
     assert cheap.startswith(

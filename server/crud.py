@@ -554,6 +554,9 @@ class AuctionState:
     stop_reason: str | None
     error: str | None
     finished_at: datetime | None
+    fine_tune_mode: str
+    updated_at: datetime
+    """Moves with every write to the auction, a fine-tuning round closing included."""
 
 
 @dataclass(frozen=True)
@@ -648,6 +651,12 @@ def auction_rounds(
         )
         for row in connection.execute(_ROUNDS, key)
     ]
+
+
+def fine_tune_rounds(session: Session, *, auction_id: int) -> list[RoundView]:
+    """An auction's remote fine-tuning rounds, oldest first, with every patron's outcome."""
+    model_ids = list(session.connection().scalars(_AUCTION_PATRONS, {"auction_id": auction_id}))
+    return _fine_tuning(session, auction_id, model_ids)
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,13 @@
 """Server-Sent Event streams: ``GET /auctions/{id}/events`` and ``GET /jobs/{id}/events``.
 
 An auction's stream sends ``event: iteration`` once per committed round, with ``id`` = the
-round's iteration (0, 1, ...) and ``data`` = the round with its purchases and quits, then
-``event: end`` (no id) with the outcome when the auction has finished or failed, and closes.
-A job's stream sends ``event: progress`` whenever its status, progress or message changes
-(``id`` = the time of that change, in microseconds), then ``event: end`` with the whole job.
+round's iteration (0, 1, ...) and ``data`` = the round with its purchases and quits. A remote
+fine-tuning round, which follows iteration k, adds ``event: round`` with ``id`` = ``k.1`` when
+it is open and ``k.2`` once it has closed (a round already closed when it is sent gets only
+``k.2``). When the auction has finished or failed, ``event: end`` (no id) gives the outcome and
+the stream closes. A job's stream sends ``event: progress`` whenever its status, progress or
+message changes (``id`` = the time of that change, in microseconds), then ``event: end`` with
+the whole job.
 
 A client resumes with ``Last-Event-ID`` (what ``EventSource`` sends when it reconnects) or, on
 its first connection, ``?after=<id>``: the stream goes on right after that event, so nothing is
@@ -15,7 +18,7 @@ or job (``server.events``).
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterable, AsyncIterator
+from collections.abc import AsyncIterable, AsyncIterator, Iterator
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -29,6 +32,7 @@ from server.db import Database
 from server.errors import api_error, responses
 from server.events import EventHub, Poll
 from server.models import Job
+from server.routes.auctions import fine_tune_round_public
 from server.schemas import (
     AuctionEndEvent,
     AuctionIdPath,
@@ -49,25 +53,63 @@ RECONNECT_MS = 2000
 """The ``retry:`` hint: how long ``EventSource`` waits before it reconnects a dropped stream."""
 AUCTION_ENDED = ("finished", "failed")
 JOB_ENDED = ("succeeded", "failed", "cancelled")
-MAX_EVENT_ID = 2**63 - 1  # job event ids are microsecond timestamps
+EVENT_ID = r"^[0-9]{1,18}(\.[12])?$"
+"""An event id: an iteration, ``k.1``/``k.2`` for the fine-tuning round after iteration k, or
+a job's change time in microseconds."""
+ROUND_OPEN, ROUND_CLOSED = 1, 2
 
 LastEventId = Annotated[
-    int | None,
+    str | None,
     Header(
         alias="Last-Event-ID",
-        ge=0,
-        le=MAX_EVENT_ID,
+        pattern=EVENT_ID,
         description="The id of the last event received; the stream resumes right after it.",
     ),
 ]
 After = Annotated[
-    int | None,
+    str | None,
     Query(
-        ge=0,
-        le=MAX_EVENT_ID,
+        pattern=EVENT_ID,
         description="Like Last-Event-ID, for a first connection (the header wins if both).",
     ),
 ]
+Position = tuple[int, int]
+"""Where an event sits in an auction's stream: (iteration, 0) for the iteration itself, then
+(iteration, ROUND_OPEN or ROUND_CLOSED) for the fine-tuning round that follows it."""
+
+
+def _position(event_id: str) -> Position:
+    iteration, _, phase = event_id.partition(".")
+    return int(iteration), int(phase or 0)
+
+
+def _resume_id(last_event_id: LastEventId = None, after: After = None) -> str | None:
+    return last_event_id if last_event_id is not None else after
+
+
+async def _auction_resume(resume: Annotated[str | None, Depends(_resume_id)]) -> Position:
+    """Where an auction's stream resumes: after this position (before the first event if
+    none)."""
+    return (-1, ROUND_CLOSED) if resume is None else _position(resume)
+
+
+async def _job_resume(
+    resume: Annotated[str | None, Depends(_resume_id)],
+    last_event_id: LastEventId = None,
+) -> str | None:
+    """The id of the last job event the client has; a job's ids are whole numbers."""
+    if resume is not None and "." in resume:
+        where = "header" if last_event_id is not None else "query"
+        name = "Last-Event-ID" if last_event_id is not None else "after"
+        raise api_error(
+            422, "a job's event ids are whole numbers", loc=(where, name), kind="bad_event_id"
+        )
+    return resume
+
+
+def _event_id(position: Position) -> str:
+    iteration, phase = position
+    return f"{iteration}.{phase}" if phase else str(iteration)
 
 
 def event_hub(app: FastAPI) -> EventHub:
@@ -110,10 +152,25 @@ class AuctionSnapshot:
 
     state: crud.AuctionState | None
     rounds: tuple[crud.AuctionRound, ...]
+    fine_tuning: tuple[crud.RoundView, ...] = ()
 
     @property
     def final(self) -> bool:
         return self.state is None or self.state.status in AUCTION_ENDED
+
+    def events_after(self, sent: Position) -> Iterator[tuple[Position, ServerSentEvent]]:
+        """The events of this snapshot that come after ``sent``, in stream order (built only
+        for those: a listener that is up to date costs nothing)."""
+        fine_tuning = {view.iteration: view for view in self.fine_tuning}
+        for row in self.rounds[max(sent[0], 0) :]:
+            position = (row.iteration, 0)
+            if position > sent:
+                yield position, _iteration_sse(row)
+            view = fine_tuning.get(row.iteration)
+            if view is not None:
+                position = (row.iteration, ROUND_OPEN if view.status == "open" else ROUND_CLOSED)
+                if position > sent:
+                    yield position, _round_sse(view, position)
 
 
 def watch_auction(database: Database, auction_id: int) -> Poll[AuctionSnapshot]:
@@ -125,12 +182,17 @@ def watch_auction(database: Database, auction_id: int) -> Poll[AuctionSnapshot]:
             state = crud.auction_state(session, auction_id=auction_id)
             if previous is not None and state == previous.state:
                 return previous
-            if state is not None and state.iteration > len(rounds):
+            if state is None:
+                return AuctionSnapshot(None, rounds)
+            if state.iteration > len(rounds):
                 new = crud.auction_rounds(
                     session, auction_id=auction_id, first=len(rounds), stop=state.iteration
                 )
                 rounds = (*rounds, *new)
-        return AuctionSnapshot(state, rounds)
+            fine_tuning: tuple[crud.RoundView, ...] = ()
+            if state.fine_tune_mode == "remote":
+                fine_tuning = tuple(crud.fine_tune_rounds(session, auction_id=auction_id))
+        return AuctionSnapshot(state, rounds, fine_tuning)
 
     return poll
 
@@ -155,6 +217,14 @@ def iteration_event(row: crud.AuctionRound) -> IterationEvent:
         ],
         quits=[_patron(ref) for ref in row.quits],
     )
+
+
+def _iteration_sse(row: crud.AuctionRound) -> ServerSentEvent:
+    return ServerSentEvent(event="iteration", id=str(row.iteration), data=iteration_event(row))
+
+
+def _round_sse(view: crud.RoundView, position: Position) -> ServerSentEvent:
+    return ServerSentEvent(event="round", id=_event_id(position), data=fine_tune_round_public(view))
 
 
 def auction_end_event(state: crud.AuctionState) -> AuctionEndEvent:
@@ -196,16 +266,15 @@ async def _existing_auction(auction_id: AuctionIdPath, request: Request) -> int:
     responses=responses(404, 422, 503),
 )
 async def auction_events(
+    resume: Annotated[Position, Depends(_auction_resume)],
     hub: StreamSlot,
     auction_id: Annotated[int, Depends(_existing_auction)],
     request: Request,
-    last_event_id: LastEventId = None,
-    after: After = None,
 ) -> AsyncIterable[ServerSentEvent]:
     """Follow an auction live: one ``iteration`` event per committed round (``id`` = the
-    iteration), then one ``end`` event, and the stream closes."""
-    resume = last_event_id if last_event_id is not None else after
-    sent = 0 if resume is None else resume + 1  # the next iteration to send
+    iteration), ``round`` events for remote fine-tuning rounds (``id`` = ``k.1`` open, ``k.2``
+    closed, after iteration k), then one ``end`` event, and the stream closes."""
+    sent = resume  # the last event the client has
     settings: Settings = request.app.state.settings
     poll = watch_auction(request.app.state.database, auction_id)
     async with hub.watch(("auction", auction_id), poll) as watch:
@@ -213,11 +282,9 @@ async def auction_events(
         while True:
             generation, snapshot = watch.generation, watch.snapshot
             assert snapshot is not None  # hub.watch yields after the first read
-            for row in snapshot.rounds[sent:]:
-                yield ServerSentEvent(
-                    event="iteration", id=str(row.iteration), data=iteration_event(row)
-                )
-            sent = max(sent, len(snapshot.rounds))
+            for position, event in snapshot.events_after(sent):
+                yield event
+                sent = position
             if snapshot.final:
                 if snapshot.state is not None:
                     yield ServerSentEvent(event="end", data=auction_end_event(snapshot.state))
@@ -284,17 +351,15 @@ async def _existing_job(job_id: JobIdPath, request: Request) -> int:
     responses=responses(404, 422, 503),
 )
 async def job_events(
+    resume: Annotated[str | None, Depends(_job_resume)],
     hub: StreamSlot,
     job_id: Annotated[int, Depends(_existing_job)],
     request: Request,
-    last_event_id: LastEventId = None,
-    after: After = None,
 ) -> AsyncIterable[ServerSentEvent]:
     """Follow a job: a ``progress`` event whenever its status, progress or message changes,
     then one ``end`` event with the whole job (result, error, artifacts), and the stream
     closes."""
-    resume = last_event_id if last_event_id is not None else after
-    seen = None if resume is None else str(resume)
+    seen = resume
     settings: Settings = request.app.state.settings
     async with hub.watch(("job", job_id), watch_job(request.app.state.database, job_id)) as watch:
         yield ServerSentEvent(comment=f"job {job_id}", retry=RECONNECT_MS)

@@ -146,6 +146,20 @@ export function auctionView(view, id) {
   const roundRows = h("tbody");
   const buyerRows = h("tbody");
   const quitterList = h("ul", { class: "quitters", id: "quitters" });
+  const fineTuneRows = h("tbody");
+  const fineTuning = h(
+    "section",
+    { "aria-labelledby": "fine-tuning-heading", id: "fine-tuning", hidden: true },
+    h("h2", { id: "fine-tuning-heading" }, "Remote fine-tuning rounds"),
+    h("p", {}, "After each of the first rounds the participants fine-tune their own patrons over HTTP; a round waits for their uploads until its deadline."),
+    h(
+      "table",
+      { class: "list" },
+      h("caption", {}, "Each fine-tuning round and how its patrons answered"),
+      h("thead", {}, h("tr", {}, ["Round", "After round", "Status", "Deadline", "Answers"].map((t) => h("th", { scope: "col" }, t)))),
+      fineTuneRows,
+    ),
+  );
   view.root.append(
     title,
     liveness,
@@ -186,10 +200,12 @@ export function auctionView(view, id) {
       ),
     ),
     h("section", { "aria-labelledby": "quitters-heading" }, h("h2", { id: "quitters-heading" }, "Quitters"), quitterList),
+    fineTuning,
   );
 
   const rounds = [];
   let head = null;
+  let drawPending = false;
 
   function showSummary(state) {
     const sold = rounds.reduce((n, r) => n + r.purchases.length, 0);
@@ -216,6 +232,19 @@ export function auctionView(view, id) {
     );
   }
 
+  const fineTuneRowOf = new Map(); // round number -> its table row, updated in place
+  function showFineTuneRound(r) {
+    fineTuning.hidden = false;
+    const outcomes = {};
+    for (const a of r.answers) outcomes[a.outcome] = (outcomes[a.outcome] || 0) + 1;
+    const answers = Object.entries(outcomes).map(([outcome, n]) => `${n} ${outcome}`).join(", ") || "none yet";
+    const row = tableRow([String(r.round), String(r.iteration), statusBadge(r.status), when(r.deadline), answers], { "data-round": r.round });
+    const old = fineTuneRowOf.get(r.round);
+    if (old) old.replaceWith(row);
+    else fineTuneRows.append(row);
+    fineTuneRowOf.set(r.round, row);
+  }
+
   function patronLink(p) {
     return link(`#/models/${p.model_id}`, p.participant);
   }
@@ -239,8 +268,19 @@ export function auctionView(view, id) {
       buyerRows.append(tableRow([patronLink(p), String(p.version), String(p.model_id), fixed(p.price), String(row.iteration)]));
     }
     for (const q of row.quits) quitterList.append(h("li", {}, patronLink(q), ` (round ${row.iteration})`));
-    drawPriceChart(priceChart, rounds, row.next_price);
+    scheduleDraw();
+  }
+
+  // Rounds can arrive in a burst (a finished auction sends them all at once): draw once a frame.
+  function draw() {
+    drawPending = false;
+    if (rounds.length === 0) return;
+    drawPriceChart(priceChart, rounds, rounds[rounds.length - 1].next_price);
     drawVotesChart(votesChart, rounds, head.n_patrons);
+  }
+  function scheduleDraw() {
+    if (!drawPending) requestAnimationFrame(draw);
+    drawPending = true;
     showSummary({ status: "running", stop_reason: null, error: null });
   }
 
@@ -253,7 +293,9 @@ export function auctionView(view, id) {
         `/auctions/${id}/events`,
         {
           iteration: addRound,
+          round: showFineTuneRound,
           end: (end) => {
+            draw();
             showSummary(end);
             if (quitterList.children.length === 0) quitterList.append(h("li", {}, "nobody quit"));
             liveness.textContent = `Ended: ${end.status}, ${stopReason(end.stop_reason)}; ${end.n_sold} of ${end.n_initial} fish sold in ${end.iterations} rounds.`;

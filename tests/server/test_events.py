@@ -136,6 +136,35 @@ def test_events_arrive_while_it_runs_and_resume_skips_and_repeats_nothing(
     assert [e["event"] for e in from_query] == ["iteration", "end"]
 
 
+def test_remote_fine_tuning_rounds_appear_between_the_iterations(
+    client: httpx.Client, honest_ids: list[int]
+) -> None:
+    body = {
+        "n_fish": 1,
+        "seed": 1,
+        "model_ids": honest_ids,
+        "fine_tune_mode": "remote",
+        "fine_tune_rounds": 2,
+        "round_deadline_s": 0.5,  # nobody uploads: each round waits this long, then closes
+    }
+    auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
+    path = f"/auctions/{auction_id}/events"
+    events = follow(client, path)
+    auction = client.get(f"/auctions/{auction_id}").json()
+    ids = [e["id"] for e in events[:-1]]
+    positions = [tuple(int(part) for part in i.split(".")) + (0,) * ("." not in i) for i in ids]
+    assert positions == sorted(positions) and len(set(ids)) == len(ids)
+    closed = [data(e) for e in events if e.get("event") == "round" and e["id"].endswith(".2")]
+    assert closed == auction["fine_tuning"] and [r["round"] for r in closed] == [1, 2]
+    assert all(a["outcome"] == "missing" for r in closed for a in r["answers"])
+    opened = [e["id"] for e in events if e.get("event") == "round" and e["id"].endswith(".1")]
+    assert opened  # seen while the round was open (each waits 0.5 s, the watcher reads often)
+    assert ids.index("0.2") == ids.index("0") + 1 + ("0.1" in ids)  # right after iteration 0
+    assert ids.index("1") == ids.index("0.2") + 1
+    resumed = follow(client, path, **{"Last-Event-ID": "0.1"})
+    assert [e.get("id") for e in resumed][:2] == ["0.2", "1"]
+
+
 def test_idle_streams_keep_alive_and_are_bounded_and_freed(
     client: httpx.Client, server: ServerProcess, honest_ids: list[int]
 ) -> None:
@@ -189,21 +218,24 @@ def test_job_stream_reports_progress_then_the_whole_job(client: httpx.Client) ->
     assert [e["event"] for e in again] == ["end"]  # nothing it had already seen
 
 
-def test_stream_errors_use_the_error_body(client: httpx.Client) -> None:
+def test_stream_errors_use_the_error_body(
+    client: httpx.Client, server: ServerProcess, honest_ids: list[int]
+) -> None:
     missing = client.get("/auctions/999999/events")
-    assert missing.status_code == 404 and missing.json()["detail"][0]["loc"] == [
-        "path",
-        "auction_id",
-    ]
+    assert missing.status_code == 404
+    assert missing.json()["detail"][0]["loc"] == ["path", "auction_id"]
     assert client.get("/jobs/999999/events").status_code == 404
-    bad = client.get("/auctions/1/events", headers={"Last-Event-ID": "soon"})
-    assert bad.status_code == 422
-    assert bad.json()["detail"][0]["loc"] == ["header", "Last-Event-ID"]
-    negative = client.get("/auctions/1/events?after=-1")
-    assert negative.status_code == 422 and negative.json()["detail"][0]["loc"] == [
-        "query",
-        "after",
-    ]
+    auction_id = create_unstarted_auction(server.database_url, honest_ids, n_fish=1, seed=0)
+    path = f"/auctions/{auction_id}/events"
+    for bad_id in ("soon", "-1", "1.3", "1.2.1"):
+        bad = client.get(path, headers={"Last-Event-ID": bad_id})
+        assert bad.status_code == 422
+        assert bad.json()["detail"][0]["loc"] == ["header", "Last-Event-ID"]
+    negative = client.get(f"{path}?after=-1")
+    assert negative.status_code == 422
+    assert negative.json()["detail"][0]["loc"] == ["query", "after"]
+    dotted = client.get("/jobs/999999/events", headers={"Last-Event-ID": "3.1"})
+    assert dotted.status_code == 422 and dotted.json()["detail"][0]["type"] == "bad_event_id"
 
 
 def test_one_watcher_per_row_whatever_the_listeners() -> None:

@@ -157,6 +157,31 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
     screenshot(page, "ui_auction.png", tmp_path, full_page=True)
 
 
+def test_auction_page_shows_remote_fine_tuning_rounds(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    body = {
+        "n_fish": 1,
+        "model_ids": honest_ids,
+        "fine_tune_mode": "remote",
+        "fine_tune_rounds": 2,
+        "round_deadline_s": 0.5,
+    }
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    page.wait_for_selector("#liveness:has-text('Ended')", timeout=60_000)
+    rows = page.locator("#fine-tuning tbody tr")
+    assert page.locator("#fine-tuning").is_visible() and rows.count() == 2
+    for row, expected in zip(
+        rows.all(), api.get(f"/auctions/{auction_id}").json()["fine_tuning"], strict=True
+    ):
+        cells = [cell.text_content() for cell in row.locator("td").all()]
+        assert cells[:3] == [str(expected["round"]), str(expected["iteration"]), "closed"]
+        assert cells[4] == f"{len(expected['answers'])} missing"
+
+
 def test_inspector_draws_the_saboteur_neuron_by_neuron_with_the_screeners_reasons(
     page: Any,
     server: ServerProcess,

@@ -24,6 +24,7 @@ import asyncio
 import contextlib
 import json
 import random
+import re
 import secrets
 import time
 from collections.abc import Awaitable, Callable
@@ -61,6 +62,8 @@ AUCTION_POLL_S = 0.5
 SUBMIT_CONCURRENCY = 16
 """Submissions in flight at once."""
 RETRY_STATUSES = frozenset({429, 503})
+NAME_PREFIX = r"[A-Za-z0-9_.\-]{1,48}"
+"""Participant names are <prefix>-honest-000 and the like (64 characters at most in all)."""
 
 
 class RemoteError(RuntimeError):
@@ -403,6 +406,8 @@ class PopulationConfig:
             problems.append(f"honest + saboteurs must be between 1 and {MAX_AGENTS}")
         if self.seed < 0:
             problems.append("seed must be ≥ 0")
+        if self.name_prefix is not None and not re.fullmatch(NAME_PREFIX, self.name_prefix):
+            problems.append(f"name_prefix must match {NAME_PREFIX} (a participant name's start)")
         if problems:
             raise ValueError("; ".join(problems))
 

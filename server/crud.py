@@ -121,6 +121,8 @@ class AuctionView:
     quitters: list[int]
     fine_tuning: list[RoundView] = dataclasses.field(default_factory=list)
     """Remote fine-tuning rounds, oldest first (remote auctions only)."""
+    current_model_ids: list[int] = dataclasses.field(default_factory=list)
+    """The version each patron bids with now, aligned with ``model_ids`` (remote only)."""
 
 
 # The statements of POST /submit, built once and run on the session's connection (Core, not the
@@ -318,7 +320,11 @@ def get_auction(session: Session, *, auction_id: int) -> AuctionView | None:
         connection.execute(_AUCTION_HISTORY, key).all(),
         connection.execute(_AUCTION_PURCHASES, key).all(),
         list(connection.scalars(_AUCTION_QUITTERS, key)),
-        _fine_tuning(session, auction_id, model_ids) if auction.fine_tune_mode == "remote" else [],
+        *(
+            (_fine_tuning(session, auction_id, model_ids), _current_versions(session, auction_id))
+            if auction.fine_tune_mode == "remote"
+            else ([], [])
+        ),
     )
 
 
@@ -706,6 +712,17 @@ _ANSWERS_OF_AUCTION = (
     .where(FineTuneRound.auction_id == bindparam("auction_id"))
     .order_by(FineTuneAnswer.round_id, FineTuneAnswer.position)
 )
+
+
+def _current_versions(session: Session, auction_id: int) -> list[int]:
+    """The version each patron bids with now, in patron order (one query)."""
+    return list(
+        session.connection().scalars(
+            select(func.coalesce(AuctionPatron.current_model_id, AuctionPatron.model_id))
+            .where(AuctionPatron.auction_id == auction_id)
+            .order_by(AuctionPatron.position)
+        )
+    )
 
 
 def _fine_tuning(session: Session, auction_id: int, model_ids: list[int]) -> list[RoundView]:

@@ -213,6 +213,8 @@ class AuctionPublic(BaseModel):
     round_deadline_s: float = 10.0
     fine_tuning: list[FineTuneRoundPublic] = Field(default_factory=list)
     """Remote auctions: every fine-tuning round with each asked patron's outcome."""
+    current_model_ids: list[int] = Field(default_factory=list)
+    """Remote auctions: the version each patron bids with now, aligned with ``model_ids``."""
 
 
 RoundOutcome = Literal["accepted", "refused", "late", "missing"]

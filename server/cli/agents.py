@@ -1,0 +1,207 @@
+"""``srd agents``: a population of remote agents that submit their models, join a remote
+fine-tuning auction and fine-tune themselves over HTTP (``agents.remote``)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sys
+
+import click
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from agents.remote import (
+    AUCTION_WAIT_S,
+    GIVE_UP_S,
+    MAX_AGENTS,
+    PopulationConfig,
+    PopulationReport,
+    RemoteError,
+    run_population,
+)
+from server.schemas import MAX_FINE_TUNE_ROUNDS, MAX_SEED, ROUND_DEADLINE_S
+
+GAVE_UP = 1
+"""Exit code when the server could not be reached or refused the population."""
+INVALID = 2
+"""Exit code of invalid options."""
+
+
+def _table(report: PopulationReport) -> Table:
+    table = Table(title=f"remote agents on {report.server}", show_header=False)
+    auction = report.auction
+    rows = [
+        ("agents", f"{report.agents} ({report.honest} honest, {report.saboteurs} saboteurs)"),
+        ("admitted at submission", str(report.admitted)),
+        ("auction", f"{auction['id']}: {auction['status']} ({auction['stop_reason']})"),
+        ("iterations, fine-tuning rounds", f"{auction['iterations']}, {report.rounds}"),
+        ("buyers, revenue", f"{auction['buyers']}, {auction['revenue']}"),
+        (
+            "uploads accepted / refused / late",
+            "{accepted} / {refused} / {late}".format(**report.uploads),
+        ),
+        ("refused by rules", ", ".join(report.refusal_rules) or "—"),
+        ("bytes up / down", f"{report.bytes_up} / {report.bytes_down}"),
+        ("requests (retries)", f"{report.requests} ({report.retries})"),
+        ("elapsed", f"{report.elapsed_s:.1f} s"),
+    ]
+    for name, value in rows:
+        table.add_row(name, value)
+    return table
+
+
+@click.command("agents")
+@click.option(
+    "--server", required=True, help="Base URL of the auction house, e.g. http://127.0.0.1:8000."
+)
+@click.option(
+    "--honest",
+    type=click.IntRange(0, MAX_AGENTS),
+    default=6,
+    show_default=True,
+    help="Honest agents (the paper's randomisation), fine-tuning faithfully.",
+)
+@click.option(
+    "--saboteurs",
+    type=click.IntRange(0, MAX_AGENTS),
+    default=0,
+    show_default=True,
+    help="Bait-and-switch agents: honest-looking model, then always-hold uploads.",
+)
+@click.option(
+    "--auction",
+    type=click.IntRange(1),
+    default=None,
+    help="Join this auction [default: wait for one containing the agents' models, "
+    "or create one with --admin-token].",
+)
+@click.option(
+    "--seed",
+    type=click.IntRange(0),
+    default=0,
+    show_default=True,
+    help="Seeds the agents' models: same seed, same models.",
+)
+@click.option(
+    "--admin-token",
+    envvar="SRD_ADMIN_TOKEN",
+    default=None,
+    help="Operator token (or SRD_ADMIN_TOKEN): create a remote auction of the agents' models.",
+)
+@click.option(
+    "--rarity",
+    type=click.FloatRange(0, 1, min_open=True),
+    default=0.5,
+    show_default=True,
+    help="Created auction: fish = int(rarity × agents).",
+)
+@click.option(
+    "--rounds",
+    type=click.IntRange(0, MAX_FINE_TUNE_ROUNDS),
+    default=4,
+    show_default=True,
+    help="Created auction: fine-tuning rounds.",
+)
+@click.option(
+    "--deadline",
+    type=click.FloatRange(*ROUND_DEADLINE_S),
+    default=10.0,
+    show_default=True,
+    help="Created auction: seconds a round waits at most.",
+)
+@click.option(
+    "--auction-seed",
+    type=click.IntRange(0, MAX_SEED),
+    default=0,
+    show_default=True,
+    help="Created auction: its seed.",
+)
+@click.option(
+    "--give-up",
+    type=click.FloatRange(1, 3600),
+    default=GIVE_UP_S,
+    show_default=True,
+    help="Seconds a failing request is retried before giving up (exit 1).",
+)
+@click.option(
+    "--wait",
+    "auction_wait",
+    type=click.FloatRange(0, 86_400),
+    default=AUCTION_WAIT_S,
+    show_default=True,
+    help="Seconds to wait for an auction containing the agents' models.",
+)
+@click.option(
+    "--name-prefix",
+    default=None,
+    help="Participant names start with this [default: agents-<seed>-<random tag>].",
+)
+@click.option(
+    "--json", "json_output", is_flag=True, help="Print exactly one JSON object on stdout."
+)
+def command(
+    server: str,
+    honest: int,
+    saboteurs: int,
+    auction: int | None,
+    seed: int,
+    admin_token: str | None,
+    rarity: float,
+    rounds: int,
+    deadline: float,
+    auction_seed: int,
+    give_up: float,
+    auction_wait: float,
+    name_prefix: str | None,
+    json_output: bool,
+) -> None:
+    """Run remote agents that submit and fine-tune over HTTP: register the population, join
+    (or wait for, or create) a remote fine-tuning auction, answer every round with each
+    agent's own fine-tuning, follow the auction to its end and summarise."""  # fmt: skip
+    err = Console(stderr=True)
+    try:
+        config = PopulationConfig(
+            server=server,
+            honest=honest,
+            saboteurs=saboteurs,
+            seed=seed,
+            auction=auction,
+            admin_token=admin_token,
+            rarity=rarity,
+            fine_tune_rounds=rounds,
+            round_deadline_s=deadline,
+            auction_seed=auction_seed,
+            give_up_s=give_up,
+            auction_wait_s=auction_wait,
+            name_prefix=name_prefix,
+        )
+    except ValueError as exc:  # the options named in the message
+        err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False)
+        raise SystemExit(INVALID) from exc
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+        console=err,
+        disable=not sys.stderr.isatty(),
+    ) as bar:
+        tasks: dict[str, TaskID] = {}
+
+        def progress(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=total)
+            bar.update(tasks[stage], completed=done, total=max(total, done))
+
+        try:
+            report = asyncio.run(run_population(config, progress))
+        except RemoteError as exc:
+            err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False)
+            raise SystemExit(GAVE_UP) from exc
+    if json_output:
+        sys.stdout.write(json.dumps(report.to_dict()) + "\n")
+    else:
+        Console(highlight=False).print(_table(report))

@@ -1,0 +1,135 @@
+"""The remote agent's client side: retries and giving up, byte counts, the bait-and-switch
+upload, faithful fine-tuning, the population's settings."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from datetime import UTC, datetime
+
+import httpx
+import numpy as np
+import pytest
+
+from agents.negotiator import honest_manifest
+from agents.remote import (
+    Client,
+    PopulationConfig,
+    RoundInfo,
+    ServerGoneError,
+    always_hold,
+    faithful_fine_tune,
+    population,
+)
+from screener import screen
+from sim.market import Market, MarketConfig, round_update_problems
+
+
+def run(handler, call, give_up_s: float = 5.0):
+    async def go():
+        transport = httpx.MockTransport(handler)
+        async with httpx.AsyncClient(transport=transport, base_url="http://auction.test") as http:
+            client = Client(http, give_up_s=give_up_s)
+            return client, await call(client)
+
+    return asyncio.run(go())
+
+
+def test_retries_503_and_429_then_counts_the_bodies():
+    answers = iter([503, 429, 200])
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        status = next(answers)
+        headers = {"Retry-After": "0"} if status == 429 else {}
+        return httpx.Response(status, json={"ok": status == 200}, headers=headers)
+
+    client, response = run(handler, lambda c: c.request("PUT", "/x", body=b"12345"))
+    assert response.status_code == 200
+    assert client.traffic.requests == 3 and client.traffic.retries == 2
+    assert client.traffic.bytes_up == 15  # the body went three times
+    assert client.traffic.bytes_down == len(b'{"ok":false}') * 2 + len(b'{"ok":true}')
+
+
+def test_gives_up_after_its_time_naming_the_server():
+    def handler(request: httpx.Request) -> httpx.Response:
+        raise httpx.ConnectError("refused", request=request)
+
+    started = time.monotonic()
+    with pytest.raises(ServerGoneError, match=r"http://auction\.test.*gave up after 1 s"):
+        run(handler, lambda c: c.request("GET", "/healthz"), give_up_s=1.0)
+    assert 0.5 < time.monotonic() - started < 5
+
+
+def test_a_request_that_may_have_arrived_is_not_resent_when_asked():
+    calls = []
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        calls.append(request)
+        raise httpx.ReadError("connection reset", request=request)
+
+    with pytest.raises(ServerGoneError, match="ReadError"):
+        run(handler, lambda c: c.request("POST", "/submit", body=b"{}", resend=False))
+    assert len(calls) == 1
+
+
+def info_for(position: int = 0, round_: int = 1) -> RoundInfo:
+    config = MarketConfig(n_fish=1, fine_tune=True, fine_tune_mode="remote", seed=4)
+    rng = np.random.default_rng(0)
+    market = Market([honest_manifest(rng, f"h{i}") for i in range(4)], config)
+    market.step()
+    pending = market.pending_round
+    assert pending is not None
+    return RoundInfo(
+        auction_id=1,
+        round=round_,
+        iteration=pending.iteration,
+        rows=pending.rows,
+        fine_tune_seed=pending.fine_tune_seed,
+        augmentation_seed=pending.augmentation_seed,
+        deadline=datetime.now(UTC),
+        seconds_left=10.0,
+        position=position,
+    )
+
+
+def test_the_bait_and_switch_keeps_the_design_and_fails_the_screener():
+    admitted = honest_manifest(np.random.default_rng(3), "bait")
+    assert screen(admitted).accepted
+    switched = always_hold(admitted, info_for())
+    assert round_update_problems(admitted, switched) == []  # only numbers changed
+    assert switched.participant == "bait" and switched != admitted
+    verdict = screen(switched)
+    assert not verdict.accepted and verdict.reasons
+
+
+def test_faithful_fine_tuning_moves_only_patrons_with_epochs():
+    rng = np.random.default_rng(5)
+    manifests = [honest_manifest(rng, f"h{i}") for i in range(12)]
+    info = info_for(position=2)
+    for manifest in manifests:
+        tuned = faithful_fine_tune(manifest, info)
+        assert (tuned == manifest) == (manifest.fine_tuning.epochs == 0)
+        assert round_update_problems(manifest, tuned) == []
+    moving = next(m for m in manifests if m.fine_tuning.epochs > 0)
+    other_position = faithful_fine_tune(moving, info_for(position=3))
+    assert other_position != faithful_fine_tune(moving, info)  # its seeds depend on its place
+
+
+def test_population_settings_are_checked_and_its_models_are_seeded():
+    with pytest.raises(ValueError, match="between 1 and 256"):
+        PopulationConfig(server="http://x", honest=200, saboteurs=57)
+    with pytest.raises(ValueError, match="name_prefix"):
+        PopulationConfig(server="http://x", name_prefix="no spaces")
+    config = PopulationConfig(server="http://x", honest=3, saboteurs=2, seed=9, name_prefix="p")
+    agents = population(config, client=None)  # type: ignore[arg-type]
+    again = population(config, client=None)  # type: ignore[arg-type]
+    assert [a.current for a in agents] == [a.current for a in again]
+    assert [a.current.participant for a in agents] == [
+        "p-honest-000",
+        "p-honest-001",
+        "p-honest-002",
+        "p-saboteur-003",
+        "p-saboteur-004",
+    ]
+    assert all(screen(a.current).accepted for a in agents[3:])  # honest-looking at first
+    assert [a.fine_tuner for a in agents[3:]] == [always_hold, always_hold]

@@ -1,0 +1,308 @@
+"""Remote fine-tuning end to end over real HTTP: ``srd serve`` in a subprocess (SQLite and
+PostgreSQL), ``srd agents`` with honest and bait-and-switch agents, an agent killed with
+SIGKILL in the middle of a round, and the same auction played in the server and remotely."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import secrets
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+from sqlalchemy import select
+
+from agents.manifest import Manifest, parse_manifest
+from agents.negotiator import from_manifests
+from agents.remote import Client, RemoteAgent
+from server.db import Database
+from server.launch import ServerProcess, postgres_admin_url, srd_command, throwaway_postgres
+from server.models import Auction
+from sim.market import Market, MarketConfig
+from tests.server.conftest import honest, wait_for
+
+DEADLINE_S = 3.0
+"""Round deadline of the end-to-end auction (the killed agent's round waits this long)."""
+TIMEOUT_S = 180
+WEIGHT_TOLERANCE = 1e-12
+"""Remote and in-server fine-tuning agree to this (band padding moves last bits)."""
+VICTIM = r"""
+import asyncio, sys, time
+import httpx, numpy as np
+from agents.negotiator import honest_manifest
+from agents.remote import Client, RemoteAgent, faithful_fine_tune
+
+def stall_in_round_2(manifest, info):
+    if info.round >= 2:
+        print("stalling", info.round, flush=True)
+        time.sleep(3600)
+    return faithful_fine_tune(manifest, info)
+
+async def main(server, name):
+    async with httpx.AsyncClient(base_url=server) as http:
+        manifest = honest_manifest(np.random.default_rng(100), name)
+        agent = RemoteAgent(Client(http), manifest, fine_tuner=stall_in_round_2)
+        await agent.submit()
+        print("model", agent.model_id, flush=True)
+        while not (found := await agent.auctions()):
+            await asyncio.sleep(0.2)
+        await agent.play(found[0])
+
+asyncio.run(main(sys.argv[1], sys.argv[2]))
+"""
+"""An agent (the Python API) that answers round 1 and hangs in its fine-tuning of round 2 (its
+seed, 100, makes a patron that pays up to 4.97 and stays in the auction past iteration 1)."""
+
+
+@pytest.fixture(
+    scope="module", params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)]
+)
+def server(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[ServerProcess]:
+    data_dir = tmp_path_factory.mktemp("remote")
+    token = secrets.token_hex(16)
+    if request.param == "sqlite":
+        process = ServerProcess(
+            database_url=f"sqlite:///{data_dir / 'srd.db'}", data_dir=data_dir, admin_token=token
+        )
+        with process:
+            yield process
+        return
+    admin_url = postgres_admin_url()
+    if admin_url is None:
+        pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
+    with throwaway_postgres(admin_url) as url:
+        process = ServerProcess(database_url=url, data_dir=data_dir, admin_token=token)
+        with process:
+            yield process
+
+
+def get(server: ServerProcess, path: str, **params: Any) -> Any:
+    response = httpx.get(server.url + path, params=params, timeout=30)
+    response.raise_for_status()
+    return response.json()
+
+
+def admin(server: ServerProcess) -> dict[str, str]:
+    return {"Authorization": f"Bearer {server.admin_token}"}
+
+
+def replay(
+    server: ServerProcess, auction: dict[str, Any], config: MarketConfig
+) -> list[dict[str, Any]]:
+    """The auction replayed on the market from its entry models, applying in each round the
+    versions the server accepted: its records as the server shows its history."""
+    entries = [
+        parse_manifest(get(server, f"/models/{i}")["manifest"]) for i in auction["model_ids"]
+    ]
+    market = Market(entries, config)
+    rounds = {r["iteration"]: r for r in auction["fine_tuning"]}
+    history = []
+    while not market.finished:
+        record = market.step()
+        history.append(
+            {
+                "iteration": record.iteration,
+                "price": record.price,
+                "n_available": record.n_available,
+                "votes": record.votes,
+                "row_votes": record.row_votes,
+                "next_price": record.next_price,
+                "n_available_after": record.n_available_after,
+            }
+        )
+        if market.pending_round is not None:
+            answers = rounds[record.iteration]["answers"]
+            market.apply_round(
+                {
+                    auction["model_ids"].index(a["model_id"]): parse_manifest(
+                        get(server, f"/models/{a['version_id']}")["manifest"]
+                    )
+                    for a in answers
+                    if a["outcome"] == "accepted" and a["uploaded_id"] is not None
+                }
+            )
+    return history
+
+
+def test_honest_and_bait_and_switch_agents_and_a_killed_one(server: ServerProcess) -> None:
+    prefix = f"e2e-{secrets.token_hex(3)}"
+    victim_name = f"{prefix}-victim"
+    victim = subprocess.Popen(
+        [sys.executable, "-c", VICTIM, server.url, victim_name],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=Path(__file__).parents[2],
+    )
+    agents = subprocess.Popen(
+        [
+            *srd_command(),
+            "agents",
+            "--server",
+            server.url,
+            "--honest",
+            "6",
+            "--saboteurs",
+            "2",
+            "--seed",
+            "7",
+            "--name-prefix",
+            prefix,
+            "--wait",
+            "120",
+            "--json",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert victim.stdout is not None
+        victim_id = int(victim.stdout.readline().split()[1])
+        names = [f"{prefix}-honest-{i:03d}" for i in range(6)]
+        names += [f"{prefix}-saboteur-{i:03d}" for i in range(6, 8)]
+        found = wait_for(
+            lambda: {n: get(server, "/models", participant=n)["items"] for n in names},
+            lambda by_name: all(by_name.values()),
+            TIMEOUT_S,
+        )
+        ids = [found[n][0]["id"] for n in names]
+        saboteurs = set(ids[6:])
+        body = {
+            "n_fish": 1,
+            "model_ids": [*ids, victim_id],
+            "fine_tune_mode": "remote",
+            "fine_tune_rounds": 3,
+            "round_deadline_s": DEADLINE_S,
+            "seed": 11,
+        }
+        created = httpx.post(server.url + "/auctions", json=body, headers=admin(server))
+        assert created.status_code == 201, created.text
+        auction_id = created.json()["auction_id"]
+        said = victim.stdout.readline().split()
+        assert said == ["stalling", "2"], f"the victim did not reach round 2: {said}"
+        victim.send_signal(signal.SIGKILL)  # in the middle of its round-2 fine-tuning
+        victim.wait()
+        out, err = agents.communicate(timeout=TIMEOUT_S)
+    finally:
+        for process in (victim, agents):
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+    assert agents.returncode == 0, err
+    report = json.loads(out)
+    auction = get(server, f"/auctions/{auction_id}")
+    assert auction["status"] == "finished", auction["error"]
+    history = auction["history"]
+    assert [row["iteration"] for row in history] == list(range(len(history)))
+    rounds = auction["fine_tuning"]
+    assert [r["round"] for r in rounds] == [1, 2, 3][: len(rounds)] and len(rounds) >= 2
+    assert report["agents"] == 8 and report["auctions"] == [auction_id]
+    assert report["uploads"]["late"] == 0 and report["bytes_up"] > 0 and report["bytes_down"] > 0
+
+    answers = [(r, a) for r in rounds for a in r["answers"]]
+    sabotage = [a for _, a in answers if a["model_id"] in saboteurs]
+    assert sabotage and all(a["outcome"] == "refused" and a["version"] == 1 for a in sabotage)
+    assert report["uploads"]["refused"] >= len(sabotage)
+    for a in sabotage:  # stored as a rejected version with reasons; the admitted one bids on
+        refused = get(server, f"/models/{a['uploaded_id']}")
+        assert refused["accepted"] is False and refused["reasons"]
+        assert refused["parent_id"] == a["model_id"] and a["version_id"] == a["model_id"]
+    new_versions = [
+        a for _, a in answers if a["model_id"] not in saboteurs and a["uploaded_id"] is not None
+    ]
+    accepted = [a for a in new_versions if a["outcome"] == "accepted"]
+    assert accepted and all(a["version"] >= 2 for a in accepted)
+    for round_, a in ((r, a) for r, a in answers if a in accepted):
+        version = get(server, f"/models/{a['version_id']}")
+        assert version["round"] == round_["round"] and version["auction_id"] == auction_id
+    assert report["uploads"]["accepted"] >= len(accepted)
+
+    by_round = {r["round"]: {a["model_id"]: a for a in r["answers"]} for r in rounds}
+    assert by_round[1][victim_id]["outcome"] == "accepted"
+    assert by_round[2][victim_id]["outcome"] == "missing"
+    assert all(a["outcome"] == "missing" for a in [by_round.get(3, {}).get(victim_id)] if a)
+    waited = [seconds(r["closed_at"]) - seconds(r["opened_at"]) for r in rounds]
+    assert waited[0] < DEADLINE_S  # everyone answered: closed at the last upload
+    assert DEADLINE_S <= waited[1] < DEADLINE_S + 2  # the dead agent: closed at the deadline
+    assert all(r["bytes_total"] > r["bytes_published"] > 0 for r in rounds)
+
+    config = MarketConfig(
+        n_fish=1, fine_tune=True, fine_tune_rounds=3, seed=11, fine_tune_mode="remote"
+    )
+    assert replay(server, auction, config) == history  # the accepted versions bid
+
+
+def seconds(stamp: str) -> float:
+    return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
+
+
+def test_faithful_remote_agents_replay_the_server_auction(server: ServerProcess) -> None:
+    manifests = [honest(f"same-{secrets.token_hex(3)}-{i}", seed=500 + i) for i in range(8)]
+    submitted = [httpx.post(server.url + "/submit", json=m, timeout=30).json() for m in manifests]
+    ids = [s["model_id"] for s in submitted]
+    assert all(s["accepted"] for s in submitted)
+    common = {"n_fish": 2, "model_ids": ids, "fine_tune_rounds": 3, "seed": 21}
+    in_server = httpx.post(
+        server.url + "/auctions", json={**common, "fine_tune": True}, headers=admin(server)
+    ).json()["auction_id"]
+    remote = httpx.post(
+        server.url + "/auctions",
+        json={**common, "fine_tune_mode": "remote", "round_deadline_s": 60},
+        headers=admin(server),
+    ).json()["auction_id"]
+
+    async def play() -> None:
+        async with httpx.AsyncClient(base_url=server.url) as http:
+            client = Client(http)
+            agents = [
+                RemoteAgent(client, parse_manifest(m), token=s["token"], model_id=s["model_id"])
+                for m, s in zip(manifests, submitted, strict=True)
+            ]
+            await asyncio.gather(*(agent.play(remote) for agent in agents))
+
+    asyncio.run(play())
+    done = {
+        a: wait_for(
+            lambda a=a: get(server, f"/auctions/{a}"),
+            lambda s: s["status"] in ("finished", "failed"),
+            TIMEOUT_S,
+        )
+        for a in (in_server, remote)
+    }
+    mine, theirs = done[remote], done[in_server]
+    assert mine["status"] == theirs["status"] == "finished"
+    assert mine["history"] == theirs["history"]
+    assert mine["buyers"] == theirs["buyers"] and mine["quitters"] == theirs["quitters"]
+    assert mine["stop_reason"] == theirs["stop_reason"]
+    assert len(mine["fine_tuning"]) >= 2
+    assert all(a["outcome"] != "missing" for r in mine["fine_tuning"] for a in r["answers"])
+    # Final weights: the remote patrons' current versions against the in-server market's.
+    database = Database(server.database_url)
+    with database.session(write=False) as session:
+        blob = session.scalar(select(Auction.checkpoint).where(Auction.id == in_server))
+    database.close()
+    assert blob is not None
+    config = MarketConfig(n_fish=2, fine_tune=True, fine_tune_rounds=3, seed=21)
+    entries = [parse_manifest(m) for m in manifests]
+    server_final = Market.restore(entries, config, blob).current_manifests()
+    remote_final = [
+        parse_manifest(get(server, f"/models/{i}")["manifest"]) for i in mine["current_model_ids"]
+    ]
+    moved = [i for i, m in enumerate(entries) if server_final[i] != m]
+    assert moved  # fine-tuning changed someone
+    assert max_difference(remote_final, server_final) <= WEIGHT_TOLERANCE
+
+
+def max_difference(a: list[Manifest], b: list[Manifest]) -> float:
+    left, right = from_manifests(a).parameters(), from_manifests(b).parameters()
+    return max(float(np.abs((left[k] - right[k]).numpy()).max()) for k in left)

@@ -1,0 +1,164 @@
+"""kill -9 of the server in the middle of a remote fine-tuning round, then a restart: the round
+resumes with the same absolute deadline and the answers given before the kill, the auction
+finishes with contiguous iterations, no version or purchase twice, and the same records as the
+market replaying the accepted versions."""
+
+from __future__ import annotations
+
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from sqlalchemy import func, select
+
+from agents.manifest import parse_manifest
+from agents.remote import faithful_fine_tune
+from server.db import Database
+from server.launch import ServerProcess, postgres_admin_url, throwaway_postgres
+from server.models import Auction, FineTuneAnswer, FineTuneRound, ModelVersion, Purchase
+from sim.market import MarketConfig
+from tests.server.conftest import honest, wait_for
+from tests.server.test_remote_e2e import replay
+from tests.server.test_remote_protocol import round_info
+
+N_PATRONS = 6
+HELD_OPEN_S = 120.0
+"""The round's deadline: long enough that only the answers close it, before and after the kill."""
+TIMEOUT_S = 120
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
+def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'srd.db'}"
+        return
+    admin_url = postgres_admin_url()
+    if admin_url is None:
+        pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
+    with throwaway_postgres(admin_url) as url:
+        yield url
+
+
+def current(server: ServerProcess, auction_id: int, after: int) -> dict[str, Any]:
+    return wait_for(
+        lambda: httpx.get(
+            f"{server.url}/auctions/{auction_id}/rounds/current",
+            params={"wait": 5, "after": after},
+            timeout=30,
+        ).json(),
+        lambda r: (
+            (r["status"] == "open" and r["round"] > after)
+            or r["auction_status"] not in ("pending", "running")
+        ),
+        TIMEOUT_S,
+    )
+
+
+def test_kill_9_in_the_middle_of_a_round_then_restart(database_url: str, tmp_path: Path) -> None:
+    token = secrets.token_hex(16)
+    admin = {"Authorization": f"Bearer {token}"}
+    data_dir = tmp_path / "data"
+    first = ServerProcess(database_url=database_url, data_dir=data_dir, admin_token=token)
+    second = ServerProcess(database_url=database_url, data_dir=data_dir, admin_token=token)
+    manifests = [honest(f"kill-{secrets.token_hex(3)}-{i}", seed=600 + i) for i in range(N_PATRONS)]
+    try:
+        first.start()
+        submitted = [
+            httpx.post(first.url + "/submit", json=m, timeout=30).json() for m in manifests
+        ]
+        ids = [s["model_id"] for s in submitted]
+        body = {
+            "n_fish": 1,
+            "model_ids": ids,
+            "fine_tune_mode": "remote",
+            "fine_tune_rounds": 2,
+            "round_deadline_s": HELD_OPEN_S,
+            "seed": 3,
+        }
+        auction_id = httpx.post(
+            first.url + "/auctions", json=body, headers=admin, timeout=30
+        ).json()["auction_id"]
+        state = current(first, auction_id, after=0)
+        assert state["round"] == 1 and state["status"] == "open"
+        asked = [i for i in ids if i in state["asked"]]
+        assert len(asked) >= 3
+
+        def upload(server: ServerProcess, state: dict[str, Any], model_id: int) -> httpx.Response:
+            position = ids.index(model_id)
+            tuned = faithful_fine_tune(
+                parse_manifest(manifests[position]), round_info(state, position)
+            )
+            return httpx.put(
+                f"{server.url}/auctions/{auction_id}/rounds/{state['round']}/models/{model_id}",
+                content=tuned.model_dump_json().encode(),
+                headers={
+                    "Authorization": f"Bearer {submitted[position]['token']}",
+                    "Content-Type": "application/json",
+                },
+                timeout=30,
+            )
+
+        before = {i: upload(first, state, i) for i in asked[:2]}
+        assert all(r.status_code == 200 for r in before.values()), [r.text for r in before.values()]
+        first.kill()  # the round is open, its other patrons have not answered
+
+        database = Database(database_url)
+        with database.session(write=False) as session:
+            round_row = session.scalars(
+                select(FineTuneRound).where(FineTuneRound.auction_id == auction_id)
+            ).one()
+            answered = session.scalar(
+                select(func.count()).where(FineTuneAnswer.round_id == round_row.id)
+            )
+            at_kill = session.scalars(select(Auction).where(Auction.id == auction_id)).one()
+        assert round_row.status == "open" and answered == 2
+        assert at_kill.status == "running" and at_kill.iteration == 1
+
+        second.start()
+        resumed = current(second, auction_id, after=0)
+        assert resumed["round"] == 1 and resumed["status"] == "open"
+        assert resumed["deadline"] == state["deadline"]  # the same absolute deadline
+        assert resumed["rows"] == state["rows"] and resumed["asked"] == state["asked"]
+        again = upload(second, resumed, asked[0])  # a retry after the crash: the same answer
+        assert again.status_code == 200 and again.content == before[asked[0]].content
+        for model_id in asked[2:]:
+            assert upload(second, resumed, model_id).status_code == 200
+        nxt = current(second, auction_id, after=1)  # closed at its last answer
+        assert nxt["round"] == 2 and nxt["status"] == "open"
+        for model_id in nxt["asked"]:
+            assert upload(second, nxt, model_id).status_code == 200
+        auction = wait_for(
+            lambda: httpx.get(f"{second.url}/auctions/{auction_id}", timeout=30).json(),
+            lambda a: a["status"] in ("finished", "failed"),
+            TIMEOUT_S,
+        )
+        assert auction["status"] == "finished", auction["error"]
+        history = auction["history"]
+        assert [row["iteration"] for row in history] == list(range(len(history)))
+        first_round = auction["fine_tuning"][0]
+        assert sorted(a["model_id"] for a in first_round["answers"]) == sorted(asked)
+        assert all(a["outcome"] in ("accepted", "refused") for a in first_round["answers"])
+        config = MarketConfig(
+            n_fish=1, fine_tune=True, fine_tune_rounds=2, seed=3, fine_tune_mode="remote"
+        )
+        assert replay(second, auction, config) == history
+        uploads = sum(
+            a["uploaded_id"] is not None for r in auction["fine_tuning"] for a in r["answers"]
+        )
+        with database.session(write=False) as session:
+            versions = session.scalar(
+                select(func.count()).where(ModelVersion.auction_id == auction_id)
+            )
+            purchases = session.scalar(
+                select(func.count()).where(Purchase.auction_id == auction_id)
+            )
+        database.close()
+        assert versions == uploads  # each stored once, the retry included
+        assert purchases == len(auction["buyers"])
+        assert len({b["model_id"] for b in auction["buyers"]}) == len(auction["buyers"])
+    finally:
+        first.kill()
+        second.stop()

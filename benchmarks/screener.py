@@ -2,23 +2,26 @@
 legitimate fine-tuning moves honest weights (the margin the tolerances must leave).
 
 Prints:
-* the confusion table per construction (honest kinds: accepted should be all; saboteur kinds:
-  rejected should be all) with the rules that fired most for each saboteur kind;
+* the confusion table per construction of the labelled corpus (``tests/screener/corpus.py``:
+  honest kinds, hand-written sincere variants, saboteur constructions, the red team's finds;
+  honest kinds: accepted should be all; saboteur kinds: rejected should be all) with the rules
+  that fired most for each kind;
 * overall honest acceptance (target ≥ 99.5%) and saboteur rejection (target ≥ 99%);
-* ``screen(manifest)`` one at a time: ms per manifest p50 / p99 and manifests/s (target
-  ≤ 5 ms per manifest), and ``screen_many`` in batches of 64 (re-screening a market);
-* ``screen_many`` per batch size 1 to 64 (the screening process judges up to 16 queued
-  submissions at once): mean ms per call over at least 200 calls after a warm-up, for honest
-  manifests straight from the factory and for the same manifests parsed from JSON as ``/submit``
-  receives them (parsed manifests share no sub-models, so building the batch costs more);
+* ``screen(manifest)`` one at a time: ms per manifest p50 / p99;
+* ``screen_many`` per batch size 1, 16 and 64 (the screening process judges up to 16 queued
+  submissions at once; re-screening a round of 64 fine-tuned patrons is ``rescreen``): mean ms
+  per call over repeated calls after a warm-up, for honest manifests straight from the factory,
+  for the same parsed from JSON as ``/submit`` receives them, for fine-tuned honest patrons
+  re-screened (``rescreen``: no fine-tuning projection), and for a worst case where every model
+  holds somewhere on the decisive row (each one runs the market-impact test auctions);
 * fine-tuning drift: 200 honest patrons fine-tuned with the most aggressive honest settings
   (lr 1e-4, 2 epochs, batch 4) for 4, 8 and 16 rounds, at auction prices, at falling and at
   rising prices: the largest weight change per layer and the share still accepted (4 rounds
   is what an auction allows).
 
-Run: ``.venv/bin/python benchmarks/screener.py [--honest 1000] [--per-kind 8] [--seed 0]``.
-One thread; wall-clock timings are noisy when other jobs share the machine, so the process's
-CPU time per manifest is printed beside them (it excludes time spent waiting for a core).
+Run: ``.venv/bin/python benchmarks/screener.py [--honest 1000] [--sincere 40] [--per-kind 8]
+[--seed 0]``. One thread; wall-clock timings are noisy when other jobs share the machine, so the
+process's CPU time is printed beside them.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ import statistics
 import sys
 import time
 from collections import Counter, defaultdict
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +41,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from agents.manifest import Manifest
 from agents.negotiator import from_manifests, honest_manifest
-from screener import screen, screen_many
+from screener import rescreen, screen, screen_many
+from screener.checks import cheap_checks, failed_any
 from tests.screener.corpus import (
     FALLING_PRICES,
     FINE_TUNE_ROUNDS,
@@ -47,6 +52,8 @@ from tests.screener.corpus import (
     corpus,
     edit,
     fine_tuned,
+    red_team_corpus,
+    sincere_corpus,
 )
 
 REGIMES = {
@@ -65,14 +72,15 @@ LAYERS = {
 }
 
 
-def confusion(seed: int, n_honest: int, per_kind: int) -> None:
+def confusion(seed: int, n_honest: int, per_sincere: int, per_kind: int) -> None:
     start = time.perf_counter()
     entries = corpus(seed, n_honest, per_kind)
+    entries += sincere_corpus(np.random.default_rng([seed, 1]), per_sincere) + red_team_corpus()
     built = time.perf_counter() - start
     start = time.perf_counter()
     verdicts = []
-    for i in range(0, len(entries), 128):
-        verdicts += screen_many([e.manifest for e in entries[i : i + 128]])
+    for i in range(0, len(entries), 64):
+        verdicts += screen_many([e.manifest for e in entries[i : i + 64]])
     judged = time.perf_counter() - start
     table: dict[tuple[bool, str], Counter[bool]] = defaultdict(Counter)
     fired: dict[str, Counter[str]] = defaultdict(Counter)
@@ -101,7 +109,7 @@ def confusion(seed: int, n_honest: int, per_kind: int) -> None:
 def speed(seed: int) -> None:
     rng = np.random.default_rng(seed)
     manifests = corpus(seed, 100, 2)
-    sample = [manifests[int(i)].manifest for i in rng.integers(len(manifests), size=400)]
+    sample = [manifests[int(i)].manifest for i in rng.integers(len(manifests), size=200)]
     for m in sample[:20]:
         screen(m)  # warm-up
     wall, cpu = [], []
@@ -110,40 +118,64 @@ def speed(seed: int) -> None:
         screen(m)
         wall.append((time.perf_counter() - start) * 1e3)
         cpu.append((time.process_time() - start_cpu) * 1e3)
-    print(f"\nscreen(), one manifest at a time ({len(sample)} manifests; target ≤ 5 ms):")
+    print(f"\nscreen(), one manifest at a time ({len(sample)} corpus manifests):")
     for name, times in (("wall", wall), ("CPU", cpu)):
         times.sort()
         p50, p99 = statistics.median(times), times[int(0.99 * (len(times) - 1))]
-        rate = 1e3 / statistics.mean(times)
-        print(f"  {name:>4} time: p50 {p50:.2f} ms, p99 {p99:.2f} ms, {rate:.0f} manifests/s")
-    start = time.perf_counter()
-    for i in range(0, len(sample), 64):
-        screen_many(sample[i : i + 64])
-    per = (time.perf_counter() - start) * 1e3 / len(sample)
-    print(f"screen_many(), batches of 64: {per:.2f} ms per manifest, {1e3 / per:.0f} manifests/s")
+        print(f"  {name:>4} time: p50 {p50:.2f} ms, p99 {p99:.2f} ms")
 
 
-BATCH_SIZES = (1, 2, 4, 8, 16, 32, 64)
+BATCH_SIZES = (1, 16, 64)
+
+
+def _holders(rng: np.random.Generator, n: int) -> list[Manifest]:
+    """Models that hold somewhere on the reachable decisive row and pass the rules and probes
+    (honest factory models with a large hold bias): each runs the market-impact test."""
+    found: list[Manifest] = []
+    while len(found) < n:
+        models = [honest_manifest(rng, f"holder-{len(found)}-{i}") for i in range(256)]
+        batch = from_manifests(models)
+        groups, holds = cheap_checks(batch)
+        keep = holds & ~failed_any(groups)
+        found += [m for m, k in zip(models, keep, strict=True) if k]
+    return found[:n]
+
+
+def _timed(call: Callable[[], object], calls: int) -> tuple[float, float]:
+    """Mean wall and CPU ms per call after one warm-up call."""
+    call()
+    start, start_cpu = time.perf_counter(), time.process_time()
+    for _ in range(calls):
+        call()
+    return (
+        (time.perf_counter() - start) * 1e3 / calls,
+        (time.process_time() - start_cpu) * 1e3 / calls,
+    )
 
 
 def batch_costs(seed: int) -> None:
     rng = np.random.default_rng(seed)
     made = [honest_manifest(rng, f"h{i}") for i in range(max(BATCH_SIZES))]
     parsed = [Manifest.model_validate_json(m.model_dump_json()) for m in made]
-    print("\nscreen_many() per batch size (mean of >= 200 calls; ms per call, ms per manifest):")
-    print(f"{'batch':>6} {'factory-made':>22} {'parsed from JSON':>22}")
-    for size in BATCH_SIZES:
+    tuned = fine_tuned(made, rng)
+    tuned_batch = from_manifests(tuned)
+    holders = _holders(rng, max(BATCH_SIZES))
+    cases: dict[str, Callable[[int], Callable[[], object]]] = {
+        "factory-made": lambda n: lambda: screen_many(made[:n]),
+        "parsed from JSON": lambda n: lambda: screen_many(parsed[:n]),
+        "rescreen fine-tuned": lambda n: lambda: rescreen(tuned_batch.select(np.arange(n))),
+        "all holders": lambda n: lambda: screen_many(holders[:n]),
+    }
+    print("\nscreen_many() per batch size (mean of repeated calls after a warm-up): ms per "
+          "call, ms per manifest, wall (CPU)")  # fmt: skip
+    print(f"{'case':>20} " + " ".join(f"{f'batch {n}':>26}" for n in BATCH_SIZES))
+    for name, make in cases.items():
         row = []
-        for pool in (made, parsed):
-            batch = pool[:size]
-            screen_many(batch)  # warm-up
-            calls = max(200, 2000 // size)
-            start = time.perf_counter()
-            for _ in range(calls):
-                screen_many(batch)
-            per_call = (time.perf_counter() - start) * 1e3 / calls
-            row.append(f"{per_call:8.2f} ms {per_call / size:7.3f} ms")
-        print(f"{size:6d} {row[0]:>22} {row[1]:>22}")
+        for n in BATCH_SIZES:
+            calls = max(3, 160 // n) if name != "all holders" else max(2, 16 // n)
+            wall, cpu = _timed(make(n), calls)
+            row.append(f"{wall:7.1f} ({cpu:6.1f}) {wall / n:5.2f} ms")
+        print(f"{name:>20} " + " ".join(f"{cell:>26}" for cell in row))
 
 
 def drift(seed: int) -> None:
@@ -175,14 +207,17 @@ def drift(seed: int) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--honest", type=int, default=1000)
+    parser.add_argument("--sincere", type=int, default=40)
     parser.add_argument("--per-kind", type=int, default=8)
+    parser.add_argument("--no-drift", action="store_true", help="skip the fine-tuning drift")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    confusion(args.seed, args.honest, args.per_kind)
+    confusion(args.seed, args.honest, args.sincere, args.per_kind)
     speed(args.seed)
     batch_costs(args.seed)
-    drift(args.seed)
+    if not args.no_drift:
+        drift(args.seed)
 
 
 if __name__ == "__main__":

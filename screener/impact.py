@@ -42,6 +42,7 @@ from agents.manifest import Manifest
 from agents.negotiator import (
     FSNBatch,
     fine_tune_round,
+    from_manifests,
     honest_manifest,
     saboteur_manifest,
     to_manifest,
@@ -101,14 +102,24 @@ TEST_AUCTIONS = [
 
 
 def run(candidates: Sequence[Manifest | None]) -> list[Outcome]:
-    """The test auctions of every candidate (None: honest alone) in one lock-step batch."""
-    auctions = [
-        ([*_population(trial), *([] if c is None else [c] * limits.IMPACT_COPIES)], config)
-        for c in candidates
-        for trial, config in TEST_AUCTIONS
-    ]
+    """The test auctions of every candidate (None: honest alone) in one lock-step batch (its
+    patrons stacked from one read of the reference populations and the candidates)."""
+    people = [m for trial in range(limits.IMPACT_TRIALS) for m in _population(trial)]
+    given = [c for c in candidates if c is not None]
+    pool = from_manifests([*people, *given])
+    auctions: list[tuple[list[Manifest], MarketConfig]] = []
+    index: list[int] = []
+    slot = iter(range(len(people), len(people) + len(given)))
+    for candidate in candidates:
+        own = None if candidate is None else next(slot)
+        copies = [] if candidate is None else [candidate] * limits.IMPACT_COPIES
+        for trial, config in TEST_AUCTIONS:
+            auctions.append(([*_population(trial), *copies], config))
+            first = trial * limits.IMPACT_HONEST
+            index += range(first, first + limits.IMPACT_HONEST)
+            index += [] if own is None else [own] * limits.IMPACT_COPIES
     buyers: list[list[tuple[int, float]]] = [[] for _ in auctions]
-    engine = MarketBatch(auctions)
+    engine = MarketBatch(auctions, patrons=pool.select(index))
     while not engine.finished.all():
         for a, record in enumerate(engine.step()):
             if record is not None and record.buyers:

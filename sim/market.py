@@ -308,7 +308,10 @@ class MarketBatch:
         rescreen: Sequence[Rescreen | None] | None = None,
         rescreen_batch: RescreenBatch | None = None,
         dtype: torch.dtype = torch.float64,
+        patrons: FSNBatch | None = None,
     ) -> None:
+        """``patrons``, if given, is ``from_manifests`` of every auction's manifests in order,
+        built by the caller (who may stack it from parts it already holds)."""
         if not auctions:
             raise ValueError("no auction")
         self.configs = [config for _, config in auctions]
@@ -324,7 +327,13 @@ class MarketBatch:
         self.owner = np.repeat(np.arange(A), sizes)
         self.first = np.concatenate(([0], np.cumsum(sizes)))
         self.local = np.arange(len(self.owner)) - self.first[self.owner]
-        self.batch = from_manifests([m for manifests, _ in auctions for m in manifests], dtype)
+        if patrons is not None and patrons.n_patrons != sum(sizes):
+            raise ValueError("patrons must hold every auction's manifests")
+        self.batch = (
+            patrons
+            if patrons is not None
+            else from_manifests([m for manifests, _ in auctions for m in manifests], dtype)
+        )
         self.accepted = (
             {k: v.clone() for k, v in self.batch.parameters().items()}
             if rescreen_batch is not None or any(cb is not None for cb in self.rescreen)

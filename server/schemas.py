@@ -295,8 +295,6 @@ class JobCreate(_Input):
     kind: JobKind
     params: dict[str, Any] = Field(default_factory=dict)
 
-
-class JobCreated(BaseModel):
     @classmethod
     def __get_pydantic_json_schema__(
         cls, core_schema: CoreSchema, handler: GetJsonSchemaHandler
@@ -318,6 +316,8 @@ class JobCreated(BaseModel):
         ]
         return {"title": "JobCreate", "description": cls.__doc__, "oneOf": alternatives}
 
+
+class JobCreated(BaseModel):
     job_id: int
     status: JobStatus
 

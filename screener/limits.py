@@ -138,9 +138,10 @@ SCAN_DEMANDS = tuple(k / 10 for k in range(11))
 """Buy fractions f of the decisive-row scan, every 0.1: f is the previous round's buyers over
 voters, so any fraction occurs."""
 SCAN_RISES = 20
-"""The scan visits every price one decrement apart from the market's stalemate floor up to the
-base price plus this many increments (4.80 to 6.00 with the market's rules): beyond, only a run
-of 20 rounds of excess demand could take the price, which honest auctions never see."""
+"""The scan visits every price one decrement apart from ``HOLD_REACH_SLACK`` decrements under the
+market's stalemate floor up to the base price plus this many increments (4.75 to 6.00 with the
+market's rules): beyond, only a run of 20 rounds of excess demand could take the price, which
+honest auctions never see."""
 HOLD_REACH_SLACK = 5
 """A hold counts as backed by a purchase up to this many decrements below the lowest price the
 auction can come down to: honest negotiators with the paper's largest hold biases, fine-tuned or

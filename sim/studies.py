@@ -87,7 +87,8 @@ class StudyConfig(AuctionOptions):
     saboteurs: Annotated[float, Field(ge=0, le=1)] = 0.0
     """Fraction of the patrons that are always-hold saboteurs (the last ones)."""
     screen: bool = False
-    """Screen every patron before the auction; refused ones stay out."""
+    """Screen every patron before the auction (refused ones stay out) and re-screen fine-tuned
+    patrons after each round (refused versions are reverted)."""
     grid: bool = False
     """Run the paper's whole grid: fine-tune off/on × saboteurs 0 and (--saboteurs or 0.5)."""
 

@@ -34,6 +34,13 @@ COPY server ./server
 COPY examples ./examples
 RUN pip install --no-deps .
 
+# numba compiles lavaland's SRD step on first use (tens of seconds): compile it into the image,
+# in a cache the server's user may add to (a CPU unlike the build machine's recompiles once).
+ENV NUMBA_CACHE_DIR=/app/numba-cache
+RUN srd lavaland --eval-maps 4 --train-maps 4 --out /tmp/warm-up --json > /dev/null \
+    && rm -rf /tmp/warm-up \
+    && chown -R 10001:10001 /app/numba-cache
+
 RUN useradd --create-home --uid 10001 srd \
     && mkdir -p /data \
     && chown 10001:10001 /data

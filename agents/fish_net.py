@@ -16,7 +16,7 @@ input, so they have one output position and are exactly linear maps; they are he
 several times faster on CPU. Checked against a Conv1d, one-verdict-per-step version of the
 12000-step SRD run: the same energy trace, final weights equal within float32 rounding (3·10⁻⁷).
 
-Fidelity notes (kept from the reference, see DECISIONS.md "Robot fish: follow the reference"):
+Fidelity notes (the reference is followed exactly; see docs/decisions.md):
 * The paper's text gives the fh bias as +0.5; its table and the reference code use −0.5
   (only −0.5 makes fh = S(0.5 − 0.5) = 1 when food is here).
 * The reference's comments call e1 "eat when hungry and food there" and m1 "move when hungry

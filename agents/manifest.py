@@ -5,7 +5,7 @@ A manifest names each neuron and, inside it, each incoming weight by the name of
 high-price neuron PG. Missing or unknown names, non-finite numbers and out-of-range settings are
 refused by pydantic with the exact path of the offending value (``loc``).
 
-Layers (paper, "The Server and Fish Sale Negotiator"; spec auction.md §5):
+Layers (paper, "The Server and Fish Sale Negotiator"; docs/auction.md):
 * inputs (8): price p, length l, weight w, gill colour g, sub-type flags st1..st3, previous
   buy fraction f.
 * ``external_sensor`` (ES, 4 neurons): PG (price too high), SZ (size), LSR (limited supply

@@ -151,7 +151,7 @@ def create_auction(body: AuctionCreate, session: SessionDep, request: Request) -
 
 
 def auction_public(view: crud.AuctionView) -> AuctionPublic:
-    """The GET shape of an auction (INTERFACE.md plus extras)."""
+    """The GET shape of an auction: the fields clients rely on, plus extras."""
     auction = view.auction
     return AuctionPublic(
         id=auction.id,

@@ -25,7 +25,7 @@ from agents.negotiator import (
 )
 from agents.neurons import self_reward_loss
 
-# spec auction.md §5.3: D = 1, no noise, hold_bias = quit_bias = 0.
+# The reference's values: D = 1, no noise, hold_bias = quit_bias = 0.
 REFERENCE_TABLE = [
     # b, p, PG, SZ, LSR, ST, B, L, Q, T, F
     (4.8, 4.9, 0.377, 0.040, 0.009, 0.586, 1.258, 0.262, 0.254, 0.416, 0.472),

@@ -20,7 +20,7 @@ def test_selective_is_one_at_zero_and_half_at_sqrt_epsilon():
 
 
 def test_selective_default_epsilon_is_the_reference_1e4():
-    # ST of the FSN at the prototype row: pre-activation 0.0084 → 0.586 (spec §5.3).
+    # ST of the FSN at the prototype row: pre-activation 0.0084 → 0.586 (the reference's table).
     assert float(selective(t(0.0084))) == pytest.approx(1e-4 / (1e-4 + 0.0084**2), abs=1e-12)
     assert float(selective(t(0.0084))) == pytest.approx(0.586, abs=1e-3)
 

@@ -46,7 +46,7 @@ that right, and fine-tuning makes them keener (ST stops fading with the price, S
 RISING_PRICES = (5.3, 6.0)
 """Rounds while high demand raises the price: honest models quit, the PFC calls that wrong."""
 MAX_HONEST_FINE_TUNING = {"epochs": 2, "batch_size": 4, "learning_rate": 1e-4}
-"""The most aggressive honest settings (spec §4.3): 128 SGD steps in 4 rounds of 64 rows."""
+"""The most aggressive honest settings (the paper's ranges): 128 SGD steps, 4 rounds of 64 rows."""
 DELTA = 0.001
 """δ, the design's seed weight."""
 

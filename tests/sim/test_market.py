@@ -46,7 +46,7 @@ def patrons(seed: int, n_honest: int, n_saboteurs: int = 0, lr: float | None = N
 
 
 def loop_auction(manifests: list[Manifest], config: MarketConfig) -> list[IterationRecord]:
-    """The auction written plainly, one patron at a time (spec auction.md §6).
+    """The auction written plainly, one patron at a time (the reference's server loop).
 
     It draws the same random numbers as the engine: the rows and price raises from the numpy
     generator, row 0's noise from ``decisive``, rows 1.. from ``rows``, each drawn for the

@@ -27,7 +27,7 @@ import random
 import re
 import secrets
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
@@ -62,6 +62,8 @@ AUCTION_POLL_S = 0.5
 SUBMIT_CONCURRENCY = 16
 """Submissions in flight at once."""
 RETRY_STATUSES = frozenset({429, 503})
+ONE_CONNECTION = httpx.Limits(max_connections=1, max_keepalive_connections=1)
+"""An agent's requests follow one another: one keep-alive connection each."""
 NAME_PREFIX = r"[A-Za-z0-9_.\-]{1,48}"
 """Participant names are <prefix>-honest-000 and the like (64 characters at most in all)."""
 
@@ -85,7 +87,9 @@ class Traffic:
 
 
 class Client:
-    """JSON over HTTP with retries and byte counting, shared by many agents."""
+    """JSON over HTTP with retries and byte counting (into ``traffic``, which several clients
+    may share). Give each agent its own client (one connection, as on its own machine): one
+    httpx pool serving many agents' concurrent requests costs time quadratic in their number."""
 
     def __init__(
         self,
@@ -93,10 +97,11 @@ class Client:
         *,
         give_up_s: float = GIVE_UP_S,
         rng: random.Random | None = None,
+        traffic: Traffic | None = None,
     ) -> None:
         self.http = http
         self.give_up_s = give_up_s
-        self.traffic = Traffic()
+        self.traffic = traffic or Traffic()
         self._rng = rng or random.Random(0)
 
     @property
@@ -440,8 +445,9 @@ class PopulationReport:
         return dict(self.__dict__)
 
 
-def population(config: PopulationConfig, client: Client) -> list[RemoteAgent]:
-    """The population's agents: honest ones first, then the saboteurs (honest-looking)."""
+def population(config: PopulationConfig, clients: Sequence[Client]) -> list[RemoteAgent]:
+    """The population's agents, one client each: honest ones first, then the saboteurs
+    (honest-looking)."""
     rng = np.random.default_rng(config.seed)
     prefix = config.name_prefix or f"agents-{config.seed}-{secrets.token_hex(3)}"
     agents = []
@@ -450,7 +456,7 @@ def population(config: PopulationConfig, client: Client) -> list[RemoteAgent]:
         name = f"{prefix}-{'saboteur' if saboteur else 'honest'}-{i:03d}"
         agents.append(
             RemoteAgent(
-                client,
+                clients[i],
                 honest_manifest(rng, name),
                 fine_tuner=always_hold if saboteur else faithful_fine_tune,
             )
@@ -507,10 +513,22 @@ async def run_population(
     follow the auction to its end, and report."""
     started = time.monotonic()
     n_agents = config.honest + config.saboteurs
-    limits = httpx.Limits(max_connections=n_agents + 8, max_keepalive_connections=n_agents + 8)
-    async with httpx.AsyncClient(base_url=config.server, limits=limits) as http:
-        client = Client(http, give_up_s=config.give_up_s, rng=random.Random(config.seed))
-        agents = population(config, client)
+    traffic = Traffic()
+    rng = random.Random(config.seed)
+    async with contextlib.AsyncExitStack() as stack:
+        clients = [
+            Client(
+                await stack.enter_async_context(
+                    httpx.AsyncClient(base_url=config.server, limits=ONE_CONNECTION)
+                ),
+                give_up_s=config.give_up_s,
+                rng=random.Random(rng.random()),
+                traffic=traffic,
+            )
+            for _ in range(n_agents)
+        ]
+        client = clients[0]
+        agents = population(config, clients)
         done = 0
 
         async def submit(agent: RemoteAgent) -> None:
@@ -554,10 +572,10 @@ async def run_population(
         model_ids=model_ids,
         auctions=[auction_id],
         uploads=dict(uploads.__dict__),
-        bytes_up=client.traffic.bytes_up,
-        bytes_down=client.traffic.bytes_down,
-        requests=client.traffic.requests,
-        retries=client.traffic.retries,
+        bytes_up=traffic.bytes_up,
+        bytes_down=traffic.bytes_down,
+        requests=traffic.requests,
+        retries=traffic.retries,
         rounds=len(final.get("fine_tuning", [])),
         admitted=sum(bool(a.accepted_at_submit) for a in agents),
         refusal_rules=sorted({r["rule"] for a in agents for r in a.reasons}),

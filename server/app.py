@@ -22,7 +22,7 @@ from server.db import Database, prepare_database
 from server.errors import install_error_handlers, responses
 from server.jobs import LocalJobBackend, requeue_unfinished
 from server.quotas import Limits
-from server.remote_rounds import RoundWatcher, UploadWriter
+from server.remote_rounds import RoundWatcher, UploadLookup, UploadWriter
 from server.routes import auctions, events, health, jobs, models, participants, rounds, ui
 from server.screening import ScreeningService
 from server.security import load_admin_token_hash
@@ -58,6 +58,8 @@ def _start_services(app: FastAPI, settings: Settings) -> None:
     app.state.submissions.start()
     app.state.uploads = UploadWriter(database)
     app.state.uploads.start()
+    app.state.upload_lookup = UploadLookup(database)
+    app.state.upload_lookup.start()
     app.state.rounds = RoundWatcher(database, app.state.uploads)
     app.state.auctions.start()
     app.state.jobs.start()
@@ -73,6 +75,7 @@ def _stop_services(app: FastAPI) -> None:
     app.state.auctions.shutdown()
     app.state.submissions.shutdown()
     app.state.uploads.shutdown()
+    app.state.upload_lookup.shutdown()
     app.state.screening.shutdown()
     app.state.database.close()
 

@@ -880,66 +880,133 @@ class UploadLookupError(LookupError):
         self.field = field
 
 
-def upload_target(
-    session: Session, *, auction_id: int, model_id: int, round_number: int
-) -> UploadTarget:
-    """Everything an upload is checked against, read in one transaction."""
+UploadKey = tuple[int, int, int]
+"""(auction id, model id, round) of an upload's path."""
+
+
+def upload_targets(
+    session: Session, *, keys: Sequence[UploadKey]
+) -> list[UploadTarget | UploadLookupError]:
+    """What each upload of a batch is checked against, read in one transaction with six
+    queries whatever the batch's size (the UploadLookupError of a path that names no auction
+    or model)."""
     connection = session.connection()
-    auction = connection.execute(_AUCTION_MODE, {"auction_id": auction_id}).one_or_none()
-    if auction is None:
-        raise UploadLookupError("auction_id")
-    owner = connection.execute(
-        select(Participant.id, Participant.name, Participant.token_hash)
-        .join(ModelVersion, ModelVersion.participant_id == Participant.id)
-        .where(ModelVersion.id == model_id)
-    ).one_or_none()
-    if owner is None:
-        raise UploadLookupError("model_id")
-    patron = connection.execute(
-        select(AuctionPatron.position, AuctionPatron.current_model_id).where(
-            AuctionPatron.auction_id == auction_id, AuctionPatron.model_id == model_id
-        )
-    ).one_or_none()
-    current_id = (
-        model_id if patron is None or patron.current_model_id is None else (patron.current_model_id)
-    )
-    current = connection.execute(
-        select(ModelVersion.version, ModelVersion.manifest).where(ModelVersion.id == current_id)
-    ).one()
-    newest = connection.execute(_NEWEST_ROUND, {"auction_id": auction_id}).one_or_none()
-    asked_round = connection.execute(
-        select(
-            FineTuneRound.id, FineTuneRound.status, FineTuneRound.deadline, FineTuneRound.asked
-        ).where(FineTuneRound.auction_id == auction_id, FineTuneRound.round == round_number)
-    ).one_or_none()
-    answer = None
-    if asked_round is not None and patron is not None:
-        answer = connection.execute(
-            select(FineTuneAnswer.outcome, FineTuneAnswer.body_sha256, FineTuneAnswer.answer).where(
-                FineTuneAnswer.round_id == asked_round.id,
-                FineTuneAnswer.position == patron.position,
+    auction_ids = sorted({a for a, _, _ in keys})
+    model_ids = sorted({m for _, m, _ in keys})
+    auctions = {
+        row.id: row
+        for row in connection.execute(
+            select(Auction.id, Auction.status, Auction.fine_tune_mode).where(
+                Auction.id.in_(auction_ids)
             )
-        ).one_or_none()
-    return UploadTarget(
-        auction_status=auction.status,
-        fine_tune_mode=auction.fine_tune_mode,
-        position=None if patron is None else patron.position,
-        participant_id=owner.id,
-        participant=owner.name,
-        token_hash=owner.token_hash,
-        current_id=current_id,
-        current_version=current.version,
-        current_manifest=current.manifest,
-        newest_round=None if newest is None else newest.round,
-        newest_status=None if newest is None else newest.status,
-        round_id=None if asked_round is None else asked_round.id,
-        round_status=None if asked_round is None else asked_round.status,
-        deadline=None if asked_round is None else asked_round.deadline,
-        asked=[] if asked_round is None else list(asked_round.asked),
-        answer_outcome=None if answer is None else answer.outcome,
-        answer_sha256=None if answer is None else answer.body_sha256,
-        answer=None if answer is None else answer.answer,
-    )
+        )
+    }
+    owners = {
+        row.id: row
+        for row in connection.execute(
+            select(
+                ModelVersion.id,
+                Participant.id.label("participant_id"),
+                Participant.name,
+                Participant.token_hash,
+            )
+            .join(Participant, Participant.id == ModelVersion.participant_id)
+            .where(ModelVersion.id.in_(model_ids))
+        )
+    }
+    patrons = {
+        (row.auction_id, row.model_id): row
+        for row in connection.execute(
+            select(
+                AuctionPatron.auction_id,
+                AuctionPatron.model_id,
+                AuctionPatron.position,
+                AuctionPatron.current_model_id,
+            ).where(
+                AuctionPatron.auction_id.in_(auction_ids), AuctionPatron.model_id.in_(model_ids)
+            )
+        )
+    }
+
+    def current_of(auction_id: int, model_id: int) -> int:
+        patron = patrons.get((auction_id, model_id))
+        return (
+            model_id
+            if patron is None or patron.current_model_id is None
+            else (patron.current_model_id)
+        )
+
+    versions = {
+        row.id: row
+        for row in connection.execute(
+            select(ModelVersion.id, ModelVersion.version, ModelVersion.manifest).where(
+                ModelVersion.id.in_(sorted({current_of(a, m) for a, m, _ in keys}))
+            )
+        )
+    }
+    rounds: dict[int, dict[int, Any]] = {}
+    for row in connection.execute(
+        select(
+            FineTuneRound.id,
+            FineTuneRound.auction_id,
+            FineTuneRound.round,
+            FineTuneRound.status,
+            FineTuneRound.deadline,
+            FineTuneRound.asked,
+        ).where(FineTuneRound.auction_id.in_(auction_ids))
+    ):
+        rounds.setdefault(row.auction_id, {})[row.round] = row
+    asked_ids = sorted({r.id for a, _, n in keys if (r := rounds.get(a, {}).get(n))})
+    positions = sorted({p.position for p in patrons.values()})
+    answers = {
+        (row.round_id, row.position): row
+        for row in connection.execute(
+            select(
+                FineTuneAnswer.round_id,
+                FineTuneAnswer.position,
+                FineTuneAnswer.outcome,
+                FineTuneAnswer.body_sha256,
+                FineTuneAnswer.answer,
+            ).where(FineTuneAnswer.round_id.in_(asked_ids), FineTuneAnswer.position.in_(positions))
+        )
+    }
+    out: list[UploadTarget | UploadLookupError] = []
+    for auction_id, model_id, number in keys:
+        auction, owner = auctions.get(auction_id), owners.get(model_id)
+        if auction is None or owner is None:
+            out.append(UploadLookupError("auction_id" if auction is None else "model_id"))
+            continue
+        patron = patrons.get((auction_id, model_id))
+        current = versions[current_of(auction_id, model_id)]
+        mine = rounds.get(auction_id, {})
+        newest = mine[max(mine)] if mine else None
+        asked = mine.get(number)
+        answer = None
+        if asked is not None and patron is not None:
+            answer = answers.get((asked.id, patron.position))
+        out.append(
+            UploadTarget(
+                auction_status=auction.status,
+                fine_tune_mode=auction.fine_tune_mode,
+                position=None if patron is None else patron.position,
+                participant_id=owner.participant_id,
+                participant=owner.name,
+                token_hash=owner.token_hash,
+                current_id=current.id,
+                current_version=current.version,
+                current_manifest=current.manifest,
+                newest_round=None if newest is None else newest.round,
+                newest_status=None if newest is None else newest.status,
+                round_id=None if asked is None else asked.id,
+                round_status=None if asked is None else asked.status,
+                deadline=None if asked is None else asked.deadline,
+                asked=[] if asked is None else list(asked.asked),
+                answer_outcome=None if answer is None else answer.outcome,
+                answer_sha256=None if answer is None else answer.body_sha256,
+                answer=None if answer is None else answer.answer,
+            )
+        )
+    return out
 
 
 def patron_auctions(session: Session, *, model_id: int, limit: int) -> list[int]:

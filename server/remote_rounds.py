@@ -4,11 +4,13 @@ writer (group commits).
 ``RoundWatcher`` answers ``GET /auctions/{id}/rounds/current``. However many agents wait on an
 auction, this process reads that auction's round from the database at most once per
 ``WATCH_POLL_S``: one asyncio task per watched auction polls while anyone waits and wakes every
-waiter when a round opens or the auction ends. The answer body of a round is built once (its
-64 × 8 rows serialised once) and shared by all its waiters; only ``seconds_left`` is written per
-answer. Waiters are bounded (``MAX_WAITERS`` per process; beyond that 503 with Retry-After).
-The bytes of the answers that carry a round are counted in memory and added to the round's
-``bytes_published`` by the upload writer, which flushes them at most every ``FLUSH_S``.
+waiter when a round opens or the auction ends, and requests that do not wait share the latest
+snapshot while it is younger than that (the snapshots of ``MAX_WATCHED`` auctions are kept).
+The answer body of a round is built once (its 64 × 8 rows serialised once) and shared by all
+its waiters; only ``seconds_left`` is written per answer. Waiters are bounded (``MAX_WAITERS``
+per process; beyond that 503 with Retry-After). The bytes of the answers that carry a round are
+counted in memory and added to the round's ``bytes_published`` by the upload writer, which
+flushes them at most every ``FLUSH_S``.
 
 ``UploadWriter`` stores the decided uploads of ``PUT .../rounds/{round}/models/{model_id}`` in
 group commits (as ``server.submissions`` does for ``/submit``): one thread takes every upload
@@ -50,6 +52,8 @@ MAX_WAIT_S = 30.0
 """Longest ``?wait=`` a round request may ask for."""
 MAX_WAITERS = 2048
 """Round requests waiting at once in one API process (beyond: 503)."""
+MAX_WATCHED = 256
+"""Auctions whose latest snapshot this process keeps (the idle ones beyond are forgotten)."""
 FLUSH_S = 0.2
 """Published-bytes counters are written at least this often while they grow."""
 MAX_GROUP = 64
@@ -119,7 +123,7 @@ class RoundWatcher:
         watch = self._watches.setdefault(auction_id, _Watch())
         snapshot = await self._fresh(auction_id, watch)
         if snapshot is None:
-            self._drop(auction_id, watch)
+            self._watches.pop(auction_id, None)
             return None
         give_up = loop.time() + min(wait_s, MAX_WAIT_S)
         while not snapshot.ready(after) and loop.time() < give_up:
@@ -136,18 +140,25 @@ class RoundWatcher:
                 self._waiters -= 1
                 watch.waiters -= 1
             if watch.snapshot is None:
+                self._watches.pop(auction_id, None)
                 return None
             snapshot = watch.snapshot
         body = self._answer(auction_id, watch, snapshot)
         if snapshot.head.round_id is not None:
             self._writer.count_published(snapshot.head.round_id, len(body))
-        self._drop(auction_id, watch)
+        self._forget_idle()
         return body
 
-    def _drop(self, auction_id: int, watch: _Watch) -> None:
-        """Forget an auction nobody waits on (its next request reads it afresh)."""
-        if watch.waiters == 0 and watch.reading is None:
-            self._watches.pop(auction_id, None)
+    def _forget_idle(self) -> None:
+        """Beyond ``MAX_WATCHED`` auctions, forget those nobody waits on, least recently read
+        first (a forgotten auction's next request reads it afresh)."""
+        if len(self._watches) <= MAX_WATCHED:
+            return
+        idle = sorted(
+            (w.read_at, a) for a, w in self._watches.items() if w.waiters == 0 and w.reading is None
+        )
+        for _, auction_id in idle[: len(self._watches) - MAX_WATCHED]:
+            del self._watches[auction_id]
 
     async def _fresh(self, auction_id: int, watch: _Watch) -> RoundSnapshot | None:
         """The snapshot, read again if older than ``WATCH_POLL_S`` (one read shared by all)."""
@@ -331,6 +342,10 @@ def answer_bytes(answer: dict[str, Any]) -> bytes:
     return json.dumps(answer, separators=(",", ":"), allow_nan=False).encode()
 
 
+_INSERT_ANSWERS = insert(FineTuneAnswer.__table__)  # type: ignore[arg-type]
+"""Core (not the ORM's bulk path): a group's answers in one multi-row statement."""
+
+
 def _store_group(session: Session, group: list[UploadRequest]) -> list[UploadOutcome]:
     """Decide the group's uploads in arrival order against the database and write them."""
     round_ids = sorted({item.round_id for item in group})
@@ -466,11 +481,11 @@ def _store_group(session: Session, group: list[UploadRequest]) -> list[UploadOut
     for index, first in repeats:
         outcomes[index] = outcomes[first]
     if inserted:
-        session.execute(insert(FineTuneAnswer), inserted)
+        session.connection().execute(_INSERT_ANSWERS, inserted)
     for item, answer_id in lates:
         if answer_id is None:
-            session.execute(
-                insert(FineTuneAnswer),
+            session.connection().execute(
+                _INSERT_ANSWERS,
                 [
                     {
                         "round_id": item.round_id,
@@ -559,7 +574,7 @@ class UploadWriter:
                 except Exception as exc:  # never let the writer thread die
                     log.exception("an upload group failed")
                     outcomes = [_unavailable(exc)] * len(group)
-                _answer(group, outcomes)
+                _deliver([(q.loop, q.future, o) for q, o in zip(group, outcomes, strict=True)])
             self._flush_published()
 
     def _write(self, group: list[UploadRequest]) -> list[UploadOutcome]:
@@ -613,18 +628,86 @@ def _unavailable(exc: Exception) -> UploadRefused:
     )
 
 
-def _answer(group: list[_Queued], outcomes: list[UploadOutcome]) -> None:
-    by_loop: dict[asyncio.AbstractEventLoop, list[tuple[_Queued, UploadOutcome]]] = defaultdict(
-        list
-    )
-    for item, outcome in zip(group, outcomes, strict=True):
-        by_loop[item.loop].append((item, outcome))
-    for loop, answers in by_loop.items():
+Delivery = tuple[asyncio.AbstractEventLoop, "asyncio.Future[Any]", Any]
+"""(the waiter's loop, its future, the result or the exception to give it)."""
+
+
+def _deliver(deliveries: list[Delivery]) -> None:
+    """Hand results computed on a thread to futures awaited on event loops."""
+    by_loop: dict[asyncio.AbstractEventLoop, list[Delivery]] = defaultdict(list)
+    for delivery in deliveries:
+        by_loop[delivery[0]].append(delivery)
+    for loop, mine in by_loop.items():
         with contextlib.suppress(RuntimeError):  # that loop has closed: nobody waits
-            loop.call_soon_threadsafe(_settle, answers)
+            loop.call_soon_threadsafe(_settle, mine)
 
 
-def _settle(answers: list[tuple[_Queued, UploadOutcome]]) -> None:
-    for item, outcome in answers:
-        if not item.future.done():
-            item.future.set_result(outcome)
+def _settle(deliveries: list[Delivery]) -> None:
+    for _, future, value in deliveries:
+        if future.done():
+            continue
+        if isinstance(value, BaseException):
+            future.set_exception(value)
+        else:
+            future.set_result(value)
+
+
+# --- the upload lookups -----------------------------------------------------------------------
+
+
+@dataclass
+class _Lookup:
+    key: crud.UploadKey
+    loop: asyncio.AbstractEventLoop
+    future: asyncio.Future[crud.UploadTarget]
+
+
+class UploadLookup:
+    """``await get(key)``: what an upload is checked against (``crud.upload_targets``). One
+    thread reads every lookup queued since its last pass in one transaction of six queries, so
+    64 agents uploading at once cost a few reads, not 64 thread hops of four queries each."""
+
+    def __init__(self, database: Database) -> None:
+        self._database = database
+        self._queue: queue.SimpleQueue[_Lookup | None] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name="upload-lookup", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    async def get(self, key: crud.UploadKey) -> crud.UploadTarget:
+        """The upload's target; raises ``crud.UploadLookupError`` (no such auction or model)
+        or SQLAlchemy's OperationalError (the database is unavailable)."""
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[crud.UploadTarget] = loop.create_future()
+        self._queue.put(_Lookup(key, loop, future))
+        return await future
+
+    def shutdown(self) -> None:
+        self._queue.put(None)
+        if self._thread.is_alive():
+            self._thread.join(STOP_GRACE_S)
+
+    def _run(self) -> None:
+        while True:
+            first = self._queue.get()
+            if first is None:
+                return
+            batch = [first]
+            while len(batch) < MAX_GROUP:
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if item is None:
+                    self._queue.put(None)  # stop after this batch
+                    break
+                batch.append(item)
+            results: list[Any]
+            try:
+                with self._database.session(write=False) as session:
+                    results = crud.upload_targets(session, keys=[item.key for item in batch])
+            except Exception as exc:  # never let the thread die; each lookup gets the error
+                log.exception("an upload lookup batch failed")
+                results = [exc] * len(batch)
+            _deliver([(item.loop, item.future, r) for item, r in zip(batch, results, strict=True)])

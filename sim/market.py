@@ -266,6 +266,11 @@ def round_update_problems(current: Manifest, update: Manifest) -> list[tuple[str
     """What ``update`` changes beyond the weights and biases of ``current``, as (dotted path,
     message) pairs: a fine-tuning round moves the numbers, never the model's design
     (activations, augmentation, settings, names)."""
+    return design_changes(current.model_dump(mode="json"), update.model_dump(mode="json"))
+
+
+def design_changes(current: dict[str, Any], update: dict[str, Any]) -> list[tuple[str, str]]:
+    """``round_update_problems`` on the manifests' JSON forms."""
     problems: list[tuple[str, str]] = []
 
     def walk(before: Any, after: Any, path: tuple[str, ...]) -> None:
@@ -277,7 +282,7 @@ def round_update_problems(current: Manifest, update: Manifest) -> list[tuple[str
         elif before != after:
             problems.append((".".join(path), f"{FROZEN_IN_ROUNDS}: must stay {before!r}"))
 
-    walk(current.model_dump(mode="json"), update.model_dump(mode="json"), ())
+    walk(current, update, ())
     return problems
 
 

@@ -16,11 +16,10 @@ import hashlib
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query, Request, Response
-from starlette.concurrency import run_in_threadpool
+from sqlalchemy.exc import OperationalError
 
-from agents.manifest import Manifest, ManifestError, parse_manifest_json
+from agents.manifest import ManifestError, parse_manifest_json
 from server import crud
-from server.db import Database
 from server.errors import api_error, error_item, responses, validation_error
 from server.models import utcnow
 from server.remote_rounds import (
@@ -28,6 +27,7 @@ from server.remote_rounds import (
     Answered,
     RoundWatcher,
     TooManyWaitersError,
+    UploadLookup,
     UploadOutcome,
     UploadRequest,
     UploadWriter,
@@ -42,7 +42,7 @@ from server.schemas import (
 )
 from server.screening import ScreenerUnavailableError, ScreeningService
 from server.security import BearerDep, token_matches
-from sim.market import round_update_problems
+from sim.market import design_changes
 
 router = APIRouter(tags=["rounds"])
 
@@ -114,26 +114,17 @@ def _no_auction(auction_id: int) -> Exception:
     )
 
 
-def _lookup(
-    database: Database, auction_id: int, model_id: int, round_number: int
-) -> crud.UploadTarget:
-    with database.session(write=False) as session:
-        return crud.upload_target(
-            session, auction_id=auction_id, model_id=model_id, round_number=round_number
-        )
-
-
 def _round_state(target: crud.UploadTarget) -> str:
     if target.newest_round is None:
         return "no round has opened yet"
     return f"the current round is {target.newest_round} ({target.newest_status})"
 
 
-def _body_problems(manifest: Manifest, target: crud.UploadTarget) -> list[dict[str, Any]]:
-    """What the manifest changes beyond weights and biases, as 422 items naming each field."""
-    current = Manifest.model_validate(target.current_manifest)
+def _body_problems(data: dict[str, Any], target: crud.UploadTarget) -> list[dict[str, Any]]:
+    """What the manifest (JSON form) changes beyond weights and biases, as 422 items naming
+    each field."""
     problems = []
-    for path, message in round_update_problems(current, manifest):
+    for path, message in design_changes(target.current_manifest, data):
         if path == "participant":
             message = (
                 f"must be the patron's participant {target.participant!r} (who uploads is "
@@ -191,9 +182,11 @@ async def upload_round_model(
             error_item(e["message"], loc=("body", *e["path"].split(".")), kind="manifest")
             for e in exc.errors
         ) from exc
-    database: Database = request.app.state.database
+    lookup: UploadLookup = request.app.state.upload_lookup
     try:
-        target = await run_in_threadpool(_lookup, database, auction_id, model_id, round_number)
+        target = await lookup.get((auction_id, model_id, round_number))
+    except OperationalError as exc:
+        raise api_error(503, f"the database is unavailable: {exc}", kind="db_unavailable") from exc
     except crud.UploadLookupError as exc:
         if exc.field == "auction_id":
             raise _no_auction(auction_id) from exc
@@ -265,10 +258,10 @@ async def upload_round_model(
         target.deadline is not None and target.deadline <= utcnow()
     ):
         return _answered(await writer.store(late))
-    problems = _body_problems(manifest, target)
+    data = manifest.model_dump(mode="json")
+    problems = _body_problems(data, target)
     if problems:
         raise validation_error(problems)
-    data = manifest.model_dump(mode="json")
     if data == target.current_manifest:
         return _answered(await writer.store(dataclasses.replace(late, kind="unchanged")))
     screening: ScreeningService = request.app.state.screening

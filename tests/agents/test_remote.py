@@ -121,8 +121,8 @@ def test_population_settings_are_checked_and_its_models_are_seeded():
     with pytest.raises(ValueError, match="name_prefix"):
         PopulationConfig(server="http://x", name_prefix="no spaces")
     config = PopulationConfig(server="http://x", honest=3, saboteurs=2, seed=9, name_prefix="p")
-    agents = population(config, client=None)  # type: ignore[arg-type]
-    again = population(config, client=None)  # type: ignore[arg-type]
+    agents = population(config, [None] * 5)  # type: ignore[list-item]
+    again = population(config, [None] * 5)  # type: ignore[list-item]
     assert [a.current for a in agents] == [a.current for a in again]
     assert [a.current.participant for a in agents] == [
         "p-honest-000",

@@ -1,0 +1,366 @@
+"""Remote fine-tuning over loopback: traffic per round and the protocol's own time.
+
+1. Bytes on the wire per fine-tuning round (request and response bodies, as the server counts
+   them): with implicit augmentation (the product: the round answer carries the 64 × 8 item
+   rows and two seeds, each agent's model makes its own D_ic noisy copies) against an explicit
+   variant where the server would ship every asked agent the augmented copies its fine-tuning
+   visits (its epochs × rows × its D_ic copies × 8 numbers, and its row shuffles). The explicit
+   answers exist in this benchmark only: they are built from the same draws the agent makes
+   (``agents.negotiator.draw_fine_tune_seeded``) and serialised as the server serialises JSON.
+   Uploads (the fine-tuned manifests) and their answers count in both.
+2. Wall time of remote auctions of 64 agents over loopback when every agent answers, per round:
+   publishing (the round committed → the last agent has it), the agents' own fine-tuning (each
+   agent alone, as on its own machine; run here one after another and reported, not counted),
+   upload (first upload sent → last answer, re-screening included), re-screening alone (the
+   round's uploads through ``screener.screen_many`` in batches of 16, as the screening process
+   judges them, timed in this process), and closing (last answer → the round closed and its
+   checkpoint committed → the next round published, which includes the market's next
+   iteration). The protocol's overhead is everything but the fine-tuning; target ≤ 50 ms per
+   round with 64 agents.
+
+The agents here are driven in phases (all receive, all fine-tune, all upload at once) so that
+the phases can be timed apart; ``srd agents`` interleaves them per agent.
+
+Run: ``.venv/bin/python benchmarks/remote_traffic.py [--agents 64] [--auctions 3]
+[--postgres]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import secrets
+import statistics
+import sys
+import tempfile
+import time
+from contextlib import ExitStack
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agents.manifest import Manifest
+from agents.negotiator import derive_seeds, draw_fine_tune_seeded, from_manifests, honest_manifest
+from agents.remote import ONE_CONNECTION, Client, RoundInfo, faithful_fine_tune
+from screener import screen_many
+from server.launch import (
+    QUOTAS_OFF,
+    ServerProcess,
+    postgres_admin_url,
+    settings_environment,
+    throwaway_postgres,
+)
+from server.screening import MAX_BATCH
+
+torch.set_num_threads(1)
+ADMIN_TOKEN = secrets.token_hex(16)
+RARITY = 0.1
+"""Few fish, so demand stays high and the auction reaches its fine-tuning rounds."""
+ROUND_DEADLINE_S = 60.0
+"""Long: in this benchmark every round closes at its last upload."""
+WAIT_S = 25.0
+
+
+@dataclass
+class RoundTiming:
+    """One round's phases, in seconds."""
+
+    auction: int
+    round: int
+    agents: int
+    publish: float
+    fine_tune_sum: float
+    fine_tune_max: float
+    upload: float
+    rescreen: float
+    close: float
+    next_round: float | None
+    bytes_implicit: int
+    bytes_explicit: int
+
+    @property
+    def overhead(self) -> float:
+        """Everything but the agents' fine-tuning."""
+        return self.publish + self.upload + self.close + (self.next_round or 0.0)
+
+
+def stamp(text: str) -> float:
+    return datetime.fromisoformat(text.replace("Z", "+00:00")).timestamp()
+
+
+def explicit_answer_bytes(state: dict[str, Any], manifest: Manifest, position: int) -> int:
+    """The JSON body an explicit-augmentation server would send this agent instead of the
+    rows and seeds: the round's head plus, for every epoch, the agent's row shuffle and the
+    D_ic augmented copies of every row (nothing to ship for an agent without epochs)."""
+    head = {
+        k: v for k, v in state.items() if k not in ("rows", "fine_tune_seed", "augmentation_seed")
+    }
+    epochs, copies = manifest.fine_tuning.epochs, manifest.augmentation.copies
+    shuffles: list[Any] = []
+    augmented: list[Any] = []
+    if epochs:
+        rows = torch.tensor(state["rows"], dtype=torch.float64)
+        draws = draw_fine_tune_seeded(
+            from_manifests([manifest]),
+            rows.shape[0],
+            derive_seeds(state["fine_tune_seed"], [position]),
+            derive_seeds(state["augmentation_seed"], [position]),
+        )
+        shuffles = draws.order[0, :epochs].tolist()
+        augmented = (rows[None, :, None, :] + draws.noise[0, :epochs, :, :copies]).tolist()
+    body = {**head, "shuffles": shuffles, "augmented_rows": augmented}
+    return len(json.dumps(body, separators=(",", ":")).encode())
+
+
+@dataclass
+class Agent:
+    client: Client
+    """Its own connection (as on its own machine)."""
+    model_id: int
+    token: str
+    position: int
+    current: Manifest
+
+
+def round_info(state: dict[str, Any], position: int) -> RoundInfo:
+    return RoundInfo(
+        auction_id=state["auction_id"],
+        round=state["round"],
+        iteration=state["iteration"],
+        rows=np.array(state["rows"], dtype=np.float64),
+        fine_tune_seed=state["fine_tune_seed"],
+        augmentation_seed=state["augmentation_seed"],
+        deadline=datetime.fromisoformat(state["deadline"].replace("Z", "+00:00")),
+        seconds_left=state["seconds_left"],
+        position=position,
+    )
+
+
+async def receive(agent: Agent, path: str, received: list[float]) -> dict[str, Any]:
+    """One agent's long poll; notes when its answer arrived."""
+    response = await agent.client.request("GET", path, timeout_s=WAIT_S + 10)
+    received.append(time.time())
+    return dict(response.json())
+
+
+async def upload(round_path: str, agent: Agent, manifest: Manifest) -> Any:
+    response = await agent.client.request(
+        "PUT",
+        f"{round_path}/models/{agent.model_id}",
+        body=manifest.model_dump_json().encode(),
+        token=agent.token,
+    )
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+@dataclass
+class Played:
+    """What the driver saw of one round (times: wall-clock seconds)."""
+
+    state: dict[str, Any]
+    received: list[float]
+    fine_tune: list[float]
+    sent: float
+    answered: float
+    before: list[tuple[int, Manifest]]
+    """(position, manifest it fine-tuned from) of every asked agent."""
+    changed: list[Manifest]
+
+
+async def play_auction(client: Client, agents: list[Agent], auction_id: int) -> list[RoundTiming]:
+    """Answer every round of the auction with all its active agents, phase by phase (the next
+    long polls go out as soon as the uploads are answered, as real agents do); the phases and
+    the bytes are worked out once the auction has ended."""
+    played: list[Played] = []
+    active = list(agents)
+    after = 0
+    while active:
+        path = f"/auctions/{auction_id}/rounds/current?wait={WAIT_S}&after={after}"
+        received: list[float] = []
+        state = (await asyncio.gather(*(receive(a, path, received) for a in active)))[0]
+        if state["auction_status"] not in ("pending", "running") or state["status"] != "open":
+            break
+        active = [a for a in active if a.model_id in state["asked"]]
+        before = [(a.position, a.current) for a in active]
+        tuned, costs = [], []
+        for agent in active:
+            started = time.perf_counter()
+            tuned.append(faithful_fine_tune(agent.current, round_info(state, agent.position)))
+            costs.append(time.perf_counter() - started)
+        sent = time.time()
+        answers = await asyncio.gather(
+            *(
+                upload(f"/auctions/{auction_id}/rounds/{state['round']}", a, m)
+                for a, m in zip(active, tuned, strict=True)
+            )
+        )
+        answered = time.time()
+        for agent, manifest, answer in zip(active, tuned, answers, strict=True):
+            if answer["accepted"]:
+                agent.current = manifest
+        changed = [m for m, (_, b) in zip(tuned, before, strict=True) if m != b]
+        played.append(Played(state, received, costs, sent, answered, before, changed))
+        after = state["round"]
+    auction = await client.json("GET", f"/auctions/{auction_id}")
+    rounds = {r["round"]: r for r in auction["fine_tuning"]}
+    timings = []
+    for p in played:
+        closing = rounds[p.state["round"]]
+        opened_at, closed_at = stamp(closing["opened_at"]), stamp(closing["closed_at"])
+        following = rounds.get(p.state["round"] + 1)
+        started = time.perf_counter()
+        for first in range(0, len(p.changed), MAX_BATCH):
+            screen_many(p.changed[first : first + MAX_BATCH])
+        rescreen = time.perf_counter() - started
+        uploads = sum(a["bytes_in"] + a["bytes_out"] for a in closing["answers"])
+        explicit = sum(explicit_answer_bytes(p.state, m, position) for position, m in p.before)
+        timings.append(
+            RoundTiming(
+                auction=auction_id,
+                round=p.state["round"],
+                agents=len(p.before),
+                publish=max(p.received) - opened_at,
+                fine_tune_sum=sum(p.fine_tune),
+                fine_tune_max=max(p.fine_tune),
+                upload=p.answered - p.sent,
+                rescreen=rescreen,
+                close=closed_at - p.answered,
+                next_round=None if following is None else stamp(following["opened_at"]) - closed_at,
+                bytes_implicit=closing["bytes_total"],
+                bytes_explicit=explicit + uploads,
+            )
+        )
+    return timings
+
+
+async def run(server: ServerProcess, n_agents: int, n_auctions: int) -> list[RoundTiming]:
+    async with contextlib.AsyncExitStack() as stack:
+        clients = [
+            Client(
+                await stack.enter_async_context(
+                    httpx.AsyncClient(base_url=server.url, limits=ONE_CONNECTION)
+                )
+            )
+            for _ in range(n_agents)
+        ]
+        timings: list[RoundTiming] = []
+        for k in range(n_auctions):
+            rng = np.random.default_rng(1000 + k)
+            tag = secrets.token_hex(3)
+            agents: list[Agent] = []
+            drawn = 0
+            while len(agents) < n_agents:  # the screener refuses a few honest draws
+                lacking = n_agents - len(agents)
+                manifests = [
+                    honest_manifest(rng, f"bench-{tag}-{drawn + i:03d}") for i in range(lacking)
+                ]
+                drawn += lacking
+                free = clients[len(agents) :]
+                submitted = await asyncio.gather(
+                    *(
+                        c.json("POST", "/submit", body=m.model_dump_json().encode())
+                        for c, m in zip(free, manifests, strict=True)
+                    )
+                )
+                agents += [
+                    Agent(c, s["model_id"], s["token"], 0, m)
+                    for c, s, m in zip(free, submitted, manifests, strict=True)
+                    if s["accepted"]
+                ]
+            for position, agent in enumerate(agents):
+                agent.position = position
+            body = {
+                "rarity": RARITY,
+                "model_ids": [a.model_id for a in agents],
+                "fine_tune_mode": "remote",
+                "round_deadline_s": ROUND_DEADLINE_S,
+                "seed": k,
+            }
+            created = await clients[0].json(
+                "POST", "/auctions", body=json.dumps(body).encode(), token=ADMIN_TOKEN
+            )
+            timings += await play_auction(clients[0], agents, created["auction_id"])
+        return timings
+
+
+def median(values: list[float]) -> float:
+    return statistics.median(values) if values else float("nan")
+
+
+def report(timings: list[RoundTiming], n_agents: int) -> None:
+    print("\nper round (ms; agents asked; bytes with implicit vs explicit augmentation)")
+    print(
+        f"{'auction':>7} {'round':>5} {'agents':>6} {'publish':>8} {'upload':>8} {'rescreen':>8} "
+        f"{'close':>7} {'next':>7} {'overhead':>8} {'tune sum':>8} {'implicit B':>10} "
+        f"{'explicit B':>11} {'ratio':>6}"
+    )
+    for t in timings:
+        nxt = "—" if t.next_round is None else f"{t.next_round * 1e3:7.1f}"
+        print(
+            f"{t.auction:>7} {t.round:>5} {t.agents:>6} {t.publish * 1e3:8.1f} "
+            f"{t.upload * 1e3:8.1f} {t.rescreen * 1e3:8.1f} {t.close * 1e3:7.1f} {nxt:>7} "
+            f"{t.overhead * 1e3:8.1f} {t.fine_tune_sum * 1e3:8.1f} {t.bytes_implicit:>10} "
+            f"{t.bytes_explicit:>11} {t.bytes_explicit / t.bytes_implicit:6.1f}"
+        )
+    full = [t for t in timings if t.next_round is not None]
+    print(f"\nmedians over {len(timings)} rounds ({n_agents} agents per auction):")
+    for name, values in (
+        ("publishing", [t.publish for t in timings]),
+        ("upload (re-screening included)", [t.upload for t in timings]),
+        ("re-screening alone (in this process)", [t.rescreen for t in timings]),
+        ("closing and commit", [t.close for t in timings]),
+        ("next iteration published", [t.next_round for t in full if t.next_round is not None]),
+        ("protocol overhead (target ≤ 50 ms)", [t.overhead for t in full]),
+        ("  of which not re-screening", [t.overhead - t.rescreen for t in full]),
+        ("agents' fine-tuning, summed", [t.fine_tune_sum for t in timings]),
+        ("agents' fine-tuning, slowest agent", [t.fine_tune_max for t in timings]),
+    ):
+        print(f"  {name:<40} {median(values) * 1e3:8.1f} ms")
+    implicit = median([float(t.bytes_implicit) for t in timings])
+    explicit = median([float(t.bytes_explicit) for t in timings])
+    print(
+        f"  {'bytes per round, implicit augmentation':<40} {implicit:8.0f}"
+        f"\n  {'bytes per round, explicit augmentation':<40} {explicit:8.0f}"
+        f"  ({explicit / implicit:.1f}× implicit; uploads counted in both)"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--agents", type=int, default=64, help="agents per auction")
+    parser.add_argument("--auctions", type=int, default=3, help="auctions played one by one")
+    parser.add_argument("--postgres", action="store_true", help="PostgreSQL instead of SQLite")
+    args = parser.parse_args()
+    with ExitStack() as stack:
+        folder = Path(stack.enter_context(tempfile.TemporaryDirectory()))
+        url = f"sqlite:///{folder / 'srd.db'}"
+        if args.postgres:
+            admin_url = postgres_admin_url()
+            if admin_url is None:
+                raise SystemExit("PostgreSQL is not reachable on 127.0.0.1:5432")
+            url = stack.enter_context(throwaway_postgres(admin_url))
+        server = ServerProcess(
+            database_url=url,
+            data_dir=folder / "data",
+            admin_token=ADMIN_TOKEN,
+            extra_env=settings_environment(QUOTAS_OFF),  # hundreds of agents from one address
+        )
+        stack.enter_context(server)
+        backend = "PostgreSQL" if args.postgres else "SQLite"
+        print(f"srd serve on {server.url} ({backend}); {args.auctions} auctions of {args.agents}")
+        timings = asyncio.run(run(server, args.agents, args.auctions))
+    report(timings, args.agents)
+
+
+if __name__ == "__main__":
+    main()

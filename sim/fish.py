@@ -3,6 +3,7 @@ example"; spec robotfish.md §2-3, §6-7).
 
 ``run`` lets FishNN (agents.fish_net) live on the tape for ``steps`` steps, optionally training
 it with self-reward design, and writes the energy trace and the paper's three-panel figure.
+The life of the fish is one unit (``sim.units``): one sequential run has nothing to split.
 """
 
 from __future__ import annotations
@@ -21,7 +22,9 @@ from pydantic import Field
 
 from agents.fish_net import EAT, MOVE, FishNN
 from agents.neurons import self_reward_loss
+from sim import units
 from sim.experiment import Cost, ProgressFn, Stopwatch, no_progress
+from sim.units import Decomposition, Payload, Unit
 
 FOOD = 0.5
 """Value of a tape cell holding food (empty cells are 0)."""
@@ -263,21 +266,44 @@ def plot(path: Path, energy: np.ndarray, tile: np.ndarray, config: FishConfig) -
     plt.close(fig)
 
 
-def run(config: FishConfig, *, out_dir: Path, progress: ProgressFn = no_progress) -> dict[str, Any]:
-    """Simulate, write ``energy.csv`` and ``fish.png`` into ``out_dir``, return the summary.
+def plan_fish(config: FishConfig) -> list[Unit]:
+    """One unit: the whole life."""
+    return [Unit("life", weight=config.steps)]
+
+
+def compute_fish(config: FishConfig, unit: Unit, progress: ProgressFn) -> Payload:
+    """Simulate; the trace as arrays."""
+    trace = simulate(config, progress)
+    return {
+        "energy": trace.energy,
+        "tile": trace.tile,
+        "meals": int(trace.meals),
+        "died_at": trace.died_at,
+    }
+
+
+def assemble_fish(
+    config: FishConfig,
+    plan: Sequence[Unit],
+    payloads: Sequence[Payload],
+    *,
+    out_dir: Path,
+    progress: ProgressFn,
+    watch: Stopwatch,
+) -> dict[str, Any]:
+    """Write ``energy.csv`` and ``fish.png`` into ``out_dir``, return the summary.
 
     ``mean_energy_first_1000`` / ``mean_energy_last_1000`` average the first / last 1000
     recorded steps, or all of them when fewer were recorded (short runs, early death);
     ``mean_energy_per_1000`` lists the means of consecutive 1000-step windows (the last one may
     be shorter). ``died_at_step`` is the 0-based step at which the energy reached 0, or null.
     """
-    watch = Stopwatch()
-    trace = simulate(config, progress)
-    energy = trace.energy
-    progress(0.97, "writing energy.csv and fish.png")
+    (life,) = payloads
+    energy, died_at = life["energy"], life["died_at"]
+    progress(0.0, "writing energy.csv and fish.png")
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_trace(out_dir / "energy.csv", energy, trace.tile)
-    plot(out_dir / "fish.png", energy, trace.tile, config)
+    write_trace(out_dir / "energy.csv", energy, life["tile"])
+    plot(out_dir / "fish.png", energy, life["tile"], config)
     per_window = [
         float(chunk.mean())
         for chunk in np.split(energy, range(MEAN_WINDOW, len(energy), MEAN_WINDOW))
@@ -286,13 +312,23 @@ def run(config: FishConfig, *, out_dir: Path, progress: ProgressFn = no_progress
         "steps": config.steps,
         "srd": config.srd,
         "seed": config.seed,
-        "died": trace.died_at is not None,
-        "died_at_step": trace.died_at,
+        "died": died_at is not None,
+        "died_at_step": died_at,
         "mean_energy_first_1000": round(float(energy[:MEAN_WINDOW].mean()), 6),
         "mean_energy_last_1000": round(float(energy[-MEAN_WINDOW:].mean()), 6),
         "mean_energy": round(float(energy.mean()), 6),
         "min_energy": round(float(energy.min()), 6),
-        "meals": trace.meals,
+        "meals": life["meals"],
         "mean_energy_per_1000": [round(m, 6) for m in per_window],
         "elapsed_s": watch.elapsed(),
     }
+
+
+FISH_UNITS = Decomposition(plan_fish, compute_fish, assemble_fish)
+"""The fish's life as one unit."""
+
+
+def run(config: FishConfig, *, out_dir: Path, progress: ProgressFn = no_progress) -> dict[str, Any]:
+    """Simulate here, write ``energy.csv`` and ``fish.png`` into ``out_dir``, return the summary
+    (see ``assemble_fish``)."""
+    return units.run(FISH_UNITS, config, out_dir=out_dir, progress=progress)

@@ -1,17 +1,22 @@
 """Experiment kinds by name: what the CLI commands and the job backend (``POST /jobs``) run.
 
-Each entry names a module, its config dataclass and its ``run`` function, and what a person
-reads first in its result. Modules are imported only when the kind is used, so ``srd --help``
-lists the kinds without importing any simulation (nor torch).
+Each entry names a module, its config dataclass, its three unit functions (``sim.units``:
+plan, compute one unit, assemble), and what a person reads first in its result. Modules are
+imported only when the kind is used, so ``srd --help`` lists the kinds without importing any
+simulation (nor torch).
 """
 
 from __future__ import annotations
 
+import functools
 import importlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from sim import units
 from sim.experiment import ProgressFn, parse_config
+from sim.units import Decomposition, UnitRunner
 
 
 @dataclass(frozen=True)
@@ -23,8 +28,12 @@ class ExperimentKind:
     module: str
     config: str
     """The config dataclass in ``module``: the options of the command and of the job."""
-    runner: str
-    """``run(config, *, out_dir, progress) -> dict`` in ``module``."""
+    planner: str
+    """``module:function`` of ``plan(config) -> list[Unit]`` (see ``sim.units``)."""
+    unit: str
+    """``module:function`` of ``compute(config, unit, progress) -> Payload``."""
+    assembler: str
+    """``module:function`` of ``assemble(config, units, payloads, ...) -> dict``."""
     summary: str
     """One line for ``srd --help``: the first line of the config's docstring (a test checks)."""
     headline: tuple[str, ...] = ()
@@ -36,14 +45,27 @@ class ExperimentKind:
     command: bool = True
     """Also an ``srd`` command (False: a job kind only)."""
 
-    def load(self) -> tuple[type[Any], Any]:
-        """The config class and the run function (imports the module)."""
-        mod = importlib.import_module(self.module)
-        return getattr(mod, self.config), getattr(mod, self.runner)
-
     def config_class(self) -> type[Any]:
         """The config dataclass (imports the module)."""
-        return self.load()[0]
+        config: type[Any] = getattr(importlib.import_module(self.module), self.config)
+        return config
+
+    def decomposition(self) -> Decomposition[Any]:
+        """The kind's unit functions (imports their modules)."""
+        return Decomposition(
+            _function(self.planner), _function(self.unit), _function(self.assembler)
+        )
+
+    def load(self) -> tuple[type[Any], Callable[..., dict[str, Any]]]:
+        """The config class and ``run(config, *, out_dir, progress) -> dict``: the units
+        computed in this process."""
+        return self.config_class(), functools.partial(units.run, self.decomposition())
+
+
+def _function(reference: str) -> Any:
+    """The function a ``module:name`` reference names."""
+    module, name = reference.split(":")
+    return getattr(importlib.import_module(module), name)
 
 
 AUCTION_COLUMNS = (
@@ -63,7 +85,9 @@ KINDS: dict[str, ExperimentKind] = {
             "fish",
             "sim.fish",
             "FishConfig",
-            "run",
+            "sim.fish:plan_fish",
+            "sim.fish:compute_fish",
+            "sim.fish:assemble_fish",
             "Robot fish 1D: FishNN on the ring tape, with or without SRD training.",
             headline=(
                 "steps",
@@ -78,7 +102,9 @@ KINDS: dict[str, ExperimentKind] = {
             "lavaland",
             "sim.lavaland",
             "LavalandConfig",
-            "run",
+            "sim.lavaland.experiment:plan_repeats",
+            "sim.lavaland.experiment:compute_repeat",
+            "sim.lavaland.experiment:assemble_repeats",
             "Robot2NN in lavaland: evaluate untrained, SRD-train one epoch, evaluate again.",
             headline=(
                 "project",
@@ -97,7 +123,9 @@ KINDS: dict[str, ExperimentKind] = {
             "cheetah",
             "sim.cheetah",
             "CheetahConfig",
-            "run",
+            "sim.cheetah.experiment:plan_cells",
+            "sim.cheetah.experiment:compute_cells",
+            "sim.cheetah.experiment:assemble_cells",
             "HalfCheetahSRD: the grid backswing × inhibitor × SRD (× learning rate) × trial.",
             headline=("n_runs", "steps", "video"),
             table="summary",
@@ -115,7 +143,9 @@ KINDS: dict[str, ExperimentKind] = {
             "auction-study",
             "sim.studies",
             "StudyConfig",
-            "run_study",
+            "sim.studies:plan_auctions",
+            "sim.studies:compute_auctions",
+            "sim.studies:assemble_study",
             "Fish sale auctions without HTTP: purchase price and rate against item supply.",
             headline=("auctions", "refused"),
             table="rows",
@@ -125,7 +155,9 @@ KINDS: dict[str, ExperimentKind] = {
             "comparison",
             "sim.studies",
             "ComparisonConfig",
-            "run_comparison",
+            "sim.studies:plan_auctions",
+            "sim.studies:compute_auctions",
+            "sim.studies:assemble_comparison",
             "The honest vs malicious comparison: the same auctions honest, compromised, screened.",
             headline=("auctions",),
             command=False,
@@ -139,8 +171,16 @@ def build_config(kind: str, params: dict[str, Any]) -> Any:
     return parse_config(KINDS[kind].config_class(), params)
 
 
-def run_kind(kind: str, config: Any, *, out_dir: Any, progress: ProgressFn) -> dict[str, Any]:
-    """Run one experiment of ``kind``; returns its ``--json`` object."""
-    _, runner = KINDS[kind].load()
-    result: dict[str, Any] = runner(config, out_dir=out_dir, progress=progress)
-    return result
+def run_kind(
+    kind: str,
+    config: Any,
+    *,
+    out_dir: Any,
+    progress: ProgressFn,
+    runner: UnitRunner | None = None,
+) -> dict[str, Any]:
+    """Run one experiment of ``kind``, its units computed by ``runner`` (default: in this
+    process); returns its ``--json`` object."""
+    return units.run(
+        KINDS[kind].decomposition(), config, out_dir=out_dir, progress=progress, runner=runner
+    )

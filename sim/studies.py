@@ -7,7 +7,9 @@ saboteurs and its market randomness come from three separate streams of that key
 * fine-tune on and off, and 0 or 0.5 saboteurs, are compared on the same auctions;
 * honest patron i is the same whatever number of saboteurs follows it, so a screener that
   refuses exactly the saboteurs leaves the auction of the honest patrons alone.
-The auctions run in lock-step batches (``sim.market.MarketBatch``).
+The auctions run in lock-step batches (``sim.market.MarketBatch``) of at most
+``BATCH_PATRONS`` patrons: each batch is one unit of the study (``sim.units``), planned from the
+config alone, so a batch computed here or on a cluster holds the same auctions.
 
 Two measures of success, both reported: ``purchase_rate`` = fish sold / fish on sale (the
 paper's words) and ``buyer_fraction`` = buyers / patrons (what the reference plotted).
@@ -27,8 +29,10 @@ from pydantic import Field
 
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
+from sim import units
 from sim.experiment import Cost, ProgressFn, Stopwatch, config_dict, no_progress, write_json
 from sim.market import MarketBatch, MarketConfig, RescreenBatch, single_thread
+from sim.units import Decomposition, Payload, Unit
 
 PAPER_RARITIES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 """The paper's item supplies."""
@@ -173,6 +177,18 @@ class Auction:
         }
 
 
+@dataclass(frozen=True)
+class AuctionResult:
+    """One auction's outcome as a unit returns it: its results.csv line and its prices."""
+
+    setting: Setting
+    rarity: float
+    row: dict[str, Any]
+    """``Auction.result_row``."""
+    purchases: list[float]
+    """The price of every purchase, in order."""
+
+
 def _rounded(value: float) -> float:
     return round(value, 6)
 
@@ -244,10 +260,8 @@ def run_auctions(auctions: Sequence[Auction], progress: ProgressFn = no_progress
     done = len(auctions) - len(runnable)
     batches: list[list[Auction]] = [[]]
 
-    # Auctions that fine-tune score every row in their first rounds: batch them together; those
-    # that screen re-screen their fine-tuned patrons: batch them apart.
     def kind(a: Auction) -> tuple[bool, bool]:
-        return a.market.fine_tune, a.setting.screen
+        return _batch_kind(a.setting)
 
     for a in sorted(runnable, key=kind):
         last = batches[-1]
@@ -292,16 +306,16 @@ def _run_batch(batch: list[Auction], done: int, total: int, progress: ProgressFn
     return done
 
 
-def summary_rows(auctions: Sequence[Auction]) -> list[dict[str, Any]]:
+def summary_rows(auctions: Sequence[AuctionResult]) -> list[dict[str, Any]]:
     """One row per (setting, rarity): the paper's means over trials."""
-    keys: dict[tuple[str, float], list[Auction]] = {}
+    keys: dict[tuple[str, float], list[AuctionResult]] = {}
     for a in auctions:
         keys.setdefault((a.setting.name, a.rarity), []).append(a)
     rows = []
     for (_, rarity), group in keys.items():
         setting = group[0].setting
-        prices = [p for a in group for p in a.purchases or []]
-        rates = [len(a.purchases or []) / a.n_fish for a in group if a.n_fish]
+        prices = [p for a in group for p in a.purchases]
+        rates = [len(a.purchases) / a.row["n_fish"] for a in group if a.row["n_fish"]]
         rows.append(
             {
                 "setting": setting.name,
@@ -309,18 +323,18 @@ def summary_rows(auctions: Sequence[Auction]) -> list[dict[str, Any]]:
                 "saboteurs": setting.saboteurs,
                 "screen": setting.screen,
                 "rarity": rarity,
-                "n_fish": group[0].n_fish,
+                "n_fish": group[0].row["n_fish"],
                 "trials": len(group),
                 "mean_price": _rounded(float(np.mean(prices))) if prices else None,
                 "price_std": _rounded(float(np.std(prices))) if prices else None,
                 "purchases": len(prices),
                 "purchase_rate": _rounded(float(np.mean(rates))) if rates else None,
                 "buyer_fraction": _rounded(
-                    float(np.mean([len(a.purchases or []) / a.n_patrons for a in group]))
+                    float(np.mean([len(a.purchases) / a.row["n_patrons"] for a in group]))
                 ),
-                "revenue": _rounded(float(np.mean([sum(a.purchases or []) for a in group]))),
-                "refused": _rounded(float(np.mean([a.refused for a in group]))),
-                "iterations": _rounded(float(np.mean([a.iterations for a in group]))),
+                "revenue": _rounded(float(np.mean([sum(a.purchases) for a in group]))),
+                "refused": _rounded(float(np.mean([a.row["refused"] for a in group]))),
+                "iterations": _rounded(float(np.mean([a.row["iterations"] for a in group]))),
             }
         )
     return rows
@@ -343,35 +357,98 @@ def study_settings(config: StudyConfig) -> list[Setting]:
     ]
 
 
-def _plan(
-    settings: Sequence[Setting],
-    rarities: Sequence[float],
-    trials: int,
-    options: AuctionOptions,
-) -> list[Auction]:
-    """Every (setting, rarity, trial) auction, screened where the setting asks."""
+def settings_of(config: StudyConfig | ComparisonConfig) -> list[Setting]:
+    """The settings a study or comparison config runs, in report order."""
+    if isinstance(config, StudyConfig):
+        return study_settings(config)
+    return list(comparison_settings(config).values())
+
+
+def _batch_kind(setting: Setting) -> tuple[bool, bool]:
+    """Auctions that fine-tune score every row in their first rounds: batch them together;
+    those that screen re-screen their fine-tuned patrons: batch them apart."""
+    return setting.fine_tune, setting.screen
+
+
+def plan_auctions(config: StudyConfig | ComparisonConfig) -> list[Unit]:
+    """The units of a study: every (setting, rarity, trial) auction, in lock-step batches of
+    one batch kind and at most ``BATCH_PATRONS`` patrons (before screening)."""
+    settings = settings_of(config)
+    keys = [
+        (s, r, t)
+        for s in range(len(settings))
+        for r in config.rarities
+        for t in range(config.trials)
+    ]
+    ordered = sorted(keys, key=lambda key: _batch_kind(settings[key[0]]))
+    per_batch = max(1, BATCH_PATRONS // config.patrons)
+    batches: list[list[tuple[int, float, int]]] = [[]]
+    for key in ordered:
+        last = batches[-1]
+        if last and (
+            _batch_kind(settings[last[-1][0]]) != _batch_kind(settings[key[0]])
+            or len(last) == per_batch
+        ):
+            batches.append([])
+        batches[-1].append(key)
+    plan, first = [], 1
+    for batch in batches:
+        label = f"auctions {first}-{first + len(batch) - 1} of {len(keys)}"
+        spec = {"auctions": [list(key) for key in batch]}
+        plan.append(Unit(label, spec, weight=len(batch) * config.patrons))
+        first += len(batch)
+    return plan
+
+
+def compute_auctions(
+    config: StudyConfig | ComparisonConfig, unit: Unit, progress: ProgressFn
+) -> Payload:
+    """One unit: plan its auctions, screen them where their setting asks, run them in one
+    lock-step batch; their results.csv lines and purchase prices."""
+    settings = settings_of(config)
+    progress(0.0, "screening" if any(s.screen for s in settings) else "planning")
     auctions = [
         plan_auction(
-            s,
+            settings[s],
             r,
             t,
-            n_patrons=options.patrons,
-            seed=options.seed,
-            max_iterations=options.max_iterations,
-            fine_tune_rounds=options.fine_tune_rounds,
+            n_patrons=config.patrons,
+            seed=config.seed,
+            max_iterations=config.max_iterations,
+            fine_tune_rounds=config.fine_tune_rounds,
         )
-        for s in settings
-        for r in rarities
-        for t in range(trials)
+        for s, r, t in unit.spec["auctions"]
     ]
     screen_auctions(auctions)
-    return auctions
+    run_auctions(auctions, progress)
+    return {
+        "auctions": [
+            {"row": a.result_row(), "purchases": [float(p) for p in a.purchases or []]}
+            for a in auctions
+        ]
+    }
 
 
-def write_results_csv(path: Path, auctions: Sequence[Auction]) -> None:
+def auction_results(
+    config: StudyConfig | ComparisonConfig, plan: Sequence[Unit], payloads: Sequence[Payload]
+) -> list[AuctionResult]:
+    """Every unit's auctions in report order (setting, then rarity, then trial)."""
+    settings = settings_of(config)
+    found: dict[tuple[int, float, int], AuctionResult] = {}
+    for unit, payload in zip(plan, payloads, strict=True):
+        for (s, r, t), done in zip(unit.spec["auctions"], payload["auctions"], strict=True):
+            found[(s, r, t)] = AuctionResult(settings[s], r, done["row"], done["purchases"])
+    return [
+        found[(s, r, t)]
+        for s in range(len(settings))
+        for r in config.rarities
+        for t in range(config.trials)
+    ]
+
+
+def write_results_csv(path: Path, auctions: Sequence[AuctionResult]) -> None:
     """results.csv: one line per auction."""
-    rows = [a.result_row() for a in auctions]
-    _write_csv(path, rows)
+    _write_csv(path, [a.row for a in auctions])
 
 
 def _write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> None:
@@ -391,7 +468,7 @@ def _pyplot() -> Any:
 
 
 def plot_study(
-    auctions: Sequence[Auction], rows: Sequence[dict[str, Any]], out_dir: Path, seed: int
+    auctions: Sequence[AuctionResult], rows: Sequence[dict[str, Any]], out_dir: Path, seed: int
 ) -> list[str]:
     """Fig. C/D: price vs supply (every purchase a jittered dot, mean lines) and purchase rate
     vs supply (both definitions); one column per saboteur share. Returns the file names."""
@@ -413,7 +490,7 @@ def plot_study(
                 if kind == "price":
                     for a in auctions:
                         if a.setting.saboteurs == share and a.setting.fine_tune == fine_tune:
-                            prices = a.purchases or []
+                            prices = a.purchases
                             dx = jitter.uniform(-JITTER, JITTER, size=len(prices))
                             ax.scatter(a.rarity + dx, prices, s=4, alpha=0.25, color=colour)
                     ys = [math.nan if r["mean_price"] is None else r["mean_price"] for r in mine]
@@ -449,15 +526,18 @@ def plot_study(
     return files
 
 
-def run_study(
-    config: StudyConfig, *, out_dir: Path, progress: ProgressFn = no_progress
+def assemble_study(
+    config: StudyConfig,
+    plan: Sequence[Unit],
+    payloads: Sequence[Payload],
+    *,
+    out_dir: Path,
+    progress: ProgressFn,
+    watch: Stopwatch,
 ) -> dict[str, Any]:
-    """Run the study; write results.csv, summary.json and the figures; return the --json object."""
-    watch = Stopwatch()
-    settings = study_settings(config)
-    progress(0.0, "screening" if config.screen else "planning")
-    auctions = _plan(settings, config.rarities, config.trials, config)
-    run_auctions(auctions, progress)
+    """Write results.csv, summary.json and the figures; return the --json object."""
+    auctions = auction_results(config, plan, payloads)
+    progress(0.0, f"{len(auctions)} auctions")
     rows = summary_rows(auctions)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_results_csv(out_dir / "results.csv", auctions)
@@ -465,13 +545,25 @@ def run_study(
     result = {
         "rows": rows,
         "auctions": len(auctions),
-        "settings": [s.name for s in settings],
-        "refused": sum(a.refused for a in auctions),
+        "settings": [s.name for s in study_settings(config)],
+        "refused": sum(a.row["refused"] for a in auctions),
         "artifacts": ["results.csv", "summary.json", *figures],
         "elapsed_s": watch.elapsed(),
     }
     write_json(out_dir / "summary.json", {"config": config_dict(config), **result})
     return result
+
+
+STUDY_UNITS = Decomposition(plan_auctions, compute_auctions, assemble_study)
+"""The study cut into lock-step batches of auctions."""
+
+
+def run_study(
+    config: StudyConfig, *, out_dir: Path, progress: ProgressFn = no_progress
+) -> dict[str, Any]:
+    """Run the study here; write results.csv, summary.json and the figures; return the --json
+    object."""
+    return units.run(STUDY_UNITS, config, out_dir=out_dir, progress=progress)
 
 
 def comparison_settings(config: ComparisonConfig) -> dict[str, Setting]:
@@ -510,15 +602,20 @@ def plot_comparison(table: dict[str, list[dict[str, Any]]], path: Path) -> None:
     plt.close(fig)
 
 
-def run_comparison(
-    config: ComparisonConfig, *, out_dir: Path, progress: ProgressFn = no_progress
+def assemble_comparison(
+    config: ComparisonConfig,
+    plan: Sequence[Unit],
+    payloads: Sequence[Payload],
+    *,
+    out_dir: Path,
+    progress: ProgressFn,
+    watch: Stopwatch,
 ) -> dict[str, Any]:
-    """The same auctions (same seeds) honest, compromised, and compromised but screened."""
-    watch = Stopwatch()
+    """The same auctions (same seeds) honest, compromised, and compromised but screened:
+    results.csv, comparison.csv, comparison.png, summary.json; the --json object."""
     settings = comparison_settings(config)
-    progress(0.0, "screening")
-    auctions = _plan(list(settings.values()), config.rarities, config.trials, config)
-    run_auctions(auctions, progress)
+    auctions = auction_results(config, plan, payloads)
+    progress(0.0, f"{len(auctions)} auctions")
     rows = summary_rows(auctions)
     table = {name: [r for r in rows if r["setting"] == name] for name in settings}
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -531,7 +628,7 @@ def run_comparison(
                 "saboteurs": s.saboteurs,
                 "screen": s.screen,
                 "fine_tune": s.fine_tune,
-                "refused": sum(a.refused for a in auctions if a.setting == s),
+                "refused": sum(a.row["refused"] for a in auctions if a.setting == s),
                 "rows": table[name],
             }
             for name, s in settings.items()
@@ -542,3 +639,14 @@ def run_comparison(
     }
     write_json(out_dir / "summary.json", {"config": config_dict(config), **result})
     return result
+
+
+COMPARISON_UNITS = Decomposition(plan_auctions, compute_auctions, assemble_comparison)
+"""The comparison cut into lock-step batches of auctions."""
+
+
+def run_comparison(
+    config: ComparisonConfig, *, out_dir: Path, progress: ProgressFn = no_progress
+) -> dict[str, Any]:
+    """Run the comparison here (see ``assemble_comparison``)."""
+    return units.run(COMPARISON_UNITS, config, out_dir=out_dir, progress=progress)

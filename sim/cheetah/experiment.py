@@ -1,13 +1,17 @@
 """The half-cheetah experiment: ``run`` (the main grid or a design stage), the grid's seeded
 trials, their statistics and artifacts.
 
-The grid is backswing × inhibitor × SRD (× learning rate) × trial, every trial in one batch of
-the engine; trial k's weight noise is drawn from (seed, k), so every condition sees the same
-draw and SRD on/off are paired.
+The grid is backswing × inhibitor × SRD (× learning rate) × trial; trial k's weight noise is
+drawn from (seed, k), so every condition sees the same draw and SRD on/off are paired. The
+grid's cells (condition, trial) are cut into units (``sim.units``) of ``CELLS_PER_UNIT``
+consecutive cells, each stepped in one batch of the engine: a cell's numbers do not depend on
+the other cells of its batch, so the units give the same numbers as one batch of every cell.
+A design stage is one small run, made where the experiment is assembled (it has no units).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +19,7 @@ import numpy as np
 import torch
 
 from agents.cheetah_net import HalfCheetahSRD, noisy_fc_weight
+from sim import units
 from sim.cheetah.config import (
     Cells,
     CheetahConfig,
@@ -37,25 +42,26 @@ from sim.cheetah.world import (
     relative_pose,
 )
 from sim.experiment import ProgressFn, Stopwatch, no_progress, write_csv, write_json
+from sim.units import Decomposition, Payload, Unit
 
 CSV_STRIDE = 10
 """displacement.csv keeps every 10th step (0.1 s)."""
 CSV_FORMAT = ".6g"
 """Number format of displacement.csv (six significant digits keep it small)."""
-SIMULATION_SHARE = 0.95
-"""Share of the progress bar given to the simulation (the rest: statistics and artifacts)."""
 SUMMARY_METRICS = ("final_displacement", "inhibited_abs_speed", "free_speed")
 """Per-trial numbers averaged per condition."""
+CELLS_PER_UNIT = 35
+"""Cells (condition, trial) stepped in one batch, one unit of the grid: large enough that the
+per-step cost of the batched network is shared by many trials, small enough that the default
+grid (140 cells) spreads over four workers."""
 
 
 def run(
     config: CheetahConfig, *, out_dir: Path, progress: ProgressFn = no_progress
 ) -> dict[str, Any]:
-    """Run the grid or a design stage, write its artifacts into ``out_dir``, return the result."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if config.stage is not None:
-        return STAGES[config.stage](config, out_dir, progress)
-    return run_grid(config, out_dir=out_dir, progress=progress)
+    """Run the grid or a design stage here, write its artifacts into ``out_dir``, return the
+    result."""
+    return units.run(CELL_UNITS, config, out_dir=out_dir, progress=progress)
 
 
 def trial_generator(seed: int, trial: int) -> torch.Generator:
@@ -104,47 +110,91 @@ class GridController:
         return actions.to(torch.float64).numpy()
 
 
-def run_grid(
-    config: CheetahConfig, *, out_dir: Path, progress: ProgressFn = no_progress
-) -> dict[str, Any]:
-    """The main experiment: every trial of every condition in one batch."""
-    watch = Stopwatch()
-    steps = config.steps or TRIAL_STEPS
+def grid_cells(config: CheetahConfig) -> Cells:
+    """Every cell of the grid, conditions in report order, then trials."""
     trials = 1 if config.nominal else config.trials
-    cells = [(c, k) for c in grid_conditions(config) for k in range(trials)]
-    net = grid_network(config, cells, trials)
+    return [(c, k) for c in grid_conditions(config) for k in range(trials)]
+
+
+def plan_cells(config: CheetahConfig) -> list[Unit]:
+    """Units of ``CELLS_PER_UNIT`` consecutive cells (none for a design stage)."""
+    if config.stage is not None:
+        return []
+    n = len(grid_cells(config))
+    return [
+        Unit(
+            f"cells {first + 1}-{min(first + CELLS_PER_UNIT, n)} of {n}",
+            {"first": first, "count": min(CELLS_PER_UNIT, n - first)},
+            weight=min(CELLS_PER_UNIT, n - first),
+        )
+        for first in range(0, n, CELLS_PER_UNIT)
+    ]
+
+
+def compute_cells(config: CheetahConfig, unit: Unit, progress: ProgressFn) -> Payload:
+    """Step one unit's cells in one batch: their rows of runs.csv, torso x of every step,
+    final weights, and the filmed trial's joint positions if it is one of them."""
+    every = grid_cells(config)
+    first, count = unit.spec["first"], unit.spec["count"]
+    cells = every[first : first + count]
+    steps = config.steps or TRIAL_STEPS
+    net = grid_network(config, cells, 1 if config.nominal else config.trials)
     initial = [p.detach().clone() for p in net.parameters()]
     controller = GridController(net, cells)
-    video_trial = _video_trial(cells)
+    filmed = _video_trial(every) - first
+    keep = filmed if config.video and 0 <= filmed < count else None
     with HalfCheetahBatch(len(cells), threads=config.threads) as batch:
         traj = drive(
-            batch,
-            steps,
-            evaluation_steps(steps),
-            controller,
-            keep_qpos_of=video_trial if config.video else None,
-            progress=lambda f, m: progress(SIMULATION_SHARE * f, m),
+            batch, steps, evaluation_steps(steps), controller, keep_qpos_of=keep, progress=progress
         )
+    return {
+        "runs": _grid_runs(cells, traj.torso_x, controller, initial, batch.timestep),
+        "torso_x": traj.torso_x,
+        "weights": [net.named_weights(i) for i in range(len(cells))],
+        "qpos": traj.qpos,
+        "timestep": batch.timestep,
+    }
+
+
+def assemble_cells(
+    config: CheetahConfig,
+    plan: Sequence[Unit],
+    payloads: Sequence[Payload],
+    *,
+    out_dir: Path,
+    progress: ProgressFn,
+    watch: Stopwatch,
+) -> dict[str, Any]:
+    """The grid's statistics and artifacts from its units (a design stage runs here)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if config.stage is not None:
+        return STAGES[config.stage](config, out_dir, progress)
     simulated_s = watch.elapsed()
-    displacement = traj.torso_x - traj.torso_x[:, :1]
-    runs = _grid_runs(cells, traj.torso_x, controller, initial, batch.timestep)
+    steps = config.steps or TRIAL_STEPS
+    cells = grid_cells(config)
+    runs = [row for p in payloads for row in p["runs"]]
+    torso_x = np.concatenate([p["torso_x"] for p in payloads])
+    weights = [w for p in payloads for w in p["weights"]]
+    timestep = payloads[0]["timestep"]
+    displacement = torso_x - torso_x[:, :1]
     summary = summarise(runs)
-    progress(0.96, "writing artifacts")
-    artifacts = _write_grid_artifacts(out_dir, runs, summary, cells, displacement, net)
-    figure = plot_displacement(out_dir / "displacement.png", cells, displacement, batch.timestep)
+    progress(0.2, "writing artifacts")
+    artifacts = _write_grid_artifacts(out_dir, runs, summary, cells, displacement, weights)
+    figure = plot_displacement(out_dir / "displacement.png", cells, displacement, timestep)
     artifacts.append(figure.name)
     if len(config.lr) > 1 and config.srd == "both":
         artifacts.append(plot_lr_sweep(out_dir / "lr_sweep.png", runs).name)
     video: dict[str, Any] = {"video": None, "video_note": "video off (--no-video)"}
-    if config.video and traj.qpos is not None:
-        cond, k = cells[video_trial]
+    qpos = next((p["qpos"] for p in payloads if p["qpos"] is not None), None)
+    if config.video and qpos is not None:
+        cond, k = cells[_video_trial(cells)]
         label = f"b{cond.backswing:g} i{cond.inhibitor:g} srd {'on' if cond.srd else 'off'}"
-        progress(0.97, "rendering the GIF")
-        video = render_gif(out_dir / "cheetah.gif", traj.qpos, START_X, f"{label} trial {k + 1}")
+        progress(0.4, "rendering the GIF")
+        video = render_gif(out_dir / "cheetah.gif", qpos, START_X, f"{label} trial {k + 1}")
         if video["video"]:
             artifacts.append(video["video"])
     fields = {
-        "trials": trials,
+        "trials": 1 if config.nominal else config.trials,
         "steps": steps,
         "n_runs": len(cells),
         "runs": runs,
@@ -154,6 +204,10 @@ def run_grid(
         **video,
     }
     return run_result(config, fields, artifacts, watch)
+
+
+CELL_UNITS = Decomposition(plan_cells, compute_cells, assemble_cells)
+"""The grid cut into batches of cells."""
 
 
 def _grid_runs(
@@ -257,7 +311,7 @@ def _write_grid_artifacts(
     summary: list[dict[str, Any]],
     cells: Cells,
     displacement: np.ndarray,
-    net: HalfCheetahSRD,
+    weights: list[dict[str, float]],
 ) -> list[str]:
     """runs.csv, summary.csv, displacement.csv (condition means/SD every 0.1 s), weights.json."""
     names = [write_csv(out_dir / "runs.csv", runs), write_csv(out_dir / "summary.csv", summary)]
@@ -275,8 +329,8 @@ def _write_grid_artifacts(
     names.append(write_csv(out_dir / "displacement.csv", rows))
     weights = [
         {"condition": condition_label(c), "backswing": c.backswing, "trial": k + 1}
-        | {"final_weights": net.named_weights(i)}
-        for i, (c, k) in enumerate(cells)
+        | {"final_weights": final}
+        for (c, k), final in zip(cells, weights, strict=True)
     ]
     write_json(out_dir / "weights.json", weights)
     names.append("weights.json")

@@ -60,6 +60,14 @@ def build_model(
     )
 
 
+def load_kernels(model: Robot2NN, stack: np.ndarray) -> None:
+    """Set the 180 weights of ``model`` from a ``kernel_stack()`` array (4, 5, 3, 3)."""
+    with torch.no_grad():
+        for c, sequence in enumerate(model.sequences()):
+            for layer, kernel in enumerate(sequence.kernels()):
+                kernel.copy_(torch.from_numpy(stack[c, layer]).reshape(kernel.shape))
+
+
 @dataclass(frozen=True)
 class MapSet:
     """Maps and what the robot registered of them (its receptors of the observation)."""

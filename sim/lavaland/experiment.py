@@ -1,7 +1,14 @@
-"""The lavaland experiment: evaluate an untrained Robot2NN, SRD-train it, evaluate again."""
+"""The lavaland experiment: evaluate an untrained Robot2NN, SRD-train it, evaluate again.
+
+Each repeat is one unit (``sim.units``): it makes the run's maps from the seed, trains a fresh
+robot and returns both evaluations and the trained weights as arrays; the artifacts are written
+from those.
+"""
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -9,7 +16,8 @@ from typing import Annotated, Any, Literal
 import numpy as np
 from pydantic import Field
 
-from agents.robot2nn import DIRT_CLASS, PRESETS, Robot2NN
+from agents.robot2nn import DIRT_CLASS, PRESETS
+from sim import units
 from sim.experiment import Cost, ProgressFn, Stopwatch, no_progress, write_csv, write_json
 from sim.lavaland.engine import (
     PROJECTS,
@@ -18,11 +26,13 @@ from sim.lavaland.engine import (
     build_model,
     evaluate,
     explore_coins,
+    load_kernels,
     make_maps,
 )
 from sim.lavaland.fused import train_srd_fused
 from sim.lavaland.plots import plot_histograms, plot_repeats, plot_weights, trajectory_gif
 from sim.lavaland.training import train_srd
+from sim.units import Decomposition, Payload, Unit
 
 MAX_MAPS = 65536
 """Bound on evaluation and training maps per run (memory and time of one job)."""
@@ -110,7 +120,7 @@ def one_repeat(
     eval_set: MapSet,
     train_set: MapSet,
     progress: ProgressFn,
-) -> tuple[Outcome, Robot2NN]:
+) -> Outcome:
     """Evaluate a fresh robot, SRD-train it on ``train_set``, evaluate it again."""
     seed, n_plans = config.seed, config.n_plans or PRESETS[config.preset].n_plans
     model = build_model(PROJECTS[config.project], config.preset, n_plans, config.loss_guard)
@@ -118,7 +128,7 @@ def one_repeat(
     untrained = evaluate(model, eval_set, coins)
     progress(0.05, "untrained evaluated")
     if config.train_maps == 0:
-        return Outcome(untrained, None, None), model
+        return Outcome(untrained, None, None)
     rng = np.random.default_rng([seed, 3, repeat])
     order = rng.permutation(config.train_maps)
     train_coins = explore_coins(rng, config.train_maps, n_plans)
@@ -129,33 +139,80 @@ def one_repeat(
     coins = explore_coins(np.random.default_rng([seed, 4, repeat]), config.eval_maps, n_plans)
     trained = evaluate(model, eval_set, coins)
     progress(1.0, "SRD evaluated")
-    return Outcome(untrained, trained, model.kernel_stack().detach().numpy()), model
+    return Outcome(untrained, trained, model.kernel_stack().detach().numpy())
 
 
-def run(
-    config: LavalandConfig, *, out_dir: Path, progress: ProgressFn = no_progress
+@functools.lru_cache(maxsize=1)
+def map_sets(config: LavalandConfig) -> tuple[MapSet, MapSet]:
+    """The run's evaluation and training maps (the same for every repeat; kept for the next
+    repeat computed in this process)."""
+    project = PROJECTS[config.project]
+    eval_set = make_maps(config.eval_maps, project, np.random.default_rng([config.seed, 0]))
+    train_set = make_maps(config.train_maps, project, np.random.default_rng([config.seed, 1]))
+    return eval_set, train_set
+
+
+def plan_repeats(config: LavalandConfig) -> list[Unit]:
+    """One unit per repeat."""
+    return [Unit(f"repeat {r + 1}", {"repeat": r}) for r in range(config.repeats)]
+
+
+def _evaluation_arrays(evaluation: Evaluation) -> dict[str, np.ndarray]:
+    return {
+        "reached": evaluation.reached,
+        "n_moves": evaluation.n_moves,
+        "tile_counts": evaluation.tile_counts,
+    }
+
+
+def _outcome(payload: Payload) -> Outcome:
+    """The repeat ``compute_repeat`` returned."""
+
+    def evaluation(arrays: dict[str, np.ndarray]) -> Evaluation:
+        return Evaluation(arrays["reached"], arrays["n_moves"], arrays["tile_counts"])
+
+    srd = payload["srd"]
+    return Outcome(
+        evaluation(payload["untrained"]),
+        None if srd is None else evaluation(srd),
+        payload["kernels"],
+    )
+
+
+def compute_repeat(config: LavalandConfig, unit: Unit, progress: ProgressFn) -> Payload:
+    """One repeat: both evaluations and the trained weights, as arrays."""
+    progress(0.0, "generating maps")
+    eval_set, train_set = map_sets(config)
+    outcome = one_repeat(config, unit.spec["repeat"], eval_set, train_set, progress)
+    return {
+        "untrained": _evaluation_arrays(outcome.untrained),
+        "srd": None if outcome.srd is None else _evaluation_arrays(outcome.srd),
+        "kernels": outcome.kernels,
+    }
+
+
+def assemble_repeats(
+    config: LavalandConfig,
+    plan: Sequence[Unit],
+    payloads: Sequence[Payload],
+    *,
+    out_dir: Path,
+    progress: ProgressFn,
+    watch: Stopwatch,
 ) -> dict[str, Any]:
-    """Evaluate → SRD-train → evaluate, ``repeats`` times; write the artifacts; return the result.
-
-    The scalar fields are means over repeats; ``repeats`` lists one object per repeat (the
-    paper's Table 1 layout: one row per expt).
-    """
-    clock = Stopwatch()
+    """Write the artifacts of every repeat; the result: means over repeats, and ``repeats``
+    with one object per repeat (the paper's Table 1 layout: one row per expt). The GIF shows
+    the last repeat's robot."""
     project = PROJECTS[config.project]
     n_plans = config.n_plans or PRESETS[config.preset].n_plans
     out_dir.mkdir(parents=True, exist_ok=True)
-    progress(0.0, "generating maps")
-    eval_set = make_maps(config.eval_maps, project, np.random.default_rng([config.seed, 0]))
-    train_set = make_maps(config.train_maps, project, np.random.default_rng([config.seed, 1]))
-    outcomes: list[Outcome] = []
-    for r in range(config.repeats):
-
-        def report(fraction: float, message: str, r: int = r) -> None:
-            progress((r + fraction) / config.repeats, f"repeat {r + 1}: {message}")
-
-        outcome, model = one_repeat(config, r, eval_set, train_set, report)
-        outcomes.append(outcome)
+    outcomes = [_outcome(p) for p in payloads]
     rows = [outcome.row(r + 1) for r, outcome in enumerate(outcomes)]
+    model = build_model(project, config.preset, n_plans, config.loss_guard)
+    if outcomes[-1].kernels is not None:
+        load_kernels(model, outcomes[-1].kernels)
+    progress(0.0, "writing artifacts")
+    eval_set, _ = map_sets(config)
     gif_coins = explore_coins(np.random.default_rng([config.seed, 5]), 1, n_plans)
     gif_map = eval_set.select(config.gif_map % config.eval_maps)
     artifacts = write_artifacts(out_dir, config, outcomes)
@@ -185,8 +242,20 @@ def run(
         "repeats": rows,
         "summary": summary,
         "artifacts": artifacts,
-        "elapsed_s": clock.elapsed(),
+        "elapsed_s": watch.elapsed(),
     }
+
+
+REPEAT_UNITS = Decomposition(plan_repeats, compute_repeat, assemble_repeats)
+"""The experiment cut into its repeats."""
+
+
+def run(
+    config: LavalandConfig, *, out_dir: Path, progress: ProgressFn = no_progress
+) -> dict[str, Any]:
+    """Evaluate → SRD-train → evaluate, ``repeats`` times, here; write the artifacts; return
+    the result (see ``assemble_repeats``)."""
+    return units.run(REPEAT_UNITS, config, out_dir=out_dir, progress=progress)
 
 
 def study_label(config: LavalandConfig) -> str:

@@ -29,7 +29,7 @@ from agents.robot2nn import (
     neighbour_table,
 )
 from sim.experiment import ProgressFn, no_progress
-from sim.lavaland.engine import MapSet
+from sim.lavaland.engine import MapSet, load_kernels
 
 Arr = np.ndarray
 
@@ -294,8 +294,5 @@ def train_srd_fused(
         )
         if last > first:
             progress(last / steps, f"SRD step {last}/{steps}")
-    with torch.no_grad():
-        for c, sequence in enumerate(model.sequences()):
-            for layer, kernel in enumerate(sequence.kernels()):
-                kernel.copy_(torch.from_numpy(stored[c, layer]).reshape(kernel.shape))
+    load_kernels(model, stored)
     return trace

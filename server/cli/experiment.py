@@ -23,6 +23,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from server.config import Settings
 from sim.experiment import (
     ConfigError,
     ConfigField,
@@ -35,6 +36,9 @@ from sim.registry import ExperimentKind
 
 INVALID = 2
 """Exit code of an invalid option (as click's own usage errors)."""
+WORKER_TORCH_THREADS = Settings.model_fields["worker_torch_threads"].default
+"""Torch threads of an experiment run from the command line: the job workers' default (the
+experiments' tensors are small; on a busy machine more threads only contend)."""
 
 
 def _shown(value: Any) -> str:
@@ -114,6 +118,9 @@ def execute(
     """Validate the options, run the experiment with a progress bar, print its result."""
     stderr = Console(stderr=True)
     config_cls, runner = kind.load()
+    import torch  # loaded by every experiment: run it on one thread, as the job workers do
+
+    torch.set_num_threads(WORKER_TORCH_THREADS)
     try:
         config = parse_config(config_cls, options, text_lists=True)
     except ConfigError as exc:

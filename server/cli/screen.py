@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import click
+import torch
 from rich.console import Console
 from rich.markup import escape
 
@@ -48,6 +49,7 @@ def command(file: Path, json_output: bool) -> None:
         manifest = parse_manifest_json(text)
     except ManifestError as exc:
         raise _malformed(exc.errors, json_output) from exc
+    torch.set_num_threads(1)  # the screener's tensors are tiny: more threads only contend
     verdict = screen_manifest(manifest)
     if json_output:
         _emit(verdict.to_dict())

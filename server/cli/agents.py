@@ -8,6 +8,7 @@ import json
 import sys
 
 import click
+import torch
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
@@ -161,6 +162,7 @@ def command(
     """Run remote agents that submit and fine-tune over HTTP: register the population, join
     (or wait for, or create) a remote fine-tuning auction, answer every round with each
     agent's own fine-tuning, follow the auction to its end and summarise."""  # fmt: skip
+    torch.set_num_threads(1)  # each agent fine-tunes one tiny model: more threads only contend
     err = Console(stderr=True)
     try:
         config = PopulationConfig(

@@ -1,4 +1,4 @@
-"""FishNN: the robot fish's brain (paper, "Robot fish: 1D toy example"; spec robotfish.md §4-5).
+"""FishNN: the robot fish's brain (paper, "Robot fish: 1D toy example"; docs/fish.md).
 
 Input x = [e1, e2, e3, F]: the three visible tape cells (0.5 = food) and the energy F.
 

@@ -6,7 +6,7 @@ rows travel; the agent's own model makes the D_ic noisy copies).
 join an auction, ``play`` it to the end. In each round the agent long-polls the round, runs its
 ``fine_tuner`` (any code: ``(current manifest, RoundInfo) -> fine-tuned manifest``) and uploads
 the result with its token. ``faithful_fine_tune`` is what the server itself would do
-(``agents.negotiator.fine_tune_round`` on the agent's model alone, with the round's seeds and the
+(``agents.fine_tuning.fine_tune_round`` on the agent's model alone, with the round's seeds and the
 patron's position), so a population of faithful agents replays the in-process auction.
 ``always_hold`` is the bait-and-switch of a saboteur: always-hold weights on the model it was
 admitted with.
@@ -36,14 +36,10 @@ import httpx
 import numpy as np
 import torch
 
+from agents.batch import from_manifests, to_manifest
+from agents.fine_tuning import fine_tune_round
 from agents.manifest import Manifest
-from agents.negotiator import (
-    fine_tune_round,
-    from_manifests,
-    honest_manifest,
-    saboteur_manifest,
-    to_manifest,
-)
+from agents.negotiator import honest_manifest, saboteur_manifest
 
 MAX_AGENTS = 256
 """Honest plus saboteur agents of one population, at most."""

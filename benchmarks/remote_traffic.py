@@ -6,7 +6,7 @@
    variant where the server would ship every asked agent the augmented copies its fine-tuning
    visits (its epochs × rows × its D_ic copies × 8 numbers, and its row shuffles). The explicit
    answers exist in this benchmark only: they are built from the same draws the agent makes
-   (``agents.negotiator.draw_fine_tune_seeded``) and serialised as the server serialises JSON.
+   (``agents.fine_tuning.draw_fine_tune_seeded``) and serialised as the server serialises JSON.
    Uploads (the fine-tuned manifests) and their answers count in both.
 2. Wall time of remote auctions of 64 agents over loopback when every agent answers, per round:
    publishing (the round committed → the last agent has it), the agents' own fine-tuning (each
@@ -48,8 +48,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from agents.batch import from_manifests
+from agents.fine_tuning import derive_seeds, draw_fine_tune_seeded
 from agents.manifest import Manifest
-from agents.negotiator import derive_seeds, draw_fine_tune_seeded, from_manifests, honest_manifest
+from agents.negotiator import honest_manifest
 from agents.remote import ONE_CONNECTION, Client, RoundInfo, faithful_fine_tune
 from screener import screen_many
 from server.launch import (

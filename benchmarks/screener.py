@@ -39,8 +39,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from agents.batch import from_manifests
 from agents.manifest import Manifest
-from agents.negotiator import from_manifests, honest_manifest
+from agents.negotiator import honest_manifest
 from screener import rescreen, screen, screen_many
 from screener.checks import cheap_checks, failed_any
 from tests.screener.corpus import (

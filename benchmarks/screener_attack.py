@@ -36,8 +36,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from agents.batch import from_manifests
 from agents.manifest import Manifest
-from agents.negotiator import from_manifests
 from screener import screen_many
 from screener.probes import probe
 from tests.screener.corpus import DISGUISED, Family

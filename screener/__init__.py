@@ -32,8 +32,8 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
+from agents.batch import FSNBatch, from_manifests, to_manifest
 from agents.manifest import Manifest
-from agents.negotiator import FSNBatch, from_manifests, to_manifest
 from screener.checks import cheap_checks, failed_any
 from screener.findings import Checks, check
 from screener.impact import impact_checks, project, rounds

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from agents.negotiator import FSNBatch
+from agents.batch import FSNBatch
 from screener.findings import Checks, Mask
 from screener.probes import probe
 from screener.rules import Numbers, semantic_checks

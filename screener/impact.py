@@ -38,15 +38,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from agents.batch import FSNBatch, from_manifests, to_manifest
+from agents.fine_tuning import fine_tune_round
 from agents.manifest import Manifest
-from agents.negotiator import (
-    FSNBatch,
-    fine_tune_round,
-    from_manifests,
-    honest_manifest,
-    saboteur_manifest,
-    to_manifest,
-)
+from agents.negotiator import honest_manifest, saboteur_manifest
 from screener import limits
 from screener.findings import Checks, check, fmt_price
 from sim.market import MarketBatch, MarketConfig, round_seeds

@@ -36,7 +36,8 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from agents.negotiator import FSNBatch, decision_logits
+from agents.batch import FSNBatch
+from agents.forward import decision_logits
 from screener import limits
 from screener.findings import Array, Checks, Finding, Mask, fmt_price
 from screener.rules import SUBTYPES

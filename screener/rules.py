@@ -18,8 +18,8 @@ import itertools
 import numpy as np
 import numpy.typing as npt
 
+from agents.batch import SELECTIVE, THRESHOLD, FSNBatch
 from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, JUDGEMENTS, PFC_SOURCES, VERDICTS
-from agents.negotiator import SELECTIVE, THRESHOLD, FSNBatch
 from screener import limits
 from screener.findings import INPUT_WORDS, ROLE, Array, Checks, Finding, Mask, check, fmt_price
 

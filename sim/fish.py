@@ -1,5 +1,5 @@
 """Robot fish 1D: the ring-tape world and the SRD experiment (paper, "Robot fish: 1D toy
-example"; spec robotfish.md §2-3, §6-7).
+example"; docs/fish.md).
 
 ``run`` lets FishNN (agents.fish_net) live on the tape for ``steps`` steps, optionally training
 it with self-reward design, and writes the energy trace and the paper's three-panel figure.

@@ -1,4 +1,4 @@
-"""The fish sale auction (paper, "Fish Sale Auction"; spec auction.md §3 and §6) as a pure
+"""The fish sale auction (paper, "Fish Sale Auction"; docs/auction.md) as a pure
 engine: no HTTP, no database. It advances one iteration at a time and reports each as an
 ``IterationRecord`` so a caller can persist or stream it; ``checkpoint``/``restore`` continue
 an interrupted auction bit for bit.
@@ -23,7 +23,7 @@ One iteration (all patrons evaluated in one batched tensor pass):
 A fine-tuning round's randomness is each patron's own: the round's ``fine_tune_seed`` (row
 shuffles) and ``augmentation_seed`` (the noise of the D_ic copies) come from the auction seed
 and the iteration (``round_seeds``), and each patron derives its generators from them and its
-position in the auction (``agents.negotiator.fine_tune_round``). So a patron fine-tuning alone
+position in the auction (``agents.fine_tuning.fine_tune_round``). So a patron fine-tuning alone
 (a remote agent given the round's rows and seeds) computes what the market would.
 
 ``MarketBatch`` runs many independent auctions in lock-step (the study's grid); ``Market`` is
@@ -44,18 +44,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from agents.batch import FSNBatch, from_manifests, to_manifest
+from agents.fine_tuning import derive_seeds, fine_tune_round
+from agents.forward import ACTIONS, decide, noise_scale, standard_normal
 from agents.manifest import INPUTS, Manifest
-from agents.negotiator import (
-    ACTIONS,
-    FSNBatch,
-    decide,
-    derive_seeds,
-    fine_tune_round,
-    from_manifests,
-    noise_scale,
-    standard_normal,
-    to_manifest,
-)
+from agents.negotiator import BASE_ITEM, BASE_PRICE
 
 Rescreen = Callable[[int, Manifest], bool]
 """Called as ``rescreen(patron_index, fine_tuned_manifest)``; False reverts that patron."""
@@ -64,11 +57,9 @@ RescreenBatch = Callable[[FSNBatch], np.ndarray]
 sub-batch, in batch order); returns one bool per patron, False reverts it."""
 
 SIZE_JITTER = 0.2
-"""Rows 1..: length, weight and gill colour each get + U(−0.2, 0.2) (spec §3)."""
+"""Rows 1..: length, weight and gill colour each get + U(−0.2, 0.2) (the reference's rows)."""
 SUBTYPE_MINORITY = 0.2
-"""Rows 1..: each sub-type flag is −½ with probability 0.2, else +½ (spec §3)."""
-INITIAL_BUY_FRACTION = 0.5
-"""f before any vote."""
+"""Rows 1..: each sub-type flag is −½ with probability 0.2, else +½ (the reference's rows)."""
 PRICE, BUY_FRACTION = INPUTS.index("price"), INPUTS.index("buy_fraction")
 STOP_REASONS = ("sold_out", "no_patrons", "stalemate", "max_iterations")
 EVALUATION_CHUNK = 32_000
@@ -90,8 +81,8 @@ class MarketConfig:
     """Fish on sale (the study uses int(rarity · patrons))."""
     max_iterations: int = 64
     """Iterations at most."""
-    base_price: float = 5.0
-    """Starting price, also the prototype fish's price."""
+    base_price: float = BASE_PRICE
+    """Starting price, also the prototype fish's price (the design's base item)."""
     threshold_sell_price: float = 4.8
     """Initial stalemate threshold: stop once the price falls below it."""
     increment: float = 0.05
@@ -181,9 +172,11 @@ def single_thread() -> Iterator[None]:
 
 
 def item_rows(config: MarketConfig, rng: np.random.Generator) -> np.ndarray:
-    """The R item rows (spec §3): row 0 the prototype (base_price, 1, 1, 1, ½, ½, ½, ½); rows
-    1.. with jittered length, weight, gill and re-drawn sub-types. f starts at ½ everywhere."""
-    prototype = [config.base_price, 1.0, 1.0, 1.0, 0.5, 0.5, 0.5, INITIAL_BUY_FRACTION]
+    """The R item rows (the reference's): row 0 the design's base item at the config's base
+    price; rows 1.. with jittered length, weight, gill and re-drawn sub-types. f starts at ½
+    everywhere."""
+    prototype = [BASE_ITEM[name] for name in INPUTS]
+    prototype[PRICE] = config.base_price
     rows = np.tile(np.array(prototype, dtype=np.float64), (config.n_rows, 1))
     extra = config.n_rows - 1
     rows[1:, 1:4] += rng.uniform(-SIZE_JITTER, SIZE_JITTER, size=(extra, 3))

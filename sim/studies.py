@@ -64,9 +64,9 @@ class AuctionOptions:
     """Patrons per auction, saboteurs included."""
     fine_tune: bool = False
     """Patrons fine-tune themselves (SRD) in the first rounds."""
-    max_iterations: Annotated[int, Field(ge=1, le=1000)] = 64
+    max_iterations: Annotated[int, Field(ge=1, le=1000)] = MarketConfig.max_iterations
     """Iterations per auction at most."""
-    fine_tune_rounds: Annotated[int, Field(ge=0, le=1000)] = 4
+    fine_tune_rounds: Annotated[int, Field(ge=0, le=1000)] = MarketConfig.fine_tune_rounds
     """Fine-tuning after each of the first this-many iterations (reference: 5)."""
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
     """Seed of every auction: each is keyed by (seed, rarity, trial)."""

@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 import torch
 
+from agents.batch import from_manifests, to_manifest
+from agents.forward import decide, make_noise
 from agents.manifest import (
     SCHEMA_FILE,
     ManifestError,
@@ -17,14 +19,7 @@ from agents.manifest import (
     parse_manifest,
     parse_manifest_json,
 )
-from agents.negotiator import (
-    decide,
-    from_manifests,
-    honest_manifest,
-    make_noise,
-    saboteur_manifest,
-    to_manifest,
-)
+from agents.negotiator import honest_manifest, saboteur_manifest
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

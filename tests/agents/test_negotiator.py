@@ -8,21 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from agents.batch import from_manifests, to_manifest
+from agents.fine_tuning import draw_fine_tune, fine_tune
+from agents.forward import NEURONS, activations, decide, decision_logits, make_noise, self_reward
 from agents.manifest import Manifest
-from agents.negotiator import (
-    NEURONS,
-    activations,
-    decide,
-    decision_logits,
-    draw_fine_tune,
-    fine_tune,
-    from_manifests,
-    honest_manifest,
-    make_noise,
-    saboteur_manifest,
-    self_reward,
-    to_manifest,
-)
+from agents.negotiator import honest_manifest, saboteur_manifest
 from agents.neurons import self_reward_loss
 
 # The reference's values: D = 1, no noise, hold_bias = quit_bias = 0.

@@ -24,15 +24,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from agents.batch import from_manifests, to_manifest
+from agents.fine_tuning import draw_fine_tune, fine_tune
 from agents.manifest import INPUTS, Manifest
-from agents.negotiator import (
-    draw_fine_tune,
-    fine_tune,
-    from_manifests,
-    honest_manifest,
-    saboteur_manifest,
-    to_manifest,
-)
+from agents.negotiator import honest_manifest, saboteur_manifest
 from sim.market import MarketConfig, item_rows
 
 BASE_PRICE = 5.0

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from agents.negotiator import from_manifests, honest_manifest
+from agents.batch import from_manifests
+from agents.negotiator import honest_manifest
 from screener import impact, limits, screen, screen_many
 from screener.checks import passes_cheap
 from screener.probes import probe

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from agents.negotiator import decide, from_manifests, honest_manifest, saboteur_manifest
+from agents.batch import from_manifests
+from agents.forward import decide
+from agents.negotiator import honest_manifest, saboteur_manifest
 from screener import screen, screen_many
 from screener.probes import GRID, GRID_SHAPE, PASS_SIZE, PRICES
 from tests.screener.conftest import message_of, rules_of

@@ -8,7 +8,8 @@ import torch
 
 import screener
 import server.auctions
-from agents.negotiator import FSNBatch, from_manifests, honest_manifest
+from agents.batch import FSNBatch, from_manifests
+from agents.negotiator import honest_manifest
 from sim.market import Market, MarketConfig
 from sim.studies import Setting, plan_auction, run_auctions
 

@@ -36,7 +36,7 @@ def test_honest_models_of_the_paper_pass_with_no_reasons():
 
 
 def test_rule_and_probe_names_are_disjoint_and_cover_the_checks(honest):
-    from agents.negotiator import from_manifests
+    from agents.batch import from_manifests
 
     batch = from_manifests([honest])
     semantic = {f.rule for f in semantic_findings(batch)}

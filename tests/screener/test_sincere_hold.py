@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from agents.negotiator import decide, from_manifests, honest_manifest
+from agents.batch import from_manifests
+from agents.forward import decide
+from agents.negotiator import honest_manifest
 from screener import limits, screen, screen_many
 from screener.probes import FLOOR_INDEX, LOWEST_REACHABLE, SCAN_PRICES, probe
 from sim.market import MarketConfig

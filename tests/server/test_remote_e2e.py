@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 from sqlalchemy import select
 
+from agents.batch import from_manifests
 from agents.manifest import Manifest, parse_manifest
-from agents.negotiator import from_manifests
 from agents.remote import Client, RemoteAgent
 from server.db import Database
 from server.launch import ServerProcess, postgres_admin_url, srd_command, throwaway_postgres

@@ -8,16 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from agents.batch import from_manifests
+from agents.fine_tuning import derive_seeds, draw_fine_tune_seeded
+from agents.forward import decide, make_noise
 from agents.manifest import Manifest
-from agents.negotiator import (
-    decide,
-    derive_seeds,
-    draw_fine_tune_seeded,
-    from_manifests,
-    honest_manifest,
-    make_noise,
-    saboteur_manifest,
-)
+from agents.negotiator import honest_manifest, saboteur_manifest
 from sim.market import (
     AuctionRandom,
     IterationRecord,

@@ -10,14 +10,10 @@ import numpy as np
 import pytest
 import torch
 
+from agents.batch import from_manifests, to_manifest
+from agents.fine_tuning import fine_tune_round
 from agents.manifest import Manifest
-from agents.negotiator import (
-    fine_tune_round,
-    from_manifests,
-    honest_manifest,
-    saboteur_manifest,
-    to_manifest,
-)
+from agents.negotiator import honest_manifest, saboteur_manifest
 from sim.market import (
     FineTuneRound,
     Market,

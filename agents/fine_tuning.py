@@ -1,0 +1,456 @@
+"""SRD fine-tuning of Fish Sale Negotiators, batched over patrons: each patron takes SGD
+steps on CEL([T, F], argmax [T, F]) with its own epochs, shuffles, batch size and learning rate,
+the gradient written out (``_band_gradient``) and checked against autograd in the tests.
+``fine_tune_round`` is one round of an auction, the same in the market and in a remote agent:
+its randomness is derived per (round seeds, patron position)."""
+
+from __future__ import annotations
+
+import functools
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from agents.batch import BELOW_THRESHOLD, PARAMETERS, PFC_PARAMETERS, SELECTIVE, FSNBatch
+from agents.forward import noise_scale, standard_normal
+from agents.manifest import (
+    DECISIONS,
+    ES_NEURONS,
+    INPUTS,
+    JUDGEMENTS,
+    PFC_SOURCES,
+    VERDICTS,
+)
+
+# --- SRD fine-tuning --------------------------------------------------------------------------
+
+
+@dataclass
+class FineTuneDraws:
+    """The random numbers of one fine-tuning round, drawn for every patron of a batch.
+
+    ``order`` (P, E, R): patron p's shuffle of the R rows in epoch e; ``normal``
+    (P, E, R, D, 8): float32 N(0, 1) draws that ``scale`` (P, D, 8) (``noise_scale``) turns
+    into ``noise``, the augmentation noise row r receives when patron p visits it in epoch e.
+    E is the largest epoch count of the batch. A per-patron loop that slices these sees the
+    same numbers.
+    """
+
+    order: Tensor
+    normal: Tensor
+    scale: Tensor
+
+    @functools.cached_property
+    def noise(self) -> Tensor:
+        """(P, E, R, D, 8) (``fine_tune`` itself scales only the rows it visits)."""
+        return self.normal.to(self.scale.dtype) * self.scale[:, None, None]
+
+
+def draw_fine_tune(batch: FSNBatch, n_rows: int, generator: torch.Generator) -> FineTuneDraws:
+    """Draw one round's shuffles and noise (empty when no patron has epochs)."""
+    return draw_fine_tune_blocks(batch, n_rows, [(batch.n_patrons, generator)])
+
+
+def draw_fine_tune_blocks(
+    batch: FSNBatch, n_rows: int, blocks: Sequence[tuple[int, torch.Generator]]
+) -> FineTuneDraws:
+    """One round's draws for consecutive blocks of patrons, given as (size, generator): each
+    block draws what ``draw_fine_tune`` would draw for it alone (its epochs and copies are
+    padded to the batch's: a padded epoch is never visited, a padded copy has no noise)."""
+    P, E, D = batch.n_patrons, int(batch.epochs.max()), batch.max_copies
+    bounds = list(itertools.pairwise(np.cumsum([0, *(size for size, _ in blocks)]).tolist()))
+    order = torch.empty((P, E, n_rows), dtype=torch.long)
+    normal = torch.empty((P, E, n_rows, D, len(INPUTS)), dtype=torch.float32)
+    for (_, generator), (start, stop) in zip(blocks, bounds, strict=True):
+        epochs, copies = int(batch.epochs[start:stop].max()), int(batch.copies[start:stop].max())
+        keys = torch.rand((stop - start, epochs, n_rows), generator=generator, dtype=torch.float64)
+        order[start:stop, :epochs] = keys.argsort(dim=-1)
+        order[start:stop, epochs:] = torch.arange(n_rows)
+        shape = (stop - start, epochs, n_rows, copies)
+        if (epochs, copies) == (E, D):
+            standard_normal(shape, generator, out=normal[start:stop])
+        else:
+            normal[start:stop, :epochs, :, :copies] = standard_normal(shape, generator)
+            normal[start:stop, epochs:] = 0.0
+            normal[start:stop, :epochs, :, copies:] = 0.0
+    return FineTuneDraws(order=order, normal=normal, scale=noise_scale(batch))
+
+
+SEED_BITS = 53
+"""Derived seeds have 53 bits: exact as JSON numbers in any language (IEEE doubles)."""
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX = (np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB))
+
+
+def _splitmix64(x: np.ndarray) -> np.ndarray:
+    """SplitMix64's output function of x + golden ratio (uint64, wrapping), element-wise."""
+    z = x + _GOLDEN
+    z = (z ^ (z >> np.uint64(30))) * _MIX[0]
+    z = (z ^ (z >> np.uint64(27))) * _MIX[1]
+    return z ^ (z >> np.uint64(31))
+
+
+def derive_seeds(parent: int | np.ndarray, child: int | Sequence[int] | np.ndarray) -> np.ndarray:
+    """Seeds derived from (parent, child) pairs, element-wise (uint64 array, < 2**SEED_BITS):
+    splitmix64(splitmix64(parent) XOR child) keeping its low SEED_BITS bits. Cheap and
+    vectorised, so a round can derive one seed per patron without a Python loop."""
+    with np.errstate(over="ignore"):
+        mixed = _splitmix64(np.asarray(parent, dtype=np.uint64)) ^ np.asarray(child, np.uint64)
+        return np.atleast_1d(_splitmix64(mixed) & np.uint64((1 << SEED_BITS) - 1))
+
+
+def draw_fine_tune_seeded(
+    batch: FSNBatch, n_rows: int, shuffle_seeds: np.ndarray, noise_seeds: np.ndarray
+) -> FineTuneDraws:
+    """One round's draws with every patron's own generators: patron p's shuffle keys (its
+    epochs × R uniforms, argsorted per epoch) from a torch generator seeded with
+    ``shuffle_seeds[p]``, its N(0, 1) augmentation draws (epochs × R × its D_ic × 8) from one
+    seeded with ``noise_seeds[p]``. A patron's draws depend on its own settings and seeds
+    only, so it draws the same numbers alone (a remote agent) as in any batch. Patrons
+    without epochs draw nothing (they are never visited)."""
+    P, E, D = batch.n_patrons, int(batch.epochs.max()), batch.max_copies
+    keys = torch.zeros((P, E, n_rows), dtype=torch.float64)
+    normal = torch.empty((P, E, n_rows, D, len(INPUTS)), dtype=torch.float32)
+    generator = torch.Generator()
+    epochs, copies = batch.epochs.tolist(), batch.copies.tolist()
+    shuffle, noise = shuffle_seeds.tolist(), noise_seeds.tolist()
+    for p in range(P):
+        e, c = epochs[p], copies[p]
+        if e == 0:
+            continue
+        generator.manual_seed(shuffle[p])
+        torch.rand((e, n_rows), generator=generator, dtype=torch.float64, out=keys[p, :e])
+        generator.manual_seed(noise[p])
+        if (e, c) == (E, D):
+            standard_normal((e, n_rows, c), generator, out=normal[p])
+        else:  # padded epochs are never visited; padded copies must hold finite zeros
+            normal[p, :e, :, :c] = standard_normal((e, n_rows, c), generator)
+            normal[p, :e, :, c:] = 0.0
+    return FineTuneDraws(order=keys.argsort(dim=-1), normal=normal, scale=noise_scale(batch))
+
+
+def _flat_parameters(batch: FSNBatch) -> Tensor:
+    """The trainable tensors side by side, (P, N_θ), in ``PARAMETERS`` order."""
+    P = batch.n_patrons
+    return torch.cat([t.reshape(P, -1) for t in batch.parameters().values()], dim=1)
+
+
+def _unflatten(batch: FSNBatch, flat: Tensor) -> dict[str, Tensor]:
+    """The inverse of ``_flat_parameters``."""
+    shapes = [t.shape for t in batch.parameters().values()]
+    widths = [int(np.prod(shape[1:])) for shape in shapes]
+    parts = torch.split(flat, widths, dim=1)
+    return {
+        name: part.reshape(shape).clone()
+        for name, part, shape in zip(PARAMETERS, parts, shapes, strict=True)
+    }
+
+
+_LAYER_SHAPES = (
+    (len(ES_NEURONS), len(INPUTS)),
+    (len(ES_NEURONS), 1),
+    (len(DECISIONS), len(ES_NEURONS)),
+    (len(DECISIONS), 1),
+    (len(JUDGEMENTS), len(PFC_SOURCES)),
+    (len(JUDGEMENTS), 1),
+    (len(VERDICTS), len(JUDGEMENTS)),
+    (len(VERDICTS), 1),
+)
+"""Per patron, the trainable tensors of ``PARAMETERS`` as matrices (biases as columns)."""
+
+
+def _layer_views(theta: Tensor) -> list[Tensor]:
+    """Views (k, out, in) and (k, out, 1) of the flat parameters ``theta`` (k, N_θ)."""
+    parts = torch.split(theta, [rows * cols for rows, cols in _LAYER_SHAPES], dim=1)
+    return [p.view(-1, *shape) for p, shape in zip(parts, _LAYER_SHAPES, strict=True)]
+
+
+def _threshold_and_slope(
+    u: Tensor, numbers: dict[str, Tensor], out: Tensor | None = None, d_out: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """T(u) = tanh(lrelu(a·(u − c), ns)) and dT/du (into ``out`` and ``d_out`` if given)."""
+    z = (u - numbers["c"]) * numbers["a"]
+    fired = torch.tanh(torch.maximum(z, numbers["slope"] * z), out=out)
+    # a·d max(z, ns·z)/dz: a above 0, ns·a below, their mean at a tie (as autograd).
+    bend = torch.addcmul(numbers["bend_mid"], torch.sign(z), numbers["bend_half"])
+    return fired, torch.mul(1.0 - fired * fired, bend, out=d_out)
+
+
+def _selective_and_slope(
+    u: Tensor, numbers: dict[str, Tensor], out: Tensor | None = None, d_out: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """S(u) = ε/(ε + u²) and dS/du = −2u·S²/ε (into ``out`` and ``d_out`` if given)."""
+    eps = numbers["epsilon"]
+    chosen = torch.div(eps, eps + u * u, out=out)
+    return chosen, torch.mul(chosen * chosen, u * numbers["minus_two_over_epsilon"], out=d_out)
+
+
+def _sensor_and_slope(
+    groups: list[tuple[int | None, slice]],
+    numbers: dict[str, Tensor],
+    pre: Tensor,
+    sensor: Tensor,
+    slope: Tensor,
+) -> None:
+    """ES activations of the pre-activations ``pre`` (k, 4, M) into ``sensor`` and their
+    derivatives into ``slope``; ``numbers`` (see ``_activation_table``) are (k, 4, 1)."""
+    for kind, neurons in groups:
+        u, out, d_out = pre[:, neurons], sensor[:, neurons], slope[:, neurons]
+        mine = {name: value[:, neurons] for name, value in numbers.items()}
+        if kind == SELECTIVE:
+            _selective_and_slope(u, mine, out, d_out)
+        elif kind is not None:
+            _threshold_and_slope(u, mine, out, d_out)
+            if kind == BELOW_THRESHOLD:  # BT = 1 − T
+                out.neg_().add_(1.0)
+                d_out.neg_()
+        else:
+            fired, d_fired = _threshold_and_slope(u, mine)
+            chosen, d_chosen = _selective_and_slope(u, mine)
+            below, selective = mine["kind"] == BELOW_THRESHOLD, mine["kind"] == SELECTIVE
+            out.copy_(torch.where(selective, chosen, torch.where(below, 1.0 - fired, fired)))
+            d_out.copy_(torch.where(selective, d_chosen, torch.where(below, -d_fired, d_fired)))
+
+
+def _activation_table(batch: FSNBatch, patrons: Tensor) -> dict[str, Tensor]:
+    """The ES activation numbers of ``patrons`` as (k, 4, 1) columns, with the constants of
+    their derivatives."""
+    a, ns, eps = batch.es_a[patrons], batch.es_slope[patrons], batch.es_epsilon[patrons]
+    table = {
+        "kind": batch.es_kind[patrons],
+        "a": a,
+        "c": batch.es_c[patrons],
+        "slope": ns,
+        "epsilon": eps,
+        "bend_mid": 0.5 * (a + ns * a),
+        "bend_half": 0.5 * (a - ns * a),
+        "minus_two_over_epsilon": -2.0 / eps,
+    }
+    return {name: value[:, :, None].contiguous() for name, value in table.items()}
+
+
+def _band_gradient(
+    groups: list[tuple[int | None, slice]],
+    theta: Tensor,
+    numbers: dict[str, Tensor],
+    xe: Tensor,
+    copy_weight: Tensor,
+    weight: Tensor,
+) -> Tensor:
+    """∇θ of Σ_rows weight·CEL([T, F], argmax [T, F]) for k patrons, (k, N_θ): ``theta``
+    (k, N_θ) their flat parameters, ``xe`` (k, B, D, 8) their batch rows plus each copy's
+    noise, ``copy_weight`` (k, D) (1/D_ic on a patron's copies), ``weight`` (k, B) (1/rows
+    in the batch, 0 on padding). The forward pass of ``self_reward`` and its backward written
+    out, each layer one batch of per-patron matrix products over the B·D (row, copy) columns."""
+    k, B, D, n_in = xe.shape
+    n_es = len(ES_NEURONS)
+    es_w, es_b, fc_w, fc_b, j_w, j_b, v_w, v_b = _layer_views(theta)
+    inputs = xe.view(k, B * D, n_in)
+    # Forward: ES → FC → softmax of the 7 sources → judgements → tanh → verdicts.
+    pre = torch.baddbmm(es_b, es_w, inputs.transpose(1, 2))  # (k, 4, B·D)
+    sources = theta.new_empty((k, len(PFC_SOURCES), B * D))
+    sensor, slope = sources[:, :n_es], torch.empty_like(pre)
+    _sensor_and_slope(groups, numbers, pre, sensor, slope)
+    sources[:, n_es:] = torch.baddbmm(fc_b, fc_w, sensor)
+    soft = torch.softmax(sources, dim=1)
+    judged = torch.tanh(torch.baddbmm(j_b, j_w, soft))
+    # The verdicts are linear in the judgements, so their mean over the copies (Σ_d w_d = 1)
+    # is the verdict of the copies' mean judgement: (k, 3, B) → [T, F] (k, 2, B).
+    n_j = len(JUDGEMENTS)
+    judged_mean = torch.bmm(judged.view(k, n_j * B, D), copy_weight[:, :, None]).view(k, n_j, B)
+    mean = torch.baddbmm(v_b, v_w, judged_mean)
+    # Backward: d CEL / d logits = softmax − one-hot(argmax), times the row's weight; the
+    # argmax of [T, F] is T unless F is larger.
+    true = mean[:, :1] >= mean[:, 1:]
+    chosen = torch.cat((true, ~true), dim=1).to(mean.dtype)
+    g_mean = (torch.softmax(mean, dim=1) - chosen) * weight[:, None]
+    g_judged_mean = torch.bmm(v_w.transpose(1, 2), g_mean)  # (k, 3, B)
+    g_judged = (1.0 - judged * judged).view(k, n_j, B, D)
+    g_judged = (g_judged * g_judged_mean[..., None] * copy_weight[:, None, None, :]).view(
+        k, n_j, B * D
+    )
+    g_soft = torch.bmm(j_w.transpose(1, 2), g_judged)
+    # soft·(g_soft − Σ soft·g_soft), fused.
+    g_sources = torch._softmax_backward_data(g_soft, soft, 1, soft.dtype)
+    g_decision = g_sources[:, n_es:]
+    g_pre = torch.baddbmm(g_sources[:, :n_es], fc_w.transpose(1, 2), g_decision) * slope
+    grads = (
+        torch.bmm(g_pre, inputs),
+        g_pre.sum(-1),
+        torch.bmm(g_decision, sensor.transpose(1, 2)),
+        g_decision.sum(-1),
+        torch.bmm(g_judged, soft.transpose(1, 2)),
+        g_judged.sum(-1),
+        torch.bmm(g_mean, judged_mean.transpose(1, 2)),
+        g_mean.sum(-1),
+    )
+    return torch.cat([g.reshape(k, -1) for g in grads], dim=1)
+
+
+_STEP_COST = 2000
+"""The fixed cost of one SGD step of a band (≈ 60 tensor operations), in (row, copy)
+evaluations: patrons of nearby batch sizes share a band while the padding costs less."""
+
+
+def _bands(size: Tensor, steps: Tensor, copies: Tensor) -> list[Tensor]:
+    """The patrons that take SGD steps, in bands of nearby batch sizes (padded to the band's
+    largest); each band sorted by steps, most first, so the patrons still stepping at any step
+    are a prefix. The bands minimise Σ steps·``_STEP_COST`` + padded (row, copy) evaluations."""
+    moving = torch.nonzero(steps > 0).flatten()
+    by_size: dict[int, list[int]] = {}
+    for patron, b in zip(moving.tolist(), size[moving].tolist(), strict=True):
+        by_size.setdefault(b, []).append(patron)
+    sizes = sorted(by_size)
+    n_steps, n_copies = steps.tolist(), copies.tolist()
+    most = [max(n_steps[p] for p in by_size[b]) for b in sizes]
+    total = [sum(n_steps[p] for p in by_size[b]) for b in sizes]
+    widest = [max(n_copies[p] for p in by_size[b]) for b in sizes]
+    # best[j]: (cost, start of the last band) of the first j sizes.
+    best = [(0.0, 0)]
+    for j in range(1, len(sizes) + 1):
+        options, band_steps, band_copies, band_total = [], 0, 0, 0
+        for i in range(j - 1, -1, -1):  # the last band holds sizes i..j-1
+            band_steps, band_copies = max(band_steps, most[i]), max(band_copies, widest[i])
+            band_total += total[i]
+            evaluations = sizes[j - 1] * band_copies * band_total
+            options.append((best[i][0] + band_steps * _STEP_COST + evaluations, i))
+        best.append(min(options))
+    bands = []
+    j = len(sizes)
+    while j > 0:
+        i = best[j][1]
+        members = torch.tensor([p for b in sizes[i:j] for p in by_size[b]])
+        bands.append(members[torch.argsort(steps[members], descending=True, stable=True)])
+        j = i
+    return bands
+
+
+def _tune_band(
+    batch: FSNBatch,
+    band: Tensor,
+    steps: Tensor,
+    theta: Tensor,
+    rate: Tensor,
+    x: Tensor,
+    dataset: Tensor,
+    draws: FineTuneDraws,
+) -> Tensor:
+    """SGD of the patrons ``band`` (sorted by ``steps``, most first) from their flat parameters
+    ``theta`` (updated in place and returned) with per-column learning rates ``rate``; patron p
+    learns from the rows ``x[dataset[p]]``."""
+    n, R = len(band), x.shape[-2]
+    _, E, _, all_copies, n_in = draws.normal.shape
+    size = batch.batch_size[band].clamp(max=R)
+    per_epoch = torch.div(R + size - 1, size, rounding_mode="floor")
+    B, D = int(size.max()), int(batch.copies[band].max())
+    # Each patron's shuffled rows, epoch after epoch; its step s takes batch s of them. The
+    # (step, patron, slot) tables: the row visited (its draw and its dataset row) and its
+    # weight, 1/rows in the batch (0 on the padding slots past the batch's last row).
+    S = int(steps[0])
+    step = torch.arange(S)[:, None, None]
+    epoch = torch.div(step, per_epoch[:, None], rounding_mode="floor")  # (S, n, 1)
+    start = (step - epoch * per_epoch[:, None]) * size[:, None]
+    count = torch.minimum(size[:, None], R - start)
+    slot = torch.arange(B)
+    position = epoch * R + start + torch.minimum(slot, count - 1)  # (S, n, B)
+    position = position.clamp(max=E * R - 1)  # past a patron's last step: never used
+    sequence = draws.order[band].reshape(n, 1, E * R).expand(n, S, E * R)
+    row = sequence.gather(2, position.transpose(0, 1)).transpose(0, 1)
+    visit = (band[:, None] * E + epoch) * R + row
+    at = dataset[band, None] * R + row
+    weight = (slot < count) / count.to(batch.dtype)
+    stepping = (steps > step[:, 0, 0, None]).sum(dim=1).tolist()  # patrons still stepping
+    normal = draws.normal.reshape(-1, all_copies, n_in)
+    scale = draws.scale[band, None, :D]
+    rows = x.to(batch.dtype).reshape(-1, n_in)
+    on = (torch.arange(D) < batch.copies[band, None]).to(batch.dtype)
+    copy_weight = on / on.sum(dim=1, keepdim=True)
+    numbers = _activation_table(batch, band)
+    groups = batch.activation_groups
+    for s, k in enumerate(stepping):
+        noise = normal.index_select(0, visit[s, :k].flatten()).view(k, B, all_copies, n_in)
+        data = rows.index_select(0, at[s, :k].flatten()).view(k, B, 1, n_in)
+        xe = torch.addcmul(data, noise[:, :, :D], scale[:k])
+        grad = _band_gradient(
+            groups,
+            theta[:k],
+            {name: value[:k] for name, value in numbers.items()},
+            xe,
+            copy_weight[:k],
+            weight[s, :k],
+        )
+        theta[:k] -= rate[:k] * grad
+    return theta
+
+
+def fine_tune(
+    batch: FSNBatch,
+    x: Tensor,
+    draws: FineTuneDraws,
+    train: Tensor | None = None,
+    dataset: Tensor | None = None,
+) -> FSNBatch:
+    """SRD fine-tuning of every patron at once (the reference's SGD over all parameters).
+
+    Each patron has its own epochs, shuffles, batch size (last partial batch kept) and learning
+    rate. At each of its steps a patron takes the mean CEL([T, F], argmax [T, F]) over its
+    batch and plain SGD moves its own parameters, θ_p ← θ_p − lr_p·∇θ_p. Patrons outside
+    ``train`` (bool (P,)) keep their parameters; PFC parameters move only where
+    pfc.trainable. Patrons of nearby batch sizes step together: one step of a band is one
+    pass of small per-patron matrix products over their (row, copy) columns, with the
+    gradient of ``self_reward``'s loss written out (autograd's bookkeeping would cost more
+    than the arithmetic on these small tensors).
+
+    ``x`` is the item dataset, (R, 8) shared or (P, R, 8), or several datasets (N, R, 8) with
+    ``dataset`` (P,) the one of each patron. Returns the updated batch.
+    """
+    P, R = batch.n_patrons, x.shape[-2]
+    if x.dim() == 2:
+        x, dataset = x[None], torch.zeros(P, dtype=torch.long)
+    elif dataset is None:
+        dataset = torch.arange(P)
+    epochs = batch.epochs if train is None else torch.where(train, batch.epochs, 0)
+    if P == 0 or int(epochs.max()) == 0:
+        return batch
+    size = batch.batch_size.clamp(max=R)
+    steps = epochs * torch.div(R + size - 1, size, rounding_mode="floor")
+    theta = _flat_parameters(batch)
+    pfc_columns = torch.cat(
+        [
+            torch.full((t[0].numel(),), name in PFC_PARAMETERS)
+            for name, t in batch.parameters().items()
+        ]
+    )
+    frozen = pfc_columns[None, :] & ~batch.pfc_trainable[:, None]
+    rate = torch.where(frozen, 0.0, batch.learning_rate[:, None])
+    for band in _bands(size, steps, batch.copies):
+        theta[band] = _tune_band(
+            batch, band, steps[band], theta[band], rate[band], x, dataset, draws
+        )
+    return batch.with_parameters(_unflatten(batch, theta))
+
+
+def fine_tune_round(
+    batch: FSNBatch,
+    x: Tensor,
+    fine_tune_seeds: np.ndarray,
+    augmentation_seeds: np.ndarray,
+    positions: np.ndarray,
+    dataset: Tensor | None = None,
+) -> FSNBatch:
+    """One fine-tuning round of an auction, the same in the market and in a remote agent:
+    patron p, at position ``positions[p]`` of its auction, shuffles its rows with the seed
+    ``derive_seeds(fine_tune_seeds[p], position)`` and jitters its copies with
+    ``derive_seeds(augmentation_seeds[p], position)``, then ``fine_tune`` runs (``x`` and
+    ``dataset`` as there)."""
+    draws = draw_fine_tune_seeded(
+        batch,
+        x.shape[-2],
+        derive_seeds(fine_tune_seeds, positions),
+        derive_seeds(augmentation_seeds, positions),
+    )
+    return fine_tune(batch, x, draws, dataset=dataset)

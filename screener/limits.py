@@ -19,6 +19,7 @@ import dataclasses
 
 import numpy as np
 
+from agents.negotiator import SENSOR_ACTIVATIONS, SENSOR_DESIGN
 from sim.market import MarketConfig, item_rows
 
 MARKET = MarketConfig(n_fish=1)
@@ -60,10 +61,15 @@ fraction that can occur."""
 SHARPNESS_FACTOR = 10.0
 """Activation sharpness may differ from the design by up to this factor either way; beyond it
 a threshold neuron is a flat line or a hidden step (design values: ``DESIGN_SHARPNESS``)."""
-DESIGN_SHARPNESS = {"PG": 20.0, "SZ": 5.0, "LSR": 1.0}
-"""Design sharpness of the threshold neurons in units of their own input: PG a·w_p·b = 20 per
-100% of the willingness to pay, SZ a·(w_l + w_w) = 5 per unit of size, LSR a·w_f = 1 per unit
-of buy fraction."""
+DESIGN_SHARPNESS = {
+    "PG": float(SENSOR_ACTIVATIONS["PG"]["a"]),  # a·(1/b)·b: per 100% of the willingness to pay
+    "SZ": float(SENSOR_ACTIVATIONS["SZ"]["a"])
+    * (SENSOR_DESIGN["SZ"][0]["length"] + SENSOR_DESIGN["SZ"][0]["weight"]),  # per unit of size
+    "LSR": float(SENSOR_ACTIVATIONS["LSR"]["a"])
+    * SENSOR_DESIGN["LSR"][0]["buy_fraction"],  # per unit of buy fraction
+}
+"""Design sharpness of the threshold neurons in units of their own input, from the design
+(PG 20 per 100% of the willingness to pay, SZ 5 per unit of size, LSR 1 per unit of f)."""
 OFF_DESIGN_SHARE = 1.0
 """An input a neuron is not named after may move its pre-activation, over that input's range,
 at most as much as the named inputs do over theirs: beyond that the name no longer says what the

@@ -18,8 +18,9 @@ import itertools
 import numpy as np
 import numpy.typing as npt
 
-from agents.batch import SELECTIVE, THRESHOLD, FSNBatch
+from agents.batch import ACTIVATION_KINDS, SELECTIVE, THRESHOLD, FSNBatch
 from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, JUDGEMENTS, PFC_SOURCES, VERDICTS
+from agents.negotiator import SENSOR_ACTIVATIONS
 from screener import limits
 from screener.findings import INPUT_WORDS, ROLE, Array, Checks, Finding, Mask, check, fmt_price
 
@@ -39,8 +40,11 @@ SENSOR_INPUTS = {
     "ST": SUBTYPE_INPUTS,
 }
 """The inputs each ES neuron is named after."""
-SENSOR_ACTIVATION = {"PG": THRESHOLD, "SZ": THRESHOLD, "LSR": THRESHOLD, "ST": SELECTIVE}
-"""The activation kind each ES neuron's meaning needs: 'rises past a level' or 'this one only'."""
+SENSOR_ACTIVATION = {
+    name: ACTIVATION_KINDS.index(str(act["kind"])) for name, act in SENSOR_ACTIVATIONS.items()
+}
+"""The activation kind each ES neuron's meaning needs, the design's: 'rises past a level'
+(threshold: PG, SZ, LSR) or 'this one only' (selective: ST)."""
 DECISION_MEANING: dict[tuple[str, str], tuple[int, bool, str]] = {
     ("B", "PG"): (-1, True, "buys more as the price rises"),
     ("B", "SZ"): (+1, True, "buys less, the bigger the fish"),

@@ -7,9 +7,7 @@ written only for the manifests that failed.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -47,16 +45,6 @@ INPUT_WORDS = {
 """The inputs in words."""
 
 
-@dataclass(frozen=True)
-class Finding:
-    """One check over P manifests: which failed it, and the message for a failed one."""
-
-    rule: str
-    neuron: str
-    failed: Mask
-    message: Callable[[int], str]
-
-
 class Checks(NamedTuple):
     """K checks over P manifests: the rule and neuron of each, ``failed`` (P, K) (NaN
     comparisons count as passed), and ``message(k, p)``, the words for manifest p failing
@@ -66,13 +54,6 @@ class Checks(NamedTuple):
     neurons: tuple[str, ...]
     failed: Mask
     message: Callable[[int, int], str]
-
-    def findings(self) -> list[Finding]:
-        """The checks one by one."""
-        return [
-            Finding(rule, neuron, self.failed[:, k], functools.partial(self.message, k))
-            for k, (rule, neuron) in enumerate(zip(self.rules, self.neurons, strict=True))
-        ]
 
 
 def check(rule: str, neuron: str, failed: Mask, message: Callable[[int], str]) -> Checks:

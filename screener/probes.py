@@ -39,7 +39,7 @@ import torch
 from agents.batch import FSNBatch
 from agents.forward import decision_logits
 from screener import limits
-from screener.findings import Array, Checks, Finding, Mask, fmt_price
+from screener.findings import Array, Checks, Mask, fmt_price
 from screener.rules import SUBTYPES
 
 BUY, HOLD, QUIT = range(3)
@@ -168,11 +168,6 @@ def probe(batch: FSNBatch) -> Probed:
 def probe_checks(batch: FSNBatch) -> Checks:
     """Every behavioural probe over the batch."""
     return probe(batch).checks
-
-
-def probe_findings(batch: FSNBatch) -> list[Finding]:
-    """Every behavioural probe over the batch, one finding per probe."""
-    return probe_checks(batch).findings()
 
 
 def _passes(batch: FSNBatch) -> list[tuple[npt.NDArray[np.intp], FSNBatch]]:

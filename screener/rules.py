@@ -22,7 +22,7 @@ from agents.batch import ACTIVATION_KINDS, SELECTIVE, THRESHOLD, FSNBatch
 from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, JUDGEMENTS, PFC_SOURCES, VERDICTS
 from agents.negotiator import SENSOR_ACTIVATIONS
 from screener import limits
-from screener.findings import INPUT_WORDS, ROLE, Array, Checks, Finding, Mask, check, fmt_price
+from screener.findings import INPUT_WORDS, ROLE, Array, Checks, Mask, check, fmt_price
 
 PG, SZ, LSR, ST = range(4)
 PRICE, LENGTH, WEIGHT, GILL, ST1, ST2, ST3, DEMAND = range(8)
@@ -623,8 +623,3 @@ def semantic_checks(n: Numbers) -> list[Checks]:
         *pfc_checks(n),
         *setting_checks(n),
     ]
-
-
-def semantic_findings(batch: FSNBatch) -> list[Finding]:
-    """Every semantic rule over the batch, one finding per check."""
-    return [f for checks in semantic_checks(Numbers.of(batch)) for f in checks.findings()]

@@ -7,8 +7,8 @@ import pytest
 
 from agents.negotiator import honest_manifest
 from screener import screen
-from screener.probes import probe_findings
-from screener.rules import semantic_findings
+from screener.probes import probe_checks
+from screener.rules import Numbers, semantic_checks
 from tests.screener.conftest import message_of, rules_of
 from tests.screener.corpus import edit
 
@@ -39,8 +39,8 @@ def test_rule_and_probe_names_are_disjoint_and_cover_the_checks(honest):
     from agents.batch import from_manifests
 
     batch = from_manifests([honest])
-    semantic = {f.rule for f in semantic_findings(batch)}
-    probes = {f.rule for f in probe_findings(batch)}
+    semantic = {rule for checks in semantic_checks(Numbers.of(batch)) for rule in checks.rules}
+    probes = set(probe_checks(batch).rules)
     assert probes == PROBE_RULES
     assert not semantic & probes
     assert len(semantic) >= 20

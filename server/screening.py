@@ -5,8 +5,10 @@ a batch of sixteen hardly more than two. So the API process hands each manifest 
 screening process (its own interpreter and GIL) over a pipe; that process takes whatever has
 queued up since its last pass (at most ``MAX_BATCH``), judges it with one
 ``screener.screen_many`` call (the batched form of ``screener.screen``: same rules, same
-verdicts), and sends the verdicts back. Under no load a batch is one manifest, so nothing
-waits for a batch to fill.
+verdicts) — or, for versions fine-tuned inside a remote auction, one
+``screener.rescreen_many`` call, the re-screening the server's own fine-tuning rounds apply —
+and sends the verdicts back. Under no load a batch is one manifest, so nothing waits for a
+batch to fill.
 
 A screener exception answers that one submission with 503 (the batch is re-judged one by
 one to find it). If the screening process dies, the submissions in flight fail with
@@ -69,10 +71,11 @@ def _screening_main(conn: Connection, parent_pid: int) -> None:
     _keep_heap()
     import torch
 
-    from screener import screen_many
+    from screener import rescreen_many, screen_many
 
     torch.set_num_threads(1)  # tiny tensors: threads only add overhead
     freeze_heap()
+    judges = {True: screen_many, False: rescreen_many}
     while True:
         try:
             batch = [conn.recv()]
@@ -83,9 +86,13 @@ def _screening_main(conn: Connection, parent_pid: int) -> None:
         stop = batch[-1] is None  # the stop signal; what came before it is still judged
         if stop:
             batch.pop()
-        if batch:
-            answers = _judge(screen_many, [(i, Manifest.model_validate_json(m)) for i, m in batch])
-            conn.send([(i, answer) for (i, _), answer in zip(batch, answers, strict=True)])
+        for at_the_door, judge in judges.items():
+            mine = [
+                (i, Manifest.model_validate_json(m)) for i, m, door in batch if door is at_the_door
+            ]
+            if mine:
+                answers = _judge(judge, mine)
+                conn.send([(i, answer) for (i, _), answer in zip(mine, answers, strict=True)])
         if stop:
             return
 
@@ -155,7 +162,7 @@ class ScreeningService:
             log.error("the screening process exited (code %s); starting another", process.exitcode)
             time.sleep(RESPAWN_DELAY_S)
 
-    def _ask(self, manifest: Manifest) -> tuple[int, Future[Verdict]]:
+    def _ask(self, manifest: Manifest, at_the_door: bool) -> tuple[int, Future[Verdict]]:
         """Send one manifest to the screening process; its answer will settle the future."""
         future: Future[Verdict] = Future()
         with self._lock:
@@ -164,16 +171,18 @@ class ScreeningService:
             request_id = next(self._ids)
             self._pending[request_id] = future
             try:
-                self._conn.send((request_id, manifest.model_dump_json()))
+                self._conn.send((request_id, manifest.model_dump_json(), at_the_door))
             except (OSError, ValueError) as exc:
                 del self._pending[request_id]
                 raise ScreenerUnavailableError(f"the screening process is gone: {exc}") from exc
         return request_id, future
 
-    async def verdict(self, manifest: Manifest) -> Verdict:
+    async def verdict(self, manifest: Manifest, *, at_the_door: bool = True) -> Verdict:
         """The screener's verdict on one manifest, awaited on the caller's event loop (no thread
-        waits for it)."""
-        request_id, future = self._ask(manifest)
+        waits for it): ``screener.screen`` for a submission at the door, or, with
+        ``at_the_door=False``, ``screener.rescreen_many``'s judgement of a version fine-tuned
+        inside an auction (the same re-screening as the server's own fine-tuning rounds)."""
+        request_id, future = self._ask(manifest, at_the_door)
         try:
             return await asyncio.wait_for(asyncio.wrap_future(future), VERDICT_TIMEOUT_S)
         except TimeoutError as exc:

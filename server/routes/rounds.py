@@ -266,7 +266,7 @@ async def upload_round_model(
         return _answered(await writer.store(dataclasses.replace(late, kind="unchanged")))
     screening: ScreeningService = request.app.state.screening
     try:
-        verdict = await screening.verdict(manifest)
+        verdict = await screening.verdict(manifest, at_the_door=False)
     except ScreenerUnavailableError as exc:
         raise api_error(503, str(exc), loc=("body",), kind="screener_unavailable") from exc
     return _answered(

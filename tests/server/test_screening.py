@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from agents.negotiator import honest_manifest, saboteur_manifest
-from screener import screen
+from screener import rescreen_many, screen
 from server.screening import ScreeningService
 
 
@@ -29,6 +29,29 @@ def test_verdicts_are_the_screeners_own(service: ScreeningService) -> None:
         return list(await asyncio.gather(*(service.verdict(m) for m in manifests)))
 
     assert asyncio.run(ask()) == [screen(m) for m in manifests]
+
+
+def test_fine_tuned_uploads_get_the_in_auction_re_screening(service: ScreeningService) -> None:
+    """Submissions at the door and versions fine-tuned inside an auction, mixed in one batch,
+    each get their own judgement: ``screen`` (with the projection of its own fine-tuning) and
+    ``rescreen_many`` (the server's re-screening of every fine-tuning round)."""
+    rng = np.random.default_rng(5)
+    manifests = [honest_manifest(rng, f"h{i}") for i in range(4)] + [saboteur_manifest(rng, "s")]
+    doors = [True, False, True, False, False]
+
+    async def ask() -> list[object]:
+        return list(
+            await asyncio.gather(
+                *(service.verdict(m, at_the_door=d) for m, d in zip(manifests, doors, strict=True))
+            )
+        )
+
+    expected = [
+        screen(m) if door else rescreen_many([m])[0]
+        for m, door in zip(manifests, doors, strict=True)
+    ]
+    assert asyncio.run(ask()) == expected
+    assert expected[-1].accepted is False
 
 
 def test_a_caller_that_stops_waiting_leaves_the_service_working(

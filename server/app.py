@@ -45,7 +45,12 @@ def _start_services(app: FastAPI, settings: Settings) -> None:
     )
     app.state.database = database
     app.state.admin_token_hash = load_admin_token_hash(settings)
-    app.state.auctions = AuctionRunner(database, context, max_workers=settings.auction_workers)
+    app.state.auctions = AuctionRunner(
+        database,
+        context,
+        max_workers=settings.auction_workers,
+        timeout_s=settings.auction_timeout_s,
+    )
     app.state.jobs = LocalJobBackend(
         database,
         dataclasses.replace(context, memory_mb=settings.job_memory_mb),

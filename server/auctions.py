@@ -364,7 +364,14 @@ def run_auction(context: WorkerContext, auction_id: int) -> None:
 class AuctionRunner:
     """Queues auctions onto worker processes and resumes unfinished ones at start-up."""
 
-    def __init__(self, database: Database, context: WorkerContext, *, max_workers: int) -> None:
+    def __init__(
+        self,
+        database: Database,
+        context: WorkerContext,
+        *,
+        max_workers: int,
+        timeout_s: float,
+    ) -> None:
         self._database = database
         self.pool = WorkerPool(
             name="auction",
@@ -372,6 +379,8 @@ class AuctionRunner:
             context=context,
             max_workers=max_workers,
             on_exit=self._on_exit,
+            timeout_s=timeout_s,
+            on_timeout=self._on_timeout,
         )
 
     def start(self) -> None:
@@ -399,4 +408,12 @@ class AuctionRunner:
             self._database,
             auction_id,
             f"the auction worker exited (code {exit_code}) before the auction finished",
+        )
+
+    def _on_timeout(self, auction_id: int, limit_s: float) -> None:
+        """The auction ran past its wall-time limit and was stopped."""
+        _mark_failed(
+            self._database,
+            auction_id,
+            f"stopped at the auction time limit of {limit_s:g} s (SRD_AUCTION_TIMEOUT_S)",
         )

@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 from server.app import create_app
 from sim.experiment import config_fields
 from sim.registry import KINDS
-from tests.server.conftest import ADMIN, make_settings, wait_for
+from tests.server.conftest import ADMIN, honest, make_settings, unique, wait_for
 
 ENDED = {"succeeded", "failed", "cancelled"}
 
@@ -85,3 +85,24 @@ def test_every_kind_declares_its_cost() -> None:
         cost = kind.config_class()().cost()
         assert 0 < cost.seconds < 1800, kind.name  # the defaults fit the default budget
         assert cost.option in {f.name for f in config_fields(kind.config_class())}
+
+
+def test_an_auction_over_its_time_limit_is_stopped_and_failed(tmp_path) -> None:
+    """A remote auction waits at its first fine-tuning round for agents that never answer
+    (deadline 60 s): the 3 s auction limit stops it first."""
+    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
+    settings = settings.model_copy(update={"auction_timeout_s": 3.0})
+    with TestClient(create_app(settings)) as client:
+        ids = [
+            client.post("/submit", json=honest(unique("slow"), seed=i)).json()["model_id"]
+            for i in range(3)
+        ]
+        body = {"n_fish": 1, "model_ids": ids, "fine_tune_mode": "remote", "round_deadline_s": 60}
+        auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
+        state = wait_for(
+            lambda: client.get(f"/auctions/{auction_id}").json(),
+            lambda a: a["status"] in ("finished", "failed"),
+            60,
+        )
+    assert state["status"] == "failed"
+    assert "time limit of 3 s (SRD_AUCTION_TIMEOUT_S)" in state["error"]

@@ -36,7 +36,7 @@ class Settings(BaseSettings):
     """Wall-time limit of one job: a job still running after this long is stopped and failed."""
     job_memory_mb: Annotated[int, Field(ge=512, le=1 << 20)] = 4096
     """Address-space limit of a job's worker process (MB, ``RLIMIT_AS``, enforced by the OS)."""
-    job_budget_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 1800.0
+    job_budget_s: Annotated[float, Field(gt=0, le=1e12)] = 1800.0
     """Jobs whose estimated compute (seconds on one core) exceeds this are refused with 422."""
     auction_timeout_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 3600.0
     """Wall-time limit of one auction run: one still running after this long is failed."""

@@ -12,12 +12,14 @@ from pydantic import (
     ConfigDict,
     Field,
     GetJsonSchemaHandler,
+    JsonValue,
     field_validator,
 )
 from pydantic.json_schema import JsonSchemaValue
 from pydantic_core import CoreSchema
 
 from sim.experiment import config_schema
+from sim.market import MarketConfig
 from sim.registry import KINDS
 
 AuctionStatus = Literal["pending", "running", "finished", "failed"]
@@ -39,13 +41,13 @@ def _decimal(value: Any) -> Any:
 
 RowId = Annotated[int, Field(ge=1, le=MAX_ROW_ID)]
 ModelIdPath = Annotated[
-    int, BeforeValidator(_decimal), Path(ge=1, le=MAX_ROW_ID, description="A model id.")
+    int, Path(ge=1, le=MAX_ROW_ID, description="A model id."), BeforeValidator(_decimal)
 ]
 AuctionIdPath = Annotated[
-    int, BeforeValidator(_decimal), Path(ge=1, le=MAX_ROW_ID, description="An auction id.")
+    int, Path(ge=1, le=MAX_ROW_ID, description="An auction id."), BeforeValidator(_decimal)
 ]
 JobIdPath = Annotated[
-    int, BeforeValidator(_decimal), Path(ge=1, le=MAX_ROW_ID, description="A job id.")
+    int, Path(ge=1, le=MAX_ROW_ID, description="A job id."), BeforeValidator(_decimal)
 ]
 
 
@@ -109,12 +111,25 @@ MAX_FINE_TUNE_ROUNDS = 64
 FineTuneModeName = Literal["server", "remote"]
 
 
+_REMOTE: dict[str, JsonValue] = {
+    "properties": {"fine_tune_mode": {"const": "remote"}},
+    "required": ["fine_tune_mode"],
+}
+"""JSON Schema: a remote auction."""
+
+
 def _absent(schema: dict[str, Any]) -> None:
     """The schema of an optional field that may be left out but is never ``null``: its value's
     schema alone (the validator refuses an explicit null)."""
     value = schema.pop("anyOf")[0]
     schema.pop("default", None)
     schema.update(value)
+
+
+def _unique_ids(schema: dict[str, Any]) -> None:
+    """``model_ids``: left out or a list of distinct ids."""
+    _absent(schema)
+    schema["uniqueItems"] = True
 
 
 class AuctionCreate(_Input):
@@ -126,24 +141,47 @@ class AuctionCreate(_Input):
     refused); ``round_deadline_s`` belongs to remote auctions only."""
 
     model_config = ConfigDict(
-        json_schema_extra={"oneOf": [{"required": ["n_fish"]}, {"required": ["rarity"]}]}
+        json_schema_extra={
+            "oneOf": [{"required": ["n_fish"]}, {"required": ["rarity"]}],
+            "allOf": [
+                {  # a remote auction fine-tunes: fine_tune, if given, is true
+                    "if": _REMOTE,
+                    "then": {"properties": {"fine_tune": {"const": True}}},
+                },
+                {  # a round deadline belongs to remote auctions
+                    "if": {"not": _REMOTE},
+                    "then": {"not": {"required": ["round_deadline_s"]}},
+                },
+            ],
+        }
     )
 
     n_fish: Annotated[int, Field(ge=1, le=100_000)] | None = Field(None, json_schema_extra=_absent)
     rarity: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] | None = Field(
         None, json_schema_extra=_absent
     )
-    max_iterations: Annotated[int, Field(ge=1, le=1000)] = 64
+    max_iterations: Annotated[int, Field(ge=1, le=1000)] = MarketConfig.max_iterations
     fine_tune: bool = False
     model_ids: Annotated[list[RowId], Field(min_length=1, max_length=MAX_PATRONS)] | None = Field(
-        None, json_schema_extra=_absent
+        None, json_schema_extra=_unique_ids
     )
     seed: Annotated[int, Field(ge=0, le=MAX_SEED)] = 0
     fine_tune_mode: FineTuneModeName = "server"
-    fine_tune_rounds: Annotated[int, Field(ge=0, le=MAX_FINE_TUNE_ROUNDS)] = 4
+    fine_tune_rounds: Annotated[int, Field(ge=0, le=MAX_FINE_TUNE_ROUNDS)] = (
+        MarketConfig.fine_tune_rounds
+    )
     round_deadline_s: Annotated[
         float, Field(ge=ROUND_DEADLINE_S[0], le=ROUND_DEADLINE_S[1], allow_inf_nan=False)
     ] = 10.0
+
+    @field_validator("model_ids")
+    @classmethod
+    def _distinct(cls, ids: list[int] | None) -> list[int] | None:
+        """A patron takes part once."""
+        if ids is not None and len(set(ids)) != len(ids):
+            twice = sorted({i for i in ids if ids.count(i) > 1})
+            raise ValueError(f"model ids listed more than once: {twice}")
+        return ids
 
     @field_validator("n_fish", "rarity", "model_ids", mode="before")
     @classmethod
@@ -364,7 +402,7 @@ class AuctionSummaryPublic(BaseModel):
 
 class AuctionPage(BaseModel):
     items: list[AuctionSummaryPublic]
-    next_cursor: str | None
+    next_cursor: int | None
 
 
 class ModelSummaryPublic(BaseModel):
@@ -384,7 +422,7 @@ class ModelSummaryPublic(BaseModel):
 
 class ModelPage(BaseModel):
     items: list[ModelSummaryPublic]
-    next_cursor: str | None
+    next_cursor: int | None
 
 
 class JobSummaryPublic(BaseModel):
@@ -403,7 +441,7 @@ class JobSummaryPublic(BaseModel):
 
 class JobPage(BaseModel):
     items: list[JobSummaryPublic]
-    next_cursor: str | None
+    next_cursor: int | None
 
 
 class ParticipantPublic(BaseModel):

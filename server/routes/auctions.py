@@ -3,16 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, cast
+from typing import cast
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter, HTTPException, Request
 from starlette.concurrency import run_in_threadpool
 
 from server import crud
 from server.auctions import AuctionRunner, base_price
 from server.db import SessionDep
-from server.errors import api_error, error_item, link, responses, validation_error
-from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, decode_cursor, page_of
+from server.errors import api_error, error_item, link, responses
+from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
 from server.schemas import (
     AuctionCreate,
     AuctionCreated,
@@ -33,42 +33,39 @@ router = APIRouter(tags=["auctions"])
 
 
 def _patron_ids(session: SessionDep, body: AuctionCreate) -> list[int]:
-    """The ordered patron list: the given ids (each must exist and be accepted), or by default
-    the newest accepted version of every participant."""
+    """The ordered patron list: the given ids (each must exist, 404, and be accepted, 409), or
+    by default the newest accepted version of every participant (409 while there is none)."""
     if body.model_ids is None:
         ids = [row.id for row in crud.latest_accepted_models(session)]
         if not ids:
             raise api_error(
-                422,
+                409,
                 "no accepted model exists yet: submit models first",
                 loc=("body", "model_ids"),
                 kind="no_patrons",
             )
         return ids
     found = crud.get_models(session, model_ids=body.model_ids)
-    problems: list[dict[str, Any]] = []
-    seen: set[int] = set()
-    for index, model_id in enumerate(body.model_ids):
-        loc = ("body", "model_ids", index)
-        if model_id in seen:
-            problems.append(
-                error_item(f"model {model_id} is listed twice", loc=loc, kind="duplicate")
-            )
-        elif model_id not in found:
-            problems.append(
-                error_item(f"model {model_id} does not exist", loc=loc, kind="not_found")
-            )
-        elif not found[model_id].accepted:
-            problems.append(
-                error_item(
-                    f"model {model_id} was rejected by the screener and cannot enter an auction",
-                    loc=loc,
-                    kind="rejected",
-                )
-            )
-        seen.add(model_id)
-    if problems:
-        raise validation_error(problems)
+    missing = [
+        error_item(
+            f"model {model_id} does not exist", loc=("body", "model_ids", i), kind="not_found"
+        )
+        for i, model_id in enumerate(body.model_ids)
+        if model_id not in found
+    ]
+    if missing:
+        raise HTTPException(404, detail=missing)
+    rejected = [
+        error_item(
+            f"model {model_id} was rejected by the screener and cannot enter an auction",
+            loc=("body", "model_ids", i),
+            kind="rejected",
+        )
+        for i, model_id in enumerate(body.model_ids)
+        if not found[model_id].accepted
+    ]
+    if rejected:
+        raise HTTPException(409, detail=rejected)
     return list(body.model_ids)
 
 
@@ -108,7 +105,7 @@ def _fish_count(body: AuctionCreate, n_patrons: int) -> int:
     n_fish = int(body.rarity * n_patrons)
     if n_fish < 1:
         raise api_error(
-            422,
+            409,
             f"rarity {body.rarity} × {n_patrons} patrons puts no fish on sale",
             loc=("body", "rarity"),
             kind="no_fish",
@@ -123,7 +120,7 @@ def _fish_count(body: AuctionCreate, n_patrons: int) -> int:
     operation_id="create_auction",
     responses={
         201: {"links": {"ReadAuction": link("read_auction", "auction_id", "auction_id")}},
-        **responses(401, 403, 422),
+        **responses(401, 403, 404, 409, 422),
     },
 )
 def create_auction(body: AuctionCreate, session: SessionDep, request: Request) -> AuctionCreated:
@@ -245,9 +242,8 @@ async def list_auctions(
     session: SessionDep, limit: PageLimit = DEFAULT_PAGE, cursor: PageCursor = None
 ) -> AuctionPage:
     """Auctions, newest first, a page at a time (follow ``next_cursor``)."""
-    before = decode_cursor("auctions", cursor)
-    rows = await run_in_threadpool(crud.list_auctions, session, before=before, limit=limit + 1)
-    items, next_cursor = page_of("auctions", rows, limit)
+    rows = await run_in_threadpool(crud.list_auctions, session, before=cursor, limit=limit + 1)
+    items, next_cursor = page_of(rows, limit)
     return AuctionPage(
         items=[
             AuctionSummaryPublic(**dataclasses.asdict(row), n_sold=row.n_initial - row.n_available)

@@ -16,7 +16,7 @@ from server.errors import api_error, error_item, link, responses, validation_err
 from server.jobs import JobBackend
 from server.jobs.worker import job_dir
 from server.models import Job
-from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, decode_cursor, page_of
+from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
 from server.schemas import JobCreate, JobCreated, JobIdPath, JobPage, JobPublic, JobSummaryPublic
 from server.security import AdminDep
 from sim.experiment import ConfigError, config_dict, over_budget
@@ -157,9 +157,8 @@ async def list_jobs(
     session: SessionDep, limit: PageLimit = DEFAULT_PAGE, cursor: PageCursor = None
 ) -> JobPage:
     """Jobs with their status and progress, newest first, a page at a time."""
-    before = decode_cursor("jobs", cursor)
-    rows = await run_in_threadpool(crud.list_jobs, session, before=before, limit=limit + 1)
-    items, next_cursor = page_of("jobs", rows, limit)
+    rows = await run_in_threadpool(crud.list_jobs, session, before=cursor, limit=limit + 1)
+    items, next_cursor = page_of(rows, limit)
     return JobPage(
         items=[JobSummaryPublic(**dataclasses.asdict(row)) for row in items],
         next_cursor=next_cursor,

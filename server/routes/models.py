@@ -11,7 +11,7 @@ from agents.manifest import Manifest, Participant
 from server import crud
 from server.db import SessionDep
 from server.errors import api_error, link, responses
-from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, decode_cursor, page_of
+from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
 from server.schemas import (
     MAX_LISTED_AUCTIONS,
     ModelIdPath,
@@ -153,14 +153,13 @@ async def list_models(
     cursor: PageCursor = None,
 ) -> ModelPage:
     """Model versions with their verdicts, newest first, a page at a time."""
-    before = decode_cursor("models", cursor)
     rows = await run_in_threadpool(
         crud.list_models,
         session,
-        before=before,
+        before=cursor,
         limit=limit + 1,
         participant=participant,
         accepted=accepted,
     )
-    items, next_cursor = page_of("models", rows, limit)
+    items, next_cursor = page_of(rows, limit)
     return ModelPage(items=[model_summary(row) for row in items], next_cursor=next_cursor)

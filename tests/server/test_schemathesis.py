@@ -1,11 +1,26 @@
-"""Property-based API check: schemathesis drives the live server from its /openapi.json.
+"""Property-based API check: schemathesis drives the live server from its /openapi.json with
+every check it has: responses conform to the document (status codes, media types, headers,
+bodies), schema-valid data is accepted and invalid data refused, authentication is required
+where the document says so, Allow headers are right, created resources can be read back.
 
-Checks: no 5xx, every status code documented, content types, headers and bodies match the
-schema. Slow (about a minute): run with ``pytest -m slow tests/server/test_schemathesis.py``.
+Left out, each for a reason:
+* the event streams (``GET /auctions/{id}/events``, ``GET /jobs/{id}/events``): a stream ends
+  only when its auction or job ends, while schemathesis reads each response to its end; they
+  are tested against a live server in test_events.py;
+* the ``use_after_free`` check: ``DELETE /jobs/{id}`` cancels a job, whose record then stays
+  readable (status ``cancelled``), as the interface defines; the check expects a delete.
+Whole numbers in generated bodies are written as integers (``schemathesis_hooks.py`` says why).
+The job budget is lifted so that every schema-valid job is accepted (the budget depends on a
+product of options, which JSON Schema cannot state); each job the run queues is stopped by a
+30 s time limit.
+
+Slow (minutes): run with ``pytest -m slow tests/server/test_schemathesis.py``.
 """
 
 from __future__ import annotations
 
+import os
+import re
 import secrets
 import shutil
 import subprocess
@@ -14,27 +29,28 @@ from pathlib import Path
 
 import pytest
 
-from server.launch import ServerProcess
+from server.launch import QUOTAS_OFF, ServerProcess, settings_environment
 
-CHECKS = (
-    "not_a_server_error",
-    "status_code_conformance",
-    "content_type_conformance",
-    "response_headers_conformance",
-    "response_schema_conformance",
-)
+ROOT = Path(__file__).resolve().parents[2]
+STREAMS = r"/events$"
+"""Operations left out (see the module docstring): the event streams."""
+LIMITS = {**QUOTAS_OFF, "job_budget_s": 1e12, "job_timeout_s": 30.0}
 
 
 @pytest.mark.slow
-def test_schemathesis_finds_no_server_error_and_no_schema_mismatch(tmp_path: Path) -> None:
+def test_schemathesis_with_every_check(tmp_path: Path) -> None:
     binary = Path(sys.executable).with_name("schemathesis")
     command = str(binary) if binary.exists() else shutil.which("schemathesis")
     if command is None:
-        pytest.skip("schemathesis is not installed (pip install -e '.[dev]')")
+        pytest.fail("schemathesis is missing: it comes with the dev extra")
     token = secrets.token_hex(16)
     server = ServerProcess(
-        database_url=f"sqlite:///{tmp_path / 'srd.db'}", data_dir=tmp_path, admin_token=token
+        database_url=f"sqlite:///{tmp_path / 'srd.db'}",
+        data_dir=tmp_path,
+        admin_token=token,
+        extra_env=settings_environment(LIMITS),
     )
+    hooks = {"SCHEMATHESIS_HOOKS": "tests.server.schemathesis_hooks", "PYTHONPATH": str(ROOT)}
     with server:
         run = subprocess.run(
             [
@@ -44,7 +60,11 @@ def test_schemathesis_finds_no_server_error_and_no_schema_mismatch(tmp_path: Pat
                 "--header",
                 f"Authorization: Bearer {token}",
                 "--checks",
-                ",".join(CHECKS),
+                "all",
+                "--exclude-checks",
+                "use_after_free",
+                "--exclude-path-regex",
+                STREAMS,
                 "--max-examples",
                 "30",
                 "--seed",
@@ -52,10 +72,13 @@ def test_schemathesis_finds_no_server_error_and_no_schema_mismatch(tmp_path: Pat
             ],
             capture_output=True,
             text=True,
-            timeout=900,
+            timeout=1800,
             check=False,
+            cwd=ROOT,
+            env={**os.environ, **hooks},
         )
     log = server.log_path.read_text()
-    assert run.returncode == 0, run.stdout[-6000:]
-    assert "passed" in run.stdout and "failed" not in run.stdout.rsplit("SUMMARY", 1)[-1]
+    assert run.returncode == 0, run.stdout[-8000:]
+    generated = re.search(r"(\d+) generated, (\d+) passed", run.stdout)
+    assert generated and generated.group(1) == generated.group(2), run.stdout[-2000:]
     assert '" 500 ' not in log and "Traceback" not in log

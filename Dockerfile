@@ -21,9 +21,11 @@ WORKDIR /app
 
 # Dependencies first, in their own layer, from the dependency list alone: edits of the source
 # or the README do not reinstall torch. The CPU wheel index keeps CUDA packages out.
+# EXTRAS names optional dependency groups to add, e.g. --build-arg EXTRAS=ray (compose.yaml).
+ARG EXTRAS=""
 COPY pyproject.toml ./
 RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu \
-    && python -c "import tomllib; deps = tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']; open('/tmp/requirements.txt', 'w').write('\n'.join(deps))" \
+    && python -c "import os, tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; extras = [d for e in os.environ['EXTRAS'].split(',') if e for d in p['optional-dependencies'][e]]; open('/tmp/requirements.txt', 'w').write('\n'.join(p['dependencies'] + extras))" \
     && pip install -r /tmp/requirements.txt
 
 COPY README.md ./

@@ -21,6 +21,7 @@ from server.config import Settings, get_settings
 from server.db import Database, prepare_database
 from server.errors import install_error_handlers, responses
 from server.jobs import LocalJobBackend, requeue_unfinished
+from server.jobs.backend import job_compute
 from server.quotas import Limits
 from server.remote_rounds import RoundWatcher, UploadLookup, UploadWriter
 from server.routes import auctions, events, health, jobs, models, participants, rounds, ui
@@ -51,9 +52,16 @@ def _start_services(app: FastAPI, settings: Settings) -> None:
         max_workers=settings.auction_workers,
         timeout_s=settings.auction_timeout_s,
     )
+    app.state.compute = job_compute(settings.job_backend, settings.ray_address)
     app.state.jobs = LocalJobBackend(
         database,
-        dataclasses.replace(context, memory_mb=settings.job_memory_mb),
+        dataclasses.replace(
+            context,
+            memory_mb=settings.job_memory_mb,
+            job_backend=settings.job_backend,
+            ray_address=settings.ray_address,
+            ray_max_retries=settings.ray_max_retries,
+        ),
         max_workers=settings.job_workers,
         timeout_s=settings.job_timeout_s,
     )
@@ -82,6 +90,7 @@ def _stop_services(app: FastAPI) -> None:
     app.state.uploads.shutdown()
     app.state.upload_lookup.shutdown()
     app.state.screening.shutdown()
+    app.state.compute.close()
     app.state.database.close()
 
 

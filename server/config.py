@@ -1,13 +1,18 @@
-"""Service settings: the one place that reads the environment (prefix ``SRD_``)."""
+"""Service settings: the one place that reads the environment (prefix ``SRD_``) and the
+secret files (``SRD_SECRETS_DIR``)."""
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
-from pydantic import Field, SecretStr
+from pydantic import AliasChoices, Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+JobBackendName = Literal["local", "ray"]
+"""Where job units are computed."""
 
 
 class Settings(BaseSettings):
@@ -35,7 +40,9 @@ class Settings(BaseSettings):
     job_timeout_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 3600.0
     """Wall-time limit of one job: a job still running after this long is stopped and failed."""
     job_memory_mb: Annotated[int, Field(ge=512, le=1 << 20)] = 4096
-    """Address-space limit of a job's worker process (MB, ``RLIMIT_AS``, enforced by the OS)."""
+    """Address-space limit of a job's worker process (MB, ``RLIMIT_AS``, enforced by the OS;
+    with the ``ray`` job backend a limit on its data, ``RLIMIT_DATA``, as Ray maps its shared
+    object store into the process)."""
     job_budget_s: Annotated[float, Field(gt=0, le=1e12)] = 1800.0
     """Jobs whose estimated compute (seconds on one core) exceeds this are refused with 422."""
     auction_timeout_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 3600.0
@@ -67,6 +74,18 @@ class Settings(BaseSettings):
     went away is noticed)."""
     max_event_streams: Annotated[int, Field(ge=1, le=100_000)] = 256
     """Event streams open at once in one process; more get 503 with ``Retry-After``."""
+    job_backend: JobBackendName = "local"
+    """Where a job's units are computed: ``local`` (in the job's worker process) or ``ray``
+    (as tasks on the Ray cluster at ``ray_address``; needs ``pip install '.[ray]'``)."""
+    ray_address: str | None = Field(
+        default=None,
+        validation_alias=AliasChoices("SRD_RAY_ADDRESS", "RAY_ADDRESS", "ray_address"),
+    )
+    """The Ray cluster of ``job_backend=ray``: its head's ``host:port``, ``ray://host:port``
+    (Ray Client) or ``auto`` (a cluster started on this machine by ``ray start``); read from
+    ``SRD_RAY_ADDRESS``, else from Ray's own ``RAY_ADDRESS``."""
+    ray_max_retries: Annotated[int, Field(ge=0, le=100)] = 3
+    """Times a unit lost with its Ray worker or node is run again (units are idempotent)."""
     host: str = "127.0.0.1"
     """Address ``srd serve`` binds by default."""
     port: Annotated[int, Field(ge=0, le=65535)] = 8000
@@ -83,7 +102,15 @@ class Settings(BaseSettings):
         return self.data_dir / "databases.json"
 
 
+SECRETS_DIR_VARIABLE = "SRD_SECRETS_DIR"
+"""Names a folder of secret files, one per setting, named as its variable in lower case
+(``srd_admin_token``, ``srd_database_url``: what ``docker compose`` mounts in /run/secrets);
+a variable set in the environment wins over its file."""
+
+
 @lru_cache(maxsize=1)
 def get_settings() -> Settings:
-    """The settings of this process, read once from the environment."""
-    return Settings()
+    """The settings of this process, read once from the environment (and the secret files of
+    ``SRD_SECRETS_DIR``, if set)."""
+    secrets = os.environ.get(SECRETS_DIR_VARIABLE) or None
+    return Settings(_secrets_dir=secrets)

@@ -18,6 +18,7 @@ from pydantic import (
 from pydantic.json_schema import JsonSchemaValue
 from pydantic_core import CoreSchema
 
+from server.config import JobBackendName
 from sim.experiment import config_schema
 from sim.market import MarketConfig
 from sim.registry import KINDS
@@ -60,6 +61,10 @@ class _Input(BaseModel):
 
 class HealthPublic(BaseModel):
     status: Literal["ok"]
+    job_backend: JobBackendName
+    """Where job units are computed (``SRD_JOB_BACKEND``)."""
+    cpus: float
+    """The CPUs that backend computes on: this machine's, or the Ray cluster's live nodes'."""
 
 
 class ReasonPublic(BaseModel):

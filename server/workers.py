@@ -50,7 +50,14 @@ class WorkerContext:
     nice: int = 0
     """Added to the worker's niceness at start (0: same priority as the API)."""
     memory_mb: int | None = None
-    """The worker's address-space limit (``RLIMIT_AS``), enforced by the OS; None: no limit."""
+    """The worker's address-space limit (``RLIMIT_AS``; ``RLIMIT_DATA`` with the ``ray`` job
+    backend), enforced by the OS; None: no limit."""
+    job_backend: str = "local"
+    """Where a job worker computes its units: ``local`` (itself) or ``ray``."""
+    ray_address: str | None = None
+    """The Ray cluster of the ``ray`` job backend."""
+    ray_max_retries: int = 0
+    """Times the ``ray`` job backend runs a lost unit again."""
 
 
 TaskFn = Callable[[WorkerContext, int], None]
@@ -108,7 +115,10 @@ def _worker_main(task: TaskFn, context: WorkerContext, conn: Connection, parent_
     die_with_parent(parent_pid)
     if context.memory_mb is not None:
         limit = context.memory_mb << 20
-        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+        # A Ray driver maps the cluster's shared object store (gigabytes of address space):
+        # there the limit is on the process's own data (heap and private mappings).
+        kind = resource.RLIMIT_DATA if context.job_backend == "ray" else resource.RLIMIT_AS
+        resource.setrlimit(kind, (limit, limit))
     if context.nice > 0 and hasattr(os, "nice"):
         with contextlib.suppress(OSError):
             os.nice(context.nice)  # background work yields to the API under load

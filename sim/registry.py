@@ -15,8 +15,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from sim import units
-from sim.experiment import ProgressFn, parse_config
-from sim.units import Decomposition, UnitRunner
+from sim.experiment import ProgressFn, no_progress, parse_config
+from sim.units import Decomposition, Payload, Unit, UnitRunner, plain
 
 
 @dataclass(frozen=True)
@@ -184,3 +184,12 @@ def run_kind(
     return units.run(
         KINDS[kind].decomposition(), config, out_dir=out_dir, progress=progress, runner=runner
     )
+
+
+def compute_unit(kind: str, params: dict[str, Any], unit: dict[str, Any]) -> Payload:
+    """One unit of a ``kind`` experiment from JSON alone (the config's params and the unit's
+    ``as_json``): what a cluster task runs. Returns the unit's plain payload."""
+    config = build_config(kind, params)
+    decomposition = KINDS[kind].decomposition()
+    payload: Payload = plain(decomposition.compute(config, Unit.from_json(unit), no_progress))
+    return payload

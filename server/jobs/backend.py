@@ -8,11 +8,14 @@ same four methods.
 
 from __future__ import annotations
 
+import os
 from abc import ABC, abstractmethod
+from typing import Protocol
 
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
+from server.config import JobBackendName
 from server.models import Job, utcnow
 
 
@@ -34,6 +37,41 @@ class JobBackend(ABC):
     @abstractmethod
     def shutdown(self) -> None:
         """Stop running jobs; they are re-queued at the next start."""
+
+
+class JobCompute(Protocol):
+    """Where job units are computed, as ``/healthz`` reports it."""
+
+    name: JobBackendName
+
+    def cpus(self) -> float:
+        """The CPUs the backend can compute units on."""
+
+    def close(self) -> None:
+        """Let go of the backend (at shutdown)."""
+
+
+class LocalCompute:
+    """Units computed by the job worker processes of this machine."""
+
+    name: JobBackendName = "local"
+
+    def cpus(self) -> float:
+        """The CPUs this process may run on."""
+        return float(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1)
+
+    def close(self) -> None:
+        """Nothing to let go of."""
+
+
+def job_compute(backend: JobBackendName, ray_address: str | None) -> JobCompute:
+    """The compute of ``SRD_JOB_BACKEND``: joins the Ray cluster for ``ray`` (raising
+    ``RayUnavailableError`` with the reason when Ray is missing or unreachable)."""
+    if backend != "ray":
+        return LocalCompute()
+    from server.jobs.ray_backend import RayCluster
+
+    return RayCluster(ray_address)
 
 
 def requeue_unfinished(session: Session) -> list[int]:

@@ -1,5 +1,8 @@
 """The job worker process: claim a queued job, run its experiment, record the outcome.
 
+The experiment's units (``sim.units``) are computed here, or as Ray tasks with the ``ray``
+backend (``server.jobs.ray_backend``); the artifacts and the result are made here either way.
+
 Every write carries the attempt number taken at claim time and the 'running' status, so a
 cancelled job or one re-claimed after a restart is never overwritten by an older worker.
 """
@@ -19,6 +22,7 @@ from server.models import Job, utcnow
 from server.workers import WorkerContext, error_summary
 from sim.experiment import write_json
 from sim.registry import build_config, run_kind
+from sim.units import UnitRunner
 
 MESSAGE_LIMIT = 200  # characters of a progress message kept
 
@@ -117,6 +121,22 @@ def failure_message(exc: BaseException, context: WorkerContext) -> str:
     return text[:MESSAGE_LIMIT]
 
 
+def unit_runner(context: WorkerContext, kind: str, config: Any) -> UnitRunner | None:
+    """Where this job's units are computed: None (here, one after another) for the local
+    backend, the Ray cluster's tasks for the ``ray`` one."""
+    if context.job_backend != "ray":
+        return None
+    from server.jobs.ray_backend import RayRunner
+
+    return RayRunner(
+        kind,
+        config,
+        address=context.ray_address,
+        max_retries=context.ray_max_retries,
+        threads=context.torch_threads,
+    )
+
+
 def run_job(context: WorkerContext, job_id: int) -> None:
     """Worker process entry point for one job. Whatever goes wrong once the job is claimed
     (its folder cannot be made, the experiment raises, memory runs out) is stored on the job
@@ -133,7 +153,10 @@ def run_job(context: WorkerContext, job_id: int) -> None:
             out_dir.mkdir(parents=True)
             progress = _Progress(database, job_id, attempt, context.progress_interval_s)
             config = build_config(kind, params)
-            result = json_safe(run_kind(kind, config, out_dir=out_dir, progress=progress))
+            runner = unit_runner(context, kind, config)
+            result = json_safe(
+                run_kind(kind, config, out_dir=out_dir, progress=progress, runner=runner)
+            )
             write_json(out_dir / "result.json", result)
             outcome: dict[str, Any] = {
                 "status": "succeeded",

@@ -65,7 +65,7 @@ def load_kernels(model: Robot2NN, stack: np.ndarray) -> None:
     with torch.no_grad():
         for c, sequence in enumerate(model.sequences()):
             for layer, kernel in enumerate(sequence.kernels()):
-                kernel.copy_(torch.from_numpy(stack[c, layer]).reshape(kernel.shape))
+                kernel.copy_(torch.tensor(stack[c, layer]).reshape(kernel.shape))
 
 
 @dataclass(frozen=True)

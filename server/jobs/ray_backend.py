@@ -1,0 +1,159 @@
+"""Job units on a Ray cluster (``SRD_JOB_BACKEND=ray``).
+
+A job still runs in its own worker process on the API's machine (claim, progress, artifacts,
+result, time and memory limits, cancellation: ``server.jobs.worker``); only its units
+(``sim.units``) are computed elsewhere, as Ray tasks. The worker connects to the cluster as a
+Ray driver, submits every unit at once and waits for them in completion order (``ray.wait``),
+so the job's progress moves as each unit ends. A task receives the job's kind, its JSON params
+and the unit's JSON spec and returns the unit's payload (JSON values and numpy arrays): no
+Python object of ours crosses the wire, and the assembled result is the local backend's.
+
+* A unit lost with its worker process or node runs again, up to ``SRD_RAY_MAX_RETRIES``
+  times (units are idempotent); an exception raised by the unit's own code fails the job.
+* Cancelling the job terminates its worker process; Ray's SIGTERM handler in the driver raises
+  ``SystemExit``, and on the way out the worker cancels every unfinished task (force: their
+  Ray workers are stopped), so the cluster stops working on a cancelled job at once.
+* Tasks ask for one CPU each and set torch's thread count to the job workers' own
+  (``SRD_WORKER_TORCH_THREADS``), so their floating-point arithmetic is the local one.
+
+Ray is an optional extra: ``pip install '.[ray]'``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import time
+from collections.abc import Iterator, Sequence
+from functools import cache
+from typing import Any
+
+from server.config import JobBackendName
+from sim.experiment import config_dict
+from sim.registry import compute_unit
+from sim.units import Payload, Unit, UnitProgress
+
+log = logging.getLogger("srd.ray")
+
+INSTALL_HINT = "pip install '.[ray]'  (or: pip install 'srd-auction[ray]')"
+"""How to get Ray, as every error about its absence says."""
+WAIT_S = 0.5
+"""Longest single ``ray.wait``: the driver's signal handlers (cancellation) run between waits."""
+CPUS_CACHE_S = 5.0
+"""How long the cluster's CPU count is trusted before ``/healthz`` asks Ray again."""
+NAMESPACE = "srd-auction"
+"""The Ray namespace of every driver of this service."""
+
+
+class RayUnavailableError(RuntimeError):
+    """Ray is asked for but missing, or its cluster cannot be reached."""
+
+
+def ray_module() -> Any:
+    """The ``ray`` package, or RayUnavailableError saying how to install it."""
+    try:
+        return importlib.import_module("ray")
+    except ImportError as exc:
+        raise RayUnavailableError(
+            f"SRD_JOB_BACKEND=ray needs Ray, which is not installed: {INSTALL_HINT}"
+        ) from exc
+
+
+def connect(address: str | None) -> Any:
+    """Join the Ray cluster at ``address`` as a driver (once per process); returns ``ray``."""
+    if not address:
+        raise RayUnavailableError(
+            "SRD_JOB_BACKEND=ray needs the cluster's address: set SRD_RAY_ADDRESS (or Ray's "
+            "own RAY_ADDRESS) to the head's host:port, ray://host:port, or auto"
+        )
+    ray = ray_module()
+    if not ray.is_initialized():
+        try:
+            ray.init(
+                address=address,
+                namespace=NAMESPACE,
+                log_to_driver=False,
+                logging_level=logging.WARNING,
+            )
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            raise RayUnavailableError(
+                f"cannot join the Ray cluster at {address!r} (SRD_RAY_ADDRESS): {exc}"
+            ) from exc
+    return ray
+
+
+def unit_task(kind: str, params: dict[str, Any], unit: dict[str, Any], threads: int) -> Payload:
+    """The body of one unit's Ray task: the job workers' torch thread count, then the unit."""
+    import torch
+
+    torch.set_num_threads(threads)
+    return compute_unit(kind, params, unit)
+
+
+@cache
+def _remote_unit_task() -> Any:
+    """``unit_task`` as a Ray remote function (made once per process, after ``connect``)."""
+    return ray_module().remote(num_cpus=1)(unit_task)
+
+
+class RayRunner:
+    """Computes a job's units as Ray tasks (a ``sim.units.UnitRunner``): every unit submitted
+    at once, their payloads yielded as they finish."""
+
+    def __init__(
+        self, kind: str, config: Any, *, address: str | None, max_retries: int, threads: int
+    ) -> None:
+        self._ray = connect(address)
+        self._kind = kind
+        self._params = config_dict(config)
+        self._max_retries = max_retries
+        self._threads = threads
+
+    def __call__(
+        self, units: Sequence[Unit], progress: UnitProgress
+    ) -> Iterator[tuple[int, Payload]]:
+        ray = self._ray
+        task = _remote_unit_task()
+        params = ray.put(self._params)
+        refs = {
+            task.options(
+                max_retries=self._max_retries,
+                retry_exceptions=False,
+                name=f"srd {self._kind}: {unit.label}",
+            ).remote(self._kind, params, unit.as_json(), self._threads): index
+            for index, unit in enumerate(units)
+        }
+        pending = list(refs)
+        started = time.monotonic()
+        try:
+            while pending:
+                ready, pending = ray.wait(pending, num_returns=1, timeout=WAIT_S)
+                for ref in ready:
+                    yield refs[ref], ray.get(ref)
+        finally:
+            for ref in pending:  # cancelled, failed, or the process is stopping
+                ray.cancel(ref, force=True)
+            log.info("%d units of %s in %.1f s", len(refs), self._kind, time.monotonic() - started)
+
+
+class RayCluster:
+    """The API process's view of the cluster: joined at start (so a wrong address or a missing
+    Ray stops the server with the reason), asked for its CPUs by ``/healthz``."""
+
+    name: JobBackendName = "ray"
+
+    def __init__(self, address: str | None) -> None:
+        self._ray = connect(address)
+        self._cpus = 0.0
+        self._asked_at = -CPUS_CACHE_S
+
+    def cpus(self) -> float:
+        """The CPUs of every node alive in the cluster (cached for ``CPUS_CACHE_S``)."""
+        if time.monotonic() - self._asked_at > CPUS_CACHE_S:
+            self._cpus = float(self._ray.cluster_resources().get("CPU", 0.0))
+            self._asked_at = time.monotonic()
+        return self._cpus
+
+    def close(self) -> None:
+        """Leave the cluster (it keeps running)."""
+        self._ray.shutdown()

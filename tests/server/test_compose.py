@@ -1,0 +1,105 @@
+"""compose.yaml, checked without a Docker engine: the services, their ports, volumes,
+healthchecks and profiles, and that no secret is written in the file."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from server.config import SECRETS_DIR_VARIABLE, get_settings
+
+ROOT = Path(__file__).resolve().parents[2]
+COMPOSE: dict[str, Any] = yaml.safe_load((ROOT / "compose.yaml").read_text())
+SERVICES: dict[str, Any] = COMPOSE["services"]
+SECRET_WORDS = re.compile(r"TOKEN|PASSWORD|SECRET|KEY", re.I)
+
+
+def environment(service: str) -> dict[str, str]:
+    return {k: str(v) for k, v in (SERVICES[service].get("environment") or {}).items()}
+
+
+def test_services_and_profiles():
+    assert set(SERVICES) == {"db", "api", "ray-head", "ray-worker"}
+    assert SERVICES["api"]["deploy"]["replicas"] == 2
+    assert "profiles" not in SERVICES["api"] and "profiles" not in SERVICES["db"]
+    assert SERVICES["ray-head"]["profiles"] == ["ray"] == SERVICES["ray-worker"]["profiles"]
+    assert SERVICES["api"]["depends_on"]["db"]["condition"] == "service_healthy"
+    assert SERVICES["ray-worker"]["depends_on"]["ray-head"]["condition"] == "service_healthy"
+    images = {SERVICES[s]["image"] for s in ("api", "ray-head", "ray-worker")}
+    assert images == {"srd-auction:latest"}  # the same code on the API and the Ray nodes
+    assert SERVICES["api"]["build"]["args"]["EXTRAS"] == "ray"
+
+
+def test_every_service_checks_its_health():
+    for name, service in SERVICES.items():
+        test = service["healthcheck"]["test"]
+        assert test[0] == "CMD" and len(test) > 1, name
+    assert SERVICES["api"]["healthcheck"]["test"] == ["CMD", "srd", "healthcheck"]
+    assert SERVICES["db"]["healthcheck"]["test"][1] == "pg_isready"
+    assert SERVICES["ray-head"]["healthcheck"]["test"][1:3] == ["ray", "health-check"]
+
+
+def test_ports_only_the_api_is_published_on_the_loopback():
+    assert SERVICES["api"]["ports"] == ["127.0.0.1:8000-8001:8000"]  # a port per replica
+    for name in ("db", "ray-head", "ray-worker"):
+        assert "ports" not in SERVICES[name], name
+    head = SERVICES["ray-head"]["command"]
+    assert "--dashboard-host=127.0.0.1" in head and "--head" in head
+
+
+def test_volumes_keep_the_database_and_the_shared_artifacts():
+    assert SERVICES["db"]["volumes"] == ["pgdata:/var/lib/postgresql/data"]
+    assert SERVICES["api"]["volumes"] == ["srd-data:/data"]
+    assert environment("api")["SRD_DATA_DIR"] == "/data"
+    assert set(COMPOSE["volumes"]) == {"pgdata", "srd-data"}
+
+
+def test_no_secret_is_written_in_the_file():
+    for name in SERVICES:
+        for key, value in environment(name).items():
+            if SECRET_WORDS.search(key):  # a path to a secret file, or Ray's mode switch
+                assert value.startswith("/run/secrets") or value == "token", (name, key)
+            assert "@" not in value, (name, key)  # no credentials in a URL
+    api = environment("api")
+    assert "SRD_DATABASE_URL" not in api and "SRD_ADMIN_TOKEN" not in api
+    assert api[SECRETS_DIR_VARIABLE] == "/run/secrets"
+    assert {"srd_database_url", "srd_admin_token"} <= set(SERVICES["api"]["secrets"])
+    for name, secret in COMPOSE["secrets"].items():
+        assert secret == {"file": f"./secrets/{name}"}, name
+
+
+def test_ray_nodes_and_api_use_token_authentication():
+    for name in ("api", "ray-head", "ray-worker"):
+        env = environment(name)
+        assert env["RAY_AUTH_MODE"] == "token", name
+        assert env["RAY_AUTH_TOKEN_PATH"] == "/run/secrets/ray_auth_token", name
+        assert "ray_auth_token" in SERVICES[name]["secrets"], name
+    assert environment("api")["SRD_RAY_ADDRESS"] == "ray-head:6379"
+
+
+def test_settings_read_the_secret_files(tmp_path, monkeypatch):
+    (tmp_path / "srd_admin_token").write_text("a-token-read-from-a-file-0123456789\n")
+    (tmp_path / "srd_database_url").write_text(f"sqlite:///{tmp_path / 'x.db'}\n")
+    monkeypatch.setenv(SECRETS_DIR_VARIABLE, str(tmp_path))
+    monkeypatch.delenv("SRD_DATABASE_URL", raising=False)
+    monkeypatch.delenv("SRD_ADMIN_TOKEN", raising=False)
+    get_settings.cache_clear()
+    try:
+        settings = get_settings()
+        assert settings.admin_token is not None
+        assert settings.admin_token.get_secret_value() == "a-token-read-from-a-file-0123456789"
+        assert settings.database_url == f"sqlite:///{tmp_path / 'x.db'}"
+        monkeypatch.setenv("SRD_DATABASE_URL", "sqlite:///from-the-environment.db")
+        get_settings.cache_clear()
+        assert get_settings().database_url == "sqlite:///from-the-environment.db"  # env wins
+    finally:
+        get_settings.cache_clear()
+
+
+@pytest.mark.parametrize("service", ["api", "ray-head", "ray-worker"])
+def test_commands_use_exec_form(service):
+    assert isinstance(SERVICES[service]["command"], list)

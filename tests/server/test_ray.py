@@ -1,0 +1,195 @@
+"""The Ray job backend on a throw-away local Ray cluster (loopback, token authentication on):
+jobs give the local backend's numbers and artifacts for the same seeds, a cancelled job stops
+its tasks, a unit whose Ray worker is killed runs again and the result is unchanged."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import signal
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from server.app import create_app
+from server.jobs.ray_backend import RayUnavailableError, ray_module
+from tests.server.conftest import ADMIN, make_settings, wait_for
+from tests.server.ray_head import RayHead
+
+# Not imported here: Ray reads its token settings once, when it is first imported.
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("ray") is None,
+    reason="the Ray extra is not installed: pip install '.[ray]'",
+)
+
+CPUS = 2
+JOBS = {
+    "auction-study": {"rarities": [0.3, 0.7], "trials": 16, "grid": True, "seed": 5},
+    "lavaland": {"eval_maps": 256, "train_maps": 512, "repeats": 3, "seed": 1},
+    "cheetah": {"backswing": [2.0, 4.0], "steps": 400, "trials": 20, "seed": 3},
+}
+"""Small jobs of several units each (auction-study 4, lavaland 3, cheetah 5)."""
+LONG_LAVALAND = {"eval_maps": 1024, "train_maps": 32768, "repeats": 2, "seed": 4}
+"""About ten seconds per unit: long enough to see its task run."""
+RUN_TIMEOUT_S = 300
+TIMES = ("elapsed_s", "simulation_s")
+
+
+@pytest.fixture(scope="module")
+def ray_head() -> Iterator[RayHead]:
+    with RayHead(CPUS) as head:
+        saved = {name: os.environ.get(name) for name in head.env}
+        os.environ.update(head.env)  # the app (a driver) and its job workers present the token
+        try:
+            yield head
+        finally:
+            for name, value in saved.items():
+                if value is None:
+                    os.environ.pop(name, None)
+                else:
+                    os.environ[name] = value
+
+
+def client_for(tmp: Path, **overrides: Any) -> TestClient:
+    settings = make_settings(
+        f"sqlite:///{tmp / 'srd.db'}", tmp / "data", job_workers=3, **overrides
+    )
+    return TestClient(create_app(settings))
+
+
+def run_jobs(client: TestClient, jobs: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    ids = {}
+    for kind, params in jobs.items():
+        answer = client.post("/jobs", json={"kind": kind, "params": params}, headers=ADMIN)
+        assert answer.status_code == 202, answer.text
+        ids[kind] = answer.json()["job_id"]
+    return {
+        kind: wait_for(
+            lambda i=job_id: client.get(f"/jobs/{i}").json(),
+            lambda job: job["status"] not in ("queued", "running"),
+            RUN_TIMEOUT_S,
+        )
+        for kind, job_id in ids.items()
+    }
+
+
+def numbers(value: Any) -> Any:
+    """A result or JSON artifact without its wall times."""
+    if isinstance(value, dict):
+        return {k: numbers(v) for k, v in value.items() if k not in TIMES}
+    if isinstance(value, list):
+        return [numbers(v) for v in value]
+    return value
+
+
+def artifacts(data_dir: Path, job: dict[str, Any]) -> dict[str, Any]:
+    """Every CSV, JSON and GIF artifact of a job (JSON without wall times)."""
+    folder = data_dir / "jobs" / str(job["id"])
+    found: dict[str, Any] = {}
+    for name in job["artifacts"]:
+        path = folder / name
+        if path.suffix == ".json":
+            found[name] = numbers(json.loads(path.read_text()))
+        elif path.suffix in (".csv", ".gif"):
+            found[name] = path.read_bytes()
+    return found
+
+
+def test_ray_jobs_equal_local_jobs(ray_head: RayHead, tmp_path: Path) -> None:
+    with client_for(tmp_path / "local") as local:
+        assert local.get("/healthz").json()["job_backend"] == "local"
+        expected = run_jobs(local, JOBS)
+    ray = tmp_path / "ray"
+    with client_for(ray, job_backend="ray", ray_address=ray_head.address) as client:
+        health = client.get("/healthz").json()
+        assert health == {"status": "ok", "job_backend": "ray", "cpus": float(CPUS)}
+        done = run_jobs(client, JOBS)
+    for kind, job in done.items():
+        mine = expected[kind]
+        assert job["status"] == "succeeded" == mine["status"], (kind, job["error"], mine["error"])
+        assert job["message"] == "done"
+        assert numbers(job["result"]) == numbers(mine["result"]), kind
+        assert job["artifacts"] == mine["artifacts"], kind
+        assert artifacts(ray / "data", job) == artifacts(tmp_path / "local" / "data", mine), kind
+    assert "cheetah.gif" in done["cheetah"]["artifacts"]  # the filmed trial came from a unit
+
+
+def test_cancelling_a_ray_job_stops_its_tasks(ray_head: RayHead, tmp_path: Path) -> None:
+    params = {**LONG_LAVALAND, "repeats": 4}
+    with client_for(tmp_path, job_backend="ray", ray_address=ray_head.address) as client:
+        job_id = client.post(
+            "/jobs", json={"kind": "lavaland", "params": params}, headers=ADMIN
+        ).json()["job_id"]
+        running = wait_for(
+            lambda: {"tasks": ray_head.worker_pids("srd lavaland")},
+            lambda seen: len(seen["tasks"]) == CPUS,
+            RUN_TIMEOUT_S,
+        )
+        cancelled = client.delete(f"/jobs/{job_id}", headers=ADMIN)
+        assert cancelled.status_code == 200 and cancelled.json()["status"] == "cancelled"
+        wait_for(
+            lambda: {"tasks": ray_head.worker_pids("srd lavaland")},
+            lambda seen: not seen["tasks"],
+            15,
+        )
+        for pid in running["tasks"]:  # force-cancelled: their worker processes are gone
+            assert (
+                not Path(f"/proc/{pid}").exists()
+                or b"srd lavaland" not in Path(f"/proc/{pid}/cmdline").read_bytes()
+            )
+        time.sleep(1)
+        assert client.get(f"/jobs/{job_id}").json()["status"] == "cancelled"
+
+
+@pytest.mark.slow
+def test_a_killed_ray_worker_unit_runs_again_with_the_same_result(
+    ray_head: RayHead, tmp_path: Path
+) -> None:
+    job = {"lavaland": LONG_LAVALAND}
+    with client_for(tmp_path / "local") as local:
+        (expected,) = run_jobs(local, job).values()
+    ray = tmp_path / "ray"
+    with client_for(ray, job_backend="ray", ray_address=ray_head.address) as client:
+        answer = client.post(
+            "/jobs", json={"kind": "lavaland", "params": LONG_LAVALAND}, headers=ADMIN
+        )
+        job_id = answer.json()["job_id"]
+        seen = wait_for(
+            lambda: {"tasks": ray_head.worker_pids("srd lavaland: repeat 1")},
+            lambda s: bool(s["tasks"]),
+            RUN_TIMEOUT_S,
+        )
+        killed = seen["tasks"][0]
+        os.kill(killed, signal.SIGKILL)
+        wait_for(  # Ray runs the lost unit again, in another worker
+            lambda: {"tasks": set(ray_head.worker_pids("srd lavaland: repeat 1")) - {killed}},
+            lambda s: bool(s["tasks"]),
+            RUN_TIMEOUT_S,
+        )
+        done = wait_for(
+            lambda: client.get(f"/jobs/{job_id}").json(),
+            lambda j: j["status"] not in ("queued", "running"),
+            RUN_TIMEOUT_S,
+        )
+    assert done["status"] == "succeeded", done["error"]
+    assert numbers(done["result"]) == numbers(expected["result"])
+    assert artifacts(ray / "data", done) == artifacts(tmp_path / "local" / "data", expected)
+
+
+def test_ray_asked_for_but_missing_or_unaddressed_says_what_to_do(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray now fails
+    with pytest.raises(RayUnavailableError, match=r"pip install '\.\[ray\]'"):
+        ray_module()
+    monkeypatch.delitem(sys.modules, "ray")
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    with pytest.raises(RayUnavailableError, match="SRD_RAY_ADDRESS"):  # noqa: SIM117
+        with client_for(tmp_path, job_backend="ray", ray_address=None):
+            pass

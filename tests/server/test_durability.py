@@ -104,6 +104,10 @@ def test_every_201_survives_a_kill_9(database_url: str, tmp_path: Path) -> None:
     database.close()
     for answer in acknowledged:
         assert stored.get(answer["model_id"]) == (answer["participant"], answer["version"])
+    print(  # the figures of docs/server.md (pytest -s)
+        f"acknowledged {len(acknowledged)}, refused {len(refused)}, answer lost {len(lost)}, "
+        f"stored {len(stored)}: every acknowledged one stored, none of the refused"
+    )
     names = {name for name, _ in stored.values()}
     assert not names & set(refused)
     assert len(stored) <= len(acknowledged) + len(lost) + 1  # + the warm-up

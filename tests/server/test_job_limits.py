@@ -106,3 +106,17 @@ def test_an_auction_over_its_time_limit_is_stopped_and_failed(tmp_path) -> None:
         )
     assert state["status"] == "failed"
     assert "time limit of 3 s (SRD_AUCTION_TIMEOUT_S)" in state["error"]
+
+
+def test_a_job_over_its_memory_limit_fails_saying_so(tmp_path) -> None:
+    """The OS refuses the worker more address space than SRD_JOB_MEMORY_MB: a lavaland job
+    with 65536 maps of 16 plans needs more than 1500 MB."""
+    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
+    with TestClient(create_app(settings.model_copy(update={"job_memory_mb": 1500}))) as client:
+        params = {"eval_maps": 65536, "train_maps": 0, "n_plans": 16}
+        job = run_to_end(client, {"kind": "lavaland", "params": params}, timeout_s=300)
+    assert job["status"] == "failed"
+    assert (
+        job["message"] == "failed: the job memory limit of 1500 MB (SRD_JOB_MEMORY_MB) was reached"
+    )
+    assert "can't allocate memory" in job["error"]

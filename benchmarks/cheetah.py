@@ -21,7 +21,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import mujoco
 import numpy as np
@@ -43,14 +43,20 @@ torch.set_num_threads(1)
 
 
 class RecordingBatch(HalfCheetahBatch):
-    """The engine's batch, also remembering every chunk's controls for the replay."""
+    """The engine's batches (one per unit of the grid), also remembering every chunk's
+    controls for the replay."""
 
-    chunks: ClassVar[list[tuple[np.ndarray, int]]] = []
+    batches: ClassVar[list[list[tuple[np.ndarray, int]]]] = []
 
     cpu_span: ClassVar[list[float]] = []
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.chunks: list[tuple[np.ndarray, int]] = []
+        RecordingBatch.batches.append(self.chunks)
+
     def advance(self, control: np.ndarray, nstep: int) -> np.ndarray:
-        RecordingBatch.chunks.append((np.array(control, dtype=np.float64), nstep))
+        self.chunks.append((np.array(control, dtype=np.float64), nstep))
         if not RecordingBatch.cpu_span:
             RecordingBatch.cpu_span.append(time.process_time())
         positions = super().advance(control, nstep)
@@ -58,17 +64,18 @@ class RecordingBatch(HalfCheetahBatch):
         return positions
 
 
-def bare_replay(chunks: list[tuple[np.ndarray, int]], n: int) -> tuple[float, float, int]:
+def bare_replay(batches: list[list[tuple[np.ndarray, int]]]) -> tuple[float, float, int]:
     """Single-thread mj_step over the recorded controls, trial by trial: (wall s, CPU s, steps)."""
     model = build_model()
     steps = 0
     start, cpu = time.perf_counter(), time.process_time()
-    for trial in range(n):
-        data = mujoco.MjData(model)
-        for control, nstep in chunks:
-            data.ctrl[:] = control[trial]
-            mujoco.mj_step(model, data, nstep)
-            steps += nstep
+    for chunks in batches:
+        for trial in range(len(chunks[0][0]) if chunks else 0):
+            data = mujoco.MjData(model)
+            for control, nstep in chunks:
+                data.ctrl[:] = control[trial]
+                mujoco.mj_step(model, data, nstep)
+                steps += nstep
     return time.perf_counter() - start, time.process_time() - cpu, steps
 
 
@@ -111,7 +118,7 @@ def main() -> None:
     engine_rate = n * steps / result["simulation_s"]
     # CPU seconds of the whole process (rollout threads + network + SRD) while the grid ran
     engine_cpu = RecordingBatch.cpu_span[-1] - RecordingBatch.cpu_span[0]
-    bare_s, bare_cpu, bare_steps = bare_replay(RecordingBatch.chunks, n)
+    bare_s, bare_cpu, bare_steps = bare_replay(RecordingBatch.batches)
     bare_rate = bare_steps / bare_s
     loop_s = python_loop(args.loop_trials, steps)
 

@@ -45,18 +45,17 @@ from server.models import (
     Quit,
     utcnow,
 )
-from server.workers import WorkerContext, WorkerPool, error_summary
+from server.runner import WorkKind
+from server.status import ANSWERED, AUCTION_UNFINISHED, AnswerOutcome, AuctionStatus, RoundStatus
+from server.workers import WorkerContext, error_summary
 from sim.market import FineTuneRound as PendingRound
 from sim.market import IterationRecord, Market, MarketConfig
 
 log = logging.getLogger("srd.auctions")
 
-UNFINISHED = ("pending", "running")
 ROUND_POLL_S = 0.002
 """How often a worker looks for the answers of its open fine-tuning round: the round closes
 within this long of its last answer."""
-ANSWERED = ("accepted", "refused")
-"""Outcomes that count as an answer (a late upload does not)."""
 
 
 class ResumeError(RuntimeError):
@@ -116,14 +115,14 @@ def _commit_round(
         .where(
             Auction.id == auction_id,
             Auction.iteration == record.iteration,
-            Auction.status == "running",
+            Auction.status == AuctionStatus.RUNNING,
         )
         .values(
             iteration=record.iteration + 1,
             price=record.next_price,
             n_available=record.n_available_after,
             checkpoint=blob,
-            status="finished" if record.finished else "running",
+            status=AuctionStatus.FINISHED if record.finished else AuctionStatus.RUNNING,
             stop_reason=record.stop_reason,
             finished_at=now if record.finished else None,
             updated_at=now,
@@ -162,7 +161,7 @@ def _commit_round(
                 auction_id=auction_id,
                 round=pending.iteration + 1,
                 iteration=pending.iteration,
-                status="open",
+                status=RoundStatus.OPEN,
                 opened_at=now,
                 deadline=now + timedelta(seconds=deadline_s),
                 rows=pending.rows.tolist(),
@@ -205,14 +204,14 @@ def _close_round(
                 FineTuneRound.auction_id == auction_id, FineTuneRound.round == number
             )
         ).one_or_none()
-    if row is None or row.status != "open":
+    if row is None or row.status != RoundStatus.OPEN:
         raise ResumeError(f"the checkpoint awaits fine-tuning round {number}, which is not open")
     _wait_for_answers(database, row.id, len(row.asked), row.deadline.timestamp())
     with database.session(write=True) as session:
         closed = session.execute(
             update(FineTuneRound)
-            .where(FineTuneRound.id == row.id, FineTuneRound.status == "open")
-            .values(status="closed", closed_at=utcnow())
+            .where(FineTuneRound.id == row.id, FineTuneRound.status == RoundStatus.OPEN)
+            .values(status=RoundStatus.CLOSED, closed_at=utcnow())
         )
         if closed.rowcount != 1:  # type: ignore[attr-defined]
             session.rollback()
@@ -232,7 +231,7 @@ def _close_round(
         applied = {
             answer.position: answer.model_id
             for answer in answered.values()
-            if answer.outcome == "accepted" and answer.uploaded_id is not None
+            if answer.outcome == AnswerOutcome.ACCEPTED and answer.uploaded_id is not None
         }
         versions = {
             version.id: version.manifest
@@ -252,7 +251,7 @@ def _close_round(
                 FineTuneAnswer(
                     round_id=row.id,
                     position=position,
-                    outcome="missing",
+                    outcome=AnswerOutcome.MISSING,
                     model_id=patron.current_model_id or patron.model_id,
                     bytes_in=0,
                     bytes_out=0,
@@ -266,7 +265,7 @@ def _close_round(
             .where(
                 Auction.id == auction_id,
                 Auction.iteration == number,
-                Auction.status == "running",
+                Auction.status == AuctionStatus.RUNNING,
             )
             .values(checkpoint=market.checkpoint(), updated_at=now)
         )
@@ -292,18 +291,18 @@ def _drive(database: Database, auction_id: int) -> None:
             .where(Auction.id == auction_id)
             .options(undefer(Auction.checkpoint), selectinload(Auction.patrons))
         ).one_or_none()
-        if auction is None or auction.status not in UNFINISHED:
+        if auction is None or auction.status not in AUCTION_UNFINISHED:
             return
         model_ids = [patron.model_id for patron in auction.patrons]
         manifests = _patron_manifests(session, auction.patrons)
     market = _load_market(auction, manifests)
     with database.session(write=True) as session:
         now = utcnow()
-        values: dict[str, object] = {"status": "running", "updated_at": now}
-        if auction.status == "pending":
+        values: dict[str, object] = {"status": AuctionStatus.RUNNING, "updated_at": now}
+        if auction.status == AuctionStatus.PENDING:
             values["started_at"] = now
         if market.finished:  # nothing left to play (a market that ends before its first round)
-            values.update(status="finished", finished_at=now)
+            values.update(status=AuctionStatus.FINISHED, finished_at=now)
         claimed = session.execute(
             update(Auction)
             .where(
@@ -361,59 +360,21 @@ def run_auction(context: WorkerContext, auction_id: int) -> None:
         database.close()
 
 
-class AuctionRunner:
-    """Queues auctions onto worker processes and resumes unfinished ones at start-up."""
-
-    def __init__(
-        self,
-        database: Database,
-        context: WorkerContext,
-        *,
-        max_workers: int,
-        timeout_s: float,
-    ) -> None:
-        self._database = database
-        self.pool = WorkerPool(
-            name="auction",
-            task=run_auction,
-            context=context,
-            max_workers=max_workers,
-            on_exit=self._on_exit,
-            timeout_s=timeout_s,
-            on_timeout=self._on_timeout,
+def unfinished_auctions(session: Session) -> list[int]:
+    """Auctions left pending or running, oldest first: they resume from their checkpoint."""
+    return list(
+        session.scalars(
+            select(Auction.id).where(Auction.status.in_(AUCTION_UNFINISHED)).order_by(Auction.id)
         )
+    )
 
-    def start(self) -> None:
-        """Start the pool and queue every auction left pending or running."""
-        self.pool.start()
-        with self._database.session(write=False) as session:
-            unfinished = session.scalars(
-                select(Auction.id).where(Auction.status.in_(UNFINISHED)).order_by(Auction.id)
-            ).all()
-        for auction_id in unfinished:
-            log.info("resuming auction %d", auction_id)
-            self.pool.submit(auction_id)
 
-    def submit(self, auction_id: int) -> None:
-        """Run a newly created auction."""
-        self.pool.submit(auction_id)
-
-    def shutdown(self) -> None:
-        """Stop the workers; their auctions resume from the last checkpoint at the next start."""
-        self.pool.shutdown()
-
-    def _on_exit(self, auction_id: int, exit_code: int | None) -> None:
-        """The worker process died in the middle of this auction (killed, crashed)."""
-        _mark_failed(
-            self._database,
-            auction_id,
-            f"the auction worker exited (code {exit_code}) before the auction finished",
-        )
-
-    def _on_timeout(self, auction_id: int, limit_s: float) -> None:
-        """The auction ran past its wall-time limit and was stopped."""
-        _mark_failed(
-            self._database,
-            auction_id,
-            f"stopped at the auction time limit of {limit_s:g} s (SRD_AUCTION_TIMEOUT_S)",
-        )
+AUCTION_WORK = WorkKind(
+    name="auction",
+    table=Auction,
+    task=run_auction,
+    timeout_setting="SRD_AUCTION_TIMEOUT_S",
+    died="the auction worker exited (code {code}) before the auction finished",
+    resumable=unfinished_auctions,
+)
+"""Auctions as background work (``server.runner``)."""

@@ -24,6 +24,7 @@ from server.models import (
     Quit,
     utcnow,
 )
+from server.status import AUCTION_UNFINISHED, JOB_UNFINISHED, AuctionStatus, JobStatus
 
 PARTICIPANT_TOKEN_PREFIX = "srdp"
 # iteration, price, n_available, votes, row_votes, next_price, n_available_after
@@ -248,7 +249,7 @@ def create_auction(
     """A pending auction over the ordered patron list ``model_ids``."""
     now = utcnow()
     auction = Auction(
-        status="pending",
+        status=AuctionStatus.PENDING,
         n_initial=n_fish,
         rarity=rarity,
         max_iterations=max_iterations,
@@ -334,7 +335,7 @@ def create_job(session: Session, *, kind: str, params: dict[str, Any]) -> Job:
     job = Job(
         kind=kind,
         params=params,
-        status="queued",
+        status=JobStatus.QUEUED,
         progress=0.0,
         message="queued",
         artifacts=[],
@@ -356,9 +357,13 @@ def fail_unfinished(
     session: Session, *, table: type[Auction] | type[Job], row_id: int, error: str
 ) -> None:
     """Mark an auction or job failed with ``error``, unless it has already ended."""
-    unfinished = ("pending", "running") if table is Auction else ("queued", "running")
+    unfinished, failed = (
+        (AUCTION_UNFINISHED, AuctionStatus.FAILED)
+        if table is Auction
+        else (JOB_UNFINISHED, JobStatus.FAILED)
+    )
     now = utcnow()
-    values: dict[str, Any] = {"status": "failed", "error": error, "finished_at": now}
+    values: dict[str, Any] = {"status": failed, "error": error, "finished_at": now}
     if table is Job:
         values["message"] = "failed"
     session.execute(
@@ -373,8 +378,8 @@ def cancel_job(session: Session, *, job_id: int) -> bool:
     now = utcnow()
     changed = session.execute(
         update(Job)
-        .where(Job.id == job_id, Job.status.in_(("queued", "running")))
-        .values(status="cancelled", message="cancelled", finished_at=now, updated_at=now)
+        .where(Job.id == job_id, Job.status.in_(JOB_UNFINISHED))
+        .values(status=JobStatus.CANCELLED, message="cancelled", finished_at=now, updated_at=now)
     )
     return bool(changed.rowcount)  # type: ignore[attr-defined]
 

@@ -18,15 +18,13 @@ import json
 import sqlite3
 import threading
 import time
-from collections.abc import AsyncIterator
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 from urllib.parse import quote
 
 from alembic import command
 from alembic.config import Config
-from fastapi import Depends, Request
 from sqlalchemy import Connection, Engine, create_engine, event, inspect, make_url
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
@@ -266,24 +264,3 @@ def has_schema(url: str) -> bool:
         return inspect(engine).has_table("alembic_version")
     finally:
         engine.dispose()
-
-
-_WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
-
-
-async def get_db(request: Request) -> AsyncIterator[Session]:
-    """Request-scoped session: one transaction per request, committed by the route.
-
-    The session is made and closed on the event loop (no I/O until the first query; closing
-    rolls back a finished read, a sub-millisecond local call), so a request costs one hop to
-    the thread pool: the route's own, where every query runs.
-    """
-    database: Database = request.app.state.database
-    session = database.session(write=request.method in _WRITE_METHODS)
-    try:
-        yield session
-    finally:
-        session.close()
-
-
-SessionDep = Annotated[Session, Depends(get_db)]

@@ -2,6 +2,8 @@
 
 It is the shape of FastAPI's own 422, so clients parse a single format; ``loc`` names the field
 (``["body", "external_sensor", "PG", "bias"]``), the header, or the path parameter at fault.
+The services and the routes refuse a request by raising a ``RequestError`` (``api_error``,
+``validation_error``); the framework's own errors get the same body.
 """
 
 from __future__ import annotations
@@ -9,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
-from fastapi import FastAPI, HTTPException, Request
+from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
@@ -38,6 +40,23 @@ def error_item(msg: str, *, loc: Sequence[str | int] = (), kind: str = "error") 
     return {"loc": list(loc), "msg": msg, "type": kind}
 
 
+class RequestError(Exception):
+    """A request the service layer refuses: the HTTP status of its sort of problem and the
+    ``detail`` entries saying what and where (the app answers it with the common body)."""
+
+    def __init__(
+        self,
+        status: int,
+        items: Iterable[dict[str, Any]],
+        *,
+        headers: Mapping[str, str] | None = None,
+    ) -> None:
+        self.status = status
+        self.items = list(items)
+        self.headers = dict(headers or {})
+        super().__init__("; ".join(str(item["msg"]) for item in self.items))
+
+
 def api_error(
     status: int,
     msg: str,
@@ -45,16 +64,14 @@ def api_error(
     loc: Sequence[str | int] = (),
     kind: str = "error",
     headers: Mapping[str, str] | None = None,
-) -> HTTPException:
-    """An HTTPException carrying one ``detail`` entry (raise it)."""
-    if status == 401 and headers is None:
-        headers = {"WWW-Authenticate": "Bearer"}
-    return HTTPException(status, detail=[error_item(msg, loc=loc, kind=kind)], headers=headers)
+) -> RequestError:
+    """A RequestError with one ``detail`` entry (raise it)."""
+    return RequestError(status, [error_item(msg, loc=loc, kind=kind)], headers=headers)
 
 
-def validation_error(items: Iterable[dict[str, Any]]) -> HTTPException:
+def validation_error(items: Iterable[dict[str, Any]]) -> RequestError:
     """A 422 with several ``detail`` entries."""
-    return HTTPException(422, detail=list(items))
+    return RequestError(422, items)
 
 
 def _json_safe_loc(loc: Iterable[Any]) -> list[str | int]:
@@ -97,6 +114,14 @@ async def _request_validation(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": detail}, status_code=422)
 
 
+async def _problem(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestError)
+    headers = dict(exc.headers)
+    if exc.status == 401:
+        headers.setdefault("WWW-Authenticate", "Bearer")
+    return JSONResponse({"detail": exc.items}, status_code=exc.status, headers=headers)
+
+
 async def _database_unavailable(request: Request, exc: Exception) -> JSONResponse:
     detail = [error_item(str(exc), loc=("database",), kind="db_unavailable")]
     return JSONResponse({"detail": detail}, status_code=503)
@@ -106,6 +131,7 @@ def install_error_handlers(app: FastAPI) -> None:
     """Route every framework error through the common body."""
     app.add_exception_handler(StarletteHTTPException, _http_exception)
     app.add_exception_handler(RequestValidationError, _request_validation)
+    app.add_exception_handler(RequestError, _problem)
     app.add_exception_handler(DatabaseUnavailableError, _database_unavailable)
 
 

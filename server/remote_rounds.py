@@ -43,6 +43,7 @@ from screener import Verdict
 from server import crud
 from server.db import Database
 from server.models import FineTuneAnswer, FineTuneRound, Participant, utcnow
+from server.status import ANSWERED, AUCTION_UNFINISHED, AnswerOutcome, RoundStatus
 
 log = logging.getLogger("srd.rounds")
 
@@ -60,7 +61,8 @@ MAX_GROUP = 64
 """Uploads per transaction, at most."""
 STOP_GRACE_S = 10.0
 
-RoundStatus = Literal["open", "closed", "none"]
+PublishedStatus = Literal[RoundStatus.OPEN, RoundStatus.CLOSED, "none"]
+"""A round as ``GET .../rounds/current`` shows it (none: no round has opened yet)."""
 
 
 # --- the round watcher ------------------------------------------------------------------------
@@ -75,18 +77,20 @@ class RoundSnapshot:
     """The round's rows, seeds and asked patrons (None when there is no round)."""
 
     @property
-    def status(self) -> RoundStatus:
+    def status(self) -> PublishedStatus:
         if self.head.status is None:
             return "none"
-        return "open" if self.head.status == "open" else "closed"
+        return RoundStatus.OPEN if self.head.status == RoundStatus.OPEN else RoundStatus.CLOSED
 
     @property
     def auction_over(self) -> bool:
-        return self.head.auction_status not in ("pending", "running")
+        return self.head.auction_status not in AUCTION_UNFINISHED
 
     def ready(self, after: int) -> bool:
         """Worth answering a long poll: a round above ``after`` is open, or the auction ended."""
-        return self.auction_over or (self.status == "open" and (self.head.round or 0) > after)
+        return self.auction_over or (
+            self.status == RoundStatus.OPEN and (self.head.round or 0) > after
+        )
 
 
 @dataclass
@@ -212,7 +216,7 @@ class RoundWatcher:
             watch.template = (head.round_id, status, before, after)
         _, _, before, after = watch.template
         left = 0.0
-        if status == "open" and head.deadline is not None:
+        if status == RoundStatus.OPEN and head.deadline is not None:
             left = max(0.0, (head.deadline - utcnow()).total_seconds())
         return before + json.dumps(round(left, 3)).encode() + after
 
@@ -235,7 +239,7 @@ _SECONDS_LEFT = "\x00seconds_left\x00"
 def _template(auction_id: int, snapshot: RoundSnapshot) -> tuple[bytes, bytes]:
     """The answer's bytes before and after its ``seconds_left`` value."""
     head, body = snapshot.head, snapshot.body
-    is_open = snapshot.status == "open" and body is not None
+    is_open = snapshot.status == RoundStatus.OPEN and body is not None
     answer: dict[str, Any] = {
         "auction_id": auction_id,
         "auction_status": head.auction_status,
@@ -399,7 +403,7 @@ def _store_group(session: Session, group: list[UploadRequest]) -> list[UploadOut
             else:
                 outcomes.append(_different(item))
             continue
-        if stored is not None and stored.outcome in ("accepted", "refused"):
+        if stored is not None and stored.outcome in ANSWERED:
             same = stored.body_sha256 == item.body_sha256
             body = answer_bytes(stored.answer or {})
             outcomes.append(Answered(body) if same else _different(item))
@@ -408,10 +412,10 @@ def _store_group(session: Session, group: list[UploadRequest]) -> list[UploadOut
         if (
             item.kind == "late"
             or current is None
-            or current.status != "open"
+            or current.status != RoundStatus.OPEN
             or (now >= current.deadline)
         ):
-            if stored is None or stored.outcome == "missing":
+            if stored is None or stored.outcome == AnswerOutcome.MISSING:
                 lates.append((item, None if stored is None else stored.id))
             outcomes.append(_late(item))
             continue
@@ -427,7 +431,7 @@ def _store_group(session: Session, group: list[UploadRequest]) -> list[UploadOut
         row: dict[str, Any] = {
             "round_id": item.round_id,
             "position": item.position,
-            "outcome": "accepted",
+            "outcome": AnswerOutcome.ACCEPTED,
             "model_id": item.current_id,
             "uploaded_id": None,
             "body_sha256": item.body_sha256,
@@ -443,7 +447,7 @@ def _store_group(session: Session, group: list[UploadRequest]) -> list[UploadOut
                 accepted=accepted,
                 reasons=[reason.to_dict() for reason in item.verdict.reasons],
             )
-            row["outcome"] = "accepted" if accepted else "refused"
+            row["outcome"] = AnswerOutcome.ACCEPTED if accepted else AnswerOutcome.REFUSED
             versions.append(
                 {
                     "participant_id": item.participant_id,
@@ -490,7 +494,7 @@ def _store_group(session: Session, group: list[UploadRequest]) -> list[UploadOut
                     {
                         "round_id": item.round_id,
                         "position": item.position,
-                        "outcome": "late",
+                        "outcome": AnswerOutcome.LATE,
                         "model_id": item.current_id,
                         "body_sha256": item.body_sha256,
                         "bytes_in": item.bytes_in,
@@ -502,8 +506,13 @@ def _store_group(session: Session, group: list[UploadRequest]) -> list[UploadOut
         else:
             session.execute(
                 update(FineTuneAnswer)
-                .where(FineTuneAnswer.id == answer_id, FineTuneAnswer.outcome == "missing")
-                .values(outcome="late", body_sha256=item.body_sha256, bytes_in=item.bytes_in)
+                .where(
+                    FineTuneAnswer.id == answer_id,
+                    FineTuneAnswer.outcome == AnswerOutcome.MISSING,
+                )
+                .values(
+                    outcome=AnswerOutcome.LATE, body_sha256=item.body_sha256, bytes_in=item.bytes_in
+                )
             )
     return [outcome for outcome in outcomes if outcome is not None]
 

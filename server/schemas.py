@@ -19,12 +19,11 @@ from pydantic.json_schema import JsonSchemaValue
 from pydantic_core import CoreSchema
 
 from server.config import JobBackendName
+from server.status import AnswerOutcome, AuctionStatus, JobStatus, RoundStatus
 from sim.experiment import config_schema
 from sim.market import MarketConfig
 from sim.registry import KINDS
 
-AuctionStatus = Literal["pending", "running", "finished", "failed"]
-JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 JobKind = Literal["fish", "lavaland", "cheetah", "auction-study", "comparison"]
 assert set(get_args(JobKind)) == set(KINDS), "JobKind must list exactly the registry's kinds"
 
@@ -260,9 +259,6 @@ class AuctionPublic(BaseModel):
     """Remote auctions: the version each patron bids with now, aligned with ``model_ids``."""
 
 
-RoundOutcome = Literal["accepted", "refused", "late", "missing"]
-
-
 class RoundAnswerPublic(BaseModel):
     """A patron's outcome in a fine-tuning round: accepted (its upload bids from the next
     iteration), refused (re-screening failed; its previous version bids on), late (after the
@@ -270,7 +266,7 @@ class RoundAnswerPublic(BaseModel):
 
     model_id: int
     """The patron, as in the auction's ``model_ids``."""
-    outcome: RoundOutcome
+    outcome: AnswerOutcome
     version: int
     version_id: int
     """The model id of that version."""
@@ -287,7 +283,7 @@ class FineTuneRoundPublic(BaseModel):
 
     round: int
     iteration: int
-    status: Literal["open", "closed"]
+    status: RoundStatus
     opened_at: datetime
     deadline: datetime
     closed_at: datetime | None

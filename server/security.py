@@ -1,4 +1,5 @@
-"""Tokens: generation, hashing, constant-time checks, the operator (admin) token.
+"""Tokens: generation, hashing, constant-time checks, the operator (admin) token (the routes'
+token dependencies are in ``server.deps``).
 
 Tokens are 256-bit random secrets; only their SHA-256 is stored, so nobody (operators
 included) can read a token back. Checks compare digests with ``hmac.compare_digest``.
@@ -12,13 +13,8 @@ import logging
 import os
 import secrets
 from pathlib import Path
-from typing import Annotated
-
-from fastapi import Depends, Request
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from server.config import Settings
-from server.errors import api_error
 
 log = logging.getLogger("srd.security")
 
@@ -60,28 +56,3 @@ def _write_secret_file(path: Path, secret: str) -> None:
         return
     with os.fdopen(fd, "w") as handle:
         handle.write(secret + "\n")
-
-
-bearer_scheme = HTTPBearer(auto_error=False, description="Bearer token")
-BearerDep = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
-
-
-async def require_admin(request: Request, credentials: BearerDep) -> None:
-    """Dependency of the operator endpoints: 401 without a token, 403 with a wrong one."""
-    if credentials is None:
-        raise api_error(
-            401,
-            "operator endpoint: send 'Authorization: Bearer <admin token>'",
-            loc=("header", "Authorization"),
-            kind="missing_token",
-        )
-    if not token_matches(credentials.credentials, request.app.state.admin_token_hash):
-        raise api_error(
-            403,
-            "the bearer token is not the admin token",
-            loc=("header", "Authorization"),
-            kind="bad_token",
-        )
-
-
-AdminDep = Depends(require_admin)

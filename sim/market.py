@@ -78,7 +78,7 @@ class MarketConfig:
     """One auction's rules (defaults: the reference's)."""
 
     n_fish: int
-    """Fish on sale (the study uses int(rarity · patrons))."""
+    """Fish on sale (``fish_on_sale``: given, or int(rarity · patrons))."""
     max_iterations: int = 64
     """Iterations at most."""
     base_price: float = BASE_PRICE
@@ -123,6 +123,18 @@ class MarketConfig:
             problems.append(f"fine_tune_mode must be one of {get_args(FineTuneMode)}")
         if problems:
             raise ValueError("; ".join(problems))
+
+
+def fish_on_sale(n_patrons: int, *, n_fish: int | None = None, rarity: float | None = None) -> int:
+    """The fish an auction of ``n_patrons`` puts on sale: ``n_fish`` as given, or the supply
+    ``rarity`` as int(rarity · patrons) (truncated, as the reference). Exactly one of the two
+    is given (ValueError otherwise); the result may be 0 when rarity · patrons < 1."""
+    if (n_fish is None) == (rarity is None):
+        raise ValueError("give exactly one of n_fish or rarity")
+    if n_fish is not None:
+        return n_fish
+    assert rarity is not None
+    return int(rarity * n_patrons)
 
 
 @dataclass

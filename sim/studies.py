@@ -31,7 +31,7 @@ from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
 from sim import units
 from sim.experiment import Cost, ProgressFn, Stopwatch, config_dict, no_progress, write_json
-from sim.market import MarketBatch, MarketConfig, RescreenBatch, single_thread
+from sim.market import MarketBatch, MarketConfig, RescreenBatch, fish_on_sale, single_thread
 from sim.units import Decomposition, Payload, Unit
 
 PAPER_RARITIES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
@@ -219,7 +219,7 @@ def plan_auction(
         for i in range(n_patrons - n_saboteurs)
     ]
     patrons += [saboteur_manifest(saboteur_rng, f"saboteur-{i:03d}") for i in range(n_saboteurs)]
-    n_fish = int(rarity * n_patrons)
+    n_fish = fish_on_sale(n_patrons, rarity=rarity)
     market = MarketConfig(
         n_fish=n_fish,
         max_iterations=max_iterations,

@@ -1,6 +1,1 @@
-"""Background experiments (``POST /jobs``): the backend interface and the local backend."""
-
-from server.jobs.backend import JobBackend, requeue_unfinished
-from server.jobs.local import LocalJobBackend
-
-__all__ = ["JobBackend", "LocalJobBackend", "requeue_unfinished"]
+"""Background experiments (``POST /jobs``): the job worker, where its units are computed."""

@@ -16,9 +16,12 @@ from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select, update
+from sqlalchemy.orm import Session
 
 from server.db import Database
 from server.models import Job, utcnow
+from server.runner import WorkKind
+from server.status import JobStatus
 from server.workers import WorkerContext, error_summary
 from sim.experiment import write_json
 from sim.registry import build_config, run_kind
@@ -88,7 +91,7 @@ def _update_owned(database: Database, job_id: int, attempt: int, **values: Any) 
     with database.session(write=True) as session:
         changed = session.execute(
             update(Job)
-            .where(Job.id == job_id, Job.attempt == attempt, Job.status == "running")
+            .where(Job.id == job_id, Job.attempt == attempt, Job.status == JobStatus.RUNNING)
             .values(updated_at=utcnow(), **values)
         )
         session.commit()
@@ -99,9 +102,9 @@ def _update_owned(database: Database, job_id: int, attempt: int, **values: Any) 
 def _claim(database: Database, job_id: int) -> tuple[str, dict[str, Any], int] | None:
     with database.session(write=True) as session:
         job = session.scalars(select(Job).where(Job.id == job_id)).one_or_none()
-        if job is None or job.status != "queued":
+        if job is None or job.status != JobStatus.QUEUED:
             return None
-        job.status, job.attempt = "running", job.attempt + 1
+        job.status, job.attempt = JobStatus.RUNNING, job.attempt + 1
         job.started_at = job.updated_at = utcnow()
         job.progress, job.message, job.error, job.result = 0.0, "started", None, None
         claimed = (job.kind, dict(job.params), job.attempt)
@@ -159,7 +162,7 @@ def run_job(context: WorkerContext, job_id: int) -> None:
             )
             write_json(out_dir / "result.json", result)
             outcome: dict[str, Any] = {
-                "status": "succeeded",
+                "status": JobStatus.SUCCEEDED,
                 "progress": 1.0,
                 "result": result,
                 "message": "done",
@@ -168,7 +171,7 @@ def run_job(context: WorkerContext, job_id: int) -> None:
             return
         except Exception as exc:
             outcome = {
-                "status": "failed",
+                "status": JobStatus.FAILED,
                 "error": error_summary(exc),
                 "message": failure_message(exc, context),
             }
@@ -184,3 +187,34 @@ def run_job(context: WorkerContext, job_id: int) -> None:
         return
     finally:
         database.close()
+
+
+def requeue_unfinished_jobs(session: Session) -> list[int]:
+    """Jobs left running go back to queued (they run again from the start); every queued id,
+    oldest first."""
+    session.execute(
+        update(Job)
+        .where(Job.status == JobStatus.RUNNING)
+        .values(
+            status=JobStatus.QUEUED,
+            progress=0.0,
+            message="re-queued after a server restart",
+            started_at=None,
+            updated_at=utcnow(),
+        )
+    )
+    return list(
+        session.scalars(select(Job.id).where(Job.status == JobStatus.QUEUED).order_by(Job.id))
+    )
+
+
+JOB_WORK = WorkKind(
+    name="job",
+    table=Job,
+    task=run_job,
+    timeout_setting="SRD_JOB_TIMEOUT_S",
+    died="the job worker exited (code {code}) without a result",
+    resumable=requeue_unfinished_jobs,
+    tasks_per_process=1,  # a fresh interpreter per experiment: no state carried over
+)
+"""Jobs as background work (``server.runner``)."""

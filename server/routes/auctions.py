@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import cast
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
 from server import crud
-from server.auctions import AuctionRunner, base_price
-from server.db import SessionDep
-from server.errors import api_error, error_item, link, responses
+from server.deps import AdminDep, AuctionRunnerDep, SessionDep
+from server.errors import link, responses
 from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
 from server.schemas import (
     AuctionCreate,
@@ -24,93 +22,12 @@ from server.schemas import (
     FineTuneRoundPublic,
     IterationPublic,
     RoundAnswerPublic,
-    RoundOutcome,
     Votes,
 )
-from server.security import AdminDep
+from server.services import auctions
+from server.status import AnswerOutcome, RoundStatus
 
 router = APIRouter(tags=["auctions"])
-
-
-def _patron_ids(session: SessionDep, body: AuctionCreate) -> list[int]:
-    """The ordered patron list: the given ids (each must exist, 404, and be accepted, 409), or
-    by default the newest accepted version of every participant (409 while there is none)."""
-    if body.model_ids is None:
-        ids = [row.id for row in crud.latest_accepted_models(session)]
-        if not ids:
-            raise api_error(
-                409,
-                "no accepted model exists yet: submit models first",
-                loc=("body", "model_ids"),
-                kind="no_patrons",
-            )
-        return ids
-    found = crud.get_models(session, model_ids=body.model_ids)
-    missing = [
-        error_item(
-            f"model {model_id} does not exist", loc=("body", "model_ids", i), kind="not_found"
-        )
-        for i, model_id in enumerate(body.model_ids)
-        if model_id not in found
-    ]
-    if missing:
-        raise HTTPException(404, detail=missing)
-    rejected = [
-        error_item(
-            f"model {model_id} was rejected by the screener and cannot enter an auction",
-            loc=("body", "model_ids", i),
-            kind="rejected",
-        )
-        for i, model_id in enumerate(body.model_ids)
-        if not found[model_id].accepted
-    ]
-    if rejected:
-        raise HTTPException(409, detail=rejected)
-    return list(body.model_ids)
-
-
-def _require_one_supply_option(body: AuctionCreate) -> None:
-    if (body.n_fish is None) == (body.rarity is None):
-        loc = ("body", "n_fish") if body.n_fish is not None else ("body", "rarity")
-        raise api_error(
-            422, "give exactly one of n_fish or rarity", loc=loc, kind="n_fish_xor_rarity"
-        )
-
-
-def _remote_fine_tuning(body: AuctionCreate) -> bool:
-    """Whether the participants fine-tune (remote); refuses settings that contradict it."""
-    remote = body.fine_tune_mode == "remote"
-    if remote and "fine_tune" in body.model_fields_set and not body.fine_tune:
-        raise api_error(
-            422,
-            "a remote auction fine-tunes: leave fine_tune out or set it true",
-            loc=("body", "fine_tune"),
-            kind="remote_fine_tune",
-        )
-    if not remote and "round_deadline_s" in body.model_fields_set:
-        raise api_error(
-            422,
-            'round_deadline_s applies to fine_tune_mode "remote" only',
-            loc=("body", "round_deadline_s"),
-            kind="remote_only",
-        )
-    return remote
-
-
-def _fish_count(body: AuctionCreate, n_patrons: int) -> int:
-    """n_fish as given, or int(rarity × patrons) (truncation, as the reference)."""
-    if body.n_fish is not None:
-        return body.n_fish
-    assert body.rarity is not None
-    n_fish = int(body.rarity * n_patrons)
-    if n_fish < 1:
-        raise api_error(
-            409,
-            f"rarity {body.rarity} × {n_patrons} patrons puts no fish on sale",
-            loc=("body", "rarity"),
-            kind="no_fish",
-        )
-    return n_fish
 
 
 @router.post(
@@ -123,28 +40,11 @@ def _fish_count(body: AuctionCreate, n_patrons: int) -> int:
         **responses(401, 403, 404, 409, 422),
     },
 )
-def create_auction(body: AuctionCreate, session: SessionDep, request: Request) -> AuctionCreated:
+def create_auction(
+    body: AuctionCreate, session: SessionDep, runner: AuctionRunnerDep
+) -> AuctionCreated:
     """Start an auction (operator). It runs in a worker process; watch it at GET."""
-    _require_one_supply_option(body)
-    remote = _remote_fine_tuning(body)
-    patron_ids = _patron_ids(session, body)
-    auction = crud.create_auction(
-        session,
-        model_ids=patron_ids,
-        n_fish=_fish_count(body, len(patron_ids)),
-        rarity=body.rarity,
-        max_iterations=body.max_iterations,
-        fine_tune=body.fine_tune or remote,
-        seed=body.seed,
-        opening_price=base_price(),
-        fine_tune_mode=body.fine_tune_mode,
-        fine_tune_rounds=body.fine_tune_rounds,
-        round_deadline_s=body.round_deadline_s,
-    )
-    session.commit()
-    runner: AuctionRunner = request.app.state.auctions
-    runner.submit(auction.id)
-    return AuctionCreated(auction_id=auction.id)
+    return AuctionCreated(auction_id=auctions.create_auction(session, runner, body))
 
 
 def auction_public(view: crud.AuctionView) -> AuctionPublic:
@@ -199,7 +99,7 @@ def fine_tune_round_public(view: crud.RoundView) -> FineTuneRoundPublic:
     answers = [
         RoundAnswerPublic(
             model_id=a.model_id,
-            outcome=cast(RoundOutcome, a.outcome),
+            outcome=AnswerOutcome(a.outcome),
             version=a.version,
             version_id=a.version_id,
             uploaded_id=a.uploaded_id,
@@ -211,7 +111,7 @@ def fine_tune_round_public(view: crud.RoundView) -> FineTuneRoundPublic:
     return FineTuneRoundPublic(
         round=view.round,
         iteration=view.iteration,
-        status="open" if view.status == "open" else "closed",
+        status=RoundStatus(view.status),
         opened_at=view.opened_at,
         deadline=view.deadline,
         closed_at=view.closed_at,
@@ -226,14 +126,7 @@ async def read_auction(auction_id: AuctionIdPath, session: SessionDep) -> Auctio
     """Where an auction stands: price, fish left, every committed round, buyers, quitters."""
     # One hop to the thread pool for the queries; the response is built on the loop (a sync
     # route would pay a second hop for FastAPI's response validation).
-    view = await run_in_threadpool(crud.get_auction, session, auction_id=auction_id)
-    if view is None:
-        raise api_error(
-            404,
-            f"auction {auction_id} does not exist",
-            loc=("path", "auction_id"),
-            kind="not_found",
-        )
+    view = await run_in_threadpool(auctions.read_auction, session, auction_id)
     return auction_public(view)
 
 

@@ -22,13 +22,13 @@ from collections.abc import AsyncIterable, AsyncIterator, Iterator
 from dataclasses import dataclass
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, FastAPI, Header, Query, Request
+from fastapi import APIRouter, Depends, Header, Query
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from starlette.concurrency import run_in_threadpool
 
 from server import crud
-from server.config import Settings
 from server.db import Database
+from server.deps import DatabaseDep, EventHubDep, SettingsDep
 from server.errors import api_error, responses
 from server.events import EventHub, Poll
 from server.models import Job
@@ -44,6 +44,8 @@ from server.schemas import (
     RoundPurchasePublic,
     Votes,
 )
+from server.services import auctions, jobs
+from server.status import AUCTION_ENDED, JOB_ENDED, RoundStatus
 
 router = APIRouter(tags=["events"])
 
@@ -51,8 +53,6 @@ RETRY_AFTER_S = 5
 """What a client refused for want of stream slots is told to wait (``Retry-After``)."""
 RECONNECT_MS = 2000
 """The ``retry:`` hint: how long ``EventSource`` waits before it reconnects a dropped stream."""
-AUCTION_ENDED = ("finished", "failed")
-JOB_ENDED = ("succeeded", "failed", "cancelled")
 EVENT_ID = r"^[0-9]{1,18}(\.[12])?$"
 """An event id: an iteration, ``k.1``/``k.2`` for the fine-tuning round after iteration k, or
 a job's change time in microseconds."""
@@ -112,21 +112,8 @@ def _event_id(position: Position) -> str:
     return f"{iteration}.{phase}" if phase else str(iteration)
 
 
-def event_hub(app: FastAPI) -> EventHub:
-    """The app's hub of watchers, made on first use."""
-    hub: EventHub | None = getattr(app.state, "events", None)
-    if hub is None:
-        settings: Settings = app.state.settings
-        hub = EventHub(
-            interval_s=settings.event_poll_interval_s, max_streams=settings.max_event_streams
-        )
-        app.state.events = hub
-    return hub
-
-
-async def _stream_slot(request: Request) -> AsyncIterator[EventHub]:
+async def _stream_slot(hub: EventHubDep) -> AsyncIterator[EventHub]:
     """Hold one of the process's stream slots for the whole stream; 503 when none is free."""
-    hub = event_hub(request.app)
     if not hub.acquire():
         raise api_error(
             503,
@@ -168,7 +155,8 @@ class AuctionSnapshot:
                 yield position, _iteration_sse(row)
             view = fine_tuning.get(row.iteration)
             if view is not None:
-                position = (row.iteration, ROUND_OPEN if view.status == "open" else ROUND_CLOSED)
+                phase = ROUND_OPEN if view.status == RoundStatus.OPEN else ROUND_CLOSED
+                position = (row.iteration, phase)
                 if position > sent:
                     yield position, _round_sse(view, position)
 
@@ -242,20 +230,12 @@ def auction_end_event(state: crud.AuctionState) -> AuctionEndEvent:
     )
 
 
-async def _existing_auction(auction_id: AuctionIdPath, request: Request) -> int:
-    database: Database = request.app.state.database
-
-    def read() -> crud.AuctionState | None:
+async def _existing_auction(auction_id: AuctionIdPath, database: DatabaseDep) -> int:
+    def read() -> None:
         with database.session(write=False) as session:
-            return crud.auction_state(session, auction_id=auction_id)
+            auctions.require_auction(session, auction_id)
 
-    if await run_in_threadpool(read) is None:
-        raise api_error(
-            404,
-            f"auction {auction_id} does not exist",
-            loc=("path", "auction_id"),
-            kind="not_found",
-        )
+    await run_in_threadpool(read)
     return auction_id
 
 
@@ -269,14 +249,14 @@ async def auction_events(
     resume: Annotated[Position, Depends(_auction_resume)],
     hub: StreamSlot,
     auction_id: Annotated[int, Depends(_existing_auction)],
-    request: Request,
+    database: DatabaseDep,
+    settings: SettingsDep,
 ) -> AsyncIterable[ServerSentEvent]:
     """Follow an auction live: one ``iteration`` event per committed round (``id`` = the
     iteration), ``round`` events for remote fine-tuning rounds (``id`` = ``k.1`` open, ``k.2``
     closed, after iteration k), then one ``end`` event, and the stream closes."""
     sent = resume  # the last event the client has
-    settings: Settings = request.app.state.settings
-    poll = watch_auction(request.app.state.database, auction_id)
+    poll = watch_auction(database, auction_id)
     async with hub.watch(("auction", auction_id), poll) as watch:
         yield ServerSentEvent(comment=f"auction {auction_id}", retry=RECONNECT_MS)
         while True:
@@ -330,17 +310,12 @@ def job_event_id(state: crud.JobState) -> str:
     return str(int(state.updated_at.timestamp() * 1_000_000))
 
 
-async def _existing_job(job_id: JobIdPath, request: Request) -> int:
-    database: Database = request.app.state.database
-
-    def read() -> crud.JobState | None:
+async def _existing_job(job_id: JobIdPath, database: DatabaseDep) -> int:
+    def read() -> None:
         with database.session(write=False) as session:
-            return crud.job_state(session, job_id=job_id)
+            jobs.require_job(session, job_id)
 
-    if await run_in_threadpool(read) is None:
-        raise api_error(
-            404, f"job {job_id} does not exist", loc=("path", "job_id"), kind="not_found"
-        )
+    await run_in_threadpool(read)
     return job_id
 
 
@@ -354,14 +329,14 @@ async def job_events(
     resume: Annotated[str | None, Depends(_job_resume)],
     hub: StreamSlot,
     job_id: Annotated[int, Depends(_existing_job)],
-    request: Request,
+    database: DatabaseDep,
+    settings: SettingsDep,
 ) -> AsyncIterable[ServerSentEvent]:
     """Follow a job: a ``progress`` event whenever its status, progress or message changes,
     then one ``end`` event with the whole job (result, error, artifacts), and the stream
     closes."""
     seen = resume
-    settings: Settings = request.app.state.settings
-    async with hub.watch(("job", job_id), watch_job(request.app.state.database, job_id)) as watch:
+    async with hub.watch(("job", job_id), watch_job(database, job_id)) as watch:
         yield ServerSentEvent(comment=f"job {job_id}", retry=RECONNECT_MS)
         while True:
             generation, snapshot = watch.generation, watch.snapshot

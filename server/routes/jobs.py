@@ -5,22 +5,18 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 from fastapi.responses import FileResponse
 from starlette.concurrency import run_in_threadpool
 
 from server import crud
-from server.config import Settings
-from server.db import SessionDep
-from server.errors import api_error, error_item, link, responses, validation_error
-from server.jobs import JobBackend
-from server.jobs.worker import job_dir
+from server.deps import AdminDep, JobRunnerDep, SessionDep, SettingsDep
+from server.errors import link, responses
 from server.models import Job
 from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
 from server.schemas import JobCreate, JobCreated, JobIdPath, JobPage, JobPublic, JobSummaryPublic
-from server.security import AdminDep
-from sim.experiment import ConfigError, config_dict, over_budget
-from sim.registry import build_config
+from server.services import jobs
+from server.status import JobStatus
 
 router = APIRouter(tags=["jobs"])
 
@@ -44,20 +40,6 @@ def _job_public(job: Job) -> JobPublic:
     )
 
 
-def _path(field: str) -> list[str | int]:
-    """A config error's dotted field (``rarities.1``) as a ``loc`` tail."""
-    return [int(part) if part.isdigit() else part for part in field.split(".")]
-
-
-def _existing_job(session: SessionDep, job_id: int) -> Job:
-    job = crud.get_job(session, job_id=job_id)
-    if job is None:
-        raise api_error(
-            404, f"job {job_id} does not exist", loc=("path", "job_id"), kind="not_found"
-        )
-    return job
-
-
 @router.post(
     "/jobs",
     status_code=202,
@@ -73,34 +55,22 @@ def _existing_job(session: SessionDep, job_id: int) -> Job:
         **responses(401, 403, 422),
     },
 )
-def create_job(body: JobCreate, session: SessionDep, request: Request) -> JobCreated:
+def create_job(
+    body: JobCreate, session: SessionDep, runner: JobRunnerDep, settings: SettingsDep
+) -> JobCreated:
     """Queue an experiment (operator); ``params`` are the CLI options of ``kind``. A job whose
     estimated compute exceeds the budget (``SRD_JOB_BUDGET_S``) is refused, naming the option
     to lower and how far."""
-    settings: Settings = request.app.state.settings
-    try:
-        config = build_config(body.kind, body.params)
-        too_much = over_budget(config, settings.job_budget_s)
-        if too_much is not None:
-            raise too_much
-    except ConfigError as exc:
-        raise validation_error(
-            error_item(
-                err["message"], loc=("body", "params", *_path(err["field"])), kind="bad_param"
-            )
-            for err in exc.errors
-        ) from exc
-    job = crud.create_job(session, kind=body.kind, params=config_dict(config))
-    session.commit()
-    backend: JobBackend = request.app.state.jobs
-    backend.submit(job.id)
-    return JobCreated(job_id=job.id, status="queued")
+    job = jobs.create_job(
+        session, runner, kind=body.kind, params=body.params, budget_s=settings.job_budget_s
+    )
+    return JobCreated(job_id=job.id, status=JobStatus.QUEUED)
 
 
 @router.get("/jobs/{job_id}", operation_id="read_job", responses=responses(404, 422))
 def read_job(job_id: JobIdPath, session: SessionDep) -> JobPublic:
     """A job's status, progress, result (the CLI's ``--json`` object), error and artifacts."""
-    return _job_public(_existing_job(session, job_id))
+    return _job_public(jobs.read_job(session, job_id))
 
 
 @router.get(
@@ -113,19 +83,10 @@ def read_job(job_id: JobIdPath, session: SessionDep) -> JobPublic:
     },
 )
 def read_artifact(
-    job_id: JobIdPath, name: str, session: SessionDep, request: Request
+    job_id: JobIdPath, name: str, session: SessionDep, settings: SettingsDep
 ) -> FileResponse:
     """One artifact file of a job (a name listed in its ``artifacts``)."""
-    job = _existing_job(session, job_id)
-    missing = api_error(
-        404, f"job {job_id} has no artifact {name!r}", loc=("path", "name"), kind="not_found"
-    )
-    if name not in job.artifacts:  # before touching the file system with the name
-        raise missing
-    base = job_dir(request.app.state.settings.data_dir, job_id).resolve()
-    path = (base / name).resolve()
-    if not path.is_relative_to(base) or not path.is_file():
-        raise missing
+    path = jobs.artifact_path(session, settings.data_dir, job_id, name)
     return FileResponse(path, filename=Path(name).name, content_disposition_type="inline")
 
 
@@ -135,21 +96,9 @@ def read_artifact(
     operation_id="cancel_job",
     responses=responses(401, 403, 404, 409, 422),
 )
-def cancel_job(job_id: JobIdPath, session: SessionDep, request: Request) -> JobPublic:
+def cancel_job(job_id: JobIdPath, session: SessionDep, runner: JobRunnerDep) -> JobPublic:
     """Cancel a queued or running job (operator); a running job's process is terminated."""
-    job = _existing_job(session, job_id)
-    if not crud.cancel_job(session, job_id=job_id):
-        raise api_error(
-            409,
-            f"job {job_id} already {job.status}; only queued or running jobs can be cancelled",
-            loc=("path", "job_id"),
-            kind="not_cancellable",
-        )
-    session.commit()
-    backend: JobBackend = request.app.state.jobs
-    backend.cancel(job_id)
-    session.refresh(job)
-    return _job_public(job)
+    return _job_public(jobs.cancel_job(session, runner, job_id))
 
 
 @router.get("/jobs", operation_id="list_jobs", responses=responses(422))

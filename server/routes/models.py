@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query, Request
+from fastapi import APIRouter, Query, Request
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, Participant
 from server import crud
-from server.db import SessionDep
-from server.errors import api_error, link, responses
+from server.deps import BearerDep, ScreeningDep, SessionDep, SubmissionsDep
+from server.errors import link, responses
 from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
 from server.schemas import (
     MAX_LISTED_AUCTIONS,
@@ -21,20 +21,9 @@ from server.schemas import (
     ReasonPublic,
     SubmitPublic,
 )
-from server.screening import ScreenerUnavailableError, ScreeningService
-from server.security import BearerDep
-from server.submissions import Refused, SubmissionWriter
+from server.services import models
 
 router = APIRouter(tags=["models"])
-
-
-def _refusal(refused: Refused) -> HTTPException:
-    headers = None
-    if refused.retry_after_s is not None:
-        headers = {"Retry-After": str(refused.retry_after_s)}
-    return api_error(
-        refused.status, refused.msg, loc=refused.loc, kind=refused.kind, headers=headers
-    )
 
 
 def _reasons(row: crud.StoredModel) -> list[ReasonPublic]:
@@ -52,42 +41,33 @@ def _reasons(row: crud.StoredModel) -> list[ReasonPublic]:
         **responses(401, 403, 409, 422, 429, 503),
     },
 )
-async def submit(manifest: Manifest, credentials: BearerDep, request: Request) -> SubmitPublic:
+async def submit(
+    manifest: Manifest,
+    credentials: BearerDep,
+    request: Request,
+    screening: ScreeningDep,
+    writer: SubmissionsDep,
+) -> SubmitPublic:
     """Screen an FSN weight manifest and store it as the participant's next model version.
 
     A new participant name is registered on the spot and its ``token`` is returned once; later
     versions of that participant need ``Authorization: Bearer <token>``. Rejected models are
     stored with their reasons and never enter an auction.
     """
-    screening: ScreeningService = request.app.state.screening
-    writer: SubmissionWriter = request.app.state.submissions
-    bearer = None if credentials is None else credentials.credentials
-    address = request.client.host if request.client is not None else None
-    refused = await writer.precheck(
-        participant=manifest.participant, bearer=bearer, address=address
+    stored, verdict = await models.submit(
+        screening,
+        writer,
+        manifest,
+        bearer=None if credentials is None else credentials.credentials,
+        address=request.client.host if request.client is not None else None,
     )
-    if refused is not None:  # token or quota: no screening spent, nothing stored
-        raise _refusal(refused)
-    try:  # before any database work: no lock is held while screening
-        verdict = await screening.verdict(manifest)
-    except ScreenerUnavailableError as exc:
-        raise api_error(503, str(exc), loc=("body",), kind="screener_unavailable") from exc
-    outcome = await writer.store(
-        participant=manifest.participant,
-        manifest=manifest.model_dump(mode="json"),
-        verdict=verdict,
-        bearer=bearer,
-        address=address,
-    )
-    if isinstance(outcome, Refused):
-        raise _refusal(outcome)
     return SubmitPublic(
-        model_id=outcome.model_id,
-        participant=outcome.participant,
-        version=outcome.version,
+        model_id=stored.model_id,
+        participant=stored.participant,
+        version=stored.version,
         accepted=verdict.accepted,
         reasons=[ReasonPublic(**reason.to_dict()) for reason in verdict.reasons],
-        token=outcome.token,
+        token=stored.token,
     )
 
 
@@ -96,12 +76,8 @@ async def read_model(model_id: ModelIdPath, session: SessionDep) -> ModelPublic:
     """A stored model version: manifest, verdict and reasons; for a version uploaded in a
     remote fine-tuning round, its parent version, auction and round; the auctions it entered."""
     row = await run_in_threadpool(
-        crud.get_model_view, session, model_id=model_id, auctions=MAX_LISTED_AUCTIONS
+        models.read_model, session, model_id, auctions=MAX_LISTED_AUCTIONS
     )
-    if row is None:
-        raise api_error(
-            404, f"model {model_id} does not exist", loc=("path", "model_id"), kind="not_found"
-        )
     return ModelPublic(
         id=row.id,
         participant=row.participant,

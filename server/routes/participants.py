@@ -8,12 +8,12 @@ from fastapi import APIRouter, Path
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Participant
-from server import crud
-from server.db import SessionDep
-from server.errors import api_error, responses
+from server.deps import SessionDep
+from server.errors import responses
 from server.pages import MAX_PAGE
 from server.routes.models import model_summary
 from server.schemas import ParticipantPublic
+from server.services import models
 
 router = APIRouter(tags=["participants"])
 
@@ -24,11 +24,7 @@ async def read_participant(
 ) -> ParticipantPublic:
     """A participant with its newest versions (up to a page; ``GET /models?participant=`` pages
     through all of them) and how many it has."""
-    view = await run_in_threadpool(crud.get_participant, session, name=name, limit=MAX_PAGE)
-    if view is None:
-        raise api_error(
-            404, f"participant {name!r} does not exist", loc=("path", "name"), kind="not_found"
-        )
+    view = await run_in_threadpool(models.read_participant, session, name, limit=MAX_PAGE)
     return ParticipantPublic(
         name=view.name,
         created_at=view.created_at,

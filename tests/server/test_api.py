@@ -31,7 +31,7 @@ def locs(response: Any) -> list[list[Any]]:
 
 
 def count(client: TestClient, table: Any, **where: Any) -> int:
-    database = client.app.state.database  # type: ignore[attr-defined]
+    database = client.app.state.services.database  # type: ignore[attr-defined]
     with database.session(write=False) as session:
         query = select(func.count()).select_from(table)
         for column, value in where.items():
@@ -84,7 +84,7 @@ def test_token_is_stored_hashed_and_never_returned_again(client: TestClient) -> 
     name = unique("bob")
     first = client.post("/submit", json=honest(name)).json()
     token = first["token"]
-    with client.app.state.database.session(write=False) as session:  # type: ignore[attr-defined]
+    with client.app.state.services.database.session(write=False) as session:  # type: ignore[attr-defined]
         stored = session.scalars(select(Participant).where(Participant.name == name)).one()
     assert token not in stored.token_hash and len(stored.token_hash) == 64
     model = client.get(f"/models/{first['model_id']}").json()
@@ -225,7 +225,7 @@ def test_concurrent_submissions_get_the_screeners_own_verdicts(client: TestClien
 
 def test_screening_process_is_replaced_when_it_dies(client: TestClient) -> None:
     client.post("/submit", json=honest(unique("warm")))
-    screening = client.app.state.screening  # type: ignore[attr-defined]
+    screening = client.app.state.services.screening  # type: ignore[attr-defined]
     old = screening.pid()
     os.kill(old, signal.SIGKILL)
     wait_for(lambda: {"pid": screening.pid()}, lambda s: s["pid"] not in (None, old), 30)

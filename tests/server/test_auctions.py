@@ -147,7 +147,7 @@ def test_an_auction_that_cannot_resume_is_marked_failed_with_the_reason(
     reason: str,
 ) -> None:
     """What the runner does at start-up with an unfinished auction whose state is unusable."""
-    database = client.app.state.database  # type: ignore[attr-defined]
+    database = client.app.state.services.database  # type: ignore[attr-defined]
     with database.session(write=True) as session:
         auction = crud.create_auction(
             session,
@@ -162,7 +162,7 @@ def test_an_auction_that_cannot_resume_is_marked_failed_with_the_reason(
         auction.status, auction.iteration, auction.checkpoint = "running", iteration, checkpoint
         session.commit()
         auction_id = auction.id
-    client.app.state.auctions.submit(auction_id)  # type: ignore[attr-defined]
+    client.app.state.services.auctions.submit(auction_id)  # type: ignore[attr-defined]
     failed = wait_for(
         lambda: client.get(f"/auctions/{auction_id}").json(),
         lambda a: a["status"] != "running",

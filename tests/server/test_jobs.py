@@ -35,7 +35,7 @@ def job(client: TestClient, job_id: int) -> dict[str, Any]:
 
 
 def pid_of(client: TestClient, job_id: int) -> int | None:
-    return client.app.state.jobs.pool.pid(job_id)  # type: ignore[attr-defined,no-any-return]
+    return client.app.state.services.jobs.pool.pid(job_id)  # type: ignore[attr-defined,no-any-return]
 
 
 def alive(pid: int) -> bool:

@@ -94,7 +94,7 @@ def test_unauthenticated_and_throttled_requests_cost_no_screening(
         name = unique("cheap")
         token = client.post("/submit", json=honest(name)).json()["token"]
         screened: list[str] = []
-        screening = client.app.state.screening  # type: ignore[attr-defined]
+        screening = client.app.state.services.screening  # type: ignore[attr-defined]
         real = screening.verdict
 
         async def counting(manifest: Any) -> Any:

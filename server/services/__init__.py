@@ -1,0 +1,123 @@
+"""The service layer: what the routes ask for, without HTTP.
+
+``Services`` holds the process's running services (the database, the screener, the writers,
+the two background runners, the event hub, the job backend); ``start_services`` makes and
+starts them (the app's lifespan), ``Services.stop`` stops them. One module per resource
+(``auctions``, ``jobs``, ``models``, ``rounds``) holds the operations the routes call: they
+take the services they need and the request's values, do the work, and return domain values
+or raise ``server.errors.RequestError``; the routes translate HTTP to and from them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+
+from server.auctions import AUCTION_WORK
+from server.config import Settings
+from server.db import Database, prepare_database
+from server.events import EventHub
+from server.jobs.backend import JobCompute, job_compute
+from server.jobs.worker import JOB_WORK
+from server.quotas import Limits
+from server.remote_rounds import RoundWatcher, UploadLookup, UploadWriter
+from server.runner import BackgroundRunner
+from server.screening import ScreeningService
+from server.security import load_admin_token_hash
+from server.submissions import SubmissionWriter
+from server.workers import WorkerContext
+
+log = logging.getLogger("srd.services")
+
+
+@dataclass
+class Services:
+    """The running services of one API process."""
+
+    settings: Settings
+    database: Database
+    admin_token_hash: str
+    screening: ScreeningService
+    submissions: SubmissionWriter
+    uploads: UploadWriter
+    upload_lookup: UploadLookup
+    rounds: RoundWatcher
+    auctions: BackgroundRunner
+    jobs: BackgroundRunner
+    compute: JobCompute
+    events: EventHub
+
+    async def close(self) -> None:
+        """Stop what runs on the event loop (the round watcher's pollers)."""
+        await self.rounds.close()
+
+    def stop(self) -> None:
+        """Stop every worker and writer, then let go of the database (blocking)."""
+        self.jobs.shutdown()
+        self.auctions.shutdown()
+        self.submissions.shutdown()
+        self.uploads.shutdown()
+        self.upload_lookup.shutdown()
+        self.screening.shutdown()
+        self.compute.close()
+        self.database.close()
+
+
+def start_services(settings: Settings) -> Services:
+    """Migrate the database, then make and start every service; unfinished auctions and jobs
+    are queued again (blocking)."""
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    prepare_database(settings.database_url, settings.databases_file)
+    database = Database(settings.database_url)
+    context = WorkerContext(
+        database_url=settings.database_url,
+        data_dir=str(settings.data_dir.resolve()),
+        progress_interval_s=settings.progress_interval_s,
+        torch_threads=settings.worker_torch_threads,
+        nice=settings.worker_nice,
+    )
+    job_context = dataclasses.replace(
+        context,
+        memory_mb=settings.job_memory_mb,
+        job_backend=settings.job_backend,
+        ray_address=settings.ray_address,
+        ray_max_retries=settings.ray_max_retries,
+    )
+    uploads = UploadWriter(database)
+    services = Services(
+        settings=settings,
+        database=database,
+        admin_token_hash=load_admin_token_hash(settings),
+        screening=ScreeningService(),
+        submissions=SubmissionWriter(database, Limits.of(settings)),
+        uploads=uploads,
+        upload_lookup=UploadLookup(database),
+        rounds=RoundWatcher(database, uploads),
+        auctions=BackgroundRunner(
+            database,
+            context,
+            AUCTION_WORK,
+            max_workers=settings.auction_workers,
+            timeout_s=settings.auction_timeout_s,
+        ),
+        jobs=BackgroundRunner(
+            database,
+            job_context,
+            JOB_WORK,
+            max_workers=settings.job_workers,
+            timeout_s=settings.job_timeout_s,
+        ),
+        compute=job_compute(settings.job_backend, settings.ray_address),
+        events=EventHub(
+            interval_s=settings.event_poll_interval_s, max_streams=settings.max_event_streams
+        ),
+    )
+    services.screening.start()
+    services.submissions.start()
+    services.uploads.start()
+    services.upload_lookup.start()
+    services.auctions.start()
+    services.jobs.start()
+    log.info("srd server ready: %s, data in %s", settings.database_url, settings.data_dir)
+    return services

@@ -360,21 +360,17 @@ def run_auction(context: WorkerContext, auction_id: int) -> None:
         database.close()
 
 
-def unfinished_auctions(session: Session) -> list[int]:
-    """Auctions left pending or running, oldest first: they resume from their checkpoint."""
-    return list(
-        session.scalars(
-            select(Auction.id).where(Auction.status.in_(AUCTION_UNFINISHED)).order_by(Auction.id)
-        )
-    )
+def _resume(session: Session, auction_ids: list[int]) -> None:
+    """Claimed auctions need nothing: their worker resumes them from the last checkpoint."""
 
 
 AUCTION_WORK = WorkKind(
     name="auction",
     table=Auction,
     task=run_auction,
+    unfinished=AUCTION_UNFINISHED,
     timeout_setting="SRD_AUCTION_TIMEOUT_S",
     died="the auction worker exited (code {code}) before the auction finished",
-    resumable=unfinished_auctions,
+    prepare=_resume,
 )
 """Auctions as background work (``server.runner``)."""

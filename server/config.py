@@ -74,6 +74,10 @@ class Settings(BaseSettings):
     went away is noticed)."""
     max_event_streams: Annotated[int, Field(ge=1, le=100_000)] = 256
     """Event streams open at once in one process; more get 503 with ``Retry-After``."""
+    lease_s: Annotated[float, Field(ge=1, le=3600)] = 10.0
+    """How long a server's claim on an auction or job lasts unless renewed (every third of
+    it): a replica that dies hands its work to another after at most this long (PostgreSQL;
+    with SQLite one server holds everything)."""
     job_backend: JobBackendName = "local"
     """Where a job's units are computed: ``local`` (in the job's worker process) or ``ray``
     (as tasks on the Ray cluster at ``ray_address``; needs ``pip install '.[ray]'``)."""

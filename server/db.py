@@ -14,10 +14,14 @@ that database is gone or replaced; write sessions then refuse to start.
 
 from __future__ import annotations
 
+import fcntl
 import json
+import os
 import sqlite3
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -25,7 +29,7 @@ from urllib.parse import quote
 
 from alembic import command
 from alembic.config import Config
-from sqlalchemy import Connection, Engine, create_engine, event, inspect, make_url
+from sqlalchemy import Connection, Engine, create_engine, event, inspect, make_url, text
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -218,6 +222,52 @@ class Database:
         self.engine.dispose()
 
 
+def database_now(session: Session) -> datetime:
+    """The time on the database's clock (PostgreSQL: the transaction's start), so that API
+    processes on several machines agree on it; this process's clock for SQLite (one process)."""
+    if session.get_bind().dialect.name == "sqlite":
+        return datetime.now(UTC)
+    now: datetime = session.execute(text("SELECT now()")).scalar_one()
+    return now.astimezone(UTC)
+
+
+class ServerAlreadyRunningError(RuntimeError):
+    """Another server process serves this SQLite database."""
+
+
+class SqliteServerLock:
+    """The one-server guarantee of a SQLite database: an exclusive ``flock`` on
+    ``<database>.serve-lock`` (holding the owner's pid), held while the server runs and
+    released by the OS when its process ends, however it ends."""
+
+    def __init__(self, url: str) -> None:
+        self.path = sqlite_path(url).with_name(sqlite_path(url).name + ".serve-lock")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._handle = self.path.open("a+")
+        try:
+            fcntl.flock(self._handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self._handle.seek(0)
+            owner = self._handle.read().strip() or "unknown"
+            self._handle.close()
+            raise ServerAlreadyRunningError(
+                f"another srd serve (pid {owner}) is serving the SQLite database "
+                f"{sqlite_path(url)}: SQLite serves one server process at a time. To run "
+                "several replicas, put them on one PostgreSQL database "
+                "(SRD_DATABASE_URL=postgresql+psycopg://...)."
+            ) from None
+        self._handle.seek(0)
+        self._handle.truncate()
+        self._handle.write(f"{os.getpid()}\n")
+        self._handle.flush()
+
+    def release(self) -> None:
+        """Let another server start on the database."""
+        if not self._handle.closed:
+            fcntl.flock(self._handle, fcntl.LOCK_UN)
+            self._handle.close()
+
+
 def alembic_config(url: str) -> Config:
     """The Alembic configuration, built in code (no ini file needed)."""
     config = Config()
@@ -238,8 +288,36 @@ def prepare_database(url: str, marker: Path) -> None:
     ``marker`` (in the server's data folder) records every database this data folder has
     served. A database without a schema is created only if it is new to the marker: if it
     served before and is now empty or missing, it was deleted or replaced, and the server
-    refuses to start rather than quietly begin again with nothing.
+    refuses to start rather than quietly begin again with nothing. Replicas starting together
+    on one PostgreSQL database take turns (an advisory lock).
     """
+    with _migration_lock(url):
+        _prepare(url, marker)
+
+
+MIGRATION_LOCK = 0x5344_4D49_4752
+"""The key of the PostgreSQL advisory lock of srd's migrations (``SDMIGR`` in ASCII)."""
+
+
+@contextmanager
+def _migration_lock(url: str) -> Iterator[None]:
+    """PostgreSQL: hold a session advisory lock for the block; SQLite: nothing (one server)."""
+    if is_sqlite(url):
+        yield
+        return
+    engine = create_engine(url)
+    try:
+        with engine.connect() as connection:
+            connection.execute(text("SELECT pg_advisory_lock(:key)"), {"key": MIGRATION_LOCK})
+            try:
+                yield
+            finally:
+                connection.execute(text("SELECT pg_advisory_unlock(:key)"), {"key": MIGRATION_LOCK})
+    finally:
+        engine.dispose()
+
+
+def _prepare(url: str, marker: Path) -> None:
     key = make_url(url).render_as_string(hide_password=True)
     served: dict[str, str] = json.loads(marker.read_text()) if marker.exists() else {}
     if key in served and not has_schema(url):

@@ -99,12 +99,13 @@ class ServerProcess:
         admin_token: str | None = None,
         port: int | None = None,
         extra_env: dict[str, str] | None = None,
+        log_path: Path | None = None,
     ) -> None:
         self.database_url = database_url
         self.data_dir = data_dir
         self.port = port or free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        self.log_path = data_dir / "serve.log"
+        self.log_path = log_path or data_dir / "serve.log"
         self._admin_token = admin_token
         self._extra_env = extra_env or {}
         self.process: subprocess.Popen[bytes] | None = None
@@ -127,6 +128,7 @@ class ServerProcess:
         }
         if self._admin_token is not None:
             env["SRD_ADMIN_TOKEN"] = self._admin_token
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with self.log_path.open("ab") as log:
             self.process = subprocess.Popen(
                 [*srd_command(), "serve", "--host", "127.0.0.1", "--port", str(self.port)],

@@ -33,6 +33,10 @@ NAMING = {  # stable constraint names, so migrations can refer to them on every 
 }
 
 
+LEASE_OWNER_LENGTH = 96
+"""Longest lease owner id (host name, process id, random suffix)."""
+
+
 def utcnow() -> datetime:
     """Aware UTC now."""
     return datetime.now(UTC)
@@ -120,6 +124,9 @@ class Auction(Base):
     started_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    lease_owner: Mapped[str | None] = mapped_column(String(LEASE_OWNER_LENGTH), nullable=True)
+    """The API process playing the auction (``server.runner``), while its lease lasts."""
+    lease_expires: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
 
     patrons: Mapped[list[AuctionPatron]] = relationship(order_by="AuctionPatron.position")
     history: Mapped[list[AuctionIteration]] = relationship(order_by="AuctionIteration.iteration")
@@ -261,6 +268,9 @@ class Job(Base):
     started_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
     finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
     updated_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    lease_owner: Mapped[str | None] = mapped_column(String(LEASE_OWNER_LENGTH), nullable=True)
+    """The API process running the job (``server.runner``), while its lease lasts."""
+    lease_expires: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
 
 
 class RateEvent(Base):

@@ -63,6 +63,7 @@ class WorkerContext:
 TaskFn = Callable[[WorkerContext, int], None]
 ExitFn = Callable[[int, int | None], None]
 TimeoutFn = Callable[[int, float], None]
+EndFn = Callable[[int], None]
 
 
 def error_summary(exc: BaseException) -> str:
@@ -157,7 +158,8 @@ class WorkerPool:
     cancelled by terminating its process; a process that dies while running a task reports
     that task to ``on_exit`` with its exit code (unless cancelled or the pool is stopping).
     A task still running ``timeout_s`` after it started is stopped the same way and reported
-    to ``on_timeout`` with the limit.
+    to ``on_timeout`` with the limit. Every task that is over, however it ended (done, died,
+    stopped, or dropped from the queue by ``cancel``), is then reported to ``on_end``.
     """
 
     def __init__(
@@ -171,6 +173,7 @@ class WorkerPool:
         tasks_per_process: int | None = None,
         timeout_s: float | None = None,
         on_timeout: TimeoutFn | None = None,
+        on_end: EndFn | None = None,
     ) -> None:
         if (timeout_s is None) != (on_timeout is None):
             raise ValueError("a time limit needs its on_timeout report, and the other way round")
@@ -182,6 +185,8 @@ class WorkerPool:
         self._max_workers = max_workers
         self._tasks_per_process = tasks_per_process
         self._on_exit = on_exit
+        self._on_end = on_end
+        self._over: list[int] = []  # tasks over since the supervisor last reported them
         self._spawn = multiprocessing.get_context("spawn")
         self._queue: deque[int] = deque()
         self._workers: list[_Worker] = []
@@ -212,6 +217,7 @@ class WorkerPool:
         with self._lock:
             if task_id in self._queue:
                 self._queue.remove(task_id)
+                self._over.append(task_id)
             for worker in self._workers:
                 if worker.task_id == task_id and worker.cancelled_at is None:
                     worker.cancelled_at = time.monotonic()
@@ -250,6 +256,7 @@ class WorkerPool:
                 if self._stopping:
                     return
                 ended = self._collect()
+                over, self._over = self._over, []
                 self._assign()
                 waitables: list[Any] = [self._wake_reader]
                 waitables += [w.conn for w in self._workers if w.task_id is not None]
@@ -263,10 +270,20 @@ class WorkerPool:
                         self._on_exit(task_id, code)
                 except Exception:
                     log.exception("%s: handling the end of task %d failed", self.name, task_id)
+            self._report_over(over)
             for ready in wait(waitables, timeout=SUPERVISOR_TICK_S):
                 if ready is self._wake_reader:
                     with contextlib.suppress(EOFError, OSError):
                         self._wake_reader.recv_bytes()
+
+    def _report_over(self, over: list[int]) -> None:
+        if self._on_end is None:
+            return
+        for task_id in over:
+            try:
+                self._on_end(task_id)
+            except Exception:
+                log.exception("%s: reporting the end of task %d failed", self.name, task_id)
 
     def _collect(self) -> list[tuple[int, int | None, bool]]:
         """Free the workers whose task finished; stop the ones over the time limit; drop dead
@@ -286,6 +303,7 @@ class WorkerPool:
                 if worker.conn.poll():
                     with contextlib.suppress(EOFError, OSError):
                         worker.conn.recv()
+                        self._over.append(worker.task_id)
                         worker.task_id, worker.tasks_done = None, worker.tasks_done + 1
                 if worker.task_id is None and self._retired(worker):
                     worker.conn.close()  # the worker sees EOF and exits
@@ -295,6 +313,8 @@ class WorkerPool:
                 self._workers.remove(worker)
                 if worker.task_id is not None and (worker.cancelled_at is None or worker.timed_out):
                     ended.append((worker.task_id, worker.process.exitcode, worker.timed_out))
+                if worker.task_id is not None:
+                    self._over.append(worker.task_id)
         return ended
 
     def _retired(self, worker: _Worker) -> bool:

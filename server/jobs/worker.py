@@ -21,7 +21,7 @@ from sqlalchemy.orm import Session
 from server.db import Database
 from server.models import Job, utcnow
 from server.runner import WorkKind
-from server.status import JobStatus
+from server.status import JOB_UNFINISHED, JobStatus
 from server.workers import WorkerContext, error_summary
 from sim.experiment import write_json
 from sim.registry import build_config, run_kind
@@ -189,22 +189,19 @@ def run_job(context: WorkerContext, job_id: int) -> None:
         database.close()
 
 
-def requeue_unfinished_jobs(session: Session) -> list[int]:
-    """Jobs left running go back to queued (they run again from the start); every queued id,
-    oldest first."""
+def requeue(session: Session, job_ids: list[int]) -> None:
+    """Claimed jobs left running (their server stopped) go back to queued: they run again from
+    the start, as a new attempt."""
     session.execute(
         update(Job)
-        .where(Job.status == JobStatus.RUNNING)
+        .where(Job.id.in_(job_ids), Job.status == JobStatus.RUNNING)
         .values(
             status=JobStatus.QUEUED,
             progress=0.0,
-            message="re-queued after a server restart",
+            message="re-queued: the server running it stopped",
             started_at=None,
             updated_at=utcnow(),
         )
-    )
-    return list(
-        session.scalars(select(Job.id).where(Job.status == JobStatus.QUEUED).order_by(Job.id))
     )
 
 
@@ -212,9 +209,10 @@ JOB_WORK = WorkKind(
     name="job",
     table=Job,
     task=run_job,
+    unfinished=JOB_UNFINISHED,
     timeout_setting="SRD_JOB_TIMEOUT_S",
     died="the job worker exited (code {code}) without a result",
-    resumable=requeue_unfinished_jobs,
+    prepare=requeue,
     tasks_per_process=1,  # a fresh interpreter per experiment: no state carried over
 )
 """Jobs as background work (``server.runner``)."""

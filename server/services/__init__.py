@@ -12,17 +12,20 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
+import secrets
+import socket
 from dataclasses import dataclass
 
 from server.auctions import AUCTION_WORK
 from server.config import Settings
-from server.db import Database, prepare_database
+from server.db import Database, SqliteServerLock, is_sqlite, prepare_database
 from server.events import EventHub
 from server.jobs.backend import JobCompute, job_compute
 from server.jobs.worker import JOB_WORK
 from server.quotas import Limits
 from server.remote_rounds import RoundWatcher, UploadLookup, UploadWriter
-from server.runner import BackgroundRunner
+from server.runner import BackgroundRunner, WorkKind
 from server.screening import ScreeningService
 from server.security import load_admin_token_hash
 from server.submissions import SubmissionWriter
@@ -47,6 +50,8 @@ class Services:
     jobs: BackgroundRunner
     compute: JobCompute
     events: EventHub
+    sqlite_lock: SqliteServerLock | None
+    """Held while this process serves a SQLite database (None on PostgreSQL)."""
 
     async def close(self) -> None:
         """Stop what runs on the event loop (the round watcher's pollers)."""
@@ -62,11 +67,32 @@ class Services:
         self.screening.shutdown()
         self.compute.close()
         self.database.close()
+        if self.sqlite_lock is not None:
+            self.sqlite_lock.release()
+
+
+def server_id() -> str:
+    """This process's lease owner id: host, process id and a random part (a restarted process
+    with the same pid is another owner)."""
+    return f"{socket.gethostname()[:60]}:{os.getpid()}:{secrets.token_hex(4)}"
 
 
 def start_services(settings: Settings) -> Services:
-    """Migrate the database, then make and start every service; unfinished auctions and jobs
-    are queued again (blocking)."""
+    """Take the SQLite database's one-server lock (refusing to start beside another server),
+    migrate the database, then make and start every service; the runners claim the unfinished
+    auctions and jobs they may (blocking)."""
+    sqlite_lock = (
+        SqliteServerLock(settings.database_url) if is_sqlite(settings.database_url) else None
+    )
+    try:
+        return _start(settings, sqlite_lock)
+    except BaseException:
+        if sqlite_lock is not None:
+            sqlite_lock.release()
+        raise
+
+
+def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services:
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     prepare_database(settings.database_url, settings.databases_file)
     database = Database(settings.database_url)
@@ -85,6 +111,22 @@ def start_services(settings: Settings) -> Services:
         ray_max_retries=settings.ray_max_retries,
     )
     uploads = UploadWriter(database)
+    owner = server_id()
+
+    def runner(
+        kind: WorkKind, context: WorkerContext, max_workers: int, timeout_s: float
+    ) -> BackgroundRunner:
+        return BackgroundRunner(
+            database,
+            context,
+            kind,
+            max_workers=max_workers,
+            timeout_s=timeout_s,
+            owner=owner,
+            lease_s=settings.lease_s,
+            exclusive=sqlite_lock is not None,
+        )
+
     services = Services(
         settings=settings,
         database=database,
@@ -94,24 +136,15 @@ def start_services(settings: Settings) -> Services:
         uploads=uploads,
         upload_lookup=UploadLookup(database),
         rounds=RoundWatcher(database, uploads),
-        auctions=BackgroundRunner(
-            database,
-            context,
-            AUCTION_WORK,
-            max_workers=settings.auction_workers,
-            timeout_s=settings.auction_timeout_s,
+        auctions=runner(
+            AUCTION_WORK, context, settings.auction_workers, settings.auction_timeout_s
         ),
-        jobs=BackgroundRunner(
-            database,
-            job_context,
-            JOB_WORK,
-            max_workers=settings.job_workers,
-            timeout_s=settings.job_timeout_s,
-        ),
+        jobs=runner(JOB_WORK, job_context, settings.job_workers, settings.job_timeout_s),
         compute=job_compute(settings.job_backend, settings.ray_address),
         events=EventHub(
             interval_s=settings.event_poll_interval_s, max_streams=settings.max_event_streams
         ),
+        sqlite_lock=sqlite_lock,
     )
     services.screening.start()
     services.submissions.start()

@@ -8,6 +8,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
@@ -18,10 +19,13 @@ import server.auctions
 from server import crud
 from server.auctions import base_price, run_auction
 from server.db import Database
+from server.models import utcnow
 from server.workers import WorkerContext
 from sim.market import Market
 
 POPULATION = Path(__file__).resolve().parents[2] / "examples" / "population"
+TEST_OWNER = "tests"
+"""The lease owner of rows a test plays itself (no server claims them)."""
 
 
 def submit_population(client: httpx.Client) -> dict[str, dict[str, Any]]:
@@ -72,8 +76,8 @@ class PacedMarket(Market):
 def create_unstarted_auction(
     database_url: str, model_ids: list[int], *, n_fish: int, seed: int
 ) -> int:
-    """An auction row written as ``POST /auctions`` writes it, but handed to no worker: it
-    stays pending until a test drives it."""
+    """An auction row written as ``POST /auctions`` writes it, but leased to the test (for a
+    day), so no server claims it: it stays pending until a test drives it."""
     database = Database(database_url)
     try:
         with database.session(write=True) as session:
@@ -87,6 +91,7 @@ def create_unstarted_auction(
                 seed=seed,
                 opening_price=base_price(),
             )
+            auction.lease_owner, auction.lease_expires = TEST_OWNER, utcnow() + timedelta(days=1)
             session.commit()
             return auction.id
     finally:

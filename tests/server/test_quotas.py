@@ -9,13 +9,15 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.app import create_app
+from server.launch import postgres_admin_url, throwaway_postgres
 from server.models import ModelVersion, Participant, RateEvent
 from tests.server.conftest import honest, make_settings, saboteur, unique
 from tests.server.test_api import count
 
 
-def quota_app(tmp_path, **limits: Any) -> TestClient:
-    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
+def quota_app(tmp_path, database_url: str | None = None, **limits: Any) -> TestClient:
+    url = database_url or f"sqlite:///{tmp_path / 'srd.db'}"
+    settings = make_settings(url, tmp_path / "data")
     return TestClient(create_app(settings.model_copy(update=limits)))
 
 
@@ -77,9 +79,18 @@ def test_registrations_per_address(tmp_path) -> None:
         assert count(client, Participant) == before
 
 
+@pytest.mark.postgres
 def test_limits_are_shared_by_processes_on_one_database(tmp_path) -> None:
-    limits = {"quota_versions_per_minute": 1, "refusal_cooldown_s": 0.0}
-    with quota_app(tmp_path, **limits) as first, quota_app(tmp_path, **limits) as second:
+    """Two API processes (replicas) on one PostgreSQL database count the same quotas."""
+    admin_url = postgres_admin_url()
+    if admin_url is None:
+        pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
+    limits: dict[str, Any] = {"quota_versions_per_minute": 1, "refusal_cooldown_s": 0.0}
+    with (
+        throwaway_postgres(admin_url) as url,
+        quota_app(tmp_path / "a", url, **limits) as first,
+        quota_app(tmp_path / "b", url, **limits) as second,
+    ):
         name = unique("shared")
         token = first.post("/submit", json=honest(name)).json()["token"]
         elsewhere = second.post("/submit", json=honest(name), headers=bearer(token))

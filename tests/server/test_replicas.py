@@ -1,0 +1,258 @@
+"""Several API replicas on one PostgreSQL database, and SQLite's one server.
+
+Two ``srd serve`` processes share a throw-away PostgreSQL database and a data folder. Auctions
+and jobs created through either are each played exactly once (by whichever claims them first);
+lists and event streams read the same through both. Killed with ``kill -9`` in the middle of an
+auction, a replica loses its lease and the other resumes the auction from its checkpoint:
+rounds contiguous, every purchase once, the same auction as one played uninterrupted. A second
+server on a SQLite database refuses to start, saying why.
+"""
+
+from __future__ import annotations
+
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from sqlalchemy import func, select
+
+from agents.manifest import parse_manifest
+from screener import screen
+from server.db import Database
+from server.launch import (
+    QUOTAS_OFF,
+    ServerProcess,
+    postgres_admin_url,
+    settings_environment,
+    throwaway_postgres,
+)
+from server.models import Auction, AuctionIteration, Job, Purchase
+from sim.market import Market, MarketConfig
+from tests.server.conftest import honest, wait_for
+from tests.server.live import sse_events
+
+LEASE_S = 2.0
+"""Short leases: a dead replica's work moves within seconds."""
+TIMEOUT_S = 240
+ENV = settings_environment(
+    {**QUOTAS_OFF, "lease_s": LEASE_S, "auction_workers": 1, "job_workers": 1}
+)
+
+
+@pytest.fixture
+def postgres_url() -> Iterator[str]:
+    admin_url = postgres_admin_url()
+    if admin_url is None:
+        pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
+    with throwaway_postgres(admin_url) as url:
+        yield url
+
+
+def replicas(database_url: str, tmp_path: Path, token: str) -> list[ServerProcess]:
+    """Two servers on one database and one data folder (the job artifacts are shared)."""
+    return [
+        ServerProcess(
+            database_url=database_url,
+            data_dir=tmp_path / "data",
+            admin_token=token,
+            extra_env=ENV,
+            log_path=tmp_path / f"serve-{name}.log",
+        )
+        for name in ("a", "b")
+    ]
+
+
+def get(server: ServerProcess, path: str) -> Any:
+    response = httpx.get(server.url + path, timeout=30)
+    response.raise_for_status()
+    return response.json()
+
+
+def events(server: ServerProcess, path: str) -> list[dict[str, str]]:
+    with httpx.stream("GET", server.url + path, timeout=60) as response:
+        return [event for event in sse_events(response) if "event" in event]
+
+
+def alone(manifests: list[dict[str, Any]], config: MarketConfig) -> list[Any]:
+    """The auction played uninterrupted, in this process."""
+    market = Market(
+        [parse_manifest(m) for m in manifests],
+        config,
+        rescreen=lambda _i, m: screen(m).accepted,
+    )
+    return list(market.run())
+
+
+def assert_played_once(
+    auction: dict[str, Any], ids: list[int], records: list[Any], database: Database
+) -> None:
+    """Rounds contiguous and equal to the uninterrupted auction's, each purchase once."""
+    assert auction["status"] == "finished", auction["error"]
+    history = auction["history"]
+    assert [row["iteration"] for row in history] == list(range(len(history)))
+    assert [row["price"] for row in history] == [r.price for r in records]
+    assert [row["votes"] for row in history] == [r.votes for r in records]
+    assert [(b["model_id"], b["price"]) for b in auction["buyers"]] == [
+        (ids[i], price) for r in records for i, price in r.buyers
+    ]
+    with database.session(write=False) as session:
+        key = auction["id"]
+        purchases = session.scalar(select(func.count()).where(Purchase.auction_id == key))
+        rounds = session.scalar(select(func.count()).where(AuctionIteration.auction_id == key))
+        lease = session.scalar(select(Auction.lease_owner).where(Auction.id == key))
+    assert purchases == len(auction["buyers"]) and rounds == len(history)
+    assert lease is None  # released once played
+
+
+@pytest.mark.postgres
+def test_two_replicas_play_each_auction_and_job_once_and_read_alike(
+    postgres_url: str, tmp_path: Path
+) -> None:
+    token = secrets.token_hex(16)
+    admin = {"Authorization": f"Bearer {token}"}
+    servers = replicas(postgres_url, tmp_path, token)
+    manifests = [honest(f"replica-{i:02d}", seed=300 + i) for i in range(8)]
+    try:
+        for server in servers:
+            server.start()
+        ids = [
+            httpx.post(servers[i % 2].url + "/submit", json=m, timeout=60).json()["model_id"]
+            for i, m in enumerate(manifests)
+        ]
+        auctions = [
+            httpx.post(
+                servers[seed % 2].url + "/auctions",
+                json={"n_fish": 2, "seed": seed, "model_ids": ids},
+                headers=admin,
+                timeout=60,
+            ).json()["auction_id"]
+            for seed in range(4)
+        ]
+        jobs = [
+            httpx.post(
+                servers[i].url + "/jobs",
+                json={"kind": "fish", "params": {"steps": 300 + i}},
+                headers=admin,
+                timeout=60,
+            ).json()["job_id"]
+            for i in range(2)
+        ]
+        done = [
+            wait_for(
+                lambda a=auction_id: get(servers[0], f"/auctions/{a}"),
+                lambda a: a["status"] in ("finished", "failed"),
+                TIMEOUT_S,
+            )
+            for auction_id in auctions
+        ]
+        finished_jobs = [
+            wait_for(
+                lambda j=job_id: get(servers[1], f"/jobs/{j}"),
+                lambda j: j["status"] not in ("queued", "running"),
+                TIMEOUT_S,
+            )
+            for job_id in jobs
+        ]
+        for path in ("/auctions", "/jobs", "/models", f"/models/{ids[0]}"):
+            assert get(servers[0], path) == get(servers[1], path), path
+        for auction_id in auctions:
+            assert get(servers[0], f"/auctions/{auction_id}") == get(
+                servers[1], f"/auctions/{auction_id}"
+            )
+        stream = f"/auctions/{auctions[0]}/events"
+        assert events(servers[0], stream) == events(servers[1], stream)
+        stream = f"/jobs/{jobs[0]}/events"
+        assert events(servers[0], stream)[-1] == events(servers[1], stream)[-1]
+        artifact = f"/jobs/{jobs[1]}/artifacts/energy.csv"
+        assert (
+            httpx.get(servers[0].url + artifact).content
+            == httpx.get(servers[1].url + artifact).content
+        )
+    finally:
+        for server in servers:
+            server.stop()
+    database = Database(postgres_url)
+    try:
+        for auction, seed in zip(done, range(4), strict=True):
+            assert_played_once(auction, ids, alone(manifests, MarketConfig(2, seed=seed)), database)
+        with database.session(write=False) as session:
+            attempts = [session.get(Job, job["id"]).attempt for job in finished_jobs]  # type: ignore[union-attr]
+    finally:
+        database.close()
+    assert [job["status"] for job in finished_jobs] == ["succeeded", "succeeded"]
+    assert attempts == [1, 1]  # each claimed once
+
+
+@pytest.mark.postgres
+def test_kill_9_of_the_replica_playing_an_auction_the_other_finishes_it(
+    postgres_url: str, tmp_path: Path
+) -> None:
+    token = secrets.token_hex(16)
+    admin = {"Authorization": f"Bearer {token}"}
+    servers = replicas(postgres_url, tmp_path, token)
+    manifests = [honest(f"killed-{i:02d}", seed=200 + i) for i in range(64)]
+    database = Database(postgres_url)
+    try:
+        for server in servers:
+            server.start()
+        with httpx.Client(base_url=servers[0].url, timeout=60) as client:
+            ids = [client.post("/submit", json=m).json()["model_id"] for m in manifests]
+            body = {"n_fish": 1, "fine_tune": True, "seed": 0, "model_ids": ids}
+            created = client.post("/auctions", json=body, headers=admin)
+            assert created.status_code == 201, created.text
+            auction_id = created.json()["auction_id"]
+        wait_for(
+            lambda: get(servers[1], f"/auctions/{auction_id}"),
+            lambda a: a["iteration"] >= 1,
+            TIMEOUT_S,
+        )
+        with database.session(write=False) as session:
+            owner = session.scalar(select(Auction.lease_owner).where(Auction.id == auction_id))
+        assert owner is not None
+        playing = next(s for s in servers if s.process and f":{s.process.pid}:" in owner)
+        survivor = next(s for s in servers if s is not playing)
+        playing.kill()
+        with database.session(write=False) as session:
+            at_kill = session.scalars(select(Auction).where(Auction.id == auction_id)).one()
+        assert at_kill.status == "running" and at_kill.iteration >= 1  # killed mid-auction
+        auction = wait_for(
+            lambda: get(survivor, f"/auctions/{auction_id}"),
+            lambda a: a["status"] in ("finished", "failed"),
+            TIMEOUT_S,
+        )
+        assert len(auction["history"]) > at_kill.iteration  # the survivor played on
+        assert f"auction {auction_id} claimed by" in survivor.log_path.read_text()
+        records = alone(manifests, MarketConfig(1, fine_tune=True, seed=0))
+        assert_played_once(auction, ids, records, database)
+    finally:
+        for server in servers:
+            server.stop()
+        database.close()
+
+
+def test_a_second_server_on_one_sqlite_database_refuses_to_start(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'srd.db'}"
+    first = ServerProcess(database_url=url, data_dir=tmp_path / "data", extra_env=ENV)
+    second = ServerProcess(
+        database_url=url,
+        data_dir=tmp_path / "data",
+        extra_env=ENV,
+        log_path=tmp_path / "second.log",
+    )
+    try:
+        first.start()
+        with pytest.raises(RuntimeError, match="exited early"):
+            second.start()
+        log = second.log_path.read_text()
+        assert first.process is not None
+        assert f"another srd serve (pid {first.process.pid}) is serving the SQLite" in log
+        assert "PostgreSQL" in log
+        assert get(first, "/healthz")["status"] == "ok"
+    finally:
+        second.stop()
+        first.stop()
+    second.start()  # the lock goes with the server that held it
+    second.stop()

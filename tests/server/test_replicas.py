@@ -2,7 +2,8 @@
 
 Two ``srd serve`` processes share a throw-away PostgreSQL database and a data folder. Auctions
 and jobs created through either are each played exactly once (by whichever claims them first);
-lists and event streams read the same through both. Killed with ``kill -9`` in the middle of an
+lists and event streams read the same through both; a job cancelled through one replica is
+stopped by the other, which runs it. Killed with ``kill -9`` in the middle of an
 auction, a replica loses its lease and the other resumes the auction from its checkpoint:
 rounds contiguous, every purchase once, the same auction as one played uninterrupted. A second
 server on a SQLite database refuses to start, saying why.
@@ -86,6 +87,17 @@ def alone(manifests: list[dict[str, Any]], config: MarketConfig) -> list[Any]:
     return list(market.run())
 
 
+def lease_owner(database_url: str, table: type[Auction] | type[Job], row_id: int) -> str:
+    database = Database(database_url)
+    try:
+        with database.session(write=False) as session:
+            owner = session.scalar(select(table.lease_owner).where(table.id == row_id))
+    finally:
+        database.close()
+    assert owner is not None
+    return owner
+
+
 def assert_played_once(
     auction: dict[str, Any], ids: list[int], records: list[Any], database: Database
 ) -> None:
@@ -166,6 +178,27 @@ def test_two_replicas_play_each_auction_and_job_once_and_read_alike(
         assert events(servers[0], stream) == events(servers[1], stream)
         stream = f"/jobs/{jobs[0]}/events"
         assert events(servers[0], stream)[-1] == events(servers[1], stream)[-1]
+        long_job = httpx.post(
+            servers[0].url + "/jobs",
+            json={"kind": "fish", "params": {"steps": 1_000_000}},  # minutes: still running
+            headers=admin,
+            timeout=60,
+        ).json()["job_id"]
+        wait_for(
+            lambda: get(servers[0], f"/jobs/{long_job}"),
+            lambda j: j["status"] == "running",
+            TIMEOUT_S,
+        )
+        owner = lease_owner(postgres_url, Job, long_job)
+        playing = next(s for s in servers if s.process and f":{s.process.pid}:" in owner)
+        other = next(s for s in servers if s is not playing)
+        cancelled = httpx.delete(f"{other.url}/jobs/{long_job}", headers=admin, timeout=60)
+        assert cancelled.json()["status"] == "cancelled"
+        wait_for(  # the replica running it notices at its next lease renewal and stops it
+            lambda: {"log": playing.log_path.read_text()},
+            lambda s: f"job {long_job}: lease lost; stopped here" in s["log"],
+            10 * LEASE_S,
+        )
         artifact = f"/jobs/{jobs[1]}/artifacts/energy.csv"
         assert (
             httpx.get(servers[0].url + artifact).content
@@ -209,9 +242,7 @@ def test_kill_9_of_the_replica_playing_an_auction_the_other_finishes_it(
             lambda a: a["iteration"] >= 1,
             TIMEOUT_S,
         )
-        with database.session(write=False) as session:
-            owner = session.scalar(select(Auction.lease_owner).where(Auction.id == auction_id))
-        assert owner is not None
+        owner = lease_owner(postgres_url, Auction, auction_id)
         playing = next(s for s in servers if s.process and f":{s.process.pid}:" in owner)
         survivor = next(s for s in servers if s is not playing)
         playing.kill()

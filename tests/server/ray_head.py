@@ -43,9 +43,9 @@ class RayHead:
     """A local Ray cluster of ``cpus`` CPUs in a child process; ``address`` and ``env`` (the
     variables a driver needs: the address and the cluster's token) once started."""
 
-    def __init__(self, cpus: int) -> None:
+    def __init__(self, cpus: int, token: str | None = None) -> None:
         self.cpus = cpus
-        self.token = secrets.token_hex(32)
+        self.token = token or secrets.token_hex(32)
         self.env = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": self.token}
         # Short: Ray's unix sockets live under it (their paths are limited to 107 bytes).
         self.temp = Path(tempfile.mkdtemp(prefix="srdray"))

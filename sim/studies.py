@@ -18,115 +18,31 @@ paper's words) and ``buyer_fraction`` = buyers / patrons (what the reference plo
 from __future__ import annotations
 
 import csv
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
 import numpy as np
-from pydantic import Field
 
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
 from sim import units
-from sim.experiment import Cost, ProgressFn, Stopwatch, config_dict, no_progress, write_json
+from sim.experiment import ProgressFn, Stopwatch, config_dict, no_progress, write_json
 from sim.market import MarketBatch, MarketConfig, RescreenBatch, fish_on_sale, single_thread
+from sim.study_config import (
+    ComparisonConfig,
+    Setting,
+    StudyConfig,
+    comparison_settings,
+    settings_of,
+    study_settings,
+)
+from sim.study_plots import plot_comparison, plot_study
 from sim.units import Decomposition, Payload, Unit
 
-PAPER_RARITIES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
-"""The paper's item supplies."""
-COMPARISON_RARITIES = (0.1, 0.3, 0.5, 0.7, 0.9)
-"""The comparison's default supplies (small enough for the demo)."""
-GRID_SABOTEURS = 0.5
-"""The saboteur fraction of the grid's and the comparison's compromised auctions."""
 BATCH_PATRONS = 2048
 """Patrons per lock-step batch of auctions (bounds memory; larger batches amortise more)."""
-JITTER = 0.02
-"""Half-width of the x jitter of the purchase dots (the reference's)."""
-
-Rarity = Annotated[float, Field(gt=0, le=1)]
-Rarities = Annotated[tuple[Rarity, ...], Field(min_length=1, max_length=100)]
-AUCTION_COST_S = 0.01
-"""Compute of one auction of 64 patrons without fine-tuning, for the job budget: about twice
-the lock-step engine's measured cost per auction."""
-FINE_TUNED_AUCTION_COST_S = 0.05
-"""The same with fine-tuning (measured about 0.02 s per auction)."""
-SCREENING_COST_S = 0.01
-"""Screening one patron (the behavioural tests included), with a margin."""
-
-
-@dataclass(frozen=True)
-class AuctionOptions:
-    """What every auction of a study shares (the study configs add their grid)."""
-
-    patrons: Annotated[int, Field(ge=1, le=1024)] = 64
-    """Patrons per auction, saboteurs included."""
-    fine_tune: bool = False
-    """Patrons fine-tune themselves (SRD) in the first rounds."""
-    max_iterations: Annotated[int, Field(ge=1, le=1000)] = MarketConfig.max_iterations
-    """Iterations per auction at most."""
-    fine_tune_rounds: Annotated[int, Field(ge=0, le=1000)] = MarketConfig.fine_tune_rounds
-    """Fine-tuning after each of the first this-many iterations (reference: 5)."""
-    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
-    """Seed of every auction: each is keyed by (seed, rarity, trial)."""
-
-    def _auction_cost(self, setting: Setting) -> float:
-        """Estimated compute of one auction of ``setting``."""
-        per_auction = FINE_TUNED_AUCTION_COST_S if setting.fine_tune else AUCTION_COST_S
-        screening = SCREENING_COST_S if setting.screen else 0.0
-        return self.patrons * (per_auction / 64 + screening)
-
-
-@dataclass(frozen=True)
-class StudyConfig(AuctionOptions):
-    """Fish sale auctions without HTTP: purchase price and rate against item supply.
-
-    The paper's Fig. C/D grid (``srd auction-study``)."""
-
-    rarities: Rarities = PAPER_RARITIES
-    """Item supplies r; fish on sale = int(r · patrons)."""
-    trials: Annotated[int, Field(ge=1, le=1000)] = 10
-    """Independent auctions per supply (and per setting)."""
-    saboteurs: Annotated[float, Field(ge=0, le=1)] = 0.0
-    """Fraction of the patrons that are always-hold saboteurs (the last ones)."""
-    screen: bool = False
-    """Screen every patron before the auction (refused ones stay out) and re-screen fine-tuned
-    patrons after each round (refused versions are reverted)."""
-    grid: bool = False
-    """Run the paper's whole grid: fine-tune off/on × saboteurs 0 and (--saboteurs or 0.5)."""
-
-    def cost(self) -> Cost:
-        """Estimated compute: every (setting, supply, trial) auction."""
-        per_trial = sum(self._auction_cost(s) for s in study_settings(self))
-        return Cost(per_trial * len(self.rarities) * self.trials, "trials")
-
-
-@dataclass(frozen=True)
-class ComparisonConfig(AuctionOptions):
-    """The honest vs malicious comparison: the same auctions honest, compromised, screened."""
-
-    rarities: Rarities = COMPARISON_RARITIES
-    """Item supplies r; fish on sale = int(r · patrons)."""
-    trials: Annotated[int, Field(ge=1, le=1000)] = 3
-    """Independent auctions per supply and configuration."""
-    saboteurs: Annotated[float, Field(gt=0, le=1)] = GRID_SABOTEURS
-    """Fraction of saboteurs in the compromised configurations."""
-
-    def cost(self) -> Cost:
-        """Estimated compute: the three configurations' auctions."""
-        per_trial = sum(self._auction_cost(s) for s in comparison_settings(self).values())
-        return Cost(per_trial * len(self.rarities) * self.trials, "trials")
-
-
-@dataclass(frozen=True)
-class Setting:
-    """One configuration of a study: who takes part and what the house does."""
-
-    name: str
-    fine_tune: bool
-    saboteurs: float
-    screen: bool
 
 
 @dataclass
@@ -340,30 +256,6 @@ def summary_rows(auctions: Sequence[AuctionResult]) -> list[dict[str, Any]]:
     return rows
 
 
-def _setting_name(fine_tune: bool, saboteurs: float, screen: bool) -> str:
-    name = "honest" if saboteurs == 0 else f"saboteurs-{saboteurs:g}"
-    return name + ("+fine-tune" if fine_tune else "") + ("+screened" if screen else "")
-
-
-def study_settings(config: StudyConfig) -> list[Setting]:
-    """The settings a study config asks for (one, or the grid's four)."""
-    if not config.grid:
-        combos = [(config.fine_tune, config.saboteurs)]
-    else:
-        share = config.saboteurs or GRID_SABOTEURS
-        combos = [(ft, sab) for sab in (0.0, share) for ft in (False, True)]
-    return [
-        Setting(_setting_name(ft, sab, config.screen), ft, sab, config.screen) for ft, sab in combos
-    ]
-
-
-def settings_of(config: StudyConfig | ComparisonConfig) -> list[Setting]:
-    """The settings a study or comparison config runs, in report order."""
-    if isinstance(config, StudyConfig):
-        return study_settings(config)
-    return list(comparison_settings(config).values())
-
-
 def _batch_kind(setting: Setting) -> tuple[bool, bool]:
     """Auctions that fine-tune score every row in their first rounds: batch them together;
     those that screen re-screen their fine-tuned patrons: batch them apart."""
@@ -458,74 +350,6 @@ def _write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> None:
         writer.writerows({k: "" if v is None else v for k, v in row.items()} for row in rows)
 
 
-def _pyplot() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def plot_study(
-    auctions: Sequence[AuctionResult], rows: Sequence[dict[str, Any]], out_dir: Path, seed: int
-) -> list[str]:
-    """Fig. C/D: price vs supply (every purchase a jittered dot, mean lines) and purchase rate
-    vs supply (both definitions); one column per saboteur share. Returns the file names."""
-    plt = _pyplot()
-    jitter = np.random.default_rng(seed)
-    shares = sorted({a.setting.saboteurs for a in auctions})
-    colours = {True: "tab:red", False: "tab:blue"}
-    files = []
-    for kind in ("price", "rate"):
-        fig, axes = plt.subplots(1, len(shares), figsize=(5.2 * len(shares), 4), squeeze=False)
-        for ax, share in zip(axes[0], shares, strict=True):
-            for fine_tune in (False, True):
-                label = "fine-tune (Optim)" if fine_tune else "no fine-tune (noOptim)"
-                mine = [r for r in rows if r["saboteurs"] == share and r["fine_tune"] == fine_tune]
-                if not mine:
-                    continue
-                colour = colours[fine_tune]
-                xs = [r["rarity"] for r in mine]
-                if kind == "price":
-                    for a in auctions:
-                        if a.setting.saboteurs == share and a.setting.fine_tune == fine_tune:
-                            prices = a.purchases
-                            dx = jitter.uniform(-JITTER, JITTER, size=len(prices))
-                            ax.scatter(a.rarity + dx, prices, s=4, alpha=0.25, color=colour)
-                    ys = [math.nan if r["mean_price"] is None else r["mean_price"] for r in mine]
-                    ax.plot(xs, ys, "-o", color=colour, label=label)
-                    ax.set_ylabel("purchase price")
-                else:
-                    rates = [
-                        math.nan if r["purchase_rate"] is None else r["purchase_rate"] for r in mine
-                    ]
-                    ax.plot(xs, rates, "-o", color=colour, label=f"sold / on sale, {label}")
-                    ax.plot(
-                        xs,
-                        [r["buyer_fraction"] for r in mine],
-                        "--s",
-                        color=colour,
-                        alpha=0.7,
-                        label=f"buyers / patrons, {label}",
-                    )
-                    ax.set_ylabel("purchase rate")
-                    ax.set_ylim(0, 1.05)
-            title = "honest patrons" if share == 0 else f"{share:g} saboteurs"
-            screened = any(a.setting.screen for a in auctions if a.setting.saboteurs == share)
-            ax.set_title(title + (" (screened)" if screened else ""))
-            ax.set_xlabel("item supply")
-            ax.set_xlim(0, 1)
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=7)
-        fig.tight_layout()
-        name = "price_vs_supply.png" if kind == "price" else "purchase_rate.png"
-        fig.savefig(out_dir / name, dpi=110)
-        plt.close(fig)
-        files.append(name)
-    return files
-
-
 def assemble_study(
     config: StudyConfig,
     plan: Sequence[Unit],
@@ -564,42 +388,6 @@ def run_study(
     """Run the study here; write results.csv, summary.json and the figures; return the --json
     object."""
     return units.run(STUDY_UNITS, config, out_dir=out_dir, progress=progress)
-
-
-def comparison_settings(config: ComparisonConfig) -> dict[str, Setting]:
-    """honest, compromised and compromised+screened, on the same auctions."""
-    ft = config.fine_tune
-    return {
-        "honest": Setting("honest", ft, 0.0, False),
-        "compromised": Setting("compromised", ft, config.saboteurs, False),
-        "compromised+screened": Setting("compromised+screened", ft, config.saboteurs, True),
-    }
-
-
-COMPARED = (
-    ("mean_price", "mean purchase price"),
-    ("purchase_rate", "purchase rate (sold / on sale)"),
-    ("buyer_fraction", "buyer fraction (buyers / patrons)"),
-    ("revenue", "revenue per auction"),
-)
-
-
-def plot_comparison(table: dict[str, list[dict[str, Any]]], path: Path) -> None:
-    """Side by side: mean price, purchase rate, buyer fraction and revenue per supply."""
-    plt = _pyplot()
-    fig, axes = plt.subplots(1, len(COMPARED), figsize=(4.2 * len(COMPARED), 3.6))
-    styles = {"honest": "-o", "compromised": "-x", "compromised+screened": "--s"}
-    for ax, (field, label) in zip(axes, COMPARED, strict=True):
-        for name, rows in table.items():
-            ys = [math.nan if r[field] is None else r[field] for r in rows]
-            ax.plot([r["rarity"] for r in rows], ys, styles.get(name, "-"), label=name)
-        ax.set_title(label, fontsize=9)
-        ax.set_xlabel("item supply")
-        ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def assemble_comparison(

@@ -1,0 +1,135 @@
+"""What an auction study is asked: its knobs (``StudyConfig``, ``ComparisonConfig``), the
+settings they span, and their estimated compute."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated
+
+from pydantic import Field
+
+from sim.experiment import Cost
+from sim.market import MarketConfig
+
+PAPER_RARITIES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+"""The paper's item supplies."""
+COMPARISON_RARITIES = (0.1, 0.3, 0.5, 0.7, 0.9)
+"""The comparison's default supplies (small enough for the demo)."""
+GRID_SABOTEURS = 0.5
+"""The saboteur fraction of the grid's and the comparison's compromised auctions."""
+Rarity = Annotated[float, Field(gt=0, le=1)]
+Rarities = Annotated[tuple[Rarity, ...], Field(min_length=1, max_length=100)]
+AUCTION_COST_S = 0.01
+"""Compute of one auction of 64 patrons without fine-tuning, for the job budget: about twice
+the lock-step engine's measured cost per auction."""
+FINE_TUNED_AUCTION_COST_S = 0.05
+"""The same with fine-tuning (measured about 0.02 s per auction)."""
+SCREENING_COST_S = 0.01
+"""Screening one patron (the behavioural tests included), with a margin."""
+
+
+@dataclass(frozen=True)
+class AuctionOptions:
+    """What every auction of a study shares (the study configs add their grid)."""
+
+    patrons: Annotated[int, Field(ge=1, le=1024)] = 64
+    """Patrons per auction, saboteurs included."""
+    fine_tune: bool = False
+    """Patrons fine-tune themselves (SRD) in the first rounds."""
+    max_iterations: Annotated[int, Field(ge=1, le=1000)] = MarketConfig.max_iterations
+    """Iterations per auction at most."""
+    fine_tune_rounds: Annotated[int, Field(ge=0, le=1000)] = MarketConfig.fine_tune_rounds
+    """Fine-tuning after each of the first this-many iterations (reference: 5)."""
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    """Seed of every auction: each is keyed by (seed, rarity, trial)."""
+
+    def _auction_cost(self, setting: Setting) -> float:
+        """Estimated compute of one auction of ``setting``."""
+        per_auction = FINE_TUNED_AUCTION_COST_S if setting.fine_tune else AUCTION_COST_S
+        screening = SCREENING_COST_S if setting.screen else 0.0
+        return self.patrons * (per_auction / 64 + screening)
+
+
+@dataclass(frozen=True)
+class StudyConfig(AuctionOptions):
+    """Fish sale auctions without HTTP: purchase price and rate against item supply.
+
+    The paper's Fig. C/D grid (``srd auction-study``)."""
+
+    rarities: Rarities = PAPER_RARITIES
+    """Item supplies r; fish on sale = int(r · patrons)."""
+    trials: Annotated[int, Field(ge=1, le=1000)] = 10
+    """Independent auctions per supply (and per setting)."""
+    saboteurs: Annotated[float, Field(ge=0, le=1)] = 0.0
+    """Fraction of the patrons that are always-hold saboteurs (the last ones)."""
+    screen: bool = False
+    """Screen every patron before the auction (refused ones stay out) and re-screen fine-tuned
+    patrons after each round (refused versions are reverted)."""
+    grid: bool = False
+    """Run the paper's whole grid: fine-tune off/on × saboteurs 0 and (--saboteurs or 0.5)."""
+
+    def cost(self) -> Cost:
+        """Estimated compute: every (setting, supply, trial) auction."""
+        per_trial = sum(self._auction_cost(s) for s in study_settings(self))
+        return Cost(per_trial * len(self.rarities) * self.trials, "trials")
+
+
+@dataclass(frozen=True)
+class ComparisonConfig(AuctionOptions):
+    """The honest vs malicious comparison: the same auctions honest, compromised, screened."""
+
+    rarities: Rarities = COMPARISON_RARITIES
+    """Item supplies r; fish on sale = int(r · patrons)."""
+    trials: Annotated[int, Field(ge=1, le=1000)] = 3
+    """Independent auctions per supply and configuration."""
+    saboteurs: Annotated[float, Field(gt=0, le=1)] = GRID_SABOTEURS
+    """Fraction of saboteurs in the compromised configurations."""
+
+    def cost(self) -> Cost:
+        """Estimated compute: the three configurations' auctions."""
+        per_trial = sum(self._auction_cost(s) for s in comparison_settings(self).values())
+        return Cost(per_trial * len(self.rarities) * self.trials, "trials")
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One configuration of a study: who takes part and what the house does."""
+
+    name: str
+    fine_tune: bool
+    saboteurs: float
+    screen: bool
+
+
+def _setting_name(fine_tune: bool, saboteurs: float, screen: bool) -> str:
+    name = "honest" if saboteurs == 0 else f"saboteurs-{saboteurs:g}"
+    return name + ("+fine-tune" if fine_tune else "") + ("+screened" if screen else "")
+
+
+def study_settings(config: StudyConfig) -> list[Setting]:
+    """The settings a study config asks for (one, or the grid's four)."""
+    if not config.grid:
+        combos = [(config.fine_tune, config.saboteurs)]
+    else:
+        share = config.saboteurs or GRID_SABOTEURS
+        combos = [(ft, sab) for sab in (0.0, share) for ft in (False, True)]
+    return [
+        Setting(_setting_name(ft, sab, config.screen), ft, sab, config.screen) for ft, sab in combos
+    ]
+
+
+def settings_of(config: StudyConfig | ComparisonConfig) -> list[Setting]:
+    """The settings a study or comparison config runs, in report order."""
+    if isinstance(config, StudyConfig):
+        return study_settings(config)
+    return list(comparison_settings(config).values())
+
+
+def comparison_settings(config: ComparisonConfig) -> dict[str, Setting]:
+    """honest, compromised and compromised+screened, on the same auctions."""
+    ft = config.fine_tune
+    return {
+        "honest": Setting("honest", ft, 0.0, False),
+        "compromised": Setting("compromised", ft, config.saboteurs, False),
+        "compromised+screened": Setting("compromised+screened", ft, config.saboteurs, True),
+    }

@@ -5,9 +5,10 @@ ONE transaction, the round's row, its purchases and quits, the auction's new pri
 and the market checkpoint (RNG state included). The commit is conditional on the auction still
 standing at that round, so a second runner (or a stale one) can never add or duplicate a row.
 
-On restart, every pending or running auction is queued again; its worker restores the market
-from the last committed checkpoint and continues bit-identically. An auction that cannot be
-resumed (checkpoint unreadable, round count disagreeing) is marked failed with the reason.
+A pending or running auction nobody holds the lease of (its server restarted or died) is
+claimed again (``server.runner``); its worker restores the market from the last committed
+checkpoint and continues bit-identically. An auction that cannot be resumed (checkpoint
+unreadable, round count disagreeing) is marked failed with the reason.
 
 Remote fine-tuning (``fine_tune_mode`` "remote"): an iteration after which the patrons
 fine-tune is committed together with an open ``FineTuneRound`` row (rows, seeds, the asked

@@ -1,0 +1,473 @@
+"""``MarketBatch``: independent auctions advanced in lock-step, every patron of every auction
+in one tensor batch (the iteration itself is specified in ``sim.market``)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from agents.batch import FSNBatch, from_manifests, to_manifest
+from agents.fine_tuning import fine_tune_round
+from agents.forward import ACTIONS, decide, noise_scale, standard_normal
+from agents.manifest import INPUTS, Manifest
+from sim.market import rounds
+from sim.market.config import MarketConfig, fine_tunes_after, scores_all_rows
+from sim.market.items import BUY_FRACTION, PRICE, item_rows
+from sim.market.randomness import AuctionRandom, round_seeds
+from sim.market.records import IterationRecord
+from sim.market.rounds import FineTuneRound
+
+Rescreen = Callable[[int, Manifest], bool]
+"""Called as ``rescreen(patron_index, fine_tuned_manifest)``; False reverts that patron."""
+RescreenBatch = Callable[[FSNBatch], np.ndarray]
+"""Called once per fine-tuning round with every fine-tuned patron of the batch's auctions (a
+sub-batch, in batch order); returns one bool per patron, False reverts it."""
+
+EVALUATION_CHUNK = 32_000
+"""(patron, row, copy) evaluations per ``decide`` call: bigger tensors fall out of the cache
+(3–5× slower per evaluation at 1.8M)."""
+
+
+@contextmanager
+def single_thread() -> Iterator[None]:
+    """Run torch on one thread inside the block: the auction's tensors are small, and
+    intra-op threads only add contention (3× slower on a busy 2-core machine)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _runs(work: list[int], limit: int) -> list[tuple[int, int]]:
+    """(first, last) of consecutive runs of items whose ``work`` adds up to at most ``limit``
+    (a run holds at least one item)."""
+    runs, first, total = [], 0, 0
+    for i, w in enumerate(work):
+        if i > first and total + w > limit:
+            runs.append((first, i))
+            first, total = i, 0
+        total += w
+    runs.append((first, len(work)))
+    return runs
+
+
+class _Votes(NamedTuple):
+    """One iteration's votes."""
+
+    voters: np.ndarray
+    """The patrons who voted (batch positions, sorted)."""
+    owner: np.ndarray
+    """Their auctions."""
+    row0: np.ndarray
+    """Their row-0 decisions (indices into ``ACTIONS``)."""
+    counts: np.ndarray
+    """(A, 3): each auction's row-0 buy / hold / quit votes."""
+    row_counts: np.ndarray
+    """(A, 3): the same over every scored row."""
+    buy_fraction: np.ndarray
+    """(A, scored rows): the fraction of each auction's voters who voted buy on each row."""
+
+
+class _Moves(NamedTuple):
+    """What the price rules did in one iteration."""
+
+    price: np.ndarray
+    """Each auction's price at the start of the iteration."""
+    n_available: np.ndarray
+    """Its fish available at the start of the iteration."""
+    bought: np.ndarray
+    """The patrons who bought (batch positions, sorted)."""
+    quitted: np.ndarray
+    """The patrons who quit."""
+
+
+class MarketBatch:
+    """Independent auctions advanced in lock-step, all patrons in one tensor batch.
+
+    ``auctions`` is a sequence of (manifests, config); all configs need the same ``n_rows``.
+    Patron indices in records are positions in the auction's own manifest list.
+    """
+
+    def __init__(
+        self,
+        auctions: Sequence[tuple[Sequence[Manifest], MarketConfig]],
+        *,
+        rescreen: Sequence[Rescreen | None] | None = None,
+        rescreen_batch: RescreenBatch | None = None,
+        dtype: torch.dtype = torch.float64,
+        patrons: FSNBatch | None = None,
+    ) -> None:
+        """``patrons``, if given, is ``from_manifests`` of every auction's manifests in order,
+        built by the caller (who may stack it from parts it already holds)."""
+        if not auctions:
+            raise ValueError("no auction")
+        self.configs = [config for _, config in auctions]
+        if len({c.n_rows for c in self.configs}) != 1:
+            raise ValueError("auctions run in one batch need the same n_rows")
+        self.n_rows = self.configs[0].n_rows
+        self.rescreen = list(rescreen) if rescreen is not None else [None] * len(auctions)
+        self.rescreen_batch = rescreen_batch
+        sizes = [len(manifests) for manifests, _ in auctions]
+        if min(sizes) < 1:
+            raise ValueError("every auction needs at least one patron")
+        A = len(auctions)
+        self.owner = np.repeat(np.arange(A), sizes)
+        self.first = np.concatenate(([0], np.cumsum(sizes)))
+        self.local = np.arange(len(self.owner)) - self.first[self.owner]
+        if patrons is not None and patrons.n_patrons != sum(sizes):
+            raise ValueError("patrons must hold every auction's manifests")
+        self.batch = (
+            patrons
+            if patrons is not None
+            else from_manifests([m for manifests, _ in auctions for m in manifests], dtype)
+        )
+        self.accepted = (
+            {k: v.clone() for k, v in self.batch.parameters().items()}
+            if rescreen_batch is not None or any(cb is not None for cb in self.rescreen)
+            else None
+        )
+        self.scale = noise_scale(self.batch)
+        self.copies = self.batch.copies.numpy()
+        self.random = [AuctionRandom.from_seed(c.seed) for c in self.configs]
+        rows = np.stack(
+            [item_rows(c, r.numpy) for c, r in zip(self.configs, self.random, strict=True)]
+        )
+        self.rows = torch.tensor(rows, dtype=dtype)
+        self.price = np.array([c.base_price for c in self.configs], dtype=np.float64)
+        self.threshold = np.array([c.threshold_sell_price for c in self.configs], dtype=np.float64)
+        self.decrement = np.array([c.decrement for c in self.configs], dtype=np.float64)
+        self.n_available = np.array([c.n_fish for c in self.configs], dtype=np.int64)
+        self.iteration = np.zeros(A, dtype=np.int64)
+        self.finished = np.zeros(A, dtype=bool)
+        self.stop_reason: list[str | None] = [None] * A
+        self.active = np.ones(len(self.owner), dtype=bool)
+        self.pending = np.zeros(A, dtype=bool)
+        """Auctions whose remote fine-tuning round awaits ``apply_round``."""
+        self._voters: tuple[bytes, FSNBatch] | None = None
+
+    @property
+    def n_auctions(self) -> int:
+        return len(self.configs)
+
+    # --- one iteration ------------------------------------------------------------------------
+
+    def step(self) -> list[IterationRecord | None]:
+        """Advance every unfinished auction by one iteration (None for finished ones)."""
+        running = ~self.finished
+        if not running.any():
+            raise RuntimeError("every auction has finished")
+        if self.pending.any():
+            waiting = np.flatnonzero(self.pending).tolist()
+            raise RuntimeError(f"auctions {waiting} await their fine-tuning round (apply_round)")
+        iteration = self.iteration.copy()
+        iterations = iteration.tolist()
+        playing = np.flatnonzero(running).tolist()
+        full = np.zeros(self.n_auctions, dtype=bool)
+        full[[a for a in playing if scores_all_rows(self.configs[a], iterations[a])]] = True
+        votes = self._vote(running, full)
+        moves = self._apply_price_rules(running, votes)
+        self._update_rows(running, full, votes.buy_fraction)
+        reasons = self._stop(playing, iterations)
+        self.iteration[running] += 1
+        for a in playing:
+            if reasons[a] is not None:
+                self.finished[a] = True
+                self.stop_reason[a] = reasons[a]
+        tune = np.zeros(self.n_auctions, dtype=bool)
+        tune[
+            [
+                a
+                for a in playing
+                if reasons[a] is None and fine_tunes_after(self.configs[a], iterations[a])
+            ]
+        ] = True
+        remote = np.array([c.fine_tune_mode == "remote" for c in self.configs])
+        self.pending = tune & remote
+        kept, reverted = self._fine_tune(tune & ~remote, iteration)
+        return self._records(playing, iterations, votes, moves, reasons, kept, reverted)
+
+    def _vote(self, running: np.ndarray, full: np.ndarray) -> _Votes:
+        """1. Every active patron of the running auctions votes on the rows (all of them where
+        ``full``, else row 0); only row 0 decides."""
+        A = self.n_auctions
+        voters = np.flatnonzero(self.active & running[self.owner])
+        owner = self.owner[voters]
+        groups = self._groups(voters)
+        decisions = self._evaluate(voters, groups, full)
+        row0 = decisions[:, 0]
+        counts = np.bincount(owner * 3 + row0, minlength=3 * A).reshape(A, 3)
+        scored = full[owner][:, None] | (np.arange(decisions.shape[1]) == 0)[None, :]
+        row_counts = np.bincount(
+            ((owner[:, None] * 3) + decisions)[scored], minlength=3 * A
+        ).reshape(A, 3)
+        voting = [a for a, _, _ in groups]
+        starts = np.array([start for _, start, _ in groups])
+        sizes = np.array([stop - start for _, start, stop in groups])
+        buy_fraction = np.zeros((A, decisions.shape[1]))
+        buys = np.add.reduceat((decisions == 0).astype(np.float64), starts, axis=0)
+        buy_fraction[voting] = buys / sizes[:, None]
+        return _Votes(voters, owner, row0, counts, row_counts, buy_fraction)
+
+    def _apply_price_rules(self, running: np.ndarray, votes: _Votes) -> _Moves:
+        """2. High demand raises the price (and the stalemate threshold); low demand sells to
+        every row-0 buyer at the current price and lowers it. Buyers and quitters leave."""
+        start_price, start_available = self.price.copy(), self.n_available.copy()
+        n_buy = votes.counts[:, 0]
+        high = running & (n_buy > self.n_available)
+        low = running & ~high
+        new_price = np.where(low, start_price - self.decrement, start_price)
+        for a in np.flatnonzero(high).tolist():
+            cfg = self.configs[a]
+            new_price[a] = (
+                start_price[a] + cfg.increment - self.random[a].numpy.uniform(0, 4) * cfg.decrement
+            )
+        self.threshold = np.where(high, start_price + self.decrement, self.threshold)
+        self.price = new_price
+        bought = votes.voters[(votes.row0 == 0) & low[votes.owner]]
+        quitted = votes.voters[votes.row0 == 2]
+        self.n_available = self.n_available - np.where(low, n_buy, 0)
+        self.active[bought] = False
+        self.active[quitted] = False
+        return _Moves(start_price, start_available, bought, quitted)
+
+    def _update_rows(self, running: np.ndarray, full: np.ndarray, buy_fraction: np.ndarray) -> None:
+        """3. The rows see the new price and this round's buy fractions (row 0 only where the
+        other rows were not scored)."""
+        self.rows[:, :, PRICE] = torch.tensor(self.price, dtype=self.rows.dtype)[:, None]
+        fractions = torch.tensor(buy_fraction, dtype=self.rows.dtype)
+        wide = torch.from_numpy(np.flatnonzero(full))
+        narrow = torch.from_numpy(np.flatnonzero(running & ~full))
+        self.rows[wide, :, BUY_FRACTION] = fractions[wide]
+        self.rows[narrow, 0, BUY_FRACTION] = fractions[narrow, 0]
+
+    def _stop(self, playing: list[int], iterations: list[int]) -> list[str | None]:
+        """4. Why each auction played this iteration stops now (None: it goes on)."""
+        left = np.bincount(self.owner[self.active], minlength=self.n_auctions).tolist()
+        available, price, threshold = (
+            self.n_available.tolist(),
+            self.price.tolist(),
+            self.threshold.tolist(),
+        )
+        reasons: list[str | None] = [None] * self.n_auctions
+        for a in playing:
+            if available[a] == 0:
+                reasons[a] = "sold_out"
+            elif left[a] == 0:
+                reasons[a] = "no_patrons"
+            elif price[a] < threshold[a]:
+                reasons[a] = "stalemate"
+            elif iterations[a] + 1 >= self.configs[a].max_iterations:
+                reasons[a] = "max_iterations"
+        return reasons
+
+    def _records(
+        self,
+        playing: list[int],
+        iterations: list[int],
+        votes: _Votes,
+        moves: _Moves,
+        reasons: list[str | None],
+        kept: dict[int, list[int]],
+        reverted: dict[int, list[int]],
+    ) -> list[IterationRecord | None]:
+        """The iteration's record of each auction played (None for the others)."""
+        records: list[IterationRecord | None] = [None] * self.n_auctions
+        buyers, quitters = self._by_auction(moves.bought), self._by_auction(moves.quitted)
+        start_prices, start_availables = moves.price.tolist(), moves.n_available.tolist()
+        vote_counts, row_vote_counts = votes.counts.tolist(), votes.row_counts.tolist()
+        price, available = self.price.tolist(), self.n_available.tolist()
+        for a in playing:
+            records[a] = IterationRecord(
+                iteration=iterations[a],
+                price=start_prices[a],
+                n_available=start_availables[a],
+                votes=dict(zip(ACTIONS, vote_counts[a], strict=True)),
+                row_votes=dict(zip(ACTIONS, row_vote_counts[a], strict=True)),
+                buyers=[(i, start_prices[a]) for i in buyers[a]],
+                quitters=quitters[a],
+                next_price=price[a],
+                n_available_after=available[a],
+                finished=reasons[a] is not None,
+                stop_reason=reasons[a],
+                fine_tuned=kept.get(a, []),
+                reverted=reverted.get(a, []),
+            )
+        return records
+
+    def _by_auction(self, patrons: np.ndarray) -> list[list[int]]:
+        """The local indices of ``patrons`` (sorted), one list per auction."""
+        local = self.local[patrons].tolist()
+        cuts = np.searchsorted(self.owner[patrons], np.arange(self.n_auctions + 1)).tolist()
+        return [local[cuts[a] : cuts[a + 1]] for a in range(self.n_auctions)]
+
+    def _groups(self, patrons: np.ndarray) -> list[tuple[int, int, int]]:
+        """(auction, start, stop) of the runs of ``patrons`` (sorted) that share an auction."""
+        owner = self.owner[patrons]
+        cuts = np.flatnonzero(np.diff(owner)) + 1
+        starts = np.concatenate(([0], cuts))
+        stops = np.concatenate((cuts, [len(patrons)]))
+        return list(zip(owner[starts].tolist(), starts.tolist(), stops.tolist(), strict=True))
+
+    def _evaluate(
+        self, voters: np.ndarray, groups: list[tuple[int, int, int]], full: np.ndarray
+    ) -> np.ndarray:
+        """Decisions (n_voters, R_scored) of the voters; each auction draws its own noise.
+        Auctions are evaluated a few at a time, so that the tensors stay in the cache."""
+        width = self.n_rows if full.any() else 1
+        voting = self._voting(voters)
+        copies = self.copies[voters]
+        starts = np.array([start for _, start, _ in groups])
+        own_copies = np.maximum.reduceat(copies, starts).tolist()  # each auction's largest D
+        work = np.add.reduceat(copies, starts) * width
+        decisions = []
+        for first, last in _runs(work.tolist(), EVALUATION_CHUNK):
+            chunk = groups[first:last]
+            start, stop = chunk[0][1], chunk[-1][2]
+            n_copies = max(own_copies[first:last])
+            copies_of = own_copies[first:last]
+            normal = self._normals(chunk, copies_of, 1, lambda r: r.decisive)
+            if width > 1:
+                rest = self._normals(chunk, copies_of, width - 1, lambda r: r.rows, full)
+                normal = torch.cat((normal, rest), dim=1)
+            mine = voters[start:stop]
+            noise = normal * self.scale[torch.from_numpy(mine), None, :n_copies]  # float64
+            x = self.rows[torch.from_numpy(self.owner[mine]), :width]
+            decisions.append(decide(voting.select(slice(start, stop)), x, noise))
+        return torch.cat(decisions).numpy()
+
+    def _normals(
+        self,
+        chunk: list[tuple[int, int, int]],
+        copies: list[int],
+        n_rows: int,
+        stream: Callable[[AuctionRandom], torch.Generator],
+        drawn: np.ndarray | None = None,
+    ) -> Tensor:
+        """N(0, 1) draws (voters of ``chunk``, n_rows, D, 8): each auction draws its voters ×
+        n_rows × its own D (``copies``) from its ``stream`` generator in one go; zeros on
+        padded copies and for the auctions that ``drawn`` (bool per auction) leaves out."""
+        start, stop = chunk[0][1], chunk[-1][2]
+        n_copies = max(copies)
+        draws = [drawn is None or bool(drawn[a]) for a, _, _ in chunk]
+        whole = all(draws) and min(copies) == n_copies
+        shape = (stop - start, n_rows, n_copies, len(INPUTS))
+        normal = (torch.empty if whole else torch.zeros)(shape, dtype=torch.float32)
+        for (a, lo, hi), c, draw in zip(chunk, copies, draws, strict=True):
+            if not draw:
+                continue
+            into = normal[lo - start : hi - start]
+            generator = stream(self.random[a])
+            if c == n_copies:
+                standard_normal((hi - lo, n_rows, c), generator, out=into)
+            else:
+                into[:, :, :c] = standard_normal((hi - lo, n_rows, c), generator)
+        return normal
+
+    def _voting(self, voters: np.ndarray) -> FSNBatch:
+        """The sub-batch of the voters (kept while neither they nor the parameters change)."""
+        if len(voters) == self.batch.n_patrons:
+            return self.batch
+        key = voters.tobytes()
+        if self._voters is None or self._voters[0] != key:
+            self._voters = (key, self.batch.select(voters))
+        return self._voters[1]
+
+    # --- fine-tuning --------------------------------------------------------------------------
+
+    def set_parameters(self, index: Tensor, values: Mapping[str, Tensor]) -> None:
+        """The patrons at ``index`` (batch positions) take ``values`` (trainable tensors by
+        name, one row per patron)."""
+        self._voters = None
+        for name, value in values.items():
+            getattr(self.batch, name)[index] = value
+
+    def _fine_tune(
+        self, tune: np.ndarray, iteration: np.ndarray
+    ) -> tuple[dict[int, list[int]], dict[int, list[int]]]:
+        """Fine-tune the active patrons of the auctions in ``tune`` after their ``iteration``;
+        re-screen if asked."""
+        patrons = np.flatnonzero(self.active & tune[self.owner])
+        if len(patrons) == 0:
+            return {}, {}
+        sub = self.batch.select(patrons)
+        seeds = np.zeros((self.n_auctions, 2), dtype=np.uint64)
+        for a in np.flatnonzero(tune).tolist():
+            seeds[a] = round_seeds(self.configs[a].seed, int(iteration[a]))
+        owner = self.owner[patrons]
+        tuned = fine_tune_round(
+            sub,
+            self.rows,
+            seeds[owner, 0],
+            seeds[owner, 1],
+            self.local[patrons],
+            dataset=torch.from_numpy(owner),
+        )
+        self.set_parameters(torch.from_numpy(patrons), tuned.parameters())
+        return self._rescreen(patrons[sub.epochs.numpy() > 0])
+
+    def _rescreen(self, moved: np.ndarray) -> tuple[dict[int, list[int]], dict[int, list[int]]]:
+        """Re-screen the patrons the round ``moved``: keep the versions the re-screening
+        accepts, revert the others to their last accepted version. (kept, reverted) local
+        indices per auction."""
+        kept: dict[int, list[int]] = {}
+        reverted: dict[int, list[int]] = {}
+        judged = (
+            np.asarray(self.rescreen_batch(self.batch.select(moved)), dtype=bool).tolist()
+            if self.rescreen_batch is not None and len(moved)
+            else [None] * len(moved)
+        )
+        for i, a, local, verdict in zip(
+            moved.tolist(),
+            self.owner[moved].tolist(),
+            self.local[moved].tolist(),
+            judged,
+            strict=True,
+        ):
+            check = self.rescreen[a]
+            if verdict is not None:
+                keep = verdict
+            else:
+                keep = check is None or check(local, to_manifest(self.batch, i))
+            if keep:
+                kept.setdefault(a, []).append(local)
+                if self.accepted is not None:
+                    for name, value in self.batch.parameters().items():
+                        self.accepted[name][i] = value[i]
+            else:
+                reverted.setdefault(a, []).append(local)
+                assert self.accepted is not None
+                for name, value in self.batch.parameters().items():
+                    value[i] = self.accepted[name][i]
+        return kept, reverted
+
+    # --- remote fine-tuning rounds (``sim.market.rounds``) -----------------------------------
+
+    def pending_round(self, auction: int) -> FineTuneRound | None:
+        """The auction's fine-tuning round awaiting ``apply_round``, if any."""
+        return rounds.pending_round(self, auction)
+
+    def apply_round(self, auction: int, updates: Mapping[int, Manifest]) -> None:
+        """Close the auction's pending round: patron ``position`` takes the weights and biases
+        of ``updates[position]``, the others keep theirs (ValueError, nothing applied, for a
+        patron not asked in the round or an update that changes more than the numbers)."""
+        rounds.apply_round(self, auction, updates)
+
+    # --- state (saved and restored by ``sim.market.checkpoint``) -------------------------------
+
+    def replace_batch(self, batch: FSNBatch) -> None:
+        """The same patrons from now on with the parameters of ``batch``."""
+        self.batch = batch
+        self._voters = None
+
+    def manifests(self, auction: int) -> list[Manifest]:
+        """The auction's patrons with their current (possibly fine-tuned) parameters."""
+        return [
+            to_manifest(self.batch, i) for i in range(self.first[auction], self.first[auction + 1])
+        ]

@@ -53,9 +53,8 @@ PREFERRED = 0
 GRID_SHAPE = (len(PRICES), len(QUALITIES), len(SUBTYPES), len(DEMANDS))
 PASS_SIZE = 16
 """Patrons per forward pass over the grid. Each (neuron, row, patron) tensor of a pass takes about
-90 kB per patron: past 16 patrons they outgrow the core's cache and the time per patron climbs
-(``decision_logits`` on 64 honest patrons: 0.12 ms per patron in passes of 8 or 16, 0.17 in
-passes of 32, 0.21 in one pass). Batches of the screening process (at most 16) are one pass."""
+90 kB per patron: past 16 patrons they outgrow the core's cache and the time per patron climbs.
+Batches of the screening process (at most 16) are one pass."""
 
 
 def _grid() -> torch.Tensor:
@@ -165,11 +164,6 @@ def probe(batch: FSNBatch) -> Probed:
     return Probed(Checks(first.rules, first.neurons, failed, message), holds)
 
 
-def probe_checks(batch: FSNBatch) -> Checks:
-    """Every behavioural probe over the batch."""
-    return probe(batch).checks
-
-
 def _passes(batch: FSNBatch) -> list[tuple[npt.NDArray[np.intp], FSNBatch]]:
     """The patrons (their indices, their sub-batch) of each forward pass: at most PASS_SIZE,
     all with the same activation kinds. ``decision_logits`` computes a batch that mixes kinds
@@ -207,6 +201,35 @@ def _decisions(scores: Array) -> tuple[Array, Mask, Mask]:
     return lead, buys, ~buys & (hold >= quit_)
 
 
+Probe = tuple[str, str, Mask, Callable[[int], str]]
+"""One probe over P patrons: its rule, its neuron, which patrons fail it, and why patron p
+fails."""
+
+
+class _OnGrid(NamedTuple):
+    """P patrons' decisions on the grid."""
+
+    scores: Array
+    """(P, prices, qualities, sub-types, demands, 3): B, L, Q."""
+    lead: Array
+    """The buy margin B − max(L, Q), (P, prices, qualities, sub-types, demands)."""
+    buys: Mask
+    holds: Mask
+
+    def at(self, p: int, i: int, q: int, s: int, f: int) -> str:
+        """What patron p does at grid price i on quality q, sub-type s and buy fraction f."""
+        action = int(np.argmax(self.scores[p, i, q, s, f]))
+        return (
+            f"at price {fmt_price(PRICES[i])} on {_fish(q, s)} with buy fraction "
+            f"{DEMANDS[f]:g} it {ACTION_WORDS[action]} ({_scores(self.scores[p, i, q, s, f])})"
+        )
+
+
+def _first(mask: Mask) -> tuple[int, ...]:
+    """The index of the first True of ``mask``."""
+    return tuple(int(v) for v in np.argwhere(mask)[0])
+
+
 def _judge(every: Array) -> Probed:
     """The probes of P patrons from their scores ``every`` (P, R, 3) on ``ROWS``."""
     P = len(every)
@@ -216,57 +239,113 @@ def _judge(every: Array) -> Probed:
     else:
         finite = np.all(finite_cells.reshape(P, -1), axis=1)
         safe = np.where(finite_cells, every, 0.0)
-    # (P, prices, qualities, sub-types, demands, 3)
     scores = safe[:, : len(GRID)].reshape(P, *GRID_SHAPE, 3)
-    lead, buys, holds = _decisions(scores)
-    total = int(np.prod(GRID_SHAPE))
-    n_buy = np.count_nonzero(buys.reshape(P, -1), axis=1)
-    n_hold = np.count_nonzero(holds.reshape(P, -1), axis=1)
-    n_quit = total - n_buy - n_hold
-    base_buys = buys[:, :, BASE_QUALITY, PREFERRED]  # (P, prices, demands)
-    base_holds = holds[:, :, BASE_QUALITY, PREFERRED]
-    base_lead = lead[:, :, BASE_QUALITY, PREFERRED]
+    grid = _OnGrid(scores, *_decisions(scores))
+    scan = safe[:, len(GRID) :].reshape(P, len(SCAN_PRICES), len(SCAN_DEMANDS), 3)
+    sincere, holds = _sincere_hold(scan)
+    probes: tuple[Probe, ...] = (
+        ("probe-non-finite", "B", ~finite, _non_finite_message),
+        _buys_cheap(grid),
+        *_buys_something(grid),
+        *_far_too_expensive(grid),
+        _buy_falls_with_price(grid),
+        sincere,
+    )
+    failed = np.empty((P, len(probes)), dtype=np.bool_)
+    for k, (_, _, mask, _) in enumerate(probes):
+        failed[:, k] = mask
+    failed[:, 1:] &= finite[:, None]  # scores that overflow get one reason: probe-non-finite
+    checks = Checks(
+        tuple(probe[0] for probe in probes),
+        tuple(probe[1] for probe in probes),
+        failed,
+        lambda k, p: probes[k][3](p),
+    )
+    return Probed(checks, holds & finite)
 
-    def at(p: int, i: int, q: int, s: int, f: int) -> str:
-        action = int(np.argmax(scores[p, i, q, s, f]))
-        return (
-            f"at price {fmt_price(PRICES[i])} on {_fish(q, s)} with buy fraction "
-            f"{DEMANDS[f]:g} it {ACTION_WORDS[action]} ({_scores(scores[p, i, q, s, f])})"
-        )
 
-    def first(mask: Mask) -> tuple[int, ...]:
-        return tuple(int(v) for v in np.argwhere(mask)[0])
+def _non_finite_message(p: int) -> str:
+    return "its decision scores B, L, Q are not finite on some probed item: the numbers overflow"
 
+
+def _buys_cheap(grid: _OnGrid) -> Probe:
+    """buys-cheap: the base fish of the preferred sub-type is bought at every f when cheap."""
+    base_buys = grid.buys[:, :, BASE_QUALITY, PREFERRED]  # (P, prices, demands)
     cheap_refused = ~base_buys & CHEAP[None, :, None]
 
-    def cheap_message(p: int) -> str:
-        i, f = first(cheap_refused[p])
+    def message(p: int) -> str:
+        i, f = _first(cheap_refused[p])
         return (
-            f"{at(p, i, BASE_QUALITY, PREFERRED, f)}: it refuses a fish below any plausible price"
+            f"{grid.at(p, i, BASE_QUALITY, PREFERRED, f)}: it refuses a fish below any "
+            "plausible price"
         )
 
+    return "buys-cheap", "B", np.any(cheap_refused, axis=(1, 2)), message
+
+
+def _buys_something(grid: _OnGrid) -> tuple[Probe, Probe, Probe]:
+    """always-holds, always-quits, never-buys: some probed item is bought."""
+    P = len(grid.buys)
+    total = int(np.prod(GRID_SHAPE))
+    n_buy = np.count_nonzero(grid.buys.reshape(P, -1), axis=1)
+    n_hold = np.count_nonzero(grid.holds.reshape(P, -1), axis=1)
+    n_quit = total - n_buy - n_hold
     span = f"{fmt_price(PRICES[0])} to {fmt_price(PRICES[-1])}"
 
-    def never_message(p: int) -> str:
+    def message(p: int) -> str:
         return (
             f"on none of the {total} probed items (prices {span}, every quality, sub-type and "
             f"buy fraction) does it buy: it holds on {n_hold[p]} and quits on {n_quit[p]}"
         )
 
+    return (
+        ("always-holds", "L", n_hold == total, message),
+        ("always-quits", "Q", n_quit == total, message),
+        ("never-buys", "B", (n_buy == 0) & (n_hold < total) & (n_quit < total), message),
+    )
+
+
+def _far_too_expensive(grid: _OnGrid) -> tuple[Probe, Probe]:
+    """refuses-far-too-expensive, quits-far-too-expensive: far above any plausible price the
+    base fish is not bought firmly in ordinary demand, and not held at any demand."""
+    base_lead = grid.lead[:, :, BASE_QUALITY, PREFERRED]  # (P, prices, demands)
+    base_holds = grid.holds[:, :, BASE_QUALITY, PREFERRED]
     firm_buy = base_lead > limits.FIRM_MARGIN
     expensive_buy = firm_buy & FAR_TOO_EXPENSIVE[None, :, None] & ORDINARY[None, None, :]
     expensive_hold = base_holds & FAR_TOO_EXPENSIVE[None, :, None]
 
-    def expensive_message(mask: Mask, why: str) -> Callable[[int], str]:
-        def message(p: int) -> str:
-            i, f = first(mask[p])
-            return f"{at(p, i, BASE_QUALITY, PREFERRED, f)}: {why}"
+    def message(mask: Mask, why: str) -> Callable[[int], str]:
+        def explain(p: int) -> str:
+            i, f = _first(mask[p])
+            return f"{grid.at(p, i, BASE_QUALITY, PREFERRED, f)}: {why}"
 
-        return message
+        return explain
 
+    return (
+        (
+            "refuses-far-too-expensive",
+            "B",
+            np.any(expensive_buy, axis=(1, 2)),
+            message(expensive_buy, "it buys firmly far above any plausible price"),
+        ),
+        (
+            "quits-far-too-expensive",
+            "L",
+            np.any(expensive_hold, axis=(1, 2)),
+            message(
+                expensive_hold, "it holds far above any plausible price, waiting for it to drop"
+            ),
+        ),
+    )
+
+
+def _buy_falls_with_price(grid: _OnGrid) -> Probe:
+    """buy-falls-with-price: the clipped buy margin never swings from refusing to buying as the
+    price rises, on any probed item."""
+    P = len(grid.lead)
     # The clipped margin's rise over its lowest value at any lower price, price-major
     # (prices, P, items) so that each step of the running minimum is one contiguous operation.
-    clipped = lead.clip(-limits.FIRM_MARGIN, limits.FIRM_MARGIN).reshape(P, len(PRICES), -1)
+    clipped = grid.lead.clip(-limits.FIRM_MARGIN, limits.FIRM_MARGIN).reshape(P, len(PRICES), -1)
     margin = np.ascontiguousarray(clipped.swapaxes(0, 1))
     lowest = margin.copy()
     for i in range(1, len(PRICES)):
@@ -274,8 +353,8 @@ def _judge(every: Array) -> Probed:
     rise = margin - lowest
     worst_rise = rise.max(axis=(0, 2))
 
-    def rise_message(p: int) -> str:
-        i, q, s, f = first(rise[:, p].reshape(GRID_SHAPE) == worst_rise[p])
+    def message(p: int) -> str:
+        i, q, s, f = _first(rise[:, p].reshape(GRID_SHAPE) == worst_rise[p])
         margins = margin[:, p].reshape(GRID_SHAPE)[:, q, s, f]
         low = int(np.argmin(margins[: i + 1]))
         return (
@@ -285,7 +364,13 @@ def _judge(every: Array) -> Probed:
             f"±{limits.FIRM_MARGIN:g}): it turns from refusing to buying as the price rises"
         )
 
-    scan = safe[:, len(GRID) :].reshape(P, len(SCAN_PRICES), len(SCAN_DEMANDS), 3)
+    return "buy-falls-with-price", "B", worst_rise > limits.MONOTONE_TOLERANCE, message
+
+
+def _sincere_hold(scan: Array) -> tuple[Probe, Mask]:
+    """sincere-hold over the scores ``scan`` (P, scan prices, scan demands, 3) of the decisive
+    row, and which patrons hold somewhere on its reachable part (P,)."""
+    P = len(scan)
     _, scan_buys, scan_holds = _decisions(scan)
     reachable_holds = scan_holds & REACHABLE[None, :, None]  # (P, prices, demands)
     # A hold at price p is backed when the model buys at a price the auction can still come
@@ -298,7 +383,7 @@ def _judge(every: Array) -> Probed:
     unbacked_at: Mask = reachable_holds & ~backed  # (P, prices, demands)
     unbacked: Mask = np.any(unbacked_at, axis=1)  # (P, demands)
 
-    def sincere_message(p: int) -> str:
+    def message(p: int) -> str:
         f = int(np.flatnonzero(unbacked[p])[0])
         at = int(np.flatnonzero(unbacked_at[p, :, f])[0])
         start = end = at
@@ -306,72 +391,44 @@ def _judge(every: Array) -> Probed:
             start -= 1
         while end + 1 < len(SCAN_PRICES) and scan_holds[p, end + 1, f]:
             end += 1
-        reach = int(LOWEST_REACHABLE[at])
-        market = limits.MARKET
-        slack = limits.HOLD_REACH_SLACK * market.decrement
-        floor = SCAN_PRICES[FLOOR_INDEX]
-        if at == FLOOR_INDEX:
-            come_down = f"{fmt_price(floor)} is the stalemate floor, the lowest price it reaches"
-        elif SCAN_PRICES[at] <= market.base_price + 1e-9:
-            come_down = f"from {fmt_price(SCAN_PRICES[at])} the auction can come down to the floor"
-        else:
-            come_down = (
-                f"from {fmt_price(SCAN_PRICES[at])} the auction can come down only to "
-                f"{fmt_price(SCAN_PRICES[reach] + slack)} (once the price has risen above "
-                f"{fmt_price(market.base_price)}, a fall of more than "
-                f"{fmt_price(market.increment - market.decrement)} ends the auction)"
-            )
         lower = np.flatnonzero(scan_buys[p, :at, f])
-        buys = (
-            f"it would buy only at {fmt_price(SCAN_PRICES[lower[-1]])} or below"
-            if len(lower)
-            else "it buys at no lower price at all"
-        )
-        buys += f" (a purchase up to {fmt_price(slack)} lower still counts)"
         return (
             f"on the auction's decisive row (the base fish) with buy fraction "
             f"{SCAN_DEMANDS[f]:g} it holds from {fmt_price(SCAN_PRICES[start])} to "
             f"{fmt_price(SCAN_PRICES[end])} (at {fmt_price(SCAN_PRICES[at])}: "
-            f"{_scores(scan[p, at, f])}); {come_down}, and {buys}: its holds can never turn "
-            "into a purchase, they only pull the demand down"
+            f"{_scores(scan[p, at, f])}); {_come_down(at)}, and {_would_buy(lower)}: its holds "
+            "can never turn into a purchase, they only pull the demand down"
         )
 
-    def non_finite_message(p: int) -> str:
-        return (
-            "its decision scores B, L, Q are not finite on some probed item: the numbers overflow"
-        )
+    holds: Mask = np.any(reachable_holds, axis=(1, 2))
+    return ("sincere-hold", "L", np.any(unbacked, axis=1), message), holds
 
-    probes: tuple[tuple[str, str, Mask, Callable[[int], str]], ...] = (
-        ("probe-non-finite", "B", ~finite, non_finite_message),
-        ("buys-cheap", "B", np.any(cheap_refused, axis=(1, 2)), cheap_message),
-        ("always-holds", "L", n_hold == total, never_message),
-        ("always-quits", "Q", n_quit == total, never_message),
-        ("never-buys", "B", (n_buy == 0) & (n_hold < total) & (n_quit < total), never_message),
-        (
-            "refuses-far-too-expensive",
-            "B",
-            np.any(expensive_buy, axis=(1, 2)),
-            expensive_message(expensive_buy, "it buys firmly far above any plausible price"),
-        ),
-        (
-            "quits-far-too-expensive",
-            "L",
-            np.any(expensive_hold, axis=(1, 2)),
-            expensive_message(
-                expensive_hold, "it holds far above any plausible price, waiting for it to drop"
-            ),
-        ),
-        ("buy-falls-with-price", "B", worst_rise > limits.MONOTONE_TOLERANCE, rise_message),
-        ("sincere-hold", "L", np.any(unbacked, axis=1), sincere_message),
+
+def _come_down(at: int) -> str:
+    """How far the auction can come down from scan price ``at``."""
+    market = limits.MARKET
+    slack = limits.HOLD_REACH_SLACK * market.decrement
+    floor = SCAN_PRICES[FLOOR_INDEX]
+    if at == FLOOR_INDEX:
+        return f"{fmt_price(floor)} is the stalemate floor, the lowest price it reaches"
+    if SCAN_PRICES[at] <= market.base_price + 1e-9:
+        return f"from {fmt_price(SCAN_PRICES[at])} the auction can come down to the floor"
+    reach = int(LOWEST_REACHABLE[at])
+    return (
+        f"from {fmt_price(SCAN_PRICES[at])} the auction can come down only to "
+        f"{fmt_price(SCAN_PRICES[reach] + slack)} (once the price has risen above "
+        f"{fmt_price(market.base_price)}, a fall of more than "
+        f"{fmt_price(market.increment - market.decrement)} ends the auction)"
     )
-    failed = np.empty((P, len(probes)), dtype=np.bool_)
-    for k, (_, _, mask, _) in enumerate(probes):
-        failed[:, k] = mask
-    failed[:, 1:] &= finite[:, None]  # scores that overflow get one reason: probe-non-finite
-    checks = Checks(
-        tuple(probe[0] for probe in probes),
-        tuple(probe[1] for probe in probes),
-        failed,
-        lambda k, p: probes[k][3](p),
+
+
+def _would_buy(lower: npt.NDArray[np.intp]) -> str:
+    """Where the holder would buy, from the scan prices ``lower`` below its hold at which it
+    buys."""
+    slack = limits.HOLD_REACH_SLACK * limits.MARKET.decrement
+    buys = (
+        f"it would buy only at {fmt_price(SCAN_PRICES[lower[-1]])} or below"
+        if len(lower)
+        else "it buys at no lower price at all"
     )
-    return Probed(checks, reachable_holds.any(axis=(1, 2)) & finite)
+    return buys + f" (a purchase up to {fmt_price(slack)} lower still counts)"

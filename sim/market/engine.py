@@ -29,14 +29,14 @@ RescreenBatch = Callable[[FSNBatch], np.ndarray]
 sub-batch, in batch order); returns one bool per patron, False reverts it."""
 
 EVALUATION_CHUNK = 32_000
-"""(patron, row, copy) evaluations per ``decide`` call: bigger tensors fall out of the cache
-(3–5× slower per evaluation at 1.8M)."""
+"""(patron, row, copy) evaluations per ``decide`` call: bigger tensors fall out of the cache and
+each evaluation gets slower."""
 
 
 @contextmanager
 def single_thread() -> Iterator[None]:
     """Run torch on one thread inside the block: the auction's tensors are small, and
-    intra-op threads only add contention (3× slower on a busy 2-core machine)."""
+    intra-op threads only add contention."""
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

@@ -7,7 +7,7 @@ import pytest
 
 from agents.negotiator import honest_manifest
 from screener import screen
-from screener.probes import probe_checks
+from screener.probes import probe
 from screener.rules import Numbers, semantic_checks
 from tests.screener.conftest import message_of, rules_of
 from tests.screener.corpus import edit
@@ -40,7 +40,7 @@ def test_rule_and_probe_names_are_disjoint_and_cover_the_checks(honest):
 
     batch = from_manifests([honest])
     semantic = {rule for checks in semantic_checks(Numbers.of(batch)) for rule in checks.rules}
-    probes = set(probe_checks(batch).rules)
+    probes = set(probe(batch).checks.rules)
     assert probes == PROBE_RULES
     assert not semantic & probes
     assert len(semantic) >= 20

@@ -1,0 +1,170 @@
+"""``RemoteAgent``: one participant with one model over HTTP. It ``submit``s the model, finds
+the auctions it entered, and ``play``s one to the end: in each round it long-polls the round,
+runs its fine-tuner and uploads the result with its token."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+
+from agents.manifest import Manifest
+from agents.remote.client import HTTP_TIMEOUT_S, Client, RemoteError
+from agents.remote.fine_tuners import FineTuner, RoundInfo, faithful_fine_tune
+
+ROUND_WAIT_S = 25.0
+"""Long-poll of one round request (the server allows up to 30 s)."""
+
+
+@dataclass
+class RoundLog:
+    """What one agent did in one round (times in seconds, monotonic clock)."""
+
+    round: int
+    received_at: float
+    fine_tune_s: float
+    upload_s: float
+    outcome: str
+    """accepted | refused | late | unanswered (not asked any more) | error."""
+
+
+@dataclass
+class Uploads:
+    """An agent's uploads by the server's answer."""
+
+    accepted: int = 0
+    refused: int = 0
+    late: int = 0
+
+
+class RemoteAgent:
+    """One participant with one model (see the module docstring)."""
+
+    def __init__(
+        self,
+        client: Client,
+        manifest: Manifest,
+        *,
+        fine_tuner: FineTuner = faithful_fine_tune,
+        token: str | None = None,
+        model_id: int | None = None,
+    ) -> None:
+        self.client = client
+        self.current = manifest
+        """The version the server lets this patron bid with (updated on every acceptance)."""
+        self.fine_tuner = fine_tuner
+        self.token = token
+        self.model_id = model_id
+        self.accepted_at_submit: bool | None = None
+        self.uploads = Uploads()
+        self.log: list[RoundLog] = []
+        self.reasons: list[dict[str, str]] = []
+        """The screener's reasons of every refused upload."""
+
+    async def submit(self) -> dict[str, Any]:
+        """``POST /submit`` the manifest (with the token for a later version); keeps the model
+        id and the token. Not resent if it may have arrived (a resend would be a second
+        version)."""
+        answer: dict[str, Any] = await self.client.json(
+            "POST",
+            "/submit",
+            body=self.current.model_dump_json().encode(),
+            token=self.token,
+            resend=False,
+        )
+        self.model_id = int(answer["model_id"])
+        self.token = answer.get("token") or self.token
+        self.accepted_at_submit = bool(answer["accepted"])
+        return answer
+
+    async def auctions(self) -> list[int]:
+        """The auctions this agent's model entered, newest first."""
+        model = await self.client.json("GET", f"/models/{self.submitted_id}")
+        return [int(a) for a in model.get("auctions", [])]
+
+    @property
+    def submitted_id(self) -> int:
+        """The model id (RemoteError before ``submit``)."""
+        if self.model_id is None:
+            raise RemoteError("the agent has no model id: submit first")
+        return self.model_id
+
+    async def play(
+        self, auction_id: int, on_round: Callable[[RoundLog], None] | None = None
+    ) -> None:
+        """Answer every round of the auction this agent is asked in, until it ends (or the
+        patron leaves it by buying or quitting)."""
+        auction = await self.client.json("GET", f"/auctions/{auction_id}")
+        if self.submitted_id not in auction["model_ids"]:
+            raise RemoteError(f"model {self.submitted_id} is not a patron of auction {auction_id}")
+        position = auction["model_ids"].index(self.submitted_id)
+        after = 0
+        while True:
+            response = await self.client.request(
+                "GET",
+                f"/auctions/{auction_id}/rounds/current?wait={ROUND_WAIT_S}&after={after}",
+                timeout_s=HTTP_TIMEOUT_S + ROUND_WAIT_S,
+            )
+            if not response.is_success:
+                raise RemoteError(f"round of auction {auction_id}: {response.text[:500]}")
+            state = response.json()
+            received = time.monotonic()
+            if state["auction_status"] not in ("pending", "running"):
+                return
+            if state["status"] != "open" or state["round"] <= after:
+                continue
+            after = state["round"]
+            if self.submitted_id not in state["asked"]:
+                return  # bought or quit: never asked again
+            entry = await self._answer(auction_id, state, position, received)
+            if on_round is not None:
+                on_round(entry)
+
+    async def _answer(
+        self, auction_id: int, state: dict[str, Any], position: int, received: float
+    ) -> RoundLog:
+        info = RoundInfo(
+            auction_id=auction_id,
+            round=int(state["round"]),
+            iteration=int(state["iteration"]),
+            rows=np.array(state["rows"], dtype=np.float64),
+            fine_tune_seed=int(state["fine_tune_seed"]),
+            augmentation_seed=int(state["augmentation_seed"]),
+            deadline=datetime.fromisoformat(state["deadline"]),
+            seconds_left=float(state["seconds_left"]),
+            position=position,
+        )
+        tuned = self.fine_tuner(self.current, info)
+        tuned_at = time.monotonic()
+        response = await self.client.request(
+            "PUT",
+            f"/auctions/{auction_id}/rounds/{info.round}/models/{self.submitted_id}",
+            body=tuned.model_dump_json().encode(),
+            token=self.token,
+        )
+        outcome = "error"
+        if response.status_code == 200:
+            answer = response.json()
+            outcome = answer["outcome"]
+            if answer["accepted"]:
+                self.current = tuned
+                self.uploads.accepted += 1
+            else:
+                self.uploads.refused += 1
+                self.reasons.extend(answer["reasons"])
+        elif response.status_code == 410:
+            outcome = "late"
+            self.uploads.late += 1
+        else:
+            raise RemoteError(
+                f"upload of round {info.round}: {response.status_code} {response.text[:500]}"
+            )
+        entry = RoundLog(
+            info.round, received, tuned_at - received, time.monotonic() - tuned_at, outcome
+        )
+        self.log.append(entry)
+        return entry

@@ -1,0 +1,299 @@
+"""A population of remote agents (``srd agents``), driven from one asyncio loop: honest agents
+from the paper's randomisation, saboteurs that submit an honest-looking model and then upload
+``always_hold``; they join (or wait for, or create) an auction, answer every round, and report
+what they did (``PopulationReport``)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import random
+import re
+import secrets
+import time
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import httpx
+import numpy as np
+
+from agents.negotiator import honest_manifest
+from agents.remote.agent import RemoteAgent, RoundLog, Uploads
+from agents.remote.client import GIVE_UP_S, ONE_CONNECTION, Client, RemoteError, Traffic
+from agents.remote.fine_tuners import always_hold, faithful_fine_tune
+
+MAX_AGENTS = 256
+"""Honest plus saboteur agents of one population, at most."""
+AUCTION_WAIT_S = 600.0
+"""How long agents wait for an auction that contains their models."""
+AUCTION_POLL_S = 0.5
+"""How often they look for it."""
+SUBMIT_CONCURRENCY = 16
+"""Submissions in flight at once."""
+NAME_PREFIX = r"[A-Za-z0-9_.\-]{1,48}"
+"""Participant names are <prefix>-honest-000 and the like (64 characters at most in all)."""
+
+
+@dataclass(frozen=True)
+class PopulationConfig:
+    """A population of remote agents and what they join."""
+
+    server: str
+    """Base URL of the auction house."""
+    honest: int = 6
+    """Honest agents (the paper's randomisation), faithful fine-tuners."""
+    saboteurs: int = 0
+    """Bait-and-switch agents: an honest-looking model, then always-hold uploads."""
+    seed: int = 0
+    """Seeds the population's models (same seed, same models)."""
+    auction: int | None = None
+    """Join this auction; None: wait for one containing the population's models (or create
+    it with ``admin_token``)."""
+    admin_token: str | None = None
+    """Operator token: create a remote auction of the population's models."""
+    rarity: float = 0.5
+    """Supply of the created auction (fish = int(rarity × patrons))."""
+    fine_tune_rounds: int = 4
+    """Rounds of the created auction."""
+    round_deadline_s: float = 10.0
+    """Round deadline of the created auction."""
+    auction_seed: int = 0
+    """Seed of the created auction."""
+    name_prefix: str | None = None
+    """Participant names start with this (default: a fresh random tag)."""
+    give_up_s: float = GIVE_UP_S
+    """A request that keeps failing is given up after this long."""
+    auction_wait_s: float = AUCTION_WAIT_S
+    """How long to wait for an auction containing the population's models."""
+
+    def __post_init__(self) -> None:
+        problems = []
+        if self.honest < 0 or self.saboteurs < 0:
+            problems.append("honest and saboteurs must be ≥ 0")
+        if not 1 <= self.honest + self.saboteurs <= MAX_AGENTS:
+            problems.append(f"honest + saboteurs must be between 1 and {MAX_AGENTS}")
+        if self.seed < 0:
+            problems.append("seed must be ≥ 0")
+        if self.name_prefix is not None and not re.fullmatch(NAME_PREFIX, self.name_prefix):
+            problems.append(f"name_prefix must match {NAME_PREFIX} (a participant name's start)")
+        if problems:
+            raise ValueError("; ".join(problems))
+
+
+@dataclass
+class PopulationReport:
+    """What a population did: the ``srd agents --json`` object."""
+
+    server: str
+    agents: int
+    honest: int
+    saboteurs: int
+    model_ids: list[int]
+    auctions: list[int]
+    uploads: dict[str, int]
+    bytes_up: int
+    bytes_down: int
+    requests: int
+    retries: int
+    rounds: int
+    admitted: int
+    """Models the screener accepted at submission."""
+    refusal_rules: list[str]
+    """The screener rules behind refused uploads (once each)."""
+    auction: dict[str, Any] = field(default_factory=dict)
+    """The final state of the auction: status, iterations, buyers, revenue, stop reason."""
+    elapsed_s: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def population(config: PopulationConfig, clients: Sequence[Client]) -> list[RemoteAgent]:
+    """The population's agents, one client each: honest ones first, then the saboteurs
+    (honest-looking)."""
+    rng = np.random.default_rng(config.seed)
+    prefix = config.name_prefix or f"agents-{config.seed}-{secrets.token_hex(3)}"
+    agents = []
+    for i in range(config.honest + config.saboteurs):
+        saboteur = i >= config.honest
+        name = f"{prefix}-{'saboteur' if saboteur else 'honest'}-{i:03d}"
+        agents.append(
+            RemoteAgent(
+                clients[i],
+                honest_manifest(rng, name),
+                fine_tuner=always_hold if saboteur else faithful_fine_tune,
+            )
+        )
+    return agents
+
+
+async def _gather_bounded(jobs: list[Awaitable[Any]], limit: int) -> list[Any]:
+    gate = asyncio.Semaphore(limit)
+
+    async def run(job: Awaitable[Any]) -> Any:
+        async with gate:
+            return await job
+
+    return list(await asyncio.gather(*(run(job) for job in jobs)))
+
+
+async def _find_auction(agents: list[RemoteAgent], wait_s: float) -> int:
+    """The newest auction that one of the agents' models entered (waiting for it)."""
+    give_up = time.monotonic() + wait_s
+    while True:
+        found = await agents[0].auctions()
+        if found:
+            return found[0]
+        if time.monotonic() > give_up:
+            raise RemoteError(f"no auction contains model {agents[0].model_id} after {wait_s} s")
+        await asyncio.sleep(AUCTION_POLL_S)
+
+
+async def _create_auction(config: PopulationConfig, client: Client, model_ids: list[int]) -> int:
+    assert config.admin_token is not None
+    body = {
+        "rarity": config.rarity,
+        "model_ids": model_ids,
+        "fine_tune_mode": "remote",
+        "fine_tune_rounds": config.fine_tune_rounds,
+        "round_deadline_s": config.round_deadline_s,
+        "seed": config.auction_seed,
+    }
+    answer = await client.json(
+        "POST", "/auctions", body=json.dumps(body).encode(), token=config.admin_token
+    )
+    return int(answer["auction_id"])
+
+
+Progress = Callable[[str, int, int], None]
+"""``progress(stage, done, total)``: submitted agents, answered rounds."""
+
+
+async def run_population(
+    config: PopulationConfig, progress: Progress | None = None
+) -> PopulationReport:
+    """Register the population, join (or wait for, or create) its auction, answer every round,
+    follow the auction to its end, and report."""
+    started = time.monotonic()
+    traffic = Traffic()
+    async with contextlib.AsyncExitStack() as stack:
+        clients = await _clients(config, traffic, stack)
+        agents = population(config, clients)
+        await _submit(agents, progress)
+        auction_id = await _auction(config, clients[0], agents)
+        await _play(config, agents, auction_id, progress)
+        final = await _final(clients[0], auction_id)
+    return _report(config, agents, traffic, auction_id, final, started)
+
+
+async def _clients(
+    config: PopulationConfig, traffic: Traffic, stack: contextlib.AsyncExitStack
+) -> list[Client]:
+    """One client per agent (one connection each), sharing ``traffic``, closed with ``stack``."""
+    rng = random.Random(config.seed)
+    return [
+        Client(
+            await stack.enter_async_context(
+                httpx.AsyncClient(base_url=config.server, limits=ONE_CONNECTION)
+            ),
+            give_up_s=config.give_up_s,
+            rng=random.Random(rng.random()),
+            traffic=traffic,
+        )
+        for _ in range(config.honest + config.saboteurs)
+    ]
+
+
+async def _submit(agents: list[RemoteAgent], progress: Progress | None) -> None:
+    """Submit every agent's model, ``SUBMIT_CONCURRENCY`` at a time."""
+    done = 0
+
+    async def submit(agent: RemoteAgent) -> None:
+        nonlocal done
+        await agent.submit()
+        done += 1
+        if progress is not None:
+            progress("submitted", done, len(agents))
+
+    await _gather_bounded([submit(a) for a in agents], SUBMIT_CONCURRENCY)
+
+
+async def _auction(config: PopulationConfig, client: Client, agents: list[RemoteAgent]) -> int:
+    """The auction the population plays: the configured one, a new one (with the admin
+    token), or the newest one its models entered."""
+    if config.auction is not None:
+        return config.auction
+    if config.admin_token is not None:
+        return await _create_auction(config, client, [a.submitted_id for a in agents])
+    return await _find_auction(agents, config.auction_wait_s)
+
+
+async def _play(
+    config: PopulationConfig,
+    agents: list[RemoteAgent],
+    auction_id: int,
+    progress: Progress | None,
+) -> None:
+    """Every agent plays the auction to its end."""
+    answered = 0
+
+    def on_round(_entry: RoundLog) -> None:
+        nonlocal answered
+        answered += 1
+        if progress is not None:
+            progress("answered", answered, len(agents) * max(config.fine_tune_rounds, 1))
+
+    await asyncio.gather(*(agent.play(auction_id, on_round) for agent in agents))
+
+
+async def _final(client: Client, auction_id: int) -> dict[str, Any]:
+    """The auction once it has ended."""
+    final: dict[str, Any] = await client.json("GET", f"/auctions/{auction_id}")
+    while final["status"] in ("pending", "running"):
+        await asyncio.sleep(AUCTION_POLL_S)
+        final = await client.json("GET", f"/auctions/{auction_id}")
+    return final
+
+
+def _report(
+    config: PopulationConfig,
+    agents: list[RemoteAgent],
+    traffic: Traffic,
+    auction_id: int,
+    final: dict[str, Any],
+    started: float,
+) -> PopulationReport:
+    """What the population did in the auction ``final``, since ``started`` (monotonic)."""
+    uploads = Uploads(
+        accepted=sum(a.uploads.accepted for a in agents),
+        refused=sum(a.uploads.refused for a in agents),
+        late=sum(a.uploads.late for a in agents),
+    )
+    return PopulationReport(
+        server=config.server,
+        agents=len(agents),
+        honest=config.honest,
+        saboteurs=config.saboteurs,
+        model_ids=[a.submitted_id for a in agents],
+        auctions=[auction_id],
+        uploads=dict(uploads.__dict__),
+        bytes_up=traffic.bytes_up,
+        bytes_down=traffic.bytes_down,
+        requests=traffic.requests,
+        retries=traffic.retries,
+        rounds=len(final.get("fine_tuning", [])),
+        admitted=sum(bool(a.accepted_at_submit) for a in agents),
+        refusal_rules=sorted({r["rule"] for a in agents for r in a.reasons}),
+        auction={
+            "id": auction_id,
+            "status": final["status"],
+            "iterations": final["iteration"],
+            "buyers": len(final["buyers"]),
+            "revenue": final["revenue"],
+            "stop_reason": final["stop_reason"],
+            "error": final["error"],
+        },
+        elapsed_s=round(time.monotonic() - started, 3),
+    )

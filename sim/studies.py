@@ -17,7 +17,6 @@ paper's words) and ``buyer_fraction`` = buyers / patrons (what the reference plo
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +27,7 @@ import numpy as np
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
 from sim import units
-from sim.experiment import ProgressFn, Stopwatch, config_dict, no_progress, write_json
+from sim.experiment import ProgressFn, Stopwatch, config_dict, no_progress, write_csv, write_json
 from sim.market import MarketBatch, MarketConfig, RescreenBatch, fish_on_sale, single_thread
 from sim.study_config import (
     ComparisonConfig,
@@ -340,14 +339,7 @@ def auction_results(
 
 def write_results_csv(path: Path, auctions: Sequence[AuctionResult]) -> None:
     """results.csv: one line per auction."""
-    _write_csv(path, [a.row for a in auctions])
-
-
-def _write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> None:
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows({k: "" if v is None else v for k, v in row.items()} for row in rows)
+    write_csv(path, [a.row for a in auctions])
 
 
 def assemble_study(
@@ -408,7 +400,7 @@ def assemble_comparison(
     table = {name: [r for r in rows if r["setting"] == name] for name in settings}
     out_dir.mkdir(parents=True, exist_ok=True)
     write_results_csv(out_dir / "results.csv", auctions)
-    _write_csv(out_dir / "comparison.csv", rows)
+    write_csv(out_dir / "comparison.csv", rows)
     plot_comparison(table, out_dir / "comparison.png")
     result = {
         "configurations": {

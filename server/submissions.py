@@ -1,16 +1,13 @@
-"""The write path of ``POST /submit``: one writer thread that stores screened manifests in
-group commits.
+"""The write path of ``POST /submit``: screened manifests stored in group commits.
 
 A submission needs a participant lookup, its latest version, up to two inserts and a commit.
 Run from the thread pool, every request would pay a thread hop, those round trips, a commit
 and, on SQLite, a turn at the single write lock. Here the route hands its screened manifest to
-``SubmissionWriter.store`` and awaits the answer on its event loop; one thread takes every
-submission that has queued up since its last pass (at most ``MAX_GROUP``), decides them in
-order and writes them in ONE transaction: one locking query for the group's participants, one
-for their latest versions, one multi-row insert of new participants and one of model versions,
-then a single commit, and answers them all. Under no load a group is one submission, so
-nothing waits for a group to fill; under load the statements, commits, lock turns and wake-ups
-are shared by the group.
+``SubmissionWriter.store`` and awaits the answer on its event loop; a
+``server.grouping.GroupWriter`` thread takes every submission queued since its last pass and
+``_store_group`` decides them in order and writes them in ONE transaction: one locking query
+for the group's participants, one for their latest versions, one multi-row insert of new
+participants and one of model versions, then a single commit, and answers them all.
 
 Quotas (``server.quotas``) are decided in the same transaction, counting the group's earlier
 submissions. ``precheck`` asks the same questions (token, quotas) before the route spends
@@ -27,30 +24,23 @@ nothing of them is stored.
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 import logging
 import math
-import queue
-import threading
 import time
-from collections import defaultdict
 from dataclasses import dataclass
 from typing import Any
 
-from sqlalchemy.exc import IntegrityError, OperationalError
 from sqlalchemy.orm import Session
 
 from screener import Verdict
 from server import crud, quotas
 from server.db import Database
+from server.grouping import GroupWriter, unavailable_message
 from server.models import utcnow
 from server.security import hash_token, new_token, token_matches
 
 log = logging.getLogger("srd.submissions")
 
-MAX_GROUP = 64  # submissions per transaction, at most
-STOP_GRACE_S = 10.0
 PRUNE_EVERY_S = 600.0  # how often old quota events are deleted
 
 
@@ -90,12 +80,6 @@ class _Submission:
     verdict: Verdict | None
     bearer: str | None
     address: str | None
-    loop: asyncio.AbstractEventLoop
-    future: asyncio.Future[Outcome | None]
-
-
-class _ConflictError(Exception):
-    """A statement of the group hit a unique constraint."""
 
 
 @dataclass
@@ -129,6 +113,21 @@ def _token_refusal(item: _Submission, participant: _Known | None) -> Refused | N
     return None
 
 
+def _refusal(
+    item: _Submission, participant: _Known | None, throttle: quotas.Throttle
+) -> Refused | None:
+    """Why the submission is refused now (its token, then the quotas), if it is."""
+    refusal = _token_refusal(item, participant)
+    if refusal is not None:
+        return refusal
+    throttled = throttle.check(
+        participant=item.participant, address=item.address, new=participant is None
+    )
+    if throttled is None:
+        return None
+    return Refused(429, throttled.msg, ("body", "participant"), "quota", throttled.retry_after_s)
+
+
 def _store_group(
     session: Session, group: list[_Submission], limits: quotas.Limits
 ) -> list[Outcome | None]:
@@ -155,14 +154,7 @@ def _store_group(
     outcomes: list[Outcome | None] = []
     for index, item in enumerate(group):
         participant = known.get(item.participant)
-        refusal = _token_refusal(item, participant)
-        if refusal is None:
-            new = participant is None
-            throttled = throttle.check(participant=item.participant, address=item.address, new=new)
-            if throttled is not None:
-                refusal = Refused(
-                    429, throttled.msg, ("body", "participant"), "quota", throttled.retry_after_s
-                )
+        refusal = _refusal(item, participant, throttle)
         if refusal is not None or item.verdict is None:
             outcomes.append(refusal)
             continue
@@ -216,25 +208,24 @@ def _conflict(item: _Submission) -> Refused:
 
 
 def _unavailable(exc: Exception) -> Refused:
-    first_line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-    return Refused(503, f"the database is unavailable: {first_line}", ("body",), "db_unavailable")
+    return Refused(503, unavailable_message(exc), ("body",), "db_unavailable")
 
 
-class SubmissionWriter:
+class SubmissionWriter(GroupWriter[_Submission, Outcome | None]):
     """``await store(...)`` from any event loop; the writes happen on one thread, grouped."""
 
     def __init__(self, database: Database, limits: quotas.Limits) -> None:
-        self._database = database
         self._limits = limits
         self._pruned_at = -math.inf
-        self._queue: queue.SimpleQueue[_Submission | None] = queue.SimpleQueue()
-        self._thread = threading.Thread(target=self._run, name="submission-writer", daemon=True)
-        self._closed = False
-        self.groups = 0
-        """Transactions committed so far (diagnostics and tests)."""
-
-    def start(self) -> None:
-        self._thread.start()
+        super().__init__(
+            "submission-writer",
+            database,
+            self._decide_group,
+            conflict=_conflict,
+            unavailable=_unavailable,
+            stopping=Refused(503, "the server is stopping", ("body",), "stopping"),
+            after_pass=self._prune,
+        )
 
     async def store(
         self,
@@ -246,7 +237,8 @@ class SubmissionWriter:
         address: str | None,
     ) -> Outcome:
         """Store one screened manifest as the participant's next version (or refuse it)."""
-        outcome = await self._ask(participant, manifest, verdict, bearer, address)
+        item = _Submission(participant, manifest, verdict, bearer, address)
+        outcome = await self.write(item)
         assert outcome is not None
         return outcome
 
@@ -255,60 +247,12 @@ class SubmissionWriter:
     ) -> Refused | None:
         """The refusal (token, quota) a submission of ``participant`` would get now, if any:
         asked before screening, so refused requests cost no screening."""
-        outcome = await self._ask(participant, None, None, bearer, address)
+        outcome = await self.write(_Submission(participant, None, None, bearer, address))
         assert not isinstance(outcome, Stored)
         return outcome
 
-    async def _ask(
-        self,
-        participant: str,
-        manifest: dict[str, Any] | None,
-        verdict: Verdict | None,
-        bearer: str | None,
-        address: str | None,
-    ) -> Outcome | None:
-        if self._closed:
-            return Refused(503, "the server is stopping", ("body",), "stopping")
-        loop = asyncio.get_running_loop()
-        future: asyncio.Future[Outcome | None] = loop.create_future()
-        item = _Submission(participant, manifest, verdict, bearer, address, loop, future)
-        self._queue.put(item)
-        # Shielded: a client that goes away does not un-write a submission already queued.
-        return await asyncio.shield(future)
-
-    def shutdown(self) -> None:
-        """Write what is queued, then stop the thread."""
-        self._closed = True
-        self._queue.put(None)
-        if self._thread.is_alive():
-            self._thread.join(STOP_GRACE_S)
-
-    def _run(self) -> None:
-        stopping = False
-        while not stopping:
-            first = self._queue.get()
-            group: list[_Submission] = []
-            if first is None:
-                stopping = True
-            else:
-                group.append(first)
-            while len(group) < MAX_GROUP and not stopping:
-                try:
-                    item = self._queue.get_nowait()
-                except queue.Empty:
-                    break
-                if item is None:
-                    stopping = True
-                else:
-                    group.append(item)
-            if group:
-                try:
-                    outcomes = self._write(group)
-                except Exception as exc:  # never let the writer thread die
-                    log.exception("a submission group failed")
-                    outcomes = [_unavailable(exc)] * len(group)
-                self._answer(group, outcomes)
-                self._prune()
+    def _decide_group(self, session: Session, group: list[_Submission]) -> list[Outcome | None]:
+        return _store_group(session, group, self._limits)
 
     def _prune(self) -> None:
         """Now and then, forget the quota events no limit counts any more."""
@@ -321,41 +265,3 @@ class SubmissionWriter:
                 session.commit()
         except Exception:
             log.exception("pruning the quota events failed")
-
-    def _write(self, group: list[_Submission]) -> list[Outcome | None]:
-        try:
-            return self._transaction(group)
-        except _ConflictError:
-            if len(group) == 1:
-                return [_conflict(group[0])]
-        return [outcome for item in group for outcome in self._write([item])]
-
-    def _transaction(self, group: list[_Submission]) -> list[Outcome | None]:
-        try:
-            with self._database.session(write=True) as session:
-                outcomes = _store_group(session, group, self._limits)
-                session.commit()
-        except IntegrityError as exc:
-            raise _ConflictError from exc
-        except OperationalError as exc:
-            log.error("submission group of %d not stored: %s", len(group), exc)
-            return [_unavailable(exc)] * len(group)
-        self.groups += 1
-        return outcomes
-
-    @staticmethod
-    def _answer(group: list[_Submission], outcomes: list[Outcome | None]) -> None:
-        by_loop: dict[asyncio.AbstractEventLoop, list[tuple[_Submission, Outcome | None]]] = (
-            defaultdict(list)
-        )
-        for item, outcome in zip(group, outcomes, strict=True):
-            by_loop[item.loop].append((item, outcome))
-        for loop, answers in by_loop.items():
-            with contextlib.suppress(RuntimeError):  # that loop has closed: nobody waits
-                loop.call_soon_threadsafe(_settle, answers)
-
-
-def _settle(answers: list[tuple[_Submission, Outcome | None]]) -> None:
-    for item, outcome in answers:
-        if not item.future.done():
-            item.future.set_result(outcome)

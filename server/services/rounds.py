@@ -19,6 +19,7 @@ from sqlalchemy.exc import OperationalError
 from agents.manifest import Manifest, ManifestError, parse_manifest_json
 from server import crud
 from server.errors import RequestError, api_error, error_item, validation_error
+from server.grouping import StoppingError
 from server.models import utcnow
 from server.remote_rounds import (
     Answered,
@@ -100,6 +101,8 @@ async def _target(
         target = await lookup.get((auction_id, model_id, round_number))
     except OperationalError as exc:
         raise api_error(503, f"the database is unavailable: {exc}", kind="db_unavailable") from exc
+    except StoppingError as exc:
+        raise api_error(503, "the server is stopping", loc=("body",), kind="stopping") from exc
     except crud.UploadLookupError as exc:
         if exc.field == "auction_id":
             raise not_found(auction_id) from exc
@@ -199,19 +202,19 @@ async def upload(
     if target.round_status != RoundStatus.OPEN or (
         target.deadline is not None and target.deadline <= utcnow()
     ):
-        return _answered(await writer.store(late))
+        return _answered(await writer.write(late))
     data = manifest.model_dump(mode="json")
     problems = _body_problems(data, target)
     if problems:
         raise validation_error(problems)
     if data == target.current_manifest:
-        return _answered(await writer.store(dataclasses.replace(late, kind="unchanged")))
+        return _answered(await writer.write(dataclasses.replace(late, kind="unchanged")))
     try:
         verdict = await screening.verdict(manifest, at_the_door=False)
     except ScreenerUnavailableError as exc:
         raise api_error(503, str(exc), loc=("body",), kind="screener_unavailable") from exc
     return _answered(
-        await writer.store(
+        await writer.write(
             dataclasses.replace(late, kind="version", manifest=data, verdict=verdict)
         )
     )

@@ -17,7 +17,7 @@ from fastapi.testclient import TestClient
 from agents.manifest import parse_manifest
 from agents.remote import RoundInfo, always_hold, faithful_fine_tune
 from screener import screen
-from server import remote_rounds
+from server.remote_rounds import watcher
 from server.routes.rounds import UPLOAD_MAX_BYTES
 from tests.server.conftest import ADMIN, honest, unique, wait_for
 
@@ -161,7 +161,7 @@ def test_a_long_poll_waits_for_a_newer_round_at_most_its_wait(
 def test_waiters_are_bounded(
     client: TestClient, remote: dict[str, Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(remote_rounds, "MAX_WAITERS", 1)
+    monkeypatch.setattr(watcher, "MAX_WAITERS", 1)
     answers: list[int] = []
     url = f"/auctions/{remote['id']}/rounds/current"
     first = threading.Thread(

@@ -1,0 +1,32 @@
+"""The API's side of remote fine-tuning rounds, one module per job: ``watcher`` (the long
+polls of ``GET /auctions/{id}/rounds/current``), ``lookup`` (what an upload is checked
+against) and ``writer`` (uploads stored in group commits, and the published-bytes counters).
+The worker opens and closes the rounds itself (``server.auctions``)."""
+
+from server.remote_rounds.lookup import UploadLookup
+from server.remote_rounds.watcher import (
+    MAX_WAIT_S,
+    RoundWatcher,
+    TooManyWaitersError,
+)
+from server.remote_rounds.writer import (
+    Answered,
+    UploadOutcome,
+    UploadRefused,
+    UploadRequest,
+    UploadWriter,
+    answer_bytes,
+)
+
+__all__ = [
+    "MAX_WAIT_S",
+    "Answered",
+    "RoundWatcher",
+    "TooManyWaitersError",
+    "UploadLookup",
+    "UploadOutcome",
+    "UploadRefused",
+    "UploadRequest",
+    "UploadWriter",
+    "answer_bytes",
+]

@@ -37,7 +37,7 @@ from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
 from sim.market import IterationRecord, Market, MarketBatch, MarketConfig
 from sim.studies import StudyConfig, run_study
-from tests.sim.test_market import loop_auction
+from tests.support.loops import loop_auction
 
 torch.set_num_threads(1)
 PATRONS = 64

@@ -2,7 +2,7 @@
 legitimate fine-tuning moves honest weights (the margin the tolerances must leave).
 
 Prints:
-* the confusion table per construction of the labelled corpus (``tests/screener/corpus.py``:
+* the confusion table per construction of the labelled corpus (``tests/support/corpus.py``:
   honest kinds, hand-written sincere variants, saboteur constructions, the red team's finds;
   honest kinds: accepted should be all; saboteur kinds: rejected should be all) with the rules
   that fired most for each kind;
@@ -44,7 +44,7 @@ from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
 from screener import rescreen, screen, screen_many
 from screener.checks import cheap_checks, failed_any
-from tests.screener.corpus import (
+from tests.support.corpus import (
     FALLING_PRICES,
     FINE_TUNE_ROUNDS,
     MAX_HONEST_FINE_TUNING,

@@ -2,10 +2,10 @@
 
 Harm is the drop of the mean purchase price when 32 copies of a model join 32 honest patrons,
 against the same auctions without them, at supplies 0.1 to 0.4, with fine-tuning off and on
-(``tests/screener/harm.py``), as a fraction of the always-hold saboteur's drop. The search
+(``tests/support/harm.py``), as a fraction of the always-hold saboteur's drop. The search
 maximises max(fraction off, fraction on) over models ``screener.screen`` accepts:
 
-* hand-built families (``tests/screener/corpus.py``: ``DISGUISED``): a random start among
+* hand-built families (``tests/support/corpus.py``: ``DISGUISED``): a random start among
   ``--draws`` accepted draws of the family's numbers, then a (1+λ) evolution strategy over them;
 * a (1+λ) evolution strategy over every numeric field of the manifest (weights, biases,
   activation parameters, augmentation, fine-tuning), started from the honest example and from
@@ -40,8 +40,8 @@ from agents.batch import from_manifests
 from agents.manifest import Manifest
 from screener import screen_many
 from screener.probes import probe
-from tests.screener.corpus import DISGUISED, Family
-from tests.screener.harm import SUPPLIES, Harm, harms, saboteur, saboteur_harm
+from tests.support.corpus import DISGUISED, Family
+from tests.support.harm import SUPPLIES, Harm, harms, saboteur, saboteur_harm
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 BOUNDS: dict[str, tuple[float, float]] = {

@@ -13,7 +13,7 @@ from agents.fine_tuning import draw_fine_tune, fine_tune
 from agents.forward import NEURONS, activations, decide, decision_logits, make_noise, self_reward
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
-from agents.neurons import self_reward_loss
+from tests.support.loops import loop_fine_tune
 
 # The reference's values: D = 1, no noise, hold_bias = quit_bias = 0.
 REFERENCE_TABLE = [
@@ -241,27 +241,6 @@ def test_saboteur_holds_on_every_input():
     assert torch.all(decide(batch, x, noise) == 1)
     assert all(m.fine_tuning.epochs == 0 for m in sabs)
     assert all(m.decision.B.weights.PG == 0.0 for m in sabs)
-
-
-def loop_fine_tune(manifest: Manifest, x, order, noise) -> Manifest:
-    """Plain per-patron SRD: its own epochs and shuffles, batches of its size, SGD."""
-    batch = from_manifests([manifest])
-    params = {k: v.clone() for k, v in batch.parameters().items()}
-    cfg = manifest.fine_tuning
-    pfc = {"judgement_weight", "judgement_bias", "verdict_weight", "verdict_bias"}
-    for epoch in range(cfg.epochs):
-        perm = order[epoch]
-        for start in range(0, x.shape[0], cfg.batch_size):
-            rows = perm[start : start + cfg.batch_size]
-            live = {k: v.requires_grad_(True) for k, v in params.items()}
-            z = self_reward(batch.with_parameters(live), x[rows], noise[None, epoch, rows])
-            grads = torch.autograd.grad(self_reward_loss(z), list(live.values()))
-            with torch.no_grad():
-                params = {}
-                for (k, v), g in zip(live.items(), grads, strict=True):
-                    frozen = k in pfc and not manifest.pfc.trainable
-                    params[k] = v if frozen else v - cfg.learning_rate * g
-    return to_manifest(batch.with_parameters({k: v.detach() for k, v in params.items()}), 0)
 
 
 def test_batched_fine_tuning_equals_the_per_patron_loop():

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from screener import screen_many
-from tests.screener.corpus import (
+from tests.support.corpus import (
     RED_TEAM_SINCERE,
     SABOTEURS,
     SINCERE,
@@ -20,7 +20,7 @@ from tests.screener.corpus import (
     red_team_corpus,
     sincere_corpus,
 )
-from tests.screener.test_rules import KNOWN_NEURONS
+from tests.support.screening import KNOWN_NEURONS
 
 SEED = 0
 

@@ -11,8 +11,8 @@ from agents.negotiator import honest_manifest
 from screener import impact, limits, screen, screen_many
 from screener.checks import passes_cheap
 from screener.probes import probe
-from tests.screener.conftest import message_of, rules_of
-from tests.screener.corpus import Labelled, red_team_corpus
+from tests.support.corpus import Labelled, red_team_corpus
+from tests.support.screening import message_of, rules_of
 
 
 def red_team(name: str) -> Labelled:

@@ -9,9 +9,8 @@ from agents.forward import decide
 from agents.negotiator import honest_manifest, saboteur_manifest
 from screener import screen, screen_many
 from screener.probes import GRID, GRID_SHAPE, PASS_SIZE, PRICES
-from tests.screener.conftest import message_of, rules_of
-from tests.screener.corpus import SABOTEURS, edit, honest_corpus
-from tests.screener.test_rules import PROBE_RULES
+from tests.support.corpus import SABOTEURS, edit, honest_corpus
+from tests.support.screening import PROBE_RULES, message_of, rules_of
 
 
 def test_grid_crosses_prices_qualities_subtypes_and_demands():

@@ -9,22 +9,10 @@ from agents.negotiator import honest_manifest
 from screener import screen
 from screener.probes import probe
 from screener.rules import Numbers, semantic_checks
-from tests.screener.conftest import message_of, rules_of
-from tests.screener.corpus import edit
+from tests.support.corpus import edit
+from tests.support.screening import KNOWN_NEURONS, PROBE_RULES, message_of, rules_of
 
 PG_PRICE = "external_sensor.PG.weights.price"
-KNOWN_NEURONS = {"PG", "SZ", "LSR", "ST", "B", "L", "Q", "PGL", "BC", "FQ", "T", "F"}
-PROBE_RULES = {
-    "probe-non-finite",
-    "buys-cheap",
-    "always-holds",
-    "always-quits",
-    "never-buys",
-    "refuses-far-too-expensive",
-    "quits-far-too-expensive",
-    "buy-falls-with-price",
-    "sincere-hold",
-}
 
 
 def test_honest_models_of_the_paper_pass_with_no_reasons():

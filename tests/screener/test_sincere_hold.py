@@ -15,8 +15,8 @@ from agents.negotiator import honest_manifest
 from screener import limits, screen, screen_many
 from screener.probes import FLOOR_INDEX, LOWEST_REACHABLE, SCAN_PRICES, probe
 from sim.market import MarketConfig
-from tests.screener.conftest import message_of, rules_of
-from tests.screener.corpus import edit
+from tests.support.corpus import edit
+from tests.support.screening import message_of, rules_of
 
 PG_PRICE = "external_sensor.PG.weights.price"
 

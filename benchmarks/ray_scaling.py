@@ -152,6 +152,14 @@ def main() -> None:
         "auction-study": build_config("auction-study", {"grid": True, "trials": args.trials}),
         "lavaland": build_config("lavaland", {"repeats": args.repeats}),
     }
+    local = run_locally(jobs)
+    overhead, ray_walls = run_on_ray(jobs, local)
+    print()
+    project(jobs, local, overhead, ray_walls)
+
+
+def run_locally(jobs: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Each job in process on one core: its result, wall time, unit times and assembly time."""
     local: dict[str, dict[str, Any]] = {}
     for kind, config in jobs.items():
         unit_times: list[float] = []
@@ -167,6 +175,14 @@ def main() -> None:
             f"mean {statistics.mean(unit_times):.2f} s, max {max(unit_times):.2f} s, "
             f"assembly {local[kind]['assemble']:.2f} s"
         )
+    return local
+
+
+def run_on_ray(
+    jobs: dict[str, Any], local: dict[str, dict[str, Any]]
+) -> tuple[dict[str, float], dict[tuple[str, int], float]]:
+    """Each job on a local Ray cluster of 1 then 2 CPUs, checked identical to the local result:
+    the overheads measured on the 1-CPU cluster and the wall time per (job, CPUs)."""
     token = os.urandom(32).hex()  # one token for both clusters (Ray reads it once per process)
     overhead: dict[str, float] = {}
     ray_walls: dict[tuple[str, int], float] = {}
@@ -202,7 +218,17 @@ def main() -> None:
                 print(f"  {kind}: {wall:.1f} s on Ray ({ratio:.2f}x local), results identical")
         finally:
             head.stop()
-    print()
+    return overhead, ray_walls
+
+
+def project(
+    jobs: dict[str, Any],
+    local: dict[str, dict[str, Any]],
+    overhead: dict[str, float],
+    ray_walls: dict[tuple[str, int], float],
+) -> None:
+    """The projected wall time on N machines of C cores from the measured parts, and the
+    projection checked against the measured walls on this machine."""
     cores = os.cpu_count() or 1
     for kind in jobs:
         unit_times = local[kind]["units"]

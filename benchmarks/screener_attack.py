@@ -5,7 +5,7 @@ against the same auctions without them, at supplies 0.1 to 0.4, with fine-tuning
 (``tests/support/harm.py``), as a fraction of the always-hold saboteur's drop. The search
 maximises max(fraction off, fraction on) over models ``screener.screen`` accepts:
 
-* hand-built families (``tests/support/corpus.py``: ``DISGUISED``): a random start among
+* hand-built families (``tests/support/disguised.py``: ``DISGUISED``): a random start among
   ``--draws`` accepted draws of the family's numbers, then a (1+λ) evolution strategy over them;
 * a (1+λ) evolution strategy over every numeric field of the manifest (weights, biases,
   activation parameters, augmentation, fine-tuning), started from the honest example and from
@@ -40,7 +40,7 @@ from agents.batch import from_manifests
 from agents.manifest import Manifest
 from screener import screen_many
 from screener.probes import probe
-from tests.support.corpus import DISGUISED, Family
+from tests.support.disguised import DISGUISED, Family
 from tests.support.harm import SUPPLIES, Harm, harms, saboteur, saboteur_harm
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"

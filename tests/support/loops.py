@@ -105,18 +105,9 @@ def loop_auction(manifests: list[Manifest], config: MarketConfig) -> list[Iterat
             reason = "max_iterations"
         tuned = []
         if reason is None and fine_tunes_after(config, iteration):
-            shuffle_seed, noise_seed = round_seeds(config.seed, iteration)
-            for p in active:
-                if current[p].fine_tuning.epochs > 0:
-                    own = draw_fine_tune_seeded(
-                        from_manifests([current[p]]),
-                        R,
-                        derive_seeds(shuffle_seed, p),
-                        derive_seeds(noise_seed, p),
-                    )
-                    current[p] = loop_fine_tune(current[p], rows, own.order[0], own.noise[0])
-                    singles[p] = from_manifests([current[p]])
-                    tuned.append(p)
+            tuned = loop_fine_tune_round(current, active, rows, round_seeds(config.seed, iteration))
+            for p in tuned:
+                singles[p] = from_manifests([current[p]])
         records.append(
             IterationRecord(
                 iteration=iteration,
@@ -136,3 +127,23 @@ def loop_auction(manifests: list[Manifest], config: MarketConfig) -> list[Iterat
         if reason is not None:
             break
     return records
+
+
+def loop_fine_tune_round(
+    current: list[Manifest], active: list[int], rows: torch.Tensor, seeds: tuple[int, int]
+) -> list[int]:
+    """Fine-tune every active patron with epochs in place, one at a time, from its own
+    generators (the round's shuffle and noise seeds and its position); the positions tuned."""
+    shuffle_seed, noise_seed = seeds
+    tuned = []
+    for p in active:
+        if current[p].fine_tuning.epochs > 0:
+            own = draw_fine_tune_seeded(
+                from_manifests([current[p]]),
+                rows.shape[0],
+                derive_seeds(shuffle_seed, p),
+                derive_seeds(noise_seed, p),
+            )
+            current[p] = loop_fine_tune(current[p], rows, own.order[0], own.noise[0])
+            tuned.append(p)
+    return tuned

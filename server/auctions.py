@@ -199,14 +199,7 @@ def _close_round(
     """Wait for the open round's answers, then close it in one transaction (see the module
     docstring); False when another runner closed it or moved the auction on."""
     number = pending.iteration + 1
-    with database.session(write=False) as session:
-        row = session.scalars(
-            select(FineTuneRound).where(
-                FineTuneRound.auction_id == auction_id, FineTuneRound.round == number
-            )
-        ).one_or_none()
-    if row is None or row.status != RoundStatus.OPEN:
-        raise ResumeError(f"the checkpoint awaits fine-tuning round {number}, which is not open")
+    row = _open_round(database, auction_id, number)
     _wait_for_answers(database, row.id, len(row.asked), row.deadline.timestamp())
     with database.session(write=True) as session:
         closed = session.execute(
@@ -217,50 +210,7 @@ def _close_round(
         if closed.rowcount != 1:  # type: ignore[attr-defined]
             session.rollback()
             return False
-        answered = {
-            answer.position: answer
-            for answer in session.scalars(
-                select(FineTuneAnswer).where(FineTuneAnswer.round_id == row.id)
-            )
-        }
-        patrons = {
-            patron.position: patron
-            for patron in session.scalars(
-                select(AuctionPatron).where(AuctionPatron.auction_id == auction_id)
-            )
-        }
-        applied = {
-            answer.position: answer.model_id
-            for answer in answered.values()
-            if answer.outcome == AnswerOutcome.ACCEPTED and answer.uploaded_id is not None
-        }
-        versions = {
-            version.id: version.manifest
-            for version in session.scalars(
-                select(ModelVersion).where(ModelVersion.id.in_(list(applied.values())))
-            )
-        }
-        market.apply_round(
-            {position: parse_manifest(versions[i]) for position, i in applied.items()}
-        )
-        now = utcnow()
-        for position in row.asked:
-            if position in answered:
-                continue
-            patron = patrons[position]
-            session.add(
-                FineTuneAnswer(
-                    round_id=row.id,
-                    position=position,
-                    outcome=AnswerOutcome.MISSING,
-                    model_id=patron.current_model_id or patron.model_id,
-                    bytes_in=0,
-                    bytes_out=0,
-                    created_at=now,
-                )
-            )
-        for position, model_id in applied.items():
-            patrons[position].current_model_id = model_id
+        _apply_answers(session, auction_id, row, market)
         moved = session.execute(
             update(Auction)
             .where(
@@ -268,13 +218,73 @@ def _close_round(
                 Auction.iteration == number,
                 Auction.status == AuctionStatus.RUNNING,
             )
-            .values(checkpoint=market.checkpoint(), updated_at=now)
+            .values(checkpoint=market.checkpoint(), updated_at=utcnow())
         )
         if moved.rowcount != 1:  # type: ignore[attr-defined]
             session.rollback()
             return False
         session.commit()
     return True
+
+
+def _open_round(database: Database, auction_id: int, number: int) -> FineTuneRound:
+    """The auction's fine-tuning round ``number``, which the checkpoint awaits: open."""
+    with database.session(write=False) as session:
+        row = session.scalars(
+            select(FineTuneRound).where(
+                FineTuneRound.auction_id == auction_id, FineTuneRound.round == number
+            )
+        ).one_or_none()
+    if row is None or row.status != RoundStatus.OPEN:
+        raise ResumeError(f"the checkpoint awaits fine-tuning round {number}, which is not open")
+    return row
+
+
+def _apply_answers(session: Session, auction_id: int, row: FineTuneRound, market: Market) -> None:
+    """Apply the round's accepted uploads to the market and to the patrons' current versions,
+    and record a ``missing`` answer for every asked patron that stayed silent."""
+    answered = {
+        answer.position: answer
+        for answer in session.scalars(
+            select(FineTuneAnswer).where(FineTuneAnswer.round_id == row.id)
+        )
+    }
+    patrons = {
+        patron.position: patron
+        for patron in session.scalars(
+            select(AuctionPatron).where(AuctionPatron.auction_id == auction_id)
+        )
+    }
+    applied = {
+        answer.position: answer.model_id
+        for answer in answered.values()
+        if answer.outcome == AnswerOutcome.ACCEPTED and answer.uploaded_id is not None
+    }
+    versions = {
+        version.id: version.manifest
+        for version in session.scalars(
+            select(ModelVersion).where(ModelVersion.id.in_(list(applied.values())))
+        )
+    }
+    market.apply_round({position: parse_manifest(versions[i]) for position, i in applied.items()})
+    now = utcnow()
+    for position in row.asked:
+        if position in answered:
+            continue
+        patron = patrons[position]
+        session.add(
+            FineTuneAnswer(
+                round_id=row.id,
+                position=position,
+                outcome=AnswerOutcome.MISSING,
+                model_id=patron.current_model_id or patron.model_id,
+                bytes_in=0,
+                bytes_out=0,
+                created_at=now,
+            )
+        )
+    for position, model_id in applied.items():
+        patrons[position].current_model_id = model_id
 
 
 def _mark_failed(database: Database, auction_id: int, reason: str) -> None:

@@ -1,0 +1,101 @@
+"""Request and response bodies of the HTTP API (separate from the table classes), one module
+per resource; everything is exported here (``from server.schemas import AuctionCreate``).
+
+Lists (``GET /auctions``, ``/models``, ``/jobs``) answer one page, newest first, and the cursor
+of the next page (null on the last one)."""
+
+from server.schemas.auctions import (
+    MAX_FINE_TUNE_ROUNDS,
+    MAX_PATRONS,
+    ROUND_DEADLINE_S,
+    AuctionCreate,
+    AuctionCreated,
+    AuctionEndEvent,
+    AuctionPage,
+    AuctionPublic,
+    AuctionSummaryPublic,
+    BuyerPublic,
+    IterationEvent,
+    IterationPublic,
+    PatronPublic,
+    RoundPurchasePublic,
+    Votes,
+)
+from server.schemas.common import (
+    MAX_ROW_ID,
+    MAX_SEED,
+    AuctionIdPath,
+    HealthPublic,
+    JobIdPath,
+    ModelIdPath,
+    ReasonPublic,
+    RowId,
+)
+from server.schemas.jobs import (
+    JobCreate,
+    JobCreated,
+    JobKind,
+    JobPage,
+    JobProgressEvent,
+    JobPublic,
+    JobSummaryPublic,
+)
+from server.schemas.models import (
+    MAX_LISTED_AUCTIONS,
+    ModelPage,
+    ModelPublic,
+    ModelSummaryPublic,
+    ParticipantPublic,
+    SubmitPublic,
+)
+from server.schemas.rounds import (
+    FineTuneModeName,
+    FineTuneRoundPublic,
+    RoundAnswerPublic,
+    RoundPublic,
+    UploadPublic,
+)
+
+__all__ = [
+    "MAX_FINE_TUNE_ROUNDS",
+    "MAX_LISTED_AUCTIONS",
+    "MAX_PATRONS",
+    "MAX_ROW_ID",
+    "MAX_SEED",
+    "ROUND_DEADLINE_S",
+    "AuctionCreate",
+    "AuctionCreated",
+    "AuctionEndEvent",
+    "AuctionIdPath",
+    "AuctionPage",
+    "AuctionPublic",
+    "AuctionSummaryPublic",
+    "BuyerPublic",
+    "FineTuneModeName",
+    "FineTuneRoundPublic",
+    "HealthPublic",
+    "IterationEvent",
+    "IterationPublic",
+    "JobCreate",
+    "JobCreated",
+    "JobIdPath",
+    "JobKind",
+    "JobPage",
+    "JobProgressEvent",
+    "JobPublic",
+    "JobSummaryPublic",
+    "ModelIdPath",
+    "ModelPage",
+    "ModelPublic",
+    "ModelSummaryPublic",
+    "ParticipantPublic",
+    "PatronPublic",
+    "ReasonPublic",
+    "RoundAnswerPublic",
+    "RoundPublic",
+    "RoundPurchasePublic",
+    "RowId",
+    "SubmitPublic",
+    "UploadPublic",
+    "Votes",
+]

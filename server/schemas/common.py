@@ -1,0 +1,56 @@
+"""What every resource's bodies share: ids (in bodies and paths), strict input, a screener
+finding, the health answer."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import Path
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+
+from server.config import JobBackendName
+
+MAX_SEED = 2**31 - 1  # fits a 32-bit INTEGER column on every backend
+MAX_ROW_ID = 2**31 - 1  # ids are 32-bit INTEGER primary keys on every backend
+
+
+def _decimal(value: Any) -> Any:
+    """A path id is written in ASCII digits only: ``1.0``, ``1 `` or ``+1`` name no row."""
+    if isinstance(value, str) and not (value.isascii() and value.isdigit()):
+        raise ValueError("must be a positive integer written in digits")
+    return value
+
+
+RowId = Annotated[int, Field(ge=1, le=MAX_ROW_ID)]
+ModelIdPath = Annotated[
+    int, Path(ge=1, le=MAX_ROW_ID, description="A model id."), BeforeValidator(_decimal)
+]
+AuctionIdPath = Annotated[
+    int, Path(ge=1, le=MAX_ROW_ID, description="An auction id."), BeforeValidator(_decimal)
+]
+JobIdPath = Annotated[
+    int, Path(ge=1, le=MAX_ROW_ID, description="A job id."), BeforeValidator(_decimal)
+]
+
+
+class StrictInput(BaseModel):
+    """A request body: unknown keys refused; numbers, booleans and integers typed strictly
+    (``"3"``, ``true`` or ``3.0`` are not the integer 3)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+
+class HealthPublic(BaseModel):
+    status: Literal["ok"]
+    job_backend: JobBackendName
+    """Where job units are computed (``SRD_JOB_BACKEND``)."""
+    cpus: float
+    """The CPUs that backend computes on: this machine's, or the Ray cluster's live nodes'."""
+
+
+class ReasonPublic(BaseModel):
+    """A screener finding."""
+
+    rule: str
+    neuron: str
+    message: str

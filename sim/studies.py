@@ -342,6 +342,21 @@ def write_results_csv(path: Path, auctions: Sequence[AuctionResult]) -> None:
     write_csv(path, [a.row for a in auctions])
 
 
+def _write_auctions(
+    config: StudyConfig | ComparisonConfig,
+    plan: Sequence[Unit],
+    payloads: Sequence[Payload],
+    out_dir: Path,
+    progress: ProgressFn,
+) -> tuple[list[AuctionResult], list[dict[str, Any]]]:
+    """The auctions of the units and their summary rows; results.csv written in ``out_dir``."""
+    auctions = auction_results(config, plan, payloads)
+    progress(0.0, f"{len(auctions)} auctions")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_results_csv(out_dir / "results.csv", auctions)
+    return auctions, summary_rows(auctions)
+
+
 def assemble_study(
     config: StudyConfig,
     plan: Sequence[Unit],
@@ -352,11 +367,7 @@ def assemble_study(
     watch: Stopwatch,
 ) -> dict[str, Any]:
     """Write results.csv, summary.json and the figures; return the --json object."""
-    auctions = auction_results(config, plan, payloads)
-    progress(0.0, f"{len(auctions)} auctions")
-    rows = summary_rows(auctions)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_results_csv(out_dir / "results.csv", auctions)
+    auctions, rows = _write_auctions(config, plan, payloads, out_dir, progress)
     figures = plot_study(auctions, rows, out_dir, config.seed)
     result = {
         "rows": rows,
@@ -394,12 +405,8 @@ def assemble_comparison(
     """The same auctions (same seeds) honest, compromised, and compromised but screened:
     results.csv, comparison.csv, comparison.png, summary.json; the --json object."""
     settings = comparison_settings(config)
-    auctions = auction_results(config, plan, payloads)
-    progress(0.0, f"{len(auctions)} auctions")
-    rows = summary_rows(auctions)
+    auctions, rows = _write_auctions(config, plan, payloads, out_dir, progress)
     table = {name: [r for r in rows if r["setting"] == name] for name in settings}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_results_csv(out_dir / "results.csv", auctions)
     write_csv(out_dir / "comparison.csv", rows)
     plot_comparison(table, out_dir / "comparison.png")
     result = {

@@ -122,7 +122,7 @@ def _unavailable(exc: Exception) -> UploadRefused:
     return UploadRefused(503, unavailable_message(exc), ("body",), "db_unavailable")
 
 
-Rows = dict[Any, Any]
+_Rows = dict[Any, Any]
 """Rows of one query (SQLAlchemy ``Row`` objects), keyed as the decisions look them up."""
 
 
@@ -130,9 +130,9 @@ Rows = dict[Any, Any]
 class _Plan:
     """A group's uploads decided in arrival order: their answers and the rows to write."""
 
-    rounds: Rows
+    rounds: _Rows
     """round id → its status and deadline, read ``FOR SHARE``"""
-    stored: Rows
+    stored: _Rows
     """(round id, position) → the answer stored before this group"""
     next_version: dict[int, int]
     """participant id → the number its next version takes"""
@@ -247,7 +247,7 @@ def _store_group(session: Session, group: list[UploadRequest]) -> list[UploadOut
     return outcomes
 
 
-def _rounds_for_share(session: Session, group: list[UploadRequest]) -> Rows:
+def _rounds_for_share(session: Session, group: list[UploadRequest]) -> _Rows:
     query = (
         select(FineTuneRound.id, FineTuneRound.status, FineTuneRound.deadline)
         .where(FineTuneRound.id.in_(sorted({item.round_id for item in group})))
@@ -256,7 +256,7 @@ def _rounds_for_share(session: Session, group: list[UploadRequest]) -> Rows:
     return {row.id: row for row in session.connection().execute(query)}
 
 
-def _stored_answers(session: Session, group: list[UploadRequest]) -> Rows:
+def _stored_answers(session: Session, group: list[UploadRequest]) -> _Rows:
     query = select(
         FineTuneAnswer.id,
         FineTuneAnswer.round_id,

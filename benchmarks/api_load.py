@@ -44,13 +44,9 @@ import numpy as np
 import torch
 
 from agents.negotiator import honest_manifest
-from server.launch import (
-    QUOTAS_OFF,
-    ServerProcess,
-    postgres_admin_url,
-    settings_environment,
-    throwaway_postgres,
-)
+from server.launch import ServerProcess, settings_environment
+from tests.support.databases import postgres_admin_url, throwaway_postgres
+from tests.support.server import QUOTAS_OFF
 
 torch.set_num_threads(1)
 

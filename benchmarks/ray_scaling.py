@@ -31,14 +31,14 @@ from typing import Any
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.server.ray_head
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.support.ray_head
 
 from server.jobs.ray_backend import RayRunner
 from sim import units
 from sim.experiment import Stopwatch, no_progress
 from sim.registry import KINDS, build_config
 from sim.units import Payload, Unit, UnitProgress
-from tests.server.ray_head import RayHead
+from tests.support.ray_head import RayHead
 
 torch.set_num_threads(1)
 EMPTY_TASKS = 200

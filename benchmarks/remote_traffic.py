@@ -54,14 +54,10 @@ from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
 from agents.remote import ONE_CONNECTION, Client, RoundInfo, faithful_fine_tune
 from screener import screen_many
-from server.launch import (
-    QUOTAS_OFF,
-    ServerProcess,
-    postgres_admin_url,
-    settings_environment,
-    throwaway_postgres,
-)
+from server.launch import ServerProcess, settings_environment
 from server.screening import MAX_BATCH
+from tests.support.databases import postgres_admin_url, throwaway_postgres
+from tests.support.server import QUOTAS_OFF
 
 torch.set_num_threads(1)
 ADMIN_TOKEN = secrets.token_hex(16)
@@ -133,20 +129,6 @@ class Agent:
     current: Manifest
 
 
-def round_info(state: dict[str, Any], position: int) -> RoundInfo:
-    return RoundInfo(
-        auction_id=state["auction_id"],
-        round=state["round"],
-        iteration=state["iteration"],
-        rows=np.array(state["rows"], dtype=np.float64),
-        fine_tune_seed=state["fine_tune_seed"],
-        augmentation_seed=state["augmentation_seed"],
-        deadline=datetime.fromisoformat(state["deadline"].replace("Z", "+00:00")),
-        seconds_left=state["seconds_left"],
-        position=position,
-    )
-
-
 async def receive(agent: Agent, path: str, received: list[float]) -> dict[str, Any]:
     """One agent's long poll; notes when its answer arrived."""
     response = await agent.client.request("GET", path, timeout_s=WAIT_S + 10)
@@ -197,7 +179,9 @@ async def play_auction(client: Client, agents: list[Agent], auction_id: int) -> 
         tuned, costs = [], []
         for agent in active:
             started = time.perf_counter()
-            tuned.append(faithful_fine_tune(agent.current, round_info(state, agent.position)))
+            tuned.append(
+                faithful_fine_tune(agent.current, RoundInfo.from_state(state, agent.position))
+            )
             costs.append(time.perf_counter() - started)
         sent = time.time()
         answers = await asyncio.gather(

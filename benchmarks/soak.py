@@ -40,13 +40,9 @@ import httpx
 import numpy as np
 
 from agents.negotiator import honest_manifest, saboteur_manifest
-from server.launch import (
-    QUOTAS_OFF,
-    ServerProcess,
-    postgres_admin_url,
-    settings_environment,
-    throwaway_postgres,
-)
+from server.launch import ServerProcess, settings_environment
+from tests.support.databases import postgres_admin_url, throwaway_postgres
+from tests.support.server import QUOTAS_OFF
 
 ENDED = {"finished", "failed", "succeeded", "cancelled"}
 

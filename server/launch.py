@@ -1,6 +1,5 @@
-"""Start ``srd serve`` as a child process (used by ``make demo``, the load benchmark and the
-restart test): pick a free port, wait for ``/healthz``, stop gracefully or kill -9; and make a
-throw-away PostgreSQL database for a run."""
+"""Start ``srd serve`` as a child process (``make demo`` does; so do the tests and benchmarks
+that run a real server): pick a free port, wait for ``/healthz``, stop gracefully or kill -9."""
 
 from __future__ import annotations
 
@@ -10,61 +9,12 @@ import socket
 import subprocess
 import sys
 import time
-import uuid
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from types import TracebackType
 
 import httpx
-from sqlalchemy import create_engine, text
-from sqlalchemy.exc import OperationalError
 
 HEALTH_POLL_S = 0.2
-QUOTAS_OFF = {
-    "quota_versions_per_minute": 10**6,
-    "quota_versions_per_day": 10**6,
-    "quota_address_versions_per_minute": 10**6,
-    "quota_address_versions_per_day": 10**6,
-    "quota_registrations_per_day": 10**6,
-    "quota_address_refusals_per_hour": 10**6,
-    "refusal_cooldown_s": 0.0,
-}
-"""Settings that lift the submission quotas: for load, tests and benchmarks that submit many
-models from one address (the quotas themselves are tested on their own)."""
-LOCAL_POSTGRES = "127.0.0.1:5432"
-POSTGRES_USERS = ("postgres", "root")  # trust authentication on the loopback server
-
-
-def postgres_admin_url(server: str = LOCAL_POSTGRES) -> str | None:
-    """A URL to the ``postgres`` database of ``server`` that accepts us, or None."""
-    for user in POSTGRES_USERS:
-        url = f"postgresql+psycopg://{user}@{server}/postgres"
-        engine = create_engine(url, isolation_level="AUTOCOMMIT")
-        try:
-            with engine.connect() as conn:
-                conn.execute(text("select 1"))
-            return url
-        except OperationalError:
-            continue
-        finally:
-            engine.dispose()
-    return None
-
-
-@contextmanager
-def throwaway_postgres(admin_url: str) -> Iterator[str]:
-    """A new randomly named PostgreSQL database for the duration of the block, then dropped."""
-    name = f"srd_tmp_{uuid.uuid4().hex[:12]}"
-    engine = create_engine(admin_url, isolation_level="AUTOCOMMIT")
-    with engine.connect() as conn:
-        conn.execute(text(f'CREATE DATABASE "{name}"'))
-    try:
-        yield admin_url.rsplit("/", 1)[0] + f"/{name}"
-    finally:
-        with engine.connect() as conn:
-            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-        engine.dispose()
 
 
 def settings_environment(values: dict[str, object]) -> dict[str, str]:

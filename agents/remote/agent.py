@@ -7,10 +7,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from datetime import datetime
 from typing import Any
-
-import numpy as np
 
 from agents.manifest import Manifest
 from agents.remote.client import HTTP_TIMEOUT_S, Client, RemoteError
@@ -127,17 +124,7 @@ class RemoteAgent:
     async def _answer(
         self, auction_id: int, state: dict[str, Any], position: int, received: float
     ) -> RoundLog:
-        info = RoundInfo(
-            auction_id=auction_id,
-            round=int(state["round"]),
-            iteration=int(state["iteration"]),
-            rows=np.array(state["rows"], dtype=np.float64),
-            fine_tune_seed=int(state["fine_tune_seed"]),
-            augmentation_seed=int(state["augmentation_seed"]),
-            deadline=datetime.fromisoformat(state["deadline"]),
-            seconds_left=float(state["seconds_left"]),
-            position=position,
-        )
+        info = RoundInfo.from_state(state, position)
         tuned = self.fine_tuner(self.current, info)
         tuned_at = time.monotonic()
         response = await self.client.request(

@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
+from typing import Any
 
 import numpy as np
 import torch
@@ -32,6 +33,21 @@ class RoundInfo:
     seconds_left: float
     position: int
     """The agent's patron position in the auction (its seeds depend on it)."""
+
+    @classmethod
+    def from_state(cls, state: dict[str, Any], position: int) -> RoundInfo:
+        """The round from the JSON of ``GET /auctions/{id}/rounds/current`` (an open round)."""
+        return cls(
+            auction_id=int(state["auction_id"]),
+            round=int(state["round"]),
+            iteration=int(state["iteration"]),
+            rows=np.array(state["rows"], dtype=np.float64),
+            fine_tune_seed=int(state["fine_tune_seed"]),
+            augmentation_seed=int(state["augmentation_seed"]),
+            deadline=datetime.fromisoformat(state["deadline"]),
+            seconds_left=float(state["seconds_left"]),
+            position=position,
+        )
 
 
 FineTuner = Callable[[Manifest, RoundInfo], Manifest]

@@ -10,33 +10,16 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import func, select
+from sqlalchemy import select
 
 from agents.manifest import parse_manifest
 from screener import screen
 from server.config import Settings
 from server.models import ModelVersion, Participant
-from tests.server.conftest import ADMIN, honest, saboteur, unique, wait_for
+from tests.support.factories import honest, saboteur, unique
+from tests.support.server import ADMIN, count, locs, wait_for
 
 WRONG = {"Authorization": "Bearer not-the-token"}
-
-
-def locs(response: Any) -> list[list[Any]]:
-    """The ``loc`` of every error entry (and check the common error body on the way)."""
-    body = response.json()
-    assert set(body) == {"detail"}
-    for item in body["detail"]:
-        assert set(item) == {"loc", "msg", "type"} and isinstance(item["msg"], str)
-    return [item["loc"] for item in body["detail"]]
-
-
-def count(client: TestClient, table: Any, **where: Any) -> int:
-    database = client.app.state.services.database  # type: ignore[attr-defined]
-    with database.session(write=False) as session:
-        query = select(func.count()).select_from(table)
-        for column, value in where.items():
-            query = query.where(getattr(table, column) == value)
-        return int(session.scalar(query) or 0)
 
 
 def test_healthz_and_openapi(client: TestClient) -> None:

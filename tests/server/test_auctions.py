@@ -10,7 +10,8 @@ from fastapi.testclient import TestClient
 from agents.manifest import parse_manifest
 from server import crud
 from sim.market import Market, MarketConfig
-from tests.server.conftest import ADMIN, honest, saboteur, unique, wait_for
+from tests.support.factories import honest, saboteur, unique
+from tests.support.server import ADMIN, wait_for
 
 AUCTION_TIMEOUT_S = 120
 N_HONEST = 12

@@ -22,7 +22,7 @@ from server.app import create_app
 from server.config import Settings
 from server.db import SQLITE_BUSY_TIMEOUT_MS, Database, alembic_config, upgrade_schema
 from server.models import Base, ModelVersion, utcnow
-from tests.server.conftest import make_settings
+from tests.support.server import make_settings
 
 
 def test_migrations_build_exactly_the_models(database_url: str) -> None:

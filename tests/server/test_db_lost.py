@@ -13,7 +13,9 @@ from sqlalchemy import create_engine, text
 from server import db
 from server.app import create_app
 from server.db import DatabaseUnavailableError, upgrade_schema
-from tests.server.conftest import ADMIN, _throwaway_pg_database, honest, make_settings, unique
+from tests.support.databases import postgres_database
+from tests.support.factories import honest, unique
+from tests.support.server import ADMIN, make_settings
 
 
 @pytest.fixture(autouse=True)
@@ -64,7 +66,7 @@ def test_replaced_sqlite_file_is_noticed(tmp_path) -> None:
 
 @pytest.mark.postgres
 def test_dropped_postgres_database_is_noticed(tmp_path) -> None:
-    for url in _throwaway_pg_database():
+    for url in postgres_database():
         settings = make_settings(url, tmp_path / "data")
         with TestClient(create_app(settings)) as client:
             assert client.get("/healthz").status_code == 200

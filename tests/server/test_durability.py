@@ -7,24 +7,17 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
-import pytest
 from sqlalchemy import select
 
 from server.db import Database
-from server.launch import (
-    QUOTAS_OFF,
-    ServerProcess,
-    postgres_admin_url,
-    settings_environment,
-    throwaway_postgres,
-)
+from server.launch import ServerProcess, settings_environment
 from server.models import ModelVersion, Participant
-from tests.server.conftest import honest
+from tests.support.factories import honest
+from tests.support.server import QUOTAS_OFF
 
 CLIENTS = 8
 ACKNOWLEDGED_BEFORE_KILL = 40
@@ -32,22 +25,10 @@ ACKNOWLEDGED_BEFORE_KILL = 40
 LOAD_LIMIT_S = 60.0
 
 
-@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
-def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
-    if request.param == "sqlite":
-        yield f"sqlite:///{tmp_path / 'srd.db'}"
-        return
-    admin_url = postgres_admin_url()
-    if admin_url is None:
-        pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
-    with throwaway_postgres(admin_url) as url:
-        yield url
-
-
-def test_every_201_survives_a_kill_9(database_url: str, tmp_path: Path) -> None:
+def test_every_201_survives_a_kill_9(fresh_database_url: str, tmp_path: Path) -> None:
     data_dir = tmp_path / "data"
     env = settings_environment(QUOTAS_OFF)
-    server = ServerProcess(database_url=database_url, data_dir=data_dir, extra_env=env)
+    server = ServerProcess(database_url=fresh_database_url, data_dir=data_dir, extra_env=env)
     acknowledged: list[dict[str, Any]] = []
     refused: list[str] = []
     lost: list[str] = []
@@ -93,7 +74,7 @@ def test_every_201_survives_a_kill_9(database_url: str, tmp_path: Path) -> None:
 
     assert len(acknowledged) >= ACKNOWLEDGED_BEFORE_KILL, "the load never got going"
     assert lost, "the kill came after the load: nothing was in flight"
-    database = Database(database_url)
+    database = Database(fresh_database_url)
     with database.session(write=False) as session:
         stored = {
             row.id: (row.name, row.version)

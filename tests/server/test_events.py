@@ -14,14 +14,14 @@ import torch
 
 from server.events import EventHub
 from server.launch import ServerProcess
-from tests.server.conftest import ADMIN, ADMIN_TOKEN
-from tests.server.live import (
+from tests.support.live import (
     create_unstarted_auction,
     data,
     paced_auction,
     sse_events,
     submit_population,
 )
+from tests.support.server import ADMIN, ADMIN_TOKEN
 
 MAX_STREAMS = 4
 KEEPALIVE_S = 0.3

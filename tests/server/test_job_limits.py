@@ -11,7 +11,8 @@ from fastapi.testclient import TestClient
 from server.app import create_app
 from sim.experiment import config_fields
 from sim.registry import KINDS
-from tests.server.conftest import ADMIN, honest, make_settings, unique, wait_for
+from tests.support.factories import honest, unique
+from tests.support.server import ADMIN, make_settings, wait_for
 
 ENDED = {"succeeded", "failed", "cancelled"}
 

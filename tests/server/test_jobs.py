@@ -14,7 +14,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.config import Settings
-from tests.server.conftest import ADMIN, wait_for
+from tests.support.server import ADMIN, wait_for
 
 LONG_FISH = {"kind": "fish", "params": {"steps": 200_000, "srd": True}}  # minutes: always stopped
 SHORT_FISH = {"kind": "fish", "params": {"steps": 300, "srd": True, "seed": 4}}

@@ -12,7 +12,8 @@ from fastapi.testclient import TestClient
 from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, JUDGEMENTS, VERDICTS
 from server.pages import MAX_PAGE
 from server.routes.models import DESCRIPTION_PREVIEW
-from tests.server.conftest import ADMIN, honest, saboteur, unique, wait_for
+from tests.support.factories import honest, saboteur, unique
+from tests.support.server import ADMIN, wait_for
 
 MARKUP_SINKS = re.compile(r"\.(inner|outer)HTML\b|insertAdjacentHTML|document\.write|eval\(")
 """Ways a script could hand a string to the HTML parser (or run it): the page uses none."""

@@ -9,10 +9,10 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.app import create_app
-from server.launch import postgres_admin_url, throwaway_postgres
 from server.models import ModelVersion, Participant, RateEvent
-from tests.server.conftest import honest, make_settings, saboteur, unique
-from tests.server.test_api import count
+from tests.support.databases import postgres_admin_url, throwaway_postgres
+from tests.support.factories import honest, saboteur, unique
+from tests.support.server import count, make_settings
 
 
 def quota_app(tmp_path, database_url: str | None = None, **limits: Any) -> TestClient:

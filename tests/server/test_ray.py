@@ -19,8 +19,8 @@ from fastapi.testclient import TestClient
 
 from server.app import create_app
 from server.jobs.ray_backend import RayUnavailableError, ray_module
-from tests.server.conftest import ADMIN, make_settings, wait_for
-from tests.server.ray_head import RayHead
+from tests.support.ray_head import RayHead
+from tests.support.server import ADMIN, make_settings, wait_for
 
 # Not imported here: Ray reads its token settings once, when it is first imported.
 pytestmark = pytest.mark.skipif(

@@ -24,10 +24,13 @@ from agents.batch import from_manifests
 from agents.manifest import Manifest, parse_manifest
 from agents.remote import Client, RemoteAgent
 from server.db import Database
-from server.launch import ServerProcess, postgres_admin_url, srd_command, throwaway_postgres
+from server.launch import ServerProcess, srd_command
 from server.models import Auction
 from sim.market import Market, MarketConfig
-from tests.server.conftest import honest, wait_for
+from tests.support.databases import BACKENDS, fresh_database
+from tests.support.factories import honest
+from tests.support.remote import replay
+from tests.support.server import wait_for
 
 DEADLINE_S = 3.0
 """Round deadline of the end-to-end auction (the killed agent's round waits this long)."""
@@ -62,27 +65,14 @@ asyncio.run(main(sys.argv[1], sys.argv[2]))
 seed, 100, makes a patron that pays up to 4.97 and stays in the auction past iteration 1)."""
 
 
-@pytest.fixture(
-    scope="module", params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)]
-)
+@pytest.fixture(scope="module", params=BACKENDS)
 def server(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[ServerProcess]:
     data_dir = tmp_path_factory.mktemp("remote")
-    token = secrets.token_hex(16)
-    if request.param == "sqlite":
-        process = ServerProcess(
-            database_url=f"sqlite:///{data_dir / 'srd.db'}", data_dir=data_dir, admin_token=token
-        )
-        with process:
-            yield process
-        return
-    admin_url = postgres_admin_url()
-    if admin_url is None:
-        pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
-    with throwaway_postgres(admin_url) as url:
-        process = ServerProcess(database_url=url, data_dir=data_dir, admin_token=token)
-        with process:
+    for url in fresh_database(request.param, data_dir):
+        token = secrets.token_hex(16)
+        with ServerProcess(database_url=url, data_dir=data_dir, admin_token=token) as process:
             yield process
 
 
@@ -94,44 +84,6 @@ def get(server: ServerProcess, path: str, **params: Any) -> Any:
 
 def admin(server: ServerProcess) -> dict[str, str]:
     return {"Authorization": f"Bearer {server.admin_token}"}
-
-
-def replay(
-    server: ServerProcess, auction: dict[str, Any], config: MarketConfig
-) -> list[dict[str, Any]]:
-    """The auction replayed on the market from its entry models, applying in each round the
-    versions the server accepted: its records as the server shows its history."""
-    entries = [
-        parse_manifest(get(server, f"/models/{i}")["manifest"]) for i in auction["model_ids"]
-    ]
-    market = Market(entries, config)
-    rounds = {r["iteration"]: r for r in auction["fine_tuning"]}
-    history = []
-    while not market.finished:
-        record = market.step()
-        history.append(
-            {
-                "iteration": record.iteration,
-                "price": record.price,
-                "n_available": record.n_available,
-                "votes": record.votes,
-                "row_votes": record.row_votes,
-                "next_price": record.next_price,
-                "n_available_after": record.n_available_after,
-            }
-        )
-        if market.pending_round is not None:
-            answers = rounds[record.iteration]["answers"]
-            market.apply_round(
-                {
-                    auction["model_ids"].index(a["model_id"]): parse_manifest(
-                        get(server, f"/models/{a['version_id']}")["manifest"]
-                    )
-                    for a in answers
-                    if a["outcome"] == "accepted" and a["uploaded_id"] is not None
-                }
-            )
-    return history
 
 
 def test_honest_and_bait_and_switch_agents_and_a_killed_one(server: ServerProcess) -> None:

@@ -19,7 +19,8 @@ from agents.remote import RoundInfo, always_hold, faithful_fine_tune
 from screener import screen
 from server.remote_rounds import watcher
 from server.routes.rounds import UPLOAD_MAX_BYTES
-from tests.server.conftest import ADMIN, honest, unique, wait_for
+from tests.support.factories import honest, unique
+from tests.support.server import ADMIN, wait_for
 
 ROUND_WAIT_S = 60.0
 """Long enough to wait for a worker to start and play an iteration."""
@@ -52,20 +53,6 @@ def open_round(client: TestClient, auction_id: int, after: int = 0) -> dict[str,
             or r["auction_status"] not in ("pending", "running")
         ),
         ROUND_WAIT_S,
-    )
-
-
-def round_info(state: dict[str, Any], position: int) -> RoundInfo:
-    return RoundInfo(
-        auction_id=state["auction_id"],
-        round=state["round"],
-        iteration=state["iteration"],
-        rows=np.array(state["rows"], dtype=np.float64),
-        fine_tune_seed=state["fine_tune_seed"],
-        augmentation_seed=state["augmentation_seed"],
-        deadline=datetime.fromisoformat(state["deadline"].replace("Z", "+00:00")),
-        seconds_left=state["seconds_left"],
-        position=position,
     )
 
 
@@ -191,7 +178,7 @@ def test_upload_refusals_name_the_field_and_store_nothing(
     manifest = parse_manifest(remote["manifests"][position])
     name = manifest.participant
     other_model, other_token = next((m, t) for m, t in remote["patrons"] if m != model_id)
-    tuned = faithful_fine_tune(manifest, round_info(state, position))
+    tuned = faithful_fine_tune(manifest, RoundInfo.from_state(state, position))
     good = tuned.model_dump_json().encode()
 
     def refused(response: Any, status: int, loc: list[Any], words: str) -> None:
@@ -317,7 +304,7 @@ def test_the_bait_and_switch_is_refused_and_the_round_closes_when_all_answered(
         if model_id not in state["asked"]:
             continue
         manifest = parse_manifest(remote["manifests"][position])
-        info = round_info(state, position)
+        info = RoundInfo.from_state(state, position)
         switch = position % 2 == 1
         upload = always_hold(manifest, info) if switch else faithful_fine_tune(manifest, info)
         answer = put(client, auction_id, 1, model_id, upload.model_dump_json().encode(), token)

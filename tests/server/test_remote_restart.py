@@ -6,40 +6,26 @@ market replaying the accepted versions."""
 from __future__ import annotations
 
 import secrets
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
-import pytest
 from sqlalchemy import func, select
 
 from agents.manifest import parse_manifest
-from agents.remote import faithful_fine_tune
+from agents.remote import RoundInfo, faithful_fine_tune
 from server.db import Database
-from server.launch import ServerProcess, postgres_admin_url, throwaway_postgres
+from server.launch import ServerProcess
 from server.models import Auction, FineTuneAnswer, FineTuneRound, ModelVersion, Purchase
 from sim.market import MarketConfig
-from tests.server.conftest import honest, wait_for
-from tests.server.test_remote_e2e import replay
-from tests.server.test_remote_protocol import round_info
+from tests.support.factories import honest
+from tests.support.remote import replay
+from tests.support.server import wait_for
 
 N_PATRONS = 6
 HELD_OPEN_S = 120.0
 """The round's deadline: long enough that only the answers close it, before and after the kill."""
 TIMEOUT_S = 120
-
-
-@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
-def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
-    if request.param == "sqlite":
-        yield f"sqlite:///{tmp_path / 'srd.db'}"
-        return
-    admin_url = postgres_admin_url()
-    if admin_url is None:
-        pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
-    with throwaway_postgres(admin_url) as url:
-        yield url
 
 
 def current(server: ServerProcess, auction_id: int, after: int) -> dict[str, Any]:
@@ -57,12 +43,14 @@ def current(server: ServerProcess, auction_id: int, after: int) -> dict[str, Any
     )
 
 
-def test_kill_9_in_the_middle_of_a_round_then_restart(database_url: str, tmp_path: Path) -> None:
+def test_kill_9_in_the_middle_of_a_round_then_restart(
+    fresh_database_url: str, tmp_path: Path
+) -> None:
     token = secrets.token_hex(16)
     admin = {"Authorization": f"Bearer {token}"}
     data_dir = tmp_path / "data"
-    first = ServerProcess(database_url=database_url, data_dir=data_dir, admin_token=token)
-    second = ServerProcess(database_url=database_url, data_dir=data_dir, admin_token=token)
+    first = ServerProcess(database_url=fresh_database_url, data_dir=data_dir, admin_token=token)
+    second = ServerProcess(database_url=fresh_database_url, data_dir=data_dir, admin_token=token)
     manifests = [honest(f"kill-{secrets.token_hex(3)}-{i}", seed=600 + i) for i in range(N_PATRONS)]
     try:
         first.start()
@@ -89,7 +77,7 @@ def test_kill_9_in_the_middle_of_a_round_then_restart(database_url: str, tmp_pat
         def upload(server: ServerProcess, state: dict[str, Any], model_id: int) -> httpx.Response:
             position = ids.index(model_id)
             tuned = faithful_fine_tune(
-                parse_manifest(manifests[position]), round_info(state, position)
+                parse_manifest(manifests[position]), RoundInfo.from_state(state, position)
             )
             return httpx.put(
                 f"{server.url}/auctions/{auction_id}/rounds/{state['round']}/models/{model_id}",
@@ -105,7 +93,7 @@ def test_kill_9_in_the_middle_of_a_round_then_restart(database_url: str, tmp_pat
         assert all(r.status_code == 200 for r in before.values()), [r.text for r in before.values()]
         first.kill()  # the round is open, its other patrons have not answered
 
-        database = Database(database_url)
+        database = Database(fresh_database_url)
         with database.session(write=False) as session:
             round_row = session.scalars(
                 select(FineTuneRound).where(FineTuneRound.auction_id == auction_id)

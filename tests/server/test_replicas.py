@@ -23,17 +23,13 @@ from sqlalchemy import func, select
 from agents.manifest import parse_manifest
 from screener import screen
 from server.db import Database
-from server.launch import (
-    QUOTAS_OFF,
-    ServerProcess,
-    postgres_admin_url,
-    settings_environment,
-    throwaway_postgres,
-)
+from server.launch import ServerProcess, settings_environment
 from server.models import Auction, AuctionIteration, Job, Purchase
 from sim.market import Market, MarketConfig
-from tests.server.conftest import honest, wait_for
-from tests.server.live import sse_events
+from tests.support.databases import postgres_admin_url, throwaway_postgres
+from tests.support.factories import honest
+from tests.support.live import sse_events
+from tests.support.server import QUOTAS_OFF, wait_for
 
 LEASE_S = 2.0
 """Short leases: a dead replica's work moves within seconds."""

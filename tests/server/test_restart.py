@@ -24,10 +24,12 @@ from sqlalchemy import func, select
 from agents.manifest import parse_manifest
 from screener import screen
 from server.db import Database
-from server.launch import ServerProcess, postgres_admin_url, throwaway_postgres
+from server.launch import ServerProcess
 from server.models import Auction, AuctionIteration, Job, Purchase
 from sim.market import Market, MarketConfig
-from tests.server.conftest import honest, wait_for
+from tests.support.databases import fresh_database
+from tests.support.factories import honest
+from tests.support.server import wait_for
 
 N_PATRONS = 64
 AUCTION = {"n_fish": 1, "fine_tune": True, "seed": 0}
@@ -59,14 +61,8 @@ def alive(pid: int) -> bool:
 
 @pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.slow)])
 def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
-    if request.param == "sqlite":
-        yield f"sqlite:///{tmp_path / 'srd.db'}"
-        return
-    admin_url = postgres_admin_url()
-    if admin_url is None:
-        pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
-    with throwaway_postgres(admin_url) as url:
-        yield url
+    """A fresh database per test; PostgreSQL only in the slow run (a long test)."""
+    yield from fresh_database(request.param, tmp_path)
 
 
 def get(server: ServerProcess, path: str) -> dict[str, Any]:

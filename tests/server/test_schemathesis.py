@@ -29,7 +29,8 @@ from pathlib import Path
 
 import pytest
 
-from server.launch import QUOTAS_OFF, ServerProcess, settings_environment
+from server.launch import ServerProcess, settings_environment
+from tests.support.server import QUOTAS_OFF
 
 ROOT = Path(__file__).resolve().parents[2]
 STREAMS = r"/events$"
@@ -50,7 +51,7 @@ def test_schemathesis_with_every_check(tmp_path: Path) -> None:
         admin_token=token,
         extra_env=settings_environment(LIMITS),
     )
-    hooks = {"SCHEMATHESIS_HOOKS": "tests.server.schemathesis_hooks", "PYTHONPATH": str(ROOT)}
+    hooks = {"SCHEMATHESIS_HOOKS": "tests.support.schemathesis_hooks", "PYTHONPATH": str(ROOT)}
     with server:
         run = subprocess.run(
             [

@@ -10,8 +10,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.models import Auction, Job, ModelVersion
-from tests.server.conftest import ADMIN, honest, unique
-from tests.server.test_api import count, locs
+from tests.support.factories import honest, unique
+from tests.support.server import ADMIN, count, locs
 
 JSON = {"Content-Type": "application/json"}
 

@@ -17,11 +17,12 @@ from server.db import Database, upgrade_schema
 from server.models import ModelVersion, Participant, utcnow
 from server.quotas import Limits
 from server.submissions import Outcome, Refused, Stored, SubmissionWriter
-from tests.server.conftest import UNLIMITED, honest, unique
+from tests.support.factories import honest, unique
+from tests.support.server import QUOTAS_OFF
 
 ACCEPTED = Verdict(accepted=True)
 REJECTED = Verdict(accepted=False, reasons=[Reason("always_hold", "B", "never buys")])
-LIMITS = Limits.of(Settings(**UNLIMITED))
+LIMITS = Limits.of(Settings(**QUOTAS_OFF))
 
 
 @pytest.fixture

@@ -25,8 +25,9 @@ from agents.manifest import DECISIONS, ES_NEURONS, JUDGEMENTS, PFC_SOURCES, VERD
 from server.db import Database
 from server.launch import ServerProcess
 from server.models import ModelVersion, Participant, utcnow
-from tests.server.conftest import ADMIN_TOKEN, honest
-from tests.server.live import create_unstarted_auction, paced_auction, submit_population
+from tests.support.factories import honest
+from tests.support.live import create_unstarted_auction, paced_auction, submit_population
+from tests.support.server import ADMIN_TOKEN
 
 playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is a dev extra")
 

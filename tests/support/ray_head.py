@@ -1,6 +1,6 @@
 """A throw-away Ray cluster on this machine for tests and benchmarks.
 
-``python -m tests.server.ray_head CPUS`` starts a one-node Ray instance (token authentication
+``python -m tests.support.ray_head CPUS`` starts a one-node Ray instance (token authentication
 on, dashboard off, its own temporary folder), prints the port of its GCS, and stops it when
 its stdin closes. ``RayHead`` runs that as a child process in a session of its own and stops
 exactly that cluster: nothing else on the machine is touched.
@@ -54,7 +54,7 @@ class RayHead:
 
     def start(self) -> RayHead:
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "tests.server.ray_head", str(self.cpus), str(self.temp)],
+            [sys.executable, "-m", "tests.support.ray_head", str(self.cpus), str(self.temp)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=(self.temp / "head.log").open("w"),

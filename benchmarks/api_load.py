@@ -30,6 +30,7 @@ import json
 import os
 import secrets
 import statistics
+import sys
 import tempfile
 import time
 from collections import deque
@@ -42,6 +43,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.support
 
 from agents.negotiator import honest_manifest
 from server.launch import ServerProcess, settings_environment

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.sim.test_market
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.support
 
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest

@@ -31,7 +31,7 @@ from typing import Any
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.support.ray_head
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.support
 
 from server.jobs.ray_backend import RayRunner
 from sim import units

@@ -27,6 +27,7 @@ import asyncio
 import json
 import secrets
 import statistics
+import sys
 import tempfile
 import time
 from collections import defaultdict
@@ -38,6 +39,8 @@ from typing import Any
 
 import httpx
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.support
 
 from agents.negotiator import honest_manifest, saboteur_manifest
 from server.launch import ServerProcess, settings_environment

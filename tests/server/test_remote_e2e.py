@@ -86,7 +86,10 @@ def admin(server: ServerProcess) -> dict[str, str]:
     return {"Authorization": f"Bearer {server.admin_token}"}
 
 
-def test_honest_and_bait_and_switch_agents_and_a_killed_one(server: ServerProcess) -> None:
+def play_with_agents_and_a_victim(server: ServerProcess) -> tuple[int, int, set[int], Any]:
+    """``srd agents`` (6 honest, 2 bait-and-switch) and a victim agent that is killed -9 in its
+    round-2 fine-tuning, in one remote auction: (auction id, victim's model id, saboteur model
+    ids, the agents' --json report)."""
     prefix = f"e2e-{secrets.token_hex(3)}"
     victim_name = f"{prefix}-victim"
     victim = subprocess.Popen(
@@ -151,16 +154,13 @@ def test_honest_and_bait_and_switch_agents_and_a_killed_one(server: ServerProces
                 process.kill()
                 process.wait()
     assert agents.returncode == 0, err
-    report = json.loads(out)
-    auction = get(server, f"/auctions/{auction_id}")
-    assert auction["status"] == "finished", auction["error"]
-    history = auction["history"]
-    assert [row["iteration"] for row in history] == list(range(len(history)))
-    rounds = auction["fine_tuning"]
-    assert [r["round"] for r in rounds] == [1, 2, 3][: len(rounds)] and len(rounds) >= 2
-    assert report["agents"] == 8 and report["auctions"] == [auction_id]
-    assert report["uploads"]["late"] == 0 and report["bytes_up"] > 0 and report["bytes_down"] > 0
+    return auction_id, victim_id, saboteurs, json.loads(out)
 
+
+def check_answers(server: ServerProcess, auction_id: int, saboteurs: set[int], report: Any) -> None:
+    """Bait-and-switch uploads refused (stored with reasons, version 1 bids on); honest ones
+    accepted as versions of their round; the report counts them."""
+    rounds = get(server, f"/auctions/{auction_id}")["fine_tuning"]
     answers = [(r, a) for r in rounds for a in r["answers"]]
     sabotage = [a for _, a in answers if a["model_id"] in saboteurs]
     assert sabotage and all(a["outcome"] == "refused" and a["version"] == 1 for a in sabotage)
@@ -179,6 +179,19 @@ def test_honest_and_bait_and_switch_agents_and_a_killed_one(server: ServerProces
         assert version["round"] == round_["round"] and version["auction_id"] == auction_id
     assert report["uploads"]["accepted"] >= len(accepted)
 
+
+def test_honest_and_bait_and_switch_agents_and_a_killed_one(server: ServerProcess) -> None:
+    auction_id, victim_id, saboteurs, report = play_with_agents_and_a_victim(server)
+    auction = get(server, f"/auctions/{auction_id}")
+    assert auction["status"] == "finished", auction["error"]
+    history = auction["history"]
+    assert [row["iteration"] for row in history] == list(range(len(history)))
+    rounds = auction["fine_tuning"]
+    assert [r["round"] for r in rounds] == [1, 2, 3][: len(rounds)] and len(rounds) >= 2
+    assert report["agents"] == 8 and report["auctions"] == [auction_id]
+    assert report["uploads"]["late"] == 0 and report["bytes_up"] > 0 and report["bytes_down"] > 0
+
+    check_answers(server, auction_id, saboteurs, report)
     by_round = {r["round"]: {a["model_id"]: a for a in r["answers"]} for r in rounds}
     assert by_round[1][victim_id]["outcome"] == "accepted"
     assert by_round[2][victim_id]["outcome"] == "missing"

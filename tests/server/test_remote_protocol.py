@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from agents.manifest import parse_manifest
+from agents.manifest import Manifest, parse_manifest
 from agents.remote import RoundInfo, always_hold, faithful_fine_tune
 from screener import screen
 from server.remote_rounds import watcher
@@ -166,26 +166,23 @@ def stored_versions(client: TestClient, participant: str) -> int:
     return len(client.get("/models", params={"participant": participant}).json()["items"])
 
 
-def test_upload_refusals_name_the_field_and_store_nothing(
-    client: TestClient, remote: dict[str, Any]
+def refused(response: Any, status: int, loc: list[Any], words: str) -> None:
+    """The response is a refusal with this status, naming ``loc`` and saying ``words``."""
+    assert response.status_code == status, response.text
+    assert loc in loc_of(response), response.text
+    assert words in response.text, response.text
+
+
+def refuse_every_bad_upload(
+    client: TestClient, remote: dict[str, Any], position: int, tuned: Manifest
 ) -> None:
-    auction_id, state = remote["id"], remote["state"]
-    # An honest one (even position: the next test switches the odd ones).
-    position = next(
-        p for p, (m, _) in enumerate(remote["patrons"]) if m in state["asked"] and p % 2 == 0
-    )
+    """Each wrong way to upload ``tuned`` for the patron at ``position`` is refused by name:
+    token, path, round, size, body, a changed design, a patron not asked."""
+    auction_id = remote["id"]
     model_id, token = remote["patrons"][position]
-    manifest = parse_manifest(remote["manifests"][position])
-    name = manifest.participant
-    other_model, other_token = next((m, t) for m, t in remote["patrons"] if m != model_id)
-    tuned = faithful_fine_tune(manifest, RoundInfo.from_state(state, position))
+    name = tuned.participant
+    _, other_token = next((m, t) for m, t in remote["patrons"] if m != model_id)
     good = tuned.model_dump_json().encode()
-
-    def refused(response: Any, status: int, loc: list[Any], words: str) -> None:
-        assert response.status_code == status, response.text
-        assert loc in loc_of(response), response.text
-        assert words in response.text, response.text
-
     refused(
         put(client, auction_id, 1, model_id, good, None), 401, ["header", "Authorization"], "token"
     )
@@ -248,6 +245,24 @@ def test_upload_refusals_name_the_field_and_store_nothing(
         ["path", "model_id"],
         "not asked in round 1",
     )
+
+
+def test_upload_refusals_name_the_field_and_store_nothing(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    auction_id, state = remote["id"], remote["state"]
+    # An honest one (even position: the next test switches the odd ones).
+    position = next(
+        p for p, (m, _) in enumerate(remote["patrons"]) if m in state["asked"] and p % 2 == 0
+    )
+    model_id, token = remote["patrons"][position]
+    manifest = parse_manifest(remote["manifests"][position])
+    name = manifest.participant
+    other_model, other_token = next((m, t) for m, t in remote["patrons"] if m != model_id)
+    tuned = faithful_fine_tune(manifest, RoundInfo.from_state(state, position))
+    good = tuned.model_dump_json().encode()
+
+    refuse_every_bad_upload(client, remote, position, tuned)
     # Nothing of these was stored: no version, no answer.
     assert stored_versions(client, name) == 1
     auction = client.get(f"/auctions/{auction_id}").json()

@@ -115,6 +115,75 @@ def assert_played_once(
     assert lease is None  # released once played
 
 
+def start_work(
+    servers: list[ServerProcess], admin: dict[str, str], ids: list[int]
+) -> tuple[list[int], list[int]]:
+    """Four auctions and two fish jobs, created alternately on the two replicas: their ids."""
+    auctions = [
+        httpx.post(
+            servers[seed % 2].url + "/auctions",
+            json={"n_fish": 2, "seed": seed, "model_ids": ids},
+            headers=admin,
+            timeout=60,
+        ).json()["auction_id"]
+        for seed in range(4)
+    ]
+    jobs = [
+        httpx.post(
+            servers[i].url + "/jobs",
+            json={"kind": "fish", "params": {"steps": 300 + i}},
+            headers=admin,
+            timeout=60,
+        ).json()["job_id"]
+        for i in range(2)
+    ]
+    return auctions, jobs
+
+
+def check_read_alike(
+    servers: list[ServerProcess], ids: list[int], auctions: list[int], jobs: list[int]
+) -> None:
+    """Lists, resources and event streams read the same from either replica."""
+    for path in ("/auctions", "/jobs", "/models", f"/models/{ids[0]}"):
+        assert get(servers[0], path) == get(servers[1], path), path
+    for auction_id in auctions:
+        assert get(servers[0], f"/auctions/{auction_id}") == get(
+            servers[1], f"/auctions/{auction_id}"
+        )
+    stream = f"/auctions/{auctions[0]}/events"
+    assert events(servers[0], stream) == events(servers[1], stream)
+    stream = f"/jobs/{jobs[0]}/events"
+    assert events(servers[0], stream)[-1] == events(servers[1], stream)[-1]
+
+
+def check_cancel_reaches_the_playing_replica(
+    servers: list[ServerProcess], admin: dict[str, str], postgres_url: str
+) -> None:
+    """A job cancelled on one replica is stopped by the other, which runs it, at its next
+    lease renewal."""
+    long_job = httpx.post(
+        servers[0].url + "/jobs",
+        json={"kind": "fish", "params": {"steps": 1_000_000}},  # minutes: still running
+        headers=admin,
+        timeout=60,
+    ).json()["job_id"]
+    wait_for(
+        lambda: get(servers[0], f"/jobs/{long_job}"),
+        lambda j: j["status"] == "running",
+        TIMEOUT_S,
+    )
+    owner = lease_owner(postgres_url, Job, long_job)
+    playing = next(s for s in servers if s.process and f":{s.process.pid}:" in owner)
+    other = next(s for s in servers if s is not playing)
+    cancelled = httpx.delete(f"{other.url}/jobs/{long_job}", headers=admin, timeout=60)
+    assert cancelled.json()["status"] == "cancelled"
+    wait_for(  # the replica running it notices at its next lease renewal and stops it
+        lambda: {"log": playing.log_path.read_text()},
+        lambda s: f"job {long_job}: lease lost; stopped here" in s["log"],
+        10 * LEASE_S,
+    )
+
+
 @pytest.mark.postgres
 def test_two_replicas_play_each_auction_and_job_once_and_read_alike(
     postgres_url: str, tmp_path: Path
@@ -130,24 +199,7 @@ def test_two_replicas_play_each_auction_and_job_once_and_read_alike(
             httpx.post(servers[i % 2].url + "/submit", json=m, timeout=60).json()["model_id"]
             for i, m in enumerate(manifests)
         ]
-        auctions = [
-            httpx.post(
-                servers[seed % 2].url + "/auctions",
-                json={"n_fish": 2, "seed": seed, "model_ids": ids},
-                headers=admin,
-                timeout=60,
-            ).json()["auction_id"]
-            for seed in range(4)
-        ]
-        jobs = [
-            httpx.post(
-                servers[i].url + "/jobs",
-                json={"kind": "fish", "params": {"steps": 300 + i}},
-                headers=admin,
-                timeout=60,
-            ).json()["job_id"]
-            for i in range(2)
-        ]
+        auctions, jobs = start_work(servers, admin, ids)
         done = [
             wait_for(
                 lambda a=auction_id: get(servers[0], f"/auctions/{a}"),
@@ -164,37 +216,8 @@ def test_two_replicas_play_each_auction_and_job_once_and_read_alike(
             )
             for job_id in jobs
         ]
-        for path in ("/auctions", "/jobs", "/models", f"/models/{ids[0]}"):
-            assert get(servers[0], path) == get(servers[1], path), path
-        for auction_id in auctions:
-            assert get(servers[0], f"/auctions/{auction_id}") == get(
-                servers[1], f"/auctions/{auction_id}"
-            )
-        stream = f"/auctions/{auctions[0]}/events"
-        assert events(servers[0], stream) == events(servers[1], stream)
-        stream = f"/jobs/{jobs[0]}/events"
-        assert events(servers[0], stream)[-1] == events(servers[1], stream)[-1]
-        long_job = httpx.post(
-            servers[0].url + "/jobs",
-            json={"kind": "fish", "params": {"steps": 1_000_000}},  # minutes: still running
-            headers=admin,
-            timeout=60,
-        ).json()["job_id"]
-        wait_for(
-            lambda: get(servers[0], f"/jobs/{long_job}"),
-            lambda j: j["status"] == "running",
-            TIMEOUT_S,
-        )
-        owner = lease_owner(postgres_url, Job, long_job)
-        playing = next(s for s in servers if s.process and f":{s.process.pid}:" in owner)
-        other = next(s for s in servers if s is not playing)
-        cancelled = httpx.delete(f"{other.url}/jobs/{long_job}", headers=admin, timeout=60)
-        assert cancelled.json()["status"] == "cancelled"
-        wait_for(  # the replica running it notices at its next lease renewal and stops it
-            lambda: {"log": playing.log_path.read_text()},
-            lambda s: f"job {long_job}: lease lost; stopped here" in s["log"],
-            10 * LEASE_S,
-        )
+        check_read_alike(servers, ids, auctions, jobs)
+        check_cancel_reaches_the_playing_replica(servers, admin, postgres_url)
         artifact = f"/jobs/{jobs[1]}/artifacts/energy.csv"
         assert (
             httpx.get(servers[0].url + artifact).content

@@ -71,6 +71,43 @@ def get(server: ServerProcess, path: str) -> dict[str, Any]:
     return dict(response.json())
 
 
+def check_rows_at_kill(database: Database, auction_id: int, job_id: int) -> int:
+    """What the killed server left: the auction running with a round or more committed, the
+    job running in its first attempt. Returns the auction's iteration at the kill."""
+    with database.session(write=False) as session:
+        at_kill = session.scalars(select(Auction).where(Auction.id == auction_id)).one()
+        committed = session.scalar(
+            select(func.count()).where(AuctionIteration.auction_id == auction_id)
+        )
+        job_at_kill = session.scalars(select(Job).where(Job.id == job_id)).one()
+    assert at_kill.status == "running" and at_kill.finished_at is None
+    assert committed == at_kill.iteration >= 1  # a round or more committed, not finished
+    assert job_at_kill.status == "running" and job_at_kill.attempt == 1
+    return at_kill.iteration
+
+
+def check_same_as_uninterrupted(
+    auction: dict[str, Any], manifests: list[dict[str, Any]], ids: list[int]
+) -> None:
+    """The resumed auction's records equal the same auction run without a kill."""
+    history = auction["history"]
+    config = MarketConfig(n_fish=AUCTION["n_fish"], fine_tune=True, seed=AUCTION["seed"])
+    market = Market(
+        [parse_manifest(m) for m in manifests],
+        config,
+        rescreen=lambda _i, m: screen(m).accepted,
+    )
+    records = list(market.run())
+    assert [row["price"] for row in history] == [r.price for r in records]
+    assert [row["votes"] for row in history] == [r.votes for r in records]
+    assert [row["row_votes"] for row in history] == [r.row_votes for r in records]
+    assert [(b["model_id"], b["price"]) for b in auction["buyers"]] == [
+        (ids[i], price) for r in records for i, price in r.buyers
+    ]
+    assert auction["quitters"] == [ids[i] for r in records for i in r.quitters]
+    assert auction["stop_reason"] == records[-1].stop_reason
+
+
 def test_kill_9_then_restart_resumes_auction_and_requeues_job(
     database_url: str, tmp_path: Path
 ) -> None:
@@ -103,15 +140,7 @@ def test_kill_9_then_restart_resumes_auction_and_requeues_job(
         assert state["status"] == "running"
 
         database = Database(database_url)
-        with database.session(write=False) as session:
-            at_kill = session.scalars(select(Auction).where(Auction.id == auction_id)).one()
-            committed = session.scalar(
-                select(func.count()).where(AuctionIteration.auction_id == auction_id)
-            )
-            job_at_kill = session.scalars(select(Job).where(Job.id == job_id)).one()
-        assert at_kill.status == "running" and at_kill.finished_at is None
-        assert committed == at_kill.iteration >= 1  # a round or more committed, not finished
-        assert job_at_kill.status == "running" and job_at_kill.attempt == 1
+        iteration_at_kill = check_rows_at_kill(database, auction_id, job_id)
         assert len(workers) >= 3  # screening, auction and job workers
         wait_for(lambda: {"alive": [p for p in workers if alive(p)]}, lambda s: not s["alive"], 10)
 
@@ -135,23 +164,9 @@ def test_kill_9_then_restart_resumes_auction_and_requeues_job(
     assert auction["status"] == "finished", auction["error"]
     history = auction["history"]
     assert [row["iteration"] for row in history] == list(range(len(history)))
-    assert len(history) > at_kill.iteration
+    assert len(history) > iteration_at_kill
 
-    config = MarketConfig(n_fish=AUCTION["n_fish"], fine_tune=True, seed=AUCTION["seed"])
-    market = Market(
-        [parse_manifest(m) for m in manifests],
-        config,
-        rescreen=lambda _i, m: screen(m).accepted,
-    )
-    records = list(market.run())
-    assert [row["price"] for row in history] == [r.price for r in records]
-    assert [row["votes"] for row in history] == [r.votes for r in records]
-    assert [row["row_votes"] for row in history] == [r.row_votes for r in records]
-    assert [(b["model_id"], b["price"]) for b in auction["buyers"]] == [
-        (ids[i], price) for r in records for i, price in r.buyers
-    ]
-    assert auction["quitters"] == [ids[i] for r in records for i in r.quitters]
-    assert auction["stop_reason"] == records[-1].stop_reason
+    check_same_as_uninterrupted(auction, manifests, ids)
     with database.session(write=False) as session:
         purchases = session.scalar(select(func.count()).where(Purchase.auction_id == auction_id))
         rows = session.scalar(select(func.count()).where(AuctionIteration.auction_id == auction_id))

@@ -6,8 +6,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from datetime import datetime
+from typing import Any
 
-from sqlalchemy import bindparam, select
+from sqlalchemy import Select, bindparam, select
 from sqlalchemy.orm import Session
 
 from server.crud.auctions import AUCTION_HISTORY
@@ -67,30 +68,24 @@ _AUCTION_STATE = select(
 _ROUNDS = AUCTION_HISTORY.where(AuctionIteration.iteration >= bindparam("first")).where(
     AuctionIteration.iteration < bindparam("stop")
 )
-_ROUND_PURCHASES = (
-    select(
-        Purchase.iteration,
-        Purchase.model_id,
-        Participant.name,
-        ModelVersion.version,
-        Purchase.price,
+
+
+def _patrons_leaving(table: type[Purchase] | type[Quit], *extra: Any) -> Select[Any]:
+    """(iteration, model id, participant, version, *extra) of the patrons who bought (or quit)
+    in the iterations first ≤ i < stop of an auction, in the order they were written."""
+    return (
+        select(table.iteration, table.model_id, Participant.name, ModelVersion.version, *extra)
+        .join(ModelVersion, ModelVersion.id == table.model_id)
+        .join(Participant, Participant.id == ModelVersion.participant_id)
+        .where(table.auction_id == bindparam("auction_id"))
+        .where(table.iteration >= bindparam("first"))
+        .where(table.iteration < bindparam("stop"))
+        .order_by(table.id)
     )
-    .join(ModelVersion, ModelVersion.id == Purchase.model_id)
-    .join(Participant, Participant.id == ModelVersion.participant_id)
-    .where(Purchase.auction_id == bindparam("auction_id"))
-    .where(Purchase.iteration >= bindparam("first"))
-    .where(Purchase.iteration < bindparam("stop"))
-    .order_by(Purchase.id)
-)
-_ROUND_QUITS = (
-    select(Quit.iteration, Quit.model_id, Participant.name, ModelVersion.version)
-    .join(ModelVersion, ModelVersion.id == Quit.model_id)
-    .join(Participant, Participant.id == ModelVersion.participant_id)
-    .where(Quit.auction_id == bindparam("auction_id"))
-    .where(Quit.iteration >= bindparam("first"))
-    .where(Quit.iteration < bindparam("stop"))
-    .order_by(Quit.id)
-)
+
+
+_ROUND_PURCHASES = _patrons_leaving(Purchase, Purchase.price)
+_ROUND_QUITS = _patrons_leaving(Quit)
 
 
 def auction_state(session: Session, *, auction_id: int) -> AuctionState | None:

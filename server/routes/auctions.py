@@ -8,6 +8,7 @@ from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
 from server import crud
+from server.crud.auctions import HistoryRow
 from server.deps import AdminDep, AuctionRunnerDep, SessionDep
 from server.errors import link, responses
 from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
@@ -47,6 +48,19 @@ def create_auction(
     return AuctionCreated(auction_id=auctions.create_auction(session, runner, body))
 
 
+def iteration_public(row: HistoryRow | crud.AuctionRound) -> IterationPublic:
+    """One committed round as ``history`` and the ``iteration`` event show it."""
+    return IterationPublic(
+        iteration=row.iteration,
+        price=row.price,
+        n_available=row.n_available,
+        votes=Votes(**row.votes),
+        row_votes=Votes(**row.row_votes),
+        next_price=row.next_price,
+        n_available_after=row.n_available_after,
+    )
+
+
 def auction_public(view: crud.AuctionView) -> AuctionPublic:
     """The GET shape of an auction: the fields clients rely on, plus extras."""
     auction = view.auction
@@ -57,18 +71,7 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
         price=auction.price,
         n_available=auction.n_available,
         n_initial=auction.n_initial,
-        history=[
-            IterationPublic(
-                iteration=row.iteration,
-                price=row.price,
-                n_available=row.n_available,
-                votes=Votes(**row.votes),
-                row_votes=Votes(**row.row_votes),
-                next_price=row.next_price,
-                n_available_after=row.n_available_after,
-            )
-            for row in view.history
-        ],
+        history=[iteration_public(row) for row in view.history],
         buyers=[
             BuyerPublic(model_id=p.model_id, price=p.price, iteration=p.iteration)
             for p in view.purchases

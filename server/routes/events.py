@@ -32,7 +32,7 @@ from server.deps import DatabaseDep, EventHubDep, SettingsDep
 from server.errors import api_error, responses
 from server.events import EventHub, Poll
 from server.models import Job
-from server.routes.auctions import fine_tune_round_public
+from server.routes.auctions import fine_tune_round_public, iteration_public
 from server.schemas import (
     AuctionEndEvent,
     AuctionIdPath,
@@ -42,7 +42,6 @@ from server.schemas import (
     JobPublic,
     PatronPublic,
     RoundPurchasePublic,
-    Votes,
 )
 from server.services import auctions, jobs
 from server.status import AUCTION_ENDED, JOB_ENDED, RoundStatus
@@ -192,13 +191,7 @@ def _patron(ref: crud.PatronRef) -> PatronPublic:
 def iteration_event(row: crud.AuctionRound) -> IterationEvent:
     """The ``data`` of one round's event."""
     return IterationEvent(
-        iteration=row.iteration,
-        price=row.price,
-        n_available=row.n_available,
-        votes=Votes(**row.votes),
-        row_votes=Votes(**row.row_votes),
-        next_price=row.next_price,
-        n_available_after=row.n_available_after,
+        **dict(iteration_public(row)),
         purchases=[
             RoundPurchasePublic(**_patron(p.patron).model_dump(), price=p.price)
             for p in row.purchases

@@ -24,20 +24,7 @@ ARTIFACT_TYPES = ("image/png", "image/gif", "text/csv", "application/json", "tex
 
 
 def _job_public(job: Job) -> JobPublic:
-    return JobPublic(
-        id=job.id,
-        kind=job.kind,
-        status=job.status,
-        progress=job.progress,
-        message=job.message,
-        params=job.params,
-        result=job.result,
-        error=job.error,
-        artifacts=job.artifacts,
-        created_at=job.created_at,
-        started_at=job.started_at,
-        finished_at=job.finished_at,
-    )
+    return JobPublic.model_validate(job, from_attributes=True)
 
 
 @router.post(

@@ -52,23 +52,6 @@ class JobCreated(BaseModel):
     status: JobStatus
 
 
-class JobPublic(BaseModel):
-    """A job; ``result`` is the CLI's ``--json`` object once it succeeded."""
-
-    id: int
-    kind: str
-    status: JobStatus
-    progress: Annotated[float, Field(ge=0, le=1)]
-    message: str
-    params: dict[str, Any]
-    result: dict[str, Any] | None
-    error: str | None
-    artifacts: list[str]
-    created_at: datetime
-    started_at: datetime | None
-    finished_at: datetime | None
-
-
 class JobSummaryPublic(BaseModel):
     """A job as a list shows it (its result and error are on ``GET /jobs/{id}``)."""
 
@@ -81,6 +64,14 @@ class JobSummaryPublic(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+
+
+class JobPublic(JobSummaryPublic):
+    """A job; ``result`` is the CLI's ``--json`` object once it succeeded."""
+
+    result: dict[str, Any] | None
+    error: str | None
+    artifacts: list[str]
 
 
 class JobPage(BaseModel):

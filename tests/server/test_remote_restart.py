@@ -20,6 +20,7 @@ from server.launch import ServerProcess
 from server.models import Auction, FineTuneAnswer, FineTuneRound, ModelVersion, Purchase
 from sim.market import MarketConfig
 from tests.support.factories import honest
+from tests.support.processes import server_pair
 from tests.support.remote import replay
 from tests.support.server import wait_for
 
@@ -123,11 +124,7 @@ def check_stored_once(database: Database, auction: dict[str, Any]) -> None:
 def test_kill_9_in_the_middle_of_a_round_then_restart(
     fresh_database_url: str, tmp_path: Path
 ) -> None:
-    token = secrets.token_hex(16)
-    admin = {"Authorization": f"Bearer {token}"}
-    data_dir = tmp_path / "data"
-    first = ServerProcess(database_url=fresh_database_url, data_dir=data_dir, admin_token=token)
-    second = ServerProcess(database_url=fresh_database_url, data_dir=data_dir, admin_token=token)
+    (first, second), admin = server_pair(fresh_database_url, tmp_path)
     try:
         first.start()
         remote = RemoteAuction.create(first, admin)

@@ -11,8 +11,7 @@ server on a SQLite database refuses to start, saying why.
 
 from __future__ import annotations
 
-import secrets
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +28,7 @@ from sim.market import Market, MarketConfig
 from tests.support.databases import postgres_admin_url, throwaway_postgres
 from tests.support.factories import honest
 from tests.support.live import sse_events
+from tests.support.processes import server_pair
 from tests.support.server import QUOTAS_OFF, wait_for
 
 LEASE_S = 2.0
@@ -46,20 +46,6 @@ def postgres_url() -> Iterator[str]:
         pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
     with throwaway_postgres(admin_url) as url:
         yield url
-
-
-def replicas(database_url: str, tmp_path: Path, token: str) -> list[ServerProcess]:
-    """Two servers on one database and one data folder (the job artifacts are shared)."""
-    return [
-        ServerProcess(
-            database_url=database_url,
-            data_dir=tmp_path / "data",
-            admin_token=token,
-            extra_env=ENV,
-            log_path=tmp_path / f"serve-{name}.log",
-        )
-        for name in ("a", "b")
-    ]
 
 
 def get(server: ServerProcess, path: str) -> Any:
@@ -116,7 +102,7 @@ def assert_played_once(
 
 
 def start_work(
-    servers: list[ServerProcess], admin: dict[str, str], ids: list[int]
+    servers: Sequence[ServerProcess], admin: dict[str, str], ids: list[int]
 ) -> tuple[list[int], list[int]]:
     """Four auctions and two fish jobs, created alternately on the two replicas: their ids."""
     auctions = [
@@ -141,7 +127,7 @@ def start_work(
 
 
 def check_read_alike(
-    servers: list[ServerProcess], ids: list[int], auctions: list[int], jobs: list[int]
+    servers: Sequence[ServerProcess], ids: list[int], auctions: list[int], jobs: list[int]
 ) -> None:
     """Lists, resources and event streams read the same from either replica."""
     for path in ("/auctions", "/jobs", "/models", f"/models/{ids[0]}"):
@@ -157,7 +143,7 @@ def check_read_alike(
 
 
 def check_cancel_reaches_the_playing_replica(
-    servers: list[ServerProcess], admin: dict[str, str], postgres_url: str
+    servers: Sequence[ServerProcess], admin: dict[str, str], postgres_url: str
 ) -> None:
     """A job cancelled on one replica is stopped by the other, which runs it, at its next
     lease renewal."""
@@ -188,9 +174,7 @@ def check_cancel_reaches_the_playing_replica(
 def test_two_replicas_play_each_auction_and_job_once_and_read_alike(
     postgres_url: str, tmp_path: Path
 ) -> None:
-    token = secrets.token_hex(16)
-    admin = {"Authorization": f"Bearer {token}"}
-    servers = replicas(postgres_url, tmp_path, token)
+    servers, admin = server_pair(postgres_url, tmp_path, ENV)
     manifests = [honest(f"replica-{i:02d}", seed=300 + i) for i in range(8)]
     try:
         for server in servers:
@@ -242,9 +226,7 @@ def test_two_replicas_play_each_auction_and_job_once_and_read_alike(
 def test_kill_9_of_the_replica_playing_an_auction_the_other_finishes_it(
     postgres_url: str, tmp_path: Path
 ) -> None:
-    token = secrets.token_hex(16)
-    admin = {"Authorization": f"Bearer {token}"}
-    servers = replicas(postgres_url, tmp_path, token)
+    servers, admin = server_pair(postgres_url, tmp_path, ENV)
     manifests = [honest(f"killed-{i:02d}", seed=200 + i) for i in range(64)]
     database = Database(postgres_url)
     try:

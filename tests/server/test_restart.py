@@ -12,7 +12,6 @@ then cancelled. The workers of the killed server must not outlive it.
 from __future__ import annotations
 
 import os
-import secrets
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ from server.models import Auction, AuctionIteration, Job, Purchase
 from sim.market import Market, MarketConfig
 from tests.support.databases import fresh_database
 from tests.support.factories import honest
+from tests.support.processes import server_pair
 from tests.support.server import wait_for
 
 N_PATRONS = 64
@@ -112,11 +112,7 @@ def test_kill_9_then_restart_resumes_auction_and_requeues_job(
     database_url: str, tmp_path: Path
 ) -> None:
     manifests = [honest(f"restart-{i:02d}", seed=200 + i) for i in range(N_PATRONS)]
-    token = secrets.token_hex(16)
-    admin = {"Authorization": f"Bearer {token}"}
-    data_dir = tmp_path / "data"
-    first = ServerProcess(database_url=database_url, data_dir=data_dir, admin_token=token)
-    second = ServerProcess(database_url=database_url, data_dir=data_dir, admin_token=token)
+    (first, second), admin = server_pair(database_url, tmp_path)
     try:
         first.start()
         with httpx.Client(base_url=first.url, timeout=60) as client:

@@ -12,7 +12,7 @@
    publishing (the round committed → the last agent has it), the agents' own fine-tuning (each
    agent alone, as on its own machine; run here one after another and reported, not counted),
    upload (first upload sent → last answer, re-screening included), re-screening alone (the
-   round's uploads through ``screener.screen_many`` in batches of 16, as the screening process
+   round's uploads through ``screener.rescreen_many`` in batches of 16, as the screening process
    judges them, timed in this process), and closing (last answer → the round closed and its
    checkpoint committed → the next round published, which includes the market's next
    iteration). The protocol's overhead is everything but the fine-tuning; target ≤ 50 ms per
@@ -31,6 +31,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import os
 import secrets
 import statistics
 import sys
@@ -53,7 +54,7 @@ from agents.fine_tuning import derive_seeds, draw_fine_tune_seeded
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
 from agents.remote import ONE_CONNECTION, Client, RoundInfo, faithful_fine_tune
-from screener import screen_many
+from screener import rescreen_many
 from server.launch import ServerProcess, settings_environment
 from server.screening import MAX_BATCH
 from tests.support.databases import postgres_admin_url, throwaway_postgres
@@ -84,11 +85,53 @@ class RoundTiming:
     next_round: float | None
     bytes_implicit: int
     bytes_explicit: int
+    cpu: Cpu
+    """Used during the HTTP phases (close, publish and upload), fine-tuning left out."""
 
     @property
     def overhead(self) -> float:
         """Everything but the agents' fine-tuning."""
         return self.publish + self.upload + self.close + (self.next_round or 0.0)
+
+
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def tree_cpu(root: int) -> float:
+    """CPU seconds (user + system) used so far by process ``root`` and its live descendants
+    (the API, its screening process and its workers)."""
+    stats: dict[int, tuple[int, float]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        with contextlib.suppress(OSError):
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            stats[int(entry.name)] = (int(fields[1]), (int(fields[11]) + int(fields[12])))
+    tree, frontier = {root}, [root]
+    while frontier:
+        parent = frontier.pop()
+        children = [pid for pid, (ppid, _) in stats.items() if ppid == parent]
+        tree.update(children)
+        frontier += children
+    return sum(stats[pid][1] for pid in tree if pid in stats) / CLOCK_TICKS
+
+
+@dataclass
+class Cpu:
+    """CPU seconds of the server (its whole process tree) and of this driver process."""
+
+    server: float
+    driver: float
+
+    @classmethod
+    def now(cls, server_pid: int) -> Cpu:
+        return cls(tree_cpu(server_pid), time.process_time())
+
+    def __sub__(self, other: Cpu) -> Cpu:
+        return Cpu(self.server - other.server, self.driver - other.driver)
+
+    def __add__(self, other: Cpu) -> Cpu:
+        return Cpu(self.server + other.server, self.driver + other.driver)
 
 
 def stamp(text: str) -> float:
@@ -159,19 +202,24 @@ class Played:
     before: list[tuple[int, Manifest]]
     """(position, manifest it fine-tuned from) of every asked agent."""
     changed: list[Manifest]
+    cpu: Cpu
 
 
-async def play_auction(client: Client, agents: list[Agent], auction_id: int) -> list[RoundTiming]:
+async def play_auction(
+    client: Client, agents: list[Agent], auction_id: int, server_pid: int
+) -> list[RoundTiming]:
     """Answer every round of the auction with all its active agents, phase by phase (the next
     long polls go out as soon as the uploads are answered, as real agents do); the phases and
     the bytes are worked out once the auction has ended."""
     played: list[Played] = []
     active = list(agents)
     after = 0
+    mark = Cpu.now(server_pid)
     while active:
         path = f"/auctions/{auction_id}/rounds/current?wait={WAIT_S}&after={after}"
         received: list[float] = []
         state = (await asyncio.gather(*(receive(a, path, received) for a in active)))[0]
+        published = Cpu.now(server_pid) - mark
         if state["auction_status"] not in ("pending", "running") or state["status"] != "open":
             break
         active = [a for a in active if a.model_id in state["asked"]]
@@ -183,6 +231,7 @@ async def play_auction(client: Client, agents: list[Agent], auction_id: int) -> 
                 faithful_fine_tune(agent.current, RoundInfo.from_state(state, agent.position))
             )
             costs.append(time.perf_counter() - started)
+        before_upload = Cpu.now(server_pid)
         sent = time.time()
         answers = await asyncio.gather(
             *(
@@ -191,11 +240,13 @@ async def play_auction(client: Client, agents: list[Agent], auction_id: int) -> 
             )
         )
         answered = time.time()
+        mark = Cpu.now(server_pid)
+        cpu = published + (mark - before_upload)
         for agent, manifest, answer in zip(active, tuned, answers, strict=True):
             if answer["accepted"]:
                 agent.current = manifest
         changed = [m for m, (_, b) in zip(tuned, before, strict=True) if m != b]
-        played.append(Played(state, received, costs, sent, answered, before, changed))
+        played.append(Played(state, received, costs, sent, answered, before, changed, cpu))
         after = state["round"]
     auction = await client.json("GET", f"/auctions/{auction_id}")
     rounds = {r["round"]: r for r in auction["fine_tuning"]}
@@ -206,7 +257,7 @@ async def play_auction(client: Client, agents: list[Agent], auction_id: int) -> 
         following = rounds.get(p.state["round"] + 1)
         started = time.perf_counter()
         for first in range(0, len(p.changed), MAX_BATCH):
-            screen_many(p.changed[first : first + MAX_BATCH])
+            rescreen_many(p.changed[first : first + MAX_BATCH])
         rescreen = time.perf_counter() - started
         uploads = sum(a["bytes_in"] + a["bytes_out"] for a in closing["answers"])
         explicit = sum(explicit_answer_bytes(p.state, m, position) for position, m in p.before)
@@ -224,12 +275,15 @@ async def play_auction(client: Client, agents: list[Agent], auction_id: int) -> 
                 next_round=None if following is None else stamp(following["opened_at"]) - closed_at,
                 bytes_implicit=closing["bytes_total"],
                 bytes_explicit=explicit + uploads,
+                cpu=p.cpu,
             )
         )
     return timings
 
 
 async def run(server: ServerProcess, n_agents: int, n_auctions: int) -> list[RoundTiming]:
+    assert server.process is not None
+    server_pid = server.process.pid
     async with contextlib.AsyncExitStack() as stack:
         clients = [
             Client(
@@ -275,7 +329,7 @@ async def run(server: ServerProcess, n_agents: int, n_auctions: int) -> list[Rou
             created = await clients[0].json(
                 "POST", "/auctions", body=json.dumps(body).encode(), token=ADMIN_TOKEN
             )
-            timings += await play_auction(clients[0], agents, created["auction_id"])
+            timings += await play_auction(clients[0], agents, created["auction_id"], server_pid)
         return timings
 
 
@@ -308,6 +362,8 @@ def report(timings: list[RoundTiming], n_agents: int) -> None:
         ("next iteration published", [t.next_round for t in full if t.next_round is not None]),
         ("protocol overhead (target ≤ 50 ms)", [t.overhead for t in full]),
         ("  of which not re-screening", [t.overhead - t.rescreen for t in full]),
+        ("server CPU in the HTTP phases", [t.cpu.server for t in full]),
+        ("  driver CPU in the same phases", [t.cpu.driver for t in full]),
         ("agents' fine-tuning, summed", [t.fine_tune_sum for t in timings]),
         ("agents' fine-tuning, slowest agent", [t.fine_tune_max for t in timings]),
     ):

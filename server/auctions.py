@@ -12,18 +12,21 @@ unreadable, round count disagreeing) is marked failed with the reason.
 
 Remote fine-tuning (``fine_tune_mode`` "remote"): an iteration after which the patrons
 fine-tune is committed together with an open ``FineTuneRound`` row (rows, seeds, the asked
-patrons, an absolute deadline). The worker then polls the database every ``ROUND_POLL_S`` for
-the answers the API stores, until every asked patron has answered or the deadline has passed,
-whichever comes first. It closes the round in ONE transaction: the round's status, a
-``missing`` answer for each silent patron, the accepted versions applied to the market, and
-the new checkpoint. A restart in the middle of a round finds the round still open (its
-checkpoint is the one from before the round) and waits for it again until the same deadline;
-nothing is applied twice.
+patrons, an absolute deadline). The worker then counts the answers the API stores, until
+every asked patron has answered or the deadline has passed, whichever comes first. It counts
+them whenever the upload writer rings the round's doorbell after storing answers
+(``server.doorbell``), and at the bell's fallback period. It closes the round in ONE
+transaction: the round's status, a ``missing`` answer for each silent patron, the accepted
+versions applied to the market, and the new checkpoint. After each of its commits it rings
+the round watcher of the API process that started it. A restart in the middle of a round
+finds the round still open (its checkpoint is the one from before the round) and waits for it
+again until the same deadline; nothing is applied twice.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections.abc import Sequence
 from datetime import timedelta
@@ -33,7 +36,7 @@ from sqlalchemy.orm import Session, selectinload, undefer
 
 from agents.manifest import Manifest, parse_manifest
 from screener import rescreen
-from server import crud
+from server import crud, doorbell
 from server.db import Database
 from server.models import (
     Auction,
@@ -55,8 +58,9 @@ from sim.market import IterationRecord, Market, MarketConfig
 log = logging.getLogger("srd.auctions")
 
 ROUND_POLL_S = 0.002
-"""How often a worker looks for the answers of its open fine-tuning round: the round closes
-within this long of its last answer."""
+"""How often a worker looks for the answers of its open fine-tuning round where it has no
+doorbell (``server.doorbell``; elsewhere it counts them when rung, and at the bell's fallback
+period): the round closes within this long of its last answer."""
 
 
 class ResumeError(RuntimeError):
@@ -184,13 +188,22 @@ def _wait_for_answers(database: Database, round_id: int, asked: int, deadline: f
         .where(FineTuneAnswer.round_id == round_id)
         .where(FineTuneAnswer.outcome.in_(ANSWERED))
     )
-    while True:
-        with database.session(write=False) as session:
-            answered = session.connection().scalar(count) or 0
-        left = deadline - time.time()
-        if answered >= asked or left <= 0:
-            return
-        time.sleep(min(ROUND_POLL_S, left))
+    # Listening before the first count: a ring for an answer stored after it is never lost.
+    bell = doorbell.listen(doorbell.scope(database.url), doorbell.round_bell(round_id))
+    try:
+        while True:
+            with database.session(write=False) as session:
+                answered = session.connection().scalar(count) or 0
+            left = deadline - time.time()
+            if answered >= asked or left <= 0:
+                return
+            if bell is None:
+                time.sleep(min(ROUND_POLL_S, left))
+            else:
+                bell.wait(min(doorbell.FALLBACK_S, left))
+    finally:
+        if bell is not None:
+            bell.close()
 
 
 def _close_round(
@@ -327,12 +340,14 @@ def _drive(database: Database, auction_id: int) -> None:
             log.warning("auction %d changed while it was being loaded; not driven", auction_id)
             return
         session.commit()
+    bells, watchers = doorbell.scope(database.url), doorbell.watch_bell(os.getppid())
     while not market.finished:
         pending = market.pending_round
         if pending is not None:
             if not _close_round(database, auction_id, market, pending):
                 log.warning("auction %d: round closed elsewhere; this runner stops", auction_id)
                 return
+            doorbell.ring(bells, watchers)
             continue
         record = market.step()
         blob = market.checkpoint()
@@ -348,6 +363,7 @@ def _drive(database: Database, auction_id: int) -> None:
             ):
                 log.warning("auction %d advanced elsewhere; this runner stops", auction_id)
                 return
+        doorbell.ring(bells, watchers)
 
 
 def _patron_manifests(session: Session, patrons: Sequence[AuctionPatron]) -> list[Manifest]:

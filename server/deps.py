@@ -2,7 +2,9 @@
 tokens, each an ``Annotated`` type a route parameter names (``session: SessionDep``).
 
 The services live in ``app.state.services`` (``server.services.Services``, made by the app's
-lifespan); these are the only readers of ``app.state``.
+lifespan); these are the only readers of ``app.state``. The ones that only look something up
+are ``async def``: FastAPI runs a plain ``def`` dependency on its thread pool, a thread hop per
+dependency per request for an attribute read.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from server.services import Services
 from server.submissions import SubmissionWriter
 
 
-def _services(request: Request) -> Services:
+async def _services(request: Request) -> Services:
     services: Services = request.app.state.services
     return services
 
@@ -35,48 +37,48 @@ def _services(request: Request) -> Services:
 ServicesDep = Annotated[Services, Depends(_services)]
 
 
-def _settings(request: Request) -> Settings:
+async def _settings(request: Request) -> Settings:
     settings: Settings = request.app.state.settings
     return settings
 
 
-def _database(services: ServicesDep) -> Database:
+async def _database(services: ServicesDep) -> Database:
     return services.database
 
 
-def _screening(services: ServicesDep) -> ScreeningService:
+async def _screening(services: ServicesDep) -> ScreeningService:
     return services.screening
 
 
-def _submissions(services: ServicesDep) -> SubmissionWriter:
+async def _submissions(services: ServicesDep) -> SubmissionWriter:
     return services.submissions
 
 
-def _uploads(services: ServicesDep) -> UploadWriter:
+async def _uploads(services: ServicesDep) -> UploadWriter:
     return services.uploads
 
 
-def _upload_lookup(services: ServicesDep) -> UploadLookup:
+async def _upload_lookup(services: ServicesDep) -> UploadLookup:
     return services.upload_lookup
 
 
-def _rounds(services: ServicesDep) -> RoundWatcher:
+async def _rounds(services: ServicesDep) -> RoundWatcher:
     return services.rounds
 
 
-def _auctions(services: ServicesDep) -> BackgroundRunner:
+async def _auctions(services: ServicesDep) -> BackgroundRunner:
     return services.auctions
 
 
-def _jobs(services: ServicesDep) -> BackgroundRunner:
+async def _jobs(services: ServicesDep) -> BackgroundRunner:
     return services.jobs
 
 
-def _compute(services: ServicesDep) -> JobCompute:
+async def _compute(services: ServicesDep) -> JobCompute:
     return services.compute
 
 
-def _events(services: ServicesDep) -> EventHub:
+async def _events(services: ServicesDep) -> EventHub:
     return services.events
 
 

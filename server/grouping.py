@@ -175,7 +175,7 @@ class GroupWriter(Generic[Item, Result]):
 
     ``conflict`` is an item's answer when its own write hits a unique constraint,
     ``unavailable`` every item's answer when the database fails, ``stopping`` the answer once
-    ``shutdown`` has begun."""
+    ``shutdown`` has begun; ``after_commit`` is told each group once it is committed."""
 
     def __init__(
         self,
@@ -188,9 +188,11 @@ class GroupWriter(Generic[Item, Result]):
         stopping: Result,
         idle_s: float | None = None,
         after_pass: Callable[[], None] | None = None,
+        after_commit: Callable[[list[Item]], None] | None = None,
     ) -> None:
         self._name = name
         self._database = database
+        self._after_commit = after_commit
         self._decide = decide
         self._conflict = conflict
         self._unavailable = unavailable
@@ -236,4 +238,6 @@ class GroupWriter(Generic[Item, Result]):
             log.error("%s: a group of %d not stored: %s", self._name, len(group), exc)
             return [self._unavailable(exc)] * len(group)
         self.groups += 1
+        if self._after_commit is not None:
+            self._after_commit(group)
         return results

@@ -1,9 +1,11 @@
 """The round watcher: long polls of ``GET /auctions/{id}/rounds/current``.
 
 However many agents wait on an auction, this process reads that auction's round from the
-database at most once per ``WATCH_POLL_S``: one asyncio task per watched auction polls while
-anyone waits and wakes every waiter when a round opens or the auction ends, and requests that
-do not wait share the latest snapshot while it is younger than that (the snapshots of
+database once per wake-up: one asyncio task per watched auction reads it while anyone waits,
+whenever this process's doorbell rings (its auction workers ring it after every commit,
+``server.doorbell``) and at the bell's fallback period otherwise (every ``WATCH_POLL_S``
+without a bell), and wakes every waiter when a round opens or the auction ends. Requests that
+do not wait share the latest snapshot while it is younger than ``WATCH_POLL_S`` (the snapshots of
 ``MAX_WATCHED`` auctions are kept). The answer body of a round is built once (its 64 × 8 rows
 serialised once) and shared by all its waiters; only ``seconds_left`` is written per answer.
 Waiters are bounded (``MAX_WAITERS`` per process; beyond that 503 with Retry-After). The bytes
@@ -17,13 +19,14 @@ import asyncio
 import contextlib
 import json
 import logging
+import os
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any, Literal
 
 from starlette.concurrency import run_in_threadpool
 
-from server import crud
+from server import crud, doorbell
 from server.db import Database
 from server.models import utcnow
 from server.remote_rounds.writer import UploadWriter
@@ -32,7 +35,8 @@ from server.status import AUCTION_UNFINISHED, RoundStatus
 log = logging.getLogger("srd.rounds")
 
 WATCH_POLL_S = 0.004
-"""How often a watched auction's round is read while agents wait on it."""
+"""The age below which a snapshot is shared rather than read again; without a doorbell, also
+how often a watched auction's round is read while agents wait on it."""
 MAX_WAIT_S = 30.0
 """Longest ``?wait=`` a round request may ask for."""
 MAX_WAITERS = 2048
@@ -78,6 +82,8 @@ class _Watch:
     changed: asyncio.Event = field(default_factory=asyncio.Event)
     waiters: int = 0
     poller: asyncio.Task[None] | None = None
+    read_ring: int = -1
+    """The watcher's ring count when the snapshot's read began (a later ring: read again)."""
     template: tuple[int | None, str, bytes, bytes] | None = None
     """(round id, status, body before and after ``seconds_left``) of the last answer built."""
 
@@ -94,11 +100,49 @@ class RoundWatcher:
         self._writer = writer
         self._watches: dict[int, _Watch] = {}
         self._waiters = 0
+        self._bell: doorbell.Bell | None = None
+        self._bell_tried = False
+        self._rings = 0
+        self._rung = asyncio.Event()
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    def _listen(self) -> None:
+        """Bind this process's watch bell, rung by its auction workers after every commit, and
+        read it on the running event loop (done on a loop's first round request)."""
+        loop = asyncio.get_running_loop()
+        if self._loop is loop:
+            return
+        if self._loop is not None and self._bell is not None:
+            with contextlib.suppress(RuntimeError, ValueError):
+                self._loop.remove_reader(self._bell.fileno())
+        self._loop, self._rung = loop, asyncio.Event()
+        if not self._bell_tried:
+            self._bell_tried = True
+            self._bell = doorbell.listen(
+                doorbell.scope(self._database.url), doorbell.watch_bell(os.getpid())
+            )
+        if self._bell is not None:
+            loop.add_reader(self._bell.fileno(), self._on_ring)
+
+    def _on_ring(self) -> None:
+        if self._bell is not None and self._bell.drain():
+            self._rings += 1
+            self._rung.set()
+            self._rung = asyncio.Event()
+
+    async def _pause(self) -> None:
+        """Until the bell rings, or the fallback period passes (without a bell: a short poll)."""
+        if self._bell is None:
+            await asyncio.sleep(WATCH_POLL_S)
+            return
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._rung.wait(), doorbell.FALLBACK_S)
 
     async def current(self, auction_id: int, *, wait_s: float, after: int) -> bytes | None:
         """The answer body for the auction's newest round (None: no such auction), after up to
         ``wait_s`` seconds of waiting for a round above ``after`` to open."""
         loop = asyncio.get_running_loop()
+        self._listen()
         watch = self._watches.setdefault(auction_id, _Watch())
         snapshot = await self._fresh(auction_id, watch)
         if snapshot is None:
@@ -140,9 +184,14 @@ class RoundWatcher:
             del self._watches[auction_id]
 
     async def _fresh(self, auction_id: int, watch: _Watch) -> RoundSnapshot | None:
-        """The snapshot, read again if older than ``WATCH_POLL_S`` (one read shared by all)."""
+        """The snapshot, read again if older than ``WATCH_POLL_S`` or the bell rang since its
+        read began (one read shared by all)."""
         loop = asyncio.get_running_loop()
-        if watch.snapshot is not None and loop.time() - watch.read_at < WATCH_POLL_S:
+        if (
+            watch.snapshot is not None
+            and loop.time() - watch.read_at < WATCH_POLL_S
+            and watch.read_ring == self._rings
+        ):
             return watch.snapshot
         if watch.reading is None:
             watch.reading = asyncio.ensure_future(self._read(auction_id, watch))
@@ -150,9 +199,10 @@ class RoundWatcher:
 
     async def _read(self, auction_id: int, watch: _Watch) -> RoundSnapshot | None:
         try:
-            known = watch.snapshot
+            known, rings = watch.snapshot, self._rings
             snapshot = await run_in_threadpool(self._query, auction_id, known)
             watch.snapshot, watch.read_at = snapshot, asyncio.get_running_loop().time()
+            watch.read_ring = rings
             if snapshot is None or known is None or _key(snapshot) != _key(known):
                 watch.changed.set()
                 watch.changed = asyncio.Event()
@@ -172,11 +222,12 @@ class RoundWatcher:
             return RoundSnapshot(head, crud.round_body(session, round_id=head.round_id))
 
     async def _poll(self, auction_id: int, watch: _Watch) -> None:
-        """Read the auction again every ``WATCH_POLL_S`` while anyone waits on it."""
+        """Read the auction again whenever the bell rings (and at its fallback period) while
+        anyone waits on it."""
         try:
             while watch.waiters > 0:
                 await self._fresh(auction_id, watch)
-                await asyncio.sleep(WATCH_POLL_S)
+                await self._pause()
         except Exception:  # a failed read wakes the waiters, who answer what they have
             log.exception("watching the rounds of auction %d failed", auction_id)
             watch.changed.set()
@@ -201,6 +252,13 @@ class RoundWatcher:
             if watch.poller is not None:
                 watch.poller.cancel()
         self._watches.clear()
+        if self._bell is not None:
+            if self._loop is not None:
+                with contextlib.suppress(RuntimeError, ValueError):
+                    self._loop.remove_reader(self._bell.fileno())
+            self._bell.close()
+            self._bell = None
+        self._loop, self._bell_tried = None, False
 
 
 def _key(snapshot: RoundSnapshot) -> tuple[Any, ...]:

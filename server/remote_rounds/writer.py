@@ -25,7 +25,7 @@ from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session
 
 from screener import Verdict
-from server import crud
+from server import crud, doorbell
 from server.db import Database
 from server.grouping import GroupWriter, unavailable_message
 from server.models import FineTuneAnswer, FineTuneRound, Participant, utcnow
@@ -346,6 +346,7 @@ class UploadWriter(GroupWriter[UploadRequest, UploadOutcome]):
     def __init__(self, database: Database) -> None:
         self._published: dict[int, int] = defaultdict(int)
         self._published_lock = threading.Lock()
+        self._bells = doorbell.scope(database.url)
         super().__init__(
             "upload-writer",
             database,
@@ -355,7 +356,13 @@ class UploadWriter(GroupWriter[UploadRequest, UploadOutcome]):
             stopping=UploadRefused(503, "the server is stopping", ("body",), "stopping"),
             idle_s=FLUSH_S,
             after_pass=self._flush_published,
+            after_commit=self._ring,
         )
+
+    def _ring(self, group: list[UploadRequest]) -> None:
+        """Wake the workers waiting on the group's rounds (``server.auctions``)."""
+        for round_id in sorted({item.round_id for item in group}):
+            doorbell.ring(self._bells, doorbell.round_bell(round_id))
 
     def count_published(self, round_id: int, n_bytes: int) -> None:
         """Add to a round's published-bytes counter (written within ``FLUSH_S``)."""

@@ -216,13 +216,17 @@ class ScreeningService:
             return None if self._process is None else self._process.pid
 
     def shutdown(self) -> None:
-        """Tell the process to stop (it answers what it holds first) and wait for it."""
+        """Tell the process to stop (it answers what it holds first) and wait for it; with
+        nothing in flight it holds nothing worth waiting for (it may still be importing
+        torch), so it is terminated at once."""
         with self._lock:
             self._stopping = True
-            conn, process = self._conn, self._process
-            if conn is not None:
+            conn, process, idle = self._conn, self._process, not self._pending
+            if conn is not None and not idle:
                 with contextlib.suppress(OSError, ValueError):
                     conn.send(None)
+        if process is not None and idle and process.is_alive():
+            process.terminate()
         if process is not None:
             process.join(STOP_GRACE_S)
             if process.is_alive():

@@ -36,7 +36,7 @@ from agents.manifest import (
     Manifest,
     Participant,
 )
-from agents.neurons import SELECTIVE_EPSILON
+from agents.neuron_defaults import SELECTIVE_EPSILON
 
 # ---------------------------------------------------------------------------------------------
 # The designed weights (the reference's, docs/auction.md). δ is the small "seed" weight that

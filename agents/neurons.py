@@ -15,14 +15,23 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-SELECTIVE_EPSILON = 1e-4
-"""ε of the selective activation as it runs in the reference (its configured 1e-5 is unused)."""
-THRESHOLD_SHARPNESS = 5.0
-"""Default a of the threshold activation."""
-THRESHOLD_CENTRE = 0.0
-"""Default c of the threshold activation."""
-NEGATIVE_SLOPE = 0.01
-"""Default leaky-ReLU slope below the threshold (PyTorch's default)."""
+from agents.neuron_defaults import (
+    NEGATIVE_SLOPE,
+    SELECTIVE_EPSILON,
+    THRESHOLD_CENTRE,
+    THRESHOLD_SHARPNESS,
+)
+
+__all__ = [
+    "NEGATIVE_SLOPE",
+    "SELECTIVE_EPSILON",
+    "THRESHOLD_CENTRE",
+    "THRESHOLD_SHARPNESS",
+    "below_threshold",
+    "selective",
+    "self_reward_loss",
+    "threshold",
+]
 
 
 def selective(x: Tensor, epsilon: float | Tensor = SELECTIVE_EPSILON) -> Tensor:

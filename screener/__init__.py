@@ -22,22 +22,24 @@ At the door (``screen``, ``screen_many``) a model with fine-tuning settings is a
 alone through a reference auction's rounds, unchecked, and that version must pass the rules and
 probes (``fine-tuning-drift``) and, if it holds, the market-impact test; re-screening
 (``rescreen``) skips this, since every later fine-tuning round is re-screened in its turn.
-Every threshold is in ``screener.limits`` with its rationale.
+Every threshold is in ``screener.limits`` with its rationale. The judging modules (and torch)
+are imported when a model is first judged: the API process reads ``Verdict`` without them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
-from agents.batch import FSNBatch, from_manifests, to_manifest
-from agents.manifest import Manifest
-from screener.checks import cheap_checks, failed_any
-from screener.findings import Checks, check
-from screener.impact import impact_checks, project, rounds
 from screener.verdict import Reason, Verdict
+
+if TYPE_CHECKING:
+    from agents.batch import FSNBatch
+    from agents.manifest import Manifest
+    from screener.findings import Checks
 
 __all__ = ["Reason", "Verdict", "judge", "rescreen", "rescreen_many", "screen", "screen_many"]
 
@@ -45,6 +47,11 @@ __all__ = ["Reason", "Verdict", "judge", "rescreen", "rescreen_many", "screen", 
 def judge(batch: FSNBatch, *, at_the_door: bool) -> list[Verdict]:
     """Verdicts for a batch of models; ``at_the_door`` also judges each model's own
     fine-tuning (see the module docstring)."""
+    from agents.batch import to_manifest
+    from screener.checks import cheap_checks, failed_any
+    from screener.findings import check
+    from screener.impact import impact_checks, project
+
     groups, holds = cheap_checks(batch)
     passed = ~failed_any(groups)
     projected: list[tuple[int, Manifest]] = []
@@ -72,6 +79,8 @@ def judge(batch: FSNBatch, *, at_the_door: bool) -> list[Verdict]:
 
 def _drift_message(batch: FSNBatch, p: int, tuned: list[Checks], k: int) -> str:
     """Why model p's projected fine-tuned version (row k of ``tuned``) is refused."""
+    from screener.impact import rounds
+
     group, column = next((g, c) for g in tuned for c in range(len(g.rules)) if g.failed[k, c])
     return (
         f"after {rounds()} rounds of its own fine-tuning in a reference auction (lr "
@@ -94,6 +103,8 @@ def _verdicts(groups: list[Checks], n: int) -> list[Verdict]:
 
 def screen_many(manifests: Sequence[Manifest]) -> list[Verdict]:
     """Judge parsed manifests together at the door; one verdict each, in order."""
+    from agents.batch import from_manifests
+
     if not manifests:
         return []
     return judge(from_manifests(manifests), at_the_door=True)
@@ -107,6 +118,8 @@ def screen(manifest: Manifest) -> Verdict:
 def rescreen_many(manifests: Sequence[Manifest]) -> list[Verdict]:
     """Judge fine-tuned versions of admitted models (inside an auction that re-screens every
     round); one verdict each, in order."""
+    from agents.batch import from_manifests
+
     if not manifests:
         return []
     return judge(from_manifests(manifests), at_the_door=False)

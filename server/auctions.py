@@ -30,12 +30,12 @@ import os
 import time
 from collections.abc import Sequence
 from datetime import timedelta
+from typing import TYPE_CHECKING
 
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session, selectinload, undefer
 
 from agents.manifest import Manifest, parse_manifest
-from screener import rescreen
 from server import crud, doorbell
 from server.db import Database
 from server.models import (
@@ -52,8 +52,11 @@ from server.models import (
 from server.runner import WorkKind
 from server.status import ANSWERED, AUCTION_UNFINISHED, AnswerOutcome, AuctionStatus, RoundStatus
 from server.workers import WorkerContext, error_summary
-from sim.market import FineTuneRound as PendingRound
-from sim.market import IterationRecord, Market, MarketConfig
+from sim.market import MarketConfig
+
+if TYPE_CHECKING:
+    from sim.market import FineTuneRound as PendingRound
+    from sim.market import IterationRecord, Market, RescreenBatch
 
 log = logging.getLogger("srd.auctions")
 
@@ -83,12 +86,22 @@ def _market_config(auction: Auction) -> MarketConfig:
     )
 
 
+def rescreening() -> RescreenBatch:
+    """The re-screening of a server-mode auction's fine-tuned patrons: a patron stays in only
+    while the screener still accepts it (the one re-screening the study uses too)."""
+    from screener import rescreen
+
+    return rescreen
+
+
 def _load_market(auction: Auction, manifests: Sequence[Manifest]) -> Market:
+    # The market (and torch) is imported here, in the worker: the API process imports this
+    # module for its work kind and never plays an auction itself.
+    from sim.market import Market
+
     config = _market_config(auction)
     # Remote rounds are re-screened by the API as each upload arrives.
-    # A fine-tuned patron stays in only while the screener still accepts it (the one
-    # re-screening the study uses too).
-    judge = rescreen if auction.fine_tune and config.fine_tune_mode == "server" else None
+    judge = rescreening() if auction.fine_tune and config.fine_tune_mode == "server" else None
     if auction.checkpoint is None:
         if auction.iteration != 0:
             raise ResumeError(f"{auction.iteration} rounds are committed but no checkpoint is")

@@ -39,26 +39,55 @@ Modules, one job each:
 * ``records``: ``IterationRecord``, what an iteration reports;
 * ``engine``: ``MarketBatch``, the lock-step iteration (votes, price rules, rows, stops,
   fine-tuning and re-screening);
-* ``rounds``: the remote fine-tuning rounds (``FineTuneRound``, what an update may change);
+* ``design``: what a remote fine-tuning round's update may change (weights and biases only);
+* ``rounds``: the remote fine-tuning rounds (``FineTuneRound``, closing one);
 * ``checkpoint``: a batch's state and its bytes, to continue bit for bit;
 * ``auction``: ``Market``, one auction.
 """
 
 from __future__ import annotations
 
-from sim.market.auction import Market
-from sim.market.config import (
-    FineTuneMode,
-    MarketConfig,
-    fine_tunes_after,
-    fish_on_sale,
-    scores_all_rows,
-)
-from sim.market.engine import MarketBatch, Rescreen, RescreenBatch, single_thread
-from sim.market.items import item_rows
-from sim.market.randomness import AuctionRandom, round_seeds
-from sim.market.records import IterationRecord
-from sim.market.rounds import FineTuneRound, design_changes, round_update_problems
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from sim.market.auction import Market
+    from sim.market.config import (
+        FineTuneMode,
+        MarketConfig,
+        fine_tunes_after,
+        fish_on_sale,
+        scores_all_rows,
+    )
+    from sim.market.design import design_changes, round_update_problems
+    from sim.market.engine import MarketBatch, Rescreen, RescreenBatch, single_thread
+    from sim.market.items import item_rows
+    from sim.market.randomness import AuctionRandom, round_seeds
+    from sim.market.records import IterationRecord
+    from sim.market.rounds import FineTuneRound
+
+_HOMES = {
+    "AuctionRandom": "randomness",
+    "FineTuneMode": "config",
+    "FineTuneRound": "rounds",
+    "IterationRecord": "records",
+    "Market": "auction",
+    "MarketBatch": "engine",
+    "MarketConfig": "config",
+    "Rescreen": "engine",
+    "RescreenBatch": "engine",
+    "design_changes": "design",
+    "fine_tunes_after": "config",
+    "fish_on_sale": "config",
+    "item_rows": "items",
+    "round_seeds": "randomness",
+    "round_update_problems": "design",
+    "scores_all_rows": "config",
+    "single_thread": "engine",
+}
+"""Each name of the package and the module it lives in. A name is imported on first use, so
+the rules (``config``, ``design``) come without torch: the API process reads them and never
+loads the engine."""
 
 __all__ = [
     "AuctionRandom",
@@ -79,3 +108,13 @@ __all__ = [
     "scores_all_rows",
     "single_thread",
 ]
+assert set(__all__) == set(_HOMES), "every name of the package has its home"
+
+
+def __getattr__(name: str) -> Any:
+    home = _HOMES.get(name)
+    if home is None:
+        raise AttributeError(f"module 'sim.market' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"sim.market.{home}"), name)
+    globals()[name] = value
+    return value

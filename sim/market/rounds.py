@@ -1,23 +1,23 @@
-"""Remote fine-tuning rounds: the round an auction leaves pending (``FineTuneRound``), the
-updates the patrons bring back (only their weights and biases may change), and closing it."""
+"""Remote fine-tuning rounds: the round an auction leaves pending (``FineTuneRound``) and
+closing it with the updates the patrons bring back (only their weights and biases may change:
+``sim.market.design``)."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from agents.batch import from_manifests, to_manifest
 from agents.manifest import Manifest
+from sim.market.design import round_update_problems
 from sim.market.randomness import round_seeds
 
 if TYPE_CHECKING:
     from sim.market.engine import MarketBatch
-
-FROZEN_IN_ROUNDS = "only weights and biases change in a fine-tuning round"
 
 
 @dataclass(frozen=True)
@@ -32,30 +32,6 @@ class FineTuneRound:
     augmentation_seed: int
     patrons: list[int]
     """Positions of the patrons asked (the active ones)."""
-
-
-def round_update_problems(current: Manifest, update: Manifest) -> list[tuple[str, str]]:
-    """What ``update`` changes beyond the weights and biases of ``current``, as (dotted path,
-    message) pairs: a fine-tuning round moves the numbers, never the model's design
-    (activations, augmentation, settings, names)."""
-    return design_changes(current.model_dump(mode="json"), update.model_dump(mode="json"))
-
-
-def design_changes(current: dict[str, Any], update: dict[str, Any]) -> list[tuple[str, str]]:
-    """``round_update_problems`` on the manifests' JSON forms."""
-    problems: list[tuple[str, str]] = []
-
-    def walk(before: Any, after: Any, path: tuple[str, ...]) -> None:
-        if path[-1:] == ("bias",) or path[-2:-1] == ("weights",):
-            return
-        if isinstance(before, dict) and isinstance(after, dict) and before.keys() == after.keys():
-            for key in before:
-                walk(before[key], after[key], (*path, key))
-        elif before != after:
-            problems.append((".".join(path), f"{FROZEN_IN_ROUNDS}: must stay {before!r}"))
-
-    walk(current, update, ())
-    return problems
 
 
 def pending_round(engine: MarketBatch, auction: int) -> FineTuneRound | None:

@@ -15,7 +15,7 @@ from sim.studies import Setting, plan_auction, run_auctions
 
 
 def test_the_server_and_the_study_share_the_one_rescreening():
-    assert server.auctions.rescreen is screener.rescreen
+    assert server.auctions.rescreening() is screener.rescreen
 
 
 def test_rescreen_keeps_what_the_screener_accepts():

@@ -22,7 +22,7 @@ The agents here are driven in phases (all receive, all fine-tune, all upload at 
 the phases can be timed apart; ``srd agents`` interleaves them per agent.
 
 Run: ``.venv/bin/python benchmarks/remote_traffic.py [--agents 64] [--auctions 3]
-[--postgres]``
+[--postgres] [--no-access-log]``
 """
 
 from __future__ import annotations
@@ -382,6 +382,9 @@ def main() -> None:
     parser.add_argument("--agents", type=int, default=64, help="agents per auction")
     parser.add_argument("--auctions", type=int, default=3, help="auctions played one by one")
     parser.add_argument("--postgres", action="store_true", help="PostgreSQL instead of SQLite")
+    parser.add_argument(
+        "--no-access-log", action="store_true", help="serve with SRD_ACCESS_LOG=false"
+    )
     args = parser.parse_args()
     with ExitStack() as stack:
         folder = Path(stack.enter_context(tempfile.TemporaryDirectory()))
@@ -395,7 +398,8 @@ def main() -> None:
             database_url=url,
             data_dir=folder / "data",
             admin_token=ADMIN_TOKEN,
-            extra_env=settings_environment(QUOTAS_OFF),  # hundreds of agents from one address
+            # hundreds of agents from one address
+            extra_env=settings_environment({**QUOTAS_OFF, "access_log": not args.no_access_log}),
         )
         stack.enter_context(server)
         backend = "PostgreSQL" if args.postgres else "SQLite"

@@ -33,5 +33,6 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         host=host or settings.host,
         port=settings.port if port is None else port,
         log_level=log_level,
+        access_log=settings.access_log,
         timeout_graceful_shutdown=10,
     )

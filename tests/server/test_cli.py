@@ -182,3 +182,24 @@ def test_cheetah_and_lavaland_commands_run_and_refuse_bad_choices(tmp_path) -> N
     result = json.loads(outcome.stdout)
     assert result["project"] == "compare-A" and result["eval_maps"] == 16
     assert 0 <= result["accuracy_untrained"] <= 1 and 0 <= result["accuracy_srd"] <= 1
+
+
+@pytest.mark.parametrize(("value", "logged"), [(None, True), ("false", False), ("true", True)])
+def test_serve_logs_each_request_unless_told_not_to(monkeypatch, value, logged) -> None:
+    import uvicorn
+
+    from server.config import get_settings
+
+    seen: dict[str, object] = {}
+    monkeypatch.setattr(uvicorn, "run", lambda app, **options: seen.update(options))
+    if value is None:
+        monkeypatch.delenv("SRD_ACCESS_LOG", raising=False)
+    else:
+        monkeypatch.setenv("SRD_ACCESS_LOG", value)
+    get_settings.cache_clear()
+    try:
+        result = CliRunner().invoke(cli, ["serve", "--port", "0"])
+    finally:
+        get_settings.cache_clear()
+    assert result.exit_code == 0, result.output
+    assert seen["access_log"] is logged and seen["port"] == 0

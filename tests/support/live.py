@@ -15,7 +15,7 @@ from typing import Any
 import httpx
 import pytest
 
-import server.auctions
+import sim.market
 from server import crud
 from server.auctions import base_price, run_auction
 from server.db import Database
@@ -111,7 +111,7 @@ def paced_auction(
     market, the real per-round commits) in a thread of the test process, one round every
     ``pace_s``. The API process only reads what it commits, as it would from a worker."""
     monkeypatch.setattr(PacedMarket, "pace_s", pace_s)
-    monkeypatch.setattr(server.auctions, "Market", PacedMarket)
+    monkeypatch.setattr(sim.market, "Market", PacedMarket)  # what the worker imports
     context = WorkerContext(
         database_url=database_url, data_dir=str(data_dir), progress_interval_s=0.1, torch_threads=1
     )

@@ -30,9 +30,9 @@ pytestmark = pytest.mark.skipif(
 
 CPUS = 2
 JOBS = {
-    "auction-study": {"rarities": [0.3, 0.7], "trials": 16, "grid": True, "seed": 5},
-    "lavaland": {"eval_maps": 256, "train_maps": 512, "repeats": 3, "seed": 1},
-    "cheetah": {"backswing": [2.0, 4.0], "steps": 400, "trials": 20, "seed": 3},
+    "auction-study": {"rarities": [0.3, 0.7], "trials": 8, "grid": True, "seed": 5},
+    "lavaland": {"eval_maps": 128, "train_maps": 256, "repeats": 3, "seed": 1},
+    "cheetah": {"backswing": [2.0, 4.0], "steps": 200, "trials": 10, "seed": 3},
 }
 """Small jobs of several units each (auction-study 4, lavaland 3, cheetah 5)."""
 LONG_LAVALAND = {"eval_maps": 1024, "train_maps": 32768, "repeats": 2, "seed": 4}

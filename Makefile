@@ -21,7 +21,7 @@ demo: $(STAMP)
 	$(BIN)/python -m server.demo
 
 test: lint
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -n 2 --dist loadfile
 
 test-all: $(STAMP)
 	$(BIN)/pytest -q -m ''

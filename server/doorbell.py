@@ -64,9 +64,7 @@ class Bell:
         while True:
             try:
                 self._sock.recv(64)
-            except (BlockingIOError, InterruptedError):
-                return rung
-            except OSError:
+            except OSError:  # BlockingIOError: nothing more is queued
                 return rung
             rung = True
 

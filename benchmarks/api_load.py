@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import secrets
 import statistics
 import sys
@@ -49,6 +48,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.suppor
 from agents.negotiator import honest_manifest
 from server.launch import ServerProcess, settings_environment
 from tests.support.databases import postgres_admin_url, throwaway_postgres
+from tests.support.processes import cpu_seconds
 from tests.support.server import QUOTAS_OFF
 
 torch.set_num_threads(1)
@@ -166,15 +166,6 @@ class AuctionKeeper:
         return covered / (end - start)
 
 
-def process_cpu_s(pid: int) -> float | None:
-    """User + system CPU seconds of a process (Linux /proc), else None."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
 Request = Callable[[int], Awaitable[httpx.Response]]
 
 
@@ -255,11 +246,11 @@ async def phase(
     wall_start = datetime.now(UTC)
     began, cpu_before, load_before = (
         time.perf_counter(),
-        process_cpu_s(server_pid),
+        cpu_seconds(server_pid),
         time.process_time(),
     )
     latencies, errors = await run()
-    elapsed, cpu_after = time.perf_counter() - began, process_cpu_s(server_pid)
+    elapsed, cpu_after = time.perf_counter() - began, cpu_seconds(server_pid)
     load_cpu = time.process_time() - load_before
     running = await keeper.running_share(wall_start, datetime.now(UTC))
     ms = sorted(x * 1000 for x in latencies)

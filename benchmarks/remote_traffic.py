@@ -31,7 +31,6 @@ import argparse
 import asyncio
 import contextlib
 import json
-import os
 import secrets
 import statistics
 import sys
@@ -58,6 +57,7 @@ from screener import rescreen_many
 from server.launch import ServerProcess, settings_environment
 from server.screening import MAX_BATCH
 from tests.support.databases import postgres_admin_url, throwaway_postgres
+from tests.support.processes import cpu_seconds, descendants
 from tests.support.server import QUOTAS_OFF
 
 torch.set_num_threads(1)
@@ -94,26 +94,10 @@ class RoundTiming:
         return self.publish + self.upload + self.close + (self.next_round or 0.0)
 
 
-CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
-
-
 def tree_cpu(root: int) -> float:
-    """CPU seconds (user + system) used so far by process ``root`` and its live descendants
-    (the API, its screening process and its workers)."""
-    stats: dict[int, tuple[int, float]] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        with contextlib.suppress(OSError):
-            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
-            stats[int(entry.name)] = (int(fields[1]), (int(fields[11]) + int(fields[12])))
-    tree, frontier = {root}, [root]
-    while frontier:
-        parent = frontier.pop()
-        children = [pid for pid, (ppid, _) in stats.items() if ppid == parent]
-        tree.update(children)
-        frontier += children
-    return sum(stats[pid][1] for pid in tree if pid in stats) / CLOCK_TICKS
+    """CPU seconds used so far by process ``root`` and its live descendants (the API, its
+    screening process and its workers)."""
+    return sum(cpu_seconds(pid) or 0.0 for pid in descendants(root))
 
 
 @dataclass

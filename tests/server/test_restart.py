@@ -28,27 +28,13 @@ from server.models import Auction, AuctionIteration, Job, Purchase
 from sim.market import Market, MarketConfig
 from tests.support.databases import fresh_database
 from tests.support.factories import honest
-from tests.support.processes import server_pair
+from tests.support.processes import children, server_pair
 from tests.support.server import wait_for
 
 N_PATRONS = 64
 AUCTION = {"n_fish": 1, "fine_tune": True, "seed": 0}
 JOB = {"kind": "fish", "params": {"steps": 1_000_000, "srd": True}}  # minutes: still running
 TIMEOUT_S = 240
-
-
-def child_pids(pid: int) -> list[int]:
-    """Direct children of ``pid`` (from /proc)."""
-    children = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                stat = (entry / "stat").read_text()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                children.append(int(entry.name))
-    return children
 
 
 def alive(pid: int) -> bool:
@@ -131,7 +117,7 @@ def test_kill_9_then_restart_resumes_auction_and_requeues_job(
         state = wait_for(
             lambda: get(first, f"/auctions/{auction_id}"), lambda a: a["iteration"] >= 1, TIMEOUT_S
         )
-        workers = child_pids(first.process.pid)
+        workers = children(first.process.pid)
         first.kill()
         assert state["status"] == "running"
 

@@ -1,7 +1,9 @@
-"""Real ``srd serve`` processes for the crash, restart and replica tests."""
+"""Real ``srd serve`` processes for the crash, restart and replica tests, and what Linux's
+``/proc`` says of them (their children, their CPU time) for those tests and the benchmarks."""
 
 from __future__ import annotations
 
+import os
 import secrets
 from pathlib import Path
 
@@ -25,3 +27,47 @@ def server_pair(
         for name in ("a", "b")
     )
     return (a, b), {"Authorization": f"Bearer {token}"}
+
+
+def _stat(pid: int | str) -> list[str]:
+    """The fields of ``/proc/<pid>/stat`` after the command name (state first); raises
+    OSError for a process that is gone."""
+    return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+
+
+def _parents() -> dict[int, int]:
+    """Every live process and its parent, from one scan of ``/proc``."""
+    parents = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                parents[int(entry.name)] = int(_stat(entry.name)[1])
+            except OSError:
+                continue
+    return parents
+
+
+def children(pid: int) -> list[int]:
+    """Direct children of ``pid``."""
+    return [child for child, parent in _parents().items() if parent == pid]
+
+
+def descendants(pid: int) -> list[int]:
+    """``pid`` and every live process below it (one scan of ``/proc``)."""
+    parents = _parents()
+    tree, frontier = [pid], [pid]
+    while frontier:
+        up = frontier.pop()
+        below = [child for child, parent in parents.items() if parent == up]
+        tree += below
+        frontier += below
+    return tree
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds a process has used so far; None once it is gone."""
+    try:
+        fields = _stat(pid)
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")

@@ -19,10 +19,12 @@
    round with 64 agents.
 
 The agents here are driven in phases (all receive, all fine-tune, all upload at once) so that
-the phases can be timed apart; ``srd agents`` interleaves them per agent.
+the phases can be timed apart; ``srd agents`` interleaves them per agent. ``--transport
+websocket`` plays the same rounds over one round socket per agent (``agents.remote.RoundSocket``)
+instead of a long poll and a PUT per agent and round.
 
 Run: ``.venv/bin/python benchmarks/remote_traffic.py [--agents 64] [--auctions 3]
-[--postgres] [--no-access-log]``
+[--postgres] [--no-access-log] [--transport http|websocket]``
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ from agents.batch import from_manifests
 from agents.fine_tuning import derive_seeds, draw_fine_tune_seeded
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
-from agents.remote import ONE_CONNECTION, Client, RoundInfo, faithful_fine_tune
+from agents.remote import ONE_CONNECTION, Client, RoundInfo, RoundSocket, faithful_fine_tune
 from screener import rescreen_many
 from server.launch import ServerProcess, settings_environment
 from server.screening import MAX_BATCH
@@ -154,20 +156,31 @@ class Agent:
     token: str
     position: int
     current: Manifest
+    socket: RoundSocket | None = None
+    """Its round socket to the auction being played (``--transport websocket``)."""
 
 
-async def receive(agent: Agent, path: str, received: list[float]) -> dict[str, Any]:
-    """One agent's long poll; notes when its answer arrived."""
-    response = await agent.client.request("GET", path, timeout_s=WAIT_S + 10)
+async def receive(agent: Agent, path: str, after: int, received: list[float]) -> dict[str, Any]:
+    """One agent's long poll (or its socket's next round); notes when the round arrived."""
+    if agent.socket is not None:
+        state = await agent.socket.next_round(after)
+    else:
+        response = await agent.client.request("GET", path, timeout_s=WAIT_S + 10)
+        state = response.json()
     received.append(time.time())
-    return dict(response.json())
+    return dict(state)
 
 
-async def upload(round_path: str, agent: Agent, manifest: Manifest) -> Any:
+async def upload(auction_id: int, round_number: int, agent: Agent, manifest: Manifest) -> Any:
+    body = manifest.model_dump_json().encode()
+    if agent.socket is not None:
+        status, answer = await agent.socket.upload(round_number, agent.model_id, body)
+        assert status == 200, answer
+        return answer
     response = await agent.client.request(
         "PUT",
-        f"{round_path}/models/{agent.model_id}",
-        body=manifest.model_dump_json().encode(),
+        f"/auctions/{auction_id}/rounds/{round_number}/models/{agent.model_id}",
+        body=body,
         token=agent.token,
     )
     assert response.status_code == 200, response.text
@@ -190,11 +203,23 @@ class Played:
 
 
 async def play_auction(
-    client: Client, agents: list[Agent], auction_id: int, server_pid: int
+    client: Client, agents: list[Agent], auction_id: int, server_pid: int, transport: str
 ) -> list[RoundTiming]:
     """Answer every round of the auction with all its active agents, phase by phase (the next
     long polls go out as soon as the uploads are answered, as real agents do); the phases and
     the bytes are worked out once the auction has ended."""
+    async with contextlib.AsyncExitStack() as sockets:
+        if transport == "websocket":
+            opened = [RoundSocket(a.client.server, auction_id, a.token) for a in agents]
+            await asyncio.gather(*(sockets.enter_async_context(o) for o in opened))
+            for agent, socket in zip(agents, opened, strict=True):
+                agent.socket = socket
+        played = await play_rounds(agents, auction_id, server_pid)
+    return await timings_of(client, auction_id, played)
+
+
+async def play_rounds(agents: list[Agent], auction_id: int, server_pid: int) -> list[Played]:
+    """Every round of the auction, phase by phase, as the driver saw it."""
     played: list[Played] = []
     active = list(agents)
     after = 0
@@ -202,10 +227,13 @@ async def play_auction(
     while active:
         path = f"/auctions/{auction_id}/rounds/current?wait={WAIT_S}&after={after}"
         received: list[float] = []
-        state = (await asyncio.gather(*(receive(a, path, received) for a in active)))[0]
+        state = (await asyncio.gather(*(receive(a, path, after, received) for a in active)))[0]
         published = Cpu.now(server_pid) - mark
         if state["auction_status"] not in ("pending", "running") or state["status"] != "open":
             break
+        for gone in (a for a in active if a.model_id not in state["asked"]):
+            if gone.socket is not None:  # bought or quit: it leaves, as RemoteAgent does
+                await gone.socket.close()
         active = [a for a in active if a.model_id in state["asked"]]
         before = [(a.position, a.current) for a in active]
         tuned, costs = [], []
@@ -218,10 +246,7 @@ async def play_auction(
         before_upload = Cpu.now(server_pid)
         sent = time.time()
         answers = await asyncio.gather(
-            *(
-                upload(f"/auctions/{auction_id}/rounds/{state['round']}", a, m)
-                for a, m in zip(active, tuned, strict=True)
-            )
+            *(upload(auction_id, state["round"], a, m) for a, m in zip(active, tuned, strict=True))
         )
         answered = time.time()
         mark = Cpu.now(server_pid)
@@ -232,6 +257,11 @@ async def play_auction(
         changed = [m for m, (_, b) in zip(tuned, before, strict=True) if m != b]
         played.append(Played(state, received, costs, sent, answered, before, changed, cpu))
         after = state["round"]
+    return played
+
+
+async def timings_of(client: Client, auction_id: int, played: list[Played]) -> list[RoundTiming]:
+    """Each played round's phases, from the driver's clock and the auction's record."""
     auction = await client.json("GET", f"/auctions/{auction_id}")
     rounds = {r["round"]: r for r in auction["fine_tuning"]}
     timings = []
@@ -265,7 +295,9 @@ async def play_auction(
     return timings
 
 
-async def run(server: ServerProcess, n_agents: int, n_auctions: int) -> list[RoundTiming]:
+async def run(
+    server: ServerProcess, n_agents: int, n_auctions: int, transport: str
+) -> list[RoundTiming]:
     assert server.process is not None
     server_pid = server.process.pid
     async with contextlib.AsyncExitStack() as stack:
@@ -313,7 +345,9 @@ async def run(server: ServerProcess, n_agents: int, n_auctions: int) -> list[Rou
             created = await clients[0].json(
                 "POST", "/auctions", body=json.dumps(body).encode(), token=ADMIN_TOKEN
             )
-            timings += await play_auction(clients[0], agents, created["auction_id"], server_pid)
+            timings += await play_auction(
+                clients[0], agents, created["auction_id"], server_pid, transport
+            )
         return timings
 
 
@@ -369,6 +403,12 @@ def main() -> None:
     parser.add_argument(
         "--no-access-log", action="store_true", help="serve with SRD_ACCESS_LOG=false"
     )
+    parser.add_argument(
+        "--transport",
+        choices=("http", "websocket"),
+        default="http",
+        help="rounds by long poll and PUT, or over one round socket per agent",
+    )
     args = parser.parse_args()
     with ExitStack() as stack:
         folder = Path(stack.enter_context(tempfile.TemporaryDirectory()))
@@ -387,8 +427,11 @@ def main() -> None:
         )
         stack.enter_context(server)
         backend = "PostgreSQL" if args.postgres else "SQLite"
-        print(f"srd serve on {server.url} ({backend}); {args.auctions} auctions of {args.agents}")
-        timings = asyncio.run(run(server, args.agents, args.auctions))
+        print(
+            f"srd serve on {server.url} ({backend}); {args.auctions} auctions of {args.agents}"
+            f" agents over {args.transport}"
+        )
+        timings = asyncio.run(run(server, args.agents, args.auctions, args.transport))
     report(timings, args.agents)
 
 

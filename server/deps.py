@@ -15,13 +15,14 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
+from starlette.requests import HTTPConnection
 
 from server.config import Settings
 from server.db import Database
 from server.errors import api_error
 from server.events import EventHub
 from server.jobs.backend import JobCompute
-from server.remote_rounds import RoundWatcher, UploadLookup, UploadWriter
+from server.remote_rounds import RoundSockets, RoundWatcher, UploadLookup, UploadWriter
 from server.runner import BackgroundRunner
 from server.screening import ScreeningService
 from server.security import token_matches
@@ -29,16 +30,16 @@ from server.services import Services
 from server.submissions import SubmissionWriter
 
 
-async def _services(request: Request) -> Services:
-    services: Services = request.app.state.services
+async def _services(connection: HTTPConnection) -> Services:
+    services: Services = connection.app.state.services
     return services
 
 
 ServicesDep = Annotated[Services, Depends(_services)]
 
 
-async def _settings(request: Request) -> Settings:
-    settings: Settings = request.app.state.settings
+async def _settings(connection: HTTPConnection) -> Settings:
+    settings: Settings = connection.app.state.settings
     return settings
 
 
@@ -66,6 +67,10 @@ async def _rounds(services: ServicesDep) -> RoundWatcher:
     return services.rounds
 
 
+async def _round_sockets(services: ServicesDep) -> RoundSockets:
+    return services.sockets
+
+
 async def _auctions(services: ServicesDep) -> BackgroundRunner:
     return services.auctions
 
@@ -91,6 +96,7 @@ UploadsDep = Annotated[UploadWriter, Depends(_uploads)]
 """The group-commit writer of fine-tuning round uploads."""
 UploadLookupDep = Annotated[UploadLookup, Depends(_upload_lookup)]
 RoundsDep = Annotated[RoundWatcher, Depends(_rounds)]
+RoundSocketsDep = Annotated[RoundSockets, Depends(_round_sockets)]
 AuctionRunnerDep = Annotated[BackgroundRunner, Depends(_auctions)]
 JobRunnerDep = Annotated[BackgroundRunner, Depends(_jobs)]
 ComputeDep = Annotated[JobCompute, Depends(_compute)]

@@ -3,7 +3,8 @@ Sale Negotiator in each remote fine-tuning round (paper, "Implicit augmentation"
 rows travel; the agent's own model makes the D_ic noisy copies).
 
 ``RemoteAgent`` is the Python API for one participant with one model: ``submit`` it, find or
-join an auction, ``play`` it to the end. In each round the agent long-polls the round, runs its
+join an auction, ``play`` it to the end. In each round the agent receives the round (a long poll,
+or pushed on its round socket with ``transport="websocket"``), runs its
 ``fine_tuner`` (any code: ``(current manifest, RoundInfo) -> fine-tuned manifest``) and uploads
 the result with its token. ``faithful_fine_tune`` is what the server itself would do
 (``agents.fine_tuning.fine_tune_round`` on the agent's model alone, with the round's seeds and the
@@ -21,13 +22,21 @@ Modules, one job each:
 
 * ``client``: ``Client``, JSON over HTTP with retries and byte counting;
 * ``fine_tuners``: ``RoundInfo`` and the fine-tuners ``faithful_fine_tune`` and ``always_hold``;
+* ``socket``: ``RoundSocket``, one agent's WebSocket to an auction's rounds;
 * ``agent``: ``RemoteAgent``, one participant's protocol (submit, find, play);
 * ``population``: ``PopulationConfig`` and ``run_population``, many agents at once.
 """
 
 from __future__ import annotations
 
-from agents.remote.agent import ROUND_WAIT_S, RemoteAgent, RoundLog, Uploads
+from agents.remote.agent import (
+    ROUND_WAIT_S,
+    TRANSPORTS,
+    RemoteAgent,
+    RoundLog,
+    Transport,
+    Uploads,
+)
 from agents.remote.client import (
     GIVE_UP_S,
     HTTP_TIMEOUT_S,
@@ -47,6 +56,7 @@ from agents.remote.population import (
     population,
     run_population,
 )
+from agents.remote.socket import RoundSocket, socket_url
 
 __all__ = [
     "AUCTION_WAIT_S",
@@ -55,6 +65,7 @@ __all__ = [
     "MAX_AGENTS",
     "ONE_CONNECTION",
     "ROUND_WAIT_S",
+    "TRANSPORTS",
     "Client",
     "FineTuner",
     "PopulationConfig",
@@ -64,11 +75,14 @@ __all__ = [
     "RemoteError",
     "RoundInfo",
     "RoundLog",
+    "RoundSocket",
     "ServerGoneError",
     "Traffic",
+    "Transport",
     "Uploads",
     "always_hold",
     "faithful_fine_tune",
     "population",
     "run_population",
+    "socket_url",
 ]

@@ -1,17 +1,23 @@
 """``RemoteAgent``: one participant with one model over HTTP. It ``submit``s the model, finds
-the auctions it entered, and ``play``s one to the end: in each round it long-polls the round,
-runs its fine-tuner and uploads the result with its token."""
+the auctions it entered, and ``play``s one to the end: in each round it receives the round,
+runs its fine-tuner and uploads the result with its token. Its ``transport`` says how rounds
+travel: ``"http"`` (a long poll and a PUT per round) or ``"websocket"`` (one round socket for
+the auction, ``agents.remote.socket``)."""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 from agents.manifest import Manifest
 from agents.remote.client import HTTP_TIMEOUT_S, Client, RemoteError
 from agents.remote.fine_tuners import FineTuner, RoundInfo, faithful_fine_tune
+from agents.remote.socket import RoundSocket
+
+Transport = Literal["http", "websocket"]
+TRANSPORTS: tuple[Transport, ...] = ("http", "websocket")
 
 ROUND_WAIT_S = 25.0
 """Long-poll of one round request (the server allows up to 30 s)."""
@@ -49,8 +55,12 @@ class RemoteAgent:
         fine_tuner: FineTuner = faithful_fine_tune,
         token: str | None = None,
         model_id: int | None = None,
+        transport: Transport = "http",
     ) -> None:
+        if transport not in TRANSPORTS:
+            raise ValueError(f"transport must be one of {', '.join(TRANSPORTS)}, not {transport!r}")
         self.client = client
+        self.transport: Transport = transport
         self.current = manifest
         """The version the server lets this patron bid with (updated on every acceptance)."""
         self.fine_tuner = fine_tuner
@@ -99,16 +109,38 @@ class RemoteAgent:
         if self.submitted_id not in auction["model_ids"]:
             raise RemoteError(f"model {self.submitted_id} is not a patron of auction {auction_id}")
         position = auction["model_ids"].index(self.submitted_id)
+        if self.transport == "websocket":
+            async with RoundSocket(
+                self.client.server,
+                auction_id,
+                self.token,
+                give_up_s=self.client.give_up_s,
+                traffic=self.client.traffic,
+            ) as socket:
+                await self._play(auction_id, position, on_round, socket)
+        else:
+            await self._play(auction_id, position, on_round, None)
+
+    async def _play(
+        self,
+        auction_id: int,
+        position: int,
+        on_round: Callable[[RoundLog], None] | None,
+        socket: RoundSocket | None,
+    ) -> None:
         after = 0
         while True:
-            response = await self.client.request(
-                "GET",
-                f"/auctions/{auction_id}/rounds/current?wait={ROUND_WAIT_S}&after={after}",
-                timeout_s=HTTP_TIMEOUT_S + ROUND_WAIT_S,
-            )
-            if not response.is_success:
-                raise RemoteError(f"round of auction {auction_id}: {response.text[:500]}")
-            state = response.json()
+            if socket is not None:
+                state = await socket.next_round(after)
+            else:
+                response = await self.client.request(
+                    "GET",
+                    f"/auctions/{auction_id}/rounds/current?wait={ROUND_WAIT_S}&after={after}",
+                    timeout_s=HTTP_TIMEOUT_S + ROUND_WAIT_S,
+                )
+                if not response.is_success:
+                    raise RemoteError(f"round of auction {auction_id}: {response.text[:500]}")
+                state = response.json()
             received = time.monotonic()
             if state["auction_status"] not in ("pending", "running"):
                 return
@@ -117,25 +149,43 @@ class RemoteAgent:
             after = state["round"]
             if self.submitted_id not in state["asked"]:
                 return  # bought or quit: never asked again
-            entry = await self._answer(auction_id, state, position, received)
+            entry = await self._answer(auction_id, state, position, received, socket)
             if on_round is not None:
                 on_round(entry)
 
+    async def _send(
+        self, auction_id: int, round_number: int, body: bytes, socket: RoundSocket | None
+    ) -> tuple[int, Any]:
+        """Upload ``body`` for the round: the server's status and answer (JSON)."""
+        if socket is not None:
+            return await socket.upload(round_number, self.submitted_id, body)
+        response = await self.client.request(
+            "PUT",
+            f"/auctions/{auction_id}/rounds/{round_number}/models/{self.submitted_id}",
+            body=body,
+            token=self.token,
+        )
+        try:
+            return response.status_code, response.json()
+        except ValueError:
+            return response.status_code, response.text[:500]
+
     async def _answer(
-        self, auction_id: int, state: dict[str, Any], position: int, received: float
+        self,
+        auction_id: int,
+        state: dict[str, Any],
+        position: int,
+        received: float,
+        socket: RoundSocket | None,
     ) -> RoundLog:
         info = RoundInfo.from_state(state, position)
         tuned = self.fine_tuner(self.current, info)
         tuned_at = time.monotonic()
-        response = await self.client.request(
-            "PUT",
-            f"/auctions/{auction_id}/rounds/{info.round}/models/{self.submitted_id}",
-            body=tuned.model_dump_json().encode(),
-            token=self.token,
+        status, answer = await self._send(
+            auction_id, info.round, tuned.model_dump_json().encode(), socket
         )
         outcome = "error"
-        if response.status_code == 200:
-            answer = response.json()
+        if status == 200:
             outcome = answer["outcome"]
             if answer["accepted"]:
                 self.current = tuned
@@ -143,13 +193,11 @@ class RemoteAgent:
             else:
                 self.uploads.refused += 1
                 self.reasons.extend(answer["reasons"])
-        elif response.status_code == 410:
+        elif status == 410:
             outcome = "late"
             self.uploads.late += 1
         else:
-            raise RemoteError(
-                f"upload of round {info.round}: {response.status_code} {response.text[:500]}"
-            )
+            raise RemoteError(f"upload of round {info.round}: {status} {str(answer)[:500]}")
         entry = RoundLog(
             info.round, received, tuned_at - received, time.monotonic() - tuned_at, outcome
         )

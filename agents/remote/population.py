@@ -20,7 +20,7 @@ import httpx
 import numpy as np
 
 from agents.negotiator import honest_manifest
-from agents.remote.agent import RemoteAgent, RoundLog, Uploads
+from agents.remote.agent import TRANSPORTS, RemoteAgent, RoundLog, Transport, Uploads
 from agents.remote.client import GIVE_UP_S, ONE_CONNECTION, Client, RemoteError, Traffic
 from agents.remote.fine_tuners import always_hold, faithful_fine_tune
 
@@ -67,6 +67,8 @@ class PopulationConfig:
     """A request that keeps failing is given up after this long."""
     auction_wait_s: float = AUCTION_WAIT_S
     """How long to wait for an auction containing the population's models."""
+    transport: Transport = "http"
+    """How the rounds travel: a long poll and a PUT per round, or one round socket per agent."""
 
     def __post_init__(self) -> None:
         problems = []
@@ -76,6 +78,8 @@ class PopulationConfig:
             problems.append(f"honest + saboteurs must be between 1 and {MAX_AGENTS}")
         if self.seed < 0:
             problems.append("seed must be ≥ 0")
+        if self.transport not in TRANSPORTS:
+            problems.append(f"transport must be one of {', '.join(TRANSPORTS)}")
         if self.name_prefix is not None and not re.fullmatch(NAME_PREFIX, self.name_prefix):
             problems.append(f"name_prefix must match {NAME_PREFIX} (a participant name's start)")
         if problems:
@@ -124,6 +128,7 @@ def population(config: PopulationConfig, clients: Sequence[Client]) -> list[Remo
                 clients[i],
                 honest_manifest(rng, name),
                 fine_tuner=always_hold if saboteur else faithful_fine_tune,
+                transport=config.transport,
             )
         )
     return agents

@@ -21,6 +21,7 @@ from agents.remote import (
     PopulationConfig,
     PopulationReport,
     RemoteError,
+    Transport,
     run_population,
 )
 from server.schemas import MAX_FINE_TUNE_ROUNDS, MAX_SEED, ROUND_DEADLINE_S
@@ -141,6 +142,13 @@ def _table(report: PopulationReport) -> Table:
     help="Participant names start with this [default: agents-<seed>-<random tag>].",
 )
 @click.option(
+    "--transport",
+    type=click.Choice(["http", "websocket"]),
+    default="http",
+    show_default=True,
+    help="Rounds by long poll and PUT, or over one round socket per agent.",
+)
+@click.option(
     "--json", "json_output", is_flag=True, help="Print exactly one JSON object on stdout."
 )
 def command(
@@ -157,6 +165,7 @@ def command(
     give_up: float,
     auction_wait: float,
     name_prefix: str | None,
+    transport: Transport,
     json_output: bool,
 ) -> None:
     """Run remote agents that submit and fine-tune over HTTP: register the population, join
@@ -179,6 +188,7 @@ def command(
             give_up_s=give_up,
             auction_wait_s=auction_wait,
             name_prefix=name_prefix,
+            transport=transport,
         )
     except ValueError as exc:  # the options named in the message
         err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False)

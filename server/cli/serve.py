@@ -25,6 +25,7 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
 
     from server.app import create_app
     from server.config import get_settings
+    from server.remote_rounds.sockets import MAX_FRAME_BYTES
 
     settings = get_settings()
     logging.basicConfig(level=log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
@@ -35,4 +36,5 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         log_level=log_level,
         access_log=settings.access_log,
         timeout_graceful_shutdown=10,
+        ws_max_size=MAX_FRAME_BYTES,  # the round sockets' frames (an upload's manifest)
     )

@@ -1,11 +1,14 @@
 """The API's side of remote fine-tuning rounds, one module per job: ``watcher`` (the long
-polls of ``GET /auctions/{id}/rounds/current``), ``lookup`` (what an upload is checked
+polls of ``GET /auctions/{id}/rounds/current``), ``sockets`` (the same rounds and uploads over
+one WebSocket per agent), ``lookup`` (what an upload is checked
 against) and ``writer`` (uploads stored in group commits, and the published-bytes counters).
 The worker opens and closes the rounds itself (``server.auctions``)."""
 
 from server.remote_rounds.lookup import UploadLookup
+from server.remote_rounds.sockets import RoundSockets, SocketLimitError
 from server.remote_rounds.watcher import (
     MAX_WAIT_S,
+    Published,
     RoundWatcher,
     TooManyWaitersError,
 )
@@ -21,7 +24,10 @@ from server.remote_rounds.writer import (
 __all__ = [
     "MAX_WAIT_S",
     "Answered",
+    "Published",
+    "RoundSockets",
     "RoundWatcher",
+    "SocketLimitError",
     "TooManyWaitersError",
     "UploadLookup",
     "UploadOutcome",

@@ -88,6 +88,21 @@ class _Watch:
     """(round id, status, body before and after ``seconds_left``) of the last answer built."""
 
 
+@dataclass(frozen=True)
+class Published:
+    """One answer of the watcher: its JSON body and what it says."""
+
+    body: bytes
+    round: int | None
+    open: bool
+    """The round is open (its rows and seeds are in the body)."""
+    auction_over: bool
+
+    def ready(self, after: int) -> bool:
+        """Worth handing on to an agent that handled round ``after``."""
+        return self.auction_over or (self.open and (self.round or 0) > after)
+
+
 class TooManyWaitersError(RuntimeError):
     """This process already holds ``MAX_WAITERS`` round requests."""
 
@@ -141,6 +156,11 @@ class RoundWatcher:
     async def current(self, auction_id: int, *, wait_s: float, after: int) -> bytes | None:
         """The answer body for the auction's newest round (None: no such auction), after up to
         ``wait_s`` seconds of waiting for a round above ``after`` to open."""
+        published = await self.published(auction_id, wait_s=wait_s, after=after)
+        return None if published is None else published.body
+
+    async def published(self, auction_id: int, *, wait_s: float, after: int) -> Published | None:
+        """``current`` with what the answer says (its round, open or not, the auction over)."""
         loop = asyncio.get_running_loop()
         self._listen()
         watch = self._watches.setdefault(auction_id, _Watch())
@@ -170,7 +190,12 @@ class RoundWatcher:
         if snapshot.head.round_id is not None:
             self._writer.count_published(snapshot.head.round_id, len(body))
         self._forget_idle()
-        return body
+        return Published(
+            body,
+            snapshot.head.round,
+            snapshot.status == RoundStatus.OPEN,
+            snapshot.auction_over,
+        )
 
     def _forget_idle(self) -> None:
         """Beyond ``MAX_WATCHED`` auctions, forget those nobody waits on, least recently read

@@ -1,24 +1,28 @@
 """Remote fine-tuning rounds: ``GET /auctions/{id}/rounds/current`` publishes the newest round
 (long poll with ``?wait=``), ``PUT /auctions/{id}/rounds/{round}/models/{model_id}`` takes a
 patron's fine-tuned manifest, re-screens it and stores it as a new version (the checks:
-``server.services.rounds``).
+``server.services.rounds``); ``WS /auctions/{id}/rounds/socket`` is the same over one
+WebSocket per agent (``server.remote_rounds.sockets``).
 """
 
 from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Query, Request, Response
+from fastapi import APIRouter, Depends, Path, Query, Request, Response, WebSocket
+from fastapi.responses import JSONResponse
 
 from server.deps import (
     ParticipantTokenDep,
     RoundsDep,
+    RoundSocketsDep,
     ScreeningDep,
     UploadLookupDep,
     UploadsDep,
 )
-from server.errors import api_error, responses
-from server.remote_rounds import MAX_WAIT_S
+from server.errors import RequestError, api_error, responses
+from server.remote_rounds import MAX_WAIT_S, SocketLimitError
+from server.remote_rounds.sockets import RETRY_AFTER_S, UPLOAD_MAX_BYTES
 from server.schemas import (
     MAX_FINE_TUNE_ROUNDS,
     AuctionIdPath,
@@ -27,11 +31,9 @@ from server.schemas import (
     UploadPublic,
 )
 from server.services import rounds
+from server.services.auctions import not_found
 
 router = APIRouter(tags=["rounds"])
-
-UPLOAD_MAX_BYTES = 65_536
-"""Largest upload body (a manifest is about 5 KB)."""
 
 RoundPath = Annotated[
     int,
@@ -131,3 +133,76 @@ async def upload_round_model(
         body=body,
     )
     return Response(answer, media_type="application/json")
+
+
+def _bearer(header: str | None) -> str | None:
+    """The credentials of an ``Authorization: Bearer <token>`` header, if it has them."""
+    scheme, _, credentials = (header or "").partition(" ")
+    credentials = credentials.strip()
+    return credentials if scheme.lower() == "bearer" and credentials else None
+
+
+async def _deny(websocket: WebSocket, error: RequestError) -> None:
+    """Refuse a handshake with the common error body."""
+    await websocket.send_denial_response(
+        JSONResponse({"detail": error.items}, status_code=error.status, headers=error.headers)
+    )
+
+
+@router.websocket("/auctions/{auction_id}/rounds/socket")
+async def round_socket(
+    websocket: WebSocket,
+    auction_id: AuctionIdPath,
+    watcher: RoundsDep,
+    sockets: RoundSocketsDep,
+    lookup: UploadLookupDep,
+    writer: UploadsDep,
+    screening: ScreeningDep,
+) -> None:
+    """The auction's remote rounds over one WebSocket (``server.remote_rounds.sockets``):
+    every round pushed as it opens, uploads answered as the PUT answers them. Uploads need
+    the handshake's ``Authorization: Bearer <participant token>``."""
+    token = _bearer(websocket.headers.get("authorization"))
+    try:
+        sockets.reserve()
+    except SocketLimitError as exc:
+        await _deny(
+            websocket,
+            api_error(
+                503,
+                f"{exc}; retry in {RETRY_AFTER_S} s",
+                kind="too_many_sockets",
+                headers={"Retry-After": str(RETRY_AFTER_S)},
+            ),
+        )
+        return
+    try:
+        first = await watcher.published(auction_id, wait_s=0.0, after=0)
+        if first is None:
+            await _deny(websocket, not_found(auction_id))
+            return
+        await websocket.accept()
+
+        async def upload(round_number: int, model_id: int, body: bytes) -> bytes:
+            if token is None:
+                raise api_error(
+                    401,
+                    "uploads need the participant's token: 'Authorization: Bearer <token>' "
+                    "in the socket's handshake",
+                    loc=("header", "Authorization"),
+                    kind="missing_token",
+                )
+            return await rounds.upload(
+                lookup,
+                writer,
+                screening,
+                auction_id=auction_id,
+                round_number=round_number,
+                model_id=model_id,
+                token=token,
+                body=body,
+            )
+
+        await sockets.serve(websocket, auction_id, first, upload)
+    finally:
+        sockets.release()

@@ -24,7 +24,7 @@ from server.events import EventHub
 from server.jobs.backend import JobCompute, job_compute
 from server.jobs.worker import JOB_WORK
 from server.quotas import Limits
-from server.remote_rounds import RoundWatcher, UploadLookup, UploadWriter
+from server.remote_rounds import RoundSockets, RoundWatcher, UploadLookup, UploadWriter
 from server.runner import BackgroundRunner, WorkKind
 from server.screening import ScreeningService
 from server.security import load_admin_token_hash
@@ -46,6 +46,8 @@ class Services:
     uploads: UploadWriter
     upload_lookup: UploadLookup
     rounds: RoundWatcher
+    sockets: RoundSockets
+    """The round sockets (``WS /auctions/{id}/rounds/socket``), pushed by ``rounds``."""
     auctions: BackgroundRunner
     jobs: BackgroundRunner
     compute: JobCompute
@@ -111,6 +113,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         ray_max_retries=settings.ray_max_retries,
     )
     uploads = UploadWriter(database)
+    watcher = RoundWatcher(database, uploads)
     owner = server_id()
 
     def runner(
@@ -135,7 +138,8 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         submissions=SubmissionWriter(database, Limits.of(settings)),
         uploads=uploads,
         upload_lookup=UploadLookup(database),
-        rounds=RoundWatcher(database, uploads),
+        rounds=watcher,
+        sockets=RoundSockets(watcher),
         auctions=runner(
             AUCTION_WORK, context, settings.auction_workers, settings.auction_timeout_s
         ),

@@ -1,6 +1,8 @@
 """Remote fine-tuning end to end over real HTTP: ``srd serve`` in a subprocess (SQLite and
 PostgreSQL), ``srd agents`` with honest and bait-and-switch agents, an agent killed with
-SIGKILL in the middle of a round, and the same auction played in the server and remotely."""
+SIGKILL in the middle of a round, and the same auction played in the server and remotely, by
+long poll and PUT and over round sockets. The agents' end-to-end run uses round sockets on
+SQLite and HTTP on PostgreSQL (each transport once)."""
 
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from sqlalchemy import select
 
 from agents.batch import from_manifests
 from agents.manifest import Manifest, parse_manifest
-from agents.remote import Client, RemoteAgent
+from agents.remote import Client, RemoteAgent, Transport
 from server.db import Database
 from server.launch import ServerProcess, srd_command
 from server.models import Auction
@@ -41,7 +43,7 @@ VICTIM = r"""
 import asyncio, sys, time
 import httpx, numpy as np
 from agents.negotiator import honest_manifest
-from agents.remote import Client, RemoteAgent, faithful_fine_tune
+from agents.remote import Client, RemoteAgent, Transport, faithful_fine_tune
 
 def stall_in_round_2(manifest, info):
     if info.round >= 2:
@@ -49,17 +51,19 @@ def stall_in_round_2(manifest, info):
         time.sleep(3600)
     return faithful_fine_tune(manifest, info)
 
-async def main(server, name):
+async def main(server, name, transport):
     async with httpx.AsyncClient(base_url=server) as http:
         manifest = honest_manifest(np.random.default_rng(100), name)
-        agent = RemoteAgent(Client(http), manifest, fine_tuner=stall_in_round_2)
+        agent = RemoteAgent(
+            Client(http), manifest, fine_tuner=stall_in_round_2, transport=transport
+        )
         await agent.submit()
         print("model", agent.model_id, flush=True)
         while not (found := await agent.auctions()):
             await asyncio.sleep(0.2)
         await agent.play(found[0])
 
-asyncio.run(main(sys.argv[1], sys.argv[2]))
+asyncio.run(main(sys.argv[1], sys.argv[2], sys.argv[3]))
 """
 """An agent (the Python API) that answers round 1 and hangs in its fine-tuning of round 2 (its
 seed, 100, makes a patron that pays up to 4.97 and stays in the auction past iteration 1)."""
@@ -86,14 +90,20 @@ def admin(server: ServerProcess) -> dict[str, str]:
     return {"Authorization": f"Bearer {server.admin_token}"}
 
 
+def transport_of(server: ServerProcess) -> str:
+    """The transport of the agents' end-to-end run on this server's database."""
+    return "websocket" if server.database_url.startswith("sqlite") else "http"
+
+
 def play_with_agents_and_a_victim(server: ServerProcess) -> tuple[int, int, set[int], Any]:
     """``srd agents`` (6 honest, 2 bait-and-switch) and a victim agent that is killed -9 in its
     round-2 fine-tuning, in one remote auction: (auction id, victim's model id, saboteur model
     ids, the agents' --json report)."""
     prefix = f"e2e-{secrets.token_hex(3)}"
     victim_name = f"{prefix}-victim"
+    transport = transport_of(server)
     victim = subprocess.Popen(
-        [sys.executable, "-c", VICTIM, server.url, victim_name],
+        [sys.executable, "-c", VICTIM, server.url, victim_name, transport],
         stdout=subprocess.PIPE,
         text=True,
         cwd=Path(__file__).parents[2],
@@ -114,6 +124,8 @@ def play_with_agents_and_a_victim(server: ServerProcess) -> tuple[int, int, set[
             prefix,
             "--wait",
             "120",
+            "--transport",
+            transport,
             "--json",
         ],
         stdout=subprocess.PIPE,
@@ -211,7 +223,10 @@ def seconds(stamp: str) -> float:
     return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
 
 
-def test_faithful_remote_agents_replay_the_server_auction(server: ServerProcess) -> None:
+@pytest.mark.parametrize("transport", ["http", "websocket"])
+def test_faithful_remote_agents_replay_the_server_auction(
+    server: ServerProcess, transport: Transport
+) -> None:
     manifests = [honest(f"same-{secrets.token_hex(3)}-{i}", seed=500 + i) for i in range(8)]
     submitted = [httpx.post(server.url + "/submit", json=m, timeout=30).json() for m in manifests]
     ids = [s["model_id"] for s in submitted]
@@ -230,7 +245,13 @@ def test_faithful_remote_agents_replay_the_server_auction(server: ServerProcess)
         async with httpx.AsyncClient(base_url=server.url) as http:
             client = Client(http)
             agents = [
-                RemoteAgent(client, parse_manifest(m), token=s["token"], model_id=s["model_id"])
+                RemoteAgent(
+                    client,
+                    parse_manifest(m),
+                    token=s["token"],
+                    model_id=s["model_id"],
+                    transport=transport,
+                )
                 for m, s in zip(manifests, submitted, strict=True)
             ]
             await asyncio.gather(*(agent.play(remote) for agent in agents))

@@ -1,0 +1,233 @@
+"""``RoundSocket``: one agent's WebSocket to one auction's remote rounds
+(``WS /auctions/{id}/rounds/socket``), the alternative to a long poll and a PUT per round.
+
+The server pushes every round as it opens and the auction's end; an upload is one message and
+its answer the PUT's status and body. A dropped connection is opened again with exponential
+backoff (503 and 429 handshakes honour Retry-After) until ``give_up_s`` has passed, then
+``ServerGoneError`` names the server; an upload whose answer was lost is sent again with the
+same bytes, which the server answers as it answered them the first time. Frames are counted in
+the client's ``Traffic``."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import random
+import time
+from types import TracebackType
+from typing import Any
+
+from websockets.asyncio.client import ClientConnection, connect
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
+
+from agents.remote.client import (
+    GIVE_UP_S,
+    HTTP_TIMEOUT_S,
+    RETRY_FIRST_S,
+    RETRY_MAX_S,
+    RETRY_STATUSES,
+    RemoteError,
+    ServerGoneError,
+    Traffic,
+)
+
+MAX_FRAME_BYTES = 1 << 20
+"""Largest frame the agent reads (a round is about 7 KB)."""
+
+
+class _DroppedError(Exception):
+    """The connection went away before the answer came."""
+
+
+def socket_url(server: str, auction_id: int) -> str:
+    """The round socket's URL on an ``http://`` or ``https://`` server."""
+    base = server.rstrip("/")
+    if base.startswith("https://"):
+        base = "wss://" + base[len("https://") :]
+    elif base.startswith("http://"):
+        base = "ws://" + base[len("http://") :]
+    return f"{base}/auctions/{auction_id}/rounds/socket"
+
+
+def _ready(state: dict[str, Any] | None, after: int) -> bool:
+    if state is None:
+        return False
+    if state["auction_status"] not in ("pending", "running"):
+        return True
+    return state["status"] == "open" and (state["round"] or 0) > after
+
+
+class RoundSocket:
+    """One agent's round socket (see the module docstring); use it as an async context."""
+
+    def __init__(
+        self,
+        server: str,
+        auction_id: int,
+        token: str | None,
+        *,
+        give_up_s: float = GIVE_UP_S,
+        rng: random.Random | None = None,
+        traffic: Traffic | None = None,
+    ) -> None:
+        self.server = server
+        self.url = socket_url(server, auction_id)
+        self.token = token
+        self.give_up_s = give_up_s
+        self.traffic = traffic or Traffic()
+        self._rng = rng or random.Random(0)
+        self._ws: ClientConnection | None = None
+        self._reader: asyncio.Task[None] | None = None
+        self._latest: dict[str, Any] | None = None
+        self._changed = asyncio.Event()
+        self._answers: dict[tuple[int, int], asyncio.Future[tuple[int, Any]]] = {}
+        self._ended = False
+
+    async def __aenter__(self) -> RoundSocket:
+        await self._ensure()
+        return self
+
+    async def __aexit__(
+        self,
+        kind: type[BaseException] | None,
+        error: BaseException | None,
+        trace: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    async def close(self) -> None:
+        if self._ws is not None:
+            with contextlib.suppress(Exception):
+                await self._ws.close()
+        if self._reader is not None:
+            self._reader.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._reader
+        self._ws, self._reader = None, None
+
+    async def next_round(self, after: int) -> dict[str, Any]:
+        """The auction's state once a round above ``after`` is open or the auction has ended
+        (the round as ``GET .../rounds/current`` shows it)."""
+        while True:
+            if _ready(self._latest, after) or (self._ended and self._latest is not None):
+                assert self._latest is not None
+                return self._latest
+            await self._ensure()
+            changed = self._changed
+            if not (_ready(self._latest, after) or self._ws is None):
+                await changed.wait()
+
+    async def upload(self, round_number: int, model_id: int, body: bytes) -> tuple[int, Any]:
+        """Send a fine-tuned manifest (its JSON bytes) for the round: the server's status and
+        answer body, as a PUT would get them."""
+        text = json.dumps(
+            {
+                "type": "upload",
+                "round": round_number,
+                "model_id": model_id,
+                "manifest": body.decode(),
+            },
+            separators=(",", ":"),
+        )
+        give_up = time.monotonic() + self.give_up_s
+        delay = RETRY_FIRST_S
+        while True:
+            ws = await self._ensure(give_up)
+            key = (round_number, model_id)
+            answer: asyncio.Future[tuple[int, Any]] = asyncio.get_running_loop().create_future()
+            self._answers[key] = answer
+            self.traffic.requests += 1
+            try:
+                await ws.send(text)
+                self.traffic.bytes_up += len(body)
+                status, reply = await asyncio.wait_for(answer, HTTP_TIMEOUT_S)
+            except (ConnectionClosed, _DroppedError, TimeoutError) as exc:
+                if time.monotonic() + delay > give_up:
+                    raise ServerGoneError(
+                        f"the server at {self.server} did not answer the upload of round "
+                        f"{round_number} ({type(exc).__name__}); gave up after "
+                        f"{self.give_up_s:.0f} s"
+                    ) from exc
+            else:
+                if status not in RETRY_STATUSES:
+                    return status, reply
+                if time.monotonic() + delay > give_up:
+                    raise ServerGoneError(
+                        f"the server at {self.server} kept answering {status} to the upload of "
+                        f"round {round_number}; gave up after {self.give_up_s:.0f} s"
+                    )
+            finally:
+                self._answers.pop(key, None)
+            self.traffic.retries += 1
+            await asyncio.sleep(delay * (0.5 + self._rng.random()))
+            delay = min(delay * 2, RETRY_MAX_S)
+
+    async def _ensure(self, give_up: float | None = None) -> ClientConnection:
+        """The open connection, opened (again) if need be."""
+        if self._ws is not None:
+            return self._ws
+        give_up = time.monotonic() + self.give_up_s if give_up is None else give_up
+        headers = {} if self.token is None else {"Authorization": f"Bearer {self.token}"}
+        delay = RETRY_FIRST_S
+        while True:
+            wait_s = delay
+            try:
+                ws = await connect(
+                    self.url,
+                    additional_headers=headers,
+                    compression=None,
+                    max_size=MAX_FRAME_BYTES,
+                    open_timeout=HTTP_TIMEOUT_S,
+                )
+            except InvalidStatus as exc:
+                status = exc.response.status_code
+                if status not in RETRY_STATUSES:
+                    shown = (exc.response.body or b"").decode(errors="replace")[:500]
+                    raise RemoteError(f"round socket {self.url}: {status} {shown}") from exc
+                with contextlib.suppress(ValueError):
+                    wait_s = max(delay, float(exc.response.headers.get("Retry-After", "")))
+                failure = f"kept answering {status}"
+            except (OSError, InvalidHandshake, TimeoutError) as exc:
+                failure = f"did not answer ({type(exc).__name__}: {exc})"
+            else:
+                self._ws = ws
+                self._reader = asyncio.create_task(self._read(ws))
+                return ws
+            if time.monotonic() + delay > give_up:
+                raise ServerGoneError(
+                    f"the server at {self.server} {failure} on {self.url}; gave up after "
+                    f"{self.give_up_s:.0f} s"
+                )
+            self.traffic.retries += 1
+            await asyncio.sleep(wait_s * (0.5 + self._rng.random()))
+            delay = min(delay * 2, RETRY_MAX_S)
+
+    async def _read(self, ws: ClientConnection) -> None:
+        """Hand every frame on: rounds to ``next_round``, answers to their uploads."""
+        try:
+            async for frame in ws:
+                self.traffic.bytes_down += len(frame)
+                message = json.loads(frame)
+                if message.get("type") == "round":
+                    self._latest = message["body"]
+                    if self._latest["auction_status"] not in ("pending", "running"):
+                        self._ended = True
+                    self._wake()
+                elif message.get("type") == "answer":
+                    waiting = self._answers.get((message["round"], message["model_id"]))
+                    if waiting is not None and not waiting.done():
+                        waiting.set_result((message["status"], message["body"]))
+        except (ConnectionClosed, ValueError, KeyError):  # gone, or not the protocol: reconnect
+            pass
+        finally:
+            if self._ws is ws:
+                self._ws = None
+            for waiting in self._answers.values():
+                if not waiting.done():
+                    waiting.set_exception(_DroppedError())
+            self._wake()
+
+    def _wake(self) -> None:
+        self._changed.set()
+        self._changed = asyncio.Event()

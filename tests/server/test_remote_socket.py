@@ -1,0 +1,242 @@
+"""The round socket in-process (``WS /auctions/{id}/rounds/socket``): rounds pushed as the long
+poll shows them, uploads answered exactly as a PUT answers them (the same stored outcome for
+the same bytes on either transport), every refusal naming its field with nothing stored, and
+the socket's own limits: unknown auctions, too many sockets, too many messages."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from starlette.testclient import WebSocketDenialResponse
+from starlette.websockets import WebSocketDisconnect
+
+from agents.manifest import parse_manifest
+from agents.remote import RoundInfo, faithful_fine_tune
+from server.remote_rounds.sockets import BURST, UPLOAD_MAX_BYTES
+from tests.server.test_remote_protocol import (
+    bearer,
+    moving,
+    open_round,
+    put,
+    stored_versions,
+    submit,
+)
+from tests.support.factories import unique
+from tests.support.server import ADMIN
+
+SEED = 900
+"""Patrons seeds 900..907 (any honest draws: the tests below use the asked ones)."""
+
+
+@pytest.fixture(scope="module")
+def remote(client: TestClient) -> dict[str, Any]:
+    """A remote auction of 8 fine-tuning honest patrons, round 1 open for a minute."""
+    manifests = [moving(unique("socket"), seed=SEED + i) for i in range(8)]
+    patrons = submit(client, manifests)
+    body = {
+        "n_fish": 1,
+        "model_ids": [m for m, _ in patrons],
+        "fine_tune_mode": "remote",
+        "round_deadline_s": 60,
+        "seed": 9,
+    }
+    created = client.post("/auctions", json=body, headers=ADMIN)
+    assert created.status_code == 201, created.text
+    auction_id = created.json()["auction_id"]
+    state = open_round(client, auction_id)
+    assert state["status"] == "open" and state["round"] == 1, state
+    asked = [p for p, (m, _) in enumerate(patrons) if m in state["asked"]]
+    assert len(asked) >= 3, state["asked"]
+    return {
+        "id": auction_id,
+        "manifests": manifests,
+        "patrons": patrons,
+        "state": state,
+        "asked": asked,
+    }
+
+
+def socket_path(auction_id: int) -> str:
+    return f"/auctions/{auction_id}/rounds/socket"
+
+
+def upload_text(round_: int, model_id: int, manifest: str) -> str:
+    return json.dumps(
+        {"type": "upload", "round": round_, "model_id": model_id, "manifest": manifest}
+    )
+
+
+def answer_to(ws: Any, text: str) -> dict[str, Any]:
+    """Send one message; the answer frame (rounds pushed meanwhile are skipped)."""
+    ws.send_text(text)
+    while True:
+        frame = json.loads(ws.receive_text())
+        if frame["type"] == "answer":
+            return dict(frame)
+
+
+def tuned_bytes(remote: dict[str, Any], position: int) -> bytes:
+    manifest = parse_manifest(remote["manifests"][position])
+    tuned = faithful_fine_tune(manifest, RoundInfo.from_state(remote["state"], position))
+    return tuned.model_dump_json().encode()
+
+
+def without_clock(state: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in state.items() if k != "seconds_left"}
+
+
+def test_the_socket_pushes_the_round_the_long_poll_shows(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    with client.websocket_connect(socket_path(remote["id"])) as ws:
+        frame = json.loads(ws.receive_text())
+    assert frame["type"] == "round"
+    polled = client.get(f"/auctions/{remote['id']}/rounds/current").json()
+    assert without_clock(frame["body"]) == without_clock(polled)
+    assert frame["body"]["round"] == 1 and frame["body"]["status"] == "open"
+    assert len(frame["body"]["rows"]) == 64 and frame["body"]["asked"]
+
+
+def test_a_socket_upload_is_answered_and_stored_as_a_put_would(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    position = remote["asked"][0]
+    model_id, token = remote["patrons"][position]
+    name = parse_manifest(remote["manifests"][position]).participant
+    good = tuned_bytes(remote, position)
+    with client.websocket_connect(socket_path(remote["id"]), headers=bearer(token)) as ws:
+        json.loads(ws.receive_text())  # the round
+        first = answer_to(ws, upload_text(1, model_id, good.decode()))
+        assert (first["round"], first["model_id"], first["status"]) == (1, model_id, 200), first
+        answer = first["body"]
+        assert answer["accepted"] and answer["outcome"] == "accepted" and answer["version"] == 2
+        again = answer_to(ws, upload_text(1, model_id, good.decode()))
+        assert again == first
+    # The same bytes by PUT: the same answer; other bytes: 409 on either transport.
+    put_again = put(client, remote["id"], 1, model_id, good, token)
+    assert put_again.status_code == 200 and put_again.json() == answer
+    with client.websocket_connect(socket_path(remote["id"]), headers=bearer(token)) as ws:
+        other = answer_to(ws, upload_text(1, model_id, good.decode() + " "))
+    assert other["status"] == 409 and "one upload per round" in json.dumps(other)
+    assert other["body"]["detail"][0]["loc"] == ["message", "round"]
+    assert stored_versions(client, name) == 2
+    version = client.get(f"/models/{answer['model_id']}").json()
+    assert version["parent_id"] == model_id and version["round"] == 1
+    assert parse_manifest(version["manifest"]).model_dump_json().encode() == good
+
+
+def refusal(frame: dict[str, Any], status: int, loc: list[Any], words: str) -> None:
+    assert frame["type"] == "answer" and frame["status"] == status, frame
+    assert loc in [item["loc"] for item in frame["body"]["detail"]], frame
+    assert words in json.dumps(frame), frame
+
+
+def test_socket_refusals_name_the_field_and_store_nothing(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    position = remote["asked"][1]
+    model_id, token = remote["patrons"][position]
+    name = parse_manifest(remote["manifests"][position]).participant
+    _, other_token = remote["patrons"][remote["asked"][2]]
+    good = tuned_bytes(remote, position).decode()
+    path = socket_path(remote["id"])
+    with client.websocket_connect(path) as ws:  # no token in the handshake
+        refusal(
+            answer_to(ws, upload_text(1, model_id, good)), 401, ["header", "Authorization"], "token"
+        )
+    with client.websocket_connect(path, headers=bearer(other_token)) as ws:
+        refusal(
+            answer_to(ws, upload_text(1, model_id, good)), 403, ["header", "Authorization"], name
+        )
+    with client.websocket_connect(path, headers=bearer(token)) as ws:
+        refusal(answer_to(ws, "not json"), 400, ["message"], "not JSON")
+        ws.send_bytes(b"{}")
+        refusal(json.loads(ws.receive_text()), 400, ["message"], "text frames")
+        extra = json.dumps(
+            {"type": "upload", "round": 1, "model_id": model_id, "manifest": good, "x": 1}
+        )
+        refusal(answer_to(ws, extra), 422, ["message", "x"], "Extra")
+        refusal(answer_to(ws, upload_text(0, model_id, good)), 422, ["message", "round"], "greater")
+        refusal(
+            answer_to(ws, upload_text(2, model_id, good)),
+            409,
+            ["message", "round"],
+            "the current round is 1 (open)",
+        )
+        refusal(answer_to(ws, upload_text(1, 987654, good)), 404, ["message", "model_id"], "987654")
+        padded = good[:-1] + " " * UPLOAD_MAX_BYTES + "}"
+        refusal(
+            answer_to(ws, upload_text(1, model_id, padded)),
+            413,
+            ["message", "manifest"],
+            str(UPLOAD_MAX_BYTES),
+        )
+        nan = good.replace('"bias":', '"bias":NaN,"was":', 1)
+        refusal(
+            answer_to(ws, upload_text(1, model_id, nan)),
+            422,
+            ["message", "manifest", "external_sensor", "PG", "bias"],
+            "finite",
+        )
+        data = json.loads(good)
+        del data["decision"]["B"]["bias"]
+        refusal(
+            answer_to(ws, upload_text(1, model_id, json.dumps(data))),
+            422,
+            ["message", "manifest", "decision", "B", "bias"],
+            "",
+        )
+        data = json.loads(good)
+        data["augmentation"]["copies"] = 3
+        refusal(
+            answer_to(ws, upload_text(1, model_id, json.dumps(data))),
+            422,
+            ["message", "manifest", "augmentation", "copies"],
+            "only weights and biases",
+        )
+    assert stored_versions(client, name) == 1
+    auction = client.get(f"/auctions/{remote['id']}").json()
+    answered = {a["model_id"] for r in auction["fine_tuning"] for a in r["answers"]}
+    assert model_id not in answered
+
+
+def test_handshakes_are_refused_for_no_auction_and_beyond_the_socket_limit(
+    client: TestClient, remote: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    with (
+        pytest.raises(WebSocketDenialResponse) as missing,
+        client.websocket_connect(socket_path(987654)),
+    ):
+        pass
+    assert missing.value.status_code == 404
+    assert missing.value.json()["detail"][0]["loc"] == ["path", "auction_id"]
+    sockets = client.app.state.services.sockets  # type: ignore[attr-defined]
+    monkeypatch.setattr(sockets, "_max", sockets.open)
+    with (
+        pytest.raises(WebSocketDenialResponse) as full,
+        client.websocket_connect(socket_path(remote["id"])),
+    ):
+        pass
+    assert full.value.status_code == 503 and full.value.headers["Retry-After"] == "1"
+    assert "round sockets are open" in full.value.text
+    monkeypatch.undo()
+    with client.websocket_connect(socket_path(remote["id"])) as ws:  # released: room again
+        assert json.loads(ws.receive_text())["type"] == "round"
+
+
+def test_a_socket_over_its_message_allowance_is_closed(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    with client.websocket_connect(socket_path(remote["id"])) as ws:
+        json.loads(ws.receive_text())
+        for _ in range(BURST + 8):
+            ws.send_text("x")
+        statuses = []
+        with pytest.raises(WebSocketDisconnect) as closed:
+            while True:
+                statuses.append(json.loads(ws.receive_text())["status"])
+    assert closed.value.code == 1008 and "messages" in closed.value.reason
+    assert BURST <= len(statuses) < BURST + 8 and set(statuses) == {400}

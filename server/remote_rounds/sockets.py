@@ -58,6 +58,8 @@ RETRY_AFTER_S = 1
 """Retry-After of a refused handshake, and the pause of a pusher refused a wait."""
 CLOSE_TOO_MANY_MESSAGES = 1008
 """Close code (policy violation) of a socket over its message allowance."""
+CLOSE_TOO_BIG = 1009
+"""Close code (message too big) of a socket that sent a frame over ``MAX_FRAME_BYTES``."""
 
 
 class UploadMessage(BaseModel):
@@ -186,6 +188,9 @@ class RoundSockets:
                 )
                 return
             text = message.get("text")
+            if len(text or message.get("bytes") or b"") > MAX_FRAME_BYTES:  # whatever the server
+                await socket.close(CLOSE_TOO_BIG, f"a frame is at most {MAX_FRAME_BYTES} bytes")
+                return
             if text is None:
                 await socket.send(
                     _error(None, 400, "send uploads as text frames of JSON", ("message",))

@@ -15,7 +15,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from agents.manifest import parse_manifest
 from agents.remote import RoundInfo, faithful_fine_tune
-from server.remote_rounds.sockets import BURST, UPLOAD_MAX_BYTES
+from server.remote_rounds.sockets import BURST, MAX_FRAME_BYTES, UPLOAD_MAX_BYTES
 from tests.server.test_remote_protocol import (
     bearer,
     moving,
@@ -240,3 +240,14 @@ def test_a_socket_over_its_message_allowance_is_closed(
                 statuses.append(json.loads(ws.receive_text())["status"])
     assert closed.value.code == 1008 and "messages" in closed.value.reason
     assert BURST <= len(statuses) < BURST + 8 and set(statuses) == {400}
+
+
+def test_a_frame_over_the_limit_closes_the_socket(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    with client.websocket_connect(socket_path(remote["id"])) as ws:
+        json.loads(ws.receive_text())
+        ws.send_text(" " * (MAX_FRAME_BYTES + 1))
+        with pytest.raises(WebSocketDisconnect) as closed:
+            ws.receive_text()
+    assert closed.value.code == 1009 and str(MAX_FRAME_BYTES) in closed.value.reason

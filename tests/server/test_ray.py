@@ -30,11 +30,11 @@ pytestmark = pytest.mark.skipif(
 
 CPUS = 2
 JOBS = {
-    "auction-study": {"rarities": [0.3, 0.7], "trials": 8, "grid": True, "seed": 5},
-    "lavaland": {"eval_maps": 128, "train_maps": 256, "repeats": 3, "seed": 1},
-    "cheetah": {"backswing": [2.0, 4.0], "steps": 200, "trials": 10, "seed": 3},
+    "auction-study": {"rarities": [0.3, 0.7], "trials": 4, "grid": True, "seed": 5},
+    "lavaland": {"eval_maps": 64, "train_maps": 128, "repeats": 3, "seed": 1},
+    "cheetah": {"backswing": [2.0, 4.0], "steps": 100, "trials": 10, "seed": 3},
 }
-"""Small jobs of several units each (auction-study 4, lavaland 3, cheetah 5)."""
+"""Small jobs of several units each (auction-study 2, lavaland 3, cheetah 3)."""
 LONG_LAVALAND = {"eval_maps": 1024, "train_maps": 32768, "repeats": 2, "seed": 4}
 """About ten seconds per unit: long enough to see its task run."""
 RUN_TIMEOUT_S = 300

@@ -11,8 +11,8 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
-from fastapi import FastAPI, Request
-from fastapi.exceptions import RequestValidationError
+from fastapi import FastAPI, Request, WebSocket
+from fastapi.exceptions import RequestValidationError, WebSocketRequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -101,9 +101,8 @@ async def _http_exception(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=headers)
 
 
-async def _request_validation(request: Request, exc: Exception) -> JSONResponse:
-    assert isinstance(exc, RequestValidationError)
-    detail = [
+def _validation_detail(exc: RequestValidationError | WebSocketRequestValidationError) -> list[Any]:
+    return [
         error_item(
             str(err.get("msg", "invalid")),
             loc=_json_safe_loc(err.get("loc", ())),
@@ -111,7 +110,20 @@ async def _request_validation(request: Request, exc: Exception) -> JSONResponse:
         )
         for err in exc.errors()
     ]
-    return JSONResponse({"detail": detail}, status_code=422)
+
+
+async def _request_validation(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    return JSONResponse({"detail": _validation_detail(exc)}, status_code=422)
+
+
+async def _socket_validation(websocket: WebSocket, exc: Exception) -> None:
+    """A WebSocket handshake whose path does not validate: 422 naming the parameter (instead
+    of the framework's bare close)."""
+    assert isinstance(exc, WebSocketRequestValidationError)
+    await websocket.send_denial_response(
+        JSONResponse({"detail": _validation_detail(exc)}, status_code=422)
+    )
 
 
 async def _problem(request: Request, exc: Exception) -> JSONResponse:
@@ -131,6 +143,7 @@ def install_error_handlers(app: FastAPI) -> None:
     """Route every framework error through the common body."""
     app.add_exception_handler(StarletteHTTPException, _http_exception)
     app.add_exception_handler(RequestValidationError, _request_validation)
+    app.add_exception_handler(WebSocketRequestValidationError, _socket_validation)
     app.add_exception_handler(RequestError, _problem)
     app.add_exception_handler(DatabaseUnavailableError, _database_unavailable)
 

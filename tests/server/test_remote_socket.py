@@ -203,7 +203,7 @@ def test_socket_refusals_name_the_field_and_store_nothing(
     assert model_id not in answered
 
 
-def test_handshakes_are_refused_for_no_auction_and_beyond_the_socket_limit(
+def test_handshakes_are_refused_for_a_bad_or_unknown_auction_and_beyond_the_limit(
     client: TestClient, remote: dict[str, Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     with (
@@ -213,6 +213,14 @@ def test_handshakes_are_refused_for_no_auction_and_beyond_the_socket_limit(
         pass
     assert missing.value.status_code == 404
     assert missing.value.json()["detail"][0]["loc"] == ["path", "auction_id"]
+    for bad in ("abc", "0", "99999999999"):
+        with (
+            pytest.raises(WebSocketDenialResponse) as invalid,
+            client.websocket_connect(f"/auctions/{bad}/rounds/socket"),
+        ):
+            pass
+        assert invalid.value.status_code == 422, bad
+        assert invalid.value.json()["detail"][0]["loc"] == ["path", "auction_id"], bad
     sockets = client.app.state.services.sockets  # type: ignore[attr-defined]
     monkeypatch.setattr(sockets, "_max", sockets.open)
     with (

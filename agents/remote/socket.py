@@ -5,8 +5,9 @@ The server pushes every round as it opens and the auction's end; an upload is on
 its answer the PUT's status and body. A dropped connection is opened again with exponential
 backoff (503 and 429 handshakes honour Retry-After) until ``give_up_s`` has passed, then
 ``ServerGoneError`` names the server; an upload whose answer was lost is sent again with the
-same bytes, which the server answers as it answered them the first time. Frames are counted in
-the client's ``Traffic``."""
+same bytes, which the server answers as it answered them the first time. A socket silent for
+``RESYNC_S`` while the agent waits for a round is opened again too (the server sends the current
+round on every connection). Frames are counted in the client's ``Traffic``."""
 
 from __future__ import annotations
 
@@ -34,6 +35,9 @@ from agents.remote.client import (
 
 MAX_FRAME_BYTES = 1 << 20
 """Largest frame the agent reads (a round is about 7 KB)."""
+RESYNC_S = 60.0
+"""Without a frame for this long while waiting for a round, the agent opens the socket again
+(the server sends the current round on every connection)."""
 
 
 class _DroppedError(Exception):
@@ -83,6 +87,7 @@ class RoundSocket:
         self._changed = asyncio.Event()
         self._answers: dict[tuple[int, int], asyncio.Future[tuple[int, Any]]] = {}
         self._ended = False
+        self.resync_s = RESYNC_S
 
     async def __aenter__(self) -> RoundSocket:
         await self._ensure()
@@ -113,10 +118,14 @@ class RoundSocket:
             if _ready(self._latest, after) or (self._ended and self._latest is not None):
                 assert self._latest is not None
                 return self._latest
-            await self._ensure()
+            ws = await self._ensure()
             changed = self._changed
             if not (_ready(self._latest, after) or self._ws is None):
-                await changed.wait()
+                try:
+                    await asyncio.wait_for(changed.wait(), self.resync_s)
+                except TimeoutError:  # silent for too long: start afresh
+                    with contextlib.suppress(Exception):
+                        await ws.close()
 
     async def upload(self, round_number: int, model_id: int, body: bytes) -> tuple[int, Any]:
         """Send a fine-tuned manifest (its JSON bytes) for the round: the server's status and

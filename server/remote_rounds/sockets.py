@@ -139,7 +139,7 @@ class RoundSockets:
         """Run one accepted socket until the auction ends or the agent goes away: a pusher
         task sends the rounds, this task answers the uploads."""
         socket = _Socket(websocket)
-        pusher = asyncio.create_task(self._push(socket, auction_id, first))
+        pusher = asyncio.create_task(self._push_or_close(socket, auction_id, first))
         try:
             await self._answer_uploads(socket, upload)
         except (WebSocketDisconnect, RuntimeError):  # gone, or closed by the pusher
@@ -148,6 +148,18 @@ class RoundSockets:
             pusher.cancel()
             with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect, RuntimeError):
                 await pusher
+
+    async def _push_or_close(self, socket: _Socket, auction_id: int, first: Published) -> None:
+        """``_push``; if it fails (the database is unavailable), the socket is closed with
+        1011 so that the agent reconnects rather than waits for rounds that never come."""
+        try:
+            await self._push(socket, auction_id, first)
+        except (asyncio.CancelledError, WebSocketDisconnect):
+            raise
+        except Exception:
+            log.exception("pushing the rounds of auction %d failed", auction_id)
+            with contextlib.suppress(Exception):
+                await socket.close(1011, "the server could not read the rounds; reconnect")
 
     async def _push(self, socket: _Socket, auction_id: int, published: Published | None) -> None:
         """Send the first state, then every round that opens, then the end (and close)."""

@@ -1,6 +1,7 @@
 """``RoundSocket`` against a scripted WebSocket server on loopback: rounds handed on in order, an
-upload whose connection drops is sent again with the same bytes on a new connection, busy
-handshakes are retried, a missing auction and a gone server end with errors naming them."""
+upload whose connection drops is sent again with the same bytes on a new connection, a socket
+that falls silent is opened again, busy handshakes are retried, a missing auction and a gone
+server end with errors naming them."""
 
 from __future__ import annotations
 
@@ -129,6 +130,27 @@ def test_a_server_that_is_gone_is_named_after_give_up() -> None:
 
     with pytest.raises(ServerGoneError, match=r"127\.0\.0\.1.*gave up after 0 s"):
         asyncio.run(run())
+
+
+def test_a_silent_socket_is_opened_again() -> None:
+    connections = 0
+
+    async def handler(ws: ServerConnection) -> None:
+        nonlocal connections
+        connections += 1
+        await ws.send(frame(state(1, "open" if connections == 1 else "closed")))
+        if connections > 1:
+            await ws.send(frame(state(2, "open")))
+        await ws.wait_closed()  # then silence
+
+    async def run() -> dict[str, Any]:
+        async with scripted(handler) as url, RoundSocket(url, 5, None) as socket:
+            socket.resync_s = 0.2
+            assert (await socket.next_round(after=0))["round"] == 1
+            return await socket.next_round(after=1)
+
+    got = asyncio.run(run())
+    assert (got["round"], got["status"]) == (2, "open") and connections == 2
 
 
 def _response(status: HTTPStatus, headers: dict[str, str], body: bytes) -> Response:

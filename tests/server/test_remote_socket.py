@@ -259,3 +259,25 @@ def test_a_frame_over_the_limit_closes_the_socket(
         with pytest.raises(WebSocketDisconnect) as closed:
             ws.receive_text()
     assert closed.value.code == 1009 and str(MAX_FRAME_BYTES) in closed.value.reason
+
+
+def test_a_socket_whose_rounds_cannot_be_read_is_closed_for_the_agent_to_reconnect(
+    client: TestClient, remote: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    watcher = client.app.state.services.rounds  # type: ignore[attr-defined]
+    calls = 0
+    published = watcher.published
+
+    async def failing(*args: Any, **kwargs: Any) -> Any:
+        nonlocal calls
+        calls += 1
+        if calls > 1:  # the handshake's read works, the pusher's next one fails
+            raise OSError("the database is unavailable")
+        return await published(*args, **kwargs)
+
+    monkeypatch.setattr(watcher, "published", failing)
+    with client.websocket_connect(socket_path(remote["id"])) as ws:
+        assert json.loads(ws.receive_text())["type"] == "round"
+        with pytest.raises(WebSocketDisconnect) as closed:
+            ws.receive_text()
+    assert closed.value.code == 1011 and "reconnect" in closed.value.reason

@@ -1,11 +1,14 @@
 """kill -9 of the server in the middle of a remote fine-tuning round, then a restart: the round
 resumes with the same absolute deadline and the answers given before the kill, the auction
 finishes with contiguous iterations, no version or purchase twice, and the same records as the
-market replaying the accepted versions."""
+market replaying the accepted versions; agents on round sockets reconnect and play on."""
 
 from __future__ import annotations
 
+import json
 import secrets
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -16,7 +19,7 @@ from sqlalchemy import func, select
 from agents.manifest import parse_manifest
 from agents.remote import RoundInfo, faithful_fine_tune
 from server.db import Database
-from server.launch import ServerProcess
+from server.launch import ServerProcess, srd_command
 from server.models import Auction, FineTuneAnswer, FineTuneRound, ModelVersion, Purchase
 from sim.market import MarketConfig
 from tests.support.factories import honest
@@ -172,3 +175,134 @@ def test_kill_9_in_the_middle_of_a_round_then_restart(
     finally:
         first.kill()
         second.stop()
+
+
+STALLER = r"""
+import asyncio, sys, time
+import httpx, numpy as np
+from agents.negotiator import honest_manifest
+from agents.remote import Client, RemoteAgent, faithful_fine_tune
+
+def stall_in_round_1(manifest, info):
+    if info.round == 1:
+        print("stalling", flush=True)
+        time.sleep(float(sys.argv[3]))
+    return faithful_fine_tune(manifest, info)
+
+async def main(server, name):
+    async with httpx.AsyncClient(base_url=server) as http:
+        manifest = honest_manifest(np.random.default_rng(100), name)
+        agent = RemoteAgent(
+            Client(http), manifest, fine_tuner=stall_in_round_1, transport="websocket"
+        )
+        await agent.submit()
+        print("model", agent.model_id, flush=True)
+        while not (found := await agent.auctions()):
+            await asyncio.sleep(0.2)
+        await agent.play(found[0])
+        print("uploads", agent.uploads.accepted + agent.uploads.refused, flush=True)
+
+asyncio.run(main(sys.argv[1], sys.argv[2]))
+"""
+"""A round-socket agent (the Python API) that sleeps in its round-1 fine-tuning, holding the
+round open (its seed, 100, makes a patron that stays in the auction past iteration 1)."""
+STALL_S = 4.0
+
+
+def test_round_socket_agents_ride_out_a_kill_9_and_restart(tmp_path: Path) -> None:
+    """``srd agents --transport websocket`` and a stalling socket agent, the server killed -9
+    while round 1 waits for the staller and started again on the same port: every agent
+    reconnects, the staller's upload arrives after the restart, the auction finishes with
+    contiguous iterations, each upload stored once and the market's records."""
+    url = f"sqlite:///{tmp_path / 'srd.db'}"
+    (server, _), admin = server_pair(url, tmp_path)
+    prefix = f"sock-{secrets.token_hex(3)}"
+    processes: list[subprocess.Popen[str]] = []
+    try:
+        server.start()
+        staller = subprocess.Popen(
+            [sys.executable, "-c", STALLER, server.url, f"{prefix}-staller", str(STALL_S)],
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=Path(__file__).parents[2],
+        )
+        agents = subprocess.Popen(
+            [
+                *srd_command(),
+                "agents",
+                "--server",
+                server.url,
+                "--honest",
+                "5",
+                "--seed",
+                "3",
+                "--name-prefix",
+                prefix,
+                "--wait",
+                "120",
+                "--transport",
+                "websocket",
+                "--json",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        processes = [staller, agents]
+        assert staller.stdout is not None
+        staller_id = int(staller.stdout.readline().split()[1])
+        names = [f"{prefix}-honest-{i:03d}" for i in range(5)]
+        found = wait_for(
+            lambda: {
+                n: httpx.get(f"{server.url}/models", params={"participant": n}).json()["items"]
+                for n in names
+            },
+            lambda by_name: all(by_name.values()),
+            TIMEOUT_S,
+        )
+        ids = [found[n][0]["id"] for n in names] + [staller_id]
+        body = {
+            "n_fish": 1,
+            "model_ids": ids,
+            "fine_tune_mode": "remote",
+            "fine_tune_rounds": 2,
+            "round_deadline_s": HELD_OPEN_S,
+            "seed": 4,
+        }
+        created = httpx.post(server.url + "/auctions", json=body, headers=admin, timeout=30)
+        assert created.status_code == 201, created.text
+        auction_id = created.json()["auction_id"]
+        assert staller.stdout.readline().split() == ["stalling"]
+        server.kill()  # round 1 is open: the staller is still fine-tuning
+        server.start()  # the same port: the agents' sockets come back to it
+        out, err = agents.communicate(timeout=TIMEOUT_S)
+        said, _ = staller.communicate(timeout=TIMEOUT_S)
+        assert agents.returncode == 0, err
+        assert staller.returncode == 0 and said.split()[:2] == ["uploads", "2"], said
+        report = json.loads(out)
+        assert report["retries"] > 0  # the sockets were opened again after the kill
+        auction = wait_for(
+            lambda: httpx.get(f"{server.url}/auctions/{auction_id}", timeout=30).json(),
+            lambda a: a["status"] in ("finished", "failed"),
+            TIMEOUT_S,
+        )
+        assert auction["status"] == "finished", auction["error"]
+        history = auction["history"]
+        assert [row["iteration"] for row in history] == list(range(len(history)))
+        rounds = auction["fine_tuning"]
+        assert [r["round"] for r in rounds] == [1, 2]
+        outcomes = [a["outcome"] for r in rounds for a in r["answers"]]
+        assert outcomes and set(outcomes) <= {"accepted", "refused"}  # nobody missed a round
+        config = MarketConfig(
+            n_fish=1, fine_tune=True, fine_tune_rounds=2, seed=4, fine_tune_mode="remote"
+        )
+        assert replay(server, auction, config) == history
+        database = Database(url)
+        check_stored_once(database, auction)
+        database.close()
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+        server.stop()

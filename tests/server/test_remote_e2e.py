@@ -10,11 +10,8 @@ import asyncio
 import json
 import secrets
 import signal
-import subprocess
-import sys
 from collections.abc import Iterator
 from datetime import datetime
-from pathlib import Path
 from typing import Any
 
 import httpx
@@ -26,12 +23,12 @@ from agents.batch import from_manifests
 from agents.manifest import Manifest, parse_manifest
 from agents.remote import Client, RemoteAgent, Transport
 from server.db import Database
-from server.launch import ServerProcess, srd_command
+from server.launch import ServerProcess
 from server.models import Auction
 from sim.market import Market, MarketConfig
 from tests.support.databases import BACKENDS, fresh_database
 from tests.support.factories import honest
-from tests.support.remote import replay
+from tests.support.remote import agents_process, replay, stalling_agent
 from tests.support.server import wait_for
 
 DEADLINE_S = 3.0
@@ -39,34 +36,6 @@ DEADLINE_S = 3.0
 TIMEOUT_S = 180
 WEIGHT_TOLERANCE = 1e-12
 """Remote and in-server fine-tuning agree to this (band padding moves last bits)."""
-VICTIM = r"""
-import asyncio, sys, time
-import httpx, numpy as np
-from agents.negotiator import honest_manifest
-from agents.remote import Client, RemoteAgent, Transport, faithful_fine_tune
-
-def stall_in_round_2(manifest, info):
-    if info.round >= 2:
-        print("stalling", info.round, flush=True)
-        time.sleep(3600)
-    return faithful_fine_tune(manifest, info)
-
-async def main(server, name, transport):
-    async with httpx.AsyncClient(base_url=server) as http:
-        manifest = honest_manifest(np.random.default_rng(100), name)
-        agent = RemoteAgent(
-            Client(http), manifest, fine_tuner=stall_in_round_2, transport=transport
-        )
-        await agent.submit()
-        print("model", agent.model_id, flush=True)
-        while not (found := await agent.auctions()):
-            await asyncio.sleep(0.2)
-        await agent.play(found[0])
-
-asyncio.run(main(sys.argv[1], sys.argv[2], sys.argv[3]))
-"""
-"""An agent (the Python API) that answers round 1 and hangs in its fine-tuning of round 2 (its
-seed, 100, makes a patron that pays up to 4.97 and stays in the auction past iteration 1)."""
 
 
 @pytest.fixture(scope="module", params=BACKENDS)
@@ -96,41 +65,15 @@ def transport_of(server: ServerProcess) -> str:
 
 
 def play_with_agents_and_a_victim(server: ServerProcess) -> tuple[int, int, set[int], Any]:
-    """``srd agents`` (6 honest, 2 bait-and-switch) and a victim agent that is killed -9 in its
-    round-2 fine-tuning, in one remote auction: (auction id, victim's model id, saboteur model
-    ids, the agents' --json report)."""
+    """``srd agents`` (6 honest, 2 bait-and-switch) and a victim agent (``STALLING_AGENT``)
+    that is killed -9 in its round-2 fine-tuning, in one remote auction: (auction id, victim's
+    model id, saboteur model ids, the agents' --json report)."""
     prefix = f"e2e-{secrets.token_hex(3)}"
     victim_name = f"{prefix}-victim"
     transport = transport_of(server)
-    victim = subprocess.Popen(
-        [sys.executable, "-c", VICTIM, server.url, victim_name, transport],
-        stdout=subprocess.PIPE,
-        text=True,
-        cwd=Path(__file__).parents[2],
-    )
-    agents = subprocess.Popen(
-        [
-            *srd_command(),
-            "agents",
-            "--server",
-            server.url,
-            "--honest",
-            "6",
-            "--saboteurs",
-            "2",
-            "--seed",
-            "7",
-            "--name-prefix",
-            prefix,
-            "--wait",
-            "120",
-            "--transport",
-            transport,
-            "--json",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
+    victim = stalling_agent(server, victim_name, transport, stall_round=2, stall_s=3600)
+    agents = agents_process(
+        server, prefix, "--honest", "6", "--saboteurs", "2", "--seed", "7", transport=transport
     )
     try:
         assert victim.stdout is not None

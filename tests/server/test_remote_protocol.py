@@ -76,17 +76,18 @@ def moving(name: str, seed: int) -> dict[str, Any]:
     return data
 
 
-@pytest.fixture(scope="module")
-def remote(client: TestClient) -> dict[str, Any]:
-    """A remote auction of 8 fine-tuning honest patrons, round 1 open for a minute."""
-    manifests = [moving(unique("remote"), seed=QUITTER_SEED + i) for i in range(8)]
+def remote_auction(client: TestClient, prefix: str, first_seed: int, seed: int) -> dict[str, Any]:
+    """A remote auction (``seed``) of 8 fine-tuning honest patrons (seeds ``first_seed`` on),
+    round 1 open for a minute: its id, manifests, (model id, token) of each patron, the open
+    round's state."""
+    manifests = [moving(unique(prefix), seed=first_seed + i) for i in range(8)]
     patrons = submit(client, manifests)
     body = {
         "n_fish": 1,
         "model_ids": [m for m, _ in patrons],
         "fine_tune_mode": "remote",
         "round_deadline_s": 60,
-        "seed": 5,
+        "seed": seed,
     }
     created = client.post("/auctions", json=body, headers=ADMIN)
     assert created.status_code == 201, created.text
@@ -94,6 +95,12 @@ def remote(client: TestClient) -> dict[str, Any]:
     state = open_round(client, auction_id)
     assert state["status"] == "open" and state["round"] == 1, state
     return {"id": auction_id, "manifests": manifests, "patrons": patrons, "state": state}
+
+
+@pytest.fixture(scope="module")
+def remote(client: TestClient) -> dict[str, Any]:
+    """A remote auction of 8 fine-tuning honest patrons, round 1 open for a minute."""
+    return remote_auction(client, "remote", QUITTER_SEED, seed=5)
 
 
 def test_remote_auctions_are_validated(client: TestClient) -> None:

@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import secrets
 import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,12 +18,12 @@ from sqlalchemy import func, select
 from agents.manifest import parse_manifest
 from agents.remote import RoundInfo, faithful_fine_tune
 from server.db import Database
-from server.launch import ServerProcess, srd_command
+from server.launch import ServerProcess
 from server.models import Auction, FineTuneAnswer, FineTuneRound, ModelVersion, Purchase
 from sim.market import MarketConfig
 from tests.support.factories import honest
 from tests.support.processes import server_pair
-from tests.support.remote import replay
+from tests.support.remote import agents_process, replay, stalling_agent
 from tests.support.server import wait_for
 
 N_PATRONS = 6
@@ -124,6 +123,24 @@ def check_stored_once(database: Database, auction: dict[str, Any]) -> None:
     assert len({b["model_id"] for b in auction["buyers"]}) == len(auction["buyers"])
 
 
+def finished_as_the_market(server: ServerProcess, auction_id: int, seed: int) -> dict[str, Any]:
+    """The auction (of one fish and two remote rounds) once over: finished, its iterations
+    contiguous, its records those of the market replaying the accepted versions."""
+    auction = wait_for(
+        lambda: httpx.get(f"{server.url}/auctions/{auction_id}", timeout=30).json(),
+        lambda a: a["status"] in ("finished", "failed"),
+        TIMEOUT_S,
+    )
+    assert auction["status"] == "finished", auction["error"]
+    history = auction["history"]
+    assert [row["iteration"] for row in history] == list(range(len(history)))
+    config = MarketConfig(
+        n_fish=1, fine_tune=True, fine_tune_rounds=2, seed=seed, fine_tune_mode="remote"
+    )
+    assert replay(server, auction, config) == history
+    return dict(auction)
+
+
 def test_kill_9_in_the_middle_of_a_round_then_restart(
     fresh_database_url: str, tmp_path: Path
 ) -> None:
@@ -155,21 +172,10 @@ def test_kill_9_in_the_middle_of_a_round_then_restart(
         assert nxt["round"] == 2 and nxt["status"] == "open"
         for model_id in nxt["asked"]:
             assert remote.upload(second, nxt, model_id).status_code == 200
-        auction = wait_for(
-            lambda: httpx.get(f"{second.url}/auctions/{auction_id}", timeout=30).json(),
-            lambda a: a["status"] in ("finished", "failed"),
-            TIMEOUT_S,
-        )
-        assert auction["status"] == "finished", auction["error"]
-        history = auction["history"]
-        assert [row["iteration"] for row in history] == list(range(len(history)))
+        auction = finished_as_the_market(second, auction_id, seed=3)
         first_round = auction["fine_tuning"][0]
         assert sorted(a["model_id"] for a in first_round["answers"]) == sorted(asked)
         assert all(a["outcome"] in ("accepted", "refused") for a in first_round["answers"])
-        config = MarketConfig(
-            n_fish=1, fine_tune=True, fine_tune_rounds=2, seed=3, fine_tune_mode="remote"
-        )
-        assert replay(second, auction, config) == history
         check_stored_once(database, auction)
         database.close()
     finally:
@@ -177,36 +183,8 @@ def test_kill_9_in_the_middle_of_a_round_then_restart(
         second.stop()
 
 
-STALLER = r"""
-import asyncio, sys, time
-import httpx, numpy as np
-from agents.negotiator import honest_manifest
-from agents.remote import Client, RemoteAgent, faithful_fine_tune
-
-def stall_in_round_1(manifest, info):
-    if info.round == 1:
-        print("stalling", flush=True)
-        time.sleep(float(sys.argv[3]))
-    return faithful_fine_tune(manifest, info)
-
-async def main(server, name):
-    async with httpx.AsyncClient(base_url=server) as http:
-        manifest = honest_manifest(np.random.default_rng(100), name)
-        agent = RemoteAgent(
-            Client(http), manifest, fine_tuner=stall_in_round_1, transport="websocket"
-        )
-        await agent.submit()
-        print("model", agent.model_id, flush=True)
-        while not (found := await agent.auctions()):
-            await asyncio.sleep(0.2)
-        await agent.play(found[0])
-        print("uploads", agent.uploads.accepted + agent.uploads.refused, flush=True)
-
-asyncio.run(main(sys.argv[1], sys.argv[2]))
-"""
-"""A round-socket agent (the Python API) that sleeps in its round-1 fine-tuning, holding the
-round open (its seed, 100, makes a patron that stays in the auction past iteration 1)."""
 STALL_S = 4.0
+"""How long the stalling socket agent (``STALLING_AGENT``) holds round 1 open."""
 
 
 def test_round_socket_agents_ride_out_a_kill_9_and_restart(tmp_path: Path) -> None:
@@ -220,33 +198,11 @@ def test_round_socket_agents_ride_out_a_kill_9_and_restart(tmp_path: Path) -> No
     processes: list[subprocess.Popen[str]] = []
     try:
         server.start()
-        staller = subprocess.Popen(
-            [sys.executable, "-c", STALLER, server.url, f"{prefix}-staller", str(STALL_S)],
-            stdout=subprocess.PIPE,
-            text=True,
-            cwd=Path(__file__).parents[2],
+        staller = stalling_agent(
+            server, f"{prefix}-staller", "websocket", stall_round=1, stall_s=STALL_S
         )
-        agents = subprocess.Popen(
-            [
-                *srd_command(),
-                "agents",
-                "--server",
-                server.url,
-                "--honest",
-                "5",
-                "--seed",
-                "3",
-                "--name-prefix",
-                prefix,
-                "--wait",
-                "120",
-                "--transport",
-                "websocket",
-                "--json",
-            ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
+        agents = agents_process(
+            server, prefix, "--honest", "5", "--seed", "3", transport="websocket"
         )
         processes = [staller, agents]
         assert staller.stdout is not None
@@ -272,7 +228,7 @@ def test_round_socket_agents_ride_out_a_kill_9_and_restart(tmp_path: Path) -> No
         created = httpx.post(server.url + "/auctions", json=body, headers=admin, timeout=30)
         assert created.status_code == 201, created.text
         auction_id = created.json()["auction_id"]
-        assert staller.stdout.readline().split() == ["stalling"]
+        assert staller.stdout.readline().split() == ["stalling", "1"]
         server.kill()  # round 1 is open: the staller is still fine-tuning
         server.start()  # the same port: the agents' sockets come back to it
         out, err = agents.communicate(timeout=TIMEOUT_S)
@@ -281,22 +237,11 @@ def test_round_socket_agents_ride_out_a_kill_9_and_restart(tmp_path: Path) -> No
         assert staller.returncode == 0 and said.split()[:2] == ["uploads", "2"], said
         report = json.loads(out)
         assert report["retries"] > 0  # the sockets were opened again after the kill
-        auction = wait_for(
-            lambda: httpx.get(f"{server.url}/auctions/{auction_id}", timeout=30).json(),
-            lambda a: a["status"] in ("finished", "failed"),
-            TIMEOUT_S,
-        )
-        assert auction["status"] == "finished", auction["error"]
-        history = auction["history"]
-        assert [row["iteration"] for row in history] == list(range(len(history)))
+        auction = finished_as_the_market(server, auction_id, seed=4)
         rounds = auction["fine_tuning"]
         assert [r["round"] for r in rounds] == [1, 2]
         outcomes = [a["outcome"] for r in rounds for a in r["answers"]]
         assert outcomes and set(outcomes) <= {"accepted", "refused"}  # nobody missed a round
-        config = MarketConfig(
-            n_fish=1, fine_tune=True, fine_tune_rounds=2, seed=4, fine_tune_mode="remote"
-        )
-        assert replay(server, auction, config) == history
         database = Database(url)
         check_stored_once(database, auction)
         database.close()

@@ -16,16 +16,7 @@ from starlette.websockets import WebSocketDisconnect
 from agents.manifest import parse_manifest
 from agents.remote import RoundInfo, faithful_fine_tune
 from server.remote_rounds.sockets import BURST, MAX_FRAME_BYTES, UPLOAD_MAX_BYTES
-from tests.server.test_remote_protocol import (
-    bearer,
-    moving,
-    open_round,
-    put,
-    stored_versions,
-    submit,
-)
-from tests.support.factories import unique
-from tests.support.server import ADMIN
+from tests.server.test_remote_protocol import bearer, put, remote_auction, stored_versions
 
 SEED = 900
 """Patrons seeds 900..907 (any honest draws: the tests below use the asked ones)."""
@@ -33,30 +24,13 @@ SEED = 900
 
 @pytest.fixture(scope="module")
 def remote(client: TestClient) -> dict[str, Any]:
-    """A remote auction of 8 fine-tuning honest patrons, round 1 open for a minute."""
-    manifests = [moving(unique("socket"), seed=SEED + i) for i in range(8)]
-    patrons = submit(client, manifests)
-    body = {
-        "n_fish": 1,
-        "model_ids": [m for m, _ in patrons],
-        "fine_tune_mode": "remote",
-        "round_deadline_s": 60,
-        "seed": 9,
-    }
-    created = client.post("/auctions", json=body, headers=ADMIN)
-    assert created.status_code == 201, created.text
-    auction_id = created.json()["auction_id"]
-    state = open_round(client, auction_id)
-    assert state["status"] == "open" and state["round"] == 1, state
-    asked = [p for p, (m, _) in enumerate(patrons) if m in state["asked"]]
-    assert len(asked) >= 3, state["asked"]
-    return {
-        "id": auction_id,
-        "manifests": manifests,
-        "patrons": patrons,
-        "state": state,
-        "asked": asked,
-    }
+    """A remote auction of 8 fine-tuning honest patrons, round 1 open for a minute; ``asked``:
+    the positions asked in it."""
+    remote = remote_auction(client, "socket", SEED, seed=9)
+    patrons, asked_ids = remote["patrons"], remote["state"]["asked"]
+    asked = [p for p, (m, _) in enumerate(patrons) if m in asked_ids]
+    assert len(asked) >= 3, asked_ids
+    return {**remote, "asked": asked}
 
 
 def socket_path(auction_id: int) -> str:

@@ -1,14 +1,87 @@
-"""What the remote-agent tests check a server's auction against: its replay on the market."""
+"""What the remote-agent tests share: agents in subprocesses (``srd agents`` and a stalling
+agent of the Python API), and what a server's auction is checked against: its replay on the
+market."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
 from typing import Any
 
 import httpx
 
 from agents.manifest import Manifest, parse_manifest
-from server.launch import ServerProcess
+from server.launch import ServerProcess, srd_command
 from sim.market import Market, MarketConfig
+
+STALLING_AGENT = r"""
+import asyncio, sys, time
+import httpx, numpy as np
+from agents.negotiator import honest_manifest
+from agents.remote import Client, RemoteAgent, faithful_fine_tune
+
+server, name, transport, stall_round, stall_s = sys.argv[1:6]
+
+def stall(manifest, info):
+    if info.round == int(stall_round):
+        print("stalling", info.round, flush=True)
+        time.sleep(float(stall_s))
+    return faithful_fine_tune(manifest, info)
+
+async def main():
+    async with httpx.AsyncClient(base_url=server) as http:
+        manifest = honest_manifest(np.random.default_rng(100), name)
+        agent = RemoteAgent(Client(http), manifest, fine_tuner=stall, transport=transport)
+        await agent.submit()
+        print("model", agent.model_id, flush=True)
+        while not (found := await agent.auctions()):
+            await asyncio.sleep(0.2)
+        await agent.play(found[0])
+        print("uploads", agent.uploads.accepted + agent.uploads.refused, flush=True)
+
+asyncio.run(main())
+"""
+"""An agent (the Python API) that submits, waits for its auction and plays it, sleeping in its
+fine-tuning of one round. Its seed, 100, makes a patron that pays up to 4.97 and stays in the
+auction past iteration 1. It prints ``model <id>``, ``stalling <round>`` and at the end
+``uploads <n>``."""
+
+
+def stalling_agent(
+    server: ServerProcess, name: str, transport: str, stall_round: int, stall_s: float
+) -> subprocess.Popen[str]:
+    """``STALLING_AGENT`` in a subprocess (stdout piped)."""
+    stall = (str(stall_round), str(stall_s))
+    return subprocess.Popen(
+        [sys.executable, "-c", STALLING_AGENT, server.url, name, transport, *stall],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=Path(__file__).parents[2],
+    )
+
+
+def agents_process(
+    server: ServerProcess, prefix: str, *options: str, transport: str = "http"
+) -> subprocess.Popen[str]:
+    """``srd agents --json`` against the server in a subprocess (stdout and stderr piped),
+    its participants named ``<prefix>-...``, waiting up to 120 s for their auction."""
+    fixed = ("--wait", "120", "--transport", transport, "--json")
+    return subprocess.Popen(
+        [
+            *srd_command(),
+            "agents",
+            "--server",
+            server.url,
+            "--name-prefix",
+            prefix,
+            *fixed,
+            *options,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def stored_manifest(server: ServerProcess, model_id: int) -> Manifest:

@@ -54,9 +54,9 @@ def socket_url(server: str, auction_id: int) -> str:
     return f"{base}/auctions/{auction_id}/rounds/socket"
 
 
-def _ready(state: dict[str, Any] | None, after: int) -> bool:
-    if state is None:
-        return False
+def _ready(state: dict[str, Any], after: int) -> bool:
+    """Worth handing on to an agent that handled round ``after``: a newer round open, or the
+    end."""
     if state["auction_status"] not in ("pending", "running"):
         return True
     return state["status"] == "open" and (state["round"] or 0) > after
@@ -86,7 +86,6 @@ class RoundSocket:
         self._latest: dict[str, Any] | None = None
         self._changed = asyncio.Event()
         self._answers: dict[tuple[int, int], asyncio.Future[tuple[int, Any]]] = {}
-        self._ended = False
         self.resync_s = RESYNC_S
 
     async def __aenter__(self) -> RoundSocket:
@@ -115,12 +114,11 @@ class RoundSocket:
         """The auction's state once a round above ``after`` is open or the auction has ended
         (the round as ``GET .../rounds/current`` shows it)."""
         while True:
-            if _ready(self._latest, after) or (self._ended and self._latest is not None):
-                assert self._latest is not None
+            if self._latest is not None and _ready(self._latest, after):
                 return self._latest
             ws = await self._ensure()
             changed = self._changed
-            if not (_ready(self._latest, after) or self._ws is None):
+            if self._ws is not None and not (self._latest and _ready(self._latest, after)):
                 try:
                     await asyncio.wait_for(changed.wait(), self.resync_s)
                 except TimeoutError:  # silent for too long: start afresh
@@ -220,8 +218,6 @@ class RoundSocket:
                 message = json.loads(frame)
                 if message.get("type") == "round":
                     self._latest = message["body"]
-                    if self._latest["auction_status"] not in ("pending", "running"):
-                        self._ended = True
                     self._wake()
                 elif message.get("type") == "answer":
                     waiting = self._answers.get((message["round"], message["model_id"]))

@@ -19,11 +19,12 @@ transports share every check, every counter and every stored outcome
 
 Identity is the handshake's ``Authorization: Bearer <participant token>``, checked on every
 upload as the PUT checks it. Limits: ``MAX_SOCKETS`` open sockets per API process (beyond, the
-handshake is answered 503 with Retry-After), frames up to ``MAX_FRAME_BYTES`` (the server closes
-a socket that sends a bigger one, code 1009), a manifest up to the PUT's upload limit (413),
-uploads handled one at a time per socket, and a token bucket of ``BURST`` messages refilled at
-``REFILL_PER_S`` (beyond it the socket is closed, code 1008). A dead peer is dropped by the
-server's WebSocket pings.
+handshake is answered 503 with Retry-After), frames up to ``MAX_FRAME_BYTES`` (a socket that
+sends a bigger one is closed, code 1009: by uvicorn under ``srd serve``, by the app under any
+other server), a manifest up to the PUT's upload limit (413), uploads handled one at a time per
+socket, and a token bucket of ``BURST`` messages refilled at ``REFILL_PER_S`` (beyond it the
+socket is closed, code 1008). A dead peer is dropped by the server's WebSocket pings; a socket
+whose rounds cannot be read is closed with 1011, for the agent to reconnect.
 """
 
 from __future__ import annotations
@@ -217,6 +218,8 @@ async def _handle(text: str, upload: UploadHandler) -> str:
         raw = json.loads(text)
     except ValueError as exc:
         return _error(None, 400, f"the message is not JSON: {exc}", ("message",), "not_json")
+    except RecursionError:
+        return _error(None, 400, "the message nests too deep", ("message",), "json_depth")
     try:
         message = UploadMessage.model_validate(raw)
     except ValidationError as exc:

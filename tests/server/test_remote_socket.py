@@ -127,6 +127,7 @@ def test_socket_refusals_name_the_field_and_store_nothing(
         )
     with client.websocket_connect(path, headers=bearer(token)) as ws:
         refusal(answer_to(ws, "not json"), 400, ["message"], "not JSON")
+        refusal(answer_to(ws, "[" * 60_000 + "]" * 60_000), 400, ["message"], "too deep")
         ws.send_bytes(b"{}")
         refusal(json.loads(ws.receive_text()), 400, ["message"], "text frames")
         extra = json.dumps(

@@ -90,17 +90,27 @@ class _Watch:
 
 @dataclass(frozen=True)
 class Published:
-    """One answer of the watcher: its JSON body and what it says."""
+    """One answer of the watcher: its JSON body and the snapshot it says."""
 
     body: bytes
-    round: int | None
-    open: bool
-    """The round is open (its rows and seeds are in the body)."""
-    auction_over: bool
+    snapshot: RoundSnapshot
+
+    @property
+    def round(self) -> int | None:
+        return self.snapshot.head.round
+
+    @property
+    def open(self) -> bool:
+        """The round is open (its rows and seeds are in the body)."""
+        return self.snapshot.status == RoundStatus.OPEN
+
+    @property
+    def auction_over(self) -> bool:
+        return self.snapshot.auction_over
 
     def ready(self, after: int) -> bool:
         """Worth handing on to an agent that handled round ``after``."""
-        return self.auction_over or (self.open and (self.round or 0) > after)
+        return self.snapshot.ready(after)
 
 
 class TooManyWaitersError(RuntimeError):
@@ -190,12 +200,7 @@ class RoundWatcher:
         if snapshot.head.round_id is not None:
             self._writer.count_published(snapshot.head.round_id, len(body))
         self._forget_idle()
-        return Published(
-            body,
-            snapshot.head.round,
-            snapshot.status == RoundStatus.OPEN,
-            snapshot.auction_over,
-        )
+        return Published(body, snapshot)
 
     def _forget_idle(self) -> None:
         """Beyond ``MAX_WATCHED`` auctions, forget those nobody waits on, least recently read

@@ -18,6 +18,7 @@ from agents.remote import (
     AUCTION_WAIT_S,
     GIVE_UP_S,
     MAX_AGENTS,
+    TRANSPORTS,
     PopulationConfig,
     PopulationReport,
     RemoteError,
@@ -143,7 +144,7 @@ def _table(report: PopulationReport) -> Table:
 )
 @click.option(
     "--transport",
-    type=click.Choice(["http", "websocket"]),
+    type=click.Choice(TRANSPORTS),
     default="http",
     show_default=True,
     help="Rounds by long poll and PUT, or over one round socket per agent.",

@@ -109,6 +109,8 @@ class PopulationReport:
     auction: dict[str, Any] = field(default_factory=dict)
     """The final state of the auction: status, iterations, buyers, revenue, stop reason."""
     elapsed_s: float = 0.0
+    transport: Transport = "http"
+    """How the rounds travelled (``PopulationConfig.transport``)."""
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -288,6 +290,7 @@ def _report(
         bytes_down=traffic.bytes_down,
         requests=traffic.requests,
         retries=traffic.retries,
+        transport=config.transport,
         rounds=len(final.get("fine_tuning", [])),
         admitted=sum(bool(a.accepted_at_submit) for a in agents),
         refusal_rules=sorted({r["rule"] for a in agents for r in a.reasons}),

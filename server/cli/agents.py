@@ -48,7 +48,7 @@ def _table(report: PopulationReport) -> Table:
         ),
         ("refused by rules", ", ".join(report.refusal_rules) or "—"),
         ("bytes up / down", f"{report.bytes_up} / {report.bytes_down}"),
-        ("requests (retries)", f"{report.requests} ({report.retries})"),
+        ("requests (retries)", f"{report.requests} ({report.retries}), {report.transport}"),
         ("elapsed", f"{report.elapsed_s:.1f} s"),
     ]
     for name, value in rows:

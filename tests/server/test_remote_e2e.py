@@ -144,6 +144,7 @@ def test_honest_and_bait_and_switch_agents_and_a_killed_one(server: ServerProces
     rounds = auction["fine_tuning"]
     assert [r["round"] for r in rounds] == [1, 2, 3][: len(rounds)] and len(rounds) >= 2
     assert report["agents"] == 8 and report["auctions"] == [auction_id]
+    assert report["transport"] == transport_of(server)
     assert report["uploads"]["late"] == 0 and report["bytes_up"] > 0 and report["bytes_down"] > 0
 
     check_answers(server, auction_id, saboteurs, report)

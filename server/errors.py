@@ -126,12 +126,18 @@ async def _socket_validation(websocket: WebSocket, exc: Exception) -> None:
     )
 
 
-async def _problem(request: Request, exc: Exception) -> JSONResponse:
-    assert isinstance(exc, RequestError)
+def problem_response(exc: RequestError) -> JSONResponse:
+    """The common body and headers of a refusal (a 401 names the Bearer scheme), for a request
+    or a refused WebSocket handshake."""
     headers = dict(exc.headers)
     if exc.status == 401:
         headers.setdefault("WWW-Authenticate", "Bearer")
     return JSONResponse({"detail": exc.items}, status_code=exc.status, headers=headers)
+
+
+async def _problem(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestError)
+    return problem_response(exc)
 
 
 async def _database_unavailable(request: Request, exc: Exception) -> JSONResponse:

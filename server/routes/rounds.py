@@ -10,7 +10,6 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Query, Request, Response, WebSocket
-from fastapi.responses import JSONResponse
 
 from server.deps import (
     ParticipantTokenDep,
@@ -20,7 +19,7 @@ from server.deps import (
     UploadLookupDep,
     UploadsDep,
 )
-from server.errors import RequestError, api_error, responses
+from server.errors import RequestError, api_error, problem_response, responses
 from server.remote_rounds import MAX_WAIT_S, SocketLimitError
 from server.remote_rounds.sockets import RETRY_AFTER_S, UPLOAD_MAX_BYTES
 from server.schemas import (
@@ -144,9 +143,7 @@ def _bearer(header: str | None) -> str | None:
 
 async def _deny(websocket: WebSocket, error: RequestError) -> None:
     """Refuse a handshake with the common error body."""
-    await websocket.send_denial_response(
-        JSONResponse({"detail": error.items}, status_code=error.status, headers=error.headers)
-    )
+    await websocket.send_denial_response(problem_response(error))
 
 
 @router.websocket("/auctions/{auction_id}/rounds/socket")

@@ -6,7 +6,7 @@ server counts them."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
+import math
 import random
 import time
 from dataclasses import dataclass
@@ -41,6 +41,29 @@ class Traffic:
     bytes_down: int = 0
     requests: int = 0
     retries: int = 0
+
+
+class Backoff:
+    """The retry schedule of one request: exponential delays with jitter (``RETRY_FIRST_S``
+    doubling to ``RETRY_MAX_S``) until the deadline ``give_up_at`` (monotonic clock); each
+    pause counts a retry in ``traffic``."""
+
+    def __init__(self, give_up_at: float, rng: random.Random, traffic: Traffic) -> None:
+        self.give_up_at = give_up_at
+        self.delay = RETRY_FIRST_S
+        self._rng, self._traffic = rng, traffic
+
+    @property
+    def exhausted(self) -> bool:
+        """The next pause would end past the deadline."""
+        return time.monotonic() + self.delay > self.give_up_at
+
+    async def pause(self, at_least_s: float = 0.0) -> None:
+        """Sleep the current delay (or ``at_least_s``, a server's Retry-After, if longer),
+        jittered, then double the delay."""
+        self._traffic.retries += 1
+        await asyncio.sleep(max(self.delay, at_least_s) * (0.5 + self._rng.random()))
+        self.delay = min(self.delay * 2, RETRY_MAX_S)
 
 
 class Client:
@@ -81,8 +104,7 @@ class Client:
         headers = {"Content-Type": "application/json"} if body is not None else {}
         if token is not None:
             headers["Authorization"] = f"Bearer {token}"
-        give_up = time.monotonic() + self.give_up_s
-        delay = RETRY_FIRST_S
+        backoff = Backoff(time.monotonic() + self.give_up_s, self._rng, self.traffic)
         while True:
             self.traffic.requests += 1
             try:
@@ -91,26 +113,23 @@ class Client:
                 )
             except httpx.TransportError as exc:
                 unsent = isinstance(exc, httpx.ConnectError | httpx.ConnectTimeout)
-                if not (resend or unsent) or time.monotonic() + delay > give_up:
+                if not (resend or unsent) or backoff.exhausted:
                     raise ServerGoneError(
                         f"the server at {self.server} did not answer {method} {path} "
                         f"({type(exc).__name__}: {exc}); gave up after {self.give_up_s:.0f} s"
                     ) from exc
-                wait_s = delay
-            else:
-                self.traffic.bytes_up += len(body or b"")
-                self.traffic.bytes_down += len(response.content)
-                if response.status_code not in RETRY_STATUSES:
-                    return response
-                if time.monotonic() + delay > give_up:
-                    raise ServerGoneError(
-                        f"the server at {self.server} kept answering {response.status_code} "
-                        f"to {method} {path}; gave up after {self.give_up_s:.0f} s"
-                    )
-                wait_s = _retry_after(response, delay)
-            self.traffic.retries += 1
-            await asyncio.sleep(wait_s * (0.5 + self._rng.random()))
-            delay = min(delay * 2, RETRY_MAX_S)
+                await backoff.pause()
+                continue
+            self.traffic.bytes_up += len(body or b"")
+            self.traffic.bytes_down += len(response.content)
+            if response.status_code not in RETRY_STATUSES:
+                return response
+            if backoff.exhausted:
+                raise ServerGoneError(
+                    f"the server at {self.server} kept answering {response.status_code} "
+                    f"to {method} {path}; gave up after {self.give_up_s:.0f} s"
+                )
+            await backoff.pause(retry_after_s(response.headers.get("Retry-After")))
 
     async def json(self, method: str, path: str, **kwargs: Any) -> Any:
         """``request`` that expects a 2xx JSON answer (else RemoteError with the server's)."""
@@ -120,7 +139,11 @@ class Client:
         return response.json()
 
 
-def _retry_after(response: httpx.Response, default_s: float) -> float:
-    with contextlib.suppress(ValueError):
-        return max(default_s, float(response.headers.get("Retry-After", "")))
-    return default_s
+def retry_after_s(header: str | None) -> float:
+    """Seconds of a Retry-After header given in seconds (0 when absent, not a number or not
+    finite)."""
+    try:
+        seconds = float(header or "")
+    except ValueError:
+        return 0.0
+    return seconds if math.isfinite(seconds) and seconds > 0 else 0.0

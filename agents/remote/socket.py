@@ -25,12 +25,12 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidSta
 from agents.remote.client import (
     GIVE_UP_S,
     HTTP_TIMEOUT_S,
-    RETRY_FIRST_S,
-    RETRY_MAX_S,
     RETRY_STATUSES,
+    Backoff,
     RemoteError,
     ServerGoneError,
     Traffic,
+    retry_after_s,
 )
 
 MAX_FRAME_BYTES = 1 << 20
@@ -137,10 +137,9 @@ class RoundSocket:
             },
             separators=(",", ":"),
         )
-        give_up = time.monotonic() + self.give_up_s
-        delay = RETRY_FIRST_S
+        backoff = Backoff(time.monotonic() + self.give_up_s, self._rng, self.traffic)
         while True:
-            ws = await self._ensure(give_up)
+            ws = await self._ensure(backoff.give_up_at)
             key = (round_number, model_id)
             answer: asyncio.Future[tuple[int, Any]] = asyncio.get_running_loop().create_future()
             self._answers[key] = answer
@@ -150,7 +149,7 @@ class RoundSocket:
                 self.traffic.bytes_up += len(body)
                 status, reply = await asyncio.wait_for(answer, HTTP_TIMEOUT_S)
             except (ConnectionClosed, _DroppedError, TimeoutError) as exc:
-                if time.monotonic() + delay > give_up:
+                if backoff.exhausted:
                     raise ServerGoneError(
                         f"the server at {self.server} did not answer the upload of round "
                         f"{round_number} ({type(exc).__name__}); gave up after "
@@ -159,26 +158,24 @@ class RoundSocket:
             else:
                 if status not in RETRY_STATUSES:
                     return status, reply
-                if time.monotonic() + delay > give_up:
+                if backoff.exhausted:
                     raise ServerGoneError(
                         f"the server at {self.server} kept answering {status} to the upload of "
                         f"round {round_number}; gave up after {self.give_up_s:.0f} s"
                     )
             finally:
                 self._answers.pop(key, None)
-            self.traffic.retries += 1
-            await asyncio.sleep(delay * (0.5 + self._rng.random()))
-            delay = min(delay * 2, RETRY_MAX_S)
+            await backoff.pause()
 
     async def _ensure(self, give_up: float | None = None) -> ClientConnection:
         """The open connection, opened (again) if need be."""
         if self._ws is not None:
             return self._ws
         give_up = time.monotonic() + self.give_up_s if give_up is None else give_up
+        backoff = Backoff(give_up, self._rng, self.traffic)
         headers = {} if self.token is None else {"Authorization": f"Bearer {self.token}"}
-        delay = RETRY_FIRST_S
         while True:
-            wait_s = delay
+            retry_after = 0.0
             try:
                 ws = await connect(
                     self.url,
@@ -192,8 +189,7 @@ class RoundSocket:
                 if status not in RETRY_STATUSES:
                     shown = (exc.response.body or b"").decode(errors="replace")[:500]
                     raise RemoteError(f"round socket {self.url}: {status} {shown}") from exc
-                with contextlib.suppress(ValueError):
-                    wait_s = max(delay, float(exc.response.headers.get("Retry-After", "")))
+                retry_after = retry_after_s(exc.response.headers.get("Retry-After"))
                 failure = f"kept answering {status}"
             except (OSError, InvalidHandshake, TimeoutError) as exc:
                 failure = f"did not answer ({type(exc).__name__}: {exc})"
@@ -201,14 +197,12 @@ class RoundSocket:
                 self._ws = ws
                 self._reader = asyncio.create_task(self._read(ws))
                 return ws
-            if time.monotonic() + delay > give_up:
+            if backoff.exhausted:
                 raise ServerGoneError(
                     f"the server at {self.server} {failure} on {self.url}; gave up after "
                     f"{self.give_up_s:.0f} s"
                 )
-            self.traffic.retries += 1
-            await asyncio.sleep(wait_s * (0.5 + self._rng.random()))
-            delay = min(delay * 2, RETRY_MAX_S)
+            await backoff.pause(retry_after)
 
     async def _read(self, ws: ClientConnection) -> None:
         """Hand every frame on: rounds to ``next_round``, answers to their uploads."""

@@ -21,6 +21,7 @@ from agents.remote import (
     faithful_fine_tune,
     population,
 )
+from agents.remote.client import retry_after_s
 from screener import screen
 from sim.market import Market, MarketConfig, round_update_problems
 
@@ -133,3 +134,9 @@ def test_population_settings_are_checked_and_its_models_are_seeded():
     ]
     assert all(screen(a.current).accepted for a in agents[3:])  # honest-looking at first
     assert [a.fine_tuner for a in agents[3:]] == [always_hold, always_hold]
+
+
+def test_retry_after_is_read_in_seconds_and_never_endless() -> None:
+    assert retry_after_s("2") == 2.0 and retry_after_s("0.5") == 0.5
+    for header in (None, "", "soon", "-3", "inf", "nan"):
+        assert retry_after_s(header) == 0.0, header  # the agent's own backoff applies

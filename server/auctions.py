@@ -16,8 +16,10 @@ patrons, an absolute deadline). The worker then counts the answers the API store
 every asked patron has answered or the deadline has passed, whichever comes first. It counts
 them whenever the upload writer rings the round's doorbell after storing answers
 (``server.doorbell``), and at the bell's fallback period. It closes the round in ONE
-transaction: the round's status, a ``missing`` answer for each silent patron, the accepted
-versions applied to the market, and the new checkpoint. After each of its commits it rings
+transaction, which also plays the next iteration: the round's status, a ``missing`` answer for
+each silent patron, the accepted versions applied to the market, the next iteration's row
+(with the round it opens, if any) and the new checkpoint, all at one timestamp (the round's
+``closed_at`` is the next round's ``opened_at``). After each of its commits it rings
 the round watcher of the API process that started it. A restart in the middle of a round
 finds the round still open (its checkpoint is the one from before the round) and waits for it
 again until the same deadline; nothing is applied twice.
@@ -29,7 +31,7 @@ import logging
 import os
 import time
 from collections.abc import Sequence
-from datetime import timedelta
+from datetime import datetime, timedelta
 from typing import TYPE_CHECKING
 
 from sqlalchemy import func, select, update
@@ -55,7 +57,6 @@ from server.workers import WorkerContext, error_summary
 from sim.market import MarketConfig
 
 if TYPE_CHECKING:
-    from sim.market import FineTuneRound as PendingRound
     from sim.market import IterationRecord, Market, RescreenBatch
 
 log = logging.getLogger("srd.auctions")
@@ -123,11 +124,14 @@ def _commit_round(
     record: IterationRecord,
     blob: bytes,
     model_ids: list[int],
-    opened: tuple[PendingRound, float] | None = None,
+    deadline_s: float,
+    market: Market,
+    now: datetime,
 ) -> bool:
-    """Write one round atomically, with the fine-tuning round it opens (its pending round and
-    deadline in seconds) if any; False when the auction moved on without us."""
-    now = utcnow()
+    """Write one iteration atomically at ``now``, with the fine-tuning round it opens (the
+    market's pending round, due ``deadline_s`` later) if any; False when the auction moved on
+    without us."""
+    opened = market.pending_round
     moved = session.execute(
         update(Auction)
         .where(
@@ -173,19 +177,18 @@ def _commit_round(
         for i in record.quitters
     )
     if opened is not None:
-        pending, deadline_s = opened
         session.add(
             FineTuneRound(
                 auction_id=auction_id,
-                round=pending.iteration + 1,
-                iteration=pending.iteration,
+                round=opened.iteration + 1,
+                iteration=opened.iteration,
                 status=RoundStatus.OPEN,
                 opened_at=now,
                 deadline=now + timedelta(seconds=deadline_s),
-                rows=pending.rows.tolist(),
-                fine_tune_seed=pending.fine_tune_seed,
-                augmentation_seed=pending.augmentation_seed,
-                asked=pending.patrons,
+                rows=opened.rows.tolist(),
+                fine_tune_seed=opened.fine_tune_seed,
+                augmentation_seed=opened.augmentation_seed,
+                asked=opened.patrons,
                 bytes_published=0,
             )
         )
@@ -220,36 +223,19 @@ def _wait_for_answers(database: Database, round_id: int, asked: int, deadline: f
 
 
 def _close_round(
-    database: Database, auction_id: int, market: Market, pending: PendingRound
+    session: Session, auction_id: int, market: Market, row: FineTuneRound, now: datetime
 ) -> bool:
-    """Wait for the open round's answers, then close it in one transaction (see the module
-    docstring); False when another runner closed it or moved the auction on."""
-    number = pending.iteration + 1
-    row = _open_round(database, auction_id, number)
-    _wait_for_answers(database, row.id, len(row.asked), row.deadline.timestamp())
-    with database.session(write=True) as session:
-        closed = session.execute(
-            update(FineTuneRound)
-            .where(FineTuneRound.id == row.id, FineTuneRound.status == RoundStatus.OPEN)
-            .values(status=RoundStatus.CLOSED, closed_at=utcnow())
-        )
-        if closed.rowcount != 1:  # type: ignore[attr-defined]
-            session.rollback()
-            return False
-        _apply_answers(session, auction_id, row, market)
-        moved = session.execute(
-            update(Auction)
-            .where(
-                Auction.id == auction_id,
-                Auction.iteration == number,
-                Auction.status == AuctionStatus.RUNNING,
-            )
-            .values(checkpoint=market.checkpoint(), updated_at=utcnow())
-        )
-        if moved.rowcount != 1:  # type: ignore[attr-defined]
-            session.rollback()
-            return False
-        session.commit()
+    """Close the open round ``row`` at ``now`` in the transaction of ``session``: its status,
+    its answers applied to the market (see ``_apply_answers``); False when another runner
+    closed it."""
+    closed = session.execute(
+        update(FineTuneRound)
+        .where(FineTuneRound.id == row.id, FineTuneRound.status == RoundStatus.OPEN)
+        .values(status=RoundStatus.CLOSED, closed_at=now)
+    )
+    if closed.rowcount != 1:  # type: ignore[attr-defined]
+        return False
+    _apply_answers(session, auction_id, row, market, now)
     return True
 
 
@@ -266,7 +252,9 @@ def _open_round(database: Database, auction_id: int, number: int) -> FineTuneRou
     return row
 
 
-def _apply_answers(session: Session, auction_id: int, row: FineTuneRound, market: Market) -> None:
+def _apply_answers(
+    session: Session, auction_id: int, row: FineTuneRound, market: Market, now: datetime
+) -> None:
     """Apply the round's accepted uploads to the market and to the patrons' current versions,
     and record a ``missing`` answer for every asked patron that stayed silent."""
     answered = {
@@ -293,7 +281,6 @@ def _apply_answers(session: Session, auction_id: int, row: FineTuneRound, market
         )
     }
     market.apply_round({position: parse_manifest(versions[i]) for position, i in applied.items()})
-    now = utcnow()
     for position in row.asked:
         if position in answered:
             continue
@@ -354,28 +341,34 @@ def _drive(database: Database, auction_id: int) -> None:
             return
         session.commit()
     bells, watchers = doorbell.scope(database.url), doorbell.watch_bell(os.getppid())
+    deadline_s = auction.round_deadline_s
     while not market.finished:
         pending = market.pending_round
-        if pending is not None:
-            if not _close_round(database, auction_id, market, pending):
-                log.warning("auction %d: round closed elsewhere; this runner stops", auction_id)
-                return
-            doorbell.ring(bells, watchers)
-            continue
-        record = market.step()
-        blob = market.checkpoint()
-        opened = market.pending_round
-        with database.session(write=True) as session:
-            if not _commit_round(
-                session,
-                auction_id,
-                record,
-                blob,
-                model_ids,
-                None if opened is None else (opened, auction.round_deadline_s),
-            ):
-                log.warning("auction %d advanced elsewhere; this runner stops", auction_id)
-                return
+        if pending is None:  # the iteration is computed before the write lock is taken
+            record, blob = market.step(), market.checkpoint()
+            with database.session(write=True) as session:
+                moved = _commit_round(
+                    session, auction_id, record, blob, model_ids, deadline_s, market, utcnow()
+                )
+        else:
+            row = _open_round(database, auction_id, pending.iteration + 1)
+            _wait_for_answers(database, row.id, len(row.asked), row.deadline.timestamp())
+            # One transaction: the round closed, its answers applied, the next iteration (a
+            # remote auction's is its votes only: it fine-tunes nobody) and its checkpoint.
+            with database.session(write=True) as session:
+                now = utcnow()
+                moved = _close_round(session, auction_id, market, row, now)
+                if not moved:
+                    session.rollback()
+                else:
+                    record = market.step()
+                    moved = _commit_round(
+                        session, auction_id, record, market.checkpoint(), model_ids, deadline_s,
+                        market, now,
+                    )  # fmt: skip
+        if not moved:
+            log.warning("auction %d moved on elsewhere; this runner stops", auction_id)
+            return
         doorbell.ring(bells, watchers)
 
 

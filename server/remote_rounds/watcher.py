@@ -20,6 +20,7 @@ import contextlib
 import json
 import logging
 import os
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any, Literal
@@ -113,6 +114,11 @@ class Published:
         return self.snapshot.ready(after)
 
 
+RoundSeen = Callable[[int, int | None, str, Sequence[int]], None]
+"""Told (auction id, round, status, asked model ids) whenever the watcher reads a change in an
+auction's newest round (``UploadLookup.round_seen``)."""
+
+
 class TooManyWaitersError(RuntimeError):
     """This process already holds ``MAX_WAITERS`` round requests."""
 
@@ -120,9 +126,12 @@ class TooManyWaitersError(RuntimeError):
 class RoundWatcher:
     """Long polls of ``GET /auctions/{id}/rounds/current`` (see the module docstring)."""
 
-    def __init__(self, database: Database, writer: UploadWriter) -> None:
+    def __init__(
+        self, database: Database, writer: UploadWriter, *, on_round: RoundSeen | None = None
+    ) -> None:
         self._database = database
         self._writer = writer
+        self._on_round = on_round
         self._watches: dict[int, _Watch] = {}
         self._waiters = 0
         self._bell: doorbell.Bell | None = None
@@ -236,6 +245,10 @@ class RoundWatcher:
             if snapshot is None or known is None or _key(snapshot) != _key(known):
                 watch.changed.set()
                 watch.changed = asyncio.Event()
+                if snapshot is not None and self._on_round is not None:
+                    body = snapshot.body
+                    asked = [] if body is None else body.asked
+                    self._on_round(auction_id, snapshot.head.round, snapshot.status, asked)
             return snapshot
         finally:
             watch.reading = None

@@ -113,7 +113,8 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         ray_max_retries=settings.ray_max_retries,
     )
     uploads = UploadWriter(database)
-    watcher = RoundWatcher(database, uploads)
+    lookup = UploadLookup(database)
+    watcher = RoundWatcher(database, uploads, on_round=lookup.round_seen)
     owner = server_id()
 
     def runner(
@@ -137,7 +138,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         screening=ScreeningService(),
         submissions=SubmissionWriter(database, Limits.of(settings)),
         uploads=uploads,
-        upload_lookup=UploadLookup(database),
+        upload_lookup=lookup,
         rounds=watcher,
         sockets=RoundSockets(watcher),
         auctions=runner(

@@ -36,6 +36,7 @@ from server.security import token_matches
 from server.services.auctions import not_found
 from server.status import ANSWERED, RoundStatus
 from sim.market import design_changes
+from sim.market.design import design
 
 RETRY_AFTER_S = 1
 """Retry-After of a round request refused because too many wait."""
@@ -204,9 +205,10 @@ async def upload(
     ):
         return _answered(await writer.write(late))
     data = manifest.model_dump(mode="json")
-    problems = _body_problems(data, target)
-    if problems:
-        raise validation_error(problems)
+    if target.current_design is None or design(manifest) != target.current_design:
+        problems = _body_problems(data, target)
+        if problems:
+            raise validation_error(problems)
     if data == target.current_manifest:
         return _answered(await writer.write(dataclasses.replace(late, kind="unchanged")))
     try:

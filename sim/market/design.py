@@ -6,15 +6,50 @@ from __future__ import annotations
 
 from typing import Any
 
+from pydantic import BaseModel
+
 from agents.manifest import Manifest
 
 FROZEN_IN_ROUNDS = "only weights and biases change in a fine-tuning round"
+NUMBERS = ("weights", "bias")
+"""The fields a fine-tuning round moves, wherever a neuron has them."""
+
+Design = dict[str, Any]
+"""A manifest's JSON form without its weights and biases (``design``)."""
 
 
-def round_update_problems(current: Manifest, update: Manifest) -> list[tuple[str, str]]:
+def _numbers_of(model: type[BaseModel]) -> dict[str, Any]:
+    """pydantic's ``exclude`` spec of every weights and bias field under ``model``."""
+    spec: dict[str, Any] = {}
+    for name, field in model.model_fields.items():
+        if name in NUMBERS:
+            spec[name] = True
+        elif isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel):
+            inner = _numbers_of(field.annotation)
+            if inner:
+                spec[name] = inner
+    return spec
+
+
+_NUMBERS = _numbers_of(Manifest)
+
+
+def design(manifest: Manifest) -> Design:
+    """Everything a fine-tuning round must leave as it is (one dump, weights and biases left
+    out by pydantic): two manifests may stand for one another in a round exactly when their
+    designs are equal."""
+    return manifest.model_dump(mode="json", exclude=_NUMBERS)
+
+
+def round_update_problems(
+    current: Manifest, update: Manifest, *, current_design: Design | None = None
+) -> list[tuple[str, str]]:
     """What ``update`` changes beyond the weights and biases of ``current``, as (dotted path,
     message) pairs: a fine-tuning round moves the numbers, never the model's design
-    (activations, augmentation, settings, names)."""
+    (activations, augmentation, settings, names). ``current_design``, if given, is
+    ``design(current)`` computed earlier."""
+    if (design(current) if current_design is None else current_design) == design(update):
+        return []
     return design_changes(current.model_dump(mode="json"), update.model_dump(mode="json"))
 
 

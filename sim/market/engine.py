@@ -17,6 +17,7 @@ from agents.forward import ACTIONS, decide, noise_scale, standard_normal
 from agents.manifest import INPUTS, Manifest
 from sim.market import rounds
 from sim.market.config import MarketConfig, fine_tunes_after, scores_all_rows
+from sim.market.design import Design, design
 from sim.market.items import BUY_FRACTION, PRICE, item_rows
 from sim.market.randomness import AuctionRandom, round_seeds
 from sim.market.records import IterationRecord
@@ -123,6 +124,8 @@ class MarketBatch:
         self.local = np.arange(len(self.owner)) - self.first[self.owner]
         if patrons is not None and patrons.n_patrons != sum(sizes):
             raise ValueError("patrons must hold every auction's manifests")
+        self._given = [manifests for manifests, _ in auctions]
+        self._designs: dict[tuple[int, int], Design] = {}
         self.batch = (
             patrons
             if patrons is not None
@@ -465,6 +468,18 @@ class MarketBatch:
         """The same patrons from now on with the parameters of ``batch``."""
         self.batch = batch
         self._voters = None
+
+    def entered(self, auction: int, position: int) -> Manifest:
+        """The manifest patron ``position`` of ``auction`` entered with."""
+        return self._given[auction][position]
+
+    def design(self, auction: int, position: int) -> Design:
+        """The design (``sim.market.design``) of patron ``position`` of ``auction``: that of the
+        manifest it entered with, which fine-tuning never changes (computed once)."""
+        key = (auction, position)
+        if key not in self._designs:
+            self._designs[key] = design(self.entered(auction, position))
+        return self._designs[key]
 
     def manifests(self, auction: int) -> list[Manifest]:
         """The auction's patrons with their current (possibly fine-tuned) parameters."""

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from agents.batch import from_manifests, to_manifest
+from agents.batch import from_manifests
 from agents.manifest import Manifest
 from sim.market.design import round_update_problems
 from sim.market.randomness import round_seeds
@@ -62,7 +62,11 @@ def apply_round(engine: MarketBatch, auction: int, updates: Mapping[int, Manifes
         if position not in pending.patrons:
             raise ValueError(f"patron {position} is not asked in this round")
         i = int(engine.first[auction]) + position
-        problems = round_update_problems(to_manifest(engine.batch, i), manifest)
+        problems = round_update_problems(
+            engine.entered(auction, position),
+            manifest,
+            current_design=engine.design(auction, position),
+        )
         if problems:
             raise ValueError(f"patron {position}: {problems[0][0]}: {problems[0][1]}")
         index.append(i)

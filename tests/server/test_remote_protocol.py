@@ -351,6 +351,8 @@ def test_the_bait_and_switch_is_refused_and_the_round_closes_when_all_answered(
         assert outcomes[model_id]["version"] == answer["version"]
     assert first["bytes_total"] > first["bytes_published"] > 0
     assert nxt["round"] == 2 and nxt["status"] == "open"
+    # The round closed in the transaction that played the next iteration and opened round 2.
+    assert auction["fine_tuning"][1]["opened_at"] == first["closed_at"]
 
 
 def test_a_silent_round_closes_at_its_deadline_and_late_uploads_get_410(
@@ -391,3 +393,51 @@ def test_a_silent_round_closes_at_its_deadline_and_late_uploads_get_410(
 
 def _seconds(stamp: str) -> float:
     return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
+
+
+def test_the_uploads_of_a_published_round_are_checked_without_a_database_read(
+    client: TestClient,
+) -> None:
+    """Once a round is published, its patrons' targets are read ahead in one pass: their
+    uploads (first, repeated, different) need no lookup of their own; the writer still decides
+    alone what is in time and what is a repeat; a closed round is forgotten, so a late upload
+    is read again and refused."""
+    manifests = [moving(unique("desk"), seed=500 + i) for i in range(8)]
+    patrons = submit(client, manifests)
+    body = {
+        "n_fish": 1,
+        "model_ids": [m for m, _ in patrons],
+        "fine_tune_mode": "remote",
+        "round_deadline_s": 3,
+        "seed": 3,
+    }
+    auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
+    state = open_round(client, auction_id)
+    lookup = client.app.state.services.upload_lookup  # type: ignore[attr-defined]
+    wait_for(lambda: lookup.primed(auction_id, 1), bool, 10.0)
+    reads = lookup.reads
+    asked = [(p, m, t) for p, (m, t) in enumerate(patrons) if m in state["asked"]]
+    *answering, (silent_position, silent_id, silent_token) = asked
+    first = {}
+    for position, model_id, token in answering:
+        tuned = faithful_fine_tune(
+            parse_manifest(manifests[position]), RoundInfo.from_state(state, position)
+        )
+        upload = tuned.model_dump_json().encode()
+        first[model_id] = put(client, auction_id, 1, model_id, upload, token)
+        assert first[model_id].status_code == 200, first[model_id].text
+        again = put(client, auction_id, 1, model_id, upload, token)
+        assert again.status_code == 200 and again.content == first[model_id].content
+    position, model_id, token = answering[0]
+    other = parse_manifest(manifests[position]).model_dump(mode="json")
+    other["decision"]["B"]["bias"] += 1e-3
+    refused(put(client, auction_id, 1, model_id, _json(other), token), 409, ["path", "round"],
+            "one upload per round")  # fmt: skip
+    assert lookup.reads == reads, "the round's uploads were checked against its read-ahead"
+    # The silent patron lets the deadline pass: round 2 opens, round 1 is forgotten.
+    open_round(client, auction_id, after=1)
+    wait_for(lambda: not lookup.primed(auction_id, 1), bool, 10.0)
+    late_body = parse_manifest(manifests[silent_position]).model_dump_json().encode()
+    late = put(client, auction_id, 1, silent_id, late_body, silent_token)
+    assert late.status_code == 410 and ["path", "round"] in loc_of(late), late.text
+    assert lookup.reads > reads

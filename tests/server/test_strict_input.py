@@ -172,3 +172,48 @@ def test_405_names_every_method_of_the_path(client: TestClient) -> None:
         response = client.request(method, path)
         assert response.status_code == 405
         assert response.headers["allow"] == allowed
+
+
+def _careful(raw: bytes) -> Any:
+    """The body as the careful pass alone judges it (the fast pass must agree)."""
+    from server.body import _Pairs, _resolve
+
+    return _resolve(json.loads(raw.decode(), object_pairs_hook=_Pairs), (), 0)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        '{"a": 1, "b": {"c": [1, 2, {"d": null}]}, "e": "x\\"[{"}',
+        '{"a": {"b": 1, "b": 2}}',
+        '[{"x": 1}, {"x": 1, "x": 1}]',
+        '{"a": [NaN]}',
+        '{"a": {"b": -Infinity}}',
+        '{"a": Infinity}',
+        "[" * 32 + "]" * 32,
+        "[" * 33 + "]" * 33,
+        "[" * 32 + "1" + "]" * 32,
+        "[" * 33 + "1" + "]" * 33,
+        '{"k": ' * 33 + "1" + "}" * 33,
+        '{"k": ' * 31 + '"[[[[[[[[[[[[[[[["' + "}" * 31,
+        '"just a string"',
+        "3.5",
+    ],
+)
+def test_the_fast_strict_json_pass_agrees_with_the_careful_one(text: str) -> None:
+    """``parse_strict_json`` parses in one pass and only goes back to the careful pass (which
+    names the location) when something is wrong: the same value, or the same refusal."""
+    from server.body import BodyRefusedError, parse_strict_json
+
+    raw = text.encode()
+    try:
+        expected: Any = ("value", _careful(raw))
+    except BodyRefusedError as exc:
+        expected = ("refused", exc.status, exc.loc, exc.kind)
+    try:
+        got: Any = ("value", parse_strict_json(raw))
+    except BodyRefusedError as exc:
+        got = ("refused", exc.status, exc.loc, exc.kind)
+    assert got == expected
+    if got[0] == "value":
+        assert json.dumps(got[1]) == json.dumps(expected[1])

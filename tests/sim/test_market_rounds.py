@@ -203,3 +203,46 @@ def test_apply_round_refuses_strangers_and_design_changes():
     assert round_update_problems(manifests[p], faithful(manifests[p], pending, p)) == []
     market.apply_round({})
     assert market.pending_round is None and market.current_manifests() == manifests
+
+
+def _leaves(data: object, path: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    if isinstance(data, dict):
+        return [leaf for key, value in data.items() for leaf in _leaves(value, (*path, key))]
+    return [path]
+
+
+def _nudged(value: object) -> object:
+    if isinstance(value, bool):
+        return not value
+    if isinstance(value, int):
+        return value + 1
+    if isinstance(value, float):
+        return value * 0.5 + 0.01
+    return f"{value}x"
+
+
+def test_the_design_is_everything_but_the_weights_and_biases():
+    """``design`` (one pydantic dump, weights and biases excluded) tells two manifests apart
+    exactly when ``design_changes`` (the walk that names what differs) finds something: for
+    every field of the manifest changed alone."""
+    from sim.market.design import design, design_changes
+
+    base = honest_manifest(np.random.default_rng(3), "designed")
+    data = base.model_dump(mode="json")
+    moved, kept = 0, 0
+    for path in _leaves(data):
+        changed = json.loads(json.dumps(data))
+        node = changed
+        for key in path[:-1]:
+            node = node[key]
+        node[path[-1]] = _nudged(node[path[-1]])
+        try:
+            other = Manifest.model_validate(changed)
+        except ValueError:
+            continue  # the nudge left the field's range: not a manifest
+        named = design_changes(data, other.model_dump(mode="json"))
+        numbers = "weights" in path or path[-1] == "bias"
+        assert (design(other) == design(base)) == (named == []) == numbers, path
+        assert round_update_problems(base, other) == named
+        moved, kept = moved + numbers, kept + (not numbers)
+    assert moved == 83 and kept > 10  # every weight and bias, and the design fields

@@ -32,6 +32,7 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
+from typing import Any
 
 from agents.manifest import Manifest
 from screener import Verdict
@@ -40,6 +41,11 @@ from server.workers import die_with_parent, freeze_heap
 log = logging.getLogger("srd.screening")
 
 MAX_BATCH = 16  # beyond this the screener's cost per manifest stops falling
+GATHER_GAP_S = 0.002
+"""A batch being gathered takes the next manifest that comes within this long: a burst (the
+uploads of a fine-tuning round, arriving as the API parses them) is judged in a few batches
+rather than many small ones, each with the screener's fixed cost; a lone manifest waits this
+long."""
 VERDICT_TIMEOUT_S = 120.0  # a first request also waits for the process to import torch
 STOP_GRACE_S = 5.0
 RESPAWN_DELAY_S = 0.5  # a process that cannot start must not spin
@@ -78,9 +84,7 @@ def _screening_main(conn: Connection, parent_pid: int) -> None:
     judges = {True: screen_many, False: rescreen_many}
     while True:
         try:
-            batch = [conn.recv()]
-            while len(batch) < MAX_BATCH and conn.poll():
-                batch.append(conn.recv())
+            batch = gather(conn)
         except EOFError:
             return
         stop = batch[-1] is None  # the stop signal; what came before it is still judged
@@ -95,6 +99,15 @@ def _screening_main(conn: Connection, parent_pid: int) -> None:
                 conn.send([(i, answer) for (i, _), answer in zip(mine, answers, strict=True)])
         if stop:
             return
+
+
+def gather(conn: Connection) -> list[Any]:
+    """The next batch: the first request (waiting for it), then each one that comes within
+    ``GATHER_GAP_S`` of the one before, up to ``MAX_BATCH``; a stop (None) ends the batch."""
+    batch = [conn.recv()]
+    while len(batch) < MAX_BATCH and batch[-1] is not None and conn.poll(GATHER_GAP_S):
+        batch.append(conn.recv())
+    return batch
 
 
 def _judge(

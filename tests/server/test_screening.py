@@ -72,3 +72,40 @@ def test_a_caller_that_stops_waiting_leaves_the_service_working(
         return await asyncio.wait_for(service.verdict(honest), 60)
 
     assert asyncio.run(cancel_some_then_ask()) == screen(honest)
+
+
+class _Arrivals:
+    """A pipe end whose requests arrive at scripted times (seconds from the first recv)."""
+
+    def __init__(self, arrivals: list[tuple[float, object]]) -> None:
+        self.arrivals = arrivals
+        self.now = 0.0
+
+    def recv(self) -> object:
+        at, item = self.arrivals.pop(0)
+        self.now = max(self.now, at)
+        return item
+
+    def poll(self, timeout: float) -> bool:
+        if self.arrivals and self.arrivals[0][0] <= self.now + timeout:
+            return True
+        self.now += timeout
+        return False
+
+
+def test_a_burst_is_gathered_into_one_batch_and_a_stop_ends_it() -> None:
+    """Requests that keep coming within the gap join the batch being gathered (a round's
+    uploads arrive one by one as the API parses them); a pause longer than the gap, a full
+    batch or a stop closes it."""
+    from server.screening import GATHER_GAP_S, MAX_BATCH, gather
+
+    gap = GATHER_GAP_S
+    burst = [(k * gap * 0.5, k) for k in range(5)] + [(10 * gap, "later")]
+    pipe = _Arrivals(burst)
+    assert gather(pipe) == [0, 1, 2, 3, 4]  # type: ignore[arg-type]
+    assert gather(pipe) == ["later"]  # type: ignore[arg-type]
+    many = _Arrivals([(0.0, k) for k in range(MAX_BATCH + 3)])
+    assert len(gather(many)) == MAX_BATCH  # type: ignore[arg-type]
+    assert len(gather(many)) == 3  # type: ignore[arg-type]
+    stopping = _Arrivals([(0.0, "a"), (0.0, None), (0.0, "after")])
+    assert gather(stopping) == ["a", None]  # type: ignore[arg-type]

@@ -3,12 +3,13 @@
 The screener is tensor code: one manifest costs a few milliseconds of mostly fixed overhead,
 a batch of sixteen hardly more than two. So the API process hands each manifest to a spawned
 screening process (its own interpreter and GIL) over a pipe; that process takes whatever has
-queued up since its last pass (at most ``MAX_BATCH``), judges it with one
+queued up since its last pass, and whatever keeps coming within ``GATHER_GAP_S`` of the one
+before (at most ``MAX_BATCH``), judges it with one
 ``screener.screen_many`` call (the batched form of ``screener.screen``: same rules, same
 verdicts) — or, for versions fine-tuned inside a remote auction, one
 ``screener.rescreen_many`` call, the re-screening the server's own fine-tuning rounds apply —
-and sends the verdicts back. Under no load a batch is one manifest, so nothing waits for a
-batch to fill.
+and sends the verdicts back. Under no load a batch is one manifest, which waits only the gap
+for company.
 
 A screener exception answers that one submission with 503 (the batch is re-judged one by
 one to find it). If the screening process dies, the submissions in flight fail with

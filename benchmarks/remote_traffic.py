@@ -9,14 +9,15 @@
    (``agents.fine_tuning.draw_fine_tune_seeded``) and serialised as the server serialises JSON.
    Uploads (the fine-tuned manifests) and their answers count in both.
 2. Wall time of remote auctions of 64 agents over loopback when every agent answers, per round:
-   publishing (the round committed → the last agent has it), the agents' own fine-tuning (each
-   agent alone, as on its own machine; run here one after another and reported, not counted),
-   upload (first upload sent → last answer, re-screening included), re-screening alone (the
-   round's uploads through ``screener.rescreen_many`` in batches of 16, as the screening process
-   judges them, timed in this process), and closing (last answer → the round closed and its
-   checkpoint committed → the next round published, which includes the market's next
-   iteration). The protocol's overhead is everything but the fine-tuning; target ≤ 50 ms per
-   round with 64 agents.
+   publishing (the worker begins the iteration that opens the round: from round 2 on, the
+   transaction that closes the round before, applies its versions, plays the iteration and
+   commits it with the checkpoint → the last agent has the round), the agents' own fine-tuning
+   (each agent alone, as on its own machine; run here one after another and reported, not
+   counted), upload (first upload sent → last answer, re-screening included), re-screening
+   alone (the round's uploads through ``screener.rescreen_many`` in batches of 16, as the
+   screening process judges them, timed in this process), and closing (last answer → the
+   worker begins closing the round). The protocol's overhead is everything but the
+   fine-tuning; target ≤ 50 ms per round with 64 agents.
 
 The agents here are driven in phases (all receive, all fine-tune, all upload at once) so that
 the phases can be timed apart; ``srd agents`` interleaves them per agent. ``--transport
@@ -84,7 +85,6 @@ class RoundTiming:
     upload: float
     rescreen: float
     close: float
-    next_round: float | None
     bytes_implicit: int
     bytes_explicit: int
     cpu: Cpu
@@ -93,7 +93,7 @@ class RoundTiming:
     @property
     def overhead(self) -> float:
         """Everything but the agents' fine-tuning."""
-        return self.publish + self.upload + self.close + (self.next_round or 0.0)
+        return self.publish + self.upload + self.close
 
 
 def tree_cpu(root: int) -> float:
@@ -268,7 +268,6 @@ async def timings_of(client: Client, auction_id: int, played: list[Played]) -> l
     for p in played:
         closing = rounds[p.state["round"]]
         opened_at, closed_at = stamp(closing["opened_at"]), stamp(closing["closed_at"])
-        following = rounds.get(p.state["round"] + 1)
         started = time.perf_counter()
         for first in range(0, len(p.changed), MAX_BATCH):
             rescreen_many(p.changed[first : first + MAX_BATCH])
@@ -286,7 +285,6 @@ async def timings_of(client: Client, auction_id: int, played: list[Played]) -> l
                 upload=p.answered - p.sent,
                 rescreen=rescreen,
                 close=closed_at - p.answered,
-                next_round=None if following is None else stamp(following["opened_at"]) - closed_at,
                 bytes_implicit=closing["bytes_total"],
                 bytes_explicit=explicit + uploads,
                 cpu=p.cpu,
@@ -359,29 +357,27 @@ def report(timings: list[RoundTiming], n_agents: int) -> None:
     print("\nper round (ms; agents asked; bytes with implicit vs explicit augmentation)")
     print(
         f"{'auction':>7} {'round':>5} {'agents':>6} {'publish':>8} {'upload':>8} {'rescreen':>8} "
-        f"{'close':>7} {'next':>7} {'overhead':>8} {'tune sum':>8} {'implicit B':>10} "
+        f"{'close':>7} {'overhead':>8} {'tune sum':>8} {'implicit B':>10} "
         f"{'explicit B':>11} {'ratio':>6}"
     )
     for t in timings:
-        nxt = "—" if t.next_round is None else f"{t.next_round * 1e3:7.1f}"
         print(
             f"{t.auction:>7} {t.round:>5} {t.agents:>6} {t.publish * 1e3:8.1f} "
-            f"{t.upload * 1e3:8.1f} {t.rescreen * 1e3:8.1f} {t.close * 1e3:7.1f} {nxt:>7} "
+            f"{t.upload * 1e3:8.1f} {t.rescreen * 1e3:8.1f} {t.close * 1e3:7.1f} "
             f"{t.overhead * 1e3:8.1f} {t.fine_tune_sum * 1e3:8.1f} {t.bytes_implicit:>10} "
             f"{t.bytes_explicit:>11} {t.bytes_explicit / t.bytes_implicit:6.1f}"
         )
-    full = [t for t in timings if t.next_round is not None]
+    following = [t for t in timings if t.round > 1]  # their CPU window is one whole cycle
     print(f"\nmedians over {len(timings)} rounds ({n_agents} agents per auction):")
     for name, values in (
         ("publishing", [t.publish for t in timings]),
         ("upload (re-screening included)", [t.upload for t in timings]),
         ("re-screening alone (in this process)", [t.rescreen for t in timings]),
-        ("closing and commit", [t.close for t in timings]),
-        ("next iteration published", [t.next_round for t in full if t.next_round is not None]),
-        ("protocol overhead (target ≤ 50 ms)", [t.overhead for t in full]),
-        ("  of which not re-screening", [t.overhead - t.rescreen for t in full]),
-        ("server CPU in the HTTP phases", [t.cpu.server for t in full]),
-        ("  driver CPU in the same phases", [t.cpu.driver for t in full]),
+        ("closing (last answer → the worker closes)", [t.close for t in timings]),
+        ("protocol overhead (target ≤ 50 ms)", [t.overhead for t in timings]),
+        ("  of which not re-screening", [t.overhead - t.rescreen for t in timings]),
+        ("server CPU per round (rounds 2 on)", [t.cpu.server for t in following]),
+        ("  driver CPU in the same phases", [t.cpu.driver for t in following]),
         ("agents' fine-tuning, summed", [t.fine_tune_sum for t in timings]),
         ("agents' fine-tuning, slowest agent", [t.fine_tune_max for t in timings]),
     ):

@@ -128,9 +128,9 @@ def _commit_round(
     market: Market,
     now: datetime,
 ) -> bool:
-    """Write one iteration atomically at ``now``, with the fine-tuning round it opens (the
-    market's pending round, due ``deadline_s`` later) if any; False when the auction moved on
-    without us."""
+    """Write one iteration begun at ``now`` atomically, with the fine-tuning round it opens (the
+    market's pending round, open from ``now``, due ``deadline_s`` after this commit) if any;
+    False when the auction moved on without us."""
     opened = market.pending_round
     moved = session.execute(
         update(Auction)
@@ -184,7 +184,7 @@ def _commit_round(
                 iteration=opened.iteration,
                 status=RoundStatus.OPEN,
                 opened_at=now,
-                deadline=now + timedelta(seconds=deadline_s),
+                deadline=utcnow() + timedelta(seconds=deadline_s),
                 rows=opened.rows.tolist(),
                 fine_tune_seed=opened.fine_tune_seed,
                 augmentation_seed=opened.augmentation_seed,
@@ -345,10 +345,11 @@ def _drive(database: Database, auction_id: int) -> None:
     while not market.finished:
         pending = market.pending_round
         if pending is None:  # the iteration is computed before the write lock is taken
+            began = utcnow()
             record, blob = market.step(), market.checkpoint()
             with database.session(write=True) as session:
                 moved = _commit_round(
-                    session, auction_id, record, blob, model_ids, deadline_s, market, utcnow()
+                    session, auction_id, record, blob, model_ids, deadline_s, market, began
                 )
         else:
             row = _open_round(database, auction_id, pending.iteration + 1)

@@ -2,11 +2,12 @@
 writer built on it (``POST /submit``, the uploads of remote rounds and their lookups use them).
 
 ``GroupWorker``: a request on any event loop queues an item and awaits its result; one thread
-takes every item queued since its last pass (at most ``MAX_GROUP``, in arrival order), hands
-the group to one function that returns a result per item (or an exception to raise in that
-item's waiter), and gives each result back to its waiter's future on the waiter's own loop.
-Under no load a group is one item, so nothing waits for a group to fill; under load the
-round trips and wake-ups are shared by the group.
+takes every item queued since its last pass (at most ``MAX_GROUP``, in arrival order; with a
+``gather_gap_s``, also each item that comes within that long of the one before), hands the
+group to one function that returns a result per item (or an exception to raise in that item's
+waiter), and gives each result back to its waiter's future on the waiter's own loop. Under no
+load a group is one item, which waits at most the gap for company; under load the round trips
+and wake-ups are shared by the group.
 
 ``GroupWriter``: the group is decided and written in ONE transaction. If a statement hits a
 unique constraint (a row written meanwhile by another process), the group is rolled back and
@@ -73,11 +74,13 @@ class GroupWorker(Generic[Item, Result]):
         on_error: Callable[[Exception], Result | BaseException],
         idle_s: float | None = None,
         after_pass: Callable[[], None] | None = None,
+        gather_gap_s: float = 0.0,
     ) -> None:
         self._name = name
         self._handle = handle
         self._on_error = on_error
         self._idle_s = idle_s
+        self._gap_s = gather_gap_s
         self._after_pass = after_pass
         self._queue: queue.SimpleQueue[_Waiting[Item, Result] | None] = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -116,8 +119,9 @@ class GroupWorker(Generic[Item, Result]):
                     log.exception("%s: the work after a pass failed", self._name)
 
     def _next_group(self) -> tuple[list[_Waiting[Item, Result]], bool]:
-        """The items queued since the last pass (waiting up to ``idle_s`` for the first), and
-        whether ``shutdown`` has asked the thread to stop after them."""
+        """The items queued since the last pass (waiting up to ``idle_s`` for the first) and
+        each that comes within ``gather_gap_s`` of the one before, and whether ``shutdown`` has
+        asked the thread to stop after them."""
         try:
             waiting = self._queue.get(timeout=self._idle_s)
         except queue.Empty:
@@ -128,7 +132,11 @@ class GroupWorker(Generic[Item, Result]):
             if len(group) == MAX_GROUP:
                 return group, False
             try:
-                waiting = self._queue.get_nowait()
+                waiting = (
+                    self._queue.get(timeout=self._gap_s)
+                    if self._gap_s
+                    else (self._queue.get_nowait())
+                )
             except queue.Empty:
                 return group, False
         return group, True
@@ -189,6 +197,7 @@ class GroupWriter(Generic[Item, Result]):
         idle_s: float | None = None,
         after_pass: Callable[[], None] | None = None,
         after_commit: Callable[[list[Item]], None] | None = None,
+        gather_gap_s: float = 0.0,
     ) -> None:
         self._name = name
         self._database = database
@@ -198,7 +207,12 @@ class GroupWriter(Generic[Item, Result]):
         self._unavailable = unavailable
         self._stopping = stopping
         self._worker: GroupWorker[Item, Result] = GroupWorker(
-            name, self._write, on_error=unavailable, idle_s=idle_s, after_pass=after_pass
+            name,
+            self._write,
+            on_error=unavailable,
+            idle_s=idle_s,
+            after_pass=after_pass,
+            gather_gap_s=gather_gap_s,
         )
         self.groups = 0
         """Transactions committed so far (diagnostics and tests)."""

@@ -35,6 +35,9 @@ log = logging.getLogger("srd.rounds")
 
 FLUSH_S = 0.2
 """Published-bytes counters are written at least this often while they grow."""
+GATHER_GAP_S = 0.002
+"""A group takes each upload that comes within this long of the one before (a round's uploads
+come as the API checks them, or as the screener's batches answer): one transaction for many."""
 
 UploadKind = Literal["version", "unchanged", "late"]
 
@@ -357,6 +360,7 @@ class UploadWriter(GroupWriter[UploadRequest, UploadOutcome]):
             idle_s=FLUSH_S,
             after_pass=self._flush_published,
             after_commit=self._ring,
+            gather_gap_s=GATHER_GAP_S,
         )
 
     def _ring(self, group: list[UploadRequest]) -> None:

@@ -40,6 +40,37 @@ def test_groups_take_what_is_queued_in_arrival_order() -> None:
     assert groups == [list(range(MAX_GROUP)), list(range(MAX_GROUP, n_items))]
 
 
+def test_a_gap_gathers_items_that_trickle_in() -> None:
+    """With ``gather_gap_s``, items that come one by one, each well within the gap of the one
+    before, make one group; an item after a longer pause starts the next group."""
+    groups: list[list[int]] = []
+
+    def handle(items: list[int]) -> list[int]:
+        groups.append(items)
+        return items
+
+    gap = 0.2
+    worker: GroupWorker[int, int] = GroupWorker(
+        "test", handle, on_error=lambda exc: exc, gather_gap_s=gap
+    )
+    worker.start()
+
+    async def main() -> None:
+        trickle = []
+        for item in range(4):
+            trickle.append(worker.put(item))
+            await asyncio.sleep(gap / 10)
+        await asyncio.gather(*trickle)
+        await asyncio.sleep(gap * 2)
+        await worker.put(99)
+
+    try:
+        asyncio.run(main())
+    finally:
+        worker.shutdown()
+    assert groups == [[0, 1, 2, 3], [99]]
+
+
 def test_failures_reach_every_waiter_and_the_thread_goes_on() -> None:
     def handle(items: list[int]) -> list[int | BaseException]:
         if 0 in items:

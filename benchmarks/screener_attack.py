@@ -16,8 +16,14 @@ Each generation's accepted offspring run in one lock-step batch of harm auctions
 (``--trials``); the best model of every search is measured again with ``--final-trials``. The
 found models are written to ``--out`` (manifest JSON per search) to extend the labelled corpus.
 
+``--stayers`` searches only among the models that do not quit at the opening price (the base
+fish at 5.00 with the opening buy fraction ½, augmentation off): a model that quits there leaves
+the auction at its first vote, as a sincere low bidder does, and its only effect on the others is
+that opening vote (the buy fraction of the first round counts every voter). Such models are
+still admitted and still scored, but they do not count as a find.
+
 Run: ``.venv/bin/python benchmarks/screener_attack.py [--generations 20] [--lam 8]
-[--trials 3] [--final-trials 8] [--seed 0] [--out build/screener_attack]``.
+[--trials 3] [--final-trials 8] [--seed 0] [--out build/screener_attack] [--stayers]``.
 """
 
 from __future__ import annotations
@@ -41,7 +47,15 @@ from agents.manifest import Manifest
 from screener import screen_many
 from screener.probes import probe
 from tests.support.disguised import DISGUISED, Family
-from tests.support.harm import SUPPLIES, Harm, harms, saboteur, saboteur_harm
+from tests.support.harm import (
+    OPENING_VOTES,
+    SUPPLIES,
+    Harm,
+    harms,
+    opening_votes,
+    saboteur,
+    saboteur_harm,
+)
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 BOUNDS: dict[str, tuple[float, float]] = {
@@ -99,15 +113,20 @@ class Scored:
     manifest: Manifest
     accepted: bool
     reasons: int
+    eligible: bool = True
+    """Counts as a find (with ``--stayers``: does not quit at the opening price)."""
     harm: Harm | None = None
     evaluations: int = 0
     total: float = 0.0
 
     @property
     def fitness(self) -> float:
-        """Harm fraction (worst setting), averaged over evaluations; −(1 + reasons) if refused."""
+        """Harm fraction (worst setting), averaged over evaluations; −(1 + reasons) if refused,
+        −½ if admitted but not eligible."""
         if not self.accepted:
             return -1.0 - self.reasons
+        if not self.eligible:
+            return -0.5
         return self.total / max(self.evaluations, 1)
 
 
@@ -115,11 +134,20 @@ def worst_fraction(harm: Harm, reference: Harm) -> float:
     return max(harm.fraction(reference))
 
 
-def score(models: Sequence[Manifest], trials: int, seed: int) -> list[Scored]:
-    """Screen the models, measure the harm of the accepted ones (one batch)."""
+def score(
+    models: Sequence[Manifest], trials: int, seed: int, stayers: bool = False
+) -> list[Scored]:
+    """Screen the models, measure the harm of the accepted eligible ones (one batch); with
+    ``stayers``, a model that quits at the opening price is not eligible."""
+    if not models:
+        return []
     verdicts = screen_many(list(models))
-    scored = [Scored(m, v.accepted, len(v.reasons)) for m, v in zip(models, verdicts, strict=True)]
-    evaluate([s for s in scored if s.accepted], trials, seed)
+    quits = opening_votes(models) == 2
+    scored = [
+        Scored(m, v.accepted, len(v.reasons), eligible=not (stayers and q))
+        for m, v, q in zip(models, verdicts, quits, strict=True)
+    ]
+    evaluate([s for s in scored if s.accepted and s.eligible], trials, seed)
     return scored
 
 
@@ -144,6 +172,7 @@ def evolve(
     rng: np.random.Generator,
     seed: int,
     log: Callable[[str], None],
+    stayers: bool = False,
 ) -> Scored:
     """(1+λ) evolution strategy with the 1/5 success rule on the step size; the parent is
     measured again every generation (its fitness is a running mean, so a lucky draw of the
@@ -151,14 +180,14 @@ def evolve(
     parent, sigma = start, 0.3
     for g in range(generations):
         children = [m for m in (mutate(parent, rng, sigma) for _ in range(lam)) if m is not None]
-        scored = score(children, trials, seed)
-        if parent.accepted:
+        scored = score(children, trials, seed, stayers)
+        if parent.accepted and parent.eligible:
             evaluate([parent], trials, seed)
-        if parent.accepted:
+        if parent.accepted and parent.eligible:
             better = [c for c in scored if c.fitness > parent.fitness]
             sigma *= np.exp((len(better) / max(len(scored), 1) - 0.2) / 0.8)
             sigma = float(np.clip(sigma, 0.02, 1.0))
-        else:  # still refused: drift among equally refused models, at a constant step
+        else:  # still refused (or not eligible): drift among equals, at a constant step
             better = [c for c in scored if c.fitness >= parent.fitness]
         if better:
             parent = max(better, key=lambda c: c.fitness)
@@ -230,19 +259,19 @@ def run(args: argparse.Namespace) -> None:
     for family in DISGUISED:
         draws = [_family_model(family, honest, rng.random(len(family.params)))
                  for _ in range(args.draws)]  # fmt: skip
-        scored = score([d for d in draws if d is not None], args.trials, args.seed)
-        accepted = [s for s in scored if s.accepted]
+        scored = score([d for d in draws if d is not None], args.trials, args.seed, args.stayers)
+        accepted = [s for s in scored if s.accepted and s.eligible]
         start = max(accepted or scored, key=lambda s: s.fitness)
         print(f"{family.name}: {len(accepted)}/{len(scored)} random draws accepted; "
               f"best start {start.fitness:+.3f}")  # fmt: skip
         best = evolve(start, family_mutation(family, honest), args.generations, args.lam,
-                      args.trials, rng, args.seed, log)  # fmt: skip
+                      args.trials, rng, args.seed, log, args.stayers)  # fmt: skip
         searches.append((f"family:{family.name}", best))
     for name, start_model in (("honest example", honest), ("always-hold saboteur", saboteur())):
-        (start,) = score([start_model], args.trials, args.seed)
+        (start,) = score([start_model], args.trials, args.seed, args.stayers)
         print(f"all fields from the {name}: start fitness {start.fitness:+.3f}")
         best = evolve(start, field_mutation(start_model), args.generations * 2, args.lam,
-                      args.trials, rng, args.seed, log)  # fmt: skip
+                      args.trials, rng, args.seed, log, args.stayers)  # fmt: skip
         searches.append((f"fields:{name}", best))
     print(f"\nsearch took {time.perf_counter() - start_time:.0f} s")
     report(searches, args, reference, out)
@@ -253,26 +282,39 @@ def report(
 ) -> None:
     """Measure every search's best admitted model again with more trials; print the table and
     write the models. A model that never holds on the reachable decisive row is marked
-    'quitter': it harms only by not buying in the opening round, as a sincere low bidder does."""
+    'quitter'; its opening vote is shown beside (a model that quits at the opening price harms
+    only through that vote, as a sincere low bidder does)."""
     admitted = [(name, s) for name, s in searches if s.accepted]
     found, outcomes = harms([s.manifest for _, s in admitted], args.final_trials, args.seed)
-    holds = probe(from_manifests([s.manifest for _, s in admitted])).holds if admitted else []
+    models = [s.manifest for _, s in admitted]
+    holds = probe(from_manifests(models)).holds if admitted else []
+    votes = opening_votes(models) if admitted else []
     print(f"\nbest admitted model per search, {args.final_trials} trials; harm = price drop as a "
           "fraction of the always-hold saboteur's (fine-tuning off / on)")  # fmt: skip
-    print(f"{'search':38} {'kind':8} {'off':>7} {'on':>7}   mean price alone → with, per supply "
-          f"{', '.join(f'{r:g}' for r in SUPPLIES)} (off | on)")  # fmt: skip
+    print(f"{'search':38} {'kind':8} {'opening':7} {'off':>7} {'on':>7}   mean price alone → "
+          f"with, per supply {', '.join(f'{r:g}' for r in SUPPLIES)} (off | on)")  # fmt: skip
     index = {name: c for c, (name, _) in enumerate(admitted)}
     worst = {"holder": float("-inf"), "quitter": float("-inf")}
+    past = {
+        "stays past the opening vote": float("-inf"),
+        "quits at the opening price": float("-inf"),
+    }
     for name, s in searches:
         path = out / (name.replace(":", "_").replace(" ", "-") + ".json")
         path.write_text(s.manifest.model_dump_json(indent=2) + "\n")
         if not s.accepted:
-            print(f"{name:38} {'-':8} {'refused':>7} {'refused':>7}   (no accepted model found)")
+            print(f"{name:38} {'-':8} {'-':7} {'refused':>7} {'refused':>7}   (no accepted "
+                  "model found)")  # fmt: skip
             continue
         c = index[name]
         kind = "holder" if holds[c] else "quitter"
+        opening = OPENING_VOTES[int(votes[c])]
         off, on = found[c].fraction(reference)
         worst[kind] = max(worst[kind], off, on)
+        group = (
+            "quits at the opening price" if opening == "quits" else "stays past the opening vote"
+        )
+        past[group] = max(past[group], off, on)
         cells = [
             " ".join(
                 f"{outcomes[(-1, fine_tune, r)].mean_price:.3f}→"
@@ -281,10 +323,11 @@ def report(
             )
             for fine_tune in (False, True)
         ]
-        print(f"{name:38} {kind:8} {off:7.3f} {on:7.3f}   {cells[0]} | {cells[1]}")
-    for kind, value in worst.items():
+        print(f"{name:38} {kind:8} {opening:7} {off:7.3f} {on:7.3f}   {cells[0]} | {cells[1]}")
+    for kind, value in [*worst.items(), *past.items()]:
         shown = "none admitted" if value == float("-inf") else f"{value:.3f}"
-        print(f"worst admitted {kind}: {shown} of the always-hold saboteur's harm")
+        print(f"worst admitted model that {kind if ' ' in kind else 'is a ' + kind}: {shown} of "
+              "the always-hold saboteur's harm")  # fmt: skip
 
 
 def main() -> None:
@@ -297,6 +340,11 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="build/screener_attack")
     parser.add_argument("--verbose", action="store_true")
+    parser.add_argument(
+        "--stayers",
+        action="store_true",
+        help="only models that do not quit at the opening price count as finds",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     run(args)

@@ -77,8 +77,9 @@ class UploadLookup:
             return primed[model_id]
         return await self._worker.put(key)
 
-    def round_seen(self, auction_id: int, number: int | None, status: str | None,
-                   asked: Sequence[int]) -> None:  # fmt: skip
+    def round_seen(
+        self, auction_id: int, number: int | None, status: str, asked: Sequence[int]
+    ) -> None:
         """The round watcher read the auction's newest round (called on its event loop when
         what it read changed): an open round's targets are read ahead; a round no longer open
         is forgotten."""

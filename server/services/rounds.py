@@ -35,8 +35,7 @@ from server.screening import ScreenerUnavailableError, ScreeningService
 from server.security import token_matches
 from server.services.auctions import not_found
 from server.status import ANSWERED, RoundStatus
-from sim.market import design_changes
-from sim.market.design import design
+from sim.market.design import design, design_changes
 
 RETRY_AFTER_S = 1
 """Retry-After of a round request refused because too many wait."""

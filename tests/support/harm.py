@@ -24,9 +24,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
+from agents.batch import from_manifests
+from agents.forward import decide
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
+from screener.limits import BASE_ROW
 from sim.market import MarketBatch, MarketConfig, single_thread
 
 SUPPLIES = (0.1, 0.2, 0.3, 0.4)
@@ -154,6 +158,18 @@ def harms(
         for c in range(len(candidates))
     ]
     return result, found
+
+
+OPENING_VOTES = ("buys", "holds", "quits")
+"""``opening_votes`` codes."""
+
+
+def opening_votes(models: Sequence[Manifest]) -> np.ndarray:
+    """Each model's vote in an auction's opening round: the base fish at the base price with
+    the opening buy fraction ½, augmentation off (0 buys, 1 holds, 2 quits). A model that quits
+    there harms the others only through that vote, as a sincere low bidder does."""
+    row = torch.tensor([BASE_ROW], dtype=torch.float64)
+    return decide(from_manifests(list(models)), row)[:, 0].numpy()
 
 
 @functools.cache

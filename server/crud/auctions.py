@@ -291,8 +291,12 @@ def _current_versions(session: Session, auction_id: int) -> list[int]:
 
 
 def _fine_tuning(session: Session, auction_id: int, model_ids: list[int]) -> list[RoundView]:
-    """The auction's fine-tuning rounds with every patron's outcome (two queries)."""
+    """The auction's fine-tuning rounds with every patron's outcome (two queries). The rounds
+    are read first: a round closes in the transaction that writes its last answers, so on a
+    database whose every statement sees the newest commits (PostgreSQL's read committed) a round
+    read closed never shows without them."""
     key = {"auction_id": auction_id}
+    rounds = list(session.scalars(_ROUNDS_OF_AUCTION, key))
     answers: dict[int, list[AnswerView]] = {}
     for row in session.connection().execute(_ANSWERS_OF_AUCTION, key):
         answers.setdefault(row.round_id, []).append(
@@ -317,5 +321,5 @@ def _fine_tuning(session: Session, auction_id: int, model_ids: list[int]) -> lis
             r.bytes_published,
             answers.get(r.id, []),
         )
-        for r in session.scalars(_ROUNDS_OF_AUCTION, key)
+        for r in rounds
     ]

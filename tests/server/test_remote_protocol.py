@@ -76,22 +76,27 @@ def moving(name: str, seed: int) -> dict[str, Any]:
     return data
 
 
+def start_remote(
+    client: TestClient, prefix: str, first_seed: int, n: int, **fields: Any
+) -> tuple[int, list[dict[str, Any]], list[tuple[int, str]]]:
+    """A remote auction of ``n`` fine-tuning honest patrons (seeds ``first_seed`` on) for one
+    fish, with the auction ``fields`` given: its id, the manifests, (model id, token) of each
+    patron."""
+    manifests = [moving(unique(prefix), seed=first_seed + i) for i in range(n)]
+    patrons = submit(client, manifests)
+    body = {"n_fish": 1, "model_ids": [m for m, _ in patrons], "fine_tune_mode": "remote"}
+    created = client.post("/auctions", json={**body, **fields}, headers=ADMIN)
+    assert created.status_code == 201, created.text
+    return created.json()["auction_id"], manifests, patrons
+
+
 def remote_auction(client: TestClient, prefix: str, first_seed: int, seed: int) -> dict[str, Any]:
     """A remote auction (``seed``) of 8 fine-tuning honest patrons (seeds ``first_seed`` on),
     round 1 open for a minute: its id, manifests, (model id, token) of each patron, the open
     round's state."""
-    manifests = [moving(unique(prefix), seed=first_seed + i) for i in range(8)]
-    patrons = submit(client, manifests)
-    body = {
-        "n_fish": 1,
-        "model_ids": [m for m, _ in patrons],
-        "fine_tune_mode": "remote",
-        "round_deadline_s": 60,
-        "seed": seed,
-    }
-    created = client.post("/auctions", json=body, headers=ADMIN)
-    assert created.status_code == 201, created.text
-    auction_id = created.json()["auction_id"]
+    auction_id, manifests, patrons = start_remote(
+        client, prefix, first_seed, 8, round_deadline_s=60, seed=seed
+    )
     state = open_round(client, auction_id)
     assert state["status"] == "open" and state["round"] == 1, state
     return {"id": auction_id, "manifests": manifests, "patrons": patrons, "state": state}
@@ -358,17 +363,9 @@ def test_the_bait_and_switch_is_refused_and_the_round_closes_when_all_answered(
 def test_a_silent_round_closes_at_its_deadline_and_late_uploads_get_410(
     client: TestClient,
 ) -> None:
-    manifests = [moving(unique("silent"), seed=400 + i) for i in range(3)]
-    patrons = submit(client, manifests)
-    body = {
-        "n_fish": 1,
-        "model_ids": [m for m, _ in patrons],
-        "fine_tune_mode": "remote",
-        "round_deadline_s": 0.5,
-        "fine_tune_rounds": 1,
-        "seed": 1,
-    }
-    auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
+    auction_id, manifests, patrons = start_remote(
+        client, "silent", 400, 3, round_deadline_s=0.5, fine_tune_rounds=1, seed=1
+    )
     auction = wait_for(
         lambda: client.get(f"/auctions/{auction_id}").json(),
         lambda a: a["fine_tuning"] and a["fine_tuning"][0]["status"] == "closed",
@@ -402,16 +399,9 @@ def test_the_uploads_of_a_published_round_are_checked_without_a_database_read(
     uploads (first, repeated, different) need no lookup of their own; the writer still decides
     alone what is in time and what is a repeat; a closed round is forgotten, so a late upload
     is read again and refused."""
-    manifests = [moving(unique("desk"), seed=500 + i) for i in range(8)]
-    patrons = submit(client, manifests)
-    body = {
-        "n_fish": 1,
-        "model_ids": [m for m, _ in patrons],
-        "fine_tune_mode": "remote",
-        "round_deadline_s": 3,
-        "seed": 3,
-    }
-    auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
+    auction_id, manifests, patrons = start_remote(
+        client, "desk", 500, 8, round_deadline_s=3, seed=3
+    )
     state = open_round(client, auction_id)
     lookup = client.app.state.services.upload_lookup  # type: ignore[attr-defined]
     wait_for(lambda: lookup.primed(auction_id, 1), bool, 10.0)

@@ -183,7 +183,7 @@ class RoundWatcher:
         loop = asyncio.get_running_loop()
         self._listen()
         watch = self._watches.setdefault(auction_id, _Watch())
-        snapshot = await self._fresh(auction_id, watch)
+        snapshot = await self._fresh(auction_id, watch, waits_after=after if wait_s > 0 else None)
         if snapshot is None:
             self._watches.pop(auction_id, None)
             return None
@@ -222,13 +222,26 @@ class RoundWatcher:
         for _, auction_id in idle[: len(self._watches) - MAX_WATCHED]:
             del self._watches[auction_id]
 
-    async def _fresh(self, auction_id: int, watch: _Watch) -> RoundSnapshot | None:
+    async def _fresh(
+        self, auction_id: int, watch: _Watch, *, waits_after: int | None = None
+    ) -> RoundSnapshot | None:
         """The snapshot, read again if older than ``WATCH_POLL_S`` or the bell rang since its
-        read began (one read shared by all)."""
+        read began (one read shared by all). A request that will wait for a round above
+        ``waits_after`` (the snapshot has none) takes the snapshot of a watch whose poller
+        runs, whatever its age, while the bell has not rung: the poller reads it again at
+        the bell's fallback period anyway, and the agents that go back to waiting right after
+        a round was pushed to them cost no read."""
         loop = asyncio.get_running_loop()
+        polled = (
+            waits_after is not None
+            and watch.snapshot is not None
+            and not watch.snapshot.ready(waits_after)
+            and watch.poller is not None
+            and not watch.poller.done()
+        )
         if (
             watch.snapshot is not None
-            and loop.time() - watch.read_at < WATCH_POLL_S
+            and (polled or loop.time() - watch.read_at < WATCH_POLL_S)
             and watch.read_ring == self._rings
         ):
             return watch.snapshot

@@ -132,11 +132,7 @@ class GroupWorker(Generic[Item, Result]):
             if len(group) == MAX_GROUP:
                 return group, False
             try:
-                waiting = (
-                    self._queue.get(timeout=self._gap_s)
-                    if self._gap_s
-                    else (self._queue.get_nowait())
-                )
+                waiting = self._queue.get(timeout=self._gap_s)  # 0: what is queued now
             except queue.Empty:
                 return group, False
         return group, True

@@ -34,7 +34,7 @@ from collections.abc import Sequence
 from datetime import datetime, timedelta
 from typing import TYPE_CHECKING
 
-from sqlalchemy import func, select, update
+from sqlalchemy import bindparam, insert, select, update
 from sqlalchemy.orm import Session, selectinload, undefer
 
 from agents.manifest import Manifest, parse_manifest
@@ -57,7 +57,12 @@ from server.workers import WorkerContext, error_summary
 from sim.market import MarketConfig
 
 if TYPE_CHECKING:
+    from sqlalchemy import Row
+
     from sim.market import IterationRecord, Market, RescreenBatch
+
+    _AnswerRow = Row[int, str, int | None]
+    """An answer's position, outcome and uploaded version."""
 
 log = logging.getLogger("srd.auctions")
 
@@ -153,63 +158,111 @@ def _commit_round(
     if moved.rowcount != 1:  # type: ignore[attr-defined]
         session.rollback()
         return False
-    session.add(
-        AuctionIteration(
-            auction_id=auction_id,
-            iteration=record.iteration,
-            price=record.price,
-            n_available=record.n_available,
-            votes=dict(record.votes),
-            row_votes=dict(record.row_votes),
-            next_price=record.next_price,
-            n_available_after=record.n_available_after,
-            created_at=now,
+    connection = session.connection()
+    connection.execute(
+        insert(AuctionIteration),
+        {
+            "auction_id": auction_id,
+            "iteration": record.iteration,
+            "price": record.price,
+            "n_available": record.n_available,
+            "votes": dict(record.votes),
+            "row_votes": dict(record.row_votes),
+            "next_price": record.next_price,
+            "n_available_after": record.n_available_after,
+            "created_at": now,
+        },
+    )
+    if record.buyers:
+        connection.execute(
+            insert(Purchase),
+            [
+                {
+                    "auction_id": auction_id,
+                    "model_id": model_ids[i],
+                    "price": price,
+                    "iteration": record.iteration,
+                }
+                for i, price in record.buyers
+            ],
         )
-    )
-    session.add_all(
-        Purchase(
-            auction_id=auction_id, model_id=model_ids[i], price=price, iteration=record.iteration
+    if record.quitters:
+        connection.execute(
+            insert(Quit),
+            [
+                {"auction_id": auction_id, "model_id": model_ids[i], "iteration": record.iteration}
+                for i in record.quitters
+            ],
         )
-        for i, price in record.buyers
-    )
-    session.add_all(
-        Quit(auction_id=auction_id, model_id=model_ids[i], iteration=record.iteration)
-        for i in record.quitters
-    )
     if opened is not None:
-        session.add(
-            FineTuneRound(
-                auction_id=auction_id,
-                round=opened.iteration + 1,
-                iteration=opened.iteration,
-                status=RoundStatus.OPEN,
-                opened_at=now,
-                deadline=utcnow() + timedelta(seconds=deadline_s),
-                rows=opened.rows.tolist(),
-                fine_tune_seed=opened.fine_tune_seed,
-                augmentation_seed=opened.augmentation_seed,
-                asked=opened.patrons,
-                bytes_published=0,
-            )
+        connection.execute(
+            insert(FineTuneRound),
+            {
+                "auction_id": auction_id,
+                "round": opened.iteration + 1,
+                "iteration": opened.iteration,
+                "status": RoundStatus.OPEN,
+                "opened_at": now,
+                "deadline": utcnow() + timedelta(seconds=deadline_s),
+                "rows": opened.rows.tolist(),
+                "fine_tune_seed": opened.fine_tune_seed,
+                "augmentation_seed": opened.augmentation_seed,
+                "asked": opened.patrons,
+                "bytes_published": 0,
+            },
         )
     session.commit()
     return True
 
 
-def _wait_for_answers(database: Database, round_id: int, asked: int, deadline: float) -> None:
+class _Versions:
+    """The versions a round's accepted uploads store, parsed as the answers come in while the
+    worker waits, so that closing the round reads and parses none of them (versions never
+    change once stored)."""
+
+    def __init__(self) -> None:
+        self.manifests: dict[int, Manifest] = {}
+
+    def answers(self, session: Session, round_id: int) -> list[_AnswerRow]:
+        """Every answer of the round so far (position, outcome, uploaded version), the versions
+        of the accepted ones read ahead."""
+        found = list(session.connection().execute(_ANSWERS, {"round_id": round_id}))
+        self.read(session, [a.uploaded_id for a in found if _applies(a)])
+        return found
+
+    def read(self, session: Session, version_ids: Sequence[int | None]) -> None:
+        """Read and parse the versions not read yet."""
+        missing = [i for i in version_ids if i is not None and i not in self.manifests]
+        if missing:
+            query = select(ModelVersion.id, ModelVersion.manifest).where(
+                ModelVersion.id.in_(missing)
+            )
+            for version_id, manifest in session.connection().execute(query):
+                self.manifests[version_id] = parse_manifest(manifest)
+
+
+_ANSWERS = select(
+    FineTuneAnswer.position, FineTuneAnswer.outcome, FineTuneAnswer.uploaded_id
+).where(FineTuneAnswer.round_id == bindparam("round_id"))
+
+
+def _applies(answer: _AnswerRow) -> bool:
+    """An accepted upload that stored a new version."""
+    return answer.outcome == AnswerOutcome.ACCEPTED and answer.uploaded_id is not None
+
+
+def _wait_for_answers(
+    database: Database, round_id: int, asked: int, deadline: float, versions: _Versions
+) -> None:
     """Until ``asked`` patrons have answered the round or the wall-clock ``deadline`` (epoch
-    seconds) has passed, whichever comes first."""
-    count = (
-        select(func.count())
-        .where(FineTuneAnswer.round_id == round_id)
-        .where(FineTuneAnswer.outcome.in_(ANSWERED))
-    )
+    seconds) has passed, whichever comes first; the accepted versions are read as they come."""
     # Listening before the first count: a ring for an answer stored after it is never lost.
     bell = doorbell.listen(doorbell.scope(database.url), doorbell.round_bell(round_id))
     try:
         while True:
             with database.session(write=False) as session:
-                answered = session.connection().scalar(count) or 0
+                found = versions.answers(session, round_id)
+            answered = sum(1 for a in found if a.outcome in ANSWERED)
             left = deadline - time.time()
             if answered >= asked or left <= 0:
                 return
@@ -223,7 +276,12 @@ def _wait_for_answers(database: Database, round_id: int, asked: int, deadline: f
 
 
 def _close_round(
-    session: Session, auction_id: int, market: Market, row: FineTuneRound, now: datetime
+    session: Session,
+    auction_id: int,
+    market: Market,
+    row: FineTuneRound,
+    now: datetime,
+    versions: _Versions,
 ) -> bool:
     """Close the open round ``row`` at ``now`` in the transaction of ``session``: its status,
     its answers applied to the market (see ``_apply_answers``); False when another runner
@@ -235,7 +293,7 @@ def _close_round(
     )
     if closed.rowcount != 1:  # type: ignore[attr-defined]
         return False
-    _apply_answers(session, auction_id, row, market, now)
+    _apply_answers(session, auction_id, row, market, now, versions)
     return True
 
 
@@ -253,51 +311,54 @@ def _open_round(database: Database, auction_id: int, number: int) -> FineTuneRou
 
 
 def _apply_answers(
-    session: Session, auction_id: int, row: FineTuneRound, market: Market, now: datetime
+    session: Session,
+    auction_id: int,
+    row: FineTuneRound,
+    market: Market,
+    now: datetime,
+    versions: _Versions,
 ) -> None:
     """Apply the round's accepted uploads to the market and to the patrons' current versions,
     and record a ``missing`` answer for every asked patron that stayed silent."""
-    answered = {
-        answer.position: answer
-        for answer in session.scalars(
-            select(FineTuneAnswer).where(FineTuneAnswer.round_id == row.id)
-        )
-    }
-    patrons = {
-        patron.position: patron
-        for patron in session.scalars(
-            select(AuctionPatron).where(AuctionPatron.auction_id == auction_id)
-        )
-    }
-    applied = {
-        answer.position: answer.model_id
-        for answer in answered.values()
-        if answer.outcome == AnswerOutcome.ACCEPTED and answer.uploaded_id is not None
-    }
-    versions = {
-        version.id: version.manifest
-        for version in session.scalars(
-            select(ModelVersion).where(ModelVersion.id.in_(list(applied.values())))
-        )
-    }
-    market.apply_round({position: parse_manifest(versions[i]) for position, i in applied.items()})
-    for position in row.asked:
-        if position in answered:
-            continue
-        patron = patrons[position]
-        session.add(
-            FineTuneAnswer(
-                round_id=row.id,
-                position=position,
-                outcome=AnswerOutcome.MISSING,
-                model_id=patron.current_model_id or patron.model_id,
-                bytes_in=0,
-                bytes_out=0,
-                created_at=now,
+    connection = session.connection()
+    answered = {a.position: a for a in versions.answers(session, row.id)}
+    applied = {p: a.uploaded_id for p, a in answered.items() if _applies(a)}
+    market.apply_round({p: versions.manifests[i] for p, i in applied.items() if i is not None})
+    silent = [p for p in row.asked if p not in answered]
+    if silent:
+        bidding = {
+            patron.position: patron.current_model_id or patron.model_id
+            for patron in connection.execute(
+                select(
+                    AuctionPatron.position, AuctionPatron.model_id, AuctionPatron.current_model_id
+                ).where(AuctionPatron.auction_id == auction_id, AuctionPatron.position.in_(silent))
             )
+        }
+        connection.execute(
+            insert(FineTuneAnswer),
+            [
+                {
+                    "round_id": row.id,
+                    "position": position,
+                    "outcome": AnswerOutcome.MISSING,
+                    "model_id": bidding[position],
+                    "bytes_in": 0,
+                    "bytes_out": 0,
+                    "created_at": now,
+                }
+                for position in silent
+            ],
         )
-    for position, model_id in applied.items():
-        patrons[position].current_model_id = model_id
+    if applied:
+        connection.execute(
+            update(AuctionPatron)
+            .where(
+                AuctionPatron.auction_id == auction_id,
+                AuctionPatron.position == bindparam("at"),
+            )
+            .values(current_model_id=bindparam("version")),
+            [{"at": position, "version": version} for position, version in applied.items()],
+        )
 
 
 def _mark_failed(database: Database, auction_id: int, reason: str) -> None:
@@ -353,12 +414,13 @@ def _drive(database: Database, auction_id: int) -> None:
                 )
         else:
             row = _open_round(database, auction_id, pending.iteration + 1)
-            _wait_for_answers(database, row.id, len(row.asked), row.deadline.timestamp())
+            versions = _Versions()
+            _wait_for_answers(database, row.id, len(row.asked), row.deadline.timestamp(), versions)
             # One transaction: the round closed, its answers applied, the next iteration (a
             # remote auction's is its votes only: it fine-tunes nobody) and its checkpoint.
             with database.session(write=True) as session:
                 now = utcnow()
-                moved = _close_round(session, auction_id, market, row, now)
+                moved = _close_round(session, auction_id, market, row, now, versions)
                 if not moved:
                     session.rollback()
                 else:

@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import math
 import re
-from itertools import accumulate
 from typing import Any
 
 from fastapi.responses import JSONResponse
@@ -71,15 +70,21 @@ class _UnfitError(Exception):
     careful pass (``_resolve``) says where."""
 
 
-_STRING = re.compile(r'"(?:[^"\\]|\\.)*"')
+_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')
 _NOT_BRACKET = re.compile(r"[^\[\]{}]+")
-_STEP = str.maketrans({"[": "1", "{": "1", "]": "0", "}": "0"})
 
 
 def _nesting(text: str) -> int:
     """How deep the arrays and objects of JSON ``text`` nest (strings left out)."""
-    brackets = _NOT_BRACKET.sub("", _STRING.sub("", text)).translate(_STEP)
-    return max(accumulate(1 if step == "1" else -1 for step in brackets), default=0)
+    depth = deepest = 0
+    for bracket in _NOT_BRACKET.sub("", _STRING.sub("", text)):
+        if bracket in "[{":
+            depth += 1
+            if depth > deepest:
+                deepest = depth
+        else:
+            depth -= 1
+    return deepest
 
 
 def _unique(items: list[tuple[str, Any]]) -> dict[str, Any]:

@@ -142,6 +142,16 @@ class _SqliteWriters:
             self._lock.release()
 
 
+class JSONText(str):
+    """JSON already encoded (a manifest's ``model_dump_json``): a JSON column stores it as it is
+    instead of encoding it again."""
+
+
+def json_dumps(value: Any) -> str:
+    """Every JSON column's encoder: ``JSONText`` as it is, anything else by ``json.dumps``."""
+    return str.__str__(value) if isinstance(value, JSONText) else json.dumps(value)
+
+
 def make_engine(url: str, *, create: bool = False) -> Engine:
     """An engine for ``url`` with this project's per-connection settings; a SQLite file must
     exist unless ``create`` (migrations at first start)."""
@@ -149,13 +159,16 @@ def make_engine(url: str, *, create: bool = False) -> Engine:
         engine = create_engine(
             url if create else _open_existing(url),
             connect_args={"check_same_thread": False, "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000},
+            json_serializer=json_dumps,
         )
         writers = _SqliteWriters()
         event.listen(engine, "connect", _sqlite_on_connect)
         event.listen(engine, "begin", writers.on_begin)
         event.listen(engine.pool, "checkin", writers.on_checkin)
         return engine
-    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
+    return create_engine(
+        url, pool_pre_ping=True, pool_size=10, max_overflow=20, json_serializer=json_dumps
+    )
 
 
 def _identity(engine: Engine, url: str) -> tuple[int, ...]:

@@ -22,7 +22,7 @@ from server.db import Database
 from server.errors import api_error
 from server.events import EventHub
 from server.jobs.backend import JobCompute
-from server.remote_rounds import RoundSockets, RoundWatcher, UploadLookup, UploadWriter
+from server.remote_rounds import RoundSockets, RoundWatcher, UploadLookup
 from server.runner import BackgroundRunner
 from server.screening import ScreeningService
 from server.security import token_matches
@@ -53,10 +53,6 @@ async def _screening(services: ServicesDep) -> ScreeningService:
 
 async def _submissions(services: ServicesDep) -> SubmissionWriter:
     return services.submissions
-
-
-async def _uploads(services: ServicesDep) -> UploadWriter:
-    return services.uploads
 
 
 async def _upload_lookup(services: ServicesDep) -> UploadLookup:
@@ -92,8 +88,6 @@ DatabaseDep = Annotated[Database, Depends(_database)]
 ScreeningDep = Annotated[ScreeningService, Depends(_screening)]
 SubmissionsDep = Annotated[SubmissionWriter, Depends(_submissions)]
 """The group-commit writer of ``/submit``."""
-UploadsDep = Annotated[UploadWriter, Depends(_uploads)]
-"""The group-commit writer of fine-tuning round uploads."""
 UploadLookupDep = Annotated[UploadLookup, Depends(_upload_lookup)]
 RoundsDep = Annotated[RoundWatcher, Depends(_rounds)]
 RoundSocketsDep = Annotated[RoundSockets, Depends(_round_sockets)]

@@ -220,6 +220,11 @@ class GroupWriter(Generic[Item, Result]):
         """Write what is queued, then stop the thread."""
         self._worker.shutdown()
 
+    def write_group(self, group: list[Item]) -> list[Result]:
+        """Decide and write a group gathered by the caller, on the caller's thread (for a
+        writer whose thread is never started); the answers, in order."""
+        return self._write(group)
+
     async def write(self, item: Item) -> Result:
         """Decide and write ``item`` with the others queued meanwhile; its answer."""
         try:

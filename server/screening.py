@@ -1,19 +1,23 @@
-"""Screening for ``/submit`` in a dedicated process, batching concurrent submissions.
+"""Screening for ``/submit``, and the uploads of remote rounds, in a dedicated process.
 
 The screener is tensor code: one manifest costs a few milliseconds of mostly fixed overhead,
 a batch of sixteen hardly more than two. So the API process hands each manifest to a spawned
 screening process (its own interpreter and GIL) over a pipe; that process takes whatever has
 queued up since its last pass, and whatever keeps coming within ``GATHER_GAP_S`` of the one
-before (at most ``MAX_BATCH``), judges it with one
-``screener.screen_many`` call (the batched form of ``screener.screen``: same rules, same
-verdicts) — or, for versions fine-tuned inside a remote auction, one
-``screener.rescreen_many`` call, the re-screening the server's own fine-tuning rounds apply —
-and sends the verdicts back. Under no load a batch is one manifest, which waits only the gap
-for company.
+before (at most ``MAX_BATCH``), judges it with one ``screener.screen_many`` call (the batched
+form of ``screener.screen``: same rules, same verdicts) and sends the verdicts back. Under no
+load a batch is one manifest, which waits only the gap for company.
 
-A screener exception answers that one submission with 503 (the batch is re-judged one by
-one to find it). If the screening process dies, the submissions in flight fail with
-``ScreenerUnavailableError`` (503, nothing stored) and a fresh process takes the next ones.
+The uploads of remote fine-tuning rounds (``upload``), checked by the API, come the same way:
+the process re-screens the new versions of a batch with one ``screener.rescreen_many`` call
+(the re-screening the server's own fine-tuning rounds apply), stores the whole batch in one
+transaction (``server.remote_rounds.writer.UploadWriter``), rings the rounds' workers and
+sends each upload's answer back. The API process runs no SQL of its own for an upload.
+
+A screener exception answers that one request with 503 (the batch is re-judged one by one to
+find it; an upload it strikes is not stored). If the screening process dies, the requests in
+flight fail with ``ScreenerUnavailableError`` (503; an upload may have been stored, and its
+repeat gets the stored answer) and a fresh process takes the next ones.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import ctypes
+import dataclasses
 import itertools
 import logging
 import multiprocessing
@@ -29,7 +34,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
@@ -37,6 +42,8 @@ from typing import Any
 
 from agents.manifest import Manifest
 from screener import Verdict
+from server.db import Database
+from server.remote_rounds.writer import UploadOutcome, UploadRequest, UploadWriter
 from server.workers import die_with_parent, freeze_heap
 
 log = logging.getLogger("srd.screening")
@@ -73,7 +80,11 @@ def _keep_heap() -> None:
         libc.mallopt(M_TRIM_THRESHOLD, KEEP_HEAP_BYTES)
 
 
-def _screening_main(conn: Connection, parent_pid: int) -> None:
+_DOOR, _RESCREEN, _UPLOAD = "door", "rescreen", "upload"
+"""Kinds of request: a submission's verdict, a fine-tuned version's verdict, an upload."""
+
+
+def _screening_main(conn: Connection, parent_pid: int, database_url: str | None) -> None:
     die_with_parent(parent_pid)
     _keep_heap()
     import torch
@@ -82,24 +93,65 @@ def _screening_main(conn: Connection, parent_pid: int) -> None:
 
     torch.set_num_threads(1)  # tiny tensors: threads only add overhead
     freeze_heap()
-    judges = {True: screen_many, False: rescreen_many}
-    while True:
-        try:
-            batch = gather(conn)
-        except EOFError:
-            return
-        stop = batch[-1] is None  # the stop signal; what came before it is still judged
-        if stop:
-            batch.pop()
-        for at_the_door, judge in judges.items():
-            mine = [
-                (i, Manifest.model_validate_json(m)) for i, m, door in batch if door is at_the_door
-            ]
-            if mine:
-                answers = _judge(judge, mine)
-                conn.send([(i, answer) for (i, _), answer in zip(mine, answers, strict=True)])
-        if stop:
-            return
+    database: Database | None = None
+    writer: UploadWriter | None = None
+    try:
+        while True:
+            try:
+                batch = gather(conn)
+            except EOFError:
+                return
+            stop = batch[-1] is None  # the stop signal; what came before it is still answered
+            if stop:
+                batch.pop()
+            for kind, judge in ((_DOOR, screen_many), (_RESCREEN, rescreen_many)):
+                mine = [(i, Manifest.model_validate_json(m)) for i, k, m in batch if k == kind]
+                if mine:
+                    answers = [_failed(a) for a in _judge(judge, mine)]
+                    conn.send([(i, a) for (i, _), a in zip(mine, answers, strict=True)])
+            uploads = [(i, request) for i, k, request in batch if k == _UPLOAD]
+            if uploads:
+                if writer is None and database_url is not None:
+                    database = Database(database_url)
+                    writer = UploadWriter(database)
+                conn.send(_store_uploads(writer, rescreen_many, uploads))
+            if stop:
+                return
+    finally:
+        if database is not None:
+            database.close()
+
+
+def _store_uploads(
+    writer: UploadWriter | None,
+    rescreen_many: Callable[[list[Manifest]], list[Verdict]],
+    uploads: list[tuple[int, UploadRequest]],
+) -> list[tuple[int, UploadOutcome | str]]:
+    """Re-screen the new versions among the uploads in one batch, then store every upload the
+    screener judged in one group; each one's answer, or the error text of one that was not
+    stored."""
+    if writer is None:
+        return [(i, "the screening process has no database") for i, _ in uploads]
+    fresh = [
+        (k, Manifest.model_validate_json(request.manifest))
+        for k, (_, request) in enumerate(uploads)
+        if request.kind == "version" and request.verdict is None and request.manifest is not None
+    ]
+    requests = [request for _, request in uploads]
+    failed: dict[int, str] = {}
+    for (k, _), verdict in zip(fresh, _judge(rescreen_many, fresh), strict=True):
+        if isinstance(verdict, Verdict):
+            requests[k] = dataclasses.replace(requests[k], verdict=verdict)
+        else:
+            failed[k] = f"the screener failed: {verdict}"
+    kept = [k for k in range(len(uploads)) if k not in failed]
+    stored = dict(zip(kept, writer.store([requests[k] for k in kept]), strict=True))
+    return [(i, stored[k] if k in stored else failed[k]) for k, (i, _) in enumerate(uploads)]
+
+
+def _failed(answer: Verdict | str) -> Verdict | str:
+    """A verdict as it is; a screener's error text as the request's 503 message."""
+    return answer if isinstance(answer, Verdict) else f"the screener failed: {answer}"
 
 
 def gather(conn: Connection) -> list[Any]:
@@ -112,7 +164,7 @@ def gather(conn: Connection) -> list[Any]:
 
 
 def _judge(
-    screen_many: Callable[[list[Manifest]], list[Verdict]], batch: list[tuple[int, Manifest]]
+    screen_many: Callable[[list[Manifest]], list[Verdict]], batch: Sequence[tuple[int, Manifest]]
 ) -> list[Verdict | str]:
     """Verdicts for a batch; if the screener raises, each manifest alone, errors as text."""
     try:
@@ -124,12 +176,14 @@ def _judge(
 
 
 class ScreeningService:
-    """``await verdict(manifest)`` from any event loop; the screening runs in a child process."""
+    """``await verdict(manifest)`` and ``await upload(request)`` from any event loop; the
+    screening (and the storing of uploads, in ``database_url``) runs in a child process."""
 
-    def __init__(self) -> None:
+    def __init__(self, database_url: str | None = None) -> None:
+        self._database_url = database_url
         self._spawn = multiprocessing.get_context("spawn")
         self._ids = itertools.count()
-        self._pending: dict[int, Future[Verdict]] = {}
+        self._pending: dict[int, Future[Any]] = {}
         self._lock = threading.Lock()  # guards _pending, _conn, _process and sends on the pipe
         self._stopping = False
         self._conn: Connection | None = None
@@ -148,7 +202,9 @@ class ScreeningService:
         while True:
             ours, theirs = multiprocessing.Pipe(duplex=True)
             process = self._spawn.Process(
-                target=_screening_main, args=(theirs, os.getpid()), name="srd-screening"
+                target=_screening_main,
+                args=(theirs, os.getpid(), self._database_url),
+                name="srd-screening",
             )
             process.start()
             theirs.close()
@@ -176,27 +232,23 @@ class ScreeningService:
             log.error("the screening process exited (code %s); starting another", process.exitcode)
             time.sleep(RESPAWN_DELAY_S)
 
-    def _ask(self, manifest: Manifest, at_the_door: bool) -> tuple[int, Future[Verdict]]:
-        """Send one manifest to the screening process; its answer will settle the future."""
-        future: Future[Verdict] = Future()
+    def _ask(self, kind: str, payload: object) -> tuple[int, Future[Any]]:
+        """Send one request to the screening process; its answer will settle the future."""
+        future: Future[Any] = Future()
         with self._lock:
             if self._conn is None:
                 raise ScreenerUnavailableError("the screening service is not running")
             request_id = next(self._ids)
             self._pending[request_id] = future
             try:
-                self._conn.send((request_id, manifest.model_dump_json(), at_the_door))
+                self._conn.send((request_id, kind, payload))
             except (OSError, ValueError) as exc:
                 del self._pending[request_id]
                 raise ScreenerUnavailableError(f"the screening process is gone: {exc}") from exc
         return request_id, future
 
-    async def verdict(self, manifest: Manifest, *, at_the_door: bool = True) -> Verdict:
-        """The screener's verdict on one manifest, awaited on the caller's event loop (no thread
-        waits for it): ``screener.screen`` for a submission at the door, or, with
-        ``at_the_door=False``, ``screener.rescreen_many``'s judgement of a version fine-tuned
-        inside an auction (the same re-screening as the server's own fine-tuning rounds)."""
-        request_id, future = self._ask(manifest, at_the_door)
+    async def _answer(self, kind: str, payload: object) -> Any:
+        request_id, future = self._ask(kind, payload)
         try:
             return await asyncio.wait_for(asyncio.wrap_future(future), VERDICT_TIMEOUT_S)
         except TimeoutError as exc:
@@ -204,25 +256,39 @@ class ScreeningService:
                 self._pending.pop(request_id, None)
             raise ScreenerUnavailableError("the screener did not answer in time") from exc
 
+    async def verdict(self, manifest: Manifest, *, at_the_door: bool = True) -> Verdict:
+        """The screener's verdict on one manifest, awaited on the caller's event loop (no thread
+        waits for it): ``screener.screen`` for a submission at the door, or, with
+        ``at_the_door=False``, ``screener.rescreen_many``'s judgement of a version fine-tuned
+        inside an auction (the same re-screening as the server's own fine-tuning rounds)."""
+        verdict: Verdict = await self._answer(
+            _DOOR if at_the_door else _RESCREEN, manifest.model_dump_json()
+        )
+        return verdict
+
+    async def upload(self, request: UploadRequest) -> UploadOutcome:
+        """A checked upload re-screened (a new version) and stored with the others of its
+        batch, in the screening process; its answer."""
+        outcome: UploadOutcome = await self._answer(_UPLOAD, request)
+        return outcome
+
     def _read(self, conn: Connection) -> None:
         """Hand each answer to its waiting request until the pipe closes."""
         while True:
             try:
-                answers: list[tuple[int, Verdict | str]] = conn.recv()
+                answers: list[tuple[int, Any]] = conn.recv()
             except (EOFError, OSError):
                 return
             with self._lock:
-                resolved = [(self._pending.pop(i, None), verdict) for i, verdict in answers]
-            for future, verdict in resolved:
+                resolved = [(self._pending.pop(i, None), answer) for i, answer in answers]
+            for future, answer in resolved:
                 # None or cancelled: its caller gave up waiting (timed out, or went away)
                 if future is None or not future.set_running_or_notify_cancel():
                     continue
-                if isinstance(verdict, Verdict):
-                    future.set_result(verdict)
+                if isinstance(answer, str):
+                    future.set_exception(ScreenerUnavailableError(answer))
                 else:
-                    future.set_exception(
-                        ScreenerUnavailableError(f"the screener failed: {verdict}")
-                    )
+                    future.set_result(answer)
 
     def pid(self) -> int | None:
         """The screening process id (for tests and diagnostics)."""

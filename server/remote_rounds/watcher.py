@@ -9,8 +9,8 @@ do not wait share the latest snapshot while it is younger than ``WATCH_POLL_S`` 
 ``MAX_WATCHED`` auctions are kept). The answer body of a round is built once (its 64 × 8 rows
 serialised once) and shared by all its waiters; only ``seconds_left`` is written per answer.
 Waiters are bounded (``MAX_WAITERS`` per process; beyond that 503 with Retry-After). The bytes
-of the answers that carry a round are counted by the upload writer, which adds them to the
-round's ``bytes_published``.
+of the answers that carry a round are counted (``PublishedBytes``) and added to the round's
+``bytes_published``.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from starlette.concurrency import run_in_threadpool
 from server import crud, doorbell
 from server.db import Database
 from server.models import utcnow
-from server.remote_rounds.writer import UploadWriter
+from server.remote_rounds.writer import PublishedBytes
 from server.status import AUCTION_UNFINISHED, RoundStatus
 
 log = logging.getLogger("srd.rounds")
@@ -127,10 +127,10 @@ class RoundWatcher:
     """Long polls of ``GET /auctions/{id}/rounds/current`` (see the module docstring)."""
 
     def __init__(
-        self, database: Database, writer: UploadWriter, *, on_round: RoundSeen | None = None
+        self, database: Database, published: PublishedBytes, *, on_round: RoundSeen | None = None
     ) -> None:
         self._database = database
-        self._writer = writer
+        self._published = published
         self._on_round = on_round
         self._watches: dict[int, _Watch] = {}
         self._waiters = 0
@@ -207,7 +207,7 @@ class RoundWatcher:
             snapshot = watch.snapshot
         body = self._answer(auction_id, watch, snapshot)
         if snapshot.head.round_id is not None:
-            self._writer.count_published(snapshot.head.round_id, len(body))
+            self._published.count(snapshot.head.round_id, len(body))
         self._forget_idle()
         return Published(body, snapshot)
 

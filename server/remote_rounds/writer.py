@@ -1,13 +1,17 @@
-"""The upload writer: the decided uploads of ``PUT .../rounds/{round}/models/{model_id}``
-stored in group commits (a ``server.grouping.GroupWriter``, as ``POST /submit`` is).
+"""The upload writer: the checked uploads of ``PUT .../rounds/{round}/models/{model_id}`` (and
+of the round sockets) stored in group commits, and the published-bytes counters.
 
-The writer thread takes every upload queued since its last pass and writes them in ONE
-transaction, re-checking there, against the database, that each round is still open and
-before its deadline (a round closed meanwhile makes the upload late) and that the patron has
-not answered the round yet. On PostgreSQL the rounds are read ``FOR SHARE``: the worker's
-closing ``UPDATE`` waits for the uploads in flight, and the uploads that come after it see the
-round closed. The same thread adds the bytes of published round answers (counted by the round
-watcher) to their rounds' ``bytes_published``, at least every ``FLUSH_S``.
+``UploadWriter`` runs in the screening process (``server.screening``), which gathers a round's
+uploads as they come, re-screens the new versions among them in one batch and hands the group
+to ``UploadWriter.store``: ONE transaction, re-checking there, against the database, that each
+round is still open and before its deadline (a round closed meanwhile makes the upload late)
+and that the patron has not answered the round yet, then a ring of the rounds' doorbells for
+their workers. On PostgreSQL the rounds are read ``FOR SHARE``: the worker's closing ``UPDATE``
+waits for the uploads in flight, and the uploads that come after it see the round closed. No
+SQL of an upload runs in the API process, whose event loop only parses and checks.
+
+``PublishedBytes`` (in the API process) adds the bytes of published round answers (counted by
+the round watcher) to their rounds' ``bytes_published``, at least every ``FLUSH_S``.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from sqlalchemy.orm import Session
 
 from screener import Verdict
 from server import crud, doorbell
-from server.db import Database
+from server.db import Database, JSONText
 from server.grouping import GroupWriter, unavailable_message
 from server.models import FineTuneAnswer, FineTuneRound, Participant, utcnow
 from server.status import ANSWERED, AnswerOutcome, RoundStatus
@@ -35,9 +39,6 @@ log = logging.getLogger("srd.rounds")
 
 FLUSH_S = 0.2
 """Published-bytes counters are written at least this often while they grow."""
-GATHER_GAP_S = 0.002
-"""A group takes each upload that comes within this long of the one before (a round's uploads
-come as the API checks them, or as the screener's batches answer): one transaction for many."""
 
 UploadKind = Literal["version", "unchanged", "late"]
 
@@ -59,7 +60,8 @@ class UploadRequest:
     auction_id: int
     body_sha256: str
     bytes_in: int
-    manifest: dict[str, Any] | None = None
+    manifest: JSONText | None = None
+    """The new version's manifest as stored (its ``model_dump_json``)."""
     verdict: Verdict | None = None
 
 
@@ -342,13 +344,11 @@ def _record_lates(session: Session, plan: _Plan) -> None:
 
 
 class UploadWriter(GroupWriter[UploadRequest, UploadOutcome]):
-    """``await write(request)`` from any event loop: the upload stored (or found late,
-    repeated, conflicting) on one thread, grouped, and its answer; ``count_published`` counts
-    the bytes of published rounds, written by the same thread."""
+    """``store(group)``: a group of uploads, already grouped by the caller (the screening
+    process), decided and written in one transaction (see the module docstring); no thread of
+    its own."""
 
     def __init__(self, database: Database) -> None:
-        self._published: dict[int, int] = defaultdict(int)
-        self._published_lock = threading.Lock()
         self._bells = doorbell.scope(database.url)
         super().__init__(
             "upload-writer",
@@ -357,25 +357,52 @@ class UploadWriter(GroupWriter[UploadRequest, UploadOutcome]):
             conflict=_conflict,
             unavailable=_unavailable,
             stopping=UploadRefused(503, "the server is stopping", ("body",), "stopping"),
-            idle_s=FLUSH_S,
-            after_pass=self._flush_published,
             after_commit=self._ring,
-            gather_gap_s=GATHER_GAP_S,
         )
+
+    def store(self, group: list[UploadRequest]) -> list[UploadOutcome]:
+        """The group's answers, one per upload, in order."""
+        return self.write_group(group)
 
     def _ring(self, group: list[UploadRequest]) -> None:
         """Wake the workers waiting on the group's rounds (``server.auctions``)."""
         for round_id in sorted({item.round_id for item in group}):
             doorbell.ring(self._bells, doorbell.round_bell(round_id))
 
-    def count_published(self, round_id: int, n_bytes: int) -> None:
-        """Add to a round's published-bytes counter (written within ``FLUSH_S``)."""
-        with self._published_lock:
-            self._published[round_id] += n_bytes
 
-    def _flush_published(self) -> None:
-        with self._published_lock:
-            counts, self._published = dict(self._published), defaultdict(int)
+class PublishedBytes:
+    """``count(round_id, n_bytes)`` from any thread: added to the round's ``bytes_published`` by
+    one thread at least every ``FLUSH_S`` while counts grow (and once more at ``shutdown``)."""
+
+    def __init__(self, database: Database) -> None:
+        self._database = database
+        self._counts: dict[int, int] = defaultdict(int)
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="published-bytes", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def shutdown(self) -> None:
+        """Write what is counted, then stop the thread."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+
+    def count(self, round_id: int, n_bytes: int) -> None:
+        """Add to a round's published-bytes counter (written within ``FLUSH_S``)."""
+        with self._lock:
+            self._counts[round_id] += n_bytes
+
+    def _run(self) -> None:
+        while not self._stop.wait(FLUSH_S):
+            self._flush()
+        self._flush()
+
+    def _flush(self) -> None:
+        with self._lock:
+            counts, self._counts = dict(self._counts), defaultdict(int)
         if not counts:
             return
         try:
@@ -384,6 +411,6 @@ class UploadWriter(GroupWriter[UploadRequest, UploadOutcome]):
                 session.commit()
         except OperationalError as exc:  # counted again at the next flush
             log.warning("published-bytes counters not written: %s", exc)
-            with self._published_lock:
+            with self._lock:
                 for round_id, n_bytes in counts.items():
-                    self._published[round_id] += n_bytes
+                    self._counts[round_id] += n_bytes

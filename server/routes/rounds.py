@@ -17,7 +17,6 @@ from server.deps import (
     RoundSocketsDep,
     ScreeningDep,
     UploadLookupDep,
-    UploadsDep,
 )
 from server.errors import RequestError, api_error, problem_response, responses
 from server.remote_rounds import MAX_WAIT_S, SocketLimitError
@@ -114,7 +113,6 @@ async def upload_round_model(
     body: Annotated[bytes, Depends(_upload_body)],
     token: ParticipantTokenDep,
     lookup: UploadLookupDep,
-    writer: UploadsDep,
     screening: ScreeningDep,
 ) -> Response:
     """Upload the patron's fine-tuned manifest for this round (participant token). It is
@@ -123,7 +121,6 @@ async def upload_round_model(
     → 409 naming the current one; closed or past the deadline → 410 (recorded as late)."""
     answer = await rounds.upload(
         lookup,
-        writer,
         screening,
         auction_id=auction_id,
         round_number=round_number,
@@ -153,7 +150,6 @@ async def round_socket(
     watcher: RoundsDep,
     sockets: RoundSocketsDep,
     lookup: UploadLookupDep,
-    writer: UploadsDep,
     screening: ScreeningDep,
 ) -> None:
     """The auction's remote rounds over one WebSocket (``server.remote_rounds.sockets``):
@@ -191,7 +187,6 @@ async def round_socket(
                 )
             return await rounds.upload(
                 lookup,
-                writer,
                 screening,
                 auction_id=auction_id,
                 round_number=round_number,

@@ -24,7 +24,7 @@ from server.events import EventHub
 from server.jobs.backend import JobCompute, job_compute
 from server.jobs.worker import JOB_WORK
 from server.quotas import Limits
-from server.remote_rounds import RoundSockets, RoundWatcher, UploadLookup, UploadWriter
+from server.remote_rounds import PublishedBytes, RoundSockets, RoundWatcher, UploadLookup
 from server.runner import BackgroundRunner, WorkKind
 from server.screening import ScreeningService
 from server.security import load_admin_token_hash
@@ -43,7 +43,8 @@ class Services:
     admin_token_hash: str
     screening: ScreeningService
     submissions: SubmissionWriter
-    uploads: UploadWriter
+    published: PublishedBytes
+    """The published-bytes counters of remote rounds (uploads are stored by ``screening``)."""
     upload_lookup: UploadLookup
     rounds: RoundWatcher
     sockets: RoundSockets
@@ -64,9 +65,9 @@ class Services:
         self.jobs.shutdown()
         self.auctions.shutdown()
         self.submissions.shutdown()
-        self.uploads.shutdown()
         self.upload_lookup.shutdown()
         self.screening.shutdown()
+        self.published.shutdown()
         self.compute.close()
         self.database.close()
         if self.sqlite_lock is not None:
@@ -112,9 +113,9 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         ray_address=settings.ray_address,
         ray_max_retries=settings.ray_max_retries,
     )
-    uploads = UploadWriter(database)
+    published = PublishedBytes(database)
     lookup = UploadLookup(database)
-    watcher = RoundWatcher(database, uploads, on_round=lookup.round_seen)
+    watcher = RoundWatcher(database, published, on_round=lookup.round_seen)
     owner = server_id()
 
     def runner(
@@ -135,9 +136,9 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         settings=settings,
         database=database,
         admin_token_hash=load_admin_token_hash(settings),
-        screening=ScreeningService(),
+        screening=ScreeningService(settings.database_url),
         submissions=SubmissionWriter(database, Limits.of(settings)),
-        uploads=uploads,
+        published=published,
         upload_lookup=lookup,
         rounds=watcher,
         sockets=RoundSockets(watcher),
@@ -153,7 +154,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
     )
     services.screening.start()
     services.submissions.start()
-    services.uploads.start()
+    services.published.start()
     services.upload_lookup.start()
     services.auctions.start()
     services.jobs.start()

@@ -18,6 +18,7 @@ from sqlalchemy.exc import OperationalError
 
 from agents.manifest import Manifest, ManifestError, parse_manifest_json
 from server import crud
+from server.db import JSONText
 from server.errors import RequestError, api_error, error_item, validation_error
 from server.grouping import StoppingError
 from server.models import utcnow
@@ -28,7 +29,6 @@ from server.remote_rounds import (
     UploadLookup,
     UploadOutcome,
     UploadRequest,
-    UploadWriter,
     answer_bytes,
 )
 from server.screening import ScreenerUnavailableError, ScreeningService
@@ -151,7 +151,6 @@ def _check_patron(
 
 async def upload(
     lookup: UploadLookup,
-    writer: UploadWriter,
     screening: ScreeningService,
     *,
     auction_id: int,
@@ -202,23 +201,27 @@ async def upload(
     if target.round_status != RoundStatus.OPEN or (
         target.deadline is not None and target.deadline <= utcnow()
     ):
-        return _answered(await writer.write(late))
+        return _answered(await _store(screening, late))
     data = manifest.model_dump(mode="json")
     if target.current_design is None or design(manifest) != target.current_design:
         problems = _body_problems(data, target)
         if problems:
             raise validation_error(problems)
     if data == target.current_manifest:
-        return _answered(await writer.write(dataclasses.replace(late, kind="unchanged")))
+        return _answered(await _store(screening, dataclasses.replace(late, kind="unchanged")))
+    # re-screened and stored in the screening process, as it is
+    encoded = JSONText(manifest.model_dump_json())
+    return _answered(
+        await _store(screening, dataclasses.replace(late, kind="version", manifest=encoded))
+    )
+
+
+async def _store(screening: ScreeningService, request: UploadRequest) -> UploadOutcome:
+    """The upload stored (a new version re-screened first) by the screening process."""
     try:
-        verdict = await screening.verdict(manifest, at_the_door=False)
+        return await screening.upload(request)
     except ScreenerUnavailableError as exc:
         raise api_error(503, str(exc), loc=("body",), kind="screener_unavailable") from exc
-    return _answered(
-        await writer.write(
-            dataclasses.replace(late, kind="version", manifest=data, verdict=verdict)
-        )
-    )
 
 
 def _answered(outcome: UploadOutcome) -> bytes:

@@ -96,10 +96,21 @@ class RoundTiming:
         return self.publish + self.upload + self.close
 
 
-def tree_cpu(root: int) -> float:
-    """CPU seconds used so far by process ``root`` and its live descendants (the API, its
-    screening process and its workers)."""
-    return sum(cpu_seconds(pid) or 0.0 for pid in descendants(root))
+class ServerTree:
+    """The server's processes (the API, its screening process, its workers), found by one scan
+    of ``/proc`` when asked (``refresh``): reading their CPU then reads only their own ``stat``
+    files, so measuring never scans ``/proc`` between the phases it measures."""
+
+    def __init__(self, root: int) -> None:
+        self.root = root
+        self.pids = descendants(root)
+
+    def refresh(self) -> None:
+        self.pids = descendants(self.root)
+
+    def cpu(self) -> float:
+        """CPU seconds used so far by the processes found."""
+        return sum(cpu_seconds(pid) or 0.0 for pid in self.pids)
 
 
 @dataclass
@@ -110,8 +121,8 @@ class Cpu:
     driver: float
 
     @classmethod
-    def now(cls, server_pid: int) -> Cpu:
-        return cls(tree_cpu(server_pid), time.process_time())
+    def now(cls, tree: ServerTree) -> Cpu:
+        return cls(tree.cpu(), time.process_time())
 
     def __sub__(self, other: Cpu) -> Cpu:
         return Cpu(self.server - other.server, self.driver - other.driver)
@@ -203,7 +214,7 @@ class Played:
 
 
 async def play_auction(
-    client: Client, agents: list[Agent], auction_id: int, server_pid: int, transport: str
+    client: Client, agents: list[Agent], auction_id: int, tree: ServerTree, transport: str
 ) -> list[RoundTiming]:
     """Answer every round of the auction with all its active agents, phase by phase (the next
     long polls go out as soon as the uploads are answered, as real agents do); the phases and
@@ -214,21 +225,23 @@ async def play_auction(
             await asyncio.gather(*(sockets.enter_async_context(o) for o in opened))
             for agent, socket in zip(agents, opened, strict=True):
                 agent.socket = socket
-        played = await play_rounds(agents, auction_id, server_pid)
+        played = await play_rounds(agents, auction_id, tree)
     return await timings_of(client, auction_id, played)
 
 
-async def play_rounds(agents: list[Agent], auction_id: int, server_pid: int) -> list[Played]:
+async def play_rounds(agents: list[Agent], auction_id: int, tree: ServerTree) -> list[Played]:
     """Every round of the auction, phase by phase, as the driver saw it."""
     played: list[Played] = []
     active = list(agents)
     after = 0
-    mark = Cpu.now(server_pid)
+    mark = Cpu.now(tree)
     while active:
         path = f"/auctions/{auction_id}/rounds/current?wait={WAIT_S}&after={after}"
         received: list[float] = []
         state = (await asyncio.gather(*(receive(a, path, after, received) for a in active)))[0]
-        published = Cpu.now(server_pid) - mark
+        published = Cpu.now(tree) - mark
+        if not played:  # this auction's worker is running now: find it, between two phases
+            tree.refresh()
         if state["auction_status"] not in ("pending", "running") or state["status"] != "open":
             break
         for gone in (a for a in active if a.model_id not in state["asked"]):
@@ -243,13 +256,13 @@ async def play_rounds(agents: list[Agent], auction_id: int, server_pid: int) -> 
                 faithful_fine_tune(agent.current, RoundInfo.from_state(state, agent.position))
             )
             costs.append(time.perf_counter() - started)
-        before_upload = Cpu.now(server_pid)
+        before_upload = Cpu.now(tree)
         sent = time.time()
         answers = await asyncio.gather(
             *(upload(auction_id, state["round"], a, m) for a, m in zip(active, tuned, strict=True))
         )
         answered = time.time()
-        mark = Cpu.now(server_pid)
+        mark = Cpu.now(tree)
         cpu = published + (mark - before_upload)
         for agent, manifest, answer in zip(active, tuned, answers, strict=True):
             if answer["accepted"]:
@@ -297,7 +310,7 @@ async def run(
     server: ServerProcess, n_agents: int, n_auctions: int, transport: str
 ) -> list[RoundTiming]:
     assert server.process is not None
-    server_pid = server.process.pid
+    tree = ServerTree(server.process.pid)
     async with contextlib.AsyncExitStack() as stack:
         clients = [
             Client(
@@ -344,7 +357,7 @@ async def run(
                 "POST", "/auctions", body=json.dumps(body).encode(), token=ADMIN_TOKEN
             )
             timings += await play_auction(
-                clients[0], agents, created["auction_id"], server_pid, transport
+                clients[0], agents, created["auction_id"], tree, transport
             )
         return timings
 

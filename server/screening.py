@@ -4,9 +4,10 @@ The screener is tensor code: one manifest costs a few milliseconds of mostly fix
 a batch of sixteen hardly more than two. So the API process hands each manifest to a spawned
 screening process (its own interpreter and GIL) over a pipe; that process takes whatever has
 queued up since its last pass, and whatever keeps coming within ``GATHER_GAP_S`` of the one
-before (at most ``MAX_BATCH``), judges it with one ``screener.screen_many`` call (the batched
-form of ``screener.screen``: same rules, same verdicts) and sends the verdicts back. Under no
-load a batch is one manifest, which waits only the gap for company.
+before (at most ``MAX_BATCH``; an upload waits for no company, ``UPLOAD_GAP_S``), judges it
+with one ``screener.screen_many`` call (the batched form of ``screener.screen``: same rules,
+same verdicts) and sends the verdicts back. Under no load a batch is one manifest, which waits
+only the gap for company.
 
 The uploads of remote fine-tuning rounds (``upload``), checked by the API, come the same way:
 the process re-screens the new versions of a batch with one ``screener.rescreen_many`` call
@@ -50,10 +51,14 @@ log = logging.getLogger("srd.screening")
 
 MAX_BATCH = 16  # beyond this the screener's cost per manifest stops falling
 GATHER_GAP_S = 0.002
-"""A batch being gathered takes the next manifest that comes within this long: a burst (the
-uploads of a fine-tuning round, arriving as the API parses them) is judged in a few batches
-rather than many small ones, each with the screener's fixed cost; a lone manifest waits this
-long."""
+"""A batch being gathered takes the next submission that comes within this long: a burst is
+judged in a few batches rather than many small ones, each with the screener's fixed cost; a
+lone submission waits this long."""
+UPLOAD_GAP_S = 0.0
+"""After an upload, a batch takes only what is queued already: a round's uploads come as the API
+checks each one, and judging and storing what has come meanwhile keeps the screening process
+working alongside the API's checks (rather than idle until the burst has passed), so the last
+upload waits for one small batch only."""
 VERDICT_TIMEOUT_S = 120.0  # a first request also waits for the process to import torch
 STOP_GRACE_S = 5.0
 RESPAWN_DELAY_S = 0.5  # a process that cannot start must not spin
@@ -156,11 +161,17 @@ def _failed(answer: Verdict | str) -> Verdict | str:
 
 def gather(conn: Connection) -> list[Any]:
     """The next batch: the first request (waiting for it), then each one that comes within
-    ``GATHER_GAP_S`` of the one before, up to ``MAX_BATCH``; a stop (None) ends the batch."""
+    the gap of the one before (``GATHER_GAP_S``; after an upload ``UPLOAD_GAP_S``), up to
+    ``MAX_BATCH``; a stop (None) ends the batch."""
     batch = [conn.recv()]
-    while len(batch) < MAX_BATCH and batch[-1] is not None and conn.poll(GATHER_GAP_S):
+    while len(batch) < MAX_BATCH and batch[-1] is not None and conn.poll(_gap(batch[-1])):
         batch.append(conn.recv())
     return batch
+
+
+def _gap(request: Any) -> float:
+    upload = isinstance(request, tuple) and len(request) == 3 and request[1] == _UPLOAD
+    return UPLOAD_GAP_S if upload else GATHER_GAP_S
 
 
 def _judge(

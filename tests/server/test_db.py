@@ -132,3 +132,13 @@ def test_a_sqlite_writer_gives_up_after_the_busy_timeout(
         other.execute("ROLLBACK")
         other.close()
         database.close()
+
+
+def test_json_columns_store_pre_encoded_json_as_it_is() -> None:
+    """A manifest's ``model_dump_json`` goes into a JSON column unchanged (``JSONText``); any
+    other value, a plain string included, is encoded."""
+    from server.db import JSONText, json_dumps
+
+    assert json_dumps(JSONText('{"a":[1.5,2]}')) == '{"a":[1.5,2]}'
+    assert json_dumps('{"a":1}') == '"{\\"a\\":1}"'
+    assert json_dumps({"a": [1.5, 2]}) == '{"a": [1.5, 2]}'

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
 
+from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
-from screener import rescreen_many, screen
+from screener import Verdict, rescreen_many, screen
+from server.remote_rounds import UploadRequest
 from server.screening import ScreeningService
 
 
@@ -94,9 +97,8 @@ class _Arrivals:
 
 
 def test_a_burst_is_gathered_into_one_batch_and_a_stop_ends_it() -> None:
-    """Requests that keep coming within the gap join the batch being gathered (a round's
-    uploads arrive one by one as the API parses them); a pause longer than the gap, a full
-    batch or a stop closes it."""
+    """Submissions that keep coming within the gap join the batch being gathered; a pause
+    longer than the gap, a full batch or a stop closes it."""
     from server.screening import GATHER_GAP_S, MAX_BATCH, gather
 
     gap = GATHER_GAP_S
@@ -109,3 +111,71 @@ def test_a_burst_is_gathered_into_one_batch_and_a_stop_ends_it() -> None:
     assert len(gather(many)) == 3  # type: ignore[arg-type]
     stopping = _Arrivals([(0.0, "a"), (0.0, None), (0.0, "after")])
     assert gather(stopping) == ["a", None]  # type: ignore[arg-type]
+
+
+def test_uploads_are_batched_with_what_is_queued_only() -> None:
+    """After an upload the batch takes only what has queued up already: the screening process
+    works on a round's uploads alongside the API's checks instead of waiting out the burst."""
+    from server.screening import GATHER_GAP_S, UPLOAD_GAP_S, gather
+
+    assert UPLOAD_GAP_S < GATHER_GAP_S
+    up = [(0, "upload", "a"), (1, "upload", "b"), (2, "upload", "c")]
+    queued = _Arrivals([(0.0, up[0]), (0.0, up[1]), (GATHER_GAP_S / 2, up[2])])
+    assert gather(queued) == up[:2]  # type: ignore[arg-type]
+    assert gather(queued) == up[2:]  # type: ignore[arg-type]
+
+
+class _Writer:
+    """Records the groups it is asked to store; answers each upload with its position."""
+
+    def __init__(self) -> None:
+        self.groups: list[list[UploadRequest]] = []
+
+    def store(self, group: list[UploadRequest]) -> list[object]:
+        self.groups.append(group)
+        return [f"stored {request.position}" for request in group]
+
+
+def test_an_upload_the_screener_fails_on_is_not_stored_and_the_rest_are() -> None:
+    """The new versions of a batch are re-screened together; one the screener raises on is
+    answered with the error (a 503 for its agent, who may send it again) and left out of the
+    group the writer stores, with the verdicts of the others attached."""
+    from server.db import JSONText
+    from server.screening import _store_uploads
+
+    rng = np.random.default_rng(3)
+    models = [honest_manifest(rng, f"u-{k}") for k in range(3)]
+    base = UploadRequest(
+        kind="version",
+        round_number=1,
+        round_id=7,
+        position=0,
+        participant_id=1,
+        current_id=1,
+        current_version=1,
+        auction_id=1,
+        body_sha256="0" * 64,
+        bytes_in=1,
+    )
+    uploads = [
+        (10 + k, dataclasses.replace(base, position=k, manifest=JSONText(m.model_dump_json())))
+        for k, m in enumerate(models)
+    ]
+    uploads.append((13, dataclasses.replace(base, kind="unchanged", position=3)))
+
+    def fails_on_the_second(manifests: list[Manifest]) -> list[Verdict]:
+        if any(m.participant == "u-1" for m in manifests):
+            raise RuntimeError("boom")
+        return rescreen_many(manifests)
+
+    writer = _Writer()
+    answers = _store_uploads(writer, fails_on_the_second, uploads)  # type: ignore[arg-type]
+    assert [i for i, _ in answers] == [10, 11, 12, 13]
+    assert answers[0][1] == "stored 0" and answers[2][1] == "stored 2"
+    assert answers[3][1] == "stored 3"
+    assert isinstance(answers[1][1], str) and answers[1][1].startswith("the screener failed:")
+    assert "boom" in answers[1][1]
+    (group,) = writer.groups
+    assert [r.position for r in group] == [0, 2, 3]
+    expected = rescreen_many([models[0], models[2]])
+    assert [r.verdict for r in group] == [*expected, None]

@@ -31,6 +31,7 @@ import logging
 import os
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import TYPE_CHECKING
 
@@ -74,6 +75,16 @@ period): the round closes within this long of its last answer."""
 
 class ResumeError(RuntimeError):
     """The auction's stored state cannot be continued."""
+
+
+@dataclass(frozen=True)
+class _OpenRound:
+    """What the worker needs of an open fine-tuning round: its id, the asked patrons' positions
+    and its deadline."""
+
+    id: int
+    asked: list[int]
+    deadline: datetime
 
 
 def base_price() -> float:
@@ -132,10 +143,11 @@ def _commit_round(
     deadline_s: float,
     market: Market,
     now: datetime,
-) -> bool:
+) -> tuple[bool, _OpenRound | None]:
     """Write one iteration begun at ``now`` atomically, with the fine-tuning round it opens (the
     market's pending round, open from ``now``, due ``deadline_s`` after this commit) if any;
-    False when the auction moved on without us."""
+    whether it was written (False when the auction moved on without us) and the round it
+    opened."""
     opened = market.pending_round
     moved = session.execute(
         update(Auction)
@@ -157,7 +169,7 @@ def _commit_round(
     )
     if moved.rowcount != 1:  # type: ignore[attr-defined]
         session.rollback()
-        return False
+        return False, None
     connection = session.connection()
     connection.execute(
         insert(AuctionIteration),
@@ -194,25 +206,28 @@ def _commit_round(
                 for i in record.quitters
             ],
         )
+    row = None
     if opened is not None:
-        connection.execute(
-            insert(FineTuneRound),
+        deadline = utcnow() + timedelta(seconds=deadline_s)
+        round_id = connection.execute(
+            insert(FineTuneRound).returning(FineTuneRound.id),
             {
                 "auction_id": auction_id,
                 "round": opened.iteration + 1,
                 "iteration": opened.iteration,
                 "status": RoundStatus.OPEN,
                 "opened_at": now,
-                "deadline": utcnow() + timedelta(seconds=deadline_s),
+                "deadline": deadline,
                 "rows": opened.rows.tolist(),
                 "fine_tune_seed": opened.fine_tune_seed,
                 "augmentation_seed": opened.augmentation_seed,
                 "asked": opened.patrons,
                 "bytes_published": 0,
             },
-        )
+        ).scalar_one()
+        row = _OpenRound(round_id, list(opened.patrons), deadline)
     session.commit()
-    return True
+    return True, row
 
 
 class _Versions:
@@ -279,7 +294,7 @@ def _close_round(
     session: Session,
     auction_id: int,
     market: Market,
-    row: FineTuneRound,
+    row: _OpenRound,
     now: datetime,
     versions: _Versions,
 ) -> bool:
@@ -297,8 +312,9 @@ def _close_round(
     return True
 
 
-def _open_round(database: Database, auction_id: int, number: int) -> FineTuneRound:
-    """The auction's fine-tuning round ``number``, which the checkpoint awaits: open."""
+def _open_round(database: Database, auction_id: int, number: int) -> _OpenRound:
+    """The auction's fine-tuning round ``number``, which the checkpoint awaits: open (read on
+    a resume; the worker knows the rounds it opens itself)."""
     with database.session(write=False) as session:
         row = session.scalars(
             select(FineTuneRound).where(
@@ -307,13 +323,13 @@ def _open_round(database: Database, auction_id: int, number: int) -> FineTuneRou
         ).one_or_none()
     if row is None or row.status != RoundStatus.OPEN:
         raise ResumeError(f"the checkpoint awaits fine-tuning round {number}, which is not open")
-    return row
+    return _OpenRound(row.id, list(row.asked), row.deadline)
 
 
 def _apply_answers(
     session: Session,
     auction_id: int,
-    row: FineTuneRound,
+    row: _OpenRound,
     market: Market,
     now: datetime,
     versions: _Versions,
@@ -403,17 +419,18 @@ def _drive(database: Database, auction_id: int) -> None:
         session.commit()
     bells, watchers = doorbell.scope(database.url), doorbell.watch_bell(os.getppid())
     deadline_s = auction.round_deadline_s
+    opened: _OpenRound | None = None
     while not market.finished:
         pending = market.pending_round
         if pending is None:  # the iteration is computed before the write lock is taken
             began = utcnow()
             record, blob = market.step(), market.checkpoint()
             with database.session(write=True) as session:
-                moved = _commit_round(
+                moved, opened = _commit_round(
                     session, auction_id, record, blob, model_ids, deadline_s, market, began
                 )
         else:
-            row = _open_round(database, auction_id, pending.iteration + 1)
+            row = opened or _open_round(database, auction_id, pending.iteration + 1)
             versions = _Versions()
             _wait_for_answers(database, row.id, len(row.asked), row.deadline.timestamp(), versions)
             # One transaction: the round closed, its answers applied, the next iteration (a
@@ -425,7 +442,7 @@ def _drive(database: Database, auction_id: int) -> None:
                     session.rollback()
                 else:
                     record = market.step()
-                    moved = _commit_round(
+                    moved, opened = _commit_round(
                         session, auction_id, record, market.checkpoint(), model_ids, deadline_s,
                         market, now,
                     )  # fmt: skip

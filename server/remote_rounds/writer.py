@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any, Literal
 
-from sqlalchemy import insert, select, update
+from sqlalchemy import bindparam, insert, select, update
 from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session
 
@@ -252,28 +252,46 @@ def _store_group(session: Session, group: list[UploadRequest]) -> list[UploadOut
     return outcomes
 
 
+_ROUNDS_FOR_SHARE = (
+    select(FineTuneRound.id, FineTuneRound.status, FineTuneRound.deadline)
+    .where(FineTuneRound.id.in_(bindparam("rounds", expanding=True)))
+    .with_for_update(read=True)
+)
+_STORED_ANSWERS = select(
+    FineTuneAnswer.id,
+    FineTuneAnswer.round_id,
+    FineTuneAnswer.position,
+    FineTuneAnswer.outcome,
+    FineTuneAnswer.body_sha256,
+    FineTuneAnswer.answer,
+).where(
+    FineTuneAnswer.round_id.in_(bindparam("rounds", expanding=True)),
+    FineTuneAnswer.position.in_(bindparam("positions", expanding=True)),
+)
+_LOCK_PARTICIPANTS = (
+    select(Participant.id)
+    .where(Participant.id.in_(bindparam("ids", expanding=True)))
+    .with_for_update()
+)
+# Built once: a group's queries differ only in their parameters.
+
+
 def _rounds_for_share(session: Session, group: list[UploadRequest]) -> _Rows:
-    query = (
-        select(FineTuneRound.id, FineTuneRound.status, FineTuneRound.deadline)
-        .where(FineTuneRound.id.in_(sorted({item.round_id for item in group})))
-        .with_for_update(read=True)
-    )
-    return {row.id: row for row in session.connection().execute(query)}
+    rounds = sorted({item.round_id for item in group})
+    return {
+        row.id: row for row in session.connection().execute(_ROUNDS_FOR_SHARE, {"rounds": rounds})
+    }
 
 
 def _stored_answers(session: Session, group: list[UploadRequest]) -> _Rows:
-    query = select(
-        FineTuneAnswer.id,
-        FineTuneAnswer.round_id,
-        FineTuneAnswer.position,
-        FineTuneAnswer.outcome,
-        FineTuneAnswer.body_sha256,
-        FineTuneAnswer.answer,
-    ).where(
-        FineTuneAnswer.round_id.in_(sorted({item.round_id for item in group})),
-        FineTuneAnswer.position.in_(sorted({item.position for item in group})),
-    )
-    return {(row.round_id, row.position): row for row in session.connection().execute(query)}
+    parameters = {
+        "rounds": sorted({item.round_id for item in group}),
+        "positions": sorted({item.position for item in group}),
+    }
+    return {
+        (row.round_id, row.position): row
+        for row in session.connection().execute(_STORED_ANSWERS, parameters)
+    }
 
 
 def _next_versions(session: Session, group: list[UploadRequest]) -> dict[int, int]:
@@ -281,9 +299,7 @@ def _next_versions(session: Session, group: list[UploadRequest]) -> dict[int, in
     participants' row locks."""
     participants = sorted({item.participant_id for item in group if item.kind == "version"})
     if participants:
-        session.connection().execute(
-            select(Participant.id).where(Participant.id.in_(participants)).with_for_update()
-        )
+        session.connection().execute(_LOCK_PARTICIPANTS, {"ids": participants})
     latest = crud.latest_versions(session, participant_ids=participants)
     return {participant_id: version + 1 for participant_id, version in latest.items()}
 

@@ -12,9 +12,10 @@ unreadable, round count disagreeing) is marked failed with the reason.
 
 Remote fine-tuning (``fine_tune_mode`` "remote"): an iteration after which the patrons
 fine-tune is committed together with an open ``FineTuneRound`` row (rows, seeds, the asked
-patrons, an absolute deadline). The worker then counts the answers the API stores, until
-every asked patron has answered or the deadline has passed, whichever comes first. It counts
-them whenever the upload writer rings the round's doorbell after storing answers
+patrons, an absolute deadline). The worker then counts the answers the screening process
+stores, until every asked patron has answered or the deadline has passed, whichever comes
+first. It counts them (and reads and parses the versions accepted so far, ``_Versions``)
+whenever the upload writer rings the round's doorbell after storing answers
 (``server.doorbell``), and at the bell's fallback period. It closes the round in ONE
 transaction, which also plays the next iteration: the round's status, a ``missing`` answer for
 each silent patron, the accepted versions applied to the market, the next iteration's row

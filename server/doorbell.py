@@ -35,7 +35,7 @@ def scope(database_url: str) -> str:
 
 def round_bell(round_id: int) -> str:
     """The bell of the worker waiting for the answers of fine-tuning round ``round_id``; the
-    upload writer rings it after storing answers of that round."""
+    upload writer (in the screening process) rings it after storing answers of that round."""
     return f"round-{round_id}"
 
 

@@ -12,8 +12,9 @@ been pushed to the agents, while they fine-tune) and kept until the round closes
 uploads of an open round are checked without a database read. What such a target holds does
 not change while its round is open: a participant's token, the version its patron bids with
 (changed only when the round closes) and the round itself. What can change (the round
-closing, the patron answering) the upload writer checks again in its own transaction, which
-alone decides whether an upload is in time and whether it is the patron's first.
+closing, the patron answering) the upload writer (in the screening process) checks again in
+its own transaction, which alone decides whether an upload is in time and whether it is the
+patron's first.
 """
 
 from __future__ import annotations

@@ -34,9 +34,9 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
-from sqlalchemy import bindparam, insert, select, update
+from sqlalchemy import and_, bindparam, insert, select, update
 from sqlalchemy.orm import Session, selectinload, undefer
 
 from agents.manifest import Manifest, parse_manifest
@@ -59,12 +59,7 @@ from server.workers import WorkerContext, error_summary
 from sim.market import MarketConfig
 
 if TYPE_CHECKING:
-    from sqlalchemy import Row
-
     from sim.market import IterationRecord, Market, RescreenBatch
-
-    _AnswerRow = Row[int, str, int | None]
-    """An answer's position, outcome and uploaded version."""
 
 log = logging.getLogger("srd.auctions")
 
@@ -231,6 +226,15 @@ def _commit_round(
     return True, row
 
 
+class _Answer(NamedTuple):
+    """An answer of a round as the worker counts and applies it."""
+
+    position: int
+    outcome: str
+    uploaded_id: int | None
+    """The version its upload stored (null if none was)."""
+
+
 class _Versions:
     """The versions a round's accepted uploads store, parsed as the answers come in while the
     worker waits, so that closing the round reads and parses none of them (versions never
@@ -239,30 +243,41 @@ class _Versions:
     def __init__(self) -> None:
         self.manifests: dict[int, Manifest] = {}
 
-    def answers(self, session: Session, round_id: int) -> list[_AnswerRow]:
+    def answers(self, session: Session, round_id: int) -> list[_Answer]:
         """Every answer of the round so far (position, outcome, uploaded version), the versions
-        of the accepted ones read ahead."""
-        found = list(session.connection().execute(_ANSWERS, {"round_id": round_id}))
-        self.read(session, [a.uploaded_id for a in found if _applies(a)])
-        return found
-
-    def read(self, session: Session, version_ids: Sequence[int | None]) -> None:
-        """Read and parse the versions not read yet."""
-        missing = [i for i in version_ids if i is not None and i not in self.manifests]
-        if missing:
-            query = select(ModelVersion.id, ModelVersion.manifest).where(
-                ModelVersion.id.in_(missing)
-            )
-            for version_id, manifest in session.connection().execute(query):
-                self.manifests[version_id] = parse_manifest(manifest)
+        of the accepted ones not read yet read with them (one query) and parsed."""
+        found = session.connection().execute(
+            _ANSWERS, {"round_id": round_id, "known": list(self.manifests)}
+        )
+        answers = []
+        for position, outcome, uploaded_id, manifest in found:
+            if manifest is not None:
+                self.manifests[uploaded_id] = parse_manifest(manifest)
+            answers.append(_Answer(position, outcome, uploaded_id))
+        return answers
 
 
-_ANSWERS = select(
-    FineTuneAnswer.position, FineTuneAnswer.outcome, FineTuneAnswer.uploaded_id
-).where(FineTuneAnswer.round_id == bindparam("round_id"))
+_ANSWERS = (
+    select(
+        FineTuneAnswer.position,
+        FineTuneAnswer.outcome,
+        FineTuneAnswer.uploaded_id,
+        ModelVersion.manifest,
+    )
+    .outerjoin(
+        ModelVersion,
+        and_(
+            ModelVersion.id == FineTuneAnswer.uploaded_id,
+            FineTuneAnswer.outcome == AnswerOutcome.ACCEPTED,
+            ModelVersion.id.not_in(bindparam("known", expanding=True)),
+        ),
+    )
+    .where(FineTuneAnswer.round_id == bindparam("round_id"))
+)
+"""A round's answers, with the manifest of each accepted version not read yet."""
 
 
-def _applies(answer: _AnswerRow) -> bool:
+def _applies(answer: _Answer) -> bool:
     """An accepted upload that stored a new version."""
     return answer.outcome == AnswerOutcome.ACCEPTED and answer.uploaded_id is not None
 

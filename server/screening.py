@@ -116,10 +116,15 @@ def _screening_main(conn: Connection, parent_pid: int, database_url: str | None)
                     conn.send([(i, a) for (i, _), a in zip(mine, answers, strict=True)])
             uploads = [(i, request) for i, k, request in batch if k == _UPLOAD]
             if uploads:
-                if writer is None and database_url is not None:
-                    database = Database(database_url)
-                    writer = UploadWriter(database)
-                conn.send(_store_uploads(writer, rescreen_many, uploads))
+                try:
+                    if writer is None and database_url is not None:
+                        database = Database(database_url)
+                        writer = UploadWriter(database)
+                    stored = _store_uploads(writer, rescreen_many, uploads)
+                except Exception as exc:  # never let the process die: each upload hears 503
+                    log.exception("a batch of %d uploads failed", len(uploads))
+                    stored = [(i, f"the uploads could not be stored: {exc}") for i, _ in uploads]
+                conn.send(stored)
             if stop:
                 return
     finally:

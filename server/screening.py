@@ -153,7 +153,7 @@ def _store_uploads(
         if isinstance(verdict, Verdict):
             requests[k] = dataclasses.replace(requests[k], verdict=verdict)
         else:
-            failed[k] = f"the screener failed: {verdict}"
+            failed[k] = _screener_failed(verdict)
     kept = [k for k in range(len(uploads)) if k not in failed]
     stored = dict(zip(kept, writer.store([requests[k] for k in kept]), strict=True))
     return [(i, stored[k] if k in stored else failed[k]) for k, (i, _) in enumerate(uploads)]
@@ -161,7 +161,12 @@ def _store_uploads(
 
 def _failed(answer: Verdict | str) -> Verdict | str:
     """A verdict as it is; a screener's error text as the request's 503 message."""
-    return answer if isinstance(answer, Verdict) else f"the screener failed: {answer}"
+    return answer if isinstance(answer, Verdict) else _screener_failed(answer)
+
+
+def _screener_failed(error: str) -> str:
+    """The 503 message of a request the screener raised on (``_judge``'s error text)."""
+    return f"the screener failed: {error}"
 
 
 def gather(conn: Connection) -> list[Any]:

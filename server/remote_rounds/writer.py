@@ -319,6 +319,7 @@ def _write_answers(session: Session, plan: _Plan) -> None:
                 answer["version"] = number
         body = answer_bytes(answer)
         row["bytes_out"] = len(body)
+        row["answer"] = JSONText(body.decode())  # stored as the bytes sent
         plan.outcomes[index] = Answered(body)
         inserted.append(row)
     for index, first in plan.repeats:

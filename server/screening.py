@@ -13,7 +13,8 @@ The uploads of remote fine-tuning rounds (``upload``), checked by the API, come 
 the process re-screens the new versions of a batch with one ``screener.rescreen_many`` call
 (the re-screening the server's own fine-tuning rounds apply), stores the whole batch in one
 transaction (``server.remote_rounds.writer.UploadWriter``), rings the rounds' workers and
-sends each upload's answer back. The API process runs no SQL of its own for an upload.
+sends each upload's answer back. The API process writes nothing for an upload (it reads only
+what the upload is checked against, ``server.remote_rounds.lookup``).
 
 A screener exception answers that one request with 503 (the batch is re-judged one by one to
 find it; an upload it strikes is not stored). If the screening process dies, the requests in

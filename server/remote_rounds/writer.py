@@ -7,8 +7,8 @@ to ``UploadWriter.store``: ONE transaction, re-checking there, against the datab
 round is still open and before its deadline (a round closed meanwhile makes the upload late)
 and that the patron has not answered the round yet, then a ring of the rounds' doorbells for
 their workers. On PostgreSQL the rounds are read ``FOR SHARE``: the worker's closing ``UPDATE``
-waits for the uploads in flight, and the uploads that come after it see the round closed. No
-SQL of an upload runs in the API process, whose event loop only parses and checks.
+waits for the uploads in flight, and the uploads that come after it see the round closed. The
+API process writes nothing for an upload: its event loop parses and checks.
 
 ``PublishedBytes`` (in the API process) adds the bytes of published round answers (counted by
 the round watcher) to their rounds' ``bytes_published``, at least every ``FLUSH_S``.

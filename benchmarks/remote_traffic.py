@@ -12,12 +12,12 @@
    publishing (the worker begins the iteration that opens the round: from round 2 on, the
    transaction that closes the round before, applies its versions, plays the iteration and
    commits it with the checkpoint → the last agent has the round; an auction's first round from
-   the later of its opening and the agents' joining), the agents' own fine-tuning
-   (each agent alone, as on its own machine; run here one after another and reported, not
-   counted), upload (first upload sent → last answer, re-screening included), re-screening
-   alone (the round's uploads through ``screener.rescreen_many`` in batches of 16, as the
-   screening process judges them, timed in this process), and closing (last answer → the
-   worker begins closing the round). The protocol's overhead is everything but the
+   the later of its opening and the agents' joining), the agents' own fine-tuning (each agent
+   alone, as on its own machine, encoding its upload included; run here one after another and
+   reported, not counted), upload (first upload sent → last answer, re-screening included),
+   re-screening alone (the round's uploads through ``screener.rescreen_many`` in batches of 16,
+   as the screening process judges them, timed in this process), and closing (last answer →
+   the worker begins closing the round). The protocol's overhead is everything but the
    fine-tuning; target ≤ 50 ms per round with 64 agents. Agents leave as they buy or quit, so
    later rounds ask fewer of them: the medians are over all rounds, and again over the rounds
    that ask at least three quarters of the agents.
@@ -185,8 +185,7 @@ async def receive(agent: Agent, path: str, after: int, received: list[float]) ->
     return dict(state)
 
 
-async def upload(auction_id: int, round_number: int, agent: Agent, manifest: Manifest) -> Any:
-    body = manifest.model_dump_json().encode()
+async def upload(auction_id: int, round_number: int, agent: Agent, body: bytes) -> Any:
     if agent.socket is not None:
         status, answer = await agent.socket.upload(round_number, agent.model_id, body)
         assert status == 200, answer
@@ -260,17 +259,18 @@ async def play_rounds(agents: list[Agent], auction_id: int, tree: ServerTree) ->
                 await gone.socket.close()
         active = [a for a in active if a.model_id in state["asked"]]
         before = [(a.position, a.current) for a in active]
-        tuned, costs = [], []
-        for agent in active:
+        tuned, bodies, costs = [], [], []
+        for agent in active:  # each agent's own work: fine-tune, encode the upload
             started = time.perf_counter()
             tuned.append(
                 faithful_fine_tune(agent.current, RoundInfo.from_state(state, agent.position))
             )
+            bodies.append(tuned[-1].model_dump_json().encode())
             costs.append(time.perf_counter() - started)
         before_upload = Cpu.now(tree)
         sent = time.time()
         answers = await asyncio.gather(
-            *(upload(auction_id, state["round"], a, m) for a, m in zip(active, tuned, strict=True))
+            *(upload(auction_id, state["round"], a, b) for a, b in zip(active, bodies, strict=True))
         )
         answered = time.time()
         mark = Cpu.now(tree)

@@ -99,8 +99,7 @@ def _screening_main(conn: Connection, parent_pid: int, database_url: str | None)
 
     torch.set_num_threads(1)  # tiny tensors: threads only add overhead
     freeze_heap()
-    database: Database | None = None
-    writer: UploadWriter | None = None
+    uploads_store = _UploadStore(database_url)
     try:
         while True:
             try:
@@ -117,20 +116,41 @@ def _screening_main(conn: Connection, parent_pid: int, database_url: str | None)
                     conn.send([(i, a) for (i, _), a in zip(mine, answers, strict=True)])
             uploads = [(i, request) for i, k, request in batch if k == _UPLOAD]
             if uploads:
-                try:
-                    if writer is None and database_url is not None:
-                        database = Database(database_url)
-                        writer = UploadWriter(database)
-                    stored = _store_uploads(writer, rescreen_many, uploads)
-                except Exception as exc:  # never let the process die: each upload hears 503
-                    log.exception("a batch of %d uploads failed", len(uploads))
-                    stored = [(i, f"the uploads could not be stored: {exc}") for i, _ in uploads]
-                conn.send(stored)
+                conn.send(uploads_store.answer(rescreen_many, uploads))
             if stop:
                 return
     finally:
-        if database is not None:
-            database.close()
+        uploads_store.close()
+
+
+class _UploadStore:
+    """The screening process's upload writer, on its own database connection opened at the
+    first upload (a process that only screens submissions never opens one)."""
+
+    def __init__(self, database_url: str | None) -> None:
+        self._database_url = database_url
+        self._database: Database | None = None
+        self.writer: UploadWriter | None = None
+
+    def answer(
+        self,
+        rescreen_many: Callable[[list[Manifest]], list[Verdict]],
+        uploads: list[tuple[int, UploadRequest]],
+    ) -> list[tuple[int, UploadOutcome | str]]:
+        """``_store_uploads``; should anything fail unexpectedly, every upload of the batch
+        hears 503 with the error and the process goes on."""
+        try:
+            if self.writer is None and self._database_url is not None:
+                self._database = Database(self._database_url)
+                self.writer = UploadWriter(self._database)
+            return _store_uploads(self.writer, rescreen_many, uploads)
+        except Exception as exc:
+            log.exception("a batch of %d uploads failed", len(uploads))
+            return [(i, f"the uploads could not be stored: {exc}") for i, _ in uploads]
+
+    def close(self) -> None:
+        if self._database is not None:
+            self._database.close()
 
 
 def _store_uploads(

@@ -179,3 +179,33 @@ def test_an_upload_the_screener_fails_on_is_not_stored_and_the_rest_are() -> Non
     assert [r.position for r in group] == [0, 2, 3]
     expected = rescreen_many([models[0], models[2]])
     assert [r.verdict for r in group] == [*expected, None]
+
+
+def test_a_batch_of_uploads_that_fails_unexpectedly_answers_each_with_the_error() -> None:
+    """Anything the upload store did not foresee (here an upload whose manifest is not JSON,
+    which the API never sends) answers every upload of the batch with the error (a 503 for its
+    agent) instead of ending the screening process; nothing of the batch is stored."""
+    from server.db import JSONText
+    from server.screening import _UploadStore
+
+    request = UploadRequest(
+        kind="version",
+        round_number=1,
+        round_id=7,
+        position=0,
+        participant_id=1,
+        current_id=1,
+        current_version=1,
+        auction_id=1,
+        body_sha256="0" * 64,
+        bytes_in=1,
+        manifest=JSONText("{not json"),
+    )
+    store = _UploadStore(None)
+    writer = _Writer()
+    store.writer = writer  # type: ignore[assignment]
+    answers = store.answer(rescreen_many, [(5, request), (6, dataclasses.replace(request))])
+    assert [i for i, _ in answers] == [5, 6]
+    for _, answer in answers:
+        assert isinstance(answer, str) and answer.startswith("the uploads could not be stored")
+    assert writer.groups == []

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -125,6 +126,23 @@ def test_uploads_are_batched_with_what_is_queued_only() -> None:
     assert gather(queued) == up[2:]  # type: ignore[arg-type]
 
 
+def _upload(**changes: Any) -> UploadRequest:
+    """A new version's upload to round 1 (id 7) of auction 1, by patron 0."""
+    base = UploadRequest(
+        kind="version",
+        round_number=1,
+        round_id=7,
+        position=0,
+        participant_id=1,
+        current_id=1,
+        current_version=1,
+        auction_id=1,
+        body_sha256="0" * 64,
+        bytes_in=1,
+    )
+    return dataclasses.replace(base, **changes)
+
+
 class _Writer:
     """Records the groups it is asked to store; answers each upload with its position."""
 
@@ -145,18 +163,7 @@ def test_an_upload_the_screener_fails_on_is_not_stored_and_the_rest_are() -> Non
 
     rng = np.random.default_rng(3)
     models = [honest_manifest(rng, f"u-{k}") for k in range(3)]
-    base = UploadRequest(
-        kind="version",
-        round_number=1,
-        round_id=7,
-        position=0,
-        participant_id=1,
-        current_id=1,
-        current_version=1,
-        auction_id=1,
-        body_sha256="0" * 64,
-        bytes_in=1,
-    )
+    base = _upload()
     uploads = [
         (10 + k, dataclasses.replace(base, position=k, manifest=JSONText(m.model_dump_json())))
         for k, m in enumerate(models)
@@ -188,19 +195,7 @@ def test_a_batch_of_uploads_that_fails_unexpectedly_answers_each_with_the_error(
     from server.db import JSONText
     from server.screening import _UploadStore
 
-    request = UploadRequest(
-        kind="version",
-        round_number=1,
-        round_id=7,
-        position=0,
-        participant_id=1,
-        current_id=1,
-        current_version=1,
-        auction_id=1,
-        body_sha256="0" * 64,
-        bytes_in=1,
-        manifest=JSONText("{not json"),
-    )
+    request = _upload(manifest=JSONText("{not json"))
     store = _UploadStore(None)
     writer = _Writer()
     store.writer = writer  # type: ignore[assignment]

@@ -176,7 +176,7 @@ def _store_uploads(
         else:
             failed[k] = _screener_failed(verdict)
     kept = [k for k in range(len(uploads)) if k not in failed]
-    stored = dict(zip(kept, writer.store([requests[k] for k in kept]), strict=True))
+    stored = dict(zip(kept, writer.write_group([requests[k] for k in kept]), strict=True))
     return [(i, stored[k] if k in stored else failed[k]) for k, (i, _) in enumerate(uploads)]
 
 

@@ -3,7 +3,7 @@ of the round sockets) stored in group commits, and the published-bytes counters.
 
 ``UploadWriter`` runs in the screening process (``server.screening``), which gathers a round's
 uploads as they come, re-screens the new versions among them in one batch and hands the group
-to ``UploadWriter.store``: ONE transaction, re-checking there, against the database, that each
+to ``UploadWriter.write_group``: ONE transaction, re-checking there, against the database, that each
 round is still open and before its deadline (a round closed meanwhile makes the upload late)
 and that the patron has not answered the round yet, then a ring of the rounds' doorbells for
 their workers. On PostgreSQL the rounds are read ``FOR SHARE``: the worker's closing ``UPDATE``
@@ -361,7 +361,7 @@ def _record_lates(session: Session, plan: _Plan) -> None:
 
 
 class UploadWriter(GroupWriter[UploadRequest, UploadOutcome]):
-    """``store(group)``: a group of uploads, already grouped by the caller (the screening
+    """``write_group(group)``: a group of uploads, already grouped by the caller (the screening
     process), decided and written in one transaction (see the module docstring); no thread of
     its own."""
 
@@ -376,10 +376,6 @@ class UploadWriter(GroupWriter[UploadRequest, UploadOutcome]):
             stopping=UploadRefused(503, "the server is stopping", ("body",), "stopping"),
             after_commit=self._ring,
         )
-
-    def store(self, group: list[UploadRequest]) -> list[UploadOutcome]:
-        """The group's answers, one per upload, in order."""
-        return self.write_group(group)
 
     def _ring(self, group: list[UploadRequest]) -> None:
         """Wake the workers waiting on the group's rounds (``server.auctions``)."""

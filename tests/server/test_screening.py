@@ -149,7 +149,7 @@ class _Writer:
     def __init__(self) -> None:
         self.groups: list[list[UploadRequest]] = []
 
-    def store(self, group: list[UploadRequest]) -> list[object]:
+    def write_group(self, group: list[UploadRequest]) -> list[object]:
         self.groups.append(group)
         return [f"stored {request.position}" for request in group]
 

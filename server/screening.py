@@ -20,6 +20,11 @@ A screener exception answers that one request with 503 (the batch is re-judged o
 find it; an upload it strikes is not stored). If the screening process dies, the requests in
 flight fail with ``ScreenerUnavailableError`` (503; an upload may have been stored, and its
 repeat gets the stored answer) and a fresh process takes the next ones.
+
+The API's event loop never writes to the pipe itself: a pipe holds a few hundred kilobytes, and
+while the screening process is busy (importing torch, judging a burst) a write into a full pipe
+would block the whole event loop, every request of the process with it. A sender thread writes
+the requests in order; the loop only queues them (at most ``MAX_QUEUED``).
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import itertools
 import logging
 import multiprocessing
 import os
+import queue
 import sys
 import threading
 import time
@@ -61,6 +67,9 @@ checks each one, and judging and storing what has come meanwhile keeps the scree
 working alongside the API's checks (rather than idle until the burst has passed), so the last
 upload waits for one small batch only."""
 VERDICT_TIMEOUT_S = 120.0  # a first request also waits for the process to import torch
+MAX_QUEUED = 512
+"""Requests written to the pipe by the sender thread, at most this many waiting their turn: a
+burst beyond it (a screening process far behind) hears 503 rather than filling memory."""
 STOP_GRACE_S = 5.0
 RESPAWN_DELAY_S = 0.5  # a process that cannot start must not spin
 
@@ -217,6 +226,14 @@ def _judge(
         return [answer for item in batch for answer in _judge(screen_many, [item])]
 
 
+@dataclasses.dataclass(frozen=True)
+class _Outgoing:
+    """A message for the sender thread: a request (id, kind, payload), or the stop (None)."""
+
+    conn: Connection
+    message: tuple[int, str, object] | None
+
+
 class ScreeningService:
     """``await verdict(manifest)`` and ``await upload(request)`` from any event loop; the
     screening (and the storing of uploads, in ``database_url``) runs in a child process."""
@@ -231,6 +248,9 @@ class ScreeningService:
         self._conn: Connection | None = None
         self._process: BaseProcess | None = None
         self._launched = threading.Event()
+        self._outbox: queue.SimpleQueue[_Outgoing | None] = queue.SimpleQueue()
+        self._queued = 0  # requests in the outbox, guarded by _lock
+        self._sender = threading.Thread(target=self._send, name="screening-sender", daemon=True)
         # One long-lived thread starts every screening process and reads its answers: a child's
         # parent-death signal is tied to the thread that started it (see die_with_parent).
         self._keeper = threading.Thread(target=self._keep, name="screening", daemon=True)
@@ -238,6 +258,7 @@ class ScreeningService:
     def start(self) -> None:
         """Spawn the screening process (it imports the screener in the background)."""
         self._keeper.start()
+        self._sender.start()
         self._launched.wait()
 
     def _keep(self) -> None:
@@ -275,19 +296,41 @@ class ScreeningService:
             time.sleep(RESPAWN_DELAY_S)
 
     def _ask(self, kind: str, payload: object) -> tuple[int, Future[Any]]:
-        """Send one request to the screening process; its answer will settle the future."""
+        """Queue one request for the screening process (the sender thread writes it to the
+        pipe); its answer will settle the future."""
         future: Future[Any] = Future()
         with self._lock:
             if self._conn is None:
                 raise ScreenerUnavailableError("the screening service is not running")
+            if self._queued >= MAX_QUEUED:
+                raise ScreenerUnavailableError(
+                    f"the screener is {MAX_QUEUED} requests behind; retry shortly"
+                )
             request_id = next(self._ids)
             self._pending[request_id] = future
-            try:
-                self._conn.send((request_id, kind, payload))
-            except (OSError, ValueError) as exc:
-                del self._pending[request_id]
-                raise ScreenerUnavailableError(f"the screening process is gone: {exc}") from exc
+            self._queued += 1
+            self._outbox.put(_Outgoing(self._conn, (request_id, kind, payload)))
         return request_id, future
+
+    def _send(self) -> None:
+        """Write the queued requests to the pipe, in order, until told to stop (None). A write
+        that fails (the process is gone) fails its request."""
+        while (outgoing := self._outbox.get()) is not None:
+            message = outgoing.message
+            try:
+                outgoing.conn.send(message)
+            except Exception as exc:  # OSError, ValueError: the pipe is closed
+                if message is not None:
+                    with self._lock:
+                        future = self._pending.pop(message[0], None)
+                    if future is not None and future.set_running_or_notify_cancel():
+                        future.set_exception(
+                            ScreenerUnavailableError(f"the screening process is gone: {exc}")
+                        )
+            finally:
+                if message is not None:
+                    with self._lock:
+                        self._queued -= 1
 
     async def _answer(self, kind: str, payload: object) -> Any:
         request_id, future = self._ask(kind, payload)
@@ -345,8 +388,8 @@ class ScreeningService:
             self._stopping = True
             conn, process, idle = self._conn, self._process, not self._pending
             if conn is not None and not idle:
-                with contextlib.suppress(OSError, ValueError):
-                    conn.send(None)
+                self._outbox.put(_Outgoing(conn, None))  # after the requests queued before it
+        self._outbox.put(None)
         if process is not None and idle and process.is_alive():
             process.terminate()
         if process is not None:
@@ -355,3 +398,5 @@ class ScreeningService:
                 process.kill()
         if self._keeper.is_alive():
             self._keeper.join(STOP_GRACE_S)
+        if self._sender.is_alive():
+            self._sender.join(STOP_GRACE_S)

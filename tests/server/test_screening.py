@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import multiprocessing
+import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -76,6 +78,41 @@ def test_a_caller_that_stops_waiting_leaves_the_service_working(
         return await asyncio.wait_for(service.verdict(honest), 60)
 
     assert asyncio.run(cancel_some_then_ask()) == screen(honest)
+
+
+def test_asking_never_waits_for_a_full_pipe(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The event loop only queues a request: with a screening process that does not read (its
+    pipe full), asking returns at once and the sender thread writes the requests in order as
+    the pipe drains; past ``MAX_QUEUED`` waiting requests the screener is "behind" (503); a
+    request whose pipe has closed fails as the process being gone."""
+    import server.screening as screening
+
+    monkeypatch.setattr(screening, "MAX_QUEUED", 16)
+    service = ScreeningService()
+    ours, theirs = multiprocessing.Pipe(duplex=True)
+    service._conn = ours  # nobody reads it yet
+    service._sender.start()
+    payload = "x" * 65_536  # 16 of them are several times what the pipe holds
+    asked: list[int] = []
+
+    def ask_all() -> None:
+        for _ in range(16):
+            asked.append(service._ask("door", payload)[0])
+
+    asking = threading.Thread(target=ask_all)
+    asking.start()
+    asking.join(30)
+    assert not asking.is_alive() and len(asked) == 16
+    with pytest.raises(screening.ScreenerUnavailableError, match="16 requests behind"):
+        service._ask("door", payload)
+    assert [theirs.recv()[0] for _ in range(16)] == asked  # written in order once read
+    theirs.close()
+    _, future = service._ask("door", payload)
+    with pytest.raises(screening.ScreenerUnavailableError, match="gone"):
+        future.result(timeout=30)
+    service._outbox.put(None)
+    service._sender.join(30)
+    ours.close()
 
 
 class _Arrivals:

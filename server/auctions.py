@@ -28,18 +28,20 @@ again until the same deadline; nothing is applied twice.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, TypeVar
 
-from sqlalchemy import and_, bindparam, insert, select, update
+from sqlalchemy import Connection, Text, bindparam, cast, insert, select, update
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session, selectinload, undefer
 
-from agents.manifest import Manifest, parse_manifest
+from agents.manifest import Manifest, parse_manifest, parse_manifest_json
 from server import crud, doorbell
 from server.db import Database
 from server.models import (
@@ -62,6 +64,7 @@ if TYPE_CHECKING:
     from sim.market import IterationRecord, Market, RescreenBatch
 
 log = logging.getLogger("srd.auctions")
+_T = TypeVar("_T")
 
 ROUND_POLL_S = 0.002
 """How often a worker looks for the answers of its open fine-tuning round where it has no
@@ -243,38 +246,32 @@ class _Versions:
     def __init__(self) -> None:
         self.manifests: dict[int, Manifest] = {}
 
-    def answers(self, session: Session, round_id: int) -> list[_Answer]:
-        """Every answer of the round so far (position, outcome, uploaded version), the versions
-        of the accepted ones not read yet read with them (one query) and parsed."""
-        found = session.connection().execute(
-            _ANSWERS, {"round_id": round_id, "known": list(self.manifests)}
-        )
-        answers = []
-        for position, outcome, uploaded_id, manifest in found:
-            if manifest is not None:
-                self.manifests[uploaded_id] = parse_manifest(manifest)
-            answers.append(_Answer(position, outcome, uploaded_id))
+    def answers(self, connection: Connection, round_id: int) -> list[_Answer]:
+        """Every answer of the round so far (position, outcome, uploaded version); the versions
+        of the accepted ones not read yet are read (a second query, only when there are any)
+        and parsed from their JSON text."""
+        answers = [
+            _Answer(position, outcome, uploaded_id)
+            for position, outcome, uploaded_id in connection.execute(
+                _ANSWERS, {"round_id": round_id}
+            )
+        ]
+        wanted = [a.uploaded_id for a in answers if _applies(a)]
+        wanted = [i for i in wanted if i is not None and i not in self.manifests]
+        if wanted:
+            for version_id, text in connection.execute(_MANIFESTS, {"ids": wanted}):
+                self.manifests[version_id] = parse_manifest_json(text)
         return answers
 
 
-_ANSWERS = (
-    select(
-        FineTuneAnswer.position,
-        FineTuneAnswer.outcome,
-        FineTuneAnswer.uploaded_id,
-        ModelVersion.manifest,
-    )
-    .outerjoin(
-        ModelVersion,
-        and_(
-            ModelVersion.id == FineTuneAnswer.uploaded_id,
-            FineTuneAnswer.outcome == AnswerOutcome.ACCEPTED,
-            ModelVersion.id.not_in(bindparam("known", expanding=True)),
-        ),
-    )
-    .where(FineTuneAnswer.round_id == bindparam("round_id"))
+_ANSWERS = select(
+    FineTuneAnswer.position, FineTuneAnswer.outcome, FineTuneAnswer.uploaded_id
+).where(FineTuneAnswer.round_id == bindparam("round_id"))
+"""A round's answers (one statement, the same text every time)."""
+_MANIFESTS = select(ModelVersion.id, cast(ModelVersion.manifest, Text)).where(
+    ModelVersion.id.in_(bindparam("ids", expanding=True))
 )
-"""A round's answers, with the manifest of each accepted version not read yet."""
+"""Versions' manifests as their stored JSON text (parsed by pydantic in one pass)."""
 
 
 def _applies(answer: _Answer) -> bool:
@@ -289,10 +286,10 @@ def _wait_for_answers(
     seconds) has passed, whichever comes first; the accepted versions are read as they come."""
     # Listening before the first count: a ring for an answer stored after it is never lost.
     bell = doorbell.listen(doorbell.scope(database.url), doorbell.round_bell(round_id))
+    reader = _Reader(database)
     try:
         while True:
-            with database.session(write=False) as session:
-                found = versions.answers(session, round_id)
+            found = reader.read(lambda connection: versions.answers(connection, round_id))
             answered = sum(1 for a in found if a.outcome in ANSWERED)
             left = deadline - time.time()
             if answered >= asked or left <= 0:
@@ -302,8 +299,39 @@ def _wait_for_answers(
             else:
                 bell.wait(min(doorbell.FALLBACK_S, left))
     finally:
+        reader.close()
         if bell is not None:
             bell.close()
+
+
+class _Reader:
+    """One connection kept for a wait's many small reads (no session, no pool checkout per
+    read); each read is its own transaction. A read that fails on a connection the database
+    dropped (a restart) is tried once more on a fresh one."""
+
+    def __init__(self, database: Database) -> None:
+        self._engine = database.engine
+        self._connection: Connection | None = None
+
+    def read(self, query: Callable[[Connection], _T]) -> _T:
+        for attempt in (1, 2):
+            if self._connection is None:
+                self._connection = self._engine.connect()
+            try:
+                result = query(self._connection)
+                self._connection.rollback()
+                return result
+            except DBAPIError:
+                self.close()
+                if attempt == 2:
+                    raise
+        raise AssertionError("unreachable")
+
+    def close(self) -> None:
+        if self._connection is not None:
+            with contextlib.suppress(Exception):
+                self._connection.close()
+            self._connection = None
 
 
 def _close_round(
@@ -353,7 +381,7 @@ def _apply_answers(
     """Apply the round's accepted uploads to the market and to the patrons' current versions,
     and record a ``missing`` answer for every asked patron that stayed silent."""
     connection = session.connection()
-    answered = {a.position: a for a in versions.answers(session, row.id)}
+    answered = {a.position: a for a in versions.answers(connection, row.id)}
     applied = {p: a.uploaded_id for p, a in answered.items() if _applies(a)}
     market.apply_round({p: versions.manifests[i] for p, i in applied.items() if i is not None})
     silent = [p for p in row.asked if p not in answered]

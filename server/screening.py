@@ -250,6 +250,8 @@ class ScreeningService:
         self._launched = threading.Event()
         self._outbox: queue.SimpleQueue[_Outgoing | None] = queue.SimpleQueue()
         self._queued = 0  # requests in the outbox, guarded by _lock
+        # A pipe is closed only between two writes: a closed descriptor's number may be reused.
+        self._writing = threading.Lock()
         self._sender = threading.Thread(target=self._send, name="screening-sender", daemon=True)
         # One long-lived thread starts every screening process and reads its answers: a child's
         # parent-death signal is tied to the thread that started it (see die_with_parent).
@@ -289,7 +291,8 @@ class ScreeningService:
                 future.set_exception(
                     ScreenerUnavailableError("the screening process exited; retry")
                 )
-            ours.close()
+            with self._writing:  # a write in progress fails at once: the process is gone
+                ours.close()
             if stopping:
                 return
             log.error("the screening process exited (code %s); starting another", process.exitcode)
@@ -318,7 +321,8 @@ class ScreeningService:
         while (outgoing := self._outbox.get()) is not None:
             message = outgoing.message
             try:
-                outgoing.conn.send(message)
+                with self._writing:
+                    outgoing.conn.send(message)
             except Exception as exc:  # OSError, ValueError: the pipe is closed
                 if message is not None:
                     with self._lock:

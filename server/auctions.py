@@ -256,8 +256,9 @@ class _Versions:
                 _ANSWERS, {"round_id": round_id}
             )
         ]
-        wanted = [a.uploaded_id for a in answers if _applies(a)]
-        wanted = [i for i in wanted if i is not None and i not in self.manifests]
+        wanted = [
+            a.uploaded_id for a in answers if _applies(a) and a.uploaded_id not in self.manifests
+        ]
         if wanted:
             for version_id, text in connection.execute(_MANIFESTS, {"ids": wanted}):
                 self.manifests[version_id] = parse_manifest_json(text)
@@ -314,18 +315,18 @@ class _Reader:
         self._connection: Connection | None = None
 
     def read(self, query: Callable[[Connection], _T]) -> _T:
-        for attempt in (1, 2):
-            if self._connection is None:
-                self._connection = self._engine.connect()
-            try:
-                result = query(self._connection)
-                self._connection.rollback()
-                return result
-            except DBAPIError:
-                self.close()
-                if attempt == 2:
-                    raise
-        raise AssertionError("unreachable")
+        try:
+            return self._read(query)
+        except DBAPIError:
+            self.close()
+            return self._read(query)
+
+    def _read(self, query: Callable[[Connection], _T]) -> _T:
+        if self._connection is None:
+            self._connection = self._engine.connect()
+        result = query(self._connection)
+        self._connection.rollback()
+        return result
 
     def close(self) -> None:
         if self._connection is not None:

@@ -83,8 +83,8 @@ def test_a_caller_that_stops_waiting_leaves_the_service_working(
 def test_asking_never_waits_for_a_full_pipe(monkeypatch: pytest.MonkeyPatch) -> None:
     """The event loop only queues a request: with a screening process that does not read (its
     pipe full), asking returns at once and the sender thread writes the requests in order as
-    the pipe drains; past ``MAX_QUEUED`` waiting requests the screener is "behind" (503); a
-    request whose pipe has closed fails as the process being gone."""
+    the pipe drains; past ``MAX_QUEUED`` requests waiting their turn the screener is "behind"
+    (503); a request whose pipe has closed fails as the process being gone."""
     import server.screening as screening
 
     monkeypatch.setattr(screening, "MAX_QUEUED", 16)
@@ -92,20 +92,24 @@ def test_asking_never_waits_for_a_full_pipe(monkeypatch: pytest.MonkeyPatch) -> 
     ours, theirs = multiprocessing.Pipe(duplex=True)
     service._conn = ours  # nobody reads it yet
     service._sender.start()
-    payload = "x" * 65_536  # 16 of them are several times what the pipe holds
+    payload = "x" * 65_536  # a few of them fill the pipe
     asked: list[int] = []
+    refused: list[str] = []
 
-    def ask_all() -> None:
-        for _ in range(16):
-            asked.append(service._ask("door", payload)[0])
+    def ask_until_refused() -> None:
+        try:
+            for _ in range(64):
+                asked.append(service._ask("door", payload)[0])
+        except screening.ScreenerUnavailableError as exc:
+            refused.append(str(exc))
 
-    asking = threading.Thread(target=ask_all)
+    asking = threading.Thread(target=ask_until_refused)
     asking.start()
     asking.join(30)
-    assert not asking.is_alive() and len(asked) == 16
-    with pytest.raises(screening.ScreenerUnavailableError, match="16 requests behind"):
-        service._ask("door", payload)
-    assert [theirs.recv()[0] for _ in range(16)] == asked  # written in order once read
+    assert not asking.is_alive()
+    assert refused == ["the screener is 16 requests behind; retry shortly"]
+    assert 16 <= len(asked) < 64  # 16 waiting, and the few the pipe took before it was full
+    assert [theirs.recv()[0] for _ in asked] == asked  # written in order once read
     theirs.close()
     _, future = service._ask("door", payload)
     with pytest.raises(screening.ScreenerUnavailableError, match="gone"):

@@ -131,6 +131,21 @@ class FSNBatch:
         return FSNBatch(**fields)  # type: ignore[arg-type]
 
 
+def concat(batches: Sequence[FSNBatch]) -> FSNBatch:
+    """The patrons of ``batches`` one after another in one batch: the same batch as
+    ``from_manifests`` of their manifests in that order (each row is its manifest's alone)."""
+    if not batches:
+        raise ValueError("at least one batch is needed")
+    fields: dict[str, Any] = {}
+    for f in dataclasses.fields(FSNBatch):
+        values = [getattr(batch, f.name) for batch in batches]
+        if isinstance(values[0], Tensor):
+            fields[f.name] = torch.cat(values)
+        else:
+            fields[f.name] = [item for value in values for item in value]
+    return FSNBatch(**fields)
+
+
 _INPUT_VALUES = operator.attrgetter(*INPUTS)
 _ES_VALUES = operator.attrgetter(*ES_NEURONS)
 _DECISION_VALUES = operator.attrgetter(*DECISIONS)

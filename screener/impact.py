@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from agents.batch import FSNBatch, from_manifests, to_manifest
+from agents.batch import FSNBatch, concat, from_manifests, to_manifest
 from agents.fine_tuning import fine_tune_round
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
@@ -73,6 +73,13 @@ def _population(trial: int) -> tuple[Manifest, ...]:
     )
 
 
+@functools.cache
+def _people() -> tuple[list[Manifest], FSNBatch]:
+    """Every trial's reference patrons in trial order, and their batch (read once)."""
+    people = [m for trial in range(limits.IMPACT_TRIALS) for m in _population(trial)]
+    return people, from_manifests(people)
+
+
 def _market_seed(supply: float, trial: int) -> int:
     sequence = np.random.SeedSequence([limits.IMPACT_SEED, trial, round(supply * 100)])
     return int(sequence.generate_state(1)[0])
@@ -98,10 +105,11 @@ TEST_AUCTIONS = [
 
 def run(candidates: Sequence[Manifest | None]) -> list[Outcome]:
     """The test auctions of every candidate (None: honest alone) in one lock-step batch (its
-    patrons stacked from one read of the reference populations and the candidates)."""
-    people = [m for trial in range(limits.IMPACT_TRIALS) for m in _population(trial)]
+    patrons stacked from the reference populations' batch, read once per process, and the
+    candidates')."""
+    people, reference = _people()
     given = [c for c in candidates if c is not None]
-    pool = from_manifests([*people, *given])
+    pool = concat([reference, from_manifests(given)]) if given else reference
     auctions: list[tuple[list[Manifest], MarketConfig]] = []
     index: list[int] = []
     slot = iter(range(len(people), len(people) + len(given)))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from agents.batch import from_manifests, to_manifest
+from agents.batch import concat, from_manifests, to_manifest
 from agents.forward import decide, make_noise
 from agents.manifest import (
     SCHEMA_FILE,
@@ -44,6 +44,24 @@ def test_manifest_model_manifest_is_exact():
         back = to_manifest(batch, i)
         assert back == m
         assert back.model_dump() == m.model_dump()
+
+
+def test_concatenated_batches_are_the_batch_of_all_their_manifests():
+    """``concat`` of batches (the screener stacks its reference patrons' batch, read once, with
+    the candidates') is field for field ``from_manifests`` of the manifests in that order."""
+    rng = np.random.default_rng(13)
+    first = [honest_manifest(rng, f"h{i}") for i in range(5)]
+    second = [saboteur_manifest(rng, "s"), honest_manifest(rng, "h")]
+    joined = concat([from_manifests(first), from_manifests(second)])
+    whole = from_manifests(first + second)
+    for name, value in vars(whole).items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(getattr(joined, name), value), name
+            assert getattr(joined, name).dtype == value.dtype, name
+        else:
+            assert getattr(joined, name) == value, name
+    with pytest.raises(ValueError, match="at least one batch"):
+        concat([])
 
 
 def test_json_text_round_trip_is_exact(honest):

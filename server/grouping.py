@@ -9,11 +9,12 @@ waiter), and gives each result back to its waiter's future on the waiter's own l
 load a group is one item, which waits at most the gap for company; under load the round trips
 and wake-ups are shared by the group.
 
-``GroupWriter``: the group is decided and written in ONE transaction. If a statement hits a
-unique constraint (a row written meanwhile by another process), the group is rolled back and
-each of its items is written again in a transaction of its own, so only the one at fault gets
-the conflict answer; if the database itself fails, every item of the group gets the
-unavailable answer and nothing of the group is stored.
+``GroupTransaction`` (on the caller's thread) and ``GroupWriter`` (a ``GroupTransaction`` fed
+by its own ``GroupWorker``): the group is decided and written in ONE transaction. If a
+statement hits a unique constraint (a row written meanwhile by another process), the group is
+rolled back and each of its items is written again in a transaction of its own, so only the
+one at fault gets the conflict answer; if the database itself fails, every item of the group
+gets the unavailable answer and nothing of the group is stored.
 """
 
 from __future__ import annotations
@@ -173,13 +174,13 @@ class _ConflictError(Exception):
     """A statement of the group hit a unique constraint."""
 
 
-class GroupWriter(Generic[Item, Result]):
-    """``await write(item)`` from any event loop; ``decide`` decides a group in arrival order
-    and writes it in the session it is given, committed here (see the module docstring).
+class GroupTransaction(Generic[Item, Result]):
+    """``write_group(group)`` on the caller's thread: ``decide`` decides a group in arrival
+    order and writes it in the session it is given, committed here (see the module docstring).
 
     ``conflict`` is an item's answer when its own write hits a unique constraint,
-    ``unavailable`` every item's answer when the database fails, ``stopping`` the answer once
-    ``shutdown`` has begun; ``after_commit`` is told each group once it is committed."""
+    ``unavailable`` every item's answer when the database fails; ``after_commit`` is told each
+    group once it is committed."""
 
     def __init__(
         self,
@@ -189,11 +190,7 @@ class GroupWriter(Generic[Item, Result]):
         *,
         conflict: Callable[[Item], Result],
         unavailable: Callable[[Exception], Result],
-        stopping: Result,
-        idle_s: float | None = None,
-        after_pass: Callable[[], None] | None = None,
         after_commit: Callable[[list[Item]], None] | None = None,
-        gather_gap_s: float = 0.0,
     ) -> None:
         self._name = name
         self._database = database
@@ -201,46 +198,17 @@ class GroupWriter(Generic[Item, Result]):
         self._decide = decide
         self._conflict = conflict
         self._unavailable = unavailable
-        self._stopping = stopping
-        self._worker: GroupWorker[Item, Result] = GroupWorker(
-            name,
-            self._write,
-            on_error=unavailable,
-            idle_s=idle_s,
-            after_pass=after_pass,
-            gather_gap_s=gather_gap_s,
-        )
         self.groups = 0
         """Transactions committed so far (diagnostics and tests)."""
 
-    def start(self) -> None:
-        self._worker.start()
-
-    def shutdown(self) -> None:
-        """Write what is queued, then stop the thread."""
-        self._worker.shutdown()
-
     def write_group(self, group: list[Item]) -> list[Result]:
-        """Decide and write a group gathered by the caller, on the caller's thread (for a
-        writer whose thread is never started); the answers, in order."""
-        return self._write(group)
-
-    async def write(self, item: Item) -> Result:
-        """Decide and write ``item`` with the others queued meanwhile; its answer."""
-        try:
-            future = self._worker.put(item)
-        except StoppingError:
-            return self._stopping
-        # Shielded: a client that goes away does not un-write an item already queued.
-        return await asyncio.shield(future)
-
-    def _write(self, group: list[Item]) -> list[Result]:
+        """Decide and write the group; the answers, in order."""
         try:
             return self._transaction(group)
         except _ConflictError:
             if len(group) == 1:
                 return [self._conflict(group[0])]
-        return [result for item in group for result in self._write([item])]
+        return [result for item in group for result in self.write_group([item])]
 
     def _transaction(self, group: list[Item]) -> list[Result]:
         try:
@@ -256,3 +224,57 @@ class GroupWriter(Generic[Item, Result]):
         if self._after_commit is not None:
             self._after_commit(group)
         return results
+
+
+class GroupWriter(GroupTransaction[Item, Result]):
+    """``await write(item)`` from any event loop: a ``GroupTransaction`` whose groups its own
+    thread gathers (a ``GroupWorker``); ``stopping`` is the answer once ``shutdown`` has
+    begun."""
+
+    def __init__(
+        self,
+        name: str,
+        database: Database,
+        decide: Callable[[Session, list[Item]], list[Result]],
+        *,
+        conflict: Callable[[Item], Result],
+        unavailable: Callable[[Exception], Result],
+        stopping: Result,
+        idle_s: float | None = None,
+        after_pass: Callable[[], None] | None = None,
+        after_commit: Callable[[list[Item]], None] | None = None,
+        gather_gap_s: float = 0.0,
+    ) -> None:
+        super().__init__(
+            name,
+            database,
+            decide,
+            conflict=conflict,
+            unavailable=unavailable,
+            after_commit=after_commit,
+        )
+        self._stopping = stopping
+        self._worker: GroupWorker[Item, Result] = GroupWorker(
+            name,
+            self.write_group,
+            on_error=unavailable,
+            idle_s=idle_s,
+            after_pass=after_pass,
+            gather_gap_s=gather_gap_s,
+        )
+
+    def start(self) -> None:
+        self._worker.start()
+
+    def shutdown(self) -> None:
+        """Write what is queued, then stop the thread."""
+        self._worker.shutdown()
+
+    async def write(self, item: Item) -> Result:
+        """Decide and write ``item`` with the others queued meanwhile; its answer."""
+        try:
+            future = self._worker.put(item)
+        except StoppingError:
+            return self._stopping
+        # Shielded: a client that goes away does not un-write an item already queued.
+        return await asyncio.shield(future)

@@ -31,7 +31,7 @@ from sqlalchemy.orm import Session
 from screener import Verdict
 from server import crud, doorbell
 from server.db import Database, JSONText
-from server.grouping import GroupWriter, unavailable_message
+from server.grouping import GroupTransaction, unavailable_message
 from server.models import FineTuneAnswer, FineTuneRound, Participant, utcnow
 from server.status import ANSWERED, AnswerOutcome, RoundStatus
 
@@ -360,10 +360,9 @@ def _record_lates(session: Session, plan: _Plan) -> None:
             )
 
 
-class UploadWriter(GroupWriter[UploadRequest, UploadOutcome]):
+class UploadWriter(GroupTransaction[UploadRequest, UploadOutcome]):
     """``write_group(group)``: a group of uploads, already grouped by the caller (the screening
-    process), decided and written in one transaction (see the module docstring); no thread of
-    its own."""
+    process), decided and written in one transaction (see the module docstring)."""
 
     def __init__(self, database: Database) -> None:
         self._bells = doorbell.scope(database.url)
@@ -373,7 +372,6 @@ class UploadWriter(GroupWriter[UploadRequest, UploadOutcome]):
             _store_group,
             conflict=_conflict,
             unavailable=_unavailable,
-            stopping=UploadRefused(503, "the server is stopping", ("body",), "stopping"),
             after_commit=self._ring,
         )
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import json
 from collections import OrderedDict
 from collections.abc import Sequence
 
@@ -118,6 +119,23 @@ class UploadLookup:
         }
         while len(self._primed) > MAX_PRIMED:
             self._primed.popitem(last=False)
+
+    def answered(self, key: crud.UploadKey, body_sha256: str, answer: bytes) -> None:
+        """An upload of ``key`` was answered (``answer``, the stored JSON bytes): its read-ahead
+        target, if any, now holds that answer, so that this process checks the patron's next
+        upload to the round as answered (a repeat gets the same bytes, another body 409)
+        before its design; the writer still decides alone."""
+        auction_id, model_id, number = key
+        primed = self._primed.get((auction_id, number))
+        if primed is None or model_id not in primed:
+            return
+        stored = json.loads(answer)
+        primed[model_id] = dataclasses.replace(
+            primed[model_id],
+            answer_outcome=stored["outcome"],
+            answer_sha256=body_sha256,
+            answer=stored,
+        )
 
     def primed(self, auction_id: int, number: int) -> bool:
         """Whether the targets of that open round are read ahead."""

@@ -208,12 +208,14 @@ async def upload(
         if problems:
             raise validation_error(problems)
     if data == target.current_manifest:
-        return _answered(await _store(screening, dataclasses.replace(late, kind="unchanged")))
-    # re-screened and stored in the screening process, as it is
-    encoded = JSONText(manifest.model_dump_json())
-    return _answered(
-        await _store(screening, dataclasses.replace(late, kind="version", manifest=encoded))
-    )
+        request = dataclasses.replace(late, kind="unchanged")
+    else:  # re-screened and stored in the screening process, as it is
+        encoded = JSONText(manifest.model_dump_json())
+        request = dataclasses.replace(late, kind="version", manifest=encoded)
+    outcome = await _store(screening, request)
+    if isinstance(outcome, Answered):
+        lookup.answered((auction_id, model_id, round_number), digest, outcome.body)
+    return _answered(outcome)
 
 
 async def _store(screening: ScreeningService, request: UploadRequest) -> UploadOutcome:

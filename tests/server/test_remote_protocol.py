@@ -396,9 +396,10 @@ def test_the_uploads_of_a_published_round_are_checked_without_a_database_read(
     client: TestClient,
 ) -> None:
     """Once a round is published, its patrons' targets are read ahead in one pass: their
-    uploads (first, repeated, different) need no lookup of their own; the writer still decides
-    alone what is in time and what is a repeat; a closed round is forgotten, so a late upload
-    is read again and refused."""
+    uploads (first, repeated, different) need no lookup of their own, and an answer is kept
+    in the read-ahead (a later body of an answered patron is 409 before its design is
+    checked); the writer still decides alone what is in time and what is a repeat; a closed
+    round is forgotten, so a late upload is read again and refused."""
     auction_id, manifests, patrons = start_remote(
         client, "desk", 500, 8, round_deadline_s=3, seed=3
     )
@@ -421,6 +422,10 @@ def test_the_uploads_of_a_published_round_are_checked_without_a_database_read(
     position, model_id, token = answering[0]
     other = parse_manifest(manifests[position]).model_dump(mode="json")
     other["decision"]["B"]["bias"] += 1e-3
+    refused(put(client, auction_id, 1, model_id, _json(other), token), 409, ["path", "round"],
+            "one upload per round")  # fmt: skip
+    # An answered patron hears 409 before anything is checked of a body that changes the design.
+    other["augmentation"]["copies"] = 3
     refused(put(client, auction_id, 1, model_id, _json(other), token), 409, ["path", "round"],
             "one upload per round")  # fmt: skip
     assert lookup.reads == reads, "the round's uploads were checked against its read-ahead"

@@ -21,6 +21,12 @@
    fine-tuning; target ≤ 50 ms per round with 64 agents. Agents leave as they buy or quit, so
    later rounds ask fewer of them: the medians are over all rounds, and again over the rounds
    that ask at least three quarters of the agents.
+3. CPU per round: the server's processes' (read from ``/proc``, at the kernel's 10 ms tick) and
+   this driver's, in the same phases, fitted against the agents asked (fixed + per agent, over
+   rounds 2 on, whose CPU window is one whole cycle), for the server and its agents together
+   and for the server alone. The agents here share the server's cores, so no round can take
+   less than its CPU divided by the cores: the benchmark prints that floor for a round of all
+   the agents, and how far above it the measured rounds are.
 
 The agents here are driven in phases (all receive, all fine-tune, all upload at once) so that
 the phases can be timed apart; ``srd agents`` interleaves them per agent. ``--transport
@@ -37,6 +43,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import os
 import secrets
 import statistics
 import sys
@@ -132,6 +139,11 @@ class Cpu:
 
     def __add__(self, other: Cpu) -> Cpu:
         return Cpu(self.server + other.server, self.driver + other.driver)
+
+    @property
+    def total(self) -> float:
+        """The server's and the agents' CPU: what the machine's cores must do in the round."""
+        return self.server + self.driver
 
 
 def stamp(text: str) -> float:
@@ -381,14 +393,15 @@ def report(timings: list[RoundTiming], n_agents: int) -> None:
     print("\nper round (ms; agents asked; bytes with implicit vs explicit augmentation)")
     print(
         f"{'auction':>7} {'round':>5} {'agents':>6} {'publish':>8} {'upload':>8} {'rescreen':>8} "
-        f"{'close':>7} {'overhead':>8} {'tune sum':>8} {'implicit B':>10} "
+        f"{'close':>7} {'overhead':>8} {'CPU':>6} {'tune sum':>8} {'implicit B':>10} "
         f"{'explicit B':>11} {'ratio':>6}"
     )
     for t in timings:
         print(
             f"{t.auction:>7} {t.round:>5} {t.agents:>6} {t.publish * 1e3:8.1f} "
             f"{t.upload * 1e3:8.1f} {t.rescreen * 1e3:8.1f} {t.close * 1e3:7.1f} "
-            f"{t.overhead * 1e3:8.1f} {t.fine_tune_sum * 1e3:8.1f} {t.bytes_implicit:>10} "
+            f"{t.overhead * 1e3:8.1f} {t.cpu.total * 1e3:6.0f} {t.fine_tune_sum * 1e3:8.1f} "
+            f"{t.bytes_implicit:>10} "
             f"{t.bytes_explicit:>11} {t.bytes_explicit / t.bytes_implicit:6.1f}"
         )
     following = [t for t in timings if t.round > 1]  # their CPU window is one whole cycle
@@ -408,6 +421,23 @@ def report(timings: list[RoundTiming], n_agents: int) -> None:
         ("agents' fine-tuning, slowest agent", [t.fine_tune_max for t in timings]),
     ):
         print(f"  {name:<40} {median(values) * 1e3:8.1f} ms")
+    cores = len(os.sched_getaffinity(0))
+    if len({t.agents for t in following}) > 1:
+        # A round's CPU ≈ fixed + per agent × agents asked (rounds 2 on: whole cycles).
+        asked = [t.agents for t in following]
+        for name, used in (
+            ("server and agents", [t.cpu.total for t in following]),
+            ("server alone", [t.cpu.server for t in following]),
+        ):
+            per_agent, fixed = np.polyfit(asked, used, 1)
+            full_round = fixed + per_agent * n_agents
+            print(
+                f"  {'CPU per round, ' + name:<40} {fixed * 1e3:8.1f} ms + {per_agent * 1e3:.2f}"
+                f" ms per agent asked (fit over {len(following)} rounds); a round of all"
+                f" {n_agents} takes ≥ {full_round / cores * 1e3:.1f} ms on {cores} cores"
+            )
+        ratio = median([t.overhead / (t.cpu.total / cores) for t in following if t.cpu.total > 0])
+        print(f"  {'overhead / (CPU ÷ cores), rounds 2 on':<40} {ratio:8.2f}")
     implicit = median([float(t.bytes_implicit) for t in timings])
     explicit = median([float(t.bytes_explicit) for t in timings])
     print(

@@ -1,48 +1,43 @@
-"""Auctions in the background, in spawned worker processes (reused from auction to auction).
+"""Auctions as a state machine in the database, moved by short steps in worker processes.
 
-The worker drives ``sim.market.Market`` one round at a time. After every round it commits, in
-ONE transaction, the round's row, its purchases and quits, the auction's new price and supply,
-and the market checkpoint (RNG state included). The commit is conditional on the auction still
-standing at that round, so a second runner (or a stale one) can never add or duplicate a row.
+An auction's row says where it stands (status, iteration, price, supply, the market checkpoint
+with its random state and fine-tuned weights) and when its next step is due
+(``next_step_at``). The runner (``server.runner``) claims a due auction under a lease and hands
+it to a worker process, which runs ONE step (``run_step``):
 
-A pending or running auction nobody holds the lease of (its server restarted or died) is
-claimed again (``server.runner``); its worker restores the market from the last committed
-checkpoint and continues bit-identically. An auction that cannot be resumed (checkpoint
-unreadable, round count disagreeing) is marked failed with the reason.
+1. restore the market from the last committed checkpoint;
+2. if a remote fine-tuning round is open: stop at once unless every asked patron has answered
+   or the deadline has passed (the auction is then due again at the deadline); else judge the
+   uploads still pending, close the round and apply its accepted versions;
+3. play iterations until the auction ends or opens a fine-tuning round, committing each
+   iteration in ONE transaction: its row, purchases and quits, the new price and supply, the
+   checkpoint, the round it opens (rows, seeds, asked patrons, absolute deadline) and when the
+   next step is due (now while it plays; the deadline while a round is open; never once ended).
 
-Remote fine-tuning (``fine_tune_mode`` "remote"): an iteration after which the patrons
-fine-tune is committed together with an open ``FineTuneRound`` row (rows, seeds, the asked
-patrons, an absolute deadline). The worker then counts the answers the screening process
-stores, until every asked patron has answered or the deadline has passed, whichever comes
-first. It counts them (and reads and parses the versions accepted so far, ``_Versions``)
-whenever the upload writer rings the round's doorbell after storing answers
-(``server.doorbell``), and at the bell's fallback period. It closes the round in ONE
-transaction, which also plays the next iteration: the round's status, a ``missing`` answer for
-each silent patron, the accepted versions applied to the market, the next iteration's row
-(with the round it opens, if any) and the new checkpoint, all at one timestamp (the round's
-``closed_at`` is the next round's ``opened_at``). After each of its commits it rings
-the round watcher of the API process that started it. A restart in the middle of a round
-finds the round still open (its checkpoint is the one from before the round) and waits for it
-again until the same deadline; nothing is applied twice.
+An open round holds no process and no thread: the API stores the uploads and their verdicts
+(``server.services.rounds``) and makes the auction due at once when every asked patron's upload
+is judged. Every commit is conditional on the auction still standing where the step found it
+(status running, the iteration expected, the round still open), so a stale or duplicated step
+never writes twice, and a cancelled auction is never moved again. A step that dies (``kill
+-9``) loses at most the iteration in flight: the auction is still due and the next step resumes
+from the checkpoint, bit-identically. An auction whose stored state cannot be continued is
+failed with the reason.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
-from typing import TYPE_CHECKING, NamedTuple, TypeVar
+from typing import TYPE_CHECKING
 
-from sqlalchemy import Connection, Text, bindparam, cast, insert, select, update
-from sqlalchemy.exc import DBAPIError
+from sqlalchemy import func, insert, select, update
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, selectinload, undefer
 
-from agents.manifest import Manifest, parse_manifest, parse_manifest_json
-from server import crud, doorbell
+from agents.manifest import Manifest, parse_manifest
+from server import crud
 from server.db import Database
 from server.models import (
     Auction,
@@ -64,12 +59,6 @@ if TYPE_CHECKING:
     from sim.market import IterationRecord, Market, RescreenBatch
 
 log = logging.getLogger("srd.auctions")
-_T = TypeVar("_T")
-
-ROUND_POLL_S = 0.002
-"""How often a worker looks for the answers of its open fine-tuning round where it has no
-doorbell (``server.doorbell``; elsewhere it counts them when rung, and at the bell's fallback
-period): the round closes within this long of its last answer."""
 
 
 class ResumeError(RuntimeError):
@@ -78,8 +67,7 @@ class ResumeError(RuntimeError):
 
 @dataclass(frozen=True)
 class _OpenRound:
-    """What the worker needs of an open fine-tuning round: its id, the asked patrons' positions
-    and its deadline."""
+    """What a step needs of an open fine-tuning round."""
 
     id: int
     asked: list[int]
@@ -116,7 +104,6 @@ def _load_market(auction: Auction, manifests: Sequence[Manifest]) -> Market:
     from sim.market import Market
 
     config = _market_config(auction)
-    # Remote rounds are re-screened by the API as each upload arrives.
     judge = rescreening() if auction.fine_tune and config.fine_tune_mode == "server" else None
     if auction.checkpoint is None:
         if auction.iteration != 0:
@@ -133,25 +120,23 @@ def _load_market(auction: Auction, manifests: Sequence[Manifest]) -> Market:
     return restored
 
 
-def _commit_round(
+def _commit_iteration(
     session: Session,
-    auction_id: int,
+    auction: Auction,
     record: IterationRecord,
-    blob: bytes,
-    model_ids: list[int],
-    deadline_s: float,
     market: Market,
+    model_ids: list[int],
     now: datetime,
-) -> tuple[bool, _OpenRound | None]:
-    """Write one iteration begun at ``now`` atomically, with the fine-tuning round it opens (the
-    market's pending round, open from ``now``, due ``deadline_s`` after this commit) if any;
-    whether it was written (False when the auction moved on without us) and the round it
-    opened."""
+) -> _OpenRound | None:
+    """Write one iteration played at ``now`` (see the module docstring), with the round it
+    opens (returned, if any); ``_MovedOnError`` when the auction moved on without this step."""
     opened = market.pending_round
+    deadline = now + timedelta(seconds=auction.round_deadline_s)
+    due = None if record.finished else (deadline if opened is not None else now)
     moved = session.execute(
         update(Auction)
         .where(
-            Auction.id == auction_id,
+            Auction.id == auction.id,
             Auction.iteration == record.iteration,
             Auction.status == AuctionStatus.RUNNING,
         )
@@ -159,21 +144,21 @@ def _commit_round(
             iteration=record.iteration + 1,
             price=record.next_price,
             n_available=record.n_available_after,
-            checkpoint=blob,
+            checkpoint=market.checkpoint(),
             status=AuctionStatus.FINISHED if record.finished else AuctionStatus.RUNNING,
             stop_reason=record.stop_reason,
             finished_at=now if record.finished else None,
             updated_at=now,
+            next_step_at=due,
         )
     )
     if moved.rowcount != 1:  # type: ignore[attr-defined]
-        session.rollback()
-        return False, None
+        raise _MovedOnError(auction.id)
     connection = session.connection()
     connection.execute(
         insert(AuctionIteration),
         {
-            "auction_id": auction_id,
+            "auction_id": auction.id,
             "iteration": record.iteration,
             "price": record.price,
             "n_available": record.n_available,
@@ -189,7 +174,7 @@ def _commit_round(
             insert(Purchase),
             [
                 {
-                    "auction_id": auction_id,
+                    "auction_id": auction.id,
                     "model_id": model_ids[i],
                     "price": price,
                     "iteration": record.iteration,
@@ -201,191 +186,117 @@ def _commit_round(
         connection.execute(
             insert(Quit),
             [
-                {"auction_id": auction_id, "model_id": model_ids[i], "iteration": record.iteration}
+                {"auction_id": auction.id, "model_id": model_ids[i], "iteration": record.iteration}
                 for i in record.quitters
             ],
         )
-    row = None
-    if opened is not None:
-        deadline = utcnow() + timedelta(seconds=deadline_s)
-        round_id = connection.execute(
-            insert(FineTuneRound).returning(FineTuneRound.id),
-            {
-                "auction_id": auction_id,
-                "round": opened.iteration + 1,
-                "iteration": opened.iteration,
-                "status": RoundStatus.OPEN,
-                "opened_at": now,
-                "deadline": deadline,
-                "rows": opened.rows.tolist(),
-                "fine_tune_seed": opened.fine_tune_seed,
-                "augmentation_seed": opened.augmentation_seed,
-                "asked": opened.patrons,
-                "bytes_published": 0,
-            },
-        ).scalar_one()
-        row = _OpenRound(round_id, list(opened.patrons), deadline)
-    session.commit()
-    return True, row
+    if opened is None:
+        return None
+    rows = opened.rows.tolist()
+    round_id = connection.execute(
+        insert(FineTuneRound).returning(FineTuneRound.id),
+        {
+            "auction_id": auction.id,
+            "round": opened.iteration + 1,
+            "iteration": opened.iteration,
+            "status": RoundStatus.OPEN,
+            "opened_at": now,
+            "deadline": deadline,
+            "rows": rows,
+            "fine_tune_seed": opened.fine_tune_seed,
+            "augmentation_seed": opened.augmentation_seed,
+            "asked": opened.patrons,
+            # What publishing the round costs: its rows, once to every patron asked.
+            "bytes_published": len(str(rows)) * len(opened.patrons),
+        },
+    ).scalar_one()
+    return _OpenRound(round_id, list(opened.patrons), deadline)
 
 
-class _Answer(NamedTuple):
-    """An answer of a round as the worker counts and applies it."""
-
-    position: int
-    outcome: str
-    uploaded_id: int | None
-    """The version its upload stored (null if none was)."""
+class _MovedOnError(RuntimeError):
+    """The auction is no longer where this step found it (cancelled, or moved by another)."""
 
 
-class _Versions:
-    """The versions a round's accepted uploads store, parsed as the answers come in while the
-    worker waits, so that closing the round reads and parses none of them (versions never
-    change once stored)."""
-
-    def __init__(self) -> None:
-        self.manifests: dict[int, Manifest] = {}
-
-    def answers(self, connection: Connection, round_id: int) -> list[_Answer]:
-        """Every answer of the round so far (position, outcome, uploaded version); the versions
-        of the accepted ones not read yet are read (a second query, only when there are any)
-        and parsed from their JSON text."""
-        answers = [
-            _Answer(position, outcome, uploaded_id)
-            for position, outcome, uploaded_id in connection.execute(
-                _ANSWERS, {"round_id": round_id}
-            )
-        ]
-        wanted = [
-            a.uploaded_id for a in answers if _applies(a) and a.uploaded_id not in self.manifests
-        ]
-        if wanted:
-            for version_id, text in connection.execute(_MANIFESTS, {"ids": wanted}):
-                self.manifests[version_id] = parse_manifest_json(text)
-        return answers
+class _PendingError(RuntimeError):
+    """An upload of the round being closed still awaits its verdict."""
 
 
-_ANSWERS = select(
-    FineTuneAnswer.position, FineTuneAnswer.outcome, FineTuneAnswer.uploaded_id
-).where(FineTuneAnswer.round_id == bindparam("round_id"))
-"""A round's answers (one statement, the same text every time)."""
-_MANIFESTS = select(ModelVersion.id, cast(ModelVersion.manifest, Text)).where(
-    ModelVersion.id.in_(bindparam("ids", expanding=True))
-)
-"""Versions' manifests as their stored JSON text (parsed by pydantic in one pass)."""
+CLOSE_TRIES = 3
+"""Times a step judges a round's pending uploads and tries to close it (an upload in time may
+be stored while the step judges the others)."""
 
 
-def _applies(answer: _Answer) -> bool:
-    """An accepted upload that stored a new version."""
-    return answer.outcome == AnswerOutcome.ACCEPTED and answer.uploaded_id is not None
+def _open_round(session: Session, auction_id: int) -> _OpenRound | None:
+    row = session.scalars(
+        select(FineTuneRound).where(
+            FineTuneRound.auction_id == auction_id, FineTuneRound.status == RoundStatus.OPEN
+        )
+    ).one_or_none()
+    return None if row is None else _OpenRound(row.id, list(row.asked), row.deadline)
 
 
-def _wait_for_answers(
-    database: Database, round_id: int, asked: int, deadline: float, versions: _Versions
-) -> None:
-    """Until ``asked`` patrons have answered the round or the wall-clock ``deadline`` (epoch
-    seconds) has passed, whichever comes first; the accepted versions are read as they come."""
-    # Listening before the first count: a ring for an answer stored after it is never lost.
-    bell = doorbell.listen(doorbell.scope(database.url), doorbell.round_bell(round_id))
-    reader = _Reader(database)
-    try:
-        while True:
-            found = reader.read(lambda connection: versions.answers(connection, round_id))
-            answered = sum(1 for a in found if a.outcome in ANSWERED)
-            left = deadline - time.time()
-            if answered >= asked or left <= 0:
-                return
-            if bell is None:
-                time.sleep(min(ROUND_POLL_S, left))
-            else:
-                bell.wait(min(doorbell.FALLBACK_S, left))
-    finally:
-        reader.close()
-        if bell is not None:
-            bell.close()
+def _answered(session: Session, round_id: int) -> int:
+    return session.execute(
+        select(func.count())
+        .select_from(FineTuneAnswer)
+        .where(FineTuneAnswer.round_id == round_id, FineTuneAnswer.outcome.in_(ANSWERED))
+    ).scalar_one()
 
 
-class _Reader:
-    """One connection kept for a wait's many small reads (no session, no pool checkout per
-    read); each read is its own transaction. A read that fails on a connection the database
-    dropped (a restart) is tried once more on a fresh one."""
+def _judge_pending(database: Database, round_id: int) -> None:
+    """Judge the round's uploads whose verdict the API never recorded (its screener was down,
+    or it died): they came in time, so they count."""
+    with database.session(write=False) as session:
+        pending = crud.pending_uploads(session, round_id=round_id)
+    if not pending:
+        return
+    from screener import rescreen_many
 
-    def __init__(self, database: Database) -> None:
-        self._engine = database.engine
-        self._connection: Connection | None = None
-
-    def read(self, query: Callable[[Connection], _T]) -> _T:
-        try:
-            return self._read(query)
-        except DBAPIError:
-            self.close()
-            return self._read(query)
-
-    def _read(self, query: Callable[[Connection], _T]) -> _T:
-        if self._connection is None:
-            self._connection = self._engine.connect()
-        result = query(self._connection)
-        self._connection.rollback()
-        return result
-
-    def close(self) -> None:
-        if self._connection is not None:
-            with contextlib.suppress(Exception):
-                self._connection.close()
-            self._connection = None
+    verdicts = rescreen_many([parse_manifest(upload.manifest) for upload in pending])
+    with database.session(write=True) as session:
+        now = utcnow()
+        for upload, verdict in zip(pending, verdicts, strict=True):
+            crud.record_verdict(session, answer_id=upload.answer_id, verdict=verdict, now=now)
+        session.commit()
 
 
 def _close_round(
-    session: Session,
-    auction_id: int,
-    market: Market,
-    row: _OpenRound,
-    now: datetime,
-    versions: _Versions,
-) -> bool:
-    """Close the open round ``row`` at ``now`` in the transaction of ``session``: its status,
-    its answers applied to the market (see ``_apply_answers``); False when another runner
-    closed it."""
+    session: Session, auction_id: int, market: Market, row: _OpenRound, now: datetime
+) -> None:
+    """Close the open round at ``now``: its accepted versions applied to the market and to the
+    patrons' current versions, a ``missing`` answer for every asked patron that stayed silent."""
     closed = session.execute(
         update(FineTuneRound)
         .where(FineTuneRound.id == row.id, FineTuneRound.status == RoundStatus.OPEN)
         .values(status=RoundStatus.CLOSED, closed_at=now)
     )
     if closed.rowcount != 1:  # type: ignore[attr-defined]
-        return False
-    _apply_answers(session, auction_id, row, market, now, versions)
-    return True
-
-
-def _open_round(database: Database, auction_id: int, number: int) -> _OpenRound:
-    """The auction's fine-tuning round ``number``, which the checkpoint awaits: open (read on
-    a resume; the worker knows the rounds it opens itself)."""
-    with database.session(write=False) as session:
-        row = session.scalars(
-            select(FineTuneRound).where(
-                FineTuneRound.auction_id == auction_id, FineTuneRound.round == number
-            )
-        ).one_or_none()
-    if row is None or row.status != RoundStatus.OPEN:
-        raise ResumeError(f"the checkpoint awaits fine-tuning round {number}, which is not open")
-    return _OpenRound(row.id, list(row.asked), row.deadline)
-
-
-def _apply_answers(
-    session: Session,
-    auction_id: int,
-    row: _OpenRound,
-    market: Market,
-    now: datetime,
-    versions: _Versions,
-) -> None:
-    """Apply the round's accepted uploads to the market and to the patrons' current versions,
-    and record a ``missing`` answer for every asked patron that stayed silent."""
+        raise _MovedOnError(auction_id)
     connection = session.connection()
-    answered = {a.position: a for a in versions.answers(connection, row.id)}
-    applied = {p: a.uploaded_id for p, a in answered.items() if _applies(a)}
-    market.apply_round({p: versions.manifests[i] for p, i in applied.items() if i is not None})
-    silent = [p for p in row.asked if p not in answered]
+    answers = connection.execute(
+        select(FineTuneAnswer.position, FineTuneAnswer.outcome, FineTuneAnswer.uploaded_id).where(
+            FineTuneAnswer.round_id == row.id
+        )
+    ).all()
+    if any(a.outcome == AnswerOutcome.PENDING for a in answers):
+        raise _PendingError(row.id)  # stored after the step judged the rest: judge it too
+    applied = {
+        a.position: a.uploaded_id
+        for a in answers
+        if a.outcome == AnswerOutcome.ACCEPTED and a.uploaded_id is not None
+    }
+    manifests = {
+        version_id: parse_manifest(manifest)
+        for version_id, manifest in connection.execute(
+            select(ModelVersion.id, ModelVersion.manifest).where(
+                ModelVersion.id.in_(list(applied.values()))
+            )
+        )
+    }
+    market.apply_round({p: manifests[i] for p, i in applied.items()})
+    # A late upload already has its row (and keeps its outcome); the rest were silent.
+    heard = {a.position for a in answers}
+    silent = [p for p in row.asked if p not in heard]
     if silent:
         bidding = {
             patron.position: patron.current_model_id or patron.model_id
@@ -411,24 +322,38 @@ def _apply_answers(
             ],
         )
     if applied:
-        connection.execute(
-            update(AuctionPatron)
-            .where(
-                AuctionPatron.auction_id == auction_id,
-                AuctionPatron.position == bindparam("at"),
+        for position, version in applied.items():
+            connection.execute(
+                update(AuctionPatron)
+                .where(AuctionPatron.auction_id == auction_id, AuctionPatron.position == position)
+                .values(current_model_id=version)
             )
-            .values(current_model_id=bindparam("version")),
-            [{"at": position, "version": version} for position, version in applied.items()],
-        )
 
 
-def _mark_failed(database: Database, auction_id: int, reason: str) -> None:
+def _fail(database: Database, auction_id: int, reason: str) -> None:
     with database.session(write=True) as session:
         crud.fail_unfinished(session, table=Auction, row_id=auction_id, error=reason)
         session.commit()
 
 
-def _drive(database: Database, auction_id: int) -> None:
+def _not_yet(database: Database, auction_id: int, row: _OpenRound) -> bool:
+    """An open round that may still hear answers: the auction is due again at its deadline
+    (True); False when the round can close now."""
+    with database.session(write=False) as session:
+        answered = _answered(session, row.id)
+    if answered >= len(row.asked) or utcnow() >= row.deadline:
+        return False
+    with database.session(write=True) as session:
+        session.execute(
+            update(Auction)
+            .where(Auction.id == auction_id, Auction.status == AuctionStatus.RUNNING)
+            .values(next_step_at=row.deadline)
+        )
+        session.commit()
+    return True
+
+
+def _step(database: Database, auction_id: int) -> None:
     # Read and rebuild the market outside any write transaction (parsing the manifests and
     # building the market take a while; on SQLite a write transaction holds the one write lock).
     with database.session(write=False) as session:
@@ -439,62 +364,70 @@ def _drive(database: Database, auction_id: int) -> None:
         ).one_or_none()
         if auction is None or auction.status not in AUCTION_UNFINISHED:
             return
+        row = _open_round(session, auction_id)
         model_ids = [patron.model_id for patron in auction.patrons]
         manifests = _patron_manifests(session, auction.patrons)
+    if row is not None and _not_yet(database, auction_id, row):
+        return
     market = _load_market(auction, manifests)
-    with database.session(write=True) as session:
-        now = utcnow()
-        values: dict[str, object] = {"status": AuctionStatus.RUNNING, "updated_at": now}
-        if auction.status == AuctionStatus.PENDING:
-            values["started_at"] = now
-        if market.finished:  # nothing left to play (a market that ends before its first round)
-            values.update(status=AuctionStatus.FINISHED, finished_at=now)
-        claimed = session.execute(
-            update(Auction)
-            .where(
-                Auction.id == auction_id,
-                Auction.status == auction.status,
-                Auction.iteration == auction.iteration,
-            )
-            .values(**values)
-        )
-        if claimed.rowcount != 1:  # type: ignore[attr-defined]
-            log.warning("auction %d changed while it was being loaded; not driven", auction_id)
+    if auction.status == AuctionStatus.PENDING:
+        _start(database, auction, market)
+        if market.finished:
             return
-        session.commit()
-    bells, watchers = doorbell.scope(database.url), doorbell.watch_bell(os.getppid())
-    deadline_s = auction.round_deadline_s
-    opened: _OpenRound | None = None
-    while not market.finished:
-        pending = market.pending_round
-        if pending is None:  # the iteration is computed before the write lock is taken
-            began = utcnow()
-            record, blob = market.step(), market.checkpoint()
-            with database.session(write=True) as session:
-                moved, opened = _commit_round(
-                    session, auction_id, record, blob, model_ids, deadline_s, market, began
-                )
-        else:
-            row = opened or _open_round(database, auction_id, pending.iteration + 1)
-            versions = _Versions()
-            _wait_for_answers(database, row.id, len(row.asked), row.deadline.timestamp(), versions)
-            # One transaction: the round closed, its answers applied, the next iteration (a
-            # remote auction's is its votes only: it fine-tunes nobody) and its checkpoint.
+    if market.pending_round is not None:
+        if row is None:
+            number = market.pending_round.iteration + 1
+            raise ResumeError(
+                f"the checkpoint awaits fine-tuning round {number}, which is not open"
+            )
+        for attempt in range(CLOSE_TRIES):
+            _judge_pending(database, row.id)
+            # One transaction: the round closed, its answers applied, the next iteration.
             with database.session(write=True) as session:
                 now = utcnow()
-                moved = _close_round(session, auction_id, market, row, now, versions)
-                if not moved:
+                try:
+                    _close_round(session, auction_id, market, row, now)
+                except _PendingError:
+                    if attempt + 1 == CLOSE_TRIES:
+                        raise
                     session.rollback()
-                else:
-                    record = market.step()
-                    moved, opened = _commit_round(
-                        session, auction_id, record, market.checkpoint(), model_ids, deadline_s,
-                        market, now,
-                    )  # fmt: skip
-        if not moved:
-            log.warning("auction %d moved on elsewhere; this runner stops", auction_id)
+                    continue
+                record = market.step()
+                opened = _commit_iteration(session, auction, record, market, model_ids, now)
+                session.commit()
+                break
+        if opened is not None:
             return
-        doorbell.ring(bells, watchers)
+    while not market.finished:
+        began = utcnow()  # the iteration is computed before the write lock is taken
+        record = market.step()
+        with database.session(write=True) as session:
+            opened = _commit_iteration(session, auction, record, market, model_ids, began)
+            session.commit()
+        if opened is not None:
+            return
+
+
+def _start(database: Database, auction: Auction, market: Market) -> None:
+    """The first step of a pending auction: running from now (finished at once when its market
+    ends before its first iteration)."""
+    with database.session(write=True) as session:
+        now = utcnow()
+        values: dict[str, object] = {
+            "status": AuctionStatus.RUNNING,
+            "started_at": now,
+            "updated_at": now,
+        }
+        if market.finished:
+            values.update(status=AuctionStatus.FINISHED, finished_at=now, next_step_at=None)
+        started = session.execute(
+            update(Auction)
+            .where(Auction.id == auction.id, Auction.status == AuctionStatus.PENDING)
+            .values(**values)
+        )
+        if started.rowcount != 1:  # type: ignore[attr-defined]
+            raise _MovedOnError(auction.id)
+        session.commit()
 
 
 def _patron_manifests(session: Session, patrons: Sequence[AuctionPatron]) -> list[Manifest]:
@@ -505,30 +438,40 @@ def _patron_manifests(session: Session, patrons: Sequence[AuctionPatron]) -> lis
     return [parse_manifest(by_id[p.model_id].manifest) for p in patrons]
 
 
-def run_auction(context: WorkerContext, auction_id: int) -> None:
-    """Worker process entry point: play (or resume) one auction to its end."""
+def run_step(context: WorkerContext, auction_id: int) -> None:
+    """Worker process entry point: one step of the auction (see the module docstring)."""
     database = Database(context.database_url)
     try:
-        _drive(database, auction_id)
+        _step(database, auction_id)
+    except _MovedOnError:
+        log.info(
+            "auction %d moved on without this step (cancelled, or stepped elsewhere)", auction_id
+        )
+    except OperationalError as exc:  # the database is away: the auction stays due, retried
+        log.warning(
+            "auction %d: step not committed, the database is unavailable: %s", auction_id, exc
+        )
     except ResumeError as exc:
-        _mark_failed(database, auction_id, f"cannot resume: {exc}")
+        _fail(database, auction_id, f"cannot resume: {exc}")
     except Exception as exc:
-        _mark_failed(database, auction_id, error_summary(exc))
+        _fail(database, auction_id, error_summary(exc))
     finally:
         database.close()
 
 
-def _resume(session: Session, auction_ids: list[int]) -> None:
-    """Claimed auctions need nothing: their worker resumes them from the last checkpoint."""
+def _nothing_to_prepare(session: Session, auction_ids: list[int]) -> None:
+    """Claimed auctions need nothing: their step resumes from the last checkpoint."""
 
 
 AUCTION_WORK = WorkKind(
     name="auction",
     table=Auction,
-    task=run_auction,
+    task=run_step,
     unfinished=AUCTION_UNFINISHED,
     timeout_setting="SRD_AUCTION_TIMEOUT_S",
-    died="the auction worker exited (code {code}) before the auction finished",
-    prepare=_resume,
+    died="the worker of its steps died {times} times (last exit code {code})",
+    prepare=_nothing_to_prepare,
+    due=Auction.next_step_at,
+    resumable=True,
 )
-"""Auctions as background work (``server.runner``)."""
+"""Auctions as background work (``server.runner``): a claim runs one step."""

@@ -28,8 +28,9 @@ class Settings(BaseSettings):
     """Operator token; when unset one is generated at first start into ``admin_token_file``."""
     max_body_bytes: Annotated[int, Field(ge=1024)] = 262_144
     """Request bodies larger than this are refused with 413."""
-    auction_workers: Annotated[int, Field(ge=1, le=64)] = 1
-    """Auctions run at the same time, each in its own worker process."""
+    auction_workers: Annotated[int, Field(ge=1, le=64)] | None = None
+    """Worker processes that run the steps of every auction (default: one per core). How many
+    auctions are live at once is not bounded by it: an open round holds no process."""
     job_workers: Annotated[int, Field(ge=1, le=64)] = 1
     """Jobs run at the same time, each in its own worker process."""
     worker_torch_threads: Annotated[int, Field(ge=1, le=256)] = 1
@@ -46,7 +47,8 @@ class Settings(BaseSettings):
     job_budget_s: Annotated[float, Field(gt=0, le=1e12)] = 1800.0
     """Jobs whose estimated compute (seconds on one core) exceeds this are refused with 422."""
     auction_timeout_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 3600.0
-    """Wall-time limit of one auction run: one still running after this long is failed."""
+    """Wall-time limit of one auction step (iterations played until the auction ends or opens
+    a round): a step still running after this long is stopped and its auction failed."""
     quota_versions_per_minute: Annotated[int, Field(ge=1)] = 20
     """New accepted versions one participant may submit per minute."""
     quota_versions_per_day: Annotated[int, Field(ge=1)] = 500

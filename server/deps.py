@@ -22,7 +22,7 @@ from server.db import Database
 from server.errors import api_error
 from server.events import EventHub
 from server.jobs.backend import JobCompute
-from server.remote_rounds import RoundSockets, RoundWatcher, UploadLookup
+from server.remote_rounds import RoundSockets, RoundWatcher
 from server.runner import BackgroundRunner
 from server.screening import ScreeningService
 from server.security import token_matches
@@ -55,10 +55,6 @@ async def _submissions(services: ServicesDep) -> SubmissionWriter:
     return services.submissions
 
 
-async def _upload_lookup(services: ServicesDep) -> UploadLookup:
-    return services.upload_lookup
-
-
 async def _rounds(services: ServicesDep) -> RoundWatcher:
     return services.rounds
 
@@ -88,7 +84,6 @@ DatabaseDep = Annotated[Database, Depends(_database)]
 ScreeningDep = Annotated[ScreeningService, Depends(_screening)]
 SubmissionsDep = Annotated[SubmissionWriter, Depends(_submissions)]
 """The group-commit writer of ``/submit``."""
-UploadLookupDep = Annotated[UploadLookup, Depends(_upload_lookup)]
 RoundsDep = Annotated[RoundWatcher, Depends(_rounds)]
 RoundSocketsDep = Annotated[RoundSockets, Depends(_round_sockets)]
 AuctionRunnerDep = Annotated[BackgroundRunner, Depends(_auctions)]

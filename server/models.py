@@ -127,6 +127,10 @@ class Auction(Base):
     lease_owner: Mapped[str | None] = mapped_column(String(LEASE_OWNER_LENGTH), nullable=True)
     """The API process playing the auction (``server.runner``), while its lease lasts."""
     lease_expires: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
+    next_step_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True, index=True)
+    """When the auction's next step is due (``server.auctions``): at once while it plays, its
+    round's deadline while a remote round is open (sooner once every asked patron answered);
+    null once it has ended."""
 
     patrons: Mapped[list[AuctionPatron]] = relationship(order_by="AuctionPatron.position")
     history: Mapped[list[AuctionIteration]] = relationship(order_by="AuctionIteration.iteration")
@@ -221,10 +225,14 @@ class FineTuneRound(Base):
 
 
 class FineTuneAnswer(Base):
-    """A patron's outcome in a round: accepted | refused (re-screening) | late | missing.
+    """A patron's outcome in a round: pending | accepted | refused (re-screening) | late |
+    missing.
 
-    Written when the upload is decided (accepted, refused, late) or when the round closes
-    (missing); ``model_id`` is the version the patron bids with after the round.
+    Written as ``pending`` (with the uploaded manifest) as soon as an upload in time is read and
+    checked, so the deadline is judged at arrival; its verdict then makes it accepted or
+    refused (by the API, or by the step that closes the round). A late upload is written late,
+    a silent patron missing when the round closes. ``model_id`` is the version the patron bids
+    with after the round.
     """
 
     __tablename__ = "fine_tune_answers"
@@ -240,6 +248,10 @@ class FineTuneAnswer(Base):
     body_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
     answer: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True), nullable=True)
     """The response body given to the upload (a repeat with the same bytes gets it again)."""
+    manifest: Mapped[dict[str, Any] | None] = mapped_column(
+        JSON(none_as_null=True), nullable=True, deferred=True
+    )
+    """A pending upload's manifest, until its verdict stores it as a version."""
     bytes_in: Mapped[int] = mapped_column(BigInteger, default=0)
     bytes_out: Mapped[int] = mapped_column(BigInteger, default=0)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)

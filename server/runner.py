@@ -36,6 +36,7 @@ import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
+from typing import Any
 
 from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session
@@ -71,6 +72,17 @@ class WorkKind:
     """Readies rows just claimed for their task (a job left running is queued again)."""
     tasks_per_process: int | None = None
     """Tasks one worker process runs before it is replaced (None: no limit)."""
+    due: Any = None
+    """The column (``Auction.next_step_at``) whose time must have come for a row to be
+    claimed (None: whenever unfinished; a null in the column: at once)."""
+    resumable: bool = False
+    """A task whose process died is run again (the row resumes from its last commit) rather
+    than failed, unless it died ``MAX_DEATHS`` times."""
+
+
+MAX_DEATHS = 3
+"""A resumable row whose task's process died this many times in a row is failed (``died``,
+formatted with ``times`` and the last exit ``code``)."""
 
 
 class BackgroundRunner:
@@ -107,6 +119,7 @@ class BackgroundRunner:
             on_end=self._on_end,
         )
         self._held: set[int] = set()  # rows leased here whose task is not over yet
+        self._deaths: dict[int, int] = {}  # resumable rows whose task died, times in a row
         self._over: set[int] = set()  # tasks over, leases to release
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -214,6 +227,8 @@ class BackgroundRunner:
             .order_by(table.id)
             .limit(limit)
         )
+        if self.kind.due is not None:
+            query = query.where(or_(self.kind.due.is_(None), self.kind.due <= now))
         if lock:
             query = query.with_for_update(skip_locked=True)
         return list(session.scalars(query))
@@ -265,8 +280,20 @@ class BackgroundRunner:
         self._wake.set()
 
     def _on_exit(self, row_id: int, exit_code: int | None) -> None:
-        """The worker process died in the middle of this row (killed, crashed)."""
-        self._fail(row_id, self.kind.died.format(code=exit_code))
+        """The worker process died in the middle of this row (killed, crashed): a resumable
+        row is run again from its last commit (its lease is released with the task's end)."""
+        if self.kind.resumable:
+            with self._lock:
+                times = self._deaths[row_id] = self._deaths.get(row_id, 0) + 1
+            if times < MAX_DEATHS:
+                log.warning("%s %d: its worker died (code %s); resuming", self.kind.name, row_id,
+                            exit_code)  # fmt: skip
+                return
+            with self._lock:
+                self._deaths.pop(row_id, None)
+        else:
+            times = 1
+        self._fail(row_id, self.kind.died.format(code=exit_code, times=times))
 
     def _on_timeout(self, row_id: int, limit_s: float) -> None:
         name, setting = self.kind.name, self.kind.timeout_setting

@@ -1,30 +1,23 @@
-"""Screening for ``/submit``, and the uploads of remote rounds, in a dedicated process.
+"""The screener pool: verdicts for ``/submit`` and for the uploads of remote rounds, in a
+dedicated process that never touches the database.
 
 The screener is tensor code: one manifest costs a few milliseconds of mostly fixed overhead,
 a batch of sixteen hardly more than two. So the API process hands each manifest to a spawned
 screening process (its own interpreter and GIL) over a pipe; that process takes whatever has
 queued up since its last pass, and whatever keeps coming within ``GATHER_GAP_S`` of the one
-before (at most ``MAX_BATCH``; an upload waits for no company, ``UPLOAD_GAP_S``), judges it
-with one ``screener.screen_many`` call (the batched form of ``screener.screen``: same rules,
-same verdicts) and sends the verdicts back. Under no load a batch is one manifest, which waits
-only the gap for company.
-
-The uploads of remote fine-tuning rounds (``upload``), checked by the API, come the same way:
-the process re-screens the new versions of a batch with one ``screener.rescreen_many`` call
-(the re-screening the server's own fine-tuning rounds apply), stores the whole batch in one
-transaction (``server.remote_rounds.writer.UploadWriter``), rings the rounds' workers and
-sends each upload's answer back. The API process writes nothing for an upload (it reads only
-what the upload is checked against, ``server.remote_rounds.lookup``).
+before (at most ``MAX_BATCH``), judges it with one ``screener.screen_many`` (at the door) or
+``screener.rescreen_many`` (a fine-tuned version) call, which give each manifest the verdict it
+would get alone, and sends the verdicts back. The API stores every upload and every verdict
+itself (``server.services``); the screening process only judges.
 
 A screener exception answers that one request with 503 (the batch is re-judged one by one to
-find it; an upload it strikes is not stored). If the screening process dies, the requests in
-flight fail with ``ScreenerUnavailableError`` (503; an upload may have been stored, and its
-repeat gets the stored answer) and a fresh process takes the next ones.
+find it). If the screening process dies, the requests in flight fail with
+``ScreenerUnavailableError`` (503) and a fresh process takes the next ones.
 
 The API's event loop never writes to the pipe itself: a pipe holds a few hundred kilobytes, and
 while the screening process is busy (importing torch, judging a burst) a write into a full pipe
-would block the whole event loop, every request of the process with it. A sender thread writes
-the requests in order; the loop only queues them (at most ``MAX_QUEUED``).
+would block the whole event loop. A sender thread writes the requests in order; the loop only
+queues them (at most ``MAX_QUEUED``).
 """
 
 from __future__ import annotations
@@ -50,8 +43,6 @@ from typing import Any
 
 from agents.manifest import Manifest
 from screener import Verdict
-from server.db import Database
-from server.remote_rounds.writer import UploadOutcome, UploadRequest, UploadWriter
 from server.workers import die_with_parent, freeze_heap
 
 log = logging.getLogger("srd.screening")
@@ -61,11 +52,6 @@ GATHER_GAP_S = 0.002
 """A batch being gathered takes the next submission that comes within this long: a burst is
 judged in a few batches rather than many small ones, each with the screener's fixed cost; a
 lone submission waits this long."""
-UPLOAD_GAP_S = 0.0
-"""After an upload, a batch takes only what is queued already: a round's uploads come as the API
-checks each one, and judging and storing what has come meanwhile keeps the screening process
-working alongside the API's checks (rather than idle until the burst has passed), so the last
-upload waits for one small batch only."""
 VERDICT_TIMEOUT_S = 120.0  # a first request also waits for the process to import torch
 MAX_QUEUED = 512
 """Requests written to the pipe by the sender thread, at most this many waiting their turn: a
@@ -95,11 +81,11 @@ def _keep_heap() -> None:
         libc.mallopt(M_TRIM_THRESHOLD, KEEP_HEAP_BYTES)
 
 
-_DOOR, _RESCREEN, _UPLOAD = "door", "rescreen", "upload"
-"""Kinds of request: a submission's verdict, a fine-tuned version's verdict, an upload."""
+_DOOR, _RESCREEN = "door", "rescreen"
+"""Kinds of request: a submission's verdict, a fine-tuned version's verdict."""
 
 
-def _screening_main(conn: Connection, parent_pid: int, database_url: str | None) -> None:
+def _screening_main(conn: Connection, parent_pid: int) -> None:
     die_with_parent(parent_pid)
     _keep_heap()
     import torch
@@ -108,85 +94,21 @@ def _screening_main(conn: Connection, parent_pid: int, database_url: str | None)
 
     torch.set_num_threads(1)  # tiny tensors: threads only add overhead
     freeze_heap()
-    uploads_store = _UploadStore(database_url)
-    try:
-        while True:
-            try:
-                batch = gather(conn)
-            except EOFError:
-                return
-            stop = batch[-1] is None  # the stop signal; what came before it is still answered
-            if stop:
-                batch.pop()
-            for kind, judge in ((_DOOR, screen_many), (_RESCREEN, rescreen_many)):
-                mine = [(i, Manifest.model_validate_json(m)) for i, k, m in batch if k == kind]
-                if mine:
-                    answers = [_failed(a) for a in _judge(judge, mine)]
-                    conn.send([(i, a) for (i, _), a in zip(mine, answers, strict=True)])
-            uploads = [(i, request) for i, k, request in batch if k == _UPLOAD]
-            if uploads:
-                conn.send(uploads_store.answer(rescreen_many, uploads))
-            if stop:
-                return
-    finally:
-        uploads_store.close()
-
-
-class _UploadStore:
-    """The screening process's upload writer, on its own database connection opened at the
-    first upload (a process that only screens submissions never opens one)."""
-
-    def __init__(self, database_url: str | None) -> None:
-        self._database_url = database_url
-        self._database: Database | None = None
-        self.writer: UploadWriter | None = None
-
-    def answer(
-        self,
-        rescreen_many: Callable[[list[Manifest]], list[Verdict]],
-        uploads: list[tuple[int, UploadRequest]],
-    ) -> list[tuple[int, UploadOutcome | str]]:
-        """``_store_uploads``; should anything fail unexpectedly, every upload of the batch
-        hears 503 with the error and the process goes on."""
+    while True:
         try:
-            if self.writer is None and self._database_url is not None:
-                self._database = Database(self._database_url)
-                self.writer = UploadWriter(self._database)
-            return _store_uploads(self.writer, rescreen_many, uploads)
-        except Exception as exc:
-            log.exception("a batch of %d uploads failed", len(uploads))
-            return [(i, f"the uploads could not be stored: {exc}") for i, _ in uploads]
-
-    def close(self) -> None:
-        if self._database is not None:
-            self._database.close()
-
-
-def _store_uploads(
-    writer: UploadWriter | None,
-    rescreen_many: Callable[[list[Manifest]], list[Verdict]],
-    uploads: list[tuple[int, UploadRequest]],
-) -> list[tuple[int, UploadOutcome | str]]:
-    """Re-screen the new versions among the uploads in one batch, then store every upload the
-    screener judged in one group; each one's answer, or the error text of one that was not
-    stored."""
-    if writer is None:
-        return [(i, "the screening process has no database") for i, _ in uploads]
-    fresh = [
-        (k, Manifest.model_validate_json(request.manifest))
-        for k, (_, request) in enumerate(uploads)
-        if request.kind == "version" and request.verdict is None and request.manifest is not None
-    ]
-    requests = [request for _, request in uploads]
-    failed: dict[int, str] = {}
-    for (k, _), verdict in zip(fresh, _judge(rescreen_many, fresh), strict=True):
-        if isinstance(verdict, Verdict):
-            requests[k] = dataclasses.replace(requests[k], verdict=verdict)
-        else:
-            failed[k] = _screener_failed(verdict)
-    kept = [k for k in range(len(uploads)) if k not in failed]
-    stored = dict(zip(kept, writer.write_group([requests[k] for k in kept]), strict=True))
-    return [(i, stored[k] if k in stored else failed[k]) for k, (i, _) in enumerate(uploads)]
+            batch = gather(conn)
+        except EOFError:
+            return
+        stop = batch[-1] is None  # the stop signal; what came before it is still answered
+        if stop:
+            batch.pop()
+        for kind, judge in ((_DOOR, screen_many), (_RESCREEN, rescreen_many)):
+            mine = [(i, Manifest.model_validate_json(m)) for i, k, m in batch if k == kind]
+            if mine:
+                answers = [_failed(a) for a in _judge(judge, mine)]
+                conn.send([(i, a) for (i, _), a in zip(mine, answers, strict=True)])
+        if stop:
+            return
 
 
 def _failed(answer: Verdict | str) -> Verdict | str:
@@ -201,17 +123,11 @@ def _screener_failed(error: str) -> str:
 
 def gather(conn: Connection) -> list[Any]:
     """The next batch: the first request (waiting for it), then each one that comes within
-    the gap of the one before (``GATHER_GAP_S``; after an upload ``UPLOAD_GAP_S``), up to
-    ``MAX_BATCH``; a stop (None) ends the batch."""
+    ``GATHER_GAP_S`` of the one before, up to ``MAX_BATCH``; a stop (None) ends the batch."""
     batch = [conn.recv()]
-    while len(batch) < MAX_BATCH and batch[-1] is not None and conn.poll(_gap(batch[-1])):
+    while len(batch) < MAX_BATCH and batch[-1] is not None and conn.poll(GATHER_GAP_S):
         batch.append(conn.recv())
     return batch
-
-
-def _gap(request: Any) -> float:
-    upload = isinstance(request, tuple) and len(request) == 3 and request[1] == _UPLOAD
-    return UPLOAD_GAP_S if upload else GATHER_GAP_S
 
 
 def _judge(
@@ -235,11 +151,9 @@ class _Outgoing:
 
 
 class ScreeningService:
-    """``await verdict(manifest)`` and ``await upload(request)`` from any event loop; the
-    screening (and the storing of uploads, in ``database_url``) runs in a child process."""
+    """``await verdict(manifest)`` from any event loop; the screening runs in a child process."""
 
-    def __init__(self, database_url: str | None = None) -> None:
-        self._database_url = database_url
+    def __init__(self) -> None:
         self._spawn = multiprocessing.get_context("spawn")
         self._ids = itertools.count()
         self._pending: dict[int, Future[Any]] = {}
@@ -268,7 +182,7 @@ class ScreeningService:
             ours, theirs = multiprocessing.Pipe(duplex=True)
             process = self._spawn.Process(
                 target=_screening_main,
-                args=(theirs, os.getpid(), self._database_url),
+                args=(theirs, os.getpid()),
                 name="srd-screening",
             )
             process.start()
@@ -354,12 +268,6 @@ class ScreeningService:
             _DOOR if at_the_door else _RESCREEN, manifest.model_dump_json()
         )
         return verdict
-
-    async def upload(self, request: UploadRequest) -> UploadOutcome:
-        """A checked upload re-screened (a new version) and stored with the others of its
-        batch, in the screening process; its answer."""
-        outcome: UploadOutcome = await self._answer(_UPLOAD, request)
-        return outcome
 
     def _read(self, conn: Connection) -> None:
         """Hand each answer to its waiting request until the pipe closes."""

@@ -48,6 +48,8 @@ class RoundStatus(StrEnum):
 class AnswerOutcome(StrEnum):
     """A patron's answer to a fine-tuning round."""
 
+    PENDING = "pending"
+    """The upload came in time and awaits its verdict (it counts as an answer)."""
     ACCEPTED = "accepted"
     """The upload passed the re-screening: it bids from the next iteration."""
     REFUSED = "refused"
@@ -58,5 +60,5 @@ class AnswerOutcome(StrEnum):
     """No upload before the round closed."""
 
 
-ANSWERED = (AnswerOutcome.ACCEPTED, AnswerOutcome.REFUSED)
+ANSWERED = (AnswerOutcome.ACCEPTED, AnswerOutcome.REFUSED, AnswerOutcome.PENDING)
 """Outcomes that count as an answer to the round (a late upload does not)."""

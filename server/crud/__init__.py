@@ -54,8 +54,22 @@ from server.crud.models import (
     participants_by_names,
     patron_auctions,
 )
-from server.crud.rounds import RoundBody, RoundHead, add_published_bytes, round_body, round_head
-from server.crud.uploads import UploadKey, UploadLookupError, UploadTarget, upload_targets
+from server.crud.rounds import RoundBody, RoundHead, round_body, round_head
+from server.crud.uploads import (
+    PendingUpload,
+    Stored,
+    UploadIn,
+    UploadKey,
+    UploadLookupError,
+    UploadTarget,
+    answer_bytes,
+    due_when_answered,
+    pending_uploads,
+    record_late,
+    record_verdict,
+    store_upload,
+    upload_targets,
+)
 
 __all__ = [
     "PARTICIPANT_TOKEN_PREFIX",
@@ -71,20 +85,24 @@ __all__ = [
     "ParticipantRow",
     "ParticipantView",
     "PatronRef",
+    "PendingUpload",
     "RoundBody",
     "RoundHead",
     "RoundPurchase",
     "RoundView",
+    "Stored",
     "StoredModel",
+    "UploadIn",
     "UploadKey",
     "UploadLookupError",
     "UploadTarget",
-    "add_published_bytes",
+    "answer_bytes",
     "auction_rounds",
     "auction_state",
     "cancel_job",
     "create_auction",
     "create_job",
+    "due_when_answered",
     "fail_unfinished",
     "fine_tune_rounds",
     "get_auction",
@@ -103,7 +121,11 @@ __all__ = [
     "list_models",
     "participants_by_names",
     "patron_auctions",
+    "pending_uploads",
+    "record_late",
+    "record_verdict",
     "round_body",
     "round_head",
+    "store_upload",
     "upload_targets",
 ]

@@ -127,6 +127,7 @@ def create_auction(
         n_available=n_fish,
         created_at=now,
         updated_at=now,
+        next_step_at=now,
     )
     session.add(auction)
     session.flush()

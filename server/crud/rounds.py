@@ -1,5 +1,5 @@
 """Remote fine-tuning rounds as the round watcher polls them: the newest round of an auction,
-its body, the published-bytes counters. (The worker opens and closes rounds itself, see
+and its body. (The worker opens and closes rounds itself, see
 ``server.auctions``.)"""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import datetime
 
-from sqlalchemy import bindparam, select, update
+from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from server.crud.auctions import AUCTION_PATRONS
@@ -90,13 +90,3 @@ def round_body(session: Session, *, round_id: int) -> RoundBody:
         row.augmentation_seed,
         [model_ids[position] for position in row.asked],
     )
-
-
-def add_published_bytes(session: Session, *, counts: dict[int, int]) -> None:
-    """Add bytes of published round answers to their rounds' counters (``round id → bytes``)."""
-    for round_id, n_bytes in counts.items():
-        session.execute(
-            update(FineTuneRound)
-            .where(FineTuneRound.id == round_id)
-            .values(bytes_published=FineTuneRound.bytes_published + n_bytes)
-        )

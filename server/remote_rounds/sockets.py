@@ -35,6 +35,7 @@ import json
 import logging
 import time
 from collections.abc import Awaitable, Callable
+from datetime import datetime
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -42,6 +43,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from server.body import BodyRefusedError, parse_strict_json
 from server.errors import RequestError, error_item
+from server.models import utcnow
 from server.remote_rounds.watcher import MAX_WAIT_S, Published, RoundWatcher, TooManyWaitersError
 from server.schemas import MAX_FINE_TUNE_ROUNDS, MAX_ROW_ID
 
@@ -96,9 +98,9 @@ class SocketLimitError(RuntimeError):
     """This process already holds ``MAX_SOCKETS`` round sockets."""
 
 
-UploadHandler = Callable[[int, int, bytes], Awaitable[bytes]]
-"""``(round, model_id, manifest bytes) -> answer body``: the PUT's service call (RequestError
-for a refusal)."""
+UploadHandler = Callable[[int, int, bytes, datetime], Awaitable[bytes]]
+"""``(round, model_id, manifest bytes, arrival) -> answer body``: the PUT's service call
+(RequestError for a refusal)."""
 
 
 class _Socket:
@@ -209,10 +211,10 @@ class RoundSockets:
                     _error(None, 400, "send uploads as text frames of JSON", ("message",))
                 )
                 continue
-            await socket.send(await _handle(text, upload))
+            await socket.send(await _handle(text, upload, utcnow()))
 
 
-async def _handle(text: str, upload: UploadHandler) -> str:
+async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:
     """The answer frame of one received message."""
     try:
         raw = json.loads(text)
@@ -246,7 +248,7 @@ async def _handle(text: str, upload: UploadHandler) -> str:
         loc = ("message", "manifest", *exc.loc[1:])
         return _error(message, exc.status, exc.msg, loc, exc.kind)
     try:
-        answer = await upload(message.round, message.model_id, body)
+        answer = await upload(message.round, message.model_id, body, arrived)
     except RequestError as exc:
         items = [{**item, "loc": _message_loc(item["loc"])} for item in exc.items]
         return _frame(message.round, message.model_id, exc.status, {"detail": items})

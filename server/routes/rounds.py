@@ -7,18 +7,21 @@ WebSocket per agent (``server.remote_rounds.sockets``).
 
 from __future__ import annotations
 
+from datetime import datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Query, Request, Response, WebSocket
 
 from server.deps import (
+    AuctionRunnerDep,
+    DatabaseDep,
     ParticipantTokenDep,
     RoundsDep,
     RoundSocketsDep,
     ScreeningDep,
-    UploadLookupDep,
 )
 from server.errors import RequestError, api_error, problem_response, responses
+from server.models import utcnow
 from server.remote_rounds import MAX_WAIT_S, SocketLimitError
 from server.remote_rounds.sockets import RETRY_AFTER_S, UPLOAD_MAX_BYTES
 from server.schemas import (
@@ -78,8 +81,9 @@ async def read_current_round(
     return Response(body, media_type="application/json")
 
 
-async def _upload_body(request: Request) -> bytes:
-    """The request body, at most ``UPLOAD_MAX_BYTES`` (413; checked before the token)."""
+async def _upload_body(request: Request) -> tuple[bytes, datetime]:
+    """The request body, at most ``UPLOAD_MAX_BYTES`` (413; checked before the token), and
+    when it was read (the deadline is judged at that moment)."""
     body = await request.body()
     if len(body) > UPLOAD_MAX_BYTES:
         raise api_error(
@@ -88,7 +92,7 @@ async def _upload_body(request: Request) -> bytes:
             loc=("header", "Content-Length"),
             kind="body_size",
         )
-    return body
+    return body, utcnow()
 
 
 @router.put(
@@ -110,23 +114,27 @@ async def upload_round_model(
     auction_id: AuctionIdPath,
     round_number: RoundPath,
     model_id: ModelIdPath,
-    body: Annotated[bytes, Depends(_upload_body)],
+    body: Annotated[tuple[bytes, datetime], Depends(_upload_body)],
     token: ParticipantTokenDep,
-    lookup: UploadLookupDep,
+    database: DatabaseDep,
     screening: ScreeningDep,
+    runner: AuctionRunnerDep,
 ) -> Response:
     """Upload the patron's fine-tuned manifest for this round (participant token). It is
     re-screened: accepted, it becomes the participant's next version and bids from the next
     iteration; refused, the reasons are returned and the previous version bids on. Wrong round
     → 409 naming the current one; closed or past the deadline → 410 (recorded as late)."""
+    content, arrived = body
     answer = await rounds.upload(
-        lookup,
+        database,
         screening,
+        runner.submit,
         auction_id=auction_id,
         round_number=round_number,
         model_id=model_id,
         token=token,
-        body=body,
+        body=content,
+        arrived=arrived,
     )
     return Response(answer, media_type="application/json")
 
@@ -149,8 +157,9 @@ async def round_socket(
     auction_id: AuctionIdPath,
     watcher: RoundsDep,
     sockets: RoundSocketsDep,
-    lookup: UploadLookupDep,
+    database: DatabaseDep,
     screening: ScreeningDep,
+    runner: AuctionRunnerDep,
 ) -> None:
     """The auction's remote rounds over one WebSocket (``server.remote_rounds.sockets``):
     every round pushed as it opens, uploads answered as the PUT answers them. Uploads need
@@ -176,7 +185,7 @@ async def round_socket(
             return
         await websocket.accept()
 
-        async def upload(round_number: int, model_id: int, body: bytes) -> bytes:
+        async def upload(round_number: int, model_id: int, body: bytes, arrived: datetime) -> bytes:
             if token is None:
                 raise api_error(
                     401,
@@ -186,13 +195,15 @@ async def round_socket(
                     kind="missing_token",
                 )
             return await rounds.upload(
-                lookup,
+                database,
                 screening,
+                runner.submit,
                 auction_id=auction_id,
                 round_number=round_number,
                 model_id=model_id,
                 token=token,
                 body=body,
+                arrived=arrived,
             )
 
         await sockets.serve(websocket, auction_id, first, upload)

@@ -24,7 +24,7 @@ from server.events import EventHub
 from server.jobs.backend import JobCompute, job_compute
 from server.jobs.worker import JOB_WORK
 from server.quotas import Limits
-from server.remote_rounds import PublishedBytes, RoundSockets, RoundWatcher, UploadLookup
+from server.remote_rounds import RoundSockets, RoundWatcher
 from server.runner import BackgroundRunner, WorkKind
 from server.screening import ScreeningService
 from server.security import load_admin_token_hash
@@ -43,9 +43,6 @@ class Services:
     admin_token_hash: str
     screening: ScreeningService
     submissions: SubmissionWriter
-    published: PublishedBytes
-    """The published-bytes counters of remote rounds (uploads are stored by ``screening``)."""
-    upload_lookup: UploadLookup
     rounds: RoundWatcher
     sockets: RoundSockets
     """The round sockets (``WS /auctions/{id}/rounds/socket``), pushed by ``rounds``."""
@@ -65,9 +62,7 @@ class Services:
         self.jobs.shutdown()
         self.auctions.shutdown()
         self.submissions.shutdown()
-        self.upload_lookup.shutdown()
         self.screening.shutdown()
-        self.published.shutdown()
         self.compute.close()
         self.database.close()
         if self.sqlite_lock is not None:
@@ -113,9 +108,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         ray_address=settings.ray_address,
         ray_max_retries=settings.ray_max_retries,
     )
-    published = PublishedBytes(database)
-    lookup = UploadLookup(database)
-    watcher = RoundWatcher(database, published, on_round=lookup.round_seen)
+    watcher = RoundWatcher(database)
     owner = server_id()
 
     def runner(
@@ -136,14 +129,15 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         settings=settings,
         database=database,
         admin_token_hash=load_admin_token_hash(settings),
-        screening=ScreeningService(settings.database_url),
+        screening=ScreeningService(),
         submissions=SubmissionWriter(database, Limits.of(settings)),
-        published=published,
-        upload_lookup=lookup,
         rounds=watcher,
         sockets=RoundSockets(watcher),
         auctions=runner(
-            AUCTION_WORK, context, settings.auction_workers, settings.auction_timeout_s
+            AUCTION_WORK,
+            context,
+            settings.auction_workers or os.cpu_count() or 1,
+            settings.auction_timeout_s,
         ),
         jobs=runner(JOB_WORK, job_context, settings.job_workers, settings.job_timeout_s),
         compute=job_compute(settings.job_backend, settings.ray_address),
@@ -154,8 +148,6 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
     )
     services.screening.start()
     services.submissions.start()
-    services.published.start()
-    services.upload_lookup.start()
     services.auctions.start()
     services.jobs.start()
     log.info("srd server ready: %s, data in %s", settings.database_url, settings.data_dir)

@@ -1,36 +1,36 @@
 """Remote fine-tuning rounds: the newest round of an auction (long poll), and a patron's
-upload for a round, checked, re-screened and stored.
+upload for a round, checked, stored, re-screened and answered.
 
 An upload's identity and round come from its path and its bearer token only: the token must be
 the participant's of ``model_id``, ``model_id`` one of the auction's patrons (as listed in its
 ``model_ids``), asked in that round; the manifest must name the same participant and may change
 weights and biases only. One upload per round per patron: the same bytes again get the same
 answer, other bytes 409.
+
+The API owns every write of an upload: it stores the upload, pending, as soon as its body is
+read and checked (so the deadline is judged at arrival, whatever the screener's backlog), asks
+the screener pool for a verdict and records it; once every asked patron's upload is judged, the
+auction's next step is due at once. An upload whose verdict was never recorded (the screener
+down, the server killed) counts all the same: a repeat of its bytes asks again, and the step
+that closes the round judges whatever is still pending.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
+from collections.abc import Callable
+from datetime import datetime
 from typing import Any
 
-from sqlalchemy.exc import OperationalError
+from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, ManifestError, parse_manifest_json
+from screener import Verdict
 from server import crud
-from server.db import JSONText
-from server.errors import RequestError, api_error, error_item, validation_error
-from server.grouping import StoppingError
+from server.db import Database, JSONText
+from server.errors import api_error, error_item, validation_error
 from server.models import utcnow
-from server.remote_rounds import (
-    Answered,
-    RoundWatcher,
-    TooManyWaitersError,
-    UploadLookup,
-    UploadOutcome,
-    UploadRequest,
-    answer_bytes,
-)
+from server.remote_rounds import RoundWatcher, TooManyWaitersError
 from server.screening import ScreenerUnavailableError, ScreeningService
 from server.security import token_matches
 from server.services.auctions import not_found
@@ -92,24 +92,27 @@ def _manifest(body: bytes) -> Manifest:
         ) from exc
 
 
+def _read_target(database: Database, key: crud.UploadKey) -> crud.UploadTarget:
+    with database.session(write=False) as session:
+        target = crud.upload_targets(session, keys=[key])[0]
+    if isinstance(target, crud.UploadLookupError):
+        raise target
+    return target
+
+
 async def _target(
-    lookup: UploadLookup, auction_id: int, model_id: int, round_number: int
+    database: Database, auction_id: int, model_id: int, round_number: int
 ) -> crud.UploadTarget:
     """What the upload's path names: the patron, its participant, the round (404 for an
     unknown auction or model)."""
     try:
-        target = await lookup.get((auction_id, model_id, round_number))
-    except OperationalError as exc:
-        raise api_error(503, f"the database is unavailable: {exc}", kind="db_unavailable") from exc
-    except StoppingError as exc:
-        raise api_error(503, "the server is stopping", loc=("body",), kind="stopping") from exc
+        return await run_in_threadpool(_read_target, database, (auction_id, model_id, round_number))
     except crud.UploadLookupError as exc:
         if exc.field == "auction_id":
             raise not_found(auction_id) from exc
         raise api_error(
             404, f"model {model_id} does not exist", loc=("path", "model_id"), kind="not_found"
         ) from exc
-    return target
 
 
 def _check_patron(
@@ -149,28 +152,56 @@ def _check_patron(
     return target.round_id
 
 
+def _store(database: Database, upload: crud.UploadIn) -> crud.Stored:
+    with database.session(write=True) as session:
+        stored = crud.store_upload(session, upload=upload)
+        session.commit()
+    return stored
+
+
+def _record(
+    database: Database, answer_id: int, round_id: int, verdict: Verdict
+) -> tuple[bytes, bool]:
+    """Record a pending upload's verdict; its answer, and whether the round's auction became
+    due (every asked patron judged)."""
+    with database.session(write=True) as session:
+        now = utcnow()
+        body = crud.record_verdict(session, answer_id=answer_id, verdict=verdict, now=now)
+        due = crud.due_when_answered(session, round_id=round_id, now=now)
+        session.commit()
+    return body, due
+
+
+def _due(database: Database, round_id: int) -> bool:
+    with database.session(write=True) as session:
+        due = crud.due_when_answered(session, round_id=round_id, now=utcnow())
+        session.commit()
+    return due
+
+
 async def upload(
-    lookup: UploadLookup,
+    database: Database,
     screening: ScreeningService,
+    wake: Callable[[int], None],
     *,
     auction_id: int,
     round_number: int,
     model_id: int,
     token: str,
     body: bytes,
+    arrived: datetime,
 ) -> bytes:
-    """Check an upload (see the module docstring), re-screen it and store its answer; the
-    answer's JSON. Wrong round → 409 naming the current one; closed or past the deadline →
-    410 (recorded as late)."""
+    """Check an upload (see the module docstring), store it, re-screen it and record its
+    verdict; the answer's JSON. Wrong round → 409 naming the current one; closed, or past the
+    deadline at ``arrived`` → 410 (recorded as late). ``wake(auction_id)`` is told when the
+    auction's next step became due."""
     manifest = _manifest(body)
-    target = await _target(lookup, auction_id, model_id, round_number)
+    target = await _target(database, auction_id, model_id, round_number)
     round_id = _check_patron(
         target, token, auction_id=auction_id, model_id=model_id, round_number=round_number
     )
     digest = hashlib.sha256(body).hexdigest()
-    if target.answer_outcome in ANSWERED:
-        if target.answer_sha256 == digest and target.answer is not None:
-            return _answered(Answered(answer_bytes(target.answer)))
+    if target.answer_outcome in ANSWERED and target.answer_sha256 != digest:
         raise api_error(
             409,
             f"this patron already answered round {round_number} with another body: one "
@@ -178,7 +209,7 @@ async def upload(
             loc=("path", "round"),
             kind="already_answered",
         )
-    if target.position not in target.asked:
+    if target.position not in target.asked and target.answer_outcome is None:
         raise api_error(
             409,
             f"model {model_id} is not asked in round {round_number}: it left the auction "
@@ -186,49 +217,54 @@ async def upload(
             loc=("path", "model_id"),
             kind="not_asked",
         )
-    late = UploadRequest(
-        kind="late",
-        round_number=round_number,
-        round_id=round_id,
-        position=target.position,
-        participant_id=target.participant_id,
-        current_id=target.current_id,
-        current_version=target.current_version,
-        auction_id=auction_id,
-        body_sha256=digest,
-        bytes_in=len(body),
-    )
-    if target.round_status != RoundStatus.OPEN or (
-        target.deadline is not None and target.deadline <= utcnow()
-    ):
-        return _answered(await _store(screening, late))
     data = manifest.model_dump(mode="json")
-    if target.current_design is None or design(manifest) != target.current_design:
+    late = target.round_status != RoundStatus.OPEN or (
+        target.deadline is not None and target.deadline <= arrived
+    )
+    if (
+        not late
+        and target.answer_outcome not in ANSWERED
+        and (target.current_design is None or design(manifest) != target.current_design)
+    ):
         problems = _body_problems(data, target)
         if problems:
             raise validation_error(problems)
-    if data == target.current_manifest:
-        request = dataclasses.replace(late, kind="unchanged")
-    else:  # re-screened and stored in the screening process, as it is
-        encoded = JSONText(manifest.model_dump_json())
-        request = dataclasses.replace(late, kind="version", manifest=encoded)
-    outcome = await _store(screening, request)
-    if isinstance(outcome, Answered):
-        lookup.answered((auction_id, model_id, round_number), digest, outcome.body)
-    return _answered(outcome)
-
-
-async def _store(screening: ScreeningService, request: UploadRequest) -> UploadOutcome:
-    """The upload stored (a new version re-screened first) by the screening process."""
-    try:
-        return await screening.upload(request)
-    except ScreenerUnavailableError as exc:
-        raise api_error(503, str(exc), loc=("body",), kind="screener_unavailable") from exc
-
-
-def _answered(outcome: UploadOutcome) -> bytes:
-    if isinstance(outcome, Answered):
-        return outcome.body
-    raise RequestError(
-        outcome.status, [error_item(outcome.msg, loc=outcome.loc, kind=outcome.kind)]
+    assert target.position is not None
+    unchanged = data == target.current_manifest
+    stored = await run_in_threadpool(
+        _store,
+        database,
+        crud.UploadIn(
+            round_number=round_number,
+            round_id=round_id,
+            position=target.position,
+            current_id=target.current_id,
+            current_version=target.current_version,
+            body_sha256=digest,
+            bytes_in=len(body),
+            arrived=arrived,
+            manifest=None if unchanged else JSONText(manifest.model_dump_json()),
+        ),
     )
+    if stored.refusal is not None:
+        status, message, kind = stored.refusal
+        raise api_error(status, message, loc=("path", "round"), kind=kind)
+    if stored.answer is not None:
+        if unchanged and await run_in_threadpool(_due, database, round_id):
+            wake(auction_id)
+        return stored.answer
+    assert stored.answer_id is not None
+    try:
+        verdict = await screening.verdict(manifest, at_the_door=False)
+    except ScreenerUnavailableError as exc:
+        raise api_error(
+            503,
+            f"{exc}; the upload is stored in time: send the same body again for its verdict",
+            loc=("body",),
+            kind="screener_unavailable",
+            headers={"Retry-After": str(RETRY_AFTER_S)},
+        ) from exc
+    answer, due = await run_in_threadpool(_record, database, stored.answer_id, round_id, verdict)
+    if due:
+        wake(auction_id)
+    return answer

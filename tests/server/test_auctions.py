@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import Connection
 
 from agents.manifest import parse_manifest
 from server import crud
@@ -173,46 +171,3 @@ def test_an_auction_that_cannot_resume_is_marked_failed_with_the_reason(
     )
     assert failed["status"] == "failed" and failed["finished_at"] is not None
     assert failed["error"].startswith("cannot resume: ") and reason in failed["error"]
-
-
-def test_the_workers_wait_reads_on_one_connection_and_replaces_a_dropped_one(
-    tmp_path: Path,
-) -> None:
-    """The reads of a round's answers share one connection; a read that fails on it (the
-    database dropped it) is tried once more on a fresh connection, and a second failure is
-    raised."""
-    from sqlalchemy import text
-    from sqlalchemy.exc import OperationalError
-
-    from server.auctions import _Reader
-    from server.db import Database, upgrade_schema
-
-    url = f"sqlite:///{tmp_path / 'reader.db'}"
-    upgrade_schema(url)
-    database = Database(url)
-    reader = _Reader(database)
-    seen: list[object] = []
-
-    def query(connection: Connection) -> int:
-        seen.append(connection)
-        return int(connection.execute(text("SELECT 1")).scalar_one())
-
-    assert reader.read(query) == 1 and reader.read(query) == 1
-    assert seen[0] is seen[1]
-    failures = iter([True])
-
-    def dropped(connection: Connection) -> int:
-        if next(failures, False):
-            raise OperationalError("SELECT 1", {}, Exception("the server closed the connection"))
-        return query(connection)
-
-    assert reader.read(dropped) == 1
-    assert seen[-1] is not seen[0]
-
-    def always(connection: Connection) -> int:
-        raise OperationalError("SELECT 1", {}, Exception("the database is gone"))
-
-    with pytest.raises(OperationalError, match="gone"):
-        reader.read(always)
-    reader.close()
-    database.close()

@@ -3,19 +3,15 @@
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import multiprocessing
 import threading
 from collections.abc import Iterator
-from typing import Any
 
 import numpy as np
 import pytest
 
-from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
-from screener import Verdict, rescreen_many, screen
-from server.remote_rounds import UploadRequest
+from screener import rescreen_many, screen
 from server.screening import ScreeningService
 
 
@@ -153,95 +149,3 @@ def test_a_burst_is_gathered_into_one_batch_and_a_stop_ends_it() -> None:
     assert len(gather(many)) == 3  # type: ignore[arg-type]
     stopping = _Arrivals([(0.0, "a"), (0.0, None), (0.0, "after")])
     assert gather(stopping) == ["a", None]  # type: ignore[arg-type]
-
-
-def test_uploads_are_batched_with_what_is_queued_only() -> None:
-    """After an upload the batch takes only what has queued up already: the screening process
-    works on a round's uploads alongside the API's checks instead of waiting out the burst."""
-    from server.screening import GATHER_GAP_S, UPLOAD_GAP_S, gather
-
-    assert UPLOAD_GAP_S < GATHER_GAP_S
-    up = [(0, "upload", "a"), (1, "upload", "b"), (2, "upload", "c")]
-    queued = _Arrivals([(0.0, up[0]), (0.0, up[1]), (GATHER_GAP_S / 2, up[2])])
-    assert gather(queued) == up[:2]  # type: ignore[arg-type]
-    assert gather(queued) == up[2:]  # type: ignore[arg-type]
-
-
-def _upload(**changes: Any) -> UploadRequest:
-    """A new version's upload to round 1 (id 7) of auction 1, by patron 0."""
-    base = UploadRequest(
-        kind="version",
-        round_number=1,
-        round_id=7,
-        position=0,
-        participant_id=1,
-        current_id=1,
-        current_version=1,
-        auction_id=1,
-        body_sha256="0" * 64,
-        bytes_in=1,
-    )
-    return dataclasses.replace(base, **changes)
-
-
-class _Writer:
-    """Records the groups it is asked to store; answers each upload with its position."""
-
-    def __init__(self) -> None:
-        self.groups: list[list[UploadRequest]] = []
-
-    def write_group(self, group: list[UploadRequest]) -> list[object]:
-        self.groups.append(group)
-        return [f"stored {request.position}" for request in group]
-
-
-def test_an_upload_the_screener_fails_on_is_not_stored_and_the_rest_are() -> None:
-    """The new versions of a batch are re-screened together; one the screener raises on is
-    answered with the error (a 503 for its agent, who may send it again) and left out of the
-    group the writer stores, with the verdicts of the others attached."""
-    from server.db import JSONText
-    from server.screening import _store_uploads
-
-    rng = np.random.default_rng(3)
-    models = [honest_manifest(rng, f"u-{k}") for k in range(3)]
-    base = _upload()
-    uploads = [
-        (10 + k, dataclasses.replace(base, position=k, manifest=JSONText(m.model_dump_json())))
-        for k, m in enumerate(models)
-    ]
-    uploads.append((13, dataclasses.replace(base, kind="unchanged", position=3)))
-
-    def fails_on_the_second(manifests: list[Manifest]) -> list[Verdict]:
-        if any(m.participant == "u-1" for m in manifests):
-            raise RuntimeError("boom")
-        return rescreen_many(manifests)
-
-    writer = _Writer()
-    answers = _store_uploads(writer, fails_on_the_second, uploads)  # type: ignore[arg-type]
-    assert [i for i, _ in answers] == [10, 11, 12, 13]
-    assert answers[0][1] == "stored 0" and answers[2][1] == "stored 2"
-    assert answers[3][1] == "stored 3"
-    assert isinstance(answers[1][1], str) and answers[1][1].startswith("the screener failed:")
-    assert "boom" in answers[1][1]
-    (group,) = writer.groups
-    assert [r.position for r in group] == [0, 2, 3]
-    expected = rescreen_many([models[0], models[2]])
-    assert [r.verdict for r in group] == [*expected, None]
-
-
-def test_a_batch_of_uploads_that_fails_unexpectedly_answers_each_with_the_error() -> None:
-    """Anything the upload store did not foresee (here an upload whose manifest is not JSON,
-    which the API never sends) answers every upload of the batch with the error (a 503 for its
-    agent) instead of ending the screening process; nothing of the batch is stored."""
-    from server.db import JSONText
-    from server.screening import _UploadStore
-
-    request = _upload(manifest=JSONText("{not json"))
-    store = _UploadStore(None)
-    writer = _Writer()
-    store.writer = writer  # type: ignore[assignment]
-    answers = store.answer(rescreen_many, [(5, request), (6, dataclasses.replace(request))])
-    assert [i for i, _ in answers] == [5, 6]
-    for _, answer in answers:
-        assert isinstance(answer, str) and answer.startswith("the uploads could not be stored")
-    assert writer.groups == []

@@ -11,7 +11,7 @@ import pytest
 
 import screener
 from sim.market import Market
-from sim.studies import (
+from studies.auctions import (
     ComparisonConfig,
     Setting,
     StudyConfig,
@@ -94,7 +94,7 @@ def test_screening_out_the_saboteurs_leaves_the_honest_auction(monkeypatch, fine
     plan = plan_auction(
         screened, 0.3, 0, n_patrons=20, seed=5, max_iterations=64, fine_tune_rounds=4
     )
-    from sim.studies import screen_auctions
+    from studies.auctions import screen_auctions
 
     screen_auctions([plan])
     assert plan.refused == 10 and len(plan.patrons) == 10

@@ -32,6 +32,7 @@ COPY README.md ./
 COPY agents ./agents
 COPY sim ./sim
 COPY screener ./screener
+COPY studies ./studies
 COPY server ./server
 COPY examples ./examples
 RUN pip install --no-deps .

@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.suppor
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
 from sim.market import IterationRecord, Market, MarketBatch, MarketConfig
-from sim.studies import StudyConfig, run_study
+from studies.auctions import StudyConfig, run_study
 from tests.support.loops import loop_auction
 
 torch.set_num_threads(1)

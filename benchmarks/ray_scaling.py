@@ -36,8 +36,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.suppor
 from server.jobs.ray_backend import RayRunner
 from sim import units
 from sim.experiment import Stopwatch, no_progress
-from sim.registry import KINDS, build_config
 from sim.units import Payload, Unit, UnitProgress
+from studies.registry import KINDS, build_config
 from tests.support.ray_head import RayHead
 
 torch.set_num_threads(1)
@@ -120,8 +120,8 @@ def _empty() -> None:
 
 def _imports() -> float:
     start = time.perf_counter()
-    import sim.lavaland.experiment
-    import sim.studies  # noqa: F401
+    import sim.lavaland.experiment  # noqa: F401
+    import studies.auctions  # noqa: F401
 
     return time.perf_counter() - start
 

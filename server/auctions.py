@@ -87,6 +87,7 @@ def _market_config(auction: Auction) -> MarketConfig:
         fine_tune_rounds=auction.fine_tune_rounds,
         fine_tune_mode="remote" if auction.fine_tune_mode == "remote" else "server",
         seed=auction.seed,
+        buy_fraction="staying" if auction.buy_fraction == "staying" else "all",
     )
 
 

@@ -113,6 +113,8 @@ class Auction(Base):
     """"server": the worker fine-tunes the patrons; "remote": the participants do, in rounds."""
     fine_tune_rounds: Mapped[int] = mapped_column(Integer, default=4)
     round_deadline_s: Mapped[float] = mapped_column(Float, default=10.0)
+    buy_fraction: Mapped[str] = mapped_column(String(8), default="all")
+    """The market's buy-fraction rule: "all" voters or the "staying" ones."""
     seed: Mapped[int] = mapped_column(Integer)
     iteration: Mapped[int] = mapped_column(Integer, default=0)
     price: Mapped[float] = mapped_column(Float)

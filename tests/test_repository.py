@@ -15,7 +15,8 @@ OUTSIDE = re.compile(r"\.\./shared|shared/specs|DECISIONS\.md|INTERFACE\.md|STYL
 
 
 def project_files() -> list[Path]:
-    roots = ("agents", "sim", "screener", "server", "tests", "benchmarks", "examples", "docs")
+    roots = ("agents", "sim", "screener", "studies", "server", "tests", "benchmarks", "examples")
+    roots += ("docs",)
     found = [ROOT / "README.md", ROOT / "pyproject.toml", ROOT / "Dockerfile", ROOT / "Makefile"]
     for root in roots:
         found += [p for p in (ROOT / root).rglob("*") if p.suffix in (".py", ".md", ".toml")]

@@ -1,7 +1,7 @@
 """The ``srd`` command line.
 
 Every command is imported only when it runs, so ``srd --help`` answers without importing torch
-or any simulation: the experiment commands (one per kind of ``sim.registry``) are generated from
+or any simulation: the experiment commands (one per kind of ``studies.registry``) are generated from
 their config dataclasses by ``server.cli.experiment``; ``serve``, ``screen`` and ``agents`` are
 written by hand in their own modules, each exposing ``command``.
 """
@@ -15,7 +15,7 @@ from contextlib import contextmanager
 
 import click
 
-from sim.registry import KINDS
+from studies.registry import KINDS
 
 HELP = "Self Reward Design: fish sale auction service, screener and the paper's experiments."
 HAND_WRITTEN = {

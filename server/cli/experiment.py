@@ -32,7 +32,7 @@ from sim.experiment import (
     parse_config,
     write_json,
 )
-from sim.registry import ExperimentKind
+from studies.registry import ExperimentKind
 
 INVALID = 2
 """Exit code of an invalid option (as click's own usage errors)."""

@@ -51,6 +51,7 @@ class AuctionHead:
     fine_tune_mode: str
     fine_tune_rounds: int
     round_deadline_s: float
+    buy_fraction: str
 
 
 @dataclass(frozen=True)
@@ -109,6 +110,7 @@ def create_auction(
     fine_tune_mode: str = "server",
     fine_tune_rounds: int = 4,
     round_deadline_s: float = 10.0,
+    buy_fraction: str = "all",
 ) -> Auction:
     """A pending auction over the ordered patron list ``model_ids``."""
     now = utcnow()
@@ -121,6 +123,7 @@ def create_auction(
         fine_tune_mode=fine_tune_mode,
         fine_tune_rounds=fine_tune_rounds,
         round_deadline_s=round_deadline_s,
+        buy_fraction=buy_fraction,
         seed=seed,
         iteration=0,
         price=opening_price,

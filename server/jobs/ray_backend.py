@@ -30,8 +30,8 @@ from typing import Any
 
 from server.config import JobBackendName
 from sim.experiment import config_dict
-from sim.registry import compute_unit
 from sim.units import Payload, Unit, UnitProgress
+from studies.registry import compute_unit
 
 log = logging.getLogger("srd.ray")
 

@@ -24,8 +24,8 @@ from server.runner import WorkKind
 from server.status import JOB_UNFINISHED, JobStatus
 from server.workers import WorkerContext, error_summary
 from sim.experiment import write_json
-from sim.registry import build_config, run_kind
 from sim.units import UnitRunner
+from studies.registry import build_config, run_kind
 
 MESSAGE_LIMIT = 200  # characters of a progress message kept
 

@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field, JsonValue, field_validator
 from server.schemas.common import MAX_SEED, RowId, StrictInput
 from server.schemas.rounds import FineTuneModeName, FineTuneRoundPublic
 from server.status import AuctionStatus
-from sim.market import MarketConfig
+from sim.market import BuyFractionRule, MarketConfig
 
 MAX_PATRONS = 10_000
 """Patrons of an auction, at most."""
@@ -83,6 +83,9 @@ class AuctionCreate(StrictInput):
     round_deadline_s: Annotated[
         float, Field(ge=ROUND_DEADLINE_S[0], le=ROUND_DEADLINE_S[1], allow_inf_nan=False)
     ] = 10.0
+    buy_fraction: BuyFractionRule = MarketConfig.buy_fraction
+    """Whom a row's buy fraction f counts: "all" voters (the paper's) or the "staying" ones,
+    buyers and holders (quitting does not lower f)."""
 
     @field_validator("model_ids")
     @classmethod
@@ -159,6 +162,7 @@ class AuctionPublic(BaseModel):
     fine_tune_mode: FineTuneModeName = "server"
     fine_tune_rounds: int = 4
     round_deadline_s: float = 10.0
+    buy_fraction: BuyFractionRule = MarketConfig.buy_fraction
     fine_tuning: list[FineTuneRoundPublic] = Field(default_factory=list)
     """Remote auctions: every fine-tuning round with each asked patron's outcome."""
     current_model_ids: list[int] = Field(default_factory=list)

@@ -12,7 +12,7 @@ from pydantic_core import CoreSchema
 from server.schemas.common import StrictInput
 from server.status import JobStatus
 from sim.experiment import config_schema
-from sim.registry import KINDS
+from studies.registry import KINDS
 
 JobKind = Literal["fish", "lavaland", "cheetah", "auction-study", "comparison"]
 assert set(get_args(JobKind)) == set(KINDS), "JobKind must list exactly the registry's kinds"

@@ -104,6 +104,7 @@ def create_auction(session: Session, runner: BackgroundRunner, body: AuctionCrea
         fine_tune_mode=body.fine_tune_mode,
         fine_tune_rounds=body.fine_tune_rounds,
         round_deadline_s=body.round_deadline_s,
+        buy_fraction=body.buy_fraction,
     )
     session.commit()
     runner.submit(auction.id)

@@ -14,7 +14,7 @@ from server.jobs.worker import job_dir
 from server.models import Job
 from server.runner import BackgroundRunner
 from sim.experiment import ConfigError, config_dict, over_budget
-from sim.registry import build_config
+from studies.registry import build_config
 
 
 def _path(field: str) -> list[str | int]:

@@ -12,7 +12,8 @@ One iteration (all patrons evaluated in one batched tensor pass):
    price + decrement and the price rises by increment − u·decrement, u ~ U(0, 4).
    Low demand: every row-0 buyer buys at the current price; the price falls by decrement.
 3. Each row's f (buy fraction) becomes the fraction of this round's voters who voted buy on
-   that row. Row-0 quitters leave.
+   that row: of every voter (``buy_fraction`` "all", the paper's) or of those who voted buy
+   or hold on it ("staying": quitting does not lower f). Row-0 quitters leave.
 4. Stop when sold out, when no patron is left, at a stalemate (price < threshold) or after
    ``max_iterations``. Otherwise, in the first ``fine_tune_rounds`` iterations and if
    ``fine_tune``, every active patron fine-tunes itself (SRD) on the updated rows: in the
@@ -53,6 +54,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from sim.market.auction import Market
     from sim.market.config import (
+        BuyFractionRule,
         FineTuneMode,
         MarketConfig,
         fine_tunes_after,
@@ -68,6 +70,7 @@ if TYPE_CHECKING:
 
 _HOMES = {
     "AuctionRandom": "randomness",
+    "BuyFractionRule": "config",
     "FineTuneMode": "config",
     "FineTuneRound": "rounds",
     "IterationRecord": "records",
@@ -91,6 +94,7 @@ loads the engine."""
 
 __all__ = [
     "AuctionRandom",
+    "BuyFractionRule",
     "FineTuneMode",
     "FineTuneRound",
     "IterationRecord",

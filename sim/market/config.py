@@ -9,6 +9,8 @@ from agents.negotiator import BASE_PRICE
 
 FineTuneMode = Literal["server", "remote"]
 """Who runs a fine-tuning round: the market itself, or the patrons elsewhere."""
+BuyFractionRule = Literal["all", "staying"]
+"""Whom a row's buy fraction f counts: every voter (the paper's), or buyers and holders only."""
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,9 @@ class MarketConfig:
     fine_tune_mode: FineTuneMode = "server"
     """"server": the market fine-tunes the patrons; "remote": each round is left pending for
     the patrons to fine-tune themselves, and ``apply_round`` takes their results."""
+    buy_fraction: BuyFractionRule = "all"
+    """f of a row = its buy votes / "all" its votes (the paper's), or / its buy and hold votes
+    ("staying": quitters do not lower f; 0 when nobody stays)."""
     seed: int = 0
     """Seeds the rows, the augmentation noise, the shuffles and the price raises."""
     evaluate_all_rows: bool = True
@@ -59,6 +64,8 @@ class MarketConfig:
             problems.append("seed must be ≥ 0")
         if self.fine_tune_mode not in get_args(FineTuneMode):
             problems.append(f"fine_tune_mode must be one of {get_args(FineTuneMode)}")
+        if self.buy_fraction not in get_args(BuyFractionRule):
+            problems.append(f"buy_fraction must be one of {get_args(BuyFractionRule)}")
         if problems:
             raise ValueError("; ".join(problems))
 

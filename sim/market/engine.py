@@ -73,7 +73,8 @@ class _Votes(NamedTuple):
     row_counts: np.ndarray
     """(A, 3): the same over every scored row."""
     buy_fraction: np.ndarray
-    """(A, scored rows): the fraction of each auction's voters who voted buy on each row."""
+    """(A, scored rows): each row's f, the buy votes over the voters its auction's
+    ``buy_fraction`` rule counts."""
 
 
 class _Moves(NamedTuple):
@@ -215,7 +216,10 @@ class MarketBatch:
         sizes = np.array([stop - start for _, start, stop in groups])
         buy_fraction = np.zeros((A, decisions.shape[1]))
         buys = np.add.reduceat((decisions == 0).astype(np.float64), starts, axis=0)
-        buy_fraction[voting] = buys / sizes[:, None]
+        holds = np.add.reduceat((decisions == 1).astype(np.float64), starts, axis=0)
+        staying = np.array([self.configs[a].buy_fraction == "staying" for a in voting])
+        counted = np.where(staying[:, None], buys + holds, sizes[:, None])
+        buy_fraction[voting] = buys / np.maximum(counted, 1)
         return _Votes(voters, owner, row0, counts, row_counts, buy_fraction)
 
     def _apply_price_rules(self, running: np.ndarray, votes: _Votes) -> _Moves:

@@ -11,7 +11,7 @@ import server.auctions
 from agents.batch import FSNBatch, from_manifests
 from agents.negotiator import honest_manifest
 from sim.market import Market, MarketConfig
-from sim.studies import Setting, plan_auction, run_auctions
+from studies.auctions import Setting, plan_auction, run_auctions
 
 
 def test_the_server_and_the_study_share_the_one_rescreening():

@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 
 from server.app import create_app
 from sim.experiment import config_fields
-from sim.registry import KINDS
+from studies.registry import KINDS
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, make_settings, wait_for
 

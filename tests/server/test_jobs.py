@@ -136,7 +136,10 @@ EVERY_KIND = {
         {"runs", "elapsed_s"},
     ),
     "auction-study": ({"rarities": [0.5], "trials": 1, "patrons": 8}, {"rows", "auctions"}),
-    "comparison": ({"rarities": [0.5], "trials": 1, "patrons": 8}, {"configurations"}),
+    "comparison": (
+        {"rarities": [0.5], "trials": 1, "patrons": 8, "buy_fraction": "staying"},
+        {"configurations", "rows", "caption"},
+    ),
 }
 
 
@@ -155,6 +158,9 @@ def test_every_kind_runs_as_a_job(client: TestClient, kind: str) -> None:
     assert done["progress"] == 1.0
     assert keys <= set(done["result"])
     assert "result.json" in done["artifacts"] and len(done["artifacts"]) > 1
+    if kind == "comparison":
+        assert done["result"]["buy_fraction"] == "staying"
+        assert "honest-alone" in done["result"]["configurations"]
     if kind == "lavaland":
         assert done["result"]["n_params"] == 180
     if kind == "cheetah":

@@ -10,7 +10,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from sim.experiment import config_fields
-from sim.registry import KINDS
+from studies.registry import KINDS
 
 
 @pytest.fixture(scope="module")

@@ -32,20 +32,29 @@ def patrons(seed: int, n_honest: int, n_saboteurs: int = 0, lr: float | None = N
 
 
 CASES = [
-    # seed, honest, saboteurs, fish, fine-tune, all rows
-    (0, 12, 0, 2, False, True),
-    (1, 12, 0, 6, True, True),
-    (2, 8, 8, 5, True, False),
-    (3, 12, 4, 10, False, False),
-    (4, 16, 0, 1, True, True),
+    # seed, honest, saboteurs, fish, fine-tune, all rows, buy fraction
+    (0, 12, 0, 2, False, True, "all"),
+    (1, 12, 0, 6, True, True, "all"),
+    (2, 8, 8, 5, True, False, "all"),
+    (3, 12, 4, 10, False, False, "all"),
+    (4, 16, 0, 1, True, True, "all"),
+    (5, 12, 4, 6, True, True, "staying"),
+    (6, 10, 6, 3, False, False, "staying"),
 ]
 
 
-@pytest.mark.parametrize(("seed", "n_honest", "n_sab", "fish", "tune", "all_rows"), CASES)
-def test_batched_market_equals_the_per_patron_loop(seed, n_honest, n_sab, fish, tune, all_rows):
+@pytest.mark.parametrize(("seed", "n_honest", "n_sab", "fish", "tune", "all_rows", "rule"), CASES)
+def test_batched_market_equals_the_per_patron_loop(
+    seed, n_honest, n_sab, fish, tune, all_rows, rule
+):
     manifests = patrons(seed, n_honest, n_sab, lr=0.5)
     config = MarketConfig(
-        n_fish=fish, n_rows=24, fine_tune=tune, seed=seed, evaluate_all_rows=all_rows
+        n_fish=fish,
+        n_rows=24,
+        fine_tune=tune,
+        seed=seed,
+        evaluate_all_rows=all_rows,
+        buy_fraction=rule,
     )
     expected = loop_auction(manifests, config)
     got = list(Market(manifests, config).run())

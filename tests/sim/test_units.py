@@ -14,8 +14,8 @@ import torch
 
 from sim import units
 from sim.experiment import no_progress
-from sim.registry import KINDS, build_config
 from sim.units import Payload, Unit, UnitProgress, plain
+from studies.registry import KINDS, build_config
 
 SMALL = {
     "fish": {"steps": 300},

@@ -79,7 +79,16 @@ def loop_auction(manifests: list[Manifest], config: MarketConfig) -> list[Iterat
         votes = {name: row0.count(code) for code, name in enumerate(("buy", "hold", "quit"))}
         every = [d for p in active for d in decisions[p]]
         row_votes = {name: every.count(code) for code, name in enumerate(("buy", "hold", "quit"))}
-        fractions = [sum(decisions[p][r] == 0 for p in active) / len(active) for r in range(width)]
+        counted = [
+            sum(
+                decisions[p][r] in ((0, 1) if config.buy_fraction == "staying" else (0, 1, 2))
+                for p in active
+            )
+            for r in range(width)
+        ]
+        fractions = [
+            sum(decisions[p][r] == 0 for p in active) / max(counted[r], 1) for r in range(width)
+        ]
         start_price, start_available = price, available
         buyers = []
         if votes["buy"] > available:

@@ -11,7 +11,7 @@ import pytest
 
 import screener
 from sim.market import Market
-from sim.studies import (
+from studies.auctions import (
     ComparisonConfig,
     Setting,
     StudyConfig,
@@ -94,7 +94,7 @@ def test_screening_out_the_saboteurs_leaves_the_honest_auction(monkeypatch, fine
     plan = plan_auction(
         screened, 0.3, 0, n_patrons=20, seed=5, max_iterations=64, fine_tune_rounds=4
     )
-    from sim.studies import screen_auctions
+    from studies.auctions import screen_auctions
 
     screen_auctions([plan])
     assert plan.refused == 10 and len(plan.patrons) == 10
@@ -126,14 +126,61 @@ def test_comparison_holds_one_table_per_configuration(tmp_path):
     config = ComparisonConfig(rarities=(0.3, 0.7), trials=1, patrons=16, seed=2)
     result = run_comparison(config, out_dir=tmp_path)
     configs = result["configurations"]
-    assert list(configs) == ["honest", "compromised", "compromised+screened"]
-    assert result["auctions"] == 6
+    names = ["honest", "compromised", "compromised+screened", "honest-alone"]
+    assert list(configs) == names
+    assert result["auctions"] == 8 and result["buy_fraction"] == "all"
     for name, block in configs.items():
         assert [r["rarity"] for r in block["rows"]] == [0.3, 0.7], name
+    assert result["rows"] == [r for name in names for r in configs[name]["rows"]]
     assert configs["honest"]["refused"] == 0 and configs["compromised"]["refused"] == 0
     assert configs["compromised+screened"]["refused"] == 16  # 8 saboteurs × 2 auctions
+    assert configs["honest-alone"]["refused"] == 0
     for name in ("results.csv", "comparison.csv", "comparison.png", "summary.json"):
         assert (tmp_path / name).stat().st_size > 0
     # Saboteurs drag the price to the base price once supply is ample.
     high = configs["compromised"]["rows"][1]
     assert high["mean_price"] is None or high["mean_price"] <= 5.0 + 1e-9
+    lines = result["caption"].splitlines()
+    assert [line.split(":")[0] for line in lines] == names
+    assert "8 honest patrons" in lines[3] and "last 8 of the 16" in lines[1]
+
+
+def differing(row: dict) -> dict:
+    return {k: v for k, v in row.items() if k not in ("setting", "refused", "saboteurs", "screen")}
+
+
+def test_honest_alone_is_the_compromised_population_without_its_saboteurs(tmp_path):
+    # The screener refuses exactly the saboteurs and nothing fine-tunes, so the screened
+    # auctions are the honest-alone ones: the same fish, seeds and honest patrons.
+    config = ComparisonConfig(rarities=(0.2, 0.6), trials=2, patrons=16, seed=5)
+    configs = run_comparison(config, out_dir=tmp_path)["configurations"]
+    alone, screened = configs["honest-alone"], configs["compromised+screened"]
+    assert [differing(r) for r in alone["rows"]] == [differing(r) for r in screened["rows"]]
+    with (tmp_path / "results.csv").open() as handle:
+        lines = [line for line in csv.DictReader(handle) if line["setting"] == "honest-alone"]
+    assert len(lines) == 4
+    assert all(line["n_patrons"] == "16" and line["admitted"] == "8" for line in lines)
+    assert {line["n_fish"] for line in lines} == {"3", "9"}  # the whole population's fish
+    honest = configs["honest"]["rows"]
+    assert [r["n_fish"] for r in honest] == [r["n_fish"] for r in alone["rows"]]
+
+
+def test_the_buy_fraction_rule_reaches_every_auction(tmp_path):
+    plan = plan_auction(
+        Setting("honest", False, 0.0, False),
+        0.5,
+        0,
+        n_patrons=8,
+        seed=1,
+        max_iterations=64,
+        fine_tune_rounds=4,
+        buy_fraction="staying",
+    )
+    assert plan.market.buy_fraction == "staying"
+    base = {"rarities": (0.1, 0.3, 0.5), "trials": 2, "patrons": 32, "seed": 1}
+    rows = {
+        rule: run_comparison(ComparisonConfig(**base, buy_fraction=rule), out_dir=tmp_path / rule)
+        for rule in ("all", "staying")
+    }
+    assert rows["staying"]["buy_fraction"] == "staying"
+    assert rows["all"]["rows"] != rows["staying"]["rows"]

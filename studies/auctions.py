@@ -28,17 +28,25 @@ from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
 from sim import units
 from sim.experiment import ProgressFn, Stopwatch, config_dict, no_progress, write_csv, write_json
-from sim.market import MarketBatch, MarketConfig, RescreenBatch, fish_on_sale, single_thread
-from sim.study_config import (
+from sim.market import (
+    BuyFractionRule,
+    MarketBatch,
+    MarketConfig,
+    RescreenBatch,
+    fish_on_sale,
+    single_thread,
+)
+from sim.units import Decomposition, Payload, Unit
+from studies.config import (
     ComparisonConfig,
     Setting,
     StudyConfig,
+    comparison_caption,
     comparison_settings,
     settings_of,
     study_settings,
 )
-from sim.study_plots import plot_comparison, plot_study
-from sim.units import Decomposition, Payload, Unit
+from studies.plots import plot_comparison, plot_study
 
 BATCH_PATRONS = 2048
 """Patrons per lock-step batch of auctions (bounds memory; larger batches amortise more)."""
@@ -125,6 +133,7 @@ def plan_auction(
     seed: int,
     max_iterations: int,
     fine_tune_rounds: int,
+    buy_fraction: BuyFractionRule = MarketConfig.buy_fraction,
 ) -> Auction:
     """The patrons (not yet screened) and market config of one auction."""
     honest_rng, saboteur_rng, market_seed = auction_streams(seed, rarity, trial)
@@ -133,7 +142,10 @@ def plan_auction(
         honest_manifest(honest_rng, f"honest-{i:03d}", fine_tune=setting.fine_tune)
         for i in range(n_patrons - n_saboteurs)
     ]
-    patrons += [saboteur_manifest(saboteur_rng, f"saboteur-{i:03d}") for i in range(n_saboteurs)]
+    if not setting.alone:
+        patrons += [
+            saboteur_manifest(saboteur_rng, f"saboteur-{i:03d}") for i in range(n_saboteurs)
+        ]
     n_fish = fish_on_sale(n_patrons, rarity=rarity)
     market = MarketConfig(
         n_fish=n_fish,
@@ -142,6 +154,7 @@ def plan_auction(
         fine_tune_rounds=fine_tune_rounds,
         seed=market_seed,
         evaluate_all_rows=False,
+        buy_fraction=buy_fraction,
     )
     return Auction(setting, rarity, trial, n_patrons, n_fish, patrons, 0, market)
 
@@ -307,6 +320,7 @@ def compute_auctions(
             seed=config.seed,
             max_iterations=config.max_iterations,
             fine_tune_rounds=config.fine_tune_rounds,
+            buy_fraction=config.buy_fraction,
         )
         for s, r, t in unit.spec["auctions"]
     ]
@@ -373,6 +387,7 @@ def assemble_study(
         "rows": rows,
         "auctions": len(auctions),
         "settings": [s.name for s in study_settings(config)],
+        "buy_fraction": config.buy_fraction,
         "refused": sum(a.row["refused"] for a in auctions),
         "artifacts": ["results.csv", "summary.json", *figures],
         "elapsed_s": watch.elapsed(),
@@ -402,14 +417,18 @@ def assemble_comparison(
     progress: ProgressFn,
     watch: Stopwatch,
 ) -> dict[str, Any]:
-    """The same auctions (same seeds) honest, compromised, and compromised but screened:
-    results.csv, comparison.csv, comparison.png, summary.json; the --json object."""
+    """The same auctions (same seeds) honest, compromised, compromised but screened, and the
+    compromised population's honest patrons alone: results.csv, comparison.csv, comparison.png
+    (its caption under it), summary.json; the --json object (``rows``: every configuration's
+    rows, one table)."""
     settings = comparison_settings(config)
     auctions, rows = _write_auctions(config, plan, payloads, out_dir, progress)
     table = {name: [r for r in rows if r["setting"] == name] for name in settings}
     write_csv(out_dir / "comparison.csv", rows)
-    plot_comparison(table, out_dir / "comparison.png")
+    caption = comparison_caption(config)
+    plot_comparison(table, out_dir / "comparison.png", caption)
     result = {
+        "buy_fraction": config.buy_fraction,
         "configurations": {
             name: {
                 "saboteurs": s.saboteurs,
@@ -420,6 +439,8 @@ def assemble_comparison(
             }
             for name, s in settings.items()
         },
+        "rows": rows,
+        "caption": caption,
         "auctions": len(auctions),
         "artifacts": ["results.csv", "comparison.csv", "comparison.png", "summary.json"],
         "elapsed_s": watch.elapsed(),

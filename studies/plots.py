@@ -13,7 +13,7 @@ import numpy as np
 from sim.experiment import pyplot
 
 if TYPE_CHECKING:
-    from sim.studies import AuctionResult
+    from studies.auctions import AuctionResult
 
 JITTER = 0.02
 """Half-width of the x jitter of the purchase dots (the reference's)."""
@@ -86,11 +86,19 @@ COMPARED = (
 )
 
 
-def plot_comparison(table: dict[str, list[dict[str, Any]]], path: Path) -> None:
-    """Side by side: mean price, purchase rate, buyer fraction and revenue per supply."""
+def plot_comparison(table: dict[str, list[dict[str, Any]]], path: Path, caption: str) -> None:
+    """Side by side: mean price, purchase rate, buyer fraction and revenue per supply, one line
+    per configuration; ``caption`` (a sentence per line) printed under the panels."""
     plt = pyplot()
-    fig, axes = plt.subplots(1, len(COMPARED), figsize=(4.2 * len(COMPARED), 3.6))
-    styles = {"honest": "-o", "compromised": "-x", "compromised+screened": "--s"}
+    lines = caption.count("\n") + 1
+    height = 3.6 + 0.2 * lines
+    fig, axes = plt.subplots(1, len(COMPARED), figsize=(4.2 * len(COMPARED), height))
+    styles = {
+        "honest": "-o",
+        "compromised": "-x",
+        "compromised+screened": "--s",
+        "honest-alone": ":^",
+    }
     for ax, (field, label) in zip(axes, COMPARED, strict=True):
         for name, rows in table.items():
             ys = [math.nan if r[field] is None else r[field] for r in rows]
@@ -99,6 +107,8 @@ def plot_comparison(table: dict[str, list[dict[str, Any]]], path: Path) -> None:
         ax.set_xlabel("item supply")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
-    fig.tight_layout()
+    below = 0.2 * lines / height  # the caption's share of the figure's height
+    fig.text(0.01, 0.01, caption, ha="left", va="bottom", fontsize=8)
+    fig.tight_layout(rect=(0, below + 0.02, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)

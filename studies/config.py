@@ -9,7 +9,7 @@ from typing import Annotated
 from pydantic import Field
 
 from sim.experiment import Cost
-from sim.market import MarketConfig
+from sim.market import BuyFractionRule, MarketConfig
 
 PAPER_RARITIES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 """The paper's item supplies."""
@@ -42,6 +42,9 @@ class AuctionOptions:
     """Fine-tuning after each of the first this-many iterations (reference: 5)."""
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
     """Seed of every auction: each is keyed by (seed, rarity, trial)."""
+    buy_fraction: BuyFractionRule = MarketConfig.buy_fraction
+    """Whom each row's buy fraction f counts: all (every voter, the paper's) or staying (buyers
+    and holders: quitting does not lower f)."""
 
     def _auction_cost(self, setting: Setting) -> float:
         """Estimated compute of one auction of ``setting``."""
@@ -76,7 +79,11 @@ class StudyConfig(AuctionOptions):
 
 @dataclass(frozen=True)
 class ComparisonConfig(AuctionOptions):
-    """The honest vs malicious comparison: the same auctions honest, compromised, screened."""
+    """Honest vs malicious: the same auctions honest, compromised, screened, honest alone.
+
+    ``srd comparison``: honest patrons only; with ``saboteurs`` of them always-hold saboteurs,
+    unscreened and screened; and the compromised population's honest patrons without its
+    saboteurs (honest-alone: what screening restores)."""
 
     rarities: Rarities = COMPARISON_RARITIES
     """Item supplies r; fish on sale = int(r · patrons)."""
@@ -86,7 +93,7 @@ class ComparisonConfig(AuctionOptions):
     """Fraction of saboteurs in the compromised configurations."""
 
     def cost(self) -> Cost:
-        """Estimated compute: the three configurations' auctions."""
+        """Estimated compute: the four configurations' auctions."""
         per_trial = sum(self._auction_cost(s) for s in comparison_settings(self).values())
         return Cost(per_trial * len(self.rarities) * self.trials, "trials")
 
@@ -99,6 +106,9 @@ class Setting:
     fine_tune: bool
     saboteurs: float
     screen: bool
+    alone: bool = False
+    """The population's honest patrons only: its saboteurs stay out (the fish are those of
+    the whole population)."""
 
 
 def _setting_name(fine_tune: bool, saboteurs: float, screen: bool) -> str:
@@ -126,10 +136,31 @@ def settings_of(config: StudyConfig | ComparisonConfig) -> list[Setting]:
 
 
 def comparison_settings(config: ComparisonConfig) -> dict[str, Setting]:
-    """honest, compromised and compromised+screened, on the same auctions."""
+    """honest, compromised, compromised+screened and honest-alone, on the same auctions."""
     ft = config.fine_tune
     return {
         "honest": Setting("honest", ft, 0.0, False),
         "compromised": Setting("compromised", ft, config.saboteurs, False),
         "compromised+screened": Setting("compromised+screened", ft, config.saboteurs, True),
+        "honest-alone": Setting("honest-alone", ft, config.saboteurs, False, alone=True),
     }
+
+
+def comparison_caption(config: ComparisonConfig) -> str:
+    """What each line of the comparison figure is: one sentence per configuration, one line
+    each."""
+    n_saboteurs = int(config.saboteurs * config.patrons)
+    n_honest = config.patrons - n_saboteurs
+    tuned = "fine-tuning" if config.fine_tune else "no fine-tuning"
+    return "\n".join(
+        (
+            f"honest: {config.patrons} honest patrons, no screening ({tuned}, f counts "
+            f"{config.buy_fraction} voters).",
+            f"compromised: the same auctions with the last {n_saboteurs} of the "
+            f"{config.patrons} patrons always-hold saboteurs, no screening.",
+            "compromised+screened: the compromised patrons screened before the auction, the "
+            "refused staying out.",
+            f"honest-alone: the compromised population's {n_honest} honest patrons without its "
+            "saboteurs, the same fish and seeds: what screening restores.",
+        )
+    )

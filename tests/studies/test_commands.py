@@ -1,0 +1,73 @@
+"""The study commands and job parameters: ``--buy-fraction`` on ``srd auction-study`` and
+``srd comparison`` (generated from the configs, like the job parameters)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from click.testing import CliRunner
+
+from server.cli import cli
+from sim.experiment import ConfigError
+from studies.registry import build_config
+
+SMALL = ["--rarities", "0.25,0.75", "--trials", "1", "--patrons", "8"]
+
+
+def test_auction_study_takes_the_buy_fraction_rule(tmp_path) -> None:
+    for rule in ("all", "staying"):
+        out = tmp_path / rule
+        args = ["auction-study", *SMALL, "--buy-fraction", rule, "--json", "--out", str(out)]
+        result = CliRunner().invoke(cli, args)
+        assert result.exit_code == 0, result.output
+        payload = json.loads(result.stdout)
+        assert payload["buy_fraction"] == rule
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["config"]["buy_fraction"] == rule
+
+
+def test_a_bad_rule_exits_2_naming_the_option(tmp_path) -> None:
+    args = ["comparison", "--buy-fraction", "buyers", "--json", "--out", str(tmp_path)]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 2
+    assert "--buy-fraction" in result.stderr and "'buyers'" in result.stderr
+    assert result.stdout == ""
+
+
+def test_srd_comparison_prints_one_json_object_with_every_configuration(tmp_path) -> None:
+    out = tmp_path / "cmp"
+    args = ["comparison", *SMALL, "--seed", "3", "--buy-fraction", "staying"]
+    result = CliRunner().invoke(cli, [*args, "--json", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    (line,) = result.stdout.strip().splitlines()
+    payload = json.loads(line)
+    assert payload["out_dir"] == str(out) and payload["buy_fraction"] == "staying"
+    assert list(payload["configurations"]) == [
+        "honest",
+        "compromised",
+        "compromised+screened",
+        "honest-alone",
+    ]
+    assert len(payload["rows"]) == 8 and len(payload["caption"].splitlines()) == 4
+    again = CliRunner().invoke(cli, [*args, "--json", "--out", str(tmp_path / "again")])
+    same = json.loads(again.stdout)
+    assert same["rows"] == payload["rows"]  # --seed: same seed, same numbers
+    assert {p.name for p in out.iterdir()} >= {"comparison.png", "comparison.csv", "result.json"}
+
+
+def test_srd_comparison_prints_the_table_for_a_person(tmp_path) -> None:
+    result = CliRunner().invoke(cli, ["comparison", *SMALL, "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    text = result.stdout
+    assert "srd comparison" in text and f"artifacts: {tmp_path}" in text
+    assert text.count("honest-alone") == 2 and "mean_price" in text
+
+
+@pytest.mark.parametrize("kind", ["auction-study", "comparison"])
+def test_job_params_take_the_rule_and_refuse_others_by_name(kind) -> None:
+    assert build_config(kind, {"buy_fraction": "staying"}).buy_fraction == "staying"
+    assert build_config(kind, {}).buy_fraction == "all"
+    with pytest.raises(ConfigError) as caught:
+        build_config(kind, {"buy_fraction": "buyers"})
+    assert [e["field"] for e in caught.value.errors] == ["buy_fraction"]

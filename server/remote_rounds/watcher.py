@@ -160,9 +160,19 @@ class RoundWatcher:
 
     def _on_ring(self) -> None:
         if self._bell is not None and self._bell.drain():
-            self._rings += 1
-            self._rung.set()
-            self._rung = asyncio.Event()
+            self._rang()
+
+    def _rang(self) -> None:
+        self._rings += 1
+        self._rung.set()
+        self._rung = asyncio.Event()
+
+    def wake(self) -> None:
+        """Read the watched auctions again now, as on a ring: for a change this process
+        committed itself (a cancelled auction), which no worker rings for. Any thread."""
+        if self._loop is not None:
+            with contextlib.suppress(RuntimeError):  # the loop has closed: nobody waits
+                self._loop.call_soon_threadsafe(self._rang)
 
     async def _pause(self) -> None:
         """Until the bell rings, or the fallback period passes (without a bell: a short poll)."""

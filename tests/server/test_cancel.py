@@ -61,6 +61,15 @@ def patrons(client: TestClient) -> list[int]:
     return ids
 
 
+def test_the_openapi_document_lists_the_cancel(client: TestClient) -> None:
+    operation = client.get("/openapi.json").json()["paths"]["/auctions/{auction_id}"]["delete"]
+    assert operation["operationId"] == "cancel_auction"
+    assert {} not in operation["security"]  # the operator's token is required
+    assert {"200", "401", "403", "404", "409", "422"} <= set(operation["responses"])
+    schema = operation["responses"]["200"]["content"]["application/json"]["schema"]
+    assert schema == {"$ref": "#/components/schemas/AuctionPublic"}
+
+
 def test_a_pending_auction_is_cancelled_and_its_stream_ends_with_it(
     client: TestClient, settings: Settings, patrons: list[int]
 ) -> None:

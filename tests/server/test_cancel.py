@@ -193,9 +193,10 @@ def test_a_remote_auction_closes_its_round_and_wakes_its_agents(client: TestClie
 
     def socket() -> None:
         with client.websocket_connect(f"/auctions/{auction_id}/rounds/socket") as ws:
-            pushed.append((time.monotonic(), json.loads(ws.receive_text())))
-            connected.set()
-            pushed.append((time.monotonic(), json.loads(ws.receive_text())))
+            for _ in range(2):  # the open round on connecting, then the cancel
+                frame = json.loads(ws.receive_text())
+                pushed.append((time.monotonic(), frame))
+                connected.set()
 
     waiters = [threading.Thread(target=long_poll), threading.Thread(target=socket)]
     for waiter in waiters:
@@ -203,8 +204,8 @@ def test_a_remote_auction_closes_its_round_and_wakes_its_agents(client: TestClie
     assert connected.wait(10)
     time.sleep(0.5)  # the long poll waits by now
     assert not polled
+    cancelled_at = time.monotonic()  # the DELETE's request goes out
     answer = cancel(client, auction_id)
-    cancelled_at = time.monotonic()
     assert answer.status_code == 200, answer.text
     for waiter in waiters:
         waiter.join(WAKE_S + 5)

@@ -94,9 +94,9 @@ def auction(client: httpx.Client, admin: dict[str, str]) -> int:
             )
         shown = len(state["history"])
 
-    final = _poll(client, f"/auctions/{auction_id}", {"finished", "failed"}, show)
-    if final["status"] == "failed":
-        raise RuntimeError(f"auction failed: {final['error']}")
+    final = _poll(client, f"/auctions/{auction_id}", {"finished", "failed", "cancelled"}, show)
+    if final["status"] != "finished":
+        raise RuntimeError(f"auction {final['status']}: {final['error'] or 'by the operator'}")
     console.print(
         f"  → {final['status']} ({final['stop_reason']}): {len(final['buyers'])} of "
         f"{final['n_initial']} fish sold to {final['n_patrons']} patrons, revenue "

@@ -10,17 +10,19 @@ from enum import StrEnum
 
 
 class AuctionStatus(StrEnum):
-    """pending → running → finished, or failed."""
+    """pending → running → finished, or failed, or cancelled (pending or running, by the
+    operator)."""
 
     PENDING = "pending"
     RUNNING = "running"
     FINISHED = "finished"
     FAILED = "failed"
+    CANCELLED = "cancelled"
 
 
 AUCTION_UNFINISHED = (AuctionStatus.PENDING, AuctionStatus.RUNNING)
 """An auction in these states is still to be played (resumed after a restart)."""
-AUCTION_ENDED = (AuctionStatus.FINISHED, AuctionStatus.FAILED)
+AUCTION_ENDED = (AuctionStatus.FINISHED, AuctionStatus.FAILED, AuctionStatus.CANCELLED)
 
 
 class JobStatus(StrEnum):

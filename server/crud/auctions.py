@@ -1,5 +1,5 @@
-"""Auctions: creating one, ``GET /auctions/{id}`` (its patrons, committed rounds, purchases,
-quits and, for remote auctions, its fine-tuning rounds), the auction list."""
+"""Auctions: creating one, cancelling one, ``GET /auctions/{id}`` (its patrons, committed
+rounds, purchases, quits and, for remote auctions, its fine-tuning rounds), the auction list."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
-from sqlalchemy import Row, bindparam, func, select
+from sqlalchemy import Row, bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from server.models import (
@@ -22,7 +22,7 @@ from server.models import (
     Quit,
     utcnow,
 )
-from server.status import AuctionStatus
+from server.status import AUCTION_UNFINISHED, AuctionStatus, RoundStatus
 
 # iteration, price, n_available, votes, row_votes, next_price, n_available_after
 HistoryRow = Row[int, float, int, dict[str, int], dict[str, int], float, int]
@@ -139,6 +139,39 @@ def create_auction(
         for position, model_id in enumerate(model_ids)
     )
     return auction
+
+
+def cancel_auction(session: Session, *, auction_id: int) -> bool:
+    """Mark a pending or running auction cancelled and close its open fine-tuning round, if
+    any; False when it had already ended. Its committed rounds, purchases and quits stay."""
+    now = utcnow()
+    # The open rounds are closed before the auction row is taken and again after: a worker
+    # closing a round locks the round, then the auction (this order never deadlocks with it on
+    # PostgreSQL), and a round its commit opened while we waited is closed by the second pass.
+    _close_open_rounds(session, auction_id, now)
+    changed = session.execute(
+        update(Auction)
+        .where(Auction.id == auction_id, Auction.status.in_(AUCTION_UNFINISHED))
+        .values(
+            status=AuctionStatus.CANCELLED,
+            stop_reason="cancelled",
+            finished_at=now,
+            updated_at=now,
+            next_step_at=None,
+        )
+    )
+    if not changed.rowcount:  # type: ignore[attr-defined]
+        return False
+    _close_open_rounds(session, auction_id, now)
+    return True
+
+
+def _close_open_rounds(session: Session, auction_id: int, now: datetime) -> None:
+    session.execute(
+        update(FineTuneRound)
+        .where(FineTuneRound.auction_id == auction_id, FineTuneRound.status == RoundStatus.OPEN)
+        .values(status=RoundStatus.CLOSED, closed_at=now)
+    )
 
 
 # The statements of GET /auctions/{id}, built once and run as Core (it is polled while auctions

@@ -9,7 +9,7 @@ from starlette.concurrency import run_in_threadpool
 
 from server import crud
 from server.crud.auctions import HistoryRow
-from server.deps import AdminDep, AuctionRunnerDep, SessionDep
+from server.deps import AdminDep, AuctionRunnerDep, RoundsDep, SessionDep
 from server.errors import link, responses
 from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
 from server.schemas import (
@@ -37,7 +37,12 @@ router = APIRouter(tags=["auctions"])
     dependencies=[AdminDep],
     operation_id="create_auction",
     responses={
-        201: {"links": {"ReadAuction": link("read_auction", "auction_id", "auction_id")}},
+        201: {
+            "links": {
+                "ReadAuction": link("read_auction", "auction_id", "auction_id"),
+                "CancelAuction": link("cancel_auction", "auction_id", "auction_id"),
+            }
+        },
         **responses(401, 403, 404, 409, 422),
     },
 )
@@ -131,6 +136,23 @@ async def read_auction(auction_id: AuctionIdPath, session: SessionDep) -> Auctio
     # One hop to the thread pool for the queries; the response is built on the loop (a sync
     # route would pay a second hop for FastAPI's response validation).
     view = await run_in_threadpool(auctions.read_auction, session, auction_id)
+    return auction_public(view)
+
+
+@router.delete(
+    "/auctions/{auction_id}",
+    dependencies=[AdminDep],
+    operation_id="cancel_auction",
+    responses=responses(401, 403, 404, 409, 422),
+)
+async def cancel_auction(
+    auction_id: AuctionIdPath, session: SessionDep, runner: AuctionRunnerDep, watcher: RoundsDep
+) -> AuctionPublic:
+    """Cancel a pending or running auction (operator): status ``cancelled``, its committed
+    rounds, buyers and quitters kept, its open fine-tuning round closed, its worker stopped;
+    the agents waiting on its rounds are answered at once. An ended auction is 409."""
+    view = await run_in_threadpool(auctions.cancel_auction, session, runner, auction_id)
+    watcher.poke(auction_id)
     return auction_public(view)
 
 

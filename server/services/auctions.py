@@ -1,4 +1,4 @@
-"""Auctions: create one over its patrons (operator), read one."""
+"""Auctions: create one over its patrons (operator), read one, cancel one (operator)."""
 
 from __future__ import annotations
 
@@ -132,3 +132,25 @@ def require_auction(session: Session, auction_id: int) -> crud.AuctionState:
     if state is None:
         raise not_found(auction_id)
     return state
+
+
+def cancel_auction(session: Session, runner: BackgroundRunner, auction_id: int) -> crud.AuctionView:
+    """Cancel a pending or running auction (404 if there is none, 409 once it has ended), its
+    open fine-tuning round closed in the same transaction, and stop its worker; the auction as
+    it now stands."""
+    require_auction(session, auction_id)
+    if not crud.cancel_auction(session, auction_id=auction_id):
+        session.rollback()
+        ended = require_auction(session, auction_id)
+        raise api_error(
+            409,
+            f"auction {auction_id} already {ended.status}; only pending or running auctions "
+            "can be cancelled",
+            loc=("path", "auction_id"),
+            kind="not_cancellable",
+        )
+    session.commit()
+    # A worker that is not stopped in time (another replica's, until its lease renewal) still
+    # commits nothing: its writes require the auction running.
+    runner.cancel(auction_id)
+    return read_auction(session, auction_id)

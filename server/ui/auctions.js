@@ -8,6 +8,7 @@ const STOP_REASONS = {
   no_patrons: "no patron left (every one bought or quit)",
   stalemate: "stalemate (the price fell below the threshold)",
   max_iterations: "round limit reached",
+  cancelled: "cancelled by the operator",
 };
 const CHART = { width: 640, height: 240, left: 56, right: 16, top: 16, bottom: 36 };
 

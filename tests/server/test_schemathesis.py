@@ -7,8 +7,9 @@ Left out, each for a reason:
 * the event streams (``GET /auctions/{id}/events``, ``GET /jobs/{id}/events``): a stream ends
   only when its auction or job ends, while schemathesis reads each response to its end; they
   are tested against a live server in test_events.py;
-* the ``use_after_free`` check: ``DELETE /jobs/{id}`` cancels a job, whose record then stays
-  readable (status ``cancelled``), as the interface defines; the check expects a delete.
+* the ``use_after_free`` check: ``DELETE /jobs/{id}`` and ``DELETE /auctions/{id}`` cancel,
+  and the record then stays readable (status ``cancelled``), as the interface defines; the
+  check expects a delete.
 Whole numbers in generated bodies are written as integers (``schemathesis_hooks.py`` says why).
 The job budget is lifted so that every schema-valid job is accepted (the budget depends on a
 product of options, which JSON Schema cannot state); each job the run queues is stopped by a

@@ -183,6 +183,27 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
         assert cells[4] == f"{len(expected['answers'])} missing"
 
 
+def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    auction_id = create_unstarted_auction(server.database_url, honest_ids, n_fish=1, seed=2)
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    assert api.delete(f"/auctions/{auction_id}", headers=headers).status_code == 200
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    page.wait_for_selector("#liveness:has-text('Ended: cancelled')", timeout=WAIT_MS)
+    summary = page.text_content("#auction-summary") or ""
+    assert "Statuscancelled" in summary and "cancelled by the operator" in summary
+    page.goto(f"{server.url}/ui/#/auctions")
+    page.wait_for_selector("#auction-list tbody tr", timeout=WAIT_MS)
+    rows = [
+        [cell.text_content() for cell in row.locator("td").all()]
+        for row in page.locator("#auction-list tbody tr").all()
+    ]
+    (cells,) = [r for r in rows if r[0] == f"Auction {auction_id}"]
+    assert cells[1] == "cancelled" and cells[7] == "cancelled by the operator"
+
+
 def test_inspector_draws_the_saboteur_neuron_by_neuron_with_the_screeners_reasons(
     page: Any,
     server: ServerProcess,

@@ -17,7 +17,7 @@ import pytest
 
 import sim.market
 from server import crud
-from server.auctions import base_price, run_auction
+from server.auctions import base_price, run_step
 from server.db import Database
 from server.models import utcnow
 from server.workers import WorkerContext
@@ -107,7 +107,7 @@ def paced_auction(
     *,
     pace_s: float,
 ) -> Iterator[threading.Thread]:
-    """Play an unstarted auction with the server's own worker code (``run_auction``: the real
+    """Play an unstarted auction with the server's own worker code (``run_step``: the real
     market, the real per-round commits) in a thread of the test process, one round every
     ``pace_s``. The API process only reads what it commits, as it would from a worker."""
     monkeypatch.setattr(PacedMarket, "pace_s", pace_s)
@@ -115,7 +115,7 @@ def paced_auction(
     context = WorkerContext(
         database_url=database_url, data_dir=str(data_dir), progress_interval_s=0.1, torch_threads=1
     )
-    thread = threading.Thread(target=run_auction, args=(context, auction_id), daemon=True)
+    thread = threading.Thread(target=run_step, args=(context, auction_id), daemon=True)
     thread.start()
     try:
         yield thread

@@ -178,7 +178,8 @@ def test_a_remote_auction_closes_its_round_and_wakes_its_agents(client: TestClie
     answered = put(client, auction_id, 1, first_id, tuned(first), first_token)
     assert answered.status_code == 200, answered.text
     runner = client.app.state.services.auctions  # type: ignore[attr-defined]
-    assert auction_id in runner.held  # its worker waits for the round's answers
+    # An open round holds no worker: the step that opened it has ended.
+    wait_for(lambda: {"held": auction_id in runner.held}, lambda s: not s["held"], 10)
 
     polled: dict[str, Any] = {}
 
@@ -224,9 +225,8 @@ def test_a_remote_auction_closes_its_round_and_wakes_its_agents(client: TestClie
     (closed,) = state["fine_tuning"]
     assert closed["status"] == "closed" and closed["closed_at"] == state["finished_at"]
     assert {a["model_id"]: a["outcome"] for a in closed["answers"]} == {first_id: "accepted"}
-    # The worker that waited for the round is stopped, long before the round's deadline.
-    wait_for(lambda: {"held": auction_id in runner.held}, lambda s: not s["held"], 10)
-    assert runner.pool.pid(auction_id) is None
+    # No step runs for it again, not even at the round's deadline.
+    assert auction_id not in runner.held and runner.pool.pid(auction_id) is None
     # A later upload hears that the round is closed, and is recorded late.
     refused = put(client, auction_id, 1, late_id, tuned(late), late_token)
     error(refused, 410, ["path", "round"], "round 1 is closed")

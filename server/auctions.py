@@ -43,7 +43,13 @@ from sqlalchemy.orm import Session, selectinload, undefer
 
 from agents.manifest import Manifest, parse_manifest, parse_manifest_json
 from server import crud, doorbell
-from server.db import Database
+from server.db import (
+    OUTAGE_RETRIES,
+    OUTAGE_WAIT_S,
+    Database,
+    is_database_outage,
+    unavailable_message,
+)
 from server.models import (
     Auction,
     AuctionIteration,
@@ -506,14 +512,24 @@ def _patron_manifests(session: Session, patrons: Sequence[AuctionPatron]) -> lis
 
 
 def run_auction(context: WorkerContext, auction_id: int) -> None:
-    """Worker process entry point: play (or resume) one auction to its end."""
+    """Worker process entry point: play (or resume) one auction to its end. A database outage
+    is waited out (``OUTAGE_WAIT_S``) and the auction resumed from its last checkpoint, as
+    after a restart, up to ``OUTAGE_RETRIES`` times."""
     database = Database(context.database_url)
     try:
-        _drive(database, auction_id)
-    except ResumeError as exc:
-        _mark_failed(database, auction_id, f"cannot resume: {exc}")
-    except Exception as exc:
-        _mark_failed(database, auction_id, error_summary(exc))
+        for retry in range(OUTAGE_RETRIES + 1):
+            try:
+                _drive(database, auction_id)
+                return
+            except ResumeError as exc:
+                _mark_failed(database, auction_id, f"cannot resume: {exc}")
+                return
+            except Exception as exc:
+                outage = is_database_outage(exc) and retry < OUTAGE_RETRIES
+                if not (outage and database.wait_until_reachable(OUTAGE_WAIT_S)):
+                    _mark_failed(database, auction_id, error_summary(exc))
+                    return
+                log.warning("auction %d: %s; resuming", auction_id, unavailable_message(exc))
     finally:
         database.close()
 

@@ -30,8 +30,8 @@ from sqlalchemy.orm import Session
 
 from screener import Verdict
 from server import crud, doorbell
-from server.db import Database, JSONText
-from server.grouping import GroupTransaction, unavailable_message
+from server.db import Database, JSONText, unavailable_message
+from server.grouping import GroupTransaction
 from server.models import FineTuneAnswer, FineTuneRound, Participant, utcnow
 from server.status import ANSWERED, AnswerOutcome, RoundStatus
 
@@ -124,7 +124,7 @@ def _conflict(request: UploadRequest) -> UploadRefused:
 
 
 def _unavailable(exc: Exception) -> UploadRefused:
-    return UploadRefused(503, unavailable_message(exc), ("body",), "db_unavailable")
+    return UploadRefused(503, unavailable_message(exc), ("database",), "db_unavailable")
 
 
 _Rows = dict[Any, Any]

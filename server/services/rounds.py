@@ -19,7 +19,13 @@ from sqlalchemy.exc import OperationalError
 from agents.manifest import Manifest, ManifestError, parse_manifest_json
 from server import crud
 from server.db import JSONText
-from server.errors import RequestError, api_error, error_item, validation_error
+from server.errors import (
+    RequestError,
+    api_error,
+    database_unavailable,
+    error_item,
+    validation_error,
+)
 from server.grouping import StoppingError
 from server.models import utcnow
 from server.remote_rounds import (
@@ -100,7 +106,7 @@ async def _target(
     try:
         target = await lookup.get((auction_id, model_id, round_number))
     except OperationalError as exc:
-        raise api_error(503, f"the database is unavailable: {exc}", kind="db_unavailable") from exc
+        raise database_unavailable(exc) from exc
     except StoppingError as exc:
         raise api_error(503, "the server is stopping", loc=("body",), kind="stopping") from exc
     except crud.UploadLookupError as exc:
@@ -229,6 +235,8 @@ async def _store(screening: ScreeningService, request: UploadRequest) -> UploadO
 def _answered(outcome: UploadOutcome) -> bytes:
     if isinstance(outcome, Answered):
         return outcome.body
+    if outcome.kind == "db_unavailable":
+        raise database_unavailable(outcome.msg)
     raise RequestError(
         outcome.status, [error_item(outcome.msg, loc=outcome.loc, kind=outcome.kind)]
     )

@@ -25,12 +25,11 @@ from datetime import datetime
 from typing import Any, Literal
 
 from sqlalchemy import bindparam, insert, select, update
-from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session
 
 from screener import Verdict
 from server import crud, doorbell
-from server.db import Database, JSONText, unavailable_message
+from server.db import Database, JSONText, is_database_outage, unavailable_message
 from server.grouping import GroupTransaction
 from server.models import FineTuneAnswer, FineTuneRound, Participant, utcnow
 from server.status import ANSWERED, AnswerOutcome, RoundStatus
@@ -420,8 +419,10 @@ class PublishedBytes:
             with self._database.session(write=True) as session:
                 crud.add_published_bytes(session, counts=counts)
                 session.commit()
-        except OperationalError as exc:  # counted again at the next flush
-            log.warning("published-bytes counters not written: %s", exc)
+        except Exception as exc:  # counted again at the next flush
+            if not is_database_outage(exc):
+                raise
+            log.warning("published-bytes counters not written: %s", unavailable_message(exc))
             with self._lock:
                 for round_id, n_bytes in counts.items():
                     self._counts[round_id] += n_bytes

@@ -18,7 +18,7 @@ from sqlalchemy.exc import OperationalError
 
 from agents.manifest import Manifest, ManifestError, parse_manifest_json
 from server import crud
-from server.db import JSONText
+from server.db import DatabaseUnavailableError, JSONText
 from server.errors import (
     RequestError,
     api_error,
@@ -105,7 +105,7 @@ async def _target(
     unknown auction or model)."""
     try:
         target = await lookup.get((auction_id, model_id, round_number))
-    except OperationalError as exc:
+    except (OperationalError, DatabaseUnavailableError) as exc:
         raise database_unavailable(exc) from exc
     except StoppingError as exc:
         raise api_error(503, "the server is stopping", loc=("body",), kind="stopping") from exc

@@ -48,7 +48,8 @@ LOCK_RETRY_S = 0.0005  # how often a writer retries BEGIN IMMEDIATE while anothe
 
 IDENTITY_CHECK_S = 1.0  # how long a database check is trusted before it is made again
 OUTAGE_WAIT_S = 60.0
-"""How long a worker waits for a lost database to come back before it gives its task up."""
+"""How long a worker waits for an unreachable database to come back before it gives its task
+up."""
 OUTAGE_RETRIES = 3
 """Times a worker retries its task's step after the database came back (then it fails it)."""
 OUTAGE_POLL_S = 0.2  # how often one waiting out an outage asks for the (cached) check
@@ -65,9 +66,8 @@ class DatabaseUnavailableError(RuntimeError):
 def is_database_outage(exc: BaseException) -> bool:
     """Whether ``exc`` says the database could not be used (refused, unreachable, connection
     lost, pool exhausted), as opposed to a statement's own error (a constraint, a bug)."""
-    if isinstance(exc, DatabaseUnavailableError | OperationalError | InterfaceError):
-        return True
-    if isinstance(exc, PoolTimeoutError):
+    outages = DatabaseUnavailableError | OperationalError | InterfaceError | PoolTimeoutError
+    if isinstance(exc, outages):
         return True
     return isinstance(exc, DBAPIError) and exc.connection_invalidated
 

@@ -33,12 +33,11 @@ from datetime import datetime, timedelta
 from typing import TYPE_CHECKING
 
 from sqlalchemy import func, insert, select, update
-from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session, selectinload, undefer
 
 from agents.manifest import Manifest, parse_manifest
 from server import crud
-from server.db import Database
+from server.db import Database, is_database_outage
 from server.models import (
     Auction,
     AuctionIteration,
@@ -448,13 +447,12 @@ def run_step(context: WorkerContext, auction_id: int) -> None:
         log.info(
             "auction %d moved on without this step (cancelled, or stepped elsewhere)", auction_id
         )
-    except OperationalError as exc:  # the database is away: the auction stays due, retried
-        log.warning(
-            "auction %d: step not committed, the database is unavailable: %s", auction_id, exc
-        )
     except ResumeError as exc:
         _fail(database, auction_id, f"cannot resume: {exc}")
     except Exception as exc:
+        if is_database_outage(exc):  # nothing committed: the auction stays due, and is retried
+            log.warning("auction %d: step not committed, database unavailable: %s", auction_id, exc)
+            return
         _fail(database, auction_id, error_summary(exc))
     finally:
         database.close()

@@ -24,6 +24,9 @@ class Settings(BaseSettings):
     """SQLAlchemy URL; SQLite (WAL mode) by default, ``postgresql+psycopg://...`` works too."""
     data_dir: Path = Path("./data")
     """Job artifacts (``jobs/<id>/``) and the generated admin token file live here."""
+    min_free_disk_mb: Annotated[int, Field(ge=0)] = 256
+    """``/healthz`` answers 503 when the disk of the data folder (or of a SQLite database's
+    folder) has less free space than this (MB; 0: no check)."""
     admin_token: SecretStr | None = None
     """Operator token; when unset one is generated at first start into ``admin_token_file``."""
     max_body_bytes: Annotated[int, Field(ge=1024)] = 262_144

@@ -9,13 +9,17 @@ A database is never created behind the operator's back: only ``upgrade_schema`` 
 first start on it) may create a SQLite file; every other connection opens it read-write only,
 so a deleted file is an error, not a new empty database. ``Database`` remembers what it opened
 (the SQLite file's inode, the PostgreSQL database's oid) and ``Database.problem`` notices when
-that database is gone or replaced; write sessions then refuse to start.
+that database is gone or replaced (for good: sessions then refuse to start until a restart) or
+unreachable (for a while: sessions refuse until a check finds it back; the pool's pre-ping
+replaces the connections the outage broke).
 """
 
 from __future__ import annotations
 
 import fcntl
 import json
+import logging
+import math
 import os
 import sqlite3
 import threading
@@ -30,8 +34,11 @@ from urllib.parse import quote
 from alembic import command
 from alembic.config import Config
 from sqlalchemy import Connection, Engine, create_engine, event, inspect, make_url, text
-from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from sqlalchemy.orm import Session, sessionmaker
+
+log = logging.getLogger("srd.db")
 
 MIGRATIONS_DIR = Path(__file__).parent / "migrations"
 _WRITE_OPTION = "srd_write"
@@ -40,10 +47,29 @@ LOCK_RETRY_S = 0.0005  # how often a writer retries BEGIN IMMEDIATE while anothe
 
 
 IDENTITY_CHECK_S = 1.0  # how long a database check is trusted before it is made again
+OUTAGE_WAIT_S = 60.0
+"""How long a worker waits for an unreachable database to come back before it gives its task
+up."""
+OUTAGE_RETRIES = 3
+"""Times a worker retries its task's step after the database came back (then it fails it)."""
+OUTAGE_POLL_S = 0.2  # how often one waiting out an outage asks for the (cached) check
+CONNECT_TIMEOUT_S = 5  # a PostgreSQL server that does not answer fails a connection this soon
+DATABASE_RETRY_AFTER_S = 2
+"""What a request refused while the database is unavailable is told to wait (``Retry-After``):
+a check is trusted ``IDENTITY_CHECK_S``, so writes resume about that soon after it is back."""
 
 
 class DatabaseUnavailableError(RuntimeError):
     """The database is gone, replaced, or not reachable (503)."""
+
+
+def is_database_outage(exc: BaseException) -> bool:
+    """Whether ``exc`` says the database could not be used (refused, unreachable, connection
+    lost, pool exhausted), as opposed to a statement's own error (a constraint, a bug)."""
+    outages = DatabaseUnavailableError | OperationalError | InterfaceError | PoolTimeoutError
+    if isinstance(exc, outages):
+        return True
+    return isinstance(exc, DBAPIError) and exc.connection_invalidated
 
 
 def is_sqlite(url: str) -> bool:
@@ -167,8 +193,21 @@ def make_engine(url: str, *, create: bool = False) -> Engine:
         event.listen(engine.pool, "checkin", writers.on_checkin)
         return engine
     return create_engine(
-        url, pool_pre_ping=True, pool_size=10, max_overflow=20, json_serializer=json_dumps
+        url,
+        pool_pre_ping=True,  # a connection an outage broke is replaced at its next checkout
+        pool_size=10,
+        max_overflow=20,
+        json_serializer=json_dumps,
+        **_postgres_options(url),
     )
+
+
+def _postgres_options(url: str) -> dict[str, Any]:
+    """libpq's connection timeout, for a PostgreSQL URL: a server that does not answer (a host
+    gone from the network) fails a connection in seconds instead of minutes."""
+    if make_url(url).get_backend_name() != "postgresql":
+        return {}
+    return {"connect_args": {"connect_timeout": CONNECT_TIMEOUT_S}}
 
 
 def _identity(engine: Engine, url: str) -> tuple[int, ...]:
@@ -195,44 +234,114 @@ class Database:
         self._write = sessionmaker(
             bind=self.engine.execution_options(**{_WRITE_OPTION: True}), expire_on_commit=False
         )
-        self._identity = _identity(self.engine, url)
+        # The checks have a connection of their own: a busy pool is not an outage.
+        self._probe = (
+            None
+            if is_sqlite(url)
+            else create_engine(
+                url,
+                pool_pre_ping=True,
+                pool_size=1,
+                max_overflow=0,
+                pool_timeout=CONNECT_TIMEOUT_S,
+                **_postgres_options(url),
+            )
+        )
+        self._identity = _identity(self._probe or self.engine, url)
         self._checked_at = time.monotonic()
         self._problem: str | None = None
+        self._lost = False  # the problem is for good (gone, replaced): no check clears it
         self._check_lock = threading.Lock()
 
     def problem(self) -> str | None:
-        """Why the database cannot be used (gone, replaced, unreachable), or None. The answer
-        is kept for ``IDENTITY_CHECK_S``; a problem once found stays (restart to clear it)."""
+        """Why the database cannot be used, or None. The answer is kept for
+        ``IDENTITY_CHECK_S``; a database gone or replaced stays a problem (restart to clear
+        it), an unreachable one is checked again and clears once it is back."""
         with self._check_lock:
-            if self._problem is None and time.monotonic() - self._checked_at > IDENTITY_CHECK_S:
+            if self.check_due():
                 self._problem = self._check()
                 self._checked_at = time.monotonic()
             return self._problem
 
+    def wait_until_reachable(self, timeout_s: float) -> bool:
+        """After an outage met: check again now and then until the database is back (True),
+        or for ``timeout_s`` (False; at once if it is gone or replaced for good)."""
+        deadline = time.monotonic() + timeout_s
+        with self._check_lock:
+            self._checked_at = -math.inf  # the last check predates the failure
+        while self.problem() is not None:
+            if self._lost or time.monotonic() > deadline:
+                return False
+            time.sleep(OUTAGE_POLL_S)
+        return True
+
+    def check_due(self) -> bool:
+        """Whether the next ``problem()`` makes a check (I/O: run it off the event loop)."""
+        return not self._lost and time.monotonic() - self._checked_at > IDENTITY_CHECK_S
+
     def _check(self) -> str | None:
         try:
-            now = _identity(self.engine, self.url)
+            now = _identity(self._probe or self.engine, self.url)
         except FileNotFoundError:
+            self._lost = True
             return f"the database file {sqlite_path(self.url)} was deleted"
-        except Exception as exc:  # unreachable: a dropped database, a stopped server
-            return f"the database cannot be reached: {str(exc).splitlines()[0]}"
+        except Exception as exc:  # unreachable: a stopped server, a dropped database
+            if self._problem is None:
+                log.warning("the database cannot be reached: %s", _first_line(exc))
+            return f"the database cannot be reached: {_first_line(exc)}"
         if now != self._identity:
+            self._lost = True
             return "the database was replaced by another one since this server started"
+        if self._problem is not None:
+            log.warning("the database is reachable again")
+        return None
+
+    def write_problem(self) -> str | None:
+        """Why the database cannot take writes now (readiness): ``problem()``, or it is
+        read-only (a PostgreSQL standby or read-only default; a SQLite file, or its folder,
+        that may not be written)."""
+        problem = self.problem()
+        if problem is not None or self._probe is None:
+            return problem or _sqlite_write_problem(sqlite_path(self.url))
+        try:
+            with self._probe.connect() as connection:
+                read_only = connection.exec_driver_sql("SHOW transaction_read_only").scalar_one()
+        except Exception as exc:
+            return f"the database cannot be reached: {_first_line(exc)}"
+        if read_only == "on":
+            return "the database is read-only (transaction_read_only is on: a standby?)"
         return None
 
     def session(self, *, write: bool) -> Session:
-        """A new session; ``write=True`` takes the write lock at BEGIN on SQLite, and raises
-        ``DatabaseUnavailableError`` if the database is gone or replaced."""
-        if write:
-            problem = self.problem()
-            if problem is not None:
-                raise DatabaseUnavailableError(problem)
-            return self._write()
-        return self._read()
+        """A new session (``write=True`` takes the write lock at BEGIN on SQLite); raises
+        ``DatabaseUnavailableError`` if the database is gone, replaced or unreachable."""
+        problem = self.problem()
+        if problem is not None:
+            raise DatabaseUnavailableError(problem)
+        return self._write() if write else self._read()
 
     def close(self) -> None:
         """Release every pooled connection."""
         self.engine.dispose()
+        if self._probe is not None:
+            self._probe.dispose()
+
+
+def _sqlite_write_problem(path: Path) -> str | None:
+    """Why SQLite cannot write ``path`` (the folder takes its journal files), or None."""
+    for where in (path, path.parent):
+        if not os.access(where, os.W_OK):
+            return f"the database file {path} cannot be written: {where} is read-only"
+    return None
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+
+def unavailable_message(exc: BaseException) -> str:
+    """What an answer says when the database failed: the first line of the error."""
+    return f"the database is unavailable: {_first_line(exc)}"
 
 
 def database_now(session: Session) -> datetime:

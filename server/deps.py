@@ -15,6 +15,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 from starlette.requests import HTTPConnection
 
 from server.config import Settings
@@ -22,6 +23,7 @@ from server.db import Database
 from server.errors import api_error
 from server.events import EventHub
 from server.jobs.backend import JobCompute
+from server.readiness import Readiness
 from server.remote_rounds import RoundSockets, RoundWatcher
 from server.runner import BackgroundRunner
 from server.screening import ScreeningService
@@ -79,6 +81,10 @@ async def _events(services: ServicesDep) -> EventHub:
     return services.events
 
 
+async def _readiness(services: ServicesDep) -> Readiness:
+    return services.readiness
+
+
 SettingsDep = Annotated[Settings, Depends(_settings)]
 DatabaseDep = Annotated[Database, Depends(_database)]
 ScreeningDep = Annotated[ScreeningService, Depends(_screening)]
@@ -91,6 +97,7 @@ JobRunnerDep = Annotated[BackgroundRunner, Depends(_jobs)]
 ComputeDep = Annotated[JobCompute, Depends(_compute)]
 """The job backend, as ``/healthz`` reports it."""
 EventHubDep = Annotated[EventHub, Depends(_events)]
+ReadinessDep = Annotated[Readiness, Depends(_readiness)]
 
 _WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 
@@ -101,8 +108,11 @@ async def _session(request: Request, database: DatabaseDep) -> AsyncIterator[Ses
 
     The session is made and closed on the event loop (no I/O until the first query; closing
     rolls back a finished read, a sub-millisecond local call), so a request costs one hop to
-    the thread pool: the route's own, where every query runs.
+    the thread pool: the route's own, where every query runs (and, about once a second, one
+    for the database check ``Database.session`` makes).
     """
+    if database.check_due():
+        await run_in_threadpool(database.problem)
     session = database.session(write=request.method in _WRITE_METHODS)
     try:
         yield session

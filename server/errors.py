@@ -9,16 +9,29 @@ The services and the routes refuse a request by raising a ``RequestError`` (``ap
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any
+from typing import Any, cast
 
 from fastapi import FastAPI, Request, WebSocket
 from fastapi.exceptions import RequestValidationError, WebSocketRequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
+from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import HTTPConnection
 from starlette.routing import Match
+from starlette.types import ExceptionHandler
+from starlette.websockets import WebSocketState
 
-from server.db import DatabaseUnavailableError
+from server.db import (
+    DATABASE_RETRY_AFTER_S,
+    DatabaseUnavailableError,
+    is_database_outage,
+    unavailable_message,
+)
+
+TRY_AGAIN_LATER = 1013
+"""The WebSocket close code of a socket whose database went away while it was open."""
 
 
 class ErrorItem(BaseModel):
@@ -140,9 +153,34 @@ async def _problem(request: Request, exc: Exception) -> JSONResponse:
     return problem_response(exc)
 
 
-async def _database_unavailable(request: Request, exc: Exception) -> JSONResponse:
-    detail = [error_item(str(exc), loc=("database",), kind="db_unavailable")]
-    return JSONResponse({"detail": detail}, status_code=503)
+def database_unavailable(cause: BaseException | str) -> RequestError:
+    """The 503 of a request the database cannot serve now (``cause``: the error met, or what
+    to say), with when to try again."""
+    if isinstance(cause, BaseException):
+        unreachable = isinstance(cause, DatabaseUnavailableError)
+        cause = str(cause) if unreachable else unavailable_message(cause)
+    return api_error(
+        503,
+        cause,
+        loc=("database",),
+        kind="db_unavailable",
+        headers={"Retry-After": str(DATABASE_RETRY_AFTER_S)},
+    )
+
+
+async def _database_unavailable(connection: HTTPConnection, exc: Exception) -> JSONResponse | None:
+    """A request (or WebSocket handshake) that met a database outage: 503, not a plain 500. A
+    statement's own error (a constraint, a bug) is no outage: it goes on to the 500 handler."""
+    if not is_database_outage(exc):
+        raise exc
+    response = problem_response(database_unavailable(exc))
+    if not isinstance(connection, WebSocket):
+        return response
+    if connection.application_state == WebSocketState.CONNECTING:
+        await connection.send_denial_response(response)
+    else:
+        await connection.close(code=TRY_AGAIN_LATER, reason="the database is unavailable")
+    return None
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -151,7 +189,10 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(RequestValidationError, _request_validation)
     app.add_exception_handler(WebSocketRequestValidationError, _socket_validation)
     app.add_exception_handler(RequestError, _problem)
-    app.add_exception_handler(DatabaseUnavailableError, _database_unavailable)
+    # One handler for both scopes: Starlette passes a Request or a WebSocket.
+    outage_handler = cast(ExceptionHandler, _database_unavailable)
+    for outage in (DatabaseUnavailableError, DBAPIError, PoolTimeoutError):
+        app.add_exception_handler(outage, outage_handler)
 
 
 def link(operation_id: str, parameter: str, field: str) -> dict[str, Any]:

@@ -23,6 +23,8 @@ from typing import Generic, Protocol, TypeVar
 
 from starlette.concurrency import run_in_threadpool
 
+from server.db import is_database_outage, unavailable_message
+
 log = logging.getLogger("srd.events")
 
 
@@ -81,12 +83,18 @@ class Watch(Generic[S]):
         woken.set()
 
     async def _run(self) -> None:
+        failing = False  # an outage is logged once, not at every poll
         while True:
             try:
                 snapshot = await run_in_threadpool(self.poll, self.snapshot)
-            except Exception:  # a transient database error: keep the listeners, poll again
-                log.exception("watching %s failed; retrying", self.key)
+            except Exception as exc:  # keep the listeners (they get keep-alives), poll again
+                if not is_database_outage(exc):
+                    log.exception("watching %s failed; retrying", self.key)
+                elif not failing:
+                    log.warning("watching %s: %s; retrying", self.key, unavailable_message(exc))
+                failing = True
             else:
+                failing = False
                 if snapshot is not self.snapshot:
                     self._publish(snapshot)
                 if snapshot.final:

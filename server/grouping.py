@@ -29,10 +29,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
-from sqlalchemy.exc import IntegrityError, OperationalError
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from server.db import Database
+from server.db import Database, is_database_outage
 
 log = logging.getLogger("srd.grouping")
 
@@ -43,12 +43,6 @@ STOP_GRACE_S = 10.0
 
 Item = TypeVar("Item")
 Result = TypeVar("Result")
-
-
-def unavailable_message(exc: Exception) -> str:
-    """What an answer says when the database failed: the first line of the error."""
-    first_line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-    return f"the database is unavailable: {first_line}"
 
 
 class StoppingError(RuntimeError):
@@ -217,7 +211,9 @@ class GroupTransaction(Generic[Item, Result]):
                 session.commit()
         except IntegrityError as exc:
             raise _ConflictError from exc
-        except OperationalError as exc:
+        except Exception as exc:
+            if not is_database_outage(exc):
+                raise
             log.error("%s: a group of %d not stored: %s", self._name, len(group), exc)
             return [self._unavailable(exc)] * len(group)
         self.groups += 1

@@ -42,7 +42,7 @@ from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session
 
 from server import crud
-from server.db import Database, database_now
+from server.db import Database, database_now, is_database_outage, unavailable_message
 from server.models import Auction, Job
 from server.workers import TaskFn, WorkerContext, WorkerPool
 
@@ -166,6 +166,7 @@ class BackgroundRunner:
             return set(self._held)
 
     def _run(self) -> None:
+        failing = False  # an outage is logged once, not at every pass
         while True:
             self._wake.wait(TICK_S)
             self._wake.clear()
@@ -173,14 +174,25 @@ class BackgroundRunner:
                 return
             try:
                 self._tick()
-            except Exception:  # a transient database error: the leases last, try again
-                log.exception("%s leases: a pass failed", self.kind.name)
+            except Exception as exc:  # the leases last: try again at the next pass
+                if not is_database_outage(exc):
+                    log.exception("%s leases: a pass failed", self.kind.name)
+                elif not failing:
+                    log.warning("%s leases: %s; retrying", self.kind.name, unavailable_message(exc))
+                failing = True
+            else:
+                failing = False
 
     def _tick(self) -> None:
         with self._lock:
             over, self._over = self._over, set()
             self._held -= over
-        self._release(over)
+        try:
+            self._release(over)
+        except Exception:
+            with self._lock:  # released at a later pass
+                self._over |= over
+            raise
         if not self._exclusive:
             self._renew()
         with self._lock:

@@ -34,8 +34,8 @@ from sqlalchemy.orm import Session
 
 from screener import Verdict
 from server import crud, quotas
-from server.db import Database
-from server.grouping import GroupWriter, unavailable_message
+from server.db import DATABASE_RETRY_AFTER_S, Database, unavailable_message
+from server.grouping import GroupWriter
 from server.models import utcnow
 from server.security import hash_token, new_token, token_matches
 
@@ -64,7 +64,7 @@ class Refused:
     loc: tuple[str, ...]
     kind: str
     retry_after_s: int | None = None
-    """For 429: when to try again (the ``Retry-After`` header)."""
+    """For 429 and 503: when to try again (the ``Retry-After`` header)."""
 
 
 Outcome = Stored | Refused
@@ -208,7 +208,9 @@ def _conflict(item: _Submission) -> Refused:
 
 
 def _unavailable(exc: Exception) -> Refused:
-    return Refused(503, unavailable_message(exc), ("body",), "db_unavailable")
+    return Refused(
+        503, unavailable_message(exc), ("database",), "db_unavailable", DATABASE_RETRY_AFTER_S
+    )
 
 
 class SubmissionWriter(GroupWriter[_Submission, Outcome | None]):

@@ -9,6 +9,7 @@ cancelled job or one re-claimed after a restart is never overwritten by an older
 
 from __future__ import annotations
 
+import logging
 import math
 import shutil
 import time
@@ -18,7 +19,13 @@ from typing import Any
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from server.db import Database
+from server.db import (
+    OUTAGE_RETRIES,
+    OUTAGE_WAIT_S,
+    Database,
+    is_database_outage,
+    unavailable_message,
+)
 from server.models import Job, utcnow
 from server.runner import WorkKind
 from server.status import JOB_UNFINISHED, JobStatus
@@ -26,6 +33,8 @@ from server.workers import WorkerContext, error_summary
 from sim.experiment import write_json
 from sim.units import UnitRunner
 from studies.registry import build_config, run_kind
+
+log = logging.getLogger("srd.jobs")
 
 MESSAGE_LIMIT = 200  # characters of a progress message kept
 
@@ -78,13 +87,18 @@ class _Progress:
         if not math.isfinite(fraction) or (now - self._last < self._interval_s and fraction < 1):
             return
         self._last = now
-        _update_owned(
-            self._database,
-            self._job_id,
-            self._attempt,
-            progress=min(max(fraction, 0.0), 1.0),
-            message=message[:MESSAGE_LIMIT],
-        )
+        try:
+            _update_owned(
+                self._database,
+                self._job_id,
+                self._attempt,
+                progress=min(max(fraction, 0.0), 1.0),
+                message=message[:MESSAGE_LIMIT],
+            )
+        except Exception as exc:  # the job goes on; the next report writes progress again
+            if not is_database_outage(exc):
+                raise
+            log.warning("job %d: progress not written: %s", self._job_id, unavailable_message(exc))
 
 
 def _update_owned(database: Database, job_id: int, attempt: int, **values: Any) -> None:
@@ -97,6 +111,20 @@ def _update_owned(database: Database, job_id: int, attempt: int, **values: Any) 
         session.commit()
     if changed.rowcount != 1:  # type: ignore[attr-defined]
         raise SupersededError
+
+
+def _record_outcome(database: Database, job_id: int, attempt: int, **values: Any) -> None:
+    """The job's last write, retried when the database comes back from an outage (its result
+    would be lost otherwise: the job would run again)."""
+    for retry in range(OUTAGE_RETRIES + 1):
+        try:
+            _update_owned(database, job_id, attempt, **values)
+            return
+        except Exception as exc:
+            outage = is_database_outage(exc) and retry < OUTAGE_RETRIES
+            if not (outage and database.wait_until_reachable(OUTAGE_WAIT_S)):
+                raise
+            log.warning("job %d: %s; writing its outcome again", job_id, unavailable_message(exc))
 
 
 def _claim(database: Database, job_id: int) -> tuple[str, dict[str, Any], int] | None:
@@ -175,7 +203,7 @@ def run_job(context: WorkerContext, job_id: int) -> None:
                 "error": error_summary(exc),
                 "message": failure_message(exc, context),
             }
-        _update_owned(
+        _record_outcome(
             database,
             job_id,
             attempt,

@@ -1,5 +1,5 @@
 """What every resource's bodies share: ids (in bodies and paths), strict input, a screener
-finding, the health answer."""
+finding, the health answers."""
 
 from __future__ import annotations
 
@@ -40,12 +40,28 @@ class StrictInput(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
 
 
+class HealthProblem(BaseModel):
+    """Why the server is not ready: which check failed, and how."""
+
+    check: Literal["database", "data_dir", "disk"]
+    msg: str
+
+
 class HealthPublic(BaseModel):
-    status: Literal["ok"]
+    """Readiness (``GET /healthz``): ``ok`` (200) or ``unavailable`` (503) with its problems."""
+
+    status: Literal["ok", "unavailable"]
+    problems: list[HealthProblem] = []
     job_backend: JobBackendName
     """Where job units are computed (``SRD_JOB_BACKEND``)."""
     cpus: float
     """The CPUs that backend computes on: this machine's, or the Ray cluster's live nodes'."""
+
+
+class LivePublic(BaseModel):
+    """Liveness (``GET /livez``): the process serves requests."""
+
+    status: Literal["ok"]
 
 
 class ReasonPublic(BaseModel):

@@ -24,6 +24,7 @@ from server.events import EventHub
 from server.jobs.backend import JobCompute, job_compute
 from server.jobs.worker import JOB_WORK
 from server.quotas import Limits
+from server.readiness import Readiness
 from server.remote_rounds import RoundSockets, RoundWatcher
 from server.runner import BackgroundRunner, WorkKind
 from server.screening import ScreeningService
@@ -52,6 +53,7 @@ class Services:
     events: EventHub
     sqlite_lock: SqliteServerLock | None
     """Held while this process serves a SQLite database (None on PostgreSQL)."""
+    readiness: Readiness
 
     async def close(self) -> None:
         """Stop what runs on the event loop (the round watcher's pollers)."""
@@ -145,6 +147,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
             interval_s=settings.event_poll_interval_s, max_streams=settings.max_event_streams
         ),
         sqlite_lock=sqlite_lock,
+        readiness=Readiness(database, settings.data_dir, settings.min_free_disk_mb),
     )
     services.screening.start()
     services.submissions.start()

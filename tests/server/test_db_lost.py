@@ -1,5 +1,6 @@
 """Loud failures: a database deleted or replaced under a running server turns /healthz to 503
-and refuses writes; a server never starts over a lost database with an empty one."""
+and refuses reads and writes, for good; a server never starts over a lost database with an
+empty one."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 
-from server import db
+from server import db, readiness
 from server.app import create_app
 from server.db import DatabaseUnavailableError, upgrade_schema
 from tests.support.databases import postgres_database
@@ -21,6 +22,7 @@ from tests.support.server import ADMIN, make_settings
 @pytest.fixture(autouse=True)
 def quick_checks(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(db, "IDENTITY_CHECK_S", 0.0)  # check on every call
+    monkeypatch.setattr(readiness, "CACHE_S", 0.0)
 
 
 def test_deleted_sqlite_file_is_noticed_and_never_recreated(tmp_path) -> None:
@@ -32,9 +34,14 @@ def test_deleted_sqlite_file_is_noticed_and_never_recreated(tmp_path) -> None:
         for suffix in ("", "-wal", "-shm"):
             path.with_name(path.name + suffix).unlink(missing_ok=True)
         health = client.get("/healthz")
-        assert health.status_code == 503
-        assert "deleted" in health.json()["detail"][0]["msg"]
+        assert health.status_code == 503 and health.json()["status"] == "unavailable"
+        assert health.json()["problems"][0]["check"] == "database"
+        assert "deleted" in health.json()["problems"][0]["msg"]
         assert client.post("/submit", json=honest(unique("after"))).status_code == 503
+        read = client.get("/models/1")  # the deleted file is still open: no stale answer
+        assert read.status_code == 503 and read.json()["detail"][0]["loc"] == ["database"]
+        time.sleep(0.05)
+        assert client.get("/healthz").status_code == 503  # for good: no check clears it
         refused = client.post("/auctions", json={"n_fish": 1}, headers=ADMIN)
         assert refused.status_code == 503
         assert refused.json()["detail"][0]["loc"] == ["database"]
@@ -60,7 +67,7 @@ def test_replaced_sqlite_file_is_noticed(tmp_path) -> None:
         shutil.move(other, path)
         time.sleep(0.01)
         health = client.get("/healthz")
-        assert health.status_code == 503 and "replaced" in health.json()["detail"][0]["msg"]
+        assert health.status_code == 503 and "replaced" in health.json()["problems"][0]["msg"]
         assert client.post("/submit", json=honest(unique("swap"))).status_code == 503
 
 

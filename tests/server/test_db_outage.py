@@ -1,0 +1,177 @@
+"""A PostgreSQL outage under a running ``srd serve``: requests get the JSON 503 with
+``Retry-After`` meanwhile, writes resume by themselves within seconds once the database is
+back, and every submission acknowledged before, during and after is stored.
+
+The database server stopped here is a private throw-away cluster on a free port (never the
+machine's shared one, which other tests use at the same time)."""
+
+from __future__ import annotations
+
+import glob
+import shutil
+import subprocess
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import pytest
+from sqlalchemy import create_engine, text
+
+from server.launch import ServerProcess, free_port, settings_environment
+from tests.support.factories import honest, unique
+from tests.support.server import ADMIN, ADMIN_TOKEN, QUOTAS_OFF
+
+pytestmark = pytest.mark.postgres
+
+OUTAGE_S = 5.0
+RESUME_WITHIN_S = 5.0  # writes answer 201 again this soon after the database is back
+DB_NAME = "srd_outage"
+
+
+@dataclass
+class Cluster:
+    """A PostgreSQL cluster of our own, run by the ``postgres`` user."""
+
+    bin_dir: Path
+    data: Path
+    port: int
+
+    def _ctl(self, *args: str) -> None:
+        subprocess.run(
+            ["runuser", "-u", "postgres", "--", str(self.bin_dir / "pg_ctl"), "-D", str(self.data),
+             *args],
+            check=True, capture_output=True, timeout=60,
+        )  # fmt: skip
+
+    def start(self) -> None:
+        options = f"-p {self.port} -c listen_addresses=127.0.0.1 -k {self.data}"
+        self._ctl("-o", options, "-l", str(self.data / "server.log"), "-w", "start")
+
+    def stop(self) -> None:
+        self._ctl("-m", "fast", "-w", "stop")
+
+    @property
+    def admin_url(self) -> str:
+        return f"postgresql+psycopg://postgres@127.0.0.1:{self.port}/postgres"
+
+
+@pytest.fixture
+def cluster() -> Iterator[Cluster]:
+    found = sorted(glob.glob("/usr/lib/postgresql/*/bin/initdb"))
+    if not found or shutil.which("runuser") is None:
+        pytest.skip("no PostgreSQL server binaries (/usr/lib/postgresql/*/bin) or no runuser")
+    bin_dir = Path(found[-1]).parent
+    root = Path(tempfile.mkdtemp(prefix="srd-pg-"))  # /tmp: the postgres user can reach it
+    shutil.chown(root, "postgres")
+    data = root / "data"
+    subprocess.run(
+        ["runuser", "-u", "postgres", "--", str(bin_dir / "initdb"), "-D", str(data),
+         "-A", "trust", "-U", "postgres", "--no-sync"],
+        check=True, capture_output=True, timeout=120,
+    )  # fmt: skip
+    server = Cluster(bin_dir, data, free_port())
+    server.start()
+    try:
+        engine = create_engine(server.admin_url, isolation_level="AUTOCOMMIT")
+        with engine.connect() as connection:
+            connection.execute(text(f"CREATE DATABASE {DB_NAME}"))
+        engine.dispose()
+        yield server
+    finally:
+        subprocess.run(
+            ["runuser", "-u", "postgres", "--", str(bin_dir / "pg_ctl"), "-D", str(data),
+             "-m", "immediate", "stop"],
+            capture_output=True, timeout=60,
+        )  # fmt: skip
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def assert_unavailable(response: httpx.Response) -> None:
+    """The JSON 503 of a database outage, with when to try again."""
+    assert response.status_code == 503, response.text
+    assert response.headers["content-type"] == "application/json"
+    assert int(response.headers["retry-after"]) > 0
+    [item] = response.json()["detail"]
+    assert item["loc"] == ["database"] and item["type"] == "db_unavailable"
+
+
+def lease_owner(url: str, auction_id: int) -> str | None:
+    engine = create_engine(url)
+    try:
+        with engine.connect() as connection:
+            owner: str | None = connection.execute(
+                text("SELECT lease_owner FROM auctions WHERE id = :id"), {"id": auction_id}
+            ).scalar_one()
+        return owner
+    finally:
+        engine.dispose()
+
+
+def test_writes_resume_after_a_postgres_outage(cluster: Cluster, tmp_path: Path) -> None:
+    url = f"postgresql+psycopg://postgres@127.0.0.1:{cluster.port}/{DB_NAME}"
+    env = settings_environment({**QUOTAS_OFF, "lease_s": 3.0})
+    stored: dict[str, int] = {}  # every participant acknowledged with 201, and its model id
+
+    with (
+        ServerProcess(
+            database_url=url, data_dir=tmp_path / "data", admin_token=ADMIN_TOKEN, extra_env=env
+        ) as server,
+        httpx.Client(base_url=server.url, timeout=30) as client,
+    ):
+
+        def submit(tag: str) -> httpx.Response:
+            name = unique(tag)
+            response = client.post("/submit", json=honest(name))
+            assert response.status_code in (201, 503), response.text  # never a 500
+            if response.status_code == 201:
+                stored[name] = response.json()["model_id"]
+            else:
+                assert_unavailable(response)
+            return response
+
+        for _ in range(3):
+            assert submit("before").status_code == 201
+
+        cluster.stop()
+        stopped_at = time.monotonic()
+        outage_answers = 0
+        while time.monotonic() - stopped_at < OUTAGE_S:
+            if submit("during").status_code == 503:
+                outage_answers += 1
+            assert_unavailable(client.get("/models/1"))
+            assert_unavailable(client.get("/auctions/1/events"))
+            assert_unavailable(client.get("/jobs/1/events"))
+            health = client.get("/healthz")
+            assert health.status_code == 503 and health.headers["retry-after"]
+            assert health.json()["status"] == "unavailable"
+            assert [p["check"] for p in health.json()["problems"]] == ["database"]
+            assert client.get("/livez").json() == {"status": "ok"}
+            time.sleep(0.2)
+        assert outage_answers > 5
+
+        cluster.start()
+        back_at = time.monotonic()
+        while submit("after").status_code != 201:
+            assert time.monotonic() - back_at < RESUME_WITHIN_S, "writes did not resume"
+            time.sleep(0.1)
+        resumed_s = time.monotonic() - back_at
+        for _ in range(3):
+            assert submit("after").status_code == 201
+        assert client.get("/healthz").json()["status"] == "ok"
+
+        # The lease runner outlived the outage: it claims a new auction (takes its lease).
+        created = client.post("/auctions", json={"n_fish": 1, "seed": 1}, headers=ADMIN)
+        assert created.status_code == 201, created.text
+        deadline = time.monotonic() + 10
+        while lease_owner(url, created.json()["auction_id"]) is None:
+            assert time.monotonic() < deadline, "no auction was claimed after the outage"
+            time.sleep(0.1)
+
+        for name, model_id in stored.items():
+            model = client.get(f"/models/{model_id}")
+            assert model.status_code == 200 and model.json()["participant"] == name
+    print(f"writes resumed {resumed_s:.2f} s after PostgreSQL was back; {len(stored)} stored")
+    assert len(stored) >= 7

@@ -25,7 +25,10 @@ from server.schemas import (
     RoundAnswerPublic,
     Votes,
 )
+from server.schemas.common import IterationPath, ModelIdPath
+from server.schemas.votes import VoteExplanationPublic
 from server.services import auctions
+from server.services.votes import explain_vote
 from server.status import AnswerOutcome, RoundStatus
 
 router = APIRouter(tags=["auctions"])
@@ -147,3 +150,18 @@ async def list_auctions(
         ],
         next_cursor=next_cursor,
     )
+
+
+@router.get(
+    "/auctions/{auction_id}/iterations/{iteration}/votes/{model_id}",
+    operation_id="explain_vote",
+    responses=responses(404, 422),
+)
+async def read_vote(
+    auction_id: AuctionIdPath, iteration: IterationPath, model_id: ModelIdPath, session: SessionDep
+) -> VoteExplanationPublic:
+    """Why a patron voted buy, hold or quit in one committed iteration: its external sensor
+    (PG, SZ, LSR, ST), decision logits (B, L, Q) and the PFC's verdicts (T, F) on row 0, the
+    row that decides. 404 for an unknown auction, an uncommitted iteration, or a model that
+    did not vote in it (patrons leave once they buy or quit)."""
+    return await run_in_threadpool(explain_vote, session, auction_id, iteration, model_id)

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Annotated
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Query
 from starlette.concurrency import run_in_threadpool
 
 from server import crud
 from server.crud.auctions import HistoryRow
 from server.deps import AdminDep, AuctionRunnerDep, SessionDep
 from server.errors import link, responses
-from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
+from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, PageOrder, page_of
 from server.schemas import (
     AuctionCreate,
     AuctionCreated,
@@ -29,7 +30,7 @@ from server.schemas.common import IterationPath, ModelIdPath
 from server.schemas.votes import VoteExplanationPublic
 from server.services import auctions
 from server.services.votes import explain_vote
-from server.status import AnswerOutcome, RoundStatus
+from server.status import AnswerOutcome, AuctionStatus, RoundStatus
 
 router = APIRouter(tags=["auctions"])
 
@@ -138,10 +139,18 @@ async def read_auction(auction_id: AuctionIdPath, session: SessionDep) -> Auctio
 
 @router.get("/auctions", operation_id="list_auctions", responses=responses(422))
 async def list_auctions(
-    session: SessionDep, limit: PageLimit = DEFAULT_PAGE, cursor: PageCursor = None
+    session: SessionDep,
+    limit: PageLimit = DEFAULT_PAGE,
+    cursor: PageCursor = None,
+    status: Annotated[
+        AuctionStatus | None, Query(description="Only auctions in this status.")
+    ] = None,
+    order: PageOrder = "newest",
 ) -> AuctionPage:
-    """Auctions, newest first, a page at a time (follow ``next_cursor``)."""
-    rows = await run_in_threadpool(crud.list_auctions, session, before=cursor, limit=limit + 1)
+    """Auctions, newest (or oldest) first, a page at a time (follow ``next_cursor``)."""
+    rows = await run_in_threadpool(
+        crud.list_auctions, session, before=cursor, limit=limit + 1, status=status, order=order
+    )
     items, next_cursor = page_of(rows, limit)
     return AuctionPage(
         items=[

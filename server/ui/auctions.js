@@ -266,7 +266,7 @@ export function auctionView(view, id) {
       h("figure", {}, votesChart, h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
       h(
         "div",
-        { class: "scroll" },
+        { class: "scroll", tabindex: "0", role: "region", "aria-label": "Scrollable table" },
         h(
           "table",
           { class: "list", id: "rounds" },

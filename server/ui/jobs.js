@@ -257,7 +257,7 @@ function diffTable(name, specs, jobs) {
   );
   return h(
     "div",
-    { class: "scroll" },
+    { class: "scroll", tabindex: "0", role: "region", "aria-label": "Scrollable table" },
     h("table", { class: "list", "data-diff": name }, h("caption", {}, `${spec.caption}: job against job (Δ from job ${jobs[0].id})`), h("thead", {}, h("tr", {}, head)), h("tbody", {}, body)),
   );
 }

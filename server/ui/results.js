@@ -102,7 +102,7 @@ export function card(name, value) {
 export function rowsTable(spec, attributes = {}) {
   return h(
     "div",
-    { class: "scroll" },
+    { class: "scroll", tabindex: "0", role: "region", "aria-label": "Scrollable table" },
     h(
       "table",
       { class: "list", "data-table": spec.name, ...attributes },

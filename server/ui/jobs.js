@@ -262,12 +262,14 @@ function diffTable(name, specs, jobs) {
   );
 }
 
-/** Each table's first measure against its first numeric key, one line per job (and setting). */
+/** Each table's main outcome (its first mean or accuracy) against its first numeric key, one
+ * line per job (and setting). */
 function overlay(name, specs, jobs, index) {
   const spec = specs.find((s) => s);
   const { keys, measures } = splitColumns(spec.rows, spec.columns);
   const x = keys.find((k) => spec.rows.every((r) => typeof r[k] === "number"));
-  const y = measures.find((m) => spec.rows.some((r) => typeof r[m] === "number"));
+  const numeric = measures.filter((m) => spec.rows.some((r) => typeof r[m] === "number"));
+  const y = numeric.find((m) => /^(mean|accuracy)/.test(m)) || numeric[0]; // an outcome, not a count
   if (!x || !y) return null;
   const others = keys.filter((k) => k !== x);
   const lines = [];

@@ -437,7 +437,7 @@ def test_jobs_compare_side_by_side_from_the_filtered_list_with_the_keyboard(
     }
     screenshot(page, "ui_compare.png", tmp_path, full_page=True)
     page.reload()  # the address alone rebuilds the view
-    page.wait_for_selector("svg#overlay-0 polyline.curve", timeout=WAIT_MS)
+    page.wait_for_selector("svg#overlay-0 polyline.curve", state="attached", timeout=WAIT_MS)
 
 
 def test_every_vote_of_a_round_opens_its_explanation(

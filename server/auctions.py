@@ -167,6 +167,13 @@ def _commit_iteration(
             "next_price": record.next_price,
             "n_available_after": record.n_available_after,
             "created_at": now,
+            "explanations": {
+                "row": record.row,
+                "patrons": [
+                    {**vote, "model_id": model_ids[vote["patron"]]}
+                    for vote in record.explained()["patrons"]
+                ],
+            },
         },
     )
     if record.buyers:

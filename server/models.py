@@ -170,6 +170,9 @@ class AuctionIteration(Base):
     next_price: Mapped[float] = mapped_column(Float)
     n_available_after: Mapped[int] = mapped_column(Integer)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    explanations: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True, default=None)
+    """Every voter's neurons on row 0 (``IterationRecord.explained``, patrons by model id);
+    null for iterations committed before explanations were kept."""
 
 
 class Purchase(Base):

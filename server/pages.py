@@ -13,6 +13,7 @@ from typing import Annotated, Protocol, TypeVar
 
 from fastapi import Query
 
+from server.crud.lists import ListOrder
 from server.schemas import MAX_ROW_ID
 
 MAX_PAGE = 100
@@ -31,6 +32,11 @@ PageCursor = Annotated[
         description="The ``next_cursor`` of the previous page (the page holds the rows below "
         "that id); omit for the first page.",
     ),
+]
+
+PageOrder = Annotated[
+    ListOrder,
+    Query(description="``newest`` first (the default) or ``oldest`` first; cursors follow it."),
 ]
 
 

@@ -11,6 +11,7 @@ from datetime import datetime
 from sqlalchemy import Row, bindparam, func, select, update
 from sqlalchemy.orm import Session
 
+from server.crud.lists import ListOrder, keyset
 from server.models import (
     Auction,
     AuctionIteration,
@@ -278,11 +279,19 @@ _AUCTION_SUMMARY = select(
 ).order_by(Auction.id.desc())
 
 
-def list_auctions(session: Session, *, before: int | None, limit: int) -> list[AuctionSummary]:
-    """Up to ``limit`` auctions with ids below ``before``, newest first (one query)."""
-    query = _AUCTION_SUMMARY.limit(limit)
-    if before is not None:
-        query = query.where(Auction.id < before)
+def list_auctions(
+    session: Session,
+    *,
+    before: int | None,
+    limit: int,
+    status: str | None = None,
+    order: ListOrder = "newest",
+) -> list[AuctionSummary]:
+    """Up to ``limit`` auctions after the cursor ``before`` in ``order``, of ``status`` if
+    given (one query)."""
+    query = keyset(_AUCTION_SUMMARY, Auction.id, cursor=before, order=order).limit(limit)
+    if status is not None:
+        query = query.where(Auction.status == status)
     return [AuctionSummary(*row) for row in session.connection().execute(query)]
 
 

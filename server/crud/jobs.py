@@ -11,6 +11,7 @@ from typing import Any
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
+from server.crud.lists import ListOrder, keyset
 from server.models import Auction, Job, utcnow
 from server.status import AUCTION_UNFINISHED, JOB_UNFINISHED, AuctionStatus, JobStatus
 
@@ -90,9 +91,20 @@ _JOB_SUMMARY = select(*(getattr(Job, f.name) for f in dataclasses.fields(JobSumm
 )
 
 
-def list_jobs(session: Session, *, before: int | None, limit: int) -> list[JobSummary]:
-    """Up to ``limit`` jobs with ids below ``before``, newest first (one query)."""
-    query = _JOB_SUMMARY.limit(limit)
-    if before is not None:
-        query = query.where(Job.id < before)
+def list_jobs(
+    session: Session,
+    *,
+    before: int | None,
+    limit: int,
+    status: str | None = None,
+    kind: str | None = None,
+    order: ListOrder = "newest",
+) -> list[JobSummary]:
+    """Up to ``limit`` jobs after the cursor ``before`` in ``order``, of ``status`` and ``kind``
+    if given (one query)."""
+    query = keyset(_JOB_SUMMARY, Job.id, cursor=before, order=order).limit(limit)
+    if status is not None:
+        query = query.where(Job.status == status)
+    if kind is not None:
+        query = query.where(Job.kind == kind)
     return [JobSummary(*row) for row in session.connection().execute(query)]

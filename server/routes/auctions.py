@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Annotated
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Query
 from starlette.concurrency import run_in_threadpool
 
 from server import crud
 from server.crud.auctions import HistoryRow
 from server.deps import AdminDep, AuctionRunnerDep, RoundsDep, SessionDep
 from server.errors import link, responses
-from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
+from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, PageOrder, page_of
 from server.schemas import (
     AuctionCreate,
     AuctionCreated,
@@ -25,8 +26,11 @@ from server.schemas import (
     RoundAnswerPublic,
     Votes,
 )
+from server.schemas.common import IterationPath, ModelIdPath
+from server.schemas.votes import VoteExplanationPublic
 from server.services import auctions
-from server.status import AnswerOutcome, RoundStatus
+from server.services.votes import explain_vote
+from server.status import AnswerOutcome, AuctionStatus, RoundStatus
 
 router = APIRouter(tags=["auctions"])
 
@@ -158,10 +162,18 @@ async def cancel_auction(
 
 @router.get("/auctions", operation_id="list_auctions", responses=responses(422))
 async def list_auctions(
-    session: SessionDep, limit: PageLimit = DEFAULT_PAGE, cursor: PageCursor = None
+    session: SessionDep,
+    limit: PageLimit = DEFAULT_PAGE,
+    cursor: PageCursor = None,
+    status: Annotated[
+        AuctionStatus | None, Query(description="Only auctions in this status.")
+    ] = None,
+    order: PageOrder = "newest",
 ) -> AuctionPage:
-    """Auctions, newest first, a page at a time (follow ``next_cursor``)."""
-    rows = await run_in_threadpool(crud.list_auctions, session, before=cursor, limit=limit + 1)
+    """Auctions, newest (or oldest) first, a page at a time (follow ``next_cursor``)."""
+    rows = await run_in_threadpool(
+        crud.list_auctions, session, before=cursor, limit=limit + 1, status=status, order=order
+    )
     items, next_cursor = page_of(rows, limit)
     return AuctionPage(
         items=[
@@ -170,3 +182,18 @@ async def list_auctions(
         ],
         next_cursor=next_cursor,
     )
+
+
+@router.get(
+    "/auctions/{auction_id}/iterations/{iteration}/votes/{model_id}",
+    operation_id="explain_vote",
+    responses=responses(404, 422),
+)
+async def read_vote(
+    auction_id: AuctionIdPath, iteration: IterationPath, model_id: ModelIdPath, session: SessionDep
+) -> VoteExplanationPublic:
+    """Why a patron voted buy, hold or quit in one committed iteration: its external sensor
+    (PG, SZ, LSR, ST), decision logits (B, L, Q) and the PFC's verdicts (T, F) on row 0, the
+    row that decides. 404 for an unknown auction, an uncommitted iteration, or a model that
+    did not vote in it (patrons leave once they buy or quit)."""
+    return await run_in_threadpool(explain_vote, session, auction_id, iteration, model_id)

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Annotated
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Query
 from fastapi.responses import FileResponse
 from starlette.concurrency import run_in_threadpool
 
@@ -13,8 +14,16 @@ from server import crud
 from server.deps import AdminDep, JobRunnerDep, SessionDep, SettingsDep
 from server.errors import link, responses
 from server.models import Job
-from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
-from server.schemas import JobCreate, JobCreated, JobIdPath, JobPage, JobPublic, JobSummaryPublic
+from server.pages import DEFAULT_PAGE, PageCursor, PageLimit, PageOrder, page_of
+from server.schemas import (
+    JobCreate,
+    JobCreated,
+    JobIdPath,
+    JobKind,
+    JobPage,
+    JobPublic,
+    JobSummaryPublic,
+)
 from server.services import jobs
 from server.status import JobStatus
 
@@ -90,10 +99,23 @@ def cancel_job(job_id: JobIdPath, session: SessionDep, runner: JobRunnerDep) -> 
 
 @router.get("/jobs", operation_id="list_jobs", responses=responses(422))
 async def list_jobs(
-    session: SessionDep, limit: PageLimit = DEFAULT_PAGE, cursor: PageCursor = None
+    session: SessionDep,
+    limit: PageLimit = DEFAULT_PAGE,
+    cursor: PageCursor = None,
+    status: Annotated[JobStatus | None, Query(description="Only jobs in this status.")] = None,
+    kind: Annotated[JobKind | None, Query(description="Only jobs of this kind.")] = None,
+    order: PageOrder = "newest",
 ) -> JobPage:
-    """Jobs with their status and progress, newest first, a page at a time."""
-    rows = await run_in_threadpool(crud.list_jobs, session, before=cursor, limit=limit + 1)
+    """Jobs with their status and progress, newest (or oldest) first, a page at a time."""
+    rows = await run_in_threadpool(
+        crud.list_jobs,
+        session,
+        before=cursor,
+        limit=limit + 1,
+        status=status,
+        kind=kind,
+        order=order,
+    )
     items, next_cursor = page_of(rows, limit)
     return JobPage(
         items=[JobSummaryPublic(**dataclasses.asdict(row)) for row in items],

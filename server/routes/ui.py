@@ -21,6 +21,7 @@ from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Redirect
 from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, JUDGEMENTS, PFC_SOURCES, VERDICTS
 from screener.findings import INPUT_WORDS, ROLE
 from server.errors import api_error
+from sim.registry import KINDS
 
 router = APIRouter(include_in_schema=False)
 
@@ -69,6 +70,13 @@ ANATOMY = {
 """The negotiator's layers and what each neuron means, for the inspector's drawing (the page
 takes them from here, so it names exactly what the manifest and the screener name)."""
 
+RESULTS = {
+    name: {"headline": kind.headline, "table": kind.table, "columns": kind.columns}
+    for name, kind in KINDS.items()
+}
+"""How each job kind's result reads (the registry's headline fields, table and columns), so
+the job page shows first what the command's summary shows first."""
+
 
 def _servable(folder: Path) -> dict[str, Path]:
     """The files of ``folder`` that may be served, by name (a fixed list: no path is ever
@@ -114,6 +122,12 @@ async def vendor_file(name: str) -> FileResponse:
 async def anatomy() -> JSONResponse:
     """The negotiator's layers and neuron meanings."""
     return JSONResponse(ANATOMY, headers=PAGE_HEADERS)
+
+
+@router.get("/ui/kinds.json")
+async def result_layouts() -> JSONResponse:
+    """How each job kind's result reads."""
+    return JSONResponse(RESULTS, headers=PAGE_HEADERS)
 
 
 @router.get("/ui/{name}")

@@ -31,6 +31,11 @@ AuctionIdPath = Annotated[
 JobIdPath = Annotated[
     int, Path(ge=1, le=MAX_ROW_ID, description="A job id."), BeforeValidator(_decimal)
 ]
+IterationPath = Annotated[
+    int,
+    Path(ge=0, le=MAX_ROW_ID, description="An auction iteration (0, 1, ...)."),
+    BeforeValidator(_decimal),
+]
 
 
 class StrictInput(BaseModel):

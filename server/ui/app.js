@@ -3,16 +3,17 @@
 
 import { auctionList, auctionView } from "./auctions.js";
 import { h } from "./dom.js";
-import { jobList, jobView } from "./jobs.js";
+import { compareView, jobList, jobView } from "./jobs.js";
 import { inspectorView, modelList, participantView } from "./models.js";
 
 const ROUTES = [
-  [/^#\/(?:auctions)?$/, "auctions", (view) => auctionList(view)],
+  [/^#\/(?:auctions)?(?:\?(.*))?$/, "auctions", (view, [, query]) => auctionList(view, new URLSearchParams(query || ""))],
   [/^#\/auctions\/(\d+)$/, "auctions", (view, [, id]) => auctionView(view, Number(id))],
   [/^#\/models(?:\?(.*))?$/, "models", (view, [, query]) => modelList(view, new URLSearchParams(query || ""))],
   [/^#\/models\/(\d+)$/, "models", (view, [, id]) => inspectorView(view, Number(id))],
   [/^#\/participants\/([^/?]+)$/, "models", (view, [, name]) => participantView(view, decodeURIComponent(name))],
-  [/^#\/jobs$/, "jobs", (view) => jobList(view)],
+  [/^#\/jobs(?:\?(.*))?$/, "jobs", (view, [, query]) => jobList(view, new URLSearchParams(query || ""))],
+  [/^#\/jobs\/compare\?(.*)$/, "jobs", (view, [, query]) => compareView(view, new URLSearchParams(query))],
   [/^#\/jobs\/(\d+)$/, "jobs", (view, [, id]) => jobView(view, Number(id))],
 ];
 

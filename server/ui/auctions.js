@@ -20,18 +20,57 @@ function statusBadge(status) {
   return h("span", { class: `badge status-${status}` }, status);
 }
 
-export function auctionList(view) {
+const STATUSES = ["pending", "running", "finished", "failed", "cancelled"];
+const NEURON_WORDS = {
+  PG: "the high-price neuron",
+  SZ: "the size neuron",
+  LSR: "the limited-supply-rush neuron",
+  ST: "the sub-type neuron",
+  B: "buy",
+  L: "hold (want a lower price)",
+  Q: "quit",
+  T: "the verdict 'right'",
+  F: "the verdict 'wrong'",
+};
+
+function filters(id, label, chosen, onApply) {
+  const field = (name, text, options) =>
+    h("label", { for: `${id}-${name}` }, `${text} `, h("select", { id: `${id}-${name}` }, options.map(([v, t]) => h("option", { value: v, selected: v === chosen[name] }, t))));
+  const form = h(
+    "form",
+    { class: "filters", id, "aria-label": label },
+    field("status", "Status", [["", "any"], ...STATUSES.map((v) => [v, v])]),
+    field("order", "Order", [["newest", "newest first"], ["oldest", "oldest first"]]),
+    h("button", { type: "submit" }, "Apply"),
+  );
+  form.addEventListener("submit", (event) => {
+    event.preventDefault();
+    onApply(form.querySelector(`#${id}-status`).value, form.querySelector(`#${id}-order`).value);
+  });
+  return form;
+}
+
+export function auctionList(view, query) {
   view.root.append(h("h1", { tabindex: "-1" }, "Auctions"));
+  const chosen = { status: query.get("status") || "", order: query.get("order") || "newest" };
+  view.root.append(
+    filters("auction-filters", "Filter and sort the auctions", chosen, (status, order) => {
+      const params = new URLSearchParams();
+      if (status) params.set("status", status);
+      if (order !== "newest") params.set("order", order);
+      location.hash = `#/auctions${params.toString() ? `?${params}` : ""}`;
+    }),
+  );
   const rows = h("tbody");
   const headers = ["Auction", "Status", "Fish sold", "Patrons", "Rounds", "Price", "Revenue", "Stopped", "Started"];
   const list = h(
     "table",
     { class: "list", id: "auction-list" },
-    h("caption", {}, "Every auction, newest first"),
+    h("caption", {}, `Auctions, ${chosen.order} first`),
     h("thead", {}, h("tr", {}, headers.map((text) => h("th", { scope: "col" }, text)))),
     rows,
   );
-  const pages = pager("/auctions", {}, (items) => {
+  const pages = pager("/auctions", { status: chosen.status, order: chosen.order === "newest" ? "" : chosen.order }, (items) => {
     for (const a of items) {
       rows.append(
         tableRow([
@@ -52,7 +91,7 @@ export function auctionList(view) {
   pages
     .load()
     .then((page) => {
-      if (page.items.length === 0) list.after(h("p", {}, "No auction yet: an operator starts one with POST /auctions."));
+      if (page.items.length === 0) list.after(h("p", { class: "none-yet" }, "None yet: an operator starts one with POST /auctions."));
     })
     .catch((error) => view.root.append(problem(error)));
 }
@@ -148,6 +187,56 @@ export function auctionView(view, id) {
   const buyerRows = h("tbody");
   const quitterList = h("ul", { class: "quitters", id: "quitters" });
   const fineTuneRows = h("tbody");
+  const noneYet = (span) => h("tr", { class: "none-yet-row" }, h("td", { colspan: span, class: "none-yet" }, "none yet"));
+  const explainRound = h("select", { id: "explain-round" });
+  const explainPatron = h("select", { id: "explain-patron" });
+  const explanation = h("div", { id: "explanation", "aria-live": "polite" }, h("p", { class: "none-yet" }, "None yet: pick a round and a patron."));
+  const explainForm = h(
+    "form",
+    { class: "filters", id: "explain-form", "aria-label": "Explain a vote" },
+    h("label", { for: "explain-round" }, "Round ", explainRound),
+    h("label", { for: "explain-patron" }, "Patron ", explainPatron),
+    h("button", { type: "submit" }, "Explain the vote"),
+  );
+  const explainSection = h(
+    "section",
+    { "aria-labelledby": "explain-heading", id: "explain" },
+    h("h2", { id: "explain-heading" }, "Every vote explained"),
+    h("p", {}, "Why a patron voted buy, hold or quit in a round: its neurons on the row that decides (row 0), averaged over its copies as its vote was."),
+    explainForm,
+    explanation,
+  );
+  explainForm.addEventListener("submit", (event) => {
+    event.preventDefault();
+    showExplanation(Number(explainRound.value), Number(explainPatron.value));
+  });
+  function pickRound(iteration) {
+    explainRound.value = String(iteration);
+    explainPatron.focus();
+  }
+  function showExplanation(iteration, modelId) {
+    fill(explanation, h("p", { class: "liveness" }, "Loading…"));
+    getJSON(`/auctions/${id}/iterations/${iteration}/votes/${modelId}`)
+      .then((v) => {
+        names.set(v.model_id, v.participant);
+        const part = (caption, key, values) =>
+          table(caption, ["Neuron", "Meaning", "Value"], Object.entries(values).map(([n, x]) => [n, NEURON_WORDS[n] || n, fixed(x, 4)]), { "data-part": key });
+        fill(
+          explanation,
+          h(
+            "div",
+            { class: "explanation", "data-vote": v.vote },
+            h("h3", {}, `${v.participant} (version ${v.version}, model ${v.model_id}) voted `, h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote), ` in round ${v.iteration}`),
+            facts(Object.entries(v.row).map(([k, x]) => [k, fixed(x, 3)]), { "aria-label": "The row it voted on" }),
+            part("External sensor (after its activations)", "sensor", v.sensor),
+            part("Decision logits (the largest is the vote)", "decision", v.decision),
+            part("Prefrontal cortex: its verdict on the decision", "pfc", v.pfc),
+            link(`#/models/${v.model_id}`, "This model's neurons and weights in the inspector"),
+          ),
+        );
+      })
+      .catch((error) => fill(explanation, problem(error)));
+  }
   const fineTuning = h(
     "section",
     { "aria-labelledby": "fine-tuning-heading", id: "fine-tuning", hidden: true },
@@ -157,7 +246,7 @@ export function auctionView(view, id) {
       "table",
       { class: "list" },
       h("caption", {}, "Each fine-tuning round and how its patrons answered"),
-      h("thead", {}, h("tr", {}, ["Round", "After round", "Status", "Deadline", "Answers"].map((t) => h("th", { scope: "col" }, t)))),
+      h("thead", {}, h("tr", {}, ["Round", "After round", "Status", "Deadline", "Answers", "Each patron"].map((t) => h("th", { scope: "col" }, t)))),
       fineTuneRows,
     ),
   );
@@ -178,12 +267,12 @@ export function auctionView(view, id) {
       h("figure", {}, votesChart, h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
       h(
         "div",
-        { class: "scroll" },
+        { class: "scroll", tabindex: "0", role: "region", "aria-label": "Scrollable table" },
         h(
           "table",
           { class: "list", id: "rounds" },
           h("caption", {}, "Every committed round"),
-          h("thead", {}, h("tr", {}, ["Round", "Price", "Fish left", "Buy", "Hold", "Quit", "Sold", "Quit now"].map((t) => h("th", { scope: "col" }, t)))),
+          h("thead", {}, h("tr", {}, ["Round", "Price", "Fish left", "Buy", "Hold", "Quit", "Sold", "Quit now", "Votes"].map((t) => h("th", { scope: "col" }, t)))),
           roundRows,
         ),
       ),
@@ -201,8 +290,11 @@ export function auctionView(view, id) {
       ),
     ),
     h("section", { "aria-labelledby": "quitters-heading" }, h("h2", { id: "quitters-heading" }, "Quitters"), quitterList),
+    explainSection,
     fineTuning,
   );
+  buyerRows.append(noneYet(5));
+  quitterList.append(h("li", { class: "none-yet" }, "none yet"));
 
   const rounds = [];
   let head = null;
@@ -239,11 +331,31 @@ export function auctionView(view, id) {
     const outcomes = {};
     for (const a of r.answers) outcomes[a.outcome] = (outcomes[a.outcome] || 0) + 1;
     const answers = Object.entries(outcomes).map(([outcome, n]) => `${n} ${outcome}`).join(", ") || "none yet";
-    const row = tableRow([String(r.round), String(r.iteration), statusBadge(r.status), when(r.deadline), answers], { "data-round": r.round });
+    const each = r.answers.length ? h("ul", { class: "answers" }, r.answers.map(answerItem)) : h("span", { class: "none-yet" }, "none yet");
+    const row = tableRow([String(r.round), String(r.iteration), statusBadge(r.status), when(r.deadline), answers, each], { "data-round": r.round });
     const old = fineTuneRowOf.get(r.round);
     if (old) old.replaceWith(row);
     else fineTuneRows.append(row);
     fineTuneRowOf.set(r.round, row);
+  }
+
+  /** A patron's outcome in a round, linked to the version it bids with; a refused upload's
+   * screener reasons are read from that stored version. */
+  function answerItem(a) {
+    const item = h("li", { "data-model": a.model_id, "data-outcome": a.outcome }, `${nameOf(a.model_id)}: ${a.outcome}, bids with `, link(`#/models/${a.version_id}`, `version ${a.version}`));
+    if (a.outcome === "refused" && a.uploaded_id !== null) {
+      const reasons = h("ul", { class: "reasons" });
+      item.append(" (refused upload: ", link(`#/models/${a.uploaded_id}`, `model ${a.uploaded_id}`), ")", reasons);
+      getJSON(`/models/${a.uploaded_id}`)
+        .then((m) => fill(reasons, m.reasons.map((reason) => h("li", {}, `${reason.rule} on ${reason.neuron}: ${reason.message}`))))
+        .catch((error) => fill(reasons, h("li", {}, String(error.message || error))));
+    }
+    return item;
+  }
+
+  const names = new Map(); // model id -> participant, as the events name the patrons
+  function nameOf(modelId) {
+    return names.get(modelId) || `model ${modelId}`;
   }
 
   function patronLink(p) {
@@ -263,8 +375,15 @@ export function auctionView(view, id) {
         String(row.votes.quit),
         String(row.purchases.length),
         String(row.quits.length),
+        h("button", { type: "button", class: "explain-round", "data-iteration": row.iteration, onclick: () => pickRound(row.iteration) }, `Explain round ${row.iteration}`),
       ]),
     );
+    for (const p of [...row.purchases, ...row.quits]) names.set(p.model_id, p.participant);
+    explainRound.append(h("option", { value: row.iteration }, `round ${row.iteration}`));
+    if (row.iteration === 0) {
+      buyerRows.replaceChildren();
+      quitterList.replaceChildren();
+    }
     for (const p of row.purchases) {
       buyerRows.append(tableRow([patronLink(p), String(p.version), String(p.model_id), fixed(p.price), String(row.iteration)]));
     }
@@ -288,6 +407,7 @@ export function auctionView(view, id) {
   getJSON(`/auctions/${id}`)
     .then((auction) => {
       head = auction;
+      for (const modelId of auction.model_ids) explainPatron.append(h("option", { value: modelId }, `model ${modelId}`));
       showSummary(auction);
       drawPriceChart(priceChart, [], auction.price);
       const stop = follow(
@@ -298,7 +418,12 @@ export function auctionView(view, id) {
           end: (end) => {
             draw();
             showSummary(end);
+            if (rounds.length === 0) {
+              buyerRows.replaceChildren();
+              quitterList.replaceChildren();
+            }
             if (quitterList.children.length === 0) quitterList.append(h("li", {}, "nobody quit"));
+            for (const option of explainPatron.options) option.textContent = nameOf(Number(option.value));
             liveness.textContent = `Ended: ${end.status}, ${stopReason(end.stop_reason)}; ${end.n_sold} of ${end.n_initial} fish sold in ${end.iterations} rounds.`;
             if (buyerRows.children.length === 0) buyerRows.append(tableRow(["nobody bought a fish", "", "", "", ""]));
           },

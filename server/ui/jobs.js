@@ -1,9 +1,12 @@
-// Jobs: the list with progress, and one job followed live, its PNG artifacts shown inline.
+// Jobs: the list (filtered, sorted, jobs picked for comparison), one job followed live and then
+// read at a glance (headline cards, tables, figures; the raw JSON collapsed), and jobs compared.
 
 import { follow, getJSON, pager } from "./api.js";
 import { facts, fill, h, link, problem, tableRow, when } from "./dom.js";
+import { card, headline, kindLayouts, lineChart, rowsTable, shown, splitColumns, tablesOf, words } from "./results.js";
 
 const IMAGE = /\.(png|gif)$/i;
+const STATUSES = ["queued", "running", "succeeded", "failed", "cancelled"];
 
 function progressBar(fraction, label) {
   return h(
@@ -18,21 +21,73 @@ function statusBadge(status) {
   return h("span", { class: `badge status-${status}` }, status);
 }
 
-export function jobList(view) {
+function select(id, label, options, value) {
+  return h(
+    "label",
+    { for: id },
+    `${label} `,
+    h("select", { id }, options.map(([v, text]) => h("option", { value: v, selected: v === value }, text))),
+  );
+}
+
+export function jobList(view, query) {
   view.root.append(h("h1", { tabindex: "-1" }, "Jobs"));
+  const chosen = { status: query.get("status") || "", kind: query.get("kind") || "", order: query.get("order") || "newest" };
+  const picked = new Map(); // job id -> kind
+  const compare = h("button", { type: "button", id: "compare", disabled: true }, "Compare selected");
+  const note = h("span", { id: "compare-note", role: "status" }, "Select two or more jobs of one kind.");
+  const form = h(
+    "form",
+    { class: "filters", id: "job-filters", "aria-label": "Filter and sort the jobs" },
+    select("filter-status", "Status", [["", "any"], ...STATUSES.map((s) => [s, s])], chosen.status),
+    select("filter-kind", "Kind", [["", "any"]], chosen.kind),
+    select("filter-order", "Order", [["newest", "newest first"], ["oldest", "oldest first"]], chosen.order),
+    h("button", { type: "submit" }, "Apply"),
+    compare,
+    note,
+  );
+  kindLayouts().then((kinds) => {
+    const kind = form.querySelector("#filter-kind");
+    for (const name of Object.keys(kinds)) kind.append(h("option", { value: name, selected: name === chosen.kind }, name));
+  });
+  form.addEventListener("submit", (event) => {
+    event.preventDefault();
+    const params = new URLSearchParams();
+    for (const name of ["status", "kind", "order"]) {
+      const value = form.querySelector(`#filter-${name}`).value;
+      if (value && !(name === "order" && value === "newest")) params.set(name, value);
+    }
+    location.hash = `#/jobs${params.toString() ? `?${params}` : ""}`;
+  });
+  function updateCompare() {
+    const kinds = new Set(picked.values());
+    compare.disabled = picked.size < 2 || kinds.size !== 1;
+    note.textContent = kinds.size > 1 ? "The selected jobs are of different kinds." : picked.size < 2 ? "Select two or more jobs of one kind." : `${picked.size} ${[...kinds][0]} jobs selected.`;
+  }
+  compare.addEventListener("click", () => {
+    location.hash = `#/jobs/compare?ids=${[...picked.keys()].sort((a, b) => a - b).join(",")}`;
+  });
   const rows = h("tbody");
-  const headers = ["Job", "Kind", "Status", "Progress", "Message", "Queued", "Finished"];
+  const headers = ["Compare", "Job", "Kind", "Status", "Progress", "Message", "Queued", "Finished"];
   const list = h(
     "table",
     { class: "list", id: "job-list" },
-    h("caption", {}, "Every experiment job, newest first"),
+    h("caption", {}, `Experiment jobs, ${chosen.order} first`),
     h("thead", {}, h("tr", {}, headers.map((text) => h("th", { scope: "col" }, text)))),
     rows,
   );
-  const pages = pager("/jobs", {}, (items) => {
+  const params = { status: chosen.status, kind: chosen.kind, order: chosen.order === "newest" ? "" : chosen.order };
+  const pages = pager("/jobs", params, (items) => {
     for (const j of items) {
+      const box = h("input", { type: "checkbox", "aria-label": `Select job ${j.id} for comparison`, "data-job": j.id });
+      box.addEventListener("change", () => {
+        if (box.checked) picked.set(j.id, j.kind);
+        else picked.delete(j.id);
+        updateCompare();
+      });
       rows.append(
         tableRow([
+          box,
           link(`#/jobs/${j.id}`, `Job ${j.id}`),
           j.kind,
           statusBadge(j.status),
@@ -44,11 +99,11 @@ export function jobList(view) {
       );
     }
   });
-  view.root.append(list, pages.box);
+  view.root.append(form, list, pages.box);
   pages
     .load()
     .then((page) => {
-      if (page.items.length === 0) list.after(h("p", {}, "No job yet: an operator queues one with POST /jobs."));
+      if (page.items.length === 0) list.after(h("p", { class: "none-yet" }, "None yet: an operator queues a job with POST /jobs."));
     })
     .catch((error) => view.root.append(problem(error)));
 }
@@ -63,18 +118,42 @@ function artifacts(id, names) {
   return h(
     "section",
     { "aria-labelledby": "artifacts-heading", id: "artifacts" },
-    h("h2", { id: "artifacts-heading" }, "Artifacts"),
-    names.length === 0 ? h("p", {}, "This job wrote no files.") : null,
+    h("h2", { id: "artifacts-heading" }, "Figures and files"),
+    names.length === 0 ? h("p", { class: "none-yet" }, "None yet.") : null,
     images.map((name) => h("figure", { class: "artifact" }, h("img", { src: artifactUrl(id, name), alt: `Plot ${name}`, loading: "lazy" }), h("figcaption", {}, name))),
     files.length ? h("ul", {}, files.map((name) => h("li", {}, h("a", { href: artifactUrl(id, name) }, name)))) : null,
   );
+}
+
+/** A finished job's result at a glance: headline cards, then its tables. */
+function resultAtAGlance(result, layout) {
+  const names = headline(result, layout);
+  const tables = tablesOf(result, layout);
+  return [
+    h(
+      "section",
+      { "aria-labelledby": "headline-heading" },
+      h("h2", { id: "headline-heading" }, "Headline numbers"),
+      names.length ? h("dl", { class: "cards-row", id: "headline" }, names.map((n) => card(n, result[n]))) : h("p", { class: "none-yet" }, "None yet."),
+    ),
+    h(
+      "section",
+      { "aria-labelledby": "tables-heading", id: "result-tables" },
+      h("h2", { id: "tables-heading" }, "Tables"),
+      tables.length ? tables.map((t) => rowsTable(t)) : h("p", { class: "none-yet" }, "This result has no table."),
+    ),
+  ];
+}
+
+function parameters(params) {
+  return Object.entries(params).map(([k, v]) => `${k} = ${JSON.stringify(v)}`).join(", ") || "defaults";
 }
 
 export function jobView(view, id) {
   const title = h("h1", { tabindex: "-1" }, `Job ${id}`);
   const liveness = h("p", { class: "liveness", role: "status", id: "liveness" }, "Loading…");
   const state = h("div", { id: "job-state" });
-  const outcome = h("div");
+  const outcome = h("div", { id: "job-outcome" }, h("p", { class: "none-yet" }, "No result yet."));
   view.root.append(title, liveness, state, outcome);
 
   function showState(job, status, progress, message) {
@@ -85,14 +164,14 @@ export function jobView(view, id) {
         ["Status", statusBadge(status)],
         ["Progress", progressBar(progress, "job progress")],
         ["Message", message],
-        ["Parameters", Object.entries(job.params).map(([k, v]) => `${k} = ${JSON.stringify(v)}`).join(", ") || "defaults"],
+        ["Parameters", parameters(job.params)],
         ["Queued", when(job.created_at)],
       ]),
     );
   }
 
-  getJSON(`/jobs/${id}`)
-    .then((job) => {
+  Promise.all([getJSON(`/jobs/${id}`), kindLayouts()])
+    .then(([job, kinds]) => {
       fill(title, `Job ${id}: ${job.kind}`);
       showState(job, job.status, job.progress, job.message);
       const stop = follow(
@@ -105,6 +184,7 @@ export function jobView(view, id) {
             fill(
               outcome,
               done.error ? h("section", {}, h("h2", {}, "Error"), h("pre", { class: "error" }, done.error)) : null,
+              done.result ? resultAtAGlance(done.result, kinds[done.kind]) : null,
               artifacts(id, done.artifacts),
               done.result ? h("section", {}, h("h2", {}, "Result"), h("details", {}, h("summary", {}, "The result as JSON (the CLI's --json object)"), h("pre", {}, JSON.stringify(done.result, null, 2)))) : null,
             );
@@ -118,4 +198,131 @@ export function jobView(view, id) {
       view.onLeave(stop);
     })
     .catch((error) => liveness.replaceWith(problem(error)));
+}
+
+/** Parameters side by side, one column per job; rows where the jobs differ are marked. */
+function parameterTable(jobs) {
+  const names = [...new Set(jobs.flatMap((j) => Object.keys(j.params)))].sort();
+  const rows = names.map((name) => {
+    const values = jobs.map((j) => (name in j.params ? JSON.stringify(j.params[name]) : "default"));
+    const differs = new Set(values).size > 1;
+    return h(
+      "tr",
+      { class: differs ? "differs" : null, "data-param": name },
+      h("th", { scope: "row" }, name),
+      values.map((v) => h("td", {}, v)),
+      h("td", {}, differs ? "differs" : "same"),
+    );
+  });
+  return h(
+    "table",
+    { class: "list", id: "compare-params" },
+    h("caption", {}, "Parameters (rows where the jobs differ are marked)"),
+    h("thead", {}, h("tr", {}, h("th", { scope: "col" }, "Parameter"), jobs.map((j) => h("th", { scope: "col" }, `Job ${j.id}`)), h("th", { scope: "col" }, "Across jobs"))),
+    h("tbody", {}, rows.length ? rows : h("tr", {}, h("td", { colspan: jobs.length + 2 }, "Every job ran on the defaults."))),
+  );
+}
+
+function rowKey(row, keys) {
+  return keys.map((k) => `${words(k).toLowerCase()} ${shown(k, row[k])}`).join(", ");
+}
+
+/** One table of every job, rows matched on their key columns; each measure per job and its
+ * change from the first job. */
+function diffTable(name, specs, jobs) {
+  const spec = specs.find((s) => s);
+  const { keys, measures } = splitColumns(spec.rows, spec.columns);
+  const byKey = specs.map((s) => new Map((s ? s.rows : []).map((r) => [rowKey(r, keys), r])));
+  const order = [...new Set(byKey.flatMap((m) => [...m.keys()]))];
+  const head = [h("th", { scope: "col" }, "Row")];
+  for (const m of measures) {
+    jobs.forEach((j, i) => head.push(h("th", { scope: "col" }, `${words(m)}, job ${j.id}${i ? " (Δ)" : ""}`)));
+  }
+  const body = order.map((key) =>
+    h(
+      "tr",
+      { "data-row": key },
+      h("th", { scope: "row" }, key || "all"),
+      measures.flatMap((m) =>
+        jobs.map((_, i) => {
+          const value = byKey[i].get(key)?.[m];
+          const base = byKey[0].get(key)?.[m];
+          if (i === 0 || typeof value !== "number" || typeof base !== "number") return h("td", {}, shown(m, value));
+          const delta = value - base;
+          const sign = delta > 0 ? "+" : delta < 0 ? "\u2212" : "±";
+          return h("td", { class: delta > 0 ? "delta-up" : delta < 0 ? "delta-down" : null, "data-delta": delta }, `${shown(m, value)} (${sign}${shown(m, Math.abs(delta))})`);
+        }),
+      ),
+    ),
+  );
+  return h(
+    "div",
+    { class: "scroll", tabindex: "0", role: "region", "aria-label": "Scrollable table" },
+    h("table", { class: "list", "data-diff": name }, h("caption", {}, `${spec.caption}: job against job (Δ from job ${jobs[0].id})`), h("thead", {}, h("tr", {}, head)), h("tbody", {}, body)),
+  );
+}
+
+/** Each table's main outcome (its first mean or accuracy) against its first numeric key, one
+ * line per job (and setting). */
+function overlay(name, specs, jobs, index) {
+  const spec = specs.find((s) => s);
+  const { keys, measures } = splitColumns(spec.rows, spec.columns);
+  const x = keys.find((k) => spec.rows.every((r) => typeof r[k] === "number"));
+  const numeric = measures.filter((m) => spec.rows.some((r) => typeof r[m] === "number"));
+  const y = numeric.find((m) => /^(mean|accuracy)/.test(m)) || numeric[0]; // an outcome, not a count
+  if (!x || !y) return null;
+  const others = keys.filter((k) => k !== x);
+  const lines = [];
+  specs.forEach((s, i) => {
+    const groups = new Map();
+    for (const row of s ? s.rows : []) {
+      const group = rowKey(row, others);
+      if (!groups.has(group)) groups.set(group, []);
+      groups.get(group).push([row[x], typeof row[y] === "number" ? row[y] : NaN]);
+    }
+    for (const [group, points] of groups) lines.push({ label: `job ${jobs[i].id}${group ? `, ${group}` : ""}`, points });
+  });
+  return lineChart(lines, x, y, `overlay-${index}`);
+}
+
+export function compareView(view, query) {
+  const ids = (query.get("ids") || "").split(",").filter((s) => /^\d+$/.test(s)).map(Number);
+  view.root.append(h("h1", { tabindex: "-1" }, `Compare jobs ${ids.join(", ")}`));
+  if (ids.length < 2) {
+    view.root.append(h("p", { class: "problem" }, "Name two or more jobs: #/jobs/compare?ids=3,5."), link("#/jobs", "All jobs"));
+    return;
+  }
+  const body = h("div", { id: "comparison" }, h("p", { class: "liveness" }, "Loading…"));
+  view.root.append(body);
+  Promise.all([Promise.all(ids.map((i) => getJSON(`/jobs/${i}`))), kindLayouts()])
+    .then(([jobs, kinds]) => {
+      const kindsSeen = new Set(jobs.map((j) => j.kind));
+      if (kindsSeen.size > 1) {
+        fill(body, h("p", { class: "problem" }, `These jobs are of different kinds (${[...kindsSeen].join(", ")}); compare jobs of one kind.`));
+        return;
+      }
+      const layout = kinds[jobs[0].kind];
+      const results = jobs.map((j) => j.result || {});
+      const names = [...new Set(results.flatMap((r) => tablesOf(r, layout).map((t) => t.name)))];
+      const sections = names.map((name, index) => {
+        const specs = results.map((r) => tablesOf(r, layout).find((t) => t.name === name) || null);
+        return h("section", { "aria-label": words(name) }, h("h3", {}, specs.find((s) => s).caption), overlay(name, specs, jobs, index), diffTable(name, specs, jobs));
+      });
+      const heads = [...new Set(results.flatMap((r) => headline(r, layout)))];
+      fill(
+        body,
+        h("p", {}, `${jobs.length} ${jobs[0].kind} jobs: `, jobs.map((j, i) => [i ? ", " : "", link(`#/jobs/${j.id}`, `job ${j.id}`), ` (${j.status})`]), ". Share this view by its address."),
+        h("section", { "aria-labelledby": "params-heading" }, h("h2", { id: "params-heading" }, "Parameters"), parameterTable(jobs)),
+        h(
+          "section",
+          { "aria-labelledby": "heads-heading" },
+          h("h2", { id: "heads-heading" }, "Headline numbers"),
+          heads.length
+            ? h("table", { class: "list", id: "compare-headline" }, h("caption", {}, "Headline numbers of each job"), h("thead", {}, h("tr", {}, h("th", { scope: "col" }, "Number"), jobs.map((j) => h("th", { scope: "col" }, `Job ${j.id}`)))), h("tbody", {}, heads.map((n) => h("tr", {}, h("th", { scope: "row" }, words(n)), results.map((r) => h("td", {}, shown(n, r[n])))))))
+            : h("p", { class: "none-yet" }, "None yet."),
+        ),
+        h("section", { "aria-labelledby": "diff-heading" }, h("h2", { id: "diff-heading" }, "Tables and curves"), sections.length ? sections : h("p", { class: "none-yet" }, "None yet: these results have no table.")),
+      );
+    })
+    .catch((error) => fill(body, problem(error)));
 }

@@ -163,9 +163,10 @@ function network({ id, label, columns, neurons, reasonsByNeuron, sourceLabel, on
         svg("circle", { cx: x, cy: y, r: 17 }),
         svg("text", { x, y: y + 4, "text-anchor": "middle" }, i === 0 && !column.neurons ? column.short(name) : name),
       ];
-      if (reasons.length) {
-        shapes.push(svg("circle", { class: "badge-dot", cx: x + 14, cy: y - 14, r: 9 }), svg("text", { class: "badge-count", x: x + 14, y: y - 10.5, "text-anchor": "middle" }, String(reasons.length)));
-      }
+      // The count sits beside the focusable neuron, not in it: its name already says the count.
+      const badge = reasons.length
+        ? svg("g", { class: "node badge", "aria-hidden": "true" }, svg("circle", { class: "badge-dot", cx: x + 14, cy: y - 14, r: 9 }), svg("text", { class: "badge-count", x: x + 14, y: y - 10.5, "text-anchor": "middle" }, String(reasons.length)))
+        : null;
       if (!isNeuron) {
         nodes.push(svg("g", { class: "node input", "data-input": name }, svg("title", {}, name), shapes));
         return;
@@ -184,7 +185,7 @@ function network({ id, label, columns, neurons, reasonsByNeuron, sourceLabel, on
           onPick(name);
         }
       });
-      nodes.push(group);
+      nodes.push(group, badge);
     });
   });
   return svg("svg", { class: "network", id, viewBox: `0 0 ${width} ${height}`, role: "group", "aria-label": label }, edges, nodes);

@@ -13,7 +13,9 @@ from sim.market.rounds import FineTuneRound
 
 
 class Market:
-    """One auction (see ``sim.market``); ``rescreen`` re-checks fine-tuned patrons."""
+    """One auction (see ``sim.market``); ``rescreen`` re-checks fine-tuned patrons. Its records
+    explain every vote (``IterationRecord.explanations``): one auction is what the server plays
+    and shows, and one more row-0 pass costs little next to the iteration."""
 
     def __init__(
         self,
@@ -25,7 +27,7 @@ class Market:
     ) -> None:
         self.config = config
         self._engine = MarketBatch(
-            [(manifests, config)], rescreen=[rescreen], rescreen_batch=rescreen_batch
+            [(manifests, config)], rescreen=[rescreen], rescreen_batch=rescreen_batch, explain=True
         )
 
     @property

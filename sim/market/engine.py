@@ -13,14 +13,14 @@ from torch import Tensor
 
 from agents.batch import FSNBatch, from_manifests, to_manifest
 from agents.fine_tuning import fine_tune_round
-from agents.forward import ACTIONS, decide, noise_scale, standard_normal
+from agents.forward import ACTIONS, activations, decide, noise_scale, standard_normal
 from agents.manifest import INPUTS, Manifest
 from sim.market import rounds
 from sim.market.config import MarketConfig, fine_tunes_after, scores_all_rows
 from sim.market.design import Design, design
 from sim.market.items import BUY_FRACTION, PRICE, item_rows
 from sim.market.randomness import AuctionRandom, round_seeds
-from sim.market.records import IterationRecord
+from sim.market.records import IterationRecord, VoteExplanation
 from sim.market.rounds import FineTuneRound
 
 Rescreen = Callable[[int, Manifest], bool]
@@ -28,6 +28,14 @@ Rescreen = Callable[[int, Manifest], bool]
 RescreenBatch = Callable[[FSNBatch], np.ndarray]
 """Called once per fine-tuning round with every fine-tuned patron of the batch's auctions (a
 sub-batch, in batch order); returns one bool per patron, False reverts it."""
+
+EXPLAINED = (
+    ("sensor", ("PG", "SZ", "LSR", "ST")),
+    ("decision", ("B", "L", "Q")),
+    ("pfc", ("T", "F")),
+)
+"""The neurons of a vote's explanation, by the part of the network they belong to."""
+EXPLAINED_NEURONS = [name for _, names in EXPLAINED for name in names]
 
 EVALUATION_CHUNK = 32_000
 """(patron, row, copy) evaluations per ``decide`` call: bigger tensors fall out of the cache and
@@ -75,6 +83,10 @@ class _Votes(NamedTuple):
     buy_fraction: np.ndarray
     """(A, scored rows): each row's f, the buy votes over the voters its auction's
     ``buy_fraction`` rule counts."""
+    explained: np.ndarray | None
+    """(voters, len(EXPLAINED_NEURONS)): their neurons on row 0, when the batch explains."""
+    row: np.ndarray | None
+    """(A, 8): each auction's row 0 as voted on, when the batch explains."""
 
 
 class _Moves(NamedTuple):
@@ -105,9 +117,12 @@ class MarketBatch:
         rescreen_batch: RescreenBatch | None = None,
         dtype: torch.dtype = torch.float64,
         patrons: FSNBatch | None = None,
+        explain: bool = False,
     ) -> None:
         """``patrons``, if given, is ``from_manifests`` of every auction's manifests in order,
-        built by the caller (who may stack it from parts it already holds)."""
+        built by the caller (who may stack it from parts it already holds). ``explain`` adds
+        each voter's neurons to the records (one more row-0 pass per iteration; the votes are
+        the same)."""
         if not auctions:
             raise ValueError("no auction")
         self.configs = [config for _, config in auctions]
@@ -116,6 +131,7 @@ class MarketBatch:
         self.n_rows = self.configs[0].n_rows
         self.rescreen = list(rescreen) if rescreen is not None else [None] * len(auctions)
         self.rescreen_batch = rescreen_batch
+        self.explain = explain
         sizes = [len(manifests) for manifests, _ in auctions]
         if min(sizes) < 1:
             raise ValueError("every auction needs at least one patron")
@@ -204,7 +220,8 @@ class MarketBatch:
         voters = np.flatnonzero(self.active & running[self.owner])
         owner = self.owner[voters]
         groups = self._groups(voters)
-        decisions = self._evaluate(voters, groups, full)
+        row = self.rows[:, 0].numpy().copy() if self.explain else None
+        decisions, explained = self._evaluate(voters, groups, full)
         row0 = decisions[:, 0]
         counts = np.bincount(owner * 3 + row0, minlength=3 * A).reshape(A, 3)
         scored = full[owner][:, None] | (np.arange(decisions.shape[1]) == 0)[None, :]
@@ -220,7 +237,7 @@ class MarketBatch:
         staying = np.array([self.configs[a].buy_fraction == "staying" for a in voting])
         counted = np.where(staying[:, None], buys + holds, sizes[:, None])
         buy_fraction[voting] = buys / np.maximum(counted, 1)
-        return _Votes(voters, owner, row0, counts, row_counts, buy_fraction)
+        return _Votes(voters, owner, row0, counts, row_counts, buy_fraction, explained, row)
 
     def _apply_price_rules(self, running: np.ndarray, votes: _Votes) -> _Moves:
         """2. High demand raises the price (and the stalemate threshold); low demand sells to
@@ -290,6 +307,7 @@ class MarketBatch:
         start_prices, start_availables = moves.price.tolist(), moves.n_available.tolist()
         vote_counts, row_vote_counts = votes.counts.tolist(), votes.row_counts.tolist()
         price, available = self.price.tolist(), self.n_available.tolist()
+        explanations = self._explanations(votes)
         for a in playing:
             records[a] = IterationRecord(
                 iteration=iterations[a],
@@ -305,8 +323,29 @@ class MarketBatch:
                 stop_reason=reasons[a],
                 fine_tuned=kept.get(a, []),
                 reverted=reverted.get(a, []),
+                row=dict(zip(INPUTS, votes.row[a].tolist(), strict=True))
+                if votes.row is not None
+                else {},
+                explanations=explanations[a],
             )
         return records
+
+    def _explanations(self, votes: _Votes) -> list[list[VoteExplanation]]:
+        """Each auction's voters' explanations (empty lists when the batch does not explain)."""
+        out: list[list[VoteExplanation]] = [[] for _ in range(self.n_auctions)]
+        if votes.explained is None:
+            return out
+        values = votes.explained.tolist()
+        local, owner, row0 = (
+            self.local[votes.voters].tolist(),
+            votes.owner.tolist(),
+            votes.row0.tolist(),
+        )
+        for i, neurons in enumerate(values):
+            named = dict(zip(EXPLAINED_NEURONS, neurons, strict=True))
+            parts = {part: {n: named[n] for n in names} for part, names in EXPLAINED}
+            out[owner[i]].append(VoteExplanation(local[i], ACTIONS[row0[i]], **parts))
+        return out
 
     def _by_auction(self, patrons: np.ndarray) -> list[list[int]]:
         """The local indices of ``patrons`` (sorted), one list per auction."""
@@ -324,8 +363,9 @@ class MarketBatch:
 
     def _evaluate(
         self, voters: np.ndarray, groups: list[tuple[int, int, int]], full: np.ndarray
-    ) -> np.ndarray:
-        """Decisions (n_voters, R_scored) of the voters; each auction draws its own noise.
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Decisions (n_voters, R_scored) of the voters, each auction drawing its own noise, and
+        when the batch explains, their neurons on row 0 (n_voters, len(EXPLAINED_NEURONS)).
         Auctions are evaluated a few at a time, so that the tensors stay in the cache."""
         width = self.n_rows if full.any() else 1
         voting = self._voting(voters)
@@ -333,7 +373,7 @@ class MarketBatch:
         starts = np.array([start for _, start, _ in groups])
         own_copies = np.maximum.reduceat(copies, starts).tolist()  # each auction's largest D
         work = np.add.reduceat(copies, starts) * width
-        decisions = []
+        decisions, explained = [], []
         for first, last in _runs(work.tolist(), EVALUATION_CHUNK):
             chunk = groups[first:last]
             start, stop = chunk[0][1], chunk[-1][2]
@@ -346,8 +386,12 @@ class MarketBatch:
             mine = voters[start:stop]
             noise = normal * self.scale[torch.from_numpy(mine), None, :n_copies]  # float64
             x = self.rows[torch.from_numpy(self.owner[mine]), :width]
-            decisions.append(decide(voting.select(slice(start, stop)), x, noise))
-        return torch.cat(decisions).numpy()
+            sub = voting.select(slice(start, stop))
+            decisions.append(decide(sub, x, noise))
+            if self.explain:  # the same row-0 inputs and noise as the votes
+                neurons = activations(sub, x[:, :1], noise[:, :1])
+                explained.append(torch.cat([neurons[n] for n in EXPLAINED_NEURONS], dim=1))
+        return torch.cat(decisions).numpy(), torch.cat(explained).numpy() if explained else None
 
     def _normals(
         self,

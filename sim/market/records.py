@@ -7,6 +7,23 @@ from dataclasses import dataclass, field
 from typing import Any
 
 
+@dataclass(frozen=True)
+class VoteExplanation:
+    """Why one patron voted as it did on row 0 (the row that decides): its named neurons
+    there, each averaged over the patron's D_ic copies as its vote was."""
+
+    patron: int
+    """The patron's position in the auction."""
+    vote: str
+    """buy | hold | quit."""
+    sensor: dict[str, float]
+    """The external sensor after its activations: PG, SZ, LSR, ST."""
+    decision: dict[str, float]
+    """The decision logits B, L, Q (the vote is the largest)."""
+    pfc: dict[str, float]
+    """The prefrontal cortex's verdicts T (right) and F (wrong) on that decision."""
+
+
 @dataclass
 class IterationRecord:
     """What happened in one iteration of one auction."""
@@ -33,9 +50,20 @@ class IterationRecord:
     """Patrons whose fine-tuned parameters were kept after this iteration."""
     reverted: list[int] = field(default_factory=list)
     """Patrons whose fine-tuned parameters the re-screening refused (reverted)."""
+    row: dict[str, float] = field(default_factory=dict, compare=False)
+    """The inputs of row 0 the patrons voted on, by name (empty unless explained)."""
+    explanations: list[VoteExplanation] = field(default_factory=list, compare=False)
+    """Each voter's explanation, in patron order (empty unless the market explains). Derived
+    from the votes, so not part of the record's equality nor of ``to_dict``."""
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready form."""
+        """JSON-ready form of what happened (without the explanations)."""
         out = dataclasses.asdict(self)
+        del out["row"], out["explanations"]
         out["buyers"] = [{"patron": p, "price": price} for p, price in self.buyers]
         return out
+
+    def explained(self) -> dict[str, Any]:
+        """The explanations, JSON-ready: ``{row, patrons: [{patron, vote, sensor, decision,
+        pfc}]}``."""
+        return {"row": self.row, "patrons": [dataclasses.asdict(e) for e in self.explanations]}

@@ -9,8 +9,10 @@ user-supplied strings stay text. Any request to another origin fails the test (o
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
+import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -181,6 +183,12 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
         cells = [cell.text_content() for cell in row.locator("td").all()]
         assert cells[:3] == [str(expected["round"]), str(expected["iteration"]), "closed"]
         assert cells[4] == f"{len(expected['answers'])} missing"
+        each = row.locator("td").nth(5).locator("li[data-outcome]")
+        assert each.count() == len(expected["answers"])
+        for item, answer in zip(each.all(), expected["answers"], strict=True):
+            assert item.get_attribute("data-outcome") == answer["outcome"] == "missing"
+            version = item.locator(f"a[href='#/models/{answer['version_id']}']")
+            assert version.text_content() == f"version {answer['version']}"
 
 
 def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
@@ -342,3 +350,226 @@ def test_keyboard_reaches_every_section(page: Any, server: ServerProcess) -> Non
         assert page.evaluate("document.activeElement.tagName") == "H1"  # focus follows the view
         current = page.get_by_role("link", name=section, exact=True)
         assert current.get_attribute("aria-current") == "page"
+
+
+def four(value: float) -> str:
+    """A float as the page shows it: 4 significant digits, JavaScript's shortest form."""
+    rounded = float(f"{value:.4g}")
+    return str(int(rounded)) if rounded.is_integer() else repr(rounded)
+
+
+STUDY = {"kind": "auction-study", "params": {"rarities": [0.3, 0.6], "patrons": 6, "trials": 1}}
+
+
+def finished_job(api: httpx.Client, body: dict[str, Any]) -> dict[str, Any]:
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    job_id = api.post("/jobs", json=body, headers=headers).json()["job_id"]
+    deadline = time.monotonic() + 120
+    while (job := api.get(f"/jobs/{job_id}").json())["status"] not in ("succeeded", "failed"):
+        assert time.monotonic() < deadline, job
+        time.sleep(0.2)
+    assert job["status"] == "succeeded", job["error"]
+    return dict(job)
+
+
+@pytest.fixture(scope="module")
+def studies(api: httpx.Client) -> list[dict[str, Any]]:
+    """Two auction studies that differ in their trials."""
+    other = {**STUDY, "params": {**STUDY["params"], "trials": 2}}
+    return [finished_job(api, STUDY), finished_job(api, other)]
+
+
+def test_job_page_opens_on_its_headline_cards_tables_and_figures(
+    page: Any, server: ServerProcess, studies: list[dict[str, Any]], tmp_path: Path
+) -> None:
+    job = studies[0]
+    result = job["result"]
+    page.goto(f"{server.url}/ui/#/jobs/{job['id']}")
+    page.wait_for_selector("#headline .card", timeout=WAIT_MS)
+    cards = {
+        (c.locator("dt").text_content() or ""): c.locator("dd").text_content()
+        for c in page.locator("#headline .card").all()
+    }
+    assert cards["Auctions"] == str(result["auctions"]) and cards["Refused"] == "0"
+    assert cards["Elapsed (s)"] == four(result["elapsed_s"])
+    for card in page.locator("#headline .card dd").all():  # no card overflows
+        assert page.evaluate("(dd) => dd.scrollWidth <= dd.clientWidth + 1", card.element_handle())
+    table = page.locator("table[data-table='rows']")
+    assert table.locator("tbody tr").count() == len(result["rows"])
+    headers = [th.text_content() for th in table.locator("th").all()]
+    assert "Mean price" in headers and "Purchase rate" in headers and "mean_price" not in headers
+    prices = [td.text_content() for td in table.locator("tbody tr td:nth-child(4)").all()]
+    assert prices == [
+        "—" if r["mean_price"] is None else four(r["mean_price"]) for r in result["rows"]
+    ]
+    images = page.locator("#artifacts img")
+    assert images.count() == len([a for a in job["artifacts"] if a.endswith(".png")]) > 0
+    raw = page.locator("details:has(summary:has-text('as JSON'))")
+    assert raw.count() == 1 and raw.get_attribute("open") is None  # collapsed
+    first = "(a, b) => document.querySelector(a).compareDocumentPosition(document.querySelector(b))"
+    assert page.evaluate(f"({first})('#headline', 'details')") & 4  # the cards come first
+    screenshot(page, "ui_job.png", tmp_path, full_page=True)
+
+
+def test_jobs_compare_side_by_side_from_the_filtered_list_with_the_keyboard(
+    page: Any, server: ServerProcess, studies: list[dict[str, Any]], tmp_path: Path
+) -> None:
+    first, second = studies
+    page.goto(f"{server.url}/ui/#/jobs")
+    page.wait_for_selector("#job-list tbody tr", timeout=WAIT_MS)
+    page.select_option("#filter-kind", "auction-study")
+    page.locator("#job-filters button[type='submit']").focus()
+    page.keyboard.press("Enter")
+    page.wait_for_url("**/#/jobs?kind=auction-study", timeout=WAIT_MS)
+    page.wait_for_selector("#job-list tbody tr", timeout=WAIT_MS)
+    kinds = [
+        r.locator("td").nth(2).text_content() for r in page.locator("#job-list tbody tr").all()
+    ]
+    assert kinds and set(kinds) == {"auction-study"}
+    assert page.locator("#compare").is_disabled()
+    for job in (second, first):
+        page.locator(f"input[data-job='{job['id']}']").focus()
+        page.keyboard.press("Space")
+    assert page.locator("#compare").is_enabled()
+    page.locator("#compare").focus()
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#compare-params", timeout=WAIT_MS)
+    assert page.url.endswith(f"#/jobs/compare?ids={first['id']},{second['id']}")
+    assert page.locator("tr[data-param='trials']").get_attribute("class") == "differs"
+    assert page.locator("tr[data-param='patrons']").get_attribute("class") is None
+    diff = page.locator("table[data-diff='rows'] tbody tr")
+    assert diff.count() == len(first["result"]["rows"])
+    base = {r["rarity"]: r for r in first["result"]["rows"]}
+    headers = [
+        th.text_content() for th in page.locator("table[data-diff='rows'] th[scope='col']").all()
+    ]
+    rate = headers.index(f"Purchase rate, job {second['id']} (Δ)")
+    for row in diff.all():
+        rarity = float((row.get_attribute("data-row") or "").split("rarity ")[1].split(",")[0])
+        theirs = next(r for r in second["result"]["rows"] if r["rarity"] == rarity)
+        cell = row.locator("th, td").nth(rate)
+        delta = float(cell.get_attribute("data-delta") or "nan")
+        assert delta == pytest.approx(theirs["purchase_rate"] - base[rarity]["purchase_rate"])
+    curves = page.locator("svg#overlay-0 polyline.curve")
+    assert curves.count() == 2
+    assert {c.get_attribute("data-line") for c in curves.all()} == {
+        f"job {first['id']}, setting honest",
+        f"job {second['id']}, setting honest",
+    }
+    screenshot(page, "ui_compare.png", tmp_path, full_page=True)
+    page.reload()  # the address alone rebuilds the view
+    page.wait_for_selector("svg#overlay-0 polyline.curve", state="attached", timeout=WAIT_MS)
+
+
+def test_every_vote_of_a_round_opens_its_explanation(
+    page: Any,
+    server: ServerProcess,
+    api: httpx.Client,
+    population: dict[str, dict[str, Any]],
+    tmp_path: Path,
+) -> None:
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    body = {"n_fish": 2, "model_ids": honest_ids, "seed": 5}
+    auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    page.wait_for_selector("#liveness:has-text('Ended')", timeout=60_000)
+    auction = api.get(f"/auctions/{auction_id}").json()
+    last = auction["history"][-1]["iteration"]
+    assert auction["buyers"]  # two fish among six honest patrons
+    voter, at = auction["buyers"][0]["model_id"], auction["buyers"][0]["iteration"]
+    for iteration, model_id in ((0, honest_ids[-1]), (at, voter)):
+        page.locator(f"button.explain-round[data-iteration='{iteration}']").focus()
+        page.keyboard.press("Enter")
+        assert page.evaluate("document.activeElement.id") == "explain-patron"
+        page.select_option("#explain-patron", str(model_id))
+        page.locator("#explain-form button[type='submit']").focus()
+        page.keyboard.press("Enter")
+        card = page.locator("#explanation .explanation")
+        card.wait_for(timeout=WAIT_MS)
+        page.wait_for_function(
+            f"document.querySelector('#explanation h3')?.textContent.endsWith('round {iteration}')"
+        )
+        expected = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{model_id}").json()
+        assert card.get_attribute("data-vote") == expected["vote"]
+        for part in ("sensor", "decision", "pfc"):
+            cells = [
+                [td.text_content() for td in tr.locator("td").all()]
+                for tr in card.locator(f"table[data-part='{part}'] tbody tr").all()
+            ]
+            assert [(c[0], c[2]) for c in cells] == [
+                (name, f"{value:.4f}") for name, value in expected[part].items()
+            ]
+    assert card.get_attribute("data-vote") == "buy"  # the buyer's vote in its round
+    assert page.locator("#explain-round option").count() == last + 1
+    screenshot(page.locator("#explain"), "ui_vote.png", tmp_path)
+
+
+@pytest.fixture(scope="module")
+def axe_source(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """axe-core from npm, installed into a temporary folder (never committed)."""
+    npm = shutil.which("npm")
+    if npm is None:
+        pytest.skip("npm is missing: the accessibility check needs it to install axe-core")
+    folder = tmp_path_factory.mktemp("axe")
+    installed = subprocess.run(
+        [npm, "install", "--prefix", str(folder), "--no-audit", "--no-fund", "axe-core@4"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    if installed.returncode != 0:
+        pytest.skip(f"npm could not install axe-core: {installed.stderr.strip()[-300:]}")
+    return (folder / "node_modules" / "axe-core" / "axe.min.js").read_text()
+
+
+def serious_violations(page: Any, axe_source: str) -> list[str]:
+    """axe-core's serious and critical findings on the page as it stands."""
+    page.evaluate(axe_source)  # through the driver: the page's CSP forbids inline scripts
+    found = page.evaluate("axe.run(document).then((r) => JSON.stringify(r.violations))")
+    return [
+        f"{v['id']} ({v['impact']}): {[n['target'] for n in v['nodes']][:3]}"
+        for v in json.loads(found)
+        if v["impact"] in ("serious", "critical")
+    ]
+
+
+def test_every_page_passes_axe_and_the_heading_is_focused_only_on_navigation(
+    page: Any,
+    server: ServerProcess,
+    api: httpx.Client,
+    population: dict[str, dict[str, Any]],
+    studies: list[dict[str, Any]],
+    axe_source: str,
+) -> None:
+    page.goto(f"{server.url}/ui/#/jobs/{studies[0]['id']}")
+    page.wait_for_selector("#headline .card", timeout=WAIT_MS)
+    assert page.evaluate("document.activeElement.tagName") == "BODY"  # not the heading at load
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    body = {"n_fish": 2, "model_ids": honest_ids}
+    auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    deadline = time.monotonic() + 60
+    while api.get(f"/auctions/{auction_id}").json()["status"] != "finished":
+        assert time.monotonic() < deadline, "the auction never finished"
+        time.sleep(0.2)
+    views = {
+        "#/auctions": "#auction-list tbody tr",
+        f"#/auctions/{auction_id}": "#liveness:has-text('Ended')",
+        "#/models": "#model-list tbody tr",
+        f"#/models/{population['saboteur']['model_id']}": "#verdict",
+        "#/jobs": "#job-list tbody tr",
+        f"#/jobs/{studies[0]['id']}": "#headline .card",
+        f"#/jobs/compare?ids={studies[0]['id']},{studies[1]['id']}": "#compare-params",
+    }
+    problems: dict[str, list[str]] = {}
+    for address, ready in views.items():
+        page.goto(f"{server.url}/ui/{address}")
+        page.wait_for_selector(ready, timeout=WAIT_MS)
+        if address == f"#/auctions/{auction_id}":
+            page.locator("#explain-form button[type='submit']").click()
+            page.wait_for_selector("#explanation .explanation", timeout=WAIT_MS)
+        found = serious_violations(page, axe_source)
+        if found:
+            problems[address] = found
+    assert problems == {}

@@ -1,0 +1,162 @@
+"""Every vote explained (GET /auctions/{id}/iterations/{n}/votes/{model_id}) and the lists'
+filters and order (GET /auctions, /jobs: ?status=&kind=&order=); in-process, on SQLite and
+PostgreSQL."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+
+from agents.forward import ACTIONS
+from agents.manifest import DECISIONS, ES_NEURONS, INPUTS
+from tests.support.factories import honest, unique
+from tests.support.server import ADMIN, wait_for
+
+SHORT_FISH = {"kind": "fish", "params": {"steps": 300, "srd": True, "seed": 4}}
+LONG_STUDY = {"kind": "auction-study", "params": {"trials": 50}}  # always cancelled
+
+
+@pytest.fixture(scope="module")
+def auction(client: TestClient) -> dict[str, Any]:
+    """A finished auction of five honest patrons over two fish."""
+    bodies = [honest(unique("voter"), seed=s) for s in range(5)]
+    ids = [client.post("/submit", json=body).json()["model_id"] for body in bodies]
+    auction_id = client.post(
+        "/auctions", json={"n_fish": 2, "model_ids": ids, "seed": 3}, headers=ADMIN
+    ).json()["auction_id"]
+    return dict(
+        wait_for(
+            lambda: client.get(f"/auctions/{auction_id}").json(),
+            lambda a: a["status"] == "finished",
+            timeout_s=120,
+        )
+    )
+
+
+def test_every_vote_of_every_iteration_is_explained(
+    client: TestClient, auction: dict[str, Any]
+) -> None:
+    bought_at = {b["model_id"]: b["iteration"] for b in auction["buyers"]}
+    left: set[int] = set()
+    for row in auction["history"]:
+        n = row["iteration"]
+        counts = dict.fromkeys(ACTIONS, 0)
+        for model_id in auction["model_ids"]:
+            response = client.get(f"/auctions/{auction['id']}/iterations/{n}/votes/{model_id}")
+            if model_id in left:
+                assert response.status_code == 404, response.text
+                assert response.json()["detail"][0]["loc"] == ["path", "model_id"]
+                continue
+            assert response.status_code == 200, response.text
+            vote = response.json()
+            assert (vote["auction_id"], vote["iteration"], vote["model_id"]) == (
+                auction["id"],
+                n,
+                model_id,
+            )
+            model = client.get(f"/models/{model_id}").json()
+            assert (vote["participant"], vote["version"]) == (
+                model["participant"],
+                model["version"],
+            )
+            assert list(vote["sensor"]) == list(ES_NEURONS)
+            assert list(vote["decision"]) == list(DECISIONS) and list(vote["pfc"]) == ["T", "F"]
+            logits = [vote["decision"][name] for name in DECISIONS]
+            assert vote["vote"] == ACTIONS[logits.index(max(logits))]  # the largest logit won
+            assert list(vote["row"]) == list(INPUTS) and vote["row"]["price"] == row["price"]
+            counts[vote["vote"]] += 1
+            if bought_at.get(model_id) == n:
+                assert vote["vote"] == "buy"
+            if vote["vote"] == "quit" or bought_at.get(model_id) == n:
+                left.add(model_id)
+        assert counts == row["votes"]  # the explanations are exactly the iteration's votes
+
+
+@pytest.mark.parametrize(
+    ("path", "status", "loc", "words"),
+    [
+        ("/auctions/999999/iterations/0/votes/1", 404, ["path", "auction_id"], "does not exist"),
+        ("/auctions/{id}/iterations/999/votes/{voter}", 404, ["path", "iteration"], "no committed"),
+        ("/auctions/{id}/iterations/0/votes/999999", 404, ["path", "model_id"], "did not vote"),
+        ("/auctions/{id}/iterations/-1/votes/{voter}", 422, ["path", "iteration"], ""),
+        ("/auctions/{id}/iterations/1.0/votes/{voter}", 422, ["path", "iteration"], "digits"),
+        ("/auctions/{id}/iterations/0/votes/0", 422, ["path", "model_id"], ""),
+    ],
+)
+def test_explanation_errors_name_the_part_of_the_path(
+    client: TestClient, auction: dict[str, Any], path: str, status: int, loc: list[str], words: str
+) -> None:
+    url = path.format(id=auction["id"], voter=auction["model_ids"][0])
+    response = client.get(url)
+    assert response.status_code == status, response.text
+    detail = response.json()["detail"][0]
+    assert detail["loc"] == loc and words in detail["msg"]
+
+
+def test_the_explanation_endpoint_is_documented(client: TestClient) -> None:
+    paths = client.get("/openapi.json").json()["paths"]
+    operation = paths["/auctions/{auction_id}/iterations/{iteration}/votes/{model_id}"]["get"]
+    assert operation["operationId"] == "explain_vote"
+    assert {"200", "404", "422"} <= set(operation["responses"])
+
+
+def ids_of(client: TestClient, path: str, **params: Any) -> list[int]:
+    """Every id of a list with ``params``, one item per page (so the cursor is followed)."""
+    ids: list[int] = []
+    query: dict[str, Any] = {"limit": 1, **params}
+    while True:
+        body = client.get(path, params=query).json()
+        ids += [item["id"] for item in body["items"]]
+        if body["next_cursor"] is None:
+            return ids
+        query["cursor"] = body["next_cursor"]
+
+
+def test_auction_list_filters_by_status_and_sorts_both_ways(
+    client: TestClient, auction: dict[str, Any]
+) -> None:
+    newest = ids_of(client, "/auctions")
+    oldest = ids_of(client, "/auctions", order="oldest")
+    assert oldest == sorted(newest) and newest == sorted(newest, reverse=True) and newest
+    finished = ids_of(client, "/auctions", status="finished")
+    assert auction["id"] in finished
+    assert all(client.get(f"/auctions/{i}").json()["status"] == "finished" for i in finished)
+    assert auction["id"] not in ids_of(client, "/auctions", status="running")
+
+
+def test_job_list_filters_by_status_and_kind(client: TestClient) -> None:
+    fish = client.post("/jobs", json=SHORT_FISH, headers=ADMIN).json()["job_id"]
+    study = client.post("/jobs", json=LONG_STUDY, headers=ADMIN).json()["job_id"]
+    assert client.delete(f"/jobs/{study}", headers=ADMIN).status_code == 200
+    wait_for(
+        lambda: client.get(f"/jobs/{fish}").json(),
+        lambda j: j["status"] == "succeeded",
+        timeout_s=120,
+    )
+    assert fish in ids_of(client, "/jobs", kind="fish")
+    assert study not in ids_of(client, "/jobs", kind="fish")
+    assert ids_of(client, "/jobs", kind="auction-study", status="cancelled")[:1] == [study]
+    assert fish in ids_of(client, "/jobs", status="succeeded", kind="fish", order="oldest")
+    assert ids_of(client, "/jobs", order="oldest") == sorted(ids_of(client, "/jobs"))
+    for item in client.get("/jobs", params={"status": "cancelled"}).json()["items"]:
+        assert item["status"] == "cancelled"
+
+
+@pytest.mark.parametrize(
+    ("path", "params", "field"),
+    [
+        ("/jobs", {"status": "done"}, "status"),
+        ("/jobs", {"kind": "poker"}, "kind"),
+        ("/jobs", {"order": "random"}, "order"),
+        ("/auctions", {"status": "sold"}, "status"),
+        ("/auctions", {"order": "up"}, "order"),
+    ],
+)
+def test_bad_list_parameters_are_422_naming_them(
+    client: TestClient, path: str, params: dict[str, str], field: str
+) -> None:
+    response = client.get(path, params=params)
+    assert response.status_code == 422
+    assert response.json()["detail"][0]["loc"] == ["query", field]

@@ -18,6 +18,8 @@ from starlette.concurrency import run_in_threadpool
 from server.body import RequestBodyMiddleware
 from server.config import Settings, get_settings
 from server.errors import install_error_handlers, responses
+from server.hardening import SecurityHeadersMiddleware
+from server.limits import ClientLimitsMiddleware
 from server.routes import auctions, events, health, jobs, models, participants, rounds, ui
 from server.services import start_services
 from server.workers import freeze_heap
@@ -51,6 +53,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     install_error_handlers(app)
     app.add_middleware(RequestBodyMiddleware, max_bytes=settings.max_body_bytes)
+    app.add_middleware(ClientLimitsMiddleware, settings=settings)  # before any body is read
+    app.add_middleware(SecurityHeadersMiddleware)  # outermost: every answer has its headers
     routers = (health, models, participants, auctions, rounds, jobs, events, ui)
     for module in routers:  # any request may carry an unreadable body
         app.include_router(module.router, responses=responses(400, 413, 415))

@@ -3,12 +3,13 @@ secret files (``SRD_SECRETS_DIR``)."""
 
 from __future__ import annotations
 
+import ipaddress
 import os
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import AliasChoices, Field, SecretStr
+from pydantic import AliasChoices, Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 JobBackendName = Literal["local", "ray"]
@@ -98,10 +99,55 @@ class Settings(BaseSettings):
     access_log: bool = True
     """Log every request (uvicorn's access log). Off behind a proxy that logs them: the log
     line costs the API a tenth to a quarter of its CPU for a small request."""
+    limit_client_sockets: Annotated[int, Field(ge=1, le=100_000)] = 128
+    """Round sockets one client address may hold open at once (an agent needs one; one host
+    may run the 64 agents of an auction); more are refused with 429."""
+    limit_client_streams: Annotated[int, Field(ge=1, le=100_000)] = 16
+    """Event streams one client (participant token, else address) may hold open at once."""
+    limit_client_long_polls: Annotated[int, Field(ge=1, le=100_000)] = 128
+    """Waiting ``GET .../rounds/current?wait=S`` (S > 0) one client may hold at once (an agent
+    needs one; agents poll without a token, so one host's agents share an address)."""
+    limit_client_uploads: Annotated[int, Field(ge=1, le=100_000)] = 2
+    """Uploads (round PUTs, ``POST /submit``) one participant token may have in flight."""
+    limit_address_uploads: Annotated[int, Field(ge=1, le=100_000)] = 128
+    """Uploads without a token (first ``POST /submit``) one address may have in flight."""
+    limit_retry_after_s: Annotated[int, Field(ge=1, le=3600)] = 2
+    """The ``Retry-After`` of a client over one of its limits."""
+    header_timeout_s: Annotated[float, Field(gt=0, le=30)] = 10.0
+    """``srd serve``: a connection must send a request's whole header this soon (from its
+    first byte, or from connecting), else it is answered 408 and closed."""
+    body_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
+    """``srd serve``: a request's whole body must arrive this soon after its header."""
+    max_header_bytes: Annotated[int, Field(ge=4096, le=1 << 20)] = 65_536
+    """``srd serve``: a request header larger than this is answered 431 and closed."""
+    keep_alive_s: Annotated[float, Field(gt=0, le=300)] = 5.0
+    """``srd serve``: an idle keep-alive connection is closed after this long."""
+    max_connections: Annotated[int, Field(ge=16, le=1_000_000)] = 4096
+    """``srd serve``: open connections (and requests in flight) past which a request is
+    answered 503; never more than the file-descriptor limit leaves room for."""
+    trusted_proxies: str = ""
+    """Comma-separated addresses or networks (``10.0.0.0/8``) of the reverse proxies whose
+    ``X-Forwarded-For`` / ``X-Forwarded-Proto`` name the client; empty: nobody's (a direct
+    client cannot choose the address its quotas and limits count against)."""
     host: str = "127.0.0.1"
     """Address ``srd serve`` binds by default."""
     port: Annotated[int, Field(ge=0, le=65535)] = 8000
     """Port ``srd serve`` binds by default."""
+
+    @field_validator("trusted_proxies")
+    @classmethod
+    def _proxy_addresses(cls, value: str) -> str:
+        for entry in _split(value):
+            try:
+                ipaddress.ip_network(entry, strict=False)
+            except ValueError as exc:
+                raise ValueError(f"{entry!r} is not an IP address or network") from exc
+        return value
+
+    @property
+    def trusted_proxy_list(self) -> list[str]:
+        """``trusted_proxies`` as a list."""
+        return _split(self.trusted_proxies)
 
     @property
     def admin_token_file(self) -> Path:
@@ -112,6 +158,10 @@ class Settings(BaseSettings):
     def databases_file(self) -> Path:
         """The databases this data folder has served (see ``server.db.prepare_database``)."""
         return self.data_dir / "databases.json"
+
+
+def _split(value: str) -> list[str]:
+    return [entry.strip() for entry in value.split(",") if entry.strip()]
 
 
 SECRETS_DIR_VARIABLE = "SRD_SECRETS_DIR"

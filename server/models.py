@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import unicodedata
 from datetime import UTC, datetime
 from typing import Any
 
@@ -22,6 +23,7 @@ from sqlalchemy import (
     UniqueConstraint,
 )
 from sqlalchemy.engine import Dialect
+from sqlalchemy.engine.default import DefaultExecutionContext
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 NAMING = {  # stable constraint names, so migrations can refer to them on every backend
@@ -63,6 +65,20 @@ class Base(DeclarativeBase):
     metadata = MetaData(naming_convention=NAMING)
 
 
+NAME_KEY_LENGTH = 128
+"""Longest stored name key (a folded name can be longer than the name)."""
+
+
+def participant_key(name: str) -> str:
+    """What makes two participant names the same: their NFKC form, case-folded."""
+    return unicodedata.normalize("NFKC", name).casefold()
+
+
+def _name_key_default(context: DefaultExecutionContext) -> str:
+    parameters: dict[str, Any] = context.get_current_parameters()  # type: ignore[no-untyped-call]
+    return participant_key(parameters["name"])
+
+
 class Participant(Base):
     """Whoever submits models under one name; holds the hash of its submission token."""
 
@@ -70,6 +86,11 @@ class Participant(Base):
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     name: Mapped[str] = mapped_column(String(64), unique=True)
+    name_key: Mapped[str] = mapped_column(
+        String(NAME_KEY_LENGTH), unique=True, default=_name_key_default
+    )
+    """``participant_key(name)``: unique, so names differing only in case or Unicode form
+    are one participant (set from ``name`` on insert)."""
     token_hash: Mapped[str] = mapped_column(String(64))
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 

@@ -15,7 +15,9 @@ screening on a submission; the answer given at ``store`` is the authoritative on
 
 Semantics are those of the submissions run one after another in arrival order: a
 participant created earlier in the group needs its token for a later version in the same
-group. A refused submission (missing or wrong token) writes nothing. If a statement fails on
+group. Names are compared after NFKC and case folding (``server.models.participant_key``): a
+name that is a stored or earlier one but for case or Unicode form is refused (409, taken). A
+refused submission (taken name, missing or wrong token) writes nothing. If a statement fails on
 the database side (a unique name or version taken by another process), the group is rolled
 back and each of its submissions is retried in a transaction of its own, so only the one at
 fault is answered 409; if the database itself fails, the group's submissions get 503 and
@@ -36,7 +38,7 @@ from screener import Verdict
 from server import crud, quotas
 from server.db import DATABASE_RETRY_AFTER_S, Database, unavailable_message
 from server.grouping import GroupWriter
-from server.models import utcnow
+from server.models import participant_key, utcnow
 from server.security import hash_token, new_token, token_matches
 
 log = logging.getLogger("srd.submissions")
@@ -86,9 +88,23 @@ class _Submission:
 class _Known:
     """A participant as the group sees it: stored (``id``) or registered earlier in the group."""
 
+    name: str
     token_hash: str
     next_version: int
     id: int | None = None
+
+
+def _name_refusal(item: _Submission, participant: _Known | None) -> Refused | None:
+    """A name that is another participant's but for case or Unicode form."""
+    if participant is None or participant.name == item.participant:
+        return None
+    return Refused(
+        409,
+        f"the name {item.participant!r} is taken: participant {participant.name!r} has it "
+        "(names are compared ignoring case and Unicode form)",
+        ("body", "participant"),
+        "name_taken",
+    )
 
 
 def _token_refusal(item: _Submission, participant: _Known | None) -> Refused | None:
@@ -116,8 +132,8 @@ def _token_refusal(item: _Submission, participant: _Known | None) -> Refused | N
 def _refusal(
     item: _Submission, participant: _Known | None, throttle: quotas.Throttle
 ) -> Refused | None:
-    """Why the submission is refused now (its token, then the quotas), if it is."""
-    refusal = _token_refusal(item, participant)
+    """Why the submission is refused now (its name, its token, then the quotas), if it is."""
+    refusal = _name_refusal(item, participant) or _token_refusal(item, participant)
     if refusal is not None:
         return refusal
     throttled = throttle.check(
@@ -138,10 +154,13 @@ def _store_group(
         session, names=list(dict.fromkeys(item.participant for item in group))
     )
     latest = crud.latest_versions(session, participant_ids=[p.id for p in existing.values()])
-    known = {
-        name: _Known(row.token_hash, latest.get(row.id, 0) + 1, row.id)
-        for name, row in existing.items()
-    }
+    known: dict[str, _Known] = {}  # by name, then by name key for the names not stored
+    for stored in existing.values():
+        known[stored.name] = _Known(
+            stored.name, stored.token_hash, latest.get(stored.id, 0) + 1, stored.id
+        )
+    for stored in existing.values():
+        known.setdefault(stored.name_key, known[stored.name])
     now = utcnow()
     throttle = quotas.Throttle(
         session,
@@ -153,7 +172,7 @@ def _store_group(
     versions: list[tuple[int, str, int, str | None]] = []  # group index, name, version, token
     outcomes: list[Outcome | None] = []
     for index, item in enumerate(group):
-        participant = known.get(item.participant)
+        participant = known.get(item.participant) or known.get(participant_key(item.participant))
         refusal = _refusal(item, participant, throttle)
         if refusal is not None or item.verdict is None:
             outcomes.append(refusal)
@@ -161,7 +180,8 @@ def _store_group(
         token: str | None = None
         if participant is None:
             token = new_token(crud.PARTICIPANT_TOKEN_PREFIX)
-            participant = known[item.participant] = _Known(hash_token(token), 1)
+            participant = _Known(item.participant, hash_token(token), 1)
+            known[item.participant] = known[participant_key(item.participant)] = participant
             new_participants.append(
                 {"name": item.participant, "token_hash": participant.token_hash, "created_at": now}
             )

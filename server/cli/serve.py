@@ -29,6 +29,8 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
 
     from server.app import create_app
     from server.config import get_settings
+    from server.connections import connection_cap, raise_file_limit, timed_protocol
+    from server.hardening import RedactQueryFilter
     from server.readiness import make_data_dir
     from server.remote_rounds.sockets import MAX_FRAME_BYTES
 
@@ -38,7 +40,8 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         click.echo(f"srd serve: {problem} (SRD_DATA_DIR)", err=True)
         raise SystemExit(UNUSABLE)
     logging.basicConfig(level=log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
-    uvicorn.run(
+    file_limit = raise_file_limit()
+    config = uvicorn.Config(
         create_app(settings),
         host=host or settings.host,
         port=settings.port if port is None else port,
@@ -46,4 +49,19 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         access_log=settings.access_log,
         timeout_graceful_shutdown=10,
         ws_max_size=MAX_FRAME_BYTES,  # the round sockets' frames (an upload's manifest)
+        http=timed_protocol(
+            header_timeout_s=settings.header_timeout_s,
+            body_timeout_s=settings.body_timeout_s,
+            max_header_bytes=settings.max_header_bytes,
+        ),
+        timeout_keep_alive=settings.keep_alive_s,  # type: ignore[arg-type]  # a float works
+        limit_concurrency=connection_cap(settings.max_connections, file_limit),
+        # X-Forwarded-* only from the proxies named (uvicorn's own default trusts loopback).
+        proxy_headers=True,
+        forwarded_allow_ips=settings.trusted_proxy_list,
     )
+    logging.getLogger("uvicorn.access").addFilter(RedactQueryFilter())  # after uvicorn's set-up
+    server = uvicorn.Server(config)
+    server.run()
+    if not server.started:  # the port is taken, or the app failed to start
+        raise SystemExit(3)

@@ -12,7 +12,7 @@ from typing import Any
 from sqlalchemy import bindparam, func, insert, select
 from sqlalchemy.orm import Session
 
-from server.models import AuctionPatron, ModelVersion, Participant
+from server.models import AuctionPatron, ModelVersion, Participant, participant_key
 
 PARTICIPANT_TOKEN_PREFIX = "srdp"
 
@@ -23,6 +23,7 @@ class ParticipantRow:
 
     id: int
     name: str
+    name_key: str
     token_hash: str
 
 
@@ -47,8 +48,11 @@ class StoredModel:
 # The statements of POST /submit, built once and run on the session's connection (Core, not the
 # ORM's bulk-insert path: the hot path builds and tracks no objects)
 _PARTICIPANTS_BY_NAMES = (
-    select(Participant.id, Participant.name, Participant.token_hash)
-    .where(Participant.name.in_(bindparam("names", expanding=True)))
+    select(Participant.id, Participant.name, Participant.name_key, Participant.token_hash)
+    .where(
+        Participant.name.in_(bindparam("names", expanding=True))
+        | Participant.name_key.in_(bindparam("keys", expanding=True))
+    )
     .order_by(Participant.id)
     .with_for_update()
 )
@@ -64,8 +68,12 @@ _INSERT_MODEL_VERSIONS = insert(ModelVersion).returning(
 
 
 def participants_by_names(session: Session, *, names: Sequence[str]) -> dict[str, ParticipantRow]:
-    """The participants among ``names``, their rows locked until commit (one query)."""
-    rows = session.connection().execute(_PARTICIPANTS_BY_NAMES, {"names": list(names)})
+    """The participants named ``names``, or whose name is the same as one of them
+    (``participant_key``), their rows locked until commit (one query)."""
+    keys = list(dict.fromkeys(participant_key(name) for name in names))
+    rows = session.connection().execute(
+        _PARTICIPANTS_BY_NAMES, {"names": list(names), "keys": keys}
+    )
     return {row.name: ParticipantRow(*row) for row in rows}
 
 

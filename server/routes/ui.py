@@ -6,12 +6,17 @@ JavaScript modules, no build step) that reads the JSON API and the event streams
 ``fastapi-offline`` package ships. The page needs no token and puts none in a URL: it only
 reads. Its responses carry a strict Content-Security-Policy (scripts, styles and connections
 from this origin only, no inline code), so even a string that slipped past the page's escaping
-could not run.
+could not run. ``/docs`` and ``/redoc`` get one as strict but for their own inline script (allowed
+by its hash) and injected styles; it lets no image come from elsewhere, so ReDoc's footer logo
+(a CDN address inside its bundle) is never fetched.
 """
 
 from __future__ import annotations
 
+import base64
+import hashlib
 import importlib.resources
+import re
 from pathlib import Path
 
 from fastapi import APIRouter
@@ -21,7 +26,7 @@ from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Redirect
 from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, JUDGEMENTS, PFC_SOURCES, VERDICTS
 from screener.findings import INPUT_WORDS, ROLE
 from server.errors import api_error
-from sim.registry import KINDS
+from studies.registry import KINDS
 
 router = APIRouter(include_in_schema=False)
 
@@ -136,25 +141,56 @@ async def ui_file(name: str) -> FileResponse:
     return _file(UI_FILES, name)
 
 
-@router.get("/docs")
-async def swagger_ui() -> HTMLResponse:
-    """Swagger UI over ``/openapi.json``."""
-    return get_swagger_ui_html(
+def _page_with_policy(page: HTMLResponse) -> tuple[bytes, dict[str, str]]:
+    """A docs page with a policy that runs its own inline script (by hash) and files from
+    this origin, and loads nothing from anywhere else: ReDoc's CDN logo is never fetched."""
+    hashes = " ".join(
+        "'sha256-" + base64.b64encode(hashlib.sha256(script).digest()).decode() + "'"
+        for script in re.findall(rb"<script>(.*?)</script>", bytes(page.body), flags=re.S)
+    )
+    policy = "; ".join(
+        (
+            "default-src 'none'",
+            f"script-src 'self' {hashes}".strip(),
+            "style-src 'self' 'unsafe-inline'",  # both inject styles; styles run no code
+            "img-src 'self' data:",
+            "connect-src 'self'",
+            "worker-src blob:",  # ReDoc's search runs in a worker built from a blob
+            "base-uri 'none'",
+            "form-action 'none'",
+            "frame-ancestors 'none'",
+        )
+    )
+    return bytes(page.body), {**PAGE_HEADERS, "Content-Security-Policy": policy}
+
+
+SWAGGER_PAGE = _page_with_policy(
+    get_swagger_ui_html(
         openapi_url="/openapi.json",
         title="srd-auction: API docs",
         swagger_js_url="/ui/vendor/swagger-ui-bundle.js",
         swagger_css_url="/ui/vendor/swagger-ui.css",
         swagger_favicon_url="/ui/vendor/favicon.png",
     )
-
-
-@router.get("/redoc")
-async def redoc() -> HTMLResponse:
-    """ReDoc over ``/openapi.json``."""
-    return get_redoc_html(
+)
+REDOC_PAGE = _page_with_policy(
+    get_redoc_html(
         openapi_url="/openapi.json",
         title="srd-auction: API reference",
         redoc_js_url="/ui/vendor/redoc.standalone.js",
         redoc_favicon_url="/ui/vendor/favicon.png",
         with_google_fonts=False,
     )
+)
+
+
+@router.get("/docs")
+async def swagger_ui() -> HTMLResponse:
+    """Swagger UI over ``/openapi.json``."""
+    return HTMLResponse(SWAGGER_PAGE[0], headers=SWAGGER_PAGE[1])
+
+
+@router.get("/redoc")
+async def redoc() -> HTMLResponse:
+    """ReDoc over ``/openapi.json``."""
+    return HTMLResponse(REDOC_PAGE[0], headers=REDOC_PAGE[1])

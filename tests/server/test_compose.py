@@ -3,6 +3,7 @@ healthchecks and profiles, and that no secret is written in the file."""
 
 from __future__ import annotations
 
+import ipaddress
 import re
 from pathlib import Path
 from typing import Any
@@ -10,7 +11,7 @@ from typing import Any
 import pytest
 import yaml
 
-from server.config import SECRETS_DIR_VARIABLE, get_settings
+from server.config import SECRETS_DIR_VARIABLE, Settings, get_settings
 
 ROOT = Path(__file__).resolve().parents[2]
 COMPOSE: dict[str, Any] = yaml.safe_load((ROOT / "compose.yaml").read_text())
@@ -23,7 +24,7 @@ def environment(service: str) -> dict[str, str]:
 
 
 def test_services_and_profiles():
-    assert set(SERVICES) == {"db", "api", "ray-head", "ray-worker"}
+    assert set(SERVICES) == {"db", "proxy", "api", "ray-head", "ray-worker"}
     assert SERVICES["api"]["deploy"]["replicas"] == 2
     assert "profiles" not in SERVICES["api"] and "profiles" not in SERVICES["db"]
     assert SERVICES["ray-head"]["profiles"] == ["ray"] == SERVICES["ray-worker"]["profiles"]
@@ -43,8 +44,9 @@ def test_every_service_checks_its_health():
     assert SERVICES["ray-head"]["healthcheck"]["test"][1:3] == ["ray", "health-check"]
 
 
-def test_ports_only_the_api_is_published_on_the_loopback():
+def test_ports_only_the_proxy_is_public_and_the_api_on_the_loopback():
     assert SERVICES["api"]["ports"] == ["127.0.0.1:8000-8001:8000"]  # a port per replica
+    assert SERVICES["proxy"]["ports"] == ["${SRD_HTTPS_PORT:-443}:443", "${SRD_HTTP_PORT:-80}:80"]
     for name in ("db", "ray-head", "ray-worker"):
         assert "ports" not in SERVICES[name], name
     head = SERVICES["ray-head"]["command"]
@@ -55,7 +57,7 @@ def test_volumes_keep_the_database_and_the_shared_artifacts():
     assert SERVICES["db"]["volumes"] == ["pgdata:/var/lib/postgresql/data"]
     assert SERVICES["api"]["volumes"] == ["srd-data:/data"]
     assert environment("api")["SRD_DATA_DIR"] == "/data"
-    assert set(COMPOSE["volumes"]) == {"pgdata", "srd-data"}
+    assert set(COMPOSE["volumes"]) == {"pgdata", "srd-data", "proxy-certs"}
 
 
 def test_no_secret_is_written_in_the_file():
@@ -103,3 +105,38 @@ def test_settings_read_the_secret_files(tmp_path, monkeypatch):
 @pytest.mark.parametrize("service", ["api", "ray-head", "ray-worker"])
 def test_commands_use_exec_form(service):
     assert isinstance(SERVICES[service]["command"], list)
+
+
+NGINX = (ROOT / "deploy" / "nginx.conf").read_text()
+
+
+def nginx_directives(name: str) -> list[str]:
+    """The arguments of every ``name`` directive of deploy/nginx.conf."""
+    return [m.strip() for m in re.findall(rf"^\s*{name}\s+([^;]*);", NGINX, flags=re.M)]
+
+
+def test_the_api_trusts_forwarded_for_from_the_proxy_only():
+    proxy = SERVICES["proxy"]["networks"]["backend"]["ipv4_address"]
+    subnet = COMPOSE["networks"]["backend"]["ipam"]["config"][0]["subnet"]
+    assert ipaddress.ip_address(proxy) in ipaddress.ip_network(subnet)
+    assert environment("api")["SRD_TRUSTED_PROXIES"] == proxy
+    assert Settings.model_fields["trusted_proxies"].default == ""  # nobody by default
+    # The proxy replaces the header with the address it sees: a client cannot add to it.
+    assert nginx_directives("proxy_set_header").count("X-Forwarded-For $remote_addr") == 1
+    assert SERVICES["proxy"]["depends_on"]["api"]["condition"] == "service_healthy"
+
+
+def test_the_proxy_terminates_tls_and_limits_each_address():
+    assert nginx_directives("listen") == ["80", "443 ssl"]
+    assert nginx_directives("ssl_certificate") == ["/etc/nginx/certs/tls.crt"]
+    assert SERVICES["proxy"]["volumes"] == ["proxy-certs:/etc/nginx/certs"]
+    assert nginx_directives("limit_conn") == ["per_address 256"]
+    assert nginx_directives("limit_req") == ["zone=request_rate burst=200 nodelay"]
+    assert nginx_directives("limit_conn_status") == ["429"] == nginx_directives("limit_req_status")
+    for name in ("client_header_timeout", "client_body_timeout", "keepalive_timeout"):
+        (value,) = nginx_directives(name)
+        assert value.endswith("s") and 0 < int(value[:-1]) <= 30, name
+    (body,) = nginx_directives("client_max_body_size")
+    assert body == f"{Settings.model_fields['max_body_bytes'].default // 1024}k"
+    assert "$request " not in NGINX and '$request_uri"' not in NGINX  # no query string logged
+    assert SERVICES["proxy"]["healthcheck"]["test"][:2] == ["CMD", "curl"]

@@ -34,6 +34,18 @@ def test_dockerfile_passes_hadolint() -> None:
     assert done.returncode == 0, done.stdout + done.stderr
 
 
+def test_proxy_image_passes_hadolint_and_makes_a_certificate_at_first_start() -> None:
+    dockerfile = ROOT / "deploy" / "proxy.Dockerfile"
+    done = subprocess.run([hadolint(), str(dockerfile)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr
+    text = dockerfile.read_text()
+    assert re.search(r"^FROM nginx:\d+\.\d+-bookworm$", text, flags=re.M)  # a maintained image
+    assert "COPY deploy/nginx.conf /etc/nginx/nginx.conf" in text
+    assert "COPY deploy/proxy-certificate.sh /docker-entrypoint.d/" in text
+    script = (ROOT / "deploy" / "proxy-certificate.sh").read_text()
+    assert 'if [ ! -s "$CERTS/tls.crt" ]' in script and "openssl req -x509" in script
+
+
 def test_dependency_layer_needs_only_the_dependency_list() -> None:
     lines = [line.strip() for line in DOCKERFILE.splitlines()]
     deps = next(i for i, line in enumerate(lines) if "pip install -r" in line)

@@ -1,0 +1,349 @@
+"""Fair under load, against a real ``srd serve``: one client's floods of event streams, long
+polls and half-sent requests leave another client served within seconds; ``X-Forwarded-For``
+counts only from a trusted proxy; tokens never travel or get logged in URLs; names differing
+only in case are one participant; every answer carries the security headers.
+
+Clients bind distinct loopback addresses (Linux routes all of 127/8 to the loopback), so the
+server sees them as distinct clients.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import httpx
+import pytest
+from sqlalchemy import select
+
+from server.connections import TIMEOUT_ANSWER
+from server.db import Database
+from server.launch import ServerProcess
+from server.models import RateEvent, participant_key
+from tests.support.factories import honest, unique
+from tests.support.live import create_unstarted_auction
+from tests.support.server import ADMIN_TOKEN
+
+TRUSTED_PROXY = "127.0.0.2"
+SPOOFER = "127.0.0.3"
+FLOODER = "127.0.0.4"
+VICTIM = "127.0.0.5"
+HEADER_TIMEOUT_S = 3
+STREAMS_PER_CLIENT = 16  # the default
+LONG_POLLS_PER_CLIENT = 128  # the default
+ANSWER_WITHIN_S = 5.0
+HOLD_S = 3.0
+"""A request not answered this soon is being held (a waiting long poll)."""
+HELD = 0
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    data_dir = tmp_path_factory.mktemp("fairness")
+    env = {
+        "SRD_HEADER_TIMEOUT_S": str(HEADER_TIMEOUT_S),
+        "SRD_TRUSTED_PROXIES": TRUSTED_PROXY,
+        "SRD_QUOTA_REGISTRATIONS_PER_DAY": "1000",
+    }
+    with ServerProcess(
+        database_url=f"sqlite:///{data_dir / 'srd.db'}",
+        data_dir=data_dir,
+        admin_token=ADMIN_TOKEN,
+        extra_env=env,
+    ) as running:
+        yield running
+
+
+def client_from(address: str, server: ServerProcess) -> httpx.Client:
+    transport = httpx.HTTPTransport(local_address=address)
+    return httpx.Client(base_url=server.url, transport=transport, timeout=30)
+
+
+@pytest.fixture(scope="module")
+def auction_id(server: ServerProcess) -> int:
+    """A pending auction nobody plays: its streams stay open, its long polls wait."""
+    with client_from(VICTIM, server) as client:
+        ids = []
+        for _ in range(2):
+            answer = client.post("/submit", json=honest(unique("fair")))
+            assert answer.status_code == 201, answer.text
+            ids.append(answer.json()["model_id"])
+    return create_unstarted_auction(server.database_url, ids, n_fish=2, seed=1)
+
+
+# --- raw connections, light enough to open by the thousand -------------------------------
+
+
+async def _open(server: ServerProcess, address: str) -> tuple[Any, Any]:
+    return await asyncio.open_connection("127.0.0.1", server.port, local_addr=(address, 0))
+
+
+async def _status(reader: asyncio.StreamReader) -> int:
+    line = await reader.readline()
+    return int(line.split()[1]) if line else 0
+
+
+def _get(path: str, headers: dict[str, str] | None = None) -> bytes:
+    lines = [f"GET {path} HTTP/1.1", "Host: test"]
+    lines += [f"{name}: {value}" for name, value in (headers or {}).items()]
+    return ("\r\n".join(lines) + "\r\n\r\n").encode()
+
+
+class Held:
+    """Connections a test keeps open; all closed at the end."""
+
+    def __init__(self) -> None:
+        self.writers: list[asyncio.StreamWriter] = []
+
+    def close(self) -> None:
+        for writer in self.writers:
+            writer.close()
+
+
+async def _request(
+    server: ServerProcess, address: str, raw: bytes, held: Held
+) -> tuple[int, float]:
+    """Send one request: its status (``HELD`` if none came within ``HOLD_S``) and how long
+    that took. Connections still open on the server's side (a stream, a waiting long poll)
+    are kept in ``held``."""
+    start = time.monotonic()
+    reader, writer = await _open(server, address)
+    writer.write(raw)
+    try:
+        status = await asyncio.wait_for(_status(reader), HOLD_S)
+    except TimeoutError:
+        status = HELD
+    elapsed = time.monotonic() - start
+    if status in (200, HELD):
+        held.writers.append(writer)
+    else:
+        writer.close()
+    return status, elapsed
+
+
+# --- the flood -----------------------------------------------------------------------------
+
+
+async def _victim(server: ServerProcess, auction_id: int) -> dict[str, float]:
+    """The second client's four requests, each timed."""
+    transport = httpx.AsyncHTTPTransport(local_address=VICTIM)
+    took: dict[str, float] = {}
+    async with httpx.AsyncClient(base_url=server.url, transport=transport, timeout=30) as http:
+        start = time.monotonic()
+        assert (await http.get("/healthz")).status_code == 200
+        took["healthz"] = time.monotonic() - start
+        start = time.monotonic()
+        async with http.stream("GET", f"/auctions/{auction_id}/events") as stream:
+            assert stream.status_code == 200
+            first = await anext(stream.aiter_text())
+            assert first.startswith(f": auction {auction_id}")
+        took["events"] = time.monotonic() - start
+        start = time.monotonic()
+        poll = await http.get(f"/auctions/{auction_id}/rounds/current", params={"wait": 1})
+        assert poll.status_code == 200 and poll.json()["status"] == "none", poll.text
+        took["long_poll"] = time.monotonic() - start
+        start = time.monotonic()
+        submitted = await http.post("/submit", json=honest(unique("victim")))
+        assert submitted.status_code == 201, submitted.text
+        took["submit"] = time.monotonic() - start
+    return took
+
+
+async def _flood(server: ServerProcess, auction_id: int) -> dict[str, Any]:
+    held = Held()
+    half_sent: list[tuple[asyncio.StreamReader, asyncio.StreamWriter]] = []
+    try:
+        for _ in range(300):  # hundreds of requests whose header never ends
+            reader, writer = await _open(server, FLOODER)
+            writer.write(b"GET /healthz HTTP/1.1\r\nHost: test\r\n")
+            half_sent.append((reader, writer))
+        opened_at = time.monotonic()
+        streams = await asyncio.gather(
+            *(
+                _request(server, FLOODER, _get(f"/auctions/{auction_id}/events"), held)
+                for _ in range(300)
+            )
+        )
+        victim = asyncio.create_task(_victim(server, auction_id))
+        polls: list[tuple[int, float]] = []
+        poll = _get(f"/auctions/{auction_id}/rounds/current?wait=25")
+        while len(polls) < 2000 or not victim.done():  # thousands, and until the victim is done
+            polls += await asyncio.gather(
+                *(_request(server, FLOODER, poll, held) for _ in range(250))
+            )
+            assert len(polls) <= 10_000
+        took = await victim
+        closed_after: list[float] = []
+        for reader, _ in half_sent:
+            answer = await asyncio.wait_for(reader.read(), 60 - (time.monotonic() - opened_at))
+            assert answer == TIMEOUT_ANSWER
+            closed_after.append(time.monotonic() - opened_at)
+        return {"streams": streams, "polls": polls, "victim": took, "half_closed": closed_after}
+    finally:
+        held.close()
+        for _, writer in half_sent:
+            writer.close()
+
+
+def test_a_flooding_client_leaves_another_served(server: ServerProcess, auction_id: int) -> None:
+    result = asyncio.run(_flood(server, auction_id))
+    streams = [status for status, _ in result["streams"]]
+    assert streams.count(200) == STREAMS_PER_CLIENT
+    assert streams.count(429) == len(streams) - STREAMS_PER_CLIENT
+    polls = result["polls"]
+    refused = [elapsed for status, elapsed in polls if status == 429]
+    assert [status for status, _ in polls].count(HELD) == LONG_POLLS_PER_CLIENT
+    assert len(refused) >= 0.9 * len(polls) and len(polls) >= 2000
+    refused.sort()
+    assert refused[len(refused) // 2] < 1.0, f"median 429 after {refused[len(refused) // 2]} s"
+    for name, seconds in result["victim"].items():
+        assert seconds < ANSWER_WITHIN_S, (name, seconds)
+    closed = result["half_closed"]
+    assert len(closed) == 300 and max(closed) < 60
+
+
+def test_a_refusal_paces_with_retry_after_and_names_the_limit(
+    server: ServerProcess, auction_id: int
+) -> None:
+    with client_from("127.0.0.6", server) as client:
+        held = [
+            client.stream("GET", f"/auctions/{auction_id}/events")
+            for _ in range(STREAMS_PER_CLIENT)
+        ]
+        try:
+            for stream in held:
+                assert stream.__enter__().status_code == 200
+            refused = client.get(f"/auctions/{auction_id}/events")
+            assert refused.status_code == 429
+            assert refused.headers["Retry-After"] == "2"
+            assert refused.headers["Connection"] == "close"
+            (item,) = refused.json()["detail"]
+            assert item["type"] == "too_many_requests"
+            assert "16 event streams" in item["msg"]
+            # Other kinds are counted apart: a plain round read and /healthz go through.
+            assert client.get(f"/auctions/{auction_id}/rounds/current").status_code == 200
+        finally:
+            for stream in held:
+                stream.__exit__(None, None, None)
+        deadline = time.monotonic() + ANSWER_WITHIN_S
+        while True:  # the slots come back as the server notices the streams closed
+            with client.stream("GET", f"/auctions/{auction_id}/events") as stream:
+                if stream.status_code == 200:
+                    break
+            assert time.monotonic() < deadline, "no stream slot came back"
+            time.sleep(0.1)
+
+
+def _stream_statuses(
+    server: ServerProcess, auction_id: int, address: str, forwarded: list[str]
+) -> list[int]:
+    """Open one event stream per ``X-Forwarded-For`` value, all at once; their statuses."""
+
+    async def run() -> list[int]:
+        held = Held()
+        try:
+            statuses = []
+            for value in forwarded:
+                raw = _get(f"/auctions/{auction_id}/events", {"X-Forwarded-For": value})
+                status, _ = await _request(server, address, raw, held)
+                statuses.append(status)
+            return statuses
+        finally:
+            held.close()
+
+    return asyncio.run(run())
+
+
+def test_forwarded_for_counts_only_from_a_trusted_proxy(
+    server: ServerProcess, auction_id: int
+) -> None:
+    spoofs = [f"203.0.113.{i}" for i in range(STREAMS_PER_CLIENT + 1)]
+    spoofed = _stream_statuses(server, auction_id, SPOOFER, spoofs)
+    assert spoofed == [200] * STREAMS_PER_CLIENT + [429]  # one address, whatever it claims
+    proxied = _stream_statuses(
+        server,
+        auction_id,
+        TRUSTED_PROXY,
+        ["198.51.100.1"] * STREAMS_PER_CLIENT + ["198.51.100.2", "198.51.100.1"],
+    )
+    assert proxied == [200] * STREAMS_PER_CLIENT + [200, 429]  # one count per named client
+
+    with client_from(SPOOFER, server) as spoofer, client_from(TRUSTED_PROXY, server) as proxy:
+        name = unique("spoof")
+        headers = {"X-Forwarded-For": "203.0.113.99"}
+        assert spoofer.post("/submit", json=honest(name), headers=headers).status_code == 201
+        headers = {"X-Forwarded-For": "198.51.100.99"}
+        assert proxy.post("/submit", json=honest(unique("via")), headers=headers).status_code == 201
+    database = Database(server.database_url)
+    try:
+        with database.session(write=False) as session:
+            subjects = set(session.scalars(select(RateEvent.subject)))
+    finally:
+        database.close()
+    assert "address:127.0.0.3" in subjects and "address:198.51.100.99" in subjects
+    assert not any("203.0.113." in subject for subject in subjects)
+    assert "address:127.0.0.2" not in subjects
+    log = server.log_path.read_text()
+    assert "198.51.100.1:0 - " in log and "198.51.100.99:0 - " in log
+    assert "203.0.113." not in log
+
+
+def test_tokens_in_the_url_are_refused_and_never_logged(server: ServerProcess) -> None:
+    secret = "srdp_do-not-log-me-0123456789"
+    with client_from("127.0.0.7", server) as client:
+        for name in ("token", "access_token"):
+            answer = client.get("/healthz", params={name: secret})
+            assert answer.status_code == 400
+            (item,) = answer.json()["detail"]
+            assert item["loc"] == ["query", name] and item["type"] == "token_in_url"
+        assert client.get("/models", params={"api_key": secret}).status_code == 200
+    log = server.log_path.read_text()
+    assert secret not in log
+    assert "/healthz?token=*** " in log and "api_key=***" in log
+
+
+def test_every_answer_carries_the_security_headers(server: ServerProcess) -> None:
+    with client_from("127.0.0.8", server) as client:
+        answers = [
+            client.get("/healthz"),
+            client.get("/models/999999"),  # an error
+            client.post("/submit", content=b"{", headers={"Content-Type": "application/json"}),
+            client.get("/ui/"),
+            client.get("/docs"),
+            client.get("/redoc"),
+            client.get("/openapi.json"),
+        ]
+    for answer in answers:
+        assert answer.headers["X-Content-Type-Options"] == "nosniff", answer.url
+        assert answer.headers["X-Frame-Options"] == "DENY", answer.url
+        assert answer.headers["Referrer-Policy"] == "no-referrer", answer.url
+        policy = answer.headers["Content-Security-Policy"]
+        assert "frame-ancestors 'none'" in policy and "default-src 'none'" in policy
+        assert "http" not in policy  # nothing from another origin, ReDoc's CDN logo included
+    docs, redoc = answers[4], answers[5]
+    for page in (docs, redoc):
+        assert "img-src 'self' data:;" in page.headers["Content-Security-Policy"]
+    assert "'sha256-" in docs.headers["Content-Security-Policy"]  # its inline script only
+    assert (
+        "unsafe-inline"
+        not in docs.headers["Content-Security-Policy"].split("script-src")[1].split(";")[0]
+    )
+
+
+def test_names_differing_only_in_case_are_one_participant(server: ServerProcess) -> None:
+    assert participant_key("ＣＡＳＥ-ß") == participant_key("case-ss")  # NFKC, then case folding
+    name = unique("Case")
+    with client_from("127.0.0.9", server) as client:
+        first = client.post("/submit", json=honest(name))
+        assert first.status_code == 201, first.text
+        for variant in (name.upper(), name.lower()):
+            again = client.post("/submit", json=honest(variant))
+            assert again.status_code == 409, again.text
+            (item,) = again.json()["detail"]
+            assert item["loc"] == ["body", "participant"] and item["type"] == "name_taken"
+            assert repr(name) in item["msg"]
+        token = first.json()["token"]
+        owner = {"Authorization": f"Bearer {token}"}
+        assert client.post("/submit", json=honest(name), headers=owner).status_code == 201

@@ -2,8 +2,8 @@
 
 Every command is imported only when it runs, so ``srd --help`` answers without importing torch
 or any simulation: the experiment commands (one per kind of ``sim.registry``) are generated from
-their config dataclasses by ``server.cli.experiment``; ``serve``, ``screen`` and ``agents`` are
-written by hand in their own modules, each exposing ``command``.
+their config dataclasses by ``server.cli.experiment``; ``serve``, ``screen``, ``agents`` and
+``watch`` are written by hand in their own modules, each exposing ``command``.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ HAND_WRITTEN = {
     "screen": ("server.cli.screen", "Screen one Fish Sale Negotiator manifest."),
     "agents": ("server.cli.agents", "Run remote agents that submit and fine-tune over HTTP."),
     "healthcheck": ("server.cli.healthcheck", "Exit 0 if the configured server is healthy."),
+    "watch": ("server.cli.watch", "Follow one auction live from its event stream."),
 }
 """Command name → (module exposing ``command``, one-line help)."""
 

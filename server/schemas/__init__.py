@@ -18,6 +18,7 @@ from server.schemas.auctions import (
     IterationEvent,
     IterationPublic,
     PatronPublic,
+    QuitterPublic,
     RoundPurchasePublic,
     Votes,
 )
@@ -90,6 +91,7 @@ __all__ = [
     "ModelSummaryPublic",
     "ParticipantPublic",
     "PatronPublic",
+    "QuitterPublic",
     "ReasonPublic",
     "RoundAnswerPublic",
     "RoundPublic",

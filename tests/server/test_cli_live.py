@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import pty
+import re
 import subprocess
 import threading
 from collections.abc import Iterator
@@ -234,3 +235,48 @@ def test_a_cancelled_auction_ends_the_watch_with_exit_1(dropping) -> None:
     result = CliRunner().invoke(cli, ["watch", "7", "--server", url])
     assert result.exit_code == 1
     assert result.stdout.splitlines()[-1].startswith("auction 7 cancelled after 1 iterations")
+
+
+# --- srd agents: the summary table ---------------------------------------------------------------
+
+
+def cells(line: str) -> list[str]:
+    """The cells of one line of a rich table (header lines have their own bars)."""
+    return [cell.strip() for cell in re.split("[│┃]", line.strip().strip("│┃"))]
+
+
+def test_agents_prints_a_row_per_agent_then_the_totals(
+    server: ServerProcess, client: httpx.Client
+) -> None:
+    options = ["--honest", "2", "--saboteurs", "1", "--rounds", "1", "--deadline", "20"]
+    done = subprocess.run(
+        [*srd_command(), "agents", "--server", server.url, "--name-prefix", "table", *options,
+         "--admin-token", ADMIN_TOKEN],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    header = next(cells(line) for line in lines if "Participant" in line)
+    assert header == [
+        "Participant", "Model", "Submitted", "Uploads accepted", "Refused", "Late",
+        "Final version", "Bytes up", "Bytes down",
+    ]  # fmt: skip
+    rows = {c[0]: c for c in map(cells, lines) if c[0].startswith("table-")}
+    assert sorted(rows) == ["table-honest-000", "table-honest-001", "table-saboteur-002"]
+    auction_id = int(next(line for line in lines if "Auction" in line).split()[1].rstrip(":"))
+    auction = client.get(f"/auctions/{auction_id}").json()
+    answers = {a["model_id"]: a for r in auction["fine_tuning"] for a in r["answers"]}
+    for row in rows.values():
+        model_id = int(row[1])
+        assert row[2] == "accepted"  # every agent's first model looks honest
+        answer = answers.get(model_id)
+        outcome = answer["outcome"] if answer else None
+        assert row[3:6] == [str(int(outcome == o)) for o in ("accepted", "refused", "late")]
+        assert row[6] == str(answer["version"] if answer else 1)
+        assert int(row[7].replace(",", "")) > 0 and int(row[8].replace(",", "")) > 0
+    if answers.get(int(rows["table-saboteur-002"][1])):
+        assert rows["table-saboteur-002"][4] == "1"  # its always-hold upload is refused
+    totals = next(cells(line) for line in lines if "3 agents" in line)
+    assert totals[2] == "3 accepted"
+    up = sum(int(row[7].replace(",", "")) for row in rows.values())
+    assert int(totals[7].replace(",", "")) == up

@@ -15,6 +15,7 @@ from contextlib import contextmanager
 
 import click
 
+from server.cli.words import plain
 from sim.registry import KINDS
 
 HELP = "Self Reward Design: fish sale auction service, screener and the paper's experiments."
@@ -72,6 +73,7 @@ class _Commands(click.Group):
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         rows = [(name, help_line) for name, (_, help_line) in HAND_WRITTEN.items()]
         rows += [(name, kind.summary) for name, kind in KINDS.items() if kind.command]
+        rows = [(name, plain(line)) for name, line in rows]
         with formatter.section("Commands"):
             formatter.write_dl(rows)
 

@@ -141,7 +141,7 @@ def _summary(report: PopulationReport) -> Table:
     type=click.FloatRange(0, 1, min_open=True),
     default=0.5,
     show_default=True,
-    help="Created auction: fish = int(rarity × agents).",
+    help="Created auction's supply: fish on sale per patron (fish = int(rarity × agents)).",
 )
 @click.option(
     "--rounds",

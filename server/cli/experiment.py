@@ -151,7 +151,7 @@ def execute(
     if json_output:
         sys.stdout.write(json.dumps({**result, "out_dir": str(out_dir)}) + "\n")
     else:
-        width = None if sys.stdout.isatty() else 120  # logs and pipes get whole tables
+        width = None if sys.stdout.isatty() else 160  # logs and pipes get whole tables
         print_summary(kind, result, out_dir, Console(highlight=False, width=width))
     return result
 

@@ -9,7 +9,7 @@ import re
 SIGNIFICANT = 3
 """Significant digits of a float in a table or a card."""
 HEADERS = {
-    "rarity": "supply (fish on sale per patron)",
+    "rarity": "supply: fish on sale per patron",
     "n_fish": "fish on sale",
     "n_params": "parameters",
     "n_runs": "runs",

@@ -37,6 +37,7 @@ TERMINATE_GRACE_S = 3.0  # SIGTERM, then SIGKILL after this long
 PARENT_WATCH_S = 0.5  # how often a child checks that its parent is alive
 ERROR_LIMIT = 4000  # characters of a traceback summary kept in the database
 PR_SET_PDEATHSIG = 1  # prctl option: signal to receive when the parent dies
+STARTED, DONE = "started", "done"  # what a worker says about its task, over its pipe
 
 
 @dataclass(frozen=True)
@@ -132,8 +133,9 @@ def _worker_main(task: TaskFn, context: WorkerContext, conn: Connection, parent_
             task_id = conn.recv()
         except EOFError:
             return
+        conn.send((STARTED, task_id))  # the time limit counts from here, not from the hand-out
         task(context, task_id)
-        conn.send(task_id)
+        conn.send((DONE, task_id))
 
 
 @dataclass
@@ -145,7 +147,7 @@ class _Worker:
     task_id: int | None = None
     tasks_done: int = 0
     cancelled_at: float | None = None  # when SIGTERM was sent for the current task
-    started_at: float = 0.0  # when the current task was handed over
+    started_at: float | None = None  # when the worker began the current task (None: not yet)
     timed_out: bool = False  # the current task was stopped at the time limit
 
 
@@ -157,9 +159,11 @@ class WorkerPool:
     has had work, one idle worker is kept started ahead of need. A task is
     cancelled by terminating its process; a process that dies while running a task reports
     that task to ``on_exit`` with its exit code (unless cancelled or the pool is stopping).
-    A task still running ``timeout_s`` after it started is stopped the same way and reported
-    to ``on_timeout`` with the limit. Every task that is over, however it ended (done, died,
-    stopped, or dropped from the queue by ``cancel``), is then reported to ``on_end``.
+    A task still running ``timeout_s`` after its worker began it (the worker says so over its
+    pipe, once its interpreter is up: a fresh worker's imports are not the task's time) is
+    stopped the same way and reported to ``on_timeout`` with the limit. Every task that is
+    over, however it ended (done, died, stopped, or dropped from the queue by ``cancel``), is
+    then reported to ``on_end``.
     """
 
     def __init__(
@@ -292,19 +296,15 @@ class WorkerPool:
         now = time.monotonic()
         for worker in list(self._workers):
             if worker.task_id is not None and worker.process.is_alive():
-                over = self._timeout_s is not None and now - worker.started_at > self._timeout_s
-                if over and worker.cancelled_at is None:
+                if worker.cancelled_at is None:
+                    self._read(worker, now)
+                if self._over_limit(worker, now) and worker.cancelled_at is None:
                     worker.cancelled_at, worker.timed_out = now, True
                     worker.process.terminate()
                 if worker.cancelled_at is not None:
                     if now - worker.cancelled_at > TERMINATE_GRACE_S:
                         worker.process.kill()
                     continue
-                if worker.conn.poll():
-                    with contextlib.suppress(EOFError, OSError):
-                        worker.conn.recv()
-                        self._over.append(worker.task_id)
-                        worker.task_id, worker.tasks_done = None, worker.tasks_done + 1
                 if worker.task_id is None and self._retired(worker):
                     worker.conn.close()  # the worker sees EOF and exits
             if not worker.process.is_alive():
@@ -316,6 +316,24 @@ class WorkerPool:
                 if worker.task_id is not None:
                     self._over.append(worker.task_id)
         return ended
+
+    def _read(self, worker: _Worker, now: float) -> None:
+        """Take what the worker said about its task: begun (the clock starts) or done."""
+        with contextlib.suppress(EOFError, OSError):
+            while worker.task_id is not None and worker.conn.poll():
+                said, _ = worker.conn.recv()
+                if said == STARTED:
+                    worker.started_at = now
+                else:
+                    self._over.append(worker.task_id)
+                    worker.task_id, worker.tasks_done = None, worker.tasks_done + 1
+
+    def _over_limit(self, worker: _Worker, now: float) -> bool:
+        """A task begun longer ago than the limit (a worker still starting up is not timed:
+        its interpreter and imports are not the task's time)."""
+        if worker.task_id is None or worker.started_at is None or self._timeout_s is None:
+            return False
+        return now - worker.started_at > self._timeout_s
 
     def _retired(self, worker: _Worker) -> bool:
         limit = self._tasks_per_process
@@ -340,8 +358,7 @@ class WorkerPool:
             else:
                 return
             worker.task_id = self._queue.popleft()
-            worker.cancelled_at, worker.timed_out = None, False
-            worker.started_at = time.monotonic()
+            worker.cancelled_at, worker.timed_out, worker.started_at = None, False, None
             self._used = True
             worker.conn.send(worker.task_id)
 

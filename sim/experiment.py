@@ -40,8 +40,9 @@ def no_progress(fraction: float, message: str) -> None:
 
 
 def default_out_dir(command: str, seed: int, root: str | Path = "runs") -> Path:
-    """``runs/<command>__<seed>__<unix time>/`` as in CleanRL."""
-    return Path(root) / f"{command}__{seed}__{int(time.time())}"
+    """``runs/<command>__<seed>__<YYYYmmdd-HHMMSS>/`` (local time), as CleanRL names its runs
+    but readable."""
+    return Path(root) / f"{command}__{seed}__{time.strftime('%Y%m%d-%H%M%S')}"
 
 
 def write_json(path: Path, obj: Any) -> None:

@@ -60,7 +60,7 @@ class StudyConfig(AuctionOptions):
     The paper's Fig. C/D grid (``srd auction-study``)."""
 
     rarities: Rarities = PAPER_RARITIES
-    """Item supplies r; fish on sale = int(r · patrons)."""
+    """Supply: fish on sale per patron (r, the paper's rarity); fish on sale = int(r · patrons)."""
     trials: Annotated[int, Field(ge=1, le=1000)] = 10
     """Independent auctions per supply (and per setting)."""
     saboteurs: Annotated[float, Field(ge=0, le=1)] = 0.0
@@ -86,7 +86,7 @@ class ComparisonConfig(AuctionOptions):
     saboteurs (honest-alone: what screening restores)."""
 
     rarities: Rarities = COMPARISON_RARITIES
-    """Item supplies r; fish on sale = int(r · patrons)."""
+    """Supply: fish on sale per patron (r, the paper's rarity); fish on sale = int(r · patrons)."""
     trials: Annotated[int, Field(ge=1, le=1000)] = 3
     """Independent auctions per supply and configuration."""
     saboteurs: Annotated[float, Field(gt=0, le=1)] = GRID_SABOTEURS

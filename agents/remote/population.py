@@ -111,6 +111,9 @@ class PopulationReport:
     elapsed_s: float = 0.0
     transport: Transport = "http"
     """How the rounds travelled (``PopulationConfig.transport``)."""
+    per_agent: list[dict[str, Any]] = field(default_factory=list)
+    """One row per agent: participant, model id, its /submit status (accepted, refused or
+    held), uploads by answer, the version it bid with last, bytes up and down."""
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -184,21 +187,19 @@ async def run_population(
     """Register the population, join (or wait for, or create) its auction, answer every round,
     follow the auction to its end, and report."""
     started = time.monotonic()
-    traffic = Traffic()
     async with contextlib.AsyncExitStack() as stack:
-        clients = await _clients(config, traffic, stack)
+        clients = await _clients(config, stack)
         agents = population(config, clients)
-        await _submit(agents, progress)
+        submitted = await _submit(agents, progress)
         auction_id = await _auction(config, clients[0], agents)
         await _play(config, agents, auction_id, progress)
         final = await _final(clients[0], auction_id)
-    return _report(config, agents, traffic, auction_id, final, started)
+    return _report(config, agents, submitted, auction_id, final, started)
 
 
-async def _clients(
-    config: PopulationConfig, traffic: Traffic, stack: contextlib.AsyncExitStack
-) -> list[Client]:
-    """One client per agent (one connection each), sharing ``traffic``, closed with ``stack``."""
+async def _clients(config: PopulationConfig, stack: contextlib.AsyncExitStack) -> list[Client]:
+    """One client per agent (one connection each, its own traffic count), closed with
+    ``stack``."""
     rng = random.Random(config.seed)
     return [
         Client(
@@ -207,24 +208,25 @@ async def _clients(
             ),
             give_up_s=config.give_up_s,
             rng=random.Random(rng.random()),
-            traffic=traffic,
+            traffic=Traffic(),
         )
         for _ in range(config.honest + config.saboteurs)
     ]
 
 
-async def _submit(agents: list[RemoteAgent], progress: Progress | None) -> None:
-    """Submit every agent's model, ``SUBMIT_CONCURRENCY`` at a time."""
+async def _submit(agents: list[RemoteAgent], progress: Progress | None) -> list[dict[str, Any]]:
+    """Submit every agent's model, ``SUBMIT_CONCURRENCY`` at a time; the answers, in order."""
     done = 0
 
-    async def submit(agent: RemoteAgent) -> None:
+    async def submit(agent: RemoteAgent) -> dict[str, Any]:
         nonlocal done
-        await agent.submit()
+        answer = await agent.submit()
         done += 1
         if progress is not None:
             progress("submitted", done, len(agents))
+        return answer
 
-    await _gather_bounded([submit(a) for a in agents], SUBMIT_CONCURRENCY)
+    return await _gather_bounded([submit(a) for a in agents], SUBMIT_CONCURRENCY)
 
 
 async def _auction(config: PopulationConfig, client: Client, agents: list[RemoteAgent]) -> int:
@@ -264,10 +266,20 @@ async def _final(client: Client, auction_id: int) -> dict[str, Any]:
     return final
 
 
+def _last_versions(final: dict[str, Any]) -> dict[int, int]:
+    """Patron model id → the version it bid with after the last fine-tuning round it was
+    asked in."""
+    return {
+        answer["model_id"]: answer["version"]
+        for fine_tuning_round in final.get("fine_tuning", [])
+        for answer in fine_tuning_round["answers"]
+    }
+
+
 def _report(
     config: PopulationConfig,
     agents: list[RemoteAgent],
-    traffic: Traffic,
+    submitted: list[dict[str, Any]],
     auction_id: int,
     final: dict[str, Any],
     started: float,
@@ -278,6 +290,25 @@ def _report(
         refused=sum(a.uploads.refused for a in agents),
         late=sum(a.uploads.late for a in agents),
     )
+    traffic = Traffic(
+        bytes_up=sum(a.client.traffic.bytes_up for a in agents),
+        bytes_down=sum(a.client.traffic.bytes_down for a in agents),
+        requests=sum(a.client.traffic.requests for a in agents),
+        retries=sum(a.client.traffic.retries for a in agents),
+    )
+    versions = _last_versions(final)
+    per_agent = [
+        {
+            "participant": answer["participant"],
+            "model_id": agent.submitted_id,
+            "submitted": answer.get("status") or ("accepted" if answer["accepted"] else "refused"),
+            "uploads": dict(agent.uploads.__dict__),
+            "version": versions.get(agent.submitted_id, answer["version"]),
+            "bytes_up": agent.client.traffic.bytes_up,
+            "bytes_down": agent.client.traffic.bytes_down,
+        }
+        for agent, answer in zip(agents, submitted, strict=True)
+    ]
     return PopulationReport(
         server=config.server,
         agents=len(agents),
@@ -304,4 +335,5 @@ def _report(
             "error": final["error"],
         },
         elapsed_s=round(time.monotonic() - started, 3),
+        per_agent=per_agent,
     )

@@ -1,9 +1,9 @@
 """The ``srd`` command line.
 
 Every command is imported only when it runs, so ``srd --help`` answers without importing torch
-or any simulation: the experiment commands (one per kind of ``studies.registry``) are generated from
-their config dataclasses by ``server.cli.experiment``; ``serve``, ``screen`` and ``agents`` are
-written by hand in their own modules, each exposing ``command``.
+or any simulation: the experiment commands (one per kind of ``studies.registry``) are generated
+from their config dataclasses by ``server.cli.experiment``; ``serve``, ``screen``, ``agents`` and
+``watch`` are written by hand in their own modules, each exposing ``command``.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from contextlib import contextmanager
 
 import click
 
+from server.cli.words import plain
 from studies.registry import KINDS
 
 HELP = "Self Reward Design: fish sale auction service, screener and the paper's experiments."
@@ -23,6 +24,7 @@ HAND_WRITTEN = {
     "screen": ("server.cli.screen", "Screen one Fish Sale Negotiator manifest."),
     "agents": ("server.cli.agents", "Run remote agents that submit and fine-tune over HTTP."),
     "healthcheck": ("server.cli.healthcheck", "Exit 0 if the configured server is healthy."),
+    "watch": ("server.cli.watch", "Follow one auction live from its event stream."),
 }
 """Command name → (module exposing ``command``, one-line help)."""
 
@@ -71,6 +73,7 @@ class _Commands(click.Group):
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         rows = [(name, help_line) for name, (_, help_line) in HAND_WRITTEN.items()]
         rows += [(name, kind.summary) for name, kind in KINDS.items() if kind.command]
+        rows = [(name, plain(line)) for name, line in rows]
         with formatter.section("Commands"):
             formatter.write_dl(rows)
 

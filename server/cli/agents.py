@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import json
 import sys
+from collections import Counter
 
 import click
 import torch
@@ -33,26 +34,67 @@ INVALID = 2
 """Exit code of invalid options."""
 
 
-def _table(report: PopulationReport) -> Table:
-    table = Table(title=f"remote agents on {report.server}", show_header=False)
+def _agents_table(report: PopulationReport) -> Table:
+    """One row per agent, then the totals."""
+    table = Table(
+        "Participant",
+        "Model",
+        "Submitted",
+        "Uploads accepted",
+        "Refused",
+        "Late",
+        "Final version",
+        "Bytes up",
+        "Bytes down",
+        title=f"remote agents on {escape(report.server)}",
+        show_footer=True,
+    )
+    for row in report.per_agent:
+        uploads = row["uploads"]
+        table.add_row(
+            escape(row["participant"]),
+            str(row["model_id"]),
+            row["submitted"],
+            str(uploads["accepted"]),
+            str(uploads["refused"]),
+            str(uploads["late"]),
+            str(row["version"]),
+            f"{row['bytes_up']:,}",
+            f"{row['bytes_down']:,}",
+        )
+    submitted = Counter(row["submitted"] for row in report.per_agent)
+    footers = [
+        f"{report.agents} agents",
+        "",
+        ", ".join(f"{n} {status}" for status, n in sorted(submitted.items())),
+        str(report.uploads["accepted"]),
+        str(report.uploads["refused"]),
+        str(report.uploads["late"]),
+        "",
+        f"{report.bytes_up:,}",
+        f"{report.bytes_down:,}",
+    ]
+    for column, footer in zip(table.columns, footers, strict=True):
+        column.footer = footer
+    return table
+
+
+def _summary(report: PopulationReport) -> Table:
+    """The population and its auction."""
+    table = Table(show_header=False, box=None)
     auction = report.auction
     rows = [
-        ("agents", f"{report.agents} ({report.honest} honest, {report.saboteurs} saboteurs)"),
-        ("admitted at submission", str(report.admitted)),
-        ("auction", f"{auction['id']}: {auction['status']} ({auction['stop_reason']})"),
-        ("iterations, fine-tuning rounds", f"{auction['iterations']}, {report.rounds}"),
-        ("buyers, revenue", f"{auction['buyers']}, {auction['revenue']}"),
-        (
-            "uploads accepted / refused / late",
-            "{accepted} / {refused} / {late}".format(**report.uploads),
-        ),
-        ("refused by rules", ", ".join(report.refusal_rules) or "—"),
-        ("bytes up / down", f"{report.bytes_up} / {report.bytes_down}"),
-        ("requests (retries)", f"{report.requests} ({report.retries}), {report.transport}"),
-        ("elapsed", f"{report.elapsed_s:.1f} s"),
+        ("Agents", f"{report.agents} ({report.honest} honest, {report.saboteurs} saboteurs)"),
+        ("Admitted at submission", str(report.admitted)),
+        ("Auction", f"{auction['id']}: {auction['status']} ({auction['stop_reason']})"),
+        ("Iterations, fine-tuning rounds", f"{auction['iterations']}, {report.rounds}"),
+        ("Buyers, revenue", f"{auction['buyers']}, {auction['revenue']:.3f}"),
+        ("Refused by rules", ", ".join(report.refusal_rules) or "—"),
+        ("Requests (retries)", f"{report.requests} ({report.retries}), {report.transport}"),
+        ("Elapsed", f"{report.elapsed_s:.1f} s"),
     ]
     for name, value in rows:
-        table.add_row(name, value)
+        table.add_row(name, escape(value))
     return table
 
 
@@ -99,7 +141,7 @@ def _table(report: PopulationReport) -> Table:
     type=click.FloatRange(0, 1, min_open=True),
     default=0.5,
     show_default=True,
-    help="Created auction: fish = int(rarity × agents).",
+    help="Created auction's supply: fish on sale per patron (fish = int(rarity × agents)).",
 )
 @click.option(
     "--rounds",
@@ -217,4 +259,6 @@ def command(
     if json_output:
         sys.stdout.write(json.dumps(report.to_dict()) + "\n")
     else:
-        Console(highlight=False).print(_table(report))
+        out = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
+        out.print(_agents_table(report))
+        out.print(_summary(report))

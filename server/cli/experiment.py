@@ -23,6 +23,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from server.cli.words import header, plain, rounded
 from server.config import Settings
 from sim.experiment import (
     ConfigError,
@@ -56,7 +57,7 @@ def _option(field: ConfigField) -> click.Option:
         detail.append(field.bounds)
     if field.kind == "list":
         detail.append("comma-separated")
-    help_text = field.help + (f" [{'; '.join(detail)}]" if detail else "")
+    help_text = plain(field.help) + (f" [{'; '.join(detail)}]" if detail else "")
     if field.kind == "bool":
         return click.Option(
             [f"{flag}/--no-{flag[2:]}", field.name],
@@ -93,7 +94,7 @@ def experiment_command(kind: ExperimentKind) -> click.Command:
             ["--out", "out"],
             type=click.Path(path_type=Path, file_okay=False),
             default=None,
-            help="Artifacts folder [default: runs/<command>__<seed>__<time>/].",
+            help="Artifacts folder [default: runs/<command>__<seed>__<YYYYmmdd-HHMMSS>/].",
         ),
         click.Option(
             ["--json", "json_output"],
@@ -108,7 +109,7 @@ def experiment_command(kind: ExperimentKind) -> click.Command:
         execute(kind, options, out=out, json_output=json_output)
 
     return click.Command(
-        kind.name, params=params, callback=callback, help=kind.config_class().__doc__
+        kind.name, params=params, callback=callback, help=plain(kind.config_class().__doc__ or "")
     )
 
 
@@ -150,7 +151,7 @@ def execute(
     if json_output:
         sys.stdout.write(json.dumps({**result, "out_dir": str(out_dir)}) + "\n")
     else:
-        width = None if sys.stdout.isatty() else 120  # logs and pipes get whole tables
+        width = None if sys.stdout.isatty() else 160  # logs and pipes get whole tables
         print_summary(kind, result, out_dir, Console(highlight=False, width=width))
     return result
 
@@ -159,7 +160,7 @@ def _cell(value: Any) -> str:
     if value is None:
         return "—"
     if isinstance(value, float):
-        return f"{value:.4g}"
+        return rounded(value)
     return str(value)
 
 
@@ -170,14 +171,14 @@ def print_summary(
     headline = Table(show_header=False, box=None, title=f"srd {kind.name}", title_justify="left")
     for name in kind.headline:
         if name in result and not isinstance(result[name], dict | list):
-            headline.add_row(name, escape(_cell(result[name])))
+            headline.add_row(header(name), escape(_cell(result[name])))
     if "elapsed_s" in result:
-        headline.add_row("elapsed_s", _cell(result["elapsed_s"]))
+        headline.add_row(header("elapsed_s"), _cell(result["elapsed_s"]))
     out.print(headline)
     rows = result.get(kind.table) if kind.table else None
     if isinstance(rows, list) and rows and isinstance(rows[0], dict):
         columns = [c for c in kind.columns if c in rows[0]]
-        table = Table(*columns)
+        table = Table(*(header(c) for c in columns))
         for row in rows:
             table.add_row(*(escape(_cell(row.get(c))) for c in columns))
         out.print(table)

@@ -19,6 +19,7 @@ from server.models import (
     FineTuneAnswer,
     FineTuneRound,
     ModelVersion,
+    Participant,
     Purchase,
     Quit,
     utcnow,
@@ -27,7 +28,8 @@ from server.status import AUCTION_UNFINISHED, AuctionStatus, RoundStatus
 
 # iteration, price, n_available, votes, row_votes, next_price, n_available_after
 HistoryRow = Row[int, float, int, dict[str, int], dict[str, int], float, int]
-PurchaseRow = Row[int, float, int]  # model_id, price, iteration
+PurchaseRow = Row[int, float, int, str, int]  # model_id, price, iteration, participant, version
+QuitRow = Row[int, str, int, int]  # model_id, participant, version, iteration
 
 
 @dataclass(frozen=True)
@@ -91,7 +93,7 @@ class AuctionView:
     model_ids: list[int]
     history: Sequence[HistoryRow]
     purchases: Sequence[PurchaseRow]
-    quitters: list[int]
+    quitters: Sequence[QuitRow]
     fine_tuning: list[RoundView] = dataclasses.field(default_factory=list)
     """Remote fine-tuning rounds, oldest first (remote auctions only)."""
     current_model_ids: list[int] = dataclasses.field(default_factory=list)
@@ -199,12 +201,26 @@ AUCTION_HISTORY = (
     .order_by(AuctionIteration.iteration)
 )
 _AUCTION_PURCHASES = (
-    select(Purchase.model_id, Purchase.price, Purchase.iteration)
+    select(
+        Purchase.model_id,
+        Purchase.price,
+        Purchase.iteration,
+        Participant.name.label("participant"),
+        ModelVersion.version,
+    )
+    .join(ModelVersion, ModelVersion.id == Purchase.model_id)
+    .join(Participant, Participant.id == ModelVersion.participant_id)
     .where(Purchase.auction_id == bindparam("auction_id"))
     .order_by(Purchase.id)
 )
 _AUCTION_QUITTERS = (
-    select(Quit.model_id).where(Quit.auction_id == bindparam("auction_id")).order_by(Quit.id)
+    select(
+        Quit.model_id, Participant.name.label("participant"), ModelVersion.version, Quit.iteration
+    )
+    .join(ModelVersion, ModelVersion.id == Quit.model_id)
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .where(Quit.auction_id == bindparam("auction_id"))
+    .order_by(Quit.id)
 )
 
 
@@ -222,7 +238,7 @@ def get_auction(session: Session, *, auction_id: int) -> AuctionView | None:
         model_ids,
         connection.execute(AUCTION_HISTORY, key).all(),
         connection.execute(_AUCTION_PURCHASES, key).all(),
-        list(connection.scalars(_AUCTION_QUITTERS, key)),
+        connection.execute(_AUCTION_QUITTERS, key).all(),
         *(
             (_fine_tuning(session, auction_id, model_ids), _current_versions(session, auction_id))
             if auction.fine_tune_mode == "remote"

@@ -23,6 +23,7 @@ from server.schemas import (
     BuyerPublic,
     FineTuneRoundPublic,
     IterationPublic,
+    QuitterPublic,
     RoundAnswerPublic,
     Votes,
 )
@@ -82,10 +83,25 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
         n_initial=auction.n_initial,
         history=[iteration_public(row) for row in view.history],
         buyers=[
-            BuyerPublic(model_id=p.model_id, price=p.price, iteration=p.iteration)
+            BuyerPublic(
+                model_id=p.model_id,
+                price=p.price,
+                iteration=p.iteration,
+                participant=p.participant,
+                version=p.version,
+            )
             for p in view.purchases
         ],
-        quitters=view.quitters,
+        quitters=[q.model_id for q in view.quitters],
+        quitter_details=[
+            QuitterPublic(
+                model_id=q.model_id,
+                participant=q.participant,
+                version=q.version,
+                iteration=q.iteration,
+            )
+            for q in view.quitters
+        ],
         stop_reason=auction.stop_reason,
         n_patrons=len(view.model_ids),
         model_ids=view.model_ids,

@@ -18,6 +18,7 @@ from server.schemas.auctions import (
     IterationEvent,
     IterationPublic,
     PatronPublic,
+    QuitterPublic,
     RoundPurchasePublic,
     Votes,
 )
@@ -94,6 +95,7 @@ __all__ = [
     "ModelSummaryPublic",
     "ParticipantPublic",
     "PatronPublic",
+    "QuitterPublic",
     "ReasonPublic",
     "RoundAnswerPublic",
     "RoundPublic",

@@ -130,8 +130,21 @@ class IterationPublic(BaseModel):
 
 
 class BuyerPublic(BaseModel):
+    """A patron who bought a fish: the version that bid, its participant, price and round."""
+
     model_id: int
     price: float
+    iteration: int
+    participant: str
+    version: int
+
+
+class QuitterPublic(BaseModel):
+    """A patron who left without buying: the version that quit, its participant and round."""
+
+    model_id: int
+    participant: str
+    version: int
     iteration: int
 
 
@@ -147,6 +160,8 @@ class AuctionPublic(BaseModel):
     history: list[IterationPublic]
     buyers: list[BuyerPublic]
     quitters: list[int]
+    quitter_details: list[QuitterPublic]
+    """``quitters`` with the participant, version and round of each."""
     stop_reason: str | None
     n_patrons: int
     model_ids: list[int]

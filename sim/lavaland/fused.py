@@ -278,6 +278,8 @@ def train_srd_fused(
     )
     preferences = model.preferences.double().numpy()  # type: ignore[operator]
     bounds = np.linspace(0, steps, REPORT_BLOCKS + 1).astype(int)
+    if not _steps.signatures:  # the first call compiles (a minute on a busy machine) or loads
+        progress(0.0, "compiling the fused SRD step (once, then cached)")
     for first, last in itertools.pairwise(bounds.tolist()):
         _steps(
             *arguments,

@@ -87,12 +87,24 @@ def test_auction_runs_to_the_end_like_the_market(
     records = list(market.run())
     assert [r["price"] for r in auction["history"]] == [r.price for r in records]
     assert [r["votes"] for r in auction["history"]] == [r.votes for r in records]
+    names = [m["participant"] for m in manifests]  # each submitted once: version 1
     assert auction["buyers"] == [
-        {"model_id": ids[i], "price": price, "iteration": r.iteration}
+        {
+            "model_id": ids[i],
+            "price": price,
+            "iteration": r.iteration,
+            "participant": names[i],
+            "version": 1,
+        }
         for r in records
         for i, price in r.buyers
     ]
     assert auction["quitters"] == [ids[i] for r in records for i in r.quitters]
+    assert auction["quitter_details"] == [
+        {"model_id": ids[i], "participant": names[i], "version": 1, "iteration": r.iteration}
+        for r in records
+        for i in r.quitters
+    ]
     assert auction["stop_reason"] == records[-1].stop_reason
 
 

@@ -4,8 +4,10 @@ human and JSON output, option errors."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -72,7 +74,7 @@ def test_human_output_is_a_short_summary_on_stdout(tmp_path) -> None:
     assert result.exit_code == 0, result.output
     text = result.stdout
     assert "srd auction-study" in text and f"artifacts: {out}" in text
-    assert "mean_price" in text and "0.25" in text and "0.75" in text
+    assert "mean price" in text and "0.25" in text and "0.75" in text
     assert len(text.splitlines()) < 20
     assert (out / "results.csv").exists()
 
@@ -202,3 +204,48 @@ def test_serve_logs_each_request_unless_told_not_to(monkeypatch, value, logged) 
         get_settings.cache_clear()
     assert result.exit_code == 0, result.output
     assert seen["access_log"] is logged and seen["port"] == 0
+
+
+# --- what a person reads: help in plain words, headers, rounding, run folders -------------------
+
+
+@pytest.mark.parametrize("command", ["", *HAND_WRITTEN, *(k.name for k in COMMANDS)])
+def test_help_has_no_restructuredtext_literals(command) -> None:
+    result = CliRunner().invoke(cli, [*command.split(), "--help"])
+    assert result.exit_code == 0, result.output
+    assert "`" not in result.output
+
+
+def test_rarities_are_explained_as_supply() -> None:
+    text = CliRunner().invoke(cli, ["auction-study", "--help"]).output
+    assert "Supply: fish on sale per patron" in " ".join(text.split())
+
+
+def test_summary_headers_are_words_and_floats_have_three_significant_digits(tmp_path) -> None:
+    args = ["auction-study", "--rarities", "0.25", "--trials", "1", "--patrons", "8"]
+    result = CliRunner().invoke(cli, [*args, "--out", str(tmp_path / "s")])
+    assert result.exit_code == 0, result.output
+    assert "supply: fish on sale per patron" in result.stdout and "mean price" in result.stdout
+    assert "_" not in result.stdout.replace(str(tmp_path), "")
+    saved = json.loads((tmp_path / "s" / "result.json").read_text())
+    price = saved["rows"][0]["mean_price"]
+    assert f"{price:.3g}" in result.stdout and f"{price:.4g}" not in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("value", "shown"),
+    [(5.1913, "5.19"), (0.012345, "0.0123"), (1234.5, "1230"), (0.5, "0.5"), (2e-05, "2e-05")],
+)
+def test_floats_are_shown_to_three_significant_digits(value, shown) -> None:
+    from server.cli.words import rounded
+
+    assert rounded(value) == shown
+
+
+def test_a_run_folder_is_named_by_command_seed_and_readable_time(tmp_path, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(cli, ["fish", "--steps", "50", "--seed", "4", "--json"])
+    assert result.exit_code == 0, result.output
+    out_dir = Path(json.loads(result.stdout)["out_dir"])
+    assert out_dir.parent == Path("runs")
+    assert re.fullmatch(r"fish__4__\d{8}-\d{6}", out_dir.name)

@@ -29,7 +29,8 @@ def run_to_end(client: TestClient, body: dict[str, Any], timeout_s: float = 120)
 @pytest.fixture
 def limited(tmp_path) -> Any:
     settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
-    # 20 s: room for a fresh job worker to start and run a quick job on a loaded 2-core machine
+    # 20 s: the quick job (fish, its plot) on a loaded machine; a fresh worker's start-up is not
+    # counted (the limit runs from when the worker begins the job)
     settings = settings.model_copy(update={"job_timeout_s": 20.0, "job_workers": 1})
     with TestClient(create_app(settings)) as client:
         yield client, settings

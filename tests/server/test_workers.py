@@ -45,3 +45,53 @@ def test_workers_run_at_the_configured_niceness(tmp_path: Path, nice: int) -> No
         pool.shutdown()
     assert result.exists(), f"the task did not run; exits: {exits}"
     assert int(result.read_text()) == min(os.nice(0) + nice, 19)
+
+
+class SlowToStart:
+    """A task whose worker takes ``start_s`` to come up (it sleeps while the child unpickles
+    it, as a fresh worker imports torch under load); task 2 then runs for a minute."""
+
+    def __init__(self, start_s: float) -> None:
+        self.start_s = start_s
+
+    def __setstate__(self, state: dict[str, float]) -> None:
+        self.__dict__.update(state)
+        time.sleep(self.start_s)
+
+    def __call__(self, context: WorkerContext, task_id: int) -> None:
+        Path(context.data_dir, str(task_id)).write_text("ran")
+        if task_id == 2:
+            time.sleep(60)
+
+
+def test_the_time_limit_counts_from_the_start_of_the_task_not_of_its_worker(tmp_path) -> None:
+    """A fresh worker slower to start than the limit still runs its quick task to the end;
+    a task longer than the limit is stopped at it."""
+    ended: list[int] = []
+    timed_out: list[tuple[int, float]] = []
+    context = WorkerContext(
+        database_url="sqlite://", data_dir=str(tmp_path), progress_interval_s=1.0, torch_threads=1
+    )
+    pool = WorkerPool(
+        name="test",
+        task=SlowToStart(start_s=4.0),
+        context=context,
+        max_workers=1,
+        on_exit=lambda task_id, code: None,
+        tasks_per_process=1,  # as jobs: every task in a fresh worker
+        timeout_s=2.0,
+        on_timeout=lambda task_id, limit: timed_out.append((task_id, limit)),
+        on_end=ended.append,
+    )
+    pool.start()
+    try:
+        for task_id in (1, 2):
+            pool.submit(task_id)
+            deadline = time.monotonic() + 120  # start-up, torch imports on a loaded machine
+            while task_id not in ended and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert task_id in ended
+            assert (tmp_path / str(task_id)).read_text() == "ran"
+    finally:
+        pool.shutdown()
+    assert timed_out == [(2, 2.0)]

@@ -1,0 +1,259 @@
+"""``srd watch AUCTION_ID``: follow one auction live from its event stream
+(``GET /auctions/{id}/events``) until it ends.
+
+A terminal gets a live table (rich); a pipe or a log gets one plain line per event; ``--json``
+prints only the final state (``GET /auctions/{id}``) as one JSON object. A dropped stream is
+reconnected once, resuming after the last event received (``Last-Event-ID``).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections import Counter
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import click
+import httpx
+from rich.console import Console, Group
+from rich.live import Live
+from rich.markup import escape
+from rich.table import Table
+from rich.text import Text
+
+FINISHED, ENDED_OTHERWISE, LOST = 0, 1, 3
+"""Exit codes: the auction finished; it failed or was cancelled; it could not be followed
+(server unreachable, unknown auction, the stream dropped twice)."""
+TIMEOUT = httpx.Timeout(10.0, read=120.0)
+"""An idle stream sends a keep-alive every 15 s by default: 120 s of silence is a dead one."""
+LIVE_ROWS = 20
+"""The most recent iterations the live table shows (a terminal is only so tall)."""
+
+
+class WatchError(Exception):
+    """The auction could not be followed; the message says why."""
+
+
+@dataclass
+class Watched:
+    """What the stream has told so far."""
+
+    auction_id: int
+    iterations: list[dict[str, Any]] = field(default_factory=list)
+    rounds: dict[int, dict[str, Any]] = field(default_factory=dict)
+    """Remote fine-tuning rounds by number, as their latest event tells them."""
+    end: dict[str, Any] | None = None
+    last_id: str | None = None
+    reconnected: bool = False
+
+    def take(self, name: str, data: dict[str, Any]) -> None:
+        if name == "iteration":
+            self.iterations.append(data)
+        elif name == "round":
+            self.rounds[int(data["round"])] = data
+        elif name == "end":
+            self.end = data
+
+
+def sse(lines: Iterator[str]) -> Iterator[tuple[str, str | None, str]]:
+    """(event name, id, data) of each event of a ``text/event-stream`` body; comments and
+    ``retry`` hints are skipped."""
+    name, event_id, data = "message", None, list[str]()
+    for line in lines:
+        if not line:
+            if data:
+                yield name, event_id, "\n".join(data)
+            name, event_id, data = "message", None, []
+            continue
+        key, _, value = line.partition(":")
+        value = value.removeprefix(" ")
+        if key == "event":
+            name = value
+        elif key == "id":
+            event_id = value
+        elif key == "data":
+            data.append(value)
+
+
+def follow(
+    client: httpx.Client, watched: Watched, shown: Callable[[str, dict[str, Any]], None]
+) -> None:
+    """Read the auction's events into ``watched`` (telling each to ``shown``) until its end
+    event, reconnecting once if the stream drops before it."""
+    path = f"/auctions/{watched.auction_id}/events"
+    while True:
+        headers = {} if watched.last_id is None else {"Last-Event-ID": watched.last_id}
+        try:
+            with client.stream("GET", path, headers=headers) as response:
+                if response.status_code == 404:
+                    raise WatchError(f"auction {watched.auction_id} not found on {client.base_url}")
+                if response.status_code != 200:
+                    response.read()
+                    raise WatchError(f"{path}: HTTP {response.status_code}: {response.text}")
+                for name, event_id, data in sse(response.iter_lines()):
+                    payload = json.loads(data)
+                    watched.take(name, payload)
+                    if event_id is not None:
+                        watched.last_id = event_id
+                    shown(name, payload)
+                    if name == "end":
+                        return
+            cause = "the server closed the stream before the auction's end"
+        except httpx.HTTPError as exc:
+            cause = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        if watched.reconnected:
+            raise WatchError(f"the event stream dropped again ({cause})")
+        watched.reconnected = True
+
+
+# --- what a person reads ------------------------------------------------------------------------
+
+
+def price(value: float) -> str:
+    """A price in the auction's money: three decimals (its steps are a few thousandths)."""
+    return f"{value:.3f}"
+
+
+def patrons(people: list[dict[str, Any]], with_price: bool = False) -> str:
+    """``honest-1 v1 at 5.111, honest-3 v2``."""
+    named = []
+    for person in people:
+        text = f"{person['participant']} v{person['version']}"
+        if with_price:
+            text += f" at {price(person['price'])}"
+        named.append(text)
+    return ", ".join(named)
+
+
+def answers(round_event: dict[str, Any]) -> str:
+    """How the patrons answered a fine-tuning round: ``4 accepted, 1 refused``."""
+    counts = Counter(a["outcome"] for a in round_event.get("answers", []))
+    return ", ".join(f"{n} {outcome}" for outcome, n in sorted(counts.items())) or "no answer yet"
+
+
+def iteration_line(row: dict[str, Any]) -> str:
+    votes = row["votes"]
+    line = (
+        f"iteration {row['iteration']}: price {price(row['price'])}, "
+        f"fish {row['n_available']} -> {row['n_available_after']}, "
+        f"votes buy {votes['buy']} hold {votes['hold']} quit {votes['quit']}"
+    )
+    if row.get("purchases"):
+        line += f"; bought: {patrons(row['purchases'], with_price=True)}"
+    if row.get("quits"):
+        line += f"; quit: {patrons(row['quits'])}"
+    return line
+
+
+def round_line(data: dict[str, Any]) -> str:
+    return (
+        f"fine-tuning round {data['round']} (after iteration {data['iteration']}): "
+        f"{data['status']}; {answers(data)}"
+    )
+
+
+def end_line(watched: Watched) -> str:
+    end = watched.end or {}
+    sold = sum(len(row.get("purchases", [])) for row in watched.iterations)
+    revenue = sum(p["price"] for row in watched.iterations for p in row.get("purchases", []))
+    line = (
+        f"auction {watched.auction_id} {end.get('status')}"
+        + (f" ({end['stop_reason']})" if end.get("stop_reason") else "")
+        + f" after {end.get('iterations')} iterations: {end.get('n_sold', sold)} of "
+        f"{end.get('n_initial')} fish sold, revenue {price(revenue)}, final price "
+        f"{price(end.get('price', 0.0))}"
+    )
+    if end.get("error"):
+        line += f"; error: {end['error']}"
+    return line
+
+
+def live_view(watched: Watched) -> Group:
+    """The live table: where the auction stands, its latest iterations, its rounds."""
+    last = watched.iterations[-1] if watched.iterations else None
+    state = "ended" if watched.end else "running"
+    head = Text(f"auction {watched.auction_id}: {state}", style="bold")
+    if last is not None:
+        head.append(
+            f"   price {price(last['next_price'])}   supply: "
+            f"{last['n_available_after']} fish left   iteration {last['iteration'] + 1}",
+            style="",
+        )
+    table = Table("Iteration", "Price", "Fish left", "Buy", "Hold", "Quit", "Bought", "Quit by")
+    for row in watched.iterations[-LIVE_ROWS:]:
+        votes = row["votes"]
+        table.add_row(
+            str(row["iteration"]),
+            price(row["price"]),
+            f"{row['n_available']} -> {row['n_available_after']}",
+            str(votes["buy"]),
+            str(votes["hold"]),
+            str(votes["quit"]),
+            escape(patrons(row.get("purchases", []), with_price=True)),
+            escape(patrons(row.get("quits", []))),
+        )
+    parts: list[Any] = [head, table]
+    if watched.rounds:
+        rounds = Table("Fine-tuning round", "After iteration", "Status", "Answers")
+        for data in watched.rounds.values():
+            rounds.add_row(
+                str(data["round"]), str(data["iteration"]), data["status"], answers(data)
+            )
+        parts.append(rounds)
+    return Group(*parts)
+
+
+@click.command("watch")
+@click.argument("auction_id", type=click.IntRange(1))
+@click.option(
+    "--server",
+    envvar="SRD_URL",
+    default="http://127.0.0.1:8000",
+    show_default=True,
+    help="Base URL of the auction house (or SRD_URL).",
+)
+@click.option(
+    "--json", "json_output", is_flag=True, help="Print only the final state, as one JSON object."
+)
+def command(auction_id: int, server: str, json_output: bool) -> None:
+    """Follow one auction live: the price, the fish left (supply), each iteration's buy / hold /
+    quit votes, who bought and who quit, and remote fine-tuning rounds, until the auction ends.
+    Exit 0 when it finished, 1 when it failed or was cancelled, 3 when it could not be
+    followed."""
+    err = Console(stderr=True, highlight=False)
+    out = Console(highlight=False, soft_wrap=True)
+    watched = Watched(auction_id)
+    try:
+        with httpx.Client(base_url=server, timeout=TIMEOUT) as client:
+            if json_output:
+                follow(client, watched, lambda name, data: None)
+            elif out.is_terminal:
+                with Live(live_view(watched), console=out, auto_refresh=False) as live:
+                    follow(
+                        client, watched, lambda n, d: live.update(live_view(watched), refresh=True)
+                    )
+            else:
+                follow(client, watched, _print_plain)
+            final = client.get(f"/auctions/{auction_id}") if json_output else None
+            if final is not None and final.status_code != 200:
+                raise WatchError(f"GET /auctions/{auction_id}: HTTP {final.status_code}")
+    except (WatchError, httpx.HTTPError) as exc:
+        err.print(f"[red]error:[/red] {escape(str(exc))}")
+        raise SystemExit(LOST) from exc
+    if final is not None:
+        sys.stdout.write(json.dumps(final.json()) + "\n")
+    else:
+        out.print(escape(end_line(watched)))
+    # the server ends the stream on any status but pending and running (finished, failed,
+    # cancelled, or one added later): only a finished auction is a success
+    status = (watched.end or {}).get("status")
+    raise SystemExit(FINISHED if status == "finished" else ENDED_OTHERWISE)
+
+
+def _print_plain(name: str, data: dict[str, Any]) -> None:
+    if name == "iteration":
+        click.echo(iteration_line(data))
+    elif name == "round":
+        click.echo(round_line(data))

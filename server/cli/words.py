@@ -1,0 +1,46 @@
+"""How the command line shows names and numbers to a person: help text without reStructuredText
+markup, table headers in words, floats to three significant digits."""
+
+from __future__ import annotations
+
+import math
+import re
+
+SIGNIFICANT = 3
+"""Significant digits of a float in a table or a card."""
+HEADERS = {
+    "rarity": "supply: fish on sale per patron",
+    "n_fish": "fish on sale",
+    "n_params": "parameters",
+    "n_runs": "runs",
+    "elapsed_s": "elapsed (s)",
+}
+"""Result fields whose header is not just their name in words."""
+ACRONYMS = {"srd": "SRD", "lr": "learning rate"}
+_LITERAL = re.compile(r"``(.+?)``|`([^`]+)`")
+
+
+def plain(text: str) -> str:
+    """Help text as a terminal shows it: ``x`` and `x` become x (the config docstrings are
+    written for Sphinx and the code's readers)."""
+    return _LITERAL.sub(lambda m: m.group(1) or m.group(2), text)
+
+
+def header(name: str) -> str:
+    """A result field as a column or row header: ``mean_price`` → ``mean price``."""
+    if name in HEADERS:
+        return HEADERS[name]
+    return " ".join(ACRONYMS.get(word, word) for word in name.split("_"))
+
+
+def rounded(value: float) -> str:
+    """``value`` to three significant digits, trailing zeros dropped, without an exponent from
+    0.001 up: 5.1913 → 5.19, 0.012345 → 0.0123, 1234.5 → 1230, 0.5 → 0.5, 2e-05 → 2e-05."""
+    if not math.isfinite(value) or value == 0:
+        return f"{value:g}"
+    magnitude = math.floor(math.log10(abs(value)))
+    if magnitude < -3:
+        return f"{value:.{SIGNIFICANT}g}"
+    decimals = SIGNIFICANT - 1 - magnitude
+    text = f"{round(value, decimals):.{max(decimals, 0)}f}"
+    return text.rstrip("0").rstrip(".") if "." in text else text

@@ -1,0 +1,282 @@
+"""``srd watch AUCTION_ID``: against a real ``srd serve`` (the iterations printed, the final
+state, buyers and quitters named by participant and version), and against a stand-in server
+whose stream drops (one reconnection, resuming after the last event)."""
+
+from __future__ import annotations
+
+import json
+import os
+import pty
+import re
+import subprocess
+import threading
+from collections.abc import Iterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any, ClassVar
+
+import httpx
+import pytest
+from click.testing import CliRunner
+
+from server.cli import cli
+from server.launch import ServerProcess, srd_command
+from tests.support.live import submit_population
+from tests.support.server import ADMIN, ADMIN_TOKEN, wait_for
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    data_dir = tmp_path_factory.mktemp("watch")
+    env = {"SRD_EVENT_POLL_INTERVAL_S": "0.05"}
+    with ServerProcess(
+        database_url=f"sqlite:///{data_dir / 'srd.db'}",
+        data_dir=data_dir,
+        admin_token=ADMIN_TOKEN,
+        extra_env=env,
+    ) as running:
+        yield running
+
+
+@pytest.fixture(scope="module")
+def client(server: ServerProcess) -> Iterator[httpx.Client]:
+    with httpx.Client(base_url=server.url, timeout=30) as http:
+        submit_population(http)
+        yield http
+
+
+def watch(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [*srd_command(), "watch", *args], capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
+
+
+def start_auction(client: httpx.Client, seed: int) -> int:
+    created = client.post("/auctions", json={"n_fish": 3, "seed": seed}, headers=ADMIN)
+    assert created.status_code == 201, created.text
+    return int(created.json()["auction_id"])
+
+
+def test_watch_prints_each_iteration_and_exits_0_when_the_auction_finishes(
+    server: ServerProcess, client: httpx.Client
+) -> None:
+    auction_id = start_auction(client, seed=0)
+    done = watch(str(auction_id), "--server", server.url)
+    assert done.returncode == 0, done.stderr
+    auction = client.get(f"/auctions/{auction_id}").json()
+    assert auction["status"] == "finished"
+    lines = done.stdout.splitlines()
+    rows = [line for line in lines if line.startswith("iteration ")]
+    assert len(rows) == len(auction["history"]) >= 1
+    for line, row in zip(rows, auction["history"], strict=True):
+        votes = row["votes"]
+        assert line.startswith(
+            f"iteration {row['iteration']}: price {row['price']:.3f}, "
+            f"fish {row['n_available']} -> {row['n_available_after']}, "
+            f"votes buy {votes['buy']} hold {votes['hold']} quit {votes['quit']}"
+        )
+    for buyer in auction["buyers"]:
+        bought = f"{buyer['participant']} v{buyer['version']} at {buyer['price']:.3f}"
+        assert bought in rows[buyer["iteration"]]
+    revenue = sum(b["price"] for b in auction["buyers"])
+    assert lines[-1] == (
+        f"auction {auction_id} finished ({auction['stop_reason']}) after "
+        f"{len(auction['history'])} iterations: {len(auction['buyers'])} of 3 fish sold, "
+        f"revenue {revenue:.3f}, final price {auction['price']:.3f}"
+    )
+
+
+def test_watch_json_is_the_final_state_with_buyers_and_quitters_named(
+    server: ServerProcess, client: httpx.Client
+) -> None:
+    auction_id = start_auction(client, seed=1)
+    done = watch(str(auction_id), "--server", server.url, "--json")
+    assert done.returncode == 0, done.stderr
+    (line,) = done.stdout.splitlines()
+    final = json.loads(line)
+    assert final == client.get(f"/auctions/{auction_id}").json()
+    assert final["status"] == "finished" and final["buyers"]
+    for buyer in final["buyers"]:
+        model = client.get(f"/models/{buyer['model_id']}").json()
+        assert (buyer["participant"], buyer["version"]) == (model["participant"], model["version"])
+    assert final["quitters"]  # some of the population's honest patrons quit
+    assert [q["model_id"] for q in final["quitter_details"]] == final["quitters"]
+    for quitter in final["quitter_details"]:
+        model = client.get(f"/models/{quitter['model_id']}").json()
+        assert (quitter["participant"], quitter["version"]) == (model["participant"], 1)
+        votes = final["history"][quitter["iteration"]]["votes"]
+        assert votes["quit"] >= 1
+
+
+def test_watch_of_an_unknown_auction_exits_3_naming_it(server: ServerProcess) -> None:
+    done = watch("999999", "--server", server.url)
+    assert done.returncode == 3
+    assert f"auction 999999 not found on {server.url}" in done.stderr
+    assert done.stdout == ""
+
+
+def test_on_a_terminal_watch_draws_a_live_table(server: ServerProcess, client: httpx.Client):
+    auction_id = start_auction(client, seed=2)
+    wait_for(
+        lambda: client.get(f"/auctions/{auction_id}").json(),
+        lambda a: a["status"] == "finished",
+        120,
+    )
+    main, child = pty.openpty()
+    process = subprocess.Popen(
+        [*srd_command(), "watch", str(auction_id), "--server", server.url],
+        stdout=child,
+        stderr=subprocess.PIPE,
+        cwd=ROOT,
+        env={**os.environ, "COLUMNS": "160", "TERM": "xterm"},
+    )
+    os.close(child)
+    screen = b""
+    while True:
+        try:
+            chunk = os.read(main, 65536)
+        except OSError:  # the child closed the terminal
+            break
+        if not chunk:
+            break
+        screen += chunk
+    os.close(main)
+    assert process.wait(timeout=120) == 0
+    text = screen.decode()
+    for header in ("Iteration", "Price", "Fish left", "Buy", "Hold", "Quit", "Bought"):
+        assert header in text
+    assert f"auction {auction_id} finished" in text
+
+
+# --- a stand-in server whose stream drops -------------------------------------------------------
+
+
+def iteration(i: int) -> dict[str, Any]:
+    return {
+        "iteration": i,
+        "price": 5.0 + i / 100,
+        "n_available": 2,
+        "n_available_after": 2,
+        "next_price": 5.01 + i / 100,
+        "votes": {"buy": 0, "hold": 3, "quit": 0},
+        "purchases": [],
+        "quits": [],
+    }
+
+
+END = {"status": "finished", "iterations": 3, "price": 5.03, "n_available": 2, "n_initial": 2}
+
+
+class DroppingStream(BaseHTTPRequestHandler):
+    """Sends ``plan[k]`` on the k-th connection, then closes it; records each Last-Event-ID."""
+
+    plan: ClassVar[list[list[tuple[str, str | None, dict[str, Any]]]]] = []
+    seen: ClassVar[list[str | None]] = []
+
+    def do_GET(self) -> None:
+        self.seen.append(self.headers.get("Last-Event-ID"))
+        events = self.plan[min(len(self.seen), len(self.plan)) - 1]
+        self.send_response(200)
+        self.send_header("Content-Type", "text/event-stream")
+        self.end_headers()
+        self.wfile.write(b": auction 7\nretry: 2000\n\n")
+        for name, event_id, data in events:
+            block = f"event: {name}\ndata: {json.dumps(data)}\n"
+            block += f"id: {event_id}\n\n" if event_id is not None else "\n"
+            self.wfile.write(block.encode())
+        self.wfile.flush()
+
+    def log_message(self, format: str, *args: Any) -> None:  # quiet
+        pass
+
+
+@pytest.fixture
+def dropping() -> Iterator[tuple[str, type[DroppingStream]]]:
+    handler = type("Handler", (DroppingStream,), {"plan": [], "seen": []})
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_address[1]}", handler
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+
+
+def test_a_dropped_stream_is_resumed_once_after_the_last_event(dropping) -> None:
+    url, handler = dropping
+    handler.plan = [
+        [("iteration", "0", iteration(0)), ("iteration", "1", iteration(1))],
+        [("iteration", "2", iteration(2)), ("end", None, END)],
+    ]
+    result = CliRunner().invoke(cli, ["watch", "7", "--server", url])
+    assert result.exit_code == 0, result.output
+    assert handler.seen == [None, "1"]
+    rows = [line for line in result.stdout.splitlines() if line.startswith("iteration")]
+    assert [row.split(":")[0] for row in rows] == ["iteration 0", "iteration 1", "iteration 2"]
+    assert result.stdout.splitlines()[-1].startswith("auction 7 finished after 3 iterations")
+
+
+def test_a_stream_that_drops_twice_exits_3(dropping) -> None:
+    url, handler = dropping
+    handler.plan = [[("iteration", "0", iteration(0))], [("iteration", "1", iteration(1))]]
+    result = CliRunner().invoke(cli, ["watch", "7", "--server", url])
+    assert result.exit_code == 3
+    assert handler.seen == [None, "0"]
+    assert "the event stream dropped again" in result.stderr
+
+
+def test_a_cancelled_auction_ends_the_watch_with_exit_1(dropping) -> None:
+    url, handler = dropping
+    cancelled = {**END, "status": "cancelled", "iterations": 1}
+    handler.plan = [[("iteration", "0", iteration(0)), ("end", None, cancelled)]]
+    result = CliRunner().invoke(cli, ["watch", "7", "--server", url])
+    assert result.exit_code == 1
+    assert result.stdout.splitlines()[-1].startswith("auction 7 cancelled after 1 iterations")
+
+
+# --- srd agents: the summary table ---------------------------------------------------------------
+
+
+def cells(line: str) -> list[str]:
+    """The cells of one line of a rich table (header lines have their own bars)."""
+    return [cell.strip() for cell in re.split("[│┃]", line.strip().strip("│┃"))]
+
+
+def test_agents_prints_a_row_per_agent_then_the_totals(
+    server: ServerProcess, client: httpx.Client
+) -> None:
+    options = ["--honest", "2", "--saboteurs", "1", "--rounds", "1", "--deadline", "20"]
+    done = subprocess.run(
+        [*srd_command(), "agents", "--server", server.url, "--name-prefix", "table", *options,
+         "--admin-token", ADMIN_TOKEN],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    header = next(cells(line) for line in lines if "Participant" in line)
+    assert header == [
+        "Participant", "Model", "Submitted", "Uploads accepted", "Refused", "Late",
+        "Final version", "Bytes up", "Bytes down",
+    ]  # fmt: skip
+    rows = {c[0]: c for c in map(cells, lines) if c[0].startswith("table-")}
+    assert sorted(rows) == ["table-honest-000", "table-honest-001", "table-saboteur-002"]
+    auction_id = int(next(line for line in lines if "Auction" in line).split()[1].rstrip(":"))
+    auction = client.get(f"/auctions/{auction_id}").json()
+    answers = {a["model_id"]: a for r in auction["fine_tuning"] for a in r["answers"]}
+    for row in rows.values():
+        model_id = int(row[1])
+        assert row[2] == "accepted"  # every agent's first model looks honest
+        answer = answers.get(model_id)
+        outcome = answer["outcome"] if answer else None
+        assert row[3:6] == [str(int(outcome == o)) for o in ("accepted", "refused", "late")]
+        assert row[6] == str(answer["version"] if answer else 1)
+        assert int(row[7].replace(",", "")) > 0 and int(row[8].replace(",", "")) > 0
+    if answers.get(int(rows["table-saboteur-002"][1])):
+        assert rows["table-saboteur-002"][4] == "1"  # its always-hold upload is refused
+    totals = next(cells(line) for line in lines if "3 agents" in line)
+    assert totals[2] == "3 accepted"
+    up = sum(int(row[7].replace(",", "")) for row in rows.values())
+    assert int(totals[7].replace(",", "")) == up

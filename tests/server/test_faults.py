@@ -1,0 +1,294 @@
+"""Faults in the middle of an auction, against a real ``srd serve``: an auction is state in the
+database moved by steps, so a worker killed mid-step or mid-round costs nothing but time (the
+auction finishes identical to an undisturbed twin), and an upload whose body reached the server
+before its round's deadline counts as in time even if the server is killed before it could be
+judged (a retry of the same body gets its verdict after the restart)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+import signal
+import threading
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import httpx
+from sqlalchemy import select
+
+from agents.manifest import parse_manifest
+from agents.remote import RoundInfo, faithful_fine_tune
+from server.db import Database
+from server.launch import ServerProcess
+from server.models import FineTuneAnswer, FineTuneRound
+from tests.support.factories import honest
+from tests.support.processes import descendants, server_pair
+from tests.support.server import wait_for
+
+TIMEOUT_S = 180
+SAME = ("history", "buyers", "quitters", "stop_reason", "price", "n_available", "revenue")
+"""What an auction and its twin must agree on."""
+
+
+def spawned(server: ServerProcess) -> list[int]:
+    """The server's spawned processes (screening and auction workers), not the resource
+    tracker."""
+    assert server.process is not None
+    found = []
+    for pid in descendants(server.process.pid)[1:]:
+        try:
+            command = Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in command:
+            found.append(pid)
+    return found
+
+
+def signal_all(pids: list[int], signum: int) -> None:
+    for pid in pids:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signum)
+
+
+def get(server: ServerProcess, auction_id: int) -> dict[str, Any]:
+    return dict(httpx.get(f"{server.url}/auctions/{auction_id}", timeout=30).json())
+
+
+def ended(server: ServerProcess, auction_id: int) -> dict[str, Any]:
+    return wait_for(
+        lambda: get(server, auction_id),
+        lambda a: a["status"] not in ("pending", "running"),
+        TIMEOUT_S,
+    )
+
+
+Population = tuple[list[int], list[dict[str, Any]], list[str]]
+"""Model ids, manifests and tokens of freshly submitted participants."""
+
+
+def submit(server: ServerProcess, n: int, seed: int) -> Population:
+    """``n`` honest participants whose weights depend on ``seed`` and their index only (a twin
+    population has the same weights under other names)."""
+    tag = secrets.token_hex(3)
+    manifests = [honest(f"fault-{tag}-{i}", seed=seed + i) for i in range(n)]
+    answers = [httpx.post(server.url + "/submit", json=m, timeout=60).json() for m in manifests]
+    assert all(a["accepted"] for a in answers), answers
+    return [a["model_id"] for a in answers], manifests, [a["token"] for a in answers]
+
+
+def create(server: ServerProcess, admin: dict[str, str], body: dict[str, Any]) -> int:
+    created = httpx.post(server.url + "/auctions", json=body, headers=admin, timeout=30)
+    assert created.status_code == 201, created.text
+    return int(created.json()["auction_id"])
+
+
+def test_a_worker_killed_mid_step_resumes_and_matches_its_twin(tmp_path: Path) -> None:
+    (server, _), admin = server_pair(f"sqlite:///{tmp_path / 'steps.db'}", tmp_path)
+    with server:
+        server.start()
+        body = {"n_fish": 6, "fine_tune": True, "max_iterations": 40, "seed": 11}
+        ids, _, _ = submit(server, 24, seed=700)
+        killed = create(server, admin, {**body, "model_ids": ids})
+        wait_for(lambda: get(server, killed), lambda a: a["iteration"] >= 2, TIMEOUT_S)
+        at_kill = get(server, killed)
+        signal_all(spawned(server), signal.SIGKILL)  # the step playing it dies mid-way
+        played = ended(server, killed)
+        assert at_kill["status"] == "running" and at_kill["iteration"] < len(played["history"])
+        twin_ids, _, _ = submit(server, 24, seed=700)
+        twin = ended(server, create(server, admin, {**body, "model_ids": twin_ids}))
+    assert played["status"] == "finished" and played["error"] is None
+    assert [r["iteration"] for r in played["history"]] == list(range(len(played["history"])))
+    position = {m: i for i, m in enumerate(played["model_ids"])}
+    twin_position = {m: i for i, m in enumerate(twin["model_ids"])}
+    for key in ("history", "stop_reason", "price", "n_available", "revenue"):
+        assert played[key] == twin[key], key
+    assert [(position[b["model_id"]], b["price"]) for b in played["buyers"]] == [
+        (twin_position[b["model_id"]], b["price"]) for b in twin["buyers"]
+    ]
+    assert [position[q] for q in played["quitters"]] == [twin_position[q] for q in twin["quitters"]]
+
+
+def upload(
+    server: ServerProcess,
+    auction_id: int,
+    state: dict[str, Any],
+    model_id: int,
+    manifests: dict[int, dict[str, Any]],
+    tokens: dict[int, str],
+    ids: list[int],
+) -> httpx.Response:
+    """The patron's faithful fine-tuning of the open round ``state``, uploaded (a 503 of a
+    screener that is starting again is retried, as an agent would)."""
+    tuned = faithful_fine_tune(
+        parse_manifest(manifests[model_id]), RoundInfo.from_state(state, ids.index(model_id))
+    )
+    url = f"{server.url}/auctions/{auction_id}/rounds/{state['round']}/models/{model_id}"
+    headers = {"Authorization": f"Bearer {tokens[model_id]}", "Content-Type": "application/json"}
+    for _ in range(60):
+        answer = httpx.put(url, content=tuned.model_dump_json(), headers=headers, timeout=60)
+        if answer.status_code != 503:
+            return answer
+        time.sleep(1)
+    return answer
+
+
+def next_round(server: ServerProcess, auction_id: int, after: int) -> dict[str, Any]:
+    """The auction's next open round above ``after``, or its end."""
+    return wait_for(
+        lambda: httpx.get(
+            f"{server.url}/auctions/{auction_id}/rounds/current",
+            params={"wait": 5, "after": after},
+            timeout=30,
+        ).json(),
+        lambda r: (
+            (r["status"] == "open" and r["round"] > after)
+            or r["auction_status"] not in ("pending", "running")
+        ),
+        TIMEOUT_S,
+    )
+
+
+def play_remote(
+    server: ServerProcess,
+    auction_id: int,
+    population: Population,
+    *,
+    kill_in_round: int | None = None,
+) -> dict[str, Any]:
+    """Answer every round of a remote auction with every asked patron's faithful fine-tuning;
+    with ``kill_in_round``, kill -9 every spawned process of the server while that round is
+    open, before its answers."""
+    ids, manifest_list, token_list = population
+    manifests, tokens = (
+        dict(zip(ids, manifest_list, strict=True)),
+        dict(zip(ids, token_list, strict=True)),
+    )
+    after = 0
+    while True:
+        state = next_round(server, auction_id, after)
+        if state["auction_status"] not in ("pending", "running"):
+            return ended(server, auction_id)
+        if state["round"] == kill_in_round:
+            signal_all(spawned(server), signal.SIGKILL)
+        for model_id in state["asked"]:
+            answer = upload(server, auction_id, state, model_id, manifests, tokens, ids)
+            assert answer.status_code == 200, answer.text
+        after = state["round"]
+
+
+def test_workers_killed_mid_round_cost_nothing_but_time(tmp_path: Path) -> None:
+    (server, _), admin = server_pair(f"sqlite:///{tmp_path / 'rounds.db'}", tmp_path)
+    body = {
+        "n_fish": 2,
+        "fine_tune_mode": "remote",
+        "fine_tune_rounds": 2,
+        "round_deadline_s": 120,
+        "max_iterations": 12,
+        "seed": 5,
+    }
+    with server:
+        server.start()
+        population = submit(server, 6, seed=800)
+        killed = create(server, admin, {**body, "model_ids": population[0]})
+        played = play_remote(server, killed, population, kill_in_round=1)
+        twin_population = submit(server, 6, seed=800)
+        twin = create(server, admin, {**body, "model_ids": twin_population[0]})
+        undisturbed = play_remote(server, twin, twin_population)
+    assert played["status"] == "finished" and played["error"] is None
+    assert played["history"] == undisturbed["history"]
+    assert len(played["fine_tuning"]) == 2
+    for rounds in (played["fine_tuning"], undisturbed["fine_tuning"]):
+        assert all(a["outcome"] == "accepted" for r in rounds for a in r["answers"])
+    assert [len(r["answers"]) for r in played["fine_tuning"]] == [
+        len(r["answers"]) for r in undisturbed["fine_tuning"]
+    ]
+
+
+def test_uploads_that_reached_the_server_in_time_count_after_a_kill_9(tmp_path: Path) -> None:
+    """The screener and the workers are frozen (SIGSTOP), so every upload is stored on arrival
+    but none is judged; the server is killed with all of them in flight and comes back after
+    the round's deadline: each upload is judged, none is late, and a retry of the same body
+    gets the same answer."""
+    url = f"sqlite:///{tmp_path / 'inflight.db'}"
+    (first, second), admin = server_pair(url, tmp_path)
+    deadline_s = 12.0
+    try:
+        first.start()
+        ids, manifest_list, token_list = submit(first, 5, seed=900)
+        manifests = dict(zip(ids, manifest_list, strict=True))
+        tokens = dict(zip(ids, token_list, strict=True))
+        auction_id = create(
+            first,
+            admin,
+            {
+                "n_fish": 1,
+                "model_ids": ids,
+                "fine_tune_mode": "remote",
+                "fine_tune_rounds": 1,
+                "round_deadline_s": deadline_s,
+                "seed": 2,
+            },
+        )
+        state = next_round(first, auction_id, 0)
+        asked = list(state["asked"])
+        frozen = spawned(first)
+        signal_all(frozen, signal.SIGSTOP)
+        threads = [
+            threading.Thread(
+                target=lambda m=m: _swallow(
+                    lambda: upload(first, auction_id, state, m, manifests, tokens, ids)
+                ),
+                daemon=True,
+            )
+            for m in asked
+        ]
+        for thread in threads:
+            thread.start()
+        database = Database(url)
+        try:
+            wait_for(lambda: {"stored": _stored(database, auction_id)},
+                     lambda s: s["stored"] == ["pending"] * len(asked), 30)  # fmt: skip
+        finally:
+            database.close()
+        first.kill()
+        signal_all(frozen, signal.SIGKILL)
+        signal_all(frozen, signal.SIGCONT)
+        deadline = datetime.fromisoformat(state["deadline"].replace("Z", "+00:00"))
+        time.sleep(max(0.0, (deadline - datetime.now(UTC)).total_seconds()) + 1.0)
+        # the restart comes after the deadline
+
+        second.start()
+        answers = {m: upload(second, auction_id, state, m, manifests, tokens, ids) for m in asked}
+        for model_id, answer in answers.items():
+            assert answer.status_code == 200, answer.text
+            assert answer.json()["accepted"] is True
+            again = upload(second, auction_id, state, model_id, manifests, tokens, ids)
+            assert again.status_code == 200 and again.content == answer.content
+        auction = ended(second, auction_id)
+        (only,) = auction["fine_tuning"]
+        assert only["status"] == "closed"
+        assert sorted(a["outcome"] for a in only["answers"]) == ["accepted"] * len(asked)
+    finally:
+        first.kill()
+        second.stop()
+
+
+def _swallow(call: Any) -> None:
+    """An upload cut off by the kill (its connection drops): nothing to report."""
+    with contextlib.suppress(httpx.HTTPError):
+        call()
+
+
+def _stored(database: Database, auction_id: int) -> list[str]:
+    with database.session(write=False) as session:
+        return sorted(
+            session.scalars(
+                select(FineTuneAnswer.outcome)
+                .join(FineTuneRound, FineTuneRound.id == FineTuneAnswer.round_id)
+                .where(FineTuneRound.auction_id == auction_id)
+            )
+        )

@@ -1,27 +1,15 @@
-"""The write path of ``POST /submit``: screened manifests stored in group commits.
+"""The write path of ``POST /submit``: a screened manifest stored as its participant's next
+version, in one transaction on a thread of the pool.
 
-A submission needs a participant lookup, its latest version, up to two inserts and a commit.
-Run from the thread pool, every request would pay a thread hop, those round trips, a commit
-and, on SQLite, a turn at the single write lock. Here the route hands its screened manifest to
-``SubmissionWriter.store`` and awaits the answer on its event loop; a
-``server.grouping.GroupWriter`` thread takes every submission queued since its last pass and
-``_store_group`` decides them in order and writes them in ONE transaction: one locking query
-for the group's participants, one for their latest versions, one multi-row insert of new
-participants and one of model versions, then a single commit, and answers them all.
+Quotas (``server.quotas``) are decided in the same transaction. ``precheck`` asks the same
+questions (name, token, quotas) before the route spends screening on a submission; the answer
+given at ``store`` is the authoritative one.
 
-Quotas (``server.quotas``) are decided in the same transaction, counting the group's earlier
-submissions. ``precheck`` asks the same questions (token, quotas) before the route spends
-screening on a submission; the answer given at ``store`` is the authoritative one.
-
-Semantics are those of the submissions run one after another in arrival order: a
-participant created earlier in the group needs its token for a later version in the same
-group. Names are compared after NFKC and case folding (``server.models.participant_key``): a
-name that is a stored or earlier one but for case or Unicode form is refused (409, taken). A
-refused submission (taken name, missing or wrong token) writes nothing. If a statement fails on
-the database side (a unique name or version taken by another process), the group is rolled
-back and each of its submissions is retried in a transaction of its own, so only the one at
-fault is answered 409; if the database itself fails, the group's submissions get 503 and
-nothing of them is stored.
+Names are compared after NFKC and case folding (``server.models.participant_key``): a name that
+is a stored one but for case or Unicode form is refused (409, taken). A refused submission
+(taken name, missing or wrong token, over a quota) writes nothing. A unique name or version
+taken meanwhile by another process is answered 409 (retry); a database outage is the global
+503 (``server.errors``).
 """
 
 from __future__ import annotations
@@ -32,12 +20,13 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
 from screener import Verdict
 from server import crud, quotas
-from server.db import DATABASE_RETRY_AFTER_S, Database, unavailable_message
-from server.grouping import GroupWriter
+from server.db import Database
 from server.models import participant_key, utcnow
 from server.security import hash_token, new_token, token_matches
 
@@ -227,27 +216,14 @@ def _conflict(item: _Submission) -> Refused:
     )
 
 
-def _unavailable(exc: Exception) -> Refused:
-    return Refused(
-        503, unavailable_message(exc), ("database",), "db_unavailable", DATABASE_RETRY_AFTER_S
-    )
-
-
-class SubmissionWriter(GroupWriter[_Submission, Outcome | None]):
-    """``await store(...)`` from any event loop; the writes happen on one thread, grouped."""
+class SubmissionWriter:
+    """``await store(...)`` and ``await precheck(...)`` from any event loop; each runs one
+    transaction on a thread of the pool."""
 
     def __init__(self, database: Database, limits: quotas.Limits) -> None:
+        self._database = database
         self._limits = limits
         self._pruned_at = -math.inf
-        super().__init__(
-            "submission-writer",
-            database,
-            self._decide_group,
-            conflict=_conflict,
-            unavailable=_unavailable,
-            stopping=Refused(503, "the server is stopping", ("body",), "stopping"),
-            after_pass=self._prune,
-        )
 
     async def store(
         self,
@@ -260,21 +236,33 @@ class SubmissionWriter(GroupWriter[_Submission, Outcome | None]):
     ) -> Outcome:
         """Store one screened manifest as the participant's next version (or refuse it)."""
         item = _Submission(participant, manifest, verdict, bearer, address)
-        outcome = await self.write(item)
+        outcome = await run_in_threadpool(self._write, item)
         assert outcome is not None
         return outcome
 
     async def precheck(
         self, *, participant: str, bearer: str | None, address: str | None
     ) -> Refused | None:
-        """The refusal (token, quota) a submission of ``participant`` would get now, if any:
-        asked before screening, so refused requests cost no screening."""
-        outcome = await self.write(_Submission(participant, None, None, bearer, address))
+        """The refusal (name, token, quota) a submission of ``participant`` would get now, if
+        any: asked before screening, so refused requests cost no screening."""
+        item = _Submission(participant, None, None, bearer, address)
+        outcome = await run_in_threadpool(self._ask, item)
         assert not isinstance(outcome, Stored)
         return outcome
 
-    def _decide_group(self, session: Session, group: list[_Submission]) -> list[Outcome | None]:
-        return _store_group(session, group, self._limits)
+    def _ask(self, item: _Submission) -> Outcome | None:
+        with self._database.session(write=False) as session:
+            return _store_group(session, [item], self._limits)[0]
+
+    def _write(self, item: _Submission) -> Outcome | None:
+        try:
+            with self._database.session(write=True) as session:
+                (outcome,) = _store_group(session, [item], self._limits)
+                session.commit()
+        except IntegrityError:
+            return _conflict(item)
+        self._prune()
+        return outcome
 
     def _prune(self) -> None:
         """Now and then, forget the quota events no limit counts any more."""

@@ -63,7 +63,6 @@ class Services:
         """Stop every worker and writer, then let go of the database (blocking)."""
         self.jobs.shutdown()
         self.auctions.shutdown()
-        self.submissions.shutdown()
         self.screening.shutdown()
         self.compute.close()
         self.database.close()
@@ -150,7 +149,6 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         readiness=Readiness(database, settings.data_dir, settings.min_free_disk_mb),
     )
     services.screening.start()
-    services.submissions.start()
     services.auctions.start()
     services.jobs.start()
     log.info("srd server ready: %s, data in %s", settings.database_url, settings.data_dir)

@@ -1,5 +1,5 @@
-"""The group-commit writer behind POST /submit: one transaction per group, and the outcomes of
-the submissions run one after another in arrival order."""
+"""The writer behind POST /submit: one transaction per submission; names, tokens and versions
+decided against what is stored, and a name taken meanwhile by another process answered 409."""
 
 from __future__ import annotations
 
@@ -33,30 +33,12 @@ def database(database_url: str) -> Iterator[Database]:
     db.close()
 
 
-async def _one_group(
-    writer: SubmissionWriter, requests: list[tuple[str, Verdict, str | None]]
-) -> list[Outcome]:
-    """Queue every request before the writer thread starts, so they form a single group."""
-    tasks = []
-    for name, verdict, bearer in requests:
-        manifest: dict[str, Any] = honest(name)
-        tasks.append(
-            asyncio.create_task(
-                writer.store(
-                    participant=name,
-                    manifest=manifest,
-                    verdict=verdict,
-                    bearer=bearer,
-                    address=None,
-                )
-            )
+def _store(writer: SubmissionWriter, name: str, verdict: Verdict, bearer: str | None) -> Outcome:
+    return asyncio.run(
+        writer.store(
+            participant=name, manifest=honest(name), verdict=verdict, bearer=bearer, address=None
         )
-    await asyncio.sleep(0)  # every task has queued its submission
-    writer.start()
-    try:
-        return list(await asyncio.gather(*tasks))
-    finally:
-        writer.shutdown()
+    )
 
 
 def _counts(database: Database, name: str) -> tuple[int, int]:
@@ -73,50 +55,32 @@ def _counts(database: Database, name: str) -> tuple[int, int]:
     return int(participants or 0), int(versions or 0)
 
 
-def test_a_group_behaves_like_the_submissions_in_arrival_order(database: Database) -> None:
-    alice, bob = unique("alice"), unique("bob")
+def test_submissions_are_decided_against_what_is_stored(database: Database) -> None:
     writer = SubmissionWriter(database, LIMITS)
-    outcomes = asyncio.run(
-        _one_group(
-            writer,
-            [
-                (alice, ACCEPTED, None),  # registers alice
-                (alice, ACCEPTED, None),  # alice exists now: token needed
-                (alice, ACCEPTED, "srdp_wrong"),  # wrong token
-                (bob, REJECTED, None),  # a rejected model is stored too
-            ],
-        )
-    )
-    assert writer.groups == 1
-    first, missing, wrong, rejected = outcomes
+    alice = unique("alice")
+    first = _store(writer, alice, ACCEPTED, None)
     assert isinstance(first, Stored) and first.version == 1 and first.token is not None
-    assert isinstance(missing, Refused) and missing.status == 401
-    assert missing.loc == ("header", "Authorization") and missing.kind == "missing_token"
-    assert isinstance(wrong, Refused) and wrong.status == 403 and wrong.kind == "bad_token"
-    assert isinstance(rejected, Stored) and rejected.version == 1
-    assert _counts(database, alice) == (1, 1)  # the refused ones wrote nothing
-    assert _counts(database, bob) == (1, 1)
-
     token = first.token
-    again = SubmissionWriter(database, LIMITS)
-    second, third = asyncio.run(
-        _one_group(again, [(alice, ACCEPTED, token), (alice, REJECTED, token)])
-    )
-    assert isinstance(second, Stored) and (second.version, second.token) == (2, None)
-    assert isinstance(third, Stored) and third.version == 3
-    assert _counts(database, alice) == (1, 3)
+    second = _store(writer, alice, REJECTED, token)
+    assert isinstance(second, Stored) and second.version == 2 and second.token is None
+    missing = _store(writer, alice, ACCEPTED, None)
+    assert isinstance(missing, Refused) and missing.status == 401
+    wrong = _store(writer, alice, ACCEPTED, "srdp_not-the-token")
+    assert isinstance(wrong, Refused) and wrong.status == 403
+    folded = _store(writer, alice.upper(), ACCEPTED, token)
+    assert isinstance(folded, Refused) and folded.status == 409 and folded.kind == "name_taken"
+    assert _counts(database, alice) == (1, 2)
     with database.session(write=False) as session:
-        stored = crud.get_model(session, model_id=third.model_id)
+        stored = crud.get_model(session, model_id=second.model_id)
     assert stored is not None and stored.accepted is False
     assert stored.reasons == [{"rule": "always_hold", "neuron": "B", "message": "never buys"}]
 
 
-def test_a_unique_violation_refuses_only_the_submission_at_fault(
+def test_a_name_taken_meanwhile_is_answered_409_and_stores_nothing(
     database: Database, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Another process took the name between our lookup and our insert: the group is rolled
-    back and replayed one by one, and only that submission is answered 409."""
-    taken, before, after = unique("taken"), unique("before"), unique("after")
+    """Another process took the name between our lookup and our insert."""
+    taken, other = unique("taken"), unique("other")
     with database.session(write=True) as session:
         crud.insert_participants(
             session, rows=[{"name": taken, "token_hash": "0" * 64, "created_at": utcnow()}]
@@ -129,29 +93,8 @@ def test_a_unique_violation_refuses_only_the_submission_at_fault(
 
     monkeypatch.setattr(submissions.crud, "participants_by_names", blind_lookup)
     writer = SubmissionWriter(database, LIMITS)
-    outcomes = asyncio.run(
-        _one_group(
-            writer, [(before, ACCEPTED, None), (taken, ACCEPTED, None), (after, ACCEPTED, None)]
-        )
-    )
-    stored_before, conflict, stored_after = outcomes
-    assert isinstance(stored_before, Stored) and isinstance(stored_after, Stored)
+    conflict = _store(writer, taken, ACCEPTED, None)
     assert isinstance(conflict, Refused) and conflict.status == 409
     assert conflict.loc == ("body", "participant") and conflict.kind == "conflict"
-    assert _counts(database, before) == (1, 1)
-    assert _counts(database, after) == (1, 1)
     assert _counts(database, taken) == (1, 0)
-
-
-def test_a_stopped_writer_refuses_with_503(database: Database) -> None:
-    writer = SubmissionWriter(database, LIMITS)
-    writer.start()
-    writer.shutdown()
-    name = unique("late")
-    outcome = asyncio.run(
-        writer.store(
-            participant=name, manifest=honest(name), verdict=ACCEPTED, bearer=None, address=None
-        )
-    )
-    assert isinstance(outcome, Refused) and outcome.status == 503
-    assert _counts(database, name) == (0, 0)
+    assert isinstance(_store(writer, other, ACCEPTED, None), Stored)

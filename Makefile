@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml | $(BIN)/python
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m server.demo
+	$(BIN)/python -m server.cli.demo
 
 test: lint
 	$(BIN)/pytest -q -n 2 --dist loadfile

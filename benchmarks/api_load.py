@@ -46,7 +46,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.support
 
 from agents.negotiator import honest_manifest
-from server.launch import ServerProcess, settings_environment
+from server.cli.launch import ServerProcess, settings_environment
 from tests.support.databases import postgres_admin_url, throwaway_postgres
 from tests.support.processes import cpu_seconds
 from tests.support.server import QUOTAS_OFF

@@ -67,8 +67,8 @@ from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
 from agents.remote import ONE_CONNECTION, Client, RoundInfo, RoundSocket, faithful_fine_tune
 from screener import rescreen_many
-from server.launch import ServerProcess, settings_environment
-from server.screening import MAX_BATCH
+from server.cli.launch import ServerProcess, settings_environment
+from server.screening.pool import MAX_BATCH
 from tests.support.databases import postgres_admin_url, throwaway_postgres
 from tests.support.processes import cpu_seconds, descendants
 from tests.support.server import QUOTAS_OFF

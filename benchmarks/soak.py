@@ -45,7 +45,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # for tests.support
 
 from agents.negotiator import honest_manifest, saboteur_manifest
-from server.launch import ServerProcess, settings_environment
+from server.cli.launch import ServerProcess, settings_environment
 from tests.support.databases import postgres_admin_url, throwaway_postgres
 from tests.support.server import QUOTAS_OFF
 

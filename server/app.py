@@ -15,14 +15,15 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from starlette.concurrency import run_in_threadpool
 
-from server.body import RequestBodyMiddleware
+from server.api.body import RequestBodyMiddleware
+from server.api.errors import install_error_handlers, responses
+from server.api.hardening import SecurityHeadersMiddleware
+from server.api.limits import ClientLimitsMiddleware
+from server.api.routes import auctions, events, health, jobs, models, participants, rounds
 from server.config import Settings, get_settings
-from server.errors import install_error_handlers, responses
-from server.hardening import SecurityHeadersMiddleware
-from server.limits import ClientLimitsMiddleware
-from server.routes import auctions, events, health, jobs, models, participants, rounds, ui
 from server.services import start_services
-from server.workers import freeze_heap
+from server.ui import routes as ui
+from server.work.pool import freeze_heap
 
 log = logging.getLogger("srd.app")
 
@@ -34,7 +35,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         services = await run_in_threadpool(start_services, settings)
-        app.state.services = services  # read by server.deps only
+        app.state.services = services  # read by server.api.deps only
         freeze_heap()  # the imports and services live as long as the process
         try:
             yield
@@ -47,7 +48,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version="0.1.0",
         summary="Fish sale auction of interpretable Self Reward Design models, and experiments.",
         lifespan=lifespan,
-        docs_url=None,  # served by routes.ui with Swagger UI's files from the package (no CDN)
+        docs_url=None,  # served by server.ui with Swagger UI's files from the package (no CDN)
         redoc_url=None,
     )
     app.state.settings = settings

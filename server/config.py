@@ -156,7 +156,7 @@ class Settings(BaseSettings):
 
     @property
     def databases_file(self) -> Path:
-        """The databases this data folder has served (see ``server.db.prepare_database``)."""
+        """The databases this data folder has served (see ``server.store.db.prepare_database``)."""
         return self.data_dir / "databases.json"
 
 

@@ -26,7 +26,7 @@ from agents.remote import (
     Transport,
     run_population,
 )
-from server.schemas import MAX_FINE_TUNE_ROUNDS, MAX_SEED, ROUND_DEADLINE_S
+from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_SEED, ROUND_DEADLINE_S
 
 GAVE_UP = 1
 """Exit code when the server could not be reached or refused the population."""

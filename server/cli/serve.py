@@ -27,12 +27,12 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     with code 2, saying why, when the data folder (SRD_DATA_DIR) cannot be written."""
     import uvicorn
 
+    from server.api.connections import connection_cap, raise_file_limit, timed_protocol
+    from server.api.hardening import RedactQueryFilter
+    from server.api.readiness import make_data_dir
     from server.app import create_app
+    from server.auctions.sockets import MAX_FRAME_BYTES
     from server.config import get_settings
-    from server.connections import connection_cap, raise_file_limit, timed_protocol
-    from server.hardening import RedactQueryFilter
-    from server.readiness import make_data_dir
-    from server.remote_rounds.sockets import MAX_FRAME_BYTES
 
     settings = get_settings()
     problem = make_data_dir(settings.data_dir)

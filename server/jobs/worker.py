@@ -19,17 +19,17 @@ from typing import Any
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from server.db import (
+from server.store.db import (
     OUTAGE_RETRIES,
     OUTAGE_WAIT_S,
     Database,
     is_database_outage,
     unavailable_message,
 )
-from server.models import Job, utcnow
-from server.runner import WorkKind
-from server.status import JOB_UNFINISHED, JobStatus
-from server.workers import WorkerContext, error_summary
+from server.store.status import JOB_UNFINISHED, JobStatus
+from server.store.tables import Job, utcnow
+from server.work.pool import WorkerContext, error_summary
+from server.work.runner import WorkKind
 from sim.experiment import write_json
 from sim.units import UnitRunner
 from studies.registry import build_config, run_kind
@@ -243,4 +243,4 @@ JOB_WORK = WorkKind(
     prepare=requeue,
     tasks_per_process=1,  # a fresh interpreter per experiment: no state carried over
 )
-"""Jobs as background work (``server.runner``)."""
+"""Jobs as background work (``server.work.runner``)."""

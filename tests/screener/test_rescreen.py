@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 import screener
-import server.auctions
+import server.auctions.steps
 from agents.batch import FSNBatch, from_manifests
 from agents.negotiator import honest_manifest
 from sim.market import Market, MarketConfig
@@ -15,7 +15,7 @@ from studies.auctions import Setting, plan_auction, run_auctions
 
 
 def test_the_server_and_the_study_share_the_one_rescreening():
-    assert server.auctions.rescreening() is screener.rescreen
+    assert server.auctions.steps.rescreening() is screener.rescreen
 
 
 def test_rescreen_keeps_what_the_screener_accepts():

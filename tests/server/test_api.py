@@ -15,7 +15,7 @@ from sqlalchemy import select
 from agents.manifest import parse_manifest
 from screener import screen
 from server.config import Settings
-from server.models import ModelVersion, Participant
+from server.store.tables import ModelVersion, Participant
 from tests.support.factories import honest, saboteur, unique
 from tests.support.server import ADMIN, count, locs, wait_for
 

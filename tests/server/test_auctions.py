@@ -8,7 +8,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from agents.manifest import parse_manifest
-from server import crud
+from server.store import crud
 from sim.market import Market, MarketConfig
 from tests.support.factories import honest, saboteur, unique
 from tests.support.server import ADMIN, wait_for

@@ -22,8 +22,8 @@ from fastapi.testclient import TestClient
 from agents.manifest import parse_manifest
 from agents.negotiator import honest_manifest
 from agents.remote import RoundInfo, faithful_fine_tune
+from server.cli.launch import ServerProcess
 from server.config import Settings
-from server.launch import ServerProcess
 from tests.server.test_remote_protocol import put, remote_auction
 from tests.support.factories import honest, unique
 from tests.support.live import create_unstarted_auction, data, paced_auction, sse_events

@@ -20,7 +20,7 @@ import pytest
 from click.testing import CliRunner
 
 from server.cli import cli
-from server.launch import ServerProcess, srd_command
+from server.cli.launch import ServerProcess, srd_command
 from tests.support.live import submit_population
 from tests.support.server import ADMIN, ADMIN_TOKEN, wait_for
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from server.launch import ServerProcess, free_port
+from server.cli.launch import ServerProcess, free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCKERFILE = (ROOT / "Dockerfile").read_text()

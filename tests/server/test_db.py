@@ -17,11 +17,11 @@ from fastapi.testclient import TestClient
 from sqlalchemy import insert, text
 from sqlalchemy.exc import IntegrityError, OperationalError
 
-from server import db as db_module
 from server.app import create_app
 from server.config import Settings
-from server.db import SQLITE_BUSY_TIMEOUT_MS, Database, alembic_config, upgrade_schema
-from server.models import Base, ModelVersion, utcnow
+from server.store import db as db_module
+from server.store.db import SQLITE_BUSY_TIMEOUT_MS, Database, alembic_config, upgrade_schema
+from server.store.tables import Base, ModelVersion, utcnow
 from tests.support.server import make_settings
 
 
@@ -137,7 +137,7 @@ def test_a_sqlite_writer_gives_up_after_the_busy_timeout(
 def test_json_columns_store_pre_encoded_json_as_it_is() -> None:
     """A manifest's ``model_dump_json`` goes into a JSON column unchanged (``JSONText``); any
     other value, a plain string included, is encoded."""
-    from server.db import JSONText, json_dumps
+    from server.store.db import JSONText, json_dumps
 
     assert json_dumps(JSONText('{"a":[1.5,2]}')) == '{"a":[1.5,2]}'
     assert json_dumps('{"a":1}') == '"{\\"a\\":1}"'

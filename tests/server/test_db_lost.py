@@ -11,9 +11,10 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 
-from server import db, readiness
+from server.api import readiness
 from server.app import create_app
-from server.db import DatabaseUnavailableError, upgrade_schema
+from server.store import db
+from server.store.db import DatabaseUnavailableError, upgrade_schema
 from tests.support.databases import postgres_database
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, make_settings

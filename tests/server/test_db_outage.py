@@ -20,7 +20,7 @@ import httpx
 import pytest
 from sqlalchemy import create_engine, text
 
-from server.launch import ServerProcess, free_port, settings_environment
+from server.cli.launch import ServerProcess, free_port, settings_environment
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, ADMIN_TOKEN, QUOTAS_OFF
 

@@ -13,9 +13,9 @@ from typing import Any
 import httpx
 from sqlalchemy import select
 
-from server.db import Database
-from server.launch import ServerProcess, settings_environment
-from server.models import ModelVersion, Participant
+from server.cli.launch import ServerProcess, settings_environment
+from server.store.db import Database
+from server.store.tables import ModelVersion, Participant
 from tests.support.factories import honest
 from tests.support.server import QUOTAS_OFF
 

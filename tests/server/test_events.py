@@ -12,8 +12,8 @@ import httpx
 import pytest
 import torch
 
-from server.events import EventHub
-from server.launch import ServerProcess
+from server.cli.launch import ServerProcess
+from server.live.events import EventHub
 from tests.support.live import (
     create_unstarted_auction,
     data,

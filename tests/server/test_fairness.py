@@ -18,10 +18,10 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from server.connections import TIMEOUT_ANSWER
-from server.db import Database
-from server.launch import ServerProcess
-from server.models import RateEvent, participant_key
+from server.api.connections import TIMEOUT_ANSWER
+from server.cli.launch import ServerProcess
+from server.store.db import Database
+from server.store.tables import RateEvent, participant_key
 from tests.support.factories import honest, unique
 from tests.support.live import create_unstarted_auction
 from tests.support.server import ADMIN_TOKEN

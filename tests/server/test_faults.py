@@ -21,9 +21,9 @@ from sqlalchemy import select
 
 from agents.manifest import parse_manifest
 from agents.remote import RoundInfo, faithful_fine_tune
-from server.db import Database
-from server.launch import ServerProcess
-from server.models import FineTuneAnswer, FineTuneRound
+from server.cli.launch import ServerProcess
+from server.store.db import Database
+from server.store.tables import FineTuneAnswer, FineTuneRound
 from tests.support.factories import honest
 from tests.support.processes import descendants, server_pair
 from tests.support.server import wait_for

@@ -10,8 +10,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, JUDGEMENTS, VERDICTS
-from server.pages import MAX_PAGE
-from server.routes.models import DESCRIPTION_PREVIEW
+from server.api.pages import MAX_PAGE
+from server.api.routes.models import DESCRIPTION_PREVIEW
 from tests.support.factories import honest, saboteur, unique
 from tests.support.server import ADMIN, wait_for
 

@@ -9,7 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from server.app import create_app
-from server.models import ModelVersion, Participant, RateEvent
+from server.store.tables import ModelVersion, Participant, RateEvent
 from tests.support.databases import postgres_admin_url, throwaway_postgres
 from tests.support.factories import honest, saboteur, unique
 from tests.support.server import count, make_settings

@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from server import readiness
+from server.api import readiness
 from server.app import create_app
+from server.cli.launch import free_port, srd_command
 from server.config import Settings
-from server.launch import free_port, srd_command
 from tests.support.server import make_settings
 
 

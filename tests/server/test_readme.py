@@ -13,8 +13,8 @@ from pathlib import Path
 import httpx
 import pytest
 
+from server.cli.launch import ServerProcess
 from server.config import Settings
-from server.launch import ServerProcess
 
 ROOT = Path(__file__).resolve().parents[2]
 README = ROOT / "README.md"

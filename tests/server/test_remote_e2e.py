@@ -22,9 +22,9 @@ from sqlalchemy import select
 from agents.batch import from_manifests
 from agents.manifest import Manifest, parse_manifest
 from agents.remote import Client, RemoteAgent, Transport
-from server.db import Database
-from server.launch import ServerProcess
-from server.models import Auction
+from server.cli.launch import ServerProcess
+from server.store.db import Database
+from server.store.tables import Auction
 from sim.market import Market, MarketConfig
 from tests.support.databases import BACKENDS, fresh_database
 from tests.support.factories import honest

@@ -17,8 +17,8 @@ from fastapi.testclient import TestClient
 from agents.manifest import Manifest, parse_manifest
 from agents.remote import RoundInfo, always_hold, faithful_fine_tune
 from screener import screen
-from server.remote_rounds import watcher
-from server.routes.rounds import UPLOAD_MAX_BYTES
+from server.api.routes.rounds import UPLOAD_MAX_BYTES
+from server.live import rounds as watcher
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, wait_for
 

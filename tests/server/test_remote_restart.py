@@ -17,9 +17,9 @@ from sqlalchemy import func, select
 
 from agents.manifest import parse_manifest
 from agents.remote import RoundInfo, faithful_fine_tune
-from server.db import Database
-from server.launch import ServerProcess
-from server.models import Auction, FineTuneAnswer, FineTuneRound, ModelVersion, Purchase
+from server.cli.launch import ServerProcess
+from server.store.db import Database
+from server.store.tables import Auction, FineTuneAnswer, FineTuneRound, ModelVersion, Purchase
 from sim.market import MarketConfig
 from tests.support.factories import honest
 from tests.support.processes import server_pair

@@ -15,7 +15,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from agents.manifest import parse_manifest
 from agents.remote import RoundInfo, faithful_fine_tune
-from server.remote_rounds.sockets import BURST, MAX_FRAME_BYTES, UPLOAD_MAX_BYTES
+from server.auctions.sockets import BURST, MAX_FRAME_BYTES, UPLOAD_MAX_BYTES
 from tests.server.test_remote_protocol import bearer, put, remote_auction, stored_versions
 
 SEED = 900

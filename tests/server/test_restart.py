@@ -22,9 +22,9 @@ from sqlalchemy import func, select
 
 from agents.manifest import parse_manifest
 from screener import screen
-from server.db import Database
-from server.launch import ServerProcess
-from server.models import Auction, AuctionIteration, Job, Purchase
+from server.cli.launch import ServerProcess
+from server.store.db import Database
+from server.store.tables import Auction, AuctionIteration, Job, Purchase
 from sim.market import Market, MarketConfig
 from tests.support.databases import fresh_database
 from tests.support.factories import honest

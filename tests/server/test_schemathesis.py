@@ -30,7 +30,7 @@ from pathlib import Path
 
 import pytest
 
-from server.launch import ServerProcess, settings_environment
+from server.cli.launch import ServerProcess, settings_environment
 from tests.support.server import QUOTAS_OFF
 
 ROOT = Path(__file__).resolve().parents[2]

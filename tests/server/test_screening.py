@@ -12,7 +12,7 @@ import pytest
 
 from agents.negotiator import honest_manifest, saboteur_manifest
 from screener import rescreen_many, screen
-from server.screening import ScreeningService
+from server.screening.pool import ScreeningService
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_asking_never_waits_for_a_full_pipe(monkeypatch: pytest.MonkeyPatch) -> 
     pipe full), asking returns at once and the sender thread writes the requests in order as
     the pipe drains; past ``MAX_QUEUED`` requests waiting their turn the screener is "behind"
     (503); a request whose pipe has closed fails as the process being gone."""
-    import server.screening as screening
+    import server.screening.pool as screening
 
     monkeypatch.setattr(screening, "MAX_QUEUED", 16)
     service = ScreeningService()
@@ -137,7 +137,7 @@ class _Arrivals:
 def test_a_burst_is_gathered_into_one_batch_and_a_stop_ends_it() -> None:
     """Submissions that keep coming within the gap join the batch being gathered; a pause
     longer than the gap, a full batch or a stop closes it."""
-    from server.screening import GATHER_GAP_S, MAX_BATCH, gather
+    from server.screening.pool import GATHER_GAP_S, MAX_BATCH, gather
 
     gap = GATHER_GAP_S
     burst = [(k * gap * 0.5, k) for k in range(5)] + [(10 * gap, "later")]

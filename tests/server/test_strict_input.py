@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from server.models import Auction, Job, ModelVersion
+from server.store.tables import Auction, Job, ModelVersion
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, count, locs
 
@@ -176,7 +176,7 @@ def test_405_names_every_method_of_the_path(client: TestClient) -> None:
 
 def _careful(raw: bytes) -> Any:
     """The body as the careful pass alone judges it (the fast pass must agree)."""
-    from server.body import _Pairs, _resolve
+    from server.api.body import _Pairs, _resolve
 
     return _resolve(json.loads(raw.decode(), object_pairs_hook=_Pairs), (), 0)
 
@@ -203,7 +203,7 @@ def _careful(raw: bytes) -> Any:
 def test_the_fast_strict_json_pass_agrees_with_the_careful_one(text: str) -> None:
     """``parse_strict_json`` parses in one pass and only goes back to the careful pass (which
     names the location) when something is wrong: the same value, or the same refusal."""
-    from server.body import BodyRefusedError, parse_strict_json
+    from server.api.body import BodyRefusedError, parse_strict_json
 
     raw = text.encode()
     try:

@@ -11,12 +11,13 @@ import pytest
 from sqlalchemy import func, select
 
 from screener import Reason, Verdict
-from server import crud, submissions
 from server.config import Settings
-from server.db import Database, upgrade_schema
-from server.models import ModelVersion, Participant, utcnow
-from server.quotas import Limits
-from server.submissions import Outcome, Refused, Stored, SubmissionWriter
+from server.store import crud
+from server.store.db import Database, upgrade_schema
+from server.store.tables import ModelVersion, Participant, utcnow
+from server.submissions import writer as submissions
+from server.submissions.quotas import Limits
+from server.submissions.writer import Outcome, Refused, Stored, SubmissionWriter
 from tests.support.factories import honest, unique
 from tests.support.server import QUOTAS_OFF
 

@@ -24,9 +24,9 @@ import torch
 from sqlalchemy import insert
 
 from agents.manifest import DECISIONS, ES_NEURONS, JUDGEMENTS, PFC_SOURCES, VERDICTS
-from server.db import Database
-from server.launch import ServerProcess
-from server.models import ModelVersion, Participant, utcnow
+from server.cli.launch import ServerProcess
+from server.store.db import Database
+from server.store.tables import ModelVersion, Participant, utcnow
 from tests.support.factories import honest
 from tests.support.live import create_unstarted_auction, paced_auction, submit_population
 from tests.support.server import ADMIN_TOKEN

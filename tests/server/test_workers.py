@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from server.workers import WorkerContext, WorkerPool
+from server.work.pool import WorkerContext, WorkerPool
 
 
 def record_niceness(context: WorkerContext, task_id: int) -> None:

@@ -16,11 +16,11 @@ import httpx
 import pytest
 
 import sim.market
-from server import crud
-from server.auctions import base_price, run_step
-from server.db import Database
-from server.models import utcnow
-from server.workers import WorkerContext
+from server.auctions.steps import base_price, run_step
+from server.store import crud
+from server.store.db import Database
+from server.store.tables import utcnow
+from server.work.pool import WorkerContext
 from sim.market import Market
 
 POPULATION = Path(__file__).resolve().parents[2] / "examples" / "population"

@@ -7,7 +7,7 @@ import os
 import secrets
 from pathlib import Path
 
-from server.launch import ServerProcess
+from server.cli.launch import ServerProcess
 
 
 def server_pair(

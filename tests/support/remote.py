@@ -12,7 +12,7 @@ from typing import Any
 import httpx
 
 from agents.manifest import Manifest, parse_manifest
-from server.launch import ServerProcess, srd_command
+from server.cli.launch import ServerProcess, srd_command
 from sim.market import Market, MarketConfig
 
 STALLING_AGENT = r"""

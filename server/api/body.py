@@ -1,0 +1,235 @@
+"""Every request body, checked before any route sees it: its size, its media type, its encoding
+and its JSON.
+
+``RequestBodyMiddleware`` reads the body (refusing more than ``max_bytes`` with 413, by
+Content-Length up front and by counting what arrives), then, for a request that carries one:
+
+* a media type other than JSON (``application/json`` or ``application/*+json``) gets 415;
+* bytes that are not UTF-8 (a UTF-16 body, a byte-order mark) get 400;
+* text that is not JSON, or nests deeper than ``MAX_DEPTH``, gets 400;
+* a key given twice in one object, or a NaN / Infinity token, gets 422 naming its path.
+
+What passes reaches the route unchanged; the route validates it against its schema (strict
+numbers, booleans and integers). All refusals use the common error body of ``server.api.errors``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from typing import Any
+
+from fastapi.responses import JSONResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from server.api.errors import error_item
+
+MAX_DEPTH = 32
+"""Deepest nesting of arrays and objects accepted (a manifest nests 5 deep)."""
+JSON_MEDIA_TYPES = ("application/json",)
+"""Media types of a JSON body, besides the ``application/<anything>+json`` family."""
+
+
+class BodyRefusedError(Exception):
+    """The body cannot be accepted: HTTP status, message, location of the problem, kind."""
+
+    def __init__(self, status: int, msg: str, loc: tuple[str | int, ...], kind: str) -> None:
+        super().__init__(msg)
+        self.status, self.msg, self.loc, self.kind = status, msg, loc, kind
+
+
+class _Pairs(list[tuple[str, Any]]):
+    """A JSON object as parsed: its (key, value) pairs in order, duplicates kept."""
+
+
+def _resolve(value: Any, path: tuple[str | int, ...], depth: int) -> Any:
+    """Turn parsed pairs into dicts, refusing duplicate keys and too deep a nesting."""
+    if depth > MAX_DEPTH:
+        raise BodyRefusedError(
+            400, f"JSON nested deeper than {MAX_DEPTH} levels", ("body",), "json_depth"
+        )
+    if isinstance(value, _Pairs):
+        out: dict[str, Any] = {}
+        for key, item in value:
+            if key in out:
+                raise BodyRefusedError(
+                    422, f"key {key!r} appears twice", ("body", *path, key), "duplicate_key"
+                )
+            out[key] = _resolve(item, (*path, key), depth + 1)
+        return out
+    if isinstance(value, list):
+        return [_resolve(item, (*path, i), depth + 1) for i, item in enumerate(value)]
+    if isinstance(value, float) and not math.isfinite(value):  # NaN, Infinity, -Infinity
+        raise BodyRefusedError(422, "must be a finite number", ("body", *path), "finite_number")
+    return value
+
+
+class _UnfitError(Exception):
+    """The fast pass met a duplicate key, a non-finite number or too deep a nesting: the
+    careful pass (``_resolve``) says where."""
+
+
+_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')
+_NOT_BRACKET = re.compile(r"[^\[\]{}]+")
+
+
+def _nesting(text: str) -> int:
+    """How deep the arrays and objects of JSON ``text`` nest (strings left out)."""
+    depth = deepest = 0
+    for bracket in _NOT_BRACKET.sub("", _STRING.sub("", text)):
+        if bracket in "[{":
+            depth += 1
+            if depth > deepest:
+                deepest = depth
+        else:
+            depth -= 1
+    return deepest
+
+
+def _unique(items: list[tuple[str, Any]]) -> dict[str, Any]:
+    out = dict(items)
+    if len(out) != len(items):
+        raise _UnfitError
+    return out
+
+
+def _non_finite(_: str) -> Any:
+    raise _UnfitError
+
+
+def _fast(text: str) -> Any:
+    """The JSON of ``text``, objects built as they are parsed; raises ``_UnfitError`` for anything
+    ``_resolve`` would refuse (without saying where)."""
+    value = json.loads(text, object_pairs_hook=_unique, parse_constant=_non_finite)
+    if _nesting(text) > MAX_DEPTH:
+        raise _UnfitError
+    return value
+
+
+def parse_strict_json(raw: bytes) -> Any:
+    """Decode a JSON body strictly (see the module docstring); raises BodyRefusedError."""
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise BodyRefusedError(
+            400, f"the body is not UTF-8 (byte {exc.start})", ("body",), "not_utf8"
+        ) from exc
+    if text.startswith("\ufeff"):
+        raise BodyRefusedError(400, "the body starts with a byte-order mark", ("body",), "bom")
+    try:
+        return _fast(text)
+    except (_UnfitError, RecursionError):
+        pass  # the careful pass below finds what and where
+    except ValueError as exc:
+        raise BodyRefusedError(400, f"the body is not JSON: {exc}", ("body",), "not_json") from exc
+    try:
+        parsed = json.loads(text, object_pairs_hook=_Pairs)
+    except ValueError as exc:
+        raise BodyRefusedError(400, f"the body is not JSON: {exc}", ("body",), "not_json") from exc
+    except RecursionError as exc:
+        raise BodyRefusedError(
+            400, f"JSON nested deeper than {MAX_DEPTH} levels", ("body",), "json_depth"
+        ) from exc
+    return _resolve(parsed, (), 0)
+
+
+def _is_json(content_type: str) -> bool:
+    media = content_type.split(";", 1)[0].strip().lower()
+    return media in JSON_MEDIA_TYPES or (
+        media.startswith("application/") and media.endswith("+json")
+    )
+
+
+def _charset_ok(content_type: str) -> bool:
+    for parameter in content_type.split(";")[1:]:
+        name, _, value = parameter.partition("=")
+        if name.strip().lower() == "charset" and value.strip().strip('"').lower() != "utf-8":
+            return False
+    return True
+
+
+class RequestBodyMiddleware:
+    """Size, media type, encoding and JSON checks of request bodies (module docstring)."""
+
+    def __init__(self, app: ASGIApp, *, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        headers = dict(scope["headers"])
+        declared = headers.get(b"content-length")
+        if declared is not None and (not declared.isdigit() or int(declared) > self.max_bytes):
+            if declared.isdigit():
+                error = BodyRefusedError(
+                    413, self._too_large, ("header", "Content-Length"), "body_size"
+                )
+            else:
+                error = BodyRefusedError(
+                    400, "Content-Length is not a number", ("header", "Content-Length"), "header"
+                )
+            await _refuse(send, error)
+            return
+        body = bytearray()
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":  # the client went away
+                return
+            body += message.get("body", b"")
+            if len(body) > self.max_bytes:
+                await _refuse(send, BodyRefusedError(413, self._too_large, ("body",), "body_size"))
+                return
+            if not message.get("more_body", False):
+                break
+        if body:
+            try:
+                self._check(headers.get(b"content-type", b"").decode("latin-1"), bytes(body))
+            except BodyRefusedError as error:
+                await _refuse(send, error)
+                return
+        delivered = False
+
+        async def replay() -> Message:
+            nonlocal delivered
+            if delivered:
+                return await receive()
+            delivered = True
+            return {"type": "http.request", "body": bytes(body), "more_body": False}
+
+        await self.app(scope, replay, send)
+
+    @property
+    def _too_large(self) -> str:
+        return f"request body larger than {self.max_bytes} bytes"
+
+    @staticmethod
+    def _check(content_type: str, body: bytes) -> None:
+        if not _is_json(content_type):
+            shown = content_type or "none"
+            raise BodyRefusedError(
+                415,
+                f"the body must be JSON (Content-Type: application/json), not {shown}",
+                ("header", "Content-Type"),
+                "media_type",
+            )
+        if not _charset_ok(content_type):
+            raise BodyRefusedError(
+                415, "the body must be UTF-8 JSON", ("header", "Content-Type"), "charset"
+            )
+        parse_strict_json(body)
+
+
+async def _refuse(send: Send, error: BodyRefusedError) -> None:
+    response = JSONResponse(
+        {"detail": [error_item(error.msg, loc=error.loc, kind=error.kind)]},
+        status_code=error.status,
+        headers={"Connection": "close"},
+    )
+    await response({"type": "http"}, _no_receive, send)
+
+
+async def _no_receive() -> Message:
+    return {"type": "http.disconnect"}

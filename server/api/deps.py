@@ -1,0 +1,166 @@
+"""Typed dependencies of the routes: the settings, the database session, the services and the
+tokens, each an ``Annotated`` type a route parameter names (``session: SessionDep``).
+
+The services live in ``app.state.services`` (``server.services.Services``, made by the app's
+lifespan); these are the only readers of ``app.state``. The ones that only look something up
+are ``async def``: FastAPI runs a plain ``def`` dependency on its thread pool, a thread hop per
+dependency per request for an attribute read.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from typing import Annotated
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import HTTPConnection
+
+from server.api.errors import api_error
+from server.api.readiness import Readiness
+from server.api.security import token_matches
+from server.auctions.sockets import RoundSockets
+from server.config import Settings
+from server.jobs.backend import JobCompute
+from server.live.events import EventHub
+from server.live.rounds import RoundWatcher
+from server.screening.pool import ScreeningService
+from server.services import Services
+from server.store.db import Database
+from server.submissions.writer import SubmissionWriter
+from server.work.runner import BackgroundRunner
+
+
+async def _services(connection: HTTPConnection) -> Services:
+    services: Services = connection.app.state.services
+    return services
+
+
+ServicesDep = Annotated[Services, Depends(_services)]
+
+
+async def _settings(connection: HTTPConnection) -> Settings:
+    settings: Settings = connection.app.state.settings
+    return settings
+
+
+async def _database(services: ServicesDep) -> Database:
+    return services.database
+
+
+async def _screening(services: ServicesDep) -> ScreeningService:
+    return services.screening
+
+
+async def _submissions(services: ServicesDep) -> SubmissionWriter:
+    return services.submissions
+
+
+async def _rounds(services: ServicesDep) -> RoundWatcher:
+    return services.rounds
+
+
+async def _round_sockets(services: ServicesDep) -> RoundSockets:
+    return services.sockets
+
+
+async def _auctions(services: ServicesDep) -> BackgroundRunner:
+    return services.auctions
+
+
+async def _jobs(services: ServicesDep) -> BackgroundRunner:
+    return services.jobs
+
+
+async def _compute(services: ServicesDep) -> JobCompute:
+    return services.compute
+
+
+async def _events(services: ServicesDep) -> EventHub:
+    return services.events
+
+
+async def _readiness(services: ServicesDep) -> Readiness:
+    return services.readiness
+
+
+SettingsDep = Annotated[Settings, Depends(_settings)]
+DatabaseDep = Annotated[Database, Depends(_database)]
+ScreeningDep = Annotated[ScreeningService, Depends(_screening)]
+SubmissionsDep = Annotated[SubmissionWriter, Depends(_submissions)]
+"""The group-commit writer of ``/submit``."""
+RoundsDep = Annotated[RoundWatcher, Depends(_rounds)]
+RoundSocketsDep = Annotated[RoundSockets, Depends(_round_sockets)]
+AuctionRunnerDep = Annotated[BackgroundRunner, Depends(_auctions)]
+JobRunnerDep = Annotated[BackgroundRunner, Depends(_jobs)]
+ComputeDep = Annotated[JobCompute, Depends(_compute)]
+"""The job backend, as ``/healthz`` reports it."""
+EventHubDep = Annotated[EventHub, Depends(_events)]
+ReadinessDep = Annotated[Readiness, Depends(_readiness)]
+
+_WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+
+
+async def _session(request: Request, database: DatabaseDep) -> AsyncIterator[Session]:
+    """Request-scoped session: one transaction per request, committed by the route (a write
+    session for the methods that write).
+
+    The session is made and closed on the event loop (no I/O until the first query; closing
+    rolls back a finished read, a sub-millisecond local call), so a request costs one hop to
+    the thread pool: the route's own, where every query runs (and, about once a second, one
+    for the database check ``Database.session`` makes).
+    """
+    if database.check_due():
+        await run_in_threadpool(database.problem)
+    session = database.session(write=request.method in _WRITE_METHODS)
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+SessionDep = Annotated[Session, Depends(_session)]
+
+bearer_scheme = HTTPBearer(auto_error=False, description="Bearer token")
+BearerDep = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
+"""The request's bearer token, if it has one."""
+
+
+async def _require_admin(services: ServicesDep, credentials: BearerDep) -> None:
+    """Operator endpoints: 401 without a token, 403 with a wrong one."""
+    if credentials is None:
+        raise api_error(
+            401,
+            "operator endpoint: send 'Authorization: Bearer <admin token>'",
+            loc=("header", "Authorization"),
+            kind="missing_token",
+        )
+    if not token_matches(credentials.credentials, services.admin_token_hash):
+        raise api_error(
+            403,
+            "the bearer token is not the admin token",
+            loc=("header", "Authorization"),
+            kind="bad_token",
+        )
+
+
+AdminDep = Depends(_require_admin)
+"""In a route's ``dependencies``: the operator's token is required."""
+
+
+async def _participant_token(credentials: BearerDep) -> str:
+    """A participant's token, required (401 without): which participant it names is the
+    route's to check."""
+    if credentials is None:
+        raise api_error(
+            401,
+            "uploads need the participant's token: 'Authorization: Bearer <token>'",
+            loc=("header", "Authorization"),
+            kind="missing_token",
+        )
+    return credentials.credentials
+
+
+ParticipantTokenDep = Annotated[str, Depends(_participant_token)]

@@ -1,0 +1,218 @@
+"""One error body for every 4xx/5xx: ``{"detail": [{"loc": [...], "msg": ..., "type": ...}]}``.
+
+It is the shape of FastAPI's own 422, so clients parse a single format; ``loc`` names the field
+(``["body", "external_sensor", "PG", "bias"]``), the header, or the path parameter at fault.
+The services and the routes refuse a request by raising a ``RequestError`` (``api_error``,
+``validation_error``); the framework's own errors get the same body.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any, cast
+
+from fastapi import FastAPI, Request, WebSocket
+from fastapi.exceptions import RequestValidationError, WebSocketRequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel
+from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import HTTPConnection
+from starlette.routing import Match
+from starlette.types import ExceptionHandler
+from starlette.websockets import WebSocketState
+
+from server.store.db import (
+    DATABASE_RETRY_AFTER_S,
+    DatabaseUnavailableError,
+    is_database_outage,
+    unavailable_message,
+)
+
+TRY_AGAIN_LATER = 1013
+"""The WebSocket close code of a socket whose database went away while it was open."""
+
+
+class ErrorItem(BaseModel):
+    """One problem: where (``loc``), what (``msg``), and a machine-readable ``type``."""
+
+    loc: list[str | int]
+    msg: str
+    type: str
+
+
+class ErrorBody(BaseModel):
+    """Every error response."""
+
+    detail: list[ErrorItem]
+
+
+def error_item(msg: str, *, loc: Sequence[str | int] = (), kind: str = "error") -> dict[str, Any]:
+    """A ``detail`` entry."""
+    return {"loc": list(loc), "msg": msg, "type": kind}
+
+
+class RequestError(Exception):
+    """A request the service layer refuses: the HTTP status of its sort of problem and the
+    ``detail`` entries saying what and where (the app answers it with the common body)."""
+
+    def __init__(
+        self,
+        status: int,
+        items: Iterable[dict[str, Any]],
+        *,
+        headers: Mapping[str, str] | None = None,
+    ) -> None:
+        self.status = status
+        self.items = list(items)
+        self.headers = dict(headers or {})
+        super().__init__("; ".join(str(item["msg"]) for item in self.items))
+
+
+def api_error(
+    status: int,
+    msg: str,
+    *,
+    loc: Sequence[str | int] = (),
+    kind: str = "error",
+    headers: Mapping[str, str] | None = None,
+) -> RequestError:
+    """A RequestError with one ``detail`` entry (raise it)."""
+    return RequestError(status, [error_item(msg, loc=loc, kind=kind)], headers=headers)
+
+
+def validation_error(items: Iterable[dict[str, Any]]) -> RequestError:
+    """A 422 with several ``detail`` entries."""
+    return RequestError(422, items)
+
+
+def _json_safe_loc(loc: Iterable[Any]) -> list[str | int]:
+    return [part if isinstance(part, int) else str(part) for part in loc]
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route serves at the request's path (a 405 names them all; Starlette
+    names only those of the first route whose path matches). ``app.state.routes`` is the flat
+    list of the app's routes (``create_app`` keeps it)."""
+    methods: set[str] = set()
+    for route in request.app.state.routes:
+        match, _ = route.matches({**request.scope, "method": "GET"})
+        if match != Match.NONE:
+            methods |= getattr(route, "methods", None) or set()
+    return sorted(methods)
+
+
+async def _http_exception(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    detail: Any = exc.detail
+    if not isinstance(detail, list):  # framework errors (404 route, 405 method) carry a string
+        detail = [error_item(str(detail), kind="http_error")]
+    headers = dict(exc.headers or {})
+    if exc.status_code == 405:
+        headers["Allow"] = ", ".join(allowed_methods(request))
+    return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=headers)
+
+
+def _validation_detail(exc: RequestValidationError | WebSocketRequestValidationError) -> list[Any]:
+    return [
+        error_item(
+            str(err.get("msg", "invalid")),
+            loc=_json_safe_loc(err.get("loc", ())),
+            kind=str(err.get("type", "value_error")),
+        )
+        for err in exc.errors()
+    ]
+
+
+async def _request_validation(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    return JSONResponse({"detail": _validation_detail(exc)}, status_code=422)
+
+
+async def _socket_validation(websocket: WebSocket, exc: Exception) -> None:
+    """A WebSocket handshake whose path does not validate: 422 naming the parameter (instead
+    of the framework's bare close)."""
+    assert isinstance(exc, WebSocketRequestValidationError)
+    await websocket.send_denial_response(
+        JSONResponse({"detail": _validation_detail(exc)}, status_code=422)
+    )
+
+
+def problem_response(exc: RequestError) -> JSONResponse:
+    """The common body and headers of a refusal (a 401 names the Bearer scheme), for a request
+    or a refused WebSocket handshake."""
+    headers = dict(exc.headers)
+    if exc.status == 401:
+        headers.setdefault("WWW-Authenticate", "Bearer")
+    return JSONResponse({"detail": exc.items}, status_code=exc.status, headers=headers)
+
+
+async def _problem(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestError)
+    return problem_response(exc)
+
+
+def database_unavailable(cause: BaseException | str) -> RequestError:
+    """The 503 of a request the database cannot serve now (``cause``: the error met, or what
+    to say), with when to try again."""
+    if isinstance(cause, BaseException):
+        unreachable = isinstance(cause, DatabaseUnavailableError)
+        cause = str(cause) if unreachable else unavailable_message(cause)
+    return api_error(
+        503,
+        cause,
+        loc=("database",),
+        kind="db_unavailable",
+        headers={"Retry-After": str(DATABASE_RETRY_AFTER_S)},
+    )
+
+
+async def _database_unavailable(connection: HTTPConnection, exc: Exception) -> JSONResponse | None:
+    """A request (or WebSocket handshake) that met a database outage: 503, not a plain 500. A
+    statement's own error (a constraint, a bug) is no outage: it goes on to the 500 handler."""
+    if not is_database_outage(exc):
+        raise exc
+    response = problem_response(database_unavailable(exc))
+    if not isinstance(connection, WebSocket):
+        return response
+    if connection.application_state == WebSocketState.CONNECTING:
+        await connection.send_denial_response(response)
+    else:
+        await connection.close(code=TRY_AGAIN_LATER, reason="the database is unavailable")
+    return None
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Route every framework error through the common body."""
+    app.add_exception_handler(StarletteHTTPException, _http_exception)
+    app.add_exception_handler(RequestValidationError, _request_validation)
+    app.add_exception_handler(WebSocketRequestValidationError, _socket_validation)
+    app.add_exception_handler(RequestError, _problem)
+    # One handler for both scopes: Starlette passes a Request or a WebSocket.
+    outage_handler = cast(ExceptionHandler, _database_unavailable)
+    for outage in (DatabaseUnavailableError, DBAPIError, PoolTimeoutError):
+        app.add_exception_handler(outage, outage_handler)
+
+
+def link(operation_id: str, parameter: str, field: str) -> dict[str, Any]:
+    """An OpenAPI link: feed ``field`` of this response to ``parameter`` of ``operation_id``."""
+    return {"operationId": operation_id, "parameters": {parameter: f"$response.body#/{field}"}}
+
+
+def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses`` entries for the error codes a route can answer."""
+    text = {
+        400: "Unreadable request (body not UTF-8, not JSON, nested too deep; bad Content-Length)",
+        401: "No bearer token",
+        403: "Wrong bearer token",
+        404: "No such resource",
+        409: "Conflicts with the resource's current state",
+        410: "Gone: the fine-tuning round named has closed (or its deadline passed)",
+        413: "Request body too large",
+        415: "Request body is not JSON (Content-Type)",
+        422: "Invalid input; ``loc`` names the field",
+        429: "Over a quota or rate limit; ``Retry-After`` says when to try again",
+        503: "A service the request needs is unavailable; retry",
+    }
+    return {code: {"model": ErrorBody, "description": text[code]} for code in codes}

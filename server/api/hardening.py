@@ -1,0 +1,121 @@
+"""Small protections on every answer: security headers, no tokens in URLs, no secrets in the
+access log.
+
+``SecurityHeadersMiddleware`` adds to every response that does not set its own: a
+Content-Security-Policy that lets nothing load and nobody frame the answer, ``nosniff``,
+``X-Frame-Options: DENY`` and ``Referrer-Policy: no-referrer`` (pages set their own policy,
+as strict: ``server.ui.routes``). It refuses a ``token`` or ``access_token`` query parameter
+with 400 naming it: tokens travel in the ``Authorization`` header, as URLs are logged and
+kept in browser histories. ``RedactQueryFilter`` blanks such parameters (and any other whose
+name says secret) in uvicorn's access log lines.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from urllib.parse import parse_qsl
+
+from fastapi.responses import JSONResponse
+from starlette.datastructures import MutableHeaders
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.websockets import WebSocket
+
+from server.api.errors import error_item
+
+API_CONTENT_SECURITY_POLICY = (
+    "default-src 'none'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
+)
+"""For JSON answers and files: nothing loads from them, nothing frames them."""
+SECURITY_HEADERS = {
+    "Content-Security-Policy": API_CONTENT_SECURITY_POLICY,
+    "X-Content-Type-Options": "nosniff",
+    "X-Frame-Options": "DENY",
+    "Referrer-Policy": "no-referrer",
+}
+TOKEN_PARAMETERS = ("token", "access_token")
+"""Query parameters refused with 400: a token there would be logged."""
+SECRET_NAME = re.compile(r"token|secret|password|passwd|key|auth", re.I)
+"""Query parameters whose value the access log never prints."""
+_QUERY_PAIR = re.compile(r"([^&=?]+)=([^&]*)")
+
+
+class SecurityHeadersMiddleware:
+    """Security headers on every answer; 400 for a token in the query (module docstring)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+        names = {
+            name
+            for name, _ in parse_qsl(
+                scope["query_string"].decode("latin-1"), keep_blank_values=True
+            )
+        }
+        for name in TOKEN_PARAMETERS:
+            if name in names:
+                await _refuse_token_parameter(scope, receive, _with_headers(send), name)
+                return
+        await self.app(scope, receive, _with_headers(send))
+
+
+def _with_headers(send: Send) -> Send:
+    async def sender(message: Message) -> None:
+        if message["type"] in ("http.response.start", "websocket.http.response.start"):
+            headers = MutableHeaders(scope=message)
+            for name, value in SECURITY_HEADERS.items():
+                if name not in headers:
+                    headers.append(name, value)
+        await send(message)
+
+    return sender
+
+
+async def _refuse_token_parameter(scope: Scope, receive: Receive, send: Send, name: str) -> None:
+    response = JSONResponse(
+        {
+            "detail": [
+                error_item(
+                    f"a token in the URL ({name!r}) is refused, as URLs are logged: send it as "
+                    "'Authorization: Bearer <token>'",
+                    loc=("query", name),
+                    kind="token_in_url",
+                )
+            ]
+        },
+        status_code=400,
+    )
+    if scope["type"] == "http":
+        await response(scope, receive, send)
+    elif "websocket.http.response" in scope.get("extensions", {}):
+        await WebSocket(scope, receive, send).send_denial_response(response)
+    else:
+        await send({"type": "websocket.close", "code": 1008})
+
+
+def redact_query(path: str) -> str:
+    """``path`` with the values of its secret-named query parameters replaced by ``***``."""
+    base, mark, query = path.partition("?")
+    if not mark:
+        return path
+
+    def blank(match: re.Match[str]) -> str:
+        name = match.group(1)
+        return f"{name}=***" if SECRET_NAME.search(name) else match.group(0)
+
+    return base + mark + _QUERY_PAIR.sub(blank, query)
+
+
+class RedactQueryFilter(logging.Filter):
+    """Blanks secret query parameters in uvicorn's access log records, whose arguments are
+    (client, method, path with query, HTTP version, status)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        args = record.args
+        if isinstance(args, tuple) and len(args) >= 3 and isinstance(args[2], str):
+            record.args = (*args[:2], redact_query(args[2]), *args[3:])
+        return True

@@ -1,0 +1,174 @@
+"""Per-client limits on the long-lived and costly requests, in one ASGI middleware.
+
+``ClientLimitsMiddleware`` counts, per client, the requests it holds open of each kind:
+
+* round sockets (``WS /auctions/{id}/rounds/socket``), per address;
+* event streams (``GET /auctions/{id}/events``, ``GET /jobs/{id}/events``);
+* long polls (``GET /auctions/{id}/rounds/current?wait=S`` with S > 0);
+* uploads (``PUT /auctions/{id}/rounds/{round}/models/{id}``, ``POST /submit``).
+
+A client is the SHA-256 of its bearer token where the request has one, else its address (as
+``srd serve`` resolved it: a proxy's ``X-Forwarded-For`` counts only from
+``SRD_TRUSTED_PROXIES``). A request over its client's share is answered 429 with
+``Retry-After`` and ``Connection: close`` before any route runs: clients are paced, never
+queued. The routes' own process-wide caps stay behind this as the last line.
+
+The request kind is decided by method and path template alone, so the routes behind may
+change freely.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from collections import Counter
+from dataclasses import dataclass
+from urllib.parse import parse_qsl
+
+from fastapi.responses import JSONResponse
+from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.websockets import WebSocket
+
+from server.api.errors import error_item
+from server.config import Settings
+
+CLOSE_TRY_AGAIN_LATER = 1013
+"""Close code of a refused socket where the server cannot answer its handshake with 429."""
+
+
+@dataclass(frozen=True)
+class Limit:
+    """One kind of limited request: its name, as the 429 says it, and the share of one client
+    (``per_token`` for clients known by a bearer token, ``per_address`` for the others)."""
+
+    name: str
+    per_token: int
+    per_address: int
+
+
+def _template(path: str) -> re.Pattern[str]:
+    """A path template (``/auctions/{id}/events``) as a pattern of its paths."""
+    parts = ("[^/]+" if part.startswith("{") else re.escape(part) for part in path.split("/"))
+    return re.compile("/".join(parts))
+
+
+class ClientLimitsMiddleware:
+    """Refuses, with 429, the requests of a client past its share (module docstring)."""
+
+    def __init__(self, app: ASGIApp, *, settings: Settings) -> None:
+        self.app = app
+        self.retry_after_s = settings.limit_retry_after_s
+        streams = Limit(
+            "event streams", settings.limit_client_streams, settings.limit_client_streams
+        )
+        polls = Limit(
+            "long polls", settings.limit_client_long_polls, settings.limit_client_long_polls
+        )
+        uploads = Limit("uploads", settings.limit_client_uploads, settings.limit_address_uploads)
+        self.socket_limit = Limit(
+            "round sockets", settings.limit_client_sockets, settings.limit_client_sockets
+        )
+        self.routes: list[tuple[str, re.Pattern[str], Limit]] = [
+            ("GET", _template("/auctions/{auction_id}/events"), streams),
+            ("GET", _template("/jobs/{job_id}/events"), streams),
+            ("GET", _template("/auctions/{auction_id}/rounds/current"), polls),
+            ("PUT", _template("/auctions/{auction_id}/rounds/{round}/models/{model_id}"), uploads),
+            ("POST", _template("/submit"), uploads),
+        ]
+        self.socket_path = _template("/auctions/{auction_id}/rounds/socket")
+        self.held: Counter[tuple[str, str]] = Counter()
+        """Requests held open now, by (kind, client)."""
+
+    def limit_of(self, scope: Scope) -> Limit | None:
+        """The limit a request counts against, if any."""
+        path: str = scope["path"]
+        if scope["type"] == "websocket":
+            return self.socket_limit if self.socket_path.fullmatch(path) else None
+        method: str = scope["method"]
+        for route_method, pattern, limit in self.routes:
+            if method == route_method and pattern.fullmatch(path):
+                if limit.name == "long polls" and not _waits(scope):
+                    return None
+                return limit
+        return None
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+        limit = self.limit_of(scope)
+        if limit is None:
+            await self.app(scope, receive, send)
+            return
+        client, share = self._client(scope, limit)
+        key = (limit.name, client)
+        if self.held[key] >= share:
+            await self._refuse(scope, receive, send, limit, share)
+            return
+        self.held[key] += 1
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self.held[key] -= 1
+            if not self.held[key]:
+                del self.held[key]
+
+    def _client(self, scope: Scope, limit: Limit) -> tuple[str, int]:
+        """Who the request counts against, and that client's share of ``limit``."""
+        if scope["type"] == "http":
+            token = _bearer(scope)
+            if token is not None:
+                digest = hashlib.sha256(token).hexdigest()
+                return f"token:{digest}", limit.per_token
+        client = scope.get("client")
+        return f"address:{client[0] if client else '-'}", limit.per_address
+
+    async def _refuse(
+        self, scope: Scope, receive: Receive, send: Send, limit: Limit, share: int
+    ) -> None:
+        who = "participant token" if _bearer(scope) and scope["type"] == "http" else "address"
+        response = JSONResponse(
+            {
+                "detail": [
+                    error_item(
+                        f"this {who} holds {share} {limit.name} already, its share; retry in "
+                        f"{self.retry_after_s} s",
+                        loc=("client",),
+                        kind="too_many_requests",
+                    )
+                ]
+            },
+            status_code=429,
+            headers={"Retry-After": str(self.retry_after_s), "Connection": "close"},
+        )
+        if scope["type"] == "websocket":
+            if "websocket.http.response" in scope.get("extensions", {}):
+                await WebSocket(scope, receive, send).send_denial_response(response)
+            else:  # a server without denial responses: close before accepting
+                await send({"type": "websocket.close", "code": CLOSE_TRY_AGAIN_LATER})
+            return
+        await response(scope, receive, send)
+
+
+def _waits(scope: Scope) -> bool:
+    """Whether a round read long-polls: ``wait`` above zero (a malformed one is the route's
+    to refuse)."""
+    for name, value in parse_qsl(scope["query_string"].decode("latin-1")):
+        if name == "wait":
+            try:
+                return float(value) > 0
+            except ValueError:
+                return False
+    return False
+
+
+def _bearer(scope: Scope) -> bytes | None:
+    value: bytes
+    for name, value in scope["headers"]:
+        if name == b"authorization":
+            scheme, _, credentials = value.partition(b" ")
+            credentials = credentials.strip()
+            if scheme.lower() == b"bearer" and credentials:
+                return credentials
+            return None
+    return None

@@ -1,0 +1,119 @@
+"""Readiness (``GET /healthz``): can this server take writes now?
+
+Three checks: the database takes writes (``Database.write_problem``: there, the one this
+server started with, reachable, not read-only), a file can be written in the data folder, and
+the disks of the data folder and of a SQLite database have ``SRD_MIN_FREE_DISK_MB`` free. The
+answer is kept ``CACHE_S``, so a flood of health checks costs one round of checks a second.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from server.store.db import Database, is_sqlite, sqlite_path
+
+CACHE_S = 1.0
+"""How long a readiness answer is reused."""
+MB = 1 << 20
+
+Check = Literal["database", "data_dir", "disk"]
+
+
+@dataclass(frozen=True)
+class Problem:
+    """A failed check: which one, and why."""
+
+    check: Check
+    msg: str
+
+
+def data_dir_problem(path: Path) -> str | None:
+    """Why files cannot be made in the folder ``path``, or None. A file is created, written
+    and removed there: mode bits alone would not tell (root ignores them), a read-only mount,
+    a full disk or a file in the folder's place would."""
+    try:
+        handle, name = tempfile.mkstemp(prefix=".srd-write-check-", dir=path)
+        try:
+            os.write(handle, b"srd")
+        finally:
+            os.close(handle)
+            os.unlink(name)
+    except OSError as exc:
+        return f"the data folder {path} cannot be written: {exc.strerror or exc}"
+    return None
+
+
+def make_data_dir(path: Path) -> str | None:
+    """Make the data folder ``path`` if it is missing; why it cannot be written, or None."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        return f"the data folder {path} is a file, not a folder"
+    except OSError as exc:
+        return f"the data folder {path} cannot be made: {exc.strerror or exc}"
+    return data_dir_problem(path)
+
+
+def disk_problem(path: Path, min_free_mb: int, what: str) -> str | None:
+    """Why the disk holding ``path`` (``what``: how to name it) is too full, or None."""
+    try:
+        free_mb = shutil.disk_usage(path).free // MB
+    except OSError as exc:
+        return f"the free space of {what} {path} cannot be read: {exc.strerror or exc}"
+    if free_mb < min_free_mb:
+        return (
+            f"{free_mb} MB free on the disk of {what} {path}, less than "
+            f"SRD_MIN_FREE_DISK_MB={min_free_mb}"
+        )
+    return None
+
+
+class Readiness:
+    """The checks of one server, with their answer cached ``CACHE_S``."""
+
+    def __init__(self, database: Database, data_dir: Path, min_free_disk_mb: int) -> None:
+        self._database = database
+        self._data_dir = data_dir.resolve()
+        self._min_free_mb = min_free_disk_mb
+        self._folders = [(self._data_dir, "the data folder")]
+        if is_sqlite(database.url):
+            self._folders.append((sqlite_path(database.url).parent, "the database's folder"))
+        self._lock = threading.Lock()
+        self._problems: list[Problem] = []
+        self._checked_at = -CACHE_S
+
+    def cached(self) -> list[Problem] | None:
+        """The last answer while it is fresh, else None (then ``check``: I/O, off the loop)."""
+        with self._lock:
+            fresh = time.monotonic() - self._checked_at <= CACHE_S
+            return list(self._problems) if fresh else None
+
+    def check(self) -> list[Problem]:
+        """The problems now (none: ready); callers arriving meanwhile share the answer."""
+        with self._lock:
+            if time.monotonic() - self._checked_at > CACHE_S:
+                self._problems = self._run()
+                self._checked_at = time.monotonic()
+            return list(self._problems)
+
+    def _run(self) -> list[Problem]:
+        problems: list[Problem] = []
+        database = self._database.write_problem()
+        if database is not None:
+            problems.append(Problem("database", database))
+        data_dir = data_dir_problem(self._data_dir)
+        if data_dir is not None:
+            problems.append(Problem("data_dir", data_dir))
+        if self._min_free_mb > 0:
+            for folder, what in dict(self._folders).items():
+                disk = disk_problem(folder, self._min_free_mb, what)
+                if disk is not None:
+                    problems.append(Problem("disk", disk))
+        return problems

@@ -1,0 +1,353 @@
+"""Server-Sent Event streams: ``GET /auctions/{id}/events`` and ``GET /jobs/{id}/events``.
+
+An auction's stream sends ``event: iteration`` once per committed round, with ``id`` = the
+round's iteration (0, 1, ...) and ``data`` = the round with its purchases and quits. A remote
+fine-tuning round, which follows iteration k, adds ``event: round`` with ``id`` = ``k.1`` when
+it is open and ``k.2`` once it has closed (a round already closed when it is sent gets only
+``k.2``). When the auction has finished or failed, ``event: end`` (no id) gives the outcome and
+the stream closes. A job's stream sends ``event: progress`` whenever its status, progress or
+message changes (``id`` = the time of that change, in microseconds), then ``event: end`` with
+the whole job.
+
+A client resumes with ``Last-Event-ID`` (what ``EventSource`` sends when it reconnects) or, on
+its first connection, ``?after=<id>``: the stream goes on right after that event, so nothing is
+skipped and nothing repeated. Idle streams send a comment every ``SRD_EVENT_KEEPALIVE_S``.
+Everything sent is read from committed rows by the process's shared watcher of that auction
+or job (``server.live.events``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterable, AsyncIterator, Iterator
+from dataclasses import dataclass
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Header, Query
+from fastapi.sse import EventSourceResponse, ServerSentEvent
+from starlette.concurrency import run_in_threadpool
+
+from server.api.deps import DatabaseDep, EventHubDep, SettingsDep
+from server.api.errors import api_error, responses
+from server.api.routes.auctions import fine_tune_round_public, iteration_public
+from server.api.schemas import (
+    AuctionEndEvent,
+    AuctionIdPath,
+    IterationEvent,
+    JobIdPath,
+    JobProgressEvent,
+    JobPublic,
+    PatronPublic,
+    RoundPurchasePublic,
+)
+from server.auctions import service as auctions
+from server.jobs import service as jobs
+from server.live.events import EventHub, Poll
+from server.store import crud
+from server.store.db import Database
+from server.store.status import AUCTION_ENDED, JOB_ENDED, RoundStatus
+from server.store.tables import Job
+
+router = APIRouter(tags=["events"])
+
+RETRY_AFTER_S = 5
+"""What a client refused for want of stream slots is told to wait (``Retry-After``)."""
+RECONNECT_MS = 2000
+"""The ``retry:`` hint: how long ``EventSource`` waits before it reconnects a dropped stream."""
+EVENT_ID = r"^[0-9]{1,18}(\.[12])?$"
+"""An event id: an iteration, ``k.1``/``k.2`` for the fine-tuning round after iteration k, or
+a job's change time in microseconds."""
+ROUND_OPEN, ROUND_CLOSED = 1, 2
+
+LastEventId = Annotated[
+    str | None,
+    Header(
+        alias="Last-Event-ID",
+        pattern=EVENT_ID,
+        description="The id of the last event received; the stream resumes right after it.",
+    ),
+]
+After = Annotated[
+    str | None,
+    Query(
+        pattern=EVENT_ID,
+        description="Like Last-Event-ID, for a first connection (the header wins if both).",
+    ),
+]
+Position = tuple[int, int]
+"""Where an event sits in an auction's stream: (iteration, 0) for the iteration itself, then
+(iteration, ROUND_OPEN or ROUND_CLOSED) for the fine-tuning round that follows it."""
+
+
+def _position(event_id: str) -> Position:
+    iteration, _, phase = event_id.partition(".")
+    return int(iteration), int(phase or 0)
+
+
+def _resume_id(last_event_id: LastEventId = None, after: After = None) -> str | None:
+    return last_event_id if last_event_id is not None else after
+
+
+async def _auction_resume(resume: Annotated[str | None, Depends(_resume_id)]) -> Position:
+    """Where an auction's stream resumes: after this position (before the first event if
+    none)."""
+    return (-1, ROUND_CLOSED) if resume is None else _position(resume)
+
+
+async def _job_resume(
+    resume: Annotated[str | None, Depends(_resume_id)],
+    last_event_id: LastEventId = None,
+) -> str | None:
+    """The id of the last job event the client has; a job's ids are whole numbers."""
+    if resume is not None and "." in resume:
+        where = "header" if last_event_id is not None else "query"
+        name = "Last-Event-ID" if last_event_id is not None else "after"
+        raise api_error(
+            422, "a job's event ids are whole numbers", loc=(where, name), kind="bad_event_id"
+        )
+    return resume
+
+
+def _event_id(position: Position) -> str:
+    iteration, phase = position
+    return f"{iteration}.{phase}" if phase else str(iteration)
+
+
+async def _stream_slot(hub: EventHubDep) -> AsyncIterator[EventHub]:
+    """Hold one of the process's stream slots for the whole stream; 503 when none is free."""
+    if not hub.acquire():
+        raise api_error(
+            503,
+            f"{hub.max_streams} event streams are open, the most this server holds; retry later",
+            kind="too_many_streams",
+            headers={"Retry-After": str(RETRY_AFTER_S)},
+        )
+    try:
+        yield hub
+    finally:
+        hub.release()
+
+
+StreamSlot = Annotated[EventHub, Depends(_stream_slot)]
+
+
+# --- auctions ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class AuctionSnapshot:
+    """An auction as its watcher last read it: where it stands and every committed round."""
+
+    state: crud.AuctionState | None
+    rounds: tuple[crud.AuctionRound, ...]
+    fine_tuning: tuple[crud.RoundView, ...] = ()
+
+    @property
+    def final(self) -> bool:
+        return self.state is None or self.state.status in AUCTION_ENDED
+
+    def events_after(self, sent: Position) -> Iterator[tuple[Position, ServerSentEvent]]:
+        """The events of this snapshot that come after ``sent``, in stream order (built only
+        for those: a listener that is up to date costs nothing)."""
+        fine_tuning = {view.iteration: view for view in self.fine_tuning}
+        for row in self.rounds[max(sent[0], 0) :]:
+            position = (row.iteration, 0)
+            if position > sent:
+                yield position, _iteration_sse(row)
+            view = fine_tuning.get(row.iteration)
+            if view is not None:
+                phase = ROUND_OPEN if view.status == RoundStatus.OPEN else ROUND_CLOSED
+                position = (row.iteration, phase)
+                if position > sent:
+                    yield position, _round_sse(view, position)
+
+
+def watch_auction(database: Database, auction_id: int) -> Poll[AuctionSnapshot]:
+    """The poll of an auction's watcher: its state, then only the rounds committed since."""
+
+    def poll(previous: AuctionSnapshot | None) -> AuctionSnapshot:
+        rounds = () if previous is None else previous.rounds
+        with database.session(write=False) as session:
+            state = crud.auction_state(session, auction_id=auction_id)
+            if previous is not None and state == previous.state:
+                return previous
+            if state is None:
+                return AuctionSnapshot(None, rounds)
+            if state.iteration > len(rounds):
+                new = crud.auction_rounds(
+                    session, auction_id=auction_id, first=len(rounds), stop=state.iteration
+                )
+                rounds = (*rounds, *new)
+            fine_tuning: tuple[crud.RoundView, ...] = ()
+            if state.fine_tune_mode == "remote":
+                fine_tuning = tuple(crud.fine_tune_rounds(session, auction_id=auction_id))
+        return AuctionSnapshot(state, rounds, fine_tuning)
+
+    return poll
+
+
+def _patron(ref: crud.PatronRef) -> PatronPublic:
+    return PatronPublic(model_id=ref.model_id, participant=ref.participant, version=ref.version)
+
+
+def iteration_event(row: crud.AuctionRound) -> IterationEvent:
+    """The ``data`` of one round's event."""
+    return IterationEvent(
+        **dict(iteration_public(row)),
+        purchases=[
+            RoundPurchasePublic(**_patron(p.patron).model_dump(), price=p.price)
+            for p in row.purchases
+        ],
+        quits=[_patron(ref) for ref in row.quits],
+    )
+
+
+def _iteration_sse(row: crud.AuctionRound) -> ServerSentEvent:
+    return ServerSentEvent(event="iteration", id=str(row.iteration), data=iteration_event(row))
+
+
+def _round_sse(view: crud.RoundView, position: Position) -> ServerSentEvent:
+    return ServerSentEvent(event="round", id=_event_id(position), data=fine_tune_round_public(view))
+
+
+def auction_end_event(state: crud.AuctionState) -> AuctionEndEvent:
+    """The ``data`` of an auction's last event."""
+    return AuctionEndEvent(
+        status=state.status,  # one of AUCTION_ENDED
+        iterations=state.iteration,
+        price=state.price,
+        n_available=state.n_available,
+        n_initial=state.n_initial,
+        n_sold=state.n_initial - state.n_available,
+        stop_reason=state.stop_reason,
+        error=state.error,
+        finished_at=state.finished_at,
+    )
+
+
+async def _existing_auction(auction_id: AuctionIdPath, database: DatabaseDep) -> int:
+    def read() -> None:
+        with database.session(write=False) as session:
+            auctions.require_auction(session, auction_id)
+
+    await run_in_threadpool(read)
+    return auction_id
+
+
+@router.get(
+    "/auctions/{auction_id}/events",
+    response_class=EventSourceResponse,
+    operation_id="auction_events",
+    responses=responses(404, 422, 503),
+)
+async def auction_events(
+    resume: Annotated[Position, Depends(_auction_resume)],
+    hub: StreamSlot,
+    auction_id: Annotated[int, Depends(_existing_auction)],
+    database: DatabaseDep,
+    settings: SettingsDep,
+) -> AsyncIterable[ServerSentEvent]:
+    """Follow an auction live: one ``iteration`` event per committed round (``id`` = the
+    iteration), ``round`` events for remote fine-tuning rounds (``id`` = ``k.1`` open, ``k.2``
+    closed, after iteration k), then one ``end`` event, and the stream closes."""
+    sent = resume  # the last event the client has
+    poll = watch_auction(database, auction_id)
+    async with hub.watch(("auction", auction_id), poll) as watch:
+        yield ServerSentEvent(comment=f"auction {auction_id}", retry=RECONNECT_MS)
+        while True:
+            generation, snapshot = watch.generation, watch.snapshot
+            assert snapshot is not None  # hub.watch yields after the first read
+            for position, event in snapshot.events_after(sent):
+                yield event
+                sent = position
+            if snapshot.final:
+                if snapshot.state is not None:
+                    yield ServerSentEvent(event="end", data=auction_end_event(snapshot.state))
+                return
+            if not await watch.wait(generation, settings.event_keepalive_s):
+                yield ServerSentEvent(comment="keep-alive")
+
+
+# --- jobs -------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class JobSnapshot:
+    """A job as its watcher last read it; the whole job once it has ended."""
+
+    state: crud.JobState | None
+    job: JobPublic | None
+
+    @property
+    def final(self) -> bool:
+        return self.state is None or self.state.status in JOB_ENDED
+
+
+def watch_job(database: Database, job_id: int) -> Poll[JobSnapshot]:
+    """The poll of a job's watcher: a few columns, and the whole row once it has ended."""
+
+    def poll(previous: JobSnapshot | None) -> JobSnapshot:
+        with database.session(write=False) as session:
+            state = crud.job_state(session, job_id=job_id)
+            if previous is not None and state == previous.state:
+                return previous
+            job = None
+            if state is not None and state.status in JOB_ENDED:
+                row = session.get(Job, job_id)
+                job = None if row is None else JobPublic.model_validate(row, from_attributes=True)
+        return JobSnapshot(state, job)
+
+    return poll
+
+
+def job_event_id(state: crud.JobState) -> str:
+    """A job event's id: when the job row last changed, in microseconds since the epoch."""
+    return str(int(state.updated_at.timestamp() * 1_000_000))
+
+
+async def _existing_job(job_id: JobIdPath, database: DatabaseDep) -> int:
+    def read() -> None:
+        with database.session(write=False) as session:
+            jobs.require_job(session, job_id)
+
+    await run_in_threadpool(read)
+    return job_id
+
+
+@router.get(
+    "/jobs/{job_id}/events",
+    response_class=EventSourceResponse,
+    operation_id="job_events",
+    responses=responses(404, 422, 503),
+)
+async def job_events(
+    resume: Annotated[str | None, Depends(_job_resume)],
+    hub: StreamSlot,
+    job_id: Annotated[int, Depends(_existing_job)],
+    database: DatabaseDep,
+    settings: SettingsDep,
+) -> AsyncIterable[ServerSentEvent]:
+    """Follow a job: a ``progress`` event whenever its status, progress or message changes,
+    then one ``end`` event with the whole job (result, error, artifacts), and the stream
+    closes."""
+    seen = resume
+    async with hub.watch(("job", job_id), watch_job(database, job_id)) as watch:
+        yield ServerSentEvent(comment=f"job {job_id}", retry=RECONNECT_MS)
+        while True:
+            generation, snapshot = watch.generation, watch.snapshot
+            assert snapshot is not None  # hub.watch yields after the first read
+            if snapshot.state is None:
+                return
+            if snapshot.final:
+                yield ServerSentEvent(event="end", data=snapshot.job)
+                return
+            event_id = job_event_id(snapshot.state)
+            if event_id != seen:
+                progress = JobProgressEvent(
+                    status=snapshot.state.status,
+                    progress=snapshot.state.progress,
+                    message=snapshot.state.message,
+                )
+                yield ServerSentEvent(event="progress", id=event_id, data=progress)
+                seen = event_id
+            if not await watch.wait(generation, settings.event_keepalive_s):
+                yield ServerSentEvent(comment="keep-alive")

@@ -1,0 +1,123 @@
+"""Jobs: run the paper's experiments in the background (``POST``/``DELETE`` are operator-only)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+from fastapi.responses import FileResponse
+from starlette.concurrency import run_in_threadpool
+
+from server.api.deps import AdminDep, JobRunnerDep, SessionDep, SettingsDep
+from server.api.errors import link, responses
+from server.api.pages import DEFAULT_PAGE, PageCursor, PageLimit, PageOrder, page_of
+from server.api.schemas import (
+    JobCreate,
+    JobCreated,
+    JobIdPath,
+    JobKind,
+    JobPage,
+    JobPublic,
+    JobSummaryPublic,
+)
+from server.jobs import service as jobs
+from server.store import crud
+from server.store.status import JobStatus
+from server.store.tables import Job
+
+router = APIRouter(tags=["jobs"])
+
+ARTIFACT_TYPES = ("image/png", "image/gif", "text/csv", "application/json", "text/plain")
+
+
+def _job_public(job: Job) -> JobPublic:
+    return JobPublic.model_validate(job, from_attributes=True)
+
+
+@router.post(
+    "/jobs",
+    status_code=202,
+    dependencies=[AdminDep],
+    operation_id="create_job",
+    responses={
+        202: {
+            "links": {
+                "ReadJob": link("read_job", "job_id", "job_id"),
+                "CancelJob": link("cancel_job", "job_id", "job_id"),
+            }
+        },
+        **responses(401, 403, 422),
+    },
+)
+def create_job(
+    body: JobCreate, session: SessionDep, runner: JobRunnerDep, settings: SettingsDep
+) -> JobCreated:
+    """Queue an experiment (operator); ``params`` are the CLI options of ``kind``. A job whose
+    estimated compute exceeds the budget (``SRD_JOB_BUDGET_S``) is refused, naming the option
+    to lower and how far."""
+    job = jobs.create_job(
+        session, runner, kind=body.kind, params=body.params, budget_s=settings.job_budget_s
+    )
+    return JobCreated(job_id=job.id, status=JobStatus.QUEUED)
+
+
+@router.get("/jobs/{job_id}", operation_id="read_job", responses=responses(404, 422))
+def read_job(job_id: JobIdPath, session: SessionDep) -> JobPublic:
+    """A job's status, progress, result (the CLI's ``--json`` object), error and artifacts."""
+    return _job_public(jobs.read_job(session, job_id))
+
+
+@router.get(
+    "/jobs/{job_id}/artifacts/{name:path}",
+    response_class=FileResponse,
+    operation_id="read_artifact",
+    responses={
+        200: {"description": "The artifact file", "content": {t: {} for t in ARTIFACT_TYPES}},
+        **responses(404, 422),
+    },
+)
+def read_artifact(
+    job_id: JobIdPath, name: str, session: SessionDep, settings: SettingsDep
+) -> FileResponse:
+    """One artifact file of a job (a name listed in its ``artifacts``)."""
+    path = jobs.artifact_path(session, settings.data_dir, job_id, name)
+    return FileResponse(path, filename=Path(name).name, content_disposition_type="inline")
+
+
+@router.delete(
+    "/jobs/{job_id}",
+    dependencies=[AdminDep],
+    operation_id="cancel_job",
+    responses=responses(401, 403, 404, 409, 422),
+)
+def cancel_job(job_id: JobIdPath, session: SessionDep, runner: JobRunnerDep) -> JobPublic:
+    """Cancel a queued or running job (operator); a running job's process is terminated."""
+    return _job_public(jobs.cancel_job(session, runner, job_id))
+
+
+@router.get("/jobs", operation_id="list_jobs", responses=responses(422))
+async def list_jobs(
+    session: SessionDep,
+    limit: PageLimit = DEFAULT_PAGE,
+    cursor: PageCursor = None,
+    status: Annotated[JobStatus | None, Query(description="Only jobs in this status.")] = None,
+    kind: Annotated[JobKind | None, Query(description="Only jobs of this kind.")] = None,
+    order: PageOrder = "newest",
+) -> JobPage:
+    """Jobs with their status and progress, newest (or oldest) first, a page at a time."""
+    rows = await run_in_threadpool(
+        crud.list_jobs,
+        session,
+        before=cursor,
+        limit=limit + 1,
+        status=status,
+        kind=kind,
+        order=order,
+    )
+    items, next_cursor = page_of(rows, limit)
+    return JobPage(
+        items=[JobSummaryPublic(**dataclasses.asdict(row)) for row in items],
+        next_cursor=next_cursor,
+    )

@@ -1,0 +1,141 @@
+"""Models: ``POST /submit`` stores a screened manifest version, ``GET /models/{id}`` reads one."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request
+from starlette.concurrency import run_in_threadpool
+
+from agents.manifest import Manifest, Participant
+from server.api.deps import BearerDep, ScreeningDep, SessionDep, SubmissionsDep
+from server.api.errors import link, responses
+from server.api.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
+from server.api.schemas import (
+    MAX_LISTED_AUCTIONS,
+    ModelIdPath,
+    ModelPage,
+    ModelPublic,
+    ModelSummaryPublic,
+    ReasonPublic,
+    SubmitPublic,
+)
+from server.store import crud
+from server.submissions import service as models
+
+router = APIRouter(tags=["models"])
+
+
+def _reasons(row: crud.StoredModel) -> list[ReasonPublic]:
+    return [ReasonPublic.model_validate(reason) for reason in row.reasons]
+
+
+@router.post(
+    "/submit",
+    status_code=201,
+    operation_id="submit",
+    # A first submission needs no token: the bearer is optional (either scheme or none).
+    openapi_extra={"security": [{}]},
+    responses={
+        201: {"links": {"ReadModel": link("read_model", "model_id", "model_id")}},
+        **responses(401, 403, 409, 422, 429, 503),
+    },
+)
+async def submit(
+    manifest: Manifest,
+    credentials: BearerDep,
+    request: Request,
+    screening: ScreeningDep,
+    writer: SubmissionsDep,
+) -> SubmitPublic:
+    """Screen an FSN weight manifest and store it as the participant's next model version.
+
+    A new participant name is registered on the spot and its ``token`` is returned once; later
+    versions of that participant need ``Authorization: Bearer <token>``. Rejected models are
+    stored with their reasons and never enter an auction.
+    """
+    stored, verdict = await models.submit(
+        screening,
+        writer,
+        manifest,
+        bearer=None if credentials is None else credentials.credentials,
+        address=request.client.host if request.client is not None else None,
+    )
+    return SubmitPublic(
+        model_id=stored.model_id,
+        participant=stored.participant,
+        version=stored.version,
+        accepted=verdict.accepted,
+        reasons=[ReasonPublic(**reason.to_dict()) for reason in verdict.reasons],
+        token=stored.token,
+    )
+
+
+@router.get("/models/{model_id}", operation_id="read_model", responses=responses(404, 422))
+async def read_model(model_id: ModelIdPath, session: SessionDep) -> ModelPublic:
+    """A stored model version: manifest, verdict and reasons; for a version uploaded in a
+    remote fine-tuning round, its parent version, auction and round; the auctions it entered."""
+    row = await run_in_threadpool(
+        models.read_model, session, model_id, auctions=MAX_LISTED_AUCTIONS
+    )
+    return ModelPublic(
+        id=row.id,
+        participant=row.participant,
+        version=row.version,
+        manifest=row.manifest,
+        verdict="accepted" if row.accepted else "rejected",
+        accepted=row.accepted,
+        reasons=_reasons(row),
+        created_at=row.created_at,
+        parent_id=row.parent_id,
+        auction_id=row.auction_id,
+        round=row.round,
+        auctions=list(row.auctions),
+    )
+
+
+DESCRIPTION_PREVIEW = 160
+"""Characters of a model's description that a list shows."""
+
+
+def model_summary(row: crud.ModelSummary) -> ModelSummaryPublic:
+    """A model version as the lists show it."""
+    description = row.description or ""
+    if len(description) > DESCRIPTION_PREVIEW:
+        description = description[: DESCRIPTION_PREVIEW - 1] + "…"
+    return ModelSummaryPublic(
+        id=row.id,
+        participant=row.participant,
+        version=row.version,
+        verdict="accepted" if row.accepted else "rejected",
+        accepted=row.accepted,
+        description=description,
+        n_reasons=len(row.reasons),
+        rules=list(dict.fromkeys(reason["rule"] for reason in row.reasons)),
+        created_at=row.created_at,
+    )
+
+
+@router.get("/models", operation_id="list_models", responses=responses(422))
+async def list_models(
+    session: SessionDep,
+    participant: Annotated[
+        Participant | None, Query(description="Only this participant's versions.")
+    ] = None,
+    accepted: Annotated[
+        bool | None, Query(description="Only accepted (true) or only rejected (false) models.")
+    ] = None,
+    limit: PageLimit = DEFAULT_PAGE,
+    cursor: PageCursor = None,
+) -> ModelPage:
+    """Model versions with their verdicts, newest first, a page at a time."""
+    rows = await run_in_threadpool(
+        crud.list_models,
+        session,
+        before=cursor,
+        limit=limit + 1,
+        participant=participant,
+        accepted=accepted,
+    )
+    items, next_cursor = page_of(rows, limit)
+    return ModelPage(items=[model_summary(row) for row in items], next_cursor=next_cursor)

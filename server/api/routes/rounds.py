@@ -1,0 +1,211 @@
+"""Remote fine-tuning rounds: ``GET /auctions/{id}/rounds/current`` publishes the newest round
+(long poll with ``?wait=``), ``PUT /auctions/{id}/rounds/{round}/models/{model_id}`` takes a
+patron's fine-tuned manifest, re-screens it and stores it as a new version (the checks:
+``server.auctions.uploads``); ``WS /auctions/{id}/rounds/socket`` is the same over one
+WebSocket per agent (``server.auctions.sockets``).
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Path, Query, Request, Response, WebSocket
+
+from server.api.deps import (
+    AuctionRunnerDep,
+    DatabaseDep,
+    ParticipantTokenDep,
+    RoundsDep,
+    RoundSocketsDep,
+    ScreeningDep,
+)
+from server.api.errors import RequestError, api_error, problem_response, responses
+from server.api.schemas import (
+    MAX_FINE_TUNE_ROUNDS,
+    AuctionIdPath,
+    ModelIdPath,
+    RoundPublic,
+    UploadPublic,
+)
+from server.auctions import uploads as rounds
+from server.auctions.service import not_found
+from server.auctions.sockets import RETRY_AFTER_S, UPLOAD_MAX_BYTES, SocketLimitError
+from server.live.rounds import MAX_WAIT_S
+from server.store.tables import utcnow
+
+router = APIRouter(tags=["rounds"])
+
+RoundPath = Annotated[
+    int,
+    Path(
+        alias="round",
+        ge=1,
+        le=MAX_FINE_TUNE_ROUNDS,
+        description="A fine-tuning round (1 follows iteration 0, 2 iteration 1, ...).",
+    ),
+]
+
+
+@router.get(
+    "/auctions/{auction_id}/rounds/current",
+    operation_id="read_current_round",
+    response_class=Response,
+    responses={
+        200: {"model": RoundPublic, "description": "The auction's newest fine-tuning round"},
+        **responses(404, 422, 503),
+    },
+)
+async def read_current_round(
+    auction_id: AuctionIdPath,
+    watcher: RoundsDep,
+    wait: Annotated[
+        float,
+        Query(
+            ge=0,
+            le=MAX_WAIT_S,
+            allow_inf_nan=False,
+            description="Seconds to wait for a round above ``after`` to open (or the end).",
+        ),
+    ] = 0.0,
+    after: Annotated[
+        int,
+        Query(ge=0, le=MAX_FINE_TUNE_ROUNDS, description="The last round the client handled."),
+    ] = 0,
+) -> Response:
+    """The auction's newest fine-tuning round: status open | closed | none, its deadline
+    (UTC) and seconds left; while open the item rows, the seeds and the patrons asked. With
+    ``wait`` the answer comes as soon as a round numbered above ``after`` is open or the
+    auction has ended, and at the latest after ``wait`` seconds."""
+    body = await rounds.current_round(watcher, auction_id, wait_s=wait, after=after)
+    return Response(body, media_type="application/json")
+
+
+async def _upload_body(request: Request) -> tuple[bytes, datetime]:
+    """The request body, at most ``UPLOAD_MAX_BYTES`` (413; checked before the token), and
+    when it was read (the deadline is judged at that moment)."""
+    body = await request.body()
+    if len(body) > UPLOAD_MAX_BYTES:
+        raise api_error(
+            413,
+            f"an upload is at most {UPLOAD_MAX_BYTES} bytes",
+            loc=("header", "Content-Length"),
+            kind="body_size",
+        )
+    return body, utcnow()
+
+
+@router.put(
+    "/auctions/{auction_id}/rounds/{round}/models/{model_id}",
+    operation_id="upload_round_model",
+    response_class=Response,
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {"application/json": {"schema": {"$ref": "#/components/schemas/Manifest"}}},
+        }
+    },
+    responses={
+        200: {"model": UploadPublic, "description": "Accepted or refused by the re-screening"},
+        **responses(401, 403, 404, 409, 410, 413, 422, 503),
+    },
+)
+async def upload_round_model(
+    auction_id: AuctionIdPath,
+    round_number: RoundPath,
+    model_id: ModelIdPath,
+    body: Annotated[tuple[bytes, datetime], Depends(_upload_body)],
+    token: ParticipantTokenDep,
+    database: DatabaseDep,
+    screening: ScreeningDep,
+    runner: AuctionRunnerDep,
+) -> Response:
+    """Upload the patron's fine-tuned manifest for this round (participant token). It is
+    re-screened: accepted, it becomes the participant's next version and bids from the next
+    iteration; refused, the reasons are returned and the previous version bids on. Wrong round
+    → 409 naming the current one; closed or past the deadline → 410 (recorded as late)."""
+    content, arrived = body
+    answer = await rounds.upload(
+        database,
+        screening,
+        runner.submit,
+        auction_id=auction_id,
+        round_number=round_number,
+        model_id=model_id,
+        token=token,
+        body=content,
+        arrived=arrived,
+    )
+    return Response(answer, media_type="application/json")
+
+
+def _bearer(header: str | None) -> str | None:
+    """The credentials of an ``Authorization: Bearer <token>`` header, if it has them."""
+    scheme, _, credentials = (header or "").partition(" ")
+    credentials = credentials.strip()
+    return credentials if scheme.lower() == "bearer" and credentials else None
+
+
+async def _deny(websocket: WebSocket, error: RequestError) -> None:
+    """Refuse a handshake with the common error body."""
+    await websocket.send_denial_response(problem_response(error))
+
+
+@router.websocket("/auctions/{auction_id}/rounds/socket")
+async def round_socket(
+    websocket: WebSocket,
+    auction_id: AuctionIdPath,
+    watcher: RoundsDep,
+    sockets: RoundSocketsDep,
+    database: DatabaseDep,
+    screening: ScreeningDep,
+    runner: AuctionRunnerDep,
+) -> None:
+    """The auction's remote rounds over one WebSocket (``server.auctions.sockets``):
+    every round pushed as it opens, uploads answered as the PUT answers them. Uploads need
+    the handshake's ``Authorization: Bearer <participant token>``."""
+    token = _bearer(websocket.headers.get("authorization"))
+    try:
+        sockets.reserve()
+    except SocketLimitError as exc:
+        await _deny(
+            websocket,
+            api_error(
+                503,
+                f"{exc}; retry in {RETRY_AFTER_S} s",
+                kind="too_many_sockets",
+                headers={"Retry-After": str(RETRY_AFTER_S)},
+            ),
+        )
+        return
+    try:
+        first = await watcher.published(auction_id, wait_s=0.0, after=0)
+        if first is None:
+            await _deny(websocket, not_found(auction_id))
+            return
+        await websocket.accept()
+
+        async def upload(round_number: int, model_id: int, body: bytes, arrived: datetime) -> bytes:
+            if token is None:
+                raise api_error(
+                    401,
+                    "uploads need the participant's token: 'Authorization: Bearer <token>' "
+                    "in the socket's handshake",
+                    loc=("header", "Authorization"),
+                    kind="missing_token",
+                )
+            return await rounds.upload(
+                database,
+                screening,
+                runner.submit,
+                auction_id=auction_id,
+                round_number=round_number,
+                model_id=model_id,
+                token=token,
+                body=body,
+                arrived=arrived,
+            )
+
+        await sockets.serve(websocket, auction_id, first, upload)
+    finally:
+        sockets.release()

@@ -1,0 +1,242 @@
+"""Bodies of auctions: ``POST /auctions``, ``GET /auctions/{id}``, the auction list, and the
+payloads of an auction's event stream (the ``data`` of each Server-Sent Event, as JSON)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, field_validator
+
+from server.api.schemas.common import MAX_SEED, RowId, StrictInput
+from server.api.schemas.rounds import FineTuneModeName, FineTuneRoundPublic
+from server.store.status import AuctionStatus
+from sim.market import BuyFractionRule, MarketConfig
+
+MAX_PATRONS = 10_000
+"""Patrons of an auction, at most."""
+ROUND_DEADLINE_S = (0.5, 300.0)
+"""Bounds of a remote auction's ``round_deadline_s``: how long a round waits at most."""
+MAX_FINE_TUNE_ROUNDS = 64
+"""Fine-tuning rounds of an auction, at most (each may wait a whole deadline)."""
+
+
+_REMOTE: dict[str, JsonValue] = {
+    "properties": {"fine_tune_mode": {"const": "remote"}},
+    "required": ["fine_tune_mode"],
+}
+"""JSON Schema: a remote auction."""
+
+
+def _absent(schema: dict[str, Any]) -> None:
+    """The schema of an optional field that may be left out but is never ``null``: its value's
+    schema alone (the validator refuses an explicit null)."""
+    value = schema.pop("anyOf")[0]
+    schema.pop("default", None)
+    schema.update(value)
+
+
+def _unique_ids(schema: dict[str, Any]) -> None:
+    """``model_ids``: left out or a list of distinct ids."""
+    _absent(schema)
+    schema["uniqueItems"] = True
+
+
+class AuctionCreate(StrictInput):
+    """Start an auction: exactly one of ``n_fish`` or ``rarity`` (fish = int(rarity × patrons)).
+
+    ``fine_tune_mode`` "remote": the participants fine-tune their own patrons over HTTP, in
+    rounds after each of the first ``fine_tune_rounds`` iterations, each round waiting at most
+    ``round_deadline_s``. A remote auction fine-tunes (``fine_tune`` may be left out; false is
+    refused); ``round_deadline_s`` belongs to remote auctions only."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "oneOf": [{"required": ["n_fish"]}, {"required": ["rarity"]}],
+            "allOf": [
+                {  # a remote auction fine-tunes: fine_tune, if given, is true
+                    "if": _REMOTE,
+                    "then": {"properties": {"fine_tune": {"const": True}}},
+                },
+                {  # a round deadline belongs to remote auctions
+                    "if": {"not": _REMOTE},
+                    "then": {"not": {"required": ["round_deadline_s"]}},
+                },
+            ],
+        }
+    )
+
+    n_fish: Annotated[int, Field(ge=1, le=100_000)] | None = Field(None, json_schema_extra=_absent)
+    rarity: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] | None = Field(
+        None, json_schema_extra=_absent
+    )
+    max_iterations: Annotated[int, Field(ge=1, le=1000)] = MarketConfig.max_iterations
+    fine_tune: bool = False
+    model_ids: Annotated[list[RowId], Field(min_length=1, max_length=MAX_PATRONS)] | None = Field(
+        None, json_schema_extra=_unique_ids
+    )
+    seed: Annotated[int, Field(ge=0, le=MAX_SEED)] = 0
+    fine_tune_mode: FineTuneModeName = "server"
+    fine_tune_rounds: Annotated[int, Field(ge=0, le=MAX_FINE_TUNE_ROUNDS)] = (
+        MarketConfig.fine_tune_rounds
+    )
+    round_deadline_s: Annotated[
+        float, Field(ge=ROUND_DEADLINE_S[0], le=ROUND_DEADLINE_S[1], allow_inf_nan=False)
+    ] = 10.0
+    buy_fraction: BuyFractionRule = MarketConfig.buy_fraction
+    """Whom a row's buy fraction f counts: "all" voters (the paper's) or the "staying" ones,
+    buyers and holders (quitting does not lower f)."""
+
+    @field_validator("model_ids")
+    @classmethod
+    def _distinct(cls, ids: list[int] | None) -> list[int] | None:
+        """A patron takes part once."""
+        if ids is not None and len(set(ids)) != len(ids):
+            twice = sorted({i for i in ids if ids.count(i) > 1})
+            raise ValueError(f"model ids listed more than once: {twice}")
+        return ids
+
+    @field_validator("n_fish", "rarity", "model_ids", mode="before")
+    @classmethod
+    def _absent_not_null(cls, value: Any) -> Any:
+        """An option left out is absent; ``null`` is not one of its values."""
+        if value is None:
+            raise ValueError("must not be null: leave it out instead")
+        return value
+
+
+class AuctionCreated(BaseModel):
+    auction_id: int
+
+
+class Votes(BaseModel):
+    """Row-0 decisions of the patrons still in the auction."""
+
+    buy: int
+    hold: int
+    quit: int
+
+
+class IterationPublic(BaseModel):
+    """One auction round: price asked and fish left at its start, the votes, what followed."""
+
+    iteration: int
+    price: float
+    n_available: int
+    votes: Votes
+    row_votes: Votes
+    next_price: float
+    n_available_after: int
+
+
+class BuyerPublic(BaseModel):
+    """A patron who bought a fish: the version that bid, its participant, price and round."""
+
+    model_id: int
+    price: float
+    iteration: int
+    participant: str
+    version: int
+
+
+class QuitterPublic(BaseModel):
+    """A patron who left without buying: the version that quit, its participant and round."""
+
+    model_id: int
+    participant: str
+    version: int
+    iteration: int
+
+
+class AuctionPublic(BaseModel):
+    """An auction as it stands; ``history`` grows by one committed row per round."""
+
+    id: int
+    status: AuctionStatus
+    iteration: int
+    price: float
+    n_available: int
+    n_initial: int
+    history: list[IterationPublic]
+    buyers: list[BuyerPublic]
+    quitters: list[int]
+    quitter_details: list[QuitterPublic]
+    """``quitters`` with the participant, version and round of each."""
+    stop_reason: str | None
+    n_patrons: int
+    model_ids: list[int]
+    revenue: float
+    rarity: float | None
+    max_iterations: int
+    fine_tune: bool
+    seed: int
+    error: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    fine_tune_mode: FineTuneModeName = "server"
+    fine_tune_rounds: int = 4
+    round_deadline_s: float = 10.0
+    buy_fraction: BuyFractionRule = MarketConfig.buy_fraction
+    fine_tuning: list[FineTuneRoundPublic] = Field(default_factory=list)
+    """Remote auctions: every fine-tuning round with each asked patron's outcome."""
+    current_model_ids: list[int] = Field(default_factory=list)
+    """Remote auctions: the version each patron bids with now, aligned with ``model_ids``."""
+
+
+class AuctionSummaryPublic(BaseModel):
+    """An auction as a list shows it."""
+
+    id: int
+    status: AuctionStatus
+    n_initial: int
+    n_available: int
+    n_sold: int
+    n_patrons: int
+    iteration: int
+    price: float
+    revenue: float
+    stop_reason: str | None
+    rarity: float | None
+    fine_tune: bool
+    created_at: datetime
+    finished_at: datetime | None
+
+
+class AuctionPage(BaseModel):
+    items: list[AuctionSummaryPublic]
+    next_cursor: int | None
+
+
+class PatronPublic(BaseModel):
+    """A patron: its model id and the participant and version behind it."""
+
+    model_id: int
+    participant: str
+    version: int
+
+
+class RoundPurchasePublic(PatronPublic):
+    price: float
+
+
+class IterationEvent(IterationPublic):
+    """``event: iteration`` (``id`` = ``iteration``): one committed round, its purchases and
+    quits."""
+
+    purchases: list[RoundPurchasePublic]
+    quits: list[PatronPublic]
+
+
+class AuctionEndEvent(BaseModel):
+    """``event: end``: the auction is over (the stream closes after it)."""
+
+    status: AuctionStatus
+    iterations: int
+    price: float
+    n_available: int
+    n_initial: int
+    n_sold: int
+    stop_reason: str | None
+    error: str | None
+    finished_at: datetime | None

@@ -1,0 +1,58 @@
+"""Tokens: generation, hashing, constant-time checks, the operator (admin) token (the routes'
+token dependencies are in ``server.api.deps``).
+
+Tokens are 256-bit random secrets; only their SHA-256 is stored, so nobody (operators
+included) can read a token back. Checks compare digests with ``hmac.compare_digest``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import logging
+import os
+import secrets
+from pathlib import Path
+
+from server.config import Settings
+
+log = logging.getLogger("srd.security")
+
+TOKEN_BYTES = 32  # 256 bits of entropy: a plain SHA-256 of it is a safe verifier
+
+
+def new_token(prefix: str) -> str:
+    """A fresh high-entropy bearer token, e.g. ``srdp_...`` for participants."""
+    return f"{prefix}_{secrets.token_urlsafe(TOKEN_BYTES)}"
+
+
+def hash_token(token: str) -> str:
+    """Hex SHA-256 of a token (what the database keeps)."""
+    return hashlib.sha256(token.encode("utf-8")).hexdigest()
+
+
+def token_matches(token: str, stored_hash: str) -> bool:
+    """Constant-time check of a presented token against a stored hash."""
+    return hmac.compare_digest(hash_token(token), stored_hash)
+
+
+def load_admin_token_hash(settings: Settings) -> str:
+    """The hash of the operator token: ``SRD_ADMIN_TOKEN``, else the token file under
+    ``data_dir`` (created with mode 0600 at first start)."""
+    if settings.admin_token is not None:
+        return hash_token(settings.admin_token.get_secret_value())
+    path = settings.admin_token_file
+    if not path.exists():
+        _write_secret_file(path, new_token("srda"))
+        log.warning("generated the admin token into %s (mode 0600)", path)
+    return hash_token(path.read_text().strip())
+
+
+def _write_secret_file(path: Path, secret: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:  # another process created it first: use theirs
+        return
+    with os.fdopen(fd, "w") as handle:
+        handle.write(secret + "\n")

@@ -1,0 +1,1 @@
+"""Auctions: the steps that move them, their service, remote round uploads."""

@@ -1,0 +1,156 @@
+"""Auctions: create one over its patrons (operator), read one, cancel one (operator)."""
+
+from __future__ import annotations
+
+from sqlalchemy.orm import Session
+
+from server.api.errors import RequestError, api_error, error_item
+from server.api.schemas import AuctionCreate
+from server.auctions.steps import base_price
+from server.store import crud
+from server.work.runner import BackgroundRunner
+from sim.market import fish_on_sale
+
+
+def patron_ids(session: Session, model_ids: list[int] | None) -> list[int]:
+    """The ordered patron list: the given ids (each must exist, 404, and be accepted, 409), or
+    by default the newest accepted version of every participant (409 while there is none)."""
+    if model_ids is None:
+        ids = [row.id for row in crud.latest_accepted_models(session)]
+        if not ids:
+            raise api_error(
+                409,
+                "no accepted model exists yet: submit models first",
+                loc=("body", "model_ids"),
+                kind="no_patrons",
+            )
+        return ids
+    found = crud.get_models(session, model_ids=model_ids)
+    missing = [
+        error_item(
+            f"model {model_id} does not exist", loc=("body", "model_ids", i), kind="not_found"
+        )
+        for i, model_id in enumerate(model_ids)
+        if model_id not in found
+    ]
+    if missing:
+        raise RequestError(404, missing)
+    rejected = [
+        error_item(
+            f"model {model_id} was rejected by the screener and cannot enter an auction",
+            loc=("body", "model_ids", i),
+            kind="rejected",
+        )
+        for i, model_id in enumerate(model_ids)
+        if not found[model_id].accepted
+    ]
+    if rejected:
+        raise RequestError(409, rejected)
+    return list(model_ids)
+
+
+def _fish_count(body: AuctionCreate, n_patrons: int) -> int:
+    """The market's rule (``fish_on_sale``): n_fish, or int(rarity × patrons); exactly one."""
+    try:
+        return fish_on_sale(n_patrons, n_fish=body.n_fish, rarity=body.rarity)
+    except ValueError as exc:
+        loc = ("body", "n_fish") if body.n_fish is not None else ("body", "rarity")
+        raise api_error(422, str(exc), loc=loc, kind="n_fish_xor_rarity") from exc
+
+
+def _remote_fine_tuning(body: AuctionCreate) -> bool:
+    """Whether the participants fine-tune (remote); refuses settings that contradict it."""
+    remote = body.fine_tune_mode == "remote"
+    if remote and "fine_tune" in body.model_fields_set and not body.fine_tune:
+        raise api_error(
+            422,
+            "a remote auction fine-tunes: leave fine_tune out or set it true",
+            loc=("body", "fine_tune"),
+            kind="remote_fine_tune",
+        )
+    if not remote and "round_deadline_s" in body.model_fields_set:
+        raise api_error(
+            422,
+            'round_deadline_s applies to fine_tune_mode "remote" only',
+            loc=("body", "round_deadline_s"),
+            kind="remote_only",
+        )
+    return remote
+
+
+def create_auction(session: Session, runner: BackgroundRunner, body: AuctionCreate) -> int:
+    """Store a pending auction and hand it to the runner; its id. The either-or of the supply
+    is checked first, then the fine-tuning mode, then the patrons, then the fish count."""
+    _fish_count(body, 0)
+    remote = _remote_fine_tuning(body)
+    patrons = patron_ids(session, body.model_ids)
+    n_fish = _fish_count(body, len(patrons))
+    if n_fish < 1:
+        raise api_error(
+            409,
+            f"rarity {body.rarity} × {len(patrons)} patrons puts no fish on sale",
+            loc=("body", "rarity"),
+            kind="no_fish",
+        )
+    auction = crud.create_auction(
+        session,
+        model_ids=patrons,
+        n_fish=n_fish,
+        rarity=body.rarity,
+        max_iterations=body.max_iterations,
+        fine_tune=body.fine_tune or remote,
+        seed=body.seed,
+        opening_price=base_price(),
+        fine_tune_mode=body.fine_tune_mode,
+        fine_tune_rounds=body.fine_tune_rounds,
+        round_deadline_s=body.round_deadline_s,
+        buy_fraction=body.buy_fraction,
+    )
+    session.commit()
+    runner.submit(auction.id)
+    return auction.id
+
+
+def not_found(auction_id: int) -> RequestError:
+    """The 404 of an auction id that names none."""
+    return api_error(
+        404, f"auction {auction_id} does not exist", loc=("path", "auction_id"), kind="not_found"
+    )
+
+
+def read_auction(session: Session, auction_id: int) -> crud.AuctionView:
+    """An auction with its rounds, buyers and quitters (404 if there is none)."""
+    view = crud.get_auction(session, auction_id=auction_id)
+    if view is None:
+        raise not_found(auction_id)
+    return view
+
+
+def require_auction(session: Session, auction_id: int) -> crud.AuctionState:
+    """Where an auction stands (404 if there is none)."""
+    state = crud.auction_state(session, auction_id=auction_id)
+    if state is None:
+        raise not_found(auction_id)
+    return state
+
+
+def cancel_auction(session: Session, runner: BackgroundRunner, auction_id: int) -> crud.AuctionView:
+    """Cancel a pending or running auction (404 if there is none, 409 once it has ended), its
+    open fine-tuning round closed in the same transaction, and stop its worker; the auction as
+    it now stands."""
+    require_auction(session, auction_id)
+    if not crud.cancel_auction(session, auction_id=auction_id):
+        session.rollback()
+        ended = require_auction(session, auction_id)
+        raise api_error(
+            409,
+            f"auction {auction_id} already {ended.status}; only pending or running auctions "
+            "can be cancelled",
+            loc=("path", "auction_id"),
+            kind="not_cancellable",
+        )
+    session.commit()
+    # A worker that is not stopped in time (another replica's, until its lease renewal) still
+    # commits nothing: its writes require the auction running.
+    runner.cancel(auction_id)
+    return read_auction(session, auction_id)

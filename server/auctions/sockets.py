@@ -1,0 +1,307 @@
+"""The round socket: ``WS /auctions/{id}/rounds/socket``, the remote rounds of one auction over
+one WebSocket per agent.
+
+The same protocol as ``GET .../rounds/current`` and ``PUT .../rounds/{round}/models/{model_id}``,
+without an HTTP request per step: the server pushes every round as it opens (and the auction's
+end), the agent sends its uploads on the same connection and gets each answer there. A pushed
+round is the long poll's JSON body, an upload's answer the PUT's status and body, so both
+transports share every check, every counter and every stored outcome
+(``server.auctions.uploads``):
+
+* server → agent: ``{"type": "round", "body": <RoundPublic>}`` on connecting (the auction's
+  newest round, whatever its status), then whenever a round opens, and once the auction has
+  ended, after which the server closes the socket (code 1000);
+* agent → server: ``{"type": "upload", "round": R, "model_id": M, "manifest": "<JSON text>"}``,
+  the manifest as the JSON *text* a PUT would carry: its bytes are what is checked, hashed for
+  the one-upload-per-round rule and counted;
+* server → agent: ``{"type": "answer", "round": R, "model_id": M, "status": S, "body": B}``, S and
+  B exactly the PUT's (200 with ``UploadPublic``; 4xx with ``{"detail": [...]}``).
+
+Identity is the handshake's ``Authorization: Bearer <participant token>``, checked on every
+upload as the PUT checks it. Limits: ``MAX_SOCKETS`` open sockets per API process (beyond, the
+handshake is answered 503 with Retry-After), frames up to ``MAX_FRAME_BYTES`` (a socket that
+sends a bigger one is closed, code 1009: by uvicorn under ``srd serve``, by the app under any
+other server), a manifest up to the PUT's upload limit (413), uploads handled one at a time per
+socket, and a token bucket of ``BURST`` messages refilled at ``REFILL_PER_S`` (beyond it the
+socket is closed, code 1008). A dead peer is dropped by the server's WebSocket pings; a socket
+whose rounds cannot be read is closed with 1011, for the agent to reconnect.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from datetime import datetime
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+from server.api.body import BodyRefusedError, parse_strict_json
+from server.api.errors import RequestError, error_item
+from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_ROW_ID
+from server.live.rounds import MAX_WAIT_S, Published, RoundWatcher, TooManyWaitersError
+from server.store.tables import utcnow
+
+log = logging.getLogger("srd.rounds")
+
+MAX_SOCKETS = 1024
+"""Round sockets open at once in one API process."""
+UPLOAD_MAX_BYTES = 65_536
+"""Largest manifest an upload may carry (the PUT's body limit)."""
+MAX_FRAME_BYTES = 2 * UPLOAD_MAX_BYTES + 4096
+"""Largest frame the server reads (a manifest's JSON text escaped inside a message)."""
+BURST, REFILL_PER_S = 64, 16.0
+"""The message allowance of one socket: a burst, refilled per second."""
+RETRY_AFTER_S = 1
+"""Retry-After of a refused handshake, and the pause of a pusher refused a wait."""
+CLOSE_TOO_MANY_MESSAGES = 1008
+"""Close code (policy violation) of a socket over its message allowance."""
+CLOSE_TOO_BIG = 1009
+"""Close code (message too big) of a socket that sent a frame over ``MAX_FRAME_BYTES``."""
+
+
+class UploadMessage(BaseModel):
+    """An upload sent on the socket (the PUT's path and body in one message)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    type: Literal["upload"]
+    round: Annotated[int, Field(ge=1, le=MAX_FINE_TUNE_ROUNDS)]
+    model_id: Annotated[int, Field(ge=1, le=MAX_ROW_ID)]
+    manifest: str
+    """The manifest's JSON text, as a PUT body would carry it."""
+
+
+class _Bucket:
+    """A token bucket: ``take`` is False once the allowance is spent."""
+
+    def __init__(self, burst: int, refill_per_s: float) -> None:
+        self._burst, self._refill = float(burst), refill_per_s
+        self._tokens, self._at = float(burst), time.monotonic()
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self._tokens = min(self._burst, self._tokens + (now - self._at) * self._refill)
+        self._at = now
+        if self._tokens < 1.0:
+            return False
+        self._tokens -= 1.0
+        return True
+
+
+class SocketLimitError(RuntimeError):
+    """This process already holds ``MAX_SOCKETS`` round sockets."""
+
+
+UploadHandler = Callable[[int, int, bytes, datetime], Awaitable[bytes]]
+"""``(round, model_id, manifest bytes, arrival) -> answer body``: the PUT's service call
+(RequestError for a refusal)."""
+
+
+class _Socket:
+    """One accepted socket: frames sent one at a time (pusher and answers share it)."""
+
+    def __init__(self, websocket: WebSocket) -> None:
+        self.websocket = websocket
+        self._lock = asyncio.Lock()
+
+    async def send(self, text: str) -> None:
+        async with self._lock:
+            await self.websocket.send_text(text)
+
+    async def close(self, code: int, reason: str = "") -> None:
+        async with self._lock:
+            await self.websocket.close(code=code, reason=reason)
+
+
+class RoundSockets:
+    """The round sockets of one API process: their count, and each socket's conversation."""
+
+    def __init__(self, watcher: RoundWatcher, *, max_sockets: int = MAX_SOCKETS) -> None:
+        self._watcher = watcher
+        self._max = max_sockets
+        self.open = 0
+
+    def reserve(self) -> None:
+        """Count a socket about to be accepted (SocketLimitError beyond ``MAX_SOCKETS``)."""
+        if self.open >= self._max:
+            raise SocketLimitError(f"{self._max} round sockets are open already")
+        self.open += 1
+
+    def release(self) -> None:
+        self.open -= 1
+
+    async def serve(
+        self, websocket: WebSocket, auction_id: int, first: Published, upload: UploadHandler
+    ) -> None:
+        """Run one accepted socket until the auction ends or the agent goes away: a pusher
+        task sends the rounds, this task answers the uploads."""
+        socket = _Socket(websocket)
+        pusher = asyncio.create_task(self._push_or_close(socket, auction_id, first))
+        try:
+            await self._answer_uploads(socket, upload)
+        except (WebSocketDisconnect, RuntimeError):  # gone, or closed by the pusher
+            pass
+        finally:
+            pusher.cancel()
+            with contextlib.suppress(asyncio.CancelledError, WebSocketDisconnect, RuntimeError):
+                await pusher
+
+    async def _push_or_close(self, socket: _Socket, auction_id: int, first: Published) -> None:
+        """``_push``; if it fails (the database is unavailable), the socket is closed with
+        1011 so that the agent reconnects rather than waits for rounds that never come."""
+        try:
+            await self._push(socket, auction_id, first)
+        except (asyncio.CancelledError, WebSocketDisconnect):
+            raise
+        except Exception:
+            log.exception("pushing the rounds of auction %d failed", auction_id)
+            with contextlib.suppress(Exception):
+                await socket.close(1011, "the server could not read the rounds; reconnect")
+
+    async def _push(self, socket: _Socket, auction_id: int, published: Published | None) -> None:
+        """Send the first state, then every round that opens, then the end (and close)."""
+        after = 0
+        while published is not None:
+            await socket.send(_round_frame(published))
+            if published.auction_over:
+                await socket.close(1000, "the auction has ended")
+                return
+            if published.open and published.round is not None:
+                after = max(after, published.round)
+            published = await self._next(auction_id, after)
+        await socket.close(1011, "the auction is gone")
+
+    async def _next(self, auction_id: int, after: int) -> Published | None:
+        """The next state worth pushing: a round above ``after`` opened, or the end."""
+        while True:
+            try:
+                published = await self._watcher.published(
+                    auction_id, wait_s=MAX_WAIT_S, after=after
+                )
+            except TooManyWaitersError:
+                await asyncio.sleep(RETRY_AFTER_S)
+                continue
+            if published is None or published.ready(after):
+                return published
+
+    async def _answer_uploads(self, socket: _Socket, upload: UploadHandler) -> None:
+        bucket = _Bucket(BURST, REFILL_PER_S)
+        while True:
+            message = await socket.websocket.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            if not bucket.take():
+                await socket.close(
+                    CLOSE_TOO_MANY_MESSAGES,
+                    f"more than {BURST} messages at once ({REFILL_PER_S:g} per second)",
+                )
+                return
+            text = message.get("text")
+            if len(text or message.get("bytes") or b"") > MAX_FRAME_BYTES:  # whatever the server
+                await socket.close(CLOSE_TOO_BIG, f"a frame is at most {MAX_FRAME_BYTES} bytes")
+                return
+            if text is None:
+                await socket.send(
+                    _error(None, 400, "send uploads as text frames of JSON", ("message",))
+                )
+                continue
+            await socket.send(await _handle(text, upload, utcnow()))
+
+
+async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:
+    """The answer frame of one received message."""
+    try:
+        raw = json.loads(text)
+    except ValueError as exc:
+        return _error(None, 400, f"the message is not JSON: {exc}", ("message",), "not_json")
+    except RecursionError:
+        return _error(None, 400, "the message nests too deep", ("message",), "json_depth")
+    try:
+        message = UploadMessage.model_validate(raw)
+    except ValidationError as exc:
+        items = [
+            error_item(
+                str(e["msg"]), loc=("message", *(str(p) for p in e["loc"])), kind=str(e["type"])
+            )
+            for e in exc.errors()
+        ]
+        ids = raw if isinstance(raw, dict) else {}
+        return _frame(_int(ids.get("round")), _int(ids.get("model_id")), 422, {"detail": items})
+    body = message.manifest.encode("utf-8", "surrogatepass")
+    if len(body) > UPLOAD_MAX_BYTES:
+        return _error(
+            message,
+            413,
+            f"an upload is at most {UPLOAD_MAX_BYTES} bytes",
+            ("message", "manifest"),
+            "body_size",
+        )
+    try:
+        parse_strict_json(body)
+    except BodyRefusedError as exc:
+        loc = ("message", "manifest", *exc.loc[1:])
+        return _error(message, exc.status, exc.msg, loc, exc.kind)
+    try:
+        answer = await upload(message.round, message.model_id, body, arrived)
+    except RequestError as exc:
+        items = [{**item, "loc": _message_loc(item["loc"])} for item in exc.items]
+        return _frame(message.round, message.model_id, exc.status, {"detail": items})
+    except Exception:  # a fault of ours: the agent hears 500, as a PUT would, and may retry
+        log.exception("an upload on a round socket failed")
+        return _error(message, 500, "internal server error", ("message",), "internal")
+    return (
+        f'{{"type":"answer","round":{message.round},"model_id":{message.model_id},'
+        f'"status":200,"body":{answer.decode()}}}'
+    )
+
+
+def _message_loc(loc: list[str | int]) -> list[str | int]:
+    """A PUT's error location in the message's terms: its path parameters are the message's
+    fields, its body the message's ``manifest``."""
+    if loc[:1] == ["path"]:
+        return ["message", *loc[1:]]
+    if loc[:1] == ["body"]:
+        return ["message", "manifest", *loc[1:]]
+    return loc
+
+
+def _int(value: Any) -> int | None:
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def _error(
+    message: UploadMessage | None,
+    status: int,
+    msg: str,
+    loc: tuple[str | int, ...],
+    kind: str = "error",
+) -> str:
+    return _frame(
+        None if message is None else message.round,
+        None if message is None else message.model_id,
+        status,
+        {"detail": [error_item(msg, loc=loc, kind=kind)]},
+    )
+
+
+def _frame(round_number: int | None, model_id: int | None, status: int, body: Any) -> str:
+    return json.dumps(
+        {
+            "type": "answer",
+            "round": round_number,
+            "model_id": model_id,
+            "status": status,
+            "body": body,
+        },
+        separators=(",", ":"),
+    )
+
+
+def _round_frame(published: Published) -> str:
+    return f'{{"type":"round","body":{published.body.decode()}}}'

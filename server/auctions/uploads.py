@@ -1,0 +1,270 @@
+"""Remote fine-tuning rounds: the newest round of an auction (long poll), and a patron's
+upload for a round, checked, stored, re-screened and answered.
+
+An upload's identity and round come from its path and its bearer token only: the token must be
+the participant's of ``model_id``, ``model_id`` one of the auction's patrons (as listed in its
+``model_ids``), asked in that round; the manifest must name the same participant and may change
+weights and biases only. One upload per round per patron: the same bytes again get the same
+answer, other bytes 409.
+
+The API owns every write of an upload: it stores the upload, pending, as soon as its body is
+read and checked (so the deadline is judged at arrival, whatever the screener's backlog), asks
+the screener pool for a verdict and records it; once every asked patron's upload is judged, the
+auction's next step is due at once. An upload whose verdict was never recorded (the screener
+down, the server killed) counts all the same: a repeat of its bytes asks again, and the step
+that closes the round judges whatever is still pending.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from datetime import datetime
+from typing import Any
+
+from starlette.concurrency import run_in_threadpool
+
+from agents.manifest import Manifest, ManifestError, parse_manifest_json
+from screener import Verdict
+from server.api.errors import api_error, error_item, validation_error
+from server.api.security import token_matches
+from server.auctions.service import not_found
+from server.live.rounds import RoundWatcher, TooManyWaitersError
+from server.screening.pool import ScreenerUnavailableError, ScreeningService
+from server.store import crud
+from server.store.db import Database, JSONText
+from server.store.status import ANSWERED, RoundStatus
+from server.store.tables import utcnow
+from sim.market.design import design, design_changes
+
+RETRY_AFTER_S = 1
+"""Retry-After of a round request refused because too many wait."""
+
+
+async def current_round(
+    watcher: RoundWatcher, auction_id: int, *, wait_s: float, after: int
+) -> bytes:
+    """The JSON of the auction's newest round, once a round above ``after`` is open or the
+    auction has ended, or after ``wait_s`` (404 for no auction, 503 when too many wait)."""
+    try:
+        body = await watcher.current(auction_id, wait_s=wait_s, after=after)
+    except TooManyWaitersError as exc:
+        raise api_error(
+            503,
+            f"{exc}; retry in {RETRY_AFTER_S} s",
+            loc=("query", "wait"),
+            kind="too_many_waiters",
+            headers={"Retry-After": str(RETRY_AFTER_S)},
+        ) from exc
+    if body is None:
+        raise not_found(auction_id)
+    return body
+
+
+def _round_state(target: crud.UploadTarget) -> str:
+    if target.newest_round is None:
+        return "no round has opened yet"
+    return f"the current round is {target.newest_round} ({target.newest_status})"
+
+
+def _body_problems(data: dict[str, Any], target: crud.UploadTarget) -> list[dict[str, Any]]:
+    """What the manifest (JSON form) changes beyond weights and biases, as 422 items naming
+    each field."""
+    problems = []
+    for path, message in design_changes(target.current_manifest, data):
+        if path == "participant":
+            message = (
+                f"must be the patron's participant {target.participant!r} (who uploads is "
+                "the path and the token, not the body)"
+            )
+        problems.append(error_item(message, loc=("body", *path.split(".")), kind="frozen"))
+    return problems
+
+
+def _manifest(body: bytes) -> Manifest:
+    """The upload's manifest, parsed strictly (422 naming each problem)."""
+    try:
+        return parse_manifest_json(body)
+    except ManifestError as exc:
+        raise validation_error(
+            error_item(e["message"], loc=("body", *e["path"].split(".")), kind="manifest")
+            for e in exc.errors
+        ) from exc
+
+
+def _read_target(database: Database, key: crud.UploadKey) -> crud.UploadTarget:
+    with database.session(write=False) as session:
+        target = crud.upload_targets(session, keys=[key])[0]
+    if isinstance(target, crud.UploadLookupError):
+        raise target
+    return target
+
+
+async def _target(
+    database: Database, auction_id: int, model_id: int, round_number: int
+) -> crud.UploadTarget:
+    """What the upload's path names: the patron, its participant, the round (404 for an
+    unknown auction or model)."""
+    try:
+        return await run_in_threadpool(_read_target, database, (auction_id, model_id, round_number))
+    except crud.UploadLookupError as exc:
+        if exc.field == "auction_id":
+            raise not_found(auction_id) from exc
+        raise api_error(
+            404, f"model {model_id} does not exist", loc=("path", "model_id"), kind="not_found"
+        ) from exc
+
+
+def _check_patron(
+    target: crud.UploadTarget, token: str, *, auction_id: int, model_id: int, round_number: int
+) -> int:
+    """The token is the patron's participant's, the model a patron of this remote auction,
+    and the round has opened: its id."""
+    if not token_matches(token, target.token_hash):
+        raise api_error(
+            403,
+            f"the bearer token is not the token of participant {target.participant!r}",
+            loc=("header", "Authorization"),
+            kind="bad_token",
+        )
+    if target.position is None:
+        raise api_error(
+            404,
+            f"model {model_id} is not a patron of auction {auction_id} (patrons are named by "
+            "the ids in its model_ids)",
+            loc=("path", "model_id"),
+            kind="not_a_patron",
+        )
+    if target.fine_tune_mode != "remote":
+        raise api_error(
+            409,
+            f"auction {auction_id} fine-tunes in the server: it has no remote rounds",
+            loc=("path", "auction_id"),
+            kind="not_remote",
+        )
+    if target.round_id is None:
+        raise api_error(
+            409,
+            f"round {round_number} has not opened: {_round_state(target)}",
+            loc=("path", "round"),
+            kind="wrong_round",
+        )
+    return target.round_id
+
+
+def _store(database: Database, upload: crud.UploadIn) -> crud.Stored:
+    with database.session(write=True) as session:
+        stored = crud.store_upload(session, upload=upload)
+        session.commit()
+    return stored
+
+
+def _record(
+    database: Database, answer_id: int, round_id: int, verdict: Verdict
+) -> tuple[bytes, bool]:
+    """Record a pending upload's verdict; its answer, and whether the round's auction became
+    due (every asked patron judged)."""
+    with database.session(write=True) as session:
+        now = utcnow()
+        body = crud.record_verdict(session, answer_id=answer_id, verdict=verdict, now=now)
+        due = crud.due_when_answered(session, round_id=round_id, now=now)
+        session.commit()
+    return body, due
+
+
+def _due(database: Database, round_id: int) -> bool:
+    with database.session(write=True) as session:
+        due = crud.due_when_answered(session, round_id=round_id, now=utcnow())
+        session.commit()
+    return due
+
+
+async def upload(
+    database: Database,
+    screening: ScreeningService,
+    wake: Callable[[int], None],
+    *,
+    auction_id: int,
+    round_number: int,
+    model_id: int,
+    token: str,
+    body: bytes,
+    arrived: datetime,
+) -> bytes:
+    """Check an upload (see the module docstring), store it, re-screen it and record its
+    verdict; the answer's JSON. Wrong round → 409 naming the current one; closed, or past the
+    deadline at ``arrived`` → 410 (recorded as late). ``wake(auction_id)`` is told when the
+    auction's next step became due."""
+    manifest = _manifest(body)
+    target = await _target(database, auction_id, model_id, round_number)
+    round_id = _check_patron(
+        target, token, auction_id=auction_id, model_id=model_id, round_number=round_number
+    )
+    digest = hashlib.sha256(body).hexdigest()
+    if target.answer_outcome in ANSWERED and target.answer_sha256 != digest:
+        raise api_error(
+            409,
+            f"this patron already answered round {round_number} with another body: one "
+            "upload per round",
+            loc=("path", "round"),
+            kind="already_answered",
+        )
+    if target.position not in target.asked and target.answer_outcome is None:
+        raise api_error(
+            409,
+            f"model {model_id} is not asked in round {round_number}: it left the auction "
+            "(bought or quit) before it",
+            loc=("path", "model_id"),
+            kind="not_asked",
+        )
+    data = manifest.model_dump(mode="json")
+    late = target.round_status != RoundStatus.OPEN or (
+        target.deadline is not None and target.deadline <= arrived
+    )
+    if (
+        not late
+        and target.answer_outcome not in ANSWERED
+        and (target.current_design is None or design(manifest) != target.current_design)
+    ):
+        problems = _body_problems(data, target)
+        if problems:
+            raise validation_error(problems)
+    assert target.position is not None
+    unchanged = data == target.current_manifest
+    stored = await run_in_threadpool(
+        _store,
+        database,
+        crud.UploadIn(
+            round_number=round_number,
+            round_id=round_id,
+            position=target.position,
+            current_id=target.current_id,
+            current_version=target.current_version,
+            body_sha256=digest,
+            bytes_in=len(body),
+            arrived=arrived,
+            manifest=None if unchanged else JSONText(manifest.model_dump_json()),
+        ),
+    )
+    if stored.refusal is not None:
+        status, message, kind = stored.refusal
+        raise api_error(status, message, loc=("path", "round"), kind=kind)
+    if stored.answer is not None:
+        if unchanged and await run_in_threadpool(_due, database, round_id):
+            wake(auction_id)
+        return stored.answer
+    assert stored.answer_id is not None
+    try:
+        verdict = await screening.verdict(manifest, at_the_door=False)
+    except ScreenerUnavailableError as exc:
+        raise api_error(
+            503,
+            f"{exc}; the upload is stored in time: send the same body again for its verdict",
+            loc=("body",),
+            kind="screener_unavailable",
+            headers={"Retry-After": str(RETRY_AFTER_S)},
+        ) from exc
+    answer, due = await run_in_threadpool(_record, database, stored.answer_id, round_id, verdict)
+    if due:
+        wake(auction_id)
+    return answer

@@ -1,0 +1,102 @@
+"""Jobs: queue an experiment within the compute budget (operator), read one, cancel one, find
+one of its artifact files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy.orm import Session
+
+from server.api.errors import RequestError, api_error, error_item, validation_error
+from server.jobs.worker import job_dir
+from server.store import crud
+from server.store.tables import Job
+from server.work.runner import BackgroundRunner
+from sim.experiment import ConfigError, config_dict, over_budget
+from studies.registry import build_config
+
+
+def _path(field: str) -> list[str | int]:
+    """A config error's dotted field (``rarities.1``) as a ``loc`` tail."""
+    return [int(part) if part.isdigit() else part for part in field.split(".")]
+
+
+def create_job(
+    session: Session,
+    runner: BackgroundRunner,
+    *,
+    kind: str,
+    params: dict[str, Any],
+    budget_s: float,
+) -> Job:
+    """Validate ``params`` by the kind's config, refuse a job over ``budget_s`` of estimated
+    compute (naming the option to lower and how far), store it queued, hand it to the runner."""
+    try:
+        config = build_config(kind, params)
+        too_much = over_budget(config, budget_s)
+        if too_much is not None:
+            raise too_much
+    except ConfigError as exc:
+        raise validation_error(
+            error_item(
+                err["message"], loc=("body", "params", *_path(err["field"])), kind="bad_param"
+            )
+            for err in exc.errors
+        ) from exc
+    job = crud.create_job(session, kind=kind, params=config_dict(config))
+    session.commit()
+    runner.submit(job.id)
+    return job
+
+
+def _not_found(job_id: int) -> RequestError:
+    return api_error(404, f"job {job_id} does not exist", loc=("path", "job_id"), kind="not_found")
+
+
+def read_job(session: Session, job_id: int) -> Job:
+    """A job (404 if there is none)."""
+    job = crud.get_job(session, job_id=job_id)
+    if job is None:
+        raise _not_found(job_id)
+    return job
+
+
+def require_job(session: Session, job_id: int) -> crud.JobState:
+    """Where a job stands (404 if there is none)."""
+    state = crud.job_state(session, job_id=job_id)
+    if state is None:
+        raise _not_found(job_id)
+    return state
+
+
+def cancel_job(session: Session, runner: BackgroundRunner, job_id: int) -> Job:
+    """Cancel a queued or running job (409 once it has ended) and stop its worker."""
+    job = read_job(session, job_id)
+    if not crud.cancel_job(session, job_id=job_id):
+        raise api_error(
+            409,
+            f"job {job_id} already {job.status}; only queued or running jobs can be cancelled",
+            loc=("path", "job_id"),
+            kind="not_cancellable",
+        )
+    session.commit()
+    runner.cancel(job_id)
+    session.refresh(job)
+    return job
+
+
+def artifact_path(session: Session, data_dir: Path, job_id: int, name: str) -> Path:
+    """The file of one artifact a job lists (404 otherwise); the name is checked against the
+    job's list before it touches the file system."""
+    job = read_job(session, job_id)
+    missing = api_error(
+        404, f"job {job_id} has no artifact {name!r}", loc=("path", "name"), kind="not_found"
+    )
+    if name not in job.artifacts:
+        raise missing
+    base = job_dir(data_dir, job_id).resolve()
+    path = (base / name).resolve()
+    if not path.is_relative_to(base) or not path.is_file():
+        raise missing
+    return path

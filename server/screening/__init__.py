@@ -1,0 +1,1 @@
+"""The screener pool: verdicts in a process that never touches the database."""

@@ -1,0 +1,156 @@
+"""The service layer: what the routes ask for, without HTTP.
+
+``Services`` holds the process's running services (the database, the screener, the writers,
+the two background runners, the event hub, the job backend); ``start_services`` makes and
+starts them (the app's lifespan), ``Services.stop`` stops them. One module per resource
+(``auctions``, ``jobs``, ``models``, ``rounds``) holds the operations the routes call: they
+take the services they need and the request's values, do the work, and return domain values
+or raise ``server.api.errors.RequestError``; the routes translate HTTP to and from them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import secrets
+import socket
+from dataclasses import dataclass
+
+from server.api.readiness import Readiness
+from server.api.security import load_admin_token_hash
+from server.auctions.sockets import RoundSockets
+from server.auctions.steps import AUCTION_WORK
+from server.config import Settings
+from server.jobs.backend import JobCompute, job_compute
+from server.jobs.worker import JOB_WORK
+from server.live.events import EventHub
+from server.live.rounds import RoundWatcher
+from server.screening.pool import ScreeningService
+from server.store.db import Database, SqliteServerLock, is_sqlite, prepare_database
+from server.submissions.quotas import Limits
+from server.submissions.writer import SubmissionWriter
+from server.work.pool import WorkerContext
+from server.work.runner import BackgroundRunner, WorkKind
+
+log = logging.getLogger("srd.services")
+
+
+@dataclass
+class Services:
+    """The running services of one API process."""
+
+    settings: Settings
+    database: Database
+    admin_token_hash: str
+    screening: ScreeningService
+    submissions: SubmissionWriter
+    rounds: RoundWatcher
+    sockets: RoundSockets
+    """The round sockets (``WS /auctions/{id}/rounds/socket``), pushed by ``rounds``."""
+    auctions: BackgroundRunner
+    jobs: BackgroundRunner
+    compute: JobCompute
+    events: EventHub
+    sqlite_lock: SqliteServerLock | None
+    """Held while this process serves a SQLite database (None on PostgreSQL)."""
+    readiness: Readiness
+
+    async def close(self) -> None:
+        """Stop what runs on the event loop (the round watcher's pollers)."""
+        await self.rounds.close()
+
+    def stop(self) -> None:
+        """Stop every worker and writer, then let go of the database (blocking)."""
+        self.jobs.shutdown()
+        self.auctions.shutdown()
+        self.screening.shutdown()
+        self.compute.close()
+        self.database.close()
+        if self.sqlite_lock is not None:
+            self.sqlite_lock.release()
+
+
+def server_id() -> str:
+    """This process's lease owner id: host, process id and a random part (a restarted process
+    with the same pid is another owner)."""
+    return f"{socket.gethostname()[:60]}:{os.getpid()}:{secrets.token_hex(4)}"
+
+
+def start_services(settings: Settings) -> Services:
+    """Take the SQLite database's one-server lock (refusing to start beside another server),
+    migrate the database, then make and start every service; the runners claim the unfinished
+    auctions and jobs they may (blocking)."""
+    sqlite_lock = (
+        SqliteServerLock(settings.database_url) if is_sqlite(settings.database_url) else None
+    )
+    try:
+        return _start(settings, sqlite_lock)
+    except BaseException:
+        if sqlite_lock is not None:
+            sqlite_lock.release()
+        raise
+
+
+def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services:
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    prepare_database(settings.database_url, settings.databases_file)
+    database = Database(settings.database_url)
+    context = WorkerContext(
+        database_url=settings.database_url,
+        data_dir=str(settings.data_dir.resolve()),
+        progress_interval_s=settings.progress_interval_s,
+        torch_threads=settings.worker_torch_threads,
+        nice=settings.worker_nice,
+    )
+    job_context = dataclasses.replace(
+        context,
+        memory_mb=settings.job_memory_mb,
+        job_backend=settings.job_backend,
+        ray_address=settings.ray_address,
+        ray_max_retries=settings.ray_max_retries,
+    )
+    watcher = RoundWatcher(database)
+    owner = server_id()
+
+    def runner(
+        kind: WorkKind, context: WorkerContext, max_workers: int, timeout_s: float
+    ) -> BackgroundRunner:
+        return BackgroundRunner(
+            database,
+            context,
+            kind,
+            max_workers=max_workers,
+            timeout_s=timeout_s,
+            owner=owner,
+            lease_s=settings.lease_s,
+            exclusive=sqlite_lock is not None,
+        )
+
+    services = Services(
+        settings=settings,
+        database=database,
+        admin_token_hash=load_admin_token_hash(settings),
+        screening=ScreeningService(),
+        submissions=SubmissionWriter(database, Limits.of(settings)),
+        rounds=watcher,
+        sockets=RoundSockets(watcher),
+        auctions=runner(
+            AUCTION_WORK,
+            context,
+            settings.auction_workers or os.cpu_count() or 1,
+            settings.auction_timeout_s,
+        ),
+        jobs=runner(JOB_WORK, job_context, settings.job_workers, settings.job_timeout_s),
+        compute=job_compute(settings.job_backend, settings.ray_address),
+        events=EventHub(
+            interval_s=settings.event_poll_interval_s, max_streams=settings.max_event_streams
+        ),
+        sqlite_lock=sqlite_lock,
+        readiness=Readiness(database, settings.data_dir, settings.min_free_disk_mb),
+    )
+    services.screening.start()
+    services.auctions.start()
+    services.jobs.start()
+    log.info("srd server ready: %s, data in %s", settings.database_url, settings.data_dir)
+    return services

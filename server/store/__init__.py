@@ -1,0 +1,1 @@
+"""The database: tables, CRUD statements, migrations, engines and sessions."""

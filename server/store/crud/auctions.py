@@ -1,0 +1,387 @@
+"""Auctions: creating one, cancelling one, ``GET /auctions/{id}`` (its patrons, committed
+rounds, purchases, quits and, for remote auctions, its fine-tuning rounds), the auction list."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime
+
+from sqlalchemy import Row, bindparam, func, select, update
+from sqlalchemy.orm import Session
+
+from server.store.crud.lists import ListOrder, keyset
+from server.store.status import AUCTION_UNFINISHED, AuctionStatus, RoundStatus
+from server.store.tables import (
+    Auction,
+    AuctionIteration,
+    AuctionPatron,
+    FineTuneAnswer,
+    FineTuneRound,
+    ModelVersion,
+    Participant,
+    Purchase,
+    Quit,
+    utcnow,
+)
+
+# iteration, price, n_available, votes, row_votes, next_price, n_available_after
+HistoryRow = Row[int, float, int, dict[str, int], dict[str, int], float, int]
+PurchaseRow = Row[int, float, int, str, int]  # model_id, price, iteration, participant, version
+QuitRow = Row[int, str, int, int]  # model_id, participant, version, iteration
+
+
+@dataclass(frozen=True)
+class AuctionHead:
+    """The columns of an auction row that ``GET /auctions/{id}`` shows (no checkpoint)."""
+
+    id: int
+    status: str
+    n_initial: int
+    rarity: float | None
+    max_iterations: int
+    fine_tune: bool
+    seed: int
+    iteration: int
+    price: float
+    n_available: int
+    stop_reason: str | None
+    error: str | None
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    fine_tune_mode: str
+    fine_tune_rounds: int
+    round_deadline_s: float
+    buy_fraction: str
+
+
+@dataclass(frozen=True)
+class AnswerView:
+    """A patron's outcome in a fine-tuning round and the version it bids with afterwards."""
+
+    model_id: int
+    """The patron (its id in the auction's ``model_ids``)."""
+    outcome: str
+    version: int
+    version_id: int
+    uploaded_id: int | None
+    bytes_in: int
+    bytes_out: int
+
+
+@dataclass(frozen=True)
+class RoundView:
+    """A remote fine-tuning round as ``GET /auctions/{id}`` shows it."""
+
+    round: int
+    iteration: int
+    status: str
+    opened_at: datetime
+    deadline: datetime
+    closed_at: datetime | None
+    bytes_published: int
+    answers: list[AnswerView]
+
+
+@dataclass(frozen=True)
+class AuctionView:
+    """An auction row with its ordered patrons, committed rounds, purchases and quits."""
+
+    auction: AuctionHead
+    model_ids: list[int]
+    history: Sequence[HistoryRow]
+    purchases: Sequence[PurchaseRow]
+    quitters: Sequence[QuitRow]
+    fine_tuning: list[RoundView] = dataclasses.field(default_factory=list)
+    """Remote fine-tuning rounds, oldest first (remote auctions only)."""
+    current_model_ids: list[int] = dataclasses.field(default_factory=list)
+    """The version each patron bids with now, aligned with ``model_ids`` (remote only)."""
+
+
+def create_auction(
+    session: Session,
+    *,
+    model_ids: list[int],
+    n_fish: int,
+    rarity: float | None,
+    max_iterations: int,
+    fine_tune: bool,
+    seed: int,
+    opening_price: float,
+    fine_tune_mode: str = "server",
+    fine_tune_rounds: int = 4,
+    round_deadline_s: float = 10.0,
+    buy_fraction: str = "all",
+) -> Auction:
+    """A pending auction over the ordered patron list ``model_ids``."""
+    now = utcnow()
+    auction = Auction(
+        status=AuctionStatus.PENDING,
+        n_initial=n_fish,
+        rarity=rarity,
+        max_iterations=max_iterations,
+        fine_tune=fine_tune,
+        fine_tune_mode=fine_tune_mode,
+        fine_tune_rounds=fine_tune_rounds,
+        round_deadline_s=round_deadline_s,
+        buy_fraction=buy_fraction,
+        seed=seed,
+        iteration=0,
+        price=opening_price,
+        n_available=n_fish,
+        created_at=now,
+        updated_at=now,
+        next_step_at=now,
+    )
+    session.add(auction)
+    session.flush()
+    session.add_all(
+        AuctionPatron(auction_id=auction.id, position=position, model_id=model_id)
+        for position, model_id in enumerate(model_ids)
+    )
+    return auction
+
+
+def cancel_auction(session: Session, *, auction_id: int) -> bool:
+    """Mark a pending or running auction cancelled and close its open fine-tuning round, if
+    any; False when it had already ended. Its committed rounds, purchases and quits stay."""
+    now = utcnow()
+    # The open rounds are closed before the auction row is taken and again after: a worker
+    # closing a round locks the round, then the auction (this order never deadlocks with it on
+    # PostgreSQL), and a round its commit opened while we waited is closed by the second pass.
+    _close_open_rounds(session, auction_id, now)
+    changed = session.execute(
+        update(Auction)
+        .where(Auction.id == auction_id, Auction.status.in_(AUCTION_UNFINISHED))
+        .values(
+            status=AuctionStatus.CANCELLED,
+            stop_reason="cancelled",
+            finished_at=now,
+            updated_at=now,
+            next_step_at=None,
+        )
+    )
+    if not changed.rowcount:  # type: ignore[attr-defined]
+        return False
+    _close_open_rounds(session, auction_id, now)
+    return True
+
+
+def _close_open_rounds(session: Session, auction_id: int, now: datetime) -> None:
+    session.execute(
+        update(FineTuneRound)
+        .where(FineTuneRound.auction_id == auction_id, FineTuneRound.status == RoundStatus.OPEN)
+        .values(status=RoundStatus.CLOSED, closed_at=now)
+    )
+
+
+# The statements of GET /auctions/{id}, built once and run as Core (it is polled while auctions
+# run: no ORM identity map, no object loading)
+_AUCTION_HEAD = select(*(getattr(Auction, f.name) for f in dataclasses.fields(AuctionHead))).where(
+    Auction.id == bindparam("auction_id")
+)
+AUCTION_PATRONS = (
+    select(AuctionPatron.model_id)
+    .where(AuctionPatron.auction_id == bindparam("auction_id"))
+    .order_by(AuctionPatron.position)
+)
+AUCTION_HISTORY = (
+    select(
+        AuctionIteration.iteration,
+        AuctionIteration.price,
+        AuctionIteration.n_available,
+        AuctionIteration.votes,
+        AuctionIteration.row_votes,
+        AuctionIteration.next_price,
+        AuctionIteration.n_available_after,
+    )
+    .where(AuctionIteration.auction_id == bindparam("auction_id"))
+    .order_by(AuctionIteration.iteration)
+)
+_AUCTION_PURCHASES = (
+    select(
+        Purchase.model_id,
+        Purchase.price,
+        Purchase.iteration,
+        Participant.name.label("participant"),
+        ModelVersion.version,
+    )
+    .join(ModelVersion, ModelVersion.id == Purchase.model_id)
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .where(Purchase.auction_id == bindparam("auction_id"))
+    .order_by(Purchase.id)
+)
+_AUCTION_QUITTERS = (
+    select(
+        Quit.model_id, Participant.name.label("participant"), ModelVersion.version, Quit.iteration
+    )
+    .join(ModelVersion, ModelVersion.id == Quit.model_id)
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .where(Quit.auction_id == bindparam("auction_id"))
+    .order_by(Quit.id)
+)
+
+
+def get_auction(session: Session, *, auction_id: int) -> AuctionView | None:
+    """An auction with its patrons, rounds, purchases and quits, read in one transaction."""
+    key = {"auction_id": auction_id}
+    connection = session.connection()
+    head = connection.execute(_AUCTION_HEAD, key).one_or_none()
+    if head is None:
+        return None
+    auction = AuctionHead(*head)
+    model_ids = list(connection.scalars(AUCTION_PATRONS, key))
+    return AuctionView(
+        auction,
+        model_ids,
+        connection.execute(AUCTION_HISTORY, key).all(),
+        connection.execute(_AUCTION_PURCHASES, key).all(),
+        connection.execute(_AUCTION_QUITTERS, key).all(),
+        *(
+            (_fine_tuning(session, auction_id, model_ids), _current_versions(session, auction_id))
+            if auction.fine_tune_mode == "remote"
+            else ([], [])
+        ),
+    )
+
+
+@dataclass(frozen=True)
+class AuctionSummary:
+    """An auction as a list shows it."""
+
+    id: int
+    status: str
+    n_initial: int
+    n_available: int
+    n_patrons: int
+    iteration: int
+    price: float
+    revenue: float
+    stop_reason: str | None
+    rarity: float | None
+    fine_tune: bool
+    created_at: datetime
+    finished_at: datetime | None
+
+
+_N_PATRONS = (
+    select(func.count())
+    .where(AuctionPatron.auction_id == Auction.id)
+    .correlate(Auction)
+    .scalar_subquery()
+)
+_REVENUE = (
+    select(func.coalesce(func.sum(Purchase.price), 0.0))
+    .where(Purchase.auction_id == Auction.id)
+    .correlate(Auction)
+    .scalar_subquery()
+)
+_AUCTION_SUMMARY = select(
+    Auction.id,
+    Auction.status,
+    Auction.n_initial,
+    Auction.n_available,
+    _N_PATRONS,
+    Auction.iteration,
+    Auction.price,
+    _REVENUE,
+    Auction.stop_reason,
+    Auction.rarity,
+    Auction.fine_tune,
+    Auction.created_at,
+    Auction.finished_at,
+).order_by(Auction.id.desc())
+
+
+def list_auctions(
+    session: Session,
+    *,
+    before: int | None,
+    limit: int,
+    status: str | None = None,
+    order: ListOrder = "newest",
+) -> list[AuctionSummary]:
+    """Up to ``limit`` auctions after the cursor ``before`` in ``order``, of ``status`` if
+    given (one query)."""
+    query = keyset(_AUCTION_SUMMARY, Auction.id, cursor=before, order=order).limit(limit)
+    if status is not None:
+        query = query.where(Auction.status == status)
+    return [AuctionSummary(*row) for row in session.connection().execute(query)]
+
+
+def fine_tune_rounds(session: Session, *, auction_id: int) -> list[RoundView]:
+    """An auction's remote fine-tuning rounds, oldest first, with every patron's outcome."""
+    model_ids = list(session.connection().scalars(AUCTION_PATRONS, {"auction_id": auction_id}))
+    return _fine_tuning(session, auction_id, model_ids)
+
+
+# The remote fine-tuning rounds of an auction, for GET /auctions/{id} and its event stream
+_ROUNDS_OF_AUCTION = (
+    select(FineTuneRound)
+    .where(FineTuneRound.auction_id == bindparam("auction_id"))
+    .order_by(FineTuneRound.round)
+)
+_ANSWERS_OF_AUCTION = (
+    select(
+        FineTuneAnswer.round_id,
+        FineTuneAnswer.position,
+        FineTuneAnswer.outcome,
+        FineTuneAnswer.model_id,
+        ModelVersion.version,
+        FineTuneAnswer.uploaded_id,
+        FineTuneAnswer.bytes_in,
+        FineTuneAnswer.bytes_out,
+    )
+    .join(FineTuneRound, FineTuneRound.id == FineTuneAnswer.round_id)
+    .join(ModelVersion, ModelVersion.id == FineTuneAnswer.model_id)
+    .where(FineTuneRound.auction_id == bindparam("auction_id"))
+    .order_by(FineTuneAnswer.round_id, FineTuneAnswer.position)
+)
+
+
+def _current_versions(session: Session, auction_id: int) -> list[int]:
+    """The version each patron bids with now, in patron order (one query)."""
+    return list(
+        session.connection().scalars(
+            select(func.coalesce(AuctionPatron.current_model_id, AuctionPatron.model_id))
+            .where(AuctionPatron.auction_id == auction_id)
+            .order_by(AuctionPatron.position)
+        )
+    )
+
+
+def _fine_tuning(session: Session, auction_id: int, model_ids: list[int]) -> list[RoundView]:
+    """The auction's fine-tuning rounds with every patron's outcome (two queries). The rounds
+    are read first: a round closes in the transaction that writes its last answers, so on a
+    database whose every statement sees the newest commits (PostgreSQL's read committed) a round
+    read closed never shows without them."""
+    key = {"auction_id": auction_id}
+    rounds = list(session.scalars(_ROUNDS_OF_AUCTION, key))
+    answers: dict[int, list[AnswerView]] = {}
+    for row in session.connection().execute(_ANSWERS_OF_AUCTION, key):
+        answers.setdefault(row.round_id, []).append(
+            AnswerView(
+                model_ids[row.position],
+                row.outcome,
+                row.version,
+                row.model_id,
+                row.uploaded_id,
+                row.bytes_in,
+                row.bytes_out,
+            )
+        )
+    return [
+        RoundView(
+            r.round,
+            r.iteration,
+            r.status,
+            r.opened_at,
+            r.deadline,
+            r.closed_at,
+            r.bytes_published,
+            answers.get(r.id, []),
+        )
+        for r in rounds
+    ]

@@ -1,0 +1,150 @@
+"""What the event streams poll: a few columns of the watched row, then only the rounds that are
+new since the last poll."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import Select, bindparam, select
+from sqlalchemy.orm import Session
+
+from server.store.crud.auctions import AUCTION_HISTORY
+from server.store.tables import (
+    Auction,
+    AuctionIteration,
+    Job,
+    ModelVersion,
+    Participant,
+    Purchase,
+    Quit,
+)
+
+
+@dataclass(frozen=True)
+class AuctionState:
+    """Where an auction stands, as its event stream polls it."""
+
+    status: str
+    iteration: int
+    price: float
+    n_available: int
+    n_initial: int
+    stop_reason: str | None
+    error: str | None
+    finished_at: datetime | None
+    fine_tune_mode: str
+    updated_at: datetime
+    """Moves with every write to the auction, a fine-tuning round closing included."""
+
+
+@dataclass(frozen=True)
+class PatronRef:
+    """A patron by its model id, with the participant and version behind it."""
+
+    model_id: int
+    participant: str
+    version: int
+
+
+@dataclass(frozen=True)
+class RoundPurchase:
+    patron: PatronRef
+    price: float
+
+
+@dataclass(frozen=True)
+class AuctionRound:
+    """One committed round with the purchases and quits it made."""
+
+    iteration: int
+    price: float
+    n_available: int
+    votes: dict[str, int]
+    row_votes: dict[str, int]
+    next_price: float
+    n_available_after: int
+    purchases: tuple[RoundPurchase, ...]
+    quits: tuple[PatronRef, ...]
+
+
+_AUCTION_STATE = select(
+    *(getattr(Auction, f.name) for f in dataclasses.fields(AuctionState))
+).where(Auction.id == bindparam("auction_id"))
+_ROUNDS = AUCTION_HISTORY.where(AuctionIteration.iteration >= bindparam("first")).where(
+    AuctionIteration.iteration < bindparam("stop")
+)
+
+
+def _patrons_leaving(table: type[Purchase] | type[Quit], *extra: Any) -> Select[Any]:
+    """(iteration, model id, participant, version, *extra) of the patrons who bought (or quit)
+    in the iterations first ≤ i < stop of an auction, in the order they were written."""
+    return (
+        select(table.iteration, table.model_id, Participant.name, ModelVersion.version, *extra)
+        .join(ModelVersion, ModelVersion.id == table.model_id)
+        .join(Participant, Participant.id == ModelVersion.participant_id)
+        .where(table.auction_id == bindparam("auction_id"))
+        .where(table.iteration >= bindparam("first"))
+        .where(table.iteration < bindparam("stop"))
+        .order_by(table.id)
+    )
+
+
+_ROUND_PURCHASES = _patrons_leaving(Purchase, Purchase.price)
+_ROUND_QUITS = _patrons_leaving(Quit)
+
+
+def auction_state(session: Session, *, auction_id: int) -> AuctionState | None:
+    """The few columns of an auction its event stream polls (one query)."""
+    row = session.connection().execute(_AUCTION_STATE, {"auction_id": auction_id}).one_or_none()
+    return None if row is None else AuctionState(*row)
+
+
+def auction_rounds(
+    session: Session, *, auction_id: int, first: int, stop: int
+) -> list[AuctionRound]:
+    """Rounds ``first`` .. ``stop - 1`` of an auction with their purchases and quits, each
+    patron named (three queries). Pass ``stop`` = the auction's committed ``iteration`` read
+    before: a round is committed with its purchases and quits, so all of them are seen."""
+    key = {"auction_id": auction_id, "first": first, "stop": stop}
+    connection = session.connection()
+    purchases: dict[int, list[RoundPurchase]] = {}
+    for iteration, model_id, name, version, price in connection.execute(_ROUND_PURCHASES, key):
+        purchases.setdefault(iteration, []).append(
+            RoundPurchase(PatronRef(model_id, name, version), price)
+        )
+    quits: dict[int, list[PatronRef]] = {}
+    for iteration, model_id, name, version in connection.execute(_ROUND_QUITS, key):
+        quits.setdefault(iteration, []).append(PatronRef(model_id, name, version))
+    return [
+        AuctionRound(
+            *row,
+            purchases=tuple(purchases.get(row.iteration, ())),
+            quits=tuple(quits.get(row.iteration, ())),
+        )
+        for row in connection.execute(_ROUNDS, key)
+    ]
+
+
+@dataclass(frozen=True)
+class JobState:
+    """Where a job stands, as its event stream polls it (the result is read once, at the end)."""
+
+    status: str
+    progress: float
+    message: str
+    attempt: int
+    updated_at: datetime
+
+
+_JOB_STATE = select(*(getattr(Job, f.name) for f in dataclasses.fields(JobState))).where(
+    Job.id == bindparam("job_id")
+)
+
+
+def job_state(session: Session, *, job_id: int) -> JobState | None:
+    """The few columns of a job its event stream polls (one query)."""
+    row = session.connection().execute(_JOB_STATE, {"job_id": job_id}).one_or_none()
+    return None if row is None else JobState(*row)

@@ -1,0 +1,110 @@
+"""Jobs: creating, reading, cancelling and listing them; and failing an unfinished auction or
+job (how the background runner gives up on either)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session
+
+from server.store.crud.lists import ListOrder, keyset
+from server.store.status import AUCTION_UNFINISHED, JOB_UNFINISHED, AuctionStatus, JobStatus
+from server.store.tables import Auction, Job, utcnow
+
+
+def create_job(session: Session, *, kind: str, params: dict[str, Any]) -> Job:
+    """A queued job."""
+    now = utcnow()
+    job = Job(
+        kind=kind,
+        params=params,
+        status=JobStatus.QUEUED,
+        progress=0.0,
+        message="queued",
+        artifacts=[],
+        attempt=0,
+        created_at=now,
+        updated_at=now,
+    )
+    session.add(job)
+    session.flush()
+    return job
+
+
+def get_job(session: Session, *, job_id: int) -> Job | None:
+    """A job by id."""
+    return session.get(Job, job_id)
+
+
+def fail_unfinished(
+    session: Session, *, table: type[Auction] | type[Job], row_id: int, error: str
+) -> None:
+    """Mark an auction or job failed with ``error``, unless it has already ended."""
+    unfinished, failed = (
+        (AUCTION_UNFINISHED, AuctionStatus.FAILED)
+        if table is Auction
+        else (JOB_UNFINISHED, JobStatus.FAILED)
+    )
+    now = utcnow()
+    values: dict[str, Any] = {"status": failed, "error": error, "finished_at": now}
+    if table is Job:
+        values["message"] = "failed"
+    session.execute(
+        update(table)
+        .where(table.id == row_id, table.status.in_(unfinished))
+        .values(updated_at=now, **values)
+    )
+
+
+def cancel_job(session: Session, *, job_id: int) -> bool:
+    """Mark a queued or running job cancelled; False when it had already ended."""
+    now = utcnow()
+    changed = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.status.in_(JOB_UNFINISHED))
+        .values(status=JobStatus.CANCELLED, message="cancelled", finished_at=now, updated_at=now)
+    )
+    return bool(changed.rowcount)  # type: ignore[attr-defined]
+
+
+@dataclass(frozen=True)
+class JobSummary:
+    """A job as a list shows it (no result, no error text: those are on the job itself)."""
+
+    id: int
+    kind: str
+    status: str
+    progress: float
+    message: str
+    params: dict[str, Any]
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+
+
+_JOB_SUMMARY = select(*(getattr(Job, f.name) for f in dataclasses.fields(JobSummary))).order_by(
+    Job.id.desc()
+)
+
+
+def list_jobs(
+    session: Session,
+    *,
+    before: int | None,
+    limit: int,
+    status: str | None = None,
+    kind: str | None = None,
+    order: ListOrder = "newest",
+) -> list[JobSummary]:
+    """Up to ``limit`` jobs after the cursor ``before`` in ``order``, of ``status`` and ``kind``
+    if given (one query)."""
+    query = keyset(_JOB_SUMMARY, Job.id, cursor=before, order=order).limit(limit)
+    if status is not None:
+        query = query.where(Job.status == status)
+    if kind is not None:
+        query = query.where(Job.kind == kind)
+    return [JobSummary(*row) for row in session.connection().execute(query)]

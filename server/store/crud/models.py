@@ -1,0 +1,244 @@
+"""Participants and model versions: the statements of ``POST /submit``, a model and its
+auctions, the newest accepted versions, the model list and a participant."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import bindparam, func, insert, select
+from sqlalchemy.orm import Session
+
+from server.store.tables import AuctionPatron, ModelVersion, Participant, participant_key
+
+PARTICIPANT_TOKEN_PREFIX = "srdp"
+
+
+@dataclass(frozen=True)
+class ParticipantRow:
+    """The columns of a participant that a submission needs."""
+
+    id: int
+    name: str
+    name_key: str
+    token_hash: str
+
+
+@dataclass(frozen=True)
+class StoredModel:
+    """A model version as ``GET /models/{id}`` shows it."""
+
+    id: int
+    participant: str
+    version: int
+    manifest: dict[str, Any]
+    accepted: bool
+    reasons: list[dict[str, str]]
+    created_at: datetime
+    parent_id: int | None = None
+    auction_id: int | None = None
+    round: int | None = None
+    auctions: tuple[int, ...] = ()
+    """Auctions it entered as a patron, newest first (``get_model_view`` only)."""
+
+
+# The statements of POST /submit, built once and run on the session's connection (Core, not the
+# ORM's bulk-insert path: the hot path builds and tracks no objects)
+_PARTICIPANTS_BY_NAMES = (
+    select(Participant.id, Participant.name, Participant.name_key, Participant.token_hash)
+    .where(
+        Participant.name.in_(bindparam("names", expanding=True))
+        | Participant.name_key.in_(bindparam("keys", expanding=True))
+    )
+    .order_by(Participant.id)
+    .with_for_update()
+)
+_LATEST_VERSIONS = (
+    select(ModelVersion.participant_id, func.max(ModelVersion.version))
+    .where(ModelVersion.participant_id.in_(bindparam("ids", expanding=True)))
+    .group_by(ModelVersion.participant_id)
+)
+_INSERT_PARTICIPANTS = insert(Participant).returning(Participant.id, sort_by_parameter_order=True)
+_INSERT_MODEL_VERSIONS = insert(ModelVersion).returning(
+    ModelVersion.id, sort_by_parameter_order=True
+)
+
+
+def participants_by_names(session: Session, *, names: Sequence[str]) -> dict[str, ParticipantRow]:
+    """The participants named ``names``, or whose name is the same as one of them
+    (``participant_key``), their rows locked until commit (one query)."""
+    keys = list(dict.fromkeys(participant_key(name) for name in names))
+    rows = session.connection().execute(
+        _PARTICIPANTS_BY_NAMES, {"names": list(names), "keys": keys}
+    )
+    return {row.name: ParticipantRow(*row) for row in rows}
+
+
+def latest_versions(session: Session, *, participant_ids: Sequence[int]) -> dict[int, int]:
+    """The newest version number of each of these participants (one query)."""
+    if not participant_ids:
+        return {}
+    rows = session.connection().execute(_LATEST_VERSIONS, {"ids": list(participant_ids)})
+    return {participant_id: version for participant_id, version in rows}
+
+
+def insert_participants(session: Session, *, rows: Sequence[dict[str, Any]]) -> list[int]:
+    """Insert participants (``name``, ``token_hash``, ``created_at``); their ids, in order."""
+    if not rows:
+        return []
+    return list(session.connection().execute(_INSERT_PARTICIPANTS, list(rows)).scalars())
+
+
+def insert_model_versions(session: Session, *, rows: Sequence[dict[str, Any]]) -> list[int]:
+    """Insert model versions (all columns but ``id``); their ids, in order."""
+    if not rows:
+        return []
+    return list(session.connection().execute(_INSERT_MODEL_VERSIONS, list(rows)).scalars())
+
+
+_MODEL_BY_ID = (
+    select(
+        ModelVersion.id,
+        Participant.name,
+        ModelVersion.version,
+        ModelVersion.manifest,
+        ModelVersion.accepted,
+        ModelVersion.reasons,
+        ModelVersion.created_at,
+        ModelVersion.parent_id,
+        ModelVersion.auction_id,
+        ModelVersion.round,
+    )
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .where(ModelVersion.id == bindparam("model_id"))
+)
+
+
+def get_model(session: Session, *, model_id: int) -> StoredModel | None:
+    """A model version with its participant's name (one query)."""
+    row = session.connection().execute(_MODEL_BY_ID, {"model_id": model_id}).one_or_none()
+    return None if row is None else StoredModel(*row)
+
+
+def get_model_view(session: Session, *, model_id: int, auctions: int) -> StoredModel | None:
+    """``get_model`` with the ``auctions`` newest auctions it entered (two queries)."""
+    row = get_model(session, model_id=model_id)
+    if row is None:
+        return None
+    entered = patron_auctions(session, model_id=model_id, limit=auctions)
+    return dataclasses.replace(row, auctions=tuple(entered))
+
+
+def get_models(session: Session, *, model_ids: list[int]) -> dict[int, ModelVersion]:
+    """Model versions by id (missing ids are absent from the result)."""
+    rows = session.scalars(select(ModelVersion).where(ModelVersion.id.in_(model_ids))).all()
+    return {row.id: row for row in rows}
+
+
+def latest_accepted_models(session: Session) -> list[ModelVersion]:
+    """The newest accepted version of every participant, in participant order."""
+    newest = (
+        select(ModelVersion.participant_id, func.max(ModelVersion.version).label("version"))
+        .where(ModelVersion.accepted.is_(True))
+        .group_by(ModelVersion.participant_id)
+        .subquery()
+    )
+    query = (
+        select(ModelVersion)
+        .join(
+            newest,
+            (ModelVersion.participant_id == newest.c.participant_id)
+            & (ModelVersion.version == newest.c.version),
+        )
+        .order_by(ModelVersion.participant_id)
+    )
+    return list(session.scalars(query).all())
+
+
+@dataclass(frozen=True)
+class ModelSummary:
+    """A model version as a list shows it: who, which version, the verdict and its reasons."""
+
+    id: int
+    participant: str
+    version: int
+    accepted: bool
+    description: str | None
+    reasons: list[dict[str, str]]
+    created_at: datetime
+
+
+_MODEL_SUMMARY = (
+    select(
+        ModelVersion.id,
+        Participant.name,
+        ModelVersion.version,
+        ModelVersion.accepted,
+        ModelVersion.manifest["description"].as_string(),
+        ModelVersion.reasons,
+        ModelVersion.created_at,
+    )
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .order_by(ModelVersion.id.desc())
+)
+
+
+def list_models(
+    session: Session,
+    *,
+    before: int | None,
+    limit: int,
+    participant: str | None = None,
+    accepted: bool | None = None,
+) -> list[ModelSummary]:
+    """Up to ``limit`` model versions with ids below ``before``, newest first, optionally of
+    one participant and/or with one verdict (one query)."""
+    query = _MODEL_SUMMARY.limit(limit)
+    if before is not None:
+        query = query.where(ModelVersion.id < before)
+    if participant is not None:
+        query = query.where(Participant.name == participant)
+    if accepted is not None:
+        query = query.where(ModelVersion.accepted.is_(accepted))
+    return [ModelSummary(*row) for row in session.connection().execute(query)]
+
+
+@dataclass(frozen=True)
+class ParticipantView:
+    """A participant: when it registered, how many versions it has, the newest of them."""
+
+    name: str
+    created_at: datetime
+    n_versions: int
+    versions: list[ModelSummary]
+
+
+def get_participant(session: Session, *, name: str, limit: int) -> ParticipantView | None:
+    """A participant by name with its ``limit`` newest versions."""
+    row = (
+        session.connection()
+        .execute(select(Participant.id, Participant.created_at).where(Participant.name == name))
+        .one_or_none()
+    )
+    if row is None:
+        return None
+    n_versions = session.connection().scalar(
+        select(func.count()).where(ModelVersion.participant_id == row.id)
+    )
+    versions = list_models(session, before=None, limit=limit, participant=name)
+    return ParticipantView(name, row.created_at, int(n_versions or 0), versions)
+
+
+def patron_auctions(session: Session, *, model_id: int, limit: int) -> list[int]:
+    """Ids of the auctions this model entered as a patron, newest first (at most ``limit``)."""
+    return list(
+        session.connection().scalars(
+            select(AuctionPatron.auction_id)
+            .where(AuctionPatron.model_id == model_id)
+            .order_by(AuctionPatron.auction_id.desc())
+            .limit(limit)
+        )
+    )

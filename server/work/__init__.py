@@ -1,0 +1,1 @@
+"""Background work: the lease runner and its pool of worker processes."""

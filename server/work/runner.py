@@ -1,0 +1,317 @@
+"""Background work: the one runner of auctions and jobs, claimed from the database with leases.
+
+An auction and a job are both a database row played to its end by a task in a worker process
+(``server.work.pool.WorkerPool``): ``server.auctions.steps.AUCTION_WORK`` and
+``server.jobs.worker.JOB_WORK``. ``BackgroundRunner`` runs the rows of one ``WorkKind``.
+
+Several API processes (replicas) may share one PostgreSQL database, so a row is played by the
+replica that holds its **lease**: ``lease_owner`` (this process's id) and ``lease_expires``.
+A thread of each runner, every ``TICK_S`` (and at once when a row is created here):
+
+* **claims** unfinished rows whose lease is free or expired, as many as its pool has free
+  workers, oldest first, with ``SELECT … FOR UPDATE SKIP LOCKED`` (two replicas never claim
+  the same row), and queues them on its pool; a job found still running under an expired
+  lease goes back to queued first (it runs again from the start);
+* **renews** the leases of the rows it plays, every third of ``SRD_LEASE_S``; a row whose
+  lease was not renewed (taken over after this replica stalled, or no longer unfinished: a job
+  cancelled through another replica) is stopped here;
+* **releases** the lease of every row whose task is over.
+
+A replica that dies stops renewing: after ``SRD_LEASE_S`` another claims its rows, and the
+auction resumes from its last checkpoint, the job runs again. The workers' own conditional
+commits (an auction's round only at the iteration it expects, a job's writes only under the
+attempt that claimed it) keep a stale runner from committing a round twice or overwriting a
+result, lease or not. Times are the database's clock on PostgreSQL (replicas on several
+machines need not agree on theirs).
+
+With SQLite a single server runs (``server.store.db.SqliteServerLock``): there the runner clears the
+leases a previous process left at start, and its leases never expire (nobody else could take a
+row over).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from typing import Any
+
+from sqlalchemy import or_, select, update
+from sqlalchemy.orm import Session
+
+from server.store import crud
+from server.store.db import Database, database_now, is_database_outage, unavailable_message
+from server.store.tables import Auction, Job
+from server.work.pool import TaskFn, WorkerContext, WorkerPool
+
+log = logging.getLogger("srd.runner")
+
+TICK_S = 0.5
+"""How often a runner looks for rows to claim (and leases to renew or release)."""
+RENEW_FRACTION = 1 / 3
+"""Leases are renewed when this share of their duration has passed."""
+
+
+@dataclass(frozen=True)
+class WorkKind:
+    """What a runner plays: the rows of one table, each by one task."""
+
+    name: str
+    """``auction`` or ``job``: the pool's and the log's name."""
+    table: type[Auction] | type[Job]
+    task: TaskFn
+    unfinished: Sequence[str]
+    """The statuses of a row still to be played."""
+    timeout_setting: str
+    """The setting of the wall-time limit, as failures name it."""
+    died: str
+    """The error of a row whose worker died, formatted with its exit ``code``."""
+    prepare: Callable[[Session, list[int]], None]
+    """Readies rows just claimed for their task (a job left running is queued again)."""
+    tasks_per_process: int | None = None
+    """Tasks one worker process runs before it is replaced (None: no limit)."""
+    due: Any = None
+    """The column (``Auction.next_step_at``) whose time must have come for a row to be
+    claimed (None: whenever unfinished; a null in the column: at once)."""
+    resumable: bool = False
+    """A task whose process died is run again (the row resumes from its last commit) rather
+    than failed, unless it died ``MAX_DEATHS`` times."""
+
+
+MAX_DEATHS = 3
+"""A resumable row whose task's process died this many times in a row is failed (``died``,
+formatted with ``times`` and the last exit ``code``)."""
+
+
+class BackgroundRunner:
+    """Plays the rows of one ``WorkKind`` that this process (``owner``) holds the lease of, on
+    a pool of ``max_workers`` worker processes, each task stopped after ``timeout_s``."""
+
+    def __init__(
+        self,
+        database: Database,
+        context: WorkerContext,
+        kind: WorkKind,
+        *,
+        max_workers: int,
+        timeout_s: float,
+        owner: str,
+        lease_s: float,
+        exclusive: bool,
+    ) -> None:
+        self._database = database
+        self.kind = kind
+        self.owner = owner
+        self._lease = timedelta(seconds=lease_s)
+        self._exclusive = exclusive
+        self._max_workers = max_workers
+        self.pool = WorkerPool(
+            name=kind.name,
+            task=kind.task,
+            context=context,
+            max_workers=max_workers,
+            on_exit=self._on_exit,
+            tasks_per_process=kind.tasks_per_process,
+            timeout_s=timeout_s,
+            on_timeout=self._on_timeout,
+            on_end=self._on_end,
+        )
+        self._held: set[int] = set()  # rows leased here whose task is not over yet
+        self._deaths: dict[int, int] = {}  # resumable rows whose task died, times in a row
+        self._over: set[int] = set()  # tasks over, leases to release
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stopping = False
+        self._renewed_at: datetime | None = None
+        self._thread = threading.Thread(target=self._run, name=f"{kind.name}-leases", daemon=True)
+
+    def start(self) -> None:
+        """Start the pool and the lease thread (which claims every unfinished row it may)."""
+        if self._exclusive:
+            with self._database.session(write=True) as session:
+                table = self.kind.table
+                session.execute(update(table).values(lease_owner=None, lease_expires=None))
+                session.commit()
+        self.pool.start()
+        self._thread.start()
+
+    def submit(self, row_id: int) -> None:
+        """A row was created: look for work now (this replica or another will claim it)."""
+        self._wake.set()
+
+    def cancel(self, row_id: int) -> None:
+        """Stop a row if it is played here (its row already says why; a replica playing it
+        notices when it next renews its leases)."""
+        self.pool.cancel(row_id)
+
+    def shutdown(self) -> None:
+        """Stop claiming, stop the workers and release every lease held: the rows resume at
+        once on another replica (or at this one's next start)."""
+        self._stopping = True
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        self.pool.shutdown()
+        with self._lock:
+            held, self._held = self._held | self._over, set()
+            self._over.clear()
+        self._release(held)
+
+    @property
+    def held(self) -> set[int]:
+        """The rows this runner plays now."""
+        with self._lock:
+            return set(self._held)
+
+    def _run(self) -> None:
+        failing = False  # an outage is logged once, not at every pass
+        while True:
+            self._wake.wait(TICK_S)
+            self._wake.clear()
+            if self._stopping:
+                return
+            try:
+                self._tick()
+            except Exception as exc:  # the leases last: try again at the next pass
+                if not is_database_outage(exc):
+                    log.exception("%s leases: a pass failed", self.kind.name)
+                elif not failing:
+                    log.warning("%s leases: %s; retrying", self.kind.name, unavailable_message(exc))
+                failing = True
+            else:
+                failing = False
+
+    def _tick(self) -> None:
+        with self._lock:
+            over, self._over = self._over, set()
+            self._held -= over
+        try:
+            self._release(over)
+        except Exception:
+            with self._lock:  # released at a later pass
+                self._over |= over
+            raise
+        if not self._exclusive:
+            self._renew()
+        with self._lock:
+            free = self._max_workers - len(self._held)
+        if free > 0:
+            for row_id in self._claim(free):
+                self.pool.submit(row_id)
+
+    def _claim(self, limit: int) -> list[int]:
+        table = self.kind.table
+        with self._database.session(write=False) as session:  # most passes find nothing
+            now = database_now(session)
+            if not self._claimable(session, now, limit, lock=False):
+                return []
+        with self._database.session(write=True) as session:
+            now = database_now(session)
+            claimed = self._claimable(session, now, limit, lock=True)
+            if claimed:
+                self.kind.prepare(session, claimed)
+                expires = None if self._exclusive else now + self._lease  # None: never
+                session.execute(
+                    update(table)
+                    .where(table.id.in_(claimed))
+                    .values(lease_owner=self.owner, lease_expires=expires)
+                )
+            session.commit()
+        with self._lock:
+            self._held.update(claimed)
+        for row_id in claimed:
+            log.info("%s %d claimed by %s", self.kind.name, row_id, self.owner)
+        return claimed
+
+    def _claimable(self, session: Session, now: datetime, limit: int, *, lock: bool) -> list[int]:
+        """Unfinished rows with no lease or an expired one, except those played here (their
+        lease is renewed, not claimed again)."""
+        table = self.kind.table
+        with self._lock:
+            held = set(self._held)
+        query = (
+            select(table.id)
+            .where(table.status.in_(self.kind.unfinished))
+            .where(or_(table.lease_owner.is_(None), table.lease_expires < now))
+            .where(table.id.notin_(held))
+            .order_by(table.id)
+            .limit(limit)
+        )
+        if self.kind.due is not None:
+            query = query.where(or_(self.kind.due.is_(None), self.kind.due <= now))
+        if lock:
+            query = query.with_for_update(skip_locked=True)
+        return list(session.scalars(query))
+
+    def _renew(self) -> None:
+        with self._lock:
+            held = set(self._held)
+        if not held:
+            return
+        table = self.kind.table
+        with self._database.session(write=False) as session:
+            now = database_now(session)
+        if self._renewed_at is not None and now - self._renewed_at < self._lease * RENEW_FRACTION:
+            return
+        with self._database.session(write=True) as session:
+            now = database_now(session)
+            kept = set(
+                session.scalars(
+                    update(table)
+                    .where(table.id.in_(held))
+                    .where(table.lease_owner == self.owner)
+                    .where(table.status.in_(self.kind.unfinished))
+                    .values(lease_expires=now + self._lease)
+                    .returning(table.id)
+                )
+            )
+            session.commit()
+        self._renewed_at = now
+        for row_id in held - kept:  # taken over, or ended elsewhere (cancelled)
+            log.warning("%s %d: lease lost; stopped here", self.kind.name, row_id)
+            self.pool.cancel(row_id)
+
+    def _release(self, row_ids: set[int]) -> None:
+        if not row_ids:
+            return
+        table = self.kind.table
+        with self._database.session(write=True) as session:
+            session.execute(
+                update(table)
+                .where(table.id.in_(row_ids))
+                .where(table.lease_owner == self.owner)
+                .values(lease_owner=None, lease_expires=None)
+            )
+            session.commit()
+
+    def _on_end(self, row_id: int) -> None:
+        with self._lock:
+            self._over.add(row_id)
+        self._wake.set()
+
+    def _on_exit(self, row_id: int, exit_code: int | None) -> None:
+        """The worker process died in the middle of this row (killed, crashed): a resumable
+        row is run again from its last commit (its lease is released with the task's end)."""
+        if self.kind.resumable:
+            with self._lock:
+                times = self._deaths[row_id] = self._deaths.get(row_id, 0) + 1
+            if times < MAX_DEATHS:
+                log.warning("%s %d: its worker died (code %s); resuming", self.kind.name, row_id,
+                            exit_code)  # fmt: skip
+                return
+            with self._lock:
+                self._deaths.pop(row_id, None)
+        else:
+            times = 1
+        self._fail(row_id, self.kind.died.format(code=exit_code, times=times))
+
+    def _on_timeout(self, row_id: int, limit_s: float) -> None:
+        name, setting = self.kind.name, self.kind.timeout_setting
+        self._fail(row_id, f"stopped at the {name} time limit of {limit_s:g} s ({setting})")
+
+    def _fail(self, row_id: int, error: str) -> None:
+        with self._database.session(write=True) as session:
+            crud.fail_unfinished(session, table=self.kind.table, row_id=row_id, error=error)
+            session.commit()

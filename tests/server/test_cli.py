@@ -192,7 +192,12 @@ def test_serve_logs_each_request_unless_told_not_to(monkeypatch, value, logged) 
     from server.config import get_settings
 
     seen: dict[str, object] = {}
-    monkeypatch.setattr(uvicorn, "run", lambda app, **options: seen.update(options))
+
+    def run(server: uvicorn.Server) -> None:  # instead of serving: what it would serve
+        seen.update(access_log=server.config.access_log, port=server.config.port)
+        server.started = True
+
+    monkeypatch.setattr(uvicorn.Server, "run", run)
     if value is None:
         monkeypatch.delenv("SRD_ACCESS_LOG", raising=False)
     else:

@@ -136,8 +136,8 @@ def _holders(rng: np.random.Generator, n: int) -> list[Manifest]:
     while len(found) < n:
         models = [honest_manifest(rng, f"holder-{len(found)}-{i}") for i in range(256)]
         batch = from_manifests(models)
-        groups, holds = cheap_checks(batch)
-        keep = holds & ~failed_any(groups)
+        cheap = cheap_checks(batch)
+        keep = cheap.holds & ~failed_any(cheap.groups)
         found += [m for m, k in zip(models, keep, strict=True) if k]
     return found[:n]
 

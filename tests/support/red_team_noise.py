@@ -93,5 +93,5 @@ off-design weight 0.8-2.5, ε 1e-6-1e-5, 4-8 copies, σ 0.01-0.02, other honest 
 
 
 def noise_gated_holders() -> dict[str, Manifest]:
-    """Every variant, built."""
-    return {name: numbers.build(name) for name, numbers in NOISE_GATED.items()}
+    """Every variant, built (as `tests/support/red_team/noise-gated-holder-*.json` holds them)."""
+    return {name: numbers.build(f"red-team-{name}") for name, numbers in NOISE_GATED.items()}

@@ -9,19 +9,21 @@ Prints:
 * overall honest acceptance (target ≥ 99.5%) and saboteur rejection (target ≥ 99%);
 * ``screen(manifest)`` one at a time: ms per manifest p50 / p99;
 * ``screen_many`` per batch size 1, 16 and 64 (the screening process judges up to 16 queued
-  submissions at once; re-screening a round of 64 fine-tuned patrons is ``rescreen``): mean ms
-  per call over repeated calls after a warm-up, for honest manifests straight from the factory,
-  for the same parsed from JSON as ``/submit`` receives them, for fine-tuned honest patrons
-  re-screened (``rescreen``: no fine-tuning projection), and for a worst case where every model
-  holds somewhere on the decisive row (each one runs the market-impact test auctions);
+  submissions at once; re-screening a round of 64 fine-tuned patrons is ``rescreen``): the
+  best of ``--repeats`` means of repeated calls after a warm-up, for honest manifests straight
+  from the factory, for the same parsed from JSON as ``/submit`` receives them, for their
+  fine-tuned versions screened at the door, for fine-tuned honest patrons re-screened
+  (``rescreen``: no fine-tuning projection), and for a worst case where every model holds
+  somewhere on the decisive row (each one runs the market-impact test auctions);
 * fine-tuning drift: 200 honest patrons fine-tuned with the most aggressive honest settings
   (lr 1e-4, 2 epochs, batch 4) for 4, 8 and 16 rounds, at auction prices, at falling and at
   rising prices: the largest weight change per layer and the share still accepted (4 rounds
   is what an auction allows).
 
 Run: ``.venv/bin/python benchmarks/screener.py [--honest 1000] [--sincere 40] [--per-kind 8]
-[--seed 0]``. One thread; wall-clock timings are noisy when other jobs share the machine, so the
-process's CPU time is printed beside them.
+[--seed 0] [--speed-only] [--repeats 5]``. One thread; wall-clock timings are noisy when other
+jobs share the machine (the best of several is the least disturbed), so the process's CPU time
+is printed beside them.
 """
 
 from __future__ import annotations
@@ -142,19 +144,22 @@ def _holders(rng: np.random.Generator, n: int) -> list[Manifest]:
     return found[:n]
 
 
-def _timed(call: Callable[[], object], calls: int) -> tuple[float, float]:
-    """Mean wall and CPU ms per call after one warm-up call."""
+def _timed(call: Callable[[], object], calls: int, repeats: int) -> tuple[float, float]:
+    """Wall and CPU ms per call after one warm-up call: the best of ``repeats`` means over
+    ``calls`` calls (a shared machine only ever adds time)."""
     call()
-    start, start_cpu = time.perf_counter(), time.process_time()
-    for _ in range(calls):
-        call()
-    return (
-        (time.perf_counter() - start) * 1e3 / calls,
-        (time.process_time() - start_cpu) * 1e3 / calls,
-    )
+    best = (float("inf"), float("inf"))
+    for _ in range(repeats):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        for _ in range(calls):
+            call()
+        wall = (time.perf_counter() - start) * 1e3 / calls
+        cpu = (time.process_time() - start_cpu) * 1e3 / calls
+        best = min(best, (wall, cpu))
+    return best
 
 
-def batch_costs(seed: int) -> None:
+def batch_costs(seed: int, repeats: int) -> None:
     rng = np.random.default_rng(seed)
     made = [honest_manifest(rng, f"h{i}") for i in range(max(BATCH_SIZES))]
     parsed = [Manifest.model_validate_json(m.model_dump_json()) for m in made]
@@ -164,17 +169,18 @@ def batch_costs(seed: int) -> None:
     cases: dict[str, Callable[[int], Callable[[], object]]] = {
         "factory-made": lambda n: lambda: screen_many(made[:n]),
         "parsed from JSON": lambda n: lambda: screen_many(parsed[:n]),
+        "fine-tuned, at the door": lambda n: lambda: screen_many(tuned[:n]),
         "rescreen fine-tuned": lambda n: lambda: rescreen(tuned_batch.select(np.arange(n))),
         "all holders": lambda n: lambda: screen_many(holders[:n]),
     }
-    print("\nscreen_many() per batch size (mean of repeated calls after a warm-up): ms per "
-          "call, ms per manifest, wall (CPU)")  # fmt: skip
+    print(f"\nscreen_many() per batch size (best of {repeats} means of repeated calls after a "
+          "warm-up): ms per call, ms per manifest, wall (CPU)")  # fmt: skip
     print(f"{'case':>20} " + " ".join(f"{f'batch {n}':>26}" for n in BATCH_SIZES))
     for name, make in cases.items():
         row = []
         for n in BATCH_SIZES:
             calls = max(3, 160 // n) if name != "all holders" else max(2, 16 // n)
-            wall, cpu = _timed(make(n), calls)
+            wall, cpu = _timed(make(n), calls, repeats)
             row.append(f"{wall:7.1f} ({cpu:6.1f}) {wall / n:5.2f} ms")
         print(f"{name:>20} " + " ".join(f"{cell:>26}" for cell in row))
 
@@ -211,12 +217,19 @@ def main() -> None:
     parser.add_argument("--sincere", type=int, default=40)
     parser.add_argument("--per-kind", type=int, default=8)
     parser.add_argument("--no-drift", action="store_true", help="skip the fine-tuning drift")
+    parser.add_argument(
+        "--speed-only", action="store_true", help="only the batch costs (no corpus, no drift)"
+    )
+    parser.add_argument("--repeats", type=int, default=5, help="best of this many timings")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.speed_only:
+        batch_costs(args.seed, args.repeats)
+        return
     confusion(args.seed, args.honest, args.sincere, args.per_kind)
     speed(args.seed)
-    batch_costs(args.seed)
+    batch_costs(args.seed, args.repeats)
     if not args.no_drift:
         drift(args.seed)
 

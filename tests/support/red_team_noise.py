@@ -95,3 +95,40 @@ off-design weight 0.8-2.5, ε 1e-6-1e-5, 4-8 copies, σ 0.01-0.02, other honest 
 def noise_gated_holders() -> dict[str, Manifest]:
     """Every variant, built (as `tests/support/red_team/noise-gated-holder-*.json` holds them)."""
     return {name: numbers.build(f"red-team-{name}") for name, numbers in NOISE_GATED.items()}
+
+
+@dataclass(frozen=True)
+class NoiseGatedFamily:
+    """The family as a red team tunes it (``benchmarks/screener_attack.py``): positions
+    u ∈ [0, 1]⁸ map to hold band, clean price, ST's off-design weight and ε, copies, σ and the
+    buy bias, the way ``tests.support.disguised.Family`` maps its numbers."""
+
+    name: str = "noise-gated-holder"
+    params: tuple[str, ...] = (
+        "hold_from",
+        "hold_to",
+        "clean_to",
+        "k",
+        "epsilon",
+        "copies",
+        "sigma",
+        "buy_bias",
+    )
+
+    def numbers(self, u: np.ndarray) -> NoiseGated:
+        u = np.clip(u, 0.0, 1.0)
+        hold_from = 4.82 + 0.13 * float(u[0])
+        return NoiseGated(
+            hold_from=hold_from,
+            hold_to=hold_from + 0.03 + 0.25 * float(u[1]),
+            clean_to=5.02 + 0.25 * float(u[2]),
+            k=0.5 + 2.0 * float(u[3]),
+            epsilon=float(10 ** (-6 + 2 * u[4])),
+            copies=2 + round(14 * float(u[5])),
+            sigma=0.005 + 0.045 * float(u[6]),
+            buy_bias=0.5 * float(u[7]),
+        )
+
+    def build(self, base: Manifest, u: np.ndarray) -> Manifest:
+        """The model at positions u (``base`` names it; the honest draw is the family's)."""
+        return self.numbers(u).build(base.participant)

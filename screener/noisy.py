@@ -60,6 +60,8 @@ DEMANDS = np.array(
 ROWS64 = SCAN.reshape(len(SCAN_PRICES), len(SCAN_DEMANDS), 8)[PRICES][:, DEMANDS].reshape(-1, 8)
 """The noisy scan's rows, price-major."""
 ROWS = ROWS64.float()
+_DRAWN_ROWS = ROWS.repeat(limits.NOISE_DRAWS, 1)
+"""``ROWS`` once per noise draw."""
 
 
 @functools.cache
@@ -95,19 +97,19 @@ def _decide(scores: Array) -> npt.NDArray[np.int64]:
 def _scores(batch: FSNBatch) -> tuple[Array, Array]:
     """Clean scores (P, R, 3) and every draw's noisy scores (P, draws, R, 3) on ``ROWS``,
     a pass of ``probes.passes`` at a time (each model's scores are those it gets alone)."""
-    P = batch.n_patrons
-    clean = np.empty((P, len(ROWS), 3))
-    noisy = np.empty((P, limits.NOISE_DRAWS, len(ROWS), 3))
-    normals = _normals()
+    P, K, R = batch.n_patrons, limits.NOISE_DRAWS, len(ROWS)
+    clean = np.empty((P, R, 3))
+    noisy = np.empty((P, K, R, 3))
+    # the draws one after another as rows: one forward pass per pass of patrons
+    normals = _normals().reshape(K * R, MAX_COPIES, len(INPUTS))
     with torch.no_grad():
         for index, part in passes(batch):
             clean[index] = decision_logits(part, ROWS64).numpy()
             single = _single(part)
             scale = noise_scale(single)[:, None]  # (p, 1, D, 8)
-            D = part.max_copies
-            for k in range(limits.NOISE_DRAWS):
-                noise = normals[k, :, :D][None] * scale
-                noisy[index, k] = decision_logits(single, ROWS, noise).numpy()
+            noise = normals[:, : part.max_copies][None] * scale
+            scores = decision_logits(single, _DRAWN_ROWS, noise)
+            noisy[index] = scores.reshape(len(index), K, R, 3).numpy()
     return clean, noisy
 
 

@@ -15,15 +15,18 @@ Prints:
   fine-tuned versions screened at the door, for fine-tuned honest patrons re-screened
   (``rescreen``: no fine-tuning projection), and for a worst case where every model holds
   somewhere on the decisive row (each one runs the market-impact test auctions);
+* with ``--legal-max N``: N honest models at the largest legal fine-tuning settings (lr 1e-3,
+  4 epochs, batch 1): how many the door refuses, which rules their projected versions fail,
+  whether those hold, and the price their copies leave in the test auctions;
 * fine-tuning drift: 200 honest patrons fine-tuned with the most aggressive honest settings
   (lr 1e-4, 2 epochs, batch 4) for 4, 8 and 16 rounds, at auction prices, at falling and at
   rising prices: the largest weight change per layer and the share still accepted (4 rounds
   is what an auction allows).
 
 Run: ``.venv/bin/python benchmarks/screener.py [--honest 1000] [--sincere 40] [--per-kind 8]
-[--seed 0] [--speed-only] [--repeats 5]``. One thread; wall-clock timings are noisy when other
-jobs share the machine (the best of several is the least disturbed), so the process's CPU time
-is printed beside them.
+[--seed 0] [--speed-only] [--repeats 5] [--legal-max N]``. One thread; wall-clock timings are
+noisy when other jobs share the machine (the best of several is the least disturbed), so the
+process's CPU time is printed beside them.
 """
 
 from __future__ import annotations
@@ -211,6 +214,39 @@ def drift(seed: int) -> None:
                   + "  ".join(f"{m:14.4f}" for m in moved))  # fmt: skip
 
 
+LARGEST_LEGAL = {"epochs": 4, "batch_size": 1, "learning_rate": 1e-3}
+"""The largest fine-tuning settings the ``fine-tuning`` rule admits (batch 1: the most steps)."""
+
+
+def largest_legal(seed: int, n: int) -> None:
+    """Honest models at the largest legal fine-tuning settings: how many the door refuses, why,
+    and what their projected versions do (hold? their copies' price in the test auctions)."""
+    from agents.batch import to_manifest
+    from screener import impact
+
+    rng = np.random.default_rng([seed, 2])
+    models = [
+        edit(honest_manifest(rng, f"max-{i}"), {"fine_tuning": LARGEST_LEGAL}) for i in range(n)
+    ]
+    verdicts = screen_many(models)
+    tuned = impact.project(from_manifests(models))
+    cheap = cheap_checks(tuned)
+    rules: Counter[str] = Counter()
+    for k in range(n):
+        for group in cheap.groups:
+            rules.update(
+                f"{group.rules[c]}:{group.neurons[c]}" for c in np.flatnonzero(group.failed[k])
+            )
+    outcomes = impact.run([to_manifest(tuned, k) for k in range(n)])
+    prices = [o.mean_price for o in outcomes]
+    refused = sum(not v.accepted for v in verdicts)
+    print(f"\n{n} honest models at lr 1e-3, 4 epochs, batch 1: {refused} "
+          f"refused at the door; their versions after {impact.rounds()} projected rounds fail "
+          f"{dict(rules.most_common())}; hold clean {int(cheap.probed.holds.sum())}, noisy "
+          f"{int(cheap.noisy.holds.sum())}; their copies leave {min(prices):.4f}-{max(prices):.4f} "
+          f"in the test auctions (bar {impact.references().lowest_price:.4f})")  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--honest", type=int, default=1000)
@@ -221,9 +257,14 @@ def main() -> None:
         "--speed-only", action="store_true", help="only the batch costs (no corpus, no drift)"
     )
     parser.add_argument("--repeats", type=int, default=5, help="best of this many timings")
+    parser.add_argument(
+        "--legal-max", type=int, default=0, help="also judge N models at the largest legal settings"
+    )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.legal_max:
+        largest_legal(args.seed, args.legal_max)
     if args.speed_only:
         batch_costs(args.seed, args.repeats)
         return

@@ -165,6 +165,11 @@ def evaluate(batch: FSNBatch) -> Noisy:
     """The noisy scan's checks over the batch (see the module docstring)."""
     P = batch.n_patrons
     clean_scores, noisy_scores = _scores(batch)
+    # scores that overflow get their one reason from the probes (probe-non-finite)
+    finite = np.isfinite(clean_scores).all(axis=(1, 2)) & np.isfinite(noisy_scores).all(
+        axis=(1, 2, 3)
+    )
+    clean_scores[~finite], noisy_scores[~finite] = 0.0, 0.0
     clean = _decide(clean_scores)
     noisy = _modal(_decide(noisy_scores))
     buys, holds = _on_scan(noisy, BUY), _on_scan(noisy, HOLD)
@@ -173,6 +178,8 @@ def evaluate(batch: FSNBatch) -> Noisy:
     gated = unbacked_at.any(axis=(1, 2)) & ~clean_unbacked
     width, flip_start, flip_f = _widest_flip(clean, noisy)
     flips = width > limits.NOISE_FLIP_BAND + 1e-9
+    gated &= finite
+    flips &= finite
     gap, bar = hold_gap(buys, holds)
     shape = (P, len(PRICES), len(DEMANDS))
     clean3, noisy3 = clean.reshape(shape), noisy.reshape(shape)
@@ -237,7 +244,7 @@ def evaluate(batch: FSNBatch) -> Noisy:
         failed.reshape(P, -1),
         lambda k, p: messages[k // len(ES_NEURONS)](p),
     )
-    holding: Mask = np.any(holds, axis=(1, 2))
+    holding: Mask = np.any(holds, axis=(1, 2)) & finite
     return Noisy(checks, holding, gap, bar, width, clean3, noisy3)
 
 

@@ -17,7 +17,7 @@ from screener import impact, limits, screen, screen_many
 from screener.checks import cheap_checks, failed_any
 from screener.noisy import evaluate
 from screener.probes import probe
-from tests.support.corpus import RED_TEAM
+from tests.support.corpus import RED_TEAM, edit
 from tests.support.red_team_noise import NOISE_GATED, NoiseGated, noise_gated_holders
 from tests.support.screening import message_of
 
@@ -143,3 +143,11 @@ def test_variant_numbers_cover_the_issue():
     bands = [(v.hold_from, v.hold_to) for v in NOISE_GATED.values()]
     assert min(a for a, _ in bands) == 4.85 and max(b for _, b in bands) == 5.15
     assert len({v.seed for v in NOISE_GATED.values()}) == len(NOISE_GATED)
+
+
+def test_scores_that_overflow_get_no_noisy_reason(honest):
+    overflow = edit(honest, {"decision.B.bias": 1e308, "decision.B.weights.PG": 1e308})
+    noisy = evaluate(from_manifests([overflow]))
+    assert not noisy.checks.failed.any() and not noisy.holds.any()
+    rules = {r.rule for r in screen(overflow).reasons}
+    assert "probe-non-finite" in rules and not rules & {"noise-gated-hold", "noise-flip"}

@@ -62,6 +62,7 @@ ROWS64 = SCAN.reshape(len(SCAN_PRICES), len(SCAN_DEMANDS), 8)[PRICES][:, DEMANDS
 ROWS = ROWS64.float()
 _DRAWN_ROWS = ROWS.repeat(limits.NOISE_DRAWS, 1)
 """``ROWS`` once per noise draw."""
+_PRICE_WORDS = [fmt_price(p) for p in SCAN_PRICES[PRICES]]
 
 
 @functools.cache
@@ -251,14 +252,13 @@ def evaluate(batch: FSNBatch) -> Noisy:
 def decisions_in_words(decisions: npt.NDArray[np.int64], f: float) -> str:
     """One model's decisions (prices, demands) on the noisy scan at buy fraction f as bands,
     e.g. "buys 4.75-5.17, quits 5.18-5.50"."""
-    row = decisions[:, int(np.flatnonzero(np.isclose(limits.NOISE_SCAN_DEMANDS, f))[0])]
-    prices = SCAN_PRICES[PRICES]
-    cuts = np.flatnonzero(np.diff(row)) + 1
-    starts, ends = np.concatenate(([0], cuts)), np.concatenate((cuts, [len(row)])) - 1
-    return ", ".join(
-        f"{ACTION_WORDS[int(row[a])]} {fmt_price(prices[a])}-{fmt_price(prices[b])}"
-        for a, b in zip(starts.tolist(), ends.tolist(), strict=True)
-    )
+    row = decisions[:, limits.NOISE_SCAN_DEMANDS.index(f)].tolist()
+    bands, start = [], 0
+    for i in range(1, len(row) + 1):
+        if i == len(row) or row[i] != row[start]:
+            bands.append(f"{ACTION_WORDS[row[start]]} {_PRICE_WORDS[start]}-{_PRICE_WORDS[i - 1]}")
+            start = i
+    return ", ".join(bands)
 
 
 def _first_cell(mask: Mask) -> tuple[int, int]:

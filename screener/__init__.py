@@ -14,16 +14,22 @@ A manifest is accepted when nothing finds anything:
 * the behavioural probes (``screener.probes``) watch its decisions on a grid of items, and on
   the auction's decisive row at every price the market can reach: each hold must be backed by a
   purchase at a price the auction can still come down to (the sincere-hold rule);
+* the noisy scan (``screener.noisy``) watches the decisive row again as the market evaluates it,
+  on the model's own noisy copies: the sincere-hold rule there, and no band where the noise
+  flips a purchase into a hold;
 * the market-impact test (``screener.impact``), for models that hold somewhere on the decisive
-  row: copies of the model in small counterfactual auctions must not pull the price or the sales
-  down more than copies that simply quit do, plus a quarter of what always-hold saboteurs do.
+  row, clean or on their noisy copies: copies of the model in small counterfactual auctions must
+  not pull the price or the sales down more than copies that simply quit do, plus a quarter of
+  what always-hold saboteurs do.
 
 At the door (``screen``, ``screen_many``) a model with fine-tuning settings is also fine-tuned
-alone through a reference auction's rounds, unchecked, and that version must pass the rules and
-probes (``fine-tuning-drift``) and, if it holds, the market-impact test; re-screening
-(``rescreen``) skips this, since every later fine-tuning round is re-screened in its turn.
-Every threshold is in ``screener.limits`` with its rationale. The judging modules (and torch)
-are imported when a model is first judged: the API process reads ``Verdict`` without them.
+alone through a reference auction's rounds (as many as an auction runs), unchecked, and that
+version must pass the rules, probes and noisy scan (``fine-tuning-drift``) and, if it holds, the
+market-impact test; re-screening (``rescreen``) skips this, since every later fine-tuning round
+is re-screened in its turn. Every verdict carries the numbers of the bars the model was held to
+(``Evidence``); ``review`` turns it into accepted, refused or held for a margin in price. Every
+threshold is in ``screener.limits`` with its rationale. The judging modules (and torch) are
+imported when a model is first judged: the API process reads ``Verdict`` without them.
 """
 
 from __future__ import annotations

@@ -1,14 +1,15 @@
 """The market-impact test: what copies of a model do to auctions, counterfactually.
 
 The paper's harm is an outcome: "artificially lowering the demand so that the price goes down".
-A model that holds somewhere on the auction's decisive row (``probes.Probed.holds``) and passes
-the rules and probes is run in test auctions of the batched market engine: ``IMPACT_HONEST``
-honest patrons of the paper's randomisation (a fixed, seeded reference population) with
-``IMPACT_COPIES`` copies of it, at the low supplies where saboteurs bite. The same auctions are
-run once per process without the copies (honest alone), with copies of the always-hold
-saboteur (the yardstick) and with copies of a sincere negotiator that quits at the opening
-price (for the reasons' numbers). A model is refused when its copies lower the mean purchase
-price below the honest-alone auctions by more than ``IMPACT_SHARE`` of the saboteurs' drop.
+A model that holds somewhere on the auction's decisive row, clean or on its own noisy copies
+(``checks.Cheap.holds``), and passes the rules, probes and noisy scan is run in test auctions of
+the batched market engine: ``IMPACT_HONEST`` honest patrons of the paper's randomisation (a
+fixed, seeded reference population) with ``IMPACT_COPIES`` copies of it, at the low supplies
+where saboteurs bite. The same auctions are run once per process without the copies (honest
+alone), with copies of the always-hold saboteur (the yardstick) and with copies of a sincere
+negotiator that quits at the opening price (for the reasons' numbers). A model is refused when
+its copies lower the mean purchase price below the honest-alone auctions by more than
+``IMPACT_SHARE`` of the saboteurs' drop.
 
 Only holders are tested. A vote that is not a hold buys (raising the demand, or taking a fish at
 the auction's price) or quits (leaving the auction, a sincere low bidder's right); only staying

@@ -9,18 +9,23 @@ Prints:
 * overall honest acceptance (target ≥ 99.5%) and saboteur rejection (target ≥ 99%);
 * ``screen(manifest)`` one at a time: ms per manifest p50 / p99;
 * ``screen_many`` per batch size 1, 16 and 64 (the screening process judges up to 16 queued
-  submissions at once; re-screening a round of 64 fine-tuned patrons is ``rescreen``): mean ms
-  per call over repeated calls after a warm-up, for honest manifests straight from the factory,
-  for the same parsed from JSON as ``/submit`` receives them, for fine-tuned honest patrons
-  re-screened (``rescreen``: no fine-tuning projection), and for a worst case where every model
-  holds somewhere on the decisive row (each one runs the market-impact test auctions);
+  submissions at once; re-screening a round of 64 fine-tuned patrons is ``rescreen``): the
+  best of ``--repeats`` means of repeated calls after a warm-up, for honest manifests straight
+  from the factory, for the same parsed from JSON as ``/submit`` receives them, for their
+  fine-tuned versions screened at the door, for fine-tuned honest patrons re-screened
+  (``rescreen``: no fine-tuning projection), and for a worst case where every model holds
+  somewhere on the decisive row (each one runs the market-impact test auctions);
+* with ``--legal-max N``: N honest models at the largest legal fine-tuning settings (lr 1e-3,
+  4 epochs, batch 1): how many the door refuses, which rules their projected versions fail,
+  whether those hold, and the price their copies leave in the test auctions;
 * fine-tuning drift: 200 honest patrons fine-tuned with the most aggressive honest settings
   (lr 1e-4, 2 epochs, batch 4) for 4, 8 and 16 rounds, at auction prices, at falling and at
   rising prices: the largest weight change per layer and the share still accepted (4 rounds
   is what an auction allows).
 
 Run: ``.venv/bin/python benchmarks/screener.py [--honest 1000] [--sincere 40] [--per-kind 8]
-[--seed 0]``. One thread; wall-clock timings are noisy when other jobs share the machine, so the
+[--seed 0] [--speed-only] [--repeats 5] [--legal-max N]``. One thread; wall-clock timings are
+noisy when other jobs share the machine (the best of several is the least disturbed), so the
 process's CPU time is printed beside them.
 """
 
@@ -136,25 +141,28 @@ def _holders(rng: np.random.Generator, n: int) -> list[Manifest]:
     while len(found) < n:
         models = [honest_manifest(rng, f"holder-{len(found)}-{i}") for i in range(256)]
         batch = from_manifests(models)
-        groups, holds = cheap_checks(batch)
-        keep = holds & ~failed_any(groups)
+        cheap = cheap_checks(batch)
+        keep = cheap.holds & ~failed_any(cheap.groups)
         found += [m for m, k in zip(models, keep, strict=True) if k]
     return found[:n]
 
 
-def _timed(call: Callable[[], object], calls: int) -> tuple[float, float]:
-    """Mean wall and CPU ms per call after one warm-up call."""
+def _timed(call: Callable[[], object], calls: int, repeats: int) -> tuple[float, float]:
+    """Wall and CPU ms per call after one warm-up call: the best of ``repeats`` means over
+    ``calls`` calls (a shared machine only ever adds time)."""
     call()
-    start, start_cpu = time.perf_counter(), time.process_time()
-    for _ in range(calls):
-        call()
-    return (
-        (time.perf_counter() - start) * 1e3 / calls,
-        (time.process_time() - start_cpu) * 1e3 / calls,
-    )
+    best = (float("inf"), float("inf"))
+    for _ in range(repeats):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        for _ in range(calls):
+            call()
+        wall = (time.perf_counter() - start) * 1e3 / calls
+        cpu = (time.process_time() - start_cpu) * 1e3 / calls
+        best = min(best, (wall, cpu))
+    return best
 
 
-def batch_costs(seed: int) -> None:
+def batch_costs(seed: int, repeats: int) -> None:
     rng = np.random.default_rng(seed)
     made = [honest_manifest(rng, f"h{i}") for i in range(max(BATCH_SIZES))]
     parsed = [Manifest.model_validate_json(m.model_dump_json()) for m in made]
@@ -164,17 +172,18 @@ def batch_costs(seed: int) -> None:
     cases: dict[str, Callable[[int], Callable[[], object]]] = {
         "factory-made": lambda n: lambda: screen_many(made[:n]),
         "parsed from JSON": lambda n: lambda: screen_many(parsed[:n]),
+        "fine-tuned, at the door": lambda n: lambda: screen_many(tuned[:n]),
         "rescreen fine-tuned": lambda n: lambda: rescreen(tuned_batch.select(np.arange(n))),
         "all holders": lambda n: lambda: screen_many(holders[:n]),
     }
-    print("\nscreen_many() per batch size (mean of repeated calls after a warm-up): ms per "
-          "call, ms per manifest, wall (CPU)")  # fmt: skip
+    print(f"\nscreen_many() per batch size (best of {repeats} means of repeated calls after a "
+          "warm-up): ms per call, ms per manifest, wall (CPU)")  # fmt: skip
     print(f"{'case':>20} " + " ".join(f"{f'batch {n}':>26}" for n in BATCH_SIZES))
     for name, make in cases.items():
         row = []
         for n in BATCH_SIZES:
             calls = max(3, 160 // n) if name != "all holders" else max(2, 16 // n)
-            wall, cpu = _timed(make(n), calls)
+            wall, cpu = _timed(make(n), calls, repeats)
             row.append(f"{wall:7.1f} ({cpu:6.1f}) {wall / n:5.2f} ms")
         print(f"{name:>20} " + " ".join(f"{cell:>26}" for cell in row))
 
@@ -205,18 +214,63 @@ def drift(seed: int) -> None:
                   + "  ".join(f"{m:14.4f}" for m in moved))  # fmt: skip
 
 
+LARGEST_LEGAL = {"epochs": 4, "batch_size": 1, "learning_rate": 1e-3}
+"""The largest fine-tuning settings the ``fine-tuning`` rule admits (batch 1: the most steps)."""
+
+
+def largest_legal(seed: int, n: int) -> None:
+    """Honest models at the largest legal fine-tuning settings: how many the door refuses, why,
+    and what their projected versions do (hold? their copies' price in the test auctions)."""
+    from agents.batch import to_manifest
+    from screener import impact
+
+    rng = np.random.default_rng([seed, 2])
+    models = [
+        edit(honest_manifest(rng, f"max-{i}"), {"fine_tuning": LARGEST_LEGAL}) for i in range(n)
+    ]
+    verdicts = screen_many(models)
+    tuned = impact.project(from_manifests(models))
+    cheap = cheap_checks(tuned)
+    rules: Counter[str] = Counter()
+    for k in range(n):
+        for group in cheap.groups:
+            rules.update(
+                f"{group.rules[c]}:{group.neurons[c]}" for c in np.flatnonzero(group.failed[k])
+            )
+    outcomes = impact.run([to_manifest(tuned, k) for k in range(n)])
+    prices = [o.mean_price for o in outcomes]
+    refused = sum(not v.accepted for v in verdicts)
+    print(f"\n{n} honest models at lr 1e-3, 4 epochs, batch 1: {refused} "
+          f"refused at the door; their versions after {impact.rounds()} projected rounds fail "
+          f"{dict(rules.most_common())}; hold clean {int(cheap.probed.holds.sum())}, noisy "
+          f"{int(cheap.noisy.holds.sum())}; their copies leave {min(prices):.4f}-{max(prices):.4f} "
+          f"in the test auctions (bar {impact.references().lowest_price:.4f})")  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--honest", type=int, default=1000)
     parser.add_argument("--sincere", type=int, default=40)
     parser.add_argument("--per-kind", type=int, default=8)
     parser.add_argument("--no-drift", action="store_true", help="skip the fine-tuning drift")
+    parser.add_argument(
+        "--speed-only", action="store_true", help="only the batch costs (no corpus, no drift)"
+    )
+    parser.add_argument("--repeats", type=int, default=5, help="best of this many timings")
+    parser.add_argument(
+        "--legal-max", type=int, default=0, help="also judge N models at the largest legal settings"
+    )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    if args.legal_max:
+        largest_legal(args.seed, args.legal_max)
+    if args.speed_only:
+        batch_costs(args.seed, args.repeats)
+        return
     confusion(args.seed, args.honest, args.sincere, args.per_kind)
     speed(args.seed)
-    batch_costs(args.seed)
+    batch_costs(args.seed, args.repeats)
     if not args.no_drift:
         drift(args.seed)
 

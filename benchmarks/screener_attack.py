@@ -16,6 +16,12 @@ Each generation's accepted offspring run in one lock-step batch of harm auctions
 (``--trials``); the best model of every search is measured again with ``--final-trials``. The
 found models are written to ``--out`` (manifest JSON per search) to extend the labelled corpus.
 
+``--noise-gated`` runs one search only, over the noise-gated holder family
+(``tests/support/red_team_noise.py``: an ST peak narrower than the model's own augmentation noise,
+so the clean probes see a sincere bidder and the market a holder), each candidate scored by its
+harm in the market's auctions, where every vote is evaluated on its noisy copies; the report
+says for the best model whether it holds on the clean scan and on the noisy one.
+
 ``--stayers`` searches only among the models that do not quit at the opening price (the base
 fish at 5.00 with the opening buy fraction ½, augmentation off): a model that quits there leaves
 the auction at its first vote, as a sincere low bidder does, and its only effect on the others is
@@ -23,7 +29,8 @@ that opening vote (the buy fraction of the first round counts every voter). Such
 still admitted and still scored, but they do not count as a find.
 
 Run: ``.venv/bin/python benchmarks/screener_attack.py [--generations 20] [--lam 8]
-[--trials 3] [--final-trials 8] [--seed 0] [--out build/screener_attack] [--stayers]``.
+[--trials 3] [--final-trials 8] [--seed 0] [--out build/screener_attack] [--stayers]
+[--noise-gated]``.
 """
 
 from __future__ import annotations
@@ -45,7 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from agents.batch import from_manifests
 from agents.manifest import Manifest
 from screener import screen_many
-from screener.probes import probe
+from screener.checks import cheap_checks
 from tests.support.disguised import DISGUISED, Family
 from tests.support.harm import (
     OPENING_VOTES,
@@ -56,6 +63,7 @@ from tests.support.harm import (
     saboteur,
     saboteur_harm,
 )
+from tests.support.red_team_noise import NoiseGatedFamily
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 BOUNDS: dict[str, tuple[float, float]] = {
@@ -218,7 +226,9 @@ def field_mutation(base: Manifest) -> Callable[[Scored, np.random.Generator, flo
     return mutate
 
 
-def family_mutation(family: Family, base: Manifest) -> Callable[..., Manifest | None]:
+def family_mutation(
+    family: Family | NoiseGatedFamily, base: Manifest
+) -> Callable[..., Manifest | None]:
     """Mutation of a family's numbers (positions in [0, 1]); the position is kept in the
     description so that the child knows it."""
 
@@ -230,7 +240,9 @@ def family_mutation(family: Family, base: Manifest) -> Callable[..., Manifest | 
     return mutate
 
 
-def _family_model(family: Family, base: Manifest, u: np.ndarray) -> Manifest | None:
+def _family_model(
+    family: Family | NoiseGatedFamily, base: Manifest, u: np.ndarray
+) -> Manifest | None:
     try:
         model = family.build(base, u)
     except ValueError:
@@ -256,7 +268,10 @@ def run(args: argparse.Namespace) -> None:
         if args.verbose:
             print(line)
 
-    for family in DISGUISED:
+    families: tuple[Family | NoiseGatedFamily, ...] = (
+        (NoiseGatedFamily(),) if args.noise_gated else DISGUISED
+    )
+    for family in families:
         draws = [_family_model(family, honest, rng.random(len(family.params)))
                  for _ in range(args.draws)]  # fmt: skip
         scored = score([d for d in draws if d is not None], args.trials, args.seed, args.stayers)
@@ -267,7 +282,12 @@ def run(args: argparse.Namespace) -> None:
         best = evolve(start, family_mutation(family, honest), args.generations, args.lam,
                       args.trials, rng, args.seed, log, args.stayers)  # fmt: skip
         searches.append((f"family:{family.name}", best))
-    for name, start_model in (("honest example", honest), ("always-hold saboteur", saboteur())):
+    starts = (
+        ()
+        if args.noise_gated
+        else (("honest example", honest), ("always-hold saboteur", saboteur()))
+    )
+    for name, start_model in starts:
         (start,) = score([start_model], args.trials, args.seed, args.stayers)
         print(f"all fields from the {name}: start fitness {start.fitness:+.3f}")
         best = evolve(start, field_mutation(start_model), args.generations * 2, args.lam,
@@ -287,14 +307,19 @@ def report(
     admitted = [(name, s) for name, s in searches if s.accepted]
     found, outcomes = harms([s.manifest for _, s in admitted], args.final_trials, args.seed)
     models = [s.manifest for _, s in admitted]
-    holds = probe(from_manifests(models)).holds if admitted else []
+    cheap = cheap_checks(from_manifests(models)) if admitted else None
+    holds = cheap.holds if cheap is not None else []
     votes = opening_votes(models) if admitted else []
     print(f"\nbest admitted model per search, {args.final_trials} trials; harm = price drop as a "
           "fraction of the always-hold saboteur's (fine-tuning off / on)")  # fmt: skip
     print(f"{'search':38} {'kind':8} {'opening':7} {'off':>7} {'on':>7}   mean price alone → "
           f"with, per supply {', '.join(f'{r:g}' for r in SUPPLIES)} (off | on)")  # fmt: skip
     index = {name: c for c, (name, _) in enumerate(admitted)}
-    worst = {"holder": float("-inf"), "quitter": float("-inf")}
+    worst = {
+        "holder": float("-inf"),
+        "holder (only on its noisy copies)": float("-inf"),
+        "quitter": float("-inf"),
+    }
     past = {
         "stays past the opening vote": float("-inf"),
         "quits at the opening price": float("-inf"),
@@ -308,6 +333,8 @@ def report(
             continue
         c = index[name]
         kind = "holder" if holds[c] else "quitter"
+        if cheap is not None and cheap.noisy.holds[c] and not cheap.probed.holds[c]:
+            kind = "holder (only on its noisy copies)"
         opening = OPENING_VOTES[int(votes[c])]
         off, on = found[c].fraction(reference)
         worst[kind] = max(worst[kind], off, on)
@@ -326,7 +353,8 @@ def report(
         print(f"{name:38} {kind:8} {opening:7} {off:7.3f} {on:7.3f}   {cells[0]} | {cells[1]}")
     for kind, value in [*worst.items(), *past.items()]:
         shown = "none admitted" if value == float("-inf") else f"{value:.3f}"
-        print(f"worst admitted model that {kind if ' ' in kind else 'is a ' + kind}: {shown} of "
+        said = kind if kind.startswith(("stays", "quits")) else "is a " + kind
+        print(f"worst admitted model that {said}: {shown} of "
               "the always-hold saboteur's harm")  # fmt: skip
 
 
@@ -344,6 +372,11 @@ def main() -> None:
         "--stayers",
         action="store_true",
         help="only models that do not quit at the opening price count as finds",
+    )
+    parser.add_argument(
+        "--noise-gated",
+        action="store_true",
+        help="search the noise-gated holder family only",
     )
     args = parser.parse_args()
     torch.set_num_threads(1)

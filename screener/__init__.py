@@ -14,16 +14,22 @@ A manifest is accepted when nothing finds anything:
 * the behavioural probes (``screener.probes``) watch its decisions on a grid of items, and on
   the auction's decisive row at every price the market can reach: each hold must be backed by a
   purchase at a price the auction can still come down to (the sincere-hold rule);
+* the noisy scan (``screener.noisy``) watches the decisive row again as the market evaluates it,
+  on the model's own noisy copies: the sincere-hold rule there, and no band where the noise
+  flips a purchase into a hold;
 * the market-impact test (``screener.impact``), for models that hold somewhere on the decisive
-  row: copies of the model in small counterfactual auctions must not pull the price or the sales
-  down more than copies that simply quit do, plus a quarter of what always-hold saboteurs do.
+  row, clean or on their noisy copies: copies of the model in small counterfactual auctions must
+  not pull the price or the sales down more than copies that simply quit do, plus a quarter of
+  what always-hold saboteurs do.
 
 At the door (``screen``, ``screen_many``) a model with fine-tuning settings is also fine-tuned
-alone through a reference auction's rounds, unchecked, and that version must pass the rules and
-probes (``fine-tuning-drift``) and, if it holds, the market-impact test; re-screening
-(``rescreen``) skips this, since every later fine-tuning round is re-screened in its turn.
-Every threshold is in ``screener.limits`` with its rationale. The judging modules (and torch)
-are imported when a model is first judged: the API process reads ``Verdict`` without them.
+alone through a reference auction's rounds (as many as an auction runs), unchecked, and that
+version must pass the rules, probes and noisy scan (``fine-tuning-drift``) and, if it holds, the
+market-impact test; re-screening (``rescreen``) skips this, since every later fine-tuning round
+is re-screened in its turn. Every verdict carries the numbers of the bars the model was held to
+(``Evidence``); ``review`` turns it into accepted, refused or held for a margin in price. Every
+threshold is in ``screener.limits`` with its rationale. The judging modules (and torch) are
+imported when a model is first judged: the API process reads ``Verdict`` without them.
 """
 
 from __future__ import annotations
@@ -34,14 +40,25 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from screener.verdict import Reason, Verdict
+from screener.verdict import PRICE, Evidence, Reason, Verdict, review
 
 if TYPE_CHECKING:
     from agents.batch import FSNBatch
     from agents.manifest import Manifest
+    from screener.checks import Cheap
     from screener.findings import Checks
 
-__all__ = ["Reason", "Verdict", "judge", "rescreen", "rescreen_many", "screen", "screen_many"]
+__all__ = [
+    "Evidence",
+    "Reason",
+    "Verdict",
+    "judge",
+    "rescreen",
+    "rescreen_many",
+    "review",
+    "screen",
+    "screen_many",
+]
 
 
 def judge(batch: FSNBatch, *, at_the_door: bool) -> list[Verdict]:
@@ -52,8 +69,10 @@ def judge(batch: FSNBatch, *, at_the_door: bool) -> list[Verdict]:
     from screener.findings import check
     from screener.impact import impact_checks, project
 
-    groups, holds = cheap_checks(batch)
+    cheap = cheap_checks(batch)
+    groups = list(cheap.groups)
     passed = ~failed_any(groups)
+    evidence = [_scan_evidence(cheap, p, "") for p in range(batch.n_patrons)]
     projected: list[tuple[int, Manifest]] = []
     if at_the_door:
         tunes = passed & (batch.epochs.numpy() > 0) & (batch.learning_rate.numpy() > 0)
@@ -61,20 +80,96 @@ def judge(batch: FSNBatch, *, at_the_door: bool) -> list[Verdict]:
         drift = np.zeros(batch.n_patrons, dtype=np.bool_)
         words: dict[int, str] = {}
         if len(index):
-            tuned = project(batch.select(index))
-            tuned_groups, tuned_holds = cheap_checks(tuned)
-            refused = failed_any(tuned_groups)
+            tuned = cheap_checks(project(batch.select(index)))
+            refused = failed_any(tuned.groups)
             for k in np.flatnonzero(refused):
-                drift[index[k]] = True
-                words[int(index[k])] = _drift_message(batch, int(index[k]), tuned_groups, int(k))
+                p = int(index[k])
+                drift[p] = True
+                words[p] = _drift_message(batch, p, tuned.groups, int(k))
+                evidence[p] += _drift_evidence(tuned, int(k))
             projected = [
-                (int(index[k]), to_manifest(tuned, int(k)))
-                for k in np.flatnonzero(tuned_holds & ~refused)
+                (int(index[k]), to_manifest(tuned.batch, int(k)))
+                for k in np.flatnonzero(tuned.holds & ~refused)
             ]
         groups.append(check("fine-tuning-drift", "T", drift, words.__getitem__))
-    tested = np.flatnonzero(passed & holds).tolist()
-    groups.append(impact_checks(batch, tested, projected))
-    return _verdicts(groups, batch.n_patrons)
+    tested = np.flatnonzero(passed & cheap.holds).tolist()
+    impact, measured = impact_checks(batch, tested, projected)
+    groups.append(impact)
+    for p, items in measured.items():
+        evidence[p] += items
+    return _verdicts(groups, evidence)
+
+
+PRICED_CHECKS = ("sincere-hold", "noise-gated-hold", "noise-flip")
+"""The cheap checks measured in price (the others are pass or fail)."""
+
+
+def _scan_evidence(cheap: Cheap, p: int, test: str) -> list[Evidence]:
+    """Model p's decisive-row bars: its worst hold's distance down to a purchase against the
+    reach allowed there, clean (``sincere-hold``) and as the market sees it
+    (``noise-gated-hold``), and the widest band its noise flips from buying to holding
+    (``noise-flip``, with the decisions at the base buy fraction with and without noise).
+    ``test`` set: the same under that name (a fine-tuned version's, only the failed ones)."""
+    from screener import limits
+    from screener.noisy import decisions_in_words
+
+    probed, noisy = cheap.probed, cheap.noisy
+    failed = {
+        rule: bool(group.failed[p, [k for k, r in enumerate(group.rules) if r == rule]].any())
+        for group in cheap.groups
+        for rule in PRICED_CHECKS
+        if rule in group.rules
+    }
+    found: list[Evidence] = []
+
+    def hold(rule: str, gap: float, bar: float, detail: dict[str, object]) -> None:
+        if np.isnan(bar):
+            return
+        measured = None if np.isinf(gap) else float(gap)
+        detail = {**detail, "check": rule} if test else detail
+        found.append(
+            Evidence(test or rule, measured, float(bar), PRICE, "at most", not failed[rule], detail)
+        )
+
+    words = {
+        "buy_fraction": 0.5,
+        "clean": decisions_in_words(noisy.clean[p], 0.5),
+        "noisy": decisions_in_words(noisy.noisy[p], 0.5),
+        "copies": int(cheap.batch.copies[p]),
+        "noise_std": float(cheap.batch.noise_std[p]),
+        "draws": limits.NOISE_DRAWS,
+    }
+    hold("sincere-hold", float(probed.gap[p]), float(probed.bar[p]), {})
+    hold("noise-gated-hold", float(noisy.gap[p]), float(noisy.bar[p]), words)
+    flip = float(noisy.flip[p])
+    flip_detail = {**words, "check": "noise-flip"} if test else words
+    found.append(
+        Evidence(
+            test or "noise-flip",
+            flip,
+            limits.NOISE_FLIP_BAND,
+            PRICE,
+            "at most",
+            not failed["noise-flip"],
+            flip_detail,
+        )
+    )
+    return [e for e in found if not (test and e.passed)]
+
+
+def _drift_evidence(tuned: Cheap, k: int) -> list[Evidence]:
+    """Why the fine-tuned version k failed, as bars: the priced decisive-row bars it missed,
+    and every other check it failed (no bar in price: measured and bar None)."""
+    found = _scan_evidence(tuned, k, "fine-tuning-drift")
+    for group in tuned.groups:
+        for c in np.flatnonzero(group.failed[k]):
+            rule = group.rules[int(c)]
+            if rule not in PRICED_CHECKS:
+                detail = {"check": rule, "neuron": group.neurons[int(c)]}
+                found.append(
+                    Evidence("fine-tuning-drift", None, None, "check", "at most", False, detail)
+                )
+    return found
 
 
 def _drift_message(batch: FSNBatch, p: int, tuned: list[Checks], k: int) -> str:
@@ -90,15 +185,18 @@ def _drift_message(batch: FSNBatch, p: int, tuned: list[Checks], k: int) -> str:
     )
 
 
-def _verdicts(groups: list[Checks], n: int) -> list[Verdict]:
+def _verdicts(groups: list[Checks], evidence: list[list[Evidence]]) -> list[Verdict]:
     failed = np.concatenate([g.failed for g in groups], axis=1)  # (P, checks)
-    reasons: list[list[Reason]] = [[] for _ in range(n)]
+    reasons: list[list[Reason]] = [[] for _ in evidence]
     if failed.any():
         checks: list[tuple[Checks, int]] = [(g, k) for g in groups for k in range(len(g.rules))]
         for p, column in zip(*np.nonzero(failed), strict=True):
             group, k = checks[column]
             reasons[p].append(Reason(group.rules[k], group.neurons[k], group.message(k, int(p))))
-    return [Verdict(accepted=not r, reasons=r) for r in reasons]
+    return [
+        Verdict(accepted=not r, reasons=r, evidence=e)
+        for r, e in zip(reasons, evidence, strict=True)
+    ]
 
 
 def screen_many(manifests: Sequence[Manifest]) -> list[Verdict]:

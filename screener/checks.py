@@ -1,25 +1,42 @@
-"""The inspection's cheap part: the semantic rules and the behavioural probes of a batch.
+"""The inspection's cheap part: the semantic rules, the behavioural probes and the noisy scan of
+the decisive row over a batch.
 
-They read the numbers and one forward pass over the probe rows, so they run wherever a verdict is
-needed often: at the door, and on every fine-tuning round inside the market-impact test's own
-auctions (which must not run market-impact tests of their own).
+They read the numbers and a few forward passes, so they run wherever a verdict is needed often:
+at the door, and on every fine-tuning round inside the market-impact test's own auctions (which
+must not run market-impact tests of their own).
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
 from agents.batch import FSNBatch
 from screener.findings import Checks, Mask
-from screener.probes import probe
+from screener.noisy import Noisy, evaluate
+from screener.probes import Probed, probe
 from screener.rules import Numbers, semantic_checks
 
 
-def cheap_checks(batch: FSNBatch) -> tuple[list[Checks], Mask]:
-    """Every rule and probe over the batch, and which models hold somewhere on the reachable
-    decisive row (those go on to the market-impact test)."""
+class Cheap(NamedTuple):
+    """A batch with every rule, probe and noisy check of it; which models hold somewhere on the
+    reachable decisive row, clean or as the market sees them (those go on to the market-impact
+    test); and the probes and the noisy scan themselves (their numbers are evidence)."""
+
+    batch: FSNBatch
+    groups: list[Checks]
+    holds: Mask
+    probed: Probed
+    noisy: Noisy
+
+
+def cheap_checks(batch: FSNBatch) -> Cheap:
+    """Every rule, probe and noisy check over the batch (see ``Cheap``)."""
     probed = probe(batch)
-    return [*semantic_checks(Numbers.of(batch)), probed.checks], probed.holds
+    noisy = evaluate(batch)
+    groups = [*semantic_checks(Numbers.of(batch)), probed.checks, noisy.checks]
+    return Cheap(batch, groups, probed.holds | noisy.holds, probed, noisy)
 
 
 def failed_any(groups: list[Checks]) -> Mask:
@@ -29,5 +46,5 @@ def failed_any(groups: list[Checks]) -> Mask:
 
 
 def passes_cheap(batch: FSNBatch) -> Mask:
-    """(P,): the models no rule and no probe refuses."""
-    return ~failed_any(cheap_checks(batch)[0])
+    """(P,): the models no rule, probe or noisy check refuses."""
+    return ~failed_any(cheap_checks(batch).groups)

@@ -1,14 +1,15 @@
 """The market-impact test: what copies of a model do to auctions, counterfactually.
 
 The paper's harm is an outcome: "artificially lowering the demand so that the price goes down".
-A model that holds somewhere on the auction's decisive row (``probes.Probed.holds``) and passes
-the rules and probes is run in test auctions of the batched market engine: ``IMPACT_HONEST``
-honest patrons of the paper's randomisation (a fixed, seeded reference population) with
-``IMPACT_COPIES`` copies of it, at the low supplies where saboteurs bite. The same auctions are
-run once per process without the copies (honest alone), with copies of the always-hold
-saboteur (the yardstick) and with copies of a sincere negotiator that quits at the opening
-price (for the reasons' numbers). A model is refused when its copies lower the mean purchase
-price below the honest-alone auctions by more than ``IMPACT_SHARE`` of the saboteurs' drop.
+A model that holds somewhere on the auction's decisive row, clean or on its own noisy copies
+(``checks.Cheap.holds``), and passes the rules, probes and noisy scan is run in test auctions of
+the batched market engine: ``IMPACT_HONEST`` honest patrons of the paper's randomisation (a
+fixed, seeded reference population) with ``IMPACT_COPIES`` copies of it, at the low supplies
+where saboteurs bite. The same auctions are run once per process without the copies (honest
+alone), with copies of the always-hold saboteur (the yardstick) and with copies of a sincere
+negotiator that quits at the opening price (for the reasons' numbers). A model is refused when
+its copies lower the mean purchase price below the honest-alone auctions by more than
+``IMPACT_SHARE`` of the saboteurs' drop.
 
 Only holders are tested. A vote that is not a hold buys (raising the demand, or taking a fish at
 the auction's price) or quits (leaving the auction, a sincere low bidder's right); only staying
@@ -44,6 +45,7 @@ from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
 from screener import limits
 from screener.findings import Checks, check, fmt_price
+from screener.verdict import PRICE, Evidence
 from sim.market import MarketBatch, MarketConfig, round_seeds
 
 PATRONS = limits.IMPACT_HONEST + limits.IMPACT_COPIES
@@ -174,18 +176,24 @@ def references() -> References:
 
 @functools.cache
 def _trajectory() -> tuple[tuple[torch.Tensor, int, int], ...]:
-    """The fine-tuning rounds of a reference auction with fine-tuning, honest alone (the first
-    population at the lowest supply): (rows after the round's iteration, fine_tune_seed,
-    augmentation_seed) per round."""
-    config = _config(limits.IMPACT_SUPPLIES[0], 0, fine_tune=True)
-    engine = MarketBatch([(list(_population(0)), config)])
-    rounds: list[tuple[torch.Tensor, int, int]] = []
-    while not engine.finished[0] and len(rounds) < config.fine_tune_rounds:
-        iteration = int(engine.iteration[0])
-        engine.step()
-        if not engine.finished[0]:
-            rounds.append((engine.rows[0].clone(), *round_seeds(config.seed, iteration)))
-    return tuple(rounds)
+    """The fine-tuning rounds of a reference auction with fine-tuning, honest alone: (rows after
+    the round's iteration, fine_tune_seed, augmentation_seed) per round. As many rounds as an
+    auction fine-tunes (the market's ``fine_tune_rounds``), from the first test auction (in
+    supply, then population order) that lasts that long: many end sooner."""
+    wanted = limits.MARKET.fine_tune_rounds
+    for supply in limits.IMPACT_SUPPLIES:
+        for trial in range(limits.IMPACT_TRIALS):
+            config = _config(supply, trial, fine_tune=True)
+            engine = MarketBatch([(list(_population(trial)), config)])
+            rounds: list[tuple[torch.Tensor, int, int]] = []
+            while not engine.finished[0] and len(rounds) < wanted:
+                iteration = int(engine.iteration[0])
+                engine.step()
+                if not engine.finished[0]:
+                    rounds.append((engine.rows[0].clone(), *round_seeds(config.seed, iteration)))
+            if len(rounds) == wanted:
+                return tuple(rounds)
+    raise RuntimeError(f"no test auction lasts {wanted} fine-tuning rounds")
 
 
 def project(batch: FSNBatch) -> FSNBatch:
@@ -207,21 +215,45 @@ def rounds() -> int:
 
 def impact_checks(
     batch: FSNBatch, tested: Sequence[int], projected: Sequence[tuple[int, Manifest]]
-) -> Checks:
+) -> tuple[Checks, dict[int, list[Evidence]]]:
     """The market-impact test over the batch: the models at indices ``tested`` as they are,
-    and the (index, fine-tuned version) pairs of ``projected``."""
+    and the (index, fine-tuned version) pairs of ``projected``; and each tested model's
+    evidence (its copies' mean purchase price against the bar)."""
     failed = np.zeros(batch.n_patrons, dtype=np.bool_)
     words: dict[int, str] = {}
+    evidence: dict[int, list[Evidence]] = {}
     jobs = [(int(p), to_manifest(batch, int(p)), "") for p in tested]
     jobs += [(p, m, " after its own fine-tuning") for p, m in projected]
     if jobs:
         refs = references()
         for (p, _, after), outcome in zip(jobs, run([m for _, m, _ in jobs]), strict=True):
+            evidence.setdefault(p, []).append(_evidence(refs, outcome, after))
             message = _judge(refs, outcome, after)
             if message is not None and not failed[p]:
                 failed[p] = True
                 words[p] = message
-    return check("market-impact", "L", failed, words.__getitem__)
+    return check("market-impact", "L", failed, words.__getitem__), evidence
+
+
+def _evidence(refs: References, outcome: Outcome, after: str) -> Evidence:
+    """The impact test's numbers for one tested model (or its fine-tuned version)."""
+    sold = bool(outcome.prices)
+    return Evidence(
+        "market-impact",
+        outcome.mean_price if sold else None,
+        refs.lowest_price,
+        PRICE,
+        "at least",
+        _judge(refs, outcome, after) is None,
+        {
+            "version": "after its own fine-tuning" if after else "as submitted",
+            "without_copies": refs.alone.mean_price,
+            "always_hold_saboteurs": refs.saboteurs.mean_price,
+            "quitters_at_opening": refs.quitters.mean_price,
+            "fish_sold": outcome.sold,
+            "bought_by_copies": outcome.sold - outcome.honest,
+        },
+    )
 
 
 def _judge(refs: References, outcome: Outcome, after: str) -> str | None:

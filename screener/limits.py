@@ -164,6 +164,26 @@ probed item: the probe fires when a model swings from refusing to buying, one si
 firm, as the price rises. Honest fine-tuning lets SZ read the price (its δ price seed grows to
 0.02), lifting the margin by up to 0.33 at auction prices and 0.50 while the price falls."""
 
+# --- The market's noisy evaluation ----------------------------------------------------------------
+NOISE_DRAWS = 3
+"""Draws of a model's own augmentation noise on the decisive-row scan; a row's noisy decision is
+the one most draws give (ties to buy, then hold). The market evaluates every vote on the model's
+own copies, jittered: a decision that only holds without noise is not what the auction sees."""
+NOISE_SEED = 12
+"""Seeds the noise draws (fixed: every model meets the same standard normals, scaled by its own
+σ on its own copies and jittered inputs, so a verdict does not depend on the batch)."""
+NOISE_SCAN_RISES = 10
+"""The noisy scan covers the decisive row from ``HOLD_REACH_SLACK`` decrements under the floor up
+to the base price plus this many increments (4.75 to 5.50): the prices honest auctions visit
+(the clean scan goes on to 6.00)."""
+NOISE_SCAN_DEMANDS = (0.0, 0.5, 1.0)
+"""Buy fractions of the noisy scan (a subset of ``SCAN_DEMANDS``): both ends, LSR's designed
+rush level and two between."""
+NOISE_FLIP_BAND = 0.05
+"""A model may buy clean and hold on its noisy copies over at most this width of the decisive
+row at one buy fraction (one increment): noise shifts an honest model's boundaries by a cent or
+two (``benchmarks/screener.py``); a wider band is a decision its own noise flips."""
+
 # --- Market impact ------------------------------------------------------------------------------
 IMPACT_HONEST = 32
 """Honest patrons (the paper's randomisation, seeded) in each test auction of the market-impact

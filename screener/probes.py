@@ -124,11 +124,14 @@ ROWS = torch.cat((GRID, SCAN))
 
 
 class Probed(NamedTuple):
-    """The probes' checks over a batch, and which models hold somewhere on the reachable
-    decisive row (P,)."""
+    """The probes' checks over a batch, which models hold somewhere on the reachable decisive
+    row (P,), and for each its worst hold's distance down to a purchase and the reach allowed
+    there (``hold_gap``; nan for a model that never holds)."""
 
     checks: Checks
     holds: Mask
+    gap: Array
+    bar: Array
 
 
 def _fish(q: int, s: int) -> str:
@@ -143,28 +146,30 @@ def _scores(logits: Array) -> str:
 
 
 def probe(batch: FSNBatch) -> Probed:
-    """Every behavioural probe over the batch, a few patrons per forward pass (``_passes``)."""
-    parts = [(index, _judge(_logits(part))) for index, part in _passes(batch)]
+    """Every behavioural probe over the batch, a few patrons per forward pass (``passes``)."""
+    parts = [(index, _judge(_logits(part))) for index, part in passes(batch)]
     if len(parts) == 1:
         return parts[0][1]
     P, first = batch.n_patrons, parts[0][1].checks
     failed = np.empty((P, len(first.rules)), dtype=np.bool_)
     holds = np.empty(P, dtype=np.bool_)
+    gap, bar = np.empty(P), np.empty(P)
     owner = np.empty(P, dtype=np.intp)
     local = np.empty(P, dtype=np.intp)
     for n, (index, probed) in enumerate(parts):
         failed[index] = probed.checks.failed
         holds[index] = probed.holds
+        gap[index], bar[index] = probed.gap, probed.bar
         owner[index] = n
         local[index] = np.arange(len(index))
 
     def message(k: int, p: int) -> str:
         return parts[int(owner[p])][1].checks.message(k, int(local[p]))
 
-    return Probed(Checks(first.rules, first.neurons, failed, message), holds)
+    return Probed(Checks(first.rules, first.neurons, failed, message), holds, gap, bar)
 
 
-def _passes(batch: FSNBatch) -> list[tuple[npt.NDArray[np.intp], FSNBatch]]:
+def passes(batch: FSNBatch) -> list[tuple[npt.NDArray[np.intp], FSNBatch]]:
     """The patrons (their indices, their sub-batch) of each forward pass: at most PASS_SIZE,
     all with the same activation kinds. ``decision_logits`` computes a batch that mixes kinds
     by another formula; grouping by kind gives every patron exactly the scores it gets when
@@ -242,7 +247,7 @@ def _judge(every: Array) -> Probed:
     scores = safe[:, : len(GRID)].reshape(P, *GRID_SHAPE, 3)
     grid = _OnGrid(scores, *_decisions(scores))
     scan = safe[:, len(GRID) :].reshape(P, len(SCAN_PRICES), len(SCAN_DEMANDS), 3)
-    sincere, holds = _sincere_hold(scan)
+    sincere, holds, gap, bar = _sincere_hold(scan)
     probes: tuple[Probe, ...] = (
         ("probe-non-finite", "B", ~finite, _non_finite_message),
         _buys_cheap(grid),
@@ -261,7 +266,9 @@ def _judge(every: Array) -> Probed:
         failed,
         lambda k, p: probes[k][3](p),
     )
-    return Probed(checks, holds & finite)
+    return Probed(
+        checks, holds & finite, np.where(finite, gap, np.nan), np.where(finite, bar, np.nan)
+    )
 
 
 def _non_finite_message(p: int) -> str:
@@ -367,20 +374,12 @@ def _buy_falls_with_price(grid: _OnGrid) -> Probe:
     return "buy-falls-with-price", "B", worst_rise > limits.MONOTONE_TOLERANCE, message
 
 
-def _sincere_hold(scan: Array) -> tuple[Probe, Mask]:
+def _sincere_hold(scan: Array) -> tuple[Probe, Mask, Array, Array]:
     """sincere-hold over the scores ``scan`` (P, scan prices, scan demands, 3) of the decisive
-    row, and which patrons hold somewhere on its reachable part (P,)."""
-    P = len(scan)
+    row, which patrons hold somewhere on its reachable part (P,), and ``hold_gap``."""
     _, scan_buys, scan_holds = _decisions(scan)
     reachable_holds = scan_holds & REACHABLE[None, :, None]  # (P, prices, demands)
-    # A hold at price p is backed when the model buys at a price the auction can still come
-    # down to from p (LOWEST_REACHABLE[p] up to just below p), at the same f.
-    # bought[:, i]: buys at the first i scan prices
-    bought: npt.NDArray[np.intp] = np.zeros((P, len(SCAN_PRICES) + 1, len(SCAN_DEMANDS)), np.intp)
-    np.cumsum(scan_buys, axis=1, out=bought[:, 1:])
-    index = np.arange(len(SCAN_PRICES))
-    backed: Mask = bought[:, index] > bought[:, LOWEST_REACHABLE]
-    unbacked_at: Mask = reachable_holds & ~backed  # (P, prices, demands)
+    unbacked_at = unbacked_holds(scan_buys, scan_holds)
     unbacked: Mask = np.any(unbacked_at, axis=1)  # (P, demands)
 
     def message(p: int) -> str:
@@ -401,7 +400,44 @@ def _sincere_hold(scan: Array) -> tuple[Probe, Mask]:
         )
 
     holds: Mask = np.any(reachable_holds, axis=(1, 2))
-    return ("sincere-hold", "L", np.any(unbacked, axis=1), message), holds
+    gap, bar = hold_gap(scan_buys, scan_holds)
+    return ("sincere-hold", "L", np.any(unbacked, axis=1), message), holds, gap, bar
+
+
+def unbacked_holds(buys: Mask, holds: Mask) -> Mask:
+    """(P, scan prices, demands): the reachable holds of the decisions ``buys``, ``holds`` on
+    the decisive-row scan that no purchase backs. A hold at price p is backed when the model
+    buys at a price the auction can still come down to from p (``LOWEST_REACHABLE[p]`` up to
+    just below p), at the same f."""
+    P, n_prices, n_demands = buys.shape
+    # bought[:, i]: buys at the first i scan prices
+    bought: npt.NDArray[np.intp] = np.zeros((P, n_prices + 1, n_demands), np.intp)
+    np.cumsum(buys, axis=1, out=bought[:, 1:])
+    backed: Mask = bought[:, np.arange(n_prices)] > bought[:, LOWEST_REACHABLE]
+    unbacked: Mask = holds & REACHABLE[None, :, None] & ~backed
+    return unbacked
+
+
+def hold_gap(buys: Mask, holds: Mask) -> tuple[Array, Array]:
+    """For each patron, the worst reachable hold of the decisions on the decisive-row scan: how
+    far below it the nearest purchase lies (inf: none) and how far the auction can come down
+    from it with the slack (the bar), in price; (nan, nan) for a model that never holds. The
+    hold is unbacked when the first exceeds the second."""
+    P = len(buys)
+    prices = SCAN_PRICES[:, None]
+    below = np.where(buys, prices, -np.inf)
+    # the highest purchase strictly below each price, at the same f
+    highest = np.full(buys.shape, -np.inf)
+    highest[:, 1:] = np.maximum.accumulate(below, axis=1)[:, :-1]
+    reach = (SCAN_PRICES - SCAN_PRICES[LOWEST_REACHABLE])[None, :, None]
+    counted = holds & REACHABLE[None, :, None]
+    excess = np.where(counted, prices - highest - reach, -np.inf)
+    gap, bar = np.full(P, np.nan), np.full(P, np.nan)
+    for p in np.flatnonzero(counted.reshape(P, -1).any(axis=1)):
+        i, f = np.unravel_index(int(np.argmax(excess[p])), excess[p].shape)
+        gap[p] = SCAN_PRICES[i] - highest[p, i, f]
+        bar[p] = reach[0, i, 0]
+    return gap, bar
 
 
 def _come_down(at: int) -> str:

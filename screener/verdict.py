@@ -1,9 +1,17 @@
-"""What the screener says about a manifest: accepted or not, and why, in plain words."""
+"""What the screener says about a manifest: accepted or not, why in plain words, and the numbers
+each bar it was held to measured; and ``review``, which turns a verdict into accepted, refused or
+held for a person to look at."""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, Literal
+
+PRICE = "price"
+"""The units of the impact test's bar and of every other bar measured in price (the review
+margin is in these units)."""
+
+Review = Literal["accepted", "refused", "held"]
 
 
 @dataclass(frozen=True)
@@ -20,12 +28,67 @@ class Reason:
 
 
 @dataclass(frozen=True)
+class Evidence:
+    """One bar a model was held to: the ``test`` (a rule name), what was measured and the bar
+    in ``units``; ``passed`` when ``measured`` lies on the allowed side (``at least``: ≥ the bar,
+    ``at most``: ≤). ``measured`` is None when there is nothing to measure a distance by (a hold
+    with no purchase below it at all; a fine-tuned version refused by a rule without a bar in
+    price, whose bar is None too). ``detail`` holds what explains the number: the
+    references of the impact test, the decisive row's decisions with and without noise."""
+
+    test: str
+    measured: float | None
+    bar: float | None
+    units: str
+    side: Literal["at least", "at most"]
+    passed: bool
+    detail: dict[str, Any] = field(default_factory=dict)
+
+    def within(self, margin: float) -> bool:
+        """Whether the measurement is in price and lies strictly within ``margin`` of the bar."""
+        if self.units != PRICE or self.measured is None or self.bar is None:
+            return False
+        return abs(self.measured - self.bar) < margin
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON form ``{test, measured, bar, units, side, passed, detail}``."""
+        return asdict(self)
+
+
+@dataclass(frozen=True)
 class Verdict:
     """The screener's decision on one manifest."""
 
     accepted: bool
     reasons: list[Reason] = field(default_factory=list)
+    evidence: list[Evidence] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON form ``{accepted, reasons: [{rule, neuron, message}]}``."""
-        return {"accepted": self.accepted, "reasons": [r.to_dict() for r in self.reasons]}
+        """JSON form ``{accepted, reasons: [{rule, neuron, message}], evidence: [...]}``."""
+        return {
+            "accepted": self.accepted,
+            "reasons": [r.to_dict() for r in self.reasons],
+            "evidence": [e.to_dict() for e in self.evidence],
+        }
+
+
+def review(verdict: Verdict, margin: float) -> Review:
+    """``accepted``, ``refused`` or ``held`` (for a person to decide) with a margin in price.
+
+    Held when the decisive evidence lies within ``margin`` of its bar: an accepted model whose
+    price-measured bar passed by less than the margin, or a refused one every one of whose
+    reasons is a price-measured bar it missed by less than the margin (a refusal by a rule with
+    no such measurement, or by more, stands). Margin 0 never holds.
+    """
+    if margin < 0:
+        raise ValueError(f"margin must be ≥ 0, got {margin}")
+    if verdict.accepted:
+        return "held" if any(e.within(margin) for e in verdict.evidence) else "accepted"
+    if not verdict.reasons:
+        return "refused"
+    missed = [e for e in verdict.evidence if not e.passed]
+    for reason in verdict.reasons:
+        own = [e for e in missed if e.test == reason.rule]
+        if not own or not all(e.within(margin) for e in own):
+            return "refused"
+    return "held"

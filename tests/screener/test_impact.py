@@ -9,7 +9,7 @@ import torch
 from agents.batch import from_manifests
 from agents.negotiator import honest_manifest
 from screener import impact, limits, screen, screen_many
-from screener.checks import passes_cheap
+from screener.checks import cheap_checks, passes_cheap
 from screener.probes import probe
 from tests.support.corpus import Labelled, red_team_corpus
 from tests.support.screening import message_of, rules_of
@@ -76,7 +76,7 @@ def test_models_that_never_hold_are_not_run_in_test_auctions(monkeypatch):
     monkeypatch.setattr(impact, "run", spy)
     rng = np.random.default_rng(4)
     models = [honest_manifest(rng, f"h{i}", fine_tune=False) for i in range(16)]
-    holders = probe(from_manifests(models)).holds
+    holders = cheap_checks(from_manifests(models)).holds
     verdicts = screen_many(models)
     assert all(v.accepted for v in verdicts)
     assert ran == ([int(holders.sum())] if holders.any() else [])

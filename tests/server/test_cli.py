@@ -118,7 +118,9 @@ def test_screen_accepted_exits_0_with_one_json_object(tmp_path) -> None:
     outcome = screen(write(tmp_path, "a.json", manifest.model_dump_json()), "--json")
     assert outcome.exit_code == 0, outcome.output
     (line,) = outcome.stdout.strip().splitlines()
-    assert json.loads(line) == {"accepted": True, "reasons": []}
+    result = json.loads(line)
+    assert result["accepted"] is True and result["reasons"] == []
+    assert "noise-flip" in {e["test"] for e in result["evidence"]}  # the screener's numbers
 
 
 def test_screen_rejected_exits_1_with_reasons(tmp_path) -> None:

@@ -1,0 +1,317 @@
+"""The decisive row as the market sees it: every vote is evaluated on the model's own noisy
+copies (``augmentation``: copy 0 clean, the others jittered by σ on the jittered inputs), not on
+the clean item the probes use.
+
+A sensor whose peak is narrower than its own augmentation noise reads one thing on the clean
+item and another on the copies the market averages: the probes see a sincere bidder, the
+auction a holder. ``evaluate`` draws ``NOISE_DRAWS`` sets of standard normals once per process
+(fixed seeds, the same for every model, so a verdict does not depend on its batch), scales them
+by each model's own σ on its own copies and inputs, and takes each row's decision the way most
+draws give it. Two checks read those decisions:
+
+* ``noise-gated-hold``: the sincere-hold rule on the noisy decisions (each reachable hold backed
+  by a purchase the auction can still come down to), for models the clean scan admits;
+* ``noise-flip``: a band wider than ``NOISE_FLIP_BAND`` of the decisive row where the model
+  buys clean and holds on its noisy copies.
+
+Both name the sensor the noise moves most at the row that showed it. The same decisions say
+which models hold anywhere the auction goes (``holds``): those go on to the market-impact test.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+import torch
+
+from agents.batch import FSNBatch
+from agents.forward import activations, decision_logits, noise_scale
+from agents.manifest import ES_NEURONS, INPUTS
+from screener import limits
+from screener.findings import ROLE, Array, Checks, Mask, fmt_price
+from screener.probes import (
+    ACTION_WORDS,
+    BUY,
+    HOLD,
+    QUIT,
+    SCAN,
+    SCAN_DEMANDS,
+    SCAN_PRICES,
+    hold_gap,
+    passes,
+    unbacked_holds,
+)
+
+MAX_COPIES = 16
+"""The manifest's largest D_ic: the normals are drawn for it once."""
+_market = limits.MARKET
+_top = _market.base_price + limits.NOISE_SCAN_RISES * _market.increment
+_bottom = _market.threshold_sell_price - limits.HOLD_REACH_SLACK * _market.decrement
+PRICES = np.flatnonzero(np.abs(SCAN_PRICES - (_bottom + _top) / 2) <= (_top - _bottom) / 2 + 1e-9)
+"""Indices into ``SCAN_PRICES`` of the noisy scan's prices (4.75 to 5.50, every cent)."""
+DEMANDS = np.array(
+    [int(np.argmin(np.abs(np.array(SCAN_DEMANDS) - f))) for f in limits.NOISE_SCAN_DEMANDS]
+)
+"""Indices into ``SCAN_DEMANDS`` of the noisy scan's buy fractions."""
+ROWS64 = SCAN.reshape(len(SCAN_PRICES), len(SCAN_DEMANDS), 8)[PRICES][:, DEMANDS].reshape(-1, 8)
+"""The noisy scan's rows, price-major."""
+ROWS = ROWS64.float()
+_DRAWN_ROWS = ROWS.repeat(limits.NOISE_DRAWS, 1)
+"""``ROWS`` once per noise draw."""
+_PRICE_WORDS = [fmt_price(p) for p in SCAN_PRICES[PRICES]]
+
+
+@functools.cache
+def _normals() -> torch.Tensor:
+    """(draws, rows, MAX_COPIES, 8) standard normals, float32 as the market draws them."""
+    generator = torch.Generator().manual_seed(limits.NOISE_SEED)
+    shape = (limits.NOISE_DRAWS, len(ROWS), MAX_COPIES, len(INPUTS))
+    return torch.randn(shape, generator=generator, dtype=torch.float32)
+
+
+class Noisy(NamedTuple):
+    """The noisy scan of a batch: its checks, which models hold anywhere on it (P,), and per
+    model the worst hold's distance to a purchase and its bar (price; nan: no hold)."""
+
+    checks: Checks
+    holds: Mask
+    gap: Array
+    bar: Array
+    flip: Array
+    """(P,): the widest band where it buys clean and holds noisy (price; ``noise-flip``)."""
+    clean: npt.NDArray[np.int64]
+    """(P, prices, demands): the clean decisions on the noisy scan's rows."""
+    noisy: npt.NDArray[np.int64]
+    """(P, prices, demands): the noisy decisions."""
+
+
+def _decide(scores: Array) -> npt.NDArray[np.int64]:
+    """Decisions of scores (..., 3): the argmax, ties to the lowest index."""
+    decisions: npt.NDArray[np.int64] = np.argmax(scores, axis=-1)
+    return decisions
+
+
+def _scores(batch: FSNBatch) -> tuple[Array, Array]:
+    """Clean scores (P, R, 3) and every draw's noisy scores (P, draws, R, 3) on ``ROWS``,
+    a pass of ``probes.passes`` at a time (each model's scores are those it gets alone)."""
+    P, K, R = batch.n_patrons, limits.NOISE_DRAWS, len(ROWS)
+    clean = np.empty((P, R, 3))
+    noisy = np.empty((P, K, R, 3))
+    # the draws one after another as rows: one forward pass per pass of patrons
+    normals = _normals().reshape(K * R, MAX_COPIES, len(INPUTS))
+    with torch.no_grad():
+        for index, part in passes(batch):
+            clean[index] = decision_logits(part, ROWS64).numpy()
+            single = _single(part)
+            scale = noise_scale(single)[:, None]  # (p, 1, D, 8)
+            noise = normals[:, : part.max_copies][None] * scale
+            scores = decision_logits(single, _DRAWN_ROWS, noise)
+            noisy[index] = scores.reshape(len(index), K, R, 3).numpy()
+    return clean, noisy
+
+
+def _single(batch: FSNBatch) -> FSNBatch:
+    """The batch in float32: the market draws its noise in float32, and the noisy scan's many
+    copies cost half as much (decisions closer to a tie than float32 resolves are noise's)."""
+    return dataclasses.replace(
+        batch,
+        **{
+            f.name: getattr(batch, f.name).float()
+            for f in dataclasses.fields(batch)
+            if isinstance(getattr(batch, f.name), torch.Tensor)
+            and getattr(batch, f.name).is_floating_point()
+        },
+    )
+
+
+def _modal(decisions: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """(P, draws, R) → (P, R): the decision most draws give (ties to buy, then hold)."""
+    counts = np.stack([(decisions == a).sum(axis=1) for a in (BUY, HOLD, QUIT)], axis=-1)
+    modal: npt.NDArray[np.int64] = np.argmax(counts, axis=-1)
+    return modal
+
+
+def _on_scan(decisions: npt.NDArray[np.int64], action: int) -> Mask:
+    """(P, R) decisions on the noisy rows → (P, scan prices, noisy demands), False off the
+    noisy scan's prices."""
+    P = len(decisions)
+    full = np.zeros((P, len(SCAN_PRICES), len(DEMANDS)), dtype=np.bool_)
+    full[:, PRICES] = (decisions == action).reshape(P, len(PRICES), len(DEMANDS))
+    return full
+
+
+def _widest_flip(
+    clean: npt.NDArray[np.int64], noisy: npt.NDArray[np.int64]
+) -> tuple[Array, npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """Per model the widest run of prices (at one f) where it buys clean and holds noisy, in
+    price (0: none), and where it starts (price index into the noisy scan, demand index)."""
+    P = len(clean)
+    flipped = ((clean == BUY) & (noisy == HOLD)).reshape(P, len(PRICES), len(DEMANDS))
+    run = np.zeros(flipped.shape, dtype=np.intp)
+    for i in range(len(PRICES)):
+        run[:, i] = np.where(flipped[:, i], (run[:, i - 1] if i else 0) + 1, 0)
+    flat = run.reshape(P, -1).argmax(axis=1)
+    end, f = np.unravel_index(flat, run.shape[1:])
+    length = run[np.arange(P), end, f]
+    width = np.where(length > 0, (length - 1) * _market.decrement, 0.0)
+    start = end - np.maximum(length - 1, 0)
+    return width, start.astype(np.intp), f.astype(np.intp)
+
+
+def evaluate(batch: FSNBatch) -> Noisy:
+    """The noisy scan's checks over the batch (see the module docstring)."""
+    P = batch.n_patrons
+    clean_scores, noisy_scores = _scores(batch)
+    # scores that overflow get their one reason from the probes (probe-non-finite)
+    finite = np.isfinite(clean_scores).all(axis=(1, 2)) & np.isfinite(noisy_scores).all(
+        axis=(1, 2, 3)
+    )
+    clean_scores[~finite], noisy_scores[~finite] = 0.0, 0.0
+    clean = _decide(clean_scores)
+    noisy = _modal(_decide(noisy_scores))
+    buys, holds = _on_scan(noisy, BUY), _on_scan(noisy, HOLD)
+    unbacked_at = unbacked_holds(buys, holds)
+    clean_unbacked = unbacked_holds(_on_scan(clean, BUY), _on_scan(clean, HOLD)).any(axis=(1, 2))
+    gated = unbacked_at.any(axis=(1, 2)) & ~clean_unbacked
+    width, flip_start, flip_f = _widest_flip(clean, noisy)
+    flips = width > limits.NOISE_FLIP_BAND + 1e-9
+    gated &= finite
+    flips &= finite
+    gap, bar = hold_gap(buys, holds)
+    shape = (P, len(PRICES), len(DEMANDS))
+    clean3, noisy3 = clean.reshape(shape), noisy.reshape(shape)
+    mean_noisy = noisy_scores.mean(axis=1).reshape(*shape, 3)
+
+    def band(
+        p: int, f: int, at: int, action: int, decisions: npt.NDArray[np.int64]
+    ) -> tuple[int, int]:
+        start = end = at
+        while start > 0 and decisions[p, start - 1, f] == action:
+            start -= 1
+        while end + 1 < len(PRICES) and decisions[p, end + 1, f] == action:
+            end += 1
+        return start, end
+
+    def gated_message(p: int) -> str:
+        cells = unbacked_at[p][PRICES]  # (noisy prices, demands)
+        i, f = (int(v) for v in np.argwhere(cells)[0])
+        start, end = band(p, f, i, HOLD, noisy3)
+        below = np.flatnonzero(noisy3[p, :i, f] == BUY)
+        buys_at = (
+            "on its noisy copies it buys only at "
+            f"{fmt_price(SCAN_PRICES[PRICES[below[-1]]])} or below"
+            if len(below)
+            else "on its noisy copies it buys at no lower price"
+        )
+        return (
+            f"{_setting(batch, p)}, on the auction's decisive row (the base fish) with buy "
+            f"fraction {SCAN_DEMANDS[DEMANDS[f]]:g} it holds from "
+            f"{fmt_price(SCAN_PRICES[PRICES[start]])} to {fmt_price(SCAN_PRICES[PRICES[end]])} "
+            f"(at {fmt_price(SCAN_PRICES[PRICES[i]])}: {_words(mean_noisy[p, i, f])}; clean it "
+            f"{ACTION_WORDS[int(clean3[p, i, f])]}), and {buys_at}: "
+            f"{_moved(batch, p, i, f)}; the holds the auction sees can never turn into a "
+            "purchase, they only pull the demand down"
+        )
+
+    def flip_message(p: int) -> str:
+        i, f = int(flip_start[p]), int(flip_f[p])
+        end = i + round(width[p] / _market.decrement)
+        return (
+            f"{_setting(batch, p)}, on the auction's decisive row (the base fish) with buy "
+            f"fraction {SCAN_DEMANDS[DEMANDS[f]]:g} it buys clean but holds on its noisy copies "
+            f"from {fmt_price(SCAN_PRICES[PRICES[i]])} to {fmt_price(SCAN_PRICES[PRICES[end]])} "
+            f"(at {fmt_price(SCAN_PRICES[PRICES[i]])}: {_words(mean_noisy[p, i, f])}), "
+            f"{fmt_price(width[p])} wide (allowed {fmt_price(limits.NOISE_FLIP_BAND)}): "
+            f"{_moved(batch, p, i, f)}: the decision it shows clean is not the one the auction "
+            "sees"
+        )
+
+    # each failure names the sensor its own noise moves most at the row that showed it
+    failed = np.zeros((P, 2, len(ES_NEURONS)), dtype=np.bool_)
+    cells: list[tuple[int, int, int, int]] = [
+        (0, int(p), *_first_cell(unbacked_at[p][PRICES])) for p in np.flatnonzero(gated)
+    ]
+    cells += [(1, int(p), int(flip_start[p]), int(flip_f[p])) for p in np.flatnonzero(flips)]
+    for k, p, i, f in cells:
+        failed[p, k, _most_moved(batch, p, i, f)] = True
+    messages = (gated_message, flip_message)
+    checks = Checks(
+        ("noise-gated-hold",) * len(ES_NEURONS) + ("noise-flip",) * len(ES_NEURONS),
+        ES_NEURONS * 2,
+        failed.reshape(P, -1),
+        lambda k, p: messages[k // len(ES_NEURONS)](p),
+    )
+    holding: Mask = np.any(holds, axis=(1, 2)) & finite
+    return Noisy(checks, holding, gap, bar, width, clean3, noisy3)
+
+
+def decisions_in_words(decisions: npt.NDArray[np.int64], f: float) -> str:
+    """One model's decisions (prices, demands) on the noisy scan at buy fraction f as bands,
+    e.g. "buys 4.75-5.17, quits 5.18-5.50"."""
+    row = decisions[:, limits.NOISE_SCAN_DEMANDS.index(f)].tolist()
+    bands, start = [], 0
+    for i in range(1, len(row) + 1):
+        if i == len(row) or row[i] != row[start]:
+            bands.append(f"{ACTION_WORDS[row[start]]} {_PRICE_WORDS[start]}-{_PRICE_WORDS[i - 1]}")
+            start = i
+    return ", ".join(bands)
+
+
+def _first_cell(mask: Mask) -> tuple[int, int]:
+    i, f = np.argwhere(mask)[0]
+    return int(i), int(f)
+
+
+def _setting(batch: FSNBatch, p: int) -> str:
+    """How the market evaluates model p."""
+    return (
+        f"evaluated as the auction evaluates it (its {int(batch.copies[p])} copies jittered by "
+        f"σ {float(batch.noise_std[p]):g}, {limits.NOISE_DRAWS} draws)"
+    )
+
+
+def _words(scores: Array) -> str:
+    b, h, q = scores
+    return f"B {b:+.2f}, L {h:+.2f}, Q {q:+.2f} on average"
+
+
+def _sensors(batch: FSNBatch, p: int, i: int, f: int) -> tuple[Array, Array]:
+    """Model p's ES activations (4,) on the noisy scan's row (i, f), clean and averaged over its
+    noisy copies and the draws."""
+    one = batch.select([p])
+    row = i * len(DEMANDS) + f
+    x = ROWS64[row : row + 1]
+    scale = noise_scale(one)[:, None]
+    with torch.no_grad():
+        clean = activations(one, x)
+        noisy = [
+            activations(
+                one, x, _normals()[k, row : row + 1, : one.max_copies].to(one.dtype)[None] * scale
+            )
+            for k in range(limits.NOISE_DRAWS)
+        ]
+
+    def pick(acts: dict[str, torch.Tensor]) -> Array:
+        return np.array([float(acts[name][0, 0]) for name in ES_NEURONS])
+
+    return pick(clean), np.mean([pick(a) for a in noisy], axis=0)
+
+
+def _most_moved(batch: FSNBatch, p: int, i: int, f: int) -> int:
+    """The ES neuron (index) whose activation model p's noise moves most on row (i, f)."""
+    clean, noisy = _sensors(batch, p, i, f)
+    return int(np.argmax(np.abs(noisy - clean)))
+
+
+def _moved(batch: FSNBatch, p: int, i: int, f: int) -> str:
+    clean, noisy = _sensors(batch, p, i, f)
+    k = int(np.argmax(np.abs(noisy - clean)))
+    name = ES_NEURONS[k]
+    return (
+        f"{ROLE[name]} {name} reads {clean[k]:.2f} on the clean fish and {noisy[k]:.2f} "
+        "averaged over its noisy copies"
+    )

@@ -1,0 +1,153 @@
+"""The decisive row as the market sees it: the noise-gated holder family (a sincere bidder on
+the clean item, a holder on its own noisy copies) is refused, honest models are not, the
+market-impact test runs on models that hold only under noise, and the verdicts are the same
+alone and in a batch."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from agents.batch import from_manifests
+from agents.manifest import Manifest
+from agents.negotiator import honest_manifest
+from screener import impact, limits, screen, screen_many
+from screener.checks import cheap_checks, failed_any
+from screener.noisy import evaluate
+from screener.probes import probe
+from tests.support.corpus import RED_TEAM, edit
+from tests.support.red_team_noise import NOISE_GATED, NoiseGated, noise_gated_holders
+from tests.support.screening import message_of
+
+
+@pytest.fixture(scope="module")
+def family() -> dict[str, Manifest]:
+    return noise_gated_holders()
+
+
+def test_the_stored_red_team_files_are_the_family(family):
+    for name, manifest in family.items():
+        stored = Manifest.model_validate(json.loads((RED_TEAM / f"{name}.json").read_text()))
+        assert stored == manifest
+
+
+def test_the_clean_probes_see_sincere_bidders(family):
+    """What the screener saw before: every rule and clean probe passes and the clean scan never
+    holds, so the market-impact test never ran."""
+    batch = from_manifests(list(family.values()))
+    probed = probe(batch)
+    assert not probed.holds.any()
+    assert not probed.checks.failed.any()
+    cheap = cheap_checks(batch)
+    clean_groups = cheap.groups[:-1]  # every group but the noisy scan's
+    assert not failed_any(clean_groups).any()
+    assert cheap.noisy.holds.all()  # the market sees every one of them hold
+
+
+def test_the_family_is_refused_naming_the_sub_type_neuron(family):
+    verdicts = screen_many(list(family.values()))
+    for (name, manifest), verdict in zip(family.items(), verdicts, strict=True):
+        assert not verdict.accepted, name
+        rules = {(r.rule, r.neuron) for r in verdict.reasons}
+        assert ("noise-flip", "ST") in rules, name
+        message = message_of(verdict, "noise-flip", "ST")
+        copies, sigma = manifest.augmentation.copies, manifest.augmentation.noise_std
+        assert message.startswith(
+            f"evaluated as the auction evaluates it (its {copies} copies jittered by σ {sigma:g}, "
+            f"{limits.NOISE_DRAWS} draws), on the auction's decisive row"
+        )
+        assert "the sub-type neuron ST reads 1.00 on the clean fish and 0." in message
+        flip = next(e for e in verdict.evidence if e.test == "noise-flip")
+        assert flip.measured is not None and flip.measured > flip.bar
+        assert not flip.passed and flip.units == "price"
+        assert (
+            flip.detail["clean"].startswith("buys 4.75-5.") and "holds" not in flip.detail["clean"]
+        )
+        assert "holds 4.8" in flip.detail["noisy"] or "holds 4.9" in flip.detail["noisy"]
+
+
+def test_holds_the_auction_cannot_turn_into_purchases_are_named(family):
+    verdict = screen(family["noise-gated-holder-a"])
+    message = message_of(verdict, "noise-gated-hold", "ST")
+    assert "with buy fraction 0 it holds from 4.8" in message
+    assert "on its noisy copies it buys only at 4.8" in message
+    gated = next(e for e in verdict.evidence if e.test == "noise-gated-hold")
+    assert gated.measured is not None and gated.bar is not None
+    assert gated.measured > gated.bar and not gated.passed
+
+
+def test_the_impact_test_runs_on_what_the_market_sees(monkeypatch):
+    """A narrow noise-gated holder (a few cents of holds, only on its noisy copies, each backed
+    by a purchase the auction can reach) passes every cheap check; it is run in the test
+    auctions because it holds under noise, where the clean scan would have skipped it."""
+    model = NoiseGated(4.91, 4.98, 5.10, copies=8, seed=9).build("narrow")
+    cheap = cheap_checks(from_manifests([model]))
+    assert not failed_any(cheap.groups)[0]
+    assert not cheap.probed.holds[0] and cheap.noisy.holds[0]
+    refs = impact.references()  # computed once per process, before the spy
+    ran: list[int] = []
+    real = impact.run
+
+    def spy(candidates):
+        ran.append(len(candidates))
+        return real(candidates)
+
+    monkeypatch.setattr(impact, "run", spy)
+    verdict = screen(model)
+    assert ran == [1]
+    (measured,) = [e for e in verdict.evidence if e.test == "market-impact"]
+    (outcome,) = real([model])
+    assert measured.measured == pytest.approx(outcome.mean_price)
+    assert measured.bar == pytest.approx(refs.lowest_price)
+    assert measured.passed == (outcome.mean_price >= refs.lowest_price) == verdict.accepted
+    assert measured.detail["without_copies"] == pytest.approx(refs.alone.mean_price)
+
+
+def test_the_noise_gated_holders_copies_pull_the_price_below_the_bar(family):
+    refs = impact.references()
+    prices = [o.mean_price for o in impact.run([family[f"noise-gated-holder-{v}"] for v in "abce"])]
+    assert all(p < refs.lowest_price for p in prices)
+    assert all(refs.saboteurs.mean_price < p for p in prices)
+
+
+def test_honest_models_do_not_flip_and_are_admitted_at_an_unseen_seed():
+    rng = np.random.default_rng(20_261_203)
+    models = [honest_manifest(rng, f"unseen-{i}") for i in range(192)]
+    noisy = evaluate(from_manifests(models))
+    assert noisy.flip.max() < limits.NOISE_FLIP_BAND
+    verdicts = []
+    for start in range(0, len(models), 64):
+        verdicts += screen_many(models[start : start + 64])
+    assert sum(v.accepted for v in verdicts) / len(verdicts) >= 0.995
+
+
+def test_a_verdict_does_not_depend_on_its_batch(family):
+    rng = np.random.default_rng(31)
+    mixed = [honest_manifest(rng, f"h{i}") for i in range(5)] + list(family.values())[:3]
+    together = [v.to_dict() for v in screen_many(mixed)]
+    alone = [screen(m).to_dict() for m in mixed]
+    assert together == alone
+    assert (
+        evaluate(from_manifests(mixed)).noisy.tolist()
+        == evaluate(from_manifests(mixed)).noisy.tolist()
+    )
+
+
+def test_the_projection_runs_the_auctions_fine_tuning_rounds():
+    assert impact.rounds() == limits.MARKET.fine_tune_rounds == 4
+
+
+def test_variant_numbers_cover_the_issue():
+    bands = [(v.hold_from, v.hold_to) for v in NOISE_GATED.values()]
+    assert min(a for a, _ in bands) == 4.85 and max(b for _, b in bands) == 5.15
+    assert len({v.seed for v in NOISE_GATED.values()}) == len(NOISE_GATED)
+
+
+def test_scores_that_overflow_get_no_noisy_reason(honest):
+    overflow = edit(honest, {"decision.B.bias": 1e308, "decision.B.weights.PG": 1e308})
+    noisy = evaluate(from_manifests([overflow]))
+    assert not noisy.checks.failed.any() and not noisy.holds.any()
+    rules = {r.rule for r in screen(overflow).reasons}
+    assert "probe-non-finite" in rules and not rules & {"noise-gated-hold", "noise-flip"}

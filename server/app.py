@@ -19,7 +19,16 @@ from server.api.body import RequestBodyMiddleware
 from server.api.errors import install_error_handlers, responses
 from server.api.hardening import SecurityHeadersMiddleware
 from server.api.limits import ClientLimitsMiddleware
-from server.api.routes import auctions, events, health, jobs, models, participants, rounds
+from server.api.routes import (
+    auctions,
+    events,
+    health,
+    jobs,
+    models,
+    participants,
+    reviews,
+    rounds,
+)
 from server.config import Settings, get_settings
 from server.services import start_services
 from server.ui import routes as ui
@@ -56,7 +65,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(RequestBodyMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(ClientLimitsMiddleware, settings=settings)  # before any body is read
     app.add_middleware(SecurityHeadersMiddleware)  # outermost: every answer has its headers
-    routers = (health, models, participants, auctions, rounds, jobs, events, ui)
+    routers = (health, models, reviews, participants, auctions, rounds, jobs, events, ui)
     for module in routers:  # any request may carry an unreadable body
         app.include_router(module.router, responses=responses(400, 413, 415))
     app.state.routes = [route for module in routers for route in module.router.routes]

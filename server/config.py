@@ -70,6 +70,9 @@ class Settings(BaseSettings):
     further refusal in a row (an accepted version resets it)."""
     refusal_cooldown_max_s: Annotated[float, Field(ge=0, le=86400)] = 3600.0
     """The longest refusal cooldown."""
+    review_margin: Annotated[float, Field(ge=0, le=1)] = 0.002
+    """Price units: a verdict whose deciding evidence lies strictly within this of its bar is
+    held for an inspector (``screener.review``); 0 turns review off."""
     progress_interval_s: Annotated[float, Field(gt=0)] = 0.5
     """Minimum time between two progress writes of a running job."""
     event_poll_interval_s: Annotated[float, Field(gt=0, le=10)] = 0.2

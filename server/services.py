@@ -102,6 +102,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         progress_interval_s=settings.progress_interval_s,
         torch_threads=settings.worker_torch_threads,
         nice=settings.worker_nice,
+        review_margin=settings.review_margin,
     )
     job_context = dataclasses.replace(
         context,

@@ -8,13 +8,15 @@ from server.api.errors import RequestError, api_error, error_item
 from server.api.schemas import AuctionCreate
 from server.auctions.steps import base_price
 from server.store import crud
+from server.store.status import ModelStatus
 from server.work.runner import BackgroundRunner
 from sim.market import fish_on_sale
 
 
 def patron_ids(session: Session, model_ids: list[int] | None) -> list[int]:
-    """The ordered patron list: the given ids (each must exist, 404, and be accepted, 409), or
-    by default the newest accepted version of every participant (409 while there is none)."""
+    """The ordered patron list: the given ids (each must exist, 404, and be accepted, 409: a
+    refused or held one is named), or by default the newest accepted version of every
+    participant (a held version is passed over; 409 while there is none)."""
     if model_ids is None:
         ids = [row.id for row in crud.latest_accepted_models(session)]
         if not ids:
@@ -37,9 +39,12 @@ def patron_ids(session: Session, model_ids: list[int] | None) -> list[int]:
         raise RequestError(404, missing)
     rejected = [
         error_item(
-            f"model {model_id} was rejected by the screener and cannot enter an auction",
+            f"model {model_id} is held for an inspector's review and cannot enter an auction "
+            "until admitted"
+            if found[model_id].status == ModelStatus.HELD
+            else f"model {model_id} was rejected by the screener and cannot enter an auction",
             loc=("body", "model_ids", i),
-            kind="rejected",
+            kind="held" if found[model_id].status == ModelStatus.HELD else "rejected",
         )
         for i, model_id in enumerate(model_ids)
         if not found[model_id].accepted

@@ -256,9 +256,9 @@ def _answered(session: Session, round_id: int) -> int:
     ).scalar_one()
 
 
-def _judge_pending(database: Database, round_id: int) -> None:
+def _judge_pending(database: Database, round_id: int, margin: float) -> None:
     """Judge the round's uploads whose verdict the API never recorded (its screener was down,
-    or it died): they came in time, so they count."""
+    or it died): they came in time, so they count (held within ``margin`` of a bar)."""
     with database.session(write=False) as session:
         pending = crud.pending_uploads(session, round_id=round_id)
     if not pending:
@@ -269,7 +269,9 @@ def _judge_pending(database: Database, round_id: int) -> None:
     with database.session(write=True) as session:
         now = utcnow()
         for upload, verdict in zip(pending, verdicts, strict=True):
-            crud.record_verdict(session, answer_id=upload.answer_id, verdict=verdict, now=now)
+            crud.record_verdict(
+                session, answer_id=upload.answer_id, verdict=verdict, margin=margin, now=now
+            )
         session.commit()
 
 
@@ -366,7 +368,7 @@ def _not_yet(database: Database, auction_id: int, row: _OpenRound) -> bool:
     return True
 
 
-def _step(database: Database, auction_id: int) -> None:
+def _step(database: Database, auction_id: int, margin: float) -> None:
     # Read and rebuild the market outside any write transaction (parsing the manifests and
     # building the market take a while; on SQLite a write transaction holds the one write lock).
     with database.session(write=False) as session:
@@ -394,7 +396,7 @@ def _step(database: Database, auction_id: int) -> None:
                 f"the checkpoint awaits fine-tuning round {number}, which is not open"
             )
         for attempt in range(CLOSE_TRIES):
-            _judge_pending(database, row.id)
+            _judge_pending(database, row.id, margin)
             # One transaction: the round closed, its answers applied, the next iteration.
             with database.session(write=True) as session:
                 now = utcnow()
@@ -455,7 +457,7 @@ def run_step(context: WorkerContext, auction_id: int) -> None:
     """Worker process entry point: one step of the auction (see the module docstring)."""
     database = Database(context.database_url)
     try:
-        _step(database, auction_id)
+        _step(database, auction_id, context.review_margin)
     except _MovedOnError:
         log.info(
             "auction %d moved on without this step (cancelled, or stepped elsewhere)", auction_id

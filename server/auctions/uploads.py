@@ -160,13 +160,15 @@ def _store(database: Database, upload: crud.UploadIn) -> crud.Stored:
 
 
 def _record(
-    database: Database, answer_id: int, round_id: int, verdict: Verdict
+    database: Database, answer_id: int, round_id: int, verdict: Verdict, margin: float
 ) -> tuple[bytes, bool]:
     """Record a pending upload's verdict; its answer, and whether the round's auction became
     due (every asked patron judged)."""
     with database.session(write=True) as session:
         now = utcnow()
-        body = crud.record_verdict(session, answer_id=answer_id, verdict=verdict, now=now)
+        body = crud.record_verdict(
+            session, answer_id=answer_id, verdict=verdict, margin=margin, now=now
+        )
         due = crud.due_when_answered(session, round_id=round_id, now=now)
         session.commit()
     return body, due
@@ -190,6 +192,7 @@ async def upload(
     token: str,
     body: bytes,
     arrived: datetime,
+    margin: float,
 ) -> bytes:
     """Check an upload (see the module docstring), store it, re-screen it and record its
     verdict; the answer's JSON. Wrong round → 409 naming the current one; closed, or past the
@@ -264,7 +267,9 @@ async def upload(
             kind="screener_unavailable",
             headers={"Retry-After": str(RETRY_AFTER_S)},
         ) from exc
-    answer, due = await run_in_threadpool(_record, database, stored.answer_id, round_id, verdict)
+    answer, due = await run_in_threadpool(
+        _record, database, stored.answer_id, round_id, verdict, margin
+    )
     if due:
         wake(auction_id)
     return answer

@@ -56,11 +56,38 @@ class AnswerOutcome(StrEnum):
     """The upload passed the re-screening: it bids from the next iteration."""
     REFUSED = "refused"
     """The upload failed the re-screening: the previous version bids on."""
+    HELD = "held"
+    """The re-screening held the upload for an inspector: the previous version bids on."""
     LATE = "late"
     """The upload came after the round closed."""
     MISSING = "missing"
     """No upload before the round closed."""
 
 
-ANSWERED = (AnswerOutcome.ACCEPTED, AnswerOutcome.REFUSED, AnswerOutcome.PENDING)
+ANSWERED = (
+    AnswerOutcome.ACCEPTED,
+    AnswerOutcome.REFUSED,
+    AnswerOutcome.HELD,
+    AnswerOutcome.PENDING,
+)
 """Outcomes that count as an answer to the round (a late upload does not)."""
+JUDGED = (AnswerOutcome.ACCEPTED, AnswerOutcome.REFUSED, AnswerOutcome.HELD)
+"""Answers whose verdict is recorded."""
+
+
+class ModelStatus(StrEnum):
+    """A model version's verdict (``screener.review``): accepted enters auctions; refused never
+    does (unless an appeal gets it admitted); held waits for an inspector's decision."""
+
+    ACCEPTED = "accepted"
+    REFUSED = "refused"
+    HELD = "held"
+
+
+class ReviewDecision(StrEnum):
+    """An entry of a model's audit log: an inspector admits or refuses a held model; its
+    participant appeals a refusal (once)."""
+
+    ADMIT = "admit"
+    REFUSE = "refuse"
+    APPEAL = "appeal"

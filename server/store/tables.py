@@ -108,8 +108,15 @@ class ModelVersion(Base):
     version: Mapped[int] = mapped_column(Integer)
     manifest: Mapped[dict[str, Any]] = mapped_column(JSON)
     accepted: Mapped[bool] = mapped_column(Boolean)
+    """True only while ``status`` is accepted (kept: every auction query reads it)."""
     reasons: Mapped[list[dict[str, str]]] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    status: Mapped[str] = mapped_column(String(8), index=True)
+    """accepted | refused | held (``server.store.status.ModelStatus``)."""
+    evidence: Mapped[list[dict[str, Any]] | None] = mapped_column(
+        JSON(none_as_null=True), nullable=True
+    )
+    """The screener's ``Evidence`` (null for versions stored before it was kept)."""
     # A version uploaded in a remote fine-tuning round: the version it was fine-tuned from,
     # and the auction and round (null for versions sent to /submit).
     parent_id: Mapped[int | None] = mapped_column(ForeignKey("model_versions.id"), nullable=True)
@@ -117,6 +124,24 @@ class ModelVersion(Base):
     round: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
     participant: Mapped[Participant] = relationship(back_populates="versions")
+
+
+class Review(Base):
+    """A model's audit log: an inspector's decision on a held model (with the evidence shown),
+    or its participant's appeal of a refusal (``inspector`` is then the participant's name)."""
+
+    __tablename__ = "reviews"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    model_id: Mapped[int] = mapped_column(ForeignKey("model_versions.id"), index=True)
+    decision: Mapped[str] = mapped_column(String(8))
+    """admit | refuse | appeal (``server.store.status.ReviewDecision``)."""
+    inspector: Mapped[str] = mapped_column(String(64))
+    note: Mapped[str] = mapped_column(Text)
+    at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    evidence: Mapped[list[dict[str, Any]] | None] = mapped_column(
+        JSON(none_as_null=True), nullable=True
+    )
 
 
 class Auction(Base):
@@ -251,8 +276,8 @@ class FineTuneRound(Base):
 
 
 class FineTuneAnswer(Base):
-    """A patron's outcome in a round: pending | accepted | refused (re-screening) | late |
-    missing.
+    """A patron's outcome in a round: pending | accepted | refused | held (re-screening) |
+    late | missing.
 
     Written as ``pending`` (with the uploaded manifest) as soon as an upload in time is read and
     checked, so the deadline is judged at arrival; its verdict then makes it accepted or

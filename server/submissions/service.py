@@ -6,10 +6,11 @@ from __future__ import annotations
 from sqlalchemy.orm import Session
 
 from agents.manifest import Manifest
-from screener import Verdict
+from screener import Verdict, review
 from server.api.errors import RequestError, api_error
 from server.screening.pool import ScreenerUnavailableError, ScreeningService
 from server.store import crud
+from server.store.status import ModelStatus
 from server.submissions.writer import Refused, Stored, SubmissionWriter
 
 
@@ -29,10 +30,12 @@ async def submit(
     *,
     bearer: str | None,
     address: str | None,
-) -> tuple[Stored, Verdict]:
+    margin: float,
+) -> tuple[Stored, Verdict, ModelStatus]:
     """Check the token and the quotas (nothing spent on a refused request), screen the
-    manifest (no database lock held meanwhile), store it with its verdict in the next group
-    commit; the stored version and the verdict."""
+    manifest (no database lock held meanwhile), store it with its verdict, held for an
+    inspector within ``margin`` of a bar (``screener.review``); the stored version, the
+    verdict and its status."""
     refused = await writer.precheck(
         participant=manifest.participant, bearer=bearer, address=address
     )
@@ -42,16 +45,18 @@ async def submit(
         verdict = await screening.verdict(manifest)
     except ScreenerUnavailableError as exc:
         raise api_error(503, str(exc), loc=("body",), kind="screener_unavailable") from exc
+    status = ModelStatus(review(verdict, margin))
     outcome = await writer.store(
         participant=manifest.participant,
         manifest=manifest.model_dump(mode="json"),
         verdict=verdict,
+        status=status,
         bearer=bearer,
         address=address,
     )
     if isinstance(outcome, Refused):
         raise _refusal(outcome)
-    return outcome, verdict
+    return outcome, verdict, status
 
 
 def read_model(session: Session, model_id: int, *, auctions: int) -> crud.StoredModel:

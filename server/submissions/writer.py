@@ -28,6 +28,7 @@ from screener import Verdict
 from server.api.security import hash_token, new_token, token_matches
 from server.store import crud
 from server.store.db import Database
+from server.store.status import ModelStatus
 from server.store.tables import participant_key, utcnow
 from server.submissions import quotas
 
@@ -72,6 +73,8 @@ class _Submission:
     verdict: Verdict | None
     bearer: str | None
     address: str | None
+    status: ModelStatus = ModelStatus.REFUSED
+    """The verdict under review (``screener.review``)."""
 
 
 @dataclass
@@ -179,7 +182,7 @@ def _store_group(
             participant=item.participant,
             address=item.address,
             new=token is not None,
-            accepted=item.verdict.accepted,
+            accepted=item.status == ModelStatus.ACCEPTED,
         )
         versions.append((index, item.participant, participant.next_version, token))
         participant.next_version += 1
@@ -196,8 +199,10 @@ def _store_group(
                 "participant_id": known[name].id,
                 "version": version,
                 "manifest": group[index].manifest,
-                "accepted": verdict.accepted,
+                "accepted": group[index].status == ModelStatus.ACCEPTED,
+                "status": group[index].status,
                 "reasons": [reason.to_dict() for reason in verdict.reasons],
+                "evidence": [e.to_dict() for e in verdict.evidence],
                 "created_at": now,
             }
         )
@@ -232,11 +237,13 @@ class SubmissionWriter:
         participant: str,
         manifest: dict[str, Any],
         verdict: Verdict,
+        status: ModelStatus,
         bearer: str | None,
         address: str | None,
     ) -> Outcome:
-        """Store one screened manifest as the participant's next version (or refuse it)."""
-        item = _Submission(participant, manifest, verdict, bearer, address)
+        """Store one screened manifest as the participant's next version, with its verdict
+        under review (or refuse it)."""
+        item = _Submission(participant, manifest, verdict, bearer, address, status)
         outcome = await run_in_threadpool(self._write, item)
         assert outcome is not None
         return outcome

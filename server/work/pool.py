@@ -59,6 +59,8 @@ class WorkerContext:
     """The Ray cluster of the ``ray`` job backend."""
     ray_max_retries: int = 0
     """Times the ``ray`` job backend runs a lost unit again."""
+    review_margin: float = 0.0
+    """``SRD_REVIEW_MARGIN``: an auction step holds the uploads it judges within it of a bar."""
 
 
 TaskFn = Callable[[WorkerContext, int], None]

@@ -14,6 +14,7 @@ from screener import Reason, Verdict
 from server.config import Settings
 from server.store import crud
 from server.store.db import Database, upgrade_schema
+from server.store.status import ModelStatus
 from server.store.tables import ModelVersion, Participant, utcnow
 from server.submissions import writer as submissions
 from server.submissions.quotas import Limits
@@ -37,7 +38,12 @@ def database(database_url: str) -> Iterator[Database]:
 def _store(writer: SubmissionWriter, name: str, verdict: Verdict, bearer: str | None) -> Outcome:
     return asyncio.run(
         writer.store(
-            participant=name, manifest=honest(name), verdict=verdict, bearer=bearer, address=None
+            participant=name,
+            manifest=honest(name),
+            verdict=verdict,
+            status=ModelStatus.ACCEPTED if verdict.accepted else ModelStatus.REFUSED,
+            bearer=bearer,
+            address=None,
         )
     )
 

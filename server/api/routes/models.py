@@ -8,19 +8,23 @@ from fastapi import APIRouter, Query, Request
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, Participant
-from server.api.deps import BearerDep, ScreeningDep, SessionDep, SubmissionsDep
+from server.api.deps import BearerDep, ScreeningDep, SessionDep, SettingsDep, SubmissionsDep
 from server.api.errors import link, responses
 from server.api.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
 from server.api.schemas import (
     MAX_LISTED_AUCTIONS,
+    EvidencePublic,
     ModelIdPath,
     ModelPage,
     ModelPublic,
     ModelSummaryPublic,
     ReasonPublic,
+    ReviewPublic,
     SubmitPublic,
+    VerdictName,
 )
 from server.store import crud
+from server.store.status import ModelStatus
 from server.submissions import service as models
 
 router = APIRouter(tags=["models"])
@@ -47,25 +51,30 @@ async def submit(
     request: Request,
     screening: ScreeningDep,
     writer: SubmissionsDep,
+    settings: SettingsDep,
 ) -> SubmitPublic:
     """Screen an FSN weight manifest and store it as the participant's next model version.
 
     A new participant name is registered on the spot and its ``token`` is returned once; later
     versions of that participant need ``Authorization: Bearer <token>``. Rejected models are
-    stored with their reasons and never enter an auction.
+    stored with their reasons and never enter an auction; a model whose deciding evidence lies
+    within ``SRD_REVIEW_MARGIN`` of its bar is ``held`` for an inspector and enters none until
+    admitted.
     """
-    stored, verdict = await models.submit(
+    stored, verdict, status = await models.submit(
         screening,
         writer,
         manifest,
         bearer=None if credentials is None else credentials.credentials,
         address=request.client.host if request.client is not None else None,
+        margin=settings.review_margin,
     )
     return SubmitPublic(
         model_id=stored.model_id,
         participant=stored.participant,
         version=stored.version,
-        accepted=verdict.accepted,
+        accepted=status == ModelStatus.ACCEPTED,
+        status=status,
         reasons=[ReasonPublic(**reason.to_dict()) for reason in verdict.reasons],
         token=stored.token,
     )
@@ -73,19 +82,46 @@ async def submit(
 
 @router.get("/models/{model_id}", operation_id="read_model", responses=responses(404, 422))
 async def read_model(model_id: ModelIdPath, session: SessionDep) -> ModelPublic:
-    """A stored model version: manifest, verdict and reasons; for a version uploaded in a
-    remote fine-tuning round, its parent version, auction and round; the auctions it entered."""
+    """A stored model version: manifest, verdict (status), reasons and the screener's evidence;
+    its audit log of reviews; for a version uploaded in a remote fine-tuning round, its parent
+    version, auction and round; the auctions it entered."""
     row = await run_in_threadpool(
         models.read_model, session, model_id, auctions=MAX_LISTED_AUCTIONS
     )
+    return model_public(row)
+
+
+_VERDICTS: dict[str, VerdictName] = {
+    ModelStatus.ACCEPTED: "accepted",
+    ModelStatus.REFUSED: "rejected",
+    ModelStatus.HELD: "held",
+}
+"""The verdict word of each status (``refused`` reads ``rejected``, as before statuses)."""
+
+
+def verdict_name(status: str) -> VerdictName:
+    """The verdict word of a status."""
+    return _VERDICTS[status]
+
+
+def review_entries(row: crud.StoredModel) -> list[ReviewPublic]:
+    """A model's audit log."""
+    return [ReviewPublic.model_validate(entry, from_attributes=True) for entry in row.reviews]
+
+
+def model_public(row: crud.StoredModel) -> ModelPublic:
+    """A stored version as ``GET /models/{id}`` shows it."""
     return ModelPublic(
         id=row.id,
         participant=row.participant,
         version=row.version,
         manifest=row.manifest,
-        verdict="accepted" if row.accepted else "rejected",
+        verdict=verdict_name(row.status),
         accepted=row.accepted,
+        status=ModelStatus(row.status),
         reasons=_reasons(row),
+        evidence=[EvidencePublic.model_validate(e) for e in row.evidence or []],
+        reviews=review_entries(row),
         created_at=row.created_at,
         parent_id=row.parent_id,
         auction_id=row.auction_id,
@@ -107,8 +143,9 @@ def model_summary(row: crud.ModelSummary) -> ModelSummaryPublic:
         id=row.id,
         participant=row.participant,
         version=row.version,
-        verdict="accepted" if row.accepted else "rejected",
+        verdict=verdict_name(row.status),
         accepted=row.accepted,
+        status=ModelStatus(row.status),
         description=description,
         n_reasons=len(row.reasons),
         rules=list(dict.fromkeys(reason["rule"] for reason in row.reasons)),

@@ -19,6 +19,7 @@ from server.api.deps import (
     RoundsDep,
     RoundSocketsDep,
     ScreeningDep,
+    SettingsDep,
 )
 from server.api.errors import RequestError, api_error, problem_response, responses
 from server.api.schemas import (
@@ -106,7 +107,10 @@ async def _upload_body(request: Request) -> tuple[bytes, datetime]:
         }
     },
     responses={
-        200: {"model": UploadPublic, "description": "Accepted or refused by the re-screening"},
+        200: {
+            "model": UploadPublic,
+            "description": "Accepted, refused or held by the re-screening",
+        },
         **responses(401, 403, 404, 409, 410, 413, 422, 503),
     },
 )
@@ -119,10 +123,12 @@ async def upload_round_model(
     database: DatabaseDep,
     screening: ScreeningDep,
     runner: AuctionRunnerDep,
+    settings: SettingsDep,
 ) -> Response:
     """Upload the patron's fine-tuned manifest for this round (participant token). It is
     re-screened: accepted, it becomes the participant's next version and bids from the next
-    iteration; refused, the reasons are returned and the previous version bids on. Wrong round
+    iteration; refused (or held for an inspector, ``SRD_REVIEW_MARGIN``), the reasons are
+    returned and the previous version bids on. Wrong round
     → 409 naming the current one; closed or past the deadline → 410 (recorded as late)."""
     content, arrived = body
     answer = await rounds.upload(
@@ -135,6 +141,7 @@ async def upload_round_model(
         token=token,
         body=content,
         arrived=arrived,
+        margin=settings.review_margin,
     )
     return Response(answer, media_type="application/json")
 
@@ -160,6 +167,7 @@ async def round_socket(
     database: DatabaseDep,
     screening: ScreeningDep,
     runner: AuctionRunnerDep,
+    settings: SettingsDep,
 ) -> None:
     """The auction's remote rounds over one WebSocket (``server.auctions.sockets``):
     every round pushed as it opens, uploads answered as the PUT answers them. Uploads need
@@ -204,6 +212,7 @@ async def round_socket(
                 token=token,
                 body=body,
                 arrived=arrived,
+                margin=settings.review_margin,
             )
 
         await sockets.serve(websocket, auction_id, first, upload)

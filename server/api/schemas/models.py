@@ -4,11 +4,39 @@ list, ``GET /participants/{name}``."""
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, StringConstraints
 
-from server.api.schemas.common import ReasonPublic
+from server.api.schemas.common import ReasonPublic, StrictInput
+from server.store.status import ModelStatus
+
+VerdictName = Literal["accepted", "rejected", "held"]
+"""The verdict as the lists show it (``rejected``: the status ``refused``)."""
+
+
+class EvidencePublic(BaseModel):
+    """One bar the screener held the model to: ``measured`` must lie on ``side`` of ``bar``
+    (in ``units``); ``detail`` explains the number (the decisive row's decisions with and
+    without noise, the impact test's references). ``measured``/``bar`` null: no distance."""
+
+    test: str
+    measured: float | None
+    bar: float | None
+    units: str
+    side: Literal["at least", "at most"]
+    passed: bool
+    detail: dict[str, Any]
+
+
+class ReviewPublic(BaseModel):
+    """An entry of a model's audit log: an inspector's decision (``admit``, ``refuse``) or its
+    participant's ``appeal`` (``inspector`` is then the participant)."""
+
+    decision: Literal["admit", "refuse", "appeal"]
+    inspector: str
+    note: str
+    at: datetime
 
 
 class SubmitPublic(BaseModel):
@@ -18,6 +46,9 @@ class SubmitPublic(BaseModel):
     participant: str
     version: int
     accepted: bool
+    """True only when ``status`` is accepted."""
+    status: ModelStatus
+    """accepted, refused, or held for an inspector (within ``SRD_REVIEW_MARGIN`` of a bar)."""
     reasons: list[ReasonPublic]
     token: str | None
 
@@ -29,9 +60,14 @@ class ModelPublic(BaseModel):
     participant: str
     version: int
     manifest: dict[str, Any]
-    verdict: Literal["accepted", "rejected"]
+    verdict: VerdictName
     accepted: bool
+    status: ModelStatus
     reasons: list[ReasonPublic]
+    evidence: list[EvidencePublic] = Field(default_factory=list)
+    """The screener's bars (empty for versions stored before it was kept)."""
+    reviews: list[ReviewPublic] = Field(default_factory=list)
+    """Its audit log, oldest first."""
     created_at: datetime
     parent_id: int | None = None
     """The version this one was fine-tuned from (uploads of remote rounds only)."""
@@ -54,8 +90,9 @@ class ModelSummaryPublic(BaseModel):
     id: int
     participant: str
     version: int
-    verdict: Literal["accepted", "rejected"]
+    verdict: VerdictName
     accepted: bool
+    status: ModelStatus
     description: str
     n_reasons: int
     rules: list[str]
@@ -74,3 +111,58 @@ class ParticipantPublic(BaseModel):
     created_at: datetime
     n_versions: int
     versions: list[ModelSummaryPublic]
+
+
+Inspector = Annotated[
+    str,
+    StringConstraints(min_length=1, max_length=64, pattern=r"\S"),
+    Field(description="Who decides (a name, 1 to 64 characters, not blank)."),
+]
+Note = Annotated[str, Field(max_length=2000, description="Why (at most 2000 characters).")]
+
+
+class ReviewCreate(StrictInput):
+    """``POST /models/{id}/review``: an inspector's decision on a held model."""
+
+    decision: Literal["admit", "refuse"]
+    inspector: Inspector
+    note: Note = ""
+
+
+class AppealCreate(StrictInput):
+    """``POST /models/{id}/appeal``: why the participant asks for a person to look."""
+
+    note: Annotated[str, StringConstraints(min_length=1, max_length=2000, pattern=r"\S")]
+
+
+class ReviewedPublic(BaseModel):
+    """A model's verdict after a decision or an appeal, and its audit log."""
+
+    model_id: int
+    status: ModelStatus
+    verdict: VerdictName
+    accepted: bool
+    reviews: list[ReviewPublic]
+
+
+class HeldModelPublic(BaseModel):
+    """A model held for an inspector: who, the screener's reasons and evidence; ``auction_id``
+    and ``round`` for an upload of a remote round; ``appeal`` the participant's note when it
+    came by appeal."""
+
+    id: int
+    participant: str
+    version: int
+    reasons: list[ReasonPublic]
+    evidence: list[EvidencePublic]
+    created_at: datetime
+    auction_id: int | None
+    round: int | None
+    appeal: str | None
+
+
+class HeldPage(BaseModel):
+    """``GET /reviews``: held models, oldest first; ``next_cursor`` pages on (ids above it)."""
+
+    items: list[HeldModelPublic]
+    next_cursor: int | None

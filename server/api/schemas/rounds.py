@@ -16,7 +16,8 @@ FineTuneModeName = Literal["server", "remote"]
 
 class RoundAnswerPublic(BaseModel):
     """A patron's outcome in a fine-tuning round: accepted (its upload bids from the next
-    iteration), refused (re-screening failed; its previous version bids on), late (after the
+    iteration), refused (re-screening failed; its previous version bids on), held (within the
+    review margin of a bar: its previous version bids on), late (after the
     deadline), missing (no upload); ``version`` bids after the round."""
 
     model_id: int
@@ -69,11 +70,12 @@ class RoundPublic(BaseModel):
 
 class UploadPublic(BaseModel):
     """The answer to an upload: accepted (a new version, ``model_id``, bids from the next
-    iteration; the same weights as now keep the version) or refused with the screener's
-    reasons (``version`` is the one that keeps bidding; ``uploaded_id`` the refused one)."""
+    iteration; the same weights as now keep the version), refused with the screener's reasons,
+    or held for an inspector (``version`` is the one that keeps bidding; ``uploaded_id`` the
+    refused or held one)."""
 
     round: int
-    outcome: Literal["accepted", "refused"]
+    outcome: Literal["accepted", "refused", "held"]
     accepted: bool
     reasons: list[ReasonPublic]
     version: int

@@ -12,7 +12,7 @@ from typing import Any
 from sqlalchemy import bindparam, func, insert, select
 from sqlalchemy.orm import Session
 
-from server.store.tables import AuctionPatron, ModelVersion, Participant, participant_key
+from server.store.tables import AuctionPatron, ModelVersion, Participant, Review, participant_key
 
 PARTICIPANT_TOKEN_PREFIX = "srdp"
 
@@ -41,8 +41,23 @@ class StoredModel:
     parent_id: int | None = None
     auction_id: int | None = None
     round: int | None = None
+    status: str = "accepted"
+    """accepted | refused | held (``ModelStatus``)."""
+    evidence: list[dict[str, Any]] | None = None
     auctions: tuple[int, ...] = ()
     """Auctions it entered as a patron, newest first (``get_model_view`` only)."""
+    reviews: tuple[ReviewEntry, ...] = ()
+    """Its audit log, oldest first (``get_model_view`` only)."""
+
+
+@dataclass(frozen=True)
+class ReviewEntry:
+    """An entry of a model's audit log: a decision (admit, refuse) or an appeal."""
+
+    decision: str
+    inspector: str
+    note: str
+    at: datetime
 
 
 # The statements of POST /submit, built once and run on the session's connection (Core, not the
@@ -111,6 +126,8 @@ _MODEL_BY_ID = (
         ModelVersion.parent_id,
         ModelVersion.auction_id,
         ModelVersion.round,
+        ModelVersion.status,
+        ModelVersion.evidence,
     )
     .join(Participant, Participant.id == ModelVersion.participant_id)
     .where(ModelVersion.id == bindparam("model_id"))
@@ -124,12 +141,20 @@ def get_model(session: Session, *, model_id: int) -> StoredModel | None:
 
 
 def get_model_view(session: Session, *, model_id: int, auctions: int) -> StoredModel | None:
-    """``get_model`` with the ``auctions`` newest auctions it entered (two queries)."""
+    """``get_model`` with the ``auctions`` newest auctions it entered and its audit log (three
+    queries)."""
     row = get_model(session, model_id=model_id)
     if row is None:
         return None
     entered = patron_auctions(session, model_id=model_id, limit=auctions)
-    return dataclasses.replace(row, auctions=tuple(entered))
+    log = session.connection().execute(
+        select(Review.decision, Review.inspector, Review.note, Review.at)
+        .where(Review.model_id == model_id)
+        .order_by(Review.id)
+    )
+    return dataclasses.replace(
+        row, auctions=tuple(entered), reviews=tuple(ReviewEntry(*entry) for entry in log)
+    )
 
 
 def get_models(session: Session, *, model_ids: list[int]) -> dict[int, ModelVersion]:
@@ -169,6 +194,7 @@ class ModelSummary:
     description: str | None
     reasons: list[dict[str, str]]
     created_at: datetime
+    status: str
 
 
 _MODEL_SUMMARY = (
@@ -180,6 +206,7 @@ _MODEL_SUMMARY = (
         ModelVersion.manifest["description"].as_string(),
         ModelVersion.reasons,
         ModelVersion.created_at,
+        ModelVersion.status,
     )
     .join(Participant, Participant.id == ModelVersion.participant_id)
     .order_by(ModelVersion.id.desc())

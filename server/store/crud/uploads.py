@@ -20,10 +20,17 @@ from sqlalchemy import bindparam, func, insert, select, update
 from sqlalchemy.engine import Connection
 from sqlalchemy.orm import Session
 
-from screener import Verdict
+from screener import Verdict, review
 from server.store.crud.models import insert_model_versions, latest_versions
 from server.store.db import JSONText
-from server.store.status import ANSWERED, AnswerOutcome, AuctionStatus, RoundStatus
+from server.store.status import (
+    ANSWERED,
+    JUDGED,
+    AnswerOutcome,
+    AuctionStatus,
+    ModelStatus,
+    RoundStatus,
+)
 from server.store.tables import (
     Auction,
     AuctionPatron,
@@ -410,10 +417,13 @@ _LOCK_PARTICIPANT = (
 )
 
 
-def record_verdict(session: Session, *, answer_id: int, verdict: Verdict, now: datetime) -> bytes:
+def record_verdict(
+    session: Session, *, answer_id: int, verdict: Verdict, margin: float, now: datetime
+) -> bytes:
     """A pending upload judged: its manifest stored as the participant's next version
-    (accepted or refused), its answer written; the answer's bytes. An upload already judged
-    (by another process) keeps its answer, which is returned."""
+    (accepted, refused, or held for an inspector within ``margin`` of a bar: then, as refused,
+    the previous version bids on), its answer written; the answer's bytes. An upload already
+    judged (by another process) keeps its answer, which is returned."""
     connection = session.connection()
     row = connection.execute(_PENDING_FOR_UPDATE, {"answer_id": answer_id}).one()
     if row.outcome != AnswerOutcome.PENDING:
@@ -421,6 +431,8 @@ def record_verdict(session: Session, *, answer_id: int, verdict: Verdict, now: d
     connection.execute(_LOCK_PARTICIPANT, {"id": row.participant_id})
     number = latest_versions(session, participant_ids=[row.participant_id])[row.participant_id] + 1
     reasons = [reason.to_dict() for reason in verdict.reasons]
+    status = ModelStatus(review(verdict, margin))
+    accepted = status == ModelStatus.ACCEPTED
     (uploaded,) = insert_model_versions(
         session,
         rows=[
@@ -428,8 +440,10 @@ def record_verdict(session: Session, *, answer_id: int, verdict: Verdict, now: d
                 "participant_id": row.participant_id,
                 "version": number,
                 "manifest": row.manifest,
-                "accepted": verdict.accepted,
+                "accepted": accepted,
+                "status": status,
                 "reasons": reasons,
+                "evidence": [e.to_dict() for e in verdict.evidence],
                 "created_at": now,
                 "parent_id": row.model_id,
                 "auction_id": row.auction_id,
@@ -437,14 +451,14 @@ def record_verdict(session: Session, *, answer_id: int, verdict: Verdict, now: d
             }
         ],
     )
-    outcome = AnswerOutcome.ACCEPTED if verdict.accepted else AnswerOutcome.REFUSED
+    outcome = AnswerOutcome(status)
     body = answer_bytes(
         {
             "round": row.round,
-            "accepted": verdict.accepted,
+            "accepted": accepted,
             "reasons": reasons,
-            "version": number if verdict.accepted else row.version,
-            "model_id": uploaded if verdict.accepted else row.model_id,
+            "version": number if accepted else row.version,
+            "model_id": uploaded if accepted else row.model_id,
             "parent_id": row.model_id,
             "uploaded_id": uploaded,
             "outcome": outcome,
@@ -456,7 +470,7 @@ def record_verdict(session: Session, *, answer_id: int, verdict: Verdict, now: d
         .values(
             outcome=outcome,
             uploaded_id=uploaded,
-            model_id=uploaded if verdict.accepted else row.model_id,
+            model_id=uploaded if accepted else row.model_id,
             answer=JSONText(body.decode()),
             bytes_out=len(body),
             manifest=None,
@@ -481,7 +495,7 @@ def due_when_answered(session: Session, *, round_id: int, now: datetime) -> bool
         .select_from(FineTuneAnswer)
         .where(
             FineTuneAnswer.round_id == round_id,
-            FineTuneAnswer.outcome.in_((AnswerOutcome.ACCEPTED, AnswerOutcome.REFUSED)),
+            FineTuneAnswer.outcome.in_(JUDGED),
         )
     ).scalar_one()
     if judged < len(head.asked):

@@ -1,0 +1,128 @@
+"""Human review: ``GET /reviews`` (the held models, operator), ``POST /models/{id}/review`` (an
+inspector's decision, operator) and ``POST /models/{id}/appeal`` (the model's participant)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+from starlette.concurrency import run_in_threadpool
+
+from server.api.deps import AdminDep, BearerDep, SessionDep
+from server.api.errors import responses
+from server.api.pages import DEFAULT_PAGE, PageLimit, page_of
+from server.api.routes.models import review_entries, verdict_name
+from server.api.schemas import (
+    MAX_ROW_ID,
+    AppealCreate,
+    EvidencePublic,
+    HeldModelPublic,
+    HeldPage,
+    ModelIdPath,
+    ReasonPublic,
+    ReviewCreate,
+    ReviewedPublic,
+)
+from server.store import crud
+from server.store.status import ModelStatus, ReviewDecision
+from server.submissions import reviews
+
+router = APIRouter(tags=["reviews"])
+
+ReviewCursor = Annotated[
+    int | None,
+    Query(
+        ge=1,
+        le=MAX_ROW_ID,
+        description="The ``next_cursor`` of the previous page (the page holds the held models "
+        "above that id, oldest first); omit for the first page.",
+    ),
+]
+
+
+def _reviewed(row: crud.StoredModel) -> ReviewedPublic:
+    return ReviewedPublic(
+        model_id=row.id,
+        status=ModelStatus(row.status),
+        verdict=verdict_name(row.status),
+        accepted=row.accepted,
+        reviews=review_entries(row),
+    )
+
+
+@router.get(
+    "/reviews",
+    operation_id="list_reviews",
+    dependencies=[AdminDep],
+    responses=responses(401, 403, 422),
+)
+async def list_reviews(
+    session: SessionDep, limit: PageLimit = DEFAULT_PAGE, cursor: ReviewCursor = None
+) -> HeldPage:
+    """The models held for an inspector (operator), oldest first, each with the screener's
+    reasons and evidence; ``cursor`` is the ``next_cursor`` of the previous page (ids above
+    it)."""
+    rows = await run_in_threadpool(crud.held_models, session, after=cursor, limit=limit + 1)
+    items, next_cursor = page_of(rows, limit)
+    return HeldPage(
+        items=[
+            HeldModelPublic(
+                id=row.id,
+                participant=row.participant,
+                version=row.version,
+                reasons=[ReasonPublic.model_validate(r) for r in row.reasons],
+                evidence=[EvidencePublic.model_validate(e) for e in row.evidence or []],
+                created_at=row.created_at,
+                auction_id=row.auction_id,
+                round=row.round,
+                appeal=row.appeal,
+            )
+            for row in items
+        ],
+        next_cursor=next_cursor,
+    )
+
+
+@router.post(
+    "/models/{model_id}/review",
+    operation_id="review_model",
+    dependencies=[AdminDep],
+    responses=responses(401, 403, 404, 409, 422),
+)
+async def review_model(
+    model_id: ModelIdPath, body: ReviewCreate, session: SessionDep
+) -> ReviewedPublic:
+    """An inspector's decision on a held model (operator): ``admit`` makes it accepted (it may
+    enter auctions), ``refuse`` refused; recorded in its audit log with the evidence seen. A
+    model that is not held → 409."""
+    row = await run_in_threadpool(
+        reviews.decide,
+        session,
+        model_id,
+        decision=ReviewDecision(body.decision),
+        inspector=body.inspector,
+        note=body.note,
+    )
+    return _reviewed(row)
+
+
+@router.post(
+    "/models/{model_id}/appeal",
+    operation_id="appeal_model",
+    # The participant's own token, checked against the model's participant.
+    openapi_extra={"security": [{"HTTPBearer": []}]},
+    responses=responses(401, 403, 404, 409, 422),
+)
+async def appeal_model(
+    model_id: ModelIdPath, body: AppealCreate, session: SessionDep, credentials: BearerDep
+) -> ReviewedPublic:
+    """Send a refused model to the review queue (its participant's token): it is held until an
+    inspector decides. Once per model: a second appeal, or a model accepted or held → 409."""
+    row = await run_in_threadpool(
+        reviews.appeal,
+        session,
+        model_id,
+        token=None if credentials is None else credentials.credentials,
+        note=body.note,
+    )
+    return _reviewed(row)

@@ -1,0 +1,157 @@
+"""Held models and their audit log: the review queue (oldest first), an inspector's decision on
+a held model, a participant's appeal of a refused one. Each write is conditional on the status
+it changes, so two inspectors (or two appeals) racing on one model write once."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import and_, insert, select, update
+from sqlalchemy.orm import Session
+
+from server.store.crud.lists import keyset
+from server.store.status import ModelStatus, ReviewDecision
+from server.store.tables import ModelVersion, Participant, Review
+
+
+@dataclass(frozen=True)
+class HeldModel:
+    """A model waiting for an inspector, with what the screener measured."""
+
+    id: int
+    participant: str
+    version: int
+    reasons: list[dict[str, str]]
+    evidence: list[dict[str, Any]] | None
+    created_at: datetime
+    auction_id: int | None
+    round: int | None
+    appeal: str | None
+    """The participant's note when it came to the queue by appeal."""
+
+
+_HELD = (
+    select(
+        ModelVersion.id,
+        Participant.name,
+        ModelVersion.version,
+        ModelVersion.reasons,
+        ModelVersion.evidence,
+        ModelVersion.created_at,
+        ModelVersion.auction_id,
+        ModelVersion.round,
+        Review.note,
+    )
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .outerjoin(
+        Review,
+        and_(Review.model_id == ModelVersion.id, Review.decision == ReviewDecision.APPEAL),
+    )
+    .where(ModelVersion.status == ModelStatus.HELD)
+)
+
+
+def held_models(session: Session, *, after: int | None, limit: int) -> list[HeldModel]:
+    """Up to ``limit`` held models with ids above ``after``, oldest first (one query)."""
+    query = keyset(_HELD, ModelVersion.id, cursor=after, order="oldest").limit(limit)
+    return [HeldModel(*row) for row in session.connection().execute(query)]
+
+
+@dataclass(frozen=True)
+class ModelOwner:
+    """Who a model belongs to and where its verdict stands."""
+
+    participant: str
+    token_hash: str
+    status: str
+    appealed: bool
+
+
+def model_owner(session: Session, *, model_id: int) -> ModelOwner | None:
+    """A model's participant, token hash, status and whether it was appealed (one query)."""
+    appealed = (
+        select(Review.id)
+        .where(Review.model_id == ModelVersion.id, Review.decision == ReviewDecision.APPEAL)
+        .exists()
+    )
+    row = (
+        session.connection()
+        .execute(
+            select(Participant.name, Participant.token_hash, ModelVersion.status, appealed)
+            .join(Participant, Participant.id == ModelVersion.participant_id)
+            .where(ModelVersion.id == model_id)
+        )
+        .one_or_none()
+    )
+    return None if row is None else ModelOwner(*row)
+
+
+def _log(
+    session: Session, *, model_id: int, decision: str, inspector: str, note: str, now: datetime
+) -> None:
+    """Append to the model's audit log, with the evidence stored with the model."""
+    evidence = session.connection().scalar(
+        select(ModelVersion.evidence).where(ModelVersion.id == model_id)
+    )
+    session.connection().execute(
+        insert(Review),
+        {
+            "model_id": model_id,
+            "decision": decision,
+            "inspector": inspector,
+            "note": note,
+            "at": now,
+            "evidence": evidence,
+        },
+    )
+
+
+def decide(
+    session: Session,
+    *,
+    model_id: int,
+    decision: ReviewDecision,
+    inspector: str,
+    note: str,
+    now: datetime,
+) -> bool:
+    """An inspector's decision on a held model: admitted (accepted) or refused, logged; False
+    (nothing written) if the model is not held."""
+    status = ModelStatus.ACCEPTED if decision == ReviewDecision.ADMIT else ModelStatus.REFUSED
+    moved = session.connection().execute(
+        update(ModelVersion)
+        .where(ModelVersion.id == model_id, ModelVersion.status == ModelStatus.HELD)
+        .values(status=status, accepted=status == ModelStatus.ACCEPTED)
+    )
+    if moved.rowcount != 1:
+        return False
+    _log(session, model_id=model_id, decision=decision, inspector=inspector, note=note, now=now)
+    return True
+
+
+def appeal(session: Session, *, model_id: int, participant: str, note: str, now: datetime) -> bool:
+    """A refused model, never appealed, back to the queue (held), logged; False (nothing
+    written) otherwise."""
+    appealed = (
+        select(Review.id)
+        .where(Review.model_id == model_id, Review.decision == ReviewDecision.APPEAL)
+        .exists()
+    )
+    moved = session.connection().execute(
+        update(ModelVersion)
+        .where(ModelVersion.id == model_id, ModelVersion.status == ModelStatus.REFUSED, ~appealed)
+        .values(status=ModelStatus.HELD)
+    )
+    if moved.rowcount != 1:
+        return False
+    _log(
+        session,
+        model_id=model_id,
+        decision=ReviewDecision.APPEAL,
+        inspector=participant,
+        note=note,
+        now=now,
+    )
+    return True

@@ -1,0 +1,99 @@
+"""Human review of borderline models: the queue of held models, an inspector's decision, a
+participant's appeal. Each runs in the request's session and commits once: a refused request
+stores nothing."""
+
+from __future__ import annotations
+
+from sqlalchemy.orm import Session
+
+from server.api.errors import RequestError, api_error
+from server.api.security import token_matches
+from server.store import crud
+from server.store.status import ModelStatus, ReviewDecision
+from server.store.tables import utcnow
+
+
+def _missing(model_id: int) -> RequestError:
+    return api_error(
+        404, f"model {model_id} does not exist", loc=("path", "model_id"), kind="not_found"
+    )
+
+
+def decide(
+    session: Session, model_id: int, *, decision: ReviewDecision, inspector: str, note: str
+) -> crud.StoredModel:
+    """Admit or refuse a held model, logged with the evidence (404 if none, 409 if not held);
+    the model as it now stands."""
+    owner = crud.model_owner(session, model_id=model_id)
+    if owner is None:
+        raise _missing(model_id)
+    if not crud.decide(
+        session,
+        model_id=model_id,
+        decision=decision,
+        inspector=inspector,
+        note=note,
+        now=utcnow(),
+    ):
+        session.rollback()
+        now = crud.model_owner(session, model_id=model_id)
+        raise api_error(
+            409,
+            f"model {model_id} is {now.status if now else 'gone'}, not held: only a held model "
+            "is decided",
+            loc=("path", "model_id"),
+            kind="not_held",
+        )
+    session.commit()
+    return _view(session, model_id)
+
+
+def appeal(session: Session, model_id: int, *, token: str | None, note: str) -> crud.StoredModel:
+    """Send a refused model back to the queue, once, with the participant's token (404 if no
+    model, 401/403 without or with another token, 409 if accepted, held or appealed before);
+    the model as it now stands."""
+    owner = crud.model_owner(session, model_id=model_id)
+    if owner is None:
+        raise _missing(model_id)
+    if token is None:
+        raise api_error(
+            401,
+            f"appeals need the token of participant {owner.participant!r}: "
+            "'Authorization: Bearer <token>'",
+            loc=("header", "Authorization"),
+            kind="missing_token",
+        )
+    if not token_matches(token, owner.token_hash):
+        raise api_error(
+            403,
+            f"the bearer token is not the token of participant {owner.participant!r}",
+            loc=("header", "Authorization"),
+            kind="bad_token",
+        )
+    if owner.appealed:
+        raise api_error(
+            409,
+            f"model {model_id} was appealed before: a model is appealed once",
+            loc=("path", "model_id"),
+            kind="appealed",
+        )
+    if owner.status != ModelStatus.REFUSED or not crud.appeal(
+        session, model_id=model_id, participant=owner.participant, note=note, now=utcnow()
+    ):
+        session.rollback()
+        now = crud.model_owner(session, model_id=model_id)
+        raise api_error(
+            409,
+            f"model {model_id} is {now.status if now else owner.status}: only a refused model "
+            "is appealed",
+            loc=("path", "model_id"),
+            kind="not_refused",
+        )
+    session.commit()
+    return _view(session, model_id)
+
+
+def _view(session: Session, model_id: int) -> crud.StoredModel:
+    view = crud.get_model_view(session, model_id=model_id, auctions=0)
+    assert view is not None
+    return view

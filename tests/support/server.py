@@ -30,8 +30,10 @@ from one address (``tests/server/test_quotas.py`` tests the quotas themselves)."
 
 
 def make_settings(database_url: str, data_dir: Path, **overrides: Any) -> Settings:
-    """Test settings: fixed admin token, fast progress writes, quotas off."""
+    """Test settings: fixed admin token, fast progress writes, quotas off, review off (a
+    test of the review queue sets ``review_margin``)."""
     values: dict[str, Any] = {
+        "review_margin": 0.0,
         "database_url": database_url,
         "data_dir": data_dir,
         "admin_token": ADMIN_TOKEN,

@@ -1,5 +1,6 @@
-// Talking to the API: JSON reads, paginated lists and event streams. The page only reads, so
-// it needs no token and never puts one in a URL.
+// Talking to the API: JSON reads, paginated lists and event streams. Only the review pages
+// send a token (the operator's, pasted once and kept in memory), always in the Authorization
+// header, never in a URL.
 
 import { h } from "./dom.js";
 
@@ -12,9 +13,23 @@ export class ApiError extends Error {
   }
 }
 
-/** GET a JSON document; an error answer becomes an ApiError carrying the server's words. */
-export async function getJSON(path) {
-  const response = await fetch(path, { headers: { Accept: "application/json" } });
+/** GET a JSON document (with the bearer ``token``, if given); an error answer becomes an
+ * ApiError carrying the server's words. */
+export async function getJSON(path, token = null) {
+  return answer(await fetch(path, { headers: headers(token) }));
+}
+
+/** POST a JSON body with the bearer ``token``; the answer as ``getJSON``'s. */
+export async function postJSON(path, body, token) {
+  const init = { method: "POST", headers: { ...headers(token), "Content-Type": "application/json" }, body: JSON.stringify(body) };
+  return answer(await fetch(path, init));
+}
+
+function headers(token) {
+  return token ? { Accept: "application/json", Authorization: `Bearer ${token}` } : { Accept: "application/json" };
+}
+
+async function answer(response) {
   const body = await response.json().catch(() => null);
   if (!response.ok) {
     const words = body && Array.isArray(body.detail) ? body.detail.map((d) => d.msg) : [];

@@ -5,6 +5,7 @@ import { auctionList, auctionView } from "./auctions.js";
 import { h } from "./dom.js";
 import { compareView, jobList, jobView } from "./jobs.js";
 import { inspectorView, modelList, participantView } from "./models.js";
+import { reviewList, reviewView } from "./reviews.js";
 
 const ROUTES = [
   [/^#\/(?:auctions)?(?:\?(.*))?$/, "auctions", (view, [, query]) => auctionList(view, new URLSearchParams(query || ""))],
@@ -15,6 +16,8 @@ const ROUTES = [
   [/^#\/jobs(?:\?(.*))?$/, "jobs", (view, [, query]) => jobList(view, new URLSearchParams(query || ""))],
   [/^#\/jobs\/compare\?(.*)$/, "jobs", (view, [, query]) => compareView(view, new URLSearchParams(query))],
   [/^#\/jobs\/(\d+)$/, "jobs", (view, [, id]) => jobView(view, Number(id))],
+  [/^#\/reviews$/, "reviews", (view) => reviewList(view)],
+  [/^#\/reviews\/(\d+)$/, "reviews", (view, [, id]) => reviewView(view, Number(id))],
 ];
 
 /** What a view gets: its container, and ``onLeave`` for what to stop when it is replaced. */

@@ -233,8 +233,12 @@ function neuronCard(name, neuron, roles, reasons, sourceLabel) {
   );
 }
 
-export function inspectorView(view, id) {
-  const title = h("h1", { tabindex: "-1" }, `Model ${id}`);
+/**
+ * The inspector's view of model ``id``. ``extra(model)``, if given, returns nodes shown after
+ * the verdict (the review page's evidence and decision); ``heading`` prefixes the title.
+ */
+export function inspectorView(view, id, { extra = null, heading = "Model" } = {}) {
+  const title = h("h1", { tabindex: "-1" }, `${heading} ${id}`);
   view.root.append(title);
   Promise.all([getJSON(`/models/${id}`), loadAnatomy()])
     .then(([model, a]) => {
@@ -246,9 +250,11 @@ export function inspectorView(view, id) {
         if (neurons[reason.neuron]) (reasonsByNeuron[reason.neuron] ||= []).push(reason);
         else unplaced.push(reason);
       }
-      fill(title, `Model ${model.id}: `, model.participant, ` version ${model.version}`);
+      fill(title, `${heading} ${model.id}: `, model.participant, ` version ${model.version}`);
       const flagged = Object.keys(reasonsByNeuron);
-      const verdict = model.accepted
+      const verdict = model.status === "held"
+        ? h("p", { class: "verdict held", id: "verdict" }, h("strong", {}, "Held"), " for an inspector: the screener's deciding evidence lies within the review margin of its bar. It enters no auction until admitted.")
+        : model.accepted
         ? h("p", { class: "verdict accepted", id: "verdict" }, h("strong", {}, "Accepted"), " by the screener: every weight reads as its neuron's meaning asks.")
         : h("p", { class: "verdict rejected", id: "verdict" }, h("strong", {}, "Rejected"), ` by the screener: ${model.reasons.length} reason${model.reasons.length === 1 ? "" : "s"}`, flagged.length ? ` on ${flagged.join(", ")}` : "", ". It can never enter an auction.");
       const pick = (name) => {
@@ -290,6 +296,7 @@ export function inspectorView(view, id) {
         h("section", { class: "layer" }, h("h3", {}, heading), h("div", { class: "cards" }, names.map((n) => neuronCard(n, neurons[n], a.roles, reasonsByNeuron[n] || [], sourceLabel))));
       view.root.append(
         verdict,
+        ...(extra ? extra(model) : []),
         h("p", { class: "description", id: "description" }, manifest.description || "(no description)"),
         facts([
           ["Participant", participantLink(model.participant)],

@@ -1,0 +1,212 @@
+// Reviews: the models the screener held for a person (#/reviews) and the inspection page of one
+// (#/reviews/{id}): its named neurons (the models view), the screener's evidence drawn, and the
+// operator's admit / refuse. The admin token is pasted once and kept in this module's memory
+// only (never stored, never in a URL); it travels in the Authorization header.
+
+import { ApiError, getJSON, postJSON } from "./api.js";
+import { facts, fill, fixed, h, link, problem, svg, table, when } from "./dom.js";
+import { inspectorView } from "./models.js";
+
+let adminToken = null;
+
+const DECISION_WORDS = /(buys|holds|quits) (\d+(?:\.\d+)?)-(\d+(?:\.\d+)?)/g;
+
+/** The operator's token form; ``then()`` runs once a token is set. */
+function tokenForm(then) {
+  const input = h("input", { id: "admin-token", type: "password", autocomplete: "off", required: true, "aria-describedby": "admin-token-help" });
+  const form = h(
+    "form",
+    { class: "filters", id: "token-form" },
+    h("label", { for: "admin-token" }, "Operator (admin) token"),
+    input,
+    h("button", { type: "submit" }, "Use token"),
+    h("span", { id: "admin-token-help", class: "quiet" }, "Kept in this page's memory only, sent as Authorization: Bearer."),
+  );
+  form.addEventListener("submit", (event) => {
+    event.preventDefault();
+    adminToken = input.value.trim() || null;
+    if (adminToken) then();
+  });
+  return form;
+}
+
+/** Run ``render`` with the token, asking for it first when there is none (or it was refused). */
+function withToken(view, render) {
+  const box = h("div");
+  view.root.append(box);
+  const ask = (words) => {
+    fill(box, words ? problem(words) : null, tokenForm(() => start()));
+    box.querySelector("input")?.focus();
+  };
+  const start = () => {
+    fill(box);
+    render(box).catch((error) => {
+      if (error instanceof ApiError && (error.status === 401 || error.status === 403)) {
+        adminToken = null;
+        ask(error);
+      } else box.append(problem(error));
+    });
+  };
+  if (adminToken) start();
+  else ask(null);
+}
+
+export function reviewList(view) {
+  view.root.append(
+    h("h1", { tabindex: "-1" }, "Models held for review"),
+    h("p", {}, "The screener holds a model when its deciding evidence lies within the review margin (SRD_REVIEW_MARGIN, in price) of its bar, and a refused model its participant appealed. Oldest first."),
+  );
+  withToken(view, async (box) => {
+    const rows = [];
+    let cursor = null;
+    do {
+      const page = await getJSON(`/reviews?limit=100${cursor ? `&cursor=${cursor}` : ""}`, adminToken);
+      rows.push(...page.items);
+      cursor = page.next_cursor;
+    } while (cursor);
+    if (!rows.length) {
+      box.append(h("p", { class: "none-yet", id: "no-reviews" }, "No model is waiting for an inspector."));
+      return;
+    }
+    box.append(
+      table(
+        `${rows.length} held model${rows.length === 1 ? "" : "s"}`,
+        ["Model", "Participant", "Version", "Why held", "From", "Held since"],
+        rows.map((m) => [
+          link(`#/reviews/${m.id}`, `Inspect model ${m.id}`),
+          m.participant,
+          String(m.version),
+          m.appeal !== null ? `appealed: ${m.appeal}` : nearest(m.evidence),
+          m.auction_id !== null ? link(`#/auctions/${m.auction_id}`, `auction ${m.auction_id}, round ${m.round}`) : "POST /submit",
+          when(m.created_at),
+        ]),
+        { class: "list", id: "review-list" },
+      ),
+    );
+  });
+}
+
+/** The priced bar closest to its measurement, in words. */
+function nearest(evidence) {
+  const priced = evidence.filter((e) => e.units === "price" && e.measured !== null && e.bar !== null);
+  if (!priced.length) return "—";
+  const e = priced.reduce((a, b) => (Math.abs(a.measured - a.bar) <= Math.abs(b.measured - b.bar) ? a : b));
+  return `${e.test}: ${fixed(e.measured, 4)} against ${fixed(e.bar, 4)} (${e.side})`;
+}
+
+export function reviewView(view, id) {
+  withToken(view, async (box) => {
+    const queue = await getJSON(`/reviews?limit=1${id > 1 ? `&cursor=${id - 1}` : ""}`, adminToken);
+    const item = queue.items.find((m) => m.id === id);
+    if (!item) {
+      box.append(h("h1", { tabindex: "-1" }, `Model ${id}`), h("p", { id: "not-held" }, "This model is not held for review. ", link(`#/models/${id}`, "Its inspector's view"), " · ", link("#/reviews", "Every held model")));
+      return;
+    }
+    inspectorView({ root: box }, id, { heading: "Inspect model", extra: (model) => [evidenceSection(model, item), decisionForm(model)] });
+  });
+}
+
+function evidenceSection(model, item) {
+  const rows = model.evidence.map((e) => [e.test, e.detail.version || e.detail.check || "", e.measured === null ? "—" : fixed(e.measured, 4), e.bar === null ? "—" : fixed(e.bar, 4), `${e.side} (${e.units})`, e.passed ? "passed" : "missed"]);
+  const scan = model.evidence.find((e) => e.detail.clean && e.detail.noisy);
+  const impacts = model.evidence.filter((e) => e.test === "market-impact");
+  return h(
+    "section",
+    { "aria-labelledby": "evidence-heading", id: "evidence" },
+    h("h2", { id: "evidence-heading" }, "The screener's evidence"),
+    item.appeal !== null ? h("p", { id: "appeal" }, h("strong", {}, "Appeal: "), item.appeal) : null,
+    model.reasons.length ? h("ul", { class: "reasons" }, model.reasons.map((r) => h("li", {}, h("strong", {}, `${r.neuron} (${r.rule}): `), r.message))) : null,
+    scan ? h("figure", {}, decisionsChart(scan.detail), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${scan.detail.noise_std}, ${scan.detail.draws} draws).`)) : null,
+    impacts.length ? h("figure", {}, impactChart(impacts), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions, against the lowest allowed (the bar) and the references.")) : null,
+    table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result"], rows, { id: "evidence-table" }),
+  );
+}
+
+/** Segments [decision, from, to] of words such as "buys 4.75-5.10, holds 5.11-5.11, ...". */
+function segments(words) {
+  return [...String(words).matchAll(DECISION_WORDS)].map(([, what, from, to]) => [what, Number(from), Number(to)]);
+}
+
+function decisionsChart(detail) {
+  const lines = [["clean", segments(detail.clean)], ["noisy", segments(detail.noisy)]];
+  const all = lines.flatMap(([, s]) => s);
+  const lo = Math.min(...all.map((s) => s[1]));
+  const hi = Math.max(...all.map((s) => s[2]));
+  const step = 0.01; // a segment covers its last price's cent too
+  const [left, right, width] = [70, 20, 640];
+  const x = (p) => left + ((p - lo) / (hi + step - lo || 1)) * (width - left - right);
+  const ticks = [];
+  for (let p = Math.ceil(lo * 4) / 4; p <= hi + 1e-9; p += 0.25) ticks.push(p);
+  return svg(
+    "svg",
+    { class: "chart", viewBox: `0 0 ${width} 120`, role: "img", "aria-label": `Decisions across prices. Clean: ${detail.clean}. Noisy: ${detail.noisy}.` },
+    lines.map(([label, parts], row) => [
+      svg("text", { x: 8, y: 30 + row * 40, class: "axis-label" }, label),
+      parts.map(([what, from, to]) => svg("rect", { class: `vote-${what.slice(0, -1)}`, x: x(from), y: 15 + row * 40, width: Math.max(1.5, x(to + step) - x(from)), height: 24 }, svg("title", {}, `${label}: ${what} ${from.toFixed(2)}–${to.toFixed(2)}`))),
+    ]),
+    ticks.map((p) => [svg("line", { class: "grid", x1: x(p), x2: x(p), y1: 12, y2: 96 }), svg("text", { class: "tick", x: x(p), y: 112, "text-anchor": "middle" }, p.toFixed(2))]),
+  );
+}
+
+function impactChart(impacts) {
+  const refs = impacts[0].detail;
+  const named = [
+    ["without its copies", refs.without_copies],
+    ["always-hold saboteurs", refs.always_hold_saboteurs],
+    ["copies that quit at the opening price", refs.quitters_at_opening],
+  ].filter(([, v]) => typeof v === "number");
+  const values = [...impacts.map((e) => e.measured), impacts[0].bar, ...named.map(([, v]) => v)].filter((v) => v !== null);
+  const lo = Math.min(...values) - 0.005;
+  const hi = Math.max(...values) + 0.005;
+  const [left, width] = [250, 640];
+  const rowsY = (i) => 20 + i * 26;
+  const x = (p) => left + ((p - lo) / (hi - lo)) * (width - left - 20);
+  const marks = [...impacts.map((e) => [`copies, ${e.detail.version}`, e.measured, e.passed ? "vote-buy" : "vote-hold"]), ...named.map(([label, v]) => [label, v, "vote-quit"])];
+  const height = rowsY(marks.length) + 24;
+  return svg(
+    "svg",
+    { class: "chart", viewBox: `0 0 ${width} ${height}`, role: "img", "aria-label": `Market impact: bar ${impacts[0].bar.toFixed(4)}; ${marks.map(([l, v]) => `${l} ${Number(v).toFixed(4)}`).join("; ")}.` },
+    marks.map(([label, value, cls], i) => [
+      svg("text", { x: 8, y: rowsY(i) + 4, class: "axis-label" }, label),
+      svg("circle", { class: cls, cx: x(value), cy: rowsY(i), r: 6 }, svg("title", {}, `${label}: ${Number(value).toFixed(4)}`)),
+      svg("text", { x: x(value) + 10, y: rowsY(i) + 4, class: "tick" }, Number(value).toFixed(4)),
+    ]),
+    svg("line", { class: "bar-line", x1: x(impacts[0].bar), x2: x(impacts[0].bar), y1: 6, y2: height - 14 }),
+    svg("text", { class: "tick", x: x(impacts[0].bar), y: height - 2, "text-anchor": "middle" }, `bar ${impacts[0].bar.toFixed(4)}`),
+  );
+}
+
+function decisionForm(model) {
+  const inspector = h("input", { id: "inspector", name: "inspector", required: true, maxlength: 64, autocomplete: "name" });
+  const note = h("textarea", { id: "note", name: "note", rows: 3, maxlength: 2000 });
+  const status = h("p", { id: "decision-status", role: "status" });
+  const buttons = [
+    h("button", { type: "submit", value: "admit", id: "admit" }, "Admit"),
+    h("button", { type: "submit", value: "refuse", id: "refuse" }, "Refuse"),
+  ];
+  const form = h(
+    "form",
+    { id: "decision", "aria-labelledby": "decision-heading" },
+    h("h2", { id: "decision-heading" }, "Your decision"),
+    h("p", { class: "field" }, h("label", { for: "inspector" }, "Inspector"), inspector),
+    h("p", { class: "field" }, h("label", { for: "note" }, "Note (why)"), note),
+    h("p", { class: "actions" }, buttons),
+    status,
+  );
+  form.addEventListener("submit", (event) => {
+    event.preventDefault();
+    const decision = event.submitter?.value;
+    if (!decision) return;
+    for (const b of buttons) b.disabled = true;
+    postJSON(`/models/${model.id}/review`, { decision, inspector: inspector.value, note: note.value }, adminToken)
+      .then((done) => {
+        fill(status, `Model ${done.model_id} is now ${done.status} (${decision} by ${inspector.value}). `, link("#/reviews", "Back to the held models"));
+        status.append(facts(done.reviews.map((r) => [`${r.decision} · ${when(r.at)}`, `${r.inspector}${r.note ? `: ${r.note}` : ""}`]), { id: "audit-log" }));
+      })
+      .catch((error) => {
+        for (const b of buttons) b.disabled = false;
+        fill(status, problem(error));
+      });
+  });
+  return form;
+}

@@ -116,8 +116,8 @@ function evidenceSection(model, item) {
     h("h2", { id: "evidence-heading" }, "The screener's evidence"),
     item.appeal !== null ? h("p", { id: "appeal" }, h("strong", {}, "Appeal: "), item.appeal) : null,
     model.reasons.length ? h("ul", { class: "reasons" }, model.reasons.map((r) => h("li", {}, h("strong", {}, `${r.neuron} (${r.rule}): `), r.message))) : null,
-    scan ? h("figure", {}, decisionsChart(scan.detail), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${scan.detail.noise_std}, ${scan.detail.draws} draws).`)) : null,
-    impacts.length ? h("figure", {}, impactChart(impacts), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions, against the lowest allowed (the bar) and the references.")) : null,
+    scan ? h("figure", {}, decisionsChart(scan.detail), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${scan.detail.noise_std}, ${scan.detail.draws} draws): green buys, amber holds, grey quits.`)) : null,
+    impacts.length ? h("figure", {}, impactChart(impacts), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions (green: passed, amber: missed) against the lowest allowed (the dashed bar), and the references (grey).")) : null,
     table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result"], rows, { id: "evidence-table" }),
   );
 }
@@ -160,7 +160,7 @@ function impactChart(impacts) {
   const hi = Math.max(...values) + 0.005;
   const [left, width] = [250, 640];
   const rowsY = (i) => 20 + i * 26;
-  const x = (p) => left + ((p - lo) / (hi - lo)) * (width - left - 20);
+  const x = (p) => left + ((p - lo) / (hi - lo)) * (width - left - 70); // room for the label
   const marks = [...impacts.map((e) => [`copies, ${e.detail.version}`, e.measured, e.passed ? "vote-buy" : "vote-hold"]), ...named.map(([label, v]) => [label, v, "vote-quit"])];
   const height = rowsY(marks.length) + 24;
   return svg(

@@ -182,4 +182,6 @@ def print_summary(
         for row in rows:
             table.add_row(*(escape(_cell(row.get(c))) for c in columns))
         out.print(table)
+    if isinstance(result.get("caption"), str):  # what each configuration is, in words
+        out.print(escape(result["caption"]))
     out.print(f"artifacts: {escape(str(out_dir))}")

@@ -97,6 +97,11 @@ class Participant(Base):
     versions: Mapped[list[ModelVersion]] = relationship(back_populates="participant")
 
 
+def _status_of_verdict(context: Any) -> str:
+    """A version written without a status: accepted or refused, as its ``accepted`` says."""
+    return "accepted" if context.get_current_parameters()["accepted"] else "refused"
+
+
 class ModelVersion(Base):
     """One submitted manifest of a participant, with the screener's verdict."""
 
@@ -111,8 +116,9 @@ class ModelVersion(Base):
     """True only while ``status`` is accepted (kept: every auction query reads it)."""
     reasons: Mapped[list[dict[str, str]]] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
-    status: Mapped[str] = mapped_column(String(8), index=True)
-    """accepted | refused | held (``server.store.status.ModelStatus``)."""
+    status: Mapped[str] = mapped_column(String(8), index=True, default=_status_of_verdict)
+    """accepted | refused | held (``server.store.status.ModelStatus``); by default what
+    ``accepted`` says."""
     evidence: Mapped[list[dict[str, Any]] | None] = mapped_column(
         JSON(none_as_null=True), nullable=True
     )

@@ -52,9 +52,9 @@ def events(client: TestClient, auction_id: int) -> list[dict[str, str]]:
 
 @pytest.fixture(scope="module")
 def patrons(client: TestClient) -> list[int]:
-    """Five honest models (seeds 0..4)."""
+    """Five honest models (seed 1 is held for review)."""
     ids = []
-    for seed in range(5):
+    for seed in (0, 2, 3, 4, 5):
         answer = client.post("/submit", json=honest(unique("cancel"), seed=seed))
         assert answer.status_code == 201, answer.text
         ids.append(answer.json()["model_id"])

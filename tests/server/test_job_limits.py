@@ -90,17 +90,17 @@ def test_every_kind_declares_its_cost() -> None:
         assert cost.option in {f.name for f in config_fields(kind.config_class())}
 
 
-def test_an_auction_over_its_time_limit_is_stopped_and_failed(tmp_path) -> None:
-    """A remote auction waits at its first fine-tuning round for agents that never answer
-    (deadline 60 s): the 3 s auction limit stops it first."""
+def test_an_auction_step_over_its_time_limit_is_stopped_and_failed(tmp_path) -> None:
+    """The limit is per step: a step that fine-tunes 160 patrons takes well over a second; the
+    0.2 s limit stops it."""
     settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
-    settings = settings.model_copy(update={"auction_timeout_s": 3.0})
+    settings = settings.model_copy(update={"auction_timeout_s": 0.2})
     with TestClient(create_app(settings)) as client:
         ids = [
             client.post("/submit", json=honest(unique("slow"), seed=i)).json()["model_id"]
-            for i in range(3)
+            for i in range(2, 162)  # seed 1 is held for review
         ]
-        body = {"n_fish": 1, "model_ids": ids, "fine_tune_mode": "remote", "round_deadline_s": 60}
+        body = {"n_fish": 80, "model_ids": ids, "fine_tune": True}
         auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
         state = wait_for(
             lambda: client.get(f"/auctions/{auction_id}").json(),
@@ -108,7 +108,7 @@ def test_an_auction_over_its_time_limit_is_stopped_and_failed(tmp_path) -> None:
             60,
         )
     assert state["status"] == "failed"
-    assert "time limit of 3 s (SRD_AUCTION_TIMEOUT_S)" in state["error"]
+    assert "time limit of 0.2 s (SRD_AUCTION_TIMEOUT_S)" in state["error"]
 
 
 def test_a_job_over_its_memory_limit_fails_saying_so(tmp_path) -> None:

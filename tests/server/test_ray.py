@@ -108,7 +108,12 @@ def test_ray_jobs_equal_local_jobs(ray_head: RayHead, tmp_path: Path) -> None:
     ray = tmp_path / "ray"
     with client_for(ray, job_backend="ray", ray_address=ray_head.address) as client:
         health = client.get("/healthz").json()
-        assert health == {"status": "ok", "job_backend": "ray", "cpus": float(CPUS)}
+        assert health == {
+            "status": "ok",
+            "problems": [],
+            "job_backend": "ray",
+            "cpus": float(CPUS),
+        }
         done = run_jobs(client, JOBS)
     for kind, job in done.items():
         mine = expected[kind]

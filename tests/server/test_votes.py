@@ -21,7 +21,7 @@ LONG_STUDY = {"kind": "auction-study", "params": {"trials": 50}}  # always cance
 @pytest.fixture(scope="module")
 def auction(client: TestClient) -> dict[str, Any]:
     """A finished auction of five honest patrons over two fish."""
-    bodies = [honest(unique("voter"), seed=s) for s in range(5)]
+    bodies = [honest(unique("voter"), seed=s) for s in (0, 2, 3, 4, 5)]  # seed 1 is held for review
     ids = [client.post("/submit", json=body).json()["model_id"] for body in bodies]
     auction_id = client.post(
         "/auctions", json={"n_fish": 2, "model_ids": ids, "seed": 3}, headers=ADMIN

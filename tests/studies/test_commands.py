@@ -61,7 +61,7 @@ def test_srd_comparison_prints_the_table_for_a_person(tmp_path) -> None:
     assert result.exit_code == 0, result.output
     text = result.stdout
     assert "srd comparison" in text and f"artifacts: {tmp_path}" in text
-    assert text.count("honest-alone") == 2 and "mean_price" in text
+    assert text.count("honest-alone") == 3 and "mean price" in text  # rows, caption
 
 
 @pytest.mark.parametrize("kind", ["auction-study", "comparison"])

@@ -14,8 +14,8 @@ row is read once, and every listener of it wakes. It reads them
 * on SQLite, every ``SRD_EVENT_POLL_INTERVAL_S`` while anyone listens;
 * on PostgreSQL, when a commit announces the row on the ``LISTEN``/``NOTIFY`` channel
   (``server.store.crud.live``): one dedicated connection per process listens, reconnects after
-  an outage (every watched row is read again then, for what it missed) and, as a safety net,
-  every ``SRD_LIVE_SAFETY_POLL_S``.
+  an outage (every watched row is read again then, for what it missed; meanwhile the rows are
+  read as on SQLite) and, as a safety net, every ``SRD_LIVE_SAFETY_POLL_S``.
 
 A change this process makes itself is read at once (``poke``).
 """
@@ -35,7 +35,13 @@ from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from server.store import crud
-from server.store.db import CONNECT_TIMEOUT_S, Database, is_sqlite, unavailable_message
+from server.store.db import (
+    CONNECT_TIMEOUT_S,
+    Database,
+    is_database_outage,
+    is_sqlite,
+    unavailable_message,
+)
 
 log = logging.getLogger("srd.live")
 
@@ -115,6 +121,7 @@ class LiveSource:
         self._database = database
         self._listens = not is_sqlite(database.url)
         self.interval_s = safety_poll_s if self._listens else poll_s
+        self._poll_s = poll_s
         self._rows: dict[Key, _Row] = {}
         self._dirty: set[Key] = set()
         self._wake = asyncio.Event()
@@ -185,9 +192,10 @@ class LiveSource:
         failing = False  # an outage is logged once, not at every read
         while True:
             if not self._dirty:
+                # while the listener is down, PostgreSQL is polled as SQLite is
+                interval = self._poll_s if self._listens and not self.listening else self.interval_s
                 try:
-                    timeout = self.interval_s if self._rows else None
-                    await asyncio.wait_for(self._wake.wait(), timeout)
+                    await asyncio.wait_for(self._wake.wait(), interval if self._rows else None)
                 except TimeoutError:  # the poll (on PostgreSQL the safety net)
                     self._dirty.update(self._rows)
             self._wake.clear()
@@ -206,10 +214,10 @@ class LiveSource:
             try:
                 found = await run_in_threadpool(self._read, plan)
             except Exception as exc:  # the listeners keep their snapshots; read again later
-                if not failing:
-                    log.warning(
-                        "live updates: reading failed: %s; retrying", unavailable_message(exc)
-                    )
+                if not is_database_outage(exc):
+                    log.exception("live updates: reading failed; retrying")
+                elif not failing:
+                    log.warning("live updates: %s; retrying", unavailable_message(exc))
                 failing = True
                 for _, _, _, feeds in plan:
                     for feed, _, built in feeds:
@@ -290,7 +298,7 @@ class LiveSource:
                     self._wake.set()
                     async for notice in connection.notifies():
                         self._notified(notice.payload)
-            except psycopg.Error as exc:
+            except Exception as exc:  # refused, dropped, killed: connect again
                 if not failing:
                     log.warning(
                         "live updates: the listening connection failed: %s; reconnecting", exc
@@ -298,6 +306,7 @@ class LiveSource:
                 failing = True
             finally:
                 self.listening = False
+                self._wake.set()  # the read loop polls meanwhile
             await asyncio.sleep(RECONNECT_S)
 
     def _notified(self, payload: str) -> None:

@@ -75,9 +75,13 @@ class Settings(BaseSettings):
     held for an inspector (``screener.review``); 0 turns review off."""
     progress_interval_s: Annotated[float, Field(gt=0)] = 0.5
     """Minimum time between two progress writes of a running job."""
-    event_poll_interval_s: Annotated[float, Field(gt=0, le=10)] = 0.2
-    """How often a watched auction or job is read while an event stream listens to it (one
-    read per watched row per interval, shared by all its streams in the process)."""
+    event_poll_interval_s: Annotated[float, Field(gt=0, le=10)] = 0.05
+    """On SQLite, how often the watched auctions and jobs are read while an event stream, a long
+    poll or a round socket listens (one query for all the watched auctions, one for all the
+    watched jobs, per interval; whatever the number of listeners)."""
+    live_safety_poll_s: Annotated[float, Field(gt=0, le=3600)] = 5.0
+    """On PostgreSQL, where commits announce changes (``NOTIFY``), how often the watched rows
+    are read anyway (a safety net)."""
     event_keepalive_s: Annotated[float, Field(gt=0, le=300)] = 15.0
     """An idle event stream sends a comment this often (proxies keep it open, and a client that
     went away is noticed)."""

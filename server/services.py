@@ -1,7 +1,7 @@
 """The service layer: what the routes ask for, without HTTP.
 
 ``Services`` holds the process's running services (the database, the screener, the writers,
-the two background runners, the event hub, the job backend); ``start_services`` makes and
+the two background runners, the live-update source, the job backend); ``start_services`` makes and
 starts them (the app's lifespan), ``Services.stop`` stops them. One module per resource
 (``auctions``, ``jobs``, ``models``, ``rounds``) holds the operations the routes call: they
 take the services they need and the request's values, do the work, and return domain values
@@ -26,6 +26,7 @@ from server.jobs.backend import JobCompute, job_compute
 from server.jobs.worker import JOB_WORK
 from server.live.events import EventHub
 from server.live.rounds import RoundWatcher
+from server.live.source import LiveSource
 from server.screening.pool import ScreeningService
 from server.store.db import Database, SqliteServerLock, is_sqlite, prepare_database
 from server.submissions.quotas import Limits
@@ -52,13 +53,15 @@ class Services:
     jobs: BackgroundRunner
     compute: JobCompute
     events: EventHub
+    live: LiveSource
+    """The one live-update source, shared by ``events``, ``rounds`` and ``sockets``."""
     sqlite_lock: SqliteServerLock | None
     """Held while this process serves a SQLite database (None on PostgreSQL)."""
     readiness: Readiness
 
     async def close(self) -> None:
-        """Stop what runs on the event loop (the round watcher's pollers)."""
-        await self.rounds.close()
+        """Stop what runs on the event loop (the live-update source's reads and listener)."""
+        await self.live.close()
 
     def stop(self) -> None:
         """Stop every worker and writer, then let go of the database (blocking)."""
@@ -111,7 +114,12 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         ray_address=settings.ray_address,
         ray_max_retries=settings.ray_max_retries,
     )
-    watcher = RoundWatcher(database)
+    live = LiveSource(
+        database,
+        poll_s=settings.event_poll_interval_s,
+        safety_poll_s=settings.live_safety_poll_s,
+    )
+    watcher = RoundWatcher(live)
     owner = server_id()
 
     def runner(
@@ -144,9 +152,8 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         ),
         jobs=runner(JOB_WORK, job_context, settings.job_workers, settings.job_timeout_s),
         compute=job_compute(settings.job_backend, settings.ray_address),
-        events=EventHub(
-            interval_s=settings.event_poll_interval_s, max_streams=settings.max_event_streams
-        ),
+        events=EventHub(live, max_streams=settings.max_event_streams),
+        live=live,
         sqlite_lock=sqlite_lock,
         readiness=Readiness(database, settings.data_dir, settings.min_free_disk_mb),
     )

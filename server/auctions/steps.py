@@ -160,6 +160,7 @@ def _commit_iteration(
     )
     if moved.rowcount != 1:  # type: ignore[attr-defined]
         raise _MovedOnError(auction.id)
+    crud.notify_change(session, kind="auction", row_id=auction.id)  # the round it opens or closes
     connection = session.connection()
     connection.execute(
         insert(AuctionIteration),
@@ -442,6 +443,7 @@ def _start(database: Database, auction: Auction, market: Market) -> None:
         )
         if started.rowcount != 1:  # type: ignore[attr-defined]
             raise _MovedOnError(auction.id)
+        crud.notify_change(session, kind="auction", row_id=auction.id)
         session.commit()
 
 

@@ -19,6 +19,7 @@ from typing import Any
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
+from server.store import crud
 from server.store.db import (
     OUTAGE_RETRIES,
     OUTAGE_WAIT_S,
@@ -108,9 +109,10 @@ def _update_owned(database: Database, job_id: int, attempt: int, **values: Any) 
             .where(Job.id == job_id, Job.attempt == attempt, Job.status == JobStatus.RUNNING)
             .values(updated_at=utcnow(), **values)
         )
+        if changed.rowcount != 1:  # type: ignore[attr-defined]
+            raise SupersededError
+        crud.notify_change(session, kind="job", row_id=job_id)
         session.commit()
-    if changed.rowcount != 1:  # type: ignore[attr-defined]
-        raise SupersededError
 
 
 def _record_outcome(database: Database, job_id: int, attempt: int, **values: Any) -> None:
@@ -136,6 +138,7 @@ def _claim(database: Database, job_id: int) -> tuple[str, dict[str, Any], int] |
         job.started_at = job.updated_at = utcnow()
         job.progress, job.message, job.error, job.result = 0.0, "started", None, None
         claimed = (job.kind, dict(job.params), job.attempt)
+        crud.notify_change(session, kind="job", row_id=job_id)
         session.commit()
     return claimed
 
@@ -231,6 +234,8 @@ def requeue(session: Session, job_ids: list[int]) -> None:
             updated_at=utcnow(),
         )
     )
+    for job_id in job_ids:
+        crud.notify_change(session, kind="job", row_id=job_id)
 
 
 JOB_WORK = WorkKind(

@@ -3,7 +3,6 @@ end an endless stream), on SQLite and PostgreSQL: order, resumption, the end, th
 
 from __future__ import annotations
 
-import asyncio
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -13,7 +12,6 @@ import pytest
 import torch
 
 from server.cli.launch import ServerProcess
-from server.live.events import EventHub
 from tests.support.live import (
     create_unstarted_auction,
     data,
@@ -236,39 +234,3 @@ def test_stream_errors_use_the_error_body(
     assert negative.json()["detail"][0]["loc"] == ["query", "after"]
     dotted = client.get("/jobs/999999/events", headers={"Last-Event-ID": "3.1"})
     assert dotted.status_code == 422 and dotted.json()["detail"][0]["type"] == "bad_event_id"
-
-
-def test_one_watcher_per_row_whatever_the_listeners() -> None:
-    """Many listeners of one row share one poll loop; it stops when the last one leaves."""
-
-    class Snap:
-        def __init__(self, n: int) -> None:
-            self.n = n
-            self.final = n >= 3
-
-    polls: list[int] = []
-
-    def poll(previous: Snap | None) -> Snap:
-        polls.append(0)
-        return Snap(len(polls))
-
-    async def scenario() -> None:
-        hub = EventHub(interval_s=0.01, max_streams=10)
-
-        async def listen() -> list[int]:
-            seen = []
-            async with hub.watch("row", poll) as watch:
-                while True:
-                    generation, snap = watch.generation, watch.snapshot
-                    assert snap is not None
-                    seen.append(snap.n)
-                    if snap.final:
-                        return seen
-                    await watch.wait(generation, 1.0)
-
-        results = await asyncio.gather(*(listen() for _ in range(20)))
-        assert all(r[-1] == 3 for r in results)
-        assert len(polls) == 3  # one loop for 20 listeners; it ended at the final snapshot
-        assert hub.watched == 0
-
-    asyncio.run(scenario())

@@ -12,8 +12,8 @@ the whole job.
 A client resumes with ``Last-Event-ID`` (what ``EventSource`` sends when it reconnects) or, on
 its first connection, ``?after=<id>``: the stream goes on right after that event, so nothing is
 skipped and nothing repeated. Idle streams send a comment every ``SRD_EVENT_KEEPALIVE_S``.
-Everything sent is read from committed rows by the process's shared watcher of that auction
-or job (``server.live.events``).
+Everything sent is read from committed rows by the process's live-update source, once per
+change of the auction or job whatever the number of streams (``server.live.source``).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, Query
 from fastapi.sse import EventSourceResponse, ServerSentEvent
+from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from server.api.deps import DatabaseDep, EventHubDep, SettingsDep
@@ -41,9 +42,8 @@ from server.api.schemas import (
 )
 from server.auctions import service as auctions
 from server.jobs import service as jobs
-from server.live.events import EventHub, Poll
+from server.live.events import EventHub
 from server.store import crud
-from server.store.db import Database
 from server.store.status import AUCTION_ENDED, JOB_ENDED, RoundStatus
 from server.store.tables import Job
 
@@ -135,7 +135,7 @@ StreamSlot = Annotated[EventHub, Depends(_stream_slot)]
 
 @dataclass(frozen=True)
 class AuctionSnapshot:
-    """An auction as its watcher last read it: where it stands and every committed round."""
+    """An auction as its stream shows it: where it stands and every committed round."""
 
     state: crud.AuctionState | None
     rounds: tuple[crud.AuctionRound, ...]
@@ -161,28 +161,25 @@ class AuctionSnapshot:
                     yield position, _round_sse(view, position)
 
 
-def watch_auction(database: Database, auction_id: int) -> Poll[AuctionSnapshot]:
-    """The poll of an auction's watcher: its state, then only the rounds committed since."""
-
-    def poll(previous: AuctionSnapshot | None) -> AuctionSnapshot:
-        rounds = () if previous is None else previous.rounds
-        with database.session(write=False) as session:
-            state = crud.auction_state(session, auction_id=auction_id)
-            if previous is not None and state == previous.state:
-                return previous
-            if state is None:
-                return AuctionSnapshot(None, rounds)
-            if state.iteration > len(rounds):
-                new = crud.auction_rounds(
-                    session, auction_id=auction_id, first=len(rounds), stop=state.iteration
-                )
-                rounds = (*rounds, *new)
-            fine_tuning: tuple[crud.RoundView, ...] = ()
-            if state.fine_tune_mode == "remote":
-                fine_tuning = tuple(crud.fine_tune_rounds(session, auction_id=auction_id))
-        return AuctionSnapshot(state, rounds, fine_tuning)
-
-    return poll
+def auction_view(
+    session: Session,
+    auction_id: int,
+    state: crud.AuctionState | None,
+    previous: AuctionSnapshot | None,
+) -> AuctionSnapshot:
+    """What an auction's stream shows: its state, then only the rounds committed since."""
+    rounds = () if previous is None else previous.rounds
+    if state is None:
+        return AuctionSnapshot(None, rounds)
+    if state.iteration > len(rounds):
+        new = crud.auction_rounds(
+            session, auction_id=auction_id, first=len(rounds), stop=state.iteration
+        )
+        rounds = (*rounds, *new)
+    fine_tuning: tuple[crud.RoundView, ...] = ()
+    if state.fine_tune_mode == "remote":
+        fine_tuning = tuple(crud.fine_tune_rounds(session, auction_id=auction_id))
+    return AuctionSnapshot(state, rounds, fine_tuning)
 
 
 def _patron(ref: crud.PatronRef) -> PatronPublic:
@@ -243,19 +240,17 @@ async def auction_events(
     resume: Annotated[Position, Depends(_auction_resume)],
     hub: StreamSlot,
     auction_id: Annotated[int, Depends(_existing_auction)],
-    database: DatabaseDep,
     settings: SettingsDep,
 ) -> AsyncIterable[ServerSentEvent]:
     """Follow an auction live: one ``iteration`` event per committed round (``id`` = the
     iteration), ``round`` events for remote fine-tuning rounds (``id`` = ``k.1`` open, ``k.2``
     closed, after iteration k), then one ``end`` event, and the stream closes."""
     sent = resume  # the last event the client has
-    poll = watch_auction(database, auction_id)
-    async with hub.watch(("auction", auction_id), poll) as watch:
+    async with hub.watch("auction", auction_id, auction_view) as watch:
         yield ServerSentEvent(comment=f"auction {auction_id}", retry=RECONNECT_MS)
         while True:
             generation, snapshot = watch.generation, watch.snapshot
-            assert snapshot is not None  # hub.watch yields after the first read
+            assert snapshot is not None  # auction_view and job_view always give one
             for position, event in snapshot.events_after(sent):
                 yield event
                 sent = position
@@ -272,7 +267,7 @@ async def auction_events(
 
 @dataclass(frozen=True)
 class JobSnapshot:
-    """A job as its watcher last read it; the whole job once it has ended."""
+    """A job as its stream shows it; the whole job once it has ended."""
 
     state: crud.JobState | None
     job: JobPublic | None
@@ -282,21 +277,15 @@ class JobSnapshot:
         return self.state is None or self.state.status in JOB_ENDED
 
 
-def watch_job(database: Database, job_id: int) -> Poll[JobSnapshot]:
-    """The poll of a job's watcher: a few columns, and the whole row once it has ended."""
-
-    def poll(previous: JobSnapshot | None) -> JobSnapshot:
-        with database.session(write=False) as session:
-            state = crud.job_state(session, job_id=job_id)
-            if previous is not None and state == previous.state:
-                return previous
-            job = None
-            if state is not None and state.status in JOB_ENDED:
-                row = session.get(Job, job_id)
-                job = None if row is None else JobPublic.model_validate(row, from_attributes=True)
-        return JobSnapshot(state, job)
-
-    return poll
+def job_view(
+    session: Session, job_id: int, state: crud.JobState | None, previous: JobSnapshot | None
+) -> JobSnapshot:
+    """What a job's stream shows: its state, and the whole job once it has ended."""
+    job = None
+    if state is not None and state.status in JOB_ENDED:
+        row = session.get(Job, job_id)
+        job = None if row is None else JobPublic.model_validate(row, from_attributes=True)
+    return JobSnapshot(state, job)
 
 
 def job_event_id(state: crud.JobState) -> str:
@@ -323,18 +312,17 @@ async def job_events(
     resume: Annotated[str | None, Depends(_job_resume)],
     hub: StreamSlot,
     job_id: Annotated[int, Depends(_existing_job)],
-    database: DatabaseDep,
     settings: SettingsDep,
 ) -> AsyncIterable[ServerSentEvent]:
     """Follow a job: a ``progress`` event whenever its status, progress or message changes,
     then one ``end`` event with the whole job (result, error, artifacts), and the stream
     closes."""
     seen = resume
-    async with hub.watch(("job", job_id), watch_job(database, job_id)) as watch:
+    async with hub.watch("job", job_id, job_view) as watch:
         yield ServerSentEvent(comment=f"job {job_id}", retry=RECONNECT_MS)
         while True:
             generation, snapshot = watch.generation, watch.snapshot
-            assert snapshot is not None  # hub.watch yields after the first read
+            assert snapshot is not None  # auction_view and job_view always give one
             if snapshot.state is None:
                 return
             if snapshot.final:

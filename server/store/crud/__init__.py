@@ -27,7 +27,9 @@ from server.store.crud.events import (
     RoundPurchase,
     auction_rounds,
     auction_state,
+    auction_states,
     job_state,
+    job_states,
 )
 from server.store.crud.jobs import (
     JobSummary,
@@ -37,6 +39,7 @@ from server.store.crud.jobs import (
     get_job,
     list_jobs,
 )
+from server.store.crud.live import LIVE_CHANNEL, LiveKind, notify_change
 from server.store.crud.models import (
     PARTICIPANT_TOKEN_PREFIX,
     ModelSummary,
@@ -82,6 +85,7 @@ from server.store.crud.uploads import (
 )
 
 __all__ = [
+    "LIVE_CHANNEL",
     "PARTICIPANT_TOKEN_PREFIX",
     "AnswerView",
     "AuctionHead",
@@ -92,6 +96,7 @@ __all__ = [
     "HeldModel",
     "JobState",
     "JobSummary",
+    "LiveKind",
     "ModelOwner",
     "ModelSummary",
     "ParticipantRow",
@@ -113,6 +118,7 @@ __all__ = [
     "appeal",
     "auction_rounds",
     "auction_state",
+    "auction_states",
     "cancel_auction",
     "cancel_job",
     "create_auction",
@@ -131,12 +137,14 @@ __all__ = [
     "insert_model_versions",
     "insert_participants",
     "job_state",
+    "job_states",
     "latest_accepted_models",
     "latest_versions",
     "list_auctions",
     "list_jobs",
     "list_models",
     "model_owner",
+    "notify_change",
     "participants_by_names",
     "patron_auctions",
     "pending_uploads",

@@ -12,6 +12,7 @@ from sqlalchemy import Row, bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from server.store.crud.lists import ListOrder, keyset
+from server.store.crud.live import notify_change
 from server.store.status import AUCTION_UNFINISHED, AuctionStatus, RoundStatus
 from server.store.tables import (
     Auction,
@@ -166,6 +167,7 @@ def cancel_auction(session: Session, *, auction_id: int) -> bool:
     if not changed.rowcount:  # type: ignore[attr-defined]
         return False
     _close_open_rounds(session, auction_id, now)
+    notify_change(session, kind="auction", row_id=auction_id)
     return True
 
 

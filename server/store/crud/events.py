@@ -1,5 +1,5 @@
-"""What the event streams poll: a few columns of the watched row, then only the rounds that are
-new since the last poll."""
+"""What live updates read: a few columns of every watched row (one query for all the watched
+auctions, one for all the watched jobs), then only the rounds that are new since the last read."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from server.store.tables import (
 
 @dataclass(frozen=True)
 class AuctionState:
-    """Where an auction stands, as its event stream polls it."""
+    """Where an auction stands, as live updates read it."""
 
     status: str
     iteration: int
@@ -36,8 +36,9 @@ class AuctionState:
     error: str | None
     finished_at: datetime | None
     fine_tune_mode: str
+    fine_tune_rounds: int
     updated_at: datetime
-    """Moves with every write to the auction, a fine-tuning round closing included."""
+    """Moves with every write to the auction, a fine-tuning round opening or closing included."""
 
 
 @dataclass(frozen=True)
@@ -70,9 +71,9 @@ class AuctionRound:
     quits: tuple[PatronRef, ...]
 
 
-_AUCTION_STATE = select(
-    *(getattr(Auction, f.name) for f in dataclasses.fields(AuctionState))
-).where(Auction.id == bindparam("auction_id"))
+_AUCTION_STATES = select(
+    Auction.id, *(getattr(Auction, f.name) for f in dataclasses.fields(AuctionState))
+).where(Auction.id.in_(bindparam("ids", expanding=True)))
 _ROUNDS = AUCTION_HISTORY.where(AuctionIteration.iteration >= bindparam("first")).where(
     AuctionIteration.iteration < bindparam("stop")
 )
@@ -96,10 +97,15 @@ _ROUND_PURCHASES = _patrons_leaving(Purchase, Purchase.price)
 _ROUND_QUITS = _patrons_leaving(Quit)
 
 
+def auction_states(session: Session, *, auction_ids: list[int]) -> dict[int, AuctionState]:
+    """Where each of these auctions stands, by id (one query; a missing id is left out)."""
+    rows = session.connection().execute(_AUCTION_STATES, {"ids": auction_ids})
+    return {row[0]: AuctionState(*row[1:]) for row in rows}
+
+
 def auction_state(session: Session, *, auction_id: int) -> AuctionState | None:
-    """The few columns of an auction its event stream polls (one query)."""
-    row = session.connection().execute(_AUCTION_STATE, {"auction_id": auction_id}).one_or_none()
-    return None if row is None else AuctionState(*row)
+    """Where an auction stands (None: no such auction)."""
+    return auction_states(session, auction_ids=[auction_id]).get(auction_id)
 
 
 def auction_rounds(
@@ -130,7 +136,7 @@ def auction_rounds(
 
 @dataclass(frozen=True)
 class JobState:
-    """Where a job stands, as its event stream polls it (the result is read once, at the end)."""
+    """Where a job stands, as live updates read it (the result is read once, at the end)."""
 
     status: str
     progress: float
@@ -139,12 +145,17 @@ class JobState:
     updated_at: datetime
 
 
-_JOB_STATE = select(*(getattr(Job, f.name) for f in dataclasses.fields(JobState))).where(
-    Job.id == bindparam("job_id")
+_JOB_STATES = select(Job.id, *(getattr(Job, f.name) for f in dataclasses.fields(JobState))).where(
+    Job.id.in_(bindparam("ids", expanding=True))
 )
 
 
+def job_states(session: Session, *, job_ids: list[int]) -> dict[int, JobState]:
+    """Where each of these jobs stands, by id (one query; a missing id is left out)."""
+    rows = session.connection().execute(_JOB_STATES, {"ids": job_ids})
+    return {row[0]: JobState(*row[1:]) for row in rows}
+
+
 def job_state(session: Session, *, job_id: int) -> JobState | None:
-    """The few columns of a job its event stream polls (one query)."""
-    row = session.connection().execute(_JOB_STATE, {"job_id": job_id}).one_or_none()
-    return None if row is None else JobState(*row)
+    """Where a job stands (None: no such job)."""
+    return job_states(session, job_ids=[job_id]).get(job_id)

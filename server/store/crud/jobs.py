@@ -12,6 +12,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from server.store.crud.lists import ListOrder, keyset
+from server.store.crud.live import notify_change
 from server.store.status import AUCTION_UNFINISHED, JOB_UNFINISHED, AuctionStatus, JobStatus
 from server.store.tables import Auction, Job, utcnow
 
@@ -53,11 +54,13 @@ def fail_unfinished(
     values: dict[str, Any] = {"status": failed, "error": error, "finished_at": now}
     if table is Job:
         values["message"] = "failed"
-    session.execute(
+    failed_now = session.execute(
         update(table)
         .where(table.id == row_id, table.status.in_(unfinished))
         .values(updated_at=now, **values)
     )
+    if failed_now.rowcount:  # type: ignore[attr-defined]
+        notify_change(session, kind="auction" if table is Auction else "job", row_id=row_id)
 
 
 def cancel_job(session: Session, *, job_id: int) -> bool:
@@ -68,7 +71,10 @@ def cancel_job(session: Session, *, job_id: int) -> bool:
         .where(Job.id == job_id, Job.status.in_(JOB_UNFINISHED))
         .values(status=JobStatus.CANCELLED, message="cancelled", finished_at=now, updated_at=now)
     )
-    return bool(changed.rowcount)  # type: ignore[attr-defined]
+    if not changed.rowcount:  # type: ignore[attr-defined]
+        return False
+    notify_change(session, kind="job", row_id=job_id)
+    return True
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
-"""Remote fine-tuning rounds as the round watcher polls them: the newest round of an auction,
-and its body. (The worker opens and closes rounds itself, see
+"""Remote fine-tuning rounds as live updates read them: the newest round of an auction, and its
+body. (The worker opens and closes rounds itself, see
 ``server.auctions.steps``.)"""
 
 from __future__ import annotations
@@ -11,26 +11,20 @@ from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from server.store.crud.auctions import AUCTION_PATRONS
-from server.store.tables import Auction, FineTuneRound
+from server.store.tables import FineTuneRound
 
 
 @dataclass(frozen=True)
 class RoundHead:
-    """An auction's state and its newest fine-tuning round, as the round watcher polls them."""
+    """An auction's newest fine-tuning round, as live updates read it."""
 
-    auction_status: str
-    fine_tune_mode: str
-    fine_tune_rounds: int
-    round_id: int | None
-    round: int | None
-    iteration: int | None
-    status: str | None
-    deadline: datetime | None
+    round_id: int
+    round: int
+    iteration: int
+    status: str
+    deadline: datetime
 
 
-_AUCTION_MODE = select(Auction.status, Auction.fine_tune_mode, Auction.fine_tune_rounds).where(
-    Auction.id == bindparam("auction_id")
-)
 _NEWEST_ROUND = (
     select(
         FineTuneRound.id,
@@ -46,18 +40,9 @@ _NEWEST_ROUND = (
 
 
 def round_head(session: Session, *, auction_id: int) -> RoundHead | None:
-    """The auction's status and newest round (two small queries); None: no such auction."""
-    key = {"auction_id": auction_id}
-    connection = session.connection()
-    auction = connection.execute(_AUCTION_MODE, key).one_or_none()
-    if auction is None:
-        return None
-    newest = connection.execute(_NEWEST_ROUND, key).one_or_none()
-    status, mode, rounds = auction
-    if newest is None:
-        return RoundHead(status, mode, rounds, None, None, None, None, None)
-    return RoundHead(status, mode, rounds, newest.id, newest.round, newest.iteration,
-                     newest.status, newest.deadline)  # fmt: skip
+    """The auction's newest round (one query); None: no round has opened yet."""
+    newest = session.connection().execute(_NEWEST_ROUND, {"auction_id": auction_id}).one_or_none()
+    return None if newest is None else RoundHead(*newest)
 
 
 @dataclass(frozen=True)

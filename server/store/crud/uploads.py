@@ -21,6 +21,7 @@ from sqlalchemy.engine import Connection
 from sqlalchemy.orm import Session
 
 from screener import Verdict, review
+from server.store.crud.live import notify_change
 from server.store.crud.models import insert_model_versions, latest_versions
 from server.store.db import JSONText
 from server.store.status import (
@@ -505,4 +506,7 @@ def due_when_answered(session: Session, *, round_id: int, now: datetime) -> bool
         .where(Auction.id == head.auction_id, Auction.status == AuctionStatus.RUNNING)
         .values(next_step_at=now)
     )
-    return bool(moved.rowcount)
+    if not moved.rowcount:
+        return False
+    notify_change(session, kind="auction", row_id=head.auction_id)
+    return True

@@ -1,0 +1,315 @@
+"""The live-update source of an API process, shared by the event streams
+(``server.live.events``), the long polls of ``GET /auctions/{id}/rounds/current`` and the round
+sockets (``server.live.rounds``).
+
+Whatever listens reads committed rows, never another process's memory, so every API replica
+sharing the database shows the same. A listener watches a row (an auction or a job) through a
+**view** (what it shows of the row: an event stream's rounds, a long poll's newest round); the
+source keeps one **feed** per (row, view), shared by all its listeners in this process.
+
+The source reads the state of the watched rows, batched (one query for all watched auctions,
+one for all watched jobs), and rebuilds a row's feeds only when its state changed: a changed
+row is read once, and every listener of it wakes. It reads them
+
+* on SQLite, every ``SRD_EVENT_POLL_INTERVAL_S`` while anyone listens;
+* on PostgreSQL, when a commit announces the row on the ``LISTEN``/``NOTIFY`` channel
+  (``server.store.crud.live``): one dedicated connection per process listens, reconnects after
+  an outage (every watched row is read again then, for what it missed; meanwhile the rows are
+  read as on SQLite) and, as a safety net, every ``SRD_LIVE_SAFETY_POLL_S``.
+
+A change this process makes itself is read at once (``poke``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager, suppress
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+import psycopg
+from sqlalchemy import make_url
+from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
+
+from server.store import crud
+from server.store.db import (
+    CONNECT_TIMEOUT_S,
+    Database,
+    is_database_outage,
+    is_sqlite,
+    unavailable_message,
+)
+
+log = logging.getLogger("srd.live")
+
+RECONNECT_S = 0.5
+"""Pause before the listening connection is opened again after it failed."""
+LISTENER_NAME = "srd-live"
+"""``application_name`` of the listening connection (how an operator finds it)."""
+
+S = TypeVar("S")
+Key = tuple[crud.LiveKind, int]
+View = Callable[[Session, int, Any, "S | None"], S]
+"""``(session, row id, row state, previous snapshot) -> snapshot``: what a listener shows of a
+row, built from its state (``crud.AuctionState``, ``crud.JobState``; None when the row is gone)
+and the previous snapshot (so reads can be incremental)."""
+
+_STATES: dict[crud.LiveKind, Callable[[Session, list[int]], dict[int, Any]]] = {
+    "auction": lambda session, ids: crud.auction_states(session, auction_ids=ids),
+    "job": lambda session, ids: crud.job_states(session, job_ids=ids),
+}
+
+
+@dataclass(eq=False)
+class Feed(Generic[S]):
+    """One view of one row, shared by its listeners in this process."""
+
+    view: View[S]
+    snapshot: S | None = None
+    built: bool = False
+    """``snapshot`` has been read (it may be None: a view's "no such row")."""
+    generation: int = 0
+    """Bumped whenever ``snapshot`` changes."""
+    listeners: int = 0
+    failure: BaseException | None = None
+    """Why the first read failed (the listeners waiting for it raise it)."""
+    _changed: asyncio.Event = field(default_factory=asyncio.Event)
+
+    async def wait(self, generation: int, timeout_s: float) -> bool:
+        """Wait until the snapshot is newer than ``generation``; False on timeout."""
+        if self.generation != generation:
+            return True
+        try:
+            await asyncio.wait_for(self._changed.wait(), timeout_s)
+        except TimeoutError:
+            return False
+        return True
+
+    def _wake(self) -> None:
+        woken, self._changed = self._changed, asyncio.Event()
+        woken.set()
+
+    def _publish(self, snapshot: S | None) -> None:
+        self.snapshot, self.built, self.failure = snapshot, True, None
+        self.generation += 1
+        self._wake()
+
+
+@dataclass(eq=False)
+class _Row:
+    """A watched row: its state as last read, and its feeds."""
+
+    state: Any = None
+    read: bool = False
+    feeds: dict[View[Any], Feed[Any]] = field(default_factory=dict)
+
+
+_Plan = list[tuple[Key, Any, bool, list[tuple[Feed[Any], Any, bool]]]]
+"""What one read does, per row: (key, state known, whether it is known, [(feed, its snapshot,
+whether it is built)])."""
+_Result = list[tuple[Key, Any, list[tuple[Feed[Any], Any]]]]
+"""What one read found, per row: (key, state, [(feed, new snapshot)])."""
+
+
+class LiveSource:
+    """The one live-update source of an API process (see the module docstring)."""
+
+    def __init__(self, database: Database, *, poll_s: float, safety_poll_s: float) -> None:
+        self._database = database
+        self._listens = not is_sqlite(database.url)
+        self.interval_s = safety_poll_s if self._listens else poll_s
+        self._poll_s = poll_s
+        self._rows: dict[Key, _Row] = {}
+        self._dirty: set[Key] = set()
+        self._wake = asyncio.Event()
+        self._tasks: list[asyncio.Task[None]] = []
+        self.reads = 0
+        """Reads made so far (each: one query per kind of row it reads)."""
+        self.listening = False
+        """The listening connection is open (always False on SQLite)."""
+
+    @property
+    def watched(self) -> int:
+        """How many rows are watched right now."""
+        return len(self._rows)
+
+    @asynccontextmanager
+    async def watch(
+        self, kind: crud.LiveKind, row_id: int, view: View[S]
+    ) -> AsyncIterator[Feed[S]]:
+        """Listen to the feed of ``view`` on the row (made on first use), once its first
+        snapshot is read (its failure is raised); leaving the block drops the feed when nobody
+        else listens to it, and the row when nobody watches it."""
+        self._start()
+        key = (kind, row_id)
+        row = self._rows.setdefault(key, _Row())
+        feed: Feed[S] | None = row.feeds.get(view)
+        if feed is None:
+            feed = row.feeds[view] = Feed(view)
+            self._mark(key)
+        feed.listeners += 1
+        try:
+            while not feed.built:
+                if feed.failure is not None:
+                    raise feed.failure
+                await feed.wait(feed.generation, self.interval_s)
+            yield feed
+        finally:  # no await here: this also runs when the listener's task is cancelled
+            feed.listeners -= 1
+            if feed.listeners == 0:
+                del row.feeds[view]
+                if not row.feeds:
+                    del self._rows[key]
+
+    def poke(self, kind: crud.LiveKind, row_id: int) -> None:
+        """This process changed the row: read it again now."""
+        if (kind, row_id) in self._rows:
+            self._mark((kind, row_id))
+
+    async def close(self) -> None:
+        """Stop reading and listening (the listeners keep their last snapshots)."""
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+
+    def _mark(self, key: Key) -> None:
+        self._dirty.add(key)
+        self._wake.set()
+
+    def _start(self) -> None:
+        if self._tasks:
+            return
+        loop = asyncio.get_running_loop()
+        self._tasks.append(loop.create_task(self._read_loop(), name="live reads"))
+        if self._listens:
+            self._tasks.append(loop.create_task(self._listen(), name="live listener"))
+
+    async def _read_loop(self) -> None:
+        failing = False  # an outage is logged once, not at every read
+        while True:
+            if not self._dirty:
+                # while the listener is down, PostgreSQL is polled as SQLite is
+                interval = self._poll_s if self._listens and not self.listening else self.interval_s
+                try:
+                    await asyncio.wait_for(self._wake.wait(), interval if self._rows else None)
+                except TimeoutError:  # the poll (on PostgreSQL the safety net)
+                    self._dirty.update(self._rows)
+            self._wake.clear()
+            keys, self._dirty = self._dirty & self._rows.keys(), set()
+            if not keys:
+                continue
+            plan: _Plan = [
+                (
+                    key,
+                    self._rows[key].state,
+                    self._rows[key].read,
+                    [(f, f.snapshot, f.built) for f in self._rows[key].feeds.values()],
+                )
+                for key in keys
+            ]
+            try:
+                found = await run_in_threadpool(self._read, plan)
+            except Exception as exc:  # the listeners keep their snapshots; read again later
+                if not is_database_outage(exc):
+                    log.exception("live updates: reading failed; retrying")
+                elif not failing:
+                    log.warning("live updates: %s; retrying", unavailable_message(exc))
+                failing = True
+                for _, _, _, feeds in plan:
+                    for feed, _, built in feeds:
+                        if not built:
+                            feed.failure = exc
+                            feed._wake()
+                await self._pause()
+                self._dirty.update(keys)
+                continue
+            if failing:
+                log.info("live updates: reading again")
+            failing = False
+            self.reads += 1
+            self._deliver(found)
+
+    async def _pause(self) -> None:
+        """Wait ``interval_s``, or less if a notification or a new listener comes."""
+        with suppress(TimeoutError):
+            await asyncio.wait_for(self._wake.wait(), self.interval_s)
+
+    def _read(self, plan: _Plan) -> _Result:
+        """One read (in the thread pool): the states of the planned rows, one query per kind,
+        then the feeds of every row whose state changed and every feed not built yet."""
+        ids: dict[crud.LiveKind, list[int]] = {}
+        for (kind, row_id), *_ in plan:
+            ids.setdefault(kind, []).append(row_id)
+        found: _Result = []
+        with self._database.session(write=False) as session:
+            states = {kind: _STATES[kind](session, row_ids) for kind, row_ids in ids.items()}
+            for key, known, was_read, feeds in plan:
+                state = states[key[0]].get(key[1])
+                changed = not was_read or state != known
+                snapshots = [
+                    (feed, feed.view(session, key[1], state, previous))
+                    for feed, previous, built in feeds
+                    if changed or not built
+                ]
+                found.append((key, state, snapshots))
+        return found
+
+    def _deliver(self, found: _Result) -> None:
+        for key, state, snapshots in found:
+            row = self._rows.get(key)
+            if row is None:  # nobody watches it any more
+                continue
+            row.state, row.read = state, True
+            for feed, snapshot in snapshots:
+                if row.feeds.get(feed.view) is feed and (
+                    not feed.built or snapshot is not feed.snapshot
+                ):
+                    feed._publish(snapshot)
+
+    async def _listen(self) -> None:
+        """Keep one connection listening on the channel; a notified row that is watched is
+        read at once."""
+        url = make_url(self._database.url).set(drivername="postgresql")
+        conninfo = url.render_as_string(hide_password=False)
+        failing = False
+        while True:
+            try:
+                connection = await psycopg.AsyncConnection.connect(
+                    conninfo,
+                    autocommit=True,
+                    connect_timeout=CONNECT_TIMEOUT_S,
+                    application_name=LISTENER_NAME,
+                    # a connection cut off without a word is noticed in under a minute
+                    keepalives=1,
+                    keepalives_idle=10,
+                    keepalives_interval=5,
+                )
+                async with connection:
+                    await connection.execute(f"LISTEN {crud.LIVE_CHANNEL}")
+                    self.listening = True
+                    if failing:
+                        log.info("live updates: listening again")
+                    failing = False
+                    self._dirty.update(self._rows)  # what changed while nobody listened
+                    self._wake.set()
+                    async for notice in connection.notifies():
+                        self._notified(notice.payload)
+            except Exception as exc:  # refused, dropped, killed: connect again
+                if not failing:
+                    log.warning(
+                        "live updates: the listening connection failed: %s; reconnecting", exc
+                    )
+                failing = True
+            finally:
+                self.listening = False
+                self._wake.set()  # the read loop polls meanwhile
+            await asyncio.sleep(RECONNECT_S)
+
+    def _notified(self, payload: str) -> None:
+        kind, _, row_id = payload.partition(":")
+        if kind in _STATES and row_id.isdigit() and (kind, int(row_id)) in self._rows:
+            self._mark((kind, int(row_id)))

@@ -74,11 +74,13 @@ def test_the_quick_start_runs_as_pasted(tmp_path: Path) -> None:
         lines = run.stdout.splitlines()
         assert lines[:7] == ["true"] * 5 + ["false", "2"]  # verdicts, then version 2
         assert f"{server.url}/ui/#/auctions/1" in run.stdout
-        assert "event: iteration" in run.stdout and "event: end" in run.stdout
+        assert "iteration 0: price 5.000" in run.stdout  # srd watch, line by line
+        assert "auction 1 finished" in run.stdout
         buyers = json.loads(lines[-1])
         with httpx.Client(base_url=server.url) as api:
             auction = api.get("/auctions/1").json()
             assert auction["status"] == "finished" and auction["n_patrons"] == 6
+            assert auction["fine_tune_mode"] == "remote" and auction["fine_tuning"]
             assert buyers == auction["buyers"]
             assert len(buyers) == auction["n_initial"] == 3  # every fish sold
             saboteur = api.get("/models", params={"accepted": "false"}).json()["items"]

@@ -28,34 +28,23 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import TYPE_CHECKING
 
-from sqlalchemy import func, insert, select, update
-from sqlalchemy.orm import Session, selectinload, undefer
+from sqlalchemy.orm import Session
 
 from agents.manifest import Manifest, parse_manifest
 from server.store import crud
+from server.store.crud.steps import (
+    IterationRow,
+    MovedOnError,
+    NewRound,
+    OpenRound,
+    PendingUploadsError,
+)
 from server.store.db import Database, is_database_outage
-from server.store.status import (
-    ANSWERED,
-    AUCTION_UNFINISHED,
-    AnswerOutcome,
-    AuctionStatus,
-    RoundStatus,
-)
-from server.store.tables import (
-    Auction,
-    AuctionIteration,
-    AuctionPatron,
-    FineTuneAnswer,
-    FineTuneRound,
-    ModelVersion,
-    Purchase,
-    Quit,
-    utcnow,
-)
+from server.store.status import AUCTION_UNFINISHED, AuctionStatus
+from server.store.tables import Auction, utcnow
 from server.work.pool import WorkerContext, error_summary
 from server.work.runner import WorkKind
 from sim.market import MarketConfig
@@ -65,18 +54,13 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("srd.auctions")
 
+CLOSE_TRIES = 3
+"""Times a step judges a round's pending uploads and tries to close it (an upload in time may
+be stored while the step judges the others)."""
+
 
 class ResumeError(RuntimeError):
     """The auction's stored state cannot be continued."""
-
-
-@dataclass(frozen=True)
-class _OpenRound:
-    """What a step needs of an open fine-tuning round."""
-
-    id: int
-    asked: list[int]
-    deadline: datetime
 
 
 def base_price() -> float:
@@ -133,128 +117,46 @@ def _commit_iteration(
     market: Market,
     model_ids: list[int],
     now: datetime,
-) -> _OpenRound | None:
-    """Write one iteration played at ``now`` (see the module docstring), with the round it
-    opens (returned, if any); ``_MovedOnError`` when the auction moved on without this step."""
-    opened = market.pending_round
-    deadline = now + timedelta(seconds=auction.round_deadline_s)
-    due = None if record.finished else (deadline if opened is not None else now)
-    moved = session.execute(
-        update(Auction)
-        .where(
-            Auction.id == auction.id,
-            Auction.iteration == record.iteration,
-            Auction.status == AuctionStatus.RUNNING,
+) -> OpenRound | None:
+    """Write one iteration played at ``now``, with the round it opens (returned, if any)."""
+    pending = market.pending_round
+    opened = None
+    if pending is not None:
+        opened = NewRound(
+            round=pending.iteration + 1,
+            iteration=pending.iteration,
+            rows=pending.rows.tolist(),
+            fine_tune_seed=pending.fine_tune_seed,
+            augmentation_seed=pending.augmentation_seed,
+            asked=list(pending.patrons),
+            deadline=now + timedelta(seconds=auction.round_deadline_s),
         )
-        .values(
-            iteration=record.iteration + 1,
-            price=record.next_price,
-            n_available=record.n_available_after,
-            checkpoint=market.checkpoint(),
-            status=AuctionStatus.FINISHED if record.finished else AuctionStatus.RUNNING,
-            stop_reason=record.stop_reason,
-            finished_at=now if record.finished else None,
-            updated_at=now,
-            next_step_at=due,
-        )
-    )
-    if moved.rowcount != 1:  # type: ignore[attr-defined]
-        raise _MovedOnError(auction.id)
-    crud.notify_change(session, kind="auction", row_id=auction.id)  # the round it opens or closes
-    connection = session.connection()
-    connection.execute(
-        insert(AuctionIteration),
-        {
-            "auction_id": auction.id,
-            "iteration": record.iteration,
-            "price": record.price,
-            "n_available": record.n_available,
-            "votes": dict(record.votes),
-            "row_votes": dict(record.row_votes),
-            "next_price": record.next_price,
-            "n_available_after": record.n_available_after,
-            "created_at": now,
-            "explanations": {
-                "row": record.row,
-                "patrons": [
-                    {**vote, "model_id": model_ids[vote["patron"]]}
-                    for vote in record.explained()["patrons"]
-                ],
-            },
+    explained = record.explained()["patrons"]
+    row = IterationRow(
+        iteration=record.iteration,
+        price=record.price,
+        n_available=record.n_available,
+        votes=dict(record.votes),
+        row_votes=dict(record.row_votes),
+        next_price=record.next_price,
+        n_available_after=record.n_available_after,
+        finished=record.finished,
+        stop_reason=record.stop_reason,
+        explanations={
+            "row": record.row,
+            "patrons": [{**vote, "model_id": model_ids[vote["patron"]]} for vote in explained],
         },
+        buyers=[(model_ids[i], price) for i, price in record.buyers],
+        quitters=[model_ids[i] for i in record.quitters],
     )
-    if record.buyers:
-        connection.execute(
-            insert(Purchase),
-            [
-                {
-                    "auction_id": auction.id,
-                    "model_id": model_ids[i],
-                    "price": price,
-                    "iteration": record.iteration,
-                }
-                for i, price in record.buyers
-            ],
-        )
-    if record.quitters:
-        connection.execute(
-            insert(Quit),
-            [
-                {"auction_id": auction.id, "model_id": model_ids[i], "iteration": record.iteration}
-                for i in record.quitters
-            ],
-        )
-    if opened is None:
-        return None
-    rows = opened.rows.tolist()
-    round_id = connection.execute(
-        insert(FineTuneRound).returning(FineTuneRound.id),
-        {
-            "auction_id": auction.id,
-            "round": opened.iteration + 1,
-            "iteration": opened.iteration,
-            "status": RoundStatus.OPEN,
-            "opened_at": now,
-            "deadline": deadline,
-            "rows": rows,
-            "fine_tune_seed": opened.fine_tune_seed,
-            "augmentation_seed": opened.augmentation_seed,
-            "asked": opened.patrons,
-            # What publishing the round costs: its rows, once to every patron asked.
-            "bytes_published": len(str(rows)) * len(opened.patrons),
-        },
-    ).scalar_one()
-    return _OpenRound(round_id, list(opened.patrons), deadline)
-
-
-class _MovedOnError(RuntimeError):
-    """The auction is no longer where this step found it (cancelled, or moved by another)."""
-
-
-class _PendingError(RuntimeError):
-    """An upload of the round being closed still awaits its verdict."""
-
-
-CLOSE_TRIES = 3
-"""Times a step judges a round's pending uploads and tries to close it (an upload in time may
-be stored while the step judges the others)."""
-
-
-def _open_round(session: Session, auction_id: int) -> _OpenRound | None:
-    row = session.scalars(
-        select(FineTuneRound).where(
-            FineTuneRound.auction_id == auction_id, FineTuneRound.status == RoundStatus.OPEN
-        )
-    ).one_or_none()
-    return None if row is None else _OpenRound(row.id, list(row.asked), row.deadline)
-
-
-def _answered(session: Session, round_id: int) -> int:
-    return session.execute(
-        select(func.count())
-        .select_from(FineTuneAnswer)
-        .where(FineTuneAnswer.round_id == round_id, FineTuneAnswer.outcome.in_(ANSWERED))
-    ).scalar_one()
+    return crud.commit_iteration(
+        session,
+        auction_id=auction.id,
+        row=row,
+        checkpoint=market.checkpoint(),
+        opened=opened,
+        now=now,
+    )
 
 
 def _judge_pending(database: Database, round_id: int, margin: float) -> None:
@@ -276,118 +178,70 @@ def _judge_pending(database: Database, round_id: int, margin: float) -> None:
         session.commit()
 
 
-def _close_round(
-    session: Session, auction_id: int, market: Market, row: _OpenRound, now: datetime
-) -> None:
-    """Close the open round at ``now``: its accepted versions applied to the market and to the
-    patrons' current versions, a ``missing`` answer for every asked patron that stayed silent."""
-    closed = session.execute(
-        update(FineTuneRound)
-        .where(FineTuneRound.id == row.id, FineTuneRound.status == RoundStatus.OPEN)
-        .values(status=RoundStatus.CLOSED, closed_at=now)
-    )
-    if closed.rowcount != 1:  # type: ignore[attr-defined]
-        raise _MovedOnError(auction_id)
-    connection = session.connection()
-    answers = connection.execute(
-        select(FineTuneAnswer.position, FineTuneAnswer.outcome, FineTuneAnswer.uploaded_id).where(
-            FineTuneAnswer.round_id == row.id
-        )
-    ).all()
-    if any(a.outcome == AnswerOutcome.PENDING for a in answers):
-        raise _PendingError(row.id)  # stored after the step judged the rest: judge it too
-    applied = {
-        a.position: a.uploaded_id
-        for a in answers
-        if a.outcome == AnswerOutcome.ACCEPTED and a.uploaded_id is not None
-    }
-    manifests = {
-        version_id: parse_manifest(manifest)
-        for version_id, manifest in connection.execute(
-            select(ModelVersion.id, ModelVersion.manifest).where(
-                ModelVersion.id.in_(list(applied.values()))
-            )
-        )
-    }
-    market.apply_round({p: manifests[i] for p, i in applied.items()})
-    # A late upload already has its row (and keeps its outcome); the rest were silent.
-    heard = {a.position for a in answers}
-    silent = [p for p in row.asked if p not in heard]
-    if silent:
-        bidding = {
-            patron.position: patron.current_model_id or patron.model_id
-            for patron in connection.execute(
-                select(
-                    AuctionPatron.position, AuctionPatron.model_id, AuctionPatron.current_model_id
-                ).where(AuctionPatron.auction_id == auction_id, AuctionPatron.position.in_(silent))
-            )
-        }
-        connection.execute(
-            insert(FineTuneAnswer),
-            [
-                {
-                    "round_id": row.id,
-                    "position": position,
-                    "outcome": AnswerOutcome.MISSING,
-                    "model_id": bidding[position],
-                    "bytes_in": 0,
-                    "bytes_out": 0,
-                    "created_at": now,
-                }
-                for position in silent
-            ],
-        )
-    if applied:
-        for position, version in applied.items():
-            connection.execute(
-                update(AuctionPatron)
-                .where(AuctionPatron.auction_id == auction_id, AuctionPatron.position == position)
-                .values(current_model_id=version)
-            )
-
-
 def _fail(database: Database, auction_id: int, reason: str) -> None:
     with database.session(write=True) as session:
         crud.fail_unfinished(session, table=Auction, row_id=auction_id, error=reason)
         session.commit()
 
 
-def _not_yet(database: Database, auction_id: int, row: _OpenRound) -> bool:
+def _not_yet(database: Database, auction_id: int, row: OpenRound) -> bool:
     """An open round that may still hear answers: the auction is due again at its deadline
     (True); False when the round can close now."""
     with database.session(write=False) as session:
-        answered = _answered(session, row.id)
+        answered = crud.answered(session, round_id=row.id)
     if answered >= len(row.asked) or utcnow() >= row.deadline:
         return False
     with database.session(write=True) as session:
-        session.execute(
-            update(Auction)
-            .where(Auction.id == auction_id, Auction.status == AuctionStatus.RUNNING)
-            .values(next_step_at=row.deadline)
-        )
+        crud.due_at(session, auction_id=auction_id, when=row.deadline)
         session.commit()
     return True
+
+
+def _close_and_play(
+    database: Database,
+    auction: Auction,
+    market: Market,
+    row: OpenRound,
+    model_ids: list[int],
+    margin: float,
+) -> OpenRound | None:
+    """One transaction: the round closed, its accepted versions applied, the next iteration
+    (after judging what is pending; again if an upload came meanwhile)."""
+    for attempt in range(CLOSE_TRIES):
+        _judge_pending(database, row.id, margin)
+        with database.session(write=True) as session:
+            now = utcnow()
+            try:
+                applied = crud.close_round(session, auction_id=auction.id, round=row, now=now)
+            except PendingUploadsError:
+                if attempt + 1 == CLOSE_TRIES:
+                    raise
+                session.rollback()
+                continue
+            market.apply_round({p: parse_manifest(m) for p, m in applied.items()})
+            opened = _commit_iteration(session, auction, market.step(), market, model_ids, now)
+            session.commit()
+            return opened
+    raise AssertionError("unreachable")
 
 
 def _step(database: Database, auction_id: int, margin: float) -> None:
     # Read and rebuild the market outside any write transaction (parsing the manifests and
     # building the market take a while; on SQLite a write transaction holds the one write lock).
     with database.session(write=False) as session:
-        auction = session.scalars(
-            select(Auction)
-            .where(Auction.id == auction_id)
-            .options(undefer(Auction.checkpoint), selectinload(Auction.patrons))
-        ).one_or_none()
-        if auction is None or auction.status not in AUCTION_UNFINISHED:
+        state = crud.step_state(session, auction_id=auction_id)
+        if state is None or state[0].status not in AUCTION_UNFINISHED:
             return
-        row = _open_round(session, auction_id)
+        auction, row = state
         model_ids = [patron.model_id for patron in auction.patrons]
-        manifests = _patron_manifests(session, auction.patrons)
+        manifests = [parse_manifest(m) for m in crud.patron_manifests(session, model_ids=model_ids)]
     if row is not None and _not_yet(database, auction_id, row):
         return
     market = _load_market(auction, manifests)
     if auction.status == AuctionStatus.PENDING:
-        _start(database, auction, market)
+        with database.session(write=True) as session:
+            crud.start(session, auction_id=auction_id, finished=market.finished, now=utcnow())
+            session.commit()
         if market.finished:
             return
     if market.pending_round is not None:
@@ -396,23 +250,7 @@ def _step(database: Database, auction_id: int, margin: float) -> None:
             raise ResumeError(
                 f"the checkpoint awaits fine-tuning round {number}, which is not open"
             )
-        for attempt in range(CLOSE_TRIES):
-            _judge_pending(database, row.id, margin)
-            # One transaction: the round closed, its answers applied, the next iteration.
-            with database.session(write=True) as session:
-                now = utcnow()
-                try:
-                    _close_round(session, auction_id, market, row, now)
-                except _PendingError:
-                    if attempt + 1 == CLOSE_TRIES:
-                        raise
-                    session.rollback()
-                    continue
-                record = market.step()
-                opened = _commit_iteration(session, auction, record, market, model_ids, now)
-                session.commit()
-                break
-        if opened is not None:
+        if _close_and_play(database, auction, market, row, model_ids, margin) is not None:
             return
     while not market.finished:
         began = utcnow()  # the iteration is computed before the write lock is taken
@@ -424,43 +262,12 @@ def _step(database: Database, auction_id: int, margin: float) -> None:
             return
 
 
-def _start(database: Database, auction: Auction, market: Market) -> None:
-    """The first step of a pending auction: running from now (finished at once when its market
-    ends before its first iteration)."""
-    with database.session(write=True) as session:
-        now = utcnow()
-        values: dict[str, object] = {
-            "status": AuctionStatus.RUNNING,
-            "started_at": now,
-            "updated_at": now,
-        }
-        if market.finished:
-            values.update(status=AuctionStatus.FINISHED, finished_at=now, next_step_at=None)
-        started = session.execute(
-            update(Auction)
-            .where(Auction.id == auction.id, Auction.status == AuctionStatus.PENDING)
-            .values(**values)
-        )
-        if started.rowcount != 1:  # type: ignore[attr-defined]
-            raise _MovedOnError(auction.id)
-        crud.notify_change(session, kind="auction", row_id=auction.id)
-        session.commit()
-
-
-def _patron_manifests(session: Session, patrons: Sequence[AuctionPatron]) -> list[Manifest]:
-    rows = session.scalars(
-        select(ModelVersion).where(ModelVersion.id.in_([p.model_id for p in patrons]))
-    ).all()
-    by_id = {row.id: row for row in rows}
-    return [parse_manifest(by_id[p.model_id].manifest) for p in patrons]
-
-
 def run_step(context: WorkerContext, auction_id: int) -> None:
     """Worker process entry point: one step of the auction (see the module docstring)."""
     database = Database(context.database_url)
     try:
         _step(database, auction_id, context.review_margin)
-    except _MovedOnError:
+    except MovedOnError:
         log.info(
             "auction %d moved on without this step (cancelled, or stepped elsewhere)", auction_id
         )

@@ -484,10 +484,12 @@ def due_when_answered(session: Session, *, round_id: int, now: datetime) -> bool
     """Make the round's auction due for its next step at ``now`` if every asked patron's
     upload is judged (none pending); whether it did."""
     connection = session.connection()
+    # The round's row lock serialises the last verdicts of a round: each counts the others'
+    # (under READ COMMITTED two that commit together would each miss the other's).
     head = connection.execute(
-        select(FineTuneRound.auction_id, FineTuneRound.asked, FineTuneRound.status).where(
-            FineTuneRound.id == round_id
-        )
+        select(FineTuneRound.auction_id, FineTuneRound.asked, FineTuneRound.status)
+        .where(FineTuneRound.id == round_id)
+        .with_for_update()
     ).one()
     if head.status != RoundStatus.OPEN:
         return False

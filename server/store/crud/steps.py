@@ -1,0 +1,305 @@
+"""The statements of an auction's steps (``server.auctions.steps``): read where the auction
+stands, start it, commit an iteration with the round it opens, close a round. Every write is
+conditional on the auction standing where the step found it (``MovedOnError`` otherwise)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import func, insert, select, update
+from sqlalchemy.orm import Session, selectinload, undefer
+
+from server.store.crud.live import notify_change
+from server.store.status import ANSWERED, AnswerOutcome, AuctionStatus, RoundStatus
+from server.store.tables import (
+    Auction,
+    AuctionIteration,
+    AuctionPatron,
+    FineTuneAnswer,
+    FineTuneRound,
+    ModelVersion,
+    Purchase,
+    Quit,
+)
+
+
+class MovedOnError(RuntimeError):
+    """The auction is no longer where the step found it (cancelled, or moved by another)."""
+
+
+class PendingUploadsError(RuntimeError):
+    """An upload of the round being closed still awaits its verdict."""
+
+
+@dataclass(frozen=True)
+class OpenRound:
+    """What a step needs of an open fine-tuning round."""
+
+    id: int
+    asked: list[int]
+    """Positions of the patrons asked."""
+    deadline: datetime
+
+
+@dataclass(frozen=True)
+class IterationRow:
+    """One played iteration, in the database's terms (patrons by model id)."""
+
+    iteration: int
+    price: float
+    n_available: int
+    votes: dict[str, int]
+    row_votes: dict[str, int]
+    next_price: float
+    n_available_after: int
+    finished: bool
+    stop_reason: str | None
+    explanations: dict[str, Any] | None
+    buyers: list[tuple[int, float]]
+    """(model id, price) of each purchase."""
+    quitters: list[int]
+
+
+@dataclass(frozen=True)
+class NewRound:
+    """A fine-tuning round an iteration opens."""
+
+    round: int
+    iteration: int
+    rows: list[list[float]]
+    fine_tune_seed: int
+    augmentation_seed: int
+    asked: list[int]
+    deadline: datetime
+
+
+def step_state(session: Session, *, auction_id: int) -> tuple[Auction, OpenRound | None] | None:
+    """The auction (checkpoint and patrons loaded) and its open round; None for an auction
+    that is gone."""
+    auction = session.scalars(
+        select(Auction)
+        .where(Auction.id == auction_id)
+        .options(undefer(Auction.checkpoint), selectinload(Auction.patrons))
+    ).one_or_none()
+    if auction is None:
+        return None
+    row = session.scalars(
+        select(FineTuneRound).where(
+            FineTuneRound.auction_id == auction_id, FineTuneRound.status == RoundStatus.OPEN
+        )
+    ).one_or_none()
+    return auction, None if row is None else OpenRound(row.id, list(row.asked), row.deadline)
+
+
+def patron_manifests(session: Session, *, model_ids: Sequence[int]) -> list[dict[str, Any]]:
+    """The stored manifests of these versions, in order."""
+    rows = session.execute(
+        select(ModelVersion.id, ModelVersion.manifest).where(ModelVersion.id.in_(model_ids))
+    )
+    by_id: dict[int, dict[str, Any]] = dict(rows.tuples().all())
+    return [by_id[model_id] for model_id in model_ids]
+
+
+def answered(session: Session, *, round_id: int) -> int:
+    """How many asked patrons have answered the round (pending uploads included)."""
+    return session.execute(
+        select(func.count())
+        .select_from(FineTuneAnswer)
+        .where(FineTuneAnswer.round_id == round_id, FineTuneAnswer.outcome.in_(ANSWERED))
+    ).scalar_one()
+
+
+def due_at(session: Session, *, auction_id: int, when: datetime) -> None:
+    """The running auction's next step is due at ``when``."""
+    session.execute(
+        update(Auction)
+        .where(Auction.id == auction_id, Auction.status == AuctionStatus.RUNNING)
+        .values(next_step_at=when)
+    )
+
+
+def start(session: Session, *, auction_id: int, finished: bool, now: datetime) -> None:
+    """A pending auction running from ``now`` (finished at once if ``finished``)."""
+    values: dict[str, object] = {
+        "status": AuctionStatus.RUNNING,
+        "started_at": now,
+        "updated_at": now,
+    }
+    if finished:
+        values.update(status=AuctionStatus.FINISHED, finished_at=now, next_step_at=None)
+    started = session.execute(
+        update(Auction)
+        .where(Auction.id == auction_id, Auction.status == AuctionStatus.PENDING)
+        .values(**values)
+    )
+    if started.rowcount != 1:  # type: ignore[attr-defined]
+        raise MovedOnError(auction_id)
+    notify_change(session, kind="auction", row_id=auction_id)
+
+
+def commit_iteration(
+    session: Session,
+    *,
+    auction_id: int,
+    row: IterationRow,
+    checkpoint: bytes,
+    opened: NewRound | None,
+    now: datetime,
+) -> OpenRound | None:
+    """Write one iteration played at ``now``: its row, purchases and quits, the new price and
+    supply, the checkpoint, the round it opens (returned) and when the next step is due (now
+    while it plays, the round's deadline, never once ended)."""
+    due = None if row.finished else (opened.deadline if opened is not None else now)
+    moved = session.execute(
+        update(Auction)
+        .where(
+            Auction.id == auction_id,
+            Auction.iteration == row.iteration,
+            Auction.status == AuctionStatus.RUNNING,
+        )
+        .values(
+            iteration=row.iteration + 1,
+            price=row.next_price,
+            n_available=row.n_available_after,
+            checkpoint=checkpoint,
+            status=AuctionStatus.FINISHED if row.finished else AuctionStatus.RUNNING,
+            stop_reason=row.stop_reason,
+            finished_at=now if row.finished else None,
+            updated_at=now,
+            next_step_at=due,
+        )
+    )
+    if moved.rowcount != 1:  # type: ignore[attr-defined]
+        raise MovedOnError(auction_id)
+    notify_change(session, kind="auction", row_id=auction_id)
+    connection = session.connection()
+    connection.execute(
+        insert(AuctionIteration),
+        {
+            "auction_id": auction_id,
+            "iteration": row.iteration,
+            "price": row.price,
+            "n_available": row.n_available,
+            "votes": row.votes,
+            "row_votes": row.row_votes,
+            "next_price": row.next_price,
+            "n_available_after": row.n_available_after,
+            "created_at": now,
+            "explanations": row.explanations,
+        },
+    )
+    if row.buyers:
+        connection.execute(
+            insert(Purchase),
+            [
+                {
+                    "auction_id": auction_id,
+                    "model_id": model_id,
+                    "price": price,
+                    "iteration": row.iteration,
+                }
+                for model_id, price in row.buyers
+            ],
+        )
+    if row.quitters:
+        connection.execute(
+            insert(Quit),
+            [
+                {"auction_id": auction_id, "model_id": model_id, "iteration": row.iteration}
+                for model_id in row.quitters
+            ],
+        )
+    if opened is None:
+        return None
+    round_id = connection.execute(
+        insert(FineTuneRound).returning(FineTuneRound.id),
+        {
+            "auction_id": auction_id,
+            "round": opened.round,
+            "iteration": opened.iteration,
+            "status": RoundStatus.OPEN,
+            "opened_at": now,
+            "deadline": opened.deadline,
+            "rows": opened.rows,
+            "fine_tune_seed": opened.fine_tune_seed,
+            "augmentation_seed": opened.augmentation_seed,
+            "asked": opened.asked,
+            # What publishing the round costs: its rows, once to every patron asked.
+            "bytes_published": len(str(opened.rows)) * len(opened.asked),
+        },
+    ).scalar_one()
+    return OpenRound(round_id, list(opened.asked), opened.deadline)
+
+
+def close_round(
+    session: Session, *, auction_id: int, round: OpenRound, now: datetime
+) -> dict[int, dict[str, Any]]:
+    """Close the open round at ``now``: the patrons whose upload was accepted bid with it from
+    now, every asked patron that stayed silent gets a ``missing`` answer (a late upload keeps
+    its own); the accepted manifests by position, to apply to the market.
+    ``PendingUploadsError`` if an upload still awaits its verdict."""
+    closed = session.execute(
+        update(FineTuneRound)
+        .where(FineTuneRound.id == round.id, FineTuneRound.status == RoundStatus.OPEN)
+        .values(status=RoundStatus.CLOSED, closed_at=now)
+    )
+    if closed.rowcount != 1:  # type: ignore[attr-defined]
+        raise MovedOnError(auction_id)
+    connection = session.connection()
+    answers = connection.execute(
+        select(FineTuneAnswer.position, FineTuneAnswer.outcome, FineTuneAnswer.uploaded_id).where(
+            FineTuneAnswer.round_id == round.id
+        )
+    ).all()
+    if any(a.outcome == AnswerOutcome.PENDING for a in answers):
+        raise PendingUploadsError(round.id)
+    applied = {
+        a.position: a.uploaded_id
+        for a in answers
+        if a.outcome == AnswerOutcome.ACCEPTED and a.uploaded_id is not None
+    }
+    heard = {a.position for a in answers}
+    silent = [p for p in round.asked if p not in heard]
+    if silent:
+        bidding = {
+            patron.position: patron.current_model_id or patron.model_id
+            for patron in connection.execute(
+                select(
+                    AuctionPatron.position, AuctionPatron.model_id, AuctionPatron.current_model_id
+                ).where(AuctionPatron.auction_id == auction_id, AuctionPatron.position.in_(silent))
+            )
+        }
+        connection.execute(
+            insert(FineTuneAnswer),
+            [
+                {
+                    "round_id": round.id,
+                    "position": position,
+                    "outcome": AnswerOutcome.MISSING,
+                    "model_id": bidding[position],
+                    "bytes_in": 0,
+                    "bytes_out": 0,
+                    "created_at": now,
+                }
+                for position in silent
+            ],
+        )
+    for position, version in applied.items():
+        connection.execute(
+            update(AuctionPatron)
+            .where(AuctionPatron.auction_id == auction_id, AuctionPatron.position == position)
+            .values(current_model_id=version)
+        )
+    manifests: dict[int, dict[str, Any]] = dict(
+        connection.execute(
+            select(ModelVersion.id, ModelVersion.manifest).where(
+                ModelVersion.id.in_(list(applied.values()))
+            )
+        )
+        .tuples()
+        .all()
+    )
+    return {position: manifests[version] for position, version in applied.items()}

@@ -126,18 +126,17 @@ class ServerCpu:
             for pid in descendants(root)[1:]:
                 yield pid, process_name(pid) or ""
 
-    def read(self) -> tuple[float, float]:
-        """(server without the screening process, the screening process alone). Reaped
-        children (auction workers that ended) count through their parent's ``cutime``."""
-        server = sum((cpu_seconds(r) or 0.0) + (reaped_cpu_seconds(r) or 0.0) for r in self.roots)
-        screening = 0.0
+    def read(self) -> dict[str, float]:
+        """CPU seconds so far by part: ``api`` (the replicas' own), ``reaped`` (children they
+        waited for: auction workers that ended), then each live child by name (the screening
+        process, the auction workers, multiprocessing's resource tracker)."""
+        parts = {
+            "api": sum(cpu_seconds(r) or 0.0 for r in self.roots),
+            "reaped": sum(reaped_cpu_seconds(r) or 0.0 for r in self.roots),
+        }
         for pid, name in self._tree():
-            used = cpu_seconds(pid) or 0.0
-            if name == SCREENING_NAME:
-                screening += used
-            else:
-                server += used
-        return server, screening
+            parts[name] = parts.get(name, 0.0) + (cpu_seconds(pid) or 0.0)
+        return parts
 
     def check(self) -> None:
         """Each replica has its screening process, found by name (else the figures lie)."""
@@ -175,7 +174,10 @@ class SizeResult:
     agents: int
     auctions: int
     replicas: int
+    asked: int
+    """Patron-rounds the auctions asked for (each asked patron of each round)."""
     uploads: int
+    """Uploads answered."""
     accepted: int
     refused: int
     errors: int
@@ -187,6 +189,8 @@ class SizeResult:
     rounds_closed: int
     server_cpu_ms_per_upload: float
     screening_cpu_ms_per_upload: float
+    cpu_ms_per_upload_by_process: dict[str, float]
+    """The server's CPU per upload by part (see ``ServerCpu.read``), the screening included."""
     generator_cpu_ms_per_upload: float
     wall_s: float
     load_average: list[float]
@@ -355,7 +359,7 @@ async def play_size(
         joined = await submit_agents(client, servers[0], n_agents, plan.seed + n_agents, plan)
         groups = [joined[i : i + AUCTION_SIZE] for i in range(0, n_agents, AUCTION_SIZE)]
         load = list(os.getloadavg())
-        cpu_before, screening_before = cpu.read()
+        cpu_before = cpu.read()
         generator_before, wall_before = time.process_time(), time.monotonic()
         auction_ids = []
         for k, group in enumerate(groups):
@@ -390,7 +394,7 @@ async def play_size(
         else:
             await asyncio.gather(*(http_agent(s, plan, client, log) for s in specs))
         auctions = [await wait_finished(client, servers[0], a) for a in auction_ids]
-        cpu_after, screening_after = cpu.read()
+        cpu_after = cpu.read()
         generator = time.process_time() - generator_before
         wall = time.monotonic() - wall_before
     return summarise(
@@ -399,8 +403,7 @@ async def play_size(
         len(servers),
         log,
         auctions,
-        cpu_after - cpu_before,
-        screening_after - screening_before,
+        {k: v - cpu_before.get(k, 0.0) for k, v in cpu_after.items()},
         generator,
         wall,
         load + list(os.getloadavg()),
@@ -422,8 +425,7 @@ def summarise(
     replicas: int,
     log: list[Upload],
     auctions: list[Any],
-    server_cpu: float,
-    screening_cpu: float,
+    server_cpu: dict[str, float],
     generator_cpu: float,
     wall: float,
     load: list[float],
@@ -460,6 +462,7 @@ def summarise(
         agents=n_agents,
         auctions=len(auctions),
         replicas=replicas,
+        asked=sum(len(played["answers"]) for a in auctions for played in a["fine_tuning"]),
         uploads=len(answered),
         accepted=accepted,
         refused=sum(u.status == 200 and not u.accepted for u in answered),
@@ -470,8 +473,11 @@ def summarise(
         close_p50_ms=percentile(closes, 50) * 1e3,
         close_p95_ms=percentile(closes, 95) * 1e3,
         rounds_closed=len(closes),
-        server_cpu_ms_per_upload=server_cpu / uploads * 1e3,
-        screening_cpu_ms_per_upload=screening_cpu / uploads * 1e3,
+        server_cpu_ms_per_upload=sum(v for k, v in server_cpu.items() if k != SCREENING_NAME)
+        / uploads
+        * 1e3,
+        screening_cpu_ms_per_upload=server_cpu.get(SCREENING_NAME, 0.0) / uploads * 1e3,
+        cpu_ms_per_upload_by_process={k: v / uploads * 1e3 for k, v in server_cpu.items()},
         generator_cpu_ms_per_upload=generator_cpu / uploads * 1e3,
         wall_s=wall,
         load_average=[round(v, 2) for v in load],

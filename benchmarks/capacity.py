@@ -47,6 +47,7 @@ import secrets
 import sys
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Iterator, Sequence
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field
@@ -63,6 +64,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
+from agents.remote import ONE_CONNECTION
 from server.launch import ServerProcess, settings_environment
 from tests.support.databases import throwaway_postgres
 from tests.support.processes import cpu_seconds, descendants, process_name, reaped_cpu_seconds
@@ -79,6 +81,7 @@ UPLOAD_STEP = 1e-3
 version for the screener to judge, well inside what it accepts of honest fine-tuning."""
 WAIT_S = 25.0
 """Long poll ``?wait=``."""
+RECONNECTS = 3
 ANSWER_TIMEOUT_S = 60.0
 """An upload not answered in this long counts as unanswered (an error)."""
 SCREENING_NAME = "srd-screening"
@@ -194,6 +197,9 @@ class SizeResult:
     generator_cpu_ms_per_upload: float
     wall_s: float
     load_average: list[float]
+    """1, 5 and 15 minute load averages at the start, then at the end."""
+    reconnects: dict[str, int]
+    """Requests sent again on a fresh connection (by method): not errors, but counted."""
     budgets: dict[str, bool] = field(default_factory=dict)
 
 
@@ -282,16 +288,37 @@ async def socket_agent(
     log.extend(Upload(agent.auction_id, r, agent.model_id, None, None, False, 0.0) for r in pending)
 
 
+async def reconnecting(
+    client: httpx.AsyncClient, method: str, url: str, reconnects: Counter[str], **options: Any
+) -> httpx.Response:
+    """The request, sent again (same bytes) when its kept-alive connection was closed under it
+    (the server drops connections idle for 5 s, the agents think up to 5 s): counted, as a
+    real agent's client would retry it; a timeout is not retried."""
+    for attempt in range(RECONNECTS + 1):
+        try:
+            return await client.request(method, url, **options)
+        except (httpx.ReadError, httpx.WriteError, httpx.RemoteProtocolError, httpx.ConnectError):
+            if attempt == RECONNECTS:
+                raise
+            reconnects[method] += 1
+    raise AssertionError("unreachable")
+
+
 async def http_agent(
-    agent: AgentSpec, plan: Plan, client: httpx.AsyncClient, log: list[Upload]
+    agent: AgentSpec,
+    plan: Plan,
+    client: httpx.AsyncClient,
+    log: list[Upload],
+    reconnects: Counter[str],
 ) -> None:
     """One agent by long poll + PUT, otherwise as ``socket_agent``."""
     after = 0
     base = f"{agent.server}/auctions/{agent.auction_id}/rounds"
     while True:
-        response = await client.get(f"{base}/current", params={"wait": WAIT_S, "after": after})
-        response.raise_for_status()
-        state = response.json()
+        response = await reconnecting(
+            client, "GET", f"{base}/current", reconnects, params={"wait": WAIT_S, "after": after}
+        )
+        state = checked(response).json()
         if state["auction_status"] not in ("pending", "running"):
             return
         if state["status"] != "open" or state["round"] <= after:
@@ -302,8 +329,11 @@ async def http_agent(
         await think(agent, plan)
         sent = time.time()
         try:
-            put = await client.put(
+            put = await reconnecting(
+                client,
+                "PUT",
                 f"{base}/{after}/models/{agent.model_id}",
+                reconnects,
                 content=agent.uploads[after - 1],
                 headers={"Authorization": f"Bearer {agent.token}", **JSON_TYPE},
                 timeout=ANSWER_TIMEOUT_S,
@@ -353,11 +383,19 @@ async def play_size(
     servers: list[str], cpu: ServerCpu, transport: str, n_agents: int, plan: Plan
 ) -> SizeResult:
     """Submit ``n_agents`` agents, start their auctions, play them to their end, measure."""
-    limits = httpx.Limits(max_connections=2 * n_agents + 32, max_keepalive_connections=None)
     admin = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
-    async with httpx.AsyncClient(limits=limits, timeout=WAIT_S + 15) as client:
+    async with contextlib.AsyncExitStack() as stack:
+        client = await stack.enter_async_context(httpx.AsyncClient(timeout=WAIT_S + 15))
         joined = await submit_agents(client, servers[0], n_agents, plan.seed + n_agents, plan)
         groups = [joined[i : i + AUCTION_SIZE] for i in range(0, n_agents, AUCTION_SIZE)]
+        # One connection per agent, as on its own machine (a shared pool of a thousand
+        # connections costs the generator more CPU per request than the server spends).
+        own = [
+            await stack.enter_async_context(
+                httpx.AsyncClient(limits=ONE_CONNECTION, timeout=WAIT_S + 15)
+            )
+            for _ in range(n_agents if transport == "http" else 0)
+        ]
         load = list(os.getloadavg())
         cpu_before = cpu.read()
         generator_before, wall_before = time.process_time(), time.monotonic()
@@ -388,11 +426,14 @@ async def play_size(
             for i, (model_id, token, uploads) in enumerate(group)
         ]
         log: list[Upload] = []
+        reconnects: Counter[str] = Counter()
         if transport == "websocket":
             handshakes = asyncio.Semaphore(CONNECT_CONCURRENCY)
             await asyncio.gather(*(socket_agent(s, plan, handshakes, log) for s in specs))
         else:
-            await asyncio.gather(*(http_agent(s, plan, client, log) for s in specs))
+            await asyncio.gather(
+                *(http_agent(s, plan, c, log, reconnects) for s, c in zip(specs, own, strict=True))
+            )
         auctions = [await wait_finished(client, servers[0], a) for a in auction_ids]
         cpu_after = cpu.read()
         generator = time.process_time() - generator_before
@@ -407,6 +448,7 @@ async def play_size(
         generator,
         wall,
         load + list(os.getloadavg()),
+        dict(reconnects),
     )
 
 
@@ -429,6 +471,7 @@ def summarise(
     generator_cpu: float,
     wall: float,
     load: list[float],
+    reconnects: dict[str, int],
 ) -> SizeResult:
     answered = [u for u in log if u.status is not None]
     errors: dict[str, int] = {}
@@ -481,6 +524,7 @@ def summarise(
         generator_cpu_ms_per_upload=generator_cpu / uploads * 1e3,
         wall_s=wall,
         load_average=[round(v, 2) for v in load],
+        reconnects=reconnects,
     )
     result.budgets = budgets_of(result)
     return result
@@ -622,7 +666,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         print(
             f"srd serve ×{args.replicas} ({'PostgreSQL' if args.postgres else 'SQLite'}), "
             f"{args.rounds} rounds, think {args.think[0]}-{args.think[1]} s, "
-            f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores",
+            f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; "
+            f"server pids {' '.join(map(str, roots))} (to profile)",
             file=sys.stderr,
         )
         urls = [s.url for s in servers]

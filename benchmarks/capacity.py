@@ -82,14 +82,17 @@ version for the screener to judge, well inside what it accepts of honest fine-tu
 WAIT_S = 25.0
 """Long poll ``?wait=``."""
 RECONNECTS = 3
+"""Times a request is sent again on a fresh connection before it counts as failed."""
 ANSWER_TIMEOUT_S = 60.0
 """An upload not answered in this long counts as unanswered (an error)."""
 SCREENING_NAME = "srd-screening"
 """The screening process's name in ``/proc/<pid>/stat``: excluded from the server's CPU."""
 WARM_UP_AGENTS = 8
+"""One unmeasured auction this size per transport first: it starts the auction workers."""
 JSON_TYPE = {"Content-Type": "application/json"}
 SUBMIT_CONCURRENCY = 16
 CONNECT_CONCURRENCY = 64
+"""Socket handshakes in flight at once (a steady stream rather than a thousand at once)."""
 CPU_BUDGET_MS = {"websocket": 1.0, "http": 2.0}
 """Server CPU per upload, screening process excluded, per transport."""
 UPLOAD_P99_BUDGET_MS = {1024: 250.0}
@@ -664,7 +667,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         url = f"sqlite:///{folder / 'srd.db'}"
         if args.postgres:
             url = stack.enter_context(throwaway_postgres(args.postgres))
-        environment = settings_environment(QUOTAS_OFF)
+        environment = settings_environment({**QUOTAS_OFF})
         servers = [
             stack.enter_context(
                 ServerProcess(

@@ -20,6 +20,7 @@ FIELDS = {
     "upload_p99_ms",
     "close_p50_ms",
     "close_p95_ms",
+    "close_max_ms",
     "server_cpu_ms_per_upload",
     "screening_cpu_ms_per_upload",
     "cpu_ms_per_upload_by_process",

@@ -18,9 +18,9 @@
    re-screening alone (the round's uploads through ``screener.rescreen_many`` in batches of 16,
    as the screening process judges them, timed in this process), and closing (last answer →
    the worker begins closing the round). The protocol's overhead is everything but the
-   fine-tuning; target ≤ 50 ms per round with 64 agents. Agents leave as they buy or quit, so
-   later rounds ask fewer of them: the medians are over all rounds, and again over the rounds
-   that ask at least three quarters of the agents.
+   fine-tuning (no target: the server's budgets per upload are ``benchmarks/capacity.py``'s).
+   Agents leave as they buy or quit, so later rounds ask fewer of them: the medians are over
+   all rounds, and again over the rounds that ask at least three quarters of the agents.
 3. CPU per round: the server's processes' (read from ``/proc``, at the kernel's 10 ms tick) and
    this driver's, in the same phases, fitted against the agents asked (fixed + per agent, over
    rounds 2 on, whose CPU window is one whole cycle), for the server and its agents together
@@ -412,7 +412,7 @@ def report(timings: list[RoundTiming], n_agents: int) -> None:
         ("upload (re-screening included)", [t.upload for t in timings]),
         ("re-screening alone (in this process)", [t.rescreen for t in timings]),
         ("closing (last answer → the worker closes)", [t.close for t in timings]),
-        ("protocol overhead (target ≤ 50 ms)", [t.overhead for t in timings]),
+        ("protocol overhead", [t.overhead for t in timings]),
         ("  of which not re-screening", [t.overhead - t.rescreen for t in timings]),
         ("  over the rounds asking ≥ 3/4 of them", [t.overhead for t in full]),
         ("server CPU per round (rounds 2 on)", [t.cpu.server for t in following]),

@@ -38,6 +38,7 @@ PARENT_WATCH_S = 0.5  # how often a child checks that its parent is alive
 ERROR_LIMIT = 4000  # characters of a traceback summary kept in the database
 PR_SET_PDEATHSIG = 1  # prctl option: signal to receive when the parent dies
 STARTED, DONE = "started", "done"  # what a worker says about its task, over its pipe
+PR_SET_NAME = 15  # prctl option: the thread's name in /proc (ps, top), at most 15 bytes
 
 
 @dataclass(frozen=True)
@@ -79,7 +80,9 @@ def error_summary(exc: BaseException) -> str:
 
 
 def die_with_parent(parent_pid: int) -> None:
-    """Make this child process end when ``parent_pid`` does (call it first thing).
+    """Make this child process end when ``parent_pid`` does (call it first thing), and give
+    it its multiprocessing name in ``/proc`` (``srd-screening``, ``srd-auction-wor``...): a
+    spawned child's command line is the same for all, and benchmarks tell them apart by name.
 
     Linux delivers the parent-death signal when the *thread* that started the child ends, so
     children must be started from threads that live as long as the children should (the pool
@@ -89,6 +92,7 @@ def die_with_parent(parent_pid: int) -> None:
         with contextlib.suppress(OSError, AttributeError):
             libc = ctypes.CDLL(None, use_errno=True)
             libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+            libc.prctl(PR_SET_NAME, multiprocessing.current_process().name.encode()[:15])
 
     def watch() -> None:
         while True:

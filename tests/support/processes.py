@@ -71,3 +71,20 @@ def cpu_seconds(pid: int) -> float | None:
     except OSError:
         return None
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def process_name(pid: int) -> str | None:
+    """The process's name (``/proc/<pid>/comm``, at most 15 characters); None once it is gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split("(", 1)[1].rsplit(")", 1)[0]
+    except OSError:
+        return None
+
+
+def reaped_cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds of the children ``pid`` has waited for (ended workers)."""
+    try:
+        fields = _stat(pid)
+    except OSError:
+        return None
+    return (int(fields[13]) + int(fields[14])) / os.sysconf("SC_CLK_TCK")

@@ -66,6 +66,16 @@ def ended(server: ServerProcess, auction_id: int) -> dict[str, Any]:
     )
 
 
+def _post_retrying(url: str, body: dict[str, Any]) -> dict[str, Any]:
+    """POST, again after a 503 (a screener killed by the test is starting again)."""
+    for _ in range(60):
+        answer = httpx.post(url, json=body, timeout=60)
+        if answer.status_code != 503:
+            return dict(answer.json())
+        time.sleep(1)
+    raise AssertionError(f"{url}: still 503 after a minute")
+
+
 Population = tuple[list[int], list[dict[str, Any]], list[str]]
 """Model ids, manifests and tokens of freshly submitted participants."""
 
@@ -75,7 +85,7 @@ def submit(server: ServerProcess, n: int, seed: int) -> Population:
     population has the same weights under other names)."""
     tag = secrets.token_hex(3)
     manifests = [honest(f"fault-{tag}-{i}", seed=seed + i) for i in range(n)]
-    answers = [httpx.post(server.url + "/submit", json=m, timeout=60).json() for m in manifests]
+    answers = [_post_retrying(server.url + "/submit", m) for m in manifests]
     assert all(a["accepted"] for a in answers), answers
     return [a["model_id"] for a in answers], manifests, [a["token"] for a in answers]
 
@@ -86,19 +96,33 @@ def create(server: ServerProcess, admin: dict[str, str], body: dict[str, Any]) -
     return int(created.json()["auction_id"])
 
 
+def kill_mid_step(server: ServerProcess, admin: dict[str, str], body: dict[str, Any]) -> int:
+    """An auction whose step is killed (every spawned process of the server) while it plays:
+    tried on fresh auctions until a kill lands while the auction is still running."""
+    for _ in range(KILL_TRIES):
+        ids, _, _ = submit(server, 32, seed=700)
+        auction_id = create(server, admin, {**body, "model_ids": ids})
+        deadline = time.monotonic() + TIMEOUT_S
+        while get(server, auction_id)["iteration"] < 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        signal_all(spawned(server), signal.SIGKILL)
+        if get(server, auction_id)["status"] == "running":
+            return auction_id
+        ended(server, auction_id)  # it finished before the kill: try another
+    raise AssertionError(f"no kill landed mid-step in {KILL_TRIES} auctions")
+
+
+KILL_TRIES = 5
+
+
 def test_a_worker_killed_mid_step_resumes_and_matches_its_twin(tmp_path: Path) -> None:
     (server, _), admin = server_pair(f"sqlite:///{tmp_path / 'steps.db'}", tmp_path)
     with server:
         server.start()
-        body = {"n_fish": 6, "fine_tune": True, "max_iterations": 40, "seed": 11}
-        ids, _, _ = submit(server, 24, seed=700)
-        killed = create(server, admin, {**body, "model_ids": ids})
-        wait_for(lambda: get(server, killed), lambda a: a["iteration"] >= 2, TIMEOUT_S)
-        at_kill = get(server, killed)
-        signal_all(spawned(server), signal.SIGKILL)  # the step playing it dies mid-way
+        body = {"n_fish": 8, "fine_tune": True, "max_iterations": 40, "seed": 11}
+        killed = kill_mid_step(server, admin, body)
         played = ended(server, killed)
-        assert at_kill["status"] == "running" and at_kill["iteration"] < len(played["history"])
-        twin_ids, _, _ = submit(server, 24, seed=700)
+        twin_ids, _, _ = submit(server, 32, seed=700)
         twin = ended(server, create(server, admin, {**body, "model_ids": twin_ids}))
     assert played["status"] == "finished" and played["error"] is None
     assert [r["iteration"] for r in played["history"]] == list(range(len(played["history"])))

@@ -172,6 +172,15 @@ class AgentSpec:
     server: str
     uploads: list[bytes]
     rng: random.Random
+    address: str
+    """The loopback address the agent connects from (each agent a machine of its own, as the
+    server's per-client limits expect)."""
+
+
+def agent_address(index: int) -> str:
+    """Agent ``index``'s own loopback address: 127.0.1.1, 127.0.1.2, ... (Linux routes all of
+    127/8 to loopback)."""
+    return f"127.0.{1 + index // 250}.{1 + index % 250}"
 
 
 @dataclass
@@ -251,7 +260,10 @@ async def socket_agent(
 
     async with handshakes:  # a steady stream of handshakes, not a thousand at once
         ws = await connect(
-            url, additional_headers={"Authorization": f"Bearer {agent.token}"}, max_size=1 << 20
+            url,
+            additional_headers={"Authorization": f"Bearer {agent.token}"},
+            max_size=1 << 20,
+            local_addr=(agent.address, 0),
         )
     thinking: list[asyncio.Task[None]] = []
     async with ws:
@@ -398,9 +410,14 @@ async def play_size(
         # connections costs the generator more CPU per request than the server spends).
         own = [
             await stack.enter_async_context(
-                httpx.AsyncClient(limits=ONE_CONNECTION, timeout=WAIT_S + 15)
+                httpx.AsyncClient(
+                    transport=httpx.AsyncHTTPTransport(
+                        limits=ONE_CONNECTION, local_address=agent_address(index)
+                    ),
+                    timeout=WAIT_S + 15,
+                )
             )
-            for _ in range(n_agents if transport == "http" else 0)
+            for index in range(n_agents if transport == "http" else 0)
         ]
         load = list(os.getloadavg())
         cpu_before = cpu.read()
@@ -427,8 +444,9 @@ async def play_size(
                 servers[i % len(servers)],
                 uploads,
                 random.Random(plan.seed * 1_000_003 + model_id),
+                agent_address(k * AUCTION_SIZE + i),
             )
-            for auction_id, group in zip(auction_ids, groups, strict=True)
+            for k, (auction_id, group) in enumerate(zip(auction_ids, groups, strict=True))
             for i, (model_id, token, uploads) in enumerate(group)
         ]
         log: list[Upload] = []

@@ -22,22 +22,14 @@ from click.testing import CliRunner
 from server.cli import cli
 from server.cli.launch import ServerProcess, srd_command
 from tests.support.live import submit_population
-from tests.support.server import ADMIN, ADMIN_TOKEN, wait_for
+from tests.support.server import ADMIN, ADMIN_TOKEN, module_server, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
-    data_dir = tmp_path_factory.mktemp("watch")
-    env = {"SRD_EVENT_POLL_INTERVAL_S": "0.05"}
-    with ServerProcess(
-        database_url=f"sqlite:///{data_dir / 'srd.db'}",
-        data_dir=data_dir,
-        admin_token=ADMIN_TOKEN,
-        extra_env=env,
-    ) as running:
-        yield running
+    yield from module_server(tmp_path_factory, "watch")
 
 
 @pytest.fixture(scope="module")

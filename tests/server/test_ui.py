@@ -29,7 +29,7 @@ from server.store.db import Database
 from server.store.tables import ModelVersion, Participant, utcnow
 from tests.support.factories import honest
 from tests.support.live import create_unstarted_auction, paced_auction, submit_population
-from tests.support.server import ADMIN_TOKEN
+from tests.support.server import ADMIN_TOKEN, module_server
 
 playwright_api = pytest.importorskip("playwright.sync_api", reason="playwright is a dev extra")
 
@@ -55,15 +55,7 @@ if not Path(CHROMIUM).exists():
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
-    data_dir = tmp_path_factory.mktemp("ui")
-    env = {"SRD_EVENT_POLL_INTERVAL_S": "0.05"}
-    with ServerProcess(
-        database_url=f"sqlite:///{data_dir / 'srd.db'}",
-        data_dir=data_dir,
-        admin_token=ADMIN_TOKEN,
-        extra_env=env,
-    ) as running:
-        yield running
+    yield from module_server(tmp_path_factory, "ui")
 
 
 @pytest.fixture(scope="module")

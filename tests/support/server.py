@@ -4,7 +4,7 @@ back (error locations, row counts)."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
+from server.cli.launch import ServerProcess
 from server.config import Settings
 
 ADMIN_TOKEN = "test-admin-token-0123456789abcdef"
@@ -77,3 +78,13 @@ def count(client: TestClient, table: Any, **where: Any) -> int:
         for column, value in where.items():
             query = query.where(getattr(table, column) == value)
         return int(session.scalar(query) or 0)
+
+
+def module_server(tmp_path_factory: pytest.TempPathFactory, name: str) -> Iterator[ServerProcess]:
+    """A real ``srd serve`` on a fresh SQLite database with the test operator token, for a
+    module's tests (yield it from a module-scoped fixture)."""
+    data_dir = tmp_path_factory.mktemp(name)
+    with ServerProcess(
+        database_url=f"sqlite:///{data_dir / 'srd.db'}", data_dir=data_dir, admin_token=ADMIN_TOKEN
+    ) as running:
+        yield running

@@ -26,6 +26,7 @@ from server.store.db import Database
 from server.store.tables import FineTuneAnswer, FineTuneRound
 from tests.support.factories import honest
 from tests.support.processes import descendants, server_pair
+from tests.support.remote import next_round
 from tests.support.server import wait_for
 
 TIMEOUT_S = 180
@@ -160,22 +161,6 @@ def upload(
     return answer
 
 
-def next_round(server: ServerProcess, auction_id: int, after: int) -> dict[str, Any]:
-    """The auction's next open round above ``after``, or its end."""
-    return wait_for(
-        lambda: httpx.get(
-            f"{server.url}/auctions/{auction_id}/rounds/current",
-            params={"wait": 5, "after": after},
-            timeout=30,
-        ).json(),
-        lambda r: (
-            (r["status"] == "open" and r["round"] > after)
-            or r["auction_status"] not in ("pending", "running")
-        ),
-        TIMEOUT_S,
-    )
-
-
 def play_remote(
     server: ServerProcess,
     auction_id: int,
@@ -193,7 +178,7 @@ def play_remote(
     )
     after = 0
     while True:
-        state = next_round(server, auction_id, after)
+        state = next_round(server, auction_id, after, TIMEOUT_S)
         if state["auction_status"] not in ("pending", "running"):
             return ended(server, auction_id)
         if state["round"] == kill_in_round:
@@ -257,7 +242,7 @@ def test_uploads_that_reached_the_server_in_time_count_after_a_kill_9(tmp_path: 
                 "seed": 2,
             },
         )
-        state = next_round(first, auction_id, 0)
+        state = next_round(first, auction_id, 0, TIMEOUT_S)
         asked = list(state["asked"])
         frozen = spawned(first)
         signal_all(frozen, signal.SIGSTOP)

@@ -23,7 +23,7 @@ from server.store.tables import Auction, FineTuneAnswer, FineTuneRound, ModelVer
 from sim.market import MarketConfig
 from tests.support.factories import honest
 from tests.support.processes import server_pair
-from tests.support.remote import agents_process, replay, stalling_agent
+from tests.support.remote import agents_process, next_round, replay, stalling_agent
 from tests.support.server import wait_for
 
 N_PATRONS = 6
@@ -33,18 +33,7 @@ TIMEOUT_S = 120
 
 
 def current(server: ServerProcess, auction_id: int, after: int) -> dict[str, Any]:
-    return wait_for(
-        lambda: httpx.get(
-            f"{server.url}/auctions/{auction_id}/rounds/current",
-            params={"wait": 5, "after": after},
-            timeout=30,
-        ).json(),
-        lambda r: (
-            (r["status"] == "open" and r["round"] > after)
-            or r["auction_status"] not in ("pending", "running")
-        ),
-        TIMEOUT_S,
-    )
+    return next_round(server, auction_id, after, TIMEOUT_S)
 
 
 @dataclass

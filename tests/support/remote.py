@@ -14,6 +14,7 @@ import httpx
 from agents.manifest import Manifest, parse_manifest
 from server.cli.launch import ServerProcess, srd_command
 from sim.market import Market, MarketConfig
+from tests.support.server import wait_for
 
 STALLING_AGENT = r"""
 import asyncio, sys, time
@@ -125,3 +126,21 @@ def replay(
                 }
             )
     return history
+
+
+def next_round(
+    server: ServerProcess, auction_id: int, after: int, timeout_s: float
+) -> dict[str, Any]:
+    """The auction's next open round above ``after`` (long-polled), or its end."""
+    return wait_for(
+        lambda: httpx.get(
+            f"{server.url}/auctions/{auction_id}/rounds/current",
+            params={"wait": 5, "after": after},
+            timeout=30,
+        ).json(),
+        lambda r: (
+            (r["status"] == "open" and r["round"] > after)
+            or r["auction_status"] not in ("pending", "running")
+        ),
+        timeout_s,
+    )

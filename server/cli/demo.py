@@ -1,6 +1,7 @@
 """``make demo``: the whole service end to end over HTTP, in about two minutes.
 
-Starts ``srd serve`` on a fresh SQLite database under ``runs/demo__<time>/`` on a free port,
+Starts ``srd serve`` on a fresh SQLite database under
+``runs/demo__<seed>__<YYYYmmdd-HHMMSS>/`` on a free port,
 registers honest and saboteur participants through ``POST /submit`` (the screener turns the
 saboteurs away, with reasons), runs one live auction among the admitted models, runs the
 honest-vs-malicious ``comparison`` job, prints its table and the files of its plots, and stops
@@ -13,7 +14,6 @@ from __future__ import annotations
 
 import contextlib
 import time
-from pathlib import Path
 from typing import Any
 
 import click
@@ -25,6 +25,7 @@ from rich.table import Table
 from agents.negotiator import honest_manifest, saboteur_manifest
 from server.cli.launch import ServerProcess
 from server.config import Settings
+from sim.experiment import default_out_dir
 
 N_HONEST = 24
 N_SABOTEURS = 8
@@ -167,7 +168,7 @@ def pages(base: str, auction_id: int, rejected_id: int, job_id: int) -> list[str
 )
 def main(keep_serving: bool) -> None:
     """Run the auction house end to end over HTTP."""
-    workdir = Path("runs") / f"demo__{int(time.time())}"
+    workdir = default_out_dir("demo", DEMO_SEED)
     server = ServerProcess(database_url=f"sqlite:///{workdir / 'srd.db'}", data_dir=workdir)
     console.print(f"[bold]srd serve[/bold] on SQLite in {workdir}/ ...")
     with server, httpx.Client(base_url=server.url, timeout=60) as client:

@@ -68,7 +68,10 @@ class ServerProcess:
         return (self.data_dir / "admin_token").read_text().strip()
 
     def start(self, timeout_s: float = 120.0) -> None:
-        """Launch and wait until ``/healthz`` answers."""
+        """Launch and wait until ``/healthz`` answers (a second ``start`` of a running server
+        is an error: it would leave the first one running unseen)."""
+        if self.process is not None and self.process.poll() is None:
+            raise RuntimeError(f"srd serve on port {self.port} is already running")
         self.data_dir.mkdir(parents=True, exist_ok=True)
         env = {
             **os.environ,

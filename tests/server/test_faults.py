@@ -119,7 +119,6 @@ KILL_TRIES = 5
 def test_a_worker_killed_mid_step_resumes_and_matches_its_twin(tmp_path: Path) -> None:
     (server, _), admin = server_pair(f"sqlite:///{tmp_path / 'steps.db'}", tmp_path)
     with server:
-        server.start()
         body = {"n_fish": 8, "fine_tune": True, "max_iterations": 40, "seed": 11}
         killed = kill_mid_step(server, admin, body)
         played = ended(server, killed)
@@ -200,7 +199,6 @@ def test_workers_killed_mid_round_cost_nothing_but_time(tmp_path: Path) -> None:
         "seed": 5,
     }
     with server:
-        server.start()
         population = submit(server, 6, seed=800)
         killed = create(server, admin, {**body, "model_ids": population[0]})
         played = play_remote(server, killed, population, kill_in_round=1)

@@ -8,6 +8,7 @@ them. ``srd serve`` runs it with uvicorn.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -45,6 +46,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         services = await run_in_threadpool(start_services, settings)
         app.state.services = services  # read by server.api.deps only
+        loop = asyncio.get_running_loop()
+        # ``srd serve`` calls this from its signal handler: waiting long polls answer at once
+        app.state.drain = lambda: loop.call_soon_threadsafe(services.live.drain)
         freeze_heap()  # the imports and services live as long as the process
         try:
             yield

@@ -63,6 +63,12 @@ CLOSE_TOO_MANY_MESSAGES = 1008
 """Close code (policy violation) of a socket over its message allowance."""
 CLOSE_TOO_BIG = 1009
 """Close code (message too big) of a socket that sent a frame over ``MAX_FRAME_BYTES``."""
+CLOSE_RESTART = 1012
+"""Close code (service restart) of the sockets of a server shutting down: reconnect."""
+
+
+class _DrainingError(Exception):
+    """The server is shutting down: no round will be pushed on this socket any more."""
 
 
 class UploadMessage(BaseModel):
@@ -174,7 +180,11 @@ class RoundSockets:
                 return
             if published.open and published.round is not None:
                 after = max(after, published.round)
-            published = await self._next(auction_id, after)
+            try:
+                published = await self._next(auction_id, after)
+            except _DrainingError:
+                await socket.close(CLOSE_RESTART, "the server is restarting; reconnect")
+                return
         await socket.close(1011, "the auction is gone")
 
     async def _next(self, auction_id: int, after: int) -> Published | None:
@@ -189,6 +199,8 @@ class RoundSockets:
                 continue
             if published is None or published.ready(after):
                 return published
+            if self._watcher.draining:
+                raise _DrainingError
 
     async def _answer_uploads(self, socket: _Socket, upload: UploadHandler) -> None:
         bucket = _Bucket(BURST, REFILL_PER_S)

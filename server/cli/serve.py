@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from types import FrameType
 
 import click
 
 UNUSABLE = 2
 """The exit code of a server that cannot start with its settings (its data folder)."""
+
+
+def _drain(app: object) -> None:
+    """Tell the app the server is shutting down (its long polls answer now), once it runs."""
+    drain = getattr(getattr(app, "state", None), "drain", None)
+    if drain is not None:
+        with contextlib.suppress(RuntimeError):  # the event loop is already closed
+            drain()
 
 
 @click.command("serve")
@@ -26,6 +36,14 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     """Run the HTTP API; database from SRD_DATABASE_URL (default sqlite:///./srd.db). Exits
     with code 2, saying why, when the data folder (SRD_DATA_DIR) cannot be written."""
     import uvicorn
+
+    class Server(uvicorn.Server):
+        """uvicorn's server; on SIGINT or SIGTERM it also drains the app's long polls, which
+        would otherwise hold the graceful shutdown for up to ``timeout_graceful_shutdown``."""
+
+        def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+            super().handle_exit(sig, frame)
+            _drain(self.config.app)
 
     from server.api.connections import connection_cap, raise_file_limit, timed_protocol
     from server.api.hardening import RedactQueryFilter
@@ -61,7 +79,7 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         forwarded_allow_ips=settings.trusted_proxy_list,
     )
     logging.getLogger("uvicorn.access").addFilter(RedactQueryFilter())  # after uvicorn's set-up
-    server = uvicorn.Server(config)
+    server = Server(config)
     server.run()
     if not server.started:  # the port is taken, or the app failed to start
         raise SystemExit(3)

@@ -115,6 +115,11 @@ class RoundWatcher:
         self._source = source
         self._waiters = 0
 
+    @property
+    def draining(self) -> bool:
+        """The server is shutting down (waits end at once)."""
+        return self._source.draining
+
     def poke(self, auction_id: int) -> None:
         """This process changed the auction: read it again now (its waiters hear at once)."""
         self._source.poke("auction", auction_id)
@@ -134,7 +139,7 @@ class RoundWatcher:
                 generation, snapshot = feed.generation, feed.snapshot
                 if snapshot is None:
                     return None
-                if snapshot.ready(after) or loop.time() >= give_up:
+                if snapshot.ready(after) or loop.time() >= give_up or self._source.draining:
                     break
                 if self._waiters >= MAX_WAITERS:
                     raise TooManyWaitersError(f"{MAX_WAITERS} round requests are waiting already")

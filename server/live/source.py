@@ -130,6 +130,8 @@ class LiveSource:
         """Reads made so far (each: one query per kind of row it reads)."""
         self.listening = False
         """The listening connection is open (always False on SQLite)."""
+        self.draining = False
+        """The server is shutting down: long polls answer now instead of waiting."""
 
     @property
     def watched(self) -> int:
@@ -168,6 +170,14 @@ class LiveSource:
         """This process changed the row: read it again now."""
         if (kind, row_id) in self._rows:
             self._mark((kind, row_id))
+
+    def drain(self) -> None:
+        """The server is shutting down: wake every listener (a long poll then answers with
+        what it has, so the shutdown does not wait out its ``wait``)."""
+        self.draining = True
+        for row in self._rows.values():
+            for feed in row.feeds.values():
+                feed._wake()
 
     async def close(self) -> None:
         """Stop reading and listening (the listeners keep their last snapshots)."""

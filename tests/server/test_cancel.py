@@ -27,7 +27,7 @@ from server.config import Settings
 from tests.server.test_remote_protocol import put, remote_auction
 from tests.support.factories import honest, unique
 from tests.support.live import create_unstarted_auction, data, paced_auction, sse_events
-from tests.support.remote import agents_process
+from tests.support.remote import agents_process, next_round
 from tests.support.server import ADMIN, wait_for
 
 WAKE_S = 2.0
@@ -268,9 +268,7 @@ def test_srd_agents_stops_cleanly_for_a_cancelled_auction(live_server: ServerPro
             }
             created = http.post("/auctions", json=body, headers=admin).raise_for_status()
             auction_id = created.json()["auction_id"]
-            round_state = http.get(
-                f"/auctions/{auction_id}/rounds/current", params={"wait": 25}
-            ).json()
+            round_state = next_round(live_server, auction_id, 0, 120)
             assert round_state["status"] == "open" and silent_id in round_state["asked"]
             asked_agents = [m for m in round_state["asked"] if m != silent_id]
             assert asked_agents, round_state  # the agents have a round to answer

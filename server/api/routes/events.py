@@ -260,6 +260,8 @@ async def auction_events(
                 return
             if not await watch.wait(generation, settings.event_keepalive_s):
                 yield ServerSentEvent(comment="keep-alive")
+            if hub.source.draining:  # shutting down: the client resumes from its last id
+                return
 
 
 # --- jobs -------------------------------------------------------------------------------------
@@ -339,3 +341,5 @@ async def job_events(
                 seen = event_id
             if not await watch.wait(generation, settings.event_keepalive_s):
                 yield ServerSentEvent(comment="keep-alive")
+            if hub.source.draining:  # shutting down: the client resumes from its last id
+                return

@@ -42,6 +42,7 @@ def rounds(records: list[Any]) -> list[tuple[float, dict[str, int]]]:
     return [(r.price, r.votes) for r in records]
 
 
+@pytest.mark.postgres_in_slow_run
 def test_each_rule_is_stored_shown_and_played(client: TestClient, patrons) -> None:
     manifests, ids = patrons
     models = [parse_manifest(m) for m in manifests]

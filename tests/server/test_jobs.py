@@ -143,6 +143,7 @@ EVERY_KIND = {
 }
 
 
+@pytest.mark.postgres_in_slow_run
 @pytest.mark.parametrize("kind", sorted(EVERY_KIND))
 def test_every_kind_runs_as_a_job(client: TestClient, kind: str) -> None:
     """Each experiment kind runs through the job backend at a tiny budget: progress reaches 1,

@@ -8,11 +8,13 @@ from __future__ import annotations
 import json
 import secrets
 import subprocess
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 from sqlalchemy import func, select
 
 from agents.manifest import parse_manifest
@@ -21,6 +23,7 @@ from server.cli.launch import ServerProcess
 from server.store.db import Database
 from server.store.tables import Auction, FineTuneAnswer, FineTuneRound, ModelVersion, Purchase
 from sim.market import MarketConfig
+from tests.support.databases import fresh_database
 from tests.support.factories import honest
 from tests.support.processes import server_pair
 from tests.support.remote import agents_process, next_round, replay, stalling_agent
@@ -130,10 +133,17 @@ def finished_as_the_market(server: ServerProcess, auction_id: int, seed: int) ->
     return dict(auction)
 
 
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.slow)])
+def restart_database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    """A fresh database per test; PostgreSQL only in the slow run (a long test; a replica's
+    kill -9 on PostgreSQL is in the fast run, ``test_replicas.py``)."""
+    yield from fresh_database(request.param, tmp_path)
+
+
 def test_kill_9_in_the_middle_of_a_round_then_restart(
-    fresh_database_url: str, tmp_path: Path
+    restart_database_url: str, tmp_path: Path
 ) -> None:
-    (first, second), admin = server_pair(fresh_database_url, tmp_path)
+    (first, second), admin = server_pair(restart_database_url, tmp_path)
     try:
         first.start()
         remote = RemoteAuction.create(first, admin)
@@ -145,7 +155,7 @@ def test_kill_9_in_the_middle_of_a_round_then_restart(
         before = {i: remote.upload(first, state, i) for i in asked[:2]}
         assert all(r.status_code == 200 for r in before.values()), [r.text for r in before.values()]
         first.kill()  # the round is open, its other patrons have not answered
-        database = Database(fresh_database_url)
+        database = Database(restart_database_url)
         check_rows_at_kill(database, auction_id)
 
         second.start()

@@ -35,6 +35,7 @@ def auction(client: TestClient) -> dict[str, Any]:
     )
 
 
+@pytest.mark.postgres_in_slow_run
 def test_every_vote_of_every_iteration_is_explained(
     client: TestClient, auction: dict[str, Any]
 ) -> None:

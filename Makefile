@@ -24,7 +24,7 @@ demo: $(STAMP)
 	$(BIN)/python -m server.cli.demo
 
 test: lint
-	$(BIN)/pytest -q -n 2 --dist loadfile --no-loadscope-reorder
+	$(BIN)/pytest -q -n 2 --dist loadfile
 
 test-all: $(STAMP)
 	$(BIN)/pytest -q -m ''

@@ -11,12 +11,7 @@ torch.set_num_threads(1)
 @pytest.hookimpl(tryfirst=True)  # before ``-m 'not slow'`` deselects
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """A test marked ``postgres_in_slow_run`` runs on PostgreSQL only in ``make test-all``: a
-    feature's end-to-end test whose PostgreSQL side the storage tests already cover.
-
-    The server's files (real servers, jobs, browsers: most of the suite's time) run first, so
-    that in ``make test``'s two processes the short unit-test files fill the end of the run
-    instead of one long file running alone (``--no-loadscope-reorder`` keeps this order)."""
-    items.sort(key=lambda item: not item.nodeid.startswith("tests/server/"))
+    feature's end-to-end test whose PostgreSQL side the storage tests already cover."""
     for item in items:
         callspec = getattr(item, "callspec", None)
         on_postgres = callspec is not None and "postgresql" in callspec.params.values()

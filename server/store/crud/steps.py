@@ -99,7 +99,7 @@ def patron_manifests(session: Session, *, model_ids: Sequence[int]) -> list[dict
     rows = session.execute(
         select(ModelVersion.id, ModelVersion.manifest).where(ModelVersion.id.in_(model_ids))
     )
-    by_id: dict[int, dict[str, Any]] = dict(rows.tuples().all())
+    by_id: dict[int, dict[str, Any]] = {model_id: manifest for model_id, manifest in rows}
     return [by_id[model_id] for model_id in model_ids]
 
 
@@ -293,13 +293,10 @@ def close_round(
             .where(AuctionPatron.auction_id == auction_id, AuctionPatron.position == position)
             .values(current_model_id=version)
         )
-    manifests: dict[int, dict[str, Any]] = dict(
-        connection.execute(
-            select(ModelVersion.id, ModelVersion.manifest).where(
-                ModelVersion.id.in_(list(applied.values()))
-            )
+    rows = connection.execute(
+        select(ModelVersion.id, ModelVersion.manifest).where(
+            ModelVersion.id.in_(list(applied.values()))
         )
-        .tuples()
-        .all()
     )
+    manifests: dict[int, dict[str, Any]] = {version: manifest for version, manifest in rows}
     return {position: manifests[version] for position, version in applied.items()}

@@ -193,10 +193,11 @@ def main(keep_serving: bool) -> None:
         console.print(
             "to browse this run in the web view, serve it again:\n"
             f"  SRD_DATABASE_URL=sqlite:///{workdir / 'srd.db'} SRD_DATA_DIR={workdir} "
-            ".venv/bin/srd serve\nthen open"
+            ".venv/bin/srd serve\nthen open",
+            soft_wrap=True,  # one line, to paste as it is
         )
         base = f"http://{settings.host}:{settings.port}"
-        console.print("\n".join(pages(base, auction_id, rejected_id, job_id)))
+        console.print("\n".join(pages(base, auction_id, rejected_id, job_id)), soft_wrap=True)
 
 
 if __name__ == "__main__":

@@ -139,9 +139,11 @@ def _worker_main(task: TaskFn, context: WorkerContext, conn: Connection, parent_
             task_id = conn.recv()
         except EOFError:
             return
-        conn.send((STARTED, task_id))  # the time limit counts from here, not from the hand-out
+        # The time limit counts from here, not from the hand-out nor from when the supervisor
+        # reads this: Linux's monotonic clock is one clock for every process.
+        conn.send((STARTED, time.monotonic()))
         task(context, task_id)
-        conn.send((DONE, task_id))
+        conn.send((DONE, time.monotonic()))
 
 
 @dataclass
@@ -281,7 +283,7 @@ class WorkerPool:
                 except Exception:
                     log.exception("%s: handling the end of task %d failed", self.name, task_id)
             self._report_over(over)
-            for ready in wait(waitables, timeout=SUPERVISOR_TICK_S):
+            for ready in wait(waitables, timeout=self._sleep_s()):
                 if ready is self._wake_reader:
                     with contextlib.suppress(EOFError, OSError):
                         self._wake_reader.recv_bytes()
@@ -303,7 +305,7 @@ class WorkerPool:
         for worker in list(self._workers):
             if worker.task_id is not None and worker.process.is_alive():
                 if worker.cancelled_at is None:
-                    self._read(worker, now)
+                    self._read(worker)
                 if self._over_limit(worker, now) and worker.cancelled_at is None:
                     worker.cancelled_at, worker.timed_out = now, True
                     worker.process.terminate()
@@ -323,16 +325,27 @@ class WorkerPool:
                     self._over.append(worker.task_id)
         return ended
 
-    def _read(self, worker: _Worker, now: float) -> None:
+    def _read(self, worker: _Worker) -> None:
         """Take what the worker said about its task: begun (the clock starts) or done."""
         with contextlib.suppress(EOFError, OSError):
             while worker.task_id is not None and worker.conn.poll():
-                said, _ = worker.conn.recv()
+                said, at = worker.conn.recv()
                 if said == STARTED:
-                    worker.started_at = now
+                    worker.started_at = at
                 else:
                     self._over.append(worker.task_id)
                     worker.task_id, worker.tasks_done = None, worker.tasks_done + 1
+
+    def _sleep_s(self) -> float:
+        """How long the supervisor may sleep: a tick, or less when a running task reaches its
+        time limit sooner (a limit is kept to within scheduling delays, not to a tick)."""
+        with self._lock:
+            starts = [w.started_at for w in self._workers if w.task_id is not None]
+        known = [s for s in starts if s is not None]
+        if self._timeout_s is None or not known:
+            return SUPERVISOR_TICK_S
+        due = min(known) + self._timeout_s - time.monotonic()
+        return min(SUPERVISOR_TICK_S, max(due, 0.0) + 0.001)
 
     def _over_limit(self, worker: _Worker, now: float) -> bool:
         """A task begun longer ago than the limit (a worker still starting up is not timed:

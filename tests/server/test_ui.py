@@ -413,11 +413,21 @@ def test_jobs_compare_side_by_side_from_the_filtered_list_with_the_keyboard(
     page.locator("#job-filters button[type='submit']").focus()
     page.keyboard.press("Enter")
     page.wait_for_url("**/#/jobs?kind=auction-study", timeout=WAIT_MS)
-    page.wait_for_selector("#job-list tbody tr", timeout=WAIT_MS)
-    kinds = [
-        r.locator("td").nth(2).text_content() for r in page.locator("#job-list tbody tr").all()
-    ]
-    assert kinds and set(kinds) == {"auction-study"}
+    # The unfiltered rows stay on screen until the filtered list arrives: wait for the list to
+    # be filtered (rows of one kind), then check it holds exactly the studies.
+    page.wait_for_function(
+        """() => {
+            const kinds = [...document.querySelectorAll('#job-list tbody tr td:nth-child(3)')]
+                .map((cell) => cell.textContent);
+            return kinds.length > 0 && kinds.every((kind) => kind === 'auction-study');
+        }""",
+        timeout=WAIT_MS,
+    )
+    listed = {
+        int(box.get_attribute("data-job") or "0")
+        for box in page.locator("#job-list tbody input[data-job]").all()
+    }
+    assert {first["id"], second["id"]} <= listed
     assert page.locator("#compare").is_disabled()
     for job in (second, first):
         page.locator(f"input[data-job='{job['id']}']").focus()

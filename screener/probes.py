@@ -37,7 +37,7 @@ import numpy.typing as npt
 import torch
 
 from agents.batch import FSNBatch
-from agents.forward import decision_logits
+from agents.forward import clean_logits
 from screener import limits
 from screener.findings import Array, Checks, Mask, fmt_price
 from screener.rules import SUBTYPES
@@ -193,7 +193,7 @@ def passes(batch: FSNBatch) -> list[tuple[npt.NDArray[np.intp], FSNBatch]]:
 def _logits(batch: FSNBatch) -> Array:
     """[B, L, Q] of every patron on every probed row (``ROWS``), (P, R, 3)."""
     with torch.no_grad():
-        return decision_logits(batch, ROWS).numpy()
+        return clean_logits(batch, ROWS).numpy()
 
 
 def _decisions(scores: Array) -> tuple[Array, Mask, Mask]:

@@ -130,9 +130,8 @@ def run(candidates: Sequence[Candidate]) -> list[Outcome]:
     buyers: list[list[tuple[int, float]]] = [[] for _ in auctions]
     engine = MarketBatch(auctions, patrons=pool.select(index))
     while not engine.finished.all():
-        for a, record in enumerate(engine.step()):
-            if record is not None and record.buyers:
-                buyers[a] += record.buyers
+        for a, sales in enumerate(engine.step_sales()):
+            buyers[a] += sales
     per = len(TEST_AUCTIONS)
     outcomes = []
     for c in range(len(candidates)):

@@ -434,11 +434,11 @@ def hold_gap(buys: Mask, holds: Mask) -> tuple[Array, Array]:
     reach = (SCAN_PRICES - SCAN_PRICES[LOWEST_REACHABLE])[None, :, None]
     counted = holds & REACHABLE[None, :, None]
     excess = np.where(counted, prices - highest - reach, -np.inf)
-    gap, bar = np.full(P, np.nan), np.full(P, np.nan)
-    for p in np.flatnonzero(counted.reshape(P, -1).any(axis=1)):
-        i, f = np.unravel_index(int(np.argmax(excess[p])), excess[p].shape)
-        gap[p] = SCAN_PRICES[i] - highest[p, i, f]
-        bar[p] = reach[0, i, 0]
+    # each patron's worst hold: the first largest excess, price-major
+    i, f = np.unravel_index(np.argmax(excess.reshape(P, -1), axis=1), buys.shape[1:])
+    holding = counted.reshape(P, -1).any(axis=1)
+    gap = np.where(holding, SCAN_PRICES[i] - highest[np.arange(P), i, f], np.nan)
+    bar = np.where(holding, reach[0, i, 0], np.nan)
     return gap, bar
 
 

@@ -54,9 +54,10 @@ GRID_SHAPE = (len(PRICES), len(QUALITIES), len(SUBTYPES), len(DEMANDS))
 PASS_SIZE = 64
 """Patrons per forward pass over the grid (and of the noisy scan). The clean pass runs patron-major
 with the rows last (``clean_logits``), each patron's rows one contiguous run, so the time per
-patron keeps falling up to a re-screening round of 64 (measured: 0.20 ms per patron in passes of
-16, 0.17 in one pass of 64, and 0.16 against 0.13 for the noisy scan). Batches of the screening
-process (at most 16) and re-screening rounds are one pass."""
+patron keeps falling up to a re-screening round of 64 (measured on a quiet machine: 0.20 ms per
+patron in passes of 16, 0.17 in one pass of 64, and 0.16 against 0.13 for the noisy scan; under
+a load of 4 from other jobs the pass size made no difference). Batches of the screening process
+(at most 16) and re-screening rounds are one pass."""
 
 
 def _grid() -> torch.Tensor:

@@ -121,13 +121,14 @@ class FSNBatch:
             sliced = {f.name: getattr(self, f.name)[index] for f in dataclasses.fields(self)}
             return FSNBatch(**sliced)
         idx = torch.as_tensor(index, dtype=torch.long)
+        positions = idx.tolist()
         fields: dict[str, object] = {}
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if isinstance(value, Tensor):
                 fields[f.name] = value.index_select(0, idx)
             else:
-                fields[f.name] = [value[i] for i in idx.tolist()]
+                fields[f.name] = list(map(value.__getitem__, positions))
         return FSNBatch(**fields)  # type: ignore[arg-type]
 
 

@@ -110,17 +110,24 @@ def draw_fine_tune_seeded(
     epochs × R uniforms, argsorted per epoch) from a torch generator seeded with
     ``shuffle_seeds[p]``, its N(0, 1) augmentation draws (epochs × R × its D_ic × 8) from one
     seeded with ``noise_seeds[p]``. A patron's draws depend on its own settings and seeds
-    only, so it draws the same numbers alone (a remote agent) as in any batch. Patrons
-    without epochs draw nothing (they are never visited)."""
+    only, so it draws the same numbers alone (a remote agent) as in any batch (patrons with
+    the same seeds, epochs and copies, as in the screener's projection, draw them once).
+    Patrons without epochs draw nothing (they are never visited)."""
     P, E, D = batch.n_patrons, int(batch.epochs.max()), batch.max_copies
     keys = torch.zeros((P, E, n_rows), dtype=torch.float64)
     normal = torch.empty((P, E, n_rows, D, len(INPUTS)), dtype=torch.float32)
     generator = torch.Generator()
     epochs, copies = batch.epochs.tolist(), batch.copies.tolist()
     shuffle, noise = shuffle_seeds.tolist(), noise_seeds.tolist()
+    drawn: dict[tuple[int, int, int, int], int] = {}
     for p in range(P):
         e, c = epochs[p], copies[p]
         if e == 0:
+            continue
+        same = drawn.setdefault((shuffle[p], noise[p], e, c), p)
+        if same != p:
+            keys[p] = keys[same]
+            normal[p] = normal[same]
             continue
         generator.manual_seed(shuffle[p])
         torch.rand((e, n_rows), generator=generator, dtype=torch.float64, out=keys[p, :e])
@@ -190,17 +197,12 @@ def _selective_and_slope(
 
 
 def _sensor_and_slope(
-    groups: list[tuple[int | None, slice]],
-    numbers: dict[str, Tensor],
-    pre: Tensor,
-    sensor: Tensor,
-    slope: Tensor,
+    groups: Sequence[tuple[int | None, dict[str, Tensor], Tensor, Tensor, Tensor]],
 ) -> None:
-    """ES activations of the pre-activations ``pre`` (k, 4, M) into ``sensor`` and their
-    derivatives into ``slope``; ``numbers`` (see ``_activation_table``) are (k, 4, 1)."""
-    for kind, neurons in groups:
-        u, out, d_out = pre[:, neurons], sensor[:, neurons], slope[:, neurons]
-        mine = {name: value[:, neurons] for name, value in numbers.items()}
+    """ES activations and their derivatives, group by group of ES neurons: each group is (its
+    kind (None: mixed), its numbers (see ``_activation_table``, (k, n, 1)), its pre-activations
+    (k, n, M), where its activations go, where their derivatives go)."""
+    for kind, mine, u, out, d_out in groups:
         if kind == SELECTIVE:
             _selective_and_slope(u, mine, out, d_out)
         elif kind is not None:
@@ -233,51 +235,86 @@ def _activation_table(batch: FSNBatch, patrons: Tensor) -> dict[str, Tensor]:
     return {name: value[:, :, None].contiguous() for name, value in table.items()}
 
 
-def _band_gradient(
-    groups: list[tuple[int | None, slice]],
-    theta: Tensor,
-    numbers: dict[str, Tensor],
-    xe: Tensor,
-    copy_weight: Tensor,
-    weight: Tensor,
-) -> Tensor:
-    """∇θ of Σ_rows weight·CEL([T, F], argmax [T, F]) for k patrons, (k, N_θ): ``theta``
-    (k, N_θ) their flat parameters, ``xe`` (k, B, D, 8) their batch rows plus each copy's
-    noise, ``copy_weight`` (k, D) (1/D_ic on a patron's copies), ``weight`` (k, B) (1/rows
-    in the batch, 0 on padding). The forward pass of ``self_reward`` and its backward written
-    out, each layer one batch of per-patron matrix products over the B·D (row, copy) columns."""
+class _Prefix:
+    """The first k patrons of a band, stepping together over B·D (row, copy) columns: views of
+    their flat parameters ``theta`` (k, N_θ) per layer (updated in place, the views follow),
+    their activation numbers per group of ES neurons, their copy weights, noise scales and
+    learning rates, and the buffers of one step's pre-activations, sources and slopes. A band
+    steps with the same k for many steps, so all of this is sliced once per k."""
+
+    def __init__(
+        self,
+        groups: list[tuple[int | None, slice]],
+        theta: Tensor,
+        numbers: dict[str, Tensor],
+        copy_weight: Tensor,
+        scale: Tensor,
+        rate: Tensor,
+        columns: int,
+    ) -> None:
+        k = len(theta)
+        self.k = k
+        self.theta = theta
+        self.rate = rate
+        self.scale = scale
+        self.layers = _layer_views(theta)
+        _, _, fc_w, _, j_w, _, v_w, _ = self.layers
+        self.fc_w_t, self.j_w_t, self.v_w_t = (w.transpose(1, 2) for w in (fc_w, j_w, v_w))
+        self.copy_weight = copy_weight  # (k, D)
+        self.copy_column = copy_weight[:, :, None]
+        self.copy_cell = copy_weight[:, None, None, :]
+        n_es = len(ES_NEURONS)
+        self.pre = theta.new_empty((k, n_es, columns))
+        self.sources = theta.new_empty((k, len(PFC_SOURCES), columns))
+        self.sensor = self.sources[:, :n_es]
+        self.slope = torch.empty_like(self.pre)
+        self.groups = [
+            (
+                kind,
+                {name: value[:, neurons] for name, value in numbers.items()},
+                self.pre[:, neurons],
+                self.sensor[:, neurons],
+                self.slope[:, neurons],
+            )
+            for kind, neurons in groups
+        ]
+
+
+def _band_gradient(band: _Prefix, xe: Tensor, weight: Tensor) -> Tensor:
+    """∇θ of Σ_rows weight·CEL([T, F], argmax [T, F]) for the k patrons of ``band`` (k, N_θ):
+    ``xe`` (k, B, D, 8) their batch rows plus each copy's noise, ``weight`` (k, B) (1/rows in
+    the batch, 0 on padding); the band's ``copy_weight`` (k, D) is 1/D_ic on a patron's
+    copies. The forward pass of ``self_reward`` and its backward written out, each layer one
+    batch of per-patron matrix products over the B·D (row, copy) columns."""
     k, B, D, n_in = xe.shape
     n_es = len(ES_NEURONS)
-    es_w, es_b, fc_w, fc_b, j_w, j_b, v_w, v_b = _layer_views(theta)
+    es_w, es_b, fc_w, fc_b, j_w, j_b, v_w, v_b = band.layers
     inputs = xe.view(k, B * D, n_in)
     # Forward: ES → FC → softmax of the 7 sources → judgements → tanh → verdicts.
-    pre = torch.baddbmm(es_b, es_w, inputs.transpose(1, 2))  # (k, 4, B·D)
-    sources = theta.new_empty((k, len(PFC_SOURCES), B * D))
-    sensor, slope = sources[:, :n_es], torch.empty_like(pre)
-    _sensor_and_slope(groups, numbers, pre, sensor, slope)
+    pre, sources, sensor, slope = band.pre, band.sources, band.sensor, band.slope
+    torch.baddbmm(es_b, es_w, inputs.transpose(1, 2), out=pre)  # (k, 4, B·D)
+    _sensor_and_slope(band.groups)
     sources[:, n_es:] = torch.baddbmm(fc_b, fc_w, sensor)
     soft = torch.softmax(sources, dim=1)
     judged = torch.tanh(torch.baddbmm(j_b, j_w, soft))
     # The verdicts are linear in the judgements, so their mean over the copies (Σ_d w_d = 1)
     # is the verdict of the copies' mean judgement: (k, 3, B) → [T, F] (k, 2, B).
     n_j = len(JUDGEMENTS)
-    judged_mean = torch.bmm(judged.view(k, n_j * B, D), copy_weight[:, :, None]).view(k, n_j, B)
+    judged_mean = torch.bmm(judged.view(k, n_j * B, D), band.copy_column).view(k, n_j, B)
     mean = torch.baddbmm(v_b, v_w, judged_mean)
     # Backward: d CEL / d logits = softmax − one-hot(argmax), times the row's weight; the
     # argmax of [T, F] is T unless F is larger.
     true = mean[:, :1] >= mean[:, 1:]
     chosen = torch.cat((true, ~true), dim=1).to(mean.dtype)
     g_mean = (torch.softmax(mean, dim=1) - chosen) * weight[:, None]
-    g_judged_mean = torch.bmm(v_w.transpose(1, 2), g_mean)  # (k, 3, B)
+    g_judged_mean = torch.bmm(band.v_w_t, g_mean)  # (k, 3, B)
     g_judged = (1.0 - judged * judged).view(k, n_j, B, D)
-    g_judged = (g_judged * g_judged_mean[..., None] * copy_weight[:, None, None, :]).view(
-        k, n_j, B * D
-    )
-    g_soft = torch.bmm(j_w.transpose(1, 2), g_judged)
+    g_judged = (g_judged * g_judged_mean[..., None] * band.copy_cell).view(k, n_j, B * D)
+    g_soft = torch.bmm(band.j_w_t, g_judged)
     # soft·(g_soft − Σ soft·g_soft), fused.
     g_sources = torch._softmax_backward_data(g_soft, soft, 1, soft.dtype)
     g_decision = g_sources[:, n_es:]
-    g_pre = torch.baddbmm(g_sources[:, :n_es], fc_w.transpose(1, 2), g_decision) * slope
+    g_pre = torch.baddbmm(g_sources[:, :n_es], band.fc_w_t, g_decision) * slope
     grads = (
         torch.bmm(g_pre, inputs),
         g_pre.sum(-1),
@@ -371,19 +408,22 @@ def _tune_band(
     copy_weight = on / on.sum(dim=1, keepdim=True)
     numbers = _activation_table(batch, band)
     groups = batch.activation_groups
+    prefix: _Prefix | None = None
     for s, k in enumerate(stepping):
+        if prefix is None or prefix.k != k:
+            prefix = _Prefix(
+                groups,
+                theta[:k],
+                {name: value[:k] for name, value in numbers.items()},
+                copy_weight[:k],
+                scale[:k],
+                rate[:k],
+                B * D,
+            )
         noise = normal.index_select(0, visit[s, :k].flatten()).view(k, B, all_copies, n_in)
         data = rows.index_select(0, at[s, :k].flatten()).view(k, B, 1, n_in)
-        xe = torch.addcmul(data, noise[:, :, :D], scale[:k])
-        grad = _band_gradient(
-            groups,
-            theta[:k],
-            {name: value[:k] for name, value in numbers.items()},
-            xe,
-            copy_weight[:k],
-            weight[s, :k],
-        )
-        theta[:k] -= rate[:k] * grad
+        xe = torch.addcmul(data, noise[:, :, :D], prefix.scale)
+        prefix.theta -= prefix.rate * _band_gradient(prefix, xe, weight[s, :k])
     return theta
 
 

@@ -138,6 +138,53 @@ def decision_logits(batch: FSNBatch, x: Tensor, noise: Tensor | None = None) -> 
     return torch.einsum("prk,pjk->prj", mean_sensor, batch.fc_weight) + batch.fc_bias[:, None, :]
 
 
+def clean_logits(batch: FSNBatch, x: Tensor) -> Tensor:
+    """``decision_logits(batch, x)`` for rows ``x`` (R, 8) shared by every patron, every copy
+    clean, computed patron-major with the rows last: for many rows (the screener's probes)
+    each per-patron parameter then broadcasts along a contiguous run of rows, and no layer
+    needs its input laid out anew. The same formulas and products (on the screener's rows the
+    same numbers bit for bit; the BLAS kernels may round a dot product's last bit differently
+    for a handful of rows), and in a batch of one activation kind per neuron each patron's
+    scores are exactly those it gets alone. A (P, R, 3) view."""
+    P, n_es = batch.n_patrons, len(ES_NEURONS)
+    x = x.to(batch.dtype)
+    pre = torch.mm(batch.es_weight.reshape(P * n_es, -1), x.T).view(P, n_es, -1)
+    pre = pre + batch.es_bias[:, :, None]  # (P, 4, R)
+    sensor = torch.empty_like(pre)
+    for kind, neurons in batch.activation_groups:
+        _activate_rows(batch, kind, neurons, pre[:, neurons], sensor[:, neurons])
+    logits = torch.bmm(batch.fc_weight, sensor) + batch.fc_bias[:, :, None]  # (P, 3, R)
+    return logits.transpose(1, 2)
+
+
+def _activate_rows(
+    batch: FSNBatch, kind: int | None, neurons: slice, pre: Tensor, out: Tensor
+) -> None:
+    """``_activate`` without noise on (P, n, R) pre-activations, into ``out``."""
+
+    def per_patron(values: Tensor) -> Tensor:
+        return values[:, neurons, None]
+
+    a, c = per_patron(batch.es_a), per_patron(batch.es_c)
+    slope, eps = per_patron(batch.es_slope), per_patron(batch.es_epsilon)
+    if kind == SELECTIVE:
+        torch.div(eps, eps + pre * pre, out=out)
+    elif kind is not None:
+        z = (pre - c) * a
+        if kind == THRESHOLD:
+            torch.tanh(torch.maximum(z, slope * z), out=out)
+        else:
+            torch.sub(1.0, torch.tanh(torch.maximum(z, slope * z)), out=out)
+    else:
+        z = (pre - c) * a
+        fired = torch.tanh(torch.maximum(z, slope * z))
+        codes = batch.es_kind[:, neurons, None]
+        below = (codes == BELOW_THRESHOLD).to(batch.dtype)
+        chosen = (codes == SELECTIVE).to(batch.dtype)
+        mixed = fired + below * (1.0 - 2.0 * fired)
+        torch.add(mixed, chosen * (eps / (eps + pre * pre) - mixed), out=out)
+
+
 def decide(batch: FSNBatch, x: Tensor, noise: Tensor | None = None) -> Tensor:
     """Greedy decisions (P, R) int64: 0 buy, 1 hold, 2 quit (ties → the lowest index)."""
     return decision_logits(batch, x, noise).argmax(dim=-1)

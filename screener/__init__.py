@@ -63,8 +63,15 @@ __all__ = [
 
 def judge(batch: FSNBatch, *, at_the_door: bool) -> list[Verdict]:
     """Verdicts for a batch of models; ``at_the_door`` also judges each model's own
-    fine-tuning (see the module docstring)."""
-    from agents.batch import to_manifest
+    fine-tuning (see the module docstring). Nothing is differentiated: the judging runs in
+    torch's inference mode (no autograd bookkeeping on its many small tensor operations)."""
+    import torch
+
+    with torch.inference_mode():
+        return _judge(batch, at_the_door=at_the_door)
+
+
+def _judge(batch: FSNBatch, *, at_the_door: bool) -> list[Verdict]:
     from screener.checks import cheap_checks, failed_any
     from screener.findings import check
     from screener.impact import impact_checks, project
@@ -72,8 +79,8 @@ def judge(batch: FSNBatch, *, at_the_door: bool) -> list[Verdict]:
     cheap = cheap_checks(batch)
     groups = list(cheap.groups)
     passed = ~failed_any(groups)
-    evidence = [_scan_evidence(cheap, p, "") for p in range(batch.n_patrons)]
-    projected: list[tuple[int, Manifest]] = []
+    evidence = _scan_evidence(cheap, range(batch.n_patrons), "")
+    projected: list[tuple[int, FSNBatch]] = []
     if at_the_door:
         tunes = passed & (batch.epochs.numpy() > 0) & (batch.learning_rate.numpy() > 0)
         index = np.flatnonzero(tunes)
@@ -88,7 +95,7 @@ def judge(batch: FSNBatch, *, at_the_door: bool) -> list[Verdict]:
                 words[p] = _drift_message(batch, p, tuned.groups, int(k))
                 evidence[p] += _drift_evidence(tuned, int(k))
             projected = [
-                (int(index[k]), to_manifest(tuned.batch, int(k)))
+                (int(index[k]), tuned.batch.select([int(k)]))
                 for k in np.flatnonzero(tuned.holds & ~refused)
             ]
         groups.append(check("fine-tuning-drift", "T", drift, words.__getitem__))
@@ -104,63 +111,77 @@ PRICED_CHECKS = ("sincere-hold", "noise-gated-hold", "noise-flip")
 """The cheap checks measured in price (the others are pass or fail)."""
 
 
-def _scan_evidence(cheap: Cheap, p: int, test: str) -> list[Evidence]:
-    """Model p's decisive-row bars: its worst hold's distance down to a purchase against the
-    reach allowed there, clean (``sincere-hold``) and as the market sees it
-    (``noise-gated-hold``), and the widest band its noise flips from buying to holding
+def _scan_evidence(cheap: Cheap, patrons: Sequence[int], test: str) -> list[list[Evidence]]:
+    """Each model's (of ``patrons``) decisive-row bars: its worst hold's distance down to a
+    purchase against the reach allowed there, clean (``sincere-hold``) and as the market sees
+    it (``noise-gated-hold``), and the widest band its noise flips from buying to holding
     (``noise-flip``, with the decisions at the base buy fraction with and without noise).
     ``test`` set: the same under that name (a fine-tuned version's, only the failed ones)."""
     from screener import limits
     from screener.noisy import decisions_in_words
 
-    probed, noisy = cheap.probed, cheap.noisy
-    failed = {
-        rule: bool(group.failed[p, [k for k, r in enumerate(group.rules) if r == rule]].any())
+    probed, noisy, batch = cheap.probed, cheap.noisy, cheap.batch
+    failing = {
+        rule: np.any(group.failed[:, [k for k, r in enumerate(group.rules) if r == rule]], axis=1)
         for group in cheap.groups
         for rule in PRICED_CHECKS
         if rule in group.rules
     }
-    found: list[Evidence] = []
-
-    def hold(rule: str, gap: float, bar: float, detail: dict[str, object]) -> None:
-        if np.isnan(bar):
-            return
-        measured = None if np.isinf(gap) else float(gap)
-        detail = {**detail, "check": rule} if test else detail
+    index = np.asarray(patrons, dtype=np.intp)
+    failed = {rule: mask[index].tolist() for rule, mask in failing.items()}
+    gap, bar = probed.gap[index].tolist(), probed.bar[index].tolist()
+    noisy_gap, noisy_bar = noisy.gap[index].tolist(), noisy.bar[index].tolist()
+    flips = noisy.flip[index].tolist()
+    copies, noise_std = batch.copies[index].tolist(), batch.noise_std[index].tolist()
+    out: list[list[Evidence]] = []
+    for n, p in enumerate(index.tolist()):
+        found: list[Evidence] = []
+        words = {
+            "buy_fraction": 0.5,
+            "clean": decisions_in_words(noisy.clean[p], 0.5),
+            "noisy": decisions_in_words(noisy.noisy[p], 0.5),
+            "copies": copies[n],
+            "noise_std": noise_std[n],
+            "draws": limits.NOISE_DRAWS,
+        }
+        for rule, measured, reach, detail in (
+            ("sincere-hold", gap[n], bar[n], {}),
+            ("noise-gated-hold", noisy_gap[n], noisy_bar[n], words),
+        ):
+            if np.isnan(reach):
+                continue
+            detail = {**detail, "check": rule} if test else detail
+            found.append(
+                Evidence(
+                    test or rule,
+                    None if np.isinf(measured) else measured,
+                    reach,
+                    PRICE,
+                    "at most",
+                    not failed[rule][n],
+                    detail,
+                )
+            )
+        flip_detail = {**words, "check": "noise-flip"} if test else words
         found.append(
-            Evidence(test or rule, measured, float(bar), PRICE, "at most", not failed[rule], detail)
+            Evidence(
+                test or "noise-flip",
+                flips[n],
+                limits.NOISE_FLIP_BAND,
+                PRICE,
+                "at most",
+                not failed["noise-flip"][n],
+                flip_detail,
+            )
         )
-
-    words = {
-        "buy_fraction": 0.5,
-        "clean": decisions_in_words(noisy.clean[p], 0.5),
-        "noisy": decisions_in_words(noisy.noisy[p], 0.5),
-        "copies": int(cheap.batch.copies[p]),
-        "noise_std": float(cheap.batch.noise_std[p]),
-        "draws": limits.NOISE_DRAWS,
-    }
-    hold("sincere-hold", float(probed.gap[p]), float(probed.bar[p]), {})
-    hold("noise-gated-hold", float(noisy.gap[p]), float(noisy.bar[p]), words)
-    flip = float(noisy.flip[p])
-    flip_detail = {**words, "check": "noise-flip"} if test else words
-    found.append(
-        Evidence(
-            test or "noise-flip",
-            flip,
-            limits.NOISE_FLIP_BAND,
-            PRICE,
-            "at most",
-            not failed["noise-flip"],
-            flip_detail,
-        )
-    )
-    return [e for e in found if not (test and e.passed)]
+        out.append([e for e in found if not (test and e.passed)])
+    return out
 
 
 def _drift_evidence(tuned: Cheap, k: int) -> list[Evidence]:
     """Why the fine-tuned version k failed, as bars: the priced decisive-row bars it missed,
     and every other check it failed (no bar in price: measured and bar None)."""
-    found = _scan_evidence(tuned, k, "fine-tuning-drift")
+    (found,) = _scan_evidence(tuned, [k], "fine-tuning-drift")
     for group in tuned.groups:
         for c in np.flatnonzero(group.failed[k]):
             rule = group.rules[int(c)]

@@ -105,19 +105,23 @@ TEST_AUCTIONS = [
 """(reference population, market rules) of each test auction."""
 
 
-def run(candidates: Sequence[Manifest | None]) -> list[Outcome]:
-    """The test auctions of every candidate (None: honest alone) in one lock-step batch (its
-    patrons stacked from the reference populations' batch, read once per process, and the
-    candidates')."""
+Candidate = Manifest | FSNBatch | None
+"""A model to run in the test auctions, as a manifest or a one-patron batch (None: honest
+alone)."""
+
+
+def run(candidates: Sequence[Candidate]) -> list[Outcome]:
+    """The test auctions of every candidate in one lock-step batch (its patrons stacked from
+    the reference populations' batch, read once per process, and the candidates')."""
     people, reference = _people()
     given = [c for c in candidates if c is not None]
-    pool = concat([reference, from_manifests(given)]) if given else reference
+    pool = concat([reference, *map(_as_batch, given)]) if given else reference
     auctions: list[tuple[list[Manifest], MarketConfig]] = []
     index: list[int] = []
     slot = iter(range(len(people), len(people) + len(given)))
     for candidate in candidates:
         own = None if candidate is None else next(slot)
-        copies = [] if candidate is None else [candidate] * limits.IMPACT_COPIES
+        copies = [] if candidate is None else [_as_manifest(candidate)] * limits.IMPACT_COPIES
         for trial, config in TEST_AUCTIONS:
             auctions.append(([*_population(trial), *copies], config))
             first = trial * limits.IMPACT_HONEST
@@ -126,9 +130,8 @@ def run(candidates: Sequence[Manifest | None]) -> list[Outcome]:
     buyers: list[list[tuple[int, float]]] = [[] for _ in auctions]
     engine = MarketBatch(auctions, patrons=pool.select(index))
     while not engine.finished.all():
-        for a, record in enumerate(engine.step()):
-            if record is not None and record.buyers:
-                buyers[a] += record.buyers
+        for a, sales in enumerate(engine.step_sales()):
+            buyers[a] += sales
     per = len(TEST_AUCTIONS)
     outcomes = []
     for c in range(len(candidates)):
@@ -136,6 +139,14 @@ def run(candidates: Sequence[Manifest | None]) -> list[Outcome]:
         honest = sum(1 for i, _ in bought if i < limits.IMPACT_HONEST)
         outcomes.append(Outcome(tuple(price for _, price in bought), len(bought), honest))
     return outcomes
+
+
+def _as_batch(candidate: Manifest | FSNBatch) -> FSNBatch:
+    return candidate if isinstance(candidate, FSNBatch) else from_manifests([candidate])
+
+
+def _as_manifest(candidate: Manifest | FSNBatch) -> Manifest:
+    return to_manifest(candidate, 0) if isinstance(candidate, FSNBatch) else candidate
 
 
 def reference_quitter() -> Manifest:
@@ -214,15 +225,15 @@ def rounds() -> int:
 
 
 def impact_checks(
-    batch: FSNBatch, tested: Sequence[int], projected: Sequence[tuple[int, Manifest]]
+    batch: FSNBatch, tested: Sequence[int], projected: Sequence[tuple[int, FSNBatch]]
 ) -> tuple[Checks, dict[int, list[Evidence]]]:
     """The market-impact test over the batch: the models at indices ``tested`` as they are,
-    and the (index, fine-tuned version) pairs of ``projected``; and each tested model's
-    evidence (its copies' mean purchase price against the bar)."""
+    and the (index, fine-tuned version as a one-patron batch) pairs of ``projected``; and each
+    tested model's evidence (its copies' mean purchase price against the bar)."""
     failed = np.zeros(batch.n_patrons, dtype=np.bool_)
     words: dict[int, str] = {}
     evidence: dict[int, list[Evidence]] = {}
-    jobs = [(int(p), to_manifest(batch, int(p)), "") for p in tested]
+    jobs: list[tuple[int, FSNBatch, str]] = [(int(p), batch.select([int(p)]), "") for p in tested]
     jobs += [(p, m, " after its own fine-tuning") for p, m in projected]
     if jobs:
         refs = references()

@@ -29,7 +29,7 @@ import numpy.typing as npt
 import torch
 
 from agents.batch import FSNBatch
-from agents.forward import activations, decision_logits, noise_scale
+from agents.forward import activations, clean_logits, decision_logits, noise_scale
 from agents.manifest import ES_NEURONS, INPUTS
 from screener import limits
 from screener.findings import ROLE, Array, Checks, Mask, fmt_price
@@ -105,7 +105,7 @@ def _scores(batch: FSNBatch) -> tuple[Array, Array]:
     normals = _normals().reshape(K * R, MAX_COPIES, len(INPUTS))
     with torch.no_grad():
         for index, part in passes(batch):
-            clean[index] = decision_logits(part, ROWS64).numpy()
+            clean[index] = clean_logits(part, ROWS64).numpy()
             single = _single(part)
             scale = noise_scale(single)[:, None]  # (p, 1, D, 8)
             noise = normals[:, : part.max_copies][None] * scale

@@ -180,6 +180,35 @@ class MarketBatch:
 
     def step(self) -> list[IterationRecord | None]:
         """Advance every unfinished auction by one iteration (None for finished ones)."""
+        return self._records(*self._advance())
+
+    def step_sales(self) -> list[list[tuple[int, float]]]:
+        """Advance like ``step``, telling only each auction's purchases of the iteration
+        (``IterationRecord.buyers``: local index, price; empty for finished auctions), without
+        building the records (many small objects a step, for lock-step batches of many short
+        auctions such as the screener's test auctions)."""
+        moves = self._advance()[3]
+        sales: list[list[tuple[int, float]]] = [[] for _ in range(self.n_auctions)]
+        if len(moves.bought):
+            prices = moves.price.tolist()
+            for a, local in zip(
+                self.owner[moves.bought].tolist(), self.local[moves.bought].tolist(), strict=True
+            ):
+                sales[a].append((local, prices[a]))
+        return sales
+
+    def _advance(
+        self,
+    ) -> tuple[
+        list[int],
+        list[int],
+        _Votes,
+        _Moves,
+        list[str | None],
+        dict[int, list[int]],
+        dict[int, list[int]],
+    ]:
+        """One iteration of every unfinished auction: what ``_records`` reports of it."""
         running = ~self.finished
         if not running.any():
             raise RuntimeError("every auction has finished")
@@ -211,7 +240,7 @@ class MarketBatch:
         remote = np.array([c.fine_tune_mode == "remote" for c in self.configs])
         self.pending = tune & remote
         kept, reverted = self._fine_tune(tune & ~remote, iteration)
-        return self._records(playing, iterations, votes, moves, reasons, kept, reverted)
+        return playing, iterations, votes, moves, reasons, kept, reverted
 
     def _vote(self, running: np.ndarray, full: np.ndarray) -> _Votes:
         """1. Every active patron of the running auctions votes on the rows (all of them where

@@ -10,7 +10,15 @@ import torch
 
 from agents.batch import from_manifests, to_manifest
 from agents.fine_tuning import draw_fine_tune, fine_tune
-from agents.forward import NEURONS, activations, decide, decision_logits, make_noise, self_reward
+from agents.forward import (
+    NEURONS,
+    activations,
+    clean_logits,
+    decide,
+    decision_logits,
+    make_noise,
+    self_reward,
+)
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
 from tests.support.loops import loop_fine_tune
@@ -181,6 +189,19 @@ def test_noise_none_means_every_copy_clean():
     x = torch.tensor([item(4.95), item(5.1)], dtype=torch.float64)
     zeros = torch.zeros((5, 2, 5, 8), dtype=torch.float64)
     torch.testing.assert_close(decision_logits(batch, x), decision_logits(batch, x, zeros))
+
+
+def test_clean_logits_are_the_decision_logits_of_every_patron_alone():
+    rng = np.random.default_rng(3)
+    manifests = [*mixed_manifests(), *(honest_manifest(rng, f"h{i}") for i in range(5))]
+    x = torch.from_numpy(rng.uniform(0.0, 6.0, (300, 8)))
+    for batch in (from_manifests(manifests), from_manifests(manifests[5:])):  # mixed, uniform
+        logits = clean_logits(batch, x)
+        torch.testing.assert_close(logits, decision_logits(batch, x), rtol=1e-15, atol=1e-15)
+    # one activation kind per neuron: each patron's scores are those it gets alone
+    assert len(batch.activation_groups) > 1
+    for p in range(batch.n_patrons):
+        assert torch.equal(logits[p], clean_logits(batch.select([p]), x)[0])
 
 
 def test_argmax_ties_go_to_the_lowest_index():

@@ -7,8 +7,8 @@ import numpy as np
 from agents.batch import from_manifests
 from agents.forward import decide
 from agents.negotiator import honest_manifest, saboteur_manifest
-from screener import screen, screen_many
-from screener.probes import GRID, GRID_SHAPE, PASS_SIZE, PRICES
+from screener import probes, screen, screen_many
+from screener.probes import GRID, GRID_SHAPE, PRICES
 from tests.support.corpus import SABOTEURS, edit, honest_corpus
 from tests.support.screening import PROBE_RULES, message_of, rules_of
 
@@ -103,9 +103,10 @@ def test_batched_screening_equals_one_by_one():
     assert screen_many([]) == []
 
 
-def test_mixed_activation_kinds_in_one_batch_score_as_alone():
+def test_mixed_activation_kinds_in_one_batch_score_as_alone(monkeypatch):
     """Manifests whose neurons use different activation kinds share a batch (more than one
-    forward pass of PASS_SIZE) and still get exactly their one-by-one verdicts."""
+    forward pass of PASS_SIZE, here 16) and still get exactly their one-by-one verdicts."""
+    monkeypatch.setattr(probes, "PASS_SIZE", 16)
     rng = np.random.default_rng(5)
     honest = [entry.manifest for entry in honest_corpus(rng, 24)]
     below = {"kind": "below_threshold", "a": 5.0, "c": 0.5, "negative_slope": 0.01}  # SZ
@@ -114,5 +115,5 @@ def test_mixed_activation_kinds_in_one_batch_score_as_alone():
         for i in range(12)
     ]
     manifests = [m for pair in zip(honest, odd, strict=False) for m in pair] + honest[12:]
-    assert len(manifests) > 2 * PASS_SIZE
+    assert len(manifests) > 2 * probes.PASS_SIZE
     assert screen_many(manifests) == [screen(m) for m in manifests]

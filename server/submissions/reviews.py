@@ -19,6 +19,18 @@ def _missing(model_id: int) -> RequestError:
     )
 
 
+def _conflict(session: Session, model_id: int, unknown: str, rule: str, kind: str) -> RequestError:
+    """409 for a model no longer in the state a request needs (another request moved it first):
+    nothing of this request is kept, and the message names the state the model is in now
+    (``unknown`` if it is gone)."""
+    session.rollback()
+    now = crud.model_owner(session, model_id=model_id)
+    status = now.status if now else unknown
+    return api_error(
+        409, f"model {model_id} is {status}{rule}", loc=("path", "model_id"), kind=kind
+    )
+
+
 def decide(
     session: Session, model_id: int, *, decision: ReviewDecision, inspector: str, note: str
 ) -> crud.StoredModel:
@@ -35,14 +47,8 @@ def decide(
         note=note,
         now=utcnow(),
     ):
-        session.rollback()
-        now = crud.model_owner(session, model_id=model_id)
-        raise api_error(
-            409,
-            f"model {model_id} is {now.status if now else 'gone'}, not held: only a held model "
-            "is decided",
-            loc=("path", "model_id"),
-            kind="not_held",
+        raise _conflict(
+            session, model_id, "gone", ", not held: only a held model is decided", "not_held"
         )
     session.commit()
     return _view(session, model_id)
@@ -80,14 +86,8 @@ def appeal(session: Session, model_id: int, *, token: str | None, note: str) -> 
     if owner.status != ModelStatus.REFUSED or not crud.appeal(
         session, model_id=model_id, participant=owner.participant, note=note, now=utcnow()
     ):
-        session.rollback()
-        now = crud.model_owner(session, model_id=model_id)
-        raise api_error(
-            409,
-            f"model {model_id} is {now.status if now else owner.status}: only a refused model "
-            "is appealed",
-            loc=("path", "model_id"),
-            kind="not_refused",
+        raise _conflict(
+            session, model_id, owner.status, ": only a refused model is appealed", "not_refused"
         )
     session.commit()
     return _view(session, model_id)

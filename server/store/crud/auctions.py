@@ -189,16 +189,25 @@ AUCTION_PATRONS = (
     .where(AuctionPatron.auction_id == bindparam("auction_id"))
     .order_by(AuctionPatron.position)
 )
+
+
+@dataclass(frozen=True)
+class IterationFigures:
+    """What one played iteration stores of itself (the columns of ``auction_iterations``):
+    written by a step (``steps.IterationRow``), read by the event streams
+    (``events.AuctionRound``) and the auction's history."""
+
+    iteration: int
+    price: float
+    n_available: int
+    votes: dict[str, int]
+    row_votes: dict[str, int]
+    next_price: float
+    n_available_after: int
+
+
 AUCTION_HISTORY = (
-    select(
-        AuctionIteration.iteration,
-        AuctionIteration.price,
-        AuctionIteration.n_available,
-        AuctionIteration.votes,
-        AuctionIteration.row_votes,
-        AuctionIteration.next_price,
-        AuctionIteration.n_available_after,
-    )
+    select(*(getattr(AuctionIteration, f.name) for f in dataclasses.fields(IterationFigures)))
     .where(AuctionIteration.auction_id == bindparam("auction_id"))
     .order_by(AuctionIteration.iteration)
 )

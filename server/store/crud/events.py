@@ -11,7 +11,7 @@ from typing import Any
 from sqlalchemy import Select, bindparam, select
 from sqlalchemy.orm import Session
 
-from server.store.crud.auctions import AUCTION_HISTORY
+from server.store.crud.auctions import AUCTION_HISTORY, IterationFigures
 from server.store.tables import (
     Auction,
     AuctionIteration,
@@ -57,16 +57,9 @@ class RoundPurchase:
 
 
 @dataclass(frozen=True)
-class AuctionRound:
+class AuctionRound(IterationFigures):
     """One committed round with the purchases and quits it made."""
 
-    iteration: int
-    price: float
-    n_available: int
-    votes: dict[str, int]
-    row_votes: dict[str, int]
-    next_price: float
-    n_available_after: int
     purchases: tuple[RoundPurchase, ...]
     quits: tuple[PatronRef, ...]
 
@@ -126,7 +119,7 @@ def auction_rounds(
         quits.setdefault(iteration, []).append(PatronRef(model_id, name, version))
     return [
         AuctionRound(
-            *row,
+            **row._asdict(),
             purchases=tuple(purchases.get(row.iteration, ())),
             quits=tuple(quits.get(row.iteration, ())),
         )

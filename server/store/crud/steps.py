@@ -12,6 +12,7 @@ from typing import Any
 from sqlalchemy import func, insert, select, update
 from sqlalchemy.orm import Session, selectinload, undefer
 
+from server.store.crud.auctions import IterationFigures
 from server.store.crud.live import notify_change
 from server.store.status import ANSWERED, AnswerOutcome, AuctionStatus, RoundStatus
 from server.store.tables import (
@@ -45,16 +46,9 @@ class OpenRound:
 
 
 @dataclass(frozen=True)
-class IterationRow:
+class IterationRow(IterationFigures):
     """One played iteration, in the database's terms (patrons by model id)."""
 
-    iteration: int
-    price: float
-    n_available: int
-    votes: dict[str, int]
-    row_votes: dict[str, int]
-    next_price: float
-    n_available_after: int
     finished: bool
     stop_reason: str | None
     explanations: dict[str, Any] | None

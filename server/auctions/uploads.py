@@ -233,7 +233,8 @@ async def upload(
         if problems:
             raise validation_error(problems)
     assert target.position is not None
-    unchanged = data == target.current_manifest
+    # the new manifest's JSON, stored and sent to the screener (None: the current weights)
+    manifest_json = None if data == target.current_manifest else manifest.model_dump_json()
     stored = await run_in_threadpool(
         _store,
         database,
@@ -246,19 +247,19 @@ async def upload(
             body_sha256=digest,
             bytes_in=len(body),
             arrived=arrived,
-            manifest=None if unchanged else JSONText(manifest.model_dump_json()),
+            manifest=None if manifest_json is None else JSONText(manifest_json),
         ),
     )
     if stored.refusal is not None:
         status, message, kind = stored.refusal
         raise api_error(status, message, loc=("path", "round"), kind=kind)
     if stored.answer is not None:
-        if unchanged and await run_in_threadpool(_due, database, round_id):
+        if manifest_json is None and await run_in_threadpool(_due, database, round_id):
             wake(auction_id)
         return stored.answer
     assert stored.answer_id is not None
     try:
-        verdict = await screening.verdict(manifest, at_the_door=False)
+        verdict = await screening.verdict(manifest, at_the_door=False, manifest_json=manifest_json)
     except ScreenerUnavailableError as exc:
         raise api_error(
             503,

@@ -31,6 +31,12 @@ PublishedStatus = Literal[RoundStatus.OPEN, RoundStatus.CLOSED, "none"]
 """A round as ``GET .../rounds/current`` shows it (none: no round has opened yet)."""
 
 
+def _published_status(head: crud.RoundHead | None) -> PublishedStatus:
+    if head is None:
+        return "none"
+    return RoundStatus.OPEN if head.status == RoundStatus.OPEN else RoundStatus.CLOSED
+
+
 @dataclass(frozen=True)
 class RoundSnapshot:
     """An auction and its newest round, as this process last read them."""
@@ -40,12 +46,12 @@ class RoundSnapshot:
     """The newest round (None when no round has opened yet)."""
     body: crud.RoundBody | None
     """The newest round's rows, seeds and asked patrons."""
+    answer: AnswerJson
+    """Its JSON answer, built once for every request and push that hands it on."""
 
     @property
     def status(self) -> PublishedStatus:
-        if self.head is None:
-            return "none"
-        return RoundStatus.OPEN if self.head.status == RoundStatus.OPEN else RoundStatus.CLOSED
+        return _published_status(self.head)
 
     @property
     def auction_over(self) -> bool:
@@ -69,14 +75,16 @@ def round_view(
         return None
     head = crud.round_head(session, auction_id=auction_id)
     if head is None:
-        return RoundSnapshot(state, None, None)
-    if (
+        body = None
+    elif (
         previous is not None
         and previous.head is not None
         and previous.head.round_id == head.round_id
     ):
-        return RoundSnapshot(state, head, previous.body)  # the rows of a round never change
-    return RoundSnapshot(state, head, crud.round_body(session, round_id=head.round_id))
+        body = previous.body  # the rows of a round never change
+    else:
+        body = crud.round_body(session, round_id=head.round_id)
+    return RoundSnapshot(state, head, body, _answer_json(auction_id, state, head, body))
 
 
 @dataclass(frozen=True)
@@ -148,32 +156,58 @@ class RoundWatcher:
                     await feed.wait(generation, give_up - loop.time())
                 finally:
                     self._waiters -= 1
-        return Published(_answer(auction_id, snapshot), snapshot)
+        return Published(snapshot.answer.body(), snapshot)
 
 
-def _answer(auction_id: int, snapshot: RoundSnapshot) -> bytes:
-    """The JSON answer (see ``RoundPublic``)."""
-    state, head, body = snapshot.state, snapshot.head, snapshot.body
-    is_open = snapshot.status == RoundStatus.OPEN and body is not None
-    left = 0.0
-    if is_open and head is not None:
-        left = max(0.0, (head.deadline - utcnow()).total_seconds())
-    answer: dict[str, Any] = {
+@dataclass(frozen=True)
+class AnswerJson:
+    """A snapshot's JSON answer (see ``RoundPublic``), split around ``seconds_left``, the one
+    field that moves between two requests for the same snapshot."""
+
+    before: bytes
+    after: bytes
+    deadline: datetime | None
+    """The open round's deadline (None: ``seconds_left`` is 0)."""
+
+    def body(self) -> bytes:
+        """The answer's bytes, ``seconds_left`` counted now."""
+        left = 0.0 if self.deadline is None else (self.deadline - utcnow()).total_seconds()
+        return b"%s%s%s" % (self.before, json.dumps(round(max(0.0, left), 3)).encode(), self.after)
+
+
+def _answer_json(
+    auction_id: int,
+    state: crud.AuctionState,
+    head: crud.RoundHead | None,
+    body: crud.RoundBody | None,
+) -> AnswerJson:
+    status = _published_status(head)
+    is_open = status == RoundStatus.OPEN and body is not None
+    before: dict[str, Any] = {
         "auction_id": auction_id,
         "auction_status": state.status,
         "fine_tune_mode": state.fine_tune_mode,
         "fine_tune_rounds": state.fine_tune_rounds,
         "round": None if head is None else head.round,
         "iteration": None if head is None else head.iteration,
-        "status": snapshot.status,
+        "status": status,
         "deadline": None if head is None else _utc(head.deadline),
-        "seconds_left": round(left, 3),
+    }
+    after: dict[str, Any] = {
         "rows": body.rows if is_open and body is not None else None,
         "fine_tune_seed": None if body is None else body.fine_tune_seed,
         "augmentation_seed": None if body is None else body.augmentation_seed,
         "asked": body.asked if is_open and body is not None else [],
     }
-    return json.dumps(answer, separators=(",", ":"), allow_nan=False).encode()
+    return AnswerJson(
+        _dumps(before)[:-1] + b',"seconds_left":',
+        b"," + _dumps(after)[1:],
+        head.deadline if is_open and head is not None else None,
+    )
+
+
+def _dumps(value: dict[str, Any]) -> bytes:
+    return json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
 
 
 def _utc(moment: datetime) -> str:

@@ -259,14 +259,17 @@ class ScreeningService:
                 self._pending.pop(request_id, None)
             raise ScreenerUnavailableError("the screener did not answer in time") from exc
 
-    async def verdict(self, manifest: Manifest, *, at_the_door: bool = True) -> Verdict:
+    async def verdict(
+        self, manifest: Manifest, *, at_the_door: bool = True, manifest_json: str | None = None
+    ) -> Verdict:
         """The screener's verdict on one manifest, awaited on the caller's event loop (no thread
         waits for it): ``screener.screen`` for a submission at the door, or, with
         ``at_the_door=False``, ``screener.rescreen_many``'s judgement of a version fine-tuned
-        inside an auction (the same re-screening as the server's own fine-tuning rounds)."""
-        verdict: Verdict = await self._answer(
-            _DOOR if at_the_door else _RESCREEN, manifest.model_dump_json()
-        )
+        inside an auction (the same re-screening as the server's own fine-tuning rounds).
+        ``manifest_json``: the manifest's ``model_dump_json()``, if the caller has it already."""
+        if manifest_json is None:
+            manifest_json = manifest.model_dump_json()
+        verdict: Verdict = await self._answer(_DOOR if at_the_door else _RESCREEN, manifest_json)
         return verdict
 
     def _read(self, conn: Connection) -> None:

@@ -44,6 +44,10 @@ MIGRATIONS_DIR = Path(__file__).parent / "migrations"
 _WRITE_OPTION = "srd_write"
 SQLITE_BUSY_TIMEOUT_MS = 30_000  # a writer waits this long for the lock before giving up
 LOCK_RETRY_S = 0.0005  # how often a writer retries BEGIN IMMEDIATE while another process writes
+SQLITE_POOL_SIZE = 15
+"""SQLite connections a process keeps open: all it may use at once (SQLAlchemy's default 5 kept
+plus 10 overflow), so that a burst of requests does not open and close connections, each open
+running the PRAGMAs and reading the schema again."""
 
 
 IDENTITY_CHECK_S = 1.0  # how long a database check is trusted before it is made again
@@ -186,6 +190,8 @@ def make_engine(url: str, *, create: bool = False) -> Engine:
             url if create else _open_existing(url),
             connect_args={"check_same_thread": False, "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000},
             json_serializer=json_dumps,
+            pool_size=SQLITE_POOL_SIZE,
+            max_overflow=0,
         )
         writers = _SqliteWriters()
         event.listen(engine, "connect", _sqlite_on_connect)

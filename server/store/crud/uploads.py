@@ -465,7 +465,7 @@ def record_verdict(
             "outcome": outcome,
         }
     )
-    session.execute(
+    connection.execute(
         update(FineTuneAnswer)
         .where(FineTuneAnswer.id == answer_id)
         .values(

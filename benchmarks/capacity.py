@@ -263,6 +263,7 @@ async def socket_agent(
             url,
             additional_headers={"Authorization": f"Bearer {agent.token}"},
             max_size=1 << 20,
+            compression=None,  # as the project's agent connects (agents/remote/socket.py)
             local_addr=(agent.address, 0),
         )
     thinking: list[asyncio.Task[None]] = []

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Callable
+from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
@@ -92,27 +93,20 @@ def _manifest(body: bytes) -> Manifest:
         ) from exc
 
 
-def _read_target(database: Database, key: crud.UploadKey) -> crud.UploadTarget:
-    with database.session(write=False) as session:
-        target = crud.upload_targets(session, keys=[key])[0]
-    if isinstance(target, crud.UploadLookupError):
-        raise target
-    return target
-
-
-async def _target(
+def _target(
     database: Database, auction_id: int, model_id: int, round_number: int
 ) -> crud.UploadTarget:
     """What the upload's path names: the patron, its participant, the round (404 for an
     unknown auction or model)."""
-    try:
-        return await run_in_threadpool(_read_target, database, (auction_id, model_id, round_number))
-    except crud.UploadLookupError as exc:
-        if exc.field == "auction_id":
-            raise not_found(auction_id) from exc
-        raise api_error(
-            404, f"model {model_id} does not exist", loc=("path", "model_id"), kind="not_found"
-        ) from exc
+    with database.session(write=False) as session:
+        target = crud.upload_targets(session, keys=[(auction_id, model_id, round_number)])[0]
+    if not isinstance(target, crud.UploadLookupError):
+        return target
+    if target.field == "auction_id":
+        raise not_found(auction_id) from target
+    raise api_error(
+        404, f"model {model_id} does not exist", loc=("path", "model_id"), kind="not_found"
+    ) from target
 
 
 def _check_patron(
@@ -181,10 +175,21 @@ def _due(database: Database, round_id: int) -> bool:
     return due
 
 
-async def upload(
+@dataclass(frozen=True)
+class _Arrived:
+    """An upload checked and stored (``_check_and_store``)."""
+
+    stored: crud.Stored
+    round_id: int
+    manifest_json: str | None
+    """The new manifest's JSON, stored and sent to the screener (None: the current weights)."""
+    due: bool
+    """The auction's next step became due (an answer given at once closed the round)."""
+
+
+def _check_and_store(
     database: Database,
-    screening: ScreeningService,
-    wake: Callable[[int], None],
+    manifest: Manifest,
     *,
     auction_id: int,
     round_number: int,
@@ -192,14 +197,10 @@ async def upload(
     token: str,
     body: bytes,
     arrived: datetime,
-    margin: float,
-) -> bytes:
-    """Check an upload (see the module docstring), store it, re-screen it and record its
-    verdict; the answer's JSON. Wrong round → 409 naming the current one; closed, or past the
-    deadline at ``arrived`` → 410 (recorded as late). ``wake(auction_id)`` is told when the
-    auction's next step became due."""
-    manifest = _manifest(body)
-    target = await _target(database, auction_id, model_id, round_number)
+) -> _Arrived:
+    """The upload's checks against what its path names, then its store (and, for an answer
+    given at once, whether the auction became due): one run in the thread pool."""
+    target = _target(database, auction_id, model_id, round_number)
     round_id = _check_patron(
         target, token, auction_id=auction_id, model_id=model_id, round_number=round_number
     )
@@ -233,10 +234,8 @@ async def upload(
         if problems:
             raise validation_error(problems)
     assert target.position is not None
-    # the new manifest's JSON, stored and sent to the screener (None: the current weights)
     manifest_json = None if data == target.current_manifest else manifest.model_dump_json()
-    stored = await run_in_threadpool(
-        _store,
+    stored = _store(
         database,
         crud.UploadIn(
             round_number=round_number,
@@ -253,8 +252,42 @@ async def upload(
     if stored.refusal is not None:
         status, message, kind = stored.refusal
         raise api_error(status, message, loc=("path", "round"), kind=kind)
+    due = stored.answer is not None and manifest_json is None and _due(database, round_id)
+    return _Arrived(stored, round_id, manifest_json, due)
+
+
+async def upload(
+    database: Database,
+    screening: ScreeningService,
+    wake: Callable[[int], None],
+    *,
+    auction_id: int,
+    round_number: int,
+    model_id: int,
+    token: str,
+    body: bytes,
+    arrived: datetime,
+    margin: float,
+) -> bytes:
+    """Check an upload (see the module docstring), store it, re-screen it and record its
+    verdict; the answer's JSON. Wrong round → 409 naming the current one; closed, or past the
+    deadline at ``arrived`` → 410 (recorded as late). ``wake(auction_id)`` is told when the
+    auction's next step became due."""
+    manifest = _manifest(body)
+    arrival = await run_in_threadpool(
+        _check_and_store,
+        database,
+        manifest,
+        auction_id=auction_id,
+        round_number=round_number,
+        model_id=model_id,
+        token=token,
+        body=body,
+        arrived=arrived,
+    )
+    stored, round_id, manifest_json = arrival.stored, arrival.round_id, arrival.manifest_json
     if stored.answer is not None:
-        if manifest_json is None and await run_in_threadpool(_due, database, round_id):
+        if arrival.due:
             wake(auction_id)
         return stored.answer
     assert stored.answer_id is not None

@@ -46,11 +46,9 @@ from server.store.tables import (
 class UploadTarget:
     """What ``PUT /auctions/{id}/rounds/{round}/models/{model_id}`` checks before screening."""
 
-    auction_status: str
     fine_tune_mode: str
     position: int | None
     """The model's position among the auction's patrons (None: not a patron)."""
-    participant_id: int
     participant: str
     token_hash: str
     current_id: int
@@ -67,7 +65,6 @@ class UploadTarget:
     answer_outcome: str | None
     """This patron's answer in the path's round so far, if any."""
     answer_sha256: str | None
-    answer: dict[str, Any] | None
     answer_id: int | None = None
     current_design: dict[str, Any] | None = None
     """The current version's design (``sim.market.design``), when the lookup worked it out."""
@@ -94,7 +91,7 @@ class _Batch:
     """Everything a batch of uploads is checked against, read once for the whole batch."""
 
     auctions: _Rows
-    """auction id → status and fine-tuning mode"""
+    """auction id → fine-tuning mode"""
     owners: _Rows
     """model id → its participant"""
     patrons: _Rows
@@ -128,35 +125,57 @@ def upload_targets(
     return [_target(batch, key) for key in keys]
 
 
+_AUCTIONS = select(Auction.id, Auction.fine_tune_mode).where(
+    Auction.id.in_(bindparam("auction_ids", expanding=True))
+)
+_OWNERS = (
+    select(ModelVersion.id, Participant.name, Participant.token_hash)
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .where(ModelVersion.id.in_(bindparam("model_ids", expanding=True)))
+)
+_PATRONS = select(
+    AuctionPatron.auction_id,
+    AuctionPatron.model_id,
+    AuctionPatron.position,
+    AuctionPatron.current_model_id,
+).where(
+    AuctionPatron.auction_id.in_(bindparam("auction_ids", expanding=True)),
+    AuctionPatron.model_id.in_(bindparam("model_ids", expanding=True)),
+)
+_VERSIONS = select(ModelVersion.id, ModelVersion.version, ModelVersion.manifest).where(
+    ModelVersion.id.in_(bindparam("version_ids", expanding=True))
+)
+_ROUNDS = select(
+    FineTuneRound.id,
+    FineTuneRound.auction_id,
+    FineTuneRound.round,
+    FineTuneRound.status,
+    FineTuneRound.deadline,
+    FineTuneRound.asked,
+).where(FineTuneRound.auction_id.in_(bindparam("auction_ids", expanding=True)))
+_ANSWERS = select(
+    FineTuneAnswer.id,
+    FineTuneAnswer.round_id,
+    FineTuneAnswer.position,
+    FineTuneAnswer.outcome,
+    FineTuneAnswer.body_sha256,
+).where(
+    FineTuneAnswer.round_id.in_(bindparam("round_ids", expanding=True)),
+    FineTuneAnswer.position.in_(bindparam("positions", expanding=True)),
+)
+
+
 def _auctions(connection: Connection, auction_ids: list[int]) -> _Rows:
-    query = select(Auction.id, Auction.status, Auction.fine_tune_mode).where(
-        Auction.id.in_(auction_ids)
-    )
-    return {row.id: row for row in connection.execute(query)}
+    return {row.id: row for row in connection.execute(_AUCTIONS, {"auction_ids": auction_ids})}
 
 
 def _owners(connection: Connection, model_ids: list[int]) -> _Rows:
-    query = (
-        select(
-            ModelVersion.id,
-            Participant.id.label("participant_id"),
-            Participant.name,
-            Participant.token_hash,
-        )
-        .join(Participant, Participant.id == ModelVersion.participant_id)
-        .where(ModelVersion.id.in_(model_ids))
-    )
-    return {row.id: row for row in connection.execute(query)}
+    return {row.id: row for row in connection.execute(_OWNERS, {"model_ids": model_ids})}
 
 
 def _patrons(connection: Connection, auction_ids: list[int], model_ids: list[int]) -> _Rows:
-    query = select(
-        AuctionPatron.auction_id,
-        AuctionPatron.model_id,
-        AuctionPatron.position,
-        AuctionPatron.current_model_id,
-    ).where(AuctionPatron.auction_id.in_(auction_ids), AuctionPatron.model_id.in_(model_ids))
-    return {(row.auction_id, row.model_id): row for row in connection.execute(query)}
+    rows = connection.execute(_PATRONS, {"auction_ids": auction_ids, "model_ids": model_ids})
+    return {(row.auction_id, row.model_id): row for row in rows}
 
 
 def _current_of(patrons: _Rows, auction_id: int, model_id: int) -> int:
@@ -169,37 +188,19 @@ def _current_of(patrons: _Rows, auction_id: int, model_id: int) -> int:
 
 
 def _versions(connection: Connection, version_ids: list[int]) -> _Rows:
-    query = select(ModelVersion.id, ModelVersion.version, ModelVersion.manifest).where(
-        ModelVersion.id.in_(version_ids)
-    )
-    return {row.id: row for row in connection.execute(query)}
+    return {row.id: row for row in connection.execute(_VERSIONS, {"version_ids": version_ids})}
 
 
 def _rounds(connection: Connection, auction_ids: list[int]) -> dict[int, _Rows]:
-    query = select(
-        FineTuneRound.id,
-        FineTuneRound.auction_id,
-        FineTuneRound.round,
-        FineTuneRound.status,
-        FineTuneRound.deadline,
-        FineTuneRound.asked,
-    ).where(FineTuneRound.auction_id.in_(auction_ids))
     rounds: dict[int, _Rows] = {}
-    for row in connection.execute(query):
+    for row in connection.execute(_ROUNDS, {"auction_ids": auction_ids}):
         rounds.setdefault(row.auction_id, {})[row.round] = row
     return rounds
 
 
 def _answers(connection: Connection, round_ids: list[int], positions: list[int]) -> _Rows:
-    query = select(
-        FineTuneAnswer.id,
-        FineTuneAnswer.round_id,
-        FineTuneAnswer.position,
-        FineTuneAnswer.outcome,
-        FineTuneAnswer.body_sha256,
-        FineTuneAnswer.answer,
-    ).where(FineTuneAnswer.round_id.in_(round_ids), FineTuneAnswer.position.in_(positions))
-    return {(row.round_id, row.position): row for row in connection.execute(query)}
+    rows = connection.execute(_ANSWERS, {"round_ids": round_ids, "positions": positions})
+    return {(row.round_id, row.position): row for row in rows}
 
 
 def _target(batch: _Batch, key: UploadKey) -> UploadTarget | UploadLookupError:
@@ -217,10 +218,8 @@ def _target(batch: _Batch, key: UploadKey) -> UploadTarget | UploadLookupError:
     if asked is not None and patron is not None:
         answer = batch.answers.get((asked.id, patron.position))
     return UploadTarget(
-        auction_status=auction.status,
         fine_tune_mode=auction.fine_tune_mode,
         position=None if patron is None else patron.position,
-        participant_id=owner.participant_id,
         participant=owner.name,
         token_hash=owner.token_hash,
         current_id=current.id,
@@ -234,7 +233,6 @@ def _target(batch: _Batch, key: UploadKey) -> UploadTarget | UploadLookupError:
         asked=[] if asked is None else list(asked.asked),
         answer_outcome=None if answer is None else answer.outcome,
         answer_sha256=None if answer is None else answer.body_sha256,
-        answer=None if answer is None else answer.answer,
         answer_id=None if answer is None else answer.id,
     )
 
@@ -429,7 +427,8 @@ def record_verdict(
     row = connection.execute(_PENDING_FOR_UPDATE, {"answer_id": answer_id}).one()
     if row.outcome != AnswerOutcome.PENDING:
         return answer_bytes(row.answer or {})
-    connection.execute(_LOCK_PARTICIPANT, {"id": row.participant_id})
+    if connection.dialect.name != "sqlite":  # SQLite has no row locks: it serialises writers
+        connection.execute(_LOCK_PARTICIPANT, {"id": row.participant_id})
     number = latest_versions(session, participant_ids=[row.participant_id])[row.participant_id] + 1
     reasons = [reason.to_dict() for reason in verdict.reasons]
     status = ModelStatus(review(verdict, margin))
@@ -480,34 +479,40 @@ def record_verdict(
     return body
 
 
+_ROUND_FOR_UPDATE = (
+    select(FineTuneRound.auction_id, FineTuneRound.asked, FineTuneRound.status)
+    .where(FineTuneRound.id == bindparam("round_id"))
+    .with_for_update()
+)
+_JUDGED = (
+    select(func.count())
+    .select_from(FineTuneAnswer)
+    .where(
+        FineTuneAnswer.round_id == bindparam("round_id"),
+        FineTuneAnswer.outcome.in_(JUDGED),
+    )
+)
+_DUE_AT = (
+    update(Auction)
+    .where(Auction.id == bindparam("auction_id"), Auction.status == AuctionStatus.RUNNING)
+    .values(next_step_at=bindparam("now", type_=Auction.next_step_at.type))
+)
+
+
 def due_when_answered(session: Session, *, round_id: int, now: datetime) -> bool:
     """Make the round's auction due for its next step at ``now`` if every asked patron's
     upload is judged (none pending); whether it did."""
     connection = session.connection()
+    key = {"round_id": round_id}
     # The round's row lock serialises the last verdicts of a round: each counts the others'
     # (under READ COMMITTED two that commit together would each miss the other's).
-    head = connection.execute(
-        select(FineTuneRound.auction_id, FineTuneRound.asked, FineTuneRound.status)
-        .where(FineTuneRound.id == round_id)
-        .with_for_update()
-    ).one()
+    head = connection.execute(_ROUND_FOR_UPDATE, key).one()
     if head.status != RoundStatus.OPEN:
         return False
-    judged = connection.execute(
-        select(func.count())
-        .select_from(FineTuneAnswer)
-        .where(
-            FineTuneAnswer.round_id == round_id,
-            FineTuneAnswer.outcome.in_(JUDGED),
-        )
-    ).scalar_one()
+    judged = connection.execute(_JUDGED, key).scalar_one()
     if judged < len(head.asked):
         return False
-    moved = connection.execute(
-        update(Auction)
-        .where(Auction.id == head.auction_id, Auction.status == AuctionStatus.RUNNING)
-        .values(next_step_at=now)
-    )
+    moved = connection.execute(_DUE_AT, {"auction_id": head.auction_id, "now": now})
     if not moved.rowcount:
         return False
     notify_change(session, kind="auction", row_id=head.auction_id)

@@ -36,7 +36,7 @@ from server.store import crud
 from server.store.db import Database, JSONText
 from server.store.status import ANSWERED, RoundStatus
 from server.store.tables import utcnow
-from sim.market.design import design, design_changes
+from sim.market.design import design_changes
 
 RETRY_AFTER_S = 1
 """Retry-After of a round request refused because too many wait."""
@@ -225,11 +225,7 @@ def _check_and_store(
     late = target.round_status != RoundStatus.OPEN or (
         target.deadline is not None and target.deadline <= arrived
     )
-    if (
-        not late
-        and target.answer_outcome not in ANSWERED
-        and (target.current_design is None or design(manifest) != target.current_design)
-    ):
+    if not late and target.answer_outcome not in ANSWERED:
         problems = _body_problems(data, target)
         if problems:
             raise validation_error(problems)

@@ -66,8 +66,6 @@ class UploadTarget:
     """This patron's answer in the path's round so far, if any."""
     answer_sha256: str | None
     answer_id: int | None = None
-    current_design: dict[str, Any] | None = None
-    """The current version's design (``sim.market.design``), when the lookup worked it out."""
 
 
 class UploadLookupError(LookupError):

@@ -133,12 +133,14 @@ class ServerCpu:
                 yield pid, process_name(pid) or ""
 
     def read(self) -> dict[str, float]:
-        """CPU seconds so far by part: ``api`` (the replicas' own), ``reaped`` (children they
-        waited for: auction workers that ended), then each live child by name (the screening
-        process, the auction workers, multiprocessing's resource tracker)."""
+        """CPU seconds so far by part: ``api`` (the replicas' own), ``reaped`` (children that
+        ended and were waited for: workers, by the fork server that started them), then each
+        live process below by name (the screening process, the auction workers, the fork
+        server, multiprocessing's resource tracker)."""
         parts = {
             "api": sum(cpu_seconds(r) or 0.0 for r in self.roots),
-            "reaped": sum(reaped_cpu_seconds(r) or 0.0 for r in self.roots),
+            "reaped": sum(reaped_cpu_seconds(r) or 0.0 for r in self.roots)
+            + sum(reaped_cpu_seconds(pid) or 0.0 for pid, _ in self._tree()),
         }
         for pid, name in self._tree():
             parts[name] = parts.get(name, 0.0) + (cpu_seconds(pid) or 0.0)

@@ -2,7 +2,7 @@
 dedicated process that never touches the database.
 
 The screener is tensor code: one manifest costs a few milliseconds of mostly fixed overhead,
-a batch of sixteen hardly more than two. So the API process hands each manifest to a spawned
+a batch of sixteen hardly more than two. So the API process hands each manifest to a
 screening process (its own interpreter and GIL) over a pipe; that process takes whatever has
 queued up since its last pass, and whatever keeps coming within ``GATHER_GAP_S`` of the one
 before (at most ``MAX_BATCH``), judges it with one ``screener.screen_many`` (at the door) or
@@ -43,7 +43,7 @@ from typing import Any
 
 from agents.manifest import Manifest
 from screener import Verdict
-from server.work.pool import die_with_parent, freeze_heap
+from server.work.pool import adopt_environment, die_with_parent, freeze_heap, process_context
 
 log = logging.getLogger("srd.screening")
 
@@ -85,8 +85,9 @@ _DOOR, _RESCREEN = "door", "rescreen"
 """Kinds of request: a submission's verdict, a fine-tuned version's verdict."""
 
 
-def _screening_main(conn: Connection, parent_pid: int) -> None:
+def _screening_main(conn: Connection, parent_pid: int, environ: dict[str, str]) -> None:
     die_with_parent(parent_pid)
+    adopt_environment(environ)
     _keep_heap()
     import torch
 
@@ -154,7 +155,7 @@ class ScreeningService:
     """``await verdict(manifest)`` from any event loop; the screening runs in a child process."""
 
     def __init__(self) -> None:
-        self._spawn = multiprocessing.get_context("spawn")
+        self._spawn = process_context()
         self._ids = itertools.count()
         self._pending: dict[int, Future[Any]] = {}
         self._lock = threading.Lock()  # guards _pending, _conn, _process and sends on the pipe
@@ -182,7 +183,7 @@ class ScreeningService:
             ours, theirs = multiprocessing.Pipe(duplex=True)
             process = self._spawn.Process(
                 target=_screening_main,
-                args=(theirs, os.getpid()),
+                args=(theirs, os.getpid(), dict(os.environ)),
                 name="srd-screening",
             )
             process.start()

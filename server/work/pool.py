@@ -1,12 +1,13 @@
-"""Worker processes: auctions and jobs run in spawned processes, off the API's event loop and GIL.
+"""Worker processes: auctions and jobs run in child processes, off the API's event loop and GIL.
 
-``WorkerPool`` keeps a FIFO of task ids and at most ``max_workers`` worker processes, started
-with the ``spawn`` method (no inherited locks, sockets or database connections). A supervisor
+``WorkerPool`` keeps a FIFO of task ids and at most ``max_workers`` worker processes, forked
+from a fork server that has imported torch and the task modules once (``process_context``: a
+clean import state, no inherited locks, sockets or database connections). A supervisor
 thread hands queued task ids to idle workers over pipes, notices finished tasks and dead
 processes, and reports a task whose process died under it to ``on_exit`` (unless the task was
-cancelled or the pool is stopping). Children die with the API process (``PR_SET_PDEATHSIG`` on
-Linux, and a watchdog on the parent pid everywhere), so a killed server leaves no orphan
-writing to the database.
+cancelled or the pool is stopping). Children die with the API process (the fork server ends
+with it, then ``PR_SET_PDEATHSIG`` on Linux, and a watchdog on the parent pid everywhere), so a
+killed server leaves no orphan writing to the database.
 """
 
 from __future__ import annotations
@@ -28,7 +29,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from multiprocessing.context import ForkServerContext, SpawnContext
 
 log = logging.getLogger("srd.workers")
 
@@ -79,15 +83,48 @@ def error_summary(exc: BaseException) -> str:
     return text[-ERROR_LIMIT:]
 
 
+PRELOAD = ("__main__", "torch", "screener", "server.auctions.steps", "server.jobs.worker")
+"""What the fork server imports once, so that a forked child starts with it loaded (the API
+process's main script too, which a child would otherwise import again)."""
+
+
+def process_context() -> SpawnContext | ForkServerContext:
+    """How worker and screening processes start: forked from a fork server that imported
+    torch, the screener and the task modules once (a child starts in milliseconds instead of
+    the seconds of a fresh interpreter, and shares those pages), or spawned where there is no
+    fork server. Either way a child begins from a clean import state, never from a copy of
+    the API process (no inherited locks, sockets, threads or database connections)."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(list(PRELOAD))
+    return context
+
+
+def adopt_environment(environ: dict[str, str]) -> None:
+    """Take the API process's environment as it was when this child was started (a fork
+    server's children would otherwise inherit the fork server's, as it was at its start)."""
+    if environ != os.environ:
+        os.environ.clear()
+        os.environ.update(environ)
+
+
 def die_with_parent(parent_pid: int) -> None:
-    """Make this child process end when ``parent_pid`` does (call it first thing), and give
-    it its multiprocessing name in ``/proc`` (``srd-screening``, ``srd-auction-wor``...): a
-    spawned child's command line is the same for all, and benchmarks tell them apart by name.
+    """Make this child process end when the API process ``parent_pid`` does (call it first
+    thing), and give it its multiprocessing name in ``/proc`` (``srd-screening``,
+    ``srd-auction-wor``...): a child's command line is the same for all, and benchmarks tell
+    them apart by name.
 
     Linux delivers the parent-death signal when the *thread* that started the child ends, so
-    children must be started from threads that live as long as the children should (the pool
-    supervisors, the screening keeper). The parent-pid watchdog covers other systems.
+    a spawned child must be started from a thread that lives as long as it should (the pool
+    supervisors, the screening keeper). A forked child's parent is the fork server, which ends
+    when the API process does (once no child holds its "alive" pipe open: this one lets go of
+    its copy). The parent-pid watchdog covers other systems.
     """
+    forked = os.getppid() != parent_pid
+    if forked:
+        _release_fork_server()
+    watched = os.getppid()
     if sys.platform.startswith("linux"):
         with contextlib.suppress(OSError, AttributeError):
             libc = ctypes.CDLL(None, use_errno=True)
@@ -96,13 +133,37 @@ def die_with_parent(parent_pid: int) -> None:
 
     def watch() -> None:
         while True:
-            if os.getppid() != parent_pid:
+            if os.getppid() != watched:
                 os._exit(70)
             time.sleep(PARENT_WATCH_S)
 
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
-    if os.getppid() != parent_pid:  # the parent died before the signal was armed
+    if os.getppid() != watched or not _alive(parent_pid):  # it died before the signal was armed
         os._exit(70)
+
+
+def _release_fork_server() -> None:
+    """Close this forked child's copy of the fork server's "alive" pipe (multiprocessing hands
+    one to every child so that it could fork more): the fork server then sees the pipe's end,
+    and exits, as soon as the API process is gone. Our children start no processes."""
+    from multiprocessing import forkserver
+
+    server = getattr(forkserver, "_forkserver", None)
+    fd = getattr(server, "_forkserver_alive_fd", None)
+    if server is not None and fd is not None:
+        with contextlib.suppress(OSError):
+            os.close(fd)
+        server._forkserver_alive_fd = None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def freeze_heap() -> None:
@@ -118,9 +179,16 @@ def freeze_heap() -> None:
     gc.freeze()
 
 
-def _worker_main(task: TaskFn, context: WorkerContext, conn: Connection, parent_pid: int) -> None:
+def _worker_main(
+    task: TaskFn,
+    context: WorkerContext,
+    conn: Connection,
+    parent_pid: int,
+    environ: dict[str, str],
+) -> None:
     """A worker process: run each task id received, answer it when done, until the pipe ends."""
     die_with_parent(parent_pid)
+    adopt_environment(environ)
     if context.memory_mb is not None:
         limit = context.memory_mb << 20
         # A Ray driver maps the cluster's shared object store (gigabytes of address space):
@@ -199,7 +267,7 @@ class WorkerPool:
         self._on_exit = on_exit
         self._on_end = on_end
         self._over: list[int] = []  # tasks over since the supervisor last reported them
-        self._spawn = multiprocessing.get_context("spawn")
+        self._spawn = process_context()
         self._queue: deque[int] = deque()
         self._workers: list[_Worker] = []
         self._lock = threading.Lock()
@@ -385,7 +453,7 @@ class WorkerPool:
         ours, theirs = multiprocessing.Pipe(duplex=True)
         process = self._spawn.Process(
             target=_worker_main,
-            args=(self._task, self._context, theirs, os.getpid()),
+            args=(self._task, self._context, theirs, os.getpid(), dict(os.environ)),
             name=f"srd-{self.name}-worker",
         )
         process.start()

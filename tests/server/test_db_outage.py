@@ -20,6 +20,7 @@ import httpx
 import pytest
 from sqlalchemy import create_engine, text
 
+from server.api.readiness import CACHE_S
 from server.cli.launch import ServerProcess, free_port, settings_environment
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, ADMIN_TOKEN, QUOTAS_OFF
@@ -136,6 +137,7 @@ def test_writes_resume_after_a_postgres_outage(cluster: Cluster, tmp_path: Path)
             assert submit("before").status_code == 201
 
         cluster.stop()
+        time.sleep(CACHE_S)  # /healthz may repeat its last answer for this long
         stopped_at = time.monotonic()
         outage_answers = 0
         while time.monotonic() - stopped_at < OUTAGE_S:

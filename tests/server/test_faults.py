@@ -25,7 +25,7 @@ from server.cli.launch import ServerProcess
 from server.store.db import Database
 from server.store.tables import FineTuneAnswer, FineTuneRound
 from tests.support.factories import honest
-from tests.support.processes import descendants, server_pair
+from tests.support.processes import descendants, process_name, server_pair
 from tests.support.remote import next_round
 from tests.support.server import wait_for
 
@@ -35,17 +35,16 @@ SAME = ("history", "buyers", "quitters", "stop_reason", "price", "n_available", 
 
 
 def spawned(server: ServerProcess) -> list[int]:
-    """The server's spawned processes (screening and auction workers), not the resource
-    tracker."""
+    """The server's worker processes (the screening process, auction and job workers), found
+    by the names they give themselves (``srd-...``); not their fork server nor multiprocessing's
+    resource tracker."""
     assert server.process is not None
-    found = []
-    for pid in descendants(server.process.pid)[1:]:
-        try:
-            command = Path(f"/proc/{pid}/cmdline").read_bytes()
-        except OSError:
-            continue
-        if b"spawn_main" in command:
-            found.append(pid)
+    found = [
+        pid
+        for pid in descendants(server.process.pid)[1:]
+        if (process_name(pid) or "").startswith("srd-")
+    ]
+    assert any(process_name(pid) == "srd-screening" for pid in found), "no screening process"
     return found
 
 
@@ -106,8 +105,11 @@ def kill_mid_step(server: ServerProcess, admin: dict[str, str], body: dict[str, 
         deadline = time.monotonic() + TIMEOUT_S
         while get(server, auction_id)["iteration"] < 1 and time.monotonic() < deadline:
             time.sleep(0.01)
-        signal_all(spawned(server), signal.SIGKILL)
+        workers = spawned(server)
+        names = {process_name(pid) for pid in workers}
+        signal_all(workers, signal.SIGKILL)
         if get(server, auction_id)["status"] == "running":
+            assert "srd-auction-wor" in names, names  # the step's worker was among them
             return auction_id
         ended(server, auction_id)  # it finished before the kill: try another
     raise AssertionError(f"no kill landed mid-step in {KILL_TRIES} auctions")

@@ -28,7 +28,7 @@ from server.store.tables import Auction, AuctionIteration, Job, Purchase
 from sim.market import Market, MarketConfig
 from tests.support.databases import fresh_database
 from tests.support.factories import honest
-from tests.support.processes import children, server_pair
+from tests.support.processes import descendants, server_pair
 from tests.support.server import wait_for
 
 N_PATRONS = 64
@@ -106,7 +106,7 @@ def test_kill_9_then_restart_resumes_auction_and_requeues_job(
             assert all(a.status_code == 201 for a in answers), [a.text for a in answers][:3]
             ids = [a.json()["model_id"] for a in answers]
             job_id = client.post("/jobs", json=JOB, headers=admin).json()["job_id"]
-            wait_for(
+            first_claim = wait_for(
                 lambda: get(first, f"/jobs/{job_id}"),
                 lambda j: j["status"] == "running",
                 TIMEOUT_S,
@@ -117,13 +117,13 @@ def test_kill_9_then_restart_resumes_auction_and_requeues_job(
         state = wait_for(
             lambda: get(first, f"/auctions/{auction_id}"), lambda a: a["iteration"] >= 1, TIMEOUT_S
         )
-        workers = children(first.process.pid)
+        workers = descendants(first.process.pid)[1:]
         first.kill()
         assert state["status"] == "running"
 
         database = Database(database_url)
         iteration_at_kill = check_rows_at_kill(database, auction_id, job_id)
-        assert len(workers) >= 3  # screening, auction and job workers
+        assert len(workers) >= 3  # screening, auction and job workers (and their fork server)
         wait_for(lambda: {"alive": [p for p in workers if alive(p)]}, lambda s: not s["alive"], 10)
 
         second.start()
@@ -132,9 +132,12 @@ def test_kill_9_then_restart_resumes_auction_and_requeues_job(
             lambda a: a["status"] in ("finished", "failed"),
             TIMEOUT_S,
         )
-        again = wait_for(
+        again = wait_for(  # claimed again (a new start), or over
             lambda: get(second, f"/jobs/{job_id}"),
-            lambda j: j["status"] == "running" or j["status"] in ("succeeded", "failed"),
+            lambda j: (
+                (j["status"] == "running" and j["started_at"] != first_claim["started_at"])
+                or j["status"] in ("succeeded", "failed")
+            ),
             TIMEOUT_S,
         )
         with httpx.Client(base_url=second.url, timeout=60) as client:

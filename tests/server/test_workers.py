@@ -1,4 +1,4 @@
-"""Worker pools: tasks run in spawned processes at the configured (lower) CPU priority."""
+"""Worker pools: tasks run in worker processes at the configured (lower) CPU priority."""
 
 from __future__ import annotations
 

@@ -146,11 +146,16 @@ class ServerCpu:
             parts[name] = parts.get(name, 0.0) + (cpu_seconds(pid) or 0.0)
         return parts
 
-    def check(self) -> None:
-        """Each replica has its screening process, found by name (else the figures lie)."""
-        found = sum(name == SCREENING_NAME for _, name in self._tree())
-        if found != len(self.roots):
-            raise SystemExit(f"found {found} '{SCREENING_NAME}' processes for {len(self.roots)}")
+    def check(self, wait_s: float = 60.0) -> None:
+        """Each replica has its screening process, found by name (else the figures lie); a
+        replica just started may still be starting it."""
+        deadline = time.monotonic() + wait_s
+        while (found := sum(name == SCREENING_NAME for _, name in self._tree())) != len(self.roots):
+            if time.monotonic() > deadline:
+                raise SystemExit(
+                    f"found {found} '{SCREENING_NAME}' processes for {len(self.roots)}"
+                )
+            time.sleep(0.1)
 
 
 @dataclass

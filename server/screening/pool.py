@@ -151,6 +151,13 @@ class _Outgoing:
     message: tuple[int, str, object] | None
 
 
+def _fail(futures: dict[int, Future[Any]], why: str) -> None:
+    """Answer requests that will get no verdict with 503 (``why``)."""
+    for future in futures.values():
+        if future.set_running_or_notify_cancel():
+            future.set_exception(ScreenerUnavailableError(why))
+
+
 class ScreeningService:
     """``await verdict(manifest)`` from any event loop; the screening runs in a child process."""
 
@@ -160,27 +167,31 @@ class ScreeningService:
         self._pending: dict[int, Future[Any]] = {}
         self._lock = threading.Lock()  # guards _pending, _conn, _process and sends on the pipe
         self._stopping = False
-        self._conn: Connection | None = None
         self._process: BaseProcess | None = None
-        self._launched = threading.Event()
         self._outbox: queue.SimpleQueue[_Outgoing | None] = queue.SimpleQueue()
         self._queued = 0  # requests in the outbox, guarded by _lock
         # A pipe is closed only between two writes: a closed descriptor's number may be reused.
         self._writing = threading.Lock()
         self._sender = threading.Thread(target=self._send, name="screening-sender", daemon=True)
+        # The first process's pipe exists from the start: requests made while that process
+        # starts wait in it (or in the outbox) instead of being refused.
+        ours, theirs = multiprocessing.Pipe(duplex=True)
+        self._conn: Connection | None = ours
         # One long-lived thread starts every screening process and reads its answers: a child's
         # parent-death signal is tied to the thread that started it (see die_with_parent).
-        self._keeper = threading.Thread(target=self._keep, name="screening", daemon=True)
+        self._keeper = threading.Thread(
+            target=self._keep, args=(ours, theirs), name="screening", daemon=True
+        )
 
     def start(self) -> None:
-        """Spawn the screening process (it imports the screener in the background)."""
+        """Start the screening process in the background and return at once: its first start
+        also starts the fork server, which imports torch (a few seconds); requests made
+        meanwhile wait for it."""
         self._keeper.start()
         self._sender.start()
-        self._launched.wait()
 
-    def _keep(self) -> None:
+    def _keep(self, ours: Connection, theirs: Connection) -> None:
         while True:
-            ours, theirs = multiprocessing.Pipe(duplex=True)
             process = self._spawn.Process(
                 target=_screening_main,
                 args=(theirs, os.getpid(), dict(os.environ)),
@@ -189,29 +200,29 @@ class ScreeningService:
             process.start()
             theirs.close()
             with self._lock:
-                if self._stopping:
-                    process.kill()
-                    return
-                self._conn, self._process = ours, process
-            self._launched.set()
+                stopping = self._stopping
+                if stopping:
+                    failed, self._pending = self._pending, {}
+                else:
+                    self._conn, self._process = ours, process
+            if stopping:
+                process.kill()
+                _fail(failed, "the server is stopping")
+                return
             self._read(ours)
             process.join()
             with self._lock:
                 failed, self._pending = self._pending, {}
                 self._conn = None
                 stopping = self._stopping
-            for future in failed.values():
-                if not future.set_running_or_notify_cancel():
-                    continue
-                future.set_exception(
-                    ScreenerUnavailableError("the screening process exited; retry")
-                )
+            _fail(failed, "the screening process exited; retry")
             with self._writing:  # a write in progress fails at once: the process is gone
                 ours.close()
             if stopping:
                 return
             log.error("the screening process exited (code %s); starting another", process.exitcode)
             time.sleep(RESPAWN_DELAY_S)
+            ours, theirs = multiprocessing.Pipe(duplex=True)
 
     def _ask(self, kind: str, payload: object) -> tuple[int, Future[Any]]:
         """Queue one request for the screening process (the sender thread writes it to the
@@ -298,8 +309,8 @@ class ScreeningService:
 
     def shutdown(self) -> None:
         """Tell the process to stop (it answers what it holds first) and wait for it; with
-        nothing in flight it holds nothing worth waiting for (it may still be importing
-        torch), so it is terminated at once."""
+        nothing in flight it holds nothing worth waiting for, so it is terminated at once. One
+        not started yet (the fork server is still importing torch) is not waited for."""
         with self._lock:
             self._stopping = True
             conn, process, idle = self._conn, self._process, not self._pending
@@ -312,7 +323,8 @@ class ScreeningService:
             process.join(STOP_GRACE_S)
             if process.is_alive():
                 process.kill()
-        if self._keeper.is_alive():
+        if process is not None and self._keeper.is_alive():
+            # (a keeper still starting the first process kills it itself once it has started)
             self._keeper.join(STOP_GRACE_S)
         if self._sender.is_alive():
             self._sender.join(STOP_GRACE_S)

@@ -29,9 +29,9 @@ def run_to_end(client: TestClient, body: dict[str, Any], timeout_s: float = 120)
 @pytest.fixture
 def limited(tmp_path) -> Any:
     settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
-    # 20 s: the quick job (fish, its plot) on a loaded machine; a fresh worker's start-up is not
-    # counted (the limit runs from when the worker begins the job)
-    settings = settings.model_copy(update={"job_timeout_s": 20.0, "job_workers": 1})
+    # 10 s: the quick job (fish, 10 steps and its plot: about 1 s on an idle machine) even on a
+    # loaded one; a worker's start-up is not counted (the limit runs from when it begins the job)
+    settings = settings.model_copy(update={"job_timeout_s": 10.0, "job_workers": 1})
     with TestClient(create_app(settings)) as client:
         yield client, settings
 
@@ -41,8 +41,8 @@ def test_a_job_over_its_time_limit_is_stopped_and_failed(limited) -> None:
     job = run_to_end(client, {"kind": "fish", "params": {"steps": 1_000_000}})  # minutes
     assert job["status"] == "failed"
     assert job["message"] == "failed"
-    assert "time limit of 20 s (SRD_JOB_TIMEOUT_S)" in job["error"]
-    quick = run_to_end(client, {"kind": "fish", "params": {"steps": 50}})
+    assert "time limit of 10 s (SRD_JOB_TIMEOUT_S)" in job["error"]
+    quick = run_to_end(client, {"kind": "fish", "params": {"steps": 10}})
     assert quick["status"] == "succeeded", quick["error"]  # the pool carries on
 
 
@@ -51,7 +51,7 @@ def test_a_real_failure_is_stored_with_its_cause(limited) -> None:
     jobs = settings.data_dir / "jobs"
     jobs.parent.mkdir(parents=True, exist_ok=True)
     jobs.write_text("a file where the job folders should be")
-    job = run_to_end(client, {"kind": "fish", "params": {"steps": 50}})
+    job = run_to_end(client, {"kind": "fish", "params": {"steps": 10}})
     assert job["status"] == "failed"
     assert job["message"].startswith(("failed: FileExistsError", "failed: NotADirectoryError"))
     assert "Traceback" in job["error"] and str(jobs) in job["error"]

@@ -95,3 +95,44 @@ def test_the_time_limit_counts_from_the_start_of_the_task_not_of_its_worker(tmp_
     finally:
         pool.shutdown()
     assert timed_out == [(2, 2.0)]
+
+
+def record_environment(context: WorkerContext, task_id: int) -> None:
+    """A task: write the worker's ``SRD_TEST_MARK`` to ``<data_dir>/<task_id>``."""
+    Path(context.data_dir, str(task_id)).write_text(os.environ.get("SRD_TEST_MARK", "unset"))
+
+
+def run_one(pool: WorkerPool, task_id: int, folder: Path) -> str:
+    pool.submit(task_id)
+    result = folder / str(task_id)
+    deadline = time.monotonic() + 60  # the fork server imports torch first
+    while not (result.exists() and result.read_text()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return result.read_text()
+
+
+def test_a_worker_sees_the_environment_of_its_start_not_of_the_first_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Workers fork from a long-lived server: one started after the API's environment changed
+    (a token set, say) sees the change, as a freshly spawned process would."""
+    monkeypatch.setenv("SRD_TEST_MARK", "before")
+    context = WorkerContext(
+        database_url="sqlite://", data_dir=str(tmp_path), progress_interval_s=1.0, torch_threads=1
+    )
+    pool = WorkerPool(
+        name="test",
+        task=record_environment,
+        context=context,
+        max_workers=1,
+        on_exit=lambda task_id, code: None,
+        tasks_per_process=1,  # a new worker per task
+    )
+    pool.start()
+    try:
+        assert run_one(pool, 1, tmp_path) == "before"
+        monkeypatch.setenv("SRD_TEST_MARK", "after")
+        run_one(pool, 2, tmp_path)  # on the spare worker, which may have started before that
+        assert run_one(pool, 3, tmp_path) == "after"  # a worker started after task 2 ended
+    finally:
+        pool.shutdown()

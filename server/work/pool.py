@@ -5,9 +5,9 @@ from a fork server that has imported torch and the task modules once (``process_
 clean import state, no inherited locks, sockets or database connections). A supervisor
 thread hands queued task ids to idle workers over pipes, notices finished tasks and dead
 processes, and reports a task whose process died under it to ``on_exit`` (unless the task was
-cancelled or the pool is stopping). Children die with the API process (the fork server ends
-with it, then ``PR_SET_PDEATHSIG`` on Linux, and a watchdog on the parent pid everywhere), so a
-killed server leaves no orphan writing to the database.
+cancelled or the pool is stopping). Children die with the API process (on Linux the kernel
+kills the fork server and then its children, ``PR_SET_PDEATHSIG``; a watchdog on the parent pid
+everywhere), so a killed server leaves no orphan writing to the database.
 """
 
 from __future__ import annotations
@@ -83,9 +83,20 @@ def error_summary(exc: BaseException) -> str:
     return text[-ERROR_LIMIT:]
 
 
-PRELOAD = ("__main__", "torch", "screener", "server.auctions.steps", "server.jobs.worker")
+PRELOAD = (
+    "server.work.fork_guard",
+    "__main__",
+    "torch",
+    "screener",
+    "server.auctions.steps",
+    "server.jobs.worker",
+)
 """What the fork server imports once, so that a forked child starts with it loaded (the API
-process's main script too, which a child would otherwise import again)."""
+process's main script too, which a child would otherwise import again); first, the guard that
+ends the fork server with the API process."""
+
+_fork_server_started = threading.Event()
+_fork_server_lock = threading.Lock()
 
 
 def process_context() -> SpawnContext | ForkServerContext:
@@ -98,7 +109,28 @@ def process_context() -> SpawnContext | ForkServerContext:
         return multiprocessing.get_context("spawn")
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(list(PRELOAD))
+    _start_fork_server()
     return context
+
+
+def _start_fork_server() -> None:
+    """Start the fork server (once per process) from a thread that lives as long as this
+    process: its parent-death signal (``server.work.fork_guard``) is tied to that thread."""
+    with _fork_server_lock:
+        if _fork_server_started.is_set():
+            return
+
+        def keep() -> None:
+            from multiprocessing import forkserver
+
+            try:
+                forkserver.ensure_running()  # spawns it and returns; its imports go on there
+            finally:
+                _fork_server_started.set()
+            threading.Event().wait()  # the fork server's parent thread: never ends
+
+        threading.Thread(target=keep, name="fork-server", daemon=True).start()
+        _fork_server_started.wait()
 
 
 def adopt_environment(environ: dict[str, str]) -> None:
@@ -115,11 +147,13 @@ def die_with_parent(parent_pid: int) -> None:
     ``srd-auction-wor``...): a child's command line is the same for all, and benchmarks tell
     them apart by name.
 
-    Linux delivers the parent-death signal when the *thread* that started the child ends, so
-    a spawned child must be started from a thread that lives as long as it should (the pool
-    supervisors, the screening keeper). A forked child's parent is the fork server, which ends
-    when the API process does (once no child holds its "alive" pipe open: this one lets go of
-    its copy). The parent-pid watchdog covers other systems.
+    Linux delivers the parent-death signal (SIGKILL) when the *thread* that started the child
+    ends. A forked child's parent is the fork server, which gets the same signal when the API
+    process ends (``server.work.fork_guard``): a ``kill -9`` of the API ends both at once. A
+    spawned child must be started from a thread that lives as long as it should (the pool
+    supervisors, the screening keeper). The parent-pid watchdog covers other systems, where
+    the fork server exits once the API is gone and no child holds its "alive" pipe open
+    (this one lets go of its copy).
     """
     forked = os.getppid() != parent_pid
     if forked:

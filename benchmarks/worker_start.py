@@ -4,9 +4,9 @@ The server's worker pools and its screening process start their children with
 ``server.work.pool.process_context()``: forked from a fork server that imported torch, the
 screener and the task modules once. This benchmark starts ``--runs`` children each way, one
 after another, each running a worker's first lines (import torch, the task modules), and prints
-for each way the wall time from ``start()`` to the child running, and the CPU seconds the
-children used (user + system, read from ``/proc`` before the child ends). The fork server's own
-start (its one-time import) is printed apart.
+for each way the wall time from ``start()`` to the child running, and the CPU time the child
+used until then (measured in the child). The fork server's own start (its one-time import) is
+printed apart.
 
 Run: ``.venv/bin/python benchmarks/worker_start.py [--runs 5]``
 """
@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing
-import os
 import statistics
+import sys
 import time
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the packages, not benchmarks/*
 from server.work.pool import process_context
 
 
@@ -32,7 +34,7 @@ def _child(conn: Connection) -> None:
     import server.auctions.steps
     import server.jobs.worker  # noqa: F401
 
-    conn.send((time.monotonic(), sum(os.times()[:2])))
+    conn.send((time.monotonic(), time.process_time()))
     conn.recv()  # wait to be told to end
 
 
@@ -42,6 +44,8 @@ def _start(context: Any) -> tuple[float, float]:
     process = context.Process(target=_child, args=(theirs,))
     began = time.monotonic()
     process.start()
+    if not ours.poll(300):
+        raise SystemExit(f"the child did not start (exit code {process.exitcode})")
     up_at, cpu = ours.recv()
     ours.send(None)
     process.join()

@@ -162,7 +162,7 @@ class ScreeningService:
     """``await verdict(manifest)`` from any event loop; the screening runs in a child process."""
 
     def __init__(self) -> None:
-        self._spawn = process_context()
+        self._process_context = process_context()
         self._ids = itertools.count()
         self._pending: dict[int, Future[Any]] = {}
         self._lock = threading.Lock()  # guards _pending, _conn, _process and sends on the pipe
@@ -192,7 +192,7 @@ class ScreeningService:
 
     def _keep(self, ours: Connection, theirs: Connection) -> None:
         while True:
-            process = self._spawn.Process(
+            process = self._process_context.Process(
                 target=_screening_main,
                 args=(theirs, os.getpid(), dict(os.environ)),
                 name="srd-screening",

@@ -10,16 +10,11 @@ of them could run another line.
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import os
-import signal
 import sys
 
-PR_SET_PDEATHSIG = 1
+from server.work.pool import arm_parent_death_signal
 
-if sys.platform.startswith("linux"):
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-    if os.getppid() == 1:  # the API process died before the signal was armed
-        os._exit(70)
+arm_parent_death_signal()
+if sys.platform.startswith("linux") and os.getppid() == 1:  # the API died before that
+    os._exit(70)

@@ -133,6 +133,14 @@ def _start_fork_server() -> None:
         _fork_server_started.wait()
 
 
+def arm_parent_death_signal() -> None:
+    """Ask Linux to SIGKILL this process when the thread that started it ends (elsewhere: no
+    such signal, the callers' watchdogs act)."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+
+
 def adopt_environment(environ: dict[str, str]) -> None:
     """Take the API process's environment as it was when this child was started (a fork
     server's children would otherwise inherit the fork server's, as it was at its start)."""
@@ -159,11 +167,11 @@ def die_with_parent(parent_pid: int) -> None:
     if forked:
         _release_fork_server()
     watched = os.getppid()
+    arm_parent_death_signal()
     if sys.platform.startswith("linux"):
         with contextlib.suppress(OSError, AttributeError):
-            libc = ctypes.CDLL(None, use_errno=True)
-            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-            libc.prctl(PR_SET_NAME, multiprocessing.current_process().name.encode()[:15])
+            name = multiprocessing.current_process().name.encode()[:15]
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_NAME, name)
 
     def watch() -> None:
         while True:
@@ -301,7 +309,7 @@ class WorkerPool:
         self._on_exit = on_exit
         self._on_end = on_end
         self._over: list[int] = []  # tasks over since the supervisor last reported them
-        self._spawn = process_context()
+        self._process_context = process_context()
         self._queue: deque[int] = deque()
         self._workers: list[_Worker] = []
         self._lock = threading.Lock()
@@ -485,7 +493,7 @@ class WorkerPool:
 
     def _start_worker(self) -> _Worker:
         ours, theirs = multiprocessing.Pipe(duplex=True)
-        process = self._spawn.Process(
+        process = self._process_context.Process(
             target=_worker_main,
             args=(self._task, self._context, theirs, os.getpid(), dict(os.environ)),
             name=f"srd-{self.name}-worker",

@@ -10,11 +10,9 @@ of them could run another line.
 
 from __future__ import annotations
 
-import os
-import sys
-
 from server.work.pool import arm_parent_death_signal
 
+# No check of the parent's pid after arming: the API may be pid 1 (a container's command). Had
+# the API died before this line, the fork server would end anyway, at the end of its "alive"
+# pipe, before it forks anything.
 arm_parent_death_signal()
-if sys.platform.startswith("linux") and os.getppid() == 1:  # the API died before that
-    os._exit(70)

@@ -7,13 +7,18 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
+import httpx
 import pytest
 
 from server.cli.launch import ServerProcess, free_port
+from tests.support.factories import honest
+from tests.support.processes import children
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCKERFILE = (ROOT / "Dockerfile").read_text()
@@ -74,3 +79,49 @@ def test_healthcheck_follows_the_configured_port(tmp_path) -> None:
     with server:
         up = subprocess.run(check, env=env, capture_output=True, text=True, timeout=60)
     assert up.returncode == 0, up.stderr
+
+
+def _pid_namespaces() -> bool:
+    """Whether this machine lets the tests start a process as pid 1 of a new PID namespace."""
+    if shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(
+        ["unshare", "--pid", "--fork", "--mount-proc", "true"], capture_output=True, check=False
+    )
+    return probe.returncode == 0
+
+
+@pytest.mark.skipif(not _pid_namespaces(), reason="no PID namespaces here (needs root)")
+def test_the_server_as_pid_1_screens_and_stops(tmp_path: Path) -> None:
+    """In the image, ``srd serve`` is the container's pid 1: its screening process and workers
+    (forked from its fork server) must run there too."""
+    port = free_port()
+    env = {
+        **os.environ,
+        "SRD_DATABASE_URL": f"sqlite:///{tmp_path / 'srd.db'}",
+        "SRD_DATA_DIR": str(tmp_path / "data"),
+    }
+    srd = str(Path(sys.executable).with_name("srd"))
+    command = ["unshare", "--pid", "--mount-proc", "--kill-child"]
+    command += [srd, "serve", "--host", "127.0.0.1", "--port", str(port)]
+    with (tmp_path / "serve.log").open("wb") as log:
+        server = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        url = f"http://127.0.0.1:{port}"
+        deadline = time.monotonic() + 60
+        while True:
+            assert server.poll() is None, (tmp_path / "serve.log").read_text()
+            try:
+                if httpx.get(f"{url}/healthz", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, "srd serve did not become healthy"
+            time.sleep(0.1)
+        answer = httpx.post(f"{url}/submit", json=honest("pid-one", seed=3), timeout=60)
+        assert answer.status_code == 201, answer.text
+        assert answer.json()["accepted"] is True
+    finally:
+        for pid in children(server.pid):  # the server, pid 1 of its namespace: SIGTERM
+            os.kill(pid, signal.SIGTERM)
+        assert server.wait(30) == 0, (tmp_path / "serve.log").read_text()[-2000:]

@@ -187,19 +187,24 @@ class _Arrived:
     """The auction's next step became due (an answer given at once closed the round)."""
 
 
-def _check_and_store(
-    database: Database,
-    manifest: Manifest,
-    *,
-    auction_id: int,
-    round_number: int,
-    model_id: int,
-    token: str,
-    body: bytes,
-    arrived: datetime,
-) -> _Arrived:
+@dataclass(frozen=True)
+class UploadRequest:
+    """One upload as it reached the API: what its path names, who sent it, its body and when
+    it arrived (the deadline is judged at that moment)."""
+
+    auction_id: int
+    round_number: int
+    model_id: int
+    token: str
+    body: bytes
+    arrived: datetime
+
+
+def _check_and_store(database: Database, manifest: Manifest, request: UploadRequest) -> _Arrived:
     """The upload's checks against what its path names, then its store (and, for an answer
     given at once, whether the auction became due): one run in the thread pool."""
+    auction_id, round_number, model_id = request.auction_id, request.round_number, request.model_id
+    token, body, arrived = request.token, request.body, request.arrived
     target = _target(database, auction_id, model_id, round_number)
     round_id = _check_patron(
         target, token, auction_id=auction_id, model_id=model_id, round_number=round_number
@@ -256,35 +261,20 @@ async def upload(
     database: Database,
     screening: ScreeningService,
     wake: Callable[[int], None],
+    request: UploadRequest,
     *,
-    auction_id: int,
-    round_number: int,
-    model_id: int,
-    token: str,
-    body: bytes,
-    arrived: datetime,
     margin: float,
 ) -> bytes:
     """Check an upload (see the module docstring), store it, re-screen it and record its
     verdict; the answer's JSON. Wrong round → 409 naming the current one; closed, or past the
-    deadline at ``arrived`` → 410 (recorded as late). ``wake(auction_id)`` is told when the
+    deadline at ``request.arrived`` → 410 (recorded as late). ``wake(auction_id)`` is told when the
     auction's next step became due."""
-    manifest = _manifest(body)
-    arrival = await run_in_threadpool(
-        _check_and_store,
-        database,
-        manifest,
-        auction_id=auction_id,
-        round_number=round_number,
-        model_id=model_id,
-        token=token,
-        body=body,
-        arrived=arrived,
-    )
+    manifest = _manifest(request.body)
+    arrival = await run_in_threadpool(_check_and_store, database, manifest, request)
     stored, round_id, manifest_json = arrival.stored, arrival.round_id, arrival.manifest_json
     if stored.answer is not None:
         if arrival.due:
-            wake(auction_id)
+            wake(request.auction_id)
         return stored.answer
     assert stored.answer_id is not None
     try:
@@ -301,5 +291,5 @@ async def upload(
         _record, database, stored.answer_id, round_id, verdict, margin
     )
     if due:
-        wake(auction_id)
+        wake(request.auction_id)
     return answer

@@ -131,17 +131,9 @@ async def upload_round_model(
     returned and the previous version bids on. Wrong round
     → 409 naming the current one; closed or past the deadline → 410 (recorded as late)."""
     content, arrived = body
+    request = rounds.UploadRequest(auction_id, round_number, model_id, token, content, arrived)
     answer = await rounds.upload(
-        database,
-        screening,
-        runner.submit,
-        auction_id=auction_id,
-        round_number=round_number,
-        model_id=model_id,
-        token=token,
-        body=content,
-        arrived=arrived,
-        margin=settings.review_margin,
+        database, screening, runner.submit, request, margin=settings.review_margin
     )
     return Response(answer, media_type="application/json")
 
@@ -202,17 +194,9 @@ async def round_socket(
                     loc=("header", "Authorization"),
                     kind="missing_token",
                 )
+            request = rounds.UploadRequest(auction_id, round_number, model_id, token, body, arrived)
             return await rounds.upload(
-                database,
-                screening,
-                runner.submit,
-                auction_id=auction_id,
-                round_number=round_number,
-                model_id=model_id,
-                token=token,
-                body=body,
-                arrived=arrived,
-                margin=settings.review_margin,
+                database, screening, runner.submit, request, margin=settings.review_margin
             )
 
         await sockets.serve(websocket, auction_id, first, upload)

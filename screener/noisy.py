@@ -151,9 +151,10 @@ def _widest_flip(
     price (0: none), and where it starts (price index into the noisy scan, demand index)."""
     P = len(clean)
     flipped = ((clean == BUY) & (noisy == HOLD)).reshape(P, len(PRICES), len(DEMANDS))
-    run = np.zeros(flipped.shape, dtype=np.intp)
-    for i in range(len(PRICES)):
-        run[:, i] = np.where(flipped[:, i], (run[:, i - 1] if i else 0) + 1, 0)
+    # the length of the run of flips ending at each price: flips so far, less those counted
+    # before the last price without one
+    count = np.cumsum(flipped, axis=1, dtype=np.intp)
+    run = count - np.maximum.accumulate(np.where(flipped, 0, count), axis=1)
     flat = run.reshape(P, -1).argmax(axis=1)
     end, f = np.unravel_index(flat, run.shape[1:])
     length = run[np.arange(P), end, f]

@@ -29,6 +29,7 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import TYPE_CHECKING
 
@@ -93,18 +94,35 @@ ENTERED_KEPT = 1024
 """Parsed manifests of entered versions a worker process keeps between steps (16 auctions of
 64 patrons): stored versions never change, and parsing an auction's 64 at every step cost more
 than the rest of the step's reads."""
-_parsed: dict[int, Manifest] = {}
 
 
-def _entered(session: Session, model_ids: list[int]) -> list[Manifest]:
-    """The patrons' entered manifests, in order, parsed once per worker process."""
-    missing = [model_id for model_id in dict.fromkeys(model_ids) if model_id not in _parsed]
-    if missing:
-        if len(_parsed) + len(missing) > ENTERED_KEPT:
-            _parsed.clear()
-        stored = crud.patron_manifests(session, model_ids=missing)
-        _parsed.update(zip(missing, map(parse_manifest, stored), strict=True))
-    return [_parsed[model_id] for model_id in model_ids]
+@dataclass
+class _Kept:
+    """What a worker process keeps of one database from one step to the next: the database
+    (its connections and its compiled statements: a first read of an auction's state costs
+    tens of milliseconds more than the next ones) and the entered manifests parsed there."""
+
+    database: Database
+    entered: dict[int, Manifest] = field(default_factory=dict)
+
+    def manifests(self, session: Session, model_ids: list[int]) -> list[Manifest]:
+        """The patrons' entered manifests, in order (parsed once)."""
+        missing = [
+            model_id for model_id in dict.fromkeys(model_ids) if model_id not in self.entered
+        ]
+        if missing:
+            if len(self.entered) + len(missing) > ENTERED_KEPT:
+                self.entered.clear()
+            stored = crud.patron_manifests(session, model_ids=missing)
+            self.entered.update(zip(missing, map(parse_manifest, stored), strict=True))
+        return [self.entered[model_id] for model_id in model_ids]
+
+
+@functools.cache
+def _kept(url: str) -> _Kept:
+    """This process's ``_Kept`` of the database at ``url`` (a database replaced there is
+    refused by it, as by the API, until a restart)."""
+    return _Kept(Database(url))
 
 
 def _load_market(auction: Auction, manifests: Sequence[Manifest]) -> Market:
@@ -244,7 +262,8 @@ def _close_and_play(
     raise AssertionError("unreachable")
 
 
-def _step(database: Database, auction_id: int, margin: float) -> None:
+def _step(kept: _Kept, auction_id: int, margin: float) -> None:
+    database = kept.database
     # Read and rebuild the market outside any write transaction (parsing the manifests and
     # building the market take a while; on SQLite a write transaction holds the one write lock).
     with database.session(write=False) as session:
@@ -253,7 +272,7 @@ def _step(database: Database, auction_id: int, margin: float) -> None:
             return
         auction, row = state
         model_ids = [patron.model_id for patron in auction.patrons]
-        manifests = _entered(session, model_ids)
+        manifests = kept.manifests(session, model_ids)
     if row is not None and _not_yet(database, auction_id, row):
         return
     market = _load_market(auction, manifests)
@@ -281,19 +300,12 @@ def _step(database: Database, auction_id: int, margin: float) -> None:
             return
 
 
-@functools.cache
-def _database(url: str) -> Database:
-    """The worker process's database, opened at its first step and kept for the next ones with
-    its connections and its compiled statements (a first read of an auction's state costs
-    tens of milliseconds more than the next ones)."""
-    return Database(url)
-
-
 def run_step(context: WorkerContext, auction_id: int) -> None:
     """Worker process entry point: one step of the auction (see the module docstring)."""
-    database = _database(context.database_url)
+    kept = _kept(context.database_url)
+    database = kept.database
     try:
-        _step(database, auction_id, context.review_margin)
+        _step(kept, auction_id, context.review_margin)
     except MovedOnError:
         log.info(
             "auction %d moved on without this step (cancelled, or stepped elsewhere)", auction_id

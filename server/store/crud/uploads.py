@@ -21,7 +21,6 @@ from sqlalchemy.orm import Session, aliased
 
 from screener import Verdict, review
 from server.store.crud.live import notify_change
-from server.store.crud.models import insert_model_versions, latest_versions
 from server.store.db import JSONText
 from server.store.status import (
     ANSWERED,
@@ -327,6 +326,14 @@ _PENDING_FOR_UPDATE = (
 _LOCK_PARTICIPANT = (
     select(Participant.id).where(Participant.id == bindparam("id")).with_for_update()
 )
+_LATEST_VERSION = select(func.max(ModelVersion.version)).where(
+    ModelVersion.participant_id == bindparam("id")
+)
+_INSERT_VERSION = insert(ModelVersion).returning(ModelVersion.id)
+_JUDGE_ANSWER = (
+    update(FineTuneAnswer).where(FineTuneAnswer.id == bindparam("answer_id")).values(manifest=None)
+)
+"""Sets the answer's verdict (the columns the parameters name) and drops its manifest."""
 
 
 def record_verdict(
@@ -340,30 +347,27 @@ def record_verdict(
     row = connection.execute(_PENDING_FOR_UPDATE, {"answer_id": answer_id}).one()
     if row.outcome != AnswerOutcome.PENDING:
         return answer_bytes(row.answer or {})
+    participant = {"id": row.participant_id}
     if connection.dialect.name != "sqlite":  # SQLite has no row locks: it serialises writers
-        connection.execute(_LOCK_PARTICIPANT, {"id": row.participant_id})
-    number = latest_versions(session, participant_ids=[row.participant_id])[row.participant_id] + 1
+        connection.execute(_LOCK_PARTICIPANT, participant)
+    number = connection.execute(_LATEST_VERSION, participant).scalar_one() + 1
     reasons = [reason.to_dict() for reason in verdict.reasons]
     status = ModelStatus(review(verdict, margin))
     accepted = status == ModelStatus.ACCEPTED
-    (uploaded,) = insert_model_versions(
-        session,
-        rows=[
-            {
-                "participant_id": row.participant_id,
-                "version": number,
-                "manifest": row.manifest,
-                "accepted": accepted,
-                "status": status,
-                "reasons": reasons,
-                "evidence": [e.to_dict() for e in verdict.evidence],
-                "created_at": now,
-                "parent_id": row.model_id,
-                "auction_id": row.auction_id,
-                "round": row.round,
-            }
-        ],
-    )
+    version = {
+        "participant_id": row.participant_id,
+        "version": number,
+        "manifest": row.manifest,
+        "accepted": accepted,
+        "status": status,
+        "reasons": reasons,
+        "evidence": [e.to_dict() for e in verdict.evidence],
+        "created_at": now,
+        "parent_id": row.model_id,
+        "auction_id": row.auction_id,
+        "round": row.round,
+    }
+    uploaded = connection.execute(_INSERT_VERSION, version).scalar_one()
     outcome = AnswerOutcome(status)
     body = answer_bytes(
         {
@@ -377,18 +381,15 @@ def record_verdict(
             "outcome": outcome,
         }
     )
-    connection.execute(
-        update(FineTuneAnswer)
-        .where(FineTuneAnswer.id == answer_id)
-        .values(
-            outcome=outcome,
-            uploaded_id=uploaded,
-            model_id=uploaded if accepted else row.model_id,
-            answer=JSONText(body.decode()),
-            bytes_out=len(body),
-            manifest=None,
-        )
-    )
+    judged = {
+        "answer_id": answer_id,
+        "outcome": outcome,
+        "uploaded_id": uploaded,
+        "model_id": uploaded if accepted else row.model_id,
+        "answer": JSONText(body.decode()),
+        "bytes_out": len(body),
+    }
+    connection.execute(_JUDGE_ANSWER, judged)
     return body
 
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
+from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, ManifestError, parse_manifest_json
@@ -94,12 +95,13 @@ def _manifest(body: bytes) -> Manifest:
 
 
 def _target(
-    database: Database, auction_id: int, model_id: int, round_number: int
+    session: Session, auction_id: int, model_id: int, round_number: int
 ) -> crud.UploadTarget:
     """What the upload's path names: the patron, its participant, the round (404 for an
     unknown auction or model)."""
-    with database.session(write=False) as session:
-        target = crud.upload_targets(session, keys=[(auction_id, model_id, round_number)])[0]
+    target = crud.upload_target(
+        session, auction_id=auction_id, model_id=model_id, round_number=round_number
+    )
     if not isinstance(target, crud.UploadLookupError):
         return target
     if target.field == "auction_id":
@@ -144,13 +146,6 @@ def _check_patron(
             kind="wrong_round",
         )
     return target.round_id
-
-
-def _store(database: Database, upload: crud.UploadIn) -> crud.Stored:
-    with database.session(write=True) as session:
-        stored = crud.store_upload(session, upload=upload)
-        session.commit()
-    return stored
 
 
 def _record(
@@ -201,15 +196,31 @@ class UploadRequest:
 
 
 def _check_and_store(database: Database, manifest: Manifest, request: UploadRequest) -> _Arrived:
-    """The upload's checks against what its path names, then its store (and, for an answer
-    given at once, whether the auction became due): one run in the thread pool."""
+    """The upload's checks against what its path names and its store, in one transaction (a
+    refused upload stores nothing, but a late one is recorded as late), then, for an answer
+    given at once, whether the auction became due: one run in the thread pool."""
+    data = manifest.model_dump(mode="json")
+    with database.session(write=True) as session:
+        stored, round_id, manifest_json = _check_and_store_in(session, manifest, data, request)
+        session.commit()
+    if stored.refusal is not None:
+        status, message, kind = stored.refusal
+        raise api_error(status, message, loc=("path", "round"), kind=kind)
+    due = stored.answer is not None and manifest_json is None and _due(database, round_id)
+    return _Arrived(stored, round_id, manifest_json, due)
+
+
+def _check_and_store_in(
+    session: Session, manifest: Manifest, data: dict[str, Any], request: UploadRequest
+) -> tuple[crud.Stored, int, str | None]:
+    """``_check_and_store`` within its transaction: what was stored (or refused), the round's
+    id, and the new manifest's JSON (None: the current weights)."""
     auction_id, round_number, model_id = request.auction_id, request.round_number, request.model_id
-    token, body, arrived = request.token, request.body, request.arrived
-    target = _target(database, auction_id, model_id, round_number)
+    target = _target(session, auction_id, model_id, round_number)
     round_id = _check_patron(
-        target, token, auction_id=auction_id, model_id=model_id, round_number=round_number
+        target, request.token, auction_id=auction_id, model_id=model_id, round_number=round_number
     )
-    digest = hashlib.sha256(body).hexdigest()
+    digest = hashlib.sha256(request.body).hexdigest()
     if target.answer_outcome in ANSWERED and target.answer_sha256 != digest:
         raise api_error(
             409,
@@ -226,9 +237,8 @@ def _check_and_store(database: Database, manifest: Manifest, request: UploadRequ
             loc=("path", "model_id"),
             kind="not_asked",
         )
-    data = manifest.model_dump(mode="json")
     late = target.round_status != RoundStatus.OPEN or (
-        target.deadline is not None and target.deadline <= arrived
+        target.deadline is not None and target.deadline <= request.arrived
     )
     if not late and target.answer_outcome not in ANSWERED:
         problems = _body_problems(data, target)
@@ -236,25 +246,21 @@ def _check_and_store(database: Database, manifest: Manifest, request: UploadRequ
             raise validation_error(problems)
     assert target.position is not None
     manifest_json = None if data == target.current_manifest else manifest.model_dump_json()
-    stored = _store(
-        database,
-        crud.UploadIn(
+    stored = crud.store_upload(
+        session,
+        upload=crud.UploadIn(
             round_number=round_number,
             round_id=round_id,
             position=target.position,
             current_id=target.current_id,
             current_version=target.current_version,
             body_sha256=digest,
-            bytes_in=len(body),
-            arrived=arrived,
+            bytes_in=len(request.body),
+            arrived=request.arrived,
             manifest=None if manifest_json is None else JSONText(manifest_json),
         ),
     )
-    if stored.refusal is not None:
-        status, message, kind = stored.refusal
-        raise api_error(status, message, loc=("path", "round"), kind=kind)
-    due = stored.answer is not None and manifest_json is None and _due(database, round_id)
-    return _Arrived(stored, round_id, manifest_json, due)
+    return stored, round_id, manifest_json
 
 
 async def upload(

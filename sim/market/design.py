@@ -61,6 +61,8 @@ def design_changes(current: dict[str, Any], update: dict[str, Any]) -> list[tupl
         if path[-1:] == ("bias",) or path[-2:-1] == ("weights",):
             return
         if isinstance(before, dict) and isinstance(after, dict) and before.keys() == after.keys():
+            if before == after:  # nothing below differs (compared in C, not walked)
+                return
             for key in before:
                 walk(before[key], after[key], (*path, key))
         elif before != after:

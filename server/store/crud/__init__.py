@@ -81,7 +81,6 @@ from server.store.crud.uploads import (
     PendingUpload,
     Stored,
     UploadIn,
-    UploadKey,
     UploadLookupError,
     UploadTarget,
     answer_bytes,
@@ -90,7 +89,7 @@ from server.store.crud.uploads import (
     record_late,
     record_verdict,
     store_upload,
-    upload_targets,
+    upload_target,
 )
 
 __all__ = [
@@ -120,7 +119,6 @@ __all__ = [
     "Stored",
     "StoredModel",
     "UploadIn",
-    "UploadKey",
     "UploadLookupError",
     "UploadTarget",
     "answer_bytes",
@@ -169,5 +167,5 @@ __all__ = [
     "start",
     "step_state",
     "store_upload",
-    "upload_targets",
+    "upload_target",
 ]

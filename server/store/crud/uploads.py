@@ -1,28 +1,26 @@
-"""The uploads of remote rounds: what an upload is checked against (read for a batch of uploads
-at once), and its writes: stored on arrival (``store_upload``), then its verdict
+"""The uploads of remote rounds: what an upload is checked against (``upload_target``), and its
+writes: stored on arrival (``store_upload``, in the transaction of that read), then its verdict
 (``record_verdict``), or marked late (``record_late``).
 
-Every write re-checks, in its own transaction, what the route checked from its read: the round
-is still open and the upload arrived before its deadline, the patron has not answered yet. On
-PostgreSQL the round is read ``FOR SHARE`` (the step's closing ``UPDATE`` waits for the uploads
-in flight, and the uploads after it see the round closed); SQLite serialises writers anyway.
+Every write re-checks what the route checked from its read: the round is still open and the
+upload arrived before its deadline, the patron has not answered yet. On PostgreSQL the round is
+read ``FOR SHARE`` (the step's closing ``UPDATE`` waits for the uploads in flight, and the
+uploads after it see the round closed; under READ COMMITTED the earlier read of the same
+transaction may predate the close); SQLite serialises writers anyway.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
 from sqlalchemy import bindparam, func, insert, select, update
-from sqlalchemy.engine import Connection
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, aliased
 
 from screener import Verdict, review
 from server.store.crud.live import notify_change
-from server.store.crud.models import insert_model_versions, latest_versions
 from server.store.db import JSONText
 from server.store.status import (
     ANSWERED,
@@ -76,159 +74,75 @@ class UploadLookupError(LookupError):
         self.field = field
 
 
-UploadKey = tuple[int, int, int]
-"""(auction id, model id, round) of an upload's path."""
-
-
-_Rows = dict[Any, Any]
-"""Rows of one query of the batch (SQLAlchemy ``Row`` objects), keyed as the lookups need."""
-
-
-@dataclass(frozen=True)
-class _Batch:
-    """Everything a batch of uploads is checked against, read once for the whole batch."""
-
-    auctions: _Rows
-    """auction id → fine-tuning mode"""
-    owners: _Rows
-    """model id → its participant"""
-    patrons: _Rows
-    """(auction id, model id) → the patron's position and current version id"""
-    versions: _Rows
-    """model id → version number and manifest (of the versions patrons bid with now)"""
-    rounds: dict[int, _Rows]
-    """auction id → round number → the round"""
-    answers: _Rows
-    """(round id, position) → the patron's answer so far"""
-
-
-def upload_targets(
-    session: Session, *, keys: Sequence[UploadKey]
-) -> list[UploadTarget | UploadLookupError]:
-    """What each upload of a batch is checked against, read in one transaction with six
-    queries whatever the batch's size (the UploadLookupError of a path that names no auction
-    or model)."""
-    connection = session.connection()
-    auction_ids = sorted({a for a, _, _ in keys})
-    model_ids = sorted({m for _, m, _ in keys})
-    auctions = _auctions(connection, auction_ids)
-    owners = _owners(connection, model_ids)
-    patrons = _patrons(connection, auction_ids, model_ids)
-    versions = _versions(connection, sorted({_current_of(patrons, a, m) for a, m, _ in keys}))
-    rounds = _rounds(connection, auction_ids)
-    asked_ids = sorted({r.id for a, _, n in keys if (r := rounds.get(a, {}).get(n))})
-    positions = sorted({p.position for p in patrons.values()})
-    answers = _answers(connection, asked_ids, positions)
-    batch = _Batch(auctions, owners, patrons, versions, rounds, answers)
-    return [_target(batch, key) for key in keys]
-
-
-_AUCTIONS = select(Auction.id, Auction.fine_tune_mode).where(
-    Auction.id.in_(bindparam("auction_ids", expanding=True))
-)
-_OWNERS = (
-    select(ModelVersion.id, Participant.name, Participant.token_hash)
+_CURRENT = aliased(ModelVersion)
+"""The version a patron bids with now (the path's model for a model that is not a patron)."""
+_HEAD = (
+    select(
+        Auction.fine_tune_mode,
+        Participant.name,
+        Participant.token_hash,
+        AuctionPatron.position,
+        _CURRENT.id,
+        _CURRENT.version,
+        _CURRENT.manifest,
+    )
+    .select_from(Auction)
+    .join(ModelVersion, ModelVersion.id == bindparam("model_id"))
     .join(Participant, Participant.id == ModelVersion.participant_id)
-    .where(ModelVersion.id.in_(bindparam("model_ids", expanding=True)))
+    .outerjoin(
+        AuctionPatron,
+        (AuctionPatron.auction_id == Auction.id) & (AuctionPatron.model_id == ModelVersion.id),
+    )
+    .join(_CURRENT, _CURRENT.id == func.coalesce(AuctionPatron.current_model_id, ModelVersion.id))
+    .where(Auction.id == bindparam("auction_id"))
 )
-_PATRONS = select(
-    AuctionPatron.auction_id,
-    AuctionPatron.model_id,
-    AuctionPatron.position,
-    AuctionPatron.current_model_id,
-).where(
-    AuctionPatron.auction_id.in_(bindparam("auction_ids", expanding=True)),
-    AuctionPatron.model_id.in_(bindparam("model_ids", expanding=True)),
-)
-_VERSIONS = select(ModelVersion.id, ModelVersion.version, ModelVersion.manifest).where(
-    ModelVersion.id.in_(bindparam("version_ids", expanding=True))
-)
+_AUCTION_EXISTS = select(Auction.id).where(Auction.id == bindparam("auction_id"))
 _ROUNDS = select(
     FineTuneRound.id,
-    FineTuneRound.auction_id,
     FineTuneRound.round,
     FineTuneRound.status,
     FineTuneRound.deadline,
     FineTuneRound.asked,
-).where(FineTuneRound.auction_id.in_(bindparam("auction_ids", expanding=True)))
-_ANSWERS = select(
-    FineTuneAnswer.id,
-    FineTuneAnswer.round_id,
-    FineTuneAnswer.position,
-    FineTuneAnswer.outcome,
-    FineTuneAnswer.body_sha256,
-).where(
-    FineTuneAnswer.round_id.in_(bindparam("round_ids", expanding=True)),
-    FineTuneAnswer.position.in_(bindparam("positions", expanding=True)),
+).where(FineTuneRound.auction_id == bindparam("auction_id"))
+_ANSWER = select(FineTuneAnswer.id, FineTuneAnswer.outcome, FineTuneAnswer.body_sha256).where(
+    FineTuneAnswer.round_id == bindparam("round_id"),
+    FineTuneAnswer.position == bindparam("position"),
 )
 
 
-def _auctions(connection: Connection, auction_ids: list[int]) -> _Rows:
-    return {row.id: row for row in connection.execute(_AUCTIONS, {"auction_ids": auction_ids})}
-
-
-def _owners(connection: Connection, model_ids: list[int]) -> _Rows:
-    return {row.id: row for row in connection.execute(_OWNERS, {"model_ids": model_ids})}
-
-
-def _patrons(connection: Connection, auction_ids: list[int], model_ids: list[int]) -> _Rows:
-    rows = connection.execute(_PATRONS, {"auction_ids": auction_ids, "model_ids": model_ids})
-    return {(row.auction_id, row.model_id): row for row in rows}
-
-
-def _current_of(patrons: _Rows, auction_id: int, model_id: int) -> int:
-    """The id of the version the patron bids with now (the path's model when not a patron)."""
-    patron = patrons.get((auction_id, model_id))
-    if patron is None or patron.current_model_id is None:
-        return model_id
-    current: int = patron.current_model_id
-    return current
-
-
-def _versions(connection: Connection, version_ids: list[int]) -> _Rows:
-    return {row.id: row for row in connection.execute(_VERSIONS, {"version_ids": version_ids})}
-
-
-def _rounds(connection: Connection, auction_ids: list[int]) -> dict[int, _Rows]:
-    rounds: dict[int, _Rows] = {}
-    for row in connection.execute(_ROUNDS, {"auction_ids": auction_ids}):
-        rounds.setdefault(row.auction_id, {})[row.round] = row
-    return rounds
-
-
-def _answers(connection: Connection, round_ids: list[int], positions: list[int]) -> _Rows:
-    rows = connection.execute(_ANSWERS, {"round_ids": round_ids, "positions": positions})
-    return {(row.round_id, row.position): row for row in rows}
-
-
-def _target(batch: _Batch, key: UploadKey) -> UploadTarget | UploadLookupError:
-    """One upload's target, from the rows of its batch."""
-    auction_id, model_id, number = key
-    auction, owner = batch.auctions.get(auction_id), batch.owners.get(model_id)
-    if auction is None or owner is None:
-        return UploadLookupError("auction_id" if auction is None else "model_id")
-    patron = batch.patrons.get((auction_id, model_id))
-    current = batch.versions[_current_of(batch.patrons, auction_id, model_id)]
-    mine = batch.rounds.get(auction_id, {})
-    newest = mine[max(mine)] if mine else None
-    asked = mine.get(number)
+def upload_target(
+    session: Session, *, auction_id: int, model_id: int, round_number: int
+) -> UploadTarget | UploadLookupError:
+    """What an upload to ``round_number`` of ``auction_id`` for ``model_id`` is checked
+    against: three queries built once (the UploadLookupError of a path that names no auction
+    or model)."""
+    connection = session.connection()
+    ids = {"auction_id": auction_id, "model_id": model_id}
+    head = connection.execute(_HEAD, ids).one_or_none()
+    if head is None:
+        exists = connection.execute(_AUCTION_EXISTS, ids).first() is not None
+        return UploadLookupError("model_id" if exists else "auction_id")
+    rounds = {row.round: row for row in connection.execute(_ROUNDS, ids)}
+    newest = rounds[max(rounds)] if rounds else None
+    this = rounds.get(round_number)
     answer = None
-    if asked is not None and patron is not None:
-        answer = batch.answers.get((asked.id, patron.position))
+    if this is not None and head.position is not None:
+        key = {"round_id": this.id, "position": head.position}
+        answer = connection.execute(_ANSWER, key).one_or_none()
     return UploadTarget(
-        fine_tune_mode=auction.fine_tune_mode,
-        position=None if patron is None else patron.position,
-        participant=owner.name,
-        token_hash=owner.token_hash,
-        current_id=current.id,
-        current_version=current.version,
-        current_manifest=current.manifest,
+        fine_tune_mode=head.fine_tune_mode,
+        position=head.position,
+        participant=head.name,
+        token_hash=head.token_hash,
+        current_id=head.id,
+        current_version=head.version,
+        current_manifest=head.manifest,
         newest_round=None if newest is None else newest.round,
         newest_status=None if newest is None else newest.status,
-        round_id=None if asked is None else asked.id,
-        round_status=None if asked is None else asked.status,
-        deadline=None if asked is None else asked.deadline,
-        asked=[] if asked is None else list(asked.asked),
+        round_id=None if this is None else this.id,
+        round_status=None if this is None else this.status,
+        deadline=None if this is None else this.deadline,
+        asked=[] if this is None else list(this.asked),
         answer_outcome=None if answer is None else answer.outcome,
         answer_sha256=None if answer is None else answer.body_sha256,
         answer_id=None if answer is None else answer.id,
@@ -412,6 +326,14 @@ _PENDING_FOR_UPDATE = (
 _LOCK_PARTICIPANT = (
     select(Participant.id).where(Participant.id == bindparam("id")).with_for_update()
 )
+_LATEST_VERSION = select(func.max(ModelVersion.version)).where(
+    ModelVersion.participant_id == bindparam("id")
+)
+_INSERT_VERSION = insert(ModelVersion).returning(ModelVersion.id)
+_JUDGE_ANSWER = (
+    update(FineTuneAnswer).where(FineTuneAnswer.id == bindparam("answer_id")).values(manifest=None)
+)
+"""Sets the answer's verdict (the columns the parameters name) and drops its manifest."""
 
 
 def record_verdict(
@@ -425,30 +347,27 @@ def record_verdict(
     row = connection.execute(_PENDING_FOR_UPDATE, {"answer_id": answer_id}).one()
     if row.outcome != AnswerOutcome.PENDING:
         return answer_bytes(row.answer or {})
+    participant = {"id": row.participant_id}
     if connection.dialect.name != "sqlite":  # SQLite has no row locks: it serialises writers
-        connection.execute(_LOCK_PARTICIPANT, {"id": row.participant_id})
-    number = latest_versions(session, participant_ids=[row.participant_id])[row.participant_id] + 1
+        connection.execute(_LOCK_PARTICIPANT, participant)
+    number = connection.execute(_LATEST_VERSION, participant).scalar_one() + 1
     reasons = [reason.to_dict() for reason in verdict.reasons]
     status = ModelStatus(review(verdict, margin))
     accepted = status == ModelStatus.ACCEPTED
-    (uploaded,) = insert_model_versions(
-        session,
-        rows=[
-            {
-                "participant_id": row.participant_id,
-                "version": number,
-                "manifest": row.manifest,
-                "accepted": accepted,
-                "status": status,
-                "reasons": reasons,
-                "evidence": [e.to_dict() for e in verdict.evidence],
-                "created_at": now,
-                "parent_id": row.model_id,
-                "auction_id": row.auction_id,
-                "round": row.round,
-            }
-        ],
-    )
+    version = {
+        "participant_id": row.participant_id,
+        "version": number,
+        "manifest": row.manifest,
+        "accepted": accepted,
+        "status": status,
+        "reasons": reasons,
+        "evidence": [e.to_dict() for e in verdict.evidence],
+        "created_at": now,
+        "parent_id": row.model_id,
+        "auction_id": row.auction_id,
+        "round": row.round,
+    }
+    uploaded = connection.execute(_INSERT_VERSION, version).scalar_one()
     outcome = AnswerOutcome(status)
     body = answer_bytes(
         {
@@ -462,18 +381,15 @@ def record_verdict(
             "outcome": outcome,
         }
     )
-    connection.execute(
-        update(FineTuneAnswer)
-        .where(FineTuneAnswer.id == answer_id)
-        .values(
-            outcome=outcome,
-            uploaded_id=uploaded,
-            model_id=uploaded if accepted else row.model_id,
-            answer=JSONText(body.decode()),
-            bytes_out=len(body),
-            manifest=None,
-        )
-    )
+    judged = {
+        "answer_id": answer_id,
+        "outcome": outcome,
+        "uploaded_id": uploaded,
+        "model_id": uploaded if accepted else row.model_id,
+        "answer": JSONText(body.decode()),
+        "bytes_out": len(body),
+    }
+    connection.execute(_JUDGE_ANSWER, judged)
     return body
 
 

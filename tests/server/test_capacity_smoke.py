@@ -8,7 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPOSITORY = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.slow  # a benchmark run (about 26 s): `make test-all`
 FIELDS = {
     "transport",
     "agents",

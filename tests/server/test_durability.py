@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 from sqlalchemy import select
 
 from server.cli.launch import ServerProcess, settings_environment
@@ -25,6 +26,7 @@ ACKNOWLEDGED_BEFORE_KILL = 40
 LOAD_LIMIT_S = 60.0
 
 
+@pytest.mark.postgres_in_slow_run
 def test_every_201_survives_a_kill_9(fresh_database_url: str, tmp_path: Path) -> None:
     data_dir = tmp_path / "data"
     env = settings_environment(QUOTAS_OFF)

@@ -69,6 +69,7 @@ def purchases_by_round(auction: dict[str, Any]) -> dict[int, list[tuple[int, flo
     return rounds
 
 
+@pytest.mark.postgres_in_slow_run
 def test_auction_stream_is_the_committed_history_then_the_end(
     client: httpx.Client, honest_ids: list[int]
 ) -> None:
@@ -198,6 +199,7 @@ def status_once_freed(client: httpx.Client, path: str, timeout_s: float = 5.0) -
         time.sleep(0.05)
 
 
+@pytest.mark.postgres_in_slow_run
 def test_job_stream_reports_progress_then_the_whole_job(client: httpx.Client) -> None:
     body = {"kind": "fish", "params": {"steps": 600, "seed": 0}}
     job_id = client.post("/jobs", json=body, headers=ADMIN).json()["job_id"]

@@ -11,8 +11,9 @@ $(BIN)/python:
 	$(BIN)/pip install --quiet --upgrade pip
 
 # pip byte-compiles on one core; compileall does it on every core (as pip, ignoring files that
-# are not Python 3.11, such as torch's own Python 3.12 test helper), except the packages nothing
-# here imports on its usual paths (sympy, networkx, pip, PyOpenGL: 5,400 of 16,300 modules).
+# are not Python 3.11, such as torch's own Python 3.12 test helper), except 5,400 of the 16,300
+# modules: sympy, networkx and pip, which nothing here imports, and PyOpenGL, imported only by
+# the cheetah's video rendering (its subprocess then compiles the few modules it loads).
 $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/pip install --quiet --no-compile torch==2.13.0
 	$(BIN)/pip install --quiet --no-compile -e '.[dev,ray]'

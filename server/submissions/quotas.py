@@ -37,8 +37,11 @@ KEEP = DAY + HOUR
 """Events older than this count for no limit and are pruned."""
 
 
+_PERSON = "participant:"
+
+
 def participant_subject(name: str) -> str:
-    return f"participant:{name}"
+    return f"{_PERSON}{name}"
 
 
 def address_subject(host: str) -> str:
@@ -78,16 +81,6 @@ class Throttled:
 
     msg: str
     retry_after_s: int
-
-
-@dataclass
-class _Window:
-    """The events of one (subject, kind): their times, oldest first (stored and pending)."""
-
-    times: list[datetime] = field(default_factory=list)
-
-    def since(self, start: datetime) -> list[datetime]:
-        return [t for t in self.times if t >= start]
 
 
 _COUNTS = (
@@ -159,9 +152,12 @@ class Throttle:
             count.oldest = {
                 name: _aware(t, now) for name, t in zip(windows, oldest, strict=True) if t
             }
+        # The cooldown reads participants' refusals in a row, never an address's: an address
+        # shared by many participants would fetch all their versions of the last hour.
+        people = [s for s in subjects if s.startswith(_PERSON)]
         since = now - timedelta(seconds=limits.cooldown_max_s)
         for subject, kind, at in connection.execute(
-            _RECENT, {"subjects": subjects, "since": since}
+            _RECENT, {"subjects": people, "since": since}
         ):
             self.recent[subject].append((kind, _aware(at, now)))
 

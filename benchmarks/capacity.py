@@ -67,7 +67,13 @@ from agents.negotiator import honest_manifest
 from agents.remote import ONE_CONNECTION
 from server.cli.launch import ServerProcess, settings_environment
 from tests.support.databases import throwaway_postgres
-from tests.support.processes import cpu_seconds, descendants, process_name, reaped_cpu_seconds
+from tests.support.processes import (
+    cpu_seconds,
+    descendants,
+    process_name,
+    reaped_cpu_seconds,
+    thread_cpu_seconds,
+)
 from tests.support.server import QUOTAS_OFF
 
 ADMIN_TOKEN = secrets.token_hex(16)
@@ -133,12 +139,16 @@ class ServerCpu:
                 yield pid, process_name(pid) or ""
 
     def read(self) -> dict[str, float]:
-        """CPU seconds so far by part: ``api`` (the replicas' own), ``reaped`` (children that
-        ended and were waited for: workers, by the fork server that started them), then each
-        live process below by name (the screening process, the auction workers, the fork
-        server, multiprocessing's resource tracker)."""
+        """CPU seconds so far by part: the replicas' own (``api event loop``: their main
+        thread; ``api other threads``: the thread pool's database work and the rest),
+        ``reaped`` (children that ended and were waited for: workers, by the fork server that
+        started them), then each live process below by name (the screening process, the
+        auction workers, the fork server, multiprocessing's resource tracker)."""
+        api = sum(cpu_seconds(r) or 0.0 for r in self.roots)
+        loop = sum(thread_cpu_seconds(r, r) or 0.0 for r in self.roots)
         parts = {
-            "api": sum(cpu_seconds(r) or 0.0 for r in self.roots),
+            "api event loop": loop,
+            "api other threads": api - loop,
             "reaped": sum(reaped_cpu_seconds(r) or 0.0 for r in self.roots)
             + sum(reaped_cpu_seconds(pid) or 0.0 for pid, _ in self._tree()),
         }

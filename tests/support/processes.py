@@ -73,6 +73,16 @@ def cpu_seconds(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def thread_cpu_seconds(pid: int, tid: int) -> float | None:
+    """User + system CPU seconds one thread of a process has used so far; None once it is
+    gone."""
+    try:
+        fields = _stat(f"{pid}/task/{tid}")
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def process_name(pid: int) -> str | None:
     """The process's name (``/proc/<pid>/comm``, at most 15 characters); None once it is gone."""
     try:

@@ -156,9 +156,7 @@ class Throttle:
         # shared by many participants would fetch all their versions of the last hour.
         people = [s for s in subjects if s.startswith(_PERSON)]
         since = now - timedelta(seconds=limits.cooldown_max_s)
-        for subject, kind, at in connection.execute(
-            _RECENT, {"subjects": people, "since": since}
-        ):
+        for subject, kind, at in connection.execute(_RECENT, {"subjects": people, "since": since}):
             self.recent[subject].append((kind, _aware(at, now)))
 
     def check(self, *, participant: str, address: str | None, new: bool) -> Throttled | None:

@@ -259,6 +259,7 @@ def _check_and_store_in(
             arrived=request.arrived,
             manifest=None if manifest_json is None else JSONText(manifest_json),
         ),
+        target=target,
     )
     return stored, round_id, manifest_json
 

@@ -2,11 +2,11 @@
 writes: stored on arrival (``store_upload``, in the transaction of that read), then its verdict
 (``record_verdict``), or marked late (``record_late``).
 
-Every write re-checks what the route checked from its read: the round is still open and the
-upload arrived before its deadline, the patron has not answered yet. On PostgreSQL the round is
-read ``FOR SHARE`` (the step's closing ``UPDATE`` waits for the uploads in flight, and the
-uploads after it see the round closed; under READ COMMITTED the earlier read of the same
-transaction may predate the close); SQLite serialises writers anyway.
+The read and the store share one write transaction, so the store acts on what the read saw:
+the round still open and the upload before its deadline, the patron's answer so far. On
+PostgreSQL the read takes the auction's rounds ``FOR SHARE`` (the step's closing ``UPDATE``
+waits for the uploads in flight, and the uploads after it see the round closed); SQLite
+serialises writers anyway.
 """
 
 from __future__ import annotations
@@ -64,6 +64,8 @@ class UploadTarget:
     """This patron's answer in the path's round so far, if any."""
     answer_sha256: str | None
     answer_id: int | None = None
+    answer: dict[str, Any] | None = None
+    """The answer's body as stored (for a repeat of a judged upload)."""
 
 
 class UploadLookupError(LookupError):
@@ -104,7 +106,10 @@ _ROUNDS = select(
     FineTuneRound.deadline,
     FineTuneRound.asked,
 ).where(FineTuneRound.auction_id == bindparam("auction_id"))
-_ANSWER = select(FineTuneAnswer.id, FineTuneAnswer.outcome, FineTuneAnswer.body_sha256).where(
+_ROUNDS_FOR_SHARE = _ROUNDS.with_for_update(read=True)
+_ANSWER = select(
+    FineTuneAnswer.id, FineTuneAnswer.outcome, FineTuneAnswer.body_sha256, FineTuneAnswer.answer
+).where(
     FineTuneAnswer.round_id == bindparam("round_id"),
     FineTuneAnswer.position == bindparam("position"),
 )
@@ -114,15 +119,15 @@ def upload_target(
     session: Session, *, auction_id: int, model_id: int, round_number: int
 ) -> UploadTarget | UploadLookupError:
     """What an upload to ``round_number`` of ``auction_id`` for ``model_id`` is checked
-    against: three queries built once (the UploadLookupError of a path that names no auction
-    or model)."""
+    against, in the write transaction that stores it (``store_upload``): three queries built
+    once (the UploadLookupError of a path that names no auction or model)."""
     connection = session.connection()
     ids = {"auction_id": auction_id, "model_id": model_id}
     head = connection.execute(_HEAD, ids).one_or_none()
     if head is None:
         exists = connection.execute(_AUCTION_EXISTS, ids).first() is not None
         return UploadLookupError("model_id" if exists else "auction_id")
-    rounds = {row.round: row for row in connection.execute(_ROUNDS, ids)}
+    rounds = {row.round: row for row in connection.execute(_ROUNDS_FOR_SHARE, ids)}
     newest = rounds[max(rounds)] if rounds else None
     this = rounds.get(round_number)
     answer = None
@@ -146,6 +151,7 @@ def upload_target(
         answer_outcome=None if answer is None else answer.outcome,
         answer_sha256=None if answer is None else answer.body_sha256,
         answer_id=None if answer is None else answer.id,
+        answer=None if answer is None else answer.answer,
     )
 
 
@@ -197,33 +203,21 @@ def _different(number: int) -> tuple[int, str, str]:
     )
 
 
-_ROUND_FOR_SHARE = (
-    select(FineTuneRound.status, FineTuneRound.deadline)
-    .where(FineTuneRound.id == bindparam("round_id"))
-    .with_for_update(read=True)
-)
-_ANSWER_OF = select(
-    FineTuneAnswer.id, FineTuneAnswer.outcome, FineTuneAnswer.body_sha256, FineTuneAnswer.answer
-).where(
-    FineTuneAnswer.round_id == bindparam("round_id"), FineTuneAnswer.position == bindparam("at")
-)
-
-
-def store_upload(session: Session, *, upload: UploadIn) -> Stored:
-    """Store an upload as it arrives: pending with its manifest (a repeat of the current
-    weights is accepted at once), after re-checking the round and the patron's answer."""
+def store_upload(session: Session, *, upload: UploadIn, target: UploadTarget) -> Stored:
+    """Store an upload as it arrives, in the transaction that read its ``target``: pending
+    with its manifest (a repeat of the current weights is accepted at once), a repeat of an
+    answered upload answered as before, a late one recorded as late."""
     connection = session.connection()
-    key = {"round_id": upload.round_id, "at": upload.position}
-    current = connection.execute(_ROUND_FOR_SHARE, key).one()
-    stored = connection.execute(_ANSWER_OF, key).one_or_none()
-    if stored is not None and stored.outcome in ANSWERED:
-        if stored.body_sha256 != upload.body_sha256:
+    if target.answer_outcome in ANSWERED:
+        if target.answer_sha256 != upload.body_sha256:
             return Stored(refusal=_different(upload.round_number))
-        if stored.outcome == AnswerOutcome.PENDING:
-            return Stored(answer_id=stored.id)
-        return Stored(answer=answer_bytes(stored.answer or {}))
-    if current.status != RoundStatus.OPEN or upload.arrived >= current.deadline:
-        record_late(session, upload=upload, missing_id=None if stored is None else stored.id)
+        if target.answer_outcome == AnswerOutcome.PENDING:
+            return Stored(answer_id=target.answer_id)
+        return Stored(answer=answer_bytes(target.answer or {}))
+    if target.round_status != RoundStatus.OPEN or (
+        target.deadline is not None and upload.arrived >= target.deadline
+    ):
+        record_late(session, upload=upload, missing_id=target.answer_id)
         return Stored(refusal=_late(upload.round_number))
     row: dict[str, Any] = {
         "round_id": upload.round_id,

@@ -67,13 +67,7 @@ from agents.negotiator import honest_manifest
 from agents.remote import ONE_CONNECTION
 from server.cli.launch import ServerProcess, settings_environment
 from tests.support.databases import throwaway_postgres
-from tests.support.processes import (
-    cpu_seconds,
-    descendants,
-    process_name,
-    reaped_cpu_seconds,
-    thread_cpu_seconds,
-)
+from tests.support.processes import cpu_seconds, descendants, process_name, reaped_cpu_seconds
 from tests.support.server import QUOTAS_OFF
 
 ADMIN_TOKEN = secrets.token_hex(16)
@@ -145,7 +139,7 @@ class ServerCpu:
         started them), then each live process below by name (the screening process, the
         auction workers, the fork server, multiprocessing's resource tracker)."""
         api = sum(cpu_seconds(r) or 0.0 for r in self.roots)
-        loop = sum(thread_cpu_seconds(r, r) or 0.0 for r in self.roots)
+        loop = sum(cpu_seconds(f"{r}/task/{r}") or 0.0 for r in self.roots)
         parts = {
             "api event loop": loop,
             "api other threads": api - loop,

@@ -64,20 +64,11 @@ def descendants(pid: int) -> list[int]:
     return tree
 
 
-def cpu_seconds(pid: int) -> float | None:
-    """User + system CPU seconds a process has used so far; None once it is gone."""
+def cpu_seconds(pid: int | str) -> float | None:
+    """User + system CPU seconds a process (or ``"<pid>/task/<tid>"``, one of its threads) has
+    used so far; None once it is gone."""
     try:
         fields = _stat(pid)
-    except OSError:
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def thread_cpu_seconds(pid: int, tid: int) -> float | None:
-    """User + system CPU seconds one thread of a process has used so far; None once it is
-    gone."""
-    try:
-        fields = _stat(f"{pid}/task/{tid}")
     except OSError:
         return None
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")

@@ -75,9 +75,12 @@ def main() -> None:
     parser.add_argument("--uploads", type=int, default=500)
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
-    body = honest_manifest(np.random.default_rng(0), "floor").model_dump_json().encode()
-    folder = Path(tempfile.mkdtemp(prefix="srd-floor-"))
+    with tempfile.TemporaryDirectory(prefix="srd-floor-") as folder:
+        _measure(Path(folder), args.uploads, args.repeats)
 
+
+def _measure(folder: Path, uploads: int, repeats: int) -> None:
+    body = honest_manifest(np.random.default_rng(0), "floor").model_dump_json().encode()
     engine = create_engine(f"sqlite:///{folder / 'core.db'}")
     event.listen(engine, "connect", _wal)
     METADATA.create_all(engine)
@@ -119,13 +122,15 @@ def main() -> None:
         )
         raw.execute("COMMIT")
 
-    print(f"manifest {len(body)} bytes; CPU ms per upload, best of {args.repeats} x {args.uploads}")
+    print(f"manifest {len(body)} bytes; CPU ms per upload, best of {repeats} x {uploads}")
     for name, call in (
         ("parse + digest", parse),
         ("parse + digest + one insert (SQLAlchemy Core)", core),
         ("parse + digest + one insert (sqlite3)", plain),
     ):
-        print(f"{name:>48}: {_best(call, args.uploads, args.repeats):.3f}")
+        print(f"{name:>48}: {_best(call, uploads, repeats):.3f}")
+    raw.close()
+    engine.dispose()
 
 
 if __name__ == "__main__":

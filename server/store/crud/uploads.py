@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import bindparam, func, insert, select, update
+from sqlalchemy import Text, bindparam, cast, func, insert, select, update
 from sqlalchemy.orm import Session, aliased
 
 from screener import Verdict, review
@@ -306,7 +306,7 @@ _PENDING_FOR_UPDATE = (
         FineTuneAnswer.outcome,
         FineTuneAnswer.answer,
         FineTuneAnswer.model_id,
-        FineTuneAnswer.manifest,
+        cast(FineTuneAnswer.manifest, Text).label("manifest"),  # stored again as it is
         FineTuneRound.auction_id,
         FineTuneRound.round,
         ModelVersion.participant_id,
@@ -320,10 +320,16 @@ _PENDING_FOR_UPDATE = (
 _LOCK_PARTICIPANT = (
     select(Participant.id).where(Participant.id == bindparam("id")).with_for_update()
 )
-_LATEST_VERSION = select(func.max(ModelVersion.version)).where(
-    ModelVersion.participant_id == bindparam("id")
+_INSERT_VERSION = (
+    insert(ModelVersion)
+    .values(
+        version=select(func.max(ModelVersion.version) + 1)
+        .where(ModelVersion.participant_id == bindparam("owner"))
+        .scalar_subquery()
+    )
+    .returning(ModelVersion.id, ModelVersion.version)
 )
-_INSERT_VERSION = insert(ModelVersion).returning(ModelVersion.id)
+"""The participant's next version (after its latest; a judged upload's participant has one)."""
 _JUDGE_ANSWER = (
     update(FineTuneAnswer).where(FineTuneAnswer.id == bindparam("answer_id")).values(manifest=None)
 )
@@ -341,17 +347,17 @@ def record_verdict(
     row = connection.execute(_PENDING_FOR_UPDATE, {"answer_id": answer_id}).one()
     if row.outcome != AnswerOutcome.PENDING:
         return answer_bytes(row.answer or {})
-    participant = {"id": row.participant_id}
+    if row.manifest is None:  # stored with every pending upload
+        raise RuntimeError(f"the pending upload {answer_id} has no manifest")
     if connection.dialect.name != "sqlite":  # SQLite has no row locks: it serialises writers
-        connection.execute(_LOCK_PARTICIPANT, participant)
-    number = connection.execute(_LATEST_VERSION, participant).scalar_one() + 1
+        connection.execute(_LOCK_PARTICIPANT, {"id": row.participant_id})
     reasons = [reason.to_dict() for reason in verdict.reasons]
     status = ModelStatus(review(verdict, margin))
     accepted = status == ModelStatus.ACCEPTED
     version = {
+        "owner": row.participant_id,
         "participant_id": row.participant_id,
-        "version": number,
-        "manifest": row.manifest,
+        "manifest": JSONText(row.manifest),
         "accepted": accepted,
         "status": status,
         "reasons": reasons,
@@ -361,7 +367,7 @@ def record_verdict(
         "auction_id": row.auction_id,
         "round": row.round,
     }
-    uploaded = connection.execute(_INSERT_VERSION, version).scalar_one()
+    uploaded, number = connection.execute(_INSERT_VERSION, version).one()
     outcome = AnswerOutcome(status)
     body = answer_bytes(
         {

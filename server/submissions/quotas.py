@@ -232,7 +232,7 @@ class Throttle:
                 events.append((place, REGISTRATION))
         for subject, event_kind in events:
             self.counts[(subject, event_kind)].pending.append(self.now)
-            if event_kind in (VERSION, REFUSAL):
+            if subject == person:  # the cooldown reads a participant's own
                 self.recent[subject].append((event_kind, self.now))
             self.rows.append({"subject": subject, "kind": event_kind, "created_at": self.now})
 

@@ -99,14 +99,17 @@ _HEAD = (
     .where(Auction.id == bindparam("auction_id"))
 )
 _AUCTION_EXISTS = select(Auction.id).where(Auction.id == bindparam("auction_id"))
-_ROUNDS = select(
-    FineTuneRound.id,
-    FineTuneRound.round,
-    FineTuneRound.status,
-    FineTuneRound.deadline,
-    FineTuneRound.asked,
-).where(FineTuneRound.auction_id == bindparam("auction_id"))
-_ROUNDS_FOR_SHARE = _ROUNDS.with_for_update(read=True)
+_ROUNDS = (
+    select(
+        FineTuneRound.id,
+        FineTuneRound.round,
+        FineTuneRound.status,
+        FineTuneRound.deadline,
+        FineTuneRound.asked,
+    )
+    .where(FineTuneRound.auction_id == bindparam("auction_id"))
+    .with_for_update(read=True)
+)
 _ANSWER = select(
     FineTuneAnswer.id, FineTuneAnswer.outcome, FineTuneAnswer.body_sha256, FineTuneAnswer.answer
 ).where(
@@ -127,7 +130,7 @@ def upload_target(
     if head is None:
         exists = connection.execute(_AUCTION_EXISTS, ids).first() is not None
         return UploadLookupError("model_id" if exists else "auction_id")
-    rounds = {row.round: row for row in connection.execute(_ROUNDS_FOR_SHARE, ids)}
+    rounds = {row.round: row for row in connection.execute(_ROUNDS, ids)}
     newest = rounds[max(rounds)] if rounds else None
     this = rounds.get(round_number)
     answer = None
@@ -195,22 +198,13 @@ def _late(number: int) -> tuple[int, str, str]:
     )
 
 
-def _different(number: int) -> tuple[int, str, str]:
-    return (
-        409,
-        f"this patron already answered round {number} with another body: one upload per round",
-        "already_answered",
-    )
-
-
 def store_upload(session: Session, *, upload: UploadIn, target: UploadTarget) -> Stored:
     """Store an upload as it arrives, in the transaction that read its ``target``: pending
     with its manifest (a repeat of the current weights is accepted at once), a repeat of an
-    answered upload answered as before, a late one recorded as late."""
+    answered upload (the same bytes: the route refuses others) answered as before, a late one
+    recorded as late."""
     connection = session.connection()
     if target.answer_outcome in ANSWERED:
-        if target.answer_sha256 != upload.body_sha256:
-            return Stored(refusal=_different(upload.round_number))
         if target.answer_outcome == AnswerOutcome.PENDING:
             return Stored(answer_id=target.answer_id)
         return Stored(answer=answer_bytes(target.answer or {}))

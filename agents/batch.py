@@ -115,6 +115,19 @@ class FSNBatch:
         changes: dict[str, Any] = dict(params)
         return dataclasses.replace(self, **changes)
 
+    def to(self, dtype: torch.dtype) -> FSNBatch:
+        """The batch with its real-valued tensors in ``dtype`` (itself when they already are)."""
+        if self.dtype == dtype:
+            return self
+        return dataclasses.replace(
+            self,
+            **{
+                f.name: value.to(dtype)
+                for f in dataclasses.fields(self)
+                if isinstance(value := getattr(self, f.name), Tensor) and value.is_floating_point()
+            },
+        )
+
     def select(self, index: Sequence[int] | Tensor | np.ndarray | slice) -> FSNBatch:
         """The sub-batch of the patrons at ``index`` (in that order; a slice gives views)."""
         if isinstance(index, slice):

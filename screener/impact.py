@@ -75,11 +75,18 @@ def _population(trial: int) -> tuple[Manifest, ...]:
     )
 
 
+DTYPE = torch.float32
+"""The test auctions' arithmetic: float32, as the noisy scan's. Their noise is drawn in float32
+as in every auction, a vote closer to a tie than float32 resolves is the noise's to decide, and
+what they measure is a mean purchase price against a bar cents away (docs/screener.md: the
+same verdicts and prices as float64 on 1089 models)."""
+
+
 @functools.cache
 def _people() -> tuple[list[Manifest], FSNBatch]:
     """Every trial's reference patrons in trial order, and their batch (read once)."""
     people = [m for trial in range(limits.IMPACT_TRIALS) for m in _population(trial)]
-    return people, from_manifests(people)
+    return people, from_manifests(people, DTYPE)
 
 
 def _market_seed(supply: float, trial: int) -> int:
@@ -128,7 +135,7 @@ def run(candidates: Sequence[Candidate]) -> list[Outcome]:
             index += range(first, first + limits.IMPACT_HONEST)
             index += [] if own is None else [own] * limits.IMPACT_COPIES
     buyers: list[list[tuple[int, float]]] = [[] for _ in auctions]
-    engine = MarketBatch(auctions, patrons=pool.select(index))
+    engine = MarketBatch(auctions, patrons=pool.select(index), dtype=DTYPE)
     while not engine.finished.all():
         for a, sales in enumerate(engine.step_sales()):
             buyers[a] += sales
@@ -142,7 +149,9 @@ def run(candidates: Sequence[Candidate]) -> list[Outcome]:
 
 
 def _as_batch(candidate: Manifest | FSNBatch) -> FSNBatch:
-    return candidate if isinstance(candidate, FSNBatch) else from_manifests([candidate])
+    if isinstance(candidate, FSNBatch):
+        return candidate.to(DTYPE)
+    return from_manifests([candidate], DTYPE)
 
 
 def _as_manifest(candidate: Manifest | FSNBatch) -> Manifest:

@@ -20,7 +20,6 @@ which models hold anywhere the auction goes (``holds``): those go on to the mark
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from typing import NamedTuple
 
@@ -106,26 +105,14 @@ def _scores(batch: FSNBatch) -> tuple[Array, Array]:
     with torch.no_grad():
         for index, part in passes(batch):
             clean[index] = clean_logits(part, ROWS64).numpy()
-            single = _single(part)
+            # In float32: the market draws its noise in float32, the many copies cost half as
+            # much, and decisions closer to a tie than float32 resolves are the noise's.
+            single = part.to(torch.float32)
             scale = noise_scale(single)[:, None]  # (p, 1, D, 8)
             noise = normals[:, : part.max_copies][None] * scale
             scores = decision_logits(single, _DRAWN_ROWS, noise)
             noisy[index] = scores.reshape(len(index), K, R, 3).numpy()
     return clean, noisy
-
-
-def _single(batch: FSNBatch) -> FSNBatch:
-    """The batch in float32: the market draws its noise in float32, and the noisy scan's many
-    copies cost half as much (decisions closer to a tie than float32 resolves are noise's)."""
-    return dataclasses.replace(
-        batch,
-        **{
-            f.name: getattr(batch, f.name).float()
-            for f in dataclasses.fields(batch)
-            if isinstance(getattr(batch, f.name), torch.Tensor)
-            and getattr(batch, f.name).is_floating_point()
-        },
-    )
 
 
 def _modal(decisions: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:

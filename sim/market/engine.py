@@ -102,6 +102,25 @@ class _Moves(NamedTuple):
     """The patrons who quit."""
 
 
+def _starts(configs: Sequence[MarketConfig]) -> tuple[list[AuctionRandom], np.ndarray]:
+    """Each auction's generators and item rows as it starts (its rows drawn). Auctions that
+    share a seed and the rows' settings start alike, so their start is made once and copied
+    (a batch of test auctions repeats a few seeds many times)."""
+    made: dict[tuple[int, int, float], int] = {}
+    randoms: list[AuctionRandom] = []
+    rows: list[np.ndarray] = []
+    for config in configs:
+        first = made.setdefault((config.seed, config.n_rows, config.base_price), len(randoms))
+        if first < len(randoms):
+            randoms.append(randoms[first].copy())
+            rows.append(rows[first])
+            continue
+        random = AuctionRandom.from_seed(config.seed)
+        rows.append(item_rows(config, random.numpy))
+        randoms.append(random)
+    return randoms, np.stack(rows)
+
+
 class MarketBatch:
     """Independent auctions advanced in lock-step, all patrons in one tensor batch.
 
@@ -155,10 +174,7 @@ class MarketBatch:
         )
         self.scale = noise_scale(self.batch)
         self.copies = self.batch.copies.numpy()
-        self.random = [AuctionRandom.from_seed(c.seed) for c in self.configs]
-        rows = np.stack(
-            [item_rows(c, r.numpy) for c, r in zip(self.configs, self.random, strict=True)]
-        )
+        self.random, rows = _starts(self.configs)
         self.rows = torch.tensor(rows, dtype=dtype)
         self.price = np.array([c.base_price for c in self.configs], dtype=np.float64)
         self.threshold = np.array([c.threshold_sell_price for c in self.configs], dtype=np.float64)

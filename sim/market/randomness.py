@@ -38,6 +38,12 @@ class AuctionRandom:
             torch_generator(rows_seq),
         )
 
+    def copy(self) -> AuctionRandom:
+        """Independent generators in the same state."""
+        numpy = np.random.Generator(type(self.numpy.bit_generator)())
+        numpy.bit_generator.state = self.numpy.bit_generator.state
+        return AuctionRandom(numpy, self.decisive.clone_state(), self.rows.clone_state())
+
     def state(self) -> dict[str, Any]:
         return {
             "numpy": self.numpy.bit_generator.state,

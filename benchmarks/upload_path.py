@@ -1,0 +1,157 @@
+"""The API's upload path alone, in one quiet process: what an upload's own code costs.
+
+``benchmarks/capacity.py`` measures a whole server under load, where an upload's CPU mixes with
+the transport, the pushes, the auction steps and the other requests, and where the code runs
+with cold caches between the agents' processes. This measures the path of
+``server.auctions.uploads.upload`` (the strict parse, the checks and the store in one
+transaction, the verdict recorded in another, the round made due when its last upload is
+judged) in one process that does nothing else, over and over on the same data, so it is the
+best case of that code: compare it with the design's floor (``benchmarks/upload_floor.py``)
+and with the server under load.
+
+Setup (unmeasured): a real ``srd serve`` on a SQLite file takes 64 honest submissions and plays
+a remote auction of them until its first fine-tuning round opens, then stops. Each run restores
+that database and uploads every asked patron's pre-built fine-tuned manifest (as the capacity
+benchmark's agents do) through ``upload``, with a stand-in screener that accepts at once (the
+screener's cost is its own). CPU of the whole process (the thread pool's database work
+included) per upload, best of ``--repeats`` runs.
+
+    .venv/bin/python benchmarks/upload_path.py [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import shutil
+import sys
+import tempfile
+import time
+from datetime import datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import capacity
+
+from agents.manifest import Manifest
+from screener import Verdict
+from server.api.errors import RequestError
+from server.auctions.uploads import UploadRequest, upload
+from server.cli.launch import ServerProcess, settings_environment
+from server.store.db import Database
+
+PATRONS = 64
+DEADLINE_S = 300.0
+
+
+class Accepting:
+    """The screener's stand-in: every fine-tuned version accepted at once."""
+
+    async def verdict(
+        self, manifest: Manifest, *, at_the_door: bool = True, manifest_json: str | None = None
+    ) -> Verdict:
+        return Verdict(accepted=True)
+
+
+def prepare(folder: Path) -> tuple[int, list[tuple[int, str, bytes]], datetime]:
+    """A database whose remote auction has its first round open: the auction, each patron's
+    (model id, token, first upload), and a moment inside the round."""
+    plan = capacity.Plan(3, 4, DEADLINE_S, (1.0, 5.0), 0)
+    url = f"sqlite:///{folder / 'srd.db'}"
+    with ServerProcess(
+        database_url=url,
+        data_dir=folder / "data",
+        admin_token=capacity.ADMIN_TOKEN,
+        extra_env=settings_environment({**capacity.QUOTAS_OFF}),
+        log_path=folder / "serve.log",
+    ) as server:
+        auction_id, agents, opened = asyncio.run(_open_round(server.url, plan))
+    shutil.copy(folder / "srd.db", folder / "round-open.db")
+    patrons = [(model_id, token, uploads[0]) for model_id, token, uploads in agents]
+    return auction_id, patrons, opened
+
+
+async def _open_round(
+    server: str, plan: capacity.Plan
+) -> tuple[int, list[tuple[int, str, list[bytes]]], datetime]:
+    admin = {"Authorization": f"Bearer {capacity.ADMIN_TOKEN}"}
+    async with httpx.AsyncClient(timeout=60) as client:
+        agents = await capacity.submit_agents(client, server, PATRONS, 7, plan)
+        body = {
+            "n_fish": 6,
+            "model_ids": [model_id for model_id, _, _ in agents],
+            "fine_tune_mode": "remote",
+            "fine_tune_rounds": plan.rounds,
+            "max_iterations": plan.iterations,
+            "round_deadline_s": plan.deadline_s,
+            "seed": 1,
+        }
+        created = capacity.checked(
+            await client.post(f"{server}/auctions", json=body, headers=admin)
+        )
+        auction_id = created.json()["auction_id"]
+        current = await client.get(
+            f"{server}/auctions/{auction_id}/rounds/current", params={"wait": 30, "after": 0}
+        )
+        round_ = capacity.checked(current).json()
+    if round_.get("round") != 1 or round_.get("status") != "open":
+        raise RuntimeError(f"the first round did not open: {round_}")
+    deadline = datetime.fromisoformat(round_["deadline"].replace("Z", "+00:00"))
+    return auction_id, agents, deadline - timedelta(seconds=DEADLINE_S - 1)
+
+
+def run_once(
+    folder: Path, auction_id: int, patrons: list[tuple[int, str, bytes]], arrived: datetime
+) -> tuple[int, float]:
+    """Every patron's upload on a fresh copy of the database: (uploads answered, CPU s)."""
+    for suffix in ("", "-wal", "-shm"):
+        (folder / f"work.db{suffix}").unlink(missing_ok=True)
+    shutil.copy(folder / "round-open.db", folder / "work.db")
+    database = Database(f"sqlite:///{folder / 'work.db'}")
+    try:
+        return asyncio.run(_upload_all(database, auction_id, patrons, arrived))
+    finally:
+        database.close()
+
+
+async def _upload_all(
+    database: Database, auction_id: int, patrons: list[tuple[int, str, bytes]], arrived: datetime
+) -> tuple[int, float]:
+    screening: Any = Accepting()
+    answered = 0
+    start = time.process_time()
+    for model_id, token, body in patrons:
+        request = UploadRequest(auction_id, 1, model_id, token, body, arrived)
+        try:
+            await upload(database, screening, lambda _: None, request, margin=0.0)
+        except RequestError as exc:  # not asked: it left the auction before the round
+            if not any(item["type"] == "not_asked" for item in exc.items):
+                raise
+            continue
+        answered += 1
+    return answered, time.process_time() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="srd-upload-path-") as name:
+        folder = Path(name)
+        auction_id, patrons, arrived = prepare(folder)
+        run_once(folder, auction_id, patrons, arrived)  # warm-up
+        runs = [run_once(folder, auction_id, patrons, arrived) for _ in range(args.repeats)]
+        answered, best = runs[0][0], min(cpu for _, cpu in runs)
+        print(
+            f"{answered} uploads of {len(patrons)} patrons (the others left before the round); "
+            f"CPU per upload, best of {args.repeats} runs: {best / answered * 1e3:.3f} ms"
+        )
+
+
+if __name__ == "__main__":
+    main()

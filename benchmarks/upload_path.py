@@ -16,7 +16,12 @@ benchmark's agents do) through ``upload``, with a stand-in screener that accepts
 screener's cost is its own). CPU of the whole process (the thread pool's database work
 included) per upload, best of ``--repeats`` runs.
 
-    .venv/bin/python benchmarks/upload_path.py [--repeats 5]
+``--disturb`` puts back one thing a server under load does to this code: ``memory`` sweeps
+32 MB between two uploads (the caches are cold again, as after the other processes' turn on
+the cores), ``thread`` keeps another thread of the process running Python (as the event loop
+does while the thread pool writes; the two take turns on the GIL).
+
+    .venv/bin/python benchmarks/upload_path.py [--repeats 5] [--disturb memory|thread]
 """
 
 from __future__ import annotations
@@ -26,12 +31,14 @@ import asyncio
 import shutil
 import sys
 import tempfile
+import threading
 import time
 from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -106,26 +113,63 @@ async def _open_round(
 
 
 def run_once(
-    folder: Path, auction_id: int, patrons: list[tuple[int, str, bytes]], arrived: datetime
+    folder: Path,
+    auction_id: int,
+    patrons: list[tuple[int, str, bytes]],
+    arrived: datetime,
+    disturb: str | None = None,
 ) -> tuple[int, float]:
-    """Every patron's upload on a fresh copy of the database: (uploads answered, CPU s)."""
+    """Every patron's upload on a fresh copy of the database: (uploads answered, CPU s of the
+    upload path)."""
     for suffix in ("", "-wal", "-shm"):
         (folder / f"work.db{suffix}").unlink(missing_ok=True)
     shutil.copy(folder / "round-open.db", folder / "work.db")
     database = Database(f"sqlite:///{folder / 'work.db'}")
+    stop, spun = threading.Event(), [0.0]
+    spinner = threading.Thread(target=_spin, args=(stop, spun), daemon=True)
+    if disturb == "thread":
+        spinner.start()
+        while not spun[0]:  # running before the uploads start
+            time.sleep(0.001)
     try:
-        return asyncio.run(_upload_all(database, auction_id, patrons, arrived))
+        return asyncio.run(
+            _upload_all(database, auction_id, patrons, arrived, disturb == "memory", spun)
+        )
     finally:
+        stop.set()
         database.close()
 
 
+def _spin(stop: threading.Event, spun: list[float]) -> None:
+    """Python running in another thread until ``stop``; its CPU time so far in ``spun[0]``."""
+    while not stop.is_set():
+        sum(range(2000))
+        spun[0] = time.thread_time()
+
+
+SWEPT = np.ones(4_000_000)
+"""32 MB, more than the caches hold."""
+
+
 async def _upload_all(
-    database: Database, auction_id: int, patrons: list[tuple[int, str, bytes]], arrived: datetime
+    database: Database,
+    auction_id: int,
+    patrons: list[tuple[int, str, bytes]],
+    arrived: datetime,
+    sweep: bool,
+    spun: list[float],
 ) -> tuple[int, float]:
+    """(uploads answered, CPU s of the upload path: the sweeps and the busy thread's own CPU
+    left out)."""
     screening: Any = Accepting()
     answered = 0
-    start = time.process_time()
+    swept = 0.0
+    start, spun_before = time.process_time(), spun[0]
     for model_id, token, body in patrons:
+        if sweep:  # not counted
+            before = time.process_time()
+            SWEPT[::8] += 1.0
+            swept += time.process_time() - before
         request = UploadRequest(auction_id, 1, model_id, token, body, arrived)
         try:
             await upload(database, screening, lambda _: None, request, margin=0.0)
@@ -134,22 +178,28 @@ async def _upload_all(
                 raise
             continue
         answered += 1
-    return answered, time.process_time() - start
+    return answered, time.process_time() - start - swept - (spun[0] - spun_before)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--disturb", choices=("memory", "thread"))
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="srd-upload-path-") as name:
         folder = Path(name)
         auction_id, patrons, arrived = prepare(folder)
         run_once(folder, auction_id, patrons, arrived)  # warm-up
-        runs = [run_once(folder, auction_id, patrons, arrived) for _ in range(args.repeats)]
+        runs = [
+            run_once(folder, auction_id, patrons, arrived, args.disturb)
+            for _ in range(args.repeats)
+        ]
         answered, best = runs[0][0], min(cpu for _, cpu in runs)
         print(
             f"{answered} uploads of {len(patrons)} patrons (the others left before the round); "
-            f"CPU per upload, best of {args.repeats} runs: {best / answered * 1e3:.3f} ms"
+            f"CPU per upload, best of {args.repeats} runs"
+            f"{f' (disturbed: {args.disturb})' if args.disturb else ''}: "
+            f"{best / answered * 1e3:.3f} ms"
         )
 
 

@@ -137,6 +137,8 @@ def test_same_seed_same_auction_and_batch_equals_alone():
         (patrons(10, 12, 4, lr=0.3), MarketConfig(n_fish=3, n_rows=16, fine_tune=True, seed=10)),
         (patrons(11, 9), MarketConfig(n_fish=7, n_rows=16, seed=11, evaluate_all_rows=False)),
         (patrons(12, 14, lr=0.3), MarketConfig(n_fish=1, n_rows=16, fine_tune=True, seed=12)),
+        # the first one's seed again (the batch starts it from a copy of the first's start)
+        (patrons(13, 10), MarketConfig(n_fish=2, n_rows=16, fine_tune=True, seed=10)),
     ]
     alone = [list(Market(m, c).run()) for m, c in configs]
     assert alone[0] == list(Market(*configs[0]).run())

@@ -66,4 +66,14 @@ class IterationRecord:
     def explained(self) -> dict[str, Any]:
         """The explanations, JSON-ready: ``{row, patrons: [{patron, vote, sensor, decision,
         pfc}]}``."""
-        return {"row": self.row, "patrons": [dataclasses.asdict(e) for e in self.explanations]}
+        patrons = [
+            {
+                "patron": e.patron,
+                "vote": e.vote,
+                "sensor": dict(e.sensor),
+                "decision": dict(e.decision),
+                "pfc": dict(e.pfc),
+            }
+            for e in self.explanations
+        ]
+        return {"row": self.row, "patrons": patrons}

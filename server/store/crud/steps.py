@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import func, insert, select, update
+from sqlalchemy import bindparam, func, insert, select, update
 from sqlalchemy.orm import Session, selectinload, undefer
 
 from server.store.crud.auctions import IterationFigures
@@ -228,6 +228,17 @@ def commit_iteration(
     return OpenRound(round_id, list(opened.asked), opened.deadline)
 
 
+_BID_WITH = (
+    update(AuctionPatron)
+    .where(
+        AuctionPatron.auction_id == bindparam("auction"),
+        AuctionPatron.position == bindparam("patron"),
+    )
+    .values(current_model_id=bindparam("version"))
+)
+"""A patron bids with an accepted version from now (one statement for a round's patrons)."""
+
+
 def close_round(
     session: Session, *, auction_id: int, round: OpenRound, now: datetime
 ) -> dict[int, dict[str, Any]]:
@@ -281,11 +292,13 @@ def close_round(
                 for position in silent
             ],
         )
-    for position, version in applied.items():
+    if applied:
         connection.execute(
-            update(AuctionPatron)
-            .where(AuctionPatron.auction_id == auction_id, AuctionPatron.position == position)
-            .values(current_model_id=version)
+            _BID_WITH,
+            [
+                {"auction": auction_id, "patron": position, "version": version}
+                for position, version in applied.items()
+            ],
         )
     rows = connection.execute(
         select(ModelVersion.id, ModelVersion.manifest).where(

@@ -41,7 +41,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from datetime import UTC, datetime
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -367,21 +367,27 @@ def _transport(body: bytes, kind: str) -> float:
 
 async def _drive(pid: int, port: int, body: bytes, kind: str) -> float:
     text = body.decode()
-    best = float("inf")
-    if kind == "websocket":
-        async with connect(f"ws://127.0.0.1:{port}/socket", max_size=1 << 20) as websocket:
-            for _ in range(3):
-                before = cpu_seconds(pid) or 0.0
-                for _ in range(MESSAGES):
-                    await websocket.send(text)
-                    await websocket.recv()
-                best = min(best, ((cpu_seconds(pid) or 0.0) - before) / MESSAGES * 1e3)
-        return best
-    async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{port}") as client:
+    async with contextlib.AsyncExitStack() as stack:
+        exchange: Callable[[], Awaitable[object]]
+        if kind == "websocket":
+            url = f"ws://127.0.0.1:{port}/socket"
+            websocket = await stack.enter_async_context(connect(url, max_size=1 << 20))
+
+            async def exchange() -> object:
+                await websocket.send(text)
+                return await websocket.recv()
+        else:
+            url = f"http://127.0.0.1:{port}"
+            client = await stack.enter_async_context(httpx.AsyncClient(base_url=url))
+
+            async def exchange() -> object:
+                return (await client.put("/upload", content=body)).raise_for_status()
+
+        best = float("inf")
         for _ in range(3):
             before = cpu_seconds(pid) or 0.0
             for _ in range(MESSAGES):
-                (await client.put("/upload", content=body)).raise_for_status()
+                await exchange()
             best = min(best, ((cpu_seconds(pid) or 0.0) - before) / MESSAGES * 1e3)
     return best
 

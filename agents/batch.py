@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import torch
 from torch import Tensor
 
@@ -61,7 +62,8 @@ class FSNBatch:
     harmless placeholders), the augmentation ``copies`` (P,), ``noise_std`` (P,),
     ``noise_mask`` (P,8) (1 on jittered inputs), the fine-tuning ``epochs`` (P,),
     ``batch_size`` (P,), ``learning_rate`` (P,), ``pfc_trainable`` (P,) and the manifests'
-    ``participants`` and ``descriptions``.
+    ``participants`` and ``descriptions`` (1-D arrays of str objects: a sub-batch picks its
+    names as it picks its tensors, without a Python loop over the patrons).
     """
 
     es_weight: Tensor
@@ -84,8 +86,8 @@ class FSNBatch:
     batch_size: Tensor
     learning_rate: Tensor
     pfc_trainable: Tensor
-    participants: list[str]
-    descriptions: list[str]
+    participants: npt.NDArray[np.object_]
+    descriptions: npt.NDArray[np.object_]
 
     @property
     def n_patrons(self) -> int:
@@ -119,14 +121,12 @@ class FSNBatch:
         """The batch with its real-valued tensors in ``dtype`` (itself when they already are)."""
         if self.dtype == dtype:
             return self
-        return dataclasses.replace(
-            self,
-            **{
-                f.name: value.to(dtype)
-                for f in dataclasses.fields(self)
-                if isinstance(value := getattr(self, f.name), Tensor) and value.is_floating_point()
-            },
-        )
+        changes: dict[str, Any] = {
+            f.name: value.to(dtype)
+            for f in dataclasses.fields(self)
+            if isinstance(value := getattr(self, f.name), Tensor) and value.is_floating_point()
+        }
+        return dataclasses.replace(self, **changes)
 
     def select(self, index: Sequence[int] | Tensor | np.ndarray | slice) -> FSNBatch:
         """The sub-batch of the patrons at ``index`` (in that order; a slice gives views)."""
@@ -134,15 +134,15 @@ class FSNBatch:
             sliced = {f.name: getattr(self, f.name)[index] for f in dataclasses.fields(self)}
             return FSNBatch(**sliced)
         idx = torch.as_tensor(index, dtype=torch.long)
-        positions = idx.tolist()
-        fields: dict[str, object] = {}
+        positions = idx.numpy()
+        fields: dict[str, Any] = {}
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if isinstance(value, Tensor):
                 fields[f.name] = value.index_select(0, idx)
             else:
-                fields[f.name] = list(map(value.__getitem__, positions))
-        return FSNBatch(**fields)  # type: ignore[arg-type]
+                fields[f.name] = value[positions]
+        return FSNBatch(**fields)
 
 
 def concat(batches: Sequence[FSNBatch]) -> FSNBatch:
@@ -156,7 +156,7 @@ def concat(batches: Sequence[FSNBatch]) -> FSNBatch:
         if isinstance(values[0], Tensor):
             fields[f.name] = torch.cat(values)
         else:
-            fields[f.name] = [item for value in values for item in value]
+            fields[f.name] = np.concatenate(values)
     return FSNBatch(**fields)
 
 
@@ -300,9 +300,16 @@ def from_manifests(manifests: Sequence[Manifest], dtype: torch.dtype = torch.flo
         batch_size=integer(size[:, 0]),
         learning_rate=real(lr[:, 0]),
         pfc_trainable=torch.tensor(trainable[:, 0] != 0.0),
-        participants=[m.participant for m in manifests],
-        descriptions=[m.description for m in manifests],
+        participants=_texts([m.participant for m in manifests]),
+        descriptions=_texts([m.description for m in manifests]),
     )
+
+
+def _texts(values: Sequence[str]) -> npt.NDArray[np.object_]:
+    """A 1-D array of the strings ``values`` (never a 2-D one, whatever they hold)."""
+    out = np.empty(len(values), dtype=object)
+    out[:] = values
+    return out
 
 
 _COLUMN_BLOCKS = (

@@ -104,10 +104,11 @@ def _scores(batch: FSNBatch) -> tuple[Array, Array]:
     normals = _normals().reshape(K * R, MAX_COPIES, len(INPUTS))
     with torch.no_grad():
         for index, part in passes(batch):
-            clean[index] = clean_logits(part, ROWS64).numpy()
             # In float32: the market draws its noise in float32, the many copies cost half as
-            # much, and decisions closer to a tie than float32 resolves are the noise's.
+            # much, and decisions closer to a tie than float32 resolves are the noise's; the
+            # clean scores too, as the probes' (clean and noisy alike rounded).
             single = part.to(torch.float32)
+            clean[index] = clean_logits(single, ROWS).numpy()
             scale = noise_scale(single)[:, None]  # (p, 1, D, 8)
             noise = normals[:, : part.max_copies][None] * scale
             scores = decision_logits(single, _DRAWN_ROWS, noise)

@@ -21,7 +21,7 @@ def state(engine: MarketBatch) -> dict[str, Any]:
     """Everything needed to continue (tensors, numbers, generator states)."""
     return {
         "format": CHECKPOINT_FORMAT,
-        "participants": list(engine.batch.participants),
+        "participants": engine.batch.participants.tolist(),
         "price": engine.price.tolist(),
         "threshold": engine.threshold.tolist(),
         "n_available": engine.n_available.tolist(),
@@ -47,7 +47,7 @@ def load_state(engine: MarketBatch, saved: dict[str, Any]) -> None:
     configs."""
     if (
         saved.get("format") not in (1, CHECKPOINT_FORMAT)
-        or saved["participants"] != engine.batch.participants
+        or saved["participants"] != engine.batch.participants.tolist()
     ):
         raise ValueError("checkpoint does not belong to these manifests")
     engine.price = np.array(saved["price"], dtype=np.float64)

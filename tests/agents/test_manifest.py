@@ -59,7 +59,7 @@ def test_concatenated_batches_are_the_batch_of_all_their_manifests():
             assert torch.equal(getattr(joined, name), value), name
             assert getattr(joined, name).dtype == value.dtype, name
         else:
-            assert getattr(joined, name) == value, name
+            assert list(getattr(joined, name)) == list(value), name
     with pytest.raises(ValueError, match="at least one batch"):
         concat([])
 

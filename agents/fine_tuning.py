@@ -184,7 +184,7 @@ def _threshold_and_slope(
     fired = torch.tanh(torch.maximum(z, numbers["slope"] * z), out=out)
     # a·d max(z, ns·z)/dz: a above 0, ns·a below, their mean at a tie (as autograd).
     bend = torch.addcmul(numbers["bend_mid"], torch.sign(z), numbers["bend_half"])
-    return fired, torch.mul(1.0 - fired * fired, bend, out=d_out)
+    return fired, torch.mul(torch.rsub(fired * fired, 1.0), bend, out=d_out)
 
 
 def _selective_and_slope(
@@ -250,7 +250,8 @@ class _Prefix:
         copy_weight: Tensor,
         scale: Tensor,
         rate: Tensor,
-        columns: int,
+        rows: int,
+        copies: int,
     ) -> None:
         k = len(theta)
         self.k = k
@@ -263,7 +264,12 @@ class _Prefix:
         self.copy_weight = copy_weight  # (k, D)
         self.copy_column = copy_weight[:, :, None]
         self.copy_cell = copy_weight[:, None, None, :]
-        n_es = len(ES_NEURONS)
+        n_es, columns = len(ES_NEURONS), rows * copies
+        self.minus_one = theta.new_full((k, 1, rows), -1.0)  # the one-hot, subtracted
+        # one step's gradient, written layer by layer, then side by side as theta's columns
+        self.grad_layers = [theta.new_empty((k, *shape)) for shape in _LAYER_SHAPES]
+        self.grad_columns = [g.view(k, -1) for g in self.grad_layers]
+        self.grad = torch.empty_like(theta)
         self.pre = theta.new_empty((k, n_es, columns))
         self.sources = theta.new_empty((k, len(PFC_SOURCES), columns))
         self.sensor = self.sources[:, :n_es]
@@ -282,10 +288,11 @@ class _Prefix:
 
 def _band_gradient(band: _Prefix, xe: Tensor, weight: Tensor) -> Tensor:
     """∇θ of Σ_rows weight·CEL([T, F], argmax [T, F]) for the k patrons of ``band`` (k, N_θ):
-    ``xe`` (k, B, D, 8) their batch rows plus each copy's noise, ``weight`` (k, B) (1/rows in
-    the batch, 0 on padding); the band's ``copy_weight`` (k, D) is 1/D_ic on a patron's
+    ``xe`` (k, B, D, 8) their batch rows plus each copy's noise, ``weight`` (k, 1, B) (1/rows
+    in the batch, 0 on padding); the band's ``copy_weight`` (k, D) is 1/D_ic on a patron's
     copies. The forward pass of ``self_reward`` and its backward written out, each layer one
-    batch of per-patron matrix products over the B·D (row, copy) columns."""
+    batch of per-patron matrix products over the B·D (row, copy) columns, into the band's
+    buffers (the gradient returned is overwritten by its next step)."""
     k, B, D, n_in = xe.shape
     n_es = len(ES_NEURONS)
     es_w, es_b, fc_w, fc_b, j_w, j_b, v_w, v_b = band.layers
@@ -303,29 +310,28 @@ def _band_gradient(band: _Prefix, xe: Tensor, weight: Tensor) -> Tensor:
     judged_mean = torch.bmm(judged.view(k, n_j * B, D), band.copy_column).view(k, n_j, B)
     mean = torch.baddbmm(v_b, v_w, judged_mean)
     # Backward: d CEL / d logits = softmax − one-hot(argmax), times the row's weight; the
-    # argmax of [T, F] is T unless F is larger.
-    true = mean[:, :1] >= mean[:, 1:]
-    chosen = torch.cat((true, ~true), dim=1).to(mean.dtype)
-    g_mean = (torch.softmax(mean, dim=1) - chosen) * weight[:, None]
+    # argmax of [T, F] is T unless F is larger (argmax takes the first of equals).
+    g_mean = torch.softmax(mean, dim=1)
+    g_mean.scatter_add_(1, mean.argmax(dim=1, keepdim=True), band.minus_one)
+    g_mean *= weight
     g_judged_mean = torch.bmm(band.v_w_t, g_mean)  # (k, 3, B)
-    g_judged = (1.0 - judged * judged).view(k, n_j, B, D)
+    g_judged = torch.rsub(judged * judged, 1.0).view(k, n_j, B, D)
     g_judged = (g_judged * g_judged_mean[..., None] * band.copy_cell).view(k, n_j, B * D)
     g_soft = torch.bmm(band.j_w_t, g_judged)
     # soft·(g_soft − Σ soft·g_soft), fused.
     g_sources = torch._softmax_backward_data(g_soft, soft, 1, soft.dtype)
     g_decision = g_sources[:, n_es:]
     g_pre = torch.baddbmm(g_sources[:, :n_es], band.fc_w_t, g_decision) * slope
-    grads = (
-        torch.bmm(g_pre, inputs),
-        g_pre.sum(-1),
-        torch.bmm(g_decision, sensor.transpose(1, 2)),
-        g_decision.sum(-1),
-        torch.bmm(g_judged, soft.transpose(1, 2)),
-        g_judged.sum(-1),
-        torch.bmm(g_mean, judged_mean.transpose(1, 2)),
-        g_mean.sum(-1),
-    )
-    return torch.cat([g.reshape(k, -1) for g in grads], dim=1)
+    g_es_w, g_es_b, g_fc_w, g_fc_b, g_j_w, g_j_b, g_v_w, g_v_b = band.grad_layers
+    torch.bmm(g_pre, inputs, out=g_es_w)
+    torch.sum(g_pre, -1, keepdim=True, out=g_es_b)
+    torch.bmm(g_decision, sensor.transpose(1, 2), out=g_fc_w)
+    torch.sum(g_decision, -1, keepdim=True, out=g_fc_b)
+    torch.bmm(g_judged, soft.transpose(1, 2), out=g_j_w)
+    torch.sum(g_judged, -1, keepdim=True, out=g_j_b)
+    torch.bmm(g_mean, judged_mean.transpose(1, 2), out=g_v_w)
+    torch.sum(g_mean, -1, keepdim=True, out=g_v_b)
+    return torch.cat(band.grad_columns, dim=1, out=band.grad)
 
 
 _STEP_COST = 2000
@@ -397,11 +403,11 @@ def _tune_band(
     position = position.clamp(max=E * R - 1)  # past a patron's last step: never used
     sequence = draws.order[band].reshape(n, 1, E * R).expand(n, S, E * R)
     row = sequence.gather(2, position.transpose(0, 1)).transpose(0, 1)
-    visit = (band[:, None] * E + epoch) * R + row
-    at = dataset[band, None] * R + row
-    weight = (slot < count) / count.to(batch.dtype)
+    visit = ((band[:, None] * E + epoch) * R + row).reshape(S, n * B)
+    at = (dataset[band, None] * R + row).reshape(S, n * B)
+    weight = ((slot < count) / count.to(batch.dtype))[:, :, None]  # (S, n, 1, B)
     stepping = (steps > step[:, 0, 0, None]).sum(dim=1).tolist()  # patrons still stepping
-    normal = draws.normal.reshape(-1, all_copies, n_in)
+    normal = draws.normal.reshape(-1, all_copies, n_in)[:, :D]
     scale = draws.scale[band, None, :D]
     rows = x.to(batch.dtype).reshape(-1, n_in)
     on = (torch.arange(D) < batch.copies[band, None]).to(batch.dtype)
@@ -418,11 +424,12 @@ def _tune_band(
                 copy_weight[:k],
                 scale[:k],
                 rate[:k],
-                B * D,
+                B,
+                D,
             )
-        noise = normal.index_select(0, visit[s, :k].flatten()).view(k, B, all_copies, n_in)
-        data = rows.index_select(0, at[s, :k].flatten()).view(k, B, 1, n_in)
-        xe = torch.addcmul(data, noise[:, :, :D], prefix.scale)
+        noise = normal.index_select(0, visit[s, : k * B]).view(k, B, D, n_in)
+        data = rows.index_select(0, at[s, : k * B]).view(k, B, 1, n_in)
+        xe = torch.addcmul(data, noise, prefix.scale)
         prefix.theta -= prefix.rate * _band_gradient(prefix, xe, weight[s, :k])
     return theta
 

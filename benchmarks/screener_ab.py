@@ -5,11 +5,12 @@ machine (the machine's speed changes from one session to the next, so only such 
 Prints, ms per manifest (CPU, one torch thread, best of 7 calls after two): ``screen_many`` of a
 factory batch of 64 (seed 0), of their fine-tuned versions at the door, ``rescreen`` of those
 fine-tuned versions, ``screen`` of 16 factory manifests one by one, and ``screen`` of each
-model in ``--holders`` (a JSON list of manifests, fastest and slowest). ``--save-holders FILE``
-writes 8 holders as the checkout it runs in defines them (models that hold somewhere on the
-decisive row and pass the rules), so both commits judge the same ones.
+model in ``--holders`` (a JSON list of manifests: fastest, median, 90th percentile, slowest).
+``--save-holders FILE [--count N]`` writes N holders (default 8) as the checkout it runs in
+defines them (factory models that hold somewhere on the decisive row and pass the rules), so
+both commits judge the same ones.
 
-    .venv/bin/python benchmarks/screener_ab.py --save-holders /tmp/holders.json
+    .venv/bin/python benchmarks/screener_ab.py --save-holders /tmp/holders.json --count 300
     for commit in OLD NEW; do
         PYTHONPATH=<checkout of commit> .venv/bin/python benchmarks/screener_ab.py \\
             --holders /tmp/holders.json
@@ -53,28 +54,29 @@ def _best(call: Callable[[], object], calls: int = 7) -> float:
     return min(times) * 1e3
 
 
-def _save_holders(path: Path) -> None:
+def _save_holders(path: Path, count: int) -> None:
     from screener.checks import cheap_checks, failed_any
 
     rng = np.random.default_rng(1)
     holders: list[Manifest] = []
-    while len(holders) < 8:
+    while len(holders) < count:
         models = [honest_manifest(rng, f"holder-{len(holders)}-{i}") for i in range(256)]
         cheap = cheap_checks(from_manifests(models))
         keep = cheap.holds & ~failed_any(cheap.groups)
         holders += [m for m, k in zip(models, keep, strict=True) if k]
-    path.write_text(json.dumps([m.model_dump_json() for m in holders[:8]]))
-    print(f"{path}: 8 holders")
+    path.write_text(json.dumps([m.model_dump_json() for m in holders[:count]]))
+    print(f"{path}: {count} holders")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--holders", type=Path, help="JSON list of manifests to screen alone")
     parser.add_argument("--save-holders", type=Path, metavar="FILE")
+    parser.add_argument("--count", type=int, default=8, help="holders to save")
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.save_holders:
-        _save_holders(args.save_holders)
+        _save_holders(args.save_holders, args.count)
         return
     rng = np.random.default_rng(0)
     made = [honest_manifest(rng, f"h{i}") for i in range(64)]
@@ -89,7 +91,9 @@ def main() -> None:
     if args.holders:
         holders = [Manifest.model_validate_json(t) for t in json.loads(args.holders.read_text())]
         alone = [_best(lambda m=m: screen(m), 3) for m in holders]
-        figures["one holder alone, fastest"] = min(alone)
+        figures[f"one holder alone, fastest of {len(alone)}"] = min(alone)
+        figures["one holder alone, median"] = float(np.median(alone))
+        figures["one holder alone, 90th percentile"] = float(np.percentile(alone, 90))
         figures["one holder alone, slowest"] = max(alone)
     for name, ms in figures.items():
         print(f"{name:>34}: {ms:.2f} ms")

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -149,7 +150,7 @@ def _flat_parameters(batch: FSNBatch) -> Tensor:
 def _unflatten(batch: FSNBatch, flat: Tensor) -> dict[str, Tensor]:
     """The inverse of ``_flat_parameters``."""
     shapes = [t.shape for t in batch.parameters().values()]
-    widths = [int(np.prod(shape[1:])) for shape in shapes]
+    widths = [math.prod(shape[1:]) for shape in shapes]
     parts = torch.split(flat, widths, dim=1)
     return {
         name: part.reshape(shape).clone()
@@ -168,6 +169,13 @@ _LAYER_SHAPES = (
     (len(VERDICTS), 1),
 )
 """Per patron, the trainable tensors of ``PARAMETERS`` as matrices (biases as columns)."""
+_PFC_COLUMNS = torch.cat(
+    [
+        torch.full((rows * cols,), name in PFC_PARAMETERS)
+        for name, (rows, cols) in zip(PARAMETERS, _LAYER_SHAPES, strict=True)
+    ]
+)
+"""The columns of the flat parameters (``_flat_parameters``) that belong to the PFC."""
 
 
 def _layer_views(theta: Tensor) -> list[Tensor]:
@@ -334,6 +342,8 @@ def _band_gradient(band: _Prefix, xe: Tensor, weight: Tensor) -> Tensor:
     return torch.cat(band.grad_columns, dim=1, out=band.grad)
 
 
+_INPUT_CHUNK = 1 << 15
+"""(step, patron, row, copy, input) cells of the SGD steps' inputs made at once (256 KB)."""
 _STEP_COST = 2000
 """The fixed cost of one SGD step of a band (≈ 60 tensor operations), in (row, copy)
 evaluations: patrons of nearby batch sizes share a band while the padding costs less."""
@@ -403,7 +413,8 @@ def _tune_band(
     position = position.clamp(max=E * R - 1)  # past a patron's last step: never used
     sequence = draws.order[band].reshape(n, 1, E * R).expand(n, S, E * R)
     row = sequence.gather(2, position.transpose(0, 1)).transpose(0, 1)
-    visit = ((band[:, None] * E + epoch) * R + row).reshape(S, n * B)
+    # (a chunk of steps reads past a patron's last step: its epoch is clamped, never used)
+    visit = ((band[:, None] * E + epoch.clamp(max=E - 1)) * R + row).reshape(S, n * B)
     at = (dataset[band, None] * R + row).reshape(S, n * B)
     weight = ((slot < count) / count.to(batch.dtype))[:, :, None]  # (S, n, 1, B)
     stepping = (steps > step[:, 0, 0, None]).sum(dim=1).tolist()  # patrons still stepping
@@ -414,7 +425,12 @@ def _tune_band(
     copy_weight = on / on.sum(dim=1, keepdim=True)
     numbers = _activation_table(batch, band)
     groups = batch.activation_groups
+    # The steps' inputs (rows plus noise) are made a chunk of steps at a time: every step at
+    # once for a few patrons (one model's projection: dozens of steps of a few rows), one step
+    # at a time for a wide band (its inputs stay in the cache).
+    chunk = max(1, _INPUT_CHUNK // (n * B * D * n_in))
     prefix: _Prefix | None = None
+    step_inputs = rows.new_empty(0)
     for s, k in enumerate(stepping):
         if prefix is None or prefix.k != k:
             prefix = _Prefix(
@@ -427,9 +443,16 @@ def _tune_band(
                 B,
                 D,
             )
-        noise = normal.index_select(0, visit[s, : k * B]).view(k, B, D, n_in)
-        data = rows.index_select(0, at[s, : k * B]).view(k, B, 1, n_in)
-        xe = torch.addcmul(data, noise, prefix.scale)
+        if s % chunk == 0:  # stepping only falls: k patrons cover the chunk
+            steps_here = min(chunk, S - s)
+            noise = normal.index_select(0, visit[s : s + steps_here, : k * B].flatten())
+            data = rows.index_select(0, at[s : s + steps_here, : k * B].flatten())
+            step_inputs = torch.addcmul(
+                data.view(steps_here, k, B, 1, n_in),
+                noise.view(steps_here, k, B, D, n_in),
+                prefix.scale,
+            )
+        xe = step_inputs[s % chunk, :k]
         prefix.theta -= prefix.rate * _band_gradient(prefix, xe, weight[s, :k])
     return theta
 
@@ -466,13 +489,7 @@ def fine_tune(
     size = batch.batch_size.clamp(max=R)
     steps = epochs * torch.div(R + size - 1, size, rounding_mode="floor")
     theta = _flat_parameters(batch)
-    pfc_columns = torch.cat(
-        [
-            torch.full((t[0].numel(),), name in PFC_PARAMETERS)
-            for name, t in batch.parameters().items()
-        ]
-    )
-    frozen = pfc_columns[None, :] & ~batch.pfc_trainable[:, None]
+    frozen = _PFC_COLUMNS[None, :] & ~batch.pfc_trainable[:, None]
     rate = torch.where(frozen, 0.0, batch.learning_rate[:, None])
     for band in _bands(size, steps, batch.copies):
         theta[band] = _tune_band(

@@ -60,7 +60,7 @@ class Outcome:
     sold: int
     honest: int
 
-    @property
+    @functools.cached_property
     def mean_price(self) -> float:
         return float(np.mean(self.prices)) if self.prices else float("nan")
 
@@ -179,7 +179,7 @@ class References:
     saboteurs: Outcome
     quitters: Outcome
 
-    @property
+    @functools.cached_property
     def lowest_price(self) -> float:
         """The lowest mean purchase price a model's copies may leave: the quitters' (or the
         honest-alone auctions', if higher) minus ``IMPACT_SHARE`` of the saboteurs' further

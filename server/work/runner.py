@@ -6,7 +6,10 @@ An auction and a job are both a database row played to its end by a task in a wo
 
 Several API processes (replicas) may share one PostgreSQL database, so a row is played by the
 replica that holds its **lease**: ``lease_owner`` (this process's id) and ``lease_expires``.
-A thread of each runner, every ``TICK_S`` (and at once when a row is created here):
+A thread of each runner passes over its table at once when a row is created or made due here
+and when a task ends here, at the next due time it knows of, when its leases need renewing, and
+at least every ``IDLE_TICK_S`` (for what other replicas do: rows they release, leases that
+expire when a replica dies):
 
 * **claims** unfinished rows whose lease is free or expired, as many as its pool has free
   workers, oldest first, with ``SELECT … FOR UPDATE SKIP LOCKED`` (two replicas never claim
@@ -33,12 +36,13 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import or_, select, update
+from sqlalchemy import func, or_, select, update
 from sqlalchemy.orm import Session
 
 from server.store import crud
@@ -48,8 +52,13 @@ from server.work.pool import TaskFn, WorkerContext, WorkerPool
 
 log = logging.getLogger("srd.runner")
 
-TICK_S = 0.5
-"""How often a runner looks for rows to claim (and leases to renew or release)."""
+IDLE_TICK_S = 2.0
+"""The longest a runner waits between two passes over its table."""
+RETRY_S = 0.5
+"""The wait after a pass that failed (the database unreachable)."""
+DUE_MARGIN_S = 0.005
+"""A pass for a due time comes this much after it (the row is due by then on the database's
+clock too)."""
 RENEW_FRACTION = 1 / 3
 """Leases are renewed when this share of their duration has passed."""
 
@@ -124,7 +133,7 @@ class BackgroundRunner:
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stopping = False
-        self._renewed_at: datetime | None = None
+        self._renewed_at: float | None = None  # time.monotonic() of the last renewal
         self._thread = threading.Thread(target=self._run, name=f"{kind.name}-leases", daemon=True)
 
     def start(self) -> None:
@@ -147,8 +156,9 @@ class BackgroundRunner:
         self.pool.cancel(row_id)
 
     def shutdown(self) -> None:
-        """Stop claiming, stop the workers and release every lease held: the rows resume at
-        once on another replica (or at this one's next start)."""
+        """Stop claiming, stop the workers and release every lease held: the rows resume on
+        another replica at its next pass, within ``IDLE_TICK_S`` (or at this one's next
+        start)."""
         self._stopping = True
         self._wake.set()
         if self._thread.is_alive():
@@ -167,23 +177,26 @@ class BackgroundRunner:
 
     def _run(self) -> None:
         failing = False  # an outage is logged once, not at every pass
+        wait = 0.0  # the first pass at once
         while True:
-            self._wake.wait(TICK_S)
+            self._wake.wait(wait)
             self._wake.clear()
             if self._stopping:
                 return
             try:
-                self._tick()
-            except Exception as exc:  # the leases last: try again at the next pass
+                wait = self._tick()
+            except Exception as exc:  # the leases last: try again soon
                 if not is_database_outage(exc):
                     log.exception("%s leases: a pass failed", self.kind.name)
                 elif not failing:
                     log.warning("%s leases: %s; retrying", self.kind.name, unavailable_message(exc))
                 failing = True
+                wait = RETRY_S
             else:
                 failing = False
 
-    def _tick(self) -> None:
+    def _tick(self) -> float:
+        """One pass: release what ended, renew, claim; the seconds until the next pass."""
         with self._lock:
             over, self._over = self._over, set()
             self._held -= over
@@ -193,20 +206,27 @@ class BackgroundRunner:
             with self._lock:  # released at a later pass
                 self._over |= over
             raise
+        wait = IDLE_TICK_S
         if not self._exclusive:
-            self._renew()
+            wait = min(wait, self._renew())
         with self._lock:
             free = self._max_workers - len(self._held)
         if free > 0:
-            for row_id in self._claim(free):
+            claimed, due_in = self._claim(free)
+            for row_id in claimed:
                 self.pool.submit(row_id)
+            if due_in is not None:
+                wait = min(wait, due_in)
+        return wait
 
-    def _claim(self, limit: int) -> list[int]:
+    def _claim(self, limit: int) -> tuple[list[int], float | None]:
+        """The rows claimed now, and when nothing was claimable, the seconds until the next
+        unleased row falls due (None: none is waiting for a time)."""
         table = self.kind.table
         with self._database.session(write=False) as session:  # most passes find nothing
             now = database_now(session)
             if not self._claimable(session, now, limit, lock=False):
-                return []
+                return [], self._due_in(session, now)
         with self._database.session(write=True) as session:
             now = database_now(session)
             claimed = self._claimable(session, now, limit, lock=True)
@@ -223,7 +243,23 @@ class BackgroundRunner:
             self._held.update(claimed)
         for row_id in claimed:
             log.info("%s %d claimed by %s", self.kind.name, row_id, self.owner)
-        return claimed
+        return claimed, None
+
+    def _due_in(self, session: Session, now: datetime) -> float | None:
+        """Seconds until the earliest unfinished row without a live lease falls due."""
+        due = self.kind.due
+        if due is None:
+            return None
+        table = self.kind.table
+        earliest: datetime | None = session.scalar(
+            select(func.min(due))
+            .where(table.status.in_(self.kind.unfinished))
+            .where(or_(table.lease_owner.is_(None), table.lease_expires < now))
+            .where(due > now)
+        )
+        if earliest is None:
+            return None
+        return max((earliest - now).total_seconds(), 0.0) + DUE_MARGIN_S
 
     def _claimable(self, session: Session, now: datetime, limit: int, *, lock: bool) -> list[int]:
         """Unfinished rows with no lease or an expired one, except those played here (their
@@ -245,16 +281,18 @@ class BackgroundRunner:
             query = query.with_for_update(skip_locked=True)
         return list(session.scalars(query))
 
-    def _renew(self) -> None:
+    def _renew(self) -> float:
+        """Renew the leases held here when a share of their duration has passed; the seconds
+        until the next renewal."""
         with self._lock:
             held = set(self._held)
+        every = self._lease.total_seconds() * RENEW_FRACTION
         if not held:
-            return
+            return IDLE_TICK_S
+        since = None if self._renewed_at is None else time.monotonic() - self._renewed_at
+        if since is not None and since < every:
+            return every - since
         table = self.kind.table
-        with self._database.session(write=False) as session:
-            now = database_now(session)
-        if self._renewed_at is not None and now - self._renewed_at < self._lease * RENEW_FRACTION:
-            return
         with self._database.session(write=True) as session:
             now = database_now(session)
             kept = set(
@@ -268,10 +306,11 @@ class BackgroundRunner:
                 )
             )
             session.commit()
-        self._renewed_at = now
+        self._renewed_at = time.monotonic()
         for row_id in held - kept:  # taken over, or ended elsewhere (cancelled)
             log.warning("%s %d: lease lost; stopped here", self.kind.name, row_id)
             self.pool.cancel(row_id)
+        return every
 
     def _release(self, row_ids: set[int]) -> None:
         if not row_ids:

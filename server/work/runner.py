@@ -220,8 +220,8 @@ class BackgroundRunner:
         return wait
 
     def _claim(self, limit: int) -> tuple[list[int], float | None]:
-        """The rows claimed now, and when nothing was claimable, the seconds until the next
-        unleased row falls due (None: none is waiting for a time)."""
+        """The rows claimed now, and while workers stay free, the seconds until the next
+        unleased row falls due (None: none is waiting for a time, or no worker is free)."""
         table = self.kind.table
         with self._database.session(write=False) as session:  # most passes find nothing
             now = database_now(session)
@@ -238,12 +238,13 @@ class BackgroundRunner:
                     .where(table.id.in_(claimed))
                     .values(lease_owner=self.owner, lease_expires=expires)
                 )
+            due_in = self._due_in(session, now) if len(claimed) < limit else None
             session.commit()
         with self._lock:
             self._held.update(claimed)
         for row_id in claimed:
             log.info("%s %d claimed by %s", self.kind.name, row_id, self.owner)
-        return claimed, None
+        return claimed, due_in
 
     def _due_in(self, session: Session, now: datetime) -> float | None:
         """Seconds until the earliest unfinished row without a live lease falls due."""

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import func, or_, select, update
+from sqlalchemy import ColumnElement, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from server.store import crud
@@ -251,16 +251,20 @@ class BackgroundRunner:
         due = self.kind.due
         if due is None:
             return None
-        table = self.kind.table
         earliest: datetime | None = session.scalar(
-            select(func.min(due))
-            .where(table.status.in_(self.kind.unfinished))
-            .where(or_(table.lease_owner.is_(None), table.lease_expires < now))
-            .where(due > now)
+            select(func.min(due)).where(*self._unleased(now)).where(due > now)
         )
         if earliest is None:
             return None
         return max((earliest - now).total_seconds(), 0.0) + DUE_MARGIN_S
+
+    def _unleased(self, now: datetime) -> tuple[ColumnElement[bool], ...]:
+        """Unfinished rows with no lease or an expired one."""
+        table = self.kind.table
+        return (
+            table.status.in_(self.kind.unfinished),
+            or_(table.lease_owner.is_(None), table.lease_expires < now),
+        )
 
     def _claimable(self, session: Session, now: datetime, limit: int, *, lock: bool) -> list[int]:
         """Unfinished rows with no lease or an expired one, except those played here (their
@@ -270,8 +274,7 @@ class BackgroundRunner:
             held = set(self._held)
         query = (
             select(table.id)
-            .where(table.status.in_(self.kind.unfinished))
-            .where(or_(table.lease_owner.is_(None), table.lease_expires < now))
+            .where(*self._unleased(now))
             .where(table.id.notin_(held))
             .order_by(table.id)
             .limit(limit)

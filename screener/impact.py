@@ -54,15 +54,12 @@ PATRONS = limits.IMPACT_HONEST + limits.IMPACT_COPIES
 @dataclass(frozen=True)
 class Outcome:
     """What a model's test auctions sold: purchase prices pooled over the auctions, fish sold,
-    fish the honest patrons bought."""
+    fish the honest patrons bought, and the prices' mean (NaN when nothing sold)."""
 
     prices: tuple[float, ...]
     sold: int
     honest: int
-
-    @functools.cached_property
-    def mean_price(self) -> float:
-        return float(np.mean(self.prices)) if self.prices else float("nan")
+    mean_price: float
 
 
 @functools.cache
@@ -144,7 +141,9 @@ def run(candidates: Sequence[Candidate]) -> list[Outcome]:
     for c in range(len(candidates)):
         bought = [b for a in range(c * per, (c + 1) * per) for b in buyers[a]]
         honest = sum(1 for i, _ in bought if i < limits.IMPACT_HONEST)
-        outcomes.append(Outcome(tuple(price for _, price in bought), len(bought), honest))
+        prices = tuple(price for _, price in bought)
+        mean = float(np.mean(prices)) if prices else float("nan")
+        outcomes.append(Outcome(prices, len(bought), honest, mean))
     return outcomes
 
 
@@ -179,7 +178,7 @@ class References:
     saboteurs: Outcome
     quitters: Outcome
 
-    @functools.cached_property
+    @property
     def lowest_price(self) -> float:
         """The lowest mean purchase price a model's copies may leave: the quitters' (or the
         honest-alone auctions', if higher) minus ``IMPACT_SHARE`` of the saboteurs' further

@@ -300,16 +300,9 @@ def from_manifests(manifests: Sequence[Manifest], dtype: torch.dtype = torch.flo
         batch_size=integer(size[:, 0]),
         learning_rate=real(lr[:, 0]),
         pfc_trainable=torch.tensor(trainable[:, 0] != 0.0),
-        participants=_texts([m.participant for m in manifests]),
-        descriptions=_texts([m.description for m in manifests]),
+        participants=np.array([m.participant for m in manifests], dtype=object),
+        descriptions=np.array([m.description for m in manifests], dtype=object),
     )
-
-
-def _texts(values: Sequence[str]) -> npt.NDArray[np.object_]:
-    """A 1-D array of the strings ``values`` (never a 2-D one, whatever they hold)."""
-    out = np.empty(len(values), dtype=object)
-    out[:] = values
-    return out
 
 
 _COLUMN_BLOCKS = (

@@ -210,7 +210,11 @@ def _judge_pending(database: Database, round_id: int, margin: float) -> None:
         now = utcnow()
         for upload, verdict in zip(pending, verdicts, strict=True):
             crud.record_verdict(
-                session, answer_id=upload.answer_id, verdict=verdict, margin=margin, now=now
+                session.connection(),
+                answer_id=upload.answer_id,
+                verdict=verdict,
+                margin=margin,
+                now=now,
             )
         session.commit()
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy.orm import Session
+from sqlalchemy import Connection
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, ManifestError, parse_manifest_json
@@ -95,12 +95,12 @@ def _manifest(body: bytes) -> Manifest:
 
 
 def _target(
-    session: Session, auction_id: int, model_id: int, round_number: int
+    connection: Connection, auction_id: int, model_id: int, round_number: int
 ) -> crud.UploadTarget:
     """What the upload's path names: the patron, its participant, the round (404 for an
     unknown auction or model)."""
     target = crud.upload_target(
-        session, auction_id=auction_id, model_id=model_id, round_number=round_number
+        connection, auction_id=auction_id, model_id=model_id, round_number=round_number
     )
     if not isinstance(target, crud.UploadLookupError):
         return target
@@ -153,21 +153,17 @@ def _record(
 ) -> tuple[bytes, bool]:
     """Record a pending upload's verdict; its answer, and whether the round's auction became
     due (every asked patron judged)."""
-    with database.session(write=True) as session:
+    with database.transaction(write=True) as connection:
         now = utcnow()
         body = crud.record_verdict(
-            session, answer_id=answer_id, verdict=verdict, margin=margin, now=now
+            connection, answer_id=answer_id, verdict=verdict, margin=margin, now=now
         )
-        due = crud.due_when_answered(session, round_id=round_id, now=now)
-        session.commit()
-    return body, due
+        return body, crud.due_when_answered(connection, round_id=round_id, now=now)
 
 
 def _due(database: Database, round_id: int) -> bool:
-    with database.session(write=True) as session:
-        due = crud.due_when_answered(session, round_id=round_id, now=utcnow())
-        session.commit()
-    return due
+    with database.transaction(write=True) as connection:
+        return crud.due_when_answered(connection, round_id=round_id, now=utcnow())
 
 
 @dataclass(frozen=True)
@@ -200,9 +196,8 @@ def _check_and_store(database: Database, manifest: Manifest, request: UploadRequ
     refused upload stores nothing, but a late one is recorded as late), then, for an answer
     given at once, whether the auction became due: one run in the thread pool."""
     data = manifest.model_dump(mode="json")
-    with database.session(write=True) as session:
-        stored, round_id, manifest_json = _check_and_store_in(session, manifest, data, request)
-        session.commit()
+    with database.transaction(write=True) as connection:
+        stored, round_id, manifest_json = _check_and_store_in(connection, manifest, data, request)
     if stored.refusal is not None:
         status, message, kind = stored.refusal
         raise api_error(status, message, loc=("path", "round"), kind=kind)
@@ -211,12 +206,12 @@ def _check_and_store(database: Database, manifest: Manifest, request: UploadRequ
 
 
 def _check_and_store_in(
-    session: Session, manifest: Manifest, data: dict[str, Any], request: UploadRequest
+    connection: Connection, manifest: Manifest, data: dict[str, Any], request: UploadRequest
 ) -> tuple[crud.Stored, int, str | None]:
     """``_check_and_store`` within its transaction: what was stored (or refused), the round's
     id, and the new manifest's JSON (None: the current weights)."""
     auction_id, round_number, model_id = request.auction_id, request.round_number, request.model_id
-    target = _target(session, auction_id, model_id, round_number)
+    target = _target(connection, auction_id, model_id, round_number)
     round_id = _check_patron(
         target, request.token, auction_id=auction_id, model_id=model_id, round_number=round_number
     )
@@ -247,7 +242,7 @@ def _check_and_store_in(
     assert target.position is not None
     manifest_json = None if data == target.current_manifest else manifest.model_dump_json()
     stored = crud.store_upload(
-        session,
+        connection,
         upload=crud.UploadIn(
             round_number=round_number,
             round_id=round_id,

@@ -237,9 +237,8 @@ class Database:
         self.url = url
         self.engine = make_engine(url)
         self._read = sessionmaker(bind=self.engine, expire_on_commit=False)
-        self._write = sessionmaker(
-            bind=self.engine.execution_options(**{_WRITE_OPTION: True}), expire_on_commit=False
-        )
+        self._writer = self.engine.execution_options(**{_WRITE_OPTION: True})
+        self._write = sessionmaker(bind=self._writer, expire_on_commit=False)
         # The checks have a connection of their own: a busy pool is not an outage.
         self._probe = (
             None
@@ -325,6 +324,17 @@ class Database:
         if problem is not None:
             raise DatabaseUnavailableError(problem)
         return self._write() if write else self._read()
+
+    @contextmanager
+    def transaction(self, *, write: bool) -> Iterator[Connection]:
+        """A Core connection in a transaction, committed when the block ends (rolled back on an
+        exception): the lighter form of ``session`` for a hot path whose statements are Core
+        (``write=True`` as in ``session``); raises ``DatabaseUnavailableError`` the same way."""
+        problem = self.problem()
+        if problem is not None:
+            raise DatabaseUnavailableError(problem)
+        with (self._writer if write else self.engine).begin() as connection:
+            yield connection
 
     def close(self) -> None:
         """Release every pooled connection."""

@@ -7,15 +7,16 @@ from __future__ import annotations
 
 from typing import Literal
 
-from sqlalchemy import func, select
+from sqlalchemy import Connection, func, select
 from sqlalchemy.orm import Session
 
 LIVE_CHANNEL = "srd_live"
 LiveKind = Literal["auction", "job"]
 
 
-def notify_change(session: Session, *, kind: LiveKind, row_id: int) -> None:
-    """Announce, with this transaction's commit, that the auction or job ``row_id`` changed
-    (payload ``<kind>:<id>``); nothing on SQLite."""
-    if session.get_bind().dialect.name == "postgresql":
-        session.execute(select(func.pg_notify(LIVE_CHANNEL, f"{kind}:{row_id}")))
+def notify_change(db: Session | Connection, *, kind: LiveKind, row_id: int) -> None:
+    """Announce, with this transaction's commit (``db``: its session or connection), that the
+    auction or job ``row_id`` changed (payload ``<kind>:<id>``); nothing on SQLite."""
+    dialect = db.dialect if isinstance(db, Connection) else db.get_bind().dialect
+    if dialect.name == "postgresql":
+        db.execute(select(func.pg_notify(LIVE_CHANNEL, f"{kind}:{row_id}")))

@@ -16,7 +16,17 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import Text, bindparam, cast, func, insert, select, update
+from sqlalchemy import (
+    Connection,
+    Text,
+    bindparam,
+    cast,
+    func,
+    insert,
+    literal_column,
+    select,
+    update,
+)
 from sqlalchemy.orm import Session, aliased
 
 from screener import Verdict, review
@@ -78,6 +88,45 @@ class UploadLookupError(LookupError):
 
 _CURRENT = aliased(ModelVersion)
 """The version a patron bids with now (the path's model for a model that is not a patron)."""
+_TARGET = (
+    select(
+        Auction.fine_tune_mode,
+        Participant.name,
+        Participant.token_hash,
+        AuctionPatron.position,
+        _CURRENT.id.label("current_id"),
+        _CURRENT.version.label("current_version"),
+        _CURRENT.manifest,
+        FineTuneRound.id.label("round_id"),
+        FineTuneRound.status,
+        FineTuneRound.deadline,
+        FineTuneRound.asked,
+        FineTuneAnswer.id.label("answer_id"),
+        FineTuneAnswer.outcome,
+        FineTuneAnswer.body_sha256,
+        FineTuneAnswer.answer,
+    )
+    .select_from(Auction)
+    .join(ModelVersion, ModelVersion.id == bindparam("model_id"))
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .join(
+        AuctionPatron,
+        (AuctionPatron.auction_id == Auction.id) & (AuctionPatron.model_id == ModelVersion.id),
+    )
+    .join(_CURRENT, _CURRENT.id == func.coalesce(AuctionPatron.current_model_id, ModelVersion.id))
+    .join(
+        FineTuneRound,
+        (FineTuneRound.auction_id == Auction.id) & (FineTuneRound.round == bindparam("round")),
+    )
+    .outerjoin(
+        FineTuneAnswer,
+        (FineTuneAnswer.round_id == FineTuneRound.id)
+        & (FineTuneAnswer.position == AuctionPatron.position),
+    )
+    .where(Auction.id == bindparam("auction_id"))
+    .with_for_update(read=True, of=FineTuneRound)
+)
+"""Everything an upload by a patron to an existing round is checked against, in one row."""
 _HEAD = (
     select(
         Auction.fine_tune_mode,
@@ -99,44 +148,48 @@ _HEAD = (
     .where(Auction.id == bindparam("auction_id"))
 )
 _AUCTION_EXISTS = select(Auction.id).where(Auction.id == bindparam("auction_id"))
-_ROUNDS = (
-    select(
-        FineTuneRound.id,
-        FineTuneRound.round,
-        FineTuneRound.status,
-        FineTuneRound.deadline,
-        FineTuneRound.asked,
-    )
+_NEWEST_ROUND = (
+    select(FineTuneRound.round, FineTuneRound.status)
     .where(FineTuneRound.auction_id == bindparam("auction_id"))
-    .with_for_update(read=True)
-)
-_ANSWER = select(
-    FineTuneAnswer.id, FineTuneAnswer.outcome, FineTuneAnswer.body_sha256, FineTuneAnswer.answer
-).where(
-    FineTuneAnswer.round_id == bindparam("round_id"),
-    FineTuneAnswer.position == bindparam("position"),
+    .order_by(FineTuneRound.round.desc())
+    .limit(1)
 )
 
 
 def upload_target(
-    session: Session, *, auction_id: int, model_id: int, round_number: int
+    connection: Connection, *, auction_id: int, model_id: int, round_number: int
 ) -> UploadTarget | UploadLookupError:
     """What an upload to ``round_number`` of ``auction_id`` for ``model_id`` is checked
-    against, in the write transaction that stores it (``store_upload``): three queries built
-    once (the UploadLookupError of a path that names no auction or model)."""
-    connection = session.connection()
-    ids = {"auction_id": auction_id, "model_id": model_id}
+    against, in the write transaction that stores it (``store_upload``): one query for a patron
+    of an auction that has the round (more, to name the problem, for any other path; the
+    UploadLookupError of a path that names no auction or model)."""
+    ids = {"auction_id": auction_id, "model_id": model_id, "round": round_number}
+    row = connection.execute(_TARGET, ids).one_or_none()
+    if row is not None:
+        return UploadTarget(
+            fine_tune_mode=row.fine_tune_mode,
+            position=row.position,
+            participant=row.name,
+            token_hash=row.token_hash,
+            current_id=row.current_id,
+            current_version=row.current_version,
+            current_manifest=row.manifest,
+            newest_round=None,  # only named when the path's round does not exist
+            newest_status=None,
+            round_id=row.round_id,
+            round_status=row.status,
+            deadline=row.deadline,
+            asked=list(row.asked),
+            answer_outcome=row.outcome,
+            answer_sha256=row.body_sha256,
+            answer_id=row.answer_id,
+            answer=row.answer,
+        )
     head = connection.execute(_HEAD, ids).one_or_none()
     if head is None:
         exists = connection.execute(_AUCTION_EXISTS, ids).first() is not None
         return UploadLookupError("model_id" if exists else "auction_id")
-    rounds = {row.round: row for row in connection.execute(_ROUNDS, ids)}
-    newest = rounds[max(rounds)] if rounds else None
-    this = rounds.get(round_number)
-    answer = None
-    if this is not None and head.position is not None:
-        key = {"round_id": this.id, "position": head.position}
-        answer = connection.execute(_ANSWER, key).one_or_none()
+    newest = connection.execute(_NEWEST_ROUND, ids).one_or_none()
     return UploadTarget(
         fine_tune_mode=head.fine_tune_mode,
         position=head.position,
@@ -147,14 +200,12 @@ def upload_target(
         current_manifest=head.manifest,
         newest_round=None if newest is None else newest.round,
         newest_status=None if newest is None else newest.status,
-        round_id=None if this is None else this.id,
-        round_status=None if this is None else this.status,
-        deadline=None if this is None else this.deadline,
-        asked=[] if this is None else list(this.asked),
-        answer_outcome=None if answer is None else answer.outcome,
-        answer_sha256=None if answer is None else answer.body_sha256,
-        answer_id=None if answer is None else answer.id,
-        answer=None if answer is None else answer.answer,
+        round_id=None,
+        round_status=None,
+        deadline=None,
+        asked=[],
+        answer_outcome=None,
+        answer_sha256=None,
     )
 
 
@@ -198,12 +249,14 @@ def _late(number: int) -> tuple[int, str, str]:
     )
 
 
-def store_upload(session: Session, *, upload: UploadIn, target: UploadTarget) -> Stored:
+_INSERT_ANSWER = insert(FineTuneAnswer).returning(FineTuneAnswer.id)
+
+
+def store_upload(connection: Connection, *, upload: UploadIn, target: UploadTarget) -> Stored:
     """Store an upload as it arrives, in the transaction that read its ``target``: pending
     with its manifest (a repeat of the current weights is accepted at once), a repeat of an
     answered upload (the same bytes: the route refuses others) answered as before, a late one
     recorded as late."""
-    connection = session.connection()
     if target.answer_outcome in ANSWERED:
         if target.answer_outcome == AnswerOutcome.PENDING:
             return Stored(answer_id=target.answer_id)
@@ -211,7 +264,7 @@ def store_upload(session: Session, *, upload: UploadIn, target: UploadTarget) ->
     if target.round_status != RoundStatus.OPEN or (
         target.deadline is not None and upload.arrived >= target.deadline
     ):
-        record_late(session, upload=upload, missing_id=target.answer_id)
+        record_late(connection, upload=upload, missing_id=target.answer_id)
         return Stored(refusal=_late(upload.round_number))
     row: dict[str, Any] = {
         "round_id": upload.round_id,
@@ -224,10 +277,7 @@ def store_upload(session: Session, *, upload: UploadIn, target: UploadTarget) ->
     }
     if upload.manifest is not None:
         row.update(outcome=AnswerOutcome.PENDING, manifest=upload.manifest, bytes_out=0)
-        answer_id = connection.execute(
-            insert(FineTuneAnswer).returning(FineTuneAnswer.id), row
-        ).scalar_one()
-        return Stored(answer_id=answer_id)
+        return Stored(answer_id=connection.execute(_INSERT_ANSWER, row).scalar_one())
     body = answer_bytes(
         {
             "round": upload.round_number,
@@ -241,14 +291,14 @@ def store_upload(session: Session, *, upload: UploadIn, target: UploadTarget) ->
         }
     )
     row.update(outcome=AnswerOutcome.ACCEPTED, answer=JSONText(body.decode()), bytes_out=len(body))
-    connection.execute(insert(FineTuneAnswer), row)
+    connection.execute(_INSERT_ANSWER, row)
     return Stored(answer=body)
 
 
-def record_late(session: Session, *, upload: UploadIn, missing_id: int | None) -> None:
+def record_late(connection: Connection, *, upload: UploadIn, missing_id: int | None) -> None:
     """Mark a late upload: a new late answer, or the patron's missing answer made late."""
     if missing_id is not None:
-        session.execute(
+        connection.execute(
             update(FineTuneAnswer)
             .where(FineTuneAnswer.id == missing_id, FineTuneAnswer.outcome == AnswerOutcome.MISSING)
             .values(
@@ -256,7 +306,7 @@ def record_late(session: Session, *, upload: UploadIn, missing_id: int | None) -
             )
         )
         return
-    session.execute(
+    connection.execute(
         insert(FineTuneAnswer),
         {
             "round_id": upload.round_id,
@@ -328,16 +378,29 @@ _JUDGE_ANSWER = (
     update(FineTuneAnswer).where(FineTuneAnswer.id == bindparam("answer_id")).values(manifest=None)
 )
 """Sets the answer's verdict (the columns the parameters name) and drops its manifest."""
+_JUDGED = (
+    select(func.count())
+    .select_from(FineTuneAnswer)
+    .where(
+        FineTuneAnswer.round_id == bindparam("round_id"),
+        FineTuneAnswer.outcome.in_([literal_column(f"'{outcome}'") for outcome in JUDGED]),
+    )
+)
+"""The round's judged answers (the outcomes written in the SQL: no list to expand per call)."""
+_DUE_AT = (
+    update(Auction)
+    .where(Auction.id == bindparam("auction_id"), Auction.status == AuctionStatus.RUNNING)
+    .values(next_step_at=bindparam("now", type_=Auction.next_step_at.type))
+)
 
 
 def record_verdict(
-    session: Session, *, answer_id: int, verdict: Verdict, margin: float, now: datetime
+    connection: Connection, *, answer_id: int, verdict: Verdict, margin: float, now: datetime
 ) -> bytes:
     """A pending upload judged: its manifest stored as the participant's next version
     (accepted, refused, or held for an inspector within ``margin`` of a bar: then, as refused,
     the previous version bids on), its answer written; the answer's bytes. An upload already
     judged (by another process) keeps its answer, which is returned."""
-    connection = session.connection()
     row = connection.execute(_PENDING_FOR_UPDATE, {"answer_id": answer_id}).one()
     if row.outcome != AnswerOutcome.PENDING:
         return answer_bytes(row.answer or {})
@@ -392,36 +455,20 @@ _ROUND_FOR_UPDATE = (
     .where(FineTuneRound.id == bindparam("round_id"))
     .with_for_update()
 )
-_JUDGED = (
-    select(func.count())
-    .select_from(FineTuneAnswer)
-    .where(
-        FineTuneAnswer.round_id == bindparam("round_id"),
-        FineTuneAnswer.outcome.in_(JUDGED),
-    )
-)
-_DUE_AT = (
-    update(Auction)
-    .where(Auction.id == bindparam("auction_id"), Auction.status == AuctionStatus.RUNNING)
-    .values(next_step_at=bindparam("now", type_=Auction.next_step_at.type))
-)
 
 
-def due_when_answered(session: Session, *, round_id: int, now: datetime) -> bool:
+def due_when_answered(connection: Connection, *, round_id: int, now: datetime) -> bool:
     """Make the round's auction due for its next step at ``now`` if every asked patron's
     upload is judged (none pending); whether it did."""
-    connection = session.connection()
     key = {"round_id": round_id}
     # The round's row lock serialises the last verdicts of a round: each counts the others'
     # (under READ COMMITTED two that commit together would each miss the other's).
     head = connection.execute(_ROUND_FOR_UPDATE, key).one()
     if head.status != RoundStatus.OPEN:
         return False
-    judged = connection.execute(_JUDGED, key).scalar_one()
-    if judged < len(head.asked):
+    if connection.execute(_JUDGED, key).scalar_one() < len(head.asked):
         return False
-    moved = connection.execute(_DUE_AT, {"auction_id": head.auction_id, "now": now})
-    if not moved.rowcount:
+    if not connection.execute(_DUE_AT, {"auction_id": head.auction_id, "now": now}).rowcount:
         return False
-    notify_change(session, kind="auction", row_id=head.auction_id)
+    notify_change(connection, kind="auction", row_id=head.auction_id)
     return True

@@ -67,6 +67,10 @@ class DatabaseUnavailableError(RuntimeError):
     """The database is gone, replaced, or not reachable (503)."""
 
 
+class WriteLockBusyError(RuntimeError):
+    """Another writer holds SQLite's write lock: a write that may not wait did not begin."""
+
+
 def is_database_outage(exc: BaseException) -> bool:
     """Whether ``exc`` says the database could not be used (refused, unreachable, connection
     lost, pool exhausted), as opposed to a statement's own error (a constraint, a bug)."""
@@ -164,6 +168,28 @@ class _SqliteWriters:
             self.release(connection.info)
             raise
 
+    def begin_at_once(self, connection: Connection) -> None:
+        """The begin of a write that may not wait (the event loop's): this process's writer
+        lock and SQLite's write lock taken at once, or ``WriteLockBusyError``."""
+        if not self._lock.acquire(blocking=False):
+            raise WriteLockBusyError("another thread of this process is writing")
+        connection.info[self._HELD] = True
+        raw: Any = connection.connection.driver_connection
+        try:
+            raw.execute("PRAGMA busy_timeout=0")
+            try:
+                raw.execute("BEGIN IMMEDIATE")
+            finally:
+                raw.execute(f"PRAGMA busy_timeout={SQLITE_BUSY_TIMEOUT_MS}")
+        except sqlite3.OperationalError as exc:
+            self.release(connection.info)
+            if _is_busy(exc):
+                raise WriteLockBusyError("another process is writing") from exc
+            raise OperationalError("BEGIN IMMEDIATE", None, exc) from exc
+        except BaseException:
+            self.release(connection.info)
+            raise
+
     def on_checkin(self, _dbapi_connection: Any, record: Any) -> None:
         self.release(record.info)
 
@@ -186,18 +212,7 @@ def make_engine(url: str, *, create: bool = False) -> Engine:
     """An engine for ``url`` with this project's per-connection settings; a SQLite file must
     exist unless ``create`` (migrations at first start)."""
     if is_sqlite(url):
-        engine = create_engine(
-            url if create else _open_existing(url),
-            connect_args={"check_same_thread": False, "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000},
-            json_serializer=json_dumps,
-            pool_size=SQLITE_POOL_SIZE,
-            max_overflow=0,
-        )
-        writers = _SqliteWriters()
-        event.listen(engine, "connect", _sqlite_on_connect)
-        event.listen(engine, "begin", writers.on_begin)
-        event.listen(engine.pool, "checkin", writers.on_checkin)
-        return engine
+        return _sqlite_engine(url if create else _open_existing(url), _SqliteWriters())
     return create_engine(
         url,
         pool_pre_ping=True,  # a connection an outage broke is replaced at its next checkout
@@ -206,6 +221,22 @@ def make_engine(url: str, *, create: bool = False) -> Engine:
         json_serializer=json_dumps,
         **_postgres_options(url),
     )
+
+
+def _sqlite_engine(url: str, writers: _SqliteWriters, *, at_once: bool = False) -> Engine:
+    """A SQLite engine whose writers queue on ``writers``; ``at_once``: one connection whose
+    every transaction is a write that begins at once or not at all (``WriteLockBusyError``)."""
+    engine = create_engine(
+        url,
+        connect_args={"check_same_thread": False, "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000},
+        json_serializer=json_dumps,
+        pool_size=1 if at_once else SQLITE_POOL_SIZE,
+        max_overflow=0,
+    )
+    event.listen(engine, "connect", _sqlite_on_connect)
+    event.listen(engine, "begin", writers.begin_at_once if at_once else writers.on_begin)
+    event.listen(engine.pool, "checkin", writers.on_checkin)
+    return engine
 
 
 def _postgres_options(url: str) -> dict[str, Any]:
@@ -235,7 +266,13 @@ class Database:
 
     def __init__(self, url: str) -> None:
         self.url = url
-        self.engine = make_engine(url)
+        self._at_once: Engine | None = None
+        if is_sqlite(url):
+            writers = _SqliteWriters()
+            self.engine = _sqlite_engine(_open_existing(url), writers)
+            self._at_once = _sqlite_engine(_open_existing(url), writers, at_once=True)
+        else:
+            self.engine = make_engine(url)
         self._read = sessionmaker(bind=self.engine, expire_on_commit=False)
         self._writer = self.engine.execution_options(**{_WRITE_OPTION: True})
         self._write = sessionmaker(bind=self._writer, expire_on_commit=False)
@@ -336,9 +373,31 @@ class Database:
         with (self._writer if write else self.engine).begin() as connection:
             yield connection
 
+    @property
+    def writes_at_once(self) -> bool:
+        """Whether ``transaction_at_once`` is available (SQLite)."""
+        return self._at_once is not None
+
+    @contextmanager
+    def transaction_at_once(self) -> Iterator[Connection]:
+        """SQLite: a write transaction that never waits, on a connection of its own, for the
+        event loop (one caller at a time): its statements run where it is called, without a
+        hop to a thread, and it raises ``WriteLockBusyError`` at once, before any statement,
+        if another writer holds the lock (write from a thread then: ``transaction``). Raises
+        ``DatabaseUnavailableError`` as ``session`` does."""
+        if self._at_once is None:
+            raise RuntimeError("transaction_at_once is for SQLite databases")
+        problem = self.problem()
+        if problem is not None:
+            raise DatabaseUnavailableError(problem)
+        with self._at_once.begin() as connection:
+            yield connection
+
     def close(self) -> None:
         """Release every pooled connection."""
         self.engine.dispose()
+        if self._at_once is not None:
+            self._at_once.dispose()
         if self._probe is not None:
             self._probe.dispose()
 

@@ -5,6 +5,7 @@ round with nothing stored."""
 from __future__ import annotations
 
 import json
+import sqlite3
 import threading
 import time
 from datetime import datetime
@@ -18,7 +19,9 @@ from agents.manifest import Manifest, parse_manifest
 from agents.remote import RoundInfo, always_hold, faithful_fine_tune
 from screener import screen
 from server.api.routes.rounds import UPLOAD_MAX_BYTES
+from server.config import Settings
 from server.live import rounds as watcher
+from server.store.db import is_sqlite, sqlite_path
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, wait_for
 
@@ -390,3 +393,52 @@ def test_a_silent_round_closes_at_its_deadline_and_late_uploads_get_410(
 
 def _seconds(stamp: str) -> float:
     return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
+
+
+def test_an_upload_waiting_for_the_write_lock_stalls_no_other_request(
+    client: TestClient, settings: Settings
+) -> None:
+    """An upload's writes run at once on the event loop when SQLite's write lock is free; when
+    another writer holds it, the upload waits in a thread and every other request is served
+    meanwhile. Once the lock is free the upload is stored and answered."""
+    if not is_sqlite(settings.database_url):
+        pytest.skip("SQLite's write lock")
+    remote = remote_auction(client, "locked", 420, seed=3)
+    auction_id, state = remote["id"], remote["state"]
+    position, (model_id, token) = next(
+        (i, p) for i, p in enumerate(remote["patrons"]) if p[0] in state["asked"]
+    )
+    info = RoundInfo.from_state(state, position)
+    upload = faithful_fine_tune(parse_manifest(remote["manifests"][position]), info)
+    answers: list[Any] = []
+    waiting = threading.Thread(
+        target=lambda: answers.append(
+            put(client, auction_id, 1, model_id, upload.model_dump_json().encode(), token)
+        )
+    )
+    # Another writer holds the lock (as an auction worker does while it commits).
+    holder = sqlite3.connect(sqlite_path(settings.database_url), isolation_level=None)
+    holder.execute("BEGIN IMMEDIATE")
+    try:
+        waiting.start()
+        time.sleep(1.0)  # the upload reaches the server and waits for the lock
+        reads: list[Any] = []
+        reader = threading.Thread(
+            target=lambda: reads.append(client.get(f"/auctions/{auction_id}")), daemon=True
+        )
+        reader.start()
+        reader.join(timeout=30)
+        assert reads and reads[0].status_code == 200, "a read stalled behind the upload"
+        assert waiting.is_alive() and not answers, (
+            "the upload did not wait for the lock",
+            answers and (answers[0].status_code, answers[0].text),
+        )
+    finally:
+        holder.execute("ROLLBACK")
+        holder.close()
+    waiting.join(timeout=60)
+    assert answers and answers[0].status_code == 200, answers and answers[0].text
+    assert answers[0].json()["round"] == 1 and answers[0].json()["outcome"] in ("accepted", "held")
+    auction = client.get(f"/auctions/{auction_id}").json()
+    outcomes = {a["model_id"]: a["outcome"] for a in auction["fine_tuning"][0]["answers"]}
+    assert outcomes[model_id] == answers[0].json()["outcome"]

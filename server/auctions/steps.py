@@ -52,7 +52,7 @@ from server.work.runner import WorkKind
 from sim.market import MarketConfig
 
 if TYPE_CHECKING:
-    from sim.market import IterationRecord, Market, RescreenBatch
+    from sim.market import FineTuneRound, Market, RescreenBatch
 
 log = logging.getLogger("srd.auctions")
 
@@ -147,27 +147,20 @@ def _load_market(auction: Auction, manifests: Sequence[Manifest]) -> Market:
     return restored
 
 
-def _commit_iteration(
-    session: Session,
-    auction: Auction,
-    record: IterationRecord,
-    market: Market,
-    model_ids: list[int],
-    now: datetime,
-) -> OpenRound | None:
-    """Write one iteration played at ``now``, with the round it opens (returned, if any)."""
-    pending = market.pending_round
-    opened = None
-    if pending is not None:
-        opened = NewRound(
-            round=pending.iteration + 1,
-            iteration=pending.iteration,
-            rows=pending.rows.tolist(),
-            fine_tune_seed=pending.fine_tune_seed,
-            augmentation_seed=pending.augmentation_seed,
-            asked=list(pending.patrons),
-            deadline=now + timedelta(seconds=auction.round_deadline_s),
-        )
+@dataclass(frozen=True)
+class _Played:
+    """An iteration played and made ready to write (its row, the market's checkpoint, the
+    round it opens), computed before the write transaction: on SQLite that transaction holds
+    the one write lock, which the API's uploads wait for."""
+
+    row: IterationRow
+    checkpoint: bytes
+    opens: FineTuneRound | None
+
+
+def _play(market: Market, model_ids: list[int]) -> _Played:
+    """The market's next iteration, played and made ready to write."""
+    record = market.step()
     explained = record.explained()["patrons"]
     row = IterationRow(
         iteration=record.iteration,
@@ -186,11 +179,30 @@ def _commit_iteration(
         buyers=[(model_ids[i], price) for i, price in record.buyers],
         quitters=[model_ids[i] for i in record.quitters],
     )
+    return _Played(row, market.checkpoint(), market.pending_round)
+
+
+def _commit_iteration(
+    session: Session, auction: Auction, played: _Played, now: datetime
+) -> OpenRound | None:
+    """Write one iteration played at ``now``, with the round it opens (returned, if any)."""
+    pending = played.opens
+    opened = None
+    if pending is not None:
+        opened = NewRound(
+            round=pending.iteration + 1,
+            iteration=pending.iteration,
+            rows=pending.rows.tolist(),
+            fine_tune_seed=pending.fine_tune_seed,
+            augmentation_seed=pending.augmentation_seed,
+            asked=list(pending.patrons),
+            deadline=now + timedelta(seconds=auction.round_deadline_s),
+        )
     return crud.commit_iteration(
         session,
         auction_id=auction.id,
-        row=row,
-        checkpoint=market.checkpoint(),
+        row=played.row,
+        checkpoint=played.checkpoint,
         opened=opened,
         now=now,
     )
@@ -241,28 +253,46 @@ def _not_yet(database: Database, auction_id: int, row: OpenRound) -> bool:
 def _close_and_play(
     database: Database,
     auction: Auction,
+    manifests: Sequence[Manifest],
     market: Market,
     row: OpenRound,
     model_ids: list[int],
     margin: float,
-) -> OpenRound | None:
-    """One transaction: the round closed, its accepted versions applied, the next iteration
-    (after judging what is pending; again if an upload came meanwhile)."""
+) -> tuple[Market, OpenRound | None]:
+    """The round closed, its accepted versions applied and the next iteration played, in one
+    transaction (after judging what is pending): the market as committed, and the round it
+    opened. The versions are read and applied and the iteration played before that
+    transaction, which only writes; if an upload was judged meanwhile, all of it again, from
+    the checkpoint (``market``, restored from it, is used by the first try)."""
     for attempt in range(CLOSE_TRIES):
+        last = attempt + 1 == CLOSE_TRIES
         _judge_pending(database, row.id, margin)
+        try:
+            with database.session(write=False) as session:
+                accepted = crud.accepted_uploads(session, round_id=row.id)
+        except PendingUploadsError:
+            if last:
+                raise
+            continue
+        if attempt:
+            market = _load_market(auction, manifests)
+        market.apply_round({p: parse_manifest(m) for p, (_, m) in accepted.items()})
+        played = _play(market, model_ids)
         with database.session(write=True) as session:
             now = utcnow()
             try:
                 applied = crud.close_round(session, auction_id=auction.id, round=row, now=now)
             except PendingUploadsError:
-                if attempt + 1 == CLOSE_TRIES:
+                if last:
                     raise
-                session.rollback()
                 continue
-            market.apply_round({p: parse_manifest(m) for p, m in applied.items()})
-            opened = _commit_iteration(session, auction, market.step(), market, model_ids, now)
+            if applied != {position: version for position, (version, _) in accepted.items()}:
+                if last:
+                    raise PendingUploadsError(row.id)
+                continue
+            opened = _commit_iteration(session, auction, played, now)
             session.commit()
-            return opened
+            return market, opened
     raise AssertionError("unreachable")
 
 
@@ -292,13 +322,16 @@ def _step(kept: _Kept, auction_id: int, margin: float) -> None:
             raise ResumeError(
                 f"the checkpoint awaits fine-tuning round {number}, which is not open"
             )
-        if _close_and_play(database, auction, market, row, model_ids, margin) is not None:
+        market, opened = _close_and_play(
+            database, auction, manifests, market, row, model_ids, margin
+        )
+        if opened is not None:
             return
     while not market.finished:
         began = utcnow()  # the iteration is computed before the write lock is taken
-        record = market.step()
+        played = _play(market, model_ids)
         with database.session(write=True) as session:
-            opened = _commit_iteration(session, auction, record, market, model_ids, began)
+            opened = _commit_iteration(session, auction, played, began)
             session.commit()
         if opened is not None:
             return

@@ -69,6 +69,7 @@ from server.store.crud.reviews import (
 )
 from server.store.crud.rounds import RoundBody, RoundHead, round_body, round_head
 from server.store.crud.steps import (
+    accepted_uploads,
     answered,
     close_round,
     commit_iteration,
@@ -121,6 +122,7 @@ __all__ = [
     "UploadIn",
     "UploadLookupError",
     "UploadTarget",
+    "accepted_uploads",
     "answer_bytes",
     "answered",
     "appeal",

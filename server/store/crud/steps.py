@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import bindparam, func, insert, select, update
+from sqlalchemy import Connection, bindparam, func, insert, select, update
 from sqlalchemy.orm import Session, selectinload, undefer
 
 from server.store.crud.auctions import IterationFigures
@@ -239,13 +239,46 @@ _BID_WITH = (
 """A patron bids with an accepted version from now (one statement for a round's patrons)."""
 
 
+def _answers(connection: Connection, round_id: int) -> tuple[dict[int, int], set[int]]:
+    """The round's accepted uploads (position → version id) and the positions that answered;
+    ``PendingUploadsError`` if an upload still awaits its verdict."""
+    answers = connection.execute(
+        select(FineTuneAnswer.position, FineTuneAnswer.outcome, FineTuneAnswer.uploaded_id).where(
+            FineTuneAnswer.round_id == round_id
+        )
+    ).all()
+    if any(a.outcome == AnswerOutcome.PENDING for a in answers):
+        raise PendingUploadsError(round_id)
+    applied = {
+        a.position: a.uploaded_id
+        for a in answers
+        if a.outcome == AnswerOutcome.ACCEPTED and a.uploaded_id is not None
+    }
+    return applied, {a.position for a in answers}
+
+
+def accepted_uploads(session: Session, *, round_id: int) -> dict[int, tuple[int, dict[str, Any]]]:
+    """The open round's accepted uploads so far: position → (version id, manifest), for the
+    step to apply before it closes the round (``close_round`` returns the version ids it
+    applied); ``PendingUploadsError`` if an upload still awaits its verdict."""
+    connection = session.connection()
+    applied, _ = _answers(connection, round_id)
+    rows = connection.execute(
+        select(ModelVersion.id, ModelVersion.manifest).where(
+            ModelVersion.id.in_(list(applied.values()))
+        )
+    )
+    manifests: dict[int, dict[str, Any]] = {version: manifest for version, manifest in rows}
+    return {position: (version, manifests[version]) for position, version in applied.items()}
+
+
 def close_round(
     session: Session, *, auction_id: int, round: OpenRound, now: datetime
-) -> dict[int, dict[str, Any]]:
+) -> dict[int, int]:
     """Close the open round at ``now``: the patrons whose upload was accepted bid with it from
     now, every asked patron that stayed silent gets a ``missing`` answer (a late upload keeps
-    its own); the accepted manifests by position, to apply to the market.
-    ``PendingUploadsError`` if an upload still awaits its verdict."""
+    its own); the accepted versions by position (as ``accepted_uploads`` read them, unless an
+    upload was judged since). ``PendingUploadsError`` if an upload still awaits its verdict."""
     closed = session.execute(
         update(FineTuneRound)
         .where(FineTuneRound.id == round.id, FineTuneRound.status == RoundStatus.OPEN)
@@ -254,19 +287,7 @@ def close_round(
     if closed.rowcount != 1:  # type: ignore[attr-defined]
         raise MovedOnError(auction_id)
     connection = session.connection()
-    answers = connection.execute(
-        select(FineTuneAnswer.position, FineTuneAnswer.outcome, FineTuneAnswer.uploaded_id).where(
-            FineTuneAnswer.round_id == round.id
-        )
-    ).all()
-    if any(a.outcome == AnswerOutcome.PENDING for a in answers):
-        raise PendingUploadsError(round.id)
-    applied = {
-        a.position: a.uploaded_id
-        for a in answers
-        if a.outcome == AnswerOutcome.ACCEPTED and a.uploaded_id is not None
-    }
-    heard = {a.position for a in answers}
+    applied, heard = _answers(connection, round.id)
     silent = [p for p in round.asked if p not in heard]
     if silent:
         bidding = {
@@ -300,10 +321,4 @@ def close_round(
                 for position, version in applied.items()
             ],
         )
-    rows = connection.execute(
-        select(ModelVersion.id, ModelVersion.manifest).where(
-            ModelVersion.id.in_(list(applied.values()))
-        )
-    )
-    manifests: dict[int, dict[str, Any]] = {version: manifest for version, manifest in rows}
-    return {position: manifests[version] for position, version in applied.items()}
+    return applied

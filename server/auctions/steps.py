@@ -27,6 +27,7 @@ failed with the reason.
 from __future__ import annotations
 
 import functools
+import json
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -44,7 +45,7 @@ from server.store.crud.steps import (
     OpenRound,
     PendingUploadsError,
 )
-from server.store.db import Database, is_database_outage
+from server.store.db import Database, JSONText, is_database_outage
 from server.store.status import AUCTION_UNFINISHED, AuctionStatus
 from server.store.tables import Auction, utcnow
 from server.work.pool import WorkerContext, error_summary
@@ -172,10 +173,16 @@ def _play(market: Market, model_ids: list[int]) -> _Played:
         n_available_after=record.n_available_after,
         finished=record.finished,
         stop_reason=record.stop_reason,
-        explanations={
-            "row": record.row,
-            "patrons": [{**vote, "model_id": model_ids[vote["patron"]]} for vote in explained],
-        },
+        explanations=JSONText(
+            json.dumps(
+                {
+                    "row": record.row,
+                    "patrons": [
+                        {**vote, "model_id": model_ids[vote["patron"]]} for vote in explained
+                    ],
+                }
+            )
+        ),
         buyers=[(model_ids[i], price) for i, price in record.buyers],
         quitters=[model_ids[i] for i in record.quitters],
     )

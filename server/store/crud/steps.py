@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session, selectinload, undefer
 
 from server.store.crud.auctions import IterationFigures
 from server.store.crud.live import notify_change
+from server.store.db import JSONText
 from server.store.status import ANSWERED, AnswerOutcome, AuctionStatus, RoundStatus
 from server.store.tables import (
     Auction,
@@ -51,7 +52,8 @@ class IterationRow(IterationFigures):
 
     finished: bool
     stop_reason: str | None
-    explanations: dict[str, Any] | None
+    explanations: dict[str, Any] | JSONText | None
+    """The patrons' explained votes (``JSONText``: encoded before the write transaction)."""
     buyers: list[tuple[int, float]]
     """(model id, price) of each purchase."""
     quitters: list[int]

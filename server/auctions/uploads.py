@@ -17,6 +17,8 @@ that closes the round judges whatever is still pending.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import functools
 import hashlib
 from collections.abc import Callable
@@ -43,6 +45,9 @@ from sim.market.design import design_changes
 T = TypeVar("T")
 
 RETRY_AFTER_S = 1
+AT_ONCE_TRIES = 8
+"""An upload's write on SQLite tries the write lock at once up to this many times, each time
+after the thread of this process that held it let go, before it waits for it in a thread."""
 """Retry-After of a round request refused because too many wait."""
 
 
@@ -177,12 +182,32 @@ async def _write(database: Database, work: Callable[[Connection], T]) -> T:
     thread pool, where waiting stalls nobody; so does every write on PostgreSQL, whose
     statements wait on the network."""
     if database.writes_at_once:
-        try:
-            with database.transaction_at_once() as connection:
-                return work(connection)
-        except WriteLockBusyError:
-            pass
+        for _ in range(AT_ONCE_TRIES):
+            try:
+                with database.transaction_at_once() as connection:
+                    return work(connection)
+            except WriteLockBusyError as busy:
+                if not busy.in_process:
+                    break
+            await _released(database)
     return await run_in_threadpool(_write_in_thread, database, work)
+
+
+async def _released(database: Database) -> None:
+    """Until the thread of this process that holds SQLite's write lock lets go of it."""
+    loop = asyncio.get_running_loop()
+    released = loop.create_future()
+
+    def resolve() -> None:
+        if not released.done():
+            released.set_result(None)
+
+    def tell() -> None:  # from the releasing thread
+        with contextlib.suppress(RuntimeError):  # the loop closed meanwhile
+            loop.call_soon_threadsafe(resolve)
+
+    database.on_write_release(tell)
+    await released
 
 
 def _write_in_thread(database: Database, work: Callable[[Connection], T]) -> T:

@@ -24,7 +24,7 @@ import os
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
@@ -68,7 +68,13 @@ class DatabaseUnavailableError(RuntimeError):
 
 
 class WriteLockBusyError(RuntimeError):
-    """Another writer holds SQLite's write lock: a write that may not wait did not begin."""
+    """Another writer holds SQLite's write lock: a write that may not wait did not begin.
+    ``in_process``: a thread of this process holds it (``Database.on_write_release`` tells
+    when it lets go); else another process does."""
+
+    def __init__(self, message: str, *, in_process: bool) -> None:
+        super().__init__(message)
+        self.in_process = in_process
 
 
 def is_database_outage(exc: BaseException) -> bool:
@@ -152,6 +158,17 @@ class _SqliteWriters:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
+        self._waiters: list[Callable[[], None]] = []
+        self._waiters_lock = threading.Lock()
+
+    def on_release(self, callback: Callable[[], None]) -> None:
+        """Call ``callback`` once this process's writer lets go of the lock (from its thread),
+        or at once if none holds it."""
+        with self._waiters_lock:
+            if self._lock.locked():
+                self._waiters.append(callback)
+                return
+        callback()
 
     def on_begin(self, connection: Connection) -> None:
         if not connection.get_execution_options().get(_WRITE_OPTION, False):
@@ -172,7 +189,7 @@ class _SqliteWriters:
         """The begin of a write that may not wait (the event loop's): this process's writer
         lock and SQLite's write lock taken at once, or ``WriteLockBusyError``."""
         if not self._lock.acquire(blocking=False):
-            raise WriteLockBusyError("another thread of this process is writing")
+            raise WriteLockBusyError("another thread of this process is writing", in_process=True)
         connection.info[self._HELD] = True
         raw: Any = connection.connection.driver_connection
         try:
@@ -184,7 +201,7 @@ class _SqliteWriters:
         except sqlite3.OperationalError as exc:
             self.release(connection.info)
             if _is_busy(exc):
-                raise WriteLockBusyError("another process is writing") from exc
+                raise WriteLockBusyError("another process is writing", in_process=False) from exc
             raise OperationalError("BEGIN IMMEDIATE", None, exc) from exc
         except BaseException:
             self.release(connection.info)
@@ -195,7 +212,11 @@ class _SqliteWriters:
 
     def release(self, info: dict[Any, Any]) -> None:
         if info.pop(self._HELD, False):
-            self._lock.release()
+            with self._waiters_lock:
+                self._lock.release()
+                waiters, self._waiters = self._waiters, []
+            for callback in waiters:
+                callback()
 
 
 class JSONText(str):
@@ -267,8 +288,9 @@ class Database:
     def __init__(self, url: str) -> None:
         self.url = url
         self._at_once: Engine | None = None
+        self._writers: _SqliteWriters | None = None
         if is_sqlite(url):
-            writers = _SqliteWriters()
+            self._writers = writers = _SqliteWriters()
             self.engine = _sqlite_engine(_open_existing(url), writers)
             self._at_once = _sqlite_engine(_open_existing(url), writers, at_once=True)
         else:
@@ -377,6 +399,13 @@ class Database:
     def writes_at_once(self) -> bool:
         """Whether ``transaction_at_once`` is available (SQLite)."""
         return self._at_once is not None
+
+    def on_write_release(self, callback: Callable[[], None]) -> None:
+        """SQLite: call ``callback`` once the thread of this process that holds the write lock
+        lets go of it (from that thread), or at once if none holds it."""
+        if self._writers is None:
+            raise RuntimeError("on_write_release is for SQLite databases")
+        self._writers.on_release(callback)
 
     @contextmanager
     def transaction_at_once(self) -> Iterator[Connection]:

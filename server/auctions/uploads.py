@@ -178,9 +178,10 @@ async def _write(database: Database, work: Callable[[Connection], T]) -> T:
     On SQLite it runs at once on the event loop when the write lock is free, as it mostly is
     (the other writers' transactions are short): an upload's two transactions, a fraction of a
     millisecond each, then take no hop to a thread, whose hand-offs of the GIL cost more than
-    the transactions themselves under load. If another writer holds the lock it runs in the
-    thread pool, where waiting stalls nobody; so does every write on PostgreSQL, whose
-    statements wait on the network."""
+    the transactions themselves under load. If a thread of this process holds the lock, the
+    upload waits (on the event loop, stalling nobody) for it to let go and tries again; if
+    another process holds it, it runs in the thread pool, where waiting stalls nobody; so does
+    every write on PostgreSQL, whose statements wait on the network."""
     if database.writes_at_once:
         for _ in range(AT_ONCE_TRIES):
             try:

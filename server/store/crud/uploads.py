@@ -88,7 +88,7 @@ class UploadLookupError(LookupError):
 
 _CURRENT = aliased(ModelVersion)
 """The version a patron bids with now (the path's model for a model that is not a patron)."""
-_TARGET = (
+_HEAD = (
     select(
         Auction.fine_tune_mode,
         Participant.name,
@@ -97,6 +97,20 @@ _TARGET = (
         _CURRENT.id.label("current_id"),
         _CURRENT.version.label("current_version"),
         _CURRENT.manifest,
+    )
+    .select_from(Auction)
+    .join(ModelVersion, ModelVersion.id == bindparam("model_id"))
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .outerjoin(
+        AuctionPatron,
+        (AuctionPatron.auction_id == Auction.id) & (AuctionPatron.model_id == ModelVersion.id),
+    )
+    .join(_CURRENT, _CURRENT.id == func.coalesce(AuctionPatron.current_model_id, ModelVersion.id))
+    .where(Auction.id == bindparam("auction_id"))
+)
+"""What the path names: the auction, the model and its participant, its patron's place."""
+_TARGET = (
+    _HEAD.add_columns(
         FineTuneRound.id.label("round_id"),
         FineTuneRound.status,
         FineTuneRound.deadline,
@@ -106,14 +120,6 @@ _TARGET = (
         FineTuneAnswer.body_sha256,
         FineTuneAnswer.answer,
     )
-    .select_from(Auction)
-    .join(ModelVersion, ModelVersion.id == bindparam("model_id"))
-    .join(Participant, Participant.id == ModelVersion.participant_id)
-    .join(
-        AuctionPatron,
-        (AuctionPatron.auction_id == Auction.id) & (AuctionPatron.model_id == ModelVersion.id),
-    )
-    .join(_CURRENT, _CURRENT.id == func.coalesce(AuctionPatron.current_model_id, ModelVersion.id))
     .join(
         FineTuneRound,
         (FineTuneRound.auction_id == Auction.id) & (FineTuneRound.round == bindparam("round")),
@@ -123,30 +129,10 @@ _TARGET = (
         (FineTuneAnswer.round_id == FineTuneRound.id)
         & (FineTuneAnswer.position == AuctionPatron.position),
     )
-    .where(Auction.id == bindparam("auction_id"))
+    .where(AuctionPatron.position.is_not(None))
     .with_for_update(read=True, of=FineTuneRound)
 )
 """Everything an upload by a patron to an existing round is checked against, in one row."""
-_HEAD = (
-    select(
-        Auction.fine_tune_mode,
-        Participant.name,
-        Participant.token_hash,
-        AuctionPatron.position,
-        _CURRENT.id,
-        _CURRENT.version,
-        _CURRENT.manifest,
-    )
-    .select_from(Auction)
-    .join(ModelVersion, ModelVersion.id == bindparam("model_id"))
-    .join(Participant, Participant.id == ModelVersion.participant_id)
-    .outerjoin(
-        AuctionPatron,
-        (AuctionPatron.auction_id == Auction.id) & (AuctionPatron.model_id == ModelVersion.id),
-    )
-    .join(_CURRENT, _CURRENT.id == func.coalesce(AuctionPatron.current_model_id, ModelVersion.id))
-    .where(Auction.id == bindparam("auction_id"))
-)
 _AUCTION_EXISTS = select(Auction.id).where(Auction.id == bindparam("auction_id"))
 _NEWEST_ROUND = (
     select(FineTuneRound.round, FineTuneRound.status)
@@ -165,47 +151,31 @@ def upload_target(
     UploadLookupError of a path that names no auction or model)."""
     ids = {"auction_id": auction_id, "model_id": model_id, "round": round_number}
     row = connection.execute(_TARGET, ids).one_or_none()
-    if row is not None:
-        return UploadTarget(
-            fine_tune_mode=row.fine_tune_mode,
-            position=row.position,
-            participant=row.name,
-            token_hash=row.token_hash,
-            current_id=row.current_id,
-            current_version=row.current_version,
-            current_manifest=row.manifest,
-            newest_round=None,  # only named when the path's round does not exist
-            newest_status=None,
-            round_id=row.round_id,
-            round_status=row.status,
-            deadline=row.deadline,
-            asked=list(row.asked),
-            answer_outcome=row.outcome,
-            answer_sha256=row.body_sha256,
-            answer_id=row.answer_id,
-            answer=row.answer,
-        )
-    head = connection.execute(_HEAD, ids).one_or_none()
-    if head is None:
-        exists = connection.execute(_AUCTION_EXISTS, ids).first() is not None
-        return UploadLookupError("model_id" if exists else "auction_id")
-    newest = connection.execute(_NEWEST_ROUND, ids).one_or_none()
+    head, newest = row, None
+    if head is None:  # no such round, or not a patron: read what names the problem
+        head = connection.execute(_HEAD, ids).one_or_none()
+        if head is None:
+            exists = connection.execute(_AUCTION_EXISTS, ids).first() is not None
+            return UploadLookupError("model_id" if exists else "auction_id")
+        newest = connection.execute(_NEWEST_ROUND, ids).one_or_none()
     return UploadTarget(
         fine_tune_mode=head.fine_tune_mode,
         position=head.position,
         participant=head.name,
         token_hash=head.token_hash,
-        current_id=head.id,
-        current_version=head.version,
+        current_id=head.current_id,
+        current_version=head.current_version,
         current_manifest=head.manifest,
         newest_round=None if newest is None else newest.round,
         newest_status=None if newest is None else newest.status,
-        round_id=None,
-        round_status=None,
-        deadline=None,
-        asked=[],
-        answer_outcome=None,
-        answer_sha256=None,
+        round_id=None if row is None else row.round_id,
+        round_status=None if row is None else row.status,
+        deadline=None if row is None else row.deadline,
+        asked=[] if row is None else list(row.asked),
+        answer_outcome=None if row is None else row.outcome,
+        answer_sha256=None if row is None else row.body_sha256,
+        answer_id=None if row is None else row.answer_id,
+        answer=None if row is None else row.answer,
     )
 
 

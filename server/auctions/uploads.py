@@ -45,10 +45,10 @@ from sim.market.design import design_changes
 T = TypeVar("T")
 
 RETRY_AFTER_S = 1
+"""Retry-After of a round request refused because too many wait."""
 AT_ONCE_TRIES = 8
 """An upload's write on SQLite tries the write lock at once up to this many times, each time
 after the thread of this process that held it let go, before it waits for it in a thread."""
-"""Retry-After of a round request refused because too many wait."""
 
 
 async def current_round(

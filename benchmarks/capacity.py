@@ -348,6 +348,9 @@ class AgentConnection:
         for attempt in range(RECONNECTS + 1):
             try:
                 return await asyncio.wait_for(self._exchange(method, path, body, headers), timeout)
+            except TimeoutError:  # an OSError since Python 3.11, but not retried
+                self.close()
+                raise
             except (OSError, EOFError, h11.ProtocolError):
                 self.close()
                 if attempt == RECONNECTS:

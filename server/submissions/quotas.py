@@ -12,24 +12,20 @@ Per client address:
 * screener refusals per hour.
 
 A submission over a limit is answered 429 with ``Retry-After`` and a message naming the limit
-and its setting; its verdict is not revealed and nothing of it is stored. ``Throttle`` decides a
-whole group of submissions (the group-commit writer's) with two queries, counting the earlier
-submissions of the group as if stored.
+and its setting; its verdict is not revealed and nothing of it is stored. ``Throttle`` reads a
+submission's counts in the transaction that stores it (the statements: ``crud.quotas``).
 """
 
 from __future__ import annotations
 
 import math
-from collections import defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import datetime, timedelta
-from typing import Any
 
-from sqlalchemy import bindparam, case, delete, func, insert, select
 from sqlalchemy.orm import Session
 
 from server.config import Settings
-from server.store.tables import RateEvent
+from server.store import crud
 
 VERSION, REGISTRATION, REFUSAL = "version", "registration", "refusal"
 MINUTE, HOUR, DAY = timedelta(minutes=1), timedelta(hours=1), timedelta(days=1)
@@ -83,93 +79,48 @@ class Throttled:
     retry_after_s: int
 
 
-_COUNTS = (
-    select(
-        RateEvent.subject,
-        RateEvent.kind,
-        func.count(),
-        func.sum(case((RateEvent.created_at >= bindparam("hour"), 1), else_=0)),
-        func.sum(case((RateEvent.created_at >= bindparam("minute"), 1), else_=0)),
-        func.min(RateEvent.created_at),
-        func.min(case((RateEvent.created_at >= bindparam("hour"), RateEvent.created_at))),
-        func.min(case((RateEvent.created_at >= bindparam("minute"), RateEvent.created_at))),
-    )
-    .where(
-        RateEvent.subject.in_(bindparam("subjects", expanding=True)),
-        RateEvent.created_at >= bindparam("day"),
-    )
-    .group_by(RateEvent.subject, RateEvent.kind)
-)
-_RECENT = (
-    select(RateEvent.subject, RateEvent.kind, RateEvent.created_at)
-    .where(
-        RateEvent.subject.in_(bindparam("subjects", expanding=True)),
-        RateEvent.kind.in_((VERSION, REFUSAL)),
-        RateEvent.created_at >= bindparam("since"),
-    )
-    .order_by(RateEvent.created_at)
-)
-
-
-@dataclass
-class _Count:
-    """Stored events of one (subject, kind) in the last day / hour / minute, with the oldest
-    of each window (for Retry-After), plus the group's pending ones."""
-
-    day: int = 0
-    hour: int = 0
-    minute: int = 0
-    oldest: dict[str, datetime] = field(default_factory=dict)
-    pending: list[datetime] = field(default_factory=list)
-
-    def count(self, window: str) -> int:
-        stored: int = {"day": self.day, "hour": self.hour, "minute": self.minute}[window]
-        return stored + len(self.pending)
-
-    def first(self, window: str) -> datetime | None:
-        return self.oldest.get(window) or (self.pending[0] if self.pending else None)
-
-
 class Throttle:
-    """The limits applied to one group of submissions, in arrival order (see module doc)."""
+    """The limits applied to one submission of ``participant`` from ``address``, read at
+    ``now`` in the session's transaction (two queries)."""
 
     def __init__(
-        self, session: Session, limits: Limits, now: datetime, subjects: list[str]
+        self,
+        session: Session,
+        limits: Limits,
+        now: datetime,
+        *,
+        participant: str,
+        address: str | None,
     ) -> None:
-        self.limits, self.now = limits, now
-        self.counts: dict[tuple[str, str], _Count] = defaultdict(_Count)
-        self.recent: dict[str, list[tuple[str, datetime]]] = defaultdict(list)
-        self.rows: list[dict[str, Any]] = []
-        if not subjects:
-            return
-        connection = session.connection()
-        windows = {"day": now - DAY, "hour": now - HOUR, "minute": now - MINUTE}
-        for subject, kind, day, hour, minute, *oldest in connection.execute(
-            _COUNTS, {"subjects": subjects, **windows}
-        ):
-            count = self.counts[(subject, kind)]
-            count.day, count.hour, count.minute = int(day), int(hour or 0), int(minute or 0)
-            count.oldest = {
-                name: _aware(t, now) for name, t in zip(windows, oldest, strict=True) if t
-            }
-        # The cooldown reads participants' refusals in a row, never an address's: an address
+        self.limits, self.now, self.participant = limits, now, participant
+        self.person = participant_subject(participant)
+        self.place = None if address is None else address_subject(address)
+        subjects = [self.person] if self.place is None else [self.person, self.place]
+        self.counts = crud.rate_counts(
+            session,
+            subjects=subjects,
+            windows={"day": now - DAY, "hour": now - HOUR, "minute": now - MINUTE},
+        )
+        # The cooldown reads a participant's refusals in a row, never an address's: an address
         # shared by many participants would fetch all their versions of the last hour.
-        people = [s for s in subjects if s.startswith(_PERSON)]
-        since = now - timedelta(seconds=limits.cooldown_max_s)
-        for subject, kind, at in connection.execute(_RECENT, {"subjects": people, "since": since}):
-            self.recent[subject].append((kind, _aware(at, now)))
+        self.recent = crud.recent_events(
+            session,
+            subject=self.person,
+            kinds=(VERSION, REFUSAL),
+            since=now - timedelta(seconds=limits.cooldown_max_s),
+        )
 
-    def check(self, *, participant: str, address: str | None, new: bool) -> Throttled | None:
-        """The first limit this submission would break, or None."""
-        limits, person = self.limits, participant_subject(participant)
+    def check(self, *, new: bool) -> Throttled | None:
+        """The first limit this submission (of a ``new`` participant, or not) would break, or
+        None."""
+        limits, person, place = self.limits, self.person, self.place
         checks: list[tuple[str, str, str, int, str, str]] = [
             (person, VERSION, "minute", limits.versions_per_minute, "versions per minute",
              "SRD_QUOTA_VERSIONS_PER_MINUTE"),
             (person, VERSION, "day", limits.versions_per_day, "versions per day",
              "SRD_QUOTA_VERSIONS_PER_DAY"),
         ]  # fmt: skip
-        if address is not None:
-            place = address_subject(address)
+        if place is not None:
             checks += [
                 (place, VERSION, "minute", limits.address_versions_per_minute,
                  "versions per minute from one address", "SRD_QUOTA_ADDRESS_VERSIONS_PER_MINUTE"),
@@ -186,9 +137,9 @@ class Throttle:
                 )  # fmt: skip
         span = {"minute": MINUTE, "hour": HOUR, "day": DAY}
         for subject, kind, window, limit, what, setting in checks:
-            count = self.counts[(subject, kind)]
-            if count.count(window) >= limit:
-                first = count.first(window) or self.now
+            count = self.counts.get((subject, kind))
+            if count is not None and getattr(count, window) >= limit:
+                first = count.oldest.get(window, self.now)
                 wait = (first + span[window] - self.now).total_seconds()
                 who = subject.split(":", 1)[1]
                 return Throttled(
@@ -196,13 +147,13 @@ class Throttle:
                     f"retry in {math.ceil(max(wait, 1))} s",
                     math.ceil(max(wait, 1)),
                 )
-        return self._cooldown(person, participant)
+        return self._cooldown()
 
-    def _cooldown(self, person: str, participant: str) -> Throttled | None:
+    def _cooldown(self) -> Throttled | None:
         """Refusals in a row since the participant's last accepted version: the next
         submission waits cooldown · 2^(k−1) after the last of them."""
         in_a_row, last = 0, None
-        for kind, at in reversed(self.recent[person]):
+        for kind, at in reversed(self.recent):
             if kind != REFUSAL:
                 break
             in_a_row, last = in_a_row + 1, last or at
@@ -214,46 +165,23 @@ class Throttle:
         if wait <= 0:
             return None
         return Throttled(
-            f"{participant!r} was refused by the screener {in_a_row} time(s) in a row: next "
+            f"{self.participant!r} was refused by the screener {in_a_row} time(s) in a row: next "
             f"submission in {math.ceil(wait)} s (cooldown {cooldown:g} s, doubling per refusal; "
             "SRD_REFUSAL_COOLDOWN_S)",
             math.ceil(wait),
         )
 
-    def record(self, *, participant: str, address: str | None, new: bool, accepted: bool) -> None:
-        """Count a stored submission: its version or refusal, its registration."""
-        person = participant_subject(participant)
+    def record(self, session: Session, *, new: bool, accepted: bool) -> None:
+        """Count the submission as stored: its version or refusal, its registration."""
         kind = VERSION if accepted else REFUSAL
-        events = [(person, kind)]
-        if address is not None:
-            place = address_subject(address)
-            events.append((place, kind))
+        events = [(self.person, kind)]
+        if self.place is not None:
+            events.append((self.place, kind))
             if new:
-                events.append((place, REGISTRATION))
-        for subject, event_kind in events:
-            self.counts[(subject, event_kind)].pending.append(self.now)
-            if subject == person:  # the cooldown reads a participant's own
-                self.recent[subject].append((event_kind, self.now))
-            self.rows.append({"subject": subject, "kind": event_kind, "created_at": self.now})
-
-    def write(self, session: Session) -> None:
-        """Insert the group's events (one multi-row insert)."""
-        if self.rows:
-            session.connection().execute(insert(RateEvent), self.rows)
+                events.append((self.place, REGISTRATION))
+        crud.insert_rate_events(session, events=events, now=self.now)
 
 
 def prune(session: Session, now: datetime) -> None:
     """Delete the events no limit counts any more."""
-    session.execute(delete(RateEvent).where(RateEvent.created_at < now - KEEP))
-
-
-def subjects(participants: list[str], addresses: list[str | None]) -> list[str]:
-    """The subjects a group's limits read."""
-    found = [participant_subject(p) for p in participants]
-    found += [address_subject(a) for a in addresses if a is not None]
-    return list(dict.fromkeys(found))
-
-
-def _aware(value: datetime, like: datetime) -> datetime:
-    """SQLite hands back naive UTC timestamps from aggregates; compare them as aware ones."""
-    return value if value.tzinfo is not None else value.replace(tzinfo=like.tzinfo)
+    crud.prune_rate_events(session, before=now - KEEP)

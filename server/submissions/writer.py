@@ -29,7 +29,7 @@ from server.api.security import hash_token, new_token, token_matches
 from server.store import crud
 from server.store.db import Database
 from server.store.status import ModelStatus
-from server.store.tables import participant_key, utcnow
+from server.store.tables import utcnow
 from server.submissions import quotas
 
 log = logging.getLogger("srd.submissions")
@@ -77,17 +77,7 @@ class _Submission:
     """The verdict under review (``screener.review``)."""
 
 
-@dataclass
-class _Known:
-    """A participant as the group sees it: stored (``id``) or registered earlier in the group."""
-
-    name: str
-    token_hash: str
-    next_version: int
-    id: int | None = None
-
-
-def _name_refusal(item: _Submission, participant: _Known | None) -> Refused | None:
+def _name_refusal(item: _Submission, participant: crud.ParticipantRow | None) -> Refused | None:
     """A name that is another participant's but for case or Unicode form."""
     if participant is None or participant.name == item.participant:
         return None
@@ -100,7 +90,7 @@ def _name_refusal(item: _Submission, participant: _Known | None) -> Refused | No
     )
 
 
-def _token_refusal(item: _Submission, participant: _Known | None) -> Refused | None:
+def _token_refusal(item: _Submission, participant: crud.ParticipantRow | None) -> Refused | None:
     """A later version without the participant's token (a new name needs none)."""
     if participant is None:
         return None
@@ -122,95 +112,51 @@ def _token_refusal(item: _Submission, participant: _Known | None) -> Refused | N
     return None
 
 
-def _refusal(
-    item: _Submission, participant: _Known | None, throttle: quotas.Throttle
-) -> Refused | None:
-    """Why the submission is refused now (its name, its token, then the quotas), if it is."""
+def _store(session: Session, item: _Submission, limits: quotas.Limits) -> Outcome | None:
+    """The submission decided (its name, its token, then the quotas) and, if it has a verdict
+    and is not refused, written as the participant's next version. A question (no verdict) is
+    answered with the refusal its submission would get now, or None; it writes nothing."""
+    participant = crud.participant_by_name(session, name=item.participant)
     refusal = _name_refusal(item, participant) or _token_refusal(item, participant)
     if refusal is not None:
         return refusal
-    throttled = throttle.check(
-        participant=item.participant, address=item.address, new=participant is None
-    )
-    if throttled is None:
-        return None
-    return Refused(429, throttled.msg, ("body", "participant"), "quota", throttled.retry_after_s)
-
-
-def _store_group(
-    session: Session, group: list[_Submission], limits: quotas.Limits
-) -> list[Outcome | None]:
-    """Every submission of the group, decided in arrival order, then written with one query
-    and two multi-row inserts, whatever the group's size. Questions (no verdict) are answered
-    with the refusal their submission would get now, or None; they write nothing."""
-    existing = crud.participants_by_names(
-        session, names=list(dict.fromkeys(item.participant for item in group))
-    )
-    latest = crud.latest_versions(session, participant_ids=[p.id for p in existing.values()])
-    known: dict[str, _Known] = {}  # by name, then by name key for the names not stored
-    for stored in existing.values():
-        known[stored.name] = _Known(
-            stored.name, stored.token_hash, latest.get(stored.id, 0) + 1, stored.id
-        )
-    for stored in existing.values():
-        known.setdefault(stored.name_key, known[stored.name])
     now = utcnow()
     throttle = quotas.Throttle(
-        session,
-        limits,
-        now,
-        quotas.subjects([i.participant for i in group], [i.address for i in group]),
+        session, limits, now, participant=item.participant, address=item.address
     )
-    new_participants: list[dict[str, Any]] = []
-    versions: list[tuple[int, str, int, str | None]] = []  # group index, name, version, token
-    outcomes: list[Outcome | None] = []
-    for index, item in enumerate(group):
-        participant = known.get(item.participant) or known.get(participant_key(item.participant))
-        refusal = _refusal(item, participant, throttle)
-        if refusal is not None or item.verdict is None:
-            outcomes.append(refusal)
-            continue
-        token: str | None = None
-        if participant is None:
-            token = new_token(crud.PARTICIPANT_TOKEN_PREFIX)
-            participant = _Known(item.participant, hash_token(token), 1)
-            known[item.participant] = known[participant_key(item.participant)] = participant
-            new_participants.append(
-                {"name": item.participant, "token_hash": participant.token_hash, "created_at": now}
-            )
-        throttle.record(
-            participant=item.participant,
-            address=item.address,
-            new=token is not None,
-            accepted=item.status == ModelStatus.ACCEPTED,
+    throttled = throttle.check(new=participant is None)
+    if throttled is not None:
+        return Refused(
+            429, throttled.msg, ("body", "participant"), "quota", throttled.retry_after_s
         )
-        versions.append((index, item.participant, participant.next_version, token))
-        participant.next_version += 1
-        outcomes.append(None)  # stored: filled in below
-    new_ids = crud.insert_participants(session, rows=new_participants)
-    for row, participant_id in zip(new_participants, new_ids, strict=True):
-        known[row["name"]].id = participant_id
-    rows = []
-    for index, name, version, _ in versions:
-        verdict = group[index].verdict
-        assert verdict is not None
-        rows.append(
-            {
-                "participant_id": known[name].id,
-                "version": version,
-                "manifest": group[index].manifest,
-                "accepted": group[index].status == ModelStatus.ACCEPTED,
-                "status": group[index].status,
-                "reasons": [reason.to_dict() for reason in verdict.reasons],
-                "evidence": [e.to_dict() for e in verdict.evidence],
-                "created_at": now,
-            }
+    if item.verdict is None:
+        return None
+    token: str | None = None
+    if participant is None:
+        token = new_token(crud.PARTICIPANT_TOKEN_PREFIX)
+        participant_id = crud.insert_participant(
+            session, name=item.participant, token_hash=hash_token(token), now=now
         )
-    model_ids = crud.insert_model_versions(session, rows=rows)
-    for (index, name, version, token), model_id in zip(versions, model_ids, strict=True):
-        outcomes[index] = Stored(model_id, name, version, token)
-    throttle.write(session)
-    return outcomes
+        version = 1
+    else:
+        participant_id = participant.id
+        version = crud.latest_version(session, participant_id=participant_id) + 1
+    accepted = item.status == ModelStatus.ACCEPTED
+    model_id = crud.insert_model_version(
+        session,
+        values={
+            "participant_id": participant_id,
+            "version": version,
+            "manifest": item.manifest,
+            "accepted": accepted,
+            "status": item.status,
+            "reasons": [reason.to_dict() for reason in item.verdict.reasons],
+            "evidence": [e.to_dict() for e in item.verdict.evidence],
+            "created_at": now,
+        },
+    )
+    throttle.record(session, new=token is not None, accepted=accepted)
+    return Stored(model_id, item.participant, version, token)
 
 
 def _conflict(item: _Submission) -> Refused:
@@ -260,12 +206,12 @@ class SubmissionWriter:
 
     def _ask(self, item: _Submission) -> Outcome | None:
         with self._database.session(write=False) as session:
-            return _store_group(session, [item], self._limits)[0]
+            return _store(session, item, self._limits)
 
     def _write(self, item: _Submission) -> Outcome | None:
         try:
             with self._database.session(write=True) as session:
-                (outcome,) = _store_group(session, [item], self._limits)
+                outcome = _store(session, item, self._limits)
                 session.commit()
         except IntegrityError:
             return _conflict(item)

@@ -89,16 +89,13 @@ def test_a_name_taken_meanwhile_is_answered_409_and_stores_nothing(
     """Another process took the name between our lookup and our insert."""
     taken, other = unique("taken"), unique("other")
     with database.session(write=True) as session:
-        crud.insert_participants(
-            session, rows=[{"name": taken, "token_hash": "0" * 64, "created_at": utcnow()}]
-        )
+        crud.insert_participant(session, name=taken, token_hash="0" * 64, now=utcnow())
         session.commit()
-    real_lookup = crud.participants_by_names
 
-    def blind_lookup(session: Any, *, names: list[str]) -> dict[str, crud.ParticipantRow]:
-        return {n: p for n, p in real_lookup(session, names=names).items() if n != taken}
+    def blind_lookup(session: Any, *, name: str) -> crud.ParticipantRow | None:
+        return None  # as if the name were free
 
-    monkeypatch.setattr(submissions.crud, "participants_by_names", blind_lookup)
+    monkeypatch.setattr(submissions.crud, "participant_by_name", blind_lookup)
     writer = SubmissionWriter(database, LIMITS)
     conflict = _store(writer, taken, ACCEPTED, None)
     assert isinstance(conflict, Refused) and conflict.status == 409

@@ -4,7 +4,6 @@ auctions, the newest accepted versions, the model list and a participant."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -62,56 +61,43 @@ class ReviewEntry:
 
 # The statements of POST /submit, built once and run on the session's connection (Core, not the
 # ORM's bulk-insert path: the hot path builds and tracks no objects)
-_PARTICIPANTS_BY_NAMES = (
+_PARTICIPANT_BY_NAME = (
     select(Participant.id, Participant.name, Participant.name_key, Participant.token_hash)
-    .where(
-        Participant.name.in_(bindparam("names", expanding=True))
-        | Participant.name_key.in_(bindparam("keys", expanding=True))
-    )
-    .order_by(Participant.id)
+    .where((Participant.name == bindparam("name")) | (Participant.name_key == bindparam("key")))
     .with_for_update()
 )
-_LATEST_VERSIONS = (
-    select(ModelVersion.participant_id, func.max(ModelVersion.version))
-    .where(ModelVersion.participant_id.in_(bindparam("ids", expanding=True)))
-    .group_by(ModelVersion.participant_id)
+_LATEST_VERSION = select(func.max(ModelVersion.version)).where(
+    ModelVersion.participant_id == bindparam("id")
 )
-_INSERT_PARTICIPANTS = insert(Participant).returning(Participant.id, sort_by_parameter_order=True)
-_INSERT_MODEL_VERSIONS = insert(ModelVersion).returning(
-    ModelVersion.id, sort_by_parameter_order=True
-)
+_INSERT_PARTICIPANT = insert(Participant).returning(Participant.id)
+_INSERT_MODEL_VERSION = insert(ModelVersion).returning(ModelVersion.id)
 
 
-def participants_by_names(session: Session, *, names: Sequence[str]) -> dict[str, ParticipantRow]:
-    """The participants named ``names``, or whose name is the same as one of them
-    (``participant_key``), their rows locked until commit (one query)."""
-    keys = list(dict.fromkeys(participant_key(name) for name in names))
-    rows = session.connection().execute(
-        _PARTICIPANTS_BY_NAMES, {"names": list(names), "keys": keys}
+def participant_by_name(session: Session, *, name: str) -> ParticipantRow | None:
+    """The participant named ``name``, or whose name is the same but for case or Unicode form
+    (``participant_key``: unique, so at most one), its row locked until commit."""
+    row = (
+        session.connection()
+        .execute(_PARTICIPANT_BY_NAME, {"name": name, "key": participant_key(name)})
+        .first()
     )
-    return {row.name: ParticipantRow(*row) for row in rows}
+    return None if row is None else ParticipantRow(*row)
 
 
-def latest_versions(session: Session, *, participant_ids: Sequence[int]) -> dict[int, int]:
-    """The newest version number of each of these participants (one query)."""
-    if not participant_ids:
-        return {}
-    rows = session.connection().execute(_LATEST_VERSIONS, {"ids": list(participant_ids)})
-    return {participant_id: version for participant_id, version in rows}
+def latest_version(session: Session, *, participant_id: int) -> int:
+    """The participant's newest version number (0: none yet)."""
+    return int(session.connection().execute(_LATEST_VERSION, {"id": participant_id}).scalar() or 0)
 
 
-def insert_participants(session: Session, *, rows: Sequence[dict[str, Any]]) -> list[int]:
-    """Insert participants (``name``, ``token_hash``, ``created_at``); their ids, in order."""
-    if not rows:
-        return []
-    return list(session.connection().execute(_INSERT_PARTICIPANTS, list(rows)).scalars())
+def insert_participant(session: Session, *, name: str, token_hash: str, now: datetime) -> int:
+    """Insert a participant; its id."""
+    values = {"name": name, "token_hash": token_hash, "created_at": now}
+    return int(session.connection().execute(_INSERT_PARTICIPANT, values).scalar_one())
 
 
-def insert_model_versions(session: Session, *, rows: Sequence[dict[str, Any]]) -> list[int]:
-    """Insert model versions (all columns but ``id``); their ids, in order."""
-    if not rows:
-        return []
-    return list(session.connection().execute(_INSERT_MODEL_VERSIONS, list(rows)).scalars())
+def insert_model_version(session: Session, *, values: dict[str, Any]) -> int:
+    """Insert a model version (every column but ``id``); its id."""
+    return int(session.connection().execute(_INSERT_MODEL_VERSION, values).scalar_one())
 
 
 _MODEL_BY_ID = (

@@ -77,8 +77,9 @@ class Settings(BaseSettings):
     """Minimum time between two progress writes of a running job."""
     event_poll_interval_s: Annotated[float, Field(gt=0, le=10)] = 0.05
     """On SQLite, how often the watched auctions and jobs are read while an event stream, a long
-    poll or a round socket listens (one query for all the watched auctions, one for all the
-    watched jobs, per interval; whatever the number of listeners)."""
+    poll or a round socket listens, if anything was committed since the last read (one query
+    for all the watched auctions, one for all the watched jobs, per interval; whatever the
+    number of listeners)."""
     live_safety_poll_s: Annotated[float, Field(gt=0, le=3600)] = 5.0
     """On PostgreSQL, where commits announce changes (``NOTIFY``), how often the watched rows
     are read anyway (a safety net)."""

@@ -11,7 +11,9 @@ The source reads the state of the watched rows, batched (one query for all watch
 one for all watched jobs), and rebuilds a row's feeds only when its state changed: a changed
 row is read once, and every listener of it wakes. It reads them
 
-* on SQLite, every ``SRD_EVENT_POLL_INTERVAL_S`` while anyone listens;
+* on SQLite, every ``SRD_EVENT_POLL_INTERVAL_S`` while anyone listens, if anything was committed
+  since the last read (``PRAGMA data_version``, a few microseconds: an interval in which nothing
+  was committed reads nothing);
 * on PostgreSQL, when a commit announces the row on the ``LISTEN``/``NOTIFY`` channel
   (``server.store.crud.live``): one dedicated connection per process listens, reconnects after
   an outage (every watched row is read again then, for what it missed; meanwhile the rows are
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import sqlite3
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager, suppress
 from dataclasses import dataclass, field
@@ -40,6 +43,7 @@ from server.store.db import (
     Database,
     is_database_outage,
     is_sqlite,
+    sqlite_path,
     unavailable_message,
 )
 
@@ -107,6 +111,33 @@ class _Row:
     feeds: dict[View[Any], Feed[Any]] = field(default_factory=dict)
 
 
+class _SqliteCommits:
+    """Whether a SQLite database saw a commit since the last look: ``PRAGMA data_version`` on a
+    read-only connection of its own (it moves with every commit made on another connection; it
+    takes no lock). Any error answers True, so the rows are read as without it."""
+
+    def __init__(self, url: str) -> None:
+        self._uri = sqlite_path(url).as_uri() + "?mode=ro"
+        self._connection: sqlite3.Connection | None = None
+        self._seen: int | None = None
+
+    def since_last(self) -> bool:
+        try:
+            if self._connection is None:
+                self._connection = sqlite3.connect(self._uri, uri=True, isolation_level=None)
+            (version,) = self._connection.execute("PRAGMA data_version").fetchone()
+        except sqlite3.Error:
+            self.close()
+            return True
+        changed, self._seen = version != self._seen, version
+        return bool(changed)
+
+    def close(self) -> None:
+        if self._connection is not None:
+            self._connection.close()
+        self._connection, self._seen = None, None
+
+
 _Plan = list[tuple[Key, Any, bool, list[tuple[Feed[Any], Any, bool]]]]
 """What one read does, per row: (key, state known, whether it is known, [(feed, its snapshot,
 whether it is built)])."""
@@ -120,6 +151,7 @@ class LiveSource:
     def __init__(self, database: Database, *, poll_s: float, safety_poll_s: float) -> None:
         self._database = database
         self._listens = not is_sqlite(database.url)
+        self._commits = None if self._listens else _SqliteCommits(database.url)
         self.interval_s = safety_poll_s if self._listens else poll_s
         self._poll_s = poll_s
         self._rows: dict[Key, _Row] = {}
@@ -185,6 +217,8 @@ class LiveSource:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks.clear()
+        if self._commits is not None:
+            self._commits.close()
 
     def _mark(self, key: Key) -> None:
         self._dirty.add(key)
@@ -207,7 +241,8 @@ class LiveSource:
                 try:
                     await asyncio.wait_for(self._wake.wait(), interval if self._rows else None)
                 except TimeoutError:  # the poll (on PostgreSQL the safety net)
-                    self._dirty.update(self._rows)
+                    if self._commits is None or self._commits.since_last():
+                        self._dirty.update(self._rows)
             self._wake.clear()
             keys, self._dirty = self._dirty & self._rows.keys(), set()
             if not keys:

@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from server.store import crud
@@ -38,10 +37,6 @@ from studies.registry import build_config, run_kind
 log = logging.getLogger("srd.jobs")
 
 MESSAGE_LIMIT = 200  # characters of a progress message kept
-
-
-class SupersededError(Exception):
-    """The job row no longer belongs to this worker (cancelled, or claimed again)."""
 
 
 def job_dir(data_dir: str | Path, job_id: int) -> Path:
@@ -104,14 +99,7 @@ class _Progress:
 
 def _update_owned(database: Database, job_id: int, attempt: int, **values: Any) -> None:
     with database.session(write=True) as session:
-        changed = session.execute(
-            update(Job)
-            .where(Job.id == job_id, Job.attempt == attempt, Job.status == JobStatus.RUNNING)
-            .values(updated_at=utcnow(), **values)
-        )
-        if changed.rowcount != 1:  # type: ignore[attr-defined]
-            raise SupersededError
-        crud.notify_change(session, kind="job", row_id=job_id)
+        crud.update_attempt(session, job_id=job_id, attempt=attempt, values=values)
         session.commit()
 
 
@@ -131,14 +119,7 @@ def _record_outcome(database: Database, job_id: int, attempt: int, **values: Any
 
 def _claim(database: Database, job_id: int) -> tuple[str, dict[str, Any], int] | None:
     with database.session(write=True) as session:
-        job = session.scalars(select(Job).where(Job.id == job_id)).one_or_none()
-        if job is None or job.status != JobStatus.QUEUED:
-            return None
-        job.status, job.attempt = JobStatus.RUNNING, job.attempt + 1
-        job.started_at = job.updated_at = utcnow()
-        job.progress, job.message, job.error, job.result = 0.0, "started", None, None
-        claimed = (job.kind, dict(job.params), job.attempt)
-        crud.notify_change(session, kind="job", row_id=job_id)
+        claimed = crud.start_job(session, job_id=job_id)
         session.commit()
     return claimed
 
@@ -198,7 +179,7 @@ def run_job(context: WorkerContext, job_id: int) -> None:
                 "result": result,
                 "message": "done",
             }
-        except SupersededError:
+        except crud.SupersededError:
             return
         except Exception as exc:
             outcome = {
@@ -214,7 +195,7 @@ def run_job(context: WorkerContext, job_id: int) -> None:
             finished_at=utcnow(),
             **outcome,
         )
-    except SupersededError:
+    except crud.SupersededError:
         return
     finally:
         database.close()
@@ -223,19 +204,7 @@ def run_job(context: WorkerContext, job_id: int) -> None:
 def requeue(session: Session, job_ids: list[int]) -> None:
     """Claimed jobs left running (their server stopped) go back to queued: they run again from
     the start, as a new attempt."""
-    session.execute(
-        update(Job)
-        .where(Job.id.in_(job_ids), Job.status == JobStatus.RUNNING)
-        .values(
-            status=JobStatus.QUEUED,
-            progress=0.0,
-            message="re-queued: the server running it stopped",
-            started_at=None,
-            updated_at=utcnow(),
-        )
-    )
-    for job_id in job_ids:
-        crud.notify_change(session, kind="job", row_id=job_id)
+    crud.requeue_jobs(session, job_ids=job_ids, message="re-queued: the server running it stopped")
 
 
 JOB_WORK = WorkKind(

@@ -42,7 +42,6 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
-from sqlalchemy import ColumnElement, func, or_, select, update
 from sqlalchemy.orm import Session
 
 from server.store import crud
@@ -140,8 +139,7 @@ class BackgroundRunner:
         """Start the pool and the lease thread (which claims every unfinished row it may)."""
         if self._exclusive:
             with self._database.session(write=True) as session:
-                table = self.kind.table
-                session.execute(update(table).values(lease_owner=None, lease_expires=None))
+                crud.clear_leases(session, table=self.kind.table)
                 session.commit()
         self.pool.start()
         self._thread.start()
@@ -222,7 +220,6 @@ class BackgroundRunner:
     def _claim(self, limit: int) -> tuple[list[int], float | None]:
         """The rows claimed now, and while workers stay free, the seconds until the next
         unleased row falls due (None: none is waiting for a time, or no worker is free)."""
-        table = self.kind.table
         with self._database.session(write=False) as session:  # most passes find nothing
             now = database_now(session)
             if not self._claimable(session, now, limit, lock=False):
@@ -232,11 +229,12 @@ class BackgroundRunner:
             claimed = self._claimable(session, now, limit, lock=True)
             if claimed:
                 self.kind.prepare(session, claimed)
-                expires = None if self._exclusive else now + self._lease  # None: never
-                session.execute(
-                    update(table)
-                    .where(table.id.in_(claimed))
-                    .values(lease_owner=self.owner, lease_expires=expires)
+                crud.take_leases(
+                    session,
+                    table=self.kind.table,
+                    row_ids=claimed,
+                    owner=self.owner,
+                    expires=None if self._exclusive else now + self._lease,  # None: never
                 )
             due_in = self._due_in(session, now) if len(claimed) < limit else None
             session.commit()
@@ -248,42 +246,32 @@ class BackgroundRunner:
 
     def _due_in(self, session: Session, now: datetime) -> float | None:
         """Seconds until the earliest unfinished row without a live lease falls due."""
-        due = self.kind.due
-        if due is None:
+        kind = self.kind
+        if kind.due is None:
             return None
-        earliest: datetime | None = session.scalar(
-            select(func.min(due)).where(*self._unleased(now)).where(due > now)
+        earliest = crud.earliest_due(
+            session, table=kind.table, unfinished=kind.unfinished, due=kind.due, now=now
         )
         if earliest is None:
             return None
         return max((earliest - now).total_seconds(), 0.0) + DUE_MARGIN_S
 
-    def _unleased(self, now: datetime) -> tuple[ColumnElement[bool], ...]:
-        """Unfinished rows with no lease or an expired one."""
-        table = self.kind.table
-        return (
-            table.status.in_(self.kind.unfinished),
-            or_(table.lease_owner.is_(None), table.lease_expires < now),
-        )
-
     def _claimable(self, session: Session, now: datetime, limit: int, *, lock: bool) -> list[int]:
         """Unfinished rows with no lease or an expired one, except those played here (their
         lease is renewed, not claimed again)."""
-        table = self.kind.table
         with self._lock:
             held = set(self._held)
-        query = (
-            select(table.id)
-            .where(*self._unleased(now))
-            .where(table.id.notin_(held))
-            .order_by(table.id)
-            .limit(limit)
+        kind = self.kind
+        return crud.claimable(
+            session,
+            table=kind.table,
+            unfinished=kind.unfinished,
+            due=kind.due,
+            now=now,
+            held=held,
+            limit=limit,
+            lock=lock,
         )
-        if self.kind.due is not None:
-            query = query.where(or_(self.kind.due.is_(None), self.kind.due <= now))
-        if lock:
-            query = query.with_for_update(skip_locked=True)
-        return list(session.scalars(query))
 
     def _renew(self) -> float:
         """Renew the leases held here when a share of their duration has passed; the seconds
@@ -296,18 +284,15 @@ class BackgroundRunner:
         since = None if self._renewed_at is None else time.monotonic() - self._renewed_at
         if since is not None and since < every:
             return every - since
-        table = self.kind.table
         with self._database.session(write=True) as session:
             now = database_now(session)
-            kept = set(
-                session.scalars(
-                    update(table)
-                    .where(table.id.in_(held))
-                    .where(table.lease_owner == self.owner)
-                    .where(table.status.in_(self.kind.unfinished))
-                    .values(lease_expires=now + self._lease)
-                    .returning(table.id)
-                )
+            kept = crud.renew_leases(
+                session,
+                table=self.kind.table,
+                unfinished=self.kind.unfinished,
+                row_ids=held,
+                owner=self.owner,
+                expires=now + self._lease,
             )
             session.commit()
         self._renewed_at = time.monotonic()
@@ -319,14 +304,8 @@ class BackgroundRunner:
     def _release(self, row_ids: set[int]) -> None:
         if not row_ids:
             return
-        table = self.kind.table
         with self._database.session(write=True) as session:
-            session.execute(
-                update(table)
-                .where(table.id.in_(row_ids))
-                .where(table.lease_owner == self.owner)
-                .values(lease_owner=None, lease_expires=None)
-            )
+            crud.release_leases(session, table=self.kind.table, row_ids=row_ids, owner=self.owner)
             session.commit()
 
     def _on_end(self, row_id: int) -> None:

@@ -33,11 +33,23 @@ from server.store.crud.events import (
 )
 from server.store.crud.jobs import (
     JobSummary,
+    SupersededError,
     cancel_job,
     create_job,
     fail_unfinished,
     get_job,
     list_jobs,
+    requeue_jobs,
+    start_job,
+    update_attempt,
+)
+from server.store.crud.leases import (
+    claimable,
+    clear_leases,
+    earliest_due,
+    release_leases,
+    renew_leases,
+    take_leases,
 )
 from server.store.crud.live import LIVE_CHANNEL, LiveKind, notify_change
 from server.store.crud.models import (
@@ -127,6 +139,7 @@ __all__ = [
     "RoundView",
     "Stored",
     "StoredModel",
+    "SupersededError",
     "UploadIn",
     "UploadLookupError",
     "UploadTarget",
@@ -139,6 +152,8 @@ __all__ = [
     "auction_states",
     "cancel_auction",
     "cancel_job",
+    "claimable",
+    "clear_leases",
     "close_round",
     "commit_iteration",
     "create_auction",
@@ -146,6 +161,7 @@ __all__ = [
     "decide",
     "due_at",
     "due_when_answered",
+    "earliest_due",
     "fail_unfinished",
     "fine_tune_rounds",
     "get_auction",
@@ -176,10 +192,16 @@ __all__ = [
     "recent_events",
     "record_late",
     "record_verdict",
+    "release_leases",
+    "renew_leases",
+    "requeue_jobs",
     "round_body",
     "round_head",
     "start",
+    "start_job",
     "step_state",
     "store_upload",
+    "take_leases",
+    "update_attempt",
     "upload_target",
 ]

@@ -114,3 +114,51 @@ def list_jobs(
     if kind is not None:
         query = query.where(Job.kind == kind)
     return [JobSummary(*row) for row in session.connection().execute(query)]
+
+
+class SupersededError(Exception):
+    """The job is no longer this attempt's to write: cancelled, or claimed again as a new
+    attempt."""
+
+
+def update_attempt(session: Session, *, job_id: int, attempt: int, values: dict[str, Any]) -> None:
+    """Write ``values`` to a running job if ``attempt`` is still its attempt (SupersededError
+    otherwise), and announce it."""
+    changed = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.attempt == attempt, Job.status == JobStatus.RUNNING)
+        .values(updated_at=utcnow(), **values)
+    )
+    if changed.rowcount != 1:  # type: ignore[attr-defined]
+        raise SupersededError
+    notify_change(session, kind="job", row_id=job_id)
+
+
+def start_job(session: Session, *, job_id: int) -> tuple[str, dict[str, Any], int] | None:
+    """A queued job made running as its next attempt: its kind, params and attempt (None: it
+    is not queued any more)."""
+    job = session.scalars(select(Job).where(Job.id == job_id)).one_or_none()
+    if job is None or job.status != JobStatus.QUEUED:
+        return None
+    job.status, job.attempt = JobStatus.RUNNING, job.attempt + 1
+    job.started_at = job.updated_at = utcnow()
+    job.progress, job.message, job.error, job.result = 0.0, "started", None, None
+    notify_change(session, kind="job", row_id=job_id)
+    return job.kind, dict(job.params), job.attempt
+
+
+def requeue_jobs(session: Session, *, job_ids: list[int], message: str) -> None:
+    """Running jobs among ``job_ids`` back to queued, with ``message``."""
+    session.execute(
+        update(Job)
+        .where(Job.id.in_(job_ids), Job.status == JobStatus.RUNNING)
+        .values(
+            status=JobStatus.QUEUED,
+            progress=0.0,
+            message=message,
+            started_at=None,
+            updated_at=utcnow(),
+        )
+    )
+    for job_id in job_ids:
+        notify_change(session, kind="job", row_id=job_id)

@@ -1,0 +1,114 @@
+"""The leases of background work (``server.work.runner``): which unfinished auctions and jobs
+are free to claim, claiming, renewing and releasing them. Every function takes the table
+(``Auction`` or ``Job``) and the statuses of its unfinished rows."""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Sequence
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import ColumnElement, func, or_, select, update
+from sqlalchemy.orm import Session
+
+from server.store.tables import Auction, Job
+
+Table = type[Auction] | type[Job]
+
+
+def _unleased(table: Table, unfinished: Sequence[str], now: datetime) -> list[ColumnElement[bool]]:
+    """Unfinished rows with no lease or an expired one."""
+    return [
+        table.status.in_(unfinished),
+        or_(table.lease_owner.is_(None), table.lease_expires < now),
+    ]
+
+
+def claimable(
+    session: Session,
+    *,
+    table: Table,
+    unfinished: Sequence[str],
+    due: Any,
+    now: datetime,
+    held: Collection[int],
+    limit: int,
+    lock: bool,
+) -> list[int]:
+    """Up to ``limit`` unfinished rows, oldest first, with no lease or an expired one, due by
+    ``now`` (``due``: the column of their due time, or None), except the rows ``held``; with
+    ``lock``, locked until commit, skipping the rows another transaction locked."""
+    query = (
+        select(table.id)
+        .where(*_unleased(table, unfinished, now))
+        .where(table.id.notin_(held))
+        .order_by(table.id)
+        .limit(limit)
+    )
+    if due is not None:
+        query = query.where(or_(due.is_(None), due <= now))
+    if lock:
+        query = query.with_for_update(skip_locked=True)
+    return list(session.scalars(query))
+
+
+def earliest_due(
+    session: Session, *, table: Table, unfinished: Sequence[str], due: Any, now: datetime
+) -> datetime | None:
+    """The earliest due time after ``now`` of an unfinished row without a live lease."""
+    earliest: datetime | None = session.scalar(
+        select(func.min(due)).where(*_unleased(table, unfinished, now)).where(due > now)
+    )
+    return earliest
+
+
+def take_leases(
+    session: Session,
+    *,
+    table: Table,
+    row_ids: Collection[int],
+    owner: str,
+    expires: datetime | None,
+) -> None:
+    """Lease the rows to ``owner`` until ``expires`` (None: for ever)."""
+    session.execute(
+        update(table).where(table.id.in_(row_ids)).values(lease_owner=owner, lease_expires=expires)
+    )
+
+
+def renew_leases(
+    session: Session,
+    *,
+    table: Table,
+    unfinished: Sequence[str],
+    row_ids: Collection[int],
+    owner: str,
+    expires: datetime,
+) -> set[int]:
+    """Extend to ``expires`` the leases ``owner`` still holds on unfinished rows among
+    ``row_ids``; the rows renewed."""
+    return set(
+        session.scalars(
+            update(table)
+            .where(table.id.in_(row_ids))
+            .where(table.lease_owner == owner)
+            .where(table.status.in_(unfinished))
+            .values(lease_expires=expires)
+            .returning(table.id)
+        )
+    )
+
+
+def release_leases(session: Session, *, table: Table, row_ids: Collection[int], owner: str) -> None:
+    """Drop the leases ``owner`` holds on ``row_ids``."""
+    session.execute(
+        update(table)
+        .where(table.id.in_(row_ids))
+        .where(table.lease_owner == owner)
+        .values(lease_owner=None, lease_expires=None)
+    )
+
+
+def clear_leases(session: Session, *, table: Table) -> None:
+    """Drop every lease of the table (a SQLite server starting: nobody else can hold one)."""
+    session.execute(update(table).values(lease_owner=None, lease_expires=None))

@@ -120,7 +120,8 @@ def _record_outcome(database: Database, job_id: int, attempt: int, **values: Any
 def _claim(database: Database, job_id: int) -> tuple[str, dict[str, Any], int] | None:
     with database.session(write=True) as session:
         claimed = crud.start_job(session, job_id=job_id)
-        session.commit()
+        if claimed is not None:  # not queued any more: nothing to commit
+            session.commit()
     return claimed
 
 

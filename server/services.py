@@ -104,11 +104,11 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         data_dir=str(settings.data_dir.resolve()),
         progress_interval_s=settings.progress_interval_s,
         torch_threads=settings.worker_torch_threads,
-        nice=settings.worker_nice,
         review_margin=settings.review_margin,
-    )
+    )  # auction steps at the API's priority: a round's close waits for its step
     job_context = dataclasses.replace(
         context,
+        nice=settings.worker_nice,
         memory_mb=settings.job_memory_mb,
         job_backend=settings.job_backend,
         ray_address=settings.ray_address,

@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 
+from server.cli.launch import ServerProcess
 from server.work.pool import WorkerContext, WorkerPool
+from tests.support.live import submit_population
+from tests.support.processes import descendants, process_name
+from tests.support.server import ADMIN, ADMIN_TOKEN
 
 
 def record_niceness(context: WorkerContext, task_id: int) -> None:
@@ -136,3 +142,38 @@ def test_a_worker_sees_the_environment_of_its_start_not_of_the_first_one(
         assert run_one(pool, 3, tmp_path) == "after"  # a worker started after task 2 ended
     finally:
         pool.shutdown()
+
+
+def _niceness(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[16])
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_step_workers_run_at_the_api_priority_and_job_workers_below_it(tmp_path: Path) -> None:
+    """``SRD_WORKER_NICE`` lowers the experiments' priority only: an auction's steps are part of
+    serving (a round closes when its step has run)."""
+    with ServerProcess(
+        database_url=f"sqlite:///{tmp_path / 'srd.db'}",
+        data_dir=tmp_path,
+        admin_token=ADMIN_TOKEN,
+        extra_env={"SRD_WORKER_NICE": "7"},
+    ) as server:
+        assert server.process is not None
+        api = server.process.pid
+        with httpx.Client(base_url=server.url, timeout=30) as client:
+            submit_population(client)
+            auction = client.post("/auctions", json={"n_fish": 3, "seed": 0}, headers=ADMIN)
+            job = client.post("/jobs", json={"kind": "fish", "params": {}}, headers=ADMIN)
+            assert (auction.status_code, job.status_code) == (201, 202), (auction.text, job.text)
+            seen: dict[str, int] = {}
+            deadline = time.monotonic() + 120  # the fork server imports torch first
+            while len(seen) < 2 and time.monotonic() < deadline:
+                for pid in descendants(api)[1:]:
+                    name = process_name(pid) or ""
+                    for kind in ("srd-auction", "srd-job"):
+                        if name.startswith(kind):
+                            with contextlib.suppress(OSError):
+                                seen[kind] = _niceness(pid)
+                time.sleep(0.02)
+            api_nice = _niceness(api)
+    assert seen == {"srd-auction": api_nice, "srd-job": min(api_nice + 7, 19)}

@@ -20,13 +20,14 @@ RUN apt-get update \
 WORKDIR /app
 
 # Dependencies first, in their own layer, from the dependency list alone: edits of the source
-# or the README do not reinstall torch. The CPU wheel index keeps CUDA packages out.
+# or the README do not reinstall torch. The CPU wheel index keeps CUDA packages out; the other
+# packages are installed at the versions the tests passed with (constraints.txt).
 # EXTRAS names optional dependency groups to add, e.g. --build-arg EXTRAS=ray (compose.yaml).
 ARG EXTRAS=""
-COPY pyproject.toml ./
+COPY pyproject.toml constraints.txt ./
 RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu \
     && python -c "import os, tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; extras = [d for e in os.environ['EXTRAS'].split(',') if e for d in p['optional-dependencies'][e]]; open('/tmp/requirements.txt', 'w').write('\n'.join(p['dependencies'] + extras))" \
-    && pip install -r /tmp/requirements.txt
+    && pip install -c constraints.txt -r /tmp/requirements.txt
 
 COPY README.md ./
 COPY agents ./agents

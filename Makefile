@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install demo test test-all lint format typecheck bench clean
+.PHONY: install demo test test-all lint format typecheck bench lock clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -14,9 +14,9 @@ $(BIN)/python:
 # are not Python 3.11, such as torch's own Python 3.12 test helper), except 5,400 of the 16,300
 # modules: sympy, networkx and pip, which nothing here imports, and PyOpenGL, imported only by
 # the cheetah's video rendering (its subprocess then compiles the few modules it loads).
-$(STAMP): pyproject.toml | $(BIN)/python
+$(STAMP): pyproject.toml constraints.txt | $(BIN)/python
 	$(BIN)/pip install --quiet --no-compile torch==2.13.0
-	$(BIN)/pip install --quiet --no-compile -e '.[dev,ray]'
+	$(BIN)/pip install --quiet --no-compile -c constraints.txt -e '.[dev,ray]'
 	$(BIN)/python -c "import compileall, re; compileall.compile_dir('$(VENV)/lib', quiet=2, \
 		workers=0, rx=re.compile(r'/site-packages/(sympy|networkx|pip|OpenGL)/'))"
 	touch $(STAMP)
@@ -47,6 +47,11 @@ typecheck: $(STAMP)
 
 bench: $(STAMP)
 	for b in benchmarks/*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+
+# constraints.txt: the versions installed now (after upgrading some by hand, say), as a new lock.
+lock: $(STAMP)
+	{ head -n 3 constraints.txt; $(BIN)/pip freeze --exclude-editable | grep -v '^torch=='; } \
+		> constraints.txt.new && mv constraints.txt.new constraints.txt
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache

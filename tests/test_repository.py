@@ -4,7 +4,10 @@ every setting documented."""
 from __future__ import annotations
 
 import re
+import tomllib
 from pathlib import Path
+
+from packaging.requirements import Requirement
 
 from server.config import Settings
 
@@ -44,3 +47,31 @@ def test_every_setting_is_documented() -> None:
     page = (ROOT / "docs" / "server.md").read_text()
     for name in Settings.model_fields:
         assert f"SRD_{name.upper()}" in page, name
+
+
+def _name(requirement: str) -> str:
+    """A requirement's project name, normalised (PEP 503)."""
+    name = re.split(r"[\s\[<>=!~;@]", requirement.strip(), maxsplit=1)[0]
+    return re.sub(r"[-_.]+", "-", name).lower()
+
+
+def test_every_dependency_is_pinned_by_the_lock() -> None:
+    """``constraints.txt`` pins every dependency ``make install`` installs (torch is pinned in
+    the Makefile and the Dockerfile), each at a version its own requirement accepts."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    wanted = list(project["dependencies"])
+    for extra in ("dev", "ray"):
+        wanted += project["optional-dependencies"][extra]
+    pins: dict[str, str] = {}
+    for line in (ROOT / "constraints.txt").read_text().splitlines():
+        if line and not line.startswith("#"):
+            name, _, version = line.partition("==")
+            assert version, f"constraints.txt: {line!r} is not name==version"
+            pins[_name(name)] = version
+    for requirement in wanted:
+        requirement = requirement.split(";")[0].strip()
+        name = _name(requirement)
+        if name == "torch":
+            continue
+        assert name in pins, f"{name} is not in constraints.txt (make lock)"
+        assert Requirement(requirement).specifier.contains(pins[name]), (requirement, pins[name])

@@ -53,9 +53,9 @@ def test_proxy_image_passes_hadolint_and_makes_a_certificate_at_first_start() ->
 
 def test_dependency_layer_needs_only_the_dependency_list() -> None:
     lines = [line.strip() for line in DOCKERFILE.splitlines()]
-    deps = next(i for i, line in enumerate(lines) if "pip install -r" in line)
+    deps = next(i for i, line in enumerate(lines) if "pip install -c constraints.txt -r" in line)
     copies = [line for line in lines[:deps] if line.startswith("COPY")]
-    assert copies == ["COPY pyproject.toml ./"]
+    assert copies == ["COPY pyproject.toml constraints.txt ./"]
     assert any("README.md" in line for line in lines[deps:] if line.startswith("COPY"))
 
 

@@ -22,7 +22,12 @@ their end and reports:
 - upload latency p50/p99 (upload sent → its answer) and the errors: non-200 answers,
   uploads never answered, asked patrons left ``missing`` or ``late``;
 - round close latency p50/p95: a round's last answer (as this process received it) to the
-  round's ``closed_at`` (``GET /auctions/{id}``).
+  round's ``closed_at`` (``GET /auctions/{id}``). The verdict that judges a round's last
+  upload closes the round in its own transaction, before its answer is sent: a negative figure
+  is a round closed before its last answer reached the agent;
+- next round latency p50/p95: a round's last answer to the first agent told that the next
+  round is open (the close, the step that plays the next iteration and opens the round, and
+  its push or long poll).
 
 Budgets (printed as met or not): CPU per upload ≤ 1 ms over sockets, ≤ 2 ms over long poll +
 PUT; upload p99 ≤ 250 ms at 1024 agents; no errors; close p95 ≤ 50 ms at 64 agents, ≤ 150 ms at
@@ -174,6 +179,8 @@ class Upload:
     accepted: bool
     answered_at: float
     """Wall-clock time the answer arrived."""
+    told_at: float
+    """Wall-clock time the agent learned that the round was open (a push, a long poll)."""
 
 
 @dataclass
@@ -216,6 +223,10 @@ class SizeResult:
     close_max_ms: float
     """The slowest round's close (a round that waited for its deadline shows here)."""
     rounds_closed: int
+    next_round_p50_ms: float
+    next_round_p95_ms: float
+    """A round's last answer to the first agent told that the next round is open (the close,
+    the step that plays the next iteration and opens the round, and the push or long poll)."""
     server_cpu_ms_per_upload: float
     screening_cpu_ms_per_upload: float
     cpu_ms_per_upload_by_process: dict[str, float]
@@ -255,6 +266,7 @@ async def socket_agent(
     answer; it leaves when not asked (bought or quit) or when the server ends the auction."""
     url = agent.server.replace("http://", "ws://") + f"/auctions/{agent.auction_id}/rounds/socket"
     sent: dict[int, float] = {}
+    told: dict[int, float] = {}
     pending: set[int] = set()
     handled = 0
 
@@ -301,6 +313,7 @@ async def socket_agent(
                             message["status"],
                             accepted,
                             now,
+                            told[number],
                         )
                     )
                     continue
@@ -313,10 +326,14 @@ async def socket_agent(
                 if agent.model_id not in state["asked"]:
                     break
                 handled = state["round"]
+                told[handled] = now
                 thinking.append(asyncio.create_task(answer_round(ws, handled)))
         for task in thinking:
             task.cancel()
-    log.extend(Upload(agent.auction_id, r, agent.model_id, None, None, False, 0.0) for r in pending)
+    log.extend(
+        Upload(agent.auction_id, r, agent.model_id, None, None, False, 0.0, told[r])
+        for r in pending
+    )
 
 
 class AgentConnection:
@@ -429,6 +446,7 @@ async def http_agent(
             if agent.model_id not in state["asked"]:
                 return
             after = state["round"]
+            told = time.time()
             await think(agent, plan)
             sent = time.time()
             try:
@@ -440,12 +458,16 @@ async def http_agent(
                     timeout=ANSWER_TIMEOUT_S,
                 )
             except TimeoutError:
-                log.append(Upload(agent.auction_id, after, agent.model_id, None, None, False, 0.0))
+                log.append(
+                    Upload(agent.auction_id, after, agent.model_id, None, None, False, 0.0, told)
+                )
                 continue
             now = time.time()
             accepted = status == 200 and bool(json.loads(body).get("accepted"))
             log.append(
-                Upload(agent.auction_id, after, agent.model_id, now - sent, status, accepted, now)
+                Upload(
+                    agent.auction_id, after, agent.model_id, now - sent, status, accepted, now, told
+                )
             )
     finally:
         connection.close()
@@ -581,6 +603,15 @@ def summarise(
     for u in answered:
         key = (u.auction_id, u.round)
         last_answer[key] = max(last_answer.get(key, 0.0), u.answered_at)
+    told: dict[tuple[int, int], float] = {}
+    for u in log:
+        key = (u.auction_id, u.round)
+        told[key] = min(told.get(key, math.inf), u.told_at)
+    follows = [
+        told[auction_id, number + 1] - answered_last
+        for (auction_id, number), answered_last in last_answer.items()
+        if (auction_id, number + 1) in told
+    ]
     closes = []
     for auction in auctions:
         if auction["status"] != "finished":
@@ -614,6 +645,8 @@ def summarise(
         close_p95_ms=percentile(closes, 95) * 1e3,
         close_max_ms=max(closes, default=math.nan) * 1e3,
         rounds_closed=len(closes),
+        next_round_p50_ms=percentile(follows, 50) * 1e3,
+        next_round_p95_ms=percentile(follows, 95) * 1e3,
         server_cpu_ms_per_upload=sum(v for k, v in server_cpu.items() if k != SCREENING_NAME)
         / uploads
         * 1e3,
@@ -645,7 +678,7 @@ def print_table(results: list[SizeResult]) -> None:
     columns = (
         f"{'transport':<9} {'agents':>6} {'uploads':>7} {'errors':>6} {'CPU ms/up':>9} "
         f"{'screen ms/up':>12} {'gen ms/up':>9} {'up p50':>7} {'up p99':>7} {'close p50':>9} "
-        f"{'close p95':>9} {'wall s':>6}  budgets"
+        f"{'close p95':>9} {'next p50':>8} {'next p95':>8} {'wall s':>6}  budgets"
     )
     print(columns)
     for r in results:
@@ -654,7 +687,8 @@ def print_table(results: list[SizeResult]) -> None:
             f"{r.transport:<9} {r.agents:>6} {r.uploads:>7} {r.errors:>6} "
             f"{r.server_cpu_ms_per_upload:9.3f} {r.screening_cpu_ms_per_upload:12.3f} "
             f"{r.generator_cpu_ms_per_upload:9.3f} {r.upload_p50_ms:7.1f} {r.upload_p99_ms:7.1f} "
-            f"{r.close_p50_ms:9.1f} {r.close_p95_ms:9.1f} {r.wall_s:6.1f}  {budgets}"
+            f"{r.close_p50_ms:9.1f} {r.close_p95_ms:9.1f} {r.next_round_p50_ms:8.1f} "
+            f"{r.next_round_p95_ms:8.1f} {r.wall_s:6.1f}  {budgets}"
         )
 
 
@@ -687,7 +721,7 @@ def plot(results: Sequence[dict[str, Any]], path: Path) -> None:
         for value, name, colour in (
             ("upload_p50_ms", "upload p50", "C0"),
             ("upload_p99_ms", "upload p99", "C3"),
-            ("close_p95_ms", "round close p95", "C1"),
+            ("next_round_p95_ms", "next round p95", "C1"),
         ):
             latency_axis.plot(
                 agents,
@@ -706,7 +740,7 @@ def plot(results: Sequence[dict[str, Any]], path: Path) -> None:
     cpu_axis.set_title("CPU per upload (grey lines: server budgets)")
     latency_axis.set_ylabel("ms")
     latency_axis.set_yscale("log")
-    latency_axis.set_title("latencies (x: budgets)")
+    latency_axis.set_title("latencies (x: upload p99 and round close budgets)")
     figure.tight_layout()
     figure.savefig(path, dpi=110)
     plt.close(figure)

@@ -6,22 +6,23 @@ with its random state and fine-tuned weights) and when its next step is due
 it to a worker process, which runs ONE step (``run_step``):
 
 1. restore the market from the last committed checkpoint;
-2. if a remote fine-tuning round is open: stop at once unless every asked patron has answered
-   or the deadline has passed (the auction is then due again at the deadline); else judge the
-   uploads still pending, close the round and apply its accepted versions;
+2. if the checkpoint awaits a remote fine-tuning round and the round is still open: stop at
+   once unless every asked patron has answered or the deadline has passed (the auction is then
+   due again at the deadline); else judge the uploads still pending and close the round. Then
+   apply the closed round's accepted versions;
 3. play iterations until the auction ends or opens a fine-tuning round, committing each
    iteration in ONE transaction: its row, purchases and quits, the new price and supply, the
    checkpoint, the round it opens (rows, seeds, asked patrons, absolute deadline) and when the
    next step is due (now while it plays; the deadline while a round is open; never once ended).
 
 An open round holds no process and no thread: the API stores the uploads and their verdicts
-(``server.auctions.uploads``) and makes the auction due at once when every asked patron's upload
-is judged. Every commit is conditional on the auction still standing where the step found it
-(status running, the iteration expected, the round still open), so a stale or duplicated step
-never writes twice, and a cancelled auction is never moved again. A step that dies (``kill
--9``) loses at most the iteration in flight: the auction is still due and the next step resumes
-from the checkpoint, bit-identically. An auction whose stored state cannot be continued is
-failed with the reason.
+(``server.auctions.uploads``), and the verdict that judges the last asked patron's upload
+closes the round in its own transaction and makes the auction due at once. Every commit is
+conditional on the auction still standing where the step found it (status running, the
+iteration expected, the round still open), so a stale or duplicated step never writes twice,
+and a cancelled auction is never moved again. A step that dies (``kill -9``) loses at most the
+iteration in flight: the auction is still due and the next step resumes from the checkpoint,
+bit-identically. An auction whose stored state cannot be continued is failed with the reason.
 """
 
 from __future__ import annotations
@@ -42,8 +43,8 @@ from server.store.crud.steps import (
     IterationRow,
     MovedOnError,
     NewRound,
-    OpenRound,
     PendingUploadsError,
+    StepRound,
 )
 from server.store.db import Database, JSONText, is_database_outage
 from server.store.status import AUCTION_UNFINISHED, AuctionStatus
@@ -191,7 +192,7 @@ def _play(market: Market, model_ids: list[int]) -> _Played:
 
 def _commit_iteration(
     session: Session, auction: Auction, played: _Played, now: datetime
-) -> OpenRound | None:
+) -> StepRound | None:
     """Write one iteration played at ``now``, with the round it opens (returned, if any)."""
     pending = played.opens
     opened = None
@@ -244,7 +245,7 @@ def _fail(database: Database, auction_id: int, reason: str) -> None:
         session.commit()
 
 
-def _not_yet(database: Database, auction_id: int, row: OpenRound) -> bool:
+def _not_yet(database: Database, auction_id: int, row: StepRound) -> bool:
     """An open round that may still hear answers: the auction is due again at its deadline
     (True); False when the round can close now."""
     with database.session(write=False) as session:
@@ -257,50 +258,27 @@ def _not_yet(database: Database, auction_id: int, row: OpenRound) -> bool:
     return True
 
 
-def _close_and_play(
-    database: Database,
-    auction: Auction,
-    manifests: Sequence[Manifest],
-    market: Market,
-    row: OpenRound,
-    model_ids: list[int],
-    margin: float,
-) -> tuple[Market, OpenRound | None]:
-    """The round closed, its accepted versions applied and the next iteration played, in one
-    transaction (after judging what is pending): the market as committed, and the round it
-    opened. The versions are read and applied and the iteration played before that
-    transaction, which only writes; if an upload was judged meanwhile, all of it again, from
-    the checkpoint (``market``, restored from it, is used by the first try)."""
+def _close(database: Database, auction_id: int, row: StepRound, margin: float) -> None:
+    """Close the open round (after judging the uploads still pending): its silent patrons
+    marked missing, its accepted versions bidding. An upload in time may be stored while the
+    step judges the others: then again. Closed meanwhile (its last verdict, a cancel): done."""
     for attempt in range(CLOSE_TRIES):
-        last = attempt + 1 == CLOSE_TRIES
         _judge_pending(database, row.id, margin)
-        try:
-            with database.session(write=False) as session:
-                accepted = crud.accepted_uploads(session, round_id=row.id)
-        except PendingUploadsError:
-            if last:
-                raise
-            continue
-        if attempt:
-            market = _load_market(auction, manifests)
-        market.apply_round({p: parse_manifest(m) for p, (_, m) in accepted.items()})
-        played = _play(market, model_ids)
         with database.session(write=True) as session:
-            now = utcnow()
             try:
-                applied = crud.close_round(session, auction_id=auction.id, round=row, now=now)
+                crud.close_round(
+                    session.connection(),
+                    auction_id=auction_id,
+                    round_id=row.id,
+                    asked=row.asked,
+                    now=utcnow(),
+                )
             except PendingUploadsError:
-                if last:
+                if attempt + 1 == CLOSE_TRIES:
                     raise
                 continue
-            if applied != {position: version for position, (version, _) in accepted.items()}:
-                if last:
-                    raise PendingUploadsError(row.id)
-                continue
-            opened = _commit_iteration(session, auction, played, now)
             session.commit()
-            return market, opened
-    raise AssertionError("unreachable")
+            return
 
 
 def _step(kept: _Kept, auction_id: int, margin: float) -> None:
@@ -314,7 +292,7 @@ def _step(kept: _Kept, auction_id: int, margin: float) -> None:
         auction, row = state
         model_ids = [patron.model_id for patron in auction.patrons]
         manifests = kept.manifests(session, model_ids)
-    if row is not None and _not_yet(database, auction_id, row):
+    if row is not None and row.open and _not_yet(database, auction_id, row):
         return
     market = _load_market(auction, manifests)
     if auction.status == AuctionStatus.PENDING:
@@ -324,16 +302,14 @@ def _step(kept: _Kept, auction_id: int, margin: float) -> None:
         if market.finished:
             return
     if market.pending_round is not None:
-        if row is None:
-            number = market.pending_round.iteration + 1
-            raise ResumeError(
-                f"the checkpoint awaits fine-tuning round {number}, which is not open"
-            )
-        market, opened = _close_and_play(
-            database, auction, manifests, market, row, model_ids, margin
-        )
-        if opened is not None:
-            return
+        number = market.pending_round.iteration + 1
+        if row is None or row.round != number:
+            raise ResumeError(f"the checkpoint awaits fine-tuning round {number}, never opened")
+        if row.open:
+            _close(database, auction_id, row, margin)
+        with database.session(write=False) as session:
+            accepted = crud.accepted_uploads(session, round_id=row.id)
+        market.apply_round({p: parse_manifest(m) for p, (_, m) in accepted.items()})
     while not market.finished:
         began = utcnow()  # the iteration is computed before the write lock is taken
         played = _play(market, model_ids)

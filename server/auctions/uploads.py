@@ -9,10 +9,11 @@ answer, other bytes 409.
 
 The API owns every write of an upload: it stores the upload, pending, as soon as its body is
 read and checked (so the deadline is judged at arrival, whatever the screener's backlog), asks
-the screener pool for a verdict and records it; once every asked patron's upload is judged, the
-auction's next step is due at once. An upload whose verdict was never recorded (the screener
-down, the server killed) counts all the same: a repeat of its bytes asks again, and the step
-that closes the round judges whatever is still pending.
+the screener pool for a verdict and records it; the verdict that judges the last asked patron's
+upload closes the round in the same transaction, and the auction's next step is due at once. An
+upload whose verdict was never recorded (the screener down, the server killed) counts all the
+same: a repeat of its bytes asks again, and the step that closes the round judges whatever is
+still pending.
 """
 
 from __future__ import annotations
@@ -159,17 +160,17 @@ def _check_patron(
 def _record(
     connection: Connection, *, answer_id: int, round_id: int, verdict: Verdict, margin: float
 ) -> tuple[bytes, bool]:
-    """Record a pending upload's verdict; its answer, and whether the round's auction became
-    due (every asked patron judged)."""
+    """Record a pending upload's verdict; its answer, and whether it closed the round (every
+    asked patron judged: the auction is due)."""
     now = utcnow()
     body = crud.record_verdict(
         connection, answer_id=answer_id, verdict=verdict, margin=margin, now=now
     )
-    return body, crud.due_when_answered(connection, round_id=round_id, now=now)
+    return body, crud.close_when_answered(connection, round_id=round_id, now=now)
 
 
-def _due(connection: Connection, *, round_id: int) -> bool:
-    return crud.due_when_answered(connection, round_id=round_id, now=utcnow())
+def _close(connection: Connection, *, round_id: int) -> bool:
+    return crud.close_when_answered(connection, round_id=round_id, now=utcnow())
 
 
 async def _write(database: Database, work: Callable[[Connection], T]) -> T:
@@ -305,7 +306,7 @@ async def upload(
         raise api_error(status, message, loc=("path", "round"), kind=kind)
     if stored.answer is not None:  # a repeat, or the current weights: answered at once
         if manifest_json is None and await _write(
-            database, functools.partial(_due, round_id=round_id)
+            database, functools.partial(_close, round_id=round_id)
         ):
             wake(request.auction_id)
         return stored.answer

@@ -24,6 +24,8 @@ FIELDS = {
     "close_p50_ms",
     "close_p95_ms",
     "close_max_ms",
+    "next_round_p50_ms",
+    "next_round_p95_ms",
     "server_cpu_ms_per_upload",
     "screening_cpu_ms_per_upload",
     "cpu_ms_per_upload_by_process",
@@ -57,6 +59,8 @@ def test_capacity_smoke(tmp_path: Path) -> None:
         assert result["accepted"] > 0
         assert 0 < result["upload_p50_ms"] <= result["upload_p99_ms"] < 60_000
         assert result["rounds_closed"] >= 1
+        # With 2 rounds the second follows the first: told after the first's last answer.
+        assert 0 < result["next_round_p50_ms"] <= result["next_round_p95_ms"] < 60_000
         assert result["server_cpu_ms_per_upload"] > 0
         assert result["screening_cpu_ms_per_upload"] > 0
         assert "srd-screening" in result["cpu_ms_per_upload_by_process"]

@@ -168,10 +168,13 @@ def play_remote(
     population: Population,
     *,
     kill_in_round: int | None = None,
+    close_in_round: int | None = None,
 ) -> dict[str, Any]:
     """Answer every round of a remote auction with every asked patron's faithful fine-tuning;
     with ``kill_in_round``, kill -9 every spawned process of the server while that round is
-    open, before its answers."""
+    open, before its answers; with ``close_in_round``, stop the auction workers before that
+    round's last answer, check that its verdict closed the round while no step could run, and
+    kill -9 them."""
     ids, manifest_list, token_list = population
     manifests, tokens = (
         dict(zip(ids, manifest_list, strict=True)),
@@ -184,9 +187,21 @@ def play_remote(
             return ended(server, auction_id)
         if state["round"] == kill_in_round:
             signal_all(spawned(server), signal.SIGKILL)
-        for model_id in state["asked"]:
+        stopped: list[int] = []
+        for k, model_id in enumerate(state["asked"]):
+            if state["round"] == close_in_round and k == len(state["asked"]) - 1:
+                stopped = [p for p in spawned(server) if process_name(p) == "srd-auction-wor"]
+                assert stopped, "no auction worker to stop"
+                signal_all(stopped, signal.SIGSTOP)
+                before = get(server, auction_id)
             answer = upload(server, auction_id, state, model_id, manifests, tokens, ids)
             assert answer.status_code == 200, answer.text
+        if stopped:
+            closed = get(server, auction_id)
+            assert closed["fine_tuning"][-1]["round"] == state["round"]
+            assert closed["fine_tuning"][-1]["status"] == "closed"
+            assert closed["iteration"] == before["iteration"]  # no step has played on
+            signal_all(stopped, signal.SIGKILL)
         after = state["round"]
 
 
@@ -215,6 +230,34 @@ def test_workers_killed_mid_round_cost_nothing_but_time(tmp_path: Path) -> None:
     assert [len(r["answers"]) for r in played["fine_tuning"]] == [
         len(r["answers"]) for r in undisturbed["fine_tuning"]
     ]
+
+
+def test_a_round_closed_by_its_last_verdict_plays_on_after_its_step_is_killed(
+    tmp_path: Path,
+) -> None:
+    """The last verdict closes the round while the auction workers are stopped; killed, the
+    next step applies the closed round and the auction matches its undisturbed twin."""
+    (server, _), admin = server_pair(f"sqlite:///{tmp_path / 'closed.db'}", tmp_path)
+    body = {
+        "n_fish": 2,
+        "fine_tune_mode": "remote",
+        "fine_tune_rounds": 2,
+        "round_deadline_s": 120,
+        "max_iterations": 12,
+        "seed": 5,
+    }
+    with server:
+        population = submit(server, 6, seed=800)
+        killed = create(server, admin, {**body, "model_ids": population[0]})
+        played = play_remote(server, killed, population, close_in_round=1)
+        twin_population = submit(server, 6, seed=800)
+        twin = create(server, admin, {**body, "model_ids": twin_population[0]})
+        undisturbed = play_remote(server, twin, twin_population)
+    assert played["status"] == "finished" and played["error"] is None
+    assert played["history"] == undisturbed["history"]
+    assert len(played["fine_tuning"]) == len(undisturbed["fine_tuning"]) == 2
+    for rounds in (played["fine_tuning"], undisturbed["fine_tuning"]):
+        assert all(a["outcome"] == "accepted" for r in rounds for a in r["answers"])
 
 
 def test_uploads_that_reached_the_server_in_time_count_after_a_kill_9(tmp_path: Path) -> None:

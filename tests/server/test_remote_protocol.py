@@ -348,7 +348,9 @@ def test_the_bait_and_switch_is_refused_and_the_round_closes_when_all_answered(
             assert answer["outcome"] == "refused" and answer["reasons"]
             assert answer["version"] == 1 and answer["uploaded_id"] is not None
             assert client.get(f"/models/{answer['uploaded_id']}").json()["accepted"] is False
-    # Everyone answered: the round closes long before its minute is up, the next one opens.
+    # Everyone answered: the last verdict closed the round (long before its minute is up),
+    # before the step that plays on has run; then the next round opens.
+    assert client.get(f"/auctions/{auction_id}").json()["fine_tuning"][0]["status"] == "closed"
     nxt = open_round(client, auction_id, after=1)
     auction = client.get(f"/auctions/{auction_id}").json()
     first = auction["fine_tuning"][0]
@@ -359,8 +361,7 @@ def test_the_bait_and_switch_is_refused_and_the_round_closes_when_all_answered(
         assert outcomes[model_id]["version"] == answer["version"]
     assert first["bytes_total"] > first["bytes_published"] > 0
     assert nxt["round"] == 2 and nxt["status"] == "open"
-    # The round closed in the transaction that played the next iteration and opened round 2.
-    assert auction["fine_tuning"][1]["opened_at"] == first["closed_at"]
+    assert first["closed_at"] <= auction["fine_tuning"][1]["opened_at"]
 
 
 def test_a_silent_round_closes_at_its_deadline_and_late_uploads_get_410(

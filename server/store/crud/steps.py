@@ -37,13 +37,15 @@ class PendingUploadsError(RuntimeError):
 
 
 @dataclass(frozen=True)
-class OpenRound:
-    """What a step needs of an open fine-tuning round."""
+class StepRound:
+    """What a step needs of an auction's newest fine-tuning round."""
 
     id: int
+    round: int
     asked: list[int]
     """Positions of the patrons asked."""
     deadline: datetime
+    open: bool
 
 
 @dataclass(frozen=True)
@@ -72,8 +74,8 @@ class NewRound:
     deadline: datetime
 
 
-def step_state(session: Session, *, auction_id: int) -> tuple[Auction, OpenRound | None] | None:
-    """The auction (checkpoint and patrons loaded) and its open round; None for an auction
+def step_state(session: Session, *, auction_id: int) -> tuple[Auction, StepRound | None] | None:
+    """The auction (checkpoint and patrons loaded) and its newest round; None for an auction
     that is gone."""
     auction = session.scalars(
         select(Auction)
@@ -83,11 +85,15 @@ def step_state(session: Session, *, auction_id: int) -> tuple[Auction, OpenRound
     if auction is None:
         return None
     row = session.scalars(
-        select(FineTuneRound).where(
-            FineTuneRound.auction_id == auction_id, FineTuneRound.status == RoundStatus.OPEN
-        )
+        select(FineTuneRound)
+        .where(FineTuneRound.auction_id == auction_id)
+        .order_by(FineTuneRound.round.desc())
+        .limit(1)
     ).one_or_none()
-    return auction, None if row is None else OpenRound(row.id, list(row.asked), row.deadline)
+    if row is None:
+        return auction, None
+    is_open = row.status == RoundStatus.OPEN
+    return auction, StepRound(row.id, row.round, list(row.asked), row.deadline, is_open)
 
 
 def patron_manifests(session: Session, *, model_ids: Sequence[int]) -> list[dict[str, Any]]:
@@ -144,7 +150,7 @@ def commit_iteration(
     checkpoint: bytes,
     opened: NewRound | None,
     now: datetime,
-) -> OpenRound | None:
+) -> StepRound | None:
     """Write one iteration played at ``now``: its row, purchases and quits, the new price and
     supply, the checkpoint, the round it opens (returned) and when the next step is due (now
     while it plays, the round's deadline, never once ended)."""
@@ -227,7 +233,7 @@ def commit_iteration(
             "bytes_published": len(str(opened.rows)) * len(opened.asked),
         },
     ).scalar_one()
-    return OpenRound(round_id, list(opened.asked), opened.deadline)
+    return StepRound(round_id, opened.round, list(opened.asked), opened.deadline, True)
 
 
 _BID_WITH = (
@@ -241,7 +247,7 @@ _BID_WITH = (
 """A patron bids with an accepted version from now (one statement for a round's patrons)."""
 
 
-def _answers(connection: Connection, round_id: int) -> tuple[dict[int, int], set[int]]:
+def round_answers(connection: Connection, round_id: int) -> tuple[dict[int, int], set[int]]:
     """The round's accepted uploads (position → version id) and the positions that answered;
     ``PendingUploadsError`` if an upload still awaits its verdict."""
     answers = connection.execute(
@@ -260,11 +266,10 @@ def _answers(connection: Connection, round_id: int) -> tuple[dict[int, int], set
 
 
 def accepted_uploads(session: Session, *, round_id: int) -> dict[int, tuple[int, dict[str, Any]]]:
-    """The open round's accepted uploads so far: position → (version id, manifest), for the
-    step to apply before it closes the round (``close_round`` returns the version ids it
-    applied); ``PendingUploadsError`` if an upload still awaits its verdict."""
+    """A closed round's accepted uploads: position → (version id, manifest), for the step to
+    apply."""
     connection = session.connection()
-    applied, _ = _answers(connection, round_id)
+    applied, _ = round_answers(connection, round_id)
     rows = connection.execute(
         select(ModelVersion.id, ModelVersion.manifest).where(
             ModelVersion.id.in_(list(applied.values()))
@@ -275,46 +280,61 @@ def accepted_uploads(session: Session, *, round_id: int) -> dict[int, tuple[int,
 
 
 def close_round(
-    session: Session, *, auction_id: int, round: OpenRound, now: datetime
-) -> dict[int, int]:
-    """Close the open round at ``now``: the patrons whose upload was accepted bid with it from
-    now, every asked patron that stayed silent gets a ``missing`` answer (a late upload keeps
-    its own); the accepted versions by position (as ``accepted_uploads`` read them, unless an
-    upload was judged since). ``PendingUploadsError`` if an upload still awaits its verdict."""
-    closed = session.execute(
+    connection: Connection, *, auction_id: int, round_id: int, asked: Sequence[int], now: datetime
+) -> bool:
+    """Close the round at ``now`` if it is still open (False if it was not: closed at its last
+    verdict, or by a cancel). ``PendingUploadsError`` (roll back) if an upload still awaits its
+    verdict."""
+    closed = connection.execute(
         update(FineTuneRound)
-        .where(FineTuneRound.id == round.id, FineTuneRound.status == RoundStatus.OPEN)
+        .where(FineTuneRound.id == round_id, FineTuneRound.status == RoundStatus.OPEN)
         .values(status=RoundStatus.CLOSED, closed_at=now)
     )
-    if closed.rowcount != 1:  # type: ignore[attr-defined]
-        raise MovedOnError(auction_id)
-    connection = session.connection()
-    applied, heard = _answers(connection, round.id)
-    silent = [p for p in round.asked if p not in heard]
-    if silent:
-        bidding = {
-            patron.position: patron.current_model_id or patron.model_id
-            for patron in connection.execute(
-                select(
-                    AuctionPatron.position, AuctionPatron.model_id, AuctionPatron.current_model_id
-                ).where(AuctionPatron.auction_id == auction_id, AuctionPatron.position.in_(silent))
-            )
-        }
-        connection.execute(
-            insert(FineTuneAnswer),
-            [
-                {
-                    "round_id": round.id,
-                    "position": position,
-                    "outcome": AnswerOutcome.MISSING,
-                    "model_id": bidding[position],
-                    "bytes_in": 0,
-                    "bytes_out": 0,
-                    "created_at": now,
-                }
-                for position in silent
-            ],
+    if closed.rowcount != 1:
+        return False
+    # Read once the round's row is written: no upload can be stored in it from here on.
+    applied, heard = round_answers(connection, round_id)
+    silent = [p for p in asked if p not in heard]
+    settle_round(connection, auction_id=auction_id, round_id=round_id, silent=silent, now=now)
+    bid_with(connection, auction_id=auction_id, applied=applied)
+    return True
+
+
+def settle_round(
+    connection: Connection, *, auction_id: int, round_id: int, silent: Sequence[int], now: datetime
+) -> None:
+    """Every asked patron that stayed ``silent`` gets a ``missing`` answer (a late upload
+    keeps its own)."""
+    if not silent:
+        return
+    bidding = {
+        patron.position: patron.current_model_id or patron.model_id
+        for patron in connection.execute(
+            select(
+                AuctionPatron.position, AuctionPatron.model_id, AuctionPatron.current_model_id
+            ).where(AuctionPatron.auction_id == auction_id, AuctionPatron.position.in_(silent))
         )
+    }
+    connection.execute(
+        insert(FineTuneAnswer),
+        [
+            {
+                "round_id": round_id,
+                "position": position,
+                "outcome": AnswerOutcome.MISSING,
+                "model_id": bidding[position],
+                "bytes_in": 0,
+                "bytes_out": 0,
+                "created_at": now,
+            }
+            for position in silent
+        ],
+    )
+
+
+def bid_with(connection: Connection, *, auction_id: int, applied: dict[int, int]) -> None:
+    """The patrons whose upload a closed round accepted bid with it from now (``applied``:
+    position → version id)."""
     if applied:
         connection.execute(
             _BID_WITH,
@@ -323,4 +343,3 @@ def close_round(
                 for position, version in applied.items()
             ],
         )
-    return applied

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 from sqlalchemy import select
 
 from agents.manifest import parse_manifest
@@ -205,7 +206,11 @@ def play_remote(
         after = state["round"]
 
 
-def test_workers_killed_mid_round_cost_nothing_but_time(tmp_path: Path) -> None:
+@pytest.mark.parametrize("fault", ["kill_in_round", "close_in_round"])
+def test_workers_killed_mid_round_cost_nothing_but_time(tmp_path: Path, fault: str) -> None:
+    """Every spawned process killed while round 1 is open (``kill_in_round``), or the auction
+    workers stopped before its last answer, whose verdict closes the round while no step can
+    run, then killed (``close_in_round``): the auction matches its undisturbed twin."""
     (server, _), admin = server_pair(f"sqlite:///{tmp_path / 'rounds.db'}", tmp_path)
     body = {
         "n_fish": 2,
@@ -218,7 +223,7 @@ def test_workers_killed_mid_round_cost_nothing_but_time(tmp_path: Path) -> None:
     with server:
         population = submit(server, 6, seed=800)
         killed = create(server, admin, {**body, "model_ids": population[0]})
-        played = play_remote(server, killed, population, kill_in_round=1)
+        played = play_remote(server, killed, population, **{fault: 1})
         twin_population = submit(server, 6, seed=800)
         twin = create(server, admin, {**body, "model_ids": twin_population[0]})
         undisturbed = play_remote(server, twin, twin_population)
@@ -230,34 +235,6 @@ def test_workers_killed_mid_round_cost_nothing_but_time(tmp_path: Path) -> None:
     assert [len(r["answers"]) for r in played["fine_tuning"]] == [
         len(r["answers"]) for r in undisturbed["fine_tuning"]
     ]
-
-
-def test_a_round_closed_by_its_last_verdict_plays_on_after_its_step_is_killed(
-    tmp_path: Path,
-) -> None:
-    """The last verdict closes the round while the auction workers are stopped; killed, the
-    next step applies the closed round and the auction matches its undisturbed twin."""
-    (server, _), admin = server_pair(f"sqlite:///{tmp_path / 'closed.db'}", tmp_path)
-    body = {
-        "n_fish": 2,
-        "fine_tune_mode": "remote",
-        "fine_tune_rounds": 2,
-        "round_deadline_s": 120,
-        "max_iterations": 12,
-        "seed": 5,
-    }
-    with server:
-        population = submit(server, 6, seed=800)
-        killed = create(server, admin, {**body, "model_ids": population[0]})
-        played = play_remote(server, killed, population, close_in_round=1)
-        twin_population = submit(server, 6, seed=800)
-        twin = create(server, admin, {**body, "model_ids": twin_population[0]})
-        undisturbed = play_remote(server, twin, twin_population)
-    assert played["status"] == "finished" and played["error"] is None
-    assert played["history"] == undisturbed["history"]
-    assert len(played["fine_tuning"]) == len(undisturbed["fine_tuning"]) == 2
-    for rounds in (played["fine_tuning"], undisturbed["fine_tuning"]):
-        assert all(a["outcome"] == "accepted" for r in rounds for a in r["answers"])
 
 
 def test_uploads_that_reached_the_server_in_time_count_after_a_kill_9(tmp_path: Path) -> None:

@@ -94,7 +94,8 @@ ANSWER_TIMEOUT_S = 60.0
 SCREENING_NAME = "srd-screening"
 """The screening process's name in ``/proc/<pid>/stat``: excluded from the server's CPU."""
 WARM_UP_AGENTS = 8
-"""One unmeasured auction this size per transport first: it starts the auction workers."""
+"""One unmeasured auction this size per transport and replica first: it starts the auction
+workers."""
 JSON_TYPE = {"Content-Type": "application/json"}
 SUBMIT_CONCURRENCY = 16
 CONNECT_CONCURRENCY = 64
@@ -821,10 +822,12 @@ def main(argv: Sequence[str] | None = None) -> None:
             file=sys.stderr,
         )
         urls = [s.url for s in servers]
-        # Unmeasured: starts the auction worker processes (torch's import) and warms the API.
+        # Unmeasured: starts the auction worker processes (torch's import) and warms the API,
+        # an auction on each replica (created there, its agents there: its steps run there).
         warm_up = dataclasses.replace(plan, think_s=(0.0, 0.1))
         for transport in args.transports:
-            asyncio.run(play_size(urls, cpu, transport, WARM_UP_AGENTS, warm_up))
+            for url in urls:
+                asyncio.run(play_size([url], cpu, transport, WARM_UP_AGENTS, warm_up))
         results = []
         for transport in args.transports:
             for n_agents in args.agents:

@@ -125,6 +125,9 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
     def runner(
         kind: WorkKind, context: WorkerContext, max_workers: int, timeout_s: float
     ) -> BackgroundRunner:
+        def ended(row_id: int) -> None:  # a step's or a job's last commit: its watchers hear now
+            live.committed_elsewhere("auction" if kind is AUCTION_WORK else "job", row_id)
+
         return BackgroundRunner(
             database,
             context,
@@ -134,6 +137,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
             owner=owner,
             lease_s=settings.lease_s,
             exclusive=sqlite_lock is not None,
+            ended=ended,
         )
 
     services = Services(

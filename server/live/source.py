@@ -19,7 +19,9 @@ row is read once, and every listener of it wakes. It reads them
   an outage (every watched row is read again then, for what it missed; meanwhile the rows are
   read as on SQLite) and, as a safety net, every ``SRD_LIVE_SAFETY_POLL_S``.
 
-A change this process makes itself is read at once (``poke``).
+A change this process makes itself is read at once (``poke``), and on SQLite so is a row whose
+auction step or job, run by one of this process's workers, just ended (``committed_elsewhere``):
+a round a step opened reaches its agents without waiting for the next poll.
 """
 
 from __future__ import annotations
@@ -158,6 +160,7 @@ class LiveSource:
         self._dirty: set[Key] = set()
         self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
+        self._loop: asyncio.AbstractEventLoop | None = None
         self.reads = 0
         """Reads made so far (each: one query per kind of row it reads)."""
         self.listening = False
@@ -203,6 +206,15 @@ class LiveSource:
         if (kind, row_id) in self._rows:
             self._mark((kind, row_id))
 
+    def committed_elsewhere(self, kind: crud.LiveKind, row_id: int) -> None:
+        """Another process of this server committed a change to the row (an auction's step
+        ended; from any thread): on SQLite it is read now, not at the next poll (on PostgreSQL
+        its ``NOTIFY`` tells)."""
+        loop = self._loop
+        if loop is not None and not self._listens:
+            with suppress(RuntimeError):  # the loop closed meanwhile
+                loop.call_soon_threadsafe(self.poke, kind, row_id)
+
     def drain(self) -> None:
         """The server is shutting down: wake every listener (a long poll then answers with
         what it has, so the shutdown does not wait out its ``wait``)."""
@@ -227,7 +239,7 @@ class LiveSource:
     def _start(self) -> None:
         if self._tasks:
             return
-        loop = asyncio.get_running_loop()
+        self._loop = loop = asyncio.get_running_loop()
         self._tasks.append(loop.create_task(self._read_loop(), name="live reads"))
         if self._listens:
             self._tasks.append(loop.create_task(self._listen(), name="live listener"))

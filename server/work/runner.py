@@ -108,8 +108,10 @@ class BackgroundRunner:
         owner: str,
         lease_s: float,
         exclusive: bool,
+        ended: Callable[[int], None] | None = None,
     ) -> None:
         self._database = database
+        self._ended = ended  # told of every row whose task ended here (from the pool's thread)
         self.kind = kind
         self.owner = owner
         self._lease = timedelta(seconds=lease_s)
@@ -312,6 +314,8 @@ class BackgroundRunner:
         with self._lock:
             self._over.add(row_id)
         self._wake.set()
+        if self._ended is not None:
+            self._ended(row_id)
 
     def _on_exit(self, row_id: int, exit_code: int | None) -> None:
         """The worker process died in the middle of this row (killed, crashed): a resumable

@@ -22,7 +22,12 @@ from server.store import crud
 from server.store.db import Database, prepare_database
 from server.store.tables import Job, utcnow
 from tests.support.databases import postgres_database
-from tests.support.live import create_unstarted_auction, sse_events, submit_population
+from tests.support.live import (
+    POPULATION,
+    create_unstarted_auction,
+    sse_events,
+    submit_population,
+)
 from tests.support.server import ADMIN_TOKEN
 
 LISTENERS = 20
@@ -241,3 +246,64 @@ def test_the_listener_survives_its_connection_being_killed(
         time.sleep(0.05)
     poll_s, stream_s = wake_delays(pg_client, url, auction_id)
     assert poll_s < WAKE_S and stream_s < WAKE_S, (poll_s, stream_s)
+
+
+# --- SQLite: a step's commit -----------------------------------------------------------------
+
+
+def test_sqlite_a_round_a_step_opens_reaches_long_polls_before_the_next_poll(
+    tmp_path: Path,
+) -> None:
+    """On SQLite the API learns of a step's commits when the step ends, not at its next poll
+    (10 s here): a long poll waiting for round 2 hears it soon after round 1's last answer."""
+    env = {"SRD_EVENT_POLL_INTERVAL_S": "10", "SRD_EVENT_KEEPALIVE_S": "30"}
+    with (
+        ServerProcess(
+            database_url=f"sqlite:///{tmp_path / 'steps.db'}",
+            data_dir=tmp_path / "data",
+            admin_token=ADMIN_TOKEN,
+            extra_env=env,
+        ) as server,
+        httpx.Client(base_url=server.url, timeout=httpx.Timeout(60.0)) as client,
+    ):
+        answers = submit_population(client)
+        honest = {a["model_id"]: (name, a["token"]) for name, a in answers.items()}
+        honest = {k: v for k, v in honest.items() if v[0].startswith("honest")}
+        body = {
+            "n_fish": 1,
+            "model_ids": list(honest),
+            "fine_tune_mode": "remote",
+            "fine_tune_rounds": 2,
+            "round_deadline_s": 120,
+        }
+        created = client.post(
+            "/auctions", json=body, headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}
+        )
+        assert created.status_code == 201, created.text
+        auction_id = created.json()["auction_id"]
+        first = client.get(f"/auctions/{auction_id}/rounds/current", params={"wait": 20}).json()
+        assert first["round"] == 1 and first["status"] == "open", first
+        heard: dict[str, Any] = {}
+
+        def long_poll() -> None:
+            params = {"wait": 25, "after": 1}
+            heard["state"] = client.get(f"/auctions/{auction_id}/rounds/current", params=params)
+            heard["at"] = time.monotonic()
+
+        waiter = threading.Thread(target=long_poll)
+        waiter.start()
+        time.sleep(0.5)  # the long poll is waiting by now
+        for model_id in first["asked"]:  # each patron's current weights again: accepted at once
+            name, token = honest[model_id]
+            manifest = (POPULATION / f"{name}.json").read_bytes()
+            put = client.put(
+                f"/auctions/{auction_id}/rounds/1/models/{model_id}",
+                content=manifest,
+                headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"},
+            )
+            assert put.status_code == 200 and put.json()["accepted"], put.text
+        answered = time.monotonic()
+        waiter.join(30)
+        state = heard["state"].json()
+        assert state["round"] == 2 and state["status"] == "open", state
+        assert heard["at"] - answered < 5, heard["at"] - answered  # not the 10 s poll

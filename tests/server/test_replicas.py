@@ -3,7 +3,8 @@
 Two ``srd serve`` processes share a throw-away PostgreSQL database and a data folder. Auctions
 and jobs created through either are each played exactly once (by whichever claims them first);
 lists and event streams read the same through both; a job cancelled through one replica is
-stopped by the other, which runs it. Killed with ``kill -9`` in the middle of an
+stopped by the other, which runs it; a remote round answered through both at once closes once,
+on its answers. Killed with ``kill -9`` in the middle of an
 auction, a replica loses its lease and the other resumes the auction from its checkpoint:
 rounds contiguous, every purchase once, the same auction as one played uninterrupted. A second
 server on a SQLite database refuses to start, saying why.
@@ -12,6 +13,7 @@ server on a SQLite database refuses to start, saying why.
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +22,7 @@ import pytest
 from sqlalchemy import func, select
 
 from agents.manifest import parse_manifest
+from agents.remote import RoundInfo, faithful_fine_tune
 from screener import screen
 from server.cli.launch import ServerProcess, settings_environment
 from server.store.db import Database
@@ -29,6 +32,7 @@ from tests.support.databases import postgres_admin_url, throwaway_postgres
 from tests.support.factories import honest
 from tests.support.live import sse_events
 from tests.support.processes import server_pair
+from tests.support.remote import next_round
 from tests.support.server import QUOTAS_OFF, wait_for
 
 LEASE_S = 2.0
@@ -263,6 +267,79 @@ def test_kill_9_of_the_replica_playing_an_auction_the_other_finishes_it(
         for server in servers:
             server.stop()
         database.close()
+
+
+@pytest.mark.postgres
+def test_a_remote_round_answered_through_both_replicas_at_once_closes_once(
+    postgres_url: str, tmp_path: Path
+) -> None:
+    """Every patron of a remote auction uploads at once, half through each replica: the last
+    verdicts of a round serialise on its row, so each round closes once, on its answers (long
+    before its deadline), with every upload in it, and the auction plays on to its end."""
+    servers, admin = server_pair(postgres_url, tmp_path, ENV)
+    manifests = [honest(f"both-{i:02d}", seed=800 + i) for i in range(6)]
+    try:
+        for server in servers:
+            server.start()
+        answers = [
+            httpx.post(servers[i % 2].url + "/submit", json=m, timeout=60).json()
+            for i, m in enumerate(manifests)
+        ]
+        ids = [a["model_id"] for a in answers]
+        tokens = {a["model_id"]: a["token"] for a in answers}
+        body = {
+            "n_fish": 2,
+            "seed": 5,
+            "model_ids": ids,
+            "fine_tune_mode": "remote",
+            "fine_tune_rounds": 2,
+            "round_deadline_s": 120,
+            "max_iterations": 12,
+        }
+        created = httpx.post(servers[0].url + "/auctions", json=body, headers=admin, timeout=60)
+        assert created.status_code == 201, created.text
+        auction_id = created.json()["auction_id"]
+
+        def put(state: dict[str, Any], model_id: int) -> httpx.Response:
+            position = ids.index(model_id)
+            tuned = faithful_fine_tune(
+                parse_manifest(manifests[position]), RoundInfo.from_state(state, position)
+            )
+            server = servers[position % 2]
+            return httpx.put(
+                f"{server.url}/auctions/{auction_id}/rounds/{state['round']}/models/{model_id}",
+                content=tuned.model_dump_json(),
+                headers={
+                    "Authorization": f"Bearer {tokens[model_id]}",
+                    "Content-Type": "application/json",
+                },
+                timeout=60,
+            )
+
+        after = 0
+        while True:
+            state = next_round(servers[after % 2], auction_id, after, TIMEOUT_S)
+            if state["auction_status"] not in ("pending", "running"):
+                break
+            with ThreadPoolExecutor(len(state["asked"])) as pool:
+                uploads = list(pool.map(lambda m, s=state: put(s, m), state["asked"]))
+            assert all(u.status_code == 200 for u in uploads), [u.text for u in uploads]
+            after = state["round"]
+        auction = wait_for(
+            lambda: get(servers[1], f"/auctions/{auction_id}"),
+            lambda a: a["status"] not in ("pending", "running"),
+            TIMEOUT_S,
+        )
+    finally:
+        for server in servers:
+            server.stop()
+    assert auction["status"] == "finished" and auction["error"] is None
+    rounds = auction["fine_tuning"]
+    assert [r["round"] for r in rounds] == [1, 2], (auction["history"], auction["stop_reason"])
+    for played in rounds:
+        assert played["status"] == "closed" and played["closed_at"] < played["deadline"]
+        assert {a["outcome"] for a in played["answers"]} <= {"accepted", "refused", "held"}
+    assert after == 2
 
 
 def test_a_second_server_on_one_sqlite_database_refuses_to_start(tmp_path: Path) -> None:

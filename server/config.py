@@ -42,7 +42,7 @@ class Settings(BaseSettings):
     worker_nice: Annotated[int, Field(ge=0, le=19)] = 10
     """Scheduling niceness added to job worker processes (POSIX ``nice``): experiments yield
     the CPU to the API's requests under load, and take it all when idle. Auction step workers
-    run at the API's priority: a step is short, and a round's close waits for it."""
+    run at the API's priority: a step is short, and the next round waits for it."""
     job_timeout_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 3600.0
     """Wall-time limit of one job: a job still running after this long is stopped and failed."""
     job_memory_mb: Annotated[int, Field(ge=512, le=1 << 20)] = 4096

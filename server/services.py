@@ -105,7 +105,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         progress_interval_s=settings.progress_interval_s,
         torch_threads=settings.worker_torch_threads,
         review_margin=settings.review_margin,
-    )  # auction steps at the API's priority: a round's close waits for its step
+    )  # auction steps at the API's priority: the next round waits for its step
     job_context = dataclasses.replace(
         context,
         nice=settings.worker_nice,

@@ -105,6 +105,16 @@ def assert_played_once(
     assert lease is None  # released once played
 
 
+def submit_through_both(
+    servers: Sequence[ServerProcess], manifests: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """The ``/submit`` answers of the manifests, submitted alternately through the replicas."""
+    return [
+        dict(httpx.post(servers[i % 2].url + "/submit", json=m, timeout=60).json())
+        for i, m in enumerate(manifests)
+    ]
+
+
 def start_work(
     servers: Sequence[ServerProcess], admin: dict[str, str], ids: list[int]
 ) -> tuple[list[int], list[int]]:
@@ -183,10 +193,7 @@ def test_two_replicas_play_each_auction_and_job_once_and_read_alike(
     try:
         for server in servers:
             server.start()
-        ids = [
-            httpx.post(servers[i % 2].url + "/submit", json=m, timeout=60).json()["model_id"]
-            for i, m in enumerate(manifests)
-        ]
+        ids = [answer["model_id"] for answer in submit_through_both(servers, manifests)]
         auctions, jobs = start_work(servers, admin, ids)
         done = [
             wait_for(
@@ -281,10 +288,7 @@ def test_a_remote_round_answered_through_both_replicas_at_once_closes_once(
     try:
         for server in servers:
             server.start()
-        answers = [
-            httpx.post(servers[i % 2].url + "/submit", json=m, timeout=60).json()
-            for i, m in enumerate(manifests)
-        ]
+        answers = submit_through_both(servers, manifests)
         ids = [a["model_id"] for a in answers]
         tokens = {a["model_id"]: a["token"] for a in answers}
         body = {

@@ -296,7 +296,7 @@ def close_round(
     applied, heard = round_answers(connection, round_id)
     silent = [p for p in asked if p not in heard]
     settle_round(connection, auction_id=auction_id, round_id=round_id, silent=silent, now=now)
-    bid_with(connection, auction_id=auction_id, applied=applied)
+    _bid_with(connection, auction_id=auction_id, applied=applied)
     return True
 
 
@@ -332,7 +332,7 @@ def settle_round(
     )
 
 
-def bid_with(connection: Connection, *, auction_id: int, applied: dict[int, int]) -> None:
+def _bid_with(connection: Connection, *, auction_id: int, applied: dict[int, int]) -> None:
     """The patrons whose upload a closed round accepted bid with it from now (``applied``:
     position → version id)."""
     if applied:

@@ -31,7 +31,7 @@ from sqlalchemy.orm import Session, aliased
 
 from screener import Verdict, review
 from server.store.crud.live import notify_change
-from server.store.crud.steps import PendingUploadsError, bid_with, round_answers
+from server.store.crud.steps import PendingUploadsError, close_round, round_answers
 from server.store.db import JSONText
 from server.store.status import (
     ANSWERED,
@@ -428,16 +428,6 @@ _ROUND_FOR_UPDATE = (
 )
 
 
-_CLOSE = (
-    update(FineTuneRound)
-    .where(FineTuneRound.id == bindparam("round_id"))
-    .values(
-        status=RoundStatus.CLOSED,
-        closed_at=bindparam("now", type_=FineTuneRound.closed_at.type),
-    )
-)
-
-
 def close_when_answered(connection: Connection, *, round_id: int, now: datetime) -> bool:
     """Close the round at ``now`` if every asked patron's upload is judged (none pending): its
     accepted versions bid from now, and its auction is due at once for the step that plays on.
@@ -450,13 +440,13 @@ def close_when_answered(connection: Connection, *, round_id: int, now: datetime)
         return False
     if connection.execute(_JUDGED, key).scalar_one() < len(head.asked):
         return False
-    try:
-        applied, _ = round_answers(connection, round_id)
-    except PendingUploadsError:  # not with every asked patron judged; its step closes it
+    try:  # none pending (then the close below cannot fail); else its step closes it
+        round_answers(connection, round_id)
+    except PendingUploadsError:
         return False
     if not connection.execute(_DUE_AT, {"auction_id": head.auction_id, "now": now}).rowcount:
         return False  # the auction ended meanwhile (cancelled)
-    connection.execute(_CLOSE, {**key, "now": now})
-    bid_with(connection, auction_id=head.auction_id, applied=applied)
-    notify_change(connection, kind="auction", row_id=head.auction_id)
+    auction_id = head.auction_id
+    close_round(connection, auction_id=auction_id, round_id=round_id, asked=head.asked, now=now)
+    notify_change(connection, kind="auction", row_id=auction_id)
     return True

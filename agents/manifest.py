@@ -20,10 +20,13 @@ Layers (paper, "The Server and Fish Sale Negotiator"; docs/auction.md):
 from __future__ import annotations
 
 import json
+import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, Final, Literal
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     BeforeValidator,
     ConfigDict,
@@ -31,6 +34,7 @@ from pydantic import (
     ValidationError,
     field_validator,
 )
+from pydantic_core import PydanticCustomError
 
 SCHEMA_VERSION: Final = 1
 INPUTS = ("price", "length", "weight", "gill", "st1", "st2", "st3", "buy_fraction")
@@ -44,6 +48,35 @@ FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
 """A finite JSON number (strict: ``"0.2"`` and ``true`` are not numbers)."""
 Participant = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")]
 """A participant's name: letters, digits, ``_``, ``.``, ``-``."""
+
+
+_UNREADABLE = (
+    "\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f"  # control characters but tab and line breaks
+    "\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069"  # bidirectional marks and overrides
+)
+_NOT_TEXT = re.compile(f"[{_UNREADABLE}]")
+_NOT_A_LINE = re.compile(f"[{_UNREADABLE}\t\n\r]")
+
+
+def _readable(pattern: re.Pattern[str]) -> Callable[[str], str]:
+    def check(text: str) -> str:
+        found = pattern.search(text)
+        if found is not None:
+            raise PydanticCustomError(
+                "control_character",
+                "must not contain control or bidirectional characters: U+{code} at {at}",
+                {"code": f"{ord(found.group()):04X}", "at": found.start()},
+            )
+        return text
+
+    return check
+
+
+PlainText = AfterValidator(_readable(_NOT_TEXT))
+"""Text people read (a description, a note): no control characters but tab and line breaks,
+no bidirectional overrides (stored text shows what it says, and every database stores it)."""
+PlainLine = AfterValidator(_readable(_NOT_A_LINE))
+"""The same on one line (a name)."""
 
 
 def _json_integer(value: Any) -> Any:
@@ -207,7 +240,22 @@ class Augmentation(_Strict):
 
     copies: Annotated[int, Field(strict=True, ge=1, le=16)] = 5
     noise_std: Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)] = 0.01
-    noiseless_inputs: tuple[InputName, ...] = ("st1", "st2", "st3")
+    noiseless_inputs: tuple[InputName, ...] = Field(
+        default=("st1", "st2", "st3"), max_length=len(INPUTS)
+    )
+
+    @field_validator("noiseless_inputs", mode="before")
+    @classmethod
+    def _few(cls, names: Any) -> Any:
+        """At most one entry per input, counted before each entry is read (a list of a
+        hundred thousand wrong entries is one problem, not a hundred thousand)."""
+        if isinstance(names, list | tuple) and len(names) > len(INPUTS):
+            raise PydanticCustomError(
+                "too_long",
+                "at most {most} inputs (one per input), not {given}",
+                {"most": len(INPUTS), "given": len(names)},
+            )
+        return names
 
     @field_validator("noiseless_inputs")
     @classmethod
@@ -230,7 +278,7 @@ class Manifest(_Strict):
     schema_version: Annotated[Literal[1], BeforeValidator(_json_integer)] = SCHEMA_VERSION
     kind: Literal["fish-sale-negotiator"] = "fish-sale-negotiator"
     participant: Participant
-    description: Annotated[str, Field(max_length=2000)] = ""
+    description: Annotated[str, Field(max_length=2000), PlainText] = ""
     augmentation: Augmentation = Augmentation()
     external_sensor: ExternalSensor
     decision: Decision

@@ -134,6 +134,10 @@ class Settings(BaseSettings):
     max_connections: Annotated[int, Field(ge=16, le=1_000_000)] = 4096
     """``srd serve``: open connections (and requests in flight) past which a request is
     answered 503; never more than the file-descriptor limit leaves room for."""
+    max_connections_per_address: Annotated[int, Field(ge=1, le=1_000_000)] = 512
+    """``srd serve``: open HTTP connections one client address may hold (a trusted proxy's are
+    not counted; round sockets count apart, ``limit_client_sockets``); past it a new
+    connection is answered 429 and closed."""
     trusted_proxies: str = ""
     """Comma-separated addresses or networks (``10.0.0.0/8``) of the reverse proxies whose
     ``X-Forwarded-For`` / ``X-Forwarded-Proto`` name the client; empty: nobody's (a direct

@@ -31,6 +31,10 @@ JSON_MEDIA_TYPES = ("application/json",)
 """Media types of a JSON body, besides the ``application/<anything>+json`` family."""
 
 
+MAX_INT_DIGITS = 4300
+"""Longest integer read (Python's own bound on reading one): a longer one gets 422 at its path."""
+
+
 class BodyRefusedError(Exception):
     """The body cannot be accepted: HTTP status, message, location of the problem, kind."""
 
@@ -60,14 +64,39 @@ def _resolve(value: Any, path: tuple[str | int, ...], depth: int) -> Any:
         return out
     if isinstance(value, list):
         return [_resolve(item, (*path, i), depth + 1) for i, item in enumerate(value)]
+    if isinstance(value, _LongInt):
+        raise BodyRefusedError(
+            422,
+            f"a number of more than {MAX_INT_DIGITS} digits",
+            ("body", *path),
+            "number_too_long",
+        )
     if isinstance(value, float) and not math.isfinite(value):  # NaN, Infinity, -Infinity
         raise BodyRefusedError(422, "must be a finite number", ("body", *path), "finite_number")
     return value
 
 
 class _UnfitError(Exception):
-    """The fast pass met a duplicate key, a non-finite number or too deep a nesting: the
-    careful pass (``_resolve``) says where."""
+    """The fast pass met a duplicate key, a non-finite number, too long an integer or too deep
+    a nesting: the careful pass (``_resolve``) says where."""
+
+
+class _LongInt(str):
+    """An integer too long to read, as the careful pass found it (``_resolve`` refuses it)."""
+
+
+def _too_long(text: str) -> bool:
+    return len(text) - text.startswith("-") > MAX_INT_DIGITS
+
+
+def _int_fast(text: str) -> int:
+    if _too_long(text):
+        raise _UnfitError
+    return int(text)
+
+
+def _int_careful(text: str) -> int | _LongInt:
+    return _LongInt(text) if _too_long(text) else int(text)
 
 
 _STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')
@@ -101,7 +130,9 @@ def _non_finite(_: str) -> Any:
 def _fast(text: str) -> Any:
     """The JSON of ``text``, objects built as they are parsed; raises ``_UnfitError`` for anything
     ``_resolve`` would refuse (without saying where)."""
-    value = json.loads(text, object_pairs_hook=_unique, parse_constant=_non_finite)
+    value = json.loads(
+        text, object_pairs_hook=_unique, parse_constant=_non_finite, parse_int=_int_fast
+    )
     if _nesting(text) > MAX_DEPTH:
         raise _UnfitError
     return value
@@ -124,7 +155,7 @@ def parse_strict_json(raw: bytes) -> Any:
     except ValueError as exc:
         raise BodyRefusedError(400, f"the body is not JSON: {exc}", ("body",), "not_json") from exc
     try:
-        parsed = json.loads(text, object_pairs_hook=_Pairs)
+        parsed = json.loads(text, object_pairs_hook=_Pairs, parse_int=_int_careful)
     except ValueError as exc:
         raise BodyRefusedError(400, f"the body is not JSON: {exc}", ("body",), "not_json") from exc
     except RecursionError as exc:

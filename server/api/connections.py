@@ -10,18 +10,25 @@ uses, does not.) ``timed_protocol`` is uvicorn's httptools protocol plus:
   must arrive within ``header_timeout_s``, else the connection gets 408 and is closed;
 * a header size cap: a header past ``max_header_bytes`` gets 431 and the connection is closed;
 * a body deadline: the request's whole body must arrive within ``body_timeout_s`` of its
-  header, else the connection is closed (the app sees the client go away).
+  header, else the connection is closed (the app sees the client go away);
+* a share per address: one client address holds at most ``max_per_address`` open connections
+  (a trusted proxy's are not counted); past it a new connection gets 429 and is closed, so one
+  address cannot take the connections everyone shares (``limit_concurrency``).
 
-A WebSocket upgrade leaves these deadlines once its handshake header is in: the socket's own
-pings and limits take over.
+Each of these answers, and an unreadable request's 400, carries the common JSON error body.
+A WebSocket upgrade leaves these deadlines, and the connection count, once its handshake header
+is in: the socket's own pings and limits (``server.api.limits``) take over.
 """
 
 from __future__ import annotations
 
 import asyncio
+import ipaddress
+import json
 import logging
 import resource
-from typing import Any
+from collections import Counter
+from typing import Any, ClassVar
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
@@ -31,12 +38,39 @@ FD_RESERVE = 256
 """File descriptors kept free of client connections: the database, logs, worker pipes."""
 
 
-def _answer(status: bytes) -> bytes:
-    return b"HTTP/1.1 " + status + b"\r\ncontent-length: 0\r\nconnection: close\r\n\r\n"
+LINGER_S = 1.0
+"""How long a refused connection stays open after its answer, its client's bytes dropped."""
+RETRY_AFTER_S = 2
+"""``Retry-After`` of a connection refused past its address's share."""
 
 
-TIMEOUT_ANSWER = _answer(b"408 Request Timeout")
-TOO_LARGE_ANSWER = _answer(b"431 Request Header Fields Too Large")
+def _answer(status: bytes, msg: str, kind: str, *, headers: bytes = b"") -> bytes:
+    """A whole response with the common error body (``server.api.errors``), closing."""
+    item = {"loc": ["connection"], "msg": msg, "type": kind}
+    body = json.dumps({"detail": [item]}, separators=(",", ":")).encode()
+    return b"".join(
+        (
+            b"HTTP/1.1 " + status + b"\r\ncontent-type: application/json\r\n",
+            b"content-length: %d\r\nconnection: close\r\n" % len(body),
+            headers,
+            b"\r\n",
+            body,
+        )
+    )
+
+
+TIMEOUT_ANSWER = _answer(
+    b"408 Request Timeout", "the request's header did not arrive in time", "header_timeout"
+)
+TOO_LARGE_ANSWER = _answer(
+    b"431 Request Header Fields Too Large", "the request's header is too large", "header_too_large"
+)
+TOO_MANY_ANSWER = _answer(
+    b"429 Too Many Requests",
+    "this address holds its share of open connections already; retry when one has closed",
+    "too_many_connections",
+    headers=b"retry-after: %d\r\n" % RETRY_AFTER_S,
+)
 
 
 class TimedHttpProtocol(HttpToolsProtocol):
@@ -46,28 +80,54 @@ class TimedHttpProtocol(HttpToolsProtocol):
     header_timeout_s = 10.0
     body_timeout_s = 30.0
     max_header_bytes = 65_536
+    max_per_address = 512
+    exempt: ClassVar[tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...]] = ()
+    """Networks whose connections are not counted (the trusted proxies)."""
+    open_by_address: ClassVar[Counter[str]] = Counter()
+    """Open connections per client address (one counter per configured class)."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._deadline: asyncio.TimerHandle | None = None
         self._reading_header = True
         self._header_bytes = 0
+        self._tail = b""  # the last bytes of the header read so far (its end may straddle reads)
+        self._counted: str | None = None  # the address this connection is counted against
+        self._refused = False  # answered with an error: what else arrives is dropped
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        address = self.client[0] if self.client else None
+        if address is not None and not self._exempt(address):
+            if self.open_by_address[address] >= self.max_per_address:
+                self._refuse(TOO_MANY_ANSWER)
+                return
+            self.open_by_address[address] += 1
+            self._counted = address
         self._arm(self.header_timeout_s, header=True)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
+        self._uncount()
         super().connection_lost(exc)
 
     def data_received(self, data: bytes) -> None:
+        if self._refused:
+            return  # read and dropped, so that the close sends the answer, not a reset
         if self._reading_header:
-            self._header_bytes += len(data)
+            seen = self._tail + data
+            end = seen.find(b"\r\n\r\n")  # the header's end, if it is in these bytes
+            self._header_bytes += len(data) if end < 0 else max(0, end + 4 - len(self._tail))
+            self._tail = seen[-3:]
+            if self._header_bytes > self.max_header_bytes:
+                self._refuse(TOO_LARGE_ANSWER)
+                return
         super().data_received(data)
-        # Still in the header after these bytes (a body in the same read does not count).
-        if self._reading_header and self._header_bytes > self.max_header_bytes:
-            self._close(TOO_LARGE_ANSWER)
+
+    def send_400_response(self, msg: str) -> None:
+        """An unreadable request (uvicorn's parser said so): 400 with the common body."""
+        self.transport.write(_answer(b"400 Bad Request", msg, "bad_request"))
+        self.transport.close()
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
@@ -83,12 +143,29 @@ class TimedHttpProtocol(HttpToolsProtocol):
 
     def on_message_complete(self) -> None:
         self._disarm()
-        self._reading_header, self._header_bytes = True, 0
+        self._reading_header, self._header_bytes, self._tail = True, 0, b""
         super().on_message_complete()
 
     def handle_websocket_upgrade(self) -> None:
         self._disarm()
+        self._uncount()
         super().handle_websocket_upgrade()
+
+    def _exempt(self, address: str) -> bool:
+        if not self.exempt:
+            return False
+        try:
+            ip = ipaddress.ip_address(address)
+        except ValueError:
+            return False
+        return any(ip in network for network in self.exempt)
+
+    def _uncount(self) -> None:
+        if self._counted is not None:
+            self.open_by_address[self._counted] -= 1
+            if self.open_by_address[self._counted] <= 0:
+                del self.open_by_address[self._counted]
+            self._counted = None
 
     def _arm(self, delay_s: float, *, header: bool) -> None:
         self._disarm()
@@ -103,21 +180,40 @@ class TimedHttpProtocol(HttpToolsProtocol):
     def _expired(self, header: bool) -> None:
         self._deadline = None
         # A header still arriving has no app behind it yet: it can be answered.
-        self._close(TIMEOUT_ANSWER if header else b"")
+        if header:
+            self._refuse(TIMEOUT_ANSWER)
+        else:
+            self._disarm()
+            self.transport.close()
 
-    def _close(self, answer: bytes) -> None:
+    def _refuse(self, answer: bytes) -> None:
+        """Answer and end the connection: the answer, then the end of what this side sends;
+        whatever the client still sends is read and dropped for ``LINGER_S``, then the
+        connection closes (closing over unread bytes would reset it, and the client could
+        lose the answer)."""
         self._disarm()
-        if self.transport.is_closing():
+        if self.transport.is_closing() or self._refused:
             return
-        if answer:
-            self.transport.write(answer)
-        self.transport.close()
+        self._refused = True
+        self.transport.write(answer)
+        if self.cycle is not None and not self.cycle.response_complete:
+            self.transport.close()  # a pipelined request's answer is still being written
+            return
+        if self.transport.can_write_eof():
+            self.transport.write_eof()
+        self._deadline = self.loop.call_later(LINGER_S, self.transport.close)
 
 
 def timed_protocol(
-    *, header_timeout_s: float, body_timeout_s: float, max_header_bytes: int
+    *,
+    header_timeout_s: float,
+    body_timeout_s: float,
+    max_header_bytes: int,
+    max_per_address: int,
+    exempt: list[str] | tuple[str, ...] = (),
 ) -> type[TimedHttpProtocol]:
-    """The protocol class of ``srd serve`` with these limits."""
+    """The protocol class of ``srd serve`` with these limits (``exempt``: addresses or
+    networks whose connections are not counted per address)."""
     return type(
         "ConfiguredTimedHttpProtocol",
         (TimedHttpProtocol,),
@@ -125,6 +221,9 @@ def timed_protocol(
             "header_timeout_s": header_timeout_s,
             "body_timeout_s": body_timeout_s,
             "max_header_bytes": max_header_bytes,
+            "max_per_address": max_per_address,
+            "exempt": tuple(ipaddress.ip_network(entry, strict=False) for entry in exempt),
+            "open_by_address": Counter(),
         },
     )
 

@@ -48,9 +48,29 @@ class ErrorBody(BaseModel):
     detail: list[ErrorItem]
 
 
+MAX_DETAIL = 20
+"""Problems listed in one error body at most: past it, one last entry counts the rest (a body of
+thousands of bad items would otherwise be answered with megabytes)."""
+
+
 def error_item(msg: str, *, loc: Sequence[str | int] = (), kind: str = "error") -> dict[str, Any]:
     """A ``detail`` entry."""
     return {"loc": list(loc), "msg": msg, "type": kind}
+
+
+def capped(items: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The first ``MAX_DETAIL`` entries, then one that counts the others (at the first
+    left out's place)."""
+    listed = list(items)
+    if len(listed) <= MAX_DETAIL:
+        return listed
+    rest = len(listed) - MAX_DETAIL
+    more = error_item(
+        f"and {rest} more problems, not listed (the first {MAX_DETAIL} are)",
+        loc=listed[MAX_DETAIL]["loc"],
+        kind="more_problems",
+    )
+    return [*listed[:MAX_DETAIL], more]
 
 
 class RequestError(Exception):
@@ -65,7 +85,7 @@ class RequestError(Exception):
         headers: Mapping[str, str] | None = None,
     ) -> None:
         self.status = status
-        self.items = list(items)
+        self.items = capped(items)
         self.headers = dict(headers or {})
         super().__init__("; ".join(str(item["msg"]) for item in self.items))
 
@@ -115,14 +135,14 @@ async def _http_exception(request: Request, exc: Exception) -> JSONResponse:
 
 
 def _validation_detail(exc: RequestValidationError | WebSocketRequestValidationError) -> list[Any]:
-    return [
+    return capped(
         error_item(
             str(err.get("msg", "invalid")),
             loc=_json_safe_loc(err.get("loc", ())),
             kind=str(err.get("type", "value_error")),
         )
         for err in exc.errors()
-    ]
+    )
 
 
 async def _request_validation(request: Request, exc: Exception) -> JSONResponse:

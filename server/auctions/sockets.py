@@ -42,7 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from server.api.body import BodyRefusedError, parse_strict_json
-from server.api.errors import RequestError, error_item
+from server.api.errors import RequestError, capped, error_item
 from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_ROW_ID
 from server.live.rounds import MAX_WAIT_S, Published, RoundWatcher, TooManyWaitersError
 from server.store.tables import utcnow
@@ -237,12 +237,12 @@ async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:
     try:
         message = UploadMessage.model_validate(raw)
     except ValidationError as exc:
-        items = [
+        items = capped(
             error_item(
                 str(e["msg"]), loc=("message", *(str(p) for p in e["loc"])), kind=str(e["type"])
             )
             for e in exc.errors()
-        ]
+        )
         ids = raw if isinstance(raw, dict) else {}
         return _frame(_int(ids.get("round")), _int(ids.get("model_id")), 422, {"detail": items})
     body = message.manifest.encode("utf-8", "surrogatepass")

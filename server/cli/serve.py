@@ -71,6 +71,8 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
             header_timeout_s=settings.header_timeout_s,
             body_timeout_s=settings.body_timeout_s,
             max_header_bytes=settings.max_header_bytes,
+            max_per_address=settings.max_connections_per_address,
+            exempt=settings.trusted_proxy_list,
         ),
         timeout_keep_alive=settings.keep_alive_s,  # type: ignore[arg-type]  # a float works
         limit_concurrency=connection_cap(settings.max_connections, file_limit),

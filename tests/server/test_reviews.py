@@ -97,6 +97,9 @@ def test_an_inspector_admits_or_refuses_with_an_audit_log(client: TestClient) ->
         ({**decision, "inspector": "  "}, ["body", "inspector"]),
         ({**decision, "inspector": "x" * 65}, ["body", "inspector"]),
         ({**decision, "note": "n" * 2001}, ["body", "note"]),
+        ({**decision, "note": "looks fine\u0000"}, ["body", "note"]),
+        ({**decision, "inspector": "Ada\nBob"}, ["body", "inspector"]),
+        ({**decision, "inspector": "\u202eadA"}, ["body", "inspector"]),
         ({**decision, "extra": 1}, ["body", "extra"]),
         ({"decision": "admit"}, ["body", "inspector"]),
     ]:
@@ -150,6 +153,10 @@ def test_a_refused_model_is_appealed_once(client: TestClient) -> None:
     assert wrong.status_code == 403 and locs(wrong) == [["header", "Authorization"]]
     blank = client.post(url, json={"note": ""}, headers=bearer(mine["token"]))
     assert blank.status_code == 422 and locs(blank) == [["body", "note"]]
+    for unreadable in ("a\u0000b", "fine \u202egnp.exe"):  # a NUL, a right-to-left override
+        hidden = client.post(url, json={"note": unreadable}, headers=bearer(mine["token"]))
+        assert hidden.status_code == 422 and locs(hidden) == [["body", "note"]]
+        assert "control or bidirectional" in hidden.text
     assert count(client, Review, model_id=mine["model_id"]) == 0
 
     answer = client.post(url, json=note, headers=bearer(mine["token"]))

@@ -45,6 +45,44 @@ def test_submit_types_numbers_strictly(client: TestClient, path, value) -> None:
     assert count(client, ModelVersion) == before
 
 
+def test_a_body_of_many_bad_items_gets_a_short_answer(client: TestClient) -> None:
+    """A quarter-megabyte body of wrong entries is one problem, or twenty listed and a count,
+    never an answer of megabytes."""
+    before = count(client, ModelVersion)
+    many = manifest_with(("augmentation", "noiseless_inputs"), [0] * 100_000)
+    response = client.post("/submit", json=many)
+    assert response.status_code == 422
+    assert locs(response) == [["body", "augmentation", "noiseless_inputs"]]
+    assert "at most 8 inputs" in response.text
+    extra = honest(unique("extra"))
+    extra.update({f"u{i}": 0 for i in range(10_000)})
+    response = client.post("/submit", json=extra)
+    assert response.status_code == 422 and len(response.content) < 10_000
+    detail = response.json()["detail"]
+    assert len(detail) == 21 and detail[0]["loc"] == ["body", "u0"]
+    assert detail[-1]["type"] == "more_problems" and "9980 more" in detail[-1]["msg"]
+    assert count(client, ModelVersion) == before
+
+
+def test_text_with_control_characters_is_refused(client: TestClient) -> None:
+    for text in ("nul \u0000 inside", "bell \u0007", "mirrored \u202etxt.exe"):
+        response = client.post("/submit", json=manifest_with(("description",), text))
+        assert response.status_code == 422 and locs(response) == [["body", "description"]]
+    fine = client.post("/submit", json=manifest_with(("description",), "two\nlines\tand a tab"))
+    assert fine.status_code == 201, fine.text
+
+
+def test_an_integer_too_long_to_read_is_422_at_its_path(client: TestClient) -> None:
+    text = json.dumps(honest(unique("digits"))).replace('"copies": 5', '"copies": ' + "9" * 5000)
+    assert "9" * 5000 in text
+    before = count(client, ModelVersion)
+    response = client.post("/submit", content=text, headers=JSON)
+    assert response.status_code == 422
+    assert locs(response) == [["body", "augmentation", "copies"]]
+    assert "more than 4300 digits" in response.text and "sys." not in response.text
+    assert count(client, ModelVersion) == before
+
+
 def test_an_integer_is_a_valid_number(client: TestClient) -> None:
     response = client.post("/submit", json=manifest_with(("external_sensor", "PG", "bias"), 0))
     assert response.status_code == 201, response.text

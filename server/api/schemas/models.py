@@ -8,6 +8,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, Field, StringConstraints
 
+from agents.manifest import PlainLine, PlainText
 from server.api.schemas.common import ReasonPublic, StrictInput
 from server.store.status import ModelStatus
 
@@ -116,9 +117,12 @@ class ParticipantPublic(BaseModel):
 Inspector = Annotated[
     str,
     StringConstraints(min_length=1, max_length=64, pattern=r"\S"),
-    Field(description="Who decides (a name, 1 to 64 characters, not blank)."),
+    PlainLine,
+    Field(description="Who decides (a name, 1 to 64 characters, not blank, one line)."),
 ]
-Note = Annotated[str, Field(max_length=2000, description="Why (at most 2000 characters).")]
+Note = Annotated[
+    str, PlainText, Field(max_length=2000, description="Why (at most 2000 characters).")
+]
 
 
 class ReviewCreate(StrictInput):
@@ -132,7 +136,7 @@ class ReviewCreate(StrictInput):
 class AppealCreate(StrictInput):
     """``POST /models/{id}/appeal``: why the participant asks for a person to look."""
 
-    note: Annotated[str, StringConstraints(min_length=1, max_length=2000, pattern=r"\S")]
+    note: Annotated[str, StringConstraints(min_length=1, max_length=2000, pattern=r"\S"), PlainText]
 
 
 class ReviewedPublic(BaseModel):

@@ -1,0 +1,140 @@
+"""Connection hygiene of a real ``srd serve``: one address holds at most its share of open
+connections (others are still served, a trusted proxy is not counted), a header over the size
+cap is refused however it arrives, and the protocol's own refusals carry the common JSON error
+body.
+
+Clients bind distinct loopback addresses (Linux routes all of 127/8 to the loopback).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from server.cli.launch import ServerProcess
+from tests.support.server import ADMIN_TOKEN
+
+SHARE = 8
+HOARDER = "127.0.0.11"
+NEIGHBOUR = "127.0.0.12"
+PROXY = "127.0.0.13"
+MAX_HEADER_BYTES = 16_384
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    data_dir = tmp_path_factory.mktemp("connections")
+    env = {
+        "SRD_MAX_CONNECTIONS_PER_ADDRESS": str(SHARE),
+        "SRD_MAX_HEADER_BYTES": str(MAX_HEADER_BYTES),
+        "SRD_TRUSTED_PROXIES": PROXY,
+    }
+    with ServerProcess(
+        database_url=f"sqlite:///{data_dir / 'srd.db'}",
+        data_dir=data_dir,
+        admin_token=ADMIN_TOKEN,
+        extra_env=env,
+    ) as running:
+        yield running
+
+
+async def _open(server: ServerProcess, address: str) -> tuple[Any, Any]:
+    return await asyncio.open_connection("127.0.0.1", server.port, local_addr=(address, 0))
+
+
+async def _exchange(
+    server: ServerProcess, address: str, raw: bytes
+) -> tuple[int, dict[str, str], bytes]:
+    """Send ``raw`` on a new connection and read the answer until the server closes it."""
+    reader, writer = await _open(server, address)
+    try:
+        writer.write(raw)
+        answer = await asyncio.wait_for(reader.read(), 10)
+    finally:
+        writer.close()
+    head, _, body = answer.partition(b"\r\n\r\n")
+    lines = head.decode().split("\r\n")
+    headers = dict(line.lower().split(": ", 1) for line in lines[1:])
+    return int(lines[0].split()[1]), headers, body
+
+
+def _get(path: str, *extra: str) -> bytes:
+    lines = [f"GET {path} HTTP/1.1", "Host: test", "Connection: close", *extra]
+    return ("\r\n".join(lines) + "\r\n\r\n").encode()
+
+
+def _detail(body: bytes) -> dict[str, Any]:
+    detail = json.loads(body)["detail"]
+    assert len(detail) == 1
+    return dict(detail[0])
+
+
+async def _hoard(server: ServerProcess) -> dict[str, Any]:
+    half_sent = []
+    try:
+        for _ in range(SHARE):  # the hoarder's share, each request's header never ends
+            reader, writer = await _open(server, HOARDER)
+            writer.write(b"GET /healthz HTTP/1.1\r\nHost: test\r\n")
+            half_sent.append((reader, writer))
+        await asyncio.sleep(0.2)
+        over = await _exchange(server, HOARDER, _get("/healthz"))
+        neighbour = await _exchange(server, NEIGHBOUR, _get("/healthz"))
+        proxied = await asyncio.gather(
+            *(_exchange(server, PROXY, _get("/healthz")) for _ in range(SHARE + 2))
+        )
+        half_sent.pop()[1].close()  # one of the hoarder's connections ends: its place is free
+        await asyncio.sleep(0.2)
+        freed = await _exchange(server, HOARDER, _get("/healthz"))
+        return {"over": over, "neighbour": neighbour, "proxied": proxied, "freed": freed}
+    finally:
+        for _, writer in half_sent:
+            writer.close()
+
+
+def test_an_address_holds_its_share_of_connections_and_no_more(server: ServerProcess) -> None:
+    result = asyncio.run(_hoard(server))
+    status, headers, body = result["over"]
+    assert status == 429
+    assert headers["content-type"] == "application/json"
+    assert int(headers["retry-after"]) >= 1
+    item = _detail(body)
+    assert item["type"] == "too_many_connections" and item["loc"] == ["connection"]
+    assert result["neighbour"][0] == 200  # another address is served meanwhile
+    assert [status for status, _, _ in result["proxied"]] == [200] * (SHARE + 2)  # not counted
+    assert result["freed"][0] == 200
+
+
+def test_a_header_over_the_cap_is_refused_whole_or_in_pieces(server: ServerProcess) -> None:
+    padding = "X-Padding: " + "a" * (MAX_HEADER_BYTES + 100)
+    status, headers, body = asyncio.run(_exchange(server, NEIGHBOUR, _get("/healthz", padding)))
+    assert status == 431 and headers["content-type"] == "application/json"
+    assert _detail(body)["type"] == "header_too_large"
+
+    async def in_pieces() -> tuple[int, bytes]:
+        reader, writer = await _open(server, NEIGHBOUR)
+        raw = _get("/healthz", padding)
+        try:
+            for start in range(0, len(raw), 4096):
+                writer.write(raw[start : start + 4096])
+                await writer.drain()
+            answer = await asyncio.wait_for(reader.read(), 10)
+        finally:
+            writer.close()
+        return int(answer.split()[1]), answer
+
+    status, _ = asyncio.run(in_pieces())
+    assert status == 431
+    within = "X-Padding: " + "a" * (MAX_HEADER_BYTES // 2)
+    assert asyncio.run(_exchange(server, NEIGHBOUR, _get("/healthz", within)))[0] == 200
+
+
+def test_an_unreadable_request_gets_the_common_error_body(server: ServerProcess) -> None:
+    raw = b"POST /submit HTTP/1.1\r\nHost: test\r\nContent-Length: abc\r\n\r\n{}"
+    status, headers, body = asyncio.run(_exchange(server, NEIGHBOUR, raw))
+    assert status == 400 and headers["content-type"] == "application/json"
+    item = _detail(body)
+    assert item["type"] == "bad_request" and item["loc"] == ["connection"]

@@ -306,10 +306,21 @@ def parse_config(cls: type[C], params: Any, *, text_lists: bool = False) -> C:
         raise ConfigError(
             [
                 {"field": ".".join(str(p) for p in err["loc"]) or "params", "message": err["msg"]}
-                for err in exc.errors()
+                for err in _first_causes(exc.errors())
             ]
         ) from exc
     return config
+
+
+def _first_causes(errors: list[Any]) -> list[Any]:
+    """Pydantic's errors without the length errors its item errors cause: a list whose items
+    all failed is also "too short" (it counts the items that passed), which only confuses."""
+    inner = {tuple(err["loc"][:-1]) for err in errors if len(err["loc"]) > 1}
+    return [
+        err
+        for err in errors
+        if not (err["type"] in ("too_short", "too_long") and tuple(err["loc"]) in inner)
+    ]
 
 
 @dataclass(frozen=True)

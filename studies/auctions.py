@@ -134,6 +134,7 @@ def plan_auction(
     max_iterations: int,
     fine_tune_rounds: int,
     buy_fraction: BuyFractionRule = MarketConfig.buy_fraction,
+    n_rows: int = MarketConfig.n_rows,
 ) -> Auction:
     """The patrons (not yet screened) and market config of one auction."""
     honest_rng, saboteur_rng, market_seed = auction_streams(seed, rarity, trial)
@@ -155,6 +156,7 @@ def plan_auction(
         seed=market_seed,
         evaluate_all_rows=False,
         buy_fraction=buy_fraction,
+        n_rows=n_rows,
     )
     return Auction(setting, rarity, trial, n_patrons, n_fish, patrons, 0, market)
 
@@ -321,6 +323,7 @@ def compute_auctions(
             max_iterations=config.max_iterations,
             fine_tune_rounds=config.fine_tune_rounds,
             buy_fraction=config.buy_fraction,
+            n_rows=config.rows,
         )
         for s, r, t in unit.spec["auctions"]
     ]

@@ -45,10 +45,14 @@ class AuctionOptions:
     buy_fraction: BuyFractionRule = MarketConfig.buy_fraction
     """Whom each row's buy fraction f counts: all (every voter, the paper's) or staying (buyers
     and holders: quitting does not lower f)."""
+    rows: Annotated[int, Field(ge=1, le=256)] = MarketConfig.n_rows
+    """Item rows each patron scores per iteration: the prototype and its variations (64, the
+    reference's, made the paper's figures; the paper's text says 16)."""
 
     def _auction_cost(self, setting: Setting) -> float:
         """Estimated compute of one auction of ``setting``."""
         per_auction = FINE_TUNED_AUCTION_COST_S if setting.fine_tune else AUCTION_COST_S
+        per_auction *= max(self.rows, MarketConfig.n_rows) / MarketConfig.n_rows
         screening = SCREENING_COST_S if setting.screen else 0.0
         return self.patrons * (per_auction / 64 + screening)
 

@@ -6,7 +6,8 @@ Content-Security-Policy that lets nothing load and nobody frame the answer, ``no
 ``X-Frame-Options: DENY`` and ``Referrer-Policy: no-referrer`` (pages set their own policy,
 as strict: ``server.ui.routes``). It refuses a ``token`` or ``access_token`` query parameter
 with 400 naming it: tokens travel in the ``Authorization`` header, as URLs are logged and
-kept in browser histories. ``RedactQueryFilter`` blanks such parameters (and any other whose
+kept in browser histories; and that header given twice (400: which one counts would be a
+guess). ``RedactQueryFilter`` blanks such parameters (and any other whose
 name says secret) in uvicorn's access log lines.
 """
 
@@ -58,8 +59,17 @@ class SecurityHeadersMiddleware:
         }
         for name in TOKEN_PARAMETERS:
             if name in names:
-                await _refuse_token_parameter(scope, receive, _with_headers(send), name)
+                message = (
+                    f"a token in the URL ({name!r}) is refused, as URLs are logged: send it as "
+                    "'Authorization: Bearer <token>'"
+                )
+                await _refuse(scope, receive, _with_headers(send), message, ("query", name))
                 return
+        given = sum(1 for name, _ in scope["headers"] if name == b"authorization")
+        if given > 1:
+            message = f"the Authorization header is given {given} times: send one"
+            await _refuse(scope, receive, _with_headers(send), message, ("header", "Authorization"))
+            return
         await self.app(scope, receive, _with_headers(send))
 
 
@@ -75,20 +85,12 @@ def _with_headers(send: Send) -> Send:
     return sender
 
 
-async def _refuse_token_parameter(scope: Scope, receive: Receive, send: Send, name: str) -> None:
-    response = JSONResponse(
-        {
-            "detail": [
-                error_item(
-                    f"a token in the URL ({name!r}) is refused, as URLs are logged: send it as "
-                    "'Authorization: Bearer <token>'",
-                    loc=("query", name),
-                    kind="token_in_url",
-                )
-            ]
-        },
-        status_code=400,
-    )
+async def _refuse(
+    scope: Scope, receive: Receive, send: Send, message: str, loc: tuple[str, str]
+) -> None:
+    """400 for a request whose credentials are in the wrong place or ambiguous."""
+    kind = "token_in_url" if loc[0] == "query" else "duplicate_header"
+    response = JSONResponse({"detail": [error_item(message, loc=loc, kind=kind)]}, status_code=400)
     if scope["type"] == "http":
         await response(scope, receive, send)
     elif "websocket.http.response" in scope.get("extensions", {}):

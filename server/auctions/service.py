@@ -14,9 +14,10 @@ from sim.market import fish_on_sale
 
 
 def patron_ids(session: Session, model_ids: list[int] | None) -> list[int]:
-    """The ordered patron list: the given ids (each must exist, 404, and be accepted, 409: a
-    refused or held one is named), or by default the newest accepted version of every
-    participant (a held version is passed over; 409 while there is none)."""
+    """The ordered patron list: the given ids (each must exist, 404, be accepted, 409: a
+    refused or held one is named, and name a participant no other id names, 422), or by
+    default the newest accepted version of every participant (a held version is passed over;
+    409 while there is none)."""
     if model_ids is None:
         ids = [row.id for row in crud.latest_accepted_models(session)]
         if not ids:
@@ -51,6 +52,22 @@ def patron_ids(session: Session, model_ids: list[int] | None) -> list[int]:
     ]
     if rejected:
         raise RequestError(409, rejected)
+    first: dict[int, int] = {}  # participant → the model naming it first
+    twice = []
+    for i, model_id in enumerate(model_ids):
+        participant = found[model_id].participant_id
+        if participant in first and first[participant] != model_id:
+            twice.append(
+                error_item(
+                    f"model {model_id} is another version of the participant of model "
+                    f"{first[participant]}: a participant takes part once (one version, one vote)",
+                    loc=("body", "model_ids", i),
+                    kind="same_participant",
+                )
+            )
+        first.setdefault(participant, model_id)
+    if twice:
+        raise RequestError(422, twice)
     return list(model_ids)
 
 

@@ -15,7 +15,7 @@ from sqlalchemy import select
 from agents.manifest import parse_manifest
 from screener import screen
 from server.config import Settings
-from server.store.tables import ModelVersion, Participant
+from server.store.tables import Auction, ModelVersion, Participant
 from tests.support.factories import honest, saboteur, unique
 from tests.support.server import ADMIN, count, locs, wait_for
 
@@ -221,6 +221,13 @@ def test_auction_needs_the_admin_token(client: TestClient) -> None:
     assert client.post("/auctions", json={"n_fish": 1}, headers=WRONG).status_code == 403
     basic = client.post("/auctions", json={"n_fish": 1}, headers={"Authorization": "Basic eDp5"})
     assert basic.status_code == 401
+    # The admin token beside another: which one counts would be a guess.
+    for pair in ([ADMIN["Authorization"], WRONG["Authorization"]], [WRONG["Authorization"]] * 2):
+        headers = [("Authorization", value) for value in pair]
+        before = count(client, Auction)
+        both = client.post("/auctions", json={"n_fish": 1}, headers=headers)
+        assert both.status_code == 400 and locs(both) == [["header", "Authorization"]]
+        assert count(client, Auction) == before
 
 
 @pytest.mark.parametrize(
@@ -255,6 +262,16 @@ def test_create_auction_duplicate_and_tiny_rarity(client: TestClient) -> None:
     assert locs(duplicate) == [["body", "model_ids"]]
     unknown = client.post("/auctions", json={"n_fish": 2, "model_ids": [987654321]}, headers=ADMIN)
     assert unknown.status_code == 404 and locs(unknown) == [["body", "model_ids", 0]]
+    # Two versions of one participant would give it two votes.
+    first = honest(unique("twice"))
+    registered = client.post("/submit", json=first).json()
+    token = registered["token"]
+    again = client.post("/submit", json=first, headers={"Authorization": f"Bearer {token}"})
+    assert again.status_code == 201, again.text
+    both = [model_id, registered["model_id"], again.json()["model_id"]]
+    twice = client.post("/auctions", json={"n_fish": 1, "model_ids": both}, headers=ADMIN)
+    assert twice.status_code == 422 and locs(twice) == [["body", "model_ids", 2]]
+    assert "takes part once" in twice.text
     tiny = client.post("/auctions", json={"rarity": 0.01, "model_ids": [model_id]}, headers=ADMIN)
     assert tiny.status_code == 409  # the number of patrons puts no fish on sale
     assert locs(tiny) == [["body", "rarity"]]

@@ -86,13 +86,30 @@ def test_human_output_is_a_short_summary_on_stdout(tmp_path) -> None:
         (["auction-study", "--saboteurs", "2"], "--saboteurs", "less than or equal to 1"),
         (["auction-study", "--rarities", "0.1,x"], "--rarities", "valid number"),
         (["fish", "--lr", "nan"], "--lr", "finite"),
+        (["auction-study", "--rarities", "1.5"], "--rarities", "less than or equal to 1"),
+        (["auction-study", "--rows", "0"], "--rows", "greater than or equal to 1"),
+        (["cheetah", "--inhibitor", "-1"], "--inhibitor", "greater than or equal to 0"),
     ],
 )
 def test_bad_options_exit_2_naming_the_option(tmp_path, args, option, message) -> None:
     result = CliRunner().invoke(cli, [*args, "--json", "--out", str(tmp_path / "x")])
     assert result.exit_code == 2
     assert option in result.stderr and message in result.stderr
+    assert result.stderr.count("error:") == 1, result.stderr  # the cause alone
     assert result.stdout == ""
+
+
+def test_the_item_rows_are_an_option(tmp_path) -> None:
+    """64 rows (the reference's) by default; the paper's text says 16."""
+    base = ["auction-study", "--rarities", "0.5", "--trials", "2", "--patrons", "16", "--json"]
+    found = {}
+    for rows in ("16", "64", None):
+        extra = [] if rows is None else ["--rows", rows]
+        result = CliRunner().invoke(cli, [*base, *extra, "--out", str(tmp_path / f"r{rows}")])
+        assert result.exit_code == 0, result.output
+        found[rows] = json.loads(result.stdout)["rows"][0]
+    assert found[None] == found["64"]
+    assert found["16"]["mean_price"] != found["64"]["mean_price"]
 
 
 def test_unknown_command_is_a_usage_error() -> None:

@@ -22,6 +22,7 @@ from server.config import Settings
 from server.store import db as db_module
 from server.store.db import SQLITE_BUSY_TIMEOUT_MS, Database, alembic_config, upgrade_schema
 from server.store.tables import Base, ModelVersion, utcnow
+from tests.support.factories import honest, unique
 from tests.support.server import make_settings
 
 
@@ -34,6 +35,49 @@ def test_migrations_build_exactly_the_models(database_url: str) -> None:
         revision = connection.execute(text("select version_num from alembic_version")).scalar()
     database.close()
     assert revision == ScriptDirectory.from_config(alembic_config(database_url)).get_current_head()
+
+
+def test_an_unreadable_description_stored_before_is_made_readable(fresh_database_url: str) -> None:
+    """Descriptions refuse control and bidirectional characters from revision 0010 on; one
+    stored before loses them, and its manifest reads again."""
+    from alembic import command
+    from sqlalchemy import select
+
+    from agents.manifest import parse_manifest
+
+    command.upgrade(alembic_config(fresh_database_url), "0009")
+    manifest = honest(unique("old"))
+    manifest["description"] = "line one\nnul\u0000 bell\u0007 flip\u202e end"
+    database = Database(fresh_database_url)
+    with database.engine.begin() as connection:
+        participant = connection.execute(
+            text(
+                "insert into participants (name, name_key, token_hash, created_at) "
+                "values (:n, :n, 'x', :at) returning id"
+            ),
+            {"n": manifest["participant"], "at": utcnow()},
+        ).scalar_one()
+        connection.execute(
+            insert(ModelVersion).values(
+                participant_id=participant,
+                version=1,
+                manifest=manifest,
+                accepted=True,
+                reasons=[],
+                created_at=utcnow(),
+                status="accepted",
+            )
+        )
+    database.close()
+    upgrade_schema(fresh_database_url)
+    database = Database(fresh_database_url)
+    with database.engine.connect() as connection:
+        stored = connection.scalar(
+            select(ModelVersion.manifest).where(ModelVersion.participant_id == participant)
+        )
+    database.close()
+    assert stored["description"] == "line one\nnul bell flip end"
+    assert parse_manifest(stored).description == stored["description"]
 
 
 def test_foreign_keys_are_enforced(database_url: str) -> None:

@@ -167,6 +167,11 @@ def test_participant_with_its_versions(client: TestClient, population: dict[str,
     assert body["name"] == population["alice"] and body["n_versions"] == 2
     assert [v["id"] for v in body["versions"]] == population["alice_ids"][::-1]
     assert [v["verdict"] for v in body["versions"]] == ["accepted", "accepted"]
+    # A name is the same name in other case, as at /submit: the stored spelling answers.
+    shouted = client.get(f"/participants/{population['alice'].upper()}").json()
+    assert shouted == body
+    listed = client.get("/models", params={"participant": population["alice"].upper()}).json()
+    assert [v["id"] for v in listed["items"]] == population["alice_ids"][::-1]
     missing = client.get(f"/participants/{unique('nobody')}")
     assert missing.status_code == 404 and missing.json()["detail"][0]["loc"] == ["path", "name"]
     bad = client.get("/participants/a%20b")

@@ -213,7 +213,7 @@ def list_models(
     if before is not None:
         query = query.where(ModelVersion.id < before)
     if participant is not None:
-        query = query.where(Participant.name == participant)
+        query = query.where(Participant.name_key == participant_key(participant))
     if accepted is not None:
         query = query.where(ModelVersion.accepted.is_(accepted))
     return [ModelSummary(*row) for row in session.connection().execute(query)]
@@ -230,10 +230,15 @@ class ParticipantView:
 
 
 def get_participant(session: Session, *, name: str, limit: int) -> ParticipantView | None:
-    """A participant by name with its ``limit`` newest versions."""
+    """A participant by name (compared as names are, ``participant_key``) with its ``limit``
+    newest versions."""
     row = (
         session.connection()
-        .execute(select(Participant.id, Participant.created_at).where(Participant.name == name))
+        .execute(
+            select(Participant.id, Participant.name, Participant.created_at).where(
+                Participant.name_key == participant_key(name)
+            )
+        )
         .one_or_none()
     )
     if row is None:
@@ -241,8 +246,8 @@ def get_participant(session: Session, *, name: str, limit: int) -> ParticipantVi
     n_versions = session.connection().scalar(
         select(func.count()).where(ModelVersion.participant_id == row.id)
     )
-    versions = list_models(session, before=None, limit=limit, participant=name)
-    return ParticipantView(name, row.created_at, int(n_versions or 0), versions)
+    versions = list_models(session, before=None, limit=limit, participant=row.name)
+    return ParticipantView(row.name, row.created_at, int(n_versions or 0), versions)
 
 
 def patron_auctions(session: Session, *, model_id: int, limit: int) -> list[int]:

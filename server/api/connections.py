@@ -195,10 +195,10 @@ class TimedHttpProtocol(HttpToolsProtocol):
         if self.transport.is_closing() or self._refused:
             return
         self._refused = True
-        self.transport.write(answer)
         if self.cycle is not None and not self.cycle.response_complete:
-            self.transport.close()  # a pipelined request's answer is still being written
+            self.transport.close()  # an earlier pipelined request's answer is being written
             return
+        self.transport.write(answer)
         if self.transport.can_write_eof():
             self.transport.write_eof()
         self._deadline = self.loop.call_later(LINGER_S, self.transport.close)

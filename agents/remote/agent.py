@@ -14,7 +14,7 @@ from typing import Any, Literal
 from agents.manifest import Manifest
 from agents.remote.client import HTTP_TIMEOUT_S, Client, RemoteError
 from agents.remote.fine_tuners import FineTuner, RoundInfo, faithful_fine_tune
-from agents.remote.socket import RoundSocket
+from agents.remote.socket import AuctionEndedError, RoundSocket
 
 Transport = Literal["http", "websocket"]
 TRANSPORTS: tuple[Transport, ...] = ("http", "websocket")
@@ -158,7 +158,10 @@ class RemoteAgent:
     ) -> tuple[int, Any]:
         """Upload ``body`` for the round: the server's status and answer (JSON)."""
         if socket is not None:
-            return await socket.upload(round_number, self.submitted_id, body)
+            try:
+                return await socket.upload(round_number, self.submitted_id, body)
+            except AuctionEndedError:
+                pass  # the same bytes as a PUT: the answer the server gave them, or 410
         response = await self.client.request(
             "PUT",
             f"/auctions/{auction_id}/rounds/{round_number}/models/{self.submitted_id}",

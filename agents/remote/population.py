@@ -49,8 +49,9 @@ class PopulationConfig:
     seed: int = 0
     """Seeds the population's models (same seed, same models)."""
     auction: int | None = None
-    """Join this auction; None: wait for one containing the population's models (or create
-    it with ``admin_token``)."""
+    """An auction already created: refused before anything is registered (its patrons are the
+    models named when it was created, and the population registers new ones); None: wait for
+    one containing the population's models (or create it with ``admin_token``)."""
     admin_token: str | None = None
     """Operator token: create a remote auction of the population's models."""
     rarity: float = 0.5
@@ -189,6 +190,8 @@ async def run_population(
     started = time.monotonic()
     async with contextlib.AsyncExitStack() as stack:
         clients = await _clients(config, stack)
+        if config.auction is not None:
+            await _refuse_a_named_auction(clients[0], config.auction)
         agents = population(config, clients)
         submitted = await _submit(agents, progress)
         auction_id = await _auction(config, clients[0], agents)
@@ -229,11 +232,25 @@ async def _submit(agents: list[RemoteAgent], progress: Progress | None) -> list[
     return await _gather_bounded([submit(a) for a in agents], SUBMIT_CONCURRENCY)
 
 
+async def _refuse_a_named_auction(client: Client, auction_id: int) -> None:
+    """An auction that exists already cannot take agents that have yet to register: its
+    patrons are the models named when it was created. Said before anything is registered."""
+    response = await client.request("GET", f"/auctions/{auction_id}")
+    if response.status_code == 404:
+        raise RemoteError(f"auction {auction_id} does not exist on {client.server}")
+    response.raise_for_status()
+    status = response.json()["status"]
+    raise RemoteError(
+        f"auction {auction_id} ({status}) cannot take these agents: an auction's patrons are "
+        "the models named when it was created, and these agents have yet to register theirs. "
+        "Start the agents first and create the auction from their models (they wait for it, "
+        "--wait), or give --admin-token for them to create it"
+    )
+
+
 async def _auction(config: PopulationConfig, client: Client, agents: list[RemoteAgent]) -> int:
     """The auction the population plays: the configured one, a new one (with the admin
     token), or the newest one its models entered."""
-    if config.auction is not None:
-        return config.auction
     if config.admin_token is not None:
         return await _create_auction(config, client, [a.submitted_id for a in agents])
     return await _find_auction(agents, config.auction_wait_s)

@@ -5,7 +5,9 @@ The server pushes every round as it opens and the auction's end; an upload is on
 its answer the PUT's status and body. A dropped connection is opened again with exponential
 backoff (503 and 429 handshakes honour Retry-After) until ``give_up_s`` has passed, then
 ``ServerGoneError`` names the server; an upload whose answer was lost is sent again with the
-same bytes, which the server answers as it answered them the first time. A socket silent for
+same bytes, which the server answers as it answered them the first time; if the auction has
+ended meanwhile (its socket closes for good), ``AuctionEndedError`` says so, and the upload's
+PUT gets its answer. A socket silent for
 ``RESYNC_S`` while the agent waits for a round is opened again too (the server sends the current
 round on every connection). Frames are counted in the client's ``Traffic``."""
 
@@ -44,6 +46,11 @@ class _DroppedError(Exception):
     """The connection went away before the answer came."""
 
 
+class AuctionEndedError(RemoteError):
+    """The auction ended and its socket closed before an upload was answered: the upload's
+    PUT (the same bytes) gets the answer the server gave it, or 410."""
+
+
 def socket_url(server: str, auction_id: int) -> str:
     """The round socket's URL on an ``http://`` or ``https://`` server."""
     base = server.rstrip("/")
@@ -57,9 +64,13 @@ def socket_url(server: str, auction_id: int) -> str:
 def _ready(state: dict[str, Any], after: int) -> bool:
     """Worth handing on to an agent that handled round ``after``: a newer round open, or the
     end."""
-    if state["auction_status"] not in ("pending", "running"):
+    if _ended(state):
         return True
     return state["status"] == "open" and (state["round"] or 0) > after
+
+
+def _ended(state: dict[str, Any]) -> bool:
+    return state["auction_status"] not in ("pending", "running")
 
 
 class RoundSocket:
@@ -149,6 +160,11 @@ class RoundSocket:
                 self.traffic.bytes_up += len(body)
                 status, reply = await asyncio.wait_for(answer, HTTP_TIMEOUT_S)
             except (ConnectionClosed, _DroppedError, TimeoutError) as exc:
+                if self._latest is not None and _ended(self._latest):
+                    raise AuctionEndedError(
+                        f"auction at {self.url} ended before the upload of round "
+                        f"{round_number} was answered on its socket"
+                    ) from exc
                 if backoff.exhausted:
                     raise ServerGoneError(
                         f"the server at {self.server} did not answer the upload of round "

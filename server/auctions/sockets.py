@@ -10,7 +10,8 @@ transports share every check, every counter and every stored outcome
 
 * server → agent: ``{"type": "round", "body": <RoundPublic>}`` on connecting (the auction's
   newest round, whatever its status), then whenever a round opens, and once the auction has
-  ended, after which the server closes the socket (code 1000);
+  ended, after which the server closes the socket (code 1000) as soon as the upload it is
+  handling, if any, is answered (an upload sent after that close is answered by its PUT);
 * agent → server: ``{"type": "upload", "round": R, "model_id": M, "manifest": "<JSON text>"}``,
   the manifest as the JSON *text* a PUT would carry: its bytes are what is checked, hashed for
   the one-upload-per-round rule and counted;
@@ -115,6 +116,8 @@ class _Socket:
     def __init__(self, websocket: WebSocket) -> None:
         self.websocket = websocket
         self._lock = asyncio.Lock()
+        self.answering = asyncio.Lock()
+        """Held while an upload is handled: the end of the auction waits for its answer."""
 
     async def send(self, text: str) -> None:
         async with self._lock:
@@ -176,7 +179,8 @@ class RoundSockets:
         while published is not None:
             await socket.send(_round_frame(published))
             if published.auction_over:
-                await socket.close(1000, "the auction has ended")
+                async with socket.answering:  # an upload being handled gets its answer first
+                    await socket.close(1000, "the auction has ended")
                 return
             if published.open and published.round is not None:
                 after = max(after, published.round)
@@ -223,7 +227,8 @@ class RoundSockets:
                     _error(None, 400, "send uploads as text frames of JSON", ("message",))
                 )
                 continue
-            await socket.send(await _handle(text, upload, utcnow()))
+            async with socket.answering:
+                await socket.send(await _handle(text, upload, utcnow()))
 
 
 async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:

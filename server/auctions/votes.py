@@ -8,7 +8,7 @@ from sqlalchemy.orm import Session
 from server.api.errors import api_error
 from server.api.schemas.votes import VoteExplanationPublic
 from server.auctions.service import not_found
-from server.store.crud.votes import iteration_votes, model_name
+from server.store.crud.votes import bidding_version, iteration_votes
 
 
 def explain_vote(
@@ -36,7 +36,7 @@ def explain_vote(
             kind="not_found",
         )
     mine = [p for p in votes.explanations["patrons"] if p["model_id"] == model_id]
-    name = model_name(session, model_id=model_id)
+    name = bidding_version(session, auction_id=auction_id, model_id=model_id, iteration=iteration)
     if not mine or name is None:
         raise api_error(
             404,

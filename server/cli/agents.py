@@ -120,7 +120,8 @@ def _summary(report: PopulationReport) -> Table:
     "--auction",
     type=click.IntRange(1),
     default=None,
-    help="Join this auction [default: wait for one containing the agents' models, "
+    help="An auction already created: refused before anything is registered, as its "
+    "patrons are fixed at its creation [default: wait for one containing the agents' models, "
     "or create one with --admin-token].",
 )
 @click.option(

@@ -292,6 +292,59 @@ def test_srd_agents_stops_cleanly_for_a_cancelled_auction(live_server: ServerPro
     assert uploads["accepted"] + uploads["refused"] == len(asked_agents) and uploads["late"] == 0
 
 
+@pytest.mark.parametrize("transport", ["websocket", "http"])
+def test_an_upload_sent_as_the_auction_is_cancelled_is_answered(
+    live_server: ServerProcess, transport: str
+) -> None:
+    """The agent fine-tunes while the operator cancels: its upload, sent after the cancel,
+    still gets its answer (410, late), on the socket or by its PUT, and the agent stops at
+    once instead of retrying until it gives up."""
+    import asyncio
+
+    from agents.remote import Client, RemoteAgent
+
+    admin = {"Authorization": f"Bearer {live_server.admin_token}"}
+    with httpx.Client(base_url=live_server.url, timeout=30) as http:
+        entered = []
+        for seed in (0, 2, 3):
+            manifest = honest(unique("racer"), seed=seed)
+            answer = http.post("/submit", json=manifest).raise_for_status().json()
+            entered.append((answer["model_id"], answer["token"], manifest))
+        body = {
+            "n_fish": 1,
+            "model_ids": [m for m, _, _ in entered],
+            "fine_tune_mode": "remote",
+            "round_deadline_s": 60,
+        }
+        auction_id = http.post("/auctions", json=body, headers=admin).json()["auction_id"]
+
+        def cancel_then_tune(current: Any, info: RoundInfo) -> Any:
+            assert http.delete(f"/auctions/{auction_id}", headers=admin).status_code == 200
+            time.sleep(0.5)
+            return faithful_fine_tune(current, info)
+
+        model_id, token, manifest = entered[0]
+
+        async def play() -> RemoteAgent:
+            async with httpx.AsyncClient(base_url=live_server.url) as client:
+                agent = RemoteAgent(
+                    Client(client, give_up_s=20),
+                    parse_manifest(manifest),
+                    fine_tuner=cancel_then_tune,
+                    token=token,
+                    model_id=model_id,
+                    transport=transport,  # type: ignore[arg-type]
+                )
+                await agent.play(auction_id)
+                return agent
+
+        started = time.monotonic()
+        agent = asyncio.run(play())
+        took = time.monotonic() - started
+    assert took < 10, took
+    assert agent.uploads.late == 1 and [entry.outcome for entry in agent.log] == ["late"]
+
+
 JSON = {"Content-Type": "application/json"}
 
 

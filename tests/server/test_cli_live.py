@@ -272,3 +272,21 @@ def test_agents_prints_a_row_per_agent_then_the_totals(
     assert totals[2] == "3 accepted"
     up = sum(int(row[7].replace(",", "")) for row in rows.values())
     assert int(totals[7].replace(",", "")) == up
+
+
+def test_agents_refuse_an_auction_created_before_them_and_register_nothing(
+    server: ServerProcess, client: httpx.Client
+) -> None:
+    """An auction's patrons are fixed when it is created: agents that have yet to register
+    cannot join one, and are told so before they register anything."""
+    existing = start_auction(client, seed=11)
+    for auction_id, words in ((existing, "cannot take these agents"), (999999, "does not exist")):
+        done = subprocess.run(
+            [*srd_command(), "agents", "--server", server.url, "--name-prefix", "late",
+             "--honest", "1", "--auction", str(auction_id), "--json"],
+            capture_output=True, text=True, timeout=120, cwd=ROOT,
+        )  # fmt: skip
+        assert done.returncode == 1, done.stderr
+        assert f"auction {auction_id}" in done.stderr and words in done.stderr
+        assert done.stdout == ""
+    assert client.get("/participants/late-honest-000").status_code == 404

@@ -362,6 +362,41 @@ def test_the_bait_and_switch_is_refused_and_the_round_closes_when_all_answered(
     assert first["bytes_total"] > first["bytes_published"] > 0
     assert nxt["round"] == 2 and nxt["status"] == "open"
     assert first["closed_at"] <= auction["fine_tuning"][1]["opened_at"]
+    # A vote is explained with the version that cast it: round 1's accepted uploads bid from
+    # iteration 1 on.
+    for model_id, (_, answer) in answers.items():
+        votes = f"/auctions/{auction_id}/iterations/{{}}/votes/{model_id}"
+        assert client.get(votes.format(0)).json()["version"] == 1
+        assert client.get(votes.format(1)).json()["version"] == answer["version"]
+
+
+def test_buyers_and_quitters_are_named_with_the_version_that_bid(client: TestClient) -> None:
+    auction_id, manifests, patrons = start_remote(
+        client, "bidder", 500, 4, round_deadline_s=60, fine_tune_rounds=1, seed=3
+    )
+    state = open_round(client, auction_id)
+    uploaded = {}
+    for position, (model_id, token) in enumerate(patrons):
+        if model_id in state["asked"]:
+            info = RoundInfo.from_state(state, position)
+            tuned = faithful_fine_tune(parse_manifest(manifests[position]), info)
+            answer = put(client, auction_id, 1, model_id, tuned.model_dump_json().encode(), token)
+            assert answer.status_code == 200, answer.text
+            uploaded[model_id] = answer.json()["version"]
+    assert 2 in uploaded.values()
+    auction = wait_for(
+        lambda: client.get(f"/auctions/{auction_id}").json(),
+        lambda a: a["status"] == "finished",
+        ROUND_WAIT_S,
+    )
+    left = [*auction["buyers"], *auction["quitter_details"]]
+    assert left and any(entry["iteration"] >= 1 for entry in left)
+    for entry in left:
+        position = auction["model_ids"].index(entry["model_id"])
+        bidding = client.get(f"/models/{auction['current_model_ids'][position]}").json()
+        assert entry["version"] == bidding["version"], entry
+        if entry["iteration"] >= 1:  # after round 1: the upload's version, if one was accepted
+            assert entry["version"] == uploaded.get(entry["model_id"], 1)
 
 
 def test_a_silent_round_closes_at_its_deadline_and_late_uploads_get_410(

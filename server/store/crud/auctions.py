@@ -7,8 +7,9 @@ import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
+from typing import TypeVarTuple
 
-from sqlalchemy import Row, bindparam, func, select, update
+from sqlalchemy import Row, Select, bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from server.store.crud.lists import ListOrder, keyset
@@ -211,25 +212,53 @@ AUCTION_HISTORY = (
     .where(AuctionIteration.auction_id == bindparam("auction_id"))
     .order_by(AuctionIteration.iteration)
 )
-_AUCTION_PURCHASES = (
-    select(
-        Purchase.model_id,
-        Purchase.price,
-        Purchase.iteration,
-        Participant.name.label("participant"),
-        ModelVersion.version,
+
+
+Ts = TypeVarTuple("Ts")
+
+
+def bidder(query: Select[*Ts], table: type[Purchase] | type[Quit]) -> Select[*Ts]:
+    """``query`` over a purchase or quit joined to the version that bid when the patron left:
+    its current one (a patron is never asked again once it has bought or quit, so remote
+    rounds cannot have changed it since), and that version's participant."""
+    return (
+        query.join(
+            AuctionPatron,
+            (AuctionPatron.auction_id == table.auction_id)
+            & (AuctionPatron.model_id == table.model_id),
+        )
+        .join(
+            ModelVersion,
+            ModelVersion.id == func.coalesce(AuctionPatron.current_model_id, table.model_id),
+        )
+        .join(Participant, Participant.id == ModelVersion.participant_id)
     )
-    .join(ModelVersion, ModelVersion.id == Purchase.model_id)
-    .join(Participant, Participant.id == ModelVersion.participant_id)
+
+
+_AUCTION_PURCHASES = (
+    bidder(
+        select(
+            Purchase.model_id,
+            Purchase.price,
+            Purchase.iteration,
+            Participant.name.label("participant"),
+            ModelVersion.version,
+        ),
+        Purchase,
+    )
     .where(Purchase.auction_id == bindparam("auction_id"))
     .order_by(Purchase.id)
 )
 _AUCTION_QUITTERS = (
-    select(
-        Quit.model_id, Participant.name.label("participant"), ModelVersion.version, Quit.iteration
+    bidder(
+        select(
+            Quit.model_id,
+            Participant.name.label("participant"),
+            ModelVersion.version,
+            Quit.iteration,
+        ),
+        Quit,
     )
-    .join(ModelVersion, ModelVersion.id == Quit.model_id)
-    .join(Participant, Participant.id == ModelVersion.participant_id)
     .where(Quit.auction_id == bindparam("auction_id"))
     .order_by(Quit.id)
 )

@@ -11,7 +11,7 @@ from typing import Any
 from sqlalchemy import Select, bindparam, select
 from sqlalchemy.orm import Session
 
-from server.store.crud.auctions import AUCTION_HISTORY, IterationFigures
+from server.store.crud.auctions import AUCTION_HISTORY, IterationFigures, bidder
 from server.store.tables import (
     Auction,
     AuctionIteration,
@@ -76,9 +76,10 @@ def _patrons_leaving(table: type[Purchase] | type[Quit], *extra: Any) -> Select[
     """(iteration, model id, participant, version, *extra) of the patrons who bought (or quit)
     in the iterations first ≤ i < stop of an auction, in the order they were written."""
     return (
-        select(table.iteration, table.model_id, Participant.name, ModelVersion.version, *extra)
-        .join(ModelVersion, ModelVersion.id == table.model_id)
-        .join(Participant, Participant.id == ModelVersion.participant_id)
+        bidder(
+            select(table.iteration, table.model_id, Participant.name, ModelVersion.version, *extra),
+            table,
+        )
         .where(table.auction_id == bindparam("auction_id"))
         .where(table.iteration >= bindparam("first"))
         .where(table.iteration < bindparam("stop"))

@@ -8,7 +8,15 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from server.store.tables import Auction, AuctionIteration, ModelVersion, Participant
+from server.store.tables import (
+    Auction,
+    AuctionIteration,
+    AuctionPatron,
+    FineTuneAnswer,
+    FineTuneRound,
+    ModelVersion,
+    Participant,
+)
 
 
 @dataclass(frozen=True)
@@ -35,15 +43,34 @@ def iteration_votes(
     return True, IterationVotes(*row) if row is not None else None
 
 
-def model_name(session: Session, *, model_id: int) -> tuple[str, int] | None:
-    """The participant and version of a model id."""
-    row = (
-        session.connection()
-        .execute(
-            select(Participant.name, ModelVersion.version)
-            .join(ModelVersion.participant)
-            .where(ModelVersion.id == model_id)
+def bidding_version(
+    session: Session, *, auction_id: int, model_id: int, iteration: int
+) -> tuple[str, int] | None:
+    """The participant and version of the patron that entered the auction as ``model_id``,
+    as it bid in ``iteration``: the version its last remote round before that iteration left
+    it with (each round's answer names it), else the one it entered with. None: not a patron."""
+    connection = session.connection()
+    position = connection.scalar(
+        select(AuctionPatron.position).where(
+            AuctionPatron.auction_id == auction_id, AuctionPatron.model_id == model_id
         )
-        .one_or_none()
     )
-    return (row[0], row[1]) if row is not None else None
+    if position is None:
+        return None
+    after_rounds = connection.scalar(
+        select(FineTuneAnswer.model_id)
+        .join(FineTuneRound, FineTuneRound.id == FineTuneAnswer.round_id)
+        .where(
+            FineTuneRound.auction_id == auction_id,
+            FineTuneRound.iteration < iteration,
+            FineTuneAnswer.position == position,
+        )
+        .order_by(FineTuneRound.round.desc())
+        .limit(1)
+    )
+    row = connection.execute(
+        select(Participant.name, ModelVersion.version)
+        .join(ModelVersion.participant)
+        .where(ModelVersion.id == (after_rounds or model_id))
+    ).one()
+    return row[0], row[1]

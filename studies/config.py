@@ -6,7 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated
 
-from pydantic import Field
+from pydantic import AfterValidator, Field
+from pydantic_core import PydanticCustomError
 
 from sim.experiment import Cost
 from sim.market import BuyFractionRule, MarketConfig
@@ -18,7 +19,26 @@ COMPARISON_RARITIES = (0.1, 0.3, 0.5, 0.7, 0.9)
 GRID_SABOTEURS = 0.5
 """The saboteur fraction of the grid's and the comparison's compromised auctions."""
 Rarity = Annotated[float, Field(gt=0, le=1)]
-Rarities = Annotated[tuple[Rarity, ...], Field(min_length=1, max_length=100)]
+
+
+def _distinct(rarities: tuple[float, ...]) -> tuple[float, ...]:
+    """Each supply once: a study's rows are per supply, and a repeated one would merge its
+    trials into one row."""
+    seen: set[float] = set()
+    for rarity in rarities:
+        if rarity in seen:
+            raise PydanticCustomError(
+                "duplicate_rarity",
+                "{rarity} is given twice: each supply once (more trials: raise trials)",
+                {"rarity": f"{rarity:g}"},
+            )
+        seen.add(rarity)
+    return rarities
+
+
+Rarities = Annotated[
+    tuple[Rarity, ...], Field(min_length=1, max_length=100), AfterValidator(_distinct)
+]
 AUCTION_COST_S = 0.01
 """Compute of one auction of 64 patrons without fine-tuning, for the job budget: about twice
 the lock-step engine's measured cost per auction."""

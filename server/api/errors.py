@@ -135,14 +135,17 @@ async def _http_exception(request: Request, exc: Exception) -> JSONResponse:
 
 
 def _validation_detail(exc: RequestValidationError | WebSocketRequestValidationError) -> list[Any]:
-    return capped(
-        error_item(
+    """The framework's errors, each once (a parameter that two dependencies declare is
+    checked, and refused, twice)."""
+    items: dict[tuple[Any, ...], dict[str, Any]] = {}
+    for err in exc.errors():
+        item = error_item(
             str(err.get("msg", "invalid")),
             loc=_json_safe_loc(err.get("loc", ())),
             kind=str(err.get("type", "value_error")),
         )
-        for err in exc.errors()
-    )
+        items.setdefault((tuple(item["loc"]), item["msg"], item["type"]), item)
+    return capped(items.values())
 
 
 async def _request_validation(request: Request, exc: Exception) -> JSONResponse:

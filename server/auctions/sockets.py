@@ -233,12 +233,11 @@ class RoundSockets:
 
 async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:
     """The answer frame of one received message."""
-    try:
-        raw = json.loads(text)
-    except ValueError as exc:
-        return _error(None, 400, f"the message is not JSON: {exc}", ("message",), "not_json")
-    except RecursionError:
-        return _error(None, 400, "the message nests too deep", ("message",), "json_depth")
+    try:  # as strictly as a body: a key twice, NaN, too long an integer, too deep
+        raw = parse_strict_json(text.encode("utf-8", "surrogatepass"))
+    except BodyRefusedError as exc:
+        msg = exc.msg.replace("the body", "the message")
+        return _error(None, exc.status, msg, ("message", *exc.loc[1:]), exc.kind)
     try:
         message = UploadMessage.model_validate(raw)
     except ValidationError as exc:

@@ -27,6 +27,7 @@ from agents.remote import (
     run_population,
 )
 from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_SEED, ROUND_DEADLINE_S
+from server.cli.launch import server_url
 
 GAVE_UP = 1
 """Exit code when the server could not be reached or refused the population."""
@@ -100,7 +101,10 @@ def _summary(report: PopulationReport) -> Table:
 
 @click.command("agents")
 @click.option(
-    "--server", required=True, help="Base URL of the auction house, e.g. http://127.0.0.1:8000."
+    "--server",
+    required=True,
+    callback=server_url,
+    help="Base URL of the auction house, e.g. http://127.0.0.1:8000.",
 )
 @click.option(
     "--honest",

@@ -17,6 +17,19 @@ import httpx
 HEALTH_POLL_S = 0.2
 
 
+def server_url(_ctx: object, param: object, value: str) -> str:
+    """A ``--server`` option's value: an ``http://`` or ``https://`` URL with a host (else a
+    usage error, exit 2), without its trailing slash."""
+    parsed = httpx.URL(value) if "://" in value else None
+    if parsed is None or parsed.scheme not in ("http", "https") or not parsed.host:
+        import click
+
+        raise click.BadParameter(
+            f"{value!r} is not an http:// or https:// URL of a server, e.g. http://127.0.0.1:8000"
+        )
+    return value.rstrip("/")
+
+
 def settings_environment(values: dict[str, object]) -> dict[str, str]:
     """Settings as the environment of a server process (``SRD_<NAME>``)."""
     return {f"SRD_{name.upper()}": str(value) for name, value in values.items()}

@@ -23,6 +23,8 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
+from server.cli.launch import server_url
+
 FINISHED, ENDED_OTHERWISE, LOST = 0, 1, 3
 """Exit codes: the auction finished; it failed or was cancelled; it could not be followed
 (server unreachable, unknown auction, the stream dropped twice)."""
@@ -212,6 +214,7 @@ def live_view(watched: Watched) -> Group:
     envvar="SRD_URL",
     default="http://127.0.0.1:8000",
     show_default=True,
+    callback=server_url,
     help="Base URL of the auction house (or SRD_URL).",
 )
 @click.option(

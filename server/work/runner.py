@@ -296,9 +296,17 @@ class BackgroundRunner:
                 owner=self.owner,
                 expires=now + self._lease,
             )
+            lost = held - kept
+            stop = (
+                crud.stopped_elsewhere(
+                    session, table=self.kind.table, row_ids=lost, owner=self.owner
+                )
+                if lost
+                else set()
+            )
             session.commit()
         self._renewed_at = time.monotonic()
-        for row_id in held - kept:  # taken over, or ended elsewhere (cancelled)
+        for row_id in stop:  # cancelled, or taken over (a row its task just ended is not)
             log.warning("%s %d: lease lost; stopped here", self.kind.name, row_id)
             self.pool.cancel(row_id)
         return every

@@ -273,3 +273,17 @@ def test_a_run_folder_is_named_by_command_seed_and_readable_time(tmp_path, monke
     out_dir = Path(json.loads(result.stdout)["out_dir"])
     assert out_dir.parent == Path("runs")
     assert re.fullmatch(r"fish__4__\d{8}-\d{6}", out_dir.name)
+
+
+@pytest.mark.parametrize("command", [["agents", "--honest", "1"], ["watch", "1"]])
+@pytest.mark.parametrize("url", ["not-a-url", "ftp://127.0.0.1", "http://"])
+def test_a_server_that_is_not_a_url_is_a_usage_error(command: list[str], url: str) -> None:
+    result = CliRunner().invoke(cli, [*command, "--server", url])
+    assert result.exit_code == 2
+    assert "--server" in result.stderr and "not an http:// or https:// URL" in result.stderr
+
+
+def test_a_supply_given_twice_is_refused() -> None:
+    result = CliRunner().invoke(cli, ["auction-study", "--rarities", "0.5,0.1,0.5", "--json"])
+    assert result.exit_code == 2 and "--rarities" in result.stderr
+    assert "0.5 is given twice" in result.stderr

@@ -234,5 +234,14 @@ def test_stream_errors_use_the_error_body(
     negative = client.get(f"{path}?after=-1")
     assert negative.status_code == 422
     assert negative.json()["detail"][0]["loc"] == ["query", "after"]
+    job = client.post("/jobs", json={"kind": "fish", "params": {"steps": 10}}, headers=ADMIN)
+    job_path = f"/jobs/{job.json()['job_id']}/events"
+    for stream in (path, job_path):  # each problem said once
+        bad = client.get(stream, headers={"Last-Event-ID": "abc"}, params={"after": "abc"})
+        assert bad.status_code == 422
+        assert sorted(i["loc"] for i in bad.json()["detail"]) == [
+            ["header", "Last-Event-ID"],
+            ["query", "after"],
+        ]
     dotted = client.get("/jobs/999999/events", headers={"Last-Event-ID": "3.1"})
     assert dotted.status_code == 422 and dotted.json()["detail"][0]["type"] == "bad_event_id"

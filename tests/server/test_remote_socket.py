@@ -127,13 +127,16 @@ def test_socket_refusals_name_the_field_and_store_nothing(
         )
     with client.websocket_connect(path, headers=bearer(token)) as ws:
         refusal(answer_to(ws, "not json"), 400, ["message"], "not JSON")
-        refusal(answer_to(ws, "[" * 60_000 + "]" * 60_000), 400, ["message"], "too deep")
+        refusal(answer_to(ws, "[" * 60_000 + "]" * 60_000), 400, ["message"], "nested deeper")
         ws.send_bytes(b"{}")
         refusal(json.loads(ws.receive_text()), 400, ["message"], "text frames")
         extra = json.dumps(
             {"type": "upload", "round": 1, "model_id": model_id, "manifest": good, "x": 1}
         )
         refusal(answer_to(ws, extra), 422, ["message", "x"], "Extra")
+        twice = upload_text(1, model_id, good).replace('"round": 1', '"round": 1, "round": 2', 1)
+        assert '"round": 2' in twice
+        refusal(answer_to(ws, twice), 422, ["message", "round"], "appears twice")
         refusal(answer_to(ws, upload_text(0, model_id, good)), 422, ["message", "round"], "greater")
         refusal(
             answer_to(ws, upload_text(2, model_id, good)),

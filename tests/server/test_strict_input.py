@@ -180,7 +180,7 @@ def test_job_params_are_typed_strictly(client: TestClient, params, loc) -> None:
     assert count(client, Job) == before
 
 
-@pytest.mark.parametrize("raw", ["1.0", "1%20", "%201", "+1", "1e0", "0x1", "%EF%BC%91"])
+@pytest.mark.parametrize("raw", ["1.0", "1%20", "%201", "+1", "1e0", "0x1", "%EF%BC%91", "1_0"])
 def test_path_ids_are_digits_only(client: TestClient, raw: str) -> None:
     for prefix, name in (
         ("/jobs/", "job_id"),
@@ -190,6 +190,10 @@ def test_path_ids_are_digits_only(client: TestClient, raw: str) -> None:
         response = client.get(prefix + raw)
         assert response.status_code == 422, (prefix, raw, response.text)
         assert locs(response) == [["path", name]]
+    # A round too (its PUT would otherwise take "1.0" or "1_0" for a round).
+    headers = {**JSON, "Authorization": "Bearer srdp_not-a-token"}
+    upload = client.put(f"/auctions/1/rounds/{raw}/models/1", content=b"{}", headers=headers)
+    assert upload.status_code == 422 and ["path", "round"] in locs(upload), upload.text
 
 
 def test_artifact_name_with_a_null_byte_is_404(client: TestClient) -> None:

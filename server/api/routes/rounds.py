@@ -11,6 +11,7 @@ from datetime import datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path, Query, Request, Response, WebSocket
+from pydantic import BeforeValidator
 
 from server.api.deps import (
     AuctionRunnerDep,
@@ -29,6 +30,7 @@ from server.api.schemas import (
     RoundPublic,
     UploadPublic,
 )
+from server.api.schemas.common import digits_only
 from server.auctions import uploads as rounds
 from server.auctions.service import not_found
 from server.auctions.sockets import RETRY_AFTER_S, UPLOAD_MAX_BYTES, SocketLimitError
@@ -45,6 +47,7 @@ RoundPath = Annotated[
         le=MAX_FINE_TUNE_ROUNDS,
         description="A fine-tuning round (1 follows iteration 0, 2 iteration 1, ...).",
     ),
+    BeforeValidator(digits_only),
 ]
 
 

@@ -14,7 +14,7 @@ MAX_SEED = 2**31 - 1  # fits a 32-bit INTEGER column on every backend
 MAX_ROW_ID = 2**31 - 1  # ids are 32-bit INTEGER primary keys on every backend
 
 
-def _decimal(value: Any) -> Any:
+def digits_only(value: Any) -> Any:
     """A path id is written in ASCII digits only: ``1.0``, ``1 `` or ``+1`` name no row."""
     if isinstance(value, str) and not (value.isascii() and value.isdigit()):
         raise ValueError("must be a positive integer written in digits")
@@ -23,18 +23,18 @@ def _decimal(value: Any) -> Any:
 
 RowId = Annotated[int, Field(ge=1, le=MAX_ROW_ID)]
 ModelIdPath = Annotated[
-    int, Path(ge=1, le=MAX_ROW_ID, description="A model id."), BeforeValidator(_decimal)
+    int, Path(ge=1, le=MAX_ROW_ID, description="A model id."), BeforeValidator(digits_only)
 ]
 AuctionIdPath = Annotated[
-    int, Path(ge=1, le=MAX_ROW_ID, description="An auction id."), BeforeValidator(_decimal)
+    int, Path(ge=1, le=MAX_ROW_ID, description="An auction id."), BeforeValidator(digits_only)
 ]
 JobIdPath = Annotated[
-    int, Path(ge=1, le=MAX_ROW_ID, description="A job id."), BeforeValidator(_decimal)
+    int, Path(ge=1, le=MAX_ROW_ID, description="A job id."), BeforeValidator(digits_only)
 ]
 IterationPath = Annotated[
     int,
     Path(ge=0, le=MAX_ROW_ID, description="An auction iteration (0, 1, ...)."),
-    BeforeValidator(_decimal),
+    BeforeValidator(digits_only),
 ]
 
 

@@ -49,6 +49,7 @@ from server.store.crud.leases import (
     earliest_due,
     release_leases,
     renew_leases,
+    stopped_elsewhere,
     take_leases,
 )
 from server.store.crud.live import LIVE_CHANNEL, LiveKind, notify_change
@@ -200,6 +201,7 @@ __all__ = [
     "start",
     "start_job",
     "step_state",
+    "stopped_elsewhere",
     "store_upload",
     "take_leases",
     "update_attempt",

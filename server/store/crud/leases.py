@@ -99,6 +99,21 @@ def renew_leases(
     )
 
 
+def stopped_elsewhere(
+    session: Session, *, table: Table, row_ids: Collection[int], owner: str
+) -> set[int]:
+    """Among rows whose lease ``owner`` could not renew, those its tasks must stop: cancelled,
+    or taken over by another owner. (A row that ended by its own task's commit, finished or
+    failed, is left to end.)"""
+    return set(
+        session.scalars(
+            select(table.id)
+            .where(table.id.in_(row_ids))
+            .where((table.status == "cancelled") | (table.lease_owner != owner))
+        )
+    )
+
+
 def release_leases(session: Session, *, table: Table, row_ids: Collection[int], owner: str) -> None:
     """Drop the leases ``owner`` holds on ``row_ids``."""
     session.execute(

@@ -22,6 +22,7 @@ import asyncio
 import contextlib
 import functools
 import hashlib
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime
@@ -30,7 +31,7 @@ from typing import Any, TypeVar
 from sqlalchemy import Connection
 from starlette.concurrency import run_in_threadpool
 
-from agents.manifest import Manifest, ManifestError, parse_manifest_json
+from agents.manifest import Manifest, ManifestError, parse_manifest, parse_manifest_json
 from screener import Verdict
 from server.api.errors import api_error, error_item, validation_error
 from server.api.security import token_matches
@@ -97,10 +98,26 @@ def _manifest(body: bytes) -> Manifest:
     try:
         return parse_manifest_json(body)
     except ManifestError as exc:
+        errors = exc.errors
+        if any(e["path"] == "$" for e in errors):  # JSON the fast parser cannot say where
+            errors = _located(body) or errors  # (a lone surrogate escape): read it as /submit
         raise validation_error(
             error_item(e["message"], loc=("body", *e["path"].split(".")), kind="manifest")
-            for e in exc.errors
+            for e in errors
         ) from exc
+
+
+def _located(body: bytes) -> list[dict[str, str]]:
+    """The problems of a body the JSON reader refused as a whole, each at its field, as
+    ``POST /submit`` reads a manifest (Python's JSON reader, then the schema); [] if that
+    finds none."""
+    try:
+        parse_manifest(json.loads(body))
+    except ManifestError as exc:
+        return exc.errors
+    except ValueError:
+        return []
+    return []
 
 
 def _target(

@@ -237,6 +237,10 @@ def refuse_every_bad_upload(
         ["body", "decision", "B", "bias"],
         "",
     )
+    body = _json(tuned.model_dump(mode="json"))
+    lone = body.replace(b'"description": "', b'"description": "\\ud800', 1)
+    assert b"\\ud800" in lone  # a lone surrogate escape: JSON, but no text
+    refused(put(client, auction_id, 1, model_id, lone, token), 422, ["body", "description"], "")
     renamed = tuned.model_copy(update={"participant": "someone-else"})
     refused(
         put(client, auction_id, 1, model_id, renamed.model_dump_json().encode(), token),

@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 
 from server.cli.launch import ServerProcess
-from tests.support.server import ADMIN_TOKEN
+from tests.support.server import module_server
 
 SHARE = 8
 HOARDER = "127.0.0.11"
@@ -27,19 +27,12 @@ MAX_HEADER_BYTES = 16_384
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
-    data_dir = tmp_path_factory.mktemp("connections")
     env = {
         "SRD_MAX_CONNECTIONS_PER_ADDRESS": str(SHARE),
         "SRD_MAX_HEADER_BYTES": str(MAX_HEADER_BYTES),
         "SRD_TRUSTED_PROXIES": PROXY,
     }
-    with ServerProcess(
-        database_url=f"sqlite:///{data_dir / 'srd.db'}",
-        data_dir=data_dir,
-        admin_token=ADMIN_TOKEN,
-        extra_env=env,
-    ) as running:
-        yield running
+    yield from module_server(tmp_path_factory, "connections", env)
 
 
 async def _open(server: ServerProcess, address: str) -> tuple[Any, Any]:

@@ -24,7 +24,7 @@ from server.store.db import Database
 from server.store.tables import RateEvent, participant_key
 from tests.support.factories import honest, unique
 from tests.support.live import create_unstarted_auction
-from tests.support.server import ADMIN_TOKEN
+from tests.support.server import module_server
 
 TRUSTED_PROXY = "127.0.0.2"
 SPOOFER = "127.0.0.3"
@@ -41,19 +41,12 @@ HELD = 0
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
-    data_dir = tmp_path_factory.mktemp("fairness")
     env = {
         "SRD_HEADER_TIMEOUT_S": str(HEADER_TIMEOUT_S),
         "SRD_TRUSTED_PROXIES": TRUSTED_PROXY,
         "SRD_QUOTA_REGISTRATIONS_PER_DAY": "1000",
     }
-    with ServerProcess(
-        database_url=f"sqlite:///{data_dir / 'srd.db'}",
-        data_dir=data_dir,
-        admin_token=ADMIN_TOKEN,
-        extra_env=env,
-    ) as running:
-        yield running
+    yield from module_server(tmp_path_factory, "fairness", env)
 
 
 def client_from(address: str, server: ServerProcess) -> httpx.Client:

@@ -80,11 +80,16 @@ def count(client: TestClient, table: Any, **where: Any) -> int:
         return int(session.scalar(query) or 0)
 
 
-def module_server(tmp_path_factory: pytest.TempPathFactory, name: str) -> Iterator[ServerProcess]:
-    """A real ``srd serve`` on a fresh SQLite database with the test operator token, for a
-    module's tests (yield it from a module-scoped fixture)."""
+def module_server(
+    tmp_path_factory: pytest.TempPathFactory, name: str, env: dict[str, str] | None = None
+) -> Iterator[ServerProcess]:
+    """A real ``srd serve`` on a fresh SQLite database with the test operator token (and the
+    settings ``env`` gives), for a module's tests (yield it from a module-scoped fixture)."""
     data_dir = tmp_path_factory.mktemp(name)
     with ServerProcess(
-        database_url=f"sqlite:///{data_dir / 'srd.db'}", data_dir=data_dir, admin_token=ADMIN_TOKEN
+        database_url=f"sqlite:///{data_dir / 'srd.db'}",
+        data_dir=data_dir,
+        admin_token=ADMIN_TOKEN,
+        extra_env=env,
     ) as running:
         yield running

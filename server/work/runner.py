@@ -299,7 +299,7 @@ class BackgroundRunner:
             lost = held - kept
             stop = (
                 crud.stopped_elsewhere(
-                    session, table=self.kind.table, row_ids=lost, owner=self.owner
+                    session, table=self.kind.table, unfinished=self.kind.unfinished, row_ids=lost
                 )
                 if lost
                 else set()

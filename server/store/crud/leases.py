@@ -100,16 +100,16 @@ def renew_leases(
 
 
 def stopped_elsewhere(
-    session: Session, *, table: Table, row_ids: Collection[int], owner: str
+    session: Session, *, table: Table, unfinished: Sequence[str], row_ids: Collection[int]
 ) -> set[int]:
-    """Among rows whose lease ``owner`` could not renew, those its tasks must stop: cancelled,
-    or taken over by another owner. (A row that ended by its own task's commit, finished or
-    failed, is left to end.)"""
+    """Among rows whose lease could not be renewed, those whose tasks must stop: cancelled,
+    or still unfinished (the lease is someone else's now, or nobody's). A row that ended by
+    its own task's commit, finished or failed, is left to that task."""
     return set(
         session.scalars(
             select(table.id)
             .where(table.id.in_(row_ids))
-            .where((table.status == "cancelled") | (table.lease_owner != owner))
+            .where(or_(table.status == "cancelled", table.status.in_(unfinished)))
         )
     )
 

@@ -49,6 +49,8 @@ class Watched:
     end: dict[str, Any] | None = None
     last_id: str | None = None
     reconnected: bool = False
+    connected: bool = False
+    """The stream was opened once (a server that never answered is not a dropped stream)."""
 
     def take(self, name: str, data: dict[str, Any]) -> None:
         if name == "iteration":
@@ -94,6 +96,7 @@ def follow(
                 if response.status_code != 200:
                     response.read()
                     raise WatchError(f"{path}: HTTP {response.status_code}: {response.text}")
+                watched.connected = True
                 for name, event_id, data in sse(response.iter_lines()):
                     payload = json.loads(data)
                     watched.take(name, payload)
@@ -105,6 +108,8 @@ def follow(
             cause = "the server closed the stream before the auction's end"
         except httpx.HTTPError as exc:
             cause = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+        if watched.reconnected and not watched.connected:
+            raise WatchError(f"the server at {client.base_url} did not answer ({cause})")
         if watched.reconnected:
             raise WatchError(f"the event stream dropped again ({cause})")
         watched.reconnected = True

@@ -8,6 +8,7 @@ import json
 import os
 import pty
 import re
+import socket
 import subprocess
 import threading
 from collections.abc import Iterator
@@ -218,6 +219,16 @@ def test_a_stream_that_drops_twice_exits_3(dropping) -> None:
     assert result.exit_code == 3
     assert handler.seen == [None, "0"]
     assert "the event stream dropped again" in result.stderr
+
+
+def test_a_server_that_never_answers_is_named_not_a_dropped_stream() -> None:
+    with socket.socket() as unused:  # a port nobody listens on
+        unused.bind(("127.0.0.1", 0))
+        url = f"http://127.0.0.1:{unused.getsockname()[1]}"
+    result = CliRunner().invoke(cli, ["watch", "7", "--server", url])
+    assert result.exit_code == 3
+    assert f"the server at {url} did not answer" in result.stderr
+    assert "dropped" not in result.stderr
 
 
 def test_a_cancelled_auction_ends_the_watch_with_exit_1(dropping) -> None:

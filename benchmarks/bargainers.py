@@ -1,0 +1,59 @@
+"""The opening-window holders (``examples/red_team/``): what the screener and the server make of
+them, and their harm.
+
+Each model buys just below the opening price (or at it), holds a few cents above it and quits
+higher up. Prints, per manifest: ``screener.screen``'s verdict, the status a server with the
+default review margin gives it (``screener.review``), its copies' mean purchase price in the
+market-impact test against the bar, its opening vote, and its harm by the red team's measure
+(``tests/support/harm.py``: the drop of the mean purchase price when 32 copies join 32 honest
+patrons at supplies 0.1 to 0.4, fine-tuning off and on, as a fraction of the always-hold
+saboteur's drop), on populations the search that found them did not use (``--seed``).
+
+Run: ``.venv/bin/python benchmarks/bargainers.py [--trials 8] [--seed 1]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from agents.manifest import parse_manifest
+from screener import review, screen
+from server.config import Settings
+from tests.support.harm import OPENING_VOTES, harms, opening_votes, saboteur_harm
+
+FOUND = Path(__file__).resolve().parents[1] / "examples" / "red_team"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--trials", type=int, default=8, help="auctions per supply and setting")
+    parser.add_argument("--seed", type=int, default=1, help="populations of the harm auctions")
+    args = parser.parse_args(argv)
+    paths = sorted(FOUND.glob("*.json"))
+    models = [parse_manifest(json.loads(path.read_text())) for path in paths]
+    margin = Settings.model_fields["review_margin"].default
+    reference = saboteur_harm(args.trials, args.seed)
+    found, _ = harms(models, args.trials, args.seed)
+    votes = opening_votes(models)
+    print(f"harm: {args.trials} trials per supply, seed {args.seed}; review margin {margin}")
+    print("| manifest | screen | server | impact price / bar | opening vote | harm off / on |")
+    print("|---|---|---|---|---|---|")
+    for path, model, harm, vote in zip(paths, models, found, votes, strict=True):
+        verdict = screen(model)
+        impact = [e for e in verdict.evidence if e.test == "market-impact"]
+        price = f"{impact[0].measured:.4f} / {impact[0].bar:.4f}" if impact else "not tested"
+        off, on = harm.fraction(reference)
+        print(
+            f"| {path.stem} | {'accepted' if verdict.accepted else 'refused'} "
+            f"| {review(verdict, margin)} | {price} | {OPENING_VOTES[int(vote)]} "
+            f"| {off:.3f} / {on:.3f} |"
+        )
+
+
+if __name__ == "__main__":
+    main()

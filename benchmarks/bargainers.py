@@ -9,7 +9,14 @@ market-impact test against the bar, its opening vote, and its harm by the red te
 patrons at supplies 0.1 to 0.4, fine-tuning off and on, as a fraction of the always-hold
 saboteur's drop), on populations the search that found them did not use (``--seed``).
 
-Run: ``.venv/bin/python benchmarks/bargainers.py [--trials 8] [--seed 1]``.
+With ``--impact-trials 4,8,16`` it then asks what more reference populations in the
+market-impact test would do (``limits.IMPACT_TRIALS``, 4 today; the test auctions rebuilt in
+this process only): for each count, the test auctions' references and bar, how many of the
+labelled corpus's honest and sincere models the screener refuses (1000 honest draws of seed 0,
+12 of each sincere kind) and how many of the five stored models it still accepts.
+
+Run: ``.venv/bin/python benchmarks/bargainers.py [--trials 8] [--seed 1]
+[--impact-trials 4,8,16]``.
 """
 
 from __future__ import annotations
@@ -21,9 +28,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from agents.manifest import parse_manifest
-from screener import review, screen
+import numpy as np
+
+from agents.manifest import Manifest, parse_manifest
+from screener import impact, limits, review, screen, screen_many
 from server.config import Settings
+from tests.support.corpus import corpus, sincere_corpus
 from tests.support.harm import OPENING_VOTES, harms, opening_votes, saboteur_harm
 
 FOUND = Path(__file__).resolve().parents[1] / "examples" / "red_team"
@@ -33,6 +43,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, default=8, help="auctions per supply and setting")
     parser.add_argument("--seed", type=int, default=1, help="populations of the harm auctions")
+    parser.add_argument(
+        "--impact-trials", default="", help="comma-separated reference population counts"
+    )
     args = parser.parse_args(argv)
     paths = sorted(FOUND.glob("*.json"))
     models = [parse_manifest(json.loads(path.read_text())) for path in paths]
@@ -52,6 +65,41 @@ def main(argv: list[str] | None = None) -> None:
             f"| {path.stem} | {'accepted' if verdict.accepted else 'refused'} "
             f"| {review(verdict, margin)} | {price} | {OPENING_VOTES[int(vote)]} "
             f"| {off:.3f} / {on:.3f} |"
+        )
+    counts = [int(n) for n in args.impact_trials.split(",") if n.strip()]
+    if counts:
+        populations(counts, models)
+
+
+def populations(counts: list[int], found: list[Manifest]) -> None:
+    """The screener with each count of the impact test's reference populations."""
+    honest = [
+        item.manifest
+        for item in [*corpus(seed=0, n_honest=1000), *sincere_corpus(np.random.default_rng(1), 12)]
+        if not item.saboteur
+    ]
+    print()
+    header = (
+        "| populations | alone / saboteurs / quitters | bar | honest refused | found accepted |"
+    )
+    print(header)
+    print("|---|---|---|---|---|")
+    for count in counts:
+        limits.IMPACT_TRIALS = count
+        impact.TEST_AUCTIONS[:] = [
+            (trial, impact._config(supply, trial, fine_tune=False))
+            for supply in limits.IMPACT_SUPPLIES
+            for trial in range(count)
+        ]
+        impact._people.cache_clear()
+        impact.references.cache_clear()
+        refs = impact.references()
+        refused = sum(not v.accepted for v in screen_many(honest))
+        admitted = sum(v.accepted for v in screen_many(found))
+        print(
+            f"| {count} | {refs.alone.mean_price:.4f} / {refs.saboteurs.mean_price:.4f} / "
+            f"{refs.quitters.mean_price:.4f} | {refs.lowest_price:.4f} "
+            f"| {refused} of {len(honest)} | {admitted} of {len(found)} |"
         )
 
 

@@ -196,14 +196,10 @@ IMPACT_COPIES = 32
 IMPACT_SUPPLIES = (0.1, 0.2, 0.3, 0.4)
 """Item supplies of the test auctions (fish on sale int(r · 64)): where saboteurs bite. From 0.5
 up honest demand no longer exceeds the supply and every auction sells at the opening price."""
-IMPACT_TRIALS = 8
-"""Reference populations (each with its own market seeds) per supply. With 4 (16 test
-auctions) hard bargainers that buy at 4.99 and hold from 5.00 (``examples/red_team/``) landed
-among honest models and passed; with 8 (32 test auctions) the screener refuses fewer honest
-models, every saboteur of the labelled corpus still, and 9 of 16 such bargainers that passed
-before (docs/screener.md, *The opening-window holders*), for about 1.5 times the screening time
-of a model that holds. More populations sort them no better: with 16 or more a red-team
-saboteur lands a hair above the bar."""
+IMPACT_TRIALS = 4
+"""Reference populations (each with its own market seeds) per supply: with 4, each block of 16
+auctions gives a model that holds from 5.00 to 5.04 between 0.4 and 0.8 of the saboteurs' harm
+(0.6 over 24 blocks), always above the tolerance."""
 IMPACT_SEED = 11
 """Seeds the reference populations and the test auctions (fixed: every model meets the same
 auctions)."""

@@ -109,8 +109,7 @@ def test_the_noise_gated_holders_copies_pull_the_price_below_the_bar(family):
     refs = impact.references()
     prices = [o.mean_price for o in impact.run([family[f"noise-gated-holder-{v}"] for v in "abce"])]
     assert all(p < refs.lowest_price for p in prices)
-    # ... and no lower than the saboteurs' own copies do (e: within a fiftieth of a cent)
-    assert all(refs.saboteurs.mean_price - 0.0005 < p for p in prices)
+    assert all(refs.saboteurs.mean_price < p for p in prices)
 
 
 def test_honest_models_do_not_flip_and_are_admitted_at_an_unseen_seed():

@@ -13,7 +13,9 @@ With ``--impact-trials 4,8,16`` it then asks what more reference populations in 
 market-impact test would do (``limits.IMPACT_TRIALS``, 4 today; the test auctions rebuilt in
 this process only): for each count, the test auctions' references and bar, how many of the
 labelled corpus's honest and sincere models the screener refuses (1000 honest draws of seed 0,
-12 of each sincere kind) and how many of the five stored models it still accepts.
+12 of each sincere kind), how many of its saboteurs (the red team's finds among them) it admits,
+how many of the five stored models it still admits, and the CPU time of screening one of them
+alone (one torch thread, best of 3 rounds).
 
 Run: ``.venv/bin/python benchmarks/bargainers.py [--trials 8] [--seed 1]
 [--impact-trials 4,8,16]``.
@@ -24,16 +26,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np
+import torch
 
 from agents.manifest import Manifest, parse_manifest
 from screener import impact, limits, review, screen, screen_many
 from server.config import Settings
-from tests.support.corpus import corpus, sincere_corpus
+from tests.support.corpus import corpus, red_team_corpus, sincere_corpus
 from tests.support.harm import OPENING_VOTES, harms, opening_votes, saboteur_harm
 
 FOUND = Path(__file__).resolve().parents[1] / "examples" / "red_team"
@@ -72,18 +76,22 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def populations(counts: list[int], found: list[Manifest]) -> None:
-    """The screener with each count of the impact test's reference populations."""
-    honest = [
-        item.manifest
-        for item in [*corpus(seed=0, n_honest=1000), *sincere_corpus(np.random.default_rng(1), 12)]
-        if not item.saboteur
+    """The screener with each count of the impact test's reference populations: its sorting,
+    and the CPU time of screening one of the found models alone (best of 3 rounds)."""
+    labelled = [
+        *corpus(seed=0, n_honest=1000),
+        *sincere_corpus(np.random.default_rng(1), 12),
+        *red_team_corpus(),
     ]
+    honest = [item.manifest for item in labelled if not item.saboteur]
+    saboteurs = [item.manifest for item in labelled if item.saboteur]
+    torch.set_num_threads(1)
     print()
-    header = (
-        "| populations | alone / saboteurs / quitters | bar | honest refused | found accepted |"
+    print(
+        "| populations | alone / saboteurs / quitters | bar | honest refused "
+        "| saboteurs admitted | found admitted | one holder alone, ms |"
     )
-    print(header)
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
     for count in counts:
         limits.IMPACT_TRIALS = count
         impact.TEST_AUCTIONS[:] = [
@@ -95,11 +103,19 @@ def populations(counts: list[int], found: list[Manifest]) -> None:
         impact.references.cache_clear()
         refs = impact.references()
         refused = sum(not v.accepted for v in screen_many(honest))
+        slipped = sum(v.accepted for v in screen_many(saboteurs))
         admitted = sum(v.accepted for v in screen_many(found))
+        rounds = []
+        for _ in range(3):
+            started = time.process_time()
+            for model in found:
+                screen(model)
+            rounds.append((time.process_time() - started) / len(found) * 1000)
         print(
             f"| {count} | {refs.alone.mean_price:.4f} / {refs.saboteurs.mean_price:.4f} / "
             f"{refs.quitters.mean_price:.4f} | {refs.lowest_price:.4f} "
-            f"| {refused} of {len(honest)} | {admitted} of {len(found)} |"
+            f"| {refused} of {len(honest)} | {slipped} of {len(saboteurs)} "
+            f"| {admitted} of {len(found)} | {min(rounds):.1f} |"
         )
 
 

@@ -115,7 +115,7 @@ def _located(body: bytes) -> list[dict[str, str]]:
         parse_manifest(json.loads(body))
     except ManifestError as exc:
         return exc.errors
-    except ValueError:
+    except (ValueError, RecursionError):
         return []
     return []
 

@@ -15,7 +15,8 @@ uses, does not.) ``timed_protocol`` is uvicorn's httptools protocol plus:
   (a trusted proxy's are not counted); past it a new connection gets 429 and is closed, so one
   address cannot take the connections everyone shares (``limit_concurrency``).
 
-Each of these answers, and an unreadable request's 400, carries the common JSON error body.
+Each of these answers, an unreadable request's 400 and a connection past ``limit_concurrency``
+(503), carries the common JSON error body.
 A WebSocket upgrade leaves these deadlines, and the connection count, once its handshake header
 is in: the socket's own pings and limits (``server.api.limits``) take over.
 """
@@ -65,6 +66,12 @@ TIMEOUT_ANSWER = _answer(
 TOO_LARGE_ANSWER = _answer(
     b"431 Request Header Fields Too Large", "the request's header is too large", "header_too_large"
 )
+FULL_ANSWER = _answer(
+    b"503 Service Unavailable",
+    "the server holds as many connections as it can; retry shortly",
+    "server_full",
+    headers=b"retry-after: %d\r\n" % RETRY_AFTER_S,
+)
 TOO_MANY_ANSWER = _answer(
     b"429 Too Many Requests",
     "this address holds its share of open connections already; retry when one has closed",
@@ -97,6 +104,9 @@ class TimedHttpProtocol(HttpToolsProtocol):
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        if self.limit_concurrency is not None and len(self.connections) >= self.limit_concurrency:
+            self._refuse(FULL_ANSWER)  # uvicorn's own 503 would come later, in plain text
+            return
         address = self.client[0] if self.client else None
         if address is not None and not self._exempt(address):
             if self.open_by_address[address] >= self.max_per_address:

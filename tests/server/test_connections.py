@@ -131,3 +131,37 @@ def test_an_unreadable_request_gets_the_common_error_body(server: ServerProcess)
     assert status == 400 and headers["content-type"] == "application/json"
     item = _detail(body)
     assert item["type"] == "bad_request" and item["loc"] == ["connection"]
+
+
+@pytest.fixture(scope="module")
+def small_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    env = {"SRD_MAX_CONNECTIONS": "16", "SRD_MAX_CONNECTIONS_PER_ADDRESS": str(SHARE)}
+    yield from module_server(tmp_path_factory, "small", env)
+
+
+async def _fill(server: ServerProcess) -> dict[str, Any]:
+    half_sent = []
+    try:
+        for address in (HOARDER, NEIGHBOUR):  # 15 held: the 16th connection is one too many
+            for _ in range(SHARE if address == HOARDER else SHARE - 1):
+                reader, writer = await _open(server, address)
+                writer.write(b"GET /healthz HTTP/1.1\r\nHost: test\r\n")
+                half_sent.append((reader, writer))
+        await asyncio.sleep(0.2)
+        full = await _exchange(server, PROXY, _get("/healthz"))
+        half_sent.pop()[1].close()
+        await asyncio.sleep(0.2)
+        freed = await _exchange(server, PROXY, _get("/healthz"))
+        return {"full": full, "freed": freed}
+    finally:
+        for _, writer in half_sent:
+            writer.close()
+
+
+def test_a_full_server_answers_503_with_the_common_body(small_server: ServerProcess) -> None:
+    result = asyncio.run(_fill(small_server))
+    status, headers, body = result["full"]
+    assert status == 503 and headers["content-type"] == "application/json"
+    assert int(headers["retry-after"]) >= 1
+    assert _detail(body)["type"] == "server_full"
+    assert result["freed"][0] == 200

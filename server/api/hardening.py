@@ -63,12 +63,14 @@ class SecurityHeadersMiddleware:
                     f"a token in the URL ({name!r}) is refused, as URLs are logged: send it as "
                     "'Authorization: Bearer <token>'"
                 )
-                await _refuse(scope, receive, _with_headers(send), message, ("query", name))
+                loc = ("query", name)
+                await _refuse(scope, receive, _with_headers(send), message, loc, "token_in_url")
                 return
         given = sum(1 for name, _ in scope["headers"] if name == b"authorization")
         if given > 1:
             message = f"the Authorization header is given {given} times: send one"
-            await _refuse(scope, receive, _with_headers(send), message, ("header", "Authorization"))
+            loc = ("header", "Authorization")
+            await _refuse(scope, receive, _with_headers(send), message, loc, "duplicate_header")
             return
         await self.app(scope, receive, _with_headers(send))
 
@@ -86,10 +88,9 @@ def _with_headers(send: Send) -> Send:
 
 
 async def _refuse(
-    scope: Scope, receive: Receive, send: Send, message: str, loc: tuple[str, str]
+    scope: Scope, receive: Receive, send: Send, message: str, loc: tuple[str, str], kind: str
 ) -> None:
     """400 for a request whose credentials are in the wrong place or ambiguous."""
-    kind = "token_in_url" if loc[0] == "query" else "duplicate_header"
     response = JSONResponse({"detail": [error_item(message, loc=loc, kind=kind)]}, status_code=400)
     if scope["type"] == "http":
         await response(scope, receive, send)

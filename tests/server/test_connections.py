@@ -66,13 +66,20 @@ def _detail(body: bytes) -> dict[str, Any]:
     return dict(detail[0])
 
 
+async def _half_send(
+    server: ServerProcess, address: str, count: int, into: list[tuple[Any, Any]]
+) -> None:
+    """Open ``count`` connections from ``address``, each a request whose header never ends."""
+    for _ in range(count):
+        reader, writer = await _open(server, address)
+        writer.write(b"GET /healthz HTTP/1.1\r\nHost: test\r\n")
+        into.append((reader, writer))
+
+
 async def _hoard(server: ServerProcess) -> dict[str, Any]:
-    half_sent = []
+    half_sent: list[tuple[Any, Any]] = []
     try:
-        for _ in range(SHARE):  # the hoarder's share, each request's header never ends
-            reader, writer = await _open(server, HOARDER)
-            writer.write(b"GET /healthz HTTP/1.1\r\nHost: test\r\n")
-            half_sent.append((reader, writer))
+        await _half_send(server, HOARDER, SHARE, half_sent)  # the hoarder's share
         await asyncio.sleep(0.2)
         over = await _exchange(server, HOARDER, _get("/healthz"))
         neighbour = await _exchange(server, NEIGHBOUR, _get("/healthz"))
@@ -140,13 +147,10 @@ def small_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerPro
 
 
 async def _fill(server: ServerProcess) -> dict[str, Any]:
-    half_sent = []
-    try:
-        for address in (HOARDER, NEIGHBOUR):  # 15 held: the 16th connection is one too many
-            for _ in range(SHARE if address == HOARDER else SHARE - 1):
-                reader, writer = await _open(server, address)
-                writer.write(b"GET /healthz HTTP/1.1\r\nHost: test\r\n")
-                half_sent.append((reader, writer))
+    half_sent: list[tuple[Any, Any]] = []
+    try:  # 15 held: the 16th connection is one too many
+        await _half_send(server, HOARDER, SHARE, half_sent)
+        await _half_send(server, NEIGHBOUR, SHARE - 1, half_sent)
         await asyncio.sleep(0.2)
         full = await _exchange(server, PROXY, _get("/healthz"))
         half_sent.pop()[1].close()

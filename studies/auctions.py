@@ -43,6 +43,7 @@ from studies.config import (
     StudyConfig,
     comparison_caption,
     comparison_settings,
+    saboteur_count,
     settings_of,
     study_settings,
 )
@@ -138,7 +139,7 @@ def plan_auction(
 ) -> Auction:
     """The patrons (not yet screened) and market config of one auction."""
     honest_rng, saboteur_rng, market_seed = auction_streams(seed, rarity, trial)
-    n_saboteurs = int(setting.saboteurs * n_patrons)
+    n_saboteurs = saboteur_count(setting.saboteurs, n_patrons)
     patrons = [
         honest_manifest(honest_rng, f"honest-{i:03d}", fine_tune=setting.fine_tune)
         for i in range(n_patrons - n_saboteurs)

@@ -3,6 +3,7 @@ settings they span, and their estimated compute."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -170,10 +171,18 @@ def comparison_settings(config: ComparisonConfig) -> dict[str, Setting]:
     }
 
 
+def saboteur_count(share: float, n_patrons: int) -> int:
+    """Saboteurs among ``n_patrons`` for a share of them: the patrons after the first
+    ``int((1 - share) · n)`` honest ones, the reference's split (its first ``int(n/2)`` patrons
+    honest, the rest saboteurs: 32 of 63 at a half). Rounded to 9 places first, so that a share
+    like 0.9 of 10 leaves 1 honest patron, not the 0 that ``0.0999…98 · 10`` would."""
+    return n_patrons - math.floor(round((1 - share) * n_patrons, 9))
+
+
 def comparison_caption(config: ComparisonConfig) -> str:
     """What each line of the comparison figure is: one sentence per configuration, one line
     each."""
-    n_saboteurs = int(config.saboteurs * config.patrons)
+    n_saboteurs = saboteur_count(config.saboteurs, config.patrons)
     n_honest = config.patrons - n_saboteurs
     tuned = "fine-tuning" if config.fine_tune else "no fine-tuning"
     return "\n".join(

@@ -83,6 +83,28 @@ def test_grid_runs_four_settings_on_the_same_auctions():
     assert {p.n_fish for p in plans} == {8}
 
 
+@pytest.mark.parametrize(
+    ("n_patrons", "share", "saboteurs"),
+    [(64, 0.5, 32), (63, 0.5, 32), (7, 0.5, 4), (10, 0.9, 9), (10, 0.25, 3), (16, 1.0, 16)],
+)
+def test_saboteurs_are_the_patrons_after_the_honest_share(n_patrons, share, saboteurs):
+    """The reference's split: the first int((1 - share) · n) patrons honest, the rest saboteurs
+    (its first int(n/2) honest at a half, so 32 of 63 are saboteurs)."""
+    plan = plan_auction(
+        Setting("compromised", False, share, False),
+        0.5,
+        0,
+        n_patrons=n_patrons,
+        seed=3,
+        max_iterations=64,
+        fine_tune_rounds=4,
+    )
+    names = [m.participant for m in plan.patrons]
+    assert len(names) == n_patrons
+    assert sum(name.startswith("saboteur") for name in names) == saboteurs
+    assert all(name.startswith("honest") for name in names[: n_patrons - saboteurs])
+
+
 def refuse_saboteurs(manifests):
     return [screener.Verdict(accepted=not m.participant.startswith("saboteur")) for m in manifests]
 

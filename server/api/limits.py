@@ -7,9 +7,11 @@
 * long polls (``GET /auctions/{id}/rounds/current?wait=S`` with S > 0);
 * uploads (``PUT /auctions/{id}/rounds/{round}/models/{id}``, ``POST /submit``).
 
-A client is the SHA-256 of its bearer token where the request has one, else its address (as
-``srd serve`` resolved it: a proxy's ``X-Forwarded-For`` counts only from
-``SRD_TRUSTED_PROXIES``). A request over its client's share is answered 429 with
+A client is the SHA-256 of its bearer token where that token is a participant's or the
+operator's, else its address (as ``srd serve`` resolved it: a proxy's ``X-Forwarded-For``
+counts only from ``SRD_TRUSTED_PROXIES``). A token is looked up (one indexed read) the first
+time this process sees it; a made-up token counts against its address, so inventing tokens buys
+no shares. A request over its client's share is answered 429 with
 ``Retry-After`` and ``Connection: close`` before any route runs: clients are paced, never
 queued. The routes' own process-wide caps stay behind this as the last line.
 
@@ -20,20 +22,30 @@ change freely.
 from __future__ import annotations
 
 import hashlib
+import logging
 import re
 from collections import Counter
 from dataclasses import dataclass
 from urllib.parse import parse_qsl
 
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import SQLAlchemyError
+from starlette.concurrency import run_in_threadpool
 from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.websockets import WebSocket
 
 from server.api.errors import error_item
 from server.config import Settings
+from server.store.crud.models import is_participant_token
+from server.store.db import Database, DatabaseUnavailableError
+
+log = logging.getLogger("srd.limits")
 
 CLOSE_TRY_AGAIN_LATER = 1013
 """Close code of a refused socket where the server cannot answer its handshake with 429."""
+KNOWN_TOKENS = 100_000
+"""Digests of real tokens a process remembers; past it, it forgets them all and looks each
+up again (tokens are never revoked, so a remembered one stays true)."""
 
 
 @dataclass(frozen=True)
@@ -78,6 +90,8 @@ class ClientLimitsMiddleware:
         self.socket_path = _template("/auctions/{auction_id}/rounds/socket")
         self.held: Counter[tuple[str, str]] = Counter()
         """Requests held open now, by (kind, client)."""
+        self.known: set[str] = set()
+        """Digests of the tokens found to be real (``KNOWN_TOKENS`` at most)."""
 
     def limit_of(self, scope: Scope) -> Limit | None:
         """The limit a request counts against, if any."""
@@ -100,10 +114,11 @@ class ClientLimitsMiddleware:
         if limit is None:
             await self.app(scope, receive, send)
             return
-        client, share = self._client(scope, limit)
+        client, share = await self._client(scope, limit)
         key = (limit.name, client)
         if self.held[key] >= share:
-            await self._refuse(scope, receive, send, limit, share)
+            who = "participant token" if client.startswith("token:") else "address"
+            await self._refuse(scope, receive, send, limit, share, who)
             return
         self.held[key] += 1
         try:
@@ -113,20 +128,41 @@ class ClientLimitsMiddleware:
             if not self.held[key]:
                 del self.held[key]
 
-    def _client(self, scope: Scope, limit: Limit) -> tuple[str, int]:
+    async def _client(self, scope: Scope, limit: Limit) -> tuple[str, int]:
         """Who the request counts against, and that client's share of ``limit``."""
         if scope["type"] == "http":
             token = _bearer(scope)
             if token is not None:
                 digest = hashlib.sha256(token).hexdigest()
-                return f"token:{digest}", limit.per_token
+                if await self._real(scope, digest):
+                    return f"token:{digest}", limit.per_token
         client = scope.get("client")
         return f"address:{client[0] if client else '-'}", limit.per_address
 
+    async def _real(self, scope: Scope, digest: str) -> bool:
+        """Whether a token digest is a participant's or the operator's (a database that cannot
+        answer: not known to be)."""
+        if digest in self.known:
+            return True
+        services = getattr(scope["app"].state, "services", None)
+        if services is None:
+            return False
+        if digest != services.admin_token_hash:
+            try:
+                found = await run_in_threadpool(_looked_up, services.database, digest)
+            except (DatabaseUnavailableError, SQLAlchemyError) as exc:
+                log.warning("a token could not be looked up: %s", exc)
+                return False
+            if not found:
+                return False
+        if len(self.known) >= KNOWN_TOKENS:
+            self.known.clear()
+        self.known.add(digest)
+        return True
+
     async def _refuse(
-        self, scope: Scope, receive: Receive, send: Send, limit: Limit, share: int
+        self, scope: Scope, receive: Receive, send: Send, limit: Limit, share: int, who: str
     ) -> None:
-        who = "participant token" if _bearer(scope) and scope["type"] == "http" else "address"
         response = JSONResponse(
             {
                 "detail": [
@@ -148,6 +184,11 @@ class ClientLimitsMiddleware:
                 await send({"type": "websocket.close", "code": CLOSE_TRY_AGAIN_LATER})
             return
         await response(scope, receive, send)
+
+
+def _looked_up(database: Database, digest: str) -> bool:
+    with database.session(write=False) as session:
+        return is_participant_token(session, digest)
 
 
 def _waits(scope: Scope) -> bool:

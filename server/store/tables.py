@@ -91,7 +91,9 @@ class Participant(Base):
     )
     """``participant_key(name)``: unique, so names differing only in case or Unicode form
     are one participant (set from ``name`` on insert)."""
-    token_hash: Mapped[str] = mapped_column(String(64))
+    token_hash: Mapped[str] = mapped_column(String(64), index=True)
+    """SHA-256 of its token, indexed: the per-client limits tell a real token from a made-up
+    one by it."""
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 
     versions: Mapped[list[ModelVersion]] = relationship(back_populates="participant")

@@ -233,13 +233,22 @@ def _stream_statuses(
     server: ServerProcess, auction_id: int, address: str, forwarded: list[str]
 ) -> list[int]:
     """Open one event stream per ``X-Forwarded-For`` value, all at once; their statuses."""
+    headers = [{"X-Forwarded-For": value} for value in forwarded]
+    return _streams_with(server, auction_id, address, headers)
+
+
+def _streams_with(
+    server: ServerProcess, auction_id: int, address: str, headers: list[dict[str, str]]
+) -> list[int]:
+    """Open one event stream per set of headers, in turn, all held to the end; their
+    statuses."""
 
     async def run() -> list[int]:
         held = Held()
         try:
             statuses = []
-            for value in forwarded:
-                raw = _get(f"/auctions/{auction_id}/events", {"X-Forwarded-For": value})
+            for extra in headers:
+                raw = _get(f"/auctions/{auction_id}/events", extra)
                 status, _ = await _request(server, address, raw, held)
                 statuses.append(status)
             return statuses
@@ -281,6 +290,21 @@ def test_forwarded_for_counts_only_from_a_trusted_proxy(
     log = server.log_path.read_text()
     assert "198.51.100.1:0 - " in log and "198.51.100.99:0 - " in log
     assert "203.0.113." not in log
+
+
+def test_made_up_tokens_count_against_their_address(server: ServerProcess, auction_id: int) -> None:
+    """A client is its token only where the token is real: inventing tokens buys no shares."""
+    made_up = [{"Authorization": f"Bearer srdp_made-up-{i}"} for i in range(STREAMS_PER_CLIENT + 1)]
+    assert _streams_with(server, auction_id, "127.0.0.8", made_up) == [200] * (
+        STREAMS_PER_CLIENT
+    ) + [429]
+    with client_from("127.0.0.9", server) as client:
+        submitted = client.post("/submit", json=honest(unique("real-token")))
+        assert submitted.status_code == 201, submitted.text
+        real = {"Authorization": f"Bearer {submitted.json()['token']}"}
+    anonymous: list[dict[str, str]] = [{}] * STREAMS_PER_CLIENT
+    statuses = _streams_with(server, auction_id, "127.0.0.9", [*anonymous, real, made_up[2]])
+    assert statuses == [200] * STREAMS_PER_CLIENT + [200, 429]  # the real token: its own share
 
 
 def test_tokens_in_the_url_are_refused_and_never_logged(server: ServerProcess) -> None:

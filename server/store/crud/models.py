@@ -59,6 +59,14 @@ class ReviewEntry:
     at: datetime
 
 
+def is_participant_token(session: Session, token_hash: str) -> bool:
+    """Whether ``token_hash`` is a participant's token's (one indexed read)."""
+    found = session.execute(
+        select(Participant.id).where(Participant.token_hash == token_hash).limit(1)
+    )
+    return found.first() is not None
+
+
 # The statements of POST /submit, built once and run on the session's connection (Core, not the
 # ORM's bulk-insert path: the hot path builds and tracks no objects)
 _PARTICIPANT_BY_NAME = (

@@ -187,7 +187,8 @@ def die_with_parent(parent_pid: int) -> None:
 def _release_fork_server() -> None:
     """Close this forked child's copy of the fork server's "alive" pipe (multiprocessing hands
     one to every child so that it could fork more): the fork server then sees the pipe's end,
-    and exits, as soon as the API process is gone. Our children start no processes."""
+    and exits, as soon as the API process is gone. Our children fork nothing from it (a
+    cheetah job draws its GIF in a plain subprocess that ends with it: ``sim.cheetah.render``)."""
     from multiprocessing import forkserver
 
     server = getattr(forkserver, "_forkserver", None)

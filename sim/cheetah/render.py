@@ -3,15 +3,20 @@
 MuJoCo picks its OpenGL back end when it is imported, so each back end is tried in a fresh
 interpreter running this module::
 
-    python -m sim.cheetah.render FRAMES.npz OUT.gif CAPTION
+    python -m sim.cheetah.render FRAMES.npz OUT.gif CAPTION [--parent PID]
 
-``FRAMES.npz`` holds ``qpos`` (frames, nq) and ``start_x``; ``render_gif`` writes it.
+``FRAMES.npz`` holds ``qpos`` (frames, nq) and ``start_x``; ``render_gif`` writes it. With
+``--parent`` the child ends as soon as that process does (Linux's parent-death signal): a
+cancelled job's worker, terminated mid-drawing, leaves no child writing its GIF.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import ctypes
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -34,6 +39,8 @@ FRAME_HEIGHT, FRAME_WIDTH = 192, 256
 """GIF frame size in pixels."""
 RENDER_TIMEOUT_S = 300
 """Longest a child may take to draw the GIF."""
+PR_SET_PDEATHSIG = 1
+"""Linux's prctl option: the signal a process gets when the one that started it ends."""
 
 
 def render_gif(path: Path, qpos: np.ndarray, start_x: float, caption: str) -> dict[str, Any]:
@@ -51,7 +58,10 @@ def render_gif(path: Path, qpos: np.ndarray, start_x: float, caption: str) -> di
     try:
         for backend in GL_BACKENDS:
             done = subprocess.run(
-                [sys.executable, "-m", "sim.cheetah.render", str(source), str(path), caption],
+                [
+                    *(sys.executable, "-m", "sim.cheetah.render"),
+                    *(str(source), str(path), caption, "--parent", str(os.getpid())),
+                ],
                 env=_child_env(backend),
                 capture_output=True,
                 text=True,
@@ -114,8 +124,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("source", type=Path, help="frames file written by render_gif (.npz)")
     parser.add_argument("target", type=Path, help="GIF to write")
     parser.add_argument("caption", help="text drawn on every frame before the time")
+    parser.add_argument("--parent", type=int, help="end as soon as this process ends")
     args = parser.parse_args(argv)
+    if args.parent is not None:
+        _end_with(args.parent)
     draw_gif(args.source, args.target, args.caption)
+
+
+def _end_with(parent: int) -> None:
+    """Have Linux SIGKILL this process when ``parent``, which started it, ends; exit at once
+    if it has ended already (elsewhere only that check: the render's timeout bounds the rest)."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:
+        sys.exit("the process that started this render has ended")
 
 
 if __name__ == "__main__":

@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 import warnings
+from pathlib import Path
 
 import gymnasium as gym
 import mujoco
@@ -454,6 +461,57 @@ def test_noisy_grid_reproduces_the_reference_figures(tmp_path):
                 for i in (0.0, 2.0)
             )
             assert stop < 0.5 * free
+
+
+def _renders(parent: int) -> list[int]:
+    """The render processes ``parent`` started (Linux's /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            command = (stat.parent / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if int(fields[1]) == parent and b"sim.cheetah.render" in command:
+            found.append(int(stat.parent.name))
+    return found
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_render_ends_with_the_process_that_started_it(tmp_path):
+    """A cancelled cheetah job's worker is terminated while its GIF is drawn: the drawing child
+    must end with it, not go on writing the job's files."""
+    script = (
+        "import sys, numpy as np; from pathlib import Path; "
+        "from sim.cheetah.render import render_gif; "
+        "render_gif(Path(sys.argv[1]), np.zeros((1401, 9)), -2.0, 'cancelled')"
+    )
+    gif = tmp_path / "cancelled.gif"
+    root = str(Path(__file__).resolve().parents[2])
+    parent = subprocess.Popen([sys.executable, "-c", script, str(gif)], cwd=root)
+    children: list[int] = []
+    try:
+        deadline = time.monotonic() + 30
+        while not (children := _renders(parent.pid)):
+            assert parent.poll() is None and time.monotonic() < deadline, "no render started"
+            time.sleep(0.02)
+        time.sleep(0.5)  # the child is importing mujoco, or drawing
+        parent.send_signal(signal.SIGTERM)
+        parent.wait(10)
+        deadline = time.monotonic() + 5
+        while any(Path(f"/proc/{child}").exists() for child in children):
+            status = Path(f"/proc/{children[0]}/status")
+            if status.exists() and "zombie" in status.read_text():
+                break
+            assert time.monotonic() < deadline, "the render outlived the process that started it"
+            time.sleep(0.05)
+        time.sleep(1)
+        assert not gif.exists()
+    finally:
+        parent.kill()
+        for child in children:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(child, signal.SIGKILL)
 
 
 @pytest.mark.slow

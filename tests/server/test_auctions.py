@@ -79,6 +79,7 @@ def test_auction_runs_to_the_end_like_the_market(
     assert auction["status"] == "finished", auction["error"]
     assert auction["n_initial"] == N_HONEST // 2 and auction["n_patrons"] == N_HONEST
     assert auction["model_ids"] == ids and auction["stop_reason"] is not None
+    assert auction["participants"] == [m["participant"] for m in manifests]
     assert auction["started_at"] and auction["finished_at"]
     check_consistent(auction)
 

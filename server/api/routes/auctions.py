@@ -105,6 +105,7 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
         stop_reason=auction.stop_reason,
         n_patrons=len(view.model_ids),
         model_ids=view.model_ids,
+        participants=view.participants,
         revenue=round(sum(p.price for p in view.purchases), 5),
         rarity=auction.rarity,
         max_iterations=auction.max_iterations,

@@ -118,6 +118,7 @@ async def _stream_slot(hub: EventHubDep) -> AsyncIterator[EventHub]:
         raise api_error(
             503,
             f"{hub.max_streams} event streams are open, the most this server holds; retry later",
+            loc=("server",),
             kind="too_many_streams",
             headers={"Retry-After": str(RETRY_AFTER_S)},
         )

@@ -176,6 +176,7 @@ async def round_socket(
             api_error(
                 503,
                 f"{exc}; retry in {RETRY_AFTER_S} s",
+                loc=("server",),
                 kind="too_many_sockets",
                 headers={"Retry-After": str(RETRY_AFTER_S)},
             ),

@@ -165,6 +165,8 @@ class AuctionPublic(BaseModel):
     stop_reason: str | None
     n_patrons: int
     model_ids: list[int]
+    participants: list[str]
+    """The participant of each patron, aligned with ``model_ids``."""
     revenue: float
     rarity: float | None
     max_iterations: int

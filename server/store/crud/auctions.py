@@ -93,6 +93,8 @@ class AuctionView:
 
     auction: AuctionHead
     model_ids: list[int]
+    participants: list[str]
+    """The participant of each patron, aligned with ``model_ids``."""
     history: Sequence[HistoryRow]
     purchases: Sequence[PurchaseRow]
     quitters: Sequence[QuitRow]
@@ -191,6 +193,14 @@ AUCTION_PATRONS = (
     .order_by(AuctionPatron.position)
 )
 
+_PATRONS_NAMED = (
+    select(AuctionPatron.model_id, Participant.name)
+    .join(ModelVersion, ModelVersion.id == AuctionPatron.model_id)
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .where(AuctionPatron.auction_id == bindparam("auction_id"))
+    .order_by(AuctionPatron.position)
+)
+
 
 @dataclass(frozen=True)
 class IterationFigures:
@@ -272,10 +282,12 @@ def get_auction(session: Session, *, auction_id: int) -> AuctionView | None:
     if head is None:
         return None
     auction = AuctionHead(*head)
-    model_ids = list(connection.scalars(AUCTION_PATRONS, key))
+    patrons = connection.execute(_PATRONS_NAMED, key).all()
+    model_ids = [model_id for model_id, _ in patrons]
     return AuctionView(
         auction,
         model_ids,
+        [name for _, name in patrons],
         connection.execute(AUCTION_HISTORY, key).all(),
         connection.execute(_AUCTION_PURCHASES, key).all(),
         connection.execute(_AUCTION_QUITTERS, key).all(),

@@ -137,7 +137,8 @@ def patrons(people: list[dict[str, Any]], with_price: bool = False) -> str:
 def answers(round_event: dict[str, Any]) -> str:
     """How the patrons answered a fine-tuning round: ``4 accepted, 1 refused``."""
     counts = Counter(a["outcome"] for a in round_event.get("answers", []))
-    return ", ".join(f"{n} {outcome}" for outcome, n in sorted(counts.items())) or "no answer yet"
+    nothing = "no answer yet" if round_event.get("status") == "open" else "no answers"
+    return ", ".join(f"{n} {outcome}" for outcome, n in sorted(counts.items())) or nothing
 
 
 def iteration_line(row: dict[str, Any]) -> str:
@@ -168,7 +169,8 @@ def end_line(watched: Watched) -> str:
     line = (
         f"auction {watched.auction_id} {end.get('status')}"
         + (f" ({end['stop_reason']})" if end.get("stop_reason") else "")
-        + f" after {end.get('iterations')} iterations: {end.get('n_sold', sold)} of "
+        + f" after {end.get('iterations')} iteration{'' if end.get('iterations') == 1 else 's'}: "
+        f"{end.get('n_sold', sold)} of "
         f"{end.get('n_initial')} fish sold, revenue {price(revenue)}, final price "
         f"{price(end.get('price', 0.0))}"
     )

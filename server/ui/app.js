@@ -52,12 +52,14 @@ function show(firstLoad) {
     if (here) anchor.setAttribute("aria-current", "page");
     else anchor.removeAttribute("aria-current");
   }
+  document.title = "srd-auction"; // a view without a heading yet may set its own
   if (!found) {
     root.append(h("h1", { tabindex: "-1" }, "Not found"), h("p", {}, "No view has this address. ", h("a", { href: "#/" }, "All auctions")));
   } else {
     found[2](current, found[0]);
   }
-  document.title = `${root.querySelector("h1")?.textContent || "srd-auction"} · srd-auction`;
+  const heading = root.querySelector("h1")?.textContent;
+  if (heading) document.title = `${heading} · srd-auction`;
   if (!firstLoad) root.querySelector("h1")?.focus();
 }
 

@@ -1,7 +1,7 @@
 // Auctions: the list, and one auction followed live from its event stream.
 
 import { follow, getJSON, pager } from "./api.js";
-import { facts, fill, fixed, h, link, problem, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, fixed, h, isMissing, link, notFound, problem, svg, table, tableRow, when } from "./dom.js";
 
 const STOP_REASONS = {
   sold_out: "sold out",
@@ -206,12 +206,24 @@ export function auctionView(view, id) {
     explainForm,
     explanation,
   );
+  const leftAt = new Map(); // model id -> the round it bought or quit in (its last vote)
+  /** The patrons who voted in the chosen round: those who had not left before it. */
+  function listPatrons() {
+    if (!head) return;
+    const round = Number(explainRound.value || 0);
+    const picked = explainPatron.value;
+    const voters = head.model_ids.filter((modelId) => !(leftAt.get(modelId) < round));
+    explainPatron.replaceChildren(...voters.map((modelId) => h("option", { value: modelId }, nameOf(modelId))));
+    if (voters.map(String).includes(picked)) explainPatron.value = picked;
+  }
+  explainRound.addEventListener("change", listPatrons);
   explainForm.addEventListener("submit", (event) => {
     event.preventDefault();
     showExplanation(Number(explainRound.value), Number(explainPatron.value));
   });
   function pickRound(iteration) {
     explainRound.value = String(iteration);
+    listPatrons();
     explainPatron.focus();
   }
   function showExplanation(iteration, modelId) {
@@ -330,8 +342,9 @@ export function auctionView(view, id) {
     fineTuning.hidden = false;
     const outcomes = {};
     for (const a of r.answers) outcomes[a.outcome] = (outcomes[a.outcome] || 0) + 1;
-    const answers = Object.entries(outcomes).map(([outcome, n]) => `${n} ${outcome}`).join(", ") || "none yet";
-    const each = r.answers.length ? h("ul", { class: "answers" }, r.answers.map(answerItem)) : h("span", { class: "none-yet" }, "none yet");
+    const nothing = r.status === "open" ? "none yet" : "none";
+    const answers = Object.entries(outcomes).map(([outcome, n]) => `${n} ${outcome}`).join(", ") || nothing;
+    const each = r.answers.length ? h("ul", { class: "answers" }, r.answers.map(answerItem)) : h("span", { class: "none-yet" }, nothing);
     const row = tableRow([String(r.round), String(r.iteration), statusBadge(r.status), when(r.deadline), answers, each], { "data-round": r.round });
     const old = fineTuneRowOf.get(r.round);
     if (old) old.replaceWith(row);
@@ -378,7 +391,10 @@ export function auctionView(view, id) {
         h("button", { type: "button", class: "explain-round", "data-iteration": row.iteration, onclick: () => pickRound(row.iteration) }, `Explain round ${row.iteration}`),
       ]),
     );
-    for (const p of [...row.purchases, ...row.quits]) names.set(p.model_id, p.participant);
+    for (const p of [...row.purchases, ...row.quits]) {
+      names.set(p.model_id, p.participant);
+      leftAt.set(p.model_id, row.iteration);
+    }
     explainRound.append(h("option", { value: row.iteration }, `round ${row.iteration}`));
     if (row.iteration === 0) {
       buyerRows.replaceChildren();
@@ -407,7 +423,8 @@ export function auctionView(view, id) {
   getJSON(`/auctions/${id}`)
     .then((auction) => {
       head = auction;
-      for (const modelId of auction.model_ids) explainPatron.append(h("option", { value: modelId }, `model ${modelId}`));
+      auction.model_ids.forEach((modelId, i) => names.set(modelId, auction.participants[i]));
+      listPatrons();
       showSummary(auction);
       drawPriceChart(priceChart, [], auction.price);
       const stop = follow(
@@ -423,8 +440,8 @@ export function auctionView(view, id) {
               quitterList.replaceChildren();
             }
             if (quitterList.children.length === 0) quitterList.append(h("li", {}, "nobody quit"));
-            for (const option of explainPatron.options) option.textContent = nameOf(Number(option.value));
-            liveness.textContent = `Ended: ${end.status}, ${stopReason(end.stop_reason)}; ${end.n_sold} of ${end.n_initial} fish sold in ${end.iterations} rounds.`;
+            listPatrons();
+            liveness.textContent = `Ended: ${end.status}, ${stopReason(end.stop_reason)}; ${end.n_sold} of ${end.n_initial} fish sold in ${end.iterations} ${end.iterations === 1 ? "round" : "rounds"}.`;
             if (buyerRows.children.length === 0) buyerRows.append(tableRow(["nobody bought a fish", "", "", "", ""]));
           },
         },
@@ -436,6 +453,7 @@ export function auctionView(view, id) {
       view.onLeave(stop);
     })
     .catch((error) => {
-      liveness.replaceWith(problem(error));
+      if (isMissing(error)) notFound(view.root, `Auction ${id}`, ["#/", "All auctions"]);
+      else liveness.replaceWith(problem(error));
     });
 }

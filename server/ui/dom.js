@@ -96,3 +96,18 @@ export function facts(pairs, attributes = {}) {
 export function problem(error) {
   return h("p", { class: "problem", role: "alert" }, String(error.message || error));
 }
+
+/** Whether an API error says the thing asked for does not exist (404, or an id no resource
+ * can have: 422). */
+export function isMissing(error) {
+  return error && (error.status === 404 || error.status === 422);
+}
+
+/** Replace a view whose subject does not exist with a "Not found" page: what was asked for,
+ * and a way back. */
+export function notFound(root, what, [href, words]) {
+  const title = h("h1", { tabindex: "-1" }, "Not found");
+  root.replaceChildren(title, h("p", { class: "problem", role: "alert", id: "not-found" }, `${what} does not exist.`), h("p", {}, link(href, words)));
+  document.title = "Not found · srd-auction";
+  title.focus();
+}

@@ -2,7 +2,7 @@
 // read at a glance (headline cards, tables, figures; the raw JSON collapsed), and jobs compared.
 
 import { follow, getJSON, pager } from "./api.js";
-import { facts, fill, h, link, problem, tableRow, when } from "./dom.js";
+import { facts, fill, h, isMissing, link, notFound, problem, tableRow, when } from "./dom.js";
 import { card, headline, kindLayouts, lineChart, rowsTable, shown, splitColumns, tablesOf, words } from "./results.js";
 
 const IMAGE = /\.(png|gif)$/i;
@@ -197,7 +197,10 @@ export function jobView(view, id) {
       );
       view.onLeave(stop);
     })
-    .catch((error) => liveness.replaceWith(problem(error)));
+    .catch((error) => {
+      if (isMissing(error)) notFound(view.root, `Job ${id}`, ["#/jobs", "All jobs"]);
+      else liveness.replaceWith(problem(error));
+    });
 }
 
 /** Parameters side by side, one column per job; rows where the jobs differ are marked. */

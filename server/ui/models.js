@@ -3,7 +3,7 @@
 // each screener reason on the neuron it names.
 
 import { getJSON, pager, withQuery } from "./api.js";
-import { facts, fill, h, link, problem, signed, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, h, isMissing, link, notFound, problem, signed, svg, table, tableRow, when } from "./dom.js";
 
 const NAME_PATTERN = /^[A-Za-z0-9_.-]+$/; // participant names the API accepts
 const TINY = 0.0011; // |weight| at or below the design's δ = 0.001: drawn faint
@@ -89,7 +89,10 @@ export function participantView(view, name) {
         h("p", {}, link(`#/models?participant=${encodeURIComponent(name)}`, "All versions, page by page")),
       );
     })
-    .catch((error) => view.root.append(problem(error)));
+    .catch((error) => {
+      if (isMissing(error)) notFound(view.root, `Participant ${name}`, ["#/models", "All models"]);
+      else view.root.append(problem(error));
+    });
 }
 
 // --- the inspector's view -------------------------------------------------------------------
@@ -325,5 +328,8 @@ export function inspectorView(view, id, { extra = null, heading = "Model" } = {}
         ),
       );
     })
-    .catch((error) => view.root.append(problem(error)));
+    .catch((error) => {
+      if (isMissing(error)) notFound(view.root, `Model ${id}`, ["#/models", "All models"]);
+      else view.root.append(problem(error));
+    });
 }

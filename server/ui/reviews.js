@@ -4,7 +4,7 @@
 // only (never stored, never in a URL); it travels in the Authorization header.
 
 import { ApiError, getJSON, postJSON } from "./api.js";
-import { facts, fill, fixed, h, link, problem, svg, table, when } from "./dom.js";
+import { facts, fill, fixed, h, isMissing, link, notFound, problem, svg, table, when } from "./dom.js";
 import { inspectorView } from "./models.js";
 
 let adminToken = null;
@@ -95,11 +95,20 @@ function nearest(evidence) {
 }
 
 export function reviewView(view, id) {
+  document.title = `Inspect model ${id} · srd-auction`;
   withToken(view, async (box) => {
     const queue = await getJSON(`/reviews?limit=1${id > 1 ? `&cursor=${id - 1}` : ""}`, adminToken);
     const item = queue.items.find((m) => m.id === id);
     if (!item) {
+      try {
+        await getJSON(`/models/${id}`);
+      } catch (error) {
+        if (!isMissing(error)) throw error;
+        notFound(box, `Model ${id}`, ["#/reviews", "Every held model"]);
+        return;
+      }
       box.append(h("h1", { tabindex: "-1" }, `Model ${id}`), h("p", { id: "not-held" }, "This model is not held for review. ", link(`#/models/${id}`, "Its inspector's view"), " · ", link("#/reviews", "Every held model")));
+      document.title = `Model ${id} · srd-auction`;
       return;
     }
     inspectorView({ root: box }, id, { heading: "Inspect model", extra: (model) => [evidenceSection(model, item), decisionForm(model)] });

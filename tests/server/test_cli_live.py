@@ -234,10 +234,15 @@ def test_a_server_that_never_answers_is_named_not_a_dropped_stream() -> None:
 def test_a_cancelled_auction_ends_the_watch_with_exit_1(dropping) -> None:
     url, handler = dropping
     cancelled = {**END, "status": "cancelled", "iterations": 1}
-    handler.plan = [[("iteration", "0", iteration(0)), ("end", None, cancelled)]]
+    closed = {"round": 1, "iteration": 0, "status": "closed", "answers": []}
+    handler.plan = [
+        [("iteration", "0", iteration(0)), ("round", "0.1", closed), ("end", None, cancelled)]
+    ]
     result = CliRunner().invoke(cli, ["watch", "7", "--server", url])
     assert result.exit_code == 1
-    assert result.stdout.splitlines()[-1].startswith("auction 7 cancelled after 1 iterations")
+    lines = result.stdout.splitlines()
+    assert "fine-tuning round 1 (after iteration 0): closed; no answers" in lines
+    assert lines[-1].startswith("auction 7 cancelled after 1 iteration:")
 
 
 # --- srd agents: the summary table ---------------------------------------------------------------

@@ -505,6 +505,34 @@ def test_every_vote_of_a_round_opens_its_explanation(
     assert card.get_attribute("data-vote") == "buy"  # the buyer's vote in its round
     assert page.locator("#explain-round option").count() == last + 1
     screenshot(page.locator("#explain"), "ui_vote.png", tmp_path)
+    # The patron picker names participants, and offers only those who voted in the round.
+    left = {b["model_id"]: b["iteration"] for b in auction["buyers"]}
+    left |= {q["model_id"]: q["iteration"] for q in auction["quitter_details"]}
+    named = dict(zip(auction["model_ids"], auction["participants"], strict=True))
+    assert any(at < last for at in left.values())  # someone left before the last round
+    for iteration in (0, last):
+        page.select_option("#explain-round", str(iteration))
+        options = page.locator("#explain-patron option").all()
+        voters = [m for m in auction["model_ids"] if left.get(m, iteration) >= iteration]
+        assert [int(o.get_attribute("value")) for o in options] == voters
+        assert [o.text_content() for o in options] == [named[m] for m in voters]
+
+
+def test_a_missing_auction_job_model_or_participant_gets_a_not_found_page(
+    page: Any, server: ServerProcess
+) -> None:
+    for path, what in (
+        ("auctions/999999", "Auction 999999"),
+        ("jobs/999999", "Job 999999"),
+        ("models/0", "Model 0"),
+        ("participants/nobody-by-this-name", "Participant nobody-by-this-name"),
+    ):
+        page.goto(f"{server.url}/ui/#/{path}")
+        page.wait_for_selector("#not-found", timeout=WAIT_MS)
+        assert page.locator("#not-found").text_content() == f"{what} does not exist."
+        assert page.locator("h1").all_text_contents() == ["Not found"]
+        assert page.title() == "Not found · srd-auction"
+        assert page.locator("svg.chart, table").count() == 0
 
 
 @pytest.fixture(scope="module")

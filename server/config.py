@@ -51,6 +51,9 @@ class Settings(BaseSettings):
     object store into the process)."""
     job_budget_s: Annotated[float, Field(gt=0, le=1e12)] = 1800.0
     """Jobs whose estimated compute (seconds on one core) exceeds this are refused with 422."""
+    max_queued_jobs: Annotated[int, Field(ge=1, le=100_000)] = 64
+    """Jobs waiting to run at most: past it ``POST /jobs`` is answered 503 with
+    ``Retry-After`` (``JOB_QUEUE_RETRY_AFTER_S``) until some have started."""
     auction_timeout_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 3600.0
     """Wall-time limit of one auction step (iterations played until the auction ends or opens
     a round): a step still running after this long is stopped and its auction failed."""

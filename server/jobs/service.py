@@ -16,6 +16,9 @@ from server.work.runner import BackgroundRunner
 from sim.experiment import ConfigError, config_dict, over_budget
 from studies.registry import build_config
 
+JOB_QUEUE_RETRY_AFTER_S = 30
+"""``Retry-After`` of a job refused because the queue is full."""
+
 
 def _path(field: str) -> list[str | int]:
     """A config error's dotted field (``rarities.1``) as a ``loc`` tail."""
@@ -29,9 +32,11 @@ def create_job(
     kind: str,
     params: dict[str, Any],
     budget_s: float,
+    max_queued: int,
 ) -> Job:
     """Validate ``params`` by the kind's config, refuse a job over ``budget_s`` of estimated
-    compute (naming the option to lower and how far), store it queued, hand it to the runner."""
+    compute (naming the option to lower and how far) or one past ``max_queued`` waiting jobs,
+    store it queued, hand it to the runner."""
     try:
         config = build_config(kind, params)
         too_much = over_budget(config, budget_s)
@@ -44,6 +49,16 @@ def create_job(
             )
             for err in exc.errors
         ) from exc
+    queued = crud.count_queued(session)
+    if queued >= max_queued:
+        raise api_error(
+            503,
+            f"{queued} jobs are waiting to run, the most this server queues "
+            f"(SRD_MAX_QUEUED_JOBS); retry once some have started",
+            loc=("server",),
+            kind="too_many_jobs",
+            headers={"Retry-After": str(JOB_QUEUE_RETRY_AFTER_S)},
+        )
     job = crud.create_job(session, kind=kind, params=config_dict(config))
     session.commit()
     runner.submit(job.id)

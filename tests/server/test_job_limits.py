@@ -127,3 +127,29 @@ def test_a_job_over_its_memory_limit_fails_saying_so(tmp_path) -> None:
         job["message"] == "failed: the job memory limit of 1500 MB (SRD_JOB_MEMORY_MB) was reached"
     )
     assert "can't allocate memory" in job["error"]
+
+
+def test_past_the_queue_bound_a_job_is_refused_until_some_have_started(tmp_path) -> None:
+    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
+    settings = settings.model_copy(update={"max_queued_jobs": 2, "job_workers": 1})
+    long = {"kind": "fish", "params": {"steps": 1_000_000}}  # minutes: holds the one worker
+    with TestClient(create_app(settings)) as client:
+        running = client.post("/jobs", json=long, headers=ADMIN).json()["job_id"]
+        wait_for(
+            lambda: client.get(f"/jobs/{running}").json(), lambda s: s["status"] == "running", 60
+        )
+        queued = [client.post("/jobs", json=long, headers=ADMIN) for _ in range(2)]
+        assert [r.status_code for r in queued] == [202, 202]
+        refused = client.post("/jobs", json=long, headers=ADMIN)
+        assert refused.status_code == 503
+        assert refused.headers["Retry-After"] == "30"
+        (item,) = refused.json()["detail"]
+        assert item["loc"] == ["server"] and item["type"] == "too_many_jobs"
+        assert "2 jobs are waiting to run" in item["msg"] and "SRD_MAX_QUEUED_JOBS" in item["msg"]
+        listed = client.get("/jobs").json()["items"]
+        assert len(listed) == 3  # nothing stored for the refused one
+        client.delete(f"/jobs/{queued[0].json()['job_id']}", headers=ADMIN)
+        again = client.post("/jobs", json=long, headers=ADMIN)
+        assert again.status_code == 202, again.text  # a slot came back
+        for job in client.get("/jobs").json()["items"]:
+            client.delete(f"/jobs/{job['id']}", headers=ADMIN)

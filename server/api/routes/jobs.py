@@ -48,7 +48,7 @@ def _job_public(job: Job) -> JobPublic:
                 "CancelJob": link("cancel_job", "job_id", "job_id"),
             }
         },
-        **responses(401, 403, 422),
+        **responses(401, 403, 422, 503),
     },
 )
 def create_job(
@@ -56,9 +56,14 @@ def create_job(
 ) -> JobCreated:
     """Queue an experiment (operator); ``params`` are the CLI options of ``kind``. A job whose
     estimated compute exceeds the budget (``SRD_JOB_BUDGET_S``) is refused, naming the option
-    to lower and how far."""
+    to lower and how far; past ``SRD_MAX_QUEUED_JOBS`` waiting jobs, 503 with ``Retry-After``."""
     job = jobs.create_job(
-        session, runner, kind=body.kind, params=body.params, budget_s=settings.job_budget_s
+        session,
+        runner,
+        kind=body.kind,
+        params=body.params,
+        budget_s=settings.job_budget_s,
+        max_queued=settings.max_queued_jobs,
     )
     return JobCreated(job_id=job.id, status=JobStatus.QUEUED)
 

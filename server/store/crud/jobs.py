@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from server.store.crud.lists import ListOrder, keyset
@@ -34,6 +34,12 @@ def create_job(session: Session, *, kind: str, params: dict[str, Any]) -> Job:
     session.add(job)
     session.flush()
     return job
+
+
+def count_queued(session: Session) -> int:
+    """Jobs waiting to run."""
+    queued = select(func.count()).select_from(Job).where(Job.status == JobStatus.QUEUED)
+    return session.scalar(queued) or 0
 
 
 def get_job(session: Session, *, job_id: int) -> Job | None:

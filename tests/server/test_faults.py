@@ -169,13 +169,13 @@ def play_remote(
     population: Population,
     *,
     kill_in_round: int | None = None,
-    close_in_round: int | None = None,
+    close_in_rounds: tuple[int, ...] = (),
 ) -> dict[str, Any]:
     """Answer every round of a remote auction with every asked patron's faithful fine-tuning;
     with ``kill_in_round``, kill -9 every spawned process of the server while that round is
-    open, before its answers; with ``close_in_round``, stop the auction workers before that
-    round's last answer, check that its verdict closed the round while no step could run, and
-    kill -9 them."""
+    open, before its answers; in each of ``close_in_rounds``, stop the auction workers before
+    the round's last answer, check that its verdict closed the round while no step could run,
+    and kill -9 them (the step handed to a stopped worker dies with it)."""
     ids, manifest_list, token_list = population
     manifests, tokens = (
         dict(zip(ids, manifest_list, strict=True)),
@@ -190,7 +190,7 @@ def play_remote(
             signal_all(spawned(server), signal.SIGKILL)
         stopped: list[int] = []
         for k, model_id in enumerate(state["asked"]):
-            if state["round"] == close_in_round and k == len(state["asked"]) - 1:
+            if state["round"] in close_in_rounds and k == len(state["asked"]) - 1:
                 stopped = [p for p in spawned(server) if process_name(p) == "srd-auction-wor"]
                 assert stopped, "no auction worker to stop"
                 signal_all(stopped, signal.SIGSTOP)
@@ -206,16 +206,22 @@ def play_remote(
         after = state["round"]
 
 
-@pytest.mark.parametrize("fault", ["kill_in_round", "close_in_round"])
-def test_workers_killed_mid_round_cost_nothing_but_time(tmp_path: Path, fault: str) -> None:
-    """Every spawned process killed while round 1 is open (``kill_in_round``), or the auction
-    workers stopped before its last answer, whose verdict closes the round while no step can
-    run, then killed (``close_in_round``): the auction matches its undisturbed twin."""
+@pytest.mark.parametrize(
+    "fault", [{"kill_in_round": 1}, {"close_in_rounds": (1, 2, 3)}], ids=["kill", "close"]
+)
+def test_workers_killed_mid_round_cost_nothing_but_time(
+    tmp_path: Path, fault: dict[str, Any]
+) -> None:
+    """Every spawned process killed while round 1 is open (``kill_in_round``), or, in each of
+    three rounds, the auction workers stopped before its last answer, whose verdict closes the
+    round while no step can run, then killed, the step they were handed dying with them
+    (``close_in_rounds``: three deaths of three steps, each resumed, are not three deaths in a
+    row): the auction matches its undisturbed twin."""
     (server, _), admin = server_pair(f"sqlite:///{tmp_path / 'rounds.db'}", tmp_path)
     body = {
         "n_fish": 2,
         "fine_tune_mode": "remote",
-        "fine_tune_rounds": 2,
+        "fine_tune_rounds": 3,
         "round_deadline_s": 120,
         "max_iterations": 12,
         "seed": 5,
@@ -223,13 +229,13 @@ def test_workers_killed_mid_round_cost_nothing_but_time(tmp_path: Path, fault: s
     with server:
         population = submit(server, 6, seed=800)
         killed = create(server, admin, {**body, "model_ids": population[0]})
-        played = play_remote(server, killed, population, **{fault: 1})
+        played = play_remote(server, killed, population, **fault)
         twin_population = submit(server, 6, seed=800)
         twin = create(server, admin, {**body, "model_ids": twin_population[0]})
         undisturbed = play_remote(server, twin, twin_population)
     assert played["status"] == "finished" and played["error"] is None
     assert played["history"] == undisturbed["history"]
-    assert len(played["fine_tuning"]) == 2
+    assert len(played["fine_tuning"]) == 3
     for rounds in (played["fine_tuning"], undisturbed["fine_tuning"]):
         assert all(a["outcome"] == "accepted" for r in rounds for a in r["answers"])
     assert [len(r["answers"]) for r in played["fine_tuning"]] == [

@@ -206,8 +206,26 @@ async def _database_unavailable(connection: HTTPConnection, exc: Exception) -> J
     return None
 
 
+async def _internal(request: Request, exc: Exception) -> JSONResponse:
+    """Anything no other handler took: a 500 in the common body (the error is logged with its
+    traceback by the server, never sent)."""
+    return JSONResponse(
+        {
+            "detail": [
+                error_item(
+                    "the server met an unexpected error; it is logged. Retry, or report it",
+                    loc=("server",),
+                    kind="internal_error",
+                )
+            ]
+        },
+        status_code=500,
+    )
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Route every framework error through the common body."""
+    app.add_exception_handler(Exception, _internal)
     app.add_exception_handler(StarletteHTTPException, _http_exception)
     app.add_exception_handler(RequestValidationError, _request_validation)
     app.add_exception_handler(WebSocketRequestValidationError, _socket_validation)

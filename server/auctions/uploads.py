@@ -29,6 +29,7 @@ from datetime import datetime
 from typing import Any, TypeVar
 
 from sqlalchemy import Connection
+from sqlalchemy.exc import IntegrityError
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, ManifestError, parse_manifest, parse_manifest_json
@@ -317,7 +318,10 @@ async def upload(
     manifest = _manifest(request.body)
     data = manifest.model_dump(mode="json")
     arrive = functools.partial(_arrive, manifest=manifest, data=data, request=request)
-    stored, round_id, manifest_json = await _write(database, arrive)
+    try:
+        stored, round_id, manifest_json = await _write(database, arrive)
+    except IntegrityError:  # the same patron's answer, stored meanwhile by a concurrent request
+        stored, round_id, manifest_json = await _write(database, arrive)  # answered as a repeat
     if stored.refusal is not None:
         status, message, kind = stored.refusal
         raise api_error(status, message, loc=("path", "round"), kind=kind)

@@ -83,7 +83,15 @@ def is_database_outage(exc: BaseException) -> bool:
     outages = DatabaseUnavailableError | OperationalError | InterfaceError | PoolTimeoutError
     if isinstance(exc, outages):
         return True
-    return isinstance(exc, DBAPIError) and exc.connection_invalidated
+    if not isinstance(exc, DBAPIError):
+        return False
+    return exc.connection_invalidated or getattr(exc.orig, "sqlstate", None) in OUTAGE_STATES
+
+
+OUTAGE_STATES = {"25006"}
+"""PostgreSQL's SQLSTATEs that say the database cannot take writes now, whatever the
+statement: ``read_only_sql_transaction`` (a standby, or ``default_transaction_read_only`` set
+while the server runs)."""
 
 
 def is_sqlite(url: str) -> bool:

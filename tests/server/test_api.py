@@ -326,3 +326,23 @@ def test_non_finite_job_params_are_refused(client: TestClient) -> None:
     )
     assert response.status_code == 422
     assert ["body", "params", "steps"] in locs(response)
+
+
+def test_an_unexpected_error_is_a_json_500_that_tells_nothing_of_its_cause(tmp_path) -> None:
+    """Whatever goes wrong unforeseen answers the common error body, not a plain-text page."""
+    from server.app import create_app
+    from tests.support.server import make_settings
+
+    app = create_app(make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data"))
+
+    def boom() -> None:
+        raise ZeroDivisionError("a secret detail")
+
+    app.add_api_route("/boom", boom)
+    with TestClient(app, raise_server_exceptions=False) as client:
+        answer = client.get("/boom")
+    assert answer.status_code == 500
+    assert answer.headers["content-type"] == "application/json"
+    (item,) = answer.json()["detail"]
+    assert item["loc"] == ["server"] and item["type"] == "internal_error"
+    assert "secret" not in answer.text

@@ -92,3 +92,53 @@ def test_dropped_postgres_database_is_noticed(tmp_path) -> None:
             TestClient(create_app(settings)),
         ):
             pass
+
+
+def test_a_read_only_postgres_database_refuses_writes_with_the_json_503(tmp_path) -> None:
+    """A database that turned read-only (a standby promoted away, or the setting flipped) is an
+    outage for writes: each gets the JSON 503 naming the database, reads go on, and writes come
+    back by themselves once it takes them again."""
+    for url in postgres_database():
+        settings = make_settings(url, tmp_path / "data")
+        name = url.rsplit("/", 1)[1]
+        admin = create_engine(url.rsplit("/", 1)[0] + "/postgres", isolation_level="AUTOCOMMIT")
+
+        def read_only(on: bool) -> None:
+            with admin.connect() as connection:
+                value = "on" if on else "off"
+                connection.execute(
+                    text(f'ALTER DATABASE "{name}" SET default_transaction_read_only = {value}')
+                )
+                connection.execute(
+                    text(
+                        "SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
+                        "WHERE datname = :name AND pid <> pg_backend_pid()"
+                    ),
+                    {"name": name},
+                )
+
+        try:
+            with TestClient(create_app(settings)) as client:
+                submitted = client.post("/submit", json=honest(unique("ro")))
+                assert submitted.status_code == 201, submitted.text
+                read_only(True)
+                body = {"n_fish": 1, "model_ids": [submitted.json()["model_id"]]}
+                refused = None
+                for _ in range(20):  # the first statement on a terminated connection reconnects
+                    refused = client.post("/auctions", json=body, headers=ADMIN)
+                    if refused.status_code == 503:
+                        break
+                assert refused is not None and refused.status_code == 503, refused.text
+                assert refused.headers["content-type"] == "application/json"
+                (item,) = refused.json()["detail"]
+                assert item["loc"] == ["database"] and "read-only" in item["msg"]
+                assert client.get(f"/models/{submitted.json()['model_id']}").status_code == 200
+                read_only(False)
+                for _ in range(20):
+                    created = client.post("/auctions", json=body, headers=ADMIN)
+                    if created.status_code == 201:
+                        break
+                assert created.status_code == 201, created.text
+        finally:
+            read_only(False)
+            admin.dispose()

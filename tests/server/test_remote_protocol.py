@@ -482,3 +482,34 @@ def test_an_upload_waiting_for_the_write_lock_stalls_no_other_request(
     auction = client.get(f"/auctions/{auction_id}").json()
     outcomes = {a["model_id"]: a["outcome"] for a in auction["fine_tuning"][0]["answers"]}
     assert outcomes[model_id] == answers[0].json()["outcome"]
+
+
+def test_the_same_upload_sent_at_once_gets_one_answer(client: TestClient) -> None:
+    """Two identical uploads of one patron racing each other (an agent's retry over a second
+    connection; two is a token's share of uploads in flight) are stored once, and both get the
+    same answer: never a 500 of the second insert."""
+    remote = remote_auction(client, "racing", 640, seed=9)
+    auction_id, state = remote["id"], remote["state"]
+    position, (model_id, token) = next(
+        (i, p) for i, p in enumerate(remote["patrons"]) if p[0] in state["asked"]
+    )
+    info = RoundInfo.from_state(state, position)
+    body = faithful_fine_tune(parse_manifest(remote["manifests"][position]), info)
+    raw = body.model_dump_json().encode()
+    start = threading.Barrier(2)
+    answers: list[Any] = []
+
+    def send() -> None:
+        start.wait()
+        answers.append(put(client, auction_id, 1, model_id, raw, token))
+
+    racers = [threading.Thread(target=send) for _ in range(2)]
+    for racer in racers:
+        racer.start()
+    for racer in racers:
+        racer.join(timeout=120)
+    assert [a.status_code for a in answers] == [200] * 2, [a.text for a in answers]
+    assert len({a.content for a in answers}) == 1
+    auction = client.get(f"/auctions/{auction_id}").json()
+    mine = [a for a in auction["fine_tuning"][0]["answers"] if a["model_id"] == model_id]
+    assert len(mine) == 1 and mine[0]["outcome"] == answers[0].json()["outcome"]

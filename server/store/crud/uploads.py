@@ -372,7 +372,11 @@ def record_verdict(
     (accepted, refused, or held for an inspector within ``margin`` of a bar: then, as refused,
     the previous version bids on), its answer written; the answer's bytes. An upload already
     judged (by another process) keeps its answer, which is returned."""
-    row = connection.execute(_PENDING_FOR_UPDATE, {"answer_id": answer_id}).one()
+    row = connection.execute(_PENDING_FOR_UPDATE, {"answer_id": answer_id}).one_or_none()
+    if row is None:  # judged by a concurrent request while this one waited for the row's lock:
+        # PostgreSQL re-checks the locked row, now naming a version this statement cannot see
+        stored = select(FineTuneAnswer.answer).where(FineTuneAnswer.id == answer_id)
+        return answer_bytes(connection.execute(stored).scalar_one() or {})
     if row.outcome != AnswerOutcome.PENDING:
         return answer_bytes(row.answer or {})
     if row.manifest is None:  # stored with every pending upload

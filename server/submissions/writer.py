@@ -120,6 +120,8 @@ def _store(session: Session, item: _Submission, limits: quotas.Limits) -> Outcom
     refusal = _name_refusal(item, participant) or _token_refusal(item, participant)
     if refusal is not None:
         return refusal
+    if item.verdict is not None and item.address is not None:  # counts that decide a write:
+        crud.lock_subject(session, quotas.address_subject(item.address))  # none racing them
     now = utcnow()
     throttle = quotas.Throttle(
         session, limits, now, participant=item.participant, address=item.address

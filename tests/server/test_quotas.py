@@ -3,6 +3,8 @@ nothing stored, counted in the database (so every API process sharing it sees th
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import pytest
@@ -118,3 +120,26 @@ def test_unauthenticated_and_throttled_requests_cost_no_screening(
         over = client.post("/submit", json=honest(name), headers=bearer(token))
         assert_throttled(over, "SRD_QUOTA_VERSIONS_PER_MINUTE")
         assert screened == []
+
+
+@pytest.mark.postgres
+def test_concurrent_submissions_from_one_address_keep_its_quota(tmp_path) -> None:
+    """Submissions racing each other from one address each count the others' events: no more
+    registrations are stored than the address's quota, however many arrive at once."""
+    admin_url = postgres_admin_url()
+    if admin_url is None:
+        pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
+    with (
+        throwaway_postgres(admin_url) as url,
+        quota_app(tmp_path, url, quota_registrations_per_day=3) as client,
+    ):
+        start = threading.Barrier(12)
+
+        def register(i: int) -> int:
+            start.wait()
+            return client.post("/submit", json=honest(unique(f"racer{i}"))).status_code
+
+        with ThreadPoolExecutor(12) as pool:
+            statuses = list(pool.map(register, range(12)))
+        assert sorted(statuses) == [201] * 3 + [429] * 9, statuses
+        assert count(client, Participant) == 3

@@ -76,6 +76,7 @@ from server.store.crud.models import (
 from server.store.crud.quotas import (
     RateCount,
     insert_rate_events,
+    lock_subject,
     prune_rate_events,
     rate_counts,
     recent_events,
@@ -184,6 +185,7 @@ __all__ = [
     "list_auctions",
     "list_jobs",
     "list_models",
+    "lock_subject",
     "model_owner",
     "notify_change",
     "participant_by_name",

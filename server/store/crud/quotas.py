@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
-from sqlalchemy import ColumnElement, bindparam, case, delete, func, insert, select
+from sqlalchemy import ColumnElement, bindparam, case, delete, func, insert, select, text
 from sqlalchemy.orm import Session
 
 from server.store.tables import RateEvent
@@ -98,3 +98,14 @@ def prune_rate_events(session: Session, *, before: datetime) -> None:
 def _aware(value: datetime, like: datetime) -> datetime:
     """SQLite hands back naive UTC timestamps from aggregates; compare them as aware ones."""
     return value if value.tzinfo is not None else value.replace(tzinfo=like.tzinfo)
+
+
+_LOCK_SUBJECT = text("SELECT pg_advisory_xact_lock(hashtextextended(:subject, 0))")
+
+
+def lock_subject(session: Session, subject: str) -> None:
+    """Hold ``subject``'s quotas until the transaction ends, so that concurrent submissions
+    count one another's events: on PostgreSQL a transaction-level advisory lock on the
+    subject; SQLite serialises writers already."""
+    if session.get_bind().dialect.name == "postgresql":
+        session.execute(_LOCK_SUBJECT, {"subject": subject})

@@ -53,16 +53,17 @@ class Backoff:
         self.delay = RETRY_FIRST_S
         self._rng, self._traffic = rng, traffic
 
-    @property
-    def exhausted(self) -> bool:
-        """The next pause would end past the deadline."""
-        return time.monotonic() + self.delay > self.give_up_at
+    def exhausted(self, at_least_s: float = 0.0) -> bool:
+        """The next pause would end past the deadline: the current delay, or ``at_least_s``
+        (a server's Retry-After) if longer, even at its shortest jitter."""
+        return time.monotonic() + max(self.delay, 0.5 * at_least_s) > self.give_up_at
 
     async def pause(self, at_least_s: float = 0.0) -> None:
         """Sleep the current delay (or ``at_least_s``, a server's Retry-After, if longer),
-        jittered, then double the delay."""
+        jittered and never past the deadline, then double the delay."""
         self._traffic.retries += 1
-        await asyncio.sleep(max(self.delay, at_least_s) * (0.5 + self._rng.random()))
+        wait = max(self.delay, at_least_s) * (0.5 + self._rng.random())
+        await asyncio.sleep(max(min(wait, self.give_up_at - time.monotonic()), 0.0))
         self.delay = min(self.delay * 2, RETRY_MAX_S)
 
 
@@ -113,7 +114,7 @@ class Client:
                 )
             except httpx.TransportError as exc:
                 unsent = isinstance(exc, httpx.ConnectError | httpx.ConnectTimeout)
-                if not (resend or unsent) or backoff.exhausted:
+                if not (resend or unsent) or backoff.exhausted():
                     raise ServerGoneError(
                         f"the server at {self.server} did not answer {method} {path} "
                         f"({type(exc).__name__}: {exc}); gave up after {self.give_up_s:.0f} s"
@@ -124,12 +125,14 @@ class Client:
             self.traffic.bytes_down += len(response.content)
             if response.status_code not in RETRY_STATUSES:
                 return response
-            if backoff.exhausted:
+            wait = retry_after_s(response.headers.get("Retry-After"))
+            if backoff.exhausted(wait):
+                asked = f" (its Retry-After: {wait:g} s)" if wait else ""
                 raise ServerGoneError(
                     f"the server at {self.server} kept answering {response.status_code} "
-                    f"to {method} {path}; gave up after {self.give_up_s:.0f} s"
+                    f"to {method} {path}{asked}; gave up after {self.give_up_s:.0f} s"
                 )
-            await backoff.pause(retry_after_s(response.headers.get("Retry-After")))
+            await backoff.pause(wait)
 
     async def json(self, method: str, path: str, **kwargs: Any) -> Any:
         """``request`` that expects a 2xx JSON answer (else RemoteError with the server's)."""

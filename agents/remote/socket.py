@@ -165,7 +165,7 @@ class RoundSocket:
                         f"auction at {self.url} ended before the upload of round "
                         f"{round_number} was answered on its socket"
                     ) from exc
-                if backoff.exhausted:
+                if backoff.exhausted():
                     raise ServerGoneError(
                         f"the server at {self.server} did not answer the upload of round "
                         f"{round_number} ({type(exc).__name__}); gave up after "
@@ -174,7 +174,7 @@ class RoundSocket:
             else:
                 if status not in RETRY_STATUSES:
                     return status, reply
-                if backoff.exhausted:
+                if backoff.exhausted():
                     raise ServerGoneError(
                         f"the server at {self.server} kept answering {status} to the upload of "
                         f"round {round_number}; gave up after {self.give_up_s:.0f} s"
@@ -213,7 +213,7 @@ class RoundSocket:
                 self._ws = ws
                 self._reader = asyncio.create_task(self._read(ws))
                 return ws
-            if backoff.exhausted:
+            if backoff.exhausted(retry_after):
                 raise ServerGoneError(
                     f"the server at {self.server} {failure} on {self.url}; gave up after "
                     f"{self.give_up_s:.0f} s"

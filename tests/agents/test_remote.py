@@ -61,6 +61,20 @@ def test_gives_up_after_its_time_naming_the_server():
     assert 0.5 < time.monotonic() - started < 5
 
 
+@pytest.mark.parametrize("retry_after", ["86400", "30"])
+def test_a_retry_after_beyond_the_give_up_time_gives_up_within_it(retry_after):
+    """A server that asks for a day (a registration quota spent) or for longer than is left:
+    the client keeps to its own give-up time instead of sleeping for what the server asks."""
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(429, json={"detail": []}, headers={"Retry-After": retry_after})
+
+    started = time.monotonic()
+    with pytest.raises(ServerGoneError, match=r"kept answering 429 .*Retry-After: .*gave up"):
+        run(handler, lambda c: c.request("POST", "/submit", body=b"{}"), give_up_s=2.0)
+    assert time.monotonic() - started < 4
+
+
 def test_a_request_that_may_have_arrived_is_not_resent_when_asked():
     calls = []
 

@@ -9,7 +9,7 @@ import time
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import create_engine, text
+from sqlalchemy import Engine, create_engine, text
 
 from server.api import readiness
 from server.app import create_app
@@ -94,6 +94,23 @@ def test_dropped_postgres_database_is_noticed(tmp_path) -> None:
             pass
 
 
+def read_only(admin: Engine, name: str, on: bool) -> None:
+    """Make the database ``name`` read-only (or not) for new transactions, and end its
+    connections so that every new one takes the setting."""
+    with admin.connect() as connection:
+        value = "on" if on else "off"
+        connection.execute(
+            text(f'ALTER DATABASE "{name}" SET default_transaction_read_only = {value}')
+        )
+        connection.execute(
+            text(
+                "SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
+                "WHERE datname = :name AND pid <> pg_backend_pid()"
+            ),
+            {"name": name},
+        )
+
+
 def test_a_read_only_postgres_database_refuses_writes_with_the_json_503(tmp_path) -> None:
     """A database that turned read-only (a standby promoted away, or the setting flipped) is an
     outage for writes: each gets the JSON 503 naming the database, reads go on, and writes come
@@ -103,25 +120,11 @@ def test_a_read_only_postgres_database_refuses_writes_with_the_json_503(tmp_path
         name = url.rsplit("/", 1)[1]
         admin = create_engine(url.rsplit("/", 1)[0] + "/postgres", isolation_level="AUTOCOMMIT")
 
-        def read_only(on: bool) -> None:
-            with admin.connect() as connection:
-                value = "on" if on else "off"
-                connection.execute(
-                    text(f'ALTER DATABASE "{name}" SET default_transaction_read_only = {value}')
-                )
-                connection.execute(
-                    text(
-                        "SELECT pg_terminate_backend(pid) FROM pg_stat_activity "
-                        "WHERE datname = :name AND pid <> pg_backend_pid()"
-                    ),
-                    {"name": name},
-                )
-
         try:
             with TestClient(create_app(settings)) as client:
                 submitted = client.post("/submit", json=honest(unique("ro")))
                 assert submitted.status_code == 201, submitted.text
-                read_only(True)
+                read_only(admin, name, True)
                 body = {"n_fish": 1, "model_ids": [submitted.json()["model_id"]]}
                 refused = None
                 for _ in range(20):  # the first statement on a terminated connection reconnects
@@ -133,12 +136,12 @@ def test_a_read_only_postgres_database_refuses_writes_with_the_json_503(tmp_path
                 (item,) = refused.json()["detail"]
                 assert item["loc"] == ["database"] and "read-only" in item["msg"]
                 assert client.get(f"/models/{submitted.json()['model_id']}").status_code == 200
-                read_only(False)
+                read_only(admin, name, False)
                 for _ in range(20):
                     created = client.post("/auctions", json=body, headers=ADMIN)
                     if created.status_code == 201:
                         break
                 assert created.status_code == 201, created.text
         finally:
-            read_only(False)
+            read_only(admin, name, False)
             admin.dispose()

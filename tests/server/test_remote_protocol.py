@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import create_engine, text
 
 from agents.manifest import Manifest, parse_manifest
 from agents.remote import RoundInfo, always_hold, faithful_fine_tune
@@ -513,3 +514,31 @@ def test_the_same_upload_sent_at_once_gets_one_answer(client: TestClient) -> Non
     auction = client.get(f"/auctions/{auction_id}").json()
     mine = [a for a in auction["fine_tuning"][0]["answers"] if a["model_id"] == model_id]
     assert len(mine) == 1 and mine[0]["outcome"] == answers[0].json()["outcome"]
+
+
+def test_a_failed_auction_closes_its_open_round(client: TestClient, settings: Settings) -> None:
+    """An auction that fails while a round is open (here its checkpoint cannot be restored
+    when the round's deadline comes) closes that round with it, as a cancel does: nobody is
+    told to answer a round of an auction that is over."""
+    auction_id, _, _ = start_remote(client, "failing", 700, 4, round_deadline_s=2, seed=4)
+    state = open_round(client, auction_id)
+    assert state["status"] == "open", state
+    engine = create_engine(settings.database_url)
+    try:
+        with engine.begin() as connection:
+            connection.execute(
+                text("UPDATE auctions SET checkpoint = :junk WHERE id = :id"),
+                {"junk": b"not a checkpoint", "id": auction_id},
+            )
+    finally:
+        engine.dispose()
+    failed = wait_for(
+        lambda: client.get(f"/auctions/{auction_id}").json(),
+        lambda a: a["status"] not in ("pending", "running"),
+        ROUND_WAIT_S,
+    )
+    assert failed["status"] == "failed" and "cannot resume" in failed["error"]
+    (closed,) = failed["fine_tuning"]
+    assert closed["status"] == "closed" and closed["closed_at"] is not None
+    now = client.get(f"/auctions/{auction_id}/rounds/current").json()
+    assert now["auction_status"] == "failed" and now["status"] == "closed"

@@ -155,7 +155,7 @@ def cancel_auction(session: Session, *, auction_id: int) -> bool:
     # The open rounds are closed before the auction row is taken and again after: a worker
     # closing a round locks the round, then the auction (this order never deadlocks with it on
     # PostgreSQL), and a round its commit opened while we waited is closed by the second pass.
-    _close_open_rounds(session, auction_id, now)
+    close_open_rounds(session, auction_id, now)
     changed = session.execute(
         update(Auction)
         .where(Auction.id == auction_id, Auction.status.in_(AUCTION_UNFINISHED))
@@ -169,12 +169,13 @@ def cancel_auction(session: Session, *, auction_id: int) -> bool:
     )
     if not changed.rowcount:  # type: ignore[attr-defined]
         return False
-    _close_open_rounds(session, auction_id, now)
+    close_open_rounds(session, auction_id, now)
     notify_change(session, kind="auction", row_id=auction_id)
     return True
 
 
-def _close_open_rounds(session: Session, auction_id: int, now: datetime) -> None:
+def close_open_rounds(session: Session, auction_id: int, now: datetime) -> None:
+    """Close the auction's open fine-tuning round, if any (its auction ends)."""
     session.execute(
         update(FineTuneRound)
         .where(FineTuneRound.auction_id == auction_id, FineTuneRound.status == RoundStatus.OPEN)

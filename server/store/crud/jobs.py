@@ -11,6 +11,7 @@ from typing import Any
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
+from server.store.crud.auctions import close_open_rounds
 from server.store.crud.lists import ListOrder, keyset
 from server.store.crud.live import notify_change
 from server.store.status import AUCTION_UNFINISHED, JOB_UNFINISHED, AuctionStatus, JobStatus
@@ -50,7 +51,8 @@ def get_job(session: Session, *, job_id: int) -> Job | None:
 def fail_unfinished(
     session: Session, *, table: type[Auction] | type[Job], row_id: int, error: str
 ) -> None:
-    """Mark an auction or job failed with ``error``, unless it has already ended."""
+    """Mark an auction or job failed with ``error``, unless it has already ended; a failed
+    auction's open fine-tuning round is closed with it, as a cancelled one's."""
     unfinished, failed = (
         (AUCTION_UNFINISHED, AuctionStatus.FAILED)
         if table is Auction
@@ -60,12 +62,16 @@ def fail_unfinished(
     values: dict[str, Any] = {"status": failed, "error": error, "finished_at": now}
     if table is Job:
         values["message"] = "failed"
+    if table is Auction:  # before and after the row, as ``cancel_auction`` does
+        close_open_rounds(session, row_id, now)
     failed_now = session.execute(
         update(table)
         .where(table.id == row_id, table.status.in_(unfinished))
         .values(updated_at=now, **values)
     )
     if failed_now.rowcount:  # type: ignore[attr-defined]
+        if table is Auction:
+            close_open_rounds(session, row_id, now)
         notify_change(session, kind="auction" if table is Auction else "job", row_id=row_id)
 
 

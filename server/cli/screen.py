@@ -12,8 +12,9 @@ import torch
 from rich.console import Console
 from rich.markup import escape
 
-from agents.manifest import ManifestError, parse_manifest_json
+from agents.manifest import ManifestError, parse_manifest, parse_manifest_json
 from screener import screen as screen_manifest
+from server.api.body import BodyRefusedError, parse_strict_json
 
 ACCEPTED, REJECTED, MALFORMED = 0, 1, 2
 """Exit codes: accepted, rejected, unreadable or malformed."""
@@ -32,21 +33,39 @@ def _malformed(errors: list[dict[str, str]], json_output: bool) -> SystemExit:
     return SystemExit(MALFORMED)
 
 
+def _json_errors(text: bytes) -> list[dict[str, str]]:
+    """What the manifest parser says of text that is not JSON."""
+    try:
+        parse_manifest_json(text)
+    except ManifestError as exc:
+        return exc.errors
+    return [{"path": "$", "message": "the file is not JSON"}]
+
+
 @click.command("screen")
-@click.argument("file", type=click.Path(path_type=Path, dir_okay=False))
+@click.argument("file", type=click.Path(path_type=Path))
 @click.option(
     "--json", "json_output", is_flag=True, help="Print exactly one JSON object on stdout."
 )
 def command(file: Path, json_output: bool) -> None:
     """Screen a Fish Sale Negotiator manifest: semantic rules on its named weights and
-    behavioural probes. Exit 0 accepted, 1 rejected, 2 unreadable or malformed."""
+    behavioural probes. Exit 0 accepted, 1 rejected, 2 unreadable or malformed (read as
+    POST /submit reads it: a key given twice, NaN or a byte-order mark is malformed)."""
     try:
         text = file.read_bytes()
     except OSError as exc:
         raise _malformed([{"path": "$", "message": f"cannot read {file}: {exc.strerror}"}],
                          json_output) from exc  # fmt: skip
-    try:
-        manifest = parse_manifest_json(text)
+    try:  # read as strictly as POST /submit reads a body: a key twice, NaN, a BOM, depth
+        manifest = parse_manifest(parse_strict_json(text))
+    except BodyRefusedError as exc:
+        if exc.kind == "not_json":  # the JSON parser's own words, with where it stopped
+            errors = _json_errors(text)
+        else:
+            path = ".".join(str(part) for part in exc.loc[1:]) or "$"  # loc: ("body", ...)
+            message = exc.msg.replace("the body", "the file", 1)
+            errors = [{"path": path, "message": message}]
+        raise _malformed(errors, json_output) from exc
     except ManifestError as exc:
         raise _malformed(exc.errors, json_output) from exc
     torch.set_num_threads(1)  # the screener's tensors are tiny: more threads only contend

@@ -36,6 +36,14 @@ async def submit(
     manifest (no database lock held meanwhile), store it with its verdict, held for an
     inspector within ``margin`` of a bar (``screener.review``); the stored version, the
     verdict and its status."""
+    if not manifest.participant.strip("."):
+        raise api_error(
+            422,
+            "a participant's name needs a letter, digit, '_' or '-': a name of dots only is a "
+            "path segment ('.', '..'), which no URL of the participant could name",
+            loc=("body", "participant"),
+            kind="bad_name",
+        )
     refused = await writer.precheck(
         participant=manifest.participant, bearer=bearer, address=address
     )

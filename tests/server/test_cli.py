@@ -287,3 +287,17 @@ def test_a_supply_given_twice_is_refused() -> None:
     result = CliRunner().invoke(cli, ["auction-study", "--rarities", "0.5,0.1,0.5", "--json"])
     assert result.exit_code == 2 and "--rarities" in result.stderr
     assert "0.5 is given twice" in result.stderr
+
+
+def test_screen_reads_the_file_as_strictly_as_submit_reads_a_body(tmp_path) -> None:
+    """A key given twice is malformed (POST /submit answers 422): never judged as one of the
+    two manifests it could be. A directory is unreadable, and --json still prints one object."""
+    text = honest_manifest(np.random.default_rng(0), "twice").model_dump_json()
+    doubled = text[:-1] + ', "participant": "other"}'
+    outcome = screen(write(tmp_path, "d.json", doubled), "--json")
+    assert outcome.exit_code == 2
+    (error,) = json.loads(outcome.stdout)["errors"]
+    assert error["path"] == "participant" and "twice" in error["message"]
+    folder = screen(str(tmp_path), "--json")
+    assert folder.exit_code == 2
+    assert "cannot read" in json.loads(folder.stdout)["errors"][0]["message"]

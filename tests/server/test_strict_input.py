@@ -259,3 +259,15 @@ def test_the_fast_strict_json_pass_agrees_with_the_careful_one(text: str) -> Non
     assert got == expected
     if got[0] == "value":
         assert json.dumps(got[1]) == json.dumps(expected[1])
+
+
+@pytest.mark.parametrize("name", [".", "..", "..."])
+def test_a_name_of_dots_only_is_refused_naming_the_field(client: TestClient, name: str) -> None:
+    """'.' and '..' are path segments: GET /participants/.. would name another path."""
+    before = count(client, ModelVersion)
+    answer = client.post("/submit", json=honest(name))
+    assert answer.status_code == 422
+    (item,) = answer.json()["detail"]
+    assert item["loc"] == ["body", "participant"] and item["type"] == "bad_name"
+    assert count(client, ModelVersion) == before
+    assert client.post("/submit", json=honest(unique("a.b"))).status_code == 201

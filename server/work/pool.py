@@ -380,7 +380,10 @@ class WorkerPool:
                     return
                 ended = self._collect()
                 over, self._over = self._over, []
-                self._assign()
+                try:
+                    self._assign()
+                except Exception:  # a worker that cannot start now: the next pass tries again
+                    log.exception("%s: starting or handing work to a worker failed", self.name)
                 waitables: list[Any] = [self._wake_reader]
                 waitables += [w.conn for w in self._workers if w.task_id is not None]
                 waitables += [w.process.sentinel for w in self._workers]
@@ -487,10 +490,16 @@ class WorkerPool:
                 worker = self._start_worker()
             else:
                 return
-            worker.task_id = self._queue.popleft()
+            task_id = self._queue.popleft()
+            try:
+                worker.conn.send(task_id)
+            except OSError:  # it died since it was last looked at (killed): the task waits,
+                self._queue.appendleft(task_id)  # first in line, for the next pass, which
+                worker.process.kill()  # reaps this worker (its sentinel wakes that pass)
+                return
+            worker.task_id = task_id
             worker.cancelled_at, worker.timed_out, worker.started_at = None, False, None
             self._used = True
-            worker.conn.send(worker.task_id)
 
     def _start_worker(self) -> _Worker:
         ours, theirs = multiprocessing.Pipe(duplex=True)

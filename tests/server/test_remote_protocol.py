@@ -106,6 +106,18 @@ def remote_auction(client: TestClient, prefix: str, first_seed: int, seed: int) 
     return {"id": auction_id, "manifests": manifests, "patrons": patrons, "state": state}
 
 
+def first_asked_upload(remote: dict[str, Any]) -> tuple[int, int, str, Manifest]:
+    """The first asked patron of ``remote``'s open round: the auction, its model id, its
+    token and its faithful fine-tuning for the round."""
+    state = remote["state"]
+    position, (model_id, token) = next(
+        (i, p) for i, p in enumerate(remote["patrons"]) if p[0] in state["asked"]
+    )
+    info = RoundInfo.from_state(state, position)
+    upload = faithful_fine_tune(parse_manifest(remote["manifests"][position]), info)
+    return remote["id"], model_id, token, upload
+
+
 @pytest.fixture(scope="module")
 def remote(client: TestClient) -> dict[str, Any]:
     """A remote auction of 8 fine-tuning honest patrons, round 1 open for a minute."""
@@ -444,13 +456,9 @@ def test_an_upload_waiting_for_the_write_lock_stalls_no_other_request(
     meanwhile. Once the lock is free the upload is stored and answered."""
     if not is_sqlite(settings.database_url):
         pytest.skip("SQLite's write lock")
-    remote = remote_auction(client, "locked", 420, seed=3)
-    auction_id, state = remote["id"], remote["state"]
-    position, (model_id, token) = next(
-        (i, p) for i, p in enumerate(remote["patrons"]) if p[0] in state["asked"]
+    auction_id, model_id, token, upload = first_asked_upload(
+        remote_auction(client, "locked", 420, seed=3)
     )
-    info = RoundInfo.from_state(state, position)
-    upload = faithful_fine_tune(parse_manifest(remote["manifests"][position]), info)
     answers: list[Any] = []
     waiting = threading.Thread(
         target=lambda: answers.append(
@@ -489,14 +497,10 @@ def test_the_same_upload_sent_at_once_gets_one_answer(client: TestClient) -> Non
     """Two identical uploads of one patron racing each other (an agent's retry over a second
     connection; two is a token's share of uploads in flight) are stored once, and both get the
     same answer: never a 500 of the second insert."""
-    remote = remote_auction(client, "racing", 640, seed=9)
-    auction_id, state = remote["id"], remote["state"]
-    position, (model_id, token) = next(
-        (i, p) for i, p in enumerate(remote["patrons"]) if p[0] in state["asked"]
+    auction_id, model_id, token, upload = first_asked_upload(
+        remote_auction(client, "racing", 640, seed=9)
     )
-    info = RoundInfo.from_state(state, position)
-    body = faithful_fine_tune(parse_manifest(remote["manifests"][position]), info)
-    raw = body.model_dump_json().encode()
+    raw = upload.model_dump_json().encode()
     start = threading.Barrier(2)
     answers: list[Any] = []
 

@@ -71,7 +71,7 @@ class WorkerContext:
 TaskFn = Callable[[WorkerContext, int], None]
 ExitFn = Callable[[int, int | None], None]
 TimeoutFn = Callable[[int, float], None]
-EndFn = Callable[[int], None]
+EndFn = Callable[[int, bool], None]
 
 
 def error_summary(exc: BaseException) -> str:
@@ -282,7 +282,7 @@ class WorkerPool:
     pipe, once its interpreter is up: a fresh worker's imports are not the task's time) is
     stopped the same way and reported to ``on_timeout`` with the limit. Every task that is
     over, however it ended (done, died, stopped, or dropped from the queue by ``cancel``), is
-    then reported to ``on_end``.
+    then reported to ``on_end``, with whether it was done (its worker said so).
     """
 
     def __init__(
@@ -309,7 +309,7 @@ class WorkerPool:
         self._tasks_per_process = tasks_per_process
         self._on_exit = on_exit
         self._on_end = on_end
-        self._over: list[int] = []  # tasks over since the supervisor last reported them
+        self._over: list[tuple[int, bool]] = []  # tasks over since last reported, and if done
         self._process_context = process_context()
         self._queue: deque[int] = deque()
         self._workers: list[_Worker] = []
@@ -340,7 +340,7 @@ class WorkerPool:
         with self._lock:
             if task_id in self._queue:
                 self._queue.remove(task_id)
-                self._over.append(task_id)
+                self._over.append((task_id, False))
             for worker in self._workers:
                 if worker.task_id == task_id and worker.cancelled_at is None:
                     worker.cancelled_at = time.monotonic()
@@ -402,12 +402,12 @@ class WorkerPool:
                     with contextlib.suppress(EOFError, OSError):
                         self._wake_reader.recv_bytes()
 
-    def _report_over(self, over: list[int]) -> None:
+    def _report_over(self, over: list[tuple[int, bool]]) -> None:
         if self._on_end is None:
             return
-        for task_id in over:
+        for task_id, done in over:
             try:
-                self._on_end(task_id)
+                self._on_end(task_id, done)
             except Exception:
                 log.exception("%s: reporting the end of task %d failed", self.name, task_id)
 
@@ -436,7 +436,7 @@ class WorkerPool:
                 if worker.task_id is not None and (worker.cancelled_at is None or worker.timed_out):
                     ended.append((worker.task_id, worker.process.exitcode, worker.timed_out))
                 if worker.task_id is not None:
-                    self._over.append(worker.task_id)
+                    self._over.append((worker.task_id, False))
         return ended
 
     def _read(self, worker: _Worker) -> None:
@@ -447,7 +447,7 @@ class WorkerPool:
                 if said == STARTED:
                     worker.started_at = at
                 else:
-                    self._over.append(worker.task_id)
+                    self._over.append((worker.task_id, True))
                     worker.task_id, worker.tasks_done = None, worker.tasks_done + 1
 
     def _sleep_s(self) -> float:

@@ -130,7 +130,6 @@ class BackgroundRunner:
         )
         self._held: set[int] = set()  # rows leased here whose task is not over yet
         self._deaths: dict[int, int] = {}  # resumable rows whose task died, times in a row
-        self._dying: set[int] = set()  # rows whose task just died (told before its end)
         self._over: set[int] = set()  # tasks over, leases to release
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -319,14 +318,12 @@ class BackgroundRunner:
             crud.release_leases(session, table=self.kind.table, row_ids=row_ids, owner=self.owner)
             session.commit()
 
-    def _on_end(self, row_id: int) -> None:
+    def _on_end(self, row_id: int, done: bool) -> None:
         """A row's task is over (done, died, stopped or dropped): its lease is released. A
-        task that ended without dying resets the row's deaths: they count in a row."""
+        task done resets the row's deaths: they count in a row."""
         with self._lock:
             self._over.add(row_id)
-            if row_id in self._dying:
-                self._dying.discard(row_id)
-            else:
+            if done:
                 self._deaths.pop(row_id, None)
         self._wake.set()
         if self._ended is not None:
@@ -338,7 +335,6 @@ class BackgroundRunner:
         if self.kind.resumable:
             with self._lock:
                 times = self._deaths[row_id] = self._deaths.get(row_id, 0) + 1
-                self._dying.add(row_id)  # the pool reports its end next
             if times < MAX_DEATHS:
                 log.warning("%s %d: its worker died (code %s); resuming", self.kind.name, row_id,
                             exit_code)  # fmt: skip

@@ -71,9 +71,9 @@ class SlowToStart:
 
 
 def test_the_time_limit_counts_from_the_start_of_the_task_not_of_its_worker(tmp_path) -> None:
-    """A fresh worker slower to start than the limit still runs its quick task to the end;
-    a task longer than the limit is stopped at it."""
-    ended: list[int] = []
+    """A fresh worker slower to start than the limit still runs its quick task to the end
+    (done); a task longer than the limit is stopped at it (over, not done)."""
+    ended: dict[int, bool] = {}
     timed_out: list[tuple[int, float]] = []
     context = WorkerContext(
         database_url="sqlite://", data_dir=str(tmp_path), progress_interval_s=1.0, torch_threads=1
@@ -87,7 +87,7 @@ def test_the_time_limit_counts_from_the_start_of_the_task_not_of_its_worker(tmp_
         tasks_per_process=1,  # as jobs: every task in a fresh worker
         timeout_s=2.0,
         on_timeout=lambda task_id, limit: timed_out.append((task_id, limit)),
-        on_end=ended.append,
+        on_end=ended.__setitem__,
     )
     pool.start()
     try:
@@ -101,6 +101,7 @@ def test_the_time_limit_counts_from_the_start_of_the_task_not_of_its_worker(tmp_
     finally:
         pool.shutdown()
     assert timed_out == [(2, 2.0)]
+    assert ended == {1: True, 2: False}
 
 
 def record_environment(context: WorkerContext, task_id: int) -> None:

@@ -208,7 +208,10 @@ async def _database_unavailable(connection: HTTPConnection, exc: Exception) -> J
 
 async def _internal(request: Request, exc: Exception) -> JSONResponse:
     """Anything no other handler took: a 500 in the common body (the error is logged with its
-    traceback by the server, never sent)."""
+    traceback by the server, never sent), with the security headers: it is answered outside
+    the middleware that adds them."""
+    from server.api.hardening import SECURITY_HEADERS  # which imports this module
+
     return JSONResponse(
         {
             "detail": [
@@ -220,6 +223,7 @@ async def _internal(request: Request, exc: Exception) -> JSONResponse:
             ]
         },
         status_code=500,
+        headers=SECURITY_HEADERS,
     )
 
 

@@ -346,3 +346,5 @@ def test_an_unexpected_error_is_a_json_500_that_tells_nothing_of_its_cause(tmp_p
     (item,) = answer.json()["detail"]
     assert item["loc"] == ["server"] and item["type"] == "internal_error"
     assert "secret" not in answer.text
+    assert answer.headers["x-content-type-options"] == "nosniff"
+    assert "default-src 'none'" in answer.headers["content-security-policy"]

@@ -104,10 +104,12 @@ export function isMissing(error) {
 }
 
 /** Replace a view whose subject does not exist with a "Not found" page: what was asked for,
- * and a way back. */
+ * and a way back. The new heading takes the focus only if the view had it (after a
+ * navigation), as every view's heading does. */
 export function notFound(root, what, [href, words]) {
+  const focused = root.contains(document.activeElement);
   const title = h("h1", { tabindex: "-1" }, "Not found");
   root.replaceChildren(title, h("p", { class: "problem", role: "alert", id: "not-found" }, `${what} does not exist.`), h("p", {}, link(href, words)));
   document.title = "Not found · srd-auction";
-  title.focus();
+  if (focused) title.focus();
 }

@@ -35,7 +35,11 @@ def cheap_checks(batch: FSNBatch) -> Cheap:
     """Every rule, probe and noisy check over the batch (see ``Cheap``)."""
     probed = probe(batch)
     noisy = evaluate(batch)
-    groups = [*semantic_checks(Numbers.of(batch)), probed.checks, noisy.checks]
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # absurd weights
+        # overflow the rules' arithmetic: the magnitude rule refuses them, and the other
+        # reasons say "not finite" in words (``findings.fmt``), not a warning on stderr
+        rules = semantic_checks(Numbers.of(batch))
+    groups = [*rules, probed.checks, noisy.checks]
     return Cheap(batch, groups, probed.holds | noisy.holds, probed, noisy)
 
 

@@ -7,6 +7,7 @@ written only for the manifests that failed.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -61,6 +62,18 @@ def check(rule: str, neuron: str, failed: Mask, message: Callable[[int], str]) -
     return Checks((rule,), (neuron,), failed[:, None], lambda k, p: message(p))
 
 
+def fmt(value: float, spec: str = ".3g") -> str:
+    """A number as a reason's words print it: with ``spec``, in the short ``g`` form from a
+    million up (a weight of 1e308 is no 300-digit line), and an overflow said in words (the
+    magnitude rule refuses such weights; the other rules still read them)."""
+    value = float(value)
+    if not math.isfinite(value):
+        return "not finite (beyond the float range)"
+    if abs(value) >= 1e6 and not spec.endswith("g"):
+        return ("+" if spec.startswith("+") and value >= 0 else "") + f"{value:.3g}"
+    return format(value, spec)
+
+
 def fmt_price(value: float) -> str:
     """A price or price-like number as the messages print it."""
-    return f"{value:.2f}"
+    return fmt(value, ".2f")

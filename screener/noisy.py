@@ -31,7 +31,7 @@ from agents.batch import FSNBatch
 from agents.forward import activations, clean_logits, decision_logits, noise_scale
 from agents.manifest import ES_NEURONS, INPUTS
 from screener import limits
-from screener.findings import ROLE, Array, Checks, Mask, fmt_price
+from screener.findings import ROLE, Array, Checks, Mask, fmt, fmt_price
 from screener.probes import (
     ACTION_WORDS,
     BUY,
@@ -265,7 +265,7 @@ def _setting(batch: FSNBatch, p: int) -> str:
 
 def _words(scores: Array) -> str:
     b, h, q = scores
-    return f"B {b:+.2f}, L {h:+.2f}, Q {q:+.2f} on average"
+    return f"B {fmt(b, '+.2f')}, L {fmt(h, '+.2f')}, Q {fmt(q, '+.2f')} on average"
 
 
 def _sensors(batch: FSNBatch, p: int, i: int, f: int) -> tuple[Array, Array]:
@@ -301,6 +301,7 @@ def _moved(batch: FSNBatch, p: int, i: int, f: int) -> str:
     k = int(np.argmax(np.abs(noisy - clean)))
     name = ES_NEURONS[k]
     return (
-        f"{ROLE[name]} {name} reads {clean[k]:.2f} on the clean fish and {noisy[k]:.2f} "
+        f"{ROLE[name]} {name} reads {fmt(clean[k], '.2f')} on the clean fish and "
+        f"{fmt(noisy[k], '.2f')} "
         "averaged over its noisy copies"
     )

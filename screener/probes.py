@@ -39,7 +39,7 @@ import torch
 from agents.batch import FSNBatch
 from agents.forward import clean_logits
 from screener import limits
-from screener.findings import Array, Checks, Mask, fmt_price
+from screener.findings import Array, Checks, Mask, fmt, fmt_price
 from screener.rules import SUBTYPES
 
 BUY, HOLD, QUIT = range(3)
@@ -150,7 +150,7 @@ def _fish(q: int, s: int) -> str:
 
 def _scores(logits: Array) -> str:
     b, h, q = logits
-    return f"B {b:+.2f}, L {h:+.2f}, Q {q:+.2f}"
+    return f"B {fmt(b, '+.2f')}, L {fmt(h, '+.2f')}, Q {fmt(q, '+.2f')}"
 
 
 def probe(batch: FSNBatch) -> Probed:
@@ -374,8 +374,8 @@ def _buy_falls_with_price(grid: _OnGrid) -> Probe:
         low = int(np.argmin(margins[: i + 1]))
         return (
             f"on {_fish(q, s)} with buy fraction {DEMANDS[f]:g} its buy margin B − max(L, Q) "
-            f"rises from {margins[low]:+.2f} at price {fmt_price(PRICES[low])} to "
-            f"{margins[i]:+.2f} at {fmt_price(PRICES[i])} (clipped to "
+            f"rises from {fmt(margins[low], '+.2f')} at price {fmt_price(PRICES[low])} to "
+            f"{fmt(margins[i], '+.2f')} at {fmt_price(PRICES[i])} (clipped to "
             f"±{limits.FIRM_MARGIN:g}): it turns from refusing to buying as the price rises"
         )
 

@@ -10,7 +10,7 @@ from agents.batch import ACTIVATION_KINDS, SELECTIVE, THRESHOLD
 from agents.manifest import ES_NEURONS, INPUTS
 from agents.negotiator import SENSOR_ACTIVATIONS
 from screener import limits
-from screener.findings import INPUT_WORDS, ROLE, Array, Checks, Mask, check, fmt_price
+from screener.findings import INPUT_WORDS, ROLE, Array, Checks, Mask, check, fmt, fmt_price
 from screener.rules.numbers import (
     BASE,
     DEMAND,
@@ -78,8 +78,8 @@ def activation_checks(n: Numbers) -> list[Checks]:
             "ST",
             (n.es_kind[:, ST] == SELECTIVE) & outside(eps, low, high),
             lambda p: (
-                f"ST's selective ε = {eps[p]:.3g} gives a peak half-width √ε = "
-                f"{np.sqrt(eps[p]):.3g}, outside {np.sqrt(low):g} to {np.sqrt(high):g}: "
+                f"ST's selective ε = {fmt(eps[p])} gives a peak half-width √ε = "
+                f"{fmt(np.sqrt(eps[p]))}, outside {np.sqrt(low):g} to {np.sqrt(high):g}: "
                 "it is blind or sees every sub-type alike"
             ),
         ),
@@ -101,9 +101,10 @@ def price_checks(n: Numbers) -> list[Checks]:
     def quality_message(k: int, p: int) -> str:
         q = QUALITY_INPUTS[k]
         return (
-            f"PG has weight {n.es_weight[p, PG, q]:+.3g} from {INPUT_WORDS[INPUTS[q]]}: a better "
+            f"PG has weight {fmt(n.es_weight[p, PG, q], '+.3g')} from "
+            f"{INPUT_WORDS[INPUTS[q]]}: a better "
             "fish looks dearer to it, and across the fish on sale its willingness to pay drops "
-            f"by {drop[p, k]:.2f}"
+            f"by {fmt(drop[p, k], '.2f')}"
         )
 
     return [
@@ -121,7 +122,8 @@ def price_checks(n: Numbers) -> list[Checks]:
             threshold & outside(wtp, low, high),
             lambda p: (
                 f"PG crosses its threshold at price {fmt_price(wtp[p])} on the base fish: a "
-                f"declared willingness to pay of {wtp[p] / limits.BASE_PRICE:.2g}× the base "
+                "declared willingness to pay of "
+                f"{fmt(wtp[p] / limits.BASE_PRICE, '.2g')}× the base "
                 f"price {limits.BASE_PRICE:g}, outside the plausible {fmt_price(low)} to "
                 f"{fmt_price(high)}"
             ),
@@ -142,7 +144,7 @@ def _rises(rule: str, n: Numbers, neuron: int, inputs: tuple[int, ...], conseque
     def message(k: int, p: int) -> str:
         inp = inputs[k]
         return (
-            f"{name}, {ROLE[name]}, has weight {n.es_weight[p, neuron, inp]:+.3g} from "
+            f"{name}, {ROLE[name]}, has weight {fmt(n.es_weight[p, neuron, inp], '+.3g')} from "
             f"{INPUT_WORDS[INPUTS[inp]]}: {consequence}"
         )
 
@@ -160,7 +162,7 @@ def _sharpness(n: Numbers, gain: Array, ok_sign: Mask) -> Checks:
         name, g = names[k], gain[p, k]
         low, high = SHARPNESS_LOW[k], SHARPNESS_HIGH[k]
         return (
-            f"{ROLE[name]} {name} changes its threshold argument by {g:.3g} per "
+            f"{ROLE[name]} {name} changes its threshold argument by {fmt(g)} per "
             f"{SHARPNESS_UNITS[k]} (design {SHARPNESS_DESIGN[k]:g}; allowed {low:g} to "
             f"{high:g}): " + ("a hidden step" if g > high else "nearly flat, it hardly reacts")
         )
@@ -180,7 +182,7 @@ def _reference_check(
         name,
         (n.es_kind[:, neuron] == THRESHOLD) & outside(point, low, high),
         lambda p: (
-            f"{name} crosses its threshold at {what} {point[p]:.2f}, outside {low:g} to "
+            f"{name} crosses its threshold at {what} {fmt(point[p], '.2f')}, outside {low:g} to "
             f"{high:g}: {why}"
         ),
     )
@@ -229,7 +231,8 @@ def subtype_checks(n: Numbers) -> list[Checks]:
     def message(p: int) -> str:
         s = ", ".join("½" if v > 0 else "−½" for v in SUBTYPES[rival[p]])
         return (
-            f"ST reaches {best_rival[p]:.3g} at sub-type ({s}) against {response[p, 0]:.3g} at "
+            f"ST reaches {fmt(best_rival[p])} at sub-type ({s}) against "
+            f"{fmt(response[p, 0])} at "
             "the preferred (½, ½, ½): its bias and weights do not make the preferred sub-type "
             "its clear peak"
         )
@@ -258,8 +261,9 @@ def off_design_checks(n: Numbers) -> list[Checks]:
         named_words = " and ".join(INPUT_WORDS[INPUTS[j]] for j in SENSOR_INPUTS[name])
         j = int(share[p, i].argmax())
         return (
-            f"{ROLE[name]} {name} has weight {n.es_weight[p, i, j]:+.3g} from "
-            f"{INPUT_WORDS[INPUTS[j]]}, moving it {share[p, i, j]:.2f}× as much as {named_words}: "
+            f"{ROLE[name]} {name} has weight {fmt(n.es_weight[p, i, j], '+.3g')} from "
+            f"{INPUT_WORDS[INPUTS[j]]}, moving it {fmt(share[p, i, j], '.2f')}× as much as "
+            f"{named_words}: "
             "it is not about what its name says"
         )
 

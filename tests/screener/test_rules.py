@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -199,3 +201,23 @@ def test_every_reason_names_a_known_neuron(honest):
         assert not verdict.accepted
         assert {r.neuron for r in verdict.reasons} <= KNOWN_NEURONS
         assert all(r.message for r in verdict.reasons)
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [
+        {"external_sensor.PG.weights.price": 5e-324},
+        {"external_sensor.PG.weights.st1": 1e308},
+        {"external_sensor.LSR.weights.buy_fraction": 5e-324},
+        {"external_sensor.SZ.weights.buy_fraction": 1e16},
+    ],
+)
+def test_absurd_weights_are_refused_in_readable_words(honest, changes) -> None:
+    """Weights far outside the design (a fuzzer's finds) are refused, and every reason still
+    reads as words and short numbers: no "inf", "nan" or 300-digit number in a message."""
+    verdict = screen(edit(honest, changes))
+    assert not verdict.accepted
+    for reason in verdict.reasons:
+        words = reason.message.lower()
+        assert "inf" not in words.replace("infer", "") and "nan" not in words, reason
+        assert not re.search(r"\d{12}", reason.message), reason

@@ -81,7 +81,11 @@ def reference_point(n: Numbers, neuron: int) -> Array:
     weights = n.es_weight[:, neuron]
     named_weights = weights[:, named]
     slope = named_weights.sum(axis=1)
-    rest = weights @ BASE - named_weights @ base_named + n.es_bias[:, neuron]
+    # Sums along each row, not matrix products: a product's kernel depends on the batch size,
+    # and with absurd weights (1e308) its rounding decides inf or NaN, so a model's reasons
+    # would depend on the batch it is judged in.
+    rest = (weights * BASE).sum(axis=1) - (named_weights * base_named).sum(axis=1)
+    rest = rest + n.es_bias[:, neuron]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(slope > 0, (n.es_c[:, neuron] - rest) / slope, np.nan)
 

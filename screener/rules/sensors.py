@@ -220,8 +220,10 @@ def subtype_checks(n: Numbers) -> list[Checks]:
     """ST: positive weights on the sub-type flags and a selective peak at (½, ½, ½)."""
     flags = "the preferred sub-type (½, ½, ½) needs a positive weight on every flag"
     others = OTHER_THAN_SUBTYPES
-    rest = n.es_weight[:, ST, others] @ BASE[others] + n.es_bias[:, ST]
-    pre = rest[:, None] + n.es_weight[:, ST, list(SUBTYPE_INPUTS)] @ SUBTYPES.T  # (P, 8)
+    # Row sums, not matrix products, as in ``reference_point``: the same reasons in any batch.
+    rest = (n.es_weight[:, ST, others] * BASE[others]).sum(axis=1) + n.es_bias[:, ST]
+    on_flags = n.es_weight[:, ST, list(SUBTYPE_INPUTS)]
+    pre = rest[:, None] + (on_flags[:, None, :] * SUBTYPES[None, :, :]).sum(axis=2)  # (P, 8)
     eps = n.es_epsilon[:, ST, None]
     response = eps / (eps + pre * pre)
     rival = 1 + response[:, 1:].argmax(axis=1)

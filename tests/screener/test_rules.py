@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import re
+from typing import Any
 
 import numpy as np
 import pytest
 
+from agents.manifest import parse_manifest
 from agents.negotiator import honest_manifest
-from screener import screen
+from screener import screen, screen_many
 from screener.probes import probe
 from screener.rules import Numbers, semantic_checks
 from tests.support.corpus import edit
@@ -221,3 +223,31 @@ def test_absurd_weights_are_refused_in_readable_words(honest, changes) -> None:
         words = reason.message.lower()
         assert "inf" not in words.replace("infer", "") and "nan" not in words, reason
         assert not re.search(r"\d{12}", reason.message), reason
+
+
+def _absurd(data: Any, sign: list[float]) -> None:
+    """Every weight and bias of ``data`` set to ±1e308 in turn (``sign`` carries the turn)."""
+    if isinstance(data, dict):
+        for key, value in data.items():
+            if key in ("weights", "bias") and isinstance(value, dict):
+                for name in value:
+                    sign[0] = -sign[0]
+                    value[name] = sign[0] * 1e308
+            elif key == "bias" and isinstance(value, float):
+                sign[0] = -sign[0]
+                data[key] = sign[0] * 1e308
+            else:
+                _absurd(value, sign)
+
+
+def test_absurd_weights_get_the_same_reasons_alone_and_in_a_batch(honest) -> None:
+    """A fuzzer's find: every weight ±1e308 in turn. Screened alone or among honest models,
+    the model gets the same reasons, word for word."""
+    data = honest.model_dump(mode="json")
+    _absurd(data, [1.0])
+    absurd = parse_manifest(data)
+    others = [honest_manifest(np.random.default_rng(i), f"h{i}") for i in range(5)]
+    alone = screen(absurd)
+    batched = screen_many([*others, absurd])[-1]
+    assert not alone.accepted
+    assert [r.to_dict() for r in batched.reasons] == [r.to_dict() for r in alone.reasons]

@@ -591,6 +591,7 @@ def test_every_page_passes_axe_and_the_heading_is_focused_only_on_navigation(
         "#/jobs": "#job-list tbody tr",
         f"#/jobs/{studies[0]['id']}": "#headline .card",
         f"#/jobs/compare?ids={studies[0]['id']},{studies[1]['id']}": "#compare-params",
+        "#/auctions/999999": "#not-found",
     }
     problems: dict[str, list[str]] = {}
     for address, ready in views.items():

@@ -9,7 +9,7 @@ time):
   followed to its end;
 * jobs: small fish and auction-study jobs every ``--job-every`` seconds, followed to their end;
 * reads: GET /healthz, /models/{id}, /auctions/{id}, /jobs/{id};
-* bad requests: broken JSON (400), a wrong token (403), a missing model (404) — each must get
+* bad requests: broken JSON (422), a wrong token (403), a missing model (404) — each must get
   exactly that answer.
 
 Reports per endpoint: requests, p50 and p99 latency, unexpected answers (anything but the
@@ -158,7 +158,7 @@ async def read(load: Load) -> None:
 async def bad(load: Load) -> None:
     json_header = {"Content-Type": "application/json"}
     await load.call(
-        "bad: broken JSON", 400, "POST", "/submit", content=b'{"x": ', headers=json_header
+        "bad: broken JSON", 422, "POST", "/submit", content=b'{"x": ', headers=json_header
     )
     await load.call("bad: missing model", 404, "GET", "/models/2000000000")
     if load.tokens:

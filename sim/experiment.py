@@ -41,8 +41,18 @@ def no_progress(fraction: float, message: str) -> None:
 
 def default_out_dir(command: str, seed: int, root: str | Path = "runs") -> Path:
     """``runs/<command>__<seed>__<YYYYmmdd-HHMMSS>/`` (local time), as CleanRL names its runs
-    but readable."""
-    return Path(root) / f"{command}__{seed}__{time.strftime('%Y%m%d-%H%M%S')}"
+    but readable, made here and now; a run that started in the same second with the same
+    command and seed already made it, so this one takes ``...-2`` (``-3``, ...)."""
+    base = Path(root) / f"{command}__{seed}__{time.strftime('%Y%m%d-%H%M%S')}"
+    base.parent.mkdir(parents=True, exist_ok=True)
+    for n in itertools.count(1):
+        path = base if n == 1 else base.with_name(f"{base.name}-{n}")
+        try:
+            path.mkdir()
+        except FileExistsError:
+            continue
+        return path
+    raise AssertionError("unreachable")
 
 
 def write_json(path: Path, obj: Any) -> None:
@@ -240,9 +250,11 @@ def config_schema(cls: type) -> dict[str, Any]:
 
 
 def _split_list(field: ConfigField, value: Any) -> Any:
-    """A comma-separated string for a list field ("0.1,0.5", the command line's spelling): its
-    items, each read as a JSON number for numeric lists; any other value is left for the
-    validator."""
+    """A list field's value as the command line spells it: a comma-separated string ("0.1,0.5")
+    gives its items, each read as a JSON number for numeric lists; a single number or word
+    gives a list of one; any other value is left for the validator."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return [value]
     if not isinstance(value, str):
         return value
     parts = [part.strip() for part in value.split(",") if part.strip()]
@@ -268,14 +280,15 @@ def _non_finite(value: Any, path: tuple[str | int, ...]) -> list[tuple[str | int
     return []
 
 
-def parse_config(cls: type[C], params: Any, *, text_lists: bool = False) -> C:
+def parse_config(cls: type[C], params: Any) -> C:
     """Build the config dataclass ``cls`` from JSON-like ``params``, strictly.
 
-    Keys may use dashes or underscores (``train-maps`` or ``train_maps``). Values are checked as
-    JSON would type them: a number must be a number (not ``"3"``), a flag a boolean, integers
-    integral, a list a JSON array; NaN and ±inf are refused; so are unknown keys. With
-    ``text_lists`` (the command line) list fields take a comma-separated string instead, its
-    items read as JSON numbers where numbers are due. Every problem is reported with the field
+    Keys may use dashes or underscores (``train-maps`` or ``train_maps``), and a flag its
+    command line negation (``"no-srd": true`` is ``"srd": false``). Values are checked as JSON
+    would type them: a number must be a number (not ``"3"``), a flag a boolean, integers
+    integral; NaN and ±inf are refused; so are unknown keys. A list takes a JSON array, a
+    comma-separated string as on the command line (``"0.1,0.5"``, its items read as JSON
+    numbers where numbers are due) or a single value. Every problem is reported with the field
     it concerns.
     """
     if not isinstance(params, dict):
@@ -285,15 +298,18 @@ def parse_config(cls: type[C], params: Any, *, text_lists: bool = False) -> C:
     errors: list[dict[str, str]] = []
     for key, value in params.items():
         name = str(key).replace("-", "_")
+        flag = fields.get(name.removeprefix("no_"))
+        if name not in fields and flag is not None and flag.kind == "bool":
+            name, value = flag.name, (not value) if isinstance(value, bool) else value
         if name not in fields:
             errors.append(
                 {"field": str(key), "message": f"unknown option; known: {sorted(fields)}"}
             )
         elif name in clean:
-            errors.append({"field": str(key), "message": "given twice (dashes and underscores)"})
+            errors.append({"field": str(key), "message": "given twice (spelt two ways)"})
         else:
-            is_text_list = text_lists and fields[name].kind == "list"
-            clean[name] = _split_list(fields[name], value) if is_text_list else value
+            is_list = fields[name].kind == "list"
+            clean[name] = _split_list(fields[name], value) if is_list else value
     for path in _non_finite(clean, ()):
         errors.append(
             {"field": ".".join(str(p) for p in path), "message": "must be a finite number"}

@@ -5,8 +5,9 @@ and its JSON.
 Content-Length up front and by counting what arrives), then, for a request that carries one:
 
 * a media type other than JSON (``application/json`` or ``application/*+json``) gets 415;
-* bytes that are not UTF-8 (a UTF-16 body, a byte-order mark) get 400;
-* text that is not JSON, or nests deeper than ``MAX_DEPTH``, gets 400;
+* bytes that are not UTF-8 (a UTF-16 body, a byte-order mark), text that is not JSON, or JSON
+  nested deeper than ``MAX_DEPTH``, get 422 at ``["body"]`` (a malformed body, as FastAPI
+  answers invalid JSON);
 * a key given twice in one object, or a NaN / Infinity token, gets 422 naming its path.
 
 What passes reaches the route unchanged; the route validates it against its schema (strict
@@ -51,7 +52,7 @@ def _resolve(value: Any, path: tuple[str | int, ...], depth: int) -> Any:
     """Turn parsed pairs into dicts, refusing duplicate keys and too deep a nesting."""
     if depth > MAX_DEPTH:
         raise BodyRefusedError(
-            400, f"JSON nested deeper than {MAX_DEPTH} levels", ("body",), "json_depth"
+            422, f"JSON nested deeper than {MAX_DEPTH} levels", ("body",), "json_depth"
         )
     if isinstance(value, _Pairs):
         out: dict[str, Any] = {}
@@ -144,23 +145,23 @@ def parse_strict_json(raw: bytes) -> Any:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise BodyRefusedError(
-            400, f"the body is not UTF-8 (byte {exc.start})", ("body",), "not_utf8"
+            422, f"the body is not UTF-8 (byte {exc.start})", ("body",), "not_utf8"
         ) from exc
     if text.startswith("\ufeff"):
-        raise BodyRefusedError(400, "the body starts with a byte-order mark", ("body",), "bom")
+        raise BodyRefusedError(422, "the body starts with a byte-order mark", ("body",), "bom")
     try:
         return _fast(text)
     except (_UnfitError, RecursionError):
         pass  # the careful pass below finds what and where
     except ValueError as exc:
-        raise BodyRefusedError(400, f"the body is not JSON: {exc}", ("body",), "not_json") from exc
+        raise BodyRefusedError(422, f"the body is not JSON: {exc}", ("body",), "not_json") from exc
     try:
         parsed = json.loads(text, object_pairs_hook=_Pairs, parse_int=_int_careful)
     except ValueError as exc:
-        raise BodyRefusedError(400, f"the body is not JSON: {exc}", ("body",), "not_json") from exc
+        raise BodyRefusedError(422, f"the body is not JSON: {exc}", ("body",), "not_json") from exc
     except RecursionError as exc:
         raise BodyRefusedError(
-            400, f"JSON nested deeper than {MAX_DEPTH} levels", ("body",), "json_depth"
+            422, f"JSON nested deeper than {MAX_DEPTH} levels", ("body",), "json_depth"
         ) from exc
     return _resolve(parsed, (), 0)
 

@@ -248,7 +248,7 @@ def link(operation_id: str, parameter: str, field: str) -> dict[str, Any]:
 def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     """OpenAPI ``responses`` entries for the error codes a route can answer."""
     text = {
-        400: "Unreadable request (body not UTF-8, not JSON, nested too deep; bad Content-Length)",
+        400: "Unreadable request (bad Content-Length, a token in the query)",
         401: "No bearer token",
         403: "Wrong bearer token",
         404: "No such resource",
@@ -256,7 +256,8 @@ def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         410: "Gone: the fine-tuning round named has closed (or its deadline passed)",
         413: "Request body too large",
         415: "Request body is not JSON (Content-Type)",
-        422: "Invalid input; ``loc`` names the field",
+        422: "Invalid input (a body not UTF-8, not JSON or nested too deep among it); ``loc`` "
+        "names the field",
         429: "Over a quota or rate limit; ``Retry-After`` says when to try again",
         503: "A service the request needs is unavailable; retry",
     }

@@ -224,7 +224,7 @@ class RoundSockets:
                 return
             if text is None:
                 await socket.send(
-                    _error(None, 400, "send uploads as text frames of JSON", ("message",))
+                    _error(None, 422, "send uploads as text frames of JSON", ("message",))
                 )
                 continue
             async with socket.answering:

@@ -123,7 +123,7 @@ def execute(
 
     torch.set_num_threads(WORKER_TORCH_THREADS)
     try:
-        config = parse_config(config_cls, options, text_lists=True)
+        config = parse_config(config_cls, options)
     except ConfigError as exc:
         for err in exc.errors:
             name = err["field"].split(".")[0].replace("_", "-")

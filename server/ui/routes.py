@@ -1,6 +1,6 @@
 """The web view and the API docs, from files shipped in the packages (nothing from a CDN).
 
-``GET /`` redirects to ``/ui/``: one page (``server/ui/index.html``, plain HTML, CSS and
+``GET /`` and ``/ui/`` answer the web view: one page (``server/ui/index.html``, plain HTML, CSS and
 JavaScript modules, no build step) that reads the JSON API and the event streams. ``/docs``
 (Swagger UI) and ``/redoc`` load their scripts from ``/ui/vendor/``, the copies that the
 ``fastapi-offline`` package ships. The page needs no token and puts none in a URL: it only
@@ -101,9 +101,9 @@ def _file(files: dict[str, Path], name: str) -> FileResponse:
 
 
 @router.get("/")
-async def root() -> RedirectResponse:
-    """The web view."""
-    return RedirectResponse("/ui/", status_code=307)
+async def root() -> FileResponse:
+    """The web view (the same page as ``/ui/``)."""
+    return _file(UI_FILES, "index.html")
 
 
 @router.get("/ui")

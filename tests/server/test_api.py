@@ -142,10 +142,10 @@ def test_submit_non_finite_number_is_refused_with_its_path(
 
 
 @pytest.mark.parametrize(
-    ("raw", "status"), [('{"participant": ', 400), ("[1, 2]", 422), ('"manifest"', 422), ("", 422)]
+    ("raw", "status"), [('{"participant": ', 422), ("[1, 2]", 422), ('"manifest"', 422), ("", 422)]
 )
 def test_submit_malformed_json_or_wrong_type(client: TestClient, raw: str, status: int) -> None:
-    """Text that is not JSON is unreadable (400); JSON of the wrong shape is invalid (422)."""
+    """Text that is not JSON and JSON of the wrong shape are both malformed: 422."""
     response = client.post("/submit", content=raw, headers={"Content-Type": "application/json"})
     assert response.status_code == status
     assert all(loc[0] == "body" for loc in locs(response))

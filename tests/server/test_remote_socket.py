@@ -126,10 +126,10 @@ def test_socket_refusals_name_the_field_and_store_nothing(
             answer_to(ws, upload_text(1, model_id, good)), 403, ["header", "Authorization"], name
         )
     with client.websocket_connect(path, headers=bearer(token)) as ws:
-        refusal(answer_to(ws, "not json"), 400, ["message"], "not JSON")
-        refusal(answer_to(ws, "[" * 60_000 + "]" * 60_000), 400, ["message"], "nested deeper")
+        refusal(answer_to(ws, "not json"), 422, ["message"], "not JSON")
+        refusal(answer_to(ws, "[" * 60_000 + "]" * 60_000), 422, ["message"], "nested deeper")
         ws.send_bytes(b"{}")
-        refusal(json.loads(ws.receive_text()), 400, ["message"], "text frames")
+        refusal(json.loads(ws.receive_text()), 422, ["message"], "text frames")
         extra = json.dumps(
             {"type": "upload", "round": 1, "model_id": model_id, "manifest": good, "x": 1}
         )
@@ -225,7 +225,7 @@ def test_a_socket_over_its_message_allowance_is_closed(
             while True:
                 statuses.append(json.loads(ws.receive_text())["status"])
     assert closed.value.code == 1008 and "messages" in closed.value.reason
-    assert BURST <= len(statuses) < 2 * BURST and set(statuses) == {400}
+    assert BURST <= len(statuses) < 2 * BURST and set(statuses) == {422}
 
 
 def test_a_frame_over_the_limit_closes_the_socket(

@@ -109,13 +109,13 @@ def test_body_must_be_utf8_json(client: TestClient) -> None:
     text = json.dumps(honest(unique("enc")))
     before = count(client, ModelVersion)
     utf16 = client.post("/submit", content=text.encode("utf-16"), headers=JSON)
-    assert utf16.status_code == 400 and locs(utf16) == [["body"]]
+    assert utf16.status_code == 422 and locs(utf16) == [["body"]]
     bom = client.post("/submit", content=b"\xef\xbb\xbf" + text.encode(), headers=JSON)
-    assert bom.status_code == 400
+    assert bom.status_code == 422
     broken = client.post("/submit", content=text[:-1], headers=JSON)
-    assert broken.status_code == 400 and "not JSON" in broken.json()["detail"][0]["msg"]
+    assert broken.status_code == 422 and "not JSON" in broken.json()["detail"][0]["msg"]
     deep = client.post("/submit", content="[" * 5000 + "]" * 5000, headers=JSON)
-    assert deep.status_code == 400
+    assert deep.status_code == 422
     latin = client.post(
         "/submit", content=text, headers={"Content-Type": "application/json; charset=latin-1"}
     )
@@ -176,6 +176,44 @@ def test_job_params_are_typed_strictly(client: TestClient, params, loc) -> None:
     before = count(client, Job)
     response = client.post("/jobs", json={"kind": "fish", "params": params}, headers=ADMIN)
     assert response.status_code == 422
+    assert loc in locs(response)
+    assert count(client, Job) == before
+
+
+@pytest.mark.parametrize(
+    ("kind", "params", "stored"),
+    [
+        ("auction-study", {"rarities": "0.1, 0.5", "trials": 1}, {"rarities": [0.1, 0.5]}),
+        ("auction-study", {"rarities": 0.5, "trials": 1}, {"rarities": [0.5]}),
+        ("cheetah", {"backswing": "1,2", "trials": 1, "steps": 10}, {"backswing": [1, 2]}),
+        ("fish", {"steps": 5, "no-srd": True}, {"srd": False}),
+        ("fish", {"steps": 5, "no_srd": False}, {"srd": True}),
+    ],
+)
+def test_job_params_take_the_command_lines_spellings(
+    client: TestClient, kind: str, params: dict[str, Any], stored: dict[str, Any]
+) -> None:
+    """As the CLI's options: a list comma-separated or as one value, a flag by its negation."""
+    created = client.post("/jobs", json={"kind": kind, "params": params}, headers=ADMIN)
+    assert created.status_code == 202, created.text
+    job_id = created.json()["job_id"]
+    job = client.get(f"/jobs/{job_id}").json()
+    assert {key: job["params"][key] for key in stored} == stored
+    client.delete(f"/jobs/{job_id}", headers=ADMIN)
+
+
+@pytest.mark.parametrize(
+    ("params", "loc"),
+    [
+        ({"rarities": "0.1,x"}, ["body", "params", "rarities", 1]),
+        ({"rarities": "0.1", "trials": 1, "no-screen": "yes"}, ["body", "params", "screen"]),
+        ({"srd": True}, ["body", "params", "srd"]),  # not an option of this kind
+    ],
+)
+def test_job_spellings_still_name_the_bad_field(client: TestClient, params, loc) -> None:
+    before = count(client, Job)
+    response = client.post("/jobs", json={"kind": "auction-study", "params": params}, headers=ADMIN)
+    assert response.status_code == 422, response.text
     assert loc in locs(response)
     assert count(client, Job) == before
 

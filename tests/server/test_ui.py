@@ -332,7 +332,9 @@ def test_api_docs_render_offline(page: Any, server: ServerProcess) -> None:
 def test_keyboard_reaches_every_section(page: Any, server: ServerProcess) -> None:
     page.goto(f"{server.url}/")
     page.wait_for_selector("#auction-list", timeout=WAIT_MS)
-    assert page.url.endswith("/ui/")
+    assert page.url == f"{server.url}/"  # the page itself, not a redirect
+    assert page.locator("link[rel=stylesheet]").count() == 1
+    assert page.evaluate("getComputedStyle(document.body).margin") == "0px"  # style.css loaded
     page.keyboard.press("Tab")
     assert page.evaluate("document.activeElement.id") == "skip"
     for section in ("Models", "Jobs"):

@@ -32,6 +32,14 @@ JSON_MEDIA_TYPES = ("application/json",)
 """Media types of a JSON body, besides the ``application/<anything>+json`` family."""
 
 
+MAX_CONTAINERS = 2_000
+"""Most arrays and objects in one body (a manifest has 37): what bounds the checks' work on a
+body that is all brackets, before any of them runs in Python."""
+
+MAX_CAREFUL_BYTES = 65_536
+"""Largest body searched for the place of a key given twice, a NaN, too long an integer or too
+deep a nesting (every upload fits): a bigger one is refused at ``["body"]``, saying what."""
+
 MAX_INT_DIGITS = 4300
 """Longest integer read (Python's own bound on reading one): a longer one gets 422 at its path."""
 
@@ -49,8 +57,9 @@ class _Pairs(list[tuple[str, Any]]):
 
 
 def _resolve(value: Any, path: tuple[str | int, ...], depth: int) -> Any:
-    """Turn parsed pairs into dicts, refusing duplicate keys and too deep a nesting."""
-    if depth > MAX_DEPTH:
+    """Turn parsed pairs into dicts, refusing duplicate keys and too deep a nesting (``depth``:
+    how many arrays and objects hold ``value``)."""
+    if depth >= MAX_DEPTH and isinstance(value, _Pairs | list):
         raise BodyRefusedError(
             422, f"JSON nested deeper than {MAX_DEPTH} levels", ("body",), "json_depth"
         )
@@ -63,8 +72,13 @@ def _resolve(value: Any, path: tuple[str | int, ...], depth: int) -> Any:
                 )
             out[key] = _resolve(item, (*path, key), depth + 1)
         return out
-    if isinstance(value, list):
-        return [_resolve(item, (*path, i), depth + 1) for i, item in enumerate(value)]
+    if isinstance(value, list):  # plain items as they are: a long list of numbers stays cheap
+        for i, item in enumerate(value):
+            if isinstance(item, _LOOKED_INTO) or (
+                isinstance(item, float) and not math.isfinite(item)
+            ):
+                value[i] = _resolve(item, (*path, i), depth + 1)
+        return value
     if isinstance(value, _LongInt):
         raise BodyRefusedError(
             422,
@@ -77,9 +91,17 @@ def _resolve(value: Any, path: tuple[str | int, ...], depth: int) -> Any:
     return value
 
 
+_LOOKED_INTO = (_Pairs, list, str)
+"""What ``_resolve`` is called on within a list (a str: ``_LongInt``), besides non-finite floats."""
+
+
 class _UnfitError(Exception):
     """The fast pass met a duplicate key, a non-finite number, too long an integer or too deep
-    a nesting: the careful pass (``_resolve``) says where."""
+    a nesting (the message and kind say which): the careful pass (``_resolve``) says where."""
+
+    def __init__(self, msg: str, kind: str) -> None:
+        super().__init__(msg)
+        self.msg, self.kind = msg, kind
 
 
 class _LongInt(str):
@@ -90,24 +112,37 @@ def _too_long(text: str) -> bool:
     return len(text) - text.startswith("-") > MAX_INT_DIGITS
 
 
-def _int_fast(text: str) -> int:
-    if _too_long(text):
-        raise _UnfitError
-    return int(text)
-
-
 def _int_careful(text: str) -> int | _LongInt:
     return _LongInt(text) if _too_long(text) else int(text)
+
+
+_LONG_DIGITS = re.compile(rf"\d{{{MAX_INT_DIGITS + 1}}}")
+"""A run of digits that could be an integer too long to read (or a long string or fraction):
+only then does a pass read each integer in Python."""
 
 
 _STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')
 _NOT_BRACKET = re.compile(r"[^\[\]{}]+")
 
 
-def _nesting(text: str) -> int:
-    """How deep the arrays and objects of JSON ``text`` nest (strings left out)."""
+def _brackets(text: str) -> str:
+    """The brackets of JSON ``text`` in order, strings left out; refuses more than
+    ``MAX_CONTAINERS`` arrays and objects (counted at C speed, before any Python loop)."""
+    brackets = _NOT_BRACKET.sub("", _STRING.sub("", text))
+    if brackets.count("[") + brackets.count("{") > MAX_CONTAINERS:
+        raise BodyRefusedError(
+            422,
+            f"more than {MAX_CONTAINERS} arrays and objects in one body",
+            ("body",),
+            "json_size",
+        )
+    return brackets
+
+
+def _nesting(brackets: str) -> int:
+    """How deep the arrays and objects nest, from their brackets (``_brackets``)."""
     depth = deepest = 0
-    for bracket in _NOT_BRACKET.sub("", _STRING.sub("", text)):
+    for bracket in brackets:
         if bracket in "[{":
             depth += 1
             if depth > deepest:
@@ -120,22 +155,23 @@ def _nesting(text: str) -> int:
 def _unique(items: list[tuple[str, Any]]) -> dict[str, Any]:
     out = dict(items)
     if len(out) != len(items):
-        raise _UnfitError
+        raise _UnfitError("a key appears twice in one object", "duplicate_key")
     return out
 
 
 def _non_finite(_: str) -> Any:
-    raise _UnfitError
+    raise _UnfitError("must be a finite number", "finite_number")
 
 
 def _fast(text: str) -> Any:
     """The JSON of ``text``, objects built as they are parsed; raises ``_UnfitError`` for anything
     ``_resolve`` would refuse (without saying where)."""
-    value = json.loads(
-        text, object_pairs_hook=_unique, parse_constant=_non_finite, parse_int=_int_fast
-    )
-    if _nesting(text) > MAX_DEPTH:
-        raise _UnfitError
+    brackets = _brackets(text) if "[" in text or "{" in text else ""
+    if _LONG_DIGITS.search(text):
+        raise _UnfitError(f"a number of more than {MAX_INT_DIGITS} digits", "number_too_long")
+    value = json.loads(text, object_pairs_hook=_unique, parse_constant=_non_finite)
+    if _nesting(brackets) > MAX_DEPTH:
+        raise _UnfitError(f"JSON nested deeper than {MAX_DEPTH} levels", "json_depth")
     return value
 
 
@@ -151,12 +187,23 @@ def parse_strict_json(raw: bytes) -> Any:
         raise BodyRefusedError(422, "the body starts with a byte-order mark", ("body",), "bom")
     try:
         return _fast(text)
-    except (_UnfitError, RecursionError):
-        pass  # the careful pass below finds what and where
+    except RecursionError:
+        pass  # the careful pass below says so
+    except _UnfitError as unfit:
+        if len(text) > MAX_CAREFUL_BYTES:  # what, but not where: a bounded amount of work
+            raise BodyRefusedError(
+                422,
+                f"{unfit.msg} (in a body over {MAX_CAREFUL_BYTES} bytes)",
+                ("body",),
+                unfit.kind,
+            ) from unfit
     except ValueError as exc:
         raise BodyRefusedError(422, f"the body is not JSON: {exc}", ("body",), "not_json") from exc
     try:
-        parsed = json.loads(text, object_pairs_hook=_Pairs, parse_int=_int_careful)
+        long_ints = _LONG_DIGITS.search(text) is not None
+        parsed = json.loads(
+            text, object_pairs_hook=_Pairs, parse_int=_int_careful if long_ints else None
+        )
     except ValueError as exc:
         raise BodyRefusedError(422, f"the body is not JSON: {exc}", ("body",), "not_json") from exc
     except RecursionError as exc:

@@ -7,7 +7,8 @@ Content-Security-Policy that lets nothing load and nobody frame the answer, ``no
 as strict: ``server.ui.routes``). It refuses a ``token`` or ``access_token`` query parameter
 with 400 naming it: tokens travel in the ``Authorization`` header, as URLs are logged and
 kept in browser histories; and that header given twice (400: which one counts would be a
-guess). ``RedactQueryFilter`` blanks such parameters (and any other whose
+guess), or a query parameter given twice (400 too: a route reads the last, a limit might read
+the first). ``RedactQueryFilter`` blanks such parameters (and any other whose
 name says secret) in uvicorn's access log lines.
 """
 
@@ -51,12 +52,14 @@ class SecurityHeadersMiddleware:
         if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
-        names = {
-            name
-            for name, _ in parse_qsl(
-                scope["query_string"].decode("latin-1"), keep_blank_values=True
-            )
-        }
+        pairs = parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True)
+        names = {name for name, _ in pairs}
+        if len(names) != len(pairs):  # which one counts would be a guess (``?wait=0&wait=30``)
+            twice = next(name for name in names if sum(n == name for n, _ in pairs) > 1)
+            message = f"the query parameter {twice!r} is given more than once: give it once"
+            loc = ("query", twice)
+            await _refuse(scope, receive, _with_headers(send), message, loc, "duplicate_parameter")
+            return
         for name in TOKEN_PARAMETERS:
             if name in names:
                 message = (

@@ -8,7 +8,8 @@
 * uploads (``PUT /auctions/{id}/rounds/{round}/models/{id}``, ``POST /submit``).
 
 A client is the SHA-256 of its bearer token where that token is a participant's or the
-operator's, else its address (as ``srd serve`` resolved it: a proxy's ``X-Forwarded-For``
+operator's, else its address (for event streams, an address's tokens together also hold at
+most a quarter of the process's streams: tokens are free to register) (as ``srd serve`` resolved it: a proxy's ``X-Forwarded-For``
 counts only from ``SRD_TRUSTED_PROXIES``). A token is looked up (one indexed read) the first
 time this process sees it; a made-up token counts against its address, so inventing tokens buys
 no shares. A request over its client's share is answered 429 with
@@ -56,6 +57,9 @@ class Limit:
     name: str
     per_token: int
     per_address: int
+    address_in_all: int | None = None
+    """What one address may hold in all, its participant tokens' included (None: no such
+    bound beyond its connections')."""
 
 
 def _template(path: str) -> re.Pattern[str]:
@@ -71,7 +75,12 @@ class ClientLimitsMiddleware:
         self.app = app
         self.retry_after_s = settings.limit_retry_after_s
         streams = Limit(
-            "event streams", settings.limit_client_streams, settings.limit_client_streams
+            "event streams",
+            settings.limit_client_streams,
+            settings.limit_client_streams,
+            # A token is free to register (a few hundred a day per address): without this,
+            # one address's tokens could hold every stream of the process.
+            max(settings.limit_client_streams, settings.max_event_streams // 4),
         )
         polls = Limit(
             "long polls", settings.limit_client_long_polls, settings.limit_client_long_polls
@@ -115,18 +124,26 @@ class ClientLimitsMiddleware:
             await self.app(scope, receive, send)
             return
         client, share = await self._client(scope, limit)
-        key = (limit.name, client)
-        if self.held[key] >= share:
+        keys = [(limit.name, client)]
+        if self.held[keys[0]] >= share:
             who = "participant token" if client.startswith("token:") else "address"
             await self._refuse(scope, receive, send, limit, share, who)
             return
-        self.held[key] += 1
+        if limit.address_in_all is not None and client.startswith("token:"):
+            keys.append((limit.name, f"all:{_address(scope)}"))
+            if self.held[keys[1]] >= limit.address_in_all:
+                who = "address (its participant tokens together)"
+                await self._refuse(scope, receive, send, limit, limit.address_in_all, who)
+                return
+        for key in keys:
+            self.held[key] += 1
         try:
             await self.app(scope, receive, send)
         finally:
-            self.held[key] -= 1
-            if not self.held[key]:
-                del self.held[key]
+            for key in keys:
+                self.held[key] -= 1
+                if not self.held[key]:
+                    del self.held[key]
 
     async def _client(self, scope: Scope, limit: Limit) -> tuple[str, int]:
         """Who the request counts against, and that client's share of ``limit``."""
@@ -136,8 +153,7 @@ class ClientLimitsMiddleware:
                 digest = hashlib.sha256(token).hexdigest()
                 if await self._real(scope, digest):
                     return f"token:{digest}", limit.per_token
-        client = scope.get("client")
-        return f"address:{client[0] if client else '-'}", limit.per_address
+        return f"address:{_address(scope)}", limit.per_address
 
     async def _real(self, scope: Scope, digest: str) -> bool:
         """Whether a token digest is a participant's or the operator's (a database that cannot
@@ -184,6 +200,11 @@ class ClientLimitsMiddleware:
                 await send({"type": "websocket.close", "code": CLOSE_TRY_AGAIN_LATER})
             return
         await response(scope, receive, send)
+
+
+def _address(scope: Scope) -> str:
+    client = scope.get("client")
+    return str(client[0]) if client else "-"
 
 
 def _looked_up(database: Database, digest: str) -> bool:

@@ -20,9 +20,10 @@ class EventHub:
         self.max_streams = max_streams
         self.open_streams = 0
 
-    def acquire(self) -> bool:
-        """Take one stream slot; False when all ``max_streams`` are in use."""
-        if self.open_streams >= self.max_streams:
+    def acquire(self, *, reserved: bool = False) -> bool:
+        """Take one stream slot; False when all ``max_streams`` are in use, unless ``reserved``
+        (the operator's, bounded by its client share)."""
+        if self.open_streams >= self.max_streams and not reserved:
             return False
         self.open_streams += 1
         return True

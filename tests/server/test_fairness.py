@@ -24,7 +24,7 @@ from server.store.db import Database
 from server.store.tables import RateEvent, participant_key
 from tests.support.factories import honest, unique
 from tests.support.live import create_unstarted_auction
-from tests.support.server import module_server
+from tests.support.server import ADMIN, module_server
 
 TRUSTED_PROXY = "127.0.0.2"
 SPOOFER = "127.0.0.3"
@@ -305,6 +305,53 @@ def test_made_up_tokens_count_against_their_address(server: ServerProcess, aucti
     anonymous: list[dict[str, str]] = [{}] * STREAMS_PER_CLIENT
     statuses = _streams_with(server, auction_id, "127.0.0.9", [*anonymous, real, made_up[2]])
     assert statuses == [200] * STREAMS_PER_CLIENT + [200, 429]  # the real token: its own share
+
+
+def test_an_address_tokens_together_hold_a_quarter_of_the_streams(
+    server: ServerProcess, auction_id: int
+) -> None:
+    """Tokens are free to register, so each address's tokens together hold at most a quarter
+    of the process's 256 streams (before, 20 registrations from one address held them all); and
+    when every stream is taken, the operator is still served."""
+    addresses = [f"127.0.0.{20 + i}" for i in range(5)]
+    tokens: dict[str, list[dict[str, str]]] = {}
+    for address in addresses:
+        with client_from(address, server) as client:
+            tokens[address] = []
+            for _ in range(5):
+                answer = client.post("/submit", json=honest(unique("streams")))
+                assert answer.status_code == 201, answer.text
+                tokens[address].append({"Authorization": f"Bearer {answer.json()['token']}"})
+
+    async def run() -> tuple[list[list[int]], int, int]:
+        held = Held()
+        try:
+            statuses = []
+            for address in addresses:
+                raws = [_get(f"/auctions/{auction_id}/events", h) for h in tokens[address]]
+                statuses.append(
+                    [
+                        (await _request(server, address, raw, held))[0]
+                        for raw in raws
+                        for _ in range(STREAMS_PER_CLIENT)
+                    ]
+                )
+            anonymous = await _request(server, "127.0.0.30", _get_events(auction_id), held)
+            admin = await _request(server, "127.0.0.30", _get_events(auction_id, ADMIN), held)
+            return statuses, anonymous[0], admin[0]
+        finally:
+            held.close()
+
+    statuses, anonymous, operator = asyncio.run(run())
+    quarter = 256 // 4
+    assert statuses[0] == [200] * quarter + [429] * (5 * STREAMS_PER_CLIENT - quarter)
+    assert all(set(each) <= {200, 429, 503} and each.count(200) <= quarter for each in statuses)
+    assert 503 in statuses[-1]  # the process is full: 4 × 64 ...
+    assert anonymous == 503 and operator == 200  # ... but for the operator
+
+
+def _get_events(auction_id: int, headers: dict[str, str] | None = None) -> bytes:
+    return _get(f"/auctions/{auction_id}/events", headers)
 
 
 def test_tokens_in_the_url_are_refused_and_never_logged(server: ServerProcess) -> None:

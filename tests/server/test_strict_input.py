@@ -238,6 +238,19 @@ def test_job_spellings_still_name_the_bad_field(client: TestClient, params, loc)
     assert count(client, Job) == before
 
 
+@pytest.mark.parametrize(
+    "path", ["/models?limit=3&limit=5", "/auctions/1/rounds/current?wait=0&after=1&wait=5"]
+)
+def test_a_query_parameter_given_twice_is_refused(client: TestClient, path: str) -> None:
+    """Which one counts would be a guess: the long poll's share once read the first ``wait``
+    and the route the last, so one address could hold four times its share of long polls."""
+    response = client.get(path)
+    assert response.status_code == 400
+    (item,) = response.json()["detail"]
+    name = path.split("?")[1].split("&")[-1].split("=")[0]
+    assert item["loc"] == ["query", name] and item["type"] == "duplicate_parameter"
+
+
 @pytest.mark.parametrize("raw", ["1.0", "1%20", "%201", "+1", "1e0", "0x1", "%EF%BC%91", "1_0"])
 def test_path_ids_are_digits_only(client: TestClient, raw: str) -> None:
     for prefix, name in (

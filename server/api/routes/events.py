@@ -27,7 +27,7 @@ from fastapi.sse import EventSourceResponse, ServerSentEvent
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
-from server.api.deps import DatabaseDep, EventHubDep, SettingsDep
+from server.api.deps import BearerDep, DatabaseDep, EventHubDep, ServicesDep, SettingsDep
 from server.api.errors import api_error, responses
 from server.api.routes.auctions import fine_tune_round_public, iteration_public
 from server.api.schemas import (
@@ -40,6 +40,7 @@ from server.api.schemas import (
     PatronPublic,
     RoundPurchasePublic,
 )
+from server.api.security import token_matches
 from server.auctions import service as auctions
 from server.jobs import service as jobs
 from server.live.events import EventHub
@@ -112,9 +113,15 @@ def _event_id(position: Position) -> str:
     return f"{iteration}.{phase}" if phase else str(iteration)
 
 
-async def _stream_slot(hub: EventHubDep) -> AsyncIterator[EventHub]:
-    """Hold one of the process's stream slots for the whole stream; 503 when none is free."""
-    if not hub.acquire():
+async def _stream_slot(
+    hub: EventHubDep, services: ServicesDep, credentials: BearerDep
+) -> AsyncIterator[EventHub]:
+    """Hold one of the process's stream slots for the whole stream; 503 when none is free,
+    except to the operator, whose streams (at most its client share) are always served."""
+    operator = credentials is not None and token_matches(
+        credentials.credentials, services.admin_token_hash
+    )
+    if not hub.acquire(reserved=operator):
         raise api_error(
             503,
             f"{hub.max_streams} event streams are open, the most this server holds; retry later",

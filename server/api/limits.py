@@ -8,11 +8,11 @@
 * uploads (``PUT /auctions/{id}/rounds/{round}/models/{id}``, ``POST /submit``).
 
 A client is the SHA-256 of its bearer token where that token is a participant's or the
-operator's, else its address (for event streams, an address's tokens together also hold at
-most a quarter of the process's streams: tokens are free to register) (as ``srd serve`` resolved it: a proxy's ``X-Forwarded-For``
+operator's, else its address (as ``srd serve`` resolved it: a proxy's ``X-Forwarded-For``
 counts only from ``SRD_TRUSTED_PROXIES``). A token is looked up (one indexed read) the first
 time this process sees it; a made-up token counts against its address, so inventing tokens buys
-no shares. A request over its client's share is answered 429 with
+no shares. As tokens are free to register, an address's tokens together also hold at most a
+quarter of the process's event streams. A request over its client's share is answered 429 with
 ``Retry-After`` and ``Connection: close`` before any route runs: clients are paced, never
 queued. The routes' own process-wide caps stay behind this as the last line.
 

@@ -54,6 +54,10 @@ class Settings(BaseSettings):
     max_queued_jobs: Annotated[int, Field(ge=1, le=100_000)] = 64
     """Jobs waiting to run at most: past it ``POST /jobs`` is answered 503 with
     ``Retry-After`` (``JOB_QUEUE_RETRY_AFTER_S``) until some have started."""
+    max_live_auctions: Annotated[int, Field(ge=1, le=1_000_000)] = 256
+    """Auctions pending or running at most: past it ``POST /auctions`` is answered 503 with
+    ``Retry-After`` until some have ended (each live auction holds its rows and, while it
+    plays, a worker's time)."""
     auction_timeout_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 3600.0
     """Wall-time limit of one auction step (iterations played until the auction ends or opens
     a round): a step still running after this long is stopped and its auction failed."""

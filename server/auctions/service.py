@@ -5,12 +5,15 @@ from __future__ import annotations
 from sqlalchemy.orm import Session
 
 from server.api.errors import RequestError, api_error, error_item
-from server.api.schemas import AuctionCreate
+from server.api.schemas import MAX_PATRONS, AuctionCreate
 from server.auctions.steps import base_price
 from server.store import crud
 from server.store.status import ModelStatus
 from server.work.runner import BackgroundRunner
 from sim.market import fish_on_sale
+
+LIVE_RETRY_AFTER_S = 30
+"""``Retry-After`` of an auction refused while ``max_live_auctions`` are pending or running."""
 
 
 def patron_ids(session: Session, model_ids: list[int] | None) -> list[int]:
@@ -26,6 +29,14 @@ def patron_ids(session: Session, model_ids: list[int] | None) -> list[int]:
                 "no accepted model exists yet: submit models first",
                 loc=("body", "model_ids"),
                 kind="no_patrons",
+            )
+        if len(ids) > MAX_PATRONS:
+            raise api_error(
+                409,
+                f"{len(ids)} participants have an accepted model, and an auction takes at most "
+                f"{MAX_PATRONS} patrons: name them in model_ids",
+                loc=("body", "model_ids"),
+                kind="too_many_patrons",
             )
         return ids
     found = crud.get_models(session, model_ids=model_ids)
@@ -100,9 +111,12 @@ def _remote_fine_tuning(body: AuctionCreate) -> bool:
     return remote
 
 
-def create_auction(session: Session, runner: BackgroundRunner, body: AuctionCreate) -> int:
+def create_auction(
+    session: Session, runner: BackgroundRunner, body: AuctionCreate, *, max_live: int
+) -> int:
     """Store a pending auction and hand it to the runner; its id. The either-or of the supply
-    is checked first, then the fine-tuning mode, then the patrons, then the fish count."""
+    is checked first, then the fine-tuning mode, then the patrons, then the fish count, then
+    that fewer than ``max_live`` auctions are pending or running (503 otherwise)."""
     _fish_count(body, 0)
     remote = _remote_fine_tuning(body)
     patrons = patron_ids(session, body.model_ids)
@@ -113,6 +127,16 @@ def create_auction(session: Session, runner: BackgroundRunner, body: AuctionCrea
             f"rarity {body.rarity} × {len(patrons)} patrons puts no fish on sale",
             loc=("body", "rarity"),
             kind="no_fish",
+        )
+    live = crud.count_live(session)
+    if live >= max_live:
+        raise api_error(
+            503,
+            f"{live} auctions are pending or running, the most this server holds "
+            "(SRD_MAX_LIVE_AUCTIONS); retry once some have ended",
+            loc=("server",),
+            kind="too_many_auctions",
+            headers={"Retry-After": str(LIVE_RETRY_AFTER_S)},
         )
     auction = crud.create_auction(
         session,

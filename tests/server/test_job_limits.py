@@ -153,3 +153,25 @@ def test_past_the_queue_bound_a_job_is_refused_until_some_have_started(tmp_path)
         assert again.status_code == 202, again.text  # a slot came back
         for job in client.get("/jobs").json()["items"]:
             client.delete(f"/jobs/{job['id']}", headers=ADMIN)
+
+
+def test_past_the_live_auction_bound_an_auction_is_refused_until_one_ends(tmp_path) -> None:
+    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
+    settings = settings.model_copy(update={"max_live_auctions": 2})
+    with TestClient(create_app(settings)) as client:
+        for _ in range(2):
+            assert client.post("/submit", json=honest(unique("live"))).status_code == 201
+        remote = {"n_fish": 1, "fine_tune_mode": "remote", "round_deadline_s": 300}
+        live = [client.post("/auctions", json=remote, headers=ADMIN) for _ in range(2)]
+        assert [r.status_code for r in live] == [201, 201]  # each waits in its first round
+        refused = client.post("/auctions", json=remote, headers=ADMIN)
+        assert refused.status_code == 503 and refused.headers["Retry-After"] == "30"
+        (item,) = refused.json()["detail"]
+        assert item["loc"] == ["server"] and item["type"] == "too_many_auctions"
+        assert "SRD_MAX_LIVE_AUCTIONS" in item["msg"]
+        assert len(client.get("/auctions").json()["items"]) == 2  # nothing stored
+        client.delete(f"/auctions/{live[0].json()['auction_id']}", headers=ADMIN)
+        again = client.post("/auctions", json=remote, headers=ADMIN)
+        assert again.status_code == 201, again.text  # a cancelled auction is no longer live
+        for auction in client.get("/auctions").json()["items"]:
+            client.delete(f"/auctions/{auction['id']}", headers=ADMIN)

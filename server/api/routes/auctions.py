@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 from starlette.concurrency import run_in_threadpool
 
-from server.api.deps import AdminDep, AuctionRunnerDep, RoundsDep, SessionDep
+from server.api.deps import AdminDep, AuctionRunnerDep, RoundsDep, SessionDep, SettingsDep
 from server.api.errors import link, responses
 from server.api.pages import DEFAULT_PAGE, PageCursor, PageLimit, PageOrder, page_of
 from server.api.schemas import (
@@ -48,14 +48,15 @@ router = APIRouter(tags=["auctions"])
                 "CancelAuction": link("cancel_auction", "auction_id", "auction_id"),
             }
         },
-        **responses(401, 403, 404, 409, 422),
+        **responses(401, 403, 404, 409, 422, 503),
     },
 )
 def create_auction(
-    body: AuctionCreate, session: SessionDep, runner: AuctionRunnerDep
+    body: AuctionCreate, session: SessionDep, runner: AuctionRunnerDep, settings: SettingsDep
 ) -> AuctionCreated:
     """Start an auction (operator). It runs in a worker process; watch it at GET."""
-    return AuctionCreated(auction_id=auctions.create_auction(session, runner, body))
+    auction_id = auctions.create_auction(session, runner, body, max_live=settings.max_live_auctions)
+    return AuctionCreated(auction_id=auction_id)
 
 
 def iteration_public(row: HistoryRow | crud.AuctionRound) -> IterationPublic:

@@ -3,6 +3,7 @@ payloads of an auction's event stream (the ``data`` of each Server-Sent Event, a
 
 from __future__ import annotations
 
+from collections import Counter
 from datetime import datetime
 from typing import Annotated, Any
 
@@ -92,8 +93,8 @@ class AuctionCreate(StrictInput):
     def _distinct(cls, ids: list[int] | None) -> list[int] | None:
         """A patron takes part once."""
         if ids is not None and len(set(ids)) != len(ids):
-            twice = sorted({i for i in ids if ids.count(i) > 1})
-            raise ValueError(f"model ids listed more than once: {twice}")
+            twice = sorted(i for i, n in Counter(ids).items() if n > 1)
+            raise ValueError(f"model ids listed more than once: {twice[:20]}")
         return ids
 
     @field_validator("n_fish", "rarity", "model_ids", mode="before")

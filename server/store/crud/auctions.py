@@ -104,6 +104,12 @@ class AuctionView:
     """The version each patron bids with now, aligned with ``model_ids`` (remote only)."""
 
 
+def count_live(session: Session) -> int:
+    """Auctions pending or running."""
+    live = select(func.count()).select_from(Auction).where(Auction.status.in_(AUCTION_UNFINISHED))
+    return session.scalar(live) or 0
+
+
 def create_auction(
     session: Session,
     *,

@@ -66,6 +66,9 @@ def _constant_controller(control: np.ndarray) -> Controller:
     return controller
 
 
+_NO_NETWORK = {"backswing": None, "inhibitor": None, "srd": "off"}
+
+
 def run_stage0(config: CheetahConfig, out_dir: Path, progress: ProgressFn) -> dict[str, Any]:
     """Open-loop devtest: front thigh −2s for 25 steps, then back thigh −s for 25 steps.
 
@@ -104,13 +107,17 @@ def run_stage0(config: CheetahConfig, out_dir: Path, progress: ProgressFn) -> di
         title="Stage 0: open-loop thigh swings (torso x)",
         ylabel="torso x (m)",
     )
-    runs = [
-        {"strength": float(s), "pattern": "once", "final_displacement": float(displacement[i, -1])}
-        for i, s in enumerate(strengths)
+    swings = [(float(s), "once") for s in strengths] + [(1.0, "cyclic")]
+    runs = [  # no network: no backswing or inhibitor; the grid's keys kept for its readers
+        {
+            "strength": s,
+            "pattern": pattern,
+            **_NO_NETWORK,
+            "trial": i + 1,
+            "final_displacement": float(displacement[i, -1]),
+        }
+        for i, (s, pattern) in enumerate(swings)
     ]
-    runs.append(
-        {"strength": 1.0, "pattern": "cyclic", "final_displacement": float(displacement[-1, -1])}
-    )
     return _stage_result(config, 0, steps, runs, [figure.name], watch)
 
 
@@ -216,8 +223,8 @@ def run_design_network(
         extra_ylabel="torso z (m)",
     )
     displacement = traj.torso_x[:, -1] - traj.torso_x[:, 0]
-    runs = [
-        {"backswing": b, "final_displacement": float(d)}
+    runs = [  # the grid's keys: no inhibitor path, no SRD, one trial per backswing
+        {"backswing": b, "inhibitor": 0, "srd": "off", "trial": 1, "final_displacement": float(d)}
         for b, d in zip(backswings, displacement, strict=True)
     ]
     return _stage_result(config, stage, steps, runs, [figure.name], watch)

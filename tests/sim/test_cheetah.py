@@ -416,6 +416,8 @@ def test_design_stages_move_the_cheetah_forward(tmp_path, stage):
     steps = 400 if stage == 0 else 1200
     result = run(CheetahConfig(stage=stage, steps=steps, video=False), out_dir=tmp_path)
     assert result["stage"] == stage
+    grid_keys = {"backswing", "inhibitor", "srd", "trial", "final_displacement"}
+    assert all(grid_keys <= set(row) for row in result["runs"])  # as the grid's rows
     if stage == 0:
         assert len(result["runs"]) == 10
         assert result["runs"][-1]["pattern"] == "cyclic"

@@ -13,8 +13,10 @@ from rich.console import Console
 from rich.markup import escape
 
 from agents.manifest import ManifestError, parse_manifest, parse_manifest_json
+from screener import review
 from screener import screen as screen_manifest
 from server.api.body import BodyRefusedError, parse_strict_json
+from server.config import Settings
 
 ACCEPTED, REJECTED, MALFORMED = 0, 1, 2
 """Exit codes: accepted, rejected, unreadable or malformed."""
@@ -47,10 +49,20 @@ def _json_errors(text: bytes) -> list[dict[str, str]]:
 @click.option(
     "--json", "json_output", is_flag=True, help="Print exactly one JSON object on stdout."
 )
-def command(file: Path, json_output: bool) -> None:
+@click.option(
+    "--margin",
+    type=click.FloatRange(0, 1),
+    default=Settings.model_fields["review_margin"].default,
+    show_default=True,
+    help="The server's review margin (SRD_REVIEW_MARGIN), in price: 'status' says whether a "
+    "server with it would accept, refuse or hold the model for an inspector.",
+)
+def command(file: Path, json_output: bool, margin: float) -> None:
     """Screen a Fish Sale Negotiator manifest: semantic rules on its named weights and
     behavioural probes. Exit 0 accepted, 1 rejected, 2 unreadable or malformed (read as
-    POST /submit reads it: a key given twice, NaN or a byte-order mark is malformed)."""
+    POST /submit reads it: a key given twice, NaN or a byte-order mark is malformed). The
+    verdict is the screener's; a model within --margin of a bar is one a server would hold
+    for an inspector (status "held")."""
     try:
         text = file.read_bytes()
     except OSError as exc:
@@ -70,12 +82,14 @@ def command(file: Path, json_output: bool) -> None:
         raise _malformed(exc.errors, json_output) from exc
     torch.set_num_threads(1)  # the screener's tensors are tiny: more threads only contend
     verdict = screen_manifest(manifest)
+    status = review(verdict, margin)
     if json_output:
-        _emit(verdict.to_dict())
+        _emit({**verdict.to_dict(), "status": status})
     else:
         out = Console(highlight=False, soft_wrap=True)
         word = "[green]accepted[/green]" if verdict.accepted else "[red]rejected[/red]"
-        out.print(f"{escape(manifest.participant)}: {word}")
+        held = f" (a server would hold it for an inspector: within {margin:g} of a bar)"
+        out.print(f"{escape(manifest.participant)}: {word}{held if status == 'held' else ''}")
         for reason in verdict.reasons:
             out.print(f"  [bold]{reason.neuron}[/bold] ({reason.rule}): {escape(reason.message)}")
     raise SystemExit(ACCEPTED if verdict.accepted else REJECTED)

@@ -120,6 +120,9 @@ def test_unknown_command_is_a_usage_error() -> None:
 # --- srd screen FILE [--json]: exit 0 accepted, 1 rejected, 2 unreadable or malformed ---------
 
 
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+
+
 def screen(*args: str):
     return CliRunner().invoke(cli, ["screen", *args])
 
@@ -138,6 +141,20 @@ def test_screen_accepted_exits_0_with_one_json_object(tmp_path) -> None:
     result = json.loads(line)
     assert result["accepted"] is True and result["reasons"] == []
     assert "noise-flip" in {e["test"] for e in result["evidence"]}  # the screener's numbers
+
+
+def test_screen_says_a_server_would_hold_a_borderline_model() -> None:
+    """The screener accepts the window holder, by less than the server's review margin of its
+    bar: status "held", what /submit would answer; the exit code stays the screener's."""
+    holder = str(EXAMPLES / "red_team" / "opening-window-holder-a.json")
+    outcome = screen(holder, "--json")
+    assert outcome.exit_code == 0
+    result = json.loads(outcome.stdout)
+    assert result["accepted"] is True and result["status"] == "held"
+    assert json.loads(screen(holder, "--json", "--margin", "0").stdout)["status"] == "accepted"
+    assert "a server would hold it for an inspector" in screen(holder).stdout
+    honest_one = screen(str(EXAMPLES / "honest.json"), "--json")
+    assert json.loads(honest_one.stdout)["status"] == "accepted"
 
 
 def test_screen_rejected_exits_1_with_reasons(tmp_path) -> None:

@@ -104,11 +104,13 @@ class StudyConfig(AuctionOptions):
 
 @dataclass(frozen=True)
 class ComparisonConfig(AuctionOptions):
-    """Honest vs malicious: the same auctions honest, compromised, screened, honest alone.
+    """Honest vs malicious: the same auctions with and without saboteurs, each unscreened and
+    screened, and honest alone.
 
-    ``srd comparison``: honest patrons only; with ``saboteurs`` of them always-hold saboteurs,
-    unscreened and screened; and the compromised population's honest patrons without its
-    saboteurs (honest-alone: what screening restores)."""
+    ``srd comparison``: honest patrons only, unscreened and screened (what screening costs an
+    honest market); with ``saboteurs`` of them always-hold saboteurs, unscreened and screened;
+    and the compromised population's honest patrons without its saboteurs (honest-alone: what
+    screening restores)."""
 
     rarities: Rarities = COMPARISON_RARITIES
     """Supply: fish on sale per patron (r, the paper's rarity); fish on sale = int(r · patrons)."""
@@ -118,7 +120,7 @@ class ComparisonConfig(AuctionOptions):
     """Fraction of saboteurs in the compromised configurations."""
 
     def cost(self) -> Cost:
-        """Estimated compute: the four configurations' auctions."""
+        """Estimated compute: the five configurations' auctions."""
         per_trial = sum(self._auction_cost(s) for s in comparison_settings(self).values())
         return Cost(per_trial * len(self.rarities) * self.trials, "trials")
 
@@ -161,10 +163,12 @@ def settings_of(config: StudyConfig | ComparisonConfig) -> list[Setting]:
 
 
 def comparison_settings(config: ComparisonConfig) -> dict[str, Setting]:
-    """honest, compromised, compromised+screened and honest-alone, on the same auctions."""
+    """honest, honest+screened, compromised, compromised+screened and honest-alone, on the
+    same auctions."""
     ft = config.fine_tune
     return {
         "honest": Setting("honest", ft, 0.0, False),
+        "honest+screened": Setting("honest+screened", ft, 0.0, True),
         "compromised": Setting("compromised", ft, config.saboteurs, False),
         "compromised+screened": Setting("compromised+screened", ft, config.saboteurs, True),
         "honest-alone": Setting("honest-alone", ft, config.saboteurs, False, alone=True),
@@ -189,6 +193,8 @@ def comparison_caption(config: ComparisonConfig) -> str:
         (
             f"honest: {config.patrons} honest patrons, no screening ({tuned}, f counts "
             f"{config.buy_fraction} voters).",
+            "honest+screened: the honest patrons screened before the auction, the refused "
+            "staying out: what screening costs an honest market.",
             f"compromised: the same auctions with the last {n_saboteurs} of the "
             f"{config.patrons} patrons always-hold saboteurs, no screening.",
             "compromised+screened: the compromised patrons screened before the auction, the "

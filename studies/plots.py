@@ -95,6 +95,7 @@ def plot_comparison(table: dict[str, list[dict[str, Any]]], path: Path, caption:
     fig, axes = plt.subplots(1, len(COMPARED), figsize=(4.2 * len(COMPARED), height))
     styles = {
         "honest": "-o",
+        "honest+screened": "--o",
         "compromised": "-x",
         "compromised+screened": "--s",
         "honest-alone": ":^",

@@ -148,13 +148,17 @@ def test_comparison_holds_one_table_per_configuration(tmp_path):
     config = ComparisonConfig(rarities=(0.3, 0.7), trials=1, patrons=16, seed=2)
     result = run_comparison(config, out_dir=tmp_path)
     configs = result["configurations"]
-    names = ["honest", "compromised", "compromised+screened", "honest-alone"]
+    names = ["honest", "honest+screened", "compromised", "compromised+screened", "honest-alone"]
     assert list(configs) == names
-    assert result["auctions"] == 8 and result["buy_fraction"] == "all"
+    assert result["auctions"] == 10 and result["buy_fraction"] == "all"
     for name, block in configs.items():
         assert [r["rarity"] for r in block["rows"]] == [0.3, 0.7], name
     assert result["rows"] == [r for name in names for r in configs[name]["rows"]]
     assert configs["honest"]["refused"] == 0 and configs["compromised"]["refused"] == 0
+    assert configs["honest+screened"]["refused"] == 0  # the screener admits every honest one
+    assert configs["honest+screened"]["rows"] == [
+        {**row, "setting": "honest+screened", "screen": True} for row in configs["honest"]["rows"]
+    ]
     assert configs["compromised+screened"]["refused"] == 16  # 8 saboteurs × 2 auctions
     assert configs["honest-alone"]["refused"] == 0
     for name in ("results.csv", "comparison.csv", "comparison.png", "summary.json"):
@@ -164,7 +168,7 @@ def test_comparison_holds_one_table_per_configuration(tmp_path):
     assert high["mean_price"] is None or high["mean_price"] <= 5.0 + 1e-9
     lines = result["caption"].splitlines()
     assert [line.split(":")[0] for line in lines] == names
-    assert "8 honest patrons" in lines[3] and "last 8 of the 16" in lines[1]
+    assert "8 honest patrons" in lines[4] and "last 8 of the 16" in lines[2]
 
 
 def differing(row: dict) -> dict:

@@ -45,11 +45,12 @@ def test_srd_comparison_prints_one_json_object_with_every_configuration(tmp_path
     assert payload["out_dir"] == str(out) and payload["buy_fraction"] == "staying"
     assert list(payload["configurations"]) == [
         "honest",
+        "honest+screened",
         "compromised",
         "compromised+screened",
         "honest-alone",
     ]
-    assert len(payload["rows"]) == 8 and len(payload["caption"].splitlines()) == 4
+    assert len(payload["rows"]) == 10 and len(payload["caption"].splitlines()) == 5
     again = CliRunner().invoke(cli, [*args, "--json", "--out", str(tmp_path / "again")])
     same = json.loads(again.stdout)
     assert same["rows"] == payload["rows"]  # --seed: same seed, same numbers

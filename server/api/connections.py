@@ -35,6 +35,25 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 log = logging.getLogger("srd.connections")
 
+IPV6_CLIENT_PREFIX = 64
+"""An IPv6 client is its /64 network: one host usually holds a whole /64, so counting its
+single addresses would give it a share per address it cares to use."""
+
+
+def client_address(host: str) -> str:
+    """The client a peer address counts as, everywhere a share or a quota is per address: an
+    IPv4 address (an IPv4-mapped IPv6 one too) as it is, an IPv6 address as its /64 network,
+    anything else (a Unix socket's name) as it is."""
+    try:
+        ip = ipaddress.ip_address(host)
+    except ValueError:
+        return host
+    if isinstance(ip, ipaddress.IPv6Address):
+        if ip.ipv4_mapped is not None:
+            return str(ip.ipv4_mapped)
+        return str(ipaddress.IPv6Network((ip, IPV6_CLIENT_PREFIX), strict=False))
+    return host
+
 FD_RESERVE = 256
 """File descriptors kept free of client connections: the database, logs, worker pipes."""
 
@@ -107,8 +126,9 @@ class TimedHttpProtocol(HttpToolsProtocol):
         if self.limit_concurrency is not None and len(self.connections) >= self.limit_concurrency:
             self._refuse(FULL_ANSWER)  # uvicorn's own 503 would come later, in plain text
             return
-        address = self.client[0] if self.client else None
-        if address is not None and not self._exempt(address):
+        host = self.client[0] if self.client else None
+        if host is not None and not self._exempt(host):
+            address = client_address(host)
             if self.open_by_address[address] >= self.max_per_address:
                 self._refuse(TOO_MANY_ANSWER)
                 return

@@ -35,6 +35,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.websockets import WebSocket
 
+from server.api.connections import client_address
 from server.api.errors import error_item
 from server.config import Settings
 from server.store.crud.models import is_participant_token
@@ -204,7 +205,7 @@ class ClientLimitsMiddleware:
 
 def _address(scope: Scope) -> str:
     client = scope.get("client")
-    return str(client[0]) if client else "-"
+    return client_address(str(client[0])) if client else "-"
 
 
 def _looked_up(database: Database, digest: str) -> bool:

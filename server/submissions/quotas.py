@@ -24,6 +24,7 @@ from datetime import datetime, timedelta
 
 from sqlalchemy.orm import Session
 
+from server.api.connections import client_address
 from server.config import Settings
 from server.store import crud
 
@@ -41,7 +42,7 @@ def participant_subject(name: str) -> str:
 
 
 def address_subject(host: str) -> str:
-    return f"address:{host}"
+    return f"address:{client_address(host)}"
 
 
 @dataclass(frozen=True)

@@ -81,6 +81,24 @@ def test_registrations_per_address(tmp_path) -> None:
         assert count(client, Participant) == before
 
 
+def test_an_ipv6_client_is_its_64_network(tmp_path) -> None:
+    """One host usually holds a whole /64: its addresses share one quota (and one share of
+    every per-address limit); another /64 is another client."""
+    url = f"sqlite:///{tmp_path / 'srd.db'}"
+    settings = make_settings(url, tmp_path / "data").model_copy(
+        update={"quota_registrations_per_day": 2}
+    )
+    app = create_app(settings)
+    with TestClient(app, client=("2001:db8:0:7::1", 5000)) as first:
+        assert first.post("/submit", json=honest(unique("v6-a"))).status_code == 201
+        assert first.post("/submit", json=honest(unique("v6-b"))).status_code == 201
+    with TestClient(app, client=("2001:db8:0:7:ffff::2", 5000)) as same_network:
+        third = same_network.post("/submit", json=honest(unique("v6-c")))
+        assert_throttled(third, "SRD_QUOTA_REGISTRATIONS_PER_DAY")
+    with TestClient(app, client=("2001:db8:0:8::1", 5000)) as next_network:
+        assert next_network.post("/submit", json=honest(unique("v6-d"))).status_code == 201
+
+
 @pytest.mark.postgres
 def test_limits_are_shared_by_processes_on_one_database(tmp_path) -> None:
     """Two API processes (replicas) on one PostgreSQL database count the same quotas."""

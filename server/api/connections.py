@@ -54,6 +54,7 @@ def client_address(host: str) -> str:
         return str(ipaddress.IPv6Network((ip, IPV6_CLIENT_PREFIX), strict=False))
     return host
 
+
 FD_RESERVE = 256
 """File descriptors kept free of client connections: the database, logs, worker pipes."""
 

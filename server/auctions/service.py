@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+from datetime import timedelta
+
 from sqlalchemy.orm import Session
 
 from server.api.errors import RequestError, api_error, error_item
 from server.api.schemas import MAX_PATRONS, AuctionCreate
+from server.api.security import token_matches
 from server.auctions.steps import base_price
 from server.store import crud
-from server.store.status import ModelStatus
+from server.store.status import AuctionStatus, ModelStatus
+from server.store.tables import utcnow
 from server.work.runner import BackgroundRunner
 from sim.market import fish_on_sale
 
@@ -119,9 +123,13 @@ def create_auction(
     that fewer than ``max_live`` auctions are pending or running (503 otherwise)."""
     _fish_count(body, 0)
     remote = _remote_fine_tuning(body)
-    patrons = patron_ids(session, body.model_ids)
+    enrolling = body.enrollment_s > 0
+    # An enrolling auction starts with the models named (none by default); its participants
+    # add theirs until its enrollment ends, and then a rarity's fish are counted.
+    named = body.model_ids if enrolling else patron_ids(session, body.model_ids)
+    patrons = [] if named is None else patron_ids(session, named)
     n_fish = _fish_count(body, len(patrons))
-    if n_fish < 1:
+    if n_fish < 1 and not (enrolling and body.rarity is not None):
         raise api_error(
             409,
             f"rarity {body.rarity} × {len(patrons)} patrons puts no fish on sale",
@@ -151,10 +159,77 @@ def create_auction(
         fine_tune_rounds=body.fine_tune_rounds,
         round_deadline_s=body.round_deadline_s,
         buy_fraction=body.buy_fraction,
+        enroll_until=utcnow() + timedelta(seconds=body.enrollment_s) if enrolling else None,
     )
     session.commit()
     runner.submit(auction.id)
     return auction.id
+
+
+def join_auction(
+    session: Session, auction_id: int, model_id: int, token: str
+) -> tuple[crud.Enrollment, int, bool]:
+    """Add a participant's accepted model to an enrolling auction's patrons (its token: 401,
+    403); the auction's enrollment and the patron's position. Refused (409) once the
+    enrollment is over or if the auction never enrolled, for a model that is not accepted,
+    for a second version of a participant already in, past ``MAX_PATRONS``. The same model
+    again is answered as the first time; the last of the three says whether it joined now."""
+    owner = crud.model_owner(session, model_id=model_id)
+    model = crud.get_models(session, model_ids=[model_id]).get(model_id)
+    if owner is None or model is None:
+        raise api_error(
+            404, f"model {model_id} does not exist", loc=("body", "model_id"), kind="not_found"
+        )
+    if not token_matches(token, owner.token_hash):
+        raise api_error(
+            403,
+            f"the bearer token is not the token of participant {owner.participant!r}",
+            loc=("header", "Authorization"),
+            kind="bad_token",
+        )
+    enrollment = crud.lock_enrollment(session, auction_id=auction_id)
+    if enrollment is None:
+        raise not_found(auction_id)
+    joined = enrollment.patrons.get(model.participant_id)
+    if joined is not None and joined[0] == model_id:  # a repeat
+        return enrollment, joined[1], False
+    open_until = enrollment.enroll_until
+    if enrollment.status != AuctionStatus.PENDING or open_until is None or utcnow() >= open_until:
+        raise api_error(
+            409,
+            f"auction {auction_id} ({enrollment.status}) takes no patrons now: models join "
+            "only while an auction created with enrollment_s enrolls (pending, until its "
+            "enroll_until)",
+            loc=("path", "auction_id"),
+            kind="not_enrolling",
+        )
+    if owner.status != ModelStatus.ACCEPTED:
+        raise api_error(
+            409,
+            f"model {model_id} is {owner.status}: only an accepted model enters an auction",
+            loc=("body", "model_id"),
+            kind=str(owner.status),
+        )
+    if joined is not None:
+        raise api_error(
+            409,
+            f"the participant of model {model_id} takes part already, with model "
+            f"{joined[0]}: one version, one vote",
+            loc=("body", "model_id"),
+            kind="same_participant",
+        )
+    if len(enrollment.patrons) >= MAX_PATRONS:
+        raise api_error(
+            409,
+            f"auction {auction_id} has {MAX_PATRONS} patrons, the most an auction takes",
+            loc=("path", "auction_id"),
+            kind="too_many_patrons",
+        )
+    position = len(enrollment.patrons)
+    crud.add_patron(session, auction_id=auction_id, model_id=model_id, position=position)
+    session.commit()
+    enrollment.patrons[model.participant_id] = (model_id, position)
+    return enrollment, position, True
 
 
 def not_found(auction_id: int) -> RequestError:

@@ -51,7 +51,7 @@ from server.store.status import AUCTION_UNFINISHED, AuctionStatus
 from server.store.tables import Auction, utcnow
 from server.work.pool import WorkerContext, error_summary
 from server.work.runner import WorkKind
-from sim.market import MarketConfig
+from sim.market import MarketConfig, fish_on_sale
 
 if TYPE_CHECKING:
     from sim.market import FineTuneRound, Market, RescreenBatch
@@ -281,6 +281,36 @@ def _close(database: Database, auction_id: int, row: StepRound, margin: float) -
             return
 
 
+def _end_enrollment(database: Database, auction_id: int) -> bool:
+    """Fix the patrons of an auction whose enrollment is over (its supply too, for a rarity);
+    False when it cannot start: its enrollment lasts a while yet (due again then), or nobody
+    joined, or too few for a single fish (failed, saying so)."""
+    with database.session(write=True) as session:
+        enrollment = crud.lock_enrollment(session, auction_id=auction_id)
+        if enrollment is None or enrollment.status != AuctionStatus.PENDING:
+            return True
+        if enrollment.enroll_until is None:
+            return True
+        if utcnow() < enrollment.enroll_until:  # woken early (another replica's clock)
+            crud.due_at(session, auction_id=auction_id, when=enrollment.enroll_until)
+            session.commit()
+            return False
+        patrons = len(enrollment.patrons)
+        rarity = enrollment.rarity
+        n_fish = None if rarity is None else fish_on_sale(patrons, rarity=rarity)
+        problem = None
+        if patrons == 0:
+            problem = "nobody joined before its enrollment ended"
+        elif n_fish is not None and n_fish < 1:
+            problem = f"rarity {enrollment.rarity} × {patrons} patrons puts no fish on sale"
+        if problem is not None:
+            crud.fail_unfinished(session, table=Auction, row_id=auction_id, error=problem)
+        else:
+            crud.end_enrollment(session, auction_id=auction_id, n_fish=n_fish)
+        session.commit()
+        return problem is None
+
+
 def _step(kept: _Kept, auction_id: int, margin: float) -> None:
     database = kept.database
     # Read and rebuild the market outside any write transaction (parsing the manifests and
@@ -290,8 +320,14 @@ def _step(kept: _Kept, auction_id: int, margin: float) -> None:
         if state is None or state[0].status not in AUCTION_UNFINISHED:
             return
         auction, row = state
-        model_ids = [patron.model_id for patron in auction.patrons]
-        manifests = kept.manifests(session, model_ids)
+        enrolling = auction.status == AuctionStatus.PENDING and auction.enroll_until is not None
+        if not enrolling:
+            model_ids = [patron.model_id for patron in auction.patrons]
+            manifests = kept.manifests(session, model_ids)
+    if enrolling:  # its patrons fixed first, then read again
+        if _end_enrollment(database, auction_id):
+            _step(kept, auction_id, margin)
+        return
     if row is not None and row.open and _not_yet(database, auction_id, row):
         return
     market = _load_market(auction, manifests)

@@ -183,6 +183,9 @@ class Auction(Base):
     lease_owner: Mapped[str | None] = mapped_column(String(LEASE_OWNER_LENGTH), nullable=True)
     """The API process playing the auction (``server.work.runner``), while its lease lasts."""
     lease_expires: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
+    enroll_until: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
+    """While pending: until when participants may add their models as patrons (``POST
+    /auctions/{id}/patrons``); null once its patrons are fixed (or if it never enrolled)."""
     next_step_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True, index=True)
     """When the auction's next step is due (``server.auctions.steps``): at once while it plays, its
     round's deadline while a remote round is open (sooner once every asked patron answered);

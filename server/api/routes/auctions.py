@@ -5,10 +5,17 @@ from __future__ import annotations
 import dataclasses
 from typing import Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Response
 from starlette.concurrency import run_in_threadpool
 
-from server.api.deps import AdminDep, AuctionRunnerDep, RoundsDep, SessionDep, SettingsDep
+from server.api.deps import (
+    AdminDep,
+    AuctionRunnerDep,
+    ParticipantTokenDep,
+    RoundsDep,
+    SessionDep,
+    SettingsDep,
+)
 from server.api.errors import link, responses
 from server.api.pages import DEFAULT_PAGE, PageCursor, PageLimit, PageOrder, page_of
 from server.api.schemas import (
@@ -21,6 +28,8 @@ from server.api.schemas import (
     BuyerPublic,
     FineTuneRoundPublic,
     IterationPublic,
+    PatronJoin,
+    PatronJoined,
     QuitterPublic,
     RoundAnswerPublic,
     Votes,
@@ -116,6 +125,7 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
         created_at=auction.created_at,
         started_at=auction.started_at,
         finished_at=auction.finished_at,
+        enroll_until=auction.enroll_until,
         fine_tune_mode="remote" if auction.fine_tune_mode == "remote" else "server",
         fine_tune_rounds=auction.fine_tune_rounds,
         round_deadline_s=auction.round_deadline_s,
@@ -176,6 +186,37 @@ async def cancel_auction(
     view = await run_in_threadpool(auctions.cancel_auction, session, runner, auction_id)
     watcher.poke(auction_id)
     return auction_public(view)
+
+
+@router.post(
+    "/auctions/{auction_id}/patrons",
+    status_code=201,
+    operation_id="join_auction",
+    responses={
+        200: {"description": "The model had joined before", "model": PatronJoined},
+        **responses(401, 403, 404, 409, 422),
+    },
+)
+def join_auction(
+    auction_id: AuctionIdPath,
+    body: PatronJoin,
+    session: SessionDep,
+    token: ParticipantTokenDep,
+    response: Response,
+) -> PatronJoined:
+    """Add one of your accepted models to an enrolling auction's patrons (its participant's
+    token), while its enrollment lasts (``enrollment_s`` at its creation): one model per
+    participant. 201, or 200 for the same model again; 409 once the enrollment is over."""
+    enrollment, position, new = auctions.join_auction(session, auction_id, body.model_id, token)
+    if not new:
+        response.status_code = 200
+    return PatronJoined(
+        auction_id=auction_id,
+        model_id=body.model_id,
+        position=position,
+        n_patrons=len(enrollment.patrons),
+        enroll_until=enrollment.enroll_until,
+    )
 
 
 @router.get("/auctions", operation_id="list_auctions", responses=responses(422))

@@ -15,6 +15,8 @@ from server.store.status import AuctionStatus
 from sim.market import BuyFractionRule, MarketConfig
 
 MAX_PATRONS = 10_000
+MAX_ENROLLMENT_S = 86_400.0
+"""The longest enrollment: a day."""
 """Patrons of an auction, at most."""
 ROUND_DEADLINE_S = (0.5, 300.0)
 """Bounds of a remote auction's ``round_deadline_s``: how long a round waits at most."""
@@ -87,6 +89,11 @@ class AuctionCreate(StrictInput):
     buy_fraction: BuyFractionRule = MarketConfig.buy_fraction
     """Whom a row's buy fraction f counts: "all" voters (the paper's) or the "staying" ones,
     buyers and holders (quitting does not lower f)."""
+    enrollment_s: Annotated[float, Field(ge=0, le=MAX_ENROLLMENT_S, allow_inf_nan=False)] = 0.0
+    """Seconds the auction stays pending, taking patrons: each participant may add one accepted
+    model of its own (``POST /auctions/{id}/patrons``); its patrons are then the models named in
+    ``model_ids`` (none if left out) and those that joined, and a rarity's fish are counted when
+    the enrollment ends. 0: the patrons are fixed now."""
 
     @field_validator("model_ids")
     @classmethod
@@ -185,6 +192,25 @@ class AuctionPublic(BaseModel):
     """Remote auctions: every fine-tuning round with each asked patron's outcome."""
     current_model_ids: list[int] = Field(default_factory=list)
     """Remote auctions: the version each patron bids with now, aligned with ``model_ids``."""
+    enroll_until: datetime | None = None
+    """While it takes patrons (``POST /auctions/{id}/patrons``): until when; else null."""
+
+
+class PatronJoin(StrictInput):
+    """A participant's accepted model, to bid in an enrolling auction."""
+
+    model_id: RowId
+
+
+class PatronJoined(BaseModel):
+    """The model is a patron of the auction: its position in ``model_ids``."""
+
+    auction_id: int
+    model_id: int
+    position: int
+    n_patrons: int
+    enroll_until: datetime | None
+    """When the enrollment ends and the auction starts."""
 
 
 class AuctionSummaryPublic(BaseModel):

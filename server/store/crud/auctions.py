@@ -57,6 +57,7 @@ class AuctionHead:
     fine_tune_rounds: int
     round_deadline_s: float
     buy_fraction: str
+    enroll_until: datetime | None
 
 
 @dataclass(frozen=True)
@@ -124,8 +125,10 @@ def create_auction(
     fine_tune_rounds: int = 4,
     round_deadline_s: float = 10.0,
     buy_fraction: str = "all",
+    enroll_until: datetime | None = None,
 ) -> Auction:
-    """A pending auction over the ordered patron list ``model_ids``."""
+    """A pending auction over the ordered patron list ``model_ids``; with ``enroll_until``,
+    participants may add theirs until then, when its first step falls due."""
     now = utcnow()
     auction = Auction(
         status=AuctionStatus.PENDING,
@@ -143,7 +146,8 @@ def create_auction(
         n_available=n_fish,
         created_at=now,
         updated_at=now,
-        next_step_at=now,
+        enroll_until=enroll_until,
+        next_step_at=enroll_until or now,
     )
     session.add(auction)
     session.flush()
@@ -152,6 +156,52 @@ def create_auction(
         for position, model_id in enumerate(model_ids)
     )
     return auction
+
+
+@dataclass(frozen=True)
+class Enrollment:
+    """An auction as a participant joining it finds it, its row locked until commit."""
+
+    status: str
+    enroll_until: datetime | None
+    rarity: float | None
+    patrons: dict[int, tuple[int, int]]
+    """Participant id → the model naming it and its position, for every patron so far."""
+
+
+def lock_enrollment(session: Session, *, auction_id: int) -> Enrollment | None:
+    """The auction's enrollment, its row locked until commit (joins and the start that ends
+    the enrollment take turns); None if there is no such auction."""
+    head = session.execute(
+        select(Auction.status, Auction.enroll_until, Auction.rarity)
+        .where(Auction.id == auction_id)
+        .with_for_update()
+    ).one_or_none()
+    if head is None:
+        return None
+    rows = session.execute(
+        select(ModelVersion.participant_id, AuctionPatron.model_id, AuctionPatron.position)
+        .join(ModelVersion, ModelVersion.id == AuctionPatron.model_id)
+        .where(AuctionPatron.auction_id == auction_id)
+    )
+    patrons = {p: (m, position) for p, m, position in rows}
+    return Enrollment(head.status, head.enroll_until, head.rarity, patrons)
+
+
+def add_patron(session: Session, *, auction_id: int, model_id: int, position: int) -> None:
+    """A patron at the end of the auction's list (its enrollment locked: ``lock_enrollment``)."""
+    session.add(AuctionPatron(auction_id=auction_id, position=position, model_id=model_id))
+    session.execute(update(Auction).where(Auction.id == auction_id).values(updated_at=utcnow()))
+    notify_change(session, kind="auction", row_id=auction_id)
+
+
+def end_enrollment(session: Session, *, auction_id: int, n_fish: int | None) -> None:
+    """Fix the patrons of an enrolling auction (its enrollment locked): no more joins, and
+    with ``n_fish`` its supply (a rarity's, now that the patrons are known)."""
+    values: dict[str, object] = {"enroll_until": None, "updated_at": utcnow()}
+    if n_fish is not None:
+        values |= {"n_initial": n_fish, "n_available": n_fish}
+    session.execute(update(Auction).where(Auction.id == auction_id).values(**values))
 
 
 def cancel_auction(session: Session, *, auction_id: int) -> bool:
@@ -171,6 +221,7 @@ def cancel_auction(session: Session, *, auction_id: int) -> bool:
             finished_at=now,
             updated_at=now,
             next_step_at=None,
+            enroll_until=None,
         )
     )
     if not changed.rowcount:  # type: ignore[attr-defined]

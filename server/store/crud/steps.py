@@ -15,7 +15,13 @@ from sqlalchemy.orm import Session, selectinload, undefer
 from server.store.crud.auctions import IterationFigures
 from server.store.crud.live import notify_change
 from server.store.db import JSONText
-from server.store.status import ANSWERED, AnswerOutcome, AuctionStatus, RoundStatus
+from server.store.status import (
+    ANSWERED,
+    AUCTION_UNFINISHED,
+    AnswerOutcome,
+    AuctionStatus,
+    RoundStatus,
+)
 from server.store.tables import (
     Auction,
     AuctionIteration,
@@ -115,10 +121,10 @@ def answered(session: Session, *, round_id: int) -> int:
 
 
 def due_at(session: Session, *, auction_id: int, when: datetime) -> None:
-    """The running auction's next step is due at ``when``."""
+    """The pending or running auction's next step is due at ``when``."""
     session.execute(
         update(Auction)
-        .where(Auction.id == auction_id, Auction.status == AuctionStatus.RUNNING)
+        .where(Auction.id == auction_id, Auction.status.in_(AUCTION_UNFINISHED))
         .values(next_step_at=when)
     )
 

@@ -49,9 +49,9 @@ class PopulationConfig:
     seed: int = 0
     """Seeds the population's models (same seed, same models)."""
     auction: int | None = None
-    """An auction already created: refused before anything is registered (its patrons are the
-    models named when it was created, and the population registers new ones); None: wait for
-    one containing the population's models (or create it with ``admin_token``)."""
+    """An enrolling auction (created with ``enrollment_s``) that the population's accepted
+    models join; checked before anything is registered. None: wait for one containing the
+    population's models (or create it with ``admin_token``)."""
     admin_token: str | None = None
     """Operator token: create a remote auction of the population's models."""
     rarity: float = 0.5
@@ -191,11 +191,14 @@ async def run_population(
     async with contextlib.AsyncExitStack() as stack:
         clients = await _clients(config, stack)
         if config.auction is not None:
-            await _refuse_a_named_auction(clients[0], config.auction)
+            await _require_enrolling(clients[0], config.auction)
         agents = population(config, clients)
         submitted = await _submit(agents, progress)
-        auction_id = await _auction(config, clients[0], agents)
-        await _play(config, agents, auction_id, progress)
+        if config.auction is not None:
+            auction_id, players = config.auction, await _join(agents, config.auction)
+        else:
+            auction_id, players = await _auction(config, clients[0], agents), agents
+        await _play(config, players, auction_id, progress)
         final = await _final(clients[0], auction_id)
     return _report(config, agents, submitted, auction_id, final, started)
 
@@ -232,20 +235,37 @@ async def _submit(agents: list[RemoteAgent], progress: Progress | None) -> list[
     return await _gather_bounded([submit(a) for a in agents], SUBMIT_CONCURRENCY)
 
 
-async def _refuse_a_named_auction(client: Client, auction_id: int) -> None:
-    """An auction that exists already cannot take agents that have yet to register: its
-    patrons are the models named when it was created. Said before anything is registered."""
+async def _require_enrolling(client: Client, auction_id: int) -> None:
+    """The named auction takes patrons now (it was created with ``enrollment_s`` and enrolls
+    still): said before anything is registered."""
     response = await client.request("GET", f"/auctions/{auction_id}")
     if response.status_code == 404:
         raise RemoteError(f"auction {auction_id} does not exist on {client.server}")
     response.raise_for_status()
-    status = response.json()["status"]
-    raise RemoteError(
-        f"auction {auction_id} ({status}) cannot take these agents: an auction's patrons are "
-        "the models named when it was created, and these agents have yet to register theirs. "
-        "Start the agents first and create the auction from their models (they wait for it, "
-        "--wait), or give --admin-token for them to create it"
-    )
+    auction = response.json()
+    if auction["status"] != "pending" or auction.get("enroll_until") is None:
+        raise RemoteError(
+            f"auction {auction_id} ({auction['status']}) takes no patrons: agents join only an "
+            "auction created with enrollment_s while it enrolls (pending). Create one with "
+            "enrollment_s, or start the agents first and create the auction from their models "
+            "(they wait for it, --wait), or give --admin-token for them to create it"
+        )
+
+
+async def _join(agents: list[RemoteAgent], auction_id: int) -> list[RemoteAgent]:
+    """Every agent whose model was accepted joins the auction; those agents."""
+    joining = [agent for agent in agents if agent.accepted_at_submit]
+    if not joining:
+        raise RemoteError(f"no agent's model was accepted: none can join auction {auction_id}")
+
+    async def join(agent: RemoteAgent) -> None:
+        body = json.dumps({"model_id": agent.submitted_id}).encode()
+        await agent.client.json(
+            "POST", f"/auctions/{auction_id}/patrons", body=body, token=agent.token
+        )
+
+    await _gather_bounded([join(agent) for agent in joining], SUBMIT_CONCURRENCY)
+    return joining
 
 
 async def _auction(config: PopulationConfig, client: Client, agents: list[RemoteAgent]) -> int:

@@ -124,9 +124,9 @@ def _summary(report: PopulationReport) -> Table:
     "--auction",
     type=click.IntRange(1),
     default=None,
-    help="An auction already created: refused before anything is registered, as its "
-    "patrons are fixed at its creation [default: wait for one containing the agents' models, "
-    "or create one with --admin-token].",
+    help="An enrolling auction (created with enrollment_s) for the agents' accepted models "
+    "to join; one that takes no patrons is refused before anything is registered [default: "
+    "wait for one containing the agents' models, or create one with --admin-token].",
 )
 @click.option(
     "--seed",

@@ -290,13 +290,13 @@ def test_agents_prints_a_row_per_agent_then_the_totals(
     assert int(totals[7].replace(",", "")) == up
 
 
-def test_agents_refuse_an_auction_created_before_them_and_register_nothing(
+def test_agents_refuse_an_auction_that_takes_no_patrons_and_register_nothing(
     server: ServerProcess, client: httpx.Client
 ) -> None:
-    """An auction's patrons are fixed when it is created: agents that have yet to register
-    cannot join one, and are told so before they register anything."""
+    """An auction created without enrollment_s has its patrons fixed: agents cannot join it,
+    and are told so before they register anything."""
     existing = start_auction(client, seed=11)
-    for auction_id, words in ((existing, "cannot take these agents"), (999999, "does not exist")):
+    for auction_id, words in ((existing, "takes no patrons"), (999999, "does not exist")):
         done = subprocess.run(
             [*srd_command(), "agents", "--server", server.url, "--name-prefix", "late",
              "--honest", "1", "--auction", str(auction_id), "--json"],
@@ -306,3 +306,41 @@ def test_agents_refuse_an_auction_created_before_them_and_register_nothing(
         assert f"auction {auction_id}" in done.stderr and words in done.stderr
         assert done.stdout == ""
     assert client.get("/participants/late-honest-000").status_code == 404
+
+
+def test_agents_join_an_enrolling_auction_and_play_it(
+    server: ServerProcess, client: httpx.Client
+) -> None:
+    """srd agents --auction ID: the agents register, their accepted models join the auction
+    while it enrolls, and they answer its rounds to its end."""
+    created = client.post(
+        "/auctions",
+        json={
+            "rarity": 0.5,
+            "fine_tune_mode": "remote",
+            "fine_tune_rounds": 1,
+            "round_deadline_s": 20,
+            "enrollment_s": 12,
+            "seed": 3,
+        },
+        headers=ADMIN,
+    )
+    assert created.status_code == 201, created.text
+    auction_id = created.json()["auction_id"]
+    done = subprocess.run(
+        [*srd_command(), "agents", "--server", server.url, "--name-prefix", "joiner",
+         "--honest", "2", "--saboteurs", "1", "--auction", str(auction_id), "--json"],
+        capture_output=True, text=True, timeout=180, cwd=ROOT,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert report["auctions"] == [auction_id] and report["agents"] == 3
+    auction = client.get(f"/auctions/{auction_id}").json()
+    assert auction["status"] == "finished", auction["error"]
+    assert sorted(auction["participants"]) == [
+        "joiner-honest-000",
+        "joiner-honest-001",
+        "joiner-saboteur-002",
+    ]
+    assert auction["n_initial"] == 1  # int(0.5 × 3), counted when the enrollment ended
+    assert report["uploads"]["accepted"] + report["uploads"]["refused"] >= 1

@@ -330,6 +330,9 @@ export function auctionView(view, id) {
           ["Stopped because", stopReason(state.stop_reason)],
           ["Seed", String(head.seed)],
           ["Fine-tuning", head.fine_tune ? "yes" : "no"],
+          ...(head.enroll_until && state.status === "pending"
+            ? [["Takes patrons until", when(head.enroll_until)]]
+            : []),
         ],
         { id: "auction-summary" },
       ),

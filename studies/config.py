@@ -104,8 +104,7 @@ class StudyConfig(AuctionOptions):
 
 @dataclass(frozen=True)
 class ComparisonConfig(AuctionOptions):
-    """Honest vs malicious: the same auctions with and without saboteurs, each unscreened and
-    screened, and honest alone.
+    """Honest vs malicious: the same auctions with and without saboteurs, screened or not.
 
     ``srd comparison``: honest patrons only, unscreened and screened (what screening costs an
     honest market); with ``saboteurs`` of them always-hold saboteurs, unscreened and screened;

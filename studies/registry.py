@@ -158,7 +158,7 @@ KINDS: dict[str, ExperimentKind] = {
             "studies.auctions:plan_auctions",
             "studies.auctions:compute_auctions",
             "studies.auctions:assemble_comparison",
-            "Honest vs malicious: the same auctions honest, compromised, screened, honest alone.",
+            "Honest vs malicious: the same auctions with and without saboteurs, screened or not.",
             headline=("auctions", "buy_fraction"),
             table="rows",
             columns=AUCTION_COLUMNS,

@@ -126,8 +126,10 @@ def create_auction(
     enrolling = body.enrollment_s > 0
     # An enrolling auction starts with the models named (none by default); its participants
     # add theirs until its enrollment ends, and then a rarity's fish are counted.
-    named = body.model_ids if enrolling else patron_ids(session, body.model_ids)
-    patrons = [] if named is None else patron_ids(session, named)
+    if enrolling and body.model_ids is None:
+        patrons: list[int] = []
+    else:
+        patrons = patron_ids(session, body.model_ids)
     n_fish = _fish_count(body, len(patrons))
     if n_fish < 1 and not (enrolling and body.rarity is not None):
         raise api_error(

@@ -253,19 +253,29 @@ async def _require_enrolling(client: Client, auction_id: int) -> None:
 
 
 async def _join(agents: list[RemoteAgent], auction_id: int) -> list[RemoteAgent]:
-    """Every agent whose model was accepted joins the auction; those agents."""
-    joining = [agent for agent in agents if agent.accepted_at_submit]
-    if not joining:
-        raise RemoteError(f"no agent's model was accepted: none can join auction {auction_id}")
+    """Every agent whose model was accepted joins the auction; those that did (the others
+    came after its enrollment ended, or their model was not accepted: they stay out)."""
 
-    async def join(agent: RemoteAgent) -> None:
+    async def join(agent: RemoteAgent) -> bool:
+        if not agent.accepted_at_submit:
+            return False
         body = json.dumps({"model_id": agent.submitted_id}).encode()
-        await agent.client.json(
-            "POST", f"/auctions/{auction_id}/patrons", body=body, token=agent.token
-        )
+        path = f"/auctions/{auction_id}/patrons"
+        response = await agent.client.request("POST", path, body=body, token=agent.token)
+        if response.status_code == 409:  # the enrollment ended meanwhile
+            return False
+        if not response.is_success:
+            raise RemoteError(f"POST {path}: {response.status_code} {response.text[:500]}")
+        return True
 
-    await _gather_bounded([join(agent) for agent in joining], SUBMIT_CONCURRENCY)
-    return joining
+    joined = await _gather_bounded([join(agent) for agent in agents], SUBMIT_CONCURRENCY)
+    players = [agent for agent, ok in zip(agents, joined, strict=True) if ok]
+    if not players:
+        raise RemoteError(
+            f"no agent could join auction {auction_id}: its enrollment ended "
+            "before any accepted model joined (give it a longer enrollment_s)"
+        )
+    return players
 
 
 async def _auction(config: PopulationConfig, client: Client, agents: list[RemoteAgent]) -> int:

@@ -156,7 +156,7 @@ async def _participant_token(credentials: BearerDep) -> str:
     if credentials is None:
         raise api_error(
             401,
-            "uploads need the participant's token: 'Authorization: Bearer <token>'",
+            "this needs the participant's token: 'Authorization: Bearer <token>'",
             loc=("header", "Authorization"),
             kind="missing_token",
         )

@@ -138,6 +138,7 @@ def create_auction(
             loc=("body", "rarity"),
             kind="no_fish",
         )
+    crud.lock_subject(session, "live-auctions")  # concurrent creations count one another
     live = crud.count_live(session)
     if live >= max_live:
         raise api_error(

@@ -303,10 +303,9 @@ def _end_enrollment(database: Database, auction_id: int) -> bool:
             problem = "nobody joined before its enrollment ended"
         elif n_fish is not None and n_fish < 1:
             problem = f"rarity {enrollment.rarity} × {patrons} patrons puts no fish on sale"
+        crud.end_enrollment(session, auction_id=auction_id, n_fish=None if problem else n_fish)
         if problem is not None:
             crud.fail_unfinished(session, table=Auction, row_id=auction_id, error=problem)
-        else:
-            crud.end_enrollment(session, auction_id=auction_id, n_fish=n_fish)
         session.commit()
         return problem is None
 

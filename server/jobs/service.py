@@ -49,6 +49,7 @@ def create_job(
             )
             for err in exc.errors
         ) from exc
+    crud.lock_subject(session, "queued-jobs")  # concurrent creations count one another
     queued = crud.count_queued(session)
     if queued >= max_queued:
         raise api_error(

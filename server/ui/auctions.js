@@ -378,8 +378,24 @@ export function auctionView(view, id) {
     return link(`#/models/${p.model_id}`, p.participant);
   }
 
+  // An auction read while it enrolled had no patrons and no fish yet: read it again once it
+  // plays (its first round) and when it ends, so the summary, the charts and the patron picker
+  // show the patrons it started with.
+  function readHeadAgain() {
+    getJSON(`/auctions/${id}`)
+      .then((auction) => {
+        head = auction;
+        auction.model_ids.forEach((modelId, i) => names.set(modelId, auction.participants[i]));
+        listPatrons();
+        scheduleDraw();
+        if (auction.status !== "pending" && auction.status !== "running") showSummary(auction);
+      })
+      .catch(() => {}); // the stream goes on; the next read will tell
+  }
+
   function addRound(row) {
     if (row.iteration !== rounds.length) return; // the stream never skips or repeats; a guard
+    if (row.iteration === 0 && head.status === "pending") readHeadAgain();
     rounds.push(row);
     roundRows.append(
       tableRow([
@@ -436,6 +452,7 @@ export function auctionView(view, id) {
           iteration: addRound,
           round: showFineTuneRound,
           end: (end) => {
+            if (head.n_initial !== end.n_initial) readHeadAgain(); // it enrolled meanwhile
             draw();
             showSummary(end);
             if (rounds.length === 0) {

@@ -3,6 +3,8 @@ fails for a real cause carries that cause (type and message), stored by its work
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import pytest
@@ -11,6 +13,7 @@ from fastapi.testclient import TestClient
 from server.app import create_app
 from sim.experiment import config_fields
 from studies.registry import KINDS
+from tests.support.databases import postgres_admin_url, throwaway_postgres
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, make_settings, wait_for
 
@@ -175,3 +178,30 @@ def test_past_the_live_auction_bound_an_auction_is_refused_until_one_ends(tmp_pa
         assert again.status_code == 201, again.text  # a cancelled auction is no longer live
         for auction in client.get("/auctions").json()["items"]:
             client.delete(f"/auctions/{auction['id']}", headers=ADMIN)
+
+
+@pytest.mark.postgres
+def test_racing_creations_keep_the_live_auction_bound(tmp_path) -> None:
+    """Creations racing each other each count the others: no more auctions are pending or
+    running than the bound, however many arrive at once (before, up to 3 over it)."""
+    admin_url = postgres_admin_url()
+    if admin_url is None:
+        pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
+    with throwaway_postgres(admin_url) as url:
+        settings = make_settings(url, tmp_path / "data").model_copy(
+            update={"max_live_auctions": 2}
+        )
+        with TestClient(create_app(settings)) as client:
+            model = client.post("/submit", json=honest(unique("race-live"))).json()
+            enrolling = {"n_fish": 1, "enrollment_s": 600, "model_ids": [model["model_id"]]}
+            start = threading.Barrier(10)
+
+            def create(_: int) -> int:
+                start.wait()
+                return client.post("/auctions", json=enrolling, headers=ADMIN).status_code
+
+            with ThreadPoolExecutor(10) as pool:
+                statuses = list(pool.map(create, range(10)))
+            assert sorted(statuses) == [201] * 2 + [503] * 8, statuses
+            for auction in client.get("/auctions").json()["items"]:
+                client.delete(f"/auctions/{auction['id']}", headers=ADMIN)

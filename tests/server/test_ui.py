@@ -183,6 +183,32 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
             assert version.text_content() == f"version {answer['version']}"
 
 
+def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    """Opened while the auction takes patrons (none yet, no fish), the page reads it again
+    once it plays: the summary and the patron picker name the patrons that joined."""
+    joiners = [a for name, a in population.items() if name.startswith("honest")][:2]
+    body = {"rarity": 0.5, "enrollment_s": 3, "max_iterations": 3, "seed": 5}
+    created = api.post("/auctions", json=body, headers={"Authorization": f"Bearer {ADMIN_TOKEN}"})
+    assert created.status_code == 201, created.text
+    auction_id = created.json()["auction_id"]
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    page.wait_for_selector("#auction-summary:has-text('Takes patrons until')", timeout=WAIT_MS)
+    for joiner in joiners:
+        joined = api.post(
+            f"/auctions/{auction_id}/patrons",
+            json={"model_id": joiner["model_id"]},
+            headers={"Authorization": f"Bearer {joiner['token']}"},
+        )
+        assert joined.status_code == 201, joined.text
+    page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
+    page.wait_for_selector("#auction-summary:has-text('Patrons2')", timeout=WAIT_MS)
+    summary = page.text_content("#auction-summary") or ""
+    assert "Fish on sale1" in summary and "Takes patrons until" not in summary
+    assert page.locator("#explain-patron option").count() >= 1
+
+
 def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
 ) -> None:

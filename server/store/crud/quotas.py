@@ -104,8 +104,8 @@ _LOCK_SUBJECT = text("SELECT pg_advisory_xact_lock(hashtextextended(:subject, 0)
 
 
 def lock_subject(session: Session, subject: str) -> None:
-    """Hold ``subject``'s quotas until the transaction ends, so that concurrent submissions
-    count one another's events: on PostgreSQL a transaction-level advisory lock on the
-    subject; SQLite serialises writers already."""
+    """Hold ``subject`` (a quota's, or a cap's such as the live auctions') until the
+    transaction ends, so that concurrent requests count one another's rows: on PostgreSQL a
+    transaction-level advisory lock on the subject; SQLite serialises writers already."""
     if session.get_bind().dialect.name == "postgresql":
         session.execute(_LOCK_SUBJECT, {"subject": subject})

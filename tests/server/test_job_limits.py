@@ -188,9 +188,7 @@ def test_racing_creations_keep_the_live_auction_bound(tmp_path) -> None:
     if admin_url is None:
         pytest.skip("PostgreSQL is not reachable on 127.0.0.1:5432")
     with throwaway_postgres(admin_url) as url:
-        settings = make_settings(url, tmp_path / "data").model_copy(
-            update={"max_live_auctions": 2}
-        )
+        settings = make_settings(url, tmp_path / "data").model_copy(update={"max_live_auctions": 2})
         with TestClient(create_app(settings)) as client:
             model = client.post("/submit", json=honest(unique("race-live"))).json()
             enrolling = {"n_fish": 1, "enrollment_s": 600, "model_ids": [model["model_id"]]}

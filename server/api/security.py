@@ -14,6 +14,7 @@ import os
 import secrets
 from pathlib import Path
 
+from server.api.errors import api_error
 from server.config import Settings
 
 log = logging.getLogger("srd.security")
@@ -34,6 +35,17 @@ def hash_token(token: str) -> str:
 def token_matches(token: str, stored_hash: str) -> bool:
     """Constant-time check of a presented token against a stored hash."""
     return hmac.compare_digest(hash_token(token), stored_hash)
+
+
+def require_participant(token: str, stored_hash: str, participant: str) -> None:
+    """403 naming the participant unless ``token`` is that participant's."""
+    if not token_matches(token, stored_hash):
+        raise api_error(
+            403,
+            f"the bearer token is not the token of participant {participant!r}",
+            loc=("header", "Authorization"),
+            kind="bad_token",
+        )
 
 
 def load_admin_token_hash(settings: Settings) -> str:

@@ -8,7 +8,7 @@ from sqlalchemy.orm import Session
 
 from server.api.errors import RequestError, api_error, error_item
 from server.api.schemas import MAX_PATRONS, AuctionCreate
-from server.api.security import token_matches
+from server.api.security import require_participant
 from server.auctions.steps import base_price
 from server.store import crud
 from server.store.status import AuctionStatus, ModelStatus
@@ -183,13 +183,7 @@ def join_auction(
         raise api_error(
             404, f"model {model_id} does not exist", loc=("body", "model_id"), kind="not_found"
         )
-    if not token_matches(token, owner.token_hash):
-        raise api_error(
-            403,
-            f"the bearer token is not the token of participant {owner.participant!r}",
-            loc=("header", "Authorization"),
-            kind="bad_token",
-        )
+    require_participant(token, owner.token_hash, owner.participant)
     enrollment = crud.lock_enrollment(session, auction_id=auction_id)
     if enrollment is None:
         raise not_found(auction_id)

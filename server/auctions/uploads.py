@@ -35,7 +35,7 @@ from starlette.concurrency import run_in_threadpool
 from agents.manifest import Manifest, ManifestError, parse_manifest, parse_manifest_json
 from screener import Verdict
 from server.api.errors import api_error, error_item, validation_error
-from server.api.security import token_matches
+from server.api.security import require_participant
 from server.auctions.service import not_found
 from server.live.rounds import RoundWatcher, TooManyWaitersError
 from server.screening.pool import ScreenerUnavailableError, ScreeningService
@@ -143,13 +143,7 @@ def _check_patron(
 ) -> int:
     """The token is the patron's participant's, the model a patron of this remote auction,
     and the round has opened: its id."""
-    if not token_matches(token, target.token_hash):
-        raise api_error(
-            403,
-            f"the bearer token is not the token of participant {target.participant!r}",
-            loc=("header", "Authorization"),
-            kind="bad_token",
-        )
+    require_participant(token, target.token_hash, target.participant)
     if target.position is None:
         raise api_error(
             404,

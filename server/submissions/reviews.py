@@ -7,7 +7,7 @@ from __future__ import annotations
 from sqlalchemy.orm import Session
 
 from server.api.errors import RequestError, api_error
-from server.api.security import token_matches
+from server.api.security import require_participant
 from server.store import crud
 from server.store.status import ModelStatus, ReviewDecision
 from server.store.tables import utcnow
@@ -69,13 +69,7 @@ def appeal(session: Session, model_id: int, *, token: str | None, note: str) -> 
             loc=("header", "Authorization"),
             kind="missing_token",
         )
-    if not token_matches(token, owner.token_hash):
-        raise api_error(
-            403,
-            f"the bearer token is not the token of participant {owner.participant!r}",
-            loc=("header", "Authorization"),
-            kind="bad_token",
-        )
+    require_participant(token, owner.token_hash, owner.participant)
     if owner.appealed:
         raise api_error(
             409,

@@ -63,6 +63,7 @@ class ServerProcess:
         port: int | None = None,
         extra_env: dict[str, str] | None = None,
         log_path: Path | None = None,
+        cwd: Path | None = None,
     ) -> None:
         self.database_url = database_url
         self.data_dir = data_dir
@@ -71,6 +72,7 @@ class ServerProcess:
         self.log_path = log_path or data_dir / "serve.log"
         self._admin_token = admin_token
         self._extra_env = extra_env or {}
+        self._cwd = cwd
         self.process: subprocess.Popen[bytes] | None = None
 
     @property
@@ -101,6 +103,7 @@ class ServerProcess:
                 env=env,
                 stdout=log,
                 stderr=subprocess.STDOUT,
+                cwd=self._cwd,
             )
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:

@@ -119,6 +119,10 @@ def _start_fork_server() -> None:
     with _fork_server_lock:
         if _fork_server_started.is_set():
             return
+        # The fork server is "python -c ...", whose first import path is the current folder,
+        # and Python 3.11's fork server ignores the parent's path: without this its workers
+        # could import another checkout's ``server`` (the folder's) than this process did.
+        os.environ["PYTHONSAFEPATH"] = "1"
 
         def keep() -> None:
             from multiprocessing import forkserver

@@ -152,12 +152,21 @@ def _niceness(pid: int) -> int:
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
 def test_step_workers_run_at_the_api_priority_and_job_workers_below_it(tmp_path: Path) -> None:
     """``SRD_WORKER_NICE`` lowers the experiments' priority only: an auction's steps are part of
-    serving (a round closes when its step has run)."""
+    serving (a round closes when its step has run). The server runs from a folder holding
+    another ``server`` package: no process of it imports that one (the fork server, a
+    ``python -c``, once put the current folder first on its path)."""
+    elsewhere = tmp_path / "elsewhere"
+    (elsewhere / "server").mkdir(parents=True)
+    marker = elsewhere / "imported"
+    (elsewhere / "server" / "__init__.py").write_text(
+        f"open({str(marker)!r}, 'w').close()\nraise ImportError('another server')\n"
+    )
     with ServerProcess(
         database_url=f"sqlite:///{tmp_path / 'srd.db'}",
         data_dir=tmp_path,
         admin_token=ADMIN_TOKEN,
         extra_env={"SRD_WORKER_NICE": "7"},
+        cwd=elsewhere,
     ) as server:
         assert server.process is not None
         api = server.process.pid
@@ -180,4 +189,12 @@ def test_step_workers_run_at_the_api_priority_and_job_workers_below_it(tmp_path:
                             with contextlib.suppress(OSError):
                                 seen[kind] = _niceness(pid)
                 time.sleep(0.02)
+            auction_id = auction.json()["auction_id"]
+            while time.monotonic() < deadline:
+                state = client.get(f"/auctions/{auction_id}").json()
+                if state["status"] not in ("pending", "running"):
+                    break
+                time.sleep(0.1)
     assert seen == expected
+    assert state["status"] == "finished", state["error"]
+    assert not marker.exists()  # no process of the server imported the folder's package

@@ -178,8 +178,7 @@ def join_auction(
     for a second version of a participant already in, past ``MAX_PATRONS``. The same model
     again is answered as the first time; the last of the three says whether it joined now."""
     owner = crud.model_owner(session, model_id=model_id)
-    model = crud.get_models(session, model_ids=[model_id]).get(model_id)
-    if owner is None or model is None:
+    if owner is None:
         raise api_error(
             404, f"model {model_id} does not exist", loc=("body", "model_id"), kind="not_found"
         )
@@ -187,7 +186,7 @@ def join_auction(
     enrollment = crud.lock_enrollment(session, auction_id=auction_id)
     if enrollment is None:
         raise not_found(auction_id)
-    joined = enrollment.patrons.get(model.participant_id)
+    joined = enrollment.patrons.get(owner.participant_id)
     if joined is not None and joined[0] == model_id:  # a repeat
         return enrollment, joined[1], False
     open_until = enrollment.enroll_until
@@ -225,7 +224,7 @@ def join_auction(
     position = len(enrollment.patrons)
     crud.add_patron(session, auction_id=auction_id, model_id=model_id, position=position)
     session.commit()
-    enrollment.patrons[model.participant_id] = (model_id, position)
+    enrollment.patrons[owner.participant_id] = (model_id, position)
     return enrollment, position, True
 
 

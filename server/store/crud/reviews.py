@@ -67,6 +67,7 @@ class ModelOwner:
     token_hash: str
     status: str
     appealed: bool
+    participant_id: int
 
 
 def model_owner(session: Session, *, model_id: int) -> ModelOwner | None:
@@ -79,7 +80,13 @@ def model_owner(session: Session, *, model_id: int) -> ModelOwner | None:
     row = (
         session.connection()
         .execute(
-            select(Participant.name, Participant.token_hash, ModelVersion.status, appealed)
+            select(
+                Participant.name,
+                Participant.token_hash,
+                ModelVersion.status,
+                appealed,
+                ModelVersion.participant_id,
+            )
             .join(Participant, Participant.id == ModelVersion.participant_id)
             .where(ModelVersion.id == model_id)
         )

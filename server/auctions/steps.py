@@ -287,10 +287,12 @@ def _end_enrollment(database: Database, auction_id: int) -> bool:
     joined, or too few for a single fish (failed, saying so)."""
     with database.session(write=True) as session:
         enrollment = crud.lock_enrollment(session, auction_id=auction_id)
-        if enrollment is None or enrollment.status != AuctionStatus.PENDING:
-            return True
-        if enrollment.enroll_until is None:
-            return True
+        if (
+            enrollment is None
+            or enrollment.status != AuctionStatus.PENDING
+            or enrollment.enroll_until is None
+        ):
+            return True  # gone, ended or started meanwhile (a cancel, another step)
         if utcnow() < enrollment.enroll_until:  # woken early (another replica's clock)
             crud.due_at(session, auction_id=auction_id, when=enrollment.enroll_until)
             session.commit()
@@ -302,7 +304,7 @@ def _end_enrollment(database: Database, auction_id: int) -> bool:
         if patrons == 0:
             problem = "nobody joined before its enrollment ended"
         elif n_fish is not None and n_fish < 1:
-            problem = f"rarity {enrollment.rarity} × {patrons} patrons puts no fish on sale"
+            problem = f"rarity {rarity} × {patrons} patrons puts no fish on sale"
         crud.end_enrollment(session, auction_id=auction_id, n_fish=None if problem else n_fish)
         if problem is not None:
             crud.fail_unfinished(session, table=Auction, row_id=auction_id, error=problem)

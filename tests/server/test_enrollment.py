@@ -136,3 +136,12 @@ def test_an_enrollment_too_thin_fails_the_auction_saying_why(
     failed = ended(client, auction_id)
     assert failed["status"] == "failed" and words in failed["error"]
     assert time.monotonic() - started < 30
+
+
+@pytest.mark.parametrize("value", [-1, 86_401, "60", True])
+def test_enrollment_s_is_bounded_and_typed(client: TestClient, value: Any) -> None:
+    before = len(client.get("/auctions", params={"limit": 100}).json()["items"])
+    answer = client.post("/auctions", json={"n_fish": 1, "enrollment_s": value}, headers=ADMIN)
+    assert answer.status_code == 422
+    assert ["body", "enrollment_s"] in [item["loc"] for item in answer.json()["detail"]]
+    assert len(client.get("/auctions", params={"limit": 100}).json()["items"]) == before

@@ -185,11 +185,13 @@ def parse_strict_json(raw: bytes) -> Any:
         ) from exc
     if text.startswith("\ufeff"):
         raise BodyRefusedError(422, "the body starts with a byte-order mark", ("body",), "bom")
+    long_ints = False  # the fast pass looks for them first: only its refusal says they are in
     try:
         return _fast(text)
     except RecursionError:
         pass  # the careful pass below says so
     except _UnfitError as unfit:
+        long_ints = unfit.kind == "number_too_long"
         if len(text) > MAX_CAREFUL_BYTES:  # what, but not where: a bounded amount of work
             raise BodyRefusedError(
                 422,
@@ -200,7 +202,6 @@ def parse_strict_json(raw: bytes) -> Any:
     except ValueError as exc:
         raise BodyRefusedError(422, f"the body is not JSON: {exc}", ("body",), "not_json") from exc
     try:
-        long_ints = _LONG_DIGITS.search(text) is not None
         parsed = json.loads(
             text, object_pairs_hook=_Pairs, parse_int=_int_careful if long_ints else None
         )

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import gc
 import importlib
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
 import click
 
-from server.cli.words import plain
+from server.cli.words import json_failure, plain
 from studies.registry import KINDS
 
 HELP = "Self Reward Design: fish sale auction service, screener and the paper's experiments."
@@ -82,5 +83,25 @@ cli = _Commands(name="srd", help=HELP, no_args_is_help=True)
 
 
 def main() -> None:
-    """Console-script entry point."""
-    cli()
+    """Console-script entry point. Under ``--json`` a failure click finds in the options, or
+    an unexpected error, still prints one JSON object on stdout (``words.json_failure``)."""
+    if "--json" not in sys.argv[1:]:
+        cli()
+        return
+    try:
+        code = cli.main(standalone_mode=False)
+    except click.ClickException as exc:
+        exc.show()
+        param = getattr(exc, "param", None)
+        option = param.opts[0] if isinstance(param, click.Option) else getattr(param, "name", None)
+        option = option or getattr(exc, "option_name", None)  # an option that does not exist
+        message = exc.format_message()
+        json_failure(message, [{"option": option, "message": message}] if option else None)
+        raise SystemExit(exc.exit_code) from exc
+    except click.Abort as exc:
+        json_failure("aborted")
+        raise SystemExit(1) from exc
+    except Exception as exc:  # the traceback goes to stderr as usual
+        json_failure(f"{type(exc).__name__}: {exc}")
+        raise
+    raise SystemExit(code if isinstance(code, int) else 0)

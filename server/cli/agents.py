@@ -28,6 +28,7 @@ from agents.remote import (
 )
 from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_SEED, ROUND_DEADLINE_S
 from server.cli.launch import server_url
+from server.cli.words import json_failure
 
 GAVE_UP = 1
 """Exit code when the server could not be reached or refused the population."""
@@ -240,6 +241,8 @@ def command(
         )
     except ValueError as exc:  # the options named in the message
         err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False)
+        if json_output:
+            json_failure(str(exc))
         raise SystemExit(INVALID) from exc
     with Progress(
         TextColumn("[bold]{task.description}"),
@@ -260,6 +263,8 @@ def command(
             report = asyncio.run(run_population(config, progress))
         except RemoteError as exc:
             err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False)
+            if json_output:
+                json_failure(str(exc))
             raise SystemExit(GAVE_UP) from exc
     if json_output:
         sys.stdout.write(json.dumps(report.to_dict()) + "\n")

@@ -23,7 +23,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from server.cli.words import header, plain, rounded
+from server.cli.words import header, json_failure, plain, rounded
 from server.config import Settings
 from sim.experiment import (
     ConfigError,
@@ -125,9 +125,13 @@ def execute(
     try:
         config = parse_config(config_cls, options)
     except ConfigError as exc:
+        errors = []
         for err in exc.errors:
-            name = err["field"].split(".")[0].replace("_", "-")
-            stderr.print(f"[red]error:[/red] --{name}: {escape(err['message'])}", highlight=False)
+            option = "--" + err["field"].split(".")[0].replace("_", "-")
+            errors.append({"option": option, "message": err["message"]})
+            stderr.print(f"[red]error:[/red] {option}: {escape(err['message'])}", highlight=False)
+        if json_output:
+            json_failure(f"{errors[0]['option']}: {errors[0]['message']}", errors)
         raise SystemExit(INVALID) from exc
     out_dir = out or default_out_dir(kind.name, int(getattr(config, "seed", 0)))
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -31,7 +31,9 @@ def _malformed(errors: list[dict[str, str]], json_output: bool) -> SystemExit:
     for e in errors:
         err.print(f"[red]error:[/red] {escape(e['path'])}: {escape(e['message'])}", highlight=False)
     if json_output:
-        _emit({"accepted": False, "reasons": [], "errors": errors})
+        first = errors[0] if errors else {"path": "$", "message": "malformed"}
+        error = f"{first['path']}: {first['message']}"
+        _emit({"accepted": False, "reasons": [], "errors": errors, "error": error})
     return SystemExit(MALFORMED)
 
 

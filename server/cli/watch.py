@@ -24,6 +24,7 @@ from rich.table import Table
 from rich.text import Text
 
 from server.cli.launch import server_url
+from server.cli.words import json_failure
 
 FINISHED, ENDED_OTHERWISE, LOST = 0, 1, 3
 """Exit codes: the auction finished; it failed or was cancelled; it could not be followed
@@ -251,6 +252,8 @@ def command(auction_id: int, server: str, json_output: bool) -> None:
                 raise WatchError(f"GET /auctions/{auction_id}: HTTP {final.status_code}")
     except (WatchError, httpx.HTTPError) as exc:
         err.print(f"[red]error:[/red] {escape(str(exc))}")
+        if json_output:
+            json_failure(str(exc))
         raise SystemExit(LOST) from exc
     if final is not None:
         sys.stdout.write(json.dumps(final.json()) + "\n")

@@ -1,10 +1,14 @@
 """How the command line shows names and numbers to a person: help text without reStructuredText
-markup, table headers in words, floats to three significant digits."""
+markup, table headers in words, floats to three significant digits; and, under ``--json``, a
+failure as the one JSON object on stdout."""
 
 from __future__ import annotations
 
+import json
 import math
 import re
+import sys
+from typing import Any
 
 SIGNIFICANT = 3
 """Significant digits of a float in a table or a card."""
@@ -44,3 +48,13 @@ def rounded(value: float) -> str:
     decimals = SIGNIFICANT - 1 - magnitude
     text = f"{round(value, decimals):.{max(decimals, 0)}f}"
     return text.rstrip("0").rstrip(".") if "." in text else text
+
+
+def json_failure(message: str, errors: list[dict[str, str]] | None = None) -> None:
+    """A command that fails under ``--json`` still prints exactly one JSON object on stdout:
+    ``{"error": message}``, with ``errors`` (``[{option, message}]``) when options were at
+    fault. The person reads the same on stderr; the exit code is the command's."""
+    obj: dict[str, Any] = {"error": message}
+    if errors is not None:
+        obj["errors"] = errors
+    sys.stdout.write(json.dumps(obj) + "\n")

@@ -96,7 +96,30 @@ def test_bad_options_exit_2_naming_the_option(tmp_path, args, option, message) -
     assert result.exit_code == 2
     assert option in result.stderr and message in result.stderr
     assert result.stderr.count("error:") == 1, result.stderr  # the cause alone
-    assert result.stdout == ""
+    failure = json.loads(result.stdout)  # --json: still exactly one object on stdout
+    assert [e["option"] for e in failure["errors"]] == [option]
+    assert message in failure["error"] and "out_dir" not in failure
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "option", "words"),
+    [
+        (["lavaland", "--project", "nope"], 2, "--project", "is not one of"),
+        (["fish", "--no-such-option"], 2, "--no-such-option", "No such option"),
+        (["agents", "--honest", "-1"], 2, "--honest", "not in the range"),
+        (["agents", "--server", "http://127.0.0.1:9", "--give-up", "1"], 1, None, "gave up"),
+        (["watch", "1", "--server", "http://127.0.0.1:9"], 3, None, "ConnectError"),
+    ],
+)
+def test_every_failure_under_json_is_one_object_on_stdout(args, code, option, words) -> None:
+    """Options click itself refuses, and a server that never answers, as a script reads them:
+    the exit code, and one JSON object saying what failed (the person's words on stderr)."""
+    done = invoke(*args, "--json")
+    assert done.returncode == code, done.stderr
+    failure = json.loads(done.stdout)
+    assert words in failure["error"] and words in done.stderr
+    assert [e["option"] for e in failure.get("errors", [])] == ([option] if option else [])
 
 
 def test_the_item_rows_are_an_option(tmp_path) -> None:

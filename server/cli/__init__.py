@@ -11,8 +11,9 @@ from __future__ import annotations
 import gc
 import importlib
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from typing import Any
 
 import click
 
@@ -71,6 +72,30 @@ class _Commands(click.Group):
 
             return experiment_command(kind)
 
+    def main(self, args: Sequence[str] | None = None, *rest: Any, **options: Any) -> Any:
+        """Under ``--json`` a failure click finds in the options, or an unexpected error, still
+        prints one JSON object on stdout (``words.json_failure``); the exit code is click's."""
+        argv = list(sys.argv[1:] if args is None else args)
+        if "--json" not in argv or not options.get("standalone_mode", True):
+            return super().main(argv, *rest, **options)
+        try:
+            code = super().main(argv, *rest, **{**options, "standalone_mode": False})
+        except click.ClickException as exc:
+            exc.show()
+            param = getattr(exc, "param", None)
+            option = param.opts[0] if isinstance(param, click.Option) else None
+            option = option or getattr(exc, "option_name", None)  # one that does not exist
+            message = exc.format_message()
+            json_failure(message, [{"option": option, "message": message}] if option else None)
+            raise SystemExit(exc.exit_code) from exc
+        except click.Abort as exc:
+            json_failure("aborted")
+            raise SystemExit(1) from exc
+        except Exception as exc:  # the traceback goes to stderr as usual
+            json_failure(f"{type(exc).__name__}: {exc}")
+            raise
+        raise SystemExit(code if isinstance(code, int) else 0)
+
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         rows = [(name, help_line) for name, (_, help_line) in HAND_WRITTEN.items()]
         rows += [(name, kind.summary) for name, kind in KINDS.items() if kind.command]
@@ -83,25 +108,5 @@ cli = _Commands(name="srd", help=HELP, no_args_is_help=True)
 
 
 def main() -> None:
-    """Console-script entry point. Under ``--json`` a failure click finds in the options, or
-    an unexpected error, still prints one JSON object on stdout (``words.json_failure``)."""
-    if "--json" not in sys.argv[1:]:
-        cli()
-        return
-    try:
-        code = cli.main(standalone_mode=False)
-    except click.ClickException as exc:
-        exc.show()
-        param = getattr(exc, "param", None)
-        option = param.opts[0] if isinstance(param, click.Option) else getattr(param, "name", None)
-        option = option or getattr(exc, "option_name", None)  # an option that does not exist
-        message = exc.format_message()
-        json_failure(message, [{"option": option, "message": message}] if option else None)
-        raise SystemExit(exc.exit_code) from exc
-    except click.Abort as exc:
-        json_failure("aborted")
-        raise SystemExit(1) from exc
-    except Exception as exc:  # the traceback goes to stderr as usual
-        json_failure(f"{type(exc).__name__}: {exc}")
-        raise
-    raise SystemExit(code if isinstance(code, int) else 0)
+    """Console-script entry point."""
+    cli()

@@ -32,7 +32,7 @@ def test_a_bad_rule_exits_2_naming_the_option(tmp_path) -> None:
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 2
     assert "--buy-fraction" in result.stderr and "'buyers'" in result.stderr
-    assert result.stdout == ""
+    assert json.loads(result.stdout)["errors"][0]["option"] == "--buy-fraction"
 
 
 def test_srd_comparison_prints_one_json_object_with_every_configuration(tmp_path) -> None:

@@ -40,7 +40,7 @@ from datetime import datetime
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from starlette.websockets import WebSocket, WebSocketDisconnect
+from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from server.api.body import BodyRefusedError, parse_strict_json
 from server.api.errors import RequestError, capped, error_item
@@ -169,6 +169,8 @@ class RoundSockets:
         except (asyncio.CancelledError, WebSocketDisconnect):
             raise
         except Exception:
+            if socket.websocket.application_state == WebSocketState.DISCONNECTED:
+                return  # the answering task closed it meanwhile (a flood, a frame too big)
             log.exception("pushing the rounds of auction %d failed", auction_id)
             with contextlib.suppress(Exception):
                 await socket.close(1011, "the server could not read the rounds; reconnect")

@@ -88,8 +88,9 @@ class Feed(Generic[S]):
         """Wait until the snapshot is newer than ``generation``; False on timeout."""
         if self.generation != generation:
             return True
-        try:
-            await asyncio.wait_for(self._changed.wait(), timeout_s)
+        try:  # not wait_for: on Python 3.11 it can swallow a cancellation that meets a wake-up
+            async with asyncio.timeout(timeout_s):
+                await self._changed.wait()
         except TimeoutError:
             return False
         return True
@@ -251,7 +252,8 @@ class LiveSource:
                 # while the listener is down, PostgreSQL is polled as SQLite is
                 interval = self._poll_s if self._listens and not self.listening else self.interval_s
                 try:
-                    await asyncio.wait_for(self._wake.wait(), interval if self._rows else None)
+                    async with asyncio.timeout(interval if self._rows else None):
+                        await self._wake.wait()
                 except TimeoutError:  # the poll (on PostgreSQL the safety net)
                     if self._commits is None or self._commits.since_last():
                         self._dirty.update(self._rows)
@@ -293,7 +295,8 @@ class LiveSource:
     async def _pause(self) -> None:
         """Wait ``interval_s``, or less if a notification or a new listener comes."""
         with suppress(TimeoutError):
-            await asyncio.wait_for(self._wake.wait(), self.interval_s)
+            async with asyncio.timeout(self.interval_s):
+                await self._wake.wait()
 
     def _read(self, plan: _Plan) -> _Result:
         """One read (in the thread pool): the states of the planned rows, one query per kind,

@@ -265,7 +265,8 @@ class ScreeningService:
     async def _answer(self, kind: str, payload: object) -> Any:
         request_id, future = self._ask(kind, payload)
         try:
-            return await asyncio.wait_for(asyncio.wrap_future(future), VERDICT_TIMEOUT_S)
+            async with asyncio.timeout(VERDICT_TIMEOUT_S):  # wait_for (3.11) can swallow a cancel
+                return await asyncio.wrap_future(future)
         except TimeoutError as exc:
             with self._lock:
                 self._pending.pop(request_id, None)

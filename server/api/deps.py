@@ -9,8 +9,9 @@ dependency per request for an attribute read.
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
-from typing import Annotated
+import asyncio
+from collections.abc import AsyncIterator, Callable
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -28,9 +29,11 @@ from server.live.events import EventHub
 from server.live.rounds import RoundWatcher
 from server.screening.pool import ScreeningService
 from server.services import Services
-from server.store.db import Database
+from server.store.db import READ_TIMEOUT_S, Database, DatabaseUnavailableError
 from server.submissions.writer import SubmissionWriter
 from server.work.runner import BackgroundRunner
+
+T = TypeVar("T")
 
 
 async def _services(connection: HTTPConnection) -> Services:
@@ -122,6 +125,23 @@ async def _session(request: Request, database: DatabaseDep) -> AsyncIterator[Ses
 
 
 SessionDep = Annotated[Session, Depends(_session)]
+
+
+async def read_in_thread(fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+    """A request's database read in the thread pool, refused with 503 if the database has not
+    answered within ``READ_TIMEOUT_S`` (a server that hangs, or is cut off without a word,
+    holds no request longer; the thread finishes when the database answers)."""
+    scope = asyncio.timeout(READ_TIMEOUT_S)
+    try:
+        async with scope:
+            return await run_in_threadpool(fn, *args, **kwargs)
+    except TimeoutError as exc:
+        if not scope.expired():
+            raise
+        raise DatabaseUnavailableError(
+            f"the database did not answer within {READ_TIMEOUT_S:g} s"
+        ) from exc
+
 
 bearer_scheme = HTTPBearer(auto_error=False, description="Bearer token")
 BearerDep = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]

@@ -46,6 +46,7 @@ from server.api.body import BodyRefusedError, parse_strict_json
 from server.api.errors import RequestError, capped, error_item
 from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_ROW_ID
 from server.live.rounds import MAX_WAIT_S, Published, RoundWatcher, TooManyWaitersError
+from server.store.db import is_database_outage
 from server.store.tables import utcnow
 
 log = logging.getLogger("srd.rounds")
@@ -168,10 +169,13 @@ class RoundSockets:
             await self._push(socket, auction_id, first)
         except (asyncio.CancelledError, WebSocketDisconnect):
             raise
-        except Exception:
+        except Exception as exc:
             if socket.websocket.application_state == WebSocketState.DISCONNECTED:
                 return  # the answering task closed it meanwhile (a flood, a frame too big)
-            log.exception("pushing the rounds of auction %d failed", auction_id)
+            if is_database_outage(exc):
+                log.warning("round socket of auction %d: %s; closed", auction_id, exc)
+            else:
+                log.exception("pushing the rounds of auction %d failed", auction_id)
             with contextlib.suppress(Exception):
                 await socket.close(1011, "the server could not read the rounds; reconnect")
 

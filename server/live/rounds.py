@@ -144,6 +144,7 @@ class RoundWatcher:
         give_up = loop.time() + min(wait_s, MAX_WAIT_S)
         async with self._source.watch("auction", auction_id, round_view) as feed:
             while True:
+                feed.raise_failure()  # the last read failed (an outage): 503, not the snapshot
                 generation, snapshot = feed.generation, feed.snapshot
                 if snapshot is None:
                     return None

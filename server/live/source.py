@@ -42,7 +42,9 @@ from starlette.concurrency import run_in_threadpool
 from server.store import crud
 from server.store.db import (
     CONNECT_TIMEOUT_S,
+    PROBE_TIMEOUT_S,
     Database,
+    DatabaseUnavailableError,
     is_database_outage,
     is_sqlite,
     sqlite_path,
@@ -53,6 +55,9 @@ log = logging.getLogger("srd.live")
 
 RECONNECT_S = 0.5
 """Pause before the listening connection is opened again after it failed."""
+STALL_S = PROBE_TIMEOUT_S
+"""On PostgreSQL, a read not answered this soon counts as an outage while it goes on (a server
+that hangs, or is cut off without a word); the next read is made once it ends."""
 LISTENER_NAME = "srd-live"
 """``application_name`` of the listening connection (how an operator finds it)."""
 
@@ -81,8 +86,18 @@ class Feed(Generic[S]):
     """Bumped whenever ``snapshot`` changes."""
     listeners: int = 0
     failure: BaseException | None = None
-    """Why the first read failed (the listeners waiting for it raise it)."""
+    """Why the last read failed: before the first snapshot any failure, after it an outage
+    (``raise_failure``); cleared by the next read that succeeds."""
     _changed: asyncio.Event = field(default_factory=asyncio.Event)
+
+    def raise_failure(self) -> None:
+        """Raise why the last read failed, if it did: a database outage as
+        ``DatabaseUnavailableError`` (503), anything else as it was."""
+        if self.failure is None:
+            return
+        if is_database_outage(self.failure):
+            raise DatabaseUnavailableError(unavailable_message(self.failure))
+        raise self.failure
 
     async def wait(self, generation: int, timeout_s: float) -> bool:
         """Wait until the snapshot is newer than ``generation``; False on timeout."""
@@ -190,9 +205,10 @@ class LiveSource:
             self._mark(key)
         feed.listeners += 1
         try:
-            while not feed.built:
-                if feed.failure is not None:
-                    raise feed.failure
+            while True:  # a snapshot the last read could not confirm is not served
+                feed.raise_failure()
+                if feed.built:
+                    break
                 await feed.wait(feed.generation, self.interval_s)
             yield feed
         finally:  # no await here: this also runs when the listener's task is cancelled
@@ -270,19 +286,22 @@ class LiveSource:
                 )
                 for key in keys
             ]
+            reading = asyncio.ensure_future(run_in_threadpool(self._read, plan))
             try:
-                found = await run_in_threadpool(self._read, plan)
-            except Exception as exc:  # the listeners keep their snapshots; read again later
+                if self._listens and not (await asyncio.wait({reading}, timeout=STALL_S))[0]:
+                    stalled = DatabaseUnavailableError(f"no answer within {STALL_S:g} s")
+                    if not failing:
+                        log.warning("live updates: the database did not answer a read in time")
+                    failing = True
+                    self._failed(plan, stalled)
+                found = await reading  # however long: one read at a time
+            except Exception as exc:  # read again later
                 if not is_database_outage(exc):
                     log.exception("live updates: reading failed; retrying")
                 elif not failing:
                     log.warning("live updates: %s; retrying", unavailable_message(exc))
                 failing = True
-                for _, _, _, feeds in plan:
-                    for feed, _, built in feeds:
-                        if not built:
-                            feed.failure = exc
-                            feed._wake()
+                self._failed(plan, exc)
                 await self._pause()
                 self._dirty.update(keys)
                 continue
@@ -291,6 +310,18 @@ class LiveSource:
             failing = False
             self.reads += 1
             self._deliver(found)
+
+    @staticmethod
+    def _failed(plan: _Plan, exc: BaseException) -> None:
+        """A read of the planned rows failed: a feed without a snapshot fails its listeners;
+        in an outage every feed does (new listeners, long polls and round sockets are answered
+        503 instead of a snapshot the database can no longer confirm; event streams wait)."""
+        outage = is_database_outage(exc)
+        for _, _, _, feeds in plan:
+            for feed, _, built in feeds:
+                if outage or not built:
+                    feed.failure = exc
+                    feed._wake()
 
     async def _pause(self) -> None:
         """Wait ``interval_s``, or less if a notification or a new listener comes."""
@@ -324,6 +355,8 @@ class LiveSource:
             if row is None:  # nobody watches it any more
                 continue
             row.state, row.read = state, True
+            for feed in row.feeds.values():
+                feed.failure = None  # read again: what it holds is confirmed
             for feed, snapshot in snapshots:
                 if row.feeds.get(feed.view) is feed and (
                     not feed.built or snapshot is not feed.snapshot

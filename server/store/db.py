@@ -25,10 +25,12 @@ import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeoutError
 from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 from urllib.parse import quote
 
 from alembic import command
@@ -39,6 +41,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from sqlalchemy.orm import Session, sessionmaker
 
 log = logging.getLogger("srd.db")
+T = TypeVar("T")
 
 MIGRATIONS_DIR = Path(__file__).parent / "migrations"
 _WRITE_OPTION = "srd_write"
@@ -58,6 +61,21 @@ OUTAGE_RETRIES = 3
 """Times a worker retries its task's step after the database came back (then it fails it)."""
 OUTAGE_POLL_S = 0.2  # how often one waiting out an outage asks for the (cached) check
 CONNECT_TIMEOUT_S = 5  # a PostgreSQL server that does not answer fails a connection this soon
+PROBE_TIMEOUT_S = 3.0
+"""A PostgreSQL server that holds its connections but does not answer the check's probe this
+soon (hung, or cut off without a word) counts as unreachable."""
+READ_TIMEOUT_S = 15.0
+"""A request's read that the database has not answered this soon is refused with 503 (its
+thread is left to finish when the database answers; writes are never cut short)."""
+_TCP_OPTIONS = {
+    "keepalives": 1,
+    "keepalives_idle": 10,
+    "keepalives_interval": 5,
+    "keepalives_count": 3,
+    "tcp_user_timeout": 15_000,
+}
+"""libpq's TCP settings: a connection to a server cut off without a word (no FIN, no RST) fails
+in about 15 to 25 s, in a query or idle in the pool, instead of after the kernel's minutes."""
 DATABASE_RETRY_AFTER_S = 2
 """What a request refused while the database is unavailable is told to wait (``Retry-After``):
 a check is trusted ``IDENTITY_CHECK_S``, so writes resume about that soon after it is back."""
@@ -273,7 +291,13 @@ def _postgres_options(url: str) -> dict[str, Any]:
     gone from the network) fails a connection in seconds instead of minutes."""
     if make_url(url).get_backend_name() != "postgresql":
         return {}
-    return {"connect_args": {"connect_timeout": CONNECT_TIMEOUT_S}}
+    return {"connect_args": {"connect_timeout": CONNECT_TIMEOUT_S, **_TCP_OPTIONS}}
+
+
+def _read_only(engine: Engine) -> str:
+    """PostgreSQL's ``transaction_read_only`` (``on`` on a standby)."""
+    with engine.connect() as connection:
+        return str(connection.exec_driver_sql("SHOW transaction_read_only").scalar_one())
 
 
 def _identity(engine: Engine, url: str) -> tuple[int, ...]:
@@ -319,6 +343,11 @@ class Database:
                 **_postgres_options(url),
             )
         )
+        self._prober = (
+            None if self._probe is None else ThreadPoolExecutor(1, thread_name_prefix="srd-probe")
+        )
+        self._probing: Future[Any] | None = None
+        self._probe_lock = threading.Lock()
         self._identity = _identity(self._probe or self.engine, url)
         self._checked_at = time.monotonic()
         self._problem: str | None = None
@@ -351,9 +380,25 @@ class Database:
         """Whether the next ``problem()`` makes a check (I/O: run it off the event loop)."""
         return not self._lost and time.monotonic() - self._checked_at > IDENTITY_CHECK_S
 
+    def _probed(self, query: Callable[[Engine], T]) -> T:
+        """``query(probe engine)`` in the probe's thread, waited for ``PROBE_TIMEOUT_S`` at most
+        (``TimeoutError``); while an earlier probe is still unanswered, none is sent."""
+        assert self._prober is not None and self._probe is not None
+        with self._probe_lock:
+            if self._probing is not None and not self._probing.done():
+                raise TimeoutError(f"no answer to a probe within {PROBE_TIMEOUT_S:g} s")
+            self._probing = probing = self._prober.submit(query, self._probe)
+            try:
+                return probing.result(timeout=PROBE_TIMEOUT_S)
+            except FutureTimeoutError as exc:
+                raise TimeoutError(f"no answer to a probe within {PROBE_TIMEOUT_S:g} s") from exc
+
     def _check(self) -> str | None:
         try:
-            now = _identity(self._probe or self.engine, self.url)
+            if self._probe is None:
+                now = _identity(self.engine, self.url)
+            else:
+                now = self._probed(lambda probe: _identity(probe, self.url))
         except FileNotFoundError:
             self._lost = True
             return f"the database file {sqlite_path(self.url)} was deleted"
@@ -376,8 +421,7 @@ class Database:
         if problem is not None or self._probe is None:
             return problem or _sqlite_write_problem(sqlite_path(self.url))
         try:
-            with self._probe.connect() as connection:
-                read_only = connection.exec_driver_sql("SHOW transaction_read_only").scalar_one()
+            read_only = self._probed(_read_only)
         except Exception as exc:
             return f"the database cannot be reached: {_first_line(exc)}"
         if read_only == "on":
@@ -437,6 +481,8 @@ class Database:
             self._at_once.dispose()
         if self._probe is not None:
             self._probe.dispose()
+        if self._prober is not None:
+            self._prober.shutdown(wait=False, cancel_futures=True)
 
 
 def _sqlite_write_problem(path: Path) -> str | None:

@@ -8,20 +8,27 @@ machine's shared one, which other tests use at the same time)."""
 from __future__ import annotations
 
 import glob
+import json
+import os
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
 import pytest
 from sqlalchemy import create_engine, text
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect as ws_connect
 
 from server.api.readiness import CACHE_S
 from server.cli.launch import ServerProcess, free_port, settings_environment
+from server.store.db import READ_TIMEOUT_S
+from tests.server.test_remote_protocol import open_round, start_remote
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, ADMIN_TOKEN, QUOTAS_OFF
 
@@ -181,3 +188,86 @@ def test_writes_resume_after_a_postgres_outage(cluster: Cluster, tmp_path: Path)
             assert model.status_code == 200 and model.json()["participant"] == name
     print(f"writes resumed {resumed_s:.2f} s after PostgreSQL was back; {len(stored)} stored")
     assert len(stored) >= 7
+
+
+def cluster_pids(cluster: Cluster) -> list[int]:
+    """The postmaster and every process it runs."""
+    postmaster = int((cluster.data / "postmaster.pid").read_text().split()[0])
+    children = subprocess.run(
+        ["pgrep", "-P", str(postmaster)], capture_output=True, text=True, timeout=10
+    ).stdout.split()
+    return [postmaster, *map(int, children)]
+
+
+def timed(call: Callable[[], httpx.Response]) -> tuple[httpx.Response, float]:
+    started = time.monotonic()
+    response = call()
+    return response, time.monotonic() - started
+
+
+HUNG_S = 8.0
+ANSWER_WITHIN_S = READ_TIMEOUT_S + 3  # a read the database never answers is refused by then
+
+
+def test_a_hung_or_stopped_postgres_holds_no_request_and_serves_no_stale_round(
+    cluster: Cluster, tmp_path: Path
+) -> None:
+    """A database that keeps its connections but answers nothing (every PostgreSQL process
+    stopped with SIGSTOP, as a host cut off without a word looks): every request is answered,
+    /healthz says not ready, and nothing a round socket or a long poll holds in memory is served
+    as current. Then a clean stop: the round a socket watches is 503 for anyone else too."""
+    url = f"postgresql+psycopg://postgres@127.0.0.1:{cluster.port}/{DB_NAME}"
+    env = settings_environment({**QUOTAS_OFF, "lease_s": 3.0})
+    with (
+        ServerProcess(
+            database_url=url, data_dir=tmp_path / "data", admin_token=ADMIN_TOKEN, extra_env=env
+        ) as server,
+        httpx.Client(base_url=server.url, timeout=60) as client,
+    ):
+        auction_id, _, _ = start_remote(client, "hung", 700, 4, round_deadline_s=120, seed=3)
+        assert open_round(client, auction_id)["status"] == "open"
+        current = f"/auctions/{auction_id}/rounds/current"
+        socket_url = (
+            server.url.replace("http://", "ws://") + f"/auctions/{auction_id}/rounds/socket"
+        )
+        with ws_connect(socket_url) as socket:  # the round's snapshot is held in memory
+            assert json.loads(socket.recv(timeout=10))["body"]["status"] == "open"
+            pids = cluster_pids(cluster)
+            for pid in pids:
+                os.kill(pid, signal.SIGSTOP)
+            try:
+                hung_at, refused = time.monotonic(), set()
+                while time.monotonic() - hung_at < HUNG_S:
+                    for path in ("/healthz", f"/auctions/{auction_id}", current, "/models"):
+                        response, took = timed(lambda p=path: client.get(p))  # type: ignore[misc]
+                        assert took < ANSWER_WITHIN_S, (path, took)
+                        assert response.status_code in (200, 503), response.text
+                        if response.status_code == 503:
+                            assert response.headers["content-type"] == "application/json"
+                            refused.add(path)
+                    time.sleep(0.2)
+                assert {"/healthz", current} <= refused, refused
+                with pytest.raises(ConnectionClosed) as closed:  # told to reconnect
+                    while True:
+                        socket.recv(timeout=ANSWER_WITHIN_S)
+                assert closed.value.rcvd is not None and closed.value.rcvd.code == 1011
+            finally:
+                for pid in pids:
+                    os.kill(pid, signal.SIGCONT)
+
+        deadline = time.monotonic() + 20
+        while client.get("/healthz").status_code != 200:
+            assert time.monotonic() < deadline, "never ready after the database answered again"
+            time.sleep(0.2)
+        with ws_connect(socket_url) as socket:
+            assert json.loads(socket.recv(timeout=10))["body"]["status"] == "open"
+            assert client.get(current).status_code == 200
+            cluster.stop()
+            time.sleep(CACHE_S)
+            response, took = timed(lambda: client.get(current))  # another client, same round
+            assert_unavailable(response)
+            with pytest.raises(ConnectionClosed) as closed:
+                while True:
+                    socket.recv(timeout=10)
+            assert closed.value.rcvd is not None and closed.value.rcvd.code == 1011
+        cluster.start()

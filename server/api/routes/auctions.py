@@ -15,6 +15,7 @@ from server.api.deps import (
     RoundsDep,
     SessionDep,
     SettingsDep,
+    read_in_thread,
 )
 from server.api.errors import link, responses
 from server.api.pages import DEFAULT_PAGE, PageCursor, PageLimit, PageOrder, page_of
@@ -167,7 +168,7 @@ async def read_auction(auction_id: AuctionIdPath, session: SessionDep) -> Auctio
     """Where an auction stands: price, fish left, every committed round, buyers, quitters."""
     # One hop to the thread pool for the queries; the response is built on the loop (a sync
     # route would pay a second hop for FastAPI's response validation).
-    view = await run_in_threadpool(auctions.read_auction, session, auction_id)
+    view = await read_in_thread(auctions.read_auction, session, auction_id)
     return auction_public(view)
 
 
@@ -230,7 +231,7 @@ async def list_auctions(
     order: PageOrder = "newest",
 ) -> AuctionPage:
     """Auctions, newest (or oldest) first, a page at a time (follow ``next_cursor``)."""
-    rows = await run_in_threadpool(
+    rows = await read_in_thread(
         crud.list_auctions, session, before=cursor, limit=limit + 1, status=status, order=order
     )
     items, next_cursor = page_of(rows, limit)
@@ -255,4 +256,4 @@ async def read_vote(
     (PG, SZ, LSR, ST), decision logits (B, L, Q) and the PFC's verdicts (T, F) on row 0, the
     row that decides. 404 for an unknown auction, an uncommitted iteration, or a model that
     did not vote in it (patrons leave once they buy or quit)."""
-    return await run_in_threadpool(explain_vote, session, auction_id, iteration, model_id)
+    return await read_in_thread(explain_vote, session, auction_id, iteration, model_id)

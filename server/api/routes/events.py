@@ -25,9 +25,15 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Header, Query
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from sqlalchemy.orm import Session
-from starlette.concurrency import run_in_threadpool
 
-from server.api.deps import BearerDep, DatabaseDep, EventHubDep, ServicesDep, SettingsDep
+from server.api.deps import (
+    BearerDep,
+    DatabaseDep,
+    EventHubDep,
+    ServicesDep,
+    SettingsDep,
+    read_in_thread,
+)
 from server.api.errors import api_error, responses
 from server.api.routes.auctions import fine_tune_round_public, iteration_public
 from server.api.schemas import (
@@ -234,7 +240,7 @@ async def _existing_auction(auction_id: AuctionIdPath, database: DatabaseDep) ->
         with database.session(write=False) as session:
             auctions.require_auction(session, auction_id)
 
-    await run_in_threadpool(read)
+    await read_in_thread(read)
     return auction_id
 
 
@@ -308,7 +314,7 @@ async def _existing_job(job_id: JobIdPath, database: DatabaseDep) -> int:
         with database.session(write=False) as session:
             jobs.require_job(session, job_id)
 
-    await run_in_threadpool(read)
+    await read_in_thread(read)
     return job_id
 
 

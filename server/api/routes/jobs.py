@@ -8,9 +8,8 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 from fastapi.responses import FileResponse
-from starlette.concurrency import run_in_threadpool
 
-from server.api.deps import AdminDep, JobRunnerDep, SessionDep, SettingsDep
+from server.api.deps import AdminDep, JobRunnerDep, SessionDep, SettingsDep, read_in_thread
 from server.api.errors import link, responses
 from server.api.pages import DEFAULT_PAGE, PageCursor, PageLimit, PageOrder, page_of
 from server.api.schemas import (
@@ -69,9 +68,9 @@ def create_job(
 
 
 @router.get("/jobs/{job_id}", operation_id="read_job", responses=responses(404, 422))
-def read_job(job_id: JobIdPath, session: SessionDep) -> JobPublic:
+async def read_job(job_id: JobIdPath, session: SessionDep) -> JobPublic:
     """A job's status, progress, result (the CLI's ``--json`` object), error and artifacts."""
-    return _job_public(jobs.read_job(session, job_id))
+    return _job_public(await read_in_thread(jobs.read_job, session, job_id))
 
 
 @router.get(
@@ -112,7 +111,7 @@ async def list_jobs(
     order: PageOrder = "newest",
 ) -> JobPage:
     """Jobs with their status and progress, newest (or oldest) first, a page at a time."""
-    rows = await run_in_threadpool(
+    rows = await read_in_thread(
         crud.list_jobs,
         session,
         before=cursor,

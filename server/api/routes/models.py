@@ -5,10 +5,16 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
-from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, Participant
-from server.api.deps import BearerDep, ScreeningDep, SessionDep, SettingsDep, SubmissionsDep
+from server.api.deps import (
+    BearerDep,
+    ScreeningDep,
+    SessionDep,
+    SettingsDep,
+    SubmissionsDep,
+    read_in_thread,
+)
 from server.api.errors import link, responses
 from server.api.pages import DEFAULT_PAGE, PageCursor, PageLimit, page_of
 from server.api.schemas import (
@@ -85,9 +91,7 @@ async def read_model(model_id: ModelIdPath, session: SessionDep) -> ModelPublic:
     """A stored model version: manifest, verdict (status), reasons and the screener's evidence;
     its audit log of reviews; for a version uploaded in a remote fine-tuning round, its parent
     version, auction and round; the auctions it entered."""
-    row = await run_in_threadpool(
-        models.read_model, session, model_id, auctions=MAX_LISTED_AUCTIONS
-    )
+    row = await read_in_thread(models.read_model, session, model_id, auctions=MAX_LISTED_AUCTIONS)
     return model_public(row)
 
 
@@ -166,7 +170,7 @@ async def list_models(
     cursor: PageCursor = None,
 ) -> ModelPage:
     """Model versions with their verdicts, newest first, a page at a time."""
-    rows = await run_in_threadpool(
+    rows = await read_in_thread(
         crud.list_models,
         session,
         before=cursor,

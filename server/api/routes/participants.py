@@ -5,10 +5,9 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Path
-from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Participant
-from server.api.deps import SessionDep
+from server.api.deps import SessionDep, read_in_thread
 from server.api.errors import responses
 from server.api.pages import MAX_PAGE
 from server.api.routes.models import model_summary
@@ -24,7 +23,7 @@ async def read_participant(
 ) -> ParticipantPublic:
     """A participant with its newest versions (up to a page; ``GET /models?participant=`` pages
     through all of them) and how many it has."""
-    view = await run_in_threadpool(models.read_participant, session, name, limit=MAX_PAGE)
+    view = await read_in_thread(models.read_participant, session, name, limit=MAX_PAGE)
     return ParticipantPublic(
         name=view.name,
         created_at=view.created_at,

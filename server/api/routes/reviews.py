@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query
 from starlette.concurrency import run_in_threadpool
 
-from server.api.deps import AdminDep, BearerDep, SessionDep
+from server.api.deps import AdminDep, BearerDep, SessionDep, read_in_thread
 from server.api.errors import responses
 from server.api.pages import DEFAULT_PAGE, PageLimit, page_of
 from server.api.routes.models import review_entries, verdict_name
@@ -62,7 +62,7 @@ async def list_reviews(
     """The models held for an inspector (operator), oldest first, each with the screener's
     reasons and evidence; ``cursor`` is the ``next_cursor`` of the previous page (ids above
     it)."""
-    rows = await run_in_threadpool(crud.held_models, session, after=cursor, limit=limit + 1)
+    rows = await read_in_thread(crud.held_models, session, after=cursor, limit=limit + 1)
     items, next_cursor = page_of(rows, limit)
     return HeldPage(
         items=[

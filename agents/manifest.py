@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Final, Literal
 
@@ -55,12 +55,19 @@ _UNREADABLE = (
     "\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069"  # bidirectional marks and overrides
 )
 _NOT_TEXT = re.compile(f"[{_UNREADABLE}]")
-_NOT_A_LINE = re.compile(f"[{_UNREADABLE}\t\n\r]")
+_LINE_BREAKS = "\t\n\r\u2028\u2029"  # and U+0085, U+000B, U+000C: control characters
+_NOT_A_LINE = re.compile(f"[{_UNREADABLE}{_LINE_BREAKS}]")
 
 
 def _readable(pattern: re.Pattern[str]) -> Callable[[str], str]:
     def check(text: str) -> str:
         found = pattern.search(text)
+        if found is not None and found.group() in _LINE_BREAKS:
+            raise PydanticCustomError(
+                "not_one_line",
+                "must be one line, without tabs: U+{code} at {at}",
+                {"code": f"{ord(found.group()):04X}", "at": found.start()},
+            )
         if found is not None:
             raise PydanticCustomError(
                 "control_character",
@@ -297,15 +304,19 @@ class ManifestError(ValueError):
 _ACTIVATION_TAGS = frozenset(("threshold", "below_threshold", "selective"))
 
 
-def _json_path(loc: tuple[int | str, ...]) -> str:
-    """The dotted JSON path of a pydantic error location, without pydantic's union tags
+def without_tags(loc: Sequence[int | str]) -> list[int | str]:
+    """A pydantic error location as a path into the JSON, without pydantic's union tags
     (``external_sensor.PG.activation.threshold.a`` → ``external_sensor.PG.activation.a``)."""
-    parts = [
-        str(part)
+    return [
+        part
         for i, part in enumerate(loc)
         if not (part in _ACTIVATION_TAGS and i > 0 and loc[i - 1] == "activation")
     ]
-    return ".".join(parts) or "$"
+
+
+def _json_path(loc: tuple[int | str, ...]) -> str:
+    """The dotted JSON path of a pydantic error location (``without_tags``)."""
+    return ".".join(str(part) for part in without_tags(loc)) or "$"
 
 
 def _refused(exc: ValidationError) -> ManifestError:

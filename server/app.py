@@ -63,6 +63,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
         docs_url=None,  # served by server.ui with Swagger UI's files from the package (no CDN)
         redoc_url=None,
+        redirect_slashes=False,  # /models/ is 404, not a redirect built from the Host header
     )
     app.state.settings = settings
     install_error_handlers(app)

@@ -4,7 +4,8 @@ and its JSON.
 ``RequestBodyMiddleware`` reads the body (refusing more than ``max_bytes`` with 413, by
 Content-Length up front and by counting what arrives), then, for a request that carries one:
 
-* a media type other than JSON (``application/json`` or ``application/*+json``) gets 415;
+* a media type other than JSON (``application/json`` or ``application/*+json``), or a
+  compressed body (``Content-Encoding``), gets 415;
 * bytes that are not UTF-8 (a UTF-16 body, a byte-order mark), text that is not JSON, or JSON
   nested deeper than ``MAX_DEPTH``, get 422 at ``["body"]`` (a malformed body, as FastAPI
   answers invalid JSON);
@@ -266,6 +267,7 @@ class RequestBodyMiddleware:
                 break
         if body:
             try:
+                _plain(headers.get(b"content-encoding", b"").decode("latin-1"))
                 self._check(headers.get(b"content-type", b"").decode("latin-1"), bytes(body))
             except BodyRefusedError as error:
                 await _refuse(send, error)
@@ -300,6 +302,18 @@ class RequestBodyMiddleware:
                 415, "the body must be UTF-8 JSON", ("header", "Content-Type"), "charset"
             )
         parse_strict_json(body)
+
+
+def _plain(content_encoding: str) -> None:
+    """A compressed body (``Content-Encoding: gzip``) gets 415: bodies are read as they come."""
+    encoding = content_encoding.strip().lower()
+    if encoding not in ("", "identity"):
+        raise BodyRefusedError(
+            415,
+            f"the body must be plain JSON, not Content-Encoding: {encoding}",
+            ("header", "Content-Encoding"),
+            "content_encoding",
+        )
 
 
 async def _refuse(send: Send, error: BodyRefusedError) -> None:

@@ -23,6 +23,7 @@ from starlette.routing import Match
 from starlette.types import ExceptionHandler
 from starlette.websockets import WebSocketState
 
+from agents.manifest import without_tags
 from server.store.db import (
     DATABASE_RETRY_AFTER_S,
     DatabaseUnavailableError,
@@ -107,8 +108,18 @@ def validation_error(items: Iterable[dict[str, Any]]) -> RequestError:
     return RequestError(422, items)
 
 
+MAX_LOC_PART = 64
+"""Characters of one ``loc`` part at most (a key of 200,000 characters is named by its start)."""
+
+
 def _json_safe_loc(loc: Iterable[Any]) -> list[str | int]:
-    return [part if isinstance(part, int) else str(part) for part in loc]
+    """A path into the request as the answer names it: pydantic's union tags left out, each
+    key cut to ``MAX_LOC_PART`` characters."""
+    parts = [part if isinstance(part, int) else str(part) for part in loc]
+    return [
+        part if isinstance(part, int) or len(part) <= MAX_LOC_PART else part[:MAX_LOC_PART] + "…"
+        for part in without_tags(parts)
+    ]
 
 
 def allowed_methods(request: Request) -> list[str]:

@@ -6,10 +6,10 @@ Content-Security-Policy that lets nothing load and nobody frame the answer, ``no
 ``X-Frame-Options: DENY`` and ``Referrer-Policy: no-referrer`` (pages set their own policy,
 as strict: ``server.ui.routes``). It refuses a ``token`` or ``access_token`` query parameter
 with 400 naming it: tokens travel in the ``Authorization`` header, as URLs are logged and
-kept in browser histories; and that header given twice (400: which one counts would be a
-guess), or a query parameter given twice (400 too: a route reads the last, a limit might read
-the first). ``RedactQueryFilter`` blanks such parameters (and any other whose
-name says secret) in uvicorn's access log lines.
+kept in browser histories; that header or ``Last-Event-ID`` given twice (400: which one
+counts would be a guess), or a query parameter given twice (400 too: a route reads the last,
+a limit might read the first). ``RedactQueryFilter`` blanks such parameters (and any other
+whose name says secret) in uvicorn's access log lines.
 """
 
 from __future__ import annotations
@@ -36,7 +36,9 @@ SECURITY_HEADERS = {
     "Referrer-Policy": "no-referrer",
 }
 TOKEN_PARAMETERS = ("token", "access_token")
-"""Query parameters refused with 400: a token there would be logged."""
+"""Query parameters refused with 400, in any case: a token there would be logged."""
+ONCE_HEADERS = {b"authorization": "Authorization", b"last-event-id": "Last-Event-ID"}
+"""Headers refused with 400 when given twice: which one counts would be a guess."""
 SECRET_NAME = re.compile(r"token|secret|password|passwd|key|auth", re.I)
 """Query parameters whose value the access log never prints."""
 _QUERY_PAIR = re.compile(r"([^&=?]+)=([^&]*)")
@@ -60,8 +62,8 @@ class SecurityHeadersMiddleware:
             loc = ("query", twice)
             await _refuse(scope, receive, _with_headers(send), message, loc, "duplicate_parameter")
             return
-        for name in TOKEN_PARAMETERS:
-            if name in names:
+        for name in names:
+            if name.lower() in TOKEN_PARAMETERS:  # ``?Token=`` is logged as well
                 message = (
                     f"a token in the URL ({name!r}) is refused, as URLs are logged: send it as "
                     "'Authorization: Bearer <token>'"
@@ -69,12 +71,13 @@ class SecurityHeadersMiddleware:
                 loc = ("query", name)
                 await _refuse(scope, receive, _with_headers(send), message, loc, "token_in_url")
                 return
-        given = sum(1 for name, _ in scope["headers"] if name == b"authorization")
-        if given > 1:
-            message = f"the Authorization header is given {given} times: send one"
-            loc = ("header", "Authorization")
-            await _refuse(scope, receive, _with_headers(send), message, loc, "duplicate_header")
-            return
+        for header, shown in ONCE_HEADERS.items():
+            given = sum(1 for name, _ in scope["headers"] if name == header)
+            if given > 1:
+                message = f"the {shown} header is given {given} times: send one"
+                loc = ("header", shown)
+                await _refuse(scope, receive, _with_headers(send), message, loc, "duplicate_header")
+                return
         await self.app(scope, receive, _with_headers(send))
 
 

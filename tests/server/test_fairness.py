@@ -357,7 +357,7 @@ def _get_events(auction_id: int, headers: dict[str, str] | None = None) -> bytes
 def test_tokens_in_the_url_are_refused_and_never_logged(server: ServerProcess) -> None:
     secret = "srdp_do-not-log-me-0123456789"
     with client_from("127.0.0.7", server) as client:
-        for name in ("token", "access_token"):
+        for name in ("token", "access_token", "Token", "ACCESS_TOKEN"):
             answer = client.get("/healthz", params={name: secret})
             assert answer.status_code == 400
             (item,) = answer.json()["detail"]

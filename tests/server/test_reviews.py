@@ -99,12 +99,16 @@ def test_an_inspector_admits_or_refuses_with_an_audit_log(client: TestClient) ->
         ({**decision, "note": "n" * 2001}, ["body", "note"]),
         ({**decision, "note": "looks fine\u0000"}, ["body", "note"]),
         ({**decision, "inspector": "Ada\nBob"}, ["body", "inspector"]),
+        ({**decision, "inspector": "Ada\u2028Bob"}, ["body", "inspector"]),
+        ({**decision, "inspector": "Ada\u2029Bob"}, ["body", "inspector"]),
         ({**decision, "inspector": "\u202eadA"}, ["body", "inspector"]),
         ({**decision, "extra": 1}, ["body", "extra"]),
         ({"decision": "admit"}, ["body", "inspector"]),
     ]:
         answer = client.post(url, json=bad, headers=ADMIN)
         assert answer.status_code == 422 and loc in locs(answer), (bad, answer.text)
+        if bad.get("note") == "n" * 2001:  # as an appeal's note says it
+            assert answer.json()["detail"][0]["type"] == "string_too_long", answer.text
     assert client.post(url, json=decision).status_code == 401
     assert client.post("/models/987654/review", json=decision, headers=ADMIN).status_code == 404
     assert count(client, Review, model_id=admitted) == 0

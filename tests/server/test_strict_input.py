@@ -8,6 +8,7 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from starlette.testclient import WebSocketDenialResponse
 
 from server.store.tables import Auction, Job, ModelVersion
 from tests.support.factories import honest, unique
@@ -83,6 +84,20 @@ def test_an_integer_too_long_to_read_is_422_at_its_path(client: TestClient) -> N
     assert count(client, ModelVersion) == before
 
 
+def test_an_error_names_a_path_into_the_body_and_a_short_one(client: TestClient) -> None:
+    """Not pydantic's union tag (``activation.threshold.a``), and a key of 200,000 characters
+    by its start: the answer stays short."""
+    path = ("external_sensor", "PG", "activation", "a")
+    response = client.post("/submit", json=manifest_with(path, "sharp"))
+    assert response.status_code == 422
+    assert locs(response) == [["body", *path]]
+    huge = "k" * 200_000
+    response = client.post("/auctions", json={"n_fish": 1, huge: 1}, headers=ADMIN)
+    assert response.status_code == 422 and len(response.content) < 2_000
+    ((body, key),) = locs(response)
+    assert body == "body" and key.startswith("kkk") and key.endswith("…")
+
+
 def test_an_integer_is_a_valid_number(client: TestClient) -> None:
     response = client.post("/submit", json=manifest_with(("external_sensor", "PG", "bias"), 0))
     assert response.status_code == 201, response.text
@@ -155,6 +170,19 @@ def test_non_json_media_type_is_415(client: TestClient, content_type: str) -> No
     response = client.post("/submit", content=body, headers=headers)
     assert response.status_code == 415
     assert locs(response) == [["header", "Content-Type"]]
+
+
+@pytest.mark.parametrize("encoding", ["gzip", "deflate, gzip", "br"])
+def test_a_compressed_body_is_415_naming_the_encoding(client: TestClient, encoding: str) -> None:
+    """Bodies are read as they come: a gzip body is refused for what it is, not as bad JSON."""
+    before = count(client, ModelVersion)
+    body = json.dumps(honest(unique("gz"))).encode()
+    headers = {**JSON, "Content-Encoding": encoding}
+    response = client.post("/submit", content=body, headers=headers)
+    assert response.status_code == 415 and locs(response) == [["header", "Content-Encoding"]]
+    assert count(client, ModelVersion) == before
+    plain = client.post("/submit", content=body, headers={**JSON, "Content-Encoding": "identity"})
+    assert plain.status_code == 201, plain.text
 
 
 def test_json_suffix_media_types_are_json(client: TestClient) -> None:
@@ -249,6 +277,30 @@ def test_a_query_parameter_given_twice_is_refused(client: TestClient, path: str)
     (item,) = response.json()["detail"]
     name = path.split("?")[1].split("&")[-1].split("=")[0]
     assert item["loc"] == ["query", name] and item["type"] == "duplicate_parameter"
+
+
+def test_a_header_that_names_one_thing_given_twice_is_refused(client: TestClient) -> None:
+    for name in ("Last-Event-ID", "Authorization"):
+        headers = [(name, "1"), (name, "2")]
+        response = client.get("/auctions/1/events", headers=headers)
+        assert response.status_code == 400, response.text
+        (item,) = response.json()["detail"]
+        assert item["loc"] == ["header", name] and item["type"] == "duplicate_header"
+
+
+def test_a_trailing_slash_is_404_not_a_redirect_to_the_host_header(client: TestClient) -> None:
+    response = client.get("/models/", headers={"Host": "evil.example"}, follow_redirects=False)
+    assert response.status_code == 404 and "location" not in response.headers
+
+
+def test_a_websocket_anywhere_but_the_round_socket_is_a_json_404(client: TestClient) -> None:
+    for path in ("/models/1", "/auctions/1/events", "/nowhere"):
+        with pytest.raises(WebSocketDenialResponse) as denied, client.websocket_connect(path):
+            pass
+        assert denied.value.status_code == 404
+        assert denied.value.headers["content-type"] == "application/json"
+        assert denied.value.headers["x-frame-options"] == "DENY"
+        assert "/auctions/{id}/rounds/socket" in denied.value.json()["detail"][0]["msg"]
 
 
 @pytest.mark.parametrize("raw", ["1.0", "1%20", "%201", "+1", "1e0", "0x1", "%EF%BC%91", "1_0"])

@@ -206,3 +206,18 @@ async def round_socket(
         await sockets.serve(websocket, auction_id, first, upload)
     finally:
         sockets.release()
+
+
+@router.websocket("/{path:path}")
+async def no_socket_here(websocket: WebSocket, path: str) -> None:
+    """Any other path asked for a WebSocket: 404 in the common body (instead of the
+    framework's bare 403). The round socket is the only one."""
+    await _deny(
+        websocket,
+        api_error(
+            404,
+            f"no WebSocket at /{path}: the round socket is /auctions/{{id}}/rounds/socket",
+            loc=("path",),
+            kind="not_found",
+        ),
+    )

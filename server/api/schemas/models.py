@@ -121,7 +121,10 @@ Inspector = Annotated[
     Field(description="Who decides (a name, 1 to 64 characters, not blank, one line)."),
 ]
 Note = Annotated[
-    str, PlainText, Field(max_length=2000, description="Why (at most 2000 characters).")
+    str,
+    StringConstraints(max_length=2000),
+    PlainText,
+    Field(description="Why (at most 2000 characters)."),
 ]
 
 

@@ -13,10 +13,11 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from starlette.concurrency import run_in_threadpool
 
 from server.api.body import RequestBodyMiddleware
+from server.api.deps import known_query
 from server.api.errors import install_error_handlers, responses
 from server.api.hardening import SecurityHeadersMiddleware
 from server.api.limits import ClientLimitsMiddleware
@@ -72,6 +73,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(SecurityHeadersMiddleware)  # outermost: every answer has its headers
     routers = (health, models, reviews, participants, auctions, rounds, jobs, events, ui)
     for module in routers:  # any request may carry an unreadable body
-        app.include_router(module.router, responses=responses(400, 413, 415))
+        checks = [] if module is ui else [Depends(known_query)]  # API routes: no unknown query
+        app.include_router(module.router, responses=responses(400, 413, 415), dependencies=checks)
     app.state.routes = [route for module in routers for route in module.router.routes]
     return app

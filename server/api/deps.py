@@ -126,6 +126,40 @@ async def _session(request: Request, database: DatabaseDep) -> AsyncIterator[Ses
 
 SessionDep = Annotated[Session, Depends(_session)]
 
+_QUERY_NAMES: dict[int, frozenset[str]] = {}
+
+
+def _query_names(dependant: Any) -> frozenset[str]:
+    """The query parameters a route (and the dependencies it uses) reads."""
+    names = {field.alias for field in dependant.query_params}
+    for sub in dependant.dependencies:
+        names |= _query_names(sub)
+    return frozenset(names)
+
+
+async def known_query(connection: HTTPConnection) -> None:
+    """Every API route's dependency: a query parameter the route does not read is 422 naming
+    it (``/models?sttaus=held`` would otherwise answer every model, as if no filter were
+    asked). Pages take any (a link may carry its own), and so does the round socket."""
+    if connection.scope["type"] != "http":
+        return
+    route = connection.scope.get("route")
+    dependant = getattr(route, "dependant", None)
+    if dependant is None:
+        return
+    known = _QUERY_NAMES.get(id(route))
+    if known is None:
+        known = _QUERY_NAMES[id(route)] = _query_names(dependant)
+    for name in connection.query_params:
+        if name not in known:
+            takes = ", ".join(sorted(known)) or "none"
+            raise api_error(
+                422,
+                f"unknown query parameter {name!r} (this path takes: {takes})",
+                loc=("query", name),
+                kind="unknown_parameter",
+            )
+
 
 async def read_in_thread(fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
     """A request's database read in the thread pool, refused with 503 if the database has not

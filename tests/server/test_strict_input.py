@@ -288,6 +288,22 @@ def test_a_header_that_names_one_thing_given_twice_is_refused(client: TestClient
         assert item["loc"] == ["header", name] and item["type"] == "duplicate_header"
 
 
+@pytest.mark.parametrize(
+    ("path", "name"),
+    [("/models?sttaus=held", "sttaus"), ("/auctions?limit=2&sort=old", "sort"),
+     ("/healthz?verbose=1", "verbose")],
+)  # fmt: skip
+def test_a_query_parameter_the_path_does_not_take_is_422(
+    client: TestClient, path: str, name: str
+) -> None:
+    """A misspelt filter would otherwise answer everything, as if none were asked."""
+    response = client.get(path)
+    assert response.status_code == 422, response.text
+    (item,) = response.json()["detail"]
+    assert item["loc"] == ["query", name] and item["type"] == "unknown_parameter"
+    assert client.get("/?utm_source=mail").status_code == 200  # pages take any
+
+
 def test_a_trailing_slash_is_404_not_a_redirect_to_the_host_header(client: TestClient) -> None:
     response = client.get("/models/", headers={"Host": "evil.example"}, follow_redirects=False)
     assert response.status_code == 404 and "location" not in response.headers

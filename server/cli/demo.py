@@ -13,6 +13,7 @@ up instead and prints the live pages, until Ctrl-C.
 from __future__ import annotations
 
 import contextlib
+import json
 import time
 from typing import Any
 
@@ -81,7 +82,7 @@ def auction(client: httpx.Client, admin: dict[str, str]) -> int:
     """One auction among every accepted model, watched round by round."""
     created = client.post("/auctions", json=AUCTION, headers=admin).raise_for_status().json()
     auction_id = created["auction_id"]
-    console.print(f"\n[bold]POST /auctions[/bold] {AUCTION} → auction {auction_id}")
+    console.print(f"\n[bold]POST /auctions[/bold] {json.dumps(AUCTION)} → auction {auction_id}")
     shown = 0
 
     def show(state: dict[str, Any]) -> None:
@@ -100,8 +101,9 @@ def auction(client: httpx.Client, admin: dict[str, str]) -> int:
         raise RuntimeError(f"auction {final['status']}: {final['error'] or 'by the operator'}")
     console.print(
         f"  → {final['status']} ({final['stop_reason']}): {len(final['buyers'])} of "
-        f"{final['n_initial']} fish sold to {final['n_patrons']} patrons, revenue "
-        f"{final['revenue']:.2f}, {len(final['quitters'])} quit"
+        f"{final['n_initial']} fish sold, revenue {final['revenue']:.2f}; of "
+        f"{final['n_patrons']} patrons, {len(final['buyers'])} bought and "
+        f"{len(final['quitters'])} quit"
     )
     return int(auction_id)
 
@@ -110,7 +112,7 @@ def comparison(client: httpx.Client, admin: dict[str, str], server: ServerProces
     """The honest vs malicious comparison job; its table and the files of its artifacts."""
     body = {"kind": "comparison", "params": COMPARISON}
     job_id = client.post("/jobs", json=body, headers=admin).raise_for_status().json()["job_id"]
-    console.print(f"\n[bold]POST /jobs[/bold] {body} → job {job_id}")
+    console.print(f"\n[bold]POST /jobs[/bold] {json.dumps(body)} → job {job_id}")
     seen: set[tuple[str, str]] = set()
 
     def show(state: dict[str, Any]) -> None:
@@ -123,7 +125,7 @@ def comparison(client: httpx.Client, admin: dict[str, str], server: ServerProces
     if final["status"] != "succeeded":
         raise RuntimeError(f"comparison job {final['status']}: {final['error']}")
     columns = {  # result field -> short heading
-        "rarity": "rarity",
+        "rarity": "supply (fish per patron)",
         "n_fish": "fish",
         "mean_price": "mean price",
         "purchase_rate": "sold/on sale",
@@ -132,7 +134,7 @@ def comparison(client: httpx.Client, admin: dict[str, str], server: ServerProces
     }
     table = Table(
         title=f"comparison ({COMPARISON['trials']} auctions per row; refused = "
-        "patrons the screener kept out, all auctions)"
+        "patrons the screener kept out of each auction)"
     )
     for heading in ("configuration", "refused", *columns.values()):
         table.add_column(heading, justify="right")
@@ -140,10 +142,11 @@ def comparison(client: httpx.Client, admin: dict[str, str], server: ServerProces
         for row in configuration["rows"]:
             table.add_row(
                 name,
-                str(configuration["refused"]),
+                f"{row.get('refused', configuration['refused']):.4g}",
                 *("—" if row[c] is None else f"{row[c]:.4g}" for c in columns),
             )
     console.print(table)
+    console.print(final["result"].get("caption", ""), soft_wrap=True)  # what each row is
     folder = server.data_dir / "jobs" / str(job_id)
     console.print("artifacts (files):")
     for name in final["artifacts"]:

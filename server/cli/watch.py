@@ -172,7 +172,7 @@ def end_line(watched: Watched) -> str:
         + (f" ({end['stop_reason']})" if end.get("stop_reason") else "")
         + f" after {end.get('iterations')} iteration{'' if end.get('iterations') == 1 else 's'}: "
         f"{end.get('n_sold', sold)} of "
-        f"{end.get('n_initial')} fish sold, revenue {price(revenue)}, final price "
+        f"{end.get('n_initial')} fish sold, revenue {price(revenue)}, price asked last "
         f"{price(end.get('price', 0.0))}"
     )
     if end.get("error"):

@@ -72,7 +72,9 @@ def test_the_quick_start_runs_as_pasted(tmp_path: Path) -> None:
         )
         assert run.returncode == 0, f"stdout:\n{run.stdout}\nstderr:\n{run.stderr}"
         lines = run.stdout.splitlines()
-        assert lines[:7] == ["true"] * 5 + ["false", "2"]  # verdicts, then version 2
+        assert lines[:5] == ["true"] * 5 and lines[6] == "2"  # verdicts, then version 2
+        rules = {reason["rule"] for reason in json.loads(lines[5])}  # the saboteur's reasons
+        assert "always-holds" in rules, lines[5]
         assert f"{server.url}/ui/#/auctions/1" in run.stdout
         assert "iteration 0: price 5.000" in run.stdout  # srd watch, line by line
         assert "auction 1 finished" in run.stdout

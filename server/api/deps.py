@@ -104,6 +104,8 @@ EventHubDep = Annotated[EventHub, Depends(_events)]
 ReadinessDep = Annotated[Readiness, Depends(_readiness)]
 
 _WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+_READING = "srd_reading"
+"""``Session.info`` key: the read in a thread that still uses the session."""
 
 
 async def _session(request: Request, database: DatabaseDep) -> AsyncIterator[Session]:
@@ -121,7 +123,11 @@ async def _session(request: Request, database: DatabaseDep) -> AsyncIterator[Ses
     try:
         yield session
     finally:
-        session.close()
+        reading: asyncio.Future[Any] | None = session.info.pop(_READING, None)
+        if reading is None or reading.done():
+            session.close()
+        else:  # a read given up on (``read_in_thread``): closed once its thread lets go
+            reading.add_done_callback(lambda _: session.close())
 
 
 SessionDep = Annotated[Session, Depends(_session)]
@@ -164,17 +170,27 @@ async def known_query(connection: HTTPConnection) -> None:
 async def read_in_thread(fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
     """A request's database read in the thread pool, refused with 503 if the database has not
     answered within ``READ_TIMEOUT_S`` (a server that hangs, or is cut off without a word,
-    holds no request longer; the thread finishes when the database answers)."""
-    scope = asyncio.timeout(READ_TIMEOUT_S)
+    holds no request longer). The read goes on in its thread until the database answers; a
+    request session among ``args`` is closed only then."""
+    reading = asyncio.ensure_future(run_in_threadpool(fn, *args, **kwargs))
+    reading.add_done_callback(_retrieved)
     try:
-        async with scope:
-            return await run_in_threadpool(fn, *args, **kwargs)
-    except TimeoutError as exc:
-        if not scope.expired():
-            raise
-        raise DatabaseUnavailableError(
-            f"the database did not answer within {READ_TIMEOUT_S:g} s"
-        ) from exc
+        await asyncio.wait({reading}, timeout=READ_TIMEOUT_S)
+    finally:  # given up on, or the client went away: the session waits for the thread
+        if not reading.done():
+            for arg in args:
+                if isinstance(arg, Session):
+                    arg.info[_READING] = reading
+    if not reading.done():
+        raise DatabaseUnavailableError(f"the database did not answer within {READ_TIMEOUT_S:g} s")
+    return reading.result()
+
+
+def _retrieved(reading: asyncio.Future[Any]) -> None:
+    """A read's outcome is looked at even when nobody waits for it any more (no "exception
+    never retrieved" at shutdown)."""
+    if not reading.cancelled():
+        reading.exception()
 
 
 bearer_scheme = HTTPBearer(auto_error=False, description="Bearer token")

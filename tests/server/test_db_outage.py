@@ -233,9 +233,15 @@ def test_a_hung_or_stopped_postgres_holds_no_request_and_serves_no_stale_round(
         with ws_connect(socket_url) as socket:  # the round's snapshot is held in memory
             assert json.loads(socket.recv(timeout=10))["body"]["status"] == "open"
             pids = cluster_pids(cluster)
+            assert client.get("/models").status_code == 200  # the database check is fresh
             for pid in pids:
                 os.kill(pid, signal.SIGSTOP)
             try:
+                # a read on a pooled connection, before the check notices: 503 in time, and
+                # its session is closed only once the database answers (no 500 from closing it)
+                response, took = timed(lambda: client.get("/models"))
+                assert took < ANSWER_WITHIN_S
+                assert_unavailable(response)
                 hung_at, refused = time.monotonic(), set()
                 while time.monotonic() - hung_at < HUNG_S:
                     for path in ("/healthz", f"/auctions/{auction_id}", current, "/models"):

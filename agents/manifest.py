@@ -21,20 +21,23 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Final, Literal
 
 from pydantic import (
-    AfterValidator,
     BaseModel,
     BeforeValidator,
     ConfigDict,
     Field,
+    GetCoreSchemaHandler,
+    GetJsonSchemaHandler,
     ValidationError,
     field_validator,
 )
-from pydantic_core import PydanticCustomError
+from pydantic.json_schema import JsonSchemaValue
+from pydantic_core import PydanticCustomError, core_schema
 
 SCHEMA_VERSION: Final = 1
 INPUTS = ("price", "length", "weight", "gill", "st1", "st2", "st3", "buy_fraction")
@@ -54,14 +57,25 @@ _UNREADABLE = (
     "\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f"  # control characters but tab and line breaks
     "\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069"  # bidirectional marks and overrides
 )
-_NOT_TEXT = re.compile(f"[{_UNREADABLE}]")
 _LINE_BREAKS = "\t\n\r\u2028\u2029"  # and U+0085, U+000B, U+000C: control characters
-_NOT_A_LINE = re.compile(f"[{_UNREADABLE}{_LINE_BREAKS}]")
 
 
-def _readable(pattern: re.Pattern[str]) -> Callable[[str], str]:
-    def check(text: str) -> str:
-        found = pattern.search(text)
+def _escaped(characters: str) -> str:
+    """``characters`` (a regex class body of literal characters and ranges) with every one
+    written as an escape, for the JSON Schema's ECMA-262 ``pattern``."""
+    return "".join(f"\\u{ord(c):04x}" if c != "-" else "-" for c in characters)
+
+
+@dataclass(frozen=True)
+class _Readable:
+    """A text check (pydantic metadata): the validator, and the same rule in the JSON Schema
+    as a ``pattern`` (joined with a ``pattern`` the field has already, such as ``\\S``)."""
+
+    refused: str
+    """The characters refused, as a regex class body."""
+
+    def check(self, text: str) -> str:
+        found = re.search(f"[{self.refused}]", text)
         if found is not None and found.group() in _LINE_BREAKS:
             raise PydanticCustomError(
                 "not_one_line",
@@ -76,13 +90,25 @@ def _readable(pattern: re.Pattern[str]) -> Callable[[str], str]:
             )
         return text
 
-    return check
+    def __get_pydantic_core_schema__(
+        self, source: Any, handler: GetCoreSchemaHandler
+    ) -> core_schema.CoreSchema:
+        return core_schema.no_info_after_validator_function(self.check, handler(source))
+
+    def __get_pydantic_json_schema__(
+        self, schema: core_schema.CoreSchema, handler: GetJsonSchemaHandler
+    ) -> JsonSchemaValue:
+        json_schema = handler(schema)
+        allowed = f"[^{_escaped(self.refused)}]*"
+        also = json_schema.get("pattern")
+        json_schema["pattern"] = f"^(?=[\\s\\S]*(?:{also})){allowed}$" if also else f"^{allowed}$"
+        return json_schema
 
 
-PlainText = AfterValidator(_readable(_NOT_TEXT))
+PlainText = _Readable(_UNREADABLE)
 """Text people read (a description, a note): no control characters but tab and line breaks,
 no bidirectional overrides (stored text shows what it says, and every database stores it)."""
-PlainLine = AfterValidator(_readable(_NOT_A_LINE))
+PlainLine = _Readable(_UNREADABLE + _LINE_BREAKS)
 """The same on one line (a name)."""
 
 

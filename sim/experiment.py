@@ -243,7 +243,14 @@ def config_schema(cls: type) -> dict[str, Any]:
     docstring, unknown keys refused: what ``POST /jobs`` publishes per kind."""
     schema = _adapter(cls).json_schema()
     for field in config_fields(cls):
-        schema["properties"][field.name]["description"] = field.help
+        prop = schema["properties"][field.name]
+        if field.kind == "list" and "items" in prop:  # a list, or one value (``_split_list``)
+            listed = {k: v for k, v in prop.items() if k not in ("default", "title")}
+            prop = schema["properties"][field.name] = {
+                "anyOf": [listed, prop["items"]],
+                **{k: prop[k] for k in ("default", "title") if k in prop},
+            }
+        prop["description"] = field.help
     schema["additionalProperties"] = False
     schema["description"] = " ".join((cls.__doc__ or "").split())
     return schema

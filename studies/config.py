@@ -38,7 +38,9 @@ def _distinct(rarities: tuple[float, ...]) -> tuple[float, ...]:
 
 
 Rarities = Annotated[
-    tuple[Rarity, ...], Field(min_length=1, max_length=100), AfterValidator(_distinct)
+    tuple[Rarity, ...],
+    Field(min_length=1, max_length=100, json_schema_extra={"uniqueItems": True}),
+    AfterValidator(_distinct),
 ]
 AUCTION_COST_S = 0.01
 """Compute of one auction of 64 patrons without fine-tuning, for the job budget: about twice

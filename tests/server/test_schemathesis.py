@@ -11,8 +11,9 @@ Left out, each for a reason:
   and the record then stays readable (status ``cancelled``), as the interface defines; the
   check expects a delete.
 Whole numbers in generated bodies are written as integers (``schemathesis_hooks.py`` says why).
-The job budget is lifted so that every schema-valid job is accepted (the budget depends on a
-product of options, which JSON Schema cannot state); each job the run queues is stopped by a
+The job budget and the queue's cap are lifted so that every schema-valid job is accepted (the
+budget depends on a product of options, which JSON Schema cannot state; the cap on what the
+whole server queues is no property of one request); each job the run queues is stopped by a
 30 s time limit.
 
 Slow (minutes): run with ``pytest -m slow tests/server/test_schemathesis.py``.
@@ -36,7 +37,7 @@ from tests.support.server import QUOTAS_OFF
 ROOT = Path(__file__).resolve().parents[2]
 STREAMS = r"/events$"
 """Operations left out (see the module docstring): the event streams."""
-LIMITS = {**QUOTAS_OFF, "job_budget_s": 1e12, "job_timeout_s": 30.0}
+LIMITS = {**QUOTAS_OFF, "job_budget_s": 1e12, "job_timeout_s": 30.0, "max_queued_jobs": 100_000}
 
 
 @pytest.mark.slow

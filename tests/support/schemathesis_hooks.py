@@ -4,7 +4,9 @@ JSON Schema counts a number with a zero fraction (``411.0``) as an integer; the 
 purpose, takes only integers written as integers where an integer goes (a strict reading of
 JSON, refusing ``1.0`` for ``schema_version`` like ``"1"`` or ``true``). So generated bodies
 write every whole number as an integer: the schema-valid data the service must accept, as it
-states its inputs. Everything else schemathesis generates goes out unchanged.
+states its inputs. A long poll's ``wait`` is cut to 1 s, so that the run's minutes go to
+breadth (long polls are tested in test_remote_protocol.py). Everything else schemathesis
+generates goes out unchanged.
 """
 
 from __future__ import annotations
@@ -27,3 +29,10 @@ def _integers(value: Any) -> Any:
 @schemathesis.hook
 def map_body(context: Any, body: Any) -> Any:
     return _integers(body)
+
+
+@schemathesis.hook
+def map_query(context: Any, query: Any) -> Any:
+    if isinstance(query, dict) and isinstance(query.get("wait"), int | float):
+        return {**query, "wait": min(query["wait"], 1)}
+    return query

@@ -132,7 +132,8 @@ async def _session(request: Request, database: DatabaseDep) -> AsyncIterator[Ses
 
 SessionDep = Annotated[Session, Depends(_session)]
 
-_QUERY_NAMES: dict[int, frozenset[str]] = {}
+_QUERY_NAMES = "srd_query_names"
+"""The attribute a route keeps its query parameters' names in (worked out on first use)."""
 
 
 def _query_names(dependant: Any) -> frozenset[str]:
@@ -153,9 +154,10 @@ async def known_query(connection: HTTPConnection) -> None:
     dependant = getattr(route, "dependant", None)
     if dependant is None:
         return
-    known = _QUERY_NAMES.get(id(route))
+    known: frozenset[str] | None = getattr(route, _QUERY_NAMES, None)
     if known is None:
-        known = _QUERY_NAMES[id(route)] = _query_names(dependant)
+        known = _query_names(dependant)
+        setattr(route, _QUERY_NAMES, known)
     for name in connection.query_params:
         if name not in known:
             takes = ", ".join(sorted(known)) or "none"

@@ -197,7 +197,8 @@ async def run_population(
         if config.auction is not None:
             auction_id, players = config.auction, await _join(agents, config.auction)
         else:
-            auction_id, players = await _auction(config, clients[0], agents), agents
+            players = _admitted(agents)
+            auction_id = await _auction(config, clients[0], players)
         await _play(config, players, auction_id, progress)
         final = await _final(clients[0], auction_id)
     return _report(config, agents, submitted, auction_id, final, started)
@@ -276,6 +277,15 @@ async def _join(agents: list[RemoteAgent], auction_id: int) -> list[RemoteAgent]
             "before any accepted model joined (give it a longer enrollment_s)"
         )
     return players
+
+
+def _admitted(agents: list[RemoteAgent]) -> list[RemoteAgent]:
+    """The agents whose model the screener accepted at ``/submit``: they play; the refused and
+    the held stay out (an auction takes accepted models only), and the report says so."""
+    admitted = [agent for agent in agents if agent.accepted_at_submit]
+    if not admitted:
+        raise RemoteError(f"the screener accepted none of the {len(agents)} agents' models")
+    return admitted
 
 
 async def _auction(config: PopulationConfig, client: Client, agents: list[RemoteAgent]) -> int:

@@ -290,6 +290,28 @@ def test_agents_prints_a_row_per_agent_then_the_totals(
     assert int(totals[7].replace(",", "")) == up
 
 
+def test_agents_whose_model_the_screener_refuses_stay_out_of_the_auction_they_create(
+    server: ServerProcess, client: httpx.Client
+) -> None:
+    """Seed 21's twelfth honest draw is refused at the door (market impact): the auction is
+    created among the accepted models, the refused agent is reported and does not play."""
+    done = subprocess.run(
+        [*srd_command(), "agents", "--server", server.url, "--name-prefix", "door",
+         "--honest", "12", "--saboteurs", "0", "--seed", "21", "--rounds", "1",
+         "--deadline", "20", "--admin-token", ADMIN_TOKEN, "--json"],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    refused = [a for a in report["per_agent"] if a["submitted"] != "accepted"]
+    assert [a["participant"] for a in refused] == ["door-honest-011"], report["per_agent"]
+    (auction_id,) = report["auctions"]
+    auction = client.get(f"/auctions/{auction_id}").json()
+    assert auction["status"] == "finished"
+    assert refused[0]["model_id"] not in auction["model_ids"]
+    assert len(auction["model_ids"]) == 11 and report["admitted"] == 11
+
+
 def test_agents_refuse_an_auction_that_takes_no_patrons_and_register_nothing(
     server: ServerProcess, client: httpx.Client
 ) -> None:

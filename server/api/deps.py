@@ -132,6 +132,7 @@ async def _session(request: Request, database: DatabaseDep) -> AsyncIterator[Ses
 
 SessionDep = Annotated[Session, Depends(_session)]
 
+
 def _query_names(dependant: Any) -> frozenset[str]:
     """The query parameters a route (and the dependencies it uses) reads."""
     names = {field.alias for field in dependant.query_params}

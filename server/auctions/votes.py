@@ -1,22 +1,26 @@
-"""A patron's vote in one committed iteration, explained (``GET
-/auctions/{id}/iterations/{n}/votes/{model_id}``)."""
+"""The patrons' votes in one committed iteration, explained (``GET
+/auctions/{id}/iterations/{n}/votes`` and ``.../votes/{model_id}``)."""
 
 from __future__ import annotations
+
+import dataclasses
 
 from sqlalchemy.orm import Session
 
 from server.api.errors import api_error
-from server.api.schemas.votes import VoteExplanationPublic
+from server.api.schemas.votes import (
+    IterationVotesPublic,
+    PatronVotePublic,
+    VoteExplanationPublic,
+)
 from server.auctions.service import not_found
-from server.store.crud.votes import bidding_version, iteration_votes
+from server.store.crud.votes import bidders, iteration_votes
 
 
-def explain_vote(
-    session: Session, auction_id: int, iteration: int, model_id: int
-) -> VoteExplanationPublic:
-    """The stored explanation; 404 naming the path part that names nothing: the auction, an
-    iteration not committed (or committed before explanations were kept), a model that did not
-    vote in it (not a patron, or gone: patrons leave when they buy or quit)."""
+def explain_votes(session: Session, auction_id: int, iteration: int) -> IterationVotesPublic:
+    """Every stored vote of a committed iteration; 404 naming the path part that names
+    nothing: the auction, or an iteration not committed (or committed before explanations
+    were kept)."""
     exists, votes = iteration_votes(session, auction_id=auction_id, iteration=iteration)
     if not exists:
         raise not_found(auction_id)
@@ -35,25 +39,40 @@ def explain_vote(
             loc=("path", "iteration"),
             kind="not_found",
         )
-    mine = [p for p in votes.explanations["patrons"] if p["model_id"] == model_id]
-    name = bidding_version(session, auction_id=auction_id, model_id=model_id, iteration=iteration)
-    if not mine or name is None:
+    who = bidders(session, auction_id=auction_id, iteration=iteration)
+    return IterationVotesPublic(
+        auction_id=auction_id,
+        iteration=iteration,
+        row=votes.explanations["row"],
+        votes=[
+            PatronVotePublic(
+                model_id=vote["model_id"],
+                **dataclasses.asdict(who[vote["model_id"]]),
+                vote=vote["vote"],
+                sensor=vote["sensor"],
+                decision=vote["decision"],
+                pfc=vote["pfc"],
+            )
+            for vote in votes.explanations["patrons"]
+            if vote["model_id"] in who
+        ],
+    )
+
+
+def explain_vote(
+    session: Session, auction_id: int, iteration: int, model_id: int
+) -> VoteExplanationPublic:
+    """One patron's vote of ``explain_votes``; 404 also for a model that did not vote in it
+    (not a patron, or gone: patrons leave when they buy or quit)."""
+    every = explain_votes(session, auction_id, iteration)
+    mine = [vote for vote in every.votes if vote.model_id == model_id]
+    if not mine:
         raise api_error(
             404,
             f"model {model_id} did not vote in iteration {iteration} of auction {auction_id}",
             loc=("path", "model_id"),
             kind="not_found",
         )
-    vote = mine[0]
     return VoteExplanationPublic(
-        auction_id=auction_id,
-        iteration=iteration,
-        model_id=model_id,
-        participant=name[0],
-        version=name[1],
-        vote=vote["vote"],
-        row=votes.explanations["row"],
-        sensor=vote["sensor"],
-        decision=vote["decision"],
-        pfc=vote["pfc"],
+        **mine[0].model_dump(), auction_id=auction_id, iteration=iteration, row=every.row
     )

@@ -90,6 +90,7 @@ def cancel_job(session: Session, runner: BackgroundRunner, job_id: int) -> Job:
     """Cancel a queued or running job (409 once it has ended) and stop its worker."""
     job = read_job(session, job_id)
     if not crud.cancel_job(session, job_id=job_id):
+        session.rollback()  # expires the job: the message names the status that ended it
         raise api_error(
             409,
             f"job {job_id} already {job.status}; only queued or running jobs can be cancelled",

@@ -73,28 +73,59 @@ export function pager(path, params, render) {
  * Follow an event stream. ``handlers`` maps event names to functions of the parsed data; the
  * ``end`` event closes the stream. A dropped connection is resumed by the browser itself
  * (EventSource sends Last-Event-ID); one the server refused or closed for good is opened
- * again after RETRY_MS, continuing after the last event received. ``onState`` hears "live",
- * "waiting" and "ended". Returns a function that stops following.
+ * again after RETRY_MS, continuing after the last event received (or ``after``, the place a
+ * view already read up to without the stream). A hidden tab lets go of its stream and
+ * resumes where it left off when shown again: a browser holds at most six connections to one
+ * server over HTTP/1.1, so six open live views would otherwise block every other page.
+ * ``onState`` hears "live", "waiting", "refused" (the stream could not be had: the view may
+ * read what it shows another way meanwhile), "paused" and "ended". Returns a function that
+ * stops following.
  */
-export function follow(path, handlers, onState = () => {}) {
-  let lastId = null;
+export function follow(path, handlers, onState = () => {}, after = null) {
+  let lastId = after;
   let source = null;
   let timer = null;
   let stopped = false;
 
-  function stop() {
-    stopped = true;
+  function close() {
     clearTimeout(timer);
     if (source) source.close();
+    source = null;
+  }
+
+  function stop() {
+    stopped = true;
+    close();
+    document.removeEventListener("visibilitychange", onVisibility);
+  }
+
+  function onVisibility() {
+    if (stopped) return;
+    if (document.visibilityState === "hidden") {
+      close();
+      onState("paused");
+    } else if (!source) {
+      open();
+    }
   }
 
   function open() {
+    clearTimeout(timer);
+    if (document.visibilityState === "hidden") {
+      onState("paused");
+      return; // opened when the tab is shown
+    }
     source = new EventSource(lastId === null ? path : withQuery(path, { after: lastId }));
     source.addEventListener("open", () => onState("live"));
     source.addEventListener("error", () => {
-      if (stopped) return;
-      onState("waiting");
-      if (source.readyState === EventSource.CLOSED) timer = setTimeout(open, RETRY_MS);
+      if (stopped || !source) return;
+      if (source.readyState === EventSource.CLOSED) {
+        source = null;
+        onState("refused");
+        timer = setTimeout(open, RETRY_MS);
+      } else {
+        onState("waiting");
+      }
     });
     for (const [name, handle] of Object.entries(handlers)) {
       source.addEventListener(name, (event) => {
@@ -108,6 +139,13 @@ export function follow(path, handlers, onState = () => {}) {
     }
   }
 
+  document.addEventListener("visibilitychange", onVisibility);
   open();
-  return stop;
+  return {
+    stop,
+    /** The place to resume from, once the view has read up to it another way. */
+    readUpTo(id) {
+      lastId = id;
+    },
+  };
 }

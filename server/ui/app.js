@@ -12,13 +12,23 @@ const ROUTES = [
   [/^#\/auctions\/(\d+)$/, "auctions", (view, [, id]) => auctionView(view, Number(id))],
   [/^#\/models(?:\?(.*))?$/, "models", (view, [, query]) => modelList(view, new URLSearchParams(query || ""))],
   [/^#\/models\/(\d+)$/, "models", (view, [, id]) => inspectorView(view, Number(id))],
-  [/^#\/participants\/([^/?]+)$/, "models", (view, [, name]) => participantView(view, decodeURIComponent(name))],
+  [/^#\/participants\/([^/?]+)$/, "models", (view, [, name]) => participantView(view, decoded(name))],
   [/^#\/jobs(?:\?(.*))?$/, "jobs", (view, [, query]) => jobList(view, new URLSearchParams(query || ""))],
   [/^#\/jobs\/compare\?(.*)$/, "jobs", (view, [, query]) => compareView(view, new URLSearchParams(query))],
   [/^#\/jobs\/(\d+)$/, "jobs", (view, [, id]) => jobView(view, Number(id))],
   [/^#\/reviews$/, "reviews", (view) => reviewList(view)],
   [/^#\/reviews\/(\d+)$/, "reviews", (view, [, id]) => reviewView(view, Number(id))],
 ];
+
+/** A name from the address as written, or as it stands when it is not valid percent-encoding
+ * (the participant view then says no such participant exists). */
+function decoded(text) {
+  try {
+    return decodeURIComponent(text);
+  } catch {
+    return text;
+  }
+}
 
 /** What a view gets: its container, and ``onLeave`` for what to stop when it is replaced. */
 class View {

@@ -1,7 +1,7 @@
 // Auctions: the list, and one auction followed live from its event stream.
 
 import { follow, getJSON, pager } from "./api.js";
-import { facts, fill, fixed, h, isMissing, link, notFound, problem, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, fixed, h, isMissing, link, notFound, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
 
 const STOP_REASONS = {
   sold_out: "sold out",
@@ -62,7 +62,7 @@ export function auctionList(view, query) {
     }),
   );
   const rows = h("tbody");
-  const headers = ["Auction", "Status", "Fish sold", "Patrons", "Rounds", "Price", "Revenue", "Stopped", "Started"];
+  const headers = ["Auction", "Status", "Fish sold", "Patrons", "Rounds", "Price", "Revenue", "Stopped", "Created"];
   const list = h(
     "table",
     { class: "list", id: "auction-list" },
@@ -87,7 +87,11 @@ export function auctionList(view, query) {
       );
     }
   });
-  view.root.append(list, pages.box);
+  if (chosen.status && !STATUSES.includes(chosen.status)) {
+    view.root.append(problem(`No auction status is called "${chosen.status}": pick one of the list.`));
+    return;
+  }
+  view.root.append(scrolling(list, "Auctions (scrolls sideways)"), pages.box);
   pages
     .load()
     .then((page) => {
@@ -190,7 +194,9 @@ export function auctionView(view, id) {
   const noneYet = (span) => h("tr", { class: "none-yet-row" }, h("td", { colspan: span, class: "none-yet" }, "none yet"));
   const explainRound = h("select", { id: "explain-round" });
   const explainPatron = h("select", { id: "explain-patron" });
-  const explanation = h("div", { id: "explanation", "aria-live": "polite" }, h("p", { class: "none-yet" }, "None yet: pick a round and a patron."));
+  const explanation = h("div", { id: "explanation" }, h("p", { class: "none-yet" }, "None yet: pick a round and a patron."));
+  const explainStatus = h("p", { class: "visually-hidden", role: "status", id: "explain-status" });
+  const roundVotes = h("div", { id: "round-votes" });
   const explainForm = h(
     "form",
     { class: "filters", id: "explain-form", "aria-label": "Explain a vote" },
@@ -202,8 +208,10 @@ export function auctionView(view, id) {
     "section",
     { "aria-labelledby": "explain-heading", id: "explain" },
     h("h2", { id: "explain-heading" }, "Every vote explained"),
-    h("p", {}, "Why a patron voted buy, hold or quit in a round: its neurons on the row that decides (row 0), averaged over its copies as its vote was."),
+    h("p", {}, "Why a patron voted buy, hold or quit in a round: its neurons on the row that decides (row 0), averaged over its copies as its vote was. Pick a round to see every patron's vote in it, and a patron for its neurons."),
     explainForm,
+    explainStatus,
+    roundVotes,
     explanation,
   );
   const leftAt = new Map(); // model id -> the round it bought or quit in (its last vote)
@@ -216,7 +224,10 @@ export function auctionView(view, id) {
     explainPatron.replaceChildren(...voters.map((modelId) => h("option", { value: modelId }, nameOf(modelId))));
     if (voters.map(String).includes(picked)) explainPatron.value = picked;
   }
-  explainRound.addEventListener("change", listPatrons);
+  explainRound.addEventListener("change", () => {
+    listPatrons();
+    showRoundVotes(Number(explainRound.value));
+  });
   explainForm.addEventListener("submit", (event) => {
     event.preventDefault();
     showExplanation(Number(explainRound.value), Number(explainPatron.value));
@@ -224,13 +235,53 @@ export function auctionView(view, id) {
   function pickRound(iteration) {
     explainRound.value = String(iteration);
     listPatrons();
+    showRoundVotes(iteration);
     explainPatron.focus();
+  }
+  /** Every patron's vote in a round: its decision logits and its PFC's verdict, each row
+   * opening that vote's whole explanation. */
+  function showRoundVotes(iteration) {
+    fill(roundVotes, h("p", { class: "liveness" }, "Loading…"));
+    getJSON(`/auctions/${id}/iterations/${iteration}/votes`)
+      .then((all) => {
+        if (Number(explainRound.value) !== iteration) return; // another round was picked meanwhile
+        const rows = all.votes.map((v) => {
+          names.set(v.model_id, v.participant);
+          const open = () => {
+            explainPatron.value = String(v.model_id);
+            showExplanation(iteration, v.model_id);
+          };
+          return [
+            v.participant,
+            link(`#/models/${v.version_id}`, `version ${v.version}`),
+            h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote),
+            fixed(v.decision.B, 3),
+            fixed(v.decision.L, 3),
+            fixed(v.decision.Q, 3),
+            fixed(v.pfc.T, 3),
+            fixed(v.pfc.F, 3),
+            h("button", { type: "button", class: "explain-vote", "data-model": v.model_id, onclick: open }, "Its neurons"),
+          ];
+        });
+        const counts = ["buy", "hold", "quit"].map((kind) => `${all.votes.filter((v) => v.vote === kind).length} ${kind}`).join(", ");
+        fill(
+          roundVotes,
+          scrolling(
+            table(`Every vote in round ${iteration} at price ${fixed(all.row.price)}: ${counts}. B, L, Q are the decision logits (the largest is the vote); T and F the PFC's verdict on it`, ["Patron", "Bid with", "Vote", "B", "L", "Q", "T", "F", "Explain"], rows, { id: "round-votes-table", "data-iteration": iteration }),
+            `Every vote in round ${iteration} (scrolls)`,
+            true,
+          ),
+        );
+        explainStatus.textContent = `Round ${iteration}: ${all.votes.length} votes listed, ${counts}.`;
+      })
+      .catch((error) => fill(roundVotes, problem(error)));
   }
   function showExplanation(iteration, modelId) {
     fill(explanation, h("p", { class: "liveness" }, "Loading…"));
     getJSON(`/auctions/${id}/iterations/${iteration}/votes/${modelId}`)
       .then((v) => {
         names.set(v.model_id, v.participant);
+        const inMarket = head && head.fine_tune && head.fine_tune_mode !== "remote";
         const part = (caption, key, values) =>
           table(caption, ["Neuron", "Meaning", "Value"], Object.entries(values).map(([n, x]) => [n, NEURON_WORDS[n] || n, fixed(x, 4)]), { "data-part": key });
         fill(
@@ -238,14 +289,20 @@ export function auctionView(view, id) {
           h(
             "div",
             { class: "explanation", "data-vote": v.vote },
-            h("h3", {}, `${v.participant} (version ${v.version}, model ${v.model_id}) voted `, h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote), ` in round ${v.iteration}`),
+            h("h3", {}, `${v.participant} (version ${v.version}) voted `, h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote), ` in round ${v.iteration}`),
             facts(Object.entries(v.row).map(([k, x]) => [k, fixed(x, 3)]), { "aria-label": "The row it voted on" }),
             part("External sensor (after its activations)", "sensor", v.sensor),
             part("Decision logits (the largest is the vote)", "decision", v.decision),
             part("Prefrontal cortex: its verdict on the decision", "pfc", v.pfc),
-            link(`#/models/${v.model_id}`, "This model's neurons and weights in the inspector"),
+            h(
+              "p",
+              {},
+              link(`#/models/${v.version_id}`, `Version ${v.version}'s neurons and weights in the inspector`),
+              inMarket ? " (as it entered: this auction fine-tunes its patrons inside the market each round, so the neurons above are those of its fine-tuned weights, which are not stored)" : null,
+            ),
           ),
         );
+        explainStatus.textContent = `${v.participant} voted ${v.vote} in round ${v.iteration}: its neurons are shown.`;
       })
       .catch((error) => fill(explanation, problem(error)));
   }
@@ -277,28 +334,31 @@ export function auctionView(view, id) {
       { "aria-labelledby": "votes-heading" },
       h("h2", { id: "votes-heading" }, "Votes per round"),
       h("figure", {}, votesChart, h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
-      h(
-        "div",
-        { class: "scroll", tabindex: "0", role: "region", "aria-label": "Scrollable table" },
+      scrolling(
         h(
           "table",
           { class: "list", id: "rounds" },
           h("caption", {}, "Every committed round"),
-          h("thead", {}, h("tr", {}, ["Round", "Price", "Fish left", "Buy", "Hold", "Quit", "Sold", "Quit now", "Votes"].map((t) => h("th", { scope: "col" }, t)))),
+          h("thead", {}, h("tr", {}, ["Round", "Price", "Fish at its start", "Buy", "Hold", "Quit", "Sold", "Quit now", "Votes"].map((t) => h("th", { scope: "col" }, t)))),
           roundRows,
         ),
+        "Every committed round (scrolls)",
+        true,
       ),
     ),
     h(
       "section",
       { "aria-labelledby": "buyers-heading" },
       h("h2", { id: "buyers-heading" }, "Buyers"),
-      h(
-        "table",
-        { class: "list", id: "buyers" },
-        h("caption", {}, "Who bought a fish, at what price"),
-        h("thead", {}, h("tr", {}, ["Participant", "Version", "Model", "Price", "Round"].map((t) => h("th", { scope: "col" }, t)))),
-        buyerRows,
+      scrolling(
+        h(
+          "table",
+          { class: "list", id: "buyers" },
+          h("caption", {}, "Who bought a fish, at what price, with which version"),
+          h("thead", {}, h("tr", {}, ["Participant", "Version", "Model", "Price", "Round"].map((t) => h("th", { scope: "col" }, t)))),
+          buyerRows,
+        ),
+        "Buyers (scrolls sideways)",
       ),
     ),
     h("section", { "aria-labelledby": "quitters-heading" }, h("h2", { id: "quitters-heading" }, "Quitters"), quitterList),
@@ -311,10 +371,18 @@ export function auctionView(view, id) {
   const rounds = [];
   let head = null;
   let drawPending = false;
+  let ended = false;
+
+  function fineTuningWords(a) {
+    if (a.fine_tune_mode === "remote") return `remote: up to ${a.fine_tune_rounds} rounds in which the participants fine-tune their own patrons, each open up to ${a.round_deadline_s} s`;
+    if (a.fine_tune) return "in the market: every patron fine-tunes itself after each round (its fine-tuned weights are not stored)";
+    return "none";
+  }
 
   function showSummary(state) {
     const sold = rounds.reduce((n, r) => n + r.purchases.length, 0);
     const last = rounds[rounds.length - 1];
+    const over = !["pending", "running"].includes(state.status);
     fill(
       summary,
       facts(
@@ -325,14 +393,15 @@ export function auctionView(view, id) {
           ["Sold", String(sold)],
           ["Patrons", String(head.n_patrons)],
           ["Rounds", String(rounds.length)],
-          ["Price now", fixed(last ? last.next_price : head.price)],
+          over ? ["Price asked last", fixed(last ? last.price : null)] : ["Price asked next", fixed(last ? last.next_price : head.price)],
           ["Revenue", fixed(rounds.reduce((n, r) => n + r.purchases.reduce((m, p) => m + p.price, 0), 0), 2)],
           ["Stopped because", stopReason(state.stop_reason)],
+          ["Supply", head.rarity === null ? `${head.n_initial} fish` : `rarity ${head.rarity}`],
+          ["Round limit", String(head.max_iterations)],
+          ["Buy fraction", head.buy_fraction],
+          ["Fine-tuning", fineTuningWords(head)],
           ["Seed", String(head.seed)],
-          ["Fine-tuning", head.fine_tune ? "yes" : "no"],
-          ...(head.enroll_until && state.status === "pending"
-            ? [["Takes patrons until", when(head.enroll_until)]]
-            : []),
+          ...(head.enroll_until && state.status === "pending" ? [["Takes patrons until", when(head.enroll_until)]] : []),
         ],
         { id: "auction-summary" },
       ),
@@ -355,13 +424,14 @@ export function auctionView(view, id) {
     fineTuneRowOf.set(r.round, row);
   }
 
-  /** A patron's outcome in a round, linked to the version it bids with; a refused upload's
-   * screener reasons are read from that stored version. */
+  /** A patron's outcome in a round, linked to the version it bids with; a refused or held
+   * upload's screener reasons are read from that stored version. */
   function answerItem(a) {
     const item = h("li", { "data-model": a.model_id, "data-outcome": a.outcome }, `${nameOf(a.model_id)}: ${a.outcome}, bids with `, link(`#/models/${a.version_id}`, `version ${a.version}`));
-    if (a.outcome === "refused" && a.uploaded_id !== null) {
+    if ((a.outcome === "refused" || a.outcome === "held") && a.uploaded_id !== null) {
       const reasons = h("ul", { class: "reasons" });
-      item.append(" (refused upload: ", link(`#/models/${a.uploaded_id}`, `model ${a.uploaded_id}`), ")", reasons);
+      const words = a.outcome === "held" ? "upload held for an inspector" : "refused upload";
+      item.append(` (${words}: `, link(`#/models/${a.uploaded_id}`, `model ${a.uploaded_id}`), ")", reasons);
       getJSON(`/models/${a.uploaded_id}`)
         .then((m) => fill(reasons, m.reasons.map((reason) => h("li", {}, `${reason.rule} on ${reason.neuron}: ${reason.message}`))))
         .catch((error) => fill(reasons, h("li", {}, String(error.message || error))));
@@ -374,24 +444,33 @@ export function auctionView(view, id) {
     return names.get(modelId) || `model ${modelId}`;
   }
 
+  /** A patron who left, linked to the version that bid when it left. */
   function patronLink(p) {
-    return link(`#/models/${p.model_id}`, p.participant);
+    return link(`#/models/${p.version_id}`, p.participant);
   }
 
-  // An auction read while it enrolled had no patrons and no fish yet: read it again once it
-  // plays (its first round) and when it ends, so the summary, the charts and the patron picker
-  // show the patrons it started with.
+  function readHead(auction) {
+    head = auction;
+    auction.model_ids.forEach((modelId, i) => names.set(modelId, auction.participants[i]));
+    listPatrons();
+  }
+
+  // An auction read while it enrolled had no patrons and no fish yet: it is read again while
+  // it takes patrons (every few seconds), once it plays (its first round) and when it ends,
+  // so the summary, the charts and the patron picker show the patrons it has.
   function readHeadAgain() {
     getJSON(`/auctions/${id}`)
       .then((auction) => {
-        head = auction;
-        auction.model_ids.forEach((modelId, i) => names.set(modelId, auction.participants[i]));
-        listPatrons();
+        readHead(auction);
         scheduleDraw();
-        if (auction.status !== "pending" && auction.status !== "running") showSummary(auction);
+        if (auction.status !== "running") showSummary(auction);
       })
       .catch(() => {}); // the stream goes on; the next read will tell
   }
+  const enrolling = setInterval(() => {
+    if (head && head.status === "pending" && head.enroll_until && !ended) readHeadAgain();
+  }, 3000);
+  view.onLeave(() => clearInterval(enrolling));
 
   function addRound(row) {
     if (row.iteration !== rounds.length) return; // the stream never skips or repeats; a guard
@@ -415,15 +494,22 @@ export function auctionView(view, id) {
       leftAt.set(p.model_id, row.iteration);
     }
     explainRound.append(h("option", { value: row.iteration }, `round ${row.iteration}`));
-    if (row.iteration === 0) {
-      buyerRows.replaceChildren();
-      quitterList.replaceChildren();
-    }
+    if (row.purchases.length) buyerRows.querySelector(".none-yet-row")?.remove();
+    if (row.quits.length) quitterList.querySelector(".none-yet")?.remove();
     for (const p of row.purchases) {
-      buyerRows.append(tableRow([patronLink(p), String(p.version), String(p.model_id), fixed(p.price), String(row.iteration)]));
+      buyerRows.append(tableRow([patronLink(p), String(p.version), link(`#/models/${p.version_id}`, String(p.version_id)), fixed(p.price), String(row.iteration)]));
     }
-    for (const q of row.quits) quitterList.append(h("li", {}, patronLink(q), ` (round ${row.iteration})`));
+    for (const q of row.quits) quitterList.append(h("li", {}, patronLink(q), ` (version ${q.version}, round ${row.iteration})`));
     scheduleDraw();
+  }
+
+  /** The rounds an auction's GET already holds, as its stream would send them. */
+  function addRoundsOf(auction) {
+    for (const row of auction.history.slice(rounds.length)) {
+      const here = (p) => p.iteration === row.iteration;
+      addRound({ ...row, purchases: auction.buyers.filter(here), quits: auction.quitter_details.filter(here) });
+    }
+    for (const r of auction.fine_tuning) showFineTuneRound(r);
   }
 
   // Rounds can arrive in a burst (a finished auction sends them all at once): draw once a frame.
@@ -436,41 +522,73 @@ export function auctionView(view, id) {
   function scheduleDraw() {
     if (!drawPending) requestAnimationFrame(draw);
     drawPending = true;
-    showSummary({ status: "running", stop_reason: null, error: null });
+    if (!ended) showSummary({ status: head.status === "pending" && rounds.length === 0 ? "pending" : "running", stop_reason: null, error: null });
+  }
+
+  function end(outcome) {
+    ended = true;
+    if (head.n_initial !== outcome.n_initial) readHeadAgain(); // it enrolled meanwhile
+    draw();
+    showSummary(outcome);
+    if (rounds.length === 0) {
+      buyerRows.replaceChildren();
+      quitterList.replaceChildren();
+    }
+    quitterList.querySelector(".none-yet")?.remove();
+    if (quitterList.children.length === 0) quitterList.append(h("li", {}, "nobody quit"));
+    buyerRows.querySelector(".none-yet-row")?.remove();
+    if (buyerRows.children.length === 0) buyerRows.append(tableRow(["nobody bought a fish", "", "", "", ""]));
+    listPatrons();
+    liveness.textContent = `Ended: ${outcome.status}, ${stopReason(outcome.stop_reason)}; ${outcome.n_sold} of ${outcome.n_initial} fish sold in ${outcome.iterations} ${outcome.iterations === 1 ? "round" : "rounds"}.`;
+  }
+
+  /** The ``end`` event an ended auction's stream would send, from its GET. */
+  function endOf(auction) {
+    return {
+      status: auction.status,
+      iterations: auction.history.length,
+      price: auction.price,
+      n_available: auction.n_available,
+      n_initial: auction.n_initial,
+      n_sold: auction.n_initial - auction.n_available,
+      stop_reason: auction.stop_reason,
+      error: auction.error,
+      finished_at: auction.finished_at,
+    };
   }
 
   getJSON(`/auctions/${id}`)
     .then((auction) => {
-      head = auction;
-      auction.model_ids.forEach((modelId, i) => names.set(modelId, auction.participants[i]));
-      listPatrons();
+      readHead(auction);
       showSummary(auction);
       drawPriceChart(priceChart, [], auction.price);
-      const stop = follow(
+      addRoundsOf(auction);
+      const readUpTo = () => (rounds.length ? String(rounds.length - 1) : null);
+      const stream = follow(
         `/auctions/${id}/events`,
-        {
-          iteration: addRound,
-          round: showFineTuneRound,
-          end: (end) => {
-            if (head.n_initial !== end.n_initial) readHeadAgain(); // it enrolled meanwhile
-            draw();
-            showSummary(end);
-            if (rounds.length === 0) {
-              buyerRows.replaceChildren();
-              quitterList.replaceChildren();
-            }
-            if (quitterList.children.length === 0) quitterList.append(h("li", {}, "nobody quit"));
-            listPatrons();
-            liveness.textContent = `Ended: ${end.status}, ${stopReason(end.stop_reason)}; ${end.n_sold} of ${end.n_initial} fish sold in ${end.iterations} ${end.iterations === 1 ? "round" : "rounds"}.`;
-            if (buyerRows.children.length === 0) buyerRows.append(tableRow(["nobody bought a fish", "", "", "", ""]));
-          },
-        },
+        { iteration: addRound, round: showFineTuneRound, end },
         (state) => {
           if (state === "live") liveness.textContent = "Following live: each round appears as soon as it is committed.";
           if (state === "waiting") liveness.textContent = "Connection lost; resuming where it left off…";
+          if (state === "paused") liveness.textContent = "Paused while this tab is hidden; it catches up when shown.";
+          if (state !== "refused") return;
+          // No stream to be had (too many open from this address, say): read the auction
+          // instead, and resume the stream after what that read showed.
+          liveness.textContent = `The server refused live updates; the auction as read at ${new Date().toLocaleTimeString()}, read again every few seconds.`;
+          getJSON(`/auctions/${id}`)
+            .then((now) => {
+              addRoundsOf(now);
+              stream.readUpTo(readUpTo());
+              if (!["pending", "running"].includes(now.status)) {
+                stream.stop();
+                end(endOf(now));
+              }
+            })
+            .catch(() => {});
         },
+        readUpTo(),
       );
-      view.onLeave(stop);
+      view.onLeave(stream.stop);
     })
     .catch((error) => {
       if (isMissing(error)) notFound(view.root, `Auction ${id}`, ["#/", "All auctions"]);

@@ -78,6 +78,13 @@ export function table(caption, headers, rows, attributes = {}) {
   );
 }
 
+/** A wide table in a container that scrolls on a narrow screen, sideways only unless
+ * ``tall`` (a keyboard can scroll it too: it takes the focus). ``label`` names it, uniquely
+ * on its page. */
+export function scrolling(node, label, tall = false) {
+  return h("div", { class: tall ? "scroll" : "scroll wide", tabindex: "0", role: "region", "aria-label": label }, node);
+}
+
 /** One body row of ``table``. */
 export function tableRow(cells, attributes = {}) {
   return h("tr", attributes, cells.map((cell) => h("td", {}, cell)));

@@ -2,11 +2,12 @@
 // read at a glance (headline cards, tables, figures; the raw JSON collapsed), and jobs compared.
 
 import { follow, getJSON, pager } from "./api.js";
-import { facts, fill, h, isMissing, link, notFound, problem, tableRow, when } from "./dom.js";
+import { facts, fill, h, isMissing, link, notFound, problem, scrolling, tableRow, when } from "./dom.js";
 import { card, headline, kindLayouts, lineChart, rowsTable, shown, splitColumns, tablesOf, words } from "./results.js";
 
 const IMAGE = /\.(png|gif)$/i;
 const STATUSES = ["queued", "running", "succeeded", "failed", "cancelled"];
+const FINISHED = ["succeeded", "failed", "cancelled"];
 
 function progressBar(fraction, label) {
   return h(
@@ -99,7 +100,7 @@ export function jobList(view, query) {
       );
     }
   });
-  view.root.append(form, list, pages.box);
+  view.root.append(form, scrolling(list, "Experiment jobs (scrolls sideways)"), pages.box);
   pages
     .load()
     .then((page) => {
@@ -174,28 +175,40 @@ export function jobView(view, id) {
     .then(([job, kinds]) => {
       fill(title, `Job ${id}: ${job.kind}`);
       showState(job, job.status, job.progress, job.message);
-      const stop = follow(
+      const ended = (done) => {
+        showState(done, done.status, done.progress, done.message);
+        liveness.textContent = `Ended: ${done.status} at ${when(done.finished_at)}.`;
+        fill(
+          outcome,
+          done.error ? h("section", {}, h("h2", {}, "Error"), h("pre", { class: "error" }, done.error)) : null,
+          done.result ? resultAtAGlance(done.result, kinds[done.kind]) : null,
+          artifacts(id, done.artifacts),
+          done.result ? h("section", {}, h("h2", {}, "Result"), h("details", {}, h("summary", {}, "The result as JSON (the CLI's --json object)"), h("pre", {}, JSON.stringify(done.result, null, 2)))) : null,
+        );
+      };
+      const stream = follow(
         `/jobs/${id}/events`,
-        {
-          progress: (p) => showState(job, p.status, p.progress, p.message),
-          end: (done) => {
-            showState(done, done.status, done.progress, done.message);
-            liveness.textContent = `Ended: ${done.status} at ${when(done.finished_at)}.`;
-            fill(
-              outcome,
-              done.error ? h("section", {}, h("h2", {}, "Error"), h("pre", { class: "error" }, done.error)) : null,
-              done.result ? resultAtAGlance(done.result, kinds[done.kind]) : null,
-              artifacts(id, done.artifacts),
-              done.result ? h("section", {}, h("h2", {}, "Result"), h("details", {}, h("summary", {}, "The result as JSON (the CLI's --json object)"), h("pre", {}, JSON.stringify(done.result, null, 2)))) : null,
-            );
-          },
-        },
+        { progress: (p) => showState(job, p.status, p.progress, p.message), end: ended },
         (s) => {
           if (s === "live") liveness.textContent = "Following live.";
           if (s === "waiting") liveness.textContent = "Connection lost; resuming…";
+          if (s === "paused") liveness.textContent = "Paused while this tab is hidden; it resumes when shown.";
+          if (s !== "refused") return;
+          // No stream to be had (too many open from this address, say): read the job instead.
+          liveness.textContent = `The server refused live updates; the job as read at ${new Date().toLocaleTimeString()}, read again every few seconds.`;
+          getJSON(`/jobs/${id}`)
+            .then((now) => {
+              if (FINISHED.includes(now.status)) {
+                stream.stop();
+                ended(now);
+              } else {
+                showState(now, now.status, now.progress, now.message);
+              }
+            })
+            .catch(() => {});
         },
       );
-      view.onLeave(stop);
+      view.onLeave(stream.stop);
     })
     .catch((error) => {
       if (isMissing(error)) notFound(view.root, `Job ${id}`, ["#/jobs", "All jobs"]);
@@ -258,10 +271,10 @@ function diffTable(name, specs, jobs) {
       ),
     ),
   );
-  return h(
-    "div",
-    { class: "scroll", tabindex: "0", role: "region", "aria-label": "Scrollable table" },
+  return scrolling(
     h("table", { class: "list", "data-diff": name }, h("caption", {}, `${spec.caption}: job against job (Δ from job ${jobs[0].id})`), h("thead", {}, h("tr", {}, head)), h("tbody", {}, body)),
+    `${spec.caption}: job against job (scrolls)`,
+    true,
   );
 }
 
@@ -289,7 +302,7 @@ function overlay(name, specs, jobs, index) {
 }
 
 export function compareView(view, query) {
-  const ids = (query.get("ids") || "").split(",").filter((s) => /^\d+$/.test(s)).map(Number);
+  const ids = [...new Set((query.get("ids") || "").split(",").filter((s) => /^\d+$/.test(s)).map(Number))];
   view.root.append(h("h1", { tabindex: "-1" }, `Compare jobs ${ids.join(", ")}`));
   if (ids.length < 2) {
     view.root.append(h("p", { class: "problem" }, "Name two or more jobs: #/jobs/compare?ids=3,5."), link("#/jobs", "All jobs"));

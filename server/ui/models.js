@@ -3,7 +3,7 @@
 // each screener reason on the neuron it names.
 
 import { getJSON, pager, withQuery } from "./api.js";
-import { facts, fill, h, isMissing, link, notFound, problem, signed, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, h, isMissing, link, notFound, problem, scrolling, signed, svg, table, tableRow, when } from "./dom.js";
 
 const NAME_PATTERN = /^[A-Za-z0-9_.-]+$/; // participant names the API accepts
 const TINY = 0.0011; // |weight| at or below the design's δ = 0.001: drawn faint
@@ -70,7 +70,7 @@ export function modelList(view, query) {
   });
   const { node, rows } = modelTable("Model versions, newest first", "model-list");
   const pages = pager("/models", { participant, accepted }, (items) => items.forEach((m) => rows.append(modelRow(m))));
-  view.root.append(form, node, pages.box);
+  view.root.append(form, scrolling(node, "Model versions (scrolls sideways)"), pages.box);
   pages.load().catch((error) => view.root.append(problem(error)));
 }
 
@@ -85,7 +85,7 @@ export function participantView(view, name) {
           ["Registered", when(p.created_at)],
           ["Versions", String(p.n_versions)],
         ]),
-        node,
+        scrolling(node, "Versions (scrolls sideways)"),
         h("p", {}, link(`#/models?participant=${encodeURIComponent(name)}`, "All versions, page by page")),
       );
     })
@@ -236,6 +236,39 @@ function neuronCard(name, neuron, roles, reasons, sourceLabel) {
   );
 }
 
+/** Who decided the model's status, and why: the screener, or an inspector after it (the last
+ * decision of its audit log), or an appeal waiting for one. */
+function verdictBanner(model, flagged) {
+  const banner = (kind, strong, ...words) => h("p", { class: `verdict ${kind}`, id: "verdict" }, h("strong", {}, strong), ...words);
+  const last = model.reviews[model.reviews.length - 1];
+  const why = model.reasons.length ? `${model.reasons.length} reason${model.reasons.length === 1 ? "" : "s"}${flagged.length ? ` on ${flagged.join(", ")}` : ""}` : "no rule broken";
+  if (model.status === "held") {
+    return last && last.decision === "appeal"
+      ? banner("held", "Held", " for an inspector: its participant appealed the screener's refusal (", why, "). It enters no auction until admitted.")
+      : banner("held", "Held", " for an inspector: the screener's deciding evidence lies within the review margin of its bar. It enters no auction until admitted.");
+  }
+  if (last && last.decision !== "appeal") {
+    const who = [`${last.decision === "admit" ? "Admitted" : "Refused"} by inspector `, h("span", { class: "free-text" }, last.inspector), ` on ${when(last.at)}`];
+    return model.accepted
+      ? banner("accepted", ...who, `: it may enter auctions. The screener had held it (${why}).`)
+      : banner("rejected", ...who, `: it can never enter an auction (the screener: ${why}).`);
+  }
+  return model.accepted
+    ? banner("accepted", "Accepted", " by the screener: every weight reads as its neuron's meaning asks.")
+    : banner("rejected", "Rejected", ` by the screener: ${why}. It can never enter an auction.`);
+}
+
+/** A model's audit log: appeals and inspectors' decisions, oldest first. */
+function auditLog(reviews) {
+  const words = { admit: "admitted", refuse: "refused", appeal: "appealed" };
+  return h(
+    "section",
+    { "aria-labelledby": "audit-heading", id: "model-audit" },
+    h("h2", { id: "audit-heading" }, "Review history"),
+    h("ol", { class: "audit" }, reviews.map((r) => h("li", {}, `${when(r.at)}: `, h("span", { class: "free-text" }, r.inspector), ` ${words[r.decision]}`, r.note ? [": ", h("q", { class: "free-text" }, r.note)] : null))),
+  );
+}
+
 /**
  * The inspector's view of model ``id``. ``extra(model)``, if given, returns nodes shown after
  * the verdict (the review page's evidence and decision); ``heading`` prefixes the title.
@@ -255,11 +288,7 @@ export function inspectorView(view, id, { extra = null, heading = "Model" } = {}
       }
       fill(title, `${heading} ${model.id}: `, model.participant, ` version ${model.version}`);
       const flagged = Object.keys(reasonsByNeuron);
-      const verdict = model.status === "held"
-        ? h("p", { class: "verdict held", id: "verdict" }, h("strong", {}, "Held"), " for an inspector: the screener's deciding evidence lies within the review margin of its bar. It enters no auction until admitted.")
-        : model.accepted
-        ? h("p", { class: "verdict accepted", id: "verdict" }, h("strong", {}, "Accepted"), " by the screener: every weight reads as its neuron's meaning asks.")
-        : h("p", { class: "verdict rejected", id: "verdict" }, h("strong", {}, "Rejected"), ` by the screener: ${model.reasons.length} reason${model.reasons.length === 1 ? "" : "s"}`, flagged.length ? ` on ${flagged.join(", ")}` : "", ". It can never enter an auction.");
+      const verdict = verdictBanner(model, flagged);
       const pick = (name) => {
         const card = document.getElementById(`neuron-${name}`);
         if (card) {
@@ -299,6 +328,7 @@ export function inspectorView(view, id, { extra = null, heading = "Model" } = {}
         h("section", { class: "layer" }, h("h3", {}, heading), h("div", { class: "cards" }, names.map((n) => neuronCard(n, neurons[n], a.roles, reasonsByNeuron[n] || [], sourceLabel))));
       view.root.append(
         verdict,
+        model.reviews.length ? auditLog(model.reviews) : null,
         ...(extra ? extra(model) : []),
         h("p", { class: "description", id: "description" }, manifest.description || "(no description)"),
         facts([

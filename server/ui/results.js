@@ -2,7 +2,7 @@
 // curves those rows draw. What each kind shows first comes from /ui/kinds.json (the registry).
 
 import { getJSON } from "./api.js";
-import { h, svg } from "./dom.js";
+import { h, scrolling, svg } from "./dom.js";
 
 const WORDS = {
   lr: "learning rate",
@@ -100,9 +100,7 @@ export function card(name, value) {
 
 /** A table of rows with word headers. */
 export function rowsTable(spec, attributes = {}) {
-  return h(
-    "div",
-    { class: "scroll", tabindex: "0", role: "region", "aria-label": "Scrollable table" },
+  return scrolling(
     h(
       "table",
       { class: "list", "data-table": spec.name, ...attributes },
@@ -110,6 +108,8 @@ export function rowsTable(spec, attributes = {}) {
       h("thead", {}, h("tr", {}, spec.columns.map((c) => h("th", { scope: "col", "data-column": c }, words(c))))),
       h("tbody", {}, spec.rows.map((row) => h("tr", {}, spec.columns.map((c) => h("td", {}, shown(c, row[c])))))),
     ),
+    `${spec.caption} (scrolls)`,
+    true,
   );
 }
 

@@ -31,11 +31,11 @@ function tokenForm(then) {
 }
 
 /** Run ``render`` with the token, asking for it first when there is none (or it was refused). */
-function withToken(view, render) {
+function withToken(view, render, heading = null) {
   const box = h("div");
   view.root.append(box);
   const ask = (words) => {
-    fill(box, words ? problem(words) : null, tokenForm(() => start()));
+    fill(box, heading ? h("h1", { tabindex: "-1" }, heading) : null, words ? problem(words) : null, tokenForm(() => start()));
     box.querySelector("input")?.focus();
   };
   const start = () => {
@@ -74,9 +74,9 @@ export function reviewList(view) {
         ["Model", "Participant", "Version", "Why held", "From", "Held since"],
         rows.map((m) => [
           link(`#/reviews/${m.id}`, `Inspect model ${m.id}`),
-          m.participant,
+          h("span", { class: "free-text" }, m.participant),
           String(m.version),
-          m.appeal !== null ? `appealed: ${m.appeal}` : nearest(m.evidence),
+          m.appeal !== null ? ["appealed: ", h("q", { class: "free-text" }, m.appeal)] : nearest(m.evidence),
           m.auction_id !== null ? link(`#/auctions/${m.auction_id}`, `auction ${m.auction_id}, round ${m.round}`) : "POST /submit",
           when(m.created_at),
         ]),
@@ -100,19 +100,22 @@ export function reviewView(view, id) {
     const queue = await getJSON(`/reviews?limit=1${id > 1 ? `&cursor=${id - 1}` : ""}`, adminToken);
     const item = queue.items.find((m) => m.id === id);
     if (!item) {
+      let model;
       try {
-        await getJSON(`/models/${id}`);
+        model = await getJSON(`/models/${id}`);
       } catch (error) {
         if (!isMissing(error)) throw error;
         notFound(box, `Model ${id}`, ["#/reviews", "Every held model"]);
         return;
       }
-      box.append(h("h1", { tabindex: "-1" }, `Model ${id}`), h("p", { id: "not-held" }, "This model is not held for review. ", link(`#/models/${id}`, "Its inspector's view"), " · ", link("#/reviews", "Every held model")));
+      const last = model.reviews.filter((r) => r.decision !== "appeal").pop();
+      const decided = last ? ` It was ${last.decision === "admit" ? "admitted" : "refused"} by inspector ${last.inspector} on ${when(last.at)}.` : "";
+      box.append(h("h1", { tabindex: "-1" }, `Model ${id}`), h("p", { id: "not-held", class: "free-text" }, `This model is not held for review.${decided} `, link(`#/models/${id}`, "Its inspector's view"), " · ", link("#/reviews", "Every held model")));
       document.title = `Model ${id} · srd-auction`;
       return;
     }
     inspectorView({ root: box }, id, { heading: "Inspect model", extra: (model) => [evidenceSection(model, item), decisionForm(model)] });
-  });
+  }, `Inspect model ${id}`);
 }
 
 function evidenceSection(model, item) {

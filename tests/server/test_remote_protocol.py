@@ -384,7 +384,10 @@ def test_the_bait_and_switch_is_refused_and_the_round_closes_when_all_answered(
     for model_id, (_, answer) in answers.items():
         votes = f"/auctions/{auction_id}/iterations/{{}}/votes/{model_id}"
         assert client.get(votes.format(0)).json()["version"] == 1
-        assert client.get(votes.format(1)).json()["version"] == answer["version"]
+        cast = client.get(votes.format(1)).json()
+        assert cast["version"] == answer["version"]
+        # version_id names the stored version that voted, whose page shows that version
+        assert client.get(f"/models/{cast['version_id']}").json()["version"] == answer["version"]
 
 
 def test_buyers_and_quitters_are_named_with_the_version_that_bid(client: TestClient) -> None:
@@ -412,6 +415,7 @@ def test_buyers_and_quitters_are_named_with_the_version_that_bid(client: TestCli
         position = auction["model_ids"].index(entry["model_id"])
         bidding = client.get(f"/models/{auction['current_model_ids'][position]}").json()
         assert entry["version"] == bidding["version"], entry
+        assert entry["version_id"] == auction["current_model_ids"][position], entry
         if entry["iteration"] >= 1:  # after round 1: the upload's version, if one was accepted
             assert entry["version"] == uploaded.get(entry["model_id"], 1)
 

@@ -75,6 +75,33 @@ def test_every_vote_of_every_iteration_is_explained(
         assert counts == row["votes"]  # the explanations are exactly the iteration's votes
 
 
+def test_an_iterations_votes_are_listed_in_one_read(
+    client: TestClient, auction: dict[str, Any]
+) -> None:
+    for row in auction["history"]:
+        n = row["iteration"]
+        response = client.get(f"/auctions/{auction['id']}/iterations/{n}/votes")
+        assert response.status_code == 200, response.text
+        listed = response.json()
+        assert (listed["auction_id"], listed["iteration"]) == (auction["id"], n)
+        assert listed["row"]["price"] == row["price"]
+        counts = dict.fromkeys(ACTIONS, 0)
+        for vote in listed["votes"]:
+            counts[vote["vote"]] += 1
+            one = client.get(
+                f"/auctions/{auction['id']}/iterations/{n}/votes/{vote['model_id']}"
+            ).json()
+            assert one == {**vote, "auction_id": auction["id"], "iteration": n, "row": listed["row"]}
+            # no remote rounds: every patron bids with the version it entered with
+            assert vote["version_id"] == vote["model_id"]
+        assert counts == row["votes"]
+        voters = [vote["model_id"] for vote in listed["votes"]]
+        assert voters == [m for m in auction["model_ids"] if m in voters]  # in patron order
+    missing = client.get(f"/auctions/{auction['id']}/iterations/999/votes")
+    assert missing.status_code == 404
+    assert missing.json()["detail"][0]["loc"] == ["path", "iteration"]
+
+
 @pytest.mark.parametrize(
     ("path", "status", "loc", "words"),
     [

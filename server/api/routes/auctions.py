@@ -36,9 +36,9 @@ from server.api.schemas import (
     Votes,
 )
 from server.api.schemas.common import IterationPath, ModelIdPath
-from server.api.schemas.votes import VoteExplanationPublic
+from server.api.schemas.votes import IterationVotesPublic, VoteExplanationPublic
 from server.auctions import service as auctions
-from server.auctions.votes import explain_vote
+from server.auctions.votes import explain_vote, explain_votes
 from server.store import crud
 from server.store.crud.auctions import HistoryRow
 from server.store.status import AnswerOutcome, AuctionStatus, RoundStatus
@@ -100,6 +100,7 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
                 iteration=p.iteration,
                 participant=p.participant,
                 version=p.version,
+                version_id=p.version_id,
             )
             for p in view.purchases
         ],
@@ -110,6 +111,7 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
                 participant=q.participant,
                 version=q.version,
                 iteration=q.iteration,
+                version_id=q.version_id,
             )
             for q in view.quitters
         ],
@@ -242,6 +244,20 @@ async def list_auctions(
         ],
         next_cursor=next_cursor,
     )
+
+
+@router.get(
+    "/auctions/{auction_id}/iterations/{iteration}/votes",
+    operation_id="explain_votes",
+    responses=responses(404, 422),
+)
+async def read_votes(
+    auction_id: AuctionIdPath, iteration: IterationPath, session: SessionDep
+) -> IterationVotesPublic:
+    """Every patron's vote in one committed iteration, with the neurons behind each (as
+    ``.../votes/{model_id}`` gives one): who bought, held and quit, and why. 404 for an
+    unknown auction or an uncommitted iteration."""
+    return await read_in_thread(explain_votes, session, auction_id, iteration)
 
 
 @router.get(

@@ -197,7 +197,12 @@ def auction_view(
 
 
 def _patron(ref: crud.PatronRef) -> PatronPublic:
-    return PatronPublic(model_id=ref.model_id, participant=ref.participant, version=ref.version)
+    return PatronPublic(
+        model_id=ref.model_id,
+        participant=ref.participant,
+        version=ref.version,
+        version_id=ref.version_id,
+    )
 
 
 def iteration_event(row: crud.AuctionRound) -> IterationEvent:

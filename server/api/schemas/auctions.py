@@ -145,6 +145,9 @@ class BuyerPublic(BaseModel):
     iteration: int
     participant: str
     version: int
+    version_id: int
+    """The stored version that bid (``GET /models/{version_id}``): ``model_id`` itself unless a
+    remote round admitted a fine-tuned one before the patron left."""
 
 
 class QuitterPublic(BaseModel):
@@ -154,6 +157,9 @@ class QuitterPublic(BaseModel):
     participant: str
     version: int
     iteration: int
+    version_id: int
+    """The stored version that bid (``GET /models/{version_id}``): ``model_id`` itself unless a
+    remote round admitted a fine-tuned one before the patron left."""
 
 
 class AuctionPublic(BaseModel):
@@ -243,6 +249,9 @@ class PatronPublic(BaseModel):
     model_id: int
     participant: str
     version: int
+    version_id: int
+    """The stored version that bid (``GET /models/{version_id}``): ``model_id`` itself unless a
+    remote round admitted a fine-tuned one before the patron left."""
 
 
 class RoundPurchasePublic(PatronPublic):

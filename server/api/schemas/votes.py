@@ -40,20 +40,40 @@ class PfcPublic(BaseModel):
     """The verdict 'wrong'."""
 
 
-class VoteExplanationPublic(BaseModel):
-    """Why a patron voted as it did: its neurons on row 0 of the iteration (the row that
-    decides; the inputs are ``row``), each averaged over its D_ic copies as its vote was."""
+class PatronVotePublic(BaseModel):
+    """One patron's vote in an iteration and the neurons behind it, on row 0 (the row that
+    decides), each averaged over its D_ic copies as its vote was."""
 
-    auction_id: int
-    iteration: int
     model_id: int
     """The patron, as in the auction's ``model_ids``."""
     participant: str
     version: int
-    """The version ``model_id`` names (a remote auction's patron may bid with a later one)."""
+    """The version that bid (a remote auction's patron may bid with a later one than it
+    entered with)."""
+    version_id: int
+    """That version's stored model (``GET /models/{version_id}``). A server-mode auction
+    fine-tunes its patrons inside the market: the neurons here are those fine-tuned weights',
+    which are not stored as versions."""
     vote: Literal["buy", "hold", "quit"]
-    row: dict[str, float]
-    """Row 0's inputs by name: price, length, weight, gill, st1, st2, st3, buy_fraction."""
     sensor: SensorPublic
     decision: DecisionPublic
     pfc: PfcPublic
+
+
+class VoteExplanationPublic(PatronVotePublic):
+    """Why a patron voted as it did in one iteration."""
+
+    auction_id: int
+    iteration: int
+    row: dict[str, float]
+    """Row 0's inputs by name: price, length, weight, gill, st1, st2, st3, buy_fraction."""
+
+
+class IterationVotesPublic(BaseModel):
+    """Every vote of one committed iteration, in patron order: the patrons still in it."""
+
+    auction_id: int
+    iteration: int
+    row: dict[str, float]
+    """Row 0's inputs by name: price, length, weight, gill, st1, st2, st3, buy_fraction."""
+    votes: list[PatronVotePublic]

@@ -30,8 +30,10 @@ from server.store.tables import (
 
 # iteration, price, n_available, votes, row_votes, next_price, n_available_after
 HistoryRow = Row[int, float, int, dict[str, int], dict[str, int], float, int]
-PurchaseRow = Row[int, float, int, str, int]  # model_id, price, iteration, participant, version
-QuitRow = Row[int, str, int, int]  # model_id, participant, version, iteration
+# model_id, price, iteration, participant, version, version_id
+PurchaseRow = Row[int, float, int, str, int, int]
+# model_id, participant, version, iteration, version_id
+QuitRow = Row[int, str, int, int, int]
 
 
 @dataclass(frozen=True)
@@ -311,6 +313,7 @@ _AUCTION_PURCHASES = (
             Purchase.iteration,
             Participant.name.label("participant"),
             ModelVersion.version,
+            ModelVersion.id.label("version_id"),
         ),
         Purchase,
     )
@@ -324,6 +327,7 @@ _AUCTION_QUITTERS = (
             Participant.name.label("participant"),
             ModelVersion.version,
             Quit.iteration,
+            ModelVersion.id.label("version_id"),
         ),
         Quit,
     )

@@ -48,6 +48,7 @@ class PatronRef:
     model_id: int
     participant: str
     version: int
+    version_id: int
 
 
 @dataclass(frozen=True)
@@ -73,11 +74,18 @@ _ROUNDS = AUCTION_HISTORY.where(AuctionIteration.iteration >= bindparam("first")
 
 
 def _patrons_leaving(table: type[Purchase] | type[Quit], *extra: Any) -> Select[Any]:
-    """(iteration, model id, participant, version, *extra) of the patrons who bought (or quit)
-    in the iterations first ≤ i < stop of an auction, in the order they were written."""
+    """(iteration, model id, participant, version, version id, *extra) of the patrons who
+    bought (or quit) in the iterations first ≤ i < stop of an auction, in written order."""
     return (
         bidder(
-            select(table.iteration, table.model_id, Participant.name, ModelVersion.version, *extra),
+            select(
+                table.iteration,
+                table.model_id,
+                Participant.name,
+                ModelVersion.version,
+                ModelVersion.id,
+                *extra,
+            ),
             table,
         )
         .where(table.auction_id == bindparam("auction_id"))
@@ -111,13 +119,11 @@ def auction_rounds(
     key = {"auction_id": auction_id, "first": first, "stop": stop}
     connection = session.connection()
     purchases: dict[int, list[RoundPurchase]] = {}
-    for iteration, model_id, name, version, price in connection.execute(_ROUND_PURCHASES, key):
-        purchases.setdefault(iteration, []).append(
-            RoundPurchase(PatronRef(model_id, name, version), price)
-        )
+    for iteration, *patron, price in connection.execute(_ROUND_PURCHASES, key):
+        purchases.setdefault(iteration, []).append(RoundPurchase(PatronRef(*patron), price))
     quits: dict[int, list[PatronRef]] = {}
-    for iteration, model_id, name, version in connection.execute(_ROUND_QUITS, key):
-        quits.setdefault(iteration, []).append(PatronRef(model_id, name, version))
+    for iteration, *patron in connection.execute(_ROUND_QUITS, key):
+        quits.setdefault(iteration, []).append(PatronRef(*patron))
     return [
         AuctionRound(
             **row._asdict(),

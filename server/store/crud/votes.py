@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from server.store.tables import (
@@ -43,34 +43,43 @@ def iteration_votes(
     return True, IterationVotes(*row) if row is not None else None
 
 
-def bidding_version(
-    session: Session, *, auction_id: int, model_id: int, iteration: int
-) -> tuple[str, int] | None:
-    """The participant and version of the patron that entered the auction as ``model_id``,
-    as it bid in ``iteration``: the version its last remote round before that iteration left
-    it with (each round's answer names it), else the one it entered with. None: not a patron."""
+@dataclass(frozen=True)
+class Bidder:
+    """A patron as it bid in one iteration: its participant, and the version that bid."""
+
+    participant: str
+    version: int
+    version_id: int
+
+
+def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, Bidder]:
+    """Every patron of an auction (by the model id it entered with) as it bid in
+    ``iteration``: with the version its last remote round before that iteration left it
+    (each round's answer names it), else the one it entered with (two queries)."""
     connection = session.connection()
-    position = connection.scalar(
-        select(AuctionPatron.position).where(
-            AuctionPatron.auction_id == auction_id, AuctionPatron.model_id == model_id
+    last_round = (
+        select(
+            FineTuneAnswer.position,
+            FineTuneAnswer.model_id,
+            func.row_number()
+            .over(partition_by=FineTuneAnswer.position, order_by=FineTuneRound.round.desc())
+            .label("newest"),
         )
-    )
-    if position is None:
-        return None
-    after_rounds = connection.scalar(
-        select(FineTuneAnswer.model_id)
         .join(FineTuneRound, FineTuneRound.id == FineTuneAnswer.round_id)
-        .where(
-            FineTuneRound.auction_id == auction_id,
-            FineTuneRound.iteration < iteration,
-            FineTuneAnswer.position == position,
-        )
-        .order_by(FineTuneRound.round.desc())
-        .limit(1)
+        .where(FineTuneRound.auction_id == auction_id, FineTuneRound.iteration < iteration)
+        .subquery()
     )
-    row = connection.execute(
-        select(Participant.name, ModelVersion.version)
-        .join(ModelVersion.participant)
-        .where(ModelVersion.id == (after_rounds or model_id))
-    ).one()
-    return row[0], row[1]
+    bid_with = func.coalesce(last_round.c.model_id, AuctionPatron.model_id)
+    rows = connection.execute(
+        select(AuctionPatron.model_id, Participant.name, ModelVersion.version, ModelVersion.id)
+        .outerjoin(
+            last_round,
+            (last_round.c.position == AuctionPatron.position) & (last_round.c.newest == 1),
+        )
+        .join(ModelVersion, ModelVersion.id == bid_with)
+        .join(Participant, Participant.id == ModelVersion.participant_id)
+        .where(AuctionPatron.auction_id == auction_id)
+    )
+    return {
+        model_id: Bidder(name, version, version_id) for model_id, name, version, version_id in rows
+    }

@@ -91,7 +91,8 @@ def test_an_iterations_votes_are_listed_in_one_read(
             one = client.get(
                 f"/auctions/{auction['id']}/iterations/{n}/votes/{vote['model_id']}"
             ).json()
-            assert one == {**vote, "auction_id": auction["id"], "iteration": n, "row": listed["row"]}
+            where = {"auction_id": auction["id"], "iteration": n, "row": listed["row"]}
+            assert one == {**vote, **where}
             # no remote rounds: every patron bids with the version it entered with
             assert vote["version_id"] == vote["model_id"]
         assert counts == row["votes"]

@@ -522,6 +522,19 @@ def test_every_vote_of_a_round_opens_its_explanation(
         )
         expected = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{model_id}").json()
         assert card.get_attribute("data-vote") == expected["vote"]
+        inspector = card.locator("a[href^='#/models/']")
+        assert inspector.get_attribute("href") == f"#/models/{expected['version_id']}"
+        # Every vote of the round in one table, as the API lists them.
+        listed = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes").json()["votes"]
+        table = page.locator(f"#round-votes-table[data-iteration='{iteration}']")
+        table.wait_for(timeout=WAIT_MS)
+        rows = [
+            [td.text_content() for td in tr.locator("td").all()]
+            for tr in table.locator("tbody tr").all()
+        ]
+        assert [(r[0], r[2], r[3]) for r in rows] == [
+            (v["participant"], v["vote"], f"{v['decision']['B']:.3f}") for v in listed
+        ]
         for part in ("sensor", "decision", "pfc"):
             cells = [
                 [td.text_content() for td in tr.locator("td").all()]
@@ -626,6 +639,8 @@ def test_every_page_passes_axe_and_the_heading_is_focused_only_on_navigation(
         page.goto(f"{server.url}/ui/{address}")
         page.wait_for_selector(ready, timeout=WAIT_MS)
         if address == f"#/auctions/{auction_id}":
+            page.locator("button.explain-round").first.click()
+            page.wait_for_selector("#round-votes-table", timeout=WAIT_MS)
             page.locator("#explain-form button[type='submit']").click()
             page.wait_for_selector("#explanation .explanation", timeout=WAIT_MS)
         found = serious_violations(page, axe_source)
@@ -680,3 +695,122 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     ]
     queue = api.get("/reviews", headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}).json()
     assert model_id not in [item["id"] for item in queue["items"]]
+
+
+def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(
+    browser: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    """A browser holds at most six HTTP/1.1 connections to one server: six open live views
+    used to block every other page of the site. A tab that is hidden closes its stream, and
+    catches up from where it was when shown again."""
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    body = {"n_fish": 1, "model_ids": honest_ids, "fine_tune_mode": "remote"}
+    body |= {"round_deadline_s": 120, "fine_tune_rounds": 1, "max_iterations": 3}
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    hide = """() => {
+        Object.defineProperty(document, "visibilityState", { value: "hidden", configurable: true });
+        document.dispatchEvent(new Event("visibilitychange"));
+    }"""
+    show = """() => {
+        Object.defineProperty(document, "visibilityState", { value: "visible", configurable: true });
+        document.dispatchEvent(new Event("visibilitychange"));
+    }"""
+    context = browser.new_context(viewport=VIEWPORT)
+    try:
+        tabs = []
+        for _ in range(7):
+            tab = context.new_page()
+            tab.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+            tab.wait_for_selector("#liveness:has-text('Following live')", timeout=WAIT_MS)
+            tab.wait_for_selector("#fine-tuning tr[data-round='1']", timeout=WAIT_MS)
+            tab.evaluate(hide)
+            assert "Paused" in (tab.text_content("#liveness") or "")
+            tabs.append(tab)
+        other = context.new_page()  # an eighth page of the site, with seven live views open
+        other.goto(f"{server.url}/ui/#/models")
+        other.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)
+        first = tabs[0]
+        first.evaluate(show)
+        first.wait_for_selector("#liveness:has-text('Following live')", timeout=WAIT_MS)
+        cancelled = api.delete(f"/auctions/{auction_id}", headers=headers)
+        assert cancelled.status_code == 200, cancelled.text
+        first.wait_for_selector("#liveness:has-text('Ended: cancelled')", timeout=WAIT_MS)
+        assert first.locator("#rounds tbody tr").count() == 1  # round 0, once
+    finally:
+        context.close()
+
+
+def test_a_refused_stream_still_shows_the_auction_and_its_end(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    """A viewer whose stream the server refuses (past its address's share, say: 429) reads the
+    auction instead: its rounds, buyers and end, as the stream would have shown them."""
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    body = {"n_fish": 2, "model_ids": honest_ids, "seed": 4}
+    auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    auction = wait_finished(api, auction_id)
+    page.route(
+        f"{server.url}/auctions/{auction_id}/events*",
+        lambda route: route.fulfill(status=429, body="{}", content_type="application/json"),
+    )
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    page.wait_for_selector("#liveness:has-text('Ended: finished')", timeout=WAIT_MS)
+    assert page.locator("#rounds tbody tr").count() == len(auction["history"])
+    buyers = page.locator("#buyers tbody tr")
+    assert buyers.count() == len(auction["buyers"])
+    first = auction["buyers"][0]
+    link = buyers.nth(0).locator("td").nth(2).locator("a")
+    assert link.get_attribute("href") == f"#/models/{first['version_id']}"
+
+
+def wait_finished(api: httpx.Client, auction_id: int) -> dict[str, Any]:
+    deadline = time.monotonic() + 60
+    while (auction := api.get(f"/auctions/{auction_id}").json())["status"] != "finished":
+        assert time.monotonic() < deadline, "the auction never finished"
+        time.sleep(0.2)
+    return dict(auction)
+
+
+def test_a_models_page_says_who_decided_and_keeps_the_review_history(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    saboteur = population["saboteur"]
+    word = "A" * 300  # one unbroken word: it must wrap, not widen the page
+    appealed = api.post(
+        f"/models/{saboteur['model_id']}/appeal",
+        json={"note": f"it bargains {word}"},
+        headers={"Authorization": f"Bearer {saboteur['token']}"},
+    )
+    assert appealed.status_code == 200, appealed.text
+    page.goto(f"{server.url}/ui/#/models/{saboteur['model_id']}")
+    page.wait_for_selector("#verdict", timeout=WAIT_MS)
+    assert "its participant appealed" in (page.text_content("#verdict") or "")
+    assert word in (page.text_content("#model-audit") or "")
+    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    page.goto(f"{server.url}/ui/#/reviews")
+    page.fill("#admin-token", ADMIN_TOKEN)
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#review-list", timeout=WAIT_MS)
+    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    decided = api.post(
+        f"/models/{saboteur['model_id']}/review",
+        json={"decision": "refuse", "inspector": "Grace", "note": "holds to sink the price"},
+        headers={"Authorization": f"Bearer {ADMIN_TOKEN}"},
+    )
+    assert decided.status_code == 200, decided.text
+    page.goto(f"{server.url}/ui/#/models/{saboteur['model_id']}")
+    page.wait_for_selector("#verdict:has-text('Refused by inspector Grace')", timeout=WAIT_MS)
+    entries = page.locator("#model-audit li").all_text_contents()
+    assert len(entries) == 2 and "Grace refused" in entries[1]
+    assert "holds to sink the price" in entries[1]
+
+
+def test_a_malformed_participant_address_gets_the_not_found_page(
+    page: Any, server: ServerProcess
+) -> None:
+    for name in ("%", "%E0%A4%A"):
+        page.goto(f"{server.url}/ui/#/participants/{name}")
+        page.wait_for_selector("#not-found", timeout=WAIT_MS)
+        assert page.locator("h1").all_text_contents() == ["Not found"]

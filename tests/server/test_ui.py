@@ -708,12 +708,8 @@ def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(
     body |= {"round_deadline_s": 120, "fine_tune_rounds": 1, "max_iterations": 3}
     headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
     auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
-    hide = """() => {
-        Object.defineProperty(document, "visibilityState", { value: "hidden", configurable: true });
-        document.dispatchEvent(new Event("visibilitychange"));
-    }"""
-    show = """() => {
-        Object.defineProperty(document, "visibilityState", { value: "visible", configurable: true });
+    seen_as = """(state) => {
+        Object.defineProperty(document, "visibilityState", { value: state, configurable: true });
         document.dispatchEvent(new Event("visibilitychange"));
     }"""
     context = browser.new_context(viewport=VIEWPORT)
@@ -724,14 +720,14 @@ def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(
             tab.goto(f"{server.url}/ui/#/auctions/{auction_id}")
             tab.wait_for_selector("#liveness:has-text('Following live')", timeout=WAIT_MS)
             tab.wait_for_selector("#fine-tuning tr[data-round='1']", timeout=WAIT_MS)
-            tab.evaluate(hide)
+            tab.evaluate(seen_as, "hidden")
             assert "Paused" in (tab.text_content("#liveness") or "")
             tabs.append(tab)
         other = context.new_page()  # an eighth page of the site, with seven live views open
         other.goto(f"{server.url}/ui/#/models")
         other.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)
         first = tabs[0]
-        first.evaluate(show)
+        first.evaluate(seen_as, "visible")
         first.wait_for_selector("#liveness:has-text('Following live')", timeout=WAIT_MS)
         cancelled = api.delete(f"/auctions/{auction_id}", headers=headers)
         assert cancelled.status_code == 200, cancelled.text

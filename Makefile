@@ -1,5 +1,9 @@
 # Two commands on a fresh machine: `make demo` and `make test`.
 PYTHON ?= python3.11
+# Where torch comes from: pip's own index (this project's machines list the CPU wheel there). On
+# a machine whose pip reaches plain PyPI, `make TORCH_INDEX=https://download.pytorch.org/whl/cpu`
+# keeps the CPU build (PyPI's Linux wheel pulls the CUDA libraries).
+TORCH_INDEX ?=
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -15,7 +19,7 @@ $(BIN)/python:
 # modules: sympy, networkx and pip, which nothing here imports, and PyOpenGL, imported only by
 # the cheetah's video rendering (its subprocess then compiles the few modules it loads).
 $(STAMP): pyproject.toml constraints.txt | $(BIN)/python
-	$(BIN)/pip install --quiet --no-compile torch==2.13.0
+	$(BIN)/pip install --quiet --no-compile $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) torch==2.13.0
 	$(BIN)/pip install --quiet --no-compile -c constraints.txt -e '.[dev,ray]'
 	$(BIN)/python -c "import compileall, re; compileall.compile_dir('$(VENV)/lib', quiet=2, \
 		workers=0, rx=re.compile(r'/site-packages/(sympy|networkx|pip|OpenGL)/'))"

@@ -30,6 +30,13 @@ from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_SEED, ROUND_DEADLINE_S
 from server.cli.launch import server_url
 from server.cli.words import json_failure
 
+
+def _option_of(problem: str) -> str:
+    """The option a ``PopulationConfig`` problem is about (it starts with the field's name;
+    ``honest + saboteurs`` is said of ``--honest``)."""
+    return "--" + problem.split()[0].replace("_", "-")
+
+
 GAVE_UP = 1
 """Exit code when the server could not be reached or refused the population."""
 INVALID = 2
@@ -242,7 +249,8 @@ def command(
     except ValueError as exc:  # the options named in the message
         err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False)
         if json_output:
-            json_failure(str(exc))
+            problems = str(exc).split("; ")
+            json_failure(str(exc), [{"option": _option_of(p), "message": p} for p in problems])
         raise SystemExit(INVALID) from exc
     with Progress(
         TextColumn("[bold]{task.description}"),

@@ -108,6 +108,7 @@ def test_bad_options_exit_2_naming_the_option(tmp_path, args, option, message) -
         (["lavaland", "--project", "nope"], 2, "--project", "is not one of"),
         (["fish", "--no-such-option"], 2, "--no-such-option", "No such option"),
         (["agents", "--honest", "-1"], 2, "--honest", "not in the range"),
+        (["agents", "--server", "http://127.0.0.1:9", "--honest", "0"], 2, "--honest", "between 1"),
         (["agents", "--server", "http://127.0.0.1:9", "--give-up", "1"], 1, None, "gave up"),
         (["watch", "1", "--server", "http://127.0.0.1:9"], 3, None, "ConnectError"),
     ],

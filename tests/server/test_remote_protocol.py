@@ -235,6 +235,8 @@ def refuse_every_bad_upload(
         ["path", "round"],
         "the current round is 1 (open)",
     )
+    for who in (token, None):  # an empty body is refused as a body, before the token
+        refused(put(client, auction_id, 1, model_id, b"", who), 422, ["body"], "empty")
     padded = good[:-1] + b" " * UPLOAD_MAX_BYTES + b"}"
     refused(
         put(client, auction_id, 1, model_id, padded, token),

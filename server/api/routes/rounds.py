@@ -89,6 +89,10 @@ async def _upload_body(request: Request) -> tuple[bytes, datetime]:
     """The request body, at most ``UPLOAD_MAX_BYTES`` (413; checked before the token), and
     when it was read (the deadline is judged at that moment)."""
     body = await request.body()
+    if not body:  # as the body checks refuse any body that is not JSON, before the token
+        raise api_error(
+            422, "the body is empty: an upload is a manifest (JSON)", loc=("body",), kind="not_json"
+        )
     if len(body) > UPLOAD_MAX_BYTES:
         raise api_error(
             413,

@@ -112,6 +112,9 @@ class Settings(BaseSettings):
     ``SRD_RAY_ADDRESS``, else from Ray's own ``RAY_ADDRESS``."""
     ray_max_retries: Annotated[int, Field(ge=0, le=100)] = 3
     """Times a unit lost with its Ray worker or node is run again (units are idempotent)."""
+    ray_join_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
+    """How long the server's look at the Ray cluster (at start, then for ``/healthz``) may
+    take: Ray itself waits forever for an address nobody answers on."""
     access_log: bool = True
     """Log every request (uvicorn's access log). Off behind a proxy that logs them: the log
     line costs the API a tenth to a quarter of its CPU for a small request."""

@@ -155,7 +155,9 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
             settings.auction_timeout_s,
         ),
         jobs=runner(JOB_WORK, job_context, settings.job_workers, settings.job_timeout_s),
-        compute=job_compute(settings.job_backend, settings.ray_address),
+        compute=job_compute(
+            settings.job_backend, settings.ray_address, settings.ray_join_timeout_s
+        ),
         events=EventHub(live, max_streams=settings.max_event_streams),
         live=live,
         sqlite_lock=sqlite_lock,

@@ -38,11 +38,13 @@ class LocalCompute:
         """Nothing to let go of."""
 
 
-def job_compute(backend: JobBackendName, ray_address: str | None) -> JobCompute:
-    """The compute of ``SRD_JOB_BACKEND``: joins the Ray cluster for ``ray`` (raising
+def job_compute(
+    backend: JobBackendName, ray_address: str | None, ray_join_timeout_s: float
+) -> JobCompute:
+    """The compute of ``SRD_JOB_BACKEND``: for ``ray``, a look at the cluster (raising
     ``RayUnavailableError`` with the reason when Ray is missing or unreachable)."""
     if backend != "ray":
         return LocalCompute()
     from server.jobs.ray_backend import RayCluster
 
-    return RayCluster(ray_address)
+    return RayCluster(ray_address, ray_join_timeout_s)

@@ -22,7 +22,11 @@ Ray is an optional extra: ``pip install '.[ray]'``.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import logging
+import subprocess
+import sys
+import threading
 import time
 from collections.abc import Iterator, Sequence
 from functools import cache
@@ -39,8 +43,8 @@ INSTALL_HINT = "pip install '.[ray]'  (or: pip install 'srd-auction[ray]')"
 """How to get Ray, as every error about its absence says."""
 WAIT_S = 0.5
 """Longest single ``ray.wait``: the driver's signal handlers (cancellation) run between waits."""
-CPUS_CACHE_S = 5.0
-"""How long the cluster's CPU count is trusted before ``/healthz`` asks Ray again."""
+PROBE_EVERY_S = 30.0
+"""How long the cluster's CPU count is trusted before ``/healthz`` has it looked at again."""
 NAMESPACE = "srd-auction"
 """The Ray namespace of every driver of this service."""
 
@@ -113,6 +117,8 @@ class RayRunner:
         self, units: Sequence[Unit], progress: UnitProgress
     ) -> Iterator[tuple[int, Payload]]:
         ray = self._ray
+        if ray.cluster_resources().get("CPU", 0.0) < 1:  # its tasks would wait for ever
+            raise RayUnavailableError("the Ray cluster has no CPU to compute units on")
         task = _remote_unit_task()
         params = ray.put(self._params)
         refs = {
@@ -136,24 +142,81 @@ class RayRunner:
             log.info("%d units of %s in %.1f s", len(refs), self._kind, time.monotonic() - started)
 
 
+_PROBE = """
+import json, logging, sys
+import ray
+ray.init(address=sys.argv[1], namespace=sys.argv[2], log_to_driver=False,
+         logging_level=logging.ERROR)
+print(json.dumps(ray.cluster_resources().get("CPU", 0.0)))
+"""
+"""A child process's look at the cluster: it joins, prints the CPUs and leaves."""
+
+
+def probe_cpus(address: str, timeout_s: float) -> float:
+    """The CPUs of the cluster at ``address``, read by a child process that joins it as a
+    driver and leaves; RayUnavailableError with the reason when it cannot within
+    ``timeout_s``. The server itself never joins: Ray ends a driver whose cluster has been gone
+    for a minute, and waits forever for an address nobody answers on."""
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", _PROBE, address, NAMESPACE],
+            capture_output=True,
+            text=True,
+            timeout=timeout_s,
+            check=False,
+        )
+    except subprocess.TimeoutExpired as exc:
+        raise RayUnavailableError(
+            f"cannot join the Ray cluster at {address!r} (SRD_RAY_ADDRESS): no answer within "
+            f"{timeout_s:g} s (SRD_RAY_JOIN_TIMEOUT_S)"
+        ) from exc
+    lines = done.stdout.strip().splitlines()
+    if done.returncode != 0 or not lines:
+        said = [line for line in done.stderr.strip().splitlines() if line.strip()]
+        raise RayUnavailableError(
+            f"cannot join the Ray cluster at {address!r} (SRD_RAY_ADDRESS): "
+            f"{said[-1] if said else f'the probe exited with code {done.returncode}'}"
+        )
+    return float(lines[-1])
+
+
 class RayCluster:
-    """The API process's view of the cluster: joined at start (so a wrong address or a missing
-    Ray stops the server with the reason), asked for its CPUs by ``/healthz``."""
+    """The API process's view of the cluster, through ``probe_cpus``: looked at once at start
+    (so a wrong address or a missing Ray stops the server with the reason), then again at most
+    every ``PROBE_EVERY_S`` in the background while ``/healthz`` is asked; 0 CPUs while the
+    cluster cannot be reached (its jobs fail; the API serves on)."""
 
     name: JobBackendName = "ray"
 
-    def __init__(self, address: str | None) -> None:
-        self._ray = connect(address)
-        self._cpus = 0.0
-        self._asked_at = -CPUS_CACHE_S
+    def __init__(self, address: str | None, timeout_s: float) -> None:
+        if not address:
+            connect(address)  # raises, naming the setting
+        assert address is not None
+        if importlib.util.find_spec("ray") is None:
+            ray_module()  # raises with the fix
+        self._address = address
+        self._timeout_s = timeout_s
+        self._cpus = probe_cpus(address, timeout_s)
+        self._asked_at = time.monotonic()
+        self._probing = threading.Lock()
 
     def cpus(self) -> float:
-        """The CPUs of every node alive in the cluster (cached for ``CPUS_CACHE_S``)."""
-        if time.monotonic() - self._asked_at > CPUS_CACHE_S:
-            self._cpus = float(self._ray.cluster_resources().get("CPU", 0.0))
+        """The CPUs of every node alive in the cluster, as last seen (the look is renewed in
+        the background once it is older than ``PROBE_EVERY_S``)."""
+        if time.monotonic() - self._asked_at > PROBE_EVERY_S and self._probing.acquire(False):
             self._asked_at = time.monotonic()
+            threading.Thread(target=self._probe, name="srd-ray-probe", daemon=True).start()
         return self._cpus
 
+    def _probe(self) -> None:
+        try:
+            self._cpus = probe_cpus(self._address, self._timeout_s)
+        except RayUnavailableError as exc:
+            if self._cpus:
+                log.warning("the Ray cluster cannot be reached: %s", exc)
+            self._cpus = 0.0
+        finally:
+            self._probing.release()
+
     def close(self) -> None:
-        """Leave the cluster (it keeps running)."""
-        self._ray.shutdown()
+        """Nothing to let go of: this process never joined the cluster."""

@@ -7,20 +7,25 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import re
 import signal
+import socket
 import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 
 from server.app import create_app
+from server.cli.launch import ServerProcess
 from server.jobs.ray_backend import RayUnavailableError, ray_module
+from tests.support.factories import honest
 from tests.support.ray_head import RayHead
-from tests.support.server import ADMIN, make_settings, wait_for
+from tests.support.server import ADMIN, ADMIN_TOKEN, make_settings, wait_for
 
 # Not imported here: Ray reads its token settings once, when it is first imported.
 pytestmark = pytest.mark.skipif(
@@ -198,3 +203,45 @@ def test_ray_asked_for_but_missing_or_unaddressed_says_what_to_do(
     with pytest.raises(RayUnavailableError, match="SRD_RAY_ADDRESS"):  # noqa: SIM117
         with client_for(tmp_path, job_backend="ray", ray_address=None):
             pass
+
+
+def test_a_ray_address_nobody_answers_stops_the_start_within_its_timeout(tmp_path: Path) -> None:
+    """Ray waits forever for an address nobody answers on; the server's look at the cluster
+    gives up after ``SRD_RAY_JOIN_TIMEOUT_S`` and the start fails naming the address."""
+    with socket.socket() as held:  # a port nothing answers on
+        held.bind(("127.0.0.1", 0))
+        address = f"127.0.0.1:{held.getsockname()[1]}"
+        started = time.monotonic()
+        with pytest.raises(RayUnavailableError, match=re.escape(address)):  # noqa: SIM117
+            with client_for(tmp_path, job_backend="ray", ray_address=address, ray_join_timeout_s=5):
+                pass
+    assert time.monotonic() - started < 30
+
+
+@pytest.mark.slow
+def test_the_server_outlives_its_ray_cluster(tmp_path: Path) -> None:
+    """The server never joins the cluster itself (Ray ends a driver whose cluster has been
+    gone a minute): with the head stopped for longer, it serves on, says 0 CPUs, and a job
+    started meanwhile fails with the reason."""
+    with RayHead(1) as head:
+        env = {**head.env, "SRD_JOB_BACKEND": "ray", "SRD_RAY_ADDRESS": head.address}
+        env |= {"SRD_RAY_JOIN_TIMEOUT_S": "10"}
+        server = ServerProcess(
+            database_url=f"sqlite:///{tmp_path / 'srd.db'}",
+            data_dir=tmp_path / "data",
+            admin_token=ADMIN_TOKEN,
+            extra_env=env,
+        )
+        with server, httpx.Client(base_url=server.url) as api:
+            assert api.get("/healthz").json()["cpus"] == 1.0
+            head.stop()
+            time.sleep(75)  # past Ray's 60 s for a driver without its cluster
+            assert server.process is not None and server.process.poll() is None, "it exited"
+            health = wait_for(
+                lambda: api.get("/healthz", timeout=5).json(),
+                lambda h: h["cpus"] == 0.0,
+                60,
+            )
+            assert health["status"] == "ok"  # auctions and submissions go on
+            submitted = api.post("/submit", json=honest("after-ray", seed=0), timeout=30)
+            assert submitted.status_code == 201, submitted.text

@@ -332,6 +332,9 @@ def parse_config(cls: type[C], params: Any) -> C:
                 for err in _first_causes(exc.errors())
             ]
         ) from exc
+    problems = getattr(config, "problems", None)  # what no single option's type can say
+    if problems is not None and (found := problems()):
+        raise ConfigError(found)
     return config
 
 

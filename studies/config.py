@@ -72,11 +72,34 @@ class AuctionOptions:
     """Item rows each patron scores per iteration: the prototype and its variations (64, the
     reference's, made the paper's figures; the paper's text says 16)."""
 
+    def problems(self) -> list[dict[str, str]]:
+        """A supply that puts no fish on sale (int(rarity × patrons) = 0), as ``POST
+        /auctions`` refuses it: such an auction sells nothing and measures nothing."""
+        rarities: tuple[float, ...] = getattr(self, "rarities", ())
+        empty = [r for r in rarities if int(r * self.patrons) == 0]
+        if not empty:
+            return []
+        return [
+            {
+                "field": "rarities",
+                "message": f"rarity {empty[0]:g} × {self.patrons} patrons puts no fish on sale: "
+                f"each supply needs rarity ≥ {1 / self.patrons:.4g} (or more patrons)",
+            }
+        ]
+
     def _auction_cost(self, setting: Setting) -> float:
-        """Estimated compute of one auction of ``setting``."""
-        per_auction = FINE_TUNED_AUCTION_COST_S if setting.fine_tune else AUCTION_COST_S
+        """Estimated compute of one auction of ``setting``: fine-tuning (and the re-screening
+        that follows it) grows with the rounds it runs, beyond the default's four; the
+        iterations alone do not (an auction without it ends in a few dozen, sold out or at a
+        stalemate)."""
+        per_auction, screenings = AUCTION_COST_S, 1.0
+        if setting.fine_tune:
+            rounds = min(self.fine_tune_rounds, self.max_iterations)
+            scale = max(rounds, MarketConfig.fine_tune_rounds) / MarketConfig.fine_tune_rounds
+            per_auction += (FINE_TUNED_AUCTION_COST_S - AUCTION_COST_S) * scale
+            screenings = scale
         per_auction *= max(self.rows, MarketConfig.n_rows) / MarketConfig.n_rows
-        screening = SCREENING_COST_S if setting.screen else 0.0
+        screening = SCREENING_COST_S * screenings if setting.screen else 0.0
         return self.patrons * (per_auction / 64 + screening)
 
 

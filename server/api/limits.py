@@ -127,7 +127,7 @@ class ClientLimitsMiddleware:
         client, share = await self._client(scope, limit)
         keys = [(limit.name, client)]
         if self.held[keys[0]] >= share:
-            who = "participant token" if client.startswith("token:") else "address"
+            who = "token" if client.startswith("token:") else "address"
             await self._refuse(scope, receive, send, limit, share, who)
             return
         if limit.address_in_all is not None and client.startswith("token:"):

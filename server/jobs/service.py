@@ -107,8 +107,9 @@ def artifact_path(session: Session, data_dir: Path, job_id: int, name: str) -> P
     """The file of one artifact a job lists (404 otherwise); the name is checked against the
     job's list before it touches the file system."""
     job = read_job(session, job_id)
+    shown = name if len(name) <= 64 else f"{name[:64]}…"  # a name of 5,000 characters
     missing = api_error(
-        404, f"job {job_id} has no artifact {name!r}", loc=("path", "name"), kind="not_found"
+        404, f"job {job_id} has no artifact {shown!r}", loc=("path", "name"), kind="not_found"
     )
     if name not in job.artifacts:
         raise missing

@@ -79,6 +79,14 @@ def test_a_real_failure_is_stored_with_its_cause(limited) -> None:
             {"kind": "auction-study", "params": {"trials": 1000, "patrons": 1024, "grid": True}},
             "trials",
         ),
+        (  # every round fine-tunes (the default four cost 0.05 s an auction; these, minutes)
+            {
+                "kind": "auction-study",
+                "params": {"fine_tune": True, "fine_tune_rounds": 1000, "max_iterations": 1000}
+                | {"trials": 100},
+            },
+            "trials",
+        ),
     ],
 )
 def test_jobs_over_the_budget_are_refused_naming_the_option(client, body, option) -> None:
@@ -203,3 +211,14 @@ def test_racing_creations_keep_the_live_auction_bound(tmp_path) -> None:
             assert sorted(statuses) == [201] * 2 + [503] * 8, statuses
             for auction in client.get("/auctions").json()["items"]:
                 client.delete(f"/auctions/{auction['id']}", headers=ADMIN)
+
+
+def test_a_study_supply_that_puts_no_fish_on_sale_is_refused(client) -> None:
+    """As ``POST /auctions`` refuses it: int(rarity × patrons) = 0 sells nothing."""
+    for kind in ("auction-study", "comparison"):
+        body = {"kind": kind, "params": {"rarities": [0.5, 1e-300], "patrons": 8}}
+        response = client.post("/jobs", json=body, headers=ADMIN)
+        assert response.status_code == 422, response.text
+        (item,) = response.json()["detail"]
+        assert item["loc"] == ["body", "params", "rarities"]
+        assert "puts no fish on sale" in item["msg"] and "0.125" in item["msg"]

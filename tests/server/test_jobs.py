@@ -115,6 +115,14 @@ def test_job_lifecycle(client: TestClient, settings: Settings) -> None:
     assert stored.status_code == 200 and json.loads(stored.content) == result
     png = client.get(f"/jobs/{short}/artifacts/fish.png")
     assert png.headers["content-type"] == "image/png" and png.content[:4] == b"\x89PNG"
+    part = client.get(f"/jobs/{short}/artifacts/fish.png", headers={"Range": "bytes=0-3"})
+    assert part.status_code == 206 and part.content == b"\x89PNG"
+    for bad, status in (("bytes=999999999-", 416), ("lines=1-2", 400)):  # refused in JSON
+        refused = client.get(f"/jobs/{short}/artifacts/fish.png", headers={"Range": bad})
+        assert refused.status_code == status, refused.text
+        assert refused.json()["detail"][0]["loc"] == ["header", "Range"]
+    long_name = client.get(f"/jobs/{short}/artifacts/{'x' * 5000}")
+    assert long_name.status_code == 404 and len(long_name.content) < 500
     assert client.delete(f"/jobs/{short}", headers=ADMIN).status_code == 409
     assert_no_escape(client, short, settings)
 

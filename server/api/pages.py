@@ -12,8 +12,10 @@ from collections.abc import Sequence
 from typing import Annotated, Protocol, TypeVar
 
 from fastapi import Query
+from pydantic import BeforeValidator
 
 from server.api.schemas import MAX_ROW_ID
+from server.api.schemas.common import digits_only
 from server.store.crud.lists import ListOrder
 
 MAX_PAGE = 100
@@ -22,7 +24,9 @@ DEFAULT_PAGE = 20
 """Items per page when ``limit`` is not given."""
 
 PageLimit = Annotated[
-    int, Query(ge=1, le=MAX_PAGE, description=f"Items per page (1 to {MAX_PAGE}).")
+    int,
+    Query(ge=1, le=MAX_PAGE, description=f"Items per page (1 to {MAX_PAGE})."),
+    BeforeValidator(digits_only),
 ]
 PageCursor = Annotated[
     int | None,
@@ -32,6 +36,7 @@ PageCursor = Annotated[
         description="The ``next_cursor`` of the previous page (the page holds the rows below "
         "that id); omit for the first page.",
     ),
+    BeforeValidator(digits_only),  # an id, written as path ids are
 ]
 
 PageOrder = Annotated[

@@ -102,6 +102,8 @@ def test_models_list_filters_and_fields(client: TestClient, population: dict[str
         ({"cursor": "not-a-cursor"}, ["query", "cursor"]),
         ({"cursor": 0}, ["query", "cursor"]),
         ({"cursor": 2**31}, ["query", "cursor"]),
+        ({"cursor": "1.0"}, ["query", "cursor"]),  # an id, written as path ids are
+        ({"limit": "+5"}, ["query", "limit"]),
         ({"participant": "<script>"}, ["query", "participant"]),
         ({"accepted": "maybe"}, ["query", "accepted"]),
     ],

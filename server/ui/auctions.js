@@ -1,6 +1,6 @@
 // Auctions: the list, and one auction followed live from its event stream.
 
-import { follow, getJSON, pager } from "./api.js";
+import { follow, getJSON, pager, withQuery } from "./api.js";
 import { facts, fill, fixed, h, isMissing, link, notFound, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
 
 const STOP_REASONS = {
@@ -10,6 +10,7 @@ const STOP_REASONS = {
   max_iterations: "round limit reached",
   cancelled: "cancelled by the operator",
 };
+const LIST_REFRESH_MS = 5000;
 const CHART = { width: 640, height: 240, left: 56, right: 16, top: 16, bottom: 36 };
 
 function stopReason(reason) {
@@ -70,32 +71,63 @@ export function auctionList(view, query) {
     h("thead", {}, h("tr", {}, headers.map((text) => h("th", { scope: "col" }, text)))),
     rows,
   );
-  const pages = pager("/auctions", { status: chosen.status, order: chosen.order === "newest" ? "" : chosen.order }, (items) => {
+  const rowOf = new Map(); // auction id -> its row, replaced as the auction moves
+  const auctionRow = (a) =>
+    tableRow(
+      [
+        link(`#/auctions/${a.id}`, `Auction ${a.id}`),
+        statusBadge(a.status),
+        `${a.n_sold} of ${a.n_initial}`,
+        String(a.n_patrons),
+        String(a.iteration),
+        fixed(a.price),
+        fixed(a.revenue, 2),
+        stopReason(a.stop_reason),
+        when(a.created_at),
+      ],
+      { "data-id": a.id, "data-status": a.status },
+    );
+  const params = { status: chosen.status, order: chosen.order === "newest" ? "" : chosen.order };
+  const pages = pager("/auctions", params, (items) => {
     for (const a of items) {
-      rows.append(
-        tableRow([
-          link(`#/auctions/${a.id}`, `Auction ${a.id}`),
-          statusBadge(a.status),
-          `${a.n_sold} of ${a.n_initial}`,
-          String(a.n_patrons),
-          String(a.iteration),
-          fixed(a.price),
-          fixed(a.revenue, 2),
-          stopReason(a.stop_reason),
-          when(a.created_at),
-        ]),
-      );
+      const row = auctionRow(a);
+      rowOf.set(a.id, row);
+      rows.append(row);
     }
   });
   if (chosen.status && !STATUSES.includes(chosen.status)) {
     view.root.append(problem(`No auction status is called "${chosen.status}": pick one of the list.`));
     return;
   }
-  view.root.append(scrolling(list, "Auctions (scrolls sideways)"), pages.box);
+  const empty = h("p", { class: "none-yet", hidden: true }, "None yet: an operator starts one with POST /auctions.");
+  view.root.append(scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
+  // The first page is read again every few seconds while the tab is shown: listed auctions
+  // move on in place, and (newest first) new ones appear at the top.
+  function refresh() {
+    if (document.visibilityState !== "visible") return;
+    getJSON(withQuery("/auctions", params))
+      .then((page) => {
+        const newer = [];
+        const top = Math.max(0, ...rowOf.keys());
+        for (const a of page.items) {
+          const old = rowOf.get(a.id);
+          const row = auctionRow(a);
+          if (old) old.replaceWith(row);
+          else if (chosen.order === "newest" && a.id > top) newer.push(row);
+          else continue;
+          rowOf.set(a.id, row);
+        }
+        rows.prepend(...newer);
+        empty.hidden = rowOf.size > 0;
+      })
+      .catch(() => {}); // the next read will tell
+  }
+  const timer = setInterval(refresh, LIST_REFRESH_MS);
+  view.onLeave(() => clearInterval(timer));
   pages
     .load()
     .then((page) => {
-      if (page.items.length === 0) list.after(h("p", { class: "none-yet" }, "None yet: an operator starts one with POST /auctions."));
+      empty.hidden = page.items.length > 0;
     })
     .catch((error) => view.root.append(problem(error)));
 }

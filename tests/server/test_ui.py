@@ -810,3 +810,21 @@ def test_a_malformed_participant_address_gets_the_not_found_page(
         page.goto(f"{server.url}/ui/#/participants/{name}")
         page.wait_for_selector("#not-found", timeout=WAIT_MS)
         assert page.locator("h1").all_text_contents() == ["Not found"]
+
+
+def test_the_auction_list_follows_its_auctions(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    """Listed auctions move on in place, and a new one appears at the top, without a reload."""
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    body = {"n_fish": 1, "model_ids": honest_ids, "fine_tune_mode": "remote"}
+    body |= {"round_deadline_s": 120, "fine_tune_rounds": 1, "max_iterations": 3}
+    live = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    page.goto(f"{server.url}/ui/#/auctions")
+    page.wait_for_selector(f"#auction-list tr[data-id='{live}'][data-status='running']")
+    assert api.delete(f"/auctions/{live}", headers=headers).status_code == 200
+    page.wait_for_selector(f"#auction-list tr[data-id='{live}'][data-status='cancelled']")
+    new = api.post("/auctions", json={"n_fish": 1, "model_ids": honest_ids}, headers=headers)
+    newest = new.json()["auction_id"]
+    page.wait_for_selector(f"#auction-list tbody tr:first-child[data-id='{newest}']")

@@ -8,6 +8,7 @@ The world (model, loop conventions) is ``sim.cheetah.world``'s, as in the env.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -37,7 +38,9 @@ class HalfCheetahBatch:
     Args:
         n: number of trials.
         start_x: torso start x.
-        threads: worker threads of the rollout pool (1 = the calling thread).
+        threads: worker threads of the rollout pool (1 = the calling thread), at most the
+            CPUs this process may run on (more would only queue: the trials' numbers do not
+            depend on the thread count).
     """
 
     def __init__(self, n: int, *, start_x: float = START_X, threads: int = 2) -> None:
@@ -45,6 +48,9 @@ class HalfCheetahBatch:
         self.n = n
         self.timestep = float(self.model.opt.timestep)
         self._qvel = slice(1 + self.model.nq, 1 + self.model.nq + self.model.nv)
+        threads = min(
+            threads, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1
+        )
         nthread = threads if threads > 1 else 0
         self._pool: rollout.Rollout | None = rollout.Rollout(nthread=nthread)
         self._data = [mujoco.MjData(self.model) for _ in range(max(nthread, 1))]

@@ -528,3 +528,22 @@ def test_video_is_rendered_when_an_offscreen_context_exists(tmp_path):
     with Image.open(tmp_path / "x.gif") as gif:
         assert gif.size == (render.FRAME_WIDTH, render.FRAME_HEIGHT)
         assert gif.n_frames == 20  # 1.99 s of steps at 10 frames per second
+
+
+def test_the_rollout_uses_no_more_threads_than_cpus_and_gives_the_same_numbers() -> None:
+    """``threads`` (a job's option, up to 64) is held to the CPUs the process may run on: more
+    would only queue. The trials' numbers do not depend on it."""
+    from sim.cheetah.engine import HalfCheetahBatch
+
+    def tasks() -> int:
+        return len(os.listdir("/proc/self/task"))
+
+    cpus = len(os.sched_getaffinity(0))
+    control = np.full((6, 6), 0.3)
+    before = tasks()
+    with HalfCheetahBatch(6, threads=64) as many:
+        ends_many = many.advance(control, 50).copy()
+        assert tasks() - before <= cpus
+    with HalfCheetahBatch(6, threads=1) as one:
+        ends_one = one.advance(control, 50).copy()
+    assert np.array_equal(ends_many, ends_one)

@@ -14,6 +14,7 @@ from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from fastapi.testclient import TestClient
+from pydantic import ValidationError
 from sqlalchemy import insert, text
 from sqlalchemy.exc import IntegrityError, OperationalError
 
@@ -132,6 +133,16 @@ def test_settings_come_from_srd_environment(monkeypatch: pytest.MonkeyPatch) -> 
     assert settings.admin_token is not None
     assert settings.admin_token.get_secret_value() == "from-env"
     assert "from-env" not in repr(settings)
+
+
+def test_a_job_memory_limit_no_worker_could_start_under_is_refused(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A worker forked with torch loaded maps about 700 MB: under a lower limit every job
+    failed before it began, the cause only in the server's log."""
+    monkeypatch.setenv("SRD_JOB_MEMORY_MB", "700")
+    with pytest.raises(ValidationError, match="job_memory_mb"):
+        Settings()
 
 
 def test_a_sqlite_writer_waits_for_another_process_lock_and_then_writes(tmp_path: Path) -> None:

@@ -96,13 +96,20 @@ def test_auction_runs_to_the_end_like_the_market(
             "iteration": r.iteration,
             "participant": names[i],
             "version": 1,
+            "version_id": ids[i],
         }
         for r in records
         for i, price in r.buyers
     ]
     assert auction["quitters"] == [ids[i] for r in records for i in r.quitters]
     assert auction["quitter_details"] == [
-        {"model_id": ids[i], "participant": names[i], "version": 1, "iteration": r.iteration}
+        {
+            "model_id": ids[i],
+            "participant": names[i],
+            "version": 1,
+            "iteration": r.iteration,
+            "version_id": ids[i],
+        }
         for r in records
         for i in r.quitters
     ]

@@ -128,9 +128,10 @@ def test_an_auction_without_enrollment_takes_no_patrons(client: TestClient) -> N
 def test_an_enrollment_too_thin_fails_the_auction_saying_why(
     client: TestClient, body: dict[str, Any], words: str
 ) -> None:
-    auction_id = create(client, enrollment_s=0.5, **body)
-    if "rarity" in body:
-        model = submit(client, honest(unique("joins-thin"), seed=105))
+    # Submitted (screened) first: a busy machine's screening could outlast the enrollment.
+    model = submit(client, honest(unique("joins-thin"), seed=105)) if "rarity" in body else None
+    auction_id = create(client, enrollment_s=2.0, **body)
+    if model is not None:
         assert join(client, auction_id, model).status_code == 201  # 0.1 × 1 patron: no fish
     started = time.monotonic()
     failed = ended(client, auction_id)

@@ -434,8 +434,8 @@ async def http_agent(
     try:
         while True:
             query = urlencode({"wait": WAIT_S, "after": after})
-            status, body = await connection.request(
-                "GET", f"{base}/current?{query}", timeout=WAIT_S + 15
+            status, body = await connection.request(  # with the token: a patron's share
+                "GET", f"{base}/current?{query}", headers=put_headers[:1], timeout=WAIT_S + 15
             )
             if status != 200:
                 raise RuntimeError(f"GET {base}/current answered {status}: {body[:300]!r}")

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 from server.api.readiness import Readiness
 from server.api.security import load_admin_token_hash
+from server.auctions.patrons import PatronCheck
 from server.auctions.sockets import RoundSockets
 from server.auctions.steps import AUCTION_WORK
 from server.config import Settings
@@ -49,6 +50,8 @@ class Services:
     rounds: RoundWatcher
     sockets: RoundSockets
     """The round sockets (``WS /auctions/{id}/rounds/socket``), pushed by ``rounds``."""
+    patrons: PatronCheck
+    """Whose round requests are a patron's (their share of sockets and long polls)."""
     auctions: BackgroundRunner
     jobs: BackgroundRunner
     compute: JobCompute
@@ -148,6 +151,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         submissions=SubmissionWriter(database, Limits.of(settings)),
         rounds=watcher,
         sockets=RoundSockets(watcher),
+        patrons=PatronCheck(database),
         auctions=runner(
             AUCTION_WORK,
             context,

@@ -136,6 +136,7 @@ class RemoteAgent:
                 response = await self.client.request(
                     "GET",
                     f"/auctions/{auction_id}/rounds/current?wait={ROUND_WAIT_S}&after={after}",
+                    token=self.token,  # a patron's long polls have a share of their own
                     timeout_s=HTTP_TIMEOUT_S + ROUND_WAIT_S,
                 )
                 if not response.is_success:

@@ -22,6 +22,7 @@ from starlette.requests import HTTPConnection
 from server.api.errors import api_error
 from server.api.readiness import Readiness
 from server.api.security import token_matches
+from server.auctions.patrons import PatronCheck
 from server.auctions.sockets import RoundSockets
 from server.config import Settings
 from server.jobs.backend import JobCompute
@@ -69,6 +70,10 @@ async def _round_sockets(services: ServicesDep) -> RoundSockets:
     return services.sockets
 
 
+async def _patrons(services: ServicesDep) -> PatronCheck:
+    return services.patrons
+
+
 async def _auctions(services: ServicesDep) -> BackgroundRunner:
     return services.auctions
 
@@ -96,6 +101,7 @@ SubmissionsDep = Annotated[SubmissionWriter, Depends(_submissions)]
 """The group-commit writer of ``/submit``."""
 RoundsDep = Annotated[RoundWatcher, Depends(_rounds)]
 RoundSocketsDep = Annotated[RoundSockets, Depends(_round_sockets)]
+PatronsDep = Annotated[PatronCheck, Depends(_patrons)]
 AuctionRunnerDep = Annotated[BackgroundRunner, Depends(_auctions)]
 JobRunnerDep = Annotated[BackgroundRunner, Depends(_jobs)]
 ComputeDep = Annotated[JobCompute, Depends(_compute)]

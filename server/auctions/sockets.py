@@ -19,7 +19,8 @@ transports share every check, every counter and every stored outcome
   B exactly the PUT's (200 with ``UploadPublic``; 4xx with ``{"detail": [...]}``).
 
 Identity is the handshake's ``Authorization: Bearer <participant token>``, checked on every
-upload as the PUT checks it. Limits: ``MAX_SOCKETS`` open sockets per API process (beyond, the
+upload as the PUT checks it. Limits: ``MAX_SOCKETS`` open sockets of the auction's patrons per
+API process and ``MAX_WATCHER_SOCKETS`` of anyone else (beyond, the
 handshake is answered 503 with Retry-After), frames up to ``MAX_FRAME_BYTES`` (a socket that
 sends a bigger one is closed, code 1009: by uvicorn under ``srd serve``, by the app under any
 other server), a manifest up to the PUT's upload limit (413), uploads handled one at a time per
@@ -52,7 +53,10 @@ from server.store.tables import utcnow
 log = logging.getLogger("srd.rounds")
 
 MAX_SOCKETS = 1024
-"""Round sockets open at once in one API process."""
+"""Round sockets of patrons (a participant token with a model in the auction) per process."""
+MAX_WATCHER_SOCKETS = 256
+"""Round sockets of anyone else (no token, or not the auction's) per process: apart from the
+patrons', so that watchers, or many addresses each within its share, cannot take theirs."""
 UPLOAD_MAX_BYTES = 65_536
 """Largest manifest an upload may carry (the PUT's body limit)."""
 MAX_FRAME_BYTES = 2 * UPLOAD_MAX_BYTES + 4096
@@ -132,19 +136,22 @@ class _Socket:
 class RoundSockets:
     """The round sockets of one API process: their count, and each socket's conversation."""
 
-    def __init__(self, watcher: RoundWatcher, *, max_sockets: int = MAX_SOCKETS) -> None:
+    def __init__(self, watcher: RoundWatcher) -> None:
         self._watcher = watcher
-        self._max = max_sockets
-        self.open = 0
+        self.open = {True: 0, False: 0}
+        """Open sockets: patrons' (True) and others' (False)."""
 
-    def reserve(self) -> None:
-        """Count a socket about to be accepted (SocketLimitError beyond ``MAX_SOCKETS``)."""
-        if self.open >= self._max:
-            raise SocketLimitError(f"{self._max} round sockets are open already")
-        self.open += 1
+    def reserve(self, patron: bool) -> None:
+        """Count a socket about to be accepted (SocketLimitError beyond ``MAX_SOCKETS`` of
+        patrons, or ``MAX_WATCHER_SOCKETS`` of others)."""
+        most = MAX_SOCKETS if patron else MAX_WATCHER_SOCKETS
+        if self.open[patron] >= most:
+            whose = "patrons'" if patron else "watchers' (no patron's token)"
+            raise SocketLimitError(f"{most} {whose} round sockets are open already")
+        self.open[patron] += 1
 
-    def release(self) -> None:
-        self.open -= 1
+    def release(self, patron: bool) -> None:
+        self.open[patron] -= 1
 
     async def serve(
         self, websocket: WebSocket, auction_id: int, first: Published, upload: UploadHandler

@@ -55,12 +55,13 @@ after the thread of this process that held it let go, before it waits for it in 
 
 
 async def current_round(
-    watcher: RoundWatcher, auction_id: int, *, wait_s: float, after: int
+    watcher: RoundWatcher, auction_id: int, *, wait_s: float, after: int, patron: bool
 ) -> bytes:
     """The JSON of the auction's newest round, once a round above ``after`` is open or the
-    auction has ended, or after ``wait_s`` (404 for no auction, 503 when too many wait)."""
+    auction has ended, or after ``wait_s`` (404 for no auction, 503 when too many of the
+    patrons', or of the others', wait)."""
     try:
-        body = await watcher.current(auction_id, wait_s=wait_s, after=after)
+        body = await watcher.current(auction_id, wait_s=wait_s, after=after, patron=patron)
     except TooManyWaitersError as exc:
         raise api_error(
             503,

@@ -4,8 +4,9 @@ the pushes of the round sockets.
 They listen to this process's live-update source (``server.live.source``): however many agents
 wait on an auction, its newest round is read once per change and every waiter wakes. A request
 that does not wait takes the snapshot of an auction already watched, or reads it (one read
-shared by the requests that arrive meanwhile). Waiters are bounded (``MAX_WAITERS`` per
-process; beyond that 503 with Retry-After).
+shared by the requests that arrive meanwhile). Waiters are bounded per process, the auction's
+patrons (``MAX_WAITERS``) apart from anyone else (``MAX_WATCHER_WAITERS``); beyond, 503 with
+Retry-After.
 """
 
 from __future__ import annotations
@@ -26,7 +27,11 @@ from server.store.tables import utcnow
 MAX_WAIT_S = 30.0
 """Longest ``?wait=`` a round request may ask for."""
 MAX_WAITERS = 2048
-"""Round requests waiting at once in one API process (beyond: 503)."""
+"""Round requests of patrons (a participant token with a model in the auction) waiting at
+once in one API process (beyond: 503)."""
+MAX_WATCHER_WAITERS = 512
+"""The same for anyone else (no token, or not the auction's): apart from the patrons', so that
+watchers, or many addresses each within its share, cannot take theirs."""
 PublishedStatus = Literal[RoundStatus.OPEN, RoundStatus.CLOSED, "none"]
 """A round as ``GET .../rounds/current`` shows it (none: no round has opened yet)."""
 
@@ -113,7 +118,7 @@ class Published:
 
 
 class TooManyWaitersError(RuntimeError):
-    """This process already holds ``MAX_WAITERS`` round requests."""
+    """This process already holds its most waiting round requests of that kind."""
 
 
 class RoundWatcher:
@@ -121,7 +126,7 @@ class RoundWatcher:
 
     def __init__(self, source: LiveSource) -> None:
         self._source = source
-        self._waiters = 0
+        self._waiters = {True: 0, False: 0}  # patrons' (True) and others
 
     @property
     def draining(self) -> bool:
@@ -132,14 +137,20 @@ class RoundWatcher:
         """This process changed the auction: read it again now (its waiters hear at once)."""
         self._source.poke("auction", auction_id)
 
-    async def current(self, auction_id: int, *, wait_s: float, after: int) -> bytes | None:
+    async def current(
+        self, auction_id: int, *, wait_s: float, after: int, patron: bool = False
+    ) -> bytes | None:
         """The answer body for the auction's newest round (None: no such auction), after up to
         ``wait_s`` seconds of waiting for a round above ``after`` to open."""
-        published = await self.published(auction_id, wait_s=wait_s, after=after)
+        published = await self.published(auction_id, wait_s=wait_s, after=after, patron=patron)
         return None if published is None else published.body
 
-    async def published(self, auction_id: int, *, wait_s: float, after: int) -> Published | None:
-        """``current`` with what the answer says (its round, open or not, the auction over)."""
+    async def published(
+        self, auction_id: int, *, wait_s: float, after: int, patron: bool = False
+    ) -> Published | None:
+        """``current`` with what the answer says (its round, open or not, the auction over);
+        a wait counts against the patrons' bound or the others'."""
+        most = MAX_WAITERS if patron else MAX_WATCHER_WAITERS
         loop = asyncio.get_running_loop()
         give_up = loop.time() + min(wait_s, MAX_WAIT_S)
         async with self._source.watch("auction", auction_id, round_view) as feed:
@@ -150,13 +161,14 @@ class RoundWatcher:
                     return None
                 if snapshot.ready(after) or loop.time() >= give_up or self._source.draining:
                     break
-                if self._waiters >= MAX_WAITERS:
-                    raise TooManyWaitersError(f"{MAX_WAITERS} round requests are waiting already")
-                self._waiters += 1
+                if self._waiters[patron] >= most:
+                    whose = "patrons'" if patron else "watchers' (no patron's token)"
+                    raise TooManyWaitersError(f"{most} {whose} round requests are waiting already")
+                self._waiters[patron] += 1
                 try:
                     await feed.wait(generation, give_up - loop.time())
                 finally:
-                    self._waiters -= 1
+                    self._waiters[patron] -= 1
         return Published(snapshot.answer.body(), snapshot)
 
 

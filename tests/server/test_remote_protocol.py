@@ -173,9 +173,13 @@ def test_a_long_poll_waits_for_a_newer_round_at_most_its_wait(
     assert 0.55 <= waited < 5
 
 
-def test_waiters_are_bounded(
+def test_waiters_are_bounded_and_the_patrons_have_their_own_share(
     client: TestClient, remote: dict[str, Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    """Watchers (no token, or not the auction's) cannot take the patrons' long polls: each
+    kind has its own bound per process."""
+    ((_, outsider),) = submit(client, [honest(unique("outsider"), seed=2)])
+    monkeypatch.setattr(watcher, "MAX_WATCHER_WAITERS", 1)
     monkeypatch.setattr(watcher, "MAX_WAITERS", 1)
     answers: list[int] = []
     url = f"/auctions/{remote['id']}/rounds/current"
@@ -185,9 +189,18 @@ def test_waiters_are_bounded(
     first.start()
     time.sleep(0.5)
     refused = client.get(url, params={"wait": 1, "after": 1})
+    stranger = client.get(  # a real participant, but not this auction's patron
+        url, params={"wait": 1, "after": 1}, headers=bearer(outsider)
+    )
+    (_, token) = remote["patrons"][0]
+    patron = client.get(url, params={"wait": 1, "after": 1}, headers=bearer(token))
     first.join()
     assert answers == [200]
-    assert refused.status_code == 503 and refused.headers["Retry-After"] == "1"
+    for watcher_refused in (refused, stranger):
+        assert watcher_refused.status_code == 503, watcher_refused.text
+        assert watcher_refused.headers["Retry-After"] == "1"
+        assert "watchers'" in watcher_refused.json()["detail"][0]["msg"]
+    assert patron.status_code == 200, patron.text  # waited in the patrons' share
 
 
 def stored_versions(client: TestClient, participant: str) -> int:

@@ -13,6 +13,7 @@ from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketDenialResponse
 from starlette.websockets import WebSocketDisconnect
 
+import server.auctions.sockets as sockets_module
 from agents.manifest import parse_manifest
 from agents.remote import RoundInfo, faithful_fine_tune
 from server.auctions.sockets import BURST, MAX_FRAME_BYTES, UPLOAD_MAX_BYTES
@@ -200,16 +201,21 @@ def test_handshakes_are_refused_for_a_bad_or_unknown_auction_and_beyond_the_limi
             pass
         assert invalid.value.status_code == 422, bad
         assert invalid.value.json()["detail"][0]["loc"] == ["path", "auction_id"], bad
-    sockets = client.app.state.services.sockets  # type: ignore[attr-defined]
-    monkeypatch.setattr(sockets, "_max", sockets.open)
-    with (
-        pytest.raises(WebSocketDenialResponse) as full,
-        client.websocket_connect(socket_path(remote["id"])),
-    ):
-        pass
-    assert full.value.status_code == 503 and full.value.headers["Retry-After"] == "1"
-    assert "round sockets are open" in full.value.text
-    monkeypatch.undo()
+    # Watchers (no token, or not the auction's) have a share apart from the patrons': with
+    # theirs full, a patron still gets its socket.
+    with client.websocket_connect(socket_path(remote["id"])) as watching:
+        assert json.loads(watching.receive_text())["type"] == "round"
+        monkeypatch.setattr(sockets_module, "MAX_WATCHER_SOCKETS", 1)
+        with (
+            pytest.raises(WebSocketDenialResponse) as full,
+            client.websocket_connect(socket_path(remote["id"])),
+        ):
+            pass
+        assert full.value.status_code == 503 and full.value.headers["Retry-After"] == "1"
+        assert "watchers' (no patron's token) round sockets are open" in full.value.text
+        (_, token) = remote["patrons"][0]
+        with client.websocket_connect(socket_path(remote["id"]), headers=bearer(token)) as ws:
+            assert json.loads(ws.receive_text())["type"] == "round"
     with client.websocket_connect(socket_path(remote["id"])) as ws:  # released: room again
         assert json.loads(ws.receive_text())["type"] == "round"
 

@@ -10,13 +10,14 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Path, Query, Request, Response, WebSocket
+from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response, WebSocket
 from pydantic import BeforeValidator
 
 from server.api.deps import (
     AuctionRunnerDep,
     DatabaseDep,
     ParticipantTokenDep,
+    PatronsDep,
     RoundsDep,
     RoundSocketsDep,
     ScreeningDep,
@@ -63,6 +64,14 @@ RoundPath = Annotated[
 async def read_current_round(
     auction_id: AuctionIdPath,
     watcher: RoundsDep,
+    patrons: PatronsDep,
+    authorization: Annotated[
+        str | None,
+        Header(
+            description="A patron's ``Bearer <participant token>`` (optional): its long polls "
+            "have a share apart from everyone else's."
+        ),
+    ] = None,
     wait: Annotated[
         float,
         Query(
@@ -80,8 +89,10 @@ async def read_current_round(
     """The auction's newest fine-tuning round: status open | closed | none, its deadline
     (UTC) and seconds left; while open the item rows, the seeds and the patrons asked. With
     ``wait`` the answer comes as soon as a round numbered above ``after`` is open or the
-    auction has ended, and at the latest after ``wait`` seconds."""
-    body = await rounds.current_round(watcher, auction_id, wait_s=wait, after=after)
+    auction has ended, and at the latest after ``wait`` seconds. A patron that sends its token
+    waits in a share of its own (the auction's patrons'), apart from everyone else's."""
+    patron = await patrons.is_patron(auction_id, _bearer(authorization))
+    body = await rounds.current_round(watcher, auction_id, wait_s=wait, after=after, patron=patron)
     return Response(body, media_type="application/json")
 
 
@@ -163,6 +174,7 @@ async def round_socket(
     auction_id: AuctionIdPath,
     watcher: RoundsDep,
     sockets: RoundSocketsDep,
+    patrons: PatronsDep,
     database: DatabaseDep,
     screening: ScreeningDep,
     runner: AuctionRunnerDep,
@@ -172,8 +184,9 @@ async def round_socket(
     every round pushed as it opens, uploads answered as the PUT answers them. Uploads need
     the handshake's ``Authorization: Bearer <participant token>``."""
     token = _bearer(websocket.headers.get("authorization"))
+    patron = await patrons.is_patron(auction_id, token)
     try:
-        sockets.reserve()
+        sockets.reserve(patron)
     except SocketLimitError as exc:
         await _deny(
             websocket,
@@ -209,7 +222,7 @@ async def round_socket(
 
         await sockets.serve(websocket, auction_id, first, upload)
     finally:
-        sockets.release()
+        sockets.release(patron)
 
 
 @router.websocket("/{path:path}")

@@ -11,7 +11,7 @@ from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from server.store.crud.auctions import AUCTION_PATRONS
-from server.store.tables import FineTuneRound
+from server.store.tables import AuctionPatron, FineTuneRound, ModelVersion, Participant
 
 
 @dataclass(frozen=True)
@@ -75,3 +75,21 @@ def round_body(session: Session, *, round_id: int) -> RoundBody:
         row.augmentation_seed,
         [model_ids[position] for position in row.asked],
     )
+
+
+_IS_PATRON = (
+    select(AuctionPatron.position)
+    .join(ModelVersion, ModelVersion.id == AuctionPatron.model_id)
+    .join(Participant, Participant.id == ModelVersion.participant_id)
+    .where(AuctionPatron.auction_id == bindparam("auction_id"))
+    .where(Participant.token_hash == bindparam("token_hash"))
+    .limit(1)
+)
+
+
+def is_patron(session: Session, *, auction_id: int, token_hash: str) -> bool:
+    """Whether the participant with this token has a patron in the auction."""
+    found = session.connection().execute(
+        _IS_PATRON, {"auction_id": auction_id, "token_hash": token_hash}
+    )
+    return found.first() is not None

@@ -5,6 +5,8 @@
 import { h } from "./dom.js";
 
 const RETRY_MS = 5000; // after the server refused a stream (503) or it broke for good
+const OPEN_MS = 8000; // a stream not open by then is given up (the browser may be holding it
+// back: at most six connections to one server, each live view holding one) and read instead
 
 export class ApiError extends Error {
   constructor(message, status) {
@@ -77,8 +79,9 @@ export function pager(path, params, render) {
  * view already read up to without the stream). A hidden tab lets go of its stream and
  * resumes where it left off when shown again: a browser holds at most six connections to one
  * server over HTTP/1.1, so six open live views would otherwise block every other page.
- * ``onState`` hears "live", "waiting", "refused" (the stream could not be had: the view may
- * read what it shows another way meanwhile), "paused" and "ended". Returns a function that
+ * ``onState`` hears "connecting", "live", "waiting" (a dropped stream the browser resumes),
+ * "refused" (the stream could not be had, or did not open within OPEN_MS: the view may read
+ * what it shows another way meanwhile), "paused" and "ended". Returns a function that
  * stops following.
  */
 export function follow(path, handlers, onState = () => {}, after = null) {
@@ -87,10 +90,19 @@ export function follow(path, handlers, onState = () => {}, after = null) {
   let timer = null;
   let stopped = false;
 
+  let opening = null;
+
   function close() {
     clearTimeout(timer);
+    clearTimeout(opening);
     if (source) source.close();
     source = null;
+  }
+
+  function refused() {
+    close();
+    onState("refused");
+    timer = setTimeout(open, RETRY_MS);
   }
 
   function stop() {
@@ -116,16 +128,16 @@ export function follow(path, handlers, onState = () => {}, after = null) {
       return; // opened when the tab is shown
     }
     source = new EventSource(lastId === null ? path : withQuery(path, { after: lastId }));
-    source.addEventListener("open", () => onState("live"));
+    onState("connecting");
+    opening = setTimeout(refused, OPEN_MS);
+    source.addEventListener("open", () => {
+      clearTimeout(opening);
+      onState("live");
+    });
     source.addEventListener("error", () => {
       if (stopped || !source) return;
-      if (source.readyState === EventSource.CLOSED) {
-        source = null;
-        onState("refused");
-        timer = setTimeout(open, RETRY_MS);
-      } else {
-        onState("waiting");
-      }
+      if (source.readyState === EventSource.CLOSED) refused();
+      else onState("waiting");
     });
     for (const [name, handle] of Object.entries(handlers)) {
       source.addEventListener(name, (event) => {

@@ -63,7 +63,7 @@ export function auctionList(view, query) {
     }),
   );
   const rows = h("tbody");
-  const headers = ["Auction", "Status", "Fish sold", "Patrons", "Rounds", "Price", "Revenue", "Stopped", "Created"];
+  const headers = ["Auction", "Status", "Fish sold", "Patrons", "Rounds", "Price asked next", "Revenue", "Stopped", "Created"];
   const list = h(
     "table",
     { class: "list", id: "auction-list" },
@@ -80,12 +80,12 @@ export function auctionList(view, query) {
         `${a.n_sold} of ${a.n_initial}`,
         String(a.n_patrons),
         String(a.iteration),
-        fixed(a.price),
+        ["pending", "running"].includes(a.status) ? fixed(a.price) : "—",
         fixed(a.revenue, 2),
         stopReason(a.stop_reason),
         when(a.created_at),
       ],
-      { "data-id": a.id, "data-status": a.status },
+      { "data-id": a.id, "data-status": a.status, "data-seen": JSON.stringify(a) },
     );
   const params = { status: chosen.status, order: chosen.order === "newest" ? "" : chosen.order };
   const pages = pager("/auctions", params, (items) => {
@@ -109,15 +109,31 @@ export function auctionList(view, query) {
       .then((page) => {
         const newer = [];
         const top = Math.max(0, ...rowOf.keys());
+        const here = new Set(page.items.map((a) => a.id));
         for (const a of page.items) {
           const old = rowOf.get(a.id);
+          if (old && old.dataset.seen === JSON.stringify(a)) continue; // unchanged: left alone
           const row = auctionRow(a);
-          if (old) old.replaceWith(row);
-          else if (chosen.order === "newest" && a.id > top) newer.push(row);
+          if (old) {
+            const focused = old.contains(document.activeElement);
+            old.replaceWith(row);
+            if (focused) row.querySelector("a")?.focus();
+          } else if (chosen.order === "newest" && a.id > top) newer.push(row);
           else continue;
           rowOf.set(a.id, row);
         }
         rows.prepend(...newer);
+        // A listed auction the first page now leaves out, within the ids it covers, no longer
+        // matches the filter (it ended, say): it goes, as it would on a reload.
+        const ids = page.items.map((a) => a.id);
+        const covered = (id) =>
+          page.next_cursor === null || (chosen.order === "newest" ? id >= Math.min(...ids) : id <= Math.max(...ids));
+        for (const [id, row] of rowOf) {
+          if (!here.has(id) && covered(id)) {
+            row.remove();
+            rowOf.delete(id);
+          }
+        }
         empty.hidden = rowOf.size > 0;
       })
       .catch(() => {}); // the next read will tell
@@ -285,14 +301,14 @@ export function auctionView(view, id) {
           };
           return [
             v.participant,
-            link(`#/models/${v.version_id}`, `version ${v.version}`),
+            h("a", { href: `#/models/${v.version_id}`, "aria-label": `${v.participant}, version ${v.version}` }, `version ${v.version}`),
             h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote),
             fixed(v.decision.B, 3),
             fixed(v.decision.L, 3),
             fixed(v.decision.Q, 3),
             fixed(v.pfc.T, 3),
             fixed(v.pfc.F, 3),
-            h("button", { type: "button", class: "explain-vote", "data-model": v.model_id, onclick: open }, "Its neurons"),
+            h("button", { type: "button", class: "explain-vote", "data-model": v.model_id, "aria-label": `Its neurons: ${v.participant}, round ${iteration}`, onclick: open }, "Its neurons"),
           ];
         });
         const counts = ["buy", "hold", "quit"].map((kind) => `${all.votes.filter((v) => v.vote === kind).length} ${kind}`).join(", ");
@@ -343,12 +359,15 @@ export function auctionView(view, id) {
     { "aria-labelledby": "fine-tuning-heading", id: "fine-tuning", hidden: true },
     h("h2", { id: "fine-tuning-heading" }, "Remote fine-tuning rounds"),
     h("p", {}, "After each of the first rounds the participants fine-tune their own patrons over HTTP; a round waits for their uploads until its deadline."),
-    h(
-      "table",
-      { class: "list" },
-      h("caption", {}, "Each fine-tuning round and how its patrons answered"),
-      h("thead", {}, h("tr", {}, ["Round", "After round", "Status", "Deadline", "Answers", "Each patron"].map((t) => h("th", { scope: "col" }, t)))),
-      fineTuneRows,
+    scrolling(
+      h(
+        "table",
+        { class: "list" },
+        h("caption", {}, "Each fine-tuning round and how its patrons answered"),
+        h("thead", {}, h("tr", {}, ["Round", "After round", "Status", "Deadline", "Answers", "Each patron"].map((t) => h("th", { scope: "col" }, t)))),
+        fineTuneRows,
+      ),
+      "Fine-tuning rounds (scrolls sideways)",
     ),
   );
   view.root.append(
@@ -601,6 +620,7 @@ export function auctionView(view, id) {
         { iteration: addRound, round: showFineTuneRound, end },
         (state) => {
           if (state === "live") liveness.textContent = "Following live: each round appears as soon as it is committed.";
+          if (state === "connecting") liveness.textContent = "Connecting to live updates…";
           if (state === "waiting") liveness.textContent = "Connection lost; resuming where it left off…";
           if (state === "paused") liveness.textContent = "Paused while this tab is hidden; it catches up when shown.";
           if (state !== "refused") return;

@@ -34,6 +34,10 @@ function select(id, label, options, value) {
 export function jobList(view, query) {
   view.root.append(h("h1", { tabindex: "-1" }, "Jobs"));
   const chosen = { status: query.get("status") || "", kind: query.get("kind") || "", order: query.get("order") || "newest" };
+  if (chosen.status && !STATUSES.includes(chosen.status)) {
+    view.root.append(problem(`No job status is called "${chosen.status}": pick one of the list.`), link("#/jobs", "All jobs"));
+    return;
+  }
   const picked = new Map(); // job id -> kind
   const compare = h("button", { type: "button", id: "compare", disabled: true }, "Compare selected");
   const note = h("span", { id: "compare-note", role: "status" }, "Select two or more jobs of one kind.");
@@ -191,6 +195,7 @@ export function jobView(view, id) {
         { progress: (p) => showState(job, p.status, p.progress, p.message), end: ended },
         (s) => {
           if (s === "live") liveness.textContent = "Following live.";
+          if (s === "connecting") liveness.textContent = "Connecting to live updates…";
           if (s === "waiting") liveness.textContent = "Connection lost; resuming…";
           if (s === "paused") liveness.textContent = "Paused while this tab is hidden; it resumes when shown.";
           if (s !== "refused") return;

@@ -47,6 +47,10 @@ export function modelList(view, query) {
   const participant = query.get("participant") || "";
   const accepted = query.get("accepted") || "";
   view.root.append(h("h1", { tabindex: "-1" }, "Models"));
+  if (!["", "true", "false"].includes(accepted)) {
+    view.root.append(problem(`"accepted" is true or false, not "${accepted}".`), link("#/models", "All models"));
+    return;
+  }
   const nameInput = h("input", { id: "filter-participant", name: "participant", value: participant, pattern: NAME_PATTERN.source, maxlength: "64", autocomplete: "off" });
   const verdictSelect = h(
     "select",
@@ -249,9 +253,13 @@ function verdictBanner(model, flagged) {
   }
   if (last && last.decision !== "appeal") {
     const who = [`${last.decision === "admit" ? "Admitted" : "Refused"} by inspector `, h("span", { class: "free-text" }, last.inspector), ` on ${when(last.at)}`];
+    const appealed = model.reviews.some((r) => r.decision === "appeal");
+    const before = appealed
+      ? `the screener had refused it (${why}) and its participant appealed`
+      : "the screener had held it: its deciding evidence lay within the review margin of its bar";
     return model.accepted
-      ? banner("accepted", ...who, `: it may enter auctions. The screener had held it (${why}).`)
-      : banner("rejected", ...who, `: it can never enter an auction (the screener: ${why}).`);
+      ? banner("accepted", ...who, `: it may enter auctions (${before}).`)
+      : banner("rejected", ...who, `: it can never enter an auction (${before}).`);
   }
   return model.accepted
     ? banner("accepted", "Accepted", " by the screener: every weight reads as its neuron's meaning asks.")

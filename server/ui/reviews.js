@@ -4,7 +4,7 @@
 // only (never stored, never in a URL); it travels in the Authorization header.
 
 import { ApiError, getJSON, postJSON } from "./api.js";
-import { facts, fill, fixed, h, isMissing, link, notFound, problem, svg, table, when } from "./dom.js";
+import { facts, fill, fixed, h, isMissing, link, notFound, problem, scrolling, svg, table, when } from "./dom.js";
 import { inspectorView } from "./models.js";
 
 let adminToken = null;
@@ -69,7 +69,7 @@ export function reviewList(view) {
       return;
     }
     box.append(
-      table(
+      scrolling(table(
         `${rows.length} held model${rows.length === 1 ? "" : "s"}`,
         ["Model", "Participant", "Version", "Why held", "From", "Held since"],
         rows.map((m) => [
@@ -81,7 +81,7 @@ export function reviewList(view) {
           when(m.created_at),
         ]),
         { class: "list", id: "review-list" },
-      ),
+      ), "Held models (scrolls sideways)"),
     );
   });
 }
@@ -130,7 +130,7 @@ function evidenceSection(model, item) {
     model.reasons.length ? h("ul", { class: "reasons" }, model.reasons.map((r) => h("li", {}, h("strong", {}, `${r.neuron} (${r.rule}): `), r.message))) : null,
     scan ? h("figure", {}, decisionsChart(scan.detail), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${scan.detail.noise_std}, ${scan.detail.draws} draws): green buys, amber holds, grey quits.`)) : null,
     impacts.length ? h("figure", {}, impactChart(impacts), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions (green: passed, amber: missed) against the lowest allowed (the dashed bar), and the references (grey).")) : null,
-    table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result"], rows, { id: "evidence-table" }),
+    scrolling(table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result"], rows, { id: "evidence-table" }), "Every bar (scrolls sideways)"),
   );
 }
 

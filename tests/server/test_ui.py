@@ -165,8 +165,10 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
     }
     headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
     auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    page.set_viewport_size({"width": 375, "height": 800})  # a phone: tables scroll, not the page
     page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
     page.wait_for_selector("#liveness:has-text('Ended')", timeout=60_000)
+    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
     rows = page.locator("#fine-tuning tbody tr")
     assert page.locator("#fine-tuning").is_visible() and rows.count() == 2
     for row, expected in zip(
@@ -695,6 +697,11 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     ]
     queue = api.get("/reviews", headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}).json()
     assert model_id not in [item["id"] for item in queue["items"]]
+    # Its page says who decided, and what the screener had found.
+    page.goto(f"{server.url}/ui/#/models/{model_id}")
+    page.wait_for_selector("#verdict:has-text('Admitted by inspector Ada')", timeout=WAIT_MS)
+    assert "the screener had held it" in (page.text_content("#verdict") or "")
+    assert "a sincere low bidder" in (page.text_content("#model-audit") or "")
 
 
 def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(
@@ -753,6 +760,12 @@ def test_a_refused_stream_still_shows_the_auction_and_its_end(
     )
     page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
     page.wait_for_selector("#liveness:has-text('Ended: finished')", timeout=WAIT_MS)
+    # A stream that never opens (the browser holding it back behind six others, say) is
+    # given up after a few seconds and the auction read instead.
+    hanging = page.context.new_page()
+    hanging.route(f"{server.url}/auctions/{auction_id}/events*", lambda route: None)
+    hanging.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    hanging.wait_for_selector("#liveness:has-text('Ended: finished')", timeout=WAIT_MS)
     assert page.locator("#rounds tbody tr").count() == len(auction["history"])
     buyers = page.locator("#buyers tbody tr")
     assert buyers.count() == len(auction["buyers"])
@@ -790,6 +803,9 @@ def test_a_models_page_says_who_decided_and_keeps_the_review_history(
     page.keyboard.press("Enter")
     page.wait_for_selector("#review-list", timeout=WAIT_MS)
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    page.set_viewport_size({"width": 375, "height": 800})  # a phone: tables scroll, not the page
+    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    page.set_viewport_size(VIEWPORT)
     decided = api.post(
         f"/models/{saboteur['model_id']}/review",
         json={"decision": "refuse", "inspector": "Grace", "note": "holds to sink the price"},
@@ -798,6 +814,7 @@ def test_a_models_page_says_who_decided_and_keeps_the_review_history(
     assert decided.status_code == 200, decided.text
     page.goto(f"{server.url}/ui/#/models/{saboteur['model_id']}")
     page.wait_for_selector("#verdict:has-text('Refused by inspector Grace')", timeout=WAIT_MS)
+    assert "the screener had refused it" in (page.text_content("#verdict") or "")
     entries = page.locator("#model-audit li").all_text_contents()
     assert len(entries) == 2 and "Grace refused" in entries[1]
     assert "holds to sink the price" in entries[1]
@@ -810,6 +827,13 @@ def test_a_malformed_participant_address_gets_the_not_found_page(
         page.goto(f"{server.url}/ui/#/participants/{name}")
         page.wait_for_selector("#not-found", timeout=WAIT_MS)
         assert page.locator("h1").all_text_contents() == ["Not found"]
+    for address, words in (
+        ("auctions?status=bogus", 'No auction status is called "bogus"'),
+        ("jobs?status=bogus", 'No job status is called "bogus"'),
+        ("models?accepted=bogus", 'not "bogus"'),
+    ):
+        page.goto(f"{server.url}/ui/#/{address}")
+        page.wait_for_selector(f"p.problem:has-text('{words}')", timeout=WAIT_MS)
 
 
 def test_the_auction_list_follows_its_auctions(
@@ -823,8 +847,23 @@ def test_the_auction_list_follows_its_auctions(
     live = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
     page.goto(f"{server.url}/ui/#/auctions")
     page.wait_for_selector(f"#auction-list tr[data-id='{live}'][data-status='running']")
+    page.focus(f"#auction-list a[href='#/auctions/{live}']")
+    time.sleep(6)  # a read again with nothing changed leaves the row, and the focus, alone
+    assert page.evaluate("document.activeElement.getAttribute('href')") == f"#/auctions/{live}"
+    running = browser_page(page, f"{server.url}/ui/#/auctions?status=running")
+    running.wait_for_selector(f"#auction-list tr[data-id='{live}']")
     assert api.delete(f"/auctions/{live}", headers=headers).status_code == 200
     page.wait_for_selector(f"#auction-list tr[data-id='{live}'][data-status='cancelled']")
+    # the row moved on in place, the focus with it
+    assert page.evaluate("document.activeElement.getAttribute('href')") == f"#/auctions/{live}"
+    running.wait_for_selector(f"#auction-list tr[data-id='{live}']", state="detached")
     new = api.post("/auctions", json={"n_fish": 1, "model_ids": honest_ids}, headers=headers)
     newest = new.json()["auction_id"]
     page.wait_for_selector(f"#auction-list tbody tr:first-child[data-id='{newest}']")
+
+
+def browser_page(page: Any, url: str) -> Any:
+    """Another page of the same browser context, at ``url``."""
+    other = page.context.new_page()
+    other.goto(url)
+    return other

@@ -23,8 +23,11 @@ change freely.
 from __future__ import annotations
 
 import hashlib
+import hmac
 import logging
+import math
 import re
+import time
 from collections import Counter
 from dataclasses import dataclass
 from urllib.parse import parse_qsl
@@ -45,6 +48,10 @@ log = logging.getLogger("srd.limits")
 
 CLOSE_TRY_AGAIN_LATER = 1013
 """Close code of a refused socket where the server cannot answer its handshake with 429."""
+RATE_BURST_S = 4.0
+"""An address's request bucket holds this many seconds of its rate."""
+RATE_ADDRESSES = 100_000
+"""Addresses whose request buckets a process keeps; past it, it forgets them all."""
 KNOWN_TOKENS = 100_000
 """Digests of real tokens a process remembers; past it, it forgets them all and looks each
 up again (tokens are never revoked, so a remembered one stays true)."""
@@ -102,6 +109,7 @@ class ClientLimitsMiddleware:
         """Requests held open now, by (kind, client)."""
         self.known: set[str] = set()
         """Digests of the tokens found to be real (``KNOWN_TOKENS`` at most)."""
+        self.rate = RequestRate(settings.limit_address_requests_per_s)
 
     def limit_of(self, scope: Scope) -> Limit | None:
         """The limit a request counts against, if any."""
@@ -119,6 +127,10 @@ class ClientLimitsMiddleware:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
+            return
+        wait_s = self.rate.take(scope)
+        if wait_s:
+            await self._refuse(scope, receive, send, None, 0, "address", retry_after_s=wait_s)
             return
         limit = self.limit_of(scope)
         if limit is None:
@@ -178,21 +190,31 @@ class ClientLimitsMiddleware:
         return True
 
     async def _refuse(
-        self, scope: Scope, receive: Receive, send: Send, limit: Limit, share: int, who: str
+        self,
+        scope: Scope,
+        receive: Receive,
+        send: Send,
+        limit: Limit | None,
+        share: int,
+        who: str,
+        *,
+        retry_after_s: int | None = None,
     ) -> None:
+        retry = retry_after_s or self.retry_after_s
+        if limit is None:
+            what = f"this {who} sends more than {self.rate.per_s:g} requests a second, its share"
+        else:
+            what = f"this {who} holds {share} {limit.name} already, its share"
         response = JSONResponse(
             {
                 "detail": [
                     error_item(
-                        f"this {who} holds {share} {limit.name} already, its share; retry in "
-                        f"{self.retry_after_s} s",
-                        loc=("client",),
-                        kind="too_many_requests",
+                        f"{what}; retry in {retry} s", loc=("client",), kind="too_many_requests"
                     )
                 ]
             },
             status_code=429,
-            headers={"Retry-After": str(self.retry_after_s), "Connection": "close"},
+            headers={"Retry-After": str(retry), "Connection": "close"},
         )
         if scope["type"] == "websocket":
             if "websocket.http.response" in scope.get("extensions", {}):
@@ -201,6 +223,42 @@ class ClientLimitsMiddleware:
                 await send({"type": "websocket.close", "code": CLOSE_TRY_AGAIN_LATER})
             return
         await response(scope, receive, send)
+
+
+class RequestRate:
+    """Requests per address: a token bucket each (``RATE_BURST_S`` of ``per_s`` deep), the
+    operator's token not counted."""
+
+    def __init__(self, per_s: float) -> None:
+        self.per_s = per_s
+        self._depth = per_s * RATE_BURST_S
+        self._buckets: dict[str, tuple[float, float]] = {}  # address -> (tokens, when)
+
+    def take(self, scope: Scope) -> int:
+        """0 if the request may go on (one token taken), else the seconds until one would."""
+        address = _address(scope)
+        now = time.monotonic()
+        tokens, when = self._buckets.get(address, (self._depth, now))
+        tokens = min(self._depth, tokens + (now - when) * self.per_s)
+        if tokens < 1:
+            if _is_operator(scope):
+                return 0
+            self._buckets[address] = (tokens, now)
+            return max(1, math.ceil((1 - tokens) / self.per_s))
+        if len(self._buckets) >= RATE_ADDRESSES and address not in self._buckets:
+            self._buckets.clear()
+        self._buckets[address] = (tokens - 1, now)
+        return 0
+
+
+def _is_operator(scope: Scope) -> bool:
+    token = _bearer(scope)
+    services = getattr(scope["app"].state, "services", None)
+    return (
+        token is not None
+        and services is not None
+        and hmac.compare_digest(hashlib.sha256(token).hexdigest(), services.admin_token_hash)
+    )
 
 
 def _address(scope: Scope) -> str:

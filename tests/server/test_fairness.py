@@ -12,19 +12,22 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
+from fastapi.testclient import TestClient
 from sqlalchemy import select
 
 from server.api.connections import TIMEOUT_ANSWER
+from server.app import create_app
 from server.cli.launch import ServerProcess
 from server.store.db import Database
 from server.store.tables import RateEvent, participant_key
 from tests.support.factories import honest, unique
 from tests.support.live import create_unstarted_auction
-from tests.support.server import ADMIN, module_server
+from tests.support.server import ADMIN, make_settings, module_server
 
 TRUSTED_PROXY = "127.0.0.2"
 SPOOFER = "127.0.0.3"
@@ -411,3 +414,24 @@ def test_names_differing_only_in_case_are_one_participant(server: ServerProcess)
         token = first.json()["token"]
         owner = {"Authorization": f"Bearer {token}"}
         assert client.post("/submit", json=honest(name), headers=owner).status_code == 201
+
+
+def test_an_address_past_its_request_rate_is_paced_and_the_operator_is_not(
+    tmp_path: Path,
+) -> None:
+    """Every request counts against its address's rate (here 5 a second, a burst of 20):
+    beyond it, 429 naming the share with a Retry-After; the operator's token still passes."""
+    settings = make_settings(
+        f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data", limit_address_requests_per_s=5
+    )
+    with TestClient(create_app(settings)) as client:
+        answers = [client.get("/livez") for _ in range(30)]
+        statuses = [a.status_code for a in answers]
+        assert statuses.count(200) in range(20, 23), statuses  # the burst, and what refilled
+        refused = next(a for a in answers if a.status_code == 429)
+        (item,) = refused.json()["detail"]
+        assert item["loc"] == ["client"] and "5 requests a second" in item["msg"]
+        assert int(refused.headers["Retry-After"]) >= 1
+        assert client.get("/livez", headers=ADMIN).status_code == 200
+        time.sleep(1.0)  # five more a second
+        assert client.get("/livez").status_code == 200

@@ -25,9 +25,11 @@ QUOTAS_OFF = {
     "quota_registrations_per_day": 10**6,
     "quota_address_refusals_per_hour": 10**6,
     "refusal_cooldown_s": 0.0,
+    "limit_address_requests_per_s": 1e9,
 }
-"""Settings that lift the submission quotas: for tests and benchmarks that submit many models
-from one address (``tests/server/test_quotas.py`` tests the quotas themselves)."""
+"""Settings that lift the submission quotas and the request rate per address: for tests and
+benchmarks that submit many models, or send many requests, from one address
+(``tests/server/test_quotas.py`` and ``test_fairness.py`` test them)."""
 
 
 def make_settings(database_url: str, data_dir: Path, **overrides: Any) -> Settings:

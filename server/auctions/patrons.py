@@ -1,11 +1,13 @@
 """Whose round requests are a patron's: the round sockets and long polls of an auction keep a
 share for the participants whose models bid in it, so that others (watchers, or many addresses
 each within its own share) cannot take every slot from them (``server.auctions.sockets``,
-``server.live.rounds``)."""
+``server.live.rounds``). A request takes everyone's share while it has room; only when that is
+full is its token looked up, for a patron to take the patrons' own."""
 
 from __future__ import annotations
 
 import logging
+import time
 
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
@@ -16,35 +18,41 @@ from server.store.db import Database, DatabaseUnavailableError
 
 log = logging.getLogger("srd.patrons")
 
-MAX_KNOWN = 100_000
-"""(auction, token) pairs remembered as patrons (forgotten all at once past it)."""
+MAX_AUCTIONS = 10_000
+"""Auctions whose patrons' tokens a process remembers (forgotten all at once past it)."""
+REREAD_S = 1.0
+"""A token not among an auction's patrons read this long ago has them read again (an
+enrolling auction takes patrons until it starts)."""
 
 
 class PatronCheck:
-    """Whether a bearer token is a participant's with a patron in an auction: one indexed read,
-    remembered when it is (a patron stays one for the auction's life)."""
+    """Whether a bearer token is a participant's with a patron in an auction: the token hashes
+    of an auction's patrons are read in one query and remembered, read again for a token they
+    do not hold once they are ``REREAD_S`` old."""
 
     def __init__(self, database: Database) -> None:
         self._database = database
-        self._known: set[tuple[int, str]] = set()
+        self._tokens: dict[int, tuple[float, frozenset[str]]] = {}
 
     async def is_patron(self, auction_id: int, token: str | None) -> bool:
         if not token:
             return False
-        key = (auction_id, hash_token(token))
-        if key in self._known:
+        digest = hash_token(token)
+        read_at, tokens = self._tokens.get(auction_id, (-REREAD_S, frozenset()))
+        if digest in tokens:
             return True
-        try:
-            found = await run_in_threadpool(self._look_up, *key)
-        except (DatabaseUnavailableError, SQLAlchemyError) as exc:
-            log.debug("a patron could not be looked up: %s", exc)  # served as a watcher
+        if time.monotonic() - read_at < REREAD_S:
             return False
-        if found:
-            if len(self._known) >= MAX_KNOWN:
-                self._known.clear()
-            self._known.add(key)
-        return found
+        try:
+            tokens = await run_in_threadpool(self._read, auction_id)
+        except (DatabaseUnavailableError, SQLAlchemyError) as exc:
+            log.debug("an auction's patrons could not be read: %s", exc)  # served as a watcher
+            return False
+        if len(self._tokens) >= MAX_AUCTIONS and auction_id not in self._tokens:
+            self._tokens.clear()
+        self._tokens[auction_id] = (time.monotonic(), tokens)
+        return digest in tokens
 
-    def _look_up(self, auction_id: int, digest: str) -> bool:
-        with self._database.session(write=False) as session:
-            return crud.is_patron(session, auction_id=auction_id, token_hash=digest)
+    def _read(self, auction_id: int) -> frozenset[str]:
+        with self._database.transaction(write=False) as connection:
+            return crud.patron_tokens(connection, auction_id=auction_id)

@@ -115,6 +115,10 @@ UploadHandler = Callable[[int, int, bytes, datetime], Awaitable[bytes]]
 (RequestError for a refusal)."""
 
 
+async def _not_a_patron() -> bool:
+    return False
+
+
 class _Socket:
     """One accepted socket: frames sent one at a time (pusher and answers share it)."""
 
@@ -123,6 +127,9 @@ class _Socket:
         self._lock = asyncio.Lock()
         self.answering = asyncio.Lock()
         """Held while an upload is handled: the end of the auction waits for its answer."""
+        self.patron = False
+        """Its waits count in the patrons' share (see ``RoundSockets.serve``)."""
+        self.is_patron: Callable[[], Awaitable[bool]] = _not_a_patron
 
     async def send(self, text: str) -> None:
         async with self._lock:
@@ -141,7 +148,7 @@ class RoundSockets:
         self.open = {True: 0, False: 0}
         """Open sockets: patrons' (True) and others' (False)."""
 
-    def reserve(self, patron: bool) -> None:
+    def reserve(self, *, patron: bool) -> None:
         """Count a socket about to be accepted (SocketLimitError beyond ``MAX_SOCKETS`` of
         patrons, or ``MAX_WATCHER_SOCKETS`` of others)."""
         most = MAX_SOCKETS if patron else MAX_WATCHER_SOCKETS
@@ -154,11 +161,20 @@ class RoundSockets:
         self.open[patron] -= 1
 
     async def serve(
-        self, websocket: WebSocket, auction_id: int, first: Published, upload: UploadHandler
+        self,
+        websocket: WebSocket,
+        auction_id: int,
+        first: Published,
+        upload: UploadHandler,
+        patron: bool,
+        is_patron: Callable[[], Awaitable[bool]],
     ) -> None:
         """Run one accepted socket until the auction ends or the agent goes away: a pusher
-        task sends the rounds, this task answers the uploads."""
+        task sends the rounds, this task answers the uploads. The pusher's waits count in
+        the patrons' share if the socket is a patron's (``patron``; else, once everyone's is
+        full, if ``is_patron`` says so), in everyone's otherwise."""
         socket = _Socket(websocket)
+        socket.patron, socket.is_patron = patron, is_patron
         pusher = asyncio.create_task(self._push_or_close(socket, auction_id, first))
         try:
             await self._answer_uploads(socket, upload)
@@ -198,21 +214,25 @@ class RoundSockets:
             if published.open and published.round is not None:
                 after = max(after, published.round)
             try:
-                published = await self._next(auction_id, after)
+                published = await self._next(socket, auction_id, after)
             except _DrainingError:
                 await socket.close(CLOSE_RESTART, "the server is restarting; reconnect")
                 return
         await socket.close(1011, "the auction is gone")
 
-    async def _next(self, auction_id: int, after: int) -> Published | None:
-        """The next state worth pushing: a round above ``after`` opened, or the end."""
+    async def _next(self, socket: _Socket, auction_id: int, after: int) -> Published | None:
+        """The next state worth pushing: a round above ``after`` opened, or the end (its wait
+        counted in the socket's share, see ``serve``)."""
         while True:
             try:
                 published = await self._watcher.published(
-                    auction_id, wait_s=MAX_WAIT_S, after=after
+                    auction_id, wait_s=MAX_WAIT_S, after=after, patron=socket.patron
                 )
             except TooManyWaitersError:
-                await asyncio.sleep(RETRY_AFTER_S)
+                if not socket.patron and await socket.is_patron():
+                    socket.patron = True
+                else:
+                    await asyncio.sleep(RETRY_AFTER_S)
                 continue
             if published is None or published.ready(after):
                 return published

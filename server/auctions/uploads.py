@@ -23,7 +23,7 @@ import contextlib
 import functools
 import hashlib
 import json
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, TypeVar
@@ -55,13 +55,24 @@ after the thread of this process that held it let go, before it waits for it in 
 
 
 async def current_round(
-    watcher: RoundWatcher, auction_id: int, *, wait_s: float, after: int, patron: bool
+    watcher: RoundWatcher,
+    auction_id: int,
+    *,
+    wait_s: float,
+    after: int,
+    is_patron: Callable[[], Awaitable[bool]],
 ) -> bytes:
     """The JSON of the auction's newest round, once a round above ``after`` is open or the
-    auction has ended, or after ``wait_s`` (404 for no auction, 503 when too many of the
-    patrons', or of the others', wait)."""
+    auction has ended, or after ``wait_s`` (404 for no auction). It waits in everyone's share
+    while that has room, else, for a patron (``is_patron``: its token is looked up only
+    then), in the patrons' own; 503 when its share is full."""
     try:
-        body = await watcher.current(auction_id, wait_s=wait_s, after=after, patron=patron)
+        try:
+            body = await watcher.current(auction_id, wait_s=wait_s, after=after)
+        except TooManyWaitersError:
+            if not await is_patron():
+                raise
+            body = await watcher.current(auction_id, wait_s=wait_s, after=after, patron=True)
     except TooManyWaitersError as exc:
         raise api_error(
             503,

@@ -89,10 +89,16 @@ async def read_current_round(
     """The auction's newest fine-tuning round: status open | closed | none, its deadline
     (UTC) and seconds left; while open the item rows, the seeds and the patrons asked. With
     ``wait`` the answer comes as soon as a round numbered above ``after`` is open or the
-    auction has ended, and at the latest after ``wait`` seconds. A patron that sends its token
-    waits in a share of its own (the auction's patrons'), apart from everyone else's."""
-    patron = await patrons.is_patron(auction_id, _bearer(authorization))
-    body = await rounds.current_round(watcher, auction_id, wait_s=wait, after=after, patron=patron)
+    auction has ended, and at the latest after ``wait`` seconds. When everyone else's share of
+    waits is full, a patron that sends its token waits in the patrons' own."""
+    token = _bearer(authorization)
+
+    async def is_patron() -> bool:
+        return await patrons.is_patron(auction_id, token)
+
+    body = await rounds.current_round(
+        watcher, auction_id, wait_s=wait, after=after, is_patron=is_patron
+    )
     return Response(body, media_type="application/json")
 
 
@@ -184,9 +190,19 @@ async def round_socket(
     every round pushed as it opens, uploads answered as the PUT answers them. Uploads need
     the handshake's ``Authorization: Bearer <participant token>``."""
     token = _bearer(websocket.headers.get("authorization"))
-    patron = await patrons.is_patron(auction_id, token)
+
+    async def is_patron() -> bool:
+        return await patrons.is_patron(auction_id, token)
+
+    patron = False
     try:
-        sockets.reserve(patron)
+        try:
+            sockets.reserve(patron=False)  # the others' share while it has room: no read
+        except SocketLimitError:
+            if not await is_patron():
+                raise
+            patron = True
+            sockets.reserve(patron=True)
     except SocketLimitError as exc:
         await _deny(
             websocket,
@@ -220,7 +236,7 @@ async def round_socket(
                 database, screening, runner.submit, request, margin=settings.review_margin
             )
 
-        await sockets.serve(websocket, auction_id, first, upload)
+        await sockets.serve(websocket, auction_id, first, upload, patron, is_patron)
     finally:
         sockets.release(patron)
 

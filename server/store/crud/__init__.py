@@ -94,7 +94,7 @@ from server.store.crud.reviews import (
     held_models,
     model_owner,
 )
-from server.store.crud.rounds import RoundBody, RoundHead, is_patron, round_body, round_head
+from server.store.crud.rounds import RoundBody, RoundHead, patron_tokens, round_body, round_head
 from server.store.crud.steps import (
     accepted_uploads,
     answered,
@@ -187,7 +187,6 @@ __all__ = [
     "insert_model_version",
     "insert_participant",
     "insert_rate_events",
-    "is_patron",
     "job_state",
     "job_states",
     "latest_accepted_models",
@@ -202,6 +201,7 @@ __all__ = [
     "participant_by_name",
     "patron_auctions",
     "patron_manifests",
+    "patron_tokens",
     "pending_uploads",
     "prune_rate_events",
     "rate_counts",

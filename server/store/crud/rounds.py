@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from datetime import datetime
 
-from sqlalchemy import bindparam, select
+from sqlalchemy import Connection, bindparam, select
 from sqlalchemy.orm import Session
 
 from server.store.crud.auctions import AUCTION_PATRONS
@@ -77,19 +77,14 @@ def round_body(session: Session, *, round_id: int) -> RoundBody:
     )
 
 
-_IS_PATRON = (
-    select(AuctionPatron.position)
-    .join(ModelVersion, ModelVersion.id == AuctionPatron.model_id)
-    .join(Participant, Participant.id == ModelVersion.participant_id)
+_PATRON_TOKENS = (
+    select(Participant.token_hash)
+    .join(ModelVersion, ModelVersion.participant_id == Participant.id)
+    .join(AuctionPatron, AuctionPatron.model_id == ModelVersion.id)
     .where(AuctionPatron.auction_id == bindparam("auction_id"))
-    .where(Participant.token_hash == bindparam("token_hash"))
-    .limit(1)
 )
 
 
-def is_patron(session: Session, *, auction_id: int, token_hash: str) -> bool:
-    """Whether the participant with this token has a patron in the auction."""
-    found = session.connection().execute(
-        _IS_PATRON, {"auction_id": auction_id, "token_hash": token_hash}
-    )
-    return found.first() is not None
+def patron_tokens(connection: Connection, *, auction_id: int) -> frozenset[str]:
+    """The token hashes of the participants with a patron in the auction."""
+    return frozenset(connection.scalars(_PATRON_TOKENS, {"auction_id": auction_id}))

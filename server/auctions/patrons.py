@@ -18,8 +18,9 @@ from server.store.db import Database, DatabaseUnavailableError
 
 log = logging.getLogger("srd.patrons")
 
-MAX_AUCTIONS = 10_000
-"""Auctions whose patrons' tokens a process remembers (forgotten all at once past it)."""
+MAX_AUCTIONS = 512
+"""Auctions whose patrons' tokens a process remembers, twice the live auctions' default cap
+(forgotten all at once past it: at most 512 × an auction's patrons' hashes in memory)."""
 REREAD_S = 1.0
 """A token not among an auction's patrons read this long ago has them read again (an
 enrolling auction takes patrons until it starts)."""

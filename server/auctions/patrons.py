@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
+from collections.abc import Callable
 
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
@@ -21,6 +23,9 @@ log = logging.getLogger("srd.patrons")
 MAX_AUCTIONS = 512
 """Auctions whose patrons' tokens a process remembers, twice the live auctions' default cap
 (forgotten all at once past it: at most 512 × an auction's patrons' hashes in memory)."""
+MAX_PER_PATRON = 2
+"""The patrons' slots (sockets and waits) one participant's token may hold in one auction: its
+one patron's request, and one more while it reconnects."""
 REREAD_S = 1.0
 """A token not among an auction's patrons read this long ago has them read again (an
 enrolling auction takes patrons until it starts)."""
@@ -34,6 +39,26 @@ class PatronCheck:
     def __init__(self, database: Database) -> None:
         self._database = database
         self._tokens: dict[int, tuple[float, frozenset[str]]] = {}
+        self._held: Counter[tuple[int, str]] = Counter()
+
+    async def claim(self, auction_id: int, token: str | None) -> Callable[[], None] | None:
+        """A hold on one of the patrons' slots of the auction for this token, and how to let
+        go of it; None if the token is no patron's there, or holds ``MAX_PER_PATRON``
+        already (one patron of one auction cannot take the share of every other's)."""
+        if not await self.is_patron(auction_id, token):
+            return None
+        assert token is not None
+        key = (auction_id, hash_token(token))
+        if self._held[key] >= MAX_PER_PATRON:
+            return None
+        self._held[key] += 1
+
+        def release() -> None:
+            self._held[key] -= 1
+            if not self._held[key]:
+                del self._held[key]
+
+        return release
 
     async def is_patron(self, auction_id: int, token: str | None) -> bool:
         if not token:

@@ -60,19 +60,24 @@ async def current_round(
     *,
     wait_s: float,
     after: int,
-    is_patron: Callable[[], Awaitable[bool]],
+    claim: Callable[[], Awaitable[Callable[[], None] | None]],
 ) -> bytes:
     """The JSON of the auction's newest round, once a round above ``after`` is open or the
     auction has ended, or after ``wait_s`` (404 for no auction). It waits in everyone's share
-    while that has room, else, for a patron (``is_patron``: its token is looked up only
-    then), in the patrons' own; 503 when its share is full."""
+    while that has room, else, for a patron (``claim``: its token is looked up only then, and
+    holds at most ``MAX_PER_PATRON`` of the patrons' slots), in the patrons' own; 503 when its
+    share is full."""
     try:
         try:
             body = await watcher.current(auction_id, wait_s=wait_s, after=after)
         except TooManyWaitersError:
-            if not await is_patron():
+            release = await claim()
+            if release is None:
                 raise
-            body = await watcher.current(auction_id, wait_s=wait_s, after=after, patron=True)
+            try:
+                body = await watcher.current(auction_id, wait_s=wait_s, after=after, patron=True)
+            finally:
+                release()
     except TooManyWaitersError as exc:
         raise api_error(
             503,

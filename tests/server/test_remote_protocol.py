@@ -20,6 +20,7 @@ from agents.manifest import Manifest, parse_manifest
 from agents.remote import RoundInfo, always_hold, faithful_fine_tune
 from screener import screen
 from server.api.routes.rounds import UPLOAD_MAX_BYTES
+from server.auctions import patrons
 from server.config import Settings
 from server.live import rounds as watcher
 from server.store.db import is_sqlite, sqlite_path
@@ -184,7 +185,7 @@ def test_waiters_are_bounded_and_the_patrons_have_their_own_share(
     answers: list[int] = []
     url = f"/auctions/{remote['id']}/rounds/current"
     first = threading.Thread(
-        target=lambda: answers.append(client.get(url, params={"wait": 1.5, "after": 1}).status_code)
+        target=lambda: answers.append(client.get(url, params={"wait": 4, "after": 1}).status_code)
     )
     first.start()
     time.sleep(0.5)
@@ -193,14 +194,27 @@ def test_waiters_are_bounded_and_the_patrons_have_their_own_share(
         url, params={"wait": 1, "after": 1}, headers=bearer(outsider)
     )
     (_, token) = remote["patrons"][0]
-    patron = client.get(url, params={"wait": 1, "after": 1}, headers=bearer(token))
+    monkeypatch.setattr(watcher, "MAX_WAITERS", 5)
+    monkeypatch.setattr(patrons, "MAX_PER_PATRON", 1)
+    patron_answers: list[int] = []
+    waiting = threading.Thread(
+        target=lambda: patron_answers.append(
+            client.get(url, params={"wait": 2, "after": 1}, headers=bearer(token)).status_code
+        )
+    )
+    waiting.start()
+    time.sleep(0.3)
+    # One patron of one auction holds at most its share of the patrons' slots there.
+    again = client.get(url, params={"wait": 1, "after": 1}, headers=bearer(token))
+    waiting.join()
     first.join()
     assert answers == [200]
     for watcher_refused in (refused, stranger):
         assert watcher_refused.status_code == 503, watcher_refused.text
         assert watcher_refused.headers["Retry-After"] == "1"
         assert "watchers'" in watcher_refused.json()["detail"][0]["msg"]
-    assert patron.status_code == 200, patron.text  # waited in the patrons' share
+    assert patron_answers == [200]  # waited in the patrons' share
+    assert again.status_code == 503, again.text
 
 
 def stored_versions(client: TestClient, participant: str) -> int:

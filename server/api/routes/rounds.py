@@ -7,6 +7,7 @@ WebSocket per agent (``server.auctions.sockets``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from datetime import datetime
 from typing import Annotated
 
@@ -93,12 +94,10 @@ async def read_current_round(
     waits is full, a patron that sends its token waits in the patrons' own."""
     token = _bearer(authorization)
 
-    async def is_patron() -> bool:
-        return await patrons.is_patron(auction_id, token)
+    async def claim() -> Callable[[], None] | None:
+        return await patrons.claim(auction_id, token)
 
-    body = await rounds.current_round(
-        watcher, auction_id, wait_s=wait, after=after, is_patron=is_patron
-    )
+    body = await rounds.current_round(watcher, auction_id, wait_s=wait, after=after, claim=claim)
     return Response(body, media_type="application/json")
 
 
@@ -194,16 +193,19 @@ async def round_socket(
     async def is_patron() -> bool:
         return await patrons.is_patron(auction_id, token)
 
-    patron = False
+    patron, release_claim = False, None
     try:
         try:
             sockets.reserve(patron=False)  # the others' share while it has room: no read
         except SocketLimitError:
-            if not await is_patron():
+            release_claim = await patrons.claim(auction_id, token)
+            if release_claim is None:
                 raise
             patron = True
             sockets.reserve(patron=True)
     except SocketLimitError as exc:
+        if release_claim is not None:
+            release_claim()
         await _deny(
             websocket,
             api_error(
@@ -239,6 +241,8 @@ async def round_socket(
         await sockets.serve(websocket, auction_id, first, upload, patron, is_patron)
     finally:
         sockets.release(patron)
+        if release_claim is not None:
+            release_claim()
 
 
 @router.websocket("/{path:path}")

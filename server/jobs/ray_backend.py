@@ -63,13 +63,19 @@ def ray_module() -> Any:
         ) from exc
 
 
-def connect(address: str | None) -> Any:
-    """Join the Ray cluster at ``address`` as a driver (once per process); returns ``ray``."""
+def _required(address: str | None) -> str:
+    """The cluster's address, or RayUnavailableError naming the setting."""
     if not address:
         raise RayUnavailableError(
             "SRD_JOB_BACKEND=ray needs the cluster's address: set SRD_RAY_ADDRESS (or Ray's "
             "own RAY_ADDRESS) to the head's host:port, ray://host:port, or auto"
         )
+    return address
+
+
+def connect(address: str | None) -> Any:
+    """Join the Ray cluster at ``address`` as a driver (once per process); returns ``ray``."""
+    address = _required(address)
     ray = ray_module()
     if not ray.is_initialized():
         try:
@@ -189,14 +195,11 @@ class RayCluster:
     name: JobBackendName = "ray"
 
     def __init__(self, address: str | None, timeout_s: float) -> None:
-        if not address:
-            connect(address)  # raises, naming the setting
-        assert address is not None
+        self._address = _required(address)
         if importlib.util.find_spec("ray") is None:
             ray_module()  # raises with the fix
-        self._address = address
         self._timeout_s = timeout_s
-        self._cpus = probe_cpus(address, timeout_s)
+        self._cpus = probe_cpus(self._address, timeout_s)
         self._asked_at = time.monotonic()
         self._probing = threading.Lock()
 

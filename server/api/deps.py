@@ -118,10 +118,11 @@ async def _session(request: Request, database: DatabaseDep) -> AsyncIterator[Ses
     """Request-scoped session: one transaction per request, committed by the route (a write
     session for the methods that write).
 
-    The session is made and closed on the event loop (no I/O until the first query; closing
-    rolls back a finished read, a sub-millisecond local call), so a request costs one hop to
-    the thread pool: the route's own, where every query runs (and, about once a second, one
-    for the database check ``Database.session`` makes).
+    The session is made on the event loop (no I/O until the first query). A session that
+    holds no transaction (a write committed, or nothing read) is closed there too; one that
+    still holds a read's transaction is closed in the thread pool, since closing rolls it back
+    over the network: a database that hangs between the read and its close (stopped, cut off
+    without a word) must hold that thread, never the event loop and with it every request.
     """
     if database.check_due():
         await run_in_threadpool(database.problem)
@@ -130,10 +131,18 @@ async def _session(request: Request, database: DatabaseDep) -> AsyncIterator[Ses
         yield session
     finally:
         reading: asyncio.Future[Any] | None = session.info.pop(_READING, None)
-        if reading is None or reading.done():
+        if reading is not None and not reading.done():  # a read given up on: closed later
+            reading.add_done_callback(lambda _: _close_in_thread(session))
+        elif session.in_transaction():
+            await run_in_threadpool(session.close)
+        else:
             session.close()
-        else:  # a read given up on (``read_in_thread``): closed once its thread lets go
-            reading.add_done_callback(lambda _: session.close())
+
+
+def _close_in_thread(session: Session) -> None:
+    """Close ``session`` in the thread pool (from a callback on the event loop)."""
+    closing = asyncio.ensure_future(run_in_threadpool(session.close))
+    closing.add_done_callback(_retrieved)
 
 
 SessionDep = Annotated[Session, Depends(_session)]

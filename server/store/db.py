@@ -357,24 +357,38 @@ class Database:
     def problem(self) -> str | None:
         """Why the database cannot be used, or None. The answer is kept for
         ``IDENTITY_CHECK_S``; a database gone or replaced stays a problem (restart to clear
-        it), an unreachable one is checked again and clears once it is back."""
-        with self._check_lock:
-            if self.check_due():
-                self._problem = self._check()
-                self._checked_at = time.monotonic()
+        it), an unreachable one is checked again and clears once it is back. While another
+        thread checks (up to ``PROBE_TIMEOUT_S`` when the database hangs), the last answer
+        stands: the event loop asks too, and must never wait on a probe."""
+        if not self._check_lock.acquire(blocking=False):
             return self._problem
+        try:
+            return self._checked()
+        finally:
+            self._check_lock.release()
+
+    def _checked(self) -> str | None:
+        """``problem()`` for a caller that holds the check's lock."""
+        if self.check_due():
+            self._problem = self._check()
+            self._checked_at = time.monotonic()
+        return self._problem
 
     def wait_until_reachable(self, timeout_s: float) -> bool:
         """After an outage met: check again now and then until the database is back (True),
-        or for ``timeout_s`` (False; at once if it is gone or replaced for good)."""
+        or for ``timeout_s`` (False; at once if it is gone or replaced for good). Each answer
+        comes from a check made after the failure (it waits for one in progress)."""
         deadline = time.monotonic() + timeout_s
         with self._check_lock:
             self._checked_at = -math.inf  # the last check predates the failure
-        while self.problem() is not None:
+        while True:
+            with self._check_lock:
+                problem = self._checked()
+            if problem is None:
+                return True
             if self._lost or time.monotonic() > deadline:
                 return False
             time.sleep(OUTAGE_POLL_S)
-        return True
 
     def check_due(self) -> bool:
         """Whether the next ``problem()`` makes a check (I/O: run it off the event loop)."""

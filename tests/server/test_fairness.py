@@ -435,3 +435,34 @@ def test_an_address_past_its_request_rate_is_paced_and_the_operator_is_not(
         assert client.get("/livez", headers=ADMIN).status_code == 200
         time.sleep(1.0)  # five more a second
         assert client.get("/livez").status_code == 200
+
+
+def test_a_long_poll_whose_client_left_frees_its_share_at_once(
+    server: ServerProcess, auction_id: int
+) -> None:
+    """A client that drops its waiting long polls gets its share back at once: each wait ends
+    when its client goes away, not when it would have (up to 30 s later; before, an address
+    that had dropped 128 polls was refused for that long, and they held the process's waits)."""
+    leaver = "127.0.0.40"
+    poll = _get(f"/auctions/{auction_id}/rounds/current?wait=25")
+
+    async def fill() -> tuple[list[int], int]:
+        held = Held()
+        try:
+            statuses = await asyncio.gather(
+                *(_request(server, leaver, poll, held) for _ in range(LONG_POLLS_PER_CLIENT))
+            )
+            over, _ = await _request(server, leaver, poll, held)
+            return [status for status, _ in statuses], over
+        finally:
+            held.close()  # the client goes away without a word
+
+    statuses, over = asyncio.run(fill())
+    assert statuses == [HELD] * LONG_POLLS_PER_CLIENT and over == 429
+    closed_at = time.monotonic()
+    with client_from(leaver, server) as client:
+        url = f"/auctions/{auction_id}/rounds/current"
+        while (answer := client.get(url, params={"wait": 0.2})).status_code == 429:
+            assert time.monotonic() - closed_at < 3, "the dropped polls still hold the share"
+            time.sleep(0.1)
+    assert answer.status_code == 200 and answer.json()["status"] == "none", answer.text

@@ -7,9 +7,11 @@ WebSocket per agent (``server.auctions.sockets``).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import asyncio
+import contextlib
+from collections.abc import Callable, Coroutine
 from datetime import datetime
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response, WebSocket
 from pydantic import BeforeValidator
@@ -63,6 +65,7 @@ RoundPath = Annotated[
     },
 )
 async def read_current_round(
+    request: Request,
     auction_id: AuctionIdPath,
     watcher: RoundsDep,
     patrons: PatronsDep,
@@ -97,8 +100,33 @@ async def read_current_round(
     async def claim() -> Callable[[], None] | None:
         return await patrons.claim(auction_id, token)
 
-    body = await rounds.current_round(watcher, auction_id, wait_s=wait, after=after, claim=claim)
+    answer = rounds.current_round(watcher, auction_id, wait_s=wait, after=after, claim=claim)
+    body = await (_unless_gone(request, answer) if wait > 0 else answer)
     return Response(body, media_type="application/json")
+
+
+async def _unless_gone(request: Request, answer: Coroutine[Any, Any, bytes]) -> bytes:
+    """``answer``, unless the client goes away first: then the wait is cancelled at once, so
+    it frees its share of the waits (and its client's long polls) now, not when it would
+    have ended (up to ``MAX_WAIT_S`` later); what is returned then is never sent."""
+    waiting = asyncio.ensure_future(answer)
+    gone = asyncio.ensure_future(_disconnected(request))
+    try:
+        await asyncio.wait({waiting, gone}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        gone.cancel()
+        if not waiting.done():
+            waiting.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await waiting
+    return b"" if waiting.cancelled() else waiting.result()
+
+
+async def _disconnected(request: Request) -> None:
+    """Until the client has gone away (a GET's empty body was read already: the next
+    message is the disconnect)."""
+    while (await request.receive())["type"] != "http.disconnect":
+        pass
 
 
 async def _upload_body(request: Request) -> tuple[bytes, datetime]:

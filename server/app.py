@@ -68,6 +68,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     app.state.settings = settings
     install_error_handlers(app)
+    app.add_middleware(events.StreamLeftMiddleware)
     app.add_middleware(RequestBodyMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(ClientLimitsMiddleware, settings=settings)  # before any body is read
     app.add_middleware(SecurityHeadersMiddleware)  # outermost: every answer has its headers

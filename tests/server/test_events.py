@@ -3,14 +3,18 @@ end an endless stream), on SQLite and PostgreSQL: order, resumption, the end, th
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
 import torch
+from fastapi.testclient import TestClient
 
+from server.app import create_app
 from server.cli.launch import ServerProcess
 from tests.support.live import (
     create_unstarted_auction,
@@ -19,7 +23,7 @@ from tests.support.live import (
     sse_events,
     submit_population,
 )
-from tests.support.server import ADMIN, ADMIN_TOKEN
+from tests.support.server import ADMIN, ADMIN_TOKEN, make_settings, wait_for
 
 MAX_STREAMS = 4
 KEEPALIVE_S = 0.3
@@ -246,3 +250,62 @@ def test_stream_errors_use_the_error_body(
         ]
     dotted = client.get("/jobs/999999/events", headers={"Last-Event-ID": "3.1"})
     assert dotted.status_code == 422 and dotted.json()["detail"][0]["type"] == "bad_event_id"
+
+
+def test_a_client_leaving_a_full_stream_is_no_error(tmp_path: Path) -> None:
+    """FastAPI's event streams close their output before they stop the task that fills it: a
+    client that left a stream whose socket pushed back ended the request with an error
+    (``ExceptionGroup`` of ``BrokenResourceError``, logged by uvicorn as "Exception in ASGI
+    application" with a traceback, on every such leave). Driven as uvicorn drives the app
+    (ASGI 2.3: the response listens for the disconnect), with a reader that stops reading."""
+    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
+    with TestClient(create_app(settings)) as http:
+        submit_population(http)
+        created = http.post("/auctions", json={"n_fish": 3, "seed": 0}, headers=ADMIN)
+        auction_id = created.json()["auction_id"]
+        wait_for(
+            lambda: http.get(f"/auctions/{auction_id}").json(),
+            lambda a: a["status"] == "finished",
+            120,
+        )
+
+        async def leave_a_full_stream() -> str:
+            sent: list[dict[str, Any]] = []
+
+            async def send(message: dict[str, Any]) -> None:
+                sent.append(message)
+                if len(sent) > 2:  # the headers and one event, then the socket is full
+                    await asyncio.Event().wait()
+
+            asked = 0
+
+            async def receive() -> dict[str, Any]:
+                nonlocal asked
+                asked += 1
+                if asked == 1:
+                    return {"type": "http.request", "body": b"", "more_body": False}
+                await asyncio.sleep(0.3)
+                return {"type": "http.disconnect"}
+
+            scope = {
+                "type": "http",
+                "asgi": {"version": "3.0", "spec_version": "2.3"},
+                "http_version": "1.1",
+                "method": "GET",
+                "scheme": "http",
+                "path": f"/auctions/{auction_id}/events",
+                "raw_path": f"/auctions/{auction_id}/events".encode(),
+                "query_string": b"",
+                "root_path": "",
+                "headers": [(b"host", b"test")],
+                "client": ("127.0.0.1", 5000),
+                "server": ("127.0.0.1", 80),
+            }
+            try:
+                await asyncio.wait_for(http.app(scope, receive, send), 10)
+            except BaseException as exc:  # what the server would log
+                return repr(exc)
+            assert sent[0]["status"] == 200
+            return "left"
+
+        assert [http.portal.call(leave_a_full_stream) for _ in range(5)] == ["left"] * 5

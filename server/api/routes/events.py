@@ -18,13 +18,16 @@ change of the auction or job whatever the number of streams (``server.live.sourc
 
 from __future__ import annotations
 
+import logging
 from collections.abc import AsyncIterable, AsyncIterator, Iterator
 from dataclasses import dataclass
 from typing import Annotated
 
+import anyio
 from fastapi import APIRouter, Depends, Header, Query
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from sqlalchemy.orm import Session
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from server.api.deps import (
     BearerDep,
@@ -55,6 +58,7 @@ from server.store.status import AUCTION_ENDED, JOB_ENDED, RoundStatus
 from server.store.tables import Job
 
 router = APIRouter(tags=["events"])
+log = logging.getLogger("srd.events")
 
 RETRY_AFTER_S = 5
 """What a client refused for want of stream slots is told to wait (``Retry-After``)."""
@@ -362,3 +366,24 @@ async def job_events(
                 yield ServerSentEvent(comment="keep-alive")
             if hub.source.draining:  # shutting down: the client resumes from its last id
                 return
+
+
+class StreamLeftMiddleware:
+    """A client that leaves an event stream is no error. FastAPI's ``EventSourceResponse``
+    closes the stream's output before it stops the task that fills it, so a client that goes
+    away while that task waits on a full buffer (a slow reader: the socket pushed back) ends
+    the request with an ``ExceptionGroup`` of ``BrokenResourceError``, which uvicorn logged as
+    "Exception in ASGI application" with a traceback. That, and only that, is logged here at
+    debug level."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or not scope["path"].endswith("/events"):
+            await self.app(scope, receive, send)
+            return
+        try:
+            await self.app(scope, receive, send)
+        except* (anyio.BrokenResourceError, anyio.ClosedResourceError):
+            log.debug("the client of %s left while the stream was full", scope["path"])

@@ -125,12 +125,15 @@ def _json_safe_loc(loc: Iterable[Any]) -> list[str | int]:
 def allowed_methods(request: Request) -> list[str]:
     """Every method some route serves at the request's path (a 405 names them all; Starlette
     names only those of the first route whose path matches). ``app.state.routes`` is the flat
-    list of the app's routes (``create_app`` keeps it)."""
+    list of the app's routes (``create_app`` keeps it). ``HEAD`` wherever ``GET`` is
+    (``server.api.hardening`` answers it)."""
     methods: set[str] = set()
     for route in request.app.state.routes:
         match, _ = route.matches({**request.scope, "method": "GET"})
         if match != Match.NONE:
             methods |= getattr(route, "methods", None) or set()
+    if "GET" in methods:
+        methods.add("HEAD")
     return sorted(methods)
 
 

@@ -10,6 +10,11 @@ kept in browser histories; that header or ``Last-Event-ID`` given twice (400: wh
 counts would be a guess), or a query parameter given twice (400 too: a route reads the last,
 a limit might read the first). ``RedactQueryFilter`` blanks such parameters (and any other
 whose name says secret) in uvicorn's access log lines.
+
+It also answers ``HEAD`` on every ``GET`` path, as HTTP requires of every server (RFC 9110,
+section 9.1): the request goes in as a ``GET`` (the same checks, limits and headers, its
+``Content-Length`` included) and the response ends after its headers; FastAPI's routes would
+answer 405. A stream (an event stream) ends there too.
 """
 
 from __future__ import annotations
@@ -54,6 +59,9 @@ class SecurityHeadersMiddleware:
         if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
+        if scope["type"] == "http" and scope["method"] == "HEAD":
+            scope = {**scope, "method": "GET"}  # the server's own scope still says HEAD
+            send = _headers_only(send)
         pairs = parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True)
         names = {name for name, _ in pairs}
         if len(names) != len(pairs):  # which one counts would be a guess (``?wait=0&wait=30``)
@@ -79,6 +87,19 @@ class SecurityHeadersMiddleware:
                 await _refuse(scope, receive, _with_headers(send), message, loc, "duplicate_header")
                 return
         await self.app(scope, receive, _with_headers(send))
+
+
+def _headers_only(send: Send) -> Send:
+    """A response's headers, then its end: what ``HEAD`` answers (the body is dropped, and
+    the server, whose scope says HEAD, sends none of it; once the response is complete, a
+    stream hears that its client has gone and stops)."""
+
+    async def sender(message: Message) -> None:
+        if message["type"] == "http.response.start":
+            await send(message)
+            await send({"type": "http.response.body", "body": b"", "more_body": False})
+
+    return sender
 
 
 def _with_headers(send: Send) -> Send:

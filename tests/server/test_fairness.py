@@ -466,3 +466,30 @@ def test_a_long_poll_whose_client_left_frees_its_share_at_once(
             assert time.monotonic() - closed_at < 3, "the dropped polls still hold the share"
             time.sleep(0.1)
     assert answer.status_code == 200 and answer.json()["status"] == "none", answer.text
+
+
+def test_head_answers_every_get_path_with_its_headers_and_no_body(
+    server: ServerProcess, auction_id: int
+) -> None:
+    """HTTP requires HEAD wherever GET is answered (RFC 9110, 9.1); FastAPI's routes had
+    answered 405. The headers are GET's (its length, its type, its security headers), the body
+    is none; an event stream's headers come back at once and the stream ends."""
+    with client_from("127.0.0.41", server) as client:
+        for path in ("/healthz", "/models?limit=1", f"/auctions/{auction_id}", "/ui/"):
+            get, head = client.get(path), client.head(path)
+            assert head.status_code == get.status_code == 200, (path, head.status_code)
+            assert head.content == b"", path
+            assert head.headers["content-type"] == get.headers["content-type"], path
+            if "content-length" in get.headers:
+                assert head.headers["content-length"] == get.headers["content-length"], path
+            assert head.headers["X-Content-Type-Options"] == "nosniff", path
+        missing = client.head("/models/999999")
+        assert missing.status_code == 404 and missing.content == b""
+        started = time.monotonic()
+        stream = client.head(f"/auctions/{auction_id}/events")
+        assert stream.status_code == 200 and time.monotonic() - started < ANSWER_WITHIN_S
+        assert stream.headers["content-type"].startswith("text/event-stream")
+        for _ in range(STREAMS_PER_CLIENT + 4):  # each ended stream gave its slot back
+            assert client.head(f"/auctions/{auction_id}/events").status_code == 200
+        assert client.head("/submit").status_code == 405  # no GET there: no HEAD either
+        assert client.get("/healthz").status_code == 200  # the connection goes on

@@ -346,8 +346,8 @@ def test_artifact_name_with_a_null_byte_is_404(client: TestClient) -> None:
 
 def test_405_names_every_method_of_the_path(client: TestClient) -> None:
     for method, path, allowed in (
-        ("OPTIONS", "/jobs/1", "DELETE, GET"),
-        ("PUT", "/jobs/1", "DELETE, GET"),
+        ("OPTIONS", "/jobs/1", "DELETE, GET, HEAD"),
+        ("PUT", "/jobs/1", "DELETE, GET, HEAD"),
         ("GET", "/submit", "POST"),
     ):
         response = client.request(method, path)

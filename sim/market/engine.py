@@ -37,6 +37,16 @@ EXPLAINED = (
 """The neurons of a vote's explanation, by the part of the network they belong to."""
 EXPLAINED_NEURONS = [name for _, names in EXPLAINED for name in names]
 
+PRICE_DECIMALS = 5
+"""Prices are recorded (an iteration's price, a purchase's) rounded to this many decimals, as
+the reference's records are; the market itself moves on the unrounded price."""
+
+
+def recorded(prices: list[float]) -> list[float]:
+    """Prices as records keep them (``PRICE_DECIMALS``): 4.8, not 4.800000000000004."""
+    return [round(price, PRICE_DECIMALS) for price in prices]
+
+
 EVALUATION_CHUNK = 32_000
 """(patron, row, copy) evaluations per ``decide`` call: bigger tensors fall out of the cache and
 each evaluation gets slower."""
@@ -206,7 +216,7 @@ class MarketBatch:
         moves = self._advance()[3]
         sales: list[list[tuple[int, float]]] = [[] for _ in range(self.n_auctions)]
         if len(moves.bought):
-            prices = moves.price.tolist()
+            prices = recorded(moves.price.tolist())
             for a, local in zip(
                 self.owner[moves.bought].tolist(), self.local[moves.bought].tolist(), strict=True
             ):
@@ -349,9 +359,9 @@ class MarketBatch:
         """The iteration's record of each auction played (None for the others)."""
         records: list[IterationRecord | None] = [None] * self.n_auctions
         buyers, quitters = self._by_auction(moves.bought), self._by_auction(moves.quitted)
-        start_prices, start_availables = moves.price.tolist(), moves.n_available.tolist()
+        start_prices, start_availables = recorded(moves.price.tolist()), moves.n_available.tolist()
         vote_counts, row_vote_counts = votes.counts.tolist(), votes.row_counts.tolist()
-        price, available = self.price.tolist(), self.n_available.tolist()
+        price, available = recorded(self.price.tolist()), self.n_available.tolist()
         explanations = self._explanations(votes)
         for a in playing:
             records[a] = IterationRecord(

@@ -118,15 +118,15 @@ def loop_auction(manifests: list[Manifest], config: MarketConfig) -> list[Iterat
             for p in tuned:
                 singles[p] = from_manifests([current[p]])
         records.append(
-            IterationRecord(
+            IterationRecord(  # prices as the reference records them: rounded to 5 decimals
                 iteration=iteration,
-                price=start_price,
+                price=round(start_price, 5),
                 n_available=start_available,
                 votes=votes,
                 row_votes=row_votes,
-                buyers=buyers,
+                buyers=[(p, round(paid, 5)) for p, paid in buyers],
                 quitters=quitters,
-                next_price=price,
+                next_price=round(price, 5),
                 n_available_after=available,
                 finished=reason is not None,
                 stop_reason=reason,

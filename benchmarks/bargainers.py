@@ -10,8 +10,11 @@ patrons at supplies 0.1 to 0.4, fine-tuning off and on, as a fraction of the alw
 saboteur's drop), on populations the search that found them did not use (``--seed``).
 
 With ``--impact-trials 4,8,16`` it then asks what more reference populations in the
-market-impact test would do (``limits.IMPACT_TRIALS``, 4 today; the test auctions rebuilt in
-this process only): for each count, the test auctions' references and bar, how many of the
+market-impact test would do (one stage of that many populations, in this process only; then
+the screener's own two stages: ``limits.IMPACT_TRIALS`` for every tested model, and
+``IMPACT_MORE_TRIALS`` more within ``IMPACT_WINDOW`` of the bar, whose references and bar the
+row shows are the first stage's): for each count, the test auctions' references and bar, how
+many of the
 labelled corpus's honest and sincere models the screener refuses (1000 honest draws of seed 0,
 12 of each sincere kind), how many of its saboteurs (the red team's finds among them) it admits,
 how many of the five stored models it still admits, and the CPU time of screening one of them
@@ -92,15 +95,9 @@ def populations(counts: list[int], found: list[Manifest]) -> None:
         "| saboteurs admitted | found admitted | one holder alone, ms |"
     )
     print("|---|---|---|---|---|---|---|")
-    for count in counts:
-        limits.IMPACT_TRIALS = count
-        impact.TEST_AUCTIONS[:] = [
-            (trial, impact._config(supply, trial, fine_tune=False))
-            for supply in limits.IMPACT_SUPPLIES
-            for trial in range(count)
-        ]
-        impact._people.cache_clear()
-        impact.references.cache_clear()
+    first, more = limits.IMPACT_TRIALS, limits.IMPACT_MORE_TRIALS
+    for count in [*counts, 0]:  # 0: the screener's own two stages
+        limits.IMPACT_TRIALS, limits.IMPACT_MORE_TRIALS = (count, 0) if count else (first, more)
         refs = impact.references()
         refused = sum(not v.accepted for v in screen_many(honest))
         slipped = sum(v.accepted for v in screen_many(saboteurs))
@@ -111,8 +108,9 @@ def populations(counts: list[int], found: list[Manifest]) -> None:
             for model in found:
                 screen(model)
             rounds.append((time.process_time() - started) / len(found) * 1000)
+        label = count or f"{first}, {first + more} within {limits.IMPACT_WINDOW:g} of the bar"
         print(
-            f"| {count} | {refs.alone.mean_price:.4f} / {refs.saboteurs.mean_price:.4f} / "
+            f"| {label} | {refs.alone.mean_price:.4f} / {refs.saboteurs.mean_price:.4f} / "
             f"{refs.quitters.mean_price:.4f} | {refs.lowest_price:.4f} "
             f"| {refused} of {len(honest)} | {slipped} of {len(saboteurs)} "
             f"| {admitted} of {len(found)} | {min(rounds):.1f} |"

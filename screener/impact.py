@@ -11,6 +11,12 @@ negotiator that quits at the opening price (for the reasons' numbers). A model i
 its copies lower the mean purchase price below the honest-alone auctions by more than
 ``IMPACT_SHARE`` of the saboteurs' drop.
 
+Two stages. Every tested model meets ``IMPACT_TRIALS`` reference populations; a model whose
+copies land within ``IMPACT_WINDOW`` of the bar meets ``IMPACT_MORE_TRIALS`` more, and is judged
+on its auctions in all of them against the references over all of them: near the bar, four
+populations cannot tell a hard bargainer from an honest model, and only the few models there
+pay for more.
+
 Only holders are tested. A vote that is not a hold buys (raising the demand, or taking a fish at
 the auction's price) or quits (leaving the auction, a sincere low bidder's right); only staying
 without buying holds the market down, and the test auctions of the few models that hold run
@@ -62,6 +68,17 @@ class Outcome:
     mean_price: float
 
 
+def first_trials() -> tuple[int, ...]:
+    """The reference populations every tested model meets."""
+    return tuple(range(limits.IMPACT_TRIALS))
+
+
+def more_trials() -> tuple[int, ...]:
+    """The populations a model near the bar meets too."""
+    first = limits.IMPACT_TRIALS
+    return tuple(range(first, first + limits.IMPACT_MORE_TRIALS))
+
+
 @functools.cache
 def _population(trial: int) -> tuple[Manifest, ...]:
     """The reference honest patrons of one trial."""
@@ -80,9 +97,9 @@ same verdicts and prices as float64 on 1089 models)."""
 
 
 @functools.cache
-def _people() -> tuple[list[Manifest], FSNBatch]:
-    """Every trial's reference patrons in trial order, and their batch (read once)."""
-    people = [m for trial in range(limits.IMPACT_TRIALS) for m in _population(trial)]
+def _people(trials: tuple[int, ...]) -> tuple[list[Manifest], FSNBatch]:
+    """These trials' reference patrons in trial order, and their batch (read once)."""
+    people = [m for trial in trials for m in _population(trial)]
     return people, from_manifests(people, DTYPE)
 
 
@@ -101,12 +118,18 @@ def _config(supply: float, trial: int, fine_tune: bool) -> MarketConfig:
     )
 
 
-TEST_AUCTIONS = [
-    (trial, _config(r, trial, fine_tune=False))
-    for r in limits.IMPACT_SUPPLIES
-    for trial in range(limits.IMPACT_TRIALS)
-]
-"""(reference population, market rules) of each test auction."""
+@functools.cache
+def test_auctions(trials: tuple[int, ...]) -> list[tuple[int, MarketConfig]]:
+    """(reference population, market rules) of each test auction of these trials."""
+    return [
+        (trial, _config(r, trial, fine_tune=False))
+        for r in limits.IMPACT_SUPPLIES
+        for trial in trials
+    ]
+
+
+TEST_AUCTIONS = test_auctions(first_trials())
+"""The test auctions every tested model meets."""
 
 
 Candidate = Manifest | FSNBatch | None
@@ -114,10 +137,13 @@ Candidate = Manifest | FSNBatch | None
 alone)."""
 
 
-def run(candidates: Sequence[Candidate]) -> list[Outcome]:
-    """The test auctions of every candidate in one lock-step batch (its patrons stacked from
-    the reference populations' batch, read once per process, and the candidates')."""
-    people, reference = _people()
+def run(candidates: Sequence[Candidate], trials: tuple[int, ...] | None = None) -> list[Outcome]:
+    """The test auctions of every candidate in the populations ``trials`` (default: those
+    every tested model meets) in one lock-step batch (its patrons stacked from the reference
+    populations' batch, read once per process, and the candidates')."""
+    trials = first_trials() if trials is None else trials
+    people, reference = _people(trials)
+    planned = test_auctions(trials)
     given = [c for c in candidates if c is not None]
     pool = concat([reference, *map(_as_batch, given)]) if given else reference
     auctions: list[tuple[list[Manifest], MarketConfig]] = []
@@ -126,9 +152,9 @@ def run(candidates: Sequence[Candidate]) -> list[Outcome]:
     for candidate in candidates:
         own = None if candidate is None else next(slot)
         copies = [] if candidate is None else [_as_manifest(candidate)] * limits.IMPACT_COPIES
-        for trial, config in TEST_AUCTIONS:
+        for trial, config in planned:
             auctions.append(([*_population(trial), *copies], config))
-            first = trial * limits.IMPACT_HONEST
+            first = trials.index(trial) * limits.IMPACT_HONEST
             index += range(first, first + limits.IMPACT_HONEST)
             index += [] if own is None else [own] * limits.IMPACT_COPIES
     buyers: list[list[tuple[int, float]]] = [[] for _ in auctions]
@@ -136,7 +162,7 @@ def run(candidates: Sequence[Candidate]) -> list[Outcome]:
     while not engine.finished.all():
         for a, sales in enumerate(engine.step_sales()):
             buyers[a] += sales
-    per = len(TEST_AUCTIONS)
+    per = len(planned)
     outcomes = []
     for c in range(len(candidates)):
         bought = [b for a in range(c * per, (c + 1) * per) for b in buyers[a]]
@@ -145,6 +171,13 @@ def run(candidates: Sequence[Candidate]) -> list[Outcome]:
         mean = float(np.mean(prices)) if prices else float("nan")
         outcomes.append(Outcome(prices, len(bought), honest, mean))
     return outcomes
+
+
+def pooled(first: Outcome, more: Outcome) -> Outcome:
+    """One model's outcome over the auctions of both."""
+    prices = first.prices + more.prices
+    mean = float(np.mean(prices)) if prices else float("nan")
+    return Outcome(prices, first.sold + more.sold, first.honest + more.honest, mean)
 
 
 def _as_batch(candidate: Manifest | FSNBatch) -> FSNBatch:
@@ -172,11 +205,13 @@ def reference_saboteur() -> Manifest:
 
 @dataclass(frozen=True)
 class References:
-    """The test auctions honest alone, with saboteurs, with quitters."""
+    """The test auctions honest alone, with saboteurs, with quitters, and how many auctions
+    that is."""
 
     alone: Outcome
     saboteurs: Outcome
     quitters: Outcome
+    auctions: int
 
     @property
     def lowest_price(self) -> float:
@@ -187,10 +222,21 @@ class References:
         return leave - limits.IMPACT_SHARE * max(leave - self.saboteurs.mean_price, 0.0)
 
 
-@functools.cache
 def references() -> References:
-    """Computed once per process: every model meets the same test auctions."""
-    return References(*run([None, reference_saboteur(), reference_quitter()]))
+    """The references of the test auctions every tested model meets (computed once per
+    process: every model meets the same test auctions)."""
+    return _references(first_trials())
+
+
+def wide_references() -> References:
+    """The references over the populations of both stages."""
+    return _references(first_trials() + more_trials())
+
+
+@functools.cache
+def _references(trials: tuple[int, ...]) -> References:
+    alone, saboteurs, quitters = run([None, reference_saboteur(), reference_quitter()], trials)
+    return References(alone, saboteurs, quitters, len(test_auctions(trials)))
 
 
 @functools.cache
@@ -244,14 +290,33 @@ def impact_checks(
     jobs: list[tuple[int, FSNBatch, str]] = [(int(p), batch.select([int(p)]), "") for p in tested]
     jobs += [(p, m, " after its own fine-tuning") for p, m in projected]
     if jobs:
-        refs = references()
-        for (p, _, after), outcome in zip(jobs, run([m for _, m, _ in jobs]), strict=True):
+        for (p, _, after), (refs, outcome) in zip(
+            jobs, _judged([m for _, m, _ in jobs]), strict=True
+        ):
             evidence.setdefault(p, []).append(_evidence(refs, outcome, after))
             message = _judge(refs, outcome, after)
             if message is not None and not failed[p]:
                 failed[p] = True
                 words[p] = message
     return check("market-impact", "L", failed, words.__getitem__), evidence
+
+
+def _judged(models: list[FSNBatch]) -> list[tuple[References, Outcome]]:
+    """Each model's outcome and the references it is judged against: the first stage's, or,
+    for a model whose copies land within ``IMPACT_WINDOW`` of that bar, both stages' pooled."""
+    refs = references()
+    judged = [(refs, outcome) for outcome in run(models)]
+    near = [
+        k
+        for k, (_, outcome) in enumerate(judged)
+        if outcome.prices and abs(outcome.mean_price - refs.lowest_price) <= limits.IMPACT_WINDOW
+    ]
+    if near and more_trials():
+        wide = wide_references()
+        more = run([models[k] for k in near], more_trials())
+        for k, outcome in zip(near, more, strict=True):
+            judged[k] = (wide, pooled(judged[k][1], outcome))
+    return judged
 
 
 def _evidence(refs: References, outcome: Outcome, after: str) -> Evidence:
@@ -271,6 +336,7 @@ def _evidence(refs: References, outcome: Outcome, after: str) -> Evidence:
             "quitters_at_opening": refs.quitters.mean_price,
             "fish_sold": outcome.sold,
             "bought_by_copies": outcome.sold - outcome.honest,
+            "test_auctions": refs.auctions,
         },
     )
 
@@ -283,12 +349,14 @@ def _judge(refs: References, outcome: Outcome, after: str) -> str | None:
     if not outcome.prices or outcome.mean_price >= refs.lowest_price - 1e-9:
         return None
     supplies = limits.IMPACT_SUPPLIES
+    left, bar = fmt_price(outcome.mean_price), fmt_price(refs.lowest_price)
+    if left == bar:  # near the bar, cents alone would say "5.09, below the 5.09 allowed"
+        left, bar = f"{outcome.mean_price:.4f}", f"{refs.lowest_price:.4f}"
     return (
-        f"in {len(TEST_AUCTIONS)} test auctions ({limits.IMPACT_HONEST} honest patrons, supplies "
+        f"in {refs.auctions} test auctions ({limits.IMPACT_HONEST} honest patrons, supplies "
         f"{supplies[0]:g} to {supplies[-1]:g}), {limits.IMPACT_COPIES} copies of this "
         f"model{after} lowered the mean purchase price from {fmt_price(alone.mean_price)} "
-        f"(without them) to {fmt_price(outcome.mean_price)}, below the "
-        f"{fmt_price(refs.lowest_price)} allowed (always-hold saboteurs: "
+        f"(without them) to {left}, below the {bar} allowed (always-hold saboteurs: "
         f"{fmt_price(saboteurs.mean_price)}, copies that quit at the opening price: "
         f"{fmt_price(quitters.mean_price)}); they bought {outcome.sold - outcome.honest} of the "
         f"{outcome.sold} fish sold, the honest patrons {outcome.honest} (without them "

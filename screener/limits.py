@@ -200,6 +200,16 @@ IMPACT_TRIALS = 4
 """Reference populations (each with its own market seeds) per supply: with 4, each block of 16
 auctions gives a model that holds from 5.00 to 5.04 between 0.4 and 0.8 of the saboteurs' harm
 (0.6 over 24 blocks), always above the tolerance."""
+IMPACT_MORE_TRIALS = 4
+"""Reference populations the test adds for a model whose copies land within ``IMPACT_WINDOW``
+of the bar: its auctions in them are pooled with the first ones and judged against the
+references over all of them. With 8 populations the labelled corpus sorts better than with 4
+(one honest model fewer refused, two opening-window holders more refused, no saboteur more
+admitted: docs/screener.md), and only models near the bar pay for them."""
+IMPACT_WINDOW = 0.005
+"""How near the bar (in price) a model's copies' mean purchase price must land for the second
+stage: half a cent, where 4 populations cannot tell an opening-window holder from an honest
+model."""
 IMPACT_SEED = 11
 """Seeds the reference populations and the test auctions (fixed: every model meets the same
 auctions)."""

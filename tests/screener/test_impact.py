@@ -3,10 +3,14 @@ auctions without the copies, with always-hold saboteurs and with quitters."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import torch
 
 from agents.batch import from_manifests
+from agents.manifest import parse_manifest
 from agents.negotiator import honest_manifest
 from screener import impact, limits, screen, screen_many
 from screener.checks import cheap_checks, passes_cheap
@@ -53,12 +57,17 @@ def test_a_model_holding_just_above_the_opening_price_is_refused_in_numbers():
     assert probe(from_manifests([model])).holds[0]
     verdict = screen(model)
     assert ("market-impact", "L") in rules_of(verdict)
-    refs = impact.references()
-    (outcome,) = impact.run([model])
+    # Its copies land within half a cent of the first bar: it meets the second stage's
+    # populations too and is judged on its 32 auctions against the 32 auctions' references.
+    (first,) = impact.run([model])
+    assert abs(first.mean_price - impact.references().lowest_price) <= limits.IMPACT_WINDOW
+    refs = impact.wide_references()
+    (more,) = impact.run([model], impact.more_trials())
+    outcome = impact.pooled(first, more)
     assert outcome.mean_price < refs.lowest_price
     message = message_of(verdict, "market-impact", "L")
     assert message.startswith(
-        "in 16 test auctions (32 honest patrons, supplies 0.1 to 0.4), 32 copies of this model "
+        "in 32 test auctions (32 honest patrons, supplies 0.1 to 0.4), 32 copies of this model "
         f"lowered the mean purchase price from {refs.alone.mean_price:.2f} (without them) to "
         f"{outcome.mean_price:.2f}, below the {refs.lowest_price:.2f} allowed"
     )
@@ -69,9 +78,9 @@ def test_models_that_never_hold_are_not_run_in_test_auctions(monkeypatch):
     ran: list[int] = []
     real = impact.run
 
-    def spy(candidates):
+    def spy(candidates, trials=None):
         ran.append(len(candidates))
-        return real(candidates)
+        return real(candidates, trials)
 
     monkeypatch.setattr(impact, "run", spy)
     rng = np.random.default_rng(4)
@@ -114,3 +123,24 @@ def screener_rescreen(model) -> bool:
     from screener import rescreen
 
     return bool(rescreen(from_manifests([model]))[0])
+
+
+def test_models_near_the_bar_meet_more_populations_and_the_window_holder_is_refused():
+    """Four reference populations admitted every opening-window holder (a hard bargainer: it
+    holds from 5.00 to about 5.05, each hold backed by a purchase a cent below). Near the bar the
+    test now adds four more and judges the 32 auctions: holder b, whose copies landed 0.0008
+    above the first bar, is refused; a model whose copies land far above it meets 16."""
+    path = Path(__file__).parents[2] / "examples" / "red_team" / "opening-window-holder-b.json"
+    holder = parse_manifest(json.loads(path.read_text()))
+    verdict = screen(holder)
+    (evidence,) = [e for e in verdict.evidence if e.test == "market-impact"]
+    (first,) = impact.run([holder])
+    assert 0 <= first.mean_price - impact.references().lowest_price <= limits.IMPACT_WINDOW
+    assert evidence.detail["test_auctions"] == 32 and not evidence.passed
+    assert evidence.bar == impact.wide_references().lowest_price
+    assert ("market-impact", "L") in rules_of(verdict) and not verdict.accepted
+    honest = [honest_manifest(np.random.default_rng(s), f"h{s}") for s in range(40)]
+    tested = [e for v in screen_many(honest) for e in v.evidence if e.test == "market-impact"]
+    bar = impact.references().lowest_price
+    far = [e for e in tested if e.measured is None or abs(e.measured - bar) > limits.IMPACT_WINDOW]
+    assert far and all(e.detail["test_auctions"] == 16 for e in far)

@@ -168,14 +168,14 @@ def test_screen_accepted_exits_0_with_one_json_object(tmp_path) -> None:
 
 
 def test_screen_says_a_server_would_hold_a_borderline_model() -> None:
-    """The screener accepts the window holder, by less than the server's review margin of its
+    """The screener refuses the window holder, by less than the server's review margin of its
     bar: status "held", what /submit would answer; the exit code stays the screener's."""
     holder = str(EXAMPLES / "red_team" / "opening-window-holder-a.json")
     outcome = screen(holder, "--json")
-    assert outcome.exit_code == 0
+    assert outcome.exit_code == 1
     result = json.loads(outcome.stdout)
-    assert result["accepted"] is True and result["status"] == "held"
-    assert json.loads(screen(holder, "--json", "--margin", "0").stdout)["status"] == "accepted"
+    assert result["accepted"] is False and result["status"] == "held"
+    assert json.loads(screen(holder, "--json", "--margin", "0").stdout)["status"] == "refused"
     assert "a server would hold it for an inspector" in screen(holder).stdout
     honest_one = screen(str(EXAMPLES / "honest.json"), "--json")
     assert json.loads(honest_one.stdout)["status"] == "accepted"

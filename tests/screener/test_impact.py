@@ -69,7 +69,7 @@ def test_a_model_holding_just_above_the_opening_price_is_refused_in_numbers():
     assert message.startswith(
         "in 32 test auctions (32 honest patrons, supplies 0.1 to 0.4), 32 copies of this model "
         f"lowered the mean purchase price from {refs.alone.mean_price:.2f} (without them) to "
-        f"{outcome.mean_price:.2f}, below the {refs.lowest_price:.2f} allowed"
+        f"{outcome.mean_price:.4f}, below the {refs.lowest_price:.4f} allowed"  # cents alike
     )
     assert "they bought 0 of the" in message
 

@@ -119,7 +119,8 @@ export function reviewView(view, id) {
 }
 
 function evidenceSection(model, item) {
-  const rows = model.evidence.map((e) => [e.test, e.detail.version || e.detail.check || "", e.measured === null ? "—" : fixed(e.measured, 4), e.bar === null ? "—" : fixed(e.bar, 4), `${e.side} (${e.units})`, e.passed ? "passed" : "missed"]);
+  const auctions = (e) => (e.detail.test_auctions ? `, ${e.detail.test_auctions} test auctions` : "");
+  const rows = model.evidence.map((e) => [e.test, (e.detail.version || e.detail.check || "") + auctions(e), e.measured === null ? "—" : fixed(e.measured, 4), e.bar === null ? "—" : fixed(e.bar, 4), `${e.side} (${e.units})`, e.passed ? "passed" : "missed"]);
   const scan = model.evidence.find((e) => e.detail.clean && e.detail.noisy);
   const impacts = model.evidence.filter((e) => e.test === "market-impact");
   return h(
@@ -161,30 +162,38 @@ function decisionsChart(detail) {
 }
 
 function impactChart(impacts) {
-  const refs = impacts[0].detail;
-  const named = [
-    ["without its copies", refs.without_copies],
-    ["always-hold saboteurs", refs.always_hold_saboteurs],
-    ["copies that quit at the opening price", refs.quitters_at_opening],
-  ].filter(([, v]) => typeof v === "number");
-  const values = [...impacts.map((e) => e.measured), impacts[0].bar, ...named.map(([, v]) => v)].filter((v) => v !== null);
+  // One set of references and one bar per count of test auctions: a model near the bar was
+  // judged on more auctions (its second stage), against their own references.
+  const sets = [...new Map(impacts.map((e) => [e.detail.test_auctions ?? 16, e])).values()];
+  const suffix = (e) => (sets.length > 1 ? ` (${e.detail.test_auctions} auctions)` : "");
+  const named = sets.flatMap((e) => [
+    [`without its copies${suffix(e)}`, e.detail.without_copies],
+    [`always-hold saboteurs${suffix(e)}`, e.detail.always_hold_saboteurs],
+    [`copies that quit at the opening price${suffix(e)}`, e.detail.quitters_at_opening],
+  ]).filter(([, v]) => typeof v === "number");
+  const bars = sets.map((e) => [e.bar, suffix(e)]);
+  const values = [...impacts.map((e) => e.measured), ...bars.map(([b]) => b), ...named.map(([, v]) => v)].filter((v) => v !== null);
   const lo = Math.min(...values) - 0.005;
   const hi = Math.max(...values) + 0.005;
-  const [left, width] = [250, 640];
+  const [left, width] = [300, 700];
   const rowsY = (i) => 20 + i * 26;
   const x = (p) => left + ((p - lo) / (hi - lo)) * (width - left - 70); // room for the label
-  const marks = [...impacts.map((e) => [`copies, ${e.detail.version}`, e.measured, e.passed ? "vote-buy" : "vote-hold"]), ...named.map(([label, v]) => [label, v, "vote-quit"])];
-  const height = rowsY(marks.length) + 24;
+  const marks = [...impacts.map((e) => [`copies, ${e.detail.version}${suffix(e)}`, e.measured, e.passed ? "vote-buy" : "vote-hold"]), ...named.map(([label, v]) => [label, v, "vote-quit"])];
+  const top = rowsY(marks.length);
+  const height = top + 14 * bars.length + 10;
+  const said = bars.map(([b, words]) => `bar ${b.toFixed(4)}${words}`).join("; ");
   return svg(
     "svg",
-    { class: "chart", viewBox: `0 0 ${width} ${height}`, role: "img", "aria-label": `Market impact: bar ${impacts[0].bar.toFixed(4)}; ${marks.map(([l, v]) => `${l} ${Number(v).toFixed(4)}`).join("; ")}.` },
+    { class: "chart", viewBox: `0 0 ${width} ${height}`, role: "img", "aria-label": `Market impact: ${said}; ${marks.map(([l, v]) => `${l} ${Number(v).toFixed(4)}`).join("; ")}.` },
     marks.map(([label, value, cls], i) => [
       svg("text", { x: 8, y: rowsY(i) + 4, class: "axis-label" }, label),
       svg("circle", { class: cls, cx: x(value), cy: rowsY(i), r: 6 }, svg("title", {}, `${label}: ${Number(value).toFixed(4)}`)),
       svg("text", { x: x(value) + 10, y: rowsY(i) + 4, class: "tick" }, Number(value).toFixed(4)),
     ]),
-    svg("line", { class: "bar-line", x1: x(impacts[0].bar), x2: x(impacts[0].bar), y1: 6, y2: height - 14 }),
-    svg("text", { class: "tick", x: x(impacts[0].bar), y: height - 2, "text-anchor": "middle" }, `bar ${impacts[0].bar.toFixed(4)}`),
+    bars.map(([b, words], i) => [
+      svg("line", { class: "bar-line", x1: x(b), x2: x(b), y1: 6, y2: top + 14 * i }),
+      svg("text", { class: "tick", x: x(b), y: top + 10 + 14 * i, "text-anchor": "middle" }, `bar ${b.toFixed(4)}${words}`),
+    ]),
   );
 }
 

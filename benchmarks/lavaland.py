@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from agents.robot2nn import PRESETS, Robot2NN
+from agents.planning import PRESETS
+from agents.robot2nn import Robot2NN
 from sim.lavaland.engine import PROJECTS, build_model, evaluate, explore_coins, make_maps
 from sim.lavaland.fused import train_srd_fused
 from sim.lavaland.training import train_srd

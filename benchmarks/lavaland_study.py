@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from agents.robot2nn import PRESETS
+from agents.planning import PRESETS
 from sim.experiment import pyplot, write_csv
 from sim.lavaland import LavalandConfig, run
 from sim.lavaland.engine import PROJECTS

@@ -10,20 +10,19 @@ from __future__ import annotations
 
 import csv
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium import spaces
-from pydantic import Field
 
 from agents.fish_net import EAT, MOVE, FishNN
 from agents.neurons import self_reward_loss
 from sim import units
-from sim.experiment import Cost, ProgressFn, Stopwatch, no_progress
+from sim.configs import FishConfig
+from sim.experiment import ProgressFn, Stopwatch, no_progress
 from sim.units import Decomposition, Payload, Unit
 
 FOOD = 0.5
@@ -123,33 +122,6 @@ class RobotFish1D(gym.Env[np.ndarray, np.int64]):
             self.cells = [self.tape[(self.pointer + k) % len(self.tape)] for k in range(VIEW)]
         terminated = self.energy <= 0.0
         return self._observation(), self.energy - before, terminated, False, self._info(ate)
-
-
-STEP_COST_S = 4e-4
-"""Compute of one step with SRD training, for the job budget: twice the measured 0.2 ms (the
-12000-step run takes about 2.5 s); without SRD half of it."""
-
-
-@dataclass(frozen=True)
-class FishConfig:
-    """Robot fish 1D: FishNN on the ring tape, with or without SRD training."""
-
-    steps: Annotated[int, Field(ge=1, le=10_000_000)] = 12000
-    """Simulation steps (the paper's figure uses 12000; the fish stops earlier only if it dies)."""
-    srd: bool = True
-    """Self-reward training on (every ``memory`` steps an Adam step on CEL(z, argmax z))."""
-    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
-    """Seed for the API; the robot fish has no randomness, so every seed gives the same run."""
-    memory: Annotated[int, Field(ge=1, le=10_000)] = 8
-    """mem: steps whose PFC verdicts [T, F] are summed into z before each SRD update."""
-    lr: Annotated[float, Field(gt=0, le=10)] = 0.002
-    """Adam learning rate of the SRD updates (betas (0.5, 0.999), over all parameters)."""
-    average_every: Annotated[int, Field(ge=1, le=100_000)] = 24
-    """Window (steps) of the averaged-energy panel of the figure."""
-
-    def cost(self) -> Cost:
-        """Estimated compute: linear in the steps."""
-        return Cost(self.steps * STEP_COST_S * (1.0 if self.srd else 0.5), "steps")
 
 
 class FishTrace(NamedTuple):

@@ -44,10 +44,14 @@ class ExperimentKind:
     """The columns of that table a person scans (those present in the rows)."""
     command: bool = True
     """Also an ``srd`` command (False: a job kind only)."""
+    config_module: str | None = None
+    """Where the config dataclass lives, if not in ``module``: a module that loads no
+    simulation, so that the server checks a job's options and describes them without torch."""
 
     def config_class(self) -> type[Any]:
-        """The config dataclass (imports the module)."""
-        config: type[Any] = getattr(importlib.import_module(self.module), self.config)
+        """The config dataclass (imports its module only)."""
+        module = importlib.import_module(self.config_module or self.module)
+        config: type[Any] = getattr(module, self.config)
         return config
 
     def decomposition(self) -> Decomposition[Any]:
@@ -97,6 +101,7 @@ KINDS: dict[str, ExperimentKind] = {
                 "mean_energy_first_1000",
                 "mean_energy_last_1000",
             ),
+            config_module="sim.configs",
         ),
         ExperimentKind(
             "lavaland",
@@ -118,6 +123,7 @@ KINDS: dict[str, ExperimentKind] = {
             ),
             table="repeats",
             columns=("repeat", "accuracy_untrained", "accuracy_srd", "lava_entered_srd"),
+            config_module="sim.configs",
         ),
         ExperimentKind(
             "cheetah",
@@ -138,6 +144,7 @@ KINDS: dict[str, ExperimentKind] = {
                 "mean_final_displacement",
                 "sd_final_displacement",
             ),
+            config_module="sim.configs",
         ),
         ExperimentKind(
             "auction-study",
@@ -150,6 +157,7 @@ KINDS: dict[str, ExperimentKind] = {
             headline=("auctions", "refused", "buy_fraction"),
             table="rows",
             columns=AUCTION_COLUMNS,
+            config_module="studies.config",
         ),
         ExperimentKind(
             "comparison",
@@ -162,6 +170,7 @@ KINDS: dict[str, ExperimentKind] = {
             headline=("auctions", "buy_fraction"),
             table="rows",
             columns=AUCTION_COLUMNS,
+            config_module="studies.config",
         ),
     )
 }

@@ -379,10 +379,11 @@ class Database:
         or for ``timeout_s`` (False; at once if it is gone or replaced for good). Each answer
         comes from a check made after the failure (it waits for one in progress)."""
         deadline = time.monotonic() + timeout_s
-        with self._check_lock:
-            self._checked_at = -math.inf  # the last check predates the failure
+        stale = True  # the last check predates the failure
         while True:
-            with self._check_lock:
+            with self._check_lock:  # one hold: nobody else (the event loop) makes this check
+                if stale:
+                    self._checked_at, stale = -math.inf, False
                 problem = self._checked()
             if problem is None:
                 return True

@@ -5,7 +5,8 @@ Modules, one job each:
 * ``world``: the MuJoCo model and the loop conventions, shared by the env and the engine;
 * ``env``: ``HalfCheetahRunStop``, one cheetah as a Gymnasium env (``HalfCheetahRunStop-v0``);
 * ``engine``: ``HalfCheetahBatch`` and ``drive``, every trial stepped together;
-* ``config``: ``CheetahConfig``, the grid's conditions and the result shape;
+* ``config``: the grid's cells and the result shape (``CheetahConfig``, the knobs, is in
+  ``sim.configs``);
 * ``experiment``: ``run``, the seeded grid, its statistics and artifacts;
 * ``stages``: the appendix's design stages 0–4;
 * ``plots``: the figures;
@@ -25,9 +26,9 @@ from typing import TYPE_CHECKING, Any
 import gymnasium as gym
 
 if TYPE_CHECKING:
-    from sim.cheetah.config import CheetahConfig
     from sim.cheetah.env import HalfCheetahRunStop
     from sim.cheetah.experiment import run
+    from sim.configs import CheetahConfig
 
 __all__ = ["CheetahConfig", "HalfCheetahRunStop", "run"]
 
@@ -35,7 +36,7 @@ ENV_ID = "HalfCheetahRunStop-v0"
 """The env's Gymnasium id."""
 
 _EXPORTS = {
-    "CheetahConfig": "sim.cheetah.config",
+    "CheetahConfig": "sim.configs",
     "HalfCheetahRunStop": "sim.cheetah.env",
     "run": "sim.cheetah.experiment",
 }

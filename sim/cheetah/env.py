@@ -13,7 +13,6 @@ from gymnasium import spaces
 from agents.cheetah_net import LIMBS
 from sim.cheetah.world import (
     START_X,
-    TRIAL_STEPS,
     WARMUP_STEPS,
     build_model,
     chunk_ends,
@@ -21,6 +20,7 @@ from sim.cheetah.world import (
     inhibitor_active,
     relative_pose,
 )
+from sim.configs import TRIAL_STEPS
 
 
 def _limb_reach(model: mujoco.MjModel) -> np.ndarray:

@@ -22,10 +22,8 @@ from agents.cheetah_net import HalfCheetahSRD, noisy_fc_weight
 from sim import units
 from sim.cheetah.config import (
     Cells,
-    CheetahConfig,
     condition_groups,
     condition_label,
-    grid_conditions,
     run_result,
 )
 from sim.cheetah.engine import HalfCheetahBatch, drive
@@ -35,12 +33,12 @@ from sim.cheetah.stages import STAGES
 from sim.cheetah.world import (
     CONTROL_INTERVAL,
     START_X,
-    TRIAL_STEPS,
     WARMUP_STEPS,
     evaluation_steps,
     inhibitor_active,
     relative_pose,
 )
+from sim.configs import TRIAL_STEPS, CheetahConfig, grid_conditions
 from sim.experiment import ProgressFn, Stopwatch, no_progress, write_csv, write_json
 from sim.units import Decomposition, Payload, Unit
 

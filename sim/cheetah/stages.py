@@ -25,7 +25,7 @@ from agents.cheetah_net import (
     StablePoseNeuron,
     nominal_fc_weight,
 )
-from sim.cheetah.config import CheetahConfig, run_result
+from sim.cheetah.config import run_result
 from sim.cheetah.engine import Controller, HalfCheetahBatch, drive
 from sim.cheetah.plots import plot_lines, plot_rest_pose
 from sim.cheetah.world import (
@@ -35,6 +35,7 @@ from sim.cheetah.world import (
     evaluation_steps,
     relative_pose,
 )
+from sim.configs import CheetahConfig
 from sim.experiment import ProgressFn, Stopwatch, write_json
 
 DESIGN_STEPS = 1200

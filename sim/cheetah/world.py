@@ -52,8 +52,6 @@ INHIBITOR_PERIOD = 1000
 """... and in every period of this many steps ..."""
 INHIBITOR_WINDOW = 600
 """... it is on for the first this many steps."""
-TRIAL_STEPS = 3600
-"""A trial of the main experiment: 36 s."""
 
 
 def half_cheetah_xml() -> Path:

@@ -7,10 +7,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from agents.planning import MOVE_LIMIT, PRESETS
 from agents.robot2nn import (
     EXPLORATION,
-    MOVE_LIMIT,
-    PRESETS,
     UNKNOWN_CLASS,
     Receptors,
     Robot2NN,

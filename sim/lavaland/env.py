@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from agents.robot2nn import MOVE_LIMIT
+from agents.planning import MOVE_LIMIT
 from sim.lavaland.world import (
     ACTION_NAMES,
     DIRT,

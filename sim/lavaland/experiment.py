@@ -11,14 +11,15 @@ import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any
 
 import numpy as np
-from pydantic import Field
 
-from agents.robot2nn import DIRT_CLASS, PRESETS
+from agents.planning import PRESETS
+from agents.robot2nn import DIRT_CLASS
 from sim import units
-from sim.experiment import Cost, ProgressFn, Stopwatch, no_progress, write_csv, write_json
+from sim.configs import LavalandConfig
+from sim.experiment import ProgressFn, Stopwatch, no_progress, write_csv, write_json
 from sim.lavaland.engine import (
     PROJECTS,
     Evaluation,
@@ -34,61 +35,9 @@ from sim.lavaland.plots import plot_histograms, plot_repeats, plot_weights, traj
 from sim.lavaland.training import train_srd
 from sim.units import Decomposition, Payload, Unit
 
-MAX_MAPS = 65536
-"""Bound on evaluation and training maps per run (memory and time of one job)."""
-MAX_REPEATS = 100
-"""Bound on repeats per run."""
-MAX_PLANS = 16
-"""Bound on imagined plans per map."""
-PLAN_EVAL_COST_S = 6e-5
-"""Compute of evaluating one plan on one map, for the job budget: twice the measured 27 µs
-(4096 maps × 4 plans in 0.44 s), the walk and the tile-count rows included."""
-STEP_COST_S = {"fused": 6e-4, "autograd": 1.6e-2}
-"""Compute of one SRD step (one training map), for the job budget: twice the slowest measured
-0.26 ms (fused) and 7.3 ms (autograd) per step."""
-RUN_COST_S = 5.0
-"""Compute of a run besides its repeats: maps, figures, the GIF, loading the compiled step."""
 LOWERED_TOLERANCE = 0.01
 """A repeat counts as 'SRD lowered accuracy' when it ends more than this below its untrained
 accuracy (one evaluation's spread between coin draws is about this size)."""
-
-
-@dataclass(frozen=True)
-class LavalandConfig:
-    """Robot2NN in lavaland: evaluate untrained, SRD-train one epoch, evaluate again."""
-
-    project: Literal["A", "compare-A", "lava-A", "lava-noav-A"] = "A"
-    """The paper's project: A, compare-A, lava-A or lava-noav-A."""
-    preset: Literal["paper", "reference"] = "paper"
-    """paper: 4 plans, best plan executed, summed loss, anchors set; reference: the v1 code."""
-    eval_maps: Annotated[int, Field(ge=1, le=MAX_MAPS)] = 4096
-    """Evaluation maps (accuracy = reached / eval_maps)."""
-    train_maps: Annotated[int, Field(ge=0, le=MAX_MAPS)] = 4096
-    """Training maps, one SGD step each (0 skips training; accuracy_srd is then null)."""
-    repeats: Annotated[int, Field(ge=1, le=MAX_REPEATS)] = 1
-    """Independent experiments (the paper's expts 1-4): fresh model, coins and order each."""
-    n_plans: Annotated[int, Field(ge=0, le=MAX_PLANS)] = 0
-    """Imagined plans per map; 0 = the preset's (paper 4, reference 2)."""
-    lr: Annotated[float, Field(gt=0, le=1)] = 1e-4
-    """SGD learning rate."""
-    loss_guard: bool = False
-    """Guarded loss: v/max(|v|, max|v_Σ|/36) in N[v] (off: the paper's v/|v| and its failures)."""
-    srd_step: Literal["fused", "autograd"] = "fused"
-    """fused: the compiled SRD step; autograd: the same step through torch autograd (slower)."""
-    gif_map: Annotated[int, Field(ge=0, le=MAX_MAPS - 1)] = 0
-    """Evaluation map (index modulo eval_maps) animated in trajectory.gif."""
-    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
-    """Seed of every random stream (maps, coins, training order)."""
-
-    def cost(self) -> Cost:
-        """Estimated compute: evaluations and SRD steps, linear in each count; repeats drive
-        it when there are several, else the larger of the two map counts."""
-        n_plans = self.n_plans or PRESETS[self.preset].n_plans
-        evaluation = 2 * self.eval_maps * n_plans * PLAN_EVAL_COST_S
-        training = self.train_maps * STEP_COST_S[self.srd_step]
-        option = "eval_maps" if evaluation >= training else "train_maps"
-        seconds = RUN_COST_S + self.repeats * (evaluation + training)
-        return Cost(seconds, "repeats" if self.repeats > 1 else option)
 
 
 @dataclass(frozen=True)

@@ -18,9 +18,9 @@ import numba
 import numpy as np
 import torch
 
+from agents.planning import GUARD_FRACTION
 from agents.robot2nn import (
     DECONV_LAYERS,
-    GUARD_FRACTION,
     LEAVING_FACTOR,
     TARGET_CLASS,
     TINY,

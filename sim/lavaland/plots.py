@@ -10,7 +10,12 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw
 
-from agents.robot2nn import MOVE_LIMIT, NAMED_INPUTS, Robot2NN, imagine
+from agents.planning import MOVE_LIMIT
+from agents.robot2nn import (
+    NAMED_INPUTS,
+    Robot2NN,
+    imagine,
+)
 from sim.experiment import pyplot
 from sim.lavaland.engine import Evaluation, MapSet
 from sim.lavaland.world import DIRT, GRASS, LAVA, TILE_RGB, picture

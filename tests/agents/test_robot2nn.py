@@ -9,17 +9,15 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from agents.planning import MOVE_LIMIT, PRESETS, PlanningRules
 from agents.robot2nn import (
     KERNEL_CENTRE,
     KERNEL_SIDE,
     KNOWN_TILE_RGB,
     LEAVING_FACTOR,
-    MOVE_LIMIT,
     NAMED_INPUTS,
-    PRESETS,
     TARGET_CLASS,
     DeconvSeq,
-    PlanningRules,
     Receptors,
     Robot2NN,
     imagine,

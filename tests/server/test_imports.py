@@ -9,8 +9,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
-HEAVY = ("sim.market.engine", "agents.batch", "screener.impact")
-"""Modules that bring the tensors with them."""
+HEAVY = ("sim.market.engine", "agents.batch", "screener.impact", "numba", "mujoco", "gymnasium")
+"""Modules that bring the tensors (or a simulator) with them."""
 
 PROBE = """
 import sys
@@ -28,6 +28,20 @@ def _loaded(code: str) -> list[str]:
 
 def test_the_api_app_and_its_routes_load_without_torch() -> None:
     assert _loaded("from server.app import create_app\ncreate_app()") == []
+
+
+def test_the_openapi_document_and_every_job_check_load_no_simulation() -> None:
+    """Describing the jobs' options (the first ``GET /openapi.json``) and checking a job's
+    options and cost (``POST /jobs``) read the configs only: before, they imported torch, numba,
+    PIL and Gymnasium into the API process on its event loop (+275 MB, seconds of stall)."""
+    code = (
+        "from server.app import create_app\n"
+        "create_app().openapi()\n"
+        "from studies.registry import KINDS, build_config\n"
+        "for kind in KINDS:\n"
+        "    build_config(kind, {}).cost()\n"
+    )
+    assert _loaded(code) == []
 
 
 def test_the_market_rules_and_the_verdict_type_load_without_torch() -> None:

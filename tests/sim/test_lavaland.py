@@ -13,7 +13,11 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 import sim.lavaland as lavaland
-from agents.robot2nn import GUARD_FRACTION, KNOWN_TILE_RGB, PRESETS, imagine
+from agents.planning import GUARD_FRACTION, PRESETS
+from agents.robot2nn import (
+    KNOWN_TILE_RGB,
+    imagine,
+)
 from sim.experiment import ConfigError, over_budget, parse_config
 from sim.lavaland import Lavaland, LavalandConfig, run
 from sim.lavaland.engine import (

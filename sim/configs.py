@@ -1,0 +1,172 @@
+"""The options of the worlds' experiments (robot fish, lavaland, half-cheetah): their fields,
+bounds and cost estimates, in one module that loads no simulation (no torch, numba, MuJoCo or
+Gymnasium). The server checks a job's options with them and describes them in its OpenAPI
+document without loading any of those; the worlds' modules use them as they are."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from agents.planning import PRESETS
+from sim.experiment import Cost
+
+# --- robot fish 1D --------------------------------------------------------------------------
+
+FISH_STEP_COST_S = 4e-4
+"""Compute of one step with SRD training, for the job budget: twice the measured 0.2 ms (the
+12000-step run takes about 2.5 s); without SRD half of it."""
+
+
+@dataclass(frozen=True)
+class FishConfig:
+    """Robot fish 1D: FishNN on the ring tape, with or without SRD training."""
+
+    steps: Annotated[int, Field(ge=1, le=10_000_000)] = 12000
+    """Simulation steps (the paper's figure uses 12000; the fish stops earlier only if it dies)."""
+    srd: bool = True
+    """Self-reward training on (every ``memory`` steps an Adam step on CEL(z, argmax z))."""
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    """Seed for the API; the robot fish has no randomness, so every seed gives the same run."""
+    memory: Annotated[int, Field(ge=1, le=10_000)] = 8
+    """mem: steps whose PFC verdicts [T, F] are summed into z before each SRD update."""
+    lr: Annotated[float, Field(gt=0, le=10)] = 0.002
+    """Adam learning rate of the SRD updates (betas (0.5, 0.999), over all parameters)."""
+    average_every: Annotated[int, Field(ge=1, le=100_000)] = 24
+    """Window (steps) of the averaged-energy panel of the figure."""
+
+    def cost(self) -> Cost:
+        """Estimated compute: linear in the steps."""
+        return Cost(self.steps * FISH_STEP_COST_S * (1.0 if self.srd else 0.5), "steps")
+
+
+# --- lavaland --------------------------------------------------------------------------------
+
+MAX_MAPS = 65536
+"""Bound on evaluation and training maps per run (memory and time of one job)."""
+MAX_REPEATS = 100
+"""Bound on repeats per run."""
+MAX_PLANS = 16
+"""Bound on imagined plans per map."""
+PLAN_EVAL_COST_S = 6e-5
+"""Compute of evaluating one plan on one map, for the job budget: twice the measured 27 µs
+(4096 maps × 4 plans in 0.44 s), the walk and the tile-count rows included."""
+LAVALAND_STEP_COST_S = {"fused": 6e-4, "autograd": 1.6e-2}
+"""Compute of one SRD step (one training map), for the job budget: twice the slowest measured
+0.26 ms (fused) and 7.3 ms (autograd) per step."""
+RUN_COST_S = 5.0
+"""Compute of a run besides its repeats: maps, figures, the GIF, loading the compiled step."""
+
+
+@dataclass(frozen=True)
+class LavalandConfig:
+    """Robot2NN in lavaland: evaluate untrained, SRD-train one epoch, evaluate again."""
+
+    project: Literal["A", "compare-A", "lava-A", "lava-noav-A"] = "A"
+    """The paper's project: A, compare-A, lava-A or lava-noav-A."""
+    preset: Literal["paper", "reference"] = "paper"
+    """paper: 4 plans, best plan executed, summed loss, anchors set; reference: the v1 code."""
+    eval_maps: Annotated[int, Field(ge=1, le=MAX_MAPS)] = 4096
+    """Evaluation maps (accuracy = reached / eval_maps)."""
+    train_maps: Annotated[int, Field(ge=0, le=MAX_MAPS)] = 4096
+    """Training maps, one SGD step each (0 skips training; accuracy_srd is then null)."""
+    repeats: Annotated[int, Field(ge=1, le=MAX_REPEATS)] = 1
+    """Independent experiments (the paper's expts 1-4): fresh model, coins and order each."""
+    n_plans: Annotated[int, Field(ge=0, le=MAX_PLANS)] = 0
+    """Imagined plans per map; 0 = the preset's (paper 4, reference 2)."""
+    lr: Annotated[float, Field(gt=0, le=1)] = 1e-4
+    """SGD learning rate."""
+    loss_guard: bool = False
+    """Guarded loss: v/max(|v|, max|v_Σ|/36) in N[v] (off: the paper's v/|v| and its failures)."""
+    srd_step: Literal["fused", "autograd"] = "fused"
+    """fused: the compiled SRD step; autograd: the same step through torch autograd (slower)."""
+    gif_map: Annotated[int, Field(ge=0, le=MAX_MAPS - 1)] = 0
+    """Evaluation map (index modulo eval_maps) animated in trajectory.gif."""
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    """Seed of every random stream (maps, coins, training order)."""
+
+    def cost(self) -> Cost:
+        """Estimated compute: evaluations and SRD steps, linear in each count; repeats drive
+        it when there are several, else the larger of the two map counts."""
+        n_plans = self.n_plans or PRESETS[self.preset].n_plans
+        evaluation = 2 * self.eval_maps * n_plans * PLAN_EVAL_COST_S
+        training = self.train_maps * LAVALAND_STEP_COST_S[self.srd_step]
+        option = "eval_maps" if evaluation >= training else "train_maps"
+        seconds = RUN_COST_S + self.repeats * (evaluation + training)
+        return Cost(seconds, "repeats" if self.repeats > 1 else option)
+
+
+# --- half-cheetah ----------------------------------------------------------------------------
+
+TRIAL_STEPS = 3600
+"""Steps of 0.01 s in one trial of the main experiment (36 s)."""
+TRIAL_STEP_COST_S = 3e-5
+"""Compute of one trial advancing one 0.01 s step (MuJoCo plus the network), for the job
+budget: about three times the grid engine's measured cost per step and core."""
+Gains = Annotated[
+    tuple[Annotated[float, Field(ge=-100, le=100)], ...], Field(min_length=1, max_length=32)
+]
+
+
+@dataclass(frozen=True)
+class CheetahConfig:
+    """HalfCheetahSRD: the grid backswing × inhibitor × SRD (× learning rate) × trial."""
+
+    backswing: Gains = (1.0, 2.0, 3.0, 4.0, 5.0)
+    """BS neuron gains to run (how hard the back thigh answers the pitch signal)."""
+    inhibitor: Annotated[
+        tuple[Annotated[float, Field(ge=0, le=100)], ...], Field(min_length=1, max_length=32)
+    ] = (0.0, 2.0)
+    """Inhibitor values of the stop command (0: never stop; 2: stop in the scheduled windows)."""
+    srd: Literal["on", "off", "both"] = "both"
+    """Self-reward optimisation during the trial: on, off or both (paired, same weights)."""
+    trials: Annotated[int, Field(ge=1, le=1000)] = 7
+    """Seeded trials per condition (weight noise differs per trial; --nominal runs one)."""
+    steps: Annotated[int, Field(ge=1, le=1_000_000)] | None = None
+    """Simulation steps of 0.01 s (default 3600; stages: 400 for 0, 1200 for 1–4)."""
+    nominal: bool = False
+    """Noise-free designed weights (deterministic, one trial per condition)."""
+    stage: Annotated[int, Field(ge=0, le=4)] | None = None
+    """Run one of the appendix's design stages 0–4 instead of the main grid."""
+    lr: Annotated[
+        tuple[Annotated[float, Field(gt=0, le=100)], ...], Field(min_length=1, max_length=32)
+    ] = (1e-4,)
+    """SGD learning rate(s) of SRD; several values sweep them (an extra grid axis)."""
+    threads: Annotated[int, Field(ge=1, le=64)] = 2
+    """Threads stepping MuJoCo in parallel."""
+    video: bool = True
+    """Render a GIF of one trial when an offscreen OpenGL context is available."""
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    """Seeds the per-trial weight noise: same seed, same numbers."""
+
+    def cost(self) -> Cost:
+        """Estimated compute: every trial of every condition, step by step."""
+        trials = len(grid_conditions(self)) * (1 if self.nominal else self.trials)
+        steps = TRIAL_STEPS if self.steps is None else self.steps
+        return Cost(trials * steps * TRIAL_STEP_COST_S, "trials")
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One cell of the grid."""
+
+    backswing: float
+    inhibitor: float
+    srd: bool
+    lr: float | None
+
+
+def grid_conditions(config: CheetahConfig) -> list[Condition]:
+    """Conditions in report order: SRD on (each lr) before off, then backswing, inhibitor."""
+    variants: list[tuple[bool, float | None]] = []
+    if config.srd in ("on", "both"):
+        variants += [(True, lr) for lr in config.lr]
+    if config.srd in ("off", "both"):
+        variants.append((False, None))
+    return [
+        Condition(float(b), float(i), on, lr)
+        for (on, lr), b, i in itertools.product(variants, config.backswing, config.inhibitor)
+    ]

@@ -149,3 +149,26 @@ class RedactQueryFilter(logging.Filter):
         if isinstance(args, tuple) and len(args) >= 3 and isinstance(args[2], str):
             record.args = (*args[:2], redact_query(args[2]), *args[3:])
         return True
+
+
+class SocketLinesFilter(logging.Filter):
+    """Per-socket lines of ``uvicorn.error``. Always dropped: the WebSocket protocol's own
+    ("connection open", "connection closed", "connection rejected (…)", "HTTP response sent
+    (…)"), which repeat uvicorn's handshake line. With ``handshakes``, that line too
+    (``"WebSocket /path" [accepted]``, or its refusal's status): with the access log off a
+    socket is a request like any other, and an auction's agents reconnecting would fill the
+    log."""
+
+    PROTOCOL = ("connection open", "connection closed", "connection rejected", "HTTP response sent")
+
+    def __init__(self, *, handshakes: bool) -> None:
+        super().__init__()
+        self.handshakes = handshakes
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.msg
+        if not isinstance(message, str):
+            return True
+        if message.startswith(self.PROTOCOL):
+            return False
+        return not (self.handshakes and message.startswith('%s - "WebSocket %s"'))

@@ -46,7 +46,7 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
             _drain(self.config.app)
 
     from server.api.connections import connection_cap, raise_file_limit, timed_protocol
-    from server.api.hardening import RedactQueryFilter
+    from server.api.hardening import RedactQueryFilter, SocketLinesFilter
     from server.api.readiness import make_data_dir
     from server.app import create_app
     from server.auctions.sockets import MAX_FRAME_BYTES
@@ -81,6 +81,8 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         forwarded_allow_ips=settings.trusted_proxy_list,
     )
     logging.getLogger("uvicorn.access").addFilter(RedactQueryFilter())  # after uvicorn's set-up
+    sockets = SocketLinesFilter(handshakes=not settings.access_log)
+    logging.getLogger("uvicorn.error").addFilter(sockets)
     server = Server(config)
     server.run()
     if not server.started:  # the port is taken, or the app failed to start

@@ -9,15 +9,21 @@ import subprocess
 import sys
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect as ws_connect
 
 from agents.negotiator import honest_manifest, saboteur_manifest
 from server.cli import HAND_WRITTEN, cli
 from server.cli.experiment import experiment_command
+from server.cli.launch import ServerProcess, settings_environment
 from sim.experiment import config_fields
 from studies.registry import KINDS
+from tests.server.test_remote_protocol import start_remote
+from tests.support.server import ADMIN_TOKEN, QUOTAS_OFF
 
 SRD = (sys.executable, "-c", "from server.cli import main; main()")
 COMMANDS = [kind for kind in KINDS.values() if kind.command]
@@ -342,3 +348,31 @@ def test_screen_reads_the_file_as_strictly_as_submit_reads_a_body(tmp_path) -> N
     folder = screen(str(tmp_path), "--json")
     assert folder.exit_code == 2
     assert "cannot read" in json.loads(folder.stdout)["errors"][0]["message"]
+
+
+def test_serve_without_the_access_log_logs_no_line_per_socket(tmp_path) -> None:
+    """With the access log off, a round socket is a request like any other: no line for its
+    handshake (accepted or refused), none for its connection; an auction's agents reconnecting
+    had written two lines each (100,800 in one audit)."""
+    env = settings_environment({**QUOTAS_OFF, "access_log": False})
+    with (
+        ServerProcess(
+            database_url=f"sqlite:///{tmp_path / 'srd.db'}",
+            data_dir=tmp_path / "data",
+            admin_token=ADMIN_TOKEN,
+            extra_env=env,
+        ) as server,
+        httpx.Client(base_url=server.url, timeout=30) as client,
+    ):
+        auction_id, _, _ = start_remote(client, "quiet", 730, 2, round_deadline_s=120, seed=3)
+        base = server.url.replace("http://", "ws://")
+        for _ in range(3):
+            with ws_connect(f"{base}/auctions/{auction_id}/rounds/socket") as socket:
+                assert json.loads(socket.recv(timeout=30))["type"] == "round"
+        with pytest.raises(InvalidStatus):
+            ws_connect(f"{base}/auctions/999999/rounds/socket").close()
+        assert client.get("/healthz").status_code == 200
+    log = server.log_path.read_text()
+    assert "srd server ready" in log  # the log is there ...
+    for line in ("WebSocket", "connection open", "connection closed", "GET /healthz"):
+        assert line not in log, line  # ... and no request's line

@@ -76,5 +76,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in routers:  # any request may carry an unreadable body
         checks = [] if module is ui else [Depends(known_query)]  # API routes: no unknown query
         app.include_router(module.router, responses=responses(400, 413, 415), dependencies=checks)
-    app.state.routes = [route for module in routers for route in module.router.routes]
+    app.state.routes = [  # the app's own (the OpenAPI document), then the routers'
+        *(route for route in app.routes if getattr(route, "path", None)),
+        *(route for module in routers for route in module.router.routes),
+    ]
     return app

@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import HTTPConnection
 
-from server.api.errors import api_error
+from server.api.errors import api_error, cut
 from server.api.readiness import Readiness
 from server.api.security import token_matches
 from server.auctions.patrons import PatronCheck
@@ -172,7 +172,7 @@ async def known_query(connection: HTTPConnection) -> None:
             takes = ", ".join(sorted(known)) or "none"
             raise api_error(
                 422,
-                f"unknown query parameter {name!r} (this path takes: {takes})",
+                f"unknown query parameter {cut(name)!r} (this path takes: {takes})",
                 loc=("query", name),
                 kind="unknown_parameter",
             )

@@ -55,8 +55,18 @@ thousands of bad items would otherwise be answered with megabytes)."""
 
 
 def error_item(msg: str, *, loc: Sequence[str | int] = (), kind: str = "error") -> dict[str, Any]:
-    """A ``detail`` entry."""
-    return {"loc": list(loc), "msg": msg, "type": kind}
+    """A ``detail`` entry (each ``loc`` key cut to ``MAX_LOC_PART`` characters)."""
+    return {
+        "loc": [cut(part) if isinstance(part, str) else part for part in loc],
+        "msg": msg,
+        "type": kind,
+    }
+
+
+def cut(name: str) -> str:
+    """A name from the request as an answer shows it: its first ``MAX_LOC_PART`` characters
+    (a key of 200,000 characters is named by its start)."""
+    return name if len(name) <= MAX_LOC_PART else name[:MAX_LOC_PART] + "…"
 
 
 def capped(items: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -116,10 +126,7 @@ def _json_safe_loc(loc: Iterable[Any]) -> list[str | int]:
     """A path into the request as the answer names it: pydantic's union tags left out, each
     key cut to ``MAX_LOC_PART`` characters."""
     parts = [part if isinstance(part, int) else str(part) for part in loc]
-    return [
-        part if isinstance(part, int) or len(part) <= MAX_LOC_PART else part[:MAX_LOC_PART] + "…"
-        for part in without_tags(parts)
-    ]
+    return [part if isinstance(part, int) else cut(part) for part in without_tags(parts)]
 
 
 def allowed_methods(request: Request) -> list[str]:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections import Counter
 from urllib.parse import parse_qsl
 
 from fastapi.responses import JSONResponse
@@ -28,7 +29,7 @@ from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from starlette.websockets import WebSocket
 
-from server.api.errors import error_item
+from server.api.errors import cut, error_item
 
 API_CONTENT_SECURITY_POLICY = (
     "default-src 'none'; base-uri 'none'; form-action 'none'; frame-ancestors 'none'"
@@ -42,7 +43,11 @@ SECURITY_HEADERS = {
 }
 TOKEN_PARAMETERS = ("token", "access_token")
 """Query parameters refused with 400, in any case: a token there would be logged."""
-ONCE_HEADERS = {b"authorization": "Authorization", b"last-event-id": "Last-Event-ID"}
+ONCE_HEADERS = {
+    b"authorization": "Authorization",
+    b"last-event-id": "Last-Event-ID",
+    b"content-type": "Content-Type",
+}
 """Headers refused with 400 when given twice: which one counts would be a guess."""
 SECRET_NAME = re.compile(r"token|secret|password|passwd|key|auth", re.I)
 """Query parameters whose value the access log never prints."""
@@ -63,10 +68,11 @@ class SecurityHeadersMiddleware:
             scope = {**scope, "method": "GET"}  # the server's own scope still says HEAD
             send = _headers_only(send)
         pairs = parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True)
-        names = {name for name, _ in pairs}
+        counts = Counter(name for name, _ in pairs)  # linear: 13,500 names had taken 3.8 s
+        names = counts.keys()
         if len(names) != len(pairs):  # which one counts would be a guess (``?wait=0&wait=30``)
-            twice = next(name for name in names if sum(n == name for n, _ in pairs) > 1)
-            message = f"the query parameter {twice!r} is given more than once: give it once"
+            twice = next(name for name, given in counts.items() if given > 1)
+            message = f"the query parameter {cut(twice)!r} is given more than once: give it once"
             loc = ("query", twice)
             await _refuse(scope, receive, _with_headers(send), message, loc, "duplicate_parameter")
             return

@@ -286,6 +286,26 @@ def test_a_header_that_names_one_thing_given_twice_is_refused(client: TestClient
         assert response.status_code == 400, response.text
         (item,) = response.json()["detail"]
         assert item["loc"] == ["header", name] and item["type"] == "duplicate_header"
+    # The body's checks read the last Content-Type and the routes the first: 415 or 422
+    # depending on their order.
+    for types in (["text/plain", "application/json"], ["application/json", "text/plain"]):
+        headers = [("Content-Type", value) for value in types]
+        response = client.post("/submit", content=b"{}", headers=headers)
+        assert response.status_code == 400, response.text
+        (item,) = response.json()["detail"]
+        assert item["loc"] == ["header", "Content-Type"] and item["type"] == "duplicate_header"
+
+
+def test_a_long_parameter_name_is_named_by_its_start(client: TestClient) -> None:
+    """Refusals name a parameter by its first 64 characters (an 8,000-character name had come
+    back whole, twice, in a 16 KB answer)."""
+    name = "a" * 8000
+    for query in (f"{name}=1", f"{name}=1&{name}=2"):
+        response = client.get(f"/models?{query}")
+        assert response.status_code in (400, 422), response.text
+        (item,) = response.json()["detail"]
+        assert item["loc"] == ["query", "a" * 64 + "…"], item["loc"]
+        assert len(item["msg"]) < 300 and "a" * 64 + "…" in item["msg"]
 
 
 @pytest.mark.parametrize(
@@ -349,6 +369,7 @@ def test_405_names_every_method_of_the_path(client: TestClient) -> None:
         ("OPTIONS", "/jobs/1", "DELETE, GET, HEAD"),
         ("PUT", "/jobs/1", "DELETE, GET, HEAD"),
         ("GET", "/submit", "POST"),
+        ("OPTIONS", "/openapi.json", "GET, HEAD"),  # the app's own route too
     ):
         response = client.request(method, path)
         assert response.status_code == 405

@@ -18,7 +18,9 @@ uses, does not.) ``timed_protocol`` is uvicorn's httptools protocol plus:
 Each of these answers, an unreadable request's 400 and a connection past ``limit_concurrency``
 (503), carries the common JSON error body.
 A WebSocket upgrade leaves these deadlines, and the connection count, once its handshake header
-is in: the socket's own pings and limits (``server.api.limits``) take over.
+is in: the socket's own pings and limits (``server.api.limits``) take over, and
+``GuardedWebSocketProtocol``, uvicorn's WebSocket protocol plus a bound on control frames (the
+messages' own allowance never sees them).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from collections import Counter
 from typing import Any, ClassVar
 
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 log = logging.getLogger("srd.connections")
 
@@ -275,3 +278,63 @@ def raise_file_limit() -> int:
 def connection_cap(wanted: int, file_limit: int) -> int:
     """Connections ``srd serve`` holds at most: ``wanted``, below the file-descriptor limit."""
     return max(16, min(wanted, file_limit - FD_RESERVE))
+
+
+CLOSE_WAIT_S = 2.0
+"""How long a socket closed for its control frames waits for the peer's close before it ends
+the connection (closing over unread bytes would reset it, and the peer could lose the close)."""
+CONTROL_BURST, CONTROL_PER_S = 64, 16.0
+"""Control frames (pings, pongs) one socket may send: a burst, refilled per second, as its
+messages' allowance (``server.auctions.sockets``); past it the socket is closed with 1008."""
+
+
+class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
+    """uvicorn's WebSocket protocol plus a bound on control frames. uvicorn answers a ping at
+    once, below the app, so the app's message allowance never counts it: one socket's pings
+    (25 MB in 8 s) had held a core, and a peer that did not read its pongs grew the server's
+    write buffer by 54 MB a second. Here pings and pongs share a token bucket (beyond it the
+    socket is closed with 1008), and a ping that finds the write buffer full pauses reading
+    until it drains."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._tokens = float(CONTROL_BURST)
+        self._counted_at = self.loop.time()
+        self._reading_held = False
+
+    def _allowed(self) -> bool:
+        """Take a control frame's token; False (and the socket closed) when there is none."""
+        if self.close_sent:
+            return False
+        now = self.loop.time()
+        self._tokens = min(CONTROL_BURST, self._tokens + (now - self._counted_at) * CONTROL_PER_S)
+        self._counted_at = now
+        if self._tokens >= 1:
+            self._tokens -= 1
+            return True
+        reason = f"more than {CONTROL_BURST} pings and pongs at once"
+        self.conn.send_close(1008, reason)
+        self.transport.write(b"".join(self.conn.data_to_send()))
+        self.close_sent = True  # what the peer still sends is dropped, its close ends it
+        self.queue.put_nowait({"type": "websocket.disconnect", "code": 1008, "reason": reason})
+        self.close_timer = self.loop.call_later(CLOSE_WAIT_S, self.transport.close)
+        return False
+
+    def handle_ping(self) -> None:
+        if not self._allowed():
+            return
+        super().handle_ping()
+        if not self.writable.is_set():  # its pongs pile up unread (again, if the app resumed)
+            self._reading_held = True
+            self.transport.pause_reading()
+
+    def handle_pong(self, event: Any) -> None:
+        if self._allowed():
+            super().handle_pong(event)
+
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        if self._reading_held:
+            self._reading_held = False
+            if not self.read_paused:  # else the app's next receive resumes it
+                self.transport.resume_reading()

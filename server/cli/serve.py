@@ -45,7 +45,12 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
             super().handle_exit(sig, frame)
             _drain(self.config.app)
 
-    from server.api.connections import connection_cap, raise_file_limit, timed_protocol
+    from server.api.connections import (
+        GuardedWebSocketProtocol,
+        connection_cap,
+        raise_file_limit,
+        timed_protocol,
+    )
     from server.api.hardening import RedactQueryFilter, SocketLinesFilter
     from server.api.readiness import make_data_dir
     from server.app import create_app
@@ -66,6 +71,7 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         log_level=log_level,
         access_log=settings.access_log,
         timeout_graceful_shutdown=10,
+        ws=GuardedWebSocketProtocol,  # uvicorn's, with its control frames bounded
         ws_max_size=MAX_FRAME_BYTES,  # the round sockets' frames (an upload's manifest)
         http=timed_protocol(
             header_timeout_s=settings.header_timeout_s,

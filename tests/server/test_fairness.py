@@ -19,6 +19,8 @@ import httpx
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect as ws_connect
 
 from server.api.connections import TIMEOUT_ANSWER
 from server.app import create_app
@@ -493,3 +495,25 @@ def test_head_answers_every_get_path_with_its_headers_and_no_body(
             assert client.head(f"/auctions/{auction_id}/events").status_code == 200
         assert client.head("/submit").status_code == 405  # no GET there: no HEAD either
         assert client.get("/healthz").status_code == 200  # the connection goes on
+
+
+def test_a_socket_flooding_pings_is_closed_and_others_are_served(
+    server: ServerProcess, auction_id: int
+) -> None:
+    """uvicorn answers pings below the app, whose message allowance never saw them: one socket's
+    pings held a core (a probe of /livez waited 7.4 s) and, unread, grew the write buffer by
+    54 MB a second. Now pings and pongs share the messages' allowance (64 at once, 16 a
+    second); past it the socket is closed with 1008."""
+    url = server.url.replace("http://", "ws://") + f"/auctions/{auction_id}/rounds/socket"
+    with ws_connect(url, ping_interval=None) as socket:  # no keep-alive of its own
+        socket.recv(timeout=10)
+        for _ in range(16):  # within the allowance: answered
+            socket.ping().wait(5)
+        with pytest.raises(ConnectionClosed) as closed:
+            for _ in range(200):
+                socket.ping()
+            while True:
+                socket.recv(timeout=10)
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
+    with client_from("127.0.0.42", server) as client:
+        assert client.get("/livez").status_code == 200

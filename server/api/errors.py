@@ -281,5 +281,6 @@ def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         "names the field",
         429: "Over a quota or rate limit; ``Retry-After`` says when to try again",
         503: "A service the request needs is unavailable; retry",
+        505: "An event stream asked for over HTTP/1.0 (it is sent in chunks: use HTTP/1.1)",
     }
     return {code: {"model": ErrorBody, "description": text[code]} for code in codes}

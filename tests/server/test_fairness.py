@@ -517,3 +517,28 @@ def test_a_socket_flooding_pings_is_closed_and_others_are_served(
         assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
     with client_from("127.0.0.42", server) as client:
         assert client.get("/livez").status_code == 200
+
+
+def test_an_event_stream_asked_over_http_1_0_is_refused_in_json(
+    server: ServerProcess, auction_id: int
+) -> None:
+    """A stream is sent in chunks, which HTTP/1.0 has not (RFC 9112, 6.1: no Transfer-Encoding
+    to an HTTP/1.0 request): such a client read chunk sizes among its events. Now 505, in
+    JSON; the same over HTTP/1.1 streams."""
+
+    async def ask(version: str) -> bytes:
+        reader, writer = await _open(server, "127.0.0.43")
+        writer.write(
+            f"GET /auctions/{auction_id}/events HTTP/{version}\r\nHost: t\r\n\r\n".encode()
+        )
+        try:
+            # HTTP/1.0: the answer, then the end; HTTP/1.1: the stream's start
+            return await asyncio.wait_for(reader.read(-1 if version == "1.0" else 400), 10)
+        finally:
+            writer.close()
+
+    old = asyncio.run(ask("1.0"))
+    head, _, body = old.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 505") and b"transfer-encoding" not in head.lower(), head
+    assert b'"type":"http_version"' in body and b"HTTP/1.1" in body
+    assert asyncio.run(ask("1.1")).startswith(b"HTTP/1.1 200")

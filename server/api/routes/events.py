@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import Annotated
 
 import anyio
-from fastapi import APIRouter, Depends, Header, Query
+from fastapi import APIRouter, Depends, Header, Query, Request
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 from sqlalchemy.orm import Session
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -57,7 +57,19 @@ from server.store import crud
 from server.store.status import AUCTION_ENDED, JOB_ENDED, RoundStatus
 from server.store.tables import Job
 
-router = APIRouter(tags=["events"])
+
+async def _chunks_allowed(request: Request) -> None:
+    """A stream is sent in chunks (its length is not known), which HTTP/1.0 has not: a client
+    that asks over HTTP/1.0 is told so (505), instead of reading chunk sizes in its events."""
+    if request.scope.get("http_version") == "1.0":
+        raise api_error(
+            505,
+            "an event stream is sent in chunks, which HTTP/1.0 has not: ask over HTTP/1.1",
+            kind="http_version",
+        )
+
+
+router = APIRouter(tags=["events"], dependencies=[Depends(_chunks_allowed)])
 log = logging.getLogger("srd.events")
 
 RETRY_AFTER_S = 5
@@ -257,7 +269,7 @@ async def _existing_auction(auction_id: AuctionIdPath, database: DatabaseDep) ->
     "/auctions/{auction_id}/events",
     response_class=EventSourceResponse,
     operation_id="auction_events",
-    responses=responses(404, 422, 503),
+    responses=responses(404, 422, 503, 505),
 )
 async def auction_events(
     resume: Annotated[Position, Depends(_auction_resume)],
@@ -331,7 +343,7 @@ async def _existing_job(job_id: JobIdPath, database: DatabaseDep) -> int:
     "/jobs/{job_id}/events",
     response_class=EventSourceResponse,
     operation_id="job_events",
-    responses=responses(404, 422, 503),
+    responses=responses(404, 422, 503, 505),
 )
 async def job_events(
     resume: Annotated[str | None, Depends(_job_resume)],

@@ -26,6 +26,7 @@ from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Redirect
 from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, JUDGEMENTS, PFC_SOURCES, VERDICTS
 from screener.findings import INPUT_WORDS, ROLE
 from server.api.errors import api_error
+from server.api.files import ServedFile
 from studies.registry import KINDS
 
 router = APIRouter(include_in_schema=False)
@@ -97,7 +98,7 @@ def _file(files: dict[str, Path], name: str) -> FileResponse:
     path = files.get(name)
     if path is None:
         raise api_error(404, f"no file {name!r} here", loc=("path", "name"), kind="not_found")
-    return FileResponse(path, media_type=MEDIA_TYPES[path.suffix], headers=PAGE_HEADERS)
+    return ServedFile(path, media_type=MEDIA_TYPES[path.suffix], headers=PAGE_HEADERS)
 
 
 @router.get("/")

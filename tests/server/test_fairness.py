@@ -494,6 +494,9 @@ def test_head_answers_every_get_path_with_its_headers_and_no_body(
         for _ in range(STREAMS_PER_CLIENT + 4):  # each ended stream gave its slot back
             assert client.head(f"/auctions/{auction_id}/events").status_code == 200
         assert client.head("/submit").status_code == 405  # no GET there: no HEAD either
+        page = client.get("/ui/app.js")  # the web view's files: revalidated, not sent again
+        again = client.get("/ui/app.js", headers={"If-None-Match": page.headers["etag"]})
+        assert again.status_code == 304 and again.content == b""
         assert client.get("/healthz").status_code == 200  # the connection goes on
 
 

@@ -117,10 +117,27 @@ def test_job_lifecycle(client: TestClient, settings: Settings) -> None:
     assert png.headers["content-type"] == "image/png" and png.content[:4] == b"\x89PNG"
     part = client.get(f"/jobs/{short}/artifacts/fish.png", headers={"Range": "bytes=0-3"})
     assert part.status_code == 206 and part.content == b"\x89PNG"
-    for bad, status in (("bytes=999999999-", 416), ("lines=1-2", 400)):  # refused in JSON
-        refused = client.get(f"/jobs/{short}/artifacts/fish.png", headers={"Range": bad})
-        assert refused.status_code == status, refused.text
-        assert refused.json()["detail"][0]["loc"] == ["header", "Range"]
+    unsatisfiable = {"Range": "bytes=999999999-"}
+    refused = client.get(f"/jobs/{short}/artifacts/fish.png", headers=unsatisfiable)
+    assert refused.status_code == 416, refused.text  # in JSON
+    assert refused.json()["detail"][0]["loc"] == ["header", "Range"]
+    for ignored in ("lines=1-2", "items=0-1", "bytes=5-2", "bytes=x"):  # RFC 9110, 14.2
+        whole = client.get(f"/jobs/{short}/artifacts/fish.png", headers={"Range": ignored})
+        assert whole.status_code == 200 and whole.content == png.content, ignored
+    # Preconditions (RFC 9110, 13.2): its validators are evaluated.
+    url = f"/jobs/{short}/artifacts/fish.png"
+    etag, modified = png.headers["etag"], png.headers["last-modified"]
+    for asked in ({"If-None-Match": etag}, {"If-None-Match": f"W/{etag}, \"x\""},
+                  {"If-Modified-Since": modified}, {"If-None-Match": "*"}):  # fmt: skip
+        same = client.get(url, headers=asked)
+        assert same.status_code == 304 and same.content == b"", asked
+        assert same.headers["etag"] == etag
+    for asked in ({"If-Match": '"nope"'}, {"If-Unmodified-Since": "Sat, 01 Jan 2000 00:00:00 GMT"}):
+        failed = client.get(url, headers=asked)
+        assert failed.status_code == 412, asked
+        assert failed.json()["detail"][0]["type"] == "precondition"
+    for asked in ({"If-None-Match": '"other"'}, {"If-Match": etag}, {"If-Modified-Since": "x"}):
+        assert client.get(url, headers=asked).status_code == 200, asked
     long_name = client.get(f"/jobs/{short}/artifacts/{'x' * 5000}")
     assert long_name.status_code == 404 and len(long_name.content) < 500
     assert client.delete(f"/jobs/{short}", headers=ADMIN).status_code == 409

@@ -7,11 +7,11 @@ from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, Query
-from fastapi.responses import FileResponse, JSONResponse
-from starlette.types import Message, Receive, Scope, Send
+from fastapi.responses import FileResponse
 
 from server.api.deps import AdminDep, JobRunnerDep, SessionDep, SettingsDep, read_in_thread
-from server.api.errors import error_item, link, responses
+from server.api.errors import link, responses
+from server.api.files import ServedFile
 from server.api.pages import DEFAULT_PAGE, PageCursor, PageLimit, PageOrder, page_of
 from server.api.schemas import (
     JobCreate,
@@ -87,37 +87,10 @@ def read_artifact(
     job_id: JobIdPath, name: str, session: SessionDep, settings: SettingsDep
 ) -> FileResponse:
     """One artifact file of a job (a name listed in its ``artifacts``); a ``Range`` of it
-    too (206; a range it cannot serve: 400 or 416 in JSON)."""
+    too (206; one it cannot serve: 416 in JSON; a malformed one is ignored), and its
+    preconditions evaluated (``If-None-Match``: 304; ``If-Match``: 412)."""
     path = jobs.artifact_path(session, settings.data_dir, job_id, name)
-    return _Artifact(path, filename=Path(name).name, content_disposition_type="inline")
-
-
-class _Artifact(FileResponse):
-    """A file whose refusals of a ``Range`` (starlette answers them in plain text) are JSON,
-    as every error of the API is."""
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        refused: list[Message] = []
-
-        async def sending(message: Message) -> None:
-            if message["type"] == "http.response.start" and message["status"] in (400, 416):
-                refused.append(message)  # answered below, in JSON
-            elif not refused:
-                await send(message)
-
-        await super().__call__(scope, receive, sending)
-        if refused:
-            status = refused[0]["status"]
-            words = (
-                "cannot be served: the file has fewer bytes" if status == 416 else "is malformed"
-            )
-            headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in refused[0]["headers"]}
-            headers.pop("content-length", None)
-            headers.pop("content-type", None)
-            body = {
-                "detail": [error_item(f"the Range {words}", loc=("header", "Range"), kind="range")]
-            }
-            await JSONResponse(body, status, headers)(scope, receive, send)
+    return ServedFile(path, filename=Path(name).name, content_disposition_type="inline")
 
 
 @router.delete(

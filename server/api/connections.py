@@ -8,7 +8,9 @@ uses, does not.) ``timed_protocol`` is uvicorn's httptools protocol plus:
 
 * a header deadline: from the connection's start, or a request's first byte, its whole header
   must arrive within ``header_timeout_s``, else the connection gets 408 and is closed;
-* a header size cap: a header past ``max_header_bytes`` gets 431 and the connection is closed;
+* a header size cap: a header past ``max_header_bytes`` gets 431 and the connection is closed
+  (counted as it arrives, and as the parser reads it, so a header that rides in behind another
+  request's in one read is counted too);
 * a body deadline: the request's whole body must arrive within ``body_timeout_s`` of its
   header, else the connection is closed (the app sees the client go away);
 * a share per address: one client address holds at most ``max_per_address`` open connections
@@ -41,6 +43,10 @@ log = logging.getLogger("srd.connections")
 IPV6_CLIENT_PREFIX = 64
 """An IPv6 client is its /64 network: one host usually holds a whole /64, so counting its
 single addresses would give it a share per address it cares to use."""
+
+
+class HeaderTooLargeError(Exception):
+    """Raised in a parser callback to stop the parser once a header is refused for its size."""
 
 
 def client_address(host: str) -> str:
@@ -124,6 +130,8 @@ class TimedHttpProtocol(HttpToolsProtocol):
         self._tail = b""  # the last bytes of the header read so far (its end may straddle reads)
         self._counted: str | None = None  # the address this connection is counted against
         self._refused = False  # answered with an error: what else arrives is dropped
+        self._header_parsed = 0  # the current request's header bytes, as the parser reads them
+        self._after_response: bytes | None = None  # a refusal waiting for the answer in flight
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -160,13 +168,33 @@ class TimedHttpProtocol(HttpToolsProtocol):
 
     def send_400_response(self, msg: str) -> None:
         """An unreadable request (uvicorn's parser said so): 400 with the common body."""
+        if self._refused:  # the parser was stopped after a refusal (``_parsed``)
+            return
         self.transport.write(_answer(b"400 Bad Request", msg, "bad_request"))
         self.transport.close()
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
+        self._header_parsed = 0
         if self._deadline is None or not self._reading_header:
             self._arm(self.header_timeout_s, header=True)
+
+    def on_url(self, url: bytes) -> None:
+        self._parsed(len(url))
+        super().on_url(url)
+
+    def on_header(self, name: bytes, value: bytes) -> None:
+        self._parsed(len(name) + len(value) + 4)  # ": " and the line's end
+        super().on_header(name, value)
+
+    def _parsed(self, size: int) -> None:
+        """Count a header's parsed bytes, request by request: ``data_received`` counts bytes
+        as they arrive, but a read that ends one request's header can carry the whole header
+        of the next (pipelined), past its count. Over the cap: 431, and the parser stops."""
+        self._header_parsed += size
+        if self._header_parsed > self.max_header_bytes:
+            self._refuse(TOO_LARGE_ANSWER)
+            raise HeaderTooLargeError
 
     def on_headers_complete(self) -> None:
         self._disarm()
@@ -230,7 +258,18 @@ class TimedHttpProtocol(HttpToolsProtocol):
             return
         self._refused = True
         if self.cycle is not None and not self.cycle.response_complete:
-            self.transport.close()  # an earlier pipelined request's answer is being written
+            self._after_response = answer  # an earlier pipelined request's answer comes first
+            return
+        self._answer_and_end(answer)
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if self._after_response is not None:
+            answer, self._after_response = self._after_response, None
+            self._answer_and_end(answer)
+
+    def _answer_and_end(self, answer: bytes) -> None:
+        if self.transport.is_closing():
             return
         self.transport.write(answer)
         if self.transport.can_write_eof():

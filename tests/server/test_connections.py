@@ -128,6 +128,22 @@ def test_a_header_over_the_cap_is_refused_whole_or_in_pieces(server: ServerProce
 
     status, _ = asyncio.run(in_pieces())
     assert status == 431
+
+    async def behind_a_small_one() -> bytes:
+        """A small request, then in the same write one whose header is over the cap: the read
+        that ends the first header carries the second whole (it had been answered 200)."""
+        reader, writer = await _open(server, NEIGHBOUR)
+        try:
+            first = b"GET /healthz HTTP/1.1\r\nHost: test\r\n\r\n"  # kept alive
+            writer.write(first + _get("/healthz", padding))
+            await writer.drain()
+            return await asyncio.wait_for(reader.read(), 10)
+        finally:
+            writer.close()
+
+    answers = asyncio.run(behind_a_small_one())
+    assert answers.startswith(b"HTTP/1.1 200") and answers.count(b"HTTP/1.1 ") == 2, answers[:300]
+    assert b"HTTP/1.1 431" in answers
     within = "X-Padding: " + "a" * (MAX_HEADER_BYTES // 2)
     assert asyncio.run(_exchange(server, NEIGHBOUR, _get("/healthz", within)))[0] == 200
 

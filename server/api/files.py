@@ -18,11 +18,11 @@ from email.utils import parsedate_to_datetime
 from pathlib import Path
 from typing import Any
 
-from fastapi.responses import FileResponse, JSONResponse
+from fastapi.responses import FileResponse
 from starlette.datastructures import Headers
 from starlette.types import Message, Receive, Scope, Send
 
-from server.api.errors import error_item
+from server.api.errors import api_error, problem_response
 
 
 class ServedFile(FileResponse):
@@ -42,10 +42,10 @@ class ServedFile(FileResponse):
             await send({"type": "http.response.body", "body": b""})
             return
         if status == 412:
-            message = (
-                "the file does not meet the request's precondition (If-Match, If-Unmodified-Since)"
-            )
-            await _refuse(scope, receive, send, 412, message, ("header", "If-Match"))
+            header = "If-Match" if "if-match" in asked else "If-Unmodified-Since"
+            message = f"the file does not meet the request's precondition ({header})"
+            refusal = api_error(412, message, loc=("header", header), kind="precondition")
+            await problem_response(refusal)(scope, receive, send)
             return
         if not asked.get("range", "bytes=").strip().lower().startswith("bytes="):
             scope = _without_range(scope)  # a unit it does not know: ignored
@@ -65,7 +65,10 @@ class ServedFile(FileResponse):
             headers.pop("content-length", None)
             headers.pop("content-type", None)
             message = "the Range cannot be served: the file has fewer bytes"
-            await _refuse(scope, receive, send, 416, message, ("header", "Range"), headers)
+            refusal = api_error(
+                416, message, loc=("header", "Range"), kind="range", headers=headers
+            )
+            await problem_response(refusal)(scope, receive, send)
 
     def _precondition(self, asked: Headers, method: str) -> int | None:
         """412, 304, or None (serve) for the request's preconditions, in RFC 9110's order."""
@@ -110,18 +113,3 @@ def _date(value: str) -> Any:
 def _without_range(scope: Scope) -> Scope:
     headers = [(k, v) for k, v in scope["headers"] if k not in (b"range", b"if-range")]
     return {**scope, "headers": headers}
-
-
-async def _refuse(
-    scope: Scope,
-    receive: Receive,
-    send: Send,
-    status: int,
-    message: str,
-    loc: tuple[str, str],
-    headers: dict[str, str] | None = None,
-) -> None:
-    body = {
-        "detail": [error_item(message, loc=loc, kind="precondition" if status == 412 else "range")]
-    }
-    await JSONResponse(body, status, headers)(scope, receive, send)

@@ -135,7 +135,8 @@ def test_job_lifecycle(client: TestClient, settings: Settings) -> None:
     for asked in ({"If-Match": '"nope"'}, {"If-Unmodified-Since": "Sat, 01 Jan 2000 00:00:00 GMT"}):
         failed = client.get(url, headers=asked)
         assert failed.status_code == 412, asked
-        assert failed.json()["detail"][0]["type"] == "precondition"
+        (item,) = failed.json()["detail"]
+        assert item["type"] == "precondition" and item["loc"] == ["header", *asked], item
     for asked in ({"If-None-Match": '"other"'}, {"If-Match": etag}, {"If-Modified-Since": "x"}):
         assert client.get(url, headers=asked).status_code == 200, asked
     long_name = client.get(f"/jobs/{short}/artifacts/{'x' * 5000}")

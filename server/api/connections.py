@@ -32,6 +32,7 @@ import ipaddress
 import json
 import logging
 import resource
+import time
 from collections import Counter
 from typing import Any, ClassVar
 
@@ -327,6 +328,23 @@ CONTROL_BURST, CONTROL_PER_S = 64, 16.0
 messages' allowance (``server.auctions.sockets``); past it the socket is closed with 1008."""
 
 
+class TokenBucket:
+    """A token bucket: ``take`` is False once the allowance is spent."""
+
+    def __init__(self, burst: int, refill_per_s: float) -> None:
+        self._burst, self._refill = float(burst), refill_per_s
+        self._tokens, self._at = float(burst), time.monotonic()
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self._tokens = min(self._burst, self._tokens + (now - self._at) * self._refill)
+        self._at = now
+        if self._tokens < 1.0:
+            return False
+        self._tokens -= 1.0
+        return True
+
+
 class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
     """uvicorn's WebSocket protocol plus a bound on control frames. uvicorn answers a ping at
     once, below the app, so the app's message allowance never counts it: one socket's pings
@@ -337,19 +355,14 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self._tokens = float(CONTROL_BURST)
-        self._counted_at = self.loop.time()
+        self._control = TokenBucket(CONTROL_BURST, CONTROL_PER_S)
         self._reading_held = False
 
     def _allowed(self) -> bool:
         """Take a control frame's token; False (and the socket closed) when there is none."""
         if self.close_sent:
             return False
-        now = self.loop.time()
-        self._tokens = min(CONTROL_BURST, self._tokens + (now - self._counted_at) * CONTROL_PER_S)
-        self._counted_at = now
-        if self._tokens >= 1:
-            self._tokens -= 1
+        if self._control.take():
             return True
         reason = f"more than {CONTROL_BURST} pings and pongs at once"
         self.conn.send_close(1008, reason)

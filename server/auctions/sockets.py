@@ -35,7 +35,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import time
 from collections.abc import Awaitable, Callable
 from datetime import datetime
 from typing import Annotated, Any, Literal
@@ -44,6 +43,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from server.api.body import BodyRefusedError, parse_strict_json
+from server.api.connections import TokenBucket
 from server.api.errors import RequestError, capped, error_item
 from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_ROW_ID
 from server.live.rounds import MAX_WAIT_S, Published, RoundWatcher, TooManyWaitersError
@@ -87,23 +87,6 @@ class UploadMessage(BaseModel):
     model_id: Annotated[int, Field(ge=1, le=MAX_ROW_ID)]
     manifest: str
     """The manifest's JSON text, as a PUT body would carry it."""
-
-
-class _Bucket:
-    """A token bucket: ``take`` is False once the allowance is spent."""
-
-    def __init__(self, burst: int, refill_per_s: float) -> None:
-        self._burst, self._refill = float(burst), refill_per_s
-        self._tokens, self._at = float(burst), time.monotonic()
-
-    def take(self) -> bool:
-        now = time.monotonic()
-        self._tokens = min(self._burst, self._tokens + (now - self._at) * self._refill)
-        self._at = now
-        if self._tokens < 1.0:
-            return False
-        self._tokens -= 1.0
-        return True
 
 
 class SocketLimitError(RuntimeError):
@@ -240,7 +223,7 @@ class RoundSockets:
                 raise _DrainingError
 
     async def _answer_uploads(self, socket: _Socket, upload: UploadHandler) -> None:
-        bucket = _Bucket(BURST, REFILL_PER_S)
+        bucket = TokenBucket(BURST, REFILL_PER_S)
         while True:
             message = await socket.websocket.receive()
             if message["type"] == "websocket.disconnect":

@@ -96,6 +96,11 @@ TIMEOUT_ANSWER = _answer(
 TOO_LARGE_ANSWER = _answer(
     b"431 Request Header Fields Too Large", "the request's header is too large", "header_too_large"
 )
+UPGRADE_ANSWER = _answer(
+    b"400 Bad Request",
+    "only a GET may ask to upgrade (a WebSocket handshake): send this request without Upgrade",
+    "bad_upgrade",
+)
 FULL_ANSWER = _answer(
     b"503 Service Unavailable",
     "the server holds as many connections as it can; retry shortly",
@@ -200,6 +205,12 @@ class TimedHttpProtocol(HttpToolsProtocol):
     def on_headers_complete(self) -> None:
         self._disarm()
         self._reading_header = False
+        if self.parser.should_upgrade() and self.parser.get_method() != b"GET":
+            # The parser hands what follows such a header to the upgrade, not to the body: a
+            # POST carrying one had reached the app without its body, or been refused by the
+            # WebSocket library with a plain-text 405 naming GET.
+            self._refuse(UPGRADE_ANSWER)
+            return
         super().on_headers_complete()
         if not self.transport.is_closing():
             self._arm(self.body_timeout_s, header=False)
@@ -213,6 +224,14 @@ class TimedHttpProtocol(HttpToolsProtocol):
         self._disarm()
         self._uncount()
         super().handle_websocket_upgrade()
+
+    def _should_upgrade(self) -> bool:
+        """Only a GET is a WebSocket handshake (RFC 6455, 4.1); another method asking to
+        upgrade is refused in ``on_headers_complete``."""
+        return self.scope.get("method") == "GET" and super()._should_upgrade()
+
+    def _unsupported_upgrade_warning(self) -> None:
+        """An upgrade declined: answered already (``UPGRADE_ANSWER``), nothing to log."""
 
     def _exempt(self, address: str) -> bool:
         if not self.exempt:

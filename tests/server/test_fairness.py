@@ -10,6 +10,7 @@ server sees them as distinct clients.
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -19,7 +20,7 @@ import httpx
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect as ws_connect
 
 from server.api.connections import TIMEOUT_ANSWER
@@ -545,3 +546,33 @@ def test_an_event_stream_asked_over_http_1_0_is_refused_in_json(
     assert head.startswith(b"HTTP/1.1 505") and b"transfer-encoding" not in head.lower(), head
     assert b'"type":"http_version"' in body and b"HTTP/1.1" in body
     assert asyncio.run(ask("1.1")).startswith(b"HTTP/1.1 200")
+
+
+def test_only_a_get_may_ask_to_upgrade(server: ServerProcess) -> None:
+    """Only a GET is a WebSocket handshake (RFC 6455, 4.1). The parser hands what follows an
+    ``Upgrade`` header to the upgrade, not to the body: a POST carrying one had been refused by
+    the WebSocket library with a plain-text 405 naming GET (the path takes POST only), or had
+    reached the app without its body. Now a JSON 400 naming the header's fault."""
+    body = b"{}"
+
+    async def post() -> bytes:
+        reader, writer = await _open(server, "127.0.0.44")
+        head = (
+            "POST /submit HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n"
+            "Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
+            f"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nContent-Length: {len(body)}\r\n\r\n"
+        )
+        writer.write(head.encode() + body)
+        try:
+            return await asyncio.wait_for(reader.read(-1), 10)  # answered, then closed
+        finally:
+            writer.close()
+
+    answer = asyncio.run(post())
+    head, _, payload = answer.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 400") and b"application/json" in head, head
+    assert json.loads(payload)["detail"][0]["type"] == "bad_upgrade"
+    url = server.url.replace("http://", "ws://") + "/auctions/999999/rounds/socket"
+    with pytest.raises(InvalidStatus) as refused:  # a GET handshake still reaches the app
+        ws_connect(url).close()
+    assert refused.value.response.status_code == 404

@@ -65,7 +65,11 @@ class Outcome:
     prices: tuple[float, ...]
     sold: int
     honest: int
-    mean_price: float
+
+    @property
+    def mean_price(self) -> float:
+        """The prices' mean (NaN when nothing sold)."""
+        return float(np.mean(self.prices)) if self.prices else float("nan")
 
 
 def first_trials() -> tuple[int, ...]:
@@ -168,16 +172,13 @@ def run(candidates: Sequence[Candidate], trials: tuple[int, ...] | None = None) 
         bought = [b for a in range(c * per, (c + 1) * per) for b in buyers[a]]
         honest = sum(1 for i, _ in bought if i < limits.IMPACT_HONEST)
         prices = tuple(price for _, price in bought)
-        mean = float(np.mean(prices)) if prices else float("nan")
-        outcomes.append(Outcome(prices, len(bought), honest, mean))
+        outcomes.append(Outcome(prices, len(bought), honest))
     return outcomes
 
 
 def pooled(first: Outcome, more: Outcome) -> Outcome:
     """One model's outcome over the auctions of both."""
-    prices = first.prices + more.prices
-    mean = float(np.mean(prices)) if prices else float("nan")
-    return Outcome(prices, first.sold + more.sold, first.honest + more.honest, mean)
+    return Outcome(first.prices + more.prices, first.sold + more.sold, first.honest + more.honest)
 
 
 def _as_batch(candidate: Manifest | FSNBatch) -> FSNBatch:

@@ -11,6 +11,10 @@ Content-Length up front and by counting what arrives), then, for a request that 
   answers invalid JSON);
 * a key given twice in one object, or a NaN / Infinity token, gets 422 naming its path.
 
+The size, the media type and the encoding are judged on the header before the body is read:
+a client that sent ``Expect: 100-continue`` is refused without its 100 and sends no body. (A
+token is checked after the body: FastAPI reads it before it runs a route's dependencies.)
+
 What passes reaches the route unchanged; the route validates it against its schema (strict
 numbers, booleans and integers). All refusals use the common error body of ``server.api.errors``.
 """
@@ -254,6 +258,15 @@ class RequestBodyMiddleware:
                 )
             await _refuse(send, error)
             return
+        content_type = headers.get(b"content-type", b"").decode("latin-1")
+        if (declared is not None and int(declared) > 0) or b"transfer-encoding" in headers:
+            try:  # a body is coming: refused on its header alone before it is asked for
+                # (uvicorn sends ``Expect: 100-continue``'s 100 at the first read)
+                _plain(headers.get(b"content-encoding", b"").decode("latin-1"))
+                _media_type(content_type)
+            except BodyRefusedError as error:
+                await _refuse(send, error)
+                return
         body = bytearray()
         while True:
             message = await receive()
@@ -268,7 +281,8 @@ class RequestBodyMiddleware:
         if body:
             try:
                 _plain(headers.get(b"content-encoding", b"").decode("latin-1"))
-                self._check(headers.get(b"content-type", b"").decode("latin-1"), bytes(body))
+                _media_type(content_type)
+                parse_strict_json(bytes(body))
             except BodyRefusedError as error:
                 await _refuse(send, error)
                 return
@@ -287,21 +301,21 @@ class RequestBodyMiddleware:
     def _too_large(self) -> str:
         return f"request body larger than {self.max_bytes} bytes"
 
-    @staticmethod
-    def _check(content_type: str, body: bytes) -> None:
-        if not _is_json(content_type):
-            shown = content_type or "none"
-            raise BodyRefusedError(
-                415,
-                f"the body must be JSON (Content-Type: application/json), not {shown}",
-                ("header", "Content-Type"),
-                "media_type",
-            )
-        if not _charset_ok(content_type):
-            raise BodyRefusedError(
-                415, "the body must be UTF-8 JSON", ("header", "Content-Type"), "charset"
-            )
-        parse_strict_json(body)
+
+def _media_type(content_type: str) -> None:
+    """A body that is not UTF-8 JSON by its ``Content-Type`` gets 415."""
+    if not _is_json(content_type):
+        shown = content_type or "none"
+        raise BodyRefusedError(
+            415,
+            f"the body must be JSON (Content-Type: application/json), not {shown}",
+            ("header", "Content-Type"),
+            "media_type",
+        )
+    if not _charset_ok(content_type):
+        raise BodyRefusedError(
+            415, "the body must be UTF-8 JSON", ("header", "Content-Type"), "charset"
+        )
 
 
 def _plain(content_encoding: str) -> None:

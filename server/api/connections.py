@@ -8,6 +8,9 @@ uses, does not.) ``timed_protocol`` is uvicorn's httptools protocol plus:
 
 * a header deadline: from the connection's start, or a request's first byte, its whole header
   must arrive within ``header_timeout_s``, else the connection gets 408 and is closed;
+* a header this server will not serve gets its answer before any app sees it: an HTTP/1.1
+  request without exactly one ``Host`` 400 (RFC 9112, 3.2), a version other than 1.0 and 1.1
+  in the request line 505, a method other than GET asking to upgrade 400;
 * a header size cap: a header past ``max_header_bytes`` gets 431 and the connection is closed
   (counted as it arrives, and as the parser reads it, so a header that rides in behind another
   request's in one read is counted too);
@@ -46,8 +49,8 @@ IPV6_CLIENT_PREFIX = 64
 single addresses would give it a share per address it cares to use."""
 
 
-class HeaderTooLargeError(Exception):
-    """Raised in a parser callback to stop the parser once a header is refused for its size."""
+class HeaderRefusedError(Exception):
+    """Raised in a parser callback to stop the parser once a header is refused."""
 
 
 def client_address(host: str) -> str:
@@ -95,6 +98,16 @@ TIMEOUT_ANSWER = _answer(
 )
 TOO_LARGE_ANSWER = _answer(
     b"431 Request Header Fields Too Large", "the request's header is too large", "header_too_large"
+)
+HOST_ANSWER = _answer(
+    b"400 Bad Request",
+    "an HTTP/1.1 request carries exactly one Host header (RFC 9112, 3.2)",
+    "bad_host",
+)
+VERSION_ANSWER = _answer(
+    b"505 HTTP Version Not Supported",
+    "this server speaks HTTP/1.0 and HTTP/1.1 on this connection",
+    "http_version",
 )
 UPGRADE_ANSWER = _answer(
     b"400 Bad Request",
@@ -200,20 +213,33 @@ class TimedHttpProtocol(HttpToolsProtocol):
         self._header_parsed += size
         if self._header_parsed > self.max_header_bytes:
             self._refuse(TOO_LARGE_ANSWER)
-            raise HeaderTooLargeError
+            raise HeaderRefusedError
 
     def on_headers_complete(self) -> None:
         self._disarm()
         self._reading_header = False
+        refusal = self._header_refusal()
+        if refusal is not None:
+            self._refuse(refusal)
+            raise HeaderRefusedError  # the parser stops: no body reaches an app
+        super().on_headers_complete()
+        if not self.transport.is_closing():
+            self._arm(self.body_timeout_s, header=False)
+
+    def _header_refusal(self) -> bytes | None:
+        """The answer to a whole header this server will not serve, or None."""
+        version = self.parser.get_http_version()
+        if version not in ("1.0", "1.1"):  # "2.0" in an HTTP/1 request line
+            return VERSION_ANSWER
+        hosts = sum(1 for name, _ in self.headers if name == b"host")
+        if hosts > 1 or (hosts == 0 and version == "1.1"):
+            return HOST_ANSWER
         if self.parser.should_upgrade() and self.parser.get_method() != b"GET":
             # The parser hands what follows such a header to the upgrade, not to the body: a
             # POST carrying one had reached the app without its body, or been refused by the
             # WebSocket library with a plain-text 405 naming GET.
-            self._refuse(UPGRADE_ANSWER)
-            return
-        super().on_headers_complete()
-        if not self.transport.is_closing():
-            self._arm(self.body_timeout_s, header=False)
+            return UPGRADE_ANSWER
+        return None
 
     def on_message_complete(self) -> None:
         self._disarm()

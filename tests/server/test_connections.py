@@ -156,6 +156,52 @@ def test_an_unreadable_request_gets_the_common_error_body(server: ServerProcess)
     assert item["type"] == "bad_request" and item["loc"] == ["connection"]
 
 
+@pytest.mark.parametrize(
+    ("head", "status", "kind"),
+    [
+        ("GET /healthz HTTP/1.1\r\nConnection: close", 400, "bad_host"),
+        ("GET /healthz HTTP/1.1\r\nHost: a\r\nHost: b\r\nConnection: close", 400, "bad_host"),
+        ("GET /healthz HTTP/2.0\r\nHost: a\r\nConnection: close", 505, "http_version"),
+    ],
+)
+def test_a_header_the_server_will_not_serve_is_refused_before_any_route(
+    server: ServerProcess, head: str, status: int, kind: str
+) -> None:
+    got, headers, body = asyncio.run(_exchange(server, NEIGHBOUR, f"{head}\r\n\r\n".encode()))
+    assert (got, headers["content-type"], _detail(body)["type"]) == (
+        status,
+        "application/json",
+        kind,
+    )
+    # HTTP/1.0 predates Host: served without one
+    raw = b"GET /healthz HTTP/1.0\r\n\r\n"
+    assert asyncio.run(_exchange(server, NEIGHBOUR, raw))[0] == 200
+
+
+def test_a_body_refused_by_its_header_is_not_asked_for(server: ServerProcess) -> None:
+    """``Expect: 100-continue``: a media type or an encoding the server refuses is answered
+    with the refusal, not with 100 Continue, and the client need not send its body."""
+
+    async def ask(content_type: str, encoding: str = "identity") -> bytes:
+        reader, writer = await _open(server, NEIGHBOUR)
+        try:
+            writer.write(
+                (
+                    "POST /submit HTTP/1.1\r\nHost: t\r\nExpect: 100-continue\r\n"
+                    f"Content-Type: {content_type}\r\nContent-Encoding: {encoding}\r\n"
+                    "Content-Length: 20\r\n\r\n"
+                ).encode()
+            )
+            return await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), 10)
+        finally:
+            writer.close()
+
+    for content_type, encoding in (("text/plain", "identity"), ("application/json", "gzip")):
+        first = asyncio.run(ask(content_type, encoding))
+        assert first.startswith(b"HTTP/1.1 415"), first
+    assert asyncio.run(ask("application/json")).startswith(b"HTTP/1.1 100 Continue")
+
+
 @pytest.fixture(scope="module")
 def small_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
     env = {"SRD_MAX_CONNECTIONS": "16", "SRD_MAX_CONNECTIONS_PER_ADDRESS": str(SHARE)}

@@ -92,6 +92,11 @@ def test_models_list_filters_and_fields(client: TestClient, population: dict[str
     assert all(m["accepted"] and m["rules"] == [] for m in accepted["items"])
     nobody = client.get("/models", params={"participant": unique("nobody")}).json()
     assert nobody == {"items": [], "next_cursor": None}
+    for spelling in ("yes", "1", "on", "True"):  # pydantic's lax booleans are not the API's
+        refused = client.get("/models", params={"accepted": spelling})
+        assert refused.status_code == 422, spelling
+        (item,) = refused.json()["detail"]
+        assert item["loc"] == ["query", "accepted"] and "true or false" in item["msg"]
 
 
 @pytest.mark.parametrize(

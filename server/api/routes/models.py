@@ -5,6 +5,8 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
+from pydantic import BeforeValidator
+from pydantic_core import PydanticCustomError
 
 from agents.manifest import Manifest, Participant
 from server.api.deps import (
@@ -157,6 +159,16 @@ def model_summary(row: crud.ModelSummary) -> ModelSummaryPublic:
     )
 
 
+def _true_or_false(value: object) -> object:
+    """A boolean query parameter is spelt ``true`` or ``false`` (pydantic would also read
+    ``yes``, ``on``, ``1`` and their opposites)."""
+    if isinstance(value, str) and value not in ("true", "false"):
+        raise PydanticCustomError(
+            "bool_parsing", "must be true or false, not {value}", {"value": repr(value[:64])}
+        )
+    return value
+
+
 @router.get("/models", operation_id="list_models", responses=responses(422))
 async def list_models(
     session: SessionDep,
@@ -164,7 +176,9 @@ async def list_models(
         Participant | None, Query(description="Only this participant's versions.")
     ] = None,
     accepted: Annotated[
-        bool | None, Query(description="Only accepted (true) or only rejected (false) models.")
+        bool | None,
+        Query(description="Only accepted (true) or only rejected (false) models."),
+        BeforeValidator(_true_or_false),
     ] = None,
     limit: PageLimit = DEFAULT_PAGE,
     cursor: PageCursor = None,

@@ -10,7 +10,8 @@ uses, does not.) ``timed_protocol`` is uvicorn's httptools protocol plus:
   must arrive within ``header_timeout_s``, else the connection gets 408 and is closed;
 * a header this server will not serve gets its answer before any app sees it: an HTTP/1.1
   request without exactly one ``Host`` 400 (RFC 9112, 3.2), a version other than 1.0 and 1.1
-  in the request line 505, a method other than GET asking to upgrade 400;
+  in the request line 505, a method other than GET asking to upgrade 400, a method the
+  parser does not know 501;
 * a header size cap: a header past ``max_header_bytes`` gets 431 and the connection is closed
   (counted as it arrives, and as the parser reads it, so a header that rides in behind another
   request's in one read is counted too);
@@ -39,6 +40,7 @@ import time
 from collections import Counter
 from typing import Any, ClassVar
 
+import httptools
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
@@ -109,6 +111,11 @@ VERSION_ANSWER = _answer(
     "this server speaks HTTP/1.0 and HTTP/1.1 on this connection",
     "http_version",
 )
+METHOD_ANSWER = _answer(
+    b"501 Not Implemented",
+    "the request's method is not one this server knows (methods are case-sensitive)",
+    "unknown_method",
+)
 UPGRADE_ANSWER = _answer(
     b"400 Bad Request",
     "only a GET may ask to upgrade (a WebSocket handshake): send this request without Upgrade",
@@ -128,6 +135,25 @@ TOO_MANY_ANSWER = _answer(
 )
 
 
+class _MethodAwareParser:
+    """httptools' request parser, remembering whether it failed on an unknown method (RFC 9110,
+    9.1: 501) rather than on another unreadable request (400)."""
+
+    def __init__(self, parser: httptools.HttpRequestParser) -> None:
+        self._parser = parser
+        self.unknown_method = False
+
+    def feed_data(self, data: bytes) -> None:
+        try:
+            self._parser.feed_data(data)
+        except httptools.HttpParserInvalidMethodError:
+            self.unknown_method = True
+            raise
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._parser, name)
+
+
 class TimedHttpProtocol(HttpToolsProtocol):
     """uvicorn's httptools protocol with header and body deadlines (module docstring); the
     limits are class attributes, set by ``timed_protocol``."""
@@ -143,6 +169,8 @@ class TimedHttpProtocol(HttpToolsProtocol):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        self._method_aware = _MethodAwareParser(self.parser)
+        self.parser = self._method_aware  # type: ignore[assignment]
         self._deadline: asyncio.TimerHandle | None = None
         self._reading_header = True
         self._header_bytes = 0
@@ -189,7 +217,10 @@ class TimedHttpProtocol(HttpToolsProtocol):
         """An unreadable request (uvicorn's parser said so): 400 with the common body."""
         if self._refused:  # the parser was stopped after a refusal (``_parsed``)
             return
-        self.transport.write(_answer(b"400 Bad Request", msg, "bad_request"))
+        if self._method_aware.unknown_method:
+            self.transport.write(METHOD_ANSWER)
+        else:
+            self.transport.write(_answer(b"400 Bad Request", msg, "bad_request"))
         self.transport.close()
 
     def on_message_begin(self) -> None:

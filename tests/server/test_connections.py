@@ -162,6 +162,8 @@ def test_an_unreadable_request_gets_the_common_error_body(server: ServerProcess)
         ("GET /healthz HTTP/1.1\r\nConnection: close", 400, "bad_host"),
         ("GET /healthz HTTP/1.1\r\nHost: a\r\nHost: b\r\nConnection: close", 400, "bad_host"),
         ("GET /healthz HTTP/2.0\r\nHost: a\r\nConnection: close", 505, "http_version"),
+        ("get /healthz HTTP/1.1\r\nHost: a\r\nConnection: close", 501, "unknown_method"),
+        ("BREW /healthz HTTP/1.1\r\nHost: a\r\nConnection: close", 501, "unknown_method"),
     ],
 )
 def test_a_header_the_server_will_not_serve_is_refused_before_any_route(

@@ -77,3 +77,24 @@ def fmt(value: float, spec: str = ".3g") -> str:
 def fmt_price(value: float) -> str:
     """A price or price-like number as the messages print it."""
     return fmt(value, ".2f")
+
+
+def fmt_scores(scores: Array) -> str:
+    """Decision scores B, L, Q as the messages print them; when the two leading ones print
+    alike, by how much the leader leads (the market decides by any margin)."""
+    values = [float(v) for v in scores]
+    shown = [fmt(v, "+.2f") for v in values]
+    words = ", ".join(f"{name} {text}" for name, text in zip("BLQ", shown, strict=True))
+    if not all(math.isfinite(v) for v in values):
+        return words
+    lead = max(range(3), key=values.__getitem__)  # the first of equals, as argmax picks
+    runner = max((k for k in range(3) if k != lead), key=values.__getitem__)
+    if shown[lead] == shown[runner]:
+        gap = values[lead] - values[runner]
+        first, second = "BLQ"[lead], "BLQ"[runner]
+        words += (
+            f", {first} leading {second} by {gap:.2g}"
+            if gap > 0
+            else f", {first} and {second} tied exactly (a tie goes to {first})"
+        )
+    return words

@@ -51,6 +51,7 @@ from agents.manifest import Manifest
 from agents.negotiator import honest_manifest, saboteur_manifest
 from screener import limits
 from screener.findings import Checks, check, fmt_price
+from screener.probes import DTYPE
 from screener.verdict import PRICE, Evidence
 from sim.market import MarketBatch, MarketConfig, round_seeds
 
@@ -91,13 +92,6 @@ def _population(trial: int) -> tuple[Manifest, ...]:
         honest_manifest(rng, f"impact-reference-{trial}-{i:02d}")
         for i in range(limits.IMPACT_HONEST)
     )
-
-
-DTYPE = torch.float32
-"""The test auctions' arithmetic: float32, as the noisy scan's. Their noise is drawn in float32
-as in every auction, a vote closer to a tie than float32 resolves is the noise's to decide, and
-what they measure is a mean purchase price against a bar cents away (docs/screener.md: the
-same verdicts and prices as float64 on 1089 models)."""
 
 
 @functools.cache

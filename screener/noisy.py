@@ -31,10 +31,11 @@ from agents.batch import FSNBatch
 from agents.forward import activations, clean_logits, decision_logits, noise_scale
 from agents.manifest import ES_NEURONS, INPUTS
 from screener import limits
-from screener.findings import ROLE, Array, Checks, Mask, fmt, fmt_price
+from screener.findings import ROLE, Array, Checks, Mask, fmt, fmt_price, fmt_scores
 from screener.probes import (
     ACTION_WORDS,
     BUY,
+    DTYPE,
     HOLD,
     QUIT,
     SCAN,
@@ -104,10 +105,8 @@ def _scores(batch: FSNBatch) -> tuple[Array, Array]:
     normals = _normals().reshape(K * R, MAX_COPIES, len(INPUTS))
     with torch.no_grad():
         for index, part in passes(batch):
-            # In float32: the market draws its noise in float32, the many copies cost half as
-            # much, and decisions closer to a tie than float32 resolves are the noise's; the
-            # clean scores too, as the probes' (clean and noisy alike rounded).
-            single = part.to(torch.float32)
+            # In the market's arithmetic (float64; its noise drawn in float32, as here).
+            single = part.to(DTYPE)
             clean[index] = clean_logits(single, ROWS).numpy()
             scale = noise_scale(single)[:, None]  # (p, 1, D, 8)
             noise = normals[:, : part.max_copies][None] * scale
@@ -264,8 +263,7 @@ def _setting(batch: FSNBatch, p: int) -> str:
 
 
 def _words(scores: Array) -> str:
-    b, h, q = scores
-    return f"B {fmt(b, '+.2f')}, L {fmt(h, '+.2f')}, Q {fmt(q, '+.2f')} on average"
+    return f"{fmt_scores(scores)} on average"
 
 
 def _sensors(batch: FSNBatch, p: int, i: int, f: int) -> tuple[Array, Array]:

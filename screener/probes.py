@@ -39,7 +39,7 @@ import torch
 from agents.batch import FSNBatch
 from agents.forward import clean_logits
 from screener import limits
-from screener.findings import Array, Checks, Mask, fmt, fmt_price
+from screener.findings import Array, Checks, Mask, fmt, fmt_price, fmt_scores
 from screener.rules import SUBTYPES
 
 BUY, HOLD, QUIT = range(3)
@@ -122,11 +122,11 @@ def _scan() -> torch.Tensor:
 
 
 SCAN = _scan()
-DTYPE = torch.float32
-"""The probes' arithmetic: float32, as the noisy scan's and the test auctions'. They read only
-which of B, L, Q leads on each row, a score closer to a tie than float32 resolves lies within
-1e-6 of a boundary the grid's cents place anyway, and a pass costs half as much as in float64
-(docs/screener.md: the verdicts of the labelled corpus are the same as float64's)."""
+DTYPE = torch.float64
+"""The screener's arithmetic (probes, noisy scan, test auctions): float64, the market's. A vote
+the market decides by less than float32 resolves is decided as the market decides it: a model
+whose B and L tie in float32 at every reachable price but whose L wins in float64 by 6e-9 holds
+in every auction (tanh(10) is 1 in float32), and a float32 screener saw it buy."""
 ROWS = torch.cat((GRID, SCAN)).to(DTYPE)
 """Every probed row: the grid, then the decisive-row scan (one forward pass)."""
 
@@ -149,8 +149,7 @@ def _fish(q: int, s: int) -> str:
 
 
 def _scores(logits: Array) -> str:
-    b, h, q = logits
-    return f"B {fmt(b, '+.2f')}, L {fmt(h, '+.2f')}, Q {fmt(q, '+.2f')}"
+    return fmt_scores(logits)
 
 
 def probe(batch: FSNBatch) -> Probed:

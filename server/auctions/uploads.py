@@ -13,7 +13,8 @@ the screener pool for a verdict and records it; the verdict that judges the last
 upload closes the round in the same transaction, and the auction's next step is due at once. An
 upload whose verdict was never recorded (the screener down, the server killed) counts all the
 same: a repeat of its bytes asks again, and the step that closes the round judges whatever is
-still pending.
+still pending (a request still waiting for a hung screener then answers with the step's
+verdict).
 """
 
 from __future__ import annotations
@@ -49,6 +50,11 @@ T = TypeVar("T")
 
 RETRY_AFTER_S = 1
 """Retry-After of a round request refused because too many wait."""
+JUDGED_GRACE_S = 1.0
+"""How long after the round's deadline an upload still waiting for the screener first looks
+whether the step that closes the round judged it (it judges what is still pending)."""
+JUDGED_RECHECK_S = 2.0
+"""Then how often it looks again, until the screener answers or gives up."""
 AT_ONCE_TRIES = 8
 """An upload's write on SQLite tries the write lock at once up to this many times, each time
 after the thread of this process that held it let go, before it waits for it in a thread."""
@@ -261,10 +267,11 @@ class UploadRequest:
 
 def _arrive(
     connection: Connection, *, manifest: Manifest, data: dict[str, Any], request: UploadRequest
-) -> tuple[crud.Stored, int, str | None]:
+) -> tuple[crud.Stored, int, str | None, datetime | None]:
     """The upload's checks against what its path names and its store, in one transaction (a
     refused upload stores nothing, but a late one is recorded as late): what was stored (or
-    refused), the round's id, and the new manifest's JSON (None: the current weights)."""
+    refused), the round's id, the new manifest's JSON (None: the current weights) and the
+    round's deadline."""
     auction_id, round_number, model_id = request.auction_id, request.round_number, request.model_id
     target = _target(connection, auction_id, model_id, round_number)
     round_id = _check_patron(
@@ -311,7 +318,7 @@ def _arrive(
         ),
         target=target,
     )
-    return stored, round_id, manifest_json
+    return stored, round_id, manifest_json, target.deadline
 
 
 async def upload(
@@ -330,9 +337,9 @@ async def upload(
     data = manifest.model_dump(mode="json")
     arrive = functools.partial(_arrive, manifest=manifest, data=data, request=request)
     try:
-        stored, round_id, manifest_json = await _write(database, arrive)
+        stored, round_id, manifest_json, deadline = await _write(database, arrive)
     except IntegrityError:  # the same patron's answer, stored meanwhile by a concurrent request
-        stored, round_id, manifest_json = await _write(database, arrive)  # answered as a repeat
+        stored, round_id, manifest_json, deadline = await _write(database, arrive)  # a repeat
     if stored.refusal is not None:
         status, message, kind = stored.refusal
         raise api_error(status, message, loc=("path", "round"), kind=kind)
@@ -342,9 +349,13 @@ async def upload(
         ):
             wake(request.auction_id)
         return stored.answer
-    assert stored.answer_id is not None
+    answer_id = stored.answer_id
+    assert answer_id is not None
+    asked = screening.verdict(manifest, at_the_door=False, manifest_json=manifest_json)
     try:
-        verdict = await screening.verdict(manifest, at_the_door=False, manifest_json=manifest_json)
+        verdict = await _verdict_unless_judged(database, asked, answer_id, deadline)
+    except _JudgedError as judged:  # the step closing the round judged it meanwhile
+        return judged.answer
     except ScreenerUnavailableError as exc:
         raise api_error(
             503,
@@ -354,9 +365,46 @@ async def upload(
             headers={"Retry-After": str(RETRY_AFTER_S)},
         ) from exc
     record = functools.partial(
-        _record, answer_id=stored.answer_id, round_id=round_id, verdict=verdict, margin=margin
+        _record, answer_id=answer_id, round_id=round_id, verdict=verdict, margin=margin
     )
     answer, due = await _write(database, record)
     if due:
         wake(request.auction_id)
     return answer
+
+
+class _JudgedError(Exception):
+    """The upload was judged by another process (the step closing its round): its answer."""
+
+    def __init__(self, answer: bytes) -> None:
+        super().__init__("judged elsewhere")
+        self.answer = answer
+
+
+async def _verdict_unless_judged(
+    database: Database, asked: Awaitable[Verdict], answer_id: int, deadline: datetime | None
+) -> Verdict:
+    """The screener's verdict, unless the step that closes the round judges the upload first
+    (the screener hung past the deadline: the step judges what is still pending): then
+    ``_JudgedError`` carries the recorded answer, and the agent hears it within seconds of the
+    deadline instead of when the screener gives up."""
+    verdict = asyncio.ensure_future(asked)
+    try:
+        wait_s = None if deadline is None else (deadline - utcnow()).total_seconds()
+        while wait_s is not None:
+            done, _ = await asyncio.wait({verdict}, timeout=max(0.0, wait_s) + JUDGED_GRACE_S)
+            if done:
+                break
+            read = functools.partial(_read_in_thread, database, answer_id)
+            answer = await run_in_threadpool(read)
+            if answer is not None:
+                raise _JudgedError(answer)
+            wait_s = JUDGED_RECHECK_S - JUDGED_GRACE_S
+        return await verdict
+    finally:
+        verdict.cancel()  # done already, or no longer wanted
+
+
+def _read_in_thread(database: Database, answer_id: int) -> bytes | None:
+    with database.transaction(write=False) as connection:
+        return crud.judged_answer(connection, answer_id=answer_id)

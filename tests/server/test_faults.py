@@ -327,3 +327,38 @@ def _stored(database: Database, auction_id: int) -> list[str]:
                 .where(FineTuneRound.auction_id == auction_id)
             )
         )
+
+
+def test_an_upload_waiting_for_a_hung_screener_hears_the_verdict_the_step_recorded(
+    tmp_path: Path,
+) -> None:
+    """The screening process hangs (SIGSTOP) while an upload waits for its verdict: at the
+    round's deadline the step that closes the round judges the pending upload itself, and the
+    waiting request answers with that verdict within seconds of the deadline, instead of a 503
+    when the screener's wait gives up (120 s), rounds later."""
+    (server, _), admin = server_pair(f"sqlite:///{tmp_path / 'hung.db'}", tmp_path)
+    deadline_s = 4.0
+    with server:
+        ids, manifest_list, token_list = submit(server, 3, seed=950)
+        manifests = dict(zip(ids, manifest_list, strict=True))
+        tokens = dict(zip(ids, token_list, strict=True))
+        body = {"n_fish": 1, "model_ids": ids, "fine_tune_mode": "remote", "seed": 3}
+        auction_id = create(
+            server, admin, body | {"fine_tune_rounds": 1, "round_deadline_s": deadline_s}
+        )
+        state = next_round(server, auction_id, 0, TIMEOUT_S)
+        screening = [p for p in spawned(server) if process_name(p) == "srd-screening"]
+        signal_all(screening, signal.SIGSTOP)
+        try:
+            deadline = datetime.fromisoformat(state["deadline"].replace("Z", "+00:00"))
+            answer = upload(server, auction_id, state, state["asked"][0], manifests, tokens, ids)
+            late_by_s = (datetime.now(UTC) - deadline).total_seconds()
+        finally:
+            signal_all(screening, signal.SIGCONT)
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["accepted"] is True and answer.json()["outcome"] == "accepted"
+        assert late_by_s < 10, late_by_s  # the step's verdict, not the screener's give-up
+        auction = ended(server, auction_id)
+    (only,) = auction["fine_tuning"]
+    outcomes = {a["model_id"]: a["outcome"] for a in only["answers"]}
+    assert outcomes[state["asked"][0]] == "accepted"

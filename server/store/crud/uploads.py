@@ -425,6 +425,18 @@ def record_verdict(
     return body
 
 
+_JUDGED_ANSWER = select(FineTuneAnswer.outcome, FineTuneAnswer.answer).where(
+    FineTuneAnswer.id == bindparam("answer_id")
+)
+
+
+def judged_answer(connection: Connection, *, answer_id: int) -> bytes | None:
+    """The answer's bytes once the upload ``answer_id`` is judged (by any process); None while
+    it is pending."""
+    row = connection.execute(_JUDGED_ANSWER, {"answer_id": answer_id}).one()
+    return None if row.outcome == AnswerOutcome.PENDING else answer_bytes(row.answer or {})
+
+
 _ROUND_FOR_UPDATE = (
     select(FineTuneRound.auction_id, FineTuneRound.asked, FineTuneRound.status)
     .where(FineTuneRound.id == bindparam("round_id"))

@@ -259,12 +259,13 @@ def config_schema(cls: type) -> dict[str, Any]:
 def _split_list(field: ConfigField, value: Any) -> Any:
     """A list field's value as the command line spells it: a comma-separated string ("0.1,0.5")
     gives its items, each read as a JSON number for numeric lists; a single number or word
-    gives a list of one; any other value is left for the validator."""
+    gives a list of one; any other value, and an empty item ("0.1,,0.5"), is left for the
+    validator to name."""
     if isinstance(value, int | float) and not isinstance(value, bool):
         return [value]
     if not isinstance(value, str):
         return value
-    parts = [part.strip() for part in value.split(",") if part.strip()]
+    parts = [part.strip() for part in value.split(",")]  # an empty item is the validator's
     if field.item not in ("int", "float"):
         return parts
     items = []

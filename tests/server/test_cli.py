@@ -336,6 +336,14 @@ def test_a_supply_given_twice_is_refused() -> None:
     assert "0.5 is given twice" in result.stderr
 
 
+@pytest.mark.parametrize("rarities", ["0.1,,0.5", "0.1,", ","])
+def test_an_empty_item_of_a_list_option_is_refused(rarities: str) -> None:
+    """ "0.1,,0.5" is a typo, not the list 0.1, 0.5 (its empty item had been dropped)."""
+    result = CliRunner().invoke(cli, ["auction-study", "--rarities", rarities, "--json"])
+    assert result.exit_code == 2 and "--rarities" in result.stderr
+    assert json.loads(result.stdout)["error"].startswith("--rarities")
+
+
 def test_screen_reads_the_file_as_strictly_as_submit_reads_a_body(tmp_path) -> None:
     """A key given twice is malformed (POST /submit answers 422): never judged as one of the
     two manifests it could be. A directory is unreadable, and --json still prints one object."""

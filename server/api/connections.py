@@ -103,7 +103,7 @@ TOO_LARGE_ANSWER = _answer(
 )
 HOST_ANSWER = _answer(
     b"400 Bad Request",
-    "an HTTP/1.1 request carries exactly one Host header (RFC 9112, 3.2)",
+    "a request carries at most one Host header, an HTTP/1.1 request exactly one (RFC 9112, 3.2)",
     "bad_host",
 )
 VERSION_ANSWER = _answer(

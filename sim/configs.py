@@ -12,7 +12,7 @@ from typing import Annotated, Literal
 from pydantic import Field
 
 from agents.planning import PRESETS
-from sim.experiment import Cost
+from sim.experiment import Cost, distinct
 
 # --- robot fish 1D --------------------------------------------------------------------------
 
@@ -106,8 +106,20 @@ TRIAL_STEPS = 3600
 TRIAL_STEP_COST_S = 3e-5
 """Compute of one trial advancing one 0.01 s step (MuJoCo plus the network), for the job
 budget: about three times the grid engine's measured cost per step and core."""
+PLOT_CELL_COST_S = 0.06
+"""Drawing one cell of the grid (its mean line and band in the displacement figure), for the
+job budget: about 1.5 times the measured 30–47 ms."""
+RUN_SETUP_COST_S = 0.03
+"""Setting up one trial (its model, its noise, its row of results): about twice the measured
+14 ms, whatever its steps."""
+MAX_CELLS = 512
+"""Most cells (backswing × inhibitor × SRD variants) of one grid: its figures draw a panel per
+variant and inhibitor, a line per backswing (the default grid has 20)."""
+_UNIQUE = {"uniqueItems": True}
 Gains = Annotated[
-    tuple[Annotated[float, Field(ge=-100, le=100)], ...], Field(min_length=1, max_length=32)
+    tuple[Annotated[float, Field(ge=-100, le=100)], ...],
+    Field(min_length=1, max_length=32, json_schema_extra=_UNIQUE),
+    distinct("gain", "more trials: raise trials"),
 ]
 
 
@@ -118,7 +130,9 @@ class CheetahConfig:
     backswing: Gains = (1.0, 2.0, 3.0, 4.0, 5.0)
     """BS neuron gains to run (how hard the back thigh answers the pitch signal)."""
     inhibitor: Annotated[
-        tuple[Annotated[float, Field(ge=0, le=100)], ...], Field(min_length=1, max_length=32)
+        tuple[Annotated[float, Field(ge=0, le=100)], ...],
+        Field(min_length=1, max_length=32, json_schema_extra=_UNIQUE),
+        distinct("inhibitor value", "more trials: raise trials"),
     ] = (0.0, 2.0)
     """Inhibitor values of the stop command (0: never stop; 2: stop in the scheduled windows)."""
     srd: Literal["on", "off", "both"] = "both"
@@ -132,7 +146,9 @@ class CheetahConfig:
     stage: Annotated[int, Field(ge=0, le=4)] | None = None
     """Run one of the appendix's design stages 0–4 instead of the main grid."""
     lr: Annotated[
-        tuple[Annotated[float, Field(gt=0, le=100)], ...], Field(min_length=1, max_length=32)
+        tuple[Annotated[float, Field(gt=0, le=100)], ...],
+        Field(min_length=1, max_length=32, json_schema_extra=_UNIQUE),
+        distinct("learning rate", "more trials: raise trials"),
     ] = (1e-4,)
     """SGD learning rate(s) of SRD; several values sweep them (an extra grid axis)."""
     threads: Annotated[int, Field(ge=1, le=64)] = 2
@@ -143,10 +159,29 @@ class CheetahConfig:
     """Seeds the per-trial weight noise: same seed, same numbers."""
 
     def cost(self) -> Cost:
-        """Estimated compute: every trial of every condition, step by step."""
-        trials = len(grid_conditions(self)) * (1 if self.nominal else self.trials)
+        """Estimated compute: every trial of every condition, its set-up and its steps, and
+        each condition's share of the figures."""
+        cells = len(grid_conditions(self))
+        trials = cells * (1 if self.nominal else self.trials)
         steps = TRIAL_STEPS if self.steps is None else self.steps
-        return Cost(trials * steps * TRIAL_STEP_COST_S, "trials")
+        seconds = trials * (RUN_SETUP_COST_S + steps * TRIAL_STEP_COST_S)
+        return Cost(seconds + cells * PLOT_CELL_COST_S, "trials")
+
+    def problems(self) -> list[dict[str, str]]:
+        """A grid of more than ``MAX_CELLS`` cells, whatever its trials (its figures alone
+        would take minutes and gigabytes)."""
+        cells = len(grid_conditions(self))
+        if cells <= MAX_CELLS:
+            return []
+        variants = cells // (len(self.backswing) * len(self.inhibitor))
+        return [
+            {
+                "field": "backswing",
+                "message": f"the grid has {cells} cells ({len(self.backswing)} backswing × "
+                f"{len(self.inhibitor)} inhibitor × {variants} SRD variants), at most "
+                f"{MAX_CELLS}: give fewer backswing, inhibitor or lr values",
+            }
+        ]
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
-from pydantic import TypeAdapter, ValidationError
+from pydantic import AfterValidator, TypeAdapter, ValidationError
+from pydantic_core import PydanticCustomError
 
 ProgressFn = Callable[[float, str], None]
 """Reports progress: a fraction in [0, 1] and a short human message."""
@@ -254,6 +255,25 @@ def config_schema(cls: type) -> dict[str, Any]:
     schema["additionalProperties"] = False
     schema["description"] = " ".join((cls.__doc__ or "").split())
     return schema
+
+
+def distinct(what: str, hint: str) -> AfterValidator:
+    """A list option's validator: each value once (a repeated one would count its runs twice
+    in one cell's statistics); ``what`` names a value, ``hint`` says what to do instead."""
+
+    def check(values: tuple[Any, ...]) -> tuple[Any, ...]:
+        seen: set[Any] = set()
+        for value in values:
+            if value in seen:
+                raise PydanticCustomError(
+                    "duplicate_value",
+                    "{value} is given twice: each {what} once ({hint})",
+                    {"value": f"{value:g}", "what": what, "hint": hint},
+                )
+            seen.add(value)
+        return values
+
+    return AfterValidator(check)
 
 
 def _split_list(field: ConfigField, value: Any) -> Any:

@@ -101,9 +101,14 @@ def plot_lr_sweep(path: Path, runs: list[dict[str, Any]]) -> Path:
             ]
             means.append(float(np.mean(diffs)) if diffs else math.nan)
             sds.append(float(np.std(diffs, ddof=1)) if len(diffs) > 1 else 0.0)
-        ax.errorbar(lrs, means, yerr=sds, marker="o", capsize=3)
         ax.axhline(0.0, color="0.5", lw=0.8)
-        ax.set_xscale("log")
+        if all(math.isnan(m) for m in means):  # no such cells, or runs too short to tell
+            ax.text(0.5, 0.5, "nothing measured", ha="center", va="center", transform=ax.transAxes)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        else:
+            ax.errorbar(lrs, means, yerr=sds, marker="o", capsize=3)
+            ax.set_xscale("log")
         ax.set_xlabel("SRD learning rate")
         ax.set_title(title, fontsize=9)
         ax.grid(alpha=0.3)

@@ -22,10 +22,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import mujoco
 import numpy as np
-
-from sim.cheetah.world import build_model
 
 VIDEO_FPS = 10
 """Frames per simulated second of the GIF (the reference filmed at 15)."""
@@ -41,6 +38,17 @@ RENDER_TIMEOUT_S = 300
 """Longest a child may take to draw the GIF."""
 PR_SET_PDEATHSIG = 1
 """Linux's prctl option: the signal a process gets when the one that started it ends."""
+_START = """import os, runpy, sys
+if sys.platform.startswith("linux"):
+    import ctypes
+    ctypes.CDLL(None, use_errno=True).prctl({option}, {signal})
+if os.getppid() != {parent}:
+    sys.exit("the process that started this render has ended")
+runpy.run_module("sim.cheetah.render", run_name="__main__", alter_sys=True)
+"""
+"""The child's first lines: bound to its parent's life before it imports anything heavy
+(gymnasium and MuJoCo take a second or more; a cancelled job's render had outlived its worker
+that long)."""
 
 
 def render_gif(path: Path, qpos: np.ndarray, start_x: float, caption: str) -> dict[str, Any]:
@@ -57,9 +65,12 @@ def render_gif(path: Path, qpos: np.ndarray, start_x: float, caption: str) -> di
     reasons = []
     try:
         for backend in GL_BACKENDS:
+            start = _START.format(
+                option=PR_SET_PDEATHSIG, signal=int(signal.SIGKILL), parent=os.getpid()
+            )
             done = subprocess.run(
                 [
-                    *(sys.executable, "-m", "sim.cheetah.render"),
+                    *(sys.executable, "-c", start),
                     *(str(source), str(path), caption, "--parent", str(os.getpid())),
                 ],
                 env=_child_env(backend),
@@ -92,7 +103,10 @@ def _child_env(backend: str) -> dict[str, str]:
 
 def draw_gif(source: Path, target: Path, caption: str) -> None:
     """Draw every stored frame from the tracking camera, captioned with its time; save a GIF."""
+    import mujoco  # here, not at the top: the child binds itself to its parent first
     from PIL import Image, ImageDraw
+
+    from sim.cheetah.world import build_model
 
     stored = np.load(source)
     model = build_model(float(stored["start_x"]))

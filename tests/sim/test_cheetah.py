@@ -391,6 +391,44 @@ def test_learning_rate_sweep_is_a_grid_axis_with_its_figure(tmp_path):
     }
 
 
+def test_a_sweep_too_short_to_measure_still_draws_its_figure(tmp_path):
+    """50 steps reach no stop window and no running measure: the sweep's panels say so (their
+    log axis had failed the whole run after its simulation)."""
+    config = CheetahConfig(
+        backswing=(1.0,), inhibitor=(0.0,), trials=1, steps=50, lr=(0.1, 0.01), video=False
+    )
+    result = run(config, out_dir=tmp_path)
+    assert result["n_runs"] == 3 and (tmp_path / "lr_sweep.png").is_file()
+
+
+@pytest.mark.parametrize(
+    ("params", "field", "words"),
+    [
+        ({"backswing": "1,1"}, "backswing", "1 is given twice"),
+        ({"inhibitor": [2, 2]}, "inhibitor", "2 is given twice"),
+        ({"lr": "0.1,0.1"}, "lr", "0.1 is given twice"),
+        ({"backswing": list(range(1, 17)), "inhibitor": list(range(17))}, "backswing", "544 cells"),
+    ],
+)
+def test_a_grid_with_a_value_twice_or_too_many_cells_is_refused(params, field, words):
+    """A repeated value would count its trials twice in one cell's statistics; a grid of more
+    than 512 cells would spend minutes and gigabytes on its figures alone."""
+    with pytest.raises(ConfigError) as refused:
+        parse_config(CheetahConfig, params)
+    (error,) = refused.value.errors
+    assert error["field"].split(".")[0] == field and words in error["message"]
+
+
+def test_the_budget_counts_each_trial_s_set_up_and_each_cell_s_figure():
+    """A grid of single-step trials is not free: 16 × 16 cells and 3 trials ran 61 s."""
+    config = parse_config(
+        CheetahConfig,
+        {"backswing": list(range(1, 17)), "inhibitor": list(range(16)), "srd": "off"},
+    )
+    wide = CheetahConfig(**{**config.__dict__, "trials": 3, "steps": 1})
+    assert wide.cost().seconds > 30
+
+
 # ---------------------------------------------------------------------------------------------
 # The design stages and the video
 # ---------------------------------------------------------------------------------------------
@@ -497,10 +535,10 @@ def test_a_render_ends_with_the_process_that_started_it(tmp_path):
         while not (children := _renders(parent.pid)):
             assert parent.poll() is None and time.monotonic() < deadline, "no render started"
             time.sleep(0.02)
-        time.sleep(0.5)  # the child is importing mujoco, or drawing
-        parent.send_signal(signal.SIGTERM)
+        parent.send_signal(signal.SIGTERM)  # the child is starting, or importing MuJoCo
         parent.wait(10)
-        deadline = time.monotonic() + 5
+        # bound to its parent before its imports (a second or more): it ends at once
+        deadline = time.monotonic() + 1.0
         while any(Path(f"/proc/{child}").exists() for child in children):
             status = Path(f"/proc/{children[0]}/status")
             if status.exists() and "zombie" in status.read_text():

@@ -7,10 +7,9 @@ import math
 from dataclasses import dataclass
 from typing import Annotated
 
-from pydantic import AfterValidator, Field
-from pydantic_core import PydanticCustomError
+from pydantic import Field
 
-from sim.experiment import Cost
+from sim.experiment import Cost, distinct
 from sim.market import BuyFractionRule, MarketConfig
 
 PAPER_RARITIES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
@@ -22,25 +21,10 @@ GRID_SABOTEURS = 0.5
 Rarity = Annotated[float, Field(gt=0, le=1)]
 
 
-def _distinct(rarities: tuple[float, ...]) -> tuple[float, ...]:
-    """Each supply once: a study's rows are per supply, and a repeated one would merge its
-    trials into one row."""
-    seen: set[float] = set()
-    for rarity in rarities:
-        if rarity in seen:
-            raise PydanticCustomError(
-                "duplicate_rarity",
-                "{rarity} is given twice: each supply once (more trials: raise trials)",
-                {"rarity": f"{rarity:g}"},
-            )
-        seen.add(rarity)
-    return rarities
-
-
 Rarities = Annotated[
     tuple[Rarity, ...],
     Field(min_length=1, max_length=100, json_schema_extra={"uniqueItems": True}),
-    AfterValidator(_distinct),
+    distinct("supply", "more trials: raise trials"),
 ]
 AUCTION_COST_S = 0.01
 """Compute of one auction of 64 patrons without fine-tuning, for the job budget: about twice

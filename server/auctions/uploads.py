@@ -353,9 +353,7 @@ async def upload(
     assert answer_id is not None
     asked = screening.verdict(manifest, at_the_door=False, manifest_json=manifest_json)
     try:
-        verdict = await _verdict_unless_judged(database, asked, answer_id, deadline)
-    except _JudgedError as judged:  # the step closing the round judged it meanwhile
-        return judged.answer
+        verdict = await _verdict_or_answer(database, asked, answer_id, deadline)
     except ScreenerUnavailableError as exc:
         raise api_error(
             503,
@@ -364,6 +362,8 @@ async def upload(
             kind="screener_unavailable",
             headers={"Retry-After": str(RETRY_AFTER_S)},
         ) from exc
+    if isinstance(verdict, bytes):  # the step closing the round judged it meanwhile
+        return verdict
     record = functools.partial(
         _record, answer_id=answer_id, round_id=round_id, verdict=verdict, margin=margin
     )
@@ -373,34 +373,26 @@ async def upload(
     return answer
 
 
-class _JudgedError(Exception):
-    """The upload was judged by another process (the step closing its round): its answer."""
-
-    def __init__(self, answer: bytes) -> None:
-        super().__init__("judged elsewhere")
-        self.answer = answer
-
-
-async def _verdict_unless_judged(
+async def _verdict_or_answer(
     database: Database, asked: Awaitable[Verdict], answer_id: int, deadline: datetime | None
-) -> Verdict:
-    """The screener's verdict, unless the step that closes the round judges the upload first
-    (the screener hung past the deadline: the step judges what is still pending): then
-    ``_JudgedError`` carries the recorded answer, and the agent hears it within seconds of the
-    deadline instead of when the screener gives up."""
+) -> Verdict | bytes:
+    """The screener's verdict, or the answer the step that closes the round recorded if it
+    judged the upload first (the screener hung past the deadline: the step judges what is
+    still pending), so the agent hears it within seconds of the deadline instead of when the
+    screener gives up."""
     verdict = asyncio.ensure_future(asked)
     try:
-        wait_s = None if deadline is None else (deadline - utcnow()).total_seconds()
-        while wait_s is not None:
-            done, _ = await asyncio.wait({verdict}, timeout=max(0.0, wait_s) + JUDGED_GRACE_S)
+        timeout = None  # no deadline: the screener's own timeout bounds the wait
+        if deadline is not None:
+            timeout = max(0.0, (deadline - utcnow()).total_seconds()) + JUDGED_GRACE_S
+        while True:
+            done, _ = await asyncio.wait({verdict}, timeout=timeout)
             if done:
-                break
-            read = functools.partial(_read_in_thread, database, answer_id)
-            answer = await run_in_threadpool(read)
+                return verdict.result()
+            answer = await run_in_threadpool(_read_in_thread, database, answer_id)
             if answer is not None:
-                raise _JudgedError(answer)
-            wait_s = JUDGED_RECHECK_S - JUDGED_GRACE_S
-        return await verdict
+                return answer
+            timeout = JUDGED_RECHECK_S
     finally:
         verdict.cancel()  # done already, or no longer wanted
 

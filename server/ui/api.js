@@ -18,13 +18,23 @@ export class ApiError extends Error {
 /** GET a JSON document (with the bearer ``token``, if given); an error answer becomes an
  * ApiError carrying the server's words. */
 export async function getJSON(path, token = null) {
-  return answer(await fetch(path, { headers: headers(token) }));
+  return answer(await reach(path, { headers: headers(token) }, "try again"));
 }
 
 /** POST a JSON body with the bearer ``token``; the answer as ``getJSON``'s. */
 export async function postJSON(path, body, token) {
   const init = { method: "POST", headers: { ...headers(token), "Content-Type": "application/json" }, body: JSON.stringify(body) };
-  return answer(await fetch(path, init));
+  const unknown = "whether it was recorded is unknown: reload this page to see, then try again if it was not";
+  return answer(await reach(path, init, unknown));
+}
+
+/** ``fetch``, a network failure said in words (the browser's own is "Failed to fetch"). */
+async function reach(path, init, then) {
+  try {
+    return await fetch(path, init);
+  } catch {
+    throw new ApiError(`The server could not be reached (the network, or the server is down); ${then}.`, 0);
+  }
 }
 
 function headers(token) {
@@ -35,7 +45,8 @@ async function answer(response) {
   const body = await response.json().catch(() => null);
   if (!response.ok) {
     const words = body && Array.isArray(body.detail) ? body.detail.map((d) => d.msg) : [];
-    throw new ApiError(words.join("; ") || `${response.status} ${response.statusText}`, response.status);
+    const plain = `The server answered ${response.status} ${response.statusText} without saying why (a proxy in front of it, or the server restarting); try again shortly.`;
+    throw new ApiError(words.join("; ") || plain, response.status);
   }
   return body;
 }

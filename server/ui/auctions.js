@@ -324,10 +324,13 @@ export function auctionView(view, id) {
       })
       .catch((error) => fill(roundVotes, problem(error)));
   }
+  let explaining = 0; // the newest explanation asked for: an older answer arriving late is dropped
   function showExplanation(iteration, modelId) {
+    const asked = ++explaining;
     fill(explanation, h("p", { class: "liveness" }, "Loading…"));
     getJSON(`/auctions/${id}/iterations/${iteration}/votes/${modelId}`)
       .then((v) => {
+        if (asked !== explaining) return;
         names.set(v.model_id, v.participant);
         const inMarket = head && head.fine_tune && head.fine_tune_mode !== "remote";
         const part = (caption, key, values) =>
@@ -352,7 +355,7 @@ export function auctionView(view, id) {
         );
         explainStatus.textContent = `${v.participant} voted ${v.vote} in round ${v.iteration}: its neurons are shown.`;
       })
-      .catch((error) => fill(explanation, problem(error)));
+      .catch((error) => asked === explaining && fill(explanation, problem(error)));
   }
   const fineTuning = h(
     "section",
@@ -434,15 +437,20 @@ export function auctionView(view, id) {
     const sold = rounds.reduce((n, r) => n + r.purchases.length, 0);
     const last = rounds[rounds.length - 1];
     const over = !["pending", "running"].includes(state.status);
+    const enrolling = state.status === "pending" && Boolean(head.enroll_until);
+    // an enrolling auction's supply is a rarity of the patrons it will have: no count yet
+    const uncounted = enrolling && head.rarity !== null ? "counted when it starts" : null;
+    const joined = head.model_ids.map((modelId, i) => link(`#/models/${modelId}`, head.participants[i]));
     fill(
       summary,
       facts(
         [
           ["Status", statusBadge(state.status)],
-          ["Fish on sale", String(head.n_initial)],
-          ["Fish left", String(last ? last.n_available_after : head.n_initial)],
+          ["Fish on sale", uncounted || String(head.n_initial)],
+          ["Fish left", uncounted || String(last ? last.n_available_after : head.n_initial)],
           ["Sold", String(sold)],
           ["Patrons", String(head.n_patrons)],
+          ...(enrolling ? [["Joined so far", joined.length ? h("span", { id: "joined" }, ...joined.flatMap((a, i) => (i ? [", ", a] : [a]))) : "none yet"]] : []),
           ["Rounds", String(rounds.length)],
           over ? ["Price asked last", fixed(last ? last.price : null)] : ["Price asked next", fixed(last ? last.next_price : head.price)],
           ["Revenue", fixed(rounds.reduce((n, r) => n + r.purchases.reduce((m, p) => m + p.price, 0), 0), 2)],

@@ -49,6 +49,11 @@ export function fixed(value, digits = 3) {
   return value === null || value === undefined ? "—" : Number(value).toFixed(digits);
 }
 
+/** A count and its noun: "1 epoch", "2 epochs". */
+export function plural(count, noun) {
+  return `${count} ${noun}${count === 1 ? "" : "s"}`;
+}
+
 /** A weight with its sign spelled out: "+0.2026", "−1.0000". */
 export function signed(value, digits = 4) {
   const text = Math.abs(value).toFixed(digits);

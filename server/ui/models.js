@@ -3,7 +3,8 @@
 // each screener reason on the neuron it names.
 
 import { getJSON, pager, withQuery } from "./api.js";
-import { facts, fill, h, isMissing, link, notFound, problem, scrolling, signed, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, h, isMissing, link, notFound, plural, problem, scrolling, signed, svg, table, tableRow, when } from "./dom.js";
+import { shown } from "./results.js";
 
 const NAME_PATTERN = /^[A-Za-z0-9_.-]+$/; // participant names the API accepts
 const TINY = 0.0011; // |weight| at or below the design's δ = 0.001: drawn faint
@@ -336,14 +337,14 @@ export function inspectorView(view, id, { extra = null, heading = "Model" } = {}
         h("section", { class: "layer" }, h("h3", {}, heading), h("div", { class: "cards" }, names.map((n) => neuronCard(n, neurons[n], a.roles, reasonsByNeuron[n] || [], sourceLabel))));
       view.root.append(
         verdict,
-        model.reviews.length ? auditLog(model.reviews) : null,
+        ...(model.reviews.length ? [auditLog(model.reviews)] : []),
         ...(extra ? extra(model) : []),
         h("p", { class: "description", id: "description" }, manifest.description || "(no description)"),
         facts([
           ["Participant", participantLink(model.participant)],
           ["Submitted", when(model.created_at)],
           ["Augmentation", `${manifest.augmentation.copies} copies, noise σ ${manifest.augmentation.noise_std}, noiseless: ${manifest.augmentation.noiseless_inputs.join(", ") || "none"}`],
-          ["Fine-tuning", `${manifest.fine_tuning.epochs} epochs, batch ${manifest.fine_tuning.batch_size}, learning rate ${manifest.fine_tuning.learning_rate}`],
+          ["Fine-tuning", `${plural(manifest.fine_tuning.epochs, "epoch")}, batch ${manifest.fine_tuning.batch_size}, learning rate ${shown("learning_rate", manifest.fine_tuning.learning_rate)}`],
           ["PFC trainable", manifest.pfc.trainable ? "yes" : "no"],
         ]),
         h(

@@ -109,6 +109,8 @@ def test_an_inspector_admits_or_refuses_with_an_audit_log(client: TestClient) ->
         assert answer.status_code == 422 and loc in locs(answer), (bad, answer.text)
         if bad.get("note") == "n" * 2001:  # as an appeal's note says it
             assert answer.json()["detail"][0]["type"] == "string_too_long", answer.text
+        if bad.get("inspector") == "  ":  # in words, not a regular expression
+            assert answer.json()["detail"][0]["msg"] == "must name someone: it is blank"
     assert client.post(url, json=decision).status_code == 401
     assert client.post("/models/987654/review", json=decision, headers=ADMIN).status_code == 404
     assert count(client, Review, model_id=admitted) == 0

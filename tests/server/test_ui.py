@@ -188,15 +188,18 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
 def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
 ) -> None:
-    """Opened while the auction takes patrons (none yet, no fish), the page reads it again
-    once it plays: the summary and the patron picker name the patrons that joined."""
+    """Opened while the auction takes patrons (none yet, its fish counted when it starts), the
+    page lists them as they join, and reads the auction again once it plays: the summary and
+    the patron picker name the patrons that joined."""
     joiners = [a for name, a in population.items() if name.startswith("honest")][:2]
-    body = {"rarity": 0.5, "enrollment_s": 3, "max_iterations": 3, "seed": 5}
+    body = {"rarity": 0.5, "enrollment_s": 8, "max_iterations": 3, "seed": 5}
     created = api.post("/auctions", json=body, headers={"Authorization": f"Bearer {ADMIN_TOKEN}"})
     assert created.status_code == 201, created.text
     auction_id = created.json()["auction_id"]
     page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
     page.wait_for_selector("#auction-summary:has-text('Takes patrons until')", timeout=WAIT_MS)
+    summary = page.text_content("#auction-summary") or ""
+    assert "Joined so farnone yet" in summary and "Fish on salecounted when it starts" in summary
     for joiner in joiners:
         joined = api.post(
             f"/auctions/{auction_id}/patrons",
@@ -204,6 +207,13 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
             headers={"Authorization": f"Bearer {joiner['token']}"},
         )
         assert joined.status_code == 201, joined.text
+    names = [a["participant"] for a in joiners]
+    page.wait_for_function(  # read again every 3 s while it takes patrons
+        "names => names.every((n) => (document.querySelector('#joined') || {}).textContent"
+        "?.includes(n))",
+        arg=names,
+        timeout=WAIT_MS,
+    )
     page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
     page.wait_for_selector("#auction-summary:has-text('Patrons2')", timeout=WAIT_MS)
     summary = page.text_content("#auction-summary") or ""
@@ -232,6 +242,34 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     assert cells[1] == "cancelled" and cells[7] == "cancelled by the operator"
 
 
+def test_a_late_explanation_does_not_replace_the_one_asked_for_after_it(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    """The first patron's explanation answers slowly, the second's at once: the second stays
+    shown (the first's late answer had replaced it under the second's name in the picker)."""
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    body = {"n_fish": 2, "model_ids": honest_ids, "seed": 5}
+    auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    page.wait_for_selector("#liveness:has-text('Ended')", timeout=60_000)
+    slow, fast = honest_ids[0], honest_ids[1]
+    held: list[Any] = []  # the slow explanation's request, answered once the fast one shows
+    page.route(f"**/auctions/{auction_id}/iterations/0/votes/{slow}", lambda r: held.append(r))
+    page.locator("button.explain-round[data-iteration='0']").click()
+    page.locator(f"button.explain-vote[data-model='{slow}']").click()
+    page.locator(f"button.explain-vote[data-model='{fast}']").click()
+    fast_name = api.get(f"/auctions/{auction_id}/iterations/0/votes/{fast}").json()["participant"]
+    shows_fast = "name => document.querySelector('#explanation h3')?.textContent.startsWith(name)"
+    page.wait_for_function(shows_fast, arg=fast_name, timeout=WAIT_MS)
+    assert len(held) == 1
+    with page.expect_response(f"**/votes/{slow}"):
+        held[0].continue_()
+    page.wait_for_timeout(300)  # the late answer's handler has run
+    assert (page.text_content("#explanation h3") or "").startswith(fast_name)
+    assert page.input_value("#explain-patron") == str(fast)
+
+
 def test_inspector_draws_the_saboteur_neuron_by_neuron_with_the_screeners_reasons(
     page: Any,
     server: ServerProcess,
@@ -245,6 +283,11 @@ def test_inspector_draws_the_saboteur_neuron_by_neuron_with_the_screeners_reason
     page.goto(f"{server.url}/ui/#/models/{sabotage['model_id']}")
     page.wait_for_selector("#verdict", timeout=WAIT_MS)
     assert (page.text_content("#verdict") or "").startswith("Rejected")
+    # nothing printed for what it lacks (a model without reviews had a line reading "null")
+    assert "null" not in (page.text_content("main") or "")
+    facts = page.text_content("main") or ""
+    epochs = model["manifest"]["fine_tuning"]["epochs"]
+    assert f"{epochs} epoch{'' if epochs == 1 else 's'}," in facts
     decision = page.locator("#network-decision")
     pfc = page.locator("#network-pfc")
     for name in (*ES_NEURONS, *DECISIONS):
@@ -688,6 +731,17 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     assert page.locator("#evidence-table tbody tr").count() == len(model["evidence"])
     assert serious_violations(page, axe_source) == []
     screenshot(page.locator("#evidence"), "ui_review.png", tmp_path)
+    # Said in words: a blank name, and a network that drops the decision.
+    page.fill("#inspector", "   ")
+    page.click("#admit")
+    page.wait_for_selector("#decision-status:has-text('must name someone')", timeout=WAIT_MS)
+    review = f"**/models/{model_id}/review"
+    page.route(review, lambda r: r.abort())
+    page.fill("#inspector", "Ada")
+    page.click("#admit")
+    page.wait_for_selector("#decision-status:has-text('could not be reached')", timeout=WAIT_MS)
+    assert "whether it was recorded is unknown" in (page.text_content("#decision-status") or "")
+    page.unroute(review)
     # Keyboard: name, note, then the admit button.
     page.fill("#inspector", "Ada")
     page.fill("#note", "a sincere low bidder")

@@ -6,7 +6,8 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, Field, StringConstraints
+from pydantic import AfterValidator, BaseModel, Field, StringConstraints
+from pydantic_core import PydanticCustomError
 
 from agents.manifest import PlainLine, PlainText
 from server.api.schemas.common import ReasonPublic, StrictInput
@@ -114,9 +115,16 @@ class ParticipantPublic(BaseModel):
     versions: list[ModelSummaryPublic]
 
 
+def _not_blank(text: str) -> str:
+    if not text.strip():
+        raise PydanticCustomError("blank", "must name someone: it is blank")
+    return text
+
+
 Inspector = Annotated[
     str,
-    StringConstraints(min_length=1, max_length=64, pattern=r"\S"),
+    StringConstraints(min_length=1, max_length=64),
+    AfterValidator(_not_blank),
     PlainLine,
     Field(description="Who decides (a name, 1 to 64 characters, not blank, one line)."),
 ]

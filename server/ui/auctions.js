@@ -1,7 +1,7 @@
 // Auctions: the list, and one auction followed live from its event stream.
 
 import { follow, getJSON, pager, withQuery } from "./api.js";
-import { facts, fill, fixed, h, isMissing, link, notFound, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, fixed, h, isMissing, link, notFound, plural, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
 
 const STOP_REASONS = {
   sold_out: "sold out",
@@ -598,7 +598,9 @@ export function auctionView(view, id) {
     buyerRows.querySelector(".none-yet-row")?.remove();
     if (buyerRows.children.length === 0) buyerRows.append(tableRow(["nobody bought a fish", "", "", "", ""]));
     listPatrons();
-    liveness.textContent = `Ended: ${outcome.status}, ${stopReason(outcome.stop_reason)}; ${outcome.n_sold} of ${outcome.n_initial} fish sold in ${outcome.iterations} ${outcome.iterations === 1 ? "round" : "rounds"}.`;
+    const why = outcome.stop_reason ? `, ${stopReason(outcome.stop_reason)}` : "";
+    const played = outcome.iterations ? `${outcome.n_sold} of ${outcome.n_initial} fish sold in ${plural(outcome.iterations, "round")}` : "no round played";
+    liveness.textContent = `Ended: ${outcome.status}${why}; ${played}.`;
   }
 
   /** The ``end`` event an ended auction's stream would send, from its GET. */

@@ -339,7 +339,7 @@ export function inspectorView(view, id, { extra = null, heading = "Model" } = {}
         verdict,
         ...(model.reviews.length ? [auditLog(model.reviews)] : []),
         ...(extra ? extra(model) : []),
-        h("p", { class: "description", id: "description" }, manifest.description || "(no description)"),
+        h("p", { class: "description", id: "description", dir: "auto" }, manifest.description || "(no description)"),
         facts([
           ["Participant", participantLink(model.participant)],
           ["Submitted", when(model.created_at)],

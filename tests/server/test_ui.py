@@ -230,6 +230,7 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     assert api.delete(f"/auctions/{auction_id}", headers=headers).status_code == 200
     page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
     page.wait_for_selector("#liveness:has-text('Ended: cancelled')", timeout=WAIT_MS)
+    assert (page.text_content("#liveness") or "").endswith("; no round played.")
     summary = page.text_content("#auction-summary") or ""
     assert "Statuscancelled" in summary and "cancelled by the operator" in summary
     page.goto(f"{server.url}/ui/#/auctions")

@@ -115,6 +115,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         memory_mb=settings.job_memory_mb,
         job_backend=settings.job_backend,
         ray_address=settings.ray_address,
+        ray_join_timeout_s=settings.ray_join_timeout_s,
         ray_max_retries=settings.ray_max_retries,
     )
     live = LiveSource(

@@ -13,7 +13,8 @@ Python object of ours crosses the wire, and the assembled result is the local ba
 * Cancelling the job terminates its worker process; Ray's SIGTERM handler in the driver raises
   ``SystemExit``, and on the way out the worker cancels every unfinished task (force: their
   Ray workers are stopped), so the cluster stops working on a cancelled job at once.
-* Tasks ask for one CPU each and set torch's thread count to the job workers' own
+* Tasks ask for one CPU each, a unit of a job with a ``threads`` option (cheetah: MuJoCo
+  stepped in parallel) for that many, and set torch's thread count to the job workers' own
   (``SRD_WORKER_TORCH_THREADS``), so their floating-point arithmetic is the local one.
 
 Ray is an optional extra: ``pip install '.[ray]'``.
@@ -24,6 +25,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import logging
+import socket
 import subprocess
 import sys
 import threading
@@ -73,11 +75,30 @@ def _required(address: str | None) -> str:
     return address
 
 
-def connect(address: str | None) -> Any:
-    """Join the Ray cluster at ``address`` as a driver (once per process); returns ``ray``."""
+def _answers(address: str, timeout_s: float) -> None:
+    """RayUnavailableError unless the head at ``address`` (``host:port``, or ``ray://host:port``)
+    takes a TCP connection within ``timeout_s``: ``ray.init`` retries an address nobody answers
+    on for minutes, and a job would wait in ``running`` meanwhile. Other forms (``auto``) are
+    Ray's to resolve."""
+    host, colon, port = address.removeprefix("ray://").rpartition(":")
+    if not colon or not port.isdigit():
+        return
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            pass
+    except OSError as exc:
+        raise RayUnavailableError(
+            f"cannot join the Ray cluster at {address!r} (SRD_RAY_ADDRESS): {exc}"
+        ) from exc
+
+
+def connect(address: str | None, timeout_s: float) -> Any:
+    """Join the Ray cluster at ``address`` as a driver (once per process); returns ``ray``.
+    A head that does not answer within ``timeout_s`` is RayUnavailableError at once."""
     address = _required(address)
     ray = ray_module()
     if not ray.is_initialized():
+        _answers(address, timeout_s)
         try:
             ray.init(
                 address=address,
@@ -111,13 +132,21 @@ class RayRunner:
     at once, their payloads yielded as they finish."""
 
     def __init__(
-        self, kind: str, config: Any, *, address: str | None, max_retries: int, threads: int
+        self,
+        kind: str,
+        config: Any,
+        *,
+        address: str | None,
+        join_timeout_s: float,
+        max_retries: int,
+        threads: int,
     ) -> None:
-        self._ray = connect(address)
+        self._ray = connect(address, join_timeout_s)
         self._kind = kind
         self._params = config_dict(config)
         self._max_retries = max_retries
         self._threads = threads
+        self._cpus = int(getattr(config, "threads", 1))  # what one unit keeps busy
 
     def __call__(
         self, units: Sequence[Unit], progress: UnitProgress
@@ -129,6 +158,7 @@ class RayRunner:
         params = ray.put(self._params)
         refs = {
             task.options(
+                num_cpus=self._cpus,
                 max_retries=self._max_retries,
                 retry_exceptions=False,
                 name=f"srd {self._kind}: {unit.label}",

@@ -148,6 +148,7 @@ def unit_runner(context: WorkerContext, kind: str, config: Any) -> UnitRunner | 
         kind,
         config,
         address=context.ray_address,
+        join_timeout_s=context.ray_join_timeout_s,
         max_retries=context.ray_max_retries,
         threads=context.torch_threads,
     )

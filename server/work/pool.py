@@ -62,6 +62,8 @@ class WorkerContext:
     """Where a job worker computes its units: ``local`` (itself) or ``ray``."""
     ray_address: str | None = None
     """The Ray cluster of the ``ray`` job backend."""
+    ray_join_timeout_s: float = 30.0
+    """How long a job's worker waits for the Ray head to answer before the job fails."""
     ray_max_retries: int = 0
     """Times the ``ray`` job backend runs a lost unit again."""
     review_margin: float = 0.0

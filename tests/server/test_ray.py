@@ -22,7 +22,7 @@ from fastapi.testclient import TestClient
 
 from server.app import create_app
 from server.cli.launch import ServerProcess
-from server.jobs.ray_backend import RayUnavailableError, ray_module
+from server.jobs.ray_backend import RayUnavailableError, connect, ray_module
 from tests.support.factories import honest
 from tests.support.ray_head import RayHead
 from tests.support.server import ADMIN, ADMIN_TOKEN, make_settings, wait_for
@@ -218,6 +218,19 @@ def test_a_ray_address_nobody_answers_stops_the_start_within_its_timeout(tmp_pat
     assert time.monotonic() - started < 30
 
 
+def test_a_job_worker_facing_a_head_that_does_not_answer_fails_at_once(ray_head: RayHead) -> None:
+    """Ray retries an address nobody answers on for minutes, and the job sat in ``running``
+    meanwhile; a job's worker now asks the head first and fails naming it. (``ray_head``: Ray
+    reads its token settings when first imported, here by ``connect``.)"""
+    with socket.socket() as held:  # bound, not listening: the connection is refused
+        held.bind(("127.0.0.1", 0))
+        address = f"127.0.0.1:{held.getsockname()[1]}"
+        started = time.monotonic()
+        with pytest.raises(RayUnavailableError, match=re.escape(address)):
+            connect(address, 5)
+    assert time.monotonic() - started < 5
+
+
 @pytest.mark.slow
 def test_the_server_outlives_its_ray_cluster(tmp_path: Path) -> None:
     """The server never joins the cluster itself (Ray ends a driver whose cluster has been
@@ -245,3 +258,12 @@ def test_the_server_outlives_its_ray_cluster(tmp_path: Path) -> None:
             assert health["status"] == "ok"  # auctions and submissions go on
             submitted = api.post("/submit", json=honest("after-ray", seed=0), timeout=30)
             assert submitted.status_code == 201, submitted.text
+            body = {"kind": "fish", "params": {"steps": 500, "seed": 1}}
+            job_id = api.post("/jobs", json=body, headers=ADMIN).json()["job_id"]
+            job = wait_for(
+                lambda: api.get(f"/jobs/{job_id}").json(),
+                lambda j: j["status"] not in ("queued", "running"),
+                60,
+            )
+            assert job["status"] == "failed", job
+            assert "cannot join the Ray cluster" in json.dumps(job["error"]), job

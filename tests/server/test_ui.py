@@ -243,17 +243,26 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     assert cells[1] == "cancelled" and cells[7] == "cancelled by the operator"
 
 
-def test_a_late_explanation_does_not_replace_the_one_asked_for_after_it(
+def ended_auction_page(
     page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
-) -> None:
-    """The first patron's explanation answers slowly, the second's at once: the second stays
-    shown (the first's late answer had replaced it under the second's name in the picker)."""
+) -> tuple[int, list[int]]:
+    """An auction of 2 fish among the honest patrons, played to its end with its page open:
+    its id and the patrons' model ids."""
     honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
     headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
     body = {"n_fish": 2, "model_ids": honest_ids, "seed": 5}
     auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
     page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
     page.wait_for_selector("#liveness:has-text('Ended')", timeout=60_000)
+    return int(auction_id), honest_ids
+
+
+def test_a_late_explanation_does_not_replace_the_one_asked_for_after_it(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    """The first patron's explanation answers slowly, the second's at once: the second stays
+    shown (the first's late answer had replaced it under the second's name in the picker)."""
+    auction_id, honest_ids = ended_auction_page(page, server, api, population)
     slow, fast = honest_ids[0], honest_ids[1]
     held: list[Any] = []  # the slow explanation's request, answered once the fast one shows
     page.route(f"**/auctions/{auction_id}/iterations/0/votes/{slow}", lambda r: held.append(r))
@@ -544,12 +553,7 @@ def test_every_vote_of_a_round_opens_its_explanation(
     population: dict[str, dict[str, Any]],
     tmp_path: Path,
 ) -> None:
-    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
-    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
-    body = {"n_fish": 2, "model_ids": honest_ids, "seed": 5}
-    auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
-    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
-    page.wait_for_selector("#liveness:has-text('Ended')", timeout=60_000)
+    auction_id, honest_ids = ended_auction_page(page, server, api, population)
     auction = api.get(f"/auctions/{auction_id}").json()
     last = auction["history"][-1]["iteration"]
     assert auction["buyers"]  # two fish among six honest patrons

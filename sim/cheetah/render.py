@@ -3,18 +3,17 @@
 MuJoCo picks its OpenGL back end when it is imported, so each back end is tried in a fresh
 interpreter running this module::
 
-    python -m sim.cheetah.render FRAMES.npz OUT.gif CAPTION [--parent PID]
+    python -m sim.cheetah.render FRAMES.npz OUT.gif CAPTION
 
-``FRAMES.npz`` holds ``qpos`` (frames, nq) and ``start_x``; ``render_gif`` writes it. With
-``--parent`` the child ends as soon as that process does (Linux's parent-death signal): a
-cancelled job's worker, terminated mid-drawing, leaves no child writing its GIF.
+``FRAMES.npz`` holds ``qpos`` (frames, nq) and ``start_x``; ``render_gif`` writes it. Its
+child first binds itself to its parent (``_START``: Linux's parent-death signal, before any
+heavy import), so a cancelled job's worker, terminated mid-drawing, leaves no child writing
+its GIF.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
-import ctypes
 import os
 import signal
 import subprocess
@@ -71,7 +70,7 @@ def render_gif(path: Path, qpos: np.ndarray, start_x: float, caption: str) -> di
             done = subprocess.run(
                 [
                     *(sys.executable, "-c", start),
-                    *(str(source), str(path), caption, "--parent", str(os.getpid())),
+                    *(str(source), str(path), caption),
                 ],
                 env=_child_env(backend),
                 capture_output=True,
@@ -138,21 +137,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("source", type=Path, help="frames file written by render_gif (.npz)")
     parser.add_argument("target", type=Path, help="GIF to write")
     parser.add_argument("caption", help="text drawn on every frame before the time")
-    parser.add_argument("--parent", type=int, help="end as soon as this process ends")
     args = parser.parse_args(argv)
-    if args.parent is not None:
-        _end_with(args.parent)
     draw_gif(args.source, args.target, args.caption)
-
-
-def _end_with(parent: int) -> None:
-    """Have Linux SIGKILL this process when ``parent``, which started it, ends; exit at once
-    if it has ended already (elsewhere only that check: the render's timeout bounds the rest)."""
-    if sys.platform.startswith("linux"):
-        with contextlib.suppress(OSError, AttributeError):
-            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-    if os.getppid() != parent:
-        sys.exit("the process that started this render has ended")
 
 
 if __name__ == "__main__":

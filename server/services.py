@@ -17,6 +17,8 @@ import secrets
 import socket
 from dataclasses import dataclass
 
+from sqlalchemy.engine import make_url
+
 from server.api.readiness import Readiness
 from server.api.security import load_admin_token_hash
 from server.auctions.patrons import PatronCheck
@@ -171,5 +173,6 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
     services.screening.start()
     services.auctions.start()
     services.jobs.start()
-    log.info("srd server ready: %s, data in %s", settings.database_url, settings.data_dir)
+    shown = make_url(settings.database_url).render_as_string(hide_password=True)
+    log.info("srd server ready: %s, data in %s", shown, settings.data_dir)
     return services

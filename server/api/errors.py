@@ -27,8 +27,8 @@ from agents.manifest import without_tags
 from server.store.db import (
     DATABASE_RETRY_AFTER_S,
     DatabaseUnavailableError,
+    answer_of_outage,
     is_database_outage,
-    unavailable_message,
 )
 
 TRY_AGAIN_LATER = 1013
@@ -202,7 +202,7 @@ def database_unavailable(cause: BaseException | str) -> RequestError:
     to say), with when to try again."""
     if isinstance(cause, BaseException):
         unreachable = isinstance(cause, DatabaseUnavailableError)
-        cause = str(cause) if unreachable else unavailable_message(cause)
+        cause = str(cause) if unreachable else answer_of_outage(cause)
     return api_error(
         503,
         cause,

@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import re
 from collections import Counter
-from urllib.parse import parse_qsl
+from urllib.parse import parse_qsl, unquote_plus
 
 from fastapi.responses import JSONResponse
 from starlette.datastructures import MutableHeaders
@@ -141,7 +141,8 @@ def redact_query(path: str) -> str:
 
     def blank(match: re.Match[str]) -> str:
         name = match.group(1)
-        return f"{name}=***" if SECRET_NAME.search(name) else match.group(0)
+        secret = SECRET_NAME.search(unquote_plus(name))  # ``%74oken`` is ``token``
+        return f"{name}=***" if secret else match.group(0)
 
     return base + mark + _QUERY_PAIR.sub(blank, query)
 
@@ -163,7 +164,8 @@ class SocketLinesFilter(logging.Filter):
     (…)"), which repeat uvicorn's handshake line. With ``handshakes``, that line too
     (``"WebSocket /path" [accepted]``, or its refusal's status): with the access log off a
     socket is a request like any other, and an auction's agents reconnecting would fill the
-    log."""
+    log. A handshake line kept has its secret query parameters blanked, as the access log's
+    (its arguments are client, path with query)."""
 
     PROTOCOL = ("connection open", "connection closed", "connection rejected", "HTTP response sent")
 
@@ -177,4 +179,9 @@ class SocketLinesFilter(logging.Filter):
             return True
         if message.startswith(self.PROTOCOL):
             return False
-        return not (self.handshakes and message.startswith('%s - "WebSocket %s"'))
+        if not message.startswith('%s - "WebSocket %s"'):
+            return True
+        args = record.args
+        if isinstance(args, tuple) and len(args) >= 2 and isinstance(args[1], str):
+            record.args = (args[0], redact_query(args[1]), *args[2:])
+        return not self.handshakes

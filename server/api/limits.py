@@ -12,7 +12,8 @@ operator's, else its address (as ``srd serve`` resolved it: a proxy's ``X-Forwar
 counts only from ``SRD_TRUSTED_PROXIES``). A token is looked up (one indexed read) the first
 time this process sees it; a made-up token counts against its address, so inventing tokens buys
 no shares. As tokens are free to register, an address's tokens together also hold at most a
-quarter of the process's event streams. A request over its client's share is answered 429 with
+quarter of the process's event streams, and as many long polls as a quarter of the waits the
+process keeps for non-patrons (128). A request over its client's share is answered 429 with
 ``Retry-After`` and ``Connection: close`` before any route runs: clients are paced, never
 queued. The routes' own process-wide caps stay behind this as the last line.
 
@@ -41,6 +42,7 @@ from starlette.websockets import WebSocket
 from server.api.connections import client_address
 from server.api.errors import error_item
 from server.config import Settings
+from server.live.rounds import MAX_WATCHER_WAITERS
 from server.store.crud.models import is_participant_token
 from server.store.db import Database, DatabaseUnavailableError
 
@@ -91,7 +93,10 @@ class ClientLimitsMiddleware:
             max(settings.limit_client_streams, settings.max_event_streams // 4),
         )
         polls = Limit(
-            "long polls", settings.limit_client_long_polls, settings.limit_client_long_polls
+            "long polls",
+            settings.limit_client_long_polls,
+            settings.limit_client_long_polls,
+            max(settings.limit_client_long_polls, MAX_WATCHER_WAITERS // 4),  # as the streams
         )
         uploads = Limit("uploads", settings.limit_client_uploads, settings.limit_address_uploads)
         self.socket_limit = Limit(

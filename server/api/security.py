@@ -12,6 +12,7 @@ import hmac
 import logging
 import os
 import secrets
+import stat
 from pathlib import Path
 
 from server.api.errors import api_error
@@ -57,6 +58,10 @@ def load_admin_token_hash(settings: Settings) -> str:
     if not path.exists():
         _write_secret_file(path, new_token("srda"))
         log.warning("generated the admin token into %s (mode 0600)", path)
+    mode = stat.S_IMODE(path.stat().st_mode)
+    if mode & 0o077:
+        log.warning("the admin token file %s may be read by others (mode %04o): chmod 600 it",
+                    path, mode)  # fmt: skip
     return hash_token(path.read_text().strip())
 
 

@@ -147,7 +147,8 @@ def _summary(report: PopulationReport) -> Table:
     "--admin-token",
     envvar="SRD_ADMIN_TOKEN",
     default=None,
-    help="Operator token (or SRD_ADMIN_TOKEN): create a remote auction of the agents' models.",
+    help="Operator token: create a remote auction of the agents' models. Prefer "
+    "SRD_ADMIN_TOKEN: a command line is visible to every user of the machine (ps).",
 )
 @click.option(
     "--rarity",

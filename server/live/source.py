@@ -45,6 +45,7 @@ from server.store.db import (
     PROBE_TIMEOUT_S,
     Database,
     DatabaseUnavailableError,
+    answer_of_outage,
     is_database_outage,
     is_sqlite,
     sqlite_path,
@@ -96,7 +97,7 @@ class Feed(Generic[S]):
         if self.failure is None:
             return
         if is_database_outage(self.failure):
-            raise DatabaseUnavailableError(unavailable_message(self.failure))
+            raise DatabaseUnavailableError(answer_of_outage(self.failure))
         raise self.failure
 
     async def wait(self, generation: int, timeout_s: float) -> bool:

@@ -415,12 +415,14 @@ class Database:
             else:
                 now = self._probed(lambda probe: _identity(probe, self.url))
         except FileNotFoundError:
+            if not self._lost:
+                log.warning("the database file %s was deleted", sqlite_path(self.url))
             self._lost = True
-            return f"the database file {sqlite_path(self.url)} was deleted"
+            return "the database file was deleted"
         except Exception as exc:  # unreachable: a stopped server, a dropped database
             if self._problem is None:
                 log.warning("the database cannot be reached: %s", _first_line(exc))
-            return f"the database cannot be reached: {_first_line(exc)}"
+            return UNREACHABLE
         if now != self._identity:
             self._lost = True
             return "the database was replaced by another one since this server started"
@@ -438,7 +440,8 @@ class Database:
         try:
             read_only = self._probed(_read_only)
         except Exception as exc:
-            return f"the database cannot be reached: {_first_line(exc)}"
+            log.warning("the database cannot be reached: %s", _first_line(exc))
+            return UNREACHABLE
         if read_only == "on":
             return "the database is read-only (transaction_read_only is on: a standby?)"
         return None
@@ -512,8 +515,25 @@ def _first_line(exc: BaseException) -> str:
     return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
 
 
+UNREACHABLE = "the database cannot be reached (the server's log says why)"
+"""What readiness and answers say of an outage. The driver's words (the database's host and
+port, its user) go to the server's log only."""
+UNAVAILABLE = "the database is unavailable (the server's log says why)"
+"""What an answer says of a statement that met an outage (``answer_of_outage``)."""
+READ_ONLY = "the database is read-only now (a standby?): it takes no writes"
+"""What an answer says of a write the database refused as read-only."""
+
+
+def answer_of_outage(exc: BaseException) -> str:
+    """What an answer says of ``exc``, an outage: never the driver's words, which name the
+    database's host, port and user (the server's log has them)."""
+    if getattr(getattr(exc, "orig", None), "sqlstate", None) in OUTAGE_STATES:
+        return READ_ONLY
+    return UNAVAILABLE
+
+
 def unavailable_message(exc: BaseException) -> str:
-    """What an answer says when the database failed: the first line of the error."""
+    """What the server's log says when the database failed: the first line of the error."""
     return f"the database is unavailable: {_first_line(exc)}"
 
 

@@ -3,6 +3,7 @@ mode with foreign keys, the admin token is generated once into a 0600 file."""
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 import stat
 import threading
@@ -121,6 +122,26 @@ def test_admin_token_is_generated_once_into_a_0600_file(tmp_path: Path) -> None:
         assert good.status_code == 422
     with TestClient(create_app(settings)):
         assert settings.admin_token_file.read_text().strip() == token
+
+
+def test_an_admin_token_file_others_may_read_is_named_in_the_log(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path, admin_token=None)
+    settings.admin_token_file.write_text("srda_written-by-hand\n")
+    settings.admin_token_file.chmod(0o644)
+    with caplog.at_level(logging.WARNING), TestClient(create_app(settings)) as client:
+        hand = {"Authorization": "Bearer srda_written-by-hand"}
+        assert (
+            client.post(
+                "/jobs", json={"kind": "fish", "params": {"steps": 0}}, headers=hand
+            ).status_code
+            == 422
+        )
+    assert (
+        f"the admin token file {settings.admin_token_file} may be read by others (mode 0644)"
+        in caplog.text
+    )
 
 
 def test_settings_come_from_srd_environment(monkeypatch: pytest.MonkeyPatch) -> None:

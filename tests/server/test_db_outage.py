@@ -104,6 +104,7 @@ def assert_unavailable(response: httpx.Response) -> None:
     assert int(response.headers["retry-after"]) > 0
     [item] = response.json()["detail"]
     assert item["loc"] == ["database"] and item["type"] == "db_unavailable"
+    assert "127.0.0.1" not in response.text and "psycopg" not in response.text  # log only
 
 
 def lease_owner(url: str, auction_id: int) -> str | None:
@@ -119,7 +120,8 @@ def lease_owner(url: str, auction_id: int) -> str | None:
 
 
 def test_writes_resume_after_a_postgres_outage(cluster: Cluster, tmp_path: Path) -> None:
-    url = f"postgresql+psycopg://postgres@127.0.0.1:{cluster.port}/{DB_NAME}"
+    password = "never-logged-9f3"  # trust authentication ignores it; the log must too
+    url = f"postgresql+psycopg://postgres:{password}@127.0.0.1:{cluster.port}/{DB_NAME}"
     env = settings_environment({**QUOTAS_OFF, "lease_s": 3.0})
     stored: dict[str, int] = {}  # every participant acknowledged with 201, and its model id
 
@@ -157,9 +159,13 @@ def test_writes_resume_after_a_postgres_outage(cluster: Cluster, tmp_path: Path)
             assert health.status_code == 503 and health.headers["retry-after"]
             assert health.json()["status"] == "unavailable"
             assert [p["check"] for p in health.json()["problems"]] == ["database"]
+            assert "127.0.0.1" not in health.text and "psycopg" not in health.text
             assert client.get("/livez").json() == {"status": "ok"}
             time.sleep(0.2)
         assert outage_answers > 5
+        log = server.log_path.read_text()
+        assert f"port {cluster.port} failed" in log  # the cause, in the log only
+        assert password not in log and "postgres:***@127.0.0.1" in log
 
         cluster.start()
         back_at = time.monotonic()

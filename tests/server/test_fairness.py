@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -369,9 +370,19 @@ def test_tokens_in_the_url_are_refused_and_never_logged(server: ServerProcess) -
             (item,) = answer.json()["detail"]
             assert item["loc"] == ["query", name] and item["type"] == "token_in_url"
         assert client.get("/models", params={"api_key": secret}).status_code == 422  # unknown
+        assert client.get(f"/models?%74oken={secret}").status_code == 400  # "token", encoded
+    for query in (f"token={secret}", f"api_key={secret}"):  # a WebSocket handshake's line
+        with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
+            sock.sendall(
+                f"GET /auctions/1/rounds/socket?{query} HTTP/1.1\r\nHost: a\r\n"
+                "Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
+                "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n".encode()
+            )
+            assert sock.recv(65536).startswith(b"HTTP/1.1 ")
     log = server.log_path.read_text()
     assert secret not in log
-    assert "/healthz?token=*** " in log and "api_key=***" in log
+    assert "/healthz?token=*** " in log and "api_key=***" in log and "%74oken=***" in log
+    assert '"WebSocket /auctions/1/rounds/socket?token=***"' in log
 
 
 def test_every_answer_carries_the_security_headers(server: ServerProcess) -> None:
@@ -469,6 +480,37 @@ def test_a_long_poll_whose_client_left_frees_its_share_at_once(
             assert time.monotonic() - closed_at < 3, "the dropped polls still hold the share"
             time.sleep(0.1)
     assert answer.status_code == 200 and answer.json()["status"] == "none", answer.text
+
+
+def test_an_address_tokens_together_hold_a_quarter_of_the_watchers_long_polls(
+    server: ServerProcess, auction_id: int
+) -> None:
+    """An address's participant tokens together hold at most a quarter of the process's 512
+    waits of non-patrons, 128: before, three free registrations let one address hold them all
+    (128 each), and every other watcher's long poll got 503."""
+    address = "127.0.0.41"
+    tokens = []
+    with client_from(address, server) as client:
+        for _ in range(2):
+            answer = client.post("/submit", json=honest(unique("polls")))
+            assert answer.status_code == 201, answer.text
+            tokens.append({"Authorization": f"Bearer {answer.json()['token']}"})
+    polls = [_get(f"/auctions/{auction_id}/rounds/current?wait=25", h) for h in tokens]
+
+    async def fill() -> tuple[list[int], list[int]]:
+        held = Held()
+        try:
+            first = await asyncio.gather(
+                *(_request(server, address, polls[0], held) for _ in range(LONG_POLLS_PER_CLIENT))
+            )
+            second = [(await _request(server, address, polls[1], held))[0] for _ in range(2)]
+            return [status for status, _ in first], second
+        finally:
+            held.close()
+
+    first, second = asyncio.run(fill())
+    assert first == [HELD] * LONG_POLLS_PER_CLIENT
+    assert second == [429, 429]  # the second token's own share is untouched, the address's not
 
 
 def test_head_answers_every_get_path_with_its_headers_and_no_body(

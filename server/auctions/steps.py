@@ -54,6 +54,10 @@ from server.work.runner import WorkKind
 from sim.market import MarketConfig, fish_on_sale
 
 if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
+
+    from agents.batch import FSNBatch
     from sim.market import FineTuneRound, Market, RescreenBatch
 
 log = logging.getLogger("srd.auctions")
@@ -84,12 +88,20 @@ def _market_config(auction: Auction) -> MarketConfig:
     )
 
 
-def rescreening() -> RescreenBatch:
-    """The re-screening of a server-mode auction's fine-tuned patrons: a patron stays in only
-    while the screener still accepts it (the one re-screening the study uses too)."""
-    from screener import rescreen
+def rescreening(margin: float) -> RescreenBatch:
+    """The re-screening of a server-mode auction's fine-tuned patrons: a new version bids only
+    when the screener accepts it by more than ``margin`` (``screener.review``), as a remote
+    upload does: one it would hold for an inspector does not bid, its previous version does.
+    So faithful remote agents replay a server-mode auction exactly."""
+    import numpy as np
 
-    return rescreen
+    from screener import judge, review
+
+    def keeps(patrons: FSNBatch) -> npt.NDArray[np.bool_]:
+        verdicts = judge(patrons, at_the_door=False)
+        return np.array([review(v, margin) == "accepted" for v in verdicts], dtype=np.bool_)
+
+    return keeps
 
 
 ENTERED_KEPT = 1024
@@ -127,13 +139,14 @@ def _kept(url: str) -> _Kept:
     return _Kept(Database(url))
 
 
-def _load_market(auction: Auction, manifests: Sequence[Manifest]) -> Market:
+def _load_market(auction: Auction, manifests: Sequence[Manifest], margin: float) -> Market:
     # The market (and torch) is imported here, in the worker: the API process imports this
     # module for its work kind and never plays an auction itself.
     from sim.market import Market
 
     config = _market_config(auction)
-    judge = rescreening() if auction.fine_tune and config.fine_tune_mode == "server" else None
+    server_mode = auction.fine_tune and config.fine_tune_mode == "server"
+    judge = rescreening(margin) if server_mode else None
     if auction.checkpoint is None:
         if auction.iteration != 0:
             raise ResumeError(f"{auction.iteration} rounds are committed but no checkpoint is")
@@ -331,7 +344,7 @@ def _step(kept: _Kept, auction_id: int, margin: float) -> None:
         return
     if row is not None and row.open and _not_yet(database, auction_id, row):
         return
-    market = _load_market(auction, manifests)
+    market = _load_market(auction, manifests, margin)
     if auction.status == AuctionStatus.PENDING:
         with database.session(write=True) as session:
             crud.start(session, auction_id=auction_id, finished=market.finished, now=utcnow())

@@ -9,13 +9,25 @@ import torch
 import screener
 import server.auctions.steps
 from agents.batch import FSNBatch, from_manifests
-from agents.negotiator import honest_manifest
+from agents.negotiator import honest_manifest, saboteur_manifest
 from sim.market import Market, MarketConfig
 from studies.auctions import Setting, plan_auction, run_auctions
 
 
-def test_the_server_and_the_study_share_the_one_rescreening():
-    assert server.auctions.steps.rescreening() is screener.rescreen
+def test_the_server_rescreens_as_the_study_and_reverts_what_it_would_hold():
+    """Margin 0 (the study's, which has no inspector): the study's re-screening. A margin: a
+    version the server would hold for an inspector is reverted, as a held remote upload does
+    not bid."""
+    rng = np.random.default_rng(5)
+    models = [honest_manifest(rng, f"h{i}") for i in range(8)]
+    models.append(saboteur_manifest(rng, "s"))
+    batch = from_manifests(models)
+    verdicts = screener.rescreen_many(models)
+    kept = server.auctions.steps.rescreening(0.0)(batch)
+    assert kept.tolist() == screener.rescreen(batch).tolist() == [v.accepted for v in verdicts]
+    held = [screener.review(v, 1.0) == "accepted" for v in verdicts]
+    assert server.auctions.steps.rescreening(1.0)(batch).tolist() == held
+    assert held.count(True) < kept.tolist().count(True)  # the margin reverts some
 
 
 def test_rescreen_keeps_what_the_screener_accepts():

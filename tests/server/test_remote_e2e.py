@@ -34,8 +34,6 @@ from tests.support.server import wait_for
 DEADLINE_S = 3.0
 """Round deadline of the end-to-end auction (the killed agent's round waits this long)."""
 TIMEOUT_S = 180
-WEIGHT_TOLERANCE = 1e-12
-"""Remote and in-server fine-tuning agree to this (band padding moves last bits)."""
 
 
 @pytest.fixture(scope="module", params=BACKENDS)
@@ -231,7 +229,7 @@ def test_faithful_remote_agents_replay_the_server_auction(
     ]
     moved = [i for i, m in enumerate(entries) if server_final[i] != m]
     assert moved  # fine-tuning changed someone
-    assert max_difference(remote_final, server_final) <= WEIGHT_TOLERANCE
+    assert max_difference(remote_final, server_final) == 0.0  # bit for bit
 
 
 def max_difference(a: list[Manifest], b: list[Manifest]) -> float:

@@ -25,8 +25,6 @@ from sim.market import (
 
 EXPECTED = Path(__file__).with_name("expected") / "no_fine_tune_records.json"
 """Records of auctions without fine-tuning, computed before fine-tuning got per-patron seeds."""
-WEIGHT_TOLERANCE = 1e-12
-"""Remote and in-market fine-tuning agree to this (bands pad batches: last-bit differences)."""
 
 
 def patrons(seed: int, n_honest: int, n_saboteurs: int = 0) -> list[Manifest]:
@@ -39,6 +37,30 @@ def strong(manifests: list[Manifest], lr: float = 0.3) -> list[Manifest]:
     """Learning rates that visibly move the patrons."""
     return [
         m.model_copy(update={"fine_tuning": m.fine_tuning.model_copy(update={"learning_rate": lr})})
+        for m in manifests
+    ]
+
+
+def varied(manifests: list[Manifest], seed: int) -> list[Manifest]:
+    """Every patron its own batch size (1-64), copies (1-16), noise, epochs (1-4) and
+    learning rate (up to 1e-3): shapes the server's bands pad differently from a patron alone,
+    and steps that amplify any last-bit difference (rounds later, 1e-17 had become 1e-2)."""
+    rng = np.random.default_rng(seed)
+    return [
+        m.model_copy(
+            update={
+                "augmentation": m.augmentation.model_copy(
+                    update={"copies": int(rng.integers(1, 17)), "noise_std": 0.05}
+                ),
+                "fine_tuning": m.fine_tuning.model_copy(
+                    update={
+                        "epochs": int(rng.integers(1, 5)),
+                        "batch_size": int(rng.integers(1, 65)),
+                        "learning_rate": float(rng.uniform(1e-4, 1e-3)),
+                    }
+                ),
+            }
+        )
         for m in manifests
     ]
 
@@ -108,21 +130,27 @@ def finish(market: Market, skip: set[int] = frozenset()) -> tuple[list, list[Man
     return records, market.current_manifests()
 
 
-def assert_close(a: list[Manifest], b: list[Manifest], tolerance: float) -> float:
-    """Largest parameter difference between two patron lists (asserted ≤ tolerance)."""
+def assert_identical(a: list[Manifest], b: list[Manifest]) -> None:
+    """Two patron lists with the same parameters, bit for bit."""
     left, right = from_manifests(a).parameters(), from_manifests(b).parameters()
-    worst = max(float((left[k] - right[k]).abs().max()) for k in left)
-    assert worst <= tolerance
-    return worst
+    assert all(torch.equal(left[k], right[k]) for k in left)
 
 
-@pytest.mark.parametrize(("seed", "n_honest", "n_sab", "fish"), [(1, 12, 0, 3), (2, 10, 4, 2)])
-def test_faithful_remote_rounds_replay_the_server_auction(seed, n_honest, n_sab, fish):
-    manifests = strong(patrons(seed, n_honest, n_sab))
-    server = MarketConfig(n_fish=fish, n_rows=24, fine_tune=True, seed=seed)
+@pytest.mark.parametrize(
+    ("seed", "n_honest", "n_sab", "fish", "rows", "settings"),
+    [(1, 12, 0, 3, 24, "strong"), (2, 10, 4, 2, 24, "strong"), (53, 24, 0, 5, 64, "varied")],
+)
+def test_faithful_remote_rounds_replay_the_server_auction(
+    seed, n_honest, n_sab, fish, rows, settings
+):
+    """Each patron's fine-tuning is its own, bit for bit, whoever shares the server's batch."""
+    plain = patrons(seed, n_honest, n_sab)
+    manifests = strong(plain) if settings == "strong" else varied(plain, seed)
+    server = MarketConfig(n_fish=fish, n_rows=rows, fine_tune=True, seed=seed, fine_tune_rounds=8)
     remote = MarketConfig(
-        n_fish=fish, n_rows=24, fine_tune=True, seed=seed, fine_tune_mode="remote"
-    )
+        n_fish=fish, n_rows=rows, fine_tune=True, seed=seed, fine_tune_rounds=8,
+        fine_tune_mode="remote",
+    )  # fmt: skip
     market = Market(manifests, server)
     expected = list(market.run())
     got, final = play_remote(manifests, remote)
@@ -130,7 +158,7 @@ def test_faithful_remote_rounds_replay_the_server_auction(seed, n_honest, n_sab,
         dataclass_without_tuning(r) for r in expected
     ]
     assert any(r.fine_tuned for r in expected)
-    assert_close(final, market.current_manifests(), WEIGHT_TOLERANCE)
+    assert_identical(final, market.current_manifests())
     assert final != manifests  # the patrons moved
 
 

@@ -480,7 +480,7 @@ def fine_tune(
     elif dataset is None:
         dataset = torch.arange(P)
     epochs = batch.epochs if train is None else torch.where(train, batch.epochs, 0)
-    if P == 0 or int(epochs.max()) == 0:
+    if P == 0 or R == 0 or int(epochs.max()) == 0:  # no rows: nothing to learn from
         return batch
     size = batch.batch_size.clamp(max=R)
     steps = epochs * torch.div(R + size - 1, size, rounding_mode="floor")

@@ -41,7 +41,7 @@ class RoundInfo:
             auction_id=int(state["auction_id"]),
             round=int(state["round"]),
             iteration=int(state["iteration"]),
-            rows=np.array(state["rows"], dtype=np.float64),
+            rows=np.array(state["rows"], dtype=np.float64).reshape(-1, 8),
             fine_tune_seed=int(state["fine_tune_seed"]),
             augmentation_seed=int(state["augmentation_seed"]),
             deadline=datetime.fromisoformat(state["deadline"]),

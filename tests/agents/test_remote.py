@@ -128,6 +128,11 @@ def test_faithful_fine_tuning_moves_only_patrons_with_epochs():
     moving = next(m for m in manifests if m.fine_tuning.epochs > 0)
     other_position = faithful_fine_tune(moving, info_for(position=3))
     assert other_position != faithful_fine_tune(moving, info)  # its seeds depend on its place
+    state = {
+        "auction_id": 1, "round": 1, "iteration": 0, "rows": [], "fine_tune_seed": 1,
+        "augmentation_seed": 2, "deadline": "2026-01-01T00:00:00+00:00", "seconds_left": 1,
+    }  # fmt: skip
+    assert faithful_fine_tune(moving, RoundInfo.from_state(state, 0)) == moving  # no rows
 
 
 def test_population_settings_are_checked_and_its_models_are_seeded():

@@ -50,8 +50,10 @@ RUN useradd --create-home --uid 10001 srd \
     && chown 10001:10001 /data
 USER 10001
 
-ENV SRD_DATABASE_URL=sqlite:////data/srd.db \
-    SRD_DATA_DIR=/data \
+# The default database, sqlite:///./srd.db, is /data/srd.db from here. SRD_DATABASE_URL is not
+# set: a variable would win over the secret file compose.yaml names it with (PostgreSQL).
+WORKDIR /data
+ENV SRD_DATA_DIR=/data \
     SRD_HOST=0.0.0.0 \
     SRD_PORT=8000
 VOLUME ["/data"]

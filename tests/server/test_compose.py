@@ -74,6 +74,25 @@ def test_no_secret_is_written_in_the_file():
         assert secret == {"file": f"./secrets/{name}"}, name
 
 
+def image_environment() -> dict[str, str]:
+    """The variables the Dockerfile's ENV instructions set (``ENV A=1 \\`` continued)."""
+    text = (ROOT / "Dockerfile").read_text().replace("\\\n", " ")
+    found: dict[str, str] = {}
+    for line in text.splitlines():
+        if line.startswith("ENV "):
+            found.update(pair.split("=", 1) for pair in line[4:].split())
+    return found
+
+
+def test_the_image_sets_no_variable_that_would_hide_a_secret_file():
+    """A variable wins over its secret file: had the image set SRD_DATABASE_URL (it did, to
+    SQLite), the replicas would never read the PostgreSQL URL compose gives them as a file."""
+    image = image_environment()
+    assert image["SRD_DATA_DIR"] == "/data"  # the parser reads the ENV lines
+    for secret in SERVICES["api"]["secrets"]:
+        assert secret.upper() not in image, secret
+
+
 def test_ray_nodes_and_api_use_token_authentication():
     for name in ("api", "ray-head", "ray-worker"):
         env = environment(name)

@@ -156,10 +156,10 @@ def adopt_environment(environ: dict[str, str]) -> None:
 
 
 def die_with_parent(parent_pid: int) -> None:
-    """Make this child process end when the API process ``parent_pid`` does (call it first
-    thing), and give it its multiprocessing name in ``/proc`` (``srd-screening``,
-    ``srd-auction-wor``...): a child's command line is the same for all, and benchmarks tell
-    them apart by name.
+    """Make this child process end when the API process ``parent_pid`` does, and only when the
+    API ends it (its own process group, SIGINT ignored; call it first thing), and give it its
+    multiprocessing name in ``/proc`` (``srd-screening``, ``srd-auction-wor``...): a child's
+    command line is the same for all, and benchmarks tell them apart by name.
 
     Linux delivers the parent-death signal (SIGKILL) when the *thread* that started the child
     ends. A forked child's parent is the fork server, which gets the same signal when the API
@@ -172,6 +172,14 @@ def die_with_parent(parent_pid: int) -> None:
     forked = os.getppid() != parent_pid
     if forked:
         _release_fork_server()
+    # A child stops when the API stops it, not with its terminal: Ctrl-C, or a signal to the
+    # server's process group (``timeout``, ``kill -- -PGID``), had ended every child at once,
+    # failing the jobs they ran, while the API was still shutting down in order.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # the fork server ignores it (fork_guard)
+    if hasattr(os, "setpgrp"):
+        with contextlib.suppress(OSError):
+            os.setpgrp()
     watched = os.getppid()
     arm_parent_death_signal()
     if sys.platform.startswith("linux"):

@@ -35,6 +35,7 @@ row over).
 from __future__ import annotations
 
 import logging
+import signal
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -331,8 +332,11 @@ class BackgroundRunner:
 
     def _on_exit(self, row_id: int, exit_code: int | None) -> None:
         """The worker process died in the middle of this row (killed, crashed): a resumable
-        row is run again from its last commit (its lease is released with the task's end)."""
-        if self.kind.resumable:
+        row is run again from its last commit (its lease is released with the task's end), and
+        so is any row whose worker was stopped by SIGTERM or SIGINT from outside (a service
+        manager stopping every process of the service: the API is stopping too)."""
+        interrupted = exit_code in (-signal.SIGTERM, -signal.SIGINT)
+        if self.kind.resumable or interrupted:
             with self._lock:
                 times = self._deaths[row_id] = self._deaths.get(row_id, 0) + 1
             if times < MAX_DEATHS:

@@ -7,17 +7,25 @@ timeout (10 s)."""
 from __future__ import annotations
 
 import asyncio
+import os
+import signal
+import subprocess
 import threading
 import time
 from pathlib import Path
 
 import httpx
+import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed
 
-from server.cli.launch import ServerProcess
+from server.cli.launch import ServerProcess, free_port, srd_command
 from tests.support.factories import honest, unique
 from tests.support.live import create_unstarted_auction
+from tests.support.server import wait_for
+
+ADMIN_TOKEN = "shutdown-admin-token-0123456789"
+ADMIN = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
 
 WAIT_S = 30  # the longest wait a long poll may ask: far longer than the stop may take
 
@@ -82,3 +90,47 @@ def test_sigterm_answers_waiting_long_polls_and_exits_promptly(tmp_path: Path) -
     assert closes == [1012]
     assert len(streams) == 1 and "event: end" not in streams[0]  # cut short, not ended
     assert "timeout graceful shutdown exceeded" not in (tmp_path / "data" / "serve.log").read_text()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_to_the_whole_process_group_requeues_the_running_job(
+    tmp_path: Path, sig: signal.Signals
+) -> None:
+    """Ctrl-C in a terminal (SIGINT), ``timeout`` or a service manager (SIGTERM) signal every
+    process of the server's group: the job running then goes back to the queue, as with a
+    signal to the server alone. Before, its worker died at once and the job was failed
+    ("the job worker exited (code 1) without a result")."""
+    url = f"sqlite:///{tmp_path / 'srd.db'}"
+    port = free_port()
+    env = {**os.environ, "SRD_DATABASE_URL": url, "SRD_DATA_DIR": str(tmp_path / "data"),
+           "SRD_ADMIN_TOKEN": ADMIN_TOKEN}  # fmt: skip
+    command = [*srd_command(), "serve", "--host", "127.0.0.1", "--port", str(port)]
+    base = f"http://127.0.0.1:{port}"
+    with (tmp_path / "serve.log").open("ab") as log:
+        server = subprocess.Popen(command, env=env, stdout=log, stderr=subprocess.STDOUT,
+                                  start_new_session=True)  # fmt: skip
+        try:
+            wait_for(lambda: _healthy(base), bool, 120)
+            job = {"kind": "fish", "params": {"steps": 2_000_000}}  # minutes: it is stopped
+            created = httpx.post(f"{base}/jobs", json=job, headers=ADMIN, timeout=30)
+            job_id = created.json()["job_id"]
+            wait_for(lambda: httpx.get(f"{base}/jobs/{job_id}").json(),
+                     lambda j: j["status"] == "running" and j["progress"] > 0, 120)  # fmt: skip
+            os.killpg(server.pid, sig)
+            server.wait(30)  # uvicorn ends by raising the signal again: its code is -sig
+        finally:
+            if server.poll() is None:
+                os.killpg(server.pid, signal.SIGKILL)
+                server.wait()
+    with ServerProcess(database_url=url, data_dir=tmp_path / "data",
+                       admin_token=ADMIN_TOKEN) as again:  # fmt: skip
+        state = httpx.get(f"{again.url}/jobs/{job_id}").json()
+        assert state["status"] in ("queued", "running"), state
+        assert httpx.delete(f"{again.url}/jobs/{job_id}", headers=ADMIN).status_code == 200
+
+
+def _healthy(base: str) -> bool:
+    try:
+        return httpx.get(f"{base}/healthz", timeout=1).status_code == 200
+    except httpx.TransportError:
+        return False

@@ -7,9 +7,9 @@ import ipaddress
 import os
 from functools import lru_cache
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import AliasChoices, Field, SecretStr, field_validator
+from pydantic import AliasChoices, Field, SecretStr, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 JobBackendName = Literal["local", "ray"]
@@ -19,7 +19,8 @@ JobBackendName = Literal["local", "ray"]
 class Settings(BaseSettings):
     """Every knob of the auction house; each can be set as ``SRD_<NAME>`` in the environment."""
 
-    model_config = SettingsConfigDict(env_prefix="SRD_", extra="ignore")
+    # An empty variable (``SRD_AUCTION_WORKERS=``, as compose's ``${VAR:-}`` gives) is unset.
+    model_config = SettingsConfigDict(env_prefix="SRD_", extra="ignore", env_ignore_empty=True)
 
     database_url: str = "sqlite:///./srd.db"
     """SQLAlchemy URL; SQLite (WAL mode) by default, ``postgresql+psycopg://...`` works too."""
@@ -199,9 +200,27 @@ SECRETS_DIR_VARIABLE = "SRD_SECRETS_DIR"
 a variable set in the environment wins over its file."""
 
 
+class SettingsError(ValueError):
+    """Settings that cannot be used: one line per problem, each naming its variable."""
+
+
 @lru_cache(maxsize=1)
 def get_settings() -> Settings:
     """The settings of this process, read once from the environment (and the secret files of
-    ``SRD_SECRETS_DIR``, if set)."""
+    ``SRD_SECRETS_DIR``, if set). Raises ``SettingsError`` naming each variable at fault."""
     secrets = os.environ.get(SECRETS_DIR_VARIABLE) or None
-    return Settings(_secrets_dir=secrets)
+    if secrets is not None and not Path(secrets).is_dir():
+        raise SettingsError(f"{SECRETS_DIR_VARIABLE}={secrets}: no such folder of secret files")
+    try:
+        return Settings(_secrets_dir=secrets)
+    except ValidationError as exc:
+        raise SettingsError("\n".join(_in_words(error) for error in exc.errors())) from None
+
+
+def _in_words(error: Any) -> str:
+    """One validation error as ``SRD_NAME=value: what is wrong`` (a secret's value unsaid)."""
+    field = str(error["loc"][0]) if error["loc"] else "?"
+    name = f"SRD_{field.upper()}"
+    secret = field in ("admin_token", "database_url")
+    given = "" if secret or error.get("input") is None else f"={error['input']}"
+    return f"{name}{given}: {error['msg']}"

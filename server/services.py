@@ -34,7 +34,7 @@ from server.screening.pool import ScreeningService
 from server.store.db import Database, SqliteServerLock, is_sqlite, prepare_database
 from server.submissions.quotas import Limits
 from server.submissions.writer import SubmissionWriter
-from server.work.pool import WorkerContext
+from server.work.pool import WorkerContext, usable_cpus
 from server.work.runner import BackgroundRunner, WorkKind
 
 log = logging.getLogger("srd.services")
@@ -110,6 +110,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         progress_interval_s=settings.progress_interval_s,
         torch_threads=settings.worker_torch_threads,
         review_margin=settings.review_margin,
+        log_level=logging.getLogger().getEffectiveLevel(),  # as ``srd serve`` set it
     )  # auction steps at the API's priority: the next round waits for its step
     job_context = dataclasses.replace(
         context,
@@ -158,7 +159,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         auctions=runner(
             AUCTION_WORK,
             context,
-            settings.auction_workers or os.cpu_count() or 1,
+            settings.auction_workers or usable_cpus(),
             settings.auction_timeout_s,
         ),
         jobs=runner(JOB_WORK, job_context, settings.job_workers, settings.job_timeout_s),

@@ -21,6 +21,8 @@ from server.config import Settings
 log = logging.getLogger("srd.security")
 
 TOKEN_BYTES = 32  # 256 bits of entropy: a plain SHA-256 of it is a safe verifier
+WEAK_TOKEN_CHARS = 16
+"""An operator token shorter than this is named in the log at every start."""
 
 
 def new_token(prefix: str) -> str:
@@ -53,7 +55,11 @@ def load_admin_token_hash(settings: Settings) -> str:
     """The hash of the operator token: ``SRD_ADMIN_TOKEN``, else the token file under
     ``data_dir`` (created with mode 0600 at first start)."""
     if settings.admin_token is not None:
-        return hash_token(settings.admin_token.get_secret_value())
+        token = settings.admin_token.get_secret_value()
+        if len(token) < WEAK_TOKEN_CHARS:
+            log.warning("SRD_ADMIN_TOKEN has %d characters: a guess away from the operator's "
+                        "rights (openssl rand -hex 32 makes a strong one)", len(token))  # fmt: skip
+        return hash_token(token)
     path = settings.admin_token_file
     if not path.exists():
         _write_secret_file(path, new_token("srda"))

@@ -253,6 +253,7 @@ def _judge_pending(database: Database, round_id: int, margin: float) -> None:
 
 
 def _fail(database: Database, auction_id: int, reason: str) -> None:
+    log.warning("auction %d failed: %s", auction_id, reason)
     with database.session(write=True) as session:
         crud.fail_unfinished(session, table=Auction, row_id=auction_id, error=reason)
         session.commit()
@@ -368,6 +369,7 @@ def _step(kept: _Kept, auction_id: int, margin: float) -> None:
             session.commit()
         if opened is not None:
             return
+    log.info("auction %d finished (%s)", auction_id, market.stop_reason)
 
 
 def run_step(context: WorkerContext, auction_id: int) -> None:

@@ -24,9 +24,13 @@ def command(timeout: float) -> None:
     """Exit 0 when GET /healthz of the configured server answers 200, else 1 (saying why)."""
     import httpx
 
-    from server.config import get_settings
+    from server.config import SettingsError, get_settings
 
-    settings = get_settings()
+    try:
+        settings = get_settings()
+    except SettingsError as exc:
+        click.echo(f"srd healthcheck: {exc}", err=True)
+        raise SystemExit(UNHEALTHY) from None
     host = "127.0.0.1" if settings.host in ANY_ADDRESS else settings.host
     if ":" in host:
         host = f"[{host}]"

@@ -5,11 +5,61 @@ from __future__ import annotations
 import contextlib
 import logging
 from types import FrameType
+from typing import TYPE_CHECKING
 
 import click
 
+if TYPE_CHECKING:
+    from server.config import Settings
+
 UNUSABLE = 2
-"""The exit code of a server that cannot start with its settings (its data folder)."""
+"""The exit code of a server that cannot start with its settings (a variable's value)."""
+NOT_STARTED = 3
+"""The exit code of a server that could not start: its database or its port."""
+
+
+def admin_token_problem(settings: Settings) -> str | None:
+    """Why the operator token file cannot be used, in one line, or None (no file yet: it is
+    made at the start; ``SRD_ADMIN_TOKEN`` set: the file is not read)."""
+    path = settings.admin_token_file
+    if settings.admin_token is not None or not path.exists():
+        return None
+    try:
+        token = path.read_text().strip()
+    except OSError as exc:
+        return f"the admin token file {path} cannot be read: {exc.strerror} (SRD_DATA_DIR)"
+    if not token:
+        return f"the admin token file {path} is empty: remove it to have one made, or write one"
+    return None
+
+
+def database_problem(settings: Settings) -> str | None:
+    """Why the server cannot start on its database, in one line naming SRD_DATABASE_URL (its
+    password hidden), or None. It takes and lets go of a SQLite database's one-server lock and
+    migrates the database, as the start does again (quickly, then)."""
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    from server.store.db import SqliteServerLock, is_sqlite, prepare_database
+
+    try:
+        url = make_url(settings.database_url)
+    except ArgumentError:
+        return "SRD_DATABASE_URL is not a database URL (sqlite:///... or postgresql+psycopg://...)"
+    if url.get_backend_name() not in ("sqlite", "postgresql"):
+        return f"SRD_DATABASE_URL names {url.get_backend_name()}: use sqlite or postgresql"
+    shown = url.render_as_string(hide_password=True)
+    try:
+        lock = SqliteServerLock(settings.database_url) if is_sqlite(settings.database_url) else None
+        try:
+            prepare_database(settings.database_url, settings.databases_file)
+        finally:
+            if lock is not None:
+                lock.release()
+    except Exception as exc:  # unreachable, refused, read-only, newer schema, another server
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        return f"the database {shown} (SRD_DATABASE_URL) cannot be used: {first}"
+    return None
 
 
 def _drain(app: object) -> None:
@@ -55,14 +105,28 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     from server.api.readiness import make_data_dir
     from server.app import create_app
     from server.auctions.sockets import MAX_FRAME_BYTES
-    from server.config import get_settings
+    from server.config import SettingsError, get_settings
+    from server.work.pool import LOG_FORMAT
 
-    settings = get_settings()
+    try:
+        settings = get_settings()
+    except SettingsError as exc:
+        for line in str(exc).splitlines():
+            click.echo(f"srd serve: {line}", err=True)
+        raise SystemExit(UNUSABLE) from None
     problem = make_data_dir(settings.data_dir)
     if problem is not None:
         click.echo(f"srd serve: {problem} (SRD_DATA_DIR)", err=True)
         raise SystemExit(UNUSABLE)
-    logging.basicConfig(level=log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
+    problem = admin_token_problem(settings)
+    if problem is not None:
+        click.echo(f"srd serve: {problem}", err=True)
+        raise SystemExit(UNUSABLE)
+    problem = database_problem(settings)
+    if problem is not None:
+        click.echo(f"srd serve: {problem}", err=True)
+        raise SystemExit(UNUSABLE if problem.startswith("SRD_DATABASE_URL") else NOT_STARTED)
+    logging.basicConfig(level=log_level.upper(), format=LOG_FORMAT)
     file_limit = raise_file_limit()
     config = uvicorn.Config(
         create_app(settings),
@@ -92,4 +156,9 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     server = Server(config)
     server.run()
     if not server.started:  # the port is taken, or the app failed to start
-        raise SystemExit(3)
+        click.echo(
+            f"srd serve: not started on {config.host}:{config.port} (--host/--port, SRD_HOST/"
+            "SRD_PORT); the log above says why",
+            err=True,
+        )
+        raise SystemExit(NOT_STARTED)

@@ -7,10 +7,10 @@ tasks on a Ray cluster (``ray``, ``server.jobs.ray_backend``). ``/healthz`` repo
 
 from __future__ import annotations
 
-import os
 from typing import Protocol
 
 from server.config import JobBackendName
+from server.work.pool import usable_cpus
 
 
 class JobCompute(Protocol):
@@ -32,7 +32,7 @@ class LocalCompute:
 
     def cpus(self) -> float:
         """The CPUs this process may run on."""
-        return float(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 1)
+        return float(usable_cpus())
 
     def close(self) -> None:
         """Nothing to let go of."""

@@ -189,6 +189,9 @@ def run_job(context: WorkerContext, job_id: int) -> None:
                 "error": error_summary(exc),
                 "message": failure_message(exc, context),
             }
+            log.warning("job %d (%s) failed: %s", job_id, kind, outcome["error"])
+        else:
+            log.info("job %d (%s) succeeded", job_id, kind)
         _record_outcome(
             database,
             job_id,

@@ -16,6 +16,7 @@ import contextlib
 import ctypes
 import gc
 import logging
+import math
 import multiprocessing
 import os
 import resource
@@ -29,6 +30,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -68,6 +70,12 @@ class WorkerContext:
     """Times the ``ray`` job backend runs a lost unit again."""
     review_margin: float = 0.0
     """``SRD_REVIEW_MARGIN``: an auction step holds the uploads it judges within it of a bar."""
+    log_level: int = logging.INFO
+    """The API's log level (``srd serve --log-level``): a worker logs as the API does."""
+
+
+LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
+"""The server's log lines, its workers' included."""
 
 
 TaskFn = Callable[[WorkerContext, int], None]
@@ -137,6 +145,17 @@ def _start_fork_server() -> None:
 
         threading.Thread(target=keep, name="fork-server", daemon=True).start()
         _fork_server_started.wait()
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may use: those it may run on, fewer where a cgroup's quota
+    (``docker run --cpus``, a Kubernetes limit: ``/sys/fs/cgroup/cpu.max``) allows less."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    with contextlib.suppress(OSError, ValueError):
+        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()[:2]
+        if quota != "max":
+            return max(1, min(cpus or 1, math.ceil(int(quota) / int(period))))
+    return max(1, cpus or 1)
 
 
 def arm_parent_death_signal() -> None:
@@ -246,6 +265,7 @@ def _worker_main(
     """A worker process: run each task id received, answer it when done, until the pipe ends."""
     die_with_parent(parent_pid)
     adopt_environment(environ)
+    logging.basicConfig(level=context.log_level, format=LOG_FORMAT)
     if context.memory_mb is not None:
         limit = context.memory_mb << 20
         # A Ray driver maps the cluster's shared object store (gigabytes of address space):

@@ -354,6 +354,7 @@ class BackgroundRunner:
         self._fail(row_id, f"stopped at the {name} time limit of {limit_s:g} s ({setting})")
 
     def _fail(self, row_id: int, error: str) -> None:
+        log.warning("%s %d failed: %s", self.kind.name, row_id, error)
         with self._database.session(write=True) as session:
             crud.fail_unfinished(session, table=self.kind.table, row_id=row_id, error=error)
             session.commit()

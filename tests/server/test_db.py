@@ -124,6 +124,15 @@ def test_admin_token_is_generated_once_into_a_0600_file(tmp_path: Path) -> None:
         assert settings.admin_token_file.read_text().strip() == token
 
 
+def test_a_short_admin_token_is_named_in_the_log(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path, admin_token="x")
+    with caplog.at_level(logging.WARNING), TestClient(create_app(settings)):
+        pass
+    assert "SRD_ADMIN_TOKEN has 1 characters" in caplog.text
+
+
 def test_an_admin_token_file_others_may_read_is_named_in_the_log(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -106,3 +106,51 @@ def test_serve_refuses_a_data_folder_it_cannot_write(tmp_path: Path, where: str)
     assert str(data_dir) in lines[0] and "SRD_DATA_DIR" in lines[0]
     assert "Traceback" not in done.stderr
     assert not (tmp_path / "srd.db").exists()  # stopped before anything was started
+
+
+@pytest.mark.parametrize(
+    ("variables", "code", "words"),
+    [
+        ({"SRD_JOB_WORKERS": "0"}, 2, "SRD_JOB_WORKERS=0: Input should be greater than or equal"),
+        ({"SRD_JOB_BACKEND": "bogus"}, 2, "SRD_JOB_BACKEND=bogus: Input should be 'local'"),
+        ({"SRD_SECRETS_DIR": "/no/such"}, 2, "SRD_SECRETS_DIR=/no/such: no such folder"),
+        ({"SRD_DATABASE_URL": "mysql://db/srd"}, 2, "SRD_DATABASE_URL names mysql"),
+        ({"SRD_DATABASE_URL": "postgresql+psycopg://u:hidden-pw@127.0.0.1:1/x"}, 3,
+         "the database postgresql+psycopg://u:***@127.0.0.1:1/x (SRD_DATABASE_URL) cannot be used"),
+    ],
+)  # fmt: skip
+def test_serve_names_the_variable_of_a_setting_it_cannot_use(
+    tmp_path: Path, variables: dict[str, str], code: int, words: str
+) -> None:
+    """One line per problem, naming its variable, and no traceback; a secret stays unsaid."""
+    env = {
+        **os.environ,
+        "SRD_DATA_DIR": str(tmp_path / "data"),
+        "SRD_DATABASE_URL": f"sqlite:///{tmp_path / 'srd.db'}",
+        "SRD_AUCTION_WORKERS": "",  # empty: the default, as compose's ${VAR:-} gives
+        **variables,
+    }
+    done = subprocess.run(
+        [*srd_command(), "serve", "--port", str(free_port())],
+        env=env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == code, done.stderr
+    assert done.stderr.splitlines() == [f"srd serve: {done.stderr[11:].strip()}"]
+    assert words in done.stderr and "Traceback" not in done.stderr
+    assert "hidden-pw" not in done.stderr
+
+
+def test_serve_refuses_an_empty_admin_token_file(tmp_path: Path) -> None:
+    """An empty token file had started a server nobody could operate, without a word."""
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "admin_token").write_text("\n")
+    env = {**os.environ, "SRD_DATA_DIR": str(tmp_path / "data"),
+           "SRD_DATABASE_URL": f"sqlite:///{tmp_path / 'srd.db'}"}  # fmt: skip
+    env.pop("SRD_ADMIN_TOKEN", None)
+    done = subprocess.run([*srd_command(), "serve", "--port", str(free_port())], env=env,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 2
+    assert done.stderr.strip() == (
+        f"srd serve: the admin token file {tmp_path / 'data' / 'admin_token'} is empty: remove "
+        "it to have one made, or write one"
+    )

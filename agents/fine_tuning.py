@@ -466,7 +466,7 @@ def fine_tune(
     rate. At each of its steps a patron takes the mean CEL([T, F], argmax [T, F]) over its
     batch and plain SGD moves its own parameters, θ_p ← θ_p − lr_p·∇θ_p. Patrons outside
     ``train`` (bool (P,)) keep their parameters; PFC parameters move only where
-    pfc.trainable. Patrons of nearby batch sizes step together: one step of a band is one
+    pfc.trainable. Patrons of one padded shape step together (``_bands``): one step of a band is one
     pass of small per-patron matrix products over their (row, copy) columns, with the
     gradient of ``self_reward``'s loss written out (autograd's bookkeeping would cost more
     than the arithmetic on these small tensors).

@@ -618,3 +618,32 @@ def test_only_a_get_may_ask_to_upgrade(server: ServerProcess) -> None:
     with pytest.raises(InvalidStatus) as refused:  # a GET handshake still reaches the app
         ws_connect(url).close()
     assert refused.value.response.status_code == 404
+
+
+def test_a_burst_of_reads_is_served_not_starved(server: ServerProcess) -> None:
+    """300 reads at once, each from its own address: all answered. Before, every thread of the
+    pool waited for a connection that only a finished read's close (which needed a thread of
+    that pool) gave back: 185 of 200 were answered 503 after 15 s."""
+    with client_from("127.0.0.42", server) as client:
+        created = client.post("/submit", json=honest(unique("burst")))
+        assert created.status_code == 201, created.text
+        model_id = created.json()["model_id"]
+
+    async def burst() -> list[int]:
+        clients = [
+            httpx.AsyncClient(
+                base_url=server.url,
+                transport=httpx.AsyncHTTPTransport(
+                    local_address=f"127.0.{50 + i // 250}.{i % 250 + 1}"
+                ),
+                timeout=60,
+            )
+            for i in range(300)
+        ]
+        try:
+            answers = await asyncio.gather(*(c.get(f"/models/{model_id}") for c in clients))
+            return [a.status_code for a in answers]
+        finally:
+            await asyncio.gather(*(c.aclose() for c in clients))
+
+    assert asyncio.run(burst()) == [200] * 300

@@ -63,6 +63,22 @@ def events(server: ServerProcess, path: str) -> list[dict[str, str]]:
         return [event for event in sse_events(response) if "event" in event]
 
 
+def consistent(state: dict[str, Any]) -> dict[str, Any]:
+    """An auction's state read while its steps commit, checked to be one state: its head, its
+    history, its purchases and quits. PostgreSQL gives each statement of a transaction its own
+    snapshot unless asked otherwise: a read had shown iteration 0 with one history row, or
+    buyers its history did not hold yet."""
+    history = state["history"]
+    assert len(history) == state["iteration"], state
+    moved = [b["iteration"] for b in state["buyers"]]
+    moved += [q["iteration"] for q in state["quitter_details"]]
+    assert all(i < len(history) for i in moved), state
+    assert state["n_available"] == state["n_initial"] - len(state["buyers"]), state
+    if history:
+        assert history[-1]["n_available_after"] == state["n_available"], state
+    return state
+
+
 def alone(manifests: list[dict[str, Any]], config: MarketConfig) -> list[Any]:
     """The auction played uninterrupted, in this process."""
     market = Market(
@@ -197,7 +213,7 @@ def test_two_replicas_play_each_auction_and_job_once_and_read_alike(
         auctions, jobs = start_work(servers, admin, ids)
         done = [
             wait_for(
-                lambda a=auction_id: get(servers[0], f"/auctions/{a}"),
+                lambda a=auction_id: consistent(get(servers[0], f"/auctions/{a}")),
                 lambda a: a["status"] in ("finished", "failed"),
                 TIMEOUT_S,
             )

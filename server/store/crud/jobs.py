@@ -149,14 +149,20 @@ def update_attempt(session: Session, *, job_id: int, attempt: int, values: dict[
 def start_job(session: Session, *, job_id: int) -> tuple[str, dict[str, Any], int] | None:
     """A queued job made running as its next attempt: its kind, params and attempt (None: it
     is not queued any more)."""
-    job = session.scalars(select(Job).where(Job.id == job_id)).one_or_none()
-    if job is None or job.status != JobStatus.QUEUED:
+    now = utcnow()
+    started = session.execute(
+        update(Job)  # one conditional statement: a cancel committed since is never undone
+        .where(Job.id == job_id, Job.status == JobStatus.QUEUED)
+        .values(status=JobStatus.RUNNING, attempt=Job.attempt + 1, started_at=now,
+                updated_at=now, progress=0.0, message="started", error=None, result=None)
+        .returning(Job.kind, Job.params, Job.attempt)
+        .execution_options(synchronize_session=False)
+    ).one_or_none()  # fmt: skip
+    if started is None:
         return None
-    job.status, job.attempt = JobStatus.RUNNING, job.attempt + 1
-    job.started_at = job.updated_at = utcnow()
-    job.progress, job.message, job.error, job.result = 0.0, "started", None, None
     notify_change(session, kind="job", row_id=job_id)
-    return job.kind, dict(job.params), job.attempt
+    kind, params, attempt = started
+    return kind, dict(params), attempt
 
 
 def requeue_jobs(session: Session, *, job_ids: list[int], message: str) -> None:

@@ -40,7 +40,7 @@ def database_problem(settings: Settings) -> str | None:
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import ArgumentError
 
-    from server.store.db import SqliteServerLock, is_sqlite, prepare_database
+    from server.store.db import SqliteServerLock, first_line, is_sqlite, prepare_database
 
     try:
         url = make_url(settings.database_url)
@@ -57,8 +57,7 @@ def database_problem(settings: Settings) -> str | None:
             if lock is not None:
                 lock.release()
     except Exception as exc:  # unreachable, refused, read-only, newer schema, another server
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        return f"the database {shown} (SRD_DATABASE_URL) cannot be used: {first}"
+        return f"the database {shown} (SRD_DATABASE_URL) cannot be used: {first_line(exc)}"
     return None
 
 

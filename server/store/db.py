@@ -421,7 +421,7 @@ class Database:
             return "the database file was deleted"
         except Exception as exc:  # unreachable: a stopped server, a dropped database
             if self._problem is None:
-                log.warning("the database cannot be reached: %s", _first_line(exc))
+                log.warning("the database cannot be reached: %s", first_line(exc))
             return UNREACHABLE
         if now != self._identity:
             self._lost = True
@@ -440,7 +440,7 @@ class Database:
         try:
             read_only = self._probed(_read_only)
         except Exception as exc:
-            log.warning("the database cannot be reached: %s", _first_line(exc))
+            log.warning("the database cannot be reached: %s", first_line(exc))
             return UNREACHABLE
         if read_only == "on":
             return "the database is read-only (transaction_read_only is on: a standby?)"
@@ -511,7 +511,8 @@ def _sqlite_write_problem(path: Path) -> str | None:
     return None
 
 
-def _first_line(exc: BaseException) -> str:
+def first_line(exc: BaseException) -> str:
+    """An error's first line (its type's name when it has no words)."""
     return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
 
 
@@ -534,7 +535,7 @@ def answer_of_outage(exc: BaseException) -> str:
 
 def unavailable_message(exc: BaseException) -> str:
     """What the server's log says when the database failed: the first line of the error."""
-    return f"the database is unavailable: {_first_line(exc)}"
+    return f"the database is unavailable: {first_line(exc)}"
 
 
 def database_now(session: Session) -> datetime:

@@ -6,15 +6,16 @@ the auction, ``agents.remote.socket``)."""
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from agents.manifest import Manifest
+from agents.manifest import Manifest, parse_manifest
 from agents.remote.client import HTTP_TIMEOUT_S, Client, RemoteError
 from agents.remote.fine_tuners import FineTuner, RoundInfo, faithful_fine_tune
-from agents.remote.socket import AuctionEndedError, RoundSocket
+from agents.remote.socket import AuctionEndedError, RoundSocket, SocketsFullError
 
 Transport = Literal["http", "websocket"]
 TRANSPORTS: tuple[Transport, ...] = ("http", "websocket")
@@ -32,7 +33,8 @@ class RoundLog:
     fine_tune_s: float
     upload_s: float
     outcome: str
-    """accepted | refused | late | unanswered (not asked any more) | error."""
+    """accepted | refused | held | late | answered before (this round was answered by an
+    earlier run of the agent: its answer stands)."""
 
 
 @dataclass
@@ -42,6 +44,8 @@ class Uploads:
     accepted: int = 0
     refused: int = 0
     late: int = 0
+    held: int = 0
+    """Within the review margin of a bar: kept for an inspector, the previous version bids."""
 
 
 class RemoteAgent:
@@ -62,7 +66,13 @@ class RemoteAgent:
         self.client = client
         self.transport: Transport = transport
         self.current = manifest
-        """The version the server lets this patron bid with (updated on every acceptance)."""
+        """The version the server lets this patron bid with (updated on every acceptance, and
+        read from the server when an auction starts with another: a resumed agent)."""
+        self.current_id = model_id
+        """The model id of ``current``, when known."""
+        self._stale = False
+        self.error: str | None = None
+        """Why the agent stopped playing, if an error stopped it (set by its population)."""
         self.fine_tuner = fine_tuner
         self.token = token
         self.model_id = model_id
@@ -83,7 +93,7 @@ class RemoteAgent:
             token=self.token,
             resend=False,
         )
-        self.model_id = int(answer["model_id"])
+        self.model_id = self.current_id = int(answer["model_id"])
         self.token = answer.get("token") or self.token
         self.accepted_at_submit = bool(answer["accepted"])
         return answer
@@ -109,17 +119,31 @@ class RemoteAgent:
         if self.submitted_id not in auction["model_ids"]:
             raise RemoteError(f"model {self.submitted_id} is not a patron of auction {auction_id}")
         position = auction["model_ids"].index(self.submitted_id)
+        await self._bid_with(auction, position)
         if self.transport == "websocket":
-            async with RoundSocket(
-                self.client.server,
-                auction_id,
-                self.token,
-                give_up_s=self.client.give_up_s,
-                traffic=self.client.traffic,
-            ) as socket:
-                await self._play(auction_id, position, on_round, socket)
-        else:
-            await self._play(auction_id, position, on_round, None)
+            try:
+                async with RoundSocket(
+                    self.client.server,
+                    auction_id,
+                    self.token,
+                    give_up_s=self.client.give_up_s,
+                    traffic=self.client.traffic,
+                ) as socket:
+                    await self._play(auction_id, position, on_round, socket)
+                return
+            except SocketsFullError:
+                pass  # this host's share of round sockets is taken: long polls instead
+        await self._play(auction_id, position, on_round, None)
+
+    async def _bid_with(self, auction: dict[str, Any], position: int) -> None:
+        """Make ``current`` the version the auction lets this patron bid with now (read from
+        the server when it is not the one this agent holds: an agent resumed with ``token``
+        and ``model_id``, or that played another auction since)."""
+        bidding = auction.get("current_model_ids") or auction["model_ids"]
+        version_id = int(bidding[position])
+        if version_id != self.current_id:
+            model = await self.client.json("GET", f"/models/{version_id}")
+            self.current, self.current_id = parse_manifest(model["manifest"]), version_id
 
     async def _play(
         self,
@@ -182,8 +206,14 @@ class RemoteAgent:
         received: float,
         socket: RoundSocket | None,
     ) -> RoundLog:
+        if self._stale:
+            await self._bid_with(await self.client.json("GET", f"/auctions/{auction_id}"), position)
+            self._stale = False
+        self.error: str | None = None
+        """Why the agent stopped playing, if an error stopped it (set by its population)."""
         info = RoundInfo.from_state(state, position)
-        tuned = self.fine_tuner(self.current, info)
+        # In a thread: a slow fine-tuner must not hold the other agents of this event loop.
+        tuned = await asyncio.to_thread(self.fine_tuner, self.current, info)
         tuned_at = time.monotonic()
         status, answer = await self._send(
             auction_id, info.round, tuned.model_dump_json().encode(), socket
@@ -192,14 +222,19 @@ class RemoteAgent:
         if status == 200:
             outcome = answer["outcome"]
             if answer["accepted"]:
-                self.current = tuned
+                self.current, self.current_id = tuned, int(answer["model_id"])
                 self.uploads.accepted += 1
+            elif outcome == "held":
+                self.uploads.held += 1
             else:
                 self.uploads.refused += 1
                 self.reasons.extend(answer["reasons"])
         elif status == 410:
             outcome = "late"
             self.uploads.late += 1
+        elif status == 409 and "already_answered" in str(answer):
+            outcome = "answered before"  # by an earlier run of this agent: that answer stands
+            self._stale = True  # which version bids next is read when the next round opens
         else:
             raise RemoteError(f"upload of round {info.round}: {status} {str(answer)[:500]}")
         entry = RoundLog(

@@ -114,7 +114,12 @@ class PopulationReport:
     """How the rounds travelled (``PopulationConfig.transport``)."""
     per_agent: list[dict[str, Any]] = field(default_factory=list)
     """One row per agent: participant, model id, its /submit status (accepted, refused or
-    held), uploads by answer, the version it bid with last, bytes up and down."""
+    held), uploads by answer (and the rounds it was asked in and did not answer: ``missing``),
+    the version it bid with last, what it did in the auction (``result``: ``bought`` with
+    ``price``, ``quit``, ``stayed``, or ``out``: it did not play), bytes up and down, and the
+    error that stopped it, if one did (the others play on)."""
+    errors: int = 0
+    """Agents stopped by an error (each row says which)."""
 
     def to_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -311,7 +316,14 @@ async def _play(
         if progress is not None:
             progress("answered", answered, len(agents) * max(config.fine_tune_rounds, 1))
 
-    await asyncio.gather(*(agent.play(auction_id, on_round) for agent in agents))
+    ended = await asyncio.gather(
+        *(agent.play(auction_id, on_round) for agent in agents), return_exceptions=True
+    )
+    for agent, outcome in zip(agents, ended, strict=True):
+        if isinstance(outcome, RemoteError):  # this agent stops; the others played on
+            agent.error = str(outcome)
+        elif isinstance(outcome, BaseException):
+            raise outcome
 
 
 async def _final(client: Client, auction_id: int) -> dict[str, Any]:
@@ -324,13 +336,38 @@ async def _final(client: Client, auction_id: int) -> dict[str, Any]:
 
 
 def _last_versions(final: dict[str, Any]) -> dict[int, int]:
-    """Patron model id → the version it bid with after the last fine-tuning round it was
-    asked in."""
-    return {
-        answer["model_id"]: answer["version"]
+    """Patron model id → the version it bid with last (the auction's current version, whose
+    number a round's answer gave)."""
+    numbers = {
+        answer["version_id"]: answer["version"]
         for fine_tuning_round in final.get("fine_tuning", [])
         for answer in fine_tuning_round["answers"]
     }
+    current = final.get("current_model_ids") or final["model_ids"]
+    return {
+        patron: numbers[bidding]
+        for patron, bidding in zip(final["model_ids"], current, strict=True)
+        if bidding in numbers
+    }
+
+
+def _result(final: dict[str, Any], model_id: int) -> dict[str, Any]:
+    """What the patron ``model_id`` did in the auction ``final``."""
+    if model_id not in final["model_ids"]:
+        return {"result": "out"}
+    for buyer in final["buyers"]:
+        if buyer["model_id"] == model_id:
+            return {"result": "bought", "price": buyer["price"]}
+    return {"result": "quit" if model_id in final["quitters"] else "stayed"}
+
+
+def _missing(final: dict[str, Any], model_id: int) -> int:
+    """Rounds the patron was asked in and did not answer."""
+    return sum(
+        answer["model_id"] == model_id and answer["outcome"] == "missing"
+        for fine_tuning_round in final.get("fine_tuning", [])
+        for answer in fine_tuning_round["answers"]
+    )
 
 
 def _report(
@@ -346,6 +383,7 @@ def _report(
         accepted=sum(a.uploads.accepted for a in agents),
         refused=sum(a.uploads.refused for a in agents),
         late=sum(a.uploads.late for a in agents),
+        held=sum(a.uploads.held for a in agents),
     )
     traffic = Traffic(
         bytes_up=sum(a.client.traffic.bytes_up for a in agents),
@@ -359,10 +397,15 @@ def _report(
             "participant": answer["participant"],
             "model_id": agent.submitted_id,
             "submitted": answer.get("status") or ("accepted" if answer["accepted"] else "refused"),
-            "uploads": dict(agent.uploads.__dict__),
+            "uploads": {
+                **agent.uploads.__dict__,
+                "missing": _missing(final, agent.submitted_id),
+            },
             "version": versions.get(agent.submitted_id, answer["version"]),
+            **_result(final, agent.submitted_id),
             "bytes_up": agent.client.traffic.bytes_up,
             "bytes_down": agent.client.traffic.bytes_down,
+            **({"error": agent.error} if agent.error else {}),
         }
         for agent, answer in zip(agents, submitted, strict=True)
     ]
@@ -393,4 +436,5 @@ def _report(
         },
         elapsed_s=round(time.monotonic() - started, 3),
         per_agent=per_agent,
+        errors=sum(bool(a.error) for a in agents),
     )

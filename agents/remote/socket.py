@@ -46,6 +46,11 @@ class _DroppedError(Exception):
     """The connection went away before the answer came."""
 
 
+class SocketsFullError(RemoteError):
+    """The server refused the handshake with 429 for the round sockets of this host (its share
+    is taken: other agents on this host hold them): the agent plays over HTTP instead."""
+
+
 class AuctionEndedError(RemoteError):
     """The auction ended and its socket closed before an upload was answered: the upload's
     PUT (the same bytes) gets the answer the server gave it, or 410."""
@@ -202,6 +207,10 @@ class RoundSocket:
                 )
             except InvalidStatus as exc:
                 status = exc.response.status_code
+                if status == 429 and b"round sockets" in (exc.response.body or b""):
+                    raise SocketsFullError(
+                        f"round socket {self.url}: this host's share is taken"
+                    ) from exc
                 if status not in RETRY_STATUSES:
                     shown = (exc.response.body or b"").decode(errors="replace")[:500]
                     raise RemoteError(f"round socket {self.url}: {status} {shown}") from exc

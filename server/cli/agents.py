@@ -7,6 +7,7 @@ import asyncio
 import json
 import sys
 from collections import Counter
+from typing import Any
 
 import click
 import torch
@@ -51,8 +52,11 @@ def _agents_table(report: PopulationReport) -> Table:
         "Submitted",
         "Uploads accepted",
         "Refused",
+        "Held",
         "Late",
+        "Missing",
         "Final version",
+        "In the auction",
         "Bytes up",
         "Bytes down",
         title=f"remote agents on {escape(report.server)}",
@@ -66,8 +70,11 @@ def _agents_table(report: PopulationReport) -> Table:
             row["submitted"],
             str(uploads["accepted"]),
             str(uploads["refused"]),
+            str(uploads["held"]),
             str(uploads["late"]),
+            str(uploads["missing"]),
             str(row["version"]),
+            _in_the_auction(row),
             f"{row['bytes_up']:,}",
             f"{row['bytes_down']:,}",
         )
@@ -78,14 +85,26 @@ def _agents_table(report: PopulationReport) -> Table:
         ", ".join(f"{n} {status}" for status, n in sorted(submitted.items())),
         str(report.uploads["accepted"]),
         str(report.uploads["refused"]),
+        str(report.uploads["held"]),
         str(report.uploads["late"]),
+        str(sum(row["uploads"]["missing"] for row in report.per_agent)),
         "",
+        f"{report.errors} stopped by an error" if report.errors else "",
         f"{report.bytes_up:,}",
         f"{report.bytes_down:,}",
     ]
     for column, footer in zip(table.columns, footers, strict=True):
         column.footer = footer
     return table
+
+
+def _in_the_auction(row: dict[str, Any]) -> str:
+    """What an agent's patron did, or the error that stopped the agent."""
+    if "error" in row:
+        return f"error: {escape(row['error'][:80])}"
+    if row["result"] == "bought":
+        return f"bought at {row['price']:.3f}"
+    return str(row["result"])
 
 
 def _summary(report: PopulationReport) -> Table:
@@ -281,3 +300,6 @@ def command(
         out = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
         out.print(_agents_table(report))
         out.print(_summary(report))
+    if report.errors:  # the others played on; the rows say what stopped these
+        err.print(f"[red]error:[/red] {report.errors} agents stopped by an error", highlight=False)
+        raise SystemExit(GAVE_UP)

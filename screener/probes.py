@@ -297,8 +297,9 @@ def _buys_cheap(grid: _OnGrid) -> Probe:
     return "buys-cheap", "B", np.any(cheap_refused, axis=(1, 2)), message
 
 
-def _buys_something(grid: _OnGrid) -> tuple[Probe, Probe, Probe]:
-    """always-holds, always-quits, never-buys: some probed item is bought."""
+def _buys_something(grid: _OnGrid) -> tuple[Probe, Probe, Probe, Probe]:
+    """always-holds, always-quits, never-buys: some probed item is bought; holds-on-most-items:
+    at most ``limits.HOLD_SHARE`` of them are held."""
     P = len(grid.buys)
     total = int(np.prod(GRID_SHAPE))
     n_buy = np.count_nonzero(grid.buys.reshape(P, -1), axis=1)
@@ -312,10 +313,19 @@ def _buys_something(grid: _OnGrid) -> tuple[Probe, Probe, Probe]:
             f"buy fraction) does it buy: it holds on {n_hold[p]} and quits on {n_quit[p]}"
         )
 
+    def most(p: int) -> str:
+        return (
+            f"it holds on {n_hold[p]} of the {total} probed items (prices {span}, every quality, "
+            f"sub-type and buy fraction), more than {limits.HOLD_SHARE:.0%}: it waits for prices "
+            f"to fall on nearly everything on sale (it buys {n_buy[p]}, quits {n_quit[p]})"
+        )
+
+    most_held = (n_hold > limits.HOLD_SHARE * total) & (n_hold < total)
     return (
         ("always-holds", "L", n_hold == total, message),
         ("always-quits", "Q", n_quit == total, message),
         ("never-buys", "B", (n_buy == 0) & (n_hold < total) & (n_quit < total), message),
+        ("holds-on-most-items", "L", most_held, most),
     )
 
 

@@ -13,6 +13,7 @@ PROBE_RULES = {
     "always-holds",
     "always-quits",
     "never-buys",
+    "holds-on-most-items",
     "refuses-far-too-expensive",
     "quits-far-too-expensive",
     "buy-falls-with-price",

@@ -182,9 +182,12 @@ NOISE_SCAN_RISES = 10
 """The noisy scan covers the decisive row from ``HOLD_REACH_SLACK`` decrements under the floor up
 to the base price plus this many increments (4.75 to 5.50): the prices honest auctions visit
 (the clean scan goes on to 6.00)."""
-NOISE_SCAN_DEMANDS = (0.0, 0.5, 1.0)
-"""Buy fractions of the noisy scan (a subset of ``SCAN_DEMANDS``): both ends, LSR's designed
-rush level and two between."""
+NOISE_SCAN_DEMANDS = (0.0, 0.25, 0.5, 0.75, 1.0)
+"""Buy fractions of the noisy scan (each read as the nearest of ``SCAN_DEMANDS``: 0, 0.2, 0.5,
+0.7, 1): both ends, LSR's designed rush level and two between. With the ends and ½ alone a red
+team's holder whose noisy copies hold at buy fractions 0.375-0.48 and 0.62-0.97 passed (harm
+0.75-0.86 of a saboteur's); the two between refuse it, and cost a batch of 64 about a fifth
+more (2.62 → 3.11 ms per manifest, ``benchmarks/screener.py``)."""
 NOISE_FLIP_BAND = 0.05
 """A model may buy clean and hold on its noisy copies over at most this width of the decisive
 row at one buy fraction (one increment): noise shifts an honest model's boundaries by a cent or

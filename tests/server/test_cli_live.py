@@ -266,8 +266,8 @@ def test_agents_prints_a_row_per_agent_then_the_totals(
     lines = done.stdout.splitlines()
     header = next(cells(line) for line in lines if "Participant" in line)
     assert header == [
-        "Participant", "Model", "Submitted", "Uploads accepted", "Refused", "Late",
-        "Final version", "Bytes up", "Bytes down",
+        "Participant", "Model", "Submitted", "Uploads accepted", "Refused", "Held", "Late",
+        "Missing", "Final version", "In the auction", "Bytes up", "Bytes down",
     ]  # fmt: skip
     rows = {c[0]: c for c in map(cells, lines) if c[0].startswith("table-")}
     assert sorted(rows) == ["table-honest-000", "table-honest-001", "table-saboteur-002"]
@@ -279,15 +279,21 @@ def test_agents_prints_a_row_per_agent_then_the_totals(
         assert row[2] == "accepted"  # every agent's first model looks honest
         answer = answers.get(model_id)
         outcome = answer["outcome"] if answer else None
-        assert row[3:6] == [str(int(outcome == o)) for o in ("accepted", "refused", "late")]
-        assert row[6] == str(answer["version"] if answer else 1)
-        assert int(row[7].replace(",", "")) > 0 and int(row[8].replace(",", "")) > 0
+        kinds = ("accepted", "refused", "held", "late", "missing")
+        assert row[3:8] == [str(int(outcome == kind)) for kind in kinds]
+        assert row[8] == str(answer["version"] if answer else 1)
+        bought = {b["model_id"]: b["price"] for b in auction["buyers"]}
+        if model_id in bought:
+            assert row[9] == f"bought at {bought[model_id]:.3f}"
+        else:
+            assert row[9] == ("quit" if model_id in auction["quitters"] else "stayed")
+        assert int(row[10].replace(",", "")) > 0 and int(row[11].replace(",", "")) > 0
     if answers.get(int(rows["table-saboteur-002"][1])):
         assert rows["table-saboteur-002"][4] == "1"  # its always-hold upload is refused
     totals = next(cells(line) for line in lines if "3 agents" in line)
     assert totals[2] == "3 accepted"
-    up = sum(int(row[7].replace(",", "")) for row in rows.values())
-    assert int(totals[7].replace(",", "")) == up
+    up = sum(int(row[10].replace(",", "")) for row in rows.values())
+    assert int(totals[10].replace(",", "")) == up
 
 
 def test_agents_whose_model_the_screener_refuses_stay_out_of_the_auction_they_create(

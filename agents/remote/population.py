@@ -8,12 +8,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
 import random
 import re
 import secrets
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -70,6 +72,9 @@ class PopulationConfig:
     """How long to wait for an auction containing the population's models."""
     transport: Transport = "http"
     """How the rounds travel: a long poll and a PUT per round, or one round socket per agent."""
+    tokens_file: Path | None = None
+    """Where each agent's participant, model id and token are written (mode 0600) once the
+    population is registered, for the participants to go on without this run."""
 
     def __post_init__(self) -> None:
         problems = []
@@ -199,6 +204,8 @@ async def run_population(
             await _require_enrolling(clients[0], config.auction)
         agents = population(config, clients)
         submitted = await _submit(agents, progress)
+        if config.tokens_file is not None:
+            save_tokens(config.tokens_file, agents)
         if config.auction is not None:
             auction_id, players = config.auction, await _join(agents, config.auction)
         else:
@@ -207,6 +214,21 @@ async def run_population(
         await _play(config, players, auction_id, progress)
         final = await _final(clients[0], auction_id)
     return _report(config, agents, submitted, auction_id, final, started)
+
+
+def save_tokens(path: Path, agents: Sequence[RemoteAgent]) -> None:
+    """Each agent's participant, model id and token, as JSON, in a file only its owner may read
+    (created so: the tokens are never readable by others, not even for an instant)."""
+    rows = [
+        {"participant": a.current.participant, "model_id": a.model_id, "token": a.token}
+        for a in agents
+    ]
+    with contextlib.suppress(FileNotFoundError):
+        path.unlink()
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as handle:
+        json.dump(rows, handle, indent=1)
+        handle.write("\n")
 
 
 async def _clients(config: PopulationConfig, stack: contextlib.AsyncExitStack) -> list[Client]:

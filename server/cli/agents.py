@@ -7,6 +7,7 @@ import asyncio
 import json
 import sys
 from collections import Counter
+from pathlib import Path
 from typing import Any
 
 import click
@@ -225,6 +226,14 @@ def _summary(report: PopulationReport) -> Table:
     help="Rounds by long poll and PUT, or over one round socket per agent.",
 )
 @click.option(
+    "--tokens",
+    "tokens_file",
+    type=click.Path(dir_okay=False, writable=True, path_type=Path),
+    default=None,
+    help="Write each agent's participant, model id and token to this JSON file (mode 0600) "
+    "once registered: the models can then be played on without this run.",
+)
+@click.option(
     "--json", "json_output", is_flag=True, help="Print exactly one JSON object on stdout."
 )
 def command(
@@ -242,6 +251,7 @@ def command(
     auction_wait: float,
     name_prefix: str | None,
     transport: Transport,
+    tokens_file: Path | None,
     json_output: bool,
 ) -> None:
     """Run remote agents that submit and fine-tune over HTTP: register the population, join
@@ -265,6 +275,7 @@ def command(
             auction_wait_s=auction_wait,
             name_prefix=name_prefix,
             transport=transport,
+            tokens_file=tokens_file,
         )
     except ValueError as exc:  # the options named in the message
         err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False)

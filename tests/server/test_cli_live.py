@@ -9,6 +9,7 @@ import os
 import pty
 import re
 import socket
+import stat
 import subprocess
 import threading
 from collections.abc import Iterator
@@ -254,15 +255,22 @@ def cells(line: str) -> list[str]:
 
 
 def test_agents_prints_a_row_per_agent_then_the_totals(
-    server: ServerProcess, client: httpx.Client
+    server: ServerProcess, client: httpx.Client, tmp_path: Path
 ) -> None:
     options = ["--honest", "2", "--saboteurs", "1", "--rounds", "1", "--deadline", "20"]
+    tokens = tmp_path / "tokens.json"
     done = subprocess.run(
         [*srd_command(), "agents", "--server", server.url, "--name-prefix", "table", *options,
-         "--admin-token", ADMIN_TOKEN],
+         "--admin-token", ADMIN_TOKEN, "--tokens", str(tokens)],
         capture_output=True, text=True, timeout=300, cwd=ROOT,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
+    assert stat.S_IMODE(tokens.stat().st_mode) == 0o600  # the tokens, for its owner alone
+    saved = json.loads(tokens.read_text())
+    assert [row["participant"] for row in saved] == [
+        "table-honest-000", "table-honest-001", "table-saboteur-002"
+    ]  # fmt: skip
+    assert all(row["token"].startswith("srdp_") for row in saved)
     lines = done.stdout.splitlines()
     header = next(cells(line) for line in lines if "Participant" in line)
     assert header == [
@@ -274,6 +282,7 @@ def test_agents_prints_a_row_per_agent_then_the_totals(
     auction_id = int(next(line for line in lines if "Auction" in line).split()[1].rstrip(":"))
     auction = client.get(f"/auctions/{auction_id}").json()
     answers = {a["model_id"]: a for r in auction["fine_tuning"] for a in r["answers"]}
+    assert {str(row["model_id"]) for row in saved} == {row[1] for row in rows.values()}
     for row in rows.values():
         model_id = int(row[1])
         assert row[2] == "accepted"  # every agent's first model looks honest

@@ -27,7 +27,7 @@ from server.config import Settings
 from tests.server.test_remote_protocol import put, remote_auction
 from tests.support.factories import honest, unique
 from tests.support.live import create_unstarted_auction, data, paced_auction, sse_events
-from tests.support.remote import agents_process, next_round
+from tests.support.remote import agents_process, honest_remote_auction, next_round
 from tests.support.server import ADMIN, wait_for
 
 WAKE_S = 2.0
@@ -304,19 +304,10 @@ def test_an_upload_sent_as_the_auction_is_cancelled_is_answered(
     from agents.remote import Client, RemoteAgent
 
     admin = {"Authorization": f"Bearer {live_server.admin_token}"}
+    auction_id, entered = honest_remote_auction(
+        live_server, (0, 2, 3), name="racer", n_fish=1, round_deadline_s=60
+    )
     with httpx.Client(base_url=live_server.url, timeout=30) as http:
-        entered = []
-        for seed in (0, 2, 3):
-            manifest = honest(unique("racer"), seed=seed)
-            answer = http.post("/submit", json=manifest).raise_for_status().json()
-            entered.append((answer["model_id"], answer["token"], manifest))
-        body = {
-            "n_fish": 1,
-            "model_ids": [m for m, _, _ in entered],
-            "fine_tune_mode": "remote",
-            "round_deadline_s": 60,
-        }
-        auction_id = http.post("/auctions", json=body, headers=admin).json()["auction_id"]
 
         def cancel_then_tune(current: Any, info: RoundInfo) -> Any:
             assert http.delete(f"/auctions/{auction_id}", headers=admin).status_code == 200

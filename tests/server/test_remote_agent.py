@@ -15,9 +15,8 @@ import pytest
 from agents.manifest import Manifest, parse_manifest
 from agents.remote import Client, RemoteAgent, RoundInfo, faithful_fine_tune
 from server.cli.launch import ServerProcess
-from tests.support.factories import honest, unique
-from tests.support.remote import next_round, stored_manifest
-from tests.support.server import ADMIN, module_server
+from tests.support.remote import honest_remote_auction, next_round, stored_manifest
+from tests.support.server import module_server
 
 SEEDS = (4, 2, 5)
 """Honest models that fine-tune (epochs > 0) and that the screener accepts; with the auction's
@@ -28,28 +27,6 @@ AUCTION_SEED = 0
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
     yield from module_server(tmp_path_factory, "remote-agent")
-
-
-def remote_auction(server: ServerProcess, deadline_s: float) -> tuple[int, list[Any]]:
-    """A remote auction of three fine-tuning honest models: its id, and (model id, token,
-    manifest) of each patron, in order."""
-    entered = []
-    with httpx.Client(base_url=server.url, timeout=30) as http:
-        for seed in SEEDS:
-            manifest = honest(unique("agent"), seed=seed)
-            answer = http.post("/submit", json=manifest).raise_for_status().json()
-            entered.append((answer["model_id"], answer["token"], manifest))
-        body = {
-            "n_fish": 1,
-            "model_ids": [model_id for model_id, _, _ in entered],
-            "fine_tune_mode": "remote",
-            "fine_tune_rounds": 3,
-            "round_deadline_s": deadline_s,
-            "seed": AUCTION_SEED,
-        }
-        created = http.post("/auctions", json=body, headers=ADMIN)
-        assert created.status_code == 201, created.text
-    return created.json()["auction_id"], entered
 
 
 def upload(server: ServerProcess, state: dict[str, Any], position: int, entry: Any) -> Any:
@@ -70,7 +47,15 @@ def test_a_resumed_agent_fine_tunes_the_version_the_server_holds(server: ServerP
     token, its model id and its first manifest: its round-2 upload is the faithful fine-tuning
     of version 2, the version the server lets it bid with. Before, it fine-tuned version 1
     again (and was accepted: silently not faithful)."""
-    auction_id, entered = remote_auction(server, deadline_s=60)
+    auction_id, entered = honest_remote_auction(
+        server,
+        SEEDS,
+        name="agent",
+        n_fish=1,
+        fine_tune_rounds=3,
+        round_deadline_s=60,
+        seed=AUCTION_SEED,
+    )
     first = next_round(server, auction_id, 0, 120)
     assert first["status"] == "open" and first["round"] == 1
     asked = [(p, e) for p, e in enumerate(entered) if e[0] in first["asked"]]
@@ -107,7 +92,15 @@ def test_a_slow_fine_tuner_holds_no_other_agent(server: ServerProcess) -> None:
     """Two agents on one event loop: the first fine-tunes for 3 s, the other at once. The
     fast one's upload is answered long before the slow one's (before, the slow fine-tuner
     held the loop: the fast agent's upload waited for it, and came late)."""
-    auction_id, entered = remote_auction(server, deadline_s=30)
+    auction_id, entered = honest_remote_auction(
+        server,
+        SEEDS,
+        name="agent",
+        n_fish=1,
+        fine_tune_rounds=3,
+        round_deadline_s=30,
+        seed=AUCTION_SEED,
+    )
     finished: dict[int, float] = {}
 
     def slow(current: Manifest, info: RoundInfo) -> Manifest:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +15,7 @@ import httpx
 from agents.manifest import Manifest, parse_manifest
 from server.cli.launch import ServerProcess, srd_command
 from sim.market import Market, MarketConfig
+from tests.support.factories import honest, unique
 from tests.support.server import wait_for
 
 STALLING_AGENT = r"""
@@ -144,3 +146,23 @@ def next_round(
         ),
         timeout_s,
     )
+
+
+def honest_remote_auction(
+    server: ServerProcess, seeds: Sequence[int], *, name: str, **settings: Any
+) -> tuple[int, list[tuple[int, str, dict[str, Any]]]]:
+    """A remote auction (created with the server's operator token) of one honest model per
+    seed, each submitted by its own participant: its id, and each patron's (model id, token,
+    manifest), in order. ``settings`` go into the ``POST /auctions`` body."""
+    entered = []
+    admin = {"Authorization": f"Bearer {server.admin_token}"}
+    with httpx.Client(base_url=server.url, timeout=30) as http:
+        for seed in seeds:
+            manifest = honest(unique(name), seed=seed)
+            answer = http.post("/submit", json=manifest).raise_for_status().json()
+            entered.append((answer["model_id"], answer["token"], manifest))
+        body = {"model_ids": [model_id for model_id, _, _ in entered],
+                "fine_tune_mode": "remote", **settings}  # fmt: skip
+        created = http.post("/auctions", json=body, headers=admin)
+        assert created.status_code == 201, created.text
+    return int(created.json()["auction_id"]), entered

@@ -130,3 +130,38 @@ def test_a_slow_fine_tuner_holds_no_other_agent(server: ServerProcess) -> None:
     asyncio.run(play())
     assert finished[0] >= 3.0
     assert max(finished[1], finished[2]) < 2.5, finished
+
+
+@pytest.fixture(scope="module")
+def one_socket_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    """A server that lets one address hold one round socket."""
+    yield from module_server(tmp_path_factory, "one-socket", {"SRD_LIMIT_CLIENT_SOCKETS": "1"})
+
+
+def test_agents_past_the_hosts_share_of_sockets_play_over_long_polls(
+    one_socket_server: ServerProcess,
+) -> None:
+    """Three agents on round sockets from one host that may hold one: the first keeps its
+    socket, the others play over long polls and every asked patron answers (before, their
+    handshakes kept getting 429 until they gave up, and the whole population failed)."""
+    server = one_socket_server
+    auction_id, entered = honest_remote_auction(
+        server, SEEDS, name="share", n_fish=1, fine_tune_rounds=1, round_deadline_s=60,
+        seed=AUCTION_SEED,
+    )  # fmt: skip
+
+    async def play() -> list[RemoteAgent]:
+        async with httpx.AsyncClient(base_url=server.url) as http:
+            agents = [
+                RemoteAgent(Client(http, give_up_s=15), parse_manifest(manifest), token=token,
+                            model_id=model_id, transport="websocket")
+                for model_id, token, manifest in entered
+            ]  # fmt: skip
+            await asyncio.gather(*(agent.play(auction_id) for agent in agents))
+            return agents
+
+    agents = asyncio.run(play())
+    auction = httpx.get(f"{server.url}/auctions/{auction_id}").json()
+    answers = [a for r in auction["fine_tuning"] for a in r["answers"]]
+    assert answers and all(a["outcome"] == "accepted" for a in answers), answers
+    assert sum(len(agent.log) for agent in agents) == len(answers)

@@ -29,6 +29,16 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
     yield from module_server(tmp_path_factory, "remote-agent")
 
 
+def auction_of_seeds(
+    server: ServerProcess, *, name: str, rounds: int, deadline_s: float
+) -> tuple[int, list[Any]]:
+    """A remote auction of the ``SEEDS`` models, one fish, seeded ``AUCTION_SEED``."""
+    return honest_remote_auction(
+        server, SEEDS, name=name, n_fish=1, fine_tune_rounds=rounds,
+        round_deadline_s=deadline_s, seed=AUCTION_SEED,
+    )  # fmt: skip
+
+
 def upload(server: ServerProcess, state: dict[str, Any], position: int, entry: Any) -> Any:
     model_id, token, manifest = entry
     tuned = faithful_fine_tune(parse_manifest(manifest), RoundInfo.from_state(state, position))
@@ -47,15 +57,7 @@ def test_a_resumed_agent_fine_tunes_the_version_the_server_holds(server: ServerP
     token, its model id and its first manifest: its round-2 upload is the faithful fine-tuning
     of version 2, the version the server lets it bid with. Before, it fine-tuned version 1
     again (and was accepted: silently not faithful)."""
-    auction_id, entered = honest_remote_auction(
-        server,
-        SEEDS,
-        name="agent",
-        n_fish=1,
-        fine_tune_rounds=3,
-        round_deadline_s=60,
-        seed=AUCTION_SEED,
-    )
+    auction_id, entered = auction_of_seeds(server, name="agent", rounds=3, deadline_s=60)
     first = next_round(server, auction_id, 0, 120)
     assert first["status"] == "open" and first["round"] == 1
     asked = [(p, e) for p, e in enumerate(entered) if e[0] in first["asked"]]
@@ -81,26 +83,16 @@ def test_a_resumed_agent_fine_tunes_the_version_the_server_holds(server: ServerP
     version_2: Manifest = stored_manifest(server, answers[0]["model_id"])
     expected = faithful_fine_tune(version_2, RoundInfo.from_state(second, 0))
     auction = httpx.get(f"{server.url}/auctions/{auction_id}").json()
-    [mine] = [a for a in auction["fine_tuning"][1]["answers"] if a["model_id"] == model_id] or [
-        None
-    ]
-    assert mine is not None and mine["uploaded_id"] is not None
+    mine = next(a for a in auction["fine_tuning"][1]["answers"] if a["model_id"] == model_id)
+    assert mine["uploaded_id"] is not None
     assert stored_manifest(server, mine["uploaded_id"]) == expected
 
 
 def test_a_slow_fine_tuner_holds_no_other_agent(server: ServerProcess) -> None:
-    """Two agents on one event loop: the first fine-tunes for 3 s, the other at once. The
-    fast one's upload is answered long before the slow one's (before, the slow fine-tuner
+    """Three agents on one event loop: the first fine-tunes for 3 s, the others at once. The
+    fast ones' uploads are answered long before the slow one's (before, the slow fine-tuner
     held the loop: the fast agent's upload waited for it, and came late)."""
-    auction_id, entered = honest_remote_auction(
-        server,
-        SEEDS,
-        name="agent",
-        n_fish=1,
-        fine_tune_rounds=3,
-        round_deadline_s=30,
-        seed=AUCTION_SEED,
-    )
+    auction_id, entered = auction_of_seeds(server, name="agent", rounds=3, deadline_s=30)
     finished: dict[int, float] = {}
 
     def slow(current: Manifest, info: RoundInfo) -> Manifest:
@@ -145,10 +137,7 @@ def test_agents_past_the_hosts_share_of_sockets_play_over_long_polls(
     socket, the others play over long polls and every asked patron answers (before, their
     handshakes kept getting 429 until they gave up, and the whole population failed)."""
     server = one_socket_server
-    auction_id, entered = honest_remote_auction(
-        server, SEEDS, name="share", n_fish=1, fine_tune_rounds=1, round_deadline_s=60,
-        seed=AUCTION_SEED,
-    )  # fmt: skip
+    auction_id, entered = auction_of_seeds(server, name="share", rounds=1, deadline_s=60)
 
     async def play() -> list[RemoteAgent]:
         async with httpx.AsyncClient(base_url=server.url) as http:

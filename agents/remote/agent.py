@@ -209,8 +209,6 @@ class RemoteAgent:
         if self._stale:
             await self._bid_with(await self.client.json("GET", f"/auctions/{auction_id}"), position)
             self._stale = False
-        self.error: str | None = None
-        """Why the agent stopped playing, if an error stopped it (set by its population)."""
         info = RoundInfo.from_state(state, position)
         # In a thread: a slow fine-tuner must not hold the other agents of this event loop.
         tuned = await asyncio.to_thread(self.fine_tuner, self.current, info)

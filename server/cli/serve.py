@@ -33,9 +33,10 @@ def admin_token_problem(settings: Settings) -> str | None:
     return None
 
 
-def database_problem(settings: Settings) -> str | None:
+def database_problem(settings: Settings) -> tuple[str, int] | None:
     """Why the server cannot start on its database, in one line naming SRD_DATABASE_URL (its
-    password hidden), or None. It takes and lets go of a SQLite database's one-server lock and
+    password hidden), with the exit code (``UNUSABLE``: the URL itself; ``NOT_STARTED``: the
+    database it names), or None. It takes and lets go of a SQLite database's one-server lock and
     migrates the database, as the start does again (quickly, then)."""
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import ArgumentError
@@ -45,9 +46,15 @@ def database_problem(settings: Settings) -> str | None:
     try:
         url = make_url(settings.database_url)
     except ArgumentError:
-        return "SRD_DATABASE_URL is not a database URL (sqlite:///... or postgresql+psycopg://...)"
+        return (
+            "SRD_DATABASE_URL is not a database URL (sqlite:///... or postgresql+psycopg://...)",
+            UNUSABLE,
+        )
     if url.get_backend_name() not in ("sqlite", "postgresql"):
-        return f"SRD_DATABASE_URL names {url.get_backend_name()}: use sqlite or postgresql"
+        return (
+            f"SRD_DATABASE_URL names {url.get_backend_name()}: use sqlite or postgresql",
+            UNUSABLE,
+        )
     shown = url.render_as_string(hide_password=True)
     try:
         lock = SqliteServerLock(settings.database_url) if is_sqlite(settings.database_url) else None
@@ -57,7 +64,10 @@ def database_problem(settings: Settings) -> str | None:
             if lock is not None:
                 lock.release()
     except Exception as exc:  # unreachable, refused, read-only, newer schema, another server
-        return f"the database {shown} (SRD_DATABASE_URL) cannot be used: {first_line(exc)}"
+        return (
+            f"the database {shown} (SRD_DATABASE_URL) cannot be used: {first_line(exc)}",
+            NOT_STARTED,
+        )
     return None
 
 
@@ -121,10 +131,10 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     if problem is not None:
         click.echo(f"srd serve: {problem}", err=True)
         raise SystemExit(UNUSABLE)
-    problem = database_problem(settings)
-    if problem is not None:
-        click.echo(f"srd serve: {problem}", err=True)
-        raise SystemExit(UNUSABLE if problem.startswith("SRD_DATABASE_URL") else NOT_STARTED)
+    refused = database_problem(settings)
+    if refused is not None:
+        click.echo(f"srd serve: {refused[0]}", err=True)
+        raise SystemExit(refused[1])
     logging.basicConfig(level=log_level.upper(), format=LOG_FORMAT)
     file_limit = raise_file_limit()
     config = uvicorn.Config(

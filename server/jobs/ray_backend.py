@@ -25,6 +25,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import logging
+import os
 import socket
 import subprocess
 import sys
@@ -57,6 +58,9 @@ class RayUnavailableError(RuntimeError):
 
 def ray_module() -> Any:
     """The ``ray`` package, or RayUnavailableError saying how to install it."""
+    # Read when Ray is imported: without it Ray's core worker prints a stack dump for the
+    # SIGTERM that cancels a job's worker (SIGTERM still raises SystemExit in the driver).
+    os.environ.setdefault("RAY_DISABLE_FAILURE_SIGNAL_HANDLER", "1")
     try:
         return importlib.import_module("ray")
     except ImportError as exc:

@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from screener.verdict import PRICE, Evidence, Reason, Verdict, review
+from screener.verdict import PRICE, Evidence, Reason, Verdict, review, with_hold_reasons
 
 if TYPE_CHECKING:
     from agents.batch import FSNBatch
@@ -56,6 +56,7 @@ __all__ = [
     "rescreen",
     "rescreen_many",
     "review",
+    "with_hold_reasons",
     "screen",
     "screen_many",
 ]

@@ -1,6 +1,7 @@
 """What the screener says about a manifest: accepted or not, why in plain words, and the numbers
-each bar it was held to measured; and ``review``, which turns a verdict into accepted, refused or
-held for a person to look at."""
+each bar it was held to measured; ``review``, which turns a verdict into accepted, refused or
+held for a person to look at; and ``with_hold_reasons``, which says why a held model that the
+screener accepted is held."""
 
 from __future__ import annotations
 
@@ -92,3 +93,22 @@ def review(verdict: Verdict, margin: float) -> Review:
         if not own or not all(e.within(margin) for e in own):
             return "refused"
     return "held"
+
+
+def with_hold_reasons(verdict: Verdict, margin: float) -> Verdict:
+    """The verdict with a ``review-margin`` reason (neuron L: every bar in price is about where
+    the model holds) for each bar in price it passed by less than ``margin``, when that is what
+    holds an accepted model for a person; any other verdict unchanged."""
+    if not verdict.accepted or review(verdict, margin) != "held":
+        return verdict
+    reasons = [
+        Reason(
+            "review-margin",
+            "L",
+            f"held for an inspector: {e.test} measured {e.measured:.4f}, within {margin:g} of "
+            f"its bar {e.bar:.4f} ({e.side} the bar), too near to decide without a person",
+        )
+        for e in verdict.evidence
+        if e.within(margin) and e.measured is not None and e.bar is not None
+    ]
+    return Verdict(verdict.accepted, [*verdict.reasons, *reasons], verdict.evidence)

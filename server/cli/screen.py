@@ -13,7 +13,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from agents.manifest import ManifestError, parse_manifest, parse_manifest_json
-from screener import review
+from screener import review, with_hold_reasons
 from screener import screen as screen_manifest
 from server.api.body import BodyRefusedError, parse_strict_json
 from server.config import Settings
@@ -85,6 +85,7 @@ def command(file: Path, json_output: bool, margin: float) -> None:
     torch.set_num_threads(1)  # the screener's tensors are tiny: more threads only contend
     verdict = screen_manifest(manifest)
     status = review(verdict, margin)
+    verdict = with_hold_reasons(verdict, margin)
     if json_output:
         _emit({**verdict.to_dict(), "status": status})
     else:

@@ -55,8 +55,9 @@ def decide(
 
 
 def appeal(session: Session, model_id: int, *, token: str | None, note: str) -> crud.StoredModel:
-    """Send a refused model back to the queue, once, with the participant's token (404 if no
-    model, 401/403 without or with another token, 409 if accepted, held or appealed before);
+    """Send a model the screener refused back to the queue, once, with the participant's token
+    (404 if no model, 401/403 without or with another token, 409 if accepted, held, appealed
+    before or refused by an inspector);
     the model as it now stands."""
     owner = crud.model_owner(session, model_id=model_id)
     if owner is None:
@@ -76,6 +77,14 @@ def appeal(session: Session, model_id: int, *, token: str | None, note: str) -> 
             f"model {model_id} was appealed before: a model is appealed once",
             loc=("path", "model_id"),
             kind="appealed",
+        )
+    if owner.refused_by_inspector:
+        raise api_error(
+            409,
+            f"model {model_id} was refused by an inspector, whose refusal is final: "
+            "only a model the screener refused is appealed",
+            loc=("path", "model_id"),
+            kind="decided",
         )
     if owner.status != ModelStatus.REFUSED or not crud.appeal(
         session, model_id=model_id, participant=owner.participant, note=note, now=utcnow()

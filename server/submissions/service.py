@@ -6,7 +6,7 @@ from __future__ import annotations
 from sqlalchemy.orm import Session
 
 from agents.manifest import Manifest
-from screener import Verdict, review
+from screener import Verdict, review, with_hold_reasons
 from server.api.errors import RequestError, api_error
 from server.screening.pool import ScreenerUnavailableError, ScreeningService
 from server.store import crud
@@ -54,6 +54,7 @@ async def submit(
     except ScreenerUnavailableError as exc:
         raise api_error(503, str(exc), loc=("body",), kind="screener_unavailable") from exc
     status = ModelStatus(review(verdict, margin))
+    verdict = with_hold_reasons(verdict, margin)
     outcome = await writer.store(
         participant=manifest.participant,
         manifest=manifest.model_dump(mode="json"),

@@ -191,6 +191,17 @@ def test_a_refused_model_is_appealed_once(client: TestClient) -> None:
         f"/models/{held['model_id']}/appeal", json=note, headers=bearer(held["token"])
     )
     assert on_held.status_code == 409 and "held: only a refused model" in on_held.text
+    # Held by the screener and refused by an inspector: final, no appeal sends it back.
+    assert (
+        client.post(f"/models/{held['model_id']}/review", json=no, headers=ADMIN).status_code
+        == 200
+    )
+    final = client.post(
+        f"/models/{held['model_id']}/appeal", json=note, headers=bearer(held["token"])
+    )
+    assert final.status_code == 409 and final.json()["detail"][0]["type"] == "decided"
+    assert "refused by an inspector" in final.text
+    assert held["model_id"] not in held_ids(client)
 
 
 def test_the_queue_is_oldest_first_in_pages(client: TestClient) -> None:
@@ -219,6 +230,9 @@ def test_a_held_upload_leaves_the_previous_version_bidding(
         manifests = [moving(unique("remote-held"), seed=500 + i) for i in range(3)]
         patrons = [submit(client, m) for m in manifests]
         assert {p["status"] for p in patrons} == {"held"}
+        for patron in patrons:  # the screener accepted them: the reason names the bar too near
+            (reason,) = [r for r in patron["reasons"] if r["rule"] == "review-margin"]
+            assert "within 0.06 of its bar" in reason["message"]
         admit = {"decision": "admit", "inspector": "Ada", "note": ""}
         for patron in patrons:
             answer = client.post(f"/models/{patron['model_id']}/review", json=admit, headers=ADMIN)
@@ -262,6 +276,10 @@ def test_a_held_upload_leaves_the_previous_version_bidding(
             assert (answer["model_id"], answer["version"]) == (model_id, 1)
             uploaded = client.get(f"/models/{answer['uploaded_id']}").json()
             assert uploaded["status"] == "held" and uploaded["parent_id"] == model_id
+            assert [r["rule"] for r in answer["reasons"]] == ["review-margin"] * len(
+                answer["reasons"]
+            )
+            assert answer["reasons"] and uploaded["reasons"] == answer["reasons"]
         queue = {i["id"]: i for i in client.get("/reviews", headers=ADMIN).json()["items"]}
         for answer in answers.values():
             assert (

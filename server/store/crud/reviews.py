@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import and_, insert, select, update
+from sqlalchemy import Exists, and_, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.store.crud.lists import keyset
@@ -68,15 +68,20 @@ class ModelOwner:
     status: str
     appealed: bool
     participant_id: int
+    refused_by_inspector: bool
 
 
 def model_owner(session: Session, *, model_id: int) -> ModelOwner | None:
-    """A model's participant, token hash, status and whether it was appealed (one query)."""
-    appealed = (
-        select(Review.id)
-        .where(Review.model_id == ModelVersion.id, Review.decision == ReviewDecision.APPEAL)
-        .exists()
-    )
+    """A model's participant, token hash, status, whether it was appealed and whether an
+    inspector refused it (one query)."""
+
+    def logged(decision: ReviewDecision) -> Exists:
+        return (
+            select(Review.id)
+            .where(Review.model_id == ModelVersion.id, Review.decision == decision)
+            .exists()
+        )
+
     row = (
         session.connection()
         .execute(
@@ -84,8 +89,9 @@ def model_owner(session: Session, *, model_id: int) -> ModelOwner | None:
                 Participant.name,
                 Participant.token_hash,
                 ModelVersion.status,
-                appealed,
+                logged(ReviewDecision.APPEAL),
                 ModelVersion.participant_id,
+                logged(ReviewDecision.REFUSE),
             )
             .join(Participant, Participant.id == ModelVersion.participant_id)
             .where(ModelVersion.id == model_id)

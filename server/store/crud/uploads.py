@@ -29,7 +29,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import Session, aliased
 
-from screener import Verdict, review
+from screener import Verdict, review, with_hold_reasons
 from server.store.crud.live import notify_change
 from server.store.crud.steps import PendingUploadsError, close_round, round_answers
 from server.store.db import JSONText
@@ -383,8 +383,8 @@ def record_verdict(
         raise RuntimeError(f"the pending upload {answer_id} has no manifest")
     if connection.dialect.name != "sqlite":  # SQLite has no row locks: it serialises writers
         connection.execute(_LOCK_PARTICIPANT, {"id": row.participant_id})
-    reasons = [reason.to_dict() for reason in verdict.reasons]
     status = ModelStatus(review(verdict, margin))
+    reasons = [reason.to_dict() for reason in with_hold_reasons(verdict, margin).reasons]
     accepted = status == ModelStatus.ACCEPTED
     version = {
         "owner": row.participant_id,

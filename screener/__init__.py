@@ -56,9 +56,9 @@ __all__ = [
     "rescreen",
     "rescreen_many",
     "review",
-    "with_hold_reasons",
     "screen",
     "screen_many",
+    "with_hold_reasons",
 ]
 
 

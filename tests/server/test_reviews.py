@@ -193,8 +193,7 @@ def test_a_refused_model_is_appealed_once(client: TestClient) -> None:
     assert on_held.status_code == 409 and "held: only a refused model" in on_held.text
     # Held by the screener and refused by an inspector: final, no appeal sends it back.
     assert (
-        client.post(f"/models/{held['model_id']}/review", json=no, headers=ADMIN).status_code
-        == 200
+        client.post(f"/models/{held['model_id']}/review", json=no, headers=ADMIN).status_code == 200
     )
     final = client.post(
         f"/models/{held['model_id']}/appeal", json=note, headers=bearer(held["token"])

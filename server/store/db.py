@@ -35,6 +35,8 @@ from urllib.parse import quote
 
 from alembic import command
 from alembic.config import Config
+from alembic.migration import MigrationContext
+from alembic.script import ScriptDirectory
 from sqlalchemy import Connection, Engine, create_engine, event, inspect, make_url, text
 from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeoutError
@@ -594,8 +596,34 @@ def alembic_config(url: str) -> Config:
 
 def upgrade_schema(url: str) -> None:
     """Bring the database at ``url`` to the newest schema (``alembic upgrade head``), creating
-    a SQLite file if there is none."""
-    command.upgrade(alembic_config(url), "head")
+    a SQLite file if there is none; each migration is logged. A database whose schema is at a
+    revision this release does not know (a newer release wrote it) is refused, untouched."""
+    config = alembic_config(url)
+    scripts = ScriptDirectory.from_config(config)
+    head = scripts.get_current_head()
+    current = _revision(url)
+    if current is not None and current not in {s.revision for s in scripts.walk_revisions()}:
+        raise DatabaseUnavailableError(
+            f"the database's schema is at revision {current}, which this release does not know "
+            f"(its newest is {head}): a newer release wrote it. Run that release, or restore "
+            "the backup taken before the upgrade."
+        )
+    if current != head:
+        shown = make_url(url).render_as_string(hide_password=True)
+        log.info("migrating the database %s from %s to %s", shown, current or "empty", head)
+    command.upgrade(config, "head")
+
+
+def _revision(url: str) -> str | None:
+    """The schema revision the database at ``url`` is at (None: no schema, or no database)."""
+    if not has_schema(url):
+        return None
+    engine = make_engine(url)
+    try:
+        with engine.connect() as connection:
+            return MigrationContext.configure(connection).get_current_revision()
+    finally:
+        engine.dispose()
 
 
 def prepare_database(url: str, marker: Path) -> None:

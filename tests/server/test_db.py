@@ -9,6 +9,7 @@ import stat
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 from alembic.autogenerate import compare_metadata
@@ -22,7 +23,13 @@ from sqlalchemy.exc import IntegrityError, OperationalError
 from server.app import create_app
 from server.config import Settings
 from server.store import db as db_module
-from server.store.db import SQLITE_BUSY_TIMEOUT_MS, Database, alembic_config, upgrade_schema
+from server.store.db import (
+    SQLITE_BUSY_TIMEOUT_MS,
+    Database,
+    DatabaseUnavailableError,
+    alembic_config,
+    upgrade_schema,
+)
 from server.store.tables import Base, ModelVersion, utcnow
 from tests.support.factories import honest, unique
 from tests.support.server import make_settings
@@ -80,6 +87,81 @@ def test_an_unreadable_description_stored_before_is_made_readable(fresh_database
     database.close()
     assert stored["description"] == "line one\nnul bell flip end"
     assert parse_manifest(stored).description == stored["description"]
+
+
+def _insert_row(connection: Any, name: str, given: dict[str, Any]) -> int:
+    """Insert a row into table ``name`` as its schema stands (reflected): ``given`` values,
+    and a plain value of its type for every other column that needs one."""
+    from sqlalchemy import JSON, Boolean, DateTime, Integer, MetaData, Table
+
+    table = Table(name, MetaData(), autoload_with=connection)
+    values = dict(given)
+    for column in table.columns:
+        if column.name in values or column.nullable or column.primary_key:
+            continue
+        if column.server_default is not None:
+            continue
+        kind = column.type
+        if isinstance(kind, Boolean):
+            values[column.name] = True
+        elif isinstance(kind, Integer):
+            values[column.name] = 1
+        elif isinstance(kind, DateTime):
+            values[column.name] = utcnow()
+        elif isinstance(kind, JSON):
+            values[column.name] = {}
+        else:
+            values[column.name] = "x"
+    return int(connection.execute(insert(table).values(values)).inserted_primary_key[0])
+
+
+@pytest.mark.parametrize("revision", ["0005", "0008"])
+def test_a_database_with_rows_upgrades_through_migrations_that_copy_tables(
+    fresh_database_url: str, revision: str
+) -> None:
+    """Migrations 0006 and 0009 copy and drop tables that others reference (SQLite alters a
+    table by copying it): a database holding rows from before them upgrades, its rows kept."""
+    from alembic import command
+
+    command.upgrade(alembic_config(fresh_database_url), revision)
+    database = Database(fresh_database_url)
+    with database.engine.begin() as connection:
+        participant = _insert_row(connection, "participants", {"name": "Old-Timer"})
+        model = _insert_row(
+            connection,
+            "model_versions",
+            {"participant_id": participant, "version": 1, "manifest": honest("Old-Timer")},
+        )
+    database.close()
+    upgrade_schema(fresh_database_url)
+    database = Database(fresh_database_url)
+    with database.engine.connect() as connection:
+        owner = connection.execute(
+            text("select participant_id from model_versions where id = :id"), {"id": model}
+        ).scalar_one()
+        name = connection.execute(
+            text("select name from participants where id = :id"), {"id": participant}
+        ).scalar_one()
+        head = connection.execute(text("select version_num from alembic_version")).scalar_one()
+    database.close()
+    assert (owner, name) == (participant, "Old-Timer")
+    scripts = ScriptDirectory.from_config(alembic_config(fresh_database_url))
+    assert head == scripts.get_current_head()
+
+
+def test_a_database_a_newer_release_wrote_is_refused_untouched(fresh_database_url: str) -> None:
+    upgrade_schema(fresh_database_url)
+    database = Database(fresh_database_url)
+    with database.engine.begin() as connection:
+        connection.execute(text("update alembic_version set version_num = '9999_future'"))
+    database.close()
+    with pytest.raises(DatabaseUnavailableError, match="revision 9999_future, which this release"):
+        upgrade_schema(fresh_database_url)
+    database = Database(fresh_database_url)
+    with database.engine.connect() as connection:
+        kept = connection.execute(text("select version_num from alembic_version")).scalar_one()
+    database.close()
+    assert kept == "9999_future"
 
 
 def test_foreign_keys_are_enforced(database_url: str) -> None:

@@ -20,17 +20,32 @@ def run_offline() -> None:
 
 
 def run_online(database_url: str) -> None:
-    """Migrate a live database."""
+    """Migrate a live database.
+
+    SQLite alters a table by copying it to a new one and dropping the old, which its foreign
+    keys refuse while other rows reference the old one: they are off while the migrations run
+    (a pragma that takes effect only outside a transaction), and the rows are checked against
+    them before the migrations commit."""
+    sqlite = is_sqlite(database_url)
     engine = make_engine(database_url, create=True)  # a first start creates the SQLite file
     try:
         with engine.connect() as connection:
+            driver = connection.connection.driver_connection
+            if sqlite and driver is not None:  # on the driver's: SQLAlchemy would BEGIN first
+                driver.execute("PRAGMA foreign_keys=OFF")
             context.configure(
                 connection=connection,
                 target_metadata=Base.metadata,
-                render_as_batch=is_sqlite(database_url),  # SQLite alters tables by copying
+                render_as_batch=sqlite,  # SQLite alters tables by copying
             )
             with context.begin_transaction():
                 context.run_migrations()
+                if sqlite:
+                    broken = connection.exec_driver_sql("PRAGMA foreign_key_check").fetchall()
+                    if broken:
+                        raise RuntimeError(
+                            f"the migrated database breaks its foreign keys: {broken[:5]}"
+                        )
     finally:
         engine.dispose()
 

@@ -1,7 +1,7 @@
 // Auctions: the list, and one auction followed live from its event stream.
 
 import { follow, getJSON, pager, withQuery } from "./api.js";
-import { facts, fill, fixed, h, isMissing, link, notFound, plural, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, fixed, fixedApart, h, isMissing, link, notFound, plural, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
 
 const STOP_REASONS = {
   sold_out: "sold out",
@@ -303,11 +303,8 @@ export function auctionView(view, id) {
             v.participant,
             h("a", { href: `#/models/${v.version_id}`, "aria-label": `${v.participant}, version ${v.version}` }, `version ${v.version}`),
             h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote),
-            fixed(v.decision.B, 3),
-            fixed(v.decision.L, 3),
-            fixed(v.decision.Q, 3),
-            fixed(v.pfc.T, 3),
-            fixed(v.pfc.F, 3),
+            ...fixedApart([v.decision.B, v.decision.L, v.decision.Q]),
+            ...fixedApart([v.pfc.T, v.pfc.F]),
             h("button", { type: "button", class: "explain-vote", "data-model": v.model_id, "aria-label": `Its neurons: ${v.participant}, round ${iteration}`, onclick: open }, "Its neurons"),
           ];
         });
@@ -332,7 +329,7 @@ export function auctionView(view, id) {
       .then((v) => {
         if (asked !== explaining) return;
         names.set(v.model_id, v.participant);
-        const inMarket = head && head.fine_tune && head.fine_tune_mode !== "remote";
+        const inMarket = head && head.fine_tune && head.fine_tune_mode !== "remote" && head.fine_tune_rounds > 0;
         const part = (caption, key, values) =>
           table(caption, ["Neuron", "Meaning", "Value"], Object.entries(values).map(([n, x]) => [n, NEURON_WORDS[n] || n, fixed(x, 4)]), { "data-part": key });
         fill(
@@ -341,7 +338,7 @@ export function auctionView(view, id) {
             "div",
             { class: "explanation", "data-vote": v.vote },
             h("h3", {}, `${v.participant} (version ${v.version}) voted `, h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote), ` in round ${v.iteration}`),
-            facts(Object.entries(v.row).map(([k, x]) => [k, fixed(x, 3)]), { "aria-label": "The row it voted on" }),
+            facts(Object.entries(v.row).map(([k, x]) => [k, String(x)]), { "aria-label": "The row it voted on: every decimal the network read" }),
             part("External sensor (after its activations)", "sensor", v.sensor),
             part("Decision logits (the largest is the vote)", "decision", v.decision),
             part("Prefrontal cortex: its verdict on the decision", "pfc", v.pfc),
@@ -349,7 +346,7 @@ export function auctionView(view, id) {
               "p",
               {},
               link(`#/models/${v.version_id}`, `Version ${v.version}'s neurons and weights in the inspector`),
-              inMarket ? " (as it entered: this auction fine-tunes its patrons inside the market each round, so the neurons above are those of its fine-tuned weights, which are not stored)" : null,
+              inMarket ? ` (as it entered: this auction fine-tunes its patrons inside the market after each of its first ${plural(head.fine_tune_rounds, "round")}, so from then on the neurons above are those of its fine-tuned weights, which are not stored)` : null,
             ),
           ),
         );
@@ -429,7 +426,8 @@ export function auctionView(view, id) {
 
   function fineTuningWords(a) {
     if (a.fine_tune_mode === "remote") return `remote: up to ${a.fine_tune_rounds} rounds in which the participants fine-tune their own patrons, each open up to ${a.round_deadline_s} s`;
-    if (a.fine_tune) return "in the market: every patron fine-tunes itself after each round (its fine-tuned weights are not stored)";
+    if (a.fine_tune && !a.fine_tune_rounds) return "in the market, for 0 rounds: nobody fine-tunes";
+    if (a.fine_tune) return `in the market: after each of its first ${plural(a.fine_tune_rounds, "round")}, every patron whose manifest fine-tunes (epochs above 0) fine-tunes itself (its fine-tuned weights are not stored)`;
     return "none";
   }
 

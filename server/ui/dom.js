@@ -49,6 +49,15 @@ export function fixed(value, digits = 3) {
   return value === null || value === undefined ? "—" : Number(value).toFixed(digits);
 }
 
+/** Numbers shown side by side with `digits` decimals, or with more (up to 8) where two that
+ * differ would look alike: a vote's logits never show a tie that was not one. */
+export function fixedApart(values, digits = 3) {
+  let d = digits;
+  const alike = () => values.some((a, i) => values.some((b, j) => i < j && a !== b && a.toFixed(d) === b.toFixed(d)));
+  while (d < 8 && alike()) d += 1;
+  return values.map((x) => x.toFixed(d));
+}
+
 /** A count and its noun: "1 epoch", "2 epochs". */
 export function plural(count, noun) {
   return `${count} ${noun}${count === 1 ? "" : "s"}`;

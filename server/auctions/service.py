@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from datetime import timedelta
 
 from sqlalchemy.orm import Session
@@ -18,6 +19,8 @@ from sim.market import fish_on_sale
 
 LIVE_RETRY_AFTER_S = 30
 """``Retry-After`` of an auction refused while ``max_live_auctions`` are pending or running."""
+
+log = logging.getLogger("srd.auctions")
 
 
 def patron_ids(session: Session, model_ids: list[int] | None) -> list[int]:
@@ -267,6 +270,7 @@ def cancel_auction(session: Session, runner: BackgroundRunner, auction_id: int) 
             kind="not_cancellable",
         )
     session.commit()
+    log.info("auction %d cancelled", auction_id)
     # A worker that is not stopped in time (another replica's, until its lease renewal) still
     # commits nothing: its writes require the auction running.
     runner.cancel(auction_id)

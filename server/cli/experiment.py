@@ -134,7 +134,14 @@ def execute(
             json_failure(f"{errors[0]['option']}: {errors[0]['message']}", errors)
         raise SystemExit(INVALID) from exc
     out_dir = out or default_out_dir(kind.name, int(getattr(config, "seed", 0)))
-    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a folder that cannot be made: one line and exit 2, like any option
+        message = f"cannot create the folder {out_dir}: {exc.strerror or exc}"
+        stderr.print(f"[red]error:[/red] --out: {escape(message)}", highlight=False)
+        if json_output:
+            json_failure(f"--out: {message}", [{"option": "--out", "message": message}])
+        raise SystemExit(INVALID) from exc
     with Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),

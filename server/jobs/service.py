@@ -3,6 +3,7 @@ one of its artifact files."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,8 @@ from studies.registry import build_config
 
 JOB_QUEUE_RETRY_AFTER_S = 30
 """``Retry-After`` of a job refused because the queue is full."""
+
+log = logging.getLogger("srd.jobs")
 
 
 def _path(field: str) -> list[str | int]:
@@ -98,6 +101,7 @@ def cancel_job(session: Session, runner: BackgroundRunner, job_id: int) -> Job:
             kind="not_cancellable",
         )
     session.commit()
+    log.info("job %d cancelled", job_id)
     runner.cancel(job_id)
     session.refresh(job)
     return job

@@ -7,6 +7,7 @@ refusal (401, 403, 404, 409, 422) changes nothing."""
 from __future__ import annotations
 
 import json
+import logging
 import secrets
 import threading
 import time
@@ -71,8 +72,9 @@ def test_the_openapi_document_lists_the_cancel(client: TestClient) -> None:
 
 
 def test_a_pending_auction_is_cancelled_and_its_stream_ends_with_it(
-    client: TestClient, settings: Settings, patrons: list[int]
+    client: TestClient, settings: Settings, patrons: list[int], caplog: pytest.LogCaptureFixture
 ) -> None:
+    caplog.set_level(logging.INFO)
     # Leased to the tests: no worker ever starts it.
     auction_id = create_unstarted_auction(settings.database_url, patrons, n_fish=2, seed=1)
     assert client.get(f"/auctions/{auction_id}").json()["status"] == "pending"
@@ -83,6 +85,7 @@ def test_a_pending_auction_is_cancelled_and_its_stream_ends_with_it(
     assert state["error"] is None and state["started_at"] is None
     assert state["finished_at"] is not None and state["history"] == []
     assert state["iteration"] == 0 and state["n_available"] == 2 and state["buyers"] == []
+    assert f"auction {auction_id} cancelled" in caplog.messages
     assert client.get(f"/auctions/{auction_id}").json() == state
     listed = client.get("/auctions").json()["items"]
     assert next(a for a in listed if a["id"] == auction_id)["status"] == "cancelled"

@@ -108,6 +108,19 @@ def test_bad_options_exit_2_naming_the_option(tmp_path, args, option, message) -
     assert not (tmp_path / "x").exists()
 
 
+def test_an_out_folder_that_cannot_be_made_exits_2_naming_it(tmp_path) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    out = blocker / "results"  # a folder inside a file
+    result = CliRunner().invoke(cli, ["fish", "--steps", "10", "--json", "--out", str(out)])
+    assert result.exit_code == 2, result.output
+    assert result.stderr.count("error:") == 1 and "--out" in result.stderr
+    assert "Traceback" not in result.stderr
+    failure = json.loads(result.stdout)
+    assert [e["option"] for e in failure["errors"]] == ["--out"]
+    assert str(out) in failure["error"]
+
+
 @pytest.mark.parametrize(
     ("args", "code", "option", "words"),
     [

@@ -6,6 +6,7 @@ Uses the ``fish`` kind (the robot fish is cheap at a few hundred steps).
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 from typing import Any
@@ -68,9 +69,12 @@ def assert_no_escape(client: TestClient, job_id: int, settings: Settings) -> Non
         assert b"top secret" not in response.content and b"root:" not in response.content
 
 
-def test_job_lifecycle(client: TestClient, settings: Settings) -> None:
+def test_job_lifecycle(
+    client: TestClient, settings: Settings, caplog: pytest.LogCaptureFixture
+) -> None:
     """Two workers. A long job is killed -9 mid-run (fails), a short one runs to the end, a third
     is cancelled while queued, a fourth is cancelled while running (its process ends)."""
+    caplog.set_level(logging.INFO)
     is_running = lambda j: j["status"] == "running"  # noqa: E731
     crashing = start(client, LONG_FISH)
     short = start(client, SHORT_FISH)
@@ -98,6 +102,8 @@ def test_job_lifecycle(client: TestClient, settings: Settings) -> None:
     wait_for(lambda: {"alive": alive(pid)}, lambda s: not s["alive"], 15)
     assert job(client, running)["status"] == "cancelled"
     assert job(client, waiting)["started_at"] is None  # the queued one never ran
+    logged = caplog.messages
+    assert f"job {waiting} cancelled" in logged and f"job {running} cancelled" in logged
 
     done = wait_for(
         lambda: job(client, short),

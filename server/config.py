@@ -75,12 +75,15 @@ class Settings(BaseSettings):
     """New participant names registered per day from one client address."""
     quota_address_refusals_per_hour: Annotated[int, Field(ge=1)] = 60
     """Screener refusals per hour from one client address, all its participants."""
+    quota_address_appeals_per_day: Annotated[int, Field(ge=1)] = 10
+    """Appeals per day from one client address, all its participants: each puts a refused
+    model back in the inspectors' queue."""
     refusal_cooldown_s: Annotated[float, Field(ge=0, le=86400)] = 10.0
     """After a screener refusal a participant waits this long to submit again, doubled for each
     further refusal in a row (an accepted version resets it)."""
     refusal_cooldown_max_s: Annotated[float, Field(ge=0, le=86400)] = 3600.0
     """The longest refusal cooldown."""
-    review_margin: Annotated[float, Field(ge=0, le=1)] = 0.002
+    review_margin: Annotated[float, Field(ge=0, le=1)] = 0.005
     """Price units: a verdict whose deciding evidence lies strictly within this of its bar is
     held for an inspector (``screener.review``); 0 turns review off."""
     progress_interval_s: Annotated[float, Field(gt=0)] = 0.5

@@ -9,7 +9,8 @@ Per participant:
 Per client address:
 * registrations (first submissions of a new participant name) per day;
 * new accepted versions per minute and per day, over all its participants;
-* screener refusals per hour.
+* screener refusals per hour;
+* appeals per day (``appeal_throttle``: each puts a model back in the inspectors' queue).
 
 A submission over a limit is answered 429 with ``Retry-After`` and a message naming the limit
 and its setting; its verdict is not revealed and nothing of it is stored. ``Throttle`` reads a
@@ -28,7 +29,7 @@ from server.api.connections import client_address
 from server.config import Settings
 from server.store import crud
 
-VERSION, REGISTRATION, REFUSAL = "version", "registration", "refusal"
+VERSION, REGISTRATION, REFUSAL, APPEAL = "version", "registration", "refusal", "appeal"
 MINUTE, HOUR, DAY = timedelta(minutes=1), timedelta(hours=1), timedelta(days=1)
 KEEP = DAY + HOUR
 """Events older than this count for no limit and are pruned."""
@@ -181,6 +182,33 @@ class Throttle:
             if new:
                 events.append((self.place, REGISTRATION))
         crud.insert_rate_events(session, events=events, now=self.now)
+
+
+def appeal_throttle(
+    session: Session, *, address: str | None, per_day: int, now: datetime
+) -> Throttled | None:
+    """Whether an appeal from ``address`` would pass its ``per_day`` appeals
+    (``SRD_QUOTA_ADDRESS_APPEALS_PER_DAY``); None when it may go on. A request without an
+    address (in-process) is not counted."""
+    if address is None:
+        return None
+    place = address_subject(address)
+    windows = {"day": now - DAY, "hour": now - HOUR, "minute": now - MINUTE}
+    count = crud.rate_counts(session, subjects=[place], windows=windows).get((place, APPEAL))
+    if count is None or count.day < per_day:
+        return None
+    wait = math.ceil(max((count.oldest.get("day", now) + DAY - now).total_seconds(), 1))
+    return Throttled(
+        f"{client_address(address)!r} reached its limit of {per_day} appeals per day from one "
+        f"address (SRD_QUOTA_ADDRESS_APPEALS_PER_DAY); retry in {wait} s",
+        wait,
+    )
+
+
+def record_appeal(session: Session, *, address: str | None, now: datetime) -> None:
+    """Count an appeal against its address (in the transaction that stores it)."""
+    if address is not None:
+        crud.insert_rate_events(session, events=[(address_subject(address), APPEAL)], now=now)
 
 
 def prune(session: Session, now: datetime) -> None:

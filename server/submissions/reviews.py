@@ -11,6 +11,7 @@ from server.api.security import require_participant
 from server.store import crud
 from server.store.status import ModelStatus, ReviewDecision
 from server.store.tables import utcnow
+from server.submissions import quotas
 
 
 def _missing(model_id: int) -> RequestError:
@@ -54,10 +55,18 @@ def decide(
     return _view(session, model_id)
 
 
-def appeal(session: Session, model_id: int, *, token: str | None, note: str) -> crud.StoredModel:
+def appeal(
+    session: Session,
+    model_id: int,
+    *,
+    token: str | None,
+    note: str,
+    address: str | None = None,
+    per_day: int = 1,
+) -> crud.StoredModel:
     """Send a model the screener refused back to the queue, once, with the participant's token
     (404 if no model, 401/403 without or with another token, 409 if accepted, held, appealed
-    before or refused by an inspector);
+    before or refused by an inspector, 429 past ``per_day`` appeals from ``address``);
     the model as it now stands."""
     owner = crud.model_owner(session, model_id=model_id)
     if owner is None:
@@ -86,12 +95,24 @@ def appeal(session: Session, model_id: int, *, token: str | None, note: str) -> 
             loc=("path", "model_id"),
             kind="decided",
         )
+    now = utcnow()
+    if owner.status == ModelStatus.REFUSED:
+        throttled = quotas.appeal_throttle(session, address=address, per_day=per_day, now=now)
+        if throttled is not None:
+            raise api_error(
+                429,
+                throttled.msg,
+                loc=("path", "model_id"),
+                kind="quota",
+                headers={"Retry-After": str(throttled.retry_after_s)},
+            )
     if owner.status != ModelStatus.REFUSED or not crud.appeal(
-        session, model_id=model_id, participant=owner.participant, note=note, now=utcnow()
+        session, model_id=model_id, participant=owner.participant, note=note, now=now
     ):
         raise _conflict(
             session, model_id, owner.status, ": only a refused model is appealed", "not_refused"
         )
+    quotas.record_appeal(session, address=address, now=now)
     session.commit()
     return _view(session, model_id)
 

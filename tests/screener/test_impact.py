@@ -57,8 +57,8 @@ def test_a_model_holding_just_above_the_opening_price_is_refused_in_numbers():
     assert probe(from_manifests([model])).holds[0]
     verdict = screen(model)
     assert ("market-impact", "L") in rules_of(verdict)
-    # Its copies land within half a cent of the first bar: it meets the second stage's
-    # populations too and is judged on its 32 auctions against the 32 auctions' references.
+    # Its copies land within a cent and a half of the first bar: it meets the second stage's
+    # populations too and is judged on its 96 auctions against the 96 auctions' references.
     (first,) = impact.run([model])
     assert abs(first.mean_price - impact.references().lowest_price) <= limits.IMPACT_WINDOW
     refs = impact.wide_references()
@@ -67,7 +67,7 @@ def test_a_model_holding_just_above_the_opening_price_is_refused_in_numbers():
     assert outcome.mean_price < refs.lowest_price
     message = message_of(verdict, "market-impact", "L")
     assert message.startswith(
-        "in 32 test auctions (32 honest patrons, supplies 0.1 to 0.4), 32 copies of this model "
+        "in 96 test auctions (32 honest patrons, supplies 0.1 to 0.4), 32 copies of this model "
         f"lowered the mean purchase price from {refs.alone.mean_price:.2f} (without them) to "
         f"{outcome.mean_price:.4f}, below the {refs.lowest_price:.4f} allowed"  # cents alike
     )
@@ -128,7 +128,7 @@ def screener_rescreen(model) -> bool:
 def test_models_near_the_bar_meet_more_populations_and_the_window_holder_is_refused():
     """Four reference populations admitted every opening-window holder (a hard bargainer: it
     holds from 5.00 to about 5.05, each hold backed by a purchase a cent below). Near the bar the
-    test now adds four more and judges the 32 auctions: holder b, whose copies landed 0.0008
+    test now adds twenty more and judges the 96 auctions: holder b, whose copies landed 0.0008
     above the first bar, is refused; a model whose copies land far above it meets 16."""
     path = Path(__file__).parents[2] / "examples" / "red_team" / "opening-window-holder-b.json"
     holder = parse_manifest(json.loads(path.read_text()))
@@ -136,7 +136,7 @@ def test_models_near_the_bar_meet_more_populations_and_the_window_holder_is_refu
     (evidence,) = [e for e in verdict.evidence if e.test == "market-impact"]
     (first,) = impact.run([holder])
     assert 0 <= first.mean_price - impact.references().lowest_price <= limits.IMPACT_WINDOW
-    assert evidence.detail["test_auctions"] == 32 and not evidence.passed
+    assert evidence.detail["test_auctions"] == 96 and not evidence.passed
     assert evidence.bar == impact.wide_references().lowest_price
     assert ("market-impact", "L") in rules_of(verdict) and not verdict.accepted
     honest = [honest_manifest(np.random.default_rng(s), f"h{s}") for s in range(40)]

@@ -20,9 +20,10 @@ from tests.server.test_remote_protocol import moving, open_round, put
 from tests.support.factories import honest, saboteur, unique
 from tests.support.server import ADMIN, count, locs, make_settings, wait_for
 
-MARGIN = 0.002
-"""The default margin: honest seed 1's fine-tuned projection leaves 5.0851 in the test
-auctions against the bar 5.0857, its one reason: held."""
+MARGIN = 0.005
+"""The default margin: honest seed 1's fine-tuned projection leaves 5.0938 in the 96 test
+auctions of the impact test's second stage against the bar 5.0918, passed by less than the
+margin: held, its reason the review margin's."""
 BORDERLINE_SEED, CLEAR_SEED = 1, 2
 
 
@@ -52,7 +53,8 @@ def test_a_borderline_model_is_held_listed_and_kept_out_of_auctions(client: Test
     held = submit(client, honest(unique("border"), BORDERLINE_SEED))
     clear = submit(client, honest(unique("clear"), CLEAR_SEED))
     assert (held["status"], held["accepted"]) == ("held", False)
-    assert held["reasons"][0]["rule"] == "market-impact"
+    assert [r["rule"] for r in held["reasons"]] == ["review-margin"]
+    assert "market-impact measured" in held["reasons"][0]["message"]
     assert (clear["status"], clear["accepted"]) == ("accepted", True)
 
     assert client.get("/reviews").status_code == 401
@@ -60,9 +62,9 @@ def test_a_borderline_model_is_held_listed_and_kept_out_of_auctions(client: Test
     queue = client.get("/reviews", headers=ADMIN, params={"limit": 100}).json()["items"]
     (item,) = [i for i in queue if i["id"] == held["model_id"]]
     assert clear["model_id"] not in held_ids(client)
-    (impact,) = [e for e in item["evidence"] if e["test"] == "market-impact" and not e["passed"]]
-    assert impact["units"] == "price" and impact["side"] == "at least"
-    assert 0 < impact["bar"] - impact["measured"] < MARGIN
+    (impact,) = [e for e in item["evidence"] if e["detail"].get("test_auctions") == 96]
+    assert impact["units"] == "price" and impact["side"] == "at least" and impact["passed"]
+    assert 0 < impact["measured"] - impact["bar"] < MARGIN
     assert item["appeal"] is None and item["auction_id"] is None
 
     model = client.get(f"/models/{held['model_id']}").json()
@@ -301,3 +303,27 @@ def test_a_held_upload_leaves_the_previous_version_bidding(
             assert outcomes[model_id]["outcome"] == "held"
             assert outcomes[model_id]["version_id"] == model_id
             assert outcomes[model_id]["uploaded_id"] == answer["uploaded_id"]
+
+
+def test_appeals_from_one_address_are_bounded_per_day(
+    fresh_database_url: str, tmp_path: Path
+) -> None:
+    # Throw-away participants each appeal a refused saboteur once: the address's appeals per
+    # day bound what they put in the inspectors' queue.
+    settings = make_settings(
+        fresh_database_url, tmp_path / "data", review_margin=MARGIN, quota_address_appeals_per_day=2
+    )
+    note = {"note": "my holds are sincere"}
+    with TestClient(create_app(settings)) as client:
+        refused = [submit(client, saboteur(unique("flood"))) for _ in range(3)]
+        answers = [
+            client.post(f"/models/{r['model_id']}/appeal", json=note, headers=bearer(r["token"]))
+            for r in refused
+        ]
+        assert [a.status_code for a in answers] == [200, 200, 429]
+        last = answers[-1]
+        assert "SRD_QUOTA_ADDRESS_APPEALS_PER_DAY" in last.text
+        assert int(last.headers["Retry-After"]) > 0
+        assert client.get(f"/models/{refused[-1]['model_id']}").json()["status"] == "refused"
+        assert refused[-1]["model_id"] not in held_ids(client)
+        assert count(client, Review, model_id=refused[-1]["model_id"]) == 0

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Request
 from starlette.concurrency import run_in_threadpool
 
-from server.api.deps import AdminDep, BearerDep, SessionDep, read_in_thread
+from server.api.deps import AdminDep, BearerDep, SessionDep, SettingsDep, read_in_thread
 from server.api.errors import responses
 from server.api.pages import DEFAULT_PAGE, PageLimit, page_of
 from server.api.routes.models import review_entries, verdict_name
@@ -111,18 +111,27 @@ async def review_model(
     operation_id="appeal_model",
     # The participant's own token, checked against the model's participant.
     openapi_extra={"security": [{"HTTPBearer": []}]},
-    responses=responses(401, 403, 404, 409, 422),
+    responses=responses(401, 403, 404, 409, 422, 429),
 )
 async def appeal_model(
-    model_id: ModelIdPath, body: AppealCreate, session: SessionDep, credentials: BearerDep
+    model_id: ModelIdPath,
+    body: AppealCreate,
+    session: SessionDep,
+    credentials: BearerDep,
+    settings: SettingsDep,
+    request: Request,
 ) -> ReviewedPublic:
-    """Send a refused model to the review queue (its participant's token): it is held until an
-    inspector decides. Once per model: a second appeal, or a model accepted or held → 409."""
+    """Send a model the screener refused to the review queue (its participant's token): it is
+    held until an inspector decides. Once per model: a second appeal, a model accepted, held
+    or refused by an inspector → 409; past SRD_QUOTA_ADDRESS_APPEALS_PER_DAY appeals from one
+    address → 429."""
     row = await run_in_threadpool(
         reviews.appeal,
         session,
         model_id,
         token=None if credentials is None else credentials.credentials,
         note=body.note,
+        address=request.client.host if request.client is not None else None,
+        per_day=settings.quota_address_appeals_per_day,
     )
     return _reviewed(row)

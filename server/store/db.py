@@ -614,6 +614,29 @@ def upgrade_schema(url: str) -> None:
     command.upgrade(config, "head")
 
 
+def _lacking(url: str) -> list[str]:
+    """The tables and columns of this release's models that the database at ``url`` does not
+    have (none once a release's migrations ran): a revision number says which migrations ran,
+    not that they were this release's."""
+    from alembic.autogenerate import compare_metadata
+
+    from server.store.tables import Base
+
+    engine = make_engine(url)
+    try:
+        with engine.connect() as connection:
+            differences = compare_metadata(MigrationContext.configure(connection), Base.metadata)
+    finally:
+        engine.dispose()
+    lacking = []
+    for difference in differences:
+        if isinstance(difference, tuple) and difference[0] == "add_table":
+            lacking.append(f"the table {difference[1].name}")
+        elif isinstance(difference, tuple) and difference[0] == "add_column":
+            lacking.append(f"the column {difference[2]}.{difference[3].name}")
+    return lacking
+
+
 def _revision(url: str) -> str | None:
     """The schema revision the database at ``url`` is at (None: no schema, or no database)."""
     if not has_schema(url):
@@ -671,6 +694,13 @@ def _prepare(url: str, marker: Path) -> None:
             "to start again with an empty database."
         )
     upgrade_schema(url)
+    lacking = _lacking(url)
+    if lacking:
+        raise DatabaseUnavailableError(
+            f"the database {key} is at this release's schema revision but lacks "
+            f"{', '.join(lacking[:5])}: a build other than a release migrated it. Restore "
+            "the backup taken before, or migrate it with that build's own code."
+        )
     if key not in served:
         served[key] = datetime.now(UTC).isoformat(timespec="seconds")
         marker.parent.mkdir(parents=True, exist_ok=True)

@@ -164,6 +164,22 @@ def test_a_database_a_newer_release_wrote_is_refused_untouched(fresh_database_ur
     assert kept == "9999_future"
 
 
+def test_a_database_at_the_revision_but_lacking_a_column_is_refused(
+    fresh_database_url: str, tmp_path: Path
+) -> None:
+    """A build between releases may have stamped a revision without this release's columns:
+    the start names what is missing instead of serving 500s."""
+    from server.store.db import prepare_database
+
+    upgrade_schema(fresh_database_url)
+    database = Database(fresh_database_url)
+    with database.engine.begin() as connection:
+        connection.execute(text("alter table auctions drop column enroll_until"))
+    database.close()
+    with pytest.raises(DatabaseUnavailableError, match=r"lacks the column auctions\.enroll_until"):
+        prepare_database(fresh_database_url, tmp_path / "databases.json")
+
+
 def test_foreign_keys_are_enforced(database_url: str) -> None:
     upgrade_schema(database_url)
     database = Database(database_url)

@@ -388,7 +388,9 @@ def run_step(context: WorkerContext, auction_id: int) -> None:
         if is_database_outage(exc):  # nothing committed: the auction stays due, and is retried
             log.warning("auction %d: step not committed, database unavailable: %s", auction_id, exc)
             return
-        _fail(database, auction_id, error_summary(exc))
+        # Readers of the auction get the exception's line; the log keeps its frames too.
+        log.warning("auction %d: step failed: %s", auction_id, error_summary(exc))
+        _fail(database, auction_id, error_summary(exc).split("\nTraceback", 1)[0])
 
 
 def _nothing_to_prepare(session: Session, auction_ids: list[int]) -> None:

@@ -17,6 +17,24 @@ function stopReason(reason) {
   return reason ? STOP_REASONS[reason] || reason : "—";
 }
 
+// The market's price rules (sim.market.MarketConfig; no auction sets them otherwise).
+const PRICE_RULES = { increment: 0.05, decrement: 0.01, threshold: 4.8 };
+
+/** Why the price moved after a round, and the stalemate threshold it leaves (docs/auction.md):
+ * more buy votes than fish sells nothing and raises the price by the increment less U(0, 4)
+ * decrements, the threshold following to a decrement above the round's price; otherwise every
+ * buyer buys at the round's price and it falls by a decrement. */
+function priceMove(row, threshold) {
+  const moved = row.next_price - row.price;
+  const by = `${moved >= 0 ? "+" : "−"}${Math.abs(moved).toFixed(3)} to ${fixed(row.next_price)}`;
+  if (row.votes.buy > row.n_available) {
+    const next = row.price + PRICE_RULES.decrement;
+    return { threshold: next, words: `${row.votes.buy} buy votes for ${row.n_available} fish: nobody buys; ${by} (+${PRICE_RULES.increment} less a draw of 0 to 4 × ${PRICE_RULES.decrement}); stalemate below ${fixed(next)}` };
+  }
+  const sold = row.purchases.length ? `${row.purchases.length} sold at ${fixed(row.price)}` : "nobody bought";
+  return { threshold, words: `${row.votes.buy} buy votes for ${row.n_available} fish: ${sold}; ${by} (−${PRICE_RULES.decrement}); stalemate below ${fixed(threshold)}` };
+}
+
 function statusBadge(status) {
   return h("span", { class: `badge status-${status}` }, status);
 }
@@ -390,7 +408,7 @@ export function auctionView(view, id) {
           "table",
           { class: "list", id: "rounds" },
           h("caption", {}, "Every committed round"),
-          h("thead", {}, h("tr", {}, ["Round", "Price", "Fish at its start", "Buy", "Hold", "Quit", "Sold", "Quit now", "Votes"].map((t) => h("th", { scope: "col" }, t)))),
+          h("thead", {}, h("tr", {}, ["Round", "Price", "Fish at its start", "Buy", "Hold", "Quit", "Sold", "Quit now", "Why the price moved", "Votes"].map((t) => h("th", { scope: "col" }, t)))),
           roundRows,
         ),
         "Every committed round (scrolls)",
@@ -420,6 +438,9 @@ export function auctionView(view, id) {
   quitterList.append(h("li", { class: "none-yet" }, "none yet"));
 
   const rounds = [];
+  let threshold = PRICE_RULES.threshold; // the stalemate threshold after the rounds shown
+  const stoppedBecause = (reason) =>
+    reason === "stalemate" ? `stalemate (the price ${fixed(rounds.length ? rounds[rounds.length - 1].next_price : null)} fell below the threshold ${fixed(threshold)})` : stopReason(reason);
   let head = null;
   let drawPending = false;
   let ended = false;
@@ -452,7 +473,7 @@ export function auctionView(view, id) {
           ["Rounds", String(rounds.length)],
           over ? ["Price asked last", fixed(last ? last.price : null)] : ["Price asked next", fixed(last ? last.next_price : head.price)],
           ["Revenue", fixed(rounds.reduce((n, r) => n + r.purchases.reduce((m, p) => m + p.price, 0), 0), 2)],
-          ["Stopped because", stopReason(state.stop_reason)],
+          ["Stopped because", stoppedBecause(state.stop_reason)],
           ["Supply", head.rarity === null ? `${head.n_initial} fish` : `rarity ${head.rarity}`],
           ["Round limit", String(head.max_iterations)],
           ["Buy fraction", head.buy_fraction],
@@ -533,6 +554,8 @@ export function auctionView(view, id) {
     if (row.iteration !== rounds.length) return; // the stream never skips or repeats; a guard
     if (row.iteration === 0 && head.status === "pending") readHeadAgain();
     rounds.push(row);
+    const move = priceMove(row, threshold);
+    threshold = move.threshold;
     roundRows.append(
       tableRow([
         String(row.iteration),
@@ -543,6 +566,7 @@ export function auctionView(view, id) {
         String(row.votes.quit),
         String(row.purchases.length),
         String(row.quits.length),
+        move.words,
         h("button", { type: "button", class: "explain-round", "data-iteration": row.iteration, onclick: () => pickRound(row.iteration) }, `Explain round ${row.iteration}`),
       ]),
     );
@@ -596,7 +620,7 @@ export function auctionView(view, id) {
     buyerRows.querySelector(".none-yet-row")?.remove();
     if (buyerRows.children.length === 0) buyerRows.append(tableRow(["nobody bought a fish", "", "", "", ""]));
     listPatrons();
-    const why = outcome.stop_reason ? `, ${stopReason(outcome.stop_reason)}` : "";
+    const why = outcome.stop_reason ? `, ${stoppedBecause(outcome.stop_reason)}` : "";
     const played = outcome.iterations ? `${outcome.n_sold} of ${outcome.n_initial} fish sold in ${plural(outcome.iterations, "round")}` : "no round played";
     liveness.textContent = `Ended: ${outcome.status}${why}; ${played}.`;
   }

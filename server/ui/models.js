@@ -46,37 +46,51 @@ function modelTable(caption, id) {
 
 export function modelList(view, query) {
   const participant = query.get("participant") || "";
-  const accepted = query.get("accepted") || "";
+  const accepted = query.get("accepted") || ""; // older links: true, or false (refused or held)
+  const status = query.get("status") || "";
   view.root.append(h("h1", { tabindex: "-1" }, "Models"));
   if (!["", "true", "false"].includes(accepted)) {
     view.root.append(problem(`"accepted" is true or false, not "${accepted}".`), link("#/models", "All models"));
     return;
   }
+  if (!["", "accepted", "held", "refused"].includes(status)) {
+    view.root.append(problem(`"status" is accepted, held or refused, not "${status}".`), link("#/models", "All models"));
+    return;
+  }
   const nameInput = h("input", { id: "filter-participant", name: "participant", value: participant, pattern: NAME_PATTERN.source, maxlength: "64", autocomplete: "off" });
   const verdictSelect = h(
     "select",
-    { id: "filter-verdict", name: "accepted" },
-    h("option", { value: "", selected: accepted === "" }, "any verdict"),
-    h("option", { value: "true", selected: accepted === "true" }, "accepted"),
-    h("option", { value: "false", selected: accepted === "false" }, "rejected"),
+    { id: "filter-verdict", name: "status" },
+    h("option", { value: "", selected: status === "" }, "any status"),
+    h("option", { value: "accepted", selected: status === "accepted" }, "accepted"),
+    h("option", { value: "held", selected: status === "held" }, "held for an inspector"),
+    h("option", { value: "refused", selected: status === "refused" }, "refused"),
   );
   const form = h(
     "form",
     { role: "search", class: "filters" },
     h("label", { for: "filter-participant" }, "Participant"),
     nameInput,
-    h("label", { for: "filter-verdict" }, "Verdict"),
+    h("label", { for: "filter-verdict" }, "Status"),
     verdictSelect,
     h("button", { type: "submit" }, "Filter"),
   );
   form.addEventListener("submit", (event) => {
     event.preventDefault();
-    location.hash = withQuery("#/models", { participant: nameInput.value.trim(), accepted: verdictSelect.value });
+    location.hash = withQuery("#/models", { participant: nameInput.value.trim(), status: verdictSelect.value });
   });
   const { node, rows } = modelTable("Model versions, newest first", "model-list");
-  const pages = pager("/models", { participant, accepted }, (items) => items.forEach((m) => rows.append(modelRow(m))));
+  const pages = pager("/models", { participant, accepted, status }, (items) => items.forEach((m) => rows.append(modelRow(m))));
   view.root.append(form, scrolling(node, "Model versions (scrolls sideways)"), pages.box);
-  pages.load().catch((error) => view.root.append(problem(error)));
+  pages
+    .load()
+    .then((page) => {
+      if (page.items.length) return;
+      const filtered = participant || accepted || status;
+      const none = participant ? `none: no version of "${participant}"${status ? ` is ${status}` : ""} (or no such participant)` : filtered ? "none with this status" : "none yet";
+      rows.append(h("tr", {}, h("td", { colspan: String(MODEL_HEADERS.length) }, none)));
+    })
+    .catch((error) => view.root.append(problem(error)));
 }
 
 export function participantView(view, name) {
@@ -199,17 +213,23 @@ function network({ id, label, columns, neurons, reasonsByNeuron, sourceLabel, on
   return svg("svg", { class: "network", id, viewBox: `0 0 ${width} ${height}`, role: "group", "aria-label": label }, edges, nodes);
 }
 
-function effect(w) {
+/** What a weight does to its neuron's output, through the neuron's activation: a threshold
+ * (and a decision logit) rises with its argument, a below-threshold neuron falls as it rises,
+ * and a selective one peaks at its centre, so a weight only moves it toward or past the peak. */
+function effect(w, kind) {
   if (w === 0) return "none (cut)";
   if (Math.abs(w) <= TINY) return "barely (δ)";
+  if (kind === "selective") return `${w > 0 ? "raises" : "lowers"} its argument: toward or past the peak`;
+  if (kind === "below_threshold") return w > 0 ? "inhibits (it falls as its argument rises)" : "excites (it rises as its argument falls)";
   return w > 0 ? "excites" : "inhibits";
 }
 
 function weightTable(name, neuron, sourceLabel) {
+  const kind = neuron.activation ? neuron.activation.kind : null;
   const rows = Object.entries(neuron.weights).map(([source, w]) => [
     sourceLabel(source),
     h("span", { class: w > 0 ? "w-pos" : w < 0 ? "w-neg" : "" }, signed(w)),
-    effect(w),
+    effect(w, kind),
   ]);
   rows.push(["bias", h("span", { class: neuron.bias > 0 ? "w-pos" : neuron.bias < 0 ? "w-neg" : "" }, signed(neuron.bias)), "constant"]);
   return table(`Weights into ${name}`, ["From", "Weight", "Effect"], rows, { class: "weights", "data-weights-of": name });

@@ -199,7 +199,7 @@ function impactChart(impacts) {
 
 function decisionForm(model) {
   const inspector = h("input", { id: "inspector", name: "inspector", required: true, maxlength: 64, autocomplete: "name" });
-  const note = h("textarea", { id: "note", name: "note", rows: 3, maxlength: 2000 });
+  const note = h("textarea", { id: "note", name: "note", rows: 3, maxlength: 2000, "aria-describedby": "note-public" });
   const status = h("p", { id: "decision-status", role: "status" });
   const buttons = [
     h("button", { type: "submit", value: "admit", id: "admit" }, "Admit"),
@@ -211,6 +211,7 @@ function decisionForm(model) {
     h("h2", { id: "decision-heading" }, "Your decision"),
     h("p", { class: "field" }, h("label", { for: "inspector" }, "Inspector"), inspector),
     h("p", { class: "field" }, h("label", { for: "note" }, "Note (why)"), note),
+    h("p", { id: "note-public", class: "hint" }, "Public: your name and note are shown with the model to everyone (GET /models/{id}) and to its participant."),
     h("p", { class: "actions" }, buttons),
     status,
   );

@@ -92,6 +92,13 @@ def test_models_list_filters_and_fields(client: TestClient, population: dict[str
     assert all(m["accepted"] and m["rules"] == [] for m in accepted["items"])
     nobody = client.get("/models", params={"participant": unique("nobody")}).json()
     assert nobody == {"items": [], "next_cursor": None}
+    by_status = {
+        status: client.get("/models", params={"status": status, "limit": MAX_PAGE}).json()["items"]
+        for status in ("accepted", "refused", "held")
+    }
+    assert population["mallory"] in {m["participant"] for m in by_status["refused"]}
+    assert all(m["status"] == status for status, ms in by_status.items() for m in ms)
+    assert by_status["accepted"] and by_status["held"] == []  # this server holds nothing
     for spelling in ("yes", "1", "on", "True"):  # pydantic's lax booleans are not the API's
         refused = client.get("/models", params={"accepted": spelling})
         assert refused.status_code == 422, spelling
@@ -111,6 +118,7 @@ def test_models_list_filters_and_fields(client: TestClient, population: dict[str
         ({"limit": "+5"}, ["query", "limit"]),
         ({"participant": "<script>"}, ["query", "participant"]),
         ({"accepted": "maybe"}, ["query", "accepted"]),
+        ({"status": "rejected"}, ["query", "status"]),
     ],
 )
 def test_models_list_bad_parameters_name_themselves(

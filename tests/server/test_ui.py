@@ -140,6 +140,12 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
     assert seen[0] <= 2, seen  # the page was open before most rounds were played
     assert seen == sorted(seen) and len(seen) >= 3, seen  # the line grew while the auction ran
     assert page.locator("#rounds tbody tr").count() == rounds
+    # Each round says why the price moved: demand against the fish, and the next price.
+    for row, past in zip(page.locator("#rounds tbody tr").all(), auction["history"], strict=True):
+        why = row.locator("td").nth(8).text_content() or ""
+        assert why.startswith(f"{past['votes']['buy']} buy votes for {past['n_available']} fish")
+        assert f"to {past['next_price']:.3f}" in why
+        assert ("nobody buys" in why) == (past["votes"]["buy"] > past["n_available"])
     buyers = page.locator("#buyers tbody tr")
     assert auction["buyers"] and buyers.count() == len(auction["buyers"])
     names = {a["model_id"]: name for name, a in population.items()}
@@ -894,9 +900,17 @@ def test_a_malformed_participant_address_gets_the_not_found_page(
         ("auctions?status=bogus", 'No auction status is called "bogus"'),
         ("jobs?status=bogus", 'No job status is called "bogus"'),
         ("models?accepted=bogus", 'not "bogus"'),
+        ("models?status=rejected", 'accepted, held or refused, not "rejected"'),
     ):
         page.goto(f"{server.url}/ui/#/{address}")
         page.wait_for_selector(f"p.problem:has-text('{words}')", timeout=WAIT_MS)
+    # A filter that matches nothing says so, and the status filter lists that status only.
+    page.goto(f"{server.url}/ui/#/models?participant=nobody-{time.time_ns()}")
+    page.wait_for_selector("#model-list td:has-text('no such participant')", timeout=WAIT_MS)
+    page.goto(f"{server.url}/ui/#/models?status=refused")
+    page.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)
+    verdicts = page.locator("#model-list tbody tr td:nth-child(4)").all_text_contents()
+    assert verdicts and all("rejected" in v for v in verdicts), verdicts
 
 
 def test_the_auction_list_follows_its_auctions(

@@ -177,8 +177,12 @@ async def list_models(
     ] = None,
     accepted: Annotated[
         bool | None,
-        Query(description="Only accepted (true) or only rejected (false) models."),
+        Query(description="Only accepted (true) or only rejected (false: refused or held) models."),
         BeforeValidator(_true_or_false),
+    ] = None,
+    status: Annotated[
+        ModelStatus | None,
+        Query(description="Only models with this status: accepted, refused or held."),
     ] = None,
     limit: PageLimit = DEFAULT_PAGE,
     cursor: PageCursor = None,
@@ -191,6 +195,7 @@ async def list_models(
         limit=limit + 1,
         participant=participant,
         accepted=accepted,
+        status=status,
     )
     items, next_cursor = page_of(rows, limit)
     return ModelPage(items=[model_summary(row) for row in items], next_cursor=next_cursor)

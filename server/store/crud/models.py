@@ -214,9 +214,10 @@ def list_models(
     limit: int,
     participant: str | None = None,
     accepted: bool | None = None,
+    status: str | None = None,
 ) -> list[ModelSummary]:
     """Up to ``limit`` model versions with ids below ``before``, newest first, optionally of
-    one participant and/or with one verdict (one query)."""
+    one participant, with one verdict and/or one status (one query)."""
     query = _MODEL_SUMMARY.limit(limit)
     if before is not None:
         query = query.where(ModelVersion.id < before)
@@ -224,6 +225,8 @@ def list_models(
         query = query.where(Participant.name_key == participant_key(participant))
     if accepted is not None:
         query = query.where(ModelVersion.accepted.is_(accepted))
+    if status is not None:
+        query = query.where(ModelVersion.status == status)
     return [ModelSummary(*row) for row in session.connection().execute(query)]
 
 

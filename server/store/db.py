@@ -611,7 +611,24 @@ def upgrade_schema(url: str) -> None:
     if current != head:
         shown = make_url(url).render_as_string(hide_password=True)
         log.info("migrating the database %s from %s to %s", shown, current or "empty", head)
-    command.upgrade(config, "head")
+    try:
+        command.upgrade(config, "head")
+    except OperationalError as exc:
+        if getattr(exc.orig, "sqlstate", None) != LOCK_NOT_AVAILABLE:
+            raise
+        raise DatabaseUnavailableError(
+            f"a migration waited {MIGRATION_LOCK_TIMEOUT_S:g} s for a table other sessions hold "
+            "and stopped, changing nothing: stop every server of the old release before "
+            "starting this one (docs/server.md, Upgrading)"
+        ) from exc
+
+
+MIGRATION_LOCK_TIMEOUT_S = 30.0
+"""PostgreSQL: how long one migration statement waits for a table's lock (``lock_timeout``)
+before the start fails. Waiting longer would queue every query of the old release's servers
+behind the migration's ALTER TABLE."""
+LOCK_NOT_AVAILABLE = "55P03"
+"""PostgreSQL's SQLSTATE for a ``lock_timeout`` reached."""
 
 
 def _lacking(url: str) -> list[str]:
@@ -675,7 +692,10 @@ def _migration_lock(url: str) -> Iterator[None]:
     engine = create_engine(url)
     try:
         with engine.connect() as connection:
-            connection.execute(text("SELECT pg_advisory_lock(:key)"), {"key": MIGRATION_LOCK})
+            held = text("SELECT pg_try_advisory_lock(:key)")
+            if not connection.execute(held, {"key": MIGRATION_LOCK}).scalar_one():
+                log.info("waiting for another server's migration of the database")
+                connection.execute(text("SELECT pg_advisory_lock(:key)"), {"key": MIGRATION_LOCK})
             try:
                 yield
             finally:

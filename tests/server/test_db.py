@@ -180,6 +180,33 @@ def test_a_database_at_the_revision_but_lacking_a_column_is_refused(
         prepare_database(fresh_database_url, tmp_path / "databases.json")
 
 
+def test_a_migration_blocked_by_another_session_fails_instead_of_waiting(
+    fresh_database_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """PostgreSQL: an old server's open read holds a table the migration alters; the start
+    fails within the lock timeout, changing nothing, and succeeds once the table is free."""
+    from alembic import command
+
+    if fresh_database_url.startswith("sqlite"):
+        pytest.skip("SQLite: one server holds the file (the serve lock), nobody else reads it")
+    monkeypatch.setattr(db_module, "MIGRATION_LOCK_TIMEOUT_S", 1.0)
+    command.upgrade(alembic_config(fresh_database_url), "0011")
+    database = Database(fresh_database_url)
+    try:
+        with database.engine.connect() as reader:  # a transaction that read the table
+            reader.execute(text("select count(*) from auctions"))
+            started = time.monotonic()
+            with pytest.raises(DatabaseUnavailableError, match="stop every server of the old"):
+                upgrade_schema(fresh_database_url)
+            assert time.monotonic() - started < 10
+        with database.engine.connect() as connection:
+            kept = connection.execute(text("select version_num from alembic_version")).scalar()
+        assert kept == "0011"
+        upgrade_schema(fresh_database_url)  # the reader gone, the migration runs
+    finally:
+        database.close()
+
+
 def test_foreign_keys_are_enforced(database_url: str) -> None:
     upgrade_schema(database_url)
     database = Database(database_url)

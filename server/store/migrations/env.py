@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from alembic import context
 
+from server.store import db
 from server.store.db import is_sqlite, make_engine
 from server.store.tables import Base
 
@@ -33,6 +34,10 @@ def run_online(database_url: str) -> None:
             driver = connection.connection.driver_connection
             if sqlite and driver is not None:  # on the driver's: SQLAlchemy would BEGIN first
                 driver.execute("PRAGMA foreign_keys=OFF")
+            if not sqlite:  # fail, rather than queue the old servers' queries behind an ALTER
+                waited = round(db.MIGRATION_LOCK_TIMEOUT_S * 1000)
+                connection.exec_driver_sql(f"SET lock_timeout = {waited}")  # for the session
+                connection.commit()  # ends the transaction SQLAlchemy began for the SET
             context.configure(
                 connection=connection,
                 target_metadata=Base.metadata,

@@ -21,6 +21,13 @@ def digits_only(value: Any) -> Any:
     return value
 
 
+def iteration_digits(value: Any) -> Any:
+    """An iteration is written in ASCII digits only, from 0."""
+    if isinstance(value, str) and not (value.isascii() and value.isdigit()):
+        raise ValueError("must be an iteration written in digits: 0, 1, 2, ...")
+    return value
+
+
 RowId = Annotated[int, Field(ge=1, le=MAX_ROW_ID)]
 ModelIdPath = Annotated[
     int, Path(ge=1, le=MAX_ROW_ID, description="A model id."), BeforeValidator(digits_only)
@@ -34,7 +41,7 @@ JobIdPath = Annotated[
 IterationPath = Annotated[
     int,
     Path(ge=0, le=MAX_ROW_ID, description="An auction iteration (0, 1, ...)."),
-    BeforeValidator(digits_only),
+    BeforeValidator(iteration_digits),
 ]
 
 

@@ -95,7 +95,7 @@ export function auctionList(view, query) {
       [
         link(`#/auctions/${a.id}`, `Auction ${a.id}`),
         statusBadge(a.status),
-        `${a.n_sold} of ${a.n_initial}`,
+        a.rarity !== null && a.n_initial === 0 && a.iteration === 0 ? (a.status === "pending" ? "counted when it starts" : "none: it ended before it started") : `${a.n_sold} of ${a.n_initial}`,
         String(a.n_patrons),
         String(a.iteration),
         ["pending", "running"].includes(a.status) ? fixed(a.price) : "—",
@@ -458,7 +458,8 @@ export function auctionView(view, id) {
     const over = !["pending", "running"].includes(state.status);
     const enrolling = state.status === "pending" && Boolean(head.enroll_until);
     // an enrolling auction's supply is a rarity of the patrons it will have: no count yet
-    const uncounted = enrolling && head.rarity !== null ? "counted when it starts" : null;
+    const neverCounted = over && head.rarity !== null && head.n_initial === 0 && rounds.length === 0;
+    const uncounted = enrolling && head.rarity !== null ? "counted when it starts" : neverCounted ? "none: it ended before it started" : null;
     const joined = head.model_ids.map((modelId, i) => link(`#/models/${modelId}`, head.participants[i]));
     fill(
       summary,

@@ -128,6 +128,15 @@ function evidenceSection(model, item) {
     { "aria-labelledby": "evidence-heading", id: "evidence" },
     h("h2", { id: "evidence-heading" }, "The screener's evidence"),
     item.appeal !== null ? h("p", { id: "appeal" }, h("strong", {}, "Appeal: "), item.appeal) : null,
+    item.later_versions.length
+      ? h(
+          "p",
+          { id: "later-versions" },
+          h("strong", {}, "Its participant's later versions: "),
+          ...item.later_versions.flatMap((v, i) => [i ? ", " : "", link(`#/models/${v.model_id}`, `version ${v.version}`), ` (${v.status})`]),
+          ". Deciding this one does not decide them.",
+        )
+      : null,
     model.reasons.length ? h("ul", { class: "reasons" }, model.reasons.map((r) => h("li", {}, h("strong", {}, `${r.neuron} (${r.rule}): `), r.message))) : null,
     scan ? h("figure", {}, decisionsChart(scan.detail), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${scan.detail.noise_std}, ${scan.detail.draws} draws): green buys, amber holds, grey quits.`)) : null,
     impacts.length ? h("figure", {}, impactChart(impacts), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions (green: passed, amber: missed) against the lowest allowed (the dashed bar), and the references (grey).")) : null,

@@ -66,6 +66,7 @@ def test_a_borderline_model_is_held_listed_and_kept_out_of_auctions(client: Test
     assert impact["units"] == "price" and impact["side"] == "at least" and impact["passed"]
     assert 0 < impact["measured"] - impact["bar"] < MARGIN
     assert item["appeal"] is None and item["auction_id"] is None
+    assert item["later_versions"] == []
 
     model = client.get(f"/models/{held['model_id']}").json()
     assert (model["status"], model["verdict"], model["accepted"]) == ("held", "held", False)
@@ -84,6 +85,15 @@ def test_a_borderline_model_is_held_listed_and_kept_out_of_auctions(client: Test
     auction = client.get(f"/auctions/{default.json()['auction_id']}").json()
     assert held["model_id"] not in auction["model_ids"]
     assert clear["model_id"] in auction["model_ids"]
+
+    # Its participant submits again meanwhile: the queue shows the inspector what bids instead.
+    again = honest(held["participant"], CLEAR_SEED)
+    newer = client.post("/submit", json=again, headers=bearer(held["token"]))
+    assert newer.status_code == 201, newer.text
+    queue = client.get("/reviews", headers=ADMIN, params={"limit": 100}).json()["items"]
+    (item,) = [i for i in queue if i["id"] == held["model_id"]]
+    expected = {"model_id": newer.json()["model_id"], "version": 2, "status": "accepted"}
+    assert item["later_versions"] == [expected]
 
 
 def test_an_inspector_admits_or_refuses_with_an_audit_log(client: TestClient) -> None:

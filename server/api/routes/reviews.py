@@ -18,6 +18,7 @@ from server.api.schemas import (
     EvidencePublic,
     HeldModelPublic,
     HeldPage,
+    LaterVersionPublic,
     ModelIdPath,
     ReasonPublic,
     ReviewCreate,
@@ -76,6 +77,10 @@ async def list_reviews(
                 auction_id=row.auction_id,
                 round=row.round,
                 appeal=row.appeal,
+                later_versions=[
+                    LaterVersionPublic(model_id=model_id, version=version, status=status)
+                    for model_id, version, status in row.newer
+                ],
             )
             for row in items
         ],

@@ -160,10 +160,19 @@ class ReviewedPublic(BaseModel):
     reviews: list[ReviewPublic]
 
 
+class LaterVersionPublic(BaseModel):
+    """A later version of a held model's participant."""
+
+    model_id: int
+    version: int
+    status: str
+
+
 class HeldModelPublic(BaseModel):
     """A model held for an inspector: who, the screener's reasons and evidence; ``auction_id``
     and ``round`` for an upload of a remote round; ``appeal`` the participant's note when it
-    came by appeal."""
+    came by appeal; ``later_versions`` the participant's versions since (newest first, at most
+    10): deciding this one does not decide them."""
 
     id: int
     participant: str
@@ -174,6 +183,7 @@ class HeldModelPublic(BaseModel):
     auction_id: int | None
     round: int | None
     appeal: str | None
+    later_versions: list[LaterVersionPublic] = []
 
 
 class HeldPage(BaseModel):

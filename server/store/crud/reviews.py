@@ -4,7 +4,7 @@ it changes, so two inspectors (or two appeals) racing on one model write once.""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime
 from typing import Any
 
@@ -30,7 +30,14 @@ class HeldModel:
     round: int | None
     appeal: str | None
     """The participant's note when it came to the queue by appeal."""
+    participant_id: int
+    newer: tuple[tuple[int, int, str], ...] = ()
+    """The participant's later versions (id, version, status), newest first, at most
+    ``NEWER_SHOWN``: what deciding this one leaves bidding."""
 
+
+NEWER_SHOWN = 10
+"""Later versions of its participant listed with a held model."""
 
 _HELD = (
     select(
@@ -43,6 +50,7 @@ _HELD = (
         ModelVersion.auction_id,
         ModelVersion.round,
         Review.note,
+        ModelVersion.participant_id,
     )
     .join(Participant, Participant.id == ModelVersion.participant_id)
     .outerjoin(
@@ -54,9 +62,40 @@ _HELD = (
 
 
 def held_models(session: Session, *, after: int | None, limit: int) -> list[HeldModel]:
-    """Up to ``limit`` held models with ids above ``after``, oldest first (one query)."""
+    """Up to ``limit`` held models with ids above ``after``, oldest first, each with its
+    participant's later versions (two queries)."""
     query = keyset(_HELD, ModelVersion.id, cursor=after, order="oldest").limit(limit)
-    return [HeldModel(*row) for row in session.connection().execute(query)]
+    held = [HeldModel(*row) for row in session.connection().execute(query)]
+    if not held:
+        return held
+    first = min(h.version for h in held)
+    later = session.connection().execute(
+        select(
+            ModelVersion.participant_id,
+            ModelVersion.id,
+            ModelVersion.version,
+            ModelVersion.status,
+        )
+        .where(
+            ModelVersion.participant_id.in_({h.participant_id for h in held}),
+            ModelVersion.version > first,
+        )
+        .order_by(ModelVersion.version.desc())
+    )
+    by_participant: dict[int, list[tuple[int, int, str]]] = {}
+    for participant_id, model_id, version, status in later:
+        by_participant.setdefault(participant_id, []).append((model_id, version, status))
+    return [
+        replace(
+            h,
+            newer=tuple(
+                [v for v in by_participant.get(h.participant_id, []) if v[1] > h.version][
+                    :NEWER_SHOWN
+                ]
+            ),
+        )
+        for h in held
+    ]
 
 
 @dataclass(frozen=True)

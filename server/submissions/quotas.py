@@ -205,6 +205,12 @@ def appeal_throttle(
     )
 
 
+def record_admitted(session: Session, *, participant: str, now: datetime) -> None:
+    """Count a held version an inspector admitted as the participant's accepted version: it
+    ends the refusals in a row that its hold began (the cooldown)."""
+    crud.insert_rate_events(session, events=[(participant_subject(participant), VERSION)], now=now)
+
+
 def record_appeal(session: Session, *, address: str | None, now: datetime) -> None:
     """Count an appeal against its address (in the transaction that stores it)."""
     if address is not None:

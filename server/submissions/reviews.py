@@ -40,17 +40,20 @@ def decide(
     owner = crud.model_owner(session, model_id=model_id)
     if owner is None:
         raise _missing(model_id)
+    now = utcnow()
     if not crud.decide(
         session,
         model_id=model_id,
         decision=decision,
         inspector=inspector,
         note=note,
-        now=utcnow(),
+        now=now,
     ):
         raise _conflict(
             session, model_id, "gone", ", not held: only a held model is decided", "not_held"
         )
+    if decision == ReviewDecision.ADMIT:  # an accepted version now: its hold's cooldown ends
+        quotas.record_admitted(session, participant=owner.participant, now=now)
     session.commit()
     return _view(session, model_id)
 

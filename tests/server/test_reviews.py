@@ -337,3 +337,22 @@ def test_appeals_from_one_address_are_bounded_per_day(
         assert client.get(f"/models/{refused[-1]['model_id']}").json()["status"] == "refused"
         assert refused[-1]["model_id"] not in held_ids(client)
         assert count(client, Review, model_id=refused[-1]["model_id"]) == 0
+
+
+def test_an_admitted_model_ends_the_cooldown_its_hold_began(
+    fresh_database_url: str, tmp_path: Path
+) -> None:
+    settings = make_settings(
+        fresh_database_url, tmp_path / "data", review_margin=MARGIN, refusal_cooldown_s=600.0
+    )
+    with TestClient(create_app(settings)) as client:
+        held = submit(client, honest(unique("cool"), BORDERLINE_SEED))
+        assert held["status"] == "held"
+        again = honest(held["participant"], CLEAR_SEED)
+        waiting = client.post("/submit", json=again, headers=bearer(held["token"]))
+        assert waiting.status_code == 429 and "SRD_REFUSAL_COOLDOWN_S" in waiting.text
+        admit = {"decision": "admit", "inspector": "Ada", "note": ""}
+        decided = client.post(f"/models/{held['model_id']}/review", json=admit, headers=ADMIN)
+        assert decided.status_code == 200, decided.text
+        after = client.post("/submit", json=again, headers=bearer(held["token"]))
+        assert after.status_code == 201, after.text

@@ -77,8 +77,9 @@ def capped(items: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
         return listed
     rest = len(listed) - MAX_DETAIL
     more = error_item(
-        f"and {rest} more problems, not listed (the first {MAX_DETAIL} are)",
-        loc=listed[MAX_DETAIL]["loc"],
+        f"and {rest} more problems, not listed (the first {MAX_DETAIL} are; the next is at "
+        f"{'.'.join(str(part) for part in listed[MAX_DETAIL]['loc'])})",
+        loc=tuple(listed[MAX_DETAIL]["loc"][:1]),  # where they are: the body, the query...
         kind="more_problems",
     )
     return [*listed[:MAX_DETAIL], more]
@@ -147,11 +148,19 @@ def allowed_methods(request: Request) -> list[str]:
 async def _http_exception(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     detail: Any = exc.detail
-    if not isinstance(detail, list):  # framework errors (404 route, 405 method) carry a string
-        detail = [error_item(str(detail), kind="http_error")]
     headers = dict(exc.headers or {})
     if exc.status_code == 405:
-        headers["Allow"] = ", ".join(allowed_methods(request))
+        allowed = ", ".join(allowed_methods(request))
+        headers["Allow"] = allowed
+        detail = [
+            error_item(
+                f"{request.method} is not served at this path, which serves {allowed}",
+                loc=("method",),
+                kind="method_not_allowed",
+            )
+        ]
+    elif not isinstance(detail, list):  # framework errors (404 route) carry a string
+        detail = [error_item(str(detail), loc=("path",), kind="http_error")]
     return JSONResponse({"detail": detail}, status_code=exc.status_code, headers=headers)
 
 

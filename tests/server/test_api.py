@@ -43,9 +43,10 @@ def test_healthz_and_openapi(client: TestClient) -> None:
 
 def test_unknown_route_and_method_use_the_error_body(client: TestClient) -> None:
     missing = client.get("/nope")
-    assert missing.status_code == 404 and locs(missing) == [[]]
+    assert missing.status_code == 404 and locs(missing) == [["path"]]
     wrong_method = client.put("/healthz")
-    assert wrong_method.status_code == 405 and locs(wrong_method) == [[]]
+    assert wrong_method.status_code == 405 and locs(wrong_method) == [["method"]]
+    assert "PUT is not served at this path, which serves GET, HEAD" in wrong_method.text
 
 
 def test_submit_new_participant_then_read_model(client: TestClient) -> None:

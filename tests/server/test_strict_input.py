@@ -62,6 +62,7 @@ def test_a_body_of_many_bad_items_gets_a_short_answer(client: TestClient) -> Non
     detail = response.json()["detail"]
     assert len(detail) == 21 and detail[0]["loc"] == ["body", "u0"]
     assert detail[-1]["type"] == "more_problems" and "9980 more" in detail[-1]["msg"]
+    assert detail[-1]["loc"] == ["body"] and "the next is at body.u20" in detail[-1]["msg"]
     assert count(client, ModelVersion) == before
 
 

@@ -64,8 +64,8 @@ def appeal(
     *,
     token: str | None,
     note: str,
-    address: str | None = None,
-    per_day: int = 1,
+    address: str | None,
+    per_day: int,
 ) -> crud.StoredModel:
     """Send a model the screener refused back to the queue, once, with the participant's token
     (404 if no model, 401/403 without or with another token, 409 if accepted, held, appealed

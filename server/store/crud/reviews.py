@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import Exists, and_, insert, select, update
+from sqlalchemy import Exists, and_, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.store.crud.lists import keyset
@@ -63,24 +63,28 @@ _HELD = (
 
 def held_models(session: Session, *, after: int | None, limit: int) -> list[HeldModel]:
     """Up to ``limit`` held models with ids above ``after``, oldest first, each with its
-    participant's later versions (two queries)."""
+    participant's later versions, at most ``NEWER_SHOWN`` (two queries)."""
     query = keyset(_HELD, ModelVersion.id, cursor=after, order="oldest").limit(limit)
     held = [HeldModel(*row) for row in session.connection().execute(query)]
     if not held:
         return held
-    first = min(h.version for h in held)
-    later = session.connection().execute(
+    newest = (  # each participant's newest NEWER_SHOWN versions: the later ones are among them
         select(
             ModelVersion.participant_id,
             ModelVersion.id,
             ModelVersion.version,
             ModelVersion.status,
+            func.row_number()
+            .over(partition_by=ModelVersion.participant_id, order_by=ModelVersion.version.desc())
+            .label("rank"),
         )
-        .where(
-            ModelVersion.participant_id.in_({h.participant_id for h in held}),
-            ModelVersion.version > first,
-        )
-        .order_by(ModelVersion.version.desc())
+        .where(ModelVersion.participant_id.in_({h.participant_id for h in held}))
+        .subquery()
+    )
+    later = session.connection().execute(
+        select(newest.c.participant_id, newest.c.id, newest.c.version, newest.c.status)
+        .where(newest.c.rank <= NEWER_SHOWN)
+        .order_by(newest.c.version.desc())
     )
     by_participant: dict[int, list[tuple[int, int, str]]] = {}
     for participant_id, model_id, version, status in later:
@@ -88,11 +92,7 @@ def held_models(session: Session, *, after: int | None, limit: int) -> list[Held
     return [
         replace(
             h,
-            newer=tuple(
-                [v for v in by_participant.get(h.participant_id, []) if v[1] > h.version][
-                    :NEWER_SHOWN
-                ]
-            ),
+            newer=tuple(v for v in by_participant.get(h.participant_id, []) if v[1] > h.version),
         )
         for h in held
     ]

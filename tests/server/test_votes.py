@@ -111,7 +111,12 @@ def test_an_iterations_votes_are_listed_in_one_read(
         ("/auctions/999999/iterations/0/votes/1", 404, ["path", "auction_id"], "does not exist"),
         ("/auctions/{id}/iterations/999/votes/{voter}", 404, ["path", "iteration"], "no committed"),
         ("/auctions/{id}/iterations/0/votes/999999", 404, ["path", "model_id"], "did not vote"),
-        ("/auctions/{id}/iterations/-1/votes/{voter}", 422, ["path", "iteration"], "0, 1, 2"),
+        (
+            "/auctions/{id}/iterations/-1/votes/{voter}",
+            422,
+            ["path", "iteration"],
+            "without a sign",
+        ),
         ("/auctions/{id}/iterations/1.0/votes/{voter}", 422, ["path", "iteration"], "digits"),
         ("/auctions/{id}/iterations/0/votes/0", 422, ["path", "model_id"], ""),
     ],

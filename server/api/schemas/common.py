@@ -15,16 +15,10 @@ MAX_ROW_ID = 2**31 - 1  # ids are 32-bit INTEGER primary keys on every backend
 
 
 def digits_only(value: Any) -> Any:
-    """A path id is written in ASCII digits only: ``1.0``, ``1 `` or ``+1`` name no row."""
+    """A path id or iteration is written in ASCII digits only: ``1.0``, ``1 `` or ``+1`` name
+    no row (the bounds of each, from 1 or from 0, are the path parameter's)."""
     if isinstance(value, str) and not (value.isascii() and value.isdigit()):
-        raise ValueError("must be a positive integer written in digits")
-    return value
-
-
-def iteration_digits(value: Any) -> Any:
-    """An iteration is written in ASCII digits only, from 0."""
-    if isinstance(value, str) and not (value.isascii() and value.isdigit()):
-        raise ValueError("must be an iteration written in digits: 0, 1, 2, ...")
+        raise ValueError("must be a whole number written in digits, without a sign")
     return value
 
 
@@ -41,7 +35,7 @@ JobIdPath = Annotated[
 IterationPath = Annotated[
     int,
     Path(ge=0, le=MAX_ROW_ID, description="An auction iteration (0, 1, ...)."),
-    BeforeValidator(iteration_digits),
+    BeforeValidator(digits_only),
 ]
 
 

@@ -635,23 +635,27 @@ def _lacking(url: str) -> list[str]:
     """The tables and columns of this release's models that the database at ``url`` does not
     have (none once a release's migrations ran): a revision number says which migrations ran,
     not that they were this release's."""
-    from alembic.autogenerate import compare_metadata
-
     from server.store.tables import Base
 
     engine = make_engine(url)
     try:
         with engine.connect() as connection:
-            differences = compare_metadata(MigrationContext.configure(connection), Base.metadata)
+            found = inspect(connection)
+            tables = set(found.get_table_names())
+            lacking = []
+            for table in Base.metadata.sorted_tables:
+                if table.name not in tables:
+                    lacking.append(f"the table {table.name}")
+                    continue
+                columns = {column["name"] for column in found.get_columns(table.name)}
+                lacking += [
+                    f"the column {table.name}.{column.name}"
+                    for column in table.columns
+                    if column.name not in columns
+                ]
+            return lacking
     finally:
         engine.dispose()
-    lacking = []
-    for difference in differences:
-        if isinstance(difference, tuple) and difference[0] == "add_table":
-            lacking.append(f"the table {difference[1].name}")
-        elif isinstance(difference, tuple) and difference[0] == "add_column":
-            lacking.append(f"the column {difference[2]}.{difference[3].name}")
-    return lacking
 
 
 def _revision(url: str) -> str | None:

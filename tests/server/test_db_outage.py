@@ -216,6 +216,7 @@ HANG_TRIES = 40
 ANSWER_WITHIN_S = READ_TIMEOUT_S + 3  # a read the database never answers is refused by then
 
 
+@pytest.mark.slow  # 30 s of hangs; the default run keeps test_writes_resume_after_a_postgres_outage
 def test_a_hung_or_stopped_postgres_holds_no_request_and_serves_no_stale_round(
     cluster: Cluster, tmp_path: Path
 ) -> None:

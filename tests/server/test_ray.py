@@ -106,6 +106,7 @@ def artifacts(data_dir: Path, job: dict[str, Any]) -> dict[str, Any]:
     return found
 
 
+@pytest.mark.slow  # three jobs on Ray and again locally; the default run keeps cancel and retry
 def test_ray_jobs_equal_local_jobs(ray_head: RayHead, tmp_path: Path) -> None:
     with client_for(tmp_path / "local") as local:
         assert local.get("/healthz").json()["job_backend"] == "local"

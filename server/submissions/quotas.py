@@ -137,18 +137,11 @@ class Throttle:
                     (place, REGISTRATION, "day", limits.registrations_per_day,
                      "registrations per day from one address", "SRD_QUOTA_REGISTRATIONS_PER_DAY")
                 )  # fmt: skip
-        span = {"minute": MINUTE, "hour": HOUR, "day": DAY}
         for subject, kind, window, limit, what, setting in checks:
             count = self.counts.get((subject, kind))
-            if count is not None and getattr(count, window) >= limit:
-                first = count.oldest.get(window, self.now)
-                wait = (first + span[window] - self.now).total_seconds()
-                who = subject.split(":", 1)[1]
-                return Throttled(
-                    f"{who!r} reached its limit of {limit} {what} ({setting}); "
-                    f"retry in {math.ceil(max(wait, 1))} s",
-                    math.ceil(max(wait, 1)),
-                )
+            over = _over(count, subject, window, limit, what, setting, self.now)
+            if over is not None:
+                return over
         return self._cooldown()
 
     def _cooldown(self) -> Throttled | None:
@@ -195,13 +188,31 @@ def appeal_throttle(
     place = address_subject(address)
     windows = {"day": now - DAY, "hour": now - HOUR, "minute": now - MINUTE}
     count = crud.rate_counts(session, subjects=[place], windows=windows).get((place, APPEAL))
-    if count is None or count.day < per_day:
+    what = "appeals per day from one address"
+    return _over(count, place, "day", per_day, what, "SRD_QUOTA_ADDRESS_APPEALS_PER_DAY", now)
+
+
+_SPAN = {"minute": MINUTE, "hour": HOUR, "day": DAY}
+
+
+def _over(
+    count: crud.RateCount | None,
+    subject: str,
+    window: str,
+    limit: int,
+    what: str,
+    setting: str,
+    now: datetime,
+) -> Throttled | None:
+    """The refusal of a request whose ``subject`` reached ``limit`` events of its kind in
+    ``window`` (``what`` and ``setting`` name the limit), waiting until its oldest leaves the
+    window; None under the limit."""
+    if count is None or getattr(count, window) < limit:
         return None
-    wait = math.ceil(max((count.oldest.get("day", now) + DAY - now).total_seconds(), 1))
+    wait = math.ceil(max((count.oldest.get(window, now) + _SPAN[window] - now).total_seconds(), 1))
+    who = subject.split(":", 1)[1]
     return Throttled(
-        f"{client_address(address)!r} reached its limit of {per_day} appeals per day from one "
-        f"address (SRD_QUOTA_ADDRESS_APPEALS_PER_DAY); retry in {wait} s",
-        wait,
+        f"{who!r} reached its limit of {limit} {what} ({setting}); retry in {wait} s", wait
     )
 
 

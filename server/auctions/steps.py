@@ -199,6 +199,10 @@ def _play(market: Market, model_ids: list[int]) -> _Played:
         ),
         buyers=[(model_ids[i], price) for i, price in record.buyers],
         quitters=[model_ids[i] for i in record.quitters],
+        tuned=[
+            (model_ids[i], JSONText(market.current_manifest(i).model_dump_json()))
+            for i in record.fine_tuned
+        ],
     )
     return _Played(row, market.checkpoint(), market.pending_round)
 

@@ -11,10 +11,11 @@ from server.api.errors import api_error
 from server.api.schemas.votes import (
     IterationVotesPublic,
     PatronVotePublic,
+    VotedWeightsPublic,
     VoteExplanationPublic,
 )
 from server.auctions.service import not_found
-from server.store.crud.votes import bidders, iteration_votes
+from server.store.crud.votes import bid_manifest, bidders, iteration_votes
 
 
 def explain_votes(session: Session, auction_id: int, iteration: int) -> IterationVotesPublic:
@@ -75,4 +76,23 @@ def explain_vote(
         )
     return VoteExplanationPublic(
         **mine[0].model_dump(), auction_id=auction_id, iteration=iteration, row=every.row
+    )
+
+
+def voted_weights(
+    session: Session, auction_id: int, iteration: int, model_id: int
+) -> VotedWeightsPublic:
+    """The weights behind ``explain_vote`` (the same 404s): the manifest of the version that
+    bid, or the weights a server-mode auction had fine-tuned it to by then."""
+    vote = explain_vote(session, auction_id, iteration, model_id)
+    who = bidders(session, auction_id=auction_id, iteration=iteration)[model_id]
+    return VotedWeightsPublic(
+        auction_id=auction_id,
+        iteration=iteration,
+        model_id=model_id,
+        participant=vote.participant,
+        version=vote.version,
+        version_id=vote.version_id,
+        fine_tuned_after=vote.fine_tuned_after,
+        manifest=bid_manifest(session, auction_id=auction_id, model_id=model_id, bidder=who),
     )

@@ -232,6 +232,20 @@ class AuctionIteration(Base):
     null for iterations committed before explanations were kept."""
 
 
+class TunedWeights(Base):
+    """A patron's weights after a server-mode auction fine-tuned it inside the market after
+    ``iteration`` and its re-screening kept them: they bid from the next iteration on, until
+    the next such row (a refused fine-tuning keeps the weights before it, and writes none)."""
+
+    __tablename__ = "tuned_weights"
+
+    auction_id: Mapped[int] = mapped_column(ForeignKey("auctions.id"), primary_key=True)
+    model_id: Mapped[int] = mapped_column(ForeignKey("model_versions.id"), primary_key=True)
+    """The patron, by the version it entered with (as its votes are kept)."""
+    iteration: Mapped[int] = mapped_column(Integer, primary_key=True)
+    manifest: Mapped[dict[str, Any]] = mapped_column(JSON)
+
+
 class Purchase(Base):
     """A patron bought a fish; a patron buys at most once per auction."""
 

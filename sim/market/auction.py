@@ -87,6 +87,10 @@ class Market:
         """The patrons with their current (possibly fine-tuned) parameters."""
         return self._engine.manifests(0)
 
+    def current_manifest(self, position: int) -> Manifest:
+        """Patron ``position`` with its current (possibly fine-tuned) parameters."""
+        return self._engine.manifest(0, position)
+
     @property
     def pending_round(self) -> FineTuneRound | None:
         """The remote fine-tuning round awaiting ``apply_round`` (``step`` refuses until then)."""

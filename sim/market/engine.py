@@ -589,3 +589,10 @@ class MarketBatch:
         return [
             to_manifest(self.batch, i) for i in range(self.first[auction], self.first[auction + 1])
         ]
+
+    def manifest(self, auction: int, position: int) -> Manifest:
+        """Patron ``position`` of ``auction`` with its current (possibly fine-tuned)
+        parameters."""
+        if not 0 <= position < self.first[auction + 1] - self.first[auction]:
+            raise IndexError(f"auction {auction} has no patron {position}")
+        return to_manifest(self.batch, int(self.first[auction]) + position)

@@ -17,15 +17,12 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from sqlalchemy import select
 
 from agents.batch import from_manifests
 from agents.manifest import Manifest, parse_manifest
 from agents.remote import Client, RemoteAgent, Transport
 from server.cli.launch import ServerProcess
-from server.store.db import Database
-from server.store.tables import Auction
-from sim.market import Market, MarketConfig
+from sim.market import MarketConfig
 from tests.support.databases import BACKENDS, fresh_database
 from tests.support.factories import honest
 from tests.support.remote import agents_process, replay, stalling_agent
@@ -215,21 +212,23 @@ def test_faithful_remote_agents_replay_the_server_auction(
     assert mine["stop_reason"] == theirs["stop_reason"]
     assert len(mine["fine_tuning"]) >= 2
     assert all(a["outcome"] != "missing" for r in mine["fine_tuning"] for a in r["answers"])
-    # Final weights: the remote patrons' current versions against the in-server market's.
-    database = Database(server.database_url)
-    with database.session(write=False) as session:
-        blob = session.scalar(select(Auction.checkpoint).where(Auction.id == in_server))
-    database.close()
-    assert blob is not None
-    config = MarketConfig(n_fish=2, fine_tune=True, fine_tune_rounds=3, seed=21)
-    entries = [parse_manifest(m) for m in manifests]
-    server_final = Market.restore(entries, config, blob).current_manifests()
-    remote_final = [
-        parse_manifest(get(server, f"/models/{i}")["manifest"]) for i in mine["current_model_ids"]
-    ]
-    moved = [i for i, m in enumerate(entries) if server_final[i] != m]
-    assert moved  # fine-tuning changed someone
-    assert max_difference(remote_final, server_final) == 0.0  # bit for bit
+    # Every vote's weights, through the API: each remote patron's uploaded version against the
+    # weights the in-server market fine-tuned it to, iteration by iteration, bit for bit.
+    tuned = 0
+    for row in theirs["history"]:
+        n = row["iteration"]
+        for vote in get(server, f"/auctions/{in_server}/iterations/{n}/votes")["votes"]:
+            weights = f"/iterations/{n}/votes/{vote['model_id']}/weights"
+            here = get(server, f"/auctions/{in_server}{weights}")
+            there = get(server, f"/auctions/{remote}{weights}")
+            assert there["fine_tuned_after"] is None  # a remote patron bids with its uploads
+            assert (there["version_id"] != vote["model_id"]) == (
+                here["fine_tuned_after"] is not None
+            )
+            pair = [parse_manifest(here["manifest"])], [parse_manifest(there["manifest"])]
+            assert max_difference(*pair) == 0.0, (n, vote["model_id"])
+            tuned += here["fine_tuned_after"] is not None
+    assert tuned  # fine-tuning changed someone
 
 
 def max_difference(a: list[Manifest], b: list[Manifest]) -> float:

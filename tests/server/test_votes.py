@@ -10,7 +10,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from agents.forward import ACTIONS
-from agents.manifest import DECISIONS, ES_NEURONS, INPUTS
+from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, parse_manifest
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, wait_for
 
@@ -105,6 +105,67 @@ def test_an_iterations_votes_are_listed_in_one_read(
     assert missing.json()["detail"][0]["loc"] == ["path", "iteration"]
 
 
+@pytest.fixture(scope="module")
+def tuned(client: TestClient) -> dict[str, Any]:
+    """A finished auction whose market fine-tunes its five patrons after its first 3 rounds."""
+    bodies = [honest(unique("tuned"), seed=s) for s in (0, 2, 3, 4, 5)]
+    ids = [client.post("/submit", json=body).json()["model_id"] for body in bodies]
+    body = {"n_fish": 2, "model_ids": ids, "seed": 3, "fine_tune": True, "fine_tune_rounds": 3}
+    auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
+    return dict(
+        wait_for(
+            lambda: client.get(f"/auctions/{auction_id}").json(),
+            lambda a: a["status"] == "finished",
+            timeout_s=120,
+        )
+    )
+
+
+@pytest.mark.postgres_in_slow_run
+def test_every_vote_names_the_weights_that_cast_it(
+    client: TestClient, auction: dict[str, Any], tuned: dict[str, Any]
+) -> None:
+    numbers = ("external_sensor", "decision", "pfc")
+    afters: list[int] = []
+    for one in (auction, tuned):
+        entered = {m: client.get(f"/models/{m}").json()["manifest"] for m in one["model_ids"]}
+        last: dict[int, tuple[int | None, dict[str, Any]]] = {}  # the iteration before's
+        for row in one["history"]:
+            n = row["iteration"]
+            votes = client.get(f"/auctions/{one['id']}/iterations/{n}/votes").json()["votes"]
+            for vote in votes:
+                path = f"/auctions/{one['id']}/iterations/{n}/votes/{vote['model_id']}"
+                response = client.get(path + "/weights")
+                assert response.status_code == 200, response.text
+                weights = response.json()
+                assert client.get(path).json()["fine_tuned_after"] == vote["fine_tuned_after"]
+                assert {k: weights[k] for k in ("participant", "version", "version_id")} == {
+                    k: vote[k] for k in ("participant", "version", "version_id")
+                }
+                assert (weights["iteration"], weights["fine_tuned_after"]) == (
+                    n,
+                    vote["fine_tuned_after"],
+                )
+                manifest = parse_manifest(weights["manifest"])  # a manifest as /submit takes it
+                mine = entered[vote["model_id"]]
+                after = vote["fine_tuned_after"]
+                if after is None:  # the version's own weights
+                    assert weights["manifest"] == mine
+                else:  # fine-tuned inside the market after one of its first 3 rounds
+                    assert one is tuned and 0 <= after < min(n, 3), (n, vote)
+                    assert manifest.participant == mine["participant"]
+                    assert weights["manifest"]["fine_tuning"] == mine["fine_tuning"]
+                    assert [k for k in numbers if weights["manifest"][k] != mine[k]], "no move"
+                    afters.append(after)
+                before = last.get(vote["model_id"])
+                if before is not None and before[0] == after:  # no fine-tuning kept since
+                    assert weights["manifest"] == before[1]
+                elif before is not None:
+                    assert weights["manifest"] != before[1]
+                last[vote["model_id"]] = (after, weights["manifest"])
+    assert afters, "the market fine-tuned nobody"
+
+
 @pytest.mark.parametrize(
     ("path", "status", "loc", "words"),
     [
@@ -119,6 +180,8 @@ def test_an_iterations_votes_are_listed_in_one_read(
         ),
         ("/auctions/{id}/iterations/1.0/votes/{voter}", 422, ["path", "iteration"], "digits"),
         ("/auctions/{id}/iterations/0/votes/0", 422, ["path", "model_id"], ""),
+        ("/auctions/{id}/iterations/999/votes/{voter}/weights", 404, ["path", "iteration"], ""),
+        ("/auctions/{id}/iterations/0/votes/999999/weights", 404, ["path", "model_id"], "did not"),
     ],
 )
 def test_explanation_errors_name_the_part_of_the_path(

@@ -36,9 +36,13 @@ from server.api.schemas import (
     Votes,
 )
 from server.api.schemas.common import IterationPath, ModelIdPath
-from server.api.schemas.votes import IterationVotesPublic, VoteExplanationPublic
+from server.api.schemas.votes import (
+    IterationVotesPublic,
+    VotedWeightsPublic,
+    VoteExplanationPublic,
+)
 from server.auctions import service as auctions
-from server.auctions.votes import explain_vote, explain_votes
+from server.auctions.votes import explain_vote, explain_votes, voted_weights
 from server.store import crud
 from server.store.crud.auctions import HistoryRow
 from server.store.status import AnswerOutcome, AuctionStatus, RoundStatus
@@ -273,3 +277,17 @@ async def read_vote(
     row that decides. 404 for an unknown auction, an uncommitted iteration, or a model that
     did not vote in it (patrons leave once they buy or quit)."""
     return await read_in_thread(explain_vote, session, auction_id, iteration, model_id)
+
+
+@router.get(
+    "/auctions/{auction_id}/iterations/{iteration}/votes/{model_id}/weights",
+    operation_id="voted_weights",
+    responses=responses(404, 422),
+)
+async def read_voted_weights(
+    auction_id: AuctionIdPath, iteration: IterationPath, model_id: ModelIdPath, session: SessionDep
+) -> VotedWeightsPublic:
+    """The weights that cast a patron's vote in one committed iteration, as a manifest: its
+    version's, or those a server-mode auction had fine-tuned it to inside the market by then
+    (``fine_tuned_after`` names the iteration). The same 404s as ``.../votes/{model_id}``."""
+    return await read_in_thread(voted_weights, session, auction_id, iteration, model_id)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel
 
@@ -51,9 +51,12 @@ class PatronVotePublic(BaseModel):
     """The version that bid (a remote auction's patron may bid with a later one than it
     entered with)."""
     version_id: int
-    """That version's stored model (``GET /models/{version_id}``). A server-mode auction
-    fine-tunes its patrons inside the market: the neurons here are those fine-tuned weights',
-    which are not stored as versions."""
+    """That version's stored model (``GET /models/{version_id}``)."""
+    fine_tuned_after: int | None
+    """The iteration after which a server-mode auction last fine-tuned this patron inside the
+    market (its re-screening keeping the result): the neurons here are those fine-tuned
+    weights', which ``.../votes/{model_id}/weights`` gives. None: it bid with its version's own
+    weights."""
     vote: Literal["buy", "hold", "quit"]
     sensor: SensorPublic
     decision: DecisionPublic
@@ -77,3 +80,20 @@ class IterationVotesPublic(BaseModel):
     row: dict[str, float]
     """Row 0's inputs by name: price, length, weight, gill, st1, st2, st3, buy_fraction."""
     votes: list[PatronVotePublic]
+
+
+class VotedWeightsPublic(BaseModel):
+    """The weights that cast one vote: a manifest as ``POST /submit`` takes it."""
+
+    auction_id: int
+    iteration: int
+    model_id: int
+    """The patron, as in the auction's ``model_ids``."""
+    participant: str
+    version: int
+    version_id: int
+    """The stored version the weights come from (``GET /models/{version_id}``)."""
+    fine_tuned_after: int | None
+    """As in the vote: the iteration after which the market fine-tuned these weights from that
+    version's (None: they are the version's own)."""
+    manifest: dict[str, Any]

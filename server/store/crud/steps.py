@@ -5,7 +5,7 @@ conditional on the auction standing where the step found it (``MovedOnError`` ot
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any
 
@@ -31,6 +31,7 @@ from server.store.tables import (
     ModelVersion,
     Purchase,
     Quit,
+    TunedWeights,
 )
 
 
@@ -65,6 +66,9 @@ class IterationRow(IterationFigures):
     buyers: list[tuple[int, float]]
     """(model id, price) of each purchase."""
     quitters: list[int]
+    tuned: list[tuple[int, JSONText]] = field(default_factory=list)
+    """(model id, manifest) of each patron a server-mode auction fine-tuned after this
+    iteration and kept (its weights from the next iteration on)."""
 
 
 @dataclass(frozen=True)
@@ -218,6 +222,19 @@ def commit_iteration(
             [
                 {"auction_id": auction_id, "model_id": model_id, "iteration": row.iteration}
                 for model_id in row.quitters
+            ],
+        )
+    if row.tuned:
+        connection.execute(
+            insert(TunedWeights),
+            [
+                {
+                    "auction_id": auction_id,
+                    "model_id": model_id,
+                    "iteration": row.iteration,
+                    "manifest": manifest,
+                }
+                for model_id, manifest in row.tuned
             ],
         )
     if opened is None:

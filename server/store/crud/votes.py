@@ -16,6 +16,7 @@ from server.store.tables import (
     FineTuneRound,
     ModelVersion,
     Participant,
+    TunedWeights,
 )
 
 
@@ -45,17 +46,21 @@ def iteration_votes(
 
 @dataclass(frozen=True)
 class Bidder:
-    """A patron as it bid in one iteration: its participant, and the version that bid."""
+    """A patron as it bid in one iteration: its participant, the version that bid, and the
+    iteration after which a server-mode auction last fine-tuned that version's weights inside
+    the market (None: it bid with the version's own weights)."""
 
     participant: str
     version: int
     version_id: int
+    fine_tuned_after: int | None
 
 
 def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, Bidder]:
     """Every patron of an auction (by the model id it entered with) as it bid in
     ``iteration``: with the version its last remote round before that iteration left it
-    (each round's answer names it), else the one it entered with (two queries)."""
+    (each round's answer names it), else the one it entered with, and whether the market had
+    fine-tuned it since (three queries)."""
     connection = session.connection()
     last_round = (
         select(
@@ -80,6 +85,37 @@ def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, B
         .join(Participant, Participant.id == ModelVersion.participant_id)
         .where(AuctionPatron.auction_id == auction_id)
     )
-    return {
-        model_id: Bidder(name, version, version_id) for model_id, name, version, version_id in rows
+    tuned: dict[int, int] = {
+        patron: after
+        for patron, after in connection.execute(
+            select(TunedWeights.model_id, func.max(TunedWeights.iteration))
+            .where(TunedWeights.auction_id == auction_id, TunedWeights.iteration < iteration)
+            .group_by(TunedWeights.model_id)
+        )
     }
+    return {
+        model_id: Bidder(name, version, version_id, tuned.get(model_id))
+        for model_id, name, version, version_id in rows
+    }
+
+
+def bid_manifest(
+    session: Session, *, auction_id: int, model_id: int, bidder: Bidder
+) -> dict[str, Any]:
+    """The weights that ``bidder`` (patron ``model_id``) bid with: those the market fine-tuned
+    after ``bidder.fine_tuned_after``, else its version's."""
+    connection = session.connection()
+    if bidder.fine_tuned_after is None:
+        found = connection.scalar(
+            select(ModelVersion.manifest).where(ModelVersion.id == bidder.version_id)
+        )
+    else:
+        found = connection.scalar(
+            select(TunedWeights.manifest).where(
+                TunedWeights.auction_id == auction_id,
+                TunedWeights.model_id == model_id,
+                TunedWeights.iteration == bidder.fine_tuned_after,
+            )
+        )
+    assert isinstance(found, dict)
+    return found

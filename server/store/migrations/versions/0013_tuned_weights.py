@@ -1,0 +1,40 @@
+"""Tuned weights: a server-mode auction keeps each patron's weights after every fine-tuning
+inside the market that its re-screening kept, so that every vote can be traced to the weights
+that cast it (``GET /auctions/{id}/iterations/{n}/votes/{model_id}/weights``).
+
+Auctions played before keep no such rows: their votes after a fine-tuning say so.
+
+Revision ID: 0013
+Revises: 0012
+"""
+
+from __future__ import annotations
+
+import sqlalchemy as sa
+from alembic import op
+
+revision = "0013"
+down_revision = "0012"
+branch_labels = None
+depends_on = None
+
+
+def upgrade() -> None:
+    op.create_table(
+        "tuned_weights",
+        sa.Column("auction_id", sa.Integer(), nullable=False),
+        sa.Column("model_id", sa.Integer(), nullable=False),
+        sa.Column("iteration", sa.Integer(), nullable=False),
+        sa.Column("manifest", sa.JSON(), nullable=False),
+        sa.ForeignKeyConstraint(
+            ["auction_id"], ["auctions.id"], name="fk_tuned_weights_auction_id_auctions"
+        ),
+        sa.ForeignKeyConstraint(
+            ["model_id"], ["model_versions.id"], name="fk_tuned_weights_model_id_model_versions"
+        ),
+        sa.PrimaryKeyConstraint("auction_id", "model_id", "iteration", name="pk_tuned_weights"),
+    )
+
+
+def downgrade() -> None:
+    op.drop_table("tuned_weights")

@@ -85,6 +85,14 @@ def voted_weights(
     """The weights behind ``explain_vote`` (the same 404s): the manifest of the version that
     bid, or the weights a server-mode auction had fine-tuned it to by then."""
     vote = explain_vote(session, auction_id, iteration, model_id)
+    if not vote.weights_kept:
+        raise api_error(
+            404,
+            f"the weights behind this vote were not kept: auction {auction_id} fine-tuned its "
+            "patrons inside the market before this server kept fine-tuned weights",
+            loc=("path", "model_id"),
+            kind="not_found",
+        )
     who = bidders(session, auction_id=auction_id, iteration=iteration)[model_id]
     return VotedWeightsPublic(
         auction_id=auction_id,

@@ -4,12 +4,13 @@
 import { auctionList, auctionView } from "./auctions.js";
 import { h } from "./dom.js";
 import { compareView, jobList, jobView } from "./jobs.js";
-import { inspectorView, modelList, participantView } from "./models.js";
+import { inspectorView, modelList, participantView, votedWeightsView } from "./models.js";
 import { reviewList, reviewView } from "./reviews.js";
 
 const ROUTES = [
   [/^#\/(?:auctions)?(?:\?(.*))?$/, "auctions", (view, [, query]) => auctionList(view, new URLSearchParams(query || ""))],
   [/^#\/auctions\/(\d+)$/, "auctions", (view, [, id]) => auctionView(view, Number(id))],
+  [/^#\/auctions\/(\d+)\/iterations\/(\d+)\/votes\/(\d+)\/weights$/, "auctions", (view, [, id, n, model]) => votedWeightsView(view, Number(id), Number(n), Number(model))],
   [/^#\/models(?:\?(.*))?$/, "models", (view, [, query]) => modelList(view, new URLSearchParams(query || ""))],
   [/^#\/models\/(\d+)$/, "models", (view, [, id]) => inspectorView(view, Number(id))],
   [/^#\/participants\/([^/?]+)$/, "models", (view, [, name]) => participantView(view, decoded(name))],

@@ -319,7 +319,7 @@ export function auctionView(view, id) {
           };
           return [
             v.participant,
-            h("a", { href: `#/models/${v.version_id}`, "aria-label": `${v.participant}, version ${v.version}` }, `version ${v.version}`),
+            bidWith(iteration, v),
             h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote),
             ...fixedApart([v.decision.B, v.decision.L, v.decision.Q]),
             ...fixedApart([v.pfc.T, v.pfc.F]),
@@ -339,6 +339,14 @@ export function auctionView(view, id) {
       })
       .catch((error) => fill(roundVotes, problem(error)));
   }
+  const weightsHash = (iteration, modelId) => `#/auctions/${id}/iterations/${iteration}/votes/${modelId}/weights`;
+  /** The version a patron bid with in a round, and whether the market had fine-tuned it. */
+  function bidWith(iteration, v) {
+    const label = `${v.participant}, version ${v.version}`;
+    if (!v.weights_kept) return h("span", {}, `version ${v.version}, fine-tuned in the market (not kept)`);
+    if (v.fine_tuned_after === null) return h("a", { href: `#/models/${v.version_id}`, "aria-label": label }, `version ${v.version}`);
+    return h("a", { href: weightsHash(iteration, v.model_id), "aria-label": `${label}, fine-tuned in the market after round ${v.fine_tuned_after}` }, `version ${v.version}, tuned after round ${v.fine_tuned_after}`);
+  }
   let explaining = 0; // the newest explanation asked for: an older answer arriving late is dropped
   function showExplanation(iteration, modelId) {
     const asked = ++explaining;
@@ -347,7 +355,6 @@ export function auctionView(view, id) {
       .then((v) => {
         if (asked !== explaining) return;
         names.set(v.model_id, v.participant);
-        const inMarket = head && head.fine_tune && head.fine_tune_mode !== "remote" && head.fine_tune_rounds > 0;
         const part = (caption, key, values) =>
           table(caption, ["Neuron", "Meaning", "Value"], Object.entries(values).map(([n, x]) => [n, NEURON_WORDS[n] || n, fixed(x, 4)]), { "data-part": key });
         fill(
@@ -362,9 +369,12 @@ export function auctionView(view, id) {
             part("Prefrontal cortex: its verdict on the decision", "pfc", v.pfc),
             h(
               "p",
-              {},
-              link(`#/models/${v.version_id}`, `Version ${v.version}'s neurons and weights in the inspector`),
-              inMarket ? ` (as it entered: this auction fine-tunes its patrons inside the market after each of its first ${plural(head.fine_tune_rounds, "round")}, so from then on the neurons above are those of its fine-tuned weights, which are not stored)` : null,
+              { id: "voted-weights" },
+              v.weights_kept
+                ? link(weightsHash(v.iteration, v.model_id), v.fine_tuned_after === null ? `The weights that cast this vote: version ${v.version}'s` : `The weights that cast this vote: version ${v.version} as the market fine-tuned it after round ${v.fine_tuned_after}`)
+                : `The weights that cast this vote were not kept: this auction fine-tuned its patrons inside the market before the server kept fine-tuned weights.`,
+              " · ",
+              link(`#/models/${v.version_id}`, `Version ${v.version} in the inspector`),
             ),
           ),
         );
@@ -448,7 +458,7 @@ export function auctionView(view, id) {
   function fineTuningWords(a) {
     if (a.fine_tune_mode === "remote") return `remote: up to ${a.fine_tune_rounds} rounds in which the participants fine-tune their own patrons, each open up to ${a.round_deadline_s} s`;
     if (a.fine_tune && !a.fine_tune_rounds) return "in the market, for 0 rounds: nobody fine-tunes";
-    if (a.fine_tune) return `in the market: after each of its first ${plural(a.fine_tune_rounds, "round")}, every patron whose manifest fine-tunes (epochs above 0) fine-tunes itself (its fine-tuned weights are not stored)`;
+    if (a.fine_tune) return `in the market: after each of its first ${plural(a.fine_tune_rounds, "round")}, every patron whose manifest fine-tunes (epochs above 0) fine-tunes itself, and bids on with the result if its re-screening accepts it (every vote links to the weights that cast it)`;
     return "none";
   }
 

@@ -299,6 +299,90 @@ function auditLog(reviews) {
 }
 
 /**
+ * The drawing of ``manifest`` and every weight, by name and sign: ``reasons`` (the screener's)
+ * ring their neurons. ``flagged`` names the neurons ringed.
+ */
+function drawnNeurons(manifest, reasons, a) {
+  const neurons = neuronsOf(manifest);
+  const reasonsByNeuron = {};
+  const unplaced = [];
+  for (const reason of reasons) {
+    if (neurons[reason.neuron]) (reasonsByNeuron[reason.neuron] ||= []).push(reason);
+    else unplaced.push(reason);
+  }
+  const pick = (name) => {
+    const card = document.getElementById(`neuron-${name}`);
+    if (card) {
+      card.scrollIntoView({ block: "start" });
+      card.focus();
+    }
+  };
+  const input = (name) => a.input_words[name] || name;
+  const short = (name) => a.input_short[name] || name;
+  const decisionPath = network({
+    id: "network-decision",
+    label: "The decision path: inputs, external sensor, decision",
+    columns: [
+      { label: "inputs", names: a.inputs, short },
+      { label: "external sensor", names: a.sensor },
+      { label: "decision", names: a.decision },
+    ],
+    neurons,
+    reasonsByNeuron,
+    sourceLabel: input,
+    onPick: pick,
+  });
+  const pfcPath = network({
+    id: "network-pfc",
+    label: "The self-judge: prefrontal cortex judgements and verdicts",
+    columns: [
+      { label: "softmax of", names: a.pfc_sources, neurons: true },
+      { label: "judgement", names: a.judgement },
+      { label: "verdict", names: a.verdict },
+    ],
+    neurons,
+    reasonsByNeuron,
+    sourceLabel: (name) => name,
+    onPick: pick,
+  });
+  const layer = (heading, names, sourceLabel) =>
+    h("section", { class: "layer" }, h("h3", {}, heading), h("div", { class: "cards" }, names.map((n) => neuronCard(n, neurons[n], a.roles, reasonsByNeuron[n] || [], sourceLabel))));
+  return {
+    flagged: Object.keys(reasonsByNeuron),
+    sections: [
+      h(
+        "section",
+        { "aria-labelledby": "drawing-heading" },
+        h("h2", { id: "drawing-heading" }, "The negotiator, neuron by neuron"),
+        h("p", { class: "legend" }, h("span", { class: "key edge-pos" }), "positive weight ", h("span", { class: "key edge-neg" }), "negative weight (dashed) ", h("span", { class: "key edge-tiny" }), "δ-sized weight; line width grows with the weight, a weight of 0 is not drawn. A red ring marks a neuron the screener objects to; select a neuron to read its weights."),
+        h("figure", {}, decisionPath, h("figcaption", {}, "Decision: the inputs feed the external sensor PG, SZ, LSR, ST, which feeds buy B, hold L and quit Q.")),
+        h("figure", {}, pfcPath, h("figcaption", {}, "Self-judge: the prefrontal cortex reads the softmax of all seven and judges PGL, BC, FQ, then the verdicts T (right) and F (wrong).")),
+      ),
+      h(
+        "section",
+        { "aria-labelledby": "weights-heading" },
+        h("h2", { id: "weights-heading" }, "Every weight, by name and sign"),
+        layer("External sensor", a.sensor, input),
+        layer("Decision", a.decision, (n) => n),
+        layer("Prefrontal cortex: judgements", a.judgement, (n) => `softmax ${n}`),
+        layer("Prefrontal cortex: verdicts", a.verdict, (n) => `tanh ${n}`),
+        unplaced.length ? h("section", { class: "layer" }, h("h3", {}, "Reasons about the model as a whole"), reasonList(unplaced)) : null,
+      ),
+    ],
+  };
+}
+
+/** How a manifest's numbers make, learns and judges: augmentation, fine-tuning, the PFC. */
+function settingsFacts(manifest, first) {
+  return facts([
+    ...first,
+    ["Augmentation", `${manifest.augmentation.copies} copies, noise σ ${manifest.augmentation.noise_std}, noiseless: ${manifest.augmentation.noiseless_inputs.join(", ") || "none"}`],
+    ["Fine-tuning", `${plural(manifest.fine_tuning.epochs, "epoch")}, batch ${manifest.fine_tuning.batch_size}, learning rate ${shown("learning_rate", manifest.fine_tuning.learning_rate)}`],
+    ["PFC trainable", manifest.pfc.trainable ? "yes" : "no"],
+  ]);
+}
+
+/**
  * The inspector's view of model ``id``. ``extra(model)``, if given, returns nodes shown after
  * the verdict (the review page's evidence and decision); ``heading`` prefixes the title.
  */
@@ -308,87 +392,90 @@ export function inspectorView(view, id, { extra = null, heading = "Model" } = {}
   Promise.all([getJSON(`/models/${id}`), loadAnatomy()])
     .then(([model, a]) => {
       const manifest = model.manifest;
-      const neurons = neuronsOf(manifest);
-      const reasonsByNeuron = {};
-      const unplaced = [];
-      for (const reason of model.reasons) {
-        if (neurons[reason.neuron]) (reasonsByNeuron[reason.neuron] ||= []).push(reason);
-        else unplaced.push(reason);
-      }
       fill(title, `${heading} ${model.id}: `, model.participant, ` version ${model.version}`);
-      const flagged = Object.keys(reasonsByNeuron);
-      const verdict = verdictBanner(model, flagged);
-      const pick = (name) => {
-        const card = document.getElementById(`neuron-${name}`);
-        if (card) {
-          card.scrollIntoView({ block: "start" });
-          card.focus();
-        }
-      };
-      const input = (name) => a.input_words[name] || name;
-      const short = (name) => a.input_short[name] || name;
-      const decisionPath = network({
-        id: "network-decision",
-        label: "The decision path: inputs, external sensor, decision",
-        columns: [
-          { label: "inputs", names: a.inputs, short },
-          { label: "external sensor", names: a.sensor },
-          { label: "decision", names: a.decision },
-        ],
-        neurons,
-        reasonsByNeuron,
-        sourceLabel: input,
-        onPick: pick,
-      });
-      const pfcPath = network({
-        id: "network-pfc",
-        label: "The self-judge: prefrontal cortex judgements and verdicts",
-        columns: [
-          { label: "softmax of", names: a.pfc_sources, neurons: true },
-          { label: "judgement", names: a.judgement },
-          { label: "verdict", names: a.verdict },
-        ],
-        neurons,
-        reasonsByNeuron,
-        sourceLabel: (name) => name,
-        onPick: pick,
-      });
-      const layer = (heading, names, sourceLabel) =>
-        h("section", { class: "layer" }, h("h3", {}, heading), h("div", { class: "cards" }, names.map((n) => neuronCard(n, neurons[n], a.roles, reasonsByNeuron[n] || [], sourceLabel))));
+      const drawn = drawnNeurons(manifest, model.reasons, a);
       view.root.append(
-        verdict,
+        verdictBanner(model, drawn.flagged),
         ...(model.reviews.length ? [auditLog(model.reviews)] : []),
         ...(extra ? extra(model) : []),
         h("p", { class: "description", id: "description", dir: "auto" }, manifest.description || "(no description)"),
-        facts([
+        settingsFacts(manifest, [
           ["Participant", participantLink(model.participant)],
           ["Submitted", when(model.created_at)],
-          ["Augmentation", `${manifest.augmentation.copies} copies, noise σ ${manifest.augmentation.noise_std}, noiseless: ${manifest.augmentation.noiseless_inputs.join(", ") || "none"}`],
-          ["Fine-tuning", `${plural(manifest.fine_tuning.epochs, "epoch")}, batch ${manifest.fine_tuning.batch_size}, learning rate ${shown("learning_rate", manifest.fine_tuning.learning_rate)}`],
-          ["PFC trainable", manifest.pfc.trainable ? "yes" : "no"],
         ]),
-        h(
-          "section",
-          { "aria-labelledby": "drawing-heading" },
-          h("h2", { id: "drawing-heading" }, "The negotiator, neuron by neuron"),
-          h("p", { class: "legend" }, h("span", { class: "key edge-pos" }), "positive weight ", h("span", { class: "key edge-neg" }), "negative weight (dashed) ", h("span", { class: "key edge-tiny" }), "δ-sized weight; line width grows with the weight, a weight of 0 is not drawn. A red ring marks a neuron the screener objects to; select a neuron to read its weights."),
-          h("figure", {}, decisionPath, h("figcaption", {}, "Decision: the inputs feed the external sensor PG, SZ, LSR, ST, which feeds buy B, hold L and quit Q.")),
-          h("figure", {}, pfcPath, h("figcaption", {}, "Self-judge: the prefrontal cortex reads the softmax of all seven and judges PGL, BC, FQ, then the verdicts T (right) and F (wrong).")),
-        ),
-        h(
-          "section",
-          { "aria-labelledby": "weights-heading" },
-          h("h2", { id: "weights-heading" }, "Every weight, by name and sign"),
-          layer("External sensor", a.sensor, input),
-          layer("Decision", a.decision, (n) => n),
-          layer("Prefrontal cortex: judgements", a.judgement, (n) => `softmax ${n}`),
-          layer("Prefrontal cortex: verdicts", a.verdict, (n) => `tanh ${n}`),
-          unplaced.length ? h("section", { class: "layer" }, h("h3", {}, "Reasons about the model as a whole"), reasonList(unplaced)) : null,
-        ),
+        ...drawn.sections,
       );
     })
     .catch((error) => {
       if (isMissing(error)) notFound(view.root, `Model ${id}`, ["#/models", "All models"]);
+      else view.root.append(problem(error));
+    });
+}
+
+/** Every weight and bias of a manifest by place: "neuron ← source" or "neuron bias". */
+function numbersOf(manifest) {
+  const out = new Map();
+  for (const [name, neuron] of Object.entries(neuronsOf(manifest))) {
+    for (const [source, w] of Object.entries(neuron.weights)) out.set(`${name} ← ${source}`, w);
+    out.set(`${name} bias`, neuron.bias);
+  }
+  return out;
+}
+
+const MOVES_SHOWN = 10;
+
+/**
+ * The weights that cast patron ``modelId``'s vote in round ``iteration`` of auction
+ * ``auctionId``: its version's, or those the market had fine-tuned it to by then, with the
+ * largest moves from the version it fine-tuned from.
+ */
+export function votedWeightsView(view, auctionId, iteration, modelId) {
+  const title = h("h1", { tabindex: "-1" }, `The weights behind a vote in round ${iteration} of auction ${auctionId}`);
+  view.root.append(title);
+  const back = link(`#/auctions/${auctionId}`, `Auction ${auctionId}`);
+  getJSON(`/auctions/${auctionId}/iterations/${iteration}/votes/${modelId}/weights`)
+    .then((w) => Promise.all([w, w.fine_tuned_after === null ? null : getJSON(`/models/${w.version_id}`), loadAnatomy()]))
+    .then(([w, version, a]) => {
+      const manifest = w.manifest;
+      fill(title, `${w.participant}'s weights in round ${iteration} of auction ${auctionId}`);
+      const versionLink = link(`#/models/${w.version_id}`, `version ${w.version}`);
+      const parts = [
+        h(
+          "p",
+          { id: "weights-origin" },
+          w.fine_tuned_after === null
+            ? [`${w.participant} bid with `, versionLink, " as stored: these are its weights."]
+            : [`${w.participant} bid with `, versionLink, ` as the market fine-tuned it inside auction ${auctionId} after round ${w.fine_tuned_after} (its re-screening kept the result). The auction keeps these weights; they are not a version of their own.`],
+        ),
+        h("p", {}, back, " · ", h("a", { href: `/auctions/${auctionId}/iterations/${iteration}/votes/${modelId}/weights` }, "the same as JSON (its manifest is one /submit takes)")),
+      ];
+      if (version) {
+        const before = numbersOf(version.manifest);
+        const moves = [...numbersOf(manifest)].map(([place, x]) => [place, before.get(place), x]).filter(([, b, x]) => b !== x);
+        moves.sort((p, q) => Math.abs(q[2] - q[1]) - Math.abs(p[2] - p[1]));
+        parts.push(
+          h(
+            "section",
+            { "aria-labelledby": "moves-heading" },
+            h("h2", { id: "moves-heading" }, "What fine-tuning changed"),
+            moves.length
+              ? scrolling(
+                  table(
+                    moves.length === 1 ? `The one weight that moved from version ${w.version}` : `The ${Math.min(MOVES_SHOWN, moves.length)} largest of the ${moves.length} weights and biases that moved from version ${w.version}`,
+                    ["Weight", `Version ${w.version}`, "Here", "Change"],
+                    moves.slice(0, MOVES_SHOWN).map(([place, b, x]) => [place, String(b), String(x), signed(x - b, 6)]),
+                    { id: "weight-moves" },
+                  ),
+                  "What fine-tuning changed (scrolls sideways)",
+                )
+              : h("p", {}, `No weight moved from version ${w.version}.`),
+          ),
+        );
+      }
+      view.root.append(...parts, settingsFacts(manifest, [["Participant", participantLink(w.participant)]]), ...drawnNeurons(manifest, [], a).sections);
+    })
+    .catch((error) => {
+      if (isMissing(error)) view.root.append(problem(error), h("p", {}, back));
       else view.root.append(problem(error));
     });
 }

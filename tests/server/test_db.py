@@ -32,7 +32,7 @@ from server.store.db import (
 )
 from server.store.tables import Base, ModelVersion, utcnow
 from tests.support.factories import honest, unique
-from tests.support.server import make_settings
+from tests.support.server import ADMIN, make_settings, wait_for
 
 
 def test_migrations_build_exactly_the_models(database_url: str) -> None:
@@ -147,6 +147,55 @@ def test_a_database_with_rows_upgrades_through_migrations_that_copy_tables(
     assert (owner, name) == (participant, "Old-Timer")
     scripts = ScriptDirectory.from_config(alembic_config(fresh_database_url))
     assert head == scripts.get_current_head()
+
+
+def _tuned_auction(client: TestClient) -> int:
+    """A finished auction whose market fine-tunes its five patrons after its first rounds."""
+    ids = [
+        client.post("/submit", json=honest(unique("t"), seed=s)).json()["model_id"]
+        for s in (0, 2, 3, 4, 5)
+    ]
+    body = {"n_fish": 2, "model_ids": ids, "seed": 3, "fine_tune": True, "fine_tune_rounds": 3}
+    auction_id = int(client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"])
+    wait_for(
+        lambda: client.get(f"/auctions/{auction_id}").json(),
+        lambda a: a["status"] == "finished",
+        timeout_s=120,
+    )
+    return auction_id
+
+
+@pytest.mark.postgres_in_slow_run
+def test_an_auction_fine_tuned_before_weights_were_kept_says_they_are_not_known(
+    fresh_database_url: str, tmp_path: Path
+) -> None:
+    """An auction played before migration 0013 kept no fine-tuned weights: its votes after a
+    fine-tuning inside the market say so, and their weights answer 404 naming why."""
+    from alembic import command
+
+    settings = make_settings(fresh_database_url, tmp_path / "data")
+    with TestClient(create_app(settings)) as client:
+        auction_id = _tuned_auction(client)
+        votes = client.get(f"/auctions/{auction_id}/iterations/1/votes").json()["votes"]
+        assert any(vote["fine_tuned_after"] == 0 for vote in votes)
+    command.downgrade(alembic_config(fresh_database_url), "0012")  # as a release before wrote it
+    upgrade_schema(fresh_database_url)
+    with TestClient(create_app(settings)) as client:
+        for n, kept in ((0, True), (1, False)):
+            votes = client.get(f"/auctions/{auction_id}/iterations/{n}/votes").json()["votes"]
+            assert votes and all(v["weights_kept"] is kept for v in votes)
+            assert all(v["fine_tuned_after"] is None for v in votes)
+            path = f"/auctions/{auction_id}/iterations/{n}/votes/{votes[0]['model_id']}/weights"
+            response = client.get(path)
+            if kept:
+                assert response.status_code == 200, response.text
+            else:
+                assert response.status_code == 404
+                detail = response.json()["detail"][0]
+                assert detail["loc"] == ["path", "model_id"] and "not kept" in detail["msg"]
+        assert client.get(f"/auctions/{_tuned_auction(client)}/iterations/1/votes").json()["votes"][
+            0
+        ]["weights_kept"]  # a new auction keeps them
 
 
 def test_a_database_a_newer_release_wrote_is_refused_untouched(fresh_database_url: str) -> None:

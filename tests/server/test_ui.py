@@ -615,6 +615,60 @@ def test_every_vote_of_a_round_opens_its_explanation(
         assert [o.text_content() for o in options] == [named[m] for m in voters]
 
 
+@pytest.fixture(scope="module")
+def tuned_auction(
+    api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> tuple[int, tuple[int, int]]:
+    """An auction whose market fine-tunes the honest patrons after its first 2 rounds, played
+    to its end: its id, and a round and patron whose vote came from fine-tuned weights."""
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    body = {"n_fish": 2, "model_ids": honest_ids, "fine_tune": True, "fine_tune_rounds": 2}
+    auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    deadline = time.monotonic() + 60
+    while (auction := api.get(f"/auctions/{auction_id}").json())["status"] != "finished":
+        assert time.monotonic() < deadline, "the auction never finished"
+        time.sleep(0.2)
+    for row in auction["history"]:
+        listed = api.get(f"/auctions/{auction_id}/iterations/{row['iteration']}/votes").json()
+        tuned = [v["model_id"] for v in listed["votes"] if v["fine_tuned_after"] is not None]
+        if tuned:
+            return int(auction_id), (row["iteration"], tuned[0])
+    raise AssertionError("the market fine-tuned nobody")
+
+
+def test_a_vote_after_fine_tuning_in_the_market_leads_to_the_weights_that_cast_it(
+    page: Any, server: ServerProcess, api: httpx.Client, tuned_auction: tuple[int, tuple[int, int]]
+) -> None:
+    auction_id, (iteration, tuned) = tuned_auction
+    vote = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{tuned}").json()
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
+    page.locator(f"button.explain-round[data-iteration='{iteration}']").click()
+    bid_with = page.locator(f"#round-votes-table a[href$='/votes/{tuned}/weights']")
+    assert bid_with.text_content() == (
+        f"version {vote['version']}, tuned after round {vote['fine_tuned_after']}"
+    )
+    page.locator(f"button.explain-vote[data-model='{tuned}']").click()
+    page.locator("#voted-weights a[href$='/weights']").click()
+    page.wait_for_selector("#weight-moves", timeout=WAIT_MS)
+    assert page.evaluate("document.activeElement.tagName") == "H1"
+    origin = page.locator("#weights-origin").text_content()
+    assert f"after round {vote['fine_tuned_after']}" in origin
+    # The largest move shown is the largest between the version and the weights that voted.
+    weights = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{tuned}/weights")
+    version = api.get(f"/models/{vote['version_id']}").json()["manifest"]
+    here = weights.json()["manifest"]
+    moves = [
+        abs(here[layer][n]["weights"][k] - version[layer][n]["weights"][k])
+        for layer in ("decision",)
+        for n in here[layer]
+        for k in here[layer][n]["weights"]
+    ]
+    cells = page.locator("#weight-moves tbody tr").first.locator("td").all()
+    assert abs(float(cells[3].text_content().replace("\u2212", "-"))) >= max(moves) - 1e-6
+
+
 def test_a_missing_auction_job_model_or_participant_gets_a_not_found_page(
     page: Any, server: ServerProcess
 ) -> None:
@@ -668,18 +722,12 @@ def test_every_page_passes_axe_and_the_heading_is_focused_only_on_navigation(
     population: dict[str, dict[str, Any]],
     studies: list[dict[str, Any]],
     axe_source: str,
+    tuned_auction: tuple[int, tuple[int, int]],
 ) -> None:
     page.goto(f"{server.url}/ui/#/jobs/{studies[0]['id']}")
     page.wait_for_selector("#headline .card", timeout=WAIT_MS)
     assert page.evaluate("document.activeElement.tagName") == "BODY"  # not the heading at load
-    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
-    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
-    body = {"n_fish": 2, "model_ids": honest_ids}
-    auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
-    deadline = time.monotonic() + 60
-    while api.get(f"/auctions/{auction_id}").json()["status"] != "finished":
-        assert time.monotonic() < deadline, "the auction never finished"
-        time.sleep(0.2)
+    auction_id, (iteration, tuned) = tuned_auction
     views = {
         "#/auctions": "#auction-list tbody tr",
         f"#/auctions/{auction_id}": "#liveness:has-text('Ended')",
@@ -689,6 +737,7 @@ def test_every_page_passes_axe_and_the_heading_is_focused_only_on_navigation(
         f"#/jobs/{studies[0]['id']}": "#headline .card",
         f"#/jobs/compare?ids={studies[0]['id']},{studies[1]['id']}": "#compare-params",
         "#/auctions/999999": "#not-found",
+        f"#/auctions/{auction_id}/iterations/{iteration}/votes/{tuned}/weights": "#weight-moves",
     }
     problems: dict[str, list[str]] = {}
     for address, ready in views.items():

@@ -149,6 +149,7 @@ def test_every_vote_names_the_weights_that_cast_it(
                 manifest = parse_manifest(weights["manifest"])  # a manifest as /submit takes it
                 mine = entered[vote["model_id"]]
                 after = vote["fine_tuned_after"]
+                assert vote["weights_kept"] is True
                 if after is None:  # the version's own weights
                     assert weights["manifest"] == mine
                 else:  # fine-tuned inside the market after one of its first 3 rounds

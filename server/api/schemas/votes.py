@@ -57,6 +57,10 @@ class PatronVotePublic(BaseModel):
     market (its re-screening keeping the result): the neurons here are those fine-tuned
     weights', which ``.../votes/{model_id}/weights`` gives. None: it bid with its version's own
     weights."""
+    weights_kept: bool
+    """False for a vote after a fine-tuning inside the market of an auction created before the
+    server kept fine-tuned weights: its neurons are those of weights no longer known
+    (``fine_tuned_after`` is then None, and ``.../weights`` answers 404)."""
     vote: Literal["buy", "hold", "quit"]
     sensor: SensorPublic
     decision: DecisionPublic

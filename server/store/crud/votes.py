@@ -54,13 +54,16 @@ class Bidder:
     version: int
     version_id: int
     fine_tuned_after: int | None
+    weights_kept: bool
+    """False when the market had fine-tuned this auction's patrons before the iteration but
+    did not keep the weights (an auction created before the server kept them)."""
 
 
 def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, Bidder]:
     """Every patron of an auction (by the model id it entered with) as it bid in
     ``iteration``: with the version its last remote round before that iteration left it
     (each round's answer names it), else the one it entered with, and whether the market had
-    fine-tuned it since (three queries)."""
+    fine-tuned it since (four queries)."""
     connection = session.connection()
     last_round = (
         select(
@@ -85,6 +88,15 @@ def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, B
         .join(Participant, Participant.id == ModelVersion.participant_id)
         .where(AuctionPatron.auction_id == auction_id)
     )
+    fine_tune, mode, rounds, kept = connection.execute(
+        select(
+            Auction.fine_tune,
+            Auction.fine_tune_mode,
+            Auction.fine_tune_rounds,
+            Auction.keeps_tuned_weights,
+        ).where(Auction.id == auction_id)
+    ).one()
+    known = kept or not (fine_tune and mode == "server" and min(iteration, rounds) > 0)
     tuned: dict[int, int] = {
         patron: after
         for patron, after in connection.execute(
@@ -94,7 +106,7 @@ def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, B
         )
     }
     return {
-        model_id: Bidder(name, version, version_id, tuned.get(model_id))
+        model_id: Bidder(name, version, version_id, tuned.get(model_id), known)
         for model_id, name, version, version_id in rows
     }
 

@@ -2,7 +2,8 @@
 inside the market that its re-screening kept, so that every vote can be traced to the weights
 that cast it (``GET /auctions/{id}/iterations/{n}/votes/{model_id}/weights``).
 
-Auctions played before keep no such rows: their votes after a fine-tuning say so.
+The auctions created before keep no such rows (``keeps_tuned_weights`` false): their votes
+after a fine-tuning inside the market say that the weights behind them are not known.
 
 Revision ID: 0013
 Revises: 0012
@@ -20,6 +21,10 @@ depends_on = None
 
 
 def upgrade() -> None:
+    op.add_column(
+        "auctions",
+        sa.Column("keeps_tuned_weights", sa.Boolean(), nullable=False, server_default=sa.false()),
+    )
     op.create_table(
         "tuned_weights",
         sa.Column("auction_id", sa.Integer(), nullable=False),
@@ -38,3 +43,5 @@ def upgrade() -> None:
 
 def downgrade() -> None:
     op.drop_table("tuned_weights")
+    with op.batch_alter_table("auctions") as batch:
+        batch.drop_column("keeps_tuned_weights")

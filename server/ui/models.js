@@ -462,7 +462,7 @@ export function votedWeightsView(view, auctionId, iteration, modelId) {
               ? scrolling(
                   table(
                     moves.length === 1 ? `The one weight that moved from version ${w.version}` : `The ${Math.min(MOVES_SHOWN, moves.length)} largest of the ${moves.length} weights and biases that moved from version ${w.version}`,
-                    ["Weight", `Version ${w.version}`, "Here", "Change"],
+                    ["Weight", `Version ${w.version}`, `Voted in round ${iteration}`, "Change"],
                     moves.slice(0, MOVES_SHOWN).map(([place, b, x]) => [place, String(b), String(x), signed(x - b, 6)]),
                     { id: "weight-moves" },
                   ),

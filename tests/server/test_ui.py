@@ -638,7 +638,11 @@ def tuned_auction(
 
 
 def test_a_vote_after_fine_tuning_in_the_market_leads_to_the_weights_that_cast_it(
-    page: Any, server: ServerProcess, api: httpx.Client, tuned_auction: tuple[int, tuple[int, int]]
+    page: Any,
+    server: ServerProcess,
+    api: httpx.Client,
+    tuned_auction: tuple[int, tuple[int, int]],
+    tmp_path: Path,
 ) -> None:
     auction_id, (iteration, tuned) = tuned_auction
     vote = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{tuned}").json()
@@ -667,6 +671,7 @@ def test_a_vote_after_fine_tuning_in_the_market_leads_to_the_weights_that_cast_i
     ]
     cells = page.locator("#weight-moves tbody tr").first.locator("td").all()
     assert abs(float(cells[3].text_content().replace("\u2212", "-"))) >= max(moves) - 1e-6
+    screenshot(page.locator("section:has(#weight-moves)"), "ui_voted_weights.png", tmp_path)
 
 
 def test_a_missing_auction_job_model_or_participant_gets_a_not_found_page(

@@ -392,7 +392,7 @@ export function auctionView(view, id) {
         "table",
         { class: "list" },
         h("caption", {}, "Each fine-tuning round and how its patrons answered"),
-        h("thead", {}, h("tr", {}, ["Round", "After round", "Status", "Deadline", "Answers", "Each patron"].map((t) => h("th", { scope: "col" }, t)))),
+        h("thead", {}, h("tr", {}, ["Round", "After round", "Status", "Open", "Answers", "Each patron"].map((t) => h("th", { scope: "col" }, t)))),
         fineTuneRows,
       ),
       "Fine-tuning rounds (scrolls sideways)",
@@ -506,7 +506,9 @@ export function auctionView(view, id) {
     const nothing = r.status === "open" ? "none yet" : "none";
     const answers = Object.entries(outcomes).map(([outcome, n]) => `${n} ${outcome}`).join(", ") || nothing;
     const each = r.answers.length ? h("ul", { class: "answers" }, r.answers.map(answerItem)) : h("span", { class: "none-yet" }, nothing);
-    const row = tableRow([String(r.round), String(r.iteration), statusBadge(r.status), when(r.deadline), answers, each], { "data-round": r.round });
+    // A round ends at its deadline, or sooner: its last answer, a cancel, a failure.
+    const open = r.status === "open" || !r.closed_at ? `until ${when(r.deadline)}` : `closed ${when(r.closed_at)} (deadline ${when(r.deadline)})`;
+    const row = tableRow([String(r.round), String(r.iteration), statusBadge(r.status), open, answers, each], { "data-round": r.round });
     const old = fineTuneRowOf.get(r.round);
     if (old) old.replaceWith(row);
     else fineTuneRows.append(row);

@@ -182,6 +182,7 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
     ):
         cells = [cell.text_content() for cell in row.locator("td").all()]
         assert cells[:3] == [str(expected["round"]), str(expected["iteration"]), "closed"]
+        assert cells[3].startswith("closed ") and "(deadline " in cells[3]  # when it closed
         assert cells[4] == f"{len(expected['answers'])} missing"
         each = row.locator("td").nth(5).locator("li[data-outcome]")
         assert each.count() == len(expected["answers"])

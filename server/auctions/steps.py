@@ -203,6 +203,7 @@ def _play(market: Market, model_ids: list[int]) -> _Played:
             (model_ids[i], JSONText(market.current_manifest(i).model_dump_json()))
             for i in record.fine_tuned
         ],
+        refused=[model_ids[i] for i in record.reverted],
     )
     return _Played(row, market.checkpoint(), market.pending_round)
 

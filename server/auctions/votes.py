@@ -10,12 +10,13 @@ from sqlalchemy.orm import Session
 from server.api.errors import api_error
 from server.api.schemas.votes import (
     IterationVotesPublic,
+    MarketFineTuningPublic,
     PatronVotePublic,
     VotedWeightsPublic,
     VoteExplanationPublic,
 )
 from server.auctions.service import not_found
-from server.store.crud.votes import bid_manifest, bidders, iteration_votes
+from server.store.crud.votes import bid_manifest, bidders, fine_tunings, iteration_votes
 
 
 def explain_votes(session: Session, auction_id: int, iteration: int) -> IterationVotesPublic:
@@ -102,5 +103,11 @@ def voted_weights(
         version=vote.version,
         version_id=vote.version_id,
         fine_tuned_after=vote.fine_tuned_after,
+        fine_tunings=[
+            MarketFineTuningPublic(after=after, kept=kept)
+            for after, kept in fine_tunings(
+                session, auction_id=auction_id, model_id=model_id, iteration=iteration
+            )
+        ],
         manifest=bid_manifest(session, auction_id=auction_id, model_id=model_id, bidder=who),
     )

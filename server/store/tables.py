@@ -236,9 +236,9 @@ class AuctionIteration(Base):
 
 
 class TunedWeights(Base):
-    """A patron's weights after a server-mode auction fine-tuned it inside the market after
-    ``iteration`` and its re-screening kept them: they bid from the next iteration on, until
-    the next such row (a refused fine-tuning keeps the weights before it, and writes none)."""
+    """A patron's fine-tuning inside the market of a server-mode auction, after ``iteration``:
+    kept (its re-screening accepted the weights, which bid from the next iteration on, until
+    the next kept row) or refused (the patron bid on with the weights it had before)."""
 
     __tablename__ = "tuned_weights"
 
@@ -246,7 +246,9 @@ class TunedWeights(Base):
     model_id: Mapped[int] = mapped_column(ForeignKey("model_versions.id"), primary_key=True)
     """The patron, by the version it entered with (as its votes are kept)."""
     iteration: Mapped[int] = mapped_column(Integer, primary_key=True)
-    manifest: Mapped[dict[str, Any]] = mapped_column(JSON)
+    kept: Mapped[bool] = mapped_column(Boolean)
+    manifest: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True), nullable=True)
+    """The weights kept (null for a refused fine-tuning)."""
 
 
 class Purchase(Base):

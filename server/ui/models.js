@@ -449,6 +449,20 @@ export function votedWeightsView(view, auctionId, iteration, modelId) {
         ),
         h("p", {}, back, " · ", h("a", { href: `/auctions/${auctionId}/iterations/${iteration}/votes/${modelId}/weights` }, "the same as JSON (its manifest is one /submit takes)")),
       ];
+      if (w.fine_tunings.length) {
+        parts.push(
+          h(
+            "section",
+            { "aria-labelledby": "tunings-heading" },
+            h("h2", { id: "tunings-heading" }, `Fine-tuning in the market before round ${iteration}`),
+            h(
+              "ul",
+              { id: "fine-tunings" },
+              w.fine_tunings.map((f) => h("li", { "data-kept": String(f.kept) }, `after round ${f.after}: ${f.kept ? "kept (its re-screening accepted the weights)" : "refused by its re-screening (the screener refused the weights, or they passed a bar by less than the review margin): it bid on with the weights it had"}`)),
+            ),
+          ),
+        );
+      }
       if (version) {
         const before = numbersOf(version.manifest);
         const moves = [...numbersOf(manifest)].map(([place, x]) => [place, before.get(place), x]).filter(([, b, x]) => b !== x);

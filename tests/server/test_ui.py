@@ -660,6 +660,11 @@ def test_a_vote_after_fine_tuning_in_the_market_leads_to_the_weights_that_cast_i
     assert page.evaluate("document.activeElement.tagName") == "H1"
     origin = page.locator("#weights-origin").text_content()
     assert f"after round {vote['fine_tuned_after']}" in origin
+    tunings = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{tuned}/weights")
+    items = page.locator("#fine-tunings li").all()
+    assert [(i.text_content() or "").split(":")[0] for i in items] == [
+        f"after round {f['after']}" for f in tunings.json()["fine_tunings"]
+    ]
     # The largest move shown is the largest between the version and the weights that voted.
     weights = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{tuned}/weights")
     version = api.get(f"/models/{vote['version_id']}").json()["manifest"]

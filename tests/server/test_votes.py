@@ -4,6 +4,7 @@ PostgreSQL."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -11,8 +12,9 @@ from fastapi.testclient import TestClient
 
 from agents.forward import ACTIONS
 from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, parse_manifest
+from server.app import create_app
 from tests.support.factories import honest, unique
-from tests.support.server import ADMIN, wait_for
+from tests.support.server import ADMIN, make_settings, wait_for
 
 SHORT_FISH = {"kind": "fish", "params": {"steps": 300, "srd": True, "seed": 4}}
 LONG_STUDY = {"kind": "auction-study", "params": {"trials": 50}}  # always cancelled
@@ -158,6 +160,12 @@ def test_every_vote_names_the_weights_that_cast_it(
                     assert weights["manifest"]["fine_tuning"] == mine["fine_tuning"]
                     assert [k for k in numbers if weights["manifest"][k] != mine[k]], "no move"
                     afters.append(after)
+                # every fine-tuning in the market before this vote, kept or refused
+                tunings = weights["fine_tunings"]
+                tunes = one is tuned and mine["fine_tuning"]["epochs"] > 0
+                made = list(range(min(n, 3))) if tunes else []
+                assert [f["after"] for f in tunings] == made
+                assert max((f["after"] for f in tunings if f["kept"]), default=None) == after
                 before = last.get(vote["model_id"])
                 if before is not None and before[0] == after:  # no fine-tuning kept since
                     assert weights["manifest"] == before[1]
@@ -165,6 +173,41 @@ def test_every_vote_names_the_weights_that_cast_it(
                     assert weights["manifest"] != before[1]
                 last[vote["model_id"]] = (after, weights["manifest"])
     assert afters, "the market fine-tuned nobody"
+
+
+def test_a_fine_tuning_the_re_screening_refuses_is_recorded_and_the_weights_before_vote_on(
+    tmp_path: Path,
+) -> None:
+    """A server whose review margin is 1 holds every fine-tuned version for an inspector, so
+    its market refuses every fine-tuning: each is recorded as refused, and the versions' own
+    weights vote throughout."""
+    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
+    with TestClient(create_app(settings)) as client:  # admitted at the default margin of tests
+        bodies = [honest(unique("refused"), seed=s) for s in (2, 3, 4)]
+        ids = [client.post("/submit", json=body).json()["model_id"] for body in bodies]
+    strict = settings.model_copy(update={"review_margin": 1.0})
+    with TestClient(create_app(strict)) as client:
+        body = {"n_fish": 1, "model_ids": ids, "seed": 3, "fine_tune": True, "fine_tune_rounds": 3}
+        auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
+        auction = wait_for(
+            lambda: client.get(f"/auctions/{auction_id}").json(),
+            lambda a: a["status"] == "finished",
+            timeout_s=120,
+        )
+        assert len(auction["history"]) > 1
+        for row in auction["history"][1:]:
+            n = row["iteration"]
+            votes = client.get(f"/auctions/{auction_id}/iterations/{n}/votes").json()["votes"]
+            assert votes
+            for vote in votes:
+                path = f"/auctions/{auction_id}/iterations/{n}/votes/{vote['model_id']}/weights"
+                weights = client.get(path).json()
+                assert weights["fine_tuned_after"] is vote["fine_tuned_after"] is None
+                assert weights["fine_tunings"] == [
+                    {"after": k, "kept": False} for k in range(min(n, 3))
+                ]
+                own = client.get(f"/models/{vote['model_id']}").json()["manifest"]
+                assert weights["manifest"] == own
 
 
 @pytest.mark.parametrize(

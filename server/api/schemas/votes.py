@@ -86,6 +86,16 @@ class IterationVotesPublic(BaseModel):
     votes: list[PatronVotePublic]
 
 
+class MarketFineTuningPublic(BaseModel):
+    """One fine-tuning of a patron inside the market of a server-mode auction."""
+
+    after: int
+    """The iteration after which it fine-tuned."""
+    kept: bool
+    """Whether its re-screening kept the result (else the patron bid on with the weights it
+    had: the screener refused them, or they passed a bar by less than the review margin)."""
+
+
 class VotedWeightsPublic(BaseModel):
     """The weights that cast one vote: a manifest as ``POST /submit`` takes it."""
 
@@ -100,4 +110,7 @@ class VotedWeightsPublic(BaseModel):
     fine_tuned_after: int | None
     """As in the vote: the iteration after which the market fine-tuned these weights from that
     version's (None: they are the version's own)."""
+    fine_tunings: list[MarketFineTuningPublic]
+    """Every fine-tuning of this patron inside the market before this iteration, kept or not,
+    in order (empty outside server-mode fine-tuning)."""
     manifest: dict[str, Any]

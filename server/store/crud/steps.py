@@ -69,6 +69,9 @@ class IterationRow(IterationFigures):
     tuned: list[tuple[int, JSONText]] = field(default_factory=list)
     """(model id, manifest) of each patron a server-mode auction fine-tuned after this
     iteration and kept (its weights from the next iteration on)."""
+    refused: list[int] = field(default_factory=list)
+    """Model ids of the patrons whose fine-tuning after this iteration the re-screening
+    refused (they bid on with the weights they had)."""
 
 
 @dataclass(frozen=True)
@@ -224,7 +227,10 @@ def commit_iteration(
                 for model_id in row.quitters
             ],
         )
-    if row.tuned:
+    fine_tunings: list[tuple[int, bool, JSONText | None]]
+    fine_tunings = [(model_id, True, manifest) for model_id, manifest in row.tuned]
+    fine_tunings += [(model_id, False, None) for model_id in row.refused]
+    if fine_tunings:
         connection.execute(
             insert(TunedWeights),
             [
@@ -232,9 +238,10 @@ def commit_iteration(
                     "auction_id": auction_id,
                     "model_id": model_id,
                     "iteration": row.iteration,
+                    "kept": kept,
                     "manifest": manifest,
                 }
-                for model_id, manifest in row.tuned
+                for model_id, kept, manifest in fine_tunings
             ],
         )
     if opened is None:

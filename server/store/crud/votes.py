@@ -101,7 +101,11 @@ def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, B
         patron: after
         for patron, after in connection.execute(
             select(TunedWeights.model_id, func.max(TunedWeights.iteration))
-            .where(TunedWeights.auction_id == auction_id, TunedWeights.iteration < iteration)
+            .where(
+                TunedWeights.auction_id == auction_id,
+                TunedWeights.iteration < iteration,
+                TunedWeights.kept,
+            )
             .group_by(TunedWeights.model_id)
         )
     }
@@ -131,3 +135,20 @@ def bid_manifest(
         )
     assert isinstance(found, dict)
     return found
+
+
+def fine_tunings(
+    session: Session, *, auction_id: int, model_id: int, iteration: int
+) -> list[tuple[int, bool]]:
+    """Patron ``model_id``'s fine-tunings inside the market before ``iteration``: (the
+    iteration after which, whether its re-screening kept it), in order."""
+    rows = session.connection().execute(
+        select(TunedWeights.iteration, TunedWeights.kept)
+        .where(
+            TunedWeights.auction_id == auction_id,
+            TunedWeights.model_id == model_id,
+            TunedWeights.iteration < iteration,
+        )
+        .order_by(TunedWeights.iteration)
+    )
+    return [(after, kept) for after, kept in rows]

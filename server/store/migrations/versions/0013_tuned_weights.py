@@ -1,6 +1,6 @@
-"""Tuned weights: a server-mode auction keeps each patron's weights after every fine-tuning
-inside the market that its re-screening kept, so that every vote can be traced to the weights
-that cast it (``GET /auctions/{id}/iterations/{n}/votes/{model_id}/weights``).
+"""Tuned weights: a server-mode auction records each patron's fine-tuning inside the market,
+kept or refused by its re-screening, with the weights it kept, so that every vote can be traced
+to the weights that cast it (``GET /auctions/{id}/iterations/{n}/votes/{model_id}/weights``).
 
 The auctions created before keep no such rows (``keeps_tuned_weights`` false): their votes
 after a fine-tuning inside the market say that the weights behind them are not known.
@@ -30,7 +30,8 @@ def upgrade() -> None:
         sa.Column("auction_id", sa.Integer(), nullable=False),
         sa.Column("model_id", sa.Integer(), nullable=False),
         sa.Column("iteration", sa.Integer(), nullable=False),
-        sa.Column("manifest", sa.JSON(), nullable=False),
+        sa.Column("kept", sa.Boolean(), nullable=False),
+        sa.Column("manifest", sa.JSON(), nullable=True),
         sa.ForeignKeyConstraint(
             ["auction_id"], ["auctions.id"], name="fk_tuned_weights_auction_id_auctions"
         ),

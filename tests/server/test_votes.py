@@ -20,14 +20,12 @@ SHORT_FISH = {"kind": "fish", "params": {"steps": 300, "srd": True, "seed": 4}}
 LONG_STUDY = {"kind": "auction-study", "params": {"trials": 50}}  # always cancelled
 
 
-@pytest.fixture(scope="module")
-def auction(client: TestClient) -> dict[str, Any]:
-    """A finished auction of five honest patrons over two fish."""
-    bodies = [honest(unique("voter"), seed=s) for s in (0, 2, 3, 4, 5)]  # seed 1 is held for review
+def finished_auction(client: TestClient, name: str, **settings: Any) -> dict[str, Any]:
+    """A finished auction of five honest patrons over two fish, with ``settings``."""
+    bodies = [honest(unique(name), seed=s) for s in (0, 2, 3, 4, 5)]  # seed 1 is held for review
     ids = [client.post("/submit", json=body).json()["model_id"] for body in bodies]
-    auction_id = client.post(
-        "/auctions", json={"n_fish": 2, "model_ids": ids, "seed": 3}, headers=ADMIN
-    ).json()["auction_id"]
+    body = {"n_fish": 2, "model_ids": ids, "seed": 3, **settings}
+    auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
     return dict(
         wait_for(
             lambda: client.get(f"/auctions/{auction_id}").json(),
@@ -35,6 +33,17 @@ def auction(client: TestClient) -> dict[str, Any]:
             timeout_s=120,
         )
     )
+
+
+@pytest.fixture(scope="module")
+def auction(client: TestClient) -> dict[str, Any]:
+    return finished_auction(client, "voter")
+
+
+@pytest.fixture(scope="module")
+def tuned(client: TestClient) -> dict[str, Any]:
+    """Its market fine-tunes the patrons after its first 3 rounds."""
+    return finished_auction(client, "tuned", fine_tune=True, fine_tune_rounds=3)
 
 
 @pytest.mark.postgres_in_slow_run
@@ -105,22 +114,6 @@ def test_an_iterations_votes_are_listed_in_one_read(
     missing = client.get(f"/auctions/{auction['id']}/iterations/999/votes")
     assert missing.status_code == 404
     assert missing.json()["detail"][0]["loc"] == ["path", "iteration"]
-
-
-@pytest.fixture(scope="module")
-def tuned(client: TestClient) -> dict[str, Any]:
-    """A finished auction whose market fine-tunes its five patrons after its first 3 rounds."""
-    bodies = [honest(unique("tuned"), seed=s) for s in (0, 2, 3, 4, 5)]
-    ids = [client.post("/submit", json=body).json()["model_id"] for body in bodies]
-    body = {"n_fish": 2, "model_ids": ids, "seed": 3, "fine_tune": True, "fine_tune_rounds": 3}
-    auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
-    return dict(
-        wait_for(
-            lambda: client.get(f"/auctions/{auction_id}").json(),
-            lambda a: a["status"] == "finished",
-            timeout_s=120,
-        )
-    )
 
 
 @pytest.mark.postgres_in_slow_run

@@ -94,7 +94,6 @@ def voted_weights(
             loc=("path", "model_id"),
             kind="not_found",
         )
-    who = bidders(session, auction_id=auction_id, iteration=iteration)[model_id]
     return VotedWeightsPublic(
         auction_id=auction_id,
         iteration=iteration,
@@ -109,5 +108,11 @@ def voted_weights(
                 session, auction_id=auction_id, model_id=model_id, iteration=iteration
             )
         ],
-        manifest=bid_manifest(session, auction_id=auction_id, model_id=model_id, bidder=who),
+        manifest=bid_manifest(
+            session,
+            auction_id=auction_id,
+            model_id=model_id,
+            version_id=vote.version_id,
+            fine_tuned_after=vote.fine_tuned_after,
+        ),
     )

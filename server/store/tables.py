@@ -21,6 +21,7 @@ from sqlalchemy import (
     Text,
     TypeDecorator,
     UniqueConstraint,
+    true,
 )
 from sqlalchemy.engine import Dialect
 from sqlalchemy.engine.default import DefaultExecutionContext
@@ -167,7 +168,7 @@ class Auction(Base):
     """"server": the worker fine-tunes the patrons; "remote": the participants do, in rounds."""
     fine_tune_rounds: Mapped[int] = mapped_column(Integer, default=4)
     round_deadline_s: Mapped[float] = mapped_column(Float, default=10.0)
-    keeps_tuned_weights: Mapped[bool] = mapped_column(Boolean, default=True)
+    keeps_tuned_weights: Mapped[bool] = mapped_column(Boolean, server_default=true())
     """Whether its fine-tunings inside the market are kept (``TunedWeights``): false for the
     auctions created before the server kept them."""
     buy_fraction: Mapped[str] = mapped_column(String(8), default="all")

@@ -343,7 +343,7 @@ export function auctionView(view, id) {
   /** The version a patron bid with in a round, and whether the market had fine-tuned it. */
   function bidWith(iteration, v) {
     const label = `${v.participant}, version ${v.version}`;
-    if (!v.weights_kept) return h("span", {}, `version ${v.version}, fine-tuned in the market (not kept)`);
+    if (!v.weights_kept) return h("a", { href: `#/models/${v.version_id}`, "aria-label": `${label}, fine-tuned in the market, weights not kept` }, `version ${v.version}, fine-tuned (not kept)`);
     if (v.fine_tuned_after === null) return h("a", { href: `#/models/${v.version_id}`, "aria-label": label }, `version ${v.version}`);
     return h("a", { href: weightsHash(iteration, v.model_id), "aria-label": `${label}, fine-tuned in the market after round ${v.fine_tuned_after}` }, `version ${v.version}, tuned after round ${v.fine_tuned_after}`);
   }
@@ -372,7 +372,7 @@ export function auctionView(view, id) {
               { id: "voted-weights" },
               v.weights_kept
                 ? link(weightsHash(v.iteration, v.model_id), v.fine_tuned_after === null ? `The weights that cast this vote: version ${v.version}'s` : `The weights that cast this vote: version ${v.version} as the market fine-tuned it after round ${v.fine_tuned_after}`)
-                : `The weights that cast this vote were not kept: this auction fine-tuned its patrons inside the market before the server kept fine-tuned weights.`,
+                : `The weights that cast this vote were not kept: this auction fine-tuned this patron inside the market before the server kept fine-tuned weights.`,
               " · ",
               link(`#/models/${v.version_id}`, `Version ${v.version} in the inspector`),
             ),

@@ -302,7 +302,7 @@ function auditLog(reviews) {
  * The drawing of ``manifest`` and every weight, by name and sign: ``reasons`` (the screener's)
  * ring their neurons. ``flagged`` names the neurons ringed.
  */
-function drawnNeurons(manifest, reasons, a) {
+function drawnNeurons(manifest, reasons, a, { screened = true } = {}) {
   const neurons = neuronsOf(manifest);
   const reasonsByNeuron = {};
   const unplaced = [];
@@ -354,7 +354,7 @@ function drawnNeurons(manifest, reasons, a) {
         "section",
         { "aria-labelledby": "drawing-heading" },
         h("h2", { id: "drawing-heading" }, "The negotiator, neuron by neuron"),
-        h("p", { class: "legend" }, h("span", { class: "key edge-pos" }), "positive weight ", h("span", { class: "key edge-neg" }), "negative weight (dashed) ", h("span", { class: "key edge-tiny" }), "δ-sized weight; line width grows with the weight, a weight of 0 is not drawn. A red ring marks a neuron the screener objects to; select a neuron to read its weights."),
+        h("p", { class: "legend" }, h("span", { class: "key edge-pos" }), "positive weight ", h("span", { class: "key edge-neg" }), "negative weight (dashed) ", h("span", { class: "key edge-tiny" }), `δ-sized weight; line width grows with the weight, a weight of 0 is not drawn.${screened ? " A red ring marks a neuron the screener objects to;" : ""} select a neuron to read its weights.`),
         h("figure", {}, decisionPath, h("figcaption", {}, "Decision: the inputs feed the external sensor PG, SZ, LSR, ST, which feeds buy B, hold L and quit Q.")),
         h("figure", {}, pfcPath, h("figcaption", {}, "Self-judge: the prefrontal cortex reads the softmax of all seven and judges PGL, BC, FQ, then the verdicts T (right) and F (wrong).")),
       ),
@@ -475,7 +475,7 @@ export function votedWeightsView(view, auctionId, iteration, modelId) {
             moves.length
               ? scrolling(
                   table(
-                    moves.length === 1 ? `The one weight that moved from version ${w.version}` : `The ${Math.min(MOVES_SHOWN, moves.length)} largest of the ${moves.length} weights and biases that moved from version ${w.version}`,
+                    moves.length === 1 ? `The one weight that moved from version ${w.version}` : moves.length <= MOVES_SHOWN ? `The ${moves.length} weights and biases that moved from version ${w.version}` : `The ${MOVES_SHOWN} largest of the ${moves.length} weights and biases that moved from version ${w.version}`,
                     ["Weight", `Version ${w.version}`, `Voted in round ${iteration}`, "Change"],
                     moves.slice(0, MOVES_SHOWN).map(([place, b, x]) => [place, String(b), String(x), signed(x - b, 6)]),
                     { id: "weight-moves" },
@@ -486,7 +486,7 @@ export function votedWeightsView(view, auctionId, iteration, modelId) {
           ),
         );
       }
-      view.root.append(...parts, settingsFacts(manifest, [["Participant", participantLink(w.participant)]]), ...drawnNeurons(manifest, [], a).sections);
+      view.root.append(...parts, settingsFacts(manifest, [["Participant", participantLink(w.participant)]]), ...drawnNeurons(manifest, [], a, { screened: false }).sections);
     })
     .catch((error) => {
       if (isMissing(error)) view.root.append(problem(error), h("p", {}, back));

@@ -181,21 +181,26 @@ def test_an_auction_fine_tuned_before_weights_were_kept_says_they_are_not_known(
     command.downgrade(alembic_config(fresh_database_url), "0012")  # as a release before wrote it
     upgrade_schema(fresh_database_url)
     with TestClient(create_app(settings)) as client:
-        for n, kept in ((0, True), (1, False)):
-            votes = client.get(f"/auctions/{auction_id}/iterations/{n}/votes").json()["votes"]
-            assert votes and all(v["weights_kept"] is kept for v in votes)
-            assert all(v["fine_tuned_after"] is None for v in votes)
-            path = f"/auctions/{auction_id}/iterations/{n}/votes/{votes[0]['model_id']}/weights"
-            response = client.get(path)
-            if kept:
-                assert response.status_code == 200, response.text
-            else:
-                assert response.status_code == 404
-                detail = response.json()["detail"][0]
-                assert detail["loc"] == ["path", "model_id"] and "not kept" in detail["msg"]
-        assert client.get(f"/auctions/{_tuned_auction(client)}/iterations/1/votes").json()["votes"][
-            0
-        ]["weights_kept"]  # a new auction keeps them
+        seen: set[bool] = set()
+        for n in (0, 1):
+            for vote in client.get(f"/auctions/{auction_id}/iterations/{n}/votes").json()["votes"]:
+                manifest = client.get(f"/models/{vote['model_id']}").json()["manifest"]
+                # known: before any fine-tuning, or a patron whose manifest never fine-tunes
+                kept = n == 0 or manifest["fine_tuning"]["epochs"] == 0
+                assert (vote["weights_kept"], vote["fine_tuned_after"]) == (kept, None)
+                path = f"/auctions/{auction_id}/iterations/{n}/votes/{vote['model_id']}/weights"
+                response = client.get(path)
+                if kept:
+                    assert response.status_code == 200, response.text
+                else:
+                    assert response.status_code == 404
+                    detail = response.json()["detail"][0]
+                    assert detail["loc"] == ["path", "model_id"] and "not kept" in detail["msg"]
+                seen.add(kept)
+        assert seen == {True, False}
+        new = _tuned_auction(client)
+        votes = client.get(f"/auctions/{new}/iterations/1/votes").json()["votes"]
+        assert all(vote["weights_kept"] for vote in votes)  # a new auction keeps them
 
 
 def test_a_database_a_newer_release_wrote_is_refused_untouched(fresh_database_url: str) -> None:

@@ -63,7 +63,8 @@ def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, B
     """Every patron of an auction (by the model id it entered with) as it bid in
     ``iteration``: with the version its last remote round before that iteration left it
     (each round's answer names it), else the one it entered with, and whether the market had
-    fine-tuned it since (four queries)."""
+    fine-tuned it since (four queries, five for an auction from before fine-tuned weights were
+    kept)."""
     connection = session.connection()
     last_round = (
         select(
@@ -96,7 +97,6 @@ def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, B
             Auction.keeps_tuned_weights,
         ).where(Auction.id == auction_id)
     ).one()
-    known = kept or not (fine_tune and mode == "server" and min(iteration, rounds) > 0)
     tuned: dict[int, int] = {
         patron: after
         for patron, after in connection.execute(
@@ -109,28 +109,45 @@ def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, B
             .group_by(TunedWeights.model_id)
         )
     }
+    unknown: set[int] = set()
+    if not kept and fine_tune and mode == "server" and min(iteration, rounds) > 0:
+        # Created before fine-tuned weights were kept: a patron that fine-tunes bid with
+        # weights no longer known, unless a kept row (written since) holds them.
+        epochs = ModelVersion.manifest["fine_tuning"]["epochs"].as_integer()
+        unknown = set(
+            connection.scalars(
+                select(AuctionPatron.model_id)
+                .join(ModelVersion, ModelVersion.id == AuctionPatron.model_id)
+                .where(AuctionPatron.auction_id == auction_id, epochs > 0)
+            )
+        ).difference(tuned)
     return {
-        model_id: Bidder(name, version, version_id, tuned.get(model_id), known)
+        model_id: Bidder(name, version, version_id, tuned.get(model_id), model_id not in unknown)
         for model_id, name, version, version_id in rows
     }
 
 
 def bid_manifest(
-    session: Session, *, auction_id: int, model_id: int, bidder: Bidder
+    session: Session,
+    *,
+    auction_id: int,
+    model_id: int,
+    version_id: int,
+    fine_tuned_after: int | None,
 ) -> dict[str, Any]:
-    """The weights that ``bidder`` (patron ``model_id``) bid with: those the market fine-tuned
-    after ``bidder.fine_tuned_after``, else its version's."""
+    """The weights that patron ``model_id`` bid with (as ``bidders`` names them): those the
+    market fine-tuned after ``fine_tuned_after``, else version ``version_id``'s."""
     connection = session.connection()
-    if bidder.fine_tuned_after is None:
+    if fine_tuned_after is None:
         found = connection.scalar(
-            select(ModelVersion.manifest).where(ModelVersion.id == bidder.version_id)
+            select(ModelVersion.manifest).where(ModelVersion.id == version_id)
         )
     else:
         found = connection.scalar(
             select(TunedWeights.manifest).where(
                 TunedWeights.auction_id == auction_id,
                 TunedWeights.model_id == model_id,
-                TunedWeights.iteration == bidder.fine_tuned_after,
+                TunedWeights.iteration == fine_tuned_after,
             )
         )
     assert isinstance(found, dict)

@@ -21,9 +21,15 @@ depends_on = None
 
 
 def upgrade() -> None:
+    # Every auction created from now on keeps them; those already there kept none.
     op.add_column(
         "auctions",
-        sa.Column("keeps_tuned_weights", sa.Boolean(), nullable=False, server_default=sa.false()),
+        sa.Column("keeps_tuned_weights", sa.Boolean(), nullable=False, server_default=sa.true()),
+    )
+    op.execute(
+        sa.table("auctions", sa.column("keeps_tuned_weights", sa.Boolean))
+        .update()
+        .values(keeps_tuned_weights=False)
     )
     op.create_table(
         "tuned_weights",

@@ -1,6 +1,6 @@
 """The OpenAPI document states what the service does: the bearer on /submit is optional, an
 auction takes exactly one of n_fish or rarity, each job kind has its own params schema with
-its bounds, path ids are bounded integers."""
+its bounds, path ids are bounded integers, and fields carry their descriptions."""
 
 from __future__ import annotations
 
@@ -51,3 +51,19 @@ def test_path_ids_are_bounded_integers(document: dict[str, Any]) -> None:
     (parameter,) = document["paths"]["/jobs/{job_id}"]["get"]["parameters"]
     assert parameter["schema"]["type"] == "integer"
     assert parameter["schema"]["minimum"] == 1 and parameter["schema"]["maximum"] == 2**31 - 1
+
+
+def test_fields_are_described_by_their_docstrings(document: dict[str, Any]) -> None:
+    """A body's fields carry the docstrings written under them as their descriptions."""
+    schemas = document["components"]["schemas"]
+    vote = schemas["PatronVotePublic"]["properties"]
+    assert "server-mode auction" in vote["fine_tuned_after"]["description"]
+    weights = schemas["VotedWeightsPublic"]["properties"]["fine_tunings"]
+    assert "kept or not" in weights["description"]
+    described = [
+        name
+        for schema in schemas.values()
+        for name, field in schema.get("properties", {}).items()
+        if field.get("description")
+    ]
+    assert len(described) >= 40

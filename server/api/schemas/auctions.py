@@ -7,9 +7,9 @@ from collections import Counter
 from datetime import datetime
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, JsonValue, field_validator
+from pydantic import ConfigDict, Field, JsonValue, field_validator
 
-from server.api.schemas.common import MAX_SEED, RowId, StrictInput
+from server.api.schemas.common import MAX_SEED, RowId, Schema, StrictInput
 from server.api.schemas.rounds import FineTuneModeName, FineTuneRoundPublic
 from server.store.status import AuctionStatus
 from sim.market import BuyFractionRule, MarketConfig
@@ -113,11 +113,11 @@ class AuctionCreate(StrictInput):
         return value
 
 
-class AuctionCreated(BaseModel):
+class AuctionCreated(Schema):
     auction_id: int
 
 
-class Votes(BaseModel):
+class Votes(Schema):
     """Row-0 decisions of the patrons still in the auction."""
 
     buy: int
@@ -125,7 +125,7 @@ class Votes(BaseModel):
     quit: int
 
 
-class IterationPublic(BaseModel):
+class IterationPublic(Schema):
     """One auction round: price asked and fish left at its start, the votes, what followed."""
 
     iteration: int
@@ -137,7 +137,7 @@ class IterationPublic(BaseModel):
     n_available_after: int
 
 
-class BuyerPublic(BaseModel):
+class BuyerPublic(Schema):
     """A patron who bought a fish: the version that bid, its participant, price and round."""
 
     model_id: int
@@ -150,7 +150,7 @@ class BuyerPublic(BaseModel):
     remote round admitted a fine-tuned one before the patron left."""
 
 
-class QuitterPublic(BaseModel):
+class QuitterPublic(Schema):
     """A patron who left without buying: the version that quit, its participant and round."""
 
     model_id: int
@@ -162,7 +162,7 @@ class QuitterPublic(BaseModel):
     remote round admitted a fine-tuned one before the patron left."""
 
 
-class AuctionPublic(BaseModel):
+class AuctionPublic(Schema):
     """An auction as it stands; ``history`` grows by one committed row per round."""
 
     id: int
@@ -208,7 +208,7 @@ class PatronJoin(StrictInput):
     model_id: RowId
 
 
-class PatronJoined(BaseModel):
+class PatronJoined(Schema):
     """The model is a patron of the auction: its position in ``model_ids``."""
 
     auction_id: int
@@ -219,7 +219,7 @@ class PatronJoined(BaseModel):
     """When the enrollment ends and the auction starts."""
 
 
-class AuctionSummaryPublic(BaseModel):
+class AuctionSummaryPublic(Schema):
     """An auction as a list shows it."""
 
     id: int
@@ -238,12 +238,12 @@ class AuctionSummaryPublic(BaseModel):
     finished_at: datetime | None
 
 
-class AuctionPage(BaseModel):
+class AuctionPage(Schema):
     items: list[AuctionSummaryPublic]
     next_cursor: int | None
 
 
-class PatronPublic(BaseModel):
+class PatronPublic(Schema):
     """A patron: its model id and the participant and version behind it."""
 
     model_id: int
@@ -266,7 +266,7 @@ class IterationEvent(IterationPublic):
     quits: list[PatronPublic]
 
 
-class AuctionEndEvent(BaseModel):
+class AuctionEndEvent(Schema):
     """``event: end``: the auction is over (the stream closes after it)."""
 
     status: AuctionStatus

@@ -39,38 +39,45 @@ IterationPath = Annotated[
 ]
 
 
-class StrictInput(BaseModel):
+class Schema(BaseModel):
+    """Every request and response body of the API: a field's docstring is its description in
+    the OpenAPI document (``/docs``, ``/openapi.json``)."""
+
+    model_config = ConfigDict(use_attribute_docstrings=True)
+
+
+class StrictInput(Schema):
     """A request body: unknown keys refused; numbers, booleans and integers typed strictly
     (``"3"``, ``true`` or ``3.0`` are not the integer 3)."""
 
     model_config = ConfigDict(extra="forbid", strict=True)
 
 
-class HealthProblem(BaseModel):
+class HealthProblem(Schema):
     """Why the server is not ready: which check failed, and how."""
 
     check: Literal["database", "data_dir", "disk"]
     msg: str
 
 
-class HealthPublic(BaseModel):
+class HealthPublic(Schema):
     """Readiness (``GET /healthz``): ``ok`` (200) or ``unavailable`` (503) with its problems."""
 
     status: Literal["ok", "unavailable"]
-    problems: list[HealthProblem] = []
+    problems: list[HealthProblem] = Field(default_factory=list)
     job_backend: JobBackendName
     """Where job units are computed (``SRD_JOB_BACKEND``)."""
     cpus: float
     """The CPUs that backend computes on: this machine's, or the Ray cluster's live nodes'."""
 
 
-class LivePublic(BaseModel):
+class LivePublic(Schema):
     """Liveness (``GET /livez``): the process serves requests."""
 
     status: Literal["ok"]
 
 
-class ReasonPublic(BaseModel):
+class ReasonPublic(Schema):
     """A screener finding."""
 
     rule: str

@@ -5,11 +5,11 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Literal, get_args
 
-from pydantic import BaseModel, Field, GetJsonSchemaHandler
+from pydantic import Field, GetJsonSchemaHandler
 from pydantic.json_schema import JsonSchemaValue
 from pydantic_core import CoreSchema
 
-from server.api.schemas.common import StrictInput
+from server.api.schemas.common import Schema, StrictInput
 from server.store.status import JobStatus
 from sim.experiment import config_schema
 from studies.registry import KINDS
@@ -47,12 +47,12 @@ class JobCreate(StrictInput):
         return {"title": "JobCreate", "description": cls.__doc__, "oneOf": alternatives}
 
 
-class JobCreated(BaseModel):
+class JobCreated(Schema):
     job_id: int
     status: JobStatus
 
 
-class JobSummaryPublic(BaseModel):
+class JobSummaryPublic(Schema):
     """A job as a list shows it (its result and error are on ``GET /jobs/{id}``)."""
 
     id: int
@@ -74,12 +74,12 @@ class JobPublic(JobSummaryPublic):
     artifacts: list[str]
 
 
-class JobPage(BaseModel):
+class JobPage(Schema):
     items: list[JobSummaryPublic]
     next_cursor: int | None
 
 
-class JobProgressEvent(BaseModel):
+class JobProgressEvent(Schema):
     """``event: progress``: the job's status, progress and message changed."""
 
     status: JobStatus

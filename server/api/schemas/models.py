@@ -6,18 +6,18 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, Field, StringConstraints
+from pydantic import AfterValidator, Field, StringConstraints
 from pydantic_core import PydanticCustomError
 
 from agents.manifest import PlainLine, PlainText
-from server.api.schemas.common import ReasonPublic, StrictInput
+from server.api.schemas.common import ReasonPublic, Schema, StrictInput
 from server.store.status import ModelStatus
 
 VerdictName = Literal["accepted", "rejected", "held"]
 """The verdict as the lists show it (``rejected``: the status ``refused``)."""
 
 
-class EvidencePublic(BaseModel):
+class EvidencePublic(Schema):
     """One bar the screener held the model to: ``measured`` must lie on ``side`` of ``bar``
     (in ``units``); ``detail`` explains the number (the decisive row's decisions with and
     without noise, the impact test's references). ``measured``/``bar`` null: no distance."""
@@ -31,7 +31,7 @@ class EvidencePublic(BaseModel):
     detail: dict[str, Any]
 
 
-class ReviewPublic(BaseModel):
+class ReviewPublic(Schema):
     """An entry of a model's audit log: an inspector's decision (``admit``, ``refuse``) or its
     participant's ``appeal`` (``inspector`` is then the participant)."""
 
@@ -41,7 +41,7 @@ class ReviewPublic(BaseModel):
     at: datetime
 
 
-class SubmitPublic(BaseModel):
+class SubmitPublic(Schema):
     """Answer to ``POST /submit``. ``token`` is set only on a participant's first submission."""
 
     model_id: int
@@ -55,7 +55,7 @@ class SubmitPublic(BaseModel):
     token: str | None
 
 
-class ModelPublic(BaseModel):
+class ModelPublic(Schema):
     """A stored model version: its manifest and the screener's verdict with reasons."""
 
     id: int
@@ -85,7 +85,7 @@ MAX_LISTED_AUCTIONS = 100
 """Auctions listed on a model (newest first)."""
 
 
-class ModelSummaryPublic(BaseModel):
+class ModelSummaryPublic(Schema):
     """A model version as a list shows it; ``rules`` are the screener rules that fired, once
     each, and ``description`` is cut to a preview (the whole text is on ``GET /models/{id}``)."""
 
@@ -101,12 +101,12 @@ class ModelSummaryPublic(BaseModel):
     created_at: datetime
 
 
-class ModelPage(BaseModel):
+class ModelPage(Schema):
     items: list[ModelSummaryPublic]
     next_cursor: int | None
 
 
-class ParticipantPublic(BaseModel):
+class ParticipantPublic(Schema):
     """A participant and its newest versions (all of them: ``GET /models?participant=``)."""
 
     name: str
@@ -150,7 +150,7 @@ class AppealCreate(StrictInput):
     note: Annotated[str, StringConstraints(min_length=1, max_length=2000, pattern=r"\S"), PlainText]
 
 
-class ReviewedPublic(BaseModel):
+class ReviewedPublic(Schema):
     """A model's verdict after a decision or an appeal, and its audit log."""
 
     model_id: int
@@ -160,7 +160,7 @@ class ReviewedPublic(BaseModel):
     reviews: list[ReviewPublic]
 
 
-class LaterVersionPublic(BaseModel):
+class LaterVersionPublic(Schema):
     """A later version of a held model's participant."""
 
     model_id: int
@@ -168,7 +168,7 @@ class LaterVersionPublic(BaseModel):
     status: str
 
 
-class HeldModelPublic(BaseModel):
+class HeldModelPublic(Schema):
     """A model held for an inspector: who, the screener's reasons and evidence; ``auction_id``
     and ``round`` for an upload of a remote round; ``appeal`` the participant's note when it
     came by appeal; ``later_versions`` the participant's versions since (newest first, at most
@@ -183,10 +183,10 @@ class HeldModelPublic(BaseModel):
     auction_id: int | None
     round: int | None
     appeal: str | None
-    later_versions: list[LaterVersionPublic] = []
+    later_versions: list[LaterVersionPublic] = Field(default_factory=list)
 
 
-class HeldPage(BaseModel):
+class HeldPage(Schema):
     """``GET /reviews``: held models, oldest first; ``next_cursor`` pages on (ids above it)."""
 
     items: list[HeldModelPublic]

@@ -6,15 +6,13 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Literal
 
-from pydantic import BaseModel
-
-from server.api.schemas.common import ReasonPublic
+from server.api.schemas.common import ReasonPublic, Schema
 from server.store.status import AnswerOutcome, AuctionStatus, RoundStatus
 
 FineTuneModeName = Literal["server", "remote"]
 
 
-class RoundAnswerPublic(BaseModel):
+class RoundAnswerPublic(Schema):
     """A patron's outcome in a fine-tuning round: accepted (its upload bids from the next
     iteration), refused (re-screening failed; its previous version bids on), held (within the
     review margin of a bar: its previous version bids on), late (after the
@@ -32,7 +30,7 @@ class RoundAnswerPublic(BaseModel):
     bytes_out: int
 
 
-class FineTuneRoundPublic(BaseModel):
+class FineTuneRoundPublic(Schema):
     """A remote fine-tuning round: when, and who answered how; traffic in bytes of bodies
     (``bytes_published``: the round answers of ``GET .../rounds/current``; uploads and their
     answers per patron; ``bytes_total``: all of them)."""
@@ -48,7 +46,7 @@ class FineTuneRoundPublic(BaseModel):
     answers: list[RoundAnswerPublic]
 
 
-class RoundPublic(BaseModel):
+class RoundPublic(Schema):
     """``GET /auctions/{id}/rounds/current``: the newest fine-tuning round. ``rows`` (R × 8: p,
     l, w, g, st1, st2, st3, f) and ``asked`` (model ids) are given while it is open; a patron
     fine-tunes on the rows with the seeds, and its own model makes the D_ic noisy copies."""
@@ -68,7 +66,7 @@ class RoundPublic(BaseModel):
     asked: list[int]
 
 
-class UploadPublic(BaseModel):
+class UploadPublic(Schema):
     """The answer to an upload: accepted (a new version, ``model_id``, bids from the next
     iteration; the same weights as now keep the version), refused with the screener's reasons,
     or held for an inspector (``version`` is the one that keeps bidding; ``uploaded_id`` the

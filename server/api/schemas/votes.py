@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel
+from server.api.schemas.common import Schema
 
 
-class SensorPublic(BaseModel):
+class SensorPublic(Schema):
     """The external sensor after its activations."""
 
     PG: float
@@ -20,7 +20,7 @@ class SensorPublic(BaseModel):
     """The sub-type neuron (the preferred sub-type)."""
 
 
-class DecisionPublic(BaseModel):
+class DecisionPublic(Schema):
     """The decision logits; the vote is the largest."""
 
     B: float
@@ -31,7 +31,7 @@ class DecisionPublic(BaseModel):
     """Quit."""
 
 
-class PfcPublic(BaseModel):
+class PfcPublic(Schema):
     """The prefrontal cortex's self-judgement of the decision."""
 
     T: float
@@ -40,7 +40,7 @@ class PfcPublic(BaseModel):
     """The verdict 'wrong'."""
 
 
-class PatronVotePublic(BaseModel):
+class PatronVotePublic(Schema):
     """One patron's vote in an iteration and the neurons behind it, on row 0 (the row that
     decides), each averaged over its D_ic copies as its vote was."""
 
@@ -76,7 +76,7 @@ class VoteExplanationPublic(PatronVotePublic):
     """Row 0's inputs by name: price, length, weight, gill, st1, st2, st3, buy_fraction."""
 
 
-class IterationVotesPublic(BaseModel):
+class IterationVotesPublic(Schema):
     """Every vote of one committed iteration, in patron order: the patrons still in it."""
 
     auction_id: int
@@ -86,7 +86,7 @@ class IterationVotesPublic(BaseModel):
     votes: list[PatronVotePublic]
 
 
-class MarketFineTuningPublic(BaseModel):
+class MarketFineTuningPublic(Schema):
     """One fine-tuning of a patron inside the market of a server-mode auction."""
 
     after: int
@@ -96,7 +96,7 @@ class MarketFineTuningPublic(BaseModel):
     had: the screener refused them, or they passed a bar by less than the review margin)."""
 
 
-class VotedWeightsPublic(BaseModel):
+class VotedWeightsPublic(Schema):
     """The weights that cast one vote: a manifest as ``POST /submit`` takes it."""
 
     auction_id: int

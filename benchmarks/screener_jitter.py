@@ -7,13 +7,17 @@ accepted. This prints, for the red team's opening-window holders a and b, how ma
 review margin; then the labelled corpus (``tests/support/corpus.py``) at the same margins, so a
 setting that stops the variants can be weighed against the honest models it holds.
 
+``--judge-secret S`` plays the attacker against a deployment with ``SRD_SCREENER_SECRET=S``:
+the variants the public screener accepts (at each margin) are screened again in a process with
+that secret, whose market-impact test meets other populations.
+
 ``--window`` and ``--more-trials`` replace ``screener.limits.IMPACT_WINDOW`` and
 ``IMPACT_MORE_TRIALS`` for the run (the market-impact test's second stage: how near the bar a
 model must land, and how many more reference populations it then meets), to try a setting
 before changing it.
 
 Run: ``.venv/bin/python benchmarks/screener_jitter.py [--variants 100] [--scales 1e-3,3e-3]
-[--margins 0.002,0.005] [--window W] [--more-trials N] [--no-corpus]``.
+[--margins 0.002,0.005] [--judge-secret S] [--window W] [--more-trials N] [--no-corpus]``.
 """
 
 from __future__ import annotations
@@ -21,7 +25,10 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import os
+import subprocess
 import sys
+import tempfile
 import time
 from collections import Counter
 from pathlib import Path
@@ -61,6 +68,31 @@ def jittered(manifest: dict[str, Any], scale: float, rng: np.random.Generator) -
     return out
 
 
+def judged_with_secret(manifests: list[dict[str, Any]], secret: str, margin: float) -> Counter[str]:
+    """How a screener keyed with ``secret`` reviews ``manifests`` at ``margin`` (in a process
+    of its own: the secret is read once per process)."""
+    if not manifests:
+        return Counter()
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "variants.json"
+        path.write_text(json.dumps(manifests))
+        env = {**os.environ, "SRD_SCREENER_SECRET": secret}
+        out = subprocess.run(
+            [sys.executable, __file__, "--judge", str(path), "--margins", str(margin)],
+            env=env,
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout
+    return Counter(json.loads(out.strip().splitlines()[-1]))
+
+
+def judge(path: Path, margin: float) -> None:
+    """Print, as one JSON line, how this process's screener reviews the manifests at ``path``."""
+    verdicts = screen_many([parse_manifest(m) for m in json.loads(path.read_text())])
+    print(json.dumps(Counter(review(v, margin) for v in verdicts)))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--variants", type=int, default=100)
@@ -70,7 +102,12 @@ def main() -> None:
     parser.add_argument("--more-trials", type=int, default=None)
     parser.add_argument("--seed", type=int, default=99)
     parser.add_argument("--no-corpus", action="store_true")
+    parser.add_argument("--judge-secret", default=None)
+    parser.add_argument("--judge", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.judge is not None:
+        judge(args.judge, float(args.margins))
+        return
     if args.window is not None:
         limits.IMPACT_WINDOW = args.window
     if args.more_trials is not None:
@@ -94,6 +131,18 @@ def main() -> None:
                     f"{name} s={scale:g} margin {margin:g}: accepted {counts['accepted']}, "
                     f"held {counts['held']}, refused {counts['refused']}"
                 )
+                if args.judge_secret is not None:
+                    chosen = [
+                        m
+                        for m, v in zip(variants, verdicts, strict=True)
+                        if review(v, margin) == "accepted"
+                    ]
+                    keyed = judged_with_secret(chosen, args.judge_secret, margin)
+                    print(
+                        f"  the {len(chosen)} accepted, before a secret-keyed screener: "
+                        f"accepted {keyed['accepted']}, held {keyed['held']}, "
+                        f"refused {keyed['refused']}"
+                    )
     print(f"variants screened in {time.perf_counter() - start:.1f} s")
     if args.no_corpus:
         return

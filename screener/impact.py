@@ -39,6 +39,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -84,10 +86,31 @@ def more_trials() -> tuple[int, ...]:
     return tuple(range(first, first + limits.IMPACT_MORE_TRIALS))
 
 
+SECRET_VARIABLE = "SRD_SCREENER_SECRET"
+"""The environment variable holding a deployment's secret: when set, the reference populations
+and the test auctions' seeds are drawn from it as well as from ``IMPACT_SEED``, so that a model
+tuned offline against the public screener's populations meets others (docs/screener.md)."""
+
+
+@functools.cache
+def seed_words() -> tuple[int, ...]:
+    """The entropy of the reference populations and test auctions: ``IMPACT_SEED``, then four
+    32-bit words of the SHA-256 of ``SRD_SCREENER_SECRET`` if it is set (read once per
+    process)."""
+    secret = os.environ.get(SECRET_VARIABLE, "")
+    if not secret:
+        return (limits.IMPACT_SEED,)
+    digest = hashlib.sha256(secret.encode()).digest()
+    return (
+        limits.IMPACT_SEED,
+        *(int.from_bytes(digest[i : i + 4], "big") for i in range(0, 16, 4)),
+    )
+
+
 @functools.cache
 def _population(trial: int) -> tuple[Manifest, ...]:
     """The reference honest patrons of one trial."""
-    rng = np.random.default_rng([limits.IMPACT_SEED, trial])
+    rng = np.random.default_rng([*seed_words(), trial])
     return tuple(
         honest_manifest(rng, f"impact-reference-{trial}-{i:02d}")
         for i in range(limits.IMPACT_HONEST)
@@ -102,7 +125,7 @@ def _people(trials: tuple[int, ...]) -> tuple[list[Manifest], FSNBatch]:
 
 
 def _market_seed(supply: float, trial: int) -> int:
-    sequence = np.random.SeedSequence([limits.IMPACT_SEED, trial, round(supply * 100)])
+    sequence = np.random.SeedSequence([*seed_words(), trial, round(supply * 100)])
     return int(sequence.generate_state(1)[0])
 
 

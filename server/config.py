@@ -16,6 +16,10 @@ JobBackendName = Literal["local", "ray"]
 """Where job units are computed."""
 
 
+SCREENER_SECRET_LENGTH = 16
+"""The fewest characters of ``SRD_SCREENER_SECRET``."""
+
+
 class Settings(BaseSettings):
     """Every knob of the auction house; each can be set as ``SRD_<NAME>`` in the environment."""
 
@@ -31,6 +35,11 @@ class Settings(BaseSettings):
     folder) has less free space than this (MB; 0: no check)."""
     admin_token: SecretStr | None = None
     """Operator token; when unset one is generated at first start into ``admin_token_file``."""
+    screener_secret: SecretStr | None = None
+    """A deployment's secret for the screener's market-impact test: its reference populations
+    and test auctions are drawn from it too, so that a model tuned offline against the public
+    screener meets populations it never saw. Every replica needs the same one. ``srd serve``
+    hands it to its screening and worker processes (``screener.impact.SECRET_VARIABLE``)."""
     max_body_bytes: Annotated[int, Field(ge=1024)] = 262_144
     """Request bodies larger than this are refused with 413."""
     auction_workers: Annotated[int, Field(ge=1, le=64)] | None = None
@@ -167,6 +176,13 @@ class Settings(BaseSettings):
     port: Annotated[int, Field(ge=0, le=65535)] = 8000
     """Port ``srd serve`` binds by default."""
 
+    @field_validator("screener_secret")
+    @classmethod
+    def _long_secret(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is not None and len(value.get_secret_value()) < SCREENER_SECRET_LENGTH:
+            raise ValueError(f"a secret has at least {SCREENER_SECRET_LENGTH} characters")
+        return value
+
     @field_validator("trusted_proxies")
     @classmethod
     def _proxy_addresses(cls, value: str) -> str:
@@ -224,6 +240,6 @@ def _in_words(error: Any) -> str:
     """One validation error as ``SRD_NAME=value: what is wrong`` (a secret's value unsaid)."""
     field = str(error["loc"][0]) if error["loc"] else "?"
     name = f"SRD_{field.upper()}"
-    secret = field in ("admin_token", "database_url")
+    secret = field in ("admin_token", "database_url", "screener_secret")
     given = "" if secret or error.get("input") is None else f"={error['input']}"
     return f"{name}{given}: {error['msg']}"

@@ -40,7 +40,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import hmac
 import os
+import unicodedata
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -91,20 +93,48 @@ SECRET_VARIABLE = "SRD_SCREENER_SECRET"
 and the test auctions' seeds are drawn from it as well as from ``IMPACT_SEED``, so that a model
 tuned offline against the public screener's populations meets others (docs/screener.md)."""
 
+PUBLIC = "public"
+"""The populations marker of a screener without a secret."""
 
-@functools.cache
-def seed_words() -> tuple[int, ...]:
-    """The entropy of the reference populations and test auctions: ``IMPACT_SEED``, then four
-    32-bit words of the SHA-256 of ``SRD_SCREENER_SECRET`` if it is set (read once per
-    process)."""
-    secret = os.environ.get(SECRET_VARIABLE, "")
-    if not secret:
+
+def secret_bytes(secret: str) -> bytes:
+    """A secret as it is hashed: without surrounding white space (a secret file's newline),
+    in Unicode's NFC form, in UTF-8 (bytes the environment could not decode kept as they
+    were)."""
+    return unicodedata.normalize("NFC", secret.strip()).encode("utf-8", "surrogateescape")
+
+
+def seed_words_of(secret: str) -> tuple[int, ...]:
+    """The entropy of the reference populations and test auctions under ``secret``:
+    ``IMPACT_SEED``, then four 32-bit words of the secret's SHA-256 (none for no secret)."""
+    if not secret.strip():
         return (limits.IMPACT_SEED,)
-    digest = hashlib.sha256(secret.encode()).digest()
+    digest = hashlib.sha256(secret_bytes(secret)).digest()
     return (
         limits.IMPACT_SEED,
         *(int.from_bytes(digest[i : i + 4], "big") for i in range(0, 16, 4)),
     )
+
+
+def marker_of(secret: str) -> str:
+    """Which populations ``secret`` gives, without saying the secret: ``public``, or 16 hex
+    digits of an HMAC keyed by it. Evidence carries it, so two verdicts say whether the same
+    populations made them."""
+    if not secret.strip():
+        return PUBLIC
+    return hmac.new(secret_bytes(secret), b"srd-screener-populations", "sha256").hexdigest()[:16]
+
+
+@functools.cache
+def seed_words() -> tuple[int, ...]:
+    """This process's ``seed_words_of`` its ``SRD_SCREENER_SECRET`` (read once)."""
+    return seed_words_of(os.environ.get(SECRET_VARIABLE, ""))
+
+
+@functools.cache
+def populations() -> str:
+    """This process's ``marker_of`` its ``SRD_SCREENER_SECRET`` (read once)."""
+    return marker_of(os.environ.get(SECRET_VARIABLE, ""))
 
 
 @functools.cache
@@ -349,6 +379,7 @@ def _evidence(refs: References, outcome: Outcome, after: str) -> Evidence:
         _judge(refs, outcome, after) is None,
         {
             "version": "after its own fine-tuning" if after else "as submitted",
+            "populations": populations(),
             "without_copies": refs.alone.mean_price,
             "always_hold_saboteurs": refs.saboteurs.mean_price,
             "quitters_at_opening": refs.quitters.mean_price,

@@ -5,19 +5,24 @@ from __future__ import annotations
 
 import ipaddress
 import os
+import unicodedata
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import AliasChoices, Field, SecretStr, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import SettingsError as SourceError
 
 JobBackendName = Literal["local", "ray"]
 """Where job units are computed."""
 
 
-SCREENER_SECRET_LENGTH = 16
-"""The fewest characters of ``SRD_SCREENER_SECRET``."""
+SCREENER_SECRET_LENGTH = 32
+"""The fewest characters of ``SRD_SCREENER_SECRET`` (``openssl rand -hex 32`` gives 64)."""
+SCREENER_SECRET_SYMBOLS = 10
+"""The fewest different characters of ``SRD_SCREENER_SECRET`` (a random hex string of 32 has
+about 14)."""
 
 
 class Settings(BaseSettings):
@@ -178,10 +183,24 @@ class Settings(BaseSettings):
 
     @field_validator("screener_secret")
     @classmethod
-    def _long_secret(cls, value: SecretStr | None) -> SecretStr | None:
-        if value is not None and len(value.get_secret_value()) < SCREENER_SECRET_LENGTH:
-            raise ValueError(f"a secret has at least {SCREENER_SECRET_LENGTH} characters")
-        return value
+    def _random_secret(cls, value: SecretStr | None) -> SecretStr | None:
+        """Normalised as the screener hashes it, and refused unless it looks drawn at random:
+        evidence anyone may read fingerprints the populations, so a guessable secret can be
+        found offline (docs/screener.md)."""
+        if value is None:
+            return None
+        secret = unicodedata.normalize("NFC", value.get_secret_value().strip())
+        try:
+            secret.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ValueError("a secret is text (UTF-8)") from None
+        if len(secret) < SCREENER_SECRET_LENGTH or len(set(secret)) < SCREENER_SECRET_SYMBOLS:
+            raise ValueError(
+                f"a secret has at least {SCREENER_SECRET_LENGTH} characters, "
+                f"{SCREENER_SECRET_SYMBOLS} of them different: draw one at random "
+                "(openssl rand -hex 32)"
+            )
+        return SecretStr(secret)
 
     @field_validator("trusted_proxies")
     @classmethod
@@ -234,6 +253,9 @@ def get_settings() -> Settings:
         return Settings(_secrets_dir=secrets)
     except ValidationError as exc:
         raise SettingsError("\n".join(_in_words(error) for error in exc.errors())) from None
+    except SourceError as exc:  # a secret file that cannot be read as text
+        cause = f": {exc.__cause__}" if exc.__cause__ is not None else ""
+        raise SettingsError(f"{SECRETS_DIR_VARIABLE}={secrets}: {exc}{cause}") from None
 
 
 def _in_words(error: Any) -> str:

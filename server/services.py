@@ -31,6 +31,7 @@ from server.live.events import EventHub
 from server.live.rounds import RoundWatcher
 from server.live.source import LiveSource
 from server.screening.pool import ScreeningService
+from server.store import crud
 from server.store.db import Database, SqliteServerLock, is_sqlite, prepare_database
 from server.submissions.quotas import Limits
 from server.submissions.writer import SubmissionWriter
@@ -85,6 +86,43 @@ def server_id() -> str:
     return f"{socket.gethostname()[:60]}:{os.getpid()}:{secrets.token_hex(4)}"
 
 
+def screener_populations(settings: Settings) -> str:
+    """The marker of the populations the screener meets under ``settings``
+    (``screener.impact.marker_of``)."""
+    from screener.impact import marker_of
+
+    secret = settings.screener_secret
+    return marker_of("" if secret is None else secret.get_secret_value())
+
+
+def _key_the_screener(settings: Settings, database: Database) -> None:
+    """Hand ``SRD_SCREENER_SECRET`` (perhaps from a secret file) to the processes this server
+    starts that screen, and say which populations they meet: a warning when the newest verdict
+    was made on others (the secret changed, or another replica has another)."""
+    from screener.impact import SECRET_VARIABLE
+
+    secret = settings.screener_secret
+    if secret is None:
+        os.environ.pop(SECRET_VARIABLE, None)
+    else:
+        os.environ[SECRET_VARIABLE] = secret.get_secret_value()
+    marker = screener_populations(settings)
+    with database.session(write=False) as session:
+        newest = crud.newest_populations(session)
+    log.info(
+        "screener: the market-impact test meets the %s populations",
+        "public" if secret is None else f"SRD_SCREENER_SECRET's ({marker})",
+    )
+    if newest is not None and newest != marker:
+        log.warning(
+            "screener: the newest verdict stored was made on other populations (%s) than this "
+            "server's (%s): SRD_SCREENER_SECRET changed, or another replica has another; "
+            "replicas that differ give one model two verdicts",
+            newest,
+            marker,
+        )
+
+
 def start_services(settings: Settings) -> Services:
     """Take the SQLite database's one-server lock (refusing to start beside another server),
     migrate the database, then make and start every service; the runners claim the unfinished
@@ -104,6 +142,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     prepare_database(settings.database_url, settings.databases_file)
     database = Database(settings.database_url)
+    _key_the_screener(settings, database)  # before the processes that screen start
     context = WorkerContext(
         database_url=settings.database_url,
         data_dir=str(settings.data_dir.resolve()),

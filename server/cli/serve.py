@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 from types import FrameType
 from typing import TYPE_CHECKING
 
@@ -124,9 +123,6 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         for line in str(exc).splitlines():
             click.echo(f"srd serve: {line}", err=True)
         raise SystemExit(UNUSABLE) from None
-    if settings.screener_secret is not None:  # perhaps from a secret file: the screening and
-        # worker processes, started later, read it here (screener.impact.SECRET_VARIABLE)
-        os.environ["SRD_SCREENER_SECRET"] = settings.screener_secret.get_secret_value()
     problem = make_data_dir(settings.data_dir)
     if problem is not None:
         click.echo(f"srd serve: {problem} (SRD_DATA_DIR)", err=True)

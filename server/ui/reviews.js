@@ -140,6 +140,7 @@ function evidenceSection(model, item) {
     model.reasons.length ? h("ul", { class: "reasons" }, model.reasons.map((r) => h("li", {}, h("strong", {}, `${r.neuron} (${r.rule}): `), r.message))) : null,
     scan ? h("figure", {}, decisionsChart(scan.detail), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${scan.detail.noise_std}, ${scan.detail.draws} draws): green buys, amber holds, grey quits.`)) : null,
     impacts.length ? h("figure", {}, impactChart(impacts), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions (green: passed, amber: missed) against the lowest allowed (the dashed bar), and the references (grey).")) : null,
+    populationsNote(impacts),
     scrolling(table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result"], rows, { id: "evidence-table" }), "Every bar (scrolls sideways)"),
   );
 }
@@ -168,6 +169,22 @@ function decisionsChart(detail) {
     ]),
     ticks.map((p) => [svg("line", { class: "grid", x1: x(p), x2: x(p), y1: 12, y2: 96 }), svg("text", { class: "tick", x: x(p), y: 112, "text-anchor": "middle" }, p.toFixed(2))]),
   );
+}
+
+/** Which reference populations the market-impact test met, and whether this server's test
+ * still meets them (its SRD_SCREENER_SECRET may have changed since). */
+function populationsNote(impacts) {
+  const seen = [...new Set(impacts.map((e) => e.detail.populations).filter(Boolean))];
+  if (!seen.length) return null;
+  const named = (p) => (p === "public" ? "the public ones" : `those of a deployment's secret (${p})`);
+  const note = h("p", { id: "populations" }, `Its test auctions met ${seen.map(named).join(" and ")}.`);
+  getJSON("/healthz")
+    .then((health) => {
+      const now = health.screener_populations;
+      if (seen.some((p) => p !== now)) note.append(` This server's test meets ${named(now)} now: measured again, the model would meet other auctions.`);
+    })
+    .catch(() => {}); // not ready: the note stays as measured
+  return note;
 }
 
 function impactChart(impacts) {

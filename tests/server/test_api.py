@@ -25,6 +25,7 @@ WRONG = {"Authorization": "Bearer not-the-token"}
 def test_healthz_and_openapi(client: TestClient) -> None:
     health = client.get("/healthz").json()
     assert health["status"] == "ok" and health["job_backend"] == "local"
+    assert health["screener_populations"] == "public"  # no SRD_SCREENER_SECRET
     assert health["cpus"] == float(len(os.sched_getaffinity(0)))
     paths = client.get("/openapi.json").json()["paths"]
     for path in (

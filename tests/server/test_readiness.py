@@ -115,6 +115,7 @@ def test_serve_refuses_a_data_folder_it_cannot_write(tmp_path: Path, where: str)
         ({"SRD_JOB_BACKEND": "bogus"}, 2, "SRD_JOB_BACKEND=bogus: Input should be 'local'"),
         ({"SRD_SECRETS_DIR": "/no/such"}, 2, "SRD_SECRETS_DIR=/no/such: no such folder"),
         ({"SRD_SCREENER_SECRET": "hidden-pw"}, 2, "SRD_SCREENER_SECRET: Value error, a secret has"),
+        ({"SRD_SCREENER_SECRET": "hidden-pw" * 4}, 2, "10 of them different: draw one at random"),
         ({"SRD_DATABASE_URL": "mysql://db/srd"}, 2, "SRD_DATABASE_URL names mysql"),
         ({"SRD_DATABASE_URL": "postgresql+psycopg://u:hidden-pw@127.0.0.1:1/x"}, 3,
          "the database postgresql+psycopg://u:***@127.0.0.1:1/x (SRD_DATABASE_URL) cannot be used"),

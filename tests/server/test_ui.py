@@ -800,6 +800,8 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     assert "copies, after its own fine-tuning (96 auctions)" in impact_chart
     model = api.get(f"/models/{model_id}").json()
     assert page.locator("#evidence-table tbody tr").count() == len(model["evidence"])
+    # the populations its test met, which this server's test still meets (no secret here)
+    assert page.locator("#populations").text_content() == "Its test auctions met the public ones."
     assert serious_violations(page, axe_source) == []
     screenshot(page.locator("#evidence"), "ui_review.png", tmp_path)
     # Said in words: a blank name, and a network that drops the decision.

@@ -11,8 +11,9 @@ from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
-from server.api.deps import ComputeDep, ReadinessDep
+from server.api.deps import ComputeDep, ReadinessDep, SettingsDep
 from server.api.schemas import HealthProblem, HealthPublic, LivePublic
+from server.services import screener_populations
 from server.store.db import DATABASE_RETRY_AFTER_S
 
 router = APIRouter(tags=["health"])
@@ -24,11 +25,14 @@ router = APIRouter(tags=["health"])
     response_model=HealthPublic,
     responses={503: {"model": HealthPublic, "description": "Not ready: the problems found"}},
 )
-async def healthz(readiness: ReadinessDep, compute: ComputeDep) -> HealthPublic | JSONResponse:
+async def healthz(
+    readiness: ReadinessDep, compute: ComputeDep, settings: SettingsDep
+) -> HealthPublic | JSONResponse:
     """Ready (200) or not (503 with ``Retry-After``): the database is the one this server
     started with, reachable and writable; the data folder can be written; the disks of the
     data folder and of a SQLite database have ``SRD_MIN_FREE_DISK_MB`` free. The answer is
-    kept a second. Also which job backend computes the jobs' units, on how many CPUs."""
+    kept a second. Also which job backend computes the jobs' units, on how many CPUs, and
+    which populations the screener's market-impact test meets."""
     problems = readiness.cached()
     if problems is None:
         problems = await run_in_threadpool(readiness.check)
@@ -38,6 +42,7 @@ async def healthz(readiness: ReadinessDep, compute: ComputeDep) -> HealthPublic 
         problems=[HealthProblem(check=p.check, msg=p.msg) for p in problems],
         job_backend=compute.name,
         cpus=cpus,
+        screener_populations=screener_populations(settings),
     )
     if not problems:
         return health

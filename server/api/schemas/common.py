@@ -69,6 +69,9 @@ class HealthPublic(Schema):
     """Where job units are computed (``SRD_JOB_BACKEND``)."""
     cpus: float
     """The CPUs that backend computes on: this machine's, or the Ray cluster's live nodes'."""
+    screener_populations: str
+    """The populations the screener's market-impact test meets: ``public``, or the marker of
+    this server's ``SRD_SCREENER_SECRET`` (as each verdict's evidence names them)."""
 
 
 class LivePublic(Schema):

@@ -75,6 +75,7 @@ from server.store.crud.models import (
     latest_accepted_models,
     latest_version,
     list_models,
+    newest_populations,
     participant_by_name,
     patron_auctions,
 )
@@ -199,6 +200,7 @@ __all__ = [
     "lock_enrollment",
     "lock_subject",
     "model_owner",
+    "newest_populations",
     "notify_change",
     "participant_by_name",
     "patron_auctions",

@@ -97,6 +97,28 @@ def latest_version(session: Session, *, participant_id: int) -> int:
     return int(session.connection().execute(_LATEST_VERSION, {"id": participant_id}).scalar() or 0)
 
 
+NEWEST_EVIDENCE_READ = 200
+"""Versions read, newest first, to find the newest verdict made by a market-impact test."""
+
+
+def newest_populations(session: Session) -> str | None:
+    """The populations (``screener.impact.marker_of``) of the newest stored verdict whose
+    market-impact test named them, among the newest ``NEWEST_EVIDENCE_READ`` versions; None if
+    none did."""
+    rows = session.connection().execute(
+        select(ModelVersion.evidence)
+        .where(ModelVersion.evidence.is_not(None))
+        .order_by(ModelVersion.id.desc())
+        .limit(NEWEST_EVIDENCE_READ)
+    )
+    for (evidence,) in rows:
+        for item in evidence or []:
+            marker = (item.get("detail") or {}).get("populations")
+            if item.get("test") == "market-impact" and isinstance(marker, str):
+                return marker
+    return None
+
+
 def insert_participant(session: Session, *, name: str, token_hash: str, now: datetime) -> int:
     """Insert a participant; its id."""
     values = {"name": name, "token_hash": token_hash, "created_at": now}

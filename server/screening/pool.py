@@ -134,12 +134,14 @@ def gather(conn: Connection) -> list[Any]:
 def _judge(
     screen_many: Callable[[list[Manifest]], list[Verdict]], batch: Sequence[tuple[int, Manifest]]
 ) -> list[Verdict | str]:
-    """Verdicts for a batch; if the screener raises, each manifest alone, errors as text."""
+    """Verdicts for a batch; if the screener raises, each manifest alone, errors as text: the
+    exception's line (the answer's 503 says it; its frames go to the log, not to clients)."""
     try:
         return list(screen_many([manifest for _, manifest in batch]))
-    except Exception:
+    except Exception as exc:
         if len(batch) == 1:
-            return [traceback.format_exc(limit=-3)]
+            log.error("the screener failed on a manifest:\n%s", traceback.format_exc(limit=-3))
+            return [f"{type(exc).__name__}: {exc}"]
         return [answer for item in batch for answer in _judge(screen_many, [item])]
 
 

@@ -87,6 +87,17 @@ def test_a_server_screens_on_its_secrets_populations_and_names_them(tmp_path: Pa
     assert SECRET not in log and OTHER not in log
 
 
+def test_srd_screen_takes_a_secret_the_environment_could_not_decode() -> None:
+    """Bytes that are not UTF-8 in the variable are hashed as they are (the screener had
+    failed on every manifest with them); white space around a secret does not count."""
+    undecodable = screened_with("caf\udce9-" + SECRET)  # the byte 0xe9, as os.environ keeps it
+    spaced = screened_with(f"  {SECRET}\n")
+    plain = screened_with(SECRET)
+    assert impact(spaced["evidence"]) == impact(plain["evidence"])
+    populations = {impact(r["evidence"])["detail"]["populations"] for r in (undecodable, plain)}
+    assert len(populations) == 2 and "public" not in populations
+
+
 def test_a_secret_file_that_is_not_text_stops_the_start_in_one_line(tmp_path: Path) -> None:
     secrets = tmp_path / "secrets"
     secrets.mkdir()

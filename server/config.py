@@ -60,11 +60,12 @@ class Settings(BaseSettings):
     run at the API's priority: a step is short, and the next round waits for it."""
     job_timeout_s: Annotated[float, Field(gt=0, le=7 * 86400)] = 3600.0
     """Wall-time limit of one job: a job still running after this long is stopped and failed."""
-    job_memory_mb: Annotated[int, Field(ge=1024, le=1 << 20)] = 4096
+    job_memory_mb: Annotated[int, Field(ge=1536, le=1 << 20)] = 4096
     """Address-space limit of a job's worker process (MB, ``RLIMIT_AS``, enforced by the OS;
     with the ``ray`` job backend a limit on its data, ``RLIMIT_DATA``, as Ray maps its shared
-    object store into the process). At least 1024: a worker forked with torch loaded already
-    maps about 700 MB, and under a lower limit no job could start."""
+    object store into the process). At least 1536: a worker forked with torch loaded already
+    maps about 700 MB, and every job kind's defaults run within 1536 (a default lavaland job
+    fails within 1024)."""
     job_budget_s: Annotated[float, Field(gt=0, le=1e12)] = 1800.0
     """Jobs whose estimated compute (seconds on one core) exceeds this are refused with 422."""
     max_queued_jobs: Annotated[int, Field(ge=1, le=100_000)] = 64

@@ -347,11 +347,14 @@ def test_settings_come_from_srd_environment(monkeypatch: pytest.MonkeyPatch) -> 
 def test_a_job_memory_limit_no_worker_could_start_under_is_refused(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """A worker forked with torch loaded maps about 700 MB: under a lower limit every job
-    failed before it began, the cause only in the server's log."""
-    monkeypatch.setenv("SRD_JOB_MEMORY_MB", "700")
-    with pytest.raises(ValidationError, match="job_memory_mb"):
-        Settings()
+    """A worker forked with torch loaded maps about 700 MB: under that limit every job failed
+    before it began, the cause only in the server's log; under 1536 a default lavaland job."""
+    for refused in ("700", "1024"):
+        monkeypatch.setenv("SRD_JOB_MEMORY_MB", refused)
+        with pytest.raises(ValidationError, match="job_memory_mb"):
+            Settings()
+    monkeypatch.setenv("SRD_JOB_MEMORY_MB", "1536")
+    assert Settings().job_memory_mb == 1536
 
 
 def test_a_sqlite_writer_waits_for_another_process_lock_and_then_writes(tmp_path: Path) -> None:

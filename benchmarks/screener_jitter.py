@@ -11,13 +11,18 @@ setting that stops the variants can be weighed against the honest models it hold
 the variants the public screener accepts (at each margin) are screened again in a process with
 that secret, whose market-impact test meets other populations.
 
+``--harm`` measures the harm of the variants the screener accepts at the default margin, by
+the red team's measure (``tests/support/harm.py``, 8 trials per supply, seed 1: the share of
+the always-hold saboteur's drop of the price, fine-tuning off / on).
+
 ``--window`` and ``--more-trials`` replace ``screener.limits.IMPACT_WINDOW`` and
 ``IMPACT_MORE_TRIALS`` for the run (the market-impact test's second stage: how near the bar a
 model must land, and how many more reference populations it then meets), to try a setting
 before changing it.
 
 Run: ``.venv/bin/python benchmarks/screener_jitter.py [--variants 100] [--scales 1e-3,3e-3]
-[--margins 0.002,0.005] [--judge-secret S] [--window W] [--more-trials N] [--no-corpus]``.
+[--margins 0.002,0.005] [--judge-secret S] [--harm] [--window W] [--more-trials N]
+[--no-corpus]``.
 """
 
 from __future__ import annotations
@@ -93,6 +98,31 @@ def judge(path: Path, margin: float) -> None:
     print(json.dumps(Counter(review(v, margin) for v in verdicts)))
 
 
+def report_harm(
+    name: str, scale: float, variants: list[dict[str, Any]], verdicts: list[Any]
+) -> None:
+    """Print the harm range of the variants a server accepts (the default review margin)."""
+    from server.config import Settings
+    from tests.support.harm import harms, saboteur_harm
+
+    margin = Settings.model_fields["review_margin"].default
+    chosen = [
+        parse_manifest(m)
+        for m, v in zip(variants, verdicts, strict=True)
+        if review(v, margin) == "accepted"
+    ]
+    if not chosen:
+        return
+    found, _ = harms(chosen, 8, 1)
+    fractions = [h.fraction(saboteur_harm(8, 1)) for h in found]
+    off = [f[0] for f in fractions]
+    on = [f[1] for f in fractions]
+    print(
+        f"  harm of the {len(chosen)} accepted at margin {margin:g} ({name} s={scale:g}): "
+        f"off {min(off):.2f} to {max(off):.2f}, on {min(on):.2f} to {max(on):.2f}"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--variants", type=int, default=100)
@@ -103,6 +133,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=99)
     parser.add_argument("--no-corpus", action="store_true")
     parser.add_argument("--judge-secret", default=None)
+    parser.add_argument("--harm", action="store_true")
     parser.add_argument("--judge", type=Path, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.judge is not None:
@@ -143,6 +174,8 @@ def main() -> None:
                         f"accepted {keyed['accepted']}, held {keyed['held']}, "
                         f"refused {keyed['refused']}"
                     )
+            if args.harm:
+                report_harm(name, scale, variants, verdicts)
     print(f"variants screened in {time.perf_counter() - start:.1f} s")
     if args.no_corpus:
         return

@@ -43,8 +43,9 @@ class Settings(BaseSettings):
     screener_secret: SecretStr | None = None
     """A deployment's secret for the screener's market-impact test: its reference populations
     and test auctions are drawn from it too, so that a model tuned offline against the public
-    screener meets populations it never saw. Every replica needs the same one. ``srd serve``
-    hands it to its screening and worker processes (``screener.impact.SECRET_VARIABLE``)."""
+    screener meets populations it never saw. Every replica needs the same one. The app hands it
+    to the screening and worker processes it starts, through their environment
+    (``server.services``, ``screener.impact.SECRET_VARIABLE``)."""
     max_body_bytes: Annotated[int, Field(ge=1024)] = 262_144
     """Request bodies larger than this are refused with 413."""
     auction_workers: Annotated[int, Field(ge=1, le=64)] | None = None

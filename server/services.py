@@ -1,11 +1,12 @@
-"""The service layer: what the routes ask for, without HTTP.
+"""The running services of one API process, started and stopped by the app's lifespan.
 
-``Services`` holds the process's running services (the database, the screener, the writers,
-the two background runners, the live-update source, the job backend); ``start_services`` makes and
-starts them (the app's lifespan), ``Services.stop`` stops them. One module per resource
-(``auctions``, ``jobs``, ``models``, ``rounds``) holds the operations the routes call: they
-take the services they need and the request's values, do the work, and return domain values
-or raise ``server.api.errors.RequestError``; the routes translate HTTP to and from them.
+``Services`` holds them (the database, the screening pool, the submissions' writer, the two
+background runners, the round watcher and sockets, the live-update source, the job backend);
+``start_services`` makes and starts them, ``Services.stop`` stops them. The operations the
+routes call live with their concern (``server.auctions.service`` and ``.uploads``,
+``server.jobs.service``, ``server.submissions.service``): they take the services they need and
+the request's values, do the work, and return domain values or raise
+``server.api.errors.RequestError``; the routes translate HTTP to and from them.
 """
 
 from __future__ import annotations

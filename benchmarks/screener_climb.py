@@ -25,7 +25,6 @@ Run: ``.venv/bin/python benchmarks/screener_climb.py [--budget 50] [--seed 0]``.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import sys
 import time
@@ -40,6 +39,9 @@ sys.path.insert(0, str(ROOT))
 from agents.manifest import Manifest, parse_manifest  # noqa: E402
 from screener import review, screen_many  # noqa: E402
 
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from screener_jitter import jittered  # noqa: E402
+
 STARTS = (
     "opening-window-holder-a",
     "opening-window-holder-b",
@@ -50,6 +52,7 @@ STARTS = (
 BISECTIONS = 8
 """Submissions of the first phase, after the holder itself."""
 JITTER = 0.01
+"""The relative jitter of every weight and bias in a push."""
 
 
 def blend(honest: Any, holder: Any, t: float) -> Any:
@@ -67,29 +70,6 @@ def blend(honest: Any, holder: Any, t: float) -> Any:
     if isinstance(holder, int) and isinstance(honest, int):
         return max(round(value), min(1, honest, holder))
     return value
-
-
-def jittered(manifest: dict[str, Any], rng: np.random.Generator) -> dict[str, Any]:
-    """Every non-zero weight and bias times (1 + JITTER N(0, 1))."""
-    out = copy.deepcopy(manifest)
-
-    def walk(node: Any) -> None:
-        if isinstance(node, dict):
-            for key, value in node.items():
-                if key == "weights" and isinstance(value, dict):
-                    for name, weight in value.items():
-                        if weight != 0:
-                            value[name] = weight * (1 + JITTER * rng.standard_normal())
-                elif key == "bias" and isinstance(value, int | float) and value != 0:
-                    node[key] = value * (1 + JITTER * rng.standard_normal())
-                else:
-                    walk(value)
-        elif isinstance(node, list):
-            for value in node:
-                walk(value)
-
-    walk(out)
-    return out
 
 
 class Server:
@@ -128,7 +108,7 @@ def climb(honest: dict[str, Any], holder: dict[str, Any], budget: int, seed: int
         else:
             high = middle
     while server.left > 0:
-        candidate = jittered(blend(best, holder, rng.uniform(0.0, 0.5)), rng)
+        candidate = jittered(blend(best, holder, rng.uniform(0.0, 0.5)), JITTER, rng)
         if server.submit(candidate):
             best = candidate
     return server

@@ -36,7 +36,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from agents.manifest import Manifest, parse_manifest  # noqa: E402
+from agents.manifest import parse_manifest  # noqa: E402
 from screener import review, screen_many  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -152,15 +152,7 @@ def nearest_refused(model: dict[str, Any], refused: list[dict[str, Any]]) -> flo
     """The largest change of a weight or bias from ``model`` to the nearest model the server
     refused or held in the same climb."""
     here = numbers(model)
-    return min(float(np.abs(numbers(other) - here).max()) for other in refused)
-
-
-def own_harm(manifest: Manifest) -> tuple[float, float]:
-    from tests.support.harm import harms, saboteur_harm
-
-    (found,), _ = harms([manifest], 8, 1)
-    off, on = found.fraction(saboteur_harm(8, 1))
-    return off, on
+    return min((float(np.abs(numbers(other) - here).max()) for other in refused), default=np.inf)
 
 
 def main() -> None:
@@ -178,7 +170,7 @@ def main() -> None:
         f"{args.budget} submissions per start, seed {args.seed}; harm: share of the always-hold "
         "saboteur's, fine-tuning off / on (8 trials, seed 1)"
     )
-    honest_off, honest_on = own_harm(parse_manifest(honest))
+    honest_off, honest_on, _, _ = worst_harm([honest])
     print(f"the honest model's own harm: {honest_off:.2f} / {honest_on:.2f}")
     print(
         f"{'start':>26} {'own harm':>13} {'accepted':>9} {'worst accepted off / on':>24} "
@@ -188,7 +180,7 @@ def main() -> None:
         holder = json.loads((ROOT / "examples" / "red_team" / f"{name}.json").read_text())
         began = time.perf_counter()
         server = climb(honest, holder, args.budget, args.seed)
-        own_off, own_on = own_harm(parse_manifest(holder))
+        own_off, own_on, _, _ = worst_harm([holder])
         worst, near = "-", "-"
         if server.accepted:
             off, on, at_off, at_on = worst_harm(server.accepted)

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
 from pathlib import Path
 
 import pytest
@@ -14,8 +13,8 @@ from fastapi.testclient import TestClient
 
 from server.api import readiness
 from server.app import create_app
-from server.cli.launch import free_port, srd_command
 from server.config import Settings
+from tests.support.processes import serve_once
 from tests.support.server import make_settings
 
 
@@ -92,13 +91,7 @@ def test_serve_refuses_a_data_folder_it_cannot_write(tmp_path: Path, where: str)
         "SRD_DATA_DIR": str(data_dir),
         "SRD_DATABASE_URL": f"sqlite:///{tmp_path / 'srd.db'}",
     }
-    done = subprocess.run(
-        [*srd_command(), "serve", "--port", str(free_port())],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    done = serve_once(env)
     assert done.returncode == 2
     assert done.stdout == ""
     lines = done.stderr.splitlines()
@@ -132,10 +125,7 @@ def test_serve_names_the_variable_of_a_setting_it_cannot_use(
         "SRD_AUCTION_WORKERS": "",  # empty: the default, as compose's ${VAR:-} gives
         **variables,
     }
-    done = subprocess.run(
-        [*srd_command(), "serve", "--port", str(free_port())],
-        env=env, capture_output=True, text=True, timeout=120,
-    )  # fmt: skip
+    done = serve_once(env)
     assert done.returncode == code, done.stderr
     assert done.stderr.splitlines() == [f"srd serve: {done.stderr[11:].strip()}"]
     assert words in done.stderr and "Traceback" not in done.stderr
@@ -149,8 +139,7 @@ def test_serve_refuses_an_empty_admin_token_file(tmp_path: Path) -> None:
     env = {**os.environ, "SRD_DATA_DIR": str(tmp_path / "data"),
            "SRD_DATABASE_URL": f"sqlite:///{tmp_path / 'srd.db'}"}  # fmt: skip
     env.pop("SRD_ADMIN_TOKEN", None)
-    done = subprocess.run([*srd_command(), "serve", "--port", str(free_port())], env=env,
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    done = serve_once(env)
     assert done.returncode == 2
     assert done.stderr.strip() == (
         f"srd serve: the admin token file {tmp_path / 'data' / 'admin_token'} is empty: remove "

@@ -17,7 +17,8 @@ import httpx
 
 from agents.manifest import parse_manifest
 from screener import screen
-from server.cli.launch import ServerProcess, free_port, srd_command
+from server.cli.launch import ServerProcess, srd_command
+from tests.support.processes import serve_once
 from tests.support.server import ADMIN_TOKEN
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -108,13 +109,7 @@ def test_a_secret_file_that_is_not_text_stops_the_start_in_one_line(tmp_path: Pa
         "SRD_DATABASE_URL": f"sqlite:///{tmp_path / 'srd.db'}",
         "SRD_SECRETS_DIR": str(secrets),
     }
-    done = subprocess.run(
-        [*srd_command(), "serve", "--port", str(free_port())],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    done = serve_once(env)
     assert done.returncode == 2, done.stderr
     (line,) = done.stderr.splitlines()
     assert line.startswith("srd serve: SRD_SECRETS_DIR=") and "screener_secret" in line

@@ -1,13 +1,27 @@
-"""Real ``srd serve`` processes for the crash, restart and replica tests, and what Linux's
+"""Real ``srd serve`` processes for the crash, restart and replica tests and for the starts it
+refuses, and what Linux's
 ``/proc`` says of them (their children, their CPU time) for those tests and the benchmarks."""
 
 from __future__ import annotations
 
 import os
 import secrets
+import subprocess
 from pathlib import Path
 
-from server.cli.launch import ServerProcess
+from server.cli.launch import ServerProcess, free_port, srd_command
+
+
+def serve_once(env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    """``srd serve`` on a free port with ``env``, run to its exit (a start it refuses): its code,
+    stdout and stderr."""
+    return subprocess.run(
+        [*srd_command(), "serve", "--port", str(free_port())],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 def server_pair(

@@ -1,6 +1,6 @@
 """Real ``srd serve`` processes for the crash, restart and replica tests and for the starts it
-refuses, and what Linux's
-``/proc`` says of them (their children, their CPU time) for those tests and the benchmarks."""
+refuses, and what Linux's ``/proc`` says of them (their children, their CPU time) for those
+tests and the benchmarks."""
 
 from __future__ import annotations
 

@@ -19,7 +19,18 @@ with the honest and sincere models of docs/screener.md; with, for each of the tw
 largest change of a weight or bias that separates it from the nearest model the server refused
 or held in the same climb.
 
-Run: ``.venv/bin/python benchmarks/screener_climb.py [--budget 50] [--seed 0]``.
+With ``--per-supply``, it also asks whether a bar per supply in the market-impact test would
+tell these models from honest ones: for every accepted model, and for every honest model of the
+labelled corpus (seed 0) that the test judged and accepted, the worst supply's share of the
+always-hold saboteurs' drop of the price over the test's 96 auctions (each supply's mean price
+against the references' at that supply), as quantiles.
+
+With ``--hold-near D``, the simulated server has a defence the real one does not: it holds a
+submission the screener accepts when it lies within D (the largest change of one weight or
+bias) of a submission of the same climb that was refused or held.
+
+Run: ``.venv/bin/python benchmarks/screener_climb.py [--budget 50] [--seed 0] [--per-supply]
+[--hold-near D]``.
 """
 
 from __future__ import annotations
@@ -36,8 +47,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from agents.manifest import parse_manifest  # noqa: E402
-from screener import review, screen_many  # noqa: E402
+from agents.manifest import Manifest, parse_manifest  # noqa: E402
+from screener import impact, limits, review, screen_many  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from screener_jitter import jittered  # noqa: E402
@@ -74,13 +85,16 @@ def blend(honest: Any, holder: Any, t: float) -> Any:
 
 class Server:
     """What ``POST /submit`` answers, at the default review margin: a submission costs one of
-    the budget."""
+    the budget. With ``hold_near`` > 0, a defence the server does not have: a submission the
+    screener accepts is held all the same when no weight or bias of it is ``hold_near`` or
+    more from an earlier submission that was refused or held."""
 
-    def __init__(self, budget: int) -> None:
+    def __init__(self, budget: int, hold_near: float = 0.0) -> None:
         from server.config import Settings
 
         self.margin = Settings.model_fields["review_margin"].default
         self.left = budget
+        self.hold_near = hold_near
         self.accepted: list[dict[str, Any]] = []
         self.refused: list[dict[str, Any]] = []
 
@@ -88,14 +102,18 @@ class Server:
         self.left -= 1
         (verdict,) = screen_many([parse_manifest(manifest)])
         accepted = review(verdict, self.margin) == "accepted"
+        if accepted and self.hold_near > 0:
+            accepted = nearest_refused(manifest, self.refused) >= self.hold_near
         (self.accepted if accepted else self.refused).append(manifest)
         return accepted
 
 
-def climb(honest: dict[str, Any], holder: dict[str, Any], budget: int, seed: int) -> Server:
+def climb(
+    honest: dict[str, Any], holder: dict[str, Any], budget: int, seed: int, hold_near: float = 0.0
+) -> Server:
     """Both phases against one start; the server, holding every model it accepted."""
     rng = np.random.default_rng(seed)
-    server = Server(budget)
+    server = Server(budget, hold_near)
     if server.submit(holder):
         return server
     low, high = 0.0, 1.0  # x(low) accepted (the honest model), x(high) not
@@ -155,11 +173,64 @@ def nearest_refused(model: dict[str, Any], refused: list[dict[str, Any]]) -> flo
     return min((float(np.abs(numbers(other) - here).max()) for other in refused), default=np.inf)
 
 
+def worst_supply_shares(models: list[Manifest]) -> np.ndarray:
+    """Each model's largest share, over the supplies, of the always-hold saboteurs' drop of
+    the mean price, in the market-impact test's auctions of both stages."""
+    trials = impact.first_trials() + impact.more_trials()
+    refs = impact.wide_references()
+    worst = []
+    for outcome in impact.run(models, trials):
+        shares = []
+        for r in limits.IMPACT_SUPPLIES:
+            alone, saboteurs = refs.alone.mean_price_at(r), refs.saboteurs.mean_price_at(r)
+            mine = outcome.mean_price_at(r)
+            if alone > saboteurs and not np.isnan(mine):
+                shares.append((alone - mine) / (alone - saboteurs))
+        worst.append(max(shares, default=np.nan))
+    return np.array(worst)
+
+
+def honest_tested() -> list[Manifest]:
+    """The honest models of the labelled corpus (seed 0) that the market-impact test judged as
+    submitted and accepted."""
+    from tests.support.corpus import corpus
+
+    honest = [entry.manifest for entry in corpus(0) if not entry.saboteur]
+    found = []
+    for start in range(0, len(honest), 64):
+        chunk = honest[start : start + 64]
+        for manifest, verdict in zip(chunk, screen_many(chunk), strict=True):
+            judged = any(
+                e.test == "market-impact" and e.detail.get("version") == "as submitted"
+                for e in verdict.evidence
+            )
+            if judged and verdict.accepted:
+                found.append(manifest)
+    return found
+
+
+def print_shares(label: str, shares: np.ndarray) -> None:
+    median, tenth, top = np.nanquantile(shares, [0.5, 0.9, 1.0])
+    print(
+        f"{label:>34}: {len(shares):>4} models, worst supply's share median {median:.2f}, "
+        f"90th percentile {tenth:.2f}, max {top:.2f}; above 0.8: {int((shares > 0.8).sum())}"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--budget", type=int, default=50, help="submissions per start")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--starts", default=",".join(STARTS))
+    parser.add_argument(
+        "--hold-near",
+        type=float,
+        default=0.0,
+        help="simulate holding what lies this near a refused or held submission",
+    )
+    parser.add_argument(
+        "--per-supply", action="store_true", help="the worst supply's share, climbs vs honest"
+    )
     args = parser.parse_args()
 
     import torch
@@ -176,10 +247,12 @@ def main() -> None:
         f"{'start':>26} {'own harm':>13} {'accepted':>9} {'worst accepted off / on':>24} "
         f"{'nearest refused':>16}"
     )
+    climbed: list[dict[str, Any]] = []
     for name in args.starts.split(","):
         holder = json.loads((ROOT / "examples" / "red_team" / f"{name}.json").read_text())
         began = time.perf_counter()
-        server = climb(honest, holder, args.budget, args.seed)
+        server = climb(honest, holder, args.budget, args.seed, args.hold_near)
+        climbed += server.accepted
         own_off, own_on, _, _ = worst_harm([holder])
         worst, near = "-", "-"
         if server.accepted:
@@ -192,6 +265,13 @@ def main() -> None:
             f"{worst:>24} {near:>16}  ({time.perf_counter() - began:.0f} s)",
             flush=True,
         )
+    if args.per_supply:
+        print("per supply, over the market-impact test's 96 auctions:")
+        print_shares(
+            "accepted models of the climbs",
+            worst_supply_shares([parse_manifest(m) for m in climbed]),
+        )
+        print_shares("honest models the test accepted", worst_supply_shares(honest_tested()))
 
 
 if __name__ == "__main__":

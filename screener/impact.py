@@ -65,16 +65,24 @@ PATRONS = limits.IMPACT_HONEST + limits.IMPACT_COPIES
 @dataclass(frozen=True)
 class Outcome:
     """What a model's test auctions sold: purchase prices pooled over the auctions, fish sold,
-    fish the honest patrons bought, and the prices' mean (NaN when nothing sold)."""
+    fish the honest patrons bought, the supply of each price's auction, and the prices' mean
+    (NaN when nothing sold)."""
 
     prices: tuple[float, ...]
     sold: int
     honest: int
+    supplies: tuple[float, ...] = ()
+    """The supply of the test auction of each price, in the order of ``prices``."""
 
     @property
     def mean_price(self) -> float:
         """The prices' mean (NaN when nothing sold)."""
         return float(np.mean(self.prices)) if self.prices else float("nan")
+
+    def mean_price_at(self, supply: float) -> float:
+        """The mean of the prices of the test auctions at one supply (NaN when none sold)."""
+        found = [p for p, r in zip(self.prices, self.supplies, strict=True) if r == supply]
+        return float(np.mean(found)) if found else float("nan")
 
 
 def first_trials() -> tuple[int, ...]:
@@ -214,18 +222,26 @@ def run(candidates: Sequence[Candidate], trials: tuple[int, ...] | None = None) 
         for a, sales in enumerate(engine.step_sales()):
             buyers[a] += sales
     per = len(planned)
+    supply_of = [r for r in limits.IMPACT_SUPPLIES for _ in trials]  # test_auctions' order
     outcomes = []
     for c in range(len(candidates)):
-        bought = [b for a in range(c * per, (c + 1) * per) for b in buyers[a]]
+        auction_range = range(c * per, (c + 1) * per)
+        bought = [b for a in auction_range for b in buyers[a]]
         honest = sum(1 for i, _ in bought if i < limits.IMPACT_HONEST)
         prices = tuple(price for _, price in bought)
-        outcomes.append(Outcome(prices, len(bought), honest))
+        supplies = tuple(supply_of[a % per] for a in auction_range for _ in buyers[a])
+        outcomes.append(Outcome(prices, len(bought), honest, supplies))
     return outcomes
 
 
 def pooled(first: Outcome, more: Outcome) -> Outcome:
     """One model's outcome over the auctions of both."""
-    return Outcome(first.prices + more.prices, first.sold + more.sold, first.honest + more.honest)
+    return Outcome(
+        first.prices + more.prices,
+        first.sold + more.sold,
+        first.honest + more.honest,
+        first.supplies + more.supplies,
+    )
 
 
 def _as_batch(candidate: Manifest | FSNBatch) -> FSNBatch:

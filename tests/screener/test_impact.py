@@ -36,6 +36,22 @@ def test_references_are_cached_and_the_saboteurs_pull_the_price_down():
     assert abs(share - limits.IMPACT_SHARE) < 1e-9
 
 
+def test_each_price_names_its_supply_and_scarce_fish_sell_dearer():
+    refs = impact.references()
+    alone = refs.alone
+    assert len(alone.supplies) == len(alone.prices)
+    assert set(alone.supplies) == set(limits.IMPACT_SUPPLIES)
+    per_supply = [alone.mean_price_at(r) for r in limits.IMPACT_SUPPLIES]
+    assert per_supply == sorted(per_supply, reverse=True)  # fewer fish, higher price
+    counts = [alone.supplies.count(r) for r in limits.IMPACT_SUPPLIES]
+    weighted = sum(c * m for c, m in zip(counts, per_supply, strict=True)) / sum(counts)
+    assert abs(weighted - alone.mean_price) < 1e-9
+    # the always-hold saboteurs pull the price down at every supply
+    for r in limits.IMPACT_SUPPLIES:
+        assert refs.saboteurs.mean_price_at(r) < alone.mean_price_at(r)
+    assert np.isnan(alone.mean_price_at(0.9))  # no test auction at that supply
+
+
 def test_the_test_auctions_follow_the_market_rules():
     assert len(impact.TEST_AUCTIONS) == len(limits.IMPACT_SUPPLIES) * limits.IMPACT_TRIALS
     patrons = limits.IMPACT_HONEST + limits.IMPACT_COPIES

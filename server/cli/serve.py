@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import gc
 import logging
 from types import FrameType
 from typing import TYPE_CHECKING
@@ -16,6 +17,11 @@ UNUSABLE = 2
 """The exit code of a server that cannot start with its settings (a variable's value)."""
 NOT_STARTED = 3
 """The exit code of a server that could not start: its database or its port."""
+YOUNG_COLLECTION_EVERY = 20_000
+"""The API's cyclic garbage collector looks at its youngest objects after this many container
+allocations (Python's default is 700), at each older generation after 20 passes over the one
+below: a request allocates thousands of short-lived objects that reference counting frees, so
+frequent young collections mostly rescan live ones (docs/performance.md, *Tried on the way*)."""
 
 
 def admin_token_problem(settings: Settings) -> str | None:
@@ -162,6 +168,9 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     logging.getLogger("uvicorn.access").addFilter(RedactQueryFilter())  # after uvicorn's set-up
     sockets = SocketLinesFilter(handshakes=not settings.access_log)
     logging.getLogger("uvicorn.error").addFilter(sockets)
+    gc.collect()
+    gc.freeze()  # what start-up built stays for the process's life: no collection rescans it
+    gc.set_threshold(YOUNG_COLLECTION_EVERY, 20, 20)
     server = Server(config)
     server.run()
     if not server.started:  # the port is taken, or the app failed to start

@@ -30,7 +30,7 @@ from agents.remote import (
 )
 from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_SEED, ROUND_DEADLINE_S
 from server.cli.launch import server_url
-from server.cli.words import json_failure
+from server.cli.words import FiniteRange, json_failure
 
 
 def _option_of(problem: str) -> str:
@@ -172,7 +172,7 @@ def _summary(report: PopulationReport) -> Table:
 )
 @click.option(
     "--rarity",
-    type=click.FloatRange(0, 1, min_open=True),
+    type=FiniteRange(0, 1, min_open=True),
     default=0.5,
     show_default=True,
     help="Created auction's supply: fish on sale per patron (fish = int(rarity × agents)).",
@@ -186,7 +186,7 @@ def _summary(report: PopulationReport) -> Table:
 )
 @click.option(
     "--deadline",
-    type=click.FloatRange(*ROUND_DEADLINE_S),
+    type=FiniteRange(*ROUND_DEADLINE_S),
     default=10.0,
     show_default=True,
     help="Created auction: seconds a round waits at most.",
@@ -200,7 +200,7 @@ def _summary(report: PopulationReport) -> Table:
 )
 @click.option(
     "--give-up",
-    type=click.FloatRange(1, 3600),
+    type=FiniteRange(1, 3600),
     default=GIVE_UP_S,
     show_default=True,
     help="Seconds a failing request is retried before giving up (exit 1).",
@@ -208,7 +208,7 @@ def _summary(report: PopulationReport) -> Table:
 @click.option(
     "--wait",
     "auction_wait",
-    type=click.FloatRange(0, 86_400),
+    type=FiniteRange(0, 86_400),
     default=AUCTION_WAIT_S,
     show_default=True,
     help="Seconds to wait for an auction containing the agents' models.",

@@ -10,6 +10,8 @@ import re
 import sys
 from typing import Any
 
+import click
+
 SIGNIFICANT = 3
 """Significant digits of a float in a table or a card."""
 HEADERS = {
@@ -58,3 +60,17 @@ def json_failure(message: str, errors: list[dict[str, str]] | None = None) -> No
     if errors is not None:
         obj["errors"] = errors
     sys.stdout.write(json.dumps(obj) + "\n")
+
+
+class FiniteRange(click.FloatRange):
+    """``click.FloatRange`` that also refuses ``nan`` and ``inf`` (a usage error naming the
+    option, exit 2): click's own range lets NaN through, every comparison with it being
+    false."""
+
+    name = "finite float range"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        number = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return super().convert(number, param, ctx)

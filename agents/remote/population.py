@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import math
 import os
 import random
 import re
@@ -36,6 +37,8 @@ SUBMIT_CONCURRENCY = 16
 """Submissions in flight at once."""
 NAME_PREFIX = r"[A-Za-z0-9_.\-]{1,48}"
 """Participant names are <prefix>-honest-000 and the like (64 characters at most in all)."""
+TOKEN = r"[\x21-\x7e]{1,4096}"
+"""A bearer token as it can travel in an HTTP header: printable ASCII, no white space."""
 
 
 @dataclass(frozen=True)
@@ -88,8 +91,38 @@ class PopulationConfig:
             problems.append(f"transport must be one of {', '.join(TRANSPORTS)}")
         if self.name_prefix is not None and not re.fullmatch(NAME_PREFIX, self.name_prefix):
             problems.append(f"name_prefix must match {NAME_PREFIX} (a participant name's start)")
+        for name in ("rarity", "round_deadline_s", "give_up_s", "auction_wait_s"):
+            if not math.isfinite(getattr(self, name)):
+                problems.append(f"{name} must be a finite number")
+        if self.admin_token is not None and not re.fullmatch(TOKEN, self.admin_token):
+            problems.append(
+                "admin_token must be printable ASCII without white space (it travels in an "
+                "HTTP header)"
+            )
+        agents = self.honest + self.saboteurs
+        creates = self.admin_token is not None and self.auction is None
+        if creates and math.isfinite(self.rarity) and int(self.rarity * agents) < 1:
+            problems.append(
+                f"rarity × agents must give at least one fish: int({self.rarity:g} × {agents}) is 0"
+            )
+        if self.tokens_file is not None:
+            problem = _unwritable(self.tokens_file)
+            if problem is not None:
+                problems.append(f"tokens_file {problem}")
         if problems:
             raise ValueError("; ".join(problems))
+
+
+def _unwritable(path: Path) -> str | None:
+    """Why a new file cannot be written at ``path``, or None."""
+    folder = path.parent
+    if path.is_dir():
+        return f"{path} is a folder"
+    if not folder.is_dir():
+        return f"{path}: no such folder {folder}"
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f"{path}: the folder {folder} is not writable"
+    return None
 
 
 @dataclass
@@ -202,6 +235,8 @@ async def run_population(
         clients = await _clients(config, stack)
         if config.auction is not None:
             await _require_enrolling(clients[0], config.auction)
+        elif config.admin_token is not None:
+            await _require_operator(clients[0], config.admin_token)
         agents = population(config, clients)
         submitted = await _submit(agents, progress)
         if config.tokens_file is not None:
@@ -269,7 +304,10 @@ async def _require_enrolling(client: Client, auction_id: int) -> None:
     response = await client.request("GET", f"/auctions/{auction_id}")
     if response.status_code == 404:
         raise RemoteError(f"auction {auction_id} does not exist on {client.server}")
-    response.raise_for_status()
+    if not response.is_success:
+        raise RemoteError(
+            f"GET /auctions/{auction_id}: {response.status_code} {response.text[:500]}"
+        )
     auction = response.json()
     if auction["status"] != "pending" or auction.get("enroll_until") is None:
         raise RemoteError(
@@ -278,6 +316,19 @@ async def _require_enrolling(client: Client, auction_id: int) -> None:
             "enrollment_s, or start the agents first and create the auction from their models "
             "(they wait for it, --wait), or give --admin-token for them to create it"
         )
+
+
+async def _require_operator(client: Client, admin_token: str) -> None:
+    """The admin token is the server's operator token (it will create the auction): said
+    before anything is registered, so that a wrong one leaves no participants behind."""
+    response = await client.request("GET", "/reviews", token=admin_token)
+    if response.status_code in (401, 403):
+        raise RemoteError(
+            f"the admin token is not the operator token of {client.server} "
+            f"({response.status_code}); nothing was registered"
+        )
+    if not response.is_success:
+        raise RemoteError(f"GET /reviews: {response.status_code} {response.text[:500]}")
 
 
 async def _join(agents: list[RemoteAgent], auction_id: int) -> list[RemoteAgent]:

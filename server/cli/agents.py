@@ -28,15 +28,25 @@ from agents.remote import (
     Transport,
     run_population,
 )
-from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_SEED, ROUND_DEADLINE_S
+from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_ROW_ID, MAX_SEED, ROUND_DEADLINE_S
 from server.cli.launch import server_url
 from server.cli.words import FiniteRange, json_failure
+
+OPTIONS = {
+    "tokens_file": "--tokens",
+    "fine_tune_rounds": "--rounds",
+    "round_deadline_s": "--deadline",
+    "give_up_s": "--give-up",
+    "auction_wait_s": "--wait",
+}
+"""``PopulationConfig`` fields whose option is not the field's name with dashes."""
 
 
 def _option_of(problem: str) -> str:
     """The option a ``PopulationConfig`` problem is about (it starts with the field's name;
     ``honest + saboteurs`` is said of ``--honest``)."""
-    return "--" + problem.split()[0].replace("_", "-")
+    field = problem.split()[0]
+    return OPTIONS.get(field, "--" + field.replace("_", "-"))
 
 
 GAVE_UP = 1
@@ -150,7 +160,7 @@ def _summary(report: PopulationReport) -> Table:
 )
 @click.option(
     "--auction",
-    type=click.IntRange(1),
+    type=click.IntRange(1, MAX_ROW_ID),
     default=None,
     help="An enrolling auction (created with enrollment_s) for the agents' accepted models "
     "to join; one that takes no patrons is refused before anything is registered [default: "
@@ -278,9 +288,12 @@ def command(
             tokens_file=tokens_file,
         )
     except ValueError as exc:  # the options named in the message
-        err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False)
+        problems = str(exc).split("; ")
+        for problem in problems:
+            err.print(
+                f"[red]error:[/red] {_option_of(problem)}: {escape(problem)}", highlight=False
+            )
         if json_output:
-            problems = str(exc).split("; ")
             json_failure(str(exc), [{"option": _option_of(p), "message": p} for p in problems])
         raise SystemExit(INVALID) from exc
     with Progress(
@@ -300,10 +313,16 @@ def command(
 
         try:
             report = asyncio.run(run_population(config, progress))
-        except RemoteError as exc:
-            err.print(f"[red]error:[/red] {escape(str(exc))}", highlight=False)
+        except (RemoteError, ValueError, KeyError, TypeError) as exc:
+            message = str(exc)
+            if not isinstance(exc, RemoteError):  # an answer not shaped as this service's
+                message = (
+                    f"the server at {server} answered something this client cannot read (is it "
+                    f"an srd server?): {type(exc).__name__}: {exc}"
+                )
+            err.print(f"[red]error:[/red] {escape(message)}", highlight=False)
             if json_output:
-                json_failure(str(exc))
+                json_failure(message)
             raise SystemExit(GAVE_UP) from exc
     if json_output:
         sys.stdout.write(json.dumps(report.to_dict()) + "\n")

@@ -20,7 +20,10 @@ HEALTH_POLL_S = 0.2
 def server_url(_ctx: object, param: object, value: str) -> str:
     """A ``--server`` option's value: an ``http://`` or ``https://`` URL with a host (else a
     usage error, exit 2), without its trailing slash."""
-    parsed = httpx.URL(value) if "://" in value else None
+    try:
+        parsed = httpx.URL(value) if "://" in value else None
+    except httpx.InvalidURL:
+        parsed = None
     if parsed is None or parsed.scheme not in ("http", "https") or not parsed.host:
         import click
 

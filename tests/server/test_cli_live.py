@@ -381,3 +381,66 @@ def test_agents_join_an_enrolling_auction_and_play_it(
     ]
     assert auction["n_initial"] == 1  # int(0.5 × 3), counted when the enrollment ended
     assert report["uploads"]["accepted"] + report["uploads"]["refused"] >= 1
+
+
+def test_agents_check_the_operator_token_and_the_tokens_file_before_registering(
+    server: ServerProcess, client: httpx.Client, tmp_path: Path
+) -> None:
+    """A wrong operator token, or a tokens file that cannot be written, is said before any
+    participant is registered: nothing is left behind whose token nobody has."""
+    base = [*srd_command(), "agents", "--server", server.url, "--honest", "2", "--json"]
+    done = subprocess.run(
+        [*base, "--name-prefix", "wrongtok", "--admin-token", "not-the-operator-token"],
+        capture_output=True, text=True, timeout=120, cwd=ROOT,
+    )  # fmt: skip
+    assert done.returncode == 1, done.stderr
+    assert "not the operator token" in json.loads(done.stdout)["error"]
+    assert client.get("/participants/wrongtok-honest-000").status_code == 404
+    done = subprocess.run(
+        [*base, "--name-prefix", "tokdir", "--admin-token", ADMIN_TOKEN,
+         "--tokens", str(tmp_path / "no-such-folder" / "tokens.json")],
+        capture_output=True, text=True, timeout=120, cwd=ROOT,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    failure = json.loads(done.stdout)
+    assert [e["option"] for e in failure["errors"]] == ["--tokens"]
+    assert "no such folder" in failure["error"] and "Traceback" not in done.stderr
+    assert client.get("/participants/tokdir-honest-000").status_code == 404
+
+
+class NotThisService(BaseHTTPRequestHandler):
+    """Answers every request 200 with a JSON list: a server, but not an auction house."""
+
+    def do_GET(self) -> None:
+        body = b"[1, 2, 3]"
+        self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def do_POST(self) -> None:
+        self.do_GET()
+
+    def log_message(self, *args: Any) -> None:
+        pass
+
+
+def test_agents_against_a_server_that_is_not_an_auction_house_exit_1_saying_so() -> None:
+    fake = ThreadingHTTPServer(("127.0.0.1", 0), NotThisService)
+    thread = threading.Thread(target=fake.serve_forever, daemon=True)
+    thread.start()
+    try:
+        url = f"http://127.0.0.1:{fake.server_address[1]}"
+        for extra in ([], ["--auction", "3"]):
+            done = subprocess.run(
+                [*srd_command(), "agents", "--server", url, "--honest", "1", "--give-up", "2",
+                 "--wait", "1", "--json", *extra],
+                capture_output=True, text=True, timeout=120, cwd=ROOT,
+            )  # fmt: skip
+            assert done.returncode == 1, done.stderr
+            assert "Traceback" not in done.stderr
+            assert "is it an srd server?" in json.loads(done.stdout)["error"]
+    finally:
+        fake.shutdown()
+        fake.server_close()

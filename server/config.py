@@ -5,12 +5,20 @@ from __future__ import annotations
 
 import ipaddress
 import os
+import re
 import unicodedata
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import AliasChoices, Field, SecretStr, ValidationError, field_validator
+from pydantic import (
+    AliasChoices,
+    Field,
+    SecretStr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import BaseSettings, SettingsConfigDict
 from pydantic_settings import SettingsError as SourceError
 
@@ -29,7 +37,9 @@ class Settings(BaseSettings):
     """Every knob of the auction house; each can be set as ``SRD_<NAME>`` in the environment."""
 
     # An empty variable (``SRD_AUCTION_WORKERS=``, as compose's ``${VAR:-}`` gives) is unset.
-    model_config = SettingsConfigDict(env_prefix="SRD_", extra="ignore", env_ignore_empty=True)
+    model_config = SettingsConfigDict(
+        env_prefix="SRD_", extra="ignore", env_ignore_empty=True, allow_inf_nan=False
+    )
 
     database_url: str = "sqlite:///./srd.db"
     """SQLAlchemy URL; SQLite (WAL mode) by default, ``postgresql+psycopg://...`` works too."""
@@ -183,6 +193,19 @@ class Settings(BaseSettings):
     port: Annotated[int, Field(ge=0, le=65535)] = 8000
     """Port ``srd serve`` binds by default."""
 
+    @field_validator("admin_token")
+    @classmethod
+    def _header_token(cls, value: SecretStr | None) -> SecretStr | None:
+        """White space around it dropped (a secret file's line end); refused unless it can be
+        presented: printable ASCII in an ``Authorization`` header."""
+        if value is None:
+            return None
+        token = value.get_secret_value().strip()
+        problem = token_problem(token)
+        if problem is not None:
+            raise ValueError(problem)
+        return SecretStr(token)
+
     @field_validator("screener_secret")
     @classmethod
     def _random_secret(cls, value: SecretStr | None) -> SecretStr | None:
@@ -214,6 +237,17 @@ class Settings(BaseSettings):
                 raise ValueError(f"{entry!r} is not an IP address or network") from exc
         return value
 
+    @model_validator(mode="after")
+    def _ray_cluster_named(self) -> Settings:
+        """``job_backend=ray`` names its cluster: without an address the server would start
+        and fail its first job."""
+        if self.job_backend == "ray" and not self.ray_address:
+            raise ValueError(
+                "SRD_JOB_BACKEND=ray needs SRD_RAY_ADDRESS: the Ray cluster's head host:port, "
+                "ray://host:port, or auto (a cluster started on this machine by ray start)"
+            )
+        return self
+
     @property
     def trusted_proxy_list(self) -> list[str]:
         """``trusted_proxies`` as a list."""
@@ -228,6 +262,22 @@ class Settings(BaseSettings):
     def databases_file(self) -> Path:
         """The databases this data folder has served (see ``server.store.db.prepare_database``)."""
         return self.data_dir / "databases.json"
+
+
+OPERATOR_TOKEN = re.compile(r"[\x21-\x7e]{1,4096}")
+"""An operator token as a client can present it: printable ASCII without white space."""
+
+
+def token_problem(token: str) -> str | None:
+    """Why an operator token cannot be presented in an ``Authorization`` header, or None."""
+    if not token:
+        return "an operator token cannot be empty"
+    if OPERATOR_TOKEN.fullmatch(token) is None:
+        return (
+            "an operator token is printable ASCII without white space, at most 4096 characters "
+            "(it travels in an Authorization header)"
+        )
+    return None
 
 
 def _split(value: str) -> list[str]:
@@ -251,6 +301,11 @@ def get_settings() -> Settings:
     secrets = os.environ.get(SECRETS_DIR_VARIABLE) or None
     if secrets is not None and not Path(secrets).is_dir():
         raise SettingsError(f"{SECRETS_DIR_VARIABLE}={secrets}: no such folder of secret files")
+    if secrets is not None:  # a folder where a secret file belongs would be passed over
+        for name in Settings.model_fields:
+            entry = Path(secrets) / f"srd_{name}"
+            if entry.exists() and not entry.is_file():
+                raise SettingsError(f"{SECRETS_DIR_VARIABLE}={secrets}: {entry.name} is not a file")
     try:
         return Settings(_secrets_dir=secrets)
     except ValidationError as exc:
@@ -262,8 +317,11 @@ def get_settings() -> Settings:
 
 def _in_words(error: Any) -> str:
     """One validation error as ``SRD_NAME=value: what is wrong`` (a secret's value unsaid)."""
-    field = str(error["loc"][0]) if error["loc"] else "?"
+    message = str(error["msg"]).removeprefix("Value error, ")  # a validator's own words
+    if not error["loc"]:  # a rule over several settings: its message names them
+        return message
+    field = str(error["loc"][0])
     name = f"SRD_{field.upper()}"
     secret = field in ("admin_token", "database_url", "screener_secret")
     given = "" if secret or error.get("input") is None else f"={error['input']}"
-    return f"{name}{given}: {error['msg']}"
+    return f"{name}{given}: {message}"

@@ -29,6 +29,33 @@ HAND_WRITTEN = {
     "watch": ("server.cli.watch", "Follow one auction live from its event stream."),
 }
 """Command name → (module exposing ``command``, one-line help)."""
+INTERRUPTED = 130
+"""The exit code of a command stopped by Ctrl-C (SIGINT): the shell's 128 + 2. click's own
+abort exits 1, which ``srd screen`` (rejected) and ``srd watch`` (failed or cancelled) give a
+meaning of their own."""
+
+
+class Interrupted(click.ClickException):
+    """Ctrl-C (SIGINT) stopped the command: "Aborted!" on stderr, exit ``INTERRUPTED``."""
+
+    exit_code = INTERRUPTED
+
+    def __init__(self) -> None:
+        super().__init__("aborted")
+
+    def show(self, file: Any = None) -> None:
+        click.echo(err=True)  # closes the terminal's ^C echo, as click does
+        click.echo("Aborted!", err=True)
+
+
+@contextmanager
+def _interruptible() -> Iterator[None]:
+    """A ``KeyboardInterrupt`` (SIGINT, which ``srd serve`` re-raises after its graceful stop)
+    becomes ``Interrupted``: click would make it an abort, exit 1."""
+    try:
+        yield
+    except KeyboardInterrupt as exc:
+        raise Interrupted from exc
 
 
 @contextmanager
@@ -58,6 +85,20 @@ class _Commands(click.Group):
         experiments = [name for name, kind in KINDS.items() if kind.command]
         return [*HAND_WRITTEN, *experiments]
 
+    def make_context(
+        self,
+        info_name: str | None,
+        args: list[str],
+        parent: click.Context | None = None,
+        **extra: Any,
+    ) -> click.Context:
+        with _interruptible():
+            return super().make_context(info_name, args, parent, **extra)
+
+    def invoke(self, ctx: click.Context) -> Any:
+        with _interruptible():  # the command's import, its options, its run
+            return super().invoke(ctx)
+
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         if cmd_name in HAND_WRITTEN:
             with _loading():
@@ -73,13 +114,18 @@ class _Commands(click.Group):
             return experiment_command(kind)
 
     def main(self, args: Sequence[str] | None = None, *rest: Any, **options: Any) -> Any:
-        """Under ``--json`` a failure click finds in the options, or an unexpected error, still
-        prints one JSON object on stdout (``words.json_failure``); the exit code is click's."""
+        """Under ``--json`` a failure click finds in the options, an interruption (Ctrl-C, exit
+        130), or an unexpected error, still prints one JSON object on stdout
+        (``words.json_failure``); the exit code is click's."""
         argv = list(sys.argv[1:] if args is None else args)
         if "--json" not in argv or not options.get("standalone_mode", True):
             return super().main(argv, *rest, **options)
         try:
             code = super().main(argv, *rest, **{**options, "standalone_mode": False})
+        except Interrupted as exc:
+            exc.show()
+            json_failure("aborted")
+            raise SystemExit(exc.exit_code) from exc
         except click.ClickException as exc:
             exc.show()
             param = getattr(exc, "param", None)
@@ -88,9 +134,10 @@ class _Commands(click.Group):
             message = exc.format_message()
             json_failure(message, [{"option": option, "message": message}] if option else None)
             raise SystemExit(exc.exit_code) from exc
-        except click.Abort as exc:
+        except click.Abort as exc:  # click's own (a Ctrl-C it caught before ours could)
+            click.echo("Aborted!", err=True)
             json_failure("aborted")
-            raise SystemExit(1) from exc
+            raise SystemExit(INTERRUPTED) from exc
         except Exception as exc:  # the traceback goes to stderr as usual
             json_failure(f"{type(exc).__name__}: {exc}")
             raise

@@ -1,14 +1,17 @@
-"""``srd screen FILE``: screen one FSN manifest (exit 0 accepted, 1 rejected, 2 malformed)."""
+"""``srd screen FILE``: screen one FSN manifest (exit 0 accepted, 1 rejected, 2 malformed; 130
+interrupted)."""
 
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
 
 import click
 import torch
+from pydantic import ValidationError
 from rich.console import Console
 from rich.markup import escape
 
@@ -16,10 +19,15 @@ from agents.manifest import ManifestError, parse_manifest, parse_manifest_json
 from screener import review, with_hold_reasons
 from screener import screen as screen_manifest
 from server.api.body import BodyRefusedError, parse_strict_json
+from server.cli.words import FiniteRange, json_failure
 from server.config import Settings
 
 ACCEPTED, REJECTED, MALFORMED = 0, 1, 2
-"""Exit codes: accepted, rejected, unreadable or malformed."""
+"""Exit codes: accepted, rejected, unreadable or malformed (the file, or a setting it is read
+and screened under)."""
+READ_UNDER = {"max_body_bytes": "SRD_MAX_BODY_BYTES", "screener_secret": "SRD_SCREENER_SECRET"}
+"""The server's settings ``srd screen`` follows: the largest body ``POST /submit`` takes, and
+the secret the screener draws its populations from (``screener.impact.SECRET_VARIABLE``)."""
 
 
 def _emit(obj: dict[str, Any]) -> None:
@@ -27,7 +35,7 @@ def _emit(obj: dict[str, Any]) -> None:
 
 
 def _malformed(errors: list[dict[str, str]], json_output: bool) -> SystemExit:
-    err = Console(stderr=True)
+    err = Console(stderr=True, soft_wrap=True)
     for e in errors:
         err.print(f"[red]error:[/red] {escape(e['path'])}: {escape(e['message'])}", highlight=False)
     if json_output:
@@ -35,6 +43,50 @@ def _malformed(errors: list[dict[str, str]], json_output: bool) -> SystemExit:
         error = f"{first['path']}: {first['message']}"
         _emit({"accepted": False, "reasons": [], "errors": errors, "error": error})
     return SystemExit(MALFORMED)
+
+
+def _settings(json_output: bool) -> Settings:
+    """The settings of ``READ_UNDER`` from the environment, checked by their ``Settings`` fields
+    as ``srd serve`` checks them (a secret ``srd serve`` refuses is refused here too); the other
+    settings keep their defaults (the screener reads no secret file: only the variable)."""
+    settings = Settings.model_construct()
+    for field, variable in READ_UNDER.items():
+        value = os.environ.get(variable, "")
+        if not value:  # unset or empty: the default, as for the server (env_ignore_empty)
+            continue
+        try:  # bytes the environment could not decode stand as U+FFFD, one character each: the
+            # screener hashes them as they are (screener.impact.secret_bytes)
+            Settings.__pydantic_validator__.validate_assignment(settings, field, _text(value))
+        except ValidationError as exc:
+            shown = "" if field == "screener_secret" else f"={_text(value)}"
+            problem = f"{variable}{shown}: {exc.errors()[0]['msg']}"
+            Console(stderr=True, highlight=False, soft_wrap=True).print(
+                f"[red]error:[/red] {escape(problem)}"
+            )
+            if json_output:
+                json_failure(problem)
+            raise SystemExit(MALFORMED) from None
+    return settings
+
+
+def _text(value: str) -> str:
+    """A variable's value with the bytes the environment could not decode as U+FFFD."""
+    try:
+        return value.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+    except UnicodeEncodeError:  # a surrogate no undecodable byte gives (not from os.environ)
+        return value.encode("utf-8", "replace").decode("utf-8")
+
+
+def _read(file: Path, limit: int) -> bytes:
+    """The file's bytes; ``OSError`` if it cannot be read, ``ValueError`` if it holds more than
+    ``limit`` (read no further: ``/dev/zero`` never ends)."""
+    with file.open("rb") as stream:
+        text = stream.read(limit + 1)
+    if len(text) > limit:
+        raise ValueError(
+            f"{file}: larger than {limit} bytes, the most POST /submit takes (SRD_MAX_BODY_BYTES)"
+        )
+    return text
 
 
 def _json_errors(text: bytes) -> list[dict[str, str]]:
@@ -53,7 +105,7 @@ def _json_errors(text: bytes) -> list[dict[str, str]]:
 )
 @click.option(
     "--margin",
-    type=click.FloatRange(0, 1),
+    type=FiniteRange(0, 1),
     default=Settings.model_fields["review_margin"].default,
     show_default=True,
     help="The server's review margin (SRD_REVIEW_MARGIN), in price: 'status' says whether a "
@@ -64,12 +116,17 @@ def command(file: Path, json_output: bool, margin: float) -> None:
     behavioural probes. Exit 0 accepted, 1 rejected, 2 unreadable or malformed (read as
     POST /submit reads it: a key given twice, NaN or a byte-order mark is malformed). The
     verdict is the screener's; a model within --margin of a bar is one a server would hold
-    for an inspector (status "held")."""
+    for an inspector (status "held"). A file larger than SRD_MAX_BODY_BYTES is refused as the
+    server refuses it; SRD_SCREENER_SECRET, if set, must be one srd serve takes. Exit 130 when
+    interrupted (Ctrl-C)."""
+    settings = _settings(json_output)
     try:
-        text = file.read_bytes()
+        text = _read(file, settings.max_body_bytes)
     except OSError as exc:
         raise _malformed([{"path": "$", "message": f"cannot read {file}: {exc.strerror}"}],
                          json_output) from exc  # fmt: skip
+    except ValueError as exc:
+        raise _malformed([{"path": "$", "message": str(exc)}], json_output) from exc
     try:  # read as strictly as POST /submit reads a body: a key twice, NaN, a BOM, depth
         manifest = parse_manifest(parse_strict_json(text))
     except BodyRefusedError as exc:

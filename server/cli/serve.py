@@ -27,6 +27,8 @@ frequent young collections mostly rescan live ones (docs/performance.md, *Tried 
 def admin_token_problem(settings: Settings) -> str | None:
     """Why the operator token file cannot be used, in one line, or None (no file yet: it is
     made at the start; ``SRD_ADMIN_TOKEN`` set: the file is not read)."""
+    from server.config import token_problem
+
     path = settings.admin_token_file
     if settings.admin_token is not None or not path.exists():
         return None
@@ -36,6 +38,9 @@ def admin_token_problem(settings: Settings) -> str | None:
         return f"the admin token file {path} cannot be read: {exc.strerror} (SRD_DATA_DIR)"
     if not token:
         return f"the admin token file {path} is empty: remove it to have one made, or write one"
+    problem = token_problem(token)
+    if problem is not None:
+        return f"the admin token file {path}: {problem}"
     return None
 
 

@@ -9,14 +9,16 @@ reconnected once, resuming after the last event received (``Last-Event-ID``).
 from __future__ import annotations
 
 import json
+import math
 import sys
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeAlias
 
 import click
 import httpx
+from click.core import ParameterSource
 from rich.console import Console, Group
 from rich.live import Live
 from rich.markup import escape
@@ -33,10 +35,105 @@ TIMEOUT = httpx.Timeout(10.0, read=120.0)
 """An idle stream sends a keep-alive every 15 s by default: 120 s of silence is a dead one."""
 LIVE_ROWS = 20
 """The most recent iterations the live table shows (a terminal is only so tall)."""
+MAX_AUCTION_ID = 2**31 - 1
+"""The largest auction id the API takes (``server.api.schemas.MAX_ROW_ID``, not imported: it
+would load FastAPI, tripling this command's start)."""
+MAX_PORT = 65535
+"""The largest TCP port."""
+SHOWN_DATA = 120
+"""How much of a piece of data that is not an event an error message quotes."""
+
+Shape: TypeAlias = "str | dict[str, Shape] | list[Shape]"
+"""What ``watch`` reads of a piece of JSON: ``WHOLE``, ``NUMBER``, ``TEXT`` or ``MAYBE_TEXT``;
+an object whose keys hold those shapes (a key ending in ``?`` may be absent); ``[shape]``, a
+list of them."""
+WHOLE, NUMBER, TEXT, MAYBE_TEXT = "a whole number", "a finite number", "text", "text or null"
+PATRON: dict[str, Shape] = {"participant": TEXT, "version": WHOLE}
+EVENTS: dict[str, Shape] = {
+    "iteration": {
+        "iteration": WHOLE,
+        "price": NUMBER,
+        "n_available": WHOLE,
+        "n_available_after": WHOLE,
+        "next_price": NUMBER,
+        "votes": {"buy": WHOLE, "hold": WHOLE, "quit": WHOLE},
+        "purchases?": [{**PATRON, "price": NUMBER}],
+        "quits?": [PATRON],
+    },
+    "round": {"round": WHOLE, "iteration": WHOLE, "status": TEXT, "answers?": [{"outcome": TEXT}]},
+    "end": {
+        "status": TEXT,
+        "iterations": WHOLE,
+        "price": NUMBER,
+        "n_initial": WHOLE,
+        "n_sold?": WHOLE,
+        "stop_reason?": MAYBE_TEXT,
+        "error?": MAYBE_TEXT,
+    },
+}
+"""The fields of each event ``watch`` reads (an event of another name is skipped)."""
+FINAL: Shape = {"id": WHOLE, "status": TEXT}
+"""What ``--json`` reads of ``GET /auctions/{id}`` before printing it."""
 
 
 class WatchError(Exception):
     """The auction could not be followed; the message says why."""
+
+
+class NotAnEventError(ValueError):
+    """A piece of data is not what an srd server sends; the message says where."""
+
+
+def _kind(value: Any) -> str:
+    """What a piece of JSON is, in words."""
+    if value is None:
+        return "null"
+    names = {bool: "a boolean", dict: "an object", list: "a list", str: "text"}
+    return names.get(type(value), "a number")
+
+
+def check(value: Any, shape: Shape, where: str = "") -> None:
+    """Raise ``NotAnEventError`` unless ``value`` has ``shape`` (its path in the message)."""
+    if isinstance(shape, dict):
+        if not isinstance(value, dict):
+            raise NotAnEventError(f"{where or 'the data'} is {_kind(value)}, not an object")
+        for key, inner in shape.items():
+            name = key.removesuffix("?")
+            path = f"{where}.{name}" if where else name
+            if name in value:
+                check(value[name], inner, path)
+            elif not key.endswith("?"):
+                raise NotAnEventError(f"{path} is missing")
+        return
+    if isinstance(shape, list):
+        if not isinstance(value, list):
+            raise NotAnEventError(f"{where} is {_kind(value)}, not a list")
+        for i, item in enumerate(value):
+            check(item, shape[0], f"{where}[{i}]")
+        return
+    if shape == WHOLE:
+        fits = isinstance(value, int) and not isinstance(value, bool)
+    elif shape == NUMBER:
+        fits = isinstance(value, int | float) and not isinstance(value, bool)
+        fits = fits and math.isfinite(value)
+    else:
+        fits = isinstance(value, str) or (shape == MAYBE_TEXT and value is None)
+    if not fits:
+        found = json.dumps(value) if isinstance(value, float) else _kind(value)  # NaN, Infinity
+        raise NotAnEventError(f"{where} is {found}, not {shape}")
+
+
+def parsed(text: str | bytes, shape: Shape) -> dict[str, Any]:
+    """``text`` read as JSON of ``shape`` (an object), else ``NotAnEventError`` quoting it."""
+    try:
+        value = json.loads(text)
+    except (ValueError, RecursionError):  # not JSON (UnicodeDecodeError too), nested too deep
+        raw = text if isinstance(text, str) else text.decode("utf-8", "replace")
+        shown = raw if len(raw) <= SHOWN_DATA else raw[:SHOWN_DATA] + "..."
+        raise NotAnEventError(f"not JSON: {shown!r}") from None
+    check(value, shape)
+    result: dict[str, Any] = value
+    return result
 
 
 @dataclass
@@ -97,9 +194,20 @@ def follow(
                 if response.status_code != 200:
                     response.read()
                     raise WatchError(f"{path}: HTTP {response.status_code}: {response.text}")
+                kind = response.headers.get("content-type", "").partition(";")[0].strip()
+                if kind.lower() != "text/event-stream":
+                    raise WatchError(
+                        f"{_not_srd(client)} event stream: {path} is {kind or 'untyped'}, "
+                        "not text/event-stream"
+                    )
                 watched.connected = True
                 for name, event_id, data in sse(response.iter_lines()):
-                    payload = json.loads(data)
+                    if name not in EVENTS:
+                        continue  # an event a later server sends: nothing to show of it
+                    try:
+                        payload = parsed(data, EVENTS[name])
+                    except NotAnEventError as exc:
+                        raise WatchError(f"{_not_srd(client)} event: {name}: {exc}") from None
                     watched.take(name, payload)
                     if event_id is not None:
                         watched.last_id = event_id
@@ -114,6 +222,43 @@ def follow(
         if watched.reconnected:
             raise WatchError(f"the event stream dropped again ({cause})")
         watched.reconnected = True
+
+
+def _not_srd(client: httpx.Client) -> str:
+    """The start of the message about a server that answers as no srd server does."""
+    url = str(client.base_url).rstrip("/")
+    return f"the server at {url} answered something that is not an srd auction"
+
+
+def final_state(client: httpx.Client, auction_id: int) -> dict[str, Any]:
+    """``GET /auctions/{id}`` once the stream has ended: the auction's final state."""
+    final = client.get(f"/auctions/{auction_id}")
+    if final.status_code != 200:
+        raise WatchError(f"GET /auctions/{auction_id}: HTTP {final.status_code}")
+    try:
+        state = parsed(final.content, FINAL)
+    except NotAnEventError as exc:
+        raise WatchError(f"{_not_srd(client)}: GET /auctions/{auction_id}: {exc}") from None
+    if state["id"] != auction_id:
+        raise WatchError(
+            f"{_not_srd(client)}: GET /auctions/{auction_id} answered auction {state['id']}"
+        )
+    return state
+
+
+def server_option(ctx: click.Context, param: click.Parameter, value: str) -> str:
+    """``--server`` as ``server_url`` reads it; a value from ``SRD_URL`` is named so."""
+    try:
+        url = server_url(ctx, param, value)
+        port = httpx.URL(url).port
+        if port is not None and not 0 < port <= MAX_PORT:  # httpx takes any number
+            raise click.BadParameter(f"{value!r}: {port} is no TCP port (1 to {MAX_PORT})")
+        return url
+    except (click.BadParameter, httpx.InvalidURL) as exc:  # InvalidURL: server_url's own fault
+        message = str(exc.message if isinstance(exc, click.BadParameter) else exc)
+        from_environment = ctx.get_parameter_source("server") == ParameterSource.ENVIRONMENT
+        hint = "SRD_URL (for --server)" if from_environment else None
+        raise click.BadParameter(message, ctx, param, param_hint=hint) from None
 
 
 # --- what a person reads ------------------------------------------------------------------------
@@ -208,21 +353,24 @@ def live_view(watched: Watched) -> Group:
     if watched.rounds:
         rounds = Table("Fine-tuning round", "After iteration", "Status", "Answers")
         for data in watched.rounds.values():
-            rounds.add_row(
-                str(data["round"]), str(data["iteration"]), data["status"], answers(data)
+            rounds.add_row(  # the server's words are text, not markup
+                str(data["round"]),
+                str(data["iteration"]),
+                escape(data["status"]),
+                escape(answers(data)),
             )
         parts.append(rounds)
     return Group(*parts)
 
 
 @click.command("watch")
-@click.argument("auction_id", type=click.IntRange(1))
+@click.argument("auction_id", type=click.IntRange(1, MAX_AUCTION_ID))
 @click.option(
     "--server",
     envvar="SRD_URL",
     default="http://127.0.0.1:8000",
     show_default=True,
-    callback=server_url,
+    callback=server_option,
     help="Base URL of the auction house (or SRD_URL).",
 )
 @click.option(
@@ -232,8 +380,9 @@ def command(auction_id: int, server: str, json_output: bool) -> None:
     """Follow one auction live: the price, the fish left (supply), each iteration's buy / hold /
     quit votes, who bought and who quit, and remote fine-tuning rounds, until the auction ends.
     Exit 0 when it finished, 1 when it failed or was cancelled, 3 when it could not be
-    followed."""
-    err = Console(stderr=True, highlight=False)
+    followed (unreachable, unknown auction, the stream dropped twice, a server that is not an
+    srd server), 130 when interrupted (Ctrl-C)."""
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
     out = Console(highlight=False, soft_wrap=True)
     watched = Watched(auction_id)
     try:
@@ -247,16 +396,14 @@ def command(auction_id: int, server: str, json_output: bool) -> None:
                     )
             else:
                 follow(client, watched, _print_plain)
-            final = client.get(f"/auctions/{auction_id}") if json_output else None
-            if final is not None and final.status_code != 200:
-                raise WatchError(f"GET /auctions/{auction_id}: HTTP {final.status_code}")
+            final = final_state(client, auction_id) if json_output else None
     except (WatchError, httpx.HTTPError) as exc:
         err.print(f"[red]error:[/red] {escape(str(exc))}")
         if json_output:
             json_failure(str(exc))
         raise SystemExit(LOST) from exc
     if final is not None:
-        sys.stdout.write(json.dumps(final.json()) + "\n")
+        sys.stdout.write(json.dumps(final) + "\n")
     else:
         out.print(escape(end_line(watched)))
     # the server ends the stream on any status but pending and running (finished, failed,

@@ -107,7 +107,12 @@ def test_serve_refuses_a_data_folder_it_cannot_write(tmp_path: Path, where: str)
         ({"SRD_JOB_WORKERS": "0"}, 2, "SRD_JOB_WORKERS=0: Input should be greater than or equal"),
         ({"SRD_JOB_BACKEND": "bogus"}, 2, "SRD_JOB_BACKEND=bogus: Input should be 'local'"),
         ({"SRD_SECRETS_DIR": "/no/such"}, 2, "SRD_SECRETS_DIR=/no/such: no such folder"),
-        ({"SRD_SCREENER_SECRET": "hidden-pw"}, 2, "SRD_SCREENER_SECRET: Value error, a secret has"),
+        ({"SRD_SCREENER_SECRET": "hidden-pw"}, 2, "SRD_SCREENER_SECRET: a secret has"),
+        ({"SRD_ADMIN_TOKEN": "   "}, 2, "SRD_ADMIN_TOKEN: an operator token cannot be empty"),
+        ({"SRD_ADMIN_TOKEN": "hidden-pw-tökén-0123456789"}, 2, "printable ASCII without white"),
+        ({"SRD_REVIEW_MARGIN": "nan"}, 2, "SRD_REVIEW_MARGIN=nan: Input should be a finite number"),
+        ({"SRD_JOB_BACKEND": "ray", "SRD_RAY_ADDRESS": "", "RAY_ADDRESS": ""}, 2,
+         "SRD_JOB_BACKEND=ray needs SRD_RAY_ADDRESS"),
         ({"SRD_SCREENER_SECRET": "hidden-pw" * 4}, 2, "10 of them different: draw one at random"),
         ({"SRD_DATABASE_URL": "mysql://db/srd"}, 2, "SRD_DATABASE_URL names mysql"),
         ({"SRD_DATABASE_URL": "postgresql+psycopg://u:hidden-pw@127.0.0.1:1/x"}, 3,
@@ -130,6 +135,26 @@ def test_serve_names_the_variable_of_a_setting_it_cannot_use(
     assert done.stderr.splitlines() == [f"srd serve: {done.stderr[11:].strip()}"]
     assert words in done.stderr and "Traceback" not in done.stderr
     assert "hidden-pw" not in done.stderr
+
+
+@pytest.mark.parametrize("entry", ["empty file", "folder"])
+def test_serve_refuses_a_secret_file_it_could_not_use(tmp_path: Path, entry: str) -> None:
+    """An empty ``srd_admin_token`` secret file, or a folder in its place, had started a server
+    with a token nobody could present, or a generated one, without a word."""
+    secrets = tmp_path / "secrets"
+    secrets.mkdir()
+    if entry == "folder":
+        (secrets / "srd_admin_token").mkdir()
+    else:
+        (secrets / "srd_admin_token").write_text("")
+    env = {**os.environ, "SRD_DATA_DIR": str(tmp_path / "data"), "SRD_SECRETS_DIR": str(secrets),
+           "SRD_DATABASE_URL": f"sqlite:///{tmp_path / 'srd.db'}"}  # fmt: skip
+    env.pop("SRD_ADMIN_TOKEN", None)
+    done = serve_once(env)
+    assert done.returncode == 2, done.stderr
+    expected = "is not a file" if entry == "folder" else "an operator token cannot be empty"
+    assert expected in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "srd.db").exists()
 
 
 def test_serve_refuses_an_empty_admin_token_file(tmp_path: Path) -> None:

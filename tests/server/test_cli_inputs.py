@@ -1,0 +1,475 @@
+"""Bad input to ``srd watch``, ``srd screen`` and ``srd healthcheck`` (a server that is not an
+srd server, ids, URLs, NaN, settings, oversized files), and Ctrl-C: a clear error naming what
+is at fault and the command's documented exit code, never a traceback."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+import pytest
+from click.testing import CliRunner, Result
+
+from agents.negotiator import honest_manifest
+from server.api.schemas import MAX_ROW_ID
+from server.cli import cli
+from server.cli.launch import ServerProcess, srd_command
+from tests.support.server import ADMIN_TOKEN
+
+ROOT = Path(__file__).resolve().parents[2]
+HOST = "127.0.0.1"
+NOT_SRD = "answered something that is not an srd auction"
+INTERRUPTED = 130
+ITERATION = {
+    "iteration": 0,
+    "price": 5.0,
+    "n_available": 2,
+    "n_available_after": 2,
+    "next_price": 5.01,
+    "votes": {"buy": 0, "hold": 3, "quit": 0},
+    "purchases": [],
+    "quits": [],
+}
+END = {"status": "finished", "iterations": 1, "price": 5.01, "n_available": 2, "n_initial": 2}
+STATE = {"id": 7, "status": "finished", "history": [ITERATION]}
+Answer = tuple[int, str, bytes]
+"""A fake server's answer: status, Content-Type, body."""
+
+
+def stream(*events: tuple[str, str]) -> Answer:
+    """An event stream of (name, data) events, as the fake server sends it."""
+    body = "".join(f"event: {name}\ndata: {data}\n\n" for name, data in events)
+    return 200, "text/event-stream", b": auction 7\n\n" + body.encode()
+
+
+def as_json(value: Any) -> Answer:
+    return 200, "application/json", json.dumps(value).encode()
+
+
+class FakeServer(BaseHTTPRequestHandler):
+    """Answers each path from ``answers``; with ``hold``, an event stream sends keep-alives until
+    the client goes (and sets ``connected``). Records the paths asked."""
+
+    hold: ClassVar[bool] = False
+    answers: ClassVar[dict[str, Answer]] = {}
+    asked: ClassVar[list[str]] = []
+    connected: ClassVar[threading.Event] = threading.Event()
+
+    def do_GET(self) -> None:
+        self.asked.append(self.path)
+        if self.path.endswith("/events") and self.hold:
+            self._hold()
+            return
+        status, kind, body = self.answers.get(self.path, (404, "application/json", b"{}"))
+        self.send_response(status)
+        self.send_header("Content-Type", kind)
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _hold(self) -> None:
+        self.send_response(200)
+        self.send_header("Content-Type", "text/event-stream")
+        self.end_headers()
+        self.connected.set()
+        try:
+            for _ in range(600):  # two minutes at most
+                self.wfile.write(b": keep-alive\n\n")
+                self.wfile.flush()
+                time.sleep(0.2)
+        except OSError:  # the client went away
+            pass
+
+    def log_message(self, format: str, *args: Any) -> None:  # quiet
+        pass
+
+
+@pytest.fixture
+def fake() -> Iterator[tuple[str, type[FakeServer]]]:
+    """A server on the loopback that is not an srd server: its URL and its handler class."""
+    handler = type(
+        "Handler", (FakeServer,), {"answers": {}, "asked": [], "connected": threading.Event()}
+    )
+    httpd = ThreadingHTTPServer((HOST, 0), handler)
+    httpd.daemon_threads = True
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://{HOST}:{httpd.server_address[1]}", handler
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+
+
+def watch(*args: str, env: dict[str, str] | None = None) -> Result:
+    return CliRunner().invoke(cli, ["watch", *args], env=env)
+
+
+# --- srd watch: a server that is not an srd server is exit 3, "could not follow" ---------------
+
+
+@pytest.mark.parametrize(
+    ("events", "words"),
+    [
+        ([("iteration", "<html>not json</html>")], "iteration: not JSON: '<html>not json</html>'"),
+        (
+            [("iteration", json.dumps({k: v for k, v in ITERATION.items() if k != "votes"}))],
+            "iteration: votes is missing",
+        ),
+        ([("iteration", "[1, 2, 3]")], "iteration: the data is a list, not an object"),
+        ([("iteration", json.dumps({**ITERATION, "price": "5"}))], "price is text, not a finite"),
+        ([("iteration", json.dumps(ITERATION).replace("5.0,", "NaN,"))], "price is NaN"),
+        (
+            [
+                (
+                    "iteration",
+                    json.dumps({**ITERATION, "votes": {"buy": True, "hold": 0, "quit": 0}}),
+                )
+            ],
+            "votes.buy is a boolean, not a whole number",
+        ),
+        (
+            [("iteration", json.dumps({**ITERATION, "purchases": [{"participant": "a"}]}))],
+            "purchases[0].version is missing",
+        ),
+        ([("round", json.dumps({"round": "one"}))], "round: round is text"),
+        ([("end", "{}")], "end: status is missing"),
+        ([("end", json.dumps({**END, "iterations": None}))], "end: iterations is null"),
+    ],
+)
+@pytest.mark.parametrize("json_output", [False, True])
+def test_watch_of_events_no_srd_server_sends_exits_3_saying_so(
+    fake: tuple[str, type[FakeServer]], events: list[tuple[str, str]], words: str, json_output: bool
+) -> None:
+    url, handler = fake
+    handler.answers = {"/auctions/7/events": stream(*events), "/auctions/7": as_json(STATE)}
+    result = watch("7", "--server", url, *(["--json"] if json_output else []))
+    assert result.exit_code == 3, (result.output, result.exception)
+    message = f"the server at {url} {NOT_SRD} event: "
+    assert message in result.stderr and words in result.stderr
+    assert "Traceback" not in result.stderr and "None" not in result.stdout
+    if json_output:  # the failure as the one JSON object on stdout
+        failure = json.loads(result.stdout)
+        assert list(failure) == ["error"] and words in failure["error"]
+    else:
+        assert "finished after" not in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("final", "words"),
+    [
+        ((200, "text/html", b"<html><body>hello</body></html>"), "not JSON: '<html><body>hello"),
+        (as_json({}), "id is missing"),
+        (as_json([STATE]), "the data is a list, not an object"),
+        (as_json({**STATE, "id": 8}), "answered auction 8"),
+    ],
+)
+def test_watch_json_of_a_final_state_no_srd_server_sends_exits_3(
+    fake: tuple[str, type[FakeServer]], final: Answer, words: str
+) -> None:
+    """The end event is fine, ``GET /auctions/7`` is not what an srd server answers."""
+    url, handler = fake
+    handler.answers = {
+        "/auctions/7/events": stream(
+            ("iteration", json.dumps(ITERATION)), ("end", json.dumps(END))
+        ),
+        "/auctions/7": final,
+    }
+    result = watch("7", "--server", url, "--json")
+    assert result.exit_code == 3, (result.output, result.exception)
+    assert NOT_SRD in result.stderr and words in result.stderr
+    assert words in json.loads(result.stdout)["error"]
+
+
+def test_watch_of_a_page_that_is_not_an_event_stream_exits_3(
+    fake: tuple[str, type[FakeServer]],
+) -> None:
+    url, handler = fake
+    handler.answers = {"/auctions/7/events": (200, "text/html", b"<html>event: end</html>")}
+    result = watch("7", "--server", url)
+    assert result.exit_code == 3
+    assert f"{NOT_SRD} event stream: /auctions/7/events is text/html" in result.stderr
+    assert handler.asked == ["/auctions/7/events"]  # not taken for a dropped stream
+
+
+def test_watch_skips_events_it_does_not_know_and_reads_a_sound_stream(
+    fake: tuple[str, type[FakeServer]],
+) -> None:
+    url, handler = fake
+    handler.answers = {
+        "/auctions/7/events": stream(
+            ("news", "not JSON, and not read"),
+            ("iteration", json.dumps(ITERATION)),
+            ("end", json.dumps(END)),
+        ),
+        "/auctions/7": as_json(STATE),
+    }
+    result = watch("7", "--server", url)
+    assert result.exit_code == 0, result.output
+    assert result.stdout.splitlines()[-1].startswith("auction 7 finished after 1 iteration: 0 of 2")
+    done = watch("7", "--server", url, "--json")
+    assert done.exit_code == 0 and json.loads(done.stdout) == STATE
+
+
+# --- srd watch: the auction id and the server's URL ----------------------------------------------
+
+
+@pytest.mark.parametrize("auction_id", [str(MAX_ROW_ID + 1), "99999999999999999999", "0"])
+def test_watch_of_an_id_the_api_cannot_hold_is_a_usage_error(
+    fake: tuple[str, type[FakeServer]], auction_id: str
+) -> None:
+    url, handler = fake
+    result = watch(auction_id, "--server", url, "--json")
+    assert result.exit_code == 2
+    assert "AUCTION_ID" in result.stderr and f"1<=x<={MAX_ROW_ID}" in result.stderr
+    assert "AUCTION_ID" in json.loads(result.stdout)["error"]
+    assert handler.asked == []  # nothing was sent
+
+
+def test_watch_of_the_largest_id_asks_the_server(fake: tuple[str, type[FakeServer]]) -> None:
+    url, handler = fake
+    result = watch(str(MAX_ROW_ID), "--server", url)
+    assert result.exit_code == 3
+    assert f"auction {MAX_ROW_ID} not found on {url}" in result.stderr
+    assert handler.asked == [f"/auctions/{MAX_ROW_ID}/events"]
+
+
+@pytest.mark.parametrize("url", ["http://[::1", "http://[::1]:99999", "http://exa mple.org:x"])
+def test_watch_of_a_url_httpx_refuses_is_a_usage_error_naming_server(url: str) -> None:
+    result = watch("1", "--server", url, "--json")
+    assert result.exit_code == 2, (result.output, result.exception)
+    assert "--server" in result.stderr and "Traceback" not in result.stderr
+    assert [e["option"] for e in json.loads(result.stdout)["errors"]] == ["--server"]
+
+
+@pytest.mark.parametrize("value", ["garbage", "http://[::1"])
+def test_watch_names_srd_url_when_the_bad_url_came_from_it(value: str) -> None:
+    result = watch("1", env={"SRD_URL": value})
+    assert result.exit_code == 2, (result.output, result.exception)
+    assert "Invalid value for SRD_URL (for --server)" in result.stderr
+    given = watch("1", "--server", value, env={"SRD_URL": "http://127.0.0.1:9"})
+    assert given.exit_code == 2 and "SRD_URL" not in given.stderr  # the option's own value
+    assert "Invalid value for '--server'" in given.stderr
+
+
+# --- NaN and infinities are no number an option takes --------------------------------------------
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "NaN"])
+@pytest.mark.parametrize(
+    ("args", "option"),
+    [(["screen", "x.json", "--margin"], "--margin"), (["healthcheck", "--timeout"], "--timeout")],
+)
+def test_a_non_finite_number_is_a_usage_error_naming_the_option(
+    args: list[str], option: str, value: str
+) -> None:
+    result = CliRunner().invoke(cli, [*args, value])
+    assert result.exit_code == 2, (result.output, result.exception)
+    assert option in result.stderr and "is not a finite number" in result.stderr
+
+
+def test_healthcheck_says_its_timeout_is_in_seconds() -> None:
+    result = CliRunner().invoke(cli, ["healthcheck", "--help"])
+    assert result.exit_code == 0 and "Seconds" in result.output
+
+
+# --- srd healthcheck: SRD_HOST ------------------------------------------------------------------
+
+
+def healthcheck(host: str, port: int) -> subprocess.CompletedProcess[str]:
+    """``srd healthcheck --timeout 2`` in a process with SRD_HOST and SRD_PORT set."""
+    env = {**os.environ, "SRD_HOST": host, "SRD_PORT": str(port)}
+    return subprocess.run(
+        [*srd_command(), "healthcheck", "--timeout", "2"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+    )
+
+
+@pytest.mark.parametrize("host", ["127.0.0.77:18771", "[::1", "::1]", "a/b", "a b", "x@y", "a?b"])
+def test_healthcheck_of_a_host_that_is_no_host_exits_1_naming_srd_host(host: str) -> None:
+    done = healthcheck(host, 18771)
+    assert done.returncode == 1
+    assert done.stderr == f"srd healthcheck: SRD_HOST={host}: not a host name or address\n"
+
+
+@pytest.mark.parametrize("host", ["[::1]", "::1"])
+def test_healthcheck_asks_an_ipv6_host_in_one_pair_of_brackets(
+    fake: tuple[str, type[FakeServer]], host: str
+) -> None:
+    port = int(fake[0].rsplit(":", 1)[1])  # listens on 127.0.0.1: nobody on [::1] at this port
+    done = healthcheck(host, port)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert done.stderr.startswith(f"http://[::1]:{port}/healthz: ")
+
+
+def test_healthcheck_of_a_ready_server_exits_0(fake: tuple[str, type[FakeServer]]) -> None:
+    url, handler = fake
+    handler.answers = {"/healthz": as_json({"status": "ok", "problems": []})}
+    port = int(url.rsplit(":", 1)[1])
+    for host in (HOST, "0.0.0.0", "[::]"):  # every interface: the loopback is asked
+        done = healthcheck(host, port)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout == f"http://{HOST}:{port}/healthz: 200\n"
+
+
+# --- srd screen: the file as POST /submit takes it, under the settings srd serve takes ---------
+
+
+def manifest_text(name: str = "inputs") -> str:
+    return honest_manifest(np.random.default_rng(0), name).model_dump_json()
+
+
+def test_screen_of_an_endless_file_reads_only_what_submit_takes() -> None:
+    done = subprocess.run(
+        [*srd_command(), "screen", "/dev/zero", "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert done.returncode == 2, done.stderr
+    error = json.loads(done.stdout)["errors"][0]["message"]
+    assert error == (
+        "/dev/zero: larger than 262144 bytes, the most POST /submit takes (SRD_MAX_BODY_BYTES)"
+    )
+
+
+def test_screen_refuses_a_padded_manifest_larger_than_the_configured_body_limit(
+    tmp_path: Path,
+) -> None:
+    padded = tmp_path / "padded.json"
+    padded.write_text(manifest_text() + " " * 400_000)  # valid JSON: white space after it
+    size = padded.stat().st_size
+    outcome = CliRunner().invoke(cli, ["screen", str(padded), "--json"])
+    assert outcome.exit_code == 2
+    assert "larger than 262144 bytes" in outcome.stderr and "SRD_MAX_BODY_BYTES" in outcome.stderr
+    assert json.loads(outcome.stdout)["accepted"] is False
+    allowed = CliRunner().invoke(
+        cli, ["screen", str(padded), "--json"], env={"SRD_MAX_BODY_BYTES": str(size)}
+    )
+    assert allowed.exit_code == 0, allowed.output  # exactly the limit: taken, as /submit takes it
+    smaller = CliRunner().invoke(
+        cli, ["screen", str(padded)], env={"SRD_MAX_BODY_BYTES": str(size - 1)}
+    )
+    assert smaller.exit_code == 2 and f"larger than {size - 1} bytes" in smaller.stderr
+
+
+@pytest.mark.parametrize(
+    ("variable", "value", "words"),
+    [
+        ("SRD_MAX_BODY_BYTES", "lots", "SRD_MAX_BODY_BYTES=lots: Input should be a valid integer"),
+        ("SRD_MAX_BODY_BYTES", "10", "SRD_MAX_BODY_BYTES=10: Input should be greater than"),
+        ("SRD_SCREENER_SECRET", "short", "SRD_SCREENER_SECRET: "),
+        ("SRD_SCREENER_SECRET", "a" * 40, "SRD_SCREENER_SECRET: "),
+        ("SRD_SCREENER_SECRET", " " * 3, "SRD_SCREENER_SECRET: "),
+        ("SRD_SCREENER_SECRET", "\udce9" * 40, "SRD_SCREENER_SECRET: "),  # 40 × the byte 0xe9
+        ("SRD_MAX_BODY_BYTES", "\udce9", "SRD_MAX_BODY_BYTES=\ufffd: Input should be a valid"),
+    ],
+)
+def test_screen_refuses_a_setting_srd_serve_refuses_naming_it(
+    tmp_path: Path, variable: str, value: str, words: str
+) -> None:
+    path = tmp_path / "m.json"
+    path.write_text(manifest_text())
+    for extra in ([], ["--json"]):
+        outcome = CliRunner().invoke(cli, ["screen", str(path), *extra], env={variable: value})
+        assert outcome.exit_code == 2, (outcome.output, outcome.exception)
+        assert words in outcome.stderr
+        if variable == "SRD_SCREENER_SECRET":
+            assert "at least 32 characters, 10 of them different" in outcome.stderr
+            assert "short" not in outcome.stderr and "a" * 40 not in outcome.stderr  # unsaid
+        if extra:
+            assert words in json.loads(outcome.stdout)["error"]
+
+
+# --- Ctrl-C: exit 130, "Aborted!" (and under --json, the failure as one object) ---------------
+
+
+def interrupted(process: subprocess.Popen[str]) -> tuple[int, str, str]:
+    """SIGINT ``process`` (already waiting on something), then its exit code and output."""
+    process.send_signal(signal.SIGINT)
+    stdout, stderr = process.communicate(timeout=60)
+    return process.returncode, stdout, stderr
+
+
+@pytest.mark.parametrize("json_output", [False, True])
+def test_an_interrupted_watch_exits_130(
+    fake: tuple[str, type[FakeServer]], json_output: bool
+) -> None:
+    url, handler = fake
+    handler.hold = True
+    extra = ["--json"] if json_output else []
+    process = subprocess.Popen(
+        [*srd_command(), "watch", "7", "--server", url, *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    try:
+        assert handler.connected.wait(60), "srd watch never connected"
+        code, stdout, stderr = interrupted(process)
+    finally:
+        process.kill()
+        process.wait()
+    assert code == INTERRUPTED, stderr
+    assert "Aborted!" in stderr and "Traceback" not in stderr
+    assert (json.loads(stdout) if json_output else stdout) == (
+        {"error": "aborted"} if json_output else ""
+    )
+
+
+def test_an_interrupted_screen_exits_130(tmp_path: Path) -> None:
+    """``srd screen`` of a named pipe waits for its writer: interrupted there."""
+    fifo = tmp_path / "manifest.json"
+    os.mkfifo(fifo)
+    process = subprocess.Popen(
+        [*srd_command(), "screen", str(fifo), "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    opened: list[int] = []
+    opener = threading.Thread(target=lambda: opened.append(os.open(fifo, os.O_WRONLY)))
+    opener.daemon = True
+    opener.start()
+    try:
+        opener.join(120)  # returns once srd screen has opened the pipe to read it
+        assert opened, "srd screen never opened the file"
+        code, stdout, stderr = interrupted(process)
+    finally:
+        process.kill()
+        process.wait()
+        for fd in opened:
+            os.close(fd)
+    assert code == INTERRUPTED, stderr
+    assert "Aborted!" in stderr and "Traceback" not in stderr
+    assert json.loads(stdout) == {"error": "aborted"}
+
+
+def test_a_server_stopped_by_ctrl_c_exits_130(tmp_path: Path) -> None:
+    server = ServerProcess(
+        database_url=f"sqlite:///{tmp_path / 'srd.db'}",
+        data_dir=tmp_path / "data",
+        admin_token=ADMIN_TOKEN,
+    )
+    with server:
+        assert server.process is not None
+        server.process.send_signal(signal.SIGINT)
+        assert server.process.wait(60) == INTERRUPTED
+    log = server.log_path.read_text()
+    assert "Aborted!" in log and "Traceback" not in log

@@ -123,6 +123,10 @@ Gains = Annotated[
 ]
 
 
+GRID_AXES = ("backswing", "inhibitor", "srd", "lr")
+"""The fields of ``CheetahConfig`` that span the main grid."""
+
+
 @dataclass(frozen=True)
 class CheetahConfig:
     """HalfCheetahSRD: the grid backswing × inhibitor × SRD (× learning rate) × trial."""
@@ -169,7 +173,19 @@ class CheetahConfig:
 
     def problems(self) -> list[dict[str, str]]:
         """A grid of more than ``MAX_CELLS`` cells, whatever its trials (its figures alone
-        would take minutes and gigabytes)."""
+        would take minutes and gigabytes); a grid axis given with a design stage that does not
+        take it (the stages run their own conditions; only stage 4 takes ``backswing``)."""
+        if self.stage is not None:
+            ignored = ("inhibitor", "srd", "lr") if self.stage == 4 else GRID_AXES
+            return [
+                {
+                    "field": name,
+                    "message": f"design stage {self.stage} runs its own conditions: it does not "
+                    f"take {name}" + (" (stage 4 does)" if name == "backswing" else ""),
+                }
+                for name in ignored
+                if getattr(self, name) != getattr(CheetahConfig, name)
+            ]
         cells = len(grid_conditions(self))
         if cells <= MAX_CELLS:
             return []

@@ -12,8 +12,10 @@ result plus ``out_dir``. Progress goes to stderr, as a bar on a terminal.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -92,7 +94,8 @@ def experiment_command(kind: ExperimentKind) -> click.Command:
     params += [
         click.Option(
             ["--out", "out"],
-            type=click.Path(path_type=Path, file_okay=False),
+            type=click.Path(file_okay=False),
+            callback=_out_folder,
             default=None,
             help="Artifacts folder [default: runs/<command>__<seed>__<YYYYmmdd-HHMMSS>/].",
         ),
@@ -113,11 +116,31 @@ def experiment_command(kind: ExperimentKind) -> click.Command:
     )
 
 
+def _out_folder(_ctx: click.Context, _param: click.Parameter, value: str | None) -> Path | None:
+    """``--out``: a folder's path, not an empty word (which would write into the current
+    folder)."""
+    if value is None:
+        return None
+    if not value.strip():
+        raise click.BadParameter("must name a folder (it is empty)")
+    return Path(value)
+
+
+def _unwritable(folder: Path) -> str | None:
+    """Why no file can be written into ``folder``, or None (tried, not guessed from its mode
+    bits: a read-only mount or an immutable folder refuses even root)."""
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            return None
+    except OSError as exc:
+        return f"cannot write into the folder {folder}: {exc.strerror or exc}"
+
+
 def execute(
     kind: ExperimentKind, options: dict[str, Any], *, out: Path | None, json_output: bool
 ) -> dict[str, Any]:
     """Validate the options, run the experiment with a progress bar, print its result."""
-    stderr = Console(stderr=True)
+    stderr = Console(stderr=True, soft_wrap=True)  # an error line stays one line in a log
     config_cls, runner = kind.load()
     import torch  # loaded by every experiment: run it on one thread, as the job workers do
 
@@ -134,14 +157,37 @@ def execute(
             json_failure(f"{errors[0]['option']}: {errors[0]['message']}", errors)
         raise SystemExit(INVALID) from exc
     out_dir = out or default_out_dir(kind.name, int(getattr(config, "seed", 0)))
+    created = not out_dir.exists()
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
+        problem = _unwritable(out_dir)
     except OSError as exc:  # a folder that cannot be made: one line and exit 2, like any option
-        message = f"cannot create the folder {out_dir}: {exc.strerror or exc}"
-        stderr.print(f"[red]error:[/red] --out: {escape(message)}", highlight=False)
+        problem = f"cannot create the folder {out_dir}: {exc.strerror or exc}"
+    if problem is not None:  # said before the run, not after it
+        stderr.print(f"[red]error:[/red] --out: {escape(problem)}", highlight=False)
         if json_output:
-            json_failure(f"--out: {message}", [{"option": "--out", "message": message}])
-        raise SystemExit(INVALID) from exc
+            json_failure(f"--out: {problem}", [{"option": "--out", "message": problem}])
+        raise SystemExit(INVALID)
+    try:
+        result = _run(kind, runner, config, out_dir, stderr)
+    except BaseException:  # failed or interrupted: a folder this run made and left empty goes
+        if created:
+            with contextlib.suppress(OSError):
+                out_dir.rmdir()  # only if empty
+        raise
+    write_json(out_dir / "result.json", result)
+    if json_output:
+        sys.stdout.write(json.dumps({**result, "out_dir": str(out_dir)}) + "\n")
+    else:
+        width = None if sys.stdout.isatty() else 160  # logs and pipes get whole tables
+        print_summary(kind, result, out_dir, Console(highlight=False, width=width))
+    return result
+
+
+def _run(
+    kind: ExperimentKind, runner: Any, config: Any, out_dir: Path, stderr: Console
+) -> dict[str, Any]:
+    """The experiment run with a progress bar on stderr (a terminal's): its result."""
     with Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -158,12 +204,6 @@ def execute(
 
         result: dict[str, Any] = runner(config, out_dir=out_dir, progress=progress)
         progress(1.0, "done")
-    write_json(out_dir / "result.json", result)
-    if json_output:
-        sys.stdout.write(json.dumps({**result, "out_dir": str(out_dir)}) + "\n")
-    else:
-        width = None if sys.stdout.isatty() else 160  # logs and pipes get whole tables
-        print_summary(kind, result, out_dir, Console(highlight=False, width=width))
     return result
 
 

@@ -92,6 +92,8 @@ def test_human_output_is_a_short_summary_on_stdout(tmp_path) -> None:
         (["auction-study", "--saboteurs", "2"], "--saboteurs", "less than or equal to 1"),
         (["auction-study", "--rarities", "0.1,x"], "--rarities", "valid number"),
         (["fish", "--lr", "nan"], "--lr", "finite"),
+        (["cheetah", "--stage", "1", "--backswing", "9"], "--backswing", "does not take backswing"),
+        (["cheetah", "--stage", "4", "--srd", "off"], "--srd", "does not take srd"),
         (["auction-study", "--rarities", "1.5"], "--rarities", "less than or equal to 1"),
         (["auction-study", "--rows", "0"], "--rows", "greater than or equal to 1"),
         (["cheetah", "--inhibitor", "-1"], "--inhibitor", "greater than or equal to 0"),
@@ -119,6 +121,19 @@ def test_an_out_folder_that_cannot_be_made_exits_2_naming_it(tmp_path) -> None:
     failure = json.loads(result.stdout)
     assert [e["option"] for e in failure["errors"]] == ["--out"]
     assert str(out) in failure["error"]
+
+
+@pytest.mark.parametrize(
+    ("out", "words"), [("", "must name a folder"), ("/proc", "cannot write into the folder /proc")]
+)
+def test_an_out_folder_that_cannot_be_written_is_refused_before_the_run(out, words) -> None:
+    """An empty --out had written into the current folder; a folder that exists but takes no
+    files had failed with a traceback after the whole run."""
+    result = CliRunner().invoke(cli, ["fish", "--steps", "10", "--json", "--out", out])
+    assert result.exit_code == 2, result.output
+    assert "--out" in result.stderr and words in result.stderr
+    assert "Traceback" not in result.stderr
+    assert [e["option"] for e in json.loads(result.stdout)["errors"]] == ["--out"]
 
 
 @pytest.mark.parametrize(

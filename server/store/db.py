@@ -560,7 +560,11 @@ class SqliteServerLock:
 
     def __init__(self, url: str) -> None:
         self.path = sqlite_path(url).with_name(sqlite_path(url).name + ".serve-lock")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if not self.path.parent.is_dir():  # a mistyped path would otherwise serve a new database
+            raise FileNotFoundError(
+                f"no folder {self.path.parent} for the SQLite database: create it, or correct "
+                "the path"
+            )
         self._handle = self.path.open("a+")
         try:
             fcntl.flock(self._handle, fcntl.LOCK_EX | fcntl.LOCK_NB)

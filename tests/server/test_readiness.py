@@ -115,6 +115,8 @@ def test_serve_refuses_a_data_folder_it_cannot_write(tmp_path: Path, where: str)
          "SRD_JOB_BACKEND=ray needs SRD_RAY_ADDRESS"),
         ({"SRD_SCREENER_SECRET": "hidden-pw" * 4}, 2, "10 of them different: draw one at random"),
         ({"SRD_DATABASE_URL": "mysql://db/srd"}, 2, "SRD_DATABASE_URL names mysql"),
+        ({"SRD_DATABASE_URL": "sqlite:////no-such-folder-srd/x.db"}, 3,
+         "no folder /no-such-folder-srd for the SQLite database"),
         ({"SRD_DATABASE_URL": "postgresql+psycopg://u:hidden-pw@127.0.0.1:1/x"}, 3,
          "the database postgresql+psycopg://u:***@127.0.0.1:1/x (SRD_DATABASE_URL) cannot be used"),
     ],

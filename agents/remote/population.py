@@ -13,6 +13,7 @@ import os
 import random
 import re
 import secrets
+import tempfile
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
@@ -120,9 +121,11 @@ def _unwritable(path: Path) -> str | None:
         return f"{path} is a folder"
     if not folder.is_dir():
         return f"{path}: no such folder {folder}"
-    if not os.access(folder, os.W_OK | os.X_OK):
-        return f"{path}: the folder {folder} is not writable"
-    return None
+    try:  # tried, not guessed from mode bits (a read-only mount refuses even root)
+        with tempfile.TemporaryFile(dir=folder):
+            return None
+    except OSError as exc:
+        return f"{path}: cannot write into the folder {folder}: {exc.strerror or exc}"
 
 
 @dataclass

@@ -11,7 +11,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -23,6 +23,7 @@ from agents.negotiator import honest_manifest
 from server.api.schemas import MAX_ROW_ID
 from server.cli import cli
 from server.cli.launch import ServerProcess, srd_command
+from tests.support.fake_http import serving
 from tests.support.server import ADMIN_TOKEN
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -99,15 +100,8 @@ def fake() -> Iterator[tuple[str, type[FakeServer]]]:
     handler = type(
         "Handler", (FakeServer,), {"answers": {}, "asked": [], "connected": threading.Event()}
     )
-    httpd = ThreadingHTTPServer((HOST, 0), handler)
-    httpd.daemon_threads = True
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://{HOST}:{httpd.server_address[1]}", handler
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
+    with serving(handler, HOST) as url:
+        yield url, handler
 
 
 def watch(*args: str, env: dict[str, str] | None = None) -> Result:

@@ -11,9 +11,8 @@ import re
 import socket
 import stat
 import subprocess
-import threading
 from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -23,6 +22,7 @@ from click.testing import CliRunner
 
 from server.cli import cli
 from server.cli.launch import ServerProcess, srd_command
+from tests.support.fake_http import serving
 from tests.support.live import submit_population
 from tests.support.server import ADMIN, ADMIN_TOKEN, module_server, wait_for
 
@@ -189,14 +189,8 @@ class DroppingStream(BaseHTTPRequestHandler):
 @pytest.fixture
 def dropping() -> Iterator[tuple[str, type[DroppingStream]]]:
     handler = type("Handler", (DroppingStream,), {"plan": [], "seen": []})
-    httpd = ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{httpd.server_address[1]}", handler
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
+    with serving(handler) as url:
+        yield url, handler
 
 
 def test_a_dropped_stream_is_resumed_once_after_the_last_event(dropping) -> None:
@@ -427,11 +421,7 @@ class NotThisService(BaseHTTPRequestHandler):
 
 
 def test_agents_against_a_server_that_is_not_an_auction_house_exit_1_saying_so() -> None:
-    fake = ThreadingHTTPServer(("127.0.0.1", 0), NotThisService)
-    thread = threading.Thread(target=fake.serve_forever, daemon=True)
-    thread.start()
-    try:
-        url = f"http://127.0.0.1:{fake.server_address[1]}"
+    with serving(NotThisService) as url:
         for extra in ([], ["--auction", "3"]):
             done = subprocess.run(
                 [*srd_command(), "agents", "--server", url, "--honest", "1", "--give-up", "2",
@@ -441,6 +431,3 @@ def test_agents_against_a_server_that_is_not_an_auction_house_exit_1_saying_so()
             assert done.returncode == 1, done.stderr
             assert "Traceback" not in done.stderr
             assert "is it an srd server?" in json.loads(done.stdout)["error"]
-    finally:
-        fake.shutdown()
-        fake.server_close()

@@ -105,6 +105,15 @@ def _drain(app: object) -> None:
 def command(host: str | None, port: int | None, log_level: str) -> None:
     """Run the HTTP API; database from SRD_DATABASE_URL (default sqlite:///./srd.db). Exits
     with code 2, saying why, when the data folder (SRD_DATA_DIR) cannot be written."""
+    from server.config import SettingsError, get_settings
+
+    try:  # before the app's imports: a setting it cannot use is said at once
+        settings = get_settings()
+    except SettingsError as exc:
+        for line in str(exc).splitlines():
+            click.echo(f"srd serve: {line}", err=True)
+        raise SystemExit(UNUSABLE) from None
+
     import uvicorn
 
     class Server(uvicorn.Server):
@@ -125,15 +134,8 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     from server.api.readiness import make_data_dir
     from server.app import create_app
     from server.auctions.sockets import MAX_FRAME_BYTES
-    from server.config import SettingsError, get_settings
     from server.work.pool import LOG_FORMAT
 
-    try:
-        settings = get_settings()
-    except SettingsError as exc:
-        for line in str(exc).splitlines():
-            click.echo(f"srd serve: {line}", err=True)
-        raise SystemExit(UNUSABLE) from None
     problem = make_data_dir(settings.data_dir)
     if problem is not None:
         click.echo(f"srd serve: {problem} (SRD_DATA_DIR)", err=True)

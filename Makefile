@@ -31,7 +31,7 @@ demo: $(STAMP)
 	$(BIN)/python -m server.cli.demo
 
 test: lint
-	$(BIN)/pytest -q -n 2 --dist loadfile
+	$(BIN)/pytest -q -n 3 --dist loadfile
 
 test-all: $(STAMP)
 	$(BIN)/pytest -q -m ''

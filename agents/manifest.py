@@ -47,7 +47,24 @@ PFC_SOURCES = ES_NEURONS + DECISIONS
 JUDGEMENTS = ("PGL", "BC", "FQ")
 VERDICTS = ("T", "F")
 
-FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+
+def _float_sized(value: Any) -> Any:
+    """Refuse an integer no float can hold (``10**400``) as out of range, at its path: pydantic
+    would call it "not a valid number", which a reader takes for a typo."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        try:
+            float(value)
+        except OverflowError:
+            raise PydanticCustomError(
+                "finite_number",
+                "out of range: not a finite float (an integer beyond ±1.8e308)",
+            ) from None
+    return value
+
+
+InFloatRange = BeforeValidator(_float_sized)
+"""A float field's metadata: an integer beyond the float range is refused as such."""
+FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False), InFloatRange]
 """A finite JSON number (strict: ``"0.2"`` and ``true`` are not numbers)."""
 Participant = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")]
 """A participant's name: letters, digits, ``_``, ``.``, ``-``."""
@@ -169,25 +186,29 @@ class ThresholdActivation(_Strict):
     """T(x) = tanh(leaky_relu(a·(x − c), negative_slope))."""
 
     kind: Literal["threshold"]
-    a: Annotated[float, Field(strict=True, gt=0, le=1000, allow_inf_nan=False)]
-    c: Annotated[float, Field(strict=True, ge=-1000, le=1000, allow_inf_nan=False)]
-    negative_slope: Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)]
+    a: Annotated[float, Field(strict=True, gt=0, le=1000, allow_inf_nan=False), InFloatRange]
+    c: Annotated[float, Field(strict=True, ge=-1000, le=1000, allow_inf_nan=False), InFloatRange]
+    negative_slope: Annotated[
+        float, Field(strict=True, ge=0, le=1, allow_inf_nan=False), InFloatRange
+    ]
 
 
 class BelowThresholdActivation(_Strict):
     """BT(x) = tanh(−leaky_relu(a·(x − c), negative_slope)) + 1."""
 
     kind: Literal["below_threshold"]
-    a: Annotated[float, Field(strict=True, gt=0, le=1000, allow_inf_nan=False)]
-    c: Annotated[float, Field(strict=True, ge=-1000, le=1000, allow_inf_nan=False)]
-    negative_slope: Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)]
+    a: Annotated[float, Field(strict=True, gt=0, le=1000, allow_inf_nan=False), InFloatRange]
+    c: Annotated[float, Field(strict=True, ge=-1000, le=1000, allow_inf_nan=False), InFloatRange]
+    negative_slope: Annotated[
+        float, Field(strict=True, ge=0, le=1, allow_inf_nan=False), InFloatRange
+    ]
 
 
 class SelectiveActivation(_Strict):
     """S(x) = ε / (ε + x²)."""
 
     kind: Literal["selective"]
-    epsilon: Annotated[float, Field(strict=True, gt=0, le=1, allow_inf_nan=False)]
+    epsilon: Annotated[float, Field(strict=True, gt=0, le=1, allow_inf_nan=False), InFloatRange]
 
 
 Activation = Annotated[
@@ -272,7 +293,9 @@ class Augmentation(_Strict):
     """Implicit contrastive augmentation: copy 0 clean, copies 1.. jittered by N(0, σ²)."""
 
     copies: Annotated[int, Field(strict=True, ge=1, le=16)] = 5
-    noise_std: Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)] = 0.01
+    noise_std: Annotated[
+        float, Field(strict=True, ge=0, le=1, allow_inf_nan=False), InFloatRange
+    ] = 0.01
     noiseless_inputs: tuple[InputName, ...] = Field(
         default=("st1", "st2", "st3"), max_length=len(INPUTS)
     )
@@ -302,7 +325,9 @@ class FineTuning(_Strict):
 
     epochs: Annotated[int, Field(strict=True, ge=0, le=10)] = 0
     batch_size: Annotated[int, Field(strict=True, ge=1, le=64)] = 16
-    learning_rate: Annotated[float, Field(strict=True, ge=0, le=1, allow_inf_nan=False)] = 0.0
+    learning_rate: Annotated[
+        float, Field(strict=True, ge=0, le=1, allow_inf_nan=False), InFloatRange
+    ] = 0.0
 
 
 class Manifest(_Strict):

@@ -237,6 +237,14 @@ class Settings(BaseSettings):
                 raise ValueError(f"{entry!r} is not an IP address or network") from exc
         return value
 
+    @field_validator("host")
+    @classmethod
+    def _some_host(cls, value: str) -> str:
+        problem = host_problem(value)
+        if problem is not None:
+            raise ValueError(problem)
+        return value
+
     @model_validator(mode="after")
     def _ray_cluster_named(self) -> Settings:
         """``job_backend=ray`` names its cluster: without an address the server would start
@@ -277,6 +285,13 @@ def token_problem(token: str) -> str | None:
             "an operator token is printable ASCII without white space, at most 4096 characters "
             "(it travels in an Authorization header)"
         )
+    return None
+
+
+def host_problem(host: str) -> str | None:
+    """Why ``host`` is no address to bind (``srd serve --host``, ``SRD_HOST``), or None."""
+    if not host.strip():
+        return "a host name or address to bind cannot be empty or white space"
     return None
 
 

@@ -116,6 +116,29 @@ def experiment_command(kind: ExperimentKind) -> click.Command:
     )
 
 
+def _element_message(field: str, message: str, options: dict[str, Any]) -> str:
+    """The error of one element of a comma-separated list option (``field`` ``name.index``, as
+    ``parse_config`` names it) with the element's position from 1 in the value as typed:
+    ``element 2 of '1,,2' is empty``, ``element 2 of '1,x,2': 'x' is not a number``; any
+    other error as it is. (Every list option of the experiments is a list of numbers.)"""
+    name, _, index = field.partition(".")
+    given = options.get(name)
+    parts = given.split(",") if isinstance(given, str) else []
+    if not index.isdigit() or int(index) >= len(parts):
+        return message
+    part = parts[int(index)].strip()
+    where = f"element {int(index) + 1} of {given!r}"
+    if not part:
+        return f"{where} is empty"
+    try:
+        number = json.loads(part)
+    except json.JSONDecodeError:
+        number = None
+    if isinstance(number, bool) or not isinstance(number, int | float):
+        return f"{where}: {part!r} is not a number"
+    return f"{where} ({part}): {message}"
+
+
 def _out_folder(_ctx: click.Context, _param: click.Parameter, value: str | None) -> Path | None:
     """``--out``: a folder's path, not an empty word (which would write into the current
     folder)."""
@@ -151,8 +174,9 @@ def execute(
         errors = []
         for err in exc.errors:
             option = "--" + err["field"].split(".")[0].replace("_", "-")
-            errors.append({"option": option, "message": err["message"]})
-            stderr.print(f"[red]error:[/red] {option}: {escape(err['message'])}", highlight=False)
+            message = _element_message(err["field"], err["message"], options)
+            errors.append({"option": option, "message": message})
+            stderr.print(f"[red]error:[/red] {option}: {escape(message)}", highlight=False)
         if json_output:
             json_failure(f"{errors[0]['option']}: {errors[0]['message']}", errors)
         raise SystemExit(INVALID) from exc

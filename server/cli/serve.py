@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 UNUSABLE = 2
 """The exit code of a server that cannot start with its settings (a variable's value)."""
 NOT_STARTED = 3
-"""The exit code of a server that could not start: its database or its port."""
+"""The exit code of a server that could not start: its database, its Ray cluster or its port."""
 YOUNG_COLLECTION_EVERY = 20_000
 """The API's cyclic garbage collector looks at its youngest objects after this many container
 allocations (Python's default is 700), at each older generation after 20 passes over the one
@@ -82,6 +82,32 @@ def database_problem(settings: Settings) -> tuple[str, int] | None:
     return None
 
 
+def ray_problem(settings: Settings) -> str | None:
+    """Why the server cannot start on its Ray cluster (``SRD_JOB_BACKEND=ray``), in one line
+    naming SRD_RAY_ADDRESS and the address, or None: a head that takes no TCP connection within
+    SRD_RAY_JOIN_TIMEOUT_S (one that refuses it: at once). The app's start then joins the
+    cluster as before (a head that answers but is no Ray head ends in its lifespan's error)."""
+    if settings.job_backend != "ray" or settings.ray_address is None:
+        return None
+    from server.jobs.ray_backend import RayUnavailableError, head_answers
+
+    try:
+        head_answers(settings.ray_address, settings.ray_join_timeout_s)
+    except RayUnavailableError as exc:
+        return str(exc)
+    return None
+
+
+def _host(_ctx: click.Context, _param: click.Parameter, value: str | None) -> str | None:
+    """``--host``: an address to bind, not an empty word (which would bind the default)."""
+    from server.config import host_problem
+
+    problem = None if value is None else host_problem(value)
+    if problem is not None:
+        raise click.BadParameter(problem)
+    return value
+
+
 def _drain(app: object) -> None:
     """Tell the app the server is shutting down (its long polls answer now), once it runs."""
     drain = getattr(getattr(app, "state", None), "drain", None)
@@ -91,7 +117,12 @@ def _drain(app: object) -> None:
 
 
 @click.command("serve")
-@click.option("--host", default=None, help="Bind address [default: SRD_HOST or 127.0.0.1].")
+@click.option(
+    "--host",
+    default=None,
+    callback=_host,
+    help="Bind address [default: SRD_HOST or 127.0.0.1].",
+)
 @click.option(
     "--port", type=click.IntRange(0, 65535), default=None, help="Port [default: SRD_PORT or 8000]."
 )
@@ -144,6 +175,10 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     if problem is not None:
         click.echo(f"srd serve: {problem}", err=True)
         raise SystemExit(UNUSABLE)
+    problem = ray_problem(settings)  # before the database: a refused start stores nothing
+    if problem is not None:
+        click.echo(f"srd serve: {problem}", err=True)
+        raise SystemExit(NOT_STARTED)
     refused = database_problem(settings)
     if refused is not None:
         click.echo(f"srd serve: {refused[0]}", err=True)
@@ -152,7 +187,7 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     file_limit = raise_file_limit()
     config = uvicorn.Config(
         create_app(settings),
-        host=host or settings.host,
+        host=settings.host if host is None else host,
         port=settings.port if port is None else port,
         log_level=log_level,
         access_log=settings.access_log,

@@ -79,7 +79,7 @@ def _required(address: str | None) -> str:
     return address
 
 
-def _answers(address: str, timeout_s: float) -> None:
+def head_answers(address: str, timeout_s: float) -> None:
     """RayUnavailableError unless the head at ``address`` (``host:port``, or ``ray://host:port``)
     takes a TCP connection within ``timeout_s``: ``ray.init`` retries an address nobody answers
     on for minutes, and a job would wait in ``running`` meanwhile. Other forms (``auto``) are
@@ -102,7 +102,7 @@ def connect(address: str | None, timeout_s: float) -> Any:
     address = _required(address)
     ray = ray_module()
     if not ray.is_initialized():
-        _answers(address, timeout_s)
+        head_answers(address, timeout_s)
         try:
             ray.init(
                 address=address,
@@ -195,8 +195,10 @@ print(json.dumps(ray.cluster_resources().get("CPU", 0.0)))
 def probe_cpus(address: str, timeout_s: float) -> float:
     """The CPUs of the cluster at ``address``, read by a child process that joins it as a
     driver and leaves; RayUnavailableError with the reason when it cannot within
-    ``timeout_s``. The server itself never joins: Ray ends a driver whose cluster has been gone
-    for a minute, and waits forever for an address nobody answers on."""
+    ``timeout_s`` (a head that refuses the connection: at once). The server itself never joins:
+    Ray ends a driver whose cluster has been gone for a minute, and waits forever for an
+    address nobody answers on."""
+    head_answers(address, timeout_s)
     try:
         done = subprocess.run(
             [sys.executable, "-c", _PROBE, address, NAMESPACE],

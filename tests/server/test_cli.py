@@ -90,7 +90,7 @@ def test_human_output_is_a_short_summary_on_stdout(tmp_path) -> None:
     [
         (["fish", "--steps", "0"], "--steps", "greater than or equal to 1"),
         (["auction-study", "--saboteurs", "2"], "--saboteurs", "less than or equal to 1"),
-        (["auction-study", "--rarities", "0.1,x"], "--rarities", "valid number"),
+        (["auction-study", "--rarities", "0.1,x"], "--rarities", "'x' is not a number"),
         (["fish", "--lr", "nan"], "--lr", "finite"),
         (["cheetah", "--stage", "1", "--backswing", "9"], "--backswing", "does not take backswing"),
         (["cheetah", "--stage", "4", "--srd", "off"], "--srd", "does not take srd"),

@@ -1,12 +1,15 @@
-"""Bad input to ``srd watch``, ``srd screen`` and ``srd healthcheck`` (a server that is not an
-srd server, ids, URLs, NaN, settings, oversized files), and Ctrl-C: a clear error naming what
-is at fault and the command's documented exit code, never a traceback."""
+"""Bad input to ``srd watch``, ``srd screen``, ``srd healthcheck``, ``srd serve`` and the
+experiment commands (a server that is not an srd server, ids, URLs, NaN, settings, oversized
+files, a host, a Ray cluster, list options), and Ctrl-C: a clear error naming what is at fault
+and the command's documented exit code, never a traceback."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import signal
+import socket
 import subprocess
 import threading
 import time
@@ -387,6 +390,109 @@ def test_screen_refuses_a_setting_srd_serve_refuses_naming_it(
             assert "short" not in outcome.stderr and "a" * 40 not in outcome.stderr  # unsaid
         if extra:
             assert words in json.loads(outcome.stdout)["error"]
+
+
+def test_screen_of_an_integer_beyond_the_float_range_names_its_path(tmp_path: Path) -> None:
+    data = json.loads(manifest_text())
+    data["external_sensor"]["PG"]["weights"]["price"] = 10**400
+    path = tmp_path / "huge.json"
+    path.write_text(json.dumps(data))
+    where = "external_sensor.PG.weights.price"
+    outcome = CliRunner().invoke(cli, ["screen", str(path), "--json"])
+    assert outcome.exit_code == 2, (outcome.output, outcome.exception)
+    assert f"{where}: out of range: not a finite float" in outcome.stderr
+    errors = json.loads(outcome.stdout)["errors"]
+    assert [e["path"] for e in errors] == [where] and "out of range" in errors[0]["message"]
+
+
+# --- srd serve: a host to bind, a Ray cluster that answers ---------------------------------------
+
+
+@pytest.mark.parametrize("host", ["", " ", "\t"])
+def test_serve_refuses_an_empty_host_naming_the_option(host: str) -> None:
+    result = CliRunner().invoke(cli, ["serve", "--host", host])
+    assert result.exit_code == 2, (result.output, result.exception)
+    assert "Invalid value for '--host'" in result.stderr
+    assert "cannot be empty or white space" in result.stderr
+
+
+def serve(tmp_path: Path, **variables: str) -> subprocess.CompletedProcess[str]:
+    """``srd serve --port 0`` on a fresh SQLite file with these extra variables set."""
+    env = {
+        **os.environ,
+        "SRD_DATABASE_URL": f"sqlite:///{tmp_path / 'srd.db'}",
+        "SRD_DATA_DIR": str(tmp_path / "data"),
+        "SRD_ADMIN_TOKEN": ADMIN_TOKEN,
+        **variables,
+    }
+    return subprocess.run(
+        [*srd_command(), "serve", "--port", "0"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+
+
+def test_serve_refuses_a_blank_srd_host_naming_it(tmp_path: Path) -> None:
+    done = serve(tmp_path, SRD_HOST="   ")
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("srd serve: SRD_HOST=")
+    assert "cannot be empty or white space" in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "srd.db").exists()
+
+
+@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="Ray is not installed")
+def test_serve_on_a_ray_address_nobody_answers_exits_3_naming_it(tmp_path: Path) -> None:
+    with socket.socket() as held:  # bound, not listening: the connection is refused
+        held.bind((HOST, 0))
+        address = f"{HOST}:{held.getsockname()[1]}"
+        started = time.monotonic()
+        done = serve(tmp_path, SRD_JOB_BACKEND="ray", SRD_RAY_ADDRESS=address)
+        elapsed = time.monotonic() - started
+    assert done.returncode == 3, done.stderr
+    assert done.stderr.startswith(f"srd serve: cannot join the Ray cluster at '{address}'")
+    assert "(SRD_RAY_ADDRESS)" in done.stderr and "Traceback" not in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+    assert elapsed < 15  # refused at once, not after SRD_RAY_JOIN_TIMEOUT_S (30 s)
+    assert not (tmp_path / "srd.db").exists()  # nothing stored
+
+
+# --- Experiment list options: the element at fault, by its position -----------------------------
+
+
+@pytest.mark.parametrize(
+    ("command", "option"),
+    [
+        ("cheetah", "--backswing"),
+        ("cheetah", "--inhibitor"),
+        ("cheetah", "--lr"),
+        ("auction-study", "--rarities"),
+        ("comparison", "--rarities"),
+    ],
+)
+@pytest.mark.parametrize(
+    ("value", "words"),
+    [
+        ("0.5,,0.25", "element 2 of '0.5,,0.25' is empty"),
+        ("0.5,0.25,", "element 3 of '0.5,0.25,' is empty"),
+        ("0.5,0.25,x", "element 3 of '0.5,0.25,x': 'x' is not a number"),
+        ("true,0.5", "element 1 of 'true,0.5': 'true' is not a number"),
+        ("0.5,-101", "element 2 of '0.5,-101' (-101): Input should be greater than"),
+    ],
+)
+def test_a_list_option_names_the_element_at_fault(
+    tmp_path: Path, command: str, option: str, value: str, words: str
+) -> None:
+    out = tmp_path / "out"
+    result = CliRunner().invoke(cli, [command, option, value, "--json", "--out", str(out)])
+    assert result.exit_code == 2, (result.output, result.exception)
+    assert f"error: {option}: {words}" in result.stderr
+    assert result.stderr.count("error:") == 1, result.stderr
+    failure = json.loads(result.stdout)
+    assert failure["errors"][0]["option"] == option and words in failure["errors"][0]["message"]
+    assert not out.exists()
 
 
 # --- Ctrl-C: exit 130, "Aborted!" (and under --json, the failure as one object) ---------------

@@ -99,6 +99,27 @@ def test_an_error_names_a_path_into_the_body_and_a_short_one(client: TestClient)
     assert body == "body" and key.startswith("kkk") and key.endswith("…")
 
 
+@pytest.mark.parametrize(
+    "path",
+    [
+        ("external_sensor", "PG", "weights", "price"),
+        ("decision", "B", "bias"),
+        ("pfc", "verdict", "T", "weights", "PGL"),
+        ("external_sensor", "PG", "activation", "a"),
+    ],
+)
+@pytest.mark.parametrize("sign", [1, -1])
+def test_an_integer_beyond_the_float_range_is_422_out_of_range_at_its_path(
+    client: TestClient, path: tuple[str, ...], sign: int
+) -> None:
+    before = count(client, ModelVersion)
+    response = client.post("/submit", json=manifest_with(path, sign * 10**400))
+    assert response.status_code == 422
+    assert locs(response) == [["body", *path]]
+    assert "out of range: not a finite float" in response.text
+    assert count(client, ModelVersion) == before
+
+
 def test_an_integer_is_a_valid_number(client: TestClient) -> None:
     response = client.post("/submit", json=manifest_with(("external_sensor", "PG", "bias"), 0))
     assert response.status_code == 201, response.text

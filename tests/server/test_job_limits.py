@@ -222,3 +222,20 @@ def test_a_study_supply_that_puts_no_fish_on_sale_is_refused(client) -> None:
         (item,) = response.json()["detail"]
         assert item["loc"] == ["body", "params", "rarities"]
         assert "puts no fish on sale" in item["msg"] and "0.125" in item["msg"]
+
+
+def test_a_design_stage_refuses_the_grid_axes_it_does_not_take(client) -> None:
+    """A design stage runs its own conditions; only stage 4 takes ``backswing``."""
+    cases = [
+        ({"stage": 0, "lr": [0.01]}, "lr"),
+        ({"stage": 1, "backswing": [9]}, "backswing"),
+        ({"stage": 4, "srd": "off"}, "srd"),
+        ({"stage": 2, "inhibitor": "0,5"}, "inhibitor"),
+    ]
+    for params, field in cases:
+        response = client.post("/jobs", json={"kind": "cheetah", "params": params}, headers=ADMIN)
+        assert response.status_code == 422, response.text
+        (item,) = response.json()["detail"]
+        assert item["loc"] == ["body", "params", field]
+        assert f"does not take {field}" in item["msg"]
+    assert client.get("/jobs").json()["items"] == []

@@ -63,6 +63,7 @@ def ray_head() -> Iterator[RayHead]:
 
 
 def client_for(tmp: Path, **overrides: Any) -> TestClient:
+    tmp.mkdir(exist_ok=True)  # the server does not make its database's folder
     settings = make_settings(
         f"sqlite:///{tmp / 'srd.db'}", tmp / "data", job_workers=3, **overrides
     )
@@ -120,6 +121,7 @@ def test_ray_jobs_equal_local_jobs(ray_head: RayHead, tmp_path: Path) -> None:
             "problems": [],
             "job_backend": "ray",
             "cpus": float(CPUS),
+            "screener_populations": "public",
         }
         done = run_jobs(client, JOBS)
     for kind, job in done.items():

@@ -8,7 +8,9 @@ states its inputs. A long poll's ``wait`` is cut to 1 s, so that the run's minut
 breadth (long polls are tested in test_remote_protocol.py). A study job whose supply puts no
 fish on sale (``int(rarity × patrons)`` = 0, a rule across two options that JSON Schema cannot
 state; refused with 422 naming ``rarities``, tested in test_job_limits.py) is sent with that
-rarity raised to 1 / patrons.
+rarity raised to 1 / patrons. A cheetah job with a design ``stage`` is sent without the grid
+axes that stage does not take (it runs its own conditions; refused with 422 naming the axis,
+tested in test_job_limits.py).
 Everything else schemathesis generates goes out unchanged.
 """
 
@@ -18,6 +20,8 @@ import math
 from typing import Any
 
 import schemathesis
+
+from sim.configs import GRID_AXES
 
 
 def _integers(value: Any) -> Any:
@@ -32,7 +36,20 @@ def _integers(value: Any) -> Any:
 
 @schemathesis.hook
 def map_body(context: Any, body: Any) -> Any:
-    return _with_fish(_integers(body))
+    return _staged(_with_fish(_integers(body)))
+
+
+def _staged(body: Any) -> Any:
+    """A cheetah job's body with a design stage, less the grid axes that stage does not take."""
+    if not isinstance(body, dict) or body.get("kind") != "cheetah":
+        return body
+    params = body.get("params")
+    if not isinstance(params, dict):
+        return body
+    if not isinstance(params.get("stage"), int):
+        return body
+    ignored = ("inhibitor", "srd", "lr") if params["stage"] == 4 else GRID_AXES
+    return {**body, "params": {k: v for k, v in params.items() if k not in ignored}}
 
 
 @schemathesis.hook
@@ -69,5 +86,5 @@ def _with_fish(body: Any) -> Any:
 def map_case(context: Any, case: Any) -> Any:
     """The coverage phase's cases too (``map_body`` is not applied to them)."""
     if isinstance(case.body, dict):
-        case.body = _with_fish(case.body)
+        case.body = _staged(_with_fish(case.body))
     return case

@@ -317,8 +317,12 @@ def end_line(watched: Watched) -> str:
         + (f" ({end['stop_reason']})" if end.get("stop_reason") else "")
         + f" after {end.get('iterations')} iteration{'' if end.get('iterations') == 1 else 's'}: "
         f"{end.get('n_sold', sold)} of "
-        f"{end.get('n_initial')} fish sold, revenue {price(revenue)}, price asked last "
-        f"{price(end.get('price', 0.0))}"
+        f"{end.get('n_initial')} fish sold, revenue {price(revenue)}, "
+        + (  # the end's price is the one asked next, which no round asked
+            f"price asked last {price(watched.iterations[-1]['price'])}"
+            if watched.iterations
+            else "no price asked"
+        )
     )
     if end.get("error"):
         line += f"; error: {end['error']}"

@@ -232,7 +232,7 @@ def test_a_remote_auction_closes_its_round_and_wakes_its_agents(client: TestClie
     assert auction_id not in runner.held and runner.pool.pid(auction_id) is None
     # A later upload hears that the round is closed, and is recorded late.
     refused = put(client, auction_id, 1, late_id, tuned(late), late_token)
-    error(refused, 410, ["path", "round"], "round 1 is closed")
+    error(refused, 410, ["path", "round"], "round 1 is closed: the auction was cancelled")
     after = client.get(f"/auctions/{auction_id}").json()
     outcomes = {a["model_id"]: a["outcome"] for a in after["fine_tuning"][0]["answers"]}
     assert outcomes == {first_id: "accepted", late_id: "late"}

@@ -78,7 +78,7 @@ def test_watch_prints_each_iteration_and_exits_0_when_the_auction_finishes(
     assert lines[-1] == (
         f"auction {auction_id} finished ({auction['stop_reason']}) after "
         f"{len(auction['history'])} iterations: {len(auction['buyers'])} of 3 fish sold, "
-        f"revenue {revenue:.3f}, price asked last {auction['price']:.3f}"
+        f"revenue {revenue:.3f}, price asked last {auction['history'][-1]['price']:.3f}"
     )
 
 

@@ -377,6 +377,20 @@ def test_path_ids_are_digits_only(client: TestClient, raw: str) -> None:
     assert upload.status_code == 422 and ["path", "round"] in locs(upload), upload.text
 
 
+@pytest.mark.parametrize("raw", ["1.0", "%2B1", "1_0", "%201%20", "-1"])
+def test_integer_query_parameters_are_digits_only(client: TestClient, raw: str) -> None:
+    """As path ids: the reviews' cursor and a long poll's last round handled."""
+    for path, name in (
+        (f"/reviews?cursor={raw}", "cursor"),
+        (f"/auctions/1/rounds/current?after={raw}", "after"),
+        (f"/auctions?cursor={raw}", "cursor"),
+    ):
+        response = client.get(path, headers=ADMIN)
+        assert response.status_code == 422, (path, response.text)
+        assert locs(response) == [["query", name]]
+        assert "whole number written in digits" in response.text
+
+
 def test_artifact_name_with_a_null_byte_is_404(client: TestClient) -> None:
     created = client.post("/jobs", json={"kind": "fish", "params": {"steps": 5}}, headers=ADMIN)
     job_id = created.json()["job_id"]

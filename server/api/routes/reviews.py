@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
+from pydantic import BeforeValidator
 from starlette.concurrency import run_in_threadpool
 
 from server.api.deps import AdminDep, BearerDep, SessionDep, SettingsDep, read_in_thread
@@ -24,6 +25,7 @@ from server.api.schemas import (
     ReviewCreate,
     ReviewedPublic,
 )
+from server.api.schemas.common import digits_only
 from server.store import crud
 from server.store.status import ModelStatus, ReviewDecision
 from server.submissions import reviews
@@ -38,6 +40,7 @@ ReviewCursor = Annotated[
         description="The ``next_cursor`` of the previous page (the page holds the held models "
         "above that id, oldest first); omit for the first page.",
     ),
+    BeforeValidator(digits_only),  # an id, written as path ids are
 ]
 
 

@@ -88,6 +88,7 @@ async def read_current_round(
     after: Annotated[
         int,
         Query(ge=0, le=MAX_FINE_TUNE_ROUNDS, description="The last round the client handled."),
+        BeforeValidator(digits_only),
     ] = 0,
 ) -> Response:
     """The auction's newest fine-tuning round: status open | closed | none, its deadline

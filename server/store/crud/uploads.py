@@ -56,6 +56,7 @@ class UploadTarget:
     """What ``PUT /auctions/{id}/rounds/{round}/models/{model_id}`` checks before screening."""
 
     fine_tune_mode: str
+    auction_status: str
     position: int | None
     """The model's position among the auction's patrons (None: not a patron)."""
     participant: str
@@ -92,6 +93,7 @@ _CURRENT = aliased(ModelVersion)
 _HEAD = (
     select(
         Auction.fine_tune_mode,
+        Auction.status.label("auction_status"),
         Participant.name,
         Participant.token_hash,
         AuctionPatron.position,
@@ -161,6 +163,7 @@ def upload_target(
         newest = connection.execute(_NEWEST_ROUND, ids).one_or_none()
     return UploadTarget(
         fine_tune_mode=head.fine_tune_mode,
+        auction_status=head.auction_status,
         position=head.position,
         participant=head.name,
         token_hash=head.token_hash,
@@ -212,12 +215,9 @@ class Stored:
     refusal: tuple[int, str, str] | None = None
 
 
-def _late(number: int) -> tuple[int, str, str]:
-    return (
-        410,
-        f"round {number} is closed or past its deadline: the upload is late and was not applied",
-        "round_closed",
-    )
+def _late(number: int, *, cancelled: bool) -> tuple[int, str, str]:
+    why = "closed: the auction was cancelled" if cancelled else "closed or past its deadline"
+    return (410, f"round {number} is {why}; the upload is late and was not applied", "round_closed")
 
 
 _INSERT_ANSWER = insert(FineTuneAnswer).returning(FineTuneAnswer.id)
@@ -227,7 +227,7 @@ def store_upload(connection: Connection, *, upload: UploadIn, target: UploadTarg
     """Store an upload as it arrives, in the transaction that read its ``target``: pending
     with its manifest (a repeat of the current weights is accepted at once), a repeat of an
     answered upload (the same bytes: the route refuses others) answered as before, a late one
-    recorded as late."""
+    recorded as late (in a cancelled auction too: its 410 names the cancel)."""
     if target.answer_outcome in ANSWERED:
         if target.answer_outcome == AnswerOutcome.PENDING:
             return Stored(answer_id=target.answer_id)
@@ -236,7 +236,8 @@ def store_upload(connection: Connection, *, upload: UploadIn, target: UploadTarg
         target.deadline is not None and upload.arrived >= target.deadline
     ):
         record_late(connection, upload=upload, missing_id=target.answer_id)
-        return Stored(refusal=_late(upload.round_number))
+        cancelled = target.auction_status == AuctionStatus.CANCELLED
+        return Stored(refusal=_late(upload.round_number, cancelled=cancelled))
     row: dict[str, Any] = {
         "round_id": upload.round_id,
         "position": upload.position,

@@ -138,8 +138,21 @@ class Client:
         """``request`` that expects a 2xx JSON answer (else RemoteError with the server's)."""
         response = await self.request(method, path, **kwargs)
         if not response.is_success:
-            raise RemoteError(f"{method} {path}: {response.status_code} {response.text[:500]}")
+            raise RemoteError(f"{method} {path}: {response.status_code} {_error_text(response)}")
         return response.json()
+
+
+def _error_text(response: httpx.Response) -> str:
+    """An error answer's text: this service's JSON error as it is, anything else named as an
+    answer no srd server gives (by its media type)."""
+    try:
+        body = response.json()
+    except ValueError:
+        body = None
+    if isinstance(body, dict) and isinstance(body.get("detail"), list):
+        return response.text[:500]
+    kind = response.headers.get("content-type", "no media type")[:80]
+    return f"an answer of type {kind} that is not an srd server's error (is it an srd server?)"
 
 
 def retry_after_s(header: str | None) -> float:

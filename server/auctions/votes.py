@@ -69,9 +69,17 @@ def explain_vote(
     every = explain_votes(session, auction_id, iteration)
     mine = [vote for vote in every.votes if vote.model_id == model_id]
     if not mine:
+        as_version = [vote.model_id for vote in every.votes if vote.version_id == model_id]
+        why = (
+            f": it is the version patron {as_version[0]} bid with; the path names a patron by "
+            "the id it entered with (the auction's model_ids)"
+            if as_version
+            else " (the path names a patron by the id it entered with, the auction's "
+            "model_ids; patrons leave when they buy or quit)"
+        )
         raise api_error(
             404,
-            f"model {model_id} did not vote in iteration {iteration} of auction {auction_id}",
+            f"model {model_id} did not vote in iteration {iteration} of auction {auction_id}" + why,
             loc=("path", "model_id"),
             kind="not_found",
         )

@@ -190,6 +190,9 @@ def follow(
         try:
             with client.stream("GET", path, headers=headers) as response:
                 if response.status_code == 404:
+                    response.read()
+                    if not _srd_error(response):
+                        raise WatchError(f"{_not_srd(client)} (HTTP 404 from {path})")
                     raise WatchError(f"auction {watched.auction_id} not found on {client.base_url}")
                 if response.status_code != 200:
                     response.read()
@@ -222,6 +225,15 @@ def follow(
         if watched.reconnected:
             raise WatchError(f"the event stream dropped again ({cause})")
         watched.reconnected = True
+
+
+def _srd_error(response: httpx.Response) -> bool:
+    """Whether an error answer is this service's: JSON with a ``detail`` list."""
+    try:
+        body = response.json()
+    except ValueError:
+        return False
+    return isinstance(body, dict) and isinstance(body.get("detail"), list)
 
 
 def _not_srd(client: httpx.Client) -> str:

@@ -160,8 +160,9 @@ class Throttle:
         if wait <= 0:
             return None
         return Throttled(
-            f"{self.participant!r} was refused by the screener {in_a_row} time(s) in a row: next "
-            f"submission in {math.ceil(wait)} s (cooldown {cooldown:g} s, doubling per refusal; "
+            f"{self.participant!r} was refused or held by the screener {in_a_row} time(s) in a "
+            f"row: next submission in {math.ceil(wait)} s (cooldown {cooldown:g} s, doubling per "
+            "refusal; "
             "SRD_REFUSAL_COOLDOWN_S)",
             math.ceil(wait),
         )

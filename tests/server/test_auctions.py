@@ -123,6 +123,7 @@ def test_fine_tuning_auction_with_explicit_fish(
     auction = run(client, {"n_fish": 3, "model_ids": ids[:8], "fine_tune": True, "seed": 1})
     assert auction["status"] == "finished", auction["error"]
     assert (auction["n_initial"], auction["fine_tune"], auction["rarity"]) == (3, True, None)
+    assert (auction["fine_tune_mode"], auction["round_deadline_s"]) == ("server", None)
     check_consistent(auction)
 
 

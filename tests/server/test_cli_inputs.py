@@ -45,6 +45,9 @@ ITERATION = {
 }
 END = {"status": "finished", "iterations": 1, "price": 5.01, "n_available": 2, "n_initial": 2}
 STATE = {"id": 7, "status": "finished", "history": [ITERATION]}
+NOT_FOUND = json.dumps({"detail": [{"loc": ["path"], "msg": "not found", "type": "not_found"}]})
+NOT_FOUND = NOT_FOUND.encode()
+"""An srd server's 404."""
 Answer = tuple[int, str, bytes]
 """A fake server's answer: status, Content-Type, body."""
 
@@ -73,7 +76,7 @@ class FakeServer(BaseHTTPRequestHandler):
         if self.path.endswith("/events") and self.hold:
             self._hold()
             return
-        status, kind, body = self.answers.get(self.path, (404, "application/json", b"{}"))
+        status, kind, body = self.answers.get(self.path, (404, "application/json", NOT_FOUND))
         self.send_response(status)
         self.send_header("Content-Type", kind)
         self.send_header("Content-Length", str(len(body)))
@@ -238,6 +241,29 @@ def test_watch_of_the_largest_id_asks_the_server(fake: tuple[str, type[FakeServe
     assert result.exit_code == 3
     assert f"auction {MAX_ROW_ID} not found on {url}" in result.stderr
     assert handler.asked == [f"/auctions/{MAX_ROW_ID}/events"]
+
+
+def test_watch_of_a_404_no_srd_server_sends_says_so(fake: tuple[str, type[FakeServer]]) -> None:
+    url, handler = fake
+    handler.answers = {"/auctions/1/events": (404, "text/html", b"<html>File not found</html>")}
+    result = watch("1", "--server", url)
+    assert result.exit_code == 3
+    assert f"the server at {url} {NOT_SRD}" in result.stderr and "HTTP 404" in result.stderr
+    assert "auction 1 not found" not in result.stderr
+
+
+def test_agents_against_a_server_answering_html_errors_say_it_is_no_srd_server(
+    fake: tuple[str, type[FakeServer]],
+) -> None:
+    """``POST /submit`` answered by a plain web server (501, an HTML page)."""
+    url, _ = fake
+    result = CliRunner().invoke(
+        cli, ["agents", "--server", url, "--honest", "1", "--give-up", "2", "--json"]
+    )
+    assert result.exit_code == 1, result.output
+    error = json.loads(result.stdout)["error"]
+    assert "is it an srd server?" in error and "text/html" in error
+    assert "<!DOCTYPE" not in error and len(error) < 300
 
 
 @pytest.mark.parametrize("url", ["http://[::1", "http://[::1]:99999", "http://exa mple.org:x"])

@@ -228,6 +228,12 @@ def test_faithful_remote_agents_replay_the_server_auction(
             pair = [parse_manifest(here["manifest"])], [parse_manifest(there["manifest"])]
             assert max_difference(*pair) == 0.0, (n, vote["model_id"])
             tuned += here["fine_tuned_after"] is not None
+            if there["version_id"] != vote["model_id"]:  # a path naming the version is told so
+                wrong = httpx.get(
+                    f"{server.url}/auctions/{remote}/iterations/{n}/votes/{there['version_id']}"
+                )
+                assert wrong.status_code == 404
+                assert f"the version patron {vote['model_id']} bid with" in wrong.text
     assert tuned  # fine-tuning changed someone
 
 

@@ -139,3 +139,29 @@ def _healthy(base: str) -> bool:
         return httpx.get(f"{base}/healthz", timeout=1).status_code == 200
     except httpx.TransportError:
         return False
+
+
+def test_sigint_to_a_background_server_exits_130(tmp_path: Path) -> None:
+    """A shell starts a background job with SIGINT ignored; uvicorn stops on it all the same and
+    then raises it again, which was ignored too: the server exited 0, not 130 as for Ctrl-C."""
+    port = free_port()
+    env = {**os.environ, "SRD_DATABASE_URL": f"sqlite:///{tmp_path / 'srd.db'}",
+           "SRD_DATA_DIR": str(tmp_path / "data"), "SRD_ADMIN_TOKEN": ADMIN_TOKEN}  # fmt: skip
+    command = [*srd_command(), "serve", "--host", "127.0.0.1", "--port", str(port)]
+    server = subprocess.Popen(
+        command,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    try:
+        wait_for(lambda: _healthy(f"http://127.0.0.1:{port}"), bool, 120)
+        server.send_signal(signal.SIGINT)
+        out, _ = server.communicate(timeout=60)
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.wait()
+    assert server.returncode == 130, out.decode()[-2000:]
+    assert b"Aborted!" in out

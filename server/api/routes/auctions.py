@@ -135,7 +135,7 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
         enroll_until=auction.enroll_until,
         fine_tune_mode="remote" if auction.fine_tune_mode == "remote" else "server",
         fine_tune_rounds=auction.fine_tune_rounds,
-        round_deadline_s=auction.round_deadline_s,
+        round_deadline_s=auction.round_deadline_s if auction.fine_tune_mode == "remote" else None,
         buy_fraction="staying" if auction.buy_fraction == "staying" else "all",
         fine_tuning=[fine_tune_round_public(r) for r in view.fine_tuning],
         current_model_ids=view.current_model_ids,

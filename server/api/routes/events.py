@@ -65,6 +65,7 @@ async def _chunks_allowed(request: Request) -> None:
         raise api_error(
             505,
             "an event stream is sent in chunks, which HTTP/1.0 has not: ask over HTTP/1.1",
+            loc=("connection",),
             kind="http_version",
         )
 
@@ -77,8 +78,10 @@ RETRY_AFTER_S = 5
 RECONNECT_MS = 2000
 """The ``retry:`` hint: how long ``EventSource`` waits before it reconnects a dropped stream."""
 EVENT_ID = r"^[0-9]{1,18}(\.[12])?$"
-"""An event id: an iteration, ``k.1``/``k.2`` for the fine-tuning round after iteration k, or
-a job's change time in microseconds."""
+"""An auction's event id: an iteration, or ``k.1``/``k.2`` for the fine-tuning round after
+iteration k."""
+JOB_EVENT_ID = r"^[0-9]{1,18}$"
+"""A job's event id: its change time in microseconds."""
 ROUND_OPEN, ROUND_CLOSED = 1, 2
 
 LastEventId = Annotated[
@@ -117,17 +120,25 @@ async def _auction_resume(resume: Annotated[str | None, Depends(_resume_id)]) ->
 
 
 async def _job_resume(
-    resume: Annotated[str | None, Depends(_resume_id)],
-    last_event_id: LastEventId = None,
+    last_event_id: Annotated[
+        str | None,
+        Header(
+            alias="Last-Event-ID",
+            pattern=JOB_EVENT_ID,
+            description="The id of the last event received (a whole number); the stream "
+            "resumes right after it.",
+        ),
+    ] = None,
+    after: Annotated[
+        str | None,
+        Query(
+            pattern=JOB_EVENT_ID,
+            description="Like Last-Event-ID, for a first connection (the header wins if both).",
+        ),
+    ] = None,
 ) -> str | None:
-    """The id of the last job event the client has; a job's ids are whole numbers."""
-    if resume is not None and "." in resume:
-        where = "header" if last_event_id is not None else "query"
-        name = "Last-Event-ID" if last_event_id is not None else "after"
-        raise api_error(
-            422, "a job's event ids are whole numbers", loc=(where, name), kind="bad_event_id"
-        )
-    return resume
+    """The id of the last job event the client has."""
+    return last_event_id if last_event_id is not None else after
 
 
 def _event_id(position: Position) -> str:
@@ -269,7 +280,7 @@ async def _existing_auction(auction_id: AuctionIdPath, database: DatabaseDep) ->
     "/auctions/{auction_id}/events",
     response_class=EventSourceResponse,
     operation_id="auction_events",
-    responses=responses(404, 422, 503, 505),
+    responses=responses(404, 422, 429, 503, 505),
 )
 async def auction_events(
     resume: Annotated[Position, Depends(_auction_resume)],
@@ -343,7 +354,7 @@ async def _existing_job(job_id: JobIdPath, database: DatabaseDep) -> int:
     "/jobs/{job_id}/events",
     response_class=EventSourceResponse,
     operation_id="job_events",
-    responses=responses(404, 422, 503, 505),
+    responses=responses(404, 422, 429, 503, 505),
 )
 async def job_events(
     resume: Annotated[str | None, Depends(_job_resume)],

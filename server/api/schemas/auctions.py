@@ -192,7 +192,8 @@ class AuctionPublic(Schema):
     finished_at: datetime | None
     fine_tune_mode: FineTuneModeName = "server"
     fine_tune_rounds: int = 4
-    round_deadline_s: float = 10.0
+    round_deadline_s: float | None = None
+    """Remote auctions: how long a round waits at most (null in server mode: no rounds)."""
     buy_fraction: BuyFractionRule = MarketConfig.buy_fraction
     fine_tuning: list[FineTuneRoundPublic] = Field(default_factory=list)
     """Remote auctions: every fine-tuning round with each asked patron's outcome."""

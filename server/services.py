@@ -27,7 +27,7 @@ from server.auctions.sockets import RoundSockets
 from server.auctions.steps import AUCTION_WORK
 from server.config import Settings
 from server.jobs.backend import JobCompute, job_compute
-from server.jobs.worker import JOB_WORK
+from server.jobs.worker import JOB_WORK, discard_unsuccessful
 from server.live.events import EventHub
 from server.live.rounds import RoundWatcher
 from server.live.source import LiveSource
@@ -174,6 +174,8 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
     ) -> BackgroundRunner:
         def ended(row_id: int) -> None:  # a step's or a job's last commit: its watchers hear now
             live.committed_elsewhere("auction" if kind is AUCTION_WORK else "job", row_id)
+            if kind is JOB_WORK:
+                discard_unsuccessful(database, settings.data_dir, row_id)
 
         return BackgroundRunner(
             database,

@@ -114,6 +114,8 @@ class ConfigField:
     """The allowed range in words, e.g. ``1 ≤ x ≤ 65536`` (empty when unbounded)."""
     optional: bool = False
     """None is allowed (and means 'the experiment decides', see ``help``)."""
+    max_items: int | None = None
+    """For lists: the most values it takes (counted before any value is read)."""
 
 
 def _attribute_docs(cls: type) -> dict[str, str]:
@@ -157,12 +159,16 @@ def _bounds(metadata: Sequence[Any]) -> str:
     return ", ".join(words)
 
 
-def _lengths(metadata: Sequence[Any]) -> str:
-    """``Field(min_length=..., max_length=...)`` of a list, in words."""
+def _lengths(metadata: Sequence[Any]) -> tuple[int | None, int | None]:
+    """``Field(min_length=..., max_length=...)`` of a list."""
     low = high = None
     for constraint in _constraints(metadata):
         low = getattr(constraint, "min_length", low)
         high = getattr(constraint, "max_length", high)
+    return low, high
+
+
+def _lengths_in_words(low: int | None, high: int | None) -> str:
     if low is None and high is None:
         return ""
     return f"{low or 0} to {high} values" if high is not None else f"at least {low} values"
@@ -198,7 +204,7 @@ def _read_fields(cls: type) -> tuple[ConfigField, ...]:
         if typing.get_origin(hint) in (typing.Union, types.UnionType):
             members = [a for a in typing.get_args(hint) if a is not type(None)]
             hint, optional = members[0], True
-        item = None
+        item = max_items = None
         outer: Sequence[Any] = ()
         if typing.get_origin(hint) is typing.Annotated and typing.get_origin(
             typing.get_args(hint)[0]
@@ -207,7 +213,8 @@ def _read_fields(cls: type) -> tuple[ConfigField, ...]:
         if typing.get_origin(hint) in (tuple, list):
             item_kind, choices, bounds = _scalar(typing.get_args(hint)[0])
             kind, item = "list", item_kind
-            bounds = ", ".join(b for b in (bounds, _lengths(outer)) if b)
+            low, max_items = _lengths(outer)
+            bounds = ", ".join(b for b in (bounds, _lengths_in_words(low, max_items)) if b)
         else:
             kind, choices, bounds = _scalar(hint)
         if f.name not in docs:
@@ -222,6 +229,7 @@ def _read_fields(cls: type) -> tuple[ConfigField, ...]:
                 item=item,  # type: ignore[arg-type]
                 bounds=bounds,
                 optional=optional,
+                max_items=max_items,
             )
         )
     return tuple(fields)
@@ -276,6 +284,20 @@ def distinct(what: str, hint: str) -> AfterValidator:
     return AfterValidator(check)
 
 
+def _too_many(field: ConfigField, value: Any) -> str | None:
+    """Why a list field's value holds more values than its bound, counted before any is read
+    (a comma-separated string by its commas), or None."""
+    if isinstance(value, str):
+        count = value.count(",") + 1
+    elif isinstance(value, list):
+        count = len(value)
+    else:
+        return None
+    if field.max_items is None or count <= field.max_items:
+        return None
+    return f"{count} values: at most {field.max_items}"
+
+
 def _split_list(field: ConfigField, value: Any) -> Any:
     """A list field's value as the command line spells it: a comma-separated string ("0.1,0.5")
     gives its items, each read as a JSON number for numeric lists; a single number or word
@@ -316,7 +338,8 @@ def parse_config(cls: type[C], params: Any) -> C:
     would type them: a number must be a number (not ``"3"``), a flag a boolean, integers
     integral; NaN and ±inf are refused; so are unknown keys. A list takes a JSON array, a
     comma-separated string as on the command line (``"0.1,0.5"``, its items read as JSON
-    numbers where numbers are due) or a single value. Every problem is reported with the field
+    numbers where numbers are due) or a single value; one with more values than its bound is
+    refused on their count alone, before any is read. Every problem is reported with the field
     it concerns.
     """
     if not isinstance(params, dict):
@@ -335,6 +358,9 @@ def parse_config(cls: type[C], params: Any) -> C:
             )
         elif name in clean:
             errors.append({"field": str(key), "message": "given twice (spelt two ways)"})
+        elif fields[name].kind == "list" and (too_many := _too_many(fields[name], value)):
+            errors.append({"field": name, "message": too_many})
+            clean[name] = None  # its values are not read
         else:
             is_list = fields[name].kind == "list"
             clean[name] = _split_list(fields[name], value) if is_list else value

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import shutil
 import time
 from pathlib import Path
@@ -68,8 +69,20 @@ def list_artifacts(out_dir: Path) -> list[str]:
     return sorted(p.relative_to(out_dir).as_posix() for p in out_dir.rglob("*") if p.is_file())
 
 
+def _phase(message: str) -> str:
+    """A progress message with its numbers blanked: ``step 102/3600`` and ``step 3600/3600``
+    are one phase, ``drawing the figures`` another."""
+    return _NUMBER.sub("#", message)
+
+
+_NUMBER = re.compile(r"[-+]?[\d.]+(?:e[-+]?\d+)?")
+
+
 class _Progress:
-    """Throttled progress writes: at most one every ``interval_s`` seconds, plus the last."""
+    """Throttled progress writes: at most one every ``interval_s`` seconds, besides the first
+    report of each phase (its message, numbers aside, differs from the report before: the
+    artifacts, the figures, the GIF after the steps) and the last (fraction 1). A phase that
+    reports nothing for seconds then shows its own message, not the last step written."""
 
     def __init__(self, database: Database, job_id: int, attempt: int, interval_s: float) -> None:
         self._database = database
@@ -77,10 +90,14 @@ class _Progress:
         self._attempt = attempt
         self._interval_s = interval_s
         self._last = -math.inf
+        self._phase: str | None = None
 
     def __call__(self, fraction: float, message: str) -> None:
         now = time.monotonic()
-        if not math.isfinite(fraction) or (now - self._last < self._interval_s and fraction < 1):
+        phase, self._phase = self._phase, _phase(message)
+        if not math.isfinite(fraction):
+            return
+        if now - self._last < self._interval_s and fraction < 1 and self._phase == phase:
             return
         self._last = now
         try:
@@ -204,6 +221,21 @@ def run_job(context: WorkerContext, job_id: int) -> None:
         return
     finally:
         database.close()
+
+
+def discard_unsuccessful(database: Database, data_dir: str | Path, job_id: int) -> None:
+    """A job whose task ended failed or cancelled (at its time limit, by a cancel, its worker
+    killed) leaves no files: none of them could be downloaded (its artifacts are none). A job
+    sent back to the queue (its server stopping) keeps them until it runs again."""
+    try:
+        with database.session(write=False) as session:
+            job = crud.get_job(session, job_id=job_id)
+            ended = job is not None and job.status in (JobStatus.FAILED, JobStatus.CANCELLED)
+    except Exception as exc:  # the database is gone: the files wait for the job's next end
+        log.warning("job %d: its files are kept: %s", job_id, exc)
+        return
+    if ended:
+        shutil.rmtree(job_dir(data_dir, job_id), ignore_errors=True)
 
 
 def requeue(session: Session, job_ids: list[int]) -> None:

@@ -178,6 +178,7 @@ def assemble_cells(
     summary = summarise(runs)
     progress(0.2, "writing artifacts")
     artifacts = _write_grid_artifacts(out_dir, runs, summary, cells, displacement, weights)
+    progress(0.3, "drawing the figures")
     figure = plot_displacement(out_dir / "displacement.png", cells, displacement, timestep)
     artifacts.append(figure.name)
     if len(config.lr) > 1 and config.srd == "both":

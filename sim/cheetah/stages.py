@@ -25,7 +25,7 @@ from agents.cheetah_net import (
     StablePoseNeuron,
     nominal_fc_weight,
 )
-from sim.cheetah.config import run_result
+from sim.cheetah.config import run_result, stage_backswings
 from sim.cheetah.engine import Controller, HalfCheetahBatch, drive
 from sim.cheetah.plots import plot_lines, plot_rest_pose
 from sim.cheetah.world import (
@@ -50,8 +50,6 @@ STAGE2_SWING_FROM = 250
 """Stage 2: the front thigh is swung forward from this step on."""
 STAGE2_WINDOW = 50
 """Stage 2 averages the neurons over this many steps before and after the swing starts."""
-STAGE4_DEFAULT_BACKSWING = 5.0
-"""Stage 4 uses this backswing when the grid's default is left unchanged."""
 
 _BACK_THIGH, _FRONT_THIGH = ACTUATORS.index("bt"), ACTUATORS.index("ft")
 
@@ -189,12 +187,7 @@ def run_design_network(
     """
     watch = Stopwatch()
     steps = _stage_steps(config, DESIGN_STEPS)
-    if stage == 3:
-        backswings = [0.0]
-    elif config.backswing == CheetahConfig.backswing:
-        backswings = [STAGE4_DEFAULT_BACKSWING]
-    else:
-        backswings = list(config.backswing)
+    backswings = stage_backswings(config)
     n = len(backswings)
     weight = nominal_fc_weight(design_offset=True).expand(n, -1, -1)
     net = HalfCheetahSRD(

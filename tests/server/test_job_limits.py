@@ -43,11 +43,21 @@ def limited(tmp_path) -> Any:
 
 
 def test_a_job_over_its_time_limit_is_stopped_and_failed(limited) -> None:
-    client, _ = limited
-    job = run_to_end(client, {"kind": "fish", "params": {"steps": 1_000_000}})  # minutes
+    """...and its folder removed with what it had written."""
+    client, settings = limited
+    body = {"kind": "fish", "params": {"steps": 1_000_000}}  # minutes
+    job_id = client.post("/jobs", json=body, headers=ADMIN).json()["job_id"]
+    folder = settings.data_dir / "jobs" / str(job_id)
+    wait_for(lambda: {"made": folder.is_dir()}, lambda s: s["made"], 60)
+    (folder / "energy.csv").write_text("step\n1\n")  # as a run writes files before its end
+    job = wait_for(
+        lambda: client.get(f"/jobs/{job_id}").json(), lambda s: s["status"] in ENDED, 120
+    )
     assert job["status"] == "failed"
     assert job["message"] == "failed"
     assert "time limit of 10 s (SRD_JOB_TIMEOUT_S)" in job["error"]
+    assert job["artifacts"] == []
+    wait_for(lambda: {"kept": folder.exists()}, lambda s: not s["kept"], 15)  # once it is gone
     quick = run_to_end(client, {"kind": "fish", "params": {"steps": 10}})
     assert quick["status"] == "succeeded", quick["error"]  # the pool carries on
 
@@ -222,6 +232,20 @@ def test_a_study_supply_that_puts_no_fish_on_sale_is_refused(client) -> None:
         (item,) = response.json()["detail"]
         assert item["loc"] == ["body", "params", "rarities"]
         assert "puts no fish on sale" in item["msg"] and "0.125" in item["msg"]
+
+
+@pytest.mark.parametrize(
+    ("value", "count"), [("," * 260_000, 260_001), ([""] * 60_000, 60_000), ("1," * 32, 33)]
+)
+def test_an_over_long_list_is_refused_on_its_count_alone(client, value, count) -> None:
+    """One error naming the field and its bound, as a comma-separated string or an array,
+    answered before any of its values is read."""
+    body = {"kind": "cheetah", "params": {"backswing": value}}
+    response = client.post("/jobs", json=body, headers=ADMIN)
+    assert response.status_code == 422, response.text
+    (item,) = response.json()["detail"]
+    assert item["loc"] == ["body", "params", "backswing"]
+    assert item["msg"] == f"{count} values: at most 32"
 
 
 def test_a_design_stage_refuses_the_grid_axes_it_does_not_take(client) -> None:

@@ -9,13 +9,16 @@ import json
 import logging
 import os
 import signal
+import time
+from pathlib import Path
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
 
+from server.app import create_app
 from server.config import Settings
-from tests.support.server import ADMIN, wait_for
+from tests.support.server import ADMIN, make_settings, wait_for
 
 LONG_FISH = {"kind": "fish", "params": {"steps": 200_000, "srd": True}}  # minutes: always stopped
 SHORT_FISH = {"kind": "fish", "params": {"steps": 300, "srd": True, "seed": 4}}
@@ -149,6 +152,43 @@ def test_job_lifecycle(
     assert long_name.status_code == 404 and len(long_name.content) < 500
     assert client.delete(f"/jobs/{short}", headers=ADMIN).status_code == 409
     assert_no_escape(client, short, settings)
+
+
+def test_a_stopped_job_leaves_no_files(client: TestClient, settings: Settings) -> None:
+    """A cancelled job's folder is removed with what its run had written so far; the job keeps
+    its status and message, lists no artifacts, and serves none."""
+    job_id = start(client, LONG_FISH)
+    wait_for(lambda: job(client, job_id), lambda j: j["status"] == "running", JOB_TIMEOUT_S)
+    folder = settings.data_dir / "jobs" / str(job_id)
+    wait_for(lambda: {"made": folder.is_dir()}, lambda s: s["made"], 30)
+    (folder / "runs.csv").write_text("trial\n1\n")  # as a run writes its files before its end
+    assert client.delete(f"/jobs/{job_id}", headers=ADMIN).status_code == 200
+    wait_for(lambda: {"kept": folder.exists()}, lambda s: not s["kept"], 15)
+    state = job(client, job_id)
+    assert state["status"] == "cancelled" and state["message"] == "cancelled"
+    assert state["artifacts"] == []
+    assert client.get(f"/jobs/{job_id}/artifacts/runs.csv").status_code == 404
+
+
+def test_a_long_silent_phase_shows_its_own_progress(tmp_path: Path) -> None:
+    """At most one progress write per SRD_PROGRESS_INTERVAL_S (an hour here), besides the first
+    report of each phase: once its steps are done, a cheetah job says it writes its artifacts
+    and draws its figures (seconds without a report), not the step it was at an hour ago."""
+    settings = make_settings(
+        f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data", progress_interval_s=3600.0
+    )
+    params = {"backswing": [3], "inhibitor": [2], "srd": "off", "trials": 1, "steps": 300}
+    seen: list[str] = []
+    with TestClient(create_app(settings)) as client:
+        job_id = start(client, {"kind": "cheetah", "params": params | {"video": False}})
+        state = job(client, job_id)
+        while state["status"] in ("queued", "running"):
+            if not seen or seen[-1] != state["message"]:
+                seen.append(state["message"])
+            time.sleep(0.005)
+            state = job(client, job_id)
+    assert state["status"] == "succeeded", state["error"]
+    assert "drawing the figures" in seen, seen
 
 
 EVERY_KIND = {

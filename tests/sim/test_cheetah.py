@@ -17,11 +17,13 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from click.testing import CliRunner
 from gymnasium.utils.env_checker import check_env
 
 import sim.cheetah.render as render
 import sim.cheetah.world as world
 from agents.cheetah_net import STABLE_POSE_X, STABLE_POSE_Z, HalfCheetahSRD, noisy_fc_weight
+from server.cli import cli
 from sim.cheetah import ENV_ID, CheetahConfig, HalfCheetahRunStop, run
 from sim.cheetah.engine import HalfCheetahBatch, drive
 from sim.cheetah.experiment import trial_generator
@@ -419,6 +421,33 @@ def test_a_grid_with_a_value_twice_or_too_many_cells_is_refused(params, field, w
     assert error["field"].split(".")[0] == field and words in error["message"]
 
 
+@pytest.mark.parametrize(
+    ("value", "count"),
+    [("," * 260_000, 260_001), ([""] * 60_000, 60_000), (list(range(33)), 33), ("1," * 40, 41)],
+)
+def test_an_over_long_list_is_refused_on_its_count_before_its_values_are_read(value, count):
+    """One error naming the field and its bound, whatever its values (260,000 empty items
+    cost seconds and 260,000 item errors when each was read first)."""
+    started = time.perf_counter()
+    with pytest.raises(ConfigError) as refused:
+        parse_config(CheetahConfig, {"backswing": value})
+    assert time.perf_counter() - started < 0.1
+    assert refused.value.errors == [
+        {"field": "backswing", "message": f"{count} values: at most 32"}
+    ]
+
+
+def test_the_command_line_refuses_an_over_long_list_naming_its_option(tmp_path):
+    out = tmp_path / "never"
+    args = ["cheetah", "--inhibitor", "," * 99, "--out", str(out)]
+    refused = CliRunner().invoke(cli, [*args, "--json"])
+    assert refused.exit_code == 2
+    assert json.loads(refused.stdout)["errors"] == [
+        {"option": "--inhibitor", "message": "100 values: at most 32"}
+    ]
+    assert not out.exists()
+
+
 def test_the_budget_counts_each_trial_s_set_up_and_each_cell_s_figure():
     """A grid of single-step trials is not free: 16 × 16 cells and 3 trials ran 61 s."""
     config = parse_config(
@@ -464,6 +493,47 @@ def test_design_stages_move_the_cheetah_forward(tmp_path, stage):
         assert only["backswing"] == (0.0 if stage == 3 else 5.0)
         assert only["final_displacement"] > 1.0  # the designed network runs without training
     assert all((tmp_path / name).is_file() for name in result["artifacts"])
+
+
+@pytest.mark.parametrize(
+    ("options", "backswing"),
+    [
+        (["--stage", "0"], None),
+        (["--stage", "3"], [0.0]),
+        (["--stage", "4"], [5.0]),
+        (["--stage", "4", "--backswing", "2,3"], [2.0, 3.0]),
+    ],
+)
+def test_a_design_stage_s_config_shows_what_it_ran(tmp_path, options, backswing):
+    """Its backswing gains (none before stage 3), and null for the options only the grid
+    takes; the options it does take as given."""
+    args = ["cheetah", *options, "--steps", "2", "--threads", "1", "--json"]
+    done = CliRunner().invoke(cli, [*args, "--out", str(tmp_path)])
+    assert done.exit_code == 0, done.output
+    result = json.loads(done.stdout)
+    grid_only = ("inhibitor", "srd", "lr", "trials", "nominal", "video", "seed")
+    assert result["config"] == {
+        "backswing": backswing,
+        **dict.fromkeys(grid_only),
+        "steps": 2,
+        "stage": int(options[1]),
+        "threads": 1,
+    }
+    if backswing is not None:
+        assert [row["backswing"] for row in result["runs"]] == backswing
+
+
+def test_the_grid_reports_its_artifacts_figures_and_gif_as_phases(tmp_path, monkeypatch):
+    """After the steps, the progress names what the run is doing (the figures and the GIF take
+    seconds): the job's progress shows it."""
+    monkeypatch.setattr(render, "GL_BACKENDS", ("no-such-backend",))  # no GIF to draw
+    reports: list[tuple[float, str]] = []
+    config = CheetahConfig(backswing=(3.0,), inhibitor=(2.0,), srd="off", trials=1, steps=200)
+    run(config, out_dir=tmp_path, progress=lambda f, m: reports.append((f, m)))
+    messages = [m for _, m in reports]
+    phases = ["writing artifacts", "drawing the figures", "rendering the GIF"]
+    assert [m for m in messages if m in phases] == phases
+    assert [f for f, _ in reports] == sorted(f for f, _ in reports)
 
 
 def test_video_without_opengl_is_skipped_with_a_reason(tmp_path, monkeypatch):

@@ -158,16 +158,17 @@ class Settings(BaseSettings):
     """Waiting ``GET .../rounds/current?wait=S`` (S > 0) one client may hold at once (an agent
     needs one; agents that poll without a token share their host's address)."""
     limit_client_uploads: Annotated[int, Field(ge=1, le=100_000)] = 2
-    """Uploads (round PUTs, ``POST /submit``) one participant token may have in flight."""
+    """Uploads (round PUTs and socket uploads, ``POST /submit``) one participant token may have
+    in flight."""
     limit_address_uploads: Annotated[int, Field(ge=1, le=100_000)] = 128
     """Uploads without a token (first ``POST /submit``) one address may have in flight."""
     limit_retry_after_s: Annotated[int, Field(ge=1, le=3600)] = 2
     """The ``Retry-After`` of a client over one of its limits."""
     limit_address_requests_per_s: Annotated[float, Field(gt=0, le=1e9)] = 100.0
-    """Requests (and WebSocket handshakes) one address may send a second, sustained; a burst
-    of four seconds' worth passes at once. Beyond it, 429 with ``Retry-After``. The operator's
-    token is not counted. (The compose deployment's proxy allows 20 a second per address in
-    front of it.)"""
+    """Requests (WebSocket handshakes and round-socket messages too) one address may send a
+    second, sustained; a burst of four seconds' worth passes at once. Beyond it, 429 with
+    ``Retry-After``. The operator's token is not counted. (The compose deployment's proxy
+    allows 20 a second per address in front of it.)"""
     header_timeout_s: Annotated[float, Field(gt=0, le=30)] = 10.0
     """``srd serve``: a connection must send a request's whole header this soon (from its
     first byte, or from connecting), else it is answered 408 and closed."""

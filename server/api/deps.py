@@ -177,7 +177,7 @@ def _query_names(dependant: Any) -> frozenset[str]:
 async def known_query(connection: HTTPConnection) -> None:
     """Every API route's dependency: a query parameter the route does not read is 422 naming
     it (``/models?sttaus=held`` would otherwise answer every model, as if no filter were
-    asked). Pages take any (a link may carry its own), and so does the round socket."""
+    asked). Pages take any (a link may carry its own); the round socket takes none."""
     if connection.scope["type"] != "http":
         return
     route = connection.scope.get("route")

@@ -5,7 +5,12 @@
 * round sockets (``WS /auctions/{id}/rounds/socket``), per address;
 * event streams (``GET /auctions/{id}/events``, ``GET /jobs/{id}/events``);
 * long polls (``GET /auctions/{id}/rounds/current?wait=S`` with S > 0);
-* uploads (``PUT /auctions/{id}/rounds/{round}/models/{id}``, ``POST /submit``).
+* uploads (``PUT /auctions/{id}/rounds/{round}/models/{id}``, ``POST /submit``, and the
+  uploads sent on round sockets: ``hold``, called by the socket's route for each).
+
+Every request and WebSocket handshake, and every message received on a round socket
+(``RequestRate.take``, called by the socket for each), counts against its address's request
+rate: one allowance per address, whatever carries its requests.
 
 A client is the SHA-256 of its bearer token where that token is a participant's or the
 operator's, else its address (as ``srd serve`` resolved it: a proxy's ``X-Forwarded-For``
@@ -30,17 +35,17 @@ import math
 import re
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from urllib.parse import parse_qsl
 
-from fastapi.responses import JSONResponse
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.websockets import WebSocket
 
 from server.api.connections import client_address
-from server.api.errors import error_item
+from server.api.errors import RequestError, api_error, problem_response
 from server.config import Settings
 from server.live.rounds import MAX_WATCHER_WAITERS
 from server.store.crud.models import is_participant_token
@@ -49,7 +54,10 @@ from server.store.db import Database, DatabaseUnavailableError
 log = logging.getLogger("srd.limits")
 
 CLOSE_TRY_AGAIN_LATER = 1013
-"""Close code of a refused socket where the server cannot answer its handshake with 429."""
+"""Close code of a refused socket where the server cannot answer its handshake with 429, and of
+a round socket whose message was over its address's request rate."""
+STATE_KEY = "client_limits"
+"""Where a round socket's scope ``state`` holds the limits its messages count against."""
 RATE_BURST_S = 4.0
 """An address's request bucket holds this many seconds of its rate."""
 RATE_ADDRESSES = 100_000
@@ -98,7 +106,9 @@ class ClientLimitsMiddleware:
             settings.limit_client_long_polls,
             max(settings.limit_client_long_polls, MAX_WATCHER_WAITERS // 4),  # as the streams
         )
-        uploads = Limit("uploads", settings.limit_client_uploads, settings.limit_address_uploads)
+        self.uploads = uploads = Limit(
+            "uploads", settings.limit_client_uploads, settings.limit_address_uploads
+        )
         self.socket_limit = Limit(
             "round sockets", settings.limit_client_sockets, settings.limit_client_sockets
         )
@@ -135,41 +145,70 @@ class ClientLimitsMiddleware:
             return
         wait_s = self.rate.take(scope)
         if wait_s:
-            await self._refuse(scope, receive, send, None, 0, "address", retry_after_s=wait_s)
+            await self._refuse(scope, receive, send, self.rate.refusal(wait_s))
             return
         limit = self.limit_of(scope)
         if limit is None:
             await self.app(scope, receive, send)
             return
+        try:
+            release = await self.hold(scope, limit)
+        except RequestError as refused:
+            await self._refuse(scope, receive, send, refused)
+            return
+        if limit is self.socket_limit:  # its route counts its messages and uploads here too
+            scope.setdefault("state", {})[STATE_KEY] = self
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            release()
+
+    async def hold(self, scope: Scope, limit: Limit) -> Callable[[], None]:
+        """Count one more request of ``limit`` held by the scope's client, and how to let go of
+        it; a RequestError (429, ``Retry-After``) past the client's share."""
         client, share = await self._client(scope, limit)
         keys = [(limit.name, client)]
         if self.held[keys[0]] >= share:
             who = "token" if client.startswith("token:") else "address"
-            await self._refuse(scope, receive, send, limit, share, who)
-            return
+            raise self._over(limit, share, who)
         if limit.address_in_all is not None and client.startswith("token:"):
             keys.append((limit.name, f"all:{_address(scope)}"))
             if self.held[keys[1]] >= limit.address_in_all:
                 who = "address (its participant tokens together)"
-                await self._refuse(scope, receive, send, limit, limit.address_in_all, who)
-                return
+                raise self._over(limit, limit.address_in_all, who)
         for key in keys:
             self.held[key] += 1
-        try:
-            await self.app(scope, receive, send)
-        finally:
+
+        def release() -> None:
             for key in keys:
                 self.held[key] -= 1
                 if not self.held[key]:
                     del self.held[key]
 
+        return release
+
+    def message(self, scope: Scope) -> RequestError | None:
+        """Count a message received on the round socket of ``scope`` against its address's
+        request rate; the refusal if it is past it."""
+        wait_s = self.rate.take(scope)
+        return self.rate.refusal(wait_s) if wait_s else None
+
+    def _over(self, limit: Limit, share: int, who: str) -> RequestError:
+        return _too_many(
+            f"this {who} holds {share} {limit.name} already, its share", self.retry_after_s
+        )
+
     async def _client(self, scope: Scope, limit: Limit) -> tuple[str, int]:
-        """Who the request counts against, and that client's share of ``limit``."""
-        if scope["type"] == "http":
+        """Who the request counts against, and that client's share of ``limit`` (round
+        sockets: always its address). An upload on a round socket counts against its
+        handshake's token without a look-up: a made-up one buys nothing there (a socket has
+        one upload at a time, and its address's sockets are counted), a real one shares its
+        share with its PUTs."""
+        if limit is not self.socket_limit:
             token = _bearer(scope)
             if token is not None:
                 digest = hashlib.sha256(token).hexdigest()
-                if await self._real(scope, digest):
+                if scope["type"] == "websocket" or await self._real(scope, digest):
                     return f"token:{digest}", limit.per_token
         return f"address:{_address(scope)}", limit.per_address
 
@@ -195,32 +234,10 @@ class ClientLimitsMiddleware:
         return True
 
     async def _refuse(
-        self,
-        scope: Scope,
-        receive: Receive,
-        send: Send,
-        limit: Limit | None,
-        share: int,
-        who: str,
-        *,
-        retry_after_s: int | None = None,
+        self, scope: Scope, receive: Receive, send: Send, refused: RequestError
     ) -> None:
-        retry = retry_after_s or self.retry_after_s
-        if limit is None:
-            what = f"this {who} sends more than {self.rate.per_s:g} requests a second, its share"
-        else:
-            what = f"this {who} holds {share} {limit.name} already, its share"
-        response = JSONResponse(
-            {
-                "detail": [
-                    error_item(
-                        f"{what}; retry in {retry} s", loc=("client",), kind="too_many_requests"
-                    )
-                ]
-            },
-            status_code=429,
-            headers={"Retry-After": str(retry), "Connection": "close"},
-        )
+        response = problem_response(refused)
+        response.headers["Connection"] = "close"
         if scope["type"] == "websocket":
             if "websocket.http.response" in scope.get("extensions", {}):
                 await WebSocket(scope, receive, send).send_denial_response(response)
@@ -228,6 +245,23 @@ class ClientLimitsMiddleware:
                 await send({"type": "websocket.close", "code": CLOSE_TRY_AGAIN_LATER})
             return
         await response(scope, receive, send)
+
+
+def client_limits(scope: Scope) -> ClientLimitsMiddleware:
+    """The limits a round socket's messages and uploads count against (its handshake's)."""
+    limits = scope["state"][STATE_KEY]
+    assert isinstance(limits, ClientLimitsMiddleware)
+    return limits
+
+
+def _too_many(what: str, retry_after_s: int) -> RequestError:
+    return api_error(
+        429,
+        f"{what}; retry in {retry_after_s} s",
+        loc=("client",),
+        kind="too_many_requests",
+        headers={"Retry-After": str(retry_after_s)},
+    )
 
 
 class RequestRate:
@@ -238,6 +272,12 @@ class RequestRate:
         self.per_s = per_s
         self._depth = per_s * RATE_BURST_S
         self._buckets: dict[str, tuple[float, float]] = {}  # address -> (tokens, when)
+
+    def refusal(self, wait_s: int) -> RequestError:
+        """The 429 of a request ``take`` refused (``wait_s``: its answer)."""
+        return _too_many(
+            f"this address sends more than {self.per_s:g} requests a second, its share", wait_s
+        )
 
     def take(self, scope: Scope) -> int:
         """0 if the request may go on (one token taken), else the seconds until one would."""

@@ -24,9 +24,13 @@ API process and ``MAX_WATCHER_SOCKETS`` of anyone else (beyond, the
 handshake is answered 503 with Retry-After), frames up to ``MAX_FRAME_BYTES`` (a socket that
 sends a bigger one is closed, code 1009: by uvicorn under ``srd serve``, by the app under any
 other server), a manifest up to the PUT's upload limit (413), uploads handled one at a time per
-socket, and a token bucket of ``BURST`` messages refilled at ``REFILL_PER_S`` (beyond it the
-socket is closed, code 1008). A dead peer is dropped by the server's WebSocket pings; a socket
-whose rounds cannot be read is closed with 1011, for the agent to reconnect.
+socket and counted in their token's uploads in flight with its PUTs (429 past its share,
+``server.api.limits``), a token bucket of ``BURST`` messages refilled at ``REFILL_PER_S`` per
+socket (beyond it the socket is closed, code 1008), and every message counted against its
+address's request rate with its requests and its other sockets' messages (beyond it the message
+is answered 429 unread and the socket closed, code 1013, as HTTP answers 429 and closes the
+connection). A dead peer is dropped by the server's WebSocket pings; a socket whose rounds
+cannot be read is closed with 1011, for the agent to reconnect.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 from server.api.body import BodyRefusedError, parse_strict_json
 from server.api.connections import TokenBucket
 from server.api.errors import RequestError, capped, error_item
+from server.api.limits import CLOSE_TRY_AGAIN_LATER
 from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_ROW_ID
 from server.live.rounds import MAX_WAIT_S, Published, RoundWatcher, TooManyWaitersError
 from server.store.db import is_database_outage
@@ -71,6 +76,8 @@ CLOSE_TOO_BIG = 1009
 """Close code (message too big) of a socket that sent a frame over ``MAX_FRAME_BYTES``."""
 CLOSE_RESTART = 1012
 """Close code (service restart) of the sockets of a server shutting down: reconnect."""
+MAX_REASON_BYTES = 123
+"""The longest close reason a WebSocket close frame carries."""
 
 
 class _DrainingError(Exception):
@@ -96,6 +103,8 @@ class SocketLimitError(RuntimeError):
 UploadHandler = Callable[[int, int, bytes, datetime], Awaitable[bytes]]
 """``(round, model_id, manifest bytes, arrival) -> answer body``: the PUT's service call
 (RequestError for a refusal)."""
+MessageAllowance = Callable[[], RequestError | None]
+"""Counts a received message against its address's request rate: the refusal past it."""
 
 
 async def _not_a_patron() -> bool:
@@ -151,6 +160,7 @@ class RoundSockets:
         upload: UploadHandler,
         patron: bool,
         is_patron: Callable[[], Awaitable[bool]],
+        allowance: MessageAllowance,
     ) -> None:
         """Run one accepted socket until the auction ends or the agent goes away: a pusher
         task sends the rounds, this task answers the uploads. The pusher's waits count in
@@ -160,7 +170,7 @@ class RoundSockets:
         socket.patron, socket.is_patron = patron, is_patron
         pusher = asyncio.create_task(self._push_or_close(socket, auction_id, first))
         try:
-            await self._answer_uploads(socket, upload)
+            await self._answer_uploads(socket, upload, allowance)
         except (WebSocketDisconnect, RuntimeError):  # gone, or closed by the pusher
             pass
         finally:
@@ -222,7 +232,9 @@ class RoundSockets:
             if self._watcher.draining:
                 raise _DrainingError
 
-    async def _answer_uploads(self, socket: _Socket, upload: UploadHandler) -> None:
+    async def _answer_uploads(
+        self, socket: _Socket, upload: UploadHandler, allowance: MessageAllowance
+    ) -> None:
         bucket = TokenBucket(BURST, REFILL_PER_S)
         while True:
             message = await socket.websocket.receive()
@@ -233,6 +245,12 @@ class RoundSockets:
                     CLOSE_TOO_MANY_MESSAGES,
                     f"more than {BURST} messages at once ({REFILL_PER_S:g} per second)",
                 )
+                return
+            refused = allowance()
+            if refused is not None:  # answered unread, and closed: as HTTP answers and closes
+                await socket.send(_refusal(None, None, refused))
+                reason = str(refused.items[0]["msg"]).encode()[:MAX_REASON_BYTES]
+                await socket.close(CLOSE_TRY_AGAIN_LATER, reason.decode(errors="ignore"))
                 return
             text = message.get("text")
             if len(text or message.get("bytes") or b"") > MAX_FRAME_BYTES:  # whatever the server
@@ -282,8 +300,7 @@ async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:
     try:
         answer = await upload(message.round, message.model_id, body, arrived)
     except RequestError as exc:
-        items = [{**item, "loc": _message_loc(item["loc"])} for item in exc.items]
-        return _frame(message.round, message.model_id, exc.status, {"detail": items})
+        return _refusal(message.round, message.model_id, exc)
     except Exception:  # a fault of ours: the agent hears 500, as a PUT would, and may retry
         log.exception("an upload on a round socket failed")
         return _error(message, 500, "internal server error", ("message",), "internal")
@@ -291,6 +308,12 @@ async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:
         f'{{"type":"answer","round":{message.round},"model_id":{message.model_id},'
         f'"status":200,"body":{answer.decode()}}}'
     )
+
+
+def _refusal(round_number: int | None, model_id: int | None, exc: RequestError) -> str:
+    """The answer frame of a refusal, its locations in the message's terms."""
+    items = [{**item, "loc": _message_loc(item["loc"])} for item in exc.items]
+    return _frame(round_number, model_id, exc.status, {"detail": items})
 
 
 def _message_loc(loc: list[str | int]) -> list[str | int]:

@@ -72,7 +72,8 @@ async def current_round(
     auction has ended, or after ``wait_s`` (404 for no auction). It waits in everyone's share
     while that has room, else, for a patron (``claim``: its token is looked up only then, and
     holds at most ``MAX_PER_PATRON`` of the patrons' slots), in the patrons' own; 503 when its
-    share is full."""
+    share is full (``claim`` raises TooManyWaitersError to say why, e.g. a patron holding its
+    slots already)."""
     try:
         try:
             body = await watcher.current(auction_id, wait_s=wait_s, after=after)
@@ -126,9 +127,14 @@ def _manifest(body: bytes) -> Manifest:
         if any(e["path"] == "$" for e in errors):  # JSON the fast parser cannot say where
             errors = _located(body) or errors  # (a lone surrogate escape): read it as /submit
         raise validation_error(
-            error_item(e["message"], loc=("body", *e["path"].split(".")), kind="manifest")
-            for e in errors
+            error_item(e["message"], loc=_body_loc(e["path"]), kind="manifest") for e in errors
         ) from exc
+
+
+def _body_loc(path: str) -> tuple[str, ...]:
+    """A manifest error's path as a body location: ``$`` (the manifest as a whole, such as a
+    body that is not an object) is the body itself, as ``POST /submit`` says it."""
+    return ("body",) if path == "$" else ("body", *path.split("."))
 
 
 def _located(body: bytes) -> list[dict[str, str]]:

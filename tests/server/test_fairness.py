@@ -21,6 +21,7 @@ import httpx
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
+from starlette.websockets import WebSocketDisconnect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect as ws_connect
 
@@ -451,6 +452,48 @@ def test_an_address_past_its_request_rate_is_paced_and_the_operator_is_not(
         assert client.get("/livez").status_code == 200
 
 
+def test_round_socket_messages_count_against_their_address_request_rate(
+    tmp_path: Path,
+) -> None:
+    """A round socket's messages count against its address's request rate, with its requests
+    and its other sockets' (before, each socket had its own allowance: 128 sockets of one
+    address could send 16 costly messages a second each). Past it a message is answered 429
+    unread and its socket closed with 1013, as an HTTP request is answered 429 and its
+    connection closed; the address's requests are refused too."""
+    settings = make_settings(
+        f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data", limit_address_requests_per_s=2
+    )
+    with TestClient(create_app(settings)) as client:
+        created = client.post(
+            "/auctions",
+            json={"rarity": 0.5, "fine_tune_mode": "remote", "enrollment_s": 600},
+            headers=ADMIN,
+        )
+        assert created.status_code == 201, created.text
+        path = f"/auctions/{created.json()['auction_id']}/rounds/socket"
+        with client.websocket_connect(path) as one, client.websocket_connect(path) as two:
+            for ws in (one, two):
+                assert json.loads(ws.receive_text())["type"] == "round"
+            statuses: list[int] = []
+            for i in range(40):  # a burst of 8: both sockets' messages share it
+                ws = (one, two)[i % 2]
+                ws.send_text("x")
+                frame = json.loads(ws.receive_text())
+                statuses.append(frame["status"])
+                if frame["status"] != 422:
+                    break
+            assert statuses[-1] == 429, statuses
+            assert 1 <= statuses.count(422) < 30, statuses
+            (item,) = frame["body"]["detail"]
+            assert item["loc"] == ["client"] and item["type"] == "too_many_requests"
+            assert "2 requests a second" in item["msg"] and "retry in" in item["msg"]
+            with pytest.raises(WebSocketDisconnect) as closed:
+                ws.receive_text()
+            assert closed.value.code == 1013 and "requests a second" in closed.value.reason
+            livez = [client.get("/livez").status_code for _ in range(10)]
+            assert 429 in livez, livez  # the same allowance as the sockets'
+
+
 def test_a_long_poll_whose_client_left_frees_its_share_at_once(
     server: ServerProcess, auction_id: int
 ) -> None:
@@ -587,6 +630,7 @@ def test_an_event_stream_asked_over_http_1_0_is_refused_in_json(
     head, _, body = old.partition(b"\r\n\r\n")
     assert head.startswith(b"HTTP/1.1 505") and b"transfer-encoding" not in head.lower(), head
     assert b'"type":"http_version"' in body and b"HTTP/1.1" in body
+    assert b'"loc":["connection"]' in body
     assert asyncio.run(ask("1.1")).startswith(b"HTTP/1.1 200")
 
 

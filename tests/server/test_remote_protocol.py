@@ -215,6 +215,25 @@ def test_waiters_are_bounded_and_the_patrons_have_their_own_share(
         assert "watchers'" in watcher_refused.json()["detail"][0]["msg"]
     assert patron_answers == [200]  # waited in the patrons' share
     assert again.status_code == 503, again.text
+    # It is told its own share is taken, not the watchers' (it sent a patron's token).
+    (item,) = again.json()["detail"]
+    assert "this participant holds 1 of the patrons' long polls" in item["msg"], item
+    assert "watchers'" not in item["msg"]
+
+
+def test_an_upload_that_is_not_an_object_is_refused_at_the_body(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    """JSON that is not an object is refused 422 at ``["body"]``, the manifest as a whole, as
+    ``POST /submit`` refuses it (before: at ``["body", "$"]``)."""
+    auction_id, model_id, token, _ = first_asked_upload(remote)
+    for body in (b"[1, 2]", b'"x"', b"3"):
+        answer = put(client, auction_id, 1, model_id, body, token)
+        assert answer.status_code == 422 and loc_of(answer) == [["body"]], answer.text
+        submitted = client.post(
+            "/submit", content=body, headers={"Content-Type": "application/json"}
+        )
+        assert submitted.status_code == 422 and loc_of(submitted) == [["body"]], submitted.text
 
 
 def stored_versions(client: TestClient, participant: str) -> int:

@@ -6,6 +6,10 @@ the socket's own limits: unknown auctions, too many sockets, too many messages."
 from __future__ import annotations
 
 import json
+import sqlite3
+import threading
+import time
+from contextlib import ExitStack
 from typing import Any
 
 import pytest
@@ -17,7 +21,15 @@ import server.auctions.sockets as sockets_module
 from agents.manifest import parse_manifest
 from agents.remote import RoundInfo, faithful_fine_tune
 from server.auctions.sockets import BURST, MAX_FRAME_BYTES, UPLOAD_MAX_BYTES
-from tests.server.test_remote_protocol import bearer, put, remote_auction, stored_versions
+from server.config import Settings
+from server.store.db import is_sqlite, sqlite_path
+from tests.server.test_remote_protocol import (
+    bearer,
+    loc_of,
+    put,
+    remote_auction,
+    stored_versions,
+)
 
 SEED = 900
 """Patrons seeds 900..907 (any honest draws: the tests below use the asked ones)."""
@@ -34,6 +46,16 @@ def remote(client: TestClient) -> dict[str, Any]:
     return {**remote, "asked": asked}
 
 
+@pytest.fixture(scope="module")
+def busy(client: TestClient) -> dict[str, Any]:
+    """Another such auction, for the tests that hold uploads in flight."""
+    remote = remote_auction(client, "busy", SEED + 20, seed=11)
+    patrons, asked_ids = remote["patrons"], remote["state"]["asked"]
+    asked = [p for p, (m, _) in enumerate(patrons) if m in asked_ids]
+    assert len(asked) >= 2, asked_ids
+    return {**remote, "asked": asked}
+
+
 def socket_path(auction_id: int) -> str:
     return f"/auctions/{auction_id}/rounds/socket"
 
@@ -47,6 +69,14 @@ def upload_text(round_: int, model_id: int, manifest: str) -> str:
 def answer_to(ws: Any, text: str) -> dict[str, Any]:
     """Send one message; the answer frame (rounds pushed meanwhile are skipped)."""
     ws.send_text(text)
+    while True:
+        frame = json.loads(ws.receive_text())
+        if frame["type"] == "answer":
+            return dict(frame)
+
+
+def answer_of(ws: Any) -> dict[str, Any]:
+    """The next answer frame (rounds pushed meanwhile are skipped)."""
     while True:
         frame = json.loads(ws.receive_text())
         if frame["type"] == "answer":
@@ -147,6 +177,10 @@ def test_socket_refusals_name_the_field_and_store_nothing(
             "the current round is 1 (open)",
         )
         refusal(answer_to(ws, upload_text(1, 987654, good)), 404, ["message", "model_id"], "987654")
+        for whole in ("[1, 2]", '"x"', "3"):  # not an object: the manifest as a whole
+            not_object = answer_to(ws, upload_text(1, model_id, whole))
+            refusal(not_object, 422, ["message", "manifest"], "valid dictionary")
+            assert len(not_object["body"]["detail"]) == 1, not_object
         padded = good[:-1] + " " * UPLOAD_MAX_BYTES + "}"
         refusal(
             answer_to(ws, upload_text(1, model_id, padded)),
@@ -201,6 +235,16 @@ def test_handshakes_are_refused_for_a_bad_or_unknown_auction_and_beyond_the_limi
             pass
         assert invalid.value.status_code == 422, bad
         assert invalid.value.json()["detail"][0]["loc"] == ["path", "auction_id"], bad
+    # It takes no query parameter: one is refused naming it, as every HTTP route does.
+    with (
+        pytest.raises(WebSocketDenialResponse) as unknown,
+        client.websocket_connect(socket_path(remote["id"]) + "?x=1"),
+    ):
+        pass
+    assert unknown.value.status_code == 422
+    (item,) = unknown.value.json()["detail"]
+    assert item["loc"] == ["query", "x"] and item["type"] == "unknown_parameter"
+    assert "'x' (this path takes: none)" in item["msg"]
     # Watchers (no token, or not the auction's) have a share apart from the patrons': with
     # theirs full, a patron still gets its socket.
     with client.websocket_connect(socket_path(remote["id"])) as watching:
@@ -214,8 +258,23 @@ def test_handshakes_are_refused_for_a_bad_or_unknown_auction_and_beyond_the_limi
         assert full.value.status_code == 503 and full.value.headers["Retry-After"] == "1"
         assert "watchers' (no patron's token) round sockets are open" in full.value.text
         (_, token) = remote["patrons"][0]
-        with client.websocket_connect(socket_path(remote["id"]), headers=bearer(token)) as ws:
+        with (
+            client.websocket_connect(socket_path(remote["id"]), headers=bearer(token)) as ws,
+            client.websocket_connect(socket_path(remote["id"]), headers=bearer(token)) as again,
+        ):
             assert json.loads(ws.receive_text())["type"] == "round"
+            assert json.loads(again.receive_text())["type"] == "round"
+            # Its share of the patrons' sockets (2 per auction) taken: a third is refused,
+            # saying so (not that the watchers' sockets are full: it sent a patron's token).
+            with (
+                pytest.raises(WebSocketDenialResponse) as third,
+                client.websocket_connect(socket_path(remote["id"]), headers=bearer(token)),
+            ):
+                pass
+            assert third.value.status_code == 503 and third.value.headers["Retry-After"] == "1"
+            (item,) = third.value.json()["detail"]
+            assert "this participant holds 2 of the patrons' round sockets" in item["msg"]
+            assert "watchers'" not in item["msg"]
     with client.websocket_connect(socket_path(remote["id"])) as ws:  # released: room again
         assert json.loads(ws.receive_text())["type"] == "round"
 
@@ -266,3 +325,53 @@ def test_a_socket_whose_rounds_cannot_be_read_is_closed_for_the_agent_to_reconne
         with pytest.raises(WebSocketDisconnect) as closed:
             ws.receive_text()
     assert closed.value.code == 1011 and "reconnect" in closed.value.reason
+
+
+def test_a_token_has_two_uploads_in_flight_at_most_over_sockets_too(
+    client: TestClient, settings: Settings, busy: dict[str, Any]
+) -> None:
+    """A token's uploads in flight are bounded on its sockets as by PUT (2, shared between
+    them): before, each socket of a token had one in flight, 128 in all. Here SQLite's write
+    lock, held by another connection, holds two uploads in flight."""
+    if not is_sqlite(settings.database_url):
+        pytest.skip("SQLite's write lock holds the uploads in flight")
+    position = busy["asked"][0]
+    model_id, token = busy["patrons"][position]
+    good = tuned_bytes(busy, position)
+    text = upload_text(1, model_id, good.decode())
+    path = socket_path(busy["id"])
+    refused: list[Any] = []
+    with ExitStack() as stack:
+        sockets = [
+            stack.enter_context(client.websocket_connect(path, headers=bearer(token)))
+            for _ in range(3)
+        ]
+        for ws in sockets:
+            assert json.loads(ws.receive_text())["type"] == "round"
+        holder = sqlite3.connect(sqlite_path(settings.database_url), isolation_level=None)
+        holder.execute("BEGIN IMMEDIATE")
+        try:
+            for ws in sockets[:2]:
+                ws.send_text(text)
+            time.sleep(2.0)  # both reach the server and wait for the lock
+
+            def third() -> None:
+                refused.append(answer_to(sockets[2], text))
+                refused.append(put(client, busy["id"], 1, model_id, good, token))
+
+            asker = threading.Thread(target=third, daemon=True)
+            asker.start()
+            asker.join(timeout=20)
+            assert len(refused) == 2, "an upload past the token's share was not refused"
+        finally:
+            holder.execute("ROLLBACK")
+            holder.close()
+        answers = [answer_of(ws) for ws in sockets[:2]]
+        again = answer_to(sockets[2], text)  # its turn now: the same answer
+    frame, response = refused
+    assert frame["status"] == 429 and (frame["round"], frame["model_id"]) == (1, model_id)
+    (item,) = frame["body"]["detail"]
+    assert item["loc"] == ["client"] and "holds 2 uploads already" in item["msg"], item
+    assert response.status_code == 429 and loc_of(response) == [["client"]], response.text
+    assert [a["status"] for a in answers] == [200, 200], answers
+    assert answers[0] == answers[1] == again

@@ -26,7 +26,8 @@ from server.api.deps import (
     ScreeningDep,
     SettingsDep,
 )
-from server.api.errors import RequestError, api_error, problem_response, responses
+from server.api.errors import RequestError, api_error, cut, problem_response, responses
+from server.api.limits import client_limits
 from server.api.schemas import (
     MAX_FINE_TUNE_ROUNDS,
     AuctionIdPath,
@@ -35,10 +36,11 @@ from server.api.schemas import (
     UploadPublic,
 )
 from server.api.schemas.common import digits_only
+from server.auctions import patrons as patron_shares
 from server.auctions import uploads as rounds
 from server.auctions.service import not_found
 from server.auctions.sockets import RETRY_AFTER_S, UPLOAD_MAX_BYTES, SocketLimitError
-from server.live.rounds import MAX_WAIT_S
+from server.live.rounds import MAX_WAIT_S, TooManyWaitersError
 from server.store.tables import utcnow
 
 router = APIRouter(tags=["rounds"])
@@ -99,7 +101,10 @@ async def read_current_round(
     token = _bearer(authorization)
 
     async def claim() -> Callable[[], None] | None:
-        return await patrons.claim(auction_id, token)
+        release = await patrons.claim(auction_id, token)
+        if release is None and await patrons.is_patron(auction_id, token):
+            raise TooManyWaitersError(_share_taken(auction_id, "long polls"))
+        return release
 
     answer = rounds.current_round(watcher, auction_id, wait_s=wait, after=after, claim=claim)
     body = await (_unless_gone(request, answer) if wait > 0 else answer)
@@ -190,6 +195,14 @@ async def upload_round_model(
     return Response(answer, media_type="application/json")
 
 
+def _share_taken(auction_id: int, what: str) -> str:
+    """Why a patron's token was refused one more of the patrons' slots of an auction."""
+    return (
+        f"this participant holds {patron_shares.MAX_PER_PATRON} of the patrons' {what} of "
+        f"auction {auction_id} already, its share (everyone's share is full)"
+    )
+
+
 def _bearer(header: str | None) -> str | None:
     """The credentials of an ``Authorization: Bearer <token>`` header, if it has them."""
     scheme, _, credentials = (header or "").partition(" ")
@@ -217,7 +230,20 @@ async def round_socket(
     """The auction's remote rounds over one WebSocket (``server.auctions.sockets``):
     every round pushed as it opens, uploads answered as the PUT answers them. Uploads need
     the handshake's ``Authorization: Bearer <participant token>``."""
+    if websocket.query_params:  # it takes none: a misspelt option is not silently ignored
+        name = next(iter(websocket.query_params))
+        await _deny(
+            websocket,
+            api_error(
+                422,
+                f"unknown query parameter {cut(name)!r} (this path takes: none)",
+                loc=("query", name),
+                kind="unknown_parameter",
+            ),
+        )
+        return
     token = _bearer(websocket.headers.get("authorization"))
+    limits = client_limits(websocket.scope)
 
     async def is_patron() -> bool:
         return await patrons.is_patron(auction_id, token)
@@ -229,6 +255,8 @@ async def round_socket(
         except SocketLimitError:
             release_claim = await patrons.claim(auction_id, token)
             if release_claim is None:
+                if await patrons.is_patron(auction_id, token):
+                    raise SocketLimitError(_share_taken(auction_id, "round sockets")) from None
                 raise
             patron = True
             sockets.reserve(patron=True)
@@ -263,11 +291,18 @@ async def round_socket(
                     kind="missing_token",
                 )
             request = rounds.UploadRequest(auction_id, round_number, model_id, token, body, arrived)
-            return await rounds.upload(
-                database, screening, runner.submit, request, margin=settings.review_margin
-            )
+            release = await limits.hold(websocket.scope, limits.uploads)  # as a PUT's: 429
+            try:
+                return await rounds.upload(
+                    database, screening, runner.submit, request, margin=settings.review_margin
+                )
+            finally:
+                release()
 
-        await sockets.serve(websocket, auction_id, first, upload, patron, is_patron)
+        def allowance() -> RequestError | None:
+            return limits.message(websocket.scope)
+
+        await sockets.serve(websocket, auction_id, first, upload, patron, is_patron, allowance)
     finally:
         sockets.release(patron)
         if release_claim is not None:

@@ -62,20 +62,28 @@ export function withQuery(path, params) {
 }
 
 /**
- * A list page by page: ``render(items)`` is called for each page, and a "Show older" button
- * fetches the next one while there is one. Returns the button's container.
+ * A list page by page: ``render(items)`` is called for each page (it returns the first row it
+ * added, if any), and a "Show older" button fetches the next one while there is one. The
+ * button keeps the focus while it stays; after the last page it goes, and the focus moves to
+ * the first row it added. Returns the button's container.
  */
 export function pager(path, params, render) {
   const more = h("button", { type: "button" }, "Show older");
   const box = h("p", { class: "pager" });
   let cursor = null;
   async function load() {
+    const focused = document.activeElement === more;
     more.disabled = true;
     const page = await getJSON(withQuery(path, { ...params, cursor }));
-    render(page.items);
+    const first = render(page.items);
     cursor = page.next_cursor;
     box.replaceChildren(...(cursor ? [more] : []));
     more.disabled = false;
+    if (focused && cursor) more.focus();
+    else if (focused && first) {
+      first.setAttribute("tabindex", "-1");
+      first.focus();
+    }
     return page;
   }
   more.addEventListener("click", () => load().catch((error) => box.replaceChildren(String(error))));

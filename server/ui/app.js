@@ -2,7 +2,7 @@
 // renders into its own container and registers what must stop when the reader leaves it.
 
 import { auctionList, auctionView } from "./auctions.js";
-import { h } from "./dom.js";
+import { h, notFound } from "./dom.js";
 import { compareView, jobList, jobView } from "./jobs.js";
 import { inspectorView, modelList, participantView, votedWeightsView } from "./models.js";
 import { reviewList, reviewView } from "./reviews.js";
@@ -20,6 +20,22 @@ const ROUTES = [
   [/^#\/reviews$/, "reviews", (view) => reviewList(view)],
   [/^#\/reviews\/(\d+)$/, "reviews", (view, [, id]) => reviewView(view, Number(id))],
 ];
+
+/** What an address no view has names, by its first part: ``#/auctions/abc`` an auction (no id
+ * has that form), with the way back to its list. */
+const KINDS = {
+  auctions: ["Auction", "#/", "All auctions"],
+  models: ["Model", "#/models", "All models"],
+  participants: ["Participant", "#/models", "All models"],
+  jobs: ["Job", "#/jobs", "All jobs"],
+  reviews: ["Model", "#/reviews", "Every held model"],
+};
+
+function nowhere(root, hash) {
+  const [kind, name, ...more] = hash.slice(2).split("?")[0].split("/");
+  const [noun, href, words] = KINDS[kind] || [null, "#/", "All auctions"];
+  notFound(root, noun && name && !more.length ? `${noun} ${decoded(name)}` : `A view at ${hash}`, [href, words]);
+}
 
 /** A name from the address as written, or as it stands when it is not valid percent-encoding
  * (the participant view then says no such participant exists). */
@@ -65,7 +81,7 @@ function show(firstLoad) {
   }
   document.title = "srd-auction"; // a view without a heading yet may set its own
   if (!found) {
-    root.append(h("h1", { tabindex: "-1" }, "Not found"), h("p", {}, "No view has this address. ", h("a", { href: "#/" }, "All auctions")));
+    nowhere(root, hash);
   } else {
     found[2](current, found[0]);
   }

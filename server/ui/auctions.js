@@ -107,11 +107,10 @@ export function auctionList(view, query) {
     );
   const params = { status: chosen.status, order: chosen.order === "newest" ? "" : chosen.order };
   const pages = pager("/auctions", params, (items) => {
-    for (const a of items) {
-      const row = auctionRow(a);
-      rowOf.set(a.id, row);
-      rows.append(row);
-    }
+    const added = items.map(auctionRow);
+    items.forEach((a, i) => rowOf.set(a.id, added[i]));
+    rows.append(...added);
+    return added[0];
   });
   if (chosen.status && !STATUSES.includes(chosen.status)) {
     view.root.append(problem(`No auction status is called "${chosen.status}": pick one of the list.`));
@@ -258,17 +257,21 @@ export function auctionView(view, id) {
   const quitterList = h("ul", { class: "quitters", id: "quitters" });
   const fineTuneRows = h("tbody");
   const noneYet = (span) => h("tr", { class: "none-yet-row" }, h("td", { colspan: span, class: "none-yet" }, "none yet"));
-  const explainRound = h("select", { id: "explain-round" });
+  // Before its first round an auction has no chart to draw: each says so instead.
+  const priceNone = h("p", { class: "none-yet", id: "price-none" }, "none yet");
+  const votesNone = h("p", { class: "none-yet", id: "votes-none" }, "none yet");
+  const explainRound = h("select", { id: "explain-round" }, h("option", { value: "" }, "none yet"));
   const explainPatron = h("select", { id: "explain-patron" });
   const explanation = h("div", { id: "explanation" }, h("p", { class: "none-yet" }, "None yet: pick a round and a patron."));
   const explainStatus = h("p", { class: "visually-hidden", role: "status", id: "explain-status" });
   const roundVotes = h("div", { id: "round-votes" });
+  const explainButton = h("button", { type: "submit", disabled: true }, "Explain the vote");
   const explainForm = h(
     "form",
     { class: "filters", id: "explain-form", "aria-label": "Explain a vote" },
     h("label", { for: "explain-round" }, "Round ", explainRound),
     h("label", { for: "explain-patron" }, "Patron ", explainPatron),
-    h("button", { type: "submit" }, "Explain the vote"),
+    explainButton,
   );
   const explainSection = h(
     "section",
@@ -287,8 +290,11 @@ export function auctionView(view, id) {
     const round = Number(explainRound.value || 0);
     const picked = explainPatron.value;
     const voters = head.model_ids.filter((modelId) => !(leftAt.get(modelId) < round));
-    explainPatron.replaceChildren(...voters.map((modelId) => h("option", { value: modelId }, nameOf(modelId))));
+    const none = h("option", { value: "" }, ended ? "none" : "none yet");
+    explainPatron.replaceChildren(...(voters.length ? voters.map((modelId) => h("option", { value: modelId }, nameOf(modelId))) : [none]));
     if (voters.map(String).includes(picked)) explainPatron.value = picked;
+    // No vote to explain before a round is committed, or without a patron.
+    explainButton.disabled = !explainRound.value || !explainPatron.value;
   }
   explainRound.addEventListener("change", () => {
     listPatrons();
@@ -296,6 +302,7 @@ export function auctionView(view, id) {
   });
   explainForm.addEventListener("submit", (event) => {
     event.preventDefault();
+    if (explainButton.disabled) return;
     showExplanation(Number(explainRound.value), Number(explainPatron.value));
   });
   function pickRound(iteration) {
@@ -406,13 +413,15 @@ export function auctionView(view, id) {
       "section",
       { "aria-labelledby": "price-heading" },
       h("h2", { id: "price-heading" }, "Price over the rounds"),
-      h("figure", {}, priceChart, h("figcaption", {}, "Each point is the price asked in a round; filled larger points are rounds in which fish were sold; the last point is the next price.")),
+      priceNone,
+      h("figure", { hidden: true }, priceChart, h("figcaption", {}, "Each point is the price asked in a round; filled larger points are rounds in which fish were sold; the last point is the next price.")),
     ),
     h(
       "section",
       { "aria-labelledby": "votes-heading" },
       h("h2", { id: "votes-heading" }, "Votes per round"),
-      h("figure", {}, votesChart, h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
+      votesNone,
+      h("figure", { hidden: true }, votesChart, h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
       scrolling(
         h(
           "table",
@@ -445,6 +454,7 @@ export function auctionView(view, id) {
     fineTuning,
   );
   buyerRows.append(noneYet(5));
+  roundRows.append(noneYet(10));
   quitterList.append(h("li", { class: "none-yet" }, "none yet"));
 
   const rounds = [];
@@ -548,11 +558,14 @@ export function auctionView(view, id) {
 
   // An auction read while it enrolled had no patrons and no fish yet: it is read again while
   // it takes patrons (every few seconds), once it plays (its first round) and when it ends,
-  // so the summary, the charts and the patron picker show the patrons it has.
-  function readHeadAgain() {
+  // so the summary, the charts and the patron picker show the patrons it has. The read at
+  // the end also shows each fine-tuning round as it ended: a closed round can change without
+  // an event (an upload after its deadline is recorded late).
+  function readHeadAgain(atEnd = false) {
     getJSON(`/auctions/${id}`)
       .then((auction) => {
         readHead(auction);
+        if (atEnd) for (const r of auction.fine_tuning) showFineTuneRound(r);
         scheduleDraw();
         if (auction.status !== "running") showSummary(auction);
       })
@@ -567,6 +580,10 @@ export function auctionView(view, id) {
     if (row.iteration !== rounds.length) return; // the stream never skips or repeats; a guard
     if (row.iteration === 0 && head.status === "pending") readHeadAgain();
     rounds.push(row);
+    if (rounds.length === 1) {
+      roundRows.replaceChildren();
+      explainRound.replaceChildren();
+    }
     const move = priceMove(row, threshold);
     threshold = move.threshold;
     roundRows.append(
@@ -588,6 +605,7 @@ export function auctionView(view, id) {
       leftAt.set(p.model_id, row.iteration);
     }
     explainRound.append(h("option", { value: row.iteration }, `round ${row.iteration}`));
+    if (rounds.length === 1) listPatrons(); // a vote to explain now
     if (row.purchases.length) buyerRows.querySelector(".none-yet-row")?.remove();
     if (row.quits.length) quitterList.querySelector(".none-yet")?.remove();
     for (const p of row.purchases) {
@@ -610,6 +628,10 @@ export function auctionView(view, id) {
   function draw() {
     drawPending = false;
     if (rounds.length === 0) return;
+    for (const none of [priceNone, votesNone]) {
+      none.hidden = true;
+      none.nextElementSibling.hidden = false; // its figure
+    }
     drawPriceChart(priceChart, rounds, rounds[rounds.length - 1].next_price);
     drawVotesChart(votesChart, rounds, head.n_patrons);
   }
@@ -621,12 +643,15 @@ export function auctionView(view, id) {
 
   function end(outcome) {
     ended = true;
-    if (head.n_initial !== outcome.n_initial) readHeadAgain(); // it enrolled meanwhile
+    readHeadAgain(true); // once more: it may have enrolled, or a closed round changed, meanwhile
     draw();
     showSummary(outcome);
     if (rounds.length === 0) {
       buyerRows.replaceChildren();
       quitterList.replaceChildren();
+      // It ended without a round: nothing more will come.
+      for (const none of [priceNone, votesNone, roundRows.querySelector("td"), explainRound.options[0]]) none.textContent = "none: no round was played";
+      fill(explanation, h("p", { class: "none-yet" }, "None: no round was played."));
     }
     quitterList.querySelector(".none-yet")?.remove();
     if (quitterList.children.length === 0) quitterList.append(h("li", {}, "nobody quit"));

@@ -83,6 +83,7 @@ export function jobList(view, query) {
   );
   const params = { status: chosen.status, kind: chosen.kind, order: chosen.order === "newest" ? "" : chosen.order };
   const pages = pager("/jobs", params, (items) => {
+    const first = rows.children.length;
     for (const j of items) {
       const box = h("input", { type: "checkbox", "aria-label": `Select job ${j.id} for comparison`, "data-job": j.id });
       box.addEventListener("change", () => {
@@ -103,6 +104,7 @@ export function jobList(view, query) {
         ]),
       );
     }
+    return rows.children[first];
   });
   view.root.append(form, scrolling(list, "Experiment jobs (scrolls sideways)"), pages.box);
   pages
@@ -124,7 +126,7 @@ function artifacts(id, names) {
     "section",
     { "aria-labelledby": "artifacts-heading", id: "artifacts" },
     h("h2", { id: "artifacts-heading" }, "Figures and files"),
-    names.length === 0 ? h("p", { class: "none-yet" }, "None yet.") : null,
+    names.length === 0 ? h("p", { class: "none-yet" }, "None.") : null,
     images.map((name) => h("figure", { class: "artifact" }, h("img", { src: artifactUrl(id, name), alt: `Plot ${name}`, loading: "lazy" }), h("figcaption", {}, name))),
     files.length ? h("ul", {}, files.map((name) => h("li", {}, h("a", { href: artifactUrl(id, name) }, name)))) : null,
   );

@@ -80,7 +80,11 @@ export function modelList(view, query) {
     location.hash = withQuery("#/models", { participant: nameInput.value.trim(), status: verdictSelect.value });
   });
   const { node, rows } = modelTable("Model versions, newest first", "model-list");
-  const pages = pager("/models", { participant, accepted, status }, (items) => items.forEach((m) => rows.append(modelRow(m))));
+  const pages = pager("/models", { participant, accepted, status }, (items) => {
+    const added = items.map(modelRow);
+    rows.append(...added);
+    return added[0];
+  });
   view.root.append(form, scrolling(node, "Model versions (scrolls sideways)"), pages.box);
   pages
     .load()
@@ -287,6 +291,12 @@ function verdictBanner(model, flagged) {
     : banner("rejected", "Rejected", ` by the screener: ${why}. It can never enter an auction.`);
 }
 
+/** The verdict banner of ``model`` as it stands (after an inspector's decision, say). */
+export function verdictNow(model) {
+  const neurons = neuronsOf(model.manifest);
+  return verdictBanner(model, [...new Set(model.reasons.map((r) => r.neuron).filter((n) => neurons[n]))]);
+}
+
 /** A model's audit log: appeals and inspectors' decisions, oldest first. */
 function auditLog(reviews) {
   const words = { admit: "admitted", refuse: "refused", appeal: "appealed" };
@@ -355,8 +365,8 @@ function drawnNeurons(manifest, reasons, a, { screened = true } = {}) {
         { "aria-labelledby": "drawing-heading" },
         h("h2", { id: "drawing-heading" }, "The negotiator, neuron by neuron"),
         h("p", { class: "legend" }, h("span", { class: "key edge-pos" }), "positive weight ", h("span", { class: "key edge-neg" }), "negative weight (dashed) ", h("span", { class: "key edge-tiny" }), `δ-sized weight; line width grows with the weight, a weight of 0 is not drawn.${screened ? " A red ring marks a neuron the screener objects to;" : ""} select a neuron to read its weights.`),
-        h("figure", {}, decisionPath, h("figcaption", {}, "Decision: the inputs feed the external sensor PG, SZ, LSR, ST, which feeds buy B, hold L and quit Q.")),
-        h("figure", {}, pfcPath, h("figcaption", {}, "Self-judge: the prefrontal cortex reads the softmax of all seven and judges PGL, BC, FQ, then the verdicts T (right) and F (wrong).")),
+        h("figure", {}, scrolling(decisionPath, "The decision path drawing (scrolls sideways)"), h("figcaption", {}, "Decision: the inputs feed the external sensor PG, SZ, LSR, ST, which feeds buy B, hold L and quit Q.")),
+        h("figure", {}, scrolling(pfcPath, "The self-judge drawing (scrolls sideways)"), h("figcaption", {}, "Self-judge: the prefrontal cortex reads the softmax of all seven and judges PGL, BC, FQ, then the verdicts T (right) and F (wrong).")),
       ),
       h(
         "section",
@@ -424,6 +434,14 @@ function numbersOf(manifest) {
 
 const MOVES_SHOWN = 10;
 
+/** Two weights as the drawing's tables show them (signed, 4 decimals), with more decimals (up
+ * to 8) where the two would look alike. */
+function signedApart(a, b) {
+  let digits = 4;
+  while (digits < 8 && signed(a, digits) === signed(b, digits)) digits += 1;
+  return [signed(a, digits), signed(b, digits)];
+}
+
 /**
  * The weights that cast patron ``modelId``'s vote in round ``iteration`` of auction
  * ``auctionId``: its version's, or those the market had fine-tuned it to by then, with the
@@ -477,7 +495,7 @@ export function votedWeightsView(view, auctionId, iteration, modelId) {
                   table(
                     moves.length === 1 ? `The one weight that moved from version ${w.version}` : moves.length <= MOVES_SHOWN ? `The ${moves.length} weights and biases that moved from version ${w.version}` : `The ${MOVES_SHOWN} largest of the ${moves.length} weights and biases that moved from version ${w.version}`,
                     ["Weight", `Version ${w.version}`, `Voted in round ${iteration}`, "Change"],
-                    moves.slice(0, MOVES_SHOWN).map(([place, b, x]) => [place, String(b), String(x), signed(x - b, 6)]),
+                    moves.slice(0, MOVES_SHOWN).map(([place, b, x]) => [place, ...signedApart(b, x), signed(x - b, 6)]),
                     { id: "weight-moves" },
                   ),
                   "What fine-tuning changed (scrolls sideways)",
@@ -489,7 +507,16 @@ export function votedWeightsView(view, auctionId, iteration, modelId) {
       view.root.append(...parts, settingsFacts(manifest, [["Participant", participantLink(w.participant)]]), ...drawnNeurons(manifest, [], a, { screened: false }).sections);
     })
     .catch((error) => {
-      if (isMissing(error)) view.root.append(problem(error), h("p", {}, back));
-      else view.root.append(problem(error));
+      if (!isMissing(error)) {
+        view.root.append(problem(error));
+        return;
+      }
+      // The auction exists (its round or patron does not: say which, and go back to it), or not.
+      getJSON(`/auctions/${auctionId}`)
+        .then(() => view.root.append(problem(error), h("p", {}, back)))
+        .catch((again) => {
+          if (isMissing(again)) notFound(view.root, `Auction ${auctionId}`, ["#/", "All auctions"]);
+          else view.root.append(problem(error), h("p", {}, back));
+        });
     });
 }

@@ -5,7 +5,7 @@
 
 import { ApiError, getJSON, postJSON } from "./api.js";
 import { facts, fill, fixed, h, isMissing, link, notFound, problem, scrolling, svg, table, when } from "./dom.js";
-import { inspectorView } from "./models.js";
+import { inspectorView, verdictNow } from "./models.js";
 
 let adminToken = null;
 
@@ -224,9 +224,9 @@ function impactChart(impacts) {
 }
 
 function decisionForm(model) {
-  const inspector = h("input", { id: "inspector", name: "inspector", required: true, maxlength: 64, autocomplete: "name" });
+  const inspector = h("input", { id: "inspector", name: "inspector", "aria-required": "true", maxlength: 64, autocomplete: "name" });
   const note = h("textarea", { id: "note", name: "note", rows: 3, maxlength: 2000, "aria-describedby": "note-public" });
-  const status = h("p", { id: "decision-status", role: "status" });
+  const status = h("p", { id: "decision-status", role: "status", tabindex: "-1" });
   const buttons = [
     h("button", { type: "submit", value: "admit", id: "admit" }, "Admit"),
     h("button", { type: "submit", value: "refuse", id: "refuse" }, "Refuse"),
@@ -245,15 +245,24 @@ function decisionForm(model) {
     event.preventDefault();
     const decision = event.submitter?.value;
     if (!decision) return;
+    if (!inspector.value.trim()) {
+      // the server's own words for a blank name, said before asking it
+      fill(status, problem("Inspector: must name someone: it is blank."));
+      inspector.focus();
+      return;
+    }
     for (const b of buttons) b.disabled = true;
     postJSON(`/models/${model.id}/review`, { decision, inspector: inspector.value, note: note.value }, adminToken)
       .then((done) => {
+        document.getElementById("verdict")?.replaceWith(verdictNow({ ...model, ...done }));
         fill(status, `Model ${done.model_id} is now ${done.status} (${decision} by ${inspector.value}). `, link("#/reviews", "Back to the held models"));
         status.append(facts(done.reviews.map((r) => [`${r.decision} · ${when(r.at)}`, `${r.inspector}${r.note ? `: ${r.note}` : ""}`]), { id: "audit-log" }));
+        status.focus(); // the button pressed is disabled now: the focus goes to what it did
       })
       .catch((error) => {
         for (const b of buttons) b.disabled = false;
         fill(status, problem(error));
+        status.focus();
       });
   });
   return form;

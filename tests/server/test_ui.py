@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import time
@@ -177,9 +178,8 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
     rows = page.locator("#fine-tuning tbody tr")
     assert page.locator("#fine-tuning").is_visible() and rows.count() == 2
-    for row, expected in zip(
-        rows.all(), api.get(f"/auctions/{auction_id}").json()["fine_tuning"], strict=True
-    ):
+    fine_tuning = api.get(f"/auctions/{auction_id}").json()["fine_tuning"]
+    for row, expected in zip(rows.all(), fine_tuning, strict=True):
         cells = [cell.text_content() for cell in row.locator("td").all()]
         assert cells[:3] == [str(expected["round"]), str(expected["iteration"]), "closed"]
         assert cells[3].startswith("closed ") and "(deadline " in cells[3]  # when it closed
@@ -190,6 +190,32 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
             assert item.get_attribute("data-outcome") == answer["outcome"] == "missing"
             version = item.locator(f"a[href='#/models/{answer['version_id']}']")
             assert version.text_content() == f"version {answer['version']}"
+    # An upload after the deadline is recorded late once its round's closed event was sent,
+    # and no event follows: the page reads the auction once more at the end. (The stream is
+    # replayed as it was sent before the upload: the round closed with that patron missing.)
+    late = fine_tuning[0]["answers"][0]
+    token = next(a["token"] for a in population.values() if a["model_id"] == late["model_id"])
+    put = api.put(
+        f"/auctions/{auction_id}/rounds/1/models/{late['model_id']}",
+        json=api.get(f"/models/{late['version_id']}").json()["manifest"],
+        headers={"Authorization": f"Bearer {token}"},
+    )
+    assert put.status_code == 410, put.text
+    sent = api.get(f"/auctions/{auction_id}/events").text
+    assert sent.count('"outcome":"late"') == 1
+    before = sent.replace('"outcome":"late"', '"outcome":"missing"')
+    page.route(
+        f"{server.url}/auctions/{auction_id}/events*",
+        lambda route: route.fulfill(status=200, content_type="text/event-stream", body=before),
+    )
+    page.reload()
+    page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
+    item = f"#fine-tuning tr[data-round='1'] li[data-model='{late['model_id']}']"
+    page.wait_for_selector(f"{item}[data-outcome='late']", timeout=WAIT_MS)
+    assert "1 late" in (page.locator("#fine-tuning tr[data-round='1'] td").nth(4).text_content())
+    # A select as wide as a 64-character name stays within the page.
+    page.evaluate("document.querySelector('#explain-patron').add(new Option('W'.repeat(64)))")
+    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
 
 
 def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
@@ -207,6 +233,10 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     page.wait_for_selector("#auction-summary:has-text('Takes patrons until')", timeout=WAIT_MS)
     summary = page.text_content("#auction-summary") or ""
     assert "Joined so farnone yet" in summary and "Fish on salecounted when it starts" in summary
+    # Sections without a round say so, and there is no vote to explain yet.
+    assert page.text_content("#rounds tbody") == "none yet"
+    assert page.is_visible("#price-none") and page.is_visible("#votes-none")
+    assert page.locator("#explain-form button[type='submit']").is_disabled()
     for joiner in joiners:
         joined = api.post(
             f"/auctions/{auction_id}/patrons",
@@ -226,6 +256,8 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     summary = page.text_content("#auction-summary") or ""
     assert "Fish on sale1" in summary and "Takes patrons until" not in summary
     assert page.locator("#explain-patron option").count() >= 1
+    assert page.locator("#explain-form button[type='submit']").is_enabled()
+    assert page.is_visible("#price-chart") and not page.is_visible("#price-none")
 
 
 def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
@@ -240,6 +272,9 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     assert (page.text_content("#liveness") or "").endswith("; no round played.")
     summary = page.text_content("#auction-summary") or ""
     assert "Statuscancelled" in summary and "cancelled by the operator" in summary
+    for empty in ("#price-none", "#votes-none", "#rounds tbody td", "#explain-round option"):
+        assert page.text_content(empty) == "none: no round was played", empty
+    assert page.locator("#explain-form button[type='submit']").is_disabled()
     page.goto(f"{server.url}/ui/#/auctions")
     page.wait_for_selector("#auction-list tbody tr", timeout=WAIT_MS)
     rows = [
@@ -336,6 +371,10 @@ def test_inspector_draws_the_saboteur_neuron_by_neuron_with_the_screeners_reason
     decision.locator("g.neuron[data-neuron='B']").focus()
     page.keyboard.press("Enter")
     assert page.evaluate("document.activeElement.id") == "neuron-B"
+    # On a phone the drawing keeps a readable size and scrolls sideways, not the page.
+    page.set_viewport_size({"width": 375, "height": 800})
+    assert decision.bounding_box()["width"] >= 560
+    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
 
 
 def test_user_supplied_strings_are_shown_as_text(
@@ -677,21 +716,28 @@ def test_a_vote_after_fine_tuning_in_the_market_leads_to_the_weights_that_cast_i
     ]
     cells = page.locator("#weight-moves tbody tr").first.locator("td").all()
     assert abs(float(cells[3].text_content().replace("\u2212", "-"))) >= max(moves) - 1e-6
+    for row in page.locator("#weight-moves tbody tr").all():  # rounded, as the weights are
+        before, after = (cell.text_content() for cell in row.locator("td").all()[1:3])
+        assert all(re.fullmatch(r"[+\u2212]?\d+\.\d{4,8}", x) for x in (before, after))
     screenshot(page.locator("section:has(#weight-moves)"), "ui_voted_weights.png", tmp_path)
 
 
 def test_a_missing_auction_job_model_or_participant_gets_a_not_found_page(
     page: Any, server: ServerProcess
 ) -> None:
-    for path, what in (
-        ("auctions/999999", "Auction 999999"),
-        ("jobs/999999", "Job 999999"),
-        ("models/0", "Model 0"),
-        ("participants/nobody-by-this-name", "Participant nobody-by-this-name"),
+    for path, what, back in (
+        ("auctions/999999", "Auction 999999", "#/"),
+        ("auctions/abc", "Auction abc", "#/"),
+        ("auctions/999999/iterations/0/votes/1/weights", "Auction 999999", "#/"),
+        ("jobs/999999", "Job 999999", "#/jobs"),
+        ("models/0", "Model 0", "#/models"),
+        ("models/-1", "Model -1", "#/models"),
+        ("participants/nobody-by-this-name", "Participant nobody-by-this-name", "#/models"),
     ):
         page.goto(f"{server.url}/ui/#/{path}")
         page.wait_for_selector("#not-found", timeout=WAIT_MS)
         assert page.locator("#not-found").text_content() == f"{what} does not exist."
+        assert page.locator("#not-found + p a").get_attribute("href") == back
         assert page.locator("h1").all_text_contents() == ["Not found"]
         assert page.title() == "Not found · srd-auction"
         assert page.locator("svg.chart, table").count() == 0
@@ -804,10 +850,14 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     assert page.locator("#populations").text_content() == "Its test auctions met the public ones."
     assert serious_violations(page, axe_source) == []
     screenshot(page.locator("#evidence"), "ui_review.png", tmp_path)
-    # Said in words: a blank name, and a network that drops the decision.
-    page.fill("#inspector", "   ")
-    page.click("#admit")
-    page.wait_for_selector("#decision-status:has-text('must name someone')", timeout=WAIT_MS)
+    # Said in words (not the browser's bubble): a blank name, and a network that drops the
+    # decision.
+    for blank in ("", "   "):
+        page.fill("#inspector", blank)
+        page.click("#admit")
+        page.wait_for_selector("#decision-status:has-text('must name someone')", timeout=WAIT_MS)
+        assert page.evaluate("document.activeElement.id") == "inspector"
+        page.evaluate("document.querySelector('#decision-status').replaceChildren()")
     review = f"**/models/{model_id}/review"
     page.route(review, lambda r: r.abort())
     page.fill("#inspector", "Ada")
@@ -821,6 +871,9 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     page.focus("#admit")
     page.keyboard.press("Enter")
     page.wait_for_selector("#decision-status:has-text('now accepted')", timeout=WAIT_MS)
+    # The verdict at the top says so, and the focus is on what the decision did.
+    assert (page.text_content("#verdict") or "").startswith("Admitted by inspector Ada")
+    assert page.evaluate("document.activeElement.id") == "decision-status"
     model = api.get(f"/models/{model_id}").json()
     assert (model["status"], model["accepted"]) == ("accepted", True)
     assert [(r["decision"], r["inspector"], r["note"]) for r in model["reviews"]] == [
@@ -861,6 +914,8 @@ def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(
             tab.evaluate(seen_as, "hidden")
             assert "Paused" in (tab.text_content("#liveness") or "")
             tabs.append(tab)
+        # a round committed, the auction still running: its votes can be explained already
+        assert tabs[0].locator("#explain-form button[type='submit']").is_enabled()
         other = context.new_page()  # an eighth page of the site, with seven live views open
         other.goto(f"{server.url}/ui/#/models")
         other.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)
@@ -952,7 +1007,7 @@ def test_a_models_page_says_who_decided_and_keeps_the_review_history(
 
 
 def test_a_malformed_participant_address_gets_the_not_found_page(
-    page: Any, server: ServerProcess
+    page: Any, server: ServerProcess, api: httpx.Client
 ) -> None:
     for name in ("%", "%E0%A4%A"):
         page.goto(f"{server.url}/ui/#/participants/{name}")
@@ -973,6 +1028,23 @@ def test_a_malformed_participant_address_gets_the_not_found_page(
     page.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)
     verdicts = page.locator("#model-list tbody tr td:nth-child(4)").all_text_contents()
     assert verdicts and all("rejected" in v for v in verdicts), verdicts
+    # The last "Show older" goes with its page: the focus moves to the first row it added.
+    total = len(api.get("/models", params={"limit": 100}).json()["items"])
+    page.route(
+        re.compile(r"/models(\?.*)?$"),
+        lambda route: route.continue_(
+            url=f"{route.request.url}{'&' if '?' in route.request.url else '?'}limit={total - 1}"
+        ),
+    )
+    page.goto(f"{server.url}/ui/#/models")
+    page.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)
+    page.locator(".pager button").focus()
+    page.keyboard.press("Enter")
+    page.wait_for_selector(".pager button", state="detached", timeout=WAIT_MS)
+    focused = (
+        "[...document.querySelectorAll('#model-list tbody tr')].indexOf(document.activeElement)"
+    )
+    assert page.evaluate(focused) == total - 1
 
 
 def test_the_auction_list_follows_its_auctions(

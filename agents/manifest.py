@@ -70,6 +70,17 @@ Participant = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za
 """A participant's name: letters, digits, ``_``, ``.``, ``-``."""
 
 
+def name_problem(participant: str) -> str | None:
+    """Why a server takes no submission under ``participant`` though the manifest is valid, or
+    None: a name of dots only is a path segment, which no URL of the participant could name."""
+    if participant.strip("."):
+        return None
+    return (
+        "a participant's name needs a letter, digit, '_' or '-': a name of dots only is a "
+        "path segment ('.', '..'), which no URL of the participant could name"
+    )
+
+
 _UNREADABLE = (
     "\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f"  # control characters but tab and line breaks
     "\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069"  # bidirectional marks and overrides

@@ -15,7 +15,7 @@ from pydantic import ValidationError
 from rich.console import Console
 from rich.markup import escape
 
-from agents.manifest import ManifestError, parse_manifest, parse_manifest_json
+from agents.manifest import ManifestError, name_problem, parse_manifest, parse_manifest_json
 from screener import review, with_hold_reasons
 from screener import screen as screen_manifest
 from server.api.body import BodyRefusedError, parse_strict_json
@@ -139,6 +139,9 @@ def command(file: Path, json_output: bool, margin: float) -> None:
         raise _malformed(errors, json_output) from exc
     except ManifestError as exc:
         raise _malformed(exc.errors, json_output) from exc
+    problem = name_problem(manifest.participant)  # as POST /submit refuses it
+    if problem is not None:
+        raise _malformed([{"path": "participant", "message": problem}], json_output)
     torch.set_num_threads(1)  # the screener's tensors are tiny: more threads only contend
     verdict = screen_manifest(manifest)
     status = review(verdict, margin)

@@ -5,13 +5,17 @@ from __future__ import annotations
 
 from sqlalchemy.orm import Session
 
-from agents.manifest import Manifest
+from agents.manifest import Manifest, name_problem
 from screener import Verdict, review, with_hold_reasons
 from server.api.errors import RequestError, api_error
 from server.screening.pool import ScreenerUnavailableError, ScreeningService
 from server.store import crud
 from server.store.status import ModelStatus
 from server.submissions.writer import Refused, Stored, SubmissionWriter
+
+SCREENER_RETRY_AFTER_S = 2
+"""``Retry-After`` of a submission the screener could not judge: its process is restarted in
+about a second."""
 
 
 def _refusal(refused: Refused) -> RequestError:
@@ -36,11 +40,11 @@ async def submit(
     manifest (no database lock held meanwhile), store it with its verdict, held for an
     inspector within ``margin`` of a bar (``screener.review``); the stored version, the
     verdict and its status."""
-    if not manifest.participant.strip("."):
+    problem = name_problem(manifest.participant)
+    if problem is not None:
         raise api_error(
             422,
-            "a participant's name needs a letter, digit, '_' or '-': a name of dots only is a "
-            "path segment ('.', '..'), which no URL of the participant could name",
+            problem,
             loc=("body", "participant"),
             kind="bad_name",
         )
@@ -52,7 +56,13 @@ async def submit(
     try:
         verdict = await screening.verdict(manifest)
     except ScreenerUnavailableError as exc:
-        raise api_error(503, str(exc), loc=("body",), kind="screener_unavailable") from exc
+        raise api_error(
+            503,
+            str(exc),
+            loc=("server",),
+            kind="screener_unavailable",
+            headers={"Retry-After": str(SCREENER_RETRY_AFTER_S)},
+        ) from exc
     status = ModelStatus(review(verdict, margin))
     verdict = with_hold_reasons(verdict, margin)
     outcome = await writer.store(

@@ -599,3 +599,14 @@ def test_a_server_stopped_by_ctrl_c_exits_130(tmp_path: Path) -> None:
         assert server.process.wait(60) == INTERRUPTED
     log = server.log_path.read_text()
     assert "Aborted!" in log and "Traceback" not in log
+
+
+@pytest.mark.parametrize("name", [".", ".."])
+def test_screen_refuses_a_name_of_dots_as_the_server_does(tmp_path: Path, name: str) -> None:
+    """POST /submit refuses it (422 at participant), so srd screen does too (exit 2)."""
+    manifest = json.loads((ROOT / "examples" / "honest.json").read_text())
+    path = tmp_path / "dots.json"
+    path.write_text(json.dumps({**manifest, "participant": name}))
+    result = CliRunner().invoke(cli, ["screen", str(path), "--json"])
+    assert result.exit_code == 2, result.output
+    assert json.loads(result.stdout)["error"].startswith("participant: a participant's name")

@@ -467,3 +467,24 @@ def test_a_name_of_dots_only_is_refused_naming_the_field(client: TestClient, nam
     assert item["loc"] == ["body", "participant"] and item["type"] == "bad_name"
     assert count(client, ModelVersion) == before
     assert client.post("/submit", json=honest(unique("a.b"))).status_code == 201
+
+
+def test_a_submission_the_screener_cannot_judge_is_503_at_the_server(
+    client: TestClient, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The screening process died under it: the body was fine, so the 503 names the server
+    and says when to retry; nothing is stored."""
+    from server.screening.pool import ScreenerUnavailableError
+
+    async def gone(*_args: Any, **_kwargs: Any) -> Any:
+        raise ScreenerUnavailableError("the screening process exited; retry shortly")
+
+    services = client.app.state.services  # type: ignore[attr-defined]
+    monkeypatch.setattr(services.screening, "verdict", gone)
+    before = count(client, ModelVersion)
+    answer = client.post("/submit", json=honest(unique("unjudged")))
+    assert answer.status_code == 503, answer.text
+    (item,) = answer.json()["detail"]
+    assert item["loc"] == ["server"] and item["type"] == "screener_unavailable"
+    assert answer.headers["retry-after"] == "2"
+    assert count(client, ModelVersion) == before

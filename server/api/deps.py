@@ -10,6 +10,7 @@ dependency per request for an attribute read.
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import AsyncIterator, Callable
 from typing import Annotated, Any, TypeVar
 
@@ -17,6 +18,7 @@ import anyio
 import anyio.to_thread
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import HTTPConnection
@@ -32,7 +34,7 @@ from server.live.events import EventHub
 from server.live.rounds import RoundWatcher
 from server.screening.pool import ScreeningService
 from server.services import Services
-from server.store.db import READ_TIMEOUT_S, Database, DatabaseUnavailableError
+from server.store.db import READ_TIMEOUT_S, Database, DatabaseUnavailableError, first_line
 from server.submissions.writer import SubmissionWriter
 from server.work.runner import BackgroundRunner
 
@@ -112,6 +114,8 @@ EventHubDep = Annotated[EventHub, Depends(_events)]
 ReadinessDep = Annotated[Readiness, Depends(_readiness)]
 
 _WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
+log = logging.getLogger("srd.api")
+
 _READING = "srd_reading"
 """``Session.info`` key: the read in a thread that still uses the session."""
 
@@ -154,7 +158,16 @@ async def _close(session: Session) -> None:
     global _closers
     if _closers is None:  # made on the event loop, where anyio wants it
         _closers = anyio.CapacityLimiter(CLOSERS)
-    await anyio.to_thread.run_sync(session.close, limiter=_closers)
+    await anyio.to_thread.run_sync(_close_quietly, session, limiter=_closers)
+
+
+def _close_quietly(session: Session) -> None:
+    """Close ``session``; a connection the database dropped meanwhile (its rollback fails) is
+    one line of the log, not a traceback after the answer has gone (the pool discards it)."""
+    try:
+        session.close()
+    except SQLAlchemyError as exc:
+        log.warning("a request's session closed on a lost connection: %s", first_line(exc))
 
 
 def _close_in_thread(session: Session) -> None:

@@ -30,11 +30,10 @@ SENSOR_INPUTS = {
 BASE = np.array(limits.BASE_ROW)
 SUBTYPES = np.array(list(itertools.product((0.5, -0.5), repeat=3)))
 """The 8 sub-types; row 0 is the preferred (½, ½, ½)."""
-NAMED_COLUMNS = tuple(
-    (np.array(SENSOR_INPUTS[name], dtype=np.intp), BASE[list(SENSOR_INPUTS[name])])
-    for name in ES_NEURONS
-)
-"""Per ES neuron: the inputs it is named after, and their values on the base item."""
+NAMED_COLUMNS = tuple(np.array(SENSOR_INPUTS[name], dtype=np.intp) for name in ES_NEURONS)
+"""Per ES neuron: the inputs it is named after."""
+OTHER_COLUMNS = tuple(np.setdiff1d(np.arange(len(BASE)), named) for named in NAMED_COLUMNS)
+"""Per ES neuron: the inputs it is not named after."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,15 +76,14 @@ def reference_point(n: Numbers, neuron: int) -> Array:
     """Where a threshold neuron crosses its centre c on the base item, as a value of the inputs
     it is named after (moved together): (c − bias − other inputs) / Σ named weights; NaN unless
     the named weights sum to more than 0."""
-    named, base_named = NAMED_COLUMNS[neuron]
+    named, other = NAMED_COLUMNS[neuron], OTHER_COLUMNS[neuron]
     weights = n.es_weight[:, neuron]
-    named_weights = weights[:, named]
-    slope = named_weights.sum(axis=1)
+    slope = weights[:, named].sum(axis=1)
     # Sums along each row, not matrix products: a product's kernel depends on the batch size,
     # and with absurd weights (1e308) its rounding decides inf or NaN, so a model's reasons
-    # would depend on the batch it is judged in.
-    rest = (weights * BASE).sum(axis=1) - (named_weights * base_named).sum(axis=1)
-    rest = rest + n.es_bias[:, neuron]
+    # would depend on the batch it is judged in. The other inputs alone, not every input less
+    # the named ones: a named weight of 1.8e308 made both sums inf and the point NaN.
+    rest = (weights[:, other] * BASE[other]).sum(axis=1) + n.es_bias[:, neuron]
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(slope > 0, (n.es_c[:, neuron] - rest) / slope, np.nan)
 

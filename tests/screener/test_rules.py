@@ -76,6 +76,15 @@ def test_willingness_to_pay_band_is_half_to_twice_the_base_price(honest, declare
         assert "outside the plausible 2.50 to 10.00" in message
 
 
+@pytest.mark.parametrize("weight", [1e300, np.finfo(np.float64).max])
+def test_an_absurd_price_weight_declares_an_implausible_willingness_to_pay(honest, weight):
+    """The largest float too: PG's point on the base fish was inf − inf there, and no reason
+    named its willingness to pay."""
+    verdict = screen(edit(honest, {PG_PRICE: float(weight)}))
+    assert not verdict.accepted
+    assert "outside the plausible 2.50 to 10.00" in message_of(verdict, "willingness-to-pay", "PG")
+
+
 def test_price_weight_must_be_positive(honest):
     verdict = screen(edit(honest, {PG_PRICE: -0.2}))
     assert ("rises-with-price", "PG") in rules_of(verdict)

@@ -25,8 +25,9 @@ from server.api.deps import (
     RoundSocketsDep,
     ScreeningDep,
     SettingsDep,
+    unknown_parameter,
 )
-from server.api.errors import RequestError, api_error, cut, problem_response, responses
+from server.api.errors import RequestError, api_error, problem_response, responses
 from server.api.limits import client_limits
 from server.api.schemas import (
     MAX_FINE_TUNE_ROUNDS,
@@ -230,17 +231,10 @@ async def round_socket(
     """The auction's remote rounds over one WebSocket (``server.auctions.sockets``):
     every round pushed as it opens, uploads answered as the PUT answers them. Uploads need
     the handshake's ``Authorization: Bearer <participant token>``."""
-    if websocket.query_params:  # it takes none: a misspelt option is not silently ignored
-        name = next(iter(websocket.query_params))
-        await _deny(
-            websocket,
-            api_error(
-                422,
-                f"unknown query parameter {cut(name)!r} (this path takes: none)",
-                loc=("query", name),
-                kind="unknown_parameter",
-            ),
-        )
+    # It takes no query parameter: a misspelt option is refused, not silently ignored.
+    unknown = unknown_parameter(websocket, frozenset())
+    if unknown is not None:
+        await _deny(websocket, unknown)
         return
     token = _bearer(websocket.headers.get("authorization"))
     limits = client_limits(websocket.scope)

@@ -51,7 +51,8 @@ SENSOR_DESIGN: dict[str, tuple[dict[str, float], float]] = {
     "SZ": ({"length": 0.5, "weight": 0.5}, 0.0),
     # LSR follows the buy fraction f of the last round (others are buying: hurry).
     "LSR": ({"buy_fraction": 1.0}, 0.0),
-    # ST peaks at the preferred sub-type (½, ½, ½): (st1 + st2 + st3)/3 − ½ = 0 there.
+    # ST peaks at the preferred sub-type (½, ½, ½): (st1 + st2 + st3)/3 − ½ = 0 there, less
+    # the δ terms of the other inputs (about 0.0085 at the prototype row: ST = 0.58 there).
     "ST": ({"st1": 1 / 3, "st2": 1 / 3, "st3": 1 / 3}, -0.5),
 }
 """Per ES neuron: the designed input weights (every other input gets δ) and the bias."""

@@ -512,6 +512,7 @@ async def play_size(
         client = await stack.enter_async_context(httpx.AsyncClient(timeout=WAIT_S + 15))
         joined = await submit_agents(client, servers[0], n_agents, plan.seed + n_agents, plan)
         groups = [joined[i : i + AUCTION_SIZE] for i in range(0, n_agents, AUCTION_SIZE)]
+        print(f"{transport} {n_agents}: agents submitted, measuring from here", file=sys.stderr)
         load = list(os.getloadavg())
         cpu_before = cpu.read()
         generator_before, wall_before = time.process_time(), time.monotonic()

@@ -144,7 +144,7 @@ class CheetahConfig:
     trials: Annotated[int, Field(ge=1, le=1000)] = 7
     """Seeded trials per condition (weight noise differs per trial; --nominal runs one)."""
     steps: Annotated[int, Field(ge=1, le=1_000_000)] | None = None
-    """Simulation steps of 0.01 s (default 3600; stages: 400 for 0, 1200 for 1–4)."""
+    """Simulation steps of 0.01 s (default 3600; stages: 401 for 0, 1201 for 1–4)."""
     nominal: bool = False
     """Noise-free designed weights (deterministic, one trial per condition)."""
     stage: Annotated[int, Field(ge=0, le=4)] | None = None

@@ -67,7 +67,8 @@ class RobotFish1D(gym.Env[np.ndarray, np.int64]):
     otherwise.
 
     **Episode end**: terminated when F ≤ 0 (the fish is dead); never truncated (the caller
-    chooses the number of steps).
+    chooses the number of steps). A dead fish takes no step: ``step`` raises until ``reset``
+    (so every observation stays in ``observation_space``).
 
     **Info**: ``energy`` (F after the step, full precision), ``tile`` (e1 after the step: 0.5 =
     food under the fish), ``pointer`` (tape position) and ``ate`` (the step was a meal).
@@ -112,6 +113,8 @@ class RobotFish1D(gym.Env[np.ndarray, np.int64]):
         """One step: energy from the cells before the action, then the tape moves."""
         if action not in (EAT, MOVE):
             raise ValueError(f"action must be {EAT} (eat) or {MOVE} (move), got {action!r}")
+        if self.energy <= 0.0:
+            raise RuntimeError("the fish is dead (its energy reached 0): call reset() first")
         before = self.energy
         ate = action == EAT and self.cells[0] == FOOD
         self.energy = min(before + MEAL_ENERGY if ate else before - STEP_COST, START_ENERGY)
@@ -122,6 +125,12 @@ class RobotFish1D(gym.Env[np.ndarray, np.int64]):
             self.cells = [self.tape[(self.pointer + k) % len(self.tape)] for k in range(VIEW)]
         terminated = self.energy <= 0.0
         return self._observation(), self.energy - before, terminated, False, self._info(ate)
+
+
+ENV_ID = "RobotFish1D-v0"
+"""``gymnasium.make(ENV_ID)`` builds ``RobotFish1D`` once ``sim.fish`` is imported."""
+if ENV_ID not in gym.registry:
+    gym.register(id=ENV_ID, entry_point="sim.fish:RobotFish1D")
 
 
 class FishTrace(NamedTuple):
@@ -289,7 +298,7 @@ def assemble_fish(
         "mean_energy_first_1000": round(float(energy[:MEAN_WINDOW].mean()), 6),
         "mean_energy_last_1000": round(float(energy[-MEAN_WINDOW:].mean()), 6),
         "mean_energy": round(float(energy.mean()), 6),
-        "min_energy": round(float(energy.min()), 6),
+        "min_energy": round(float(energy.min()), 6) + 0.0,  # a death at −3e−16: 0, not −0
         "meals": life["meals"],
         "mean_energy_per_1000": [round(m, 6) for m in per_window],
         "elapsed_s": watch.elapsed(),

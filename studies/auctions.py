@@ -136,8 +136,10 @@ def plan_auction(
     fine_tune_rounds: int,
     buy_fraction: BuyFractionRule = MarketConfig.buy_fraction,
     n_rows: int = MarketConfig.n_rows,
+    freeze_pfc: bool = False,
 ) -> Auction:
-    """The patrons (not yet screened) and market config of one auction."""
+    """The patrons (not yet screened) and market config of one auction; ``freeze_pfc``: the
+    patrons' judges are not trained."""
     honest_rng, saboteur_rng, market_seed = auction_streams(seed, rarity, trial)
     n_saboteurs = saboteur_count(setting.saboteurs, n_patrons)
     patrons = [
@@ -147,6 +149,11 @@ def plan_auction(
     if not setting.alone:
         patrons += [
             saboteur_manifest(saboteur_rng, f"saboteur-{i:03d}") for i in range(n_saboteurs)
+        ]
+    if freeze_pfc:
+        patrons = [
+            p.model_copy(update={"pfc": p.pfc.model_copy(update={"trainable": False})})
+            for p in patrons
         ]
     n_fish = fish_on_sale(n_patrons, rarity=rarity)
     market = MarketConfig(
@@ -325,6 +332,7 @@ def compute_auctions(
             fine_tune_rounds=config.fine_tune_rounds,
             buy_fraction=config.buy_fraction,
             n_rows=config.rows,
+            freeze_pfc=config.freeze_pfc,
         )
         for s, r, t in unit.spec["auctions"]
     ]

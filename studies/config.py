@@ -55,6 +55,9 @@ class AuctionOptions:
     rows: Annotated[int, Field(ge=1, le=256)] = MarketConfig.n_rows
     """Item rows each patron scores per iteration: the prototype and its variations (64, the
     reference's, made the paper's figures; the paper's text says 16)."""
+    freeze_pfc: bool = False
+    """Fine-tuning leaves every patron's judge (PFC) as built: its ``pfc.trainable`` is false
+    (the reference trains it with the rest, which made the figures)."""
 
     def problems(self) -> list[dict[str, str]]:
         """A supply that puts no fish on sale (int(rarity × patrons) = 0), as ``POST

@@ -322,7 +322,8 @@ def _write_grid_artifacts(
         )
         values = displacement[index][:, ::stride]
         columns[f"mean_{tag}"] = values.mean(axis=0)
-        columns[f"sd_{tag}"] = values.std(axis=0, ddof=1) if len(index) > 1 else 0 * values[0]
+        spread = values.std(axis=0, ddof=1) if len(index) > 1 else np.zeros(values.shape[1])
+        columns[f"sd_{tag}"] = spread
     table = np.column_stack(list(columns.values()))
     rows = [dict(zip(columns, (f"{v:{CSV_FORMAT}}" for v in line), strict=True)) for line in table]
     names.append(write_csv(out_dir / "displacement.csv", rows))

@@ -309,7 +309,7 @@ def test_nominal_runs_land_on_the_reference_displacements(tmp_path):
     assert lines[0].split(",")[:3] == ["step", "mean_b3_i0_nosrd", "sd_b3_i0_nosrd"]
     assert len(lines) == 1 + 360 and lines[-1].startswith("3590,")
     last = dict(zip(lines[0].split(","), lines[-1].split(","), strict=True))
-    assert float(last["sd_b3_i0_nosrd"]) == 0.0  # one trial
+    assert last["sd_b3_i0_nosrd"] == "0"  # one trial: no spread, written as 0 (not "-0")
 
 
 def test_runs_come_in_grid_order_with_their_fields(tmp_path):
@@ -478,11 +478,26 @@ def test_stage2_stable_pose_neurons_drop_when_the_front_thigh_swings(tmp_path):
     assert (tmp_path / "stage2_stable_pose.png").is_file()
 
 
+def reference_steps(seconds: float) -> int:
+    """The steps of the reference's loop: ``mj_step`` while MuJoCo's time is below ``seconds``."""
+    model = build_model()
+    data = mujoco.MjData(model)
+    steps = 0
+    while data.time < seconds:
+        mujoco.mj_step(model, data)
+        steps += 1
+    return steps
+
+
+def test_the_reference_loop_takes_401_and_1201_steps_for_4_and_12_s():
+    assert (reference_steps(4.0), reference_steps(12.0), reference_steps(36.0)) == (401, 1201, 3600)
+
+
 @pytest.mark.parametrize("stage", [0, 3, 4])
 def test_design_stages_move_the_cheetah_forward(tmp_path, stage):
-    steps = 400 if stage == 0 else 1200
-    result = run(CheetahConfig(stage=stage, steps=steps, video=False), out_dir=tmp_path)
+    result = run(CheetahConfig(stage=stage, video=False), out_dir=tmp_path)
     assert result["stage"] == stage
+    assert result["steps"] == reference_steps(4.0 if stage == 0 else 12.0)
     grid_keys = {"backswing", "inhibitor", "srd", "trial", "final_displacement"}
     assert all(grid_keys <= set(row) for row in result["runs"])  # as the grid's rows
     if stage == 0:

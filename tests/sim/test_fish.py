@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+
+import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
@@ -90,6 +93,17 @@ def test_starving_fish_dies_and_episode_terminates() -> None:
         energies.append(info["energy"])
     assert len(energies) == 20  # 1.0 − 20 × 0.05 is −3·10⁻¹⁶ in floats: dead on step 20
     assert energies[-1] <= 0 < energies[-2]
+    with pytest.raises(RuntimeError, match="dead"):  # no step leaves the observation space
+        env.step(EAT)
+    observation, _ = env.reset()
+    assert env.observation_space.contains(observation) and observation[3] == 1.0
+
+
+def test_the_env_is_registered() -> None:
+    env = gym.make("RobotFish1D-v0")
+    observation, _ = env.reset(seed=0)
+    assert observation.tolist() == [0, 0, 0, 1]
+    env.close()
 
 
 def test_reset_is_deterministic() -> None:
@@ -134,6 +148,12 @@ def test_starving_fish_is_reported_dead() -> None:
     trace = simulate(FishConfig(steps=100, srd=True), tape=(0.0, 0.0, 0.0))
     assert trace.died_at == 19
     assert len(trace.energy) == 20 and trace.meals == 0
+
+
+def test_a_fish_that_dies_reports_its_lowest_energy_as_zero(tmp_path) -> None:
+    result = run(FishConfig(steps=3000, lr=0.5), out_dir=tmp_path)  # trains itself to death
+    assert result["died"] and result["died_at_step"] == 19
+    assert result["min_energy"] == 0 and math.copysign(1.0, result["min_energy"]) == 1.0
 
 
 def test_srd_first_improvement_stages(untrained: np.ndarray, trained: np.ndarray) -> None:

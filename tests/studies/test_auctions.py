@@ -210,3 +210,28 @@ def test_the_buy_fraction_rule_reaches_every_auction(tmp_path):
     }
     assert rows["staying"]["buy_fraction"] == "staying"
     assert rows["all"]["rows"] != rows["staying"]["rows"]
+
+
+def test_freeze_pfc_leaves_every_patrons_judge_untrained(tmp_path):
+    def plan(freeze_pfc: bool):
+        return plan_auction(
+            Setting("compromised", True, 0.5, False),
+            0.5,
+            0,
+            n_patrons=8,
+            seed=1,
+            max_iterations=64,
+            fine_tune_rounds=4,
+            freeze_pfc=freeze_pfc,
+        )
+
+    trained, frozen = plan(False), plan(True)
+    assert all(p.pfc.trainable for p in trained.patrons)
+    assert not any(p.pfc.trainable for p in frozen.patrons)
+    unfrozen = [
+        p.model_copy(update={"pfc": q.pfc})
+        for p, q in zip(frozen.patrons, trained.patrons, strict=True)
+    ]
+    assert unfrozen == trained.patrons  # nothing else differs
+    result = run_study(StudyConfig(**TINY, fine_tune=True, freeze_pfc=True), out_dir=tmp_path)
+    assert result["auctions"] == 4 and result["settings"] == ["honest+fine-tune"]

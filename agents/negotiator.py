@@ -219,14 +219,22 @@ def honest_manifest(
     )
 
 
-def saboteur_manifest(rng: np.random.Generator, participant: str) -> Manifest:
+def saboteur_manifest(
+    rng: np.random.Generator,
+    participant: str,
+    *,
+    base_price: float = WILLINGNESS_TO_PAY_RANGE[1],
+    min_buy_price: float = WILLINGNESS_TO_PAY_RANGE[0],
+) -> Manifest:
     """A well-formed FSN that always holds, to drag the price down (paper, Fig. D).
 
-    Sensor and judge are the honest design (b in ``WILLINGNESS_TO_PAY_RANGE``); the buy neuron
+    Sensor and judge are the honest design (b ~ U(min_buy_price, base_price)); the buy neuron
     is inert (all weights 0, bias −1, so B = −1) and the hold bias is +5. Every ES activation
     lies in (−1, 1), hence L = 0.8·PG − SZ + 5 > 3.2 while Q = 2·PG − 0.5 < 1.5 and B = −1: hold
     on every input, noise or not. It never fine-tunes."""
-    b = float(rng.uniform(*WILLINGNESS_TO_PAY_RANGE))
+    if not 0 < min_buy_price <= base_price:
+        raise ValueError("need 0 < min_buy_price ≤ base_price")
+    b = float(rng.uniform(min_buy_price, base_price))
     return _personalised(
         _design("saboteur"),
         participant,

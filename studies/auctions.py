@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from agents.manifest import Manifest
-from agents.negotiator import honest_manifest, saboteur_manifest
+from agents.negotiator import WILLINGNESS_TO_PAY_RANGE, honest_manifest, saboteur_manifest
 from sim import units
 from sim.experiment import ProgressFn, Stopwatch, config_dict, no_progress, write_csv, write_json
 from sim.market import (
@@ -137,18 +137,26 @@ def plan_auction(
     buy_fraction: BuyFractionRule = MarketConfig.buy_fraction,
     n_rows: int = MarketConfig.n_rows,
     freeze_pfc: bool = False,
+    base_price: float = MarketConfig.base_price,
+    min_buy_price: float = WILLINGNESS_TO_PAY_RANGE[0],
+    threshold_sell_price: float = MarketConfig.threshold_sell_price,
+    increment: float = MarketConfig.increment,
+    decrement: float = MarketConfig.decrement,
 ) -> Auction:
     """The patrons (not yet screened) and market config of one auction; ``freeze_pfc``: the
-    patrons' judges are not trained."""
+    patrons' judges are not trained; the patrons' willingness to pay is drawn from
+    U(min_buy_price, base_price), and the price rules are the rest."""
     honest_rng, saboteur_rng, market_seed = auction_streams(seed, rarity, trial)
     n_saboteurs = saboteur_count(setting.saboteurs, n_patrons)
+    prices = {"base_price": base_price, "min_buy_price": min_buy_price}
     patrons = [
-        honest_manifest(honest_rng, f"honest-{i:03d}", fine_tune=setting.fine_tune)
+        honest_manifest(honest_rng, f"honest-{i:03d}", fine_tune=setting.fine_tune, **prices)
         for i in range(n_patrons - n_saboteurs)
     ]
     if not setting.alone:
         patrons += [
-            saboteur_manifest(saboteur_rng, f"saboteur-{i:03d}") for i in range(n_saboteurs)
+            saboteur_manifest(saboteur_rng, f"saboteur-{i:03d}", **prices)
+            for i in range(n_saboteurs)
         ]
     if freeze_pfc:
         patrons = [
@@ -165,6 +173,10 @@ def plan_auction(
         evaluate_all_rows=False,
         buy_fraction=buy_fraction,
         n_rows=n_rows,
+        base_price=base_price,
+        threshold_sell_price=threshold_sell_price,
+        increment=increment,
+        decrement=decrement,
     )
     return Auction(setting, rarity, trial, n_patrons, n_fish, patrons, 0, market)
 
@@ -333,6 +345,11 @@ def compute_auctions(
             buy_fraction=config.buy_fraction,
             n_rows=config.rows,
             freeze_pfc=config.freeze_pfc,
+            base_price=config.base_price,
+            min_buy_price=config.min_buy_price,
+            threshold_sell_price=config.threshold_sell_price,
+            increment=config.increment,
+            decrement=config.decrement,
         )
         for s, r, t in unit.spec["auctions"]
     ]

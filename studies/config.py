@@ -9,6 +9,7 @@ from typing import Annotated
 
 from pydantic import Field
 
+from agents.negotiator import WILLINGNESS_TO_PAY_RANGE
 from sim.experiment import Cost, distinct
 from sim.market import BuyFractionRule, MarketConfig
 
@@ -55,6 +56,17 @@ class AuctionOptions:
     rows: Annotated[int, Field(ge=1, le=256)] = MarketConfig.n_rows
     """Item rows each patron scores per iteration: the prototype and its variations (64, the
     reference's, made the paper's figures; the paper's text says 16)."""
+    base_price: Annotated[float, Field(gt=0, le=1000)] = MarketConfig.base_price
+    """Every auction's starting price (and its prototype fish's), and the top of the patrons'
+    willingness to pay b ~ U(min_buy_price, base_price) (the reference's --base_price)."""
+    min_buy_price: Annotated[float, Field(gt=0, le=1000)] = WILLINGNESS_TO_PAY_RANGE[0]
+    """The bottom of the patrons' willingness to pay (the reference's --min_buy_price)."""
+    threshold_sell_price: Annotated[float, Field(ge=0, le=1000)] = MarketConfig.threshold_sell_price
+    """The initial stalemate threshold: an auction stops once its price falls below it."""
+    increment: Annotated[float, Field(gt=0, le=1000)] = MarketConfig.increment
+    """High demand raises the price by increment − U(0, 4)·decrement."""
+    decrement: Annotated[float, Field(gt=0, le=1000)] = MarketConfig.decrement
+    """Low demand lowers the price by this."""
     freeze_pfc: bool = False
     """Fine-tuning leaves every patron's judge (PFC) as built: its ``pfc.trainable`` is false
     (the reference trains it with the rest, which made the figures)."""
@@ -62,17 +74,34 @@ class AuctionOptions:
     def problems(self) -> list[dict[str, str]]:
         """A supply that puts no fish on sale (int(rarity × patrons) = 0), as ``POST
         /auctions`` refuses it: such an auction sells nothing and measures nothing."""
+        problems = []
         rarities: tuple[float, ...] = getattr(self, "rarities", ())
         empty = [r for r in rarities if int(r * self.patrons) == 0]
-        if not empty:
-            return []
-        return [
-            {
-                "field": "rarities",
-                "message": f"rarity {empty[0]:g} × {self.patrons} patrons puts no fish on sale: "
-                f"each supply needs rarity ≥ {1 / self.patrons:.4g} (or more patrons)",
-            }
-        ]
+        if empty:
+            problems.append(
+                {
+                    "field": "rarities",
+                    "message": f"rarity {empty[0]:g} × {self.patrons} patrons puts no fish on "
+                    f"sale: each supply needs rarity ≥ {1 / self.patrons:.4g} (or more patrons)",
+                }
+            )
+        if self.min_buy_price > self.base_price:
+            problems.append(
+                {
+                    "field": "min_buy_price",
+                    "message": f"{self.min_buy_price:g} is above base_price {self.base_price:g}: "
+                    "the willingness to pay is drawn between the two",
+                }
+            )
+        if self.increment < 5 * self.decrement:
+            problems.append(
+                {
+                    "field": "increment",
+                    "message": f"{self.increment:g} is below 5 × decrement ({self.decrement:g}): "
+                    "a raise of increment − U(0, 4)·decrement could be negative",
+                }
+            )
+        return problems
 
     def _auction_cost(self, setting: Setting) -> float:
         """Estimated compute of one auction of ``setting``: fine-tuning (and the re-screening

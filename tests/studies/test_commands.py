@@ -72,3 +72,34 @@ def test_job_params_take_the_rule_and_refuse_others_by_name(kind) -> None:
     with pytest.raises(ConfigError) as caught:
         build_config(kind, {"buy_fraction": "buyers"})
     assert [e["field"] for e in caught.value.errors] == ["buy_fraction"]
+
+
+def test_the_reference_market_options_reach_every_auction(tmp_path) -> None:
+    """The reference's --base_price, --min_buy_price, --threshold_sell_price, --increment and
+    --decrement: a market at twice the prices sells at twice the prices."""
+    prices = {}
+    for name, extra in {
+        "default": [],
+        "dear": ["--base-price", "10", "--min-buy-price", "9.6", "--threshold-sell-price", "9.6"]
+        + ["--increment", "0.1", "--decrement", "0.02", "--freeze-pfc"],
+    }.items():
+        out = tmp_path / name
+        args = ["auction-study", *SMALL, *extra, "--json", "--out", str(out)]
+        result = CliRunner().invoke(cli, args)
+        assert result.exit_code == 0, result.output
+        prices[name] = [row["mean_price"] for row in json.loads(result.stdout)["rows"]]
+        config = json.loads((out / "summary.json").read_text())["config"]
+    assert config["base_price"] == 10 and config["decrement"] == 0.02 and config["freeze_pfc"]
+    assert all(4.8 <= p <= 5.5 for p in prices["default"]), prices
+    assert all(9.6 <= p <= 11 for p in prices["dear"]), prices
+
+
+@pytest.mark.parametrize("kind", ["auction-study", "comparison"])
+def test_market_options_that_contradict_each_other_are_refused_by_name(kind, tmp_path) -> None:
+    params = {"base_price": 5.0, "min_buy_price": 6.0, "increment": 0.04, "decrement": 0.01}
+    with pytest.raises(ConfigError) as caught:
+        build_config(kind, params)
+    assert [e["field"] for e in caught.value.errors] == ["min_buy_price", "increment"]
+    args = [kind, "--min-buy-price", "6", "--json", "--out", str(tmp_path)]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 2 and "--min-buy-price: 6 is above base_price 5" in result.stderr

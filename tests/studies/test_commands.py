@@ -78,11 +78,9 @@ def test_the_reference_market_options_reach_every_auction(tmp_path) -> None:
     """The reference's --base_price, --min_buy_price, --threshold_sell_price, --increment and
     --decrement: a market at twice the prices sells at twice the prices."""
     prices = {}
-    for name, extra in {
-        "default": [],
-        "dear": ["--base-price", "10", "--min-buy-price", "9.6", "--threshold-sell-price", "9.6"]
-        + ["--increment", "0.1", "--decrement", "0.02", "--freeze-pfc"],
-    }.items():
+    dear = ["--base-price", "10", "--min-buy-price", "9.6", "--threshold-sell-price", "9.6"]
+    dear += ["--increment", "0.1", "--decrement", "0.02", "--freeze-pfc"]
+    for name, extra in {"default": [], "dear": dear}.items():
         out = tmp_path / name
         args = ["auction-study", *SMALL, *extra, "--json", "--out", str(out)]
         result = CliRunner().invoke(cli, args)

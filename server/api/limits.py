@@ -10,7 +10,9 @@
 
 Every request and WebSocket handshake, and every message received on a round socket
 (``RequestRate.take``, called by the socket for each), counts against its address's request
-rate: one allowance per address, whatever carries its requests.
+rate: one allowance per address, whatever carries its requests. A request that finds its
+address's allowance spent waits for its turn when that comes within ``RATE_PACE_S`` (a client
+polling in a tight loop is slowed to the rate, not refused); later than that it is refused.
 
 A client is the SHA-256 of its bearer token where that token is a participant's or the
 operator's, else its address (as ``srd serve`` resolved it: a proxy's ``X-Forwarded-For``
@@ -20,7 +22,8 @@ no shares. As tokens are free to register, an address's tokens together also hol
 quarter of the process's event streams, and as many long polls as a quarter of the waits the
 process keeps for non-patrons (128). A request over its client's share is answered 429 with
 ``Retry-After`` and ``Connection: close`` before any route runs: clients are paced, never
-queued. The routes' own process-wide caps stay behind this as the last line.
+queued (but for the request rate's short wait above). The routes' own process-wide caps stay
+behind this as the last line.
 
 The request kind is decided by method and path template alone, so the routes behind may
 change freely.
@@ -28,6 +31,7 @@ change freely.
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import hmac
 import logging
@@ -60,6 +64,10 @@ STATE_KEY = "client_limits"
 """Where a round socket's scope ``state`` holds the limits its messages count against."""
 RATE_BURST_S = 4.0
 """An address's request bucket holds this many seconds of its rate."""
+RATE_PACE_S = 1.0
+"""An HTTP request or handshake past its address's rate waits up to this long for its turn
+(its token taken ahead, so an address holds at most this many seconds of its rate waiting);
+a round-socket message is refused at once."""
 RATE_ADDRESSES = 100_000
 """Addresses whose request buckets a process keeps; past it, it forgets them all."""
 KNOWN_TOKENS = 100_000
@@ -143,10 +151,12 @@ class ClientLimitsMiddleware:
         if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
-        wait_s = self.rate.take(scope)
+        delay_s, wait_s = self.rate.take(scope, pace_s=RATE_PACE_S)
         if wait_s:
             await self._refuse(scope, receive, send, self.rate.refusal(wait_s))
             return
+        if delay_s:
+            await asyncio.sleep(delay_s)
         limit = self.limit_of(scope)
         if limit is None:
             await self.app(scope, receive, send)
@@ -190,7 +200,7 @@ class ClientLimitsMiddleware:
     def message(self, scope: Scope) -> RequestError | None:
         """Count a message received on the round socket of ``scope`` against its address's
         request rate; the refusal if it is past it."""
-        wait_s = self.rate.take(scope)
+        _, wait_s = self.rate.take(scope, pace_s=0.0)
         return self.rate.refusal(wait_s) if wait_s else None
 
     def _over(self, limit: Limit, share: int, who: str) -> RequestError:
@@ -279,21 +289,24 @@ class RequestRate:
             f"this address sends more than {self.per_s:g} requests a second, its share", wait_s
         )
 
-    def take(self, scope: Scope) -> int:
-        """0 if the request may go on (one token taken), else the seconds until one would."""
+    def take(self, scope: Scope, *, pace_s: float) -> tuple[float, int]:
+        """(delay, refusal) of a request: (0, 0) it goes on now, one token taken; (d, 0) it
+        goes on after d ≤ ``pace_s`` seconds, its token taken ahead; (0, w) it is refused,
+        nothing taken, and one would pass in w whole seconds."""
         address = _address(scope)
         now = time.monotonic()
         tokens, when = self._buckets.get(address, (self._depth, now))
         tokens = min(self._depth, tokens + (now - when) * self.per_s)
-        if tokens < 1:
-            if _is_operator(scope):
-                return 0
+        delay_s = max(0.0, (1 - tokens) / self.per_s)
+        if delay_s and _is_operator(scope):
+            return 0.0, 0
+        if delay_s > pace_s:
             self._buckets[address] = (tokens, now)
-            return max(1, math.ceil((1 - tokens) / self.per_s))
+            return 0.0, max(1, math.ceil(delay_s))
         if len(self._buckets) >= RATE_ADDRESSES and address not in self._buckets:
             self._buckets.clear()
         self._buckets[address] = (tokens - 1, now)
-        return 0
+        return delay_s, 0
 
 
 def _is_operator(scope: Scope) -> bool:

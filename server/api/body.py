@@ -5,7 +5,8 @@ and its JSON.
 Content-Length up front and by counting what arrives), then, for a request that carries one:
 
 * a media type other than JSON (``application/json`` or ``application/*+json``), or a
-  compressed body (``Content-Encoding``), gets 415;
+  compressed body (``Content-Encoding``), gets 415 (a body without a ``Content-Type`` is read
+  as JSON);
 * bytes that are not UTF-8 (a UTF-16 body, a byte-order mark), text that is not JSON, or JSON
   nested deeper than ``MAX_DEPTH``, get 422 at ``["body"]`` (a malformed body, as FastAPI
   answers invalid JSON);
@@ -35,6 +36,8 @@ MAX_DEPTH = 32
 """Deepest nesting of arrays and objects accepted (a manifest nests 5 deep)."""
 JSON_MEDIA_TYPES = ("application/json",)
 """Media types of a JSON body, besides the ``application/<anything>+json`` family."""
+JSON_TYPE = b"application/json"
+"""The ``Content-Type`` a body sent without one is given for the routes."""
 
 
 MAX_CONTAINERS = 2_000
@@ -286,6 +289,8 @@ class RequestBodyMiddleware:
             except BodyRefusedError as error:
                 await _refuse(send, error)
                 return
+            if not content_type:  # read as JSON: the routes are told so
+                scope = {**scope, "headers": [*scope["headers"], (b"content-type", JSON_TYPE)]}
         delivered = False
 
         async def replay() -> Message:
@@ -303,12 +308,12 @@ class RequestBodyMiddleware:
 
 
 def _media_type(content_type: str) -> None:
-    """A body that is not UTF-8 JSON by its ``Content-Type`` gets 415."""
-    if not _is_json(content_type):
-        shown = content_type or "none"
+    """A body that is not UTF-8 JSON by its ``Content-Type`` gets 415; a body without one is
+    read as JSON (``requests.post(url, data=text)`` sends none)."""
+    if content_type and not _is_json(content_type):
         raise BodyRefusedError(
             415,
-            f"the body must be JSON (Content-Type: application/json), not {shown}",
+            f"the body must be JSON (Content-Type: application/json), not {content_type}",
             ("header", "Content-Type"),
             "media_type",
         )

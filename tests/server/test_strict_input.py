@@ -185,13 +185,22 @@ def test_a_big_bad_body_is_refused_saying_what(client: TestClient, body, kind, l
     assert item["type"] == kind and item["loc"] == loc
 
 
-@pytest.mark.parametrize("content_type", ["text/plain", "application/x-www-form-urlencoded", ""])
+@pytest.mark.parametrize("content_type", ["text/plain", "application/x-www-form-urlencoded"])
 def test_non_json_media_type_is_415(client: TestClient, content_type: str) -> None:
-    headers = {"Content-Type": content_type} if content_type else {}
     body = json.dumps(honest(unique("media"))).encode()
-    response = client.post("/submit", content=body, headers=headers)
+    response = client.post("/submit", content=body, headers={"Content-Type": content_type})
     assert response.status_code == 415
     assert locs(response) == [["header", "Content-Type"]]
+    assert f"not {content_type}" in response.json()["detail"][0]["msg"]
+
+
+def test_a_body_without_a_media_type_is_read_as_json(client: TestClient) -> None:
+    """As scripts send it (``requests.post(url, data=text)``, ``httpx`` with ``content=``)."""
+    body = json.dumps(honest(unique("untyped"))).encode()
+    response = client.post("/submit", content=body)
+    assert response.status_code == 201, response.text
+    bad = client.post("/submit", content=b'{"kind": ')
+    assert bad.status_code == 422 and locs(bad) == [["body"]]
 
 
 @pytest.mark.parametrize("encoding", ["gzip", "deflate, gzip", "br"])

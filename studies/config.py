@@ -72,19 +72,11 @@ class AuctionOptions:
     (the reference trains it with the rest, which made the figures)."""
 
     def problems(self) -> list[dict[str, str]]:
-        """A supply that puts no fish on sale (int(rarity × patrons) = 0), as ``POST
-        /auctions`` refuses it: such an auction sells nothing and measures nothing."""
+        """Options that contradict each other (each named). A supply that puts no fish on sale
+        (int(rarity × patrons) = 0, as 0.1 of fewer than 10 patrons) is not one: its auctions
+        run as the reference runs them (they stop at once, sold out) and its row says
+        ``n_fish`` 0, ``purchase_rate`` and ``mean_price`` null."""
         problems = []
-        rarities: tuple[float, ...] = getattr(self, "rarities", ())
-        empty = [r for r in rarities if int(r * self.patrons) == 0]
-        if empty:
-            problems.append(
-                {
-                    "field": "rarities",
-                    "message": f"rarity {empty[0]:g} × {self.patrons} patrons puts no fish on "
-                    f"sale: each supply needs rarity ≥ {1 / self.patrons:.4g} (or more patrons)",
-                }
-            )
         if self.min_buy_price > self.base_price:
             problems.append(
                 {

@@ -101,3 +101,18 @@ def test_market_options_that_contradict_each_other_are_refused_by_name(kind, tmp
     args = [kind, "--min-buy-price", "6", "--json", "--out", str(tmp_path)]
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 2 and "--min-buy-price: 6 is above base_price 5" in result.stderr
+
+
+def test_a_supply_with_no_fish_on_sale_runs_as_the_reference_runs_it(tmp_path) -> None:
+    """0.1 of 8 patrons is int(0.8) = 0 fish: the default supplies with a few patrons still give
+    one row each; the empty one says so (its auctions stop at once, sold out)."""
+    args = ["auction-study", "--trials", "1", "--patrons", "8", "--json", "--out", str(tmp_path)]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    rows = json.loads(result.stdout)["rows"]
+    assert [row["rarity"] for row in rows] == [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9]
+    empty = rows[0]
+    assert empty["n_fish"] == 0 and empty["buyer_fraction"] == 0
+    assert empty["purchase_rate"] is None and empty["mean_price"] is None
+    assert all(row["n_fish"] > 0 and row["purchase_rate"] is not None for row in rows[1:])
+    assert build_config("comparison", {"rarities": [1e-300], "patrons": 8}).rarities == (1e-300,)

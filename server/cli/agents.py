@@ -4,11 +4,14 @@ fine-tuning auction and fine-tune themselves over HTTP (``agents.remote``)."""
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import json
+import os
 import sys
 from collections import Counter
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import click
 import torch
@@ -53,6 +56,28 @@ GAVE_UP = 1
 """Exit code when the server could not be reached or refused the population."""
 INVALID = 2
 """Exit code of invalid options."""
+
+
+def _local_operator_token(server: str, err: Console) -> str | None:
+    """The operator token ``srd serve`` wrote into its data folder on this machine
+    (``SRD_DATA_DIR``, default ./data), for a server on a loopback address: the token never
+    leaves the machine. None if there is no such server or file."""
+    host = urlsplit(server).hostname or ""
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    path = Path(os.environ.get("SRD_DATA_DIR") or "data") / "admin_token"
+    if not loopback or not path.is_file():
+        return None
+    try:
+        token = path.read_text(encoding="ascii").strip()
+    except (OSError, UnicodeDecodeError):
+        return None
+    if not token:
+        return None
+    err.print(f"operator token: {path} (this machine's srd serve)", highlight=False)
+    return token
 
 
 def _agents_table(report: PopulationReport) -> Table:
@@ -178,7 +203,9 @@ def _summary(report: PopulationReport) -> Table:
     envvar="SRD_ADMIN_TOKEN",
     default=None,
     help="Operator token: create a remote auction of the agents' models. Prefer "
-    "SRD_ADMIN_TOKEN: a command line is visible to every user of the machine (ps).",
+    "SRD_ADMIN_TOKEN: a command line is visible to every user of the machine (ps). "
+    "[default: for a server on a loopback address, the token file its srd serve generated "
+    "in SRD_DATA_DIR (./data)]",
 )
 @click.option(
     "--rarity",
@@ -269,6 +296,15 @@ def command(
     agent's own fine-tuning, follow the auction to its end and summarise."""  # fmt: skip
     torch.set_num_threads(1)  # each agent fine-tunes one tiny model: more threads only contend
     err = Console(stderr=True)
+    if admin_token is None and auction is None:
+        admin_token = _local_operator_token(server, err)
+        if admin_token is None:
+            err.print(
+                f"no --auction and no operator token: waiting up to {auction_wait:g} s (--wait) "
+                "for an auction that takes these agents' models (--admin-token or "
+                "SRD_ADMIN_TOKEN creates one)",
+                highlight=False,
+            )
     try:
         config = PopulationConfig(
             server=server,

@@ -21,10 +21,10 @@ import pytest
 from click.testing import CliRunner
 
 from server.cli import cli
-from server.cli.launch import ServerProcess, srd_command
+from server.cli.launch import ServerProcess, settings_environment, srd_command
 from tests.support.fake_http import serving
 from tests.support.live import submit_population
-from tests.support.server import ADMIN, ADMIN_TOKEN, module_server, wait_for
+from tests.support.server import ADMIN, ADMIN_TOKEN, QUOTAS_OFF, module_server, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -431,3 +431,37 @@ def test_agents_against_a_server_that_is_not_an_auction_house_exit_1_saying_so()
             assert done.returncode == 1, done.stderr
             assert "Traceback" not in done.stderr
             assert "is it an srd server?" in json.loads(done.stdout)["error"]
+
+
+def test_agents_on_this_machine_use_the_token_file_its_srd_serve_wrote(tmp_path: Path) -> None:
+    """With no --auction and no operator token, srd agents against a server on a loopback
+    address takes the token ``srd serve`` generated in its data folder (SRD_DATA_DIR, or
+    ./data), creates the auction and plays it; with no such file it says at once that it
+    waits for an auction (it waited silently for --wait, 600 s by default)."""
+    environment = {
+        k: v for k, v in os.environ.items() if k not in ("SRD_ADMIN_TOKEN", "SRD_DATA_DIR")
+    }
+    with ServerProcess(
+        database_url=f"sqlite:///{tmp_path / 'srd.db'}",
+        data_dir=tmp_path / "data",
+        extra_env=settings_environment(QUOTAS_OFF),
+        cwd=tmp_path,
+    ) as local:
+        base = [*srd_command(), "agents", "--server", local.url, "--honest", "2", "--json"]
+        done = subprocess.run(
+            [*base, "--saboteurs", "1", "--rounds", "1", "--deadline", "20"],
+            capture_output=True, text=True, timeout=300, cwd=tmp_path, env=environment,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        assert "operator token: data/admin_token" in done.stderr
+        report = json.loads(done.stdout)
+        assert len(report["auctions"]) == 1 and report["agents"] == 3
+        elsewhere = tmp_path / "elsewhere"
+        elsewhere.mkdir()
+        waited = subprocess.run(
+            [*base, "--name-prefix", "waiter", "--wait", "1"],
+            capture_output=True, text=True, timeout=120, cwd=elsewhere, env=environment,
+        )  # fmt: skip
+        assert waited.returncode == 1
+        assert "no --auction and no operator token: waiting up to 1 s" in waited.stderr
+        assert "no auction contains model" in json.loads(waited.stdout)["error"]

@@ -180,9 +180,10 @@ def execute(
         if json_output:
             json_failure(f"{errors[0]['option']}: {errors[0]['message']}", errors)
         raise SystemExit(INVALID) from exc
-    out_dir = out or default_out_dir(kind.name, int(getattr(config, "seed", 0)))
-    created = not out_dir.exists()
+    out_dir = out or Path("runs")  # (the default's folder, named if it cannot be made)
+    created = out is None or not out.exists()
     try:
+        out_dir = out or default_out_dir(kind.name, int(getattr(config, "seed", 0)))
         out_dir.mkdir(parents=True, exist_ok=True)
         problem = _unwritable(out_dir)
     except OSError as exc:  # a folder that cannot be made: one line and exit 2, like any option

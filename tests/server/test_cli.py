@@ -123,6 +123,19 @@ def test_an_out_folder_that_cannot_be_made_exits_2_naming_it(tmp_path) -> None:
     assert str(out) in failure["error"]
 
 
+def test_a_default_out_folder_that_cannot_be_made_exits_2_naming_it(tmp_path, monkeypatch) -> None:
+    """No --out, and ./runs is a file: the same one line as for a given folder, no traceback."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "runs").write_text("")
+    result = CliRunner().invoke(cli, ["fish", "--steps", "10", "--json"])
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.stderr
+    failure = json.loads(result.stdout)
+    assert failure["errors"] == [
+        {"option": "--out", "message": "cannot create the folder runs: File exists"}
+    ]
+
+
 @pytest.mark.parametrize(
     ("out", "words"), [("", "must name a folder"), ("/proc", "cannot write into the folder /proc")]
 )

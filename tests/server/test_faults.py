@@ -207,7 +207,9 @@ def play_remote(
 
 
 @pytest.mark.parametrize(
-    "fault", [{"kill_in_round": 1}, {"close_in_rounds": (1, 2, 3)}], ids=["kill", "close"]
+    "fault",
+    [{"kill_in_round": 1}, pytest.param({"close_in_rounds": (1, 2, 3)}, marks=pytest.mark.slow)],
+    ids=["kill", "close"],
 )
 def test_workers_killed_mid_round_cost_nothing_but_time(
     tmp_path: Path, fault: dict[str, Any]

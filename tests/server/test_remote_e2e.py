@@ -23,7 +23,7 @@ from agents.manifest import Manifest, parse_manifest
 from agents.remote import Client, RemoteAgent, Transport
 from server.cli.launch import ServerProcess
 from sim.market import MarketConfig
-from tests.support.databases import BACKENDS, fresh_database
+from tests.support.databases import fresh_database
 from tests.support.factories import honest
 from tests.support.remote import agents_process, replay, stalling_agent
 from tests.support.server import wait_for
@@ -33,7 +33,11 @@ DEADLINE_S = 3.0
 TIMEOUT_S = 180
 
 
-@pytest.fixture(scope="module", params=BACKENDS)
+@pytest.fixture(
+    scope="module",
+    # PostgreSQL only in the slow run (29 s): the storage tests cover its side of the rounds
+    params=["sqlite", pytest.param("postgresql", marks=[pytest.mark.postgres, pytest.mark.slow])],
+)
 def server(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[ServerProcess]:

@@ -140,6 +140,7 @@ def restart_database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iter
     yield from fresh_database(request.param, tmp_path)
 
 
+@pytest.mark.slow  # 31 s; the default run keeps test_faults.py's kill -9 with uploads in flight
 def test_kill_9_in_the_middle_of_a_round_then_restart(
     restart_database_url: str, tmp_path: Path
 ) -> None:

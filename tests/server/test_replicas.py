@@ -202,6 +202,7 @@ def check_cancel_reaches_the_playing_replica(
 
 
 @pytest.mark.postgres
+@pytest.mark.slow  # 38 s; the default run keeps the replica kill -9
 def test_two_replicas_play_each_auction_and_job_once_and_read_alike(
     postgres_url: str, tmp_path: Path
 ) -> None:
@@ -297,6 +298,7 @@ def test_kill_9_of_the_replica_playing_an_auction_the_other_finishes_it(
 
 
 @pytest.mark.postgres
+@pytest.mark.slow  # 28 s; the default run keeps the replica kill -9 (its auction's rounds)
 def test_a_remote_round_answered_through_both_replicas_at_once_closes_once(
     postgres_url: str, tmp_path: Path
 ) -> None:

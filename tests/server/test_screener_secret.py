@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 
 from agents.manifest import parse_manifest
 from screener import screen
@@ -88,6 +89,7 @@ def test_a_server_screens_on_its_secrets_populations_and_names_them(tmp_path: Pa
     assert SECRET not in log and OTHER not in log
 
 
+@pytest.mark.slow  # 22 s (three screenings on secret populations); the server's test stays
 def test_srd_screen_takes_a_secret_the_environment_could_not_decode() -> None:
     """Bytes that are not UTF-8 in the variable are hashed as they are (the screener had
     failed on every manifest with them); white space around a secret does not count."""

@@ -70,6 +70,7 @@ class SlowToStart:
             time.sleep(60)
 
 
+@pytest.mark.slow  # 15 s; the default run keeps test_job_limits.py's time limits
 def test_the_time_limit_counts_from_the_start_of_the_task_not_of_its_worker(tmp_path) -> None:
     """A fresh worker slower to start than the limit still runs its quick task to the end
     (done); a task longer than the limit is stopped at it (over, not done)."""

@@ -15,14 +15,15 @@ $(BIN)/python:
 	$(BIN)/pip install --quiet --upgrade pip
 
 # pip byte-compiles on one core; compileall does it on every core (as pip, ignoring files that
-# are not Python 3.11, such as torch's own Python 3.12 test helper), except 5,400 of the 16,300
-# modules: sympy, networkx and pip, which nothing here imports, and PyOpenGL, imported only by
-# the cheetah's video rendering (its subprocess then compiles the few modules it loads).
+# are not Python 3.11, such as torch's own Python 3.12 test helper), except 8,000 of the 16,300
+# modules: sympy, networkx and pip, which nothing here imports, PyOpenGL, imported only by the
+# cheetah's video rendering, and Ray, imported only by the Ray job backend (a process importing
+# them compiles the few modules it loads).
 $(STAMP): pyproject.toml constraints.txt | $(BIN)/python
 	$(BIN)/pip install --quiet --no-compile $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) torch==2.13.0
 	$(BIN)/pip install --quiet --no-compile -c constraints.txt -e '.[dev,ray]'
 	$(BIN)/python -c "import compileall, re; compileall.compile_dir('$(VENV)/lib', quiet=2, \
-		workers=0, rx=re.compile(r'/site-packages/(sympy|networkx|pip|OpenGL)/'))"
+		workers=0, rx=re.compile(r'/site-packages/(sympy|networkx|pip|OpenGL|ray)/'))"
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -295,7 +295,10 @@ def test_srd_agents_stops_cleanly_for_a_cancelled_auction(live_server: ServerPro
     assert uploads["accepted"] + uploads["refused"] == len(asked_agents) and uploads["late"] == 0
 
 
-@pytest.mark.parametrize("transport", ["websocket", "http"])
+@pytest.mark.parametrize(
+    "transport",
+    ["websocket", pytest.param("http", marks=pytest.mark.slow)],  # 12 s each
+)
 def test_an_upload_sent_as_the_auction_is_cancelled_is_answered(
     live_server: ServerProcess, transport: str
 ) -> None:

@@ -675,6 +675,7 @@ def test_only_a_get_may_ask_to_upgrade(server: ServerProcess) -> None:
     assert refused.value.response.status_code == 404
 
 
+@pytest.mark.slow  # 17 s; the default run keeps the flooding client's neighbour served
 def test_a_burst_of_reads_is_served_not_starved(server: ServerProcess) -> None:
     """300 reads at once, each from its own address: all answered. Before, every thread of the
     pool waited for a connection that only a finished read's close (which needed a thread of

@@ -331,6 +331,7 @@ def _stored(database: Database, auction_id: int) -> list[str]:
         )
 
 
+@pytest.mark.slow  # 19 s; the default run keeps the kill -9 faults
 def test_an_upload_waiting_for_a_hung_screener_hears_the_verdict_the_step_recorded(
     tmp_path: Path,
 ) -> None:

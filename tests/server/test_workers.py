@@ -151,6 +151,7 @@ def _niceness(pid: int) -> int:
 
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+@pytest.mark.slow  # 13 s
 def test_step_workers_run_at_the_api_priority_and_job_workers_below_it(tmp_path: Path) -> None:
     """``SRD_WORKER_NICE`` lowers the experiments' priority only: an auction's steps are part of
     serving (a round closes when its step has run). The server runs from a folder holding

@@ -85,15 +85,16 @@ def database_problem(settings: Settings) -> tuple[str, int] | None:
 
 def ray_problem(settings: Settings) -> str | None:
     """Why the server cannot start on its Ray cluster (``SRD_JOB_BACKEND=ray``), in one line
-    naming SRD_RAY_ADDRESS and the address, or None: a head that takes no TCP connection within
-    SRD_RAY_JOIN_TIMEOUT_S (one that refuses it: at once). The app's start then joins the
-    cluster as before (a head that answers but is no Ray head ends in its lifespan's error)."""
+    naming SRD_RAY_ADDRESS and the address, or None: a head that takes no TCP connection, or
+    an address that answers but where no Ray cluster is joined, within SRD_RAY_JOIN_TIMEOUT_S
+    (a head that refuses the connection: at once). The look is the app's own (a child process
+    joins and leaves), so a cluster it finds here the app's start finds too."""
     if settings.job_backend != "ray" or settings.ray_address is None:
         return None
-    from server.jobs.ray_backend import RayUnavailableError, head_answers
+    from server.jobs.ray_backend import RayUnavailableError, probe_cpus
 
     try:
-        head_answers(settings.ray_address, settings.ray_join_timeout_s)
+        probe_cpus(settings.ray_address, settings.ray_join_timeout_s)
     except RayUnavailableError as exc:
         return str(exc)
     return None

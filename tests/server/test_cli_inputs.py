@@ -485,6 +485,26 @@ def test_serve_on_a_ray_address_nobody_answers_exits_3_naming_it(tmp_path: Path)
     assert not (tmp_path / "srd.db").exists()  # nothing stored
 
 
+@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="Ray is not installed")
+def test_serve_on_an_address_that_answers_but_is_no_ray_cluster_exits_3_naming_it(
+    tmp_path: Path,
+) -> None:
+    """A web server where the Ray head should be: Ray's own join waits for ever (seen: over 5
+    minutes); the start gives up after SRD_RAY_JOIN_TIMEOUT_S in one line (it ended in
+    uvicorn's lifespan traceback)."""
+    with serving(FakeServer, HOST) as url:
+        address = url.removeprefix("http://")
+        done = serve(
+            tmp_path, SRD_JOB_BACKEND="ray", SRD_RAY_ADDRESS=address, SRD_RAY_JOIN_TIMEOUT_S="3"
+        )
+    assert done.returncode == 3, done.stderr
+    assert done.stderr.strip() == (
+        f"srd serve: cannot join the Ray cluster at '{address}' (SRD_RAY_ADDRESS): "
+        "no answer within 3 s (SRD_RAY_JOIN_TIMEOUT_S)"
+    )
+    assert not (tmp_path / "srd.db").exists()  # nothing stored
+
+
 # --- Experiment list options: the element at fault, by its position -----------------------------
 
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import json
-import os
 import sys
 from collections import Counter
 from pathlib import Path
@@ -62,12 +61,14 @@ def _local_operator_token(server: str, err: Console) -> str | None:
     """The operator token ``srd serve`` wrote into its data folder on this machine
     (``SRD_DATA_DIR``, default ./data), for a server on a loopback address: the token never
     leaves the machine. None if there is no such server or file."""
+    from server.config import Settings
+
     host = urlsplit(server).hostname or ""
     try:
         loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        loopback = False
-    path = Path(os.environ.get("SRD_DATA_DIR") or "data") / "admin_token"
+        path = Settings().admin_token_file  # where srd serve writes it, as it reads the settings
+    except ValueError:  # not an IP address, or settings srd serve would refuse too
+        return None
     if not loopback or not path.is_file():
         return None
     try:

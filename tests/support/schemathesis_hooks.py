@@ -5,12 +5,12 @@ purpose, takes only integers written as integers where an integer goes (a strict
 JSON, refusing ``1.0`` for ``schema_version`` like ``"1"`` or ``true``). So generated bodies
 write every whole number as an integer: the schema-valid data the service must accept, as it
 states its inputs. A long poll's ``wait`` is cut to 1 s, so that the run's minutes go to
-breadth (long polls are tested in test_remote_protocol.py). A study job whose supply puts no
-fish on sale (``int(rarity × patrons)`` = 0, a rule across two options that JSON Schema cannot
-state; refused with 422 naming ``rarities``, tested in test_job_limits.py) is sent with that
-rarity raised to 1 / patrons. A cheetah job with a design ``stage`` is sent without the grid
-axes that stage does not take (it runs its own conditions; refused with 422 naming the axis,
-tested in test_job_limits.py).
+breadth (long polls are tested in test_remote_protocol.py). A study job's market options keep
+the two rules across options that JSON Schema cannot state (refused with 422 naming the option,
+tested in tests/studies/test_commands.py): a ``min_buy_price`` above ``base_price`` is sent as
+``base_price``, a ``decrement`` above a fifth of ``increment`` as that fifth. A cheetah job
+with a design ``stage`` is sent without the grid axes that stage does not take (it runs its
+own conditions; refused with 422 naming the axis, tested in test_job_limits.py).
 Everything else schemathesis generates goes out unchanged.
 """
 
@@ -36,7 +36,7 @@ def _integers(value: Any) -> Any:
 
 @schemathesis.hook
 def map_body(context: Any, body: Any) -> Any:
-    return _staged(_with_fish(_integers(body)))
+    return _staged(_market_rules(_integers(body)))
 
 
 def _staged(body: Any) -> Any:
@@ -59,32 +59,28 @@ def map_query(context: Any, query: Any) -> Any:
     return query
 
 
-def _with_fish(body: Any) -> Any:
-    """A study job's body whose every supply puts a fish on sale: a rarity below 1 / patrons
-    raised to it (repeats then left out, as each supply is given once)."""
+def _market_rules(body: Any) -> Any:
+    """A study job's body whose market options agree with each other (module docstring)."""
     params = body.get("params") if isinstance(body, dict) else None
-    if not isinstance(params, dict) or "rarities" not in params:
+    if not isinstance(params, dict):
         return body
-    patrons, rarities = params.get("patrons", 64), params["rarities"]
-    listed = rarities.split(",") if isinstance(rarities, str) else rarities
-    if not isinstance(patrons, int) or patrons < 1 or not isinstance(listed, list | int | float):
-        return body
-    try:
-        values = [float(r) for r in (listed if isinstance(listed, list) else [listed])]
-    except (TypeError, ValueError):
-        return body  # not numbers: the schema's own refusal
-    if not all(0 < v <= 1 for v in values) or all(int(v * patrons) >= 1 for v in values):
-        return body
-    least = 1 / patrons
-    while int(least * patrons) < 1:  # 1 / 49 × 49 is a hair below 1
-        least = math.nextafter(least, 2)
-    raised = list(dict.fromkeys(max(v, least) for v in values))
-    return {**body, "params": {**params, "rarities": raised}}
+    fixed = dict(params)
+    base, least = params.get("base_price", 5.0), params.get("min_buy_price")
+    if _number(base) and _number(least) and least > base:
+        fixed["min_buy_price"] = base
+    increment, decrement = params.get("increment", 0.05), params.get("decrement")
+    if _number(increment) and _number(decrement) and increment < 5 * decrement:
+        fixed["decrement"] = increment / 5
+    return {**body, "params": fixed}
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
 @schemathesis.hook
 def map_case(context: Any, case: Any) -> Any:
     """The coverage phase's cases too (``map_body`` is not applied to them)."""
     if isinstance(case.body, dict):
-        case.body = _staged(_with_fish(case.body))
+        case.body = _staged(_market_rules(case.body))
     return case

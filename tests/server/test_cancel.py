@@ -249,6 +249,7 @@ def live_server(tmp_path: Path) -> Iterator[ServerProcess]:
         yield server
 
 
+@pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)
 def test_srd_agents_stops_cleanly_for_a_cancelled_auction(live_server: ServerProcess) -> None:
     """The agents answer round 1; a patron that never answers keeps it open; the operator
     cancels: ``srd agents`` ends at once with exit 0 and reports the cancelled auction."""

@@ -339,6 +339,7 @@ def test_agents_refuse_an_auction_that_takes_no_patrons_and_register_nothing(
     assert client.get("/participants/late-honest-000").status_code == 404
 
 
+@pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)
 def test_agents_join_an_enrolling_auction_and_play_it(
     server: ServerProcess, client: httpx.Client
 ) -> None:

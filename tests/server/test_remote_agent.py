@@ -130,6 +130,7 @@ def one_socket_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Serv
     yield from module_server(tmp_path_factory, "one-socket", {"SRD_LIMIT_CLIENT_SOCKETS": "1"})
 
 
+@pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)
 def test_agents_past_the_hosts_share_of_sockets_play_over_long_polls(
     one_socket_server: ServerProcess,
 ) -> None:

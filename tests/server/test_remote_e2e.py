@@ -134,6 +134,7 @@ def check_answers(server: ServerProcess, auction_id: int, saboteurs: set[int], r
     assert report["uploads"]["accepted"] >= len(accepted)
 
 
+@pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)
 @pytest.mark.postgres_in_slow_run
 def test_honest_and_bait_and_switch_agents_and_a_killed_one(server: ServerProcess) -> None:
     auction_id, victim_id, saboteurs, report = play_with_agents_and_a_victim(server)

@@ -146,6 +146,7 @@ def _healthy(base: str) -> bool:
         return False
 
 
+@pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)
 def test_sigint_to_a_background_server_exits_130(tmp_path: Path) -> None:
     """A shell starts a background job with SIGINT ignored; uvicorn stops on it all the same and
     then raises it again, which was ignored too: the server exited 0, not 130 as for Ctrl-C."""

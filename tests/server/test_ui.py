@@ -930,6 +930,7 @@ def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(
         context.close()
 
 
+@pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)
 def test_a_refused_stream_still_shows_the_auction_and_its_end(
     page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
 ) -> None:
@@ -1047,6 +1048,7 @@ def test_a_malformed_participant_address_gets_the_not_found_page(
     assert page.evaluate(focused) == total - 1
 
 
+@pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)
 def test_the_auction_list_follows_its_auctions(
     page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
 ) -> None:

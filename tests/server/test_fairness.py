@@ -189,6 +189,7 @@ async def _flood(server: ServerProcess, auction_id: int) -> dict[str, Any]:
             writer.close()
 
 
+@pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)
 def test_a_flooding_client_leaves_another_served(server: ServerProcess, auction_id: int) -> None:
     result = asyncio.run(_flood(server, auction_id))
     streams = [status for status, _ in result["streams"]]

@@ -187,6 +187,7 @@ STALL_S = 4.0
 """How long the stalling socket agent (``STALLING_AGENT``) holds round 1 open."""
 
 
+@pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)
 def test_round_socket_agents_ride_out_a_kill_9_and_restart(tmp_path: Path) -> None:
     """``srd agents --transport websocket`` and a stalling socket agent, the server killed -9
     while round 1 waits for the staller and started again on the same port: every agent

@@ -349,10 +349,12 @@ export function auctionView(view, id) {
   const weightsHash = (iteration, modelId) => `#/auctions/${id}/iterations/${iteration}/votes/${modelId}/weights`;
   /** The version a patron bid with in a round, and whether the market had fine-tuned it. */
   function bidWith(iteration, v) {
-    const label = `${v.participant}, version ${v.version}`;
-    if (!v.weights_kept) return h("a", { href: `#/models/${v.version_id}`, "aria-label": `${label}, fine-tuned in the market, weights not kept` }, `version ${v.version}, fine-tuned (not kept)`);
-    if (v.fine_tuned_after === null) return h("a", { href: `#/models/${v.version_id}`, "aria-label": label }, `version ${v.version}`);
-    return h("a", { href: weightsHash(iteration, v.model_id), "aria-label": `${label}, fine-tuned in the market after round ${v.fine_tuned_after}` }, `version ${v.version}, tuned after round ${v.fine_tuned_after}`);
+    // The accessible name is the visible text after the patron's name (WCAG 2.5.3: a voice
+    // user says what they see).
+    const named = (href, text) => h("a", { href, "aria-label": `${v.participant}: ${text}` }, text);
+    if (!v.weights_kept) return named(`#/models/${v.version_id}`, `version ${v.version}, fine-tuned (not kept)`);
+    if (v.fine_tuned_after === null) return named(`#/models/${v.version_id}`, `version ${v.version}`);
+    return named(weightsHash(iteration, v.model_id), `version ${v.version}, tuned after round ${v.fine_tuned_after}`);
   }
   let explaining = 0; // the newest explanation asked for: an older answer arriving late is dropped
   function showExplanation(iteration, modelId) {
@@ -509,15 +511,34 @@ export function auctionView(view, id) {
   }
 
   const fineTuneRowOf = new Map(); // round number -> its table row, updated in place
+  const fineTuneShown = new Map(); // round number -> what its row shows (redrawn on a change)
+  /** Why a closed round closed: a round closes on its last answer, at its deadline, or when
+   * its auction is cancelled or fails (then at the auction's end). */
+  function closedWhy(r) {
+    const closed = new Date(r.closed_at).getTime();
+    if (closed >= new Date(r.deadline).getTime()) return "at its deadline";
+    const stopped = ["cancelled", "failed"].includes(head.status) && head.finished_at;
+    if (stopped && Math.abs(new Date(head.finished_at).getTime() - closed) < 1000) {
+      return head.status === "cancelled" ? "when the auction was cancelled" : "when the auction failed";
+    }
+    return "on its last answer";
+  }
   function showFineTuneRound(r) {
     fineTuning.hidden = false;
+    const was = fineTuneShown.get(r.round);
+    // A read that left before a newer event arrived never takes the row back: an open round
+    // does not reopen, nor lose answers.
+    if (was && ((was.status !== "open" && r.status === "open") || r.answers.length < was.answers)) return;
+    const shows = JSON.stringify(r) + (r.closed_at ? closedWhy(r) : "");
+    if (was && was.shows === shows) return; // unchanged: no redraw, no reasons read again
+    fineTuneShown.set(r.round, { status: r.status, answers: r.answers.length, shows });
     const outcomes = {};
     for (const a of r.answers) outcomes[a.outcome] = (outcomes[a.outcome] || 0) + 1;
     const nothing = r.status === "open" ? "none yet" : "none";
     const answers = Object.entries(outcomes).map(([outcome, n]) => `${n} ${outcome}`).join(", ") || nothing;
     const each = r.answers.length ? h("ul", { class: "answers" }, r.answers.map(answerItem)) : h("span", { class: "none-yet" }, nothing);
     // A round ends at its deadline, or sooner: its last answer, a cancel, a failure.
-    const open = r.status === "open" || !r.closed_at ? `until ${when(r.deadline)}` : `closed ${when(r.closed_at)} (deadline ${when(r.deadline)})`;
+    const open = r.status === "open" || !r.closed_at ? `until ${when(r.deadline)}` : `closed ${when(r.closed_at)} ${closedWhy(r)} (deadline ${when(r.deadline)})`;
     const row = tableRow([String(r.round), String(r.iteration), statusBadge(r.status), open, answers, each], { "data-round": r.round });
     const old = fineTuneRowOf.get(r.round);
     if (old) old.replaceWith(row);
@@ -571,10 +592,22 @@ export function auctionView(view, id) {
       })
       .catch(() => {}); // the stream goes on; the next read will tell
   }
-  const enrolling = setInterval(() => {
-    if (head && head.status === "pending" && head.enroll_until && !ended) readHeadAgain();
+  // A patron's answer in an open fine-tuning round, and an upload recorded late after one
+  // closed, send no event: while a remote auction plays on (its first round shown), its rounds
+  // are read again every few seconds, as an enrolling auction's patrons are, while the tab is
+  // shown; a row is redrawn only when it changed.
+  const rereads = setInterval(() => {
+    if (!head || ended || document.hidden) return;
+    if (head.status === "pending" && head.enroll_until) readHeadAgain();
+    else if (head.fine_tune_mode === "remote" && fineTuneRowOf.size) {
+      getJSON(`/auctions/${id}`)
+        .then((auction) => {
+          if (!ended) for (const r of auction.fine_tuning) showFineTuneRound(r);
+        })
+        .catch(() => {}); // the next read will tell
+    }
   }, 3000);
-  view.onLeave(() => clearInterval(enrolling));
+  view.onLeave(() => clearInterval(rereads));
 
   function addRound(row) {
     if (row.iteration !== rounds.length) return; // the stream never skips or repeats; a guard

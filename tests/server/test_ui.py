@@ -218,6 +218,42 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
 
 
+def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it_closed(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    """An upload into an open round sends no event: the page reads the round again while the
+    auction plays on, and shows the answer; the round a cancel closes says so."""
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    body = {
+        "n_fish": 1,
+        "model_ids": honest_ids,
+        "fine_tune_mode": "remote",
+        "fine_tune_rounds": 1,
+        "round_deadline_s": 120,
+    }
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    row = page.locator("#fine-tuning tr[data-round='1']")
+    page.wait_for_selector("#fine-tuning tr[data-round='1']", timeout=WAIT_MS)
+    assert "none yet" in row.locator("td").nth(4).text_content()
+    patron = honest_ids[0]
+    token = next(a["token"] for a in population.values() if a["model_id"] == patron)
+    put = api.put(
+        f"/auctions/{auction_id}/rounds/1/models/{patron}",
+        json=api.get(f"/models/{patron}").json()["manifest"],
+        headers={"Authorization": f"Bearer {token}"},
+    )
+    assert put.status_code == 200 and put.json()["outcome"] == "accepted", put.text
+    item = f"#fine-tuning tr[data-round='1'] li[data-model='{patron}'][data-outcome='accepted']"
+    page.wait_for_selector(item, timeout=WAIT_MS)  # no reload
+    assert row.locator("td").nth(4).text_content() == "1 accepted"
+    assert api.delete(f"/auctions/{auction_id}", headers=headers).status_code == 200
+    page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
+    closed = "#fine-tuning tr[data-round='1'] td:has-text('when the auction was cancelled')"
+    page.wait_for_selector(closed, timeout=WAIT_MS)
+
+
 def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
 ) -> None:

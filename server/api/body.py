@@ -10,7 +10,9 @@ Content-Length up front and by counting what arrives), then, for a request that 
 * bytes that are not UTF-8 (a UTF-16 body, a byte-order mark), text that is not JSON, or JSON
   nested deeper than ``MAX_DEPTH``, get 422 at ``["body"]`` (a malformed body, as FastAPI
   answers invalid JSON);
-* a key given twice in one object, or a NaN / Infinity token, gets 422 naming its path.
+* a key given twice in one object, or a NaN / Infinity token, gets 422 naming its path;
+* a ``Transfer-Encoding`` other than ``chunked`` (``gzip, chunked``) gets 501 naming it: the
+  server does not decode transfer codings, and would read such a body as plain.
 
 The size, the media type and the encoding are judged on the header before the body is read:
 a client that sent ``Expect: 100-continue`` is refused without its 100 and sends no body. (A
@@ -262,6 +264,9 @@ class RequestBodyMiddleware:
             await _refuse(send, error)
             return
         content_type = headers.get(b"content-type", b"").decode("latin-1")
+        if (coding := headers.get(b"transfer-encoding")) is not None and not _chunked(coding):
+            await _refuse(send, BodyRefusedError(501, _UNKNOWN_CODING, _CODING_LOC, "coding"))
+            return
         if (declared is not None and int(declared) > 0) or b"transfer-encoding" in headers:
             try:  # a body is coming: refused on its header alone before it is asked for
                 # (uvicorn sends ``Expect: 100-continue``'s 100 at the first read)
@@ -289,8 +294,10 @@ class RequestBodyMiddleware:
             except BodyRefusedError as error:
                 await _refuse(send, error)
                 return
-            if not content_type:  # read as JSON: the routes are told so
-                scope = {**scope, "headers": [*scope["headers"], (b"content-type", JSON_TYPE)]}
+            if not content_type:  # read as JSON: the routes are told so (an empty header,
+                # ``Content-Type;`` in curl, is replaced: the first of two is the one read)
+                kept = [(k, v) for k, v in scope["headers"] if k.lower() != b"content-type"]
+                scope = {**scope, "headers": [*kept, (b"content-type", JSON_TYPE)]}
         delivered = False
 
         async def replay() -> Message:
@@ -321,6 +328,21 @@ def _media_type(content_type: str) -> None:
         raise BodyRefusedError(
             415, "the body must be UTF-8 JSON", ("header", "Content-Type"), "charset"
         )
+
+
+_UNKNOWN_CODING = (
+    "the body must be sent as is or chunked: Transfer-Encoding other than chunked "
+    "(gzip, deflate, compress) is not implemented"
+)
+_CODING_LOC = ("header", "Transfer-Encoding")
+
+
+def _chunked(transfer_encoding: bytes) -> bool:
+    """Whether a request's ``Transfer-Encoding`` is plain chunking, the one transfer coding
+    read here: a body labelled ``gzip, chunked`` would otherwise be read as plain (RFC 9112,
+    section 6.1: 501 for a transfer coding not understood)."""
+    codings = [c.strip().lower() for c in transfer_encoding.decode("latin-1").split(",")]
+    return codings == ["chunked"]
 
 
 def _plain(content_encoding: str) -> None:

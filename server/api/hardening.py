@@ -49,8 +49,13 @@ ONCE_HEADERS = {
     b"content-type": "Content-Type",
 }
 """Headers refused with 400 when given twice: which one counts would be a guess."""
-SECRET_NAME = re.compile(r"token|secret|password|passwd|key|auth", re.I)
+SECRET_NAME = re.compile(
+    r"token|secret|passw|key|auth|bearer|session|jwt|cred|^pw$|^pass$", re.I
+)
 """Query parameters whose value the access log never prints."""
+SECRET_VALUE = re.compile(r"^(srdp|srda)_", re.I)
+"""Values the access log never prints, whatever their parameter's name: the service's own
+tokens (participants' ``srdp_``, the generated operator token's ``srda_``)."""
 _QUERY_PAIR = re.compile(r"([^&=?]+)=([^&]*)")
 
 
@@ -140,9 +145,9 @@ def redact_query(path: str) -> str:
         return path
 
     def blank(match: re.Match[str]) -> str:
-        name = match.group(1)
+        name, value = match.group(1), match.group(2)
         secret = SECRET_NAME.search(unquote_plus(name))  # ``%74oken`` is ``token``
-        return f"{name}=***" if secret else match.group(0)
+        return f"{name}=***" if secret or SECRET_VALUE.match(unquote_plus(value)) else match.group(0)
 
     return base + mark + _QUERY_PAIR.sub(blank, query)
 
@@ -165,9 +170,11 @@ class SocketLinesFilter(logging.Filter):
     (``"WebSocket /path" [accepted]``, or its refusal's status): with the access log off a
     socket is a request like any other, and an auction's agents reconnecting would fill the
     log. A handshake line kept has its secret query parameters blanked, as the access log's
-    (its arguments are client, path with query)."""
+    (its arguments are client, path with query). A text frame that is not UTF-8 (closed with
+    1007) is one warning line, without uvicorn's traceback."""
 
     PROTOCOL = ("connection open", "connection closed", "connection rejected", "HTTP response sent")
+    BAD_TEXT = "Invalid UTF-8 sequence received from client"
 
     def __init__(self, *, handshakes: bool) -> None:
         super().__init__()
@@ -179,6 +186,11 @@ class SocketLinesFilter(logging.Filter):
             return True
         if message.startswith(self.PROTOCOL):
             return False
+        if message.startswith(self.BAD_TEXT):  # the client's fault, answered with 1007:
+            # one line, not an error with a traceback anyone may write into the log
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+            record.exc_info = record.exc_text = None
+            return True
         if not message.startswith('%s - "WebSocket %s"'):
             return True
         args = record.args

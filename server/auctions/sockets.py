@@ -125,7 +125,11 @@ class _Socket:
 
     async def send(self, text: str) -> None:
         async with self._lock:
-            await self.websocket.send_text(text)
+            try:
+                await self.websocket.send_text(text)
+            except RuntimeError as exc:  # the protocol closed it under us (a client's frame
+                # that was not UTF-8: 1007) before its disconnect reached this task
+                raise WebSocketDisconnect(1006, "closed by the protocol") from exc
 
     async def close(self, code: int, reason: str = "") -> None:
         async with self._lock:

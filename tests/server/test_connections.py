@@ -164,6 +164,13 @@ def test_an_unreadable_request_gets_the_common_error_body(server: ServerProcess)
         ("GET /healthz HTTP/2.0\r\nHost: a\r\nConnection: close", 505, "http_version"),
         ("get /healthz HTTP/1.1\r\nHost: a\r\nConnection: close", 501, "unknown_method"),
         ("BREW /healthz HTTP/1.1\r\nHost: a\r\nConnection: close", 501, "unknown_method"),
+        # a transfer coding the server does not decode: the body would be read as plain
+        (
+            "POST /submit HTTP/1.1\r\nHost: a\r\nContent-Type: application/json\r\n"
+            "Transfer-Encoding: gzip, chunked\r\nConnection: close\r\n\r\n2\r\n{}\r\n0",
+            501,
+            "coding",
+        ),
     ],
 )
 def test_a_header_the_server_will_not_serve_is_refused_before_any_route(

@@ -374,6 +374,8 @@ def test_tokens_in_the_url_are_refused_and_never_logged(server: ServerProcess) -
             assert item["loc"] == ["query", name] and item["type"] == "token_in_url"
         assert client.get("/models", params={"api_key": secret}).status_code == 422  # unknown
         assert client.get(f"/models?%74oken={secret}").status_code == 400  # "token", encoded
+        for name in ("bearer", "session", "pw", "x"):  # a secret's name, or a token's value
+            assert client.get(f"/healthz?{name}={secret}").status_code == 422
     for query in (f"token={secret}", f"api_key={secret}"):  # a WebSocket handshake's line
         with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
             sock.sendall(
@@ -385,6 +387,7 @@ def test_tokens_in_the_url_are_refused_and_never_logged(server: ServerProcess) -
     log = server.log_path.read_text()
     assert secret not in log
     assert "/healthz?token=*** " in log and "api_key=***" in log and "%74oken=***" in log
+    assert all(f"/healthz?{name}=*** " in log for name in ("bearer", "session", "pw", "x"))
     assert '"WebSocket /auctions/1/rounds/socket?token=***"' in log
 
 
@@ -596,6 +599,28 @@ def test_head_answers_every_get_path_with_its_headers_and_no_body(
         again = client.get("/ui/app.js", headers={"If-None-Match": page.headers["etag"]})
         assert again.status_code == 304 and again.content == b""
         assert client.get("/healthz").status_code == 200  # the connection goes on
+
+
+def test_a_text_frame_that_is_not_utf8_closes_the_socket_with_one_log_line(
+    server: ServerProcess, auction_id: int
+) -> None:
+    """Anyone may open a round socket: a text frame that is not UTF-8 is closed with 1007 and
+    logged as one warning line, not an error with a traceback (the protocol's own log), and
+    the pusher that finds the socket closed under it logs nothing."""
+    url = server.url.replace("http://", "ws://") + f"/auctions/{auction_id}/rounds/socket"
+    before = server.log_path.read_text()
+    for _ in range(3):
+        with ws_connect(url, ping_interval=None) as socket:
+            socket.recv(timeout=10)
+            socket.send(b"\xff\xfe", text=True)
+            with pytest.raises(ConnectionClosed) as closed:
+                socket.recv(timeout=10)
+            assert closed.value.rcvd is not None and closed.value.rcvd.code == 1007
+    time.sleep(0.5)
+    added = server.log_path.read_text()[len(before) :]
+    lines = [line for line in added.splitlines() if "Invalid UTF-8" in line]
+    assert len(lines) == 3 and all("WARNING" in line for line in lines), added
+    assert "Traceback" not in added and "ERROR" not in added, added
 
 
 def test_a_socket_flooding_pings_is_closed_and_others_are_served(

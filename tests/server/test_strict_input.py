@@ -199,6 +199,10 @@ def test_a_body_without_a_media_type_is_read_as_json(client: TestClient) -> None
     body = json.dumps(honest(unique("untyped"))).encode()
     response = client.post("/submit", content=body)
     assert response.status_code == 201, response.text
+    # An empty header (curl's ``-H 'Content-Type;'``) is none.
+    again = json.dumps(honest(unique("empty-type"))).encode()
+    response = client.post("/submit", content=again, headers={"Content-Type": ""})
+    assert response.status_code == 201, response.text
     bad = client.post("/submit", content=b'{"kind": ')
     assert bad.status_code == 422 and locs(bad) == [["body"]]
 

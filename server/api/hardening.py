@@ -49,9 +49,7 @@ ONCE_HEADERS = {
     b"content-type": "Content-Type",
 }
 """Headers refused with 400 when given twice: which one counts would be a guess."""
-SECRET_NAME = re.compile(
-    r"token|secret|passw|key|auth|bearer|session|jwt|cred|^pw$|^pass$", re.I
-)
+SECRET_NAME = re.compile(r"token|secret|passw|key|auth|bearer|session|jwt|cred|^pw$|^pass$", re.I)
 """Query parameters whose value the access log never prints."""
 SECRET_VALUE = re.compile(r"^(srdp|srda)_", re.I)
 """Values the access log never prints, whatever their parameter's name: the service's own
@@ -147,7 +145,8 @@ def redact_query(path: str) -> str:
     def blank(match: re.Match[str]) -> str:
         name, value = match.group(1), match.group(2)
         secret = SECRET_NAME.search(unquote_plus(name))  # ``%74oken`` is ``token``
-        return f"{name}=***" if secret or SECRET_VALUE.match(unquote_plus(value)) else match.group(0)
+        secret = secret or SECRET_VALUE.match(unquote_plus(value))
+        return f"{name}=***" if secret else match.group(0)
 
     return base + mark + _QUERY_PAIR.sub(blank, query)
 

@@ -61,6 +61,11 @@ fraction that can occur."""
 SHARPNESS_FACTOR = 10.0
 """Activation sharpness may differ from the design by up to this factor either way; beyond it
 a threshold neuron is a flat line or a hidden step (design values: ``DESIGN_SHARPNESS``)."""
+SHARPNESS_SLACK = 1e-2
+"""A sharpness this fraction or less beyond a bound counts as at the bound. A model set at a
+bound moves past it in its own projected fine-tuning (LSR ``a`` = 10 by float noise; SZ at 50
+by up to 1%, its weights being trained) and was refused for ``fine-tuning-drift`` in 32 (LSR
+10), 58 (LSR 0.1) and 48 (SZ 50) of 100 of the paper's draws; with this slack 0, 0 and 1."""
 DESIGN_SHARPNESS = {
     "PG": float(SENSOR_ACTIVATIONS["PG"]["a"]),  # a·(1/b)·b: per 100% of the willingness to pay
     "SZ": float(SENSOR_ACTIVATIONS["SZ"]["a"])

@@ -162,13 +162,27 @@ def _sharpness(n: Numbers, gain: Array, ok_sign: Mask) -> Checks:
         name, g = names[k], gain[p, k]
         low, high = SHARPNESS_LOW[k], SHARPNESS_HIGH[k]
         return (
-            f"{ROLE[name]} {name} changes its threshold argument by {fmt(g)} per "
+            f"{ROLE[name]} {name} changes its threshold argument by {_beyond(g, low, high)} per "
             f"{SHARPNESS_UNITS[k]} (design {SHARPNESS_DESIGN[k]:g}; allowed {low:g} to "
             f"{high:g}): " + ("a hidden step" if g > high else "nearly flat, it hardly reacts")
         )
 
-    failed = applies & outside(gain, SHARPNESS_LOW, SHARPNESS_HIGH)
+    slack = limits.SHARPNESS_SLACK
+    failed = applies & outside(gain, SHARPNESS_LOW * (1 - slack), SHARPNESS_HIGH * (1 + slack))
     return Checks(("sharpness",) * len(names), names, failed, message)
+
+
+def _beyond(value: float, low: float, high: float) -> str:
+    """``value`` with as many digits as it takes to tell it from the bound it crossed (a
+    sharpness of 10.02 against 10 is not "10")."""
+    bound = high if value > high else low
+    if not np.isfinite(value):
+        return fmt(value)
+    for digits in range(3, 13):
+        words = fmt(value, f".{digits}g")
+        if float(words) != bound:
+            return words
+    return fmt(value)
 
 
 def _reference_check(

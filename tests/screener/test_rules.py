@@ -137,6 +137,33 @@ def test_sharpness_within_a_factor_ten_of_the_design(honest):
     step = screen(edit(honest, {"external_sensor.SZ.activation.a": 60.0}))
     assert "a hidden step" in message_of(step, "sharpness", "SZ")
     assert screen(edit(honest, {"external_sensor.PG.activation.a": 40.0})).accepted
+    # Just past a bound, the reason tells the value from the bound ("10.5", not "10").
+    past = screen(edit(honest, {"external_sensor.LSR.activation.a": 10.5}))
+    assert "by 10.5 per unit of buy fraction (design 1; allowed 0.1 to 10)" in message_of(
+        past, "sharpness", "LSR"
+    )
+
+
+def test_a_model_set_at_a_sharpness_bound_stays_in_after_its_own_fine_tuning():
+    """Fine-tuning moves a model set at a bound just past it (float noise for LSR, up to 1%
+    for SZ, whose weights train): about half of such honest models were refused for
+    ``fine-tuning-drift``."""
+    rng = np.random.default_rng(21)
+
+    def size_gain(m: Any) -> float:
+        weights = m.external_sensor.SZ.weights
+        return float(weights.length + weights.weight)
+
+    edits: dict[str, Any] = {
+        "LSR 10": lambda m: {"external_sensor.LSR.activation.a": 10.0},
+        "LSR 0.1": lambda m: {"external_sensor.LSR.activation.a": 0.1},
+        "SZ 50": lambda m: {"external_sensor.SZ.activation.a": 50.0 / size_gain(m)},
+    }
+    for name, change in edits.items():
+        drawn = [honest_manifest(rng, f"h{i}") for i in range(20)]
+        verdicts = screen_many([edit(m, change(m)) for m in drawn])
+        refused = [v.reasons[0].message for v in verdicts if not v.accepted]
+        assert len(refused) <= 1, (name, refused)
 
 
 def test_a_neuron_reading_an_input_it_is_not_named_after(honest):

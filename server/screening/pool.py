@@ -35,7 +35,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from concurrent.futures import Future
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
@@ -57,6 +57,11 @@ MAX_QUEUED = 512
 """Requests written to the pipe by the sender thread, at most this many waiting their turn: a
 burst beyond it (a screening process far behind) hears 503 rather than filling memory."""
 STOP_GRACE_S = 5.0
+SCREENINGS_PER_CLIENT = 4
+"""A client's (a ``/submit``'s address's) requests at the screening process at once; its others
+wait their turn in the API. So a client that submits costly manifests in bulk (16 noisy copies
+fine-tuned 4 epochs at batch 1: 20 times an honest one's screening) delays another's verdict by
+a few of its own, not by its whole backlog, whatever number of tokens it registered."""
 RESPAWN_DELAY_S = 0.5  # a process that cannot start must not spin
 
 
@@ -160,6 +165,43 @@ def _fail(futures: dict[int, Future[Any]], why: str) -> None:
             future.set_exception(ScreenerUnavailableError(why))
 
 
+class _Turns:
+    """Each client's turns at the screening process: at most ``share`` at once, the others
+    waiting in order (an asyncio semaphore per client with requests, on the API's loop)."""
+
+    def __init__(self, share: int) -> None:
+        self._share = share
+        self._clients: dict[str, tuple[asyncio.Semaphore, int]] = {}
+        """Per client with requests: its semaphore and how many requests hold or await it."""
+
+    @contextlib.asynccontextmanager
+    async def turn(self, client: str | None) -> AsyncIterator[None]:
+        if client is None:
+            yield
+            return
+        semaphore, users = self._clients.get(client) or (asyncio.Semaphore(self._share), 0)
+        self._clients[client] = (semaphore, users + 1)
+        try:
+            try:
+                async with asyncio.timeout(VERDICT_TIMEOUT_S):
+                    await semaphore.acquire()
+            except TimeoutError as exc:
+                raise ScreenerUnavailableError(
+                    f"{self._share} screenings of this client's were ahead of it for "
+                    f"{VERDICT_TIMEOUT_S:g} s; retry later"
+                ) from exc
+            try:
+                yield
+            finally:
+                semaphore.release()
+        finally:
+            semaphore, users = self._clients[client]
+            if users == 1:
+                del self._clients[client]
+            else:
+                self._clients[client] = (semaphore, users - 1)
+
+
 class ScreeningService:
     """``await verdict(manifest)`` from any event loop; the screening runs in a child process."""
 
@@ -170,6 +212,7 @@ class ScreeningService:
         self._lock = threading.Lock()  # guards _pending, _conn, _process and sends on the pipe
         self._stopping = False
         self._process: BaseProcess | None = None
+        self._turns = _Turns(SCREENINGS_PER_CLIENT)
         self._outbox: queue.SimpleQueue[_Outgoing | None] = queue.SimpleQueue()
         self._queued = 0  # requests in the outbox, guarded by _lock
         # A pipe is closed only between two writes: a closed descriptor's number may be reused.
@@ -275,16 +318,25 @@ class ScreeningService:
             raise ScreenerUnavailableError("the screener did not answer in time") from exc
 
     async def verdict(
-        self, manifest: Manifest, *, at_the_door: bool = True, manifest_json: str | None = None
+        self,
+        manifest: Manifest,
+        *,
+        at_the_door: bool = True,
+        manifest_json: str | None = None,
+        client: str | None = None,
     ) -> Verdict:
         """The screener's verdict on one manifest, awaited on the caller's event loop (no thread
         waits for it): ``screener.screen`` for a submission at the door, or, with
         ``at_the_door=False``, ``screener.rescreen_many``'s judgement of a version fine-tuned
         inside an auction (the same re-screening as the server's own fine-tuning rounds).
-        ``manifest_json``: the manifest's ``model_dump_json()``, if the caller has it already."""
+        ``manifest_json``: the manifest's ``model_dump_json()``, if the caller has it already.
+        ``client``: whose request it is; a client has at most ``SCREENINGS_PER_CLIENT`` at the
+        screening process, its others wait their turn (within ``VERDICT_TIMEOUT_S``)."""
         if manifest_json is None:
             manifest_json = manifest.model_dump_json()
-        verdict: Verdict = await self._answer(_DOOR if at_the_door else _RESCREEN, manifest_json)
+        kind = _DOOR if at_the_door else _RESCREEN
+        async with self._turns.turn(client):
+            verdict: Verdict = await self._answer(kind, manifest_json)
         return verdict
 
     def _read(self, conn: Connection) -> None:

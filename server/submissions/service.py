@@ -7,6 +7,7 @@ from sqlalchemy.orm import Session
 
 from agents.manifest import Manifest, name_problem
 from screener import Verdict, review, with_hold_reasons
+from server.api.connections import client_address
 from server.api.errors import RequestError, api_error
 from server.screening.pool import ScreenerUnavailableError, ScreeningService
 from server.store import crud
@@ -54,7 +55,8 @@ async def submit(
     if refused is not None:
         raise _refusal(refused)
     try:
-        verdict = await screening.verdict(manifest)
+        client = None if address is None else client_address(address)
+        verdict = await screening.verdict(manifest, client=client)
     except ScreenerUnavailableError as exc:
         raise api_error(
             503,

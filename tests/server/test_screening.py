@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import multiprocessing
+import os
+import signal
 import threading
 from collections.abc import Iterator
 
@@ -12,7 +14,7 @@ import pytest
 
 from agents.negotiator import honest_manifest, saboteur_manifest
 from screener import rescreen_many, screen
-from server.screening.pool import ScreeningService
+from server.screening.pool import SCREENINGS_PER_CLIENT, ScreeningService
 
 
 @pytest.fixture(scope="module")
@@ -74,6 +76,42 @@ def test_a_caller_that_stops_waiting_leaves_the_service_working(
         return await asyncio.wait_for(service.verdict(honest), 60)
 
     assert asyncio.run(cancel_some_then_ask()) == screen(honest)
+
+
+def test_a_client_with_a_backlog_delays_another_by_its_share_not_its_backlog(
+    service: ScreeningService,
+) -> None:
+    """With the screening process stopped, one client asks 40 verdicts, then another asks one:
+    once the process goes on, the second client's is answered with the first's first few (its
+    share at the process), not after all 40 (two and a half batches later, first come first
+    served)."""
+    rng = np.random.default_rng(6)
+    honest = honest_manifest(rng, "h")
+
+    async def ask() -> list[str]:
+        await service.verdict(honest)  # the process is up and has imported the screener
+        pid = service.pid()
+        assert pid is not None
+        answered: list[str] = []
+
+        async def one(client: str) -> None:
+            await service.verdict(honest, client=client)
+            answered.append(client)
+
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            backlog = [asyncio.create_task(one("a")) for _ in range(40)]
+            await asyncio.sleep(0.2)  # all 40 asked: SCREENINGS_PER_CLIENT of them sent
+            other = asyncio.create_task(one("b"))
+            await asyncio.sleep(0.2)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        await asyncio.wait_for(asyncio.gather(*backlog, other), 120)
+        return answered
+
+    answered = asyncio.run(ask())
+    assert answered.count("a") == 40
+    assert answered.index("b") <= SCREENINGS_PER_CLIENT, answered
 
 
 def test_asking_never_waits_for_a_full_pipe(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -59,10 +59,12 @@ export function reviewList(view) {
   withToken(view, async (box) => {
     const rows = [];
     let cursor = null;
+    let margin = null;
     do {
       const page = await getJSON(`/reviews?limit=100${cursor ? `&cursor=${cursor}` : ""}`, adminToken);
       rows.push(...page.items);
       cursor = page.next_cursor;
+      margin = page.review_margin;
     } while (cursor);
     if (!rows.length) {
       box.append(h("p", { class: "none-yet", id: "no-reviews" }, "No model is waiting for an inspector."));
@@ -76,7 +78,7 @@ export function reviewList(view) {
           link(`#/reviews/${m.id}`, `Inspect model ${m.id}`),
           h("span", { class: "free-text" }, m.participant),
           String(m.version),
-          m.appeal !== null ? ["appealed: ", h("q", { class: "free-text" }, m.appeal)] : nearest(m.evidence),
+          m.appeal !== null ? ["appealed: ", h("q", { class: "free-text" }, m.appeal)] : nearest(m.evidence, margin),
           m.auction_id !== null ? link(`#/auctions/${m.auction_id}`, `auction ${m.auction_id}, round ${m.round}`) : "POST /submit",
           when(m.created_at),
         ]),
@@ -86,12 +88,21 @@ export function reviewList(view) {
   });
 }
 
-/** The priced bar closest to its measurement, in words. */
-function nearest(evidence) {
+/** How far a priced measurement lies from its bar, on which side: "missed by 0.0043". */
+function by(e) {
+  return `${e.passed ? "passed" : "missed"} by ${fixed(Math.abs(e.measured - e.bar), 4)}`;
+}
+
+/** The priced bar closest to its measurement, in words, and what the review margin made of
+ * it (``margin``: the server's, in price). */
+function nearest(evidence, margin) {
   const priced = evidence.filter((e) => e.units === "price" && e.measured !== null && e.bar !== null);
   if (!priced.length) return "—";
   const e = priced.reduce((a, b) => (Math.abs(a.measured - a.bar) <= Math.abs(b.measured - b.bar) ? a : b));
-  return `${e.test}: ${fixed(e.measured, 4)} against ${fixed(e.bar, 4)} (${e.side})`;
+  // Held when the deciding evidence lies within the margin of its bar, either side of it.
+  const near = margin !== null && Math.abs(e.measured - e.bar) <= margin;
+  const held = near ? `, within the review margin ${fixed(margin, 4)} of its bar: held for you` : "";
+  return `${e.test}: ${fixed(e.measured, 4)} against ${fixed(e.bar, 4)} (${e.side}), ${by(e)}${held}`;
 }
 
 export function reviewView(view, id) {
@@ -120,7 +131,8 @@ export function reviewView(view, id) {
 
 function evidenceSection(model, item) {
   const auctions = (e) => (e.detail.test_auctions ? `, ${e.detail.test_auctions} test auctions` : "");
-  const rows = model.evidence.map((e) => [e.test, (e.detail.version || e.detail.check || "") + auctions(e), e.measured === null ? "—" : fixed(e.measured, 4), e.bar === null ? "—" : fixed(e.bar, 4), `${e.side} (${e.units})`, e.passed ? "passed" : "missed"]);
+  const priced = (e) => e.units === "price" && e.measured !== null && e.bar !== null;
+  const rows = model.evidence.map((e) => [e.test, (e.detail.version || e.detail.check || "") + auctions(e), e.measured === null ? "—" : fixed(e.measured, 4), e.bar === null ? "—" : fixed(e.bar, 4), `${e.side} (${e.units})`, priced(e) ? by(e) : e.passed ? "passed" : "missed"]);
   const scan = model.evidence.find((e) => e.detail.clean && e.detail.noisy);
   const impacts = model.evidence.filter((e) => e.test === "market-impact");
   return h(

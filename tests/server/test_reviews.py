@@ -223,6 +223,7 @@ def test_the_queue_is_oldest_first_in_pages(client: TestClient) -> None:
     first = client.get("/reviews", headers=ADMIN, params={"limit": 1}).json()
     assert [i["id"] for i in first["items"]] == everything[:1]
     assert first["next_cursor"] == everything[0]
+    assert first["review_margin"] == MARGIN  # what "held" means here
     rest = client.get(
         "/reviews", headers=ADMIN, params={"limit": 100, "cursor": first["next_cursor"]}
     ).json()

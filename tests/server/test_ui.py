@@ -865,7 +865,9 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     page.keyboard.press("Enter")
     row = page.locator(f"#review-list a[href='#/reviews/{model_id}']")
     row.wait_for(timeout=WAIT_MS)
-    assert "market-impact" in (page.text_content("#review-list") or "")
+    listed = page.text_content("#review-list") or ""
+    assert "market-impact" in listed and "within the review margin 0.0050 of its bar" in listed
+    assert re.search(r"(passed|missed) by 0\.00[0-4][0-9]", listed), listed  # how close
     row.click()
     page.wait_for_selector("#evidence figure svg", timeout=WAIT_MS)
     assert (page.text_content("#verdict") or "").startswith("Held")

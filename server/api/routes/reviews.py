@@ -61,7 +61,10 @@ def _reviewed(row: crud.StoredModel) -> ReviewedPublic:
     responses=responses(401, 403, 422),
 )
 async def list_reviews(
-    session: SessionDep, limit: PageLimit = DEFAULT_PAGE, cursor: ReviewCursor = None
+    session: SessionDep,
+    settings: SettingsDep,
+    limit: PageLimit = DEFAULT_PAGE,
+    cursor: ReviewCursor = None,
 ) -> HeldPage:
     """The models held for an inspector (operator), oldest first, each with the screener's
     reasons and evidence; ``cursor`` is the ``next_cursor`` of the previous page (ids above
@@ -88,6 +91,7 @@ async def list_reviews(
             for row in items
         ],
         next_cursor=next_cursor,
+        review_margin=settings.review_margin,
     )
 
 

@@ -191,3 +191,6 @@ class HeldPage(Schema):
 
     items: list[HeldModelPublic]
     next_cursor: int | None
+    review_margin: float
+    """``SRD_REVIEW_MARGIN`` (in price): a model whose deciding evidence misses its bar by no
+    more than this is held rather than refused."""

@@ -549,7 +549,9 @@ export function auctionView(view, id) {
   /** A patron's outcome in a round, linked to the version it bids with; a refused or held
    * upload's screener reasons are read from that stored version. */
   function answerItem(a) {
-    const item = h("li", { "data-model": a.model_id, "data-outcome": a.outcome }, `${nameOf(a.model_id)}: ${a.outcome}, bids with `, link(`#/models/${a.version_id}`, `version ${a.version}`));
+    // An upload of the weights it already had is accepted unscreened: no new version.
+    const unchanged = a.outcome === "accepted" && a.uploaded_id === null ? " (unchanged weights, not screened)" : "";
+    const item = h("li", { "data-model": a.model_id, "data-outcome": a.outcome }, `${nameOf(a.model_id)}: ${a.outcome}${unchanged}, bids with `, link(`#/models/${a.version_id}`, `version ${a.version}`));
     if ((a.outcome === "refused" || a.outcome === "held") && a.uploaded_id !== null) {
       const reasons = h("ul", { class: "reasons" });
       const words = a.outcome === "held" ? "upload held for an inspector" : "refused upload";

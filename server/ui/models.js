@@ -412,6 +412,10 @@ export function inspectorView(view, id, { extra = null, heading = "Model" } = {}
         settingsFacts(manifest, [
           ["Participant", participantLink(model.participant)],
           ["Submitted", when(model.created_at)],
+          // An upload of a remote fine-tuning round: where it was made, and from which version.
+          ...(model.auction_id !== null && model.auction_id !== undefined
+            ? [["Uploaded in", [link(`#/auctions/${model.auction_id}`, `auction ${model.auction_id}`), `, fine-tuning round ${model.round}, from `, link(`#/models/${model.parent_id}`, `model ${model.parent_id}`)]]]
+            : []),
         ]),
         ...drawn.sections,
       );

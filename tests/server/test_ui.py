@@ -230,6 +230,7 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
         "fine_tune_mode": "remote",
         "fine_tune_rounds": 1,
         "round_deadline_s": 120,
+        "seed": 1,
     }
     headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
     auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
@@ -237,7 +238,9 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     row = page.locator("#fine-tuning tr[data-round='1']")
     page.wait_for_selector("#fine-tuning tr[data-round='1']", timeout=WAIT_MS)
     assert "none yet" in row.locator("td").nth(4).text_content()
-    patron = honest_ids[0]
+    asked = api.get(f"/auctions/{auction_id}/rounds/current").json()["asked"]
+    assert len(asked) >= 3, asked  # two answers leave the round open
+    patron, second = asked[0], asked[1]
     token = next(a["token"] for a in population.values() if a["model_id"] == patron)
     put = api.put(
         f"/auctions/{auction_id}/rounds/1/models/{patron}",
@@ -248,10 +251,26 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     item = f"#fine-tuning tr[data-round='1'] li[data-model='{patron}'][data-outcome='accepted']"
     page.wait_for_selector(item, timeout=WAIT_MS)  # no reload
     assert row.locator("td").nth(4).text_content() == "1 accepted"
+    assert "accepted (unchanged weights, not screened)" in page.locator(item).text_content()
+    # A second patron uploads new weights: a new version, which says where it was made.
+    token = next(a["token"] for a in population.values() if a["model_id"] == second)
+    manifest = api.get(f"/models/{second}").json()["manifest"]
+    manifest["decision"]["B"]["bias"] += 1e-6
+    put = api.put(
+        f"/auctions/{auction_id}/rounds/1/models/{second}",
+        json=manifest,
+        headers={"Authorization": f"Bearer {token}"},
+    )
+    assert put.status_code == 200 and put.json()["uploaded_id"] is not None, put.text
+    page.wait_for_selector(f"#fine-tuning tr[data-round='1'] li[data-model='{second}']")
     assert api.delete(f"/auctions/{auction_id}", headers=headers).status_code == 200
     page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
     closed = "#fine-tuning tr[data-round='1'] td:has-text('when the auction was cancelled')"
     page.wait_for_selector(closed, timeout=WAIT_MS)
+    page.goto(f"{server.url}/ui/#/models/{put.json()['uploaded_id']}")
+    made = page.locator("dt:has-text('Uploaded in') + dd")
+    made.wait_for(timeout=WAIT_MS)
+    assert made.text_content() == f"auction {auction_id}, fine-tuning round 1, from model {second}"
 
 
 def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(

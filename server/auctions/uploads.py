@@ -42,7 +42,7 @@ from server.live.rounds import RoundWatcher, TooManyWaitersError
 from server.screening.pool import ScreenerUnavailableError, ScreeningService
 from server.store import crud
 from server.store.db import Database, JSONText, WriteLockBusyError
-from server.store.status import ANSWERED, RoundStatus
+from server.store.status import ANSWERED, AUCTION_ENDED, RoundStatus
 from server.store.tables import utcnow
 from sim.market.design import design_changes
 
@@ -99,6 +99,9 @@ async def current_round(
 
 
 def _round_state(target: crud.UploadTarget) -> str:
+    if target.auction_status in AUCTION_ENDED:  # no round will open again
+        last = "" if target.newest_round is None else f": its last round was {target.newest_round}"
+        return f"the auction has ended ({target.auction_status}){last}"
     if target.newest_round is None:
         return "no round has opened yet"
     return f"the current round is {target.newest_round} ({target.newest_status})"

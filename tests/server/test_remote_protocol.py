@@ -494,6 +494,18 @@ def test_a_silent_round_closes_at_its_deadline_and_late_uploads_get_410(
     outcome = {a["model_id"]: a["outcome"] for a in auction["fine_tuning"][0]["answers"]}
     assert outcome[model_id] == "late"
     assert stored_versions(client, manifests[position]["participant"]) == 1
+    # Once the auction has ended, an upload to a round past its last says so.
+    ended = wait_for(
+        lambda: client.get(f"/auctions/{auction_id}").json(),
+        lambda a: a["status"] not in ("pending", "running"),
+        ROUND_WAIT_S,
+    )
+    refused(
+        put(client, auction_id, 2, model_id, body_bytes, patrons[position][1]),
+        409,
+        ["path", "round"],
+        f"the auction has ended ({ended['status']}): its last round was 1",
+    )
 
 
 def _seconds(stamp: str) -> float:

@@ -29,10 +29,10 @@ function priceMove(row, threshold) {
   const by = `${moved >= 0 ? "+" : "−"}${Math.abs(moved).toFixed(3)} to ${fixed(row.next_price)}`;
   if (row.votes.buy > row.n_available) {
     const next = row.price + PRICE_RULES.decrement;
-    return { threshold: next, words: `${row.votes.buy} buy votes for ${row.n_available} fish: nobody buys; ${by} (+${PRICE_RULES.increment} less a draw of 0 to 4 × ${PRICE_RULES.decrement}); stalemate below ${fixed(next)}` };
+    return { threshold: next, words: `${plural(row.votes.buy, "buy vote")} for ${row.n_available} fish: nobody buys; ${by} (+${PRICE_RULES.increment} less a draw of 0 to 4 × ${PRICE_RULES.decrement}); stalemate below ${fixed(next)}` };
   }
   const sold = row.purchases.length ? `${row.purchases.length} sold at ${fixed(row.price)}` : "nobody bought";
-  return { threshold, words: `${row.votes.buy} buy votes for ${row.n_available} fish: ${sold}; ${by} (−${PRICE_RULES.decrement}); stalemate below ${fixed(threshold)}` };
+  return { threshold, words: `${plural(row.votes.buy, "buy vote")} for ${row.n_available} fish: ${sold}; ${by} (−${PRICE_RULES.decrement}); stalemate below ${fixed(threshold)}` };
 }
 
 function statusBadge(status) {
@@ -325,7 +325,7 @@ export function auctionView(view, id) {
             showExplanation(iteration, v.model_id);
           };
           return [
-            v.participant,
+            h("span", { class: "free-text" }, v.participant), // a 64-character name wraps
             bidWith(iteration, v),
             h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote),
             ...fixedApart([v.decision.B, v.decision.L, v.decision.Q]),

@@ -386,7 +386,7 @@ function drawnNeurons(manifest, reasons, a, { screened = true } = {}) {
 function settingsFacts(manifest, first) {
   return facts([
     ...first,
-    ["Augmentation", `${manifest.augmentation.copies} copies, noise σ ${manifest.augmentation.noise_std}, noiseless: ${manifest.augmentation.noiseless_inputs.join(", ") || "none"}`],
+    ["Augmentation", `${manifest.augmentation.copies} copies, noise σ ${shown("noise_std", manifest.augmentation.noise_std)}, noiseless: ${manifest.augmentation.noiseless_inputs.join(", ") || "none"}`],
     ["Fine-tuning", `${plural(manifest.fine_tuning.epochs, "epoch")}, batch ${manifest.fine_tuning.batch_size}, learning rate ${shown("learning_rate", manifest.fine_tuning.learning_rate)}`],
     ["PFC trainable", manifest.pfc.trainable ? "yes" : "no"],
   ]);

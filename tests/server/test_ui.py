@@ -144,7 +144,8 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
     # Each round says why the price moved: demand against the fish, and the next price.
     for row, past in zip(page.locator("#rounds tbody tr").all(), auction["history"], strict=True):
         why = row.locator("td").nth(8).text_content() or ""
-        assert why.startswith(f"{past['votes']['buy']} buy votes for {past['n_available']} fish")
+        votes = f"{past['votes']['buy']} buy vote" + ("" if past["votes"]["buy"] == 1 else "s")
+        assert why.startswith(f"{votes} for {past['n_available']} fish")
         assert f"to {past['next_price']:.3f}" in why
         assert ("nobody buys" in why) == (past["votes"]["buy"] > past["n_available"])
     buyers = page.locator("#buyers tbody tr")

@@ -17,6 +17,8 @@ uses, does not.) ``timed_protocol`` is uvicorn's httptools protocol plus:
   request's in one read is counted too);
 * a body deadline: the request's whole body must arrive within ``body_timeout_s`` of its
   header, else the connection is closed (the app sees the client go away);
+* an arrival time: the moment each request's last byte is parsed is put in its scope
+  (``RECEIVED_AT``), by which a remote round judges an upload's deadline;
 * a share per address: one client address holds at most ``max_per_address`` open connections
   (a trusted proxy's are not counted); past it a new connection gets 429 and is closed, so one
   address cannot take the connections everyone shares (``limit_concurrency``).
@@ -38,6 +40,7 @@ import logging
 import resource
 import time
 from collections import Counter
+from datetime import UTC, datetime
 from typing import Any, ClassVar
 
 import httptools
@@ -152,6 +155,10 @@ class _MethodAwareParser:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._parser, name)
+
+
+RECEIVED_AT = "srd.received_at"
+"""The scope key of the moment a request's last byte was parsed (``srd serve`` only)."""
 
 
 class TimedHttpProtocol(HttpToolsProtocol):
@@ -275,6 +282,9 @@ class TimedHttpProtocol(HttpToolsProtocol):
     def on_message_complete(self) -> None:
         self._disarm()
         self._reading_header, self._header_bytes, self._tail = True, 0, b""
+        # When the whole request was in: an upload's deadline is judged at this moment, the
+        # earliest the process knows of it, not when a busy event loop gets round to its route.
+        self.scope[RECEIVED_AT] = datetime.now(UTC)  # type: ignore[literal-required]
         super().on_message_complete()
 
     def handle_websocket_upgrade(self) -> None:

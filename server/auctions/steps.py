@@ -8,7 +8,8 @@ it to a worker process, which runs ONE step (``run_step``):
 1. restore the market from the last committed checkpoint;
 2. if the checkpoint awaits a remote fine-tuning round and the round is still open: stop at
    once unless every asked patron has answered or the deadline has passed (the auction is then
-   due again at the deadline); else judge the uploads still pending and close the round. Then
+   due again at the deadline, plus half a second for uploads that arrived in time to be
+   stored); else judge the uploads still pending and close the round. Then
    apply the closed round's accepted versions;
 3. play iterations until the auction ends or opens a fine-tuning round, committing each
    iteration in ONE transaction: its row, purchases and quits, the new price and supply, the
@@ -40,6 +41,7 @@ from sqlalchemy.orm import Session
 from agents.manifest import Manifest, parse_manifest
 from server.store import crud
 from server.store.crud.steps import (
+    CLOSE_GRACE,
     IterationRow,
     MovedOnError,
     NewRound,
@@ -265,14 +267,15 @@ def _fail(database: Database, auction_id: int, reason: str) -> None:
 
 
 def _not_yet(database: Database, auction_id: int, row: StepRound) -> bool:
-    """An open round that may still hear answers: the auction is due again at its deadline
-    (True); False when the round can close now."""
+    """An open round that may still hear answers: the auction is due again at its deadline,
+    plus ``CLOSE_GRACE`` for uploads that arrived in time to be stored (True); False when the
+    round can close now."""
     with database.session(write=False) as session:
         answered = crud.answered(session, round_id=row.id)
-    if answered >= len(row.asked) or utcnow() >= row.deadline:
+    if answered >= len(row.asked) or utcnow() >= row.deadline + CLOSE_GRACE:
         return False
     with database.session(write=True) as session:
-        crud.due_at(session, auction_id=auction_id, when=row.deadline)
+        crud.due_at(session, auction_id=auction_id, when=row.deadline + CLOSE_GRACE)
         session.commit()
     return True
 

@@ -356,6 +356,36 @@ export function auctionView(view, id) {
     if (v.fine_tuned_after === null) return named(`#/models/${v.version_id}`, `version ${v.version}`);
     return named(weightsHash(iteration, v.model_id), `version ${v.version}, tuned after round ${v.fine_tuned_after}`);
   }
+  /** Each named neuron's push on B, L and Q (its weight × its value; the logits are linear
+   * in them, so the pushes and the bias add up to each logit), and in words what decided the
+   * vote against the runner-up. */
+  function pushTable(v, decision) {
+    const logits = ["B", "L", "Q"];
+    const sensors = Object.keys(v.sensor);
+    const push = (d, n) => decision[d].weights[n] * v.sensor[n];
+    const total = (d) => sensors.reduce((sum, n) => sum + push(d, n), decision[d].bias);
+    if (logits.some((d) => Math.abs(total(d) - v.decision[d]) > 1e-6)) return null; // not these weights
+    const rows = [...sensors.map((n) => [n, ...logits.map((d) => signedFixed(push(d, n)))]), ["bias", ...logits.map((d) => signedFixed(decision[d].bias))]];
+    const won = { buy: "B", hold: "L", quit: "Q" }[v.vote];
+    const next = logits.filter((d) => d !== won).reduce((a, b) => (v.decision[a] >= v.decision[b] ? a : b));
+    const gaps = [...sensors, "bias"].map((n) => [n, n === "bias" ? decision[won].bias - decision[next].bias : push(won, n) - push(next, n)]);
+    const [lead, by] = gaps.reduce((a, b) => (b[1] > a[1] ? b : a));
+    const words = `${won} ${fixed(v.decision[won], 4)} against ${next} ${fixed(v.decision[next], 4)}: ${lead === "bias" ? "its bias" : `${lead} (${NEURON_WORDS[lead] || lead})`} pushed ${won} over ${next} the most, by ${fixed(by, 4)}.`;
+    return [
+      table("Why this vote: each neuron's push on each logit (its weight × its value), and the bias; they add up to the logits", ["Neuron", "on B", "on L", "on Q"], rows, { "data-part": "pushes" }),
+      h("p", { id: "push-words" }, words),
+    ];
+  }
+  const signedFixed = (x) => `${x < 0 ? "−" : "+"}${fixed(Math.abs(x), 4)}`;
+  /** What the PFC's verdict says about the vote, in words. */
+  function verdictWords(v) {
+    const agrees = v.pfc.T >= v.pfc.F;
+    const [t, f] = [fixed(v.pfc.T, 4), fixed(v.pfc.F, 4)];
+    const judge = "Its prefrontal cortex, which judges the model's own decision (its self-reward),";
+    return agrees
+      ? `${judge} judged this ${v.vote} right (T ${t} ≥ F ${f}): it agrees with the vote.`
+      : `${judge} judged this ${v.vote} wrong (T ${t} < F ${f}): it disagrees with the vote.`;
+  }
   let explaining = 0; // the newest explanation asked for: an older answer arriving late is dropped
   function showExplanation(iteration, modelId) {
     const asked = ++explaining;
@@ -364,6 +394,12 @@ export function auctionView(view, id) {
       .then((v) => {
         if (asked !== explaining) return;
         names.set(v.model_id, v.participant);
+        const pushes = h("div", { id: "pushes" });
+        if (v.weights_kept) {
+          getJSON(`/auctions/${id}/iterations/${v.iteration}/votes/${v.model_id}/weights`)
+            .then((w) => asked === explaining && fill(pushes, pushTable(v, w.manifest.decision)))
+            .catch(() => {}); // the logits above still stand
+        }
         const part = (caption, key, values) =>
           table(caption, ["Neuron", "Meaning", "Value"], Object.entries(values).map(([n, x]) => [n, NEURON_WORDS[n] || n, fixed(x, 4)]), { "data-part": key });
         fill(
@@ -375,7 +411,9 @@ export function auctionView(view, id) {
             facts(Object.entries(v.row).map(([k, x]) => [k, String(x)]), { "aria-label": "The row it voted on: every decimal the network read" }),
             part("External sensor (after its activations)", "sensor", v.sensor),
             part("Decision logits (the largest is the vote)", "decision", v.decision),
+            pushes,
             part("Prefrontal cortex: its verdict on the decision", "pfc", v.pfc),
+            h("p", { id: "verdict-words" }, verdictWords(v)),
             h(
               "p",
               { id: "voted-weights" },

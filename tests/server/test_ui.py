@@ -695,6 +695,22 @@ def test_every_vote_of_a_round_opens_its_explanation(
             assert [(c[0], c[2]) for c in cells] == [
                 (name, f"{value:.4f}") for name, value in expected[part].items()
             ]
+        # Each neuron's push on each logit (weight × value) and the bias add up to the logit;
+        # the words name the runner-up and what pushed the vote over it the most.
+        pushes = card.locator("table[data-part='pushes'] tbody tr")
+        pushes.first.wait_for(timeout=WAIT_MS)
+        cells = [[td.text_content() or "" for td in tr.locator("td").all()] for tr in pushes.all()]
+        assert [c[0] for c in cells] == [*expected["sensor"], "bias"]
+        for column, logit in enumerate("BLQ", start=1):
+            total = sum(float(c[column].replace("−", "-")) for c in cells)
+            assert total == pytest.approx(expected["decision"][logit], abs=5e-4)
+        words = page.text_content("#push-words") or ""
+        won = {"buy": "B", "hold": "L", "quit": "Q"}[expected["vote"]]
+        assert words.startswith(f"{won} {expected['decision'][won]:.4f} against ")
+        assert "pushed" in words and "the most" in words
+        verdict = page.text_content("#verdict-words") or ""
+        right = expected["pfc"]["T"] >= expected["pfc"]["F"]
+        assert (f"judged this {expected['vote']} right" in verdict) is right, verdict
     assert card.get_attribute("data-vote") == "buy"  # the buyer's vote in its round
     assert page.locator("#explain-round option").count() == last + 1
     screenshot(page.locator("#explain"), "ui_vote.png", tmp_path)

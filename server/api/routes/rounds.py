@@ -16,6 +16,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response, WebSocket
 from pydantic import BeforeValidator
 
+from server.api.connections import RECEIVED_AT
 from server.api.deps import (
     AuctionRunnerDep,
     DatabaseDep,
@@ -138,7 +139,8 @@ async def _disconnected(request: Request) -> None:
 
 async def _upload_body(request: Request) -> tuple[bytes, datetime]:
     """The request body, at most ``UPLOAD_MAX_BYTES`` (413; checked before the token), and
-    when it was read (the deadline is judged at that moment)."""
+    when it arrived (the deadline is judged at that moment): when ``srd serve``'s protocol
+    parsed its last byte, else when it was read here."""
     body = await request.body()
     if not body:  # as the body checks refuse any body that is not JSON, before the token
         raise api_error(
@@ -151,7 +153,8 @@ async def _upload_body(request: Request) -> tuple[bytes, datetime]:
             loc=("header", "Content-Length"),
             kind="body_size",
         )
-    return body, utcnow()
+    arrived = request.scope.get(RECEIVED_AT)
+    return body, arrived if isinstance(arrived, datetime) else utcnow()
 
 
 @router.put(

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import datetime, timedelta
 from typing import Any
 
 from sqlalchemy import Connection, bindparam, func, insert, select, update
@@ -33,6 +33,11 @@ from server.store.tables import (
     Quit,
     TunedWeights,
 )
+
+CLOSE_GRACE = timedelta(seconds=0.5)
+"""A round left open after its deadline is closed this much later: an upload whose last byte
+arrived before the deadline (its arrival is what counts) may still be on its way to the
+database then, and would find the round closed."""
 
 
 class MovedOnError(RuntimeError):
@@ -167,7 +172,7 @@ def commit_iteration(
     """Write one iteration played at ``now``: its row, purchases and quits, the new price and
     supply, the checkpoint, the round it opens (returned) and when the next step is due (now
     while it plays, the round's deadline, never once ended)."""
-    due = None if row.finished else (opened.deadline if opened is not None else now)
+    due = None if row.finished else (opened.deadline + CLOSE_GRACE if opened is not None else now)
     moved = session.execute(
         update(Auction)
         .where(

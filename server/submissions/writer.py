@@ -78,9 +78,18 @@ class _Submission:
 
 
 def _name_refusal(item: _Submission, participant: crud.ParticipantRow | None) -> Refused | None:
-    """A name that is another participant's but for case or Unicode form."""
+    """A name that is a registered participant's but for case or Unicode form: its owner (its
+    token) is told the registered spelling; anyone else that the name is taken."""
     if participant is None or participant.name == item.participant:
         return None
+    if item.bearer is not None and token_matches(item.bearer, participant.token_hash):
+        return Refused(
+            422,
+            f"your participant is spelled {participant.name!r}, not {item.participant!r}: "
+            "write it so (names are compared ignoring case and Unicode form)",
+            ("body", "participant"),
+            "name_spelling",
+        )
     return Refused(
         409,
         f"the name {item.participant!r} is taken: participant {participant.name!r} has it "

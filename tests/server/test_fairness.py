@@ -434,6 +434,12 @@ def test_names_differing_only_in_case_are_one_participant(server: ServerProcess)
         token = first.json()["token"]
         owner = {"Authorization": f"Bearer {token}"}
         assert client.post("/submit", json=honest(name), headers=owner).status_code == 201
+        # Its owner, spelling it otherwise, is told how it is registered (not that it is taken).
+        spelt = client.post("/submit", json=honest(name.upper()), headers=owner)
+        assert spelt.status_code == 422, spelt.text
+        (item,) = spelt.json()["detail"]
+        assert item["loc"] == ["body", "participant"] and item["type"] == "name_spelling"
+        assert f"your participant is spelled {name!r}" in item["msg"]
 
 
 def test_an_address_past_its_request_rate_is_paced_and_the_operator_is_not(

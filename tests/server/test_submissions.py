@@ -74,8 +74,10 @@ def test_submissions_are_decided_against_what_is_stored(database: Database) -> N
     assert isinstance(missing, Refused) and missing.status == 401
     wrong = _store(writer, alice, ACCEPTED, "srdp_not-the-token")
     assert isinstance(wrong, Refused) and wrong.status == 403
-    folded = _store(writer, alice.upper(), ACCEPTED, token)
+    folded = _store(writer, alice.upper(), ACCEPTED, None)
     assert isinstance(folded, Refused) and folded.status == 409 and folded.kind == "name_taken"
+    spelt = _store(writer, alice.upper(), ACCEPTED, token)  # its owner: how it is spelt
+    assert isinstance(spelt, Refused) and spelt.status == 422 and spelt.kind == "name_spelling"
     assert _counts(database, alice) == (1, 2)
     with database.session(write=False) as session:
         stored = crud.get_model(session, model_id=second.model_id)

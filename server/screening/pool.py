@@ -10,6 +10,10 @@ before (at most ``MAX_BATCH``), judges it with one ``screener.screen_many`` (at 
 would get alone, and sends the verdicts back. The API stores every upload and every verdict
 itself (``server.services``); the screening process only judges.
 
+A client (a ``/submit``'s address) has at most ``SCREENINGS_PER_CLIENT`` requests at the
+screening process at once; its others wait their turn in the API (``_Turns``), so one client's
+backlog of costly manifests does not stand in front of everyone else's.
+
 A screener exception answers that one request with 503 (the batch is re-judged one by one to
 find it). If the screening process dies, the requests in flight fail with
 ``ScreenerUnavailableError`` (503) and a fresh process takes the next ones.

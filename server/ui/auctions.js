@@ -454,14 +454,14 @@ export function auctionView(view, id) {
       { "aria-labelledby": "price-heading" },
       h("h2", { id: "price-heading" }, "Price over the rounds"),
       priceNone,
-      h("figure", { hidden: true }, priceChart, h("figcaption", {}, "Each point is the price asked in a round; filled larger points are rounds in which fish were sold; the last point is the next price.")),
+      h("figure", { hidden: true }, scrolling(priceChart, "The price chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, "Each point is the price asked in a round; filled larger points are rounds in which fish were sold; the last point is the next price.")),
     ),
     h(
       "section",
       { "aria-labelledby": "votes-heading" },
       h("h2", { id: "votes-heading" }, "Votes per round"),
       votesNone,
-      h("figure", { hidden: true }, votesChart, h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
+      h("figure", { hidden: true }, scrolling(votesChart, "The votes chart (scrolls sideways on a narrow screen)"), h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
       scrolling(
         h(
           "table",

@@ -162,5 +162,5 @@ export function lineChart(lines, x, y, id) {
     { class: "legend-list" },
     lines.map((line, i) => h("li", {}, h("span", { class: `key line-key line-${i % LINE_COLOURS.length}` }), i % 2 ? "(dashed) " : "", line.label)),
   );
-  return h("figure", {}, svg("svg", { class: "chart", id, viewBox: `0 0 ${width} ${height}`, role: "img", "aria-labelledby": `${id}-title` }, parts), h("figcaption", {}, title, legend));
+  return h("figure", {}, scrolling(svg("svg", { class: "chart", id, viewBox: `0 0 ${width} ${height}`, role: "img", "aria-labelledby": `${id}-title` }, parts), `${title} (scrolls sideways on a narrow screen)`), h("figcaption", {}, title, legend));
 }

@@ -150,8 +150,8 @@ function evidenceSection(model, item) {
         )
       : null,
     model.reasons.length ? h("ul", { class: "reasons" }, model.reasons.map((r) => h("li", {}, h("strong", {}, `${r.neuron} (${r.rule}): `), r.message))) : null,
-    scan ? h("figure", {}, decisionsChart(scan.detail), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${Number(Number(scan.detail.noise_std).toPrecision(4))}, ${scan.detail.draws} draws): green buys, amber holds, grey quits.`)) : null,
-    impacts.length ? h("figure", {}, impactChart(impacts), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions (green: passed, amber: missed) against the lowest allowed (the dashed bar), and the references (grey).")) : null,
+    scan ? h("figure", {}, scrolling(decisionsChart(scan.detail), "The decisions chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${Number(Number(scan.detail.noise_std).toPrecision(4))}, ${scan.detail.draws} draws): green buys, amber holds, grey quits.`)) : null,
+    impacts.length ? h("figure", {}, scrolling(impactChart(impacts), "The market-impact chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions (green: passed, amber: missed) against the lowest allowed (the dashed bar), and the references (grey).")) : null,
     populationsNote(impacts),
     scrolling(table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result"], rows, { id: "evidence-table" }), "Every bar (scrolls sideways)"),
   );

@@ -7,18 +7,19 @@ import { compareView, jobList, jobView } from "./jobs.js";
 import { inspectorView, modelList, participantView, votedWeightsView } from "./models.js";
 import { reviewList, reviewView } from "./reviews.js";
 
+// An id is at most 15 digits (JavaScript counts exactly to 2^53): a longer one names no view.
 const ROUTES = [
   [/^#\/(?:auctions)?(?:\?(.*))?$/, "auctions", (view, [, query]) => auctionList(view, new URLSearchParams(query || ""))],
-  [/^#\/auctions\/(\d+)$/, "auctions", (view, [, id]) => auctionView(view, Number(id))],
-  [/^#\/auctions\/(\d+)\/iterations\/(\d+)\/votes\/(\d+)\/weights$/, "auctions", (view, [, id, n, model]) => votedWeightsView(view, Number(id), Number(n), Number(model))],
+  [/^#\/auctions\/(\d{1,15})$/, "auctions", (view, [, id]) => auctionView(view, Number(id))],
+  [/^#\/auctions\/(\d{1,15})\/iterations\/(\d{1,15})\/votes\/(\d{1,15})\/weights$/, "auctions", (view, [, id, n, model]) => votedWeightsView(view, Number(id), Number(n), Number(model))],
   [/^#\/models(?:\?(.*))?$/, "models", (view, [, query]) => modelList(view, new URLSearchParams(query || ""))],
-  [/^#\/models\/(\d+)$/, "models", (view, [, id]) => inspectorView(view, Number(id))],
+  [/^#\/models\/(\d{1,15})$/, "models", (view, [, id]) => inspectorView(view, Number(id))],
   [/^#\/participants\/([^/?]+)$/, "models", (view, [, name]) => participantView(view, decoded(name))],
   [/^#\/jobs(?:\?(.*))?$/, "jobs", (view, [, query]) => jobList(view, new URLSearchParams(query || ""))],
   [/^#\/jobs\/compare\?(.*)$/, "jobs", (view, [, query]) => compareView(view, new URLSearchParams(query))],
-  [/^#\/jobs\/(\d+)$/, "jobs", (view, [, id]) => jobView(view, Number(id))],
+  [/^#\/jobs\/(\d{1,15})$/, "jobs", (view, [, id]) => jobView(view, Number(id))],
   [/^#\/reviews$/, "reviews", (view) => reviewList(view)],
-  [/^#\/reviews\/(\d+)$/, "reviews", (view, [, id]) => reviewView(view, Number(id))],
+  [/^#\/reviews\/(\d{1,15})$/, "reviews", (view, [, id]) => reviewView(view, Number(id))],
 ];
 
 /** What an address no view has names, by its first part: ``#/auctions/abc`` an auction (no id

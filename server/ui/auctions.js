@@ -100,7 +100,7 @@ export function auctionList(view, query) {
         String(a.iteration),
         ["pending", "running"].includes(a.status) ? fixed(a.price) : "—",
         fixed(a.revenue, 2),
-        stopReason(a.stop_reason),
+        a.status === "failed" && !a.stop_reason ? "it failed (why: on its page)" : stopReason(a.stop_reason),
         when(a.created_at),
       ],
       { "data-id": a.id, "data-status": a.status, "data-seen": JSON.stringify(a) },

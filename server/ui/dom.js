@@ -73,7 +73,7 @@ export function signed(value, digits = 4) {
 
 /** A timestamp in the reader's locale ("—" for null). */
 export function when(iso) {
-  return iso ? new Date(iso).toLocaleString() : "—";
+  return iso ? new Date(iso).toLocaleString(undefined, { dateStyle: "short", timeStyle: "long" }) : "—";
 }
 
 /** A link inside the page. */

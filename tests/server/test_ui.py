@@ -804,6 +804,8 @@ def test_a_missing_auction_job_model_or_participant_gets_a_not_found_page(
         ("jobs/999999", "Job 999999", "#/jobs"),
         ("models/0", "Model 0", "#/models"),
         ("models/-1", "Model -1", "#/models"),
+        # beyond JavaScript's exact integers: said as written, not as 1e20
+        ("models/99999999999999999999", "Model 99999999999999999999", "#/models"),
         ("participants/nobody-by-this-name", "Participant nobody-by-this-name", "#/models"),
     ):
         page.goto(f"{server.url}/ui/#/{path}")

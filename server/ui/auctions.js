@@ -591,11 +591,17 @@ export function auctionView(view, id) {
     const unchanged = a.outcome === "accepted" && a.uploaded_id === null ? " (unchanged weights, not screened)" : "";
     const item = h("li", { "data-model": a.model_id, "data-outcome": a.outcome }, `${nameOf(a.model_id)}: ${a.outcome}${unchanged}, bids with `, link(`#/models/${a.version_id}`, `version ${a.version}`));
     if ((a.outcome === "refused" || a.outcome === "held") && a.uploaded_id !== null) {
+      // The reasons fold away (an auction of many rounds repeats them): the first is shown.
       const reasons = h("ul", { class: "reasons" });
+      const summary = h("summary", {}, "the screener's reasons");
       const words = a.outcome === "held" ? "upload held for an inspector" : "refused upload";
-      item.append(` (${words}: `, link(`#/models/${a.uploaded_id}`, `model ${a.uploaded_id}`), ")", reasons);
+      item.append(` (${words}: `, link(`#/models/${a.uploaded_id}`, `model ${a.uploaded_id}`), ")", h("details", {}, summary, reasons));
       getJSON(`/models/${a.uploaded_id}`)
-        .then((m) => fill(reasons, m.reasons.map((reason) => h("li", {}, `${reason.rule} on ${reason.neuron}: ${reason.message}`))))
+        .then((m) => {
+          const [first] = m.reasons;
+          if (first) summary.textContent = `${first.rule} on ${first.neuron}${m.reasons.length > 1 ? ` and ${m.reasons.length - 1} more` : ""}: the screener's reasons`;
+          fill(reasons, m.reasons.map((reason) => h("li", {}, `${reason.rule} on ${reason.neuron}: ${reason.message}`)));
+        })
         .catch((error) => fill(reasons, h("li", {}, String(error.message || error))));
     }
     return item;

@@ -240,7 +240,7 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     page.wait_for_selector("#fine-tuning tr[data-round='1']", timeout=WAIT_MS)
     assert "none yet" in row.locator("td").nth(4).text_content()
     asked = api.get(f"/auctions/{auction_id}/rounds/current").json()["asked"]
-    assert len(asked) >= 3, asked  # two answers leave the round open
+    assert len(asked) >= 4, asked  # three answers leave the round open
     patron, second = asked[0], asked[1]
     token = next(a["token"] for a in population.values() if a["model_id"] == patron)
     put = api.put(
@@ -263,12 +263,34 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
         headers={"Authorization": f"Bearer {token}"},
     )
     assert put.status_code == 200 and put.json()["uploaded_id"] is not None, put.text
+    uploaded = put.json()["uploaded_id"]
     page.wait_for_selector(f"#fine-tuning tr[data-round='1'] li[data-model='{second}']")
+    # A third uploads weights that buy more as the price rises: refused, its reasons folded.
+    third = asked[2]
+    token = next(a["token"] for a in population.values() if a["model_id"] == third)
+    manifest = api.get(f"/models/{third}").json()["manifest"]
+    manifest["decision"]["B"]["weights"]["PG"] = 0.9
+    put = api.put(
+        f"/auctions/{auction_id}/rounds/1/models/{third}",
+        json=manifest,
+        headers={"Authorization": f"Bearer {token}"},
+    )
+    assert put.status_code == 200 and put.json()["outcome"] == "refused", put.text
+    refused = page.locator(f"#fine-tuning li[data-model='{third}'][data-outcome='refused']")
+    refused.wait_for(timeout=WAIT_MS)
+    summary = refused.locator("details summary")
+    page.wait_for_function(
+        f"document.querySelector(\"#fine-tuning li[data-model='{third}'] summary\")"
+        ".textContent.startsWith('decision-sign on B')"
+    )
+    assert not refused.locator("details ul.reasons").is_visible()  # folded until asked for
+    summary.click()
+    assert "buys more as the price rises" in (refused.locator("ul.reasons").text_content() or "")
     assert api.delete(f"/auctions/{auction_id}", headers=headers).status_code == 200
     page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
     closed = "#fine-tuning tr[data-round='1'] td:has-text('when the auction was cancelled')"
     page.wait_for_selector(closed, timeout=WAIT_MS)
-    page.goto(f"{server.url}/ui/#/models/{put.json()['uploaded_id']}")
+    page.goto(f"{server.url}/ui/#/models/{uploaded}")
     made = page.locator("dt:has-text('Uploaded in') + dd")
     made.wait_for(timeout=WAIT_MS)
     assert made.text_content() == f"auction {auction_id}, fine-tuning round 1, from model {second}"

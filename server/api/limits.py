@@ -12,7 +12,9 @@ Every request and WebSocket handshake, and every message received on a round soc
 (``RequestRate.take``, called by the socket for each), counts against its address's request
 rate: one allowance per address, whatever carries its requests. A request that finds its
 address's allowance spent waits for its turn when that comes within ``RATE_PACE_S`` (a client
-polling in a tight loop is slowed to the rate, not refused); later than that it is refused.
+polling in a tight loop is slowed to the rate, not refused); later than that it is refused. A
+round upload (PUT) takes its turn ahead but is not held: its deadline is judged at its arrival,
+and its round closes half a second after the deadline.
 
 A client is the SHA-256 of its bearer token where that token is a participant's or the
 operator's, else its address (as ``srd serve`` resolved it: a proxy's ``X-Forwarded-For``
@@ -120,11 +122,12 @@ class ClientLimitsMiddleware:
         self.socket_limit = Limit(
             "round sockets", settings.limit_client_sockets, settings.limit_client_sockets
         )
+        self.upload_path = _template("/auctions/{auction_id}/rounds/{round}/models/{model_id}")
         self.routes: list[tuple[str, re.Pattern[str], Limit]] = [
             ("GET", _template("/auctions/{auction_id}/events"), streams),
             ("GET", _template("/jobs/{job_id}/events"), streams),
             ("GET", _template("/auctions/{auction_id}/rounds/current"), polls),
-            ("PUT", _template("/auctions/{auction_id}/rounds/{round}/models/{model_id}"), uploads),
+            ("PUT", self.upload_path, uploads),
             ("POST", _template("/submit"), uploads),
         ]
         self.socket_path = _template("/auctions/{auction_id}/rounds/socket")
@@ -155,7 +158,8 @@ class ClientLimitsMiddleware:
         if wait_s:
             await self._refuse(scope, receive, send, self.rate.refusal(wait_s))
             return
-        if delay_s:
+        if delay_s and not self._round_upload(scope):  # an upload's token is taken ahead, but
+            # it is not held: its deadline is judged at arrival, and the round closes soon after
             await asyncio.sleep(delay_s)
         limit = self.limit_of(scope)
         if limit is None:
@@ -172,6 +176,13 @@ class ClientLimitsMiddleware:
             await self.app(scope, receive, send)
         finally:
             release()
+
+    def _round_upload(self, scope: Scope) -> bool:
+        return (
+            scope["type"] == "http"
+            and scope["method"] == "PUT"
+            and self.upload_path.fullmatch(scope["path"]) is not None
+        )
 
     async def hold(self, scope: Scope, limit: Limit) -> Callable[[], None]:
         """Count one more request of ``limit`` held by the scope's client, and how to let go of

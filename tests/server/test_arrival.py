@@ -1,7 +1,7 @@
-"""A remote upload's deadline is judged when its last byte reached the server, not when a busy
-API gets round to its route: an upload whose route is held past the deadline (here by its
-address's request rate, which paces it half a second) still counts as in time, and one sent
-after the deadline is still late."""
+"""A remote upload's deadline is judged when its last byte reached the server, not when the API
+gets round to its route: an upload pipelined behind a long poll (HTTP/1.1 answers a
+connection's requests in order, so its route runs only once the poll has answered, after the
+deadline) still counts as in time, and one sent after the deadline is still late."""
 
 from __future__ import annotations
 
@@ -19,32 +19,39 @@ from server.cli.launch import ServerProcess
 from tests.support.remote import honest_remote_auction, next_round
 from tests.support.server import module_server
 
-RATE_PER_S = 2
-"""The request rate per address: a bucket of 8 (4 s of it), then one request every 0.5 s."""
-PACED = "127.0.0.9"
-"""The address whose upload waits for its turn."""
+POLL_S = 0.5
+"""How long the long poll ahead of the upload holds the connection."""
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
-    env = {"SRD_LIMIT_ADDRESS_REQUESTS_PER_S": str(RATE_PER_S)}
-    yield from module_server(tmp_path_factory, "arrival", env)
+    yield from module_server(tmp_path_factory, "arrival")
 
 
-def _raw_put(server: ServerProcess, path: str, token: str, body: bytes, *, source: str) -> int:
-    """PUT the body in one write from ``source``; the answer's status."""
-    request = (
+def _put_request(path: str, token: str, body: bytes) -> bytes:
+    return (
         f"PUT {path} HTTP/1.1\r\nHost: test\r\nAuthorization: Bearer {token}\r\n"
-        f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n"
-        "Connection: close\r\n\r\n"
+        f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n"
     ).encode() + body
-    address = ("127.0.0.1", server.port)
-    with socket.create_connection(address, timeout=60, source_address=(source, 0)) as sock:
-        sock.sendall(request)
-        answer = b""
-        while b"\r\n" not in answer and (chunk := sock.recv(4096)):
-            answer += chunk
-    return int(answer.split(b" ", 2)[1])
+
+
+def _statuses(server: ServerProcess, requests: bytes, count: int) -> list[int]:
+    """Write the requests in one go on one connection; the status of each of ``count``
+    answers, in order."""
+    with socket.create_connection(("127.0.0.1", server.port), timeout=60) as sock:
+        sock.sendall(requests)
+        statuses: list[int] = []
+        with sock.makefile("rb") as answers:
+            while len(statuses) < count:
+                status = int(answers.readline().split(b" ", 2)[1])
+                length = 0
+                while (line := answers.readline()) not in (b"\r\n", b""):
+                    name, _, value = line.partition(b":")
+                    if name.strip().lower() == b"content-length":
+                        length = int(value)
+                answers.read(length)
+                statuses.append(status)
+    return statuses
 
 
 def _new_weights(manifest: dict[str, Any]) -> bytes:
@@ -66,23 +73,22 @@ def test_an_upload_in_by_the_deadline_counts_though_its_route_runs_after_it(
     early, late = state["asked"][:2]
     deadline = datetime.fromisoformat(state["deadline"].replace("Z", "+00:00")).timestamp()
     path = f"/auctions/{auction_id}/rounds/1/models/{{}}"
-    time.sleep(max(0.0, deadline - 0.35 - time.time()))
-    transport = httpx.HTTPTransport(local_address=PACED)
-    with httpx.Client(base_url=server.url, transport=transport, timeout=30) as paced:
-        for _ in range(4 * RATE_PER_S):  # the address's bucket, emptied
-            paced.get("/healthz")
+    poll = (
+        f"GET /auctions/{auction_id}/rounds/current?wait={POLL_S}&after=1 HTTP/1.1\r\n"
+        "Host: test\r\n\r\n"
+    ).encode()
+    token, manifest = patrons[early]
+    pipelined = poll + _put_request(path.format(early), token, _new_weights(manifest))
+    time.sleep(max(0.0, deadline - 0.3 - time.time()))
     written = time.time()
     assert written < deadline - 0.1, "too slow to set the race up"
-    token, manifest = patrons[early]
-    status = _raw_put(server, path.format(early), token, _new_weights(manifest), source=PACED)
-    assert time.time() > deadline  # its route ran after the deadline: the rate held it
-    assert status == 200
+    assert _statuses(server, pipelined, 2) == [200, 200]  # the poll, then the upload: in time
+    assert time.time() > deadline  # the upload's route ran after the poll, past the deadline
     token, manifest = patrons[late]
     time.sleep(max(0.0, deadline + 0.1 - time.time()))
-    status = _raw_put(server, path.format(late), token, _new_weights(manifest), source="127.0.0.1")
-    assert status == 410  # sent after the deadline: late, even within the close's grace
-    closed = next_round(server, auction_id, 1, 60)
+    late_put = _put_request(path.format(late), token, _new_weights(manifest))
+    assert _statuses(server, late_put, 1) == [410]  # after the deadline: late, grace or not
+    next_round(server, auction_id, 1, 60)
     auction = httpx.get(f"{server.url}/auctions/{auction_id}", timeout=30).json()
     outcomes = {a["model_id"]: a["outcome"] for a in auction["fine_tuning"][0]["answers"]}
     assert outcomes[early] in ("accepted", "refused", "held") and outcomes[late] == "late"
-    assert closed["auction_status"] in ("running", "finished"), closed

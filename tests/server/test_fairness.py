@@ -470,6 +470,19 @@ def test_an_address_past_its_request_rate_is_paced_and_the_operator_is_not(
         assert client.get("/livez", headers=ADMIN).status_code == 200
         time.sleep(1.0)  # five more a second
         assert client.get("/livez").status_code == 200
+        # A round upload takes its turn ahead but is not held (its deadline is judged at its
+        # arrival): the address's next request waits for it instead.
+        for _ in range(30):  # until one waits: the bucket is empty
+            started = time.monotonic()
+            client.get("/livez")
+            if time.monotonic() - started > 0.1:
+                break
+        started = time.monotonic()
+        upload = client.put("/auctions/999999/rounds/1/models/1", json={})
+        assert upload.status_code != 429 and time.monotonic() - started < 0.15
+        started = time.monotonic()
+        assert client.get("/livez").status_code == 200
+        assert time.monotonic() - started >= 0.25  # its own turn, and the upload's
 
 
 def test_round_socket_messages_count_against_their_address_request_rate(

@@ -251,6 +251,10 @@ class RequestBodyMiddleware:
             await self.app(scope, receive, send)
             return
         headers = dict(scope["headers"])
+        for coding in (b"transfer-encoding", b"content-encoding"):  # given twice: one list, as
+            values = [v for k, v in scope["headers"] if k == coding]  # HTTP reads it (RFC 9110)
+            if len(values) > 1:
+                headers[coding] = b", ".join(values)
         declared = headers.get(b"content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > self.max_bytes):
             if declared.isdigit():
@@ -348,7 +352,7 @@ def _chunked(transfer_encoding: bytes) -> bool:
 def _plain(content_encoding: str) -> None:
     """A compressed body (``Content-Encoding: gzip``) gets 415: bodies are read as they come."""
     encoding = content_encoding.strip().lower()
-    if encoding not in ("", "identity"):
+    if any(coding.strip() not in ("", "identity") for coding in encoding.split(",")):
         raise BodyRefusedError(
             415,
             f"the body must be plain JSON, not Content-Encoding: {encoding}",

@@ -51,7 +51,7 @@ ONCE_HEADERS = {
 """Headers refused with 400 when given twice: which one counts would be a guess."""
 SECRET_NAME = re.compile(r"token|secret|passw|key|auth|bearer|session|jwt|cred|^pw$|^pass$", re.I)
 """Query parameters whose value the access log never prints."""
-SECRET_VALUE = re.compile(r"^(srdp|srda)_", re.I)
+SECRET_VALUE = re.compile(r"(srdp|srda)_", re.I)
 """Values the access log never prints, whatever their parameter's name: the service's own
 tokens (participants' ``srdp_``, the generated operator token's ``srda_``)."""
 _QUERY_PAIR = re.compile(r"([^&=?]+)=([^&]*)")
@@ -137,18 +137,22 @@ async def _refuse(
 
 
 def redact_query(path: str) -> str:
-    """``path`` with the values of its secret-named query parameters replaced by ``***``."""
+    """``path`` with the values of its secret-named query parameters replaced by ``***``, and
+    the whole query if one of the service's tokens is still in it anywhere (``?q=Bearer
+    srdp_...``, ``?srdp_...``, ``?a=1;t=srdp_...``)."""
     base, mark, query = path.partition("?")
     if not mark:
         return path
 
     def blank(match: re.Match[str]) -> str:
-        name, value = match.group(1), match.group(2)
+        name = match.group(1)
         secret = SECRET_NAME.search(unquote_plus(name))  # ``%74oken`` is ``token``
-        secret = secret or SECRET_VALUE.match(unquote_plus(value))
         return f"{name}=***" if secret else match.group(0)
 
-    return base + mark + _QUERY_PAIR.sub(blank, query)
+    query = _QUERY_PAIR.sub(blank, query)
+    if SECRET_VALUE.search(unquote_plus(query)):
+        query = "***"
+    return base + mark + query
 
 
 class RedactQueryFilter(logging.Filter):

@@ -171,6 +171,20 @@ def test_an_unreadable_request_gets_the_common_error_body(server: ServerProcess)
             501,
             "coding",
         ),
+        (  # the same list over two header lines
+            "POST /submit HTTP/1.1\r\nHost: a\r\nContent-Type: application/json\r\n"
+            "Transfer-Encoding: gzip\r\nTransfer-Encoding: chunked\r\nConnection: close\r\n"
+            "\r\n2\r\n{}\r\n0",
+            501,
+            "coding",
+        ),
+        (
+            "POST /submit HTTP/1.1\r\nHost: a\r\nContent-Type: application/json\r\n"
+            "Content-Encoding: gzip\r\nContent-Encoding: identity\r\nContent-Length: 2\r\n"
+            "Connection: close\r\n\r\n{}",
+            415,
+            "content_encoding",
+        ),
     ],
 )
 def test_a_header_the_server_will_not_serve_is_refused_before_any_route(

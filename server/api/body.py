@@ -251,10 +251,10 @@ class RequestBodyMiddleware:
             await self.app(scope, receive, send)
             return
         headers = dict(scope["headers"])
-        for coding in (b"transfer-encoding", b"content-encoding"):  # given twice: one list, as
-            values = [v for k, v in scope["headers"] if k == coding]  # HTTP reads it (RFC 9110)
+        for listed in (b"transfer-encoding", b"content-encoding"):  # given twice: one list, as
+            values = [v for k, v in scope["headers"] if k == listed]  # HTTP reads it (RFC 9110)
             if len(values) > 1:
-                headers[coding] = b", ".join(values)
+                headers[listed] = b", ".join(values)
         declared = headers.get(b"content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > self.max_bytes):
             if declared.isdigit():

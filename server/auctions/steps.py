@@ -14,7 +14,8 @@ it to a worker process, which runs ONE step (``run_step``):
 3. play iterations until the auction ends or opens a fine-tuning round, committing each
    iteration in ONE transaction: its row, purchases and quits, the new price and supply, the
    checkpoint, the round it opens (rows, seeds, asked patrons, absolute deadline) and when the
-   next step is due (now while it plays; the deadline while a round is open; never once ended).
+   next step is due (now while it plays; the deadline plus ``CLOSE_GRACE`` while a round is
+   open; never once ended).
 
 An open round holds no process and no thread: the API stores the uploads and their verdicts
 (``server.auctions.uploads``), and the verdict that judges the last asked patron's upload

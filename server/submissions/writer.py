@@ -6,7 +6,8 @@ the same questions (name, token, quotas) before the route spends screening on a 
 answer given at ``store`` is the authoritative one.
 
 Names are compared after NFKC and case folding (``server.store.tables.participant_key``): a
-name that is a stored one but for case or Unicode form is refused (409, taken). A refused submission
+name that is a stored one but for case or Unicode form is refused (409, taken; its owner, by its
+token, is told the registered spelling: 422). A refused submission
 (taken name, missing or wrong token, over a quota) writes nothing. A unique name or version
 taken meanwhile by another process is answered 409 (retry); a database outage is the global
 503 (``server.api.errors``).

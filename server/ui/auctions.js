@@ -554,12 +554,14 @@ export function auctionView(view, id) {
    * its auction is cancelled or fails (then at the auction's end). */
   function closedWhy(r) {
     const closed = new Date(r.closed_at).getTime();
-    if (closed >= new Date(r.deadline).getTime()) return "at its deadline";
     const stopped = ["cancelled", "failed"].includes(head.status) && head.finished_at;
     if (stopped && Math.abs(new Date(head.finished_at).getTime() - closed) < 1000) {
       return head.status === "cancelled" ? "when the auction was cancelled" : "when the auction failed";
     }
-    return "on its last answer";
+    // At its deadline the silent are marked missing (late, once they upload after it); a last
+    // answer judged after the deadline closes it later than the deadline too.
+    const silent = r.answers.some((a) => a.outcome === "missing" || a.outcome === "late");
+    return closed >= new Date(r.deadline).getTime() && silent ? "at its deadline" : "on its last answer";
   }
   function showFineTuneRound(r) {
     fineTuning.hidden = false;
@@ -579,11 +581,22 @@ export function auctionView(view, id) {
     const open = r.status === "open" || !r.closed_at ? `until ${when(r.deadline)}` : `closed ${when(r.closed_at)} ${closedWhy(r)} (deadline ${when(r.deadline)})`;
     const row = tableRow([String(r.round), String(r.iteration), statusBadge(r.status), open, answers, each], { "data-round": r.round });
     const old = fineTuneRowOf.get(r.round);
-    if (old) old.replaceWith(row);
-    else fineTuneRows.append(row);
+    if (old) {
+      // A redraw keeps the reader's place: the focused link, and the reasons opened.
+      const focused = old.contains(document.activeElement) ? document.activeElement : null;
+      const kind = focused && (focused.tagName === "SUMMARY" ? "summary" : focused.getAttribute("href") ? `a[href='${focused.getAttribute("href")}']` : null);
+      const patron = focused?.closest("li[data-model]");
+      const within = patron ? `li[data-model='${patron.dataset.model}'] ` : "";
+      for (const open of old.querySelectorAll("li[data-model] details[open]")) {
+        row.querySelector(`li[data-model='${open.closest("li").dataset.model}'] details`)?.setAttribute("open", "");
+      }
+      old.replaceWith(row);
+      if (kind) row.querySelector(within + kind)?.focus();
+    } else fineTuneRows.append(row);
     fineTuneRowOf.set(r.round, row);
   }
 
+  const reasonsOf = new Map(); // an upload's model id -> its stored version, read once
   /** A patron's outcome in a round, linked to the version it bids with; a refused or held
    * upload's screener reasons are read from that stored version. */
   function answerItem(a) {
@@ -596,13 +609,18 @@ export function auctionView(view, id) {
       const summary = h("summary", {}, "the screener's reasons");
       const words = a.outcome === "held" ? "upload held for an inspector" : "refused upload";
       item.append(` (${words}: `, link(`#/models/${a.uploaded_id}`, `model ${a.uploaded_id}`), ")", h("details", {}, summary, reasons));
-      getJSON(`/models/${a.uploaded_id}`)
+      if (!reasonsOf.has(a.uploaded_id)) reasonsOf.set(a.uploaded_id, getJSON(`/models/${a.uploaded_id}`));
+      reasonsOf
+        .get(a.uploaded_id)
         .then((m) => {
           const [first] = m.reasons;
           if (first) summary.textContent = `${first.rule} on ${first.neuron}${m.reasons.length > 1 ? ` and ${m.reasons.length - 1} more` : ""}: the screener's reasons`;
           fill(reasons, m.reasons.map((reason) => h("li", {}, `${reason.rule} on ${reason.neuron}: ${reason.message}`)));
         })
-        .catch((error) => fill(reasons, h("li", {}, String(error.message || error))));
+        .catch((error) => {
+          reasonsOf.delete(a.uploaded_id); // read again at the next redraw
+          fill(reasons, h("li", {}, String(error.message || error)));
+        });
     }
     return item;
   }
@@ -642,15 +660,20 @@ export function auctionView(view, id) {
   // closed, send no event: while a remote auction plays on (its first round shown), its rounds
   // are read again every few seconds, as an enrolling auction's patrons are, while the tab is
   // shown; a row is redrawn only when it changed.
+  let rereading = false; // one read at a time: a slow server is not asked again meanwhile
   const rereads = setInterval(() => {
-    if (!head || ended || document.hidden) return;
+    if (!head || ended || document.hidden || rereading) return;
     if (head.status === "pending" && head.enroll_until) readHeadAgain();
     else if (head.fine_tune_mode === "remote" && fineTuneRowOf.size) {
+      rereading = true;
       getJSON(`/auctions/${id}`)
         .then((auction) => {
           if (!ended) for (const r of auction.fine_tuning) showFineTuneRound(r);
         })
-        .catch(() => {}); // the next read will tell
+        .catch(() => {}) // the next read will tell
+        .finally(() => {
+          rereading = false;
+        });
     }
   }, 3000);
   view.onLeave(() => clearInterval(rereads));

@@ -98,9 +98,11 @@ function by(e) {
 function nearest(evidence, margin) {
   const priced = evidence.filter((e) => e.units === "price" && e.measured !== null && e.bar !== null);
   if (!priced.length) return "—";
-  const e = priced.reduce((a, b) => (Math.abs(a.measured - a.bar) <= Math.abs(b.measured - b.bar) ? a : b));
-  // Held when the deciding evidence lies within the margin of its bar, either side of it.
-  const near = margin !== null && Math.abs(e.measured - e.bar) <= margin;
+  // A refused model is held for the bars it missed (all within the margin): the nearest of
+  // those; an accepted one for a bar it passed within the margin.
+  const missed = priced.filter((e) => !e.passed);
+  const e = (missed.length ? missed : priced).reduce((a, b) => (Math.abs(a.measured - a.bar) <= Math.abs(b.measured - b.bar) ? a : b));
+  const near = margin !== null && Math.abs(e.measured - e.bar) < margin; // as the server holds
   const held = near ? `, within the review margin ${fixed(margin, 4)} of its bar: held for you` : "";
   return `${e.test}: ${fixed(e.measured, 4)} against ${fixed(e.bar, 4)} (${e.side}), ${by(e)}${held}`;
 }

@@ -253,6 +253,7 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     page.wait_for_selector(item, timeout=WAIT_MS)  # no reload
     assert row.locator("td").nth(4).text_content() == "1 accepted"
     assert "accepted (unchanged weights, not screened)" in page.locator(item).text_content()
+    page.locator(f"{item} a").focus()  # the reader's place, which a redraw must keep
     # A second patron uploads new weights: a new version, which says where it was made.
     token = next(a["token"] for a in population.values() if a["model_id"] == second)
     manifest = api.get(f"/models/{second}").json()["manifest"]
@@ -265,6 +266,8 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     assert put.status_code == 200 and put.json()["uploaded_id"] is not None, put.text
     uploaded = put.json()["uploaded_id"]
     page.wait_for_selector(f"#fine-tuning tr[data-round='1'] li[data-model='{second}']")
+    focused = "document.activeElement.closest('li[data-model]')?.dataset.model"
+    assert page.evaluate(focused) == str(patron)  # the row was redrawn, the focus stayed
     # A third uploads weights that buy more as the price rises: refused, its reasons folded.
     third = asked[2]
     token = next(a["token"] for a in population.values() if a["model_id"] == third)

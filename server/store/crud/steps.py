@@ -171,7 +171,7 @@ def commit_iteration(
 ) -> StepRound | None:
     """Write one iteration played at ``now``: its row, purchases and quits, the new price and
     supply, the checkpoint, the round it opens (returned) and when the next step is due (now
-    while it plays, the round's deadline, never once ended)."""
+    while it plays, the round's deadline plus ``CLOSE_GRACE``, never once ended)."""
     due = None if row.finished else (opened.deadline + CLOSE_GRACE if opened is not None else now)
     moved = session.execute(
         update(Auction)

@@ -12,6 +12,7 @@ from pydantic import Field
 from agents.negotiator import WILLINGNESS_TO_PAY_RANGE
 from sim.experiment import Cost, distinct
 from sim.market import BuyFractionRule, MarketConfig
+from sim.market.config import raises_by_a_decrement
 
 PAPER_RARITIES = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 """The paper's item supplies."""
@@ -85,7 +86,7 @@ class AuctionOptions:
                     "the willingness to pay is drawn between the two",
                 }
             )
-        if self.increment < 5 * self.decrement:
+        if not raises_by_a_decrement(self.increment, self.decrement):
             problems.append(
                 {
                     "field": "increment",

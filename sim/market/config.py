@@ -56,7 +56,7 @@ class MarketConfig:
             problems.append("max_iterations must be ≥ 1")
         if self.n_rows < 1:
             problems.append("n_rows must be ≥ 1")
-        if self.decrement <= 0 or self.increment < 5 * self.decrement:
+        if self.decrement <= 0 or not raises_by_a_decrement(self.increment, self.decrement):
             problems.append("need decrement > 0 and increment ≥ 5·decrement (a raise > 0)")
         if self.fine_tune_rounds < 0:
             problems.append("fine_tune_rounds must be ≥ 0")
@@ -68,6 +68,13 @@ class MarketConfig:
             problems.append(f"buy_fraction must be one of {get_args(BuyFractionRule)}")
         if problems:
             raise ValueError("; ".join(problems))
+
+
+def raises_by_a_decrement(increment: float, decrement: float) -> bool:
+    """Whether ``increment`` ≥ 5·``decrement``, so that a raise (the increment less up to 4
+    decrements) is at least a decrement; up to a part in 10¹² below counts (``decrement`` sent
+    as ``increment / 5`` comes back a bit above it)."""
+    return increment >= 5 * decrement * (1 - 1e-12)
 
 
 def fish_on_sale(n_patrons: int, *, n_fish: int | None = None, rarity: float | None = None) -> int:

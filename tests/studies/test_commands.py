@@ -101,6 +101,12 @@ def test_market_options_that_contradict_each_other_are_refused_by_name(kind, tmp
     args = [kind, "--min-buy-price", "6", "--json", "--out", str(tmp_path)]
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 2 and "--min-buy-price: 6 is above base_price 5" in result.stderr
+    # A decrement sent as increment / 5 whose five times lands an ulp above the increment is at
+    # the bound, not past it (schemathesis found 352.83365215531643 and 70.56673043106329).
+    increment = 352.83365215531643
+    assert 5 * (increment / 5) > increment
+    at_bound = {"base_price": 800.0, "increment": increment, "decrement": increment / 5}
+    assert build_config(kind, at_bound).decrement == increment / 5
 
 
 def test_a_supply_with_no_fish_on_sale_runs_as_the_reference_runs_it(tmp_path) -> None:

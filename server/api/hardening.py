@@ -52,8 +52,9 @@ ONCE_HEADERS = {
 SECRET_NAME = re.compile(r"token|secret|passw|key|auth|bearer|session|jwt|cred|^pw$|^pass$", re.I)
 """Query parameters whose value the access log never prints."""
 SECRET_VALUE = re.compile(r"(srdp|srda)_", re.I)
-"""Values the access log never prints, whatever their parameter's name: the service's own
-tokens (participants' ``srdp_``, the generated operator token's ``srda_``)."""
+"""The service's own tokens (participants' ``srdp_``, the generated operator token's
+``srda_``): where one stands anywhere in a query, the access log prints the whole query as
+``***``."""
 _QUERY_PAIR = re.compile(r"([^&=?]+)=([^&]*)")
 
 

@@ -189,11 +189,12 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
             ended=ended,
         )
 
+    screening = ScreeningService()
     services = Services(
         settings=settings,
         database=database,
         admin_token_hash=load_admin_token_hash(settings),
-        screening=ScreeningService(),
+        screening=screening,
         submissions=SubmissionWriter(database, Limits.of(settings)),
         rounds=watcher,
         sockets=RoundSockets(watcher),
@@ -211,7 +212,9 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         events=EventHub(live, max_streams=settings.max_event_streams),
         live=live,
         sqlite_lock=sqlite_lock,
-        readiness=Readiness(database, settings.data_dir, settings.min_free_disk_mb),
+        readiness=Readiness(
+            database, settings.data_dir, settings.min_free_disk_mb, screening.problem
+        ),
     )
     services.screening.start()
     services.auctions.start()

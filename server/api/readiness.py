@@ -1,8 +1,9 @@
 """Readiness (``GET /healthz``): can this server take writes now?
 
-Three checks: the database takes writes (``Database.write_problem``: there, the one this
-server started with, reachable, not read-only), a file can be written in the data folder, and
-the disks of the data folder and of a SQLite database have ``SRD_MIN_FREE_DISK_MB`` free. The
+Four checks: the database takes writes (``Database.write_problem``: there, the one this
+server started with, reachable, not read-only), a file can be written in the data folder, the
+disks of the data folder and of a SQLite database have ``SRD_MIN_FREE_DISK_MB`` free, and the
+screener judges (``ScreeningService.problem``: its process runs and answers). The
 answer is kept ``CACHE_S``, so a flood of health checks costs one round of checks a second.
 """
 
@@ -13,6 +14,7 @@ import shutil
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -23,7 +25,7 @@ CACHE_S = 1.0
 """How long a readiness answer is reused."""
 MB = 1 << 20
 
-Check = Literal["database", "data_dir", "disk"]
+Check = Literal["database", "data_dir", "disk", "screener"]
 
 
 @dataclass(frozen=True)
@@ -78,8 +80,15 @@ def disk_problem(path: Path, min_free_mb: int, what: str) -> str | None:
 class Readiness:
     """The checks of one server, with their answer cached ``CACHE_S``."""
 
-    def __init__(self, database: Database, data_dir: Path, min_free_disk_mb: int) -> None:
+    def __init__(
+        self,
+        database: Database,
+        data_dir: Path,
+        min_free_disk_mb: int,
+        screener: Callable[[], str | None] = lambda: None,
+    ) -> None:
         self._database = database
+        self._screener = screener
         self._data_dir = data_dir.resolve()
         self._min_free_mb = min_free_disk_mb
         self._folders = [(self._data_dir, "the data folder")]
@@ -116,4 +125,7 @@ class Readiness:
                 disk = disk_problem(folder, self._min_free_mb, what)
                 if disk is not None:
                     problems.append(Problem("disk", disk))
+        screener = self._screener()
+        if screener is not None:
+            problems.append(Problem("screener", screener))
         return problems

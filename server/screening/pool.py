@@ -62,6 +62,9 @@ MAX_QUEUED = 512
 burst beyond it (a screening process far behind) hears 503 rather than filling memory."""
 STOP_GRACE_S = 5.0
 SCREENINGS_PER_CLIENT = 4
+STALL_S = 30.0
+"""The screener counts as stalled (``/healthz`` not ready) when it has held requests this long
+without answering any: its warm-up takes seconds, a batch milliseconds."""
 """A client's (a ``/submit``'s address's) requests the API waits on at the screening process at
 once (one it stopped waiting for, after ``VERDICT_TIMEOUT_S``, no longer counts, though the
 process may still judge it); its others wait their turn in the API. So a client that submits
@@ -221,6 +224,9 @@ class ScreeningService:
         self._turns = _Turns(SCREENINGS_PER_CLIENT)
         self._outbox: queue.SimpleQueue[_Outgoing | None] = queue.SimpleQueue()
         self._queued = 0  # requests in the outbox, guarded by _lock
+        # When the screener last made progress: answered, or got work while it had none.
+        self._progress_at = time.monotonic()  # guarded by _lock
+        self._gave_up = False  # a request timed out since the last answer, guarded by _lock
         # A pipe is closed only between two writes: a closed descriptor's number may be reused.
         self._writing = threading.Lock()
         self._sender = threading.Thread(target=self._send, name="screening-sender", daemon=True)
@@ -256,6 +262,7 @@ class ScreeningService:
                     failed, self._pending = self._pending, {}
                 else:
                     self._conn, self._process = ours, process
+                    self._progress_at, self._gave_up = time.monotonic(), False
             if stopping:
                 process.kill()
                 _fail(failed, "the server is stopping")
@@ -287,6 +294,8 @@ class ScreeningService:
                     f"the screener is {MAX_QUEUED} requests behind; retry shortly"
                 )
             request_id = next(self._ids)
+            if not self._pending and not self._gave_up:
+                self._progress_at = time.monotonic()
             self._pending[request_id] = future
             self._queued += 1
             self._outbox.put(_Outgoing(self._conn, (request_id, kind, payload)))
@@ -321,6 +330,7 @@ class ScreeningService:
         except TimeoutError as exc:
             with self._lock:
                 self._pending.pop(request_id, None)
+                self._gave_up = True
             raise ScreenerUnavailableError("the screener did not answer in time") from exc
 
     async def verdict(
@@ -354,6 +364,7 @@ class ScreeningService:
                 return
             with self._lock:
                 resolved = [(self._pending.pop(i, None), answer) for i, answer in answers]
+                self._progress_at, self._gave_up = time.monotonic(), False
             for future, answer in resolved:
                 # None or cancelled: its caller gave up waiting (timed out, or went away)
                 if future is None or not future.set_running_or_notify_cancel():
@@ -362,6 +373,20 @@ class ScreeningService:
                     future.set_exception(ScreenerUnavailableError(answer))
                 else:
                     future.set_result(answer)
+
+    def problem(self) -> str | None:
+        """Why the screener cannot judge submissions now (for ``/healthz``), or None: its
+        process is gone and not yet started again, or it has held requests ``STALL_S`` without
+        answering any (hung, or stopped)."""
+        with self._lock:
+            if self._stopping:
+                return "the screener is stopping"
+            if self._conn is None:
+                return "the screening process exited and is starting again"
+            idle_s = time.monotonic() - self._progress_at
+            if (self._pending or self._gave_up) and idle_s > STALL_S:
+                return f"the screener has answered no request for {idle_s:.0f} s"
+        return None
 
     def pid(self) -> int | None:
         """The screening process id (for tests and diagnostics)."""

@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
+import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -14,6 +17,8 @@ from fastapi.testclient import TestClient
 from server.api import readiness
 from server.app import create_app
 from server.config import Settings
+from server.screening import pool
+from tests.support.factories import honest
 from tests.support.processes import serve_once
 from tests.support.server import make_settings
 
@@ -62,6 +67,35 @@ def test_too_little_free_disk(tmp_path: Path) -> None:
         assert any(str((tmp_path / "data").resolve()) in p["msg"] for p in problems)
         assert client.get("/livez").status_code == 200
         assert client.post("/submit", json={}).status_code == 422  # still serving
+
+
+def test_a_stalled_screener_is_not_ready(
+    settings: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With the screening process stopped and a submission waiting for it, ``/healthz`` names
+    the screener once it has held the request ``STALL_S`` without answering; ready again
+    when the process goes on and answers."""
+    monkeypatch.setattr(readiness, "CACHE_S", 0.0)
+    monkeypatch.setattr(pool, "STALL_S", 0.5)
+    with TestClient(create_app(settings)) as client:
+        assert client.post("/submit", json=honest("warm")).status_code == 201
+        assert client.get("/healthz").status_code == 200
+        pid = client.app.state.services.screening.pid()  # type: ignore[attr-defined]
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            with ThreadPoolExecutor(max_workers=1) as waiting:
+                submitted = waiting.submit(client.post, "/submit", json=honest("waits"))
+                time.sleep(1.0)
+                health = client.get("/healthz")
+                assert health.status_code == 503, health.text
+                [problem] = health.json()["problems"]
+                assert problem["check"] == "screener"
+                assert "has answered no request for" in problem["msg"]
+                os.kill(pid, signal.SIGCONT)
+                assert submitted.result(timeout=60).status_code == 201
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        assert client.get("/healthz").status_code == 200
 
 
 def test_the_answer_is_cached(settings: Settings, monkeypatch: pytest.MonkeyPatch) -> None:

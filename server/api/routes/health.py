@@ -30,8 +30,9 @@ async def healthz(
 ) -> HealthPublic | JSONResponse:
     """Ready (200) or not (503 with ``Retry-After``): the database is the one this server
     started with, reachable and writable; the data folder can be written; the disks of the
-    data folder and of a SQLite database have ``SRD_MIN_FREE_DISK_MB`` free. The answer is
-    kept a second. Also which job backend computes the jobs' units, on how many CPUs, and
+    data folder and of a SQLite database have ``SRD_MIN_FREE_DISK_MB`` free; the screener's
+    process runs and answers (not holding requests 30 s unanswered). The answer is kept a
+    second. Also which job backend computes the jobs' units, on how many CPUs, and
     which populations the screener's market-impact test meets."""
     problems = readiness.cached()
     if problems is None:

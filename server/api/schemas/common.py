@@ -56,7 +56,7 @@ class StrictInput(Schema):
 class HealthProblem(Schema):
     """Why the server is not ready: which check failed, and how."""
 
-    check: Literal["database", "data_dir", "disk"]
+    check: Literal["database", "data_dir", "disk", "screener"]
     msg: str
 
 

@@ -10,7 +10,9 @@ const NAME_PATTERN = /^[A-Za-z0-9_.-]+$/; // participant names the API accepts
 const TINY = 0.0011; // |weight| at or below the design's δ = 0.001: drawn faint
 
 function verdictBadge(model) {
-  return h("span", { class: `badge verdict-${model.verdict}` }, model.verdict);
+  const badge = h("span", { class: `badge verdict-${model.verdict}` }, model.verdict);
+  // an inspector's decision reads as one, not as the screener's own verdict
+  return model.inspected ? h("span", {}, badge, " by an inspector") : badge;
 }
 
 function participantLink(name) {

@@ -158,6 +158,14 @@ def test_an_inspector_admits_or_refuses_with_an_audit_log(client: TestClient) ->
     assert (model["status"], model["verdict"]) == ("refused", "rejected")
     assert [r["decision"] for r in model["reviews"]] == ["refuse"]
     assert refused not in held_ids(client)
+    # The lists say an inspector decided these two, and not the screener's own verdicts.
+    for model_id, status in [(admitted, "accepted"), (refused, "refused")]:
+        name = client.get(f"/models/{model_id}").json()["participant"]
+        [listed] = client.get("/models", params={"participant": name}).json()["items"]
+        assert (listed["id"], listed["status"], listed["inspected"]) == (model_id, status, True)
+    screened = submit(client, honest(unique("screened")))["model_id"]
+    [newest] = client.get("/models", params={"limit": 1}).json()["items"]
+    assert (newest["id"], newest["status"], newest["inspected"]) == (screened, "accepted", False)
 
 
 def test_a_refused_model_is_appealed_once(client: TestClient) -> None:

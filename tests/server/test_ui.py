@@ -987,6 +987,11 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     page.wait_for_selector("#verdict:has-text('Admitted by inspector Ada')", timeout=WAIT_MS)
     assert "the screener had held it" in (page.text_content("#verdict") or "")
     assert "a sincere low bidder" in (page.text_content("#model-audit") or "")
+    # The models list says an inspector decided, not the screener.
+    page.goto(f"{server.url}/ui/#/models?participant={model['participant']}")
+    row = page.locator(f"tr:has(a[href='#/models/{model_id}'])")
+    row.wait_for(timeout=WAIT_MS)
+    assert "accepted by an inspector" in (row.text_content() or "")
 
 
 def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(

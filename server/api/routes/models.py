@@ -156,6 +156,7 @@ def model_summary(row: crud.ModelSummary) -> ModelSummaryPublic:
         n_reasons=len(row.reasons),
         rules=list(dict.fromkeys(reason["rule"] for reason in row.reasons)),
         created_at=row.created_at,
+        inspected=row.inspected,
     )
 
 

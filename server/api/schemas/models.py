@@ -99,6 +99,9 @@ class ModelSummaryPublic(Schema):
     n_reasons: int
     rules: list[str]
     created_at: datetime
+    inspected: bool = False
+    """An inspector decided its status: admitted it (``accepted``) or refused it (``refused``),
+    after the screener held it or its participant appealed."""
 
 
 class ModelPage(Schema):

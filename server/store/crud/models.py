@@ -211,6 +211,8 @@ class ModelSummary:
     reasons: list[dict[str, str]]
     created_at: datetime
     status: str
+    inspected: bool
+    """An inspector decided its status (admitted or refused it)."""
 
 
 _MODEL_SUMMARY = (
@@ -223,6 +225,9 @@ _MODEL_SUMMARY = (
         ModelVersion.reasons,
         ModelVersion.created_at,
         ModelVersion.status,
+        select(Review.id)
+        .where(Review.model_id == ModelVersion.id, Review.decision.in_(("admit", "refuse")))
+        .exists(),
     )
     .join(Participant, Participant.id == ModelVersion.participant_id)
     .order_by(ModelVersion.id.desc())

@@ -3,7 +3,7 @@
 // each screener reason on the neuron it names.
 
 import { getJSON, pager, withQuery } from "./api.js";
-import { facts, fill, h, isMissing, link, notFound, plural, problem, scrolling, signed, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, fixed, h, isMissing, link, notFound, plural, problem, scrolling, signed, svg, table, tableRow, when } from "./dom.js";
 import { shown } from "./results.js";
 
 const NAME_PATTERN = /^[A-Za-z0-9_.-]+$/; // participant names the API accepts
@@ -99,11 +99,32 @@ export function modelList(view, query) {
     .catch((error) => view.root.append(problem(error)));
 }
 
+const OUTCOMES = {
+  bought: (e) => `bought a fish at ${fixed(e.price)} in iteration ${e.iteration}`,
+  quit: (e) => `quit in iteration ${e.iteration}`,
+  bidding: () => "still bidding",
+  stayed: () => "stayed to the end without buying",
+};
+
+/** The auctions a participant's models entered, newest first, and how each patron left. */
+function entryTable(entries) {
+  const rows = entries.map((e) => [
+    link(`#/auctions/${e.auction_id}`, `Auction ${e.auction_id}`),
+    e.auction_status,
+    link(`#/models/${e.model_id}`, `Model ${e.model_id}`),
+    e.bidding_model_id === e.model_id ? "the same" : link(`#/models/${e.bidding_model_id}`, `Model ${e.bidding_model_id}`),
+    OUTCOMES[e.outcome](e),
+  ]);
+  return table("Auctions its models entered, newest first", ["Auction", "Status", "Entered with", "Bid with (after remote fine-tuning)", "Outcome"], rows, { class: "list", id: "entries" });
+}
+
 export function participantView(view, name) {
   view.root.append(h("h1", { tabindex: "-1" }, `Participant ${name}`));
   getJSON(`/participants/${encodeURIComponent(name)}`)
     .then((p) => {
-      const { node, rows } = modelTable(`The newest of ${p.n_versions} versions`, "versions");
+      const all = p.versions.length === p.n_versions;
+      const caption = all ? `Its ${plural(p.n_versions, "version")}, newest first` : `The newest ${p.versions.length} of its ${p.n_versions} versions`;
+      const { node, rows } = modelTable(caption, "versions");
       p.versions.forEach((m) => rows.append(modelRow(m)));
       view.root.append(
         facts([
@@ -112,6 +133,9 @@ export function participantView(view, name) {
         ]),
         scrolling(node, "Versions (scrolls sideways)"),
         h("p", {}, link(`#/models?participant=${encodeURIComponent(name)}`, "All versions, page by page")),
+        p.auctions.length
+          ? scrolling(entryTable(p.auctions), "Auctions (scrolls sideways)")
+          : h("p", { id: "entries" }, "Its models have entered no auction yet."),
       );
     })
     .catch((error) => {

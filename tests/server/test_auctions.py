@@ -115,6 +115,27 @@ def test_auction_runs_to_the_end_like_the_market(
     ]
     assert auction["stop_reason"] == records[-1].stop_reason
 
+    # Each participant's page tells how its patron left this auction, as the auction does.
+    paid = {b["model_id"]: (b["price"], b["iteration"]) for b in auction["buyers"]}
+    left = {q["model_id"]: q["iteration"] for q in auction["quitter_details"]}
+    assert paid and left  # the story has both endings to check
+    for name, model_id in zip(names, ids, strict=True):
+        page = client.get(f"/participants/{name}").json()
+        [entry] = [e for e in page["auctions"] if e["auction_id"] == auction["id"]]
+        assert (entry["model_id"], entry["bidding_model_id"]) == (model_id, model_id)
+        assert entry["auction_status"] == "finished"
+        if model_id in paid:
+            expected = {
+                "outcome": "bought",
+                "price": paid[model_id][0],
+                "iteration": paid[model_id][1],
+            }
+        elif model_id in left:
+            expected = {"outcome": "quit", "price": None, "iteration": left[model_id]}
+        else:
+            expected = {"outcome": "stayed", "price": None, "iteration": None}
+        assert {k: entry[k] for k in expected} == expected, entry
+
 
 def test_fine_tuning_auction_with_explicit_fish(
     client: TestClient, patrons: tuple[list[dict[str, Any]], list[int]]

@@ -443,6 +443,18 @@ def test_buyers_and_quitters_are_named_with_the_version_that_bid(client: TestCli
         client, "bidder", 500, 4, round_deadline_s=60, fine_tune_rounds=1, seed=3
     )
     state = open_round(client, auction_id)
+    names = {
+        model_id: client.get(f"/models/{model_id}").json()["participant"] for model_id, _ in patrons
+    }
+
+    def entry_of(model_id: int) -> dict[str, Any]:
+        page = client.get(f"/participants/{names[model_id]}").json()
+        [entry] = [e for e in page["auctions"] if e["auction_id"] == auction_id]
+        return entry
+
+    first = entry_of(patrons[0][0])  # on its participant's page, in play
+    assert (first["outcome"], first["auction_status"]) == ("bidding", "running")
+    assert first["bidding_model_id"] == first["model_id"] == patrons[0][0]
     uploaded = {}
     for position, (model_id, token) in enumerate(patrons):
         if model_id in state["asked"]:
@@ -466,6 +478,13 @@ def test_buyers_and_quitters_are_named_with_the_version_that_bid(client: TestCli
         assert entry["version_id"] == auction["current_model_ids"][position], entry
         if entry["iteration"] >= 1:  # after round 1: the upload's version, if one was accepted
             assert entry["version"] == uploaded.get(entry["model_id"], 1)
+    # Each participant's page names the version that bid and how its patron left.
+    outcomes = {b["model_id"]: "bought" for b in auction["buyers"]}
+    outcomes |= {q["model_id"]: "quit" for q in auction["quitter_details"]}
+    for position, (model_id, _) in enumerate(patrons):
+        entry = entry_of(model_id)
+        assert entry["bidding_model_id"] == auction["current_model_ids"][position]
+        assert entry["outcome"] == outcomes.get(model_id, "stayed"), entry
 
 
 def test_a_silent_round_closes_at_its_deadline_and_late_uploads_get_410(

@@ -158,6 +158,13 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
     summary = page.text_content("#auction-summary") or ""
     assert "finished" in summary and "sold out" in summary
     screenshot(page, "ui_auction.png", tmp_path, full_page=True)
+    # The buyer's participant page tells the purchase, linked to this auction.
+    buyer = auction["buyers"][0]
+    page.goto(f"{server.url}/ui/#/participants/{names[buyer['model_id']]}")
+    row = page.locator(f"#entries tr:has(a[href='#/auctions/{auction_id}'])")
+    row.wait_for(timeout=WAIT_MS)
+    told = f"bought a fish at {buyer['price']:.3f} in iteration {buyer['iteration']}"
+    assert told in (row.text_content() or "")
 
 
 def test_auction_page_shows_remote_fine_tuning_rounds(
@@ -884,11 +891,13 @@ def test_every_page_passes_axe_and_the_heading_is_focused_only_on_navigation(
     page.wait_for_selector("#headline .card", timeout=WAIT_MS)
     assert page.evaluate("document.activeElement.tagName") == "BODY"  # not the heading at load
     auction_id, (iteration, tuned) = tuned_auction
+    tuned_name = api.get(f"/models/{tuned}").json()["participant"]
     views = {
         "#/auctions": "#auction-list tbody tr",
         f"#/auctions/{auction_id}": "#liveness:has-text('Ended')",
         "#/models": "#model-list tbody tr",
         f"#/models/{population['saboteur']['model_id']}": "#verdict",
+        f"#/participants/{tuned_name}": "#entries tbody tr",
         "#/jobs": "#job-list tbody tr",
         f"#/jobs/{studies[0]['id']}": "#headline .card",
         f"#/jobs/compare?ids={studies[0]['id']},{studies[1]['id']}": "#compare-params",

@@ -1,8 +1,9 @@
-"""Participants: ``GET /participants/{name}``, who submitted under a name and its versions."""
+"""Participants: ``GET /participants/{name}``, who submitted under a name, its versions and the
+auctions they entered."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Path
 
@@ -11,8 +12,12 @@ from server.api.deps import SessionDep, read_in_thread
 from server.api.errors import responses
 from server.api.pages import MAX_PAGE
 from server.api.routes.models import model_summary
-from server.api.schemas import ParticipantPublic
+from server.api.schemas import EntryPublic, ParticipantPublic
+from server.store import crud
+from server.store.status import AUCTION_UNFINISHED, AuctionStatus
 from server.submissions import service as models
+
+Outcome = Literal["bought", "quit", "bidding", "stayed"]
 
 router = APIRouter(tags=["participants"])
 
@@ -22,11 +27,33 @@ async def read_participant(
     name: Annotated[Participant, Path(description="A participant's name.")], session: SessionDep
 ) -> ParticipantPublic:
     """A participant with its newest versions (up to a page; ``GET /models?participant=`` pages
-    through all of them) and how many it has."""
+    through all of them), how many it has, and the newest auctions its models entered (up to a
+    page), each with how its patron left it."""
     view = await read_in_thread(models.read_participant, session, name, limit=MAX_PAGE)
     return ParticipantPublic(
         name=view.name,
         created_at=view.created_at,
         n_versions=view.n_versions,
         versions=[model_summary(row) for row in view.versions],
+        auctions=[_entry(entry) for entry in view.entries],
+    )
+
+
+def _entry(entry: crud.Entry) -> EntryPublic:
+    status = AuctionStatus(entry.status)
+    outcome: Outcome
+    if entry.bought_at is not None:
+        outcome, iteration = "bought", entry.bought_in
+    elif entry.quit_in is not None:
+        outcome, iteration = "quit", entry.quit_in
+    else:
+        outcome, iteration = ("bidding" if status in AUCTION_UNFINISHED else "stayed"), None
+    return EntryPublic(
+        auction_id=entry.auction_id,
+        auction_status=status,
+        model_id=entry.model_id,
+        bidding_model_id=entry.bidding_id or entry.model_id,
+        outcome=outcome,
+        price=entry.bought_at,
+        iteration=iteration,
     )

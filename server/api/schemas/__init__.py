@@ -48,6 +48,7 @@ from server.api.schemas.jobs import (
 from server.api.schemas.models import (
     MAX_LISTED_AUCTIONS,
     AppealCreate,
+    EntryPublic,
     EvidencePublic,
     HeldModelPublic,
     HeldPage,
@@ -86,6 +87,7 @@ __all__ = [
     "AuctionPublic",
     "AuctionSummaryPublic",
     "BuyerPublic",
+    "EntryPublic",
     "EvidencePublic",
     "FineTuneModeName",
     "FineTuneRoundPublic",

@@ -11,7 +11,7 @@ from pydantic_core import PydanticCustomError
 
 from agents.manifest import PlainLine, PlainText
 from server.api.schemas.common import ReasonPublic, Schema, StrictInput
-from server.store.status import ModelStatus
+from server.store.status import AuctionStatus, ModelStatus
 
 VerdictName = Literal["accepted", "rejected", "held"]
 """The verdict as the lists show it (``rejected``: the status ``refused``)."""
@@ -109,13 +109,35 @@ class ModelPage(Schema):
     next_cursor: int | None
 
 
+class EntryPublic(Schema):
+    """An auction one of the participant's models entered as a patron, and how it left it."""
+
+    auction_id: int
+    auction_status: AuctionStatus
+    model_id: int
+    """The version that entered."""
+    bidding_model_id: int
+    """The version that bids now, or bid at the end: ``model_id`` unless remote fine-tuning
+    rounds replaced it."""
+    outcome: Literal["bought", "quit", "bidding", "stayed"]
+    """Bought a fish, quit, still in a pending or running auction, or stayed in without buying
+    to the auction's end (finished, cancelled or failed)."""
+    price: float | None = None
+    """What it paid (bought only)."""
+    iteration: int | None = None
+    """The iteration it bought or quit in."""
+
+
 class ParticipantPublic(Schema):
-    """A participant and its newest versions (all of them: ``GET /models?participant=``)."""
+    """A participant, its newest versions (all of them: ``GET /models?participant=``) and the
+    newest auctions its models entered (all of a model's: ``GET /models/{id}``)."""
 
     name: str
     created_at: datetime
     n_versions: int
     versions: list[ModelSummaryPublic]
+    auctions: list[EntryPublic] = Field(default_factory=list)
+    """Newest first, at most a page of them."""
 
 
 def _not_blank(text: str) -> str:

@@ -61,6 +61,7 @@ from server.store.crud.leases import (
 from server.store.crud.live import LIVE_CHANNEL, LiveKind, notify_change
 from server.store.crud.models import (
     PARTICIPANT_TOKEN_PREFIX,
+    Entry,
     ModelSummary,
     ParticipantRow,
     ParticipantView,
@@ -132,6 +133,7 @@ __all__ = [
     "AuctionSummary",
     "AuctionView",
     "Enrollment",
+    "Entry",
     "HeldModel",
     "JobState",
     "JobSummary",

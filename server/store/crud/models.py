@@ -11,7 +11,16 @@ from typing import Any
 from sqlalchemy import bindparam, func, insert, select
 from sqlalchemy.orm import Session
 
-from server.store.tables import AuctionPatron, ModelVersion, Participant, Review, participant_key
+from server.store.tables import (
+    Auction,
+    AuctionPatron,
+    ModelVersion,
+    Participant,
+    Purchase,
+    Quit,
+    Review,
+    participant_key,
+)
 
 PARTICIPANT_TOKEN_PREFIX = "srdp"
 
@@ -258,13 +267,60 @@ def list_models(
 
 
 @dataclass(frozen=True)
+class Entry:
+    """One auction a participant's model entered, and how that patron left it."""
+
+    auction_id: int
+    status: str
+    """The auction's status."""
+    model_id: int
+    """The version that entered."""
+    bidding_id: int | None
+    """The version bidding now or at the end, after remote fine-tuning (None: ``model_id``)."""
+    bought_at: float | None
+    """The price it paid, if it bought."""
+    bought_in: int | None
+    quit_in: int | None
+    """The iteration it bought or quit in."""
+
+
+@dataclass(frozen=True)
 class ParticipantView:
-    """A participant: when it registered, how many versions it has, the newest of them."""
+    """A participant: when it registered, how many versions it has, the newest of them, and the
+    newest auctions its models entered."""
 
     name: str
     created_at: datetime
     n_versions: int
     versions: list[ModelSummary]
+    entries: list[Entry]
+
+
+def _entries(session: Session, *, participant_id: int, limit: int) -> list[Entry]:
+    patron = AuctionPatron
+    versions = (patron.model_id, patron.current_model_id)  # a purchase names the bidding one
+    query = (
+        select(
+            patron.auction_id,
+            Auction.status,
+            patron.model_id,
+            patron.current_model_id,
+            Purchase.price,
+            Purchase.iteration,
+            Quit.iteration,
+        )
+        .join(ModelVersion, ModelVersion.id == patron.model_id)
+        .join(Auction, Auction.id == patron.auction_id)
+        .outerjoin(
+            Purchase,
+            (Purchase.auction_id == patron.auction_id) & Purchase.model_id.in_(versions),
+        )
+        .outerjoin(Quit, (Quit.auction_id == patron.auction_id) & Quit.model_id.in_(versions))
+        .where(ModelVersion.participant_id == participant_id)
+        .order_by(patron.auction_id.desc(), patron.position)
+        .limit(limit)
+    )
+    return [Entry(*row) for row in session.connection().execute(query)]
 
 
 def get_participant(session: Session, *, name: str, limit: int) -> ParticipantView | None:
@@ -285,7 +341,8 @@ def get_participant(session: Session, *, name: str, limit: int) -> ParticipantVi
         select(func.count()).where(ModelVersion.participant_id == row.id)
     )
     versions = list_models(session, before=None, limit=limit, participant=row.name)
-    return ParticipantView(row.name, row.created_at, int(n_versions or 0), versions)
+    entries = _entries(session, participant_id=row.id, limit=limit)
+    return ParticipantView(row.name, row.created_at, int(n_versions or 0), versions, entries)
 
 
 def patron_auctions(session: Session, *, model_id: int, limit: int) -> list[int]:

@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import os
+from datetime import UTC, datetime
 from email.utils import parsedate_to_datetime
 from pathlib import Path
 from typing import Any
@@ -102,12 +103,18 @@ def _matches(header: str, etag: str, *, weak: bool) -> bool:
     return not etag.startswith("W/") and etag in tags
 
 
-def _date(value: str) -> Any:
-    """An HTTP date, or None when it is not one (then the condition is ignored)."""
+def _date(value: str) -> datetime | None:
+    """An HTTP date in any of RFC 9110's three forms (IMF-fixdate, the obsolete RFC 850 and
+    asctime forms), always in UTC; None when it is not one (then the condition is ignored)."""
     try:
-        return parsedate_to_datetime(value)
+        date = parsedate_to_datetime(value)
     except (TypeError, ValueError):
-        return None
+        try:  # RFC 850: "Sunday, 06-Dec-26 08:49:37 GMT"
+            date = datetime.strptime(value.strip(), "%A, %d-%b-%y %H:%M:%S GMT")
+        except ValueError:
+            return None
+    # An HTTP date is in GMT whatever it says: asctime and "-0000" read as naive
+    return date.replace(tzinfo=UTC) if date.tzinfo is None else date
 
 
 def _without_range(scope: Scope) -> Scope:

@@ -10,6 +10,8 @@ import logging
 import os
 import signal
 import time
+from datetime import datetime, timedelta
+from email.utils import parsedate_to_datetime
 from pathlib import Path
 from typing import Any
 
@@ -148,6 +150,20 @@ def test_job_lifecycle(
         assert item["type"] == "precondition" and item["loc"] == ["header", *asked], item
     for asked in ({"If-None-Match": '"other"'}, {"If-Match": etag}, {"If-Modified-Since": "x"}):
         assert client.get(url, headers=asked).status_code == 200, asked
+    # RFC 9110's obsolete date forms, which carry no zone (GMT all the same), are read too.
+    later = parsedate_to_datetime(modified) + timedelta(days=1)
+    for form in (
+        "%a %b %d %H:%M:%S %Y",
+        "%A, %d-%b-%y %H:%M:%S GMT",
+        "%a, %d %b %Y %H:%M:%S -0000",
+    ):
+        assert (
+            client.get(url, headers={"If-Modified-Since": later.strftime(form)}).status_code == 304
+        ), form
+        long_ago = {"If-Unmodified-Since": datetime(1999, 1, 1).strftime(form)}
+        assert client.get(url, headers=long_ago).status_code == 412, form
+    page = client.get("/", headers={"If-Modified-Since": "Mon Jan  1 00:00:00 1900"})
+    assert page.status_code == 200 and "srd-auction" in page.text
     long_name = client.get(f"/jobs/{short}/artifacts/{'x' * 5000}")
     assert long_name.status_code == 404 and len(long_name.content) < 500
     assert client.delete(f"/jobs/{short}", headers=ADMIN).status_code == 409

@@ -18,6 +18,7 @@ import inspect
 import itertools
 import json
 import math
+import re
 import textwrap
 import time
 import types
@@ -298,6 +299,13 @@ def _too_many(field: ConfigField, value: Any) -> str | None:
     return f"{count} values: at most {field.max_items}"
 
 
+JSON_NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][-+]?[0-9]+)?")
+JSON_INTEGER = re.compile(r"-?(?:0|[1-9][0-9]*)")
+MAX_NUMBER_CHARS = 64
+"""A longer item of a numeric list is not read as a number (any option's bounds are far
+shorter to write): the validator names it."""
+
+
 def _split_list(field: ConfigField, value: Any) -> Any:
     """A list field's value as the command line spells it: a comma-separated string ("0.1,0.5")
     gives its items, each read as a JSON number for numeric lists; a single number or word
@@ -310,13 +318,16 @@ def _split_list(field: ConfigField, value: Any) -> Any:
     parts = [part.strip() for part in value.split(",")]  # an empty item is the validator's
     if field.item not in ("int", "float"):
         return parts
-    items = []
-    for part in parts:
-        try:
-            items.append(json.loads(part))
-        except json.JSONDecodeError:
-            items.append(part)  # the validator names it
-    return items
+    # a word that is not a number is left for the validator to name
+    return [part if (number := read_number(part)) is None else number for part in parts]
+
+
+def read_number(text: str) -> int | float | None:
+    """``text`` as a JSON number (an int, or a float: "1e400" is inf, refused later as not
+    finite), or None when it is not one or is longer than ``MAX_NUMBER_CHARS``."""
+    if len(text) > MAX_NUMBER_CHARS or not JSON_NUMBER.fullmatch(text):
+        return None
+    return int(text) if JSON_INTEGER.fullmatch(text) else float(text)
 
 
 def _non_finite(value: Any, path: tuple[str | int, ...]) -> list[tuple[str | int, ...]]:

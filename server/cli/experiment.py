@@ -28,11 +28,13 @@ from rich.table import Table
 from server.cli.words import header, json_failure, plain, rounded
 from server.config import Settings
 from sim.experiment import (
+    MAX_NUMBER_CHARS,
     ConfigError,
     ConfigField,
     config_fields,
     default_out_dir,
     parse_config,
+    read_number,
     write_json,
 )
 from studies.registry import ExperimentKind
@@ -127,16 +129,19 @@ def _element_message(field: str, message: str, options: dict[str, Any]) -> str:
     if not index.isdigit() or int(index) >= len(parts):
         return message
     part = parts[int(index)].strip()
-    where = f"element {int(index) + 1} of {given!r}"
+    where = f"element {int(index) + 1} of {_cut(str(given))!r}"
     if not part:
         return f"{where} is empty"
-    try:
-        number = json.loads(part)
-    except json.JSONDecodeError:
-        number = None
-    if isinstance(number, bool) or not isinstance(number, int | float):
-        return f"{where}: {part!r} is not a number"
+    if len(part) > MAX_NUMBER_CHARS:
+        return f"{where}: {len(part)} characters, too long for a number"
+    if read_number(part) is None:
+        return f"{where}: {_cut(part)!r} is not a number"
     return f"{where} ({part}): {message}"
+
+
+def _cut(text: str, most: int = 40) -> str:
+    """``text``, cut to ``most`` characters (an error line quotes what was typed)."""
+    return text if len(text) <= most else text[: most - 1] + "…"
 
 
 def _out_folder(_ctx: click.Context, _param: click.Parameter, value: str | None) -> Path | None:

@@ -289,6 +289,10 @@ def test_job_params_take_the_command_lines_spellings(
     ("params", "loc"),
     [
         ({"rarities": "0.1,x"}, ["body", "params", "rarities", 1]),
+        # items no number parser should be handed: 4400 digits, a deep nest, an overflow
+        ({"rarities": "1" * 4400}, ["body", "params", "rarities", 0]),
+        ({"rarities": "0.5," + "[" * 50000 + "]" * 50000}, ["body", "params", "rarities", 1]),
+        ({"rarities": "0.5,1e400"}, ["body", "params", "rarities", 1]),
         ({"rarities": "0.1", "trials": 1, "no-screen": "yes"}, ["body", "params", "screen"]),
         ({"srd": True}, ["body", "params", "srd"]),  # not an option of this kind
     ],

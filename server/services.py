@@ -27,6 +27,7 @@ from server.auctions.sockets import RoundSockets
 from server.auctions.steps import AUCTION_WORK
 from server.config import Settings
 from server.jobs.backend import JobCompute, job_compute
+from server.jobs.service import ENDED_JOBS_BYTES, EndedJobs
 from server.jobs.worker import JOB_WORK, discard_unsuccessful
 from server.live.events import EventHub
 from server.live.rounds import RoundWatcher
@@ -65,6 +66,8 @@ class Services:
     sqlite_lock: SqliteServerLock | None
     """Held while this process serves a SQLite database (None on PostgreSQL)."""
     readiness: Readiness
+    ended_jobs: EndedJobs
+    """The JSON of ended jobs, as ``GET /jobs/{id}`` and a job's ``end`` event send it."""
 
     async def close(self) -> None:
         """Stop what runs on the event loop (the live-update source's reads and listener)."""
@@ -215,6 +218,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         readiness=Readiness(
             database, settings.data_dir, settings.min_free_disk_mb, screening.problem
         ),
+        ended_jobs=EndedJobs(ENDED_JOBS_BYTES),
     )
     services.screening.start()
     services.auctions.start()

@@ -115,6 +115,10 @@ RUN_SETUP_COST_S = 0.03
 MAX_CELLS = 512
 """Most cells (backswing × inhibitor × SRD variants) of one grid: its figures draw a panel per
 variant and inhibitor, a line per backswing (the default grid has 20)."""
+MAX_RUNS = 4096
+"""Most trials of one grid (cells × trials): its result lists every run (about 0.2 KB each,
+so a job's result stays under a megabyte to send) and its weights artifact every run's
+weights (2.4 KB each); the default grid may take 204 trials."""
 _UNIQUE = {"uniqueItems": True}
 Gains = Annotated[
     tuple[Annotated[float, Field(ge=-100, le=100)], ...],
@@ -173,8 +177,9 @@ class CheetahConfig:
 
     def problems(self) -> list[dict[str, str]]:
         """A grid of more than ``MAX_CELLS`` cells, whatever its trials (its figures alone
-        would take minutes and gigabytes); a grid axis given with a design stage that does not
-        take it (the stages run their own conditions; only stage 4 takes ``backswing``)."""
+        would take minutes and gigabytes), or of more than ``MAX_RUNS`` trials; a grid axis
+        given with a design stage that does not take it (the stages run their own conditions;
+        only stage 4 takes ``backswing``)."""
         if self.stage is not None:
             ignored = ("inhibitor", "srd", "lr") if self.stage == 4 else GRID_AXES
             return [
@@ -188,7 +193,17 @@ class CheetahConfig:
             ]
         cells = len(grid_conditions(self))
         if cells <= MAX_CELLS:
-            return []
+            runs = cells * (1 if self.nominal else self.trials)
+            if runs <= MAX_RUNS:
+                return []
+            return [
+                {
+                    "field": "trials",
+                    "message": f"the grid runs {runs} trials ({cells} cells × {self.trials}), at "
+                    f"most {MAX_RUNS}: lower trials to at most {MAX_RUNS // cells}, or give "
+                    "fewer grid values",
+                }
+            ]
         variants = cells // (len(self.backswing) * len(self.inhibitor))
         return [
             {

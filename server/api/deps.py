@@ -30,6 +30,7 @@ from server.auctions.patrons import PatronCheck
 from server.auctions.sockets import RoundSockets
 from server.config import Settings
 from server.jobs.backend import JobCompute
+from server.jobs.service import EndedJobs
 from server.live.events import EventHub
 from server.live.rounds import RoundWatcher
 from server.screening.pool import ScreeningService
@@ -98,6 +99,10 @@ async def _readiness(services: ServicesDep) -> Readiness:
     return services.readiness
 
 
+async def _ended_jobs(services: ServicesDep) -> EndedJobs:
+    return services.ended_jobs
+
+
 SettingsDep = Annotated[Settings, Depends(_settings)]
 DatabaseDep = Annotated[Database, Depends(_database)]
 ScreeningDep = Annotated[ScreeningService, Depends(_screening)]
@@ -112,6 +117,7 @@ ComputeDep = Annotated[JobCompute, Depends(_compute)]
 """The job backend, as ``/healthz`` reports it."""
 EventHubDep = Annotated[EventHub, Depends(_events)]
 ReadinessDep = Annotated[Readiness, Depends(_readiness)]
+EndedJobsDep = Annotated[EndedJobs, Depends(_ended_jobs)]
 
 _WRITE_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
 log = logging.getLogger("srd.api")

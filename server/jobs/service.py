@@ -4,6 +4,8 @@ one of its artifact files."""
 from __future__ import annotations
 
 import logging
+import threading
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +23,9 @@ JOB_QUEUE_RETRY_AFTER_S = 30
 """``Retry-After`` of a job refused because the queue is full."""
 
 log = logging.getLogger("srd.jobs")
+
+ENDED_JOBS_BYTES = 64 << 20
+"""At most this much ended jobs' JSON is kept in each API process (``EndedJobs``)."""
 
 
 def _path(field: str) -> list[str | int]:
@@ -122,3 +127,34 @@ def artifact_path(session: Session, data_dir: Path, job_id: int, name: str) -> P
     if not path.is_relative_to(base) or not path.is_file():
         raise missing
     return path
+
+
+class EndedJobs:
+    """The JSON of ended jobs, which never change again, as ``GET /jobs/{id}`` sends it: a
+    result can be a megabyte (a cheetah grid lists every run), which took 20 ms of the event
+    loop to read, check and encode on every request. Kept least recently read first out, at
+    most ``max_bytes`` in all; a body larger than that is not kept."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self._max_bytes = max_bytes
+        self._bodies: OrderedDict[int, bytes] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def get(self, job_id: int) -> bytes | None:
+        with self._lock:
+            body = self._bodies.get(job_id)
+            if body is not None:
+                self._bodies.move_to_end(job_id)
+            return body
+
+    def put(self, job_id: int, body: bytes) -> None:
+        if len(body) > self._max_bytes:
+            return
+        with self._lock:
+            old = self._bodies.pop(job_id, None)
+            self._bytes += len(body) - (0 if old is None else len(old))
+            self._bodies[job_id] = body
+            while self._bytes > self._max_bytes:
+                _, dropped = self._bodies.popitem(last=False)
+                self._bytes -= len(dropped)

@@ -84,7 +84,7 @@ def test_a_real_failure_is_stored_with_its_cause(limited) -> None:
             },
             "repeats",
         ),
-        ({"kind": "cheetah", "params": {"trials": 1000, "steps": 1_000_000}}, "trials"),
+        ({"kind": "cheetah", "params": {"trials": 200, "steps": 1_000_000}}, "trials"),
         (
             {"kind": "auction-study", "params": {"trials": 1000, "patrons": 1024, "grid": True}},
             "trials",

@@ -410,11 +410,17 @@ def test_a_sweep_too_short_to_measure_still_draws_its_figure(tmp_path):
         ({"inhibitor": [2, 2]}, "inhibitor", "2 is given twice"),
         ({"lr": "0.1,0.1"}, "lr", "0.1 is given twice"),
         ({"backswing": list(range(1, 17)), "inhibitor": list(range(17))}, "backswing", "544 cells"),
+        (
+            {"trials": 205},
+            "trials",
+            "runs 4100 trials (20 cells × 205), at most 4096: lower trials to at most 204",
+        ),
     ],
 )
 def test_a_grid_with_a_value_twice_or_too_many_cells_is_refused(params, field, words):
     """A repeated value would count its trials twice in one cell's statistics; a grid of more
-    than 512 cells would spend minutes and gigabytes on its figures alone."""
+    than 512 cells would spend minutes and gigabytes on its figures alone, one of more than
+    4096 trials would list megabytes of runs in its result."""
     with pytest.raises(ConfigError) as refused:
         parse_config(CheetahConfig, params)
     (error,) = refused.value.errors

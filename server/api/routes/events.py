@@ -318,7 +318,8 @@ class JobSnapshot:
     """A job as its stream shows it; the whole job once it has ended."""
 
     state: crud.JobState | None
-    job: JobPublic | None
+    job: str | None
+    """The whole job's JSON, encoded once for every stream that sends it."""
 
     @property
     def final(self) -> bool:
@@ -332,7 +333,8 @@ def job_view(
     job = None
     if state is not None and state.status in JOB_ENDED:
         row = session.get(Job, job_id)
-        job = None if row is None else JobPublic.model_validate(row, from_attributes=True)
+        if row is not None:
+            job = JobPublic.model_validate(row, from_attributes=True).model_dump_json()
     return JobSnapshot(state, job)
 
 
@@ -374,7 +376,7 @@ async def job_events(
             if snapshot.state is None:
                 return
             if snapshot.final:
-                yield ServerSentEvent(event="end", data=snapshot.job)
+                yield ServerSentEvent(event="end", raw_data=snapshot.job)
                 return
             event_id = job_event_id(snapshot.state)
             if event_id != seen:

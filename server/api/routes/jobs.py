@@ -6,10 +6,17 @@ import dataclasses
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Response
 from fastapi.responses import FileResponse
 
-from server.api.deps import AdminDep, JobRunnerDep, SessionDep, SettingsDep, read_in_thread
+from server.api.deps import (
+    AdminDep,
+    EndedJobsDep,
+    JobRunnerDep,
+    SessionDep,
+    SettingsDep,
+    read_in_thread,
+)
 from server.api.errors import link, responses
 from server.api.files import ServedFile
 from server.api.pages import DEFAULT_PAGE, PageCursor, PageLimit, PageOrder, page_of
@@ -24,7 +31,7 @@ from server.api.schemas import (
 )
 from server.jobs import service as jobs
 from server.store import crud
-from server.store.status import JobStatus
+from server.store.status import JOB_ENDED, JobStatus
 from server.store.tables import Job
 
 router = APIRouter(tags=["jobs"])
@@ -68,10 +75,21 @@ def create_job(
     return JobCreated(job_id=job.id, status=JobStatus.QUEUED)
 
 
-@router.get("/jobs/{job_id}", operation_id="read_job", responses=responses(404, 422))
-async def read_job(job_id: JobIdPath, session: SessionDep) -> JobPublic:
+@router.get(
+    "/jobs/{job_id}",
+    response_model=JobPublic,
+    operation_id="read_job",
+    responses=responses(404, 422),
+)
+async def read_job(job_id: JobIdPath, session: SessionDep, ended: EndedJobsDep) -> Response:
     """A job's status, progress, result (the CLI's ``--json`` object), error and artifacts."""
-    return _job_public(await read_in_thread(jobs.read_job, session, job_id))
+    body = ended.get(job_id)
+    if body is None:
+        job = _job_public(await read_in_thread(jobs.read_job, session, job_id))
+        body = job.model_dump_json().encode()
+        if job.status in JOB_ENDED:  # it never changes again
+            ended.put(job_id, body)
+    return Response(body, media_type="application/json")
 
 
 @router.get(

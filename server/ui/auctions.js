@@ -35,6 +35,11 @@ function priceMove(row, threshold) {
   return { threshold, words: `${plural(row.votes.buy, "buy vote")} for ${row.n_available} fish: ${sold}; ${by} (−${PRICE_RULES.decrement}); stalemate below ${fixed(threshold)}` };
 }
 
+/** A share as a percentage with one decimal: "37.5%". */
+function percent(share) {
+  return `${(100 * share).toFixed(1)}%`;
+}
+
 function statusBadge(status) {
   return h("span", { class: `badge status-${status}` }, status);
 }
@@ -529,7 +534,9 @@ export function auctionView(view, id) {
           ["Fish on sale", uncounted || String(head.n_initial)],
           ["Fish left", uncounted || String(last ? last.n_available_after : head.n_initial)],
           ["Sold", String(sold)],
+          ["Purchase rate", uncounted || !head.n_initial ? "—" : `${percent(sold / head.n_initial)} of the fish on sale`],
           ["Patrons", String(head.n_patrons)],
+          ["Buyer fraction", head.n_patrons ? `${percent(sold / head.n_patrons)} of the patrons bought` : "—"],
           ...(enrolling ? [["Joined so far", joined.length ? h("span", { id: "joined" }, ...joined.flatMap((a, i) => (i ? [", ", a] : [a]))) : "none yet"]] : []),
           ["Rounds", String(rounds.length)],
           over ? ["Price asked last", fixed(last ? last.price : null)] : ["Price asked next", fixed(last ? last.next_price : head.price)],

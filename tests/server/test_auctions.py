@@ -69,6 +69,12 @@ def check_consistent(auction: dict[str, Any]) -> None:
     assert auction["n_available"] == auction["n_initial"] - len(buyer_ids)
     assert auction["price"] == history[-1]["next_price"]
     assert auction["revenue"] == pytest.approx(sum(b["price"] for b in auction["buyers"]))
+    sold = len(buyer_ids)  # the paper's purchase rate, and the reference's buyer fraction
+    assert auction["purchase_rate"] == pytest.approx(sold / auction["n_initial"])
+    assert auction["buyer_fraction"] == pytest.approx(sold / auction["n_patrons"])
+    paid = [b["price"] for b in auction["buyers"]]
+    assert auction["mean_price"] == (pytest.approx(sum(paid) / sold) if sold else None)
+    assert auction["last_price"] == history[-1]["price"]  # `price` is the next one to ask
 
 
 def test_auction_runs_to_the_end_like_the_market(

@@ -157,6 +157,9 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
         assert cells[3] == f"{buyer['price']:.3f}" and cells[4] == str(buyer["iteration"])
     summary = page.text_content("#auction-summary") or ""
     assert "finished" in summary and "sold out" in summary
+    rate = f"{100 * auction['purchase_rate']:.1f}% of the fish on sale"
+    fraction = f"{100 * auction['buyer_fraction']:.1f}% of the patrons bought"
+    assert rate in summary and fraction in summary, summary
     screenshot(page, "ui_auction.png", tmp_path, full_page=True)
     # The buyer's participant page tells the purchase, linked to this auction.
     buyer = auction["buyers"][0]

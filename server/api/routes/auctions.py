@@ -89,6 +89,8 @@ def iteration_public(row: HistoryRow | crud.AuctionRound) -> IterationPublic:
 def auction_public(view: crud.AuctionView) -> AuctionPublic:
     """The GET shape of an auction: the fields clients rely on, plus extras."""
     auction = view.auction
+    sold = len(view.purchases)
+    mean_price = round(sum(p.price for p in view.purchases) / sold, 5) if sold else None
     return AuctionPublic(
         id=auction.id,
         status=auction.status,
@@ -124,6 +126,10 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
         model_ids=view.model_ids,
         participants=view.participants,
         revenue=round(sum(p.price for p in view.purchases), 5),
+        mean_price=mean_price,
+        purchase_rate=sold / auction.n_initial if auction.n_initial else None,
+        buyer_fraction=sold / len(view.model_ids) if view.model_ids else None,
+        last_price=view.history[-1].price if view.history else None,
         rarity=auction.rarity,
         max_iterations=auction.max_iterations,
         fine_tune=auction.fine_tune,

@@ -182,6 +182,15 @@ class AuctionPublic(Schema):
     participants: list[str]
     """The participant of each patron, aligned with ``model_ids``."""
     revenue: float
+    mean_price: float | None = None
+    """The mean price paid (null: nobody bought)."""
+    purchase_rate: float | None = None
+    """Fish sold / fish on sale (the paper's purchase rate; null with no fish counted yet)."""
+    buyer_fraction: float | None = None
+    """Buyers / patrons (what the reference code plotted; null with no patrons yet)."""
+    last_price: float | None = None
+    """The price asked in the last committed iteration (``price`` is the one to ask next:
+    after the end, a price never asked); null before the first."""
     rarity: float | None
     max_iterations: int
     fine_tune: bool

@@ -79,7 +79,7 @@ def register(client: httpx.Client) -> int:
 
 
 def auction(client: httpx.Client, admin: dict[str, str]) -> int:
-    """One auction among every accepted model, watched round by round."""
+    """One auction among every accepted model, watched iteration by iteration."""
     created = client.post("/auctions", json=AUCTION, headers=admin).raise_for_status().json()
     auction_id = created["auction_id"]
     console.print(f"\n[bold]POST /auctions[/bold] {json.dumps(AUCTION)} → auction {auction_id}")
@@ -90,7 +90,7 @@ def auction(client: httpx.Client, admin: dict[str, str]) -> int:
         for row in state["history"][shown:]:
             votes = row["votes"]
             console.print(
-                f"  round {row['iteration']:>2}: price {row['price']:.4f}, "
+                f"  iteration {row['iteration']:>2}: price {row['price']:.4f}, "
                 f"{row['n_available']} fish, votes buy {votes['buy']} / hold {votes['hold']} "
                 f"/ quit {votes['quit']}"
             )
@@ -157,7 +157,7 @@ def comparison(client: httpx.Client, admin: dict[str, str], server: ServerProces
 def pages(base: str, auction_id: int, rejected_id: int, job_id: int) -> list[str]:
     """The web view's pages of this run."""
     return [
-        f"  {base}/ui/#/auctions/{auction_id}   the auction, round by round",
+        f"  {base}/ui/#/auctions/{auction_id}   the auction, iteration by iteration",
         f"  {base}/ui/#/models/{rejected_id}   the inspector's view of a rejected saboteur",
         f"  {base}/ui/#/jobs/{job_id}   the comparison job and its plots",
     ]

@@ -330,7 +330,7 @@ def end_line(watched: Watched) -> str:
         + f" after {end.get('iterations')} iteration{'' if end.get('iterations') == 1 else 's'}: "
         f"{end.get('n_sold', sold)} of "
         f"{end.get('n_initial')} fish sold, revenue {price(revenue)}, "
-        + (  # the end's price is the one asked next, which no round asked
+        + (  # the end's price is the one asked next, which no iteration asked
             f"price asked last {price(watched.iterations[-1]['price'])}"
             if watched.iterations
             else "no price asked"

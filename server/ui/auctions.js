@@ -7,7 +7,7 @@ const STOP_REASONS = {
   sold_out: "sold out",
   no_patrons: "no patron left (every one bought or quit)",
   stalemate: "stalemate (the price fell below the threshold)",
-  max_iterations: "round limit reached",
+  max_iterations: "iteration limit reached",
   cancelled: "cancelled by the operator",
 };
 const LIST_REFRESH_MS = 5000;
@@ -20,10 +20,10 @@ function stopReason(reason) {
 // The market's price rules (sim.market.MarketConfig; no auction sets them otherwise).
 const PRICE_RULES = { increment: 0.05, decrement: 0.01, threshold: 4.8 };
 
-/** Why the price moved after a round, and the stalemate threshold it leaves (docs/auction.md):
+/** Why the price moved after an iteration, and the stalemate threshold it leaves (docs/auction.md):
  * more buy votes than fish sells nothing and raises the price by the increment less U(0, 4)
- * decrements, the threshold following to a decrement above the round's price; otherwise every
- * buyer buys at the round's price and it falls by a decrement. */
+ * decrements, the threshold following to a decrement above the iteration's price; otherwise
+ * every buyer buys at the iteration's price and it falls by a decrement. */
 function priceMove(row, threshold) {
   const moved = row.next_price - row.price;
   const by = `${moved >= 0 ? "+" : "−"}${Math.abs(moved).toFixed(3)} to ${fixed(row.next_price)}`;
@@ -86,7 +86,7 @@ export function auctionList(view, query) {
     }),
   );
   const rows = h("tbody");
-  const headers = ["Auction", "Status", "Fish sold", "Patrons", "Rounds", "Price asked next", "Revenue", "Stopped", "Created"];
+  const headers = ["Auction", "Status", "Fish sold", "Patrons", "Iterations", "Price asked next", "Revenue", "Stopped", "Created"];
   const list = h(
     "table",
     { class: "list", id: "auction-list" },
@@ -170,7 +170,7 @@ export function auctionList(view, query) {
     .catch((error) => view.root.append(problem(error)));
 }
 
-/** The price line: one point per committed round, redrawn as rounds arrive. */
+/** The price line: one point per committed iteration, redrawn as iterations arrive. */
 function drawPriceChart(chart, rounds, nextPrice) {
   const { width, height, left, right, top, bottom } = CHART;
   const prices = rounds.map((r) => r.price);
@@ -196,7 +196,7 @@ function drawPriceChart(chart, rounds, nextPrice) {
     parts.push(svg("text", { class: "tick", x: x(i), y: height - bottom + 16, "text-anchor": "middle" }, String(i)));
   }
   parts.push(
-    svg("text", { class: "axis-label", x: (left + width - right) / 2, y: height - 4, "text-anchor": "middle" }, "round"),
+    svg("text", { class: "axis-label", x: (left + width - right) / 2, y: height - 4, "text-anchor": "middle" }, "iteration"),
     svg("text", { class: "axis-label", x: 12, y: top + (height - top - bottom) / 2, transform: `rotate(-90 12 ${top + (height - top - bottom) / 2})`, "text-anchor": "middle" }, "price"),
   );
   const points = prices.map((p, i) => `${x(i).toFixed(1)},${y(p).toFixed(1)}`).join(" ");
@@ -207,15 +207,15 @@ function drawPriceChart(chart, rounds, nextPrice) {
       svg(
         "circle",
         { class: sold ? "price-point sold" : "price-point", cx: x(i), cy: y(r.price), r: sold ? 4.5 : 3 },
-        svg("title", {}, `round ${r.iteration}: price ${fixed(r.price)}, ${sold} sold`),
+        svg("title", {}, `iteration ${r.iteration}: price ${fixed(r.price)}, ${sold} sold`),
       ),
     );
   });
   chart.setAttribute("data-points", String(prices.length));
-  fill(chart, svg("title", { id: "price-chart-title" }, "Price asked in each round"), parts);
+  fill(chart, svg("title", { id: "price-chart-title" }, "Price asked in each iteration"), parts);
 }
 
-/** Buy, hold and quit votes of each round, stacked. */
+/** Buy, hold and quit votes of each iteration, stacked. */
 function drawVotesChart(chart, rounds, nPatrons) {
   const { width, left, right, top } = CHART;
   const height = 160;
@@ -238,7 +238,7 @@ function drawVotesChart(chart, rounds, nPatrons) {
         svg(
           "rect",
           { class: `vote-${kind}`, x: left + i * band + band * 0.1, y: base, width: band * 0.8, height: tall },
-          svg("title", {}, `round ${r.iteration}: ${r.votes[kind]} ${kind}`),
+          svg("title", {}, `iteration ${r.iteration}: ${r.votes[kind]} ${kind}`),
         ),
       );
     }
@@ -247,8 +247,8 @@ function drawVotesChart(chart, rounds, nPatrons) {
   for (let i = 0; i < rounds.length; i += step) {
     parts.push(svg("text", { class: "tick", x: left + (i + 0.5) * band, y: height - bottom + 14, "text-anchor": "middle" }, String(i)));
   }
-  parts.push(svg("text", { class: "axis-label", x: (left + width - right) / 2, y: height - 2, "text-anchor": "middle" }, "round"));
-  fill(chart, svg("title", {}, "Votes of the patrons still in, per round"), parts);
+  parts.push(svg("text", { class: "axis-label", x: (left + width - right) / 2, y: height - 2, "text-anchor": "middle" }, "iteration"));
+  fill(chart, svg("title", {}, "Votes of the patrons still in, per iteration"), parts);
 }
 
 export function auctionView(view, id) {
@@ -256,25 +256,25 @@ export function auctionView(view, id) {
   const liveness = h("p", { class: "liveness", role: "status", id: "liveness" }, "Loading…");
   const summary = h("div");
   const priceChart = svg("svg", { class: "chart", id: "price-chart", viewBox: `0 0 ${CHART.width} ${CHART.height}`, role: "img", "aria-labelledby": "price-chart-title", "data-points": "0" });
-  const votesChart = svg("svg", { class: "chart", id: "votes-chart", viewBox: `0 0 ${CHART.width} 160`, role: "img", "aria-label": "Votes per round: buy, hold, quit" });
+  const votesChart = svg("svg", { class: "chart", id: "votes-chart", viewBox: `0 0 ${CHART.width} 160`, role: "img", "aria-label": "Votes per iteration: buy, hold, quit" });
   const roundRows = h("tbody");
   const buyerRows = h("tbody");
   const quitterList = h("ul", { class: "quitters", id: "quitters" });
   const fineTuneRows = h("tbody");
   const noneYet = (span) => h("tr", { class: "none-yet-row" }, h("td", { colspan: span, class: "none-yet" }, "none yet"));
-  // Before its first round an auction has no chart to draw: each says so instead.
+  // Before its first iteration an auction has no chart to draw: each says so instead.
   const priceNone = h("p", { class: "none-yet", id: "price-none" }, "none yet");
   const votesNone = h("p", { class: "none-yet", id: "votes-none" }, "none yet");
   const explainRound = h("select", { id: "explain-round" }, h("option", { value: "" }, "none yet"));
   const explainPatron = h("select", { id: "explain-patron" });
-  const explanation = h("div", { id: "explanation" }, h("p", { class: "none-yet" }, "None yet: pick a round and a patron."));
+  const explanation = h("div", { id: "explanation" }, h("p", { class: "none-yet" }, "None yet: pick an iteration and a patron."));
   const explainStatus = h("p", { class: "visually-hidden", role: "status", id: "explain-status" });
   const roundVotes = h("div", { id: "round-votes" });
   const explainButton = h("button", { type: "submit", disabled: true }, "Explain the vote");
   const explainForm = h(
     "form",
     { class: "filters", id: "explain-form", "aria-label": "Explain a vote" },
-    h("label", { for: "explain-round" }, "Round ", explainRound),
+    h("label", { for: "explain-round" }, "Iteration ", explainRound),
     h("label", { for: "explain-patron" }, "Patron ", explainPatron),
     explainButton,
   );
@@ -282,23 +282,23 @@ export function auctionView(view, id) {
     "section",
     { "aria-labelledby": "explain-heading", id: "explain" },
     h("h2", { id: "explain-heading" }, "Every vote explained"),
-    h("p", {}, "Why a patron voted buy, hold or quit in a round: its neurons on the row that decides (row 0), averaged over its copies as its vote was. Pick a round to see every patron's vote in it, and a patron for its neurons."),
+    h("p", {}, "Why a patron voted buy, hold or quit in an iteration: its neurons on the row that decides (row 0), averaged over its copies as its vote was. Pick an iteration to see every patron's vote in it, and a patron for its neurons."),
     explainForm,
     explainStatus,
     roundVotes,
     explanation,
   );
-  const leftAt = new Map(); // model id -> the round it bought or quit in (its last vote)
-  /** The patrons who voted in the chosen round: those who had not left before it. */
+  const leftAt = new Map(); // model id -> the iteration it bought or quit in (its last vote)
+  /** The patrons who voted in the chosen iteration: those who had not left before it. */
   function listPatrons() {
     if (!head) return;
-    const round = Number(explainRound.value || 0);
+    const iteration = Number(explainRound.value || 0);
     const picked = explainPatron.value;
-    const voters = head.model_ids.filter((modelId) => !(leftAt.get(modelId) < round));
+    const voters = head.model_ids.filter((modelId) => !(leftAt.get(modelId) < iteration));
     const none = h("option", { value: "" }, ended ? "none" : "none yet");
     explainPatron.replaceChildren(...(voters.length ? voters.map((modelId) => h("option", { value: modelId }, nameOf(modelId))) : [none]));
     if (voters.map(String).includes(picked)) explainPatron.value = picked;
-    // No vote to explain before a round is committed, or without a patron.
+    // No vote to explain before an iteration is committed, or without a patron.
     explainButton.disabled = !explainRound.value || !explainPatron.value;
   }
   explainRound.addEventListener("change", () => {
@@ -316,13 +316,13 @@ export function auctionView(view, id) {
     showRoundVotes(iteration);
     explainPatron.focus();
   }
-  /** Every patron's vote in a round: its decision logits and its PFC's verdict, each row
+  /** Every patron's vote in an iteration: its decision logits and its PFC's verdict, each row
    * opening that vote's whole explanation. */
   function showRoundVotes(iteration) {
     fill(roundVotes, h("p", { class: "liveness" }, "Loading…"));
     getJSON(`/auctions/${id}/iterations/${iteration}/votes`)
       .then((all) => {
-        if (Number(explainRound.value) !== iteration) return; // another round was picked meanwhile
+        if (Number(explainRound.value) !== iteration) return; // another iteration was picked meanwhile
         const rows = all.votes.map((v) => {
           names.set(v.model_id, v.participant);
           const open = () => {
@@ -335,31 +335,31 @@ export function auctionView(view, id) {
             h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote),
             ...fixedApart([v.decision.B, v.decision.L, v.decision.Q]),
             ...fixedApart([v.pfc.T, v.pfc.F]),
-            h("button", { type: "button", class: "explain-vote", "data-model": v.model_id, "aria-label": `Its neurons: ${v.participant}, round ${iteration}`, onclick: open }, "Its neurons"),
+            h("button", { type: "button", class: "explain-vote", "data-model": v.model_id, "aria-label": `Its neurons: ${v.participant}, iteration ${iteration}`, onclick: open }, "Its neurons"),
           ];
         });
         const counts = ["buy", "hold", "quit"].map((kind) => `${all.votes.filter((v) => v.vote === kind).length} ${kind}`).join(", ");
         fill(
           roundVotes,
           scrolling(
-            table(`Every vote in round ${iteration} at price ${fixed(all.row.price)}: ${counts}. B, L, Q are the decision logits (the largest is the vote); T and F the PFC's verdict on it`, ["Patron", "Bid with", "Vote", "B", "L", "Q", "T", "F", "Explain"], rows, { id: "round-votes-table", "data-iteration": iteration }),
-            `Every vote in round ${iteration} (scrolls)`,
+            table(`Every vote in iteration ${iteration} at price ${fixed(all.row.price)}: ${counts}. B, L, Q are the decision logits (the largest is the vote); T and F the PFC's verdict on it`, ["Patron", "Bid with", "Vote", "B", "L", "Q", "T", "F", "Explain"], rows, { id: "round-votes-table", "data-iteration": iteration }),
+            `Every vote in iteration ${iteration} (scrolls)`,
             true,
           ),
         );
-        explainStatus.textContent = `Round ${iteration}: ${all.votes.length} votes listed, ${counts}.`;
+        explainStatus.textContent = `Iteration ${iteration}: ${all.votes.length} votes listed, ${counts}.`;
       })
       .catch((error) => fill(roundVotes, problem(error)));
   }
   const weightsHash = (iteration, modelId) => `#/auctions/${id}/iterations/${iteration}/votes/${modelId}/weights`;
-  /** The version a patron bid with in a round, and whether the market had fine-tuned it. */
+  /** The version a patron bid with in an iteration, and whether the market had fine-tuned it. */
   function bidWith(iteration, v) {
     // The accessible name is the visible text after the patron's name (WCAG 2.5.3: a voice
     // user says what they see).
     const named = (href, text) => h("a", { href, "aria-label": `${v.participant}: ${text}` }, text);
     if (!v.weights_kept) return named(`#/models/${v.version_id}`, `version ${v.version}, fine-tuned (not kept)`);
     if (v.fine_tuned_after === null) return named(`#/models/${v.version_id}`, `version ${v.version}`);
-    return named(weightsHash(iteration, v.model_id), `version ${v.version}, tuned after round ${v.fine_tuned_after}`);
+    return named(weightsHash(iteration, v.model_id), `version ${v.version}, tuned after iteration ${v.fine_tuned_after}`);
   }
   /** Each named neuron's push on B, L and Q (its weight × its value; the logits are linear
    * in them, so the pushes and the bias add up to each logit), and in words what decided the
@@ -412,7 +412,7 @@ export function auctionView(view, id) {
           h(
             "div",
             { class: "explanation", "data-vote": v.vote },
-            h("h3", {}, `${v.participant} (version ${v.version}) voted `, h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote), ` in round ${v.iteration}`),
+            h("h3", {}, `${v.participant} (version ${v.version}) voted `, h("strong", { class: `vote-word vote-${v.vote}-text` }, v.vote), ` in iteration ${v.iteration}`),
             facts(Object.entries(v.row).map(([k, x]) => [k, String(x)]), { "aria-label": "The row it voted on: every decimal the network read" }),
             part("External sensor (after its activations)", "sensor", v.sensor),
             part("Decision logits (the largest is the vote)", "decision", v.decision),
@@ -423,14 +423,14 @@ export function auctionView(view, id) {
               "p",
               { id: "voted-weights" },
               v.weights_kept
-                ? link(weightsHash(v.iteration, v.model_id), v.fine_tuned_after === null ? `The weights that cast this vote: version ${v.version}'s` : `The weights that cast this vote: version ${v.version} as the market fine-tuned it after round ${v.fine_tuned_after}`)
+                ? link(weightsHash(v.iteration, v.model_id), v.fine_tuned_after === null ? `The weights that cast this vote: version ${v.version}'s` : `The weights that cast this vote: version ${v.version} as the market fine-tuned it after iteration ${v.fine_tuned_after}`)
                 : `The weights that cast this vote were not kept: this auction fine-tuned this patron inside the market before the server kept fine-tuned weights.`,
               " · ",
               link(`#/models/${v.version_id}`, `Version ${v.version} in the inspector`),
             ),
           ),
         );
-        explainStatus.textContent = `${v.participant} voted ${v.vote} in round ${v.iteration}: its neurons are shown.`;
+        explainStatus.textContent = `${v.participant} voted ${v.vote} in iteration ${v.iteration}: its neurons are shown.`;
       })
       .catch((error) => asked === explaining && fill(explanation, problem(error)));
   }
@@ -438,13 +438,13 @@ export function auctionView(view, id) {
     "section",
     { "aria-labelledby": "fine-tuning-heading", id: "fine-tuning", hidden: true },
     h("h2", { id: "fine-tuning-heading" }, "Remote fine-tuning rounds"),
-    h("p", {}, "After each of the first rounds the participants fine-tune their own patrons over HTTP; a round waits for their uploads until its deadline."),
+    h("p", {}, "After each of the auction's first iterations the participants fine-tune their own patrons over HTTP; a round waits for their uploads until its deadline."),
     scrolling(
       h(
         "table",
         { class: "list" },
         h("caption", {}, "Each fine-tuning round and how its patrons answered"),
-        h("thead", {}, h("tr", {}, ["Round", "After round", "Status", "Open", "Answers", "Each patron"].map((t) => h("th", { scope: "col" }, t)))),
+        h("thead", {}, h("tr", {}, ["Round", "After iteration", "Status", "Open", "Answers", "Each patron"].map((t) => h("th", { scope: "col" }, t)))),
         fineTuneRows,
       ),
       "Fine-tuning rounds (scrolls sideways)",
@@ -457,25 +457,25 @@ export function auctionView(view, id) {
     h(
       "section",
       { "aria-labelledby": "price-heading" },
-      h("h2", { id: "price-heading" }, "Price over the rounds"),
+      h("h2", { id: "price-heading" }, "Price over the iterations"),
       priceNone,
-      h("figure", { hidden: true }, scrolling(priceChart, "The price chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, "Each point is the price asked in a round; filled larger points are rounds in which fish were sold; the last point is the next price.")),
+      h("figure", { hidden: true }, scrolling(priceChart, "The price chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, "Each point is the price asked in an iteration; filled larger points are iterations in which fish were sold; the last point is the next price.")),
     ),
     h(
       "section",
       { "aria-labelledby": "votes-heading" },
-      h("h2", { id: "votes-heading" }, "Votes per round"),
+      h("h2", { id: "votes-heading" }, "Votes per iteration"),
       votesNone,
       h("figure", { hidden: true }, scrolling(votesChart, "The votes chart (scrolls sideways on a narrow screen)"), h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
       scrolling(
         h(
           "table",
           { class: "list", id: "rounds" },
-          h("caption", {}, "Every committed round"),
-          h("thead", {}, h("tr", {}, ["Round", "Price", "Fish at its start", "Buy", "Hold", "Quit", "Sold", "Quit now", "Why the price moved", "Votes"].map((t) => h("th", { scope: "col" }, t)))),
+          h("caption", {}, "Every committed iteration"),
+          h("thead", {}, h("tr", {}, ["Iteration", "Price", "Fish at its start", "Buy", "Hold", "Quit", "Sold", "Quit now", "Why the price moved", "Votes"].map((t) => h("th", { scope: "col" }, t)))),
           roundRows,
         ),
-        "Every committed round (scrolls)",
+        "Every committed iteration (scrolls)",
         true,
       ),
     ),
@@ -488,7 +488,7 @@ export function auctionView(view, id) {
           "table",
           { class: "list", id: "buyers" },
           h("caption", {}, "Who bought a fish, at what price, with which version"),
-          h("thead", {}, h("tr", {}, ["Participant", "Version", "Model", "Price", "Round"].map((t) => h("th", { scope: "col" }, t)))),
+          h("thead", {}, h("tr", {}, ["Participant", "Version", "Model", "Price", "Iteration"].map((t) => h("th", { scope: "col" }, t)))),
           buyerRows,
         ),
         "Buyers (scrolls sideways)",
@@ -503,7 +503,7 @@ export function auctionView(view, id) {
   quitterList.append(h("li", { class: "none-yet" }, "none yet"));
 
   const rounds = [];
-  let threshold = PRICE_RULES.threshold; // the stalemate threshold after the rounds shown
+  let threshold = PRICE_RULES.threshold; // the stalemate threshold after the iterations shown
   const stoppedBecause = (reason) =>
     reason === "stalemate" ? `stalemate (the price ${fixed(rounds.length ? rounds[rounds.length - 1].next_price : null)} fell below the threshold ${fixed(threshold)})` : stopReason(reason);
   let head = null;
@@ -512,8 +512,8 @@ export function auctionView(view, id) {
 
   function fineTuningWords(a) {
     if (a.fine_tune_mode === "remote") return `remote: up to ${a.fine_tune_rounds} rounds in which the participants fine-tune their own patrons, each open up to ${a.round_deadline_s} s`;
-    if (a.fine_tune && !a.fine_tune_rounds) return "in the market, for 0 rounds: nobody fine-tunes";
-    if (a.fine_tune) return `in the market: after each of its first ${plural(a.fine_tune_rounds, "round")}, every patron whose manifest fine-tunes (epochs above 0) fine-tunes itself, and bids on with the result if its re-screening accepts it (every vote links to the weights that cast it)`;
+    if (a.fine_tune && !a.fine_tune_rounds) return "in the market, after 0 iterations: nobody fine-tunes";
+    if (a.fine_tune) return `in the market: after each of its first ${plural(a.fine_tune_rounds, "iteration")}, every patron whose manifest fine-tunes (epochs above 0) fine-tunes itself, and bids on with the result if its re-screening accepts it (every vote links to the weights that cast it)`;
     return "none";
   }
 
@@ -538,12 +538,12 @@ export function auctionView(view, id) {
           ["Patrons", String(head.n_patrons)],
           ["Buyer fraction", head.n_patrons ? `${percent(sold / head.n_patrons)} of the patrons bought` : "—"],
           ...(enrolling ? [["Joined so far", joined.length ? h("span", { id: "joined" }, ...joined.flatMap((a, i) => (i ? [", ", a] : [a]))) : "none yet"]] : []),
-          ["Rounds", String(rounds.length)],
+          ["Iterations", String(rounds.length)],
           over ? ["Price asked last", fixed(last ? last.price : null)] : ["Price asked next", fixed(last ? last.next_price : head.price)],
           ["Revenue", fixed(rounds.reduce((n, r) => n + r.purchases.reduce((m, p) => m + p.price, 0), 0), 2)],
           ["Stopped because", stoppedBecause(state.stop_reason)],
           ["Supply", head.rarity === null ? `${head.n_initial} fish` : `rarity ${head.rarity}`],
-          ["Round limit", String(head.max_iterations)],
+          ["Iteration limit", String(head.max_iterations)],
           ["Buy fraction", head.buy_fraction],
           ["Fine-tuning", fineTuningWords(head)],
           ["Seed", String(head.seed)],
@@ -649,7 +649,7 @@ export function auctionView(view, id) {
   }
 
   // An auction read while it enrolled had no patrons and no fish yet: it is read again while
-  // it takes patrons (every few seconds), once it plays (its first round) and when it ends,
+  // it takes patrons (every few seconds), once it plays (its first iteration) and when it ends,
   // so the summary, the charts and the patron picker show the patrons it has. The read at
   // the end also shows each fine-tuning round as it ended: a closed round can change without
   // an event (an upload after its deadline is recorded late).
@@ -664,9 +664,9 @@ export function auctionView(view, id) {
       .catch(() => {}); // the stream goes on; the next read will tell
   }
   // A patron's answer in an open fine-tuning round, and an upload recorded late after one
-  // closed, send no event: while a remote auction plays on (its first round shown), its rounds
-  // are read again every few seconds, as an enrolling auction's patrons are, while the tab is
-  // shown; a row is redrawn only when it changed.
+  // closed, send no event: while a remote auction plays on (its first iteration shown), its
+  // rounds are read again every few seconds, as an enrolling auction's patrons are, while the
+  // tab is shown; a row is redrawn only when it changed.
   let rereading = false; // one read at a time: a slow server is not asked again meanwhile
   const rereads = setInterval(() => {
     if (!head || ended || document.hidden || rereading) return;
@@ -706,25 +706,25 @@ export function auctionView(view, id) {
         String(row.purchases.length),
         String(row.quits.length),
         move.words,
-        h("button", { type: "button", class: "explain-round", "data-iteration": row.iteration, onclick: () => pickRound(row.iteration) }, `Explain round ${row.iteration}`),
+        h("button", { type: "button", class: "explain-round", "data-iteration": row.iteration, onclick: () => pickRound(row.iteration) }, `Explain iteration ${row.iteration}`),
       ]),
     );
     for (const p of [...row.purchases, ...row.quits]) {
       names.set(p.model_id, p.participant);
       leftAt.set(p.model_id, row.iteration);
     }
-    explainRound.append(h("option", { value: row.iteration }, `round ${row.iteration}`));
+    explainRound.append(h("option", { value: row.iteration }, `iteration ${row.iteration}`));
     if (rounds.length === 1) listPatrons(); // a vote to explain now
     if (row.purchases.length) buyerRows.querySelector(".none-yet-row")?.remove();
     if (row.quits.length) quitterList.querySelector(".none-yet")?.remove();
     for (const p of row.purchases) {
       buyerRows.append(tableRow([patronLink(p), String(p.version), link(`#/models/${p.version_id}`, String(p.version_id)), fixed(p.price), String(row.iteration)]));
     }
-    for (const q of row.quits) quitterList.append(h("li", {}, patronLink(q), ` (version ${q.version}, round ${row.iteration})`));
+    for (const q of row.quits) quitterList.append(h("li", {}, patronLink(q), ` (version ${q.version}, iteration ${row.iteration})`));
     scheduleDraw();
   }
 
-  /** The rounds an auction's GET already holds, as its stream would send them. */
+  /** The iterations an auction's GET already holds, as its stream would send them. */
   function addRoundsOf(auction) {
     for (const row of auction.history.slice(rounds.length)) {
       const here = (p) => p.iteration === row.iteration;
@@ -733,7 +733,7 @@ export function auctionView(view, id) {
     for (const r of auction.fine_tuning) showFineTuneRound(r);
   }
 
-  // Rounds can arrive in a burst (a finished auction sends them all at once): draw once a frame.
+  // Iterations can arrive in a burst (a finished auction sends them all at once): draw once a frame.
   function draw() {
     drawPending = false;
     if (rounds.length === 0) return;
@@ -758,9 +758,9 @@ export function auctionView(view, id) {
     if (rounds.length === 0) {
       buyerRows.replaceChildren();
       quitterList.replaceChildren();
-      // It ended without a round: nothing more will come.
-      for (const none of [priceNone, votesNone, roundRows.querySelector("td"), explainRound.options[0]]) none.textContent = "none: no round was played";
-      fill(explanation, h("p", { class: "none-yet" }, "None: no round was played."));
+      // It ended without an iteration: nothing more will come.
+      for (const none of [priceNone, votesNone, roundRows.querySelector("td"), explainRound.options[0]]) none.textContent = "none: no iteration was played";
+      fill(explanation, h("p", { class: "none-yet" }, "None: no iteration was played."));
     }
     quitterList.querySelector(".none-yet")?.remove();
     if (quitterList.children.length === 0) quitterList.append(h("li", {}, "nobody quit"));
@@ -768,7 +768,7 @@ export function auctionView(view, id) {
     if (buyerRows.children.length === 0) buyerRows.append(tableRow(["nobody bought a fish", "", "", "", ""]));
     listPatrons();
     const why = outcome.stop_reason ? `, ${stoppedBecause(outcome.stop_reason)}` : "";
-    const played = outcome.iterations ? `${outcome.n_sold} of ${outcome.n_initial} fish sold in ${plural(outcome.iterations, "round")}` : "no round played";
+    const played = outcome.iterations ? `${outcome.n_sold} of ${outcome.n_initial} fish sold in ${plural(outcome.iterations, "iteration")}` : "no iteration played";
     liveness.textContent = `Ended: ${outcome.status}${why}; ${played}.`;
   }
 
@@ -798,7 +798,7 @@ export function auctionView(view, id) {
         `/auctions/${id}/events`,
         { iteration: addRound, round: showFineTuneRound, end },
         (state) => {
-          if (state === "live") liveness.textContent = "Following live: each round appears as soon as it is committed.";
+          if (state === "live") liveness.textContent = "Following live: each iteration appears as soon as it is committed.";
           if (state === "connecting") liveness.textContent = "Connecting to live updates…";
           if (state === "waiting") liveness.textContent = "Connection lost; resuming where it left off…";
           if (state === "paused") liveness.textContent = "Paused while this tab is hidden; it catches up when shown.";

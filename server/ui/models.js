@@ -473,19 +473,19 @@ function signedApart(a, b) {
 }
 
 /**
- * The weights that cast patron ``modelId``'s vote in round ``iteration`` of auction
+ * The weights that cast patron ``modelId``'s vote in iteration ``iteration`` of auction
  * ``auctionId``: its version's, or those the market had fine-tuned it to by then, with the
  * largest moves from the version it fine-tuned from.
  */
 export function votedWeightsView(view, auctionId, iteration, modelId) {
-  const title = h("h1", { tabindex: "-1" }, `The weights behind a vote in round ${iteration} of auction ${auctionId}`);
+  const title = h("h1", { tabindex: "-1" }, `The weights behind a vote in iteration ${iteration} of auction ${auctionId}`);
   view.root.append(title);
   const back = link(`#/auctions/${auctionId}`, `Auction ${auctionId}`);
   getJSON(`/auctions/${auctionId}/iterations/${iteration}/votes/${modelId}/weights`)
     .then((w) => Promise.all([w, w.fine_tuned_after === null ? null : getJSON(`/models/${w.version_id}`), loadAnatomy()]))
     .then(([w, version, a]) => {
       const manifest = w.manifest;
-      fill(title, `${w.participant}'s weights in round ${iteration} of auction ${auctionId}`);
+      fill(title, `${w.participant}'s weights in iteration ${iteration} of auction ${auctionId}`);
       const versionLink = link(`#/models/${w.version_id}`, `version ${w.version}`);
       const parts = [
         h(
@@ -493,7 +493,7 @@ export function votedWeightsView(view, auctionId, iteration, modelId) {
           { id: "weights-origin" },
           w.fine_tuned_after === null
             ? [`${w.participant} bid with `, versionLink, " as stored: these are its weights."]
-            : [`${w.participant} bid with `, versionLink, ` as the market fine-tuned it inside auction ${auctionId} after round ${w.fine_tuned_after} (its re-screening kept the result). The auction keeps these weights; they are not a version of their own.`],
+            : [`${w.participant} bid with `, versionLink, ` as the market fine-tuned it inside auction ${auctionId} after iteration ${w.fine_tuned_after} (its re-screening kept the result). The auction keeps these weights; they are not a version of their own.`],
         ),
         h("p", {}, back, " · ", h("a", { href: `/auctions/${auctionId}/iterations/${iteration}/votes/${modelId}/weights` }, "the same as JSON (its manifest is one /submit takes)")),
       ];
@@ -502,11 +502,11 @@ export function votedWeightsView(view, auctionId, iteration, modelId) {
           h(
             "section",
             { "aria-labelledby": "tunings-heading" },
-            h("h2", { id: "tunings-heading" }, `Fine-tuning in the market before round ${iteration}`),
+            h("h2", { id: "tunings-heading" }, `Fine-tuning in the market before iteration ${iteration}`),
             h(
               "ul",
               { id: "fine-tunings" },
-              w.fine_tunings.map((f) => h("li", { "data-kept": String(f.kept) }, `after round ${f.after}: ${f.kept ? "kept (its re-screening accepted the weights)" : "refused by its re-screening (the screener refused the weights, or they passed a bar by less than the review margin): it bid on with the weights it had"}`)),
+              w.fine_tunings.map((f) => h("li", { "data-kept": String(f.kept) }, `after iteration ${f.after}: ${f.kept ? "kept (its re-screening accepted the weights)" : "refused by its re-screening (the screener refused the weights, or they passed a bar by less than the review margin): it bid on with the weights it had"}`)),
             ),
           ),
         );
@@ -524,7 +524,7 @@ export function votedWeightsView(view, auctionId, iteration, modelId) {
               ? scrolling(
                   table(
                     moves.length === 1 ? `The one weight that moved from version ${w.version}` : moves.length <= MOVES_SHOWN ? `The ${moves.length} weights and biases that moved from version ${w.version}` : `The ${MOVES_SHOWN} largest of the ${moves.length} weights and biases that moved from version ${w.version}`,
-                    ["Weight", `Version ${w.version}`, `Voted in round ${iteration}`, "Change"],
+                    ["Weight", `Version ${w.version}`, `Voted in iteration ${iteration}`, "Change"],
                     moves.slice(0, MOVES_SHOWN).map(([place, b, x]) => [place, ...signedApart(b, x), signed(x - b, 6)]),
                     { id: "weight-moves" },
                   ),
@@ -541,7 +541,7 @@ export function votedWeightsView(view, auctionId, iteration, modelId) {
         view.root.append(problem(error));
         return;
       }
-      // The auction exists (its round or patron does not: say which, and go back to it), or not.
+      // The auction exists (its iteration or patron does not: say which, and go back to it), or not.
       getJSON(`/auctions/${auctionId}`)
         .then(() => view.root.append(problem(error), h("p", {}, back)))
         .catch((again) => {

@@ -79,7 +79,7 @@ export function reviewList(view) {
           h("span", { class: "free-text" }, m.participant),
           String(m.version),
           m.appeal !== null ? ["appealed: ", h("q", { class: "free-text" }, m.appeal)] : nearest(m.evidence, margin),
-          m.auction_id !== null ? link(`#/auctions/${m.auction_id}`, `auction ${m.auction_id}, round ${m.round}`) : "POST /submit",
+          m.auction_id !== null ? link(`#/auctions/${m.auction_id}`, `auction ${m.auction_id}, fine-tuning round ${m.round}`) : "POST /submit",
           when(m.created_at),
         ]),
         { class: "list", id: "review-list" },

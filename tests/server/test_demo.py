@@ -26,6 +26,8 @@ def test_the_demo_runs_the_comparison_and_says_where_to_look(tmp_path: Path) -> 
     assert done.returncode == 0, done.stderr[-3000:]
     out = done.stdout
     assert "POST /auctions {" in out and "fish sold, revenue" in out
+    # an auction's bidding steps are iterations, as the API calls them ("round" is fine-tuning)
+    assert "  iteration  0: price " in out and "  round " not in out, out
     for name in ("honest", "honest+screened", "compromised", "compromised+screened"):
         assert f"{name}: " in out  # the configuration explained, not only named
     files = [Path(line.strip()) for line in out.splitlines() if "/jobs/1/" in line]

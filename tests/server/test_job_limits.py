@@ -89,6 +89,15 @@ def test_a_real_failure_is_stored_with_its_cause(limited) -> None:
             {"kind": "auction-study", "params": {"trials": 1000, "patrons": 1024, "grid": True}},
             "trials",
         ),
+        (  # rules that never reach a stalemate: every auction plays its 1000 iterations
+            {
+                "kind": "auction-study",
+                "params": {"rarities": [r / 100 for r in range(1, 101)], "trials": 1000}
+                | {"max_iterations": 1000, "threshold_sell_price": 0, "decrement": 0.0001}
+                | {"increment": 1000},
+            },
+            "trials",
+        ),
         (  # every round fine-tunes (the default four cost 0.05 s an auction; these, minutes)
             {
                 "kind": "auction-study",

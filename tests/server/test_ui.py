@@ -137,11 +137,11 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
     auction = api.get(f"/auctions/{auction_id}").json()
     rounds = len(auction["history"])
     final = int(chart.get_attribute("data-points") or 0)
-    assert final == rounds + 1  # one point per round, and the next price
-    assert seen[0] <= 2, seen  # the page was open before most rounds were played
+    assert final == rounds + 1  # one point per iteration, and the next price
+    assert seen[0] <= 2, seen  # the page was open before most iterations were played
     assert seen == sorted(seen) and len(seen) >= 3, seen  # the line grew while the auction ran
     assert page.locator("#rounds tbody tr").count() == rounds
-    # Each round says why the price moved: demand against the fish, and the next price.
+    # Each iteration says why the price moved: demand against the fish, and the next price.
     for row, past in zip(page.locator("#rounds tbody tr").all(), auction["history"], strict=True):
         why = row.locator("td").nth(8).text_content() or ""
         votes = f"{past['votes']['buy']} buy vote" + ("" if past["votes"]["buy"] == 1 else "s")
@@ -324,7 +324,7 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     page.wait_for_selector("#auction-summary:has-text('Takes patrons until')", timeout=WAIT_MS)
     summary = page.text_content("#auction-summary") or ""
     assert "Joined so farnone yet" in summary and "Fish on salecounted when it starts" in summary
-    # Sections without a round say so, and there is no vote to explain yet.
+    # Sections without an iteration say so, and there is no vote to explain yet.
     assert page.text_content("#rounds tbody") == "none yet"
     assert page.is_visible("#price-none") and page.is_visible("#votes-none")
     assert page.locator("#explain-form button[type='submit']").is_disabled()
@@ -360,11 +360,11 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     assert api.delete(f"/auctions/{auction_id}", headers=headers).status_code == 200
     page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
     page.wait_for_selector("#liveness:has-text('Ended: cancelled')", timeout=WAIT_MS)
-    assert (page.text_content("#liveness") or "").endswith("; no round played.")
+    assert (page.text_content("#liveness") or "").endswith("; no iteration played.")
     summary = page.text_content("#auction-summary") or ""
     assert "Statuscancelled" in summary and "cancelled by the operator" in summary
     for empty in ("#price-none", "#votes-none", "#rounds tbody td", "#explain-round option"):
-        assert page.text_content(empty) == "none: no round was played", empty
+        assert page.text_content(empty) == "none: no iteration was played", empty
     assert page.locator("#explain-form button[type='submit']").is_disabled()
     page.goto(f"{server.url}/ui/#/auctions")
     page.wait_for_selector("#auction-list tbody tr", timeout=WAIT_MS)
@@ -705,13 +705,14 @@ def test_every_vote_of_a_round_opens_its_explanation(
         card = page.locator("#explanation .explanation")
         card.wait_for(timeout=WAIT_MS)
         page.wait_for_function(
-            f"document.querySelector('#explanation h3')?.textContent.endsWith('round {iteration}')"
+            "document.querySelector('#explanation h3')"
+            f"?.textContent.endsWith('iteration {iteration}')"
         )
         expected = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{model_id}").json()
         assert card.get_attribute("data-vote") == expected["vote"]
         inspector = card.locator("a[href^='#/models/']")
         assert inspector.get_attribute("href") == f"#/models/{expected['version_id']}"
-        # Every vote of the round in one table, as the API lists them.
+        # Every vote of the iteration in one table, as the API lists them.
         listed = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes").json()["votes"]
         table = page.locator(f"#round-votes-table[data-iteration='{iteration}']")
         table.wait_for(timeout=WAIT_MS)
@@ -746,14 +747,14 @@ def test_every_vote_of_a_round_opens_its_explanation(
         verdict = page.text_content("#verdict-words") or ""
         right = expected["pfc"]["T"] >= expected["pfc"]["F"]
         assert (f"judged this {expected['vote']} right" in verdict) is right, verdict
-    assert card.get_attribute("data-vote") == "buy"  # the buyer's vote in its round
+    assert card.get_attribute("data-vote") == "buy"  # the buyer's vote in its iteration
     assert page.locator("#explain-round option").count() == last + 1
     screenshot(page.locator("#explain"), "ui_vote.png", tmp_path)
-    # The patron picker names participants, and offers only those who voted in the round.
+    # The patron picker names participants, and offers only those who voted in the iteration.
     left = {b["model_id"]: b["iteration"] for b in auction["buyers"]}
     left |= {q["model_id"]: q["iteration"] for q in auction["quitter_details"]}
     named = dict(zip(auction["model_ids"], auction["participants"], strict=True))
-    assert any(at < last for at in left.values())  # someone left before the last round
+    assert any(at < last for at in left.values())  # someone left before the last iteration
     for iteration in (0, last):
         page.select_option("#explain-round", str(iteration))
         options = page.locator("#explain-patron option").all()
@@ -798,18 +799,18 @@ def test_a_vote_after_fine_tuning_in_the_market_leads_to_the_weights_that_cast_i
     page.locator(f"button.explain-round[data-iteration='{iteration}']").click()
     bid_with = page.locator(f"#round-votes-table a[href$='/votes/{tuned}/weights']")
     assert bid_with.text_content() == (
-        f"version {vote['version']}, tuned after round {vote['fine_tuned_after']}"
+        f"version {vote['version']}, tuned after iteration {vote['fine_tuned_after']}"
     )
     page.locator(f"button.explain-vote[data-model='{tuned}']").click()
     page.locator("#voted-weights a[href$='/weights']").click()
     page.wait_for_selector("#weight-moves", timeout=WAIT_MS)
     assert page.evaluate("document.activeElement.tagName") == "H1"
     origin = page.locator("#weights-origin").text_content()
-    assert f"after round {vote['fine_tuned_after']}" in origin
+    assert f"after iteration {vote['fine_tuned_after']}" in origin
     tunings = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{tuned}/weights")
     items = page.locator("#fine-tunings li").all()
     assert [(i.text_content() or "").split(":")[0] for i in items] == [
-        f"after round {f['after']}" for f in tunings.json()["fine_tunings"]
+        f"after iteration {f['after']}" for f in tunings.json()["fine_tunings"]
     ]
     # The largest move shown is the largest between the version and the weights that voted.
     weights = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{tuned}/weights")
@@ -1032,7 +1033,7 @@ def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(
             tab.evaluate(seen_as, "hidden")
             assert "Paused" in (tab.text_content("#liveness") or "")
             tabs.append(tab)
-        # a round committed, the auction still running: its votes can be explained already
+        # an iteration committed, the auction still running: its votes can be explained already
         assert tabs[0].locator("#explain-form button[type='submit']").is_enabled()
         other = context.new_page()  # an eighth page of the site, with seven live views open
         other.goto(f"{server.url}/ui/#/models")
@@ -1043,7 +1044,7 @@ def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(
         cancelled = api.delete(f"/auctions/{auction_id}", headers=headers)
         assert cancelled.status_code == 200, cancelled.text
         first.wait_for_selector("#liveness:has-text('Ended: cancelled')", timeout=WAIT_MS)
-        assert first.locator("#rounds tbody tr").count() == 1  # round 0, once
+        assert first.locator("#rounds tbody tr").count() == 1  # iteration 0, once
     finally:
         context.close()
 

@@ -12,6 +12,7 @@ from typing import Any
 from sqlalchemy.orm import Session
 
 from server.api.errors import RequestError, api_error, error_item, validation_error
+from server.api.readiness import disk_problem
 from server.jobs.worker import job_dir
 from server.store import crud
 from server.store.tables import Job
@@ -41,10 +42,13 @@ def create_job(
     params: dict[str, Any],
     budget_s: float,
     max_queued: int,
+    data_dir: Path,
+    min_free_disk_mb: int,
 ) -> Job:
     """Validate ``params`` by the kind's config, refuse a job over ``budget_s`` of estimated
-    compute (naming the option to lower and how far) or one past ``max_queued`` waiting jobs,
-    store it queued, hand it to the runner."""
+    compute (naming the option to lower and how far), one past ``max_queued`` waiting jobs or
+    one whose artifacts would go to a disk with less than ``min_free_disk_mb`` free, store it
+    queued, hand it to the runner."""
     try:
         config = build_config(kind, params)
         too_much = over_budget(config, budget_s)
@@ -57,6 +61,16 @@ def create_job(
             )
             for err in exc.errors
         ) from exc
+    if min_free_disk_mb > 0:  # its artifacts would fill what is left
+        full = disk_problem(data_dir, min_free_disk_mb, "the data folder")
+        if full is not None:
+            raise api_error(
+                503,
+                f"{full}: no job is queued until there is room for its artifacts",
+                loc=("server",),
+                kind="disk_full",
+                headers={"Retry-After": str(JOB_QUEUE_RETRY_AFTER_S)},
+            )
     crud.lock_subject(session, "queued-jobs")  # concurrent creations count one another
     queued = crud.count_queued(session)
     if queued >= max_queued:

@@ -20,7 +20,7 @@ from server.config import Settings
 from server.screening import pool
 from tests.support.factories import honest
 from tests.support.processes import serve_once
-from tests.support.server import make_settings
+from tests.support.server import ADMIN, make_settings
 
 
 @pytest.fixture
@@ -67,6 +67,13 @@ def test_too_little_free_disk(tmp_path: Path) -> None:
         assert any(str((tmp_path / "data").resolve()) in p["msg"] for p in problems)
         assert client.get("/livez").status_code == 200
         assert client.post("/submit", json={}).status_code == 422  # still serving
+        # No job is queued to write its artifacts there, and nothing of it is stored.
+        job = {"kind": "fish", "params": {"steps": 10}}
+        refused = client.post("/jobs", json=job, headers=ADMIN)
+        assert refused.status_code == 503 and refused.headers["retry-after"]
+        [item] = refused.json()["detail"]
+        assert item["type"] == "disk_full" and "SRD_MIN_FREE_DISK_MB" in item["msg"]
+        assert client.get("/jobs").json()["items"] == []
 
 
 def test_a_stalled_screener_is_not_ready(

@@ -63,7 +63,8 @@ def create_job(
 ) -> JobCreated:
     """Queue an experiment (operator); ``params`` are the CLI options of ``kind``. A job whose
     estimated compute exceeds the budget (``SRD_JOB_BUDGET_S``) is refused, naming the option
-    to lower and how far; past ``SRD_MAX_QUEUED_JOBS`` waiting jobs, 503 with ``Retry-After``."""
+    to lower and how far; past ``SRD_MAX_QUEUED_JOBS`` waiting jobs, or with less than
+    ``SRD_MIN_FREE_DISK_MB`` free for its artifacts, 503 with ``Retry-After``."""
     job = jobs.create_job(
         session,
         runner,
@@ -71,6 +72,8 @@ def create_job(
         params=body.params,
         budget_s=settings.job_budget_s,
         max_queued=settings.max_queued_jobs,
+        data_dir=settings.data_dir,
+        min_free_disk_mb=settings.min_free_disk_mb,
     )
     return JobCreated(job_id=job.id, status=JobStatus.QUEUED)
 

@@ -173,7 +173,10 @@ class CheetahConfig:
         trials = cells * (1 if self.nominal else self.trials)
         steps = TRIAL_STEPS if self.steps is None else self.steps
         seconds = trials * (RUN_SETUP_COST_S + steps * TRIAL_STEP_COST_S)
-        return Cost(seconds + cells * PLOT_CELL_COST_S, "trials")
+        # the option to lower: trials, unless there is one trial a cell and steps are given
+        many = not self.nominal and self.trials > 1
+        option = "trials" if many or self.steps is None else "steps"
+        return Cost(seconds + cells * PLOT_CELL_COST_S, option)
 
     def problems(self) -> list[dict[str, str]]:
         """A grid of more than ``MAX_CELLS`` cells, whatever its trials (its figures alone

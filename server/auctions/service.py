@@ -61,7 +61,8 @@ def patron_ids(session: Session, model_ids: list[int] | None) -> list[int]:
             f"model {model_id} is held for an inspector's review and cannot enter an auction "
             "until admitted"
             if found[model_id].status == ModelStatus.HELD
-            else f"model {model_id} was rejected by the screener and cannot enter an auction",
+            else f"model {model_id} was rejected (by the screener, or an inspector after it) "
+            "and cannot enter an auction",
             loc=("body", "model_ids", i),
             kind="held" if found[model_id].status == ModelStatus.HELD else "rejected",
         )

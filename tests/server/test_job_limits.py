@@ -85,6 +85,14 @@ def test_a_real_failure_is_stored_with_its_cause(limited) -> None:
             "repeats",
         ),
         ({"kind": "cheetah", "params": {"trials": 200, "steps": 1_000_000}}, "trials"),
+        (  # one trial a cell: its steps are what to lower
+            {
+                "kind": "cheetah",
+                "params": {"trials": 1, "steps": 1_000_000, "backswing": [1, 2, 3, 4, 5, 6, 7, 8]}
+                | {"inhibitor": [0, 1, 2, 3]},
+            },
+            "steps",
+        ),
         (
             {"kind": "auction-study", "params": {"trials": 1000, "patrons": 1024, "grid": True}},
             "trials",

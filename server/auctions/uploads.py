@@ -187,7 +187,8 @@ def _check_patron(
     if target.fine_tune_mode != "remote":
         raise api_error(
             409,
-            f"auction {auction_id} fine-tunes in the server: it has no remote rounds",
+            f"auction {auction_id} has no remote fine-tuning rounds (its fine_tune_mode is "
+            "server: the market fine-tunes its patrons itself, if at all)",
             loc=("path", "auction_id"),
             kind="not_remote",
         )

@@ -378,7 +378,7 @@ def test_upload_refusals_name_the_field_and_store_nothing(
         put(client, server_mode, 1, other_model, good, other_token),
         409,
         ["path", "auction_id"],
-        "fine-tunes in the server",
+        "has no remote fine-tuning rounds",
     )
 
 

@@ -75,6 +75,18 @@ def test_fine_tuning_changes_the_auction_and_the_patrons():
     assert plain.current_manifests() == manifests
 
 
+def test_fine_tuning_runs_in_the_first_four_iterations_by_default():
+    """The paper's schedule (the reference's bug: five), on 64 honest patrons of the paper."""
+    rng = np.random.default_rng(3)
+    manifests = [honest_manifest(rng, "honest") for _ in range(64)]
+    for rounds, expected in ((None, [0, 1, 2, 3]), (5, [0, 1, 2, 3, 4])):
+        options = {} if rounds is None else {"fine_tune_rounds": rounds}
+        config = MarketConfig(n_fish=6, fine_tune=True, seed=0, **options)
+        records = list(Market(manifests, config).run())
+        assert len(records) > len(expected)  # the auction outlived its fine-tuning
+        assert [r.iteration for r in records if r.fine_tuned] == expected
+
+
 def test_saboteurs_alone_walk_the_price_down_to_the_stalemate():
     records = list(Market(patrons(0, 0, 6), MarketConfig(n_fish=3, n_rows=8)).run())
     assert len(records) == 21  # 5.00, 4.99, ..., 4.80; then 4.79 < 4.8

@@ -60,7 +60,7 @@ def _option(field: ConfigField) -> click.Option:
     if field.bounds:
         detail.append(field.bounds)
     if field.kind == "list":
-        detail.append("comma-separated")
+        detail.append("comma-separated, or the option given again")
     help_text = plain(field.help) + (f" [{'; '.join(detail)}]" if detail else "")
     if field.kind == "bool":
         return click.Option(
@@ -80,13 +80,28 @@ def _option(field: ConfigField) -> click.Option:
         else types.get(field.kind, click.STRING)
     )
     default = None if field.default is None else _shown(field.default)
+    if field.kind == "list":  # given twice, its values add up: --backswing 1 --backswing 2,3
+        return click.Option(
+            [flag, field.name],
+            type=param_type,
+            multiple=True,
+            callback=_joined,
+            default=() if default is None else (default,),
+            show_default=default,
+            help=help_text,
+        )
     return click.Option(
         [flag, field.name],
         type=param_type,
-        default=default if field.kind == "list" else field.default,
+        default=field.default,
         show_default=default is not None,
         help=help_text,
     )
+
+
+def _joined(_ctx: click.Context, _param: click.Parameter, value: tuple[str, ...]) -> str | None:
+    """A list option given several times: all its values, in the order given."""
+    return ",".join(value) if value else None
 
 
 def experiment_command(kind: ExperimentKind) -> click.Command:

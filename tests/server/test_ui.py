@@ -1054,7 +1054,7 @@ def test_a_refused_stream_still_shows_the_auction_and_its_end(
     page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
 ) -> None:
     """A viewer whose stream the server refuses (past its address's share, say: 429) reads the
-    auction instead: its rounds, buyers and end, as the stream would have shown them."""
+    auction instead: its iterations, buyers and end, as the stream would have shown them."""
     honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
     headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
     body = {"n_fish": 2, "model_ids": honest_ids, "seed": 4}

@@ -73,6 +73,13 @@ def test_json_output_is_one_object_with_the_artifact_folder(tmp_path) -> None:
     assert {p.name for p in out.iterdir()} == {"energy.csv", "fish.png", "result.json"}
 
 
+def test_a_list_option_given_again_adds_its_values(tmp_path) -> None:
+    args = ["auction-study", "--rarities", "0.25", "--rarities", "0.5,0.75", "--trials", "1"]
+    result = CliRunner().invoke(cli, [*args, "--patrons", "8", "--json", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert [row["rarity"] for row in json.loads(result.stdout)["rows"]] == [0.25, 0.5, 0.75]
+
+
 def test_human_output_is_a_short_summary_on_stdout(tmp_path) -> None:
     out = tmp_path / "study"
     args = ["auction-study", "--rarities", "0.25,0.75", "--trials", "1", "--patrons", "8"]

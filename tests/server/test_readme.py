@@ -91,6 +91,34 @@ def test_the_quick_start_runs_as_pasted(tmp_path: Path) -> None:
             assert api.get("/ui/").status_code == 200  # the page the block points at
 
 
+def test_remote_step_by_step_runs_as_pasted(tmp_path: Path) -> None:
+    """docs/remote.md's curl walkthrough, on a fresh server: the upload is accepted."""
+    text = (ROOT / "docs" / "remote.md").read_text()
+    section = text.split("\n## Taking part, step by step with curl\n", 1)[1].split("\n## ", 1)[0]
+    [block] = re.findall(r"```sh\n(.*?)```", section, flags=re.DOTALL)
+    for name in (".venv", "examples"):  # its files land in the folder it runs in, not here
+        (tmp_path / name).symlink_to(ROOT / name)
+    data_dir = tmp_path / "data"
+    server = ServerProcess(database_url=f"sqlite:///{tmp_path / 'srd.db'}", data_dir=data_dir)
+    with server:
+        env = {**os.environ, "SRD_URL": server.url, "SRD_DATA_DIR": str(data_dir)}
+        env.pop("SRD_ADMIN_TOKEN", None)
+        run = subprocess.run(
+            ["bash", "-e", "-u", "-o", "pipefail", "-c", block],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=BLOCK_TIMEOUT_S,
+        )
+        assert run.returncode == 0, f"stdout:\n{run.stdout}\nstderr:\n{run.stderr}"
+        with httpx.Client(base_url=server.url) as api:
+            auction = api.get("/auctions/1").json()
+            [round_1] = auction["fine_tuning"]
+            [answer] = [a for a in round_1["answers"] if a["model_id"] == 1]
+            assert answer["outcome"] == "accepted" and answer["version"] == 2, answer
+
+
 @pytest.mark.parametrize("path", ["README.md", "docs/web.md"])
 def test_docs_link_to_pages_that_exist(path: str) -> None:
     text = (ROOT / path).read_text()

@@ -132,7 +132,8 @@ class _Commands(click.Group):
             option = param.opts[0] if isinstance(param, click.Option) else None
             option = option or getattr(exc, "option_name", None)  # one that does not exist
             message = exc.format_message()
-            json_failure(message, [{"option": option, "message": message}] if option else None)
+            errors = [{"option": option, "message": message}] if option else None
+            json_failure(message, errors, command=argv[0] if argv else None)
             raise SystemExit(exc.exit_code) from exc
         except click.Abort as exc:  # click's own (a Ctrl-C it caught before ours could)
             click.echo("Aborted!", err=True)

@@ -52,11 +52,16 @@ def rounded(value: float) -> str:
     return text.rstrip("0").rstrip(".") if "." in text else text
 
 
-def json_failure(message: str, errors: list[dict[str, str]] | None = None) -> None:
+def json_failure(
+    message: str, errors: list[dict[str, str]] | None = None, command: str | None = None
+) -> None:
     """A command that fails under ``--json`` still prints exactly one JSON object on stdout:
     ``{"error": message}``, with ``errors`` (``[{option, message}]``) when options were at
-    fault. The person reads the same on stderr; the exit code is the command's."""
-    obj: dict[str, Any] = {"error": message}
+    fault, and for ``srd screen`` its verdict's keys (``accepted`` false, no ``reasons``), as
+    its malformed files answer. The person reads the same on stderr; the exit code is the
+    command's."""
+    obj: dict[str, Any] = {"accepted": False, "reasons": []} if command == "screen" else {}
+    obj["error"] = message
     if errors is not None:
         obj["errors"] = errors
     sys.stdout.write(json.dumps(obj) + "\n")

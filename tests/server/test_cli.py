@@ -318,6 +318,14 @@ def test_screen_unreadable_file_exits_2(tmp_path) -> None:
     assert "cannot read" in json.loads(outcome.stdout)["errors"][0]["message"]
 
 
+def test_screen_usage_errors_keep_the_verdicts_keys() -> None:
+    for args in (["screen", "--json"], ["screen", "--json", "--margin", "7", "x.json"]):
+        outcome = CliRunner().invoke(cli, args)
+        assert outcome.exit_code == 2
+        answer = json.loads(outcome.stdout)
+        assert answer["accepted"] is False and answer["reasons"] == [] and answer["error"]
+
+
 # --- the other worlds' commands, at a tiny budget ------------------------------------------------
 
 

@@ -74,7 +74,7 @@ def create_auction(
 
 
 def iteration_public(row: HistoryRow | crud.AuctionRound) -> IterationPublic:
-    """One committed round as ``history`` and the ``iteration`` event show it."""
+    """One committed iteration as ``history`` and the ``iteration`` event show it."""
     return IterationPublic(
         iteration=row.iteration,
         price=row.price,
@@ -177,7 +177,7 @@ def fine_tune_round_public(view: crud.RoundView) -> FineTuneRoundPublic:
 
 @router.get("/auctions/{auction_id}", operation_id="read_auction", responses=responses(404, 422))
 async def read_auction(auction_id: AuctionIdPath, session: SessionDep) -> AuctionPublic:
-    """Where an auction stands: price, fish left, every committed round, buyers, quitters."""
+    """Where an auction stands: price, fish left, every committed iteration, buyers, quitters."""
     # One hop to the thread pool for the queries; the response is built on the loop (a sync
     # route would pay a second hop for FastAPI's response validation).
     view = await read_in_thread(auctions.read_auction, session, auction_id)

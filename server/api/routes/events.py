@@ -1,6 +1,6 @@
 """Server-Sent Event streams: ``GET /auctions/{id}/events`` and ``GET /jobs/{id}/events``.
 
-An auction's stream sends ``event: iteration`` once per committed round, with ``id`` = the
+An auction's stream sends ``event: iteration`` once per committed iteration, with ``id`` = the
 round's iteration (0, 1, ...) and ``data`` = the round with its purchases and quits. A remote
 fine-tuning round, which follows iteration k, adds ``event: round`` with ``id`` = ``k.1`` when
 it is open and ``k.2`` once it has closed (a round already closed when it is sent gets only
@@ -176,7 +176,7 @@ StreamSlot = Annotated[EventHub, Depends(_stream_slot)]
 
 @dataclass(frozen=True)
 class AuctionSnapshot:
-    """An auction as its stream shows it: where it stands and every committed round."""
+    """An auction as its stream shows it: where it stands and every committed iteration."""
 
     state: crud.AuctionState | None
     rounds: tuple[crud.AuctionRound, ...]
@@ -288,7 +288,7 @@ async def auction_events(
     auction_id: Annotated[int, Depends(_existing_auction)],
     settings: SettingsDep,
 ) -> AsyncIterable[ServerSentEvent]:
-    """Follow an auction live: one ``iteration`` event per committed round (``id`` = the
+    """Follow an auction live: one ``iteration`` event per committed iteration (``id`` = the
     iteration), ``round`` events for remote fine-tuning rounds (``id`` = ``k.1`` open, ``k.2``
     closed, after iteration k), then one ``end`` event, and the stream closes."""
     sent = resume  # the last event the client has

@@ -163,7 +163,7 @@ class QuitterPublic(Schema):
 
 
 class AuctionPublic(Schema):
-    """An auction as it stands; ``history`` grows by one committed row per round."""
+    """An auction as it stands; ``history`` grows by one committed row per iteration."""
 
     id: int
     status: AuctionStatus
@@ -269,7 +269,7 @@ class RoundPurchasePublic(PatronPublic):
 
 
 class IterationEvent(IterationPublic):
-    """``event: iteration`` (``id`` = ``iteration``): one committed round, its purchases and
+    """``event: iteration`` (``id`` = ``iteration``): one committed iteration, its purchases and
     quits."""
 
     purchases: list[RoundPurchasePublic]

@@ -92,7 +92,7 @@ class RoundView:
 
 @dataclass(frozen=True)
 class AuctionView:
-    """An auction row with its ordered patrons, committed rounds, purchases and quits."""
+    """An auction row with its ordered patrons, committed iterations, purchases and quits."""
 
     auction: AuctionHead
     model_ids: list[int]
@@ -208,7 +208,7 @@ def end_enrollment(session: Session, *, auction_id: int, n_fish: int | None) -> 
 
 def cancel_auction(session: Session, *, auction_id: int) -> bool:
     """Mark a pending or running auction cancelled and close its open fine-tuning round, if
-    any; False when it had already ended. Its committed rounds, purchases and quits stay."""
+    any; False when it had already ended. Its committed iterations, purchases and quits stay."""
     now = utcnow()
     # The open rounds are closed before the auction row is taken and again after: a worker
     # closing a round locks the round, then the auction (this order never deadlocks with it on

@@ -59,7 +59,7 @@ class RoundPurchase:
 
 @dataclass(frozen=True)
 class AuctionRound(IterationFigures):
-    """One committed round with the purchases and quits it made."""
+    """One committed iteration with the purchases and quits it made."""
 
     purchases: tuple[RoundPurchase, ...]
     quits: tuple[PatronRef, ...]

@@ -107,7 +107,7 @@ SettingsDep = Annotated[Settings, Depends(_settings)]
 DatabaseDep = Annotated[Database, Depends(_database)]
 ScreeningDep = Annotated[ScreeningService, Depends(_screening)]
 SubmissionsDep = Annotated[SubmissionWriter, Depends(_submissions)]
-"""The group-commit writer of ``/submit``."""
+"""The write path of ``/submit``: one transaction per submission, on a thread of the pool."""
 RoundsDep = Annotated[RoundWatcher, Depends(_rounds)]
 RoundSocketsDep = Annotated[RoundSockets, Depends(_round_sockets)]
 PatronsDep = Annotated[PatronCheck, Depends(_patrons)]

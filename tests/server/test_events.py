@@ -236,6 +236,16 @@ def test_stream_errors_use_the_error_body(
         bad = client.get(path, headers={"Last-Event-ID": bad_id})
         assert bad.status_code == 422
         assert bad.json()["detail"][0]["loc"] == ["header", "Last-Event-ID"]
+    for ahead, loc in (
+        ({"Last-Event-ID": "3"}, ["header", "Last-Event-ID"]),
+        ({}, ["query", "after"]),
+    ):
+        # an id the stream never sent: it would wait for events that never come, or skip some
+        bad = client.get(path, headers=ahead, params={} if ahead else {"after": "0.1"})
+        assert bad.status_code == 422
+        [item] = bad.json()["detail"]
+        assert item["loc"] == loc and item["type"] == "ahead"
+        assert "which has sent no iteration so far" in item["msg"], item
     negative = client.get(f"{path}?after=-1")
     assert negative.status_code == 422
     assert negative.json()["detail"][0]["loc"] == ["query", "after"]

@@ -109,14 +109,24 @@ def _position(event_id: str) -> Position:
     return int(iteration), int(phase or 0)
 
 
-def _resume_id(last_event_id: LastEventId = None, after: After = None) -> str | None:
-    return last_event_id if last_event_id is not None else after
+@dataclass(frozen=True)
+class Resume:
+    """The event a client says it has: its id, and where it said so."""
+
+    event_id: str
+    loc: tuple[str, str]
 
 
-async def _auction_resume(resume: Annotated[str | None, Depends(_resume_id)]) -> Position:
+def _resume_id(last_event_id: LastEventId = None, after: After = None) -> Resume | None:
+    if last_event_id is not None:
+        return Resume(last_event_id, ("header", "Last-Event-ID"))
+    return None if after is None else Resume(after, ("query", "after"))
+
+
+async def _auction_resume(resume: Annotated[Resume | None, Depends(_resume_id)]) -> Position:
     """Where an auction's stream resumes: after this position (before the first event if
     none)."""
-    return (-1, ROUND_CLOSED) if resume is None else _position(resume)
+    return (-1, ROUND_CLOSED) if resume is None else _position(resume.event_id)
 
 
 async def _job_resume(
@@ -267,12 +277,33 @@ def auction_end_event(state: crud.AuctionState) -> AuctionEndEvent:
     )
 
 
-async def _existing_auction(auction_id: AuctionIdPath, database: DatabaseDep) -> int:
-    def read() -> None:
-        with database.session(write=False) as session:
-            auctions.require_auction(session, auction_id)
+async def _existing_auction(
+    auction_id: AuctionIdPath,
+    database: DatabaseDep,
+    resume: Annotated[Resume | None, Depends(_resume_id)],
+) -> int:
+    """The auction's id, once it is known to exist and to have sent the event the client says
+    it has (an id ahead of its stream would wait for events that never come, or skip some)."""
 
-    await read_in_thread(read)
+    def read() -> crud.AuctionState:
+        with database.session(write=False) as session:
+            return auctions.require_auction(session, auction_id)
+
+    state = await read_in_thread(read)
+    if resume is not None and _position(resume.event_id)[0] >= state.iteration:
+        if state.iteration == 0:
+            sent = "no iteration"
+        elif state.iteration == 1:
+            sent = "iteration 0"
+        else:
+            sent = f"iterations 0 to {state.iteration - 1}"
+        raise api_error(
+            422,
+            f"event {resume.event_id} is ahead of auction {auction_id}'s stream, which has "
+            f"sent {sent} so far",
+            loc=resume.loc,
+            kind="ahead",
+        )
     return auction_id
 
 

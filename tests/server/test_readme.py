@@ -31,6 +31,20 @@ def quick_start_block() -> str:
     return talking[0]
 
 
+def run_block(block: str, cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    """A documented shell block, run as pasted (stopping at its first failing command)."""
+    run = subprocess.run(
+        ["bash", "-e", "-u", "-o", "pipefail", "-c", block],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=BLOCK_TIMEOUT_S,
+    )
+    assert run.returncode == 0, f"stdout:\n{run.stdout}\nstderr:\n{run.stderr}"
+    return run
+
+
 def test_the_block_defaults_to_what_srd_serve_does_by_default() -> None:
     block = quick_start_block()
     fields = Settings.model_fields
@@ -62,15 +76,7 @@ def test_the_quick_start_runs_as_pasted(tmp_path: Path) -> None:
     with server:  # no SRD_ADMIN_TOKEN: the server writes one, as on a first start
         env = {**os.environ, "SRD_URL": server.url, "SRD_DATA_DIR": str(data_dir)}
         env.pop("SRD_ADMIN_TOKEN", None)
-        run = subprocess.run(
-            ["bash", "-e", "-u", "-o", "pipefail", "-c", quick_start_block()],
-            cwd=ROOT,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=BLOCK_TIMEOUT_S,
-        )
-        assert run.returncode == 0, f"stdout:\n{run.stdout}\nstderr:\n{run.stderr}"
+        run = run_block(quick_start_block(), ROOT, env)
         lines = run.stdout.splitlines()
         assert lines[:5] == ["true"] * 5 and lines[6] == "2"  # verdicts, then version 2
         rules = {reason["rule"] for reason in json.loads(lines[5])}  # the saboteur's reasons
@@ -103,15 +109,7 @@ def test_remote_step_by_step_runs_as_pasted(tmp_path: Path) -> None:
     with server:
         env = {**os.environ, "SRD_URL": server.url, "SRD_DATA_DIR": str(data_dir)}
         env.pop("SRD_ADMIN_TOKEN", None)
-        run = subprocess.run(
-            ["bash", "-e", "-u", "-o", "pipefail", "-c", block],
-            cwd=tmp_path,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=BLOCK_TIMEOUT_S,
-        )
-        assert run.returncode == 0, f"stdout:\n{run.stdout}\nstderr:\n{run.stderr}"
+        run_block(block, tmp_path, env)
         with httpx.Client(base_url=server.url) as api:
             auction = api.get("/auctions/1").json()
             [round_1] = auction["fine_tuning"]

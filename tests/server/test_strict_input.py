@@ -3,7 +3,9 @@ must be written in digits; every refusal names the field and stores nothing."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import time
 from typing import Any
 
 import pytest
@@ -505,3 +507,38 @@ def test_a_submission_the_screener_cannot_judge_is_503_at_the_server(
     assert item["loc"] == ["server"] and item["type"] == "screener_unavailable"
     assert answer.headers["retry-after"] == "2"
     assert count(client, ModelVersion) == before
+
+
+@pytest.mark.parametrize(
+    "raw",
+    [
+        b'["' + b'\\"' * 128_000,  # an open string of escaped quotes: every quote restarted a scan
+        b'["' + b'\\"' * 60_000 + b'"]',
+        b'{"d": "' + (b"1" * 4300 + b" ") * 59 + b'"}',  # runs of digits just short of too long
+    ],
+)
+def test_checking_a_body_costs_time_in_proportion_to_it(raw: bytes) -> None:
+    """The checks before the parser are linear: a 256 KB body of these took minutes of the
+    event loop (quadratic patterns), now milliseconds; 5 s leaves a hundredfold margin."""
+    from server.api.body import BodyRefusedError, parse_strict_json
+
+    started = time.perf_counter()
+    with contextlib.suppress(BodyRefusedError):
+        parse_strict_json(raw)
+    assert time.perf_counter() - started < 5
+
+
+def test_blanking_secrets_in_a_logged_query_costs_time_in_proportion_to_it() -> None:
+    from server.api.hardening import redact_query
+
+    started = time.perf_counter()  # 60,000 characters without "=" had taken 42 s
+    assert redact_query("/healthz?" + "a" * 60_000) == "/healthz?" + "a" * 60_000
+    assert time.perf_counter() - started < 5
+    cases = {  # what the blanking does, unchanged
+        "/x?token=abc&b=1": "/x?token=***&b=1",
+        "/x?a?token=abc": "/x?a?token=***",
+        "/x?%74oken=abc&=v&k": "/x?%74oken=***&=v&k",
+        "/x?a=b=c&pw=1&pwd=2": "/x?a=b=c&pw=***&pwd=2",
+        "/x?q=Bearer%20srdp_x": "/x?***",
+    }
+    assert {path: redact_query(path) for path in cases} == cases

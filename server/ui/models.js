@@ -102,8 +102,10 @@ export function modelList(view, query) {
 const OUTCOMES = {
   bought: (e) => `bought a fish at ${fixed(e.price)} in iteration ${e.iteration}`,
   quit: (e) => `quit in iteration ${e.iteration}`,
+  joined: () => "joined; the auction has not started",
   bidding: () => "still bidding",
   stayed: () => "stayed to the end without buying",
+  stopped: (e) => (e.auction_status === "cancelled" ? "still bidding when the operator cancelled the auction" : "still bidding when the auction failed"),
 };
 
 /** The auctions a participant's models entered, newest first, and how each patron left. */

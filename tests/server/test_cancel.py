@@ -78,6 +78,13 @@ def test_a_pending_auction_is_cancelled_and_its_stream_ends_with_it(
     # Leased to the tests: no worker ever starts it.
     auction_id = create_unstarted_auction(settings.database_url, patrons, n_fish=2, seed=1)
     assert client.get(f"/auctions/{auction_id}").json()["status"] == "pending"
+    name = client.get(f"/models/{patrons[0]}").json()["participant"]
+
+    def outcome() -> str:  # the patron's, on its participant's page
+        entries = client.get(f"/participants/{name}").json()["auctions"]
+        return next(str(e["outcome"]) for e in entries if e["auction_id"] == auction_id)
+
+    assert outcome() == "joined"
     answer = cancel(client, auction_id)
     assert answer.status_code == 200, answer.text
     state = answer.json()
@@ -85,6 +92,7 @@ def test_a_pending_auction_is_cancelled_and_its_stream_ends_with_it(
     assert state["error"] is None and state["started_at"] is None
     assert state["finished_at"] is not None and state["history"] == []
     assert state["iteration"] == 0 and state["n_available"] == 2 and state["buyers"] == []
+    assert outcome() == "stopped"
     assert f"auction {auction_id} cancelled" in caplog.messages
     assert client.get(f"/auctions/{auction_id}").json() == state
     listed = client.get("/auctions").json()["items"]

@@ -14,10 +14,18 @@ from server.api.pages import MAX_PAGE
 from server.api.routes.models import model_summary
 from server.api.schemas import EntryPublic, ParticipantPublic
 from server.store import crud
-from server.store.status import AUCTION_UNFINISHED, AuctionStatus
+from server.store.status import AuctionStatus
 from server.submissions import service as models
 
-Outcome = Literal["bought", "quit", "bidding", "stayed"]
+Outcome = Literal["bought", "quit", "joined", "bidding", "stayed", "stopped"]
+STILL_IN: dict[AuctionStatus, Outcome] = {
+    AuctionStatus.PENDING: "joined",
+    AuctionStatus.RUNNING: "bidding",
+    AuctionStatus.FINISHED: "stayed",
+    AuctionStatus.CANCELLED: "stopped",
+    AuctionStatus.FAILED: "stopped",
+}
+"""A patron that neither bought nor quit, by its auction's status."""
 
 router = APIRouter(tags=["participants"])
 
@@ -47,7 +55,7 @@ def _entry(entry: crud.Entry) -> EntryPublic:
     elif entry.quit_in is not None:
         outcome, iteration = "quit", entry.quit_in
     else:
-        outcome, iteration = ("bidding" if status in AUCTION_UNFINISHED else "stayed"), None
+        outcome, iteration = STILL_IN[status], None
     return EntryPublic(
         auction_id=entry.auction_id,
         auction_status=status,

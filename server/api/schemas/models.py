@@ -119,9 +119,10 @@ class EntryPublic(Schema):
     bidding_model_id: int
     """The version that bids now, or bid at the end: ``model_id`` unless remote fine-tuning
     rounds replaced it."""
-    outcome: Literal["bought", "quit", "bidding", "stayed"]
-    """Bought a fish, quit, still in a pending or running auction, or stayed in without buying
-    to the auction's end (finished, cancelled or failed)."""
+    outcome: Literal["bought", "quit", "joined", "bidding", "stayed", "stopped"]
+    """Bought a fish, quit, joined an auction that has not started (pending), bidding in a
+    running one, stayed in without buying to a finished one's end, or still in when the
+    auction stopped (cancelled or failed)."""
     price: float | None = None
     """What it paid (bought only)."""
     iteration: int | None = None

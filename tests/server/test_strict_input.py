@@ -410,6 +410,16 @@ def test_integer_query_parameters_are_digits_only(client: TestClient, raw: str) 
         assert "whole number written in digits" in response.text
 
 
+@pytest.mark.parametrize("raw", ["1_0", "%2B1", "%201", "0x1", ".5", "nan", "01"])
+def test_a_long_polls_seconds_are_a_json_number(client: TestClient, raw: str) -> None:
+    response = client.get(f"/auctions/1/rounds/current?wait={raw}")
+    assert response.status_code == 422, response.text
+    assert locs(response) == [["query", "wait"]]
+    assert "JSON number" in response.text
+    for good in ("0", "0.25", "1e-05"):  # as clients print them (404: no such auction)
+        assert client.get(f"/auctions/987654/rounds/current?wait={good}").status_code == 404
+
+
 def test_artifact_name_with_a_null_byte_is_404(client: TestClient) -> None:
     created = client.post("/jobs", json={"kind": "fish", "params": {"steps": 5}}, headers=ADMIN)
     job_id = created.json()["job_id"]

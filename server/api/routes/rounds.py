@@ -37,7 +37,7 @@ from server.api.schemas import (
     RoundPublic,
     UploadPublic,
 )
-from server.api.schemas.common import digits_only
+from server.api.schemas.common import decimal_only, digits_only
 from server.auctions import patrons as patron_shares
 from server.auctions import uploads as rounds
 from server.auctions.service import not_found
@@ -88,6 +88,7 @@ async def read_current_round(
             allow_inf_nan=False,
             description="Seconds to wait for a round above ``after`` to open (or the end).",
         ),
+        BeforeValidator(decimal_only),
     ] = 0.0,
     after: Annotated[
         int,

@@ -3,6 +3,7 @@ finding, the health answers."""
 
 from __future__ import annotations
 
+import re
 from typing import Annotated, Any, Literal
 
 from fastapi import Path
@@ -19,6 +20,17 @@ def digits_only(value: Any) -> Any:
     no row (the bounds of each, from 1 or from 0, are the path parameter's)."""
     if isinstance(value, str) and not (value.isascii() and value.isdigit()):
         raise ValueError("must be a whole number written in digits, without a sign")
+    return value
+
+
+_JSON_NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][-+]?[0-9]+)?")
+
+
+def decimal_only(value: Any) -> Any:
+    """A number of seconds in a query is written as a JSON number: ``10``, ``2.5`` or
+    ``1e-05``, not ``1_0``, `` 10``, ``+10`` or ``nan`` (which Python's ``float`` reads)."""
+    if isinstance(value, str) and not (len(value) <= 32 and _JSON_NUMBER.fullmatch(value)):
+        raise ValueError("must be a number of seconds written as a JSON number, as 10 or 2.5")
     return value
 
 

@@ -322,7 +322,10 @@ def _refusal(round_number: int | None, model_id: int | None, exc: RequestError) 
 
 def _message_loc(loc: list[str | int]) -> list[str | int]:
     """A PUT's error location in the message's terms: its path parameters are the message's
-    fields, its body the message's ``manifest``."""
+    fields (but the auction's id, which is the socket's path), its body the message's
+    ``manifest``."""
+    if loc == ["path", "auction_id"]:
+        return loc
     if loc[:1] == ["path"]:
         return ["message", *loc[1:]]
     if loc[:1] == ["body"]:

@@ -30,6 +30,7 @@ from tests.server.test_remote_protocol import (
     remote_auction,
     stored_versions,
 )
+from tests.support.server import ADMIN
 
 SEED = 900
 """Patrons seeds 900..907 (any honest draws: the tests below use the asked ones)."""
@@ -210,6 +211,14 @@ def test_socket_refusals_name_the_field_and_store_nothing(
             422,
             ["message", "manifest", "augmentation", "copies"],
             "only weights and biases",
+        )
+    # An auction without remote rounds: the fault is the socket's path, not the message.
+    plain = client.post("/auctions", json={"n_fish": 1, "model_ids": [model_id]}, headers=ADMIN)
+    with client.websocket_connect(
+        socket_path(plain.json()["auction_id"]), headers=bearer(token)
+    ) as ws:
+        refusal(
+            answer_to(ws, upload_text(1, model_id, good)), 409, ["path", "auction_id"], "no remote"
         )
     assert stored_versions(client, name) == 1
     auction = client.get(f"/auctions/{remote['id']}").json()

@@ -236,6 +236,15 @@ def test_handshakes_are_refused_for_a_bad_or_unknown_auction_and_beyond_the_limi
         pass
     assert missing.value.status_code == 404
     assert missing.value.json()["detail"][0]["loc"] == ["path", "auction_id"]
+    for header in ("Basic eDp5", "Bearer", "Bearer   ", "srdp_no-scheme"):  # told at once
+        with (
+            pytest.raises(WebSocketDenialResponse) as malformed,
+            client.websocket_connect(socket_path(remote["id"]), headers={"Authorization": header}),
+        ):
+            pass
+        assert malformed.value.status_code == 401, header
+        [item] = malformed.value.json()["detail"]
+        assert item["loc"] == ["header", "Authorization"] and item["type"] == "bad_authorization"
     for bad in ("abc", "0", "99999999999"):
         with (
             pytest.raises(WebSocketDenialResponse) as invalid,

@@ -240,7 +240,20 @@ async def round_socket(
     if unknown is not None:
         await _deny(websocket, unknown)
         return
-    token = _bearer(websocket.headers.get("authorization"))
+    header = websocket.headers.get("authorization")
+    token = _bearer(header)
+    if header is not None and token is None:  # a client's mistake, told now, not at an upload
+        await _deny(
+            websocket,
+            api_error(
+                401,
+                "the Authorization header is not 'Bearer <participant token>' (leave it out to "
+                "watch the rounds without uploading)",
+                loc=("header", "Authorization"),
+                kind="bad_authorization",
+            ),
+        )
+        return
     limits = client_limits(websocket.scope)
 
     async def is_patron() -> bool:

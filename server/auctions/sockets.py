@@ -300,7 +300,9 @@ async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:
         parse_strict_json(body)
     except BodyRefusedError as exc:
         loc = ("message", "manifest", *exc.loc[1:])
-        return _error(message, exc.status, exc.msg, loc, exc.kind)
+        return _error(
+            message, exc.status, exc.msg.replace("the body", "the manifest"), loc, exc.kind
+        )
     try:
         answer = await upload(message.round, message.model_id, body, arrived)
     except RequestError as exc:

@@ -11,6 +11,11 @@ const STOP_REASONS = {
   cancelled: "cancelled by the operator",
 };
 const LIST_REFRESH_MS = 5000;
+// What a row's buy fraction f counts (GET /auctions/{id} buy_fraction).
+const BUY_FRACTIONS = {
+  all: "all: every voter counts (the paper's)",
+  staying: "staying: buyers and holders only (quitting does not lower it)",
+};
 const CHART = { width: 640, height: 240, left: 56, right: 16, top: 16, bottom: 36 };
 
 function stopReason(reason) {
@@ -29,7 +34,9 @@ function priceMove(row, threshold) {
   const by = `${moved >= 0 ? "+" : "−"}${Math.abs(moved).toFixed(3)} to ${fixed(row.next_price)}`;
   if (row.votes.buy > row.n_available) {
     const next = row.price + PRICE_RULES.decrement;
-    return { threshold: next, words: `${plural(row.votes.buy, "buy vote")} for ${row.n_available} fish: nobody buys; ${by} (+${PRICE_RULES.increment} less a draw of 0 to 4 × ${PRICE_RULES.decrement}); stalemate below ${fixed(next)}` };
+    const drawn = PRICE_RULES.increment - moved; // the random part: 0 to 4 decrements
+    const less = `+${PRICE_RULES.increment} less a random 0 to ${(4 * PRICE_RULES.decrement).toFixed(2)}, here ${fixed(Math.max(0, drawn))}`;
+    return { threshold: next, words: `${plural(row.votes.buy, "buy vote")} for ${row.n_available} fish: nobody bought; ${by} (${less}); stalemate below ${fixed(next)}` };
   }
   const sold = row.purchases.length ? `${row.purchases.length} sold at ${fixed(row.price)}` : "nobody bought";
   return { threshold, words: `${plural(row.votes.buy, "buy vote")} for ${row.n_available} fish: ${sold}; ${by} (−${PRICE_RULES.decrement}); stalemate below ${fixed(threshold)}` };
@@ -43,6 +50,9 @@ function percent(share) {
 function statusBadge(status) {
   return h("span", { class: `badge status-${status}` }, status);
 }
+
+// What the outcomes a patron's own word does not explain mean.
+const ANSWER_WORDS = { late: "arrived after the deadline, not applied", missing: "no upload before the deadline" };
 
 const STATUSES = ["pending", "running", "finished", "failed", "cancelled"];
 const NEURON_WORDS = {
@@ -90,7 +100,7 @@ export function auctionList(view, query) {
   const list = h(
     "table",
     { class: "list", id: "auction-list" },
-    h("caption", {}, `Auctions, ${chosen.order} first`),
+    h("caption", {}, `${chosen.status ? `Auctions ${chosen.status}` : "Auctions"}, ${chosen.order} first`),
     h("thead", {}, h("tr", {}, headers.map((text) => h("th", { scope: "col" }, text)))),
     rows,
   );
@@ -104,7 +114,7 @@ export function auctionList(view, query) {
         String(a.n_patrons),
         String(a.iteration),
         ["pending", "running"].includes(a.status) ? fixed(a.price) : "—",
-        fixed(a.revenue, 2),
+        fixed(a.revenue),
         a.status === "failed" && !a.stop_reason ? "it failed (why: on its page)" : stopReason(a.stop_reason),
         when(a.created_at),
       ],
@@ -121,7 +131,11 @@ export function auctionList(view, query) {
     view.root.append(problem(`No auction status is called "${chosen.status}": pick one of the list.`));
     return;
   }
-  const empty = h("p", { class: "none-yet", hidden: true }, "None yet: an operator starts one with POST /auctions.");
+  const empty = h(
+    "p",
+    { class: "none-yet", id: "no-auctions", hidden: true },
+    chosen.status ? `None matches this filter: no auction is ${chosen.status}.` : "None yet: an operator starts one with POST /auctions.",
+  );
   view.root.append(scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
   // The first page is read again every few seconds while the tab is shown: listed auctions
   // move on in place, and (newest first) new ones appear at the top.
@@ -377,7 +391,7 @@ export function auctionView(view, id) {
     const [lead, by] = gaps.reduce((a, b) => (b[1] > a[1] ? b : a));
     const words = `${won} ${fixed(v.decision[won], 4)} against ${next} ${fixed(v.decision[next], 4)}: ${lead === "bias" ? "its bias" : `${lead} (${NEURON_WORDS[lead] || lead})`} pushed ${won} over ${next} the most, by ${fixed(by, 4)}.`;
     return [
-      table("Why this vote: each neuron's push on each logit (its weight × its value), and the bias; they add up to the logits", ["Neuron", "on B", "on L", "on Q"], rows, { "data-part": "pushes" }),
+      scrolling(table("Why this vote: each neuron's push on each logit (its weight × its value), and the bias; they add up to the logits", ["Neuron", "on B", "on L", "on Q"], rows, { "data-part": "pushes" }), "Why this vote (scrolls sideways)"),
       h("p", { id: "push-words" }, words),
     ];
   }
@@ -519,6 +533,7 @@ export function auctionView(view, id) {
 
   function showSummary(state) {
     const sold = rounds.reduce((n, r) => n + r.purchases.length, 0);
+    const revenue = rounds.reduce((n, r) => n + r.purchases.reduce((m, p) => m + p.price, 0), 0);
     const last = rounds[rounds.length - 1];
     const over = !["pending", "running"].includes(state.status);
     const enrolling = state.status === "pending" && Boolean(head.enroll_until);
@@ -536,15 +551,16 @@ export function auctionView(view, id) {
           ["Sold", String(sold)],
           ["Purchase rate", uncounted || !head.n_initial ? "—" : `${percent(sold / head.n_initial)} of the fish on sale`],
           ["Patrons", String(head.n_patrons)],
-          ["Buyer fraction", head.n_patrons ? `${percent(sold / head.n_patrons)} of the patrons bought` : "—"],
+          ["Buyer fraction", head.n_patrons && state.status !== "pending" ? `${percent(sold / head.n_patrons)} of the patrons bought` : "—"],
           ...(enrolling ? [["Joined so far", joined.length ? h("span", { id: "joined" }, ...joined.flatMap((a, i) => (i ? [", ", a] : [a]))) : "none yet"]] : []),
           ["Iterations", String(rounds.length)],
           over ? ["Price asked last", fixed(last ? last.price : null)] : ["Price asked next", fixed(last ? last.next_price : head.price)],
-          ["Revenue", fixed(rounds.reduce((n, r) => n + r.purchases.reduce((m, p) => m + p.price, 0), 0), 2)],
-          ["Stopped because", stoppedBecause(state.stop_reason)],
+          ["Revenue", fixed(revenue)],
+          ["Mean price paid", sold ? fixed(revenue / sold) : "—"],
+          ["Stopped because", state.status === "failed" && state.error && !state.stop_reason ? `it failed: ${state.error}` : stoppedBecause(state.stop_reason)],
           ["Supply", head.rarity === null ? `${head.n_initial} fish` : `rarity ${head.rarity}`],
           ["Iteration limit", String(head.max_iterations)],
-          ["Buy fraction", head.buy_fraction],
+          ["Buy fraction", BUY_FRACTIONS[head.buy_fraction] || head.buy_fraction],
           ["Fine-tuning", fineTuningWords(head)],
           ["Seed", String(head.seed)],
           ...(head.enroll_until && state.status === "pending" ? [["Takes patrons until", when(head.enroll_until)]] : []),
@@ -570,12 +586,27 @@ export function auctionView(view, id) {
     const silent = r.answers.some((a) => a.outcome === "missing" || a.outcome === "late");
     return closed >= new Date(r.deadline).getTime() && silent ? "at its deadline" : "on its last answer";
   }
+  let following = false; // the event stream is live
+  let openRound = null; // the fine-tuning round open now, as read last
+  /** What the live view waits for: the next iteration, or an open round's uploads. */
+  function sayFollowing() {
+    if (!following || ended) return;
+    if (openRound) {
+      const r = openRound;
+      const asked = head.model_ids.filter((modelId) => !(leftAt.get(modelId) <= r.iteration)).length;
+      liveness.textContent = `Following live: waiting for fine-tuning round ${r.round} until ${when(r.deadline)} (${r.answers.length} of ${asked} answered).`;
+    } else liveness.textContent = "Following live: each iteration appears as soon as it is committed.";
+  }
   function showFineTuneRound(r) {
     fineTuning.hidden = false;
     const was = fineTuneShown.get(r.round);
     // A read that left before a newer event arrived never takes the row back: an open round
     // does not reopen, nor lose answers.
     if (was && ((was.status !== "open" && r.status === "open") || r.answers.length < was.answers)) return;
+    if (r.status === "open") {
+      if (!openRound || r.round >= openRound.round) openRound = r;
+    } else if (openRound && openRound.round <= r.round) openRound = null;
+    sayFollowing();
     const shows = JSON.stringify(r) + (r.closed_at ? closedWhy(r) : "");
     if (was && was.shows === shows) return; // unchanged: no redraw, no reasons read again
     fineTuneShown.set(r.round, { status: r.status, answers: r.answers.length, shows });
@@ -609,7 +640,8 @@ export function auctionView(view, id) {
   function answerItem(a) {
     // An upload of the weights it already had is accepted unscreened: no new version.
     const unchanged = a.outcome === "accepted" && a.uploaded_id === null ? " (unchanged weights, not screened)" : "";
-    const item = h("li", { "data-model": a.model_id, "data-outcome": a.outcome }, `${nameOf(a.model_id)}: ${a.outcome}${unchanged}, bids with `, link(`#/models/${a.version_id}`, `version ${a.version}`));
+    const explained = ANSWER_WORDS[a.outcome] ? ` (${ANSWER_WORDS[a.outcome]})` : "";
+    const item = h("li", { "data-model": a.model_id, "data-outcome": a.outcome }, `${nameOf(a.model_id)}: ${a.outcome}${unchanged}${explained}, bids with `, link(`#/models/${a.version_id}`, `version ${a.version}`));
     if ((a.outcome === "refused" || a.outcome === "held") && a.uploaded_id !== null) {
       // The reasons fold away (an auction of many rounds repeats them): the first is shown.
       const reasons = h("ul", { class: "reasons" });
@@ -767,7 +799,8 @@ export function auctionView(view, id) {
     buyerRows.querySelector(".none-yet-row")?.remove();
     if (buyerRows.children.length === 0) buyerRows.append(tableRow(["nobody bought a fish", "", "", "", ""]));
     listPatrons();
-    const why = outcome.stop_reason ? `, ${stoppedBecause(outcome.stop_reason)}` : "";
+    // "cancelled" says it all: its stop reason would only repeat it
+    const why = outcome.stop_reason && !(outcome.stop_reason === "cancelled" && outcome.status === "cancelled") ? `, ${stoppedBecause(outcome.stop_reason)}` : "";
     const played = outcome.iterations ? `${outcome.n_sold} of ${outcome.n_initial} fish sold in ${plural(outcome.iterations, "iteration")}` : "no iteration played";
     liveness.textContent = `Ended: ${outcome.status}${why}; ${played}.`;
   }
@@ -798,7 +831,8 @@ export function auctionView(view, id) {
         `/auctions/${id}/events`,
         { iteration: addRound, round: showFineTuneRound, end },
         (state) => {
-          if (state === "live") liveness.textContent = "Following live: each iteration appears as soon as it is committed.";
+          following = state === "live";
+          if (state === "live") sayFollowing();
           if (state === "connecting") liveness.textContent = "Connecting to live updates…";
           if (state === "waiting") liveness.textContent = "Connection lost; resuming where it left off…";
           if (state === "paused") liveness.textContent = "Paused while this tab is hidden; it catches up when shown.";

@@ -72,12 +72,14 @@ export function jobList(view, query) {
   compare.addEventListener("click", () => {
     location.hash = `#/jobs/compare?ids=${[...picked.keys()].sort((a, b) => a - b).join(",")}`;
   });
+  // The filter in words, for the caption and for a list it leaves empty.
+  const filterWords = [chosen.status && `status ${chosen.status}`, chosen.kind && `kind ${chosen.kind}`].filter(Boolean).join(", ");
   const rows = h("tbody");
   const headers = ["Compare", "Job", "Kind", "Status", "Progress", "Message", "Queued", "Finished"];
   const list = h(
     "table",
     { class: "list", id: "job-list" },
-    h("caption", {}, `Experiment jobs, ${chosen.order} first`),
+    h("caption", {}, `Experiment jobs${filterWords ? ` (${filterWords})` : ""}, ${chosen.order} first`),
     h("thead", {}, h("tr", {}, headers.map((text) => h("th", { scope: "col" }, text)))),
     rows,
   );
@@ -110,7 +112,9 @@ export function jobList(view, query) {
   pages
     .load()
     .then((page) => {
-      if (page.items.length === 0) list.after(h("p", { class: "none-yet" }, "None yet: an operator queues a job with POST /jobs."));
+      if (page.items.length) return;
+      const none = filterWords ? `None matches this filter (${filterWords}).` : "None yet: an operator queues a job with POST /jobs.";
+      list.closest(".scroll")?.after(h("p", { class: "none-yet", id: "no-jobs" }, none));
     })
     .catch((error) => view.root.append(problem(error)));
 }
@@ -335,7 +339,7 @@ export function compareView(view, query) {
       fill(
         body,
         h("p", {}, `${jobs.length} ${jobs[0].kind} jobs: `, jobs.map((j, i) => [i ? ", " : "", link(`#/jobs/${j.id}`, `job ${j.id}`), ` (${j.status})`]), ". Share this view by its address."),
-        h("section", { "aria-labelledby": "params-heading" }, h("h2", { id: "params-heading" }, "Parameters"), parameterTable(jobs)),
+        h("section", { "aria-labelledby": "params-heading" }, h("h2", { id: "params-heading" }, "Parameters"), scrolling(parameterTable(jobs), "Parameters (scrolls sideways)")),
         h(
           "section",
           { "aria-labelledby": "heads-heading" },

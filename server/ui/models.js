@@ -10,8 +10,10 @@ const NAME_PATTERN = /^[A-Za-z0-9_.-]+$/; // participant names the API accepts
 const TINY = 0.0011; // |weight| at or below the design's δ = 0.001: drawn faint
 
 function verdictBadge(model) {
-  const badge = h("span", { class: `badge verdict-${model.verdict}` }, model.verdict);
-  // an inspector's decision reads as one, not as the screener's own verdict
+  // an inspector's decision reads as one, in the model page's words (admitted, refused), not
+  // as the screener's own verdict
+  const words = model.inspected ? (model.accepted ? "admitted" : "refused") : model.verdict;
+  const badge = h("span", { class: `badge verdict-${model.verdict}` }, words);
   return model.inspected ? h("span", {}, badge, " by an inspector") : badge;
 }
 
@@ -66,7 +68,7 @@ export function modelList(view, query) {
     h("option", { value: "", selected: status === "" }, "any status"),
     h("option", { value: "accepted", selected: status === "accepted" }, "accepted"),
     h("option", { value: "held", selected: status === "held" }, "held for an inspector"),
-    h("option", { value: "refused", selected: status === "refused" }, "refused"),
+    h("option", { value: "refused", selected: status === "refused" }, "refused (rejected)"),
   );
   const form = h(
     "form",
@@ -81,7 +83,8 @@ export function modelList(view, query) {
     event.preventDefault();
     location.hash = withQuery("#/models", { participant: nameInput.value.trim(), status: verdictSelect.value });
   });
-  const { node, rows } = modelTable("Model versions, newest first", "model-list");
+  const shownFilter = [participant && `participant ${participant}`, status && `status ${status}`, accepted && `accepted ${accepted}`].filter(Boolean).join(", ");
+  const { node, rows } = modelTable(`Model versions${shownFilter ? ` (${shownFilter})` : ""}, newest first`, "model-list");
   const pages = pager("/models", { participant, accepted, status }, (items) => {
     const added = items.map(modelRow);
     rows.append(...added);
@@ -316,7 +319,7 @@ function verdictBanner(model, flagged) {
   }
   return model.accepted
     ? banner("accepted", "Accepted", " by the screener: every weight reads as its neuron's meaning asks.")
-    : banner("rejected", "Rejected", ` by the screener: ${why}. It can never enter an auction.`);
+    : banner("rejected", "Rejected", ` by the screener: ${why}. It enters no auction: its participant may appeal once (POST /models/${model.id}/appeal), and an inspector who admits it lets it in.`);
 }
 
 /** The verdict banner of ``model`` as it stands (after an inspector's decision, say). */
@@ -325,8 +328,21 @@ export function verdictNow(model) {
   return verdictBanner(model, [...new Set(model.reasons.map((r) => r.neuron).filter((n) => neurons[n]))]);
 }
 
+/** How far a priced measurement lies from its bar, on which side: "missed by 0.0043". */
+export function by(e) {
+  return `${e.passed ? "passed" : "missed"} by ${fixed(Math.abs(e.measured - e.bar), 4)}`;
+}
+
+/** Every bar the screener held a model to: its ``evidence``, one row a bar. */
+export function evidenceTable(model) {
+  const auctions = (e) => (e.detail.test_auctions ? `, ${e.detail.test_auctions} test auctions` : "");
+  const priced = (e) => e.units === "price" && e.measured !== null && e.bar !== null;
+  const rows = model.evidence.map((e) => [e.test, (e.detail.version || e.detail.check || "") + auctions(e), e.measured === null ? "—" : fixed(e.measured, 4), e.bar === null ? "—" : fixed(e.bar, 4), `${e.side} (${e.units})`, priced(e) ? by(e) : e.passed ? "passed" : "missed"]);
+  return scrolling(table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result"], rows, { id: "evidence-table" }), "Every bar (scrolls sideways)");
+}
+
 /** A model's audit log: appeals and inspectors' decisions, oldest first. */
-function auditLog(reviews) {
+export function auditLog(reviews) {
   const words = { admit: "admitted", refuse: "refused", appeal: "appealed" };
   return h(
     "section",
@@ -424,7 +440,7 @@ function settingsFacts(manifest, first) {
  * The inspector's view of model ``id``. ``extra(model)``, if given, returns nodes shown after
  * the verdict (the review page's evidence and decision); ``heading`` prefixes the title.
  */
-export function inspectorView(view, id, { extra = null, heading = "Model" } = {}) {
+export function inspectorView(view, id, { extra = null, heading = "Model", evidence = true } = {}) {
   const title = h("h1", { tabindex: "-1" }, `${heading} ${id}`);
   view.root.append(title);
   Promise.all([getJSON(`/models/${id}`), loadAnatomy()])
@@ -440,11 +456,14 @@ export function inspectorView(view, id, { extra = null, heading = "Model" } = {}
         settingsFacts(manifest, [
           ["Participant", participantLink(model.participant)],
           ["Submitted", when(model.created_at)],
+          ["Auctions entered", model.auctions.length ? h("span", { id: "model-auctions" }, model.auctions.flatMap((a, i) => [i ? ", " : "", link(`#/auctions/${a}`, `auction ${a}`)]), " (newest first)") : h("span", { id: "model-auctions" }, "none yet")],
           // An upload of a remote fine-tuning round: where it was made, and from which version.
           ...(model.auction_id !== null && model.auction_id !== undefined
             ? [["Uploaded in", [link(`#/auctions/${model.auction_id}`, `auction ${model.auction_id}`), `, fine-tuning round ${model.round}, from `, link(`#/models/${model.parent_id}`, `model ${model.parent_id}`)]]]
             : []),
         ]),
+        // The screener's bars (the inspection page shows them with its evidence instead).
+        ...(evidence && model.evidence.length ? [h("section", { "aria-labelledby": "bars-heading", id: "bars" }, h("h2", { id: "bars-heading" }, "The screener's bars"), evidenceTable(model))] : []),
         ...drawn.sections,
       );
     })

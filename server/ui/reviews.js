@@ -5,7 +5,7 @@
 
 import { ApiError, getJSON, postJSON } from "./api.js";
 import { facts, fill, fixed, h, isMissing, link, notFound, problem, scrolling, svg, table, when } from "./dom.js";
-import { inspectorView, verdictNow } from "./models.js";
+import { auditLog, by, evidenceTable, inspectorView, verdictNow } from "./models.js";
 
 let adminToken = null;
 
@@ -39,13 +39,21 @@ function withToken(view, render, heading = null) {
     box.querySelector("input")?.focus();
   };
   const start = () => {
+    // The token's field had the focus: once the page it opens is drawn, its heading takes it
+    // (the field is gone; the focus would fall to the document's body).
+    const hadFocus = box.contains(document.activeElement);
     fill(box);
-    render(box).catch((error) => {
-      if (error instanceof ApiError && (error.status === 401 || error.status === 403)) {
-        adminToken = null;
-        ask(error);
-      } else box.append(problem(error));
-    });
+    render(box)
+      .then(() => {
+        const lost = !document.activeElement || document.activeElement === document.body;
+        if (hadFocus && lost) (box.querySelector("h1") || view.root.querySelector("h1"))?.focus();
+      })
+      .catch((error) => {
+        if (error instanceof ApiError && (error.status === 401 || error.status === 403)) {
+          adminToken = null;
+          ask(error);
+        } else box.append(problem(error));
+      });
   };
   if (adminToken) start();
   else ask(null);
@@ -88,11 +96,6 @@ export function reviewList(view) {
   });
 }
 
-/** How far a priced measurement lies from its bar, on which side: "missed by 0.0043". */
-function by(e) {
-  return `${e.passed ? "passed" : "missed"} by ${fixed(Math.abs(e.measured - e.bar), 4)}`;
-}
-
 /** The priced bar closest to its measurement, in words, and what the review margin made of
  * it (``margin``: the server's, in price). */
 function nearest(evidence, margin) {
@@ -127,14 +130,11 @@ export function reviewView(view, id) {
       document.title = `Model ${id} · srd-auction`;
       return;
     }
-    inspectorView({ root: box }, id, { heading: "Inspect model", extra: (model) => [evidenceSection(model, item), decisionForm(model)] });
+    inspectorView({ root: box }, id, { heading: "Inspect model", evidence: false, extra: (model) => [evidenceSection(model, item), decisionForm(model)] });
   }, `Inspect model ${id}`);
 }
 
 function evidenceSection(model, item) {
-  const auctions = (e) => (e.detail.test_auctions ? `, ${e.detail.test_auctions} test auctions` : "");
-  const priced = (e) => e.units === "price" && e.measured !== null && e.bar !== null;
-  const rows = model.evidence.map((e) => [e.test, (e.detail.version || e.detail.check || "") + auctions(e), e.measured === null ? "—" : fixed(e.measured, 4), e.bar === null ? "—" : fixed(e.bar, 4), `${e.side} (${e.units})`, priced(e) ? by(e) : e.passed ? "passed" : "missed"]);
   const scan = model.evidence.find((e) => e.detail.clean && e.detail.noisy);
   const impacts = model.evidence.filter((e) => e.test === "market-impact");
   return h(
@@ -155,7 +155,7 @@ function evidenceSection(model, item) {
     scan ? h("figure", {}, scrolling(decisionsChart(scan.detail), "The decisions chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${Number(Number(scan.detail.noise_std).toPrecision(4))}, ${scan.detail.draws} draws): green buys, amber holds, grey quits.`)) : null,
     impacts.length ? h("figure", {}, scrolling(impactChart(impacts), "The market-impact chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions (green: passed, amber: missed) against the lowest allowed (the dashed bar), and the references (grey).")) : null,
     populationsNote(impacts),
-    scrolling(table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result"], rows, { id: "evidence-table" }), "Every bar (scrolls sideways)"),
+    evidenceTable(model),
   );
 }
 
@@ -242,8 +242,10 @@ function decisionForm(model) {
   const note = h("textarea", { id: "note", name: "note", rows: 3, maxlength: 2000, "aria-describedby": "note-public" });
   const status = h("p", { id: "decision-status", role: "status", tabindex: "-1" });
   const buttons = [
-    h("button", { type: "submit", value: "admit", id: "admit" }, "Admit"),
-    h("button", { type: "submit", value: "refuse", id: "refuse" }, "Refuse"),
+    // Plain buttons, not submit buttons: Enter in a field submits a form with its first
+    // submit button, and no keystroke in a field may admit (or refuse) a model.
+    h("button", { type: "button", value: "admit", id: "admit" }, "Admit"),
+    h("button", { type: "button", value: "refuse", id: "refuse" }, "Refuse"),
   ];
   const form = h(
     "form",
@@ -256,9 +258,12 @@ function decisionForm(model) {
     status,
   );
   form.addEventListener("submit", (event) => {
+    // Enter in the Inspector field: nothing is decided, and the page says how to decide.
     event.preventDefault();
-    const decision = event.submitter?.value;
-    if (!decision) return;
+    fill(status, "Nothing recorded: press Admit or Refuse to decide.");
+  });
+  for (const b of buttons) b.addEventListener("click", () => decide(b.value));
+  function decide(decision) {
     if (!inspector.value.trim()) {
       // the server's own words for a blank name, said before asking it
       fill(status, problem("Inspector: must name someone: it is blank."));
@@ -268,8 +273,16 @@ function decisionForm(model) {
     for (const b of buttons) b.disabled = true;
     postJSON(`/models/${model.id}/review`, { decision, inspector: inspector.value, note: note.value }, adminToken)
       .then((done) => {
-        document.getElementById("verdict")?.replaceWith(verdictNow({ ...model, ...done }));
-        fill(status, `Model ${done.model_id} is now ${done.status} (${decision} by ${inspector.value}). `, link("#/reviews", "Back to the held models"));
+        const verdict = document.getElementById("verdict");
+        const banner = verdictNow({ ...model, ...done });
+        verdict?.replaceWith(banner);
+        // The review history at the top, as the decision's answer has it now.
+        const history = auditLog(done.reviews);
+        const old = document.getElementById("model-audit");
+        if (old) old.replaceWith(history);
+        else banner.after(history);
+        const did = decision === "admit" ? "admitted" : "refused";
+        fill(status, `Model ${done.model_id} is now ${done.status} (${did} by ${inspector.value}). `, link("#/reviews", "Back to the held models"));
         status.append(facts(done.reviews.map((r) => [`${r.decision} · ${when(r.at)}`, `${r.inspector}${r.note ? `: ${r.note}` : ""}`]), { id: "audit-log" }));
         status.focus(); // the button pressed is disabled now: the focus goes to what it did
       })
@@ -278,6 +291,6 @@ function decisionForm(model) {
         fill(status, problem(error));
         status.focus();
       });
-  });
+  }
   return form;
 }

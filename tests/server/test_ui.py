@@ -147,7 +147,10 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
         votes = f"{past['votes']['buy']} buy vote" + ("" if past["votes"]["buy"] == 1 else "s")
         assert why.startswith(f"{votes} for {past['n_available']} fish")
         assert f"to {past['next_price']:.3f}" in why
-        assert ("nobody buys" in why) == (past["votes"]["buy"] > past["n_available"])
+        if past["votes"]["buy"] > past["n_available"]:  # demand: the price rose, less a draw
+            drawn = max(0.0, 0.05 - (past["next_price"] - past["price"]))
+            assert "nobody bought; +" in why, why
+            assert f"(+0.05 less a random 0 to 0.04, here {drawn:.3f})" in why, why
     buyers = page.locator("#buyers tbody tr")
     assert auction["buyers"] and buyers.count() == len(auction["buyers"])
     names = {a["model_id"]: name for name, a in population.items()}
@@ -160,6 +163,9 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
     rate = f"{100 * auction['purchase_rate']:.1f}% of the fish on sale"
     fraction = f"{100 * auction['buyer_fraction']:.1f}% of the patrons bought"
     assert rate in summary and fraction in summary, summary
+    assert f"Revenue{auction['revenue']:.3f}" in summary, summary  # to the cent's tenth, as prices
+    assert f"Mean price paid{auction['mean_price']:.3f}" in summary, summary
+    assert "Buy fractionall: every voter counts (the paper's)" in summary, summary
     screenshot(page, "ui_auction.png", tmp_path, full_page=True)
     # The buyer's participant page tells the purchase, linked to this auction.
     buyer = auction["buyers"][0]
@@ -168,6 +174,11 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
     row.wait_for(timeout=WAIT_MS)
     told = f"bought a fish at {buyer['price']:.3f} in iteration {buyer['iteration']}"
     assert told in (row.text_content() or "")
+    # Its model's page links the auction it entered, and shows every bar the screener set it.
+    page.goto(f"{server.url}/ui/#/models/{buyer['model_id']}")
+    page.wait_for_selector(f"#model-auctions a[href='#/auctions/{auction_id}']", timeout=WAIT_MS)
+    evidence = api.get(f"/models/{buyer['model_id']}").json()["evidence"]
+    assert evidence and page.locator("#evidence-table tbody tr").count() == len(evidence)
 
 
 def test_auction_page_shows_remote_fine_tuning_rounds(
@@ -199,6 +210,7 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
         assert each.count() == len(expected["answers"])
         for item, answer in zip(each.all(), expected["answers"], strict=True):
             assert item.get_attribute("data-outcome") == answer["outcome"] == "missing"
+            assert "missing (no upload before the deadline)" in (item.text_content() or "")
             version = item.locator(f"a[href='#/models/{answer['version_id']}']")
             assert version.text_content() == f"version {answer['version']}"
     # An upload after the deadline is recorded late once its round's closed event was sent,
@@ -224,6 +236,8 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
     item = f"#fine-tuning tr[data-round='1'] li[data-model='{late['model_id']}']"
     page.wait_for_selector(f"{item}[data-outcome='late']", timeout=WAIT_MS)
     assert "1 late" in (page.locator("#fine-tuning tr[data-round='1'] td").nth(4).text_content())
+    words = page.text_content(item) or ""
+    assert "late (arrived after the deadline, not applied)" in words, words
     # A select as wide as a 64-character name stays within the page.
     page.evaluate("document.querySelector('#explain-patron').add(new Option('W'.repeat(64)))")
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
@@ -251,6 +265,9 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     assert "none yet" in row.locator("td").nth(4).text_content()
     asked = api.get(f"/auctions/{auction_id}/rounds/current").json()["asked"]
     assert len(asked) >= 4, asked  # three answers leave the round open
+    # While the round is open, the live view says it waits for it, not for an iteration.
+    waiting = "#liveness:has-text('waiting for fine-tuning round 1 until')"
+    page.wait_for_selector(f"{waiting}:has-text('(0 of {len(asked)} answered)')", timeout=WAIT_MS)
     patron, second = asked[0], asked[1]
     token = next(a["token"] for a in population.values() if a["model_id"] == patron)
     put = api.put(
@@ -263,6 +280,7 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     page.wait_for_selector(item, timeout=WAIT_MS)  # no reload
     assert row.locator("td").nth(4).text_content() == "1 accepted"
     assert "accepted (unchanged weights, not screened)" in page.locator(item).text_content()
+    page.wait_for_selector(f"{waiting}:has-text('(1 of {len(asked)} answered)')", timeout=WAIT_MS)
     page.locator(f"{item} a").focus()  # the reader's place, which a redraw must keep
     # A second patron uploads new weights: a new version, which says where it was made.
     token = next(a["token"] for a in population.values() if a["model_id"] == second)
@@ -324,6 +342,7 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     page.wait_for_selector("#auction-summary:has-text('Takes patrons until')", timeout=WAIT_MS)
     summary = page.text_content("#auction-summary") or ""
     assert "Joined so farnone yet" in summary and "Fish on salecounted when it starts" in summary
+    assert "Buyer fraction—" in summary  # not "0.0% of the patrons bought" before it starts
     # Sections without an iteration say so, and there is no vote to explain yet.
     assert page.text_content("#rounds tbody") == "none yet"
     assert page.is_visible("#price-none") and page.is_visible("#votes-none")
@@ -360,12 +379,34 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     assert api.delete(f"/auctions/{auction_id}", headers=headers).status_code == 200
     page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
     page.wait_for_selector("#liveness:has-text('Ended: cancelled')", timeout=WAIT_MS)
-    assert (page.text_content("#liveness") or "").endswith("; no iteration played.")
+    # its status says why; the stop reason would only repeat it
+    assert page.text_content("#liveness") == "Ended: cancelled; no iteration played."
     summary = page.text_content("#auction-summary") or ""
     assert "Statuscancelled" in summary and "cancelled by the operator" in summary
     for empty in ("#price-none", "#votes-none", "#rounds tbody td", "#explain-round option"):
         assert page.text_content(empty) == "none: no iteration was played", empty
     assert page.locator("#explain-form button[type='submit']").is_disabled()
+    # Had it failed, its error is why it stopped (no auction of these tests fails: the same
+    # auction, its answers made a failure's).
+    failed = {
+        '"status":"cancelled"': '"status":"failed"',
+        '"stop_reason":"cancelled"': '"stop_reason":null',
+    }
+    failed['"error":null'] = '"error":"the worker stopped"'
+
+    def as_failed(route: Any) -> None:
+        answer = route.fetch()
+        body = answer.text()
+        for was, now in failed.items():
+            body = body.replace(was, now)
+        route.fulfill(response=answer, body=body)
+
+    page.route(re.compile(rf"/auctions/{auction_id}(/events.*)?$"), as_failed)
+    page.reload()
+    page.wait_for_selector("#liveness:has-text('Ended: failed')", timeout=WAIT_MS)
+    stopped = page.locator("#auction-summary dt:has-text('Stopped because') + dd")
+    assert stopped.text_content() == "it failed: the worker stopped"
+    page.unroute(re.compile(rf"/auctions/{auction_id}(/events.*)?$"))
     page.goto(f"{server.url}/ui/#/auctions")
     page.wait_for_selector("#auction-list tbody tr", timeout=WAIT_MS)
     rows = [
@@ -426,6 +467,7 @@ def test_inspector_draws_the_saboteur_neuron_by_neuron_with_the_screeners_reason
     page.goto(f"{server.url}/ui/#/models/{sabotage['model_id']}")
     page.wait_for_selector("#verdict", timeout=WAIT_MS)
     assert (page.text_content("#verdict") or "").startswith("Rejected")
+    assert "its participant may appeal once" in (page.text_content("#verdict") or "")
     # nothing printed for what it lacks (a model without reviews had a line reading "null")
     assert "null" not in (page.text_content("main") or "")
     facts = page.text_content("main") or ""
@@ -659,6 +701,9 @@ def test_jobs_compare_side_by_side_from_the_filtered_list_with_the_keyboard(
     assert page.url.endswith(f"#/jobs/compare?ids={first['id']},{second['id']}")
     assert page.locator("tr[data-param='trials']").get_attribute("class") == "differs"
     assert page.locator("tr[data-param='patrons']").get_attribute("class") is None
+    page.set_viewport_size({"width": 375, "height": 800})  # a phone: the tables scroll
+    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    page.set_viewport_size(VIEWPORT)
     diff = page.locator("table[data-diff='rows'] tbody tr")
     assert diff.count() == len(first["result"]["rows"])
     base = {r["rarity"]: r for r in first["result"]["rows"]}
@@ -681,6 +726,13 @@ def test_jobs_compare_side_by_side_from_the_filtered_list_with_the_keyboard(
     screenshot(page, "ui_compare.png", tmp_path, full_page=True)
     page.reload()  # the address alone rebuilds the view
     page.wait_for_selector("svg#overlay-0 polyline.curve", state="attached", timeout=WAIT_MS)
+    # A filter that matches nothing says so (the studies all succeeded), and the caption names it.
+    page.goto(f"{server.url}/ui/#/jobs?status=failed&kind=auction-study")
+    none = page.locator("#no-jobs")
+    none.wait_for(timeout=WAIT_MS)
+    assert none.text_content() == "None matches this filter (status failed, kind auction-study)."
+    caption = page.text_content("#job-list caption") or ""
+    assert caption.startswith("Experiment jobs (status failed, kind auction-study)")
 
 
 def test_every_vote_of_a_round_opens_its_explanation(
@@ -744,6 +796,9 @@ def test_every_vote_of_a_round_opens_its_explanation(
         won = {"buy": "B", "hold": "L", "quit": "Q"}[expected["vote"]]
         assert words.startswith(f"{won} {expected['decision'][won]:.4f} against ")
         assert "pushed" in words and "the most" in words
+        page.set_viewport_size({"width": 375, "height": 800})  # a phone: the table scrolls
+        assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+        page.set_viewport_size(VIEWPORT)
         verdict = page.text_content("#verdict-words") or ""
         right = expected["pfc"]["T"] >= expected["pfc"]["F"]
         assert (f"judged this {expected['vote']} right" in verdict) is right, verdict
@@ -941,6 +996,8 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     page.keyboard.press("Enter")
     row = page.locator(f"#review-list a[href='#/reviews/{model_id}']")
     row.wait_for(timeout=WAIT_MS)
+    # the token's field is gone: the focus is on the page's heading, not lost to the body
+    page.wait_for_function("() => document.activeElement.tagName === 'H1'", timeout=5000)
     listed = page.text_content("#review-list") or ""
     assert "market-impact" in listed and "within the review margin 0.0050 of its bar" in listed
     assert re.search(r"(passed|missed) by 0\.00[0-4][0-9]", listed), listed  # how close
@@ -979,14 +1036,25 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     page.wait_for_selector("#decision-status:has-text('could not be reached')", timeout=WAIT_MS)
     assert "whether it was recorded is unknown" in (page.text_content("#decision-status") or "")
     page.unroute(review)
+    # Enter in the Inspector field decides nothing (it used to submit with Admit, the first
+    # button): the page says how to decide, and the model stays held.
+    page.fill("#inspector", "Mallory")
+    page.focus("#inspector")
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#decision-status:has-text('Nothing recorded')", timeout=WAIT_MS)
+    model = api.get(f"/models/{model_id}").json()
+    assert (model["status"], model["reviews"]) == ("held", [])
     # Keyboard: name, note, then the admit button.
     page.fill("#inspector", "Ada")
     page.fill("#note", "a sincere low bidder")
     page.focus("#admit")
     page.keyboard.press("Enter")
     page.wait_for_selector("#decision-status:has-text('now accepted')", timeout=WAIT_MS)
-    # The verdict at the top says so, and the focus is on what the decision did.
+    # The verdict and the review history at the top say so, and the focus is on what the
+    # decision did.
     assert (page.text_content("#verdict") or "").startswith("Admitted by inspector Ada")
+    assert "Ada admitted: a sincere low bidder" in (page.text_content("#model-audit") or "")
+    assert "(admitted by Ada)" in (page.text_content("#decision-status") or "")
     assert page.evaluate("document.activeElement.id") == "decision-status"
     model = api.get(f"/models/{model_id}").json()
     assert (model["status"], model["accepted"]) == ("accepted", True)
@@ -1004,7 +1072,7 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     page.goto(f"{server.url}/ui/#/models?participant={model['participant']}")
     row = page.locator(f"tr:has(a[href='#/models/{model_id}'])")
     row.wait_for(timeout=WAIT_MS)
-    assert "accepted by an inspector" in (row.text_content() or "")
+    assert "admitted by an inspector" in (row.text_content() or "")
 
 
 def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(
@@ -1112,6 +1180,14 @@ def test_a_models_page_says_who_decided_and_keeps_the_review_history(
     page.set_viewport_size({"width": 375, "height": 800})  # a phone: tables scroll, not the page
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
     page.set_viewport_size(VIEWPORT)
+    # Its inspection page, opened afresh (the token is gone with the page): once the token is
+    # entered, the focus is on the page's heading.
+    page.goto(f"{server.url}/ui/#/reviews/{saboteur['model_id']}")
+    page.reload()
+    page.fill("#admin-token", ADMIN_TOKEN)
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#evidence #appeal", timeout=WAIT_MS)
+    page.wait_for_function("() => document.activeElement.tagName === 'H1'", timeout=5000)
     decided = api.post(
         f"/models/{saboteur['model_id']}/review",
         json={"decision": "refuse", "inspector": "Grace", "note": "holds to sink the price"},
@@ -1147,7 +1223,13 @@ def test_a_malformed_participant_address_gets_the_not_found_page(
     page.goto(f"{server.url}/ui/#/models?status=refused")
     page.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)
     verdicts = page.locator("#model-list tbody tr td:nth-child(4)").all_text_contents()
-    assert verdicts and all("rejected" in v for v in verdicts), verdicts
+    # the screener's refusals read "rejected", an inspector's as the model's page says
+    refused = ("rejected", "refused by an inspector")
+    assert verdicts and all(any(w in v for w in refused) for v in verdicts), verdicts
+    page.goto(f"{server.url}/ui/#/auctions?status=failed")  # no auction of these tests fails
+    page.wait_for_selector("#no-auctions:visible", timeout=WAIT_MS)
+    assert page.text_content("#no-auctions") == "None matches this filter: no auction is failed."
+    assert (page.text_content("#auction-list caption") or "").startswith("Auctions failed")
     # The last "Show older" goes with its page: the focus moves to the first row it added.
     total = len(api.get("/models", params={"limit": 100}).json()["items"])
     page.route(

@@ -281,7 +281,13 @@ export function auctionView(view, id) {
   const votesNone = h("p", { class: "none-yet", id: "votes-none" }, "none yet");
   const explainRound = h("select", { id: "explain-round" }, h("option", { value: "" }, "none yet"));
   const explainPatron = h("select", { id: "explain-patron" });
-  const explanation = h("div", { id: "explanation" }, h("p", { class: "none-yet" }, "None yet: pick an iteration and a patron."));
+  // What the explanation's place says before a vote is shown: what to press for one.
+  const explainHint = h("p", { class: "none-yet", id: "explain-hint" }, "None yet: once an iteration is committed, pick it and a patron, then press “Explain the vote”.");
+  const explanation = h("div", { id: "explanation", tabindex: "-1" }, explainHint);
+  /** Say what to press, while no explanation (nor its loading) replaced the hint. */
+  function hint(words) {
+    if (explanation.firstChild === explainHint) explainHint.textContent = words;
+  }
   const explainStatus = h("p", { class: "visually-hidden", role: "status", id: "explain-status" });
   const roundVotes = h("div", { id: "round-votes" });
   const explainButton = h("button", { type: "submit", disabled: true }, "Explain the vote");
@@ -314,6 +320,7 @@ export function auctionView(view, id) {
     if (voters.map(String).includes(picked)) explainPatron.value = picked;
     // No vote to explain before an iteration is committed, or without a patron.
     explainButton.disabled = !explainRound.value || !explainPatron.value;
+    if (!explainButton.disabled && !roundVotes.firstChild) hint("Press “Explain the vote” for the picked patron's neurons in the picked iteration, or “Explain iteration n” in the table above for every vote in it.");
   }
   explainRound.addEventListener("change", () => {
     listPatrons();
@@ -341,7 +348,7 @@ export function auctionView(view, id) {
           names.set(v.model_id, v.participant);
           const open = () => {
             explainPatron.value = String(v.model_id);
-            showExplanation(iteration, v.model_id);
+            showExplanation(iteration, v.model_id, true);
           };
           return [
             h("span", { class: "free-text" }, v.participant), // a 64-character name wraps
@@ -362,6 +369,7 @@ export function auctionView(view, id) {
           ),
         );
         explainStatus.textContent = `Iteration ${iteration}: ${all.votes.length} votes listed, ${counts}.`;
+        hint("Press “Its neurons” on a vote above, or “Explain the vote”, for that patron's neurons here.");
       })
       .catch((error) => fill(roundVotes, problem(error)));
   }
@@ -406,7 +414,9 @@ export function auctionView(view, id) {
       : `${judge} judged this ${v.vote} wrong (T ${t} < F ${f}): it disagrees with the vote.`;
   }
   let explaining = 0; // the newest explanation asked for: an older answer arriving late is dropped
-  function showExplanation(iteration, modelId) {
+  /** Show a vote's neurons; ``focus``: the explanation takes the focus once shown (the button
+   * pressed stays in the votes' table, far above what it showed). */
+  function showExplanation(iteration, modelId, focus = false) {
     const asked = ++explaining;
     fill(explanation, h("p", { class: "liveness" }, "Loading…"));
     getJSON(`/auctions/${id}/iterations/${iteration}/votes/${modelId}`)
@@ -445,6 +455,7 @@ export function auctionView(view, id) {
           ),
         );
         explainStatus.textContent = `${v.participant} voted ${v.vote} in iteration ${v.iteration}: its neurons are shown.`;
+        if (focus) explanation.focus();
       })
       .catch((error) => asked === explaining && fill(explanation, problem(error)));
   }
@@ -481,6 +492,11 @@ export function auctionView(view, id) {
       h("h2", { id: "votes-heading" }, "Votes per iteration"),
       votesNone,
       h("figure", { hidden: true }, scrolling(votesChart, "The votes chart (scrolls sideways on a narrow screen)"), h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
+    ),
+    h(
+      "section",
+      { "aria-labelledby": "rounds-heading" },
+      h("h2", { id: "rounds-heading" }, "Every committed iteration"),
       scrolling(
         h(
           "table",

@@ -177,6 +177,9 @@ export function jobView(view, id) {
         ["Message", message],
         ["Parameters", parameters(job.params)],
         ["Queued", when(job.created_at)],
+        // A job seen queued, then running, had its start read before it: the end tells it.
+        ["Started", job.started_at ? when(job.started_at) : status === "queued" ? "not yet" : "—"],
+        ...(job.finished_at ? [["Ended", when(job.finished_at)]] : []),
       ]),
     );
   }
@@ -313,8 +316,12 @@ function overlay(name, specs, jobs, index) {
 }
 
 export function compareView(view, query) {
-  const ids = [...new Set((query.get("ids") || "").split(",").filter((s) => /^\d+$/.test(s)).map(Number))];
+  const asked = (query.get("ids") || "").split(",").map((s) => s.trim()).filter(Boolean);
+  const ids = [...new Set(asked.filter((s) => /^\d+$/.test(s)).map(Number))];
+  const unread = [...new Set(asked.filter((s) => !/^\d+$/.test(s)))];
   view.root.append(h("h1", { tabindex: "-1" }, `Compare jobs ${ids.join(", ")}`));
+  // An id that is not a job's number is left out, and said so.
+  if (unread.length) view.root.append(h("p", { class: "problem", id: "compare-unread" }, `Not understood, left out: ${unread.map((s) => `"${s}"`).join(", ")} (a job's id is a number).`));
   if (ids.length < 2) {
     view.root.append(h("p", { class: "problem" }, "Name two or more jobs: #/jobs/compare?ids=3,5."), link("#/jobs", "All jobs"));
     return;
@@ -336,6 +343,8 @@ export function compareView(view, query) {
         return h("section", { "aria-label": words(name) }, h("h3", {}, specs.find((s) => s).caption), overlay(name, specs, jobs, index), diffTable(name, specs, jobs));
       });
       const heads = [...new Set(results.flatMap((r) => headline(r, layout)))];
+      // Jobs still to run may yet have results; ended ones never will.
+      const none = jobs.every((j) => ["succeeded", "failed", "cancelled"].includes(j.status)) ? "None" : "None yet";
       fill(
         body,
         h("p", {}, `${jobs.length} ${jobs[0].kind} jobs: `, jobs.map((j, i) => [i ? ", " : "", link(`#/jobs/${j.id}`, `job ${j.id}`), ` (${j.status})`]), ". Share this view by its address."),
@@ -346,9 +355,9 @@ export function compareView(view, query) {
           h("h2", { id: "heads-heading" }, "Headline numbers"),
           heads.length
             ? h("table", { class: "list", id: "compare-headline" }, h("caption", {}, "Headline numbers of each job"), h("thead", {}, h("tr", {}, h("th", { scope: "col" }, "Number"), jobs.map((j) => h("th", { scope: "col" }, `Job ${j.id}`)))), h("tbody", {}, heads.map((n) => h("tr", {}, h("th", { scope: "row" }, words(n)), results.map((r) => h("td", {}, shown(n, r[n])))))))
-            : h("p", { class: "none-yet" }, "None yet."),
+            : h("p", { class: "none-yet" }, `${none}.`),
         ),
-        h("section", { "aria-labelledby": "diff-heading" }, h("h2", { id: "diff-heading" }, "Tables and curves"), sections.length ? sections : h("p", { class: "none-yet" }, "None yet: these results have no table.")),
+        h("section", { "aria-labelledby": "diff-heading" }, h("h2", { id: "diff-heading" }, "Tables and curves"), sections.length ? sections : h("p", { class: "none-yet", id: "compare-no-table" }, `${none}: these results have no table.`)),
       );
     })
     .catch((error) => fill(body, problem(error)));

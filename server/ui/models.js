@@ -112,21 +112,30 @@ const OUTCOMES = {
 };
 
 /** The auctions a participant's models entered, newest first, and how each patron left. */
-function entryTable(entries) {
+function entryTable(entries, versions) {
+  // A model among the newest versions listed names its version number too (no other read).
+  const versionOf = new Map(versions.map((m) => [m.id, m.version]));
+  const model = (modelId) => `Model ${modelId}${versionOf.has(modelId) ? ` (version ${versionOf.get(modelId)})` : ""}`;
   const rows = entries.map((e) => [
     link(`#/auctions/${e.auction_id}`, `Auction ${e.auction_id}`),
     e.auction_status,
-    link(`#/models/${e.model_id}`, `Model ${e.model_id}`),
-    e.bidding_model_id === e.model_id ? "the same" : link(`#/models/${e.bidding_model_id}`, `Model ${e.bidding_model_id}`),
+    link(`#/models/${e.model_id}`, model(e.model_id)),
+    e.bidding_model_id === e.model_id ? "the same" : link(`#/models/${e.bidding_model_id}`, model(e.bidding_model_id)),
     OUTCOMES[e.outcome](e),
   ]);
   return table("Auctions its models entered, newest first", ["Auction", "Status", "Entered with", "Bid with (after remote fine-tuning)", "Outcome"], rows, { class: "list", id: "entries" });
 }
 
 export function participantView(view, name) {
-  view.root.append(h("h1", { tabindex: "-1" }, `Participant ${name}`));
+  const title = h("h1", { tabindex: "-1" }, `Participant ${name}`);
+  view.root.append(title);
   getJSON(`/participants/${encodeURIComponent(name)}`)
     .then((p) => {
+      // The address may spell the name in any case: the page names it as it was registered.
+      if (p.name !== name) {
+        title.textContent = `Participant ${p.name}`;
+        if (title.isConnected) document.title = `Participant ${p.name} · srd-auction`;
+      }
       const all = p.versions.length === p.n_versions;
       const caption = all ? `Its ${plural(p.n_versions, "version")}, newest first` : `The newest ${p.versions.length} of its ${p.n_versions} versions`;
       const { node, rows } = modelTable(caption, "versions");
@@ -136,11 +145,21 @@ export function participantView(view, name) {
           ["Registered", when(p.created_at)],
           ["Versions", String(p.n_versions)],
         ]),
-        scrolling(node, "Versions (scrolls sideways)"),
-        h("p", {}, link(`#/models?participant=${encodeURIComponent(name)}`, "All versions, page by page")),
-        p.auctions.length
-          ? scrolling(entryTable(p.auctions), "Auctions (scrolls sideways)")
-          : h("p", { id: "entries" }, "Its models have entered no auction yet."),
+        h(
+          "section",
+          { "aria-labelledby": "versions-heading" },
+          h("h2", { id: "versions-heading" }, "Versions"),
+          scrolling(node, "Versions (scrolls sideways)"),
+          h("p", {}, link(`#/models?participant=${encodeURIComponent(p.name)}`, "All versions, page by page")),
+        ),
+        h(
+          "section",
+          { "aria-labelledby": "entries-heading" },
+          h("h2", { id: "entries-heading" }, "Auctions"),
+          p.auctions.length
+            ? scrolling(entryTable(p.auctions, p.versions), "Auctions (scrolls sideways)")
+            : h("p", { id: "entries" }, "Its models have entered no auction yet."),
+        ),
       );
     })
     .catch((error) => {

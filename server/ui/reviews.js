@@ -11,9 +11,11 @@ let adminToken = null;
 
 const DECISION_WORDS = /(buys|holds|quits) (\d+(?:\.\d+)?)-(\d+(?:\.\d+)?)/g;
 
-/** The operator's token form; ``then()`` runs once a token is set. */
-function tokenForm(then) {
-  const input = h("input", { id: "admin-token", type: "password", autocomplete: "off", required: true, "aria-describedby": "admin-token-help" });
+/** The operator's token form; ``then()`` runs once a token is set. ``refused``: why the token
+ * given before was refused (the field is marked invalid until another is typed). */
+function tokenForm(then, refused = null) {
+  const input = h("input", { id: "admin-token", type: "password", autocomplete: "off", required: true, "aria-describedby": "admin-token-help admin-token-status", "aria-invalid": refused ? "true" : null });
+  const status = h("p", { id: "admin-token-status", class: "problem", role: "alert", hidden: !refused }, refused ? String(refused.message || refused) : null);
   const form = h(
     "form",
     { class: "filters", id: "token-form" },
@@ -21,11 +23,20 @@ function tokenForm(then) {
     input,
     h("button", { type: "submit" }, "Use token"),
     h("span", { id: "admin-token-help", class: "quiet" }, "Kept in this page's memory only, sent as Authorization: Bearer."),
+    status,
   );
+  form.noValidate = true; // said in words below, not in the browser's bubble
+  input.addEventListener("input", () => input.removeAttribute("aria-invalid"));
   form.addEventListener("submit", (event) => {
     event.preventDefault();
     adminToken = input.value.trim() || null;
     if (adminToken) then();
+    else {
+      input.setAttribute("aria-invalid", "true");
+      status.textContent = "Paste the operator's admin token first: the field is blank.";
+      status.hidden = false;
+      input.focus();
+    }
   });
   return form;
 }
@@ -35,7 +46,7 @@ function withToken(view, render, heading = null) {
   const box = h("div");
   view.root.append(box);
   const ask = (words) => {
-    fill(box, heading ? h("h1", { tabindex: "-1" }, heading) : null, words ? problem(words) : null, tokenForm(() => start()));
+    fill(box, heading ? h("h1", { tabindex: "-1" }, heading) : null, tokenForm(() => start(), words));
     box.querySelector("input")?.focus();
   };
   const start = () => {
@@ -190,12 +201,12 @@ function decisionsChart(detail) {
 function populationsNote(impacts) {
   const seen = [...new Set(impacts.map((e) => e.detail.populations).filter(Boolean))];
   if (!seen.length) return null;
-  const named = (p) => (p === "public" ? "the public ones" : `those of a deployment's secret (${p})`);
-  const note = h("p", { id: "populations" }, `Its test auctions met ${seen.map(named).join(" and ")}.`);
+  const named = (p) => (p === "public" ? "the public reference populations (no deployment secret set)" : `the reference populations of a deployment's secret (${p})`);
+  const note = h("p", { id: "populations" }, `Its test auctions used ${seen.map(named).join(" and ")}.`);
   getJSON("/healthz")
     .then((health) => {
       const now = health.screener_populations;
-      if (seen.some((p) => p !== now)) note.append(` This server's test meets ${named(now)} now: measured again, the model would meet other auctions.`);
+      if (seen.some((p) => p !== now)) note.append(` This server's test uses ${named(now)} now: measured again, the model would meet other auctions.`);
     })
     .catch(() => {}); // not ready: the note stays as measured
   return note;
@@ -232,7 +243,8 @@ function impactChart(impacts) {
     ]),
     bars.map(([b, words], i) => [
       svg("line", { class: "bar-line", x1: x(b), x2: x(b), y1: 6, y2: top + 14 * i }),
-      svg("text", { class: "tick", x: x(b), y: top + 10 + 14 * i, "text-anchor": "middle" }, `bar ${b.toFixed(4)}${words}`),
+      // A bar near the right edge names itself leftwards: the label stays inside the chart.
+      svg("text", { class: "tick", x: x(b), y: top + 10 + 14 * i, "text-anchor": x(b) > width - 120 ? "end" : "middle" }, `bar ${b.toFixed(4)}${words}`),
     ]),
   );
 }

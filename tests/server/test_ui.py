@@ -167,13 +167,23 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
     assert f"Mean price paid{auction['mean_price']:.3f}" in summary, summary
     assert "Buy fractionall: every voter counts (the paper's)" in summary, summary
     screenshot(page, "ui_auction.png", tmp_path, full_page=True)
-    # The buyer's participant page tells the purchase, linked to this auction.
+    assert page.text_content("#rounds-heading") == "Every committed iteration"
+    # The buyer's participant page tells the purchase, linked to this auction; the address
+    # spelt in capitals, the page names the participant as registered.
     buyer = auction["buyers"][0]
-    page.goto(f"{server.url}/ui/#/participants/{names[buyer['model_id']]}")
+    name = names[buyer["model_id"]]
+    page.goto(f"{server.url}/ui/#/participants/{name.upper()}")
     row = page.locator(f"#entries tr:has(a[href='#/auctions/{auction_id}'])")
     row.wait_for(timeout=WAIT_MS)
     told = f"bought a fish at {buyer['price']:.3f} in iteration {buyer['iteration']}"
     assert told in (row.text_content() or "")
+    assert page.text_content("h1") == f"Participant {name}"
+    assert page.title() == f"Participant {name} · srd-auction"
+    assert page.locator("h2").all_text_contents() == ["Versions", "Auctions"]
+    # The model it entered with is among its newest versions: its version number is named.
+    versions = {v["id"]: v["version"] for v in api.get(f"/participants/{name}").json()["versions"]}
+    entered = f"Model {buyer['model_id']} (version {versions[buyer['model_id']]})"
+    assert row.locator("td").nth(2).text_content() == entered
     # Its model's page links the auction it entered, and shows every bar the screener set it.
     page.goto(f"{server.url}/ui/#/models/{buyer['model_id']}")
     page.wait_for_selector(f"#model-auctions a[href='#/auctions/{auction_id}']", timeout=WAIT_MS)
@@ -438,14 +448,20 @@ def test_a_late_explanation_does_not_replace_the_one_asked_for_after_it(
     shown (the first's late answer had replaced it under the second's name in the picker)."""
     auction_id, honest_ids = ended_auction_page(page, server, api, population)
     slow, fast = honest_ids[0], honest_ids[1]
+    # An iteration and a patron are picked: the explainer says what to press, not to pick.
+    page.wait_for_selector("#explain-hint:has-text('Press “Explain the vote”')", timeout=WAIT_MS)
     held: list[Any] = []  # the slow explanation's request, answered once the fast one shows
     page.route(f"**/auctions/{auction_id}/iterations/0/votes/{slow}", lambda r: held.append(r))
     page.locator("button.explain-round[data-iteration='0']").click()
+    page.wait_for_selector("#explain-hint:has-text('Press “Its neurons” on a vote above')")
     page.locator(f"button.explain-vote[data-model='{slow}']").click()
     page.locator(f"button.explain-vote[data-model='{fast}']").click()
     fast_name = api.get(f"/auctions/{auction_id}/iterations/0/votes/{fast}").json()["participant"]
     shows_fast = "name => document.querySelector('#explanation h3')?.textContent.startsWith(name)"
     page.wait_for_function(shows_fast, arg=fast_name, timeout=WAIT_MS)
+    assert page.locator("#explain-hint").count() == 0  # the vote shown replaced the hint
+    # "Its neurons" moved the focus to the vote it shows, far below the button.
+    page.wait_for_function("document.activeElement.id === 'explanation'", timeout=WAIT_MS)
     assert len(held) == 1
     with page.expect_response(f"**/votes/{slow}"):
         held[0].continue_()
@@ -662,6 +678,13 @@ def test_job_page_opens_on_its_headline_cards_tables_and_figures(
     assert raw.count() == 1 and raw.get_attribute("open") is None  # collapsed
     first = "(a, b) => document.querySelector(a).compareDocumentPosition(document.querySelector(b))"
     assert page.evaluate(f"({first})('#headline', 'details')") & 4  # the cards come first
+    # When it was queued, started and ended.
+    times = {
+        (d.locator("dt").text_content() or ""): d.locator("dd").text_content()
+        for d in page.locator("#job-state dl > div").all()
+    }
+    assert job["started_at"] and times["Started"] not in ("not yet", "—", None), times
+    assert times["Queued"] not in ("—", None) and times["Ended"] not in ("—", None), times
     screenshot(page, "ui_job.png", tmp_path, full_page=True)
 
 
@@ -679,9 +702,12 @@ def test_jobs_compare_side_by_side_from_the_filtered_list_with_the_keyboard(
     # be filtered (rows of one kind), then check it holds exactly the studies.
     page.wait_for_function(
         """() => {
+            // the new view's list (its caption names the filter), not the old one's
+            const caption = document.querySelector('#job-list caption')?.textContent || '';
             const kinds = [...document.querySelectorAll('#job-list tbody tr td:nth-child(3)')]
                 .map((cell) => cell.textContent);
-            return kinds.length > 0 && kinds.every((kind) => kind === 'auction-study');
+            return caption.includes('kind auction-study') && kinds.length > 0
+                && kinds.every((kind) => kind === 'auction-study');
         }""",
         timeout=WAIT_MS,
     )
@@ -726,6 +752,19 @@ def test_jobs_compare_side_by_side_from_the_filtered_list_with_the_keyboard(
     screenshot(page, "ui_compare.png", tmp_path, full_page=True)
     page.reload()  # the address alone rebuilds the view
     page.wait_for_selector("svg#overlay-0 polyline.curve", state="attached", timeout=WAIT_MS)
+
+    # Ended jobs whose results have no table will never have one; an id that is not a number
+    # is named, not dropped silently.
+    def without_tables(route: Any) -> None:
+        answer = route.fetch()
+        route.fulfill(response=answer, body=json.dumps({**answer.json(), "result": {}}))
+
+    page.route(re.compile(r"/jobs/\d+$"), without_tables)
+    page.goto(f"{server.url}/ui/#/jobs/compare?ids={first['id']},{second['id']},abc")
+    page.wait_for_selector("#compare-no-table", timeout=WAIT_MS)
+    assert page.text_content("#compare-no-table") == "None: these results have no table."
+    assert '"abc"' in (page.text_content("#compare-unread") or "")
+    page.unroute(re.compile(r"/jobs/\d+$"))
     # A filter that matches nothing says so (the studies all succeeded), and the caption names it.
     page.goto(f"{server.url}/ui/#/jobs?status=failed&kind=auction-study")
     none = page.locator("#no-jobs")
@@ -989,9 +1028,15 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     model_id = held["model_id"]
     page.goto(f"{server.url}/ui/#/reviews")
     page.wait_for_selector("#token-form", timeout=WAIT_MS)
+    page.focus("#admin-token")  # an empty token is said in words, the field marked invalid
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#admin-token-status:has-text('the field is blank')", timeout=WAIT_MS)
+    assert page.get_attribute("#admin-token", "aria-invalid") == "true"
     page.fill("#admin-token", "not-the-token")
+    assert page.get_attribute("#admin-token", "aria-invalid") is None  # typing clears it
     page.keyboard.press("Enter")
     page.wait_for_selector("p.problem:has-text('not the admin token')", timeout=WAIT_MS)
+    assert page.get_attribute("#admin-token", "aria-invalid") == "true"
     page.fill("#admin-token", ADMIN_TOKEN)
     page.keyboard.press("Enter")
     row = page.locator(f"#review-list a[href='#/reviews/{model_id}']")
@@ -1018,7 +1063,23 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     model = api.get(f"/models/{model_id}").json()
     assert page.locator("#evidence-table tbody tr").count() == len(model["evidence"])
     # the populations its test met, which this server's test still meets (no secret here)
-    assert page.locator("#populations").text_content() == "Its test auctions met the public ones."
+    assert page.locator("#populations").text_content() == (
+        "Its test auctions used the public reference populations (no deployment secret set)."
+    )
+    # On a phone the market-impact chart scrolls in its frame, its values and bar labels
+    # inside it (the page itself does not scroll sideways).
+    page.set_viewport_size({"width": 375, "height": 800})
+    frame = page.locator("#evidence [role='region']:has(svg)").nth(1)
+    assert frame.evaluate("(f) => f.scrollWidth > f.clientWidth")
+    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    outside = charts.nth(1).evaluate(
+        """(chart) => [...chart.querySelectorAll('text')].filter((t) => {
+            const box = t.getBBox();
+            return box.x < 0 || box.x + box.width > chart.viewBox.baseVal.width;
+        }).map((t) => t.textContent)"""
+    )
+    assert outside == []
+    page.set_viewport_size(VIEWPORT)
     assert serious_violations(page, axe_source) == []
     screenshot(page.locator("#evidence"), "ui_review.png", tmp_path)
     # Said in words (not the browser's bubble): a blank name, and a network that drops the

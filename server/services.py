@@ -67,7 +67,7 @@ class Services:
     """Held while this process serves a SQLite database (None on PostgreSQL)."""
     readiness: Readiness
     ended_jobs: EndedJobs
-    """The JSON of ended jobs, as ``GET /jobs/{id}`` and a job's ``end`` event send it."""
+    """The JSON of ended jobs, as ``GET /jobs/{id}`` sends it."""
 
     async def close(self) -> None:
         """Stop what runs on the event loop (the live-update source's reads and listener)."""

@@ -108,7 +108,7 @@ def _date(value: str) -> datetime | None:
     asctime forms), always in UTC; None when it is not one (then the condition is ignored)."""
     try:
         date = parsedate_to_datetime(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: the year 99999999999
         try:  # RFC 850: "Sunday, 06-Dec-26 08:49:37 GMT"
             date = datetime.strptime(value.strip(), "%A, %d-%b-%y %H:%M:%S GMT")
         except ValueError:

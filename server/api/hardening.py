@@ -57,6 +57,11 @@ SECRET_VALUE = re.compile(r"(srdp|srda)_", re.I)
 ``***``."""
 
 
+_QUERY_PAIR = re.compile(r"(?<![^&=?])([^&=?]+)=([^&]*)")
+"""A ``name=value`` pair of a query. A name starts only where a run of name characters starts:
+tried at every character, a long query without "=" was scanned from each (60 KB: 42 s)."""
+
+
 class SecurityHeadersMiddleware:
     """Security headers on every answer; 400 for a token in the query (module docstring)."""
 
@@ -144,14 +149,12 @@ def redact_query(path: str) -> str:
     if not mark:
         return path
 
-    def blank(pair: str) -> str:
-        name, equals, _ = pair.partition("=")
-        # ``%74oken`` is ``token``; the name after a stray ``?`` counts too (``a?token=``)
-        secret = equals and name and SECRET_NAME.search(unquote_plus(name.rpartition("?")[2]))
-        return f"{name}=***" if secret else pair
+    def blank(match: re.Match[str]) -> str:
+        name = match.group(1)
+        secret = SECRET_NAME.search(unquote_plus(name))  # ``%74oken`` is ``token``
+        return f"{name}=***" if secret else match.group(0)
 
-    # split, not a pattern: one that backtracked over a long query without "=" took 42 s
-    query = "&".join(blank(pair) for pair in query.split("&"))
+    query = _QUERY_PAIR.sub(blank, query)
     if SECRET_VALUE.search(unquote_plus(query)):
         query = "***"
     return base + mark + query

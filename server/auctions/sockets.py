@@ -39,6 +39,7 @@ import asyncio
 import contextlib
 import json
 import logging
+import re
 from collections.abc import Awaitable, Callable
 from datetime import datetime
 from typing import Annotated, Any, Literal
@@ -274,7 +275,7 @@ async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:
     try:  # as strictly as a body: a key twice, NaN, too long an integer, too deep
         raw = parse_strict_json(text.encode("utf-8", "surrogatepass"))
     except BodyRefusedError as exc:
-        msg = exc.msg.replace("the body", "the message")
+        msg = _called(exc.msg, "message")
         return _error(None, exc.status, msg, ("message", *exc.loc[1:]), exc.kind)
     try:
         message = UploadMessage.model_validate(raw)
@@ -300,9 +301,7 @@ async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:
         parse_strict_json(body)
     except BodyRefusedError as exc:
         loc = ("message", "manifest", *exc.loc[1:])
-        return _error(
-            message, exc.status, exc.msg.replace("the body", "the manifest"), loc, exc.kind
-        )
+        return _error(message, exc.status, _called(exc.msg, "manifest"), loc, exc.kind)
     try:
         answer = await upload(message.round, message.model_id, body, arrived)
     except RequestError as exc:
@@ -314,6 +313,11 @@ async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:
         f'{{"type":"answer","round":{message.round},"model_id":{message.model_id},'
         f'"status":200,"body":{answer.decode()}}}'
     )
+
+
+def _called(msg: str, what: str) -> str:
+    """A body check's refusal in a message's terms: what it calls the body is ``what``."""
+    return re.sub(r"\bbody\b", what, msg)
 
 
 def _refusal(round_number: int | None, model_id: int | None, exc: RequestError) -> str:

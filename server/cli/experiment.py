@@ -87,7 +87,7 @@ def _option(field: ConfigField) -> click.Option:
             multiple=True,
             callback=_joined,
             default=() if default is None else (default,),
-            show_default=default,
+            show_default=default is not None,
             help=help_text,
         )
     return click.Option(

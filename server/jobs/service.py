@@ -4,7 +4,6 @@ one of its artifact files."""
 from __future__ import annotations
 
 import logging
-import threading
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any
@@ -147,28 +146,26 @@ class EndedJobs:
     """The JSON of ended jobs, which never change again, as ``GET /jobs/{id}`` sends it: a
     result can be a megabyte (a cheetah grid lists every run), which took 20 ms of the event
     loop to read, check and encode on every request. Kept least recently read first out, at
-    most ``max_bytes`` in all; a body larger than that is not kept."""
+    most ``max_bytes`` in all; a body larger than that is not kept. Used on the event loop
+    only (no lock)."""
 
     def __init__(self, max_bytes: int) -> None:
         self._max_bytes = max_bytes
         self._bodies: OrderedDict[int, bytes] = OrderedDict()
         self._bytes = 0
-        self._lock = threading.Lock()
 
     def get(self, job_id: int) -> bytes | None:
-        with self._lock:
-            body = self._bodies.get(job_id)
-            if body is not None:
-                self._bodies.move_to_end(job_id)
-            return body
+        body = self._bodies.get(job_id)
+        if body is not None:
+            self._bodies.move_to_end(job_id)
+        return body
 
     def put(self, job_id: int, body: bytes) -> None:
         if len(body) > self._max_bytes:
             return
-        with self._lock:
-            old = self._bodies.pop(job_id, None)
-            self._bytes += len(body) - (0 if old is None else len(old))
-            self._bodies[job_id] = body
-            while self._bytes > self._max_bytes:
-                _, dropped = self._bodies.popitem(last=False)
-                self._bytes -= len(dropped)
+        old = self._bodies.pop(job_id, None)
+        self._bytes += len(body) - (0 if old is None else len(old))
+        self._bodies[job_id] = body
+        while self._bytes > self._max_bytes:
+            _, dropped = self._bodies.popitem(last=False)
+            self._bytes -= len(dropped)

@@ -62,9 +62,6 @@ MAX_QUEUED = 512
 burst beyond it (a screening process far behind) hears 503 rather than filling memory."""
 STOP_GRACE_S = 5.0
 SCREENINGS_PER_CLIENT = 4
-STALL_S = 30.0
-"""The screener counts as stalled (``/healthz`` not ready) when it has held requests this long
-without answering any: its warm-up takes seconds, a batch milliseconds."""
 """A client's (a ``/submit``'s address's) requests the API waits on at the screening process at
 once (one it stopped waiting for, after ``VERDICT_TIMEOUT_S``, no longer counts, though the
 process may still judge it); its others wait their turn in the API. So a client that submits
@@ -72,6 +69,9 @@ costly manifests in bulk (16 noisy copies fine-tuned 4 epochs at batch 1: 20 tim
 one's screening) delays another's verdict by a few of its own, not by its whole backlog,
 whatever number of tokens it registered."""
 RESPAWN_DELAY_S = 0.5  # a process that cannot start must not spin
+STALL_S = 30.0
+"""The screener counts as stalled (``/healthz`` not ready) when it has held requests this long
+without answering any: its warm-up takes seconds, a batch milliseconds."""
 
 
 class ScreenerUnavailableError(RuntimeError):

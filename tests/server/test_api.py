@@ -194,7 +194,10 @@ def test_rejected_model_is_stored_with_reasons_and_never_enters_an_auction(
         "/auctions", json={"n_fish": 1, "model_ids": [body["model_id"]]}, headers=ADMIN
     )
     assert response.status_code == 409 and locs(response) == [["body", "model_ids", 0]]
-    assert "rejected" in response.json()["detail"][0]["msg"]
+    assert (
+        "rejected (by the screener, or an inspector after it)"
+        in response.json()["detail"][0]["msg"]
+    )
 
 
 def test_concurrent_submissions_get_the_screeners_own_verdicts(client: TestClient) -> None:

@@ -122,6 +122,11 @@ def test_job_lifecycle(
     assert result["steps"] == 300 and result["srd"] is True and result["died"] is False
     assert 0.0 < result["mean_energy_first_1000"] <= 1.0
     assert {"result.json", "fish.png"} <= set(done["artifacts"])
+    # An ended job reads the same every time (from the second read on, its JSON is kept).
+    reads = [client.get(f"/jobs/{short}") for _ in range(3)]
+    assert all(r.headers["content-type"] == "application/json" for r in reads)
+    assert reads[0].content == reads[1].content == reads[2].content
+    assert reads[2].json() == done
     stored = client.get(f"/jobs/{short}/artifacts/result.json")
     assert stored.status_code == 200 and json.loads(stored.content) == result
     png = client.get(f"/jobs/{short}/artifacts/fish.png")
@@ -164,6 +169,9 @@ def test_job_lifecycle(
         assert client.get(url, headers=long_ago).status_code == 412, form
     page = client.get("/", headers={"If-Modified-Since": "Mon Jan  1 00:00:00 1900"})
     assert page.status_code == 200 and "srd-auction" in page.text
+    for header in ("If-Modified-Since", "If-Unmodified-Since"):  # a year past any date: ignored
+        huge = {header: "Mon, 01 Jan 99999999999 00:00:00 GMT"}
+        assert client.get("/", headers=huge).status_code == 200
     long_name = client.get(f"/jobs/{short}/artifacts/{'x' * 5000}")
     assert long_name.status_code == 404 and len(long_name.content) < 500
     assert client.delete(f"/jobs/{short}", headers=ADMIN).status_code == 409

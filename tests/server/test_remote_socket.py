@@ -178,6 +178,20 @@ def test_socket_refusals_name_the_field_and_store_nothing(
             "the current round is 1 (open)",
         )
         refusal(answer_to(ws, upload_text(1, 987654, good)), 404, ["message", "model_id"], "987654")
+        # The body checks' refusals, in the message's terms
+        refusal(
+            answer_to(ws, upload_text(1, model_id, "{nope")),
+            422,
+            ["message", "manifest"],
+            "the manifest is not JSON",
+        )
+        many = "[" + ",".join(["{}"] * 2_100) + "]"
+        refusal(
+            answer_to(ws, upload_text(1, model_id, many)),
+            422,
+            ["message", "manifest"],
+            "in one manifest",
+        )
         for whole in ("[1, 2]", '"x"', "3"):  # not an object: the manifest as a whole
             not_object = answer_to(ws, upload_text(1, model_id, whole))
             refusal(not_object, 422, ["message", "manifest"], "valid dictionary")

@@ -524,6 +524,7 @@ def test_a_submission_the_screener_cannot_judge_is_503_at_the_server(
     [
         b'["' + b'\\"' * 128_000,  # an open string of escaped quotes: every quote restarted a scan
         b'["' + b'\\"' * 60_000 + b'"]',
+        b'["' + b'\\"' * 100_000 + b'\\\n"]',  # an escaped line break among them
         b'{"d": "' + (b"1" * 4300 + b" ") * 59 + b'"}',  # runs of digits just short of too long
     ],
 )
@@ -550,5 +551,6 @@ def test_blanking_secrets_in_a_logged_query_costs_time_in_proportion_to_it() -> 
         "/x?%74oken=abc&=v&k": "/x?%74oken=***&=v&k",
         "/x?a=b=c&pw=1&pwd=2": "/x?a=b=c&pw=***&pwd=2",
         "/x?q=Bearer%20srdp_x": "/x?***",
+        "/x?=token=abc&a?=key=1": "/x?=token=***&a?=key=***",
     }
     assert {path: redact_query(path) for path in cases} == cases

@@ -3,13 +3,13 @@ finding, the health answers."""
 
 from __future__ import annotations
 
-import re
 from typing import Annotated, Any, Literal
 
 from fastapi import Path
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 
 from server.config import JobBackendName
+from sim.experiment import JSON_NUMBER
 
 MAX_SEED = 2**31 - 1  # fits a 32-bit INTEGER column on every backend
 MAX_ROW_ID = 2**31 - 1  # ids are 32-bit INTEGER primary keys on every backend
@@ -23,13 +23,10 @@ def digits_only(value: Any) -> Any:
     return value
 
 
-_JSON_NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][-+]?[0-9]+)?")
-
-
 def decimal_only(value: Any) -> Any:
     """A number of seconds in a query is written as a JSON number: ``10``, ``2.5`` or
     ``1e-05``, not ``1_0``, `` 10``, ``+10`` or ``nan`` (which Python's ``float`` reads)."""
-    if isinstance(value, str) and not (len(value) <= 32 and _JSON_NUMBER.fullmatch(value)):
+    if isinstance(value, str) and not (len(value) <= 32 and JSON_NUMBER.fullmatch(value)):
         raise ValueError("must be a number of seconds written as a JSON number, as 10 or 2.5")
     return value
 

@@ -131,7 +131,7 @@ class EntryPublic(Schema):
 
 class ParticipantPublic(Schema):
     """A participant, its newest versions (all of them: ``GET /models?participant=``) and the
-    newest auctions its models entered (all of a model's: ``GET /models/{id}``)."""
+    newest auctions its models entered (a model's newest 100: ``GET /models/{id}``)."""
 
     name: str
     created_at: datetime

@@ -120,11 +120,12 @@ class _Commands(click.Group):
         argv = list(sys.argv[1:] if args is None else args)
         if "--json" not in argv or not options.get("standalone_mode", True):
             return super().main(argv, *rest, **options)
+        command = argv[0] if argv else None
         try:
             code = super().main(argv, *rest, **{**options, "standalone_mode": False})
         except Interrupted as exc:
             exc.show()
-            json_failure("aborted")
+            json_failure("aborted", command=command)
             raise SystemExit(exc.exit_code) from exc
         except click.ClickException as exc:
             exc.show()
@@ -133,14 +134,14 @@ class _Commands(click.Group):
             option = option or getattr(exc, "option_name", None)  # one that does not exist
             message = exc.format_message()
             errors = [{"option": option, "message": message}] if option else None
-            json_failure(message, errors, command=argv[0] if argv else None)
+            json_failure(message, errors, command=command)
             raise SystemExit(exc.exit_code) from exc
         except click.Abort as exc:  # click's own (a Ctrl-C it caught before ours could)
             click.echo("Aborted!", err=True)
-            json_failure("aborted")
+            json_failure("aborted", command=command)
             raise SystemExit(INTERRUPTED) from exc
         except Exception as exc:  # the traceback goes to stderr as usual
-            json_failure(f"{type(exc).__name__}: {exc}")
+            json_failure(f"{type(exc).__name__}: {exc}", command=command)
             raise
         raise SystemExit(code if isinstance(code, int) else 0)
 

@@ -604,7 +604,7 @@ def test_an_interrupted_screen_exits_130(tmp_path: Path) -> None:
             os.close(fd)
     assert code == INTERRUPTED, stderr
     assert "Aborted!" in stderr and "Traceback" not in stderr
-    assert json.loads(stdout) == {"error": "aborted"}
+    assert json.loads(stdout) == {"accepted": False, "reasons": [], "error": "aborted"}
 
 
 def test_a_server_stopped_by_ctrl_c_exits_130(tmp_path: Path) -> None:

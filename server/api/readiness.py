@@ -85,7 +85,7 @@ class Readiness:
         database: Database,
         data_dir: Path,
         min_free_disk_mb: int,
-        screener: Callable[[], str | None] = lambda: None,
+        screener: Callable[[], str | None],
     ) -> None:
         self._database = database
         self._screener = screener

@@ -90,7 +90,7 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
     """The GET shape of an auction: the fields clients rely on, plus extras."""
     auction = view.auction
     sold = len(view.purchases)
-    mean_price = round(sum(p.price for p in view.purchases) / sold, 5) if sold else None
+    paid = sum(p.price for p in view.purchases)
     return AuctionPublic(
         id=auction.id,
         status=auction.status,
@@ -125,8 +125,8 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
         n_patrons=len(view.model_ids),
         model_ids=view.model_ids,
         participants=view.participants,
-        revenue=round(sum(p.price for p in view.purchases), 5),
-        mean_price=mean_price,
+        revenue=round(paid, 5),
+        mean_price=round(paid / sold, 5) if sold else None,
         purchase_rate=sold / auction.n_initial if auction.n_initial else None,
         buyer_fraction=sold / len(view.model_ids) if view.model_ids else None,
         last_price=view.history[-1].price if view.history else None,

@@ -3,7 +3,7 @@ auctions they entered."""
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated
 
 from fastapi import APIRouter, Path
 
@@ -13,12 +13,12 @@ from server.api.errors import responses
 from server.api.pages import MAX_PAGE
 from server.api.routes.models import model_summary
 from server.api.schemas import EntryPublic, ParticipantPublic
+from server.api.schemas.models import EntryOutcome
 from server.store import crud
 from server.store.status import AuctionStatus
 from server.submissions import service as models
 
-Outcome = Literal["bought", "quit", "joined", "bidding", "stayed", "stopped"]
-STILL_IN: dict[AuctionStatus, Outcome] = {
+STILL_IN: dict[AuctionStatus, EntryOutcome] = {
     AuctionStatus.PENDING: "joined",
     AuctionStatus.RUNNING: "bidding",
     AuctionStatus.FINISHED: "stayed",
@@ -49,7 +49,7 @@ async def read_participant(
 
 def _entry(entry: crud.Entry) -> EntryPublic:
     status = AuctionStatus(entry.status)
-    outcome: Outcome
+    outcome: EntryOutcome
     if entry.bought_at is not None:
         outcome, iteration = "bought", entry.bought_in
     elif entry.quit_in is not None:

@@ -109,6 +109,10 @@ class ModelPage(Schema):
     next_cursor: int | None
 
 
+EntryOutcome = Literal["bought", "quit", "joined", "bidding", "stayed", "stopped"]
+"""How a patron left an auction, as a participant's page tells it (``EntryPublic``)."""
+
+
 class EntryPublic(Schema):
     """An auction one of the participant's models entered as a patron, and how it left it."""
 
@@ -119,7 +123,7 @@ class EntryPublic(Schema):
     bidding_model_id: int
     """The version that bids now, or bid at the end: ``model_id`` unless remote fine-tuning
     rounds replaced it."""
-    outcome: Literal["bought", "quit", "joined", "bidding", "stayed", "stopped"]
+    outcome: EntryOutcome
     """Bought a fish, quit, joined an auction that has not started (pending), bidding in a
     running one, stayed in without buying to a finished one's end, or still in when the
     auction stopped (cancelled or failed)."""

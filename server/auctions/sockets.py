@@ -340,7 +340,10 @@ def _message_loc(loc: list[str | int]) -> list[str | int]:
 
 
 def _int(value: Any) -> int | None:
-    return value if isinstance(value, int) and not isinstance(value, bool) else None
+    """An id to echo back: an integer a round or a version could have, else none."""
+    if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= MAX_ROW_ID:
+        return value
+    return None
 
 
 def _error(

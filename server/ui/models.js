@@ -14,7 +14,9 @@ function verdictBadge(model) {
   // as the screener's own verdict
   const words = model.inspected ? (model.accepted ? "admitted" : "refused") : model.verdict;
   const badge = h("span", { class: `badge verdict-${model.verdict}` }, words);
-  return model.inspected ? h("span", {}, badge, " by an inspector") : badge;
+  if (model.inspected) return h("span", {}, badge, " by an inspector");
+  // a held model came to the inspector either from the screener or by its participant's appeal
+  return model.appealed ? h("span", {}, badge, " on appeal") : badge;
 }
 
 function participantLink(name) {

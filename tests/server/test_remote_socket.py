@@ -178,6 +178,9 @@ def test_socket_refusals_name_the_field_and_store_nothing(
             "the current round is 1 (open)",
         )
         refusal(answer_to(ws, upload_text(1, 987654, good)), 404, ["message", "model_id"], "987654")
+        huge = answer_to(ws, upload_text(1, 10**4000, good))  # 4,001 digits: not echoed back
+        refusal(huge, 422, ["message", "model_id"], "less than or equal")
+        assert huge["model_id"] is None and len(json.dumps(huge)) < 2_000, huge
         # The body checks' refusals, in the message's terms
         refusal(
             answer_to(ws, upload_text(1, model_id, "{nope")),

@@ -193,6 +193,14 @@ def test_a_refused_model_is_appealed_once(client: TestClient) -> None:
     assert item["appeal"] == "my holds are sincere" and item["reasons"]
     (entry,) = client.get(f"/models/{mine['model_id']}").json()["reviews"]
     assert (entry["decision"], entry["inspector"]) == ("appeal", mine["participant"])
+    # The models list tells an appealed held model from one the screener held.
+    mine_listed = {"participant": mine["participant"]}
+    [listed] = client.get("/models", params=mine_listed).json()["items"]
+    assert (listed["status"], listed["appealed"], listed["inspected"]) == ("held", True, False)
+    [unappealed] = client.get("/models", params={"participant": other["participant"]}).json()[
+        "items"
+    ]
+    assert unappealed["appealed"] is False
 
     twice = client.post(url, json=note, headers=bearer(mine["token"]))
     assert twice.status_code == 409 and "appealed once" in twice.text
@@ -202,6 +210,8 @@ def test_a_refused_model_is_appealed_once(client: TestClient) -> None:
         client.post(f"/models/{mine['model_id']}/review", json=no, headers=ADMIN).status_code == 200
     )
     assert client.post(url, json=note, headers=bearer(mine["token"])).status_code == 409
+    [listed] = client.get("/models", params=mine_listed).json()["items"]
+    assert (listed["status"], listed["appealed"], listed["inspected"]) == ("refused", True, True)
     accepted = client.post(
         f"/models/{other['model_id']}/appeal", json=note, headers=bearer(other["token"])
     )

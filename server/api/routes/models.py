@@ -157,6 +157,7 @@ def model_summary(row: crud.ModelSummary) -> ModelSummaryPublic:
         rules=list(dict.fromkeys(reason["rule"] for reason in row.reasons)),
         created_at=row.created_at,
         inspected=row.inspected,
+        appealed=row.appealed,
     )
 
 

@@ -102,6 +102,9 @@ class ModelSummaryPublic(Schema):
     inspected: bool = False
     """An inspector decided its status: admitted it (``accepted``) or refused it (``refused``),
     after the screener held it or its participant appealed."""
+    appealed: bool = False
+    """Its participant appealed the screener's refusal (once): it is held for an inspector
+    until one decides, and ``inspected`` after that."""
 
 
 class ModelPage(Schema):

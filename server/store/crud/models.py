@@ -222,6 +222,8 @@ class ModelSummary:
     status: str
     inspected: bool
     """An inspector decided its status (admitted or refused it)."""
+    appealed: bool
+    """Its participant appealed the screener's refusal."""
 
 
 _MODEL_SUMMARY = (
@@ -236,6 +238,9 @@ _MODEL_SUMMARY = (
         ModelVersion.status,
         select(Review.id)
         .where(Review.model_id == ModelVersion.id, Review.decision.in_(("admit", "refuse")))
+        .exists(),
+        select(Review.id)
+        .where(Review.model_id == ModelVersion.id, Review.decision == "appeal")
         .exists(),
     )
     .join(Participant, Participant.id == ModelVersion.participant_id)

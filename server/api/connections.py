@@ -16,7 +16,8 @@ uses, does not.) ``timed_protocol`` is uvicorn's httptools protocol plus:
   (counted as it arrives, and as the parser reads it, so a header that rides in behind another
   request's in one read is counted too);
 * a body deadline: the request's whole body must arrive within ``body_timeout_s`` of its
-  header, else the connection is closed (the app sees the client go away);
+  header, else the connection gets 408 (if no answer has started) and is closed (the app
+  sees the client go away);
 * an arrival time: the moment each request's last byte is parsed is put in its scope
   (``RECEIVED_AT``), by which a remote round judges an upload's deadline;
 * a share per address: one client address holds at most ``max_per_address`` open connections
@@ -100,6 +101,9 @@ def _answer(status: bytes, msg: str, kind: str, *, headers: bytes = b"") -> byte
 
 TIMEOUT_ANSWER = _answer(
     b"408 Request Timeout", "the request's header did not arrive in time", "header_timeout"
+)
+BODY_TIMEOUT_ANSWER = _answer(
+    b"408 Request Timeout", "the request's body did not arrive in time", "body_timeout"
 )
 TOO_LARGE_ANSWER = _answer(
     b"431 Request Header Fields Too Large", "the request's header is too large", "header_too_large"
@@ -331,9 +335,16 @@ class TimedHttpProtocol(HttpToolsProtocol):
         # A header still arriving has no app behind it yet: it can be answered.
         if header:
             self._refuse(TIMEOUT_ANSWER)
-        else:
-            self._disarm()
-            self.transport.close()
+            return
+        cycle = self.cycle
+        if cycle is not None and not cycle.response_started:  # the app still reads the body:
+            cycle.disconnected = True  # it hears the client go, and what it sends is dropped
+            cycle.message_event.set()
+            self._refused = True
+            self._answer_and_end(BODY_TIMEOUT_ANSWER)
+            return
+        self._disarm()
+        self.transport.close()
 
     def _refuse(self, answer: bytes) -> None:
         """Answer and end the connection: the answer, then the end of what this side sends;

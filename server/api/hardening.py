@@ -8,8 +8,14 @@ as strict: ``server.ui.routes``). It refuses a ``token`` or ``access_token`` que
 with 400 naming it: tokens travel in the ``Authorization`` header, as URLs are logged and
 kept in browser histories; that header or ``Last-Event-ID`` given twice (400: which one
 counts would be a guess), or a query parameter given twice (400 too: a route reads the last,
-a limit might read the first). ``RedactQueryFilter`` blanks such parameters (and any other
-whose name says secret) in uvicorn's access log lines.
+a limit might read the first); a query longer than ``MAX_QUERY_BYTES`` (414: no route takes
+one, and reading it cost the event loop 1.5 ms a KB); a write (any method but ``GET``,
+``HEAD`` and ``OPTIONS``) that a browser marks ``Sec-Fetch-Site: cross-site`` (403: another
+site's page would otherwise make its visitors register participants and spend their
+addresses' quotas; the API's own clients and the web view are not cross-site).
+``RedactQueryFilter`` blanks such
+parameters (and any other whose name says secret) in uvicorn's access log lines, and cuts a
+line's path to ``MAX_LOGGED_PATH`` characters.
 
 It also answers ``HEAD`` on every ``GET`` path, as HTTP requires of every server (RFC 9110,
 section 9.1): the request goes in as a ``GET`` (the same checks, limits and headers, its
@@ -57,6 +63,14 @@ SECRET_VALUE = re.compile(r"(srdp|srda)_", re.I)
 ``***``."""
 
 
+SAFE_METHODS = ("GET", "HEAD", "OPTIONS")
+"""Methods that write nothing: another site's page may send them."""
+MAX_QUERY_BYTES = 4096
+"""Longest query string taken (the longest a route reads is a few hundred bytes)."""
+MAX_LOGGED_PATH = 1024
+"""Characters of a request's path and query an access log line shows (a 404's path can be as
+long as a header: 64 KB a line had let one address write 3 MB of log a second)."""
+
 _QUERY_PAIR = re.compile(r"(?<![^&=?])([^&=?]+)=([^&]*)")
 """A ``name=value`` pair of a query. A name starts only where a run of name characters starts:
 tried at every character, a long query without "=" was scanned from each (60 KB: 42 s)."""
@@ -75,6 +89,21 @@ class SecurityHeadersMiddleware:
         if scope["type"] == "http" and scope["method"] == "HEAD":
             scope = {**scope, "method": "GET"}  # the server's own scope still says HEAD
             send = _headers_only(send)
+        if len(scope["query_string"]) > MAX_QUERY_BYTES:
+            message = f"the query is longer than {MAX_QUERY_BYTES} bytes"
+            await _refuse(
+                scope, receive, _with_headers(send), message, ("query",), "query_size", 414
+            )
+            return
+        if scope["type"] == "http" and scope["method"] not in SAFE_METHODS:
+            for name, value in scope["headers"]:
+                if name == b"sec-fetch-site" and value.strip().lower() == b"cross-site":
+                    message = "a request another site's page sent is refused for what it writes"
+                    loc = ("header", "Sec-Fetch-Site")
+                    await _refuse(
+                        scope, receive, _with_headers(send), message, loc, "cross_site", 403
+                    )
+                    return
         pairs = parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True)
         counts = Counter(name for name, _ in pairs)  # linear: 13,500 names had taken 3.8 s
         names = counts.keys()
@@ -129,10 +158,19 @@ def _with_headers(send: Send) -> Send:
 
 
 async def _refuse(
-    scope: Scope, receive: Receive, send: Send, message: str, loc: tuple[str, str], kind: str
+    scope: Scope,
+    receive: Receive,
+    send: Send,
+    message: str,
+    loc: tuple[str, ...],
+    kind: str,
+    status: int = 400,
 ) -> None:
-    """400 for a request whose credentials are in the wrong place or ambiguous."""
-    response = JSONResponse({"detail": [error_item(message, loc=loc, kind=kind)]}, status_code=400)
+    """400 for a request whose credentials are in the wrong place or ambiguous (or
+    ``status``)."""
+    response = JSONResponse(
+        {"detail": [error_item(message, loc=loc, kind=kind)]}, status_code=status
+    )
     if scope["type"] == "http":
         await response(scope, receive, send)
     elif "websocket.http.response" in scope.get("extensions", {}):
@@ -167,7 +205,10 @@ class RedactQueryFilter(logging.Filter):
     def filter(self, record: logging.LogRecord) -> bool:
         args = record.args
         if isinstance(args, tuple) and len(args) >= 3 and isinstance(args[2], str):
-            record.args = (*args[:2], redact_query(args[2]), *args[3:])
+            path = redact_query(args[2])
+            if len(path) > MAX_LOGGED_PATH:
+                path = path[: MAX_LOGGED_PATH - 1] + "…"
+            record.args = (*args[:2], path, *args[3:])
         return True
 
 

@@ -70,6 +70,11 @@ RATE_PACE_S = 1.0
 """An HTTP request or handshake past its address's rate waits up to this long for its turn
 (its token taken ahead, so an address holds at most this many seconds of its rate waiting);
 a round-socket message is refused at once."""
+RATE_BODY_BYTES = 16_384
+"""A request's body counts as one more request for every this many bytes (by its
+``Content-Length``; a chunked one as the largest body taken), and so does a round-socket
+message: reading and checking a body costs the event loop by its size (about 10 ms for 256 KB
+of numbers), so an address's rate bounds the bytes it makes the server read too."""
 RATE_ADDRESSES = 100_000
 """Addresses whose request buckets a process keeps; past it, it forgets them all."""
 KNOWN_TOKENS = 100_000
@@ -135,7 +140,7 @@ class ClientLimitsMiddleware:
         """Requests held open now, by (kind, client)."""
         self.known: set[str] = set()
         """Digests of the tokens found to be real (``KNOWN_TOKENS`` at most)."""
-        self.rate = RequestRate(settings.limit_address_requests_per_s)
+        self.rate = RequestRate(settings.limit_address_requests_per_s, settings.max_body_bytes)
 
     def limit_of(self, scope: Scope) -> Limit | None:
         """The limit a request counts against, if any."""
@@ -208,10 +213,10 @@ class ClientLimitsMiddleware:
 
         return release
 
-    def message(self, scope: Scope) -> RequestError | None:
-        """Count a message received on the round socket of ``scope`` against its address's
-        request rate; the refusal if it is past it."""
-        _, wait_s = self.rate.take(scope, pace_s=0.0)
+    def message(self, scope: Scope, size: int) -> RequestError | None:
+        """Count a message of ``size`` bytes received on the round socket of ``scope`` against
+        its address's request rate; the refusal if it is past it."""
+        _, wait_s = self.rate.take(scope, pace_s=0.0, body_bytes=size)
         return self.rate.refusal(wait_s) if wait_s else None
 
     def _over(self, limit: Limit, share: int, who: str) -> RequestError:
@@ -289,26 +294,34 @@ class RequestRate:
     """Requests per address: a token bucket each (``RATE_BURST_S`` of ``per_s`` deep), the
     operator's token not counted."""
 
-    def __init__(self, per_s: float) -> None:
+    def __init__(self, per_s: float, max_body_bytes: int) -> None:
         self.per_s = per_s
+        self.max_body_bytes = max_body_bytes
         self._depth = per_s * RATE_BURST_S
         self._buckets: dict[str, tuple[float, float]] = {}  # address -> (tokens, when)
 
     def refusal(self, wait_s: int) -> RequestError:
         """The 429 of a request ``take`` refused (``wait_s``: its answer)."""
         return _too_many(
-            f"this address sends more than {self.per_s:g} requests a second, its share", wait_s
+            f"this address sends more than {self.per_s:g} requests a second, its share (a "
+            f"body counts one more for every {RATE_BODY_BYTES} bytes)",
+            wait_s,
         )
 
-    def take(self, scope: Scope, *, pace_s: float) -> tuple[float, int]:
-        """(delay, refusal) of a request: (0, 0) it goes on now, one token taken; (d, 0) it
-        goes on after d ≤ ``pace_s`` seconds, its token taken ahead; (0, w) it is refused,
-        nothing taken, and one would pass in w whole seconds."""
+    def take(
+        self, scope: Scope, *, pace_s: float, body_bytes: int | None = None
+    ) -> tuple[float, int]:
+        """(delay, refusal) of a request or a message of ``body_bytes`` (None: the request's
+        body, by its headers): (0, 0) it goes on now, its tokens taken; (d, 0) it goes on after
+        d ≤ ``pace_s`` seconds, its tokens taken ahead; (0, w) it is refused, nothing taken,
+        and it would pass in w whole seconds."""
         address = _address(scope)
         now = time.monotonic()
         tokens, when = self._buckets.get(address, (self._depth, now))
         tokens = min(self._depth, tokens + (now - when) * self.per_s)
-        delay_s = max(0.0, (1 - tokens) / self.per_s)
+        size = self._body_bytes(scope) if body_bytes is None else body_bytes
+        cost = 1 + size / RATE_BODY_BYTES
+        delay_s = max(0.0, (cost - tokens) / self.per_s)
         if delay_s and _is_operator(scope):
             return 0.0, 0
         if delay_s > pace_s:
@@ -316,8 +329,18 @@ class RequestRate:
             return 0.0, max(1, math.ceil(delay_s))
         if len(self._buckets) >= RATE_ADDRESSES and address not in self._buckets:
             self._buckets.clear()
-        self._buckets[address] = (tokens - 1, now)
+        self._buckets[address] = (tokens - cost, now)
         return delay_s, 0
+
+    def _body_bytes(self, scope: Scope) -> int:
+        """The size of the request's body by its headers (a chunked one: the largest taken;
+        a wrong ``Content-Length`` is the body checks' to refuse)."""
+        chunked = False
+        for name, value in scope["headers"]:
+            if name == b"content-length" and value.isdigit():
+                return min(int(value), self.max_body_bytes)
+            chunked = chunked or name == b"transfer-encoding"
+        return self.max_body_bytes if chunked else 0
 
 
 def _is_operator(scope: Scope) -> bool:

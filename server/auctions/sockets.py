@@ -104,8 +104,9 @@ class SocketLimitError(RuntimeError):
 UploadHandler = Callable[[int, int, bytes, datetime], Awaitable[bytes]]
 """``(round, model_id, manifest bytes, arrival) -> answer body``: the PUT's service call
 (RequestError for a refusal)."""
-MessageAllowance = Callable[[], RequestError | None]
-"""Counts a received message against its address's request rate: the refusal past it."""
+MessageAllowance = Callable[[int], RequestError | None]
+"""Counts a received message of so many bytes against its address's request rate: the refusal
+past it."""
 
 
 async def _not_a_patron() -> bool:
@@ -251,14 +252,15 @@ class RoundSockets:
                     f"more than {BURST} messages at once ({REFILL_PER_S:g} per second)",
                 )
                 return
-            refused = allowance()
+            text = message.get("text")
+            size = len(text or message.get("bytes") or b"")
+            refused = allowance(size)
             if refused is not None:  # answered unread, and closed: as HTTP answers and closes
                 await socket.send(_refusal(None, None, refused))
                 reason = str(refused.items[0]["msg"]).encode()[:MAX_REASON_BYTES]
                 await socket.close(CLOSE_TRY_AGAIN_LATER, reason.decode(errors="ignore"))
                 return
-            text = message.get("text")
-            if len(text or message.get("bytes") or b"") > MAX_FRAME_BYTES:  # whatever the server
+            if size > MAX_FRAME_BYTES:  # whatever the server
                 await socket.close(CLOSE_TOO_BIG, f"a frame is at most {MAX_FRAME_BYTES} bytes")
                 return
             if text is None:

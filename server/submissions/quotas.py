@@ -187,6 +187,7 @@ def appeal_throttle(
     if address is None:
         return None
     place = address_subject(address)
+    crud.lock_subject(session, place)  # concurrent appeals count one another (PostgreSQL)
     windows = {"day": now - DAY, "hour": now - HOUR, "minute": now - MINUTE}
     count = crud.rate_counts(session, subjects=[place], windows=windows).get((place, APPEAL))
     what = "appeals per day from one address"

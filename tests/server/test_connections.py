@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -23,6 +24,7 @@ HOARDER = "127.0.0.11"
 NEIGHBOUR = "127.0.0.12"
 PROXY = "127.0.0.13"
 MAX_HEADER_BYTES = 16_384
+BODY_TIMEOUT_S = 3
 
 
 @pytest.fixture(scope="module")
@@ -31,6 +33,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
         "SRD_MAX_CONNECTIONS_PER_ADDRESS": str(SHARE),
         "SRD_MAX_HEADER_BYTES": str(MAX_HEADER_BYTES),
         "SRD_TRUSTED_PROXIES": PROXY,
+        "SRD_BODY_TIMEOUT_S": str(BODY_TIMEOUT_S),
     }
     yield from module_server(tmp_path_factory, "connections", env)
 
@@ -223,6 +226,32 @@ def test_a_body_refused_by_its_header_is_not_asked_for(server: ServerProcess) ->
         first = asyncio.run(ask(content_type, encoding))
         assert first.startswith(b"HTTP/1.1 415"), first
     assert asyncio.run(ask("application/json")).startswith(b"HTTP/1.1 100 Continue")
+
+
+def test_a_body_that_does_not_arrive_in_time_gets_408(server: ServerProcess) -> None:
+    """A body still arriving at its deadline (a slow sender, by length or chunked) is answered
+    408 with the common body, and the connection closes; before, it closed without a word."""
+
+    async def drip(head: str, part: bytes) -> tuple[bytes, float]:
+        reader, writer = await _open(server, NEIGHBOUR)
+        try:
+            started = time.monotonic()
+            writer.write(head.encode() + part)
+            answer = await asyncio.wait_for(reader.read(), 30)
+            return answer, time.monotonic() - started
+        finally:
+            writer.close()
+
+    post = "POST /submit HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n"
+    for head, part in (
+        (post + "Content-Length: 200\r\n\r\n", b'{"participant": '),
+        (post + "Transfer-Encoding: chunked\r\n\r\n", b'5\r\n{"a":\r\n'),
+    ):
+        answer, took = asyncio.run(drip(head, part))
+        assert answer.startswith(b"HTTP/1.1 408"), answer
+        item = _detail(answer.partition(b"\r\n\r\n")[2])
+        assert item["type"] == "body_timeout" and item["loc"] == ["connection"]
+        assert BODY_TIMEOUT_S - 0.5 < took < BODY_TIMEOUT_S + 20, took
 
 
 @pytest.fixture(scope="module")

@@ -486,6 +486,27 @@ def test_an_address_past_its_request_rate_is_paced_and_the_operator_is_not(
         assert upload.status_code == 401, upload.text  # its route ran: no token
 
 
+def test_a_body_counts_against_the_request_rate_by_its_size(tmp_path: Path) -> None:
+    """Reading and checking a body costs the server by its size: a body counts one more
+    request for every 16 KB (here 5 a second, a burst of 20). Two bodies of 140 KB spend the
+    burst, and the third is refused at once where small requests still pass."""
+    settings = make_settings(
+        f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data", limit_address_requests_per_s=5
+    )
+    big = json.dumps({"a": [1.5] * 28_000}).encode()  # 140 KB: 9.5 requests' worth
+    typed = {"Content-Type": "application/json"}
+    with TestClient(create_app(settings)) as client:
+        statuses = [
+            client.post("/submit", content=big, headers=typed).status_code for _ in range(3)
+        ]
+        assert statuses[:2] == [422, 422] and statuses[2] == 429, statuses
+        (item,) = client.post("/submit", content=big, headers=typed).json()["detail"]
+        assert item["loc"] == ["client"] and "for every 16384 bytes" in item["msg"]
+    with TestClient(create_app(settings)) as client:  # a fresh process: a full burst
+        small = [client.post("/submit", content=b"{}", headers=typed).status_code for _ in range(3)]
+        assert small == [422] * 3, small
+
+
 def test_round_socket_messages_count_against_their_address_request_rate(
     tmp_path: Path,
 ) -> None:

@@ -5,6 +5,7 @@ version bidding."""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -338,24 +339,34 @@ def test_appeals_from_one_address_are_bounded_per_day(
     fresh_database_url: str, tmp_path: Path
 ) -> None:
     # Throw-away participants each appeal a refused saboteur once: the address's appeals per
-    # day bound what they put in the inspectors' queue.
+    # day bound what they put in the inspectors' queue, sent one by one or all at once (on
+    # PostgreSQL, concurrent appeals had each counted the others' rows as absent).
     settings = make_settings(
         fresh_database_url, tmp_path / "data", review_margin=MARGIN, quota_address_appeals_per_day=2
     )
     note = {"note": "my holds are sincere"}
     with TestClient(create_app(settings)) as client:
-        refused = [submit(client, saboteur(unique("flood"))) for _ in range(3)]
-        answers = [
-            client.post(f"/models/{r['model_id']}/appeal", json=note, headers=bearer(r["token"]))
-            for r in refused
-        ]
+        refused = [submit(client, saboteur(unique("flood"))) for _ in range(8)]
+
+        def appeal(r: dict[str, Any]) -> Any:
+            url = f"/models/{r['model_id']}/appeal"
+            return client.post(url, json=note, headers=bearer(r["token"]))
+
+        answers = [appeal(r) for r in refused[:3]]
         assert [a.status_code for a in answers] == [200, 200, 429]
         last = answers[-1]
         assert "SRD_QUOTA_ADDRESS_APPEALS_PER_DAY" in last.text
         assert int(last.headers["Retry-After"]) > 0
-        assert client.get(f"/models/{refused[-1]['model_id']}").json()["status"] == "refused"
-        assert refused[-1]["model_id"] not in held_ids(client)
-        assert count(client, Review, model_id=refused[-1]["model_id"]) == 0
+        assert client.get(f"/models/{refused[2]['model_id']}").json()["status"] == "refused"
+        assert refused[2]["model_id"] not in held_ids(client)
+        assert count(client, Review, model_id=refused[2]["model_id"]) == 0
+    fresh = make_settings(
+        fresh_database_url, tmp_path / "data", review_margin=MARGIN, quota_address_appeals_per_day=4
+    )  # two more allowed today: five appeals race for them
+    with TestClient(create_app(fresh)) as client, ThreadPoolExecutor(max_workers=5) as pool:
+        statuses = [a.status_code for a in pool.map(appeal, refused[3:])]
+        assert sorted(statuses) == [200, 200, 429, 429, 429], statuses
+        assert len(set(held_ids(client)) & {r["model_id"] for r in refused}) == 4
 
 
 def test_an_admitted_model_ends_the_cooldown_its_hold_began(

@@ -310,8 +310,8 @@ async def round_socket(
             finally:
                 release()
 
-        def allowance() -> RequestError | None:
-            return limits.message(websocket.scope)
+        def allowance(size: int) -> RequestError | None:
+            return limits.message(websocket.scope, size)
 
         await sockets.serve(websocket, auction_id, first, upload, patron, is_patron, allowance)
     finally:

@@ -112,6 +112,23 @@ job budget: about 1.5 times the measured 30–47 ms."""
 RUN_SETUP_COST_S = 0.03
 """Setting up one trial (its model, its noise, its row of results): about twice the measured
 14 ms, whatever its steps."""
+DESIGN_STEPS = 1201
+"""12 s runs of the design stages 1–4, counted as the reference counts them: it steps while
+MuJoCo's time, 0.01 added per step in floating point, is below 12 s, which takes 1201 steps
+(the main grid's 36 s take 3600)."""
+DEVTEST_STEPS = 401
+"""4 s runs of design stage 0 (401 steps, counted the same way)."""
+STAGE0_STRENGTHS = (-2.0, -1.0, -0.5, 0.25, 0.5, 0.75, 1.0, 2.0, 3.0)
+"""Actuator strengths s tried by the stage-0 devtest."""
+STAGE2_SWING_FROM = 250
+"""Stage 2: the front thigh is swung forward from this step on."""
+STAGE4_DEFAULT_BACKSWING = 5.0
+"""Stage 4 uses this backswing when the grid's default is left unchanged."""
+STAGE_COST_S = 2.0
+"""Compute of a design stage besides its steps (its figures, poses and set-up), for the job
+budget: about 1.5 times the measured 0.7–1.3 s."""
+STAGE_ONLY_OF_GRID = ("trials", "nominal", "seed")
+"""Options of the grid's trials that no design stage takes (a stage runs noise-free)."""
 MAX_CELLS = 512
 """Most cells (backswing × inhibitor × SRD variants) of one grid: its figures draw a panel per
 variant and inhibitor, a line per backswing (the default grid has 20)."""
@@ -166,9 +183,27 @@ class CheetahConfig:
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
     """Seeds the per-trial weight noise: same seed, same numbers."""
 
+    def stage_backswings(self) -> list[float]:
+        """The backswing gains a design stage runs: none for stages 0–2 (no BS neuron), 0 for
+        stage 3, the configured ones for stage 4 (5 when the grid's default is left
+        unchanged)."""
+        if self.stage == 3:
+            return [0.0]
+        if self.stage != 4:
+            return []
+        if self.backswing == CheetahConfig.backswing:
+            return [STAGE4_DEFAULT_BACKSWING]
+        return list(self.backswing)
+
     def cost(self) -> Cost:
         """Estimated compute: every trial of every condition, its set-up and its steps, and
-        each condition's share of the figures."""
+        each condition's share of the figures (a design stage: its own trials, and ``steps``
+        to lower)."""
+        if self.stage is not None:
+            runs = len(STAGE0_STRENGTHS) + 1 if self.stage == 0 else 1
+            runs = max(runs, len(self.stage_backswings()))
+            steps = self.steps or (DEVTEST_STEPS if self.stage == 0 else DESIGN_STEPS)
+            return Cost(STAGE_COST_S + runs * steps * TRIAL_STEP_COST_S, "steps")
         cells = len(grid_conditions(self))
         trials = cells * (1 if self.nominal else self.trials)
         steps = TRIAL_STEPS if self.steps is None else self.steps
@@ -185,15 +220,39 @@ class CheetahConfig:
         only stage 4 takes ``backswing``)."""
         if self.stage is not None:
             ignored = ("inhibitor", "srd", "lr") if self.stage == 4 else GRID_AXES
-            return [
+            found = [
                 {
                     "field": name,
                     "message": f"design stage {self.stage} runs its own conditions: it does not "
                     f"take {name}" + (" (stage 4 does)" if name == "backswing" else ""),
                 }
-                for name in ignored
+                for name in (*ignored, *STAGE_ONLY_OF_GRID)
                 if getattr(self, name) != getattr(CheetahConfig, name)
             ]
+            if self.stage == 2 and self.steps is not None and self.steps <= STAGE2_SWING_FROM:
+                found.append(
+                    {
+                        "field": "steps",
+                        "message": f"design stage 2 swings the front thigh from step "
+                        f"{STAGE2_SWING_FROM}: give more than {STAGE2_SWING_FROM} steps",
+                    }
+                )
+            return found
+        found = []
+        if self.nominal and self.trials != CheetahConfig.trials:
+            found.append(
+                {
+                    "field": "trials",
+                    "message": "nominal runs one noise-free trial per condition: it does not "
+                    "take trials",
+                }
+            )
+        if self.srd == "off" and self.lr != CheetahConfig.lr:
+            found.append(
+                {"field": "lr", "message": "with srd off nothing is trained: it does not take lr"}
+            )
+        if found:
+            return found
         cells = len(grid_conditions(self))
         if cells <= MAX_CELLS:
             runs = cells * (1 if self.nominal else self.trials)

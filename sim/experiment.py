@@ -57,10 +57,29 @@ def default_out_dir(command: str, seed: int, root: str | Path = "runs") -> Path:
     raise AssertionError("unreachable")
 
 
+def json_safe(value: Any) -> Any:
+    """A JSON-ready copy: tuples become lists, numpy scalars plain numbers, NaN/inf null (a
+    strict JSON reader refuses ``NaN``; the CLI's ``--json`` object and a job's result are the
+    same)."""
+    if isinstance(value, dict):
+        return {str(key): json_safe(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(item) for item in value]
+    if hasattr(value, "item") and callable(value.item) and not isinstance(value, str):
+        value = value.item()  # numpy / torch scalar
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"result holds a {type(value).__name__}, which is not JSON")
+
+
 def write_json(path: Path, obj: Any) -> None:
-    """Write ``obj`` as indented JSON (creating parent folders)."""
+    """Write ``obj`` as indented strict JSON (``json_safe``; creating parent folders)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(obj, indent=2, sort_keys=False) + "\n")
+    path.write_text(json.dumps(json_safe(obj), indent=2, allow_nan=False) + "\n")
 
 
 def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> str:

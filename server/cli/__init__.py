@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import gc
 import importlib
+import signal
 import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -35,6 +36,10 @@ abort exits 1, which ``srd screen`` (rejected) and ``srd watch`` (failed or canc
 meaning of their own."""
 
 
+TERMINATED = 143
+"""The exit code of a command stopped by SIGTERM (``kill``, ``timeout``): 128 + 15."""
+
+
 class Interrupted(click.ClickException):
     """Ctrl-C (SIGINT) stopped the command: "Aborted!" on stderr, exit ``INTERRUPTED``."""
 
@@ -48,12 +53,30 @@ class Interrupted(click.ClickException):
         click.echo("Aborted!", err=True)
 
 
+class Terminated(Interrupted):
+    """SIGTERM stopped the command: the same way out as Ctrl-C, exit ``TERMINATED``."""
+
+    exit_code = TERMINATED
+
+
+class _TerminateRequest(KeyboardInterrupt):
+    """SIGTERM, raised where the command runs, so that it stops as Ctrl-C stops it (its
+    ``finally`` blocks run, ``--json`` prints its object) instead of dying mid-write."""
+
+
+def _on_terminate(signum: int, frame: Any) -> None:
+    raise _TerminateRequest
+
+
 @contextmanager
 def _interruptible() -> Iterator[None]:
     """A ``KeyboardInterrupt`` (SIGINT, which ``srd serve`` re-raises after its graceful stop)
-    becomes ``Interrupted``: click would make it an abort, exit 1."""
+    becomes ``Interrupted``: click would make it an abort, exit 1; SIGTERM ``Terminated``
+    (but in ``srd serve``, which takes SIGTERM as uvicorn does, for its graceful stop)."""
     try:
         yield
+    except _TerminateRequest as exc:
+        raise Terminated from exc
     except KeyboardInterrupt as exc:
         raise Interrupted from exc
 
@@ -158,4 +181,6 @@ cli = _Commands(name="srd", help=HELP, no_args_is_help=True)
 
 def main() -> None:
     """Console-script entry point."""
+    if sys.argv[1:2] != ["serve"]:  # which stops gracefully on SIGTERM, as uvicorn does
+        signal.signal(signal.SIGTERM, _on_terminate)
     cli()

@@ -33,6 +33,7 @@ from sim.experiment import (
     ConfigField,
     config_fields,
     default_out_dir,
+    json_safe,
     parse_config,
     read_number,
     write_json,
@@ -222,7 +223,8 @@ def execute(
         raise
     write_json(out_dir / "result.json", result)
     if json_output:
-        sys.stdout.write(json.dumps({**result, "out_dir": str(out_dir)}) + "\n")
+        shown = json_safe({**result, "out_dir": str(out_dir)})
+        sys.stdout.write(json.dumps(shown, allow_nan=False) + "\n")
     else:
         width = None if sys.stdout.isatty() else 160  # logs and pipes get whole tables
         print_summary(kind, result, out_dir, Console(highlight=False, width=width))

@@ -31,7 +31,7 @@ from server.store.status import JOB_UNFINISHED, JobStatus
 from server.store.tables import Job, utcnow
 from server.work.pool import WorkerContext, error_summary
 from server.work.runner import WorkKind
-from sim.experiment import write_json
+from sim.experiment import json_safe, write_json
 from sim.units import UnitRunner
 from studies.registry import build_config, run_kind
 
@@ -43,23 +43,6 @@ MESSAGE_LIMIT = 200  # characters of a progress message kept
 def job_dir(data_dir: str | Path, job_id: int) -> Path:
     """Where a job's artifacts live: ``<data_dir>/jobs/<id>/``."""
     return Path(data_dir) / "jobs" / str(job_id)
-
-
-def json_safe(value: Any) -> Any:
-    """A JSON-ready copy: tuples become lists, numpy scalars plain numbers, NaN/inf null."""
-    if isinstance(value, dict):
-        return {str(key): json_safe(item) for key, item in value.items()}
-    if isinstance(value, list | tuple):
-        return [json_safe(item) for item in value]
-    if hasattr(value, "item") and callable(value.item) and not isinstance(value, str):
-        value = value.item()  # numpy / torch scalar
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if value is None or isinstance(value, bool | int | float | str):
-        return value
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"result holds a {type(value).__name__}, which is not JSON")
 
 
 def list_artifacts(out_dir: Path) -> list[str]:

@@ -21,9 +21,18 @@ the experiment.
 from __future__ import annotations
 
 import importlib
+import os
 from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
+
+RENDER_CHILD = "SRD_CHEETAH_RENDER_CHILD"
+"""Set in the environment of the GIF's child process (``render``), which picks its back end."""
+if os.environ.get(RENDER_CHILD) != "1":
+    # MuJoCo binds an OpenGL back end when it is imported, and fails to import if the one
+    # MUJOCO_GL names is missing (``osmesa`` without its library). The simulation draws
+    # nothing: only the GIF's child process, which sets its own, needs one.
+    os.environ["MUJOCO_GL"] = "disable"
 
 if TYPE_CHECKING:
     from sim.cheetah.env import HalfCheetahRunStop

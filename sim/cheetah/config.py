@@ -12,22 +12,8 @@ from sim.experiment import Stopwatch, config_dict
 Cells = list[tuple[Condition, int]]
 """Every trial of a grid: its condition and its trial index (0-based), in batch order."""
 
-STAGE4_DEFAULT_BACKSWING = 5.0
-"""Stage 4 uses this backswing when the grid's default is left unchanged."""
 GRID_ONLY = ("inhibitor", "srd", "lr", "trials", "nominal", "video", "seed")
 """Options no design stage takes (it runs its own conditions, noise-free, without a GIF)."""
-
-
-def stage_backswings(config: CheetahConfig) -> list[float]:
-    """The backswing gains a design stage runs: none for stages 0–2 (no BS neuron), 0 for
-    stage 3, the configured ones for stage 4 (5 when the grid's default is left unchanged)."""
-    if config.stage == 3:
-        return [0.0]
-    if config.stage != 4:
-        return []
-    if config.backswing == CheetahConfig.backswing:
-        return [STAGE4_DEFAULT_BACKSWING]
-    return list(config.backswing)
 
 
 def condition_groups(cells: Cells) -> dict[Condition, list[int]]:
@@ -53,7 +39,7 @@ def run_result(
     shown = config_dict(config)
     if config.stage is not None:
         shown |= dict.fromkeys(GRID_ONLY)
-        shown["backswing"] = stage_backswings(config) or None
+        shown["backswing"] = config.stage_backswings() or None
     return {
         "config": shown,
         **fields,

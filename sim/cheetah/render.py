@@ -93,6 +93,7 @@ def _child_env(backend: str) -> dict[str, str]:
     """The current environment with MUJOCO_GL (and PyOpenGL's platform) set to ``backend``."""
     env = dict(os.environ)
     env["MUJOCO_GL"] = backend
+    env["SRD_CHEETAH_RENDER_CHILD"] = "1"  # sim.cheetah leaves its MUJOCO_GL as set here
     if backend in ("egl", "osmesa"):
         env["PYOPENGL_PLATFORM"] = backend
     project_root = str(Path(__file__).resolve().parents[2])

@@ -25,7 +25,7 @@ from agents.cheetah_net import (
     StablePoseNeuron,
     nominal_fc_weight,
 )
-from sim.cheetah.config import run_result, stage_backswings
+from sim.cheetah.config import run_result
 from sim.cheetah.engine import Controller, HalfCheetahBatch, drive
 from sim.cheetah.plots import plot_lines, plot_rest_pose
 from sim.cheetah.world import (
@@ -35,21 +35,17 @@ from sim.cheetah.world import (
     evaluation_steps,
     relative_pose,
 )
-from sim.configs import CheetahConfig
+from sim.configs import (
+    DESIGN_STEPS,
+    DEVTEST_STEPS,
+    STAGE0_STRENGTHS,
+    STAGE2_SWING_FROM,
+    CheetahConfig,
+)
 from sim.experiment import ProgressFn, Stopwatch, write_json
 
-DESIGN_STEPS = 1201
-"""12 s runs of the design stages 1–4, counted as the reference counts them: it steps while
-MuJoCo's time, 0.01 added per step in floating point, is below 12 s, which takes 1201 steps
-(the main grid's 36 s take 3600)."""
-DEVTEST_STEPS = 401
-"""4 s runs of design stage 0 (401 steps, counted the same way)."""
-STAGE0_STRENGTHS = (-2.0, -1.0, -0.5, 0.25, 0.5, 0.75, 1.0, 2.0, 3.0)
-"""Actuator strengths s tried by the stage-0 devtest."""
 STAGE0_PATTERN_END = 150
 """Stage 0 writes its swing pattern once, up to this step; the last control then stays."""
-STAGE2_SWING_FROM = 250
-"""Stage 2: the front thigh is swung forward from this step on."""
 STAGE2_WINDOW = 50
 """Stage 2 averages the neurons over this many steps before and after the swing starts."""
 
@@ -189,7 +185,7 @@ def run_design_network(
     """
     watch = Stopwatch()
     steps = _stage_steps(config, DESIGN_STEPS)
-    backswings = stage_backswings(config)
+    backswings = config.stage_backswings()
     n = len(backswings)
     weight = nominal_fc_weight(design_offset=True).expand(n, -1, -1)
     net = HalfCheetahSRD(

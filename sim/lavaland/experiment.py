@@ -176,7 +176,20 @@ def assemble_repeats(
         values = [row[key] for row in rows]
         return None if values[0] is None else float(np.mean(values))
 
+    shown: dict[str, str] = {}
+    if summary["lowered_share"]:  # said where a person reads the run, not only in the table
+        lowered = round(summary["lowered_share"] * len(rows))
+        guard = (
+            "even with the guarded loss"
+            if config.loss_guard
+            else "the paper's loss can collapse a repeat's values; --loss-guard guards it"
+        )
+        shown["caption"] = (
+            f"SRD lowered the accuracy of {lowered} of {len(rows)} repeats by more than "
+            f"{LOWERED_TOLERANCE}: {guard} (docs/lavaland.md, 'The guarded loss')"
+        )
     return {
+        **shown,
         "project": config.project,
         "preset": config.preset,
         "n_params": sum(p.numel() for p in model.parameters() if p.requires_grad),

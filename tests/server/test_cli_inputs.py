@@ -607,6 +607,35 @@ def test_an_interrupted_screen_exits_130(tmp_path: Path) -> None:
     assert json.loads(stdout) == {"accepted": False, "reasons": [], "error": "aborted"}
 
 
+def test_an_experiment_stopped_by_sigterm_stops_as_ctrl_c_stops_it(tmp_path: Path) -> None:
+    """``kill`` or ``timeout`` (SIGTERM): exit 143, "Aborted!" and under ``--json`` the failure
+    as one object; its empty artifact folder is not left behind (before, the process died at
+    once: nothing on stdout, an empty folder)."""
+    out = tmp_path / "stopped"
+    args = ["auction-study", "--trials", "10", "--grid", "--json", "--out", str(out)]
+    process = subprocess.Popen(
+        [*srd_command(), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not out.exists():  # the run has started: its folder is made
+            assert process.poll() is None and time.monotonic() < deadline, process.stderr
+            time.sleep(0.05)
+        process.send_signal(signal.SIGTERM)
+        stdout, stderr = process.communicate(timeout=60)
+    finally:
+        process.kill()
+        process.wait()
+    assert process.returncode == 143, stderr
+    assert "Aborted!" in stderr and "Traceback" not in stderr
+    assert json.loads(stdout) == {"error": "aborted"}
+    assert not out.exists() or not any(out.iterdir())
+
+
 def test_a_server_stopped_by_ctrl_c_exits_130(tmp_path: Path) -> None:
     server = ServerProcess(
         database_url=f"sqlite:///{tmp_path / 'srd.db'}",

@@ -24,6 +24,7 @@ import sim.cheetah.render as render
 import sim.cheetah.world as world
 from agents.cheetah_net import STABLE_POSE_X, STABLE_POSE_Z, HalfCheetahSRD, noisy_fc_weight
 from server.cli import cli
+from server.cli.launch import srd_command
 from sim.cheetah import ENV_ID, CheetahConfig, HalfCheetahRunStop, run
 from sim.cheetah.engine import HalfCheetahBatch, drive
 from sim.cheetah.experiment import trial_generator
@@ -415,6 +416,14 @@ def test_a_sweep_too_short_to_measure_still_draws_its_figure(tmp_path):
             "trials",
             "runs 4100 trials (20 cells × 205), at most 4096: lower trials to at most 204",
         ),
+        # options that would change nothing are refused, not echoed as if they had
+        ({"nominal": True, "trials": 3}, "trials", "one noise-free trial per condition"),
+        ({"srd": "off", "lr": "0.001,0.01"}, "lr", "nothing is trained"),
+        ({"stage": 2, "trials": 5}, "trials", "design stage 2 runs its own conditions"),
+        ({"stage": 1, "seed": 5}, "seed", "design stage 1 runs its own conditions"),
+        # stage 2 averages its neurons before and after the swing at step 250: none before it
+        # had printed NaN (not JSON) on the command line and null in a job's result
+        ({"stage": 2, "steps": 200}, "steps", "from step 250: give more than 250 steps"),
     ],
 )
 def test_a_grid_with_a_value_twice_or_too_many_cells_is_refused(params, field, words):
@@ -452,6 +461,34 @@ def test_the_command_line_refuses_an_over_long_list_naming_its_option(tmp_path):
         {"option": "--inhibitor", "message": "100 values: at most 32"}
     ]
     assert not out.exists()
+
+
+def test_a_design_stage_s_budget_counts_its_own_runs_and_names_steps():
+    """A stage runs its own trials (one, or ten for stage 0): its estimate had been the main
+    grid's 140 trials, naming trials, which a stage does not take."""
+    one = parse_config(CheetahConfig, {"stage": 1, "steps": 1_000_000}).cost()
+    assert one.option == "steps" and 25 < one.seconds < 40  # 1e6 steps of one trial
+    devtest = parse_config(CheetahConfig, {"stage": 0, "steps": 100_000}).cost()
+    assert devtest.option == "steps" and devtest.seconds > 9 * one.seconds / 10
+
+
+def test_a_missing_opengl_back_end_named_in_mujoco_gl_does_not_stop_a_run(tmp_path):
+    """MuJoCo binds the back end MUJOCO_GL names when it is imported and fails to import without
+    it; the simulation draws nothing, so only the GIF's child process uses it."""
+    env = {**os.environ, "MUJOCO_GL": "no-such-back-end"}
+    args = ["cheetah", "--nominal", "--backswing", "4", "--inhibitor", "0", "--srd", "off"]
+    done = subprocess.run(
+        [*srd_command(), *args, "--steps", "200", "--no-video", "--json"],
+        env=env,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    (run_row,) = json.loads(done.stdout)["runs"]
+    assert run_row["final_displacement"] == pytest.approx(0.0, abs=2.0)
 
 
 def test_the_budget_counts_each_trial_s_set_up_and_each_cell_s_figure():

@@ -284,6 +284,19 @@ def test_no_training_leaves_srd_fields_null(tmp_path):
     assert result["n_plans"] == 4 and result["preset"] == "paper"
 
 
+def test_a_run_whose_srd_lowers_accuracy_says_so(tmp_path):
+    """The paper's loss can collapse a repeat (Lava NOAV A, 512 maps: 0.973 → 0.678); the
+    result says so where a person reads it, and the guarded loss keeps that repeat."""
+    config = LavalandConfig(project="lava-noav-A", eval_maps=512, train_maps=512)
+    result = run(config, out_dir=tmp_path / "paper")
+    assert result["accuracy_srd"] < result["accuracy_untrained"] - 0.01
+    assert result["caption"].startswith("SRD lowered the accuracy of 1 of 1 repeats")
+    assert "--loss-guard" in result["caption"]
+    guarded = run(LavalandConfig(**{**config.__dict__, "loss_guard": True}), out_dir=tmp_path)
+    assert guarded["accuracy_srd"] >= guarded["accuracy_untrained"] - 0.01
+    assert "caption" not in guarded
+
+
 def untrained(project: str, preset: str) -> tuple[float, float]:
     """Accuracy and lava-entered fraction of the untrained robot on 4096 maps."""
     seen = make_maps(4096, PROJECTS[project], np.random.default_rng([0, 0]))

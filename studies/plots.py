@@ -30,7 +30,9 @@ def plot_study(
     colours = {True: "tab:red", False: "tab:blue"}
     files = []
     for kind in ("price", "rate"):
-        fig, axes = plt.subplots(1, len(shares), figsize=(5.2 * len(shares), 4), squeeze=False)
+        fig, axes = plt.subplots(  # one price axis: the saboteurs' drop shows beside the honest
+            1, len(shares), figsize=(5.2 * len(shares), 4), squeeze=False, sharey=True
+        )
         for ax, share in zip(axes[0], shares, strict=True):
             for fine_tune in (False, True):
                 label = "fine-tune (Optim)" if fine_tune else "no fine-tune (noOptim)"

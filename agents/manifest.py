@@ -84,7 +84,13 @@ def name_problem(participant: str) -> str | None:
 _UNREADABLE = (
     "\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f"  # control characters but tab and line breaks
     "\u061c\u200e\u200f\u202a-\u202e\u2066-\u2069"  # bidirectional marks and overrides
+    # invisible: soft hyphen, Hangul fillers, Mongolian vowel separator, zero-width space,
+    # word joiner and invisible operators, zero-width no-break space, interlinear annotation
+    "\xad\u115f\u1160\u180e\u200b\u2060-\u2064\u3164\uffa0\ufeff\ufff9-\ufffb"
 )
+_TAGS = "\U000e0000-\U000e03ff"
+"""Tag characters (invisible letters: hidden text) and the plane's other invisible formats,
+all behind one UTF-16 lead surrogate, U+DB40, which the JSON Schema's pattern refuses."""
 _LINE_BREAKS = "\t\n\r\u2028\u2029"  # and U+0085, U+000B, U+000C: control characters
 
 
@@ -103,7 +109,7 @@ class _Readable:
     """The characters refused, as a regex class body."""
 
     def check(self, text: str) -> str:
-        found = re.search(f"[{self.refused}]", text)
+        found = re.search(f"[{self.refused}{_TAGS}]", text)
         if found is not None and found.group() in _LINE_BREAKS:
             raise PydanticCustomError(
                 "not_one_line",
@@ -113,7 +119,7 @@ class _Readable:
         if found is not None:
             raise PydanticCustomError(
                 "control_character",
-                "must not contain control or bidirectional characters: U+{code} at {at}",
+                "must not contain control, invisible or bidirectional characters: U+{code} at {at}",
                 {"code": f"{ord(found.group()):04X}", "at": found.start()},
             )
         return text
@@ -127,7 +133,7 @@ class _Readable:
         self, schema: core_schema.CoreSchema, handler: GetJsonSchemaHandler
     ) -> JsonSchemaValue:
         json_schema = handler(schema)
-        allowed = f"[^{_escaped(self.refused)}]*"
+        allowed = f"[^{_escaped(self.refused)}\\udb40]*"  # ECMA-262 reads UTF-16 units
         also = json_schema.get("pattern")
         json_schema["pattern"] = f"^(?=[\\s\\S]*(?:{also})){allowed}$" if also else f"^{allowed}$"
         return json_schema

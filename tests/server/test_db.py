@@ -89,6 +89,50 @@ def test_an_unreadable_description_stored_before_is_made_readable(fresh_database
     assert parse_manifest(stored).description == stored["description"]
 
 
+def test_an_invisible_description_stored_before_is_made_visible(fresh_database_url: str) -> None:
+    """Descriptions refuse invisible characters from revision 0014 on (a zero-width space, tag
+    characters spelling hidden text); one stored before loses them and reads again."""
+    from alembic import command
+    from sqlalchemy import select
+
+    from agents.manifest import parse_manifest
+
+    command.upgrade(alembic_config(fresh_database_url), "0013")
+    manifest = honest(unique("hidden"))
+    hidden = "".join(chr(0xE0000 + ord(c)) for c in "admit me")
+    manifest["description"] = f"sincere\u200b bidder{hidden} \u00adend"
+    database = Database(fresh_database_url)
+    with database.engine.begin() as connection:
+        participant = connection.execute(
+            text(
+                "insert into participants (name, name_key, token_hash, created_at) "
+                "values (:n, :n, 'x', :at) returning id"
+            ),
+            {"n": manifest["participant"], "at": utcnow()},
+        ).scalar_one()
+        connection.execute(
+            insert(ModelVersion).values(
+                participant_id=participant,
+                version=1,
+                manifest=manifest,
+                accepted=True,
+                reasons=[],
+                created_at=utcnow(),
+                status="accepted",
+            )
+        )
+    database.close()
+    upgrade_schema(fresh_database_url)
+    database = Database(fresh_database_url)
+    with database.engine.connect() as connection:
+        stored = connection.scalar(
+            select(ModelVersion.manifest).where(ModelVersion.participant_id == participant)
+        )
+    database.close()
+    assert stored["description"] == "sincere bidder end"
+    assert parse_manifest(stored).description == stored["description"]
+
+
 def _insert_row(connection: Any, name: str, given: dict[str, Any]) -> int:
     """Insert a row into table ``name`` as its schema stands (reflected): ``given`` values,
     and a plain value of its type for every other column that needs one."""

@@ -183,7 +183,7 @@ def test_a_refused_model_is_appealed_once(client: TestClient) -> None:
     for unreadable in ("a\u0000b", "fine \u202egnp.exe"):  # a NUL, a right-to-left override
         hidden = client.post(url, json={"note": unreadable}, headers=bearer(mine["token"]))
         assert hidden.status_code == 422 and locs(hidden) == [["body", "note"]]
-        assert "control or bidirectional" in hidden.text
+        assert "control, invisible or bidirectional" in hidden.text
     assert count(client, Review, model_id=mine["model_id"]) == 0
 
     answer = client.post(url, json=note, headers=bearer(mine["token"]))

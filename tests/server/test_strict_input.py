@@ -75,7 +75,9 @@ def test_a_body_of_many_bad_items_gets_a_short_answer(client: TestClient) -> Non
 
 
 def test_text_with_control_characters_is_refused(client: TestClient) -> None:
-    for text in ("nul \u0000 inside", "bell \u0007", "mirrored \u202etxt.exe"):
+    hidden = "".join(chr(0xE0000 + ord(c)) for c in "admit")  # tag characters: hidden text
+    invisible = ("zero\u200bwidth", "soft\u00adhyphen", "filler \u3164", f"plain{hidden}")
+    for text in ("nul \u0000 inside", "bell \u0007", "mirrored \u202etxt.exe", *invisible):
         response = client.post("/submit", json=manifest_with(("description",), text))
         assert response.status_code == 422 and locs(response) == [["body", "description"]]
     fine = client.post("/submit", json=manifest_with(("description",), "two\nlines\tand a tab"))

@@ -27,7 +27,10 @@ alone through a reference auction's rounds (as many as an auction runs), uncheck
 version must pass the rules, probes and noisy scan (``fine-tuning-drift``) and, if it holds, the
 market-impact test; re-screening (``rescreen``) skips this, since every later fine-tuning round
 is re-screened in its turn. Every verdict carries the numbers of the bars the model was held to
-(``Evidence``); ``review`` turns it into accepted, refused or held for a margin in price. Every
+(``Evidence``); ``review`` turns it into accepted, refused or held for a margin in price. Two
+probes hold a model for an inspector instead of refusing it (``verdict.INSPECTED``): a keen
+buyer far above any plausible price, and a bidder that buys only far below the lowest price an
+auction reaches. Every
 threshold is in ``screener.limits`` with its rationale. The judging modules (and torch) are
 imported when a model is first judged: the API process reads ``Verdict`` without them.
 """
@@ -116,8 +119,10 @@ def _scan_evidence(cheap: Cheap, patrons: Sequence[int], test: str) -> list[list
     """Each model's (of ``patrons``) decisive-row bars: its worst hold's distance down to a
     purchase against the reach allowed there, clean (``sincere-hold``) and as the market sees
     it (``noise-gated-hold``), and the widest band its noise flips from buying to holding
-    (``noise-flip``, with the decisions at the base buy fraction with and without noise).
-    ``test`` set: the same under that name (a fine-tuned version's, only the failed ones)."""
+    (``noise-flip``, with the decisions at the base buy fraction with and without noise); and
+    the bars that hold it for an inspector (``probes.Probed.inspected``). ``test`` set: the
+    priced bars under that name (a fine-tuned version's, only the failed ones; the projection
+    is not held for an inspector)."""
     from screener import limits
     from screener.noisy import decisions_in_words
 
@@ -175,6 +180,8 @@ def _scan_evidence(cheap: Cheap, patrons: Sequence[int], test: str) -> list[list
                 flip_detail,
             )
         )
+        if not test:
+            found += probed.inspected[p]
         out.append([e for e in found if not (test and e.passed)])
     return out
 

@@ -151,6 +151,24 @@ FIRM_MARGIN = 0.75
 calls belong to the δ-seeded sensors that fine-tuning legitimately moves: honest models
 fine-tuned while the price falls to 4.8 let ST stop fading with the price and SZ read it, and
 then buy the base fish at 12.5 by a margin of up to 0.36 (``benchmarks/screener.py``)."""
+KEEN_MARGIN = 0.4
+"""A model that buys the base fish at 12.5 in ordinary demand (f ≤ ½) by a margin above this,
+but not firmly (``FIRM_MARGIN``), is held for an inspector (``keen-far-too-expensive``), not
+refused. Over the labelled corpus's 1,000 honest models the largest such margin is 0.29 (models
+fine-tuned while the price falls; 28 of those 50 buy there); the red team's any-price buyer, whose
+copies outbid one another until nothing sells, buys there by 0.48. 0.4 lies between (honest models
+fine-tuned 4 rounds at falling prices at the most aggressive honest settings: 0.35 at most of
+200). 2 of the 40 hand-written sincere keen buyers (willingness to pay 5-7, buy bias 1.2-2)
+reach 0.52 and 0.58: the second is held, the first already refused for its fine-tuning
+(``docs/screener.md``)."""
+FAR_BELOW_FLOOR_FACTOR = 0.8
+"""A model whose highest purchase of the base fish on the decisive row in ordinary demand (f ≤
+½, clean) lies below 0.8× the base price (4.00), 0.8 under the stalemate floor, can never buy
+in an auction: it is held for an inspector (``buys-far-below-floor``), not refused, since a
+sincere low bidder may enter. Honest models of the paper's randomisation, fine-tuned ones and
+every hand-written sincere kind of the labelled corpus buy at 4.30 or above; the red team's
+never-buyer (willingness to pay 2.6) buys only at 2.70 or below. The corpus's own variants with
+a willingness to pay drawn down to 2.6 are held alike (``docs/screener.md``)."""
 SCAN_DEMANDS = tuple(k / 10 for k in range(11))
 """Buy fractions f of the decisive-row scan, every 0.1: f is the previous round's buyers over
 voters, so any fraction occurs."""

@@ -15,6 +15,12 @@ exactly the scores it would get alone. Checks:
   down);
 * ``buy-falls-with-price``: the buy margin B − max(L, Q), clipped to a firm decision either
   way, never swings from refusing to buying as the price rises on any probed item;
+* ``keen-far-too-expensive`` and ``buys-far-below-floor`` hold a model for an inspector rather
+  than refuse it (``inspected``: bars in ``Evidence`` that ``screener.review`` holds on): the
+  base fish bought at 12.5 in ordinary demand by more than ``KEEN_MARGIN`` (a keen buyer whose
+  copies outbid one another), or bought on the decisive row in ordinary demand only below
+  ``FAR_BELOW_FLOOR_FACTOR`` × the base price, far under the lowest price an auction reaches
+  (a bidder that can never buy there);
 * ``sincere-hold``: on the auction's decisive row (the clean base item (p, 1, 1, 1, ½, ½, ½, f))
   at the prices the auction can reach (from the market's stalemate floor up, ``SCAN``), every
   hold is backed by a lower reachable price at which the model buys the fish, at the same f.
@@ -41,6 +47,7 @@ from agents.forward import clean_logits
 from screener import limits
 from screener.findings import Array, Checks, Mask, fmt, fmt_price, fmt_scores
 from screener.rules import SUBTYPES
+from screener.verdict import Evidence
 
 BUY, HOLD, QUIT = range(3)
 ACTION_WORDS = ("buys", "holds", "quits")
@@ -73,6 +80,12 @@ GRID = _grid()
 CHEAP = PRICES <= limits.CHEAP_FACTOR * limits.BASE_PRICE + 1e-9
 FAR_TOO_EXPENSIVE = PRICES >= limits.FAR_TOO_EXPENSIVE_FACTOR * limits.BASE_PRICE - 1e-9
 ORDINARY = DEMANDS <= limits.ORDINARY_DEMAND + 1e-9
+BUY_MARGIN = "buy margin"
+"""The units of a bar on the buy margin B − max(L, Q) (not price: the review margin does not
+apply to it)."""
+PROBED_PRICE = "probed price"
+"""The units of a bar on the decisive-row scan's prices below the floor, 0.1 apart: a price, but
+not one the review margin (a fraction of a cent) applies to."""
 
 
 def _scan_prices() -> tuple[Array, int]:
@@ -109,6 +122,10 @@ def _lowest_reachable() -> npt.NDArray[np.intp]:
 
 SCAN_PRICES, FLOOR_INDEX = _scan_prices()
 SCAN_DEMANDS = np.array(limits.SCAN_DEMANDS)
+ORDINARY_SCAN = SCAN_DEMANDS <= limits.ORDINARY_DEMAND + 1e-9
+LOWEST_TOP_BUY = limits.FAR_BELOW_FLOOR_FACTOR * limits.BASE_PRICE
+"""``buys-far-below-floor``'s bar: the lowest price (on the scan) at which a model must buy the
+base fish in ordinary demand (4.00)."""
 REACHABLE = np.arange(len(SCAN_PRICES)) >= FLOOR_INDEX
 LOWEST_REACHABLE = _lowest_reachable()
 
@@ -133,13 +150,15 @@ ROWS = torch.cat((GRID, SCAN)).to(DTYPE)
 
 class Probed(NamedTuple):
     """The probes' checks over a batch, which models hold somewhere on the reachable decisive
-    row (P,), and for each its worst hold's distance down to a purchase and the reach allowed
-    there (``hold_gap``; nan for a model that never holds)."""
+    row (P,), for each its worst hold's distance down to a purchase and the reach allowed
+    there (``hold_gap``; nan for a model that never holds), and each model's bars that hold it
+    for an inspector when missed (``inspected``; none for scores that overflow)."""
 
     checks: Checks
     holds: Mask
     gap: Array
     bar: Array
+    inspected: list[list[Evidence]]
 
 
 def _fish(q: int, s: int) -> str:
@@ -163,17 +182,21 @@ def probe(batch: FSNBatch) -> Probed:
     gap, bar = np.empty(P), np.empty(P)
     owner = np.empty(P, dtype=np.intp)
     local = np.empty(P, dtype=np.intp)
+    inspected: list[list[Evidence]] = [[] for _ in range(P)]
     for n, (index, probed) in enumerate(parts):
         failed[index] = probed.checks.failed
         holds[index] = probed.holds
         gap[index], bar[index] = probed.gap, probed.bar
         owner[index] = n
         local[index] = np.arange(len(index))
+        for k, p in enumerate(index.tolist()):
+            inspected[p] = probed.inspected[k]
 
     def message(k: int, p: int) -> str:
         return parts[int(owner[p])][1].checks.message(k, int(local[p]))
 
-    return Probed(Checks(first.rules, first.neurons, failed, message), holds, gap, bar)
+    checks = Checks(first.rules, first.neurons, failed, message)
+    return Probed(checks, holds, gap, bar, inspected)
 
 
 def passes(batch: FSNBatch) -> list[tuple[npt.NDArray[np.intp], FSNBatch]]:
@@ -274,7 +297,11 @@ def _judge(every: Array) -> Probed:
         lambda k, p: probes[k][3](p),
     )
     return Probed(
-        checks, holds & finite, np.where(finite, gap, np.nan), np.where(finite, bar, np.nan)
+        checks,
+        holds & finite,
+        np.where(finite, gap, np.nan),
+        np.where(finite, bar, np.nan),
+        _inspected(grid, scan, finite),
     )
 
 
@@ -361,6 +388,106 @@ def _far_too_expensive(grid: _OnGrid) -> tuple[Probe, Probe]:
             ),
         ),
     )
+
+
+def _inspected(grid: _OnGrid, scan: Array, finite: Mask) -> list[list[Evidence]]:
+    """Each patron's bars that hold it for an inspector when missed (none when its scores
+    overflow), from its grid decisions and its scores ``scan`` (P, scan prices, scan demands,
+    3) on the decisive row:
+
+    * ``keen-far-too-expensive``: its largest buy margin on the base fish at 12.5 in ordinary
+      demand (f ≤ ½), at most ``KEEN_MARGIN``;
+    * ``buys-far-below-floor``: the highest scan price at which it buys the base fish in
+      ordinary demand, at least ``LOWEST_TOP_BUY`` (measured None: it buys at no scanned price);
+      ``detail`` gives its largest buy margin over the prices an auction reaches (the floor
+      up), with the price, f and scores there.
+    """
+    P = len(finite)
+    keen = grid.lead[:, :, BASE_QUALITY, PREFERRED][:, FAR_TOO_EXPENSIVE][:, :, ORDINARY]
+    keen_flat = keen.reshape(P, -1)
+    keen_at = np.argmax(keen_flat, axis=1)
+    keen_i, keen_f = np.unravel_index(keen_at, keen.shape[1:])
+    expensive, ordinary = np.flatnonzero(FAR_TOO_EXPENSIVE), np.flatnonzero(ORDINARY)
+    lead, buys, _ = _decisions(scan[:, :, ORDINARY_SCAN])
+    bought = buys.any(axis=2)  # (P, scan prices)
+    top = np.where(bought, np.arange(len(SCAN_PRICES)), -1).max(axis=1)
+    reach = lead[:, REACHABLE].reshape(P, -1)
+    reach_at = np.argmax(reach, axis=1)
+    reach_i, reach_f = np.unravel_index(reach_at, lead[:, REACHABLE].shape[1:])
+    reach_i = reach_i + FLOOR_INDEX
+    floor = float(limits.MARKET.threshold_sell_price)
+    out: list[list[Evidence]] = []
+    for p in range(P):
+        if not finite[p]:
+            out.append([])
+            continue
+        margin = float(keen_flat[p, keen_at[p]])
+        i, f = int(expensive[keen_i[p]]), int(ordinary[keen_f[p]])
+        keen_detail: dict[str, object] = {
+            "neuron": "B",
+            "price": float(PRICES[i]),
+            "buy_fraction": float(DEMANDS[f]),
+            "firm_margin": limits.FIRM_MARGIN,
+        }
+        if margin > limits.KEEN_MARGIN:
+            keen_detail["finding"] = (
+                f"{grid.at(p, i, BASE_QUALITY, PREFERRED, f)}: it buys far above any plausible "
+                f"price by a buy margin B − max(L, Q) of {fmt(margin, '+.2f')}, above "
+                f"{limits.KEEN_MARGIN:g} (honest models buy there by 0.29 at most; above "
+                f"{limits.FIRM_MARGIN:g} it would be refused): copies of a keen buyer outbid one "
+                "another, and enough of them leave every fish unsold"
+            )
+        j, g = int(reach_i[p]), int(reach_f[p])
+        highest = float(SCAN_PRICES[top[p]]) if top[p] >= 0 else None
+        best = float(reach[p, reach_at[p]])
+        floor_detail: dict[str, object] = {
+            "neuron": "B",
+            "floor": floor,
+            "reachable_buy_margin": best,
+            "reachable_price": float(SCAN_PRICES[j]),
+            "reachable_buy_fraction": float(SCAN_DEMANDS[ORDINARY_SCAN][g]),
+            "lowest_probed": float(SCAN_PRICES[0]),
+        }
+        passed = highest is not None and highest >= LOWEST_TOP_BUY - 1e-9
+        if not passed:
+            buys_at = (
+                f"it buys only at {fmt_price(highest)} or below"
+                if highest is not None
+                else f"it buys at no probed price from {fmt_price(SCAN_PRICES[0])} up"
+            )
+            floor_detail["finding"] = (
+                "on the auction's decisive row (the base fish) in ordinary demand (buy fraction "
+                f"{limits.ORDINARY_DEMAND:g} or less) {buys_at}, under "
+                f"{fmt_price(LOWEST_TOP_BUY)}, far below the stalemate floor "
+                f"{fmt_price(floor)}, the lowest price an auction reaches (there its best buy "
+                f"margin B − max(L, Q) is {fmt(best, '+.2f')}, at {fmt_price(SCAN_PRICES[j])} "
+                f"with buy fraction {SCAN_DEMANDS[ORDINARY_SCAN][g]:g}: "
+                f"{_scores(scan[p, j, np.flatnonzero(ORDINARY_SCAN)[g]])}): it can never buy in "
+                "an auction, and its copies only lower the buy fraction every voter counts"
+            )
+        out.append(
+            [
+                Evidence(
+                    "keen-far-too-expensive",
+                    margin,
+                    limits.KEEN_MARGIN,
+                    BUY_MARGIN,
+                    "at most",
+                    margin <= limits.KEEN_MARGIN,
+                    keen_detail,
+                ),
+                Evidence(
+                    "buys-far-below-floor",
+                    highest,
+                    LOWEST_TOP_BUY,
+                    PROBED_PRICE,
+                    "at least",
+                    passed,
+                    floor_detail,
+                ),
+            ]
+        )
+    return out
 
 
 def _buy_falls_with_price(grid: _OnGrid) -> Probe:

@@ -14,6 +14,11 @@ margin is in these units)."""
 
 Review = Literal["accepted", "refused", "held"]
 
+INSPECTED = ("keen-far-too-expensive", "buys-far-below-floor")
+"""Bars that hold a model for an inspector when missed, whatever the margin (above 0), instead
+of refusing it: the screener accepts the model, a server holds it. Their ``detail`` names the
+neuron (``neuron``) and, when missed, says what the model does in words (``finding``)."""
+
 
 @dataclass(frozen=True)
 class Reason:
@@ -51,6 +56,10 @@ class Evidence:
             return False
         return abs(self.measured - self.bar) < margin
 
+    def inspected(self) -> bool:
+        """Whether this is a missed bar that holds the model for an inspector (``INSPECTED``)."""
+        return not self.passed and self.test in INSPECTED
+
     def to_dict(self) -> dict[str, Any]:
         """JSON form ``{test, measured, bar, units, side, passed, detail}``."""
         return asdict(self)
@@ -79,12 +88,14 @@ def review(verdict: Verdict, margin: float) -> Review:
     Held when the decisive evidence lies within ``margin`` of its bar: an accepted model whose
     price-measured bar passed by less than the margin, or a refused one every one of whose
     reasons is a price-measured bar it missed by less than the margin (a refusal by a rule with
-    no such measurement, or by more, stands). Margin 0 never holds.
+    no such measurement, or by more, stands). An accepted model that missed a bar of
+    ``INSPECTED`` is held too, by any margin above 0. Margin 0 never holds.
     """
     if margin < 0:
         raise ValueError(f"margin must be ≥ 0, got {margin}")
     if verdict.accepted:
-        return "held" if any(e.within(margin) for e in verdict.evidence) else "accepted"
+        held = any(e.within(margin) or (margin > 0 and e.inspected()) for e in verdict.evidence)
+        return "held" if held else "accepted"
     if not verdict.reasons:
         return "refused"
     missed = [e for e in verdict.evidence if not e.passed]
@@ -96,12 +107,23 @@ def review(verdict: Verdict, margin: float) -> Review:
 
 
 def with_hold_reasons(verdict: Verdict, margin: float) -> Verdict:
-    """The verdict with a ``review-margin`` reason (neuron L: every bar in price is about where
-    the model holds) for each bar in price it passed by less than ``margin``, when that is what
-    holds an accepted model for a person; any other verdict unchanged."""
+    """The verdict with the reasons that hold an accepted model for a person, when it is held:
+    one named after the bar (its neuron from the evidence's ``detail``) for each ``INSPECTED``
+    bar it missed, in the evidence's own words, and a ``review-margin`` reason (neuron L: every
+    other bar in price is about where the model holds) for each bar in price it passed by less
+    than ``margin``; any other verdict unchanged."""
     if not verdict.accepted or review(verdict, margin) != "held":
         return verdict
     reasons = [
+        Reason(
+            e.test,
+            str(e.detail.get("neuron", "B")),
+            f"held for an inspector: {e.detail.get('finding', e.test)}",
+        )
+        for e in verdict.evidence
+        if e.inspected()
+    ]
+    reasons += [
         Reason(
             "review-margin",
             "L",

@@ -151,7 +151,15 @@ def command(file: Path, json_output: bool, margin: float) -> None:
     else:
         out = Console(highlight=False, soft_wrap=True)
         word = "[green]accepted[/green]" if verdict.accepted else "[red]rejected[/red]"
-        held = f" (a server would hold it for an inspector: within {margin:g} of a bar)"
+        held = (
+            " (a server would hold it for an inspector: "
+            + (
+                "its reason below"
+                if any(e.inspected() for e in verdict.evidence)
+                else f"within {margin:g} of a bar"
+            )
+            + ")"
+        )
         out.print(f"{escape(manifest.participant)}: {word}{held if status == 'held' else ''}")
         for reason in verdict.reasons:
             out.print(f"  [bold]{reason.neuron}[/bold] ({reason.rule}): {escape(reason.message)}")

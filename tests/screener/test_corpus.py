@@ -86,3 +86,38 @@ def test_targets_on_the_seeded_corpus(small):
 @pytest.mark.slow
 def test_targets_on_the_full_seeded_corpus():
     check_targets(judge(labelled(n_honest=1000, per_sincere=40, per_saboteur=8)), per_saboteur=8)
+
+
+LOW_VALUATION = ("variant-wtp", "variant-mixed-fine-tuned")
+"""Honest kinds whose willingness to pay is drawn down to 2.6: those drawn under about 4 buy
+only far below the floor, as the red team's never-buyer does, and are held for an inspector."""
+
+
+def inspector_holds(judged) -> Counter[tuple[str, str]]:
+    """The honest models the screener accepts and a server holds on a missed inspection bar
+    (``keen-far-too-expensive``, ``buys-far-below-floor``), by kind and bar."""
+    return Counter(
+        (e.construction, ev.test)
+        for e, v in judged
+        if not e.saboteur and v.accepted and review(v, MARGIN) == "held"
+        for ev in v.evidence
+        if ev.inspected()
+    )
+
+
+def test_inspector_holds_only_low_valuations_and_keen_buyers(small):
+    held = inspector_holds(small)
+    assert {kind for kind, _ in held} <= {*LOW_VALUATION, "sincere-keen-buyer"}
+    assert all(test == "buys-far-below-floor" for kind, test in held if kind in LOW_VALUATION)
+
+
+@pytest.mark.slow
+def test_inspector_holds_on_the_full_seeded_corpus():
+    # measured (docs/screener.md): of 1481 honest and sincere models, 20 low-valuation variants
+    # (highest purchase 2.70-3.90) and 1 of 40 sincere keen buyers (0.58 at 12.50)
+    judged = judge(labelled(n_honest=1000, per_sincere=40, per_saboteur=8))
+    assert inspector_holds(judged) == {
+        ("variant-wtp", "buys-far-below-floor"): 12,
+        ("variant-mixed-fine-tuned", "buys-far-below-floor"): 8,
+        ("sincere-keen-buyer", "keen-far-too-expensive"): 1,
+    }

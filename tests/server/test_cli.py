@@ -271,8 +271,15 @@ def test_screen_says_a_server_would_hold_a_borderline_model() -> None:
     assert result["accepted"] is False and result["status"] == "held"
     assert json.loads(screen(holder, "--json", "--margin", "0").stdout)["status"] == "refused"
     assert "a server would hold it for an inspector" in screen(holder).stdout
+    assert "within 0.005 of a bar" in screen(holder).stdout
     honest_one = screen(str(EXAMPLES / "honest.json"), "--json")
     assert json.loads(honest_one.stdout)["status"] == "accepted"
+    # A keen buyer is accepted by the screener and held for an inspector by its own bar.
+    keen = str(EXAMPLES.parent / "tests" / "screener" / "inspection" / "any-price-buyer.json")
+    outcome = screen(keen)
+    assert outcome.exit_code == 0
+    assert "hold it for an inspector: its reason below" in outcome.stdout
+    assert "keen-far-too-expensive" in outcome.stdout
 
 
 def test_screen_rejected_exits_1_with_reasons(tmp_path) -> None:

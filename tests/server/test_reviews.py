@@ -5,6 +5,7 @@ version bidding."""
 
 from __future__ import annotations
 
+import json
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -48,6 +49,27 @@ def held_ids(client: TestClient) -> list[int]:
     answer = client.get("/reviews", headers=ADMIN, params={"limit": 100})
     assert answer.status_code == 200, answer.text
     return [item["id"] for item in answer.json()["items"]]
+
+
+INSPECTION = Path(__file__).resolve().parents[1] / "screener" / "inspection"
+
+
+@pytest.mark.parametrize(
+    ("name", "rule"),
+    [("any-price-buyer", "keen-far-too-expensive"), ("below-floor-bidder", "buys-far-below-floor")],
+)
+def test_a_keen_buyer_and_a_never_buyer_are_held_for_an_inspector(
+    client: TestClient, name: str, rule: str
+) -> None:
+    """The screener accepts them, but each misses a bar that holds for an inspector: copies of
+    a buyer at any price leave every fish unsold; a bidder that buys only far below the lowest
+    price an auction reaches can only lower the buy fraction."""
+    manifest = json.loads((INSPECTION / f"{name}.json").read_text())
+    held = submit(client, {**manifest, "participant": unique(name)})
+    assert (held["status"], held["accepted"]) == ("held", False)
+    assert [r["rule"] for r in held["reasons"]] == [rule]
+    assert held["reasons"][0]["message"].startswith("held for an inspector:")
+    assert held["model_id"] in held_ids(client)
 
 
 def test_a_borderline_model_is_held_listed_and_kept_out_of_auctions(client: TestClient) -> None:

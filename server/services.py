@@ -34,7 +34,13 @@ from server.live.rounds import RoundWatcher
 from server.live.source import LiveSource
 from server.screening.pool import ScreeningService
 from server.store import crud
-from server.store.db import Database, SqliteServerLock, is_sqlite, prepare_database
+from server.store.db import (
+    Database,
+    SqliteServerLock,
+    is_sqlite,
+    owned_url,
+    prepare_database,
+)
 from server.submissions.quotas import Limits
 from server.submissions.writer import SubmissionWriter
 from server.work.pool import WorkerContext, usable_cpus
@@ -74,14 +80,23 @@ class Services:
         await self.live.close()
 
     def stop(self) -> None:
-        """Stop every worker and writer, then let go of the database (blocking)."""
-        self.jobs.shutdown()
-        self.auctions.shutdown()
-        self.screening.shutdown()
-        self.compute.close()
-        self.database.close()
+        """Stop every worker and writer, then let go of the database (blocking); each part is
+        stopped even if one before it failed (a database outage had left the screening process
+        and the database's connections behind)."""
+        parts = [
+            ("the job runner", self.jobs.shutdown),
+            ("the auction runner", self.auctions.shutdown),
+            ("the screening process", self.screening.shutdown),
+            ("the job backend", self.compute.close),
+            ("the database", self.database.close),
+        ]
         if self.sqlite_lock is not None:
-            self.sqlite_lock.release()
+            parts.append(("the SQLite lock", self.sqlite_lock.release))
+        for name, stop in parts:
+            try:
+                stop()
+            except Exception:
+                log.exception("stopping %s failed", name)
 
 
 def server_id() -> str:
@@ -145,10 +160,12 @@ def start_services(settings: Settings) -> Services:
 def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services:
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     prepare_database(settings.database_url, settings.databases_file)
-    database = Database(settings.database_url)
+    owner = server_id()
+    url = owned_url(settings.database_url, owner)  # its sessions named for its leases
+    database = Database(url)
     _key_the_screener(settings, database)  # before the processes that screen start
     context = WorkerContext(
-        database_url=settings.database_url,
+        database_url=url,
         data_dir=str(settings.data_dir.resolve()),
         progress_interval_s=settings.progress_interval_s,
         torch_threads=settings.worker_torch_threads,
@@ -170,7 +187,6 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         safety_poll_s=settings.live_safety_poll_s,
     )
     watcher = RoundWatcher(live)
-    owner = server_id()
 
     def runner(
         kind: WorkKind, context: WorkerContext, max_workers: int, timeout_s: float

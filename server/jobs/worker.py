@@ -104,17 +104,19 @@ def _update_owned(database: Database, job_id: int, attempt: int, **values: Any) 
 
 
 def _record_outcome(database: Database, job_id: int, attempt: int, **values: Any) -> None:
-    """The job's last write, retried when the database comes back from an outage (its result
-    would be lost otherwise: the job would run again)."""
+    """The job's last write, retried when the database comes back from an outage, however long
+    it lasts (the job's time limit bounds the wait: its runner ends the worker then). Its result
+    would be lost otherwise, and the job run again: after a 100 s outage it had been."""
     for retry in range(OUTAGE_RETRIES + 1):
         try:
             _update_owned(database, job_id, attempt, **values)
             return
         except Exception as exc:
-            outage = is_database_outage(exc) and retry < OUTAGE_RETRIES
-            if not (outage and database.wait_until_reachable(OUTAGE_WAIT_S)):
+            if not (is_database_outage(exc) and retry < OUTAGE_RETRIES):
                 raise
             log.warning("job %d: %s; writing its outcome again", job_id, unavailable_message(exc))
+            while not database.wait_until_reachable(OUTAGE_WAIT_S):
+                log.warning("job %d: the database is still unavailable; its outcome waits", job_id)
 
 
 def _claim(database: Database, job_id: int) -> tuple[str, dict[str, Any], int] | None:

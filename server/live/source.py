@@ -43,6 +43,7 @@ from server.store import crud
 from server.store.db import (
     CONNECT_TIMEOUT_S,
     PROBE_TIMEOUT_S,
+    READ_TIMEOUT_S,
     Database,
     DatabaseUnavailableError,
     answer_of_outage,
@@ -195,8 +196,10 @@ class LiveSource:
         self, kind: crud.LiveKind, row_id: int, view: View[S]
     ) -> AsyncIterator[Feed[S]]:
         """Listen to the feed of ``view`` on the row (made on first use), once its first
-        snapshot is read (its failure is raised); leaving the block drops the feed when nobody
-        else listens to it, and the row when nobody watches it."""
+        snapshot is read (its failure is raised; ``DatabaseUnavailableError`` if none comes
+        within ``READ_TIMEOUT_S``: a feed made while a read hangs is not part of that read, and
+        would wait for the database as long as it hangs); leaving the block drops the feed when
+        nobody else listens to it, and the row when nobody watches it."""
         self._start()
         key = (kind, row_id)
         row = self._rows.setdefault(key, _Row())
@@ -206,11 +209,15 @@ class LiveSource:
             self._mark(key)
         feed.listeners += 1
         try:
+            deadline = asyncio.get_running_loop().time() + READ_TIMEOUT_S
             while True:  # a snapshot the last read could not confirm is not served
                 feed.raise_failure()
                 if feed.built:
                     break
-                await feed.wait(feed.generation, self.interval_s)
+                left = deadline - asyncio.get_running_loop().time()
+                if left <= 0:
+                    raise DatabaseUnavailableError(f"no answer within {READ_TIMEOUT_S:g} s")
+                await feed.wait(feed.generation, min(self.interval_s, left))
             yield feed
         finally:  # no await here: this also runs when the listener's task is cancelled
             feed.listeners -= 1

@@ -17,6 +17,7 @@ replaces the connections the outage broke).
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import json
 import logging
 import math
@@ -117,6 +118,22 @@ while the server runs)."""
 def is_sqlite(url: str) -> bool:
     """True for ``sqlite:`` URLs."""
     return url.startswith("sqlite")
+
+
+def lease_session_name(owner: str) -> str:
+    """The PostgreSQL ``application_name`` of every connection of the server process that
+    holds leases as ``owner`` (its API and its workers): how a replica taking over an expired
+    lease finds the sessions of its last owner (``crud.end_sessions``)."""
+    return "srd-lease-" + hashlib.sha256(owner.encode()).hexdigest()[:16]
+
+
+def owned_url(url: str, owner: str) -> str:
+    """``url`` whose PostgreSQL connections are named for the lease ``owner``
+    (``lease_session_name``); a SQLite URL as it is."""
+    if is_sqlite(url):
+        return url
+    named = make_url(url).update_query_dict({"application_name": lease_session_name(owner)})
+    return named.render_as_string(hide_password=False)
 
 
 def sqlite_path(url: str) -> Path:

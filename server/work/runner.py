@@ -46,7 +46,13 @@ from typing import Any
 from sqlalchemy.orm import Session
 
 from server.store import crud
-from server.store.db import Database, database_now, is_database_outage, unavailable_message
+from server.store.db import (
+    Database,
+    database_now,
+    is_database_outage,
+    lease_session_name,
+    unavailable_message,
+)
 from server.store.tables import Auction, Job
 from server.work.pool import TaskFn, WorkerContext, WorkerPool
 
@@ -168,7 +174,17 @@ class BackgroundRunner:
         with self._lock:
             held, self._held = self._held | self._over, set()
             self._over.clear()
-        self._release(held)
+        try:
+            self._release(held)
+        except Exception as exc:  # the server stops all the same: the leases expire
+            if not is_database_outage(exc):
+                raise
+            log.warning(
+                "%s: leases of %d rows not released (%s): they expire within the lease",
+                self.kind.name,
+                len(held),
+                unavailable_message(exc),
+            )
 
     @property
     def held(self) -> set[int]:
@@ -225,11 +241,14 @@ class BackgroundRunner:
         unleased row falls due (None: none is waiting for a time, or no worker is free)."""
         with self._database.session(write=False) as session:  # most passes find nothing
             now = database_now(session)
-            if not self._claimable(session, now, limit, lock=False):
+            found = self._claimable(session, now, limit, lock=False)
+            if not found:
                 return [], self._due_in(session, now)
         with self._database.session(write=True) as session:
             now = database_now(session)
             claimed = self._claimable(session, now, limit, lock=True)
+            if len(claimed) < len(found) and not self._exclusive:
+                self._end_stale_sessions(session, now)
             if claimed:
                 self.kind.prepare(session, claimed)
                 crud.take_leases(
@@ -246,6 +265,30 @@ class BackgroundRunner:
         for row_id in claimed:
             log.info("%s %d claimed by %s", self.kind.name, row_id, self.owner)
         return claimed, due_in
+
+    def _end_stale_sessions(self, session: Session, now: datetime) -> None:
+        """Rows free to claim were locked (PostgreSQL skipped them): end the sessions of the
+        owners whose leases expired, so that the next pass claims their rows. A replica frozen
+        inside a transaction (a paused process or VM) holds its row locks until its connection
+        breaks; its lease's expiry is the sign that it is gone (``lease_session_name``)."""
+        if session.get_bind().dialect.name != "postgresql":
+            return
+        stale = crud.expired_owners(
+            session,
+            table=self.kind.table,
+            unfinished=self.kind.unfinished,
+            now=now,
+            other_than=self.owner,
+        )
+        if stale:
+            ended = crud.end_sessions(session, [lease_session_name(o) for o in stale])
+            if ended:
+                log.warning(
+                    "%s: ended %d database sessions of %s, whose leases expired holding locks",
+                    self.kind.name,
+                    ended,
+                    ", ".join(stale),
+                )
 
     def _due_in(self, session: Session, now: datetime) -> float | None:
         """Seconds until the earliest unfinished row without a live lease falls due."""

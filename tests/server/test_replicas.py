@@ -33,7 +33,7 @@ from tests.support.factories import honest
 from tests.support.live import sse_events
 from tests.support.processes import server_pair
 from tests.support.remote import next_round
-from tests.support.server import QUOTAS_OFF, wait_for
+from tests.support.server import ADMIN, ADMIN_TOKEN, QUOTAS_OFF, wait_for
 
 LEASE_S = 2.0
 """Short leases: a dead replica's work moves within seconds."""
@@ -391,3 +391,59 @@ def test_a_second_server_on_one_sqlite_database_refuses_to_start(tmp_path: Path)
         first.stop()
     second.start()  # the lock goes with the server that held it
     second.stop()
+
+
+@pytest.mark.postgres
+def test_a_replica_frozen_holding_a_lock_is_taken_over_when_its_lease_expires(
+    postgres_url: str, tmp_path: Path
+) -> None:
+    """A replica frozen inside a transaction (a paused process or VM) keeps its row locks until
+    its connection breaks, hours later while its host is up: the claim skips locked rows, so
+    its auction stayed unplayed. Its lease's expiry is the sign that it is gone: the replica
+    taking over ends the sessions named for that lease and plays the auction."""
+    import psycopg
+    from sqlalchemy import make_url
+
+    from server.store.db import lease_session_name
+
+    server = ServerProcess(
+        database_url=postgres_url,
+        data_dir=tmp_path / "data",
+        admin_token=ADMIN_TOKEN,
+        extra_env={**ENV, "SRD_REVIEW_MARGIN": "0"},
+    )
+    conninfo = make_url(postgres_url).set(drivername="postgresql")
+    with server, httpx.Client(base_url=server.url, timeout=60) as client:
+        ids = [
+            client.post("/submit", json=honest(f"frozen-{i}", seed=300 + i)).json()["model_id"]
+            for i in range(4)
+        ]
+        body = {"n_fish": 1, "max_iterations": 4, "model_ids": ids, "enrollment_s": 600}
+        created = client.post("/auctions", json=body, headers=ADMIN)
+        assert created.status_code == 201, created.text
+        auction_id = created.json()["auction_id"]  # pending: due when its enrollment ends
+        frozen = psycopg.connect(
+            conninfo.render_as_string(hide_password=False),
+            application_name=lease_session_name("frozen-replica"),
+            autocommit=True,
+        )
+        try:  # the frozen replica's lease, due now, then its lock on the row, held
+            frozen.execute(
+                "UPDATE auctions SET lease_owner = 'frozen-replica', next_step_at = now(), "
+                "lease_expires = now() + interval '2 seconds', enroll_until = now() "
+                "WHERE id = %s",
+                (auction_id,),
+            )
+            frozen.autocommit = False
+            frozen.execute("SELECT id FROM auctions WHERE id = %s FOR UPDATE", (auction_id,))
+            auction = wait_for(
+                lambda: client.get(f"/auctions/{auction_id}").json(),
+                lambda a: a["status"] in ("finished", "failed"),
+                60,
+            )
+            assert auction["status"] == "finished", auction
+            with pytest.raises(psycopg.OperationalError):  # its session was ended
+                frozen.execute("SELECT 1")
+        finally:
+            frozen.close()
+        assert "database sessions of frozen-replica" in server.log_path.read_text()

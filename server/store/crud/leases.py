@@ -8,7 +8,7 @@ from collections.abc import Collection, Sequence
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import ColumnElement, func, or_, select, update
+from sqlalchemy import ColumnElement, func, or_, select, text, update
 from sqlalchemy.orm import Session
 
 from server.store.tables import Auction, Job
@@ -60,6 +60,38 @@ def earliest_due(
         select(func.min(due)).where(*_unleased(table, unfinished, now)).where(due > now)
     )
     return earliest
+
+
+def expired_owners(
+    session: Session, *, table: Table, unfinished: Sequence[str], now: datetime, other_than: str
+) -> list[str]:
+    """The owners, but ``other_than``, of unfinished rows whose lease has expired."""
+    query = (
+        select(table.lease_owner)
+        .distinct()
+        .where(
+            table.status.in_(unfinished),
+            table.lease_expires < now,
+            table.lease_owner.is_not(None),
+            table.lease_owner != other_than,
+        )
+    )
+    return [owner for owner in session.scalars(query) if owner is not None]
+
+
+def end_sessions(session: Session, names: Sequence[str]) -> int:
+    """End the other PostgreSQL sessions of this database named ``names`` (their
+    ``application_name``): a replica frozen inside a transaction keeps its row locks until its
+    connection breaks, which takes hours when its host is still up; how many were ended."""
+    ended = session.execute(
+        text(
+            "SELECT count(*) FILTER (WHERE pg_terminate_backend(pid)) FROM pg_stat_activity "
+            "WHERE datname = current_database() AND pid <> pg_backend_pid() "
+            "AND application_name = ANY(:names)"
+        ),
+        {"names": list(names)},
+    ).scalar_one()
+    return int(ended)
 
 
 def take_leases(

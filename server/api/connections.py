@@ -337,8 +337,10 @@ class TimedHttpProtocol(HttpToolsProtocol):
             self._refuse(TIMEOUT_ANSWER)
             return
         cycle = self.cycle
-        if cycle is not None and not cycle.response_started:  # the app still reads the body:
-            cycle.disconnected = True  # it hears the client go, and what it sends is dropped
+        if cycle is not None and not cycle.response_started and not self.pipeline:
+            # the app still reads the body (a pipelined request waits behind another's answer,
+            # which a 408 would break into: that connection is closed as before)
+            cycle.disconnected = True  # the app hears the client go; what it sends is dropped
             cycle.message_event.set()
             self._refused = True
             self._answer_and_end(BODY_TIMEOUT_ANSWER)

@@ -320,7 +320,7 @@ class RequestRate:
         tokens, when = self._buckets.get(address, (self._depth, now))
         tokens = min(self._depth, tokens + (now - when) * self.per_s)
         size = self._body_bytes(scope) if body_bytes is None else body_bytes
-        cost = 1 + size / RATE_BODY_BYTES
+        cost = min(1 + size / RATE_BODY_BYTES, max(1.0, self._depth))  # a full bucket passes it
         delay_s = max(0.0, (cost - tokens) / self.per_s)
         if delay_s and _is_operator(scope):
             return 0.0, 0

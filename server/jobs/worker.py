@@ -116,6 +116,8 @@ def _record_outcome(database: Database, job_id: int, attempt: int, **values: Any
                 raise
             log.warning("job %d: %s; writing its outcome again", job_id, unavailable_message(exc))
             while not database.wait_until_reachable(OUTAGE_WAIT_S):
+                if database.lost:  # gone or replaced for good: no wait brings it back
+                    raise
                 log.warning("job %d: the database is still unavailable; its outcome waits", job_id)
 
 

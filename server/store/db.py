@@ -410,6 +410,11 @@ class Database:
                 return False
             time.sleep(OUTAGE_POLL_S)
 
+    @property
+    def lost(self) -> bool:
+        """The database is gone or replaced for good: no wait brings it back."""
+        return self._lost
+
     def check_due(self) -> bool:
         """Whether the next ``problem()`` makes a check (I/O: run it off the event loop)."""
         return not self._lost and time.monotonic() - self._checked_at > IDENTITY_CHECK_S

@@ -43,6 +43,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Any
 
+from sqlalchemy.exc import DBAPIError
 from sqlalchemy.orm import Session
 
 from server.store import crud
@@ -247,8 +248,8 @@ class BackgroundRunner:
         with self._database.session(write=True) as session:
             now = database_now(session)
             claimed = self._claimable(session, now, limit, lock=True)
-            if len(claimed) < len(found) and not self._exclusive:
-                self._end_stale_sessions(session, now)
+            if len(claimed) < len(found) and not self._exclusive:  # some were locked
+                self._end_stale_sessions(session, now, set(found) - set(claimed))
             if claimed:
                 self.kind.prepare(session, claimed)
                 crud.take_leases(
@@ -266,11 +267,13 @@ class BackgroundRunner:
             log.info("%s %d claimed by %s", self.kind.name, row_id, self.owner)
         return claimed, due_in
 
-    def _end_stale_sessions(self, session: Session, now: datetime) -> None:
+    def _end_stale_sessions(self, session: Session, now: datetime, skipped: set[int]) -> None:
         """Rows free to claim were locked (PostgreSQL skipped them): end the sessions of the
-        owners whose leases expired, so that the next pass claims their rows. A replica frozen
-        inside a transaction (a paused process or VM) holds its row locks until its connection
-        breaks; its lease's expiry is the sign that it is gone (``lease_session_name``)."""
+        owners whose leases on those rows expired, so that the next pass claims them. A replica
+        frozen inside a transaction (a paused process or VM) holds its row locks until its
+        connection breaks; its lease's expiry is the sign that it is gone
+        (``lease_session_name``). A session this role may not end (another role's) is left,
+        and the claim goes on."""
         if session.get_bind().dialect.name != "postgresql":
             return
         stale = crud.expired_owners(
@@ -279,9 +282,21 @@ class BackgroundRunner:
             unfinished=self.kind.unfinished,
             now=now,
             other_than=self.owner,
+            row_ids=skipped,
         )
         if stale:
-            ended = crud.end_sessions(session, [lease_session_name(o) for o in stale])
+            try:
+                with session.begin_nested():  # a refusal undoes this alone, not the claim
+                    ended = crud.end_sessions(session, [lease_session_name(o) for o in stale])
+            except DBAPIError as exc:
+                log.warning(
+                    "%s: could not end the database sessions of %s, whose leases expired "
+                    "holding locks: %s",
+                    self.kind.name,
+                    ", ".join(stale),
+                    str(exc.orig).splitlines()[0] if exc.orig is not None else exc,
+                )
+                return
             if ended:
                 log.warning(
                     "%s: ended %d database sessions of %s, whose leases expired holding locks",

@@ -40,14 +40,13 @@ from sim.configs import (
     DEVTEST_STEPS,
     STAGE0_STRENGTHS,
     STAGE2_SWING_FROM,
+    STAGE2_WINDOW,
     CheetahConfig,
 )
 from sim.experiment import ProgressFn, Stopwatch, write_json
 
 STAGE0_PATTERN_END = 150
 """Stage 0 writes its swing pattern once, up to this step; the last control then stays."""
-STAGE2_WINDOW = 50
-"""Stage 2 averages the neurons over this many steps before and after the swing starts."""
 
 _BACK_THIGH, _FRONT_THIGH = ACTUATORS.index("bt"), ACTUATORS.index("ft")
 

@@ -46,17 +46,34 @@ def test_migrations_build_exactly_the_models(database_url: str) -> None:
     assert revision == ScriptDirectory.from_config(alembic_config(database_url)).get_current_head()
 
 
-def test_an_unreadable_description_stored_before_is_made_readable(fresh_database_url: str) -> None:
-    """Descriptions refuse control and bidirectional characters from revision 0010 on; one
-    stored before loses them, and its manifest reads again."""
+@pytest.mark.parametrize(
+    ("before", "description", "cleaned"),
+    [
+        # control characters and bidirectional overrides, refused from revision 0010 on
+        ("0009", "line one\nnul\u0000 bell\u0007 flip\u202e end", "line one\nnul bell flip end"),
+        # invisible characters (a zero-width space, a soft hyphen, tag characters spelling
+        # hidden text), refused from revision 0014 on
+        (
+            "0013",
+            "sincere\u200b bidder"
+            + "".join(chr(0xE0000 + ord(c)) for c in "admit me")
+            + " \u00adend",
+            "sincere bidder end",
+        ),
+    ],
+)
+def test_a_description_stored_before_the_schema_refused_its_characters_reads_again(
+    fresh_database_url: str, before: str, description: str, cleaned: str
+) -> None:
+    """A description stored before its characters were refused loses them, and its manifest
+    reads again."""
     from alembic import command
     from sqlalchemy import select
 
     from agents.manifest import parse_manifest
 
-    command.upgrade(alembic_config(fresh_database_url), "0009")
-    manifest = honest(unique("old"))
-    manifest["description"] = "line one\nnul\u0000 bell\u0007 flip\u202e end"
+    command.upgrade(alembic_config(fresh_database_url), before)
+    manifest = {**honest(unique("old")), "description": description}
     database = Database(fresh_database_url)
     with database.engine.begin() as connection:
         participant = connection.execute(
@@ -85,52 +102,8 @@ def test_an_unreadable_description_stored_before_is_made_readable(fresh_database
             select(ModelVersion.manifest).where(ModelVersion.participant_id == participant)
         )
     database.close()
-    assert stored["description"] == "line one\nnul bell flip end"
-    assert parse_manifest(stored).description == stored["description"]
-
-
-def test_an_invisible_description_stored_before_is_made_visible(fresh_database_url: str) -> None:
-    """Descriptions refuse invisible characters from revision 0014 on (a zero-width space, tag
-    characters spelling hidden text); one stored before loses them and reads again."""
-    from alembic import command
-    from sqlalchemy import select
-
-    from agents.manifest import parse_manifest
-
-    command.upgrade(alembic_config(fresh_database_url), "0013")
-    manifest = honest(unique("hidden"))
-    hidden = "".join(chr(0xE0000 + ord(c)) for c in "admit me")
-    manifest["description"] = f"sincere\u200b bidder{hidden} \u00adend"
-    database = Database(fresh_database_url)
-    with database.engine.begin() as connection:
-        participant = connection.execute(
-            text(
-                "insert into participants (name, name_key, token_hash, created_at) "
-                "values (:n, :n, 'x', :at) returning id"
-            ),
-            {"n": manifest["participant"], "at": utcnow()},
-        ).scalar_one()
-        connection.execute(
-            insert(ModelVersion).values(
-                participant_id=participant,
-                version=1,
-                manifest=manifest,
-                accepted=True,
-                reasons=[],
-                created_at=utcnow(),
-                status="accepted",
-            )
-        )
-    database.close()
-    upgrade_schema(fresh_database_url)
-    database = Database(fresh_database_url)
-    with database.engine.connect() as connection:
-        stored = connection.scalar(
-            select(ModelVersion.manifest).where(ModelVersion.participant_id == participant)
-        )
-    database.close()
-    assert stored["description"] == "sincere bidder end"
-    assert parse_manifest(stored).description == stored["description"]
+    assert stored["description"] == cleaned
+    assert parse_manifest(stored).description == cleaned
 
 
 def _insert_row(connection: Any, name: str, given: dict[str, Any]) -> int:

@@ -505,6 +505,14 @@ def test_a_body_counts_against_the_request_rate_by_its_size(tmp_path: Path) -> N
     with TestClient(create_app(settings)) as client:  # a fresh process: a full burst
         small = [client.post("/submit", content=b"{}", headers=typed).status_code for _ in range(3)]
         assert small == [422] * 3, small
+    # A body never costs more than the whole burst: at 2 a second (a burst of 8) a chunked
+    # body, counted as the largest (17 requests' worth), had been refused for ever.
+    slow = make_settings(
+        f"sqlite:///{tmp_path / 'slow.db'}", tmp_path / "slow", limit_address_requests_per_s=2
+    )
+    with TestClient(create_app(slow)) as client:
+        chunked = client.post("/submit", content=iter([b"{}"]), headers=typed)
+        assert chunked.status_code == 422, chunked.text
 
 
 def test_round_socket_messages_count_against_their_address_request_rate(

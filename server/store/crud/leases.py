@@ -63,13 +63,21 @@ def earliest_due(
 
 
 def expired_owners(
-    session: Session, *, table: Table, unfinished: Sequence[str], now: datetime, other_than: str
+    session: Session,
+    *,
+    table: Table,
+    unfinished: Sequence[str],
+    now: datetime,
+    other_than: str,
+    row_ids: Collection[int],
 ) -> list[str]:
-    """The owners, but ``other_than``, of unfinished rows whose lease has expired."""
+    """The owners, but ``other_than``, of the unfinished rows ``row_ids`` whose lease has
+    expired."""
     query = (
         select(table.lease_owner)
         .distinct()
         .where(
+            table.id.in_(row_ids),
             table.status.in_(unfinished),
             table.lease_expires < now,
             table.lease_owner.is_not(None),

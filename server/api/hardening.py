@@ -13,9 +13,8 @@ one, and reading it cost the event loop 1.5 ms a KB); a write (any method but ``
 ``HEAD`` and ``OPTIONS``) that a browser marks ``Sec-Fetch-Site: cross-site`` (403: another
 site's page would otherwise make its visitors register participants and spend their
 addresses' quotas; the API's own clients and the web view are not cross-site).
-``RedactQueryFilter`` blanks such
-parameters (and any other whose name says secret) in uvicorn's access log lines, and cuts a
-line's path to ``MAX_LOGGED_PATH`` characters.
+``RedactQueryFilter`` blanks such parameters (and any other whose name says secret) in
+uvicorn's access log lines, and cuts a line's path to ``MAX_LOGGED_PATH`` characters.
 
 It also answers ``HEAD`` on every ``GET`` path, as HTTP requires of every server (RFC 9110,
 section 9.1): the request goes in as a ``GET`` (the same checks, limits and headers, its

@@ -260,7 +260,7 @@ class RoundSockets:
                 reason = str(refused.items[0]["msg"]).encode()[:MAX_REASON_BYTES]
                 await socket.close(CLOSE_TRY_AGAIN_LATER, reason.decode(errors="ignore"))
                 return
-            if size > MAX_FRAME_BYTES:  # whatever the server
+            if size > MAX_FRAME_BYTES:  # whatever uvicorn's own frame cap let through
                 await socket.close(CLOSE_TOO_BIG, f"a frame is at most {MAX_FRAME_BYTES} bytes")
                 return
             if text is None:

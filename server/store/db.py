@@ -122,8 +122,9 @@ def is_sqlite(url: str) -> bool:
 
 def lease_session_name(owner: str) -> str:
     """The PostgreSQL ``application_name`` of every connection of the server process that
-    holds leases as ``owner`` (its API and its workers): how a replica taking over an expired
-    lease finds the sessions of its last owner (``crud.end_sessions``)."""
+    holds leases as ``owner`` (its API and its workers; not the live updates' listener, which
+    holds no lock): how a replica taking over an expired lease finds the sessions of its last
+    owner (``crud.end_sessions``)."""
     return "srd-lease-" + hashlib.sha256(owner.encode()).hexdigest()[:16]
 
 

@@ -138,6 +138,7 @@ class BackgroundRunner:
         )
         self._held: set[int] = set()  # rows leased here whose task is not over yet
         self._deaths: dict[int, int] = {}  # resumable rows whose task died, times in a row
+        self._unended: set[str] = set()  # owners whose sessions this role may not end (logged)
         self._over: set[int] = set()  # tasks over, leases to release
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -289,6 +290,9 @@ class BackgroundRunner:
                 with session.begin_nested():  # a refusal undoes this alone, not the claim
                     ended = crud.end_sessions(session, [lease_session_name(o) for o in stale])
             except DBAPIError as exc:
+                if set(stale) <= self._unended:  # said once, not at every pass
+                    return
+                self._unended.update(stale)
                 log.warning(
                     "%s: could not end the database sessions of %s, whose leases expired "
                     "holding locks: %s",

@@ -394,6 +394,7 @@ def test_a_second_server_on_one_sqlite_database_refuses_to_start(tmp_path: Path)
 
 
 @pytest.mark.postgres
+@pytest.mark.slow  # 13 s; the default run's ten minutes are short of room
 def test_a_replica_frozen_holding_a_lock_is_taken_over_when_its_lease_expires(
     postgres_url: str, tmp_path: Path
 ) -> None:

@@ -472,6 +472,7 @@ def test_a_design_stage_s_budget_counts_its_own_runs_and_names_steps():
     assert devtest.option == "steps" and devtest.seconds > 9 * one.seconds / 10
 
 
+@pytest.mark.slow  # a fresh srd process (torch and MuJoCo imported): the default run is full
 def test_a_missing_opengl_back_end_named_in_mujoco_gl_does_not_stop_a_run(tmp_path):
     """MuJoCo binds the back end MUJOCO_GL names when it is imported and fails to import without
     it; the simulation draws nothing, so only the GIF's child process uses it."""

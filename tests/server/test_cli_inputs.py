@@ -607,33 +607,37 @@ def test_an_interrupted_screen_exits_130(tmp_path: Path) -> None:
     assert json.loads(stdout) == {"accepted": False, "reasons": [], "error": "aborted"}
 
 
-def test_an_experiment_stopped_by_sigterm_stops_as_ctrl_c_stops_it(tmp_path: Path) -> None:
+def test_a_command_stopped_by_sigterm_stops_as_ctrl_c_stops_it(tmp_path: Path) -> None:
     """``kill`` or ``timeout`` (SIGTERM): exit 143, "Aborted!" and under ``--json`` the failure
-    as one object; its empty artifact folder is not left behind (before, the process died at
-    once: nothing on stdout, an empty folder)."""
-    out = tmp_path / "stopped"
-    args = ["auction-study", "--trials", "10", "--grid", "--json", "--out", str(out)]
+    as one object, as Ctrl-C (before, the process died at once: nothing on stdout, and an
+    experiment's empty artifact folder left behind). ``srd screen`` of a named pipe waits for
+    its writer: stopped there."""
+    fifo = tmp_path / "manifest.json"
+    os.mkfifo(fifo)
     process = subprocess.Popen(
-        [*srd_command(), *args],
+        [*srd_command(), "screen", str(fifo), "--json"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        cwd=tmp_path,
+        cwd=ROOT,
     )
+    opened: list[int] = []
+    opener = threading.Thread(target=lambda: opened.append(os.open(fifo, os.O_WRONLY)))
+    opener.daemon = True
+    opener.start()
     try:
-        deadline = time.monotonic() + 120
-        while not out.exists():  # the run has started: its folder is made
-            assert process.poll() is None and time.monotonic() < deadline, process.stderr
-            time.sleep(0.05)
+        opener.join(120)  # returns once srd screen has opened the pipe to read it
+        assert opened, "srd screen never opened the file"
         process.send_signal(signal.SIGTERM)
         stdout, stderr = process.communicate(timeout=60)
     finally:
         process.kill()
         process.wait()
+        for fd in opened:
+            os.close(fd)
     assert process.returncode == 143, stderr
     assert "Aborted!" in stderr and "Traceback" not in stderr
-    assert json.loads(stdout) == {"error": "aborted"}
-    assert not out.exists() or not any(out.iterdir())
+    assert json.loads(stdout) == {"accepted": False, "reasons": [], "error": "aborted"}
 
 
 def test_a_server_stopped_by_ctrl_c_exits_130(tmp_path: Path) -> None:

@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[2]
 HOST = "127.0.0.1"
 NOT_SRD = "answered something that is not an srd auction"
 INTERRUPTED = 130
+TERMINATED = 143
 ITERATION = {
     "iteration": 0,
     "price": 5.0,
@@ -578,8 +579,16 @@ def test_an_interrupted_watch_exits_130(
     )
 
 
-def test_an_interrupted_screen_exits_130(tmp_path: Path) -> None:
-    """``srd screen`` of a named pipe waits for its writer: interrupted there."""
+@pytest.mark.parametrize(
+    ("sig", "exit_code"), [(signal.SIGINT, INTERRUPTED), (signal.SIGTERM, TERMINATED)]
+)
+def test_a_screen_stopped_by_a_signal_prints_its_failure(
+    tmp_path: Path, sig: signal.Signals, exit_code: int
+) -> None:
+    """``srd screen`` of a named pipe waits for its writer: stopped there by Ctrl-C (SIGINT,
+    exit 130) or by ``kill`` or ``timeout`` (SIGTERM, exit 143, the same way out: before, the
+    process died at once, with nothing on stdout), "Aborted!" and under ``--json`` the failure
+    as one object."""
     fifo = tmp_path / "manifest.json"
     os.mkfifo(fifo)
     process = subprocess.Popen(
@@ -596,46 +605,14 @@ def test_an_interrupted_screen_exits_130(tmp_path: Path) -> None:
     try:
         opener.join(120)  # returns once srd screen has opened the pipe to read it
         assert opened, "srd screen never opened the file"
-        code, stdout, stderr = interrupted(process)
-    finally:
-        process.kill()
-        process.wait()
-        for fd in opened:
-            os.close(fd)
-    assert code == INTERRUPTED, stderr
-    assert "Aborted!" in stderr and "Traceback" not in stderr
-    assert json.loads(stdout) == {"accepted": False, "reasons": [], "error": "aborted"}
-
-
-def test_a_command_stopped_by_sigterm_stops_as_ctrl_c_stops_it(tmp_path: Path) -> None:
-    """``kill`` or ``timeout`` (SIGTERM): exit 143, "Aborted!" and under ``--json`` the failure
-    as one object, as Ctrl-C (before, the process died at once: nothing on stdout, and an
-    experiment's empty artifact folder left behind). ``srd screen`` of a named pipe waits for
-    its writer: stopped there."""
-    fifo = tmp_path / "manifest.json"
-    os.mkfifo(fifo)
-    process = subprocess.Popen(
-        [*srd_command(), "screen", str(fifo), "--json"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=ROOT,
-    )
-    opened: list[int] = []
-    opener = threading.Thread(target=lambda: opened.append(os.open(fifo, os.O_WRONLY)))
-    opener.daemon = True
-    opener.start()
-    try:
-        opener.join(120)  # returns once srd screen has opened the pipe to read it
-        assert opened, "srd screen never opened the file"
-        process.send_signal(signal.SIGTERM)
+        process.send_signal(sig)
         stdout, stderr = process.communicate(timeout=60)
     finally:
         process.kill()
         process.wait()
         for fd in opened:
             os.close(fd)
-    assert process.returncode == 143, stderr
+    assert process.returncode == exit_code, stderr
     assert "Aborted!" in stderr and "Traceback" not in stderr
     assert json.loads(stdout) == {"accepted": False, "reasons": [], "error": "aborted"}
 

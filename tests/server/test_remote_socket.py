@@ -229,14 +229,19 @@ def test_socket_refusals_name_the_field_and_store_nothing(
             ["message", "manifest", "augmentation", "copies"],
             "only weights and biases",
         )
-    # An auction without remote rounds: the fault is the socket's path, not the message.
-    plain = client.post("/auctions", json={"n_fish": 1, "model_ids": [model_id]}, headers=ADMIN)
+    # An auction without remote rounds: the fault is the socket's path, not the message. It
+    # stays pending (enrolling) meanwhile: an auction that has ended closes its sockets at once.
+    plain = client.post(
+        "/auctions", json={"n_fish": 1, "model_ids": [model_id], "enrollment_s": 120}, headers=ADMIN
+    )
     with client.websocket_connect(
         socket_path(plain.json()["auction_id"]), headers=bearer(token)
     ) as ws:
         refusal(
             answer_to(ws, upload_text(1, model_id, good)), 409, ["path", "auction_id"], "no remote"
         )
+    cancelled = client.delete(f"/auctions/{plain.json()['auction_id']}", headers=ADMIN)
+    assert cancelled.status_code == 200, cancelled.text
     assert stored_versions(client, name) == 1
     auction = client.get(f"/auctions/{remote['id']}").json()
     answered = {a["model_id"] for r in auction["fine_tuning"] for a in r["answers"]}

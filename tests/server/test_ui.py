@@ -321,7 +321,7 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     refused.wait_for(timeout=WAIT_MS)
     summary = refused.locator("details summary")
     page.wait_for_function(
-        f"document.querySelector(\"#fine-tuning li[data-model='{third}'] summary\")"
+        f"() => document.querySelector(\"#fine-tuning li[data-model='{third}'] summary\")"
         ".textContent.startsWith('decision-sign on B')"
     )
     assert not refused.locator("details ul.reasons").is_visible()  # folded until asked for
@@ -461,7 +461,7 @@ def test_a_late_explanation_does_not_replace_the_one_asked_for_after_it(
     page.wait_for_function(shows_fast, arg=fast_name, timeout=WAIT_MS)
     assert page.locator("#explain-hint").count() == 0  # the vote shown replaced the hint
     # "Its neurons" moved the focus to the vote it shows, far below the button.
-    page.wait_for_function("document.activeElement.id === 'explanation'", timeout=WAIT_MS)
+    page.wait_for_function("() => document.activeElement.id === 'explanation'", timeout=WAIT_MS)
     assert len(held) == 1
     with page.expect_response(f"**/votes/{slow}"):
         held[0].continue_()
@@ -796,7 +796,7 @@ def test_every_vote_of_a_round_opens_its_explanation(
         card = page.locator("#explanation .explanation")
         card.wait_for(timeout=WAIT_MS)
         page.wait_for_function(
-            "document.querySelector('#explanation h3')"
+            "() => document.querySelector('#explanation h3')"
             f"?.textContent.endsWith('iteration {iteration}')"
         )
         expected = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{model_id}").json()

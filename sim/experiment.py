@@ -319,7 +319,10 @@ def _too_many(field: ConfigField, value: Any) -> str | None:
 
 
 JSON_NUMBER = re.compile(r"-?(?:0|[1-9][0-9]*)(?:\.[0-9]+)?(?:[eE][-+]?[0-9]+)?")
-JSON_INTEGER = re.compile(r"-?(?:0|[1-9][0-9]*)")
+TYPED_NUMBER = re.compile(r"[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
+"""A list item's number as a command line spells it: a JSON number, or as a single-value
+option takes it (``.5``, ``5.``, ``+1``, ``007``); no ``inf``, ``nan``, hex or ``1_0``."""
+TYPED_INTEGER = re.compile(r"[-+]?[0-9]+")
 MAX_NUMBER_CHARS = 64
 """A longer item of a numeric list is not read as a number (any option's bounds are far
 shorter to write): the validator names it."""
@@ -327,7 +330,8 @@ shorter to write): the validator names it."""
 
 def _split_list(field: ConfigField, value: Any) -> Any:
     """A list field's value as the command line spells it: a comma-separated string ("0.1,0.5")
-    gives its items, each read as a JSON number for numeric lists; a single number or word
+    gives its items, each read as a number as typed (``TYPED_NUMBER``: ".5" too) for numeric
+    lists; a single number or word
     gives a list of one; any other value, and an empty item ("0.1,,0.5"), is left for the
     validator to name."""
     if isinstance(value, int | float) and not isinstance(value, bool):
@@ -342,11 +346,12 @@ def _split_list(field: ConfigField, value: Any) -> Any:
 
 
 def read_number(text: str) -> int | float | None:
-    """``text`` as a JSON number (an int, or a float: "1e400" is inf, refused later as not
-    finite), or None when it is not one or is longer than ``MAX_NUMBER_CHARS``."""
-    if len(text) > MAX_NUMBER_CHARS or not JSON_NUMBER.fullmatch(text):
+    """``text`` as a number as typed (``TYPED_NUMBER``: an int, or a float: "1e400" is inf,
+    refused later as not finite), or None when it is not one or is longer than
+    ``MAX_NUMBER_CHARS``."""
+    if len(text) > MAX_NUMBER_CHARS or not TYPED_NUMBER.fullmatch(text):
         return None
-    return int(text) if JSON_INTEGER.fullmatch(text) else float(text)
+    return int(text) if TYPED_INTEGER.fullmatch(text) else float(text)
 
 
 def _non_finite(value: Any, path: tuple[str | int, ...]) -> list[tuple[str | int, ...]]:

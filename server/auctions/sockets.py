@@ -253,7 +253,8 @@ class RoundSockets:
                 )
                 return
             text = message.get("text")
-            size = len(text or message.get("bytes") or b"")
+            data = message.get("bytes") if text is None else text.encode("utf-8", "surrogatepass")
+            size = len(data or b"")  # bytes, not characters: a character is up to four
             refused = allowance(size)
             if refused is not None:  # answered unread, and closed: as HTTP answers and closes
                 await socket.send(_refusal(None, None, refused))
@@ -269,13 +270,13 @@ class RoundSockets:
                 )
                 continue
             async with socket.answering:
-                await socket.send(await _handle(text, upload, utcnow()))
+                await socket.send(await _handle(data or b"", upload, utcnow()))
 
 
-async def _handle(text: str, upload: UploadHandler, arrived: datetime) -> str:
-    """The answer frame of one received message."""
+async def _handle(text: bytes, upload: UploadHandler, arrived: datetime) -> str:
+    """The answer frame of one received text message (its UTF-8 bytes)."""
     try:  # as strictly as a body: a key twice, NaN, too long an integer, too deep
-        raw = parse_strict_json(text.encode("utf-8", "surrogatepass"))
+        raw = parse_strict_json(text)
     except BodyRefusedError as exc:
         msg = _called(exc.msg, "message")
         return _error(None, exc.status, msg, ("message", *exc.loc[1:]), exc.kind)

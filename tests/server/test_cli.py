@@ -74,7 +74,8 @@ def test_json_output_is_one_object_with_the_artifact_folder(tmp_path) -> None:
 
 
 def test_a_list_option_given_again_adds_its_values(tmp_path) -> None:
-    args = ["auction-study", "--rarities", "0.25", "--rarities", "0.5,0.75", "--trials", "1"]
+    # a list's items are numbers as a single-value option takes them: ".5" and "+0.75" too
+    args = ["auction-study", "--rarities", ".25", "--rarities", "0.5,+0.75", "--trials", "1"]
     result = CliRunner().invoke(cli, [*args, "--patrons", "8", "--json", "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output
     assert [row["rarity"] for row in json.loads(result.stdout)["rows"]] == [0.25, 0.5, 0.75]
@@ -102,6 +103,8 @@ def test_human_output_is_a_short_summary_on_stdout(tmp_path) -> None:
         (["auction-study", "--rarities", "0.5," + "[" * 30], "--rarities", "is not a number"),
         (["auction-study", "--rarities", "0.5," + "[" * 100_000], "--rarities", "too long for a"),
         (["auction-study", "--rarities", "0.5,1e400"], "--rarities", "must be a finite number"),
+        (["auction-study", "--rarities", "0.5,1_0"], "--rarities", "'1_0' is not a number"),
+        (["auction-study", "--rarities", "0.5,inf"], "--rarities", "'inf' is not a number"),
         (["fish", "--lr", "nan"], "--lr", "finite"),
         (["cheetah", "--stage", "1", "--backswing", "9"], "--backswing", "does not take backswing"),
         (["cheetah", "--stage", "4", "--srd", "off"], "--srd", "does not take srd"),

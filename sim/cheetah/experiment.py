@@ -43,7 +43,7 @@ from sim.experiment import ProgressFn, Stopwatch, no_progress, write_csv, write_
 from sim.units import Decomposition, Payload, Unit
 
 CSV_STRIDE = 10
-"""displacement.csv keeps every 10th step (0.1 s)."""
+"""displacement.csv keeps every 10th step (0.1 s), and the last."""
 CSV_FORMAT = ".6g"
 """Number format of displacement.csv (six significant digits keep it small)."""
 SUMMARY_METRICS = ("final_displacement", "inhibited_abs_speed", "free_speed")
@@ -314,13 +314,14 @@ def _write_grid_artifacts(
 ) -> list[str]:
     """runs.csv, summary.csv, displacement.csv (condition means/SD every 0.1 s), weights.json."""
     names = [write_csv(out_dir / "runs.csv", runs), write_csv(out_dir / "summary.csv", summary)]
-    stride = CSV_STRIDE
-    columns = {"step": np.arange(0, displacement.shape[1], stride)}
+    last = displacement.shape[1] - 1  # kept too: the final displacement is runs.csv's
+    steps = np.unique(np.append(np.arange(0, last + 1, CSV_STRIDE), last))
+    columns: dict[str, np.ndarray] = {"step": steps}
     for cond, index in condition_groups(cells).items():
         tag = f"b{cond.backswing:g}_i{cond.inhibitor:g}_" + (
             f"srd_lr{cond.lr:g}" if cond.srd else "nosrd"
         )
-        values = displacement[index][:, ::stride]
+        values = displacement[index][:, steps]
         columns[f"mean_{tag}"] = values.mean(axis=0)
         spread = values.std(axis=0, ddof=1) if len(index) > 1 else np.zeros(values.shape[1])
         columns[f"sd_{tag}"] = spread

@@ -308,9 +308,12 @@ def test_nominal_runs_land_on_the_reference_displacements(tmp_path):
     }
     lines = (tmp_path / "displacement.csv").read_text().splitlines()
     assert lines[0].split(",")[:3] == ["step", "mean_b3_i0_nosrd", "sd_b3_i0_nosrd"]
-    assert len(lines) == 1 + 360 and lines[-1].startswith("3590,")
+    assert len(lines) == 1 + 361 and lines[-2].startswith("3590,")
     last = dict(zip(lines[0].split(","), lines[-1].split(","), strict=True))
     assert last["sd_b3_i0_nosrd"] == "0"  # one trial: no spread, written as 0 (not "-0")
+    assert last["step"] == "3599"  # the last step too: its mean is the final displacement
+    final = next(r for r in result["runs"] if (r["backswing"], r["inhibitor"]) == (3.0, 0.0))
+    assert float(last["mean_b3_i0_nosrd"]) == pytest.approx(final["final_displacement"], abs=1e-4)
 
 
 def test_runs_come_in_grid_order_with_their_fields(tmp_path):

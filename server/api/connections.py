@@ -21,8 +21,9 @@ uses, does not.) ``timed_protocol`` is uvicorn's httptools protocol plus:
 * an arrival time: the moment each request's last byte is parsed is put in its scope
   (``RECEIVED_AT``), by which a remote round judges an upload's deadline;
 * a share per address: one client address holds at most ``max_per_address`` open connections
-  (a trusted proxy's are not counted); past it a new connection gets 429 and is closed, so one
-  address cannot take the connections everyone shares (``limit_concurrency``).
+  (a trusted proxy's are not counted), and no more than the server has left free once it holds
+  an eighth of that (``address_share``); past it a new connection gets 429 and is closed, so a
+  few addresses cannot take the connections everyone shares (``limit_concurrency``).
 
 Each of these answers, an unreadable request's 400 and a connection past ``limit_concurrency``
 (503), carries the common JSON error body.
@@ -142,6 +143,18 @@ TOO_MANY_ANSWER = _answer(
 )
 
 
+def address_share(max_per_address: int, limit: int | None, open_now: int) -> int:
+    """How many open connections one address may hold while the server holds ``open_now`` of
+    its ``limit``: ``max_per_address``, but once the address holds an eighth of that, no more
+    than are left free. Each new heavy address thus gets at most half of what is left: eight
+    addresses at the full share would take every connection, this way a few heavy ones leave
+    room for everyone else (a server full of many light addresses is full all the same)."""
+    if limit is None:
+        return max_per_address
+    floor = max(1, max_per_address // 8)
+    return min(max_per_address, max(floor, limit - open_now))
+
+
 class _MethodAwareParser:
     """httptools' request parser, remembering whether it failed on an unknown method (RFC 9110,
     9.1: 501) rather than on another unreadable request (400)."""
@@ -199,7 +212,9 @@ class TimedHttpProtocol(HttpToolsProtocol):
         host = self.client[0] if self.client else None
         if host is not None and not self._exempt(host):
             address = client_address(host)
-            if self.open_by_address[address] >= self.max_per_address:
+            held = self.open_by_address[address]
+            open_now = len(self.connections) - 1  # before this one
+            if held >= address_share(self.max_per_address, self.limit_concurrency, open_now):
                 self._refuse(TOO_MANY_ANSWER)
                 return
             self.open_by_address[address] += 1

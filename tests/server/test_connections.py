@@ -262,14 +262,14 @@ def small_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerPro
 
 async def _fill(server: ServerProcess) -> dict[str, Any]:
     half_sent: list[tuple[Any, Any]] = []
-    try:  # 15 held: the 16th connection is one too many
+    try:  # 15 held (the proxy's are not counted per address): the 16th is one too many
         await _half_send(server, HOARDER, SHARE, half_sent)
-        await _half_send(server, NEIGHBOUR, SHARE - 1, half_sent)
+        await _half_send(server, PROXY, SHARE - 1, half_sent)
         await asyncio.sleep(0.2)
-        full = await _exchange(server, PROXY, _get("/healthz"))
+        full = await _exchange(server, NEIGHBOUR, _get("/healthz"))
         half_sent.pop()[1].close()
         await asyncio.sleep(0.2)
-        freed = await _exchange(server, PROXY, _get("/healthz"))
+        freed = await _exchange(server, NEIGHBOUR, _get("/healthz"))
         return {"full": full, "freed": freed}
     finally:
         for _, writer in half_sent:
@@ -283,3 +283,27 @@ def test_a_full_server_answers_503_with_the_common_body(small_server: ServerProc
     assert int(headers["retry-after"]) >= 1
     assert _detail(body)["type"] == "server_full"
     assert result["freed"][0] == 200
+
+
+async def _crowd(server: ServerProcess) -> dict[str, Any]:
+    """The hoarder takes its share (8 of 16), the neighbour tries to; a third address asks."""
+    half_sent: list[tuple[Any, Any]] = []
+    try:
+        await _half_send(server, HOARDER, SHARE, half_sent)
+        await _half_send(server, NEIGHBOUR, SHARE // 2, half_sent)
+        await asyncio.sleep(0.2)
+        over = await _exchange(server, NEIGHBOUR, _get("/healthz"))
+        third = await _exchange(server, "127.0.0.14", _get("/healthz"))
+        return {"over": over, "third": third}
+    finally:
+        for _, writer in half_sent:
+            writer.close()
+
+
+def test_an_address_share_shrinks_as_the_server_fills(small_server: ServerProcess) -> None:
+    """Two addresses at the full share would fill the server; the second gets half of what is
+    left (4 of 8), so a third is still served."""
+    result = asyncio.run(_crowd(small_server))
+    status, _, body = result["over"]
+    assert status == 429 and _detail(body)["type"] == "too_many_connections", body
+    assert result["third"][0] == 200

@@ -25,6 +25,7 @@ from server.api.security import load_admin_token_hash
 from server.auctions.patrons import PatronCheck
 from server.auctions.sockets import RoundSockets
 from server.auctions.steps import AUCTION_WORK
+from server.auctions.uploads import OutageArrivals
 from server.config import Settings
 from server.jobs.backend import JobCompute, job_compute
 from server.jobs.service import ENDED_JOBS_BYTES, EndedJobs
@@ -63,6 +64,8 @@ class Services:
     """The round sockets (``WS /auctions/{id}/rounds/socket``), pushed by ``rounds``."""
     patrons: PatronCheck
     """Whose round requests are a patron's (their share of sockets and long polls)."""
+    arrivals: OutageArrivals
+    """When the uploads a database outage refused first arrived (their retries' arrival)."""
     auctions: BackgroundRunner
     jobs: BackgroundRunner
     compute: JobCompute
@@ -218,6 +221,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         rounds=watcher,
         sockets=RoundSockets(watcher),
         patrons=PatronCheck(database),
+        arrivals=OutageArrivals(),
         auctions=runner(
             AUCTION_WORK,
             context,

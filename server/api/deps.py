@@ -28,6 +28,7 @@ from server.api.readiness import Readiness
 from server.api.security import token_matches
 from server.auctions.patrons import PatronCheck
 from server.auctions.sockets import RoundSockets
+from server.auctions.uploads import OutageArrivals
 from server.config import Settings
 from server.jobs.backend import JobCompute
 from server.jobs.service import EndedJobs
@@ -79,6 +80,10 @@ async def _patrons(services: ServicesDep) -> PatronCheck:
     return services.patrons
 
 
+async def _arrivals(services: ServicesDep) -> OutageArrivals:
+    return services.arrivals
+
+
 async def _auctions(services: ServicesDep) -> BackgroundRunner:
     return services.auctions
 
@@ -111,6 +116,7 @@ SubmissionsDep = Annotated[SubmissionWriter, Depends(_submissions)]
 RoundsDep = Annotated[RoundWatcher, Depends(_rounds)]
 RoundSocketsDep = Annotated[RoundSockets, Depends(_round_sockets)]
 PatronsDep = Annotated[PatronCheck, Depends(_patrons)]
+ArrivalsDep = Annotated[OutageArrivals, Depends(_arrivals)]
 AuctionRunnerDep = Annotated[BackgroundRunner, Depends(_auctions)]
 JobRunnerDep = Annotated[BackgroundRunner, Depends(_jobs)]
 ComputeDep = Annotated[JobCompute, Depends(_compute)]

@@ -21,9 +21,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import functools
 import hashlib
 import json
+from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from datetime import datetime
@@ -41,7 +43,7 @@ from server.auctions.service import not_found
 from server.live.rounds import RoundWatcher, TooManyWaitersError
 from server.screening.pool import ScreenerUnavailableError, ScreeningService
 from server.store import crud
-from server.store.db import Database, JSONText, WriteLockBusyError
+from server.store.db import Database, JSONText, WriteLockBusyError, is_database_outage
 from server.store.status import ANSWERED, AUCTION_ENDED, RoundStatus
 from server.store.tables import utcnow
 from sim.market.design import design_changes
@@ -58,6 +60,11 @@ JUDGED_RECHECK_S = 2.0
 AT_ONCE_TRIES = 8
 """An upload's write on SQLite tries the write lock at once up to this many times, each time
 after the thread of this process that held it let go, before it waits for it in a thread."""
+REMEMBERED_ARRIVALS = 10_000
+"""Arrivals of uploads a database outage refused that an API process remembers (the oldest
+forgotten first: about 1.5 MB)."""
+REMEMBERED_S = 600.0
+"""How long such an arrival is remembered."""
 
 
 async def current_round(
@@ -275,8 +282,48 @@ class UploadRequest:
     arrived: datetime
 
 
+class OutageArrivals:
+    """When the uploads a database outage refused (503) first arrived, per API process: a retry
+    of the same bytes, by the same token, for the same patron and round, is judged by that
+    first arrival, so an outage over a round's deadline does not make it late (the runner
+    claims no step for ``OUTAGE_GRACE_S`` after the outage, so the retry comes before the step
+    that closes the round). Nothing here is trusted beyond its own bytes: a retry passes every
+    check as any upload does."""
+
+    def __init__(self, most: int = REMEMBERED_ARRIVALS, keep_s: float = REMEMBERED_S) -> None:
+        self._most = most
+        self._keep_s = keep_s
+        self._arrived: OrderedDict[tuple[int, int, int, str], datetime] = OrderedDict()
+
+    @staticmethod
+    def key(request: UploadRequest, digest: str) -> tuple[int, int, int, str]:
+        token = hashlib.sha256(request.token.encode()).hexdigest()
+        return request.auction_id, request.round_number, request.model_id, token + digest
+
+    def first(self, key: tuple[int, int, int, str], arrived: datetime) -> datetime:
+        """The arrival to judge an upload by: its first, if an outage refused it before."""
+        first = self._arrived.get(key)
+        if first is None or (arrived - first).total_seconds() > self._keep_s:
+            return arrived
+        return min(first, arrived)
+
+    def remember(self, key: tuple[int, int, int, str], arrived: datetime) -> None:
+        if key not in self._arrived:
+            self._arrived[key] = arrived
+            while len(self._arrived) > self._most:
+                self._arrived.popitem(last=False)
+
+    def forget(self, key: tuple[int, int, int, str]) -> None:
+        self._arrived.pop(key, None)
+
+
 def _arrive(
-    connection: Connection, *, manifest: Manifest, data: dict[str, Any], request: UploadRequest
+    connection: Connection,
+    *,
+    manifest: Manifest,
+    data: dict[str, Any],
+    request: UploadRequest,
+    digest: str,
 ) -> tuple[crud.Stored, int, str | None, datetime | None]:
     """The upload's checks against what its path names and its store, in one transaction (a
     refused upload stores nothing, but a late one is recorded as late): what was stored (or
@@ -287,7 +334,6 @@ def _arrive(
     round_id = _check_patron(
         target, request.token, auction_id=auction_id, model_id=model_id, round_number=round_number
     )
-    digest = hashlib.sha256(request.body).hexdigest()
     if target.answer_outcome in ANSWERED and target.answer_sha256 != digest:
         raise api_error(
             409,
@@ -338,18 +384,32 @@ async def upload(
     request: UploadRequest,
     *,
     margin: float,
+    arrivals: OutageArrivals,
 ) -> bytes:
     """Check an upload (see the module docstring), store it, re-screen it and record its
     verdict; the answer's JSON. Wrong round → 409 naming the current one; closed, or past the
-    deadline at ``request.arrived`` → 410 (recorded as late). ``wake(auction_id)`` is told when the
-    auction's next step became due."""
+    deadline at its arrival → 410 (recorded as late): ``request.arrived``, or the first arrival
+    of the same bytes that a database outage refused (``arrivals``). ``wake(auction_id)`` is
+    told when the auction's next step became due."""
     manifest = _manifest(request.body)
     data = manifest.model_dump(mode="json")
-    arrive = functools.partial(_arrive, manifest=manifest, data=data, request=request)
+    digest = hashlib.sha256(request.body).hexdigest()
+    key = arrivals.key(request, digest)
+    request = dataclasses.replace(request, arrived=arrivals.first(key, request.arrived))
+    arrive = functools.partial(
+        _arrive, manifest=manifest, data=data, request=request, digest=digest
+    )
     try:
-        stored, round_id, manifest_json, deadline = await _write(database, arrive)
-    except IntegrityError:  # the same patron's answer, stored meanwhile by a concurrent request
-        stored, round_id, manifest_json, deadline = await _write(database, arrive)  # a repeat
+        try:
+            stored, round_id, manifest_json, deadline = await _write(database, arrive)
+        except IntegrityError:  # the same patron's answer, stored meanwhile by a concurrent one
+            stored, round_id, manifest_json, deadline = await _write(database, arrive)  # a repeat
+    except Exception as exc:
+        if is_database_outage(exc):  # its retry is judged by this arrival
+            database.note_outage()
+            arrivals.remember(key, request.arrived)
+        raise
+    arrivals.forget(key)
     if stored.refusal is not None:
         status, message, kind = stored.refusal
         raise api_error(status, message, loc=("path", "round"), kind=kind)

@@ -370,6 +370,7 @@ class Database:
         self._probe_lock = threading.Lock()
         self._identity = _identity(self._probe or self.engine, url)
         self._checked_at = time.monotonic()
+        self._outage_at = -math.inf  # when an operation last met an outage (monotonic)
         self._problem: str | None = None
         self._lost = False  # the problem is for good (gone, replaced): no check clears it
         self._check_lock = threading.Lock()
@@ -411,6 +412,14 @@ class Database:
                 return False
             time.sleep(OUTAGE_POLL_S)
 
+    def note_outage(self) -> None:
+        """Record that an operation met an outage just now (``since_outage_s``)."""
+        self._outage_at = time.monotonic()
+
+    def since_outage_s(self) -> float:
+        """Seconds since an operation of this process last met an outage (inf: never)."""
+        return time.monotonic() - self._outage_at
+
     @property
     def lost(self) -> bool:
         """The database is gone or replaced for good: no wait brings it back."""
@@ -445,6 +454,7 @@ class Database:
             self._lost = True
             return "the database file was deleted"
         except Exception as exc:  # unreachable: a stopped server, a dropped database
+            self.note_outage()
             if self._problem is None:
                 log.warning("the database cannot be reached: %s", first_line(exc))
             return UNREACHABLE

@@ -63,6 +63,11 @@ IDLE_TICK_S = 2.0
 """The longest a runner waits between two passes over its table."""
 RETRY_S = 0.5
 """The wait after a pass that failed (the database unreachable)."""
+OUTAGE_GRACE_S = 5.0
+"""A runner claims nothing until this long after this process last met a database outage: the
+uploads an outage refused come back first (their arrival remembered, ``server.auctions.uploads``),
+before a step closes their round at its deadline. Agents retry after the 503's ``Retry-After``
+(2 s), and writes resume about a second after the database is back."""
 DUE_MARGIN_S = 0.005
 """A pass for a due time comes this much after it (the row is due by then on the database's
 clock too)."""
@@ -207,8 +212,12 @@ class BackgroundRunner:
             except Exception as exc:  # the leases last: try again soon
                 if not is_database_outage(exc):
                     log.exception("%s leases: a pass failed", self.kind.name)
-                elif not failing:
-                    log.warning("%s leases: %s; retrying", self.kind.name, unavailable_message(exc))
+                else:
+                    self._database.note_outage()
+                    if not failing:
+                        log.warning(
+                            "%s leases: %s; retrying", self.kind.name, unavailable_message(exc)
+                        )
                 failing = True
                 wait = RETRY_S
             else:
@@ -240,7 +249,11 @@ class BackgroundRunner:
 
     def _claim(self, limit: int) -> tuple[list[int], float | None]:
         """The rows claimed now, and while workers stay free, the seconds until the next
-        unleased row falls due (None: none is waiting for a time, or no worker is free)."""
+        unleased row falls due (None: none is waiting for a time, or no worker is free).
+        Nothing is claimed within ``OUTAGE_GRACE_S`` of an outage."""
+        grace_s = OUTAGE_GRACE_S - self._database.since_outage_s()
+        if grace_s > 0:
+            return [], grace_s
         with self._database.session(write=False) as session:  # most passes find nothing
             now = database_now(session)
             found = self._claimable(session, now, limit, lock=False)

@@ -25,10 +25,12 @@ from sqlalchemy import create_engine, text
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect as ws_connect
 
+from agents.manifest import parse_manifest
+from agents.remote.fine_tuners import RoundInfo, faithful_fine_tune
 from server.api.readiness import CACHE_S
 from server.cli.launch import ServerProcess, free_port, settings_environment
 from server.store.db import READ_TIMEOUT_S
-from tests.server.test_remote_protocol import open_round, start_remote
+from tests.server.test_remote_protocol import open_round, put, start_remote
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, ADMIN_TOKEN, QUOTAS_OFF
 
@@ -302,3 +304,66 @@ def test_a_hung_or_stopped_postgres_holds_no_request_and_serves_no_stale_round(
                     socket.recv(timeout=10)
             assert closed.value.rcvd is not None and closed.value.rcvd.code == 1011
         cluster.start()
+
+
+ROUND_S = 7.0
+"""The round's deadline: long enough to open it and fine-tune, short enough to wait out."""
+BEFORE_S = 2.5
+"""The database stops this long before the round's deadline, and stays stopped past it."""
+
+
+def test_an_upload_an_outage_refused_before_the_deadline_counts_on_its_retry(
+    cluster: Cluster, tmp_path: Path
+) -> None:
+    """An upload that reached the server in time but met a database outage (503) is judged by
+    that first arrival when the agent sends the same bytes again once the database is back,
+    after the deadline: in time, and the round waits for it. An upload first sent after the
+    deadline is late as ever."""
+    url = f"postgresql+psycopg://postgres@127.0.0.1:{cluster.port}/{DB_NAME}"
+    env = settings_environment({**QUOTAS_OFF, "lease_s": 3.0})
+    with (
+        ServerProcess(
+            database_url=url, data_dir=tmp_path / "data", admin_token=ADMIN_TOKEN, extra_env=env
+        ) as server,
+        httpx.Client(base_url=server.url, timeout=30) as client,
+    ):
+        auction_id, manifests, patrons = start_remote(
+            client, "outage-round", 720, 4, round_deadline_s=ROUND_S, seed=4
+        )
+        state = open_round(client, auction_id)
+        assert state["status"] == "open" and state["round"] == 1, state
+        asked = [p for p, (m, _) in enumerate(patrons) if m in state["asked"]]
+        assert len(asked) >= 2, state
+        bodies = {
+            p: faithful_fine_tune(parse_manifest(manifests[p]), RoundInfo.from_state(state, p))
+            .model_dump_json()
+            .encode()
+            for p in asked[:2]
+        }
+        first, second = asked[:2]
+
+        def upload(position: int) -> httpx.Response:
+            model_id, token = patrons[position]
+            return put(client, auction_id, 1, model_id, bodies[position], token)
+
+        time.sleep(max(0.0, state["seconds_left"] - BEFORE_S))
+        cluster.stop()
+        time.sleep(CACHE_S)
+        assert_unavailable(upload(first))  # in time, refused by the outage
+        time.sleep(BEFORE_S + 1.0)  # past the deadline, the database still stopped
+        cluster.start()
+        back_at = time.monotonic()
+        while (answer := upload(first)).status_code == 503:  # the agent's retry
+            assert time.monotonic() - back_at < RESUME_WITHIN_S, "writes did not resume"
+            time.sleep(0.5)
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["outcome"] == "accepted", answer.text
+        late = upload(second)  # first sent after the deadline
+        assert late.status_code == 410, late.text
+        closed = open_round(client, auction_id, after=1)
+        assert closed["auction_status"] in ("running", "finished") or closed["round"] == 2
+        auction = client.get(f"/auctions/{auction_id}").json()
+        [round_1] = [r for r in auction["fine_tuning"] if r["round"] == 1]
+        outcomes = {a["model_id"]: a["outcome"] for a in round_1["answers"]}
+        assert outcomes[patrons[first][0]] == "accepted", round_1
+        assert outcomes[patrons[second][0]] == "late", round_1

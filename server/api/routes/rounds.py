@@ -18,6 +18,7 @@ from pydantic import BeforeValidator
 
 from server.api.connections import RECEIVED_AT
 from server.api.deps import (
+    ArrivalsDep,
     AuctionRunnerDep,
     DatabaseDep,
     ParticipantTokenDep,
@@ -186,6 +187,7 @@ async def upload_round_model(
     screening: ScreeningDep,
     runner: AuctionRunnerDep,
     settings: SettingsDep,
+    arrivals: ArrivalsDep,
 ) -> Response:
     """Upload the patron's fine-tuned manifest for this round (participant token). It is
     re-screened: accepted, it becomes the participant's next version and bids from the next
@@ -195,7 +197,12 @@ async def upload_round_model(
     content, arrived = body
     request = rounds.UploadRequest(auction_id, round_number, model_id, token, content, arrived)
     answer = await rounds.upload(
-        database, screening, runner.submit, request, margin=settings.review_margin
+        database,
+        screening,
+        runner.submit,
+        request,
+        margin=settings.review_margin,
+        arrivals=arrivals,
     )
     return Response(answer, media_type="application/json")
 
@@ -231,6 +238,7 @@ async def round_socket(
     screening: ScreeningDep,
     runner: AuctionRunnerDep,
     settings: SettingsDep,
+    arrivals: ArrivalsDep,
 ) -> None:
     """The auction's remote rounds over one WebSocket (``server.auctions.sockets``):
     every round pushed as it opens, uploads answered as the PUT answers them. Uploads need
@@ -305,7 +313,12 @@ async def round_socket(
             release = await limits.hold(websocket.scope, limits.uploads)  # as a PUT's: 429
             try:
                 return await rounds.upload(
-                    database, screening, runner.submit, request, margin=settings.review_margin
+                    database,
+                    screening,
+                    runner.submit,
+                    request,
+                    margin=settings.review_margin,
+                    arrivals=arrivals,
                 )
             finally:
                 release()

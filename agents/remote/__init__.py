@@ -53,6 +53,7 @@ from agents.remote.population import (
     PopulationConfig,
     PopulationReport,
     Progress,
+    SoFar,
     population,
     run_population,
 )
@@ -77,6 +78,7 @@ __all__ = [
     "RoundLog",
     "RoundSocket",
     "ServerGoneError",
+    "SoFar",
     "Traffic",
     "Transport",
     "Uploads",

@@ -228,12 +228,32 @@ Progress = Callable[[str, int, int], None]
 """``progress(stage, done, total)``: submitted agents, answered rounds."""
 
 
+@dataclass
+class SoFar:
+    """What a population run has made so far, for a report when it is stopped midway."""
+
+    agents: list[RemoteAgent] = field(default_factory=list)
+    auction: int | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The registered models (participant, model id) and the auction, if any."""
+        registered = [a for a in self.agents if a.model_id is not None]
+        return {
+            "agents": [
+                {"participant": a.current.participant, "model_id": a.model_id} for a in registered
+            ],
+            "auctions": [] if self.auction is None else [self.auction],
+        }
+
+
 async def run_population(
-    config: PopulationConfig, progress: Progress | None = None
+    config: PopulationConfig, progress: Progress | None = None, so_far: SoFar | None = None
 ) -> PopulationReport:
     """Register the population, join (or wait for, or create) its auction, answer every round,
-    follow the auction to its end, and report."""
+    follow the auction to its end, and report. ``so_far`` is kept up to date meanwhile (the
+    agents as they register, the auction once known)."""
     started = time.monotonic()
+    so_far = SoFar() if so_far is None else so_far
     async with contextlib.AsyncExitStack() as stack:
         clients = await _clients(config, stack)
         if config.auction is not None:
@@ -241,14 +261,17 @@ async def run_population(
         elif config.admin_token is not None:
             await _require_operator(clients[0], config.admin_token)
         agents = population(config, clients)
+        so_far.agents = agents
         submitted = await _submit(agents, progress)
         if config.tokens_file is not None:
             save_tokens(config.tokens_file, agents)
         if config.auction is not None:
+            so_far.auction = config.auction
             auction_id, players = config.auction, await _join(agents, config.auction)
         else:
             players = _admitted(agents)
             auction_id = await _auction(config, clients[0], players)
+            so_far.auction = auction_id
         await _play(config, players, auction_id, progress)
         final = await _final(clients[0], auction_id)
     return _report(config, agents, submitted, auction_id, final, started)

@@ -45,8 +45,10 @@ class Interrupted(click.ClickException):
 
     exit_code = INTERRUPTED
 
-    def __init__(self) -> None:
+    def __init__(self, partial: dict[str, Any] | None = None) -> None:
         super().__init__("aborted")
+        self.partial = partial
+        """What the command had made when it stopped, for its ``--json`` object."""
 
     def show(self, file: Any = None) -> None:
         click.echo(err=True)  # closes the terminal's ^C echo, as click does
@@ -76,9 +78,9 @@ def _interruptible() -> Iterator[None]:
     try:
         yield
     except _TerminateRequest as exc:
-        raise Terminated from exc
+        raise Terminated(getattr(exc, "partial", None)) from exc
     except KeyboardInterrupt as exc:
-        raise Interrupted from exc
+        raise Interrupted(getattr(exc, "partial", None)) from exc
 
 
 @contextmanager
@@ -148,7 +150,7 @@ class _Commands(click.Group):
             code = super().main(argv, *rest, **{**options, "standalone_mode": False})
         except Interrupted as exc:
             exc.show()
-            json_failure("aborted", command=command)
+            json_failure("aborted", command=command, extra=exc.partial)
             raise SystemExit(exc.exit_code) from exc
         except click.ClickException as exc:
             exc.show()

@@ -27,6 +27,7 @@ from agents.remote import (
     PopulationConfig,
     PopulationReport,
     RemoteError,
+    SoFar,
     Transport,
     run_population,
 )
@@ -79,6 +80,25 @@ def _local_operator_token(server: str, err: Console) -> str | None:
         return None
     err.print(f"operator token: {path} (this machine's srd serve)", highlight=False)
     return token
+
+
+def _say_stopped(err: Console, made: dict[str, Any], tokens_file: Path | None) -> None:
+    """What a run stopped midway had made: its models, their auction, where the tokens are."""
+    agents, auctions = made["agents"], made["auctions"]
+    if not agents:
+        return
+    ids = ", ".join(str(a["model_id"]) for a in agents[:20]) + (", …" if len(agents) > 20 else "")
+    where = f" in auction {auctions[0]}" if auctions else ""
+    tokens = (
+        f"their tokens are in {tokens_file}"
+        if tokens_file is not None and tokens_file.exists()
+        else "their tokens are lost (--tokens keeps them)"
+    )
+    err.print(
+        f"stopped: {len(agents)} models registered{where} (model ids {ids}); {tokens}",
+        highlight=False,
+        soft_wrap=True,  # one line, whatever the width: a script may grep it
+    )
 
 
 def _agents_table(report: PopulationReport) -> Table:
@@ -348,8 +368,14 @@ def command(
                 tasks[stage] = bar.add_task(stage, total=total)
             bar.update(tasks[stage], completed=done, total=max(total, done))
 
+        so_far = SoFar()
         try:
-            report = asyncio.run(run_population(config, progress))
+            report = asyncio.run(run_population(config, progress, so_far))
+        except KeyboardInterrupt as exc:  # what was made, before "Aborted!" (exit 130)
+            made = so_far.to_dict()
+            _say_stopped(err, made, tokens_file)
+            exc.partial = made  # type: ignore[attr-defined]  # --json's object carries it
+            raise
         except (RemoteError, ValueError, KeyError, TypeError) as exc:
             message = str(exc)
             if not isinstance(exc, RemoteError):  # an answer not shaped as this service's

@@ -53,14 +53,18 @@ def rounded(value: float) -> str:
 
 
 def json_failure(
-    message: str, errors: list[dict[str, str]] | None = None, command: str | None = None
+    message: str,
+    errors: list[dict[str, str]] | None = None,
+    command: str | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> None:
     """A command that fails under ``--json`` still prints exactly one JSON object on stdout:
     ``{"error": message}``, with ``errors`` (``[{option, message}]``) when options were at
-    fault, and for ``srd screen`` its verdict's keys (``accepted`` false, no ``reasons``), as
-    its malformed files answer. The person reads the same on stderr; the exit code is the
-    command's."""
+    fault, what it had made when stopped midway (``extra``: ``srd agents``'s models), and for
+    ``srd screen`` its verdict's keys (``accepted`` false, no ``reasons``), as its malformed
+    files answer. The person reads the same on stderr; the exit code is the command's."""
     obj: dict[str, Any] = {"accepted": False, "reasons": []} if command == "screen" else {}
+    obj.update(extra or {})
     obj["error"] = message
     if errors is not None:
         obj["errors"] = errors

@@ -8,6 +8,7 @@ import json
 import os
 import pty
 import re
+import signal
 import socket
 import stat
 import subprocess
@@ -337,6 +338,46 @@ def test_agents_refuse_an_auction_that_takes_no_patrons_and_register_nothing(
         assert f"auction {auction_id}" in done.stderr and words in done.stderr
         assert words in json.loads(done.stdout)["error"]  # --json: the failure, as one object
     assert client.get("/participants/late-honest-000").status_code == 404
+
+
+def test_agents_stopped_midway_say_what_they_registered(
+    server: ServerProcess, client: httpx.Client
+) -> None:
+    """Ctrl-C while the agents wait for their auction to start: exit 130, and what they made
+    is not lost from sight: the models they registered and their auction, on stderr and in
+    the --json object (their tokens are not printed: --tokens keeps them)."""
+    created = client.post(
+        "/auctions",
+        json={"rarity": 0.5, "fine_tune_mode": "remote", "enrollment_s": 120, "seed": 4},
+        headers=ADMIN,
+    )
+    assert created.status_code == 201, created.text
+    auction_id = created.json()["auction_id"]
+    process = subprocess.Popen(
+        [*srd_command(), "agents", "--server", server.url, "--name-prefix", "stopped",
+         "--honest", "2", "--auction", str(auction_id), "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+    )  # fmt: skip
+    try:
+        names = ["stopped-honest-000", "stopped-honest-001"]
+        wait_for(
+            lambda: {"found": [client.get(f"/participants/{n}").status_code for n in names]},
+            lambda state: state["found"] == [200, 200],
+            timeout_s=60,
+        )
+        process.send_signal(signal.SIGINT)
+        stdout, stderr = process.communicate(timeout=60)
+    finally:
+        process.kill()
+        process.wait()
+        client.delete(f"/auctions/{auction_id}", headers=ADMIN)
+    assert process.returncode == 130, stderr
+    report = json.loads(stdout)
+    assert report["error"] == "aborted" and report["auctions"] == [auction_id], report
+    assert sorted(a["participant"] for a in report["agents"]) == names
+    assert "token" not in stdout
+    assert f"stopped: 2 models registered in auction {auction_id}" in stderr
+    assert "their tokens are lost (--tokens keeps them)" in stderr and "Aborted!" in stderr
 
 
 @pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)

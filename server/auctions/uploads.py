@@ -406,7 +406,6 @@ async def upload(
             stored, round_id, manifest_json, deadline = await _write(database, arrive)  # a repeat
     except Exception as exc:
         if is_database_outage(exc):  # its retry is judged by this arrival
-            database.note_outage()
             arrivals.remember(key, request.arrived)
         raise
     arrivals.forget(key)

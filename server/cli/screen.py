@@ -1,4 +1,4 @@
-"""``srd screen FILE``: screen one FSN manifest (exit 0 accepted, 1 rejected, 2 malformed; 130
+"""``srd screen FILE``: screen one FSN manifest (exit 0 accepted, 1 refused or held, 2 malformed; 130
 interrupted)."""
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from server.cli.words import FiniteRange, json_failure
 from server.config import Settings
 
 ACCEPTED, REJECTED, MALFORMED = 0, 1, 2
-"""Exit codes: accepted, rejected, unreadable or malformed (the file, or a setting it is read
-and screened under)."""
+"""Exit codes: accepted, not accepted (refused, or held for an inspector), unreadable or
+malformed (the file, or a setting it is read and screened under)."""
 READ_UNDER = {"max_body_bytes": "SRD_MAX_BODY_BYTES", "screener_secret": "SRD_SCREENER_SECRET"}
 """The server's settings ``srd screen`` follows: the largest body ``POST /submit`` takes, and
 the secret the screener draws its populations from (``screener.impact.SECRET_VARIABLE``)."""
@@ -113,12 +113,13 @@ def _json_errors(text: bytes) -> list[dict[str, str]]:
 )
 def command(file: Path, json_output: bool, margin: float) -> None:
     """Screen a Fish Sale Negotiator manifest: semantic rules on its named weights and
-    behavioural probes. Exit 0 accepted, 1 rejected, 2 unreadable or malformed (read as
-    POST /submit reads it: a key given twice, NaN or a byte-order mark is malformed). The
-    verdict is the screener's; a model within --margin of a bar is one a server would hold
-    for an inspector (status "held"). A file larger than SRD_MAX_BODY_BYTES is refused as the
-    server refuses it; SRD_SCREENER_SECRET, if set, must be one srd serve takes. Exit 130 when
-    interrupted (Ctrl-C)."""
+    behavioural probes, and the answer POST /submit would give: accepted, refused, or held
+    for an inspector (within --margin of a bar, or by a bar that holds rather than refuses).
+    Exit 0 accepted, 1 not accepted (refused or held: "accepted" is true only when accepted,
+    as at /submit), 2 unreadable or malformed (read as POST /submit reads it: a key given
+    twice, NaN or a byte-order mark is malformed). A file larger than SRD_MAX_BODY_BYTES is
+    refused as the server refuses it; SRD_SCREENER_SECRET, if set, must be one srd serve
+    takes. Exit 130 when interrupted (Ctrl-C)."""
     settings = _settings(json_output)
     try:
         text = _read(file, settings.max_body_bytes)
@@ -145,22 +146,30 @@ def command(file: Path, json_output: bool, margin: float) -> None:
     torch.set_num_threads(1)  # the screener's tensors are tiny: more threads only contend
     verdict = screen_manifest(manifest)
     status = review(verdict, margin)
+    screener_accepted = verdict.accepted
     verdict = with_hold_reasons(verdict, margin)
+    accepted = status == "accepted"  # as /submit answers it: a held model is not accepted
     if json_output:
-        _emit({**verdict.to_dict(), "status": status})
+        _emit(
+            {
+                **verdict.to_dict(),
+                "accepted": accepted,
+                "status": status,
+                "screener_accepted": screener_accepted,
+            }
+        )
     else:
         out = Console(highlight=False, soft_wrap=True)
-        word = "[green]accepted[/green]" if verdict.accepted else "[red]rejected[/red]"
-        held = (
-            " (a server would hold it for an inspector: "
-            + (
+        if status == "held":
+            why = (
                 "its reason below"
                 if any(e.inspected() for e in verdict.evidence)
                 else f"within {margin:g} of a bar"
             )
-            + ")"
-        )
-        out.print(f"{escape(manifest.participant)}: {word}{held if status == 'held' else ''}")
+            word = f"[yellow]held[/yellow] (a server would hold it for an inspector: {why})"
+        else:
+            word = "[green]accepted[/green]" if accepted else "[red]rejected[/red]"
+        out.print(f"{escape(manifest.participant)}: {word}")
         for reason in verdict.reasons:
             out.print(f"  [bold]{reason.neuron}[/bold] ({reason.rule}): {escape(reason.message)}")
-    raise SystemExit(ACCEPTED if verdict.accepted else REJECTED)
+    raise SystemExit(ACCEPTED if accepted else REJECTED)

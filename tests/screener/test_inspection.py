@@ -119,11 +119,12 @@ def test_review_holds_a_missed_inspection_bar_at_any_margin_above_zero():
     assert review(Verdict(True, [], [passed]), 0.01) == "accepted"
 
 
-def test_srd_screen_says_held_and_exits_as_accepted():
+def test_srd_screen_says_held_and_not_accepted_as_submit_would():
     result = CliRunner().invoke(srd_screen, [str(HERE / "any-price-buyer.json"), "--json"])
-    assert result.exit_code == 0, result.output
+    assert result.exit_code == 1, result.output
     data = json.loads(result.stdout)
-    assert data["accepted"] is True and data["status"] == "held"
+    assert data["accepted"] is False and data["status"] == "held"
+    assert data["screener_accepted"] is True
     assert [r["rule"] for r in data["reasons"]] == ["keen-far-too-expensive"]
 
 

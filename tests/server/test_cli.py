@@ -266,23 +266,32 @@ def test_screen_accepted_exits_0_with_one_json_object(tmp_path) -> None:
 
 def test_screen_says_a_server_would_hold_a_borderline_model() -> None:
     """The screener refuses the window holder, by less than the server's review margin of its
-    bar: status "held", what /submit would answer; the exit code stays the screener's."""
+    bar: status "held", what /submit would answer, and not accepted (exit 1), as /submit
+    says; the screener's own verdict is there too."""
     holder = str(EXAMPLES / "red_team" / "opening-window-holder-a.json")
     outcome = screen(holder, "--json")
     assert outcome.exit_code == 1
     result = json.loads(outcome.stdout)
     assert result["accepted"] is False and result["status"] == "held"
+    assert result["screener_accepted"] is False
     assert json.loads(screen(holder, "--json", "--margin", "0").stdout)["status"] == "refused"
-    assert "a server would hold it for an inspector" in screen(holder).stdout
+    assert "held (a server would hold it for an inspector" in screen(holder).stdout
     assert "within 0.005 of a bar" in screen(holder).stdout
     honest_one = screen(str(EXAMPLES / "honest.json"), "--json")
     assert json.loads(honest_one.stdout)["status"] == "accepted"
-    # A keen buyer is accepted by the screener and held for an inspector by its own bar.
+    # A keen buyer passes the screener's refusing bars and is held for an inspector by its
+    # own: one answer, whichever side of a bar held it (before, this one exited 0).
     keen = str(EXAMPLES.parent / "tests" / "screener" / "inspection" / "any-price-buyer.json")
     outcome = screen(keen)
-    assert outcome.exit_code == 0
-    assert "hold it for an inspector: its reason below" in outcome.stdout
+    assert outcome.exit_code == 1
+    assert "held (a server would hold it for an inspector: its reason below)" in outcome.stdout
     assert "keen-far-too-expensive" in outcome.stdout
+    result = json.loads(screen(keen, "--json").stdout)
+    assert (result["accepted"], result["status"], result["screener_accepted"]) == (
+        False,
+        "held",
+        True,
+    )
 
 
 def test_screen_rejected_exits_1_with_reasons(tmp_path) -> None:

@@ -1,5 +1,5 @@
-"""``srd screen FILE``: screen one FSN manifest (exit 0 accepted, 1 refused or held, 2 malformed; 130
-interrupted)."""
+"""``srd screen FILE``: screen one FSN manifest (exit 0 accepted, 1 refused or held, 2
+malformed; 130 interrupted)."""
 
 from __future__ import annotations
 

@@ -6,6 +6,7 @@ import contextlib
 import gc
 import logging
 import signal
+import socket
 from types import FrameType
 from typing import TYPE_CHECKING
 
@@ -80,6 +81,21 @@ def database_problem(settings: Settings) -> tuple[str, int] | None:
             f"the database {shown} (SRD_DATABASE_URL) cannot be used: {first_line(exc)}",
             NOT_STARTED,
         )
+    return None
+
+
+def port_problem(host: str, port: int) -> str | None:
+    """Why ``srd serve`` could not listen on ``host:port`` (taken, or not an address of this
+    host), or None: bound as uvicorn binds it, then let go, before anything is made or stored
+    (a port taken meanwhile still stops uvicorn, with its own words)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except (OSError, OverflowError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            return f"cannot listen on {host}:{port} (--host/--port, SRD_HOST/SRD_PORT): {why}"
     return None
 
 
@@ -177,6 +193,12 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     if problem is not None:
         click.echo(f"srd serve: {problem}", err=True)
         raise SystemExit(UNUSABLE)
+    bind_host = settings.host if host is None else host
+    bind_port = settings.port if port is None else port
+    problem = port_problem(bind_host, bind_port)  # before the database: nothing made in vain
+    if problem is not None:
+        click.echo(f"srd serve: {problem}", err=True)
+        raise SystemExit(NOT_STARTED)
     problem = ray_problem(settings)  # before the database: a refused start stores nothing
     if problem is not None:
         click.echo(f"srd serve: {problem}", err=True)
@@ -189,8 +211,8 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     file_limit = raise_file_limit()
     config = uvicorn.Config(
         create_app(settings),
-        host=settings.host if host is None else host,
-        port=settings.port if port is None else port,
+        host=bind_host,
+        port=bind_port,
         log_level=log_level,
         access_log=settings.access_log,
         timeout_graceful_shutdown=10,

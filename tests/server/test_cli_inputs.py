@@ -506,6 +506,35 @@ def test_serve_on_an_address_that_answers_but_is_no_ray_cluster_exits_3_naming_i
     assert not (tmp_path / "srd.db").exists()  # nothing stored
 
 
+def test_serve_on_a_port_in_use_exits_3_naming_it_before_it_makes_anything(
+    tmp_path: Path,
+) -> None:
+    """A port another program listens on: one line naming the address and the options, exit
+    3, before any database or operator token is made (uvicorn found it out after the app had
+    started, said it in its own words and left its start-up behind)."""
+    env = {
+        **os.environ,
+        "SRD_DATABASE_URL": f"sqlite:///{tmp_path / 'srd.db'}",
+        "SRD_DATA_DIR": str(tmp_path / "data"),
+    }
+    env.pop("SRD_ADMIN_TOKEN", None)
+    with socket.socket() as taken:
+        taken.bind((HOST, 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        done = subprocess.run(
+            [*srd_command(), "serve", "--host", HOST, "--port", str(port)],
+            env=env, capture_output=True, text=True, timeout=120, cwd=ROOT,
+        )  # fmt: skip
+    assert done.returncode == 3, done.stderr
+    assert done.stderr.strip() == (
+        f"srd serve: cannot listen on {HOST}:{port} (--host/--port, SRD_HOST/SRD_PORT): "
+        "Address already in use"
+    )
+    assert not (tmp_path / "srd.db").exists()
+    assert not (tmp_path / "data" / "admin_token").exists()
+
+
 # --- Experiment list options: the element at fault, by its position -----------------------------
 
 

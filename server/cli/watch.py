@@ -188,7 +188,7 @@ def follow(
     while True:
         headers = {} if watched.last_id is None else {"Last-Event-ID": watched.last_id}
         try:
-            with client.stream("GET", path, headers=headers) as response:
+            with client.stream("GET", path, headers=headers, params={"rounds": "true"}) as response:
                 if response.status_code == 404:
                     response.read()
                     if not _srd_error(response):

@@ -53,12 +53,13 @@ async function answer(response) {
 
 /** A path with query parameters (empty ones left out). */
 export function withQuery(path, params) {
-  const query = new URLSearchParams();
+  const [base, given = ""] = path.split("?", 2); // a path may carry a query of its own
+  const query = new URLSearchParams(given);
   for (const [name, value] of Object.entries(params)) {
     if (value !== null && value !== undefined && value !== "") query.set(name, String(value));
   }
   const text = query.toString();
-  return text ? `${path}?${text}` : path;
+  return text ? `${base}?${text}` : base;
 }
 
 /**

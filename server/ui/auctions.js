@@ -844,7 +844,7 @@ export function auctionView(view, id) {
       addRoundsOf(auction);
       const readUpTo = () => (rounds.length ? String(rounds.length - 1) : null);
       const stream = follow(
-        `/auctions/${id}/events`,
+        `/auctions/${id}/events?rounds=true`,
         { iteration: addRound, round: showFineTuneRound, end },
         (state) => {
           following = state === "live";

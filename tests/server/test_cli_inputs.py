@@ -73,11 +73,12 @@ class FakeServer(BaseHTTPRequestHandler):
     connected: ClassVar[threading.Event] = threading.Event()
 
     def do_GET(self) -> None:
-        self.asked.append(self.path)
-        if self.path.endswith("/events") and self.hold:
+        path = self.path.partition("?")[0]  # srd watch asks for the rounds too
+        self.asked.append(path)
+        if path.endswith("/events") and self.hold:
             self._hold()
             return
-        status, kind, body = self.answers.get(self.path, (404, "application/json", NOT_FOUND))
+        status, kind, body = self.answers.get(path, (404, "application/json", NOT_FOUND))
         self.send_response(status)
         self.send_header("Content-Type", kind)
         self.send_header("Content-Length", str(len(body)))

@@ -151,7 +151,7 @@ def test_remote_fine_tuning_rounds_appear_between_the_iterations(
         "round_deadline_s": 0.5,  # nobody uploads: each round waits this long, then closes
     }
     auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
-    path = f"/auctions/{auction_id}/events"
+    path = f"/auctions/{auction_id}/events?rounds=true"  # the rounds are asked for
     events = follow(client, path)
     auction = client.get(f"/auctions/{auction_id}").json()
     ids = [e["id"] for e in events[:-1]]
@@ -166,6 +166,10 @@ def test_remote_fine_tuning_rounds_appear_between_the_iterations(
     assert ids.index("1") == ids.index("0.2") + 1
     resumed = follow(client, path, **{"Last-Event-ID": "0.1"})
     assert [e.get("id") for e in resumed][:2] == ["0.2", "1"]
+    # Not asked for, the stream is the contract's: one event per iteration, id = iteration.
+    plain = follow(client, f"/auctions/{auction_id}/events")
+    assert [e["event"] for e in plain] == ["iteration"] * len(auction["history"]) + ["end"]
+    assert [e["id"] for e in plain[:-1]] == [str(i) for i in range(len(auction["history"]))]
 
 
 def test_idle_streams_keep_alive_and_are_bounded_and_freed(

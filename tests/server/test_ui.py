@@ -234,7 +234,7 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
         headers={"Authorization": f"Bearer {token}"},
     )
     assert put.status_code == 410, put.text
-    sent = api.get(f"/auctions/{auction_id}/events").text
+    sent = api.get(f"/auctions/{auction_id}/events?rounds=true").text  # as the page asks
     assert sent.count('"outcome":"late"') == 1
     before = sent.replace('"outcome":"late"', '"outcome":"missing"')
     page.route(

@@ -196,10 +196,13 @@ class AuctionSnapshot:
     def final(self) -> bool:
         return self.state is None or self.state.status in AUCTION_ENDED
 
-    def events_after(self, sent: Position) -> Iterator[tuple[Position, ServerSentEvent]]:
+    def events_after(
+        self, sent: Position, *, rounds: bool
+    ) -> Iterator[tuple[Position, ServerSentEvent]]:
         """The events of this snapshot that come after ``sent``, in stream order (built only
-        for those: a listener that is up to date costs nothing)."""
-        fine_tuning = {view.iteration: view for view in self.fine_tuning}
+        for those: a listener that is up to date costs nothing); the fine-tuning rounds' too
+        if ``rounds``."""
+        fine_tuning = {view.iteration: view for view in self.fine_tuning} if rounds else {}
         for row in self.rounds[max(sent[0], 0) :]:
             position = (row.iteration, 0)
             if position > sent:
@@ -318,17 +321,26 @@ async def auction_events(
     hub: StreamSlot,
     auction_id: Annotated[int, Depends(_existing_auction)],
     settings: SettingsDep,
+    rounds: Annotated[
+        bool,
+        Query(
+            description="Also send the remote fine-tuning rounds, as `round` events (`id` = "
+            "`k.1` when the round after iteration k opens, `k.2` when it closes). Without it "
+            "the stream holds iterations only, each `id` a whole number."
+        ),
+    ] = False,
 ) -> AsyncIterable[ServerSentEvent]:
     """Follow an auction live: one ``iteration`` event per committed iteration (``id`` = the
-    iteration), ``round`` events for remote fine-tuning rounds (``id`` = ``k.1`` open, ``k.2``
-    closed, after iteration k), then one ``end`` event, and the stream closes."""
+    iteration), with ``?rounds=true`` ``round`` events for remote fine-tuning rounds (``id`` =
+    ``k.1`` open, ``k.2`` closed, after iteration k), then one ``end`` event, and the stream
+    closes."""
     sent = resume  # the last event the client has
     async with hub.watch("auction", auction_id, auction_view) as watch:
         yield ServerSentEvent(comment=f"auction {auction_id}", retry=RECONNECT_MS)
         while True:
             generation, snapshot = watch.generation, watch.snapshot
             assert snapshot is not None  # auction_view and job_view always give one
-            for position, event in snapshot.events_after(sent):
+            for position, event in snapshot.events_after(sent, rounds=rounds):
                 yield event
                 sent = position
             if snapshot.final:

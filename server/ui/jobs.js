@@ -261,7 +261,7 @@ function rowKey(row, keys) {
  * change from the first job. */
 function diffTable(name, specs, jobs) {
   const spec = specs.find((s) => s);
-  const { keys, measures } = splitColumns(spec.rows, spec.columns);
+  const { keys, measures } = splitColumns(spec.rows, spec.scanned);
   const byKey = specs.map((s) => new Map((s ? s.rows : []).map((r) => [rowKey(r, keys), r])));
   const order = [...new Set(byKey.flatMap((m) => [...m.keys()]))];
   const head = [h("th", { scope: "col" }, "Row")];
@@ -296,7 +296,7 @@ function diffTable(name, specs, jobs) {
  * line per job (and setting). */
 function overlay(name, specs, jobs, index) {
   const spec = specs.find((s) => s);
-  const { keys, measures } = splitColumns(spec.rows, spec.columns);
+  const { keys, measures } = splitColumns(spec.rows, spec.scanned);
   const x = keys.find((k) => spec.rows.every((r) => typeof r[k] === "number"));
   const numeric = measures.filter((m) => spec.rows.some((r) => typeof r[m] === "number"));
   const y = numeric.find((m) => /^(mean|accuracy)/.test(m)) || numeric[0]; // an outcome, not a count

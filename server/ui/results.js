@@ -66,13 +66,18 @@ export function headline(result, layout) {
  */
 export function tablesOf(result, layout) {
   const found = [];
-  const columnsOf = (rows) => {
+  // Every column of every table (``columns``); in the kind's own table, those it names as the
+  // ones a person scans come first, and a comparison of jobs reads only them (``scanned``).
+  const columnsOf = (rows, own) => {
     const present = Object.keys(rows[0]).filter((c) => rows.every((r) => r[c] === null || typeof r[c] !== "object"));
-    const preferred = (layout?.columns || []).filter((c) => present.includes(c));
-    return preferred.length ? preferred : present;
+    const preferred = own ? (layout?.columns || []).filter((c) => present.includes(c)) : [];
+    return {
+      columns: [...preferred, ...present.filter((c) => !preferred.includes(c))],
+      scanned: preferred.length ? preferred : present,
+    };
   };
   for (const [name, value] of Object.entries(result)) {
-    if (isRows(value)) found.push({ name, caption: words(name), rows: value, columns: columnsOf(value) });
+    if (isRows(value)) found.push({ name, caption: words(name), rows: value, ...columnsOf(value, name === layout?.table) });
   }
   const configurations = result.configurations;
   if (configurations && typeof configurations === "object") {
@@ -80,7 +85,7 @@ export function tablesOf(result, layout) {
       if (config && isRows(config.rows)) {
         const about = Object.entries(config).filter(([k, v]) => k !== "rows" && (v === null || typeof v !== "object"));
         const caption = `Configuration ${name}${about.length ? ` (${about.map(([k, v]) => `${words(k).toLowerCase()} ${shown(k, v)}`).join(", ")})` : ""}`;
-        found.push({ name: `configurations.${name}`, caption, rows: config.rows, columns: columnsOf(config.rows) });
+        found.push({ name: `configurations.${name}`, caption, rows: config.rows, ...columnsOf(config.rows, layout?.table === "rows") });
       }
     }
   }

@@ -668,6 +668,10 @@ def test_job_page_opens_on_its_headline_cards_tables_and_figures(
     assert table.locator("tbody tr").count() == len(result["rows"])
     headers = [th.text_content() for th in table.locator("th").all()]
     assert "Mean price" in headers and "Purchase rate" in headers and "mean_price" not in headers
+    # Every column of the rows, those the kind names first (they had hidden the others).
+    scalar = [k for k, v in result["rows"][0].items() if not isinstance(v, dict | list)]
+    assert table.locator("thead th").count() == len(scalar), headers
+    assert "Revenue" in headers and "Iterations" in headers, headers
     prices = [td.text_content() for td in table.locator("tbody tr td:nth-child(4)").all()]
     assert prices == [
         "—" if r["mean_price"] is None else four(r["mean_price"]) for r in result["rows"]

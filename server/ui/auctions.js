@@ -136,13 +136,22 @@ export function auctionList(view, query) {
     { class: "none-yet", id: "no-auctions", hidden: true },
     chosen.status ? `None matches this filter: no auction is ${chosen.status}.` : "None yet: an operator starts one with POST /auctions.",
   );
-  view.root.append(scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
+  // Whether the list is current: said when a read fails (the rows stay as last read), cleared
+  // when one succeeds, as is the first load's failure.
+  const readState = h("p", { class: "none-yet", id: "list-state", role: "status", hidden: true });
+  let readAt = null;
+  let firstFailure = null;
+  view.root.append(readState, scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
   // The first page is read again every few seconds while the tab is shown: listed auctions
   // move on in place, and (newest first) new ones appear at the top.
   function refresh() {
     if (document.visibilityState !== "visible") return;
     getJSON(withQuery("/auctions", params))
       .then((page) => {
+        readAt = new Date();
+        readState.hidden = true;
+        firstFailure?.remove();
+        firstFailure = null;
         const newer = [];
         const top = Math.max(0, ...rowOf.keys());
         const here = new Set(page.items.map((a) => a.id));
@@ -172,16 +181,24 @@ export function auctionList(view, query) {
         }
         empty.hidden = rowOf.size > 0;
       })
-      .catch(() => {}); // the next read will tell
+      .catch((error) => {
+        const when = readAt ? `as read at ${readAt.toLocaleTimeString()}` : "not read yet";
+        readState.hidden = false;
+        readState.textContent = `The list could not be read again (${String(error.message || error)}); it shows the auctions ${when}, and is read again every few seconds.`;
+      });
   }
   const timer = setInterval(refresh, LIST_REFRESH_MS);
   view.onLeave(() => clearInterval(timer));
   pages
     .load()
     .then((page) => {
+      readAt = new Date();
       empty.hidden = page.items.length > 0;
     })
-    .catch((error) => view.root.append(problem(error)));
+    .catch((error) => {
+      firstFailure = problem(error);
+      view.root.append(firstFailure);
+    });
 }
 
 /** The price line: one point per committed iteration, redrawn as iterations arrive. */

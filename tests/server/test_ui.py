@@ -425,6 +425,17 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     ]
     (cells,) = [r for r in rows if r[0] == f"Auction {auction_id}"]
     assert cells[1] == "cancelled" and cells[7] == "cancelled by the operator"
+    # The list is read again every 5 s: a read that fails says so (the rows stay as read), and
+    # the next one that succeeds clears it.
+    listed = re.compile(r"/auctions(\?.*)?$")
+    page.route(listed, lambda route: route.fulfill(status=503, body="{}"))
+    state = page.locator("#list-state")
+    state.wait_for(state="visible", timeout=WAIT_MS)
+    assert "could not be read again" in (state.text_content() or "")
+    assert "as read at" in (state.text_content() or "")
+    assert page.locator("#auction-list tbody tr").count() == len(rows)
+    page.unroute(listed)
+    state.wait_for(state="hidden", timeout=WAIT_MS)
 
 
 def ended_auction_page(

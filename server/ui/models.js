@@ -358,8 +358,10 @@ export function by(e) {
 export function evidenceTable(model) {
   const auctions = (e) => (e.detail.test_auctions ? `, ${e.detail.test_auctions} test auctions` : "");
   const priced = (e) => e.units === "price" && e.measured !== null && e.bar !== null;
-  const rows = model.evidence.map((e) => [e.test, (e.detail.version || e.detail.check || "") + auctions(e), e.measured === null ? "—" : fixed(e.measured, 4), e.bar === null ? "—" : fixed(e.bar, 4), `${e.side} (${e.units})`, priced(e) ? by(e) : e.passed ? "passed" : "missed"]);
-  return scrolling(table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result"], rows, { id: "evidence-table" }), "Every bar (scrolls sideways)");
+  // A missed bar says why in the screener's words, where its evidence has them.
+  const finding = (e) => (e.passed ? "" : e.detail.finding || "");
+  const rows = model.evidence.map((e) => [e.test, (e.detail.version || e.detail.check || "") + auctions(e), e.measured === null ? "—" : fixed(e.measured, 4), e.bar === null ? "—" : fixed(e.bar, 4), `${e.side} (${e.units})`, priced(e) ? by(e) : e.passed ? "passed" : "missed", finding(e)]);
+  return scrolling(table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result", "Why missed"], rows, { id: "evidence-table" }), "Every bar (scrolls sideways)");
 }
 
 /** A model's audit log: appeals and inspectors' decisions, oldest first. */
@@ -471,6 +473,8 @@ export function inspectorView(view, id, { extra = null, heading = "Model", evide
       const drawn = drawnNeurons(manifest, model.reasons, a);
       view.root.append(
         verdictBanner(model, drawn.flagged),
+        // Its reasons right under the verdict (each neuron's card below repeats its own).
+        ...(model.reasons.length ? [h("section", { "aria-labelledby": "reasons-heading", id: "model-reasons" }, h("h2", { id: "reasons-heading" }, "The screener's reasons"), h("ul", { class: "reasons" }, model.reasons.map((r) => h("li", {}, h("strong", {}, r.neuron), ` (${r.rule}): `, r.message))))] : []),
         ...(model.reviews.length ? [auditLog(model.reviews)] : []),
         ...(extra ? extra(model) : []),
         h("p", { class: "description", id: "description", dir: "auto" }, manifest.description || "(no description)"),

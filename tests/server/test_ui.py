@@ -495,6 +495,15 @@ def test_inspector_draws_the_saboteur_neuron_by_neuron_with_the_screeners_reason
     page.wait_for_selector("#verdict", timeout=WAIT_MS)
     assert (page.text_content("#verdict") or "").startswith("Rejected")
     assert "its participant may appeal once" in (page.text_content("#verdict") or "")
+    # Every reason right under the verdict, and why each missed bar was missed.
+    listed = page.locator("#model-reasons li")
+    assert listed.count() == len(model["reasons"])
+    assert all(
+        r["message"] in (page.text_content("#model-reasons") or "") for r in model["reasons"]
+    )
+    missed = [e for e in model["evidence"] if not e["passed"] and e["detail"].get("finding")]
+    table_text = page.text_content("#evidence-table") or ""
+    assert missed and all(e["detail"]["finding"] in table_text for e in missed)
     # nothing printed for what it lacks (a model without reviews had a line reading "null")
     assert "null" not in (page.text_content("main") or "")
     facts = page.text_content("main") or ""

@@ -52,7 +52,7 @@ function statusBadge(status) {
 }
 
 // What the outcomes a patron's own word does not explain mean.
-const ANSWER_WORDS = { late: "arrived after the deadline, not applied", missing: "no upload before the deadline" };
+const ANSWER_WORDS = { late: "arrived after the deadline, not applied", missing: "no upload recorded before the deadline: none came, or each one was malformed" };
 
 const STATUSES = ["pending", "running", "finished", "failed", "cancelled"];
 const NEURON_WORDS = {
@@ -628,6 +628,8 @@ export function auctionView(view, id) {
       const r = openRound;
       const asked = head.model_ids.filter((modelId) => !(leftAt.get(modelId) <= r.iteration)).length;
       liveness.textContent = `Following live: waiting for fine-tuning round ${r.round} until ${when(r.deadline)} (${r.answers.length} of ${asked} answered).`;
+    } else if (head && head.status === "pending" && head.enroll_until) {
+      liveness.textContent = `Following live: taking patrons until ${when(head.enroll_until)}; the first iteration appears once it starts.`;
     } else liveness.textContent = "Following live: each iteration appears as soon as it is committed.";
   }
   function showFineTuneRound(r) {
@@ -722,6 +724,7 @@ export function auctionView(view, id) {
     getJSON(`/auctions/${id}`)
       .then((auction) => {
         readHead(auction);
+        sayFollowing(); // an enrolling auction that started: the line says so
         if (atEnd) for (const r of auction.fine_tuning) showFineTuneRound(r);
         scheduleDraw();
         if (auction.status !== "running") showSummary(auction);

@@ -431,7 +431,7 @@ function drawnNeurons(manifest, reasons, a, { screened = true } = {}) {
         "section",
         { "aria-labelledby": "drawing-heading" },
         h("h2", { id: "drawing-heading" }, "The negotiator, neuron by neuron"),
-        h("p", { class: "legend" }, h("span", { class: "key edge-pos" }), "positive weight ", h("span", { class: "key edge-neg" }), "negative weight (dashed) ", h("span", { class: "key edge-tiny" }), `δ-sized weight; line width grows with the weight, a weight of 0 is not drawn.${screened ? " A red ring marks a neuron the screener objects to;" : ""} select a neuron to read its weights.`),
+        h("p", { class: "legend" }, h("span", { class: "key edge-pos" }), "positive weight ", h("span", { class: "key edge-neg" }), "negative weight (dashed) ", h("span", { class: "key edge-tiny" }), `δ-sized weight; line width grows with the weight, a weight of 0 is not drawn.${screened ? " A red ring marks a neuron the screener objects to." : ""} Select a neuron to read its weights.`),
         h("figure", {}, scrolling(decisionPath, "The decision path drawing (scrolls sideways)"), h("figcaption", {}, "Decision: the inputs feed the external sensor PG, SZ, LSR, ST, which feeds buy B, hold L and quit Q.")),
         h("figure", {}, scrolling(pfcPath, "The self-judge drawing (scrolls sideways)"), h("figcaption", {}, "Self-judge: the prefrontal cortex reads the softmax of all seven and judges PGL, BC, FQ, then the verdicts T (right) and F (wrong).")),
       ),

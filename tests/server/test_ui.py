@@ -220,7 +220,7 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
         assert each.count() == len(expected["answers"])
         for item, answer in zip(each.all(), expected["answers"], strict=True):
             assert item.get_attribute("data-outcome") == answer["outcome"] == "missing"
-            assert "missing (no upload before the deadline)" in (item.text_content() or "")
+            assert "missing (no upload recorded before the deadline: none came, or each one was" in (item.text_content() or "")
             version = item.locator(f"a[href='#/models/{answer['version_id']}']")
             assert version.text_content() == f"version {answer['version']}"
     # An upload after the deadline is recorded late once its round's closed event was sent,
@@ -353,6 +353,7 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     summary = page.text_content("#auction-summary") or ""
     assert "Joined so farnone yet" in summary and "Fish on salecounted when it starts" in summary
     assert "Buyer fraction—" in summary  # not "0.0% of the patrons bought" before it starts
+    page.wait_for_selector("#liveness:has-text('taking patrons until')", timeout=WAIT_MS)
     # Sections without an iteration say so, and there is no vote to explain yet.
     assert page.text_content("#rounds tbody") == "none yet"
     assert page.is_visible("#price-none") and page.is_visible("#votes-none")

@@ -220,7 +220,8 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
         assert each.count() == len(expected["answers"])
         for item, answer in zip(each.all(), expected["answers"], strict=True):
             assert item.get_attribute("data-outcome") == answer["outcome"] == "missing"
-            assert "missing (no upload recorded before the deadline: none came, or each one was" in (item.text_content() or "")
+            words = "missing (no upload recorded before the deadline: none came, or each one was"
+            assert words in (item.text_content() or "")
             version = item.locator(f"a[href='#/models/{answer['version_id']}']")
             assert version.text_content() == f"version {answer['version']}"
     # An upload after the deadline is recorded late once its round's closed event was sent,

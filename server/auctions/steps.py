@@ -123,13 +123,13 @@ class _Kept:
     entered: dict[int, Manifest] = field(default_factory=dict)
 
     def manifests(self, session: Session, model_ids: list[int]) -> list[Manifest]:
-        """The patrons' entered manifests, in order (parsed once)."""
-        missing = [
-            model_id for model_id in dict.fromkeys(model_ids) if model_id not in self.entered
-        ]
+        """The patrons' entered manifests, in order (parsed once; past ``ENTERED_KEPT``, the
+        others are forgotten, never this auction's: it may hold more than that alone)."""
+        wanted = list(dict.fromkeys(model_ids))
+        missing = [model_id for model_id in wanted if model_id not in self.entered]
         if missing:
             if len(self.entered) + len(missing) > ENTERED_KEPT:
-                self.entered.clear()
+                self.entered = {m: self.entered[m] for m in wanted if m in self.entered}
             stored = crud.patron_manifests(session, model_ids=missing)
             self.entered.update(zip(missing, map(parse_manifest, stored), strict=True))
         return [self.entered[model_id] for model_id in model_ids]

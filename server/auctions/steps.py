@@ -11,7 +11,8 @@ it to a worker process, which runs ONE step (``run_step``):
    due again at the deadline, plus half a second for uploads that arrived in time to be
    stored); else judge the uploads still pending and close the round. Then
    apply the closed round's accepted versions;
-3. play iterations until the auction ends or opens a fine-tuning round, committing each
+3. play iterations until the auction ends or opens a fine-tuning round, or has played for
+   ``STEP_SLICE_S`` (then it is due again at once, and takes its turn), committing each
    iteration in ONE transaction: its row, purchases and quits, the new price and supply, the
    checkpoint, the round it opens (rows, seeds, asked patrons, absolute deadline) and when the
    next step is due (now while it plays; the deadline plus ``CLOSE_GRACE`` while a round is
@@ -32,6 +33,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
@@ -107,6 +109,10 @@ def rescreening(margin: float) -> RescreenBatch:
     return keeps
 
 
+STEP_SLICE_S = 2.0
+"""A step that plays on ends after the iteration it commits once it has played this long (the
+auction stays due, and is claimed again in its turn): a long server-mode auction takes turns
+with the other auctions' steps instead of holding a worker for its whole life."""
 ENTERED_KEPT = 1024
 """Parsed manifests of entered versions a worker process keeps between steps (16 auctions of
 64 patrons): stored versions never change, and parsing an auction's 64 at every step cost more
@@ -370,6 +376,7 @@ def _step(kept: _Kept, auction_id: int, margin: float) -> None:
         with database.session(write=False) as session:
             accepted = crud.accepted_uploads(session, round_id=row.id)
         market.apply_round({p: parse_manifest(m) for p, (_, m) in accepted.items()})
+    playing = time.monotonic()
     while not market.finished:
         began = utcnow()  # the iteration is computed before the write lock is taken
         played = _play(market, model_ids)
@@ -378,6 +385,8 @@ def _step(kept: _Kept, auction_id: int, margin: float) -> None:
             session.commit()
         if opened is not None:
             return
+        if not market.finished and time.monotonic() - playing > STEP_SLICE_S:
+            return  # due now: the next step resumes from this commit, after the others' turns
     log.info("auction %d finished (%s)", auction_id, market.stop_reason)
 
 

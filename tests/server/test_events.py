@@ -14,12 +14,18 @@ import pytest
 import torch
 from fastapi.testclient import TestClient
 
+import sim.market
 from server.app import create_app
+from server.auctions import steps
+from server.auctions.steps import run_step
 from server.cli.launch import ServerProcess
+from server.work.pool import WorkerContext
 from tests.support.live import (
+    PacedMarket,
     create_unstarted_auction,
     data,
     paced_auction,
+    play_to_end,
     sse_events,
     submit_population,
 )
@@ -137,6 +143,44 @@ def test_events_arrive_while_it_runs_and_resume_skips_and_repeats_nothing(
     assert [data(e) for e in also] == [data(e) for e in resumed]
     from_query = follow(client, f"{path}?after={len(auction['history']) - 2}")
     assert [e["event"] for e in from_query] == ["iteration", "end"]
+
+
+def test_a_long_step_takes_turns_and_plays_the_auction_it_would_have_played_at_once(
+    client: httpx.Client,
+    server: ServerProcess,
+    honest_ids: list[int],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A step ends once it has played ``STEP_SLICE_S`` (after the iteration it committed), the
+    auction still running and due, so a long auction takes turns with the others' steps on the
+    workers instead of holding one to its end; the steps after it resume from the commits and
+    play exactly the auction one step would have."""
+    torch.set_num_threads(1)
+    context = WorkerContext(
+        database_url=server.database_url,
+        data_dir=str(server.data_dir),
+        progress_interval_s=0.1,
+        torch_threads=1,
+    )
+    whole = create_unstarted_auction(server.database_url, honest_ids, n_fish=1, seed=1)
+    assert play_to_end(context, whole) == 1  # quick: within one step
+    sliced = create_unstarted_auction(server.database_url, honest_ids, n_fish=1, seed=1)
+    monkeypatch.setattr(steps, "STEP_SLICE_S", 0.5)
+    monkeypatch.setattr(PacedMarket, "pace_s", 0.3)
+    monkeypatch.setattr(sim.market, "Market", PacedMarket)
+    run_step(context, sliced)
+    after_one = client.get(f"/auctions/{sliced}").json()
+    assert after_one["status"] == "running" and 1 <= len(after_one["history"]) <= 3, after_one
+    assert play_to_end(context, sliced) > 1
+    played = [client.get(f"/auctions/{a}").json() for a in (whole, sliced)]
+
+    def outcome(auction: dict[str, Any]) -> dict[str, Any]:
+        rows = [{k: v for k, v in r.items() if not k.endswith("_at")} for r in auction["history"]]
+        kept = ("status", "price", "n_available", "buyers", "quitters", "stop_reason")
+        return {"history": rows, **{k: auction[k] for k in kept}}
+
+    assert outcome(played[1]) == outcome(played[0])
+    assert len(played[0]["history"]) > 2
 
 
 def test_remote_fine_tuning_rounds_appear_between_the_iterations(

@@ -19,6 +19,7 @@ import sim.market
 from server.auctions.steps import base_price, run_step
 from server.store import crud
 from server.store.db import Database
+from server.store.status import AUCTION_UNFINISHED
 from server.store.tables import utcnow
 from server.work.pool import WorkerContext
 from sim.market import Market
@@ -98,6 +99,22 @@ def create_unstarted_auction(
         database.close()
 
 
+def play_to_end(context: WorkerContext, auction_id: int, most: int = 1000) -> int:
+    """Run the auction's steps one after another, as the worker pool would, until it has
+    ended (a step plays at most ``STEP_SLICE_S``); how many steps it took."""
+    database = Database(context.database_url)
+    try:
+        for steps in range(1, most + 1):
+            run_step(context, auction_id)
+            with database.session(write=False) as session:
+                state = crud.step_state(session, auction_id=auction_id)
+                if state is None or state[0].status not in AUCTION_UNFINISHED:
+                    return steps
+        raise AssertionError(f"auction {auction_id} did not end in {most} steps")
+    finally:
+        database.close()
+
+
 @contextmanager
 def paced_auction(
     monkeypatch: pytest.MonkeyPatch,
@@ -115,7 +132,7 @@ def paced_auction(
     context = WorkerContext(
         database_url=database_url, data_dir=str(data_dir), progress_interval_s=0.1, torch_threads=1
     )
-    thread = threading.Thread(target=run_step, args=(context, auction_id), daemon=True)
+    thread = threading.Thread(target=play_to_end, args=(context, auction_id), daemon=True)
     thread.start()
     try:
         yield thread

@@ -35,14 +35,16 @@ def claimable(
     limit: int,
     lock: bool,
 ) -> list[int]:
-    """Up to ``limit`` unfinished rows, oldest first, with no lease or an expired one, due by
-    ``now`` (``due``: the column of their due time, or None), except the rows ``held``; with
-    ``lock``, locked until commit, skipping the rows another transaction locked."""
+    """Up to ``limit`` unfinished rows with no lease or an expired one, due by ``now``
+    (``due``: the column of their due time, or None), except the rows ``held``: the longest due
+    first (those due at once before them), then the oldest; with ``lock``, locked until commit,
+    skipping the rows another transaction locked."""
+    order = (table.id,) if due is None else (due.is_not(None), due, table.id)
     query = (
         select(table.id)
         .where(*_unleased(table, unfinished, now))
         .where(table.id.notin_(held))
-        .order_by(table.id)
+        .order_by(*order)
         .limit(limit)
     )
     if due is not None:

@@ -117,7 +117,8 @@ def _screening_main(conn: Connection, parent_pid: int, environ: dict[str, str]) 
         stop = batch[-1] is None  # the stop signal; what came before it is still answered
         if stop:
             batch.pop()
-        for kind, judge in ((_DOOR, screen_many), (_RESCREEN, rescreen_many)):
+        # A round's uploads first: they have a deadline, and their agents wait on them.
+        for kind, judge in ((_RESCREEN, rescreen_many), (_DOOR, screen_many)):
             mine = [(i, Manifest.model_validate_json(m)) for i, k, m in batch if k == kind]
             if mine:
                 answers = [_failed(a) for a in _judge(judge, mine)]

@@ -69,7 +69,7 @@ RATE_BURST_S = 4.0
 RATE_PACE_S = 1.0
 """An HTTP request or handshake past its address's rate waits up to this long for its turn
 (its token taken ahead, so an address holds at most this many seconds of its rate waiting);
-a round-socket message is refused at once."""
+a round-socket message, as a round upload by PUT, takes its turn ahead and is not held."""
 RATE_BODY_BYTES = 16_384
 """A request's body counts as one more request for every this many bytes (by its
 ``Content-Length``; a chunked one as the largest body taken), and so does a round-socket
@@ -215,8 +215,10 @@ class ClientLimitsMiddleware:
 
     def message(self, scope: Scope, size: int) -> RequestError | None:
         """Count a message of ``size`` bytes received on the round socket of ``scope`` against
-        its address's request rate; the refusal if it is past it."""
-        _, wait_s = self.rate.take(scope, pace_s=0.0, body_bytes=size)
+        its address's request rate, as a round upload by PUT counts: its turn taken ahead, up
+        to ``RATE_PACE_S`` of the rate, and never held (its deadline is judged at arrival); the
+        refusal if it is past that."""
+        _, wait_s = self.rate.take(scope, pace_s=RATE_PACE_S, body_bytes=size)
         return self.rate.refusal(wait_s) if wait_s else None
 
     def _over(self, limit: Limit, share: int, who: str) -> RequestError:

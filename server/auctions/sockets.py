@@ -27,8 +27,9 @@ other server), a manifest up to the PUT's upload limit (413), uploads handled on
 socket and counted in their token's uploads in flight with its PUTs (429 past its share,
 ``server.api.limits``), a token bucket of ``BURST`` messages refilled at ``REFILL_PER_S`` per
 socket (beyond it the socket is closed, code 1008), and every message counted against its
-address's request rate with its requests and its other sockets' messages (beyond it the message
-is answered 429 unread and the socket closed, code 1013, as HTTP answers 429 and closes the
+address's request rate with its requests and its other sockets' messages, as an upload by PUT
+counts (its turn taken ahead, never held; a second of the rate beyond it the message is
+answered 429 unread and the socket closed, code 1013, as HTTP answers 429 and closes the
 connection). A dead peer is dropped by the server's WebSocket pings; a socket whose rounds
 cannot be read is closed with 1011, for the agent to reconnect.
 """

@@ -48,7 +48,7 @@ import capacity
 from agents.manifest import Manifest
 from screener import Verdict
 from server.api.errors import RequestError
-from server.auctions.uploads import UploadRequest, upload
+from server.auctions.uploads import OutageArrivals, UploadRequest, upload
 from server.cli.launch import ServerProcess, settings_environment
 from server.store.db import Database
 
@@ -162,6 +162,7 @@ async def _upload_all(
     """(uploads answered, CPU s of the upload path: the sweeps and the busy thread's own CPU
     left out)."""
     screening: Any = Accepting()
+    arrivals = OutageArrivals()
     answered = 0
     swept = 0.0
     start, spun_before = time.process_time(), spun[0]
@@ -172,7 +173,9 @@ async def _upload_all(
             swept += time.process_time() - before
         request = UploadRequest(auction_id, 1, model_id, token, body, arrived)
         try:
-            await upload(database, screening, lambda _: None, request, margin=0.0)
+            await upload(
+                database, screening, lambda _: None, request, margin=0.0, arrivals=arrivals
+            )
         except RequestError as exc:  # not asked: it left the auction before the round
             if not any(item["type"] == "not_asked" for item in exc.items):
                 raise

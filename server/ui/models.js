@@ -3,7 +3,7 @@
 // each screener reason on the neuron it names.
 
 import { getJSON, pager, withQuery } from "./api.js";
-import { facts, fill, fixed, h, isMissing, link, notFound, plural, problem, scrolling, signed, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, fixed, fixedApart, h, isMissing, link, notFound, plural, problem, scrolling, signed, svg, table, tableRow, when } from "./dom.js";
 import { shown } from "./results.js";
 
 const NAME_PATTERN = /^[A-Za-z0-9_.-]+$/; // participant names the API accepts
@@ -349,9 +349,18 @@ export function verdictNow(model) {
   return verdictBanner(model, [...new Set(model.reasons.map((r) => r.neuron).filter((n) => neurons[n]))]);
 }
 
-/** How far a priced measurement lies from its bar, on which side: "missed by 0.0043". */
+/** A measurement and its bar with 4 decimals, or more (up to 8) where the two would look
+ * alike: "5.091843 against 5.091783", never "5.0918 against 5.0918". */
+export function measuredAndBar(e) {
+  if (e.measured === null || e.bar === null) return [fixed(e.measured, 4), fixed(e.bar, 4)];
+  return fixedApart([e.measured, e.bar], 4);
+}
+
+/** How far a priced measurement lies from its bar, on which side: "missed by 0.0043", with
+ * as many decimals as it takes to tell the two apart. */
 export function by(e) {
-  return `${e.passed ? "passed" : "missed"} by ${fixed(Math.abs(e.measured - e.bar), 4)}`;
+  const digits = Math.max(4, measuredAndBar(e)[0].split(".")[1]?.length || 0);
+  return `${e.passed ? "passed" : "missed"} by ${fixed(Math.abs(e.measured - e.bar), digits)}`;
 }
 
 /** Every bar the screener held a model to: its ``evidence``, one row a bar. */
@@ -360,7 +369,7 @@ export function evidenceTable(model) {
   const priced = (e) => e.units === "price" && e.measured !== null && e.bar !== null;
   // A missed bar says why in the screener's words, where its evidence has them.
   const finding = (e) => (e.passed ? "" : e.detail.finding || "");
-  const rows = model.evidence.map((e) => [e.test, (e.detail.version || e.detail.check || "") + auctions(e), e.measured === null ? "—" : fixed(e.measured, 4), e.bar === null ? "—" : fixed(e.bar, 4), `${e.side} (${e.units})`, priced(e) ? by(e) : e.passed ? "passed" : "missed", finding(e)]);
+  const rows = model.evidence.map((e) => [e.test, (e.detail.version || e.detail.check || "") + auctions(e), ...measuredAndBar(e), `${e.side} (${e.units})`, priced(e) ? by(e) : e.passed ? "passed" : "missed", finding(e)]);
   return scrolling(table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result", "Why missed"], rows, { id: "evidence-table" }), "Every bar (scrolls sideways)");
 }
 

@@ -5,7 +5,7 @@
 
 import { ApiError, getJSON, postJSON } from "./api.js";
 import { facts, fill, fixed, h, isMissing, link, notFound, problem, scrolling, svg, table, when } from "./dom.js";
-import { auditLog, by, evidenceTable, inspectorView, verdictNow } from "./models.js";
+import { auditLog, by, evidenceTable, inspectorView, measuredAndBar, verdictNow } from "./models.js";
 
 let adminToken = null;
 
@@ -118,7 +118,8 @@ function nearest(evidence, margin) {
   const e = (missed.length ? missed : priced).reduce((a, b) => (Math.abs(a.measured - a.bar) <= Math.abs(b.measured - b.bar) ? a : b));
   const near = margin !== null && Math.abs(e.measured - e.bar) < margin; // as the server holds
   const held = near ? `, within the review margin ${fixed(margin, 4)} of its bar: held for you` : "";
-  return `${e.test}: ${fixed(e.measured, 4)} against ${fixed(e.bar, 4)} (${e.side}), ${by(e)}${held}`;
+  const [measured, bar] = measuredAndBar(e);
+  return `${e.test}: ${measured} against ${bar} (${e.side}), ${by(e)}${held}`;
 }
 
 export function reviewView(view, id) {

@@ -234,6 +234,8 @@ class SoFar:
 
     agents: list[RemoteAgent] = field(default_factory=list)
     auction: int | None = None
+    tokens_saved: bool = False
+    """This run wrote its agents' tokens to ``PopulationConfig.tokens_file``."""
 
     def to_dict(self) -> dict[str, Any]:
         """The registered models (participant, model id) and the auction, if any."""
@@ -265,6 +267,7 @@ async def run_population(
         submitted = await _submit(agents, progress)
         if config.tokens_file is not None:
             save_tokens(config.tokens_file, agents)
+            so_far.tokens_saved = True
         if config.auction is not None:
             so_far.auction = config.auction
             auction_id, players = config.auction, await _join(agents, config.auction)

@@ -33,6 +33,7 @@ from typing import Any, TypeVar
 
 from sqlalchemy import Connection
 from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, ManifestError, parse_manifest, parse_manifest_json
@@ -62,7 +63,7 @@ AT_ONCE_TRIES = 8
 after the thread of this process that held it let go, before it waits for it in a thread."""
 REMEMBERED_ARRIVALS = 10_000
 """Arrivals of uploads a database outage refused that an API process remembers (the oldest
-forgotten first: about 1.5 MB)."""
+forgotten first: about 4.4 MB)."""
 REMEMBERED_S = 600.0
 """How long such an arrival is remembered."""
 
@@ -407,6 +408,8 @@ async def upload(
     except Exception as exc:
         if is_database_outage(exc):  # its retry is judged by this arrival
             arrivals.remember(key, request.arrived)
+            if not isinstance(exc, PoolTimeoutError):  # a busy pool is no outage
+                database.note_outage()  # no step closes its round before the retry can come
         raise
     arrivals.forget(key)
     if stored.refusal is not None:

@@ -89,10 +89,10 @@ def _say_stopped(err: Console, made: dict[str, Any], tokens_file: Path | None) -
         return
     ids = ", ".join(str(a["model_id"]) for a in agents[:20]) + (", …" if len(agents) > 20 else "")
     where = f" in auction {auctions[0]}" if auctions else ""
-    tokens = (
+    tokens = (  # the file this run wrote (one from an earlier run holds other tokens)
         f"their tokens are in {tokens_file}"
-        if tokens_file is not None and tokens_file.exists()
-        else "their tokens are lost (--tokens keeps them)"
+        if tokens_file is not None
+        else "their tokens are lost (--tokens keeps them, once every agent has registered)"
     )
     err.print(
         f"stopped: {len(agents)} models registered{where} (model ids {ids}); {tokens}",
@@ -373,7 +373,7 @@ def command(
             report = asyncio.run(run_population(config, progress, so_far))
         except KeyboardInterrupt as exc:  # what was made, before "Aborted!" (exit 130)
             made = so_far.to_dict()
-            _say_stopped(err, made, tokens_file)
+            _say_stopped(err, made, tokens_file if so_far.tokens_saved else None)
             exc.partial = made  # type: ignore[attr-defined]  # --json's object carries it
             raise
         except (RemoteError, ValueError, KeyError, TypeError) as exc:

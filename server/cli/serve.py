@@ -86,16 +86,37 @@ def database_problem(settings: Settings) -> tuple[str, int] | None:
 
 def port_problem(host: str, port: int) -> str | None:
     """Why ``srd serve`` could not listen on ``host:port`` (taken, or not an address of this
-    host), or None: bound as uvicorn binds it, then let go, before anything is made or stored
-    (a port taken meanwhile still stops uvicorn, with its own words)."""
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    with socket.socket(family, socket.SOCK_STREAM) as sock:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            sock.bind((host, port))
-        except (OSError, OverflowError) as exc:
-            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-            return f"cannot listen on {host}:{port} (--host/--port, SRD_HOST/SRD_PORT): {why}"
+    host), or None: bound as asyncio's ``create_server`` binds it for uvicorn (every address
+    the host resolves to, an IPv6 one for IPv6 only), then let go, before anything is made or
+    stored (a port taken meanwhile still stops uvicorn, in its own words)."""
+    where = f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+    def problem(why: str) -> str:
+        return f"cannot listen on {where} (--host/--port, SRD_HOST/SRD_PORT): {why}"
+
+    try:
+        found = socket.getaddrinfo(
+            host, port, socket.AF_UNSPEC, socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )
+    except (OSError, OverflowError, UnicodeError) as exc:
+        return problem(exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc))
+    bound: list[socket.socket] = []  # held together, as the server would hold them
+    try:
+        for family, kind, proto, _, address in dict.fromkeys(
+            (f, k, p, "", a) for f, k, p, _, a in found
+        ):
+            sock = socket.socket(family, kind, proto)
+            bound.append(sock)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if family == socket.AF_INET6:
+                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            try:
+                sock.bind(address)
+            except OSError as exc:
+                return problem(exc.strerror or str(exc))
+    finally:
+        for sock in bound:
+            sock.close()
     return None
 
 

@@ -53,7 +53,8 @@ async function answer(response) {
 
 /** A path with query parameters (empty ones left out). */
 export function withQuery(path, params) {
-  const [base, given = ""] = path.split("?", 2); // a path may carry a query of its own
+  const mark = path.indexOf("?"); // a path may carry a query of its own
+  const [base, given] = mark < 0 ? [path, ""] : [path.slice(0, mark), path.slice(mark + 1)];
   const query = new URLSearchParams(given);
   for (const [name, value] of Object.entries(params)) {
     if (value !== null && value !== undefined && value !== "") query.set(name, String(value));

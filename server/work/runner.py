@@ -65,7 +65,8 @@ IDLE_TICK_S = 2.0
 RETRY_S = 0.5
 """The wait after a pass that failed (the database unreachable)."""
 OUTAGE_GRACE_S = 5.0
-"""A runner claims nothing until this long after this process last met a database outage: the
+"""A runner claims nothing until this long after this process last met a database outage (its
+own passes, the database's probe, or an upload refused for it): the
 uploads an outage refused come back first (their arrival remembered, ``server.auctions.uploads``),
 before a step closes their round at its deadline. Agents retry after the 503's ``Retry-After``
 (2 s), and writes resume about a second after the database is back."""

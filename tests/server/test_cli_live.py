@@ -377,7 +377,7 @@ def test_agents_stopped_midway_say_what_they_registered(
     assert sorted(a["participant"] for a in report["agents"]) == names
     assert "token" not in stdout
     assert f"stopped: 2 models registered in auction {auction_id}" in stderr
-    assert "their tokens are lost (--tokens keeps them)" in stderr and "Aborted!" in stderr
+    assert "their tokens are lost (--tokens keeps them" in stderr and "Aborted!" in stderr
 
 
 @pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)

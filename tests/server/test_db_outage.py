@@ -306,10 +306,14 @@ def test_a_hung_or_stopped_postgres_holds_no_request_and_serves_no_stale_round(
         cluster.start()
 
 
-ROUND_S = 7.0
+ROUND_S = 9.0
 """The round's deadline: long enough to open it and fine-tune, short enough to wait out."""
-BEFORE_S = 2.5
-"""The database stops this long before the round's deadline, and stays stopped past it."""
+BEFORE_S = 4.0
+"""The database stops this long before the round's deadline (stopping it takes a moment), and
+stays stopped past it."""
+RETRY_AFTER_S = 2.0
+"""An agent's retry comes this long after the database is back (the 503's Retry-After): by
+then a step would have closed the round, but for the grace after an outage."""
 
 
 def test_an_upload_an_outage_refused_before_the_deadline_counts_on_its_retry(
@@ -346,13 +350,17 @@ def test_an_upload_an_outage_refused_before_the_deadline_counts_on_its_retry(
             model_id, token = patrons[position]
             return put(client, auction_id, 1, model_id, bodies[position], token)
 
-        time.sleep(max(0.0, state["seconds_left"] - BEFORE_S))
+        left = client.get(f"/auctions/{auction_id}/rounds/current").json()["seconds_left"]
+        deadline = time.monotonic() + left
+        time.sleep(max(0.0, left - BEFORE_S))
         cluster.stop()
         time.sleep(CACHE_S)
+        assert time.monotonic() < deadline - 1.0, "the outage began too late to test"
         assert_unavailable(upload(first))  # in time, refused by the outage
-        time.sleep(BEFORE_S + 1.0)  # past the deadline, the database still stopped
+        time.sleep(max(0.0, deadline + 1.0 - time.monotonic()))  # past it, still stopped
         cluster.start()
         back_at = time.monotonic()
+        time.sleep(RETRY_AFTER_S)
         while (answer := upload(first)).status_code == 503:  # the agent's retry
             assert time.monotonic() - back_at < RESUME_WITHIN_S, "writes did not resume"
             time.sleep(0.5)

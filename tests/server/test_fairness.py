@@ -547,7 +547,9 @@ def test_round_socket_messages_count_against_their_address_request_rate(
                 if frame["status"] != 422:
                     break
             assert statuses[-1] == 429, statuses
-            assert 1 <= statuses.count(422) < 30, statuses
+            # the burst of 8 less the two handshakes, and a second of the rate taken ahead:
+            # 7 (refused at once, as before, 5 passed)
+            assert 7 <= statuses.count(422) < 30, statuses
             (item,) = frame["body"]["detail"]
             assert item["loc"] == ["client"] and item["type"] == "too_many_requests"
             assert "2 requests a second" in item["msg"] and "retry in" in item["msg"]
@@ -556,12 +558,15 @@ def test_round_socket_messages_count_against_their_address_request_rate(
             assert closed.value.code == 1013 and "requests a second" in closed.value.reason
             # The same allowance as the sockets': spent, and a second of it taken ahead by the
             # messages (as uploads take their turn), so the address's requests wait it out.
-            first = client.get("/livez")
-            assert first.status_code == 429, first.text
-            time.sleep(int(first.headers["retry-after"]))
             started = time.monotonic()
+            first = client.get("/livez")
+            if first.status_code == 429:  # (its turn more than a second away)
+                assert int(first.headers["retry-after"]) >= 1, first.headers
+                time.sleep(int(first.headers["retry-after"]))
+            else:
+                assert first.status_code == 200 and time.monotonic() - started >= 0.4
             livez = [client.get("/livez").status_code for _ in range(3)]
-            assert livez == [200] * 3 and time.monotonic() - started < 2.5  # (2 a second)
+            assert livez == [200] * 3
 
 
 def test_a_long_poll_whose_client_left_frees_its_share_at_once(

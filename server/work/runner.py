@@ -38,6 +38,7 @@ import logging
 import signal
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timedelta
@@ -64,6 +65,8 @@ IDLE_TICK_S = 2.0
 """The longest a runner waits between two passes over its table."""
 RETRY_S = 0.5
 """The wait after a pass that failed (the database unreachable)."""
+CLAIMS_LOGGED = 4096
+"""Rows a runner remembers having claimed, so that it logs a row's first claim only."""
 OUTAGE_GRACE_S = 5.0
 """A runner claims nothing until this long after this process last met a database outage (its
 own passes, the database's probe, or an upload refused for it): the
@@ -144,6 +147,9 @@ class BackgroundRunner:
             on_end=self._on_end,
         )
         self._held: set[int] = set()  # rows leased here whose task is not over yet
+        self._claimed_before: OrderedDict[int, None] = OrderedDict()
+        """Rows claimed here lately (``CLAIMS_LOGGED``): a long auction, claimed again at each
+        of its steps, is logged at its first claim only."""
         self._deaths: dict[int, int] = {}  # resumable rows whose task died, times in a row
         self._unended: set[str] = set()  # owners whose sessions this role may not end (logged)
         self._over: set[int] = set()  # tasks over, leases to release
@@ -281,7 +287,18 @@ class BackgroundRunner:
         with self._lock:
             self._held.update(claimed)
         for row_id in claimed:
-            log.info("%s %d claimed by %s", self.kind.name, row_id, self.owner)
+            again = row_id in self._claimed_before
+            self._claimed_before[row_id] = None
+            self._claimed_before.move_to_end(row_id)
+            if len(self._claimed_before) > CLAIMS_LOGGED:
+                self._claimed_before.popitem(last=False)
+            log.log(
+                logging.DEBUG if again else logging.INFO,
+                "%s %d claimed by %s",
+                self.kind.name,
+                row_id,
+                self.owner,
+            )
         return claimed, due_in
 
     def _end_stale_sessions(self, session: Session, now: datetime, skipped: set[int]) -> None:

@@ -259,15 +259,17 @@ class BackgroundRunner:
     def _claim(self, limit: int) -> tuple[list[int], float | None]:
         """The rows claimed now, and while workers stay free, the seconds until the next
         unleased row falls due (None: none is waiting for a time, or no worker is free).
-        Nothing is claimed within ``OUTAGE_GRACE_S`` of an outage."""
-        grace_s = OUTAGE_GRACE_S - self._database.since_outage_s()
-        if grace_s > 0:
-            return [], grace_s
+        Nothing is claimed within ``OUTAGE_GRACE_S`` of an outage; meanwhile the read is
+        made every ``RETRY_S``, so that an outage still going on is met (and the grace counts
+        from its end, not from the last time it was noticed)."""
         with self._database.session(write=False) as session:  # most passes find nothing
             now = database_now(session)
             found = self._claimable(session, now, limit, lock=False)
             if not found:
                 return [], self._due_in(session, now)
+        grace_s = OUTAGE_GRACE_S - self._database.since_outage_s()
+        if grace_s > 0:
+            return [], min(grace_s, RETRY_S)
         with self._database.session(write=True) as session:
             now = database_now(session)
             claimed = self._claimable(session, now, limit, lock=True)

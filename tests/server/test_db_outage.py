@@ -16,6 +16,7 @@ import subprocess
 import tempfile
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -198,6 +199,22 @@ def test_writes_resume_after_a_postgres_outage(cluster: Cluster, tmp_path: Path)
     assert len(stored) >= 7
 
 
+@contextmanager
+def serving(
+    cluster: Cluster, tmp_path: Path, *, timeout_s: float
+) -> Iterator[tuple[ServerProcess, httpx.Client]]:
+    """``srd serve`` on the cluster's database (leases of 3 s, quotas off), and a client."""
+    url = f"postgresql+psycopg://postgres@127.0.0.1:{cluster.port}/{DB_NAME}"
+    env = settings_environment({**QUOTAS_OFF, "lease_s": 3.0})
+    with (
+        ServerProcess(
+            database_url=url, data_dir=tmp_path / "data", admin_token=ADMIN_TOKEN, extra_env=env
+        ) as server,
+        httpx.Client(base_url=server.url, timeout=timeout_s) as client,
+    ):
+        yield server, client
+
+
 def cluster_pids(cluster: Cluster) -> list[int]:
     """The postmaster and every process it runs."""
     postmaster = int((cluster.data / "postmaster.pid").read_text().split()[0])
@@ -227,14 +244,7 @@ def test_a_hung_or_stopped_postgres_holds_no_request_and_serves_no_stale_round(
     /healthz says not ready, and nothing a round socket or a long poll holds in memory is served
     as current. Then a clean stop: the round a socket watches is 503 for anyone else too.
     First, brief hangs right after reads: the server answers through each."""
-    url = f"postgresql+psycopg://postgres@127.0.0.1:{cluster.port}/{DB_NAME}"
-    env = settings_environment({**QUOTAS_OFF, "lease_s": 3.0})
-    with (
-        ServerProcess(
-            database_url=url, data_dir=tmp_path / "data", admin_token=ADMIN_TOKEN, extra_env=env
-        ) as server,
-        httpx.Client(base_url=server.url, timeout=60) as client,
-    ):
+    with serving(cluster, tmp_path, timeout_s=60) as (server, client):
         # The database hangs right after it answered a read, while the server may still have
         # to end that read's transaction (its rollback goes out after the response): the
         # server goes on answering. It had closed the session on its event loop, so a hang in
@@ -316,6 +326,7 @@ RETRY_AFTER_S = 2.0
 then a step would have closed the round, but for the grace after an outage."""
 
 
+@pytest.mark.slow  # a round waited out around an outage (20 s): make test-all
 def test_an_upload_an_outage_refused_before_the_deadline_counts_on_its_retry(
     cluster: Cluster, tmp_path: Path
 ) -> None:
@@ -323,14 +334,7 @@ def test_an_upload_an_outage_refused_before_the_deadline_counts_on_its_retry(
     that first arrival when the agent sends the same bytes again once the database is back,
     after the deadline: in time, and the round waits for it. An upload first sent after the
     deadline is late as ever."""
-    url = f"postgresql+psycopg://postgres@127.0.0.1:{cluster.port}/{DB_NAME}"
-    env = settings_environment({**QUOTAS_OFF, "lease_s": 3.0})
-    with (
-        ServerProcess(
-            database_url=url, data_dir=tmp_path / "data", admin_token=ADMIN_TOKEN, extra_env=env
-        ) as server,
-        httpx.Client(base_url=server.url, timeout=30) as client,
-    ):
+    with serving(cluster, tmp_path, timeout_s=30) as (_, client):
         auction_id, manifests, patrons = start_remote(
             client, "outage-round", 720, 4, round_deadline_s=ROUND_S, seed=4
         )

@@ -50,6 +50,7 @@ def _played(client: httpx.Client, model_ids: list[int]) -> dict[str, Any]:
     )
 
 
+@pytest.mark.slow  # a thousand submissions (15 s): make test-all
 def test_an_auction_that_makes_the_worker_forget_still_has_its_patrons(
     server: ServerProcess,
 ) -> None:

@@ -65,12 +65,20 @@ def make_data_dir(path: Path) -> str | None:
 
 def disk_problem(path: Path, min_free_mb: int, what: str) -> str | None:
     """Why the disk holding ``path`` (``what``: how to name it) is too full, or None."""
+    found = disk_problem_kind(path, min_free_mb, what)
+    return None if found is None else found[1]
+
+
+def disk_problem_kind(path: Path, min_free_mb: int, what: str) -> tuple[str, str] | None:
+    """``disk_problem`` with its kind: ``disk_full``, or ``disk_unreadable`` when the free
+    space cannot be read (the folder gone, say)."""
     try:
         free_mb = shutil.disk_usage(path).free // MB
     except OSError as exc:
-        return f"the free space of {what} {path} cannot be read: {exc.strerror or exc}"
+        why = f"the free space of {what} {path} cannot be read: {exc.strerror or exc}"
+        return "disk_unreadable", why
     if free_mb < min_free_mb:
-        return (
+        return "disk_full", (
             f"{free_mb} MB free on the disk of {what} {path}, less than "
             f"SRD_MIN_FREE_DISK_MB={min_free_mb}"
         )

@@ -11,7 +11,7 @@ from typing import Any
 from sqlalchemy.orm import Session
 
 from server.api.errors import RequestError, api_error, error_item, validation_error
-from server.api.readiness import disk_problem
+from server.api.readiness import disk_problem_kind
 from server.jobs.worker import job_dir
 from server.store import crud
 from server.store.tables import Job
@@ -61,13 +61,14 @@ def create_job(
             for err in exc.errors
         ) from exc
     if min_free_disk_mb > 0:  # its artifacts would fill what is left
-        full = disk_problem(data_dir, min_free_disk_mb, "the data folder")
-        if full is not None:
+        found = disk_problem_kind(data_dir, min_free_disk_mb, "the data folder")
+        if found is not None:
+            kind_of_problem, full = found
             raise api_error(
                 503,
                 f"{full}: no job is queued until there is room for its artifacts",
                 loc=("server",),
-                kind="disk_full",
+                kind=kind_of_problem,
                 headers={"Retry-After": str(JOB_QUEUE_RETRY_AFTER_S)},
             )
     crud.lock_subject(session, "queued-jobs")  # concurrent creations count one another

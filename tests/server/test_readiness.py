@@ -38,6 +38,14 @@ def test_ready_then_data_folder_replaced_by_a_file(
         assert health.json()["status"] == "ok" and health.json()["problems"] == []
         moved = settings.data_dir.with_name("moved")
         settings.data_dir.rename(moved)
+        # Gone: its disk's free space cannot be read, and a job is refused saying so (not as
+        # a full disk), nothing stored.
+        job = {"kind": "fish", "params": {"steps": 10}}
+        refused = client.post("/jobs", json=job, headers=ADMIN)
+        assert refused.status_code == 503 and refused.headers["retry-after"], refused.text
+        [item] = refused.json()["detail"]
+        assert item["type"] == "disk_unreadable" and "cannot be read" in item["msg"], item
+        assert client.get("/jobs").json()["items"] == []
         settings.data_dir.write_text("not a folder")  # root ignores mode bits: this it cannot
         health = client.get("/healthz")
         assert health.status_code == 503 and health.headers["retry-after"]

@@ -33,7 +33,6 @@ from typing import Any, TypeVar
 
 from sqlalchemy import Connection
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, ManifestError, parse_manifest, parse_manifest_json
@@ -408,8 +407,7 @@ async def upload(
     except Exception as exc:
         if is_database_outage(exc):  # its retry is judged by this arrival
             arrivals.remember(key, request.arrived)
-            if not isinstance(exc, PoolTimeoutError):  # a busy pool is no outage
-                database.note_outage()  # no step closes its round before the retry can come
+            database.note_outage(exc)  # no step closes its round before the retry can come
         raise
     arrivals.forget(key)
     if stored.refusal is not None:

@@ -412,9 +412,11 @@ class Database:
                 return False
             time.sleep(OUTAGE_POLL_S)
 
-    def note_outage(self) -> None:
-        """Record that an operation met an outage just now (``since_outage_s``)."""
-        self._outage_at = time.monotonic()
+    def note_outage(self, exc: BaseException | None = None) -> None:
+        """Record that an operation met an outage just now (``since_outage_s``): ``exc``, if
+        given, is what it met (a busy connection pool is no outage, and is not recorded)."""
+        if not isinstance(exc, PoolTimeoutError):
+            self._outage_at = time.monotonic()
 
     def since_outage_s(self) -> float:
         """Seconds since an operation of this process last met an outage (inf: never)."""

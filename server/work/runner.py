@@ -45,7 +45,6 @@ from datetime import datetime, timedelta
 from typing import Any
 
 from sqlalchemy.exc import DBAPIError
-from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from sqlalchemy.orm import Session
 
 from server.store import crud
@@ -221,8 +220,7 @@ class BackgroundRunner:
                 if not is_database_outage(exc):
                     log.exception("%s leases: a pass failed", self.kind.name)
                 else:
-                    if not isinstance(exc, PoolTimeoutError):  # a busy pool is no outage
-                        self._database.note_outage()
+                    self._database.note_outage(exc)
                     if not failing:
                         log.warning(
                             "%s leases: %s; retrying", self.kind.name, unavailable_message(exc)

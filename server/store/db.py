@@ -109,6 +109,33 @@ def is_database_outage(exc: BaseException) -> bool:
     return exc.connection_invalidated or getattr(exc.orig, "sqlstate", None) in OUTAGE_STATES
 
 
+def is_connection_lost(exc: BaseException) -> bool:
+    """Whether ``exc`` says the database could not be reached or dropped the connection (a
+    stopped or restarting server, a network cut), as opposed to a database that answered but
+    was busy: a full connection pool, a lock held too long (SQLite's ``database is locked``), a
+    deadlock or a cancelled statement (PostgreSQL's SQLSTATE class 40 and 57014, SQLite's
+    interrupt)."""
+    if isinstance(exc, DatabaseUnavailableError):
+        return True
+    if not isinstance(exc, DBAPIError):  # a full pool included
+        return False
+    if exc.connection_invalidated:
+        return True
+    state = getattr(exc.orig, "sqlstate", None)
+    if state is not None:
+        return state.startswith("08") or state in LOST_STATES or state in OUTAGE_STATES
+    if getattr(exc.orig, "sqlite_errorname", "") in SQLITE_BUSY_ERRORS:
+        return False
+    return isinstance(exc, OperationalError | InterfaceError)  # no state: a failed connect
+
+
+SQLITE_BUSY_ERRORS = {"SQLITE_BUSY", "SQLITE_LOCKED", "SQLITE_INTERRUPT"}
+"""SQLite's errors of a database that answered: a lock held too long, a statement stopped."""
+
+LOST_STATES = {"57P01", "57P02", "57P03"}
+"""PostgreSQL's SQLSTATEs of a server shutting down or starting (``admin_shutdown``,
+``crash_shutdown``, ``cannot_connect_now``); class 08 is the connection's own failures."""
+
 OUTAGE_STATES = {"25006"}
 """PostgreSQL's SQLSTATEs that say the database cannot take writes now, whatever the
 statement: ``read_only_sql_transaction`` (a standby, or ``default_transaction_read_only`` set
@@ -414,8 +441,10 @@ class Database:
 
     def note_outage(self, exc: BaseException | None = None) -> None:
         """Record that an operation met an outage just now (``since_outage_s``): ``exc``, if
-        given, is what it met (a busy connection pool is no outage, and is not recorded)."""
-        if not isinstance(exc, PoolTimeoutError):
+        given, is what it met, recorded only if it says the database itself was out of reach
+        (``is_connection_lost``), not busy (a full pool, a lock, a deadlock, a cancelled
+        statement)."""
+        if exc is None or is_connection_lost(exc):
             self._outage_at = time.monotonic()
 
     def since_outage_s(self) -> float:

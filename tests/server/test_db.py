@@ -4,6 +4,7 @@ mode with foreign keys, the admin token is generated once into a 0600 file."""
 from __future__ import annotations
 
 import logging
+import math
 import sqlite3
 import stat
 import threading
@@ -17,7 +18,7 @@ from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
-from sqlalchemy import insert, text
+from sqlalchemy import create_engine, insert, text
 from sqlalchemy.exc import IntegrityError, OperationalError
 
 from server.app import create_app
@@ -410,12 +411,55 @@ def test_a_sqlite_writer_gives_up_after_the_busy_timeout(
     other = sqlite3.connect(tmp_path / "srd.db", isolation_level=None)
     other.execute("BEGIN IMMEDIATE")
     try:
-        with pytest.raises(OperationalError, match="locked"), database.session(write=True) as s:
+        busy = pytest.raises(OperationalError, match="locked")
+        with busy as raised, database.session(write=True) as s:
             s.execute(text("PRAGMA user_version = 8"))
+        # a busy database is no outage: the runners' grace after an outage does not start
+        database.note_outage(raised.value)
+        assert database.since_outage_s() == math.inf
     finally:
         other.execute("ROLLBACK")
         other.close()
         database.close()
+
+
+def test_only_a_database_out_of_reach_starts_the_grace_of_an_outage(
+    fresh_database_url: str,
+) -> None:
+    """A statement the database cancelled (PostgreSQL's statement timeout; SQLite's interrupt)
+    says the database answered: it is not recorded as an outage. A server that cannot be
+    reached is."""
+    upgrade_schema(fresh_database_url)
+    database = Database(fresh_database_url)
+    try:
+        with pytest.raises(OperationalError) as raised, database.session(write=False) as s:
+            if fresh_database_url.startswith("postgresql"):
+                s.execute(text("SET LOCAL statement_timeout = 20"))
+                s.execute(text("SELECT pg_sleep(2)"))
+            else:
+                connection = s.connection().connection.driver_connection
+                assert isinstance(connection, sqlite3.Connection)
+                threading.Timer(0.05, connection.interrupt).start()
+                s.execute(text(_SLOW_SQLITE_QUERY))
+        database.note_outage(raised.value)
+        assert database.since_outage_s() == math.inf, raised.value
+        gone = (
+            "postgresql+psycopg://nobody@127.0.0.1:1/none"
+            if "postgresql" in fresh_database_url
+            else "sqlite:////nonexistent-folder/srd.db"
+        )
+        with pytest.raises(OperationalError) as unreachable, create_engine(gone).connect() as c:
+            c.execute(text("SELECT 1"))
+        database.note_outage(unreachable.value)
+        assert database.since_outage_s() < 5
+    finally:
+        database.close()
+
+
+_SLOW_SQLITE_QUERY = (
+    "WITH RECURSIVE n(i) AS (SELECT 1 UNION ALL SELECT i + 1 FROM n WHERE i < 100000000) "
+    "SELECT count(*) FROM n"
+)
 
 
 def test_json_columns_store_pre_encoded_json_as_it_is() -> None:

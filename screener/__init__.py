@@ -27,10 +27,11 @@ alone through a reference auction's rounds (as many as an auction runs), uncheck
 version must pass the rules, probes and noisy scan (``fine-tuning-drift``) and, if it holds, the
 market-impact test; re-screening (``rescreen``) skips this, since every later fine-tuning round
 is re-screened in its turn. Every verdict carries the numbers of the bars the model was held to
-(``Evidence``); ``review`` turns it into accepted, refused or held for a margin in price. Two
-probes hold a model for an inspector instead of refusing it (``verdict.INSPECTED``): a keen
-buyer far above any plausible price, and a bidder that buys only far below the lowest price an
-auction reaches. Every
+(``Evidence``); ``review`` turns it into accepted, refused or held for a margin in price. Three
+bars hold a model for an inspector instead of refusing it (``verdict.INSPECTED``): a keen
+buyer far above any plausible price in ordinary demand, or where most voters bought (clean or
+on its noisy copies), and a bidder that buys only far below the lowest price an auction
+reaches. Every
 threshold is in ``screener.limits`` with its rationale. The judging modules (and torch) are
 imported when a model is first judged: the API process reads ``Verdict`` without them.
 """
@@ -120,7 +121,8 @@ def _scan_evidence(cheap: Cheap, patrons: Sequence[int], test: str) -> list[list
     purchase against the reach allowed there, clean (``sincere-hold``) and as the market sees
     it (``noise-gated-hold``), and the widest band its noise flips from buying to holding
     (``noise-flip``, with the decisions at the base buy fraction with and without noise); and
-    the bars that hold it for an inspector (``probes.Probed.inspected``). ``test`` set: the
+    the bars that hold it for an inspector (``probes.Probed.inspected``,
+    ``noisy.Noisy.inspected``). ``test`` set: the
     priced bars under that name (a fine-tuned version's, only the failed ones; the projection
     is not held for an inspector)."""
     from screener import limits
@@ -181,7 +183,7 @@ def _scan_evidence(cheap: Cheap, patrons: Sequence[int], test: str) -> list[list
             )
         )
         if not test:
-            found += probed.inspected[p]
+            found += probed.inspected[p] + noisy.inspected[p]
         out.append([e for e in found if not (test and e.passed)])
     return out
 

@@ -161,6 +161,15 @@ fine-tuned 4 rounds at falling prices at the most aggressive honest settings: 0.
 200). 2 of the 40 hand-written sincere keen buyers (willingness to pay 5-7, buy bias 1.2-2)
 reach 0.52 and 0.58: the second is held, the first already refused for its fine-tuning
 (``docs/screener.md``)."""
+RUSH_MARGIN = 1.2
+"""A model that buys the base fish at 12.5 with a buy fraction above ½ (where LSR's designed
+rush lifts B) by a margin above this, clean or on its noisy copies, is held for an inspector
+(``rush-far-too-expensive``), not refused. Over the labelled corpus's 1,481 honest and sincere
+models the largest such margin is 1.08 (a hand-written sincere keen buyer; honest models
+fine-tuned while the price falls: 0.76; the paper's randomisation never buys there). A red
+team's rush buyer (B ← LSR 3, LSR's a 3) buys there by 1.45: once the honest patrons quit, f
+among the copies that stay is 1, they buy at any price, and n_fish + 1 of them leave every fish
+unsold (``docs/screener.md``)."""
 FAR_BELOW_FLOOR_FACTOR = 0.8
 """A model whose highest purchase of the base fish on the decisive row in ordinary demand (f ≤
 ½, clean) lies below 0.8× the base price (4.00), 0.8 under the stalemate floor, can never buy
@@ -215,6 +224,13 @@ NOISE_FLIP_BAND = 0.05
 """A model may buy clean and hold on its noisy copies over at most this width of the decisive
 row at one buy fraction (one increment): noise shifts an honest model's boundaries by a cent or
 two (``benchmarks/screener.py``); a wider band is a decision its own noise flips."""
+
+NOISE_SHIFT = 0.2
+"""At 12.5 (far above any plausible price) a model's own noise may raise its buy margin B −
+max(L, Q) on the base fish by at most this much where its noisy copies buy
+(``noise-far-too-expensive``): over the labelled corpus's 1,481 honest and sincere models the
+noise moves that margin by 0.04 at most; a red team's sensor narrower than its own noise (SZ at
+a = 50 read by B ← SZ 9) quits there clean and buys on its copies, by a shift of 1 to 3.4."""
 
 # --- Market impact ------------------------------------------------------------------------------
 IMPACT_HONEST = 32

@@ -21,6 +21,7 @@ which models hold anywhere the auction goes (``holds``): those go on to the mark
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -35,6 +36,7 @@ from screener.findings import ROLE, Array, Checks, Mask, fmt, fmt_price, fmt_sco
 from screener.probes import (
     ACTION_WORDS,
     BUY,
+    BUY_MARGIN,
     DTYPE,
     HOLD,
     QUIT,
@@ -45,6 +47,7 @@ from screener.probes import (
     passes,
     unbacked_holds,
 )
+from screener.verdict import Evidence
 
 MAX_COPIES = 16
 """The manifest's largest D_ic: the normals are drawn for it once."""
@@ -60,17 +63,34 @@ DEMANDS = np.array(
 ROWS64 = SCAN.reshape(len(SCAN_PRICES), len(SCAN_DEMANDS), 8)[PRICES][:, DEMANDS].reshape(-1, 8)
 """The noisy scan's rows, price-major."""
 ROWS = ROWS64.float()
+EXPENSIVE_PRICE = limits.FAR_TOO_EXPENSIVE_FACTOR * limits.BASE_PRICE
+"""12.50: far above any plausible price."""
+EXPENSIVE_DEMANDS = np.array(limits.PROBE_DEMANDS)
+"""Buy fractions of the rows at ``EXPENSIVE_PRICE`` (the probes' grid's)."""
+EXPENSIVE_ROWS = torch.tensor(
+    [[EXPENSIVE_PRICE, *limits.BASE_ROW[1:7], f] for f in EXPENSIVE_DEMANDS], dtype=torch.float32
+)
+"""The base fish at 12.50, at each of ``EXPENSIVE_DEMANDS``: where the keen and rush bars read
+the buy margin, clean and on the model's noisy copies."""
+ORDINARY = EXPENSIVE_DEMANDS <= limits.ORDINARY_DEMAND + 1e-9
 _DRAWN_ROWS = ROWS.repeat(limits.NOISE_DRAWS, 1)
 """``ROWS`` once per noise draw."""
+_DRAWN_EXPENSIVE = EXPENSIVE_ROWS.repeat(limits.NOISE_DRAWS, 1)
 _PRICE_WORDS = [fmt_price(p) for p in SCAN_PRICES[PRICES]]
 
 
 @functools.cache
 def _normals() -> torch.Tensor:
-    """(draws, rows, MAX_COPIES, 8) standard normals, float32 as the market draws them."""
-    generator = torch.Generator().manual_seed(limits.NOISE_SEED)
+    """(draws, rows, MAX_COPIES, 8) standard normals, float32 as the market draws them: for
+    ``ROWS``, then for ``EXPENSIVE_ROWS`` (drawn apart, so the scan's own draws stay those
+    every verdict before them met)."""
     shape = (limits.NOISE_DRAWS, len(ROWS), MAX_COPIES, len(INPUTS))
-    return torch.randn(shape, generator=generator, dtype=torch.float32)
+    seeded = torch.Generator().manual_seed(limits.NOISE_SEED)
+    scan = torch.randn(shape, generator=seeded, dtype=torch.float32)
+    shape = (limits.NOISE_DRAWS, len(EXPENSIVE_ROWS), MAX_COPIES, len(INPUTS))
+    seeded = torch.Generator().manual_seed(limits.NOISE_SEED + 1)
+    dear = torch.randn(shape, generator=seeded, dtype=torch.float32)
+    return torch.cat((scan, dear), dim=1)
 
 
 class Noisy(NamedTuple):
@@ -82,17 +102,42 @@ class Noisy(NamedTuple):
     gap: Array
     bar: Array
     flip: Array
-    """(P,): the widest band where it buys clean and holds noisy (price; ``noise-flip``)."""
+    """(P,): the widest band where it buys clean and holds noisy, or does not buy clean and
+    buys noisy (price; ``noise-flip``)."""
     clean: npt.NDArray[np.int64]
     """(P, prices, demands): the clean decisions on the noisy scan's rows."""
     noisy: npt.NDArray[np.int64]
     """(P, prices, demands): the noisy decisions."""
+    inspected: list[list[Evidence]]
+    """Per model the bars at 12.50 that hold it for an inspector when missed
+    (``keen-far-too-expensive``, ``rush-far-too-expensive``; none for scores that overflow)."""
 
 
 def _decide(scores: Array) -> npt.NDArray[np.int64]:
     """Decisions of scores (..., 3): the argmax, ties to the lowest index."""
     decisions: npt.NDArray[np.int64] = np.argmax(scores, axis=-1)
     return decisions
+
+
+def _expensive_scores(batch: FSNBatch) -> tuple[Array, Array]:
+    """Clean scores (P, rows, 3) and every draw's noisy scores (P, draws, rows, 3) on
+    ``EXPENSIVE_ROWS``, a pass of ``probes.passes`` at a time, each model's exactly as when it
+    is judged alone (its margins are evidence, compared to the last bit)."""
+    P, K, R = batch.n_patrons, limits.NOISE_DRAWS, len(EXPENSIVE_ROWS)
+    clean = np.empty((P, R, 3))
+    noisy = np.empty((P, K, R, 3))
+    normals = _normals()[:, len(ROWS) :].reshape(K * R, MAX_COPIES, len(INPUTS))
+    with torch.no_grad():
+        for index, part in passes(batch):
+            single = part.to(DTYPE)
+            clean[index] = clean_logits(single, EXPENSIVE_ROWS).numpy()
+            # a lone patron is computed twice over: alone, its copies are the innermost axis,
+            # which torch sums in another order than beside other patrons
+            twice = single if len(index) > 1 else single.select([0, 0])
+            noise = normals[:, : twice.max_copies][None] * noise_scale(twice)[:, None]
+            scores = decision_logits(twice, _DRAWN_EXPENSIVE, noise)[: len(index)]
+            noisy[index] = scores.reshape(len(index), K, R, 3).numpy()
+    return clean, noisy
 
 
 def _scores(batch: FSNBatch) -> tuple[Array, Array]:
@@ -102,7 +147,7 @@ def _scores(batch: FSNBatch) -> tuple[Array, Array]:
     clean = np.empty((P, R, 3))
     noisy = np.empty((P, K, R, 3))
     # the draws one after another as rows: one forward pass per pass of patrons
-    normals = _normals().reshape(K * R, MAX_COPIES, len(INPUTS))
+    normals = _normals()[:, :R].reshape(K * R, MAX_COPIES, len(INPUTS))
     with torch.no_grad():
         for index, part in passes(batch):
             # In the market's arithmetic (float64; its noise drawn in float32, as here).
@@ -133,11 +178,25 @@ def _on_scan(decisions: npt.NDArray[np.int64], action: int) -> Mask:
 
 def _widest_flip(
     clean: npt.NDArray[np.int64], noisy: npt.NDArray[np.int64]
+) -> tuple[Array, npt.NDArray[np.intp], npt.NDArray[np.intp], npt.NDArray[np.bool_]]:
+    """Per model the widest run of prices (at one f) where its noise flips its decision, in
+    price (0: none), where it starts (price index into the noisy scan, demand index), and
+    whether that run is one of buying noisy where it does not buy clean (else: buying clean,
+    holding noisy)."""
+    to_hold = _widest_run((clean == BUY) & (noisy == HOLD))
+    to_buy = _widest_run((clean != BUY) & (noisy == BUY))
+    buying = to_buy[0] > to_hold[0]
+    width, start, f = (np.where(buying, b, h) for h, b in zip(to_hold, to_buy, strict=True))
+    return width, start.astype(np.intp), f.astype(np.intp), buying
+
+
+def _widest_run(
+    flipped: npt.NDArray[np.bool_],
 ) -> tuple[Array, npt.NDArray[np.intp], npt.NDArray[np.intp]]:
-    """Per model the widest run of prices (at one f) where it buys clean and holds noisy, in
-    price (0: none), and where it starts (price index into the noisy scan, demand index)."""
-    P = len(clean)
-    flipped = ((clean == BUY) & (noisy == HOLD)).reshape(P, len(PRICES), len(DEMANDS))
+    """Per model the widest run of True over consecutive prices (at one f) of ``flipped`` (P,
+    R) on the noisy scan's rows, in price (0: none), and where it starts."""
+    P = len(flipped)
+    flipped = flipped.reshape(P, len(PRICES), len(DEMANDS))
     # the length of the run of flips ending at each price: flips so far, less those counted
     # before the last price without one
     count = np.cumsum(flipped, axis=1, dtype=np.intp)
@@ -154,18 +213,24 @@ def evaluate(batch: FSNBatch) -> Noisy:
     """The noisy scan's checks over the batch (see the module docstring)."""
     P = batch.n_patrons
     clean_scores, noisy_scores = _scores(batch)
+    dear_clean, dear_noisy = _expensive_scores(batch)
     # scores that overflow get their one reason from the probes (probe-non-finite)
-    finite = np.isfinite(clean_scores).all(axis=(1, 2)) & np.isfinite(noisy_scores).all(
-        axis=(1, 2, 3)
+    finite: Mask = np.asarray(
+        np.isfinite(clean_scores).all(axis=(1, 2))
+        & np.isfinite(noisy_scores).all(axis=(1, 2, 3))
+        & np.isfinite(dear_clean).all(axis=(1, 2))
+        & np.isfinite(dear_noisy).all(axis=(1, 2, 3)),
+        dtype=np.bool_,
     )
     clean_scores[~finite], noisy_scores[~finite] = 0.0, 0.0
+    inspected, firm, firm_message = _inspected(batch, dear_clean, dear_noisy, finite)
     clean = _decide(clean_scores)
     noisy = _modal(_decide(noisy_scores))
     buys, holds = _on_scan(noisy, BUY), _on_scan(noisy, HOLD)
     unbacked_at = unbacked_holds(buys, holds)
     clean_unbacked = unbacked_holds(_on_scan(clean, BUY), _on_scan(clean, HOLD)).any(axis=(1, 2))
     gated = unbacked_at.any(axis=(1, 2)) & ~clean_unbacked
-    width, flip_start, flip_f = _widest_flip(clean, noisy)
+    width, flip_start, flip_f, flip_buys = _widest_flip(clean, noisy)
     flips = width > limits.NOISE_FLIP_BAND + 1e-9
     gated &= finite
     flips &= finite
@@ -208,9 +273,15 @@ def evaluate(batch: FSNBatch) -> Noisy:
     def flip_message(p: int) -> str:
         i, f = int(flip_start[p]), int(flip_f[p])
         end = i + round(width[p] / _market.decrement)
+        shown = ACTION_WORDS[int(clean3[p, i, f])]
+        flipped = (
+            f"it {shown} clean but buys on its noisy copies"
+            if flip_buys[p]
+            else "it buys clean but holds on its noisy copies"
+        )
         return (
             f"{_setting(batch, p)}, on the auction's decisive row (the base fish) with buy "
-            f"fraction {SCAN_DEMANDS[DEMANDS[f]]:g} it buys clean but holds on its noisy copies "
+            f"fraction {SCAN_DEMANDS[DEMANDS[f]]:g} {flipped} "
             f"from {fmt_price(SCAN_PRICES[PRICES[i]])} to {fmt_price(SCAN_PRICES[PRICES[end]])} "
             f"(at {fmt_price(SCAN_PRICES[PRICES[i]])}: {_words(mean_noisy[p, i, f])}), "
             f"{fmt_price(width[p])} wide (allowed {fmt_price(limits.NOISE_FLIP_BAND)}): "
@@ -226,15 +297,105 @@ def evaluate(batch: FSNBatch) -> Noisy:
     cells += [(1, int(p), int(flip_start[p]), int(flip_f[p])) for p in np.flatnonzero(flips)]
     for k, p, i, f in cells:
         failed[p, k, _most_moved(batch, p, i, f)] = True
-    messages = (gated_message, flip_message)
+    messages = (gated_message, flip_message, firm_message)
     checks = Checks(
-        ("noise-gated-hold",) * len(ES_NEURONS) + ("noise-flip",) * len(ES_NEURONS),
-        ES_NEURONS * 2,
-        failed.reshape(P, -1),
+        ("noise-gated-hold",) * len(ES_NEURONS)
+        + ("noise-flip",) * len(ES_NEURONS)
+        + ("noise-far-too-expensive",),
+        (*ES_NEURONS, *ES_NEURONS, "B"),
+        np.concatenate((failed.reshape(P, -1), firm[:, None]), axis=1),
         lambda k, p: messages[k // len(ES_NEURONS)](p),
     )
     holding: Mask = np.any(holds, axis=(1, 2)) & finite
-    return Noisy(checks, holding, gap, bar, width, clean3, noisy3)
+    return Noisy(checks, holding, gap, bar, width, clean3, noisy3, inspected)
+
+
+def _inspected(
+    batch: FSNBatch, clean: Array, noisy: Array, finite: Mask
+) -> tuple[list[list[Evidence]], Mask, Callable[[int], str]]:
+    """Each model's bars at 12.50 that hold it for an inspector when missed, from its scores on
+    ``EXPENSIVE_ROWS``, clean (P, rows, 3) and every draw's noisy (P, draws, rows, 3): its
+    largest buy margin B − max(L, Q) on the base fish there, clean or averaged over its noisy
+    copies (the auction's view), at most ``KEEN_MARGIN`` in ordinary demand (f ≤ ½,
+    ``keen-far-too-expensive``) and at most ``RUSH_MARGIN`` above it
+    (``rush-far-too-expensive``). Also which models buy there on their noisy copies, at some
+    buy fraction, by a margin their own noise raised by more than ``NOISE_SHIFT``
+    (``noise-far-too-expensive``), and why, in words."""
+    clean_lead = clean[..., BUY] - np.maximum(clean[..., HOLD], clean[..., QUIT])  # (P, rows)
+    noisy_lead = (noisy[..., BUY] - np.maximum(noisy[..., HOLD], noisy[..., QUIT])).mean(axis=1)
+    mean_noisy = noisy.mean(axis=1)
+    raised = np.where(noisy_lead > 0, noisy_lead - clean_lead, -np.inf)  # (P, rows)
+    firm: Mask = finite & (raised.max(axis=1) > limits.NOISE_SHIFT)
+
+    def firm_message(p: int) -> str:
+        f = int(np.argmax(raised[p]))
+        return (
+            f"{_setting(batch, p)}, at price {fmt_price(EXPENSIVE_PRICE)} on the base fish "
+            f"with buy fraction {EXPENSIVE_DEMANDS[f]:g} it buys on its noisy copies "
+            f"({_words(mean_noisy[p, f])}) where clean it "
+            f"{ACTION_WORDS[int(np.argmax(clean[p, f]))]} ({fmt_scores(clean[p, f])}): its "
+            f"noise raises its buy margin B − max(L, Q) there from "
+            f"{fmt(clean_lead[p, f], '+.2f')} to {fmt(noisy_lead[p, f], '+.2f')}, by more than "
+            f"{limits.NOISE_SHIFT:g}: it buys far above any plausible price, and the decision "
+            "it shows clean is not the one the auction sees"
+        )
+
+    out: list[list[Evidence]] = []
+    for p in range(batch.n_patrons):
+        if not finite[p]:
+            out.append([])
+            continue
+        found = []
+        for test, demands, most in (
+            ("keen-far-too-expensive", np.flatnonzero(ORDINARY), limits.KEEN_MARGIN),
+            ("rush-far-too-expensive", np.flatnonzero(~ORDINARY), limits.RUSH_MARGIN),
+        ):
+            on_copies = noisy_lead[p, demands].max() > clean_lead[p, demands].max()
+            lead = noisy_lead if on_copies else clean_lead
+            f = int(demands[np.argmax(lead[p, demands])])
+            margin = float(lead[p, f])
+            detail: dict[str, object] = {
+                "neuron": "B",
+                "price": EXPENSIVE_PRICE,
+                "buy_fraction": float(EXPENSIVE_DEMANDS[f]),
+                "clean_margin": float(clean_lead[p, f]),
+                "noisy_margin": float(noisy_lead[p, f]),
+                "firm_margin": limits.FIRM_MARGIN,
+            }
+            if margin > most:
+                detail["finding"] = _keen_finding(
+                    batch, p, test, f, margin, (mean_noisy if on_copies else clean)[p, f], on_copies
+                )
+            found.append(
+                Evidence(test, margin, most, BUY_MARGIN, "at most", margin <= most, detail)
+            )
+        out.append(found)
+    return out, firm, firm_message
+
+
+def _keen_finding(
+    batch: FSNBatch, p: int, test: str, f: int, margin: float, scores: Array, on_copies: bool
+) -> str:
+    """Why a model missed a bar at 12.50, in words."""
+    where = f"{_setting(batch, p)}, " if on_copies else ""
+    scored = _words(scores) if on_copies else fmt_scores(scores)
+    said = (
+        f"{where}at price {fmt_price(EXPENSIVE_PRICE)} on the base fish (l = w = g = 1, "
+        f"sub-type (½, ½, ½)) with buy fraction {EXPENSIVE_DEMANDS[f]:g} it buys ({scored}): "
+        f"it buys far above any plausible price by a buy margin B − max(L, Q) of "
+        f"{fmt(margin, '+.2f')}, above "
+    )
+    if test == "keen-far-too-expensive":
+        return said + (
+            f"{limits.KEEN_MARGIN:g} (honest models buy there by 0.29 at most; above "
+            f"{limits.FIRM_MARGIN:g} it would be refused): copies of a keen buyer outbid one "
+            "another, and enough of them leave every fish unsold"
+        )
+    return said + (
+        f"{limits.RUSH_MARGIN:g} where most voters bought the round before (honest models rush "
+        "there by 1.08 at most): once the other patrons have left, the copies that stay buy at "
+        "any price, outbid one another, and enough of them leave every fish unsold"
+    )
 
 
 def decisions_in_words(decisions: npt.NDArray[np.int64], f: float) -> str:

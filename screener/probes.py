@@ -15,12 +15,11 @@ exactly the scores it would get alone. Checks:
   down);
 * ``buy-falls-with-price``: the buy margin B − max(L, Q), clipped to a firm decision either
   way, never swings from refusing to buying as the price rises on any probed item;
-* ``keen-far-too-expensive`` and ``buys-far-below-floor`` hold a model for an inspector rather
-  than refuse it (``inspected``: bars in ``Evidence`` that ``screener.review`` holds on): the
-  base fish bought at 12.5 in ordinary demand by more than ``KEEN_MARGIN`` (a keen buyer whose
-  copies outbid one another), or bought on the decisive row in ordinary demand only below
-  ``FAR_BELOW_FLOOR_FACTOR`` × the base price, far under the lowest price an auction reaches
-  (a bidder that can never buy there);
+* ``buys-far-below-floor`` holds a model for an inspector rather than refuse it
+  (``inspected``: bars in ``Evidence`` that ``screener.review`` holds on): the base fish bought
+  on the decisive row in ordinary demand only below ``FAR_BELOW_FLOOR_FACTOR`` × the base
+  price, far under the lowest price an auction reaches (a bidder that can never buy there).
+  The bars at 12.5 that hold a keen buyer read its noisy copies too (``screener.noisy``);
 * ``sincere-hold``: on the auction's decisive row (the clean base item (p, 1, 1, 1, ½, ½, ½, f))
   at the prices the auction can reach (from the market's stalemate floor up, ``SCAN``), every
   hold is backed by a lower reachable price at which the model buys the fish, at the same f.
@@ -395,19 +394,12 @@ def _inspected(grid: _OnGrid, scan: Array, finite: Mask) -> list[list[Evidence]]
     overflow), from its grid decisions and its scores ``scan`` (P, scan prices, scan demands,
     3) on the decisive row:
 
-    * ``keen-far-too-expensive``: its largest buy margin on the base fish at 12.5 in ordinary
-      demand (f ≤ ½), at most ``KEEN_MARGIN``;
     * ``buys-far-below-floor``: the highest scan price at which it buys the base fish in
       ordinary demand, at least ``LOWEST_TOP_BUY`` (measured None: it buys at no scanned price);
       ``detail`` gives its largest buy margin over the prices an auction reaches (the floor
       up), with the price, f and scores there.
     """
     P = len(finite)
-    keen = grid.lead[:, :, BASE_QUALITY, PREFERRED][:, FAR_TOO_EXPENSIVE][:, :, ORDINARY]
-    keen_flat = keen.reshape(P, -1)
-    keen_at = np.argmax(keen_flat, axis=1)
-    keen_i, keen_f = np.unravel_index(keen_at, keen.shape[1:])
-    expensive, ordinary = np.flatnonzero(FAR_TOO_EXPENSIVE), np.flatnonzero(ORDINARY)
     lead, buys, _ = _decisions(scan[:, :, ORDINARY_SCAN])
     bought = buys.any(axis=2)  # (P, scan prices)
     top = np.where(bought, np.arange(len(SCAN_PRICES)), -1).max(axis=1)
@@ -421,22 +413,6 @@ def _inspected(grid: _OnGrid, scan: Array, finite: Mask) -> list[list[Evidence]]
         if not finite[p]:
             out.append([])
             continue
-        margin = float(keen_flat[p, keen_at[p]])
-        i, f = int(expensive[keen_i[p]]), int(ordinary[keen_f[p]])
-        keen_detail: dict[str, object] = {
-            "neuron": "B",
-            "price": float(PRICES[i]),
-            "buy_fraction": float(DEMANDS[f]),
-            "firm_margin": limits.FIRM_MARGIN,
-        }
-        if margin > limits.KEEN_MARGIN:
-            keen_detail["finding"] = (
-                f"{grid.at(p, i, BASE_QUALITY, PREFERRED, f)}: it buys far above any plausible "
-                f"price by a buy margin B − max(L, Q) of {fmt(margin, '+.2f')}, above "
-                f"{limits.KEEN_MARGIN:g} (honest models buy there by 0.29 at most; above "
-                f"{limits.FIRM_MARGIN:g} it would be refused): copies of a keen buyer outbid one "
-                "another, and enough of them leave every fish unsold"
-            )
         j, g = int(reach_i[p]), int(reach_f[p])
         highest = float(SCAN_PRICES[top[p]]) if top[p] >= 0 else None
         best = float(reach[p, reach_at[p]])
@@ -467,15 +443,6 @@ def _inspected(grid: _OnGrid, scan: Array, finite: Mask) -> list[list[Evidence]]
             )
         out.append(
             [
-                Evidence(
-                    "keen-far-too-expensive",
-                    margin,
-                    limits.KEEN_MARGIN,
-                    BUY_MARGIN,
-                    "at most",
-                    margin <= limits.KEEN_MARGIN,
-                    keen_detail,
-                ),
                 Evidence(
                     "buys-far-below-floor",
                     highest,

@@ -14,7 +14,7 @@ margin is in these units)."""
 
 Review = Literal["accepted", "refused", "held"]
 
-INSPECTED = ("keen-far-too-expensive", "buys-far-below-floor")
+INSPECTED = ("keen-far-too-expensive", "rush-far-too-expensive", "buys-far-below-floor")
 """Bars that hold a model for an inspector when missed, whatever the margin (above 0), instead
 of refusing it: the screener accepts the model, a server holds it. Their ``detail`` names the
 neuron (``neuron``) and, when missed, says what the model does in words (``finding``)."""

@@ -6,6 +6,7 @@ names the bar in words. The red team's manifests are in ``inspection/``."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from screener import Evidence, Verdict, impact, limits, review, screen, with_hol
 from screener.verdict import INSPECTED
 from server.cli.screen import command as srd_screen
 from server.config import Settings
+from sim.market import MarketBatch
 from tests.support.corpus import RED_TEAM, edit
 
 MARGIN = Settings.model_fields["review_margin"].default
@@ -143,3 +145,58 @@ def test_in_the_test_auctions_the_never_buyer_is_a_sincere_quitter_and_keen_copi
     )
     assert never.prices == quitter.prices and never.sold > 0
     assert keen.sold == 0 and sincere.sold == 0
+
+
+def test_a_rush_buyer_is_held_and_its_few_copies_stall_a_market():
+    # B ← LSR 3, LSR's a 3: in ordinary demand a sincere bidder, but where most voters bought the
+    # round before it buys at any price. Once the honest patrons quit, f among its copies is 1.
+    rush = load(HERE / "rush-buyer.json")
+    verdict = screen(rush)
+    assert verdict.accepted and bar(verdict, "keen-far-too-expensive").passed
+    found = bar(verdict, "rush-far-too-expensive")
+    assert not found.passed and found.measured > limits.RUSH_MARGIN  # type: ignore[operator]
+    assert found.detail["buy_fraction"] > limits.ORDINARY_DEMAND
+    assert review(verdict, MARGIN) == "held"
+    (reason,) = with_hold_reasons(verdict, MARGIN).reasons
+    assert (reason.rule, reason.neuron) == ("rush-far-too-expensive", "B")
+    assert "with buy fraction 1 it buys" in reason.message
+    # the red team's auction: 24 honest patrons of the paper's randomisation, 6 fish, and 7
+    # copies of the rush buyer (one more than the fish) sell nothing until the iteration limit;
+    # with 7 more honest patrons instead, fish are sold and the auction ends sooner
+    for seed in (1, 2):
+        rng = np.random.default_rng(seed)
+        honest = [honest_manifest(rng, f"h{i}") for i in range(31)]
+        outcome = {}
+        for name, patrons in (("rush", [*honest[:24], *[rush] * 7]), ("honest", honest)):
+            config = dataclasses.replace(limits.MARKET, n_fish=6, seed=seed)
+            market, sold = MarketBatch([(patrons, config)]), 0
+            while not market.finished.all():
+                sold += len(market.step_sales()[0])
+            outcome[name] = (sold, int(market.iteration[0]))
+        assert outcome["rush"] == (0, limits.MARKET.max_iterations), outcome
+        assert outcome["honest"][0] > 0 and outcome["honest"][1] < 10, outcome
+
+
+@pytest.mark.parametrize(
+    ("name", "rules"),
+    [
+        ("noise-keen-quitter", {"noise-flip", "noise-far-too-expensive"}),
+        ("noise-keen-bidder", {"noise-far-too-expensive"}),
+    ],
+)
+def test_a_keen_buyer_only_on_its_noisy_copies_is_refused(name, rules):
+    # SZ sharper than its own noise and B ← SZ 9: clean a sincere bidder (it quits at 12.50 by
+    # a margin near -1.4); as the auction evaluates it, on its 16 jittered copies, it buys there
+    verdict = screen(load(RED_TEAM / f"{name}.json"))
+    assert not verdict.accepted
+    assert {r.rule for r in verdict.reasons} == rules
+    keen = bar(verdict, "keen-far-too-expensive")
+    assert keen.detail["clean_margin"] < -1 < 0.4 < keen.detail["noisy_margin"]
+    noisy = next(r for r in verdict.reasons if r.rule == "noise-far-too-expensive")
+    assert (
+        "it buys on its noisy copies" in noisy.message and "where clean it quits" in noisy.message
+    )
+    if "noise-flip" in rules:
+        (flip,) = [r for r in verdict.reasons if r.rule == "noise-flip"]
+        assert flip.neuron == "SZ" and "it quits clean but buys on its noisy copies" in flip.message
+    assert review(verdict, MARGIN) == "refused"

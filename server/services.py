@@ -179,6 +179,8 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         context,
         nice=settings.worker_nice,
         memory_mb=settings.job_memory_mb,
+        job_disk_mb=settings.job_disk_mb,
+        min_free_disk_mb=settings.min_free_disk_mb,
         job_backend=settings.job_backend,
         ray_address=settings.ray_address,
         ray_join_timeout_s=settings.ray_join_timeout_s,

@@ -14,6 +14,7 @@ import math
 import re
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +53,39 @@ def list_artifacts(out_dir: Path) -> list[str]:
     return sorted(p.relative_to(out_dir).as_posix() for p in out_dir.rglob("*") if p.is_file())
 
 
+MB = 1 << 20
+
+
+class JobDiskError(RuntimeError):
+    """A job's files took more disk than ``SRD_JOB_DISK_MB``, or its disk was full when it was
+    to start."""
+
+
+def check_disk(out_dir: Path, context: WorkerContext) -> None:
+    """Raise ``JobDiskError`` when the job's folder takes more than its ``job_disk_mb``."""
+    if context.job_disk_mb is None or not out_dir.is_dir():
+        return
+    used = sum(p.stat().st_size for p in out_dir.rglob("*") if p.is_file())
+    if used > context.job_disk_mb * MB:
+        raise JobDiskError(
+            f"its files take {used / MB:.0f} MB, more than the {context.job_disk_mb} MB a job "
+            "may write (SRD_JOB_DISK_MB)"
+        )
+
+
+def check_free_disk(data_dir: Path, context: WorkerContext) -> None:
+    """Raise ``JobDiskError`` when the data folder's disk has less than ``min_free_disk_mb``
+    free: a job queued while there was room does not start on a full disk."""
+    if context.min_free_disk_mb <= 0:
+        return
+    free = shutil.disk_usage(data_dir).free // MB
+    if free < context.min_free_disk_mb:
+        raise JobDiskError(
+            f"the disk of the data folder has {free} MB free, less than "
+            f"SRD_MIN_FREE_DISK_MB={context.min_free_disk_mb}: not started"
+        )
+
+
 def _phase(message: str) -> str:
     """A progress message with its numbers blanked: ``step 102/3600`` and ``step 3600/3600``
     are one phase, ``drawing the figures`` another."""
@@ -67,7 +101,15 @@ class _Progress:
     artifacts, the figures, the GIF after the steps) and the last (fraction 1). A phase that
     reports nothing for seconds then shows its own message, not the last step written."""
 
-    def __init__(self, database: Database, job_id: int, attempt: int, interval_s: float) -> None:
+    def __init__(
+        self,
+        database: Database,
+        job_id: int,
+        attempt: int,
+        interval_s: float,
+        check: Callable[[], None] = lambda: None,
+    ) -> None:
+        self._check = check
         self._database = database
         self._job_id = job_id
         self._attempt = attempt
@@ -83,6 +125,7 @@ class _Progress:
         if now - self._last < self._interval_s and fraction < 1 and self._phase == phase:
             return
         self._last = now
+        self._check()  # raises to stop the run (its files past their bound)
         try:
             _update_owned(
                 self._database,
@@ -172,38 +215,41 @@ def run_job(context: WorkerContext, job_id: int) -> None:
         try:
             shutil.rmtree(out_dir, ignore_errors=True)  # leftovers of an interrupted attempt
             out_dir.mkdir(parents=True)
-            progress = _Progress(database, job_id, attempt, context.progress_interval_s)
+            check_free_disk(out_dir, context)
+            progress = _Progress(
+                database,
+                job_id,
+                attempt,
+                context.progress_interval_s,
+                lambda: check_disk(out_dir, context),
+            )
             config = build_config(kind, params)
             runner = unit_runner(context, kind, config)
             result = json_safe(
                 run_kind(kind, config, out_dir=out_dir, progress=progress, runner=runner)
             )
             write_json(out_dir / "result.json", result)
+            check_disk(out_dir, context)
             outcome: dict[str, Any] = {
                 "status": JobStatus.SUCCEEDED,
                 "progress": 1.0,
                 "result": result,
                 "message": "done",
+                "artifacts": list_artifacts(out_dir),
             }
         except crud.SupersededError:
             return
         except Exception as exc:
-            outcome = {
+            outcome = {  # its files are removed once it ended (``discard_unsuccessful``)
                 "status": JobStatus.FAILED,
                 "error": error_summary(exc),
                 "message": failure_message(exc, context),
+                "artifacts": [],
             }
             log.warning("job %d (%s) failed: %s", job_id, kind, outcome["error"])
         else:
             log.info("job %d (%s) succeeded", job_id, kind)
-        _record_outcome(
-            database,
-            job_id,
-            attempt,
-            artifacts=list_artifacts(out_dir),
-            finished_at=utcnow(),
-            **outcome,
-        )
+        _record_outcome(database, job_id, attempt, finished_at=utcnow(), **outcome)
     except crud.SupersededError:
         return
     finally:

@@ -269,3 +269,23 @@ def test_a_design_stage_refuses_the_grid_axes_it_does_not_take(client) -> None:
         assert item["loc"] == ["body", "params", field]
         assert f"does not take {field}" in item["msg"]
     assert client.get("/jobs").json()["items"] == []
+
+
+def test_a_job_whose_files_grow_past_their_bound_is_failed_and_its_files_removed(
+    tmp_path,
+) -> None:
+    """SRD_JOB_DISK_MB: a fish job's energy.csv (about 15 bytes a step) passes 1 MB; the job
+    fails saying why, lists no artifacts, and its folder goes. A small job still succeeds."""
+    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
+    settings = settings.model_copy(update={"job_disk_mb": 1, "job_workers": 1})
+    with TestClient(create_app(settings)) as client:
+        job = run_to_end(client, {"kind": "fish", "params": {"steps": 90_000, "srd": False}})
+        assert job["status"] == "failed", job
+        assert "SRD_JOB_DISK_MB" in job["message"] and "more than the 1 MB" in job["message"]
+        assert job["artifacts"] == []
+        folder = settings.data_dir / "jobs" / str(job["id"])
+        wait_for(lambda: {"kept": folder.exists()}, lambda s: not s["kept"], 15)
+        assert client.get(f"/jobs/{job['id']}/artifacts/energy.csv").status_code == 404
+        small = run_to_end(client, {"kind": "fish", "params": {"steps": 10}})
+        assert small["status"] == "succeeded", small["error"]
+        assert "energy.csv" in small["artifacts"]

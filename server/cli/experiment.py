@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -214,14 +215,21 @@ def execute(
         if json_output:
             json_failure(f"--out: {problem}", [{"option": "--out", "message": problem}])
         raise SystemExit(INVALID)
+    before = set(out_dir.iterdir())
     try:
         result = _run(kind, runner, config, out_dir, stderr)
-    except BaseException:  # failed or interrupted: a folder this run made and left empty goes
-        if created:
-            with contextlib.suppress(OSError):
-                out_dir.rmdir()  # only if empty
-        raise
-    write_json(out_dir / "result.json", result)
+        write_json(out_dir / "result.json", result)
+    except BaseException as exc:  # failed or interrupted: what this run wrote goes
+        _remove_written(out_dir, before, created)
+        if not isinstance(exc, OSError):
+            raise
+        # the disk full, a folder made read-only meanwhile: the machine's, said in one line
+        where = f" ({exc.filename})" if exc.filename else ""
+        problem = f"cannot write the run's files{where}: {exc.strerror or exc}"
+        stderr.print(f"[red]error:[/red] {escape(problem)}", highlight=False)
+        if json_output:
+            json_failure(problem)
+        raise SystemExit(1) from exc
     if json_output:
         shown = json_safe({**result, "out_dir": str(out_dir)})
         sys.stdout.write(json.dumps(shown, allow_nan=False) + "\n")
@@ -229,6 +237,20 @@ def execute(
         width = None if sys.stdout.isatty() else 160  # logs and pipes get whole tables
         print_summary(kind, result, out_dir, Console(highlight=False, width=width))
     return result
+
+
+def _remove_written(out_dir: Path, before: set[Path], created: bool) -> None:
+    """Remove what a failed or interrupted run wrote: the folder it made, or what it added to
+    a folder that was there (no half-written file stays)."""
+    if created:
+        shutil.rmtree(out_dir, ignore_errors=True)
+        return
+    with contextlib.suppress(OSError):
+        for path in set(out_dir.iterdir()) - before:
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                path.unlink(missing_ok=True)
 
 
 def _run(

@@ -81,6 +81,22 @@ def test_a_list_option_given_again_adds_its_values(tmp_path) -> None:
     assert [row["rarity"] for row in json.loads(result.stdout)["rows"]] == [0.25, 0.5, 0.75]
 
 
+def test_a_run_that_cannot_write_says_so_in_one_line_and_leaves_none_of_its_files(
+    tmp_path,
+) -> None:
+    """An --out folder that was there, with a folder where the figure should go: the run fails
+    writing it, exit 1, one line (no traceback), and the energy.csv it wrote before is gone; what
+    was there stays."""
+    out = tmp_path / "fish"
+    (out / "fish.png").mkdir(parents=True)
+    done = invoke("fish", "--steps", "120", "--json", "--out", str(out))
+    assert done.returncode == 1, done.stderr
+    error = f"cannot write the run's files ({out / 'fish.png'}): Is a directory"
+    assert json.loads(done.stdout) == {"error": error}
+    assert done.stderr.strip() == f"error: {error}"
+    assert [p.name for p in out.iterdir()] == ["fish.png"] and (out / "fish.png").is_dir()
+
+
 def test_human_output_is_a_short_summary_on_stdout(tmp_path) -> None:
     out = tmp_path / "study"
     args = ["auction-study", "--rarities", "0.25,0.75", "--trials", "1", "--patrons", "8"]

@@ -89,12 +89,29 @@ EndFn = Callable[[int, bool], None]
 
 
 def error_summary(exc: BaseException) -> str:
-    """The exception line plus the innermost frames, short enough for a status field."""
-    frames = traceback.format_tb(exc.__traceback__)[-4:]
+    """The exception line plus the innermost frames, short enough for a status field. A frame
+    names its file relative to the project or to ``site-packages`` (the field is public: it
+    does not say where the server is installed)."""
+    frames = traceback.extract_tb(exc.__traceback__)[-4:]
+    for frame in frames:
+        frame.filename = _shown_path(frame.filename)
     text = "".join(traceback.format_exception_only(type(exc), exc)).strip()
     if frames:
-        text += "\nTraceback (innermost last):\n" + "".join(frames).rstrip()
+        shown = traceback.StackSummary.from_list(frames).format()
+        text += "\nTraceback (innermost last):\n" + "".join(shown).rstrip()
     return text[-ERROR_LIMIT:]
+
+
+_PROJECT = Path(__file__).resolve().parents[2]
+
+
+def _shown_path(filename: str) -> str:
+    """``filename`` relative to the project, or from ``site-packages/`` on, or its name."""
+    path = Path(filename)
+    if path.is_relative_to(_PROJECT):
+        return path.relative_to(_PROJECT).as_posix()
+    _, found, rest = filename.rpartition("/site-packages/")
+    return found.strip("/") + "/" + rest if found else path.name
 
 
 PRELOAD = (

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
 
+import server
 from server.app import create_app
 from sim.experiment import config_fields
 from studies.registry import KINDS
@@ -71,6 +73,10 @@ def test_a_real_failure_is_stored_with_its_cause(limited) -> None:
     assert job["status"] == "failed"
     assert job["message"].startswith(("failed: FileExistsError", "failed: NotADirectoryError"))
     assert "Traceback" in job["error"] and str(jobs) in job["error"]
+    # its frames name the project's files, not where the server is installed (the field is
+    # public)
+    assert 'File "server/jobs/worker.py"' in job["error"]
+    assert str(Path(server.__file__).resolve().parents[1]) not in job["error"]
 
 
 @pytest.mark.parametrize(

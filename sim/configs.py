@@ -98,6 +98,21 @@ class LavalandConfig:
         seconds = RUN_COST_S + self.repeats * (evaluation + training)
         return Cost(seconds, "repeats" if self.repeats > 1 else option)
 
+    def problems(self, given: frozenset[str] = frozenset()) -> list[dict[str, str]]:
+        """Training's options ``given`` (named by the user) with no training
+        (``train_maps`` 0)."""
+        if self.train_maps > 0:
+            return []
+        return [
+            {
+                "field": name,
+                "message": "with train-maps 0 nothing is trained: it does not take "
+                + name.replace("_", "-"),
+            }
+            for name in ("lr", "loss_guard", "srd_step")
+            if name in given
+        ]
+
 
 # --- half-cheetah ----------------------------------------------------------------------------
 
@@ -216,11 +231,13 @@ class CheetahConfig:
         option = "trials" if many or self.steps is None else "steps"
         return Cost(seconds + cells * PLOT_CELL_COST_S, option)
 
-    def problems(self) -> list[dict[str, str]]:
+    def problems(self, given: frozenset[str] = frozenset()) -> list[dict[str, str]]:
         """A grid of more than ``MAX_CELLS`` cells, whatever its trials (its figures alone
-        would take minutes and gigabytes), or of more than ``MAX_RUNS`` trials; a grid axis
-        given with a design stage that does not take it (the stages run their own conditions;
-        only stage 4 takes ``backswing``)."""
+        would take minutes and gigabytes), or of more than ``MAX_RUNS`` trials; an option
+        ``given`` (named by the user, whatever its value) that the run does not take: a grid
+        axis with a design stage that does not take it (the stages run their own conditions;
+        only stage 4 takes ``backswing``), ``trials`` with ``nominal``, ``lr`` with SRD off,
+        ``video`` with a design stage."""
         if self.stage is not None:
             ignored = ("inhibitor", "srd", "lr") if self.stage == 4 else GRID_AXES
             found = [
@@ -230,8 +247,16 @@ class CheetahConfig:
                     f"take {name}" + (" (stage 4 does)" if name == "backswing" else ""),
                 }
                 for name in (*ignored, *STAGE_ONLY_OF_GRID)
-                if getattr(self, name) != getattr(CheetahConfig, name)
+                if name in given
             ]
+            if "video" in given:
+                found.append(
+                    {
+                        "field": "video",
+                        "message": f"design stage {self.stage} draws its own figures: it does not "
+                        "take video",
+                    }
+                )
             least = STAGE2_SWING_FROM + STAGE2_WINDOW
             if self.stage == 2 and self.steps is not None and self.steps < least:
                 found.append(
@@ -244,7 +269,7 @@ class CheetahConfig:
                 )
             return found
         found = []
-        if self.nominal and self.trials != CheetahConfig.trials:
+        if self.nominal and "trials" in given:
             found.append(
                 {
                     "field": "trials",
@@ -252,7 +277,7 @@ class CheetahConfig:
                     "take trials",
                 }
             )
-        if self.srd == "off" and self.lr != CheetahConfig.lr:
+        if self.srd == "off" and "lr" in given:
             found.append(
                 {"field": "lr", "message": "with srd off nothing is trained: it does not take lr"}
             )

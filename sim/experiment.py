@@ -365,7 +365,7 @@ def _non_finite(value: Any, path: tuple[str | int, ...]) -> list[tuple[str | int
     return []
 
 
-def parse_config(cls: type[C], params: Any) -> C:
+def parse_config(cls: type[C], params: Any, given: frozenset[str] | None = None) -> C:
     """Build the config dataclass ``cls`` from JSON-like ``params``, strictly.
 
     Keys may use dashes or underscores (``train-maps`` or ``train_maps``), and a flag its
@@ -375,7 +375,9 @@ def parse_config(cls: type[C], params: Any) -> C:
     comma-separated string as on the command line (``"0.1,0.5"``, its items read as JSON
     numbers where numbers are due) or a single value; one with more values than its bound is
     refused on their count alone, before any is read. Every problem is reported with the field
-    it concerns.
+    it concerns. Options the config's ``problems`` reads as given (options that change nothing
+    in this run are refused when given): ``given``, default every key of ``params``; a config
+    stored whole (every field) is read back with ``given`` empty.
     """
     if not isinstance(params, dict):
         raise ConfigError([{"field": "params", "message": "must be a JSON object"}])
@@ -415,7 +417,8 @@ def parse_config(cls: type[C], params: Any) -> C:
             ]
         ) from exc
     problems = getattr(config, "problems", None)  # what no single option's type can say
-    if problems is not None and (found := problems()):
+    named = frozenset(clean) if given is None else given
+    if problems is not None and (found := problems(named)):
         raise ConfigError(found)
     return config
 

@@ -75,12 +75,32 @@ class AuctionOptions:
     """Fine-tuning leaves every patron's judge (PFC) as built: its ``pfc.trainable`` is false
     (the reference trains it with the rest, which made the figures)."""
 
-    def problems(self) -> list[dict[str, str]]:
-        """Options that contradict each other (each named). A supply that puts no fish on sale
-        (int(rarity × patrons) = 0, as 0.1 of fewer than 10 patrons) is not one: its auctions
-        run as the reference runs them (they stop at once, sold out) and its row says
-        ``n_fish`` 0, ``purchase_rate`` and ``mean_price`` null."""
+    def problems(self, given: frozenset[str] = frozenset()) -> list[dict[str, str]]:
+        """Options that contradict each other (each named), and options ``given`` (named by
+        the user) that change nothing: fine-tuning's own with no fine-tuning, no fine-tuning
+        rounds with fine-tuning on. A supply that puts no fish on sale (int(rarity × patrons)
+        = 0, as 0.1 of fewer than 10 patrons) is not one: its auctions run as the reference
+        runs them (they stop at once, sold out) and its row says ``n_fish`` 0,
+        ``purchase_rate`` and ``mean_price`` null."""
         problems = []
+        tunes = self.fine_tune or bool(getattr(self, "grid", False))  # the grid runs both
+        for name in ("fine_tune_rounds", "freeze_pfc"):
+            if name in given and not tunes:
+                problems.append(
+                    {
+                        "field": name,
+                        "message": "without fine-tune nothing is fine-tuned: it does not take "
+                        + name.replace("_", "-"),
+                    }
+                )
+        if tunes and self.fine_tune_rounds == 0:
+            problems.append(
+                {
+                    "field": "fine_tune_rounds",
+                    "message": "0 rounds fine-tune nothing: give at least 1, or leave "
+                    "fine-tune off",
+                }
+            )
         if self.min_buy_price > self.base_price:
             problems.append(
                 {
@@ -134,6 +154,20 @@ class StudyConfig(AuctionOptions):
     patrons after each round (refused versions are reverted)."""
     grid: bool = False
     """Run the paper's whole grid: fine-tune off/on × saboteurs 0 and (--saboteurs or 0.5)."""
+
+    def problems(self, given: frozenset[str] = frozenset()) -> list[dict[str, str]]:
+        """``AuctionOptions.problems``, and a grid given 0 saboteurs (its compromised half
+        would be its honest half)."""
+        found = super().problems(given)
+        if self.grid and "saboteurs" in given and self.saboteurs == 0:
+            found.append(
+                {
+                    "field": "saboteurs",
+                    "message": "the grid compares no saboteurs with this share of them: give a "
+                    f"share above 0 (without it, {GRID_SABOTEURS:g})",
+                }
+            )
+        return found
 
     def cost(self) -> Cost:
         """Estimated compute: every (setting, supply, trial) auction."""

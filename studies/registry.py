@@ -176,9 +176,12 @@ KINDS: dict[str, ExperimentKind] = {
 }
 
 
-def build_config(kind: str, params: dict[str, Any]) -> Any:
-    """Validate job ``params`` for ``kind`` into its config dataclass (raises ConfigError)."""
-    return parse_config(KINDS[kind].config_class(), params)
+def build_config(kind: str, params: dict[str, Any], *, stored: bool = False) -> Any:
+    """Validate job ``params`` for ``kind`` into its config dataclass (raises ConfigError);
+    ``stored``: a job's whole config, as it was stored once its params passed (every field is
+    in it, none was given by the user: ``parse_config``'s ``given``)."""
+    given = frozenset() if stored else None
+    return parse_config(KINDS[kind].config_class(), params, given)
 
 
 def run_kind(
@@ -199,7 +202,7 @@ def run_kind(
 def compute_unit(kind: str, params: dict[str, Any], unit: dict[str, Any]) -> Payload:
     """One unit of a ``kind`` experiment from JSON alone (the config's params and the unit's
     ``as_json``): what a cluster task runs. Returns the unit's plain payload."""
-    config = build_config(kind, params)
+    config = build_config(kind, params, stored=True)
     decomposition = KINDS[kind].decomposition()
     payload: Payload = plain(decomposition.compute(config, Unit.from_json(unit), no_progress))
     return payload

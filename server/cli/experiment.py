@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import click
+from click.core import ParameterSource
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -127,7 +128,14 @@ def experiment_command(kind: ExperimentKind) -> click.Command:
     ]
 
     def callback(out: Path | None, json_output: bool, **values: Any) -> None:
-        options = {name: value for name, value in values.items() if value is not None}
+        # only what the command line gave: an option given is checked against the others
+        # (``--nominal --trials 7`` is refused though 7 is the default)
+        source = click.get_current_context().get_parameter_source
+        options = {
+            name: value
+            for name, value in values.items()
+            if value is not None and source(name) is not ParameterSource.DEFAULT
+        }
         execute(kind, options, out=out, json_output=json_output)
 
     return click.Command(

@@ -223,7 +223,7 @@ def run_job(context: WorkerContext, job_id: int) -> None:
                 context.progress_interval_s,
                 lambda: check_disk(out_dir, context),
             )
-            config = build_config(kind, params)
+            config = build_config(kind, params, stored=True)
             runner = unit_runner(context, kind, config)
             result = json_safe(
                 run_kind(kind, config, out_dir=out_dir, progress=progress, runner=runner)

@@ -424,6 +424,10 @@ def test_a_sweep_too_short_to_measure_still_draws_its_figure(tmp_path):
         ({"srd": "off", "lr": "0.001,0.01"}, "lr", "nothing is trained"),
         ({"stage": 2, "trials": 5}, "trials", "design stage 2 runs its own conditions"),
         ({"stage": 1, "nominal": True}, "nominal", "design stage 1 runs its own conditions"),
+        # given, whatever its value: the default's value too (7 trials, both SRD variants)
+        ({"nominal": True, "trials": 7}, "trials", "one noise-free trial per condition"),
+        ({"stage": 1, "srd": "both"}, "srd", "design stage 1 runs its own conditions"),
+        ({"stage": 0, "video": False}, "video", "design stage 0 draws its own figures"),
         # stage 2 averages its neurons over 50 steps before and after the swing at step 250:
         # none before it had printed NaN (not JSON) on the command line and null in a job's
         ({"stage": 2, "steps": 299}, "steps", "from step 250 and averages 50 steps after"),

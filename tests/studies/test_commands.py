@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 
 from server.cli import cli
-from sim.experiment import ConfigError
+from sim.experiment import ConfigError, config_dict
 from studies.registry import build_config
 
 SMALL = ["--rarities", "0.25,0.75", "--trials", "1", "--patrons", "8"]
@@ -79,7 +79,7 @@ def test_the_reference_market_options_reach_every_auction(tmp_path) -> None:
     --decrement: a market at twice the prices sells at twice the prices."""
     prices = {}
     dear = ["--base-price", "10", "--min-buy-price", "9.6", "--threshold-sell-price", "9.6"]
-    dear += ["--increment", "0.1", "--decrement", "0.02", "--freeze-pfc"]
+    dear += ["--increment", "0.1", "--decrement", "0.02"]
     for name, extra in {"default": [], "dear": dear}.items():
         out = tmp_path / name
         args = ["auction-study", *SMALL, *extra, "--json", "--out", str(out)]
@@ -87,7 +87,7 @@ def test_the_reference_market_options_reach_every_auction(tmp_path) -> None:
         assert result.exit_code == 0, result.output
         prices[name] = [row["mean_price"] for row in json.loads(result.stdout)["rows"]]
         config = json.loads((out / "summary.json").read_text())["config"]
-    assert config["base_price"] == 10 and config["decrement"] == 0.02 and config["freeze_pfc"]
+    assert config["base_price"] == 10 and config["decrement"] == 0.02
     assert all(4.8 <= p <= 5.5 for p in prices["default"]), prices
     assert all(9.6 <= p <= 11 for p in prices["dear"]), prices
 
@@ -122,3 +122,50 @@ def test_a_supply_with_no_fish_on_sale_runs_as_the_reference_runs_it(tmp_path) -
     assert empty["purchase_rate"] is None and empty["mean_price"] is None
     assert all(row["n_fish"] > 0 and row["purchase_rate"] is not None for row in rows[1:])
     assert build_config("comparison", {"rarities": [1e-300], "patrons": 8}).rarities == (1e-300,)
+
+
+@pytest.mark.parametrize(
+    ("kind", "params", "field", "words"),
+    [
+        ("auction-study", {"grid": True, "saboteurs": 0}, "saboteurs", "give a share above 0"),
+        ("auction-study", {"freeze_pfc": True}, "freeze_pfc", "without fine-tune nothing"),
+        ("comparison", {"fine_tune_rounds": 9}, "fine_tune_rounds", "without fine-tune nothing"),
+        (
+            "auction-study",
+            {"fine_tune": True, "fine_tune_rounds": 0},
+            "fine_tune_rounds",
+            "0 rounds",
+        ),
+        ("lavaland", {"train_maps": 0, "lr": 0.5}, "lr", "with train-maps 0 nothing is trained"),
+    ],
+)
+def test_an_option_that_would_change_nothing_is_refused_when_given(kind, params, field, words):
+    # given, not echoed as if it had mattered (a job's params are stored whole, every field
+    # with its value, and read back without this check)
+    with pytest.raises(ConfigError) as refused:
+        build_config(kind, params)
+    (error,) = refused.value.errors
+    assert error["field"] == field and words in error["message"]
+    # the same run without it, stored whole as a job stores it, reads back as that run
+    config = build_config(kind, {k: v for k, v in params.items() if k != field})
+    assert build_config(kind, config_dict(config), stored=True) == config
+
+
+def test_a_stored_job_config_names_every_field_and_reads_back_unchecked() -> None:
+    # a default study stored whole holds fine_tune_rounds and freeze_pfc without fine-tuning:
+    # as given they would be refused; a job's worker reads them back as stored
+    config = build_config("auction-study", {})
+    with pytest.raises(ConfigError) as refused:
+        build_config("auction-study", config_dict(config))
+    assert {e["field"] for e in refused.value.errors} == {"fine_tune_rounds", "freeze_pfc"}
+    assert build_config("auction-study", config_dict(config), stored=True) == config
+
+
+def test_the_command_line_names_only_the_options_it_was_given(tmp_path) -> None:
+    # the default's own value, typed: refused as given; left out: the same run, accepted
+    typed = CliRunner().invoke(cli, ["cheetah", "--nominal", "--trials", "7", "--json"])
+    assert typed.exit_code == 2 and "--trials" in json.loads(typed.stdout)["error"]
+    args = ["auction-study", *SMALL, "--grid", "--json", "--out", str(tmp_path / "grid")]
+    result = CliRunner().invoke(cli, args)
+    assert result.exit_code == 0, result.output
+    assert {row["saboteurs"] for row in json.loads(result.stdout)["rows"]} == {0.0, 0.5}

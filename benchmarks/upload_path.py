@@ -48,7 +48,8 @@ import capacity
 from agents.manifest import Manifest
 from screener import Verdict
 from server.api.errors import RequestError
-from server.auctions.uploads import OutageArrivals, UploadRequest, upload
+from server.auctions.arrivals import Arrivals
+from server.auctions.uploads import UploadRequest, upload
 from server.cli.launch import ServerProcess, settings_environment
 from server.store.db import Database
 
@@ -162,7 +163,7 @@ async def _upload_all(
     """(uploads answered, CPU s of the upload path: the sweeps and the busy thread's own CPU
     left out)."""
     screening: Any = Accepting()
-    arrivals = OutageArrivals()
+    arrivals = Arrivals()
     answered = 0
     swept = 0.0
     start, spun_before = time.process_time(), spun[0]

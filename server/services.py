@@ -22,10 +22,10 @@ from sqlalchemy.engine import make_url
 
 from server.api.readiness import Readiness
 from server.api.security import load_admin_token_hash
+from server.auctions.arrivals import Arrivals
 from server.auctions.patrons import PatronCheck
 from server.auctions.sockets import RoundSockets
 from server.auctions.steps import AUCTION_WORK
-from server.auctions.uploads import OutageArrivals
 from server.config import Settings
 from server.jobs.backend import JobCompute, job_compute
 from server.jobs.service import ENDED_JOBS_BYTES, EndedJobs
@@ -64,8 +64,9 @@ class Services:
     """The round sockets (``WS /auctions/{id}/rounds/socket``), pushed by ``rounds``."""
     patrons: PatronCheck
     """Whose round requests are a patron's (their share of sockets and long polls)."""
-    arrivals: OutageArrivals
-    """When the uploads a database outage refused first arrived (their retries' arrival)."""
+    arrivals: Arrivals
+    """When the round uploads without an answer first arrived (their retries' arrival): in
+    memory, and journaled in ``<data_dir>/arrivals/`` for a restart after ``kill -9``."""
     auctions: BackgroundRunner
     jobs: BackgroundRunner
     compute: JobCompute
@@ -92,6 +93,7 @@ class Services:
             ("the screening process", self.screening.shutdown),
             ("the job backend", self.compute.close),
             ("the database", self.database.close),
+            ("the arrivals journal", self.arrivals.close),
         ]
         if self.sqlite_lock is not None:
             parts.append(("the SQLite lock", self.sqlite_lock.release))
@@ -214,6 +216,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         )
 
     screening = ScreeningService()
+    arrivals = Arrivals(settings.data_dir / "arrivals")
     services = Services(
         settings=settings,
         database=database,
@@ -223,7 +226,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         rounds=watcher,
         sockets=RoundSockets(watcher),
         patrons=PatronCheck(database),
-        arrivals=OutageArrivals(),
+        arrivals=arrivals,
         auctions=runner(
             AUCTION_WORK,
             context,
@@ -243,6 +246,14 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         ended_jobs=EndedJobs(ENDED_JOBS_BYTES),
     )
     services.screening.start()
+    if arrivals.unanswered_at_start:  # killed with uploads read but not stored: their
+        # retries come before any step closes their round
+        log.warning(
+            "%d round uploads arrived before the last stop without an answer: their retries "
+            "are judged by that arrival; no auction step for a few seconds",
+            arrivals.unanswered_at_start,
+        )
+        database.note_outage()
     services.auctions.start()
     services.jobs.start()
     shown = make_url(settings.database_url).render_as_string(hide_password=True)

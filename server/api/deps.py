@@ -26,9 +26,9 @@ from starlette.requests import HTTPConnection
 from server.api.errors import RequestError, api_error, cut
 from server.api.readiness import Readiness
 from server.api.security import token_matches
+from server.auctions.arrivals import Arrivals
 from server.auctions.patrons import PatronCheck
 from server.auctions.sockets import RoundSockets
-from server.auctions.uploads import OutageArrivals
 from server.config import Settings
 from server.jobs.backend import JobCompute
 from server.jobs.service import EndedJobs
@@ -80,7 +80,7 @@ async def _patrons(services: ServicesDep) -> PatronCheck:
     return services.patrons
 
 
-async def _arrivals(services: ServicesDep) -> OutageArrivals:
+async def _arrivals(services: ServicesDep) -> Arrivals:
     return services.arrivals
 
 
@@ -116,7 +116,7 @@ SubmissionsDep = Annotated[SubmissionWriter, Depends(_submissions)]
 RoundsDep = Annotated[RoundWatcher, Depends(_rounds)]
 RoundSocketsDep = Annotated[RoundSockets, Depends(_round_sockets)]
 PatronsDep = Annotated[PatronCheck, Depends(_patrons)]
-ArrivalsDep = Annotated[OutageArrivals, Depends(_arrivals)]
+ArrivalsDep = Annotated[Arrivals, Depends(_arrivals)]
 AuctionRunnerDep = Annotated[BackgroundRunner, Depends(_auctions)]
 JobRunnerDep = Annotated[BackgroundRunner, Depends(_jobs)]
 ComputeDep = Annotated[JobCompute, Depends(_compute)]

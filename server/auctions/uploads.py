@@ -25,7 +25,6 @@ import dataclasses
 import functools
 import hashlib
 import json
-from collections import OrderedDict
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from datetime import datetime
@@ -39,6 +38,7 @@ from agents.manifest import Manifest, ManifestError, parse_manifest, parse_manif
 from screener import Verdict
 from server.api.errors import api_error, error_item, validation_error
 from server.api.security import require_participant
+from server.auctions.arrivals import Arrivals
 from server.auctions.service import not_found
 from server.live.rounds import RoundWatcher, TooManyWaitersError
 from server.screening.pool import ScreenerUnavailableError, ScreeningService
@@ -60,11 +60,6 @@ JUDGED_RECHECK_S = 2.0
 AT_ONCE_TRIES = 8
 """An upload's write on SQLite tries the write lock at once up to this many times, each time
 after the thread of this process that held it let go, before it waits for it in a thread."""
-REMEMBERED_ARRIVALS = 10_000
-"""Arrivals of uploads a database outage refused that an API process remembers (the oldest
-forgotten first: about 4.4 MB)."""
-REMEMBERED_S = 600.0
-"""How long such an arrival is remembered."""
 
 
 async def current_round(
@@ -282,41 +277,6 @@ class UploadRequest:
     arrived: datetime
 
 
-class OutageArrivals:
-    """When the uploads a database outage refused (503) first arrived, per API process: a retry
-    of the same bytes, by the same token, for the same patron and round, is judged by that
-    first arrival, so an outage over a round's deadline does not make it late (the runner
-    claims no step for ``OUTAGE_GRACE_S`` after the outage, so the retry comes before the step
-    that closes the round). Nothing here is trusted beyond its own bytes: a retry passes every
-    check as any upload does."""
-
-    def __init__(self, most: int = REMEMBERED_ARRIVALS, keep_s: float = REMEMBERED_S) -> None:
-        self._most = most
-        self._keep_s = keep_s
-        self._arrived: OrderedDict[tuple[int, int, int, str], datetime] = OrderedDict()
-
-    @staticmethod
-    def key(request: UploadRequest, digest: str) -> tuple[int, int, int, str]:
-        token = hashlib.sha256(request.token.encode()).hexdigest()
-        return request.auction_id, request.round_number, request.model_id, token + digest
-
-    def first(self, key: tuple[int, int, int, str], arrived: datetime) -> datetime:
-        """The arrival to judge an upload by: its first, if an outage refused it before."""
-        first = self._arrived.get(key)
-        if first is None or (arrived - first).total_seconds() > self._keep_s:
-            return arrived
-        return min(first, arrived)
-
-    def remember(self, key: tuple[int, int, int, str], arrived: datetime) -> None:
-        if key not in self._arrived:
-            self._arrived[key] = arrived
-            while len(self._arrived) > self._most:
-                self._arrived.popitem(last=False)
-
-    def forget(self, key: tuple[int, int, int, str]) -> None:
-        self._arrived.pop(key, None)
-
-
 def _arrive(
     connection: Connection,
     *,
@@ -384,18 +344,22 @@ async def upload(
     request: UploadRequest,
     *,
     margin: float,
-    arrivals: OutageArrivals,
+    arrivals: Arrivals,
 ) -> bytes:
     """Check an upload (see the module docstring), store it, re-screen it and record its
     verdict; the answer's JSON. Wrong round → 409 naming the current one; closed, or past the
     deadline at its arrival → 410 (recorded as late): ``request.arrived``, or the first arrival
-    of the same bytes that a database outage refused (``arrivals``). ``wake(auction_id)`` is
-    told when the auction's next step became due."""
+    of the same bytes that had no answer (a database outage refused it, or the server was
+    killed before it was stored: ``arrivals``, which journals each arrival before the store).
+    ``wake(auction_id)`` is told when the auction's next step became due."""
     manifest = _manifest(request.body)
     data = manifest.model_dump(mode="json")
     digest = hashlib.sha256(request.body).hexdigest()
-    key = arrivals.key(request, digest)
+    key = arrivals.key(
+        request.auction_id, request.round_number, request.model_id, request.token, digest
+    )
     request = dataclasses.replace(request, arrived=arrivals.first(key, request.arrived))
+    arrivals.arrived(key, request.arrived)
     arrive = functools.partial(
         _arrive, manifest=manifest, data=data, request=request, digest=digest
     )
@@ -408,8 +372,10 @@ async def upload(
         if is_database_outage(exc):  # its retry is judged by this arrival
             arrivals.remember(key, request.arrived)
             database.note_outage(exc)  # no step closes its round before the retry can come
+        else:  # a refusal (wrong token, patron or round; malformed): its answer
+            arrivals.answered(key)
         raise
-    arrivals.forget(key)
+    arrivals.answered(key)
     if stored.refusal is not None:
         status, message, kind = stored.refusal
         raise api_error(status, message, loc=("path", "round"), kind=kind)

@@ -1,23 +1,32 @@
 """A remote upload's deadline is judged when its last byte reached the server, not when the API
 gets round to its route: an upload pipelined behind a long poll (HTTP/1.1 answers a
 connection's requests in order, so its route runs only once the poll has answered, after the
-deadline) still counts as in time, and one sent after the deadline is still late."""
+deadline) still counts as in time, and one sent after the deadline is still late; an upload
+read before a ``kill -9`` but not stored counts as in time on its retry after the restart."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import shutil
 import socket
+import sqlite3
+import threading
 import time
 from collections.abc import Iterator
 from datetime import datetime
+from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
 
-from server.cli.launch import ServerProcess
+from agents.manifest import parse_manifest
+from agents.remote.fine_tuners import RoundInfo, faithful_fine_tune
+from server.cli.launch import ServerProcess, settings_environment
+from tests.server.test_remote_protocol import open_round, put, start_remote
 from tests.support.remote import honest_remote_auction, next_round
-from tests.support.server import module_server
+from tests.support.server import ADMIN_TOKEN, QUOTAS_OFF, module_server
 
 POLL_S = 0.4
 """How long the long poll ahead of the upload holds the connection."""
@@ -92,3 +101,71 @@ def test_an_upload_in_by_the_deadline_counts_though_its_route_runs_after_it(
     auction = httpx.get(f"{server.url}/auctions/{auction_id}", timeout=30).json()
     outcomes = {a["model_id"]: a["outcome"] for a in auction["fine_tuning"][0]["answers"]}
     assert outcomes[early] in ("accepted", "refused", "held") and outcomes[late] == "late"
+
+
+KILL_ROUND_S = 12.0
+"""The round's deadline in the kill test: the upload hangs on the write lock, the server is
+killed, the deadline passes while it is down."""
+
+
+@pytest.mark.parametrize(
+    "journal", [True, pytest.param(False, marks=pytest.mark.slow)], ids=["journal", "control"]
+)
+def test_an_upload_read_before_a_kill_9_counts_on_its_retry_after_the_deadline(
+    tmp_path: Path, journal: bool
+) -> None:
+    """An upload's body was read and checked, but another process held SQLite's write lock, so
+    it was not stored when the server was killed (-9). The server restarts after the round's
+    deadline; the agent's retry of the same bytes is judged by the first arrival: accepted, and
+    the round waits for it. With the journal removed before the restart (the control) the
+    retry is late."""
+    url = f"sqlite:///{tmp_path / 'srd.db'}"
+    lives = [
+        ServerProcess(
+            database_url=url,
+            data_dir=tmp_path / "data",
+            admin_token=ADMIN_TOKEN,
+            extra_env=settings_environment(QUOTAS_OFF),
+            log_path=tmp_path / f"serve-{n}.log",
+        )
+        for n in range(2)
+    ]
+    lives[0].start()
+    with httpx.Client(base_url=lives[0].url, timeout=60) as client:
+        auction_id, manifests, patrons = start_remote(
+            client, "kill-arrival", 740, 3, round_deadline_s=KILL_ROUND_S, seed=5
+        )
+        state = open_round(client, auction_id)
+    assert state["status"] == "open" and state["round"] == 1, state
+    position = next(i for i, (m, _) in enumerate(patrons) if m in state["asked"])
+    model_id, token = patrons[position]
+    info = RoundInfo.from_state(state, position)
+    body = faithful_fine_tune(parse_manifest(manifests[position]), info).model_dump_json()
+    deadline = time.monotonic() + state["seconds_left"]
+    url_of_upload = f"{lives[0].url}/auctions/{auction_id}/rounds/1/models/{model_id}"
+    headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json"}
+
+    def send() -> None:
+        with contextlib.suppress(httpx.HTTPError):  # the server is killed under it
+            httpx.put(url_of_upload, content=body, headers=headers, timeout=60)
+
+    holder = sqlite3.connect(tmp_path / "srd.db", isolation_level=None, check_same_thread=False)
+    holder.execute("BEGIN IMMEDIATE")  # as another writer would: the upload waits for it
+    try:
+        threading.Thread(target=send, daemon=True).start()
+        time.sleep(1.0)  # read, checked, journaled; waiting on the lock
+        assert time.monotonic() < deadline - 3, "the upload came too late to test"
+        lives[0].kill()
+    finally:
+        holder.execute("ROLLBACK")
+        holder.close()
+    if not journal:
+        shutil.rmtree(tmp_path / "data" / "arrivals")
+    time.sleep(max(0.0, deadline + 1.0 - time.monotonic()))  # down past the deadline
+    with lives[1], httpx.Client(base_url=lives[1].url, timeout=60) as client:
+        retry = put(client, auction_id, 1, model_id, body.encode(), token)
+        if journal:
+            assert retry.status_code == 200, retry.text
+            assert retry.json()["outcome"] == "accepted", retry.text
+        else:
+            assert retry.status_code == 410, retry.text

@@ -223,6 +223,7 @@ def evaluate(batch: FSNBatch) -> Noisy:
         dtype=np.bool_,
     )
     clean_scores[~finite], noisy_scores[~finite] = 0.0, 0.0
+    dear_clean[~finite], dear_noisy[~finite] = 0.0, 0.0
     inspected, firm, firm_message = _inspected(batch, dear_clean, dear_noisy, finite)
     clean = _decide(clean_scores)
     noisy = _modal(_decide(noisy_scores))

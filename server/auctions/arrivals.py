@@ -59,8 +59,12 @@ class Arrivals:
         self.unanswered_at_start = 0
         """How many journaled arrivals had no answer when this process started."""
         if folder is not None:
-            folder.mkdir(parents=True, exist_ok=True)
-            self.unanswered_at_start = self._load(folder)
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                self.unanswered_at_start = self._load(folder)
+            except OSError as exc:  # a read-only data folder: the server serves on, and says it
+                log.warning("no arrivals journal in %s: %s", folder, exc)
+                self._folder = None
 
     @staticmethod
     def key(auction_id: int, round_number: int, model_id: int, token: str, digest: str) -> Key:

@@ -13,6 +13,7 @@ result plus ``out_dir``. Progress goes to stderr, as a bar on a terminal.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import shutil
 import sys
@@ -229,7 +230,7 @@ def execute(
         write_json(out_dir / "result.json", result)
     except BaseException as exc:  # failed or interrupted: what this run wrote goes
         _remove_written(out_dir, before, created)
-        if not isinstance(exc, OSError):
+        if not isinstance(exc, OSError) or exc.errno not in WRITE_ERRORS:
             raise
         # the disk full, a folder made read-only meanwhile: the machine's, said in one line
         where = f" ({exc.filename})" if exc.filename else ""
@@ -245,6 +246,22 @@ def execute(
         width = None if sys.stdout.isatty() else 160  # logs and pipes get whole tables
         print_summary(kind, result, out_dir, Console(highlight=False, width=width))
     return result
+
+
+WRITE_ERRORS = {
+    errno.ENOSPC,
+    errno.EDQUOT,
+    errno.EFBIG,
+    errno.EROFS,
+    errno.EACCES,
+    errno.EPERM,
+    errno.EIO,
+    errno.EISDIR,
+    errno.ENOTDIR,
+    errno.EEXIST,
+}
+"""The errors of a file that cannot be written (the disk full, read-only, in the way): said in
+one line; any other error keeps its traceback."""
 
 
 def _remove_written(out_dir: Path, before: set[Path], created: bool) -> None:

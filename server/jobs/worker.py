@@ -20,6 +20,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
+from server.api.readiness import disk_problem_kind
 from server.store import crud
 from server.store.db import (
     OUTAGE_RETRIES,
@@ -78,12 +79,9 @@ def check_free_disk(data_dir: Path, context: WorkerContext) -> None:
     free: a job queued while there was room does not start on a full disk."""
     if context.min_free_disk_mb <= 0:
         return
-    free = shutil.disk_usage(data_dir).free // MB
-    if free < context.min_free_disk_mb:
-        raise JobDiskError(
-            f"the disk of the data folder has {free} MB free, less than "
-            f"SRD_MIN_FREE_DISK_MB={context.min_free_disk_mb}: not started"
-        )
+    found = disk_problem_kind(data_dir, context.min_free_disk_mb, "the data folder")
+    if found is not None:
+        raise JobDiskError(f"{found[1]}: not started")
 
 
 def _phase(message: str) -> str:

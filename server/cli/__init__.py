@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import gc
 import importlib
+import os
 import signal
 import sys
 from collections.abc import Iterator, Sequence
@@ -182,7 +183,14 @@ cli = _Commands(name="srd", help=HELP, no_args_is_help=True)
 
 
 def main() -> None:
-    """Console-script entry point."""
+    """Console-script entry point. With standard output closed (``>&-``) a ``--json`` run is
+    refused before it starts (exit 2: its one object would have nowhere to go); any other
+    command runs with its printed output discarded, its exit code telling the result."""
+    if sys.stdout is None:
+        if "--json" in sys.argv[1:]:
+            click.echo("error: --json: standard output is closed; nothing was run", err=True)
+            raise SystemExit(2)
+        sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (for the process's life)
     if sys.argv[1:2] != ["serve"]:  # which stops gracefully on SIGTERM, as uvicorn does
         signal.signal(signal.SIGTERM, _on_terminate)
     cli()

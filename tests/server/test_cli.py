@@ -4,6 +4,7 @@ human and JSON output, option errors."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -95,6 +96,30 @@ def test_a_run_that_cannot_write_says_so_in_one_line_and_leaves_none_of_its_file
     assert json.loads(done.stdout) == {"error": error}
     assert done.stderr.strip() == f"error: {error}"
     assert [p.name for p in out.iterdir()] == ["fish.png"] and (out / "fish.png").is_dir()
+
+
+def test_a_closed_stdout_refuses_json_before_the_run_and_discards_a_summary(tmp_path) -> None:
+    """`>&-`: a --json run has nowhere to print its object, so nothing runs (exit 2, one line);
+    without --json the run writes its files and exits 0, its printed summary discarded."""
+
+    def closed(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [*SRD, *args],
+            stdout=None,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=300,
+            pass_fds=(),
+            preexec_fn=lambda: os.close(1),
+        )
+
+    refused = closed("fish", "--steps", "120", "--json", "--out", str(tmp_path / "a"))
+    assert refused.returncode == 2
+    assert refused.stderr.strip() == "error: --json: standard output is closed; nothing was run"
+    assert not (tmp_path / "a").exists()
+    done = closed("fish", "--steps", "120", "--out", str(tmp_path / "b"))
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr and (tmp_path / "b" / "result.json").is_file()
 
 
 def test_human_output_is_a_short_summary_on_stdout(tmp_path) -> None:

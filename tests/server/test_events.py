@@ -210,6 +210,13 @@ def test_remote_fine_tuning_rounds_appear_between_the_iterations(
     assert ids.index("1") == ids.index("0.2") + 1
     resumed = follow(client, path, **{"Last-Event-ID": "0.1"})
     assert [e.get("id") for e in resumed][:2] == ["0.2", "1"]
+    last = len(auction["history"]) - 1  # an ended auction opens no round after its last
+    for never_sent in (f"{last}.1", f"{last}.2"):
+        ahead = client.get(path, headers={"Last-Event-ID": never_sent})
+        assert ahead.status_code == 422, ahead.text
+        [item] = ahead.json()["detail"]
+        assert item["type"] == "ahead" and item["loc"] == ["header", "Last-Event-ID"]
+        assert f"its iteration {last} has no fine-tuning round after it" in item["msg"]
     # Not asked for, the stream is the contract's: one event per iteration, id = iteration.
     plain = follow(client, f"/auctions/{auction_id}/events")
     assert [e["event"] for e in plain] == ["iteration"] * len(auction["history"]) + ["end"]

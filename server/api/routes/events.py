@@ -288,12 +288,31 @@ async def _existing_auction(
     """The auction's id, once it is known to exist and to have sent the event the client says
     it has (an id ahead of its stream would wait for events that never come, or skip some)."""
 
-    def read() -> crud.AuctionState:
-        with database.session(write=False) as session:
-            return auctions.require_auction(session, auction_id)
+    position = None if resume is None else _position(resume.event_id)
 
-    state = await read_in_thread(read)
-    if resume is not None and _position(resume.event_id)[0] >= state.iteration:
+    def read() -> tuple[crud.AuctionState, str | None]:
+        """The auction, and why a round's id after its last iteration was never sent."""
+        with database.session(write=False) as session:
+            state = auctions.require_auction(session, auction_id)
+            if position is None or not position[1] or position[0] != state.iteration - 1:
+                return state, None
+            after = crud.round_status_after(session, auction_id=auction_id, iteration=position[0])
+        if after is None:
+            return state, "no fine-tuning round after it"
+        if after == RoundStatus.OPEN and position[1] == ROUND_CLOSED:
+            return state, "its round open"
+        return state, None
+
+    state, unsent = await read_in_thread(read)
+    if resume is not None and unsent is not None:
+        raise api_error(
+            422,
+            f"event {resume.event_id} is ahead of auction {auction_id}'s stream: its iteration "
+            f"{state.iteration - 1} has {unsent} so far",
+            loc=resume.loc,
+            kind="ahead",
+        )
+    if resume is not None and position is not None and position[0] >= state.iteration:
         if state.iteration == 0:
             sent = "no iteration"
         elif state.iteration == 1:

@@ -23,6 +23,7 @@ from server.store.crud.auctions import (
     get_auction,
     list_auctions,
     lock_enrollment,
+    round_status_after,
 )
 from server.store.crud.events import (
     AuctionRound,
@@ -223,6 +224,7 @@ __all__ = [
     "requeue_jobs",
     "round_body",
     "round_head",
+    "round_status_after",
     "start",
     "start_job",
     "step_state",

@@ -437,6 +437,16 @@ def list_auctions(
     return [AuctionSummary(*row) for row in session.connection().execute(query)]
 
 
+def round_status_after(session: Session, *, auction_id: int, iteration: int) -> str | None:
+    """The status of the auction's remote fine-tuning round after ``iteration`` (None: none)."""
+    status: str | None = session.execute(
+        select(FineTuneRound.status).where(
+            FineTuneRound.auction_id == auction_id, FineTuneRound.iteration == iteration
+        )
+    ).scalar()
+    return status
+
+
 def fine_tune_rounds(session: Session, *, auction_id: int) -> list[RoundView]:
     """An auction's remote fine-tuning rounds, oldest first, with every patron's outcome."""
     model_ids = list(session.connection().scalars(AUCTION_PATRONS, {"auction_id": auction_id}))

@@ -69,7 +69,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     install_error_handlers(app)
     app.add_middleware(events.StreamLeftMiddleware)
-    app.add_middleware(RequestBodyMiddleware, max_bytes=settings.max_body_bytes)
+    app.add_middleware(
+        RequestBodyMiddleware, max_bytes=settings.max_body_bytes, smaller=(rounds.UPLOAD_BODY,)
+    )
     app.add_middleware(ClientLimitsMiddleware, settings=settings)  # before any body is read
     app.add_middleware(SecurityHeadersMiddleware)  # outermost: every answer has its headers
     routers = (health, models, reviews, participants, auctions, rounds, jobs, events, ui)

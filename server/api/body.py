@@ -1,8 +1,9 @@
 """Every request body, checked before any route sees it: its size, its media type, its encoding
 and its JSON.
 
-``RequestBodyMiddleware`` reads the body (refusing more than ``max_bytes`` with 413, by
-Content-Length up front and by counting what arrives), then, for a request that carries one:
+``RequestBodyMiddleware`` reads the body (refusing more than ``max_bytes``, or a route's
+``smaller`` bound, with 413, by Content-Length up front and by counting what arrives), then,
+for a request that carries one:
 
 * a media type other than JSON (``application/json`` or ``application/*+json``), or a
   compressed body (``Content-Encoding``), gets 415 (a body without a ``Content-Type`` is read
@@ -261,9 +262,17 @@ def _charset_ok(content_type: str) -> bool:
 class RequestBodyMiddleware:
     """Size, media type, encoding and JSON checks of request bodies (module docstring)."""
 
-    def __init__(self, app: ASGIApp, *, max_bytes: int) -> None:
+    def __init__(
+        self,
+        app: ASGIApp,
+        *,
+        max_bytes: int,
+        smaller: tuple[tuple[str, re.Pattern[str], int, str], ...] = (),
+    ) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        self.smaller = smaller
+        """(method, path pattern, bytes, what is refused) of routes that take less."""
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -274,12 +283,14 @@ class RequestBodyMiddleware:
             values = [v for k, v in scope["headers"] if k == listed]  # HTTP reads it (RFC 9110)
             if len(values) > 1:
                 headers[listed] = b", ".join(values)
+        most, too_large = self.max_bytes, f"request body larger than {self.max_bytes} bytes"
+        for method, path, bytes_, words in self.smaller:
+            if scope["method"] == method and path.fullmatch(scope["path"]):
+                most, too_large = bytes_, words
         declared = headers.get(b"content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > self.max_bytes):
+        if declared is not None and (not declared.isdigit() or int(declared) > most):
             if declared.isdigit():
-                error = BodyRefusedError(
-                    413, self._too_large, ("header", "Content-Length"), "body_size"
-                )
+                error = BodyRefusedError(413, too_large, ("header", "Content-Length"), "body_size")
             else:
                 error = BodyRefusedError(
                     400, "Content-Length is not a number", ("header", "Content-Length"), "header"
@@ -304,8 +315,8 @@ class RequestBodyMiddleware:
             if message["type"] != "http.request":  # the client went away
                 return
             body += message.get("body", b"")
-            if len(body) > self.max_bytes:
-                await _refuse(send, BodyRefusedError(413, self._too_large, ("body",), "body_size"))
+            if len(body) > most:
+                await _refuse(send, BodyRefusedError(413, too_large, ("body",), "body_size"))
                 return
             if not message.get("more_body", False):
                 break
@@ -331,10 +342,6 @@ class RequestBodyMiddleware:
             return {"type": "http.request", "body": bytes(body), "more_body": False}
 
         await self.app(scope, replay, send)
-
-    @property
-    def _too_large(self) -> str:
-        return f"request body larger than {self.max_bytes} bytes"
 
 
 def _media_type(content_type: str) -> None:

@@ -100,7 +100,8 @@ def _fish_count(body: AuctionCreate, n_patrons: int) -> int:
 
 
 def _remote_fine_tuning(body: AuctionCreate) -> bool:
-    """Whether the participants fine-tune (remote); refuses settings that contradict it."""
+    """Whether the participants fine-tune (remote); refuses settings that contradict it, and
+    fine-tuning rounds that change nothing (given without fine-tuning, or 0 with it)."""
     remote = body.fine_tune_mode == "remote"
     if remote and "fine_tune" in body.model_fields_set and not body.fine_tune:
         raise api_error(
@@ -115,6 +116,21 @@ def _remote_fine_tuning(body: AuctionCreate) -> bool:
             'round_deadline_s applies to fine_tune_mode "remote" only',
             loc=("body", "round_deadline_s"),
             kind="remote_only",
+        )
+    if not (remote or body.fine_tune) and "fine_tune_rounds" in body.model_fields_set:
+        raise api_error(
+            422,
+            "without fine-tuning nothing is fine-tuned: fine_tune_rounds changes nothing (set "
+            'fine_tune true, or fine_tune_mode "remote")',
+            loc=("body", "fine_tune_rounds"),
+            kind="changes_nothing",
+        )
+    if (remote or body.fine_tune) and body.fine_tune_rounds == 0:
+        raise api_error(
+            422,
+            "0 rounds fine-tune nothing: give at least 1, or leave fine-tuning off",
+            loc=("body", "fine_tune_rounds"),
+            kind="changes_nothing",
         )
     return remote
 

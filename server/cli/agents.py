@@ -237,7 +237,7 @@ def _summary(report: PopulationReport) -> Table:
 )
 @click.option(
     "--rounds",
-    type=click.IntRange(0, MAX_FINE_TUNE_ROUNDS),
+    type=click.IntRange(1, MAX_FINE_TUNE_ROUNDS),
     default=4,
     show_default=True,
     help="Created auction: fine-tuning rounds.",

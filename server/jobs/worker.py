@@ -69,8 +69,8 @@ def check_disk(out_dir: Path, context: WorkerContext) -> None:
     used = sum(p.stat().st_size for p in out_dir.rglob("*") if p.is_file())
     if used > context.job_disk_mb * MB:
         raise JobDiskError(
-            f"its files take {used / MB:.0f} MB, more than the {context.job_disk_mb} MB a job "
-            "may write (SRD_JOB_DISK_MB)"
+            f"its files take {used:,} bytes ({used / MB:.2f} MB), more than the "
+            f"{context.job_disk_mb} MB a job may write (SRD_JOB_DISK_MB)"
         )
 
 

@@ -134,6 +134,10 @@ def test_remote_auctions_are_validated(client: TestClient) -> None:
         ({"fine_tune_mode": "remote", "round_deadline_s": 301}, ["body", "round_deadline_s"]),
         ({"round_deadline_s": 5}, ["body", "round_deadline_s"]),
         ({"fine_tune_mode": "remote", "fine_tune_rounds": 65}, ["body", "fine_tune_rounds"]),
+        ({"fine_tune_mode": "remote", "fine_tune_rounds": 0}, ["body", "fine_tune_rounds"]),
+        ({"fine_tune": True, "fine_tune_rounds": 0}, ["body", "fine_tune_rounds"]),
+        ({"fine_tune_rounds": 10}, ["body", "fine_tune_rounds"]),
+        ({"fine_tune": False, "fine_tune_rounds": 2}, ["body", "fine_tune_rounds"]),
         ({"fine_tune_mode": "elsewhere"}, ["body", "fine_tune_mode"]),
     ]
     for extra, loc in cases:
@@ -284,12 +288,20 @@ def refuse_every_bad_upload(
     for who in (token, None):  # an empty body is refused as a body, before the token
         refused(put(client, auction_id, 1, model_id, b"", who), 422, ["body"], "empty")
     padded = good[:-1] + b" " * UPLOAD_MAX_BYTES + b"}"
-    refused(
-        put(client, auction_id, 1, model_id, padded, token),
-        413,
-        ["header", "Content-Length"],
-        str(UPLOAD_MAX_BYTES),
+    for oversized in (padded, b"x" * (UPLOAD_MAX_BYTES + 1)):  # JSON or not, its size first
+        for who in (token, None):
+            refused(
+                put(client, auction_id, 1, model_id, oversized, who),
+                413,
+                ["header", "Content-Length"],
+                f"an upload is at most {UPLOAD_MAX_BYTES} bytes",
+            )
+    chunked = client.put(  # no Content-Length: the body is counted as it comes
+        f"/auctions/{auction_id}/rounds/1/models/{model_id}",
+        content=iter([b"x" * 40_000, b"x" * 40_000]),
+        headers={**bearer(token), "Content-Type": "application/json"},
     )
+    refused(chunked, 413, ["body"], f"an upload is at most {UPLOAD_MAX_BYTES} bytes")
     data = tuned.model_dump(mode="json")
     del data["decision"]["B"]["bias"]
     refused(

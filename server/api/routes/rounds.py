@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 from collections.abc import Callable, Coroutine
 from datetime import datetime
 from typing import Annotated, Any
@@ -47,6 +48,15 @@ from server.live.rounds import MAX_WAIT_S, TooManyWaitersError
 from server.store.tables import utcnow
 
 router = APIRouter(tags=["rounds"])
+
+UPLOAD_BODY = (
+    "PUT",
+    re.compile(r"/auctions/[^/]+/rounds/[^/]+/models/[^/]+"),
+    UPLOAD_MAX_BYTES,
+    f"an upload is at most {UPLOAD_MAX_BYTES} bytes",
+)
+"""The round upload's body bound, for ``RequestBodyMiddleware``: refused by its size before
+anything else is read (the route's path, whatever its segments hold)."""
 
 RoundPath = Annotated[
     int,
@@ -140,20 +150,13 @@ async def _disconnected(request: Request) -> None:
 
 
 async def _upload_body(request: Request) -> tuple[bytes, datetime]:
-    """The request body, at most ``UPLOAD_MAX_BYTES`` (413; checked before the token), and
-    when it arrived (the deadline is judged at that moment): when ``srd serve``'s protocol
-    parsed its last byte, else when it was read here."""
+    """The request body (at most ``UPLOAD_MAX_BYTES``: ``UPLOAD_BODY``, 413 before the token
+    or the JSON is read), and when it arrived (the deadline is judged at that moment): when
+    ``srd serve``'s protocol parsed its last byte, else when it was read here."""
     body = await request.body()
     if not body:  # as the body checks refuse any body that is not JSON, before the token
         raise api_error(
             422, "the body is empty: an upload is a manifest (JSON)", loc=("body",), kind="not_json"
-        )
-    if len(body) > UPLOAD_MAX_BYTES:
-        raise api_error(
-            413,
-            f"an upload is at most {UPLOAD_MAX_BYTES} bytes",
-            loc=("header", "Content-Length"),
-            kind="body_size",
         )
     arrived = request.scope.get(RECEIVED_AT)
     return body, arrived if isinstance(arrived, datetime) else utcnow()

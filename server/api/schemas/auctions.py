@@ -15,9 +15,11 @@ from server.store.status import AuctionStatus
 from sim.market import BuyFractionRule, MarketConfig
 
 MAX_PATRONS = 10_000
+"""Patrons of an auction, at most."""
 MAX_ENROLLMENT_S = 86_400.0
 """The longest enrollment: a day."""
-"""Patrons of an auction, at most."""
+MIN_ENROLLMENT_S = 1.0
+"""The shortest enrollment (above none): a participant's join takes a request."""
 ROUND_DEADLINE_S = (0.5, 300.0)
 """Bounds of a remote auction's ``round_deadline_s``: how long a round waits at most."""
 MAX_FINE_TUNE_ROUNDS = 64
@@ -29,6 +31,11 @@ _REMOTE: dict[str, JsonValue] = {
     "required": ["fine_tune_mode"],
 }
 """JSON Schema: a remote auction."""
+_FINE_TUNES: dict[str, JsonValue] = {
+    "properties": {"fine_tune": {"const": True}},
+    "required": ["fine_tune"],
+}
+"""JSON Schema: an auction that fine-tunes in the market."""
 
 
 def _absent(schema: dict[str, Any]) -> None:
@@ -51,7 +58,8 @@ class AuctionCreate(StrictInput):
     ``fine_tune_mode`` "remote": the participants fine-tune their own patrons over HTTP, in
     rounds after each of the first ``fine_tune_rounds`` iterations, each round waiting at most
     ``round_deadline_s``. A remote auction fine-tunes (``fine_tune`` may be left out; false is
-    refused); ``round_deadline_s`` belongs to remote auctions only."""
+    refused); ``round_deadline_s`` belongs to remote auctions only. ``fine_tune_rounds`` belongs
+    to auctions that fine-tune (in the market or remote), and is at least 1 there."""
 
     model_config = ConfigDict(
         json_schema_extra={
@@ -64,6 +72,11 @@ class AuctionCreate(StrictInput):
                 {  # a round deadline belongs to remote auctions
                     "if": {"not": _REMOTE},
                     "then": {"not": {"required": ["round_deadline_s"]}},
+                },
+                {  # fine-tuning rounds belong to auctions that fine-tune, 1 at least
+                    "if": {"anyOf": [_REMOTE, _FINE_TUNES]},
+                    "then": {"properties": {"fine_tune_rounds": {"minimum": 1}}},
+                    "else": {"not": {"required": ["fine_tune_rounds"]}},
                 },
             ],
         }
@@ -89,7 +102,17 @@ class AuctionCreate(StrictInput):
     buy_fraction: BuyFractionRule = MarketConfig.buy_fraction
     """Whom a row's buy fraction f counts: "all" voters (the paper's) or the "staying" ones,
     buyers and holders (quitting does not lower f)."""
-    enrollment_s: Annotated[float, Field(ge=0, le=MAX_ENROLLMENT_S, allow_inf_nan=False)] = 0.0
+    enrollment_s: Annotated[
+        float,
+        Field(
+            ge=0,
+            le=MAX_ENROLLMENT_S,
+            allow_inf_nan=False,
+            json_schema_extra={
+                "not": {"exclusiveMinimum": 0, "exclusiveMaximum": MIN_ENROLLMENT_S}
+            },
+        ),
+    ] = 0.0
     """Seconds the auction stays pending, taking patrons: each participant may add one accepted
     model of its own (``POST /auctions/{id}/patrons``); its patrons are then the models named in
     ``model_ids`` (none if left out) and those that joined, and a rarity's fish are counted when
@@ -103,6 +126,17 @@ class AuctionCreate(StrictInput):
             twice = sorted(i for i, n in Counter(ids).items() if n > 1)
             raise ValueError(f"model ids listed more than once: {twice[:20]}")
         return ids
+
+    @field_validator("enrollment_s")
+    @classmethod
+    def _joinable(cls, seconds: float) -> float:
+        """An enrollment somebody can join: none (0), or a second at least."""
+        if 0 < seconds < MIN_ENROLLMENT_S:
+            raise ValueError(
+                f"an enrollment of {seconds:g} s ends before anybody can join: give 0 (the "
+                f"patrons are fixed now) or at least {MIN_ENROLLMENT_S:g} s"
+            )
+        return seconds
 
     @field_validator("n_fish", "rarity", "model_ids", mode="before")
     @classmethod

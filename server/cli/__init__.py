@@ -140,34 +140,48 @@ class _Commands(click.Group):
             return experiment_command(kind)
 
     def main(self, args: Sequence[str] | None = None, *rest: Any, **options: Any) -> Any:
-        """Under ``--json`` a failure click finds in the options, an interruption (Ctrl-C, exit
-        130), or an unexpected error, still prints one JSON object on stdout
-        (``words.json_failure``); the exit code is click's."""
+        """A usage error (a bad or unknown option, a missing argument) is one line on stderr
+        naming the option, exit 2, without click's usage block. Under ``--json`` a failure
+        click finds in the options, an interruption (Ctrl-C, exit 130), or an unexpected error,
+        still prints one JSON object on stdout (``words.json_failure``); the exit code is
+        click's."""
         argv = list(sys.argv[1:] if args is None else args)
-        if "--json" not in argv or not options.get("standalone_mode", True):
+        if not options.get("standalone_mode", True):
             return super().main(argv, *rest, **options)
+        json_output = "--json" in argv
         command = argv[0] if argv else None
         try:
             code = super().main(argv, *rest, **{**options, "standalone_mode": False})
         except Interrupted as exc:
             exc.show()
-            json_failure("aborted", command=command, extra=exc.partial)
+            if json_output:
+                json_failure("aborted", command=command, extra=exc.partial)
+            raise SystemExit(exc.exit_code) from exc
+        except click.exceptions.NoArgsIsHelpError as exc:  # `srd` alone: the help
+            exc.show()
             raise SystemExit(exc.exit_code) from exc
         except click.ClickException as exc:
-            exc.show()
-            param = getattr(exc, "param", None)
-            option = param.opts[0] if isinstance(param, click.Option) else None
-            option = option or getattr(exc, "option_name", None)  # one that does not exist
-            message = exc.format_message()
-            errors = [{"option": option, "message": message}] if option else None
-            json_failure(message, errors, command=command)
+            if isinstance(exc, click.UsageError):
+                where = f" (see '{exc.ctx.command_path} --help')" if exc.ctx else ""
+                click.echo(f"error: {exc.format_message()}{where}", err=True)
+            else:
+                exc.show()
+            if json_output:
+                param = getattr(exc, "param", None)
+                option = param.opts[0] if isinstance(param, click.Option) else None
+                option = option or getattr(exc, "option_name", None)  # one that does not exist
+                message = exc.format_message()
+                errors = [{"option": option, "message": message}] if option else None
+                json_failure(message, errors, command=command)
             raise SystemExit(exc.exit_code) from exc
         except click.Abort as exc:  # click's own (a Ctrl-C it caught before ours could)
             click.echo("Aborted!", err=True)
-            json_failure("aborted", command=command)
-            raise SystemExit(INTERRUPTED) from exc
+            if json_output:
+                json_failure("aborted", command=command)
+            raise SystemExit(INTERRUPTED if json_output else 1) from exc
         except Exception as exc:  # the traceback goes to stderr as usual
-            json_failure(f"{type(exc).__name__}: {exc}", command=command)
+            if json_output:
+                json_failure(f"{type(exc).__name__}: {exc}", command=command)
             raise
         raise SystemExit(code if isinstance(code, int) else 0)
 
@@ -193,4 +207,4 @@ def main() -> None:
         sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (for the process's life)
     if sys.argv[1:2] != ["serve"]:  # which stops gracefully on SIGTERM, as uvicorn does
         signal.signal(signal.SIGTERM, _on_terminate)
-    cli()
+    cli(prog_name="srd")

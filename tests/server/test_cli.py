@@ -165,6 +165,26 @@ def test_bad_options_exit_2_naming_the_option(tmp_path, args, option, message) -
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (["fish", "--steps", "nan"], "Invalid value for '--steps': 'nan' is not a valid integer."),
+        (["fish", "--bogus", "1"], "No such option '--bogus'."),
+        (["screen"], "Missing argument 'FILE'."),
+        (["lavaland", "--project", "B"], "Invalid value for '--project': 'B' is not one of"),
+    ],
+)
+def test_a_usage_error_is_one_line_naming_the_option(args, line) -> None:
+    """As the commands' own checks say theirs: `error: ...` on one line, exit 2, no usage
+    block; with --json the one object on stdout as well."""
+    for json_flag in ([], ["--json"]):
+        done = invoke(*args, *json_flag)
+        assert done.returncode == 2, done.stderr
+        [said] = done.stderr.splitlines()
+        assert said.startswith(f"error: {line}") and said.endswith(f"(see 'srd {args[0]} --help')")
+        assert bool(json_flag) == bool(done.stdout) and "Usage:" not in done.stderr
+
+
 def test_an_out_folder_that_cannot_be_made_exits_2_naming_it(tmp_path) -> None:
     blocker = tmp_path / "a-file"
     blocker.write_text("")

@@ -5,6 +5,7 @@
 import { h } from "./dom.js";
 
 const RETRY_MS = 5000; // after the server refused a stream (503) or it broke for good
+const LIST_REFRESH_MS = 5000; // a list's first page is read again this often
 const OPEN_MS = 8000; // a stream not open by then is given up (the browser may be holding it
 // back: at most six connections to one server, each live view holding one) and read instead
 
@@ -90,6 +91,76 @@ export function pager(path, params, render) {
   }
   more.addEventListener("click", () => load().catch((error) => box.replaceChildren(String(error))));
   return { box, load };
+}
+
+/**
+ * Keep a list's first page current while its view is shown: ``path`` with ``params`` is read
+ * again every LIST_REFRESH_MS while the tab is visible. A listed item whose JSON changed has
+ * its row (``rowFor(item)``) redrawn in place, the focus kept on the same control of it; a new
+ * one is added at the top when ``newestFirst``; a listed one the first page now leaves out,
+ * within the ids it covers, goes (it no longer matches the filter), as a reload would show.
+ * ``state`` (a status line) says when a read failed: the rows stay as last read. ``add``
+ * renders a page's items (the pager's render); ``onRead(rowOf)`` hears every read that worked.
+ */
+export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, state, noun, onRead = () => {} }) {
+  const rowOf = new Map(); // item id -> its row
+  let readAt = null;
+  const draw = (item) => {
+    const row = rowFor(item);
+    row.dataset.seen = JSON.stringify(item);
+    rowOf.set(item.id, row);
+    return row;
+  };
+  const read = () => {
+    readAt = new Date();
+    state.hidden = true;
+    onRead(rowOf);
+  };
+  function refresh() {
+    if (document.visibilityState !== "visible") return;
+    getJSON(withQuery(path, params))
+      .then((page) => {
+        const newer = [];
+        const top = Math.max(0, ...rowOf.keys());
+        for (const item of page.items) {
+          const old = rowOf.get(item.id);
+          if (old && old.dataset.seen === JSON.stringify(item)) continue; // unchanged: left alone
+          if (old) {
+            const controls = (row) => [...row.querySelectorAll("a, input, button, summary")];
+            const place = controls(old).indexOf(document.activeElement);
+            const row = draw(item);
+            old.replaceWith(row);
+            if (place >= 0) controls(row)[place]?.focus();
+          } else if (newestFirst && item.id > top) newer.push(draw(item));
+        }
+        rows.prepend(...newer);
+        const here = new Set(page.items.map((item) => item.id));
+        const ids = [...here];
+        const covered = (id) => page.next_cursor === null || (newestFirst ? id >= Math.min(...ids) : id <= Math.max(...ids));
+        for (const [id, row] of rowOf) {
+          if (!here.has(id) && covered(id)) {
+            row.remove();
+            rowOf.delete(id);
+          }
+        }
+        read();
+      })
+      .catch((error) => {
+        const then = readAt ? `as read at ${readAt.toLocaleTimeString()}` : "not read yet";
+        state.hidden = false;
+        state.textContent = `The list could not be read again (${String(error.message || error)}); it shows the ${noun} ${then}, and is read again every few seconds.`;
+      });
+  }
+  const timer = setInterval(refresh, LIST_REFRESH_MS);
+  view.onLeave(() => clearInterval(timer));
+  return {
+    add(items) {
+      const added = items.map(draw);
+      rows.append(...added);
+      return added[0];
+    },
+    read,
+  };
 }
 
 /**

@@ -71,6 +71,7 @@ function show(firstLoad) {
   if (!hash.startsWith("#/")) return; // an in-page anchor such as the skip link
   if (current) current.leave();
   const main = document.getElementById("main");
+  main.dataset.navigated = firstLoad ? "" : "yes"; // a view drawn later focuses its heading then
   const root = h("div", { class: "view" });
   main.replaceChildren(root);
   current = new View(root);

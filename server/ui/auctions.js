@@ -1,6 +1,6 @@
 // Auctions: the list, and one auction followed live from its event stream.
 
-import { follow, getJSON, pager, withQuery } from "./api.js";
+import { follow, getJSON, keepCurrent, pager } from "./api.js";
 import { facts, fill, fixed, fixedApart, h, isMissing, link, notFound, plural, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
 
 const STOP_REASONS = {
@@ -10,7 +10,6 @@ const STOP_REASONS = {
   max_iterations: "iteration limit reached",
   cancelled: "cancelled by the operator",
 };
-const LIST_REFRESH_MS = 5000;
 // What a row's buy fraction f counts (GET /auctions/{id} buy_fraction).
 const BUY_FRACTIONS = {
   all: "all: every voter counts (the paper's)",
@@ -104,7 +103,6 @@ export function auctionList(view, query) {
     h("thead", {}, h("tr", {}, headers.map((text) => h("th", { scope: "col" }, text)))),
     rows,
   );
-  const rowOf = new Map(); // auction id -> its row, replaced as the auction moves
   const auctionRow = (a) =>
     tableRow(
       [
@@ -118,15 +116,9 @@ export function auctionList(view, query) {
         a.status === "failed" && !a.stop_reason ? "it failed (why: on its page)" : stopReason(a.stop_reason),
         when(a.created_at),
       ],
-      { "data-id": a.id, "data-status": a.status, "data-seen": JSON.stringify(a) },
+      { "data-id": a.id, "data-status": a.status },
     );
   const params = { status: chosen.status, order: chosen.order === "newest" ? "" : chosen.order };
-  const pages = pager("/auctions", params, (items) => {
-    const added = items.map(auctionRow);
-    items.forEach((a, i) => rowOf.set(a.id, added[i]));
-    rows.append(...added);
-    return added[0];
-  });
   if (chosen.status && !STATUSES.includes(chosen.status)) {
     view.root.append(problem(`No auction status is called "${chosen.status}": pick one of the list.`));
     return;
@@ -139,62 +131,28 @@ export function auctionList(view, query) {
   // Whether the list is current: said when a read fails (the rows stay as last read), cleared
   // when one succeeds, as is the first load's failure.
   const readState = h("p", { class: "none-yet", id: "list-state", role: "status", hidden: true });
-  let readAt = null;
   let firstFailure = null;
-  view.root.append(readState, scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
   // The first page is read again every few seconds while the tab is shown: listed auctions
   // move on in place, and (newest first) new ones appear at the top.
-  function refresh() {
-    if (document.visibilityState !== "visible") return;
-    getJSON(withQuery("/auctions", params))
-      .then((page) => {
-        readAt = new Date();
-        readState.hidden = true;
-        firstFailure?.remove();
-        firstFailure = null;
-        const newer = [];
-        const top = Math.max(0, ...rowOf.keys());
-        const here = new Set(page.items.map((a) => a.id));
-        for (const a of page.items) {
-          const old = rowOf.get(a.id);
-          if (old && old.dataset.seen === JSON.stringify(a)) continue; // unchanged: left alone
-          const row = auctionRow(a);
-          if (old) {
-            const focused = old.contains(document.activeElement);
-            old.replaceWith(row);
-            if (focused) row.querySelector("a")?.focus();
-          } else if (chosen.order === "newest" && a.id > top) newer.push(row);
-          else continue;
-          rowOf.set(a.id, row);
-        }
-        rows.prepend(...newer);
-        // A listed auction the first page now leaves out, within the ids it covers, no longer
-        // matches the filter (it ended, say): it goes, as it would on a reload.
-        const ids = page.items.map((a) => a.id);
-        const covered = (id) =>
-          page.next_cursor === null || (chosen.order === "newest" ? id >= Math.min(...ids) : id <= Math.max(...ids));
-        for (const [id, row] of rowOf) {
-          if (!here.has(id) && covered(id)) {
-            row.remove();
-            rowOf.delete(id);
-          }
-        }
-        empty.hidden = rowOf.size > 0;
-      })
-      .catch((error) => {
-        const when = readAt ? `as read at ${readAt.toLocaleTimeString()}` : "not read yet";
-        readState.hidden = false;
-        readState.textContent = `The list could not be read again (${String(error.message || error)}); it shows the auctions ${when}, and is read again every few seconds.`;
-      });
-  }
-  const timer = setInterval(refresh, LIST_REFRESH_MS);
-  view.onLeave(() => clearInterval(timer));
+  const current = keepCurrent(view, {
+    path: "/auctions",
+    params,
+    newestFirst: chosen.order === "newest",
+    rows,
+    rowFor: auctionRow,
+    state: readState,
+    noun: "auctions",
+    onRead: (rowOf) => {
+      firstFailure?.remove();
+      firstFailure = null;
+      empty.hidden = rowOf.size > 0;
+    },
+  });
+  const pages = pager("/auctions", params, current.add);
+  view.root.append(readState, scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
   pages
     .load()
-    .then((page) => {
-      readAt = new Date();
-      empty.hidden = page.items.length > 0;
-    })
+    .then(() => current.read())
     .catch((error) => {
       firstFailure = problem(error);
       view.root.append(firstFailure);
@@ -597,6 +555,9 @@ export function auctionView(view, id) {
           ["Fine-tuning", fineTuningWords(head)],
           ["Seed", String(head.seed)],
           ...(head.enroll_until && state.status === "pending" ? [["Takes patrons until", when(head.enroll_until)]] : []),
+          ["Created", when(head.created_at)],
+          ["Started", head.started_at ? when(head.started_at) : over ? "never" : "not yet"],
+          ...(over ? [[`Ended (${state.status})`, when(state.finished_at || head.finished_at)]] : []),
         ],
         { id: "auction-summary" },
       ),
@@ -649,7 +610,7 @@ export function auctionView(view, id) {
     for (const a of r.answers) outcomes[a.outcome] = (outcomes[a.outcome] || 0) + 1;
     const nothing = r.status === "open" ? "none yet" : "none";
     const answers = Object.entries(outcomes).map(([outcome, n]) => `${n} ${outcome}`).join(", ") || nothing;
-    const each = r.answers.length ? h("ul", { class: "answers" }, r.answers.map(answerItem)) : h("span", { class: "none-yet" }, nothing);
+    const each = r.answers.length ? h("ul", { class: "answers" }, r.answers.map((a) => answerItem(a, r))) : h("span", { class: "none-yet" }, nothing);
     // A round ends at its deadline, or sooner: its last answer, a cancel, a failure.
     const open = r.status === "open" || !r.closed_at ? `until ${when(r.deadline)}` : `closed ${when(r.closed_at)} ${closedWhy(r)} (deadline ${when(r.deadline)})`;
     const row = tableRow([String(r.round), String(r.iteration), statusBadge(r.status), open, answers, each], { "data-round": r.round });
@@ -672,10 +633,13 @@ export function auctionView(view, id) {
   const reasonsOf = new Map(); // an upload's model id -> its stored version, read once
   /** A patron's outcome in a round, linked to the version it bids with; a refused or held
    * upload's screener reasons are read from that stored version. */
-  function answerItem(a) {
+  function answerItem(a, r) {
     // An upload of the weights it already had is accepted unscreened: no new version.
     const unchanged = a.outcome === "accepted" && a.uploaded_id === null ? " (unchanged weights, not screened)" : "";
-    const explained = ANSWER_WORDS[a.outcome] ? ` (${ANSWER_WORDS[a.outcome]})` : "";
+    // Late after a round that closed before its deadline (a cancel, a failure): after the close.
+    const early = r.closed_at && new Date(r.closed_at).getTime() < new Date(r.deadline).getTime();
+    const words = a.outcome === "late" && early ? `arrived after the round closed ${closedWhy(r)}, not applied` : ANSWER_WORDS[a.outcome];
+    const explained = words ? ` (${words})` : "";
     const item = h("li", { "data-model": a.model_id, "data-outcome": a.outcome }, `${nameOf(a.model_id)}: ${a.outcome}${unchanged}${explained}, bids with `, link(`#/models/${a.version_id}`, `version ${a.version}`));
     if ((a.outcome === "refused" || a.outcome === "held") && a.uploaded_id !== null) {
       // The reasons fold away (an auction of many rounds repeats them): the first is shown.

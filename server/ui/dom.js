@@ -113,6 +113,12 @@ export function facts(pairs, attributes = {}) {
   );
 }
 
+/** Whether the view on show was opened by a link or the history (not the page's first load):
+ * then a heading drawn later takes the focus, as every view's heading does when drawn. */
+export function navigated() {
+  return document.getElementById("main")?.dataset.navigated === "yes";
+}
+
 /** A line of text for a failure, shown where the content would have been. */
 export function problem(error) {
   return h("p", { class: "problem", role: "alert" }, String(error.message || error));

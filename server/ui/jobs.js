@@ -1,7 +1,7 @@
 // Jobs: the list (filtered, sorted, jobs picked for comparison), one job followed live and then
 // read at a glance (headline cards, tables, figures; the raw JSON collapsed), and jobs compared.
 
-import { follow, getJSON, pager } from "./api.js";
+import { ApiError, follow, getJSON, keepCurrent, pager } from "./api.js";
 import { facts, fill, h, isMissing, link, notFound, problem, scrolling, tableRow, when } from "./dom.js";
 import { card, headline, kindLayouts, lineChart, rowsTable, shown, splitColumns, tablesOf, words } from "./results.js";
 
@@ -84,39 +84,58 @@ export function jobList(view, query) {
     rows,
   );
   const params = { status: chosen.status, kind: chosen.kind, order: chosen.order === "newest" ? "" : chosen.order };
-  const pages = pager("/jobs", params, (items) => {
-    const first = rows.children.length;
-    for (const j of items) {
-      const box = h("input", { type: "checkbox", "aria-label": `Select job ${j.id} for comparison`, "data-job": j.id });
-      box.addEventListener("change", () => {
-        if (box.checked) picked.set(j.id, j.kind);
-        else picked.delete(j.id);
-        updateCompare();
-      });
-      rows.append(
-        tableRow([
-          box,
-          link(`#/jobs/${j.id}`, `Job ${j.id}`),
-          j.kind,
-          statusBadge(j.status),
-          progressBar(j.progress, `job ${j.id} progress`),
-          j.message,
-          when(j.created_at),
-          when(j.finished_at),
-        ]),
-      );
-    }
-    return rows.children[first];
+  const jobRow = (j) => {
+    const box = h("input", { type: "checkbox", "aria-label": `Select job ${j.id} for comparison`, "data-job": j.id });
+    box.checked = picked.has(j.id); // a row redrawn as its job moves keeps its selection
+    box.addEventListener("change", () => {
+      if (box.checked) picked.set(j.id, j.kind);
+      else picked.delete(j.id);
+      updateCompare();
+    });
+    return tableRow(
+      [
+        box,
+        link(`#/jobs/${j.id}`, `Job ${j.id}`),
+        j.kind,
+        statusBadge(j.status),
+        progressBar(j.progress, `job ${j.id} progress`),
+        j.message,
+        when(j.created_at),
+        when(j.finished_at),
+      ],
+      { "data-id": j.id, "data-status": j.status },
+    );
+  };
+  const none = h(
+    "p",
+    { class: "none-yet", id: "no-jobs", hidden: true },
+    filterWords ? `None matches this filter (${filterWords}).` : "None yet: an operator queues a job with POST /jobs.",
+  );
+  const readState = h("p", { class: "none-yet", id: "list-state", role: "status", hidden: true });
+  // As the auctions list: the first page is read again every few seconds while the tab is
+  // shown, jobs move on in place and (newest first) new ones appear at the top.
+  const current = keepCurrent(view, {
+    path: "/jobs",
+    params,
+    newestFirst: chosen.order === "newest",
+    rows,
+    rowFor: jobRow,
+    state: readState,
+    noun: "jobs",
+    onRead: (rowOf) => {
+      none.hidden = rowOf.size > 0;
+    },
   });
-  view.root.append(form, scrolling(list, "Experiment jobs (scrolls sideways)"), pages.box);
+  const pages = pager("/jobs", params, current.add);
+  view.root.append(form, readState, scrolling(list, "Experiment jobs (scrolls sideways)"), none, pages.box);
   pages
     .load()
-    .then((page) => {
-      if (page.items.length) return;
-      const none = filterWords ? `None matches this filter (${filterWords}).` : "None yet: an operator queues a job with POST /jobs.";
-      list.closest(".scroll")?.after(h("p", { class: "none-yet", id: "no-jobs" }, none));
-    })
-    .catch((error) => view.root.append(problem(error)));
+    .then(() => current.read())
+    .catch((error) => {
+      // a kind the server does not run (the list of kinds is the server's): said as a status is
+      const unknownKind = error instanceof ApiError && error.status === 422 && chosen.kind;
+      view.root.append(problem(unknownKind ? `No job kind is called "${chosen.kind}": pick one of the list.` : error));
+    });
 }
 
 function artifactUrl(id, name) {
@@ -312,7 +331,7 @@ function overlay(name, specs, jobs, index) {
     }
     for (const [group, points] of groups) lines.push({ label: `job ${jobs[i].id}${group ? `, ${group}` : ""}`, points });
   });
-  return lineChart(lines, x, y, `overlay-${index}`);
+  return lineChart(lines, x, y, `overlay-${index}`, words(name));
 }
 
 export function compareView(view, query) {

@@ -121,8 +121,10 @@ export function rowsTable(spec, attributes = {}) {
 /**
  * Lines of (x, y) points overlaid in one inline SVG chart: ``lines`` is [{label, points}], ``x``
  * and ``y`` name the axes. Each line has its colour and a dash pattern (not colour alone).
+ * ``subject`` names the chart apart from the page's others of the same axes (in its scroll
+ * frame's label: two landmarks of one name cannot be told apart).
  */
-export function lineChart(lines, x, y, id) {
+export function lineChart(lines, x, y, id, subject = null) {
   const width = 640;
   const height = 260;
   const left = 64;
@@ -167,5 +169,5 @@ export function lineChart(lines, x, y, id) {
     { class: "legend-list" },
     lines.map((line, i) => h("li", {}, h("span", { class: `key line-key line-${i % LINE_COLOURS.length}` }), i % 2 ? "(dashed) " : "", line.label)),
   );
-  return h("figure", {}, scrolling(svg("svg", { class: "chart", id, viewBox: `0 0 ${width} ${height}`, role: "img", "aria-labelledby": `${id}-title` }, parts), `${title} (scrolls sideways on a narrow screen)`), h("figcaption", {}, title, legend));
+  return h("figure", {}, scrolling(svg("svg", { class: "chart", id, viewBox: `0 0 ${width} ${height}`, role: "img", "aria-labelledby": `${id}-title` }, parts), `${subject ? `${subject}: ` : ""}${title} (scrolls sideways on a narrow screen)`), h("figcaption", {}, title, legend));
 }

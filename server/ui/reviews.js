@@ -4,7 +4,7 @@
 // only (never stored, never in a URL); it travels in the Authorization header.
 
 import { ApiError, getJSON, postJSON } from "./api.js";
-import { facts, fill, fixed, h, isMissing, link, notFound, problem, scrolling, svg, table, when } from "./dom.js";
+import { facts, fill, fixed, h, isMissing, link, navigated, notFound, problem, scrolling, svg, table, when } from "./dom.js";
 import { auditLog, by, evidenceTable, inspectorView, measuredAndBar, verdictNow } from "./models.js";
 
 let adminToken = null;
@@ -47,12 +47,14 @@ function withToken(view, render, heading = null) {
   view.root.append(box);
   const ask = (words) => {
     fill(box, heading ? h("h1", { tabindex: "-1" }, heading) : null, tokenForm(() => start(), words));
-    box.querySelector("input")?.focus();
+    // After a navigation or a refused token the field takes the focus; on a page's first load
+    // the focus stays at the top (the skip link and the navigation come first).
+    if (words || navigated()) box.querySelector("input")?.focus();
   };
   const start = () => {
-    // The token's field had the focus: once the page it opens is drawn, its heading takes it
-    // (the field is gone; the focus would fall to the document's body).
-    const hadFocus = box.contains(document.activeElement);
+    // The token's field had the focus, or the view was opened by a link: once the page is
+    // drawn, its heading takes the focus (it would fall to the document's body).
+    const hadFocus = box.contains(document.activeElement) || navigated();
     fill(box);
     render(box)
       .then(() => {

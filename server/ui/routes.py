@@ -144,10 +144,12 @@ async def ui_file(name: str) -> FileResponse:
 
 def _page_with_policy(page: HTMLResponse) -> tuple[bytes, dict[str, str]]:
     """A docs page with a policy that runs its own inline script (by hash) and files from
-    this origin, and loads nothing from anywhere else: ReDoc's CDN logo is never fetched."""
+    this origin, and loads nothing from anywhere else: ReDoc's CDN logo is never fetched. Its
+    ``<html>`` says the page's language (English), as the web view's does."""
+    body = bytes(page.body).replace(b"<html>", b'<html lang="en">', 1)
     hashes = " ".join(
         "'sha256-" + base64.b64encode(hashlib.sha256(script).digest()).decode() + "'"
-        for script in re.findall(rb"<script>(.*?)</script>", bytes(page.body), flags=re.S)
+        for script in re.findall(rb"<script>(.*?)</script>", body, flags=re.S)
     )
     policy = "; ".join(
         (
@@ -162,7 +164,7 @@ def _page_with_policy(page: HTMLResponse) -> tuple[bytes, dict[str, str]]:
             "frame-ancestors 'none'",
         )
     )
-    return bytes(page.body), {**PAGE_HEADERS, "Content-Security-Policy": policy}
+    return body, {**PAGE_HEADERS, "Content-Security-Policy": policy}
 
 
 SWAGGER_PAGE = _page_with_policy(

@@ -210,6 +210,7 @@ def test_the_web_view_and_the_docs_are_served_from_the_package(client: TestClien
         assert client.get(path).status_code == 404
     docs = client.get("/docs").text
     assert "cdn" not in docs.lower() and "/ui/vendor/swagger-ui-bundle.js" in docs
+    assert '<html lang="en">' in docs and '<html lang="en">' in client.get("/redoc").text
     assert client.get("/ui/vendor/swagger-ui-bundle.js").status_code == 200
     assert client.get("/ui/vendor/swagger-ui.css").status_code == 200
     redoc = client.get("/redoc").text

@@ -44,6 +44,8 @@ CHROMIUM_ARGS = [
     "--disable-component-update",
     "--disable-sync",
 ]
+PHONE = {"width": 320, "height": 740}
+"""The narrowest screen a page must fit without scrolling sideways (WCAG 1.4.10's reflow)."""
 VIEWPORT = {"width": 1100, "height": 1000}
 WAIT_MS = 20_000
 
@@ -204,7 +206,7 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
     }
     headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
     auction_id = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
-    page.set_viewport_size({"width": 375, "height": 800})  # a phone: tables scroll, not the page
+    page.set_viewport_size(PHONE)  # a phone: tables scroll, not the page
     page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
     page.wait_for_selector("#liveness:has-text('Ended')", timeout=60_000)
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
@@ -332,6 +334,22 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
     closed = "#fine-tuning tr[data-round='1'] td:has-text('when the auction was cancelled')"
     page.wait_for_selector(closed, timeout=WAIT_MS)
+    # A fourth uploads after the cancel, long before the deadline: late, and said why.
+    fourth = asked[3]
+    token = next(a["token"] for a in population.values() if a["model_id"] == fourth)
+    put = api.put(
+        f"/auctions/{auction_id}/rounds/1/models/{fourth}",
+        json=api.get(f"/models/{fourth}").json()["manifest"],
+        headers={"Authorization": f"Bearer {token}"},
+    )
+    assert put.status_code == 410, put.text
+    page.reload()
+    late = page.locator(f"#fine-tuning li[data-model='{fourth}'][data-outcome='late']")
+    late.wait_for(timeout=WAIT_MS)
+    assert (
+        "late (arrived after the round closed when the auction was cancelled, not applied)"
+        in (late.text_content() or "")
+    )
     page.goto(f"{server.url}/ui/#/models/{uploaded}")
     made = page.locator("dt:has-text('Uploaded in') + dd")
     made.wait_for(timeout=WAIT_MS)
@@ -395,6 +413,11 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     assert page.text_content("#liveness") == "Ended: cancelled; no iteration played."
     summary = page.text_content("#auction-summary") or ""
     assert "Statuscancelled" in summary and "cancelled by the operator" in summary
+    assert "Startednever" in summary  # and when it was created and cancelled
+    ended_at = page.locator("#auction-summary dt:has-text('Ended (cancelled)') + dd")
+    finished_at = api.get(f"/auctions/{auction_id}").json()["finished_at"]
+    local = "(iso) => new Date(iso).toLocaleString(undefined, {dateStyle: 'short', timeStyle: 'long'})"
+    assert finished_at and ended_at.text_content() == page.evaluate(local, finished_at)
     for empty in ("#price-none", "#votes-none", "#rounds tbody td", "#explain-round option"):
         assert page.text_content(empty) == "none: no iteration was played", empty
     assert page.locator("#explain-form button[type='submit']").is_disabled()
@@ -543,7 +566,7 @@ def test_inspector_draws_the_saboteur_neuron_by_neuron_with_the_screeners_reason
     page.keyboard.press("Enter")
     assert page.evaluate("document.activeElement.id") == "neuron-B"
     # On a phone the drawing keeps a readable size and scrolls sideways, not the page.
-    page.set_viewport_size({"width": 375, "height": 800})
+    page.set_viewport_size(PHONE)
     assert decision.bounding_box()["width"] >= 560
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
 
@@ -619,6 +642,11 @@ def test_jobs_page_follows_a_job_and_shows_its_plots(
     listed = page.locator("#job-list tbody tr", has_text=f"Job {job_id}")
     listed.wait_for(timeout=WAIT_MS)
     assert "succeeded" in (listed.text_content() or "")
+    # The list follows without a reload: a job queued now appears, and moves on to its end.
+    later = api.post("/jobs", json={"kind": "fish", "params": {"steps": 600}}, headers=headers)
+    row = f"#job-list tbody tr[data-id='{later.json()['job_id']}']"
+    page.wait_for_selector(row, timeout=WAIT_MS)
+    page.wait_for_selector(f"{row}[data-status='succeeded']", timeout=60_000)
 
 
 def test_api_docs_render_offline(page: Any, server: ServerProcess) -> None:
@@ -753,7 +781,7 @@ def test_jobs_compare_side_by_side_from_the_filtered_list_with_the_keyboard(
     assert page.url.endswith(f"#/jobs/compare?ids={first['id']},{second['id']}")
     assert page.locator("tr[data-param='trials']").get_attribute("class") == "differs"
     assert page.locator("tr[data-param='patrons']").get_attribute("class") is None
-    page.set_viewport_size({"width": 375, "height": 800})  # a phone: the tables scroll
+    page.set_viewport_size(PHONE)  # a phone: the tables scroll
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
     page.set_viewport_size(VIEWPORT)
     diff = page.locator("table[data-diff='rows'] tbody tr")
@@ -798,6 +826,10 @@ def test_jobs_compare_side_by_side_from_the_filtered_list_with_the_keyboard(
     assert none.text_content() == "None matches this filter (status failed, kind auction-study)."
     caption = page.text_content("#job-list caption") or ""
     assert caption.startswith("Experiment jobs (status failed, kind auction-study)")
+    page.goto(f"{server.url}/ui/#/jobs?kind=bogus")  # in words, as an unknown status is
+    said = page.locator("p.problem")
+    said.wait_for(timeout=WAIT_MS)
+    assert said.text_content() == 'No job kind is called "bogus": pick one of the list.'
 
 
 def test_every_vote_of_a_round_opens_its_explanation(
@@ -861,7 +893,7 @@ def test_every_vote_of_a_round_opens_its_explanation(
         won = {"buy": "B", "hold": "L", "quit": "Q"}[expected["vote"]]
         assert words.startswith(f"{won} {expected['decision'][won]:.4f} against ")
         assert "pushed" in words and "the most" in words
-        page.set_viewport_size({"width": 375, "height": 800})  # a phone: the table scrolls
+        page.set_viewport_size(PHONE)  # a phone: the table scrolls
         assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
         page.set_viewport_size(VIEWPORT)
         verdict = page.text_content("#verdict-words") or ""
@@ -1054,6 +1086,7 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     model_id = held["model_id"]
     page.goto(f"{server.url}/ui/#/reviews")
     page.wait_for_selector("#token-form", timeout=WAIT_MS)
+    assert page.evaluate("document.activeElement.tagName") == "BODY"  # first load: at the top
     page.focus("#admin-token")  # an empty token is said in words, the field marked invalid
     page.keyboard.press("Enter")
     page.wait_for_selector("#admin-token-status:has-text('the field is blank')", timeout=WAIT_MS)
@@ -1072,8 +1105,10 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     listed = page.text_content("#review-list") or ""
     assert "market-impact" in listed and "within the review margin 0.0050 of its bar" in listed
     assert re.search(r"(passed|missed) by 0\.00[0-4][0-9]", listed), listed  # how close
-    row.click()
+    row.focus()
+    page.keyboard.press("Enter")
     page.wait_for_selector("#evidence figure svg", timeout=WAIT_MS)
+    page.wait_for_function("() => document.activeElement.tagName === 'H1'", timeout=5000)
     assert (page.text_content("#verdict") or "").startswith("Held")
     # The named neurons, as the models view draws them.
     for name in (*ES_NEURONS, *DECISIONS):
@@ -1094,7 +1129,7 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     )
     # On a phone the market-impact chart scrolls in its frame, its values and bar labels
     # inside it (the page itself does not scroll sideways).
-    page.set_viewport_size({"width": 375, "height": 800})
+    page.set_viewport_size(PHONE)
     frame = page.locator("#evidence [role='region']:has(svg)").nth(1)
     assert frame.evaluate("(f) => f.scrollWidth > f.clientWidth")
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
@@ -1270,7 +1305,7 @@ def test_a_models_page_says_who_decided_and_keeps_the_review_history(
     page.keyboard.press("Enter")
     page.wait_for_selector("#review-list", timeout=WAIT_MS)
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
-    page.set_viewport_size({"width": 375, "height": 800})  # a phone: tables scroll, not the page
+    page.set_viewport_size(PHONE)  # a phone: tables scroll, not the page
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
     page.set_viewport_size(VIEWPORT)
     # Its inspection page, opened afresh (the token is gone with the page): once the token is

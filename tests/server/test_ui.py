@@ -416,7 +416,9 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     assert "Startednever" in summary  # and when it was created and cancelled
     ended_at = page.locator("#auction-summary dt:has-text('Ended (cancelled)') + dd")
     finished_at = api.get(f"/auctions/{auction_id}").json()["finished_at"]
-    local = "(iso) => new Date(iso).toLocaleString(undefined, {dateStyle: 'short', timeStyle: 'long'})"
+    local = (
+        "(iso) => new Date(iso).toLocaleString(undefined, {dateStyle: 'short', timeStyle: 'long'})"
+    )
     assert finished_at and ended_at.text_content() == page.evaluate(local, finished_at)
     for empty in ("#price-none", "#votes-none", "#rounds tbody td", "#explain-round option"):
         assert page.text_content(empty) == "none: no iteration was played", empty

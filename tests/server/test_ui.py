@@ -346,9 +346,8 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     page.reload()
     late = page.locator(f"#fine-tuning li[data-model='{fourth}'][data-outcome='late']")
     late.wait_for(timeout=WAIT_MS)
-    assert (
-        "late (arrived after the round closed when the auction was cancelled, not applied)"
-        in (late.text_content() or "")
+    assert "late (arrived after the round closed when the auction was cancelled, not applied)" in (
+        late.text_content() or ""
     )
     page.goto(f"{server.url}/ui/#/models/{uploaded}")
     made = page.locator("dt:has-text('Uploaded in') + dd")

@@ -124,13 +124,21 @@ def with_hold_reasons(verdict: Verdict, margin: float) -> Verdict:
         if e.inspected()
     ]
     reasons += [
-        Reason(
-            "review-margin",
-            "L",
-            f"held for an inspector: {e.test} measured {e.measured:.4f}, within {margin:g} of "
-            f"its bar {e.bar:.4f} ({e.side} the bar), too near to decide without a person",
-        )
+        Reason("review-margin", "L", _near_words(e.test, e.measured, e.bar, e.side, margin))
         for e in verdict.evidence
         if e.within(margin) and e.measured is not None and e.bar is not None
     ]
     return Verdict(verdict.accepted, [*verdict.reasons, *reasons], verdict.evidence)
+
+
+def _near_words(test: str, measured: float, bar: float, side: str, margin: float) -> str:
+    """Why a bar passed by less than ``margin`` holds the model, its numbers printed apart
+    (4 decimals, more where those would print the two alike)."""
+    digits = 4
+    while digits < 8 and f"{measured:.{digits}f}" == f"{bar:.{digits}f}":
+        digits += 1
+    return (
+        f"held for an inspector: {test} measured {measured:.{digits}f} against its bar "
+        f"{bar:.{digits}f} ({side} the bar), passed by {abs(measured - bar):.{digits}f}, "
+        f"within {margin:g} of its bar: too near to decide without a person"
+    )

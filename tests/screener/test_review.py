@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from agents.negotiator import honest_manifest
-from screener import Evidence, Reason, Verdict, impact, review, screen
+from screener import Evidence, Reason, Verdict, impact, review, screen, with_hold_reasons
 from tests.support.corpus import red_team_corpus
 
 IMPACT_BAR = 5.086
@@ -37,6 +37,16 @@ def test_an_admission_within_the_margin_of_its_bar_is_held():
     accepted = Verdict(True, [], [impact_evidence(5.090, True)])
     assert review(accepted, 0.005) == "held"
     assert review(accepted, 0.003) == "accepted"
+
+
+def test_a_hold_reason_prints_the_measure_and_its_bar_apart():
+    """Where four decimals print both alike (5.0860 and 5.0860), more are given, and how far
+    it passed."""
+    accepted = Verdict(True, [], [impact_evidence(IMPACT_BAR + 0.00003, True)])
+    (reason,) = with_hold_reasons(accepted, 0.005).reasons
+    assert reason.rule == "review-margin" and reason.neuron == "L"
+    assert "measured 5.08603 against its bar 5.08600 (at least the bar)" in reason.message
+    assert "passed by 0.00003, within 0.005 of its bar" in reason.message
 
 
 def test_a_refusal_by_a_rule_without_a_bar_in_price_stands():

@@ -353,6 +353,10 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     made = page.locator("dt:has-text('Uploaded in') + dd")
     made.wait_for(timeout=WAIT_MS)
     assert made.text_content() == f"auction {auction_id}, fine-tuning round 1, from model {second}"
+    entered = page.text_content("#model-auctions") or ""  # it bid for its patron, not as one
+    assert entered.startswith(
+        f"none as a patron of its own: an upload bids for its patron, model {second}"
+    )
 
 
 def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(

@@ -96,8 +96,27 @@ export function table(caption, headers, rows, attributes = {}) {
  * ``tall`` (a keyboard can scroll it too: it takes the focus). ``label`` names it, uniquely
  * on its page. */
 export function scrolling(node, label, tall = false) {
-  return h("div", { class: tall ? "scroll" : "scroll wide", tabindex: "0", role: "region", "aria-label": label }, node);
+  const frame = h("div", { class: tall ? "scroll" : "scroll wide", tabindex: "0", role: "region", "aria-label": label }, node);
+  frames.observe(frame);
+  if (node instanceof Element) frames.observe(node); // rows added inside a frame of full height
+  return frame;
 }
+
+/** A frame is a tab stop (for the keyboard to scroll it) only while its content overflows it:
+ * one that shows everything would be a stop that does nothing. Frames that left the page are
+ * no longer watched. */
+const frames = new ResizeObserver((entries) => {
+  for (const { target } of entries) {
+    const frame = target.closest(".scroll");
+    if (!target.isConnected || !frame) {
+      frames.unobserve(target);
+      continue;
+    }
+    const overflows = frame.scrollWidth > frame.clientWidth + 1 || frame.scrollHeight > frame.clientHeight + 1;
+    if (overflows) frame.setAttribute("tabindex", "0");
+    else if (document.activeElement !== frame) frame.removeAttribute("tabindex");
+  }
+});
 
 /** One body row of ``table``. */
 export function tableRow(cells, attributes = {}) {

@@ -108,7 +108,8 @@ export function auctionList(view, query) {
       [
         link(`#/auctions/${a.id}`, `Auction ${a.id}`),
         statusBadge(a.status),
-        a.rarity !== null && a.n_initial === 0 && a.iteration === 0 ? (a.status === "pending" ? "counted when it starts" : "none: it ended before it started") : `${a.n_sold} of ${a.n_initial}`,
+        // a rarity's fish are counted from the patrons it has when it starts, as its page says
+        a.rarity !== null && a.status === "pending" ? "counted when it starts" : a.rarity !== null && a.n_initial === 0 && a.iteration === 0 ? "none: it ended before it started" : `${a.n_sold} of ${a.n_initial}`,
         String(a.n_patrons),
         String(a.iteration),
         ["pending", "running"].includes(a.status) ? fixed(a.price) : "—",

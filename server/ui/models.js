@@ -110,7 +110,8 @@ const OUTCOMES = {
   joined: () => "joined; the auction has not started",
   bidding: () => "still bidding",
   stayed: () => "stayed to the end without buying",
-  stopped: (e) => (e.auction_status === "cancelled" ? "still bidding when the operator cancelled the auction" : "still bidding when the auction failed"),
+  // (whether it had bid yet: an auction can stop before its first iteration)
+  stopped: (e) => (e.auction_status === "cancelled" ? "still in when the operator cancelled the auction" : "still in when the auction failed"),
 };
 
 /** The auctions a participant's models entered, newest first, and how each patron left. */

@@ -380,6 +380,9 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     created = api.post("/auctions", json=body, headers={"Authorization": f"Bearer {ADMIN_TOKEN}"})
     assert created.status_code == 201, created.text
     auction_id = created.json()["auction_id"]
+    page.goto(f"{server.url}/ui/#/auctions")  # the list says what the page says
+    listed = page.locator(f"#auction-list tr[data-id='{auction_id}'] td").nth(2)
+    assert listed.text_content(timeout=WAIT_MS) == "counted when it starts"
     page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
     page.wait_for_selector("#auction-summary:has-text('Takes patrons until')", timeout=WAIT_MS)
     summary = page.text_content("#auction-summary") or ""
@@ -476,6 +479,11 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     assert page.locator("#auction-list tbody tr").count() == len(rows)
     page.unroute(listed)
     state.wait_for(state="hidden", timeout=WAIT_MS)
+    # Its patrons' pages say they were in it when it was cancelled (it never played).
+    name = next(n for n, a in population.items() if a["model_id"] == honest_ids[0])
+    page.goto(f"{server.url}/ui/#/participants/{name}")
+    entry = page.locator(f"#entries tr:has(a[href='#/auctions/{auction_id}']) td").nth(4)
+    assert entry.text_content(timeout=WAIT_MS) == "still in when the operator cancelled the auction"
 
 
 def ended_auction_page(

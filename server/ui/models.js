@@ -250,6 +250,12 @@ function network({ id, label, columns, neurons, reasonsByNeuron, sourceLabel, on
         nodes.push(svg("g", { class: "node input", "data-input": name }, svg("title", {}, name), shapes));
         return;
       }
+      if (column.repeats) {
+        // a neuron of another drawing, repeated as a source: its control is there (one tab
+        // stop per neuron, not two that open the same card)
+        nodes.push(svg("g", { class: "node neuron repeat", "data-repeats": name }, svg("title", {}, `${name} (select it in ${column.repeats})`), shapes), badge);
+        return;
+      }
       const words = reasons.length ? `${reasons.length} screener reason${reasons.length > 1 ? "s" : ""}` : "no screener reason";
       const group = svg(
         "g",
@@ -423,7 +429,7 @@ function drawnNeurons(manifest, reasons, a, { screened = true } = {}) {
     id: "network-pfc",
     label: "The self-judge: prefrontal cortex judgements and verdicts",
     columns: [
-      { label: "softmax of", names: a.pfc_sources, neurons: true },
+      { label: "softmax of", names: a.pfc_sources, neurons: true, repeats: "the decision path" },
       { label: "judgement", names: a.judgement },
       { label: "verdict", names: a.verdict },
     ],

@@ -561,8 +561,11 @@ def test_inspector_draws_the_saboteur_neuron_by_neuron_with_the_screeners_reason
     pfc = page.locator("#network-pfc")
     for name in (*ES_NEURONS, *DECISIONS):
         assert decision.locator(f"g.neuron[data-neuron='{name}']").count() == 1
-    for name in (*PFC_SOURCES, *JUDGEMENTS, *VERDICTS):
+    for name in (*JUDGEMENTS, *VERDICTS):
         assert pfc.locator(f"g.neuron[data-neuron='{name}']").count() == 1
+    for name in PFC_SOURCES:  # drawn again as the judge's sources, but one tab stop each
+        assert pfc.locator(f"g.neuron[data-repeats='{name}']:not([tabindex])").count() == 1
+        assert page.locator(f"g.neuron[data-neuron='{name}'][tabindex='0']").count() == 1
     manifest = model["manifest"]
     price_to_pg = manifest["external_sensor"]["PG"]["weights"]["price"]
     edge = decision.locator("line[data-edge='price->PG']")

@@ -80,11 +80,16 @@ export function tablesOf(result, layout) {
     if (isRows(value)) found.push({ name, caption: words(name), rows: value, ...columnsOf(value, name === layout?.table) });
   }
   const configurations = result.configurations;
+  // A comparison's caption says what each configuration is, a line each ("name: what it is").
+  const lines = typeof result.caption === "string" ? result.caption.split("\n") : [];
+  const saidOf = (name) => lines.find((line) => line.startsWith(`${name}: `))?.slice(name.length + 2);
+  const setting = ([k, v]) => (k === "refused" ? `patrons the screening refused, over all its auctions: ${v}` : `${words(k).toLowerCase()} ${shown(k, v)}`);
   if (configurations && typeof configurations === "object") {
     for (const [name, config] of Object.entries(configurations)) {
       if (config && isRows(config.rows)) {
         const about = Object.entries(config).filter(([k, v]) => k !== "rows" && (v === null || typeof v !== "object"));
-        const caption = `Configuration ${name}${about.length ? ` (${about.map(([k, v]) => `${words(k).toLowerCase()} ${shown(k, v)}`).join(", ")})` : ""}`;
+        const said = saidOf(name);
+        const caption = `Configuration ${name}${said ? `: ${said}` : ""}${about.length ? ` (${about.map(setting).join("; ")})` : ""}`;
         found.push({ name: `configurations.${name}`, caption, rows: config.rows, ...columnsOf(config.rows, layout?.table === "rows") });
       }
     }

@@ -725,6 +725,37 @@ def studies(api: httpx.Client) -> list[dict[str, Any]]:
     return [finished_job(api, STUDY), finished_job(api, other)]
 
 
+def test_a_comparison_says_what_each_configuration_is_and_its_charts_are_named_apart(
+    page: Any, server: ServerProcess, api: httpx.Client, axe_source: str
+) -> None:
+    """Each configuration's table is captioned with its line of the result's caption (an
+    "honest-alone" configuration lists the saboteur share of the population it came from);
+    two comparisons side by side draw a chart per configuration, each frame named apart."""
+    body = {"kind": "comparison", "params": {"patrons": 16, "trials": 1, "rarities": [0.5]}}
+    jobs = [
+        finished_job(api, body),
+        finished_job(api, {**body, "params": {**body["params"], "seed": 1}}),
+    ]
+    page.goto(f"{server.url}/ui/#/jobs/{jobs[0]['id']}")
+    page.wait_for_selector("table caption", timeout=WAIT_MS)
+    captions = [c.text_content() or "" for c in page.locator("table caption").all()]
+    alone = next(c for c in captions if c.startswith("Configuration honest-alone"))
+    assert alone.startswith("Configuration honest-alone: the compromised population's")
+    assert "patrons the screening refused, over all its auctions:" in " ".join(captions)
+    ids = ",".join(str(job["id"]) for job in jobs)
+    page.goto(f"{server.url}/ui/#/jobs/compare?ids={ids}")
+    page.wait_for_selector("svg#overlay-1 polyline.curve", state="attached", timeout=WAIT_MS)
+    labels = page.evaluate(
+        "[...document.querySelectorAll('[role=region]')].map((r) => r.getAttribute('aria-label'))"
+    )
+    assert len(labels) > 5 and len(labels) == len(set(labels)), labels
+    page.evaluate(axe_source)
+    found = page.evaluate(
+        "axe.run(document, {runOnly: ['landmark-unique']}).then((r) => r.violations.length)"
+    )
+    assert found == 0
+
+
 def test_job_page_opens_on_its_headline_cards_tables_and_figures(
     page: Any, server: ServerProcess, studies: list[dict[str, Any]], tmp_path: Path
 ) -> None:

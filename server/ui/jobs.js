@@ -299,7 +299,11 @@ function diffTable(name, specs, jobs) {
           if (i === 0 || typeof value !== "number" || typeof base !== "number") return h("td", {}, shown(m, value));
           const delta = value - base;
           const sign = delta > 0 ? "+" : delta < 0 ? "\u2212" : "±";
-          return h("td", { class: delta > 0 ? "delta-up" : delta < 0 ? "delta-down" : null, "data-delta": delta }, `${shown(m, value)} (${sign}${shown(m, Math.abs(delta))})`);
+          // a value that differs from the first job's is printed apart from it (5 | 5 would not say)
+          let digits = 4;
+          while (delta !== 0 && digits < 12 && Number(value.toPrecision(digits)) === Number(base.toPrecision(digits))) digits += 1;
+          const text = digits > 4 ? String(Number(value.toPrecision(digits))) : shown(m, value);
+          return h("td", { class: delta > 0 ? "delta-up" : delta < 0 ? "delta-down" : null, "data-delta": delta }, `${text} (${sign}${shown(m, Math.abs(delta))})`);
         }),
       ),
     ),

@@ -754,6 +754,34 @@ def test_a_comparison_says_what_each_configuration_is_and_its_charts_are_named_a
         "axe.run(document, {runOnly: ['landmark-unique']}).then((r) => r.violations.length)"
     )
     assert found == 0
+    # A mean price 0.00017 above the first job's is printed apart from it, not "5.1 (+0.00017)"
+    # beside "5.1".
+    first = jobs[0]["result"]["configurations"]["honest"]["rows"]
+
+    def nudged(route: Any) -> None:
+        answer = route.fetch()
+        job = answer.json()
+        for row, base in zip(job["result"]["configurations"]["honest"]["rows"], first, strict=True):
+            row["mean_price"] = base["mean_price"] + 0.00017
+        route.fulfill(response=answer, body=json.dumps(job))
+
+    page.route(re.compile(rf"/jobs/{jobs[1]['id']}$"), nudged)
+    page.reload()
+    cell = page.locator("table[data-diff='configurations.honest'] td[data-delta]").first
+    cell.wait_for(timeout=WAIT_MS)
+    shown = [  # (delta, its cell, the first job's cell beside it)
+        (
+            c.get_attribute("data-delta"),
+            c.text_content() or "",
+            c.evaluate("(td) => td.previousElementSibling.textContent"),
+        )
+        for c in page.locator("table[data-diff='configurations.honest'] td[data-delta]").all()
+    ]
+    nudge = [(ours, theirs) for delta, ours, theirs in shown if abs(float(delta) - 0.00017) < 1e-9]
+    assert nudge, shown
+    for ours, theirs in nudge:
+        assert ours.endswith("(+0.00017)") and ours.split(" (")[0] != theirs, (ours, theirs)
+    page.unroute(re.compile(rf"/jobs/{jobs[1]['id']}$"))
 
 
 def test_job_page_opens_on_its_headline_cards_tables_and_figures(

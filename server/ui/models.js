@@ -374,8 +374,10 @@ export function by(e) {
 export function evidenceTable(model) {
   const auctions = (e) => (e.detail.test_auctions ? `, ${e.detail.test_auctions} test auctions` : "");
   const priced = (e) => e.units === "price" && e.measured !== null && e.bar !== null;
-  // A missed bar says why in the screener's words, where its evidence has them.
-  const finding = (e) => (e.passed ? "" : e.detail.finding || "");
+  // A missed bar says why in the screener's words: its evidence's finding, or else the reason
+  // the screener gave under the bar's name.
+  const reasonOf = (e) => model.reasons.find((r) => r.rule === (e.detail.check || e.test))?.message;
+  const finding = (e) => (e.passed ? "" : e.detail.finding || reasonOf(e) || "");
   const rows = model.evidence.map((e) => [e.test, (e.detail.version || e.detail.check || "") + auctions(e), ...measuredAndBar(e), `${e.side} (${e.units})`, priced(e) ? by(e) : e.passed ? "passed" : "missed", finding(e)]);
   return scrolling(table("Every bar the model was held to", ["Test", "Version", "Measured", "Bar", "Side", "Result", "Why missed"], rows, { id: "evidence-table" }), "Every bar (scrolls sideways)");
 }

@@ -552,6 +552,10 @@ def test_inspector_draws_the_saboteur_neuron_by_neuron_with_the_screeners_reason
     missed = [e for e in model["evidence"] if not e["passed"] and e["detail"].get("finding")]
     table_text = page.text_content("#evidence-table") or ""
     assert missed and all(e["detail"]["finding"] in table_text for e in missed)
+    # a missed bar without a finding of its own says the reason given under its name
+    (hold,) = [r["message"] for r in model["reasons"] if r["rule"] == "sincere-hold"]
+    why = page.locator("#evidence-table tbody tr:has(td:text-is('sincere-hold')) td").last
+    assert why.text_content() == hold
     # nothing printed for what it lacks (a model without reviews had a line reading "null")
     assert "null" not in (page.text_content("main") or "")
     facts = page.text_content("main") or ""

@@ -2,7 +2,7 @@
 // model: the Fish Sale Negotiator drawn neuron by neuron, every weight by name and sign, and
 // each screener reason on the neuron it names.
 
-import { getJSON, pager, withQuery } from "./api.js";
+import { getJSON, keepCurrent, pager, withQuery } from "./api.js";
 import { facts, fill, fixed, fixedApart, h, isMissing, link, notFound, plural, problem, scrolling, signed, svg, table, tableRow, when } from "./dom.js";
 import { shown } from "./results.js";
 
@@ -87,20 +87,32 @@ export function modelList(view, query) {
   });
   const shownFilter = [participant && `participant ${participant}`, status && `status ${status}`, accepted && `accepted ${accepted}`].filter(Boolean).join(", ");
   const { node, rows } = modelTable(`Model versions${shownFilter ? ` (${shownFilter})` : ""}, newest first`, "model-list");
-  const pages = pager("/models", { participant, accepted, status }, (items) => {
-    const added = items.map(modelRow);
-    rows.append(...added);
-    return added[0];
+  const filtered = participant || accepted || status;
+  const none = h(
+    "p",
+    { class: "none-yet", id: "no-models", hidden: true },
+    participant ? `None: no version of "${participant}"${status ? ` is ${status}` : ""} (or no such participant).` : filtered ? "None with this status." : "None yet.",
+  );
+  const readState = h("p", { class: "none-yet", id: "list-state", role: "status", hidden: true });
+  // As the auctions list: the first page is read again every few seconds while the tab is
+  // shown, a version moving on in place (a held one admitted), new ones at the top.
+  const current = keepCurrent(view, {
+    path: "/models",
+    params: { participant, accepted, status },
+    newestFirst: true,
+    rows,
+    rowFor: modelRow,
+    state: readState,
+    noun: "models",
+    onRead: (rowOf) => {
+      none.hidden = rowOf.size > 0;
+    },
   });
-  view.root.append(form, scrolling(node, "Model versions (scrolls sideways)"), pages.box);
+  const pages = pager("/models", { participant, accepted, status }, current.add);
+  view.root.append(form, readState, scrolling(node, "Model versions (scrolls sideways)"), none, pages.box);
   pages
     .load()
-    .then((page) => {
-      if (page.items.length) return;
-      const filtered = participant || accepted || status;
-      const none = participant ? `none: no version of "${participant}"${status ? ` is ${status}` : ""} (or no such participant)` : filtered ? "none with this status" : "none yet";
-      rows.append(h("tr", {}, h("td", { colspan: String(MODEL_HEADERS.length) }, none)));
-    })
+    .then(() => current.read())
     .catch((error) => view.root.append(problem(error)));
 }
 

@@ -1435,8 +1435,13 @@ def test_a_malformed_participant_address_gets_the_not_found_page(
         page.goto(f"{server.url}/ui/#/{address}")
         page.wait_for_selector(f"p.problem:has-text('{words}')", timeout=WAIT_MS)
     # A filter that matches nothing says so, and the status filter lists that status only.
-    page.goto(f"{server.url}/ui/#/models?participant=nobody-{time.time_ns()}")
-    page.wait_for_selector("#model-list td:has-text('no such participant')", timeout=WAIT_MS)
+    nobody = f"nobody-{time.time_ns()}"
+    page.goto(f"{server.url}/ui/#/models?participant={nobody}")
+    page.wait_for_selector("#no-models:has-text('no such participant')", timeout=WAIT_MS)
+    # The list follows without a reload: that participant's first version appears.
+    submitted = api.post("/submit", json=honest(nobody, seed=3)).json()
+    page.wait_for_selector(f"#model-list a[href='#/models/{submitted['model_id']}']")
+    assert page.locator("#no-models").is_hidden()
     page.goto(f"{server.url}/ui/#/models?status=refused")
     page.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)
     verdicts = page.locator("#model-list tbody tr td:nth-child(4)").all_text_contents()

@@ -99,10 +99,12 @@ export function pager(path, params, render) {
  * its row (``rowFor(item)``) redrawn in place, the focus kept on the same control of it; a new
  * one is added at the top when ``newestFirst``; a listed one the first page now leaves out,
  * within the ids it covers, goes (it no longer matches the filter), as a reload would show.
- * ``state`` (a status line) says when a read failed: the rows stay as last read. ``add``
- * renders a page's items (the pager's render); ``onRead(rowOf)`` hears every read that worked.
+ * Its ``state`` (a status line to place) says when a read failed: the rows stay as last read;
+ * ``empty`` (what the list says when it lists nothing) shows while it lists nothing. ``add``
+ * renders a page's items (the pager's render); ``onRead()`` hears every read that worked.
  */
-export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, state, noun, onRead = () => {} }) {
+export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, noun, empty, onRead = () => {} }) {
+  const state = h("p", { class: "none-yet", id: "list-state", role: "status", hidden: true });
   const rowOf = new Map(); // item id -> its row
   let readAt = null;
   const draw = (item) => {
@@ -114,7 +116,8 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, sta
   const read = () => {
     readAt = new Date();
     state.hidden = true;
-    onRead(rowOf);
+    empty.hidden = rowOf.size > 0;
+    onRead();
   };
   function refresh() {
     if (document.visibilityState !== "visible") return;
@@ -154,6 +157,7 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, sta
   const timer = setInterval(refresh, LIST_REFRESH_MS);
   view.onLeave(() => clearInterval(timer));
   return {
+    state,
     add(items) {
       const added = items.map(draw);
       rows.append(...added);

@@ -129,28 +129,20 @@ export function auctionList(view, query) {
     { class: "none-yet", id: "no-auctions", hidden: true },
     chosen.status ? `None matches this filter: no auction is ${chosen.status}.` : "None yet: an operator starts one with POST /auctions.",
   );
-  // Whether the list is current: said when a read fails (the rows stay as last read), cleared
-  // when one succeeds, as is the first load's failure.
-  const readState = h("p", { class: "none-yet", id: "list-state", role: "status", hidden: true });
   let firstFailure = null;
   // The first page is read again every few seconds while the tab is shown: listed auctions
-  // move on in place, and (newest first) new ones appear at the top.
+  // move on in place, and (newest first) new ones appear at the top; whether the list is
+  // current is said when a read fails, and cleared when one succeeds, as is the first load's
+  // failure.
   const current = keepCurrent(view, {
-    path: "/auctions",
-    params,
-    newestFirst: chosen.order === "newest",
-    rows,
-    rowFor: auctionRow,
-    state: readState,
-    noun: "auctions",
-    onRead: (rowOf) => {
+    ...{ path: "/auctions", params, newestFirst: chosen.order === "newest", rows, rowFor: auctionRow, noun: "auctions", empty },
+    onRead: () => {
       firstFailure?.remove();
       firstFailure = null;
-      empty.hidden = rowOf.size > 0;
     },
   });
   const pages = pager("/auctions", params, current.add);
-  view.root.append(readState, scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
+  view.root.append(current.state, scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
   pages
     .load()
     .then(() => current.read())

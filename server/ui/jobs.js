@@ -111,23 +111,12 @@ export function jobList(view, query) {
     { class: "none-yet", id: "no-jobs", hidden: true },
     filterWords ? `None matches this filter (${filterWords}).` : "None yet: an operator queues a job with POST /jobs.",
   );
-  const readState = h("p", { class: "none-yet", id: "list-state", role: "status", hidden: true });
   // As the auctions list: the first page is read again every few seconds while the tab is
   // shown, jobs move on in place and (newest first) new ones appear at the top.
-  const current = keepCurrent(view, {
-    path: "/jobs",
-    params,
-    newestFirst: chosen.order === "newest",
-    rows,
-    rowFor: jobRow,
-    state: readState,
-    noun: "jobs",
-    onRead: (rowOf) => {
-      none.hidden = rowOf.size > 0;
-    },
-  });
+  const newestFirst = chosen.order === "newest";
+  const current = keepCurrent(view, { path: "/jobs", params, newestFirst, rows, rowFor: jobRow, noun: "jobs", empty: none });
   const pages = pager("/jobs", params, current.add);
-  view.root.append(form, readState, scrolling(list, "Experiment jobs (scrolls sideways)"), none, pages.box);
+  view.root.append(form, current.state, scrolling(list, "Experiment jobs (scrolls sideways)"), none, pages.box);
   pages
     .load()
     .then(() => current.read())

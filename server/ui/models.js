@@ -93,23 +93,12 @@ export function modelList(view, query) {
     { class: "none-yet", id: "no-models", hidden: true },
     participant ? `None: no version of "${participant}"${status ? ` is ${status}` : ""} (or no such participant).` : filtered ? "None with this status." : "None yet.",
   );
-  const readState = h("p", { class: "none-yet", id: "list-state", role: "status", hidden: true });
   // As the auctions list: the first page is read again every few seconds while the tab is
   // shown, a version moving on in place (a held one admitted), new ones at the top.
-  const current = keepCurrent(view, {
-    path: "/models",
-    params: { participant, accepted, status },
-    newestFirst: true,
-    rows,
-    rowFor: modelRow,
-    state: readState,
-    noun: "models",
-    onRead: (rowOf) => {
-      none.hidden = rowOf.size > 0;
-    },
-  });
-  const pages = pager("/models", { participant, accepted, status }, current.add);
-  view.root.append(form, readState, scrolling(node, "Model versions (scrolls sideways)"), none, pages.box);
+  const params = { participant, accepted, status };
+  const current = keepCurrent(view, { path: "/models", params, newestFirst: true, rows, rowFor: modelRow, noun: "models", empty: none });
+  const pages = pager("/models", params, current.add);
+  view.root.append(form, current.state, scrolling(node, "Model versions (scrolls sideways)"), none, pages.box);
   pages
     .load()
     .then(() => current.read())

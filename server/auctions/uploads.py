@@ -35,7 +35,7 @@ from sqlalchemy.exc import IntegrityError
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, ManifestError, parse_manifest, parse_manifest_json
-from screener import Verdict
+from screener import Verdict, review
 from server.api.errors import api_error, error_item, validation_error
 from server.api.security import require_participant
 from server.auctions.arrivals import Arrivals
@@ -46,6 +46,7 @@ from server.store import crud
 from server.store.db import Database, JSONText, WriteLockBusyError, is_database_outage
 from server.store.status import ANSWERED, AUCTION_ENDED, RoundStatus
 from server.store.tables import utcnow
+from server.submissions import quotas
 from sim.market.design import design_changes
 
 T = TypeVar("T")
@@ -205,14 +206,24 @@ def _check_patron(
 
 
 def _record(
-    connection: Connection, *, answer_id: int, round_id: int, verdict: Verdict, margin: float
+    connection: Connection,
+    *,
+    answer_id: int,
+    round_id: int,
+    verdict: Verdict,
+    margin: float,
+    participant: str,
+    address: str | None,
 ) -> tuple[bytes, bool]:
     """Record a pending upload's verdict; its answer, and whether it closed the round (every
-    asked patron judged: the auction is due)."""
+    asked patron judged: the auction is due). A refused or held upload counts as the
+    participant's refusal, as a ``/submit`` one does (``quotas.record_round_refusal``)."""
     now = utcnow()
     body = crud.record_verdict(
         connection, answer_id=answer_id, verdict=verdict, margin=margin, now=now
     )
+    if review(verdict, margin) != "accepted":
+        quotas.record_round_refusal(connection, participant=participant, address=address, now=now)
     return body, crud.close_when_answered(connection, round_id=round_id, now=now)
 
 
@@ -275,6 +286,8 @@ class UploadRequest:
     token: str
     body: bytes
     arrived: datetime
+    address: str | None = None
+    """The client's address (None in process): a refused or held upload counts against it."""
 
 
 def _arrive(
@@ -401,7 +414,13 @@ async def upload(
     if isinstance(verdict, bytes):  # the step closing the round judged it meanwhile
         return verdict
     record = functools.partial(
-        _record, answer_id=answer_id, round_id=round_id, verdict=verdict, margin=margin
+        _record,
+        answer_id=answer_id,
+        round_id=round_id,
+        verdict=verdict,
+        margin=margin,
+        participant=manifest.participant,
+        address=request.address,
     )
     answer, due = await _write(database, record)
     if due:

@@ -9,7 +9,8 @@ Per participant:
 Per client address:
 * registrations (first submissions of a new participant name) per day;
 * new accepted versions per minute and per day, over all its participants;
-* screener refusals per hour;
+* screener refusals per hour (a refused or held round upload counts too, and starts its
+  participant's cooldown: ``record_round_refusal``);
 * appeals per day (``appeal_throttle``: each puts a model back in the inspectors' queue).
 
 A submission over a limit is answered 429 with ``Retry-After`` and a message naming the limit
@@ -23,6 +24,7 @@ import math
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 
+from sqlalchemy import Connection
 from sqlalchemy.orm import Session
 
 from server.api.connections import client_address
@@ -216,6 +218,19 @@ def _over(
     return Throttled(
         f"{who!r} reached its limit of {limit} {what} ({setting}); retry in {wait} s", wait
     )
+
+
+def record_round_refusal(
+    connection: Connection, *, participant: str, address: str | None, now: datetime
+) -> None:
+    """Count a round upload the screener refused or held as a refusal of its participant and
+    its address, as ``/submit`` counts its own: it starts the participant's cooldown and
+    spends the address's refusals per hour (a patron's one upload per round is not itself
+    throttled: its deadline is judged at arrival, and the rounds are the operator's)."""
+    events = [(participant_subject(participant), REFUSAL)]
+    if address is not None:
+        events.append((address_subject(address), REFUSAL))
+    crud.insert_rate_events(connection, events=events, now=now)
 
 
 def record_admitted(session: Session, *, participant: str, now: datetime) -> None:

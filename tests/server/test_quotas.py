@@ -3,6 +3,7 @@ nothing stored, counted in the database (so every API process sharing it sees th
 
 from __future__ import annotations
 
+import json
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
@@ -12,6 +13,7 @@ from fastapi.testclient import TestClient
 
 from server.app import create_app
 from server.store.tables import ModelVersion, Participant, RateEvent
+from tests.server.test_remote_protocol import first_asked_upload, put, remote_auction
 from tests.support.databases import postgres_admin_url, throwaway_postgres
 from tests.support.factories import honest, saboteur, unique
 from tests.support.server import count, make_settings
@@ -69,6 +71,27 @@ def test_refusals_in_a_row_cool_the_participant_down(tmp_path) -> None:
         assert count(client, ModelVersion) == before
         honest_too = client.post("/submit", json=honest(name), headers=bearer(token))
         assert_throttled(honest_too, "SRD_REFUSAL_COOLDOWN_S")  # whatever it sends
+
+
+def test_a_refused_round_upload_counts_as_a_refusal(tmp_path) -> None:
+    """A round upload the screener refuses starts its participant's cooldown and spends its
+    address's refusals per hour, as a refused /submit does: a round cannot be used to probe
+    the screener past those limits."""
+    with quota_app(tmp_path, refusal_cooldown_s=30.0, quota_address_refusals_per_hour=1) as client:
+        remote = remote_auction(client, "round-prober", 900, seed=5)
+        auction_id, model_id, token, upload = first_asked_upload(remote)
+        probe = upload.model_dump(mode="json")
+        probe["decision"]["B"]["weights"]["PG"] = 0.9  # buys more as the price rises
+        answer = put(client, auction_id, 1, model_id, json.dumps(probe).encode(), token)
+        assert answer.status_code == 200 and answer.json()["accepted"] is False, answer.text
+        again = client.post("/submit", json=honest(upload.participant), headers=bearer(token))
+        assert_throttled(again, "SRD_QUOTA_ADDRESS_REFUSALS_PER_HOUR")  # the address's first
+    with quota_app(tmp_path, refusal_cooldown_s=30.0) as same_database:  # its own limit off
+        later = same_database.post(
+            "/submit", json=honest(upload.participant), headers=bearer(token)
+        )
+        assert_throttled(later, "SRD_REFUSAL_COOLDOWN_S")
+        assert "refused or held by the screener 1 time(s) in a row" in later.text
 
 
 def test_registrations_per_address(tmp_path) -> None:

@@ -191,6 +191,7 @@ async def upload_round_model(
     runner: AuctionRunnerDep,
     settings: SettingsDep,
     arrivals: ArrivalsDep,
+    http: Request,
 ) -> Response:
     """Upload the patron's fine-tuned manifest for this round (participant token). It is
     re-screened: accepted, it becomes the participant's next version and bids from the next
@@ -198,7 +199,10 @@ async def upload_round_model(
     returned and the previous version bids on. Wrong round
     → 409 naming the current one; closed or past the deadline → 410 (recorded as late)."""
     content, arrived = body
-    request = rounds.UploadRequest(auction_id, round_number, model_id, token, content, arrived)
+    address = http.client.host if http.client is not None else None
+    request = rounds.UploadRequest(
+        auction_id, round_number, model_id, token, content, arrived, address
+    )
     answer = await rounds.upload(
         database,
         screening,
@@ -312,7 +316,10 @@ async def round_socket(
                     loc=("header", "Authorization"),
                     kind="missing_token",
                 )
-            request = rounds.UploadRequest(auction_id, round_number, model_id, token, body, arrived)
+            address = websocket.client.host if websocket.client is not None else None
+            request = rounds.UploadRequest(
+                auction_id, round_number, model_id, token, body, arrived, address
+            )
             release = await limits.hold(websocket.scope, limits.uploads)  # as a PUT's: 429
             try:
                 return await rounds.upload(

@@ -7,7 +7,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
 
-from sqlalchemy import ColumnElement, bindparam, case, delete, func, insert, select, text
+from sqlalchemy import (
+    ColumnElement,
+    Connection,
+    bindparam,
+    case,
+    delete,
+    func,
+    insert,
+    select,
+    text,
+)
 from sqlalchemy.orm import Session
 
 from server.store.tables import RateEvent
@@ -82,12 +92,14 @@ def recent_events(
 
 
 def insert_rate_events(
-    session: Session, *, events: Sequence[tuple[str, str]], now: datetime
+    session: Session | Connection, *, events: Sequence[tuple[str, str]], now: datetime
 ) -> None:
-    """Insert (subject, kind) events that happened ``now``."""
+    """Insert (subject, kind) events that happened ``now`` (in a session's transaction, or a
+    connection's)."""
     rows = [{"subject": subject, "kind": kind, "created_at": now} for subject, kind in events]
     if rows:
-        session.connection().execute(insert(RateEvent), rows)
+        connection = session.connection() if isinstance(session, Session) else session
+        connection.execute(insert(RateEvent), rows)
 
 
 def prune_rate_events(session: Session, *, before: datetime) -> None:

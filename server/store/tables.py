@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import unicodedata
 from datetime import UTC, datetime
 from typing import Any
@@ -70,9 +71,20 @@ NAME_KEY_LENGTH = 128
 """Longest stored name key (a folded name can be longer than the name)."""
 
 
+_LOOKALIKE = str.maketrans({"1": "l", "i": "l", "|": "l", "0": "o", "_": "-", ".": "-"})
+"""Characters a reader takes for one another in a name: I, l and 1; O and 0; the separators."""
+
+
 def participant_key(name: str) -> str:
-    """What makes two participant names the same: their NFKC form, case-folded."""
-    return unicodedata.normalize("NFKC", name).casefold()
+    """What makes two participant names the same, as a person reads them: their NFKC form,
+    case-folded, with the characters one takes for one another made one (I, l and 1; O and 0;
+    rn and m; vv and w; -, _ and ., and a run of them), separators at the ends and zeros
+    leading a number left out: ``honest-I``, ``honest_1``, ``Honest-01`` and ``honest-1`` are
+    one name, which belongs to whoever registered one of them first."""
+    folded = unicodedata.normalize("NFKC", name).casefold()
+    folded = re.sub(r"(?<![0-9])0+(?=[0-9])", "", folded)
+    read = folded.translate(_LOOKALIKE).replace("rn", "m").replace("vv", "w")
+    return re.sub(r"-+", "-", read).strip("-") or read
 
 
 def _name_key_default(context: DefaultExecutionContext) -> str:
@@ -90,8 +102,8 @@ class Participant(Base):
     name_key: Mapped[str] = mapped_column(
         String(NAME_KEY_LENGTH), unique=True, default=_name_key_default
     )
-    """``participant_key(name)``: unique, so names differing only in case or Unicode form
-    are one participant (set from ``name`` on insert)."""
+    """``participant_key(name)``: unique, so names differing only in case, Unicode form or
+    look-alike characters are one participant (set from ``name`` on insert)."""
     token_hash: Mapped[str] = mapped_column(String(64), index=True)
     """SHA-256 of its token, indexed: the per-client limits tell a real token from a made-up
     one by it."""

@@ -5,8 +5,9 @@ Quotas (``server.submissions.quotas``) are decided in the same transaction. ``pr
 the same questions (name, token, quotas) before the route spends screening on a submission; the
 answer given at ``store`` is the authoritative one.
 
-Names are compared after NFKC and case folding (``server.store.tables.participant_key``): a
-name that is a stored one but for case or Unicode form is refused (409, taken; its owner, by its
+Names are compared after NFKC and case folding, look-alike characters made one
+(``server.store.tables.participant_key``): a name that is a stored one but for case, Unicode
+form or look-alikes is refused (409, taken; its owner, by its
 token, is told the registered spelling: 422). A refused submission
 (taken name, missing or wrong token, over a quota) writes nothing. A unique name or version
 taken meanwhile by another process is answered 409 (retry); a database outage is the global
@@ -78,23 +79,30 @@ class _Submission:
     """The verdict under review (``screener.review``)."""
 
 
+COMPARED = (
+    "(names are compared ignoring case, Unicode form and look-alike characters: I, l and 1; "
+    "O and 0; rn and m; -, _ and .)"
+)
+
+
 def _name_refusal(item: _Submission, participant: crud.ParticipantRow | None) -> Refused | None:
-    """A name that is a registered participant's but for case or Unicode form: its owner (its
-    token) is told the registered spelling; anyone else that the name is taken."""
+    """A name that is a registered participant's but for case, Unicode form or look-alike
+    characters: its owner (its token) is told the registered spelling; anyone else that the
+    name is taken."""
     if participant is None or participant.name == item.participant:
         return None
     if item.bearer is not None and token_matches(item.bearer, participant.token_hash):
         return Refused(
             422,
             f"your participant is spelled {participant.name!r}, not {item.participant!r}: "
-            "write it so (names are compared ignoring case and Unicode form)",
+            f"write it so {COMPARED}",
             ("body", "participant"),
             "name_spelling",
         )
     return Refused(
         409,
         f"the name {item.participant!r} is taken: participant {participant.name!r} has it "
-        "(names are compared ignoring case and Unicode form)",
+        f"{COMPARED}",
         ("body", "participant"),
         "name_taken",
     )

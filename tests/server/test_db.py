@@ -107,6 +107,45 @@ def test_a_description_stored_before_the_schema_refused_its_characters_reads_aga
     assert parse_manifest(stored).description == cleaned
 
 
+def test_look_alike_names_registered_before_keep_working_and_new_ones_are_taken(
+    fresh_database_url: str, tmp_path: Path
+) -> None:
+    """Names that read alike (honest-1, honest-I) registered before revision 0015 each keep
+    their participant (the first its key, the later one a key of its own); once upgraded, a new
+    look-alike of either is taken (409), and its owner is told its spelling."""
+    from alembic import command
+
+    command.upgrade(alembic_config(fresh_database_url), "0014")
+    database = Database(fresh_database_url)
+    with database.engine.begin() as connection:
+        for name in ("look-1", "look-I"):
+            connection.execute(
+                text(
+                    "insert into participants (name, name_key, token_hash, created_at) "
+                    "values (:n, :k, 'x', :at)"
+                ),
+                {"n": name, "k": name.casefold(), "at": utcnow()},
+            )
+    database.close()
+    upgrade_schema(fresh_database_url)
+    settings = make_settings(fresh_database_url, tmp_path / "data")
+    with TestClient(create_app(settings)) as client:
+        for name in ("look-1", "look-I"):  # each still its own participant's: it asks its token
+            again = client.post("/submit", json=honest(name))
+            assert again.status_code == 401 and "missing_token" in again.text, again.text
+        taken = client.post("/submit", json=honest("Look_l"))
+        assert taken.status_code == 409, taken.text
+        (item,) = taken.json()["detail"]
+        assert item["type"] == "name_taken" and "'look-1' has it" in item["msg"]
+        first = client.post("/submit", json=honest("mirror-0")).json()
+        spelled = client.post(
+            "/submit",
+            json=honest("Mirror-O"),
+            headers={"Authorization": f"Bearer {first['token']}"},
+        )
+        assert spelled.status_code == 422 and "spelled 'mirror-0'" in spelled.text
+
+
 def _insert_row(connection: Any, name: str, given: dict[str, Any]) -> int:
     """Insert a row into table ``name`` as its schema stands (reflected): ``given`` values,
     and a plain value of its type for every other column that needs one."""

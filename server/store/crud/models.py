@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import bindparam, func, insert, select
+from sqlalchemy import bindparam, case, func, insert, select
 from sqlalchemy.orm import Session
 
 from server.store.tables import (
@@ -81,6 +81,7 @@ def is_participant_token(session: Session, token_hash: str) -> bool:
 _PARTICIPANT_BY_NAME = (
     select(Participant.id, Participant.name, Participant.name_key, Participant.token_hash)
     .where((Participant.name == bindparam("name")) | (Participant.name_key == bindparam("key")))
+    .order_by(case((Participant.name == bindparam("name"), 0), else_=1))  # its own name first
     .with_for_update()
 )
 _LATEST_VERSION = select(func.max(ModelVersion.version)).where(
@@ -91,8 +92,9 @@ _INSERT_MODEL_VERSION = insert(ModelVersion).returning(ModelVersion.id)
 
 
 def participant_by_name(session: Session, *, name: str) -> ParticipantRow | None:
-    """The participant named ``name``, or whose name is the same but for case or Unicode form
-    (``participant_key``: unique, so at most one), its row locked until commit."""
+    """The participant named ``name``, or else whose name is the same but for case, Unicode
+    form or look-alike characters (``participant_key``: unique, so at most one; a name stored
+    before its key was unique keeps its participant), its row locked until commit."""
     row = (
         session.connection()
         .execute(_PARTICIPANT_BY_NAME, {"name": name, "key": participant_key(name)})

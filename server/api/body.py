@@ -83,6 +83,14 @@ def _resolve(value: Any, path: tuple[str | int, ...], depth: int) -> Any:
     if isinstance(value, _Pairs):
         out: dict[str, Any] = {}
         for key, item in value:
+            if _SURROGATE.search(key):
+                shown = key.encode("utf-8", "backslashreplace").decode("ascii", "replace")
+                raise BodyRefusedError(
+                    422,
+                    f'key "{shown}" is not text: it holds a lone surrogate escape',
+                    ("body", *path),
+                    "not_text",
+                )
             if key in out:
                 raise BodyRefusedError(
                     422, f"key {key!r} appears twice", ("body", *path, key), "duplicate_key"
@@ -189,6 +197,18 @@ def _unique(items: list[tuple[str, Any]]) -> dict[str, Any]:
     return out
 
 
+_SURROGATE = re.compile("[\ud800-\udfff]")
+"""A lone surrogate, which only a ``\\uD800``-style escape puts in a JSON string: no text."""
+
+
+def _unique_text(items: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``_unique``, refusing a key that is no text (a lone surrogate escape): one would reach
+    the messages that name it, and no text encoding holds it."""
+    if any(_SURROGATE.search(key) for key, _ in items):
+        raise _UnfitError("a key is not text: it holds a lone surrogate escape", "not_text")
+    return _unique(items)
+
+
 def _non_finite(_: str) -> Any:
     raise _UnfitError("must be a finite number", "finite_number")
 
@@ -199,7 +219,9 @@ def _fast(raw: bytes, text: str) -> Any:
     brackets = _brackets(raw) if b"[" in raw or b"{" in raw else b""
     if _LONG_DIGITS in raw.translate(_DIGITS_AS_ZERO):
         raise _UnfitError(f"a number of more than {MAX_INT_DIGITS} digits", "number_too_long")
-    value = json.loads(text, object_pairs_hook=_unique, parse_constant=_non_finite)
+    escapes = b"\\u" in raw  # only an escape can spell a lone surrogate
+    hook = _unique_text if escapes else _unique
+    value = json.loads(text, object_pairs_hook=hook, parse_constant=_non_finite)
     if _nesting(brackets) > MAX_DEPTH:
         raise _UnfitError(f"JSON nested deeper than {MAX_DEPTH} levels", "json_depth")
     return value

@@ -10,9 +10,11 @@ kept in browser histories; that header or ``Last-Event-ID`` given twice (400: wh
 counts would be a guess), or a query parameter given twice (400 too: a route reads the last,
 a limit might read the first); a query longer than ``MAX_QUERY_BYTES`` (414: no route takes
 one, and reading it cost the event loop 1.5 ms a KB); a write (any method but ``GET``,
-``HEAD`` and ``OPTIONS``) that a browser marks ``Sec-Fetch-Site: cross-site`` (403: another
-site's page would otherwise make its visitors register participants and spend their
-addresses' quotas; the API's own clients and the web view are not cross-site).
+``HEAD`` and ``OPTIONS``) that a browser marks as sent by another site's page
+(``Sec-Fetch-Site: cross-site`` or ``same-site``; without that header, an ``Origin`` of
+another host; 403: another site's page would otherwise make its visitors register
+participants and spend their addresses' quotas; the API's own clients and the web view are
+neither).
 ``RedactQueryFilter`` blanks such parameters (and any other whose name says secret) in
 uvicorn's access log lines, and cuts a line's path to ``MAX_LOGGED_PATH`` characters.
 
@@ -27,7 +29,7 @@ from __future__ import annotations
 import logging
 import re
 from collections import Counter
-from urllib.parse import parse_qsl, unquote_plus
+from urllib.parse import parse_qsl, unquote_plus, urlsplit
 
 from fastapi.responses import JSONResponse
 from starlette.datastructures import MutableHeaders
@@ -95,14 +97,12 @@ class SecurityHeadersMiddleware:
             )
             return
         if scope["type"] == "http" and scope["method"] not in SAFE_METHODS:
-            for name, value in scope["headers"]:
-                if name == b"sec-fetch-site" and value.strip().lower() == b"cross-site":
-                    message = "a request another site's page sent is refused for what it writes"
-                    loc = ("header", "Sec-Fetch-Site")
-                    await _refuse(
-                        scope, receive, _with_headers(send), message, loc, "cross_site", 403
-                    )
-                    return
+            foreign = _foreign_page(scope["headers"])
+            if foreign is not None:
+                message = "a request another site's page sent is refused for what it writes"
+                loc = ("header", foreign)
+                await _refuse(scope, receive, _with_headers(send), message, loc, "cross_site", 403)
+                return
         pairs = parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True)
         counts = Counter(name for name, _ in pairs)  # linear: 13,500 names had taken 3.8 s
         names = counts.keys()
@@ -178,13 +178,39 @@ async def _refuse(
         await send({"type": "websocket.close", "code": 1008})
 
 
+def _foreign_page(headers: list[tuple[bytes, bytes]]) -> str | None:
+    """The header by which a browser says another page than the server's own sent a request
+    (its name), or None: ``Sec-Fetch-Site`` ``cross-site`` or ``same-site`` (a sibling
+    subdomain, or another port of this host, is another site's page too); without it (an older
+    browser), an ``Origin`` whose host is not the request's ``Host`` (or ``null``). Scripts
+    and ``srd`` send neither."""
+    given = {name: value.strip().lower() for name, value in headers}
+    site = given.get(b"sec-fetch-site")
+    if site is not None:
+        return "Sec-Fetch-Site" if site in (b"cross-site", b"same-site") else None
+    origin = given.get(b"origin")
+    if origin is None:
+        return None
+    try:
+        own = urlsplit("//" + given.get(b"host", b"").decode("latin-1")).hostname
+        theirs = urlsplit(origin.decode("latin-1")).hostname
+    except ValueError:  # not an address at all
+        return "Origin"
+    return None if theirs is not None and theirs == own else "Origin"
+
+
 def redact_query(path: str) -> str:
     """``path`` with the values of its secret-named query parameters replaced by ``***``, and
     the whole query if one of the service's tokens is still in it anywhere (``?q=Bearer
-    srdp_...``, ``?srdp_...``, ``?a=1;t=srdp_...``)."""
+    srdp_...``, ``?srdp_...``, ``?a=1;t=srdp_...``), and any segment of the path itself that
+    holds one (``/nosuch/srdp_...``)."""
     base, mark, query = path.partition("?")
+    # a token put in the path (a mistyped address, a probe): that segment goes
+    base = "/".join(
+        "***" if SECRET_VALUE.search(unquote_plus(part)) else part for part in base.split("/")
+    )
     if not mark:
-        return path
+        return base
 
     def blank(match: re.Match[str]) -> str:
         name = match.group(1)

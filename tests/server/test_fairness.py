@@ -379,6 +379,7 @@ def test_tokens_in_the_url_are_refused_and_never_logged(server: ServerProcess) -
         # a token's value anywhere in the query, whatever names it
         for query in (f"x={secret}", f"q=Bearer%20{secret}", secret, f"a=1;t={secret}"):
             assert client.get(f"/livez?{query}").status_code in (200, 422)
+        assert client.get(f"/nosuch/{secret}").status_code == 404  # or in the path itself
     for query in (f"token={secret}", f"api_key={secret}"):  # a WebSocket handshake's line
         with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
             sock.sendall(
@@ -393,6 +394,7 @@ def test_tokens_in_the_url_are_refused_and_never_logged(server: ServerProcess) -
     assert all(f"/healthz?{name}=*** " in log for name in ("bearer", "session", "pw"))
     assert log.count("/livez?*** ") == 4
     assert '"WebSocket /auctions/1/rounds/socket?token=***"' in log
+    assert '"GET /nosuch/*** HTTP/1.1" 404' in log
 
 
 def test_every_answer_carries_the_security_headers(server: ServerProcess) -> None:

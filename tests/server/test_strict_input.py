@@ -152,6 +152,21 @@ def test_duplicate_key_is_refused_naming_it(client: TestClient) -> None:
     assert count(client, ModelVersion) == before
 
 
+def test_a_key_that_is_no_text_is_refused_naming_where(client: TestClient) -> None:
+    """A lone surrogate escape in a key (no text encoding holds it) is 422 at the object that
+    holds it, on any route: it had reached a job's error message and made it a 500."""
+    for escape in ("\\ud800", "a\\uDC00b"):
+        body = '{"kind": "fish", "params": {"' + escape + '": 1}}'
+        answer = client.post("/jobs", content=body, headers={**JSON, **ADMIN})
+        assert answer.status_code == 422, answer.text
+        (item,) = answer.json()["detail"]
+        assert item["loc"] == ["body", "params"] and item["type"] == "not_text"
+        assert "lone surrogate" in item["msg"]
+    escaped = '{"kind": "fish", "params": {"\\u00e9": 1}}'  # an escape of a letter is text
+    answer = client.post("/jobs", content=escaped, headers={**JSON, **ADMIN})
+    assert answer.status_code == 422 and locs(answer) == [["body", "params", "é"]]
+
+
 def test_body_must_be_utf8_json(client: TestClient) -> None:
     text = json.dumps(honest(unique("enc")))
     before = count(client, ModelVersion)
@@ -596,7 +611,21 @@ def test_a_write_another_site_sent_is_refused(client: TestClient) -> None:
     assert item["loc"] == ["header", "Sec-Fetch-Site"] and item["type"] == "cross_site"
     assert count(client, ModelVersion) == before
     assert client.get("/models", headers={"Sec-Fetch-Site": "cross-site"}).status_code == 200
-    for site in ("same-origin", "same-site", "none"):  # the web view, a typed URL, a script
+    for site in ("same-origin", "none"):  # the web view, a typed URL
         again = json.dumps(honest(unique("site"))).encode()
         answer = client.post("/submit", content=again, headers={"Sec-Fetch-Site": site})
         assert answer.status_code == 201, answer.text
+    # a sibling subdomain's page (or another port's) is another site's too; and an older
+    # browser that sends no Sec-Fetch-Site is judged by its Origin
+    host = client.base_url.host
+    for headers, loc in (
+        ({"Sec-Fetch-Site": "same-site"}, "Sec-Fetch-Site"),
+        ({"Origin": "https://evil.example"}, "Origin"),
+        ({"Origin": "null"}, "Origin"),
+    ):
+        refused = client.post("/submit", content=body, headers=headers)
+        assert refused.status_code == 403 and locs(refused) == [["header", loc]], refused.text
+    assert count(client, ModelVersion) == before + 2
+    own = json.dumps(honest(unique("own"))).encode()
+    answer = client.post("/submit", content=own, headers={"Origin": f"http://{host}:8000"})
+    assert answer.status_code == 201, answer.text  # its own page, whatever the port

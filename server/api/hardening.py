@@ -96,7 +96,8 @@ class SecurityHeadersMiddleware:
                 scope, receive, _with_headers(send), message, ("query",), "query_size", 414
             )
             return
-        if scope["type"] == "http" and scope["method"] not in SAFE_METHODS:
+        # a write, or a round socket (which carries uploads, and takes a share of the address's)
+        if scope["type"] == "websocket" or scope["method"] not in SAFE_METHODS:
             foreign = _foreign_page(scope["headers"])
             if foreign is not None:
                 message = "a request another site's page sent is refused for what it writes"

@@ -267,6 +267,15 @@ def test_handshakes_are_refused_for_a_bad_or_unknown_auction_and_beyond_the_limi
         assert malformed.value.status_code == 401, header
         [item] = malformed.value.json()["detail"]
         assert item["loc"] == ["header", "Authorization"] and item["type"] == "bad_authorization"
+    for foreign in ({"Origin": "https://evil.example"}, {"Sec-Fetch-Site": "cross-site"}):
+        with (  # another site's page: it would take the visitor's address's share of sockets
+            pytest.raises(WebSocketDenialResponse) as refused,
+            client.websocket_connect(socket_path(remote["id"]), headers=foreign),
+        ):
+            pass
+        assert refused.value.status_code == 403
+        [item] = refused.value.json()["detail"]
+        assert item["loc"] == ["header", next(iter(foreign))] and item["type"] == "cross_site"
     for bad in ("abc", "0", "99999999999"):
         with (
             pytest.raises(WebSocketDenialResponse) as invalid,

@@ -79,7 +79,9 @@ RATE_ADDRESSES = 100_000
 """Addresses whose request buckets a process keeps; past it, it forgets them all."""
 KNOWN_TOKENS = 100_000
 """Digests of real tokens a process remembers; past it, it forgets them all and looks each
-up again (tokens are never revoked, so a remembered one stays true)."""
+up again. A token rotated away (``POST /participants/{name}/token``) stays remembered as
+real until then: it keeps a client's share of the limits, never a right (every request that
+needs a token checks it against the database)."""
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ from agents.manifest import Manifest, name_problem
 from screener import Verdict, review, with_hold_reasons
 from server.api.connections import client_address
 from server.api.errors import RequestError, api_error
+from server.api.security import hash_token, new_token, require_participant, token_matches
 from server.screening.pool import ScreenerUnavailableError, ScreeningService
 from server.store import crud
 from server.store.status import ModelStatus
@@ -88,6 +89,24 @@ def read_model(session: Session, model_id: int, *, auctions: int) -> crud.Stored
             404, f"model {model_id} does not exist", loc=("path", "model_id"), kind="not_found"
         )
     return row
+
+
+def rotate_token(session: Session, name: str, *, token: str, admin_hash: str) -> tuple[str, str]:
+    """A new token for the participant named ``name`` (its exact name, 404 otherwise), given
+    its current token or the operator's (403 with any other); the participant's name and the
+    new token, whose hash replaces the old one's (the old token is refused from the commit
+    on)."""
+    row = crud.participant_by_name(session, name=name)  # locked until the commit
+    if row is None or row.name != name:
+        raise api_error(
+            404, f"participant {name!r} does not exist", loc=("path", "name"), kind="not_found"
+        )
+    if not token_matches(token, admin_hash):
+        require_participant(token, row.token_hash, row.name)
+    fresh = new_token(crud.PARTICIPANT_TOKEN_PREFIX)
+    crud.set_token_hash(session, participant_id=row.id, token_hash=hash_token(fresh))
+    session.commit()
+    return row.name, fresh
 
 
 def read_participant(session: Session, name: str, *, limit: int) -> crud.ParticipantView:

@@ -353,3 +353,33 @@ def test_an_unexpected_error_is_a_json_500_that_tells_nothing_of_its_cause(tmp_p
     assert "secret" not in answer.text
     assert answer.headers["x-content-type-options"] == "nosniff"
     assert "default-src 'none'" in answer.headers["content-security-policy"]
+
+
+def test_a_participant_rotates_its_token_and_the_old_one_is_refused(client: TestClient) -> None:
+    """A token that may have leaked is replaced with the participant's own token; a lost one
+    with the operator's. The old token is refused from then on, for every request."""
+    name = unique("rotates")
+    first = client.post("/submit", json=honest(name)).json()["token"]
+    path = f"/participants/{name}/token"
+    assert client.post(path).status_code == 401
+    stranger = client.post("/submit", json=honest(unique("stranger"))).json()["token"]
+    refused = client.post(path, headers={"Authorization": f"Bearer {stranger}"})
+    assert refused.status_code == 403 and locs(refused) == [["header", "Authorization"]]
+    missing = client.post(f"/participants/{unique('nobody')}/token", headers=ADMIN)
+    assert missing.status_code == 404 and locs(missing) == [["path", "name"]]
+    rotated = client.post(path, headers={"Authorization": f"Bearer {first}"})
+    assert rotated.status_code == 200, rotated.text
+    second = rotated.json()["token"]
+    assert rotated.json()["participant"] == name and second != first
+    assert second.startswith("srdp_") and len(second) > 40
+    old = client.post("/submit", json=honest(name), headers={"Authorization": f"Bearer {first}"})
+    assert old.status_code == 403, old.text
+    new = client.post("/submit", json=honest(name), headers={"Authorization": f"Bearer {second}"})
+    assert new.status_code == 201 and new.json()["version"] == 2, new.text
+    by_operator = client.post(path, headers=ADMIN)  # a participant that lost its token
+    third = by_operator.json()["token"]
+    for token, status in ((second, 403), (third, 201)):
+        again = client.post(
+            "/submit", json=honest(name), headers={"Authorization": f"Bearer {token}"}
+        )
+        assert again.status_code == status, again.text

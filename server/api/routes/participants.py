@@ -1,18 +1,19 @@
 """Participants: ``GET /participants/{name}``, who submitted under a name, its versions and the
-auctions they entered."""
+auctions they entered; ``POST /participants/{name}/token``, a new token for it."""
 
 from __future__ import annotations
 
 from typing import Annotated
 
 from fastapi import APIRouter, Path
+from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Participant
-from server.api.deps import SessionDep, read_in_thread
+from server.api.deps import ParticipantTokenDep, ServicesDep, SessionDep, read_in_thread
 from server.api.errors import responses
 from server.api.pages import MAX_PAGE
 from server.api.routes.models import model_summary
-from server.api.schemas import EntryPublic, ParticipantPublic
+from server.api.schemas import EntryPublic, ParticipantPublic, TokenRotated
 from server.api.schemas.models import EntryOutcome
 from server.store import crud
 from server.store.status import AuctionStatus
@@ -45,6 +46,28 @@ async def read_participant(
         versions=[model_summary(row) for row in view.versions],
         auctions=[_entry(entry) for entry in view.entries],
     )
+
+
+@router.post(
+    "/participants/{name}/token",
+    operation_id="rotate_token",
+    # The participant's own token, or the operator's.
+    openapi_extra={"security": [{"HTTPBearer": []}]},
+    responses=responses(401, 403, 404, 422),
+)
+async def rotate_token(
+    name: Annotated[Participant, Path(description="A participant's name, as registered.")],
+    session: SessionDep,
+    token: ParticipantTokenDep,
+    services: ServicesDep,
+) -> TokenRotated:
+    """A new token for the participant, with its current token (one that may have leaked) or
+    the operator's (a participant that lost its token): the old token is refused from now on,
+    for every request that needs it."""
+    participant, fresh = await run_in_threadpool(
+        models.rotate_token, session, name, token=token, admin_hash=services.admin_token_hash
+    )
+    return TokenRotated(participant=participant, token=fresh)
 
 
 def _entry(entry: crud.Entry) -> EntryPublic:

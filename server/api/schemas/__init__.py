@@ -61,6 +61,7 @@ from server.api.schemas.models import (
     ReviewedPublic,
     ReviewPublic,
     SubmitPublic,
+    TokenRotated,
     VerdictName,
 )
 from server.api.schemas.rounds import (
@@ -125,6 +126,7 @@ __all__ = [
     "RoundPurchasePublic",
     "RowId",
     "SubmitPublic",
+    "TokenRotated",
     "UploadPublic",
     "VerdictName",
     "Votes",

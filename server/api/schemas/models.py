@@ -148,6 +148,14 @@ class ParticipantPublic(Schema):
     """Newest first, at most a page of them."""
 
 
+class TokenRotated(Schema):
+    """A participant's new token (``POST /participants/{name}/token``): keep it; the old one is
+    refused from now on."""
+
+    participant: str
+    token: str
+
+
 def _not_blank(text: str) -> str:
     if not text.strip():
         raise PydanticCustomError("blank", "must name someone: it is blank")

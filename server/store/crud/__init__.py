@@ -82,6 +82,7 @@ from server.store.crud.models import (
     newest_populations,
     participant_by_name,
     patron_auctions,
+    set_token_hash,
 )
 from server.store.crud.quotas import (
     RateCount,
@@ -225,6 +226,7 @@ __all__ = [
     "round_body",
     "round_head",
     "round_status_after",
+    "set_token_hash",
     "start",
     "start_job",
     "step_state",

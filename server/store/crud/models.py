@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import bindparam, case, func, insert, select
+from sqlalchemy import bindparam, case, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.store.tables import (
@@ -101,6 +101,13 @@ def participant_by_name(session: Session, *, name: str) -> ParticipantRow | None
         .first()
     )
     return None if row is None else ParticipantRow(*row)
+
+
+def set_token_hash(session: Session, *, participant_id: int, token_hash: str) -> None:
+    """Give the participant a new token (its hash): the old one is refused from now on."""
+    session.execute(
+        update(Participant).where(Participant.id == participant_id).values(token_hash=token_hash)
+    )
 
 
 def latest_version(session: Session, *, participant_id: int) -> int:

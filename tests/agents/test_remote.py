@@ -10,7 +10,11 @@ from datetime import UTC, datetime
 import httpx
 import numpy as np
 import pytest
+import torch
 
+from agents.batch import from_manifests, to_manifest
+from agents.fine_tuning import fine_tune_round
+from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
 from agents.remote import (
     Client,
@@ -159,3 +163,40 @@ def test_retry_after_is_read_in_seconds_and_never_endless() -> None:
     assert retry_after_s("2") == 2.0 and retry_after_s("0.5") == 0.5
     for header in (None, "", "soon", "-3", "inf", "nan"):
         assert retry_after_s(header) == 0.0, header  # the agent's own backoff applies
+
+
+@pytest.mark.parametrize("copies", [5, 8])
+def test_a_patron_fine_tunes_the_same_alone_and_anywhere_in_a_band(copies: int) -> None:
+    """The market fine-tunes the patrons of one padded shape together; each one's result must
+    be what it computes alone (a faithful remote agent's), bit for bit, whatever its place in
+    the band: with batches that fill their padded rows (15, 16, 32, 63, 64), a patron at an odd
+    place had differed in its last bits."""
+    rng = np.random.default_rng(5)
+    rows = np.tile(np.array([5.0, 1, 1, 1, 0.5, 0.5, 0.5, 0.5]), (64, 1))
+    rows[1:, 1:4] += rng.uniform(-0.2, 0.2, (63, 3))
+    rows[1:, 7] = rng.uniform(0, 1, 63)
+    x = torch.from_numpy(rows)
+
+    def tuning(name: str, seed: int, batch_size: int, epochs: int) -> Manifest:
+        m = honest_manifest(np.random.default_rng(seed), name)
+        tuned = m.fine_tuning.model_copy(
+            update={"batch_size": batch_size, "epochs": epochs, "learning_rate": 5e-5}
+        )
+        copied = m.augmentation.model_copy(update={"copies": copies})
+        return m.model_copy(update={"fine_tuning": tuned, "augmentation": copied})
+
+    def first_after(manifests: list[Manifest]) -> str:
+        n = len(manifests)
+        seeds = np.full(n, 123, dtype=np.uint64), np.full(n, 456, dtype=np.uint64)
+        tuned = fine_tune_round(from_manifests(manifests), x, *seeds, np.arange(3, 3 + n))
+        return to_manifest(tuned, 0).model_dump_json()
+
+    for batch_size in (15, 16, 32, 63, 64):
+        patron = tuning("p", 1, batch_size, epochs=1)
+        alone = first_after([patron])
+        for band in (2, 3, 4):  # the others take more steps: the patron sorts last
+            others = [
+                tuning(f"o{j}", 10 + j, ((batch_size - 1) // 16) * 16 + 1, epochs=3)
+                for j in range(band - 1)
+            ]
+            assert first_after([patron, *others]) == alone, (batch_size, band)

@@ -182,6 +182,7 @@ def create_auction(
         fine_tune_rounds=body.fine_tune_rounds,
         round_deadline_s=body.round_deadline_s,
         buy_fraction=body.buy_fraction,
+        n_rows=body.rows,
         enroll_until=utcnow() + timedelta(seconds=body.enrollment_s) if enrolling else None,
     )
     session.commit()

@@ -90,6 +90,7 @@ def _market_config(auction: Auction) -> MarketConfig:
         fine_tune_mode="remote" if auction.fine_tune_mode == "remote" else "server",
         seed=auction.seed,
         buy_fraction="staying" if auction.buy_fraction == "staying" else "all",
+        n_rows=auction.n_rows,
     )
 
 

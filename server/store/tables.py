@@ -185,6 +185,9 @@ class Auction(Base):
     auctions created before the server kept them."""
     buy_fraction: Mapped[str] = mapped_column(String(8), default="all")
     """The market's buy-fraction rule: "all" voters or the "staying" ones."""
+    n_rows: Mapped[int] = mapped_column(Integer, server_default="64")
+    """Item rows each patron scores per iteration (and a remote round publishes): 64, the
+    reference's, or the paper's 16."""
     seed: Mapped[int] = mapped_column(Integer)
     iteration: Mapped[int] = mapped_column(Integer, default=0)
     price: Mapped[float] = mapped_column(Float)

@@ -168,15 +168,16 @@ def seconds(stamp: str) -> float:
     return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
 
 
-@pytest.mark.parametrize("transport", ["http", "websocket"])
+@pytest.mark.parametrize(("transport", "rows"), [("http", 64), ("websocket", 16)])
 def test_faithful_remote_agents_replay_the_server_auction(
-    server: ServerProcess, transport: Transport
+    server: ServerProcess, transport: Transport, rows: int
 ) -> None:
+    """... with the reference's 64 item rows, and with the paper's 16 (``rows``)."""
     manifests = [honest(f"same-{secrets.token_hex(3)}-{i}", seed=500 + i) for i in range(8)]
     submitted = [httpx.post(server.url + "/submit", json=m, timeout=30).json() for m in manifests]
     ids = [s["model_id"] for s in submitted]
     assert all(s["accepted"] for s in submitted)
-    common = {"n_fish": 2, "model_ids": ids, "fine_tune_rounds": 3, "seed": 21}
+    common = {"n_fish": 2, "model_ids": ids, "fine_tune_rounds": 3, "seed": 21, "rows": rows}
     in_server = httpx.post(
         server.url + "/auctions", json={**common, "fine_tune": True}, headers=admin(server)
     ).json()["auction_id"]
@@ -212,6 +213,9 @@ def test_faithful_remote_agents_replay_the_server_auction(
     }
     mine, theirs = done[remote], done[in_server]
     assert mine["status"] == theirs["status"] == "finished"
+    assert mine["rows"] == theirs["rows"] == rows
+    first = theirs["history"][0]  # scored on every row (a fine-tuning follows it)
+    assert sum(first["row_votes"].values()) == rows * sum(first["votes"].values())
     assert mine["history"] == theirs["history"]
     assert mine["buyers"] == theirs["buyers"] and mine["quitters"] == theirs["quitters"]
     assert mine["stop_reason"] == theirs["stop_reason"]

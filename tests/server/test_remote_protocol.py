@@ -139,6 +139,9 @@ def test_remote_auctions_are_validated(client: TestClient) -> None:
         ({"fine_tune_rounds": 10}, ["body", "fine_tune_rounds"]),
         ({"fine_tune": False, "fine_tune_rounds": 2}, ["body", "fine_tune_rounds"]),
         ({"fine_tune_mode": "elsewhere"}, ["body", "fine_tune_mode"]),
+        ({"rows": 0}, ["body", "rows"]),
+        ({"rows": 257}, ["body", "rows"]),
+        ({"rows": "16"}, ["body", "rows"]),
     ]
     for extra, loc in cases:
         answer = client.post("/auctions", json={**base, **extra}, headers=ADMIN)

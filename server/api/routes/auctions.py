@@ -143,6 +143,7 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
         fine_tune_rounds=auction.fine_tune_rounds,
         round_deadline_s=auction.round_deadline_s if auction.fine_tune_mode == "remote" else None,
         buy_fraction="staying" if auction.buy_fraction == "staying" else "all",
+        rows=auction.n_rows,
         fine_tuning=[fine_tune_round_public(r) for r in view.fine_tuning],
         current_model_ids=view.current_model_ids,
     )

@@ -22,6 +22,8 @@ MIN_ENROLLMENT_S = 1.0
 """The shortest enrollment (above none): a participant's join takes a request."""
 ROUND_DEADLINE_S = (0.5, 300.0)
 """Bounds of a remote auction's ``round_deadline_s``: how long a round waits at most."""
+MAX_ROWS = 256
+"""Item rows of an auction, at most (as a study's)."""
 MAX_FINE_TUNE_ROUNDS = 64
 """Fine-tuning rounds of an auction, at most (each may wait a whole deadline)."""
 
@@ -102,6 +104,10 @@ class AuctionCreate(StrictInput):
     buy_fraction: BuyFractionRule = MarketConfig.buy_fraction
     """Whom a row's buy fraction f counts: "all" voters (the paper's) or the "staying" ones,
     buyers and holders (quitting does not lower f)."""
+    rows: Annotated[int, Field(ge=1, le=MAX_ROWS)] = MarketConfig.n_rows
+    """Item rows each patron scores per iteration, the prototype fish and its variations (and
+    the rows a remote round publishes): 64, the reference's, which made the paper's figures,
+    or the paper's text's 16 (``srd auction-study --rows``)."""
     enrollment_s: Annotated[
         float,
         Field(
@@ -238,6 +244,8 @@ class AuctionPublic(Schema):
     round_deadline_s: float | None = None
     """Remote auctions: how long a round waits at most (null in server mode: no rounds)."""
     buy_fraction: BuyFractionRule = MarketConfig.buy_fraction
+    rows: int = MarketConfig.n_rows
+    """Item rows each patron scores per iteration (and a remote round publishes)."""
     fine_tuning: list[FineTuneRoundPublic] = Field(default_factory=list)
     """Remote auctions: every fine-tuning round with each asked patron's outcome."""
     current_model_ids: list[int] = Field(default_factory=list)

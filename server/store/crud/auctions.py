@@ -60,6 +60,7 @@ class AuctionHead:
     round_deadline_s: float
     buy_fraction: str
     enroll_until: datetime | None
+    n_rows: int
 
 
 @dataclass(frozen=True)
@@ -128,6 +129,7 @@ def create_auction(
     round_deadline_s: float = 10.0,
     buy_fraction: str = "all",
     enroll_until: datetime | None = None,
+    n_rows: int = 64,
 ) -> Auction:
     """A pending auction over the ordered patron list ``model_ids``; with ``enroll_until``,
     participants may add theirs until then, when its first step falls due."""
@@ -142,6 +144,7 @@ def create_auction(
         fine_tune_rounds=fine_tune_rounds,
         round_deadline_s=round_deadline_s,
         buy_fraction=buy_fraction,
+        n_rows=n_rows,
         seed=seed,
         iteration=0,
         price=opening_price,

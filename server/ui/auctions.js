@@ -545,6 +545,7 @@ export function auctionView(view, id) {
           ["Supply", head.rarity === null ? `${head.n_initial} fish` : `rarity ${head.rarity}`],
           ["Iteration limit", String(head.max_iterations)],
           ["Buy fraction", BUY_FRACTIONS[head.buy_fraction] || head.buy_fraction],
+          ["Item rows", head.rows === 64 ? "64 (the reference's)" : head.rows === 16 ? "16 (the paper's text's)" : String(head.rows)],
           ["Fine-tuning", fineTuningWords(head)],
           ["Seed", String(head.seed)],
           ...(head.enroll_until && state.status === "pending" ? [["Takes patrons until", when(head.enroll_until)]] : []),

@@ -430,6 +430,7 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     summary = page.text_content("#auction-summary") or ""
     assert "Statuscancelled" in summary and "cancelled by the operator" in summary
     assert "Startednever" in summary  # and when it was created and cancelled
+    assert "Item rows64 (the reference's)" in summary
     ended_at = page.locator("#auction-summary dt:has-text('Ended (cancelled)') + dd")
     finished_at = api.get(f"/auctions/{auction_id}").json()["finished_at"]
     local = (

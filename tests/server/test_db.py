@@ -133,6 +133,8 @@ def test_look_alike_names_registered_before_keep_working_and_new_ones_are_taken(
         for name in ("look-1", "look-I"):  # each still its own participant's: it asks its token
             again = client.post("/submit", json=honest(name))
             assert again.status_code == 401 and "missing_token" in again.text, again.text
+            assert client.get(f"/participants/{name}").json()["name"] == name  # its own page
+        assert client.get("/participants/LOOK-l").json()["name"] == "look-1"  # the first's key
         taken = client.post("/submit", json=honest("Look_l"))
         assert taken.status_code == 409, taken.text
         (item,) = taken.json()["detail"]

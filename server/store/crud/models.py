@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import bindparam, case, func, insert, select, update
+from sqlalchemy import ScalarSelect, bindparam, case, func, insert, select, update
 from sqlalchemy.orm import Session
 
 from server.store.tables import (
@@ -272,7 +272,7 @@ def list_models(
     if before is not None:
         query = query.where(ModelVersion.id < before)
     if participant is not None:
-        query = query.where(Participant.name_key == participant_key(participant))
+        query = query.where(Participant.id == _named(participant))
     if accepted is not None:
         query = query.where(ModelVersion.accepted.is_(accepted))
     if status is not None:
@@ -337,6 +337,19 @@ def _entries(session: Session, *, participant_id: int, limit: int) -> list[Entry
     return [Entry(*row) for row in session.connection().execute(query)]
 
 
+def _named(name: str) -> ScalarSelect[int]:
+    """The id of the participant a name names: the one registered under it exactly, else the
+    one whose name reads the same (``participant_key``; names registered before their keys
+    were made unique, which now read alike, each keep their own)."""
+    return (
+        select(Participant.id)
+        .where((Participant.name == name) | (Participant.name_key == participant_key(name)))
+        .order_by(case((Participant.name == name, 0), else_=1))
+        .limit(1)
+        .scalar_subquery()
+    )
+
+
 def get_participant(session: Session, *, name: str, limit: int) -> ParticipantView | None:
     """A participant by name (compared as names are, ``participant_key``) with its ``limit``
     newest versions."""
@@ -344,7 +357,7 @@ def get_participant(session: Session, *, name: str, limit: int) -> ParticipantVi
         session.connection()
         .execute(
             select(Participant.id, Participant.name, Participant.created_at).where(
-                Participant.name_key == participant_key(name)
+                Participant.id == _named(name)
             )
         )
         .one_or_none()

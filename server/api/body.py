@@ -307,7 +307,7 @@ class RequestBodyMiddleware:
                 headers[listed] = b", ".join(values)
         most, too_large = self.max_bytes, f"request body larger than {self.max_bytes} bytes"
         for method, path, bytes_, words in self.smaller:
-            if scope["method"] == method and path.fullmatch(scope["path"]):
+            if scope["method"] == method and path.fullmatch(scope["path"]) and bytes_ < most:
                 most, too_large = bytes_, words
         declared = headers.get(b"content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > most):

@@ -183,8 +183,9 @@ def _foreign_page(headers: list[tuple[bytes, bytes]]) -> str | None:
     """The header by which a browser says another page than the server's own sent a request
     (its name), or None: ``Sec-Fetch-Site`` ``cross-site`` or ``same-site`` (a sibling
     subdomain, or another port of this host, is another site's page too); without it (an older
-    browser), an ``Origin`` whose host is not the request's ``Host`` (or ``null``). Scripts
-    and ``srd`` send neither."""
+    browser), an ``Origin`` whose host name is not the request's ``Host``'s (or ``null``): the
+    port is not compared there, as a proxy may pass ``Host`` without it (nginx's ``$host``).
+    Scripts and ``srd`` send neither."""
     given = {name: value.strip().lower() for name, value in headers}
     site = given.get(b"sec-fetch-site")
     if site is not None:

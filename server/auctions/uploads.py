@@ -216,14 +216,16 @@ def _record(
     address: str | None,
 ) -> tuple[bytes, bool]:
     """Record a pending upload's verdict; its answer, and whether it closed the round (every
-    asked patron judged: the auction is due). A refused or held upload counts as the
-    participant's refusal, as a ``/submit`` one does (``quotas.record_round_refusal``)."""
+    asked patron judged: the auction is due). Its verdict counts for the participant's
+    cooldown as a ``/submit``'s does (``quotas.record_round_upload``)."""
     now = utcnow()
     body = crud.record_verdict(
         connection, answer_id=answer_id, verdict=verdict, margin=margin, now=now
     )
-    if review(verdict, margin) != "accepted":
-        quotas.record_round_refusal(connection, participant=participant, address=address, now=now)
+    accepted = review(verdict, margin) == "accepted"
+    quotas.record_round_upload(
+        connection, participant=participant, address=address, accepted=accepted, now=now
+    )
     return body, crud.close_when_answered(connection, round_id=round_id, now=now)
 
 

@@ -79,10 +79,13 @@ def participant_key(name: str) -> str:
     """What makes two participant names the same, as a person reads them: their NFKC form,
     case-folded, with the characters one takes for one another made one (I, l and 1; O and 0;
     rn and m; vv and w; -, _ and ., and a run of them), separators at the ends and zeros
-    leading a number left out: ``honest-I``, ``honest_1``, ``Honest-01`` and ``honest-1`` are
-    one name, which belongs to whoever registered one of them first."""
+    leading a number (at the start or after a separator) left out: ``honest-I``,
+    ``honest_1``, ``Honest-01`` and ``honest-1`` are one name, which belongs to whoever
+    registered one of them first."""
     folded = unicodedata.normalize("NFKC", name).casefold()
-    folded = re.sub(r"(?<![0-9])0+(?=[0-9])", "", folded)
+    # zeros (or an O) leading a number: at the name's start or after a separator only, so
+    # that agent-l01 still reads as agent-101, not as agent-11
+    folded = re.sub(r"(^|[-_.])[0o]+(?=[0-9])", r"\1", folded)
     read = folded.translate(_LOOKALIKE).replace("rn", "m").replace("vv", "w")
     return re.sub(r"-+", "-", read).strip("-") or read
 

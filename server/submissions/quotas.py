@@ -10,7 +10,7 @@ Per client address:
 * registrations (first submissions of a new participant name) per day;
 * new accepted versions per minute and per day, over all its participants;
 * screener refusals per hour (a refused or held round upload counts too, and starts its
-  participant's cooldown: ``record_round_refusal``);
+  participant's cooldown, which an accepted one ends: ``record_round_upload``);
 * appeals per day (``appeal_throttle``: each puts a model back in the inspectors' queue).
 
 A submission over a limit is answered 429 with ``Retry-After`` and a message naming the limit
@@ -32,6 +32,9 @@ from server.config import Settings
 from server.store import crud
 
 VERSION, REGISTRATION, REFUSAL, APPEAL = "version", "registration", "refusal", "appeal"
+ROUND_VERSION = "round"
+"""A round upload the screener accepted: it ends its participant's refusals in a row, as an
+accepted version does, and counts for no quota (a patron's uploads are the rounds')."""
 MINUTE, HOUR, DAY = timedelta(minutes=1), timedelta(hours=1), timedelta(days=1)
 KEEP = DAY + HOUR
 """Events older than this count for no limit and are pruned."""
@@ -110,7 +113,7 @@ class Throttle:
         self.recent = crud.recent_events(
             session,
             subject=self.person,
-            kinds=(VERSION, REFUSAL),
+            kinds=(VERSION, REFUSAL, ROUND_VERSION),
             since=now - timedelta(seconds=limits.cooldown_max_s),
         )
 
@@ -220,16 +223,25 @@ def _over(
     )
 
 
-def record_round_refusal(
-    connection: Connection, *, participant: str, address: str | None, now: datetime
+def record_round_upload(
+    connection: Connection,
+    *,
+    participant: str,
+    address: str | None,
+    accepted: bool,
+    now: datetime,
 ) -> None:
-    """Count a round upload the screener refused or held as a refusal of its participant and
-    its address, as ``/submit`` counts its own: it starts the participant's cooldown and
-    spends the address's refusals per hour (a patron's one upload per round is not itself
-    throttled: its deadline is judged at arrival, and the rounds are the operator's)."""
-    events = [(participant_subject(participant), REFUSAL)]
-    if address is not None:
-        events.append((address_subject(address), REFUSAL))
+    """Count a round upload's verdict as ``/submit`` counts its own: refused or held, a refusal
+    of its participant and its address (it starts the participant's cooldown and spends the
+    address's refusals per hour); accepted, the end of its participant's refusals in a row.
+    A patron's one upload per round is not itself throttled: its deadline is judged at
+    arrival, and the rounds are the operator's."""
+    if accepted:
+        events = [(participant_subject(participant), ROUND_VERSION)]
+    else:
+        events = [(participant_subject(participant), REFUSAL)]
+        if address is not None:
+            events.append((address_subject(address), REFUSAL))
     crud.insert_rate_events(connection, events=events, now=now)
 
 

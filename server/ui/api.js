@@ -159,7 +159,15 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
   return {
     state,
     add(items) {
-      const added = items.map(draw);
+      // a page read after a refresh drew some of its items (a slow first page): those are
+      // redrawn in place, not listed twice
+      const added = [];
+      for (const item of items) {
+        const old = rowOf.get(item.id);
+        const row = draw(item);
+        if (old) old.replaceWith(row);
+        else added.push(row);
+      }
       rows.append(...added);
       return added[0];
     },

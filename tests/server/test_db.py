@@ -146,6 +146,11 @@ def test_look_alike_names_registered_before_keep_working_and_new_ones_are_taken(
             headers={"Authorization": f"Bearer {first['token']}"},
         )
         assert spelled.status_code == 422 and "spelled 'mirror-0'" in spelled.text
+        client.post("/submit", json=honest("agent-101"))
+        for alike in ("agent-l01", "Agent-I01", "agent_1O1"):
+            assert client.post("/submit", json=honest(alike)).status_code == 409, alike
+        for apart in ("agent-11", "olive-1", "live-1"):  # distinct names stay apart
+            assert client.post("/submit", json=honest(apart)).status_code == 201, apart
 
 
 def _insert_row(connection: Any, name: str, given: dict[str, Any]) -> int:

@@ -94,6 +94,23 @@ def test_a_refused_round_upload_counts_as_a_refusal(tmp_path) -> None:
         assert "refused or held by the screener 1 time(s) in a row" in later.text
 
 
+def test_an_accepted_round_upload_ends_the_refusals_in_a_row(tmp_path) -> None:
+    """As an accepted version does: a patron refused once, then accepted in a round, is not
+    cooled down at its next /submit."""
+    with quota_app(tmp_path, refusal_cooldown_s=30.0) as client:
+        remote = remote_auction(client, "round-mender", 920, seed=5)
+        auction_id, model_id, token, upload = first_asked_upload(remote)
+        name = upload.participant
+        probe = client.post("/submit", json=saboteur(name), headers=bearer(token))
+        assert probe.json()["accepted"] is False
+        cooled = client.post("/submit", json=honest(name), headers=bearer(token))
+        assert_throttled(cooled, "SRD_REFUSAL_COOLDOWN_S")
+        answer = put(client, auction_id, 1, model_id, upload.model_dump_json().encode(), token)
+        assert answer.status_code == 200 and answer.json()["accepted"] is True, answer.text
+        again = client.post("/submit", json=honest(name), headers=bearer(token))
+        assert again.status_code == 201, again.text
+
+
 def test_registrations_per_address(tmp_path) -> None:
     with quota_app(tmp_path, quota_registrations_per_day=2) as client:
         assert client.post("/submit", json=honest(unique("one"))).status_code == 201

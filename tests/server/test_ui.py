@@ -28,7 +28,7 @@ from agents.manifest import DECISIONS, ES_NEURONS, JUDGEMENTS, PFC_SOURCES, VERD
 from server.cli.launch import ServerProcess
 from server.store.db import Database
 from server.store.tables import ModelVersion, Participant, utcnow
-from tests.support.factories import honest
+from tests.support.factories import honest, unique
 from tests.support.live import create_unstarted_auction, paced_auction, submit_population
 from tests.support.server import ADMIN_TOKEN, module_server
 
@@ -1418,6 +1418,34 @@ def test_a_models_page_says_who_decided_and_keeps_the_review_history(
     entries = page.locator("#model-audit li").all_text_contents()
     assert len(entries) == 2 and "Grace refused" in entries[1]
     assert "holds to sink the price" in entries[1]
+
+
+def test_a_list_whose_first_page_comes_late_lists_each_item_once(
+    page: Any, server: ServerProcess, api: httpx.Client
+) -> None:
+    """The first page read again every 5 s while its first read is still on its way (a slow
+    server): the rows the refresh drew are not listed again when the first read arrives."""
+    api.post("/submit", json=honest(unique("late-list")))
+    page.add_init_script(
+        """(() => {
+            const real = window.fetch;
+            let first = true;
+            window.fetch = (url, ...rest) => {
+                if (first && String(url).startsWith('/models')) {
+                    first = false;
+                    return new Promise((done) => setTimeout(() => done(real(url, ...rest)), 6500));
+                }
+                return real(url, ...rest);
+            };
+        })()"""
+    )
+    page.goto(f"{server.url}/ui/#/models")
+    page.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)  # drawn by the refresh
+    page.wait_for_timeout(7000)  # the late first page has arrived
+    links = page.eval_on_selector_all(
+        "#model-list tbody tr td:first-child a", "(as) => as.map((a) => a.getAttribute('href'))"
+    )
+    assert links and len(links) == len(set(links)), links
 
 
 def test_a_malformed_participant_address_gets_the_not_found_page(

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import Field
 
@@ -64,6 +64,16 @@ RUN_COST_S = 5.0
 @dataclass(frozen=True)
 class LavalandConfig:
     """Robot2NN in lavaland: evaluate untrained, SRD-train one epoch, evaluate again."""
+
+    SCHEMA_RULES: ClassVar[tuple[dict[str, Any], ...]] = (
+        {  # training's options belong to a run that trains
+            "if": {"properties": {"train_maps": {"const": 0}}, "required": ["train_maps"]},
+            "then": {
+                "not": {"anyOf": [{"required": [n]} for n in ("lr", "loss_guard", "srd_step")]}
+            },
+        },
+    )
+    """``problems``'s rule across options, as JSON Schema (``sim.experiment.config_schema``)."""
 
     project: Literal["A", "compare-A", "lava-A", "lava-noav-A"] = "A"
     """The paper's project: A, compare-A, lava-A or lava-noav-A."""
@@ -169,6 +179,37 @@ GRID_AXES = ("backswing", "inhibitor", "srd", "lr")
 @dataclass(frozen=True)
 class CheetahConfig:
     """HalfCheetahSRD: the grid backswing × inhibitor × SRD (× learning rate) × trial."""
+
+    SCHEMA_RULES: ClassVar[tuple[dict[str, Any], ...]] = (
+        {  # a design stage runs its own conditions (stage 4 takes backswing)
+            "if": {"required": ["stage"], "properties": {"stage": {"type": "integer"}}},
+            "then": {
+                "not": {
+                    "anyOf": [
+                        {"required": [n]}
+                        for n in ("inhibitor", "srd", "lr", "trials", "nominal", "video")
+                    ]
+                }
+            },
+        },
+        {
+            "if": {"required": ["stage"], "properties": {"stage": {"not": {"const": 4}}}},
+            "then": {"not": {"required": ["backswing"]}},
+        },
+        {
+            "if": {"required": ["stage"], "properties": {"stage": {"const": 2}}},
+            "then": {"properties": {"steps": {"minimum": STAGE2_SWING_FROM + STAGE2_WINDOW}}},
+        },
+        {  # nominal runs one noise-free trial; SRD off trains nothing
+            "if": {"required": ["nominal"], "properties": {"nominal": {"const": True}}},
+            "then": {"not": {"required": ["trials"]}},
+        },
+        {
+            "if": {"required": ["srd"], "properties": {"srd": {"const": "off"}}},
+            "then": {"not": {"required": ["lr"]}},
+        },
+    )
+    """``problems``'s rules across options, as JSON Schema (``sim.experiment.config_schema``)."""
 
     backswing: Gains = (1.0, 2.0, 3.0, 4.0, 5.0)
     """BS neuron gains to run (how hard the back thigh answers the pitch signal)."""

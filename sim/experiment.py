@@ -269,7 +269,8 @@ _ADAPTERS: dict[type, TypeAdapter[Any]] = {}
 
 def config_schema(cls: type) -> dict[str, Any]:
     """The JSON Schema of the config's parameters (bounds included), each described by its
-    docstring, unknown keys refused: what ``POST /jobs`` publishes per kind."""
+    docstring, unknown keys refused, and the rules across them its class states as JSON
+    Schema (``SCHEMA_RULES``): what ``POST /jobs`` publishes per kind."""
     schema = _adapter(cls).json_schema()
     for field in config_fields(cls):
         prop = schema["properties"][field.name]
@@ -282,6 +283,9 @@ def config_schema(cls: type) -> dict[str, Any]:
         prop["description"] = field.help
     schema["additionalProperties"] = False
     schema["description"] = " ".join((cls.__doc__ or "").split())
+    rules = getattr(cls, "SCHEMA_RULES", ())
+    if rules:  # rules across options that the config's ``problems`` checks, as JSON Schema
+        schema["allOf"] = list(rules)
     return schema
 
 

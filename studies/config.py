@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Any, ClassVar
 
 from pydantic import Field
 
@@ -43,6 +43,22 @@ ITERATION_COST_S = 1e-4
 @dataclass(frozen=True)
 class AuctionOptions:
     """What every auction of a study shares (the study configs add their grid)."""
+
+    SCHEMA_RULES: ClassVar[tuple[dict[str, Any], ...]] = (
+        {  # fine-tuning's own options belong to a run that fine-tunes (a grid runs both)
+            "if": {
+                "anyOf": [
+                    {"properties": {"fine_tune": {"const": True}}, "required": ["fine_tune"]},
+                    {"properties": {"grid": {"const": True}}, "required": ["grid"]},
+                ]
+            },
+            "then": {"properties": {"fine_tune_rounds": {"minimum": 1}}},
+            "else": {
+                "not": {"anyOf": [{"required": ["fine_tune_rounds"]}, {"required": ["freeze_pfc"]}]}
+            },
+        },
+    )
+    """``problems``'s rule across options, as JSON Schema (``sim.experiment.config_schema``)."""
 
     patrons: Annotated[int, Field(ge=1, le=1024)] = 64
     """Patrons per auction, saboteurs included."""
@@ -142,6 +158,14 @@ class StudyConfig(AuctionOptions):
     """Fish sale auctions without HTTP: purchase price and rate against item supply.
 
     The paper's Fig. C/D grid (``srd auction-study``)."""
+
+    SCHEMA_RULES: ClassVar[tuple[dict[str, Any], ...]] = (
+        *AuctionOptions.SCHEMA_RULES,
+        {  # a grid compares no saboteurs with some
+            "if": {"properties": {"grid": {"const": True}}, "required": ["grid"]},
+            "then": {"properties": {"saboteurs": {"exclusiveMinimum": 0}}},
+        },
+    )
 
     rarities: Rarities = PAPER_RARITIES
     """Supply: fish on sale per patron (r, the paper's rarity); fish on sale = int(r · patrons)."""

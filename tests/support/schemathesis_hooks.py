@@ -8,20 +8,37 @@ states its inputs. A long poll's ``wait`` is cut to 1 s, so that the run's minut
 breadth (long polls are tested in test_remote_protocol.py). A study job's market options keep
 the two rules across options that JSON Schema cannot state (refused with 422 naming the option,
 tested in tests/studies/test_commands.py): a ``min_buy_price`` above ``base_price`` is sent as
-``base_price``, a ``decrement`` above a fifth of ``increment`` as that fifth. A cheetah job
+``base_price``, a ``decrement`` above a fifth of ``increment`` as an eighth of it (either given
+or left to its default). A cheetah job
 with a design ``stage`` is sent without the grid axes that stage does not take (it runs its
-own conditions; refused with 422 naming the axis, tested in test_job_limits.py).
-Everything else schemathesis generates goes out unchanged.
+own conditions; refused with 422 naming the axis, tested in test_job_limits.py). Text people
+read (a manifest's ``description``, an appeal's or review's ``note``, an ``inspector``) goes
+without the characters its schema ``pattern`` refuses: schemathesis drops that pattern (it
+names a lone surrogate, for ECMA-262 engines that read UTF-16 units) and would otherwise
+generate control characters the service refuses by name (tested in test_strict_input.py); a
+note or inspector left blank by it is sent as ``x``. Everything else schemathesis generates
+goes out unchanged.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from typing import Any
 
 import schemathesis
 
-from sim.configs import GRID_AXES
+from agents.manifest import _LINE_BREAKS, _TAGS, _UNREADABLE
+from sim.configs import GRID_AXES, STAGE2_SWING_FROM, STAGE2_WINDOW, STAGE_ONLY_OF_GRID
+from studies.config import AuctionOptions
+
+_REFUSED = {
+    "description": re.compile(f"[{_UNREADABLE}{_TAGS}]"),
+    "note": re.compile(f"[{_UNREADABLE}{_TAGS}]"),
+    "inspector": re.compile(f"[{_UNREADABLE}{_LINE_BREAKS}{_TAGS}]"),
+}
+"""The characters each field of people's text refuses (``agents.manifest.PlainText``,
+``PlainLine``)."""
 
 
 def _integers(value: Any) -> Any:
@@ -36,11 +53,58 @@ def _integers(value: Any) -> Any:
 
 @schemathesis.hook
 def map_body(context: Any, body: Any) -> Any:
-    return _staged(_market_rules(_integers(body)))
+    return _readable(_taken(_staged(_market_rules(_integers(body)))))
+
+
+def _taken(body: Any) -> Any:
+    """A job's body less the options its run would not take (each refused with 422 naming it:
+    tests/studies/test_commands.py, tests/sim/test_cheetah.py): a study's fine-tuning options
+    without fine-tuning (or 0 rounds with it: 1), a grid's 0 saboteurs; lavaland's training
+    options with no training maps; a cheetah grid's trials with nominal, its lr with SRD
+    off."""
+    params = body.get("params") if isinstance(body, dict) else None
+    if not isinstance(params, dict):
+        return body
+    kind, fixed = body.get("kind"), dict(params)
+    if kind in ("auction-study", "comparison"):
+        if fixed.get("fine_tune") is True or fixed.get("grid") is True:
+            if fixed.get("fine_tune_rounds") == 0:
+                fixed["fine_tune_rounds"] = 1
+        else:
+            fixed.pop("fine_tune_rounds", None)
+            fixed.pop("freeze_pfc", None)
+        if fixed.get("grid") is True and fixed.get("saboteurs") == 0:
+            fixed.pop("saboteurs")
+    elif kind == "lavaland" and fixed.get("train_maps") == 0:
+        for name in ("lr", "loss_guard", "srd_step"):
+            fixed.pop(name, None)
+    elif kind == "cheetah" and not isinstance(fixed.get("stage"), int):
+        if fixed.get("nominal") is True:
+            fixed.pop("trials", None)
+        if fixed.get("srd") == "off":
+            fixed.pop("lr", None)
+    return {**body, "params": fixed}
+
+
+def _readable(value: Any) -> Any:
+    """``value`` with its people's text (module docstring) as its schema's pattern reads."""
+    if isinstance(value, list):
+        return [_readable(item) for item in value]
+    if not isinstance(value, dict):
+        return value
+    out = {}
+    for key, item in value.items():
+        if key in _REFUSED and isinstance(item, str):
+            item = _REFUSED[key].sub("", item)
+            if key != "description" and not item.strip():
+                item = "x"
+        out[key] = _readable(item)
+    return out
 
 
 def _staged(body: Any) -> Any:
-    """A cheetah job's body with a design stage, less the grid axes that stage does not take."""
+    """A cheetah job's body with a design stage, less the grid axes and options that stage does
+    not take (and the steps stage 2 needs at least)."""
     if not isinstance(body, dict) or body.get("kind") != "cheetah":
         return body
     params = body.get("params")
@@ -49,7 +113,12 @@ def _staged(body: Any) -> Any:
     if not isinstance(params.get("stage"), int):
         return body
     ignored = ("inhibitor", "srd", "lr") if params["stage"] == 4 else GRID_AXES
-    return {**body, "params": {k: v for k, v in params.items() if k not in ignored}}
+    ignored = (*ignored, *STAGE_ONLY_OF_GRID, "video")
+    fixed = {k: v for k, v in params.items() if k not in ignored}
+    least = STAGE2_SWING_FROM + STAGE2_WINDOW  # stage 2 swings and averages that long
+    if params["stage"] == 2 and isinstance(fixed.get("steps"), int) and fixed["steps"] < least:
+        fixed["steps"] = least
+    return {**body, "params": fixed}
 
 
 @schemathesis.hook
@@ -65,12 +134,19 @@ def _market_rules(body: Any) -> Any:
     if not isinstance(params, dict):
         return body
     fixed = dict(params)
-    base, least = params.get("base_price", 5.0), params.get("min_buy_price")
+    base = params.get("base_price", AuctionOptions.base_price)
+    least = params.get("min_buy_price", AuctionOptions.min_buy_price)  # given or not
     if _number(base) and _number(least) and least > base:
         fixed["min_buy_price"] = base
-    increment, decrement = params.get("increment", 0.05), params.get("decrement")
+    increment = params.get("increment", AuctionOptions.increment)
+    decrement = params.get("decrement", AuctionOptions.decrement)  # given or not
     if _number(increment) and _number(decrement) and increment < 5 * decrement:
-        fixed["decrement"] = increment / 5
+        fixed["decrement"] = increment / 8  # below a fifth, however the division rounds
+        if fixed["decrement"] <= 0:  # an increment too small to divide: the defaults
+            fixed["increment"], fixed["decrement"] = (
+                AuctionOptions.increment,
+                AuctionOptions.decrement,
+            )
     return {**body, "params": fixed}
 
 

@@ -8,7 +8,16 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import ScalarSelect, bindparam, case, func, insert, select, update
+from sqlalchemy import (
+    ColumnElement,
+    ScalarSelect,
+    bindparam,
+    case,
+    func,
+    insert,
+    select,
+    update,
+)
 from sqlalchemy.orm import Session
 
 from server.store.tables import (
@@ -76,12 +85,22 @@ def is_participant_token(session: Session, token_hash: str) -> bool:
     return found.first() is not None
 
 
+def _naming(name: Any, key: Any) -> tuple[ColumnElement[bool], ColumnElement[int]]:
+    """Which participants a name (and its ``participant_key``) may name, and their order: the
+    one registered under it exactly first, then the one whose name reads the same (names
+    registered before their keys were made unique, which now read alike, each keep their
+    own)."""
+    exact = Participant.name == name
+    return exact | (Participant.name_key == key), case((exact, 0), else_=1)
+
+
 # The statements of POST /submit, built once and run on the session's connection (Core, not the
 # ORM's bulk-insert path: the hot path builds and tracks no objects)
+_NAMED_WHERE, _NAMED_FIRST = _naming(bindparam("name"), bindparam("key"))
 _PARTICIPANT_BY_NAME = (
     select(Participant.id, Participant.name, Participant.name_key, Participant.token_hash)
-    .where((Participant.name == bindparam("name")) | (Participant.name_key == bindparam("key")))
-    .order_by(case((Participant.name == bindparam("name"), 0), else_=1))  # its own name first
+    .where(_NAMED_WHERE)
+    .order_by(_NAMED_FIRST)
     .with_for_update()
 )
 _LATEST_VERSION = select(func.max(ModelVersion.version)).where(
@@ -338,16 +357,9 @@ def _entries(session: Session, *, participant_id: int, limit: int) -> list[Entry
 
 
 def _named(name: str) -> ScalarSelect[int]:
-    """The id of the participant a name names: the one registered under it exactly, else the
-    one whose name reads the same (``participant_key``; names registered before their keys
-    were made unique, which now read alike, each keep their own)."""
-    return (
-        select(Participant.id)
-        .where((Participant.name == name) | (Participant.name_key == participant_key(name)))
-        .order_by(case((Participant.name == name, 0), else_=1))
-        .limit(1)
-        .scalar_subquery()
-    )
+    """The id of the participant a name names (``_naming``)."""
+    where, first = _naming(name, participant_key(name))
+    return select(Participant.id).where(where).order_by(first).limit(1).scalar_subquery()
 
 
 def get_participant(session: Session, *, name: str, limit: int) -> ParticipantView | None:

@@ -5,7 +5,7 @@
 import { h } from "./dom.js";
 
 const RETRY_MS = 5000; // after the server refused a stream (503) or it broke for good
-const LIST_REFRESH_MS = 5000; // a list's first page is read again this often
+export const LIST_REFRESH_MS = 5000; // a list's first page is read again this often
 const OPEN_MS = 8000; // a stream not open by then is given up (the browser may be holding it
 // back: at most six connections to one server, each live view holding one) and read instead
 

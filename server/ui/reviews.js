@@ -3,7 +3,7 @@
 // operator's admit / refuse. The admin token is pasted once and kept in this module's memory
 // only (never stored, never in a URL); it travels in the Authorization header.
 
-import { ApiError, getJSON, postJSON } from "./api.js";
+import { ApiError, LIST_REFRESH_MS, getJSON, postJSON } from "./api.js";
 import { facts, fill, fixed, h, isMissing, link, navigated, notFound, problem, scrolling, svg, table, when } from "./dom.js";
 import { auditLog, by, evidenceTable, inspectorView, measuredAndBar, verdictNow } from "./models.js";
 
@@ -78,35 +78,76 @@ export function reviewList(view) {
     h("p", {}, "The screener holds a model when its deciding evidence lies within the review margin (SRD_REVIEW_MARGIN, in price) of its bar, and a refused model its participant appealed. Oldest first."),
   );
   withToken(view, async (box) => {
-    const rows = [];
-    let cursor = null;
-    let margin = null;
-    do {
-      const page = await getJSON(`/reviews?limit=100${cursor ? `&cursor=${cursor}` : ""}`, adminToken);
-      rows.push(...page.items);
-      cursor = page.next_cursor;
-      margin = page.review_margin;
-    } while (cursor);
-    if (!rows.length) {
-      box.append(h("p", { class: "none-yet", id: "no-reviews" }, "No model is waiting for an inspector."));
-      return;
-    }
-    box.append(
-      scrolling(table(
-        `${rows.length} held model${rows.length === 1 ? "" : "s"}`,
-        ["Model", "Participant", "Version", "Why held", "From", "Held since"],
-        rows.map((m) => [
-          link(`#/reviews/${m.id}`, `Inspect model ${m.id}`),
-          h("span", { class: "free-text" }, m.participant),
-          String(m.version),
-          m.appeal !== null ? ["appealed: ", h("q", { class: "free-text" }, m.appeal)] : nearest(m.evidence, margin),
-          m.auction_id !== null ? link(`#/auctions/${m.auction_id}`, `auction ${m.auction_id}, fine-tuning round ${m.round}`) : "POST /submit",
-          when(m.created_at),
-        ]),
-        { class: "list", id: "review-list" },
-      ), "Held models (scrolls sideways)"),
-    );
+    // The queue is read whole (it is short: the screener holds few) and read again every
+    // LIST_REFRESH_MS while the tab is shown: a model held or appealed since appears at the
+    // bottom, one decided goes, and the focus stays on the same model's link.
+    const read = async () => {
+      const rows = [];
+      let cursor = null;
+      let margin = null;
+      do {
+        const page = await getJSON(`/reviews?limit=100${cursor ? `&cursor=${cursor}` : ""}`, adminToken);
+        rows.push(...page.items);
+        cursor = page.next_cursor;
+        margin = page.review_margin;
+      } while (cursor);
+      return { rows, margin };
+    };
+    // rendered from the start (an empty live region takes no room): a region shown at the
+    // moment its words arrive is not read out
+    const state = h("p", { class: "none-yet", id: "list-state", role: "status" });
+    const list = h("div");
+    box.append(state, list);
+    let seen = null;
+    let ids = null;
+    let readAt = null;
+    const draw = ({ rows, margin }) => {
+      readAt = new Date();
+      const text = JSON.stringify([rows, margin]);
+      if (text === seen) return;
+      const now = new Set(rows.map((m) => m.id));
+      if (ids !== null) {
+        const added = rows.filter((m) => !ids.has(m.id)).length;
+        const gone = [...ids].filter((id) => !now.has(id)).length;
+        const words = [added ? `${added} held since` : "", gone ? `${gone} decided or withdrawn` : ""].filter(Boolean);
+        state.textContent = `Read again at ${readAt.toLocaleTimeString()}: ${words.length ? words.join(", ") : "a held model's evidence changed"}.`;
+      }
+      seen = text;
+      ids = now;
+      const focused = list.contains(document.activeElement) ? document.activeElement.getAttribute("href") : null;
+      fill(list, rows.length ? queueTable(rows, margin) : h("p", { class: "none-yet", id: "no-reviews" }, "No model is waiting for an inspector."));
+      if (focused) (list.querySelector(`a[href="${focused}"]`) || view.root.querySelector("h1"))?.focus();
+    };
+    draw(await read());
+    const timer = setInterval(() => {
+      if (document.visibilityState !== "visible" || !box.isConnected) return;
+      read()
+        .then(draw)
+        .catch((error) => {
+          state.textContent = `The queue could not be read again (${String(error.message || error)}); it shows the held models as read at ${readAt.toLocaleTimeString()}, and is read again every few seconds.`;
+        });
+    }, LIST_REFRESH_MS);
+    view.onLeave(() => clearInterval(timer));
   });
+}
+
+function queueTable(rows, margin) {
+  return scrolling(
+    table(
+      `${rows.length} held model${rows.length === 1 ? "" : "s"}`,
+      ["Model", "Participant", "Version", "Why held", "From", "Held since"],
+      rows.map((m) => [
+        link(`#/reviews/${m.id}`, `Inspect model ${m.id}`),
+        h("span", { class: "free-text" }, m.participant),
+        String(m.version),
+        m.appeal !== null ? ["appealed: ", h("q", { class: "free-text" }, m.appeal)] : nearest(m.evidence, margin),
+        m.auction_id !== null ? link(`#/auctions/${m.auction_id}`, `auction ${m.auction_id}, fine-tuning round ${m.round}`) : "POST /submit",
+        when(m.created_at),
+      ]),
+      { class: "list", id: "review-list" },
+    ),
+    "Held models (scrolls sideways)",
+  );
 }
 
 /** The priced bar closest to its measurement, in words, and what the review margin made of

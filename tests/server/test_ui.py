@@ -29,6 +29,7 @@ from server.cli.launch import ServerProcess
 from server.store.db import Database
 from server.store.tables import ModelVersion, Participant, utcnow
 from tests.support.factories import honest, unique
+from tests.support.factories import saboteur as saboteur_manifest
 from tests.support.live import create_unstarted_auction, paced_auction, submit_population
 from tests.support.server import ADMIN_TOKEN, module_server
 
@@ -1395,6 +1396,30 @@ def test_a_models_page_says_who_decided_and_keeps_the_review_history(
     page.keyboard.press("Enter")
     page.wait_for_selector("#review-list", timeout=WAIT_MS)
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    # The queue follows while it is shown: a model appealed since appears, one decided goes,
+    # each said in words, and the focus stays on the link it was on.
+    mine = page.locator(f"#review-list a[href='#/reviews/{saboteur['model_id']}']")
+    mine.focus()
+    late = api.post("/submit", json=saboteur_manifest(unique("ui-appeal"))).json()
+    assert late["status"] == "refused", late
+    auth = {"Authorization": f"Bearer {late['token']}"}
+    appeal = api.post(f"/models/{late['model_id']}/appeal", json={"note": "late"}, headers=auth)
+    assert appeal.status_code == 200, appeal.text
+    late_row = page.locator(f"#review-list a[href='#/reviews/{late['model_id']}']")
+    late_row.wait_for(timeout=WAIT_MS)
+    page.wait_for_selector("#list-state:has-text('1 held since')", timeout=WAIT_MS)
+    assert page.evaluate("document.activeElement.getAttribute('href')") == (
+        f"#/reviews/{saboteur['model_id']}"
+    )
+    refused = api.post(
+        f"/models/{late['model_id']}/review",
+        json={"decision": "refuse", "inspector": "Ada", "note": "holds"},
+        headers={"Authorization": f"Bearer {ADMIN_TOKEN}"},
+    )
+    assert refused.status_code == 200, refused.text
+    late_row.wait_for(state="detached", timeout=WAIT_MS)
+    page.wait_for_selector("#list-state:has-text('1 decided or withdrawn')", timeout=WAIT_MS)
+    assert mine.count() == 1
     page.set_viewport_size(PHONE)  # a phone: tables scroll, not the page
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
     page.set_viewport_size(VIEWPORT)

@@ -142,6 +142,13 @@ def test_the_api_trusts_forwarded_for_from_the_proxy_only():
     assert Settings.model_fields["trusted_proxies"].default == ""  # nobody by default
     # The proxy replaces the header with the address it sees: a client cannot add to it.
     assert nginx_directives("proxy_set_header").count("X-Forwarded-For $remote_addr") == 1
+    # ... on every path, round sockets included: a location setting a header of its own
+    # would inherit none of the server's, and every client would be the proxy's address.
+    locations = re.findall(r"^\s*location\s[^{]*\{([^}]*)\}", NGINX, flags=re.M)
+    assert len(locations) == 3
+    assert [block for block in locations if "proxy_set_header" in block] == []
+    assert "Upgrade $http_upgrade" in nginx_directives("proxy_set_header")
+    assert "Connection $connection_upgrade" in nginx_directives("proxy_set_header")
     assert SERVICES["proxy"]["depends_on"]["api"]["condition"] == "service_healthy"
 
 

@@ -3,7 +3,9 @@
 
 A terminal gets a live table (rich); a pipe or a log gets one plain line per event; ``--json``
 prints only the final state (``GET /auctions/{id}``) as one JSON object. A dropped stream is
-reconnected once, resuming after the last event received (``Last-Event-ID``).
+opened again, resuming after the last event received (``Last-Event-ID``), for as long as
+``--reconnect-s`` allows since its last event: a server restart or a database outage is waited
+out.
 """
 
 from __future__ import annotations
@@ -11,9 +13,11 @@ from __future__ import annotations
 import json
 import math
 import sys
+import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, TypeAlias
 
 import click
@@ -30,7 +34,7 @@ from server.cli.words import json_failure
 
 FINISHED, ENDED_OTHERWISE, LOST = 0, 1, 3
 """Exit codes: the auction finished; it failed or was cancelled; it could not be followed
-(server unreachable, unknown auction, the stream dropped twice)."""
+(server unreachable, unknown auction, the stream gone for longer than ``--reconnect-s``)."""
 TIMEOUT = httpx.Timeout(10.0, read=120.0)
 """An idle stream sends a keep-alive every 15 s by default: 120 s of silence is a dead one."""
 LIVE_ROWS = 20
@@ -40,6 +44,14 @@ MAX_AUCTION_ID = 2**31 - 1
 would load FastAPI, tripling this command's start)."""
 MAX_PORT = 65535
 """The largest TCP port."""
+RECONNECT_S = 60.0
+"""How long a dropped stream is opened again, from its last event, before ``watch`` gives up
+(the default of ``--reconnect-s``): a server's restart takes seconds."""
+RETRY_PAUSES_S = (0.0, 1.0, 2.0, 4.0, 5.0)
+"""The waits before each attempt to open a dropped stream again (then the last, repeated)."""
+AGAIN = frozenset({429, 502, 503, 504})
+"""Answers a stream that was open may get while its server restarts, sheds load or waits for
+its database: tried again."""
 SHOWN_DATA = 120
 """How much of a piece of data that is not an event an error message quotes."""
 
@@ -146,7 +158,6 @@ class Watched:
     """Remote fine-tuning rounds by number, as their latest event tells them."""
     end: dict[str, Any] | None = None
     last_id: str | None = None
-    reconnected: bool = False
     connected: bool = False
     """The stream was opened once (a server that never answered is not a dropped stream)."""
 
@@ -180,11 +191,21 @@ def sse(lines: Iterator[str]) -> Iterator[tuple[str, str | None, str]]:
 
 
 def follow(
-    client: httpx.Client, watched: Watched, shown: Callable[[str, dict[str, Any]], None]
+    client: httpx.Client,
+    watched: Watched,
+    shown: Callable[[str, dict[str, Any]], None],
+    *,
+    reconnect_s: float = RECONNECT_S,
+    dropped: Callable[[str, float], None] = lambda cause, pause: None,
 ) -> None:
     """Read the auction's events into ``watched`` (telling each to ``shown``) until its end
-    event, reconnecting once if the stream drops before it."""
+    event. A stream that drops before it is opened again after the pauses of
+    ``RETRY_PAUSES_S`` (``dropped(cause, pause)`` hears each), resuming after the last event,
+    until ``reconnect_s`` passed since the drop without an event. A server that never answered
+    is tried once more only: it is the wrong address, not a dropped stream."""
     path = f"/auctions/{watched.auction_id}/events"
+    tries = 0  # attempts since the last event
+    since: float | None = None  # when the stream dropped (after its last event)
     while True:
         headers = {} if watched.last_id is None else {"Last-Event-ID": watched.last_id}
         try:
@@ -194,6 +215,9 @@ def follow(
                     if not _srd_error(response):
                         raise WatchError(f"{_not_srd(client)} (HTTP 404 from {path})")
                     raise WatchError(f"auction {watched.auction_id} not found on {client.base_url}")
+                if response.status_code in AGAIN and watched.connected:
+                    response.read()
+                    raise _BusyError(f"HTTP {response.status_code}: {response.text[:SHOWN_DATA]}")
                 if response.status_code != 200:
                     response.read()
                     raise WatchError(f"{path}: HTTP {response.status_code}: {response.text}")
@@ -212,6 +236,7 @@ def follow(
                     except NotAnEventError as exc:
                         raise WatchError(f"{_not_srd(client)} event: {name}: {exc}") from None
                     watched.take(name, payload)
+                    tries, since = 0, None
                     if event_id is not None:
                         watched.last_id = event_id
                     shown(name, payload)
@@ -220,11 +245,27 @@ def follow(
             cause = "the server closed the stream before the auction's end"
         except httpx.HTTPError as exc:
             cause = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-        if watched.reconnected and not watched.connected:
+        except _BusyError as exc:
+            cause = str(exc)
+        tries += 1
+        if not watched.connected and tries > 1:
             raise WatchError(f"the server at {client.base_url} did not answer ({cause})")
-        if watched.reconnected:
-            raise WatchError(f"the event stream dropped again ({cause})")
-        watched.reconnected = True
+        now = time.monotonic()
+        since = now if since is None else since
+        if now - since >= reconnect_s:
+            raise WatchError(
+                f"the event stream dropped and could not be had again for {reconnect_s:g} s "
+                f"({cause})"
+            )
+        pause = RETRY_PAUSES_S[min(tries, len(RETRY_PAUSES_S)) - 1]
+        pause = min(pause, max(0.0, since + reconnect_s - now))
+        if watched.connected:
+            dropped(cause, pause)
+        time.sleep(pause)
+
+
+class _BusyError(Exception):
+    """An answer a restarting or busy server gives: the stream is tried again."""
 
 
 def _srd_error(response: httpx.Response) -> bool:
@@ -392,26 +433,38 @@ def live_view(watched: Watched) -> Group:
 @click.option(
     "--json", "json_output", is_flag=True, help="Print only the final state, as one JSON object."
 )
-def command(auction_id: int, server: str, json_output: bool) -> None:
+@click.option(
+    "--reconnect-s",
+    type=click.FloatRange(0, 86400),
+    default=RECONNECT_S,
+    show_default=True,
+    help="How long a dropped stream is opened again (from its last event) before giving up.",
+)
+def command(auction_id: int, server: str, json_output: bool, reconnect_s: float) -> None:
     """Follow one auction live: the price, the fish left (supply), each iteration's buy / hold /
     quit votes, who bought and who quit, and remote fine-tuning rounds, until the auction ends.
     Exit 0 when it finished, 1 when it failed or was cancelled, 3 when it could not be
-    followed (unreachable, unknown auction, the stream dropped twice, a server that is not an
-    srd server), 130 when interrupted (Ctrl-C)."""
+    followed (unreachable, unknown auction, the stream gone longer than --reconnect-s, a
+    server that is not an srd server), 130 when interrupted (Ctrl-C). A dropped stream (a
+    server restarting, its database away) is opened again, resuming after the last event."""
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     out = Console(highlight=False, soft_wrap=True)
     watched = Watched(auction_id)
+
+    def dropped(cause: str, pause: float) -> None:
+        then = f"in {pause:g} s" if pause else "now"
+        err.print(f"the event stream dropped ({escape(cause)}); opening it again {then}")
+
     try:
         with httpx.Client(base_url=server, timeout=TIMEOUT) as client:
+            track = partial(follow, client, watched, reconnect_s=reconnect_s, dropped=dropped)
             if json_output:
-                follow(client, watched, lambda name, data: None)
+                track(lambda name, data: None)
             elif out.is_terminal:
                 with Live(live_view(watched), console=out, auto_refresh=False) as live:
-                    follow(
-                        client, watched, lambda n, d: live.update(live_view(watched), refresh=True)
-                    )
+                    track(lambda n, d: live.update(live_view(watched), refresh=True))
             else:
-                follow(client, watched, _print_plain)
+                track(_print_plain)
             final = final_state(client, auction_id) if json_output else None
     except (WatchError, httpx.HTTPError) as exc:
         err.print(f"[red]error:[/red] {escape(str(exc))}")

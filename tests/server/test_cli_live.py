@@ -1,6 +1,6 @@
 """``srd watch AUCTION_ID``: against a real ``srd serve`` (the iterations printed, the final
 state, buyers and quitters named by participant and version), and against a stand-in server
-whose stream drops (one reconnection, resuming after the last event)."""
+whose stream drops (opened again, resuming after the last event)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import signal
 import socket
 import stat
 import subprocess
+import time
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler
 from pathlib import Path
@@ -165,14 +166,23 @@ END = {"status": "finished", "iterations": 3, "price": 5.03, "n_available": 2, "
 
 
 class DroppingStream(BaseHTTPRequestHandler):
-    """Sends ``plan[k]`` on the k-th connection, then closes it; records each Last-Event-ID."""
+    """Sends ``plan[k]`` on the k-th connection (its events, or an HTTP status with a JSON
+    error), then closes it; records each Last-Event-ID."""
 
-    plan: ClassVar[list[list[tuple[str, str | None, dict[str, Any]]]]] = []
+    plan: ClassVar[list[list[tuple[str, str | None, dict[str, Any]]] | int]] = []
     seen: ClassVar[list[str | None]] = []
 
     def do_GET(self) -> None:
         self.seen.append(self.headers.get("Last-Event-ID"))
         events = self.plan[min(len(self.seen), len(self.plan)) - 1]
+        if isinstance(events, int):
+            body = b'{"detail": [{"msg": "the database is unavailable"}]}'
+            self.send_response(events)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+            return
         self.send_response(200)
         self.send_header("Content-Type", "text/event-stream")
         self.end_headers()
@@ -194,7 +204,7 @@ def dropping() -> Iterator[tuple[str, type[DroppingStream]]]:
         yield url, handler
 
 
-def test_a_dropped_stream_is_resumed_once_after_the_last_event(dropping) -> None:
+def test_a_dropped_stream_is_resumed_after_the_last_event(dropping) -> None:
     url, handler = dropping
     handler.plan = [
         [("iteration", "0", iteration(0)), ("iteration", "1", iteration(1))],
@@ -208,13 +218,37 @@ def test_a_dropped_stream_is_resumed_once_after_the_last_event(dropping) -> None
     assert result.stdout.splitlines()[-1].startswith("auction 7 finished after 3 iterations")
 
 
-def test_a_stream_that_drops_twice_exits_3(dropping) -> None:
+def test_a_stream_kept_away_by_a_restarting_server_is_resumed(dropping) -> None:
+    """A server restarting (the stream closed, then 503s while it is not ready) is waited
+    out: the stream resumes after its last event, each wait said on stderr."""
     url, handler = dropping
-    handler.plan = [[("iteration", "0", iteration(0))], [("iteration", "1", iteration(1))]]
+    handler.plan = [
+        [("iteration", "0", iteration(0))],
+        503,
+        503,
+        [("iteration", "1", iteration(1)), ("end", None, END)],
+    ]
     result = CliRunner().invoke(cli, ["watch", "7", "--server", url])
+    assert result.exit_code == 0, result.output
+    assert handler.seen == [None, "0", "0", "0"]
+    told = [line for line in result.stderr.splitlines() if "dropped" in line]
+    assert told[0].endswith("opening it again now")
+    assert "HTTP 503" in told[1] and told[1].endswith("in 1 s")
+    assert told[2].endswith("in 2 s")
+    rows = [line for line in result.stdout.splitlines() if line.startswith("iteration")]
+    assert [row.split(":")[0] for row in rows] == ["iteration 0", "iteration 1"]
+
+
+def test_a_stream_gone_longer_than_reconnect_s_exits_3(dropping) -> None:
+    url, handler = dropping
+    handler.plan = [[("iteration", "0", iteration(0))], []]  # then closed without an event
+    started = time.monotonic()
+    result = CliRunner().invoke(cli, ["watch", "7", "--server", url, "--reconnect-s", "1.5"])
     assert result.exit_code == 3
-    assert handler.seen == [None, "0"]
-    assert "the event stream dropped again" in result.stderr
+    assert 1.5 <= time.monotonic() - started < 10
+    assert handler.seen[:2] == [None, "0"] and set(handler.seen[1:]) == {"0"}
+    assert len(handler.seen) >= 3  # at once, then after 1 s, then at the window's end
+    assert "the event stream dropped and could not be had again for 1.5 s" in result.stderr
 
 
 def test_a_server_that_never_answers_is_named_not_a_dropped_stream() -> None:

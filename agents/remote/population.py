@@ -238,13 +238,23 @@ class SoFar:
     """This run wrote its agents' tokens to ``PopulationConfig.tokens_file``."""
 
     def to_dict(self) -> dict[str, Any]:
-        """The registered models (participant, model id) and the auction, if any."""
+        """The finished run's object as far as it got (``agents`` the count registered,
+        ``model_ids``, ``auctions``, ``uploads``, the bytes), and ``registered``: each
+        registered model's participant and id."""
         registered = [a for a in self.agents if a.model_id is not None]
         return {
-            "agents": [
+            "agents": len(registered),
+            "registered": [
                 {"participant": a.current.participant, "model_id": a.model_id} for a in registered
             ],
+            "model_ids": [a.model_id for a in registered],
             "auctions": [] if self.auction is None else [self.auction],
+            "uploads": {
+                outcome: sum(getattr(a.uploads, outcome) for a in self.agents)
+                for outcome in ("accepted", "refused", "late", "held")
+            },
+            "bytes_up": sum(a.client.traffic.bytes_up for a in self.agents),
+            "bytes_down": sum(a.client.traffic.bytes_down for a in self.agents),
         }
 
 

@@ -17,7 +17,7 @@ import torch
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
-from rich.table import Table
+from rich.table import Column, Table
 
 from agents.remote import (
     AUCTION_WAIT_S,
@@ -58,10 +58,11 @@ INVALID = 2
 """Exit code of invalid options."""
 
 
-def _local_operator_token(server: str, err: Console) -> str | None:
+def _local_operator_token(server: str, err: Console) -> tuple[str | None, Path | None]:
     """The operator token ``srd serve`` wrote into its data folder on this machine
     (``SRD_DATA_DIR``, default ./data), for a server on a loopback address: the token never
-    leaves the machine. None if there is no such server or file."""
+    leaves the machine. None if there is no such server or file; and the file looked at (None
+    for a server elsewhere)."""
     from server.config import Settings
 
     host = urlsplit(server).hostname or ""
@@ -69,22 +70,22 @@ def _local_operator_token(server: str, err: Console) -> str | None:
         loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
         path = Settings().admin_token_file  # where srd serve writes it, as it reads the settings
     except ValueError:  # not an IP address, or settings srd serve would refuse too
-        return None
-    if not loopback or not path.is_file():
-        return None
+        return None, None
+    if not loopback:
+        return None, None
     try:
         token = path.read_text(encoding="ascii").strip()
     except (OSError, UnicodeDecodeError):
-        return None
+        return None, path
     if not token:
-        return None
+        return None, path
     err.print(f"operator token: {path} (this machine's srd serve)", highlight=False)
-    return token
+    return token, path
 
 
 def _say_stopped(err: Console, made: dict[str, Any], tokens_file: Path | None) -> None:
     """What a run stopped midway had made: its models, their auction, where the tokens are."""
-    agents, auctions = made["agents"], made["auctions"]
+    agents, auctions = made["registered"], made["auctions"]
     if not agents:
         return
     ids = ", ".join(str(a["model_id"]) for a in agents[:20]) + (", …" if len(agents) > 20 else "")
@@ -104,7 +105,7 @@ def _say_stopped(err: Console, made: dict[str, Any], tokens_file: Path | None) -
 def _agents_table(report: PopulationReport) -> Table:
     """One row per agent, then the totals."""
     table = Table(
-        "Participant",
+        Column("Participant", overflow="fold"),  # whole: names differ at their ends
         "Model",
         "Submitted",
         "Uploads accepted",
@@ -318,13 +319,20 @@ def command(
     torch.set_num_threads(1)  # each agent fine-tunes one tiny model: more threads only contend
     err = Console(stderr=True)
     if admin_token is None and auction is None:
-        admin_token = _local_operator_token(server, err)
+        admin_token, looked_at = _local_operator_token(server, err)
         if admin_token is None:
+            where = (
+                f"none in {looked_at.resolve()}, where this machine's srd serve writes it"
+                if looked_at is not None
+                else "the server is not on this machine"
+            )
+            tokens = "their tokens are kept" if tokens_file else "--tokens keeps their tokens"
             err.print(
-                f"no --auction and no operator token: waiting up to {auction_wait:g} s (--wait) "
-                "for an auction that takes these agents' models (--admin-token or "
-                "SRD_ADMIN_TOKEN creates one)",
+                f"no --auction and no operator token ({where}): waiting up to "
+                f"{auction_wait:g} s (--wait) for an auction that takes these agents' models "
+                f"(--admin-token or SRD_ADMIN_TOKEN creates one; {tokens})",
                 highlight=False,
+                soft_wrap=True,
             )
     try:
         config = PopulationConfig(

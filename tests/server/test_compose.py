@@ -29,6 +29,11 @@ def test_services_and_profiles():
     assert "profiles" not in SERVICES["api"] and "profiles" not in SERVICES["db"]
     assert SERVICES["ray-head"]["profiles"] == ["ray"] == SERVICES["ray-worker"]["profiles"]
     assert SERVICES["api"]["depends_on"]["db"]["condition"] == "service_healthy"
+    # the API waits for the Ray head when the profile runs it, and starts without it otherwise
+    assert SERVICES["api"]["depends_on"]["ray-head"] == {
+        "condition": "service_healthy",
+        "required": False,
+    }
     assert SERVICES["ray-worker"]["depends_on"]["ray-head"]["condition"] == "service_healthy"
     images = {SERVICES[s]["image"] for s in ("api", "ray-head", "ray-worker")}
     assert images == {"srd-auction:latest"}  # the same code on the API and the Ray nodes

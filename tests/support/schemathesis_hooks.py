@@ -11,7 +11,8 @@ tested in tests/studies/test_commands.py): a ``min_buy_price`` above ``base_pric
 ``base_price``, a ``decrement`` above a fifth of ``increment`` as an eighth of it (either given
 or left to its default). A cheetah job
 with a design ``stage`` is sent without the grid axes that stage does not take (it runs its
-own conditions; refused with 422 naming the axis, tested in test_job_limits.py). Text people
+own conditions; refused with 422 naming the axis, tested in test_job_limits.py), and a cheetah
+grid within its bounds on cells and runs (products of options). Text people
 read (a manifest's ``description``, an appeal's or review's ``note``, an ``inspector``) goes
 without the characters its schema ``pattern`` refuses: schemathesis drops that pattern (it
 names a lone surrogate, for ECMA-262 engines that read UTF-16 units) and would otherwise
@@ -24,12 +25,21 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import fields
 from typing import Any
 
 import schemathesis
 
 from agents.manifest import _LINE_BREAKS, _TAGS, _UNREADABLE
-from sim.configs import GRID_AXES, STAGE2_SWING_FROM, STAGE2_WINDOW, STAGE_ONLY_OF_GRID
+from sim.configs import (
+    GRID_AXES,
+    MAX_CELLS,
+    MAX_RUNS,
+    STAGE2_SWING_FROM,
+    STAGE2_WINDOW,
+    STAGE_ONLY_OF_GRID,
+    CheetahConfig,
+)
 from studies.config import AuctionOptions
 
 _REFUSED = {
@@ -83,7 +93,27 @@ def _taken(body: Any) -> Any:
             fixed.pop("trials", None)
         if fixed.get("srd") == "off":
             fixed.pop("lr", None)
+        _within_the_grid_bounds(fixed)
     return {**body, "params": fixed}
+
+
+def _within_the_grid_bounds(params: dict[str, Any]) -> None:
+    """A cheetah grid's cells (backswing × inhibitor × SRD variants) and runs (cells × trials)
+    within ``MAX_CELLS`` and ``MAX_RUNS`` (a bound on a product, refused with 422 naming the
+    option, tested in tests/sim/test_cheetah.py): fewer backswing values, then fewer trials."""
+    defaults = {f.name: f.default for f in fields(CheetahConfig)}
+    value = {name: params.get(name, defaults[name]) for name in (*GRID_AXES, "trials")}
+    if not all(isinstance(value[n], list | tuple) for n in ("backswing", "inhibitor", "lr")):
+        return
+    srd = value["srd"]
+    variants = (len(value["lr"]) if srd in ("on", "both") else 0) + (srd in ("off", "both"))
+    per_backswing = max(1, len(value["inhibitor"]) * variants)
+    if len(value["backswing"]) * per_backswing > MAX_CELLS:
+        params["backswing"] = list(value["backswing"])[: max(1, MAX_CELLS // per_backswing)]
+    cells = len(params.get("backswing", value["backswing"])) * per_backswing
+    trials = value["trials"]
+    if params.get("nominal") is not True and isinstance(trials, int) and cells * trials > MAX_RUNS:
+        params["trials"] = max(1, MAX_RUNS // max(1, cells))
 
 
 def _readable(value: Any) -> Any:

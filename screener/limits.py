@@ -80,6 +80,15 @@ OFF_DESIGN_SHARE = 1.0
 at most as much as the named inputs do over theirs: beyond that the name no longer says what the
 neuron reads. Design: ≤ 2.5%. SRD fine-tuning makes SZ read the price (its δ seed grows): 0.44
 after the 4 rounds an auction allows at the most aggressive honest settings, 0.76 after 16."""
+DEMAND_SHARPNESS_LIMIT = SHARPNESS_FACTOR * DESIGN_SHARPNESS["LSR"]
+"""No ES neuron may react to the buy fraction f more sharply than LSR, the neuron named after it,
+may (10 per unit of f): a threshold's a·|w_f|, a selective neuron's |w_f| / √ε (its response
+halves |w_f| / √ε per unit of f). Sharper, a sensor makes a hidden step or window in f between
+the buy fractions the scans read (every 0.1 clean, five on the noisy copies), where the
+market's f = buyers / voters lies: a red team's PG at a = 135 reading f by 1.89 (off-design,
+within ``OFF_DESIGN_SHARE`` of price's span) held on its copies only at f 0.25-0.45 and
+0.75-0.97, right where f goes after the opening round, and was accepted. Honest models: design
+0 (LSR aside); fine-tuning moves an ES weight on f by less than 0.01."""
 SELECTIVE_EPSILON_RANGE = (1e-6, 1e-2)
 """ST's selective ε: half-width √ε from 0.001 to 0.1, narrower than the gap between sub-types
 (⅓ in the design) and wider than float noise (design 1e-4, half-width 0.01)."""

@@ -284,4 +284,42 @@ def off_design_checks(n: Numbers) -> list[Checks]:
         )
 
     failed = share.max(axis=2) > limits.OFF_DESIGN_SHARE
-    return [Checks(("off-design-input",) * len(ES_NEURONS), ES_NEURONS, failed, message)]
+    return [
+        Checks(("off-design-input",) * len(ES_NEURONS), ES_NEURONS, failed, message),
+        _demand_sharpness(n),
+    ]
+
+
+DEMAND_STEP_NEURONS = (PG, SZ, ST)
+"""The ES neurons not named after the buy fraction (LSR's own sharpness in it is bounded by
+``sharpness``)."""
+
+
+def _demand_sharpness(n: Numbers) -> Checks:
+    """PG, SZ and ST react to the buy fraction at most as sharply as LSR may
+    (``limits.DEMAND_SHARPNESS_LIMIT``)."""
+    neurons = list(DEMAND_STEP_NEURONS)
+    weight = np.abs(n.es_weight[:, neurons, DEMAND])
+    selective = n.es_kind[:, neurons] == SELECTIVE
+    with np.errstate(divide="ignore", invalid="ignore"):
+        per_width = np.where(weight > 0, weight / np.sqrt(n.es_epsilon[:, neurons]), 0.0)
+    gain = np.where(selective, per_width, n.es_a[:, neurons] * weight)
+    gain = np.nan_to_num(gain, nan=np.inf)
+    limit = limits.DEMAND_SHARPNESS_LIMIT
+    names = tuple(ES_NEURONS[i] for i in DEMAND_STEP_NEURONS)
+
+    def message(k: int, p: int) -> str:
+        name, g = names[k], gain[p, k]
+        how = (
+            f"its response halves {fmt(g, '.3g')}× its width per unit of it"
+            if selective[p, k]
+            else f"it changes its threshold argument by {fmt(g, '.3g')} per unit of it"
+        )
+        return (
+            f"{ROLE[name]} {name} reacts to the buy fraction more sharply than LSR may ({how}, "
+            f"at most {limit:g}): a hidden step in the buy fraction, between the fractions a "
+            "scan reads"
+        )
+
+    failed = gain > limit * (1 + limits.SHARPNESS_SLACK)
+    return Checks(("demand-sharpness",) * len(names), names, failed, message)

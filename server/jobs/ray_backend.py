@@ -98,11 +98,14 @@ def head_answers(address: str, timeout_s: float) -> None:
 
 def connect(address: str | None, timeout_s: float) -> Any:
     """Join the Ray cluster at ``address`` as a driver (once per process); returns ``ray``.
-    A head that does not answer within ``timeout_s`` is RayUnavailableError at once."""
+    A head that does not answer within ``timeout_s`` is RayUnavailableError: one that refuses
+    the connection at once; one that takes it and never answers (a frozen head) when a child
+    process's join (``probe_cpus``) gives up, since ``ray.init`` itself waits for ever and no
+    signal interrupts it."""
     address = _required(address)
     ray = ray_module()
     if not ray.is_initialized():
-        head_answers(address, timeout_s)
+        probe_cpus(address, timeout_s)
         try:
             ray.init(
                 address=address,
@@ -156,13 +159,21 @@ class RayRunner:
         self, units: Sequence[Unit], progress: UnitProgress
     ) -> Iterator[tuple[int, Payload]]:
         ray = self._ray
-        if ray.cluster_resources().get("CPU", 0.0) < 1:  # its tasks would wait for ever
+        # A task asking for more CPUs than any node has waits for ever: a unit keeps at most
+        # the largest node's CPUs busy (its numbers do not depend on its threads).
+        largest = max(
+            (n["Resources"].get("CPU", 0.0) for n in ray.nodes() if n.get("Alive")), default=0.0
+        )
+        if largest < 1:
             raise RayUnavailableError("the Ray cluster has no CPU to compute units on")
+        cpus = min(self._cpus, int(largest))
+        if cpus < self._cpus:
+            log.info("%s: threads %d > the largest node's %d CPUs", self._kind, self._cpus, cpus)
         task = _remote_unit_task()
         params = ray.put(self._params)
         refs = {
             task.options(
-                num_cpus=self._cpus,
+                num_cpus=cpus,
                 max_retries=self._max_retries,
                 retry_exceptions=False,
                 name=f"srd {self._kind}: {unit.label}",

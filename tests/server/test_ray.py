@@ -10,6 +10,7 @@ import os
 import re
 import signal
 import socket
+import subprocess
 import sys
 import time
 from collections.abc import Iterator
@@ -134,6 +135,22 @@ def test_ray_jobs_equal_local_jobs(ray_head: RayHead, tmp_path: Path) -> None:
     assert "cheetah.gif" in done["cheetah"]["artifacts"]  # the filmed trial came from a unit
 
 
+def test_a_unit_asking_more_cpus_than_any_node_has_runs_on_the_largest(
+    ray_head: RayHead, tmp_path: Path
+) -> None:
+    """A cheetah unit keeps ``threads`` CPUs busy; asking more than any node has, its task
+    waited for ever (the job ``running`` until its time limit, every job behind it queued):
+    it runs on the largest node's CPUs, with the local backend's numbers."""
+    params = {"backswing": [3.0], "inhibitor": [0.0], "srd": "off", "trials": 2, "steps": 100}
+    params |= {"threads": CPUS + 2, "video": False, "seed": 2}
+    with client_for(tmp_path / "ray", job_backend="ray", ray_address=ray_head.address) as client:
+        done = run_jobs(client, {"cheetah": params})["cheetah"]
+    assert done["status"] == "succeeded", done
+    with client_for(tmp_path / "local") as client:
+        expected = run_jobs(client, {"cheetah": params})["cheetah"]
+    assert numbers(done["result"]["runs"]) == numbers(expected["result"]["runs"])
+
+
 def test_cancelling_a_ray_job_stops_its_tasks(
     ray_head: RayHead, tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
@@ -236,6 +253,40 @@ def test_a_job_worker_facing_a_head_that_does_not_answer_fails_at_once(ray_head:
         with pytest.raises(RayUnavailableError, match=re.escape(address)):
             connect(address, 5)
     assert time.monotonic() - started < 5
+
+
+@pytest.mark.slow  # a cluster of its own: a head frozen a while is not one to share
+def test_a_job_worker_facing_a_frozen_head_fails_within_its_join_timeout() -> None:
+    """A head that takes the connection and never answers (its GCS stopped): ``ray.init``
+    waits for ever, and the job sat in ``running`` until its time limit (an hour by default);
+    the worker's join now gives up after ``SRD_RAY_JOIN_TIMEOUT_S``, naming the address."""
+    code = (
+        "import sys\n"
+        "from server.jobs.ray_backend import RayUnavailableError, connect\n"
+        "try:\n"
+        "    connect(sys.argv[1], 5)\n"
+        "except RayUnavailableError as exc:\n"
+        "    print(exc)\n"
+    )
+    with RayHead(1) as head:
+        gcs = [pid for pid, (_, command) in head._descendants().items() if "gcs_server" in command]
+        assert gcs
+        for pid in gcs:
+            os.kill(pid, signal.SIGSTOP)
+        try:
+            started = time.monotonic()
+            done = subprocess.run(
+                [sys.executable, "-c", code, head.address],
+                capture_output=True, text=True, timeout=120, env={**os.environ, **head.env},
+                cwd=Path(__file__).resolve().parents[2],
+            )  # fmt: skip
+            took = time.monotonic() - started
+        finally:
+            for pid in gcs:
+                os.kill(pid, signal.SIGCONT)
+    assert f"cannot join the Ray cluster at {head.address!r}" in done.stdout, done.stderr[-2000:]
+    assert "no answer within 5 s (SRD_RAY_JOIN_TIMEOUT_S)" in done.stdout
+    assert took < 30
 
 
 @pytest.mark.slow

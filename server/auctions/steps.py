@@ -426,5 +426,6 @@ AUCTION_WORK = WorkKind(
     prepare=_nothing_to_prepare,
     due=Auction.next_step_at,
     resumable=True,
+    progress=Auction.iteration,
 )
 """Auctions as background work (``server.work.runner``): a claim runs one step."""

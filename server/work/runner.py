@@ -103,11 +103,17 @@ class WorkKind:
     resumable: bool = False
     """A task whose process died is run again (the row resumes from its last commit) rather
     than failed, unless it died ``MAX_DEATHS`` times."""
+    progress: Any = None
+    """A column that moves on as a resumable row's tasks commit (``Auction.iteration``): a
+    death after it moved starts the count of deaths in a row again (None: only a task done
+    does)."""
 
 
 MAX_DEATHS = 3
-"""A resumable row whose task's process died this many times in a row is failed (``died``,
-formatted with ``times`` and the last exit ``code``)."""
+"""A resumable row whose task's process died this many times in a row, with no task done and
+its ``progress`` unmoved in between, is failed (``died``, formatted with ``times`` and the last
+exit ``code``): a task that dies before it commits anything, not a row that an outside killer
+(memory pressure, an operator) interrupts while it moves on."""
 
 
 class BackgroundRunner:
@@ -149,7 +155,8 @@ class BackgroundRunner:
         self._claimed_before: OrderedDict[int, None] = OrderedDict()
         """Rows claimed here lately (``CLAIMS_LOGGED``): a long auction, claimed again at each
         of its steps, is logged at its first claim only."""
-        self._deaths: dict[int, int] = {}  # resumable rows whose task died, times in a row
+        self._deaths: dict[int, tuple[int, Any]] = {}
+        """Resumable rows whose task died: times in a row, and their progress at the last."""
         self._unended: set[str] = set()  # owners whose sessions this role may not end (logged)
         self._over: set[int] = set()  # tasks over, leases to release
         self._lock = threading.Lock()
@@ -432,8 +439,11 @@ class BackgroundRunner:
         manager stopping every process of the service: the API is stopping too)."""
         interrupted = exit_code in (-signal.SIGTERM, -signal.SIGINT)
         if self.kind.resumable or interrupted:
+            progress = self._progress(row_id)
             with self._lock:
-                times = self._deaths[row_id] = self._deaths.get(row_id, 0) + 1
+                times, before = self._deaths.get(row_id, (0, None))
+                times = 1 if times and progress is not None and progress != before else times + 1
+                self._deaths[row_id] = (times, progress)
             if times < MAX_DEATHS:
                 log.warning("%s %d: its worker died (code %s); resuming", self.kind.name, row_id,
                             exit_code)  # fmt: skip
@@ -443,6 +453,17 @@ class BackgroundRunner:
         else:
             times = 1
         self._fail(row_id, self.kind.died.format(code=exit_code, times=times))
+
+    def _progress(self, row_id: int) -> Any:
+        """The row's ``progress`` now (None without one, or with the database away: then
+        the death counts as one more in a row)."""
+        if self.kind.progress is None:
+            return None
+        try:
+            with self._database.session(write=False) as session:
+                return crud.progress_of(session, column=self.kind.progress, row_id=row_id)
+        except DBAPIError:
+            return None
 
     def _on_timeout(self, row_id: int, limit_s: float) -> None:
         name, setting = self.kind.name, self.kind.timeout_setting

@@ -139,6 +139,40 @@ def test_a_worker_killed_mid_step_resumes_and_matches_its_twin(tmp_path: Path) -
     assert [position[q] for q in played["quitters"]] == [twin_position[q] for q in twin["quitters"]]
 
 
+def test_a_worker_killed_again_and_again_while_its_auction_moves_on_does_not_fail_it(
+    tmp_path: Path,
+) -> None:
+    """Three deaths in a row fail an auction (a step that kills its worker every time), but
+    deaths between which the auction committed iterations are an outside killer's (memory
+    pressure, an operator): each only costs time, and the auction ends as its twin does."""
+    (server, _), admin = server_pair(f"sqlite:///{tmp_path / 'kills.db'}", tmp_path)
+    with server:
+        # one fish among 24 keen buyers: the price climbs for dozens of iterations
+        body = {"n_fish": 1, "fine_tune": True, "fine_tune_rounds": 64, "max_iterations": 200}
+        body |= {"rows": 256, "seed": 6}
+        ids, _, _ = submit(server, 24, seed=710)
+        auction_id = create(server, admin, {**body, "model_ids": ids})
+        kills, seen = 0, 0
+        deadline = time.monotonic() + TIMEOUT_S
+        while kills < 4 and time.monotonic() < deadline:
+            state = get(server, auction_id)
+            if state["status"] not in ("pending", "running"):
+                break
+            if state["iteration"] > seen:  # it moved on since the last kill: kill it again
+                seen = state["iteration"]
+                workers = [p for p in spawned(server) if process_name(p) == "srd-auction-wor"]
+                signal_all(workers, signal.SIGKILL)
+                kills += bool(workers)
+            time.sleep(0.02)
+        assert kills == 4, f"after {kills} kills: {state['status']}, {state['error']}"
+        played = ended(server, auction_id)
+        twin_ids, _, _ = submit(server, 24, seed=710)
+        twin = ended(server, create(server, admin, {**body, "model_ids": twin_ids}))
+    assert played["status"] == "finished" and played["error"] is None, played["error"]
+    for key in ("history", "stop_reason", "price", "n_available", "revenue"):
+        assert played[key] == twin[key], key
+
+
 def upload(
     server: ServerProcess,
     auction_id: int,

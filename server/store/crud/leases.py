@@ -169,3 +169,8 @@ def release_leases(session: Session, *, table: Table, row_ids: Collection[int], 
 def clear_leases(session: Session, *, table: Table) -> None:
     """Drop every lease of the table (a SQLite server starting: nobody else can hold one)."""
     session.execute(update(table).values(lease_owner=None, lease_expires=None))
+
+
+def progress_of(session: Session, *, column: Any, row_id: int) -> Any:
+    """A row's progress as ``column`` (of its table) reads it now: None if it is gone."""
+    return session.scalar(select(column).where(column.class_.id == row_id))

@@ -459,13 +459,20 @@ def over_budget(config: Any, budget_s: float) -> ConfigError | None:
         middle = (low + high) // 2
         fits = dataclasses.replace(config, **{cost.option: middle}).cost().seconds <= budget_s
         low, high = (middle, high) if fits else (low, middle)
-    hint = f"lower {cost.option} to at most {low}" if low >= 1 else "lower its options"
+    said = f"this run needs about {cost.seconds:.3g} s of compute, over the budget of "
+    said += f"{budget_s:g} s (SRD_JOB_BUDGET_S)"
+    if low >= 1:
+        return ConfigError([{"field": cost.option, "message": f"{said}: lower {cost.option} to "
+                             f"at most {low}"}])  # fmt: skip
+    # Even its least value does not fit: the other options make each unit too dear, and the
+    # error is the options' as a whole (an empty field: ``params`` itself), not this one's.
+    least = dataclasses.replace(config, **{cost.option: 1}).cost().seconds
     return ConfigError(
         [
             {
-                "field": cost.option,
-                "message": f"this run needs about {cost.seconds:.3g} s of compute, over the "
-                f"budget of {budget_s:g} s (SRD_JOB_BUDGET_S): {hint}",
+                "field": "",
+                "message": f"{said}, and about {least:.3g} s with {cost.option} 1: lower the "
+                "options that make each of them dearer",
             }
         ]
     )

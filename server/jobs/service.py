@@ -30,7 +30,7 @@ ENDED_JOBS_BYTES = 64 << 20
 
 def _path(field: str) -> list[str | int]:
     """A config error's dotted field (``rarities.1``) as a ``loc`` tail."""
-    return [int(part) if part.isdigit() else part for part in field.split(".")]
+    return [int(part) if part.isdigit() else part for part in field.split(".") if part]
 
 
 def create_job(

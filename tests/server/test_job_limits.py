@@ -56,7 +56,7 @@ def test_a_job_over_its_time_limit_is_stopped_and_failed(limited) -> None:
         lambda: client.get(f"/jobs/{job_id}").json(), lambda s: s["status"] in ENDED, 120
     )
     assert job["status"] == "failed"
-    assert job["message"] == "failed"
+    assert job["message"] == "failed: stopped at the job time limit of 10 s (SRD_JOB_TIMEOUT_S)"
     assert "time limit of 10 s (SRD_JOB_TIMEOUT_S)" in job["error"]
     assert job["artifacts"] == []
     wait_for(lambda: {"kept": folder.exists()}, lambda s: not s["kept"], 15)  # once it is gone
@@ -128,6 +128,20 @@ def test_jobs_over_the_budget_are_refused_naming_the_option(client, body, option
     (item,) = response.json()["detail"]
     assert item["loc"] == ["body", "params", option]
     assert "SRD_JOB_BUDGET_S" in item["msg"] and f"lower {option} to at most" in item["msg"]
+
+
+def test_a_job_over_the_budget_at_its_options_least_names_the_options_as_a_whole(
+    client,
+) -> None:
+    """Even with one trial the run is over the budget: the error is the options' as a whole,
+    not the one option it cannot lower."""
+    params = {"trials": 1, "patrons": 1024, "rows": 256, "fine_tune": True}
+    params |= {"fine_tune_rounds": 1000, "max_iterations": 1000, "screen": True}
+    response = client.post("/jobs", json={"kind": "auction-study", "params": params}, headers=ADMIN)
+    assert response.status_code == 422
+    (item,) = response.json()["detail"]
+    assert item["loc"] == ["body", "params"]
+    assert "SRD_JOB_BUDGET_S" in item["msg"] and "with trials 1: lower the options" in item["msg"]
 
 
 def test_every_kind_declares_its_cost() -> None:

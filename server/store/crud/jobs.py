@@ -60,8 +60,8 @@ def fail_unfinished(
     )
     now = utcnow()
     values: dict[str, Any] = {"status": failed, "error": error, "finished_at": now}
-    if table is Job:
-        values["message"] = "failed"
+    if table is Job:  # the cause in the message too: a view showing only it says why
+        values["message"] = f"failed: {error.splitlines()[0] if error else 'unknown'}"[:200]
     if table is Auction:  # before and after the row, as ``cancel_auction`` does
         close_open_rounds(session, row_id, now)
     failed_now = session.execute(

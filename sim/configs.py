@@ -5,6 +5,7 @@ document without loading any of those; the worlds' modules use them as they are.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass
 from typing import Annotated, Any, ClassVar, Literal
@@ -244,15 +245,20 @@ class CheetahConfig:
 
     def stage_backswings(self) -> list[float]:
         """The backswing gains a design stage runs: none for stages 0–2 (no BS neuron), 0 for
-        stage 3, the configured ones for stage 4 (5 when the grid's default is left
-        unchanged)."""
+        stage 3, the configured ones for stage 4 (5 when none is given: ``settled``)."""
         if self.stage == 3:
             return [0.0]
         if self.stage != 4:
             return []
-        if self.backswing == CheetahConfig.backswing:
-            return [STAGE4_DEFAULT_BACKSWING]
         return list(self.backswing)
+
+    def settled(self, given: frozenset[str]) -> CheetahConfig:
+        """This config with the defaults that depend on what was given: stage 4 without a
+        backswing runs 5 alone (the grid's default list, 1 to 5, given as such, runs the
+        five)."""
+        if self.stage == 4 and "backswing" not in given:
+            return dataclasses.replace(self, backswing=(STAGE4_DEFAULT_BACKSWING,))
+        return self
 
     def cost(self) -> Cost:
         """Estimated compute: every trial of every condition, its set-up and its steps, and

@@ -392,7 +392,10 @@ def parse_config(cls: type[C], params: Any, given: frozenset[str] | None = None)
         name = str(key).replace("-", "_")
         flag = fields.get(name.removeprefix("no_"))
         if name not in fields and flag is not None and flag.kind == "bool":
-            name, value = flag.name, (not value) if isinstance(value, bool) else value
+            if not isinstance(value, bool):  # named as sent, not as the flag it negates
+                errors.append({"field": str(key), "message": "must be true or false"})
+                continue
+            name, value = flag.name, not value
         if name not in fields:
             errors.append(
                 {"field": str(key), "message": f"unknown option; known: {sorted(fields)}"}
@@ -424,6 +427,9 @@ def parse_config(cls: type[C], params: Any, given: frozenset[str] | None = None)
     named = frozenset(clean) if given is None else given
     if problems is not None and (found := problems(named)):
         raise ConfigError(found)
+    settled = getattr(config, "settled", None)  # defaults that depend on what was given
+    if given is None and settled is not None:  # (a config stored whole is settled already)
+        config = settled(named)
     return config
 
 

@@ -546,7 +546,9 @@ def test_the_reference_loop_takes_401_and_1201_steps_for_4_and_12_s():
 
 @pytest.mark.parametrize("stage", [0, 3, 4])
 def test_design_stages_move_the_cheetah_forward(tmp_path, stage):
-    result = run(CheetahConfig(stage=stage, video=False), out_dir=tmp_path)
+    # as the command line and a job build it: no backswing given (stage 4: 5 alone)
+    config = CheetahConfig(stage=stage, video=False).settled(frozenset({"stage", "video"}))
+    result = run(config, out_dir=tmp_path)
     assert result["stage"] == stage
     assert result["steps"] == reference_steps(4.0 if stage == 0 else 12.0)
     grid_keys = {"backswing", "inhibitor", "srd", "trial", "final_displacement"}
@@ -568,6 +570,8 @@ def test_design_stages_move_the_cheetah_forward(tmp_path, stage):
         (["--stage", "3"], [0.0]),
         (["--stage", "4"], [5.0]),
         (["--stage", "4", "--backswing", "2,3"], [2.0, 3.0]),
+        # the grid's default list, given: the five (it ran 5 alone, as if none was given)
+        (["--stage", "4", "--backswing", "1,2,3,4,5"], [1.0, 2.0, 3.0, 4.0, 5.0]),
     ],
 )
 def test_a_design_stage_s_config_shows_what_it_ran(tmp_path, options, backswing):

@@ -212,6 +212,11 @@ def test_config_ranges_are_enforced() -> None:
     with pytest.raises(ConfigError) as caught:
         parse_config(FishConfig, {"steps": 0})
     assert caught.value.errors[0]["field"] == "steps"
+    # a command line's negation takes a flag's value, and a wrong one is named as sent
+    assert parse_config(FishConfig, {"steps": 50, "no-srd": True}) == FishConfig(50, False)
+    with pytest.raises(ConfigError) as caught:
+        parse_config(FishConfig, {"no-srd": "yes"})
+    assert caught.value.errors == [{"field": "no-srd", "message": "must be true or false"}]
     with pytest.raises(ConfigError, match="average_every"):
         parse_config(FishConfig, {"average-every": 0})
 

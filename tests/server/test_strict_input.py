@@ -318,7 +318,8 @@ def test_job_params_take_the_command_lines_spellings(
         ({"rarities": "1" * 4400}, ["body", "params", "rarities", 0]),
         ({"rarities": "0.5," + "[" * 50000 + "]" * 50000}, ["body", "params", "rarities", 1]),
         ({"rarities": "0.5,1e400"}, ["body", "params", "rarities", 1]),
-        ({"rarities": "0.1", "trials": 1, "no-screen": "yes"}, ["body", "params", "screen"]),
+        # named as sent: the negation, not the flag it negates
+        ({"rarities": "0.1", "trials": 1, "no-screen": "yes"}, ["body", "params", "no-screen"]),
         ({"srd": True}, ["body", "params", "srd"]),  # not an option of this kind
     ],
 )

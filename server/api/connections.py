@@ -124,6 +124,11 @@ METHOD_ANSWER = _answer(
     "the request's method is not one this server knows (methods are case-sensitive)",
     "unknown_method",
 )
+CONNECT_ANSWER = _answer(
+    b"501 Not Implemented",
+    "CONNECT (a tunnel) is not served: this server is no proxy",
+    "unknown_method",
+)
 UPGRADE_ANSWER = _answer(
     b"400 Bad Request",
     "only a GET may ask to upgrade (a WebSocket handshake): send this request without Upgrade",
@@ -291,6 +296,8 @@ class TimedHttpProtocol(HttpToolsProtocol):
         hosts = sum(1 for name, _ in self.headers if name == b"host")
         if hosts > 1 or (hosts == 0 and version == "1.1"):
             return HOST_ANSWER
+        if self.parser.get_method() == b"CONNECT":  # the parser takes it for an upgrade
+            return CONNECT_ANSWER
         if self.parser.should_upgrade() and self.parser.get_method() != b"GET":
             # The parser hands what follows such a header to the upgrade, not to the body: a
             # POST carrying one had reached the app without its body, or been refused by the

@@ -757,6 +757,18 @@ def test_only_a_get_may_ask_to_upgrade(server: ServerProcess) -> None:
     head, _, payload = answer.partition(b"\r\n\r\n")
     assert head.startswith(b"HTTP/1.1 400") and b"application/json" in head, head
     assert json.loads(payload)["detail"][0]["type"] == "bad_upgrade"
+
+    async def tunnel() -> bytes:  # CONNECT, which the parser takes for an upgrade: no proxy
+        reader, writer = await _open(server, "127.0.0.44")
+        writer.write(b"CONNECT example.org:443 HTTP/1.1\r\nHost: example.org:443\r\n\r\n")
+        try:
+            return await asyncio.wait_for(reader.read(-1), 10)
+        finally:
+            writer.close()
+
+    head, _, payload = asyncio.run(tunnel()).partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 501") and b"application/json" in head, head
+    assert "no proxy" in json.loads(payload)["detail"][0]["msg"]
     url = server.url.replace("http://", "ws://") + "/auctions/999999/rounds/socket"
     with pytest.raises(InvalidStatus) as refused:  # a GET handshake still reaches the app
         ws_connect(url).close()

@@ -148,8 +148,9 @@ class Settings(BaseSettings):
     ray_max_retries: Annotated[int, Field(ge=0, le=100)] = 3
     """Times a unit lost with its Ray worker or node is run again (units are idempotent)."""
     ray_join_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
-    """How long the server's look at the Ray cluster (at start, then for ``/healthz``) may
-    take: Ray itself waits forever for an address nobody answers on."""
+    """How long the server's look at the Ray cluster (at start, then for ``/healthz``), and a
+    job worker's look before it joins, may take: Ray itself waits forever for an address
+    nobody answers on, or a head that takes the connection and never answers."""
     access_log: bool = True
     """Log every request (uvicorn's access log). Off behind a proxy that logs them: the log
     line costs the API a tenth to a quarter of its CPU for a small request."""

@@ -45,10 +45,14 @@ would load FastAPI, tripling this command's start)."""
 MAX_PORT = 65535
 """The largest TCP port."""
 RECONNECT_S = 60.0
-"""How long a dropped stream is opened again, from its last event, before ``watch`` gives up
+"""How long a dropped stream is opened again, from its last event or the last time it stayed
+open, before ``watch`` gives up
 (the default of ``--reconnect-s``): a server's restart takes seconds."""
 RETRY_PAUSES_S = (0.0, 1.0, 2.0, 4.0, 5.0)
 """The waits before each attempt to open a dropped stream again (then the last, repeated)."""
+HELD_S = 1.0
+"""A stream that stayed open this long was had again: its drop starts a new wait (one that
+opens and closes at once is still the same drop)."""
 AGAIN = frozenset({429, 502, 503, 504})
 """Answers a stream that was open may get while its server restarts, sheds load or waits for
 its database: tried again."""
@@ -201,13 +205,15 @@ def follow(
     """Read the auction's events into ``watched`` (telling each to ``shown``) until its end
     event. A stream that drops before it is opened again after the pauses of
     ``RETRY_PAUSES_S`` (``dropped(cause, pause)`` hears each), resuming after the last event,
-    until ``reconnect_s`` passed since the drop without an event. A server that never answered
+    until ``reconnect_s`` passed since the drop without an event or a stream held open
+    ``HELD_S`` (a quiet auction's stream sends keep-alives only). A server that never answered
     is tried once more only: it is the wrong address, not a dropped stream."""
     path = f"/auctions/{watched.auction_id}/events"
-    tries = 0  # attempts since the last event
-    since: float | None = None  # when the stream dropped (after its last event)
+    tries = 0  # attempts since the stream was last had
+    since: float | None = None  # when the stream dropped (after it was last had)
     while True:
         headers = {} if watched.last_id is None else {"Last-Event-ID": watched.last_id}
+        opened: float | None = None
         try:
             with client.stream("GET", path, headers=headers, params={"rounds": "true"}) as response:
                 if response.status_code == 404:
@@ -228,6 +234,7 @@ def follow(
                         "not text/event-stream"
                     )
                 watched.connected = True
+                opened = time.monotonic()
                 for name, event_id, data in sse(response.iter_lines()):
                     if name not in EVENTS:
                         continue  # an event a later server sends: nothing to show of it
@@ -247,6 +254,8 @@ def follow(
             cause = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
         except _BusyError as exc:
             cause = str(exc)
+        if opened is not None and time.monotonic() - opened >= HELD_S:
+            tries, since = 0, None  # it was had again: a new drop
         tries += 1
         if not watched.connected and tries > 1:
             raise WatchError(f"the server at {client.base_url} did not answer ({cause})")
@@ -438,7 +447,8 @@ def live_view(watched: Watched) -> Group:
     type=click.FloatRange(0, 86400),
     default=RECONNECT_S,
     show_default=True,
-    help="How long a dropped stream is opened again (from its last event) before giving up.",
+    help="How long a dropped stream is opened again before giving up (from its last event, "
+    "or the last time it stayed open).",
 )
 def command(auction_id: int, server: str, json_output: bool, reconnect_s: float) -> None:
     """Follow one auction live: the price, the fish left (supply), each iteration's buy / hold /

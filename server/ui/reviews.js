@@ -79,8 +79,9 @@ export function reviewList(view) {
   );
   withToken(view, async (box) => {
     // The queue is read whole (it is short: the screener holds few) and read again every
-    // LIST_REFRESH_MS while the tab is shown: a model held or appealed since appears at the
-    // bottom, one decided goes, and the focus stays on the same model's link.
+    // LIST_REFRESH_MS while the tab is shown (never two reads at once): a model held or
+    // appealed since appears in its place (oldest first), one decided goes, and the focus
+    // stays where it was in its model's row (or on the scrolling frame, scrolled as it was).
     const read = async () => {
       const rows = [];
       let cursor = null;
@@ -101,9 +102,13 @@ export function reviewList(view) {
     let seen = null;
     let ids = null;
     let readAt = null;
+    let failing = false;
+    let reading = false;
     const draw = ({ rows, margin }) => {
       readAt = new Date();
       const text = JSON.stringify([rows, margin]);
+      if (failing) state.textContent = ""; // read again: the failure is over
+      failing = false;
       if (text === seen) return;
       const now = new Set(rows.map((m) => m.id));
       if (ids !== null) {
@@ -114,21 +119,57 @@ export function reviewList(view) {
       }
       seen = text;
       ids = now;
-      const focused = list.contains(document.activeElement) ? document.activeElement.getAttribute("href") : null;
+      const at = where(list);
       fill(list, rows.length ? queueTable(rows, margin) : h("p", { class: "none-yet", id: "no-reviews" }, "No model is waiting for an inspector."));
-      if (focused) (list.querySelector(`a[href="${focused}"]`) || view.root.querySelector("h1"))?.focus();
+      if (at) restore(list, at, view.root.querySelector("h1"));
     };
     draw(await read());
     const timer = setInterval(() => {
-      if (document.visibilityState !== "visible" || !box.isConnected) return;
+      if (document.visibilityState !== "visible" || !box.isConnected || reading) return;
+      reading = true;
       read()
         .then(draw)
         .catch((error) => {
-          state.textContent = `The queue could not be read again (${String(error.message || error)}); it shows the held models as read at ${readAt.toLocaleTimeString()}, and is read again every few seconds.`;
+          failing = true;
+          const refused = error instanceof ApiError && (error.status === 401 || error.status === 403);
+          if (refused) {
+            adminToken = null; // rotated or revoked: the next visit asks for it again
+            clearInterval(timer);
+            state.textContent = `The operator token was refused (${String(error.message || error)}): the held models are shown as read at ${readAt.toLocaleTimeString()}; open the queue again to give the token.`;
+          } else {
+            state.textContent = `The queue could not be read again (${String(error.message || error)}); it shows the held models as read at ${readAt.toLocaleTimeString()}, and is read again every few seconds.`;
+          }
+        })
+        .finally(() => {
+          reading = false;
         });
     }, LIST_REFRESH_MS);
     view.onLeave(() => clearInterval(timer));
   });
+}
+
+/** Where the focus is in a drawn queue: the scrolling frame (with how far it scrolled), or a
+ * control of a model's row (its row by the model's own link, the control by its place). */
+function where(list) {
+  const active = document.activeElement;
+  if (!active || !list.contains(active)) return null;
+  const frame = list.querySelector(".scroll");
+  const scrolled = frame ? frame.scrollLeft : 0;
+  if (active === frame) return { frame: true, scrolled };
+  const row = active.closest("tr");
+  const own = row?.querySelector("a[href^='#/reviews/']")?.getAttribute("href");
+  const controls = row ? [...row.querySelectorAll("a, button")] : [];
+  return { own, place: controls.indexOf(active), scrolled };
+}
+
+/** The focus put back after a redraw (to ``fallback`` when its model's row is gone). */
+function restore(list, at, fallback) {
+  const frame = list.querySelector(".scroll");
+  if (frame) frame.scrollLeft = at.scrolled;
+  if (at.frame) return (frame || fallback)?.focus();
+  const link = at.own ? list.querySelector(`a[href="${at.own}"]`) : null;
+  const controls = link ? [...link.closest("tr").querySelectorAll("a, button")] : [];
+  (controls[at.place] || link || fallback)?.focus();
 }
 
 function queueTable(rows, margin) {

@@ -45,11 +45,13 @@ from datetime import datetime, timedelta
 from typing import Any
 
 from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import TimeoutError as PoolTimeoutError
 from sqlalchemy.orm import Session
 
 from server.store import crud
 from server.store.db import (
     Database,
+    DatabaseUnavailableError,
     database_now,
     is_database_outage,
     lease_session_name,
@@ -462,7 +464,7 @@ class BackgroundRunner:
         try:
             with self._database.session(write=False) as session:
                 return crud.progress_of(session, column=self.kind.progress, row_id=row_id)
-        except DBAPIError:
+        except (DBAPIError, DatabaseUnavailableError, PoolTimeoutError):
             return None
 
     def _on_timeout(self, row_id: int, limit_s: float) -> None:

@@ -166,15 +166,26 @@ END = {"status": "finished", "iterations": 3, "price": 5.03, "n_available": 2, "
 
 
 class DroppingStream(BaseHTTPRequestHandler):
-    """Sends ``plan[k]`` on the k-th connection (its events, or an HTTP status with a JSON
-    error), then closes it; records each Last-Event-ID."""
+    """Sends ``plan[k]`` on the k-th connection (its events, an HTTP status with a JSON
+    error, or keep-alives for a float of seconds), then closes it; records each
+    Last-Event-ID."""
 
-    plan: ClassVar[list[list[tuple[str, str | None, dict[str, Any]]] | int]] = []
+    plan: ClassVar[list[list[tuple[str, str | None, dict[str, Any]]] | int | float]] = []
     seen: ClassVar[list[str | None]] = []
 
     def do_GET(self) -> None:
         self.seen.append(self.headers.get("Last-Event-ID"))
         events = self.plan[min(len(self.seen), len(self.plan)) - 1]
+        if isinstance(events, float):  # a quiet auction's stream: keep-alives only
+            self.send_response(200)
+            self.send_header("Content-Type", "text/event-stream")
+            self.end_headers()
+            until = time.monotonic() + events
+            while time.monotonic() < until:
+                self.wfile.write(b": keep-alive\n\n")
+                self.wfile.flush()
+                time.sleep(0.25)
+            return
         if isinstance(events, int):
             body = b'{"detail": [{"msg": "the database is unavailable"}]}'
             self.send_response(events)
@@ -237,6 +248,21 @@ def test_a_stream_kept_away_by_a_restarting_server_is_resumed(dropping) -> None:
     assert told[2].endswith("in 2 s")
     rows = [line for line in result.stdout.splitlines() if line.startswith("iteration")]
     assert [row.split(":")[0] for row in rows] == ["iteration 0", "iteration 1"]
+
+
+def test_a_stream_had_again_then_dropped_again_is_waited_for_anew(dropping) -> None:
+    """A stream opened again and held (a quiet auction sends keep-alives only) was had: its
+    next drop starts a new wait, however long the quiet lasted."""
+    url, handler = dropping
+    handler.plan = [
+        [("iteration", "0", iteration(0))],
+        [],  # closed at once: the same drop
+        2.5,  # held open, quiet, longer than --reconnect-s
+        [("iteration", "1", iteration(1)), ("end", None, END)],
+    ]
+    result = CliRunner().invoke(cli, ["watch", "7", "--server", url, "--reconnect-s", "2"])
+    assert result.exit_code == 0, result.output
+    assert handler.seen == [None, "0", "0", "0"]
 
 
 def test_a_stream_gone_longer_than_reconnect_s_exits_3(dropping) -> None:

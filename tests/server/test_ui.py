@@ -1420,6 +1420,14 @@ def test_a_models_page_says_who_decided_and_keeps_the_review_history(
     late_row.wait_for(state="detached", timeout=WAIT_MS)
     page.wait_for_selector("#list-state:has-text('1 decided or withdrawn')", timeout=WAIT_MS)
     assert mine.count() == 1
+    # a read that fails is said, and the next one that works takes the words back
+    page.route("**/reviews?*", lambda route: route.abort())
+    page.wait_for_selector("#list-state:has-text('could not be read again')", timeout=WAIT_MS)
+    page.unroute("**/reviews?*")
+    page.wait_for_function(
+        "() => document.getElementById('list-state').textContent === ''", timeout=WAIT_MS
+    )
+    assert mine.count() == 1
     page.set_viewport_size(PHONE)  # a phone: tables scroll, not the page
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
     page.set_viewport_size(VIEWPORT)

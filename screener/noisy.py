@@ -73,6 +73,16 @@ EXPENSIVE_ROWS = torch.tensor(
 """The base fish at 12.50, at each of ``EXPENSIVE_DEMANDS``: where the keen and rush bars read
 the buy margin, clean and on the model's noisy copies."""
 ORDINARY = EXPENSIVE_DEMANDS <= limits.ORDINARY_DEMAND + 1e-9
+GATE_PRICES = (4.75, 5.0, 5.25, 5.5)
+GATE_ROWS = np.array(
+    [
+        i * len(DEMANDS) + f
+        for i in np.flatnonzero(np.isin(np.round(SCAN_PRICES[PRICES], 2), GATE_PRICES))
+        for f in range(len(DEMANDS))
+    ]
+)
+"""Indices into ``ROWS`` of the rows ``noise-gate`` reads: the noisy scan's buy fractions at
+``GATE_PRICES``."""
 _DRAWN_ROWS = ROWS.repeat(limits.NOISE_DRAWS, 1)
 """``ROWS`` once per noise draw."""
 _DRAWN_EXPENSIVE = EXPENSIVE_ROWS.repeat(limits.NOISE_DRAWS, 1)
@@ -158,6 +168,51 @@ def _scores(batch: FSNBatch) -> tuple[Array, Array]:
             scores = decision_logits(single, _DRAWN_ROWS, noise)
             noisy[index] = scores.reshape(len(index), K, R, 3).numpy()
     return clean, noisy
+
+
+class Gate(NamedTuple):
+    """How far each model's own noise moves its sensors (``noise-gate``)."""
+
+    shift: Array
+    """(P, 4): the most each sensor's noise moves a decision score (its largest gap between
+    clean and the copies' mean, times its largest decision weight)."""
+    row: npt.NDArray[np.intp]
+    """(P, 4): the ``GATE_ROWS`` index where that gap is largest."""
+    clean: Array
+    """(P, 4): each sensor clean on that row."""
+    noisy: Array
+    """(P, 4): each sensor there, averaged over the copies and the draws."""
+
+
+def _gate(batch: FSNBatch) -> Gate:
+    """Each model's sensors on ``GATE_ROWS``, clean and averaged over its noisy copies (the
+    noisy scan's draws), a pass of ``probes.passes`` at a time."""
+    P, n = batch.n_patrons, len(ES_NEURONS)
+    rows = ROWS64[GATE_ROWS]
+    clean, noisy = np.empty((P, len(rows), n)), np.empty((P, len(rows), n))
+    with torch.no_grad():
+        for index, part in passes(batch):
+            single = part.to(DTYPE)
+            scale = noise_scale(single)[:, None]
+            seen = activations(single, rows)
+            clean[index] = np.stack([seen[name].numpy() for name in ES_NEURONS], axis=-1)
+            draws = []
+            for k in range(limits.NOISE_DRAWS):
+                normals = _normals()[k, GATE_ROWS, : part.max_copies].to(DTYPE)[None]
+                seen = activations(single, rows, normals * scale)
+                draws.append(np.stack([seen[name].numpy() for name in ES_NEURONS], axis=-1))
+            noisy[index] = np.mean(draws, axis=0)
+    gap = np.abs(noisy - clean)  # (P, rows, 4)
+    row = gap.argmax(axis=1)
+    weight = np.abs(batch.fc_weight.double().numpy()).max(axis=1)  # (P, 4)
+    shift = np.take_along_axis(gap, row[:, None, :], axis=1)[:, 0] * weight
+    at = row[:, None, :]
+    return Gate(
+        shift,
+        row,
+        np.take_along_axis(clean, at, axis=1)[:, 0],
+        np.take_along_axis(noisy, at, axis=1)[:, 0],
+    )
 
 
 def _modal(decisions: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
@@ -298,14 +353,34 @@ def evaluate(batch: FSNBatch) -> Noisy:
     cells += [(1, int(p), int(flip_start[p]), int(flip_f[p])) for p in np.flatnonzero(flips)]
     for k, p, i, f in cells:
         failed[p, k, _most_moved(batch, p, i, f)] = True
+    gate = _gate(batch)
+    gate_failed = (gate.shift > limits.NOISE_GATE_SHIFT) & finite[:, None]
+
+    def gate_message(k: int, p: int) -> str:
+        name, row = ES_NEURONS[k], int(GATE_ROWS[gate.row[p, k]])
+        price, f = (
+            SCAN_PRICES[PRICES[row // len(DEMANDS)]],
+            SCAN_DEMANDS[DEMANDS[row % len(DEMANDS)]],
+        )
+        return (
+            f"{_setting(batch, p)}, {ROLE[name]} {name} reads {fmt(gate.clean[p, k], '.2f')} on "
+            f"the clean base fish at {fmt_price(price)} with buy fraction {f:g} and "
+            f"{fmt(gate.noisy[p, k], '.2f')} averaged over its noisy copies: its own noise moves "
+            f"a decision score by {fmt(gate.shift[p, k], '.2f')} through it (at most "
+            f"{limits.NOISE_GATE_SHIFT:g}): a gate that shows the clean probes one model and the "
+            "auction another"
+        )
+
     messages = (gated_message, flip_message, firm_message)
+    n_es = len(ES_NEURONS)
     checks = Checks(
-        ("noise-gated-hold",) * len(ES_NEURONS)
-        + ("noise-flip",) * len(ES_NEURONS)
-        + ("noise-far-too-expensive",),
-        (*ES_NEURONS, *ES_NEURONS, "B"),
-        np.concatenate((failed.reshape(P, -1), firm[:, None]), axis=1),
-        lambda k, p: messages[k // len(ES_NEURONS)](p),
+        ("noise-gated-hold",) * n_es
+        + ("noise-flip",) * n_es
+        + ("noise-far-too-expensive",)
+        + ("noise-gate",) * n_es,
+        (*ES_NEURONS, *ES_NEURONS, "B", *ES_NEURONS),
+        np.concatenate((failed.reshape(P, -1), firm[:, None], gate_failed), axis=1),
+        lambda k, p: gate_message(k - 2 * n_es - 1, p) if k > 2 * n_es else messages[k // n_es](p),
     )
     holding: Mask = np.any(holds, axis=(1, 2)) & finite
     return Noisy(checks, holding, gap, bar, width, clean3, noisy3, inspected)

@@ -180,8 +180,9 @@ def test_a_rush_buyer_is_held_and_its_few_copies_stall_a_market():
 @pytest.mark.parametrize(
     ("name", "rules"),
     [
-        ("noise-keen-quitter", {"noise-flip", "noise-far-too-expensive"}),
-        ("noise-keen-bidder", {"noise-far-too-expensive"}),
+        # (their keen sensor is narrower than their own noise: a gate, ``noise-gate``)
+        ("noise-keen-quitter", {"noise-flip", "noise-far-too-expensive", "noise-gate"}),
+        ("noise-keen-bidder", {"noise-far-too-expensive", "noise-gate"}),
     ],
 )
 def test_a_keen_buyer_only_on_its_noisy_copies_is_refused(name, rules):

@@ -81,7 +81,10 @@ def test_holds_the_auction_cannot_turn_into_purchases_are_named(family):
 def test_the_impact_test_runs_on_what_the_market_sees(monkeypatch):
     """A narrow noise-gated holder (a few cents of holds, only on its noisy copies, each backed
     by a purchase the auction can reach) passes every cheap check; it is run in the test
-    auctions because it holds under noise, where the clean scan would have skipped it."""
+    auctions because it holds under noise, where the clean scan would have skipped it. (Its
+    gate is one ``noise-gate`` refuses: that rule is off here, to see the path a model that
+    holds only under noise takes.)"""
+    monkeypatch.setattr(limits, "NOISE_GATE_SHIFT", float("inf"))
     model = NoiseGated(4.91, 4.98, 5.10, copies=8, seed=9).build("narrow")
     cheap = cheap_checks(from_manifests([model]))
     assert not failed_any(cheap.groups)[0]

@@ -66,8 +66,17 @@ InFloatRange = BeforeValidator(_float_sized)
 """A float field's metadata: an integer beyond the float range is refused as such."""
 FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False), InFloatRange]
 """A finite JSON number (strict: ``"0.2"`` and ``true`` are not numbers)."""
-Participant = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")]
-"""A participant's name: letters, digits, ``_``, ``.``, ``-``."""
+Participant = Annotated[
+    str,
+    Field(
+        min_length=1,
+        max_length=64,
+        pattern=r"^[A-Za-z0-9_.\-]+$",
+        # said in the schema; a server refuses it by name (``name_problem``)
+        json_schema_extra={"not": {"pattern": r"^\.+$"}},
+    ),
+]
+"""A participant's name: letters, digits, ``_``, ``.``, ``-``; not dots only."""
 
 
 def name_problem(participant: str) -> str | None:

@@ -49,7 +49,8 @@ from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
 from screener import rescreen, screen, screen_many
 from screener.checks import cheap_checks, failed_any
-from screener.limits import DEMAND_SHARPNESS_LIMIT
+from screener.limits import DEMAND_SHARPNESS_LIMIT, NOISE_GATE_SHIFT
+from screener.noisy import gate as noisy_gate
 from screener.rules.numbers import DEMAND, Numbers
 from screener.rules.sensors import DEMAND_STEP_NEURONS
 from tests.support.corpus import (
@@ -113,10 +114,19 @@ def confusion(seed: int, n_honest: int, per_sincere: int, per_kind: int) -> None
           f"(target ≥ 99.5%)")  # fmt: skip
     print(f"saboteurs rejected: {sum(caught)}/{len(caught)} = {sum(caught) / len(caught):.2%} "
           f"(target ≥ 99%)")  # fmt: skip
-    sharpest = max(demand_sharpness([e.manifest for e in entries if not e.saboteur]))
+    sincere = [e.manifest for e in entries if not e.saboteur]
+    sharpest = max(demand_sharpness(sincere))
     print(
         f"sharpest reaction of an honest or sincere sensor to the buy fraction: "
         f"{sharpest:.3g} per unit of f (demand-sharpness allows {DEMAND_SHARPNESS_LIMIT:g})"
+    )
+    moved = max(
+        float(noisy_gate(from_manifests(sincere[i : i + 64])).shift.max())
+        for i in range(0, len(sincere), 64)
+    )
+    print(
+        "most an honest or sincere model's own noise moves a decision score through a sensor: "
+        f"{moved:.3g} (noise-gate allows {NOISE_GATE_SHIFT:g})"
     )
 
 

@@ -7,12 +7,15 @@ item and another on the copies the market averages: the probes see a sincere bid
 auction a holder. ``evaluate`` draws ``NOISE_DRAWS`` sets of standard normals once per process
 (fixed seeds, the same for every model, so a verdict does not depend on its batch), scales them
 by each model's own σ on its own copies and inputs, and takes each row's decision the way most
-draws give it. Two checks read those decisions:
+draws give it. Two checks read those decisions, a third the sensors:
 
 * ``noise-gated-hold``: the sincere-hold rule on the noisy decisions (each reachable hold backed
   by a purchase the auction can still come down to), for models the clean scan admits;
 * ``noise-flip``: a band wider than ``NOISE_FLIP_BAND`` of the decisive row where the model
-  buys clean and holds on its noisy copies.
+  buys clean and holds on its noisy copies;
+* ``noise-gate``: a sensor whose reading the model's own noise moves, through its largest
+  decision weight, by more than ``NOISE_GATE_SHIFT`` (``gate``): a gate that shows the clean
+  probes one model and the auction another, wherever the holds it hides lie.
 
 Both name the sensor the noise moves most at the row that showed it. The same decisions say
 which models hold anywhere the auction goes (``holds``): those go on to the market-impact test.
@@ -184,7 +187,7 @@ class Gate(NamedTuple):
     """(P, 4): each sensor there, averaged over the copies and the draws."""
 
 
-def _gate(batch: FSNBatch) -> Gate:
+def gate(batch: FSNBatch) -> Gate:
     """Each model's sensors on ``GATE_ROWS``, clean and averaged over its noisy copies (the
     noisy scan's draws), a pass of ``probes.passes`` at a time."""
     P, n = batch.n_patrons, len(ES_NEURONS)
@@ -353,20 +356,20 @@ def evaluate(batch: FSNBatch) -> Noisy:
     cells += [(1, int(p), int(flip_start[p]), int(flip_f[p])) for p in np.flatnonzero(flips)]
     for k, p, i, f in cells:
         failed[p, k, _most_moved(batch, p, i, f)] = True
-    gate = _gate(batch)
-    gate_failed = (gate.shift > limits.NOISE_GATE_SHIFT) & finite[:, None]
+    seen = gate(batch)
+    gate_failed = (seen.shift > limits.NOISE_GATE_SHIFT) & finite[:, None]
 
     def gate_message(k: int, p: int) -> str:
-        name, row = ES_NEURONS[k], int(GATE_ROWS[gate.row[p, k]])
+        name, row = ES_NEURONS[k], int(GATE_ROWS[seen.row[p, k]])
         price, f = (
             SCAN_PRICES[PRICES[row // len(DEMANDS)]],
             SCAN_DEMANDS[DEMANDS[row % len(DEMANDS)]],
         )
         return (
-            f"{_setting(batch, p)}, {ROLE[name]} {name} reads {fmt(gate.clean[p, k], '.2f')} on "
+            f"{_setting(batch, p)}, {ROLE[name]} {name} reads {fmt(seen.clean[p, k], '.2f')} on "
             f"the clean base fish at {fmt_price(price)} with buy fraction {f:g} and "
-            f"{fmt(gate.noisy[p, k], '.2f')} averaged over its noisy copies: its own noise moves "
-            f"a decision score by {fmt(gate.shift[p, k], '.2f')} through it (at most "
+            f"{fmt(seen.noisy[p, k], '.2f')} averaged over its noisy copies: its own noise moves "
+            f"a decision score by {fmt(seen.shift[p, k], '.2f')} through it (at most "
             f"{limits.NOISE_GATE_SHIFT:g}): a gate that shows the clean probes one model and the "
             "auction another"
         )

@@ -44,15 +44,15 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from agents.batch import SELECTIVE, from_manifests
+from agents.batch import from_manifests
 from agents.manifest import Manifest
 from agents.negotiator import honest_manifest
 from screener import rescreen, screen, screen_many
 from screener.checks import cheap_checks, failed_any
 from screener.limits import DEMAND_SHARPNESS_LIMIT, NOISE_GATE_SHIFT
 from screener.noisy import gate as noisy_gate
-from screener.rules.numbers import DEMAND, Numbers
-from screener.rules.sensors import DEMAND_STEP_NEURONS
+from screener.rules.numbers import Numbers
+from screener.rules.sensors import demand_gain
 from tests.support.corpus import (
     FALLING_PRICES,
     FINE_TUNE_ROUNDS,
@@ -132,15 +132,10 @@ def confusion(seed: int, n_honest: int, per_sincere: int, per_kind: int) -> None
 
 def demand_sharpness(manifests: list[Manifest]) -> list[float]:
     """Each model's sharpest reaction of PG, SZ or ST to the buy fraction, as
-    ``demand-sharpness`` weighs it (a threshold's a·|w_f|, ST's |w_f| / √ε)."""
+    ``demand-sharpness`` weighs it."""
     out: list[float] = []
     for i in range(0, len(manifests), 64):
-        n = Numbers.of(from_manifests(manifests[i : i + 64]))
-        neurons = list(DEMAND_STEP_NEURONS)
-        weight = np.abs(n.es_weight[:, neurons, DEMAND])
-        per_width = weight / np.sqrt(n.es_epsilon[:, neurons])
-        gain = np.where(n.es_kind[:, neurons] == SELECTIVE, per_width, n.es_a[:, neurons] * weight)
-        out += gain.max(axis=1).tolist()
+        out += demand_gain(Numbers.of(from_manifests(manifests[i : i + 64]))).max(axis=1).tolist()
     return out
 
 

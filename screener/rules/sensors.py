@@ -295,16 +295,25 @@ DEMAND_STEP_NEURONS = (PG, SZ, ST)
 ``sharpness``)."""
 
 
-def _demand_sharpness(n: Numbers) -> Checks:
-    """PG, SZ and ST react to the buy fraction at most as sharply as LSR may
-    (``limits.DEMAND_SHARPNESS_LIMIT``)."""
+def demand_gain(n: Numbers) -> Array:
+    """(P, 3): how sharply PG, SZ and ST react to the buy fraction, per unit of it: a
+    threshold's a·|w_f|, a selective neuron's |w_f| / √ε."""
     neurons = list(DEMAND_STEP_NEURONS)
     weight = np.abs(n.es_weight[:, neurons, DEMAND])
     selective = n.es_kind[:, neurons] == SELECTIVE
     with np.errstate(divide="ignore", invalid="ignore"):
         per_width = np.where(weight > 0, weight / np.sqrt(n.es_epsilon[:, neurons]), 0.0)
-    gain = np.where(selective, per_width, n.es_a[:, neurons] * weight)
-    gain = np.nan_to_num(gain, nan=np.inf)
+    gain: Array = np.nan_to_num(
+        np.where(selective, per_width, n.es_a[:, neurons] * weight), nan=np.inf
+    )
+    return gain
+
+
+def _demand_sharpness(n: Numbers) -> Checks:
+    """PG, SZ and ST react to the buy fraction at most as sharply as LSR may
+    (``limits.DEMAND_SHARPNESS_LIMIT``)."""
+    gain = demand_gain(n)
+    selective = n.es_kind[:, list(DEMAND_STEP_NEURONS)] == SELECTIVE
     limit = limits.DEMAND_SHARPNESS_LIMIT
     names = tuple(ES_NEURONS[i] for i in DEMAND_STEP_NEURONS)
 

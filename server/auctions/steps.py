@@ -416,6 +416,20 @@ def _nothing_to_prepare(session: Session, auction_ids: list[int]) -> None:
     """Claimed auctions need nothing: their step resumes from the last checkpoint."""
 
 
+def _give_back_round_time(session: Session, began: datetime, now: datetime) -> None:
+    """After a database outage (from ``began`` at the earliest to ``now``): patrons may not
+    have heard of an open round, or had their uploads refused, all along; its deadline moves
+    so that they have the time it had left when the outage began."""
+    moved = crud.push_back_deadlines(session, began=began, now=now)
+    if moved:
+        log.warning(
+            "after a database outage of up to %.1f s: the open rounds of auctions %s get the "
+            "time they had left back",
+            (now - began).total_seconds(),
+            ", ".join(map(str, moved)),
+        )
+
+
 AUCTION_WORK = WorkKind(
     name="auction",
     table=Auction,
@@ -427,5 +441,6 @@ AUCTION_WORK = WorkKind(
     due=Auction.next_step_at,
     resumable=True,
     progress=Auction.iteration,
+    after_outage=_give_back_round_time,
 )
 """Auctions as background work (``server.work.runner``): a claim runs one step."""

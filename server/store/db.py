@@ -398,6 +398,9 @@ class Database:
         self._identity = _identity(self._probe or self.engine, url)
         self._checked_at = time.monotonic()
         self._outage_at = -math.inf  # when an operation last met an outage (monotonic)
+        self._healthy_at = datetime.now(UTC)  # when a runner's pass last went through
+        self._outage_began: datetime | None = None  # an outage met, its rounds not pushed back
+        self._outage_lock = threading.Lock()
         self._problem: str | None = None
         self._lost = False  # the problem is for good (gone, replaced): no check clears it
         self._check_lock = threading.Lock()
@@ -445,7 +448,32 @@ class Database:
         (``is_connection_lost``), not busy (a full pool, a lock, a deadlock, a cancelled
         statement)."""
         if exc is None or is_connection_lost(exc):
-            self._outage_at = time.monotonic()
+            with self._outage_lock:
+                self._outage_at = time.monotonic()
+                if self._outage_began is None:
+                    self._outage_began = self._healthy_at
+
+    def note_healthy(self) -> None:
+        """Record that the database answered a runner's pass just now: an outage met later
+        began after this moment (``outage_began``)."""
+        with self._outage_lock:
+            if self._outage_began is None:
+                self._healthy_at = datetime.now(UTC)
+
+    def outage_began(self) -> datetime | None:
+        """When an outage this process met began, at the earliest (the last moment the
+        database answered before it), until ``outage_handled``; None: none since then."""
+        with self._outage_lock:
+            return self._outage_began
+
+    def outage_handled(self, began: datetime, *, at: datetime, at_monotonic: float) -> None:
+        """The outage that began at ``began`` is dealt with (its open rounds got their time
+        back) by a transaction that began ``at`` (wall clock, and ``at_monotonic``): an outage
+        met since then began then at the earliest."""
+        with self._outage_lock:
+            if self._outage_began == began:
+                self._outage_began = at if self._outage_at > at_monotonic else None
+                self._healthy_at = at
 
     def since_outage_s(self) -> float:
         """Seconds since an operation of this process last met an outage (inf: never)."""

@@ -57,7 +57,7 @@ from server.store.db import (
     lease_session_name,
     unavailable_message,
 )
-from server.store.tables import Auction, Job
+from server.store.tables import Auction, Job, utcnow
 from server.work.pool import TaskFn, WorkerContext, WorkerPool
 
 log = logging.getLogger("srd.runner")
@@ -109,6 +109,10 @@ class WorkKind:
     """A column that moves on as a resumable row's tasks commit (``Auction.iteration``): a
     death after it moved starts the count of deaths in a row again (None: only a task done
     does)."""
+    after_outage: Callable[[Session, datetime, datetime], None] | None = None
+    """Called in a write transaction once the database answers again after an outage this
+    process met, with when it began (at the earliest) and now (the auctions' open rounds get
+    back the time it took: ``crud.push_back_deadlines``)."""
 
 
 MAX_DEATHS = 3
@@ -238,6 +242,7 @@ class BackgroundRunner:
                 wait = RETRY_S
             else:
                 failing = False
+                self._database.note_healthy()
 
     def _tick(self) -> float:
         """One pass: release what ended, renew, claim; the seconds until the next pass."""
@@ -250,6 +255,7 @@ class BackgroundRunner:
             with self._lock:  # released at a later pass
                 self._over |= over
             raise
+        self._after_outage()
         wait = IDLE_TICK_S
         if not self._exclusive:
             wait = min(wait, self._renew())
@@ -262,6 +268,18 @@ class BackgroundRunner:
             if due_in is not None:
                 wait = min(wait, due_in)
         return wait
+
+    def _after_outage(self) -> None:
+        """Once the database answers again after an outage this process met, the kind's
+        ``after_outage``, at once (before the grace ends and any step is claimed)."""
+        began = self._database.outage_began()
+        if began is None or self.kind.after_outage is None:
+            return
+        at, at_monotonic = utcnow(), time.monotonic()
+        with self._database.session(write=True) as session:
+            self.kind.after_outage(session, began, at)
+            session.commit()
+        self._database.outage_handled(began, at=at, at_monotonic=at_monotonic)
 
     def _claim(self, limit: int) -> tuple[list[int], float | None]:
         """The rows claimed now, and while workers stay free, the seconds until the next

@@ -109,6 +109,7 @@ from server.store.crud.steps import (
     commit_iteration,
     due_at,
     patron_manifests,
+    push_back_deadlines,
     start,
     step_state,
 )
@@ -218,6 +219,7 @@ __all__ = [
     "pending_uploads",
     "progress_of",
     "prune_rate_events",
+    "push_back_deadlines",
     "rate_counts",
     "recent_events",
     "record_late",

@@ -141,6 +141,40 @@ def due_at(session: Session, *, auction_id: int, when: datetime) -> None:
     )
 
 
+def push_back_deadlines(session: Session, *, began: datetime, now: datetime) -> list[int]:
+    """Give the open rounds of running auctions the time an outage took from them: a round
+    with time left at ``began`` (the outage's start, at the earliest) gets that time again
+    from ``now`` (its end), at most its auction's whole ``round_deadline_s``, never less than
+    it has; the auction's step is then due at the new deadline. The auctions whose round
+    moved (announced to live updates)."""
+    rows = session.execute(
+        select(FineTuneRound.id, FineTuneRound.auction_id, FineTuneRound.deadline)
+        .add_columns(Auction.round_deadline_s)
+        .join(Auction, Auction.id == FineTuneRound.auction_id)
+        .where(FineTuneRound.status == RoundStatus.OPEN, FineTuneRound.deadline > began)
+        .where(Auction.status == AuctionStatus.RUNNING)
+        .with_for_update(of=FineTuneRound)
+    ).all()
+    moved: list[int] = []
+    for round_id, auction_id, deadline, whole_s in rows:
+        pushed = now + min(timedelta(seconds=whole_s), deadline - began)
+        if pushed <= deadline:
+            continue
+        session.execute(
+            update(FineTuneRound)
+            .where(FineTuneRound.id == round_id, FineTuneRound.status == RoundStatus.OPEN)
+            .values(deadline=pushed)
+        )
+        session.execute(
+            update(Auction)
+            .where(Auction.id == auction_id, Auction.status == AuctionStatus.RUNNING)
+            .values(next_step_at=pushed + CLOSE_GRACE, updated_at=now)
+        )
+        notify_change(session, kind="auction", row_id=auction_id)
+        moved.append(auction_id)
+    return moved
+
+
 def start(session: Session, *, auction_id: int, finished: bool, now: datetime) -> None:
     """A pending auction running from ``now`` (finished at once if ``finished``)."""
     values: dict[str, object] = {

@@ -253,7 +253,7 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
             "are judged by that arrival; no auction step for a few seconds",
             arrivals.unanswered_at_start,
         )
-        database.note_outage()
+        database.hold_claims()
     services.auctions.start()
     services.jobs.start()
     shown = make_url(settings.database_url).render_as_string(hide_password=True)

@@ -453,6 +453,12 @@ class Database:
                 if self._outage_began is None:
                     self._outage_began = self._healthy_at
 
+    def hold_claims(self) -> None:
+        """No step or job is claimed for the grace after an outage (``since_outage_s``), though
+        none was met (a restart with uploads whose retries must come first)."""
+        with self._outage_lock:
+            self._outage_at = time.monotonic()
+
     def note_healthy(self) -> None:
         """Record that the database answered a runner's pass just now: an outage met later
         began after this moment (``outage_began``)."""

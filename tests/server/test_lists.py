@@ -158,12 +158,12 @@ def test_auctions_list_shows_what_a_person_scans(
 
 
 def test_jobs_list(client: TestClient) -> None:
-    first = client.post("/jobs", json={"kind": "fish", "params": {"steps": 200}}, headers=ADMIN)
-    second = client.post("/jobs", json={"kind": "fish", "params": {"steps": 300}}, headers=ADMIN)
+    first = client.post("/jobs", json={"kind": "fish", "params": {"steps": 20}}, headers=ADMIN)
+    second = client.post("/jobs", json={"kind": "fish", "params": {"steps": 30}}, headers=ADMIN)
     ids = [first.json()["job_id"], second.json()["job_id"]]
     listed = client.get("/jobs", params={"limit": 2}).json()
     assert [j["id"] for j in listed["items"]] == ids[::-1]
-    assert listed["items"][0]["params"]["steps"] == 300
+    assert listed["items"][0]["params"]["steps"] == 30
     assert set(listed["items"][0]) == {
         "id",
         "kind",

@@ -148,7 +148,7 @@ def start_work(
     jobs = [
         httpx.post(
             servers[i].url + "/jobs",
-            json={"kind": "fish", "params": {"steps": 300 + i}},
+            json={"kind": "fish", "params": {"steps": 30 + i}},
             headers=admin,
             timeout=60,
         ).json()["job_id"]

@@ -16,7 +16,7 @@ from server.app import create_app
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, make_settings, wait_for
 
-SHORT_FISH = {"kind": "fish", "params": {"steps": 300, "srd": True, "seed": 4}}
+SHORT_FISH = {"kind": "fish", "params": {"steps": 30, "srd": True, "seed": 4}}
 LONG_STUDY = {"kind": "auction-study", "params": {"trials": 50}}  # always cancelled
 
 

@@ -211,6 +211,16 @@ def test_auction_page_shows_remote_fine_tuning_rounds(
     page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
     page.wait_for_selector("#liveness:has-text('Ended')", timeout=60_000)
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    # Why the price moved keeps a readable width (the table scrolls): its rows had been a
+    # screen tall, the sentence a word wide.
+    tallest = page.evaluate(
+        "Math.max(...[...document.querySelectorAll('#rounds tbody tr')]"
+        ".map((row) => row.getBoundingClientRect().height))"
+    )
+    assert 0 < tallest < 200, tallest
+    # Two facts a row, not one.
+    tops = page.evaluate("[...document.querySelectorAll('.facts > div')].map((d) => d.offsetTop)")
+    assert len(set(tops)) <= (len(tops) + 1) // 2, tops
     # A frame is a tab stop only while it scrolls: on a phone the wide tables do; on a wide
     # screen most show everything, and are no stop that does nothing.
     stops = """() => [...document.querySelectorAll('.scroll[role=region]')].filter(

@@ -187,9 +187,14 @@ sincere low bidder may enter. Honest models of the paper's randomisation, fine-t
 every hand-written sincere kind of the labelled corpus buy at 4.30 or above; the red team's
 never-buyer (willingness to pay 2.6) buys only at 2.70 or below. The corpus's own variants with
 a willingness to pay drawn down to 2.6 are held alike (``docs/screener.md``)."""
-SCAN_DEMANDS = tuple(k / 10 for k in range(11))
-"""Buy fractions f of the decisive-row scan, every 0.1: f is the previous round's buyers over
-voters, so any fraction occurs."""
+SCAN_DEMANDS = tuple(sorted({round(k / 10, 12) for k in range(11)} | {k / 32 for k in range(33)}))
+"""Buy fractions f of the decisive-row scan: every 0.1 and every 1/32 (41 in all). f is the
+previous round's buyers over voters, so any fraction occurs. At the tenths alone a red team's
+window holder passed: honest (buys up to 5.00, quits above) at every tenth, it held above the
+price for f in 0.401-0.499 and 0.901-0.999, where the market's f went in 41-43 % of the
+rounds, and did 0.47-0.68 of a saboteur's harm, accepted. Every 1/32 sees any such window wider
+than 0.032 (its holds then go to the sincere-hold rule and the market-impact test); the clean
+pass goes from 4,399 to 8,869 rows (``docs/screener.md``, *Speed*, for its cost)."""
 SCAN_RISES = 20
 """The scan visits every price one decrement apart from ``HOLD_REACH_SLACK`` decrements under the
 market's stalemate floor up to the base price plus this many increments (4.75 to 6.00 with the
@@ -223,9 +228,8 @@ NOISE_SCAN_RISES = 10
 """The noisy scan covers the decisive row from ``HOLD_REACH_SLACK`` decrements under the floor up
 to the base price plus this many increments (4.75 to 5.50): the prices honest auctions visit
 (the clean scan goes on to 6.00)."""
-NOISE_SCAN_DEMANDS = (0.0, 0.25, 0.5, 0.75, 1.0)
-"""Buy fractions of the noisy scan (each read as the nearest of ``SCAN_DEMANDS``: 0, 0.2, 0.5,
-0.7, 1): both ends, LSR's designed rush level and two between. With the ends and ½ alone a red
+NOISE_SCAN_DEMANDS = (0.0, 0.2, 0.5, 0.7, 1.0)
+"""Buy fractions of the noisy scan (among ``SCAN_DEMANDS``): both ends, LSR's designed rush level and two between. With the ends and ½ alone a red
 team's holder whose noisy copies hold at buy fractions 0.375-0.48 and 0.62-0.97 passed (harm
 0.75-0.86 of a saboteur's); the two between refuse it, and cost a batch of 64 about a fifth
 more (2.62 → 3.11 ms per manifest, ``benchmarks/screener.py``)."""

@@ -229,10 +229,11 @@ NOISE_SCAN_RISES = 10
 to the base price plus this many increments (4.75 to 5.50): the prices honest auctions visit
 (the clean scan goes on to 6.00)."""
 NOISE_SCAN_DEMANDS = (0.0, 0.2, 0.5, 0.7, 1.0)
-"""Buy fractions of the noisy scan (among ``SCAN_DEMANDS``): both ends, LSR's designed rush level and two between. With the ends and ½ alone a red
-team's holder whose noisy copies hold at buy fractions 0.375-0.48 and 0.62-0.97 passed (harm
-0.75-0.86 of a saboteur's); the two between refuse it, and cost a batch of 64 about a fifth
-more (2.62 → 3.11 ms per manifest, ``benchmarks/screener.py``)."""
+"""Buy fractions of the noisy scan (among ``SCAN_DEMANDS``): both ends, LSR's designed rush
+level and two between. With the ends and ½ alone a red team's holder whose noisy copies hold at
+buy fractions 0.375-0.48 and 0.62-0.97 passed (harm 0.75-0.86 of a saboteur's); the two between
+refuse it, and cost a batch of 64 about a fifth more (2.62 → 3.11 ms per manifest,
+``benchmarks/screener.py``)."""
 NOISE_FLIP_BAND = 0.05
 """A model may buy clean and hold on its noisy copies over at most this width of the decisive
 row at one buy fraction (one increment): noise shifts an honest model's boundaries by a cent or

@@ -51,7 +51,7 @@ from server.store.crud.steps import (
     PendingUploadsError,
     StepRound,
 )
-from server.store.db import Database, JSONText, is_database_outage
+from server.store.db import DATABASE_RETRY_AFTER_S, Database, JSONText, is_database_outage
 from server.store.status import AUCTION_UNFINISHED, AuctionStatus
 from server.store.tables import Auction, utcnow
 from server.work.pool import WorkerContext, error_summary
@@ -419,8 +419,10 @@ def _nothing_to_prepare(session: Session, auction_ids: list[int]) -> None:
 def _give_back_round_time(session: Session, began: datetime, now: datetime) -> None:
     """After a database outage (from ``began`` at the earliest to ``now``): patrons may not
     have heard of an open round, or had their uploads refused, all along; its deadline moves
-    so that they have the time it had left when the outage began."""
-    moved = crud.push_back_deadlines(session, began=began, now=now)
+    so that they have the time it had left when the outage began, from when they were told
+    to try again (``DATABASE_RETRY_AFTER_S`` from now)."""
+    retry = timedelta(seconds=DATABASE_RETRY_AFTER_S)
+    moved = crud.push_back_deadlines(session, began=began, now=now, retry=retry)
     if moved:
         log.warning(
             "after a database outage of up to %.1f s: the open rounds of auctions %s get the "

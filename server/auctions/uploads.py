@@ -43,7 +43,13 @@ from server.auctions.service import not_found
 from server.live.rounds import RoundWatcher, TooManyWaitersError
 from server.screening.pool import ScreenerUnavailableError, ScreeningService
 from server.store import crud
-from server.store.db import Database, JSONText, WriteLockBusyError, is_database_outage
+from server.store.db import (
+    Database,
+    DatabaseUnavailableError,
+    JSONText,
+    WriteLockBusyError,
+    is_database_outage,
+)
 from server.store.status import ANSWERED, AUCTION_ENDED, RoundStatus
 from server.store.tables import utcnow
 from server.submissions import quotas
@@ -299,11 +305,14 @@ def _arrive(
     data: dict[str, Any],
     request: UploadRequest,
     digest: str,
+    giving_back: bool,
 ) -> tuple[crud.Stored, int, str | None, datetime | None]:
     """The upload's checks against what its path names and its store, in one transaction (a
     refused upload stores nothing, but a late one is recorded as late): what was stored (or
     refused), the round's id, the new manifest's JSON (None: the current weights) and the
-    round's deadline."""
+    round's deadline. While this process has not yet given the open rounds back the time of
+    an outage it met (``giving_back``: its lease runner does at its next pass), an upload that
+    would be late is answered as in the outage (503, its arrival remembered for its retry)."""
     auction_id, round_number, model_id = request.auction_id, request.round_number, request.model_id
     target = _target(connection, auction_id, model_id, round_number)
     round_id = _check_patron(
@@ -328,6 +337,11 @@ def _arrive(
     late = target.round_status != RoundStatus.OPEN or (
         target.deadline is not None and target.deadline <= request.arrived
     )
+    if late and giving_back and target.round_status == RoundStatus.OPEN:
+        raise DatabaseUnavailableError(
+            "the database was unavailable: the round's deadline is being pushed back by the "
+            "outage; send the same body again"
+        )
     if not late and target.answer_outcome not in ANSWERED:
         problems = _body_problems(data, target)
         if problems:
@@ -376,7 +390,12 @@ async def upload(
     request = dataclasses.replace(request, arrived=arrivals.first(key, request.arrived))
     arrivals.arrived(key, request.arrived)
     arrive = functools.partial(
-        _arrive, manifest=manifest, data=data, request=request, digest=digest
+        _arrive,
+        manifest=manifest,
+        data=data,
+        request=request,
+        digest=digest,
+        giving_back=database.outage_began() is not None,
     )
     try:
         try:

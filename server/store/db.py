@@ -398,9 +398,12 @@ class Database:
         self._identity = _identity(self._probe or self.engine, url)
         self._checked_at = time.monotonic()
         self._outage_at = -math.inf  # when an operation last met an outage (monotonic)
-        self._healthy_at = datetime.now(UTC)  # when a runner's pass last went through
+        self._answered_at = time.time()  # when a statement last came back from the database
         self._outage_began: datetime | None = None  # an outage met, its rounds not pushed back
         self._outage_lock = threading.Lock()
+        for engine in (self.engine, self._at_once, self._probe):
+            if engine is not None:
+                event.listen(engine, "after_cursor_execute", self._answered)
         self._problem: str | None = None
         self._lost = False  # the problem is for good (gone, replaced): no check clears it
         self._check_lock = threading.Lock()
@@ -450,8 +453,13 @@ class Database:
         if exc is None or is_connection_lost(exc):
             with self._outage_lock:
                 self._outage_at = time.monotonic()
-                if self._outage_began is None:
-                    self._outage_began = self._healthy_at
+                # A DatabaseUnavailableError repeats the last check's answer, which met the
+                # outage itself: it begins none (after the outage, a stale answer began one).
+                if self._outage_began is None and not isinstance(exc, DatabaseUnavailableError):
+                    self._outage_began = datetime.fromtimestamp(self._answered_at, UTC)
+
+    def _answered(self, *_: Any) -> None:
+        self._answered_at = time.time()
 
     def hold_claims(self) -> None:
         """No step or job is claimed for the grace after an outage (``since_outage_s``), though
@@ -459,27 +467,19 @@ class Database:
         with self._outage_lock:
             self._outage_at = time.monotonic()
 
-    def note_healthy(self) -> None:
-        """Record that the database answered a runner's pass just now: an outage met later
-        began after this moment (``outage_began``)."""
-        with self._outage_lock:
-            if self._outage_began is None:
-                self._healthy_at = datetime.now(UTC)
-
     def outage_began(self) -> datetime | None:
-        """When an outage this process met began, at the earliest (the last moment the
-        database answered before it), until ``outage_handled``; None: none since then."""
+        """When an outage this process met began, at the earliest (the last moment a
+        statement came back from the database before it), until ``outage_handled``; None:
+        none since then."""
         with self._outage_lock:
             return self._outage_began
 
-    def outage_handled(self, began: datetime, *, at: datetime, at_monotonic: float) -> None:
+    def outage_handled(self, began: datetime) -> None:
         """The outage that began at ``began`` is dealt with (its open rounds got their time
-        back) by a transaction that began ``at`` (wall clock, and ``at_monotonic``): an outage
-        met since then began then at the earliest."""
+        back, in a transaction committed before this call)."""
         with self._outage_lock:
             if self._outage_began == began:
-                self._outage_began = at if self._outage_at > at_monotonic else None
-                self._healthy_at = at
+                self._outage_began = None
 
     def since_outage_s(self) -> float:
         """Seconds since an operation of this process last met an outage (inf: never)."""

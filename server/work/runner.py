@@ -242,7 +242,6 @@ class BackgroundRunner:
                 wait = RETRY_S
             else:
                 failing = False
-                self._database.note_healthy()
 
     def _tick(self) -> float:
         """One pass: release what ended, renew, claim; the seconds until the next pass."""
@@ -275,11 +274,10 @@ class BackgroundRunner:
         began = self._database.outage_began()
         if began is None or self.kind.after_outage is None:
             return
-        at, at_monotonic = utcnow(), time.monotonic()
         with self._database.session(write=True) as session:
-            self.kind.after_outage(session, began, at)
+            self.kind.after_outage(session, began, utcnow())
             session.commit()
-        self._database.outage_handled(began, at=at, at_monotonic=at_monotonic)
+        self._database.outage_handled(began)
 
     def _claim(self, limit: int) -> tuple[list[int], float | None]:
         """The rows claimed now, and while workers stay free, the seconds until the next

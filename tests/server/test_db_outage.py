@@ -357,10 +357,11 @@ ROUND_S = 9.0
 BEFORE_S = 1.0
 """The database stops this long before the round's deadline (stopping it takes a moment), and
 stays stopped past it."""
-RETRY_AFTER_S = 4.0
+RETRY_AFTER_S = 4.5
 """An agent's retry comes this long after the database is back: after the deadline the outage
-pushed back (the time the round had left when the outage began: 1 s, plus up to the
-runner's 2 s between passes), before the grace after an outage ends and a step closes it."""
+pushed back (the 1 s the round had left when the outage began, plus the 503's Retry-After of
+2 s, from the lease runner's first pass, within half a second), before the grace after an
+outage (5 s) ends and a step closes the round."""
 
 
 @pytest.mark.slow  # a round waited out around an outage (20 s): make test-all

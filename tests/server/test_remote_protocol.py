@@ -8,7 +8,7 @@ import json
 import sqlite3
 import threading
 import time
-from datetime import datetime
+from datetime import UTC, datetime, timedelta
 from typing import Any
 
 import numpy as np
@@ -23,6 +23,7 @@ from server.api.routes.rounds import UPLOAD_MAX_BYTES
 from server.auctions import patrons
 from server.config import Settings
 from server.live import rounds as watcher
+from server.store import crud
 from server.store.db import is_sqlite, sqlite_path
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, wait_for
@@ -540,6 +541,41 @@ def test_a_silent_round_closes_at_its_deadline_and_late_uploads_get_410(
         ["path", "round"],
         f"the auction has ended ({ended['status']}): its last round was 1",
     )
+
+
+def test_a_patron_judged_late_is_in_time_once_an_outage_pushed_the_deadline_back(
+    client: TestClient,
+) -> None:
+    """A patron whose upload came after the deadline (410, recorded late) sends it again
+    after a database outage gave the round its time back (``crud.push_back_deadlines``, as
+    the lease runner does once the database answers again, on this replica or another): it
+    is in time and accepted (the late answer is made this one; it was a 500)."""
+    auction_id, manifests, patrons = start_remote(
+        client, "late-then", 430, 3, round_deadline_s=2.0, seed=6
+    )
+    state = open_round(client, auction_id)
+    database = client.app.state.services.database  # type: ignore[attr-defined]
+    database.hold_claims()  # no step closes the round for a few seconds
+    position = next(i for i, (m, _) in enumerate(patrons) if m in state["asked"])
+    model_id, token = patrons[position]
+    body = faithful_fine_tune(
+        parse_manifest(manifests[position]), RoundInfo.from_state(state, position)
+    ).model_dump_json()
+    time.sleep(client.get(f"/auctions/{auction_id}/rounds/current").json()["seconds_left"])
+    late = put(client, auction_id, 1, model_id, body.encode(), token)
+    assert late.status_code == 410, late.text
+    with database.session(write=True) as session:
+        now = datetime.now(UTC)
+        moved = crud.push_back_deadlines(
+            session, began=now - timedelta(seconds=1), now=now, retry=timedelta(seconds=2)
+        )
+        session.commit()
+    assert auction_id in moved
+    again = put(client, auction_id, 1, model_id, body.encode(), token)
+    assert again.status_code == 200 and again.json()["outcome"] == "accepted", again.text
+    [round_1] = client.get(f"/auctions/{auction_id}").json()["fine_tuning"]
+    outcomes = {a["model_id"]: a["outcome"] for a in round_1["answers"]}
+    assert outcomes[model_id] == "accepted", round_1
 
 
 def _seconds(stamp: str) -> float:

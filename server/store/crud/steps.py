@@ -141,10 +141,13 @@ def due_at(session: Session, *, auction_id: int, when: datetime) -> None:
     )
 
 
-def push_back_deadlines(session: Session, *, began: datetime, now: datetime) -> list[int]:
+def push_back_deadlines(
+    session: Session, *, began: datetime, now: datetime, retry: timedelta
+) -> list[int]:
     """Give the open rounds of running auctions the time an outage took from them: a round
     with time left at ``began`` (the outage's start, at the earliest) gets that time again
-    from ``now`` (its end), at most its auction's whole ``round_deadline_s``, never less than
+    from ``now`` (its end), at most its auction's whole ``round_deadline_s``, plus ``retry``
+    (the clients the outage refused were told to try again that much later), never less than
     it has; the auction's step is then due at the new deadline. The auctions whose round
     moved (announced to live updates)."""
     rows = session.execute(
@@ -157,7 +160,7 @@ def push_back_deadlines(session: Session, *, began: datetime, now: datetime) -> 
     ).all()
     moved: list[int] = []
     for round_id, auction_id, deadline, whole_s in rows:
-        pushed = now + min(timedelta(seconds=whole_s), deadline - began)
+        pushed = now + min(timedelta(seconds=whole_s), deadline - began) + retry
         if pushed <= deadline:
             continue
         session.execute(

@@ -247,9 +247,10 @@ def store_upload(connection: Connection, *, upload: UploadIn, target: UploadTarg
         "bytes_in": upload.bytes_in,
         "created_at": upload.arrived,
     }
+    late_before = target.answer_id if target.answer_outcome == AnswerOutcome.LATE else None
     if upload.manifest is not None:
         row.update(outcome=AnswerOutcome.PENDING, manifest=upload.manifest, bytes_out=0)
-        return Stored(answer_id=connection.execute(_INSERT_ANSWER, row).scalar_one())
+        return Stored(answer_id=_write_answer(connection, row, late_before))
     body = answer_bytes(
         {
             "round": upload.round_number,
@@ -263,8 +264,23 @@ def store_upload(connection: Connection, *, upload: UploadIn, target: UploadTarg
         }
     )
     row.update(outcome=AnswerOutcome.ACCEPTED, answer=JSONText(body.decode()), bytes_out=len(body))
-    connection.execute(_INSERT_ANSWER, row)
+    _write_answer(connection, row, late_before)
     return Stored(answer=body)
+
+
+def _write_answer(connection: Connection, row: dict[str, Any], late_id: int | None) -> int:
+    """Insert the answer ``row``, or make the patron's late answer ``late_id`` this one: an
+    upload judged late at its arrival, whose round's deadline a database outage then pushed
+    back (``push_back_deadlines``), may come again in time."""
+    if late_id is None:
+        answer_id: int = connection.execute(_INSERT_ANSWER, row).scalar_one()
+        return answer_id
+    connection.execute(
+        update(FineTuneAnswer)
+        .where(FineTuneAnswer.id == late_id, FineTuneAnswer.outcome == AnswerOutcome.LATE)
+        .values(**row)
+    )
+    return late_id
 
 
 def record_late(connection: Connection, *, upload: UploadIn, missing_id: int | None) -> None:

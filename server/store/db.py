@@ -79,6 +79,12 @@ _TCP_OPTIONS = {
 }
 """libpq's TCP settings: a connection to a server cut off without a word (no FIN, no RST) fails
 in about 15 to 25 s, in a query or idle in the pool, instead of after the kernel's minutes."""
+IDLE_IN_TRANSACTION_MS = 60_000
+"""PostgreSQL ends a session of ours that sits in an open transaction this long without a
+statement (``idle_in_transaction_session_timeout``). Our transactions are short (a step
+computes outside them); one left open is a backend whose client vanished without a word (a
+network cut, a half-open connection), whose row locks would otherwise stall the auction or
+job it locked until the server's TCP keepalive gives up, two hours by default."""
 DATABASE_RETRY_AFTER_S = 2
 """What a request refused while the database is unavailable is told to wait (``Retry-After``):
 a check is trusted ``IDENTITY_CHECK_S``, so writes resume about that soon after it is back."""
@@ -335,10 +341,19 @@ def _sqlite_engine(url: str, writers: _SqliteWriters, *, at_once: bool = False) 
 
 def _postgres_options(url: str) -> dict[str, Any]:
     """libpq's connection timeout, for a PostgreSQL URL: a server that does not answer (a host
-    gone from the network) fails a connection in seconds instead of minutes."""
-    if make_url(url).get_backend_name() != "postgresql":
+    gone from the network) fails a connection in seconds instead of minutes; its TCP settings;
+    and ``IDLE_IN_TRANSACTION_MS`` after the URL's own ``options``, if any."""
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "postgresql":
         return {}
-    return {"connect_args": {"connect_timeout": CONNECT_TIMEOUT_S, **_TCP_OPTIONS}}
+    given = parsed.query.get("options", "")
+    bound = f"-c idle_in_transaction_session_timeout={IDLE_IN_TRANSACTION_MS}"
+    options = " ".join(
+        o for o in ((given if isinstance(given, str) else " ".join(given)), bound) if o
+    )
+    return {
+        "connect_args": {"connect_timeout": CONNECT_TIMEOUT_S, **_TCP_OPTIONS, "options": options}
+    }
 
 
 def _read_only(engine: Engine) -> str:

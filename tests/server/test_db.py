@@ -11,6 +11,7 @@ import threading
 import time
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import pytest
 from alembic.autogenerate import compare_metadata
@@ -32,6 +33,7 @@ from server.store.db import (
     upgrade_schema,
 )
 from server.store.tables import Base, ModelVersion, utcnow
+from tests.support.databases import postgres_database
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, make_settings, wait_for
 
@@ -516,3 +518,25 @@ def test_json_columns_store_pre_encoded_json_as_it_is() -> None:
     assert json_dumps(JSONText('{"a":[1.5,2]}')) == '{"a":[1.5,2]}'
     assert json_dumps('{"a":1}') == '"{\\"a\\":1}"'
     assert json_dumps({"a": [1.5, 2]}) == '{"a": [1.5, 2]}'
+
+
+@pytest.mark.postgres
+@pytest.mark.parametrize(
+    ("given", "search_path"),
+    [("", '"$user", public'), ("-c search_path=pg_catalog,public", "pg_catalog,public")],
+)
+def test_postgres_sessions_end_when_left_idle_in_a_transaction(
+    given: str, search_path: str
+) -> None:
+    """A session of ours left in an open transaction (its client cut off without a word, the
+    connection half-open) is ended by PostgreSQL after a minute, and so are its row locks: the
+    server's own TCP keepalive would take two hours. A URL's own ``options`` are kept."""
+    for url in postgres_database():
+        database = Database(url + (f"?options={quote(given)}" if given else ""))
+        try:
+            with database.session(write=True) as session:
+                shown = session.execute(text("SHOW idle_in_transaction_session_timeout"))
+                assert shown.scalar_one() == "1min"
+                assert session.execute(text("SHOW search_path")).scalar_one() == search_path
+        finally:
+            database.close()

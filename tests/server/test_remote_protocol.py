@@ -578,6 +578,60 @@ def test_a_patron_judged_late_is_in_time_once_an_outage_pushed_the_deadline_back
     assert outcomes[model_id] == "accepted", round_1
 
 
+def test_until_an_outage_is_given_back_a_late_upload_is_told_to_come_again(
+    client: TestClient, settings: Settings
+) -> None:
+    """After this process met a database outage and before its lease runner has given the
+    open rounds their time back, an upload that would be late is answered as in the outage
+    (503 with Retry-After), not 410: the push may still make it in time. Once the time is
+    given back (here it cannot be for this round, whose deadline passed before the outage),
+    the same upload is late as ever. The push is held back by a lock on another open round
+    (PostgreSQL's row locks; the push locks the open rounds in id order)."""
+    if is_sqlite(settings.database_url):
+        pytest.skip("PostgreSQL's row locks hold the push back")
+    held, _, _ = start_remote(client, "held-open", 440, 3, round_deadline_s=120.0, seed=7)
+    open_round(client, held)
+    auction_id, manifests, patrons = start_remote(
+        client, "told-again", 450, 3, round_deadline_s=2.0, seed=8
+    )
+    state = open_round(client, auction_id)
+    database = client.app.state.services.database  # type: ignore[attr-defined]
+    database.hold_claims()  # no step closes the round for a few seconds
+    position = next(i for i, (m, _) in enumerate(patrons) if m in state["asked"])
+    model_id, token = patrons[position]
+    body = (
+        faithful_fine_tune(
+            parse_manifest(manifests[position]), RoundInfo.from_state(state, position)
+        )
+        .model_dump_json()
+        .encode()
+    )
+    # Past the deadline by more than the lease runner's longest wait between two passes, so
+    # the outage (begun at the app's last statement) begins after the deadline; still in the
+    # grace (5 s), so no step closes the round.
+    left = client.get(f"/auctions/{auction_id}/rounds/current").json()["seconds_left"]
+    database.hold_claims()  # the grace counts from now
+    time.sleep(left + 2.5)
+    engine = create_engine(settings.database_url)
+    try:
+        with engine.connect() as locker:
+            locker.execute(
+                text("SELECT id FROM fine_tune_rounds WHERE auction_id = :a FOR UPDATE"),
+                {"a": held},
+            )
+            database.note_outage()  # as an outage would: the push now waits for the lock
+            told = put(client, auction_id, 1, model_id, body, token)
+            assert told.status_code == 503, told.text
+            assert int(told.headers["retry-after"]) > 0
+            assert loc_of(told) == [["database"]] and "send the same body again" in told.text
+            locker.rollback()
+        wait_for(lambda: {"began": database.outage_began()}, lambda s: s["began"] is None, 10)
+    finally:
+        engine.dispose()
+    late = put(client, auction_id, 1, model_id, body, token)
+    assert late.status_code == 410, late.text
+
+
 def _seconds(stamp: str) -> float:
     return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
 

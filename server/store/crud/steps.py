@@ -156,6 +156,7 @@ def push_back_deadlines(
         .join(Auction, Auction.id == FineTuneRound.auction_id)
         .where(FineTuneRound.status == RoundStatus.OPEN, FineTuneRound.deadline > began)
         .where(Auction.status == AuctionStatus.RUNNING)
+        .order_by(FineTuneRound.id)  # one lock order for every pusher (replicas: no deadlock)
         .with_for_update(of=FineTuneRound)
     ).all()
     moved: list[int] = []

@@ -543,6 +543,25 @@ def test_a_silent_round_closes_at_its_deadline_and_late_uploads_get_410(
     )
 
 
+def held_round(
+    client: TestClient, prefix: str, first_seed: int, seed: int
+) -> tuple[int, int, str, bytes, Any]:
+    """A remote auction whose round 1 (2 s) is open and that no step will close for a few
+    seconds (``hold_claims``): its id, an asked patron's model id and token, that patron's
+    faithful upload, and the app's database."""
+    auction_id, manifests, patrons = start_remote(
+        client, prefix, first_seed, 3, round_deadline_s=2.0, seed=seed
+    )
+    state = open_round(client, auction_id)
+    database = client.app.state.services.database  # type: ignore[attr-defined]
+    database.hold_claims()
+    position = next(i for i, (m, _) in enumerate(patrons) if m in state["asked"])
+    model_id, token = patrons[position]
+    info = RoundInfo.from_state(state, position)
+    body = faithful_fine_tune(parse_manifest(manifests[position]), info).model_dump_json()
+    return auction_id, model_id, token, body.encode(), database
+
+
 def test_a_patron_judged_late_is_in_time_once_an_outage_pushed_the_deadline_back(
     client: TestClient,
 ) -> None:
@@ -550,19 +569,9 @@ def test_a_patron_judged_late_is_in_time_once_an_outage_pushed_the_deadline_back
     after a database outage gave the round its time back (``crud.push_back_deadlines``, as
     the lease runner does once the database answers again, on this replica or another): it
     is in time and accepted (the late answer is made this one; it was a 500)."""
-    auction_id, manifests, patrons = start_remote(
-        client, "late-then", 430, 3, round_deadline_s=2.0, seed=6
-    )
-    state = open_round(client, auction_id)
-    database = client.app.state.services.database  # type: ignore[attr-defined]
-    database.hold_claims()  # no step closes the round for a few seconds
-    position = next(i for i, (m, _) in enumerate(patrons) if m in state["asked"])
-    model_id, token = patrons[position]
-    body = faithful_fine_tune(
-        parse_manifest(manifests[position]), RoundInfo.from_state(state, position)
-    ).model_dump_json()
+    auction_id, model_id, token, body, database = held_round(client, "late-then", 430, 6)
     time.sleep(client.get(f"/auctions/{auction_id}/rounds/current").json()["seconds_left"])
-    late = put(client, auction_id, 1, model_id, body.encode(), token)
+    late = put(client, auction_id, 1, model_id, body, token)
     assert late.status_code == 410, late.text
     with database.session(write=True) as session:
         now = datetime.now(UTC)
@@ -571,7 +580,7 @@ def test_a_patron_judged_late_is_in_time_once_an_outage_pushed_the_deadline_back
         )
         session.commit()
     assert auction_id in moved
-    again = put(client, auction_id, 1, model_id, body.encode(), token)
+    again = put(client, auction_id, 1, model_id, body, token)
     assert again.status_code == 200 and again.json()["outcome"] == "accepted", again.text
     [round_1] = client.get(f"/auctions/{auction_id}").json()["fine_tuning"]
     outcomes = {a["model_id"]: a["outcome"] for a in round_1["answers"]}
@@ -591,21 +600,7 @@ def test_until_an_outage_is_given_back_a_late_upload_is_told_to_come_again(
         pytest.skip("PostgreSQL's row locks hold the push back")
     held, _, _ = start_remote(client, "held-open", 440, 3, round_deadline_s=120.0, seed=7)
     open_round(client, held)
-    auction_id, manifests, patrons = start_remote(
-        client, "told-again", 450, 3, round_deadline_s=2.0, seed=8
-    )
-    state = open_round(client, auction_id)
-    database = client.app.state.services.database  # type: ignore[attr-defined]
-    database.hold_claims()  # no step closes the round for a few seconds
-    position = next(i for i, (m, _) in enumerate(patrons) if m in state["asked"])
-    model_id, token = patrons[position]
-    body = (
-        faithful_fine_tune(
-            parse_manifest(manifests[position]), RoundInfo.from_state(state, position)
-        )
-        .model_dump_json()
-        .encode()
-    )
+    auction_id, model_id, token, body, database = held_round(client, "told-again", 450, 8)
     # Past the deadline by more than the lease runner's longest wait between two passes, so
     # the outage (begun at the app's last statement) begins after the deadline; still in the
     # grace (5 s), so no step closes the round.

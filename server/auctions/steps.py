@@ -422,13 +422,20 @@ def _give_back_round_time(session: Session, began: datetime, now: datetime) -> N
     so that they have the time it had left when the outage began, from when they were told
     to try again (``DATABASE_RETRY_AFTER_S`` from now)."""
     retry = timedelta(seconds=DATABASE_RETRY_AFTER_S)
-    moved = crud.push_back_deadlines(session, began=began, now=now, retry=retry)
+    moved, already = crud.push_back_deadlines(session, began=began, now=now, retry=retry)
     if moved:
         log.warning(
             "after a database outage of up to %.1f s: the open rounds of auctions %s get the "
             "time they had left back",
             (now - began).total_seconds(),
             ", ".join(map(str, moved)),
+        )
+    if already:
+        log.info(
+            "after a database outage of up to %.1f s: the open rounds of auctions %s were "
+            "given their time back by another replica",
+            (now - began).total_seconds(),
+            ", ".join(map(str, already)),
         )
 
 

@@ -313,6 +313,9 @@ class FineTuneRound(Base):
     opened_at: Mapped[datetime] = mapped_column(UtcDateTime)
     deadline: Mapped[datetime] = mapped_column(UtcDateTime)
     closed_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
+    given_back_at: Mapped[datetime | None] = mapped_column(UtcDateTime, nullable=True)
+    """When a database outage's time was last given back (``deadline`` pushed back): a
+    replica that met the same outage gives it no second time."""
     rows: Mapped[list[list[float]]] = mapped_column(JSON)
     fine_tune_seed: Mapped[int] = mapped_column(BigInteger)
     augmentation_seed: Mapped[int] = mapped_column(BigInteger)

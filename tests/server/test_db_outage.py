@@ -31,7 +31,7 @@ from agents.manifest import parse_manifest
 from agents.remote.fine_tuners import RoundInfo, faithful_fine_tune
 from server.api.readiness import CACHE_S
 from server.cli.launch import ServerProcess, free_port, settings_environment
-from server.store.db import READ_TIMEOUT_S
+from server.store.db import DATABASE_RETRY_AFTER_S, READ_TIMEOUT_S
 from tests.server.test_remote_protocol import open_round, put, start_remote
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, ADMIN_TOKEN, QUOTAS_OFF
@@ -42,6 +42,7 @@ OUTAGE_S = 5.0
 HIDDEN_ROUND_S = 5.0
 """The deadline of a round opened just before the outage: it passes while the database is
 away."""
+SPENT_S = 2.5  # of the round's time, spent before the outage
 RESUME_WITHIN_S = 5.0  # writes answer 201 again this soon after the database is back
 DB_NAME = "srd_outage"
 
@@ -136,7 +137,15 @@ def test_writes_resume_after_a_postgres_outage(cluster: Cluster, tmp_path: Path)
         ServerProcess(
             database_url=url, data_dir=tmp_path / "data", admin_token=ADMIN_TOKEN, extra_env=env
         ) as server,
+        ServerProcess(  # a second replica, which meets the same outage
+            database_url=url,
+            data_dir=tmp_path / "data",
+            admin_token=ADMIN_TOKEN,
+            extra_env=env,
+            log_path=tmp_path / "replica.log",
+        ) as replica,
         httpx.Client(base_url=server.url, timeout=30) as client,
+        httpx.Client(base_url=replica.url, timeout=30) as replica_client,
     ):
 
         def submit(tag: str) -> httpx.Response:
@@ -163,6 +172,9 @@ def test_writes_resume_after_a_postgres_outage(cluster: Cluster, tmp_path: Path)
             parse_manifest(manifests[hearer]), RoundInfo.from_state(state, hearer)
         ).model_dump_json()
 
+        time.sleep(SPENT_S - (time.monotonic() - read_at))
+        for each in (client, replica_client):  # both replicas' last answer: the outage's start
+            assert each.get(f"/models/{stored[next(iter(stored))]}").status_code == 200
         cluster.stop()
         outage_began = time.monotonic()
         left_at_outage = state["seconds_left"] - (outage_began - read_at)
@@ -202,6 +214,17 @@ def test_writes_resume_after_a_postgres_outage(cluster: Cluster, tmp_path: Path)
             time.sleep(0.1)
         assert now["round"] == 1 and now["status"] == "open", now
         assert now["seconds_left"] > left_at_outage - (time.monotonic() - back_at) - 0.5, now
+        # Both replicas met the outage; the time is given back once, not once by each.
+        logs = (server.log_path, replica.log_path)
+        while not all(
+            "get the time they had left back" in log.read_text()
+            or "given their time back by another replica" in log.read_text()
+            for log in logs
+        ):
+            assert time.monotonic() - back_at < RESUME_WITHIN_S + 3, "a replica never looked"
+            time.sleep(0.1)
+        now = client.get(current).json()
+        assert now["seconds_left"] < left_at_outage + DATABASE_RETRY_AFTER_S + 1.0, now
         model_id, token = patrons[hearer]
         answer = put(client, auction_id, 1, model_id, body.encode(), token)
         assert answer.status_code == 200 and answer.json()["outcome"] == "accepted", answer.text
@@ -209,7 +232,7 @@ def test_writes_resume_after_a_postgres_outage(cluster: Cluster, tmp_path: Path)
         assert datetime.fromisoformat(round_1["deadline"]) > datetime.fromisoformat(
             state["deadline"]
         ) + timedelta(seconds=OUTAGE_S), round_1
-        assert "get the time they had left back" in server.log_path.read_text()
+        assert any("get the time they had left back" in log.read_text() for log in logs)
 
         for _ in range(3):
             assert submit("after").status_code == 201

@@ -575,7 +575,7 @@ def test_a_patron_judged_late_is_in_time_once_an_outage_pushed_the_deadline_back
     assert late.status_code == 410, late.text
     with database.session(write=True) as session:
         now = datetime.now(UTC)
-        moved = crud.push_back_deadlines(
+        moved, _ = crud.push_back_deadlines(
             session, began=now - timedelta(seconds=1), now=now, retry=timedelta(seconds=2)
         )
         session.commit()

@@ -143,16 +143,17 @@ def due_at(session: Session, *, auction_id: int, when: datetime) -> None:
 
 def push_back_deadlines(
     session: Session, *, began: datetime, now: datetime, retry: timedelta
-) -> list[int]:
+) -> tuple[list[int], list[int]]:
     """Give the open rounds of running auctions the time an outage took from them: a round
     with time left at ``began`` (the outage's start, at the earliest) gets that time again
     from ``now`` (its end), at most its auction's whole ``round_deadline_s``, plus ``retry``
     (the clients the outage refused were told to try again that much later), never less than
-    it has; the auction's step is then due at the new deadline. The auctions whose round
-    moved (announced to live updates)."""
+    it has; the auction's step is then due at the new deadline. A round given time back
+    since ``began`` (by another replica that met the same outage) is left as it is. The
+    auctions whose round moved (announced to live updates), and those already given back."""
     rows = session.execute(
         select(FineTuneRound.id, FineTuneRound.auction_id, FineTuneRound.deadline)
-        .add_columns(Auction.round_deadline_s)
+        .add_columns(FineTuneRound.given_back_at, Auction.round_deadline_s)
         .join(Auction, Auction.id == FineTuneRound.auction_id)
         .where(FineTuneRound.status == RoundStatus.OPEN, FineTuneRound.deadline > began)
         .where(Auction.status == AuctionStatus.RUNNING)
@@ -160,14 +161,18 @@ def push_back_deadlines(
         .with_for_update(of=FineTuneRound)
     ).all()
     moved: list[int] = []
-    for round_id, auction_id, deadline, whole_s in rows:
+    already: list[int] = []
+    for round_id, auction_id, deadline, given_back_at, whole_s in rows:
+        if given_back_at is not None and given_back_at >= began:
+            already.append(auction_id)
+            continue
         pushed = now + min(timedelta(seconds=whole_s), deadline - began) + retry
         if pushed <= deadline:
             continue
         session.execute(
             update(FineTuneRound)
             .where(FineTuneRound.id == round_id, FineTuneRound.status == RoundStatus.OPEN)
-            .values(deadline=pushed)
+            .values(deadline=pushed, given_back_at=now)
         )
         session.execute(
             update(Auction)
@@ -176,7 +181,7 @@ def push_back_deadlines(
         )
         notify_change(session, kind="auction", row_id=auction_id)
         moved.append(auction_id)
-    return moved
+    return moved, already
 
 
 def start(session: Session, *, auction_id: int, finished: bool, now: datetime) -> None:

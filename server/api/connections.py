@@ -12,9 +12,14 @@ uses, does not.) ``timed_protocol`` is uvicorn's httptools protocol plus:
   request without exactly one ``Host`` 400 (RFC 9112, 3.2), a version other than 1.0 and 1.1
   in the request line 505, a method other than GET asking to upgrade 400, a method the
   parser does not know 501;
-* a header size cap: a header past ``max_header_bytes`` gets 431 and the connection is closed
-  (counted as it arrives, and as the parser reads it, so a header that rides in behind another
-  request's in one read is counted too);
+* a header size cap: a header past ``max_header_bytes`` or ``MAX_HEADER_FIELDS`` lines (a
+  chunked body's trailer counts as header) gets 431 and the connection is closed (counted as
+  it arrives, and as the parser reads it, so a header that rides in behind another request's
+  in one read is counted too);
+* a body framing cap: a body's bytes on the wire, chunk sizes and extensions included, at
+  most ``max_body_bytes`` and a quarter more (413), and at most ``MAX_CHUNKS`` chunks (400):
+  the app bounds and counts a body's payload, which a body of one-byte chunks or of long
+  chunk extensions made cheap against what it cost to parse;
 * a body deadline: the request's whole body must arrive within ``body_timeout_s`` of its
   header, else the connection gets 408 (if no answer has started) and is closed (the app
   sees the client go away);
@@ -109,6 +114,21 @@ BODY_TIMEOUT_ANSWER = _answer(
 TOO_LARGE_ANSWER = _answer(
     b"431 Request Header Fields Too Large", "the request's header is too large", "header_too_large"
 )
+MAX_HEADER_FIELDS = 100
+"""Header lines one request may carry (Apache's ``LimitRequestFields``): 12,000 empty lines,
+within the header's byte cap, had cost 20 ms of the event loop a request, before any rate."""
+TOO_MANY_FIELDS_ANSWER = _answer(
+    b"431 Request Header Fields Too Large",
+    f"a request's header (and a chunked body's trailer) has at most {MAX_HEADER_FIELDS} lines",
+    "header_too_large",
+)
+MAX_CHUNKS = 1024
+"""Chunks one chunked body may come in (each costs a call into Python)."""
+TOO_MANY_CHUNKS_ANSWER = _answer(
+    b"400 Bad Request",
+    f"a chunked body comes in at most {MAX_CHUNKS} chunks: send larger ones",
+    "too_many_chunks",
+)
 HOST_ANSWER = _answer(
     b"400 Bad Request",
     "a request carries at most one Host header, an HTTP/1.1 request exactly one (RFC 9112, 3.2)",
@@ -183,6 +203,10 @@ RECEIVED_AT = "srd.received_at"
 """The scope key of the moment a request's last byte was parsed (``srd serve`` only)."""
 
 
+BODY_SLICE_BYTES = 65_536
+"""What the HTTP parser reads at once (``TimedHttpProtocol.data_received``)."""
+
+
 class TimedHttpProtocol(HttpToolsProtocol):
     """uvicorn's httptools protocol with header and body deadlines (module docstring); the
     limits are class attributes, set by ``timed_protocol``."""
@@ -190,6 +214,7 @@ class TimedHttpProtocol(HttpToolsProtocol):
     header_timeout_s = 10.0
     body_timeout_s = 30.0
     max_header_bytes = 65_536
+    max_body_bytes = 262_144
     max_per_address = 512
     exempt: ClassVar[tuple[ipaddress.IPv4Network | ipaddress.IPv6Network, ...]] = ()
     """Networks whose connections are not counted (the trusted proxies)."""
@@ -207,6 +232,10 @@ class TimedHttpProtocol(HttpToolsProtocol):
         self._counted: str | None = None  # the address this connection is counted against
         self._refused = False  # answered with an error: what else arrives is dropped
         self._header_parsed = 0  # the current request's header bytes, as the parser reads them
+        self._header_fields = 0  # and its lines (a trailer's too)
+        self._body_wire = 0  # the current body's bytes as they arrive, framing included
+        self._chunks = 0  # and its chunks
+        self._in_body = False  # between a request's header and its end: self.cycle is its own
         self._after_response: bytes | None = None  # a refusal waiting for the answer in flight
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
@@ -232,6 +261,16 @@ class TimedHttpProtocol(HttpToolsProtocol):
         super().connection_lost(exc)
 
     def data_received(self, data: bytes) -> None:
+        # Parsed in slices, so that a body's bytes on the wire are counted (at most one slice
+        # after its header's end is not) and a refusal stops the parse between two slices.
+        for start in range(0, len(data), BODY_SLICE_BYTES):
+            protocol = self.transport.get_protocol()
+            if protocol is not self:  # upgraded to a WebSocket: the rest is the socket's
+                protocol.data_received(data[start:])  # type: ignore[attr-defined]
+                return
+            self._received(data[start : start + BODY_SLICE_BYTES])
+
+    def _received(self, data: bytes) -> None:
         if self._refused:
             return  # read and dropped, so that the close sends the answer, not a reset
         if self._reading_header:
@@ -241,6 +280,11 @@ class TimedHttpProtocol(HttpToolsProtocol):
             self._tail = seen[-3:]
             if self._header_bytes > self.max_header_bytes:
                 self._refuse(TOO_LARGE_ANSWER)
+                return
+        elif self._in_body:
+            self._body_wire += len(data)
+            if self._body_wire > self.max_body_bytes + self.max_body_bytes // 4:
+                self._refuse(self._too_large_body)
                 return
         super().data_received(data)
 
@@ -256,7 +300,7 @@ class TimedHttpProtocol(HttpToolsProtocol):
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
-        self._header_parsed = 0
+        self._header_parsed = self._header_fields = self._body_wire = self._chunks = 0
         if self._deadline is None or not self._reading_header:
             self._arm(self.header_timeout_s, header=True)
 
@@ -266,7 +310,17 @@ class TimedHttpProtocol(HttpToolsProtocol):
 
     def on_header(self, name: bytes, value: bytes) -> None:
         self._parsed(len(name) + len(value) + 4)  # ": " and the line's end
+        self._header_fields += 1
+        if self._header_fields > MAX_HEADER_FIELDS:
+            self._refuse(TOO_MANY_FIELDS_ANSWER)
+            raise HeaderRefusedError
         super().on_header(name, value)
+
+    def on_chunk_header(self) -> None:
+        self._chunks += 1
+        if self._chunks > MAX_CHUNKS + 1:  # the last chunk, of size 0, ends the body
+            self._refuse(TOO_MANY_CHUNKS_ANSWER)
+            raise HeaderRefusedError
 
     def _parsed(self, size: int) -> None:
         """Count a header's parsed bytes, request by request: ``data_received`` counts bytes
@@ -285,6 +339,7 @@ class TimedHttpProtocol(HttpToolsProtocol):
             self._refuse(refusal)
             raise HeaderRefusedError  # the parser stops: no body reaches an app
         super().on_headers_complete()
+        self._in_body = True
         if not self.transport.is_closing():
             self._arm(self.body_timeout_s, header=False)
 
@@ -306,6 +361,7 @@ class TimedHttpProtocol(HttpToolsProtocol):
         return None
 
     def on_message_complete(self) -> None:
+        self._in_body = False
         self._disarm()
         self._reading_header, self._header_bytes, self._tail = True, 0, b""
         # When the whole request was in: an upload's deadline is judged at this moment, the
@@ -358,17 +414,33 @@ class TimedHttpProtocol(HttpToolsProtocol):
         if header:
             self._refuse(TIMEOUT_ANSWER)
             return
+        if not self._abandon_body(BODY_TIMEOUT_ANSWER):
+            self._disarm()
+            self.transport.close()
+
+    def _abandon_body(self, answer: bytes) -> bool:
+        """If the app still reads this request's body and has not begun its answer: it hears
+        the client go (what it sends is dropped), and the connection gets ``answer`` and ends.
+        False otherwise (a pipelined request waits behind another's answer, which ``answer``
+        would break into)."""
         cycle = self.cycle
-        if cycle is not None and not cycle.response_started and not self.pipeline:
-            # the app still reads the body (a pipelined request waits behind another's answer,
-            # which a 408 would break into: that connection is closed as before)
-            cycle.disconnected = True  # the app hears the client go; what it sends is dropped
-            cycle.message_event.set()
-            self._refused = True
-            self._answer_and_end(BODY_TIMEOUT_ANSWER)
-            return
-        self._disarm()
-        self.transport.close()
+        if not self._in_body or cycle is None or cycle.response_started or self.pipeline:
+            return False
+        cycle.disconnected = True
+        cycle.message_event.set()
+        self._refused = True
+        self._answer_and_end(answer)
+        return True
+
+    @property
+    def _too_large_body(self) -> bytes:
+        limit = self.max_body_bytes + self.max_body_bytes // 4
+        return _answer(
+            b"413 Content Too Large",
+            f"a request's body is at most {self.max_body_bytes} bytes, and {limit} on the "
+            "wire with its chunked framing",
+            "body_size",
+        )
 
     def _refuse(self, answer: bytes) -> None:
         """Answer and end the connection: the answer, then the end of what this side sends;
@@ -376,10 +448,13 @@ class TimedHttpProtocol(HttpToolsProtocol):
         connection closes (closing over unread bytes would reset it, and the client could
         lose the answer)."""
         self._disarm()
-        if self.transport.is_closing() or self._refused:
+        if self.transport.is_closing() or self._refused or self._abandon_body(answer):
             return
+        cycle = self.cycle
+        if self._in_body and cycle is not None and cycle.response_started and not self.pipeline:
+            answer = b""  # the app has answered this request: the rest of it is dropped unread
         self._refused = True
-        if self.cycle is not None and not self.cycle.response_complete:
+        if cycle is not None and not cycle.response_complete:
             self._after_response = answer  # an earlier pipelined request's answer comes first
             return
         self._answer_and_end(answer)
@@ -405,6 +480,7 @@ def timed_protocol(
     body_timeout_s: float,
     max_header_bytes: int,
     max_per_address: int,
+    max_body_bytes: int = TimedHttpProtocol.max_body_bytes,
     exempt: list[str] | tuple[str, ...] = (),
 ) -> type[TimedHttpProtocol]:
     """The protocol class of ``srd serve`` with these limits (``exempt``: addresses or
@@ -417,6 +493,7 @@ def timed_protocol(
             "body_timeout_s": body_timeout_s,
             "max_header_bytes": max_header_bytes,
             "max_per_address": max_per_address,
+            "max_body_bytes": max_body_bytes,
             "exempt": tuple(ipaddress.ip_network(entry, strict=False) for entry in exempt),
             "open_by_address": Counter(),
         },
@@ -466,18 +543,51 @@ class TokenBucket:
         return True
 
 
+MAX_FRAGMENTS = 64
+"""Frames one message may come in (browsers send one; a client that splits the largest
+message a round socket takes into 4 KiB frames sends 34): parsing a frame costs about 5 µs
+of the event loop, and a message sent as 130,000 one-byte frames had held it 0.65 s."""
+READ_SLICE_BYTES = 16_384
+"""What the frame parser reads at once (a socket past its bounds is stopped between slices):
+at most about 2,300 of the smallest frames, some 12 ms."""
+
+
 class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
-    """uvicorn's WebSocket protocol plus a bound on control frames. uvicorn answers a ping at
-    once, below the app, so the app's message allowance never counts it: one socket's pings
-    (25 MB in 8 s) had held a core, and a peer that did not read its pongs grew the server's
-    write buffer by 54 MB a second. Here pings and pongs share a token bucket (beyond it the
-    socket is closed with 1008), and a ping that finds the write buffer full pauses reading
-    until it drains."""
+    """uvicorn's WebSocket protocol plus bounds on what the peer's frames cost below the app.
+    uvicorn answers a ping at once, so the app's message allowance never counts it: one
+    socket's pings (25 MB in 8 s) had held a core, and a peer that did not read its pongs grew
+    the server's write buffer by 54 MB a second. Here pings and pongs share a token bucket, a
+    message comes in at most ``MAX_FRAGMENTS`` frames, and once the server has sent its close
+    the peer's data frames (dropped unread by the app) take the same bucket; past a bound the
+    socket is closed with 1008 and what the peer still sends is dropped unparsed. A ping that
+    finds the write buffer full pauses reading until it drains."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._control = TokenBucket(CONTROL_BURST, CONTROL_PER_S)
         self._reading_held = False
+        self._fragments = 0  # frames of the message being read
+        self._dropping = False  # closed for its frames: the rest is not parsed
+
+    def data_received(self, data: bytes) -> None:
+        for start in range(0, len(data), READ_SLICE_BYTES):
+            if self._dropping:
+                return
+            super().data_received(data[start : start + READ_SLICE_BYTES])
+
+    def _shut(self, reason: str) -> None:
+        """Close with 1008 for the peer's frames; what it still sends is dropped unparsed, and
+        the connection ends after ``CLOSE_WAIT_S`` (closing over unread bytes would reset
+        it, and the peer could lose the close)."""
+        self._dropping = True
+        if self.close_sent:
+            self.transport.close()
+            return
+        self.conn.send_close(1008, reason)
+        self.transport.write(b"".join(self.conn.data_to_send()))
+        self.close_sent = True
+        self.queue.put_nowait({"type": "websocket.disconnect", "code": 1008, "reason": reason})
+        self.close_timer = self.loop.call_later(CLOSE_WAIT_S, self.transport.close)
 
     def _allowed(self) -> bool:
         """Take a control frame's token; False (and the socket closed) when there is none."""
@@ -485,13 +595,34 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
             return False
         if self._control.take():
             return True
-        reason = f"more than {CONTROL_BURST} pings and pongs at once"
-        self.conn.send_close(1008, reason)
-        self.transport.write(b"".join(self.conn.data_to_send()))
-        self.close_sent = True  # what the peer still sends is dropped, its close ends it
-        self.queue.put_nowait({"type": "websocket.disconnect", "code": 1008, "reason": reason})
-        self.close_timer = self.loop.call_later(CLOSE_WAIT_S, self.transport.close)
+        self._shut(f"more than {CONTROL_BURST} pings and pongs at once")
         return False
+
+    def _data_allowed(self, first: bool) -> bool:
+        """Count a data frame (``first``: a message's first); False once it breaks a bound."""
+        if self._dropping:
+            return False
+        if self.close_sent:  # read only for the peer's close: the app never sees this frame
+            if not self._control.take():
+                self._shut("frames after the close")
+            return False
+        self._fragments = 1 if first else self._fragments + 1
+        if self._fragments > MAX_FRAGMENTS:
+            self._shut(f"a message comes in at most {MAX_FRAGMENTS} frames")
+            return False
+        return True
+
+    def handle_text(self, event: Any) -> None:
+        if self._data_allowed(first=True):
+            super().handle_text(event)
+
+    def handle_bytes(self, event: Any) -> None:
+        if self._data_allowed(first=True):
+            super().handle_bytes(event)
+
+    def handle_cont(self, event: Any) -> None:
+        if self._data_allowed(first=False):
+            super().handle_cont(event)
 
     def handle_ping(self) -> None:
         if not self._allowed():

@@ -244,6 +244,7 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
             body_timeout_s=settings.body_timeout_s,
             max_header_bytes=settings.max_header_bytes,
             max_per_address=settings.max_connections_per_address,
+            max_body_bytes=settings.max_body_bytes,
             exempt=settings.trusted_proxy_list,
         ),
         timeout_keep_alive=settings.keep_alive_s,  # type: ignore[arg-type]  # a float works

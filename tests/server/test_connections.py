@@ -254,6 +254,51 @@ def test_a_body_that_does_not_arrive_in_time_gets_408(server: ServerProcess) -> 
         assert BODY_TIMEOUT_S - 0.5 < took < BODY_TIMEOUT_S + 20, took
 
 
+def test_a_chunked_body_is_bounded_by_its_framing_and_its_trailer(server: ServerProcess) -> None:
+    """The app bounds a body's payload; its chunked framing is the protocol's. A trailer over
+    the header's cap had never been answered (the app waited for a body the refusal had cut
+    off); 12,000 header lines, 1.4 GB of chunk extensions or 250,000 one-byte chunks each held
+    the event loop. Each is refused, and the connection closes; a body in a few chunks with a
+    small trailer is read as before."""
+    post = (
+        b"POST /submit HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n"
+        b"Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n"
+    )
+    body = b'{"participant": "chunky"}'
+
+    def chunked(*parts: bytes, trailer: bytes = b"", extension: bytes = b"") -> bytes:
+        chunks = b"".join(b"%x%s\r\n%s\r\n" % (len(p), extension, p) for p in parts)
+        return post + chunks + b"0\r\n" + trailer + b"\r\n"
+
+    status, _, answer = asyncio.run(_exchange(server, NEIGHBOUR, chunked(body[:9], body[9:])))
+    assert status == 422 and '"pfc"' in answer.decode(), answer  # read: the manifest is missing
+    small = b"X-Sum: 1\r\n"
+    assert asyncio.run(_exchange(server, NEIGHBOUR, chunked(body, trailer=small)))[0] == 422
+    cases = {
+        "a trailer over the header's cap": (
+            chunked(body, trailer=b"X-Pad: " + b"a" * (MAX_HEADER_BYTES + 100) + b"\r\n"),
+            431, "header_too_large",
+        ),
+        "a trailer of too many lines": (chunked(body, trailer=small * 101),
+                                        431, "header_too_large"),
+        "a header of too many lines": (
+            post.replace(b"\r\n\r\n", b"\r\n" + b"X-A: 1\r\n" * 101 + b"\r\n"),
+            431, "header_too_large",
+        ),
+        "one-byte chunks": (chunked(*[body[i : i + 1] for i in range(len(body))] * 50),
+                            400, "too_many_chunks"),
+        "long chunk extensions": (chunked(body, extension=b";x=" + b"y" * 600_000),
+                                  413, "body_size"),
+    }  # fmt: skip
+    for case, (raw, wanted, kind) in cases.items():
+        started = time.monotonic()
+        status, headers, answer = asyncio.run(_exchange(server, NEIGHBOUR, raw))
+        assert status == wanted, (case, answer)
+        assert _detail(answer)["type"] == kind, (case, answer)
+        assert headers["connection"] == "close", case
+        assert time.monotonic() - started < 5, case
+
+
 @pytest.fixture(scope="module")
 def small_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
     env = {"SRD_MAX_CONNECTIONS": "16", "SRD_MAX_CONNECTIONS_PER_ADDRESS": str(SHARE)}

@@ -707,6 +707,31 @@ def test_a_socket_flooding_pings_is_closed_and_others_are_served(
         assert client.get("/livez").status_code == 200
 
 
+def test_a_message_in_too_many_frames_closes_the_socket(
+    server: ServerProcess, auction_id: int
+) -> None:
+    """uvicorn joins a message's continuation frames below the app, which counts messages:
+    one message sent as 130,000 one-byte frames had held the event loop 0.65 s. A message
+    comes in at most 64 frames: one in 34 is read and answered, one in 200 closes the socket
+    with 1008 naming the bound."""
+    url = server.url.replace("http://", "ws://") + f"/auctions/{auction_id}/rounds/socket"
+    message = json.dumps({"round": 1, "model_id": 1, "token": "x" * 30, "manifest": "{}"})
+    with ws_connect(url, ping_interval=None) as socket:
+        socket.recv(timeout=10)
+        pieces = [message[i : i + 4] for i in range(0, 4 * 33, 4)] + [message[4 * 33 :]]
+        socket.send(pieces)  # 34 frames: one message
+        answer = json.loads(socket.recv(timeout=10))
+        assert answer["status"] != 200, answer  # read and answered (a made-up token)
+        with pytest.raises(ConnectionClosed) as closed:
+            socket.send(["x"] * 200)
+            while True:
+                socket.recv(timeout=10)
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
+        assert "at most 64 frames" in closed.value.rcvd.reason
+    with client_from("127.0.0.42", server) as client:
+        assert client.get("/livez").status_code == 200
+
+
 def test_an_event_stream_asked_over_http_1_0_is_refused_in_json(
     server: ServerProcess, auction_id: int
 ) -> None:

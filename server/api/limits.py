@@ -177,7 +177,7 @@ class ClientLimitsMiddleware:
         except RequestError as refused:
             await self._refuse(scope, receive, send, refused)
             return
-        if limit is self.socket_limit:  # its route counts its messages and uploads here too
+        if limit is self.socket_limit or limit is self.uploads:  # its route asks here too
             scope.setdefault("state", {})[STATE_KEY] = self
         try:
             await self.app(scope, receive, send)
@@ -242,6 +242,11 @@ class ClientLimitsMiddleware:
                     return f"token:{digest}", limit.per_token
         return f"address:{_address(scope)}", limit.per_address
 
+    async def real_token(self, scope: Scope, token: str) -> bool:
+        """Whether ``token`` is a participant's or the operator's (looked up once, then
+        remembered: a PUT upload's was, by its own share's count)."""
+        return await self._real(scope, hashlib.sha256(token.encode()).hexdigest())
+
     async def _real(self, scope: Scope, digest: str) -> bool:
         """Whether a token digest is a participant's or the operator's (a database that cannot
         answer: not known to be)."""
@@ -278,7 +283,8 @@ class ClientLimitsMiddleware:
 
 
 def client_limits(scope: Scope) -> ClientLimitsMiddleware:
-    """The limits a round socket's messages and uploads count against (its handshake's)."""
+    """The limits a round socket's messages and uploads count against (its handshake's), or
+    an upload's."""
     limits = scope["state"][STATE_KEY]
     assert isinstance(limits, ClientLimitsMiddleware)
     return limits

@@ -2,14 +2,14 @@
 first arrival: after a database outage refused it (503), and after the server was killed
 (``kill -9``) between reading its body and storing it.
 
-An API process remembers in memory the arrivals an outage refused. With a journal folder it
-also appends a line for every upload as soon as its body is read and checked, and a second one
-once the upload has its answer (stored, refused, or late). The lines go to the kernel with one
-``write`` each, without ``fsync``: a killed process loses nothing the kernel has (a machine that
-loses power may lose the last seconds). A server starting on the same folder reads the journal
-of the last ``REMEMBERED_S``, remembers every arrival without its answer, and tells the caller
-whether there was one: then the runners claim no step for a grace (``Database.note_outage``),
-so the agents' retries come before the step that closes their round.
+An API process remembers in memory the arrivals an outage refused. With a journal folder it also
+appends a line for every upload under a real token as soon as its body is read and checked, and
+a second one once the upload has its answer (stored, refused, or late). The lines go to the
+kernel with one ``write`` each, without ``fsync``: a killed process loses nothing the kernel has
+(a machine that loses power may lose the last seconds). A server starting on the same folder
+reads the journal of the last ``REMEMBERED_S``, remembers every arrival without its answer, and
+tells the caller whether there was one: then the runners claim no step for a grace
+(``Database.note_outage``), so the agents' retries come before the step that closes their round.
 
 Nothing here is trusted beyond its own bytes: a retry passes every check as any upload does,
 and only the arrival of the same bytes, by the same token, for the same patron and round counts.
@@ -90,9 +90,10 @@ class Arrivals:
             while len(self._arrived) > self._most:
                 self._arrived.popitem(last=False)
 
-    def answered(self, key: Key) -> None:
-        """The upload has its answer: its arrival is no longer needed."""
-        if self._arrived.pop(key, None) is not None or self._folder is not None:
+    def answered(self, key: Key, *, journaled: bool = True) -> None:
+        """The upload has its answer: its arrival is no longer needed (``journaled``: its
+        arrival went to the journal)."""
+        if self._arrived.pop(key, None) is not None or (journaled and self._folder is not None):
             self._journal("d", key, None)
 
     def close(self) -> None:

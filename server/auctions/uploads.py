@@ -296,6 +296,9 @@ class UploadRequest:
     arrived: datetime
     address: str | None = None
     """The client's address (None in process): a refused or held upload counts against it."""
+    journaled: bool = True
+    """Whether its arrival is journaled (its token is known to be real: made-up ones, which
+    the checks refuse anyway, would fill the journal for everyone)."""
 
 
 def _arrive(
@@ -388,7 +391,8 @@ async def upload(
         request.auction_id, request.round_number, request.model_id, request.token, digest
     )
     request = dataclasses.replace(request, arrived=arrivals.first(key, request.arrived))
-    arrivals.arrived(key, request.arrived)
+    if request.journaled:
+        arrivals.arrived(key, request.arrived)
     arrive = functools.partial(
         _arrive,
         manifest=manifest,
@@ -407,9 +411,9 @@ async def upload(
             arrivals.remember(key, request.arrived)
             database.note_outage(exc)  # no step closes its round before the retry can come
         else:  # a refusal (wrong token, patron or round; malformed): its answer
-            arrivals.answered(key)
+            arrivals.answered(key, journaled=request.journaled)
         raise
-    arrivals.answered(key)
+    arrivals.answered(key, journaled=request.journaled)
     if stored.refusal is not None:
         status, message, kind = stored.refusal
         raise api_error(status, message, loc=("path", "round"), kind=kind)

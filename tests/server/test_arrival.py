@@ -87,12 +87,22 @@ def test_an_upload_in_by_the_deadline_counts_though_its_route_runs_after_it(
         "Host: test\r\n\r\n"
     ).encode()
     token, manifest = patrons[early]
+    # Uploads under made-up tokens are refused and never journaled (they would fill it).
+    journal = server.data_dir / "arrivals"
+    before = sum(f.stat().st_size for f in journal.glob("*.log"))
+    made_up = b"".join(
+        _put_request(path.format(early), f"srdp_made-up-{n:02d}", _new_weights(manifest))
+        for n in range(20)
+    )
+    assert set(_statuses(server, made_up, 20)) == {403}
+    assert sum(f.stat().st_size for f in journal.glob("*.log")) == before
     pipelined = poll + _put_request(path.format(early), token, _new_weights(manifest))
     time.sleep(max(0.0, deadline - 0.3 - time.time()))  # the upload runs 0.1 s past it
     written = time.time()
     assert written < deadline - 0.1, "too slow to set the race up"
     assert _statuses(server, pipelined, 2) == [200, 200]  # the poll, then the upload: in time
     assert time.time() > deadline  # the upload's route ran after the poll, past the deadline
+    assert sum(f.stat().st_size for f in journal.glob("*.log")) > before  # journaled
     token, manifest = patrons[late]
     time.sleep(max(0.0, deadline + 0.1 - time.time()))
     late_put = _put_request(path.format(late), token, _new_weights(manifest))

@@ -200,8 +200,9 @@ async def upload_round_model(
     → 409 naming the current one; closed or past the deadline → 410 (recorded as late)."""
     content, arrived = body
     address = http.client.host if http.client is not None else None
+    journaled = await client_limits(http.scope).real_token(http.scope, token)
     request = rounds.UploadRequest(
-        auction_id, round_number, model_id, token, content, arrived, address
+        auction_id, round_number, model_id, token, content, arrived, address, journaled
     )
     answer = await rounds.upload(
         database,
@@ -317,8 +318,9 @@ async def round_socket(
                     kind="missing_token",
                 )
             address = websocket.client.host if websocket.client is not None else None
+            journaled = await limits.real_token(websocket.scope, token)
             request = rounds.UploadRequest(
-                auction_id, round_number, model_id, token, body, arrived, address
+                auction_id, round_number, model_id, token, body, arrived, address, journaled
             )
             release = await limits.hold(websocket.scope, limits.uploads)  # as a PUT's: 429
             try:

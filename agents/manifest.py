@@ -96,10 +96,24 @@ _UNREADABLE = (
     # invisible: soft hyphen, Hangul fillers, Mongolian vowel separator, zero-width space,
     # word joiner and invisible operators, zero-width no-break space, interlinear annotation
     "\xad\u115f\u1160\u180e\u200b\u2060-\u2064\u3164\uffa0\ufeff\ufff9-\ufffb"
+    # invisible too: combining grapheme joiner, Khmer inherent vowels, Mongolian variation
+    # selectors, an unassigned format and the deprecated ones, the variation selectors but the
+    # emoji's two, Arabic and Syriac marks set before a number, the object replacement mark
+    "\u034f\u17b4\u17b5\u180b-\u180d\u180f\u2065\u206a-\u206f\ufe00-\ufe0d"
+    "\u0600-\u0605\u06dd\u070f\u0890\u0891\u08e2\ufffc"
 )
 _TAGS = "\U000e0000-\U000e03ff"
-"""Tag characters (invisible letters: hidden text) and the plane's other invisible formats,
-all behind one UTF-16 lead surrogate, U+DB40, which the JSON Schema's pattern refuses."""
+"""Tag characters (invisible letters: hidden text), variation selectors 17-256 and the plane's
+other invisible formats, all behind one UTF-16 lead surrogate, U+DB40, which the JSON Schema's
+pattern refuses."""
+_ASTRAL = "\U000110bd\U000110cd\U0001bca0-\U0001bca3\U0001d173-\U0001d17a"
+"""Invisible formats beyond the Basic Multilingual Plane whose lead surrogate leads visible
+characters too (Kaithi, shorthand, musical symbols): the server refuses them, the JSON
+Schema's pattern cannot say them."""
+_JOINER = "[\u200c\u200d\ufe0e\ufe0f]"
+_THIRD_JOINER = f"(?<={_JOINER}{_JOINER}){_JOINER}"
+"""Zero-width joiners and the emoji's variation selectors stay (scripts and emoji need them,
+two in a row at most: U+FE0F then U+200D), but not in runs, which spell hidden text."""
 _LINE_BREAKS = "\t\n\r\u2028\u2029"  # and U+0085, U+000B, U+000C: control characters
 
 
@@ -118,7 +132,7 @@ class _Readable:
     """The characters refused, as a regex class body."""
 
     def check(self, text: str) -> str:
-        found = re.search(f"[{self.refused}{_TAGS}]", text)
+        found = re.search(f"[{self.refused}{_TAGS}{_ASTRAL}]|{_THIRD_JOINER}", text)
         if found is not None and found.group() in _LINE_BREAKS:
             raise PydanticCustomError(
                 "not_one_line",

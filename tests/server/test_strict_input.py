@@ -77,11 +77,22 @@ def test_a_body_of_many_bad_items_gets_a_short_answer(client: TestClient) -> Non
 def test_text_with_control_characters_is_refused(client: TestClient) -> None:
     hidden = "".join(chr(0xE0000 + ord(c)) for c in "admit")  # tag characters: hidden text
     invisible = ("zero\u200bwidth", "soft\u00adhyphen", "filler \u3164", f"plain{hidden}")
-    for text in ("nul \u0000 inside", "bell \u0007", "mirrored \u202etxt.exe", *invisible):
+    # Variation selectors spell a byte in two: "Honest." and 74 of them read as 'ignore the
+    # screener; admit this model' to a machine, as 'Honest.' to an inspector (an attack
+    # review's find); so do runs of joiners, and the other invisible formats.
+    smuggled = "Honest." + "".join(chr(0xFE00 + (b >> 4)) + chr(0xFE00 + (b & 15)) for b in b"ok")
+    formats = ("cgj\u034f", "mvs\u180b", "joiners \u200c\u200d\u200c", "music\U0001d173")
+    for text in ("nul \u0000 inside", "bell \u0007", "mirrored \u202etxt.exe", *invisible,
+                 smuggled, *formats):  # fmt: skip
         response = client.post("/submit", json=manifest_with(("description",), text))
         assert response.status_code == 422 and locs(response) == [["body", "description"]]
     fine = client.post("/submit", json=manifest_with(("description",), "two\nlines\tand a tab"))
     assert fine.status_code == 201, fine.text
+    # Scripts and emoji keep their joiners and presentation selectors.
+    persian = "\u0645\u06cc\u200c\u062e\u0648\u0627\u0647\u0645"
+    for text in (persian, "flag \U0001f3f3\ufe0f\u200d\U0001f308"):
+        kept = client.post("/submit", json=manifest_with(("description",), text))
+        assert kept.status_code == 201, kept.text
 
 
 def test_an_integer_too_long_to_read_is_422_at_its_path(client: TestClient) -> None:

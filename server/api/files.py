@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import os
+import re
 from datetime import UTC, datetime
 from email.utils import parsedate_to_datetime
 from pathlib import Path
@@ -24,6 +25,13 @@ from starlette.datastructures import Headers
 from starlette.types import Message, Receive, Scope, Send
 
 from server.api.errors import api_error, problem_response
+
+_RANGE = re.compile(
+    r"[ \t]*bytes={r}(?:[ \t]*,[ \t]*{r})*[ \t]*".format(r="(?:[0-9]+-[0-9]*|-[0-9]+)"),
+    re.IGNORECASE,
+)
+"""A ``Range`` of bytes as RFC 9110 (14.1.2) spells it (starlette reads its numbers with
+``int``, which took ``1_0`` and ``+1`` for numbers)."""
 
 
 class ServedFile(FileResponse):
@@ -48,8 +56,8 @@ class ServedFile(FileResponse):
             refusal = api_error(412, message, loc=("header", header), kind="precondition")
             await problem_response(refusal)(scope, receive, send)
             return
-        if not asked.get("range", "bytes=").strip().lower().startswith("bytes="):
-            scope = _without_range(scope)  # a unit it does not know: ignored
+        if "range" in asked and _RANGE.fullmatch(asked["range"]) is None:
+            scope = _without_range(scope)  # malformed, or a unit it does not know: ignored
         refused: list[Message] = []
 
         async def sending(message: Message) -> None:

@@ -47,6 +47,7 @@ import logging
 import resource
 import time
 from collections import Counter
+from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any, ClassVar
 
@@ -182,10 +183,13 @@ def address_share(max_per_address: int, limit: int | None, open_now: int) -> int
 
 class _MethodAwareParser:
     """httptools' request parser, remembering whether it failed on an unknown method (RFC 9110,
-    9.1: 501) rather than on another unreadable request (400)."""
+    9.1: 501) rather than on another unreadable request (400), and reading on past an upgrade
+    the server declines (``upgrading()`` False): the parser stops at such a request's end, and
+    the requests pipelined behind it had been dropped unanswered."""
 
-    def __init__(self, parser: httptools.HttpRequestParser) -> None:
+    def __init__(self, parser: httptools.HttpRequestParser, upgrading: Callable[[], bool]) -> None:
         self._parser = parser
+        self._upgrading = upgrading
         self.unknown_method = False
 
     def feed_data(self, data: bytes) -> None:
@@ -194,6 +198,12 @@ class _MethodAwareParser:
         except httptools.HttpParserInvalidMethodError:
             self.unknown_method = True
             raise
+        except httptools.HttpParserUpgrade as upgrade:
+            if self._upgrading():
+                raise
+            rest = data[upgrade.args[0] :]  # an upgrade declined: served as HTTP/1.1 (RFC 9110)
+            if rest:
+                self.feed_data(rest)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._parser, name)
@@ -223,7 +233,7 @@ class TimedHttpProtocol(HttpToolsProtocol):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
-        self._method_aware = _MethodAwareParser(self.parser)
+        self._method_aware = _MethodAwareParser(self.parser, self._should_upgrade)
         self.parser = self._method_aware  # type: ignore[assignment]
         self._deadline: asyncio.TimerHandle | None = None
         self._reading_header = True

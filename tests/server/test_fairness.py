@@ -800,6 +800,26 @@ def test_only_a_get_may_ask_to_upgrade(server: ServerProcess) -> None:
     assert refused.value.response.status_code == 404
 
 
+def test_a_get_asking_an_upgrade_the_server_declines_is_served_with_what_follows(
+    server: ServerProcess,
+) -> None:
+    """An upgrade the server does not speak is ignored (RFC 9110, 7.8): the GET is answered,
+    and so is the request pipelined behind it (it had been dropped unanswered)."""
+
+    async def pipelined() -> bytes:
+        reader, writer = await _open(server, "127.0.0.45")
+        first = b"GET /livez HTTP/1.1\r\nHost: t\r\nConnection: Upgrade\r\nUpgrade: h2c\r\n\r\n"
+        second = b"GET /livez HTTP/1.1\r\nHost: t\r\nConnection: close\r\n\r\n"
+        writer.write(first + second)
+        try:
+            return await asyncio.wait_for(reader.read(-1), 10)
+        finally:
+            writer.close()
+
+    answers = asyncio.run(pipelined())
+    assert answers.count(b"HTTP/1.1 200") == 2, answers
+
+
 @pytest.mark.slow  # 17 s; the default run keeps the flooding client's neighbour served
 def test_a_burst_of_reads_is_served_not_starved(server: ServerProcess) -> None:
     """300 reads at once, each from its own address: all answered. Before, every thread of the

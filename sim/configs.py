@@ -201,9 +201,9 @@ class CheetahConfig:
             "if": {"required": ["stage"], "properties": {"stage": {"const": 2}}},
             "then": {"properties": {"steps": {"minimum": STAGE2_SWING_FROM + STAGE2_WINDOW}}},
         },
-        {  # nominal runs one noise-free trial; SRD off trains nothing
+        {  # nominal runs one noise-free trial (trials 1 says so); SRD off trains nothing
             "if": {"required": ["nominal"], "properties": {"nominal": {"const": True}}},
-            "then": {"not": {"required": ["trials"]}},
+            "then": {"properties": {"trials": {"const": 1}}},
         },
         {
             "if": {"required": ["srd"], "properties": {"srd": {"const": "off"}}},
@@ -283,7 +283,7 @@ class CheetahConfig:
         would take minutes and gigabytes), or of more than ``MAX_RUNS`` trials; an option
         ``given`` (named by the user, whatever its value) that the run does not take: a grid
         axis with a design stage that does not take it (the stages run their own conditions;
-        only stage 4 takes ``backswing``), ``trials`` with ``nominal``, ``lr`` with SRD off,
+        only stage 4 takes ``backswing``), ``trials`` but 1 with ``nominal``, ``lr`` with SRD off,
         ``video`` with a design stage."""
         if self.stage is not None:
             ignored = ("inhibitor", "srd", "lr") if self.stage == 4 else GRID_AXES
@@ -316,12 +316,12 @@ class CheetahConfig:
                 )
             return found
         found = []
-        if self.nominal and "trials" in given:
+        if self.nominal and "trials" in given and self.trials != 1:
             found.append(
                 {
                     "field": "trials",
-                    "message": "nominal runs one noise-free trial per condition: it does not "
-                    "take trials",
+                    "message": "nominal runs one noise-free trial per condition: it takes no "
+                    f"trials but 1 (given {self.trials})",
                 }
             )
         if self.srd == "off" and "lr" in given:

@@ -443,6 +443,13 @@ def test_a_grid_with_a_value_twice_or_too_many_cells_is_refused(params, field, w
     assert error["field"].split(".")[0] == field and words in error["message"]
 
 
+def test_nominal_takes_the_one_trial_it_runs() -> None:
+    """``--nominal --trials 1`` says what nominal runs (one noise-free trial per condition), as
+    INTERFACE.md's independent options allow: taken, one run per cell."""
+    config = parse_config(CheetahConfig, {"nominal": True, "trials": 1, "srd": "off"})
+    assert config.nominal and config.trials == 1
+
+
 @pytest.mark.parametrize(
     ("value", "count"),
     [("," * 260_000, 260_001), ([""] * 60_000, 60_000), (list(range(33)), 33), ("1," * 40, 41)],

@@ -1,7 +1,8 @@
 """Remote fine-tuning over loopback: traffic per round and the protocol's own time.
 
-1. Bytes on the wire per fine-tuning round (request and response bodies, as the server counts
-   them): with implicit augmentation (the product: the round answer carries the 64 × 8 item
+1. Bytes on the wire per fine-tuning round (request and response bodies: each asked agent's
+   round answer as received, its upload and its answer as the server counts them): with
+   implicit augmentation (the product: the round answer carries the 64 × 8 item
    rows and two seeds, each agent's model makes its own D_ic noisy copies) against an explicit
    variant where the server would ship every asked agent the augmented copies its fine-tuning
    visits (its epochs × rows × its D_ic copies × 8 numbers, and its row shuffles). The explicit
@@ -310,6 +311,7 @@ async def timings_of(client: Client, auction_id: int, played: list[Played]) -> l
         rescreen = time.perf_counter() - started
         uploads = sum(a["bytes_in"] + a["bytes_out"] for a in closing["answers"])
         explicit = sum(explicit_answer_bytes(p.state, m, position) for position, m in p.before)
+        implicit = len(p.before) * len(json.dumps(p.state, separators=(",", ":")).encode())
         timings.append(
             RoundTiming(
                 auction=auction_id,
@@ -321,7 +323,7 @@ async def timings_of(client: Client, auction_id: int, played: list[Played]) -> l
                 upload=p.answered - p.sent,
                 rescreen=rescreen,
                 close=closed_at - p.answered,
-                bytes_implicit=closing["bytes_total"],
+                bytes_implicit=implicit + uploads,
                 bytes_explicit=explicit + uploads,
                 cpu=p.cpu,
             )

@@ -440,7 +440,11 @@ def test_the_bait_and_switch_is_refused_and_the_round_closes_when_all_answered(
     for model_id, (_, answer) in answers.items():
         assert outcomes[model_id]["outcome"] == answer["outcome"]
         assert outcomes[model_id]["version"] == answer["version"]
-    assert first["bytes_total"] > first["bytes_published"] > 0
+    # Publishing's cost: the round's rows as JSON, once to every asked patron.
+    rows = json.dumps(state["rows"], separators=(",", ":"))
+    assert first["bytes_published"] == len(rows) * len(state["asked"])
+    uploads = sum(a["bytes_in"] + a["bytes_out"] for a in first["answers"])
+    assert first["bytes_total"] == first["bytes_published"] + uploads > first["bytes_published"]
     assert nxt["round"] == 2 and nxt["status"] == "open"
     assert first["closed_at"] <= auction["fine_tuning"][1]["opened_at"]
     # A vote is explained with the version that cast it: round 1's accepted uploads bid from

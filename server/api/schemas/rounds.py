@@ -32,8 +32,9 @@ class RoundAnswerPublic(Schema):
 
 class FineTuneRoundPublic(Schema):
     """A remote fine-tuning round: when, and who answered how; traffic in bytes of bodies
-    (``bytes_published``: the round answers of ``GET .../rounds/current``; uploads and their
-    answers per patron; ``bytes_total``: all of them)."""
+    (``bytes_published``: the round's rows as JSON once to every asked patron, what publishing
+    it costs, not a count of the answers sent; uploads and their answers per patron, as
+    received and sent; ``bytes_total``: all of them)."""
 
     round: int
     iteration: int

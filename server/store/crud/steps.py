@@ -4,6 +4,7 @@ conditional on the auction standing where the step found it (``MovedOnError`` ot
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta
@@ -307,8 +308,9 @@ def commit_iteration(
             "fine_tune_seed": opened.fine_tune_seed,
             "augmentation_seed": opened.augmentation_seed,
             "asked": opened.asked,
-            # What publishing the round costs: its rows, once to every patron asked.
-            "bytes_published": len(str(opened.rows)) * len(opened.asked),
+            # What publishing the round costs: its rows as JSON, once to every patron asked.
+            "bytes_published": len(json.dumps(opened.rows, separators=(",", ":")))
+            * len(opened.asked),
         },
     ).scalar_one()
     return StepRound(round_id, opened.round, list(opened.asked), opened.deadline, True)

@@ -160,10 +160,10 @@ def _scan_evidence(cheap: Cheap, patrons: Sequence[int], test: str) -> list[list
                 continue
             detail = {**detail, "check": rule} if test else detail
             found.append(
-                Evidence(
+                Evidence(  # prices: differences on the scan's cent grid, read to 1e-10
                     test or rule,
-                    None if np.isinf(measured) else measured,
-                    reach,
+                    None if np.isinf(measured) else round(measured, 10),
+                    round(reach, 10),
                     PRICE,
                     "at most",
                     not failed[rule][n],

@@ -318,21 +318,21 @@ def command(
     agent's own fine-tuning, follow the auction to its end and summarise."""  # fmt: skip
     torch.set_num_threads(1)  # each agent fine-tunes one tiny model: more threads only contend
     err = Console(stderr=True)
+    waiting = None  # said once the options are read: the agents will wait for an auction
     if admin_token is None and auction is None:
         admin_token, looked_at = _local_operator_token(server, err)
         if admin_token is None:
             where = (
-                f"none in {looked_at.resolve()}, where this machine's srd serve writes it"
+                f"none in {looked_at.resolve()}, where srd serve writes it when its data folder "
+                "is this one: SRD_DATA_DIR names the server's"
                 if looked_at is not None
                 else "the server is not on this machine"
             )
             tokens = "their tokens are kept" if tokens_file else "--tokens keeps their tokens"
-            err.print(
-                f"no --auction and no operator token ({where}): waiting up to "
-                f"{auction_wait:g} s (--wait) for an auction that takes these agents' models "
-                f"(--admin-token or SRD_ADMIN_TOKEN creates one; {tokens})",
-                highlight=False,
-                soft_wrap=True,
+            waiting = (
+                f"no --auction and no operator token ({where}): once registered, the agents "
+                f"wait up to {auction_wait:g} s (--wait) for an auction that takes their models "
+                f"(--admin-token or SRD_ADMIN_TOKEN creates one; {tokens})"
             )
     try:
         config = PopulationConfig(
@@ -361,6 +361,8 @@ def command(
         if json_output:
             json_failure(str(exc), [{"option": _option_of(p), "message": p} for p in problems])
         raise SystemExit(INVALID) from exc
+    if waiting is not None:
+        err.print(waiting, highlight=False, soft_wrap=True)
     with Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),

@@ -571,6 +571,14 @@ def test_agents_on_this_machine_use_the_token_file_its_srd_serve_wrote(tmp_path:
         assert waited.returncode == 1
         said = " ".join(waited.stderr.split())  # one line, however the terminal wraps
         looked = elsewhere.resolve() / "data" / "admin_token"
-        assert f"no --auction and no operator token (none in {looked}, where this" in said
-        assert "waiting up to 1 s (--wait)" in said and "--tokens keeps their tokens" in said
+        assert f"no --auction and no operator token (none in {looked}, where srd" in said
+        assert "SRD_DATA_DIR names the server's" in said
+        assert "wait up to 1 s (--wait)" in said and "--tokens keeps their tokens" in said
         assert "no auction contains model" in json.loads(waited.stdout)["error"]
+        # Options it refuses are said before any word of waiting.
+        refused = subprocess.run(
+            [*base, "--honest", "0"], capture_output=True, text=True, timeout=120, cwd=elsewhere,
+            env=environment,
+        )  # fmt: skip
+        assert refused.returncode == 2 and "--honest" in refused.stderr
+        assert "wait up to" not in refused.stderr

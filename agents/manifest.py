@@ -100,13 +100,13 @@ _UNREADABLE = (
     # selectors, an unassigned format and the deprecated ones, the variation selectors but the
     # emoji's two, Arabic and Syriac marks set before a number, the object replacement mark
     "\u034f\u17b4\u17b5\u180b-\u180d\u180f\u2065\u206a-\u206f\ufe00-\ufe0d"
-    "\u0600-\u0605\u06dd\u070f\u0890\u0891\u08e2\ufffc"
+    "\u0600-\u0605\u06dd\u070f\u0890\u0891\u08e2\ufffc\ufff0-\ufff8"
 )
-_TAGS = "\U000e0000-\U000e03ff"
-"""Tag characters (invisible letters: hidden text), variation selectors 17-256 and the plane's
-other invisible formats, all behind one UTF-16 lead surrogate, U+DB40, which the JSON Schema's
-pattern refuses."""
-_ASTRAL = "\U000110bd\U000110cd\U0001bca0-\U0001bca3\U0001d173-\U0001d17a"
+_TAGS = "\U000e0000-\U000e0fff"
+"""Tag characters (invisible letters: hidden text), variation selectors 17-256 and the rest of
+that default-ignorable block, behind the UTF-16 lead surrogates U+DB40 to U+DB43, which the
+JSON Schema's pattern refuses."""
+_ASTRAL = "\U000110bd\U000110cd\U00013430-\U0001343f\U0001bca0-\U0001bca3\U0001d173-\U0001d17a"
 """Invisible formats beyond the Basic Multilingual Plane whose lead surrogate leads visible
 characters too (Kaithi, shorthand, musical symbols): the server refuses them, the JSON
 Schema's pattern cannot say them."""
@@ -156,7 +156,7 @@ class _Readable:
         self, schema: core_schema.CoreSchema, handler: GetJsonSchemaHandler
     ) -> JsonSchemaValue:
         json_schema = handler(schema)
-        allowed = f"[^{_escaped(self.refused)}\\udb40]*"  # ECMA-262 reads UTF-16 units
+        allowed = f"[^{_escaped(self.refused)}\\udb40-\\udb43]*"  # ECMA-262 reads UTF-16 units
         also = json_schema.get("pattern")
         json_schema["pattern"] = f"^(?=[\\s\\S]*(?:{also})){allowed}$" if also else f"^{allowed}$"
         return json_schema

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import unicodedata
 from pathlib import Path
 
 import numpy as np
@@ -185,6 +186,33 @@ def test_every_error_is_reported_at_once(honest):
     honest["fine_tuning"]["epochs"] = -1
     paths = {e["path"] for e in refusal(honest)}
     assert paths == {"external_sensor.ST", "fine_tuning.epochs"}
+
+
+DEFAULT_IGNORABLE = [
+    *(0x00AD, 0x034F, 0x061C, 0x115F, 0x1160, 0x17B4, 0x17B5, 0x3164, 0xFEFF, 0xFFA0),
+    *range(0x180B, 0x1810), *range(0x200B, 0x2010), *range(0x202A, 0x202F),
+    *range(0x2060, 0x2070), *range(0xFE00, 0xFE10), *range(0xFFF0, 0xFFF9),
+    *range(0x1BCA0, 0x1BCA4), *range(0x1D173, 0x1D17B), *range(0xE0000, 0xE1000),
+]  # fmt: skip
+"""Unicode's Default_Ignorable_Code_Point (DerivedCoreProperties.txt): characters a renderer
+shows as nothing."""
+
+
+def test_a_description_shows_what_it_says(honest):
+    """Every format character (category Cf) and every default-ignorable one is refused in a
+    description, but the joiners and the emoji's presentation selectors, which scripts and
+    emoji need, and which are refused in runs of three (a run spells hidden text)."""
+    kept = {0x200C, 0x200D, 0xFE0E, 0xFE0F}
+    formats = {
+        cp for cp in range(0x110000)
+        if not 0xD800 <= cp <= 0xDFFF and unicodedata.category(chr(cp)) == "Cf"
+    }  # fmt: skip
+    for cp in sorted((formats | set(DEFAULT_IGNORABLE)) - kept):
+        errors = refusal({**honest, "description": f"a{chr(cp)}b"})
+        assert [e["path"] for e in errors] == ["description"], hex(cp)
+    for cp in kept:
+        assert parse_manifest({**honest, "description": f"a{chr(cp) * 2}b"})
+        assert refusal({**honest, "description": f"a{chr(cp) * 3}b"})
 
 
 def test_published_schema_is_up_to_date():

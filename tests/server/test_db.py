@@ -63,6 +63,13 @@ def test_migrations_build_exactly_the_models(database_url: str) -> None:
             + " \u00adend",
             "sincere bidder end",
         ),
+        # variation selectors spelling hidden text, runs of joiners, other invisible formats,
+        # refused from revision 0018 on (runs are cut to two)
+        (
+            "0017",
+            "Honest." + "\ufe01\ufe0a" * 37 + " a\u200d\u200d\u200db\ufffc \U0001d173\u2764\ufe0f",
+            "Honest. a\u200d\u200db \u2764\ufe0f",
+        ),
     ],
 )
 def test_a_description_stored_before_the_schema_refused_its_characters_reads_again(

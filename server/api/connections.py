@@ -34,8 +34,11 @@ Each of these answers, an unreadable request's 400 and a connection past ``limit
 (503), carries the common JSON error body.
 A WebSocket upgrade leaves these deadlines, and the connection count, once its handshake header
 is in: the socket's own pings and limits (``server.api.limits``) take over, and
-``GuardedWebSocketProtocol``, uvicorn's WebSocket protocol plus a bound on control frames (the
-messages' own allowance never sees them).
+``GuardedWebSocketProtocol``, uvicorn's WebSocket protocol plus bounds on what frames cost below
+the app (control frames, a message's fragments, frames after the close), which the messages'
+own allowance never sees. Requests pipelined on one connection are answered in order, a
+refusal after the answers of the requests before it (a refused request queued behind them
+never starts).
 """
 
 from __future__ import annotations
@@ -193,17 +196,18 @@ class _MethodAwareParser:
         self.unknown_method = False
 
     def feed_data(self, data: bytes) -> None:
-        try:
-            self._parser.feed_data(data)
-        except httptools.HttpParserInvalidMethodError:
-            self.unknown_method = True
-            raise
-        except httptools.HttpParserUpgrade as upgrade:
-            if self._upgrading():
+        view = memoryview(data)
+        while view:
+            try:
+                self._parser.feed_data(view)
+                return
+            except httptools.HttpParserInvalidMethodError:
+                self.unknown_method = True
                 raise
-            rest = data[upgrade.args[0] :]  # an upgrade declined: served as HTTP/1.1 (RFC 9110)
-            if rest:
-                self.feed_data(rest)
+            except httptools.HttpParserUpgrade as upgrade:
+                if self._upgrading():
+                    raise
+                view = view[upgrade.args[0] :]  # declined: served as HTTP/1.1 (RFC 9110, 7.8)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._parser, name)
@@ -274,10 +278,8 @@ class TimedHttpProtocol(HttpToolsProtocol):
         # Parsed in slices, so that a body's bytes on the wire are counted (at most one slice
         # after its header's end is not) and a refusal stops the parse between two slices.
         for start in range(0, len(data), BODY_SLICE_BYTES):
-            protocol = self.transport.get_protocol()
-            if protocol is not self:  # upgraded to a WebSocket: the rest is the socket's
-                protocol.data_received(data[start:])  # type: ignore[attr-defined]
-                return
+            if self.transport.is_closing() or self.transport.get_protocol() is not self:
+                return  # ended, or upgraded: a client sends frames only after the 101 (RFC 6455)
             self._received(data[start : start + BODY_SLICE_BYTES])
 
     def _received(self, data: bytes) -> None:
@@ -293,7 +295,7 @@ class TimedHttpProtocol(HttpToolsProtocol):
                 return
         elif self._in_body:
             self._body_wire += len(data)
-            if self._body_wire > self.max_body_bytes + self.max_body_bytes // 4:
+            if self._body_wire > self._wire_limit:
                 self._refuse(self._too_large_body)
                 return
         super().data_received(data)
@@ -443,12 +445,17 @@ class TimedHttpProtocol(HttpToolsProtocol):
         return True
 
     @property
+    def _wire_limit(self) -> int:
+        """A body's bytes on the wire, its chunked framing with it (a slice that ends a body
+        may carry the next request: counted with it)."""
+        return self.max_body_bytes + max(self.max_body_bytes // 4, BODY_SLICE_BYTES)
+
+    @property
     def _too_large_body(self) -> bytes:
-        limit = self.max_body_bytes + self.max_body_bytes // 4
         return _answer(
             b"413 Content Too Large",
-            f"a request's body is at most {self.max_body_bytes} bytes, and {limit} on the "
-            "wire with its chunked framing",
+            f"a request's body is at most {self.max_body_bytes} bytes, and {self._wire_limit} "
+            "on the wire with its chunked framing",
             "body_size",
         )
 
@@ -460,18 +467,26 @@ class TimedHttpProtocol(HttpToolsProtocol):
         self._disarm()
         if self.transport.is_closing() or self._refused or self._abandon_body(answer):
             return
-        cycle = self.cycle
-        if self._in_body and cycle is not None and cycle.response_started and not self.pipeline:
-            answer = b""  # the app has answered this request: the rest of it is dropped unread
         self._refused = True
-        if cycle is not None and not cycle.response_complete:
-            self._after_response = answer  # an earlier pipelined request's answer comes first
+        cycle = self.cycle
+        if self._in_body and cycle is not None:
+            if cycle.response_started:  # its app answers without its body (a stream): ended
+                cycle.disconnected = True
+                cycle.message_event.set()
+                self._answer_and_end(b"")
+                return
+            if self.pipeline and self.pipeline[0][0] is cycle:  # queued: it never starts
+                self.pipeline.popleft()
+                cycle.disconnected = True
+        if self.pipeline or (cycle is not None and not cycle.response_complete):
+            self._after_response = answer  # the answers of the requests before come first
             return
         self._answer_and_end(answer)
 
     def on_response_complete(self) -> None:
+        queued = bool(self.pipeline)  # the next request starts now, and answers first
         super().on_response_complete()
-        if self._after_response is not None:
+        if self._after_response is not None and not queued:
             answer, self._after_response = self._after_response, None
             self._answer_and_end(answer)
 
@@ -581,7 +596,7 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
 
     def data_received(self, data: bytes) -> None:
         for start in range(0, len(data), READ_SLICE_BYTES):
-            if self._dropping:
+            if self._dropping or self.transport.is_closing():
                 return
             super().data_received(data[start : start + READ_SLICE_BYTES])
 
@@ -590,8 +605,12 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
         the connection ends after ``CLOSE_WAIT_S`` (closing over unread bytes would reset
         it, and the peer could lose the close)."""
         self._dropping = True
-        if self.close_sent:
+        if not self.handshake_complete:  # the app has not accepted it: no close to send yet
             self.transport.close()
+            return
+        if self.close_sent:  # its close is sent: the peer's answer to it is waited for
+            if self.close_timer is None:
+                self.close_timer = self.loop.call_later(CLOSE_WAIT_S, self.transport.close)
             return
         self.conn.send_close(1008, reason)
         self.transport.write(b"".join(self.conn.data_to_send()))

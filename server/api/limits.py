@@ -243,13 +243,14 @@ class ClientLimitsMiddleware:
         return f"address:{_address(scope)}", limit.per_address
 
     async def real_token(self, scope: Scope, token: str) -> bool:
-        """Whether ``token`` is a participant's or the operator's (looked up once, then
-        remembered: a PUT upload's was, by its own share's count)."""
-        return await self._real(scope, hashlib.sha256(token.encode()).hexdigest())
+        """Whether ``token`` may be a participant's or the operator's: known to be (looked up
+        once, then remembered: a PUT upload's was, by its own share's count), or not known
+        not to be (a database that cannot answer)."""
+        return await self._real(scope, hashlib.sha256(token.encode()).hexdigest(), unsure=True)
 
-    async def _real(self, scope: Scope, digest: str) -> bool:
+    async def _real(self, scope: Scope, digest: str, *, unsure: bool = False) -> bool:
         """Whether a token digest is a participant's or the operator's (a database that cannot
-        answer: not known to be)."""
+        answer: ``unsure``)."""
         if digest in self.known:
             return True
         services = getattr(scope["app"].state, "services", None)
@@ -260,7 +261,7 @@ class ClientLimitsMiddleware:
                 found = await run_in_threadpool(_looked_up, services.database, digest)
             except (DatabaseUnavailableError, SQLAlchemyError) as exc:
                 log.debug("a token could not be looked up: %s", exc)  # the routes say it
-                return False
+                return unsure
             if not found:
                 return False
         if len(self.known) >= KNOWN_TOKENS:

@@ -297,8 +297,8 @@ class UploadRequest:
     address: str | None = None
     """The client's address (None in process): a refused or held upload counts against it."""
     journaled: bool = True
-    """Whether its arrival is journaled (its token is known to be real: made-up ones, which
-    the checks refuse anyway, would fill the journal for everyone)."""
+    """Whether its arrival is journaled: its token is real, or the database could not say
+    (made-up ones, which the checks refuse anyway, would fill the journal for everyone)."""
 
 
 def _arrive(

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import socket
 import time
 from collections.abc import Iterator
@@ -818,6 +819,85 @@ def test_a_get_asking_an_upgrade_the_server_declines_is_served_with_what_follows
 
     answers = asyncio.run(pipelined())
     assert answers.count(b"HTTP/1.1 200") == 2, answers
+
+
+def test_pipelined_requests_are_answered_in_order_around_a_refused_body(
+    server: ServerProcess, auction_id: int
+) -> None:
+    """Behind a long poll (held a second), a GET and then a POST whose chunked body is refused
+    (too many chunks), in one write: the poll's answer, the GET's, then the refusal, and the
+    connection ends; the refused request never reaches its route, nothing is logged as an
+    error. Before, the refusal cut in ahead of the queued GET, whose answer was lost, and the
+    refused POST ran with the body it had."""
+    poll = _get(f"/auctions/{auction_id}/rounds/current?wait=1")
+    post = (
+        b"POST /submit HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\n"
+        b"Transfer-Encoding: chunked\r\n\r\n" + b"1\r\n \r\n" * 1100 + b"0\r\n\r\n"
+    )
+    before = server.log_path.read_text()
+
+    async def pipelined(*requests: bytes) -> bytes:
+        reader, writer = await _open(server, "127.0.0.46")
+        writer.write(b"".join(requests))
+        try:
+            return await asyncio.wait_for(reader.read(-1), 15)
+        finally:
+            writer.close()
+
+    for requests, wanted in (((poll, _get("/livez"), post), 3), ((poll, post), 2)):
+        answers = asyncio.run(pipelined(*requests))
+        statuses = [int(code) for code in re.findall(rb"HTTP/1\.1 (\d{3}) ", answers)]
+        assert statuses == [200] * (wanted - 1) + [400], answers[-400:]
+        assert b"too_many_chunks" in answers
+    time.sleep(0.5)
+    added = server.log_path.read_text()[len(before) :]
+    assert "Exception in ASGI application" not in added and "Traceback" not in added, added
+
+
+def test_a_thousand_declined_upgrades_in_one_write_are_each_answered(server: ServerProcess) -> None:
+    """Each GET asking an upgrade the server declines is served, the next read on from where
+    it ended: 1,200 in one write (a recursion had lost every answer past about 1,000)."""
+
+    async def flood() -> bytes:
+        reader, writer = await _open(server, "127.0.0.47")
+        one = b"GET /livez HTTP/1.1\r\nHost: t\r\nConnection: Upgrade\r\nUpgrade: h2c\r\n\r\n"
+        writer.write(one * 1199 + _get("/livez", {"Connection": "close"}))
+        try:
+            return await asyncio.wait_for(reader.read(-1), 60)
+        finally:
+            writer.close()
+
+    answers = asyncio.run(flood())
+    assert answers.count(b"HTTP/1.1 ") == 1200, answers[-300:]
+
+
+def test_frames_sent_with_the_handshake_are_dropped_without_a_fault(
+    server: ServerProcess, auction_id: int
+) -> None:
+    """A client sends frames only once the server has accepted (RFC 6455, 4.1): frames written
+    with the handshake, more than a read's slice of them, are dropped, with no fault in the
+    log, and the socket then works."""
+    key = "dGhlIHNhbXBsZSBub25jZQ=="
+    handshake = (
+        f"GET /auctions/{auction_id}/rounds/socket HTTP/1.1\r\nHost: t\r\n"
+        "Upgrade: websocket\r\nConnection: Upgrade\r\n"
+        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    ).encode()
+    frame = bytes([0x81, 0x80 | 100]) + b"\0\0\0\0" + b"x" * 100  # masked text, 100 bytes
+    before = server.log_path.read_text()
+
+    async def early() -> bytes:
+        reader, writer = await _open(server, "127.0.0.48")
+        writer.write(handshake + frame * 800)  # 85 KB behind the handshake
+        try:
+            return await asyncio.wait_for(reader.read(400), 10)
+        finally:
+            writer.close()
+
+    assert asyncio.run(early()).startswith(b"HTTP/1.1 101")
+    time.sleep(0.5)
+    added = server.log_path.read_text()[len(before) :]
+    assert "Fatal error" not in added and "Traceback" not in added, added
 
 
 @pytest.mark.slow  # 17 s; the default run keeps the flooding client's neighbour served

@@ -445,7 +445,7 @@ def test_a_grid_with_a_value_twice_or_too_many_cells_is_refused(params, field, w
 
 def test_nominal_takes_the_one_trial_it_runs() -> None:
     """``--nominal --trials 1`` says what nominal runs (one noise-free trial per condition), as
-    INTERFACE.md's independent options allow: taken, one run per cell."""
+    the contract's independent options allow: taken, one run per cell."""
     config = parse_config(CheetahConfig, {"nominal": True, "trials": 1, "srd": "off"})
     assert config.nominal and config.trials == 1
 

@@ -158,6 +158,11 @@ UPGRADE_ANSWER = _answer(
     "only a GET may ask to upgrade (a WebSocket handshake): send this request without Upgrade",
     "bad_upgrade",
 )
+UPGRADE_BODY_ANSWER = _answer(
+    b"400 Bad Request",
+    "a request asking to upgrade carries no body: send it without Upgrade",
+    "bad_upgrade",
+)
 FULL_ANSWER = _answer(
     b"503 Service Unavailable",
     "the server holds as many connections as it can; retry shortly",
@@ -250,6 +255,7 @@ class TimedHttpProtocol(HttpToolsProtocol):
         self._body_wire = 0  # the current body's bytes as they arrive, framing included
         self._chunks = 0  # and its chunks
         self._in_body = False  # between a request's header and its end: self.cycle is its own
+        self._begun = False  # the parser is in a request (its line has begun)
         self._after_response: bytes | None = None  # a refusal waiting for the answer in flight
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
@@ -286,6 +292,10 @@ class TimedHttpProtocol(HttpToolsProtocol):
         if self._refused:
             return  # read and dropped, so that the close sends the answer, not a reset
         if self._reading_header:
+            if not self._begun:  # empty lines before a request (RFC 9112, 2.2): header bytes
+                self._header_bytes += len(data) - len(data.lstrip(b"\r\n"))
+                if self._deadline is None:  # uvicorn's keep-alive timer stopped at them
+                    self._arm(self.header_timeout_s, header=True)
             seen = self._tail + data
             end = seen.find(b"\r\n\r\n")  # the header's end, if it is in these bytes
             self._header_bytes += len(data) if end < 0 else max(0, end + 4 - len(self._tail))
@@ -305,13 +315,13 @@ class TimedHttpProtocol(HttpToolsProtocol):
         if self._refused:  # the parser was stopped after a refusal (``_parsed``)
             return
         if self._method_aware.unknown_method:
-            self.transport.write(METHOD_ANSWER)
-        else:
-            self.transport.write(_answer(b"400 Bad Request", msg, "bad_request"))
-        self.transport.close()
+            self._refuse(METHOD_ANSWER)
+        else:  # after the answers of the requests before it, as every refusal
+            self._refuse(_answer(b"400 Bad Request", msg, "bad_request"))
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
+        self._begun = True
         self._header_parsed = self._header_fields = self._body_wire = self._chunks = 0
         if self._deadline is None or not self._reading_header:
             self._arm(self.header_timeout_s, header=True)
@@ -370,10 +380,15 @@ class TimedHttpProtocol(HttpToolsProtocol):
             # POST carrying one had reached the app without its body, or been refused by the
             # WebSocket library with a plain-text 405 naming GET.
             return UPGRADE_ANSWER
+        if self.parser.should_upgrade() and any(
+            name in (b"transfer-encoding", b"content-length") and value.strip() != b"0"
+            for name, value in self.headers
+        ):  # the parser stops at its header's end: its body would be read as another request
+            return UPGRADE_BODY_ANSWER
         return None
 
     def on_message_complete(self) -> None:
-        self._in_body = False
+        self._in_body = self._begun = False
         self._disarm()
         self._reading_header, self._header_bytes, self._tail = True, 0, b""
         # When the whole request was in: an upload's deadline is judged at this moment, the
@@ -439,6 +454,7 @@ class TimedHttpProtocol(HttpToolsProtocol):
         if not self._in_body or cycle is None or cycle.response_started or self.pipeline:
             return False
         cycle.disconnected = True
+        cycle.waiting_for_100_continue = False  # its app's first read must not answer 100
         cycle.message_event.set()
         self._refused = True
         self._answer_and_end(answer)
@@ -472,6 +488,7 @@ class TimedHttpProtocol(HttpToolsProtocol):
         if self._in_body and cycle is not None:
             if cycle.response_started:  # its app answers without its body (a stream): ended
                 cycle.disconnected = True
+                cycle.waiting_for_100_continue = False
                 cycle.message_event.set()
                 self._answer_and_end(b"")
                 return
@@ -619,11 +636,13 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
         self.close_timer = self.loop.call_later(CLOSE_WAIT_S, self.transport.close)
 
     def _allowed(self) -> bool:
-        """Take a control frame's token; False (and the socket closed) when there is none."""
-        if self.close_sent:
+        """Take a control frame's token; False (and the socket closed) when there is none.
+        After the close a control frame is not answered, but it takes its token all the same
+        (7 MB of pings after a close had held the event loop 8 s)."""
+        if self._dropping:
             return False
         if self._control.take():
-            return True
+            return not self.close_sent
         self._shut(f"more than {CONTROL_BURST} pings and pongs at once")
         return False
 
@@ -640,6 +659,15 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
             self._shut(f"a message comes in at most {MAX_FRAGMENTS} frames")
             return False
         return True
+
+    def handle_parser_exception(self) -> None:
+        """Frames the peer could not have meant (sent before the 101, spanning reads): before
+        the app has accepted, there is no close to send; the connection ends, unlogged."""
+        if not self.handshake_complete:
+            self._dropping = True
+            self.transport.close()
+            return
+        super().handle_parser_exception()
 
     def handle_text(self, event: Any) -> None:
         if self._data_allowed(first=True):

@@ -299,6 +299,43 @@ def test_a_chunked_body_is_bounded_by_its_framing_and_its_trailer(server: Server
         assert time.monotonic() - started < 5, case
 
 
+def test_empty_lines_between_requests_count_as_header(server: ServerProcess) -> None:
+    """Empty lines before a request line (RFC 9112, 2.2) are header bytes under the header's
+    deadline and cap: a connection that sent only line breaks after its first answer had been
+    read for ever (2 GB in 3 s, a core) and never closed."""
+
+    async def after_one(tail: bytes) -> bytes:
+        """A request, its answer read, then ``tail``: what comes back until the close."""
+        reader, writer = await _open(server, NEIGHBOUR)
+        try:
+            writer.write(b"GET /livez HTTP/1.1\r\nHost: t\r\n\r\n")
+            first = await asyncio.wait_for(reader.readuntil(b'{"status":"ok"}'), 10)
+            writer.write(tail)
+            return first + await asyncio.wait_for(reader.read(-1), 10)
+        finally:
+            writer.close()
+
+    flooded = asyncio.run(after_one(b"\r\n" * MAX_HEADER_BYTES))
+    assert flooded.startswith(b"HTTP/1.1 200") and b"HTTP/1.1 431" in flooded, flooded[-300:]
+    then = b"\r\n\r\nGET /livez HTTP/1.1\r\nHost: t\r\nConnection: close\r\n\r\n"
+    assert asyncio.run(after_one(then)).count(b"HTTP/1.1 200") == 2
+
+
+def test_a_request_asking_an_upgrade_with_a_body_is_refused(server: ServerProcess) -> None:
+    """The parser stops at an upgrading request's header: a body behind a declined upgrade was
+    read as a request of its own, which a client behind a trusted proxy could address as
+    anyone. A GET asking to upgrade with a body is 400 and the connection closes."""
+    smuggled = b"GET /livez?smuggled=1 HTTP/1.1\r\nHost: t\r\n\r\n"
+    raw = (
+        b"GET /livez HTTP/1.1\r\nHost: t\r\nConnection: Upgrade\r\nUpgrade: h2c\r\n"
+        b"Content-Length: %d\r\n\r\n" % len(smuggled)
+    ) + smuggled
+    status, _, body = asyncio.run(_exchange(server, NEIGHBOUR, raw))
+    assert status == 400 and _detail(body)["type"] == "bad_upgrade"
+    time.sleep(0.3)
+    assert "smuggled" not in server.log_path.read_text()
+
+
 @pytest.fixture(scope="module")
 def small_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
     env = {"SRD_MAX_CONNECTIONS": "16", "SRD_MAX_CONNECTIONS_PER_ADDRESS": str(SHARE)}

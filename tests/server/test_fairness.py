@@ -10,7 +10,9 @@ server sees them as distinct clients.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import os
 import re
 import socket
 import time
@@ -898,6 +900,51 @@ def test_frames_sent_with_the_handshake_are_dropped_without_a_fault(
     time.sleep(0.5)
     added = server.log_path.read_text()[len(before) :]
     assert "Fatal error" not in added and "Traceback" not in added, added
+
+
+def test_pings_after_the_server_closed_a_socket_cost_it_nothing(
+    server: ServerProcess, auction_id: int
+) -> None:
+    """The server closes a socket that sent 65 messages at once; the peer reads on for the
+    close's answer, and pings it sends meanwhile take the control frames' bucket: past it they
+    are dropped unread (7 MB of them had held the event loop 8 s)."""
+    assert server.process is not None
+    stat = Path(f"/proc/{server.process.pid}/stat")
+
+    def cpu_s() -> float:
+        fields = stat.read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    key = "dGhlIHNhbXBsZSBub25jZQ=="
+    handshake = (
+        f"GET /auctions/{auction_id}/rounds/socket HTTP/1.1\r\nHost: t\r\n"
+        "Upgrade: websocket\r\nConnection: Upgrade\r\n"
+        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    ).encode()
+    message = bytes([0x81, 0x82]) + b"\0\0\0\0" + b"{}"  # masked text frames
+    ping = bytes([0x89, 0x80]) + b"\0\0\0\0"
+
+    async def flood() -> float:
+        reader, writer = await _open(server, "127.0.0.49")
+        try:
+            writer.write(handshake)
+            await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), 10)
+            writer.write(message * 70)  # past the 64 messages at once: the server closes
+            await writer.drain()
+            await asyncio.sleep(0.5)
+            before = cpu_s()
+            with contextlib.suppress(ConnectionError):
+                for _ in range(10):
+                    writer.write(ping * 50_000)  # 300 KB a write, 3 MB in all
+                    await writer.drain()
+            await asyncio.sleep(1.0)
+            return cpu_s() - before
+        finally:
+            writer.close()
+
+    used = asyncio.run(flood())
+    print(f"server CPU over 3 MB of pings after the close: {used:.2f} s")
+    assert used < 0.5, used
 
 
 @pytest.mark.slow  # 17 s; the default run keeps the flooding client's neighbour served

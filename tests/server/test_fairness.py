@@ -96,6 +96,19 @@ def _get(path: str, headers: dict[str, str] | None = None) -> bytes:
     return ("\r\n".join(lines) + "\r\n\r\n").encode()
 
 
+def _socket_handshake(auction_id: int) -> bytes:
+    """A round socket's opening handshake, as raw bytes (its frames follow by hand)."""
+    return _get(
+        f"/auctions/{auction_id}/rounds/socket",
+        {
+            "Upgrade": "websocket",
+            "Connection": "Upgrade",
+            "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ==",
+            "Sec-WebSocket-Version": "13",
+        },
+    )
+
+
 class Held:
     """Connections a test keeps open; all closed at the end."""
 
@@ -878,13 +891,8 @@ def test_frames_sent_with_the_handshake_are_dropped_without_a_fault(
 ) -> None:
     """A client sends frames only once the server has accepted (RFC 6455, 4.1): frames written
     with the handshake, more than a read's slice of them, are dropped, with no fault in the
-    log, and the socket then works."""
-    key = "dGhlIHNhbXBsZSBub25jZQ=="
-    handshake = (
-        f"GET /auctions/{auction_id}/rounds/socket HTTP/1.1\r\nHost: t\r\n"
-        "Upgrade: websocket\r\nConnection: Upgrade\r\n"
-        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
-    ).encode()
+    log (they had been parsed from mid-frame: a traceback)."""
+    handshake = _socket_handshake(auction_id)
     frame = bytes([0x81, 0x80 | 100]) + b"\0\0\0\0" + b"x" * 100  # masked text, 100 bytes
     before = server.log_path.read_text()
 
@@ -915,12 +923,7 @@ def test_pings_after_the_server_closed_a_socket_cost_it_nothing(
         fields = stat.read_text().rsplit(")", 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
-    key = "dGhlIHNhbXBsZSBub25jZQ=="
-    handshake = (
-        f"GET /auctions/{auction_id}/rounds/socket HTTP/1.1\r\nHost: t\r\n"
-        "Upgrade: websocket\r\nConnection: Upgrade\r\n"
-        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
-    ).encode()
+    handshake = _socket_handshake(auction_id)
     message = bytes([0x81, 0x82]) + b"\0\0\0\0" + b"{}"  # masked text frames
     ping = bytes([0x89, 0x80]) + b"\0\0\0\0"
 

@@ -875,7 +875,7 @@ def test_a_thousand_declined_upgrades_in_one_write_are_each_answered(server: Ser
 
     async def flood() -> bytes:
         reader, writer = await _open(server, "127.0.0.47")
-        one = b"GET /livez HTTP/1.1\r\nHost: t\r\nConnection: Upgrade\r\nUpgrade: h2c\r\n\r\n"
+        one = _get("/livez", {"Connection": "Upgrade", "Upgrade": "h2c", **ADMIN})  # unpaced
         writer.write(one * 1199 + _get("/livez", {"Connection": "close"}))
         try:
             return await asyncio.wait_for(reader.read(-1), 60)

@@ -77,6 +77,8 @@ message: reading and checking a body costs the event loop by its size (about 10 
 of numbers), so an address's rate bounds the bytes it makes the server read too."""
 RATE_ADDRESSES = 100_000
 """Addresses whose request buckets a process keeps; past it, it forgets them all."""
+TOKEN_VERDICT_KEY = "srd.token_verdict"
+"""The request scope's state key of its bearer token's look-up: (digest, real or None)."""
 KNOWN_TOKENS = 100_000
 """Digests of real tokens a process remembers; past it, it forgets them all and looks each
 up again. A token rotated away (``POST /participants/{name}/token``) stays remembered as
@@ -238,19 +240,31 @@ class ClientLimitsMiddleware:
             token = _bearer(scope)
             if token is not None:
                 digest = hashlib.sha256(token).hexdigest()
-                if scope["type"] == "websocket" or await self._real(scope, digest):
+                if scope["type"] == "websocket" or await self._looked_at(scope, digest):
                     return f"token:{digest}", limit.per_token
         return f"address:{_address(scope)}", limit.per_address
 
+    async def _looked_at(self, scope: Scope, digest: str) -> bool:
+        """``_real``, its answer kept in the request's scope for ``real_token``: True only for
+        a token known to be real."""
+        real = await self._real(scope, digest)
+        scope.setdefault("state", {})[TOKEN_VERDICT_KEY] = (digest, real)
+        return real is True
+
     async def real_token(self, scope: Scope, token: str) -> bool:
         """Whether ``token`` may be a participant's or the operator's: known to be (looked up
-        once, then remembered: a PUT upload's was, by its own share's count), or not known
-        not to be (a database that cannot answer)."""
-        return await self._real(scope, hashlib.sha256(token.encode()).hexdigest(), unsure=True)
+        once, then remembered; a PUT upload's was, by its own share's count, and is not looked
+        up again), or not known not to be (a database that cannot answer)."""
+        digest = hashlib.sha256(token.encode()).hexdigest()
+        seen = scope.get("state", {}).get(TOKEN_VERDICT_KEY)
+        real = (
+            seen[1] if seen is not None and seen[0] == digest else await self._real(scope, digest)
+        )
+        return real is not False
 
-    async def _real(self, scope: Scope, digest: str, *, unsure: bool = False) -> bool:
-        """Whether a token digest is a participant's or the operator's (a database that cannot
-        answer: ``unsure``)."""
+    async def _real(self, scope: Scope, digest: str) -> bool | None:
+        """Whether a token digest is a participant's or the operator's (None: the database
+        could not answer)."""
         if digest in self.known:
             return True
         services = getattr(scope["app"].state, "services", None)
@@ -261,7 +275,7 @@ class ClientLimitsMiddleware:
                 found = await run_in_threadpool(_looked_up, services.database, digest)
             except (DatabaseUnavailableError, SQLAlchemyError) as exc:
                 log.debug("a token could not be looked up: %s", exc)  # the routes say it
-                return unsure
+                return None
             if not found:
                 return False
         if len(self.known) >= KNOWN_TOKENS:

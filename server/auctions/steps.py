@@ -54,6 +54,7 @@ from server.store.crud.steps import (
 from server.store.db import DATABASE_RETRY_AFTER_S, Database, JSONText, is_database_outage
 from server.store.status import AUCTION_UNFINISHED, AuctionStatus
 from server.store.tables import Auction, utcnow
+from server.submissions import quotas
 from server.work.pool import WorkerContext, error_summary
 from server.work.runner import WorkKind
 from sim.market import MarketConfig, fish_on_sale
@@ -246,24 +247,31 @@ def _commit_iteration(
 
 def _judge_pending(database: Database, round_id: int, margin: float) -> None:
     """Judge the round's uploads whose verdict the API never recorded (its screener was down,
-    or it died): they came in time, so they count (held within ``margin`` of a bar)."""
+    or it died): they came in time, so they count (held within ``margin`` of a bar), and each
+    verdict counts for its participant's cooldown as the API's would (its address, which the
+    API alone knew, is not charged)."""
     with database.session(write=False) as session:
         pending = crud.pending_uploads(session, round_id=round_id)
     if not pending:
         return
-    from screener import rescreen_many
+    from screener import rescreen_many, review
 
-    verdicts = rescreen_many([parse_manifest(upload.manifest) for upload in pending])
+    manifests = [parse_manifest(upload.manifest) for upload in pending]
+    verdicts = rescreen_many(manifests)
     with database.session(write=True) as session:
-        now = utcnow()
-        for upload, verdict in zip(pending, verdicts, strict=True):
-            crud.record_verdict(
-                session.connection(),
-                answer_id=upload.answer_id,
-                verdict=verdict,
-                margin=margin,
-                now=now,
+        connection, now = session.connection(), utcnow()
+        for upload, manifest, verdict in zip(pending, manifests, verdicts, strict=True):
+            recorded = crud.record_verdict(
+                connection, answer_id=upload.answer_id, verdict=verdict, margin=margin, now=now
             )
+            if recorded.judged:
+                quotas.record_round_upload(
+                    connection,
+                    participant=manifest.participant,
+                    address=None,
+                    accepted=review(verdict, margin) == "accepted",
+                    now=now,
+                )
         session.commit()
 
 

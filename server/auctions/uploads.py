@@ -223,16 +223,18 @@ def _record(
 ) -> tuple[bytes, bool]:
     """Record a pending upload's verdict; its answer, and whether it closed the round (every
     asked patron judged: the auction is due). Its verdict counts for the participant's
-    cooldown as a ``/submit``'s does (``quotas.record_round_upload``)."""
+    cooldown as a ``/submit``'s does (``quotas.record_round_upload``), once: a retry of the
+    same body judged by another request or replica meanwhile takes its answer uncounted."""
     now = utcnow()
-    body = crud.record_verdict(
+    recorded = crud.record_verdict(
         connection, answer_id=answer_id, verdict=verdict, margin=margin, now=now
     )
-    accepted = review(verdict, margin) == "accepted"
-    quotas.record_round_upload(
-        connection, participant=participant, address=address, accepted=accepted, now=now
-    )
-    return body, crud.close_when_answered(connection, round_id=round_id, now=now)
+    if recorded.judged:
+        accepted = review(verdict, margin) == "accepted"
+        quotas.record_round_upload(
+            connection, participant=participant, address=address, accepted=accepted, now=now
+        )
+    return recorded.answer, crud.close_when_answered(connection, round_id=round_id, now=now)
 
 
 def _close(connection: Connection, *, round_id: int) -> bool:

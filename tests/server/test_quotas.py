@@ -3,8 +3,13 @@ nothing stored, counted in the database (so every API process sharing it sees th
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import signal
 import threading
+import time
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -13,9 +18,16 @@ from fastapi.testclient import TestClient
 
 from server.app import create_app
 from server.store.tables import ModelVersion, Participant, RateEvent
-from tests.server.test_remote_protocol import first_asked_upload, put, remote_auction
+from tests.server.test_remote_protocol import (
+    first_asked_upload,
+    open_round,
+    put,
+    remote_auction,
+    start_remote,
+)
 from tests.support.databases import postgres_admin_url, throwaway_postgres
 from tests.support.factories import honest, saboteur, unique
+from tests.support.processes import descendants, process_name
 from tests.support.server import count, make_settings
 
 
@@ -92,6 +104,67 @@ def test_a_refused_round_upload_counts_as_a_refusal(tmp_path) -> None:
         )
         assert_throttled(later, "SRD_REFUSAL_COOLDOWN_S")
         assert "refused or held by the screener 1 time(s) in a row" in later.text
+
+
+def _refused_probe(upload: Any) -> bytes:
+    """``upload`` changed to buy more as the price rises: the screener refuses it."""
+    probe = upload.model_dump(mode="json")
+    probe["decision"]["B"]["weights"]["PG"] = 0.9
+    return json.dumps(probe).encode()
+
+
+@contextlib.contextmanager
+def screener_frozen() -> Iterator[None]:
+    """This process's screening process stopped (SIGSTOP) while the block runs."""
+    mine = [p for p in descendants(os.getpid()) if process_name(p) == "srd-screening"]
+    assert mine, "no screening process"
+    for pid in mine:
+        os.kill(pid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        for pid in mine:
+            os.kill(pid, signal.SIGCONT)
+
+
+def test_a_round_upload_sent_twice_at_once_counts_one_refusal(tmp_path) -> None:
+    """The same refused upload sent again while the first waits for its verdict (an agent's
+    retry after a timeout, to this replica or another): both hear the one verdict, and the
+    participant's cooldown counts one refusal, not two (30 s, not 60)."""
+    with quota_app(tmp_path, refusal_cooldown_s=30.0) as client:
+        remote = remote_auction(client, "twice-prober", 940, seed=5)
+        auction_id, model_id, token, upload = first_asked_upload(remote)
+        body = _refused_probe(upload)
+        pool = ThreadPoolExecutor(2)
+        with screener_frozen():
+            sent = [pool.submit(put, client, auction_id, 1, model_id, body, token) for _ in "ab"]
+            time.sleep(1.0)  # both stored or waiting for the one stored
+        answers = [future.result(timeout=120) for future in sent]
+        pool.shutdown()
+        assert [a.status_code for a in answers] == [200, 200], [a.text for a in answers]
+        assert answers[0].json() == answers[1].json() and answers[0].json()["accepted"] is False
+        again = client.post("/submit", json=honest(upload.participant), headers=bearer(token))
+        assert 25 <= assert_throttled(again, "SRD_REFUSAL_COOLDOWN_S") <= 30
+        assert "refused or held by the screener 1 time(s) in a row" in again.text
+
+
+def test_a_round_upload_the_step_judged_counts_as_a_refusal(tmp_path) -> None:
+    """The screener hangs past the round's deadline, so the step closing the round judges the
+    waiting upload itself: its refusal starts the participant's cooldown as the API's verdict
+    would have."""
+    with quota_app(tmp_path, refusal_cooldown_s=30.0) as client:
+        auction_id, manifests, patrons = start_remote(
+            client, "step-prober", 960, 3, round_deadline_s=3, seed=5
+        )
+        state = open_round(client, auction_id)
+        remote = {"id": auction_id, "manifests": manifests, "patrons": patrons, "state": state}
+        auction_id, model_id, token, upload = first_asked_upload(remote)
+        with screener_frozen():
+            answer = put(client, auction_id, 1, model_id, _refused_probe(upload), token)
+        assert answer.status_code == 200 and answer.json()["accepted"] is False, answer.text
+        again = client.post("/submit", json=honest(upload.participant), headers=bearer(token))
+        assert_throttled(again, "SRD_REFUSAL_COOLDOWN_S")
+        assert "refused or held by the screener 1 time(s) in a row" in again.text
 
 
 def test_an_accepted_round_upload_ends_the_refusals_in_a_row(tmp_path) -> None:

@@ -382,20 +382,29 @@ _DUE_AT = (
 )
 
 
+@dataclass(frozen=True)
+class Judged:
+    """What ``record_verdict`` did: the answer's bytes, and whether this call judged the upload
+    (False: another request or process had, and its answer stands)."""
+
+    answer: bytes
+    judged: bool
+
+
 def record_verdict(
     connection: Connection, *, answer_id: int, verdict: Verdict, margin: float, now: datetime
-) -> bytes:
+) -> Judged:
     """A pending upload judged: its manifest stored as the participant's next version
     (accepted, refused, or held for an inspector within ``margin`` of a bar: then, as refused,
-    the previous version bids on), its answer written; the answer's bytes. An upload already
-    judged (by another process) keeps its answer, which is returned."""
+    the previous version bids on), its answer written. An upload already judged (by another
+    request or process) keeps its answer, which is returned, not judged again."""
     row = connection.execute(_PENDING_FOR_UPDATE, {"answer_id": answer_id}).one_or_none()
     if row is None:  # judged by a concurrent request while this one waited for the row's lock:
         # PostgreSQL re-checks the locked row, now naming a version this statement cannot see
         stored = select(FineTuneAnswer.answer).where(FineTuneAnswer.id == answer_id)
-        return answer_bytes(connection.execute(stored).scalar_one() or {})
+        return Judged(answer_bytes(connection.execute(stored).scalar_one() or {}), False)
     if row.outcome != AnswerOutcome.PENDING:
-        return answer_bytes(row.answer or {})
+        return Judged(answer_bytes(row.answer or {}), False)
     if row.manifest is None:  # stored with every pending upload
         raise RuntimeError(f"the pending upload {answer_id} has no manifest")
     if connection.dialect.name != "sqlite":  # SQLite has no row locks: it serialises writers
@@ -439,7 +448,7 @@ def record_verdict(
         "bytes_out": len(body),
     }
     connection.execute(_JUDGE_ANSWER, judged)
-    return body
+    return Judged(body, True)
 
 
 _JUDGED_ANSWER = select(FineTuneAnswer.outcome, FineTuneAnswer.answer).where(

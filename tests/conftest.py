@@ -25,21 +25,28 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 LONGEST_FIRST = (
     "test_ui.py",
+    "test_cli.py",
     "test_faults.py",
-    "test_replicas.py",
-    "test_remote_restart.py",
-    "test_restart.py",
-    "test_cli_live.py",
     "test_job_limits.py",
+    "test_cli_live.py",
+    "test_lavaland.py",
+    "test_replicas.py",
+    "test_events.py",
+    "test_remote_protocol.py",
     "test_arrival.py",
-    "test_db_outage.py",
-    "test_votes.py",
+    "test_restart.py",
+    "test_ray.py",
+    "test_jobs.py",
     "test_readme.py",
-    "test_demo.py",
+    "test_votes.py",
+    "test_fairness.py",
+    "test_cli_inputs.py",
+    "test_live.py",
 )
-"""The suite's longest files (each a minute or more of servers, browsers and deadlines). The
-parallel run (``-n 3 --dist loadfile``) hands files out in collection order: these go first,
-so that the run does not end waiting on one of them while the other workers idle."""
+"""The suite's longest files, longest first (each half a minute or more of servers, browsers and
+deadlines, summed over its tests in a parallel run). The parallel run (``--dist loadfile``) hands
+files out in collection order: these go first, so that the run does not end waiting on one of
+them while the other workers idle."""
 
 
 def _rank(item: pytest.Item) -> int:

@@ -383,20 +383,24 @@ export function auctionView(view, id) {
   }
   let explaining = 0; // the newest explanation asked for: an older answer arriving late is dropped
   /** Show a vote's neurons; ``focus``: the explanation takes the focus once shown (the button
-   * pressed stays in the votes' table, far above what it showed). */
+   * pressed stays in the votes' table, far above what it showed). The weights that cast the
+   * vote are read first and the explanation drawn once, with its pushes: a table drawn later
+   * above the links would move them from under a press (released elsewhere, it clicks nothing). */
   function showExplanation(iteration, modelId, focus = false) {
     const asked = ++explaining;
     fill(explanation, h("p", { class: "liveness" }, "Loading…"));
     getJSON(`/auctions/${id}/iterations/${iteration}/votes/${modelId}`)
-      .then((v) => {
+      .then((v) =>
+        v.weights_kept
+          ? getJSON(`/auctions/${id}/iterations/${v.iteration}/votes/${v.model_id}/weights`)
+              .then((w) => [v, w])
+              .catch(() => [v, null]) // the logits still stand
+          : [v, null],
+      )
+      .then(([v, w]) => {
         if (asked !== explaining) return;
         names.set(v.model_id, v.participant);
-        const pushes = h("div", { id: "pushes" });
-        if (v.weights_kept) {
-          getJSON(`/auctions/${id}/iterations/${v.iteration}/votes/${v.model_id}/weights`)
-            .then((w) => asked === explaining && fill(pushes, pushTable(v, w.manifest.decision)))
-            .catch(() => {}); // the logits above still stand
-        }
+        const pushes = h("div", { id: "pushes" }, w ? pushTable(v, w.manifest.decision) : null);
         const part = (caption, key, values) =>
           table(caption, ["Neuron", "Meaning", "Value"], Object.entries(values).map(([n, x]) => [n, NEURON_WORDS[n] || n, fixed(x, 4)]), { "data-part": key });
         fill(

@@ -529,8 +529,7 @@ export function auctionView(view, id) {
     const neverCounted = over && head.rarity !== null && head.n_initial === 0 && rounds.length === 0;
     const uncounted = enrolling && head.rarity !== null ? "counted when it starts" : neverCounted ? "none: it ended before it started" : null;
     const joined = head.model_ids.map((modelId, i) => link(`#/models/${modelId}`, head.participants[i]));
-    fill(
-      summary,
+    const shown = [
       facts(
         [
           ["Status", statusBadge(state.status)],
@@ -560,7 +559,14 @@ export function auctionView(view, id) {
         { id: "auction-summary" },
       ),
       state.error ? h("p", { class: "problem" }, `Failed: ${state.error}`) : null,
-    );
+    ].filter(Boolean);
+    // Drawn again only when it changed (it is asked every few seconds while patrons join): a
+    // link under a press or holding the keyboard's focus stays, and a redraw keeps the focus
+    // on the link to the same place.
+    if (shown.map((node) => node.outerHTML).join("") === summary.innerHTML) return;
+    const focused = summary.contains(document.activeElement) ? document.activeElement.getAttribute("href") : null;
+    fill(summary, ...shown);
+    if (focused) [...summary.querySelectorAll("a")].find((a) => a.getAttribute("href") === focused)?.focus();
   }
 
   const fineTuneRowOf = new Map(); // round number -> its table row, updated in place
@@ -583,13 +589,15 @@ export function auctionView(view, id) {
   /** What the live view waits for: the next iteration, or an open round's uploads. */
   function sayFollowing() {
     if (!following || ended) return;
+    let words = "Following live: each iteration appears as soon as it is committed.";
     if (openRound) {
       const r = openRound;
       const asked = head.model_ids.filter((modelId) => !(leftAt.get(modelId) <= r.iteration)).length;
-      liveness.textContent = `Following live: waiting for fine-tuning round ${r.round} until ${when(r.deadline)} (${r.answers.length} of ${asked} answered).`;
+      words = `Following live: waiting for fine-tuning round ${r.round} until ${when(r.deadline)} (${r.answers.length} of ${asked} answered).`;
     } else if (head && head.status === "pending" && head.enroll_until) {
-      liveness.textContent = `Following live: taking patrons until ${when(head.enroll_until)}; the first iteration appears once it starts.`;
-    } else liveness.textContent = "Following live: each iteration appears as soon as it is committed.";
+      words = `Following live: taking patrons until ${when(head.enroll_until)}; the first iteration appears once it starts.`;
+    }
+    if (liveness.textContent !== words) liveness.textContent = words; // a live region: said once
   }
   function showFineTuneRound(r) {
     fineTuning.hidden = false;
@@ -777,7 +785,8 @@ export function auctionView(view, id) {
   function scheduleDraw() {
     if (!drawPending) requestAnimationFrame(draw);
     drawPending = true;
-    if (!ended) showSummary({ status: head.status === "pending" && rounds.length === 0 ? "pending" : "running", stop_reason: null, error: null });
+    // an auction read as ended keeps its summary: its stream's end only confirms it
+    if (!ended && ["pending", "running"].includes(head.status)) showSummary({ status: head.status === "pending" && rounds.length === 0 ? "pending" : "running", stop_reason: null, error: null });
   }
 
   function end(outcome) {

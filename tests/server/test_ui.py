@@ -387,7 +387,7 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     page lists them as they join, and reads the auction again once it plays: the summary and
     the patron picker name the patrons that joined."""
     joiners = [a for name, a in population.items() if name.startswith("honest")][:2]
-    body = {"rarity": 0.5, "enrollment_s": 8, "max_iterations": 3, "seed": 5}
+    body = {"rarity": 0.5, "enrollment_s": 12, "max_iterations": 3, "seed": 5}
     created = api.post("/auctions", json=body, headers={"Authorization": f"Bearer {ADMIN_TOKEN}"})
     assert created.status_code == 201, created.text
     auction_id = created.json()["auction_id"]
@@ -418,6 +418,16 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
         arg=names,
         timeout=WAIT_MS,
     )
+    # A joined patron's link keeps the keyboard's focus over the next read (it was redrawn,
+    # the focus lost to the page, every 3 s).
+    joined_link = page.locator("#joined a").first
+    joined_link.focus()
+    href = joined_link.get_attribute("href")
+    with page.expect_response(lambda r: r.url.endswith(f"/auctions/{auction_id}"), timeout=WAIT_MS):
+        pass  # the next read of the auction while it takes patrons
+    page.wait_for_timeout(100)  # drawn
+    assert page.evaluate("document.activeElement.getAttribute('href')") == href
+    assert "Takes patrons until" in (page.text_content("#auction-summary") or "")
     page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
     page.wait_for_selector("#auction-summary:has-text('Patrons2')", timeout=WAIT_MS)
     summary = page.text_content("#auction-summary") or ""
@@ -1085,6 +1095,26 @@ def test_a_vote_after_fine_tuning_in_the_market_leads_to_the_weights_that_cast_i
         before, after = (cell.text_content() for cell in row.locator("td").all()[1:3])
         assert all(re.fullmatch(r"[+\u2212]?\d+\.\d{4,8}", x) for x in (before, after))
     screenshot(page.locator("section:has(#weight-moves)"), "ui_voted_weights.png", tmp_path)
+
+
+def test_an_ended_auction_is_shown_ended_from_its_first_read(
+    page: Any, server: ServerProcess, tuned_auction: tuple[int, tuple[int, int]]
+) -> None:
+    """An auction read as ended is never shown running while its event stream catches up:
+    its summary says how it ended from the first draw (it said "running" until the stream's
+    end, seconds under load, and the buttons below it moved when it changed)."""
+    auction_id, _ = tuned_auction
+    page.add_init_script(
+        "window.srdStatuses = [];"
+        "new MutationObserver(() => {"
+        "  const badge = document.querySelector('#auction-summary .badge');"
+        "  const seen = window.srdStatuses;"
+        "  if (badge && seen[seen.length - 1] !== badge.textContent) seen.push(badge.textContent);"
+        "}).observe(document, { childList: true, subtree: true });"
+    )
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
+    assert page.evaluate("window.srdStatuses") == ["finished"]
 
 
 def test_a_missing_auction_job_model_or_participant_gets_a_not_found_page(

@@ -563,7 +563,7 @@ export function auctionView(view, id) {
     // Drawn again only when it changed (it is asked every few seconds while patrons join): a
     // link under a press or holding the keyboard's focus stays, and a redraw keeps the focus
     // on the link to the same place.
-    if (shown.map((node) => node.outerHTML).join("") === summary.innerHTML) return;
+    if (shown.length === summary.childNodes.length && shown.every((node, i) => node.isEqualNode(summary.childNodes[i]))) return;
     const focused = summary.contains(document.activeElement) ? document.activeElement.getAttribute("href") : null;
     fill(summary, ...shown);
     if (focused) [...summary.querySelectorAll("a")].find((a) => a.getAttribute("href") === focused)?.focus();

@@ -4,7 +4,7 @@
 // only (never stored, never in a URL); it travels in the Authorization header.
 
 import { ApiError, LIST_REFRESH_MS, getJSON, postJSON } from "./api.js";
-import { facts, fill, fixed, h, isMissing, link, navigated, notFound, problem, scrolling, svg, table, when } from "./dom.js";
+import { fill, fixed, h, isMissing, link, navigated, notFound, problem, scrolling, svg, table, when } from "./dom.js";
 import { auditLog, by, evidenceTable, inspectorView, measuredAndBar, verdictNow } from "./models.js";
 
 let adminToken = null;
@@ -379,8 +379,8 @@ function decisionForm(model) {
         if (old) old.replaceWith(history);
         else banner.after(history);
         const did = decision === "admit" ? "admitted" : "refused";
+        // one sentence in the live region: the history is shown above, not read out again
         fill(status, `Model ${done.model_id} is now ${done.status} (${did} by ${inspector.value}). `, link("#/reviews", "Back to the held models"));
-        status.append(facts(done.reviews.map((r) => [`${r.decision} · ${when(r.at)}`, `${r.inspector}${r.note ? `: ${r.note}` : ""}`]), { id: "audit-log" }));
         status.focus(); // the button pressed is disabled now: the focus goes to what it did
       })
       .catch((error) => {

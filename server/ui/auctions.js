@@ -307,9 +307,10 @@ export function auctionView(view, id) {
   }
   /** Every patron's vote in an iteration: its decision logits and its PFC's verdict, each row
    * opening that vote's whole explanation. */
+  let votesShown = Promise.resolve(); // the iteration's votes table drawn (or its failure said)
   function showRoundVotes(iteration) {
     fill(roundVotes, h("p", { class: "liveness" }, "Loading…"));
-    getJSON(`/auctions/${id}/iterations/${iteration}/votes`)
+    votesShown = getJSON(`/auctions/${id}/iterations/${iteration}/votes`)
       .then((all) => {
         if (Number(explainRound.value) !== iteration) return; // another iteration was picked meanwhile
         const rows = all.votes.map((v) => {
@@ -384,20 +385,21 @@ export function auctionView(view, id) {
   let explaining = 0; // the newest explanation asked for: an older answer arriving late is dropped
   /** Show a vote's neurons; ``focus``: the explanation takes the focus once shown (the button
    * pressed stays in the votes' table, far above what it showed). The weights that cast the
-   * vote are read first and the explanation drawn once, with its pushes: a table drawn later
-   * above the links would move them from under a press (released elsewhere, it clicks nothing). */
+   * vote are read first and the explanation drawn once, with its pushes, and after the votes
+   * table above it asked for before: a table drawn later above the links would move them from
+   * under a press (released elsewhere, it clicks nothing). */
   function showExplanation(iteration, modelId, focus = false) {
     const asked = ++explaining;
     fill(explanation, h("p", { class: "liveness" }, "Loading…"));
-    getJSON(`/auctions/${id}/iterations/${iteration}/votes/${modelId}`)
-      .then((v) =>
-        v.weights_kept
-          ? getJSON(`/auctions/${id}/iterations/${v.iteration}/votes/${v.model_id}/weights`)
-              .then((w) => [v, w])
-              .catch(() => [v, null]) // the logits still stand
-          : [v, null],
-      )
-      .then(([v, w]) => {
+    const read = getJSON(`/auctions/${id}/iterations/${iteration}/votes/${modelId}`).then((v) =>
+      v.weights_kept
+        ? getJSON(`/auctions/${id}/iterations/${v.iteration}/votes/${v.model_id}/weights`)
+            .then((w) => [v, w])
+            .catch(() => [v, null]) // the logits still stand
+        : [v, null],
+    );
+    Promise.all([read, votesShown])
+      .then(([[v, w]]) => {
         if (asked !== explaining) return;
         names.set(v.model_id, v.participant);
         const pushes = h("div", { id: "pushes" }, w ? pushTable(v, w.manifest.decision) : null);

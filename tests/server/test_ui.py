@@ -1117,6 +1117,27 @@ def test_an_ended_auction_is_shown_ended_from_its_first_read(
     assert page.evaluate("window.srdStatuses") == ["finished"]
 
 
+def test_a_vote_explained_before_its_iterations_votes_arrive_is_drawn_below_them(
+    page: Any, server: ServerProcess, tuned_auction: tuple[int, tuple[int, int]]
+) -> None:
+    """ "Explain the vote" pressed while the iteration's votes table is still coming (a slow
+    read): the explanation waits for it, so no table lands above its links once they are
+    shown (it was drawn first, and the table moved its links from under the reader)."""
+    auction_id, (iteration, _) = tuned_auction
+    page.add_init_script(  # the votes of an iteration come 1.5 s late
+        "const realFetch = window.fetch;"
+        "window.fetch = (url, ...rest) => String(url).endsWith('/votes')"
+        "  ? new Promise((ok) => setTimeout(ok, 1500)).then(() => realFetch(url, ...rest))"
+        "  : realFetch(url, ...rest);"
+    )
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
+    page.locator(f"button.explain-round[data-iteration='{iteration}']").click()
+    page.locator("#explain-form button[type='submit']").click()
+    page.locator("#voted-weights a").first.wait_for(timeout=WAIT_MS)
+    assert page.locator("#round-votes-table").count() == 1
+
+
 def test_a_missing_auction_job_model_or_participant_gets_a_not_found_page(
     page: Any, server: ServerProcess
 ) -> None:

@@ -47,6 +47,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         services = await run_in_threadpool(start_services, settings)
         app.state.services = services  # read by server.api.deps only
+        services.live.start()
         loop = asyncio.get_running_loop()
         # ``srd serve`` calls this from its signal handler: waiting long polls answer at once
         app.state.drain = lambda: loop.call_soon_threadsafe(services.live.drain)

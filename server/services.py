@@ -246,6 +246,8 @@ def _start(settings: Settings, sqlite_lock: SqliteServerLock | None) -> Services
         ended_jobs=EndedJobs(ENDED_JOBS_BYTES),
     )
     services.screening.start()
+    live.when_due("auction", services.auctions.wake)
+    live.when_due("job", services.jobs.wake)
     if arrivals.unanswered_at_start:  # killed with uploads read but not stored: their
         # retries come before any step closes their round
         log.warning(

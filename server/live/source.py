@@ -185,6 +185,18 @@ class LiveSource:
         """The listening connection is open (always False on SQLite)."""
         self.draining = False
         """The server is shutting down: long polls answer now instead of waiting."""
+        self._due: dict[str, Callable[[], None]] = {}
+
+    def when_due(self, kind: crud.LiveKind, wake: Callable[[], None]) -> None:
+        """Call ``wake`` (on the event loop) whenever a commit announces a row of ``kind`` due
+        (``crud.notify_due``, on PostgreSQL: any replica's commit)."""
+        self._due[kind] = wake
+
+    def start(self) -> None:
+        """On PostgreSQL, listen from now on (due rows are heard with nobody watching);
+        elsewhere reads start with the first listener."""
+        if self._listens:
+            self._start()
 
     @property
     def watched(self) -> int:
@@ -412,5 +424,9 @@ class LiveSource:
 
     def _notified(self, payload: str) -> None:
         kind, _, row_id = payload.partition(":")
-        if kind in _STATES and row_id.isdigit() and (kind, int(row_id)) in self._rows:
+        if kind == "due":
+            wake = self._due.get(row_id)
+            if wake is not None:
+                wake()
+        elif kind in _STATES and row_id.isdigit() and (kind, int(row_id)) in self._rows:
             self._mark((kind, int(row_id)))

@@ -7,9 +7,10 @@ An auction and a job are both a database row played to its end by a task in a wo
 Several API processes (replicas) may share one PostgreSQL database, so a row is played by the
 replica that holds its **lease**: ``lease_owner`` (this process's id) and ``lease_expires``.
 A thread of each runner passes over its table at once when a row is created or made due here
-and when a task ends here, at the next due time it knows of, when its leases need renewing, and
-at least every ``IDLE_TICK_S`` (for what other replicas do: rows they release, leases that
-expire when a replica dies):
+or, on PostgreSQL, on any replica (``crud.notify_due``: a round that closed on a replica whose
+workers are all busy is played by one with a free worker), when a task ends here, at the next
+due time it knows of, when its leases need renewing, and at least every ``IDLE_TICK_S`` (for
+what other replicas do: rows they release, leases that expire when a replica dies):
 
 * **claims** unfinished rows whose lease is free or expired, as many as its pool has free
   workers, oldest first, with ``SELECT … FOR UPDATE SKIP LOCKED`` (two replicas never claim
@@ -182,6 +183,11 @@ class BackgroundRunner:
 
     def submit(self, row_id: int) -> None:
         """A row was created: look for work now (this replica or another will claim it)."""
+        self.wake()
+
+    def wake(self) -> None:
+        """A row fell due on another replica (or here): look for work now, if a worker is
+        free, instead of at the next ``IDLE_TICK_S``."""
         self._wake.set()
 
     def cancel(self, row_id: int) -> None:

@@ -122,6 +122,45 @@ def test_one_read_per_change_whatever_the_listeners(database_url: str, tmp_path:
         database.close()
 
 
+@pytest.mark.postgres
+def test_a_row_made_due_through_any_replica_wakes_every_runner(pg_url: str, tmp_path: Path) -> None:
+    """On PostgreSQL a commit that makes work due (an auction or a job created, a round closed
+    by its last verdict) says so on the channel, and every API process's live source wakes
+    its runner of that kind: a replica whose workers are busy leaves the work to one with a
+    free worker at once, not at its next pass (2 s). Heard without anyone watching a row."""
+    prepare_database(pg_url, tmp_path / "databases.json")
+    database = Database(pg_url)
+
+    async def scenario() -> None:
+        source = LiveSource(database, poll_s=0.02, safety_poll_s=30.0)
+        woken = {"auction": asyncio.Event(), "job": asyncio.Event()}
+        source.when_due("auction", woken["auction"].set)
+        source.when_due("job", woken["job"].set)
+        source.start()
+        deadline = time.monotonic() + 10
+        while not source.listening:
+            assert time.monotonic() < deadline, "never listened"
+            await asyncio.sleep(0.02)
+        await asyncio.to_thread(create_unstarted_auction, pg_url, [], n_fish=1, seed=1)
+        await asyncio.wait_for(woken["auction"].wait(), 5)
+        assert not woken["job"].is_set()
+
+        def new_job() -> None:
+            with database.session(write=True) as session:
+                crud.create_job(session, kind="fish", params={})
+                session.commit()
+
+        await asyncio.to_thread(new_job)
+        await asyncio.wait_for(woken["job"].wait(), 5)
+        assert source.watched == 0
+        await source.close()
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        database.close()
+
+
 async def next_read(source: LiveSource, after: int) -> int:
     """``source.reads`` as soon as it passes ``after`` (before the next read can begin)."""
     deadline = time.monotonic() + 5

@@ -62,7 +62,7 @@ from server.store.crud.leases import (
     stopped_elsewhere,
     take_leases,
 )
-from server.store.crud.live import LIVE_CHANNEL, LiveKind, notify_change
+from server.store.crud.live import LIVE_CHANNEL, LiveKind, notify_change, notify_due
 from server.store.crud.models import (
     PARTICIPANT_TOKEN_PREFIX,
     Entry,
@@ -212,6 +212,7 @@ __all__ = [
     "model_owner",
     "newest_populations",
     "notify_change",
+    "notify_due",
     "participant_by_name",
     "patron_auctions",
     "patron_manifests",

@@ -13,7 +13,7 @@ from sqlalchemy import Connection, Row, Select, bindparam, func, select, update
 from sqlalchemy.orm import Session
 
 from server.store.crud.lists import ListOrder, keyset
-from server.store.crud.live import notify_change
+from server.store.crud.live import notify_change, notify_due
 from server.store.status import AUCTION_UNFINISHED, AuctionStatus, RoundStatus
 from server.store.tables import (
     Auction,
@@ -160,6 +160,7 @@ def create_auction(
         AuctionPatron(auction_id=auction.id, position=position, model_id=model_id)
         for position, model_id in enumerate(model_ids)
     )
+    notify_due(session, kind="auction")  # due now, or other replicas learn when
     return auction
 
 

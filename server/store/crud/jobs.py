@@ -13,7 +13,7 @@ from sqlalchemy.orm import Session
 
 from server.store.crud.auctions import close_open_rounds
 from server.store.crud.lists import ListOrder, keyset
-from server.store.crud.live import notify_change
+from server.store.crud.live import notify_change, notify_due
 from server.store.status import AUCTION_UNFINISHED, JOB_UNFINISHED, AuctionStatus, JobStatus
 from server.store.tables import Auction, Job, utcnow
 
@@ -34,6 +34,7 @@ def create_job(session: Session, *, kind: str, params: dict[str, Any]) -> Job:
     )
     session.add(job)
     session.flush()
+    notify_due(session, kind="job")
     return job
 
 

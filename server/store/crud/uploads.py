@@ -30,7 +30,7 @@ from sqlalchemy import (
 from sqlalchemy.orm import Session, aliased
 
 from screener import Verdict, review, with_hold_reasons
-from server.store.crud.live import notify_change
+from server.store.crud.live import notify_change, notify_due
 from server.store.crud.steps import PendingUploadsError, close_round, round_answers
 from server.store.db import JSONText
 from server.store.status import (
@@ -491,4 +491,5 @@ def close_when_answered(connection: Connection, *, round_id: int, now: datetime)
     auction_id = head.auction_id
     close_round(connection, auction_id=auction_id, round_id=round_id, asked=head.asked, now=now)
     notify_change(connection, kind="auction", row_id=auction_id)
+    notify_due(connection, kind="auction")  # the step that plays on, on any replica
     return True

@@ -398,7 +398,11 @@ export function auctionView(view, id) {
             .catch(() => [v, null]) // the logits still stand
         : [v, null],
     );
-    Promise.all([read, votesShown])
+    const tableDrawn = () => {
+      const asked = votesShown; // another iteration picked meanwhile: its table first
+      return asked.then(() => (asked === votesShown ? null : tableDrawn()));
+    };
+    Promise.all([read, tableDrawn()])
       .then(([[v, w]]) => {
         if (asked !== explaining) return;
         names.set(v.model_id, v.participant);
@@ -787,8 +791,8 @@ export function auctionView(view, id) {
   function scheduleDraw() {
     if (!drawPending) requestAnimationFrame(draw);
     drawPending = true;
-    // an auction read as ended keeps its summary: its stream's end only confirms it
-    if (!ended && ["pending", "running"].includes(head.status)) showSummary({ status: head.status === "pending" && rounds.length === 0 ? "pending" : "running", stop_reason: null, error: null });
+    // an auction read as ended is summed up as it ended, with the iterations added so far
+    if (!ended) showSummary(["pending", "running"].includes(head.status) ? { status: head.status === "pending" && rounds.length === 0 ? "pending" : "running", stop_reason: null, error: null } : head);
   }
 
   function end(outcome) {

@@ -387,7 +387,7 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     page lists them as they join, and reads the auction again once it plays: the summary and
     the patron picker name the patrons that joined."""
     joiners = [a for name, a in population.items() if name.startswith("honest")][:2]
-    body = {"rarity": 0.5, "enrollment_s": 12, "max_iterations": 3, "seed": 5}
+    body = {"rarity": 0.5, "enrollment_s": 14, "max_iterations": 3, "seed": 5}
     created = api.post("/auctions", json=body, headers={"Authorization": f"Bearer {ADMIN_TOKEN}"})
     assert created.status_code == 201, created.text
     auction_id = created.json()["auction_id"]
@@ -423,9 +423,12 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     joined_link = page.locator("#joined a").first
     joined_link.focus()
     href = joined_link.get_attribute("href")
-    with page.expect_response(lambda r: r.url.endswith(f"/auctions/{auction_id}"), timeout=WAIT_MS):
+    with page.expect_response(
+        lambda r: r.url.endswith(f"/auctions/{auction_id}"), timeout=WAIT_MS
+    ) as reread:
         pass  # the next read of the auction while it takes patrons
-    page.wait_for_timeout(100)  # drawn
+    reread.value.finished()
+    page.evaluate("() => new Promise((drawn) => requestAnimationFrame(() => setTimeout(drawn)))")
     assert page.evaluate("document.activeElement.getAttribute('href')") == href
     assert "Takes patrons until" in (page.text_content("#auction-summary") or "")
     page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
@@ -1104,17 +1107,21 @@ def test_an_ended_auction_is_shown_ended_from_its_first_read(
     its summary says how it ended from the first draw (it said "running" until the stream's
     end, seconds under load, and the buttons below it moved when it changed)."""
     auction_id, _ = tuned_auction
-    page.add_init_script(
-        "window.srdStatuses = [];"
+    played = len(httpx.get(f"{server.url}/auctions/{auction_id}", timeout=30).json()["history"])
+    page.add_init_script(  # each summary drawn: its status and its count of iterations
+        "window.srdSummaries = [];"
         "new MutationObserver(() => {"
-        "  const badge = document.querySelector('#auction-summary .badge');"
-        "  const seen = window.srdStatuses;"
-        "  if (badge && seen[seen.length - 1] !== badge.textContent) seen.push(badge.textContent);"
+        "  const summary = document.querySelector('#auction-summary');"
+        "  if (!summary) return;"
+        "  const drawn = summary.querySelector('.badge').textContent + ' '"
+        "    + summary.textContent.match(/Iterations(\\d+)/)[1];"
+        "  const seen = window.srdSummaries;"
+        "  if (seen[seen.length - 1] !== drawn) seen.push(drawn);"
         "}).observe(document, { childList: true, subtree: true });"
     )
     page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
     page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
-    assert page.evaluate("window.srdStatuses") == ["finished"]
+    assert page.evaluate("window.srdSummaries") == [f"finished {played}"]
 
 
 def test_a_vote_explained_before_its_iterations_votes_arrive_is_drawn_below_them(

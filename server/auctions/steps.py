@@ -254,7 +254,7 @@ def _judge_pending(database: Database, round_id: int, margin: float) -> None:
         pending = crud.pending_uploads(session, round_id=round_id)
     if not pending:
         return
-    from screener import rescreen_many, review
+    from screener import rescreen_many
 
     manifests = [parse_manifest(upload.manifest) for upload in pending]
     verdicts = rescreen_many(manifests)
@@ -269,7 +269,7 @@ def _judge_pending(database: Database, round_id: int, margin: float) -> None:
                     connection,
                     participant=manifest.participant,
                     address=None,
-                    accepted=review(verdict, margin) == "accepted",
+                    accepted=recorded.accepted,
                     now=now,
                 )
         session.commit()

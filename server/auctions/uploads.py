@@ -35,7 +35,7 @@ from sqlalchemy.exc import IntegrityError
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Manifest, ManifestError, parse_manifest, parse_manifest_json
-from screener import Verdict, review
+from screener import Verdict
 from server.api.errors import api_error, error_item, validation_error
 from server.api.security import require_participant
 from server.auctions.arrivals import Arrivals
@@ -230,9 +230,12 @@ def _record(
         connection, answer_id=answer_id, verdict=verdict, margin=margin, now=now
     )
     if recorded.judged:
-        accepted = review(verdict, margin) == "accepted"
         quotas.record_round_upload(
-            connection, participant=participant, address=address, accepted=accepted, now=now
+            connection,
+            participant=participant,
+            address=address,
+            accepted=recorded.accepted,
+            now=now,
         )
     return recorded.answer, crud.close_when_answered(connection, round_id=round_id, now=now)
 

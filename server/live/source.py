@@ -15,9 +15,11 @@ row is read once, and every listener of it wakes. It reads them
   since the last read (``PRAGMA data_version``, a few microseconds: an interval in which nothing
   was committed reads nothing);
 * on PostgreSQL, when a commit announces the row on the ``LISTEN``/``NOTIFY`` channel
-  (``server.store.crud.live``): one dedicated connection per process listens, reconnects after
-  an outage (every watched row is read again then, for what it missed; meanwhile the rows are
-  read as on SQLite) and, as a safety net, every ``SRD_LIVE_SAFETY_POLL_S``.
+  (``server.store.crud.live``): one dedicated connection per process listens from its start,
+  reconnects after an outage (every watched row is read again then, for what it missed;
+  meanwhile the rows are read as on SQLite) and, as a safety net, every
+  ``SRD_LIVE_SAFETY_POLL_S``. The channel also says when work falls due (``due:<kind>``): the
+  process's runner of that kind is woken (``when_due``).
 
 A change this process makes itself is read at once (``poke``), and on SQLite so is a row whose
 auction step or job, run by one of this process's workers, just ended (``committed_elsewhere``):

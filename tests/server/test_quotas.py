@@ -85,6 +85,13 @@ def test_refusals_in_a_row_cool_the_participant_down(tmp_path) -> None:
         assert_throttled(honest_too, "SRD_REFUSAL_COOLDOWN_S")  # whatever it sends
 
 
+def _refused_probe(upload: Any) -> bytes:
+    """``upload`` changed to buy more as the price rises: the screener refuses it."""
+    probe = upload.model_dump(mode="json")
+    probe["decision"]["B"]["weights"]["PG"] = 0.9
+    return json.dumps(probe).encode()
+
+
 def test_a_refused_round_upload_counts_as_a_refusal(tmp_path) -> None:
     """A round upload the screener refuses starts its participant's cooldown and spends its
     address's refusals per hour, as a refused /submit does: a round cannot be used to probe
@@ -92,9 +99,7 @@ def test_a_refused_round_upload_counts_as_a_refusal(tmp_path) -> None:
     with quota_app(tmp_path, refusal_cooldown_s=30.0, quota_address_refusals_per_hour=1) as client:
         remote = remote_auction(client, "round-prober", 900, seed=5)
         auction_id, model_id, token, upload = first_asked_upload(remote)
-        probe = upload.model_dump(mode="json")
-        probe["decision"]["B"]["weights"]["PG"] = 0.9  # buys more as the price rises
-        answer = put(client, auction_id, 1, model_id, json.dumps(probe).encode(), token)
+        answer = put(client, auction_id, 1, model_id, _refused_probe(upload), token)
         assert answer.status_code == 200 and answer.json()["accepted"] is False, answer.text
         again = client.post("/submit", json=honest(upload.participant), headers=bearer(token))
         assert_throttled(again, "SRD_QUOTA_ADDRESS_REFUSALS_PER_HOUR")  # the address's first
@@ -104,13 +109,6 @@ def test_a_refused_round_upload_counts_as_a_refusal(tmp_path) -> None:
         )
         assert_throttled(later, "SRD_REFUSAL_COOLDOWN_S")
         assert "refused or held by the screener 1 time(s) in a row" in later.text
-
-
-def _refused_probe(upload: Any) -> bytes:
-    """``upload`` changed to buy more as the price rises: the screener refuses it."""
-    probe = upload.model_dump(mode="json")
-    probe["decision"]["B"]["weights"]["PG"] = 0.9
-    return json.dumps(probe).encode()
 
 
 @contextlib.contextmanager
@@ -154,7 +152,7 @@ def test_a_round_upload_the_step_judged_counts_as_a_refusal(tmp_path) -> None:
     would have."""
     with quota_app(tmp_path, refusal_cooldown_s=30.0) as client:
         auction_id, manifests, patrons = start_remote(
-            client, "step-prober", 960, 3, round_deadline_s=3, seed=5
+            client, "step-prober", 960, 3, round_deadline_s=4, seed=5
         )
         state = open_round(client, auction_id)
         remote = {"id": auction_id, "manifests": manifests, "patrons": patrons, "state": state}

@@ -385,10 +385,11 @@ _DUE_AT = (
 @dataclass(frozen=True)
 class Judged:
     """What ``record_verdict`` did: the answer's bytes, and whether this call judged the upload
-    (False: another request or process had, and its answer stands)."""
+    (False: another request or process had, and its answer stands) and accepted it."""
 
     answer: bytes
     judged: bool
+    accepted: bool = False
 
 
 def record_verdict(
@@ -448,7 +449,7 @@ def record_verdict(
         "bytes_out": len(body),
     }
     connection.execute(_JUDGE_ANSWER, judged)
-    return Judged(body, True)
+    return Judged(body, True, accepted)
 
 
 _JUDGED_ANSWER = select(FineTuneAnswer.outcome, FineTuneAnswer.answer).where(

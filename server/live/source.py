@@ -57,6 +57,11 @@ from server.store.db import (
 
 log = logging.getLogger("srd.live")
 
+DUE_DELAY_S = 0.05
+"""A runner is woken by the channel's ``due:<kind>`` this long after it (at most once in that
+time, however many come): the process that made the work due wakes its own runner at once and
+keeps the work when it has a worker free, as it did before any other heard; the others pass
+after, and take the work only if it could not."""
 RECONNECT_S = 0.5
 """Pause before the listening connection is opened again after it failed."""
 STALL_S = PROBE_TIMEOUT_S
@@ -188,10 +193,11 @@ class LiveSource:
         self.draining = False
         """The server is shutting down: long polls answer now instead of waiting."""
         self._due: dict[str, Callable[[], None]] = {}
+        self._due_soon: set[str] = set()  # kinds whose runner is woken within DUE_DELAY_S
 
     def when_due(self, kind: crud.LiveKind, wake: Callable[[], None]) -> None:
-        """Call ``wake`` (on the event loop) whenever a commit announces a row of ``kind`` due
-        (``crud.notify_due``, on PostgreSQL: any replica's commit)."""
+        """Call ``wake`` (on the event loop, ``DUE_DELAY_S`` later) when a commit announces a
+        row of ``kind`` due (``crud.notify_due``, on PostgreSQL: any replica's commit)."""
         self._due[kind] = wake
 
     def start(self) -> None:
@@ -424,11 +430,15 @@ class LiveSource:
                 self._wake.set()  # the read loop polls meanwhile
             await asyncio.sleep(RECONNECT_S)
 
+    def _wake_runner(self, kind: str) -> None:
+        self._due_soon.discard(kind)
+        self._due[kind]()
+
     def _notified(self, payload: str) -> None:
         kind, _, row_id = payload.partition(":")
         if kind == "due":
-            wake = self._due.get(row_id)
-            if wake is not None:
-                wake()
+            if row_id in self._due and row_id not in self._due_soon:
+                self._due_soon.add(row_id)
+                asyncio.get_running_loop().call_later(DUE_DELAY_S, self._wake_runner, row_id)
         elif kind in _STATES and row_id.isdigit() and (kind, int(row_id)) in self._rows:
             self._mark((kind, int(row_id)))

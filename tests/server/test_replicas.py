@@ -4,7 +4,8 @@ Two ``srd serve`` processes share a throw-away PostgreSQL database and a data fo
 and jobs created through either are each played exactly once (by whichever claims them first);
 lists and event streams read the same through both; a job cancelled through one replica is
 stopped by the other, which runs it; a remote round answered through both at once closes once,
-on its answers. Killed with ``kill -9`` in the middle of an
+on its answers; a round closed through a replica whose worker is held plays on at once on the
+other. Killed with ``kill -9`` in the middle of an
 auction, a replica loses its lease and the other resumes the auction from its checkpoint:
 rounds contiguous, every purchase once, the same auction as one played uninterrupted. A second
 server on a SQLite database refuses to start, saying why.
@@ -12,8 +13,11 @@ server on a SQLite database refuses to start, saying why.
 
 from __future__ import annotations
 
+import itertools
+import signal
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -28,11 +32,12 @@ from server.cli.launch import ServerProcess, settings_environment
 from server.store.db import Database
 from server.store.tables import Auction, AuctionIteration, Job, Purchase
 from sim.market import Market, MarketConfig
+from tests.server.test_faults import signal_all, upload
 from tests.support.databases import postgres_admin_url, throwaway_postgres
 from tests.support.factories import honest
 from tests.support.live import sse_events
-from tests.support.processes import server_pair
-from tests.support.remote import next_round
+from tests.support.processes import descendants, process_name, server_pair
+from tests.support.remote import honest_remote_auction, next_round
 from tests.support.server import ADMIN, ADMIN_TOKEN, QUOTAS_OFF, wait_for
 
 LEASE_S = 2.0
@@ -366,6 +371,73 @@ def test_a_remote_round_answered_through_both_replicas_at_once_closes_once(
         assert played["status"] == "closed" and played["closed_at"] < played["deadline"]
         assert {a["outcome"] for a in played["answers"]} <= {"accepted", "refused", "held"}
     assert after == 2
+
+
+@pytest.mark.postgres
+def test_a_round_closed_on_a_replica_with_no_free_worker_plays_on_at_once_on_the_other(
+    postgres_url: str, tmp_path: Path
+) -> None:
+    """The replica a remote round is closed through has its one step worker held (stopped in
+    a long auction it plays): the other, told that the auction is due, opens each next round
+    at once, not at its next pass over the table (up to 2 s after the close)."""
+    servers, admin = server_pair(postgres_url, tmp_path, {**ENV, "SRD_REVIEW_MARGIN": "0"})
+    held: list[int] = []
+    try:
+        for server in servers:
+            server.start()
+        with httpx.Client(base_url=servers[0].url, timeout=60) as client:
+            busy = [honest(f"busy-{i}", seed=300 + i) for i in range(8)]
+            ids = [client.post("/submit", json=m).json()["model_id"] for m in busy]
+            body = {**KILLED_AUCTION, "fine_tune_rounds": 64, "rows": 256, "model_ids": ids}
+            long_id = client.post("/auctions", json=body, headers=admin).json()["auction_id"]
+        owner = wait_for(
+            lambda: {"owner": lease_owner_or_none(postgres_url, long_id)},
+            lambda found: found["owner"] is not None,
+            TIMEOUT_S,
+        )["owner"]
+        holder = next(s for s in servers if s.process and f":{s.process.pid}:" in owner)
+        assert holder.process is not None
+        pid = holder.process.pid
+        held = wait_for(  # its worker process, started for the claim
+            lambda: {"workers": step_workers(pid)}, lambda found: found["workers"], TIMEOUT_S
+        )["workers"]
+        signal_all(held, signal.SIGSTOP)
+        auction_id, patrons = honest_remote_auction(
+            holder, range(310, 314), name="due", n_fish=1, fine_tune_rounds=3, seed=3
+        )
+        manifests = {model_id: manifest for model_id, _, manifest in patrons}
+        tokens = {model_id: token for model_id, token, _ in patrons}
+        order = [model_id for model_id, _, _ in patrons]
+        after = 0
+        while (state := next_round(holder, auction_id, after, TIMEOUT_S))["status"] == "open":
+            for model_id in state["asked"]:
+                answer = upload(holder, auction_id, state, model_id, manifests, tokens, order)
+                assert answer.status_code == 200, answer.text
+            after = state["round"]
+        rounds = get(holder, f"/auctions/{auction_id}")["fine_tuning"]
+        assert len(rounds) >= 2, rounds
+        gaps = [
+            datetime.fromisoformat(b["opened_at"]) - datetime.fromisoformat(a["closed_at"])
+            for a, b in itertools.pairwise(rounds)
+        ]
+        assert max(gap.total_seconds() for gap in gaps) < 1.0, gaps
+    finally:
+        signal_all(held, signal.SIGCONT)
+        for server in servers:
+            server.stop()
+
+
+def step_workers(server_pid: int) -> list[int]:
+    return [p for p in descendants(server_pid) if (process_name(p) or "").startswith("srd-auction")]
+
+
+def lease_owner_or_none(database_url: str, auction_id: int) -> str | None:
+    database = Database(database_url)
+    try:
+        with database.session(write=False) as session:
+            return session.scalar(select(Auction.lease_owner).where(Auction.id == auction_id))
+    finally:
+        database.close()
 
 
 def test_a_second_server_on_one_sqlite_database_refuses_to_start(tmp_path: Path) -> None:

@@ -22,9 +22,9 @@ def notify_change(db: Session | Connection, *, kind: LiveKind, row_id: int) -> N
 
 def notify_due(db: Session | Connection, *, kind: LiveKind) -> None:
     """Announce, with this transaction's commit, that a row of ``kind`` is due to be played
-    now (payload ``due:<kind>``): the runner of every replica looks for work at once, so one
-    with a free worker plays it while this replica's workers are all busy (nothing on SQLite,
-    where one server runs)."""
+    now (payload ``due:<kind>``): the runner of every replica looks for work (within
+    ``server.live.source.DUE_DELAY_S``), so one with a free worker plays it while this
+    replica's workers are all busy (nothing on SQLite, where one server runs)."""
     _notify(db, f"due:{kind}")
 
 

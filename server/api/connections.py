@@ -612,6 +612,11 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
         self._dropping = False  # closed for its frames: the rest is not parsed
 
     def data_received(self, data: bytes) -> None:
+        if self.handshake_initiated and not self.handshake_complete:
+            # Frames before the 101 (a client waits for it: RFC 6455, 4.1) are dropped, however
+            # the reads cut them: the HTTP parser dropped those read with the handshake, so the
+            # next read begins mid-frame (parsed, it ended the socket before its 101).
+            return
         for start in range(0, len(data), READ_SLICE_BYTES):
             if self._dropping or self.transport.is_closing():
                 return

@@ -896,15 +896,19 @@ def test_frames_sent_with_the_handshake_are_dropped_without_a_fault(
     frame = bytes([0x81, 0x80 | 100]) + b"\0\0\0\0" + b"x" * 100  # masked text, 100 bytes
     before = server.log_path.read_text()
 
-    async def early() -> bytes:
+    async def early(cut: int) -> bytes:
         reader, writer = await _open(server, "127.0.0.48")
-        writer.write(handshake + frame * 800)  # 85 KB behind the handshake
+        sent = handshake + frame * 800  # 85 KB behind the handshake, in two reads at least
+        writer.write(sent[:cut])
+        await writer.drain()
+        writer.write(sent[cut:])
         try:
             return await asyncio.wait_for(reader.read(400), 10)
         finally:
             writer.close()
 
-    assert asyncio.run(early()).startswith(b"HTTP/1.1 101")
+    for cut in (len(handshake) + 50, 70_000):  # the second read goes on mid-frame
+        assert asyncio.run(early(cut)).startswith(b"HTTP/1.1 101"), cut
     time.sleep(0.5)
     added = server.log_path.read_text()[len(before) :]
     assert "Fatal error" not in added and "Traceback" not in added, added

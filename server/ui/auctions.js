@@ -399,8 +399,8 @@ export function auctionView(view, id) {
         : [v, null],
     );
     const tableDrawn = () => {
-      const asked = votesShown; // another iteration picked meanwhile: its table first
-      return asked.then(() => (asked === votesShown ? null : tableDrawn()));
+      const drawing = votesShown; // another iteration picked meanwhile: its table first
+      return drawing.then(() => (drawing === votesShown ? null : tableDrawn()));
     };
     Promise.all([read, tableDrawn()])
       .then(([[v, w]]) => {

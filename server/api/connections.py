@@ -55,7 +55,7 @@ from datetime import UTC, datetime
 from typing import Any, ClassVar
 
 import httptools
-from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol, RequestResponseCycle
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 log = logging.getLogger("srd.connections")
@@ -453,12 +453,17 @@ class TimedHttpProtocol(HttpToolsProtocol):
         cycle = self.cycle
         if not self._in_body or cycle is None or cycle.response_started or self.pipeline:
             return False
+        self._end_reading(cycle, answer)
+        return True
+
+    def _end_reading(self, cycle: RequestResponseCycle, answer: bytes) -> None:
+        """The app reading ``cycle``'s body hears the client go (what it sends is dropped), and
+        the connection gets ``answer`` and ends."""
         cycle.disconnected = True
         cycle.waiting_for_100_continue = False  # its app's first read must not answer 100
         cycle.message_event.set()
         self._refused = True
         self._answer_and_end(answer)
-        return True
 
     @property
     def _wire_limit(self) -> int:
@@ -487,10 +492,7 @@ class TimedHttpProtocol(HttpToolsProtocol):
         cycle = self.cycle
         if self._in_body and cycle is not None:
             if cycle.response_started:  # its app answers without its body (a stream): ended
-                cycle.disconnected = True
-                cycle.waiting_for_100_continue = False
-                cycle.message_event.set()
-                self._answer_and_end(b"")
+                self._end_reading(cycle, b"")
                 return
             if self.pipeline and self.pipeline[0][0] is cycle:  # queued: it never starts
                 self.pipeline.popleft()

@@ -2,7 +2,7 @@
 // send a token (the operator's, pasted once and kept in memory), always in the Authorization
 // header, never in a URL.
 
-import { h } from "./dom.js";
+import { h, patch } from "./dom.js";
 
 const RETRY_MS = 5000; // after the server refused a stream (503) or it broke for good
 export const LIST_REFRESH_MS = 5000; // a list's first page is read again this often
@@ -96,7 +96,8 @@ export function pager(path, params, render) {
 /**
  * Keep a list's first page current while its view is shown: ``path`` with ``params`` is read
  * again every LIST_REFRESH_MS while the tab is visible. A listed item whose JSON changed has
- * its row (``rowFor(item)``) redrawn in place, the focus kept on the same control of it; a new
+ * its row (``rowFor(item)``) brought up to date in place (``patch``: the row stays the same
+ * element, so a press on it lands, and the focus stays on the same control of it); a new
  * one is added at the top when ``newestFirst``; a listed one the first page now leaves out,
  * within the ids it covers, goes (it no longer matches the filter), as a reload would show.
  * Its ``state`` (a status line to place) says when a read failed: the rows stay as last read;
@@ -110,6 +111,11 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
   const draw = (item) => {
     const row = rowFor(item);
     row.dataset.seen = JSON.stringify(item);
+    rowOf.set(item.id, row);
+    return row;
+  };
+  const redraw = (old, item) => {
+    const row = patch(old, draw(item)); // the same row, unless its tag changed
     rowOf.set(item.id, row);
     return row;
   };
@@ -131,9 +137,8 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
           if (old) {
             const controls = (row) => [...row.querySelectorAll("a, input, button, summary")];
             const place = controls(old).indexOf(document.activeElement);
-            const row = draw(item);
-            old.replaceWith(row);
-            if (place >= 0) controls(row)[place]?.focus();
+            const row = redraw(old, item);
+            if (place >= 0 && !row.contains(document.activeElement)) controls(row)[place]?.focus();
           } else if (newestFirst && item.id > top) newer.push(draw(item));
         }
         rows.prepend(...newer);
@@ -160,13 +165,12 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
     state,
     add(items) {
       // a page read after a refresh drew some of its items (a slow first page): those are
-      // redrawn in place, not listed twice
+      // brought up to date in place, not listed twice
       const added = [];
       for (const item of items) {
         const old = rowOf.get(item.id);
-        const row = draw(item);
-        if (old) old.replaceWith(row);
-        else added.push(row);
+        if (old) redraw(old, item);
+        else added.push(draw(item));
       }
       rows.append(...added);
       return added[0];

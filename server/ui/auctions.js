@@ -1,7 +1,7 @@
 // Auctions: the list, and one auction followed live from its event stream.
 
 import { follow, getJSON, keepCurrent, pager } from "./api.js";
-import { facts, fill, fixed, fixedApart, h, isMissing, link, notFound, plural, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, fixed, fixedApart, h, isMissing, link, notFound, patch, plural, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
 
 const STOP_REASONS = {
   sold_out: "sold out",
@@ -628,7 +628,9 @@ export function auctionView(view, id) {
     const row = tableRow([String(r.round), String(r.iteration), statusBadge(r.status), open, answers, each], { "data-round": r.round });
     const old = fineTuneRowOf.get(r.round);
     if (old) {
-      // A redraw keeps the reader's place: the focused link, and the reasons opened.
+      // Brought up to date in place: the row and its links stay the same elements (a press
+      // across the update lands, the focus stays), and the reasons opened stay open. A
+      // control that had to be replaced gives the focus to its successor.
       const focused = old.contains(document.activeElement) ? document.activeElement : null;
       const kind = focused && (focused.tagName === "SUMMARY" ? "summary" : focused.getAttribute("href") ? `a[href='${focused.getAttribute("href")}']` : null);
       const patron = focused?.closest("li[data-model]");
@@ -636,10 +638,13 @@ export function auctionView(view, id) {
       for (const open of old.querySelectorAll("li[data-model] details[open]")) {
         row.querySelector(`li[data-model='${open.closest("li").dataset.model}'] details`)?.setAttribute("open", "");
       }
-      old.replaceWith(row);
-      if (kind) row.querySelector(within + kind)?.focus();
-    } else fineTuneRows.append(row);
-    fineTuneRowOf.set(r.round, row);
+      const shown = patch(old, row);
+      fineTuneRowOf.set(r.round, shown);
+      if (kind && !shown.contains(document.activeElement)) shown.querySelector(within + kind)?.focus();
+    } else {
+      fineTuneRows.append(row);
+      fineTuneRowOf.set(r.round, row);
+    }
   }
 
   const reasonsOf = new Map(); // an upload's model id -> its stored version, read once
@@ -658,18 +663,26 @@ export function auctionView(view, id) {
       const reasons = h("ul", { class: "reasons" });
       const summary = h("summary", {}, "the screener's reasons");
       const words = a.outcome === "held" ? "upload held for an inspector" : "refused upload";
-      item.append(` (${words}: `, link(`#/models/${a.uploaded_id}`, `model ${a.uploaded_id}`), ")", h("details", {}, summary, reasons));
+      const details = h("details", { "data-upload": a.uploaded_id }, summary, reasons);
+      item.append(` (${words}: `, link(`#/models/${a.uploaded_id}`, `model ${a.uploaded_id}`), ")", details);
+      // The reasons go where this upload's are shown when they arrive: in a row brought up to
+      // date since, its own (patched in place) elements, not these.
+      const shown = () => {
+        const here = fineTuneRowOf.get(r.round)?.querySelector(`li[data-model='${a.model_id}'] details[data-upload='${a.uploaded_id}']`);
+        return here ? [...here.children] : [summary, reasons];
+      };
       if (!reasonsOf.has(a.uploaded_id)) reasonsOf.set(a.uploaded_id, getJSON(`/models/${a.uploaded_id}`));
       reasonsOf
         .get(a.uploaded_id)
         .then((m) => {
           const [first] = m.reasons;
-          if (first) summary.textContent = `${first.rule} on ${first.neuron}${m.reasons.length > 1 ? ` and ${m.reasons.length - 1} more` : ""}: the screener's reasons`;
-          fill(reasons, m.reasons.map((reason) => h("li", {}, `${reason.rule} on ${reason.neuron}: ${reason.message}`)));
+          const [title, list] = shown();
+          if (first) title.textContent = `${first.rule} on ${first.neuron}${m.reasons.length > 1 ? ` and ${m.reasons.length - 1} more` : ""}: the screener's reasons`;
+          fill(list, m.reasons.map((reason) => h("li", {}, `${reason.rule} on ${reason.neuron}: ${reason.message}`)));
         })
         .catch((error) => {
           reasonsOf.delete(a.uploaded_id); // read again at the next redraw
-          fill(reasons, h("li", {}, String(error.message || error)));
+          fill(shown()[1], h("li", {}, String(error.message || error)));
         });
     }
     return item;

@@ -44,6 +44,36 @@ export function fill(node, ...children) {
   return node;
 }
 
+/**
+ * Make ``old`` (in the page) show what ``fresh`` (built anew for the same thing) shows, keeping
+ * ``old``'s nodes where they can stay: a press that starts on a row and ends after its update
+ * lands on the same element. An element of the same tag keeps its node: its attributes become
+ * ``fresh``'s (an opened <details> stays open), its children are patched pairwise, the extra
+ * ones removed and the missing ones added at the end; a text node takes the new text; a node
+ * of another tag is replaced (that subtree only). Listeners stay those ``old`` was built with.
+ * Returns the node now in the page.
+ */
+export function patch(old, fresh) {
+  if (old.nodeType !== fresh.nodeType || old.nodeName !== fresh.nodeName) {
+    old.replaceWith(fresh);
+    return fresh;
+  }
+  if (old.nodeType !== Node.ELEMENT_NODE) {
+    if (old.nodeValue !== fresh.nodeValue) old.nodeValue = fresh.nodeValue;
+    return old;
+  }
+  const kept = (name) => (name === "open" && old.tagName === "DETAILS") || (name === "tabindex" && old === document.activeElement);
+  for (const name of old.getAttributeNames()) if (!fresh.hasAttribute(name) && !kept(name)) old.removeAttribute(name);
+  for (const name of fresh.getAttributeNames()) {
+    if (old.getAttribute(name) !== fresh.getAttribute(name)) old.setAttribute(name, fresh.getAttribute(name));
+  }
+  const mine = [...old.childNodes];
+  const theirs = [...fresh.childNodes]; // a child replaced or added leaves ``fresh``
+  mine.forEach((child, i) => (i < theirs.length ? patch(child, theirs[i]) : child.remove()));
+  old.append(...theirs.slice(mine.length));
+  return old;
+}
+
 /** A number with a fixed count of decimals ("—" for null). */
 export function fixed(value, digits = 3) {
   return value === null || value === undefined ? "—" : Number(value).toFixed(digits);

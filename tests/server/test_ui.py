@@ -316,6 +316,10 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     assert "accepted (unchanged weights, not screened)" in page.locator(item).text_content()
     page.wait_for_selector(f"{waiting}:has-text('(1 of {len(asked)} answered)')", timeout=WAIT_MS)
     page.locator(f"{item} a").focus()  # the reader's place, which a redraw must keep
+    # the row and its links change in place: a press that spans the change lands
+    mark, marked = "(node) => { node.marked = true; }", "(node) => node.marked === true"
+    row.evaluate(mark)
+    page.locator(f"{item} a").evaluate(mark)
     # A second patron uploads new weights: a new version, which says where it was made.
     token = next(a["token"] for a in population.values() if a["model_id"] == second)
     manifest = api.get(f"/models/{second}").json()["manifest"]
@@ -330,6 +334,7 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     page.wait_for_selector(f"#fine-tuning tr[data-round='1'] li[data-model='{second}']")
     focused = "document.activeElement.closest('li[data-model]')?.dataset.model"
     assert page.evaluate(focused) == str(patron)  # the row was redrawn, the focus stayed
+    assert row.evaluate(marked) and page.locator(f"{item} a").evaluate(marked)
     # A third uploads weights that buy more as the price rises: refused, its reasons folded.
     third = asked[2]
     token = next(a["token"] for a in population.values() if a["model_id"] == third)
@@ -1552,6 +1557,28 @@ def test_a_list_whose_first_page_comes_late_lists_each_item_once(
         "#model-list tbody tr td:first-child a", "(as) => as.map((a) => a.getAttribute('href'))"
     )
     assert links and len(links) == len(set(links)), links
+
+
+def test_a_listed_row_changes_in_place_so_a_press_across_the_change_lands(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    """An auction's row moves on while the pointer is pressed on its link: the row is the same
+    element after the change, and the press, released, opens the auction."""
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    auction_id = create_unstarted_auction(server.database_url, honest_ids, n_fish=1, seed=3)
+    page.goto(f"{server.url}/ui/#/auctions")
+    row = f"#auction-list tr[data-id='{auction_id}']"
+    page.wait_for_selector(f"{row}[data-status='pending']", timeout=WAIT_MS)
+    page.evaluate(f'document.querySelector("{row}").marked = true')
+    page.locator(f"{row} a").hover()  # a point on the link (its words may wrap)
+    page.mouse.down()
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    assert api.delete(f"/auctions/{auction_id}", headers=headers).status_code == 200
+    page.wait_for_selector(f"{row}[data-status='cancelled']", timeout=WAIT_MS)
+    assert page.evaluate(f'document.querySelector("{row}").marked') is True
+    page.mouse.up()
+    page.wait_for_selector("#liveness:has-text('Ended: cancelled')", timeout=WAIT_MS)
+    assert page.url.endswith(f"#/auctions/{auction_id}")
 
 
 def test_a_malformed_participant_address_gets_the_not_found_page(

@@ -2,7 +2,7 @@
 // send a token (the operator's, pasted once and kept in memory), always in the Authorization
 // header, never in a URL.
 
-import { h, patch } from "./dom.js";
+import { h, patch, plural } from "./dom.js";
 
 const RETRY_MS = 5000; // after the server refused a stream (503) or it broke for good
 export const LIST_REFRESH_MS = 5000; // a list's first page is read again this often
@@ -97,20 +97,33 @@ export function pager(path, params, render) {
  * Keep a list's first page current while its view is shown: ``path`` with ``params`` is read
  * again every LIST_REFRESH_MS while the tab is visible. A listed item whose JSON changed has
  * its row (``rowFor(item)``) brought up to date in place (``patch``: the row stays the same
- * element, so a press on it lands, and the focus stays on the same control of it); a new
- * one is added at the top when ``newestFirst``; a listed one the first page now leaves out,
- * within the ids it covers, goes (it no longer matches the filter), as a reload would show.
- * Its ``state`` (a status line to place) says when a read failed: the rows stay as last read;
- * ``empty`` (what the list says when it lists nothing) shows while it lists nothing. ``add``
- * renders a page's items (the pager's render); ``onRead()`` hears every read that worked.
+ * element, so a press on it lands, and the focus stays on the same control of it). New items
+ * (when ``newestFirst``) appear at the top at once while the list shows none; while it shows
+ * rows they are held back, and a button in the slot ``news`` (its room kept whether it shows
+ * or not, so the rows never move under the pointer) offers them: "2 new auctions — show" (the
+ * ``noun``), said once by a polite live region when it appears; pressed, it adds them at the
+ * top and the focus moves to the first one's link. A listed (or held) one the first page now
+ * leaves out, within the ids it covers, goes (it no longer matches the filter), as a reload
+ * would show. Its ``state`` (a status line to place) says when a read failed: the rows stay
+ * as last read; ``empty`` (what the list says when it lists nothing) shows while it lists
+ * nothing. ``add`` renders a page's items (the pager's render); ``onRead()`` hears every read
+ * that worked.
  */
 export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, noun, empty, onRead = () => {} }) {
   const state = h("p", { class: "none-yet", id: "list-state", role: "status", hidden: true });
+  const offer = h("button", { type: "button", id: "show-new", hidden: true });
+  const said = h("span", { class: "visually-hidden", role: "status" }); // there from the start: a region added with its words is not read out
+  const news = h("div", { class: "news", id: "list-news" }, offer, said);
   const rowOf = new Map(); // item id -> its row
+  const held = new Map(); // item id -> a new item not shown yet
   let readAt = null;
   const draw = (item) => {
     const row = rowFor(item);
     row.dataset.seen = JSON.stringify(item);
+    return row;
+  };
+  const show = (item) => {
+    const row = draw(item);
     rowOf.set(item.id, row);
     return row;
   };
@@ -125,11 +138,31 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
     empty.hidden = rowOf.size > 0;
     onRead();
   };
+  /** The held items added at the top, newest first; their first row. */
+  const showHeld = () => {
+    const added = [...held.values()].sort((a, b) => b.id - a.id).map(show);
+    held.clear();
+    rows.prepend(...added);
+    offered();
+    return added[0];
+  };
+  /** The button says how many are held, and shows while some are; said when it appears. */
+  const offered = () => {
+    const words = `${plural(held.size, `new ${noun.replace(/s$/, "")}`)} — show`;
+    if (held.size && offer.hidden) said.textContent = words;
+    if (!held.size) said.textContent = "";
+    offer.hidden = !held.size;
+    if (offer.textContent !== words) offer.textContent = words;
+  };
+  offer.addEventListener("click", () => {
+    const first = showHeld();
+    empty.hidden = rowOf.size > 0;
+    first?.querySelector("a")?.focus();
+  });
   function refresh() {
     if (document.visibilityState !== "visible") return;
     getJSON(withQuery(path, params))
       .then((page) => {
-        const newer = [];
         const top = Math.max(0, ...rowOf.keys());
         for (const item of page.items) {
           const old = rowOf.get(item.id);
@@ -139,9 +172,8 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
             const place = controls(old).indexOf(document.activeElement);
             const row = redraw(old, item);
             if (place >= 0 && !row.contains(document.activeElement)) controls(row)[place]?.focus();
-          } else if (newestFirst && item.id > top) newer.push(draw(item));
+          } else if (newestFirst && item.id > top) held.set(item.id, item);
         }
-        rows.prepend(...newer);
         const here = new Set(page.items.map((item) => item.id));
         const ids = [...here];
         const covered = (id) => page.next_cursor === null || (newestFirst ? id >= Math.min(...ids) : id <= Math.max(...ids));
@@ -151,6 +183,9 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
             rowOf.delete(id);
           }
         }
+        for (const id of held.keys()) if (!here.has(id) && covered(id)) held.delete(id);
+        if (rowOf.size) offered();
+        else showHeld(); // nothing listed to push down
         read();
       })
       .catch((error) => {
@@ -163,16 +198,19 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
   view.onLeave(() => clearInterval(timer));
   return {
     state,
+    news,
     add(items) {
       // a page read after a refresh drew some of its items (a slow first page): those are
       // brought up to date in place, not listed twice
       const added = [];
       for (const item of items) {
         const old = rowOf.get(item.id);
+        held.delete(item.id);
         if (old) redraw(old, item);
-        else added.push(draw(item));
+        else added.push(show(item));
       }
       rows.append(...added);
+      offered();
       return added[0];
     },
     read,

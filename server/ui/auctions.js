@@ -131,7 +131,8 @@ export function auctionList(view, query) {
   );
   let firstFailure = null;
   // The first page is read again every few seconds while the tab is shown: listed auctions
-  // move on in place, and (newest first) new ones appear at the top; whether the list is
+  // move on in place, and (newest first) new ones are offered by a button above the rows
+  // ("2 new auctions — show") that adds them at the top when pressed; whether the list is
   // current is said when a read fails, and cleared when one succeeds, as is the first load's
   // failure.
   const current = keepCurrent(view, {
@@ -142,7 +143,7 @@ export function auctionList(view, query) {
     },
   });
   const pages = pager("/auctions", params, current.add);
-  view.root.append(current.state, scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
+  view.root.append(current.state, current.news, scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
   pages
     .load()
     .then(() => current.read())

@@ -112,11 +112,12 @@ export function jobList(view, query) {
     filterWords ? `None matches this filter (${filterWords}).` : "None yet: an operator queues a job with POST /jobs.",
   );
   // As the auctions list: the first page is read again every few seconds while the tab is
-  // shown, jobs move on in place and (newest first) new ones appear at the top.
+  // shown, jobs move on in place and (newest first) new ones are offered by a button above the
+  // rows, added at the top when it is pressed.
   const newestFirst = chosen.order === "newest";
   const current = keepCurrent(view, { path: "/jobs", params, newestFirst, rows, rowFor: jobRow, noun: "jobs", empty: none });
   const pages = pager("/jobs", params, current.add);
-  view.root.append(form, current.state, scrolling(list, "Experiment jobs (scrolls sideways)"), none, pages.box);
+  view.root.append(form, current.state, current.news, scrolling(list, "Experiment jobs (scrolls sideways)"), none, pages.box);
   pages
     .load()
     .then(() => current.read())

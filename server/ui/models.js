@@ -94,11 +94,12 @@ export function modelList(view, query) {
     participant ? `None: no version of "${participant}"${status ? ` is ${status}` : ""} (or no such participant).` : filtered ? "None with this status." : "None yet.",
   );
   // As the auctions list: the first page is read again every few seconds while the tab is
-  // shown, a version moving on in place (a held one admitted), new ones at the top.
+  // shown, a version moving on in place (a held one admitted), new ones offered by a button
+  // above the rows and added at the top when it is pressed.
   const params = { participant, accepted, status };
   const current = keepCurrent(view, { path: "/models", params, newestFirst: true, rows, rowFor: modelRow, noun: "models", empty: none });
   const pages = pager("/models", params, current.add);
-  view.root.append(form, current.state, scrolling(node, "Model versions (scrolls sideways)"), none, pages.box);
+  view.root.append(form, current.state, current.news, scrolling(node, "Model versions (scrolls sideways)"), none, pages.box);
   pages
     .load()
     .then(() => current.read())

@@ -705,6 +705,7 @@ def test_jobs_page_follows_a_job_and_shows_its_plots(
     # The list follows without a reload: a job queued now appears, and moves on to its end.
     later = api.post("/jobs", json={"kind": "fish", "params": {"steps": 600}}, headers=headers)
     row = f"#job-list tbody tr[data-id='{later.json()['job_id']}']"
+    page.locator("#show-new").click(timeout=WAIT_MS)  # offered above the rows, not pushed in
     page.wait_for_selector(row, timeout=WAIT_MS)
     page.wait_for_selector(f"{row}[data-status='succeeded']", timeout=60_000)
 
@@ -1559,6 +1560,46 @@ def test_a_list_whose_first_page_comes_late_lists_each_item_once(
     assert links and len(links) == len(set(links)), links
 
 
+def test_a_list_offers_new_items_instead_of_pushing_its_rows_down(
+    page: Any, server: ServerProcess, api: httpx.Client
+) -> None:
+    """New versions arrive while the models list shows rows: the rows stay where they are (a
+    press lands on the row it began on), a button above them offers the newcomers, said once,
+    and pressing it adds them at the top, the focus on the first one's link."""
+    api.post("/submit", json=honest(unique("listed")))
+    page.goto(f"{server.url}/ui/#/models")
+    page.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)
+    top = "#model-list tbody tr:first-child a"
+    was = page.get_attribute(top, "href")
+    first = page.locator(f"#model-list tr:has(a[href='{was}'])")
+    box = first.bounding_box()
+    page.evaluate(
+        """() => {
+            window.said = [];
+            const region = document.querySelector('#list-news [role=status]');
+            const heard = new MutationObserver(() => window.said.push(region.textContent));
+            const what = { childList: true, characterData: true, subtree: true };
+            if (region) heard.observe(region, what);
+        }"""
+    )
+    one = api.post("/submit", json=honest(unique("new-one"))).json()["model_id"]
+    offer = page.locator("#show-new")
+    page.wait_for_selector(f"#show-new:visible, {top}[href='#/models/{one}']", timeout=WAIT_MS)
+    assert page.get_attribute(top, "href") == was and first.bounding_box() == box
+    assert offer.text_content() == "1 new model — show"
+    two = api.post("/submit", json=honest(unique("new-two"))).json()["model_id"]
+    page.wait_for_selector("#show-new:has-text('2 new models — show')", timeout=WAIT_MS)
+    assert page.get_attribute(top, "href") == was and first.bounding_box() == box
+    assert page.evaluate("window.said") == ["1 new model — show"]  # said once, not every read
+    offer.click()
+    offer.wait_for(state="hidden")
+    links = page.eval_on_selector_all(
+        "#model-list tbody tr td:first-child a", "(as) => as.map((a) => a.getAttribute('href'))"
+    )
+    assert links[:3] == [f"#/models/{two}", f"#/models/{one}", was]
+    assert page.evaluate("document.activeElement.getAttribute('href')") == f"#/models/{two}"
+
+
 def test_a_listed_row_changes_in_place_so_a_press_across_the_change_lands(
     page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
 ) -> None:
@@ -1657,6 +1698,7 @@ def test_the_auction_list_follows_its_auctions(
     running.wait_for_selector(f"#auction-list tr[data-id='{live}']", state="detached")
     new = api.post("/auctions", json={"n_fish": 1, "model_ids": honest_ids}, headers=headers)
     newest = new.json()["auction_id"]
+    page.locator("#show-new").click(timeout=WAIT_MS)  # offered above the rows, not pushed in
     page.wait_for_selector(f"#auction-list tbody tr:first-child[data-id='{newest}']")
 
 

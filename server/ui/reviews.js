@@ -95,10 +95,11 @@ export function reviewList(view) {
       return { rows, margin };
     };
     // rendered from the start (an empty live region takes no room): a region shown at the
-    // moment its words arrive is not read out
+    // moment its words arrive is not read out. It follows the queue: its words arriving move
+    // nothing under the pointer (the table stays where it is).
     const state = h("p", { class: "none-yet", id: "list-state", role: "status" });
     const list = h("div");
-    box.append(state, list);
+    box.append(list, state);
     let seen = null;
     let ids = null;
     let readAt = null;

@@ -1622,6 +1622,31 @@ def test_a_listed_row_changes_in_place_so_a_press_across_the_change_lands(
     assert page.url.endswith(f"#/auctions/{auction_id}")
 
 
+def test_the_review_queues_line_of_what_changed_does_not_move_the_queue(
+    page: Any, server: ServerProcess, api: httpx.Client
+) -> None:
+    refused = api.post("/submit", json=saboteur_manifest(unique("ui-still"))).json()
+    auth = {"Authorization": f"Bearer {refused['token']}"}
+    appeal = api.post(f"/models/{refused['model_id']}/appeal", json={"note": "x"}, headers=auth)
+    assert appeal.status_code == 200, appeal.text
+    page.goto(f"{server.url}/ui/#/reviews")
+    page.fill("#admin-token", ADMIN_TOKEN)
+    page.keyboard.press("Enter")
+    queue = page.locator("#review-list")
+    queue.wait_for(timeout=WAIT_MS)
+    at = queue.bounding_box()
+    page.route("**/reviews?*", lambda route: route.abort())
+    page.wait_for_selector("#list-state:has-text('could not be read again')", timeout=WAIT_MS)
+    assert queue.bounding_box() == at  # the line showed; the table stayed where it was
+    page.unroute("**/reviews?*")
+    decided = api.post(
+        f"/models/{refused['model_id']}/review",
+        json={"decision": "refuse", "inspector": "Ada", "note": "holds"},
+        headers={"Authorization": f"Bearer {ADMIN_TOKEN}"},
+    )
+    assert decided.status_code == 200, decided.text
+
+
 def test_a_malformed_participant_address_gets_the_not_found_page(
     page: Any, server: ServerProcess, api: httpx.Client
 ) -> None:

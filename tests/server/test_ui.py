@@ -1647,6 +1647,25 @@ def test_the_review_queues_line_of_what_changed_does_not_move_the_queue(
     assert decided.status_code == 200, decided.text
 
 
+def test_the_jobs_kind_filter_keeps_its_width_when_the_kinds_arrive(
+    page: Any, server: ServerProcess
+) -> None:
+    held: list[Any] = []
+    page.route("**/ui/kinds.json", lambda route: held.append(route))  # held until measured
+    page.goto(f"{server.url}/ui/#/jobs")
+    page.wait_for_selector("#filter-order", timeout=WAIT_MS)
+    deadline = time.monotonic() + WAIT_MS / 1000
+    while not held and time.monotonic() < deadline:
+        page.wait_for_timeout(50)
+    assert page.locator("#filter-kind option").count() == 1  # "any" only
+    kind, order = page.locator("#filter-kind").bounding_box(), page.locator("#filter-order")
+    beside = order.bounding_box()
+    held[0].continue_()
+    page.wait_for_function("() => document.querySelectorAll('#filter-kind option').length > 1")
+    assert page.locator("#filter-kind").bounding_box() == kind
+    assert order.bounding_box() == beside
+
+
 def test_a_malformed_participant_address_gets_the_not_found_page(
     page: Any, server: ServerProcess, api: httpx.Client
 ) -> None:

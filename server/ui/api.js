@@ -104,16 +104,16 @@ export function pager(path, params, render) {
  * ``noun``), said once by a polite live region when it appears; pressed, it adds them at the
  * top and the focus moves to the first one's link. A listed (or held) one the first page now
  * leaves out, within the ids it covers, goes (it no longer matches the filter), as a reload
- * would show. Its ``state`` (a status line to place) says when a read failed: the rows stay
- * as last read; ``empty`` (what the list says when it lists nothing) shows while it lists
+ * would show. A status line in the same slot says when a read failed: the rows stay as last
+ * read; ``empty`` (what the list says when it lists nothing) shows while it lists
  * nothing. ``add`` renders a page's items (the pager's render); ``onRead()`` hears every read
  * that worked.
  */
 export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, noun, empty, onRead = () => {} }) {
   const state = h("p", { class: "none-yet", id: "list-state", role: "status", hidden: true });
   const offer = h("button", { type: "button", id: "show-new", hidden: true });
-  const said = h("span", { class: "visually-hidden", role: "status" }); // there from the start: a region added with its words is not read out
-  const news = h("div", { class: "news", id: "list-news" }, offer, said);
+  const said = h("span", { class: "visually-hidden", id: "news-said", role: "status" }); // there from the start: a region added with its words is not read out
+  const news = h("div", { class: "news", id: "list-news" }, state, offer, said); // the failure line too: it moves nothing either
   const rowOf = new Map(); // item id -> its row
   const held = new Map(); // item id -> a new item not shown yet
   let readAt = null;
@@ -197,7 +197,6 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
   const timer = setInterval(refresh, LIST_REFRESH_MS);
   view.onLeave(() => clearInterval(timer));
   return {
-    state,
     news,
     add(items) {
       // a page read after a refresh drew some of its items (a slow first page): those are

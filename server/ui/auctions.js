@@ -143,7 +143,7 @@ export function auctionList(view, query) {
     },
   });
   const pages = pager("/auctions", params, current.add);
-  view.root.append(current.state, current.news, scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
+  view.root.append(current.news, scrolling(list, "Auctions (scrolls sideways)"), empty, pages.box);
   pages
     .load()
     .then(() => current.read())

@@ -117,7 +117,7 @@ export function jobList(view, query) {
   const newestFirst = chosen.order === "newest";
   const current = keepCurrent(view, { path: "/jobs", params, newestFirst, rows, rowFor: jobRow, noun: "jobs", empty: none });
   const pages = pager("/jobs", params, current.add);
-  view.root.append(form, current.state, current.news, scrolling(list, "Experiment jobs (scrolls sideways)"), none, pages.box);
+  view.root.append(form, current.news, scrolling(list, "Experiment jobs (scrolls sideways)"), none, pages.box);
   pages
     .load()
     .then(() => current.read())

@@ -99,7 +99,7 @@ export function modelList(view, query) {
   const params = { participant, accepted, status };
   const current = keepCurrent(view, { path: "/models", params, newestFirst: true, rows, rowFor: modelRow, noun: "models", empty: none });
   const pages = pager("/models", params, current.add);
-  view.root.append(form, current.state, current.news, scrolling(node, "Model versions (scrolls sideways)"), none, pages.box);
+  view.root.append(form, current.news, scrolling(node, "Model versions (scrolls sideways)"), none, pages.box);
   pages
     .load()
     .then(() => current.read())

@@ -498,15 +498,18 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     ]
     (cells,) = [r for r in rows if r[0] == f"Auction {auction_id}"]
     assert cells[1] == "cancelled" and cells[7] == "cancelled by the operator"
-    # The list is read again every 5 s: a read that fails says so (the rows stay as read), and
-    # the next one that succeeds clears it.
+    # The list is read again every 5 s: a read that fails says so (the rows stay as read, where
+    # they were), and the next one that succeeds clears it.
     listed = re.compile(r"/auctions(\?.*)?$")
+    table = page.locator("#auction-list")
+    at = table.bounding_box()
     page.route(listed, lambda route: route.fulfill(status=503, body="{}"))
     state = page.locator("#list-state")
     state.wait_for(state="visible", timeout=WAIT_MS)
     assert "could not be read again" in (state.text_content() or "")
     assert "as read at" in (state.text_content() or "")
     assert page.locator("#auction-list tbody tr").count() == len(rows)
+    assert table.bounding_box() == at  # the line showed in its room; the table did not move
     page.unroute(listed)
     state.wait_for(state="hidden", timeout=WAIT_MS)
     # Its patrons' pages say they were in it when it was cancelled (it never played).
@@ -1576,7 +1579,7 @@ def test_a_list_offers_new_items_instead_of_pushing_its_rows_down(
     page.evaluate(
         """() => {
             window.said = [];
-            const region = document.querySelector('#list-news [role=status]');
+            const region = document.getElementById('news-said');
             const heard = new MutationObserver(() => window.said.push(region.textContent));
             const what = { childList: true, characterData: true, subtree: true };
             if (region) heard.observe(region, what);

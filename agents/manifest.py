@@ -73,20 +73,22 @@ Participant = Annotated[
         max_length=64,
         pattern=r"^[A-Za-z0-9_.\-]+$",
         # said in the schema; a server refuses it by name (``name_problem``)
-        json_schema_extra={"not": {"pattern": r"^\.+$"}},
+        json_schema_extra={"not": {"pattern": r"^[-_.]+$"}},
     ),
 ]
-"""A participant's name: letters, digits, ``_``, ``.``, ``-``; not dots only."""
+"""A participant's name: letters, digits, ``_``, ``.``, ``-``; at least one letter or digit."""
 
 
 def name_problem(participant: str) -> str | None:
     """Why a server takes no submission under ``participant`` though the manifest is valid, or
-    None: a name of dots only is a path segment, which no URL of the participant could name."""
-    if participant.strip("."):
+    None: a name of separators only has nothing to read (and '.' or '..' is a path segment,
+    which no URL of the participant could name); names are compared with their separators
+    made one and those at the ends left out, so '-', '--' and '_' would all read alike."""
+    if participant.strip("-_."):
         return None
     return (
-        "a participant's name needs a letter, digit, '_' or '-': a name of dots only is a "
-        "path segment ('.', '..'), which no URL of the participant could name"
+        "a participant's name needs a letter or a digit: a name of '-', '_' and '.' only has "
+        "nothing to read ('.' and '..' are even path segments, which no URL could name)"
     )
 
 

@@ -661,8 +661,8 @@ def test_a_server_stopped_by_ctrl_c_exits_130(tmp_path: Path) -> None:
     assert "Aborted!" in log and "Traceback" not in log
 
 
-@pytest.mark.parametrize("name", [".", ".."])
-def test_screen_refuses_a_name_of_dots_as_the_server_does(tmp_path: Path, name: str) -> None:
+@pytest.mark.parametrize("name", [".", "..", "-", "_-"])
+def test_screen_refuses_a_name_of_separators_as_the_server_does(tmp_path: Path, name: str) -> None:
     """POST /submit refuses it (422 at participant), so srd screen does too (exit 2)."""
     manifest = json.loads((ROOT / "examples" / "honest.json").read_text())
     path = tmp_path / "dots.json"

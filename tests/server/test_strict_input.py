@@ -521,9 +521,13 @@ def test_the_fast_strict_json_pass_agrees_with_the_careful_one(text: str) -> Non
         assert json.dumps(got[1]) == json.dumps(expected[1])
 
 
-@pytest.mark.parametrize("name", [".", "..", "..."])
-def test_a_name_of_dots_only_is_refused_naming_the_field(client: TestClient, name: str) -> None:
-    """'.' and '..' are path segments: GET /participants/.. would name another path."""
+@pytest.mark.parametrize("name", [".", "..", "...", "-", "--", "_", "-_-", "._."])
+def test_a_name_of_separators_only_is_refused_naming_the_field(
+    client: TestClient, name: str
+) -> None:
+    """'.' and '..' are path segments (GET /participants/.. would name another path), and a
+    name of separators only reads as nothing: '-', '--' and '_' would be told apart by their
+    lengths alone."""
     before = count(client, ModelVersion)
     answer = client.post("/submit", json=honest(name))
     assert answer.status_code == 422

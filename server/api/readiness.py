@@ -52,15 +52,53 @@ def data_dir_problem(path: Path) -> str | None:
     return None
 
 
-def make_data_dir(path: Path) -> str | None:
-    """Make the data folder ``path`` if it is missing; why it cannot be written, or None."""
+def data_dir_unusable(path: Path) -> str | None:
+    """Why the data folder ``path`` could not be made or written, or None, looked at without
+    making it: when it is missing, its nearest existing parent must be a folder that can be
+    written (a file is made and removed there)."""
+    absolute = path.absolute()
+    here = next(folder for folder in (absolute, *absolute.parents) if folder.exists())
+    if not here.is_dir():
+        where = "" if here == absolute else f": {here} is a file"
+        return f"the data folder {path} is a file, not a folder{where}"
+    problem = data_dir_problem(here)
+    if problem is not None and here != absolute:
+        return f"the data folder {path} cannot be made: {problem}"
+    return problem
+
+
+def make_data_dir(path: Path) -> tuple[str | None, Path | None]:
+    """Make the data folder ``path`` if it is missing: why it cannot be written (or None), and
+    the outermost folder this made (None: it was there), for ``unmake_data_dir``."""
+    absolute = path.absolute()
+    made = None
+    for folder in (absolute, *absolute.parents):
+        if folder.exists():
+            break
+        made = folder
     try:
         path.mkdir(parents=True, exist_ok=True)
     except FileExistsError:
-        return f"the data folder {path} is a file, not a folder"
+        return f"the data folder {path} is a file, not a folder", None
     except OSError as exc:
-        return f"the data folder {path} cannot be made: {exc.strerror or exc}"
-    return data_dir_problem(path)
+        return f"the data folder {path} cannot be made: {exc.strerror or exc}", None
+    return data_dir_problem(path), made
+
+
+def unmake_data_dir(path: Path, made: Path | None) -> None:
+    """Remove the folders ``make_data_dir`` made for ``path``, up to ``made``, while they are
+    empty (a start refused after it leaves nothing behind)."""
+    if made is None:
+        return
+    folder = path.absolute()
+    while True:
+        try:
+            folder.rmdir()
+        except OSError:  # something was put in it: it stays
+            return
+        if folder == made:
+            return
+        folder = folder.parent
 
 
 def disk_problem(path: Path, min_free_mb: int, what: str) -> str | None:

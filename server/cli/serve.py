@@ -201,12 +201,12 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         timed_protocol,
     )
     from server.api.hardening import RedactQueryFilter, SocketLinesFilter
-    from server.api.readiness import make_data_dir
+    from server.api.readiness import data_dir_unusable, make_data_dir, unmake_data_dir
     from server.app import create_app
     from server.auctions.sockets import MAX_FRAME_BYTES
     from server.work.pool import LOG_FORMAT
 
-    problem = make_data_dir(settings.data_dir)
+    problem = data_dir_unusable(settings.data_dir)  # made once every check has passed
     if problem is not None:
         click.echo(f"srd serve: {problem} (SRD_DATA_DIR)", err=True)
         raise SystemExit(UNUSABLE)
@@ -224,8 +224,13 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     if problem is not None:
         click.echo(f"srd serve: {problem}", err=True)
         raise SystemExit(NOT_STARTED)
+    problem, made = make_data_dir(settings.data_dir)  # a SQLite database may live in it
+    if problem is not None:
+        click.echo(f"srd serve: {problem} (SRD_DATA_DIR)", err=True)
+        raise SystemExit(UNUSABLE)
     refused = database_problem(settings)
     if refused is not None:
+        unmake_data_dir(settings.data_dir, made)  # a refused start leaves nothing behind
         click.echo(f"srd serve: {refused[0]}", err=True)
         raise SystemExit(refused[1])
     logging.basicConfig(level=log_level.upper(), format=LOG_FORMAT)

@@ -533,7 +533,7 @@ def test_serve_on_a_port_in_use_exits_3_naming_it_before_it_makes_anything(
         "Address already in use"
     )
     assert not (tmp_path / "srd.db").exists()
-    assert not (tmp_path / "data" / "admin_token").exists()
+    assert not (tmp_path / "data").exists()  # nor its data folder
 
 
 # --- Experiment list options: the element at fault, by its position -----------------------------

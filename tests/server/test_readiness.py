@@ -186,6 +186,7 @@ def test_serve_names_the_variable_of_a_setting_it_cannot_use(
     assert done.stderr.splitlines() == [f"srd serve: {done.stderr[11:].strip()}"]
     assert words in done.stderr and "Traceback" not in done.stderr
     assert "hidden-pw" not in done.stderr
+    assert not (tmp_path / "data").exists()  # a refused start makes nothing, its folder neither
 
 
 @pytest.mark.parametrize("entry", ["empty file", "folder"])

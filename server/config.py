@@ -77,7 +77,7 @@ class Settings(BaseSettings):
     object store into the process). At least 1536: a worker forked with torch loaded already
     maps about 700 MB, and every job kind's defaults run within 1536 (a default lavaland job
     fails within 1024)."""
-    job_disk_mb: Annotated[int, Field(ge=1, le=1 << 30)] = 1024
+    job_disk_mb: Annotated[float, Field(gt=0, le=1 << 30)] = 1024
     """Disk a job's folder may take (MB): a job whose files grow past it is stopped at its
     next progress report, or at its end, and failed saying so, its files removed. A job starts
     only while the data folder's disk has ``min_free_disk_mb`` free."""

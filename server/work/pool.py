@@ -60,7 +60,7 @@ class WorkerContext:
     memory_mb: int | None = None
     """The worker's address-space limit (``RLIMIT_AS``; ``RLIMIT_DATA`` with the ``ray`` job
     backend), enforced by the OS; None: no limit."""
-    job_disk_mb: int | None = None
+    job_disk_mb: float | None = None
     """How much disk a job's folder may take (MB); None: no bound (auction steps)."""
     min_free_disk_mb: int = 0
     """A job starts only while the data folder's disk has this much free (MB; 0: no check)."""

@@ -302,14 +302,15 @@ def test_a_design_stage_refuses_the_grid_axes_it_does_not_take(client) -> None:
 def test_a_job_whose_files_grow_past_their_bound_is_failed_and_its_files_removed(
     tmp_path,
 ) -> None:
-    """SRD_JOB_DISK_MB: a fish job's energy.csv (about 15 bytes a step) passes 1 MB; the job
-    fails saying why, lists no artifacts, and its folder goes. A small job still succeeds."""
+    """SRD_JOB_DISK_MB: a fish job's files (energy.csv, about 15 bytes a step, and a 40 kB
+    plot) pass 0.1 MB; the job fails saying why, lists no artifacts, and its folder goes. A
+    small job (50 kB) still succeeds."""
     settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
-    settings = settings.model_copy(update={"job_disk_mb": 1, "job_workers": 1})
+    settings = settings.model_copy(update={"job_disk_mb": 0.1, "job_workers": 1})
     with TestClient(create_app(settings)) as client:
-        job = run_to_end(client, {"kind": "fish", "params": {"steps": 90_000, "srd": False}})
+        job = run_to_end(client, {"kind": "fish", "params": {"steps": 8_000, "srd": False}})
         assert job["status"] == "failed", job
-        assert "SRD_JOB_DISK_MB" in job["message"] and "more than the 1 MB" in job["message"]
+        assert "SRD_JOB_DISK_MB" in job["message"] and "more than the 0.1 MB" in job["message"]
         assert job["artifacts"] == []
         folder = settings.data_dir / "jobs" / str(job["id"])
         wait_for(lambda: {"kept": folder.exists()}, lambda s: not s["kept"], 15)

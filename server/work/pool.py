@@ -83,7 +83,7 @@ LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
 
 
 TaskFn = Callable[[WorkerContext, int], None]
-ExitFn = Callable[[int, int | None], None]
+ExitFn = Callable[[int, int | None, bool], None]
 TimeoutFn = Callable[[int, float], None]
 EndFn = Callable[[int, bool], None]
 
@@ -332,7 +332,9 @@ class WorkerPool:
     limit), so the imports a task needs (torch...) are paid once, not per task; once the pool
     has had work, one idle worker is kept started ahead of need. A task is
     cancelled by terminating its process; a process that dies while running a task reports
-    that task to ``on_exit`` with its exit code (unless cancelled or the pool is stopping).
+    that task to ``on_exit`` with its exit code and whether it had begun the task (a worker
+    killed between the hand-out and its word that it began ran none of it), unless cancelled
+    or the pool is stopping.
     A task still running ``timeout_s`` after its worker began it (the worker says so over its
     pipe, once its interpreter is up: a fresh worker's imports are not the task's time) is
     stopped the same way and reported to ``on_timeout`` with the limit. Every task that is
@@ -442,13 +444,13 @@ class WorkerPool:
                 waitables: list[Any] = [self._wake_reader]
                 waitables += [w.conn for w in self._workers if w.task_id is not None]
                 waitables += [w.process.sentinel for w in self._workers]
-            for task_id, code, timed_out in ended:
+            for task_id, code, timed_out, began in ended:
                 try:
                     if timed_out:
                         assert self._on_timeout is not None and self._timeout_s is not None
                         self._on_timeout(task_id, self._timeout_s)
                     else:
-                        self._on_exit(task_id, code)
+                        self._on_exit(task_id, code, began)
                 except Exception:
                     log.exception("%s: handling the end of task %d failed", self.name, task_id)
             self._report_over(over)
@@ -466,10 +468,11 @@ class WorkerPool:
             except Exception:
                 log.exception("%s: reporting the end of task %d failed", self.name, task_id)
 
-    def _collect(self) -> list[tuple[int, int | None, bool]]:
+    def _collect(self) -> list[tuple[int, int | None, bool, bool]]:
         """Free the workers whose task finished; stop the ones over the time limit; drop dead
-        ones, returning what they ran (task, exit code, whether it was stopped at the limit)."""
-        ended: list[tuple[int, int | None, bool]] = []
+        ones, returning what they ran (task, exit code, whether it was stopped at the limit,
+        whether the worker had begun it)."""
+        ended: list[tuple[int, int | None, bool, bool]] = []
         now = time.monotonic()
         for worker in list(self._workers):
             if worker.task_id is not None and worker.process.is_alive():
@@ -486,10 +489,13 @@ class WorkerPool:
                     worker.conn.close()  # the worker sees EOF and exits
             if not worker.process.is_alive():
                 worker.process.join()
+                if worker.cancelled_at is None:
+                    self._read(worker)  # what it said before it died: begun, or even done
                 worker.conn.close()
                 self._workers.remove(worker)
                 if worker.task_id is not None and (worker.cancelled_at is None or worker.timed_out):
-                    ended.append((worker.task_id, worker.process.exitcode, worker.timed_out))
+                    began = worker.started_at is not None
+                    ended.append((worker.task_id, worker.process.exitcode, worker.timed_out, began))
                 if worker.task_id is not None:
                     self._over.append((worker.task_id, False))
         return ended

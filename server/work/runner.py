@@ -456,11 +456,17 @@ class BackgroundRunner:
         if self._ended is not None:
             self._ended(row_id)
 
-    def _on_exit(self, row_id: int, exit_code: int | None) -> None:
+    def _on_exit(self, row_id: int, exit_code: int | None, began: bool) -> None:
         """The worker process died in the middle of this row (killed, crashed): a resumable
         row is run again from its last commit (its lease is released with the task's end), and
         so is any row whose worker was stopped by SIGTERM or SIGINT from outside (a service
-        manager stopping every process of the service: the API is stopping too)."""
+        manager stopping every process of the service: the API is stopping too), or died
+        before it began the row's task (``began`` False: none of it ran, so the death is not
+        the task's and is not counted)."""
+        if not began:
+            log.warning("%s %d: its worker died (code %s) before it began; running it again",
+                        self.kind.name, row_id, exit_code)  # fmt: skip
+            return
         interrupted = exit_code in (-signal.SIGTERM, -signal.SIGINT)
         if self.kind.resumable or interrupted:
             progress = self._progress(row_id)

@@ -161,6 +161,9 @@ def test_a_worker_killed_again_and_again_while_its_auction_moves_on_does_not_fai
             if state["iteration"] > seen:  # it moved on since the last kill: kill it again
                 seen = state["iteration"]
                 workers = [p for p in spawned(server) if process_name(p) == "srd-auction-wor"]
+                # all stopped, then all killed: as one blow (a worker handed the auction as
+                # another died would otherwise die a second time, before it began)
+                signal_all(workers, signal.SIGSTOP)
                 signal_all(workers, signal.SIGKILL)
                 kills += bool(workers)
             time.sleep(0.02)

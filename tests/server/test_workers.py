@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import time
 from pathlib import Path
 
@@ -38,7 +39,7 @@ def test_workers_run_at_the_configured_niceness(tmp_path: Path, nice: int) -> No
         task=record_niceness,
         context=context,
         max_workers=1,
-        on_exit=lambda task_id, code: exits.append((task_id, code)),
+        on_exit=lambda task_id, code, began: exits.append((task_id, code)),
     )
     pool.start()
     try:
@@ -84,7 +85,7 @@ def test_the_time_limit_counts_from_the_start_of_the_task_not_of_its_worker(tmp_
         task=SlowToStart(start_s=4.0),
         context=context,
         max_workers=1,
-        on_exit=lambda task_id, code: None,
+        on_exit=lambda task_id, code, began: None,
         tasks_per_process=1,  # as jobs: every task in a fresh worker
         timeout_s=2.0,
         on_timeout=lambda task_id, limit: timed_out.append((task_id, limit)),
@@ -103,6 +104,42 @@ def test_the_time_limit_counts_from_the_start_of_the_task_not_of_its_worker(tmp_
         pool.shutdown()
     assert timed_out == [(2, 2.0)]
     assert ended == {1: True, 2: False}
+
+
+@pytest.mark.parametrize("when", ["before_it_began", "while_it_ran"])
+def test_a_worker_killed_says_whether_it_had_begun_its_task(tmp_path: Path, when: str) -> None:
+    """A worker killed between the hand-out and its word that it began ran none of the task:
+    its death is reported as such (the runner then runs the task again without counting the
+    death against it, as it counts one while the task ran)."""
+    exits: list[tuple[int, int | None, bool]] = []
+    context = WorkerContext(
+        database_url="sqlite://", data_dir=str(tmp_path), progress_interval_s=1.0, torch_threads=1
+    )
+    pool = WorkerPool(
+        name="test",
+        task=SlowToStart(start_s=60.0 if when == "before_it_began" else 0.0),
+        context=context,
+        max_workers=1,
+        on_exit=lambda task_id, code, began: exits.append((task_id, code, began)),
+    )
+    pool.start()
+    try:
+        pool.submit(2)  # task 2 runs for a minute once begun
+        deadline = time.monotonic() + 60  # the fork server imports torch first
+        ran = tmp_path / "2"
+        while time.monotonic() < deadline and (
+            pool.pid(2) is None or (when == "while_it_ran" and not ran.exists())
+        ):
+            time.sleep(0.05)
+        pid = pool.pid(2)
+        assert pid is not None
+        os.kill(pid, signal.SIGKILL)
+        while not exits and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        pool.shutdown()
+    assert exits == [(2, -signal.SIGKILL, when == "while_it_ran")]
+    assert ran.exists() is (when == "while_it_ran")
 
 
 def record_environment(context: WorkerContext, task_id: int) -> None:
@@ -133,7 +170,7 @@ def test_a_worker_sees_the_environment_of_its_start_not_of_the_first_one(
         task=record_environment,
         context=context,
         max_workers=1,
-        on_exit=lambda task_id, code: None,
+        on_exit=lambda task_id, code, began: None,
         tasks_per_process=1,  # a new worker per task
     )
     pool.start()

@@ -658,7 +658,7 @@ export function auctionView(view, id) {
     const early = r.closed_at && new Date(r.closed_at).getTime() < new Date(r.deadline).getTime();
     const words = a.outcome === "late" && early ? `arrived after the round closed ${closedWhy(r)}, not applied` : ANSWER_WORDS[a.outcome];
     const explained = words ? ` (${words})` : "";
-    const item = h("li", { "data-model": a.model_id, "data-outcome": a.outcome }, `${nameOf(a.model_id)}: ${a.outcome}${unchanged}${explained}, bids with `, link(`#/models/${a.version_id}`, `version ${a.version}`));
+    const item = h("li", { "data-key": a.model_id, "data-model": a.model_id, "data-outcome": a.outcome }, `${nameOf(a.model_id)}: ${a.outcome}${unchanged}${explained}, bids with `, link(`#/models/${a.version_id}`, `version ${a.version}`));
     if ((a.outcome === "refused" || a.outcome === "held") && a.uploaded_id !== null) {
       // The reasons fold away (an auction of many rounds repeats them): the first is shown.
       const reasons = h("ul", { class: "reasons" });

@@ -50,8 +50,11 @@ export function fill(node, ...children) {
  * lands on the same element. An element of the same tag keeps its node: its attributes become
  * ``fresh``'s (an opened <details> stays open), its children are patched pairwise, the extra
  * ones removed and the missing ones added at the end; a text node takes the new text; a node
- * of another tag is replaced (that subtree only). Listeners stay those ``old`` was built with.
- * Returns the node now in the page.
+ * of another tag is replaced (that subtree only). Children that each carry a ``data-key``
+ * (the items of a list whose items come and go in the middle) are matched by their key
+ * instead: each keeps its node (a press on one never lands on another's that took its place),
+ * the new ones are added where they belong, the gone ones removed. Listeners stay those
+ * ``old`` was built with. Returns the node now in the page.
  */
 export function patch(old, fresh) {
   if (old.nodeType !== fresh.nodeType || old.nodeName !== fresh.nodeName) {
@@ -69,6 +72,27 @@ export function patch(old, fresh) {
   }
   const mine = [...old.childNodes];
   const theirs = [...fresh.childNodes]; // a child replaced or added leaves ``fresh``
+  const keyOf = (node) => (node.nodeType === Node.ELEMENT_NODE ? node.getAttribute("data-key") : null);
+  if (theirs.length && theirs.every(keyOf)) {
+    const wanted = new Set(theirs.map(keyOf));
+    const byKey = new Map();
+    for (const child of mine) {
+      if (keyOf(child) !== null && wanted.has(keyOf(child)) && !byKey.has(keyOf(child))) byKey.set(keyOf(child), child);
+      else child.remove();
+    }
+    let at = old.firstChild; // where the next of ``theirs`` goes
+    for (const child of theirs) {
+      const kept = byKey.get(keyOf(child));
+      if (!kept) {
+        old.insertBefore(child, at);
+        continue;
+      }
+      if (kept === at) at = at.nextSibling;
+      else old.insertBefore(kept, at);
+      patch(kept, child);
+    }
+    return old;
+  }
   mine.forEach((child, i) => (i < theirs.length ? patch(child, theirs[i]) : child.remove()));
   old.append(...theirs.slice(mine.length));
   return old;

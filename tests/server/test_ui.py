@@ -302,7 +302,8 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     # While the round is open, the live view says it waits for it, not for an iteration.
     waiting = "#liveness:has-text('waiting for fine-tuning round 1 until')"
     page.wait_for_selector(f"{waiting}:has-text('(0 of {len(asked)} answered)')", timeout=WAIT_MS)
-    patron, second = asked[0], asked[1]
+    # The second answer comes from a patron listed before the first: it is inserted above it.
+    patron, second = asked[1], asked[0]
     token = next(a["token"] for a in population.values() if a["model_id"] == patron)
     put = api.put(
         f"/auctions/{auction_id}/rounds/1/models/{patron}",
@@ -316,7 +317,8 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     assert "accepted (unchanged weights, not screened)" in page.locator(item).text_content()
     page.wait_for_selector(f"{waiting}:has-text('(1 of {len(asked)} answered)')", timeout=WAIT_MS)
     page.locator(f"{item} a").focus()  # the reader's place, which a redraw must keep
-    # the row and its links change in place: a press that spans the change lands
+    # the row and its links change in place (each patron's item keeps its own node, however
+    # the answers come in): a press that spans the change lands, on the link it began on
     mark, marked = "(node) => { node.marked = true; }", "(node) => node.marked === true"
     row.evaluate(mark)
     page.locator(f"{item} a").evaluate(mark)

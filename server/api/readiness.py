@@ -52,53 +52,63 @@ def data_dir_problem(path: Path) -> str | None:
     return None
 
 
+def _missing(path: Path) -> tuple[Path, list[Path]]:
+    """``path`` made absolute and lexically normal (``a/../b`` is ``b``), and the folders of
+    it that do not exist, outermost first (an error reading one: ``OSError``)."""
+    normal = Path(os.path.abspath(path))
+    missing: list[Path] = []
+    for folder in (normal, *normal.parents):
+        try:
+            os.stat(folder)
+        except (FileNotFoundError, NotADirectoryError):
+            missing.insert(0, folder)
+            continue
+        break
+    return normal, missing
+
+
 def data_dir_unusable(path: Path) -> str | None:
     """Why the data folder ``path`` could not be made or written, or None, looked at without
     making it: when it is missing, its nearest existing parent must be a folder that can be
     written (a file is made and removed there)."""
-    absolute = path.absolute()
-    here = next(folder for folder in (absolute, *absolute.parents) if folder.exists())
+    try:
+        normal, missing = _missing(path)
+    except OSError as exc:
+        return f"the data folder {path} cannot be made: {exc.strerror or exc}"
+    here = missing[0].parent if missing else normal
     if not here.is_dir():
-        where = "" if here == absolute else f": {here} is a file"
+        where = "" if here == normal else f": {here} is a file"
         return f"the data folder {path} is a file, not a folder{where}"
     problem = data_dir_problem(here)
-    if problem is not None and here != absolute:
+    if problem is not None and missing:
         return f"the data folder {path} cannot be made: {problem}"
     return problem
 
 
-def make_data_dir(path: Path) -> tuple[str | None, Path | None]:
-    """Make the data folder ``path`` if it is missing: why it cannot be written (or None), and
-    the outermost folder this made (None: it was there), for ``unmake_data_dir``."""
-    absolute = path.absolute()
-    made = None
-    for folder in (absolute, *absolute.parents):
-        if folder.exists():
-            break
-        made = folder
+def make_data_dir(path: Path) -> tuple[str | None, list[Path]]:
+    """Make the data folder ``path`` if it is missing: why it cannot be made or written (or
+    None), and the folders this made, for ``unmake_data_dir``."""
+    made: list[Path] = []
     try:
-        path.mkdir(parents=True, exist_ok=True)
+        _, missing = _missing(path)
+        for folder in missing:
+            folder.mkdir()
+            made.append(folder)
     except FileExistsError:
-        return f"the data folder {path} is a file, not a folder", None
+        return f"the data folder {path} is a file, not a folder", made
     except OSError as exc:
-        return f"the data folder {path} cannot be made: {exc.strerror or exc}", None
+        return f"the data folder {path} cannot be made: {exc.strerror or exc}", made
     return data_dir_problem(path), made
 
 
-def unmake_data_dir(path: Path, made: Path | None) -> None:
-    """Remove the folders ``make_data_dir`` made for ``path``, up to ``made``, while they are
-    empty (a start refused after it leaves nothing behind)."""
-    if made is None:
-        return
-    folder = path.absolute()
-    while True:
+def unmake_data_dir(made: list[Path]) -> None:
+    """Remove the folders ``make_data_dir`` made, innermost first, while they are empty (a
+    start refused after it leaves nothing behind)."""
+    for folder in reversed(made):
         try:
             folder.rmdir()
-        except OSError:  # something was put in it: it stays
+        except OSError:  # something was put in it: it stays, and so do its parents
             return
-        if folder == made:
-            return
-        folder = folder.parent
 
 
 def disk_problem(path: Path, min_free_mb: int, what: str) -> str | None:

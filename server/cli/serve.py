@@ -226,11 +226,12 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         raise SystemExit(NOT_STARTED)
     problem, made = make_data_dir(settings.data_dir)  # a SQLite database may live in it
     if problem is not None:
+        unmake_data_dir(made)  # a refused start leaves nothing behind
         click.echo(f"srd serve: {problem} (SRD_DATA_DIR)", err=True)
         raise SystemExit(UNUSABLE)
     refused = database_problem(settings)
     if refused is not None:
-        unmake_data_dir(settings.data_dir, made)  # a refused start leaves nothing behind
+        unmake_data_dir(made)
         click.echo(f"srd serve: {refused[0]}", err=True)
         raise SystemExit(refused[1])
     logging.basicConfig(level=log_level.upper(), format=LOG_FORMAT)

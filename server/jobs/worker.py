@@ -70,7 +70,7 @@ def check_disk(out_dir: Path, context: WorkerContext) -> None:
     if used > context.job_disk_mb * MB:
         raise JobDiskError(
             f"its files take {used:,} bytes ({used / MB:.2f} MB), more than the "
-            f"{context.job_disk_mb:g} MB a job may write (SRD_JOB_DISK_MB)"
+            f"{context.job_disk_mb:.12g} MB a job may write (SRD_JOB_DISK_MB)"
         )
 
 

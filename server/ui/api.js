@@ -151,6 +151,8 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
     const words = `${plural(held.size, `new ${noun.replace(/s$/, "")}`)} — show`;
     if (held.size && offer.hidden) said.textContent = words;
     if (!held.size) said.textContent = "";
+    // the offer gone (its items left the filter) while it had the focus: the list takes it
+    if (!held.size && document.activeElement === offer) rows.querySelector("a")?.focus();
     offer.hidden = !held.size;
     if (offer.textContent !== words) offer.textContent = words;
   };
@@ -192,6 +194,7 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
         const then = readAt ? `as read at ${readAt.toLocaleTimeString()}` : "not read yet";
         state.hidden = false;
         state.textContent = `The list could not be read again (${String(error.message || error)}); it shows the ${noun} ${then}, and is read again every few seconds.`;
+        state.title = state.textContent; // its room shows one line of it
       });
   }
   const timer = setInterval(refresh, LIST_REFRESH_MS);

@@ -164,6 +164,8 @@ class BackgroundRunner:
         of its steps, is logged at its first claim only."""
         self._deaths: dict[int, tuple[int, Any]] = {}
         """Resumable rows whose task died: times in a row, and their progress at the last."""
+        self._unbegun: dict[int, int] = {}
+        """Rows whose worker died before it began their task: times in a row."""
         self._unended: set[str] = set()  # owners whose sessions this role may not end (logged)
         self._over: set[int] = set()  # tasks over, leases to release
         self._lock = threading.Lock()
@@ -452,6 +454,7 @@ class BackgroundRunner:
             self._over.add(row_id)
             if done:
                 self._deaths.pop(row_id, None)
+                self._unbegun.pop(row_id, None)
         self._wake.set()
         if self._ended is not None:
             self._ended(row_id)
@@ -460,10 +463,21 @@ class BackgroundRunner:
         """The worker process died in the middle of this row (killed, crashed): a resumable
         row is run again from its last commit (its lease is released with the task's end), and
         so is any row whose worker was stopped by SIGTERM or SIGINT from outside (a service
-        manager stopping every process of the service: the API is stopping too), or died
-        before it began the row's task (``began`` False: none of it ran, so the death is not
-        the task's and is not counted)."""
-        if not began:
+        manager stopping every process of the service: the API is stopping too). A worker that
+        died before it began the row's task (``began`` False) ran none of it: the death is not
+        counted as the task's, and the row runs again, unless workers died so ``MAX_DEATHS``
+        times in a row for it (a worker that cannot start: the row fails saying so)."""
+        with self._lock:
+            unbegun = 0 if began else self._unbegun.get(row_id, 0) + 1
+            if 0 < unbegun < MAX_DEATHS:
+                self._unbegun[row_id] = unbegun
+            else:
+                self._unbegun.pop(row_id, None)
+        if unbegun >= MAX_DEATHS:
+            why = f"its worker died before it began, {unbegun} times in a row (last exit code "
+            self._fail(row_id, f"{why}{exit_code}): a worker process cannot start")
+            return
+        if unbegun:
             log.warning("%s %d: its worker died (code %s) before it began; running it again",
                         self.kind.name, row_id, exit_code)  # fmt: skip
             return

@@ -222,3 +222,15 @@ def test_serve_refuses_an_empty_admin_token_file(tmp_path: Path) -> None:
         f"srd serve: the admin token file {tmp_path / 'data' / 'admin_token'} is empty: remove "
         "it to have one made, or write one"
     )
+
+
+def test_a_refused_start_removes_only_the_folders_it_made(tmp_path: Path) -> None:
+    """SRD_DATA_DIR with a ``..`` in it: the start refused by the database leaves the folders
+    as they were: the existing one (empty) stays, and none is made on the way."""
+    (tmp_path / "data").mkdir()
+    env = {**os.environ, "SRD_DATA_DIR": str(tmp_path / "missing" / ".." / "data" / "new"),
+           "SRD_DATABASE_URL": "sqlite:////no-such-folder-srd/x.db"}  # fmt: skip
+    done = serve_once(env)
+    assert done.returncode == 3, done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+    assert list((tmp_path / "data").iterdir()) == []

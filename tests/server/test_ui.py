@@ -504,6 +504,8 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     # they were), and the next one that succeeds clears it.
     listed = re.compile(r"/auctions(\?.*)?$")
     table = page.locator("#auction-list")
+    size = page.viewport_size
+    page.set_viewport_size({"width": 320, "height": 800})  # a phone's: the line is long
     at = table.bounding_box()
     page.route(listed, lambda route: route.fulfill(status=503, body="{}"))
     state = page.locator("#list-state")
@@ -514,6 +516,8 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     assert table.bounding_box() == at  # the line showed in its room; the table did not move
     page.unroute(listed)
     state.wait_for(state="hidden", timeout=WAIT_MS)
+    assert size is not None
+    page.set_viewport_size(size)
     # Its patrons' pages say they were in it when it was cancelled (it never played).
     name = next(n for n, a in population.items() if a["model_id"] == honest_ids[0])
     page.goto(f"{server.url}/ui/#/participants/{name}")

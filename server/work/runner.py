@@ -474,8 +474,11 @@ class BackgroundRunner:
             else:
                 self._unbegun.pop(row_id, None)
         if unbegun >= MAX_DEATHS:
-            why = f"its worker died before it began, {unbegun} times in a row (last exit code "
-            self._fail(row_id, f"{why}{exit_code}): a worker process cannot start")
+            self._fail(
+                row_id,
+                f"its worker died before it began, {unbegun} times in a row (last exit code "
+                f"{exit_code}): a worker process cannot start",
+            )
             return
         if unbegun:
             log.warning("%s %d: its worker died (code %s) before it began; running it again",

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import os
+import select
+import stat
 import sys
 from pathlib import Path
 from typing import Any
@@ -25,6 +27,8 @@ from server.config import Settings
 ACCEPTED, REJECTED, MALFORMED = 0, 1, 2
 """Exit codes: accepted, not accepted (refused, or held for an inspector), unreadable or
 malformed (the file, or a setting it is read and screened under)."""
+WAKE_S = 0.25
+"""How often a read of a pipe or a terminal that waits for its writer wakes (``_read_waiting``)."""
 READ_UNDER = {"max_body_bytes": "SRD_MAX_BODY_BYTES", "screener_secret": "SRD_SCREENER_SECRET"}
 """The server's settings ``srd screen`` follows: the largest body ``POST /submit`` takes, and
 the secret the screener draws its populations from (``screener.impact.SECRET_VARIABLE``)."""
@@ -81,12 +85,36 @@ def _read(file: Path, limit: int) -> bytes:
     """The file's bytes; ``OSError`` if it cannot be read, ``ValueError`` if it holds more than
     ``limit`` (read no further: ``/dev/zero`` never ends)."""
     with file.open("rb") as stream:
-        text = stream.read(limit + 1)
+        if stat.S_ISREG(os.fstat(stream.fileno()).st_mode):
+            text = stream.read(limit + 1)
+        else:  # a pipe or a terminal: its writer may keep us waiting
+            text = _read_waiting(stream.fileno(), limit + 1)
     if len(text) > limit:
         raise ValueError(
             f"{file}: larger than {limit} bytes, the most POST /submit takes (SRD_MAX_BODY_BYTES)"
         )
     return text
+
+
+def _read_waiting(fd: int, most: int) -> bytes:
+    """Up to ``most`` bytes of a file that may keep us waiting, waking every ``WAKE_S``.
+
+    Python runs a signal's handler between bytecodes: a Ctrl-C or SIGTERM that lands after the
+    last such point and before a blocking ``read()`` would wait for the writer (for ever, if it
+    waits for us to stop); a wait that wakes runs the handler within ``WAKE_S``."""
+    poller = select.poll()
+    poller.register(fd, select.POLLIN)
+    chunks: list[bytes] = []
+    size = 0
+    while size < most:
+        if not poller.poll(WAKE_S * 1000):
+            continue
+        chunk = os.read(fd, most - size)
+        if not chunk:  # the writer closed its end
+            break
+        chunks.append(chunk)
+        size += len(chunk)
+    return b"".join(chunks)
 
 
 def _json_errors(text: bytes) -> list[dict[str, str]]:

@@ -372,6 +372,32 @@ def test_screen_of_an_endless_file_reads_only_what_submit_takes() -> None:
     )
 
 
+def test_screen_of_a_pipe_reads_what_its_writer_sends_in_pieces() -> None:
+    """A pipe is read until its writer closes it, however it cuts the manifest up and however
+    long it pauses; what comes is screened as the file would be."""
+    text = manifest_text().encode()
+    process = subprocess.Popen(
+        [*srd_command(), "screen", "/dev/stdin", "--json"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=ROOT,
+    )
+    try:
+        assert process.stdin is not None
+        third = len(text) // 3
+        for piece in (text[:third], text[third : 2 * third], text[2 * third :]):
+            process.stdin.write(piece)
+            process.stdin.flush()
+            time.sleep(0.6)  # longer than the read's wake-up: it waits on, does not stop
+        stdout, stderr = process.communicate(timeout=120)
+    finally:
+        process.kill()
+        process.wait()
+    assert process.returncode == 0, stderr
+    assert json.loads(stdout)["status"] == "accepted"
+
+
 def test_screen_refuses_a_padded_manifest_larger_than_the_configured_body_limit(
     tmp_path: Path,
 ) -> None:

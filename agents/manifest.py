@@ -66,17 +66,15 @@ InFloatRange = BeforeValidator(_float_sized)
 """A float field's metadata: an integer beyond the float range is refused as such."""
 FiniteFloat = Annotated[float, Field(strict=True, allow_inf_nan=False), InFloatRange]
 """A finite JSON number (strict: ``"0.2"`` and ``true`` are not numbers)."""
-Participant = Annotated[
-    str,
-    Field(
-        min_length=1,
-        max_length=64,
-        pattern=r"^[A-Za-z0-9_.\-]+$",
-        # said in the schema; a server refuses it by name (``name_problem``)
-        json_schema_extra={"not": {"pattern": r"^[-_.]+$"}},
-    ),
+Participant = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$")]
+"""A participant's name as a lookup takes it (``GET /participants/{name}``, a list's filter):
+letters, digits, ``_``, ``.``, ``-``."""
+NewParticipant = Annotated[
+    Participant,
+    # said in the schema; a server refuses it by name (``name_problem``)
+    Field(json_schema_extra={"not": {"pattern": r"^[-_.]+$"}}),
 ]
-"""A participant's name: letters, digits, ``_``, ``.``, ``-``; at least one letter or digit."""
+"""A participant's name as a manifest gives it: at least one letter or digit, too."""
 
 
 def name_problem(participant: str) -> str | None:
@@ -114,6 +112,8 @@ characters too (Kaithi, shorthand, musical symbols): the server refuses them, th
 Schema's pattern cannot say them."""
 _JOINER = "[\u200c\u200d\ufe0e\ufe0f]"
 _THIRD_JOINER = f"(?<={_JOINER}{_JOINER}){_JOINER}"
+_JOINER_RUN = "[\\u200c\\u200d\\ufe0e\\ufe0f]{3}"
+"""Three joiners in a row, in the JSON Schema's pattern (escaped)."""
 """Zero-width joiners and the emoji's variation selectors stay (scripts and emoji need them,
 two in a row at most: U+FE0F then U+200D), but not in runs, which spell hidden text."""
 _LINE_BREAKS = "\t\n\r\u2028\u2029"  # and U+0085, U+000B, U+000C: control characters
@@ -160,7 +160,10 @@ class _Readable:
         json_schema = handler(schema)
         allowed = f"[^{_escaped(self.refused)}\\udb40-\\udb43]*"  # ECMA-262 reads UTF-16 units
         also = json_schema.get("pattern")
-        json_schema["pattern"] = f"^(?=[\\s\\S]*(?:{also})){allowed}$" if also else f"^{allowed}$"
+        runs = f"(?![\\s\\S]*{_JOINER_RUN})"  # _THIRD_JOINER
+        json_schema["pattern"] = (
+            f"^{runs}(?=[\\s\\S]*(?:{also})){allowed}$" if also else f"^{runs}{allowed}$"
+        )
         return json_schema
 
 
@@ -377,7 +380,7 @@ class Manifest(_Strict):
 
     schema_version: Annotated[Literal[1], BeforeValidator(_json_integer)] = SCHEMA_VERSION
     kind: Literal["fish-sale-negotiator"] = "fish-sale-negotiator"
-    participant: Participant
+    participant: NewParticipant
     description: Annotated[str, Field(max_length=2000), PlainText] = ""
     augmentation: Augmentation = Augmentation()
     external_sensor: ExternalSensor

@@ -12,6 +12,7 @@ import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import Depends, FastAPI
 from starlette.concurrency import run_in_threadpool
@@ -38,6 +39,29 @@ from server.work.pool import freeze_heap
 
 log = logging.getLogger("srd.app")
 
+EVENT_STREAM = "text/event-stream"
+
+EVERY_ROUTE = (400, 413, 414, 415, 429, 503)
+"""What any request may be answered, whatever its route: an unreadable request or body, a
+query too long, a body that is not JSON, the address's request rate or share spent, the
+database or the server's connections unavailable."""
+
+
+class _App(FastAPI):
+    def openapi(self) -> dict[str, Any]:
+        """FastAPI's document, with an event stream's errors said as what they are, JSON:
+        FastAPI gives every answer of a route the route's media type (``text/event-stream``),
+        while an error is answered before any stream starts."""
+        if self.openapi_schema is None:
+            for path in super().openapi()["paths"].values():
+                for operation in path.values():
+                    for code, answer in operation["responses"].items():
+                        content = answer.get("content", {})
+                        if code.isdigit() and int(code) >= 400 and EVENT_STREAM in content:
+                            content["application/json"] = content.pop(EVENT_STREAM)
+        assert self.openapi_schema is not None
+        return self.openapi_schema
+
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     """The auction house application for ``settings`` (default: from the environment)."""
@@ -58,7 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await services.close()
             await run_in_threadpool(services.stop)
 
-    app = FastAPI(
+    app = _App(
         title="srd-auction",
         version="0.1.0",
         summary="Fish sale auction of interpretable Self Reward Design models, and experiments.",
@@ -78,7 +102,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     routers = (health, models, reviews, participants, auctions, rounds, jobs, events, ui)
     for module in routers:  # any request may carry an unreadable body
         checks = [] if module is ui else [Depends(known_query)]  # API routes: no unknown query
-        app.include_router(module.router, responses=responses(400, 413, 415), dependencies=checks)
+        app.include_router(module.router, responses=responses(*EVERY_ROUTE), dependencies=checks)
     app.state.routes = [  # the app's own (the OpenAPI document), then the routers'
         *(route for route in app.routes if getattr(route, "path", None)),
         *(route for module in routers for route in module.router.routes),

@@ -194,7 +194,10 @@ class CheetahConfig:
             },
         },
         {
-            "if": {"required": ["stage"], "properties": {"stage": {"not": {"const": 4}}}},
+            "if": {  # a stage but 4 (null is no stage: the grid, which takes backswing)
+                "required": ["stage"],
+                "properties": {"stage": {"type": "integer", "not": {"const": 4}}},
+            },
             "then": {"not": {"required": ["backswing"]}},
         },
         {

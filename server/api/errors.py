@@ -284,8 +284,11 @@ def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         404: "No such resource",
         409: "Conflicts with the resource's current state",
         410: "Gone: the fine-tuning round named has closed (or its deadline passed)",
+        412: "A precondition failed (If-Match)",
         413: "Request body too large",
+        414: "The query is too long",
         415: "Request body is not JSON (Content-Type)",
+        416: "The Range asked for cannot be served",
         422: "Invalid input (a body not UTF-8, not JSON or nested too deep among it); ``loc`` "
         "names the field",
         429: "Over a quota or rate limit; ``Retry-After`` says when to try again",

@@ -20,6 +20,7 @@ from fastapi.testclient import TestClient
 
 from server.app import create_app
 from server.config import Settings
+from tests.support.openapi import assert_documented
 from tests.support.server import ADMIN, make_settings, wait_for
 
 LONG_FISH = {"kind": "fish", "params": {"steps": 200_000, "srd": True}}  # minutes: always stopped
@@ -131,13 +132,18 @@ def test_job_lifecycle(
     assert stored.status_code == 200 and json.loads(stored.content) == result
     png = client.get(f"/jobs/{short}/artifacts/fish.png")
     assert png.headers["content-type"] == "image/png" and png.content[:4] == b"\x89PNG"
+    document = client.get("/openapi.json").json()  # each answer below is one it lists
+    route = "/jobs/{job_id}/artifacts/{name}"
     for spelt in ("bytes=0-3", "BYTES=0-3", "bytes=0-3, 8-"):
         part = client.get(f"/jobs/{short}/artifacts/fish.png", headers={"Range": spelt})
         assert part.status_code == 206 and b"\x89PNG" in part.content, spelt
+    assert_documented(document, route, client.get(f"/jobs/{short}/artifacts/fish.png",
+                                                  headers={"Range": "bytes=0-3"}))  # fmt: skip
     unsatisfiable = {"Range": "bytes=999999999-"}
     refused = client.get(f"/jobs/{short}/artifacts/fish.png", headers=unsatisfiable)
     assert refused.status_code == 416, refused.text  # in JSON
     assert refused.json()["detail"][0]["loc"] == ["header", "Range"]
+    assert_documented(document, route, refused)
     malformed = ("bytes=1_0-20", "bytes=+1-2", "bytes=0-1_0", "bytes= 1-2")  # int() read them
     for ignored in ("lines=1-2", "items=0-1", "bytes=5-2", "bytes=x", *malformed):  # RFC 9110
         whole = client.get(f"/jobs/{short}/artifacts/fish.png", headers={"Range": ignored})
@@ -150,11 +156,13 @@ def test_job_lifecycle(
         same = client.get(url, headers=asked)
         assert same.status_code == 304 and same.content == b"", asked
         assert same.headers["etag"] == etag
+        assert_documented(document, route, same)
     for asked in ({"If-Match": '"nope"'}, {"If-Unmodified-Since": "Sat, 01 Jan 2000 00:00:00 GMT"}):
         failed = client.get(url, headers=asked)
         assert failed.status_code == 412, asked
         (item,) = failed.json()["detail"]
         assert item["type"] == "precondition" and item["loc"] == ["header", *asked], item
+        assert_documented(document, route, failed)
     for asked in ({"If-None-Match": '"other"'}, {"If-Match": etag}, {"If-Modified-Since": "x"}):
         assert client.get(url, headers=asked).status_code == 200, asked
     # RFC 9110's obsolete date forms, which carry no zone (GMT all the same), are read too.

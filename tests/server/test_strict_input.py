@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import time
 from typing import Any
 
@@ -82,17 +83,23 @@ def test_text_with_control_characters_is_refused(client: TestClient) -> None:
     # review's find); so do runs of joiners, and the other invisible formats.
     smuggled = "Honest." + "".join(chr(0xFE00 + (b >> 4)) + chr(0xFE00 + (b & 15)) for b in b"ok")
     formats = ("cgj\u034f", "mvs\u180b", "joiners \u200c\u200d\u200c", "music\U0001d173")
+    # The published pattern says the same of text of the Basic Multilingual Plane (beyond it
+    # ECMA-262 reads UTF-16 units, which Python's re does not).
+    schema = client.get("/openapi.json").json()["components"]["schemas"]["Manifest"]
+    pattern = re.compile(schema["properties"]["description"]["pattern"])
     for text in ("nul \u0000 inside", "bell \u0007", "mirrored \u202etxt.exe", *invisible,
-                 smuggled, *formats):  # fmt: skip
+                 smuggled, *formats, "a\u200d\u200d\u200db"):  # fmt: skip
         response = client.post("/submit", json=manifest_with(("description",), text))
         assert response.status_code == 422 and locs(response) == [["body", "description"]]
+        assert max(text) > "\uffff" or not pattern.match(text), text
     fine = client.post("/submit", json=manifest_with(("description",), "two\nlines\tand a tab"))
     assert fine.status_code == 201, fine.text
     # Scripts and emoji keep their joiners and presentation selectors.
     persian = "\u0645\u06cc\u200c\u062e\u0648\u0627\u0647\u0645"
-    for text in (persian, "flag \U0001f3f3\ufe0f\u200d\U0001f308"):
+    for text in (persian, "flag \U0001f3f3\ufe0f\u200d\U0001f308", "a\u200d\u200db"):
         kept = client.post("/submit", json=manifest_with(("description",), text))
         assert kept.status_code == 201, kept.text
+        assert max(text) > "\uffff" or pattern.match(text), text
 
 
 def test_an_integer_too_long_to_read_is_422_at_its_path(client: TestClient) -> None:

@@ -333,6 +333,7 @@ async def _existing_auction(
     "/auctions/{auction_id}/events",
     response_class=EventSourceResponse,
     operation_id="auction_events",
+    openapi_extra={"security": [{}]},  # a token is optional (the operator's is served first)
     responses=responses(404, 422, 429, 503, 505),
 )
 async def auction_events(
@@ -418,6 +419,7 @@ async def _existing_job(job_id: JobIdPath, database: DatabaseDep) -> int:
     "/jobs/{job_id}/events",
     response_class=EventSourceResponse,
     operation_id="job_events",
+    openapi_extra={"security": [{}]},  # a token is optional (the operator's is served first)
     responses=responses(404, 422, 429, 503, 505),
 )
 async def job_events(

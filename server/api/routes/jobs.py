@@ -101,7 +101,12 @@ async def read_job(job_id: JobIdPath, session: SessionDep, ended: EndedJobsDep) 
     operation_id="read_artifact",
     responses={
         200: {"description": "The artifact file", "content": {t: {} for t in ARTIFACT_TYPES}},
-        **responses(404, 422),
+        206: {
+            "description": "The part of the artifact file its Range asks for",
+            "content": {t: {} for t in ARTIFACT_TYPES},
+        },
+        304: {"description": "Not modified: If-None-Match names the file's ETag"},
+        **responses(404, 412, 416, 422),
     },
 )
 def read_artifact(

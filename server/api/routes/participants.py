@@ -51,8 +51,6 @@ async def read_participant(
 @router.post(
     "/participants/{name}/token",
     operation_id="rotate_token",
-    # The participant's own token, or the operator's.
-    openapi_extra={"security": [{"HTTPBearer": []}]},
     responses=responses(401, 403, 404, 422),
 )
 async def rotate_token(

@@ -121,8 +121,6 @@ async def review_model(
 @router.post(
     "/models/{model_id}/appeal",
     operation_id="appeal_model",
-    # The participant's own token, checked against the model's participant.
-    openapi_extra={"security": [{"HTTPBearer": []}]},
     responses=responses(401, 403, 404, 409, 422, 429),
 )
 async def appeal_model(

@@ -112,8 +112,6 @@ characters too (Kaithi, shorthand, musical symbols): the server refuses them, th
 Schema's pattern cannot say them."""
 _JOINER = "[\u200c\u200d\ufe0e\ufe0f]"
 _THIRD_JOINER = f"(?<={_JOINER}{_JOINER}){_JOINER}"
-_JOINER_RUN = "[\\u200c\\u200d\\ufe0e\\ufe0f]{3}"
-"""Three joiners in a row, in the JSON Schema's pattern (escaped)."""
 """Zero-width joiners and the emoji's variation selectors stay (scripts and emoji need them,
 two in a row at most: U+FE0F then U+200D), but not in runs, which spell hidden text."""
 _LINE_BREAKS = "\t\n\r\u2028\u2029"  # and U+0085, U+000B, U+000C: control characters
@@ -160,7 +158,7 @@ class _Readable:
         json_schema = handler(schema)
         allowed = f"[^{_escaped(self.refused)}\\udb40-\\udb43]*"  # ECMA-262 reads UTF-16 units
         also = json_schema.get("pattern")
-        runs = f"(?![\\s\\S]*{_JOINER_RUN})"  # _THIRD_JOINER
+        runs = f"(?![\\s\\S]*[{_escaped(_JOINER[1:-1])}]{{3}})"  # _THIRD_JOINER, said so
         json_schema["pattern"] = (
             f"^{runs}(?=[\\s\\S]*(?:{also})){allowed}$" if also else f"^{runs}{allowed}$"
         )

@@ -69,6 +69,10 @@ costly manifests in bulk (16 noisy copies fine-tuned 4 epochs at batch 1: 20 tim
 one's screening) delays another's verdict by a few of its own, not by its whole backlog,
 whatever number of tokens it registered."""
 RESPAWN_DELAY_S = 0.5  # a process that cannot start must not spin
+MAX_RESPAWN_DELAY_S = 30.0
+"""A process the system refuses to start (no memory, a process limit) is tried again after
+twice the delay each time, up to this: the screener comes back by itself, and the log does
+not fill."""
 STALL_S = 30.0
 """The screener counts as stalled (``/healthz`` not ready) when it has held requests this long
 without answering any: its warm-up takes seconds, a batch milliseconds."""
@@ -249,13 +253,29 @@ class ScreeningService:
         self._sender.start()
 
     def _keep(self, ours: Connection, theirs: Connection) -> None:
+        refused = 0  # starts refused in a row
         while True:
             process = self._process_context.Process(
                 target=_screening_main,
                 args=(theirs, os.getpid(), dict(os.environ)),
                 name="srd-screening",
             )
-            process.start()
+            try:
+                process.start()
+            except (OSError, EOFError) as exc:  # no process now (EAGAIN, ENOMEM, the fork server)
+                refused += 1
+                delay = min(RESPAWN_DELAY_S * 2**refused, MAX_RESPAWN_DELAY_S)
+                log.error("starting the screening process failed (%s); again in %g s", exc, delay)
+                with self._lock:
+                    stopping = self._stopping
+                    if stopping:
+                        failed, self._pending = self._pending, {}
+                if stopping:
+                    _fail(failed, "the server is stopping")
+                    return
+                time.sleep(delay)  # requests meanwhile wait in the pipe, or hear 503
+                continue
+            refused = 0
             theirs.close()
             with self._lock:
                 stopping = self._stopping

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import errno
+import logging
 import multiprocessing
 import os
 import signal
@@ -151,6 +153,38 @@ def test_asking_never_waits_for_a_full_pipe(monkeypatch: pytest.MonkeyPatch) -> 
     service._outbox.put(None)
     service._sender.join(30)
     ours.close()
+
+
+def test_a_screening_process_the_system_refuses_to_start_is_tried_again(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A fork the system refuses (EAGAIN: a process limit; ENOMEM) is tried again, later each
+    time: a request made meanwhile gets its verdict once a process starts (before, the thread
+    that starts them died, and the server screened nothing until it was restarted)."""
+    refusals = [OSError(errno.EAGAIN, "Resource temporarily unavailable")] * 2
+    start = multiprocessing.process.BaseProcess.start
+
+    def refused_twice(process: multiprocessing.process.BaseProcess) -> None:
+        if process.name == "srd-screening" and refusals:
+            raise refusals.pop()
+        start(process)
+
+    monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", refused_twice)
+    manifest = honest_manifest(np.random.default_rng(3), "h")
+    service = ScreeningService()
+    with caplog.at_level(logging.ERROR, logger="srd.screening"):
+        service.start()
+        try:
+            assert asyncio.run(service.verdict(manifest)) == screen(manifest)
+        finally:
+            service.shutdown()
+    assert not refusals
+    failed = [r.getMessage() for r in caplog.records if "failed" in r.getMessage()]
+    assert failed == [
+        "starting the screening process failed ([Errno 11] Resource temporarily unavailable); "
+        f"again in {delay:g} s"
+        for delay in (1, 2)
+    ]
 
 
 class _Arrivals:

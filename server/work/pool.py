@@ -431,6 +431,7 @@ class WorkerPool:
         self._workers.clear()
 
     def _supervise(self) -> None:
+        refused = 0  # passes in a row whose _assign failed (logged ever more rarely)
         while True:
             with self._lock:
                 if self._stopping:
@@ -440,7 +441,15 @@ class WorkerPool:
                 try:
                     self._assign()
                 except Exception:  # a worker that cannot start now: the next pass tries again
-                    log.exception("%s: starting or handing work to a worker failed", self.name)
+                    refused += 1
+                    if refused & (refused - 1) == 0:  # the 1st, 2nd, 4th ... in a row
+                        log.exception(
+                            "%s: starting or handing work to a worker failed (%d times in a row)",
+                            self.name,
+                            refused,
+                        )
+                else:
+                    refused = 0
                 waitables: list[Any] = [self._wake_reader]
                 waitables += [w.conn for w in self._workers if w.task_id is not None]
                 waitables += [w.process.sentinel for w in self._workers]
@@ -569,8 +578,13 @@ class WorkerPool:
             args=(self._task, self._context, theirs, os.getpid(), dict(os.environ)),
             name=f"srd-{self.name}-worker",
         )
-        process.start()
-        theirs.close()
+        try:
+            process.start()
+        except BaseException:  # the system refused it (EAGAIN, ENOMEM): no pipe left open
+            ours.close()
+            raise
+        finally:
+            theirs.close()
         worker = _Worker(process, ours)
         self._workers.append(worker)
         return worker

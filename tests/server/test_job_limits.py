@@ -3,6 +3,9 @@ fails for a real cause carries that cause (type and message), stored by its work
 
 from __future__ import annotations
 
+import errno
+import logging
+import multiprocessing
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -345,3 +348,32 @@ def test_a_job_whose_workers_cannot_start_fails_saying_so(tmp_path) -> None:
         job = run_to_end(client, {"kind": "fish", "params": {"steps": 10}})
     assert job["status"] == "failed", job
     assert "its worker died before it began, 3 times in a row (last exit code 3)" in job["error"]
+
+
+def test_a_job_worker_the_system_refuses_to_start_is_tried_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A fork the system refuses (EAGAIN: a process limit) leaves the job queued and is tried
+    again at the next pass; the job runs once a worker starts. The refusals in a row are
+    logged the 1st, 2nd, 4th ... time, so a long refusal does not fill the log."""
+    refusals = [OSError(errno.EAGAIN, "Resource temporarily unavailable")] * 5
+    start = multiprocessing.process.BaseProcess.start
+
+    def refused(process: multiprocessing.process.BaseProcess) -> None:
+        if process.name == "srd-job-worker" and refusals:
+            raise refusals.pop()
+        start(process)
+
+    monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", refused)
+    settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
+    with (
+        caplog.at_level(logging.ERROR, logger="srd.workers"),
+        TestClient(create_app(settings.model_copy(update={"job_workers": 1}))) as client,
+    ):
+        job = run_to_end(client, {"kind": "fish", "params": {"steps": 10}})
+    assert job["status"] == "succeeded", job
+    assert not refusals
+    logged = [r.getMessage() for r in caplog.records if "worker failed" in r.getMessage()]
+    assert logged == [
+        f"job: starting or handing work to a worker failed ({n} times in a row)" for n in (1, 2, 4)
+    ]

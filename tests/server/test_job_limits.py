@@ -3,9 +3,7 @@ fails for a real cause carries that cause (type and message), stored by its work
 
 from __future__ import annotations
 
-import errno
 import logging
-import multiprocessing
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -22,6 +20,7 @@ from sim.experiment import config_fields
 from studies.registry import KINDS
 from tests.support.databases import postgres_admin_url, throwaway_postgres
 from tests.support.factories import honest, unique
+from tests.support.processes import refuse_starts
 from tests.support.server import ADMIN, make_settings, wait_for
 
 ENDED = {"succeeded", "failed", "cancelled"}
@@ -356,15 +355,7 @@ def test_a_job_worker_the_system_refuses_to_start_is_tried_again(
     """A fork the system refuses (EAGAIN: a process limit) leaves the job queued and is tried
     again at the next pass; the job runs once a worker starts. The refusals in a row are
     logged the 1st, 2nd, 4th ... time, so a long refusal does not fill the log."""
-    refusals = [OSError(errno.EAGAIN, "Resource temporarily unavailable")] * 5
-    start = multiprocessing.process.BaseProcess.start
-
-    def refused(process: multiprocessing.process.BaseProcess) -> None:
-        if process.name == "srd-job-worker" and refusals:
-            raise refusals.pop()
-        start(process)
-
-    monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", refused)
+    refusals = refuse_starts(monkeypatch, "srd-job-worker", 5)
     settings = make_settings(f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data")
     with (
         caplog.at_level(logging.ERROR, logger="srd.workers"),

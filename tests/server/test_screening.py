@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import errno
 import logging
 import multiprocessing
 import os
@@ -17,6 +16,7 @@ import pytest
 from agents.negotiator import honest_manifest, saboteur_manifest
 from screener import rescreen_many, screen
 from server.screening.pool import SCREENINGS_PER_CLIENT, ScreeningService
+from tests.support.processes import refuse_starts
 
 
 @pytest.fixture(scope="module")
@@ -161,15 +161,7 @@ def test_a_screening_process_the_system_refuses_to_start_is_tried_again(
     """A fork the system refuses (EAGAIN: a process limit; ENOMEM) is tried again, later each
     time: a request made meanwhile gets its verdict once a process starts (before, the thread
     that starts them died, and the server screened nothing until it was restarted)."""
-    refusals = [OSError(errno.EAGAIN, "Resource temporarily unavailable")] * 2
-    start = multiprocessing.process.BaseProcess.start
-
-    def refused_twice(process: multiprocessing.process.BaseProcess) -> None:
-        if process.name == "srd-screening" and refusals:
-            raise refusals.pop()
-        start(process)
-
-    monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", refused_twice)
+    refusals = refuse_starts(monkeypatch, "srd-screening", 2)
     manifest = honest_manifest(np.random.default_rng(3), "h")
     service = ScreeningService()
     with caplog.at_level(logging.ERROR, logger="srd.screening"):

@@ -4,10 +4,14 @@ tests and the benchmarks."""
 
 from __future__ import annotations
 
+import errno
+import multiprocessing
 import os
 import secrets
 import subprocess
 from pathlib import Path
+
+import pytest
 
 from server.cli.launch import ServerProcess, free_port, srd_command
 
@@ -103,3 +107,19 @@ def reaped_cpu_seconds(pid: int) -> float | None:
     except OSError:
         return None
     return (int(fields[13]) + int(fields[14])) / os.sysconf("SC_CLK_TCK")
+
+
+def refuse_starts(monkeypatch: pytest.MonkeyPatch, name: str, times: int) -> list[OSError]:
+    """Make the system refuse to start the next ``times`` processes named ``name`` (EAGAIN, as
+    a process limit does; ``multiprocessing``'s start raises it); the refusals still to come,
+    emptied as they are made."""
+    refusals = [OSError(errno.EAGAIN, "Resource temporarily unavailable")] * times
+    start = multiprocessing.process.BaseProcess.start
+
+    def refusing(process: multiprocessing.process.BaseProcess) -> None:
+        if process.name == name and refusals:
+            raise refusals.pop()
+        start(process)
+
+    monkeypatch.setattr(multiprocessing.process.BaseProcess, "start", refusing)
+    return refusals

@@ -423,13 +423,20 @@ class Database:
         self._lost = False  # the problem is for good (gone, replaced): no check clears it
         self._check_lock = threading.Lock()
 
-    def problem(self) -> str | None:
+    def problem(self, *, wait: bool = False) -> str | None:
         """Why the database cannot be used, or None. The answer is kept for
         ``IDENTITY_CHECK_S``; a database gone or replaced stays a problem (restart to clear
         it), an unreachable one is checked again and clears once it is back. While another
         thread checks (up to ``PROBE_TIMEOUT_S`` when the database hangs), the last answer
-        stands: the event loop asks too, and must never wait on a probe."""
-        if not self._check_lock.acquire(blocking=False):
+        stands: the event loop asks too, and must never wait on a probe. ``wait`` (a caller
+        off the event loop: readiness) waits for that check instead, and makes its own if the
+        answer is older than ``IDENTITY_CHECK_S``: the check in progress may predate the ask."""
+        acquired = (
+            self._check_lock.acquire(timeout=PROBE_TIMEOUT_S + 1.0)
+            if wait
+            else self._check_lock.acquire(blocking=False)
+        )
+        if not acquired:
             return self._problem
         try:
             return self._checked()
@@ -546,10 +553,10 @@ class Database:
         return None
 
     def write_problem(self) -> str | None:
-        """Why the database cannot take writes now (readiness): ``problem()``, or it is
-        read-only (a PostgreSQL standby or read-only default; a SQLite file, or its folder,
-        that may not be written)."""
-        problem = self.problem()
+        """Why the database cannot take writes now (readiness, off the event loop):
+        ``problem(wait=True)``, or it is read-only (a PostgreSQL standby or read-only default;
+        a SQLite file, or its folder, that may not be written)."""
+        problem = self.problem(wait=True)
         if problem is not None or self._probe is None:
             return problem or _sqlite_write_problem(sqlite_path(self.url))
         try:

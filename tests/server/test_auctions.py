@@ -87,6 +87,8 @@ def test_auction_runs_to_the_end_like_the_market(
     assert auction["model_ids"] == ids and auction["stop_reason"] is not None
     assert auction["participants"] == [m["participant"] for m in manifests]
     assert auction["started_at"] and auction["finished_at"]
+    # no fine-tuning: no rounds count to show (it showed the default, 4)
+    assert (auction["fine_tune"], auction["fine_tune_rounds"]) == (False, None)
     check_consistent(auction)
 
     # the same auction played directly on the market gives the very same rounds
@@ -151,6 +153,7 @@ def test_fine_tuning_auction_with_explicit_fish(
     assert auction["status"] == "finished", auction["error"]
     assert (auction["n_initial"], auction["fine_tune"], auction["rarity"]) == (3, True, None)
     assert (auction["fine_tune_mode"], auction["round_deadline_s"]) == ("server", None)
+    assert auction["fine_tune_rounds"] == 4
     check_consistent(auction)
 
 

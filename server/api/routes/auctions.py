@@ -140,7 +140,7 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
         finished_at=auction.finished_at,
         enroll_until=auction.enroll_until,
         fine_tune_mode="remote" if auction.fine_tune_mode == "remote" else "server",
-        fine_tune_rounds=auction.fine_tune_rounds,
+        fine_tune_rounds=auction.fine_tune_rounds if auction.fine_tune else None,
         round_deadline_s=auction.round_deadline_s if auction.fine_tune_mode == "remote" else None,
         buy_fraction="staying" if auction.buy_fraction == "staying" else "all",
         rows=auction.n_rows,

@@ -240,7 +240,9 @@ class AuctionPublic(Schema):
     started_at: datetime | None
     finished_at: datetime | None
     fine_tune_mode: FineTuneModeName = "server"
-    fine_tune_rounds: int = 4
+    fine_tune_rounds: int | None = 4
+    """How many iterations are followed by fine-tuning (null: the auction does not
+    fine-tune)."""
     round_deadline_s: float | None = None
     """Remote auctions: how long a round waits at most (null in server mode: no rounds)."""
     buy_fraction: BuyFractionRule = MarketConfig.buy_fraction

@@ -12,7 +12,8 @@ for a request that carries one:
   nested deeper than ``MAX_DEPTH``, or holding more than ``MAX_CONTAINERS`` arrays and objects
   or ``MAX_MEMBERS`` object members, get 422 at ``["body"]`` (a malformed body, as FastAPI
   answers invalid JSON);
-* a key given twice in one object, or a NaN / Infinity token, gets 422 naming its path;
+* a key given twice in one object, or a NaN / Infinity token or a number too big for a float
+  (``1e999``), gets 422 naming its path;
 * a ``Transfer-Encoding`` other than ``chunked`` (``gzip, chunked``) gets 501 naming it: the
   server does not decode transfer codings, and would read such a body as plain.
 
@@ -147,6 +148,17 @@ _LONG_DIGITS = b"0" * (MAX_INT_DIGITS + 1)
 looked for once every digit reads ``0`` (``_DIGITS_AS_ZERO``): only then does a pass read each
 integer in Python. A plain substring search: a pattern tried at every place took 10–17 ms on
 256 KB of anything, and tried inside runs of digits, 15 ms a KB of them."""
+_BIG_NUMBERS = (b"e000", b"E000", b"e+000", b"E+000", b"0" * 309)
+"""What a number too big for a float (``1e999``, which JSON's reader makes infinite) needs, in
+the same digits-as-zero bytes: an exponent of three digits or more, or 309 digits in a row.
+Only a body holding one reads each of its floats in Python (``_finite_float``)."""
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise _UnfitError("must be a finite number", "finite_number")
+    return value
 
 
 _STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*(?:"|\\?\Z)', re.DOTALL)
@@ -217,11 +229,18 @@ def _fast(raw: bytes, text: str) -> Any:
     """The JSON of ``text`` (``raw`` decoded), objects built as they are parsed; raises
     ``_UnfitError`` for anything ``_resolve`` would refuse (without saying where)."""
     brackets = _brackets(raw) if b"[" in raw or b"{" in raw else b""
-    if _LONG_DIGITS in raw.translate(_DIGITS_AS_ZERO):
+    digits = raw.translate(_DIGITS_AS_ZERO)
+    if _LONG_DIGITS in digits:
         raise _UnfitError(f"a number of more than {MAX_INT_DIGITS} digits", "number_too_long")
+    big = any(pattern in digits for pattern in _BIG_NUMBERS)
     escapes = b"\\u" in raw  # only an escape can spell a lone surrogate
     hook = _unique_text if escapes else _unique
-    value = json.loads(text, object_pairs_hook=hook, parse_constant=_non_finite)
+    value = json.loads(
+        text,
+        object_pairs_hook=hook,
+        parse_constant=_non_finite,
+        parse_float=_finite_float if big else None,
+    )
     if _nesting(brackets) > MAX_DEPTH:
         raise _UnfitError(f"JSON nested deeper than {MAX_DEPTH} levels", "json_depth")
     return value

@@ -205,6 +205,12 @@ def test_body_must_be_utf8_json(client: TestClient) -> None:
         "/submit", content=text.replace('"noise_std": 0.01', '"noise_std": NaN'), headers=JSON
     )
     assert nan.status_code == 422 and locs(nan) == [["body", "augmentation", "noise_std"]]
+    # a number too big for a float is no number either (JSON's reader makes it infinite)
+    huge = client.post(
+        "/submit", content=text.replace('"noise_std": 0.01', '"noise_std": 1e999'), headers=JSON
+    )
+    assert huge.status_code == 422 and locs(huge) == [["body", "augmentation", "noise_std"]]
+    assert huge.json()["detail"][0]["msg"] == "must be a finite number"  # the reader's
     assert count(client, ModelVersion) == before
 
 
@@ -499,6 +505,10 @@ def _careful(raw: bytes) -> Any:
         '{"a": [NaN]}',
         '{"a": {"b": -Infinity}}',
         '{"a": Infinity}',
+        '{"a": [1, 1e999]}',
+        '{"a": {"b": -1E+400}}',
+        '{"a": 1' + "0" * 320 + ".5}",
+        '[1e308, 1.7976931348623157e308, 1e-400, 0.5e0010, "e000"]',
         "[" * 32 + "]" * 32,
         "[" * 33 + "]" * 33,
         "[" * 32 + "1" + "]" * 32,

@@ -36,9 +36,9 @@ A WebSocket upgrade leaves these deadlines, and the connection count, once its h
 is in: the socket's own pings and limits (``server.api.limits``) take over, and
 ``GuardedWebSocketProtocol``, uvicorn's WebSocket protocol plus bounds on what frames cost below
 the app (control frames, a message's fragments, frames after the close), which the messages'
-own allowance never sees. Requests pipelined on one connection are answered in order, a
-refusal after the answers of the requests before it (a refused request queued behind them
-never starts).
+own allowance never sees, and whose handshake refusals carry the common JSON body. Requests
+pipelined on one connection are answered in order, a refusal after the answers of the
+requests before it (a refused request queued behind them never starts).
 """
 
 from __future__ import annotations
@@ -52,11 +52,18 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from datetime import UTC, datetime
+from email.utils import formatdate
+from http import HTTPStatus
 from typing import Any, ClassVar
 
 import httptools
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol, RequestResponseCycle
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
+from websockets.datastructures import Headers
+from websockets.exceptions import InvalidHeader, InvalidHeaderValue
+from websockets.http11 import Response
+
+from server.api.hardening import SECURITY_HEADERS
 
 log = logging.getLogger("srd.connections")
 
@@ -608,10 +615,40 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        self.conn.reject = self._refused  # type: ignore[method-assign]
         self._control = TokenBucket(CONTROL_BURST, CONTROL_PER_S)
         self._reading_held = False
         self._fragments = 0  # frames of the message being read
         self._dropping = False  # closed for its frames: the rest is not parsed
+
+    def _refused(self, status: int, text: str) -> Response:
+        """The answer to a handshake the WebSocket library refuses (no or a bad
+        ``Sec-WebSocket-Key`` or ``Sec-WebSocket-Version``, an ``Upgrade`` or ``Connection``
+        that asks for no WebSocket): the common JSON error body naming the header, with the
+        security headers, instead of the library's plain text; a version this server does not
+        speak is 426 with the one it does (RFC 6455, 4.2.2)."""
+        refusal = self.conn.handshake_exc
+        version = isinstance(refusal, InvalidHeader) and refusal.name == "Sec-WebSocket-Version"
+        if version and isinstance(refusal, InvalidHeaderValue):
+            status = 426
+        loc = ["header", refusal.name] if isinstance(refusal, InvalidHeader) else ["connection"]
+        msg = text.strip().removeprefix("Failed to open a WebSocket connection: ").split("\n")[0]
+        item = {"loc": loc, "msg": msg.rstrip(".") or "the handshake failed", "type": "handshake"}
+        body = json.dumps({"detail": [item]}, separators=(",", ":")).encode()
+        headers = Headers(
+            [
+                ("Date", formatdate(usegmt=True)),
+                ("Content-Type", "application/json"),
+                ("Content-Length", str(len(body))),
+                ("Connection", "close"),
+                *SECURITY_HEADERS.items(),
+            ]
+        )
+        if version:
+            headers["Sec-WebSocket-Version"] = "13"
+            if status == 426:  # the library adds it to its own 426s only
+                headers["Upgrade"] = "websocket"
+        return Response(status, HTTPStatus(status).phrase, headers, body)
 
     def data_received(self, data: bytes) -> None:
         if self.handshake_initiated and not self.handshake_complete:

@@ -204,6 +204,45 @@ def test_a_header_the_server_will_not_serve_is_refused_before_any_route(
     assert asyncio.run(_exchange(server, NEIGHBOUR, raw))[0] == 200
 
 
+KEY = "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ=="
+
+
+@pytest.mark.parametrize(
+    ("lines", "status", "header"),
+    [
+        ([KEY, "Sec-WebSocket-Version: 8"], 426, "Sec-WebSocket-Version"),
+        ([KEY], 400, "Sec-WebSocket-Version"),
+        (["Sec-WebSocket-Key: short", "Sec-WebSocket-Version: 13"], 400, "Sec-WebSocket-Key"),
+        (["Sec-WebSocket-Version: 13"], 400, "Sec-WebSocket-Key"),
+    ],
+)
+def test_a_websocket_handshake_the_protocol_refuses_gets_the_common_error_body(
+    server: ServerProcess, lines: list[str], status: int, header: str
+) -> None:
+    """A handshake refused below the app (RFC 6455's own rules) is answered as every refusal
+    is: JSON naming the header, the security headers; a version this server does not speak
+    with the one it does (RFC 6455, 4.2.2). The library's plain text had none of these."""
+    head = [
+        "GET /auctions/1/rounds/socket HTTP/1.1",
+        "Host: test",
+        "Upgrade: websocket",
+        "Connection: Upgrade",
+        *lines,
+    ]
+    raw = ("\r\n".join(head) + "\r\n\r\n").encode()
+    got, headers, body = asyncio.run(_exchange(server, NEIGHBOUR, raw))
+    assert got == status and headers["content-type"] == "application/json"
+    item = _detail(body)
+    assert item["loc"] == ["header", header] and item["type"] == "handshake", item
+    assert header in item["msg"]
+    assert headers["x-content-type-options"] == "nosniff"
+    assert headers["content-security-policy"].startswith("default-src 'none'")
+    if header == "Sec-WebSocket-Version":
+        assert headers["sec-websocket-version"] == "13"
+    if status == 426:
+        assert headers["upgrade"] == "websocket"
+
+
 def test_a_body_refused_by_its_header_is_not_asked_for(server: ServerProcess) -> None:
     """``Expect: 100-continue``: a media type or an encoding the server refuses is answered
     with the refusal, not with 100 Continue, and the client need not send its body."""

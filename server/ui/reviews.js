@@ -4,7 +4,7 @@
 // only (never stored, never in a URL); it travels in the Authorization header.
 
 import { ApiError, LIST_REFRESH_MS, getJSON, postJSON } from "./api.js";
-import { fill, fixed, h, isMissing, link, navigated, notFound, problem, scrolling, svg, table, when } from "./dom.js";
+import { fill, fixed, h, isMissing, link, navigated, notFound, patch, problem, scrolling, svg, table, when } from "./dom.js";
 import { auditLog, by, evidenceTable, inspectorView, measuredAndBar, verdictNow } from "./models.js";
 
 let adminToken = null;
@@ -80,8 +80,9 @@ export function reviewList(view) {
   withToken(view, async (box) => {
     // The queue is read whole (it is short: the screener holds few) and read again every
     // LIST_REFRESH_MS while the tab is shown (never two reads at once): a model held or
-    // appealed since appears in its place (oldest first), one decided goes, and the focus
-    // stays where it was in its model's row (or on the scrolling frame, scrolled as it was).
+    // appealed since appears in its place (oldest first), one decided goes, the others' rows
+    // stay the elements they were, and the focus stays where it was in its model's row (or on
+    // the scrolling frame, scrolled as it was).
     const read = async () => {
       const rows = [];
       let cursor = null;
@@ -121,7 +122,11 @@ export function reviewList(view) {
       seen = text;
       ids = now;
       const at = where(list);
-      fill(list, rows.length ? queueTable(rows, margin) : h("p", { class: "none-yet", id: "no-reviews" }, "No model is waiting for an inspector."));
+      const fresh = rows.length ? queueTable(rows, margin) : h("p", { class: "none-yet", id: "no-reviews" }, "No model is waiting for an inspector.");
+      // Patched, not redrawn: a held model's row stays the same element (a press on its link
+      // that ends after the queue changed still opens it).
+      if (list.firstChild) patch(list.firstChild, fresh);
+      else fill(list, fresh);
       if (at) restore(list, at, view.root.querySelector("h1"));
     };
     draw(await read());
@@ -174,7 +179,7 @@ function restore(list, at, fallback) {
 }
 
 function queueTable(rows, margin) {
-  return scrolling(
+  const held = scrolling(
     table(
       `${rows.length} held model${rows.length === 1 ? "" : "s"}`,
       ["Model", "Participant", "Version", "Why held", "From", "Held since"],
@@ -190,6 +195,8 @@ function queueTable(rows, margin) {
     ),
     "Held models (scrolls sideways)",
   );
+  held.querySelectorAll("tbody tr").forEach((row, i) => row.setAttribute("data-key", String(rows[i].id)));
+  return held;
 }
 
 /** The priced bar closest to its measurement, in words, and what the review margin made of

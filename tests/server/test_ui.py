@@ -1631,6 +1631,44 @@ def test_a_listed_row_changes_in_place_so_a_press_across_the_change_lands(
     assert page.url.endswith(f"#/auctions/{auction_id}")
 
 
+def test_a_held_models_row_stays_in_place_so_a_press_across_a_queue_change_lands(
+    page: Any, server: ServerProcess, api: httpx.Client
+) -> None:
+    """The queue is read again while the pointer is pressed on a held model's link, another
+    model held meanwhile: the row is the same element after the change, and the press,
+    released, opens that model's review (the queue was redrawn whole: the press was lost)."""
+    admin = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+
+    def held() -> int:
+        refused = api.post("/submit", json=saboteur_manifest(unique("ui-press"))).json()
+        auth = {"Authorization": f"Bearer {refused['token']}"}
+        url = f"/models/{refused['model_id']}/appeal"
+        assert api.post(url, json={"note": "x"}, headers=auth).status_code == 200
+        return int(refused["model_id"])
+
+    first = held()
+    second = None
+    try:
+        page.goto(f"{server.url}/ui/#/reviews")
+        page.fill("#admin-token", ADMIN_TOKEN)
+        page.keyboard.press("Enter")
+        pressed = f"#review-list a[href='#/reviews/{first}']"
+        page.wait_for_selector(pressed, timeout=WAIT_MS)
+        page.evaluate(f'document.querySelector("{pressed}").marked = true')
+        page.locator(pressed).hover()
+        page.mouse.down()
+        second = held()  # the newest: its row comes after the pressed one's
+        page.wait_for_selector(f"#review-list a[href='#/reviews/{second}']", timeout=WAIT_MS)
+        assert page.evaluate(f'document.querySelector("{pressed}").marked') is True
+        page.mouse.up()
+        page.wait_for_url(f"**/ui/#/reviews/{first}", timeout=WAIT_MS)
+    finally:
+        for model_id in (first, second):
+            if model_id is not None:
+                decision = {"decision": "refuse", "inspector": "Ada", "note": "holds"}
+                api.post(f"/models/{model_id}/review", json=decision, headers=admin)
+
+
 def test_the_review_queues_line_of_what_changed_does_not_move_the_queue(
     page: Any, server: ServerProcess, api: httpx.Client
 ) -> None:

@@ -76,6 +76,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # ``srd serve`` calls this from its signal handler: waiting long polls answer at once
         app.state.drain = lambda: loop.call_soon_threadsafe(services.live.drain)
         freeze_heap()  # the imports and services live as long as the process
+        services.judge_left_pending()  # what a killed server left pending in closed rounds
         try:
             yield
         finally:

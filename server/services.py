@@ -11,12 +11,13 @@ the request's values, do the work, and return domain values or raise
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import logging
 import os
 import secrets
 import socket
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from sqlalchemy.engine import make_url
 
@@ -26,6 +27,7 @@ from server.auctions.arrivals import Arrivals
 from server.auctions.patrons import PatronCheck
 from server.auctions.sockets import RoundSockets
 from server.auctions.steps import AUCTION_WORK
+from server.auctions.uploads import judge_left_pending
 from server.config import Settings
 from server.jobs.backend import JobCompute, job_compute
 from server.jobs.service import ENDED_JOBS_BYTES, EndedJobs
@@ -78,9 +80,31 @@ class Services:
     readiness: Readiness
     ended_jobs: EndedJobs
     """The JSON of ended jobs, as ``GET /jobs/{id}`` sends it."""
+    sweeps: set[asyncio.Task[int]] = field(default_factory=set)
+    """The judging of uploads closed rounds left pending, running (``judge_left_pending``)."""
+
+    def judge_left_pending(self, auction_id: int | None = None) -> None:
+        """Judge, in the background on the event loop, the uploads that closed rounds left
+        pending (of ``auction_id`` only, if given): at start, and after a cancel, in a task of
+        its own (a request's background task would run while the request still holds its
+        session, and wait for SQLite's write lock that session holds)."""
+        sweep = asyncio.get_running_loop().create_task(
+            judge_left_pending(
+                self.database,
+                self.screening,
+                margin=self.settings.review_margin,
+                auction_id=auction_id,
+            )
+        )
+        self.sweeps.add(sweep)
+        sweep.add_done_callback(self.sweeps.discard)
 
     async def close(self) -> None:
-        """Stop what runs on the event loop (the live-update source's reads and listener)."""
+        """Stop what runs on the event loop (the live-update source's reads and listener, the
+        judging of uploads left pending)."""
+        for sweep in list(self.sweeps):
+            sweep.cancel()
+        await asyncio.gather(*self.sweeps, return_exceptions=True)
         await self.live.close()
 
     def stop(self) -> None:

@@ -14,7 +14,8 @@ upload closes the round in the same transaction, and the auction's next step is 
 upload whose verdict was never recorded (the screener down, the server killed) counts all the
 same: a repeat of its bytes asks again, and the step that closes the round judges whatever is
 still pending (a request still waiting for a hung screener then answers with the step's
-verdict).
+verdict); in a round a cancel or a failure closed, the API judges it after the cancel and at
+its next start (``judge_left_pending``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import dataclasses
 import functools
 import hashlib
 import json
+import logging
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from datetime import datetime
@@ -56,6 +58,7 @@ from server.submissions import quotas
 from sim.market.design import design_changes
 
 T = TypeVar("T")
+log = logging.getLogger("srd.rounds")
 
 RETRY_AFTER_S = 1
 """Retry-After of a round request refused because too many wait."""
@@ -456,6 +459,48 @@ async def upload(
     if due:
         wake(request.auction_id)
     return answer
+
+
+async def judge_left_pending(
+    database: Database,
+    screening: ScreeningService,
+    *,
+    margin: float,
+    auction_id: int | None = None,
+) -> int:
+    """Judge the uploads that closed rounds left pending, as their requests would have (each
+    verdict recorded, an accepted upload its participant's new version); the number judged.
+    A cancel or a failure closes a round whatever its uploads, and one whose request no longer
+    waits for its verdict (the server was killed, or the screener was down and no retry of the
+    same body came) stayed pending for ever. It came in time, so it counts. Run at start and
+    after a cancel (of that auction); one that fails (the screener or the database unavailable)
+    is logged, and the rest are left to a retry of their bodies or the next start."""
+    try:
+        left = await run_in_threadpool(_left_in_thread, database, auction_id)
+        for upload in left:
+            manifest = parse_manifest(upload.manifest)
+            verdict = await screening.verdict(manifest, at_the_door=False)
+            record = functools.partial(
+                _record,
+                answer_id=upload.answer_id,
+                round_id=upload.round_id,
+                verdict=verdict,
+                margin=margin,
+                participant=manifest.participant,
+                address=None,
+            )
+            await _write(database, record)
+    except Exception as exc:
+        log.warning("uploads left pending by closed rounds: not judged now: %s", exc)
+        return 0
+    if left:
+        log.info("%d uploads left pending by closed rounds judged", len(left))
+    return len(left)
+
+
+def _left_in_thread(database: Database, auction_id: int | None) -> list[crud.PendingUpload]:
+    with database.session(write=False) as session:
+        return crud.left_pending(session, auction_id=auction_id)
 
 
 async def _verdict_or_answer(

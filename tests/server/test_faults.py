@@ -7,6 +7,7 @@ judged (a retry of the same body gets its verdict after the restart)."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import secrets
 import signal
@@ -346,6 +347,72 @@ def test_uploads_that_reached_the_server_in_time_count_after_a_kill_9(tmp_path: 
         (only,) = auction["fine_tuning"]
         assert only["status"] == "closed"
         assert sorted(a["outcome"] for a in only["answers"]) == ["accepted"] * len(asked)
+    finally:
+        first.kill()
+        second.stop()
+
+
+def test_uploads_a_cancel_closed_the_round_on_are_judged_without_a_retry(
+    tmp_path: Path,
+) -> None:
+    """Uploads stored in time, their requests cut off by a kill -9 before any verdict, in a
+    round a cancel closes (before the kill, or after the restart): each is judged all the same,
+    without a retry of its body, as its request would have been (they stayed pending)."""
+    url = f"sqlite:///{tmp_path / 'cancelled.db'}"
+    (first, second), admin = server_pair(url, tmp_path)
+    try:
+        first.start()
+        manifests: dict[int, dict[str, Any]] = {}
+        tokens: dict[int, str] = {}
+        groups = []
+        for _ in range(2):  # the same weights under other names: the same auction twice
+            group, manifest_list, token_list = submit(first, 5, seed=900)
+            manifests |= dict(zip(group, manifest_list, strict=True))
+            tokens |= dict(zip(group, token_list, strict=True))
+            groups.append(group)
+        body = {"n_fish": 1, "fine_tune_mode": "remote", "seed": 2, "fine_tune_rounds": 1}
+        auctions = [  # rounds open long enough for the restart
+            create(first, admin, body | {"model_ids": group, "round_deadline_s": 300})
+            for group in groups
+        ]
+        states = [next_round(first, auction_id, 0, TIMEOUT_S) for auction_id in auctions]
+        frozen = spawned(first)
+        signal_all(frozen, signal.SIGSTOP)  # stored on arrival, never judged
+        for auction_id, state in zip(auctions, states, strict=True):
+            for model_id in state["asked"]:
+                group = groups[auctions.index(auction_id)]
+                call = functools.partial(
+                    upload, first, auction_id, state, model_id, manifests, tokens, group
+                )
+                threading.Thread(target=_swallow, args=(call,), daemon=True).start()
+        database = Database(url)
+        try:
+            for auction_id, state in zip(auctions, states, strict=True):
+                stored = ["pending"] * len(state["asked"])
+                wait_for(lambda a=auction_id: {"stored": _stored(database, a)},
+                         lambda s, n=stored: s["stored"] == n, 30)  # fmt: skip
+        finally:
+            database.close()
+        before = httpx.delete(f"{first.url}/auctions/{auctions[0]}", headers=admin, timeout=30)
+        assert before.status_code == 200, before.text  # its round closes, uploads pending
+        first.kill()
+        signal_all(frozen, signal.SIGKILL)
+        signal_all(frozen, signal.SIGCONT)
+
+        second.start()  # judges what the first left pending in closed rounds
+        after = httpx.delete(f"{second.url}/auctions/{auctions[1]}", headers=admin, timeout=30)
+        assert after.status_code == 200, after.text  # judged once the answer is sent
+        for auction_id, state in zip(auctions, states, strict=True):
+            auction = wait_for(
+                lambda a=auction_id: get(second, a),
+                lambda a: all(x["outcome"] != "pending" for x in a["fine_tuning"][0]["answers"]),
+                TIMEOUT_S,
+            )
+            assert auction["status"] == "cancelled"
+            (only,) = auction["fine_tuning"]
+            outcomes = {a["model_id"]: a["outcome"] for a in only["answers"]}
+            assert outcomes == dict.fromkeys(state["asked"], "accepted")
+            assert all(a["uploaded_id"] is not None for a in only["answers"])
     finally:
         first.kill()
         second.stop()

@@ -13,6 +13,7 @@ from server.api.deps import (
     AuctionRunnerDep,
     ParticipantTokenDep,
     RoundsDep,
+    ServicesDep,
     SessionDep,
     SettingsDep,
     read_in_thread,
@@ -192,13 +193,19 @@ async def read_auction(auction_id: AuctionIdPath, session: SessionDep) -> Auctio
     responses=responses(401, 403, 404, 409, 422),
 )
 async def cancel_auction(
-    auction_id: AuctionIdPath, session: SessionDep, runner: AuctionRunnerDep, watcher: RoundsDep
+    auction_id: AuctionIdPath,
+    session: SessionDep,
+    runner: AuctionRunnerDep,
+    watcher: RoundsDep,
+    services: ServicesDep,
 ) -> AuctionPublic:
     """Cancel a pending or running auction (operator): status ``cancelled``, its committed
     rounds, buyers and quitters kept, its open fine-tuning round closed, its worker stopped;
-    the agents waiting on its rounds are answered at once. An ended auction is 409."""
+    the agents waiting on its rounds are answered at once. An ended auction is 409. Uploads
+    its round holds that no request waits for any more are judged after the answer."""
     view = await run_in_threadpool(auctions.cancel_auction, session, runner, auction_id)
     watcher.poke(auction_id)
+    services.judge_left_pending(auction_id)
     return auction_public(view)
 
 

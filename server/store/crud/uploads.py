@@ -315,6 +315,24 @@ class PendingUpload:
 
     answer_id: int
     manifest: dict[str, Any]
+    round_id: int = 0
+
+
+def left_pending(session: Session, *, auction_id: int | None = None) -> list[PendingUpload]:
+    """The uploads still pending in rounds already closed (a cancel or a failure closes a
+    round whatever its uploads), oldest first; of ``auction_id`` only, if given."""
+    query = (
+        select(FineTuneAnswer.id, FineTuneAnswer.manifest, FineTuneAnswer.round_id)
+        .join(FineTuneRound, FineTuneRound.id == FineTuneAnswer.round_id)
+        .where(
+            FineTuneAnswer.outcome == AnswerOutcome.PENDING,
+            FineTuneRound.status == RoundStatus.CLOSED,
+        )
+    )
+    if auction_id is not None:
+        query = query.where(FineTuneRound.auction_id == auction_id)
+    rows = session.connection().execute(query.order_by(FineTuneAnswer.id))
+    return [PendingUpload(row.id, row.manifest, row.round_id) for row in rows]
 
 
 def pending_uploads(

@@ -41,12 +41,18 @@ def _emit(obj: dict[str, Any]) -> None:
 def _malformed(errors: list[dict[str, str]], json_output: bool) -> SystemExit:
     err = Console(stderr=True, soft_wrap=True)
     for e in errors:
-        err.print(f"[red]error:[/red] {escape(e['path'])}: {escape(e['message'])}", highlight=False)
+        err.print(f"[red]error:[/red] {escape(_said(e))}", highlight=False)
     if json_output:
         first = errors[0] if errors else {"path": "$", "message": "malformed"}
-        error = f"{first['path']}: {first['message']}"
+        error = _said(first)
         _emit({"accepted": False, "reasons": [], "errors": errors, "error": error})
     return SystemExit(MALFORMED)
+
+
+def _said(error: dict[str, str]) -> str:
+    """An error as a line: ``path: message``, or the message alone for the whole file (``$``)."""
+    path = error["path"]
+    return error["message"] if path == "$" else f"{path}: {error['message']}"
 
 
 def _settings(json_output: bool) -> Settings:

@@ -389,7 +389,8 @@ def test_screen_missing_fields_and_broken_json_are_malformed(tmp_path) -> None:
     assert "decision.L: Field required" in outcome.stderr
     broken = screen(write(tmp_path, "b.json", '{"participant": '))
     assert broken.exit_code == 2
-    assert "$: Invalid JSON" in broken.stderr
+    assert "error: Invalid JSON" in broken.stderr  # the whole file: no path said
+    assert "$" not in broken.stderr
 
 
 def test_screen_unreadable_file_exits_2(tmp_path) -> None:

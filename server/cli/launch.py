@@ -17,19 +17,25 @@ import httpx
 HEALTH_POLL_S = 0.2
 
 
+MAX_PORT = 65535
+"""The largest TCP port."""
+
+
 def server_url(_ctx: object, param: object, value: str) -> str:
-    """A ``--server`` option's value: an ``http://`` or ``https://`` URL with a host (else a
-    usage error, exit 2), without its trailing slash."""
+    """A ``--server`` option's value: an ``http://`` or ``https://`` URL with a host and, if it
+    names one, a TCP port (else a usage error, exit 2), without its trailing slash."""
+    import click
+
     try:
         parsed = httpx.URL(value) if "://" in value else None
     except httpx.InvalidURL:
         parsed = None
     if parsed is None or parsed.scheme not in ("http", "https") or not parsed.host:
-        import click
-
         raise click.BadParameter(
             f"{value!r} is not an http:// or https:// URL of a server, e.g. http://127.0.0.1:8000"
         )
+    if parsed.port is not None and not 0 < parsed.port <= MAX_PORT:  # httpx takes any number
+        raise click.BadParameter(f"{value!r}: {parsed.port} is no TCP port (1 to {MAX_PORT})")
     return value.rstrip("/")
 
 

@@ -30,7 +30,7 @@ from rich.table import Table
 from rich.text import Text
 
 from server.cli.launch import server_url
-from server.cli.words import json_failure
+from server.cli.words import FiniteRange, json_failure
 
 FINISHED, ENDED_OTHERWISE, LOST = 0, 1, 3
 """Exit codes: the auction finished; it failed or was cancelled; it could not be followed
@@ -42,8 +42,6 @@ LIVE_ROWS = 20
 MAX_AUCTION_ID = 2**31 - 1
 """The largest auction id the API takes (``server.api.schemas.MAX_ROW_ID``, not imported: it
 would load FastAPI, tripling this command's start)."""
-MAX_PORT = 65535
-"""The largest TCP port."""
 RECONNECT_S = 60.0
 """How long a dropped stream is opened again, from its last event or the last time it stayed
 open, before ``watch`` gives up
@@ -311,11 +309,7 @@ def final_state(client: httpx.Client, auction_id: int) -> dict[str, Any]:
 def server_option(ctx: click.Context, param: click.Parameter, value: str) -> str:
     """``--server`` as ``server_url`` reads it; a value from ``SRD_URL`` is named so."""
     try:
-        url = server_url(ctx, param, value)
-        port = httpx.URL(url).port
-        if port is not None and not 0 < port <= MAX_PORT:  # httpx takes any number
-            raise click.BadParameter(f"{value!r}: {port} is no TCP port (1 to {MAX_PORT})")
-        return url
+        return server_url(ctx, param, value)
     except (click.BadParameter, httpx.InvalidURL) as exc:  # InvalidURL: server_url's own fault
         message = str(exc.message if isinstance(exc, click.BadParameter) else exc)
         from_environment = ctx.get_parameter_source("server") == ParameterSource.ENVIRONMENT
@@ -444,7 +438,7 @@ def live_view(watched: Watched) -> Group:
 )
 @click.option(
     "--reconnect-s",
-    type=click.FloatRange(0, 86400),
+    type=FiniteRange(0, 86400),
     default=RECONNECT_S,
     show_default=True,
     help="How long a dropped stream is opened again before giving up (from its last event, "

@@ -254,6 +254,15 @@ def test_watch_of_a_404_no_srd_server_sends_says_so(fake: tuple[str, type[FakeSe
     assert "auction 1 not found" not in result.stderr
 
 
+@pytest.mark.parametrize("command", ["agents", "watch"])
+def test_a_server_url_whose_port_is_no_port_is_a_usage_error(command: str) -> None:
+    args = ["--honest", "1", "--give-up", "1"] if command == "agents" else ["1"]
+    result = CliRunner().invoke(cli, [command, *args, "--server", "http://127.0.0.1:99999"])
+    assert result.exit_code == 2, (result.output, result.exception)  # agents: a traceback
+    assert "99999 is no TCP port (1 to 65535)" in result.stderr
+    assert "--server" in result.stderr and "Traceback" not in result.output
+
+
 def test_agents_against_a_server_answering_html_errors_say_it_is_no_srd_server(
     fake: tuple[str, type[FakeServer]],
 ) -> None:
@@ -292,7 +301,11 @@ def test_watch_names_srd_url_when_the_bad_url_came_from_it(value: str) -> None:
 @pytest.mark.parametrize("value", ["nan", "inf", "-inf", "NaN"])
 @pytest.mark.parametrize(
     ("args", "option"),
-    [(["screen", "x.json", "--margin"], "--margin"), (["healthcheck", "--timeout"], "--timeout")],
+    [
+        (["screen", "x.json", "--margin"], "--margin"),
+        (["healthcheck", "--timeout"], "--timeout"),
+        (["watch", "1", "--reconnect-s"], "--reconnect-s"),  # NaN: reconnected without a pause
+    ],
 )
 def test_a_non_finite_number_is_a_usage_error_naming_the_option(
     args: list[str], option: str, value: str

@@ -8,6 +8,7 @@ from their config dataclasses by ``server.cli.experiment``; ``serve``, ``screen`
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import importlib
 import os
@@ -39,6 +40,57 @@ meaning of their own."""
 
 TERMINATED = 143
 """The exit code of a command stopped by SIGTERM (``kill``, ``timeout``): 128 + 15."""
+OUTPUT_LOST = 74
+"""The exit code of a command whose standard output no longer took what it wrote (a full disk,
+a reader gone): sysexits' ``EX_IOERR``, never a code a command gives its result."""
+
+
+class OutputLostError(Exception):
+    """Standard output no longer takes what is written (a full disk, a reader gone)."""
+
+    def __init__(self, error: OSError) -> None:
+        super().__init__(error.strerror or str(error))
+        self.why = error.strerror or str(error)
+
+
+class _Output:
+    """Standard output whose failed writes and flushes raise ``OutputLostError`` (else as it
+    is): a command's printing, wherever it happens, then ends in one line and ``OUTPUT_LOST``
+    rather than a traceback and an exit code that tells a result nobody received."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return int(self._stream.write(text))
+        except OSError as exc:
+            raise OutputLostError(exc) from exc
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except OSError as exc:
+            raise OutputLostError(exc) from exc
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+def _drop_output() -> None:
+    """Send what is left in standard output's buffer to ``/dev/null``: the interpreter's own
+    flush at exit then fails no second time."""
+    with contextlib.suppress(OSError, ValueError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)  # standard output's descriptor
+        os.close(devnull)
+
+
+def _output_lost(error: OutputLostError) -> SystemExit:
+    _drop_output()
+    message = f"error: cannot write to standard output: {error.why}; the result is lost"
+    click.echo(message, err=True)
+    return SystemExit(OUTPUT_LOST)
 
 
 class Interrupted(click.ClickException):
@@ -179,6 +231,8 @@ class _Commands(click.Group):
             if json_output:
                 json_failure("aborted", command=command)
             raise SystemExit(INTERRUPTED if json_output else 1) from exc
+        except OutputLostError as exc:  # a full disk, a reader gone: one line, no traceback
+            raise _output_lost(exc) from None
         except Exception as exc:  # the traceback goes to stderr as usual
             if json_output:
                 json_failure(f"{type(exc).__name__}: {exc}", command=command)
@@ -199,12 +253,23 @@ cli = _Commands(name="srd", help=HELP, no_args_is_help=True)
 def main() -> None:
     """Console-script entry point. With standard output closed (``>&-``) a ``--json`` run is
     refused before it starts (exit 2: its one object would have nowhere to go); any other
-    command runs with its printed output discarded, its exit code telling the result."""
+    command runs with its printed output discarded, its exit code telling the result. Standard
+    output that fails a write (a full disk, a reader gone) ends the command with one line and
+    exit ``OUTPUT_LOST`` (74)."""
     if sys.stdout is None:
         if "--json" in sys.argv[1:]:
             click.echo("error: --json: standard output is closed; nothing was run", err=True)
             raise SystemExit(2)
         sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (for the process's life)
-    if sys.argv[1:2] != ["serve"]:  # which stops gracefully on SIGTERM, as uvicorn does
-        signal.signal(signal.SIGTERM, _on_terminate)
-    cli(prog_name="srd")
+    if sys.argv[1:2] == ["serve"]:  # which stops gracefully on SIGTERM, as uvicorn does
+        cli(prog_name="srd")
+        return
+    signal.signal(signal.SIGTERM, _on_terminate)
+    sys.stdout = _Output(sys.stdout)
+    try:
+        cli(prog_name="srd")
+    finally:  # what the command printed last may still be in the buffer
+        try:
+            sys.stdout.flush()
+        except OutputLostError as exc:
+            raise _output_lost(exc) from None

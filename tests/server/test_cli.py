@@ -122,6 +122,39 @@ def test_a_closed_stdout_refuses_json_before_the_run_and_discards_a_summary(tmp_
     assert "Traceback" not in done.stderr and (tmp_path / "b" / "result.json").is_file()
 
 
+@pytest.mark.parametrize("json_flag", [[], ["--json"]])
+def test_a_result_standard_output_does_not_take_is_one_line_and_exit_74(json_flag) -> None:
+    """A full disk (``/dev/full``) or a reader gone (a pipe closed): the verdict never reaches
+    anyone, so no verdict's exit code (0 accepted) and no traceback: one line, exit 74."""
+    manifest = str(Path(__file__).parents[2] / "examples" / "honest.json")
+    with open("/dev/full", "w") as full:
+        lost = subprocess.run(
+            [*SRD, "screen", manifest, *json_flag],
+            stdout=full,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=120,
+        )
+    assert lost.returncode == 74, lost.stderr
+    assert lost.stderr.strip() == (
+        "error: cannot write to standard output: No space left on device; the result is lost"
+    )
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone before anything is written
+    try:
+        gone = subprocess.run(
+            [*SRD, "screen", manifest, *json_flag],
+            stdout=write,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        os.close(write)
+    assert gone.returncode == 74 and "Broken pipe" in gone.stderr, gone.stderr
+    assert "Traceback" not in gone.stderr
+
+
 def test_human_output_is_a_short_summary_on_stdout(tmp_path) -> None:
     out = tmp_path / "study"
     args = ["auction-study", "--rarities", "0.25,0.75", "--trials", "1", "--patrons", "8"]

@@ -4,6 +4,7 @@ that run a real server): pick a free port, wait for ``/healthz``, stop gracefull
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -21,21 +22,33 @@ MAX_PORT = 65535
 """The largest TCP port."""
 
 
+_PASSWORD = re.compile(r"(//[^/?#@:]*:)[^/?#@]*@")
+"""The password of a URL's ``user:password@`` part."""
+
+
 def server_url(_ctx: object, param: object, value: str) -> str:
-    """A ``--server`` option's value: an ``http://`` or ``https://`` URL with a host and, if it
-    names one, a TCP port (else a usage error, exit 2), without its trailing slash."""
+    """A ``--server`` option's value: an ``http://`` or ``https://`` URL with a host, if it
+    names one a TCP port, and no user or password (else a usage error, exit 2, whose message
+    never shows a password), without its trailing slash. srd authenticates with bearer
+    tokens, in the ``Authorization`` header a URL's credentials would take."""
     import click
 
+    shown = repr(_PASSWORD.sub(r"\1***@", value))
     try:
         parsed = httpx.URL(value) if "://" in value else None
     except httpx.InvalidURL:
         parsed = None
     if parsed is None or parsed.scheme not in ("http", "https") or not parsed.host:
         raise click.BadParameter(
-            f"{value!r} is not an http:// or https:// URL of a server, e.g. http://127.0.0.1:8000"
+            f"{shown} is not an http:// or https:// URL of a server, e.g. http://127.0.0.1:8000"
         )
     if parsed.port is not None and not 0 < parsed.port <= MAX_PORT:  # httpx takes any number
-        raise click.BadParameter(f"{value!r}: {parsed.port} is no TCP port (1 to {MAX_PORT})")
+        raise click.BadParameter(f"{shown}: {parsed.port} is no TCP port (1 to {MAX_PORT})")
+    if parsed.userinfo:
+        raise click.BadParameter(
+            f"{shown}: a server's URL carries no user or password (srd sends bearer tokens, "
+            "in the header the URL's credentials would take)"
+        )
     return value.rstrip("/")
 
 

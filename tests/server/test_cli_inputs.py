@@ -263,6 +263,20 @@ def test_a_server_url_whose_port_is_no_port_is_a_usage_error(command: str) -> No
     assert "--server" in result.stderr and "Traceback" not in result.output
 
 
+@pytest.mark.parametrize("command", ["agents", "watch"])
+@pytest.mark.parametrize("url", ["http://ann:s3cret@127.0.0.1:9", "ftp://ann:s3cret@host"])
+def test_a_server_url_with_credentials_is_refused_without_showing_the_password(
+    command: str, url: str
+) -> None:
+    """A user and password in ``--server`` would take the header srd's bearer tokens go in:
+    refused, and the refusal (echoed to a terminal or a log) masks the password."""
+    args = ["--honest", "1", "--give-up", "1"] if command == "agents" else ["1"]
+    result = CliRunner().invoke(cli, [command, *args, "--server", url, "--json"])
+    assert result.exit_code == 2, (result.output, result.exception)
+    assert "s3cret" not in result.output and "ann:***@" in result.stderr
+    assert [e["option"] for e in json.loads(result.stdout)["errors"]] == ["--server"]
+
+
 def test_agents_against_a_server_answering_html_errors_say_it_is_no_srd_server(
     fake: tuple[str, type[FakeServer]],
 ) -> None:

@@ -454,9 +454,12 @@ class Cost:
     """The integer option that drives the cost most: the one to lower."""
 
 
-def over_budget(config: Any, budget_s: float) -> ConfigError | None:
+def over_budget(
+    config: Any, budget_s: float, setting: str = "SRD_JOB_BUDGET_S"
+) -> ConfigError | None:
     """A ConfigError naming the option to lower when ``config.cost()`` exceeds ``budget_s``,
-    with the largest value of that option that fits (the other options as given)."""
+    with the largest value of that option that fits (the other options as given); ``setting``
+    names where the budget comes from."""
     cost: Cost = config.cost()
     if cost.seconds <= budget_s:
         return None
@@ -466,7 +469,7 @@ def over_budget(config: Any, budget_s: float) -> ConfigError | None:
         fits = dataclasses.replace(config, **{cost.option: middle}).cost().seconds <= budget_s
         low, high = (middle, high) if fits else (low, middle)
     said = f"this run needs about {cost.seconds:.3g} s of compute, over the budget of "
-    said += f"{budget_s:g} s (SRD_JOB_BUDGET_S)"
+    said += f"{budget_s:g} s ({setting})"
     if low >= 1:
         return ConfigError([{"field": cost.option, "message": f"{said}: lower {cost.option} to "
                              f"at most {low}"}])  # fmt: skip

@@ -28,7 +28,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from server.cli.words import header, json_failure, plain, rounded
+from server.cli.words import FiniteRange, header, json_failure, plain, rounded
 from server.config import Settings
 from sim.experiment import (
     MAX_NUMBER_CHARS,
@@ -37,6 +37,7 @@ from sim.experiment import (
     config_fields,
     default_out_dir,
     json_safe,
+    over_budget,
     parse_config,
     read_number,
     write_json,
@@ -45,6 +46,10 @@ from studies.registry import ExperimentKind
 
 INVALID = 2
 """Exit code of an invalid option (as click's own usage errors)."""
+CLI_BUDGET_S = 86_400.0
+"""The compute a run may need by default (``--budget-s``), estimated as a job's is: a day on
+one core. Options that would keep the machine busy for days (a typo in ``--trials``) are refused
+before the run, naming the option to lower; a longer run raises it."""
 WORKER_TORCH_THREADS = Settings.model_fields["worker_torch_threads"].default
 """Torch threads of an experiment run from the command line: the job workers' default (the
 experiments' tensors are small; on a busy machine more threads only contend)."""
@@ -126,9 +131,18 @@ def experiment_command(kind: ExperimentKind) -> click.Command:
             default=False,
             help="Print exactly one JSON object on stdout.",
         ),
+        click.Option(
+            ["--budget-s", "budget_s"],
+            type=FiniteRange(min=1, max=1e9),
+            default=CLI_BUDGET_S,
+            show_default=True,
+            help="The most compute a run may need, in seconds on one core, as estimated before "
+            "it starts: a run over it is refused, naming the option to lower (raise this to run "
+            "it anyway).",
+        ),
     ]
 
-    def callback(out: Path | None, json_output: bool, **values: Any) -> None:
+    def callback(out: Path | None, json_output: bool, budget_s: float, **values: Any) -> None:
         # only what the command line gave: an option given is checked against the others
         # (``--nominal --trials 7`` is refused though 7 is the default)
         source = click.get_current_context().get_parameter_source
@@ -137,7 +151,7 @@ def experiment_command(kind: ExperimentKind) -> click.Command:
             for name, value in values.items()
             if value is not None and source(name) is not ParameterSource.DEFAULT
         }
-        execute(kind, options, out=out, json_output=json_output)
+        execute(kind, options, out=out, json_output=json_output, budget_s=budget_s)
 
     return click.Command(
         kind.name, params=params, callback=callback, help=plain(kind.config_class().__doc__ or "")
@@ -191,9 +205,16 @@ def _unwritable(folder: Path) -> str | None:
 
 
 def execute(
-    kind: ExperimentKind, options: dict[str, Any], *, out: Path | None, json_output: bool
+    kind: ExperimentKind,
+    options: dict[str, Any],
+    *,
+    out: Path | None,
+    json_output: bool,
+    budget_s: float = CLI_BUDGET_S,
 ) -> dict[str, Any]:
-    """Validate the options, run the experiment with a progress bar, print its result."""
+    """Validate the options (a run whose estimated compute is over ``budget_s`` is refused, as
+    a job over the server's budget is), run the experiment with a progress bar, print its
+    result."""
     stderr = Console(stderr=True, soft_wrap=True)  # an error line stays one line in a log
     config_cls, runner = kind.load()
     import torch  # loaded by every experiment: run it on one thread, as the job workers do
@@ -201,10 +222,14 @@ def execute(
     torch.set_num_threads(WORKER_TORCH_THREADS)
     try:
         config = parse_config(config_cls, options)
+        too_much = over_budget(config, budget_s, "--budget-s")
+        if too_much is not None:
+            raise too_much
     except ConfigError as exc:
         errors = []
         for err in exc.errors:
-            option = "--" + err["field"].split(".")[0].replace("_", "-")
+            field = err["field"].split(".")[0]
+            option = "--" + field.replace("_", "-") if field else "--budget-s"
             message = _element_message(err["field"], err["message"], options)
             errors.append({"option": option, "message": message})
             stderr.print(f"[red]error:[/red] {option}: {escape(message)}", highlight=False)

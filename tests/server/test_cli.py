@@ -198,6 +198,26 @@ def test_bad_options_exit_2_naming_the_option(tmp_path, args, option, message) -
     assert not (tmp_path / "x").exists()
 
 
+def test_a_run_over_its_compute_budget_is_refused_naming_the_option_to_lower(tmp_path) -> None:
+    """A grid that would keep the machine busy for days (a typo in ``--trials``) is refused
+    before it runs, naming the option and how far to lower it; ``--budget-s`` moves the bar."""
+    out = tmp_path / "never"
+    days = ["cheetah", "--backswing", "1,2,3,4,5,6,7,8", "--inhibitor", "0,1,2,3,4,5,6,7"]
+    days += ["--srd", "off", "--trials", "64", "--steps", "1000000", "--out", str(out), "--json"]
+    refused = CliRunner().invoke(cli, days)
+    assert refused.exit_code == 2, refused.output
+    (error,) = json.loads(refused.stdout)["errors"]
+    assert error["option"] == "--trials"
+    assert "over the budget of 86400 s (--budget-s): lower trials to at most" in error["message"]
+    assert not out.exists()  # nothing ran, nothing made
+    small = ["auction-study", "--rarities", "0.5", "--trials", "1000", "--patrons", "8"]
+    tight = CliRunner().invoke(cli, [*small, "--budget-s", "1", "--out", str(out), "--json"])
+    assert tight.exit_code == 2, tight.output  # about 1.25 s, estimated
+    assert "over the budget of 1 s (--budget-s): lower trials to at most 800" in tight.stdout
+    done = CliRunner().invoke(cli, [*small, "--out", str(tmp_path / "ok"), "--json"])
+    assert done.exit_code == 0, done.output
+
+
 @pytest.mark.parametrize(
     ("args", "line"),
     [

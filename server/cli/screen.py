@@ -133,7 +133,7 @@ def _json_errors(text: bytes) -> list[dict[str, str]]:
 
 
 @click.command("screen")
-@click.argument("file", type=click.Path(path_type=Path))
+@click.argument("file", type=click.Path())
 @click.option(
     "--json", "json_output", is_flag=True, help="Print exactly one JSON object on stdout."
 )
@@ -145,7 +145,7 @@ def _json_errors(text: bytes) -> list[dict[str, str]]:
     help="The server's review margin (SRD_REVIEW_MARGIN), in price: 'status' says whether a "
     "server with it would accept, refuse or hold the model for an inspector.",
 )
-def command(file: Path, json_output: bool, margin: float) -> None:
+def command(file: str, json_output: bool, margin: float) -> None:
     """Screen a Fish Sale Negotiator manifest: semantic rules on its named weights and
     behavioural probes, and the answer POST /submit would give: accepted, refused, or held
     for an inspector (within --margin of a bar, or by a bar that holds rather than refuses).
@@ -155,8 +155,10 @@ def command(file: Path, json_output: bool, margin: float) -> None:
     refused as the server refuses it; SRD_SCREENER_SECRET, if set, must be one srd serve
     takes. Exit 130 when interrupted (Ctrl-C)."""
     settings = _settings(json_output)
+    if not file:  # Path("") would read the working folder, "."
+        raise _malformed([{"path": "$", "message": "cannot read '': no file named"}], json_output)
     try:
-        text = _read(file, settings.max_body_bytes)
+        text = _read(Path(file), settings.max_body_bytes)
     except OSError as exc:
         raise _malformed([{"path": "$", "message": f"cannot read {file}: {exc.strerror}"}],
                          json_output) from exc  # fmt: skip

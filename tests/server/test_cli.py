@@ -450,6 +450,8 @@ def test_screen_unreadable_file_exits_2(tmp_path) -> None:
     outcome = screen(str(tmp_path / "missing.json"), "--json")
     assert outcome.exit_code == 2
     assert "cannot read" in json.loads(outcome.stdout)["errors"][0]["message"]
+    empty = screen("")  # not the working folder, "."
+    assert empty.exit_code == 2 and "error: cannot read '': no file named" in empty.stderr
 
 
 def test_screen_usage_errors_keep_the_verdicts_keys() -> None:

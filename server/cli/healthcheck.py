@@ -51,7 +51,8 @@ def health_url(host: str, port: int) -> httpx.URL | None:
     help="Seconds to wait for the server: to connect, then for its answer.",
 )
 def command(timeout: float) -> None:
-    """Exit 0 when GET /healthz of the configured server (SRD_HOST, SRD_PORT) answers 200, else
+    """Exit 0 when GET /healthz of the configured server (SRD_HOST, SRD_PORT) answers 200 with
+    srd's ready answer (status ok), else
     1 (saying why: an unreachable or unready server, a setting that cannot be used); 2 for a
     bad option; 130 when interrupted (Ctrl-C)."""
     import httpx
@@ -75,10 +76,22 @@ def command(timeout: float) -> None:
         click.echo(f"{url}: {exc}", err=True)
         raise SystemExit(UNHEALTHY) from exc
     status = response.status_code
-    click.echo(f"{url}: {status}", err=status != 200)
+    healthy = status == 200 and _says_ok(response)
+    said = "" if healthy or status != 200 else ", but no srd readiness answer (no status ok)"
+    click.echo(f"{url}: {status}{said}", err=not healthy)
     for problem in _problems(response):
         click.echo(f"  {problem}", err=True)
-    raise SystemExit(HEALTHY if status == 200 else UNHEALTHY)
+    raise SystemExit(HEALTHY if healthy else UNHEALTHY)
+
+
+def _says_ok(response: httpx.Response) -> bool:
+    """Whether the answer is an srd server's ready one (a JSON object with status ok), not
+    another server's page on the same address."""
+    try:
+        body = response.json()
+    except ValueError:
+        return False
+    return isinstance(body, dict) and body.get("status") == "ok"
 
 
 def _problems(response: httpx.Response) -> list[str]:

@@ -377,6 +377,24 @@ def test_healthcheck_of_a_ready_server_exits_0(fake: tuple[str, type[FakeServer]
         assert done.stdout == f"http://{HOST}:{port}/healthz: 200\n"
 
 
+@pytest.mark.parametrize(
+    "answer",
+    [
+        (200, "text/html", b"<html>It works!</html>"),  # a web server's page on the address
+        as_json({"status": "starting"}),
+        as_json(["ok"]),
+    ],
+)
+def test_healthcheck_of_a_200_that_is_no_ready_answer_exits_1(
+    fake: tuple[str, type[FakeServer]], answer: Answer
+) -> None:
+    url, handler = fake
+    handler.answers = {"/healthz": answer}
+    done = healthcheck(HOST, int(url.rsplit(":", 1)[1]))
+    assert done.returncode == 1, done.stdout
+    assert done.stderr.endswith(": 200, but no srd readiness answer (no status ok)\n")
+
+
 # --- srd screen: the file as POST /submit takes it, under the settings srd serve takes ---------
 
 

@@ -470,7 +470,11 @@ def _result(final: dict[str, Any], model_id: int) -> dict[str, Any]:
     for buyer in final["buyers"]:
         if buyer["model_id"] == model_id:
             return {"result": "bought", "price": buyer["price"]}
-    return {"result": "quit" if model_id in final["quitters"] else "stayed"}
+    if model_id in final["quitters"]:
+        return {"result": "quit"}
+    # still in when it ended: to its end (finished), or stopped by a cancel or a failure, as
+    # GET /participants/{name} words it
+    return {"result": "stayed" if final["status"] == "finished" else "stopped"}
 
 
 def _missing(final: dict[str, Any], model_id: int) -> int:

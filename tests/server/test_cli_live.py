@@ -483,6 +483,41 @@ def test_agents_join_an_enrolling_auction_and_play_it(
     assert report["uploads"]["accepted"] + report["uploads"]["refused"] >= 1
 
 
+def test_agents_in_an_auction_cancelled_before_it_starts_say_they_were_stopped(
+    server: ServerProcess, client: httpx.Client
+) -> None:
+    """Patrons still in when their auction is cancelled are ``stopped``, as
+    ``GET /participants/{name}`` says (they were reported as having stayed to its end)."""
+    created = client.post(
+        "/auctions",
+        json={"n_fish": 1, "fine_tune_mode": "remote", "enrollment_s": 60, "seed": 5},
+        headers=ADMIN,
+    )
+    assert created.status_code == 201, created.text
+    auction_id = created.json()["auction_id"]
+    agents = subprocess.Popen(
+        [*srd_command(), "agents", "--server", server.url, "--name-prefix", "halted",
+         "--honest", "2", "--auction", str(auction_id), "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+    )  # fmt: skip
+    try:
+        wait_for(
+            lambda: client.get(f"/auctions/{auction_id}").json(),
+            lambda a: len(a["participants"]) == 2 or agents.poll() is not None,
+            120,
+        )
+        assert client.delete(f"/auctions/{auction_id}", headers=ADMIN).status_code == 200
+        out, err = agents.communicate(timeout=120)
+    finally:
+        agents.kill()
+    assert agents.returncode == 0, err
+    report = json.loads(out)
+    assert [a["result"] for a in report["per_agent"]] == ["stopped", "stopped"], report
+    name = report["per_agent"][0]["participant"]
+    (entry,) = client.get(f"/participants/{name}").json()["auctions"]
+    assert entry["outcome"] == "stopped"
+
+
 def test_agents_check_the_operator_token_and_the_tokens_file_before_registering(
     server: ServerProcess, client: httpx.Client, tmp_path: Path
 ) -> None:

@@ -101,14 +101,22 @@ RETRY_AFTER_S = 2
 """``Retry-After`` of a connection refused past its address's share."""
 
 
+_SECURITY_LINES = b"".join(
+    f"{name.lower()}: {value}\r\n".encode() for name, value in SECURITY_HEADERS.items()
+)
+"""The security headers every answer carries (``server.api.hardening``), as header lines."""
+
+
 def _answer(status: bytes, msg: str, kind: str, *, headers: bytes = b"") -> bytes:
-    """A whole response with the common error body (``server.api.errors``), closing."""
+    """A whole response with the common error body (``server.api.errors``) and the security
+    headers, closing."""
     item = {"loc": ["connection"], "msg": msg, "type": kind}
     body = json.dumps({"detail": [item]}, separators=(",", ":")).encode()
     return b"".join(
         (
             b"HTTP/1.1 " + status + b"\r\ncontent-type: application/json\r\n",
             b"content-length: %d\r\nconnection: close\r\n" % len(body),
+            _SECURITY_LINES,
             headers,
             b"\r\n",
             body,

@@ -127,14 +127,15 @@ def test_a_result_standard_output_does_not_take_is_one_line_and_exit_74(json_fla
     """A full disk (``/dev/full``) or a reader gone (a pipe closed): the verdict never reaches
     anyone, so no verdict's exit code (0 accepted) and no traceback: one line, exit 74."""
     manifest = str(Path(__file__).parents[2] / "examples" / "honest.json")
-    with open("/dev/full", "w") as full:
-        lost = subprocess.run(
-            [*SRD, "screen", manifest, *json_flag],
-            stdout=full,
-            stderr=subprocess.PIPE,
-            text=True,
-            timeout=120,
+
+    def screen_into(stdout: object) -> subprocess.CompletedProcess[str]:
+        command = [*SRD, "screen", manifest, *json_flag]
+        return subprocess.run(
+            command, stdout=stdout, stderr=subprocess.PIPE, text=True, timeout=120
         )
+
+    with open("/dev/full", "w") as full:
+        lost = screen_into(full)
     assert lost.returncode == 74, lost.stderr
     assert lost.stderr.strip() == (
         "error: cannot write to standard output: No space left on device; the result is lost"
@@ -142,13 +143,7 @@ def test_a_result_standard_output_does_not_take_is_one_line_and_exit_74(json_fla
     read, write = os.pipe()
     os.close(read)  # the reader is gone before anything is written
     try:
-        gone = subprocess.run(
-            [*SRD, "screen", manifest, *json_flag],
-            stdout=write,
-            stderr=subprocess.PIPE,
-            text=True,
-            timeout=120,
-        )
+        gone = screen_into(write)
     finally:
         os.close(write)
     assert gone.returncode == 74 and "Broken pipe" in gone.stderr, gone.stderr

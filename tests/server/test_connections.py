@@ -199,6 +199,9 @@ def test_a_header_the_server_will_not_serve_is_refused_before_any_route(
         "application/json",
         kind,
     )
+    # refused below the app, with the headers every answer carries
+    assert headers["x-content-type-options"] == "nosniff" and headers["x-frame-options"] == "deny"
+    assert headers["content-security-policy"].startswith("default-src 'none'")
     # HTTP/1.0 predates Host: served without one
     raw = b"GET /healthz HTTP/1.0\r\n\r\n"
     assert asyncio.run(_exchange(server, NEIGHBOUR, raw))[0] == 200

@@ -26,6 +26,7 @@ from agents.remote import RoundInfo, faithful_fine_tune
 from server.cli.launch import ServerProcess
 from server.store.db import Database
 from server.store.tables import FineTuneAnswer, FineTuneRound
+from tests.support.databases import BACKENDS, fresh_database
 from tests.support.factories import honest
 from tests.support.processes import descendants, process_name, server_pair
 from tests.support.remote import next_round
@@ -416,6 +417,50 @@ def test_uploads_a_cancel_closed_the_round_on_are_judged_without_a_retry(
     finally:
         first.kill()
         second.stop()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_round_its_last_verdict_closed_reads_closed_before_the_next_step(
+    backend: str, tmp_path: Path
+) -> None:
+    """The step that plays on is held back (its workers stopped, as when they are all busy):
+    the round the last upload's verdict closed reads closed at once, not when the next
+    iteration is committed (the live reads did not see the close: it left the auction's
+    ``updated_at`` as it was)."""
+    for url in fresh_database(backend, tmp_path):
+        _closed_before_the_next_step(url, tmp_path)
+
+
+def _closed_before_the_next_step(url: str, tmp_path: Path) -> None:
+    (server, _), admin = server_pair(url, tmp_path)
+    with server:
+        ids, manifest_list, token_list = submit(server, 5, seed=900)
+        manifests = dict(zip(ids, manifest_list, strict=True))
+        tokens = dict(zip(ids, token_list, strict=True))
+        body = {"n_fish": 1, "model_ids": ids, "fine_tune_mode": "remote", "seed": 2}
+        auction_id = create(server, admin, body | {"fine_tune_rounds": 1, "round_deadline_s": 120})
+        state = next_round(server, auction_id, 0, TIMEOUT_S)
+        current = f"{server.url}/auctions/{auction_id}/rounds/current"
+        waiting = threading.Thread(  # a patron waiting for the next round: the round is watched
+            target=_swallow,
+            args=(lambda: httpx.get(current, params={"wait": 30, "after": 1}, timeout=60),),
+            daemon=True,
+        )
+        waiting.start()
+        time.sleep(0.5)
+        steps = [p for p in spawned(server) if process_name(p) != "srd-screening"]
+        signal_all(steps, signal.SIGSTOP)
+        played = get(server, auction_id)["iteration"]
+        try:
+            for model_id in state["asked"]:
+                answer = upload(server, auction_id, state, model_id, manifests, tokens, ids)
+                assert answer.status_code == 200, answer.text
+            wait_for(lambda: httpx.get(current, timeout=30).json(),
+                     lambda c: c["status"] == "closed", 10)  # fmt: skip
+            assert get(server, auction_id)["iteration"] == played  # no step meanwhile
+        finally:
+            signal_all(steps, signal.SIGCONT)
+        assert ended(server, auction_id)["status"] == "finished"
 
 
 def _swallow(call: Any) -> None:

@@ -396,7 +396,11 @@ _JUDGED = (
 _DUE_AT = (
     update(Auction)
     .where(Auction.id == bindparam("auction_id"), Auction.status == AuctionStatus.RUNNING)
-    .values(next_step_at=bindparam("now", type_=Auction.next_step_at.type))
+    .values(
+        next_step_at=bindparam("now", type_=Auction.next_step_at.type),
+        # the round's close is a change of the auction for live updates, which read this
+        updated_at=bindparam("now", type_=Auction.updated_at.type),
+    )
 )
 
 

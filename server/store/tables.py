@@ -78,16 +78,52 @@ _LOOKALIKE = str.maketrans({"1": "l", "i": "l", "|": "l", "0": "o", "_": "-", ".
 def participant_key(name: str) -> str:
     """What makes two participant names the same, as a person reads them: their NFKC form,
     case-folded, with the characters one takes for one another made one (I, l and 1; O and 0;
-    rn and m; vv and w; -, _ and ., and a run of them), separators at the ends and zeros
-    leading a number (at the start or after a separator) left out: ``honest-I``,
+    rn and m; vv and w; cl and d; -, _ and ., and a run of them), separators at the ends and
+    zeros leading a number (at the start or after a separator) left out: ``honest-I``,
     ``honest_1``, ``Honest-01`` and ``honest-1`` are one name, which belongs to whoever
-    registered one of them first."""
+    registered one of them first; so are ``dave`` and ``clave``."""
     folded = unicodedata.normalize("NFKC", name).casefold()
     # zeros (or an O) leading a number: at the name's start or after a separator only, so
     # that agent-l01 still reads as agent-101, not as agent-11
     folded = re.sub(r"(^|[-_.])[0o]+(?=[0-9])", r"\1", folded)
-    read = folded.translate(_LOOKALIKE).replace("rn", "m").replace("vv", "w")
+    read = folded.translate(_LOOKALIKE)
+    for pair, letter in _READ_AS_ONE:
+        read = read.replace(pair, letter)
     return re.sub(r"-+", "-", read).strip("-") or read
+
+
+_READ_AS_ONE = (("rn", "m"), ("vv", "w"), ("cl", "d"))
+"""Two letters a reader takes for one (after ``_LOOKALIKE``: c1 and cI read cl too)."""
+
+
+def rekey_participants(connection: Any) -> None:
+    """Compute every stored participant's ``name_key`` again (a migration's, after
+    ``participant_key`` folded more). Participants stored before whose names now fold to one
+    key keep working under their exact names: the first registered keeps the key, each later
+    one gets it suffixed with ``#<id>`` (which no name can fold to)."""
+    from sqlalchemy import bindparam, select, update
+
+    rows = connection.execute(
+        select(Participant.id, Participant.name).order_by(Participant.id)
+    ).all()
+    taken: set[str] = set()
+    keys = []
+    for participant_id, name in rows:
+        key = participant_key(name)
+        if key in taken:
+            key = f"{key}#{participant_id}"
+        taken.add(key)
+        keys.append({"row_id": participant_id, "key": key})
+    set_key = (
+        update(Participant)
+        .where(Participant.id == bindparam("row_id"))
+        .values(name_key=bindparam("key"))
+    )
+    if keys:  # through keys no name folds to first, so that no update meets a unique key
+        connection.execute(
+            set_key, [{"row_id": k["row_id"], "key": f"#{k['row_id']}"} for k in keys]
+        )
+        connection.execute(set_key, keys)
 
 
 def _name_key_default(context: DefaultExecutionContext) -> str:

@@ -81,7 +81,7 @@ class _Submission:
 
 COMPARED = (
     "(names are compared ignoring case, Unicode form and look-alike characters: I, l and 1; "
-    "O and 0; rn and m; -, _ and .)"
+    "O and 0; rn and m; vv and w; cl and d; -, _ and .)"
 )
 
 

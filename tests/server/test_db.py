@@ -127,7 +127,7 @@ def test_look_alike_names_registered_before_keep_working_and_new_ones_are_taken(
     command.upgrade(alembic_config(fresh_database_url), "0014")
     database = Database(fresh_database_url)
     with database.engine.begin() as connection:
-        for name in ("look-1", "look-I"):
+        for name in ("look-1", "look-I", "dove-2", "clove-2"):
             connection.execute(
                 text(
                     "insert into participants (name, name_key, token_hash, created_at) "
@@ -139,7 +139,7 @@ def test_look_alike_names_registered_before_keep_working_and_new_ones_are_taken(
     upgrade_schema(fresh_database_url)
     settings = make_settings(fresh_database_url, tmp_path / "data")
     with TestClient(create_app(settings)) as client:
-        for name in ("look-1", "look-I"):  # each still its own participant's: it asks its token
+        for name in ("look-1", "look-I", "dove-2", "clove-2"):  # each its own participant's
             again = client.post("/submit", json=honest(name))
             assert again.status_code == 401 and "missing_token" in again.text, again.text
             assert client.get(f"/participants/{name}").json()["name"] == name  # its own page
@@ -160,6 +160,10 @@ def test_look_alike_names_registered_before_keep_working_and_new_ones_are_taken(
             assert client.post("/submit", json=honest(alike)).status_code == 409, alike
         for apart in ("agent-11", "olive-1", "live-1"):  # distinct names stay apart
             assert client.post("/submit", json=honest(apart)).status_code == 201, apart
+        client.post("/submit", json=honest("dave-7"))
+        for alike in ("clave-7", "C1ave-7", "cIave-7"):  # cl reads d (so do c1 and cI)
+            assert client.post("/submit", json=honest(alike)).status_code == 409, alike
+        assert client.post("/submit", json=honest("cave-7")).status_code == 201
 
 
 def _insert_row(connection: Any, name: str, given: dict[str, Any]) -> int:

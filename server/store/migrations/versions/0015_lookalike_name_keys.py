@@ -13,47 +13,18 @@ Revises: 0014
 
 from __future__ import annotations
 
-import sqlalchemy as sa
 from alembic import op
 
-from server.store.tables import participant_key
+from server.store.tables import rekey_participants
 
 revision = "0015"
 down_revision = "0014"
 branch_labels = None
 depends_on = None
 
-participants = sa.table(
-    "participants",
-    sa.column("id", sa.Integer),
-    sa.column("name", sa.String),
-    sa.column("name_key", sa.String),
-)
-
 
 def upgrade() -> None:
-    connection = op.get_bind()
-    rows = connection.execute(
-        sa.select(participants.c.id, participants.c.name).order_by(participants.c.id)
-    ).all()
-    taken: set[str] = set()
-    keys = []
-    for participant_id, name in rows:
-        key = participant_key(name)
-        if key in taken:
-            key = f"{key}#{participant_id}"
-        taken.add(key)
-        keys.append({"row_id": participant_id, "key": key})
-    set_key = (
-        participants.update()
-        .where(participants.c.id == sa.bindparam("row_id"))
-        .values(name_key=sa.bindparam("key"))
-    )
-    if keys:  # through keys no name folds to first, so that no update meets a unique key
-        connection.execute(
-            set_key, [{"row_id": k["row_id"], "key": f"#{k['row_id']}"} for k in keys]
-        )
-        connection.execute(set_key, keys)
+    rekey_participants(op.get_bind())
 
 
 def downgrade() -> None:

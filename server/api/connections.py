@@ -107,11 +107,15 @@ _SECURITY_LINES = b"".join(
 """The security headers every answer carries (``server.api.hardening``), as header lines."""
 
 
+def _error_body(loc: list[str], msg: str, kind: str) -> bytes:
+    """The common error body (``server.api.errors``) of one refusal."""
+    item = {"loc": loc, "msg": msg, "type": kind}
+    return json.dumps({"detail": [item]}, separators=(",", ":")).encode()
+
+
 def _answer(status: bytes, msg: str, kind: str, *, headers: bytes = b"") -> bytes:
-    """A whole response with the common error body (``server.api.errors``) and the security
-    headers, closing."""
-    item = {"loc": ["connection"], "msg": msg, "type": kind}
-    body = json.dumps({"detail": [item]}, separators=(",", ":")).encode()
+    """A whole response with the common error body and the security headers, closing."""
+    body = _error_body(["connection"], msg, kind)
     return b"".join(
         (
             b"HTTP/1.1 " + status + b"\r\ncontent-type: application/json\r\n",
@@ -641,8 +645,7 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
             status = 426
         loc = ["header", refusal.name] if isinstance(refusal, InvalidHeader) else ["connection"]
         msg = text.strip().removeprefix("Failed to open a WebSocket connection: ").split("\n")[0]
-        item = {"loc": loc, "msg": msg.rstrip(".") or "the handshake failed", "type": "handshake"}
-        body = json.dumps({"detail": [item]}, separators=(",", ":")).encode()
+        body = _error_body(loc, msg.rstrip(".") or "the handshake failed", "handshake")
         headers = Headers(
             [
                 ("Date", formatdate(usegmt=True)),

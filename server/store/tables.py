@@ -97,14 +97,16 @@ _READ_AS_ONE = (("rn", "m"), ("vv", "w"), ("cl", "d"))
 
 
 def rekey_participants(connection: Any) -> None:
-    """Compute every stored participant's ``name_key`` again (a migration's, after
-    ``participant_key`` folded more). Participants stored before whose names now fold to one
-    key keep working under their exact names: the first registered keeps the key, each later
-    one gets it suffixed with ``#<id>`` (which no name can fold to)."""
-    from sqlalchemy import bindparam, select, update
+    """Compute every stored participant's ``name_key`` (the migrations' that add it or fold
+    more). Participants stored before whose names fold to one key keep working under their
+    exact names: the first registered keeps the key, each later one gets it suffixed with
+    ``#<id>`` (which no name can fold to). The table as those revisions know it, not as the
+    model describes it now."""
+    from sqlalchemy import bindparam, column, select, table, update
 
+    participants = table("participants", column("id"), column("name"), column("name_key"))
     rows = connection.execute(
-        select(Participant.id, Participant.name).order_by(Participant.id)
+        select(participants.c.id, participants.c.name).order_by(participants.c.id)
     ).all()
     taken: set[str] = set()
     keys = []
@@ -115,8 +117,8 @@ def rekey_participants(connection: Any) -> None:
         taken.add(key)
         keys.append({"row_id": participant_id, "key": key})
     set_key = (
-        update(Participant)
-        .where(Participant.id == bindparam("row_id"))
+        update(participants)
+        .where(participants.c.id == bindparam("row_id"))
         .values(name_key=bindparam("key"))
     )
     if keys:  # through keys no name folds to first, so that no update meets a unique key

@@ -14,44 +14,19 @@ from __future__ import annotations
 import sqlalchemy as sa
 from alembic import op
 
-from server.store.tables import NAME_KEY_LENGTH, participant_key
+from server.store.tables import NAME_KEY_LENGTH, rekey_participants
 
 revision = "0006"
 down_revision = "0005"
 branch_labels = None
 depends_on = None
 
-participants = sa.table(
-    "participants",
-    sa.column("id", sa.Integer),
-    sa.column("name", sa.String),
-    sa.column("name_key", sa.String),
-)
-
 
 def upgrade() -> None:
     op.add_column(
         "participants", sa.Column("name_key", sa.String(length=NAME_KEY_LENGTH), nullable=True)
     )
-    connection = op.get_bind()
-    rows = connection.execute(
-        sa.select(participants.c.id, participants.c.name).order_by(participants.c.id)
-    ).all()
-    taken: set[str] = set()
-    updates = []
-    for participant_id, name in rows:
-        key = participant_key(name)
-        if key in taken:
-            key = f"{key}#{participant_id}"
-        taken.add(key)
-        updates.append({"row_id": participant_id, "key": key})
-    if updates:
-        connection.execute(
-            participants.update()
-            .where(participants.c.id == sa.bindparam("row_id"))
-            .values(name_key=sa.bindparam("key")),
-            updates,
-        )
+    rekey_participants(op.get_bind())
     with op.batch_alter_table("participants") as batch:
         batch.alter_column(
             "name_key", existing_type=sa.String(length=NAME_KEY_LENGTH), nullable=False

@@ -28,6 +28,7 @@ from server.store.db import Database
 from server.store.tables import FineTuneAnswer, FineTuneRound
 from tests.support.databases import BACKENDS, fresh_database
 from tests.support.factories import honest
+from tests.support.live import sse_events
 from tests.support.processes import descendants, process_name, server_pair
 from tests.support.remote import next_round
 from tests.support.server import wait_for
@@ -447,6 +448,14 @@ def _closed_before_the_next_step(url: str, tmp_path: Path) -> None:
             daemon=True,
         )
         waiting.start()
+        seen: list[str] = []  # the event ids of the auction's stream, its rounds asked for
+
+        def follow_rounds() -> None:
+            events = f"{server.url}/auctions/{auction_id}/events"
+            with httpx.stream("GET", events, params={"rounds": "true"}, timeout=60) as stream:
+                seen.extend(event.get("id", "") for event in sse_events(stream))
+
+        threading.Thread(target=_swallow, args=(follow_rounds,), daemon=True).start()
         time.sleep(0.5)
         steps = [p for p in spawned(server) if process_name(p) != "srd-screening"]
         signal_all(steps, signal.SIGSTOP)
@@ -457,6 +466,8 @@ def _closed_before_the_next_step(url: str, tmp_path: Path) -> None:
                 assert answer.status_code == 200, answer.text
             wait_for(lambda: httpx.get(current, timeout=30).json(),
                      lambda c: c["status"] == "closed", 10)  # fmt: skip
+            closed = f"{state['iteration']}.2"  # the event of the round's close
+            wait_for(lambda: {"seen": list(seen)}, lambda s: closed in s["seen"], 10)
             assert get(server, auction_id)["iteration"] == played  # no step meanwhile
         finally:
             signal_all(steps, signal.SIGCONT)

@@ -11,6 +11,7 @@ from pydantic import BaseModel
 from agents.manifest import Manifest
 
 FROZEN_IN_ROUNDS = "only weights and biases change in a fine-tuning round"
+FROZEN_JUDGE = "the judge is frozen (pfc.trainable is false): fine-tuning never moves it"
 NUMBERS = ("weights", "bias")
 """The fields a fine-tuning round moves, wherever a neuron has them."""
 
@@ -48,17 +49,27 @@ def round_update_problems(
     message) pairs: a fine-tuning round moves the numbers, never the model's design
     (activations, augmentation, settings, names). ``current_design``, if given, is
     ``design(current)`` computed earlier."""
-    if (design(current) if current_design is None else current_design) == design(update):
+    if (design(current) if current_design is None else current_design) == design(update) and (
+        current.pfc.trainable or current.pfc == update.pfc
+    ):
         return []
     return design_changes(current.model_dump(mode="json"), update.model_dump(mode="json"))
 
 
 def design_changes(current: dict[str, Any], update: dict[str, Any]) -> list[tuple[str, str]]:
-    """``round_update_problems`` on the manifests' JSON forms."""
+    """``round_update_problems`` on the manifests' JSON forms. A frozen judge
+    (``pfc.trainable`` false) keeps its weights and biases too: fine-tuning never moves them,
+    so an update that does is not a fine-tuned version of ``current``."""
     problems: list[tuple[str, str]] = []
+    judge_frozen = current.get("pfc", {}).get("trainable") is False
 
     def walk(before: Any, after: Any, path: tuple[str, ...]) -> None:
-        if path[-1:] == ("bias",) or path[-2:-1] == ("weights",):
+        numbers = path[-1:] == ("bias",) or path[-2:-1] == ("weights",)
+        if numbers and path[:1] == ("pfc",) and judge_frozen:
+            if before != after:
+                problems.append((".".join(path), f"{FROZEN_JUDGE}: must stay {before!r}"))
+            return
+        if numbers:
             return
         if isinstance(before, dict) and isinstance(after, dict) and before.keys() == after.keys():
             if before == after:  # nothing below differs (compared in C, not walked)

@@ -398,6 +398,35 @@ def test_upload_refusals_name_the_field_and_store_nothing(
     )
 
 
+def test_a_frozen_judge_stays_as_it_was_admitted(client: TestClient) -> None:
+    """A model whose judge is frozen (``pfc.trainable`` false) is never fine-tuned there, so
+    an upload that moves a PFC weight or bias is refused 422 naming each, and nothing of it is
+    stored; the faithful fine-tuning of the same patron (its judge untouched) is accepted."""
+    manifests = [moving(unique("frozen-judge"), seed=QUITTER_SEED + i) for i in range(8)]
+    for data in manifests:
+        data["pfc"]["trainable"] = False
+    patrons = submit(client, manifests)
+    body = {"n_fish": 1, "model_ids": [m for m, _ in patrons], "fine_tune_mode": "remote"}
+    created = client.post("/auctions", json={**body, "round_deadline_s": 60}, headers=ADMIN)
+    assert created.status_code == 201, created.text
+    remote = {"id": created.json()["auction_id"], "manifests": manifests, "patrons": patrons}
+    remote["state"] = open_round(client, remote["id"])
+    auction_id, model_id, token, tuned = first_asked_upload(remote)
+    switched = tuned.model_dump(mode="json")
+    switched["pfc"]["verdict"]["F"]["bias"] += 0.5
+    switched["pfc"]["judgement"]["FQ"]["weights"]["Q"] = 3.0
+    answer = put(client, auction_id, 1, model_id, _json(switched), token)
+    assert answer.status_code == 422, answer.text
+    assert loc_of(answer) == [
+        ["body", "pfc", "judgement", "FQ", "weights", "Q"],
+        ["body", "pfc", "verdict", "F", "bias"],
+    ]
+    assert "the judge is frozen (pfc.trainable is false)" in answer.text
+    assert stored_versions(client, tuned.participant) == 1
+    accepted = put(client, auction_id, 1, model_id, tuned.model_dump_json().encode(), token)
+    assert accepted.status_code == 200 and accepted.json()["accepted"], accepted.text
+
+
 def auction_quitters(client: TestClient, auction_id: int) -> list[int]:
     return list(client.get(f"/auctions/{auction_id}").json()["quitters"])
 

@@ -201,10 +201,10 @@ class ClientLimitsMiddleware:
         if self.held[keys[0]] >= share:
             who = "token" if client.startswith("token:") else "address"
             raise self._over(limit, share, who)
-        if limit.address_in_all is not None and client.startswith("token:"):
+        if limit.address_in_all is not None:  # the address's own and its tokens' together
             keys.append((limit.name, f"all:{_address(scope)}"))
             if self.held[keys[1]] >= limit.address_in_all:
-                who = "address (its participant tokens together)"
+                who = "address (with its participant tokens)"
                 raise self._over(limit, limit.address_in_all, who)
         for key in keys:
             self.held[key] += 1

@@ -349,7 +349,7 @@ def test_an_address_tokens_together_hold_a_quarter_of_the_streams(
                 assert answer.status_code == 201, answer.text
                 tokens[address].append({"Authorization": f"Bearer {answer.json()['token']}"})
 
-    async def run() -> tuple[list[list[int]], int, int]:
+    async def run() -> tuple[list[list[int]], int, int, int]:
         held = Held()
         try:
             statuses = []
@@ -362,15 +362,18 @@ def test_an_address_tokens_together_hold_a_quarter_of_the_streams(
                         for _ in range(STREAMS_PER_CLIENT)
                     ]
                 )
+                if address == addresses[0]:  # and none more without a token
+                    own = await _request(server, address, _get_events(auction_id), held)
             anonymous = await _request(server, "127.0.0.30", _get_events(auction_id), held)
             admin = await _request(server, "127.0.0.30", _get_events(auction_id, ADMIN), held)
-            return statuses, anonymous[0], admin[0]
+            return statuses, own[0], anonymous[0], admin[0]
         finally:
             held.close()
 
-    statuses, anonymous, operator = asyncio.run(run())
+    statuses, own, anonymous, operator = asyncio.run(run())
     quarter = 256 // 4
     assert statuses[0] == [200] * quarter + [429] * (5 * STREAMS_PER_CLIENT - quarter)
+    assert own == 429  # the address's own streams count in its quarter (it held 80)
     assert all(set(each) <= {200, 429, 503} and each.count(200) <= quarter for each in statuses)
     assert 503 in statuses[-1]  # the process is full: 4 × 64 ...
     assert anonymous == 503 and operator == 200  # ... but for the operator
@@ -633,6 +636,8 @@ def test_an_address_tokens_together_hold_a_quarter_of_the_watchers_long_polls(
             tokens.append({"Authorization": f"Bearer {answer.json()['token']}"})
     polls = [_get(f"/auctions/{auction_id}/rounds/current?wait=25", h) for h in tokens]
 
+    untokened = _get(f"/auctions/{auction_id}/rounds/current?wait=25")
+
     async def fill() -> tuple[list[int], list[int]]:
         held = Held()
         try:
@@ -640,13 +645,16 @@ def test_an_address_tokens_together_hold_a_quarter_of_the_watchers_long_polls(
                 *(_request(server, address, polls[0], held) for _ in range(LONG_POLLS_PER_CLIENT))
             )
             second = [(await _request(server, address, polls[1], held))[0] for _ in range(2)]
+            second.append((await _request(server, address, untokened, held))[0])
             return [status for status, _ in first], second
         finally:
             held.close()
 
     first, second = asyncio.run(fill())
     assert first == [HELD] * LONG_POLLS_PER_CLIENT
-    assert second == [429, 429]  # the second token's own share is untouched, the address's not
+    # The second token's own share is untouched, the address's not; nor do the address's polls
+    # without a token add to it (it held 256 with them).
+    assert second == [429, 429, 429]
 
 
 def test_head_answers_every_get_path_with_its_headers_and_no_body(

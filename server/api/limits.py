@@ -10,7 +10,11 @@
 
 Every request and WebSocket handshake, and every message received on a round socket
 (``RequestRate.take``, called by the socket for each), counts against its address's request
-rate: one allowance per address, whatever carries its requests. A request that finds its
+rate: one allowance per address, whatever carries its requests. A request's body, and the
+answer of a request held by none of the kinds above (a read), count one more for every
+``RATE_BODY_BYTES`` (an answer's once sent, as a debt: what an answer costs to build grows with
+its size, and 100 large reads a second were more than the process's event loop can give one
+address; a long poll's answer is built once for all its watchers). A request that finds its
 address's allowance spent waits for its turn when that comes within ``RATE_PACE_S`` (a client
 polling in a tight loop is slowed to the rate, not refused); later than that it is refused. A
 round upload (PUT) takes its turn ahead but is not held: its deadline is judged at its arrival,
@@ -47,7 +51,7 @@ from urllib.parse import parse_qsl
 
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
-from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from starlette.websockets import WebSocket
 
 from server.api.connections import client_address
@@ -74,7 +78,8 @@ RATE_BODY_BYTES = 16_384
 """A request's body counts as one more request for every this many bytes (by its
 ``Content-Length``; a chunked one as the largest body taken), and so does a round-socket
 message: reading and checking a body costs the event loop by its size (about 10 ms for 256 KB
-of numbers), so an address's rate bounds the bytes it makes the server read too."""
+of numbers), so an address's rate bounds the bytes it makes the server read too. A whole
+answer's body counts the same, once sent (about 2 ms of building per 16 KB of JSON)."""
 RATE_ADDRESSES = 100_000
 """Addresses whose request buckets a process keeps; past it, it forgets them all."""
 TOKEN_VERDICT_KEY = "srd.token_verdict"
@@ -172,7 +177,14 @@ class ClientLimitsMiddleware:
             await asyncio.sleep(delay_s)
         limit = self.limit_of(scope)
         if limit is None:
-            await self.app(scope, receive, send)
+            if scope["type"] != "http":
+                await self.app(scope, receive, send)
+                return
+            metered = _Metered(send)
+            try:
+                await self.app(scope, receive, metered)
+            finally:
+                self.rate.charge(scope, metered.sent)
             return
         try:
             release = await self.hold(scope, limit)
@@ -329,7 +341,7 @@ class RequestRate:
         """The 429 of a request ``take`` refused (``wait_s``: its answer)."""
         return _too_many(
             f"this address sends more than {self.per_s:g} requests a second, its share (a "
-            f"body counts one more for every {RATE_BODY_BYTES} bytes)",
+            f"body and an answer count one more for every {RATE_BODY_BYTES} bytes)",
             wait_s,
         )
 
@@ -357,6 +369,19 @@ class RequestRate:
         self._buckets[address] = (tokens - cost, now)
         return delay_s, 0
 
+    def charge(self, scope: Scope, answer_bytes: int) -> None:
+        """Take what an answer of ``answer_bytes`` costs beyond its request's token, once sent:
+        the bucket may go below empty (at most its depth), so the address's next requests wait
+        or are refused until the debt is paid back."""
+        extra = answer_bytes / RATE_BODY_BYTES
+        address = _address(scope)
+        if extra < 0.25 or address not in self._buckets or _is_operator(scope):
+            return  # small; cleared meanwhile (too many addresses); the operator: not counted
+        now = time.monotonic()
+        tokens, when = self._buckets[address]
+        tokens = min(self._depth, tokens + (now - when) * self.per_s)
+        self._buckets[address] = (max(-self._depth, tokens - extra), now)
+
     def _body_bytes(self, scope: Scope) -> int:
         """The size of the request's body by its headers (a chunked one: the largest taken;
         a wrong ``Content-Length`` is the body checks' to refuse)."""
@@ -366,6 +391,19 @@ class RequestRate:
                 return min(int(value), self.max_body_bytes)
             chunked = chunked or name == b"transfer-encoding"
         return self.max_body_bytes if chunked else 0
+
+
+class _Metered:
+    """An HTTP answer's ``send``, counting the bytes of its body."""
+
+    def __init__(self, send: Send) -> None:
+        self._send = send
+        self.sent = 0
+
+    async def __call__(self, message: Message) -> None:
+        if message["type"] == "http.response.body":
+            self.sent += len(message.get("body", b""))
+        await self._send(message)
 
 
 def _is_operator(scope: Scope) -> bool:

@@ -23,6 +23,14 @@ def explain_votes(session: Session, auction_id: int, iteration: int) -> Iteratio
     """Every stored vote of a committed iteration; 404 naming the path part that names
     nothing: the auction, or an iteration not committed (or committed before explanations
     were kept)."""
+    return _votes(session, auction_id, iteration, None)
+
+
+def _votes(
+    session: Session, auction_id: int, iteration: int, model_id: int | None
+) -> IterationVotesPublic:
+    """``explain_votes``, of the patron ``model_id`` only if given (the others' votes are
+    not built: an iteration can hold thousands)."""
     exists, votes = iteration_votes(session, auction_id=auction_id, iteration=iteration)
     if not exists:
         raise not_found(auction_id)
@@ -41,7 +49,7 @@ def explain_votes(session: Session, auction_id: int, iteration: int) -> Iteratio
             loc=("path", "iteration"),
             kind="not_found",
         )
-    who = bidders(session, auction_id=auction_id, iteration=iteration)
+    who = bidders(session, auction_id=auction_id, iteration=iteration, only=model_id)
     return IterationVotesPublic(
         auction_id=auction_id,
         iteration=iteration,
@@ -56,7 +64,7 @@ def explain_votes(session: Session, auction_id: int, iteration: int) -> Iteratio
                 pfc=vote["pfc"],
             )
             for vote in votes.explanations["patrons"]
-            if vote["model_id"] in who
+            if vote["model_id"] in who and model_id in (None, vote["model_id"])
         ],
     )
 
@@ -66,10 +74,11 @@ def explain_vote(
 ) -> VoteExplanationPublic:
     """One patron's vote of ``explain_votes``; 404 also for a model that did not vote in it
     (not a patron, or gone: patrons leave when they buy or quit)."""
-    every = explain_votes(session, auction_id, iteration)
-    mine = [vote for vote in every.votes if vote.model_id == model_id]
+    every = _votes(session, auction_id, iteration, model_id)
+    mine = every.votes
     if not mine:
-        as_version = [vote.model_id for vote in every.votes if vote.version_id == model_id]
+        who = bidders(session, auction_id=auction_id, iteration=iteration)
+        as_version = [m for m, bidder in who.items() if bidder.version_id == model_id]
         why = (
             f": it is the version patron {as_version[0]} bid with; the path names a patron by "
             "the id it entered with (the auction's model_ids)"

@@ -536,6 +536,28 @@ def test_a_body_counts_against_the_request_rate_by_its_size(tmp_path: Path) -> N
         assert chunked.status_code == 422, chunked.text
 
 
+def test_an_answer_counts_against_the_request_rate_by_its_size(tmp_path: Path) -> None:
+    """Building an answer costs the server by its size, so a whole answer counts one more
+    request for every 16 KB, once sent: at 1 request a second (a burst of 4) the first read of
+    the 130 KB API description spends more than the burst, and the next is refused, where four
+    small reads pass; the operator is not counted."""
+    settings = make_settings(
+        f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data", limit_address_requests_per_s=1
+    )
+    with TestClient(create_app(settings)) as client:
+        first = client.get("/openapi.json")
+        assert first.status_code == 200 and len(first.content) > 4 * 16_384
+        refused = client.get("/livez")
+        assert refused.status_code == 429, refused.text
+        (item,) = refused.json()["detail"]
+        assert "a body and an answer count one more for every 16384 bytes" in item["msg"]
+        assert [client.get("/openapi.json", headers=ADMIN).status_code for _ in range(3)] == [
+            200
+        ] * 3
+    with TestClient(create_app(settings)) as client:  # a fresh process: a full burst
+        assert [client.get("/livez").status_code for _ in range(4)] == [200] * 4
+
+
 def test_round_socket_messages_count_against_their_address_request_rate(
     tmp_path: Path,
 ) -> None:

@@ -59,13 +59,18 @@ class Bidder:
     did not keep the weights (an auction created before the server kept them)."""
 
 
-def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, Bidder]:
-    """Every patron of an auction (by the model id it entered with) as it bid in
-    ``iteration``: with the version its last remote round before that iteration left it
-    (each round's answer names it), else the one it entered with, and whether the market had
-    fine-tuned it since (four queries, five for an auction from before fine-tuned weights were
-    kept)."""
+def bidders(
+    session: Session, *, auction_id: int, iteration: int, only: int | None = None
+) -> dict[int, Bidder]:
+    """Every patron of an auction (by the model id it entered with; only the patron ``only``
+    if given) as it bid in ``iteration``: with the version its last remote round before that
+    iteration left it (each round's answer names it), else the one it entered with, and
+    whether the market had fine-tuned it since (four queries, five for an auction from before
+    fine-tuned weights were kept)."""
     connection = session.connection()
+    patron = AuctionPatron.auction_id == auction_id
+    if only is not None:
+        patron = patron & (AuctionPatron.model_id == only)
     last_round = (
         select(
             FineTuneAnswer.position,
@@ -87,7 +92,7 @@ def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, B
         )
         .join(ModelVersion, ModelVersion.id == bid_with)
         .join(Participant, Participant.id == ModelVersion.participant_id)
-        .where(AuctionPatron.auction_id == auction_id)
+        .where(patron)
     )
     fine_tune, mode, rounds, kept = connection.execute(
         select(
@@ -105,6 +110,7 @@ def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, B
                 TunedWeights.auction_id == auction_id,
                 TunedWeights.iteration < iteration,
                 TunedWeights.kept,
+                *(() if only is None else (TunedWeights.model_id == only,)),
             )
             .group_by(TunedWeights.model_id)
         )
@@ -118,7 +124,7 @@ def bidders(session: Session, *, auction_id: int, iteration: int) -> dict[int, B
             connection.scalars(
                 select(AuctionPatron.model_id)
                 .join(ModelVersion, ModelVersion.id == AuctionPatron.model_id)
-                .where(AuctionPatron.auction_id == auction_id, epochs > 0)
+                .where(patron, epochs > 0)
             )
         ).difference(tuned)
     return {

@@ -10,9 +10,13 @@ Python object of ours crosses the wire, and the assembled result is the local ba
 
 * A unit lost with its worker process or node runs again, up to ``SRD_RAY_MAX_RETRIES``
   times (units are idempotent); an exception raised by the unit's own code fails the job.
-* Cancelling the job terminates its worker process; Ray's SIGTERM handler in the driver raises
-  ``SystemExit``, and on the way out the worker cancels every unfinished task (force: their
-  Ray workers are stopped), so the cluster stops working on a cancelled job at once.
+* Cancelling the job terminates its worker process; SIGTERM in the driver raises
+  ``SystemExit`` (``_stopped``, in place of Ray's handler), and on the way out the worker
+  cancels every unfinished task (force: their Ray workers are stopped), so the cluster stops
+  working on a cancelled job at once. The worker then exits 128 + SIGTERM, as a process the
+  signal ended says to a shell: a worker stopped from outside (a service manager stopping the
+  service) is counted as stopped, and its job runs again, as on the local backend (Ray's
+  handler exited 1 or 15: the job failed).
 * Tasks ask for one CPU each, a unit of a job with a ``threads`` option (cheetah: MuJoCo
   stepped in parallel) for that many, and set torch's thread count to the job workers' own
   (``SRD_WORKER_TORCH_THREADS``), so their floating-point arithmetic is the local one.
@@ -26,6 +30,7 @@ import importlib
 import importlib.util
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -117,7 +122,20 @@ def connect(address: str | None, timeout_s: float) -> Any:
             raise RayUnavailableError(
                 f"cannot join the Ray cluster at {address!r} (SRD_RAY_ADDRESS): {exc}"
             ) from exc
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, _stopped)
     return ray
+
+
+_stopped_by: list[int] = []
+"""The signal that stopped this driver, if one did (``_stopped``)."""
+
+
+def _stopped(signum: int, frame: object) -> None:
+    """SIGTERM in a job worker that is a Ray driver (module docstring). Raised inside a Ray
+    call, the exit becomes Ray's ``SystemExit(1)``: the waits' ``finally`` says it again."""
+    _stopped_by.append(signum)
+    raise SystemExit(128 + signum)
 
 
 def unit_task(kind: str, params: dict[str, Any], unit: dict[str, Any], threads: int) -> Payload:
@@ -191,6 +209,8 @@ class RayRunner:
             for ref in pending:  # cancelled, failed, or the process is stopping
                 ray.cancel(ref, force=True)
             log.info("%d units of %s in %.1f s", len(refs), self._kind, time.monotonic() - started)
+            if _stopped_by:
+                raise SystemExit(128 + _stopped_by[0])  # the stop's own code
 
 
 _PROBE = """

@@ -484,7 +484,8 @@ class BackgroundRunner:
             log.warning("%s %d: its worker died (code %s) before it began; running it again",
                         self.kind.name, row_id, exit_code)  # fmt: skip
             return
-        interrupted = exit_code in (-signal.SIGTERM, -signal.SIGINT)
+        stops = (signal.SIGTERM, signal.SIGINT)  # died of one, or exited 128 + it (a Ray driver)
+        interrupted = exit_code in {code for n in stops for code in (-n, 128 + n)}
         if self.kind.resumable or interrupted:
             progress = self._progress(row_id)
             with self._lock:

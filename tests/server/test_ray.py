@@ -26,6 +26,7 @@ from server.app import create_app
 from server.cli.launch import ServerProcess
 from server.jobs.ray_backend import RayUnavailableError, connect, ray_module
 from tests.support.factories import honest
+from tests.support.processes import descendants, process_name
 from tests.support.ray_head import RayHead
 from tests.support.server import ADMIN, ADMIN_TOKEN, make_settings, wait_for
 
@@ -180,6 +181,35 @@ def test_cancelling_a_ray_job_stops_its_tasks(
         assert client.get(f"/jobs/{job_id}").json()["status"] == "cancelled"
     # the job worker (a Ray driver) stopped quietly: no stack dump of Ray's for its SIGTERM
     assert "SIGTERM received" not in capfd.readouterr().err
+
+
+def test_a_ray_job_whose_worker_is_stopped_from_outside_runs_again(
+    ray_head: RayHead, tmp_path: Path
+) -> None:
+    """A service manager stops every process of the service with SIGTERM: a job worker that
+    is a Ray driver, so stopped, is counted as stopped, not failed, and its job runs again, as
+    on the local backend (it had failed: "the job worker exited (code 15) without a result")."""
+    params = {**LONG_LAVALAND, "repeats": 1}
+    with client_for(tmp_path, job_backend="ray", ray_address=ray_head.address) as client:
+        job_id = client.post(
+            "/jobs", json={"kind": "lavaland", "params": params}, headers=ADMIN
+        ).json()["job_id"]
+        wait_for(
+            lambda: {"tasks": ray_head.worker_pids("srd lavaland")},
+            lambda seen: bool(seen["tasks"]),
+            RUN_TIMEOUT_S,
+        )
+        workers = [p for p in descendants(os.getpid()) if process_name(p) == "srd-job-worker"]
+        assert workers
+        for worker in workers:
+            os.kill(worker, signal.SIGTERM)
+        done = wait_for(
+            lambda: client.get(f"/jobs/{job_id}").json(),
+            lambda job: job["status"] not in ("queued", "running"),
+            RUN_TIMEOUT_S,
+        )
+        assert done["status"] == "succeeded", done["error"]
+        assert not any(map(process_name, workers))  # stopped: another worker ran the job
 
 
 @pytest.mark.slow

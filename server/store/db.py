@@ -115,6 +115,13 @@ def is_database_outage(exc: BaseException) -> bool:
     return exc.connection_invalidated or getattr(exc.orig, "sqlstate", None) in OUTAGE_STATES
 
 
+def _write_lock_stalled(exc: BaseException) -> bool:
+    """Whether ``exc`` is SQLite's write lock still held by another process at the end of
+    the busy timeout."""
+    orig = exc.orig if isinstance(exc, DBAPIError) else None
+    return getattr(orig, "sqlite_errorname", "") in {"SQLITE_BUSY", "SQLITE_LOCKED"}
+
+
 def is_connection_lost(exc: BaseException) -> bool:
     """Whether ``exc`` says the database could not be reached or dropped the connection (a
     stopped or restarting server, a network cut), as opposed to a database that answered but
@@ -470,15 +477,21 @@ class Database:
     def note_outage(self, exc: BaseException | None = None) -> None:
         """Record that an operation met an outage just now (``since_outage_s``): ``exc``, if
         given, is what it met, recorded only if it says the database itself was out of reach
-        (``is_connection_lost``), not busy (a full pool, a lock, a deadlock, a cancelled
-        statement)."""
-        if exc is None or is_connection_lost(exc):
+        (``is_connection_lost``), not busy (a full pool, a deadlock, a cancelled statement),
+        or that SQLite's write lock stayed held for the whole busy timeout (another process's
+        long transaction: no write could be made all that while, which began that long ago
+        at the latest, though reads went on)."""
+        stalled = exc is not None and _write_lock_stalled(exc)
+        if exc is None or stalled or is_connection_lost(exc):
             with self._outage_lock:
                 self._outage_at = time.monotonic()
                 # A DatabaseUnavailableError repeats the last check's answer, which met the
                 # outage itself: it begins none (after the outage, a stale answer began one).
                 if self._outage_began is None and not isinstance(exc, DatabaseUnavailableError):
-                    self._outage_began = datetime.fromtimestamp(self._answered_at, UTC)
+                    began = self._answered_at
+                    if stalled:
+                        began = min(began, time.time() - SQLITE_BUSY_TIMEOUT_MS / 1000)
+                    self._outage_began = datetime.fromtimestamp(began, UTC)
 
     def _answered(self, *_: Any) -> None:
         self._answered_at = time.time()

@@ -24,6 +24,7 @@ from server.auctions import patrons
 from server.config import Settings
 from server.live import rounds as watcher
 from server.store import crud
+from server.store import db as db_module
 from server.store.db import is_sqlite, sqlite_path
 from tests.support.factories import honest, unique
 from tests.support.server import ADMIN, wait_for
@@ -658,6 +659,48 @@ def test_until_an_outage_is_given_back_a_late_upload_is_told_to_come_again(
         engine.dispose()
     late = put(client, auction_id, 1, model_id, body, token)
     assert late.status_code == 410, late.text
+
+
+def test_an_upload_refused_by_a_write_lock_held_past_the_busy_timeout_counts_on_its_retry(
+    client: TestClient, settings: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Another process holding SQLite's write lock longer than the API waits for it (its busy
+    timeout, 2 s here; an operator's transaction, a VACUUM) is an outage of writes: an upload
+    that arrived in time is answered 503 with its arrival kept, the round gets back the time
+    it had left, and the same body sent again once the lock is free counts in time (it was
+    410, late: the step closed the round at its deadline as soon as the lock was free)."""
+    if not is_sqlite(settings.database_url):
+        pytest.skip("SQLite's write lock")
+    monkeypatch.setattr(db_module, "SQLITE_BUSY_TIMEOUT_MS", 2_000)  # the API's, not the steps'
+    auction_id, manifests, patrons = start_remote(
+        client, "stalled", 460, 3, round_deadline_s=3.0, seed=9
+    )
+    state = open_round(client, auction_id)
+    position = next(i for i, (m, _) in enumerate(patrons) if m in state["asked"])
+    model_id, token = patrons[position]
+    info = RoundInfo.from_state(state, position)
+    body = faithful_fine_tune(parse_manifest(manifests[position]), info).model_dump_json()
+    holder = sqlite3.connect(sqlite_path(settings.database_url), isolation_level=None)
+    holder.execute("BEGIN IMMEDIATE")
+    try:
+        refused = put(client, auction_id, 1, model_id, body.encode(), token)
+        time.sleep(max(0.0, state["seconds_left"] - 2.0) + 2.5)  # past the deadline
+    finally:
+        holder.execute("ROLLBACK")
+        holder.close()
+    assert refused.status_code == 503, refused.text
+    assert loc_of(refused) == [["database"]] and "retry-after" in refused.headers
+    time.sleep(1.5)  # the step due at the deadline runs once the lock is free
+    again = put(client, auction_id, 1, model_id, body.encode(), token)
+    assert again.status_code == 200, again.text
+    assert again.json()["outcome"] in ("accepted", "held")
+    closed = wait_for(
+        lambda: client.get(f"/auctions/{auction_id}").json()["fine_tuning"][0],
+        lambda r: r["status"] == "closed",
+        ROUND_WAIT_S,
+    )
+    outcomes = {a["model_id"]: a["outcome"] for a in closed["answers"]}
+    assert outcomes[model_id] == again.json()["outcome"], closed
 
 
 def _seconds(stamp: str) -> float:

@@ -127,6 +127,12 @@ LEARNING_RATE_LIMIT = 1e-3
 """SRD learning rate: ten times the paper's largest (1e-4)."""
 EPOCHS_LIMIT = 4
 """SRD epochs per round: twice the paper's largest (2)."""
+STEPS_LIMIT = 64
+"""SGD steps per round, epochs × ⌈item rows / batch size⌉: twice the paper's largest (2 epochs
+at batch 4 over the 64 rows: 32). What a model's fine-tuning costs the screener (its projection
+through an auction's rounds) and every auction it enters grows with its steps: 4 epochs at
+batch 1 took about 7 times the paper's largest settings (an outside review's manifest, accepted
+before this bound), at the accepted-version quotas most of a core of one address's share."""
 
 # --- Behavioural probes -------------------------------------------------------------------------
 PROBE_PRICE_FACTORS = (

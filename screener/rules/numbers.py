@@ -56,6 +56,7 @@ class Numbers:
     noise_mask: Array
     learning_rate: Array
     epochs: Array
+    batch_size: Array
 
     @classmethod
     def of(cls, batch: FSNBatch) -> Numbers:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from agents.manifest import INPUTS
 from screener import limits
 from screener.findings import Checks, check
@@ -11,6 +13,7 @@ from screener.rules.numbers import Numbers
 def setting_checks(n: Numbers) -> list[Checks]:
     """Augmentation and fine-tuning settings within sane bounds."""
     std, lr, epochs = n.noise_std, n.learning_rate, n.epochs
+    steps = epochs * np.ceil(limits.MARKET.n_rows / n.batch_size)
     subtype_cols = [INPUTS.index(name) for name in limits.NOISELESS_SUBTYPES]
     jittered = n.noise_mask[:, subtype_cols].max(axis=1) > 0
     return [
@@ -41,6 +44,17 @@ def setting_checks(n: Numbers) -> list[Checks]:
                 f"fine-tuning with learning rate {lr[p]:.3g} for {int(epochs[p])} epochs "
                 f"(at most {limits.LEARNING_RATE_LIMIT:g} and {limits.EPOCHS_LIMIT}) would push "
                 "the model towards the PFC verdict T/F faster than re-screening can follow"
+            ),
+        ),
+        check(
+            "fine-tuning-steps",
+            "T",
+            steps > limits.STEPS_LIMIT,
+            lambda p: (
+                f"fine-tuning takes {int(steps[p])} SGD steps a round ({int(epochs[p])} epochs "
+                f"at batch size {int(n.batch_size[p])} over {limits.MARKET.n_rows} item rows; "
+                f"at most {limits.STEPS_LIMIT}): every auction it enters, and its screening, "
+                "would pay for them"
             ),
         ),
     ]

@@ -217,6 +217,23 @@ def test_augmentation_and_fine_tuning_settings(honest):
         assert ("fine-tuning", "T") in rules_of(screen(reckless))
 
 
+def test_fine_tuning_that_takes_too_many_steps_a_round_is_refused_at_once(honest):
+    """Epochs × ⌈64 rows / batch size⌉ SGD steps a round at most 64 (twice the paper's 32): 4
+    epochs at batch 1 with 16 noisy copies and a learning rate too small to move anything had
+    been accepted after 7 times the screening of the paper's largest settings, and would
+    cost every auction it entered as much."""
+    costly = {"epochs": 4, "batch_size": 1, "learning_rate": 1e-7}
+    verdict = screen(edit(honest, {"fine_tuning": costly, "augmentation.copies": 16}))
+    assert not verdict.accepted
+    assert message_of(verdict, "fine-tuning-steps", "T").startswith(
+        "fine-tuning takes 256 SGD steps a round (4 epochs at batch size 1 over 64 item rows; "
+        "at most 64)"
+    )
+    for settings in ({"epochs": 4, "batch_size": 4}, {"epochs": 1, "batch_size": 1}):
+        within = screen(edit(honest, {"fine_tuning": {**settings, "learning_rate": 1e-5}}))
+        assert ("fine-tuning-steps", "T") not in rules_of(within)
+
+
 def test_gigantic_numbers_are_refused_by_name(honest):
     verdict = screen(edit(honest, {"decision.B.bias": 1e4}))
     assert message_of(verdict, "magnitude", "B") == (

@@ -99,6 +99,9 @@ LINGER_S = 1.0
 """How long a refused connection stays open after its answer, its client's bytes dropped."""
 RETRY_AFTER_S = 2
 """``Retry-After`` of a connection refused past its address's share."""
+LINGERING_PER_ADDRESS = 4
+"""Connections of one address refused as they opened that linger at once (``LINGER_S``);
+the others close once answered."""
 
 
 _SECURITY_LINES = b"".join(
@@ -258,6 +261,8 @@ class TimedHttpProtocol(HttpToolsProtocol):
     """Networks whose connections are not counted (the trusted proxies)."""
     open_by_address: ClassVar[Counter[str]] = Counter()
     """Open connections per client address (one counter per configured class)."""
+    lingering: ClassVar[Counter[str]] = Counter()
+    """Connections refused as they opened and still lingering, per client address."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -268,6 +273,7 @@ class TimedHttpProtocol(HttpToolsProtocol):
         self._header_bytes = 0
         self._tail = b""  # the last bytes of the header read so far (its end may straddle reads)
         self._counted: str | None = None  # the address this connection is counted against
+        self._lingering: str | None = None  # refused as it opened: counted there, lingering
         self._refused = False  # answered with an error: what else arrives is dropped
         self._header_parsed = 0  # the current request's header bytes, as the parser reads them
         self._header_fields = 0  # and its lines (a trailer's too)
@@ -279,16 +285,17 @@ class TimedHttpProtocol(HttpToolsProtocol):
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
-        if self.limit_concurrency is not None and len(self.connections) >= self.limit_concurrency:
-            self._refuse(FULL_ANSWER)  # uvicorn's own 503 would come later, in plain text
-            return
         host = self.client[0] if self.client else None
-        if host is not None and not self._exempt(host):
-            address = client_address(host)
+        counted = host is not None and not self._exempt(host)
+        address = client_address(host) if host is not None and counted else None
+        if self.limit_concurrency is not None and len(self.connections) >= self.limit_concurrency:
+            self._refuse_at_open(FULL_ANSWER, address)  # uvicorn's 503 comes later, plain text
+            return
+        if address is not None:
             held = self.open_by_address[address]
             open_now = len(self.connections) - 1  # before this one
             if held >= address_share(self.max_per_address, self.limit_concurrency, open_now):
-                self._refuse(TOO_MANY_ANSWER)
+                self._refuse_at_open(TOO_MANY_ANSWER, address)
                 return
             self.open_by_address[address] += 1
             self._counted = address
@@ -297,6 +304,11 @@ class TimedHttpProtocol(HttpToolsProtocol):
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
         self._uncount()
+        if self._lingering is not None:
+            self.lingering[self._lingering] -= 1
+            if self.lingering[self._lingering] <= 0:
+                del self.lingering[self._lingering]
+            self._lingering = None
         super().connection_lost(exc)
 
     def data_received(self, data: bytes) -> None:
@@ -521,6 +533,23 @@ class TimedHttpProtocol(HttpToolsProtocol):
             return
         self._answer_and_end(answer)
 
+    def _refuse_at_open(self, answer: bytes, address: str | None) -> None:
+        """Refuse a connection as it opens: lingering as any refusal (``_refuse``) while its
+        address (None: a trusted proxy's) holds fewer than ``LINGERING_PER_ADDRESS`` such
+        refusals, else closed once the answer is written: an address opening connections past
+        its share as fast as it could had held 3,900 lingering at once, taking the server to
+        its connection limit for everyone. A request such a connection sent already may reset
+        it and lose the answer."""
+        if address is not None and self.lingering[address] >= LINGERING_PER_ADDRESS:
+            self._refused = True
+            self.transport.write(answer)
+            self.transport.close()
+            return
+        if address is not None:
+            self.lingering[address] += 1
+            self._lingering = address
+        self._refuse(answer)
+
     def on_response_complete(self) -> None:
         queued = bool(self.pipeline)  # the next request starts now, and answers first
         super().on_response_complete()
@@ -559,6 +588,7 @@ def timed_protocol(
             "max_body_bytes": max_body_bytes,
             "exempt": tuple(ipaddress.ip_network(entry, strict=False) for entry in exempt),
             "open_by_address": Counter(),
+            "lingering": Counter(),
         },
     )
 

@@ -431,3 +431,29 @@ def test_an_address_share_shrinks_as_the_server_fills(small_server: ServerProces
     status, _, body = result["over"]
     assert status == 429 and _detail(body)["type"] == "too_many_connections", body
     assert result["third"][0] == 200
+
+
+async def _refused_and_held(server: ServerProcess) -> dict[str, Any]:
+    """The hoarder takes its share, then opens 24 more connections (each refused as it opens)
+    and keeps them open without reading; a neighbour asks at once."""
+    half_sent: list[tuple[Any, Any]] = []
+    try:
+        await _half_send(server, HOARDER, SHARE, half_sent)
+        await asyncio.sleep(0.2)
+        refused = [await _open(server, HOARDER) for _ in range(24)]
+        half_sent += refused
+        neighbour = await _exchange(server, NEIGHBOUR, _get("/healthz"))
+        answers = [await reader.read() for reader, _ in refused[:2]]
+        return {"neighbour": neighbour, "answers": answers}
+    finally:
+        for _, writer in half_sent:
+            writer.close()
+
+
+def test_connections_refused_as_they_open_hold_no_place(small_server: ServerProcess) -> None:
+    """A connection refused as it opens (past its address's share, or a full server) is
+    closed once its answer is written, not held a second: one address opening connections
+    past its share had held thousands at once and filled the server for everyone."""
+    result = asyncio.run(_refused_and_held(small_server))
+    assert result["neighbour"][0] == 200, result["neighbour"]
+    assert all(b"too_many_connections" in answer for answer in result["answers"])

@@ -2,7 +2,7 @@
 // send a token (the operator's, pasted once and kept in memory), always in the Authorization
 // header, never in a URL.
 
-import { h, patch, plural } from "./dom.js";
+import { h, isMissing, patch, plural } from "./dom.js";
 
 const RETRY_MS = 5000; // after the server refused a stream (503) or it broke for good
 export const LIST_REFRESH_MS = 5000; // a list's first page is read again this often
@@ -65,6 +65,54 @@ export function withQuery(path, params) {
 }
 
 /**
+ * A view's first read: ``read()`` (a promise), its answer handed to ``use``, or to ``missing``
+ * the error saying its subject does not exist. Any other failure is said in a line that takes
+ * the place of ``at`` (the view's live line, say), with a "Try again now" button; the read is
+ * tried again every few seconds while the tab is shown, until it works (``at`` is back, the
+ * line gone) or the view is left.
+ */
+export function firstRead(view, read, { use, missing, at }) {
+  const words = h("span");
+  const again = h("button", { type: "button", id: "read-again" }, "Try again now");
+  const line = h("p", { class: "problem", role: "alert", id: "read-failed" }, words, " ", again);
+  let timer = null;
+  let left = false;
+  const attempt = () => {
+    clearTimeout(timer);
+    if (document.visibilityState !== "visible") {
+      timer = setTimeout(attempt, RETRY_MS); // read once the tab is shown
+      return;
+    }
+    const pressed = document.activeElement === again;
+    again.disabled = true;
+    read().then(
+      (answer) => {
+        if (left) return;
+        if (line.isConnected) line.replaceWith(at);
+        use(answer);
+        if (pressed) view.root.querySelector("h1")?.focus(); // its button is gone
+      },
+      (error) => {
+        if (left) return;
+        if (isMissing(error)) return missing(error);
+        const text = `${String(error.message || error)} The page tries again every few seconds.`;
+        if (words.textContent !== text) words.textContent = text;
+        again.disabled = false;
+        if (pressed) again.focus();
+        if (at.isConnected) at.replaceWith(line);
+        timer = setTimeout(attempt, RETRY_MS);
+      },
+    );
+  };
+  again.addEventListener("click", attempt);
+  view.onLeave(() => {
+    left = true;
+    clearTimeout(timer);
+  });
+  attempt();
+}
+
+/**
  * A list page by page: ``render(items)`` is called for each page (it returns the first row it
  * added, if any), and a "Show older" button fetches the next one while there is one. The
  * button keeps the focus while it stays; after the last page it goes, and the focus moves to
@@ -104,10 +152,10 @@ export function pager(path, params, render) {
  * ``noun``), said once by a polite live region when it appears; pressed, it adds them at the
  * top and the focus moves to the first one's link. A listed (or held) one the first page now
  * leaves out, within the ids it covers, goes (it no longer matches the filter), as a reload
- * would show. A status line in the same slot says when a read failed: the rows stay as last
- * read; ``empty`` (what the list says when it lists nothing) shows while it lists
- * nothing. ``add`` renders a page's items (the pager's render); ``onRead()`` hears every read
- * that worked.
+ * would show. A status line in the same slot says when a read failed and when the rows shown
+ * were read (the slot grows to hold it whole on a narrow screen); ``empty`` (what the list
+ * says when it lists nothing) shows while it lists nothing. ``add`` renders a page's items
+ * (the pager's render); ``onRead()`` hears every read that worked.
  */
 export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, noun, empty, onRead = () => {} }) {
   const state = h("p", { class: "none-yet", id: "list-state", role: "status", hidden: true });
@@ -191,10 +239,10 @@ export function keepCurrent(view, { path, params, newestFirst, rows, rowFor, nou
         read();
       })
       .catch((error) => {
-        const then = readAt ? `as read at ${readAt.toLocaleTimeString()}` : "not read yet";
+        const why = error.status ? `the server answered ${error.status}` : "the server could not be reached";
+        const shown = readAt ? `Not updated: ${why}. Shown as read at ${readAt.toLocaleTimeString()}` : `Not read: ${why}`;
         state.hidden = false;
-        state.textContent = `The list could not be read again (${String(error.message || error)}); it shows the ${noun} ${then}, and is read again every few seconds.`;
-        state.title = state.textContent; // its room shows one line of it
+        state.textContent = `${shown}; trying again every few seconds.`;
       });
   }
   const timer = setInterval(refresh, LIST_REFRESH_MS);

@@ -1,7 +1,7 @@
 // Auctions: the list, and one auction followed live from its event stream.
 
-import { follow, getJSON, keepCurrent, pager } from "./api.js";
-import { facts, fill, fixed, fixedApart, h, isMissing, link, notFound, patch, plural, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
+import { firstRead, follow, getJSON, keepCurrent, pager } from "./api.js";
+import { facts, fill, fixed, fixedApart, h, link, notFound, patch, plural, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
 
 const STOP_REASONS = {
   sold_out: "sold out",
@@ -847,8 +847,11 @@ export function auctionView(view, id) {
     };
   }
 
-  getJSON(`/auctions/${id}`)
-    .then((auction) => {
+  // Read until it can be (a server out of reach for a while, say), then followed live.
+  firstRead(view, () => getJSON(`/auctions/${id}`), {
+    at: liveness,
+    missing: () => notFound(view.root, `Auction ${id}`, ["#/", "All auctions"]),
+    use: (auction) => {
       readHead(auction);
       showSummary(auction);
       drawPriceChart(priceChart, [], auction.price);
@@ -881,9 +884,6 @@ export function auctionView(view, id) {
         readUpTo(),
       );
       view.onLeave(stream.stop);
-    })
-    .catch((error) => {
-      if (isMissing(error)) notFound(view.root, `Auction ${id}`, ["#/", "All auctions"]);
-      else liveness.replaceWith(problem(error));
-    });
+    },
+  });
 }

@@ -1,8 +1,8 @@
 // Jobs: the list (filtered, sorted, jobs picked for comparison), one job followed live and then
 // read at a glance (headline cards, tables, figures; the raw JSON collapsed), and jobs compared.
 
-import { ApiError, follow, getJSON, keepCurrent, pager } from "./api.js";
-import { facts, fill, h, isMissing, link, notFound, problem, scrolling, tableRow, when } from "./dom.js";
+import { ApiError, firstRead, follow, getJSON, keepCurrent, pager } from "./api.js";
+import { facts, fill, h, link, notFound, problem, scrolling, tableRow, when } from "./dom.js";
 import { card, headline, kindLayouts, lineChart, rowsTable, shown, splitColumns, tablesOf, words } from "./results.js";
 
 const IMAGE = /\.(png|gif)$/i;
@@ -193,8 +193,11 @@ export function jobView(view, id) {
     );
   }
 
-  Promise.all([getJSON(`/jobs/${id}`), kindLayouts()])
-    .then(([job, kinds]) => {
+  // Read until it can be (a server out of reach for a while, say), then followed live.
+  firstRead(view, () => Promise.all([getJSON(`/jobs/${id}`), kindLayouts()]), {
+    at: liveness,
+    missing: () => notFound(view.root, `Job ${id}`, ["#/jobs", "All jobs"]),
+    use: ([job, kinds]) => {
       fill(title, `Job ${id}: ${job.kind}`);
       showState(job, job.status, job.progress, job.message);
       const ended = (done) => {
@@ -232,11 +235,8 @@ export function jobView(view, id) {
         },
       );
       view.onLeave(stream.stop);
-    })
-    .catch((error) => {
-      if (isMissing(error)) notFound(view.root, `Job ${id}`, ["#/jobs", "All jobs"]);
-      else liveness.replaceWith(problem(error));
-    });
+    },
+  });
 }
 
 /** Parameters side by side, one column per job; rows where the jobs differ are marked. */

@@ -2,7 +2,7 @@
 // model: the Fish Sale Negotiator drawn neuron by neuron, every weight by name and sign, and
 // each screener reason on the neuron it names.
 
-import { getJSON, keepCurrent, pager, withQuery } from "./api.js";
+import { firstRead, getJSON, keepCurrent, pager, withQuery } from "./api.js";
 import { facts, fill, fixed, fixedApart, h, isMissing, link, notFound, plural, problem, scrolling, signed, svg, table, tableRow, when } from "./dom.js";
 import { shown } from "./results.js";
 
@@ -31,12 +31,12 @@ function modelRow(m) {
     String(m.version),
     verdictBadge(m),
     m.rules.length ? m.rules.join(", ") : "—",
-    m.description,
+    m.description ? h("q", { class: "description-preview", dir: "auto" }, m.description) : "—", // quoted: the participant's words
     when(m.created_at),
   ]);
 }
 
-const MODEL_HEADERS = ["Model", "Participant", "Version", "Verdict", "Screener rules that fired", "Description", "Submitted"];
+const MODEL_HEADERS = ["Model", "Participant", "Version", "Verdict", "Screener rules that fired", "Description (the participant's words)", "Submitted"];
 
 function modelTable(caption, id) {
   const rows = h("tbody");
@@ -485,9 +485,14 @@ function settingsFacts(manifest, first) {
  */
 export function inspectorView(view, id, { extra = null, heading = "Model", evidence = true } = {}) {
   const title = h("h1", { tabindex: "-1" }, `${heading} ${id}`);
-  view.root.append(title);
-  Promise.all([getJSON(`/models/${id}`), loadAnatomy()])
-    .then(([model, a]) => {
+  const loading = h("p", { class: "liveness" }, "Loading…");
+  view.root.append(title, loading);
+  // Read until it can be (a server out of reach for a while, say).
+  firstRead(view, () => Promise.all([getJSON(`/models/${id}`), loadAnatomy()]), {
+    at: loading,
+    missing: () => notFound(view.root, `Model ${id}`, ["#/models", "All models"]),
+    use: ([model, a]) => {
+      loading.remove();
       const manifest = model.manifest;
       fill(title, `${heading} ${model.id}: `, model.participant, ` version ${model.version}`);
       const drawn = drawnNeurons(manifest, model.reasons, a);
@@ -497,7 +502,14 @@ export function inspectorView(view, id, { extra = null, heading = "Model", evide
         ...(model.reasons.length ? [h("section", { "aria-labelledby": "reasons-heading", id: "model-reasons" }, h("h2", { id: "reasons-heading" }, "The screener's reasons"), h("ul", { class: "reasons" }, model.reasons.map((r) => h("li", {}, h("strong", {}, r.neuron), ` (${r.rule}): `, r.message))))] : []),
         ...(model.reviews.length ? [auditLog(model.reviews)] : []),
         ...(extra ? extra(model) : []),
-        h("p", { class: "description", id: "description", dir: "auto" }, manifest.description || "(no description)"),
+        // The participant's own words, quoted under a heading that says whose they are: a
+        // description cannot pass for the screener's or an inspector's text.
+        h(
+          "section",
+          { "aria-labelledby": "description-heading", id: "model-description" },
+          h("h2", { id: "description-heading" }, "Description, in the participant's words"),
+          manifest.description ? h("blockquote", { class: "description", id: "description", dir: "auto" }, manifest.description) : h("p", { class: "none-yet", id: "description" }, "None given."),
+        ),
         settingsFacts(manifest, [
           ["Participant", participantLink(model.participant)],
           ["Submitted", when(model.created_at)],
@@ -511,11 +523,8 @@ export function inspectorView(view, id, { extra = null, heading = "Model", evide
         ...(evidence && model.evidence.length ? [h("section", { "aria-labelledby": "bars-heading", id: "bars" }, h("h2", { id: "bars-heading" }, "The screener's bars"), evidenceTable(model))] : []),
         ...drawn.sections,
       );
-    })
-    .catch((error) => {
-      if (isMissing(error)) notFound(view.root, `Model ${id}`, ["#/models", "All models"]);
-      else view.root.append(problem(error));
-    });
+    },
+  });
 }
 
 /** Every weight and bias of a manifest by place: "neuron ← source" or "neuron bias". */

@@ -27,7 +27,12 @@ const LINE_COLOURS = ["#1d5fbf", "#b3261e", "#1b7f3b", "#9a5b00", "#6a3d9a", "#0
 let layouts = null;
 /** The layouts of every kind (fetched once). */
 export function kindLayouts() {
-  layouts = layouts || getJSON("/ui/kinds.json");
+  layouts =
+    layouts ||
+    getJSON("/ui/kinds.json").catch((error) => {
+      layouts = null; // a read that failed is not kept: the next call reads again
+      throw error;
+    });
   return layouts;
 }
 

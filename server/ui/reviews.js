@@ -234,7 +234,7 @@ export function reviewView(view, id) {
       document.title = `Model ${id} · srd-auction`;
       return;
     }
-    inspectorView({ root: box }, id, { heading: "Inspect model", evidence: false, extra: (model) => [evidenceSection(model, item), decisionForm(model)] });
+    inspectorView({ root: box, onLeave: (stop) => view.onLeave(stop) }, id, { heading: "Inspect model", evidence: false, extra: (model) => [evidenceSection(model, item), decisionForm(model)] });
   }, `Inspect model ${id}`);
 }
 
@@ -352,16 +352,13 @@ function decisionForm(model) {
     h("button", { type: "button", value: "admit", id: "admit" }, "Admit"),
     h("button", { type: "button", value: "refuse", id: "refuse" }, "Refuse"),
   ];
-  const form = h(
-    "form",
-    { id: "decision", "aria-labelledby": "decision-heading" },
-    h("h2", { id: "decision-heading" }, "Your decision"),
+  const fields = [
     h("p", { class: "field" }, h("label", { for: "inspector" }, "Inspector"), inspector),
     h("p", { class: "field" }, h("label", { for: "note" }, "Note (why)"), note),
     h("p", { id: "note-public", class: "hint" }, "Public: your name and note are shown with the model to everyone (GET /models/{id}) and to its participant."),
     h("p", { class: "actions" }, buttons),
-    status,
-  );
+  ];
+  const form = h("form", { id: "decision", "aria-labelledby": "decision-heading" }, h("h2", { id: "decision-heading" }, "Your decision"), fields, status);
   form.addEventListener("submit", (event) => {
     // Enter in the Inspector field: nothing is decided, and the page says how to decide.
     event.preventDefault();
@@ -378,14 +375,7 @@ function decisionForm(model) {
     for (const b of buttons) b.disabled = true;
     postJSON(`/models/${model.id}/review`, { decision, inspector: inspector.value, note: note.value }, adminToken)
       .then((done) => {
-        const verdict = document.getElementById("verdict");
-        const banner = verdictNow({ ...model, ...done });
-        verdict?.replaceWith(banner);
-        // The review history at the top, as the decision's answer has it now.
-        const history = auditLog(done.reviews);
-        const old = document.getElementById("model-audit");
-        if (old) old.replaceWith(history);
-        else banner.after(history);
+        showNow({ ...model, ...done });
         const did = decision === "admit" ? "admitted" : "refused";
         // one sentence in the live region: the history is shown above, not read out again
         fill(status, `Model ${done.model_id} is now ${done.status} (${did} by ${inspector.value}). `, link("#/reviews", "Back to the held models"));
@@ -395,7 +385,21 @@ function decisionForm(model) {
         for (const b of buttons) b.disabled = false;
         fill(status, problem(error));
         status.focus();
+        // Not held any more (another inspector decided it meanwhile, say): the page is drawn
+        // again as the model stands, and a decided model offers no decision.
+        if (error.status === 409) getJSON(`/models/${model.id}`).then(showNow, () => {});
       });
+  }
+  /** The verdict and the review history at the top as ``now`` has them; a model no longer
+   * held loses the decision's fields and buttons (its answer stays). */
+  function showNow(now) {
+    const banner = verdictNow(now);
+    document.getElementById("verdict")?.replaceWith(banner);
+    const old = document.getElementById("model-audit");
+    const history = now.reviews.length ? auditLog(now.reviews) : null;
+    if (old && history) old.replaceWith(history);
+    else if (history) banner.after(history);
+    if (now.status !== "held") for (const part of fields) part.remove();
   }
   return form;
 }

@@ -504,25 +504,52 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     # they were), and the next one that succeeds clears it.
     listed = re.compile(r"/auctions(\?.*)?$")
     table = page.locator("#auction-list")
-    size = page.viewport_size
-    page.set_viewport_size({"width": 320, "height": 800})  # a phone's: the line is long
     at = table.bounding_box()
     page.route(listed, lambda route: route.fulfill(status=503, body="{}"))
     state = page.locator("#list-state")
     state.wait_for(state="visible", timeout=WAIT_MS)
-    assert "could not be read again" in (state.text_content() or "")
-    assert "as read at" in (state.text_content() or "")
+    assert "Not updated: the server answered 503." in (state.text_content() or "")
     assert page.locator("#auction-list tbody tr").count() == len(rows)
     assert table.bounding_box() == at  # the line showed in its room; the table did not move
     page.unroute(listed)
     state.wait_for(state="hidden", timeout=WAIT_MS)
-    assert size is not None
-    page.set_viewport_size(size)
     # Its patrons' pages say they were in it when it was cancelled (it never played).
     name = next(n for n, a in population.items() if a["model_id"] == honest_ids[0])
     page.goto(f"{server.url}/ui/#/participants/{name}")
     entry = page.locator(f"#entries tr:has(a[href='#/auctions/{auction_id}']) td").nth(4)
     assert entry.text_content(timeout=WAIT_MS) == "still in when the operator cancelled the auction"
+
+
+def test_a_list_read_that_fails_is_said_whole_with_when_its_rows_were_read_on_a_phone(
+    page: Any, server: ServerProcess, api: httpx.Client
+) -> None:
+    """On a 360 px screen the line saying the list could not be read again wraps and shows
+    whole, the time its rows were read in its text (it was one line cut off with "…", the
+    time in a tooltip only)."""
+    api.post("/submit", json=honest(unique("ui-news")))
+    page.set_viewport_size({"width": 360, "height": 800})
+    page.goto(f"{server.url}/ui/#/models")
+    page.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)
+    listed = re.compile(r"/models(\?.*)?$")
+    page.route(listed, lambda route: route.abort())
+    state = page.locator("#list-state")
+    state.wait_for(state="visible", timeout=WAIT_MS)
+    whole = """(line) => {
+        const box = line.getBoundingClientRect();
+        return line.scrollWidth <= line.clientWidth && line.scrollHeight <= line.clientHeight
+            && box.left >= 0 && box.right <= window.innerWidth;
+    }"""
+    assert state.evaluate(whole)  # every word of it on the screen, none cut off
+    assert state.evaluate("(line) => line.getClientRects()[0].height") > 30  # it wraps
+    words = state.text_content() or ""
+    assert re.search(r"as read at \d+:\d\d:\d\d", words), words  # the time, in the text
+    assert words.startswith("Not updated: the server could not be reached. Shown as read at ")
+    assert words.endswith("; trying again every few seconds."), words
+    box, table = state.bounding_box(), page.locator("#model-list").bounding_box()
+    assert box and table and box["y"] + box["height"] <= table["y"]  # above the rows, not on them
+    assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    page.unroute(listed)
+    state.wait_for(state="hidden", timeout=WAIT_MS)
 
 
 def ended_auction_page(
@@ -688,6 +715,75 @@ def test_user_supplied_strings_are_shown_as_text(
     assert attack in (page.locator("#neuron-B .reasons").text_content() or "")
     assert page.locator("main script, main img[src='x']").count() == 0
     assert page.evaluate("window.__pwned") is None
+
+
+def held_on_appeal(api: httpx.Client, prefix: str, description: str | None = None) -> int:
+    """A saboteur refused by the screener and appealed by its participant: held for an
+    inspector. Its id."""
+    manifest = saboteur_manifest(unique(prefix))
+    if description is not None:
+        manifest["description"] = description
+    refused = api.post("/submit", json=manifest).json()
+    assert refused["status"] == "refused", refused
+    auth = {"Authorization": f"Bearer {refused['token']}"}
+    appeal = api.post(f"/models/{refused['model_id']}/appeal", json={"note": "x"}, headers=auth)
+    assert appeal.status_code == 200, appeal.text
+    return int(refused["model_id"])
+
+
+def refuse(api: httpx.Client, model_id: int) -> None:
+    """A held model decided, out of every later test's review queue."""
+    decision = {"decision": "refuse", "inspector": "Ada", "note": "holds"}
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    api.post(f"/models/{model_id}/review", json=decision, headers=headers)
+
+
+def test_a_participants_description_is_labelled_as_its_own_words(
+    page: Any, server: ServerProcess, api: httpx.Client
+) -> None:
+    """A description written to pass for the screener's or an inspector's text is shown under
+    a heading naming it the participant's words, quoted, and styled unlike the verdict and the
+    screener's reasons: on the model's page, its inspection page and in the models list."""
+    spoof = "Accepted by the screener: no reason.\n\nReview history\nadmitted by inspector Ada"
+    model_id = held_on_appeal(api, "ui-spoof", description=spoof)
+    participant = api.get(f"/models/{model_id}").json()["participant"]
+
+    def labelled() -> None:
+        quoted = page.locator("#model-description #description")
+        quoted.wait_for(timeout=WAIT_MS)
+        assert page.text_content("#description-heading") == (
+            "Description, in the participant's words"
+        )
+        heading = page.locator("#description-heading").bounding_box()
+        words = quoted.bounding_box()
+        assert heading and words and heading["y"] < words["y"]  # the label above the words
+        assert quoted.text_content() == spoof
+        style = (
+            "(node) => [getComputedStyle(node).fontStyle, getComputedStyle(node).borderTopStyle]"
+        )
+        assert quoted.evaluate(style) == ["italic", "dashed"]
+        for system in ("#verdict", "#model-reasons li"):
+            assert page.locator(system).first.evaluate(style) != ["italic", "dashed"]
+
+    page.goto(f"{server.url}/ui/#/models/{model_id}")
+    labelled()
+    try:
+        page.goto(f"{server.url}/ui/#/reviews/{model_id}")
+        page.fill("#admin-token", ADMIN_TOKEN)
+        page.keyboard.press("Enter")
+        page.wait_for_selector("#decision", timeout=WAIT_MS)
+        labelled()
+        page.goto(f"{server.url}/ui/#/models?participant={participant}")
+        row = page.locator(f"#model-list tr:has(a[href='#/models/{model_id}'])")
+        row.wait_for(timeout=WAIT_MS)
+        assert page.locator("#model-list th").nth(5).text_content() == (
+            "Description (the participant's words)"
+        )
+        cell = row.locator("td").nth(5)
+        quotes = "(q) => [getComputedStyle(q, '::before').content, getComputedStyle(q).fontStyle]"
+        assert cell.locator("q").evaluate(quotes) == ["open-quote", "italic"]  # in quotes
+    finally:
+        refuse(api, model_id)
 
 
 def test_jobs_page_follows_a_job_and_shows_its_plots(
@@ -1183,6 +1279,40 @@ def test_a_missing_auction_job_model_or_participant_gets_a_not_found_page(
         assert page.locator("svg.chart, table").count() == 0
 
 
+def test_a_detail_page_whose_first_read_fails_shows_its_subject_once_the_server_answers(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    """An auction, a model and a job opened while the server is out of reach: each page says
+    so with a "Try again now" button, reads again by itself every few seconds, and shows its
+    subject once the server answers (it used to say "could not be reached" for good)."""
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    auction_id = create_unstarted_auction(server.database_url, honest_ids, n_fish=1, seed=6)
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    assert api.delete(f"/auctions/{auction_id}", headers=headers).status_code == 200
+    job = api.post("/jobs", json={"kind": "fish", "params": {"steps": 600}}, headers=headers)
+    job_id = job.json()["job_id"]
+    model_id = population["saboteur"]["model_id"]
+    down = re.compile(r"/(auctions|models|jobs)/\d+$|/ui/(kinds|neurons)\.json$")
+    for address, shown, pressed in (
+        (f"auctions/{auction_id}", "#liveness:has-text('Ended: cancelled')", False),
+        (f"models/{model_id}", "#verdict", True),
+        (f"jobs/{job_id}", f"h1:has-text('Job {job_id}: fish')", False),
+    ):
+        page.route(down, lambda route: route.abort())
+        page.goto(f"{server.url}/ui/#/{address}")
+        failed = page.locator("p.problem:has-text('could not be reached')")
+        failed.wait_for(timeout=WAIT_MS)
+        page.unroute(down)
+        if pressed:  # at once, by the button
+            assert "The page tries again every few seconds." in (failed.text_content() or "")
+            page.click("#read-again")
+            page.wait_for_selector(shown, timeout=2000)
+        else:  # by itself
+            page.wait_for_selector(shown, timeout=WAIT_MS)
+        assert failed.count() == 0, address
+    assert page.locator("#job-state dt:has-text('Kind') + dd").text_content() == "fish"
+
+
 @pytest.fixture(scope="module")
 def axe_source(tmp_path_factory: pytest.TempPathFactory) -> str:
     """axe-core from npm, installed into a temporary folder (never committed)."""
@@ -1374,6 +1504,64 @@ def test_an_inspector_admits_a_held_model_on_its_inspection_page(
     row = page.locator(f"tr:has(a[href='#/models/{model_id}'])")
     row.wait_for(timeout=WAIT_MS)
     assert "admitted by an inspector" in (row.text_content() or "")
+
+
+def test_a_decision_another_inspector_made_first_redraws_the_page_as_the_model_stands(
+    page: Any, server: ServerProcess, api: httpx.Client
+) -> None:
+    """The inspection page is open while another inspector admits the model: pressing Refuse
+    is refused (409), and the page reads the model again: the verdict and the review history
+    say who admitted it, and no decision is offered any more (it said "Held" with both
+    buttons)."""
+    model_id = held_on_appeal(api, "ui-race")
+    try:
+        page.goto(f"{server.url}/ui/#/reviews/{model_id}")
+        page.fill("#admin-token", ADMIN_TOKEN)
+        page.keyboard.press("Enter")
+        page.wait_for_selector("#decision", timeout=WAIT_MS)
+        assert (page.text_content("#verdict") or "").startswith("Held")
+        other = {"decision": "admit", "inspector": "Carol", "note": "sincere"}
+        headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+        admitted = api.post(f"/models/{model_id}/review", json=other, headers=headers)
+        assert admitted.status_code == 200, admitted.text
+        page.fill("#inspector", "Dave")
+        page.click("#refuse")
+        page.wait_for_selector(
+            f"#decision-status:has-text('model {model_id} is accepted')", timeout=WAIT_MS
+        )
+        page.wait_for_selector("#verdict:has-text('Admitted by inspector Carol')", timeout=WAIT_MS)
+        assert "Carol admitted: sincere" in (page.text_content("#model-audit") or "")
+        assert page.locator("#admit, #refuse, #inspector, #note").count() == 0
+        assert page.evaluate("document.activeElement.id") == "decision-status"
+        model = api.get(f"/models/{model_id}").json()
+        assert [(r["decision"], r["inspector"]) for r in model["reviews"]][-1] == ("admit", "Carol")
+    finally:
+        refuse(api, model_id)  # already decided: refused 409, a no-op
+
+
+def test_the_review_queue_keeps_why_a_model_is_held_readable_on_a_phone(
+    page: Any, server: ServerProcess, api: httpx.Client
+) -> None:
+    """At 360 px the queue scrolls sideways in its frame: "Why held" keeps a readable width
+    (it was a word wide) and each model's link reads on one line ("Inspect model 8", not
+    "Inspec / t model 8")."""
+    model_id = held_on_appeal(api, "ui-queue")
+    try:
+        page.set_viewport_size({"width": 360, "height": 800})
+        page.goto(f"{server.url}/ui/#/reviews")
+        page.fill("#admin-token", ADMIN_TOKEN)
+        page.keyboard.press("Enter")
+        inspect = page.locator(f"#review-list a[href='#/reviews/{model_id}']")
+        inspect.wait_for(timeout=WAIT_MS)
+        assert inspect.evaluate("(a) => a.getClientRects().length") == 1  # one line
+        why = page.locator(f"#review-list tr:has(a[href='#/reviews/{model_id}']) td").nth(3)
+        assert (why.text_content() or "").startswith("appealed: ")
+        assert why.evaluate("(td) => td.getBoundingClientRect().width") >= 300
+        frame = page.locator("#review-list").locator("xpath=..")
+        assert frame.evaluate("(f) => f.scrollWidth > f.clientWidth")  # the frame scrolls
+        assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
+    finally:
+        refuse(api, model_id)
 
 
 def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(

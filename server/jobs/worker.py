@@ -20,7 +20,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from server.api.readiness import disk_problem_kind
+from server.api.readiness import DATA_FOLDER, disk_problem_kind
 from server.store import crud
 from server.store.db import (
     OUTAGE_RETRIES,
@@ -79,7 +79,7 @@ def check_free_disk(data_dir: Path, context: WorkerContext) -> None:
     free: a job queued while there was room does not start on a full disk."""
     if context.min_free_disk_mb <= 0:
         return
-    found = disk_problem_kind(data_dir, context.min_free_disk_mb, "the data folder")
+    found = disk_problem_kind(data_dir, context.min_free_disk_mb, DATA_FOLDER)
     if found is not None:
         raise JobDiskError(f"{found[1]}: not started")
 

@@ -290,6 +290,17 @@ def test_an_over_long_list_is_refused_on_its_count_alone(client, value, count) -
     assert item["msg"] == f"{count} values: at most 32"
 
 
+def test_a_lavaland_gif_map_past_the_evaluation_maps_is_refused_naming_it(client) -> None:
+    """Map 300 of 256 is no map: refused, not drawn as another one (it was map 44)."""
+    params = {"eval_maps": 256, "train_maps": 0, "gif_map": 300}
+    response = client.post("/jobs", json={"kind": "lavaland", "params": params}, headers=ADMIN)
+    assert response.status_code == 422, response.text
+    (item,) = response.json()["detail"]
+    assert item["loc"] == ["body", "params", "gif_map"]
+    assert item["msg"].startswith("must be below eval-maps (256)")
+    assert client.get("/jobs").json()["items"] == []
+
+
 def test_a_design_stage_refuses_the_grid_axes_it_does_not_take(client) -> None:
     """A design stage runs its own conditions; only stage 4 takes ``backswing``."""
     cases = [

@@ -10,6 +10,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from click.testing import CliRunner
 from gymnasium.utils.env_checker import check_env
 
 import sim.lavaland as lavaland
@@ -18,6 +19,7 @@ from agents.robot2nn import (
     KNOWN_TILE_RGB,
     imagine,
 )
+from server.cli import cli
 from sim.experiment import ConfigError, over_budget, parse_config
 from sim.lavaland import Lavaland, LavalandConfig, run
 from sim.lavaland.engine import (
@@ -240,6 +242,20 @@ def test_config_validation_names_the_field():
     with pytest.raises(ConfigError) as err:
         parse_config(LavalandConfig, {"eval_maps": 0})
     assert err.value.errors[0]["field"] == "eval_maps"
+
+
+@pytest.mark.parametrize("gif_map", ["16", "300"])
+def test_the_command_line_refuses_a_gif_map_past_the_evaluation_maps(tmp_path, gif_map):
+    """The GIF's map is one of the evaluation maps: one past them is a usage error naming the
+    option (it was drawn as map gif_map mod eval_maps), and nothing runs."""
+    out = tmp_path / "never"
+    args = ["lavaland", "--eval-maps", "16", "--train-maps", "0", "--gif-map", gif_map]
+    refused = CliRunner().invoke(cli, [*args, "--json", "--out", str(out)])
+    assert refused.exit_code == 2, refused.output
+    message = "must be below eval-maps (16): the GIF animates one of the evaluation maps, 0 to 15"
+    assert json.loads(refused.stdout)["errors"] == [{"option": "--gif-map", "message": message}]
+    assert refused.stderr.strip() == f"error: --gif-map: {message}"
+    assert not out.exists()
 
 
 def test_tiny_srd_run_writes_artifacts(tmp_path):

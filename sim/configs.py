@@ -95,7 +95,7 @@ class LavalandConfig:
     srd_step: Literal["fused", "autograd"] = "fused"
     """fused: the compiled SRD step; autograd: the same step through torch autograd (slower)."""
     gif_map: Annotated[int, Field(ge=0, le=MAX_MAPS - 1)] = 0
-    """Evaluation map (index modulo eval_maps) animated in trajectory.gif."""
+    """Evaluation map animated in trajectory.gif (an index below eval_maps)."""
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
     """Seed of every random stream (maps, coins, training order)."""
 
@@ -110,19 +110,28 @@ class LavalandConfig:
         return Cost(seconds, "repeats" if self.repeats > 1 else option)
 
     def problems(self, given: frozenset[str] = frozenset()) -> list[dict[str, str]]:
-        """Training's options ``given`` (named by the user) with no training
-        (``train_maps`` 0)."""
-        if self.train_maps > 0:
-            return []
-        return [
-            {
-                "field": name,
-                "message": "with train-maps 0 nothing is trained: it does not take "
-                + name.replace("_", "-"),
-            }
-            for name in ("lr", "loss_guard", "srd_step")
-            if name in given
-        ]
+        """A ``gif_map`` past the evaluation maps; training's options ``given`` (named by the
+        user) with no training (``train_maps`` 0)."""
+        found = []
+        if self.gif_map >= self.eval_maps:
+            found.append(
+                {
+                    "field": "gif_map",
+                    "message": f"must be below eval-maps ({self.eval_maps}): the GIF animates "
+                    f"one of the evaluation maps, 0 to {self.eval_maps - 1}",
+                }
+            )
+        if self.train_maps == 0:
+            found += [
+                {
+                    "field": name,
+                    "message": "with train-maps 0 nothing is trained: it does not take "
+                    + name.replace("_", "-"),
+                }
+                for name in ("lr", "loss_guard", "srd_step")
+                if name in given
+            ]
+        return found
 
 
 # --- half-cheetah ----------------------------------------------------------------------------

@@ -5,6 +5,7 @@ server started with, reachable, not read-only), a file can be written in the dat
 disks of the data folder and of a SQLite database have ``SRD_MIN_FREE_DISK_MB`` free, and the
 screener judges (``ScreeningService.problem``: its process runs and answers). The
 answer is kept ``CACHE_S``, so a flood of health checks costs one round of checks a second.
+``/healthz`` is public: its problems name a folder by its role and setting, never its path.
 """
 
 from __future__ import annotations
@@ -27,6 +28,11 @@ MB = 1 << 20
 
 Check = Literal["database", "data_dir", "disk", "screener"]
 
+DATA_FOLDER = "the data folder (SRD_DATA_DIR)"
+"""How public answers name the data folder (not by its path: where the server is installed)."""
+DATABASE_FOLDER = "the SQLite database's folder (SRD_DATABASE_URL)"
+"""How public answers name a SQLite database's folder."""
+
 
 @dataclass(frozen=True)
 class Problem:
@@ -36,8 +42,9 @@ class Problem:
     msg: str
 
 
-def data_dir_problem(path: Path) -> str | None:
-    """Why files cannot be made in the folder ``path``, or None. A file is created, written
+def data_dir_problem(path: Path, what: str | None = None) -> str | None:
+    """Why files cannot be made in the folder ``path`` (``what``: how to name it; by default
+    its path, for the operator starting the server), or None. A file is created, written
     and removed there: mode bits alone would not tell (root ignores them), a read-only mount,
     a full disk or a file in the folder's place would."""
     try:
@@ -48,7 +55,7 @@ def data_dir_problem(path: Path) -> str | None:
             os.close(handle)
             os.unlink(name)
     except OSError as exc:
-        return f"the data folder {path} cannot be written: {exc.strerror or exc}"
+        return f"{what or f'the data folder {path}'} cannot be written: {exc.strerror or exc}"
     return None
 
 
@@ -112,7 +119,8 @@ def unmake_data_dir(made: list[Path]) -> None:
 
 
 def disk_problem(path: Path, min_free_mb: int, what: str) -> str | None:
-    """Why the disk holding ``path`` (``what``: how to name it) is too full, or None."""
+    """Why the disk holding ``path`` (``what``: how to name it, not by its path: the
+    answers that say it are public) is too full, or None."""
     found = disk_problem_kind(path, min_free_mb, what)
     return None if found is None else found[1]
 
@@ -123,12 +131,11 @@ def disk_problem_kind(path: Path, min_free_mb: int, what: str) -> tuple[str, str
     try:
         free_mb = shutil.disk_usage(path).free // MB
     except OSError as exc:
-        why = f"the free space of {what} {path} cannot be read: {exc.strerror or exc}"
+        why = f"the free space of {what} cannot be read: {exc.strerror or exc}"
         return "disk_unreadable", why
     if free_mb < min_free_mb:
         return "disk_full", (
-            f"{free_mb} MB free on the disk of {what} {path}, less than "
-            f"SRD_MIN_FREE_DISK_MB={min_free_mb}"
+            f"{free_mb} MB free on the disk of {what}, less than SRD_MIN_FREE_DISK_MB={min_free_mb}"
         )
     return None
 
@@ -147,9 +154,9 @@ class Readiness:
         self._screener = screener
         self._data_dir = data_dir.resolve()
         self._min_free_mb = min_free_disk_mb
-        self._folders = [(self._data_dir, "the data folder")]
+        self._folders = [(self._data_dir, DATA_FOLDER)]
         if is_sqlite(database.url):
-            self._folders.append((sqlite_path(database.url).parent, "the database's folder"))
+            self._folders.append((sqlite_path(database.url).parent, DATABASE_FOLDER))
         self._lock = threading.Lock()
         self._problems: list[Problem] = []
         self._checked_at = -CACHE_S
@@ -173,7 +180,7 @@ class Readiness:
         database = self._database.write_problem()
         if database is not None:
             problems.append(Problem("database", database))
-        data_dir = data_dir_problem(self._data_dir)
+        data_dir = data_dir_problem(self._data_dir, DATA_FOLDER)
         if data_dir is not None:
             problems.append(Problem("data_dir", data_dir))
         if self._min_free_mb > 0:

@@ -11,7 +11,7 @@ from typing import Any
 from sqlalchemy.orm import Session
 
 from server.api.errors import RequestError, api_error, error_item, validation_error
-from server.api.readiness import disk_problem_kind
+from server.api.readiness import DATA_FOLDER, disk_problem_kind
 from server.jobs.worker import job_dir
 from server.store import crud
 from server.store.tables import Job
@@ -61,7 +61,7 @@ def create_job(
             for err in exc.errors
         ) from exc
     if min_free_disk_mb > 0:  # its artifacts would fill what is left
-        found = disk_problem_kind(data_dir, min_free_disk_mb, "the data folder")
+        found = disk_problem_kind(data_dir, min_free_disk_mb, DATA_FOLDER)
         if found is not None:
             kind_of_problem, full = found
             raise api_error(

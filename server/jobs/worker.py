@@ -20,7 +20,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from server.api.readiness import disk_problem_kind
+from server.api.readiness import DATA_FOLDER, disk_problem_kind
 from server.store import crud
 from server.store.db import (
     OUTAGE_RETRIES,
@@ -79,7 +79,7 @@ def check_free_disk(data_dir: Path, context: WorkerContext) -> None:
     free: a job queued while there was room does not start on a full disk."""
     if context.min_free_disk_mb <= 0:
         return
-    found = disk_problem_kind(data_dir, context.min_free_disk_mb, "the data folder")
+    found = disk_problem_kind(data_dir, context.min_free_disk_mb, DATA_FOLDER)
     if found is not None:
         raise JobDiskError(f"{found[1]}: not started")
 
@@ -182,6 +182,18 @@ def failure_message(exc: BaseException, context: WorkerContext) -> str:
     return text[:MESSAGE_LIMIT]
 
 
+def _name_from_job_folder(exc: Exception, out_dir: Path) -> None:
+    """A file in the job's folder that could not be written (the disk full) named from that
+    folder (``cheetah.gif``): its message and error are public, and its path would say where
+    the server is installed. (The folder itself keeps its path.)"""
+    if not isinstance(exc, OSError):
+        return
+    for attribute in ("filename", "filename2"):
+        name = getattr(exc, attribute)
+        if isinstance(name, str) and Path(name).is_relative_to(out_dir) and Path(name) != out_dir:
+            setattr(exc, attribute, Path(name).relative_to(out_dir).as_posix())
+
+
 def unit_runner(context: WorkerContext, kind: str, config: Any) -> UnitRunner | None:
     """Where this job's units are computed: None (here, one after another) for the local
     backend, the Ray cluster's tasks for the ``ray`` one."""
@@ -238,6 +250,7 @@ def run_job(context: WorkerContext, job_id: int) -> None:
         except crud.SupersededError:
             return
         except Exception as exc:
+            _name_from_job_folder(exc, out_dir)
             outcome = {  # its files are removed once it ended (``discard_unsuccessful``)
                 "status": JobStatus.FAILED,
                 "error": error_summary(exc),

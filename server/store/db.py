@@ -639,10 +639,11 @@ class Database:
 
 
 def _sqlite_write_problem(path: Path) -> str | None:
-    """Why SQLite cannot write ``path`` (the folder takes its journal files), or None."""
-    for where in (path, path.parent):
+    """Why SQLite cannot write ``path`` (the folder takes its journal files), or None; named by
+    its setting, not its path (readiness is public)."""
+    for where, what in ((path, "its file"), (path.parent, "its folder")):
         if not os.access(where, os.W_OK):
-            return f"the database file {path} cannot be written: {where} is read-only"
+            return f"the SQLite database (SRD_DATABASE_URL) cannot be written: {what} is read-only"
     return None
 
 

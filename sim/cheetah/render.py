@@ -5,7 +5,8 @@ interpreter running this module::
 
     python -m sim.cheetah.render FRAMES.npz OUT.gif CAPTION
 
-``FRAMES.npz`` holds ``qpos`` (frames, nq) and ``start_x``; ``render_gif`` writes it. Its
+``FRAMES.npz`` holds ``qpos`` (frames, nq) and ``start_x``; ``render_gif`` writes it, has the
+child draw into ``<gif>.part`` and renames that to the GIF once it is whole. Its
 child first binds itself to its parent (``_START``: Linux's parent-death signal, before any
 heavy import), so a cancelled job's worker, terminated mid-drawing, leaves no child writing
 its GIF.
@@ -14,6 +15,7 @@ its GIF.
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import signal
 import subprocess
@@ -35,6 +37,9 @@ FRAME_HEIGHT, FRAME_WIDTH = 192, 256
 """GIF frame size in pixels."""
 RENDER_TIMEOUT_S = 300
 """Longest a child may take to draw the GIF."""
+WRITE_FAILED = 73
+"""The child's exit code when it cannot write the GIF (sysexits' ``EX_CANTCREAT``); the last
+line of its stderr is the error's number and words."""
 PR_SET_PDEATHSIG = 1
 """Linux's prctl option: the signal a process gets when the one that started it ends."""
 _START = """import os, runpy, sys
@@ -53,24 +58,41 @@ that long)."""
 def render_gif(path: Path, qpos: np.ndarray, start_x: float, caption: str) -> dict[str, Any]:
     """Render ``qpos`` (steps + 1, nq) to a GIF in a child process with an offscreen back end.
 
-    Never raises: returns ``video`` (the file name, or None) and ``video_note`` (the back end
-    used, or why none worked).
+    Returns ``video`` (the file name, or None) and ``video_note`` (the back end used, or why
+    none worked). A GIF that cannot be written (the disk full, the folder read-only) is not a
+    missing back end: ``OSError`` is raised, as for any other file of the run. The child
+    draws into ``<name>.part``, renamed to ``path`` once whole: no partial GIF stays.
     """
     seconds = min(VIDEO_SECONDS, (len(qpos) - 1) / STEPS_PER_SECOND)
     times = np.arange(0, seconds, 1 / VIDEO_FPS)
     frames = np.unique(np.ceil(times * STEPS_PER_SECOND).astype(int))
     source = path.with_suffix(".npz")
-    np.savez(source, qpos=qpos[frames], start_x=np.array(start_x))
-    reasons = []
+    partial = path.with_name(path.name + ".part")
     try:
-        for backend in GL_BACKENDS:
-            start = _START.format(
-                option=PR_SET_PDEATHSIG, signal=int(signal.SIGKILL), parent=os.getpid()
-            )
+        np.savez(source, qpos=qpos[frames], start_x=np.array(start_x))
+        backend, reasons = _draw_in_child(source, partial, caption)
+        if backend is None:
+            return {"video": None, "video_note": "no offscreen OpenGL context: " + reasons}
+        partial.replace(path)
+        return {"video": path.name, "video_note": f"rendered with MUJOCO_GL={backend}"}
+    finally:
+        source.unlink(missing_ok=True)
+        partial.unlink(missing_ok=True)
+
+
+def _draw_in_child(source: Path, target: Path, caption: str) -> tuple[str | None, str]:
+    """Draw ``target`` in a child process, one back end after another: the back end that drew
+    it, or None and why each failed. ``OSError`` when the child could not write it."""
+    reasons = []
+    for backend in GL_BACKENDS:
+        start = _START.format(
+            option=PR_SET_PDEATHSIG, signal=int(signal.SIGKILL), parent=os.getpid()
+        )
+        try:
             done = subprocess.run(
                 [
                     *(sys.executable, "-c", start),
-                    *(str(source), str(path), caption),
+                    *(str(source), str(target), caption),
                 ],
                 env=_child_env(backend),
                 capture_output=True,
@@ -78,15 +100,18 @@ def render_gif(path: Path, qpos: np.ndarray, start_x: float, caption: str) -> di
                 timeout=RENDER_TIMEOUT_S,
                 check=False,
             )
-            if done.returncode == 0 and path.is_file():
-                return {"video": path.name, "video_note": f"rendered with MUJOCO_GL={backend}"}
-            last = (done.stderr.strip().splitlines() or ["no output"])[-1]
-            reasons.append(f"{backend}: {last}")
-    except (OSError, subprocess.SubprocessError) as exc:
-        reasons.append(str(exc))
-    finally:
-        source.unlink(missing_ok=True)
-    return {"video": None, "video_note": "no offscreen OpenGL context: " + "; ".join(reasons)}
+        except (OSError, subprocess.SubprocessError) as exc:
+            reasons.append(str(exc))
+            break
+        if done.returncode == 0 and target.is_file():
+            return backend, ""
+        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        if done.returncode == WRITE_FAILED:  # another back end would not help
+            number, _, words = last.partition(" ")
+            code = int(number) if number.isdigit() else errno.EIO
+            raise OSError(code, words or os.strerror(code), str(target.with_suffix("")))
+        reasons.append(f"{backend}: {last}")
+    return None, "; ".join(reasons)
 
 
 def _child_env(backend: str) -> dict[str, str]:
@@ -125,9 +150,18 @@ def draw_gif(source: Path, target: Path, caption: str) -> None:
                 (4, 4), f"{caption}  t={frame / VIDEO_FPS:4.1f}s", fill=(0, 0, 0)
             )
             images.append(image.convert("P", palette=Image.Palette.ADAPTIVE, colors=64))
-    images[0].save(
-        target, save_all=True, append_images=images[1:], duration=int(1000 / VIDEO_FPS), loop=0
-    )
+    try:
+        images[0].save(
+            target,
+            format="GIF",
+            save_all=True,
+            append_images=images[1:],
+            duration=int(1000 / VIDEO_FPS),
+            loop=0,
+        )
+    except OSError as exc:  # the disk full, say: the parent says so (it is no back end's fault)
+        print(f"{exc.errno or errno.EIO} {exc.strerror or exc}", file=sys.stderr)
+        raise SystemExit(WRITE_FAILED) from exc
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -163,7 +163,7 @@ def assemble_repeats(
     progress(0.0, "writing artifacts")
     eval_set, _ = map_sets(config)
     gif_coins = explore_coins(np.random.default_rng([config.seed, 5]), 1, n_plans)
-    gif_map = eval_set.select(config.gif_map % config.eval_maps)
+    gif_map = eval_set.select(config.gif_map)
     artifacts = write_artifacts(out_dir, config, outcomes)
     trajectory_gif(out_dir / "trajectory.gif", model, gif_map, gif_coins)
     artifacts.append("trajectory.gif")

@@ -12,9 +12,10 @@ epochs against ``train_srd``.
 from __future__ import annotations
 
 import itertools
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
-import numba
 import numpy as np
 import torch
 
@@ -30,6 +31,26 @@ from agents.robot2nn import (
 )
 from sim.experiment import ProgressFn, no_progress
 from sim.lavaland.engine import MapSet, load_kernels
+
+
+def user_cache_dir() -> Path | None:
+    """The user's cache folder (``$XDG_CACHE_HOME``, else ``~/.cache``), or None when there is
+    no home to find it in."""
+    given = os.environ.get("XDG_CACHE_HOME", "")
+    if os.path.isabs(given):  # the XDG spec: a relative path is to be ignored
+        return Path(given)
+    try:
+        return Path.home() / ".cache"
+    except RuntimeError:
+        return None
+
+
+if not os.environ.get("NUMBA_CACHE_DIR") and (cache := user_cache_dir()) is not None:
+    # numba keeps the compiled step beside this module by default, in the source tree (a clone
+    # gets files nobody wrote); NUMBA_CACHE_DIR, read when numba is imported, decides
+    os.environ["NUMBA_CACHE_DIR"] = str(cache / "srd-auction" / "numba")
+
+import numba  # noqa: E402  (after its cache folder is set)
 
 Arr = np.ndarray
 

@@ -3,9 +3,13 @@ fails for a real cause carries that cause (type and message), stored by its work
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import shutil
+import subprocess
 import threading
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime
 from pathlib import Path
@@ -286,6 +290,17 @@ def test_an_over_long_list_is_refused_on_its_count_alone(client, value, count) -
     assert item["msg"] == f"{count} values: at most 32"
 
 
+def test_a_lavaland_gif_map_past_the_evaluation_maps_is_refused_naming_it(client) -> None:
+    """Map 300 of 256 is no map: refused, not drawn as another one (it was map 44)."""
+    params = {"eval_maps": 256, "train_maps": 0, "gif_map": 300}
+    response = client.post("/jobs", json={"kind": "lavaland", "params": params}, headers=ADMIN)
+    assert response.status_code == 422, response.text
+    (item,) = response.json()["detail"]
+    assert item["loc"] == ["body", "params", "gif_map"]
+    assert item["msg"].startswith("must be below eval-maps (256)")
+    assert client.get("/jobs").json()["items"] == []
+
+
 def test_a_design_stage_refuses_the_grid_axes_it_does_not_take(client) -> None:
     """A design stage runs its own conditions; only stage 4 takes ``backswing``."""
     cases = [
@@ -322,6 +337,49 @@ def test_a_job_whose_files_grow_past_their_bound_is_failed_and_its_files_removed
         small = run_to_end(client, {"kind": "fish", "params": {"steps": 10}})
         assert small["status"] == "succeeded", small["error"]
         assert "energy.csv" in small["artifacts"]
+
+
+@contextlib.contextmanager
+def small_disk(folder: Path, size: str) -> Iterator[Path]:
+    """A tmpfs of ``size`` mounted on ``folder`` (root only: the test is skipped otherwise)."""
+    folder.mkdir()
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a small disk needs root")
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs: {mounted.stderr.strip()}")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", "-l", str(folder)], check=False)
+
+
+def test_a_cheetah_job_on_a_full_disk_fails_naming_its_file_and_leaves_no_gif(tmp_path) -> None:
+    """The disk fills while the GIF is written (its other files fit in 64 kB, the GIF takes
+    72 kB): the job fails saying so, the file named from its folder (the message is public: no
+    path of the server's), and no truncated GIF is listed or kept."""
+    with small_disk(tmp_path / "disk", "64k") as disk:
+        settings = make_settings(
+            f"sqlite:///{tmp_path / 'srd.db'}", disk / "data", min_free_disk_mb=0, job_workers=1
+        )
+        params = {"backswing": [4], "inhibitor": [2], "srd": "off", "trials": 1, "steps": 100}
+        with TestClient(create_app(settings)) as client:
+            job = run_to_end(client, {"kind": "cheetah", "params": params})
+            note = (job["result"] or {}).get("video_note") or ""
+            if job["status"] == "succeeded" and "No space left" not in note:
+                pytest.skip(note)  # no OpenGL here: no GIF to write
+            assert job["status"] == "failed", job
+            error = "OSError: [Errno 28] No space left on device: 'cheetah.gif'"
+            assert job["message"] == f"failed: {error}"
+            assert job["error"].startswith(f"{error}\n") and str(tmp_path) not in job["error"]
+            assert job["artifacts"] == []
+            folder = settings.data_dir / "jobs" / str(job["id"])
+            wait_for(lambda: {"kept": folder.exists()}, lambda s: not s["kept"], 15)
 
 
 class DiesAtStart:

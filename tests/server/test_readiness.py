@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import subprocess
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -45,6 +46,7 @@ def test_ready_then_data_folder_replaced_by_a_file(
         assert refused.status_code == 503 and refused.headers["retry-after"], refused.text
         [item] = refused.json()["detail"]
         assert item["type"] == "disk_unreadable" and "cannot be read" in item["msg"], item
+        assert str(settings.data_dir.parent) not in item["msg"]
         assert client.get("/jobs").json()["items"] == []
         settings.data_dir.write_text("not a folder")  # root ignores mode bits: this it cannot
         health = client.get("/healthz")
@@ -53,8 +55,8 @@ def test_ready_then_data_folder_replaced_by_a_file(
         assert body["status"] == "unavailable"
         [problem] = body["problems"]
         assert problem["check"] == "data_dir"
-        assert str(settings.data_dir.resolve()) in problem["msg"]
-        assert "cannot be written" in problem["msg"]
+        assert problem["msg"].startswith("the data folder (SRD_DATA_DIR) cannot be written: ")
+        assert str(settings.data_dir.parent) not in problem["msg"]  # public: no install path
         assert client.get("/livez").json() == {"status": "ok"}
         settings.data_dir.unlink()
         moved.rename(settings.data_dir)
@@ -62,6 +64,8 @@ def test_ready_then_data_folder_replaced_by_a_file(
 
 
 def test_too_little_free_disk(tmp_path: Path) -> None:
+    """Not ready, naming the setting and each folder by its role: ``/healthz`` is public, and
+    a path would say where the server is installed (``POST /jobs`` says the same)."""
     free_mb = shutil.disk_usage(tmp_path).free // (1 << 20)
     over = make_settings(
         f"sqlite:///{tmp_path / 'srd.db'}", tmp_path / "data", min_free_disk_mb=free_mb + 1024
@@ -70,9 +74,16 @@ def test_too_little_free_disk(tmp_path: Path) -> None:
         health = client.get("/healthz")
         assert health.status_code == 503
         problems = health.json()["problems"]
-        assert {p["check"] for p in problems} == {"disk"}
-        assert any(f"SRD_MIN_FREE_DISK_MB={free_mb + 1024}" in p["msg"] for p in problems)
-        assert any(str((tmp_path / "data").resolve()) in p["msg"] for p in problems)
+        assert health.json()["status"] == "unavailable"
+        setting = f"SRD_MIN_FREE_DISK_MB={free_mb + 1024}"
+        assert [(p["check"], p["msg"].split(" MB free on ")[1]) for p in problems] == [
+            ("disk", f"the disk of the data folder (SRD_DATA_DIR), less than {setting}"),
+            (
+                "disk",
+                f"the disk of the SQLite database's folder (SRD_DATABASE_URL), less than {setting}",
+            ),
+        ]
+        assert not any(str(tmp_path) in p["msg"] for p in problems)
         assert client.get("/livez").status_code == 200
         assert client.post("/submit", json={}).status_code == 422  # still serving
         # No job is queued to write its artifacts there, and nothing of it is stored.
@@ -81,7 +92,38 @@ def test_too_little_free_disk(tmp_path: Path) -> None:
         assert refused.status_code == 503 and refused.headers["retry-after"]
         [item] = refused.json()["detail"]
         assert item["type"] == "disk_full" and "SRD_MIN_FREE_DISK_MB" in item["msg"]
+        assert "the data folder (SRD_DATA_DIR)" in item["msg"]
+        assert str(tmp_path) not in item["msg"]
         assert client.get("/jobs").json()["items"] == []
+
+
+def test_a_sqlite_file_that_cannot_be_written_is_named_by_its_setting(
+    settings: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An immutable database file (which refuses even root) is not ready; the answer is public,
+    so it names the setting, not the file's path."""
+    monkeypatch.setattr(readiness, "CACHE_S", 0.0)
+    database = Path(settings.database_url.removeprefix("sqlite:///"))
+    with TestClient(create_app(settings)) as client:
+        assert client.get("/healthz").status_code == 200
+        if shutil.which("chattr") is None:
+            pytest.skip("no chattr")
+        made = subprocess.run(["chattr", "+i", str(database)], capture_output=True, check=False)
+        if made.returncode != 0:
+            pytest.skip(f"cannot make the file immutable: {made.stderr.decode().strip()}")
+        try:
+            health = client.get("/healthz")
+        finally:
+            subprocess.run(["chattr", "-i", str(database)], check=True)
+        assert health.status_code == 503
+        assert health.json()["problems"] == [
+            {
+                "check": "database",
+                "msg": "the SQLite database (SRD_DATABASE_URL) cannot be written: its file is "
+                "read-only",
+            }
+        ]
+        assert client.get("/healthz").status_code == 200
 
 
 def test_a_stalled_screener_is_not_ready(
@@ -117,10 +159,10 @@ def test_the_answer_is_cached(settings: Settings, monkeypatch: pytest.MonkeyPatc
     checks = 0
     real = readiness.data_dir_problem
 
-    def counted(path: Path) -> str | None:
+    def counted(path: Path, what: str | None = None) -> str | None:
         nonlocal checks
         checks += 1
-        return real(path)
+        return real(path, what)
 
     monkeypatch.setattr(readiness, "data_dir_problem", counted)
     monkeypatch.setattr(readiness, "CACHE_S", 60.0)

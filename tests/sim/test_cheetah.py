@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -699,6 +700,36 @@ def test_a_render_ends_with_the_process_that_started_it(tmp_path):
         for child in children:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(child, signal.SIGKILL)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="sets RLIMIT_FSIZE")
+def test_a_gif_that_cannot_be_written_fails_the_run_in_one_line_leaving_none_of_it(tmp_path):
+    """The disk fills while the GIF is written (here a bound on a file's size, which the run
+    and its render child inherit: the other files fit, the GIF does not). That is no missing
+    OpenGL back end: the run says so in one line, exits 1 and leaves none of its files, no
+    truncated GIF."""
+    out = tmp_path / "run"
+    args = ["--backswing", "4", "--inhibitor", "2", "--srd", "off", "--trials", "1"]
+
+    def bounded() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (40_000, 40_000))  # the GIF takes 72 KB
+
+    done = subprocess.run(
+        [*srd_command(), "cheetah", *args, "--steps", "100", "--json", "--out", str(out)],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+        preexec_fn=bounded,
+    )
+    if done.returncode == 0 and "File too large" not in json.loads(done.stdout)["video_note"]:
+        pytest.skip(json.loads(done.stdout)["video_note"])  # no back end: no GIF to write
+    error = f"cannot write the run's files ({out / 'cheetah.gif'}): File too large"
+    assert done.returncode == 1, done.stdout[-2000:]
+    assert json.loads(done.stdout) == {"error": error}
+    assert done.stderr.strip() == f"error: {error}"
+    assert not out.exists()
 
 
 @pytest.mark.slow

@@ -5,11 +5,15 @@ from __future__ import annotations
 import importlib
 import json
 import math
+import os
+import subprocess
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from click.testing import CliRunner
 from gymnasium.utils.env_checker import check_env
 
 import sim.lavaland as lavaland
@@ -18,6 +22,8 @@ from agents.robot2nn import (
     KNOWN_TILE_RGB,
     imagine,
 )
+from server.cli import cli
+from server.cli.launch import srd_command
 from sim.experiment import ConfigError, over_budget, parse_config
 from sim.lavaland import Lavaland, LavalandConfig, run
 from sim.lavaland.engine import (
@@ -240,6 +246,50 @@ def test_config_validation_names_the_field():
     with pytest.raises(ConfigError) as err:
         parse_config(LavalandConfig, {"eval_maps": 0})
     assert err.value.errors[0]["field"] == "eval_maps"
+
+
+@pytest.mark.parametrize("gif_map", ["16", "300"])
+def test_the_command_line_refuses_a_gif_map_past_the_evaluation_maps(tmp_path, gif_map):
+    """The GIF's map is one of the evaluation maps: one past them is a usage error naming the
+    option (it was drawn as map gif_map mod eval_maps), and nothing runs."""
+    out = tmp_path / "never"
+    args = ["lavaland", "--eval-maps", "16", "--train-maps", "0", "--gif-map", gif_map]
+    refused = CliRunner().invoke(cli, [*args, "--json", "--out", str(out)])
+    assert refused.exit_code == 2, refused.output
+    message = "must be below eval-maps (16): the GIF animates one of the evaluation maps, 0 to 15"
+    assert json.loads(refused.stdout)["errors"] == [{"option": "--gif-map", "message": message}]
+    assert refused.stderr.strip() == f"error: --gif-map: {message}"
+    assert not out.exists()
+
+
+@pytest.mark.slow  # a fresh cache: the fused step compiles (20-25 s, longer on a busy machine)
+def test_the_compiled_step_is_cached_in_the_user_s_cache_not_the_source_tree(tmp_path):
+    """Without NUMBA_CACHE_DIR, numba's cache goes under the user's cache folder
+    ($XDG_CACHE_HOME here); the source tree gets no file."""
+    source_cache = Path(lavaland.__file__).parent / "__pycache__"
+
+    def compiled_in_tree() -> dict[str, int]:
+        found = source_cache.glob("fused.*.nb[ic]") if source_cache.is_dir() else []
+        return {p.name: p.stat().st_mtime_ns for p in found}
+
+    before = compiled_in_tree()
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "cache")
+    args = ["lavaland", "--eval-maps", "4", "--train-maps", "4", "--json"]
+    done = subprocess.run(
+        [*srd_command(), *args, "--out", str(tmp_path / "run")],
+        env=env,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    cached = {p.name for p in (tmp_path / "cache" / "srd-auction" / "numba").rglob("fused.*")}
+    assert any(name.endswith(".nbi") for name in cached), cached
+    assert any(name.endswith(".nbc") for name in cached), cached
+    assert compiled_in_tree() == before
 
 
 def test_tiny_srd_run_writes_artifacts(tmp_path):

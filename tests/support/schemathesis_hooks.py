@@ -39,6 +39,7 @@ from sim.configs import (
     STAGE2_WINDOW,
     STAGE_ONLY_OF_GRID,
     CheetahConfig,
+    LavalandConfig,
 )
 from studies.config import AuctionOptions
 
@@ -49,6 +50,8 @@ _REFUSED = {
 }
 """The characters each field of people's text refuses (``agents.manifest.PlainText``,
 ``PlainLine``)."""
+EVAL_MAPS: int = LavalandConfig.eval_maps
+"""Lavaland's evaluation maps when a job's params leave them out."""
 
 
 def _integers(value: Any) -> Any:
@@ -70,8 +73,9 @@ def _taken(body: Any) -> Any:
     """A job's body less the options its run would not take (each refused with 422 naming it:
     tests/studies/test_commands.py, tests/sim/test_cheetah.py): a study's fine-tuning options
     without fine-tuning (or 0 rounds with it: 1), a grid's 0 saboteurs; lavaland's training
-    options with no training maps; a cheetah grid's trials with nominal, its lr with SRD
-    off."""
+    options with no training maps, and its ``gif_map`` taken modulo its evaluation maps (one
+    past them is refused naming it, tests/server/test_job_limits.py); a cheetah grid's trials
+    with nominal, its lr with SRD off."""
     params = body.get("params") if isinstance(body, dict) else None
     if not isinstance(params, dict):
         return body
@@ -85,9 +89,13 @@ def _taken(body: Any) -> Any:
             fixed.pop("freeze_pfc", None)
         if fixed.get("grid") is True and fixed.get("saboteurs") == 0:
             fixed.pop("saboteurs")
-    elif kind == "lavaland" and fixed.get("train_maps") == 0:
-        for name in ("lr", "loss_guard", "srd_step"):
-            fixed.pop(name, None)
+    elif kind == "lavaland":
+        if fixed.get("train_maps") == 0:
+            for name in ("lr", "loss_guard", "srd_step"):
+                fixed.pop(name, None)
+        maps, gif_map = fixed.get("eval_maps", EVAL_MAPS), fixed.get("gif_map")
+        if isinstance(maps, int) and isinstance(gif_map, int) and 0 < maps <= gif_map:
+            fixed["gif_map"] = gif_map % maps
     elif kind == "cheetah" and not isinstance(fixed.get("stage"), int):
         if fixed.get("nominal") is True:
             fixed.pop("trials", None)

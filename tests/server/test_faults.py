@@ -142,6 +142,7 @@ def test_a_worker_killed_mid_step_resumes_and_matches_its_twin(tmp_path: Path) -
     assert [position[q] for q in played["quitters"]] == [twin_position[q] for q in twin["quitters"]]
 
 
+@pytest.mark.slow  # a minute of kills: the single kill mid-step and mid-round run by default
 def test_a_worker_killed_again_and_again_while_its_auction_moves_on_does_not_fail_it(
     tmp_path: Path,
 ) -> None:

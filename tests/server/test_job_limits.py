@@ -359,6 +359,7 @@ def small_disk(folder: Path, size: str) -> Iterator[Path]:
         subprocess.run(["umount", "-l", str(folder)], check=False)
 
 
+@pytest.mark.slow  # `srd cheetah`'s own test of a GIF it cannot write runs by default
 def test_a_cheetah_job_on_a_full_disk_fails_naming_its_file_and_leaves_no_gif(tmp_path) -> None:
     """The disk fills while the GIF is written (its other files fit in 64 kB, the GIF takes
     72 kB): the job fails saying so, the file named from its folder (the message is public: no

@@ -75,6 +75,7 @@ def assert_no_escape(client: TestClient, job_id: int, settings: Settings) -> Non
         assert b"top secret" not in response.content and b"root:" not in response.content
 
 
+@pytest.mark.postgres_in_slow_run  # jobs on PostgreSQL: test_votes' job list, test_replicas
 def test_job_lifecycle(
     client: TestClient, settings: Settings, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -183,6 +183,7 @@ def test_cancelling_a_ray_job_stops_its_tasks(
     assert "SIGTERM received" not in capfd.readouterr().err
 
 
+@pytest.mark.slow  # a job run twice on Ray; cancelling one (its SIGTERM) runs by default
 def test_a_ray_job_whose_worker_is_stopped_from_outside_runs_again(
     ray_head: RayHead, tmp_path: Path
 ) -> None:

@@ -119,7 +119,7 @@ def _write_lock_stalled(exc: BaseException) -> bool:
     """Whether ``exc`` is SQLite's write lock still held by another process at the end of
     the busy timeout."""
     orig = exc.orig if isinstance(exc, DBAPIError) else None
-    return getattr(orig, "sqlite_errorname", "") in {"SQLITE_BUSY", "SQLITE_LOCKED"}
+    return getattr(orig, "sqlite_errorname", "") in SQLITE_LOCK_ERRORS
 
 
 def is_connection_lost(exc: BaseException) -> bool:
@@ -142,7 +142,9 @@ def is_connection_lost(exc: BaseException) -> bool:
     return isinstance(exc, OperationalError | InterfaceError)  # no state: a failed connect
 
 
-SQLITE_BUSY_ERRORS = {"SQLITE_BUSY", "SQLITE_LOCKED", "SQLITE_INTERRUPT"}
+SQLITE_LOCK_ERRORS = {"SQLITE_BUSY", "SQLITE_LOCKED"}
+"""SQLite's errors of a write lock held past the busy timeout."""
+SQLITE_BUSY_ERRORS = SQLITE_LOCK_ERRORS | {"SQLITE_INTERRUPT"}
 """SQLite's errors of a database that answered: a lock held too long, a statement stopped."""
 
 LOST_STATES = {"57P01", "57P02", "57P03"}

@@ -122,7 +122,10 @@ def test_a_closed_stdout_refuses_json_before_the_run_and_discards_a_summary(tmp_
     assert "Traceback" not in done.stderr and (tmp_path / "b" / "result.json").is_file()
 
 
-@pytest.mark.parametrize("json_flag", [[], ["--json"]])
+@pytest.mark.parametrize(
+    "json_flag",
+    [[], pytest.param(["--json"], marks=pytest.mark.slow)],  # one output path
+)
 def test_a_result_standard_output_does_not_take_is_one_line_and_exit_74(json_flag) -> None:
     """A full disk (``/dev/full``) or a reader gone (a pipe closed): the verdict never reaches
     anyone, so no verdict's exit code (0 accepted) and no traceback: one line, exit 74."""

@@ -136,6 +136,7 @@ def test_ray_jobs_equal_local_jobs(ray_head: RayHead, tmp_path: Path) -> None:
     assert "cheetah.gif" in done["cheetah"]["artifacts"]  # the filmed trial came from a unit
 
 
+@pytest.mark.slow  # a cheetah job on Ray; cancelling a Ray job runs by default
 def test_a_unit_asking_more_cpus_than_any_node_has_runs_on_the_largest(
     ray_head: RayHead, tmp_path: Path
 ) -> None:

@@ -262,6 +262,7 @@ def test_auction_list_filters_by_status_and_sorts_both_ways(
     assert auction["id"] not in ids_of(client, "/auctions", status="running")
 
 
+@pytest.mark.postgres_in_slow_run  # its filters are SQL the storage tests run on PostgreSQL
 def test_job_list_filters_by_status_and_kind(client: TestClient) -> None:
     fish = client.post("/jobs", json=SHORT_FISH, headers=ADMIN).json()["job_id"]
     study = client.post("/jobs", json=LONG_STUDY, headers=ADMIN).json()["job_id"]

@@ -180,7 +180,7 @@ def build_config(kind: str, params: dict[str, Any], *, stored: bool = False) -> 
     """Validate job ``params`` for ``kind`` into its config dataclass (raises ConfigError);
     ``stored``: a job's whole config, as it was stored once its params passed (every field is
     in it, none was given by the user: ``parse_config``'s ``given``)."""
-    given = frozenset() if stored else None
+    given: frozenset[str] | None = frozenset() if stored else None
     return parse_config(KINDS[kind].config_class(), params, given)
 
 

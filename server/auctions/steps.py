@@ -60,11 +60,9 @@ from server.work.runner import WorkKind
 from sim.market import MarketConfig, fish_on_sale
 
 if TYPE_CHECKING:
-    import numpy as np
-    import numpy.typing as npt
-
     from agents.batch import FSNBatch
     from sim.market import FineTuneRound, Market, RescreenBatch
+    from sim.market.engine import Refusal
 
 log = logging.getLogger("srd.auctions")
 
@@ -99,14 +97,20 @@ def rescreening(margin: float) -> RescreenBatch:
     """The re-screening of a server-mode auction's fine-tuned patrons: a new version bids only
     when the screener accepts it by more than ``margin`` (``screener.review``), as a remote
     upload does: one it would hold for an inspector does not bid, its previous version does.
-    So faithful remote agents replay a server-mode auction exactly."""
-    import numpy as np
+    So faithful remote agents replay a server-mode auction exactly. A version not kept
+    carries the screener's reasons (those that hold it, when held), as the auction keeps
+    them."""
+    from screener import judge, review, with_hold_reasons
 
-    from screener import judge, review
-
-    def keeps(patrons: FSNBatch) -> npt.NDArray[np.bool_]:
-        verdicts = judge(patrons, at_the_door=False)
-        return np.array([review(v, margin) == "accepted" for v in verdicts], dtype=np.bool_)
+    def keeps(patrons: FSNBatch) -> list[bool | Refusal]:
+        judged: list[bool | Refusal] = []
+        for verdict in judge(patrons, at_the_door=False):
+            if review(verdict, margin) == "accepted":
+                judged.append(True)
+            else:  # refused, or held: the reasons that hold it too
+                reasons = with_hold_reasons(verdict, margin).reasons
+                judged.append([reason.to_dict() for reason in reasons])
+        return judged
 
     return keeps
 
@@ -214,7 +218,9 @@ def _play(market: Market, model_ids: list[int]) -> _Played:
             (model_ids[i], JSONText(market.current_manifest(i).model_dump_json()))
             for i in record.fine_tuned
         ],
-        refused=[model_ids[i] for i in record.reverted],
+        refused=[
+            (model_ids[i], why) for i, why in zip(record.reverted, record.refusals, strict=True)
+        ],
     )
     return _Played(row, market.checkpoint(), market.pending_round)
 

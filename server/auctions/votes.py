@@ -8,6 +8,7 @@ import dataclasses
 from sqlalchemy.orm import Session
 
 from server.api.errors import api_error
+from server.api.schemas.common import ReasonPublic
 from server.api.schemas.votes import (
     IterationVotesPublic,
     MarketFineTuningPublic,
@@ -120,8 +121,10 @@ def voted_weights(
         version_id=vote.version_id,
         fine_tuned_after=vote.fine_tuned_after,
         fine_tunings=[
-            MarketFineTuningPublic(after=after, kept=kept)
-            for after, kept in fine_tunings(
+            MarketFineTuningPublic(
+                after=after, kept=kept, reasons=[ReasonPublic(**r) for r in reasons]
+            )
+            for after, kept, reasons in fine_tunings(
                 session, auction_id=auction_id, model_id=model_id, iteration=iteration
             )
         ],

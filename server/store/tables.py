@@ -306,6 +306,11 @@ class TunedWeights(Base):
     kept: Mapped[bool] = mapped_column(Boolean)
     manifest: Mapped[dict[str, Any] | None] = mapped_column(JSON(none_as_null=True), nullable=True)
     """The weights kept (null for a refused fine-tuning)."""
+    reasons: Mapped[list[dict[str, str]] | None] = mapped_column(
+        JSON(none_as_null=True), nullable=True
+    )
+    """Why the re-screening refused it: the screener's reasons, each ``{rule, neuron,
+    message}`` (null when kept, and for refusals stored before the reasons were kept)."""
 
 
 class Purchase(Base):

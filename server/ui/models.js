@@ -581,7 +581,18 @@ export function votedWeightsView(view, auctionId, iteration, modelId) {
             h(
               "ul",
               { id: "fine-tunings" },
-              w.fine_tunings.map((f) => h("li", { "data-kept": String(f.kept) }, `after iteration ${f.after}: ${f.kept ? "kept (its re-screening accepted the weights)" : "refused by its re-screening (the screener refused the weights, or they passed a bar by less than the review margin): it bid on with the weights it had"}`)),
+              w.fine_tunings.map((f) =>
+                h(
+                  "li",
+                  { "data-kept": String(f.kept) },
+                  `after iteration ${f.after}: `,
+                  f.kept
+                    ? "kept (its re-screening accepted the weights)"
+                    : f.reasons.length
+                      ? ["not kept: it bid on with the weights it had. Its re-screening's reasons:", h("ul", { class: "refusal-reasons" }, f.reasons.map((r) => h("li", {}, h("code", {}, r.rule), ` (neuron ${r.neuron}): `, h("span", { class: "free-text" }, r.message))))]
+                      : "not kept (the screener refused the weights, or they passed a bar by less than the review margin; this refusal was stored before its reasons were kept): it bid on with the weights it had",
+                ),
+              ),
             ),
           ),
         );

@@ -25,9 +25,13 @@ from sim.market.rounds import FineTuneRound
 
 Rescreen = Callable[[int, Manifest], bool]
 """Called as ``rescreen(patron_index, fine_tuned_manifest)``; False reverts that patron."""
-RescreenBatch = Callable[[FSNBatch], np.ndarray]
+Refusal = list[dict[str, str]]
+"""Why a re-screening reverted a patron: the screener's reasons, each ``{rule, neuron,
+message}`` (empty when the judge gave none)."""
+RescreenBatch = Callable[[FSNBatch], "np.ndarray | Sequence[bool | Refusal]"]
 """Called once per fine-tuning round with every fine-tuned patron of the batch's auctions (a
-sub-batch, in batch order); returns one bool per patron, False reverts it."""
+sub-batch, in batch order); returns one judgement per patron: True keeps it; False, or the
+``Refusal`` of its reasons, reverts it."""
 
 EXPLAINED = (
     ("sensor", ("PG", "SZ", "LSR", "ST")),
@@ -75,6 +79,15 @@ def _runs(work: list[int], limit: int) -> list[tuple[int, int]]:
         total += w
     runs.append((first, len(work)))
     return runs
+
+
+def _judgement(judged: object) -> bool | Refusal:
+    """One of ``RescreenBatch``'s judgements: a bool (numpy's too), or a refusal's reasons."""
+    if isinstance(judged, bool | np.bool_):
+        return bool(judged)
+    if not isinstance(judged, Sequence):
+        raise TypeError(f"a re-screening judgement is a bool or a list of reasons: {judged!r}")
+    return [dict(reason) for reason in judged]
 
 
 class _Votes(NamedTuple):
@@ -232,7 +245,7 @@ class MarketBatch:
         _Moves,
         list[str | None],
         dict[int, list[int]],
-        dict[int, list[int]],
+        dict[int, list[tuple[int, Refusal]]],
     ]:
         """One iteration of every unfinished auction: what ``_records`` reports of it."""
         running = ~self.finished
@@ -354,7 +367,7 @@ class MarketBatch:
         moves: _Moves,
         reasons: list[str | None],
         kept: dict[int, list[int]],
-        reverted: dict[int, list[int]],
+        reverted: dict[int, list[tuple[int, Refusal]]],
     ) -> list[IterationRecord | None]:
         """The iteration's record of each auction played (None for the others)."""
         records: list[IterationRecord | None] = [None] * self.n_auctions
@@ -377,7 +390,8 @@ class MarketBatch:
                 finished=reasons[a] is not None,
                 stop_reason=reasons[a],
                 fine_tuned=kept.get(a, []),
-                reverted=reverted.get(a, []),
+                reverted=[local for local, _ in reverted.get(a, [])],
+                refusals=[why for _, why in reverted.get(a, [])],
                 row=dict(zip(INPUTS, votes.row[a].tolist(), strict=True))
                 if votes.row is not None
                 else {},
@@ -496,7 +510,7 @@ class MarketBatch:
 
     def _fine_tune(
         self, tune: np.ndarray, iteration: np.ndarray
-    ) -> tuple[dict[int, list[int]], dict[int, list[int]]]:
+    ) -> tuple[dict[int, list[int]], dict[int, list[tuple[int, Refusal]]]]:
         """Fine-tune the active patrons of the auctions in ``tune`` after their ``iteration``;
         re-screen if asked."""
         patrons = np.flatnonzero(self.active & tune[self.owner])
@@ -518,14 +532,16 @@ class MarketBatch:
         self.set_parameters(torch.from_numpy(patrons), tuned.parameters())
         return self._rescreen(patrons[sub.epochs.numpy() > 0])
 
-    def _rescreen(self, moved: np.ndarray) -> tuple[dict[int, list[int]], dict[int, list[int]]]:
+    def _rescreen(
+        self, moved: np.ndarray
+    ) -> tuple[dict[int, list[int]], dict[int, list[tuple[int, Refusal]]]]:
         """Re-screen the patrons the round ``moved``: keep the versions the re-screening
-        accepts, revert the others to their last accepted version. (kept, reverted) local
-        indices per auction."""
+        accepts, revert the others to their last accepted version. (kept local indices,
+        reverted (local index, its ``Refusal``)) per auction."""
         kept: dict[int, list[int]] = {}
-        reverted: dict[int, list[int]] = {}
-        judged = (
-            np.asarray(self.rescreen_batch(self.batch.select(moved)), dtype=bool).tolist()
+        reverted: dict[int, list[tuple[int, Refusal]]] = {}
+        judged: list[bool | Refusal | None] = (
+            [_judgement(j) for j in self.rescreen_batch(self.batch.select(moved))]
             if self.rescreen_batch is not None and len(moved)
             else [None] * len(moved)
         )
@@ -537,17 +553,15 @@ class MarketBatch:
             strict=True,
         ):
             check = self.rescreen[a]
-            if verdict is not None:
-                keep = verdict
-            else:
-                keep = check is None or check(local, to_manifest(self.batch, i))
-            if keep:
+            if verdict is None:
+                verdict = check is None or bool(check(local, to_manifest(self.batch, i)))
+            if verdict is True:
                 kept.setdefault(a, []).append(local)
                 if self.accepted is not None:
                     for name, value in self.batch.parameters().items():
                         self.accepted[name][i] = value[i]
             else:
-                reverted.setdefault(a, []).append(local)
+                reverted.setdefault(a, []).append((local, [] if verdict is False else verdict))
                 assert self.accepted is not None
                 for name, value in self.batch.parameters().items():
                     value[i] = self.accepted[name][i]

@@ -50,6 +50,10 @@ class IterationRecord:
     """Patrons whose fine-tuned parameters were kept after this iteration."""
     reverted: list[int] = field(default_factory=list)
     """Patrons whose fine-tuned parameters the re-screening refused (reverted)."""
+    refusals: list[list[dict[str, str]]] = field(default_factory=list, compare=False)
+    """Why, for each of ``reverted`` in order: the screener's reasons, each ``{rule, neuron,
+    message}`` (empty when the re-screening gave none). The judge's words, not the market's
+    numbers: not part of the record's equality nor of ``to_dict``."""
     row: dict[str, float] = field(default_factory=dict, compare=False)
     """The inputs of row 0 the patrons voted on, by name (empty unless explained)."""
     explanations: list[VoteExplanation] = field(default_factory=list, compare=False)
@@ -57,9 +61,10 @@ class IterationRecord:
     from the votes, so not part of the record's equality nor of ``to_dict``."""
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready form of what happened (without the explanations)."""
+        """JSON-ready form of what happened (without the explanations and the refusals'
+        reasons)."""
         out = dataclasses.asdict(self)
-        del out["row"], out["explanations"]
+        del out["row"], out["explanations"], out["refusals"]
         out["buyers"] = [{"patron": p, "price": price} for p, price in self.buyers]
         return out
 

@@ -23,11 +23,17 @@ def test_the_server_rescreens_as_the_study_and_reverts_what_it_would_hold():
     models.append(saboteur_manifest(rng, "s"))
     batch = from_manifests(models)
     verdicts = screener.rescreen_many(models)
-    kept = server.auctions.steps.rescreening(0.0)(batch)
-    assert kept.tolist() == screener.rescreen(batch).tolist() == [v.accepted for v in verdicts]
+    judged = list(server.auctions.steps.rescreening(0.0)(batch))
+    kept = [j is True for j in judged]
+    assert kept == screener.rescreen(batch).tolist() == [v.accepted for v in verdicts]
+    # a version not kept carries the screener's reasons, as its auction stores them
+    refused = [(j, v) for j, v in zip(judged, verdicts, strict=True) if j is not True]
+    assert refused and all(j == [r.to_dict() for r in v.reasons] for j, v in refused)
     held = [screener.review(v, 1.0) == "accepted" for v in verdicts]
-    assert server.auctions.steps.rescreening(1.0)(batch).tolist() == held
-    assert held.count(True) < kept.tolist().count(True)  # the margin reverts some
+    strict = list(server.auctions.steps.rescreening(1.0)(batch))
+    assert [j is True for j in strict] == held
+    assert all(j for j in strict if j is not True)  # each held one says which bar held it
+    assert held.count(True) < kept.count(True)  # the margin reverts some
 
 
 def test_rescreen_keeps_what_the_screener_accepts():

@@ -1189,10 +1189,13 @@ def test_a_vote_after_fine_tuning_in_the_market_leads_to_the_weights_that_cast_i
     origin = page.locator("#weights-origin").text_content()
     assert f"after iteration {vote['fine_tuned_after']}" in origin
     tunings = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{tuned}/weights")
-    items = page.locator("#fine-tunings li").all()
+    items = page.locator("#fine-tunings > li").all()
     assert [(i.text_content() or "").split(":")[0] for i in items] == [
         f"after iteration {f['after']}" for f in tunings.json()["fine_tunings"]
     ]
+    for item, f in zip(items, tunings.json()["fine_tunings"], strict=True):
+        said = item.text_content() or ""  # a refusal names its rules, a kept one says kept
+        assert ("kept (" in said) is f["kept"] and all(r["rule"] in said for r in f["reasons"])
     # The largest move shown is the largest between the version and the weights that voted.
     weights = api.get(f"/auctions/{auction_id}/iterations/{iteration}/votes/{tuned}/weights")
     version = api.get(f"/models/{vote['version_id']}").json()["manifest"]

@@ -159,6 +159,7 @@ def test_every_vote_names_the_weights_that_cast_it(
                 made = list(range(min(n, 3))) if tunes else []
                 assert [f["after"] for f in tunings] == made
                 assert max((f["after"] for f in tunings if f["kept"]), default=None) == after
+                assert all(f["reasons"] == [] for f in tunings if f["kept"])
                 before = last.get(vote["model_id"])
                 if before is not None and before[0] == after:  # no fine-tuning kept since
                     assert weights["manifest"] == before[1]
@@ -196,9 +197,14 @@ def test_a_fine_tuning_the_re_screening_refuses_is_recorded_and_the_weights_befo
                 path = f"/auctions/{auction_id}/iterations/{n}/votes/{vote['model_id']}/weights"
                 weights = client.get(path).json()
                 assert weights["fine_tuned_after"] is vote["fine_tuned_after"] is None
-                assert weights["fine_tunings"] == [
-                    {"after": k, "kept": False} for k in range(min(n, 3))
+                tunings = weights["fine_tunings"]
+                assert [(f["after"], f["kept"]) for f in tunings] == [
+                    (k, False) for k in range(min(n, 3))
                 ]
+                for f in tunings:  # each says which bar held it, in the screener's words
+                    assert f["reasons"], f
+                    assert {"rule", "neuron", "message"} == set(f["reasons"][0])
+                    assert "review-margin" in {r["rule"] for r in f["reasons"]}, f
                 own = client.get(f"/models/{vote['model_id']}").json()["manifest"]
                 assert weights["manifest"] == own
 

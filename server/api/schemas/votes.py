@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from server.api.schemas.common import Schema
+from server.api.schemas.common import ReasonPublic, Schema
 
 
 class SensorPublic(Schema):
@@ -94,6 +94,9 @@ class MarketFineTuningPublic(Schema):
     kept: bool
     """Whether its re-screening kept the result (else the patron bid on with the weights it
     had: the screener refused them, or they passed a bar by less than the review margin)."""
+    reasons: list[ReasonPublic]
+    """Why its re-screening did not keep the result, in the screener's words (empty when it
+    did, and for a refusal stored before this server kept the reasons)."""
 
 
 class VotedWeightsPublic(Schema):

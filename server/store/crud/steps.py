@@ -75,9 +75,9 @@ class IterationRow(IterationFigures):
     tuned: list[tuple[int, JSONText]] = field(default_factory=list)
     """(model id, manifest) of each patron a server-mode auction fine-tuned after this
     iteration and kept (its weights from the next iteration on)."""
-    refused: list[int] = field(default_factory=list)
-    """Model ids of the patrons whose fine-tuning after this iteration the re-screening
-    refused (they bid on with the weights they had)."""
+    refused: list[tuple[int, list[dict[str, str]]]] = field(default_factory=list)
+    """(model id, the screener's reasons) of each patron whose fine-tuning after this
+    iteration the re-screening refused (it bid on with the weights it had)."""
 
 
 @dataclass(frozen=True)
@@ -276,9 +276,9 @@ def commit_iteration(
                 for model_id in row.quitters
             ],
         )
-    fine_tunings: list[tuple[int, bool, JSONText | None]]
-    fine_tunings = [(model_id, True, manifest) for model_id, manifest in row.tuned]
-    fine_tunings += [(model_id, False, None) for model_id in row.refused]
+    fine_tunings: list[tuple[int, bool, JSONText | None, list[dict[str, str]] | None]]
+    fine_tunings = [(model_id, True, manifest, None) for model_id, manifest in row.tuned]
+    fine_tunings += [(model_id, False, None, reasons) for model_id, reasons in row.refused]
     if fine_tunings:
         connection.execute(
             insert(TunedWeights),
@@ -289,8 +289,9 @@ def commit_iteration(
                     "iteration": row.iteration,
                     "kept": kept,
                     "manifest": manifest,
+                    "reasons": reasons,
                 }
-                for model_id, kept, manifest in fine_tunings
+                for model_id, kept, manifest, reasons in fine_tunings
             ],
         )
     if opened is None:

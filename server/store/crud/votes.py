@@ -162,11 +162,12 @@ def bid_manifest(
 
 def fine_tunings(
     session: Session, *, auction_id: int, model_id: int, iteration: int
-) -> list[tuple[int, bool]]:
+) -> list[tuple[int, bool, list[dict[str, str]]]]:
     """Patron ``model_id``'s fine-tunings inside the market before ``iteration``: (the
-    iteration after which, whether its re-screening kept it), in order."""
+    iteration after which, whether its re-screening kept it, the screener's reasons when it
+    did not: none stored before they were kept), in order."""
     rows = session.connection().execute(
-        select(TunedWeights.iteration, TunedWeights.kept)
+        select(TunedWeights.iteration, TunedWeights.kept, TunedWeights.reasons)
         .where(
             TunedWeights.auction_id == auction_id,
             TunedWeights.model_id == model_id,
@@ -174,4 +175,4 @@ def fine_tunings(
         )
         .order_by(TunedWeights.iteration)
     )
-    return [(after, kept) for after, kept in rows]
+    return [(after, kept, reasons or []) for after, kept, reasons in rows]

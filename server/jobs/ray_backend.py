@@ -17,6 +17,10 @@ Python object of ours crosses the wire, and the assembled result is the local ba
   signal ended says to a shell: a worker stopped from outside (a service manager stopping the
   service) is counted as stopped, and its job runs again, as on the local backend (Ray's
   handler exited 1 or 15: the job failed).
+* A cluster lost mid-job fails the job naming it: Ray's own errors for a lost node or raylet
+  (``LOST``) are said as the cluster lost, and a driver that Ray itself ends (it exits with
+  code 1 once its raylet is gone) has its death explained by ``cluster_lost``: the cluster
+  lost when its head does not answer, else this machine's Ray node.
 * Tasks ask for one CPU each, a unit of a job with a ``threads`` option (cheetah: MuJoCo
   stepped in parallel) for that many, and set torch's thread count to the job workers' own
   (``SRD_WORKER_TORCH_THREADS``), so their floating-point arithmetic is the local one.
@@ -55,10 +59,35 @@ PROBE_EVERY_S = 30.0
 """How long the cluster's CPU count is trusted before ``/healthz`` has it looked at again."""
 NAMESPACE = "srd-auction"
 """The Ray namespace of every driver of this service."""
+CLUSTER_LOOK_S = 2.0
+"""How long ``cluster_lost`` waits for the head to take a connection, and between its looks."""
+
+
+LOST = ("LocalRayletDiedError", "NodeDiedError", "RaySystemError")
+"""Ray's errors that say the cluster, not the unit's own code, failed the wait for a unit."""
 
 
 class RayUnavailableError(RuntimeError):
     """Ray is asked for but missing, or its cluster cannot be reached."""
+
+
+def cluster_lost(address: str | None) -> str:
+    """Why a job worker (a Ray driver) ended with code 1 and no result: Ray ends a driver so
+    once its node's raylet is gone, with the cluster or alone. Said as the cluster lost when its
+    head at ``address`` does not answer now (looked at twice, ``CLUSTER_LOOK_S`` apart: a
+    cluster being stopped loses its raylets before its head)."""
+    address = _required(address)
+    for look in range(2):
+        try:
+            head_answers(address, CLUSTER_LOOK_S)
+        except RayUnavailableError as exc:
+            return f"its Ray cluster was lost: {exc}"
+        if look == 0:
+            time.sleep(CLUSTER_LOOK_S)
+    return (
+        "Ray ends a driver so when the Ray node on this machine is lost (the cluster's head at "
+        f"{address!r}, SRD_RAY_ADDRESS, answers)"
+    )
 
 
 def ray_module() -> Any:
@@ -167,6 +196,7 @@ class RayRunner:
         threads: int,
     ) -> None:
         self._ray = connect(address, join_timeout_s)
+        self._address = address
         self._kind = kind
         self._params = config_dict(config)
         self._max_retries = max_retries
@@ -202,9 +232,18 @@ class RayRunner:
         started = time.monotonic()
         try:
             while pending:
-                ready, pending = ray.wait(pending, num_returns=1, timeout=WAIT_S)
-                for ref in ready:
-                    yield refs[ref], ray.get(ref)
+                try:
+                    ready, pending = ray.wait(pending, num_returns=1, timeout=WAIT_S)
+                    done = [(refs[ref], ray.get(ref)) for ref in ready]
+                except ray.exceptions.RayError as exc:
+                    if type(exc).__name__ not in LOST:
+                        raise  # the unit's own error, or its worker that kept dying
+                    first = (str(exc).splitlines() or [""])[0]
+                    raise RayUnavailableError(
+                        f"the Ray cluster at {self._address!r} (SRD_RAY_ADDRESS) was lost "
+                        f"mid-job: {type(exc).__name__}: {first}"
+                    ) from exc
+                yield from done
         finally:
             for ref in pending:  # cancelled, failed, or the process is stopping
                 ray.cancel(ref, force=True)

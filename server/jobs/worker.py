@@ -267,6 +267,16 @@ def run_job(context: WorkerContext, job_id: int) -> None:
         database.close()
 
 
+def _cluster_lost(context: WorkerContext, exit_code: int | None) -> str | None:
+    """A job worker on the Ray backend that exited with code 1 without a result: Ray ended it,
+    its cluster or its node lost (``ray_backend.cluster_lost``)."""
+    if context.job_backend != "ray" or exit_code != 1:
+        return None
+    from server.jobs.ray_backend import cluster_lost
+
+    return cluster_lost(context.ray_address)
+
+
 def discard_unsuccessful(database: Database, data_dir: str | Path, job_id: int) -> None:
     """A job whose task ended failed or cancelled (at its time limit, by a cancel, its worker
     killed) leaves no files: none of them could be downloaded (its artifacts are none). A job
@@ -295,6 +305,7 @@ JOB_WORK = WorkKind(
     unfinished=JOB_UNFINISHED,
     timeout_setting="SRD_JOB_TIMEOUT_S",
     died="the job worker exited (code {code}) without a result",
+    why_died=_cluster_lost,
     prepare=requeue,
     tasks_per_process=1,  # a fresh interpreter per experiment: no state carried over
 )

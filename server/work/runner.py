@@ -110,6 +110,9 @@ class WorkKind:
     """A column that moves on as a resumable row's tasks commit (``Auction.iteration``): a
     death after it moved starts the count of deaths in a row again (None: only a task done
     does)."""
+    why_died: Callable[[WorkerContext, int | None], str | None] | None = None
+    """A cause of a worker's death that its exit code does not tell, looked for when a row
+    fails of it (a job worker that is a Ray driver: its cluster lost), said after ``died``."""
     after_outage: Callable[[Session, datetime, datetime], None] | None = None
     """Called in a write transaction once the database answers again after an outage this
     process met, with when it began (at the earliest) and now (the auctions' open rounds get
@@ -141,6 +144,7 @@ class BackgroundRunner:
         ended: Callable[[int], None] | None = None,
     ) -> None:
         self._database = database
+        self._context = context
         self._ended = ended  # told of every row whose task ended here (from the pool's thread)
         self.kind = kind
         self.owner = owner
@@ -500,7 +504,10 @@ class BackgroundRunner:
                 self._deaths.pop(row_id, None)
         else:
             times = 1
-        self._fail(row_id, self.kind.died.format(code=exit_code, times=times))
+        died = self.kind.died.format(code=exit_code, times=times)
+        why = self.kind.why_died
+        cause = why(self._context, exit_code) if why is not None else None
+        self._fail(row_id, f"{died}: {cause}" if cause else died)
 
     def _progress(self, row_id: int) -> Any:
         """The row's ``progress`` now (None without one, or with the database away: then

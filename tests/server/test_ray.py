@@ -214,6 +214,41 @@ def test_a_ray_job_whose_worker_is_stopped_from_outside_runs_again(
         assert not any(map(process_name, workers))  # stopped: another worker ran the job
 
 
+@pytest.mark.slow  # a cluster of its own, stopped under a running job
+def test_a_ray_cluster_lost_mid_job_fails_the_job_naming_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The cluster stops while a job's units run. However Ray takes it (an error in the wait
+    for a unit, or the driver ended by Ray with code 1), the job fails saying that the cluster
+    was lost and where it was (it said only "the job worker exited (code 1) without a
+    result")."""
+    with RayHead(1) as head:
+        for name, value in head.env.items():
+            monkeypatch.setenv(name, value)
+        params = {**LONG_LAVALAND, "repeats": 4}
+        with client_for(tmp_path, job_backend="ray", ray_address=head.address) as client:
+            job_id = client.post(
+                "/jobs", json={"kind": "lavaland", "params": params}, headers=ADMIN
+            ).json()["job_id"]
+            wait_for(
+                lambda: {"tasks": head.worker_pids("srd lavaland")},
+                lambda seen: bool(seen["tasks"]),
+                RUN_TIMEOUT_S,
+            )
+            head.stop()
+            done = wait_for(
+                lambda: client.get(f"/jobs/{job_id}").json(),
+                lambda job: job["status"] not in ("queued", "running"),
+                90,
+            )
+    assert done["status"] == "failed", done
+    said = f"{done['message']} {done['error']}"
+    assert re.search(
+        rf"(the|its) Ray cluster (at '{head.address}' \(SRD_RAY_ADDRESS\) )?was lost", said
+    ), done
+    assert head.address in said, done
+
+
 @pytest.mark.slow
 def test_a_killed_ray_worker_unit_runs_again_with_the_same_result(
     ray_head: RayHead, tmp_path: Path

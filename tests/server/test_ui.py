@@ -1313,6 +1313,39 @@ def test_a_detail_page_whose_first_read_fails_shows_its_subject_once_the_server_
     assert page.locator("#job-state dt:has-text('Kind') + dd").text_content() == "fish"
 
 
+def test_a_review_page_whose_first_read_fails_reads_again_until_the_server_answers(
+    page: Any, server: ServerProcess, population: dict[str, dict[str, Any]]
+) -> None:
+    """The review queue and an inspection page opened while the server is out of reach read
+    again every few seconds, as the other detail pages do (they stayed dead until a reload);
+    a token refused meanwhile is asked for again, not read with forever."""
+    queue = "**/reviews?*"
+    page.route(queue, lambda route: route.abort())
+    page.goto(f"{server.url}/ui/#/reviews")
+    page.fill("#admin-token", ADMIN_TOKEN)
+    page.keyboard.press("Enter")
+    failed = page.locator("p.problem:has-text('could not be reached')")
+    failed.wait_for(timeout=WAIT_MS)
+    assert "The page tries again every few seconds." in (failed.text_content() or "")
+    refused = {"detail": [{"msg": "not the admin token"}]}
+    page.unroute(queue)
+    page.route(queue, lambda route: route.fulfill(status=401, json=refused))
+    page.wait_for_selector("#admin-token-status:has-text('not the admin token')", timeout=8000)
+    page.unroute(queue)
+    page.fill("#admin-token", ADMIN_TOKEN)
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#review-list, #no-reviews", timeout=WAIT_MS)
+    # An inspection page, at once by its button (the token kept in the page's memory).
+    accepted = next(a for name, a in population.items() if name.startswith("honest"))
+    page.route(queue, lambda route: route.abort())
+    page.goto(f"{server.url}/ui/#/reviews/{accepted['model_id']}")
+    failed.wait_for(timeout=WAIT_MS)
+    page.unroute(queue)
+    page.click("#read-again")
+    page.wait_for_selector("#not-held", timeout=2000)
+    assert failed.count() == 0
+
+
 @pytest.fixture(scope="module")
 def axe_source(tmp_path_factory: pytest.TempPathFactory) -> str:
     """axe-core from npm, installed into a temporary folder (never committed)."""

@@ -130,6 +130,13 @@ export function when(iso) {
   return iso ? new Date(iso).toLocaleString(undefined, { dateStyle: "short", timeStyle: "long" }) : "—";
 }
 
+/** Whether a time is past by the reader's clock: a deadline shown while its round is still open
+ * or its auction still enrolling (the server closing it, or restarting) is said as passed,
+ * never as "until" a time already gone. */
+export function passed(iso) {
+  return Boolean(iso) && new Date(iso).getTime() <= Date.now();
+}
+
 /** A link inside the page. */
 export function link(hash, ...children) {
   return h("a", { href: hash }, ...children);

@@ -1235,6 +1235,48 @@ def test_an_ended_auction_is_shown_ended_from_its_first_read(
     assert page.evaluate("window.srdSummaries") == [f"finished {played}"]
 
 
+def test_a_deadline_already_past_is_said_to_have_passed_not_as_until(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    """A round still open, or an auction still taking patrons, after its deadline (its close
+    pending, the server restarting): by the reader's clock (here an hour ahead) the page says
+    the deadline passed; it said "until 13:02" of a time already gone."""
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    body = {"n_fish": 1, "model_ids": honest_ids, "fine_tune_mode": "remote"}
+    body |= {"fine_tune_rounds": 1, "round_deadline_s": 120, "seed": 1}
+    remote = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    body = {"rarity": 0.5, "enrollment_s": 600, "seed": 5}
+    enrolling = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    local = (
+        "(iso) => new Date(iso).toLocaleString(undefined, {dateStyle: 'short', timeStyle: 'long'})"
+    )
+    try:
+        page.clock.set_fixed_time(time.time() + 3600)
+        page.goto(f"{server.url}/ui/#/auctions/{enrolling}")
+        until = page.evaluate(local, api.get(f"/auctions/{enrolling}").json()["enroll_until"])
+        page.wait_for_selector("#auction-summary", timeout=WAIT_MS)
+        fact = page.locator("#auction-summary dt:has-text('patrons until') + dd")
+        assert fact.text_content() == f"{until} (passed; starting)"
+        assert "Took patrons until" in (page.text_content("#auction-summary") or "")
+        page.wait_for_selector("#liveness:has-text('Following live')", timeout=WAIT_MS)
+        assert page.text_content("#liveness") == (
+            f"Following live: enrollment deadline {until} passed; starting: the first iteration"
+            " appears once it starts."
+        )
+        page.goto(f"{server.url}/ui/#/auctions/{remote}")
+        cell = page.locator("#fine-tuning tr[data-round='1'] td").nth(3)
+        cell.wait_for(timeout=WAIT_MS)
+        deadline = api.get(f"/auctions/{remote}/rounds/current").json()["deadline"]
+        assert cell.text_content() == f"deadline {page.evaluate(local, deadline)} passed; closing"
+        page.wait_for_selector("#liveness:has-text('Following live')", timeout=WAIT_MS)
+        live = page.text_content("#liveness") or ""
+        assert "round 1's deadline" in live and "passed; closing (" in live and "until" not in live
+    finally:
+        for auction_id in (remote, enrolling):
+            api.delete(f"/auctions/{auction_id}", headers=headers)
+
+
 def test_a_vote_explained_before_its_iterations_votes_arrive_is_drawn_below_them(
     page: Any, server: ServerProcess, tuned_auction: tuple[int, tuple[int, int]]
 ) -> None:

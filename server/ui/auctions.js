@@ -1,7 +1,7 @@
 // Auctions: the list, and one auction followed live from its event stream.
 
 import { firstRead, follow, getJSON, keepCurrent, pager } from "./api.js";
-import { facts, fill, fixed, fixedApart, h, link, notFound, passed, patch, plural, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, fixed, fixedApart, h, link, notFound, passed, patch, plural, problem, scrolling, svg, table, tableRow, votePatterns, when } from "./dom.js";
 
 const STOP_REASONS = {
   sold_out: "sold out",
@@ -198,7 +198,9 @@ function drawPriceChart(chart, rounds, nextPrice) {
   fill(chart, svg("title", { id: "price-chart-title" }, "Price asked in each iteration"), parts);
 }
 
-/** Buy, hold and quit votes of each iteration, stacked. */
+/** Buy, hold and quit votes of each iteration, stacked: each kind its colour and its texture
+ * (buy solid, hold hatched, quit dotted), and every count in the chart's name, for a reader
+ * who does not see it. */
 function drawVotesChart(chart, rounds, nPatrons) {
   const { width, left, right, top } = CHART;
   const height = 160;
@@ -207,7 +209,8 @@ function drawVotesChart(chart, rounds, nPatrons) {
   const band = (width - left - right) / n;
   const total = Math.max(nPatrons, 1);
   const y = (count) => ((height - top - bottom) * count) / total;
-  const parts = [svg("rect", { class: "plot", x: left, y: top, width: width - left - right, height: height - top - bottom })];
+  const patterns = votePatterns("votes-chart");
+  const parts = [patterns.defs, svg("rect", { class: "plot", x: left, y: top, width: width - left - right, height: height - top - bottom })];
   parts.push(
     svg("text", { class: "tick", x: left - 6, y: top + 4, "text-anchor": "end" }, String(nPatrons)),
     svg("text", { class: "tick", x: left - 6, y: height - bottom + 4, "text-anchor": "end" }, "0"),
@@ -220,7 +223,7 @@ function drawVotesChart(chart, rounds, nPatrons) {
       parts.push(
         svg(
           "rect",
-          { class: `vote-${kind}`, x: left + i * band + band * 0.1, y: base, width: band * 0.8, height: tall },
+          { class: `vote-${kind}`, fill: patterns.fill(kind), x: left + i * band + band * 0.1, y: base, width: band * 0.8, height: tall },
           svg("title", {}, `iteration ${r.iteration}: ${r.votes[kind]} ${kind}`),
         ),
       );
@@ -231,6 +234,8 @@ function drawVotesChart(chart, rounds, nPatrons) {
     parts.push(svg("text", { class: "tick", x: left + (i + 0.5) * band, y: height - bottom + 14, "text-anchor": "middle" }, String(i)));
   }
   parts.push(svg("text", { class: "axis-label", x: (left + width - right) / 2, y: height - 2, "text-anchor": "middle" }, "iteration"));
+  const counts = rounds.map((r) => `iteration ${r.iteration}: ${r.votes.buy} buy, ${r.votes.hold} hold, ${r.votes.quit} quit`);
+  chart.setAttribute("aria-label", `Votes of the patrons still in, per iteration: ${counts.join("; ")}.`);
   fill(chart, svg("title", {}, "Votes of the patrons still in, per iteration"), parts);
 }
 
@@ -470,7 +475,7 @@ export function auctionView(view, id) {
       { "aria-labelledby": "votes-heading" },
       h("h2", { id: "votes-heading" }, "Votes per iteration"),
       votesNone,
-      h("figure", { hidden: true }, scrolling(votesChart, "The votes chart (scrolls sideways on a narrow screen)"), h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
+      h("figure", { hidden: true }, scrolling(votesChart, "The votes chart (scrolls sideways on a narrow screen)"), h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold (hatched) ", h("span", { class: "key vote-quit" }), "quit (dotted)")),
     ),
     h(
       "section",

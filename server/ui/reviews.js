@@ -4,7 +4,7 @@
 // only (never stored, never in a URL); it travels in the Authorization header.
 
 import { ApiError, LIST_REFRESH_MS, firstRead, getJSON, postJSON } from "./api.js";
-import { fill, fixed, h, isMissing, link, navigated, notFound, patch, problem, scrolling, svg, table, when } from "./dom.js";
+import { fill, fixed, h, isMissing, link, navigated, notFound, patch, problem, scrolling, svg, table, votePatterns, when } from "./dom.js";
 import { auditLog, by, evidenceTable, inspectorView, measuredAndBar, verdictNow } from "./models.js";
 
 let adminToken = null;
@@ -279,8 +279,8 @@ function evidenceSection(model, item) {
         )
       : null,
     model.reasons.length ? h("ul", { class: "reasons" }, model.reasons.map((r) => h("li", {}, h("strong", {}, `${r.neuron} (${r.rule}): `), r.message))) : null,
-    scan ? h("figure", {}, scrolling(decisionsChart(scan.detail), "The decisions chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${Number(Number(scan.detail.noise_std).toPrecision(4))}, ${scan.detail.draws} draws): green buys, amber holds, grey quits.`)) : null,
-    impacts.length ? h("figure", {}, scrolling(impactChart(impacts), "The market-impact chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions (green: passed, amber: missed) against the lowest allowed (the dashed bar), and the references (grey).")) : null,
+    scan ? h("figure", {}, scrolling(decisionsChart(scan.detail), "The decisions chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${Number(Number(scan.detail.noise_std).toPrecision(4))}, ${scan.detail.draws} draws): green buys (solid), amber holds (hatched), grey quits (dotted).`)) : null,
+    impacts.length ? h("figure", {}, scrolling(impactChart(impacts), "The market-impact chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions (green: passed, amber: missed, each said beside its price) against the lowest allowed (the dashed bar), and the references (grey).")) : null,
     populationsNote(impacts),
     evidenceTable(model),
   );
@@ -301,12 +301,14 @@ function decisionsChart(detail) {
   const x = (p) => left + ((p - lo) / (hi + step - lo || 1)) * (width - left - right);
   const ticks = [];
   for (let p = Math.ceil(lo * 4) / 4; p <= hi + 1e-9; p += 0.25) ticks.push(p);
+  const patterns = votePatterns("decisions-chart"); // buys solid, holds hatched, quits dotted
   return svg(
     "svg",
     { class: "chart", viewBox: `0 0 ${width} 120`, role: "img", "aria-label": `Decisions across prices. Clean: ${detail.clean}. Noisy: ${detail.noisy}.` },
+    patterns.defs,
     lines.map(([label, parts], row) => [
       svg("text", { x: 8, y: 30 + row * 40, class: "axis-label" }, label),
-      parts.map(([what, from, to]) => svg("rect", { class: `vote-${what.slice(0, -1)}`, x: x(from), y: 15 + row * 40, width: Math.max(1.5, x(to + step) - x(from)), height: 24 }, svg("title", {}, `${label}: ${what} ${from.toFixed(2)}–${to.toFixed(2)}`))),
+      parts.map(([what, from, to]) => svg("rect", { class: `vote-${what.slice(0, -1)}`, fill: patterns.fill(what.slice(0, -1)), x: x(from), y: 15 + row * 40, width: Math.max(1.5, x(to + step) - x(from)), height: 24 }, svg("title", {}, `${label}: ${what} ${from.toFixed(2)}–${to.toFixed(2)}`))),
     ]),
     ticks.map((p) => [svg("line", { class: "grid", x1: x(p), x2: x(p), y1: 12, y2: 96 }), svg("text", { class: "tick", x: x(p), y: 112, "text-anchor": "middle" }, p.toFixed(2))]),
   );
@@ -344,18 +346,20 @@ function impactChart(impacts) {
   const hi = Math.max(...values) + 0.005;
   const [left, width] = [300, 700];
   const rowsY = (i) => 20 + i * 26;
-  const x = (p) => left + ((p - lo) / (hi - lo)) * (width - left - 70); // room for the label
-  const marks = [...impacts.map((e) => [`copies, ${e.detail.version}${suffix(e)}`, e.measured, e.passed ? "vote-buy" : "vote-hold"]), ...named.map(([label, v]) => [label, v, "vote-quit"])];
+  const x = (p) => left + ((p - lo) / (hi - lo)) * (width - left - 115); // room for the label
+  // Whether the copies passed is said beside their price, not by the dot's colour alone.
+  const marks = [...impacts.map((e) => [`copies, ${e.detail.version}${suffix(e)}`, e.measured, e.passed ? "ink-buy" : "ink-hold", e.passed ? "passed" : "missed"]), ...named.map(([label, v]) => [label, v, "ink-quit", null])];
+  const valued = (value, verdict) => `${Number(value).toFixed(4)}${verdict ? ` ${verdict}` : ""}`;
   const top = rowsY(marks.length);
   const height = top + 14 * bars.length + 10;
   const said = bars.map(([b, words]) => `bar ${b.toFixed(4)}${words}`).join("; ");
   return svg(
     "svg",
-    { class: "chart", viewBox: `0 0 ${width} ${height}`, role: "img", "aria-label": `Market impact: ${said}; ${marks.map(([l, v]) => `${l} ${Number(v).toFixed(4)}`).join("; ")}.` },
-    marks.map(([label, value, cls], i) => [
+    { class: "chart", viewBox: `0 0 ${width} ${height}`, role: "img", "aria-label": `Market impact: ${said}; ${marks.map(([l, v, , verdict]) => `${l} ${valued(v, verdict)}`).join("; ")}.` },
+    marks.map(([label, value, cls, verdict], i) => [
       svg("text", { x: 8, y: rowsY(i) + 4, class: "axis-label" }, label),
-      svg("circle", { class: cls, cx: x(value), cy: rowsY(i), r: 6 }, svg("title", {}, `${label}: ${Number(value).toFixed(4)}`)),
-      svg("text", { x: x(value) + 10, y: rowsY(i) + 4, class: "tick" }, Number(value).toFixed(4)),
+      svg("circle", { class: cls, cx: x(value), cy: rowsY(i), r: 6 }, svg("title", {}, `${label}: ${valued(value, verdict)}`)),
+      svg("text", { x: x(value) + 10, y: rowsY(i) + 4, class: "tick" }, valued(value, verdict)),
     ]),
     bars.map(([b, words], i) => [
       svg("line", { class: "bar-line", x1: x(b), x2: x(b), y1: 6, y2: top + 14 * i }),

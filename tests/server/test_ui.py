@@ -1235,6 +1235,43 @@ def test_an_ended_auction_is_shown_ended_from_its_first_read(
     assert page.evaluate("window.srdSummaries") == [f"finished {played}"]
 
 
+def test_the_votes_chart_tells_buy_hold_and_quit_apart_without_colour(
+    page: Any, server: ServerProcess, tuned_auction: tuple[int, tuple[int, int]]
+) -> None:
+    """Buy, hold and quit were green, amber and grey only (alike in grey): each kind's bars
+    are filled from a pattern of its own (buy solid, hold hatched, quit dotted), the legend's
+    keys drawn alike, and the chart's name says every iteration's counts."""
+    auction_id, _ = tuned_auction
+    history = httpx.get(f"{server.url}/auctions/{auction_id}", timeout=30).json()["history"]
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
+    page.wait_for_selector("#votes-chart rect.vote-hold", state="attached", timeout=WAIT_MS)
+    # Each bar's fill: the pattern it names in the chart's own <defs>, and how many shapes
+    # make a tile of it (a colour's square alone, or with stripes or dots on it).
+    tiles = """(kind) => [...document.querySelectorAll(`#votes-chart rect.vote-${kind}`)].map(
+      (r) => {
+        const id = getComputedStyle(r).fill.match(/^url\\("?#([^")]+)"?\\)$/)?.[1];
+        const tile = id && document.querySelector(`#votes-chart defs pattern#${id}`);
+        return tile ? `${id} ${tile.children.length}` : getComputedStyle(r).fill; })"""
+    drawn = {kind: set(page.evaluate(tiles, kind)) for kind in ("buy", "hold", "quit")}
+    assert drawn == {
+        "buy": {"votes-chart-buy 1"},  # solid
+        "hold": {"votes-chart-hold 2"},  # hatched
+        "quit": {"votes-chart-quit 2"},  # dotted
+    }
+    # The legend's keys differ in more than their colours: their textures.
+    textures = page.evaluate(
+        "[...document.querySelectorAll('figcaption .key')].map((k) => getComputedStyle(k)"
+        ".backgroundImage)"
+    )
+    assert len(textures) == 3 and len(set(textures)) == 3, textures
+    label = page.get_attribute("#votes-chart", "aria-label") or ""
+    for row in history:
+        votes = row["votes"]
+        said = f"iteration {row['iteration']}: {votes['buy']} buy, {votes['hold']} hold, "
+        assert f"{said}{votes['quit']} quit" in label, label
+
+
 def test_a_deadline_already_past_is_said_to_have_passed_not_as_until(
     page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
 ) -> None:

@@ -69,9 +69,10 @@ export function withQuery(path, params) {
  * the error saying its subject does not exist. Any other failure is said in a line that takes
  * the place of ``at`` (the view's live line, say), with a "Try again now" button; the read is
  * tried again every few seconds while the tab is shown, until it works (``at`` is back, the
- * line gone) or the view is left.
+ * line gone) or the view is left. ``refused(error)``, if given, ends the tries on an error no
+ * read again can mend (a token refused: the view asks for another) by returning true.
  */
-export function firstRead(view, read, { use, missing, at }) {
+export function firstRead(view, read, { use, missing, at, refused = () => false }) {
   const words = h("span");
   const again = h("button", { type: "button", id: "read-again" }, "Try again now");
   const line = h("p", { class: "problem", role: "alert", id: "read-failed" }, words, " ", again);
@@ -95,6 +96,7 @@ export function firstRead(view, read, { use, missing, at }) {
       (error) => {
         if (left) return;
         if (isMissing(error)) return missing(error);
+        if (refused(error)) return;
         const text = `${String(error.message || error)} The page tries again every few seconds.`;
         if (words.textContent !== text) words.textContent = text;
         again.disabled = false;

@@ -1,7 +1,7 @@
 // Auctions: the list, and one auction followed live from its event stream.
 
 import { firstRead, follow, getJSON, keepCurrent, pager } from "./api.js";
-import { facts, fill, fixed, fixedApart, h, link, notFound, patch, plural, problem, scrolling, svg, table, tableRow, when } from "./dom.js";
+import { facts, fill, fixed, fixedApart, h, link, notFound, passed, patch, plural, problem, scrolling, svg, table, tableRow, votePatterns, when } from "./dom.js";
 
 const STOP_REASONS = {
   sold_out: "sold out",
@@ -198,7 +198,9 @@ function drawPriceChart(chart, rounds, nextPrice) {
   fill(chart, svg("title", { id: "price-chart-title" }, "Price asked in each iteration"), parts);
 }
 
-/** Buy, hold and quit votes of each iteration, stacked. */
+/** Buy, hold and quit votes of each iteration, stacked: each kind its colour and its texture
+ * (buy solid, hold hatched, quit dotted), and every count in the chart's name, for a reader
+ * who does not see it. */
 function drawVotesChart(chart, rounds, nPatrons) {
   const { width, left, right, top } = CHART;
   const height = 160;
@@ -207,7 +209,8 @@ function drawVotesChart(chart, rounds, nPatrons) {
   const band = (width - left - right) / n;
   const total = Math.max(nPatrons, 1);
   const y = (count) => ((height - top - bottom) * count) / total;
-  const parts = [svg("rect", { class: "plot", x: left, y: top, width: width - left - right, height: height - top - bottom })];
+  const patterns = votePatterns("votes-chart");
+  const parts = [patterns.defs, svg("rect", { class: "plot", x: left, y: top, width: width - left - right, height: height - top - bottom })];
   parts.push(
     svg("text", { class: "tick", x: left - 6, y: top + 4, "text-anchor": "end" }, String(nPatrons)),
     svg("text", { class: "tick", x: left - 6, y: height - bottom + 4, "text-anchor": "end" }, "0"),
@@ -220,7 +223,7 @@ function drawVotesChart(chart, rounds, nPatrons) {
       parts.push(
         svg(
           "rect",
-          { class: `vote-${kind}`, x: left + i * band + band * 0.1, y: base, width: band * 0.8, height: tall },
+          { class: `vote-${kind}`, fill: patterns.fill(kind), x: left + i * band + band * 0.1, y: base, width: band * 0.8, height: tall },
           svg("title", {}, `iteration ${r.iteration}: ${r.votes[kind]} ${kind}`),
         ),
       );
@@ -231,6 +234,8 @@ function drawVotesChart(chart, rounds, nPatrons) {
     parts.push(svg("text", { class: "tick", x: left + (i + 0.5) * band, y: height - bottom + 14, "text-anchor": "middle" }, String(i)));
   }
   parts.push(svg("text", { class: "axis-label", x: (left + width - right) / 2, y: height - 2, "text-anchor": "middle" }, "iteration"));
+  const counts = rounds.map((r) => `iteration ${r.iteration}: ${r.votes.buy} buy, ${r.votes.hold} hold, ${r.votes.quit} quit`);
+  chart.setAttribute("aria-label", `Votes of the patrons still in, per iteration: ${counts.join("; ")}.`);
   fill(chart, svg("title", {}, "Votes of the patrons still in, per iteration"), parts);
 }
 
@@ -470,7 +475,7 @@ export function auctionView(view, id) {
       { "aria-labelledby": "votes-heading" },
       h("h2", { id: "votes-heading" }, "Votes per iteration"),
       votesNone,
-      h("figure", { hidden: true }, scrolling(votesChart, "The votes chart (scrolls sideways on a narrow screen)"), h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold ", h("span", { class: "key vote-quit" }), "quit")),
+      h("figure", { hidden: true }, scrolling(votesChart, "The votes chart (scrolls sideways on a narrow screen)"), h("figcaption", { class: "legend" }, h("span", { class: "key vote-buy" }), "buy ", h("span", { class: "key vote-hold" }), "hold (hatched) ", h("span", { class: "key vote-quit" }), "quit (dotted)")),
     ),
     h(
       "section",
@@ -558,7 +563,7 @@ export function auctionView(view, id) {
           ["Item rows", head.rows === 64 ? "64 (the reference's)" : head.rows === 16 ? "16 (the paper's text's)" : String(head.rows)],
           ["Fine-tuning", fineTuningWords(head)],
           ["Seed", String(head.seed)],
-          ...(head.enroll_until && state.status === "pending" ? [["Takes patrons until", when(head.enroll_until)]] : []),
+          ...(enrolling ? [passed(head.enroll_until) ? ["Took patrons until", `${when(head.enroll_until)} (passed; starting)`] : ["Takes patrons until", when(head.enroll_until)]] : []),
           ["Created", when(head.created_at)],
           ["Started", head.started_at ? when(head.started_at) : over ? "never" : "not yet"],
           ...(over ? [[`Ended (${state.status})`, when(state.finished_at || head.finished_at)]] : []),
@@ -600,9 +605,16 @@ export function auctionView(view, id) {
     if (openRound) {
       const r = openRound;
       const asked = head.model_ids.filter((modelId) => !(leftAt.get(modelId) <= r.iteration)).length;
-      words = `Following live: waiting for fine-tuning round ${r.round} until ${when(r.deadline)} (${r.answers.length} of ${asked} answered).`;
+      const answered = `(${r.answers.length} of ${asked} answered)`;
+      // A deadline gone by the reader's clock, the round still open: the server closes it (or
+      // will, once it is back), and the page says so rather than "until" a time past.
+      words = passed(r.deadline)
+        ? `Following live: fine-tuning round ${r.round}'s deadline ${when(r.deadline)} passed; closing ${answered}.`
+        : `Following live: waiting for fine-tuning round ${r.round} until ${when(r.deadline)} ${answered}.`;
     } else if (head && head.status === "pending" && head.enroll_until) {
-      words = `Following live: taking patrons until ${when(head.enroll_until)}; the first iteration appears once it starts.`;
+      words = passed(head.enroll_until)
+        ? `Following live: enrollment deadline ${when(head.enroll_until)} passed; starting: the first iteration appears once it starts.`
+        : `Following live: taking patrons until ${when(head.enroll_until)}; the first iteration appears once it starts.`;
     }
     if (liveness.textContent !== words) liveness.textContent = words; // a live region: said once
   }
@@ -616,7 +628,11 @@ export function auctionView(view, id) {
       if (!openRound || r.round >= openRound.round) openRound = r;
     } else if (openRound && openRound.round <= r.round) openRound = null;
     sayFollowing();
-    const shows = JSON.stringify(r) + (r.closed_at ? closedWhy(r) : "");
+    // A round ends at its deadline, or sooner: its last answer, a cancel, a failure. One still
+    // open after its deadline by the reader's clock (its close pending, or the server
+    // restarting) says the deadline passed: its row is redrawn once it has (read every 3 s).
+    const open = r.status === "open" || !r.closed_at ? (passed(r.deadline) ? `deadline ${when(r.deadline)} passed; closing` : `until ${when(r.deadline)}`) : `closed ${when(r.closed_at)} ${closedWhy(r)} (deadline ${when(r.deadline)})`;
+    const shows = JSON.stringify(r) + open;
     if (was && was.shows === shows) return; // unchanged: no redraw, no reasons read again
     fineTuneShown.set(r.round, { status: r.status, answers: r.answers.length, shows });
     const outcomes = {};
@@ -624,8 +640,6 @@ export function auctionView(view, id) {
     const nothing = r.status === "open" ? "none yet" : "none";
     const answers = Object.entries(outcomes).map(([outcome, n]) => `${n} ${outcome}`).join(", ") || nothing;
     const each = r.answers.length ? h("ul", { class: "answers" }, r.answers.map((a) => answerItem(a, r))) : h("span", { class: "none-yet" }, nothing);
-    // A round ends at its deadline, or sooner: its last answer, a cancel, a failure.
-    const open = r.status === "open" || !r.closed_at ? `until ${when(r.deadline)}` : `closed ${when(r.closed_at)} ${closedWhy(r)} (deadline ${when(r.deadline)})`;
     const row = tableRow([String(r.round), String(r.iteration), statusBadge(r.status), open, answers, each], { "data-round": r.round });
     const old = fineTuneRowOf.get(r.round);
     if (old) {

@@ -130,6 +130,31 @@ export function when(iso) {
   return iso ? new Date(iso).toLocaleString(undefined, { dateStyle: "short", timeStyle: "long" }) : "—";
 }
 
+/** Whether a time is past by the reader's clock: a deadline shown while its round is still open
+ * or its auction still enrolling (the server closing it, or restarting) is said as passed,
+ * never as "until" a time already gone. */
+export function passed(iso) {
+  return Boolean(iso) && new Date(iso).getTime() <= Date.now();
+}
+
+/** The fills that tell buy, hold and quit apart by more than their colours (WCAG 1.4.1; green
+ * and amber are alike in grey): buy solid, hold hatched, quit dotted, as the legends' keys
+ * (style.css, .key.vote-*). ``defs`` goes once into the chart (its patterns' ids begin with
+ * ``chart``, the chart's own id: unique on the page); ``fill(kind)`` is a mark's fill. */
+export function votePatterns(chart) {
+  const id = (kind) => `${chart}-${kind}`;
+  const tile = (kind, size, attributes, ...marks) =>
+    svg("pattern", { id: id(kind), width: size, height: size, patternUnits: "userSpaceOnUse", ...attributes }, svg("rect", { class: `ink-${kind}`, width: size, height: size }), marks);
+  const defs = svg(
+    "defs",
+    {},
+    tile("buy", 6, {}),
+    tile("hold", 6, { patternTransform: "rotate(45)" }, svg("rect", { class: "ink-gap", width: 2, height: 6 })),
+    tile("quit", 5, {}, svg("circle", { class: "ink-gap", cx: 2.5, cy: 2.5, r: 1.3 })),
+  );
+  return { defs, fill: (kind) => `url(#${id(kind)})` };
+}
+
 /** A link inside the page. */
 export function link(hash, ...children) {
   return h("a", { href: hash }, ...children);

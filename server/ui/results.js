@@ -23,6 +23,16 @@ const WORDS = {
 /** Columns that say which condition a row is (the rest are its measures). */
 const KEYS = new Set(["setting", "rarity", "backswing", "inhibitor", "srd", "lr", "repeat", "trial", "saboteurs", "screen", "fine_tune", "project", "preset"]);
 const LINE_COLOURS = ["#1d5fbf", "#b3261e", "#1b7f3b", "#9a5b00", "#6a3d9a", "#00707a"];
+/** Each line's dashes beside its colour, and their name in its legend: lines told apart
+ * without their colours too (in grey, or by a reader who does not see red from green). */
+const LINE_DASHES = [
+  [null, ""],
+  ["6 3", "dashed"],
+  ["1.5 3", "dotted"],
+  ["9 3 2 3", "dash-dot"],
+  ["14 4", "long dashes"],
+  ["6 2 1.5 2 1.5 2", "dash-dot-dot"],
+];
 
 let layouts = null;
 /** The layouts of every kind (fetched once). */
@@ -130,7 +140,8 @@ export function rowsTable(spec, attributes = {}) {
 
 /**
  * Lines of (x, y) points overlaid in one inline SVG chart: ``lines`` is [{label, points}], ``x``
- * and ``y`` name the axes. Each line has its colour and a dash pattern (not colour alone).
+ * and ``y`` name the axes. Each line has its colour and its dashes (not colour alone), its
+ * legend's key drawn alike.
  * ``subject`` names the chart apart from the page's others of the same axes (in its scroll
  * frame's label: two landmarks of one name cannot be told apart).
  */
@@ -165,10 +176,11 @@ export function lineChart(lines, x, y, id, subject = null) {
   lines.forEach((line, i) => {
     const points = line.points.filter(([, v]) => Number.isFinite(v)).sort((a, b) => a[0] - b[0]);
     const colour = LINE_COLOURS[i % LINE_COLOURS.length];
+    const [dashes] = LINE_DASHES[i % LINE_DASHES.length];
     parts.push(
       svg(
         "polyline",
-        { class: "curve", points: points.map(([u, v]) => `${px(u).toFixed(1)},${py(v).toFixed(1)}`).join(" "), stroke: colour, "stroke-dasharray": i % 2 ? "6 3" : null, "data-line": line.label, "data-points": points.length },
+        { class: "curve", points: points.map(([u, v]) => `${px(u).toFixed(1)},${py(v).toFixed(1)}`).join(" "), stroke: colour, "stroke-dasharray": dashes, "data-line": line.label, "data-points": points.length },
         svg("title", {}, line.label),
       ),
       points.map(([u, v]) => svg("circle", { class: "curve-point", cx: px(u), cy: py(v), r: 3, fill: colour }, svg("title", {}, `${line.label}: ${words(x).toLowerCase()} ${shown(x, u)}, ${words(y).toLowerCase()} ${shown(y, v)}`))),
@@ -177,7 +189,11 @@ export function lineChart(lines, x, y, id, subject = null) {
   const legend = h(
     "ul",
     { class: "legend-list" },
-    lines.map((line, i) => h("li", {}, h("span", { class: `key line-key line-${i % LINE_COLOURS.length}` }), i % 2 ? "(dashed) " : "", line.label)),
+    lines.map((line, i) => {
+      const [dashes, named] = LINE_DASHES[i % LINE_DASHES.length];
+      const key = svg("svg", { class: "key line-key", viewBox: "0 0 26 6", preserveAspectRatio: "none", "aria-hidden": "true" }, svg("line", { x1: 0, y1: 3, x2: 26, y2: 3, stroke: LINE_COLOURS[i % LINE_COLOURS.length], "stroke-width": 3, "stroke-dasharray": dashes }));
+      return h("li", {}, key, named ? `(${named}) ` : "", line.label);
+    }),
   );
   return h("figure", {}, scrolling(svg("svg", { class: "chart", id, viewBox: `0 0 ${width} ${height}`, role: "img", "aria-labelledby": `${id}-title` }, parts), `${subject ? `${subject}: ` : ""}${title} (scrolls sideways on a narrow screen)`), h("figcaption", {}, title, legend));
 }

@@ -3,8 +3,8 @@
 // operator's admit / refuse. The admin token is pasted once and kept in this module's memory
 // only (never stored, never in a URL); it travels in the Authorization header.
 
-import { ApiError, LIST_REFRESH_MS, getJSON, postJSON } from "./api.js";
-import { fill, fixed, h, isMissing, link, navigated, notFound, patch, problem, scrolling, svg, table, when } from "./dom.js";
+import { ApiError, LIST_REFRESH_MS, firstRead, getJSON, postJSON } from "./api.js";
+import { fill, fixed, h, isMissing, link, navigated, notFound, patch, problem, scrolling, svg, table, votePatterns, when } from "./dom.js";
 import { auditLog, by, evidenceTable, inspectorView, measuredAndBar, verdictNow } from "./models.js";
 
 let adminToken = null;
@@ -41,8 +41,16 @@ function tokenForm(then, refused = null) {
   return form;
 }
 
-/** Run ``render`` with the token, asking for it first when there is none (or it was refused). */
-function withToken(view, render, heading = null) {
+/** Whether the server refused the operator's token. */
+function tokenRefused(error) {
+  return error instanceof ApiError && (error.status === 401 || error.status === 403);
+}
+
+/** Read with the token, asking for it first when there is none (or it was refused): ``read()``
+ * is the view's first read, tried again every few seconds while it fails (firstRead: the
+ * server out of reach, say, as every detail page's), its answer drawn by ``use(box, answer)``;
+ * a refused token asks for another instead. */
+function withToken(view, { read, use }, heading = null) {
   const box = h("div");
   view.root.append(box);
   const ask = (words) => {
@@ -55,21 +63,41 @@ function withToken(view, render, heading = null) {
     // The token's field had the focus, or the view was opened by a link: once the page is
     // drawn, its heading takes the focus (it would fall to the document's body).
     const hadFocus = box.contains(document.activeElement) || navigated();
-    fill(box);
-    render(box)
-      .then(() => {
+    const loading = h("p", { class: "liveness" }, "Loading…");
+    fill(box, loading);
+    firstRead(view, read, {
+      at: loading,
+      missing: (error) => fill(box, problem(error)), // a read of these pages names no subject
+      refused: (error) => {
+        if (!tokenRefused(error)) return false;
+        adminToken = null;
+        ask(error);
+        return true;
+      },
+      use: (answer) => {
+        loading.remove();
+        use(box, answer);
         const lost = !document.activeElement || document.activeElement === document.body;
         if (hadFocus && lost) (box.querySelector("h1") || view.root.querySelector("h1"))?.focus();
-      })
-      .catch((error) => {
-        if (error instanceof ApiError && (error.status === 401 || error.status === 403)) {
-          adminToken = null;
-          ask(error);
-        } else box.append(problem(error));
-      });
+      },
+    });
   };
   if (adminToken) start();
   else ask(null);
+}
+
+/** The queue whole (it is short: the screener holds few), and the review margin. */
+async function readQueue() {
+  const rows = [];
+  let cursor = null;
+  let margin = null;
+  do {
+    const page = await getJSON(`/reviews?limit=100${cursor ? `&cursor=${cursor}` : ""}`, adminToken);
+    rows.push(...page.items);
+    cursor = page.next_cursor;
+    margin = page.review_margin;
+  } while (cursor);
+  return { rows, margin };
 }
 
 export function reviewList(view) {
@@ -77,81 +105,69 @@ export function reviewList(view) {
     h("h1", { tabindex: "-1" }, "Models held for review"),
     h("p", {}, "The screener holds a model when its deciding evidence lies within the review margin (SRD_REVIEW_MARGIN, in price) of its bar, and a refused model its participant appealed. Oldest first."),
   );
-  withToken(view, async (box) => {
-    // The queue is read whole (it is short: the screener holds few) and read again every
-    // LIST_REFRESH_MS while the tab is shown (never two reads at once): a model held or
-    // appealed since appears in its place (oldest first), one decided goes, the others' rows
-    // stay the elements they were, and the focus stays where it was in its model's row (or on
-    // the scrolling frame, scrolled as it was).
-    const read = async () => {
-      const rows = [];
-      let cursor = null;
-      let margin = null;
-      do {
-        const page = await getJSON(`/reviews?limit=100${cursor ? `&cursor=${cursor}` : ""}`, adminToken);
-        rows.push(...page.items);
-        cursor = page.next_cursor;
-        margin = page.review_margin;
-      } while (cursor);
-      return { rows, margin };
-    };
-    // rendered from the start (an empty live region takes no room): a region shown at the
-    // moment its words arrive is not read out. It follows the queue: its words arriving move
-    // nothing under the pointer (the table stays where it is).
-    const state = h("p", { class: "none-yet", id: "list-state", role: "status" });
-    const list = h("div");
-    box.append(list, state);
-    let seen = null;
-    let ids = null;
-    let readAt = null;
-    let failing = false;
-    let reading = false;
-    const draw = ({ rows, margin }) => {
-      readAt = new Date();
-      const text = JSON.stringify([rows, margin]);
-      if (failing) state.textContent = ""; // read again: the failure is over
-      failing = false;
-      if (text === seen) return;
-      const now = new Set(rows.map((m) => m.id));
-      if (ids !== null) {
-        const added = rows.filter((m) => !ids.has(m.id)).length;
-        const gone = [...ids].filter((id) => !now.has(id)).length;
-        const words = [added ? `${added} held since` : "", gone ? `${gone} decided or withdrawn` : ""].filter(Boolean);
-        state.textContent = `Read again at ${readAt.toLocaleTimeString()}: ${words.length ? words.join(", ") : "a held model's evidence changed"}.`;
-      }
-      seen = text;
-      ids = now;
-      const at = where(list);
-      const fresh = rows.length ? queueTable(rows, margin) : h("p", { class: "none-yet", id: "no-reviews" }, "No model is waiting for an inspector.");
-      // Patched, not redrawn: a held model's row stays the same element (a press on its link
-      // that ends after the queue changed still opens it).
-      if (list.firstChild) patch(list.firstChild, fresh);
-      else fill(list, fresh);
-      if (at) restore(list, at, view.root.querySelector("h1"));
-    };
-    draw(await read());
-    const timer = setInterval(() => {
-      if (document.visibilityState !== "visible" || !box.isConnected || reading) return;
-      reading = true;
-      read()
-        .then(draw)
-        .catch((error) => {
-          failing = true;
-          const refused = error instanceof ApiError && (error.status === 401 || error.status === 403);
-          if (refused) {
-            adminToken = null; // rotated or revoked: the next visit asks for it again
-            clearInterval(timer);
-            state.textContent = `The operator token was refused (${String(error.message || error)}): the held models are shown as read at ${readAt.toLocaleTimeString()}; open the queue again to give the token.`;
-          } else {
-            state.textContent = `The queue could not be read again (${String(error.message || error)}); it shows the held models as read at ${readAt.toLocaleTimeString()}, and is read again every few seconds.`;
-          }
-        })
-        .finally(() => {
-          reading = false;
-        });
-    }, LIST_REFRESH_MS);
-    view.onLeave(() => clearInterval(timer));
-  });
+  withToken(view, { read: readQueue, use: (box, first) => followQueue(view, box, first) });
+}
+
+/** The queue as first read (``first``), then read again every LIST_REFRESH_MS while the tab is
+ * shown (never two reads at once): a model held or appealed since appears in its place (oldest
+ * first), one decided goes, the others' rows stay the elements they were, and the focus stays
+ * where it was in its model's row (or on the scrolling frame, scrolled as it was). */
+function followQueue(view, box, first) {
+  // rendered from the start (an empty live region takes no room): a region shown at the
+  // moment its words arrive is not read out. It follows the queue: its words arriving move
+  // nothing under the pointer (the table stays where it is).
+  const state = h("p", { class: "none-yet", id: "list-state", role: "status" });
+  const list = h("div");
+  box.append(list, state);
+  let seen = null;
+  let ids = null;
+  let readAt = null;
+  let failing = false;
+  let reading = false;
+  const draw = ({ rows, margin }) => {
+    readAt = new Date();
+    const text = JSON.stringify([rows, margin]);
+    if (failing) state.textContent = ""; // read again: the failure is over
+    failing = false;
+    if (text === seen) return;
+    const now = new Set(rows.map((m) => m.id));
+    if (ids !== null) {
+      const added = rows.filter((m) => !ids.has(m.id)).length;
+      const gone = [...ids].filter((id) => !now.has(id)).length;
+      const words = [added ? `${added} held since` : "", gone ? `${gone} decided or withdrawn` : ""].filter(Boolean);
+      state.textContent = `Read again at ${readAt.toLocaleTimeString()}: ${words.length ? words.join(", ") : "a held model's evidence changed"}.`;
+    }
+    seen = text;
+    ids = now;
+    const at = where(list);
+    const fresh = rows.length ? queueTable(rows, margin) : h("p", { class: "none-yet", id: "no-reviews" }, "No model is waiting for an inspector.");
+    // Patched, not redrawn: a held model's row stays the same element (a press on its link
+    // that ends after the queue changed still opens it).
+    if (list.firstChild) patch(list.firstChild, fresh);
+    else fill(list, fresh);
+    if (at) restore(list, at, view.root.querySelector("h1"));
+  };
+  draw(first);
+  const timer = setInterval(() => {
+    if (document.visibilityState !== "visible" || !box.isConnected || reading) return;
+    reading = true;
+    readQueue()
+      .then(draw)
+      .catch((error) => {
+        failing = true;
+        if (tokenRefused(error)) {
+          adminToken = null; // rotated or revoked: the next visit asks for it again
+          clearInterval(timer);
+          state.textContent = `The operator token was refused (${String(error.message || error)}): the held models are shown as read at ${readAt.toLocaleTimeString()}; open the queue again to give the token.`;
+        } else {
+          state.textContent = `The queue could not be read again (${String(error.message || error)}); it shows the held models as read at ${readAt.toLocaleTimeString()}, and is read again every few seconds.`;
+        }
+      })
+      .finally(() => {
+        reading = false;
+      });
+  }, LIST_REFRESH_MS);
+  view.onLeave(() => clearInterval(timer));
 }
 
 /** Where the focus is in a drawn queue: the scrolling frame (with how far it scrolled), or a
@@ -216,26 +232,33 @@ function nearest(evidence, margin) {
 
 export function reviewView(view, id) {
   document.title = `Inspect model ${id} · srd-auction`;
-  withToken(view, async (box) => {
+  // The model's place in the queue; a model not held there is read as it stands.
+  const read = async () => {
     const queue = await getJSON(`/reviews?limit=1${id > 1 ? `&cursor=${id - 1}` : ""}`, adminToken);
     const item = queue.items.find((m) => m.id === id);
-    if (!item) {
-      let model;
-      try {
-        model = await getJSON(`/models/${id}`);
-      } catch (error) {
-        if (!isMissing(error)) throw error;
-        notFound(box, `Model ${id}`, ["#/reviews", "Every held model"]);
-        return;
-      }
-      const last = model.reviews.filter((r) => r.decision !== "appeal").pop();
-      const decided = last ? ` It was ${last.decision === "admit" ? "admitted" : "refused"} by inspector ${last.inspector} on ${when(last.at)}.` : "";
-      box.append(h("h1", { tabindex: "-1" }, `Model ${id}`), h("p", { id: "not-held", class: "free-text" }, `This model is not held for review.${decided} `, link(`#/models/${id}`, "Its inspector's view"), " · ", link("#/reviews", "Every held model")));
-      document.title = `Model ${id} · srd-auction`;
+    if (item) return { item };
+    try {
+      return { model: await getJSON(`/models/${id}`) };
+    } catch (error) {
+      if (!isMissing(error)) throw error;
+      return {};
+    }
+  };
+  const use = (box, { item, model }) => {
+    if (item) {
+      inspectorView({ root: box, onLeave: (stop) => view.onLeave(stop) }, id, { heading: "Inspect model", evidence: false, extra: (m) => [evidenceSection(m, item), decisionForm(m)] });
       return;
     }
-    inspectorView({ root: box, onLeave: (stop) => view.onLeave(stop) }, id, { heading: "Inspect model", evidence: false, extra: (model) => [evidenceSection(model, item), decisionForm(model)] });
-  }, `Inspect model ${id}`);
+    if (!model) {
+      notFound(box, `Model ${id}`, ["#/reviews", "Every held model"]);
+      return;
+    }
+    const last = model.reviews.filter((r) => r.decision !== "appeal").pop();
+    const decided = last ? ` It was ${last.decision === "admit" ? "admitted" : "refused"} by inspector ${last.inspector} on ${when(last.at)}.` : "";
+    box.append(h("h1", { tabindex: "-1" }, `Model ${id}`), h("p", { id: "not-held", class: "free-text" }, `This model is not held for review.${decided} `, link(`#/models/${id}`, "Its inspector's view"), " · ", link("#/reviews", "Every held model")));
+    document.title = `Model ${id} · srd-auction`;
+  };
+  withToken(view, { read, use }, `Inspect model ${id}`);
 }
 
 function evidenceSection(model, item) {
@@ -256,8 +279,8 @@ function evidenceSection(model, item) {
         )
       : null,
     model.reasons.length ? h("ul", { class: "reasons" }, model.reasons.map((r) => h("li", {}, h("strong", {}, `${r.neuron} (${r.rule}): `), r.message))) : null,
-    scan ? h("figure", {}, scrolling(decisionsChart(scan.detail), "The decisions chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${Number(Number(scan.detail.noise_std).toPrecision(4))}, ${scan.detail.draws} draws): green buys, amber holds, grey quits.`)) : null,
-    impacts.length ? h("figure", {}, scrolling(impactChart(impacts), "The market-impact chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions (green: passed, amber: missed) against the lowest allowed (the dashed bar), and the references (grey).")) : null,
+    scan ? h("figure", {}, scrolling(decisionsChart(scan.detail), "The decisions chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, `The auction's decisive row (the base fish, buy fraction ${scan.detail.buy_fraction}) across the prices it can reach: the model's decision clean and on its ${scan.detail.copies} noisy copies (σ ${Number(Number(scan.detail.noise_std).toPrecision(4))}, ${scan.detail.draws} draws): green buys (solid), amber holds (hatched), grey quits (dotted).`)) : null,
+    impacts.length ? h("figure", {}, scrolling(impactChart(impacts), "The market-impact chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, "The market-impact test: the mean purchase price its copies leave in the test auctions (green: passed, amber: missed, each said beside its price) against the lowest allowed (the dashed bar), and the references (grey).")) : null,
     populationsNote(impacts),
     evidenceTable(model),
   );
@@ -278,12 +301,14 @@ function decisionsChart(detail) {
   const x = (p) => left + ((p - lo) / (hi + step - lo || 1)) * (width - left - right);
   const ticks = [];
   for (let p = Math.ceil(lo * 4) / 4; p <= hi + 1e-9; p += 0.25) ticks.push(p);
+  const patterns = votePatterns("decisions-chart"); // buys solid, holds hatched, quits dotted
   return svg(
     "svg",
     { class: "chart", viewBox: `0 0 ${width} 120`, role: "img", "aria-label": `Decisions across prices. Clean: ${detail.clean}. Noisy: ${detail.noisy}.` },
+    patterns.defs,
     lines.map(([label, parts], row) => [
       svg("text", { x: 8, y: 30 + row * 40, class: "axis-label" }, label),
-      parts.map(([what, from, to]) => svg("rect", { class: `vote-${what.slice(0, -1)}`, x: x(from), y: 15 + row * 40, width: Math.max(1.5, x(to + step) - x(from)), height: 24 }, svg("title", {}, `${label}: ${what} ${from.toFixed(2)}–${to.toFixed(2)}`))),
+      parts.map(([what, from, to]) => svg("rect", { class: `vote-${what.slice(0, -1)}`, fill: patterns.fill(what.slice(0, -1)), x: x(from), y: 15 + row * 40, width: Math.max(1.5, x(to + step) - x(from)), height: 24 }, svg("title", {}, `${label}: ${what} ${from.toFixed(2)}–${to.toFixed(2)}`))),
     ]),
     ticks.map((p) => [svg("line", { class: "grid", x1: x(p), x2: x(p), y1: 12, y2: 96 }), svg("text", { class: "tick", x: x(p), y: 112, "text-anchor": "middle" }, p.toFixed(2))]),
   );
@@ -321,18 +346,20 @@ function impactChart(impacts) {
   const hi = Math.max(...values) + 0.005;
   const [left, width] = [300, 700];
   const rowsY = (i) => 20 + i * 26;
-  const x = (p) => left + ((p - lo) / (hi - lo)) * (width - left - 70); // room for the label
-  const marks = [...impacts.map((e) => [`copies, ${e.detail.version}${suffix(e)}`, e.measured, e.passed ? "vote-buy" : "vote-hold"]), ...named.map(([label, v]) => [label, v, "vote-quit"])];
+  const x = (p) => left + ((p - lo) / (hi - lo)) * (width - left - 115); // room for the label
+  // Whether the copies passed is said beside their price, not by the dot's colour alone.
+  const marks = [...impacts.map((e) => [`copies, ${e.detail.version}${suffix(e)}`, e.measured, e.passed ? "ink-buy" : "ink-hold", e.passed ? "passed" : "missed"]), ...named.map(([label, v]) => [label, v, "ink-quit", null])];
+  const valued = (value, verdict) => `${Number(value).toFixed(4)}${verdict ? ` ${verdict}` : ""}`;
   const top = rowsY(marks.length);
   const height = top + 14 * bars.length + 10;
   const said = bars.map(([b, words]) => `bar ${b.toFixed(4)}${words}`).join("; ");
   return svg(
     "svg",
-    { class: "chart", viewBox: `0 0 ${width} ${height}`, role: "img", "aria-label": `Market impact: ${said}; ${marks.map(([l, v]) => `${l} ${Number(v).toFixed(4)}`).join("; ")}.` },
-    marks.map(([label, value, cls], i) => [
+    { class: "chart", viewBox: `0 0 ${width} ${height}`, role: "img", "aria-label": `Market impact: ${said}; ${marks.map(([l, v, , verdict]) => `${l} ${valued(v, verdict)}`).join("; ")}.` },
+    marks.map(([label, value, cls, verdict], i) => [
       svg("text", { x: 8, y: rowsY(i) + 4, class: "axis-label" }, label),
-      svg("circle", { class: cls, cx: x(value), cy: rowsY(i), r: 6 }, svg("title", {}, `${label}: ${Number(value).toFixed(4)}`)),
-      svg("text", { x: x(value) + 10, y: rowsY(i) + 4, class: "tick" }, Number(value).toFixed(4)),
+      svg("circle", { class: cls, cx: x(value), cy: rowsY(i), r: 6 }, svg("title", {}, `${label}: ${valued(value, verdict)}`)),
+      svg("text", { x: x(value) + 10, y: rowsY(i) + 4, class: "tick" }, valued(value, verdict)),
     ]),
     bars.map(([b, words], i) => [
       svg("line", { class: "bar-line", x1: x(b), x2: x(b), y1: 6, y2: top + 14 * i }),

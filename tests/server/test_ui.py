@@ -1238,6 +1238,85 @@ def test_an_ended_auction_is_shown_ended_from_its_first_read(
     assert page.evaluate("window.srdSummaries") == [f"finished {played}"]
 
 
+def test_the_votes_chart_tells_buy_hold_and_quit_apart_without_colour(
+    page: Any, server: ServerProcess, tuned_auction: tuple[int, tuple[int, int]]
+) -> None:
+    """Buy, hold and quit were green, amber and grey only (alike in grey): each kind's bars
+    are filled from a pattern of its own (buy solid, hold hatched, quit dotted), the legend's
+    keys drawn alike, and the chart's name says every iteration's counts."""
+    auction_id, _ = tuned_auction
+    history = httpx.get(f"{server.url}/auctions/{auction_id}", timeout=30).json()["history"]
+    page.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    page.wait_for_selector("#liveness:has-text('Ended')", timeout=WAIT_MS)
+    page.wait_for_selector("#votes-chart rect.vote-hold", state="attached", timeout=WAIT_MS)
+    # Each bar's fill: the pattern it names in the chart's own <defs>, and how many shapes
+    # make a tile of it (a colour's square alone, or with stripes or dots on it).
+    tiles = """(kind) => [...document.querySelectorAll(`#votes-chart rect.vote-${kind}`)].map(
+      (r) => {
+        const id = getComputedStyle(r).fill.match(/^url\\("?#([^")]+)"?\\)$/)?.[1];
+        const tile = id && document.querySelector(`#votes-chart defs pattern#${id}`);
+        return tile ? `${id} ${tile.children.length}` : getComputedStyle(r).fill; })"""
+    drawn = {kind: set(page.evaluate(tiles, kind)) for kind in ("buy", "hold", "quit")}
+    assert drawn == {
+        "buy": {"votes-chart-buy 1"},  # solid
+        "hold": {"votes-chart-hold 2"},  # hatched
+        "quit": {"votes-chart-quit 2"},  # dotted
+    }
+    # The legend's keys differ in more than their colours: their textures.
+    textures = page.evaluate(
+        "[...document.querySelectorAll('figcaption .key')].map((k) => getComputedStyle(k)"
+        ".backgroundImage)"
+    )
+    assert len(textures) == 3 and len(set(textures)) == 3, textures
+    label = page.get_attribute("#votes-chart", "aria-label") or ""
+    for row in history:
+        votes = row["votes"]
+        said = f"iteration {row['iteration']}: {votes['buy']} buy, {votes['hold']} hold, "
+        assert f"{said}{votes['quit']} quit" in label, label
+
+
+def test_a_deadline_already_past_is_said_to_have_passed_not_as_until(
+    page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
+) -> None:
+    """A round still open, or an auction still taking patrons, after its deadline (its close
+    pending, the server restarting): by the reader's clock (here an hour ahead) the page says
+    the deadline passed; it said "until 13:02" of a time already gone."""
+    honest_ids = [a["model_id"] for name, a in population.items() if name.startswith("honest")]
+    headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    body = {"n_fish": 1, "model_ids": honest_ids, "fine_tune_mode": "remote"}
+    body |= {"fine_tune_rounds": 1, "round_deadline_s": 120, "seed": 1}
+    remote = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    body = {"rarity": 0.5, "enrollment_s": 600, "seed": 5}
+    enrolling = api.post("/auctions", json=body, headers=headers).json()["auction_id"]
+    local = (
+        "(iso) => new Date(iso).toLocaleString(undefined, {dateStyle: 'short', timeStyle: 'long'})"
+    )
+    try:
+        page.clock.set_fixed_time(time.time() + 3600)
+        page.goto(f"{server.url}/ui/#/auctions/{enrolling}")
+        until = page.evaluate(local, api.get(f"/auctions/{enrolling}").json()["enroll_until"])
+        page.wait_for_selector("#auction-summary", timeout=WAIT_MS)
+        fact = page.locator("#auction-summary dt:has-text('patrons until') + dd")
+        assert fact.text_content() == f"{until} (passed; starting)"
+        assert "Took patrons until" in (page.text_content("#auction-summary") or "")
+        page.wait_for_selector("#liveness:has-text('Following live')", timeout=WAIT_MS)
+        assert page.text_content("#liveness") == (
+            f"Following live: enrollment deadline {until} passed; starting: the first iteration"
+            " appears once it starts."
+        )
+        page.goto(f"{server.url}/ui/#/auctions/{remote}")
+        cell = page.locator("#fine-tuning tr[data-round='1'] td").nth(3)
+        cell.wait_for(timeout=WAIT_MS)
+        deadline = api.get(f"/auctions/{remote}/rounds/current").json()["deadline"]
+        assert cell.text_content() == f"deadline {page.evaluate(local, deadline)} passed; closing"
+        page.wait_for_selector("#liveness:has-text('Following live')", timeout=WAIT_MS)
+        live = page.text_content("#liveness") or ""
+        assert "round 1's deadline" in live and "passed; closing (" in live and "until" not in live
+    finally:
+        for auction_id in (remote, enrolling):
+            api.delete(f"/auctions/{auction_id}", headers=headers)
+
+
 def test_a_vote_explained_before_its_iterations_votes_arrive_is_drawn_below_them(
     page: Any, server: ServerProcess, tuned_auction: tuple[int, tuple[int, int]]
 ) -> None:
@@ -1314,6 +1393,39 @@ def test_a_detail_page_whose_first_read_fails_shows_its_subject_once_the_server_
             page.wait_for_selector(shown, timeout=WAIT_MS)
         assert failed.count() == 0, address
     assert page.locator("#job-state dt:has-text('Kind') + dd").text_content() == "fish"
+
+
+def test_a_review_page_whose_first_read_fails_reads_again_until_the_server_answers(
+    page: Any, server: ServerProcess, population: dict[str, dict[str, Any]]
+) -> None:
+    """The review queue and an inspection page opened while the server is out of reach read
+    again every few seconds, as the other detail pages do (they stayed dead until a reload);
+    a token refused meanwhile is asked for again, not read with forever."""
+    queue = "**/reviews?*"
+    page.route(queue, lambda route: route.abort())
+    page.goto(f"{server.url}/ui/#/reviews")
+    page.fill("#admin-token", ADMIN_TOKEN)
+    page.keyboard.press("Enter")
+    failed = page.locator("p.problem:has-text('could not be reached')")
+    failed.wait_for(timeout=WAIT_MS)
+    assert "The page tries again every few seconds." in (failed.text_content() or "")
+    refused = {"detail": [{"msg": "not the admin token"}]}
+    page.unroute(queue)
+    page.route(queue, lambda route: route.fulfill(status=401, json=refused))
+    page.wait_for_selector("#admin-token-status:has-text('not the admin token')", timeout=8000)
+    page.unroute(queue)
+    page.fill("#admin-token", ADMIN_TOKEN)
+    page.keyboard.press("Enter")
+    page.wait_for_selector("#review-list, #no-reviews", timeout=WAIT_MS)
+    # An inspection page, at once by its button (the token kept in the page's memory).
+    accepted = next(a for name, a in population.items() if name.startswith("honest"))
+    page.route(queue, lambda route: route.abort())
+    page.goto(f"{server.url}/ui/#/reviews/{accepted['model_id']}")
+    failed.wait_for(timeout=WAIT_MS)
+    page.unroute(queue)
+    page.click("#read-again")
+    page.wait_for_selector("#not-held", timeout=2000)
+    assert failed.count() == 0
 
 
 @pytest.fixture(scope="module")

@@ -62,6 +62,7 @@ def _votes(
                 vote=vote["vote"],
                 sensor=vote["sensor"],
                 decision=vote["decision"],
+                judgement=vote.get("judgement"),
                 pfc=vote["pfc"],
             )
             for vote in votes.explanations["patrons"]

@@ -62,6 +62,9 @@ const NEURON_WORDS = {
   B: "buy",
   L: "hold (want a lower price)",
   Q: "quit",
+  PGL: "holding at a high price (right: feeds T)",
+  BC: "buying cheap (right: feeds T)",
+  FQ: "quitting a good fish (wrong: feeds F)",
   T: "the verdict 'right'",
   F: "the verdict 'wrong'",
 };
@@ -425,6 +428,7 @@ export function auctionView(view, id) {
             part("External sensor (after its activations)", "sensor", v.sensor),
             part("Decision logits (the largest is the vote)", "decision", v.decision),
             pushes,
+            v.judgement ? part("Prefrontal cortex: its judgements of the decision (before their tanh)", "judgement", v.judgement) : null,
             part("Prefrontal cortex: its verdict on the decision", "pfc", v.pfc),
             h("p", { id: "verdict-words" }, verdictWords(v)),
             h(

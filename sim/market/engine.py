@@ -36,6 +36,7 @@ sub-batch, in batch order); returns one judgement per patron: True keeps it; Fal
 EXPLAINED = (
     ("sensor", ("PG", "SZ", "LSR", "ST")),
     ("decision", ("B", "L", "Q")),
+    ("judgement", ("PGL", "BC", "FQ")),
     ("pfc", ("T", "F")),
 )
 """The neurons of a vote's explanation, by the part of the network they belong to."""

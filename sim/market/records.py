@@ -20,6 +20,10 @@ class VoteExplanation:
     """The external sensor after its activations: PG, SZ, LSR, ST."""
     decision: dict[str, float]
     """The decision logits B, L, Q (the vote is the largest)."""
+    judgement: dict[str, float]
+    """The prefrontal cortex's judgements PGL (holding at a high price), BC (buying cheap)
+    and FQ (quitting a good fish), read from the softmax of the sensor and the decision,
+    before their tanh."""
     pfc: dict[str, float]
     """The prefrontal cortex's verdicts T (right) and F (wrong) on that decision."""
 
@@ -70,13 +74,14 @@ class IterationRecord:
 
     def explained(self) -> dict[str, Any]:
         """The explanations, JSON-ready: ``{row, patrons: [{patron, vote, sensor, decision,
-        pfc}]}``."""
+        judgement, pfc}]}``."""
         patrons = [
             {
                 "patron": e.patron,
                 "vote": e.vote,
                 "sensor": dict(e.sensor),
                 "decision": dict(e.decision),
+                "judgement": dict(e.judgement),
                 "pfc": dict(e.pfc),
             }
             for e in self.explanations

@@ -1097,7 +1097,7 @@ def test_every_vote_of_a_round_opens_its_explanation(
         assert [(r[0], r[2], r[3]) for r in rows] == [
             (v["participant"], v["vote"], f"{v['decision']['B']:.3f}") for v in listed
         ]
-        for part in ("sensor", "decision", "pfc"):
+        for part in ("sensor", "decision", "judgement", "pfc"):
             cells = [
                 [td.text_content() for td in tr.locator("td").all()]
                 for tr in card.locator(f"table[data-part='{part}'] tbody tr").all()

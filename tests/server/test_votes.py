@@ -4,6 +4,7 @@ PostgreSQL."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,44 @@ def finished_auction(client: TestClient, name: str, **settings: Any) -> dict[str
 @pytest.fixture(scope="module")
 def auction(client: TestClient) -> dict[str, Any]:
     return finished_auction(client, "voter")
+
+
+def test_a_vote_explains_the_self_judges_judgements_behind_its_verdicts(
+    client: TestClient,
+) -> None:
+    """The PFC's judgements PGL, BC, FQ are explained with each vote: read from the softmax of
+    the sensor and the decision by the judgement's weights, and read by the verdicts through
+    their tanh. With one copy (no noise averaged in) both hold exactly, from the manifest."""
+    bodies = [honest(unique("judged"), seed=s) for s in (0, 2, 3)]
+    for body in bodies:
+        body["augmentation"]["copies"] = 1
+    ids = [client.post("/submit", json=body).json()["model_id"] for body in bodies]
+    body = {"n_fish": 1, "model_ids": ids, "seed": 3}
+    auction_id = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
+    auction = wait_for(
+        lambda: client.get(f"/auctions/{auction_id}").json(),
+        lambda a: a["status"] == "finished",
+        timeout_s=120,
+    )
+    pfc = {m: bodies[ids.index(m)]["pfc"] for m in ids}
+    checked = 0
+    for row in auction["history"]:
+        path = f"/auctions/{auction_id}/iterations/{row['iteration']}/votes"
+        for vote in client.get(path).json()["votes"]:
+            judgement, mine = vote["judgement"], pfc[vote["model_id"]]
+            assert list(judgement) == ["PGL", "BC", "FQ"]
+            read = {**vote["sensor"], **vote["decision"]}
+            top = max(read.values())
+            soft = {k: math.exp(v - top) for k, v in read.items()}
+            soft = {k: v / sum(soft.values()) for k, v in soft.items()}
+            for name, neuron in mine["judgement"].items():
+                weighed = sum(w * soft[k] for k, w in neuron["weights"].items())
+                assert judgement[name] == pytest.approx(weighed + neuron["bias"], abs=1e-9)
+            for name, neuron in mine["verdict"].items():
+                weighed = sum(w * math.tanh(judgement[k]) for k, w in neuron["weights"].items())
+                assert vote["pfc"][name] == pytest.approx(weighed + neuron["bias"], abs=1e-9)
+            checked += 1
+    assert checked >= 3
 
 
 @pytest.fixture(scope="module")

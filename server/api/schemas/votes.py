@@ -31,6 +31,18 @@ class DecisionPublic(Schema):
     """Quit."""
 
 
+class JudgementPublic(Schema):
+    """The prefrontal cortex's judgements of the decision, read from the softmax of the
+    sensor and the decision (before their tanh): what its verdicts weigh."""
+
+    PGL: float
+    """Holding at a high price (a right decision: feeds T)."""
+    BC: float
+    """Buying cheap (a right decision: feeds T)."""
+    FQ: float
+    """Quitting a good, wanted fish (a wrong decision: feeds F)."""
+
+
 class PfcPublic(Schema):
     """The prefrontal cortex's self-judgement of the decision."""
 
@@ -64,6 +76,8 @@ class PatronVotePublic(Schema):
     vote: Literal["buy", "hold", "quit"]
     sensor: SensorPublic
     decision: DecisionPublic
+    judgement: JudgementPublic | None
+    """None for an iteration committed before the judgements were kept with its votes."""
     pfc: PfcPublic
 
 

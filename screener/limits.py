@@ -240,6 +240,18 @@ level and two between. With the ends and ½ alone a red team's holder whose nois
 buy fractions 0.375-0.48 and 0.62-0.97 passed (harm 0.75-0.86 of a saboteur's); the two between
 refuse it, and cost a batch of 64 about a fifth more (2.62 → 3.11 ms per manifest,
 ``benchmarks/screener.py``)."""
+TIE_MARGIN = 1e-9
+"""On every probed item the leading decision score must lead the next by at least this much
+(``knife-edge``). A lead of a few ulps is a vote decided by the last bits of the arithmetic, and
+those differ between the screener, which reads a model alone, and the market, which computes it
+among other patrons (torch orders a sum by the tensor's layout: a patron's mean over 16 noisy
+copies moved by up to 3 ulps with its seat in the batch). A model whose buy and hold tie at every
+price to 1e-16 bought in the screener and held in the market's full blocks of 16 voters
+(``tests/support/red_team/copy-order-holder.json``); one that ties by a hair at every price is
+an any-price buyer whose 32 copies beside 32 honest patrons sold none of 186 fish
+(``zero-margin-any-price-buyer.json``). Over 2,000 models of ``honest_manifest`` and the
+examples, on every probed item, the smallest lead is 2.8e-7: 1e-9 is 275 times below it and
+10^6 times above the layout's few ulps."""
 NOISE_FLIP_BAND = 0.05
 """A model may buy clean and hold on its noisy copies over at most this width of the decisive
 row at one buy fraction (one increment): noise shifts an honest model's boundaries by a cent or

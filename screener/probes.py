@@ -284,6 +284,7 @@ def _judge(every: Array) -> Probed:
         *_far_too_expensive(grid),
         _buy_falls_with_price(grid),
         sincere,
+        _knife_edge(safe, grid),
     )
     failed = np.empty((P, len(probes)), dtype=np.bool_)
     for k, (_, _, mask, _) in enumerate(probes):
@@ -302,6 +303,36 @@ def _judge(every: Array) -> Probed:
         np.where(finite, bar, np.nan),
         _inspected(grid, scan, finite),
     )
+
+
+def _knife_edge(every: Array, grid: _OnGrid) -> Probe:
+    """knife-edge: on every probed item (the grid and the decisive-row scan) the leading
+    decision score leads the next by at least ``limits.TIE_MARGIN``."""
+    ordered = np.sort(every, axis=-1)
+    lead = ordered[..., 2] - ordered[..., 1]  # (P, R)
+    edge = lead < limits.TIE_MARGIN
+
+    def message(p: int) -> str:
+        r = int(np.flatnonzero(edge[p])[0])
+        if r < len(GRID):
+            i, q, s, f = np.unravel_index(r, GRID_SHAPE)
+            where = grid.at(p, int(i), int(q), int(s), int(f))
+        else:
+            i, f = np.unravel_index(r - len(GRID), (len(SCAN_PRICES), len(SCAN_DEMANDS)))
+            scores = every[p, r]
+            action = ACTION_WORDS[int(np.argmax(scores))]
+            where = (
+                f"at price {fmt_price(SCAN_PRICES[i])} on the auction's decisive row (the base "
+                f"fish) with buy fraction {SCAN_DEMANDS[f]:g} it {action} ({_scores(scores)})"
+            )
+        return (
+            f"{where}: its two leading scores lie {fmt(lead[p, r], '.2g')} apart (on "
+            f"{int(edge[p].sum())} probed items), within {fmt(limits.TIE_MARGIN, 'g')}: the "
+            "vote there rests on the last bits of the arithmetic, which the market, computing "
+            "the model among other patrons, rounds otherwise"
+        )
+
+    return "knife-edge", "B", np.any(edge, axis=1), message
 
 
 def _non_finite_message(p: int) -> str:

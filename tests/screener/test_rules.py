@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import re
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -304,3 +306,17 @@ def test_absurd_weights_get_the_same_reasons_alone_and_in_a_batch(honest) -> Non
     batched = screen_many([*others, absurd])[-1]
     assert not alone.accepted
     assert [r.to_dict() for r in batched.reasons] == [r.to_dict() for r in alone.reasons]
+
+
+@pytest.mark.parametrize("name", ["copy-order-holder", "zero-margin-any-price-buyer"])
+def test_a_vote_that_rests_on_the_last_bits_of_the_arithmetic_is_refused(name: str):
+    """Buy and hold tie to 1e-16 at every price: one such model bought when screened alone and
+    held in the market's full blocks of 16 voters (its 16 copies averaged in another order);
+    the other buys everywhere by a hair. Both are refused by ``knife-edge``, saying where."""
+    path = Path(__file__).parents[1] / "support" / "red_team" / f"{name}.json"
+    verdict = screen(parse_manifest(json.loads(path.read_text())))
+    assert not verdict.accepted
+    assert ("knife-edge", "B") in rules_of(verdict)
+    words = message_of(verdict, "knife-edge", "B")
+    assert re.search(r"its two leading scores lie [0-9.e-]+ apart \(on \d+ probed items\)", words)
+    assert "within 1e-09" in words and "rests on the last bits" in words

@@ -18,6 +18,7 @@ PROBE_RULES = {
     "quits-far-too-expensive",
     "buy-falls-with-price",
     "sincere-hold",
+    "knife-edge",
 }
 """The rule names of the behavioural probes (the semantic rules use other names)."""
 

@@ -84,8 +84,9 @@ def data_dir_unusable(path: Path) -> str | None:
         return f"the data folder {path} cannot be made: {exc.strerror or exc}"
     here = missing[0].parent if missing else normal
     if not here.is_dir():
-        where = "" if here == normal else f": {here} is a file"
-        return f"the data folder {path} is a file, not a folder{where}"
+        if here == normal:
+            return f"the data folder {path} is a file, not a folder"
+        return f"the data folder {path} cannot be made: {here} is a file, not a folder"
     problem = data_dir_problem(here)
     if problem is not None and missing:
         return f"the data folder {path} cannot be made: {problem}"

@@ -81,13 +81,18 @@ def explain_vote(
     if not mine:
         who = bidders(session, auction_id=auction_id, iteration=iteration)
         as_version = [m for m, bidder in who.items() if bidder.version_id == model_id]
-        why = (
-            f": it is the version patron {as_version[0]} bid with; the path names a patron by "
-            "the id it entered with (the auction's model_ids)"
-            if as_version
-            else " (the path names a patron by the id it entered with, the auction's "
-            "model_ids; patrons leave when they buy or quit)"
-        )
+        if model_id in who:  # a patron, gone by then
+            why = ": it had left the auction (patrons leave when they buy or quit)"
+        elif as_version:
+            why = (
+                f": it is the version patron {as_version[0]} bid with; the path names a patron "
+                "by the id it entered with (the auction's model_ids)"
+            )
+        else:
+            why = (
+                " (the path names a patron by the id it entered with, the auction's "
+                "model_ids; patrons leave when they buy or quit)"
+            )
         raise api_error(
             404,
             f"model {model_id} did not vote in iteration {iteration} of auction {auction_id}" + why,

@@ -69,7 +69,8 @@ def _settings(json_output: bool) -> Settings:
             Settings.__pydantic_validator__.validate_assignment(settings, field, _text(value))
         except ValidationError as exc:
             shown = "" if field == "screener_secret" else f"={_text(value)}"
-            problem = f"{variable}{shown}: {exc.errors()[0]['msg']}"
+            said = str(exc.errors()[0]["msg"]).removeprefix("Value error, ")  # its own words
+            problem = f"{variable}{shown}: {said}"
             Console(stderr=True, highlight=False, soft_wrap=True).print(
                 f"[red]error:[/red] {escape(problem)}"
             )

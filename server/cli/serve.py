@@ -173,8 +173,10 @@ def _drain(app: object) -> None:
     help="uvicorn log level.",
 )
 def command(host: str | None, port: int | None, log_level: str) -> None:
-    """Run the HTTP API; database from SRD_DATABASE_URL (default sqlite:///./srd.db). Exits
-    with code 2, saying why, when the data folder (SRD_DATA_DIR) cannot be written."""
+    """Run the HTTP API; database from SRD_DATABASE_URL (default sqlite:///./srd.db). Exits,
+    saying why in one line, with code 2 for a setting it cannot use (the data folder,
+    SRD_DATA_DIR, that cannot be written among them) and 3 when the database cannot be used or
+    the address cannot be bound."""
     from server.config import SettingsError, get_settings
 
     try:  # before the app's imports: a setting it cannot use is said at once

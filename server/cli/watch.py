@@ -447,10 +447,11 @@ def live_view(watched: Watched) -> Group:
 def command(auction_id: int, server: str, json_output: bool, reconnect_s: float) -> None:
     """Follow one auction live: the price, the fish left (supply), each iteration's buy / hold /
     quit votes, who bought and who quit, and remote fine-tuning rounds, until the auction ends.
-    Exit 0 when it finished, 1 when it failed or was cancelled, 3 when it could not be
-    followed (unreachable, unknown auction, the stream gone longer than --reconnect-s, a
-    server that is not an srd server), 130 when interrupted (Ctrl-C). A dropped stream (a
-    server restarting, its database away) is opened again, resuming after the last event."""
+    Exit 0 when it finished, 1 when it failed or was cancelled, 2 for a bad option, 3 when it
+    could not be followed (unreachable, unknown auction, the stream gone longer than
+    --reconnect-s, a server that is not an srd server), 130 when interrupted (Ctrl-C). A
+    dropped stream (a server restarting, its database away) is opened again, resuming after the
+    last event."""
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     out = Console(highlight=False, soft_wrap=True)
     watched = Watched(auction_id)

@@ -200,7 +200,7 @@ def _answer_json(
         "auction_id": auction_id,
         "auction_status": state.status,
         "fine_tune_mode": state.fine_tune_mode,
-        "fine_tune_rounds": state.fine_tune_rounds,
+        "fine_tune_rounds": state.fine_tune_rounds if state.fine_tune else None,
         "round": None if head is None else head.round,
         "iteration": None if head is None else head.iteration,
         "status": status,

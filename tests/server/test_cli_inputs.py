@@ -484,6 +484,7 @@ def test_screen_refuses_a_setting_srd_serve_refuses_naming_it(
         outcome = CliRunner().invoke(cli, ["screen", str(path), *extra], env={variable: value})
         assert outcome.exit_code == 2, (outcome.output, outcome.exception)
         assert words in outcome.stderr
+        assert "Value error" not in outcome.stderr  # the validator's own words, as srd serve's
         if variable == "SRD_SCREENER_SECRET":
             assert "at least 32 characters, 10 of them different" in outcome.stderr
             assert "short" not in outcome.stderr and "a" * 40 not in outcome.stderr  # unsaid

@@ -188,6 +188,12 @@ def test_serve_refuses_a_data_folder_it_cannot_write(tmp_path: Path, where: str)
     lines = done.stderr.splitlines()
     assert len(lines) == 1, done.stderr
     assert str(data_dir) in lines[0] and "SRD_DATA_DIR" in lines[0]
+    said = {  # what is a file, as it is
+        "file": f"the data folder {data_dir} is a file, not a folder",
+        "under_a_file": f"the data folder {data_dir} cannot be made: {blocker} is a file, not a "
+        "folder",
+    }[where]
+    assert said in lines[0], lines[0]
     assert "Traceback" not in done.stderr
     assert not (tmp_path / "srd.db").exists()  # stopped before anything was started
 

@@ -169,6 +169,14 @@ def test_the_round_is_published_with_rows_seeds_and_asked_patrons(
     assert client.get("/auctions/987654/rounds/current").status_code == 404
     bad_wait = client.get(f"/auctions/{remote['id']}/rounds/current", params={"wait": 31})
     assert bad_wait.status_code == 422 and ["query", "wait"] in loc_of(bad_wait)
+    # An auction that does not fine-tune has no rounds, as GET /auctions/{id} says too.
+    ids = [client.post("/submit", json=honest(unique("plain"), seed=s)).json()["model_id"]
+           for s in (2, 3)]  # fmt: skip
+    body = {"n_fish": 1, "model_ids": ids, "seed": 3}
+    plain = client.post("/auctions", json=body, headers=ADMIN).json()["auction_id"]
+    none = client.get(f"/auctions/{plain}/rounds/current").json()
+    assert none["status"] == "none" and none["fine_tune_rounds"] is None, none
+    assert client.get(f"/auctions/{plain}").json()["fine_tune_rounds"] is None
 
 
 def test_a_long_poll_waits_for_a_newer_round_at_most_its_wait(

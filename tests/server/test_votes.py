@@ -98,7 +98,12 @@ def test_every_vote_of_every_iteration_is_explained(
             response = client.get(f"/auctions/{auction['id']}/iterations/{n}/votes/{model_id}")
             if model_id in left:
                 assert response.status_code == 404, response.text
-                assert response.json()["detail"][0]["loc"] == ["path", "model_id"]
+                detail = response.json()["detail"][0]
+                assert detail["loc"] == ["path", "model_id"]
+                assert detail["msg"].endswith(
+                    f"did not vote in iteration {n} of auction {auction['id']}: it had left the "
+                    "auction (patrons leave when they buy or quit)"
+                ), detail
                 continue
             assert response.status_code == 200, response.text
             vote = response.json()

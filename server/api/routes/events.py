@@ -308,7 +308,8 @@ async def _existing_auction(
         raise api_error(
             422,
             f"event {resume.event_id} is ahead of auction {auction_id}'s stream: its iteration "
-            f"{state.iteration - 1} has {unsent} so far",
+            f"{state.iteration - 1} has {unsent}"
+            + ("" if state.status in AUCTION_ENDED else " so far"),
             loc=resume.loc,
             kind="ahead",
         )
@@ -322,7 +323,7 @@ async def _existing_auction(
         raise api_error(
             422,
             f"event {resume.event_id} is ahead of auction {auction_id}'s stream, which has "
-            f"sent {sent} so far",
+            f"sent {sent}" + ("" if state.status in AUCTION_ENDED else " so far"),
             loc=resume.loc,
             kind="ahead",
         )

@@ -55,7 +55,8 @@ class RoundPublic(Schema):
     auction_id: int
     auction_status: AuctionStatus
     fine_tune_mode: FineTuneModeName
-    fine_tune_rounds: int
+    fine_tune_rounds: int | None
+    """As ``GET /auctions/{id}`` gives it: None for an auction that does not fine-tune."""
     round: int | None
     iteration: int | None
     status: Literal["open", "closed", "none"]

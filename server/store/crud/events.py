@@ -35,6 +35,7 @@ class AuctionState:
     stop_reason: str | None
     error: str | None
     finished_at: datetime | None
+    fine_tune: bool
     fine_tune_mode: str
     fine_tune_rounds: int
     updated_at: datetime

@@ -32,7 +32,7 @@ demo: $(STAMP)
 	$(BIN)/python -m server.cli.demo
 
 test: lint
-	$(BIN)/pytest -q -n 3 --dist loadfile
+	$(BIN)/pytest -q -n 3 --dist loadfile --no-loadscope-reorder
 
 test-all: $(STAMP)
 	$(BIN)/pytest -q -m ''

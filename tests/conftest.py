@@ -25,28 +25,41 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 LONGEST_FIRST = (
     "test_ui.py",
-    "test_cli.py",
+    "test_cli_live.py",
     "test_faults.py",
     "test_job_limits.py",
-    "test_cli_live.py",
-    "test_lavaland.py",
-    "test_replicas.py",
+    "test_cli.py",
     "test_events.py",
     "test_remote_protocol.py",
+    "test_replicas.py",
     "test_arrival.py",
-    "test_restart.py",
+    "test_cli_inputs.py",
+    "test_cancel.py",
     "test_ray.py",
     "test_jobs.py",
-    "test_readme.py",
-    "test_votes.py",
+    "test_reviews.py",
     "test_fairness.py",
-    "test_cli_inputs.py",
+    "test_readme.py",
     "test_live.py",
+    "test_cheetah.py",
+    "test_db_outage.py",
+    "test_quotas.py",
+    "test_auctions.py",
+    "test_restart.py",
+    "test_db.py",
+    "test_readiness.py",
+    "test_votes.py",
+    "test_remote_e2e.py",
+    "test_remote_socket.py",
+    "test_enrollment.py",
+    "test_lavaland.py",
 )
-"""The suite's longest files, longest first (each half a minute or more of servers, browsers and
-deadlines, summed over its tests in a parallel run). The parallel run (``--dist loadfile``) hands
-files out in collection order: these go first, so that the run does not end waiting on one of
-them while the other workers idle."""
+"""The suite's longest files, longest first (each 20 s or more of servers, browsers and
+deadlines, summed over its tests in a parallel run). The parallel run (``--dist loadfile
+--no-loadscope-reorder``) hands files out in collection order: these go first, so that the run
+does not end waiting on one of them while the other workers idle. (By default pytest-xdist
+orders the files by their number of tests instead: the long files of few tests, kill -9 and
+outage scenarios, went last, and the run ended on them.)"""
 
 
 def _rank(item: pytest.Item) -> int:

@@ -574,6 +574,7 @@ def test_agents_against_a_server_that_is_not_an_auction_house_exit_1_saying_so()
             assert "is it an srd server?" in json.loads(done.stdout)["error"]
 
 
+@pytest.mark.slow  # a server of its own; the agents' token checks run by default
 def test_agents_on_this_machine_use_the_token_file_its_srd_serve_wrote(tmp_path: Path) -> None:
     """With no --auction and no operator token, srd agents against a server on a loopback
     address takes the token ``srd serve`` generated in its data folder (SRD_DATA_DIR, or

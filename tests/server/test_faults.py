@@ -355,6 +355,7 @@ def test_uploads_that_reached_the_server_in_time_count_after_a_kill_9(tmp_path: 
         second.stop()
 
 
+@pytest.mark.slow  # two lives of a server; the kill -9 with uploads and the cancels run by default
 def test_uploads_a_cancel_closed_the_round_on_are_judged_without_a_retry(
     tmp_path: Path,
 ) -> None:
@@ -421,6 +422,7 @@ def test_uploads_a_cancel_closed_the_round_on_are_judged_without_a_retry(
         second.stop()
 
 
+@pytest.mark.postgres_in_slow_run
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_a_round_its_last_verdict_closed_reads_closed_before_the_next_step(
     backend: str, tmp_path: Path

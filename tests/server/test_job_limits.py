@@ -408,6 +408,7 @@ def test_a_job_whose_workers_cannot_start_fails_saying_so(tmp_path) -> None:
     assert "its worker died before it began, 3 times in a row (last exit code 3)" in job["error"]
 
 
+@pytest.mark.slow  # its neighbour, a worker that can never start, runs by default
 def test_a_job_worker_the_system_refuses_to_start_is_tried_again(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:

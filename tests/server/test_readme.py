@@ -97,6 +97,7 @@ def test_the_quick_start_runs_as_pasted(tmp_path: Path) -> None:
             assert api.get("/ui/").status_code == 200  # the page the block points at
 
 
+@pytest.mark.slow  # docs/remote.md's walk-through; the README's quick start runs by default
 def test_remote_step_by_step_runs_as_pasted(tmp_path: Path) -> None:
     """docs/remote.md's curl walkthrough, on a fresh server: the upload is accepted."""
     text = (ROOT / "docs" / "remote.md").read_text()

@@ -374,6 +374,7 @@ def test_a_remote_round_answered_through_both_replicas_at_once_closes_once(
 
 
 @pytest.mark.postgres
+@pytest.mark.slow  # two replicas and a 64-round auction; the replica kill -9 runs by default
 def test_a_round_closed_on_a_replica_with_no_free_worker_plays_on_at_once_on_the_other(
     postgres_url: str, tmp_path: Path
 ) -> None:

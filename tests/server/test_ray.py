@@ -72,6 +72,21 @@ def client_for(tmp: Path, **overrides: Any) -> TestClient:
     return TestClient(create_app(settings))
 
 
+def start_lavaland(
+    client: TestClient, head: RayHead, repeats: int, tasks: int = 1
+) -> tuple[int, list[int]]:
+    """A long lavaland job of ``repeats`` units, once ``tasks`` of them run on the cluster: its
+    id and the pids of those tasks' Ray workers."""
+    params = {**LONG_LAVALAND, "repeats": repeats}
+    answer = client.post("/jobs", json={"kind": "lavaland", "params": params}, headers=ADMIN)
+    running = wait_for(
+        lambda: {"tasks": head.worker_pids("srd lavaland")},
+        lambda seen: len(seen["tasks"]) >= tasks,
+        RUN_TIMEOUT_S,
+    )
+    return int(answer.json()["job_id"]), list(running["tasks"])
+
+
 def run_jobs(client: TestClient, jobs: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
     ids = {}
     for kind, params in jobs.items():
@@ -156,16 +171,8 @@ def test_a_unit_asking_more_cpus_than_any_node_has_runs_on_the_largest(
 def test_cancelling_a_ray_job_stops_its_tasks(
     ray_head: RayHead, tmp_path: Path, capfd: pytest.CaptureFixture[str]
 ) -> None:
-    params = {**LONG_LAVALAND, "repeats": 4}
     with client_for(tmp_path, job_backend="ray", ray_address=ray_head.address) as client:
-        job_id = client.post(
-            "/jobs", json={"kind": "lavaland", "params": params}, headers=ADMIN
-        ).json()["job_id"]
-        running = wait_for(
-            lambda: {"tasks": ray_head.worker_pids("srd lavaland")},
-            lambda seen: len(seen["tasks"]) == CPUS,
-            RUN_TIMEOUT_S,
-        )
+        job_id, running = start_lavaland(client, ray_head, 4, tasks=CPUS)
         cancelled = client.delete(f"/jobs/{job_id}", headers=ADMIN)
         assert cancelled.status_code == 200 and cancelled.json()["status"] == "cancelled"
         wait_for(
@@ -173,7 +180,7 @@ def test_cancelling_a_ray_job_stops_its_tasks(
             lambda seen: not seen["tasks"],
             15,
         )
-        for pid in running["tasks"]:  # force-cancelled: their worker processes are gone
+        for pid in running:  # force-cancelled: their worker processes are gone
             assert (
                 not Path(f"/proc/{pid}").exists()
                 or b"srd lavaland" not in Path(f"/proc/{pid}/cmdline").read_bytes()
@@ -191,16 +198,8 @@ def test_a_ray_job_whose_worker_is_stopped_from_outside_runs_again(
     """A service manager stops every process of the service with SIGTERM: a job worker that
     is a Ray driver, so stopped, is counted as stopped, not failed, and its job runs again, as
     on the local backend (it had failed: "the job worker exited (code 15) without a result")."""
-    params = {**LONG_LAVALAND, "repeats": 1}
     with client_for(tmp_path, job_backend="ray", ray_address=ray_head.address) as client:
-        job_id = client.post(
-            "/jobs", json={"kind": "lavaland", "params": params}, headers=ADMIN
-        ).json()["job_id"]
-        wait_for(
-            lambda: {"tasks": ray_head.worker_pids("srd lavaland")},
-            lambda seen: bool(seen["tasks"]),
-            RUN_TIMEOUT_S,
-        )
+        job_id, _ = start_lavaland(client, ray_head, 1)
         workers = [p for p in descendants(os.getpid()) if process_name(p) == "srd-job-worker"]
         assert workers
         for worker in workers:
@@ -225,16 +224,8 @@ def test_a_ray_cluster_lost_mid_job_fails_the_job_naming_it(
     with RayHead(1) as head:
         for name, value in head.env.items():
             monkeypatch.setenv(name, value)
-        params = {**LONG_LAVALAND, "repeats": 4}
         with client_for(tmp_path, job_backend="ray", ray_address=head.address) as client:
-            job_id = client.post(
-                "/jobs", json={"kind": "lavaland", "params": params}, headers=ADMIN
-            ).json()["job_id"]
-            wait_for(
-                lambda: {"tasks": head.worker_pids("srd lavaland")},
-                lambda seen: bool(seen["tasks"]),
-                RUN_TIMEOUT_S,
-            )
+            job_id, _ = start_lavaland(client, head, 4)
             head.stop()
             done = wait_for(
                 lambda: client.get(f"/jobs/{job_id}").json(),

@@ -231,12 +231,13 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         unmake_data_dir(made)  # a refused start leaves nothing behind
         click.echo(f"srd serve: {problem} (SRD_DATA_DIR)", err=True)
         raise SystemExit(UNUSABLE)
+    # Logging before the database is readied: its migration, if any, is logged.
+    logging.basicConfig(level=log_level.upper(), format=LOG_FORMAT)
     refused = database_problem(settings)
     if refused is not None:
         unmake_data_dir(made)
         click.echo(f"srd serve: {refused[0]}", err=True)
         raise SystemExit(refused[1])
-    logging.basicConfig(level=log_level.upper(), format=LOG_FORMAT)
     file_limit = raise_file_limit()
     config = uvicorn.Config(
         create_app(settings),

@@ -36,7 +36,7 @@ from server.store.db import (
 from server.store.tables import Base, ModelVersion, utcnow
 from tests.support.databases import postgres_database
 from tests.support.factories import honest, unique
-from tests.support.server import ADMIN, make_settings, wait_for
+from tests.support.server import ADMIN, ADMIN_TOKEN, make_settings, wait_for
 
 
 def test_migrations_build_exactly_the_models(database_url: str) -> None:
@@ -556,3 +556,24 @@ def test_postgres_sessions_end_when_left_idle_in_a_transaction(
                 assert session.execute(text("SHOW search_path")).scalar_one() == search_path
         finally:
             database.close()
+
+
+def test_serve_logs_the_migration_it_runs(tmp_path: Path) -> None:
+    """``srd serve`` on a database of an older release migrates it at start and says so in its
+    log (the operator's record of the upgrade), from which revision to which."""
+    from alembic import command
+
+    from server.cli.launch import ServerProcess
+
+    url = f"sqlite:///{tmp_path / 'srd.db'}"
+    scripts = ScriptDirectory.from_config(alembic_config(url))
+    head = scripts.get_current_head()
+    assert head is not None
+    before = scripts.get_revision(head).down_revision
+    assert isinstance(before, str)
+    command.upgrade(alembic_config(url), before)
+    server = ServerProcess(database_url=url, data_dir=tmp_path / "data", admin_token=ADMIN_TOKEN)
+    with server:
+        pass
+    logged = server.log_path.read_text()
+    assert f"migrating the database {url} from {before} to {head}" in logged, logged

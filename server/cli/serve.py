@@ -231,8 +231,10 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         unmake_data_dir(made)  # a refused start leaves nothing behind
         click.echo(f"srd serve: {problem} (SRD_DATA_DIR)", err=True)
         raise SystemExit(UNUSABLE)
-    # Logging before the database is readied: its migration, if any, is logged.
+    # Logging before the database is readied: its migration, if any, is logged (in one line of
+    # ours, ``srd.db``; Alembic's own lines, a revision's whole docstring each, are not).
     logging.basicConfig(level=log_level.upper(), format=LOG_FORMAT)
+    logging.getLogger("alembic").setLevel(max(logging.WARNING, logging.getLogger().level))
     refused = database_problem(settings)
     if refused is not None:
         unmake_data_dir(made)

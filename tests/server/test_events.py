@@ -131,7 +131,9 @@ def test_events_arrive_while_it_runs_and_resume_skips_and_repeats_nothing(
                     first.append(event)
                     state = client.get(f"/auctions/{auction_id}").json()
                     assert state["status"] == "running"  # it arrived while the auction ran
-                    assert len(state["history"]) == len(first)  # as soon as it was committed
+                    # committed before it was sent (a busy machine may commit the next one
+                    # before this read, so only the lower bound is certain)
+                    assert len(state["history"]) >= len(first)
                 if len(first) == 2:
                     break  # the client goes away mid-auction
         resumed = follow(client, path, **{"Last-Event-ID": first[-1]["id"]})

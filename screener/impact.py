@@ -39,10 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
-import hmac
 import os
-import unicodedata
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -56,6 +53,7 @@ from agents.negotiator import honest_manifest, saboteur_manifest
 from screener import limits
 from screener.findings import Checks, check, fmt_price
 from screener.probes import DTYPE
+from screener.secret import SECRET_VARIABLE, marker_of, seed_words_of
 from screener.verdict import PRICE, Evidence
 from sim.market import MarketBatch, MarketConfig, round_seeds
 
@@ -94,43 +92,6 @@ def more_trials() -> tuple[int, ...]:
     """The populations a model near the bar meets too."""
     first = limits.IMPACT_TRIALS
     return tuple(range(first, first + limits.IMPACT_MORE_TRIALS))
-
-
-SECRET_VARIABLE = "SRD_SCREENER_SECRET"
-"""The environment variable holding a deployment's secret: when set, the reference populations
-and the test auctions' seeds are drawn from it as well as from ``IMPACT_SEED``, so that a model
-tuned offline against the public screener's populations meets others (docs/screener.md)."""
-
-PUBLIC = "public"
-"""The populations marker of a screener without a secret."""
-
-
-def secret_bytes(secret: str) -> bytes:
-    """A secret as it is hashed: without surrounding white space (a secret file's newline),
-    in Unicode's NFC form, in UTF-8 (bytes the environment could not decode kept as they
-    were)."""
-    return unicodedata.normalize("NFC", secret.strip()).encode("utf-8", "surrogateescape")
-
-
-def seed_words_of(secret: str) -> tuple[int, ...]:
-    """The entropy of the reference populations and test auctions under ``secret``:
-    ``IMPACT_SEED``, then four 32-bit words of the secret's SHA-256 (none for no secret)."""
-    if not secret.strip():
-        return (limits.IMPACT_SEED,)
-    digest = hashlib.sha256(secret_bytes(secret)).digest()
-    return (
-        limits.IMPACT_SEED,
-        *(int.from_bytes(digest[i : i + 4], "big") for i in range(0, 16, 4)),
-    )
-
-
-def marker_of(secret: str) -> str:
-    """Which populations ``secret`` gives, without saying the secret: ``public``, or 16 hex
-    digits of an HMAC keyed by it. Evidence carries it, so two verdicts say whether the same
-    populations made them."""
-    if not secret.strip():
-        return PUBLIC
-    return hmac.new(secret_bytes(secret), b"srd-screener-populations", "sha256").hexdigest()[:16]
 
 
 @functools.cache

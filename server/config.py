@@ -55,7 +55,7 @@ class Settings(BaseSettings):
     and test auctions are drawn from it too, so that a model tuned offline against the public
     screener meets populations it never saw. Every replica needs the same one. The app hands it
     to the screening and worker processes it starts, through their environment
-    (``server.services``, ``screener.impact.SECRET_VARIABLE``)."""
+    (``server.services``, ``screener.secret.SECRET_VARIABLE``)."""
     max_body_bytes: Annotated[int, Field(ge=1024)] = 262_144
     """Request bodies larger than this are refused with 413."""
     auction_workers: Annotated[int, Field(ge=1, le=64)] | None = None

@@ -136,8 +136,8 @@ def server_id() -> str:
 
 def screener_populations(settings: Settings) -> str:
     """The marker of the populations the screener meets under ``settings``
-    (``screener.impact.marker_of``)."""
-    from screener.impact import marker_of
+    (``screener.secret.marker_of``)."""
+    from screener.secret import marker_of
 
     secret = settings.screener_secret
     return marker_of("" if secret is None else secret.get_secret_value())
@@ -147,7 +147,7 @@ def _key_the_screener(settings: Settings, database: Database) -> None:
     """Hand ``SRD_SCREENER_SECRET`` (perhaps from a secret file) to the processes this server
     starts that screen, and say which populations they meet: a warning when the newest verdict
     was made on others (the secret changed, or another replica has another)."""
-    from screener.impact import SECRET_VARIABLE
+    from screener.secret import SECRET_VARIABLE
 
     secret = settings.screener_secret
     if secret is None:

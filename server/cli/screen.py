@@ -31,7 +31,7 @@ WAKE_S = 0.25
 """How often a read of a pipe or a terminal that waits for its writer wakes (``_read_waiting``)."""
 READ_UNDER = {"max_body_bytes": "SRD_MAX_BODY_BYTES", "screener_secret": "SRD_SCREENER_SECRET"}
 """The server's settings ``srd screen`` follows: the largest body ``POST /submit`` takes, and
-the secret the screener draws its populations from (``screener.impact.SECRET_VARIABLE``)."""
+the secret the screener draws its populations from (``screener.secret.SECRET_VARIABLE``)."""
 
 
 def _emit(obj: dict[str, Any]) -> None:
@@ -65,7 +65,7 @@ def _settings(json_output: bool) -> Settings:
         if not value:  # unset or empty: the default, as for the server (env_ignore_empty)
             continue
         try:  # bytes the environment could not decode stand as U+FFFD, one character each: the
-            # screener hashes them as they are (screener.impact.secret_bytes)
+            # screener hashes them as they are (screener.secret.secret_bytes)
             Settings.__pydantic_validator__.validate_assignment(settings, field, _text(value))
         except ValidationError as exc:
             shown = "" if field == "screener_secret" else f"={_text(value)}"

@@ -139,7 +139,7 @@ NEWEST_EVIDENCE_READ = 200
 
 
 def newest_populations(session: Session) -> str | None:
-    """The populations (``screener.impact.marker_of``) of the newest stored verdict whose
+    """The populations (``screener.secret.marker_of``) of the newest stored verdict whose
     market-impact test named them, among the newest ``NEWEST_EVIDENCE_READ`` versions; None if
     none did."""
     rows = session.connection().execute(

@@ -9,14 +9,16 @@ A database is never created behind the operator's back: only ``upgrade_schema`` 
 first start on it) may create a SQLite file; every other connection opens it read-write only,
 so a deleted file is an error, not a new empty database. ``Database`` remembers what it opened
 (the SQLite file's inode, the PostgreSQL database's oid) and ``Database.problem`` notices when
-that database is gone or replaced (for good: sessions then refuse to start until a restart) or
-unreachable (for a while: sessions refuse until a check finds it back; the pool's pre-ping
-replaces the connections the outage broke).
+that database is gone or replaced (for good: sessions then refuse to start until a restart), or
+on PostgreSQL migrated by a newer release (for good too: an old replica left running through an
+upgrade stops taking work), or unreachable (for a while: sessions refuse until a check finds it
+back; the pool's pre-ping replaces the connections the outage broke).
 """
 
 from __future__ import annotations
 
 import fcntl
+import functools
 import hashlib
 import json
 import logging
@@ -371,17 +373,40 @@ def _read_only(engine: Engine) -> str:
         return str(connection.exec_driver_sql("SHOW transaction_read_only").scalar_one())
 
 
-def _identity(engine: Engine, url: str) -> tuple[int, ...]:
+def _identity(engine: Engine, url: str) -> tuple[tuple[int, ...], str | None]:
     """What names this very database: the SQLite file's (device, inode), or the PostgreSQL
-    database's oid (a dropped and re-created database gets a new one)."""
+    database's oid (a dropped and re-created database gets a new one); and on PostgreSQL, the
+    schema revision it is at (None: no schema yet, or SQLite, which one server holds)."""
     if is_sqlite(url):
         stat = sqlite_path(url).stat()
-        return (stat.st_dev, stat.st_ino)
+        return (stat.st_dev, stat.st_ino), None
     with engine.connect() as connection:
-        oid = connection.exec_driver_sql(
-            "SELECT oid FROM pg_database WHERE datname = current_database()"
-        ).scalar_one()
-    return (int(oid),)
+        oid, versioned = connection.exec_driver_sql(
+            "SELECT oid, to_regclass('alembic_version') IS NOT NULL FROM pg_database "
+            "WHERE datname = current_database()"
+        ).one()
+        revision = (
+            connection.exec_driver_sql("SELECT version_num FROM alembic_version").scalar()
+            if versioned
+            else None
+        )
+    return (int(oid),), revision
+
+
+@functools.cache
+def known_revisions() -> frozenset[str]:
+    """The schema revisions this release's migrations know (read once per process)."""
+    scripts = ScriptDirectory.from_config(alembic_config("sqlite://"))
+    return frozenset(script.revision for script in scripts.walk_revisions())
+
+
+def newer_schema(revision: str) -> str:
+    """What a server says once a newer release migrated its database to ``revision``."""
+    return (
+        f"the database was migrated to schema revision {revision}, which this release does not "
+        "know, since this server started: a newer release's server migrated it, and this one "
+        "takes no more work. Stop it and run the newer release (docs/server.md, Upgrading)"
+    )
 
 
 class Database:
@@ -419,7 +444,7 @@ class Database:
         )
         self._probing: Future[Any] | None = None
         self._probe_lock = threading.Lock()
-        self._identity = _identity(self._probe or self.engine, url)
+        self._identity, _ = _identity(self._probe or self.engine, url)
         self._checked_at = time.monotonic()
         self._outage_at = -math.inf  # when an operation last met an outage (monotonic)
         self._answered_at = time.time()  # when a statement last came back from the database
@@ -547,9 +572,9 @@ class Database:
     def _check(self) -> str | None:
         try:
             if self._probe is None:
-                now = _identity(self.engine, self.url)
+                now, revision = _identity(self.engine, self.url)
             else:
-                now = self._probed(lambda probe: _identity(probe, self.url))
+                now, revision = self._probed(lambda probe: _identity(probe, self.url))
         except FileNotFoundError:
             if not self._lost:
                 log.warning("the database file %s was deleted", sqlite_path(self.url))
@@ -563,9 +588,29 @@ class Database:
         if now != self._identity:
             self._lost = True
             return "the database was replaced by another one since this server started"
+        if revision is not None and revision not in known_revisions():
+            return self._newer_schema(revision)
         if self._problem is not None:
             log.warning("the database is reachable again")
         return None
+
+    def _newer_schema(self, revision: str) -> str:
+        """A newer release migrated the database to ``revision``: lost for good."""
+        problem = newer_schema(revision)
+        if not self._lost:
+            log.warning("%s", problem)
+        self._lost = True
+        return problem
+
+    def check_revision(self, revision: str | None) -> None:
+        """Raise ``DatabaseUnavailableError`` (and stay unavailable for good) if ``revision``,
+        read in a transaction about to take work, is one a newer release migrated the database
+        to: the check every ``IDENTITY_CHECK_S`` leaves a second in which this server could
+        claim what the newer release's servers created."""
+        if revision is not None and revision not in known_revisions():
+            with self._check_lock:
+                self._problem = self._newer_schema(revision)
+            raise DatabaseUnavailableError(self._problem)
 
     def write_problem(self) -> str | None:
         """Why the database cannot take writes now (readiness, off the event loop):

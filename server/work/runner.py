@@ -306,6 +306,8 @@ class BackgroundRunner:
         if grace_s > 0:
             return [], min(grace_s, RETRY_S)
         with self._database.session(write=True) as session:
+            if not self._exclusive:  # replicas: not if a newer release migrated it meanwhile
+                self._database.check_revision(crud.schema_revision(session))
             now = database_now(session)
             claimed = self._claimable(session, now, limit, lock=True)
             if len(claimed) < len(found) and not self._exclusive:  # some were locked

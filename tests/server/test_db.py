@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
+import httpx
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
@@ -578,3 +579,76 @@ def test_serve_logs_the_migration_it_runs(tmp_path: Path) -> None:
     logged = server.log_path.read_text()
     assert f"migrating the database {url} from {before} to {head}" in logged, logged
     assert "Running upgrade" not in logged  # one line of ours, not Alembic's docstrings
+
+
+@pytest.mark.postgres
+def test_a_server_whose_database_a_newer_release_migrates_takes_no_more_work(
+    tmp_path: Path,
+) -> None:
+    """An old replica left running while a newer release's server migrates the PostgreSQL
+    database: within seconds it says so in ``/healthz`` (not ready), answers every request
+    with the JSON 503 naming the revision, and claims no auction (one created before the
+    migration it played); a revision put back does not bring it back (stop it)."""
+    for url in postgres_database():
+        _an_old_replica_through_a_migration(url, tmp_path)
+
+
+def _an_old_replica_through_a_migration(url: str, data_dir: Path) -> None:
+    from sqlalchemy import select
+
+    from server.cli.launch import ServerProcess
+    from server.store import crud
+    from server.store.tables import Auction
+    from tests.support.live import submit_population
+
+    engine = create_engine(url)
+
+    def status(auction_id: int) -> tuple[str, str | None]:
+        with engine.connect() as connection:
+            query = select(Auction.status, Auction.lease_owner).where(Auction.id == auction_id)
+            status, owner = connection.execute(query).one()
+        return status, owner
+
+    def created_elsewhere(model_ids: list[int]) -> int:
+        """An auction as another replica's ``POST /auctions`` writes it."""
+        database = Database(url)
+        try:
+            with database.session(write=True) as session:
+                auction = crud.create_auction(
+                    session, model_ids=model_ids, n_fish=1, rarity=None, max_iterations=64,
+                    fine_tune=False, seed=0, opening_price=5.0,
+                )  # fmt: skip
+                session.commit()
+                return auction.id
+        finally:
+            database.close()
+
+    with ServerProcess(
+        database_url=url, data_dir=data_dir, admin_token=ADMIN_TOKEN
+    ) as server, httpx.Client(base_url=server.url, timeout=30) as client:  # fmt: skip
+        answers = submit_population(client)
+        ids = [a["model_id"] for name, a in answers.items() if name.startswith("honest")]
+        before = created_elsewhere(ids)
+        wait_for(lambda: {"status": status(before)[0]}, lambda s: s["status"] == "finished", 60)
+        head = ScriptDirectory.from_config(alembic_config(url)).get_current_head()
+        with engine.begin() as connection:
+            connection.execute(text("UPDATE alembic_version SET version_num = '9999_newer'"))
+        after = created_elsewhere(ids)
+        health = wait_for(
+            lambda: {"code": (r := client.get("/healthz")).status_code, **r.json()},
+            lambda state: state["code"] == 503,
+            timeout_s=15,
+        )
+        assert [p["check"] for p in health["problems"]] == ["database"], health
+        assert "revision 9999_newer" in health["problems"][0]["msg"], health
+        refused = client.post("/auctions", json={"n_fish": 1}, headers=ADMIN)
+        assert refused.status_code == 503 and "Retry-After" in refused.headers
+        detail = refused.json()["detail"][0]
+        assert detail["loc"] == ["database"] and "newer release" in detail["msg"], detail
+        time.sleep(3)  # more than a runner's idle pass
+        assert status(after) == ("pending", None)
+        with engine.begin() as connection:
+            connection.execute(text(f"UPDATE alembic_version SET version_num = '{head}'"))
+        time.sleep(1.5)  # more than a check's life
+        assert client.get("/healthz").status_code == 503  # for good: stop it
+    engine.dispose()

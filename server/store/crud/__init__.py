@@ -59,6 +59,7 @@ from server.store.crud.leases import (
     progress_of,
     release_leases,
     renew_leases,
+    schema_revision,
     stopped_elsewhere,
     take_leases,
 )
@@ -233,6 +234,7 @@ __all__ = [
     "round_body",
     "round_head",
     "round_status_after",
+    "schema_revision",
     "set_token_hash",
     "start",
     "start_job",

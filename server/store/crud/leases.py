@@ -171,6 +171,12 @@ def clear_leases(session: Session, *, table: Table) -> None:
     session.execute(update(table).values(lease_owner=None, lease_expires=None))
 
 
+def schema_revision(session: Session) -> str | None:
+    """The schema revision the database is at now (a newer release may have migrated it)."""
+    revision = session.scalar(text("SELECT version_num FROM alembic_version"))
+    return None if revision is None else str(revision)
+
+
 def progress_of(session: Session, *, column: Any, row_id: int) -> Any:
     """A row's progress as ``column`` (of its table) reads it now: None if it is gone."""
     return session.scalar(select(column).where(column.class_.id == row_id))

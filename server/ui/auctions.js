@@ -198,7 +198,24 @@ function drawPriceChart(chart, rounds, nextPrice) {
     );
   });
   chart.setAttribute("data-points", String(prices.length));
-  fill(chart, svg("title", { id: "price-chart-title" }, "Price asked in each iteration"), parts);
+  chart.setAttribute("aria-label", priceSaid(rounds, prices, nextPrice));
+  fill(chart, svg("title", {}, "Price asked in each iteration"), parts);
+}
+
+// What the price chart shows, in words (its accessible name): where the price began and ended,
+// its range, the iterations that sold and the next price; the table below holds every value.
+function priceSaid(rounds, prices, nextPrice) {
+  const next = nextPrice === null ? "" : `; the next price ${fixed(nextPrice)}`;
+  if (!rounds.length) return `Price asked in each iteration: none yet${next}.`;
+  const first = rounds[0];
+  const last = rounds[rounds.length - 1];
+  const sold = rounds.filter((r) => r.purchases.length).map((r) => `${r.iteration} (${r.purchases.length} sold)`);
+  const sales = sold.length ? `fish sold in iteration ${sold.join(", ")}` : "no fish sold";
+  return (
+    `Price asked in each iteration: ${fixed(first.price)} at iteration ${first.iteration}, ` +
+    `${fixed(last.price)} at iteration ${last.iteration}, lowest ${fixed(Math.min(...prices))}, ` +
+    `highest ${fixed(Math.max(...prices))}; ${sales}${next}. Every iteration is in the table below.`
+  );
 }
 
 /** Buy, hold and quit votes of each iteration, stacked: each kind its colour and its texture
@@ -246,7 +263,7 @@ export function auctionView(view, id) {
   const title = h("h1", { tabindex: "-1" }, `Auction ${id}`);
   const liveness = h("p", { class: "liveness", role: "status", id: "liveness" }, "Loading…");
   const summary = h("div");
-  const priceChart = svg("svg", { class: "chart", id: "price-chart", viewBox: `0 0 ${CHART.width} ${CHART.height}`, role: "img", "aria-labelledby": "price-chart-title", "data-points": "0" });
+  const priceChart = svg("svg", { class: "chart", id: "price-chart", viewBox: `0 0 ${CHART.width} ${CHART.height}`, role: "img", "aria-label": "Price asked in each iteration: none yet.", "data-points": "0" });
   const votesChart = svg("svg", { class: "chart", id: "votes-chart", viewBox: `0 0 ${CHART.width} 160`, role: "img", "aria-label": "Votes per iteration: buy, hold, quit" });
   const roundRows = h("tbody");
   const buyerRows = h("tbody");

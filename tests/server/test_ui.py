@@ -144,6 +144,29 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
     assert seen[0] <= 2, seen  # the page was open before most iterations were played
     assert seen == sorted(seen) and len(seen) >= 3, seen  # the line grew while the auction ran
     assert page.locator("#rounds tbody tr").count() == rounds
+    # The chart in words, for a screen reader: where the price went and when fish sold.
+    history, said = auction["history"], chart.get_attribute("aria-label") or ""
+    sold: dict[int, int] = {}
+    for buyer in auction["buyers"]:
+        sold[buyer["iteration"]] = sold.get(buyer["iteration"], 0) + 1
+    assert said.startswith(
+        f"Price asked in each iteration: {history[0]['price']:.3f} at iteration 0, "
+        f"{history[-1]['price']:.3f} at iteration {history[-1]['iteration']}, lowest "
+    ), said
+    sales = ", ".join(f"{i} ({n} sold)" for i, n in sorted(sold.items()))
+    assert f"; fish sold in iteration {sales}; the next price " in said, said
+    assert f"the next price {history[-1]['next_price']:.3f}." in said, said
+    # Its labels are drawn at 12 px at least, on a phone too (the chart scrolls instead).
+    smallest = """() => Math.min(...[
+        ...document.querySelectorAll('.chart .tick, .chart .axis-label')]
+        .filter((t) => t.getClientRects().length)
+        .map((t) => {
+            const m = t.getScreenCTM();  // its scale, turned or not (the price axis's label)
+            return Math.hypot(m.a, m.b) * parseFloat(getComputedStyle(t).fontSize);
+        }))"""
+    for size in (PHONE, VIEWPORT):
+        page.set_viewport_size(size)
+        assert page.evaluate(smallest) >= 12 - 1e-6, size
     # Each iteration says why the price moved: demand against the fish, and the next price.
     for row, past in zip(page.locator("#rounds tbody tr").all(), auction["history"], strict=True):
         why = row.locator("td").nth(8).text_content() or ""
@@ -885,6 +908,15 @@ def test_a_comparison_says_what_each_configuration_is_and_its_charts_are_named_a
     ids = ",".join(str(job["id"]) for job in jobs)
     page.goto(f"{server.url}/ui/#/jobs/compare?ids={ids}")
     page.wait_for_selector("svg#overlay-1 polyline.curve", state="attached", timeout=WAIT_MS)
+    # Overlaid curves are told apart without colour: six dashes, each named in the legend.
+    curves = page.evaluate(
+        """[...document.querySelectorAll('svg[id^=overlay-]')].map((chart) =>
+            [...chart.querySelectorAll('polyline.curve')].map(
+                (c) => getComputedStyle(c).strokeDasharray))"""
+    )
+    assert len(curves) > 1 and all(len(set(c[:6])) == len(c[:6]) > 1 for c in curves), curves
+    legend = page.locator("figure:has(svg#overlay-1) .legend-list li").all_text_contents()
+    assert len(legend) == 2 and legend[1].startswith("(dashed) "), legend
     labels = page.evaluate(
         "[...document.querySelectorAll('[role=region]')].map((r) => r.getAttribute('aria-label'))"
     )

@@ -98,9 +98,10 @@ _UNREADABLE = (
     "\xad\u115f\u1160\u180e\u200b\u2060-\u2064\u3164\uffa0\ufeff\ufff9-\ufffb"
     # invisible too: combining grapheme joiner, Khmer inherent vowels, Mongolian variation
     # selectors, an unassigned format and the deprecated ones, the variation selectors but the
-    # emoji's two, Arabic and Syriac marks set before a number, the object replacement mark
+    # emoji's two, Arabic and Syriac marks set before a number, the object replacement mark,
     "\u034f\u17b4\u17b5\u180b-\u180d\u180f\u2065\u206a-\u206f\ufe00-\ufe0d"
     "\u0600-\u0605\u06dd\u070f\u0890\u0891\u08e2\ufffc\ufff0-\ufff8"
+    "\u2800"  # the braille blank: a cell with no dot, a name or note that shows nothing
 )
 _TAGS = "\U000e0000-\U000e0fff"
 """Tag characters (invisible letters: hidden text), variation selectors 17-256 and the rest of

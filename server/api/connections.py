@@ -643,6 +643,9 @@ of the event loop, and a message sent as 130,000 one-byte frames had held it 0.6
 READ_SLICE_BYTES = 16_384
 """What the frame parser reads at once (a socket past its bounds is stopped between slices):
 at most about 2,300 of the smallest frames, some 12 ms."""
+HANDSHAKE_MSG_CHARS = 160
+"""The longest message of a refused handshake: the library's quotes the header's value whole
+(a ``Sec-WebSocket-Key`` of 6 KB came back in the answer)."""
 
 
 class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
@@ -675,6 +678,8 @@ class GuardedWebSocketProtocol(WebSocketsSansIOProtocol):
             status = 426
         loc = ["header", refusal.name] if isinstance(refusal, InvalidHeader) else ["connection"]
         msg = text.strip().removeprefix("Failed to open a WebSocket connection: ").split("\n")[0]
+        if len(msg) > HANDSHAKE_MSG_CHARS:  # the header's value it quotes is the peer's
+            msg = msg[:HANDSHAKE_MSG_CHARS] + "…"
         body = _error_body(loc, msg.rstrip(".") or "the handshake failed", "handshake")
         headers = Headers(
             [

@@ -25,7 +25,7 @@ from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Redirect
 
 from agents.manifest import DECISIONS, ES_NEURONS, INPUTS, JUDGEMENTS, PFC_SOURCES, VERDICTS
 from screener.findings import INPUT_WORDS, ROLE
-from server.api.errors import api_error
+from server.api.errors import api_error, cut
 from server.api.files import ServedFile
 from studies.registry import KINDS
 
@@ -97,7 +97,7 @@ VENDOR_FILES = _servable(VENDOR_DIR)
 def _file(files: dict[str, Path], name: str) -> FileResponse:
     path = files.get(name)
     if path is None:
-        raise api_error(404, f"no file {name!r} here", loc=("path", "name"), kind="not_found")
+        raise api_error(404, f"no file {cut(name)!r} here", loc=("path", "name"), kind="not_found")
     return ServedFile(path, media_type=MEDIA_TYPES[path.suffix], headers=PAGE_HEADERS)
 
 

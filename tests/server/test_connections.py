@@ -217,6 +217,11 @@ KEY = "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ=="
         ([KEY], 400, "Sec-WebSocket-Version"),
         (["Sec-WebSocket-Key: short", "Sec-WebSocket-Version: 13"], 400, "Sec-WebSocket-Key"),
         (["Sec-WebSocket-Version: 13"], 400, "Sec-WebSocket-Key"),
+        (
+            [f"Sec-WebSocket-Key: {'b' * 6000}", "Sec-WebSocket-Version: 13"],
+            400,
+            "Sec-WebSocket-Key",
+        ),
     ],
 )
 def test_a_websocket_handshake_the_protocol_refuses_gets_the_common_error_body(
@@ -237,6 +242,7 @@ def test_a_websocket_handshake_the_protocol_refuses_gets_the_common_error_body(
     assert got == status and headers["content-type"] == "application/json"
     item = _detail(body)
     assert item["loc"] == ["header", header] and item["type"] == "handshake", item
+    assert len(item["msg"]) <= 161, item  # not the peer's 6,000 bytes said back
     assert header in item["msg"]
     assert headers["x-content-type-options"] == "nosniff"
     assert headers["content-security-policy"].startswith("default-src 'none'")

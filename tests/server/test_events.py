@@ -306,6 +306,11 @@ def test_stream_errors_use_the_error_body(
     negative = client.get(f"{path}?after=-1")
     assert negative.status_code == 422
     assert negative.json()["detail"][0]["loc"] == ["query", "after"]
+    for spelling in ("yes", "1", "on", "TRUE"):  # true or false, as every boolean of the API
+        lax = client.get(path, params={"rounds": spelling})
+        assert lax.status_code == 422, spelling
+        (item,) = lax.json()["detail"]
+        assert item["loc"] == ["query", "rounds"] and "true or false" in item["msg"], item
     job = client.post("/jobs", json={"kind": "fish", "params": {"steps": 10}}, headers=ADMIN)
     job_path = f"/jobs/{job.json()['job_id']}/events"
     for stream in (path, job_path):  # each problem said once

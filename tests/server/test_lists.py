@@ -208,6 +208,8 @@ def test_the_web_view_and_the_docs_are_served_from_the_package(client: TestClien
     assert client.get("/ui/style.css").headers["content-type"].startswith("text/css")
     for path in ("/ui/missing.js", "/ui/..%2Froutes%2Fui.py", "/ui/vendor/..%2F__init__.py"):
         assert client.get(path).status_code == 404
+    long_name = client.get(f"/ui/{'A' * 60_000}")  # named by its start, not said back whole
+    assert long_name.status_code == 404 and len(long_name.content) < 400, len(long_name.content)
     docs = client.get("/docs").text
     assert "cdn" not in docs.lower() and "/ui/vendor/swagger-ui-bundle.js" in docs
     assert '<html lang="en">' in docs and '<html lang="en">' in client.get("/redoc").text

@@ -26,6 +26,7 @@ from typing import Annotated
 import anyio
 from fastapi import APIRouter, Depends, Header, Query, Request
 from fastapi.sse import EventSourceResponse, ServerSentEvent
+from pydantic import BeforeValidator
 from sqlalchemy.orm import Session
 from starlette.types import ASGIApp, Receive, Scope, Send
 
@@ -49,6 +50,7 @@ from server.api.schemas import (
     PatronPublic,
     RoundPurchasePublic,
 )
+from server.api.schemas.common import true_or_false
 from server.api.security import token_matches
 from server.auctions import service as auctions
 from server.jobs import service as jobs
@@ -349,6 +351,7 @@ async def auction_events(
             "`k.1` when the round after iteration k opens, `k.2` when it closes). Without it "
             "the stream holds iterations only, each `id` a whole number."
         ),
+        BeforeValidator(true_or_false),
     ] = False,
 ) -> AsyncIterable[ServerSentEvent]:
     """Follow an auction live: one ``iteration`` event per committed iteration (``id`` = the

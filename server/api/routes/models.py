@@ -6,7 +6,6 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
 from pydantic import BeforeValidator
-from pydantic_core import PydanticCustomError
 
 from agents.manifest import Manifest, Participant
 from server.api.deps import (
@@ -31,6 +30,7 @@ from server.api.schemas import (
     SubmitPublic,
     VerdictName,
 )
+from server.api.schemas.common import true_or_false
 from server.store import crud
 from server.store.status import ModelStatus
 from server.submissions import service as models
@@ -161,16 +161,6 @@ def model_summary(row: crud.ModelSummary) -> ModelSummaryPublic:
     )
 
 
-def _true_or_false(value: object) -> object:
-    """A boolean query parameter is spelt ``true`` or ``false`` (pydantic would also read
-    ``yes``, ``on``, ``1`` and their opposites)."""
-    if isinstance(value, str) and value not in ("true", "false"):
-        raise PydanticCustomError(
-            "bool_parsing", "must be true or false, not {value}", {"value": repr(value[:64])}
-        )
-    return value
-
-
 @router.get("/models", operation_id="list_models", responses=responses(422))
 async def list_models(
     session: SessionDep,
@@ -180,7 +170,7 @@ async def list_models(
     accepted: Annotated[
         bool | None,
         Query(description="Only accepted (true) or only rejected (false: refused or held) models."),
-        BeforeValidator(_true_or_false),
+        BeforeValidator(true_or_false),
     ] = None,
     status: Annotated[
         ModelStatus | None,

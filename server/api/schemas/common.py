@@ -7,6 +7,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import Path
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic_core import PydanticCustomError
 
 from server.config import JobBackendName
 from sim.experiment import JSON_NUMBER
@@ -28,6 +29,16 @@ def decimal_only(value: Any) -> Any:
     ``1e-05``, not ``1_0``, `` 10``, ``+10`` or ``nan`` (which Python's ``float`` reads)."""
     if isinstance(value, str) and not (len(value) <= 32 and JSON_NUMBER.fullmatch(value)):
         raise ValueError("must be a number of seconds written as a JSON number, as 10 or 2.5")
+    return value
+
+
+def true_or_false(value: object) -> object:
+    """A boolean query parameter is spelt ``true`` or ``false`` (pydantic would also read
+    ``yes``, ``on``, ``1`` and their opposites)."""
+    if isinstance(value, str) and value not in ("true", "false"):
+        raise PydanticCustomError(
+            "bool_parsing", "must be true or false, not {value}", {"value": repr(value[:64])}
+        )
     return value
 
 

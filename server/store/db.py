@@ -787,7 +787,7 @@ def upgrade_schema(url: str) -> None:
     scripts = ScriptDirectory.from_config(config)
     head = scripts.get_current_head()
     current = _revision(url)
-    if current is not None and current not in {s.revision for s in scripts.walk_revisions()}:
+    if current is not None and current not in known_revisions():
         raise DatabaseUnavailableError(
             f"the database's schema is at revision {current}, which this release does not know "
             f"(its newest is {head}): a newer release wrote it. Run that release, or restore "

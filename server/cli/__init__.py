@@ -261,6 +261,8 @@ def main() -> None:
             click.echo("error: --json: standard output is closed; nothing was run", err=True)
             raise SystemExit(2)
         sys.stdout = open(os.devnull, "w")  # noqa: SIM115 (for the process's life)
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:  # a script's background job
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # (`srd … &`): still stoppable
     if sys.argv[1:2] == ["serve"]:  # which stops gracefully on SIGTERM, as uvicorn does
         cli(prog_name="srd")
         return

@@ -5,7 +5,6 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
-import signal
 import socket
 from types import FrameType
 from typing import TYPE_CHECKING
@@ -270,8 +269,6 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
     gc.collect()
     gc.freeze()  # what start-up built stays for the process's life: no collection rescans it
     gc.set_threshold(YOUNG_COLLECTION_EVERY, 20, 20)
-    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:  # a shell's background job: uvicorn
-        signal.signal(signal.SIGINT, signal.default_int_handler)  # would re-raise it ignored
     server = Server(config)
     server.run()
     if not server.started:  # the port is taken, or the app failed to start

@@ -658,6 +658,8 @@ def interrupted(process: subprocess.Popen[str]) -> tuple[int, str, str]:
 def test_an_interrupted_watch_exits_130(
     fake: tuple[str, type[FakeServer]], json_output: bool
 ) -> None:
+    """Under --json it is started as a script's background job is (``srd watch 7 &``, SIGINT
+    ignored): an interrupt stops it all the same."""
     url, handler = fake
     handler.hold = True
     extra = ["--json"] if json_output else []
@@ -667,6 +669,7 @@ def test_an_interrupted_watch_exits_130(
         stderr=subprocess.PIPE,
         text=True,
         cwd=ROOT,
+        preexec_fn=(lambda: signal.signal(signal.SIGINT, signal.SIG_IGN)) if json_output else None,
     )
     try:
         assert handler.connected.wait(60), "srd watch never connected"

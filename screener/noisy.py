@@ -77,15 +77,13 @@ EXPENSIVE_ROWS = torch.tensor(
 the buy margin, clean and on the model's noisy copies."""
 ORDINARY = EXPENSIVE_DEMANDS <= limits.ORDINARY_DEMAND + 1e-9
 GATE_PRICES = (4.75, 5.0, 5.25, 5.5)
-GATE_ROWS = np.array(
-    [
-        i * len(DEMANDS) + f
-        for i in np.flatnonzero(np.isin(np.round(SCAN_PRICES[PRICES], 2), GATE_PRICES))
-        for f in range(len(DEMANDS))
-    ]
-)
-"""Indices into ``ROWS`` of the rows ``noise-gate`` reads: the noisy scan's buy fractions at
-``GATE_PRICES``."""
+GATE_AT = np.flatnonzero(np.isin(np.round(SCAN_PRICES, 2), GATE_PRICES))
+"""Indices into ``SCAN_PRICES`` of ``GATE_PRICES``."""
+GATE_ROWS = SCAN.reshape(len(SCAN_PRICES), len(SCAN_DEMANDS), 8)[GATE_AT].reshape(-1, 8)
+"""The rows ``noise-gate`` reads, price-major: the base fish at ``GATE_PRICES`` and every buy
+fraction of the clean scan (``SCAN_DEMANDS``), not only the noisy scan's five: a red team's
+gate peaking at a buy fraction of 0.86, between the noisy scan's 0.7 and 1, read 0.3 at both
+and passed (its copies held at 0.8-0.95, half a saboteur's harm without fine-tuning)."""
 _DRAWN_ROWS = ROWS.repeat(limits.NOISE_DRAWS, 1)
 """``ROWS`` once per noise draw."""
 _DRAWN_EXPENSIVE = EXPENSIVE_ROWS.repeat(limits.NOISE_DRAWS, 1)
@@ -104,6 +102,15 @@ def _normals() -> torch.Tensor:
     seeded = torch.Generator().manual_seed(limits.NOISE_SEED + 1)
     dear = torch.randn(shape, generator=seeded, dtype=torch.float32)
     return torch.cat((scan, dear), dim=1)
+
+
+@functools.cache
+def _gate_normals() -> torch.Tensor:
+    """(draws, ``GATE_ROWS``, MAX_COPIES, 8) standard normals for ``noise-gate`` (fixed, as
+    ``_normals``)."""
+    shape = (limits.NOISE_DRAWS, len(GATE_ROWS), MAX_COPIES, len(INPUTS))
+    seeded = torch.Generator().manual_seed(limits.NOISE_SEED + 2)
+    return torch.randn(shape, generator=seeded, dtype=torch.float32)
 
 
 class Noisy(NamedTuple):
@@ -191,7 +198,7 @@ def gate(batch: FSNBatch) -> Gate:
     """Each model's sensors on ``GATE_ROWS``, clean and averaged over its noisy copies (the
     noisy scan's draws), a pass of ``probes.passes`` at a time."""
     P, n = batch.n_patrons, len(ES_NEURONS)
-    rows = ROWS64[GATE_ROWS]
+    rows = GATE_ROWS
     clean, noisy = np.empty((P, len(rows), n)), np.empty((P, len(rows), n))
     with torch.no_grad():
         for index, part in passes(batch):
@@ -201,7 +208,7 @@ def gate(batch: FSNBatch) -> Gate:
             clean[index] = np.stack([seen[name].numpy() for name in ES_NEURONS], axis=-1)
             draws = []
             for k in range(limits.NOISE_DRAWS):
-                normals = _normals()[k, GATE_ROWS, : part.max_copies].to(DTYPE)[None]
+                normals = _gate_normals()[k, :, : part.max_copies].to(DTYPE)[None]
                 seen = activations(single, rows, normals * scale)
                 draws.append(np.stack([seen[name].numpy() for name in ES_NEURONS], axis=-1))
             noisy[index] = np.mean(draws, axis=0)
@@ -360,10 +367,10 @@ def evaluate(batch: FSNBatch) -> Noisy:
     gate_failed = (seen.shift > limits.NOISE_GATE_SHIFT) & finite[:, None]
 
     def gate_message(k: int, p: int) -> str:
-        name, row = ES_NEURONS[k], int(GATE_ROWS[seen.row[p, k]])
+        name, row = ES_NEURONS[k], int(seen.row[p, k])
         price, f = (
-            SCAN_PRICES[PRICES[row // len(DEMANDS)]],
-            SCAN_DEMANDS[DEMANDS[row % len(DEMANDS)]],
+            SCAN_PRICES[GATE_AT[row // len(SCAN_DEMANDS)]],
+            SCAN_DEMANDS[row % len(SCAN_DEMANDS)],
         )
         return (
             f"{_setting(batch, p)}, {ROLE[name]} {name} reads {fmt(seen.clean[p, k], '.2f')} on "

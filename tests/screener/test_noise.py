@@ -159,3 +159,17 @@ def test_scores_that_overflow_get_no_noisy_reason(honest):
     assert not noisy.checks.failed.any() and not noisy.holds.any()
     rules = {r.rule for r in screen(overflow).reasons}
     assert "probe-non-finite" in rules and not rules & {"noise-gated-hold", "noise-flip"}
+
+
+def test_a_gate_placed_between_the_noisy_scans_buy_fractions_is_read_where_it_peaks():
+    """A red team's ST gate peaking at a buy fraction of 0.86 (ST reads the jittered gill at
+    √ε = 0.001 and f at the demand-sharpness bound): at the noisy scan's 0.7 and 1 it read 0.3
+    and the model was accepted; its copies held at 0.8-0.95. The gate reads every buy fraction
+    of the clean scan, and names the one where the noise moves ST most."""
+    manifest = Manifest.model_validate_json((RED_TEAM / "f-localized-gill-gate.json").read_text())
+    verdict = screen(manifest)
+    assert not verdict.accepted
+    assert {(r.rule, r.neuron) for r in verdict.reasons} == {("noise-gate", "ST")}
+    message = message_of(verdict, "noise-gate", "ST")
+    assert "with buy fraction 0.875 and 0.1" in message, message
+    assert "moves a decision score by 1.3" in message, message

@@ -261,8 +261,8 @@ NOISE_GATE_SHIFT = 0.5
 """A sensor's reading on the base fish, clean and averaged over the model's own noisy copies,
 may differ by at most this much times its largest decision weight (how far the noise alone
 moves a decision score), at every buy fraction of the clean scan (``SCAN_DEMANDS``) and at
-4.75, 5.00, 5.25 and 5.50 (``noise-gate``). Over the labelled corpus's 1,720 honest and sincere
-models the largest is 0.16 (sharper sensors); at the noise's legal extreme (σ 0.05 on 2 copies)
+4.75, 5.00, 5.25 and 5.50 (``noise-gate``). Over the labelled corpus's 1,481 honest and sincere
+models the largest is 0.18 (sharper sensors); at the noise's legal extreme (σ 0.05 on 2 copies)
 0.51 over 2,000 honest models, one refused. The red team's noise gates, a sensor narrower than
 its own noise that reads 1 clean and about 0 on the copies: 1.0 to 9.3. Such a gate shows the
 clean probes one model and the auction another: with it a red team held, on its copies only,

@@ -19,8 +19,9 @@ A manifest is accepted when nothing finds anything:
   flips a purchase into a hold;
 * the market-impact test (``screener.impact``), for models that hold somewhere on the decisive
   row, clean or on their noisy copies: copies of the model in small counterfactual auctions must
-  not pull the price or the sales down more than copies that simply quit do, plus a quarter of
-  what always-hold saboteurs do.
+  not pull the mean purchase price down more than copies that simply quit do, plus a quarter of
+  what always-hold saboteurs do (the price alone: test auctions that sell nothing are no
+  evidence about it, docs/screener.md, *Copies that stall the market*).
 
 At the door (``screen``, ``screen_many``) a model with fine-tuning settings is also fine-tuned
 alone through a reference auction's rounds (as many as an auction runs), unchecked, and that

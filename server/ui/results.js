@@ -195,5 +195,16 @@ export function lineChart(lines, x, y, id, subject = null) {
       return h("li", {}, key, named ? `(${named}) ` : "", line.label);
     }),
   );
-  return h("figure", {}, scrolling(svg("svg", { class: "chart", id, viewBox: `0 0 ${width} ${height}`, role: "img", "aria-labelledby": `${id}-title` }, parts), `${subject ? `${subject}: ` : ""}${title} (scrolls sideways on a narrow screen)`), h("figcaption", {}, title, legend));
+  // Its accessible name says each curve in words (where it begins and ends, its range); the
+  // tables beside it hold every value.
+  const said = lines.map((line) => {
+    const points = line.points.filter(([, v]) => Number.isFinite(v)).sort((a, b) => a[0] - b[0]);
+    if (!points.length) return `${line.label}: no value`;
+    const [[u0, v0], [u1, v1]] = [points[0], points[points.length - 1]];
+    const values = points.map(([, v]) => v);
+    const at = (u, v) => `${shown(y, v)} at ${words(x).toLowerCase()} ${shown(x, u)}`;
+    return `${line.label}: ${at(u0, v0)} to ${at(u1, v1)}, lowest ${shown(y, Math.min(...values))}, highest ${shown(y, Math.max(...values))}`;
+  });
+  const label = `${title}. ${said.join("; ")}.`;
+  return h("figure", {}, scrolling(svg("svg", { class: "chart", id, viewBox: `0 0 ${width} ${height}`, role: "img", "aria-label": label }, parts), `${subject ? `${subject}: ` : ""}${title} (scrolls sideways on a narrow screen)`), h("figcaption", {}, title, legend));
 }

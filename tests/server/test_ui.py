@@ -917,6 +917,11 @@ def test_a_comparison_says_what_each_configuration_is_and_its_charts_are_named_a
     assert len(curves) > 1 and all(len(set(c[:6])) == len(c[:6]) > 1 for c in curves), curves
     legend = page.locator("figure:has(svg#overlay-1) .legend-list li").all_text_contents()
     assert len(legend) == 2 and legend[1].startswith("(dashed) "), legend
+    # Each chart says its curves in words: every curve named, where it begins and ends.
+    said = page.get_attribute("svg#overlay-1", "aria-label") or ""
+    names = [item.removeprefix("(dashed) ") for item in legend]
+    assert all(f"{name}: " in said for name in names), (said, names)
+    assert said.count(" at ") >= 4 and ", lowest " in said and ", highest " in said, said
     labels = page.evaluate(
         "[...document.querySelectorAll('[role=region]')].map((r) => r.getAttribute('aria-label'))"
     )

@@ -195,8 +195,8 @@ class Gate(NamedTuple):
 
 
 def gate(batch: FSNBatch) -> Gate:
-    """Each model's sensors on ``GATE_ROWS``, clean and averaged over its noisy copies (the
-    noisy scan's draws), a pass of ``probes.passes`` at a time."""
+    """Each model's sensors on ``GATE_ROWS``, clean and averaged over its noisy copies
+    (``NOISE_DRAWS`` draws of ``_gate_normals``), a pass of ``probes.passes`` at a time."""
     P, n = batch.n_patrons, len(ES_NEURONS)
     rows = GATE_ROWS
     clean, noisy = np.empty((P, len(rows), n)), np.empty((P, len(rows), n))

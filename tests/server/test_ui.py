@@ -1894,7 +1894,11 @@ def test_a_list_whose_first_page_comes_late_lists_each_item_once(
             window.fetch = (url, ...rest) => {
                 if (first && String(url).startsWith('/models')) {
                     first = false;
-                    return new Promise((done) => setTimeout(() => done(real(url, ...rest)), 6500));
+                    const late = () => real(url, ...rest).then((answer) => {
+                        window.lateArrived = true;  // its headers are in: the page reads it now
+                        return answer;
+                    });
+                    return new Promise((done) => setTimeout(() => done(late()), 6500));
                 }
                 return real(url, ...rest);
             };
@@ -1902,7 +1906,8 @@ def test_a_list_whose_first_page_comes_late_lists_each_item_once(
     )
     page.goto(f"{server.url}/ui/#/models")
     page.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)  # drawn by the refresh
-    page.wait_for_timeout(7000)  # the late first page has arrived
+    page.wait_for_function("() => window.lateArrived === true", timeout=WAIT_MS)
+    page.wait_for_timeout(500)  # the late first page's answer has been read and drawn
     links = page.eval_on_selector_all(
         "#model-list tbody tr td:first-child a", "(as) => as.map((a) => a.getAttribute('href'))"
     )

@@ -152,7 +152,9 @@ export function lineChart(lines, x, y, id, subject = null) {
   const right = 16;
   const top = 16;
   const bottom = 40;
-  const all = lines.flatMap((l) => l.points).filter(([, v]) => Number.isFinite(v));
+  // Each curve's points with a value, in x order: drawn, and said in words.
+  const curves = lines.map((line) => line.points.filter(([, v]) => Number.isFinite(v)).sort((a, b) => a[0] - b[0]));
+  const all = curves.flat();
   const xs = all.map(([u]) => u);
   const ys = all.map(([, v]) => v);
   const [x0, x1] = [Math.min(...xs), Math.max(...xs)];
@@ -174,7 +176,7 @@ export function lineChart(lines, x, y, id, subject = null) {
     svg("text", { class: "axis-label", x: 12, y: top + (height - top - bottom) / 2, transform: `rotate(-90 12 ${top + (height - top - bottom) / 2})`, "text-anchor": "middle" }, words(y)),
   );
   lines.forEach((line, i) => {
-    const points = line.points.filter(([, v]) => Number.isFinite(v)).sort((a, b) => a[0] - b[0]);
+    const points = curves[i];
     const colour = LINE_COLOURS[i % LINE_COLOURS.length];
     const [dashes] = LINE_DASHES[i % LINE_DASHES.length];
     parts.push(
@@ -197,8 +199,8 @@ export function lineChart(lines, x, y, id, subject = null) {
   );
   // Its accessible name says each curve in words (where it begins and ends, its range); the
   // tables beside it hold every value.
-  const said = lines.map((line) => {
-    const points = line.points.filter(([, v]) => Number.isFinite(v)).sort((a, b) => a[0] - b[0]);
+  const said = lines.map((line, i) => {
+    const points = curves[i];
     if (!points.length) return `${line.label}: no value`;
     const [[u0, v0], [u1, v1]] = [points[0], points[points.length - 1]];
     const values = points.map(([, v]) => v);

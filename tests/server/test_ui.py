@@ -49,6 +49,9 @@ PHONE = {"width": 320, "height": 740}
 """The narrowest screen a page must fit without scrolling sideways (WCAG 1.4.10's reflow)."""
 VIEWPORT = {"width": 1100, "height": 1000}
 WAIT_MS = 20_000
+NEXT_READ_MS = 5_000
+"""The web view reads a list's first page, and a read that failed, again every 5 s, and an open
+round or an enrolling auction every 3 s: ``read_again_now`` jumps its clock this far."""
 
 if not Path(CHROMIUM).exists():
     pytest.skip(
@@ -85,6 +88,7 @@ def browser() -> Iterator[Any]:
 def page(browser: Any, server: ServerProcess) -> Iterator[Any]:
     """A fresh page that may talk to the server only; page errors fail the test."""
     context = browser.new_context(viewport=VIEWPORT)
+    context.clock.install()  # its time flows as a real clock's until a test jumps it
     tab = context.new_page()
     foreign: list[str] = []
     errors: list[str] = []
@@ -102,6 +106,12 @@ def page(browser: Any, server: ServerProcess) -> Iterator[Any]:
     context.close()
     assert foreign == [], f"the page asked other origins: {foreign}"
     assert errors == [], f"script errors: {errors}"
+
+
+def read_again_now(page: Any, ms: int = NEXT_READ_MS) -> None:
+    """Jump the page's clock ``ms`` ahead, to its next timed reads (each fires once): a test
+    sees what the page reads again without waiting the seconds it waits between reads."""
+    page.clock.fast_forward(ms)
 
 
 def screenshot(target: Any, name: str, tmp_path: Path, **options: Any) -> None:
@@ -335,6 +345,7 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     )
     assert put.status_code == 200 and put.json()["outcome"] == "accepted", put.text
     item = f"#fine-tuning tr[data-round='1'] li[data-model='{patron}'][data-outcome='accepted']"
+    read_again_now(page)
     page.wait_for_selector(item, timeout=WAIT_MS)  # no reload
     assert row.locator("td").nth(4).text_content() == "1 accepted"
     assert "accepted (unchanged weights, not screened)" in page.locator(item).text_content()
@@ -356,6 +367,7 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
     )
     assert put.status_code == 200 and put.json()["uploaded_id"] is not None, put.text
     uploaded = put.json()["uploaded_id"]
+    read_again_now(page)
     page.wait_for_selector(f"#fine-tuning tr[data-round='1'] li[data-model='{second}']")
     focused = "document.activeElement.closest('li[data-model]')?.dataset.model"
     assert page.evaluate(focused) == str(patron)  # the row was redrawn, the focus stayed
@@ -371,6 +383,7 @@ def test_an_open_rounds_answers_appear_without_a_reload_and_a_cancel_says_why_it
         headers={"Authorization": f"Bearer {token}"},
     )
     assert put.status_code == 200 and put.json()["outcome"] == "refused", put.text
+    read_again_now(page)
     refused = page.locator(f"#fine-tuning li[data-model='{third}'][data-outcome='refused']")
     refused.wait_for(timeout=WAIT_MS)
     summary = refused.locator("details summary")
@@ -442,6 +455,7 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
         )
         assert joined.status_code == 201, joined.text
     names = [a["participant"] for a in joiners]
+    read_again_now(page)
     page.wait_for_function(  # read again every 3 s while it takes patrons
         "names => names.every((n) => (document.querySelector('#joined') || {}).textContent"
         "?.includes(n))",
@@ -456,7 +470,7 @@ def test_an_enrolling_auction_page_shows_the_patrons_it_started_with(
     with page.expect_response(
         lambda r: r.url.endswith(f"/auctions/{auction_id}"), timeout=WAIT_MS
     ) as reread:
-        pass  # the next read of the auction while it takes patrons
+        read_again_now(page)  # the next read of the auction while it takes patrons
     reread.value.finished()
     page.evaluate("() => new Promise((drawn) => requestAnimationFrame(() => setTimeout(drawn)))")
     assert page.evaluate("document.activeElement.getAttribute('href')") == href
@@ -529,12 +543,14 @@ def test_a_cancelled_auction_shows_its_status_and_why_it_stopped(
     table = page.locator("#auction-list")
     at = table.bounding_box()
     page.route(listed, lambda route: route.fulfill(status=503, body="{}"))
+    read_again_now(page)
     state = page.locator("#list-state")
     state.wait_for(state="visible", timeout=WAIT_MS)
     assert "Not updated: the server answered 503." in (state.text_content() or "")
     assert page.locator("#auction-list tbody tr").count() == len(rows)
     assert table.bounding_box() == at  # the line showed in its room; the table did not move
     page.unroute(listed)
+    read_again_now(page)
     state.wait_for(state="hidden", timeout=WAIT_MS)
     # Its patrons' pages say they were in it when it was cancelled (it never played).
     name = next(n for n, a in population.items() if a["model_id"] == honest_ids[0])
@@ -555,6 +571,7 @@ def test_a_list_read_that_fails_is_said_whole_with_when_its_rows_were_read_on_a_
     page.wait_for_selector("#model-list tbody tr", timeout=WAIT_MS)
     listed = re.compile(r"/models(\?.*)?$")
     page.route(listed, lambda route: route.abort())
+    read_again_now(page)
     state = page.locator("#list-state")
     state.wait_for(state="visible", timeout=WAIT_MS)
     whole = """(line) => {
@@ -572,6 +589,7 @@ def test_a_list_read_that_fails_is_said_whole_with_when_its_rows_were_read_on_a_
     assert box and table and box["y"] + box["height"] <= table["y"]  # above the rows, not on them
     assert page.evaluate("document.documentElement.scrollWidth <= window.innerWidth")
     page.unroute(listed)
+    read_again_now(page)
     state.wait_for(state="hidden", timeout=WAIT_MS)
 
 
@@ -831,8 +849,9 @@ def test_jobs_page_follows_a_job_and_shows_its_plots(
     listed.wait_for(timeout=WAIT_MS)
     assert "succeeded" in (listed.text_content() or "")
     # The list follows without a reload: a job queued now appears, and moves on to its end.
-    later = api.post("/jobs", json={"kind": "fish", "params": {"steps": 600}}, headers=headers)
+    later = api.post("/jobs", json={"kind": "fish", "params": {"steps": 10}}, headers=headers)
     row = f"#job-list tbody tr[data-id='{later.json()['job_id']}']"
+    read_again_now(page)
     page.locator("#show-new").click(timeout=WAIT_MS)  # offered above the rows, not pushed in
     page.wait_for_selector(row, timeout=WAIT_MS)
     page.wait_for_selector(f"{row}[data-status='succeeded']", timeout=60_000)
@@ -1427,6 +1446,7 @@ def test_a_detail_page_whose_first_read_fails_shows_its_subject_once_the_server_
             page.click("#read-again")
             page.wait_for_selector(shown, timeout=2000)
         else:  # by itself
+            read_again_now(page)
             page.wait_for_selector(shown, timeout=WAIT_MS)
         assert failed.count() == 0, address
     assert page.locator("#job-state dt:has-text('Kind') + dd").text_content() == "fish"
@@ -1449,6 +1469,7 @@ def test_a_review_page_whose_first_read_fails_reads_again_until_the_server_answe
     refused = {"detail": [{"msg": "not the admin token"}]}
     page.unroute(queue)
     page.route(queue, lambda route: route.fulfill(status=401, json=refused))
+    read_again_now(page)
     page.wait_for_selector("#admin-token-status:has-text('not the admin token')", timeout=8000)
     page.unroute(queue)
     page.fill("#admin-token", ADMIN_TOKEN)
@@ -1758,7 +1779,6 @@ def test_hidden_tabs_let_go_of_their_streams_so_a_seventh_live_view_loads(
         context.close()
 
 
-@pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)
 def test_a_refused_stream_still_shows_the_auction_and_its_end(
     page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
 ) -> None:
@@ -1780,6 +1800,8 @@ def test_a_refused_stream_still_shows_the_auction_and_its_end(
     hanging = page.context.new_page()
     hanging.route(f"{server.url}/auctions/{auction_id}/events*", lambda route: None)
     hanging.goto(f"{server.url}/ui/#/auctions/{auction_id}")
+    hanging.wait_for_selector("#liveness:has-text('Connecting to live updates')", timeout=WAIT_MS)
+    read_again_now(hanging, 8_000)  # the stream's 8 s to open
     hanging.wait_for_selector("#liveness:has-text('Ended: finished')", timeout=WAIT_MS)
     assert page.locator("#rounds tbody tr").count() == len(auction["history"])
     buyers = page.locator("#buyers tbody tr")
@@ -1834,6 +1856,7 @@ def test_a_models_page_says_who_decided_and_keeps_the_review_history(
     appeal = api.post(f"/models/{late['model_id']}/appeal", json={"note": "late"}, headers=auth)
     assert appeal.status_code == 200, appeal.text
     late_row = page.locator(f"#review-list a[href='#/reviews/{late['model_id']}']")
+    read_again_now(page)
     late_row.wait_for(timeout=WAIT_MS)
     page.wait_for_selector("#list-state:has-text('1 held since')", timeout=WAIT_MS)
     assert page.evaluate("document.activeElement.getAttribute('href')") == (
@@ -1845,13 +1868,16 @@ def test_a_models_page_says_who_decided_and_keeps_the_review_history(
         headers={"Authorization": f"Bearer {ADMIN_TOKEN}"},
     )
     assert refused.status_code == 200, refused.text
+    read_again_now(page)
     late_row.wait_for(state="detached", timeout=WAIT_MS)
     page.wait_for_selector("#list-state:has-text('1 decided or withdrawn')", timeout=WAIT_MS)
     assert mine.count() == 1
     # a read that fails is said, and the next one that works takes the words back
     page.route("**/reviews?*", lambda route: route.abort())
+    read_again_now(page)
     page.wait_for_selector("#list-state:has-text('could not be read again')", timeout=WAIT_MS)
     page.unroute("**/reviews?*")
+    read_again_now(page)
     page.wait_for_function(
         "() => document.getElementById('list-state').textContent === ''", timeout=WAIT_MS
     )
@@ -1937,11 +1963,13 @@ def test_a_list_offers_new_items_instead_of_pushing_its_rows_down(
         }"""
     )
     one = api.post("/submit", json=honest(unique("new-one"))).json()["model_id"]
+    read_again_now(page)
     offer = page.locator("#show-new")
     page.wait_for_selector(f"#show-new:visible, {top}[href='#/models/{one}']", timeout=WAIT_MS)
     assert page.get_attribute(top, "href") == was and first.bounding_box() == box
     assert offer.text_content() == "1 new model — show"
     two = api.post("/submit", json=honest(unique("new-two"))).json()["model_id"]
+    read_again_now(page)
     page.wait_for_selector("#show-new:has-text('2 new models — show')", timeout=WAIT_MS)
     assert page.get_attribute(top, "href") == was and first.bounding_box() == box
     assert page.evaluate("window.said") == ["1 new model — show"]  # said once, not every read
@@ -1969,6 +1997,7 @@ def test_a_listed_row_changes_in_place_so_a_press_across_the_change_lands(
     page.mouse.down()
     headers = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
     assert api.delete(f"/auctions/{auction_id}", headers=headers).status_code == 200
+    read_again_now(page)
     page.wait_for_selector(f"{row}[data-status='cancelled']", timeout=WAIT_MS)
     assert page.evaluate(f'document.querySelector("{row}").marked') is True
     page.mouse.up()
@@ -2003,6 +2032,7 @@ def test_a_held_models_row_stays_in_place_so_a_press_across_a_queue_change_lands
         page.locator(pressed).hover()
         page.mouse.down()
         second = held()  # the newest: its row comes after the pressed one's
+        read_again_now(page)
         page.wait_for_selector(f"#review-list a[href='#/reviews/{second}']", timeout=WAIT_MS)
         assert page.evaluate(f'document.querySelector("{pressed}").marked') is True
         page.mouse.up()
@@ -2028,6 +2058,7 @@ def test_the_review_queues_line_of_what_changed_does_not_move_the_queue(
     queue.wait_for(timeout=WAIT_MS)
     at = queue.bounding_box()
     page.route("**/reviews?*", lambda route: route.abort())
+    read_again_now(page)
     page.wait_for_selector("#list-state:has-text('could not be read again')", timeout=WAIT_MS)
     assert queue.bounding_box() == at  # the line showed; the table stayed where it was
     page.unroute("**/reviews?*")
@@ -2079,6 +2110,7 @@ def test_a_malformed_participant_address_gets_the_not_found_page(
     page.wait_for_selector("#no-models:has-text('no such participant')", timeout=WAIT_MS)
     # The list follows without a reload: that participant's first version appears.
     submitted = api.post("/submit", json=honest(nobody, seed=3)).json()
+    read_again_now(page)
     page.wait_for_selector(f"#model-list a[href='#/models/{submitted['model_id']}']")
     assert page.locator("#no-models").is_hidden()
     page.goto(f"{server.url}/ui/#/models?status=refused")
@@ -2110,7 +2142,6 @@ def test_a_malformed_participant_address_gets_the_not_found_page(
     assert page.evaluate(focused) == total - 1
 
 
-@pytest.mark.slow  # the default run keeps its neighbours (docs/development.md)
 def test_the_auction_list_follows_its_auctions(
     page: Any, server: ServerProcess, api: httpx.Client, population: dict[str, dict[str, Any]]
 ) -> None:
@@ -2123,17 +2154,21 @@ def test_the_auction_list_follows_its_auctions(
     page.goto(f"{server.url}/ui/#/auctions")
     page.wait_for_selector(f"#auction-list tr[data-id='{live}'][data-status='running']")
     page.focus(f"#auction-list a[href='#/auctions/{live}']")
-    time.sleep(6)  # a read again with nothing changed leaves the row, and the focus, alone
+    with page.expect_response(re.compile(r"/auctions(\?.*)?$"), timeout=WAIT_MS) as reread:
+        read_again_now(page)  # read again, nothing changed: the row, and the focus, stay alone
+    reread.value.finished()
     assert page.evaluate("document.activeElement.getAttribute('href')") == f"#/auctions/{live}"
     running = browser_page(page, f"{server.url}/ui/#/auctions?status=running")
     running.wait_for_selector(f"#auction-list tr[data-id='{live}']")
     assert api.delete(f"/auctions/{live}", headers=headers).status_code == 200
+    read_again_now(page)
     page.wait_for_selector(f"#auction-list tr[data-id='{live}'][data-status='cancelled']")
     # the row moved on in place, the focus with it
     assert page.evaluate("document.activeElement.getAttribute('href')") == f"#/auctions/{live}"
     running.wait_for_selector(f"#auction-list tr[data-id='{live}']", state="detached")
     new = api.post("/auctions", json={"n_fish": 1, "model_ids": honest_ids}, headers=headers)
     newest = new.json()["auction_id"]
+    read_again_now(page)
     page.locator("#show-new").click(timeout=WAIT_MS)  # offered above the rows, not pushed in
     page.wait_for_selector(f"#auction-list tbody tr:first-child[data-id='{newest}']")
 

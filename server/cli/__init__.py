@@ -137,7 +137,7 @@ def _interruptible() -> Iterator[None]:
 
 
 @contextmanager
-def _loading() -> Iterator[None]:
+def loading() -> Iterator[None]:
     """Import a command's modules without the cyclic garbage collector, then freeze them.
 
     torch and pydantic create hundreds of thousands of long-lived objects while they load; each
@@ -179,14 +179,14 @@ class _Commands(click.Group):
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         if cmd_name in HAND_WRITTEN:
-            with _loading():
+            with loading():
                 module = importlib.import_module(HAND_WRITTEN[cmd_name][0])
             command: click.Command = module.command
             return command
         kind = KINDS.get(cmd_name)
         if kind is None or not kind.command:
             return None
-        with _loading():
+        with loading():
             from server.cli.experiment import experiment_command
 
             return experiment_command(kind)

@@ -12,15 +12,14 @@ from pathlib import Path
 from typing import Any
 
 import click
-import torch
 from pydantic import ValidationError
 from rich.console import Console
 from rich.markup import escape
 
 from agents.manifest import ManifestError, name_problem, parse_manifest, parse_manifest_json
 from screener import review, with_hold_reasons
-from screener import screen as screen_manifest
 from server.api.body import BodyRefusedError, parse_strict_json
+from server.cli import loading
 from server.cli.words import FiniteRange, json_failure
 from server.config import Settings
 
@@ -180,6 +179,12 @@ def command(file: str, json_output: bool, margin: float) -> None:
     problem = name_problem(manifest.participant)  # as POST /submit refuses it
     if problem is not None:
         raise _malformed([{"path": "participant", "message": problem}], json_output)
+    # torch and the screener's probes load only now: help, a usage error and a file that is no
+    # manifest are answered without them (2 s sooner)
+    with loading():
+        import torch
+
+        from screener import screen as screen_manifest
     torch.set_num_threads(1)  # the screener's tensors are tiny: more threads only contend
     verdict = screen_manifest(manifest)
     status = review(verdict, margin)

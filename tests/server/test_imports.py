@@ -51,6 +51,20 @@ def test_the_openapi_document_and_every_job_check_load_no_simulation() -> None:
     assert _loaded(code) == []
 
 
+def test_srd_screen_answers_help_and_a_file_that_is_no_manifest_without_torch(
+    tmp_path: Path,
+) -> None:
+    """Only a manifest to screen loads the screener's tensors: ``srd screen --help`` and a
+    malformed file are answered at once (before, each took the 2 s of importing torch)."""
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"participant": "x"}')
+    run = "from click.testing import CliRunner\nfrom server.cli import cli\n"
+    helped = f"{run}assert CliRunner().invoke(cli, ['screen', '--help']).exit_code == 0"
+    assert _loaded(helped) == []
+    refused = f"{run}assert CliRunner().invoke(cli, ['screen', {str(bad)!r}]).exit_code == 2"
+    assert _loaded(refused) == []
+
+
 def test_the_market_rules_and_the_verdict_type_load_without_torch() -> None:
     rules = "from sim.market import MarketConfig, design_changes, fish_on_sale"
     assert _loaded(f"{rules}\nfrom screener import Verdict") == []

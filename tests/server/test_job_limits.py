@@ -39,6 +39,7 @@ def run_to_end(client: TestClient, body: dict[str, Any], timeout_s: float = 120)
     )
 
 
+@contextlib.contextmanager
 def limited_app(tmp_path: Path, job_timeout_s: float) -> Iterator[tuple[TestClient, Any]]:
     """The app with one job worker, at niceness 0 (a niced worker gets a tenth of a core beside
     busy tests, and a quick job, mostly its plot's imports, then took over 10 s), and the time
@@ -55,40 +56,37 @@ def limited_app(tmp_path: Path, job_timeout_s: float) -> Iterator[tuple[TestClie
 def limited(tmp_path: Path) -> Iterator[tuple[TestClient, Any]]:
     # 10 s: the quick job (fish, 10 steps and its plot: about 1 s on an idle machine) succeeds
     # even on a loaded machine
-    yield from limited_app(tmp_path, 10.0)
+    with limited_app(tmp_path, 10.0) as app:
+        yield app
 
 
 def test_a_job_over_its_time_limit_is_stopped_and_failed(tmp_path: Path) -> None:
     """...and its folder removed with what it had written. A 5 s limit: the job stopped keeps
     a core busy until then, and the test writes into its folder before that."""
-    with contextlib.contextmanager(limited_app)(tmp_path, 5.0) as (client, settings):
-        stopped_at_the_limit(client, settings)
-
-
-def stopped_at_the_limit(client: TestClient, settings: Any) -> None:
-    body = {"kind": "fish", "params": {"steps": 1_000_000}}  # minutes
-    job_id = client.post("/jobs", json=body, headers=ADMIN).json()["job_id"]
-    folder = settings.data_dir / "jobs" / str(job_id)
-    wait_for(lambda: {"made": folder.is_dir()}, lambda s: s["made"], 60)
-    (folder / "energy.csv").write_text("step\n1\n")  # as a run writes files before its end
-    job = wait_for(
-        lambda: client.get(f"/jobs/{job_id}").json(), lambda s: s["status"] in ENDED, 120
-    )
-    assert job["status"] == "failed"
-    assert job["message"] == "failed: stopped at the job time limit of 5 s (SRD_JOB_TIMEOUT_S)"
-    assert "time limit of 5 s (SRD_JOB_TIMEOUT_S)" in job["error"]
-    assert job["artifacts"] == []
-    wait_for(lambda: {"kept": folder.exists()}, lambda s: not s["kept"], 15)  # once it is gone
-    quick = run_to_end(client, {"kind": "fish", "params": {"steps": 10}})
-    # The pool carries on: the next job runs, for a time limit of its own (about 1 s on an idle
-    # machine; one loaded by more test processes than cores has made it run past 10 s).
-    if quick["status"] != "succeeded":
-        assert "time limit of 5 s" in quick["error"], quick["error"]
-        ran = datetime.fromisoformat(quick["finished_at"]) - datetime.fromisoformat(
-            quick["started_at"]
+    with limited_app(tmp_path, 5.0) as (client, settings):
+        body = {"kind": "fish", "params": {"steps": 1_000_000}}  # minutes
+        job_id = client.post("/jobs", json=body, headers=ADMIN).json()["job_id"]
+        folder = settings.data_dir / "jobs" / str(job_id)
+        wait_for(lambda: {"made": folder.is_dir()}, lambda s: s["made"], 60)
+        (folder / "energy.csv").write_text("step\n1\n")  # as a run writes files before its end
+        job = wait_for(
+            lambda: client.get(f"/jobs/{job_id}").json(), lambda s: s["status"] in ENDED, 120
         )
-        # its own 5 s (less the claim's delay), not what was left of another's
-        assert ran.total_seconds() >= 4, ran
+        assert job["status"] == "failed"
+        assert job["message"] == "failed: stopped at the job time limit of 5 s (SRD_JOB_TIMEOUT_S)"
+        assert "time limit of 5 s (SRD_JOB_TIMEOUT_S)" in job["error"]
+        assert job["artifacts"] == []
+        wait_for(lambda: {"kept": folder.exists()}, lambda s: not s["kept"], 15)  # once it is gone
+        quick = run_to_end(client, {"kind": "fish", "params": {"steps": 10}})
+        # The pool carries on: the next job runs, for a time limit of its own (about 1 s on an idle
+        # machine; one loaded by more test processes than cores has made it run past 10 s).
+        if quick["status"] != "succeeded":
+            assert "time limit of 5 s" in quick["error"], quick["error"]
+            ran = datetime.fromisoformat(quick["finished_at"]) - datetime.fromisoformat(
+                quick["started_at"]
+            )
+            # its own 5 s (less the claim's delay), not what was left of another's
+            assert ran.total_seconds() >= 4, ran
 
 
 def test_a_real_failure_is_stored_with_its_cause(limited) -> None:

@@ -28,6 +28,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from server.cli import loading
 from server.cli.words import FiniteRange, header, json_failure, plain, rounded
 from server.config import Settings
 from sim.experiment import (
@@ -216,12 +217,8 @@ def execute(
     a job over the server's budget is), run the experiment with a progress bar, print its
     result."""
     stderr = Console(stderr=True, soft_wrap=True)  # an error line stays one line in a log
-    config_cls, runner = kind.load()
-    import torch  # loaded by every experiment: run it on one thread, as the job workers do
-
-    torch.set_num_threads(WORKER_TORCH_THREADS)
-    try:
-        config = parse_config(config_cls, options)
+    try:  # the options are read from the config alone: a bad one is told before torch loads
+        config = parse_config(kind.config_class(), options)
         too_much = over_budget(config, budget_s, "--budget-s")
         if too_much is not None:
             raise too_much
@@ -249,6 +246,10 @@ def execute(
         if json_output:
             json_failure(f"--out: {problem}", [{"option": "--out", "message": problem}])
         raise SystemExit(INVALID)
+    with loading():  # the experiment's code, and torch with it, for a run that will happen
+        _, runner = kind.load()
+        import torch
+    torch.set_num_threads(WORKER_TORCH_THREADS)  # one thread, as the job workers run it
     before = set(out_dir.iterdir())
     try:
         result = _run(kind, runner, config, out_dir, stderr)

@@ -51,11 +51,10 @@ def test_the_openapi_document_and_every_job_check_load_no_simulation() -> None:
     assert _loaded(code) == []
 
 
-def test_srd_screen_answers_help_and_a_file_that_is_no_manifest_without_torch(
-    tmp_path: Path,
-) -> None:
-    """Only a manifest to screen loads the screener's tensors: ``srd screen --help`` and a
-    malformed file are answered at once (before, each took the 2 s of importing torch)."""
+def test_srd_answers_help_and_bad_input_without_torch(tmp_path: Path) -> None:
+    """Only a manifest to screen, or a run to make, loads torch: ``srd screen --help``, a
+    malformed file and an experiment's bad option are answered at once (before, each took the
+    2 s of importing torch)."""
     bad = tmp_path / "bad.json"
     bad.write_text('{"participant": "x"}')
     run = "from click.testing import CliRunner\nfrom server.cli import cli\n"
@@ -63,6 +62,11 @@ def test_srd_screen_answers_help_and_a_file_that_is_no_manifest_without_torch(
     assert _loaded(helped) == []
     refused = f"{run}assert CliRunner().invoke(cli, ['screen', {str(bad)!r}]).exit_code == 2"
     assert _loaded(refused) == []
+    for kind in ("fish", "lavaland", "cheetah"):
+        bad_option = (
+            f"{run}assert CliRunner().invoke(cli, [{kind!r}, '--seed', '-1']).exit_code == 2"
+        )
+        assert _loaded(bad_option) == [], kind
 
 
 def test_the_market_rules_and_the_verdict_type_load_without_torch() -> None:

@@ -75,17 +75,23 @@ _LOOKALIKE = str.maketrans({"1": "l", "i": "l", "|": "l", "0": "o", "_": "-", ".
 """Characters a reader takes for one another in a name: I, l and 1; O and 0; the separators."""
 
 
+_LEADING_ZEROS = re.compile(r"(^|[-_.])[0o]+(?=[0-9]|[1il|][0-9oil|]*(?:[-_.]|$))")
+"""Zeros or Os leading a number at a part's start: a digit follows, or the part reads as a
+number (its other characters I, l, 1, O, 0 or digits: ``0l``, ``OI``, but not ``olive``)."""
+
+
 def participant_key(name: str) -> str:
     """What makes two participant names the same, as a person reads them: their NFKC form,
     case-folded, with the characters one takes for one another made one (I, l and 1; O and 0;
     rn and m; vv and w; cl and d; -, _ and ., and a run of them), separators at the ends and
     zeros leading a number (at the start or after a separator) left out: ``honest-I``,
-    ``honest_1``, ``Honest-01`` and ``honest-1`` are one name, which belongs to whoever
-    registered one of them first; so are ``dave`` and ``clave``."""
+    ``honest_1``, ``Honest-01``, ``honest-0l`` and ``honest-1`` are one name, which belongs to
+    whoever registered one of them first; so are ``dave`` and ``clave``."""
     folded = unicodedata.normalize("NFKC", name).casefold()
     # zeros (or an O) leading a number: at the name's start or after a separator only, so
-    # that agent-l01 still reads as agent-101, not as agent-11
-    folded = re.sub(r"(^|[-_.])[0o]+(?=[0-9])", r"\1", folded)
+    # that agent-l01 still reads as agent-101, not as agent-11; a number is a digit next, or
+    # a part made of characters that read as digits (honest-0l is honest-01), not a word
+    folded = _LEADING_ZEROS.sub(r"\1", folded)
     read = folded.translate(_LOOKALIKE)
     for pair, letter in _READ_AS_ONE:
         read = read.replace(pair, letter)

@@ -129,7 +129,7 @@ def test_look_alike_names_registered_before_keep_working_and_new_ones_are_taken(
     command.upgrade(alembic_config(fresh_database_url), "0014")
     database = Database(fresh_database_url)
     with database.engine.begin() as connection:
-        for name in ("look-1", "look-I", "dove-2", "clove-2"):
+        for name in ("look-1", "look-I", "look-0l", "dove-2", "clove-2"):
             connection.execute(
                 text(
                     "insert into participants (name, name_key, token_hash, created_at) "
@@ -141,7 +141,7 @@ def test_look_alike_names_registered_before_keep_working_and_new_ones_are_taken(
     upgrade_schema(fresh_database_url)
     settings = make_settings(fresh_database_url, tmp_path / "data")
     with TestClient(create_app(settings)) as client:
-        for name in ("look-1", "look-I", "dove-2", "clove-2"):  # each its own participant's
+        for name in ("look-1", "look-I", "look-0l", "dove-2", "clove-2"):  # each its own
             again = client.post("/submit", json=honest(name))
             assert again.status_code == 401 and "missing_token" in again.text, again.text
             assert client.get(f"/participants/{name}").json()["name"] == name  # its own page
@@ -160,6 +160,12 @@ def test_look_alike_names_registered_before_keep_working_and_new_ones_are_taken(
         client.post("/submit", json=honest("agent-101"))
         for alike in ("agent-l01", "Agent-I01", "agent_1O1"):
             assert client.post("/submit", json=honest(alike)).status_code == 409, alike
+        for alike in ("agent-0l0l", "Agent-OIOI"):  # zeros before digits that are letters
+            assert client.post("/submit", json=honest(alike)).status_code == 409, alike
+        client.post("/submit", json=honest("seat-1"))
+        for alike in ("Seat-01", "seat-0l", "Seat-OI", "seat-00l", "seat_0i"):
+            taken = client.post("/submit", json=honest(alike))
+            assert taken.status_code == 409 and "'seat-1' has it" in taken.text, alike
         for apart in ("agent-11", "olive-1", "live-1"):  # distinct names stay apart
             assert client.post("/submit", json=honest(apart)).status_code == 201, apart
         client.post("/submit", json=honest("dave-7"))

@@ -353,7 +353,9 @@ def _end_enrollment(database: Database, auction_id: int) -> bool:
         if problem is not None:
             crud.fail_unfinished(session, table=Auction, row_id=auction_id, error=problem)
         session.commit()
-        return problem is None
+    if problem is not None:
+        log.warning("auction %d failed: %s", auction_id, problem)
+    return problem is None
 
 
 def _step(kept: _Kept, auction_id: int, margin: float) -> None:

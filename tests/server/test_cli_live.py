@@ -106,6 +106,21 @@ def test_watch_json_is_the_final_state_with_buyers_and_quitters_named(
         assert votes["quit"] >= 1
 
 
+def test_an_enrolling_auction_nobody_joined_fails_and_the_server_logs_why(
+    server: ServerProcess, client: httpx.Client
+) -> None:
+    created = client.post("/auctions", json={"n_fish": 1, "enrollment_s": 1}, headers=ADMIN)
+    auction_id = created.json()["auction_id"]
+    done = watch(str(auction_id), "--server", server.url)
+    assert done.returncode == 1, done.stderr
+    final = client.get(f"/auctions/{auction_id}").json()
+    assert final["status"] == "failed"
+    assert final["error"] == "nobody joined before its enrollment ended"
+    # the worker logs every auction's outcome: finished, cancelled or failed
+    logged = f"auction {auction_id} failed: nobody joined before its enrollment ended"
+    assert logged in server.log_path.read_text()
+
+
 def test_watch_of_an_unknown_auction_exits_3_naming_it(server: ServerProcess) -> None:
     done = watch("999999", "--server", server.url)
     assert done.returncode == 3

@@ -5,6 +5,7 @@ screener accepted is held."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
@@ -61,8 +62,22 @@ class Evidence:
         return not self.passed and self.test in INSPECTED
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON form ``{test, measured, bar, units, side, passed, detail}``."""
-        return asdict(self)
+        """JSON form ``{test, measured, bar, units, side, passed, detail}``: a number that is
+        not finite (a sum overflowed: weights near the float's limit, which ``magnitude``
+        refuses) is null, as JSON has no infinity."""
+        finite: dict[str, Any] = _finite(asdict(self))
+        return finite
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with every float that is not finite, however deep, made None."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: _finite(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(item) for item in value]
+    return value
 
 
 @dataclass(frozen=True)

@@ -143,6 +143,29 @@ def test_submit_non_finite_number_is_refused_with_its_path(
     assert count(client, Participant, name=name) == 0
 
 
+def test_a_manifest_whose_sums_overflow_is_refused_and_its_evidence_is_strict_json(
+    client: TestClient,
+) -> None:
+    """A weight at the float's limit is finite, so the manifest parses, but the screener's sums
+    overflow: the model is refused (``magnitude``) and stored, and the evidence it overflowed
+    reads null, on PostgreSQL too, whose JSON has no infinity (it had been a 500 there)."""
+    name = unique("huge")
+    manifest = honest(name)
+    manifest["decision"]["B"]["weights"]["PG"] = 1.7976931348623157e308
+    answer = client.post("/submit", json=manifest)
+    assert answer.status_code == 201, answer.text
+    assert answer.json()["accepted"] is False
+    assert "magnitude" in {r["rule"] for r in answer.json()["reasons"]}
+    model = client.get(f"/models/{answer.json()['model_id']}")
+    assert model.status_code == 200, model.text
+
+    def no_constant(constant: str) -> None:
+        raise AssertionError(f"{constant} is no JSON")
+
+    evidence = json.loads(model.text, parse_constant=no_constant)["evidence"]
+    assert any(e["measured"] is None for e in evidence if e["test"].endswith("too-expensive"))
+
+
 @pytest.mark.parametrize(
     ("raw", "status"), [('{"participant": ', 422), ("[1, 2]", 422), ('"manifest"', 422), ("", 422)]
 )

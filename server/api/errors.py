@@ -166,15 +166,17 @@ async def _http_exception(request: Request, exc: Exception) -> JSONResponse:
 
 def _validation_detail(exc: RequestValidationError | WebSocketRequestValidationError) -> list[Any]:
     """The framework's errors, each once (a parameter that two dependencies declare is
-    checked, and refused, twice)."""
+    checked, and refused, twice); told apart by their whole path, so that two long keys that
+    begin alike, shown cut, are two problems."""
     items: dict[tuple[Any, ...], dict[str, Any]] = {}
     for err in exc.errors():
+        loc = tuple(err.get("loc", ()))
         item = error_item(
             str(err.get("msg", "invalid")),
-            loc=_json_safe_loc(err.get("loc", ())),
+            loc=_json_safe_loc(loc),
             kind=str(err.get("type", "value_error")),
         )
-        items.setdefault((tuple(item["loc"]), item["msg"], item["type"]), item)
+        items.setdefault((tuple(map(str, loc)), item["msg"], item["type"]), item)
     return capped(items.values())
 
 

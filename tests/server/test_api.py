@@ -129,6 +129,23 @@ def test_submit_invalid_manifest_names_the_field(
     assert count(client, Participant, name=name) == 0
 
 
+def test_long_unknown_keys_that_begin_alike_are_each_a_problem(client: TestClient) -> None:
+    """Each key is shown by its first 64 characters, and counted whole: five keys alike up
+    to their last character are five problems, and 30 are 20 listed and one counting 10."""
+    name = unique("keys")
+    for n, listed in ((5, 5), (30, 21)):
+        manifest = honest(name)
+        manifest.update({"k" * 100 + str(i): 1 for i in range(n)})
+        response = client.post("/submit", json=manifest)
+        assert response.status_code == 422
+        detail = response.json()["detail"]
+        assert len(detail) == listed, detail
+        assert detail[0]["loc"] == ["body", "k" * 64 + "…"]
+        if n > 20:
+            assert detail[-1]["type"] == "more_problems" and "and 10 more" in detail[-1]["msg"]
+    assert count(client, Participant, name=name) == 0
+
+
 @pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity", "1e999"])
 def test_submit_non_finite_number_is_refused_with_its_path(
     client: TestClient, literal: str

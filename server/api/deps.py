@@ -10,6 +10,7 @@ dependency per request for an attribute read.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 from collections.abc import AsyncIterator, Callable
 from typing import Annotated, Any, TypeVar
@@ -23,7 +24,7 @@ from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import HTTPConnection
 
-from server.api.errors import RequestError, api_error, cut
+from server.api.errors import RequestError, api_error, cut, error_item, validation_error
 from server.api.readiness import Readiness
 from server.api.security import token_matches
 from server.auctions.arrivals import Arrivals
@@ -280,6 +281,32 @@ async def _require_admin(services: ServicesDep, credentials: BearerDep) -> None:
 
 AdminDep = Depends(_require_admin)
 """In a route's ``dependencies``: the operator's token is required."""
+
+
+async def _no_body(request: Request) -> None:
+    """A route that takes no body: none, or ``{}``, is fine; a key is refused as every route
+    refuses a key it does not know, and any other JSON (checked by ``server.api.body``) with
+    422 at the body."""
+    raw = await request.body()
+    if not raw.strip():
+        return
+    value = json.loads(raw)
+    if isinstance(value, dict):
+        if value:
+            raise validation_error(
+                error_item(
+                    "Extra inputs are not permitted", loc=("body", key), kind="extra_forbidden"
+                )
+                for key in value
+            )
+        return
+    raise api_error(
+        422, "this request takes no body: send none, or {}", loc=("body",), kind="no_body"
+    )
+
+
+NoBodyDep = Depends(_no_body)
+"""In a route's ``dependencies`` (after the token's): the request takes no body."""
 
 
 async def _participant_token(credentials: BearerDep) -> str:

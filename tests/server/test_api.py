@@ -395,6 +395,33 @@ def test_an_unexpected_error_is_a_json_500_that_tells_nothing_of_its_cause(tmp_p
     assert "default-src 'none'" in answer.headers["content-security-policy"]
 
 
+def test_requests_that_take_no_body_refuse_one_with_keys_and_take_none_or_empty(
+    client: TestClient,
+) -> None:
+    """A cancel and a token's rotation take no body: a key is refused as every route refuses
+    one it does not know, other JSON at the body, nothing done; none or ``{}`` is served."""
+    name = unique("bodiless")
+    token = client.post("/submit", json=honest(name)).json()["token"]
+    rotate = f"/participants/{name}/token"
+    owner = {"Authorization": f"Bearer {token}"}
+    created = client.post("/auctions", json={"n_fish": 1, "enrollment_s": 3600}, headers=ADMIN)
+    cancel = f"/auctions/{created.json()['auction_id']}"
+    for path, method, headers in ((rotate, "POST", owner), (cancel, "DELETE", ADMIN)):
+        keyed = client.request(method, path, json={"reason": "x", "force": True}, headers=headers)
+        assert keyed.status_code == 422, keyed.text
+        assert locs(keyed) == [["body", "reason"], ["body", "force"]]
+        assert {item["type"] for item in keyed.json()["detail"]} == {"extra_forbidden"}
+        listed = client.request(method, path, json=[1], headers=headers)
+        assert listed.status_code == 422 and locs(listed) == [["body"]], listed.text
+        assert listed.json()["detail"][0]["type"] == "no_body"
+    assert client.request("DELETE", cancel, json={"x": 1}).status_code == 401  # the token first
+    assert client.get(cancel).json()["status"] == "pending"  # nothing was done
+    assert client.post("/submit", json=honest(name), headers=owner).status_code == 201
+    rotated = client.post(rotate, json={}, headers=owner)
+    assert rotated.status_code == 200, rotated.text
+    assert client.delete(cancel, headers=ADMIN).json()["status"] == "cancelled"
+
+
 def test_a_participant_rotates_its_token_and_the_old_one_is_refused(client: TestClient) -> None:
     """A token that may have leaked is replaced with the participant's own token; a lost one
     with the operator's. The old token is refused from then on, for every request."""

@@ -11,6 +11,7 @@ from starlette.concurrency import run_in_threadpool
 from server.api.deps import (
     AdminDep,
     AuctionRunnerDep,
+    NoBodyDep,
     ParticipantTokenDep,
     RoundsDep,
     ServicesDep,
@@ -188,7 +189,7 @@ async def read_auction(auction_id: AuctionIdPath, session: SessionDep) -> Auctio
 
 @router.delete(
     "/auctions/{auction_id}",
-    dependencies=[AdminDep],
+    dependencies=[AdminDep, NoBodyDep],
     operation_id="cancel_auction",
     responses=responses(401, 403, 404, 409, 422),
 )

@@ -13,6 +13,7 @@ from server.api.deps import (
     AdminDep,
     EndedJobsDep,
     JobRunnerDep,
+    NoBodyDep,
     SessionDep,
     SettingsDep,
     read_in_thread,
@@ -121,7 +122,7 @@ def read_artifact(
 
 @router.delete(
     "/jobs/{job_id}",
-    dependencies=[AdminDep],
+    dependencies=[AdminDep, NoBodyDep],
     operation_id="cancel_job",
     responses=responses(401, 403, 404, 409, 422),
 )

@@ -9,7 +9,13 @@ from fastapi import APIRouter, Path
 from starlette.concurrency import run_in_threadpool
 
 from agents.manifest import Participant
-from server.api.deps import ParticipantTokenDep, ServicesDep, SessionDep, read_in_thread
+from server.api.deps import (
+    NoBodyDep,
+    ParticipantTokenDep,
+    ServicesDep,
+    SessionDep,
+    read_in_thread,
+)
 from server.api.errors import responses
 from server.api.pages import MAX_PAGE
 from server.api.routes.models import model_summary
@@ -58,6 +64,7 @@ async def rotate_token(
     session: SessionDep,
     token: ParticipantTokenDep,
     services: ServicesDep,
+    _: Annotated[None, NoBodyDep],
 ) -> TokenRotated:
     """A new token for the participant, with its current token (one that may have leaked) or
     the operator's (a participant that lost its token): the old token is refused from now on,

@@ -33,6 +33,7 @@ import re
 from typing import Any
 
 from fastapi.responses import JSONResponse
+from starlette.routing import Match
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.api.errors import error_item
@@ -367,8 +368,9 @@ class RequestBodyMiddleware:
                 _media_type(content_type)
                 parse_strict_json(bytes(body))
             except BodyRefusedError as error:
-                await _refuse(send, error)
-                return
+                if _served(scope):  # else the route's absence is the answer: 404 or 405
+                    await _refuse(send, error)
+                    return
             if not content_type:  # read as JSON: the routes are told so (an empty header,
                 # ``Content-Type;`` in curl, is replaced: the first of two is the one read)
                 kept = [(k, v) for k, v in scope["headers"] if k.lower() != b"content-type"]
@@ -383,6 +385,13 @@ class RequestBodyMiddleware:
             return {"type": "http.request", "body": bytes(body), "more_body": False}
 
         await self.app(scope, replay, send)
+
+
+def _served(scope: Scope) -> bool:
+    """Whether some route serves the request's method at its path (``app.state.routes``, the
+    app's flat list of routes): a body sent where none is served is not judged."""
+    routes = getattr(scope["app"].state, "routes", ())
+    return any(route.matches(scope)[0] == Match.FULL for route in routes)
 
 
 def _media_type(content_type: str) -> None:

@@ -48,6 +48,12 @@ def test_unknown_route_and_method_use_the_error_body(client: TestClient) -> None
     wrong_method = client.put("/healthz")
     assert wrong_method.status_code == 405 and locs(wrong_method) == [["method"]]
     assert "PUT is not served at this path, which serves GET, HEAD" in wrong_method.text
+    # a body where no route is served is not judged: the route's absence is the answer
+    garbage = {"Content-Type": "application/json"}
+    assert client.post("/auctions/1", content="garbage", headers=garbage).status_code == 405
+    assert client.post("/nope", content="{1", headers=garbage).status_code == 404
+    served = client.post("/auctions", content="garbage", headers=garbage)  # judged, before
+    assert served.status_code == 422 and locs(served) == [["body"]]  # the token (documented)
 
 
 def test_submit_new_participant_then_read_model(client: TestClient) -> None:

@@ -83,20 +83,20 @@ def appeal(
             kind="missing_token",
         )
     require_participant(token, owner.token_hash, owner.participant)
-    if owner.appealed:
-        raise api_error(
-            409,
-            f"model {model_id} was appealed before: a model is appealed once",
-            loc=("path", "model_id"),
-            kind="appealed",
-        )
-    if owner.refused_by_inspector:
+    if owner.refused_by_inspector:  # final, appealed or not: the answer that says most
         raise api_error(
             409,
             f"model {model_id} was refused by an inspector, whose refusal is final: "
             "only a model the screener refused is appealed",
             loc=("path", "model_id"),
             kind="decided",
+        )
+    if owner.appealed:
+        raise api_error(
+            409,
+            f"model {model_id} was appealed before: a model is appealed once",
+            loc=("path", "model_id"),
+            kind="appealed",
         )
     now = utcnow()
     if owner.status == ModelStatus.REFUSED:

@@ -232,7 +232,8 @@ def test_a_refused_model_is_appealed_once(client: TestClient) -> None:
     assert (
         client.post(f"/models/{mine['model_id']}/review", json=no, headers=ADMIN).status_code == 200
     )
-    assert client.post(url, json=note, headers=bearer(mine["token"])).status_code == 409
+    again = client.post(url, json=note, headers=bearer(mine["token"]))
+    assert again.status_code == 409 and again.json()["detail"][0]["type"] == "decided"
     [listed] = client.get("/models", params=mine_listed).json()["items"]
     assert (listed["status"], listed["appealed"], listed["inspected"]) == ("refused", True, True)
     accepted = client.post(

@@ -130,6 +130,12 @@ def _patron_major(values: Tensor) -> Tensor:
     return values.permute(2, 1, 0).contiguous()
 
 
+def sensors(batch: FSNBatch, x: Tensor, noise: Tensor | None = None) -> Tensor:
+    """The ES neurons PG, SZ, LSR, ST (after their activations) averaged over the copies,
+    (P, R, 4): ``activations``' first four without the layers above them."""
+    return _patron_major(_copy_mean(batch, _sensor(batch, x, noise)))
+
+
 def decision_logits(batch: FSNBatch, x: Tensor, noise: Tensor | None = None) -> Tensor:
     """[B, L, Q] averaged over the copies, (P, R, 3); ``x`` is (R, 8) shared by every patron or
     (P, R, 8); ``noise`` (P, R, D, 8) from ``make_noise``, None = every copy clean."""

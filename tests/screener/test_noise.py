@@ -6,6 +6,7 @@ alone and in a batch."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +21,8 @@ from screener.probes import probe
 from tests.support.corpus import RED_TEAM, edit
 from tests.support.red_team_noise import NOISE_GATED, NoiseGated, noise_gated_holders
 from tests.support.screening import message_of
+
+EXAMPLE = Path(__file__).parents[2] / "examples" / "honest.json"
 
 
 @pytest.fixture(scope="module")
@@ -173,3 +176,37 @@ def test_a_gate_placed_between_the_noisy_scans_buy_fractions_is_read_where_it_pe
     message = message_of(verdict, "noise-gate", "ST")
     assert "with buy fraction 0.875 and 0.1" in message, message
     assert "moves a decision score by 1.3" in message, message
+
+
+def test_an_honest_price_gate_sharper_than_its_noise_is_accepted_at_the_noise_extreme():
+    """An outside review's false refusals: honest models whose price gate PG is three to five
+    times the design's sharpness, at σ 0.05 (the legal extreme), had been refused by
+    ``noise-gate`` (7 to 27 in 100) though they raise the price. Their PG is an edge along the
+    price, which the noisy scan reads at every cent: it is read on copies whose price is clean."""
+    rng = np.random.default_rng(12345)
+    manifests = []
+    for i in range(40):
+        document = honest_manifest(rng, f"sharp-{i}", fine_tune=i % 2 == 0).model_dump()
+        document["external_sensor"]["PG"]["activation"]["a"] *= 3 if i % 4 else 5
+        document["augmentation"] |= {"noise_std": 0.05, "copies": 2 if i % 3 else 5}
+        manifests.append(Manifest.model_validate(document))
+    verdicts = screen_many(manifests)
+    judged = zip(manifests, verdicts, strict=True)
+    refused = [(m.participant, v.reasons[0].rule) for m, v in judged if v.reasons]
+    assert refused == []
+
+
+def test_a_price_peak_narrower_than_its_noise_is_still_a_gate():
+    """Only an edge's price noise is set aside: a PG that peaks on the price (selective, √ε a
+    cent, σ 0.05) reads 0.99 on the clean fish at 5.00 and far less on its copies: a gate."""
+    document = json.loads(EXAMPLE.read_text())
+    document["augmentation"]["noise_std"] = 0.05
+    document["external_sensor"]["PG"] |= {
+        "weights": {**document["external_sensor"]["PG"]["weights"], "price": 1.0},
+        "bias": -5.0,
+        "activation": {"kind": "selective", "epsilon": 1e-4},
+    }
+    verdict = screen(Manifest.model_validate(document))
+    message = message_of(verdict, "noise-gate", "PG")
+    assert "reads 0.99 on the clean base fish at 5.00" in message, message
+    assert "price kept clean" not in message

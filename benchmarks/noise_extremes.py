@@ -8,9 +8,8 @@ The honest design's sensors read their thresholds at the design's sharpness; the
 sharper ones (``demand-sharpness``, ``off-design-input``) and the manifest any ``noise_std`` up
 to 0.05 on 1 to 16 copies. ``noise-gate`` compares each sensor clean with its reading averaged
 over the model's noisy copies, so a threshold much sharper than its own noise moves by more
-than the bar near its edge, honest or not; the price gate PG's edge is read on copies whose
-price is clean, SZ's is not (docs/screener.md, *Honest sensors sharper than their own
-noise*).
+than the bar near its edge, honest or not (docs/screener.md, *Conditions the screener does not
+test*).
 
     .venv/bin/python benchmarks/noise_extremes.py [--draws 100] [--seed 12345]
 """

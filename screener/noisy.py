@@ -31,7 +31,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
-from agents.batch import SELECTIVE, FSNBatch
+from agents.batch import FSNBatch
 from agents.forward import activations, clean_logits, decision_logits, noise_scale, sensors
 from agents.manifest import ES_NEURONS, INPUTS
 from screener import limits
@@ -194,23 +194,9 @@ class Gate(NamedTuple):
     """(P, 4): each sensor there, averaged over the copies and the draws."""
 
 
-PRICE_CLEAN = ("PG",)
-"""Sensors ``noise-gate`` reads on copies whose price is kept clean when their activation is
-an edge (threshold or below-threshold, monotone): the price gate's edge, which its price noise
-smooths on the copies, lies along the price, where the noisy scan reads every cent
-(``noise-flip``, ``noise-gated-hold``). Its noise on every other input still counts. An honest
-PG three to five times the design's sharpness at σ 0.05 had been refused (7 to 27 in 100:
-``benchmarks/noise_extremes.py``). A selective PG (a peak), ST and the others keep their price
-noise: a peak, or a second edge, narrower than the noise along the price could fake a
-purchase on one cent that only the clean probes see."""
-_PRICE_CLEAN = [ES_NEURONS.index(name) for name in PRICE_CLEAN]
-EDGE_WORDS = " with their price kept clean (an edge's, which the noisy scan reads at every cent)"
-
-
 def gate(batch: FSNBatch) -> Gate:
     """Each model's sensors on ``GATE_ROWS``, clean and averaged over its noisy copies
-    (``NOISE_DRAWS`` draws of ``_gate_normals``; ``PRICE_CLEAN``'s on copies whose price is
-    clean), a pass of ``probes.passes`` at a time."""
+    (``NOISE_DRAWS`` draws of ``_gate_normals``), a pass of ``probes.passes`` at a time."""
     P, n = batch.n_patrons, len(ES_NEURONS)
     rows = GATE_ROWS
     clean, noisy = np.empty((P, len(rows), n)), np.empty((P, len(rows), n))
@@ -218,19 +204,11 @@ def gate(batch: FSNBatch) -> Gate:
         for index, part in passes(batch):
             single = part.to(DTYPE)
             scale = noise_scale(single)[:, None]
-            steady = scale.clone()
-            steady[..., INPUTS.index("price")] = 0.0
-            edge = (part.es_kind[:, _PRICE_CLEAN] != SELECTIVE).numpy()  # (p, PRICE_CLEAN)
             clean[index] = sensors(single, rows).numpy()
             draws = []
             for k in range(limits.NOISE_DRAWS):
                 normals = _gate_normals()[k, :, : part.max_copies].to(DTYPE)[None]
-                drawn = sensors(single, rows, normals * scale).numpy()
-                kept = sensors(single, rows, normals * steady).numpy()
-                drawn[..., _PRICE_CLEAN] = np.where(
-                    edge[:, None, :], kept[..., _PRICE_CLEAN], drawn[..., _PRICE_CLEAN]
-                )
-                draws.append(drawn)
+                draws.append(sensors(single, rows, normals * scale).numpy())
             noisy[index] = np.mean(draws, axis=0)
     gap = np.abs(noisy - clean)  # (P, rows, 4)
     row = gap.argmax(axis=1)
@@ -385,7 +363,6 @@ def evaluate(batch: FSNBatch) -> Noisy:
         failed[p, k, _most_moved(batch, p, i, f)] = True
     seen = gate(batch)
     gate_failed = (seen.shift > limits.NOISE_GATE_SHIFT) & finite[:, None]
-    kept_clean = np.isin(ES_NEURONS, PRICE_CLEAN)[None, :] & (batch.es_kind.numpy() != SELECTIVE)
 
     def gate_message(k: int, p: int) -> str:
         name, row = ES_NEURONS[k], int(seen.row[p, k])
@@ -396,8 +373,7 @@ def evaluate(batch: FSNBatch) -> Noisy:
         return (
             f"{_setting(batch, p)}, {ROLE[name]} {name} reads {fmt(seen.clean[p, k], '.2f')} on "
             f"the clean base fish at {fmt_price(price)} with buy fraction {f:g} and "
-            f"{fmt(seen.noisy[p, k], '.2f')} averaged over its noisy copies"
-            f"{EDGE_WORDS if kept_clean[p, k] else ''}: its own noise moves "
+            f"{fmt(seen.noisy[p, k], '.2f')} averaged over its noisy copies: its own noise moves "
             f"a decision score by {fmt(seen.shift[p, k], '.2f')} through it (at most "
             f"{limits.NOISE_GATE_SHIFT:g}): a gate that shows the clean probes one model and the "
             "auction another"

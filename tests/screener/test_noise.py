@@ -178,35 +178,20 @@ def test_a_gate_placed_between_the_noisy_scans_buy_fractions_is_read_where_it_pe
     assert "moves a decision score by 1.3" in message, message
 
 
-def test_an_honest_price_gate_sharper_than_its_noise_is_accepted_at_the_noise_extreme():
-    """An outside review's false refusals: honest models whose price gate PG is three to five
-    times the design's sharpness, at σ 0.05 (the legal extreme), had been refused by
-    ``noise-gate`` (7 to 27 in 100) though they raise the price. Their PG is an edge along the
-    price, which the noisy scan reads at every cent: it is read on copies whose price is clean."""
-    rng = np.random.default_rng(12345)
-    manifests = []
-    for i in range(40):
-        document = honest_manifest(rng, f"sharp-{i}", fine_tune=i % 2 == 0).model_dump()
-        document["external_sensor"]["PG"]["activation"]["a"] *= 3 if i % 4 else 5
-        document["augmentation"] |= {"noise_std": 0.05, "copies": 2 if i % 3 else 5}
-        manifests.append(Manifest.model_validate(document))
-    verdicts = screen_many(manifests)
-    judged = zip(manifests, verdicts, strict=True)
-    refused = [(m.participant, v.reasons[0].rule) for m, v in judged if v.reasons]
-    assert refused == []
-
-
-def test_a_price_peak_narrower_than_its_noise_is_still_a_gate():
-    """Only an edge's price noise is set aside: a PG that peaks on the price (selective, √ε a
-    cent, σ 0.05) reads 0.99 on the clean fish at 5.00 and far less on its copies: a gate."""
+def test_a_price_gate_edge_sharper_than_its_noise_that_holds_only_on_its_copies_is_a_gate():
+    """PG ten times the design's sharpness at σ 0.05, its hold neuron L winning where the copies'
+    mean PG lies between 0 and 1 (near the edge, on the copies only; clean it never holds).
+    Read on copies whose price is clean, as an edge along the price would seem to allow, it
+    was accepted, and its 32 copies did 0.83 of the always-hold saboteur's harm with the
+    honest patrons fine-tuning (``tests/support/harm.py``, 8 trials, seed 1): a gate is a gate
+    whichever input its noise is on, and honest PGs that sharp at that noise stay refused."""
     document = json.loads(EXAMPLE.read_text())
-    document["augmentation"]["noise_std"] = 0.05
-    document["external_sensor"]["PG"] |= {
-        "weights": {**document["external_sensor"]["PG"]["weights"], "price": 1.0},
-        "bias": -5.0,
-        "activation": {"kind": "selective", "epsilon": 1e-4},
-    }
+    document["external_sensor"]["PG"]["activation"]["a"] = 200.0
+    document["augmentation"] |= {"noise_std": 0.05, "copies": 5}
+    document["decision"]["L"] |= {"weights": {**document["decision"]["L"]["weights"], "PG": 2.0}}
+    document["decision"]["L"]["bias"] = -0.3
+    document["decision"]["Q"] |= {"weights": {**document["decision"]["Q"]["weights"], "PG": 3.0}}
+    document["decision"]["Q"]["bias"] = -1.0
     verdict = screen(Manifest.model_validate(document))
-    message = message_of(verdict, "noise-gate", "PG")
-    assert "reads 0.99 on the clean base fish at 5.00" in message, message
-    assert "price kept clean" not in message
+    assert {(r.rule, r.neuron) for r in verdict.reasons} == {("noise-gate", "PG")}
+    assert "high-price neuron PG reads" in message_of(verdict, "noise-gate", "PG")

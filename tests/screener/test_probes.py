@@ -131,9 +131,9 @@ def test_a_model_holding_on_nearly_everything_but_the_base_fish_is_refused() -> 
 
     path = Path(__file__).parents[1] / "support" / "red_team" / "row-keyed-window-holder.json"
     verdict = screen(parse_manifest_json(path.read_text()))
-    # (its price gate's edge is sharper than its price noise too: an edge along the price,
-    # which the noisy scan reads at every cent, is no gate)
-    assert rules_of(verdict) == {("holds-on-most-items", "L")}
+    # (its price sensor's peak is narrower than its noise too, at a buy fraction between the
+    # noisy scan's: the gate, read at every buy fraction, names it as well)
+    assert rules_of(verdict) == {("holds-on-most-items", "L"), ("noise-gate", "PG")}
     assert message_of(verdict, "holds-on-most-items", "L").startswith(
         "it holds on 2650 of the 2760 probed items"
     )

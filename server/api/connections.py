@@ -243,6 +243,12 @@ class _MethodAwareParser:
 RECEIVED_AT = "srd.received_at"
 """The scope key of the moment a request's last byte was parsed (``srd serve`` only)."""
 
+PIPELINED_BEHIND = "srd.pipelined_behind"
+"""The scope key of an ``asyncio.Event`` set once another request is pipelined behind this one
+on its connection (``srd serve`` only). A long poll answers then, as if its wait were over:
+the requests behind it wait for its answer, and an upload among them, judged at arrival but
+stored when its route runs, had been made late by a long wait."""
+
 
 BODY_SLICE_BYTES = 65_536
 """What the HTTP parser reads at once (``TimedHttpProtocol.data_received``)."""
@@ -391,7 +397,15 @@ class TimedHttpProtocol(HttpToolsProtocol):
         if refusal is not None:
             self._refuse(refusal)
             raise HeaderRefusedError  # the parser stops: no body reaches an app
+        running = (
+            self.cycle if self.cycle is not None and not self.cycle.response_complete else None
+        )
+        self.scope[PIPELINED_BEHIND] = asyncio.Event()  # type: ignore[literal-required]
         super().on_headers_complete()
+        if running is not None:  # this request waits behind it: tell it
+            behind = running.scope.get(PIPELINED_BEHIND)
+            if isinstance(behind, asyncio.Event):
+                behind.set()
         self._in_body = True
         if not self.transport.is_closing():
             self._arm(self.body_timeout_s, header=False)

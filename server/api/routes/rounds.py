@@ -17,7 +17,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response, WebSocket
 from pydantic import BeforeValidator
 
-from server.api.connections import RECEIVED_AT
+from server.api.connections import PIPELINED_BEHIND, RECEIVED_AT
 from server.api.deps import (
     ArrivalsDep,
     AuctionRunnerDep,
@@ -120,26 +120,42 @@ async def read_current_round(
             raise TooManyWaitersError(_share_taken(auction_id, "long polls"))
         return release
 
-    answer = rounds.current_round(watcher, auction_id, wait_s=wait, after=after, claim=claim)
-    body = await (_unless_gone(request, answer) if wait > 0 else answer)
+    def answer(wait_s: float) -> Coroutine[Any, Any, bytes]:
+        return rounds.current_round(watcher, auction_id, wait_s=wait_s, after=after, claim=claim)
+
+    if wait == 0:
+        return Response(await answer(0.0), media_type="application/json")
+    waiting = _unless_gone(request, answer(wait), request.scope.get(PIPELINED_BEHIND))
+    body = await waiting
+    if body is None:  # a request was pipelined behind it: it answers now, as at its end
+        body = await answer(0.0)
     return Response(body, media_type="application/json")
 
 
-async def _unless_gone(request: Request, answer: Coroutine[Any, Any, bytes]) -> bytes:
+async def _unless_gone(
+    request: Request, answer: Coroutine[Any, Any, bytes], behind: object
+) -> bytes | None:
     """``answer``, unless the client goes away first: then the wait is cancelled at once, so
     it frees its share of the waits (and its client's long polls) now, not when it would
-    have ended (up to ``MAX_WAIT_S`` later); what is returned then is never sent."""
+    have ended (up to ``MAX_WAIT_S`` later); what is returned then is never sent. None, the
+    wait cancelled, once ``behind`` (``srd serve``'s event of a request pipelined behind this
+    one on its connection) is set: that request waits for this answer."""
     waiting = asyncio.ensure_future(answer)
-    gone = asyncio.ensure_future(_disconnected(request))
+    others: list[asyncio.Future[Any]] = [asyncio.ensure_future(_disconnected(request))]
+    if isinstance(behind, asyncio.Event):
+        others.append(asyncio.ensure_future(behind.wait()))
     try:
-        await asyncio.wait({waiting, gone}, return_when=asyncio.FIRST_COMPLETED)
+        await asyncio.wait({waiting, *others}, return_when=asyncio.FIRST_COMPLETED)
     finally:
-        gone.cancel()
+        for other in others:
+            other.cancel()
         if not waiting.done():
             waiting.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await waiting
-    return b"" if waiting.cancelled() else waiting.result()
+    if not waiting.cancelled():
+        return waiting.result()
+    return None if isinstance(behind, asyncio.Event) and behind.is_set() else b""
 
 
 async def _disconnected(request: Request) -> None:

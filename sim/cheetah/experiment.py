@@ -299,7 +299,8 @@ def summarise(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
         for metric in SUMMARY_METRICS:
             values = np.array([m[metric] for m in members if m[metric] is not None], dtype=float)
             row[f"mean_{metric}"] = float(values.mean()) if values.size else None
-            row[f"sd_{metric}"] = float(values.std(ddof=1)) if values.size > 1 else 0.0
+            # the sample's SD: none of fewer than two values (one trial, or none measured)
+            row[f"sd_{metric}"] = float(values.std(ddof=1)) if values.size > 1 else None
         rows.append(row)
     return rows
 

@@ -16,7 +16,10 @@ from sim.experiment import pyplot
 FIGURE_DPI = 80
 """Keeps the figures small."""
 PLOT_STRIDE = 5
-"""Plot every 5th step (0.05 s): the curves look the same and draw faster."""
+"""Plot every 5th step (0.05 s), and the last: the curves look the same and draw faster."""
+MIN_WIDTH = 7.5
+"""Inches: the displacement figure's least width, that of its title (one inhibitor value
+had cut it on both sides)."""
 
 
 def plot_displacement(path: Path, cells: Cells, displacement: np.ndarray, timestep: float) -> Path:
@@ -32,13 +35,14 @@ def plot_displacement(path: Path, cells: Cells, displacement: np.ndarray, timest
     fig, axes = plt.subplots(
         len(variants),
         len(inhibitors),
-        figsize=(4.2 * len(inhibitors), 2.8 * len(variants)),
+        figsize=(max(4.2 * len(inhibitors), MIN_WIDTH), 2.8 * len(variants)),  # the title fits
         sharex=True,
         sharey=True,
         squeeze=False,
     )
-    shown = slice(None, None, PLOT_STRIDE)
-    time = (np.arange(displacement.shape[1]) * timestep)[shown]
+    steps = displacement.shape[1]  # every PLOT_STRIDE-th step, and the last: where it ends
+    shown = np.unique(np.r_[np.arange(0, steps, PLOT_STRIDE), steps - 1])
+    time = shown * timestep
     colours = plt.get_cmap("viridis")(np.linspace(0, 0.9, len(backswings)))
     for row, (srd, lr) in enumerate(variants):
         for col, inh in enumerate(inhibitors):
@@ -90,7 +94,8 @@ def plot_lr_sweep(path: Path, runs: list[dict[str, Any]]) -> Path:
     for ax, (metric, pick, title) in zip(axes, panels, strict=True):
         baseline = [r[metric] for r in off.values() if pick(r["inhibitor"]) and r[metric]]
         if baseline:
-            title += f"\nSRD off: {np.mean(baseline):.3f} ± {np.std(baseline, ddof=1):.3f}"
+            spread = f" ± {np.std(baseline, ddof=1):.3f}" if len(baseline) > 1 else ""
+            title += f"\nSRD off: {np.mean(baseline):.3f}{spread}"
         means, sds = [], []
         for lr in lrs:
             diffs = [

@@ -12,6 +12,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import mujoco
@@ -315,6 +316,9 @@ def test_nominal_runs_land_on_the_reference_displacements(tmp_path):
     assert last["step"] == "3599"  # the last step too: its mean is the final displacement
     final = next(r for r in result["runs"] if (r["backswing"], r["inhibitor"]) == (3.0, 0.0))
     assert float(last["mean_b3_i0_nosrd"]) == pytest.approx(final["final_displacement"], abs=1e-4)
+    for row in result["summary"]:  # one trial each: a sample SD of one value is none
+        assert row["n"] == 1 and row["mean_final_displacement"] is not None
+        assert [value for key, value in row.items() if key.startswith("sd_")] == [None] * 3
 
 
 def test_runs_come_in_grid_order_with_their_fields(tmp_path):
@@ -335,6 +339,9 @@ def test_runs_come_in_grid_order_with_their_fields(tmp_path):
     assert keys[0] == "config" and keys[-2:] == ["artifacts", "elapsed_s"]
     assert result["elapsed_s"] > 0 and result["n_runs"] == 4
     assert result["video"] is None and result["video_note"] == "video off (--no-video)"
+    # one inhibitor value, one column: the figure is still as wide as its title (was 4.2 in.)
+    height, width = plt_imread(tmp_path / "displacement.png").shape[:2]
+    assert width >= 7.5 * 80 and height < width
     with pytest.raises(ConfigError, match="srd"):
         parse_config(CheetahConfig, {"srd": "sometimes"})
 
@@ -763,3 +770,10 @@ def test_the_rollout_uses_no_more_threads_than_cpus_and_gives_the_same_numbers()
     with HalfCheetahBatch(6, threads=1) as one:
         ends_one = one.advance(control, 50).copy()
     assert np.array_equal(ends_many, ends_one)
+
+
+def plt_imread(path: Path) -> Any:
+    """A PNG as an array (rows, columns, channels), read by matplotlib."""
+    import matplotlib.image
+
+    return matplotlib.image.imread(path)

@@ -513,7 +513,7 @@ export function inspectorView(view, id, { extra = null, heading = "Model", evide
         settingsFacts(manifest, [
           ["Participant", participantLink(model.participant)],
           ["Submitted", when(model.created_at)],
-          ["Auctions entered", model.auctions.length ? h("span", { id: "model-auctions" }, model.auctions.flatMap((a, i) => [i ? ", " : "", link(`#/auctions/${a}`, `auction ${a}`)]), " (newest first)") : h("span", { id: "model-auctions" }, model.auction_id !== null && model.auction_id !== undefined ? `none as a patron of its own: an upload bids for its patron, model ${model.parent_id}, in the auction it was uploaded in, when that round accepted it` : "none yet")],
+          ["Auctions entered", model.auctions.length ? h("span", { id: "model-auctions" }, model.auctions.flatMap((a, i) => [i ? ", " : "", link(`#/auctions/${a}`, `auction ${a}`)]), " (newest first)") : h("span", { id: "model-auctions" }, model.auction_id !== null && model.auction_id !== undefined ? `none as a patron of its own: an upload bids for its patron, model ${model.patron_id ?? model.parent_id}, in the auction it was uploaded in, when that round accepted it` : "none yet")],
           // An upload of a remote fine-tuning round: where it was made, and from which version.
           ...(model.auction_id !== null && model.auction_id !== undefined
             ? [["Uploaded in", [link(`#/auctions/${model.auction_id}`, `auction ${model.auction_id}`), `, fine-tuning round ${model.round}, from `, link(`#/models/${model.parent_id}`, `model ${model.parent_id}`)]]]

@@ -123,6 +123,7 @@ def check_answers(server: ServerProcess, auction_id: int, saboteurs: set[int], r
         refused = get(server, f"/models/{a['uploaded_id']}")
         assert refused["accepted"] is False and refused["reasons"]
         assert refused["parent_id"] == a["model_id"] and a["version_id"] == a["model_id"]
+        assert refused["patron_id"] == a["model_id"]  # the version it bids for
     new_versions = [
         a for _, a in answers if a["model_id"] not in saboteurs and a["uploaded_id"] is not None
     ]
@@ -131,6 +132,8 @@ def check_answers(server: ServerProcess, auction_id: int, saboteurs: set[int], r
     for round_, a in ((r, a) for r, a in answers if a in accepted):
         version = get(server, f"/models/{a['version_id']}")
         assert version["round"] == round_["round"] and version["auction_id"] == auction_id
+        # the patron it bids for, whichever earlier upload it was fine-tuned from
+        assert version["patron_id"] == a["model_id"]
     assert report["uploads"]["accepted"] >= len(accepted)
 
 

@@ -392,6 +392,8 @@ def test_upload_refusals_name_the_field_and_store_nothing(
     assert stored_versions(client, name) == 2
     version = client.get(f"/models/{answer['model_id']}").json()
     assert version["parent_id"] == model_id and version["auction_id"] == auction_id
+    assert version["patron_id"] == model_id  # round 1: fine-tuned from its patron
+    assert client.get(f"/models/{model_id}").json()["patron_id"] is None  # no upload
     assert version["round"] == 1 and version["version"] == 2 and version["accepted"]
     assert parse_manifest(version["manifest"]) == tuned
     assert client.get(f"/models/{model_id}").json()["auctions"][0] == auction_id

@@ -132,6 +132,7 @@ def model_public(row: crud.StoredModel) -> ModelPublic:
         parent_id=row.parent_id,
         auction_id=row.auction_id,
         round=row.round,
+        patron_id=row.patron_id,
         auctions=list(row.auctions),
     )
 

@@ -77,6 +77,9 @@ class ModelPublic(Schema):
     """The auction whose fine-tuning round produced this version."""
     round: int | None = None
     """That round's number."""
+    patron_id: int | None = None
+    """The version its participant entered that auction with, for which this upload bids
+    (uploads of remote rounds only; ``parent_id`` is the version it was fine-tuned from)."""
     auctions: list[int] = Field(default_factory=list)
     """Auctions this model entered as a patron, newest first (at most ``MAX_LISTED_AUCTIONS``)."""
 

@@ -65,6 +65,9 @@ class StoredModel:
     """Auctions it entered as a patron, newest first (``get_model_view`` only)."""
     reviews: tuple[ReviewEntry, ...] = ()
     """Its audit log, oldest first (``get_model_view`` only)."""
+    patron_id: int | None = None
+    """For an upload of a remote round, the version its participant entered that auction with,
+    for which it bids (``get_model_view`` only)."""
 
 
 @dataclass(frozen=True)
@@ -194,8 +197,8 @@ def get_model(session: Session, *, model_id: int) -> StoredModel | None:
 
 
 def get_model_view(session: Session, *, model_id: int, auctions: int) -> StoredModel | None:
-    """``get_model`` with the ``auctions`` newest auctions it entered and its audit log (three
-    queries)."""
+    """``get_model`` with the ``auctions`` newest auctions it entered, its audit log and, for
+    an upload, its patron (three or four queries)."""
     row = get_model(session, model_id=model_id)
     if row is None:
         return None
@@ -205,8 +208,22 @@ def get_model_view(session: Session, *, model_id: int, auctions: int) -> StoredM
         .where(Review.model_id == model_id)
         .order_by(Review.id)
     )
+    patron = None
+    if row.auction_id is not None:  # one participant, one patron in an auction
+        owner = select(ModelVersion.participant_id).where(ModelVersion.id == model_id)
+        patron = session.connection().scalar(
+            select(AuctionPatron.model_id)
+            .join(ModelVersion, ModelVersion.id == AuctionPatron.model_id)
+            .where(
+                AuctionPatron.auction_id == row.auction_id,
+                ModelVersion.participant_id == owner.scalar_subquery(),
+            )
+        )
     return dataclasses.replace(
-        row, auctions=tuple(entered), reviews=tuple(ReviewEntry(*entry) for entry in log)
+        row,
+        auctions=tuple(entered),
+        reviews=tuple(ReviewEntry(*entry) for entry in log),
+        patron_id=patron,
     )
 
 

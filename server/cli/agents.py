@@ -33,7 +33,7 @@ from agents.remote import (
 )
 from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_ROW_ID, MAX_SEED, ROUND_DEADLINE_S
 from server.cli.launch import server_url
-from server.cli.words import FiniteRange, json_failure
+from server.cli.words import FiniteRange, IntegerRange, json_failure
 
 OPTIONS = {
     "tokens_file": "--tokens",
@@ -193,21 +193,21 @@ def _summary(report: PopulationReport) -> Table:
 )
 @click.option(
     "--honest",
-    type=click.IntRange(0, MAX_AGENTS),
+    type=IntegerRange(0, MAX_AGENTS),
     default=6,
     show_default=True,
     help="Honest agents (the paper's randomisation), fine-tuning faithfully.",
 )
 @click.option(
     "--saboteurs",
-    type=click.IntRange(0, MAX_AGENTS),
+    type=IntegerRange(0, MAX_AGENTS),
     default=0,
     show_default=True,
     help="Bait-and-switch agents: honest-looking model, then always-hold uploads.",
 )
 @click.option(
     "--auction",
-    type=click.IntRange(1, MAX_ROW_ID),
+    type=IntegerRange(1, MAX_ROW_ID),
     default=None,
     help="An enrolling auction (created with enrollment_s) for the agents' accepted models "
     "to join; one that takes no patrons is refused before anything is registered [default: "
@@ -215,7 +215,7 @@ def _summary(report: PopulationReport) -> Table:
 )
 @click.option(
     "--seed",
-    type=click.IntRange(0),
+    type=IntegerRange(0),
     default=0,
     show_default=True,
     help="Seeds the agents' models: same seed, same models.",
@@ -238,7 +238,7 @@ def _summary(report: PopulationReport) -> Table:
 )
 @click.option(
     "--rounds",
-    type=click.IntRange(1, MAX_FINE_TUNE_ROUNDS),
+    type=IntegerRange(1, MAX_FINE_TUNE_ROUNDS),
     default=4,
     show_default=True,
     help="Created auction: fine-tuning rounds.",
@@ -252,7 +252,7 @@ def _summary(report: PopulationReport) -> Table:
 )
 @click.option(
     "--auction-seed",
-    type=click.IntRange(0, MAX_SEED),
+    type=IntegerRange(0, MAX_SEED),
     default=0,
     show_default=True,
     help="Created auction: its seed.",

@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING
 
 import click
 
+from server.cli.words import IntegerRange
+
 if TYPE_CHECKING:
     from server.config import Settings
 
@@ -162,7 +164,7 @@ def _drain(app: object) -> None:
     help="Bind address [default: SRD_HOST or 127.0.0.1].",
 )
 @click.option(
-    "--port", type=click.IntRange(0, 65535), default=None, help="Port [default: SRD_PORT or 8000]."
+    "--port", type=IntegerRange(0, 65535), default=None, help="Port [default: SRD_PORT or 8000]."
 )
 @click.option(
     "--log-level",

@@ -30,7 +30,7 @@ from rich.table import Table
 from rich.text import Text
 
 from server.cli.launch import server_url
-from server.cli.words import FiniteRange, json_failure
+from server.cli.words import FiniteRange, IntegerRange, json_failure
 
 FINISHED, ENDED_OTHERWISE, LOST = 0, 1, 3
 """Exit codes: the auction finished; it failed or was cancelled; it could not be followed
@@ -370,7 +370,11 @@ def end_line(watched: Watched) -> str:
     revenue = sum(p["price"] for row in watched.iterations for p in row.get("purchases", []))
     line = (
         f"auction {watched.auction_id} {end.get('status')}"
-        + (f" ({end['stop_reason']})" if end.get("stop_reason") else "")
+        + (
+            f" ({end['stop_reason']})"
+            if end.get("stop_reason") not in (None, "", end.get("status"))  # not "cancelled" twice
+            else ""
+        )
         + f" after {end.get('iterations')} iteration{'' if end.get('iterations') == 1 else 's'}: "
         f"{end.get('n_sold', sold)} of "
         f"{end.get('n_initial')} fish sold, revenue {price(revenue)}, "
@@ -424,7 +428,7 @@ def live_view(watched: Watched) -> Group:
 
 
 @click.command("watch")
-@click.argument("auction_id", type=click.IntRange(1, MAX_AUCTION_ID))
+@click.argument("auction_id", type=IntegerRange(1, MAX_AUCTION_ID))
 @click.option(
     "--server",
     envvar="SRD_URL",

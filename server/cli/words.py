@@ -71,6 +71,13 @@ def json_failure(
     sys.stdout.write(json.dumps(obj) + "\n")
 
 
+class IntegerRange(click.IntRange):
+    """``click.IntRange`` whose refusal of what is no integer says so ("'abc' is not a valid
+    integer"; click's says "integer range", as if a range had been asked for)."""
+
+    name = "integer"
+
+
 class FiniteRange(click.FloatRange):
     """``click.FloatRange`` that also refuses ``nan`` and ``inf`` (a usage error naming the
     option, exit 2): click's own range lets NaN through, every comparison with it being

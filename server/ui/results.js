@@ -46,9 +46,9 @@ export function kindLayouts() {
   return layouts;
 }
 
-/** A column or field name in words: "mean_price" → "Mean price". */
+/** A column or field name in words: "mean_price" → "Mean price", "sd_price" → "SD of price". */
 export function words(name) {
-  const text = WORDS[name] || name.replaceAll("_", " ");
+  const text = WORDS[name] || name.replace(/^sd_/, "SD of ").replaceAll("_", " ");
   return text.charAt(0).toUpperCase() + text.slice(1);
 }
 

@@ -320,6 +320,8 @@ def test_an_out_folder_that_cannot_be_written_is_refused_before_the_run(out, wor
             "at least one fish",
         ),
         (["watch", "1", "--server", "http://127.0.0.1:9"], 3, None, "ConnectError"),
+        (["watch", "abc"], 2, None, "'AUCTION_ID': 'abc' is not a valid integer."),
+        (["agents", "--auction", "x"], 2, "--auction", "'x' is not a valid integer."),
     ],
 )
 def test_every_failure_under_json_is_one_object_on_stdout(args, code, option, words) -> None:

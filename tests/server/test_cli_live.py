@@ -304,7 +304,7 @@ def test_a_server_that_never_answers_is_named_not_a_dropped_stream() -> None:
 
 def test_a_cancelled_auction_ends_the_watch_with_exit_1(dropping) -> None:
     url, handler = dropping
-    cancelled = {**END, "status": "cancelled", "iterations": 1}
+    cancelled = {**END, "status": "cancelled", "iterations": 1, "stop_reason": "cancelled"}
     closed = {"round": 1, "iteration": 0, "status": "closed", "answers": []}
     handler.plan = [
         [("iteration", "0", iteration(0)), ("round", "0.1", closed), ("end", None, cancelled)]

@@ -1001,6 +1001,8 @@ def test_job_page_opens_on_its_headline_cards_tables_and_figures(
     assert table.locator("tbody tr").count() == len(result["rows"])
     headers = [th.text_content() for th in table.locator("th").all()]
     assert "Mean price" in headers and "Purchase rate" in headers and "mean_price" not in headers
+    named = "async () => (await import('/ui/results.js')).words('sd_inhibited_abs_speed')"
+    assert page.evaluate(named) == "SD of inhibited abs speed"  # as "SD of final displacement"
     # Every column of the rows, those the kind names first (they had hidden the others).
     scalar = [k for k, v in result["rows"][0].items() if not isinstance(v, dict | list)]
     assert table.locator("thead th").count() == len(scalar), headers

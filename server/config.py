@@ -179,6 +179,9 @@ class Settings(BaseSettings):
     first byte, or from connecting), else it is answered 408 and closed."""
     body_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
     """``srd serve``: a request's whole body must arrive this soon after its header."""
+    send_timeout_s: Annotated[float, Field(gt=0, le=600)] = 30.0
+    """``srd serve``: a connection whose peer reads nothing of an answer for this long (the
+    server's send buffer full the whole time) is closed."""
     max_header_bytes: Annotated[int, Field(ge=4096, le=1 << 20)] = 65_536
     """``srd serve``: a request header larger than this is answered 431 and closed."""
     keep_alive_s: Annotated[float, Field(gt=0, le=300)] = 5.0

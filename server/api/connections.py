@@ -260,6 +260,9 @@ class TimedHttpProtocol(HttpToolsProtocol):
 
     header_timeout_s = 10.0
     body_timeout_s = 30.0
+    send_timeout_s = 30.0
+    """An answer the peer reads none of for this long (the transport's buffer full the whole
+    time) ends its connection."""
     max_header_bytes = 65_536
     max_body_bytes = 262_144
     max_per_address = 512
@@ -288,6 +291,8 @@ class TimedHttpProtocol(HttpToolsProtocol):
         self._in_body = False  # between a request's header and its end: self.cycle is its own
         self._begun = False  # the parser is in a request (its line has begun)
         self._after_response: bytes | None = None  # a refusal waiting for the answer in flight
+        self._stall: asyncio.TimerHandle | None = None  # armed while the peer reads nothing
+        self._running: Any = None  # the cycle whose app runs (pipelined ones wait behind it)
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -309,6 +314,13 @@ class TimedHttpProtocol(HttpToolsProtocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm()
+        self._unstall()
+        running = self._running
+        if running is not None and running is not self.cycle and not running.response_complete:
+            # uvicorn tells only the last request parsed (one pipelined behind): the one
+            # running is told too, so that an event stream or an answer being sent ends now
+            running.disconnected = True
+            running.message_event.set()
         self._uncount()
         if self._lingering is not None:
             self.lingering[self._lingering] -= 1
@@ -316,6 +328,30 @@ class TimedHttpProtocol(HttpToolsProtocol):
                 del self.lingering[self._lingering]
             self._lingering = None
         super().connection_lost(exc)
+
+    def _start_asgi_task(self, cycle: Any, app: Any) -> None:
+        self._running = cycle
+        super()._start_asgi_task(cycle, app)
+
+    def pause_writing(self) -> None:
+        super().pause_writing()
+        if self._stall is None:
+            self._stall = self.loop.call_later(self.send_timeout_s, self._stalled)
+
+    def resume_writing(self) -> None:
+        self._unstall()
+        super().resume_writing()
+
+    def _unstall(self) -> None:
+        if self._stall is not None:
+            self._stall.cancel()
+            self._stall = None
+
+    def _stalled(self) -> None:
+        """The peer read nothing of an answer for ``send_timeout_s``: its connection ends (the
+        kernel's buffers and the answer's file and memory held for it are freed)."""
+        self._stall = None
+        self.transport.abort()
 
     def data_received(self, data: bytes) -> None:
         # Parsed in slices, so that a body's bytes on the wire are counted (at most one slice
@@ -587,6 +623,7 @@ def timed_protocol(
     max_header_bytes: int,
     max_per_address: int,
     max_body_bytes: int = TimedHttpProtocol.max_body_bytes,
+    send_timeout_s: float = TimedHttpProtocol.send_timeout_s,
     exempt: list[str] | tuple[str, ...] = (),
 ) -> type[TimedHttpProtocol]:
     """The protocol class of ``srd serve`` with these limits (``exempt``: addresses or
@@ -597,6 +634,7 @@ def timed_protocol(
         {
             "header_timeout_s": header_timeout_s,
             "body_timeout_s": body_timeout_s,
+            "send_timeout_s": send_timeout_s,
             "max_header_bytes": max_header_bytes,
             "max_per_address": max_per_address,
             "max_body_bytes": max_body_bytes,

@@ -254,6 +254,7 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         http=timed_protocol(
             header_timeout_s=settings.header_timeout_s,
             body_timeout_s=settings.body_timeout_s,
+            send_timeout_s=settings.send_timeout_s,
             max_header_bytes=settings.max_header_bytes,
             max_per_address=settings.max_connections_per_address,
             max_body_bytes=settings.max_body_bytes,

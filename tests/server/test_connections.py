@@ -9,15 +9,18 @@ Clients bind distinct loopback addresses (Linux routes all of 127/8 to the loopb
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import socket
 import time
 from collections.abc import Iterator
 from typing import Any
 
+import httpx
 import pytest
 
 from server.cli.launch import ServerProcess
-from tests.support.server import module_server
+from tests.support.server import ADMIN, module_server
 
 SHARE = 8
 HOARDER = "127.0.0.11"
@@ -25,6 +28,8 @@ NEIGHBOUR = "127.0.0.12"
 PROXY = "127.0.0.13"
 MAX_HEADER_BYTES = 16_384
 BODY_TIMEOUT_S = 3
+SEND_TIMEOUT_S = 2
+STREAMS = 2
 
 
 @pytest.fixture(scope="module")
@@ -34,6 +39,8 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
         "SRD_MAX_HEADER_BYTES": str(MAX_HEADER_BYTES),
         "SRD_TRUSTED_PROXIES": PROXY,
         "SRD_BODY_TIMEOUT_S": str(BODY_TIMEOUT_S),
+        "SRD_SEND_TIMEOUT_S": str(SEND_TIMEOUT_S),
+        "SRD_LIMIT_CLIENT_STREAMS": str(STREAMS),
     }
     yield from module_server(tmp_path_factory, "connections", env)
 
@@ -300,6 +307,61 @@ def test_a_body_that_does_not_arrive_in_time_gets_408(server: ServerProcess) -> 
         item = _detail(answer.partition(b"\r\n\r\n")[2])
         assert item["type"] == "body_timeout" and item["loc"] == ["connection"]
         assert BODY_TIMEOUT_S - 0.5 < took < BODY_TIMEOUT_S + 20, took
+
+
+def test_a_peer_that_reads_none_of_its_answers_is_disconnected(server: ServerProcess) -> None:
+    """Three pipelined GETs of a 1.5 MB script on a connection whose peer never reads: the
+    server's send buffer fills and stays full. Past SRD_SEND_TIMEOUT_S the connection ends (it
+    had been held for ever, a file and megabytes of kernel memory with it)."""
+    size = len(httpx.get(f"{server.url}/ui/vendor/swagger-ui-bundle.js", timeout=30).content)
+    request = b"GET /ui/vendor/swagger-ui-bundle.js HTTP/1.1\r\nHost: test\r\n\r\n"
+    with socket.socket() as peer:
+        peer.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
+        peer.bind(("127.0.0.14", 0))
+        peer.connect(("127.0.0.1", server.port))
+        peer.sendall(request * 3)
+        time.sleep(SEND_TIMEOUT_S + 2)  # reading nothing
+        peer.settimeout(10)
+        received = 0
+        with contextlib.suppress(ConnectionResetError):
+            while chunk := peer.recv(1 << 16):
+                received += len(chunk)
+    assert received < 3 * size  # ended before its answers were sent (else they all come)
+
+
+def test_a_stream_with_a_request_pipelined_behind_it_ends_when_its_client_leaves(
+    server: ServerProcess,
+) -> None:
+    """An event stream with a request pipelined behind it on its connection: once its client
+    leaves, its place is free at once (uvicorn had told only the request behind it, so the
+    stream held its client's share until a keep-alive write failed, and logged a traceback)."""
+    created = httpx.post(
+        f"{server.url}/auctions", json={"n_fish": 1, "enrollment_s": 3000}, headers=ADMIN
+    )
+    path = f"/auctions/{created.json()['auction_id']}/events"
+    stream = f"GET {path} HTTP/1.1\r\nHost: test\r\n\r\n".encode()
+    behind = b"GET /healthz HTTP/1.1\r\nHost: test\r\n\r\n"
+    before = server.log_path.read_text().count("Exception in ASGI application")
+    peers = []
+    for _ in range(STREAMS):  # the address's whole share, each with a request behind it
+        peer = socket.create_connection(
+            ("127.0.0.1", server.port), source_address=("127.0.0.15", 0)
+        )
+        peer.sendall(stream + behind)
+        peer.settimeout(10)
+        assert peer.recv(4096).startswith(b"HTTP/1.1 200"), "the stream did not open"
+        peers.append(peer)
+    for peer in peers:
+        peer.close()
+    time.sleep(0.5)
+    transport = httpx.HTTPTransport(local_address="127.0.0.15")
+    with (
+        httpx.Client(transport=transport) as client,
+        client.stream("GET", f"{server.url}{path}", timeout=10) as again,
+    ):
+        assert again.status_code == 200  # its share is free again (429 had held 15 s)
+    time.sleep(0.5)
+    assert server.log_path.read_text().count("Exception in ASGI application") == before
 
 
 def test_a_chunked_body_is_bounded_by_its_framing_and_its_trailer(server: ServerProcess) -> None:

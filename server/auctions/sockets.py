@@ -50,11 +50,11 @@ from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from server.api.body import BodyRefusedError, parse_strict_json
 from server.api.connections import TokenBucket
-from server.api.errors import RequestError, capped, error_item
+from server.api.errors import RequestError, capped, database_unavailable, error_item
 from server.api.limits import CLOSE_TRY_AGAIN_LATER
 from server.api.schemas import MAX_FINE_TUNE_ROUNDS, MAX_ROW_ID
 from server.live.rounds import MAX_WAIT_S, Published, RoundWatcher, TooManyWaitersError
-from server.store.db import is_database_outage
+from server.store.db import first_line, is_database_outage
 from server.store.tables import utcnow
 
 log = logging.getLogger("srd.rounds")
@@ -310,7 +310,11 @@ async def _handle(text: bytes, upload: UploadHandler, arrived: datetime) -> str:
         answer = await upload(message.round, message.model_id, body, arrived)
     except RequestError as exc:
         return _refusal(message.round, message.model_id, exc)
-    except Exception:  # a fault of ours: the agent hears 500, as a PUT would, and may retry
+    except Exception as exc:
+        if is_database_outage(exc):  # as a PUT hears it: 503, for the agent to try again
+            log.warning("an upload on a round socket met a database outage: %s", first_line(exc))
+            return _refusal(message.round, message.model_id, database_unavailable(exc))
+        # a fault of ours: the agent hears 500, as a PUT would, and may retry
         log.exception("an upload on a round socket failed")
         return _error(message, 500, "internal server error", ("message",), "internal")
     return (

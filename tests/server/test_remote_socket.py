@@ -14,6 +14,7 @@ from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy.pool import NullPool
 from starlette.testclient import WebSocketDenialResponse
 from starlette.websockets import WebSocketDisconnect
 
@@ -376,6 +377,53 @@ def test_a_socket_whose_rounds_cannot_be_read_is_closed_for_the_agent_to_reconne
         with pytest.raises(WebSocketDisconnect) as closed:
             ws.receive_text()
     assert closed.value.code == 1011 and "reconnect" in closed.value.reason
+
+
+def test_an_upload_whose_database_connection_is_cut_hears_503_and_counts_on_its_retry(
+    client: TestClient, settings: Settings, busy: dict[str, Any]
+) -> None:
+    """The database connection under a socket upload is cut (PostgreSQL terminates it, as a
+    restart or a failover does): the answer is the 503 a PUT would get, which an agent waits out
+    and retries. It had been a 500, and ``srd agents`` had dropped such agents for the rest of
+    the auction. The retry is accepted."""
+    if is_sqlite(settings.database_url):
+        pytest.skip("PostgreSQL cuts a connection under an upload")
+    from sqlalchemy import create_engine, text
+
+    position = busy["asked"][1]
+    model_id, token = busy["patrons"][position]
+    good = tuned_bytes(busy, position)
+    holder = create_engine(settings.database_url, poolclass=NullPool)
+    with client.websocket_connect(socket_path(busy["id"]), headers=bearer(token)) as ws:
+        assert json.loads(ws.receive_text())["type"] == "round"
+        with holder.connect() as locking:
+            locking.execute(text("LOCK TABLE fine_tune_answers IN ACCESS EXCLUSIVE MODE"))
+            ws.send_text(upload_text(1, model_id, good.decode()))
+            waiting: list[int] = []
+            deadline = time.monotonic() + 20
+            while not waiting:  # the upload's write, waiting for the lock
+                assert time.monotonic() < deadline, "the upload never waited for the lock"
+                time.sleep(0.05)
+                with holder.connect() as looking:
+                    waiting = list(
+                        looking.scalars(
+                            text(
+                                "SELECT pid FROM pg_stat_activity WHERE wait_event_type = 'Lock'"
+                                " AND datname = current_database()"
+                            )
+                        )
+                    )
+            with holder.connect() as cutting:
+                for pid in waiting:
+                    cutting.execute(text("SELECT pg_terminate_backend(:pid)"), {"pid": pid})
+            locking.rollback()
+        frame = answer_of(ws)
+    holder.dispose()
+    assert frame["status"] == 503, frame
+    (item,) = frame["body"]["detail"]
+    assert item["type"] == "db_unavailable", item
+    retried = put(client, busy["id"], 1, model_id, good, token)
+    assert retried.status_code == 200 and retried.json()["outcome"] == "accepted", retried.text
 
 
 def test_a_token_has_two_uploads_in_flight_at_most_over_sockets_too(

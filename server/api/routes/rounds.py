@@ -125,8 +125,7 @@ async def read_current_round(
 
     if wait == 0:
         return Response(await answer(0.0), media_type="application/json")
-    waiting = _unless_gone(request, answer(wait), request.scope.get(PIPELINED_BEHIND))
-    body = await waiting
+    body = await _unless_gone(request, answer(wait), request.scope.get(PIPELINED_BEHIND))
     if body is None:  # a request was pipelined behind it: it answers now, as at its end
         body = await answer(0.0)
     return Response(body, media_type="application/json")

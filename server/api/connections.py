@@ -433,13 +433,11 @@ class TimedHttpProtocol(HttpToolsProtocol):
         if refusal is not None:
             self._refuse(refusal)
             raise HeaderRefusedError  # the parser stops: no body reaches an app
-        running = (
-            self.cycle if self.cycle is not None and not self.cycle.response_complete else None
-        )
+        running = self._running
         self.scope[PIPELINED_BEHIND] = asyncio.Event()  # type: ignore[literal-required]
         super().on_headers_complete()
-        if running is not None:  # this request waits behind it: tell it
-            behind = running.scope.get(PIPELINED_BEHIND)
+        if running is not None and not running.response_complete:  # this request waits
+            behind = running.scope.get(PIPELINED_BEHIND)  # behind it: tell it
             if isinstance(behind, asyncio.Event):
                 behind.set()
         self._in_body = True

@@ -10,10 +10,7 @@ from datetime import datetime
 from typing import Any
 
 import numpy as np
-import torch
 
-from agents.batch import from_manifests, to_manifest
-from agents.fine_tuning import fine_tune_round
 from agents.manifest import Manifest
 from agents.negotiator import saboteur_manifest
 
@@ -61,6 +58,11 @@ def faithful_fine_tune(manifest: Manifest, info: RoundInfo) -> Manifest:
     position."""
     if manifest.fine_tuning.epochs == 0:
         return manifest
+    import torch  # on first use: a command that only checks its options never loads it
+
+    from agents.batch import from_manifests, to_manifest
+    from agents.fine_tuning import fine_tune_round
+
     tuned = fine_tune_round(
         from_manifests([manifest]),
         torch.from_numpy(info.rows),

@@ -13,7 +13,6 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import click
-import torch
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, Progress, TaskID, TextColumn, TimeElapsedColumn
@@ -316,7 +315,6 @@ def command(
     """Run remote agents that submit and fine-tune over HTTP: register the population, join
     (or wait for, or create) a remote fine-tuning auction, answer every round with each
     agent's own fine-tuning, follow the auction to its end and summarise."""  # fmt: skip
-    torch.set_num_threads(1)  # each agent fine-tunes one tiny model: more threads only contend
     err = Console(stderr=True)
     waiting = None  # said once the options are read: the agents will wait for an auction
     if admin_token is None and auction is None:
@@ -363,6 +361,9 @@ def command(
         raise SystemExit(INVALID) from exc
     if waiting is not None:
         err.print(waiting, highlight=False, soft_wrap=True)
+    import torch  # only for a run: a bad option is told without loading it
+
+    torch.set_num_threads(1)  # each agent fine-tunes one tiny model: more threads only contend
     with Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),

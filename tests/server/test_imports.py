@@ -62,11 +62,13 @@ def test_srd_answers_help_and_bad_input_without_torch(tmp_path: Path) -> None:
     assert _loaded(helped) == []
     refused = f"{run}assert CliRunner().invoke(cli, ['screen', {str(bad)!r}]).exit_code == 2"
     assert _loaded(refused) == []
-    for kind in ("fish", "lavaland", "cheetah"):
+    for kind in ("fish", "lavaland", "cheetah", "agents"):
         bad_option = (
             f"{run}assert CliRunner().invoke(cli, [{kind!r}, '--seed', '-1']).exit_code == 2"
         )
         assert _loaded(bad_option) == [], kind
+    helped = f"{run}assert CliRunner().invoke(cli, ['agents', '--help']).exit_code == 0"
+    assert _loaded(helped) == []
 
 
 def test_the_market_rules_and_the_verdict_type_load_without_torch() -> None:

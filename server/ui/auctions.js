@@ -1,7 +1,7 @@
 // Auctions: the list, and one auction followed live from its event stream.
 
 import { firstRead, follow, getJSON, keepCurrent, pager } from "./api.js";
-import { facts, fill, fixed, fixedApart, h, link, notFound, passed, patch, plural, problem, scrolling, svg, table, tableRow, votePatterns, when } from "./dom.js";
+import { facts, fill, fixed, fixedApart, h, link, notFound, passed, patch, plural, problem, recordedPrice, scrolling, svg, table, tableRow, votePatterns, when } from "./dom.js";
 
 const STOP_REASONS = {
   sold_out: "sold out",
@@ -358,7 +358,7 @@ export function auctionView(view, id) {
         fill(
           roundVotes,
           scrolling(
-            table(`Every vote in iteration ${iteration} at price ${fixed(all.row.price)}: ${counts}. B, L, Q are the decision logits (the largest is the vote); T and F the PFC's verdict on it`, ["Patron", "Bid with", "Vote", "B", "L", "Q", "T", "F", "Explain"], rows, { id: "round-votes-table", "data-iteration": iteration }),
+            table(`Every vote in iteration ${iteration} at price ${recordedPrice(all.row.price)}: ${counts}. B, L, Q are the decision logits (the largest is the vote); T and F the PFC's verdict on it`, ["Patron", "Bid with", "Vote", "B", "L", "Q", "T", "F", "Explain"], rows, { id: "round-votes-table", "data-iteration": iteration }),
             `Every vote in iteration ${iteration} (scrolls)`,
             true,
           ),

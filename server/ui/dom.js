@@ -103,6 +103,12 @@ export function fixed(value, digits = 3) {
   return value === null || value === undefined ? "—" : Number(value).toFixed(digits);
 }
 
+/** A price the network read, shown as the auction's record keeps it (5 decimals) and shows it
+ * (3): 5.0675029 reads 5.067, as its iteration's row (5.0675), not 5.068. */
+export function recordedPrice(value) {
+  return fixed(Number(Number(value).toFixed(5)));
+}
+
 /** Numbers shown side by side with `digits` decimals, or with more (up to 8) where two that
  * differ would look alike: a vote's logits never show a tie that was not one. */
 export function fixedApart(values, digits = 3) {

@@ -1003,6 +1003,10 @@ def test_job_page_opens_on_its_headline_cards_tables_and_figures(
     assert "Mean price" in headers and "Purchase rate" in headers and "mean_price" not in headers
     named = "async () => (await import('/ui/results.js')).words('sd_inhibited_abs_speed')"
     assert page.evaluate(named) == "SD of inhibited abs speed"  # as "SD of final displacement"
+    # a price the network read is shown as its iteration's record shows it (5 decimals, then 3):
+    # an outside review saw one iteration at 5.067 in its row and 5.068 above its votes
+    shown = "async () => (await import('/ui/dom.js')).recordedPrice(5.067502900811699)"
+    assert page.evaluate(shown) == page.evaluate("() => (5.0675).toFixed(3)") == "5.067"
     # Every column of the rows, those the kind names first (they had hidden the others).
     scalar = [k for k, v in result["rows"][0].items() if not isinstance(v, dict | list)]
     assert table.locator("thead th").count() == len(scalar), headers

@@ -17,6 +17,7 @@ test*).
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 import time
 from collections import Counter
@@ -58,19 +59,9 @@ then sharper sensors at that extreme and at the default σ 0.01."""
 def varied(base: list[dict], sensor: str, factor: float, copies: int, std: float) -> list[Manifest]:
     manifests = []
     for document in base:
-        changed = {**document, "augmentation": {**document["augmentation"]}}
-        changed["external_sensor"] = {
-            **document["external_sensor"],
-            sensor: {
-                **document["external_sensor"][sensor],
-                "activation": {
-                    **document["external_sensor"][sensor]["activation"],
-                    "a": document["external_sensor"][sensor]["activation"]["a"] * factor,
-                },
-            },
-        }
-        changed["augmentation"]["copies"] = copies
-        changed["augmentation"]["noise_std"] = std
+        changed = copy.deepcopy(document)
+        changed["external_sensor"][sensor]["activation"]["a"] *= factor
+        changed["augmentation"] |= {"copies": copies, "noise_std": std}
         manifests.append(parse_manifest(changed))
     return manifests
 

@@ -99,7 +99,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         RequestBodyMiddleware, max_bytes=settings.max_body_bytes, smaller=(rounds.UPLOAD_BODY,)
     )
     app.add_middleware(ClientLimitsMiddleware, settings=settings)  # before any body is read
-    app.add_middleware(SecurityHeadersMiddleware)  # outermost: every answer has its headers
+    app.add_middleware(  # outermost: every answer has its headers
+        SecurityHeadersMiddleware, allowed_hosts=settings.allowed_host_names
+    )
     routers = (health, models, reviews, participants, auctions, rounds, jobs, events, ui)
     for module in routers:  # any request may carry an unreadable body
         checks = [] if module is ui else [Depends(known_query)]  # API routes: no unknown query

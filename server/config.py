@@ -197,6 +197,12 @@ class Settings(BaseSettings):
     """Comma-separated addresses or networks (``10.0.0.0/8``) of the reverse proxies whose
     ``X-Forwarded-For`` / ``X-Forwarded-Proto`` name the client; empty: nobody's (a direct
     client cannot choose the address its quotas and limits count against)."""
+    allowed_hosts: str = ""
+    """Comma-separated host names (``auction.example.com``, ``*.example.com``) under which
+    browsers' pages may send writes, besides IP addresses and ``localhost``; ``*``: any. A page
+    at any other name that resolves to this server (DNS rebinding) is refused 403
+    ``host_not_allowed``. Requests no page sent (scripts, ``srd``, a typed URL) are not
+    concerned."""
     host: str = "127.0.0.1"
     """Address ``srd serve`` binds by default."""
     port: Annotated[int, Field(ge=0, le=65535)] = 8000
@@ -246,6 +252,17 @@ class Settings(BaseSettings):
                 raise ValueError(f"{entry!r} is not an IP address or network") from exc
         return value
 
+    @field_validator("allowed_hosts")
+    @classmethod
+    def _host_names(cls, value: str) -> str:
+        for entry in _split(value):
+            if entry != "*" and HOST_PATTERN.fullmatch(entry) is None:
+                raise ValueError(
+                    f"{entry!r} is not a host name (letters, digits, '-' and '.', a leading "
+                    "'*.' for every subdomain, or '*' for any; no scheme or port)"
+                )
+        return value.lower()
+
     @field_validator("host")
     @classmethod
     def _some_host(cls, value: str) -> str:
@@ -271,6 +288,11 @@ class Settings(BaseSettings):
         return _split(self.trusted_proxies)
 
     @property
+    def allowed_host_names(self) -> tuple[str, ...]:
+        """``allowed_hosts``, each entry once, lower case."""
+        return tuple(dict.fromkeys(_split(self.allowed_hosts)))
+
+    @property
     def admin_token_file(self) -> Path:
         """Where a generated admin token is kept (mode 0600)."""
         return self.data_dir / "admin_token"
@@ -283,6 +305,8 @@ class Settings(BaseSettings):
 
 OPERATOR_TOKEN = re.compile(r"[\x21-\x7e]{1,4096}")
 """An operator token as a client can present it: printable ASCII without white space."""
+HOST_PATTERN = re.compile(r"(\*\.)?[a-z0-9-]{1,63}(\.[a-z0-9-]{1,63})*\.?", re.ASCII | re.I)
+"""An ``allowed_hosts`` entry: a DNS name, ``*.`` before it for every name under it."""
 
 
 def token_problem(token: str) -> str | None:

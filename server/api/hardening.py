@@ -14,7 +14,8 @@ one, and reading it cost the event loop 1.5 ms a KB); a write (any method but ``
 (``Sec-Fetch-Site: cross-site`` or ``same-site``; without that header, an ``Origin`` of
 another host; 403: another site's page would otherwise make its visitors register
 participants and spend their addresses' quotas; the API's own clients and the web view are
-neither).
+neither), or that a page sent to a host name the server does not answer pages at (403: DNS
+rebinding; ``_unlisted_host``).
 ``RedactQueryFilter`` blanks such parameters (and any other whose name says secret) in
 uvicorn's access log lines, and cuts a line's path to ``MAX_LOGGED_PATH`` characters.
 
@@ -26,6 +27,7 @@ answer 405. A stream (an event stream) ends there too.
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import re
 from collections import Counter
@@ -80,8 +82,9 @@ tried at every character, a long query without "=" was scanned from each (60 KB:
 class SecurityHeadersMiddleware:
     """Security headers on every answer; 400 for a token in the query (module docstring)."""
 
-    def __init__(self, app: ASGIApp) -> None:
+    def __init__(self, app: ASGIApp, allowed_hosts: tuple[str, ...] = ()) -> None:
         self.app = app
+        self.allowed_hosts = allowed_hosts
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] not in ("http", "websocket"):
@@ -103,6 +106,20 @@ class SecurityHeadersMiddleware:
                 message = "a request another site's page sent is refused for what it writes"
                 loc = ("header", foreign)
                 await _refuse(scope, receive, _with_headers(send), message, loc, "cross_site", 403)
+                return
+            name = _unlisted_host(scope["headers"], self.allowed_hosts)
+            if name is not None:
+                message = (
+                    f"a page at the host name {cut(name)!r} sent this write, and this server "
+                    "takes writes from pages at IP addresses, localhost and the names "
+                    "SRD_ALLOWED_HOSTS lists only (another site's name that resolves here would "
+                    "otherwise pass as this server's own page): if it is this server's name, add "
+                    "it to SRD_ALLOWED_HOSTS"
+                )
+                loc = ("header", "Host")
+                await _refuse(
+                    scope, receive, _with_headers(send), message, loc, "host_not_allowed", 403
+                )
                 return
         pairs = parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True)
         counts = Counter(name for name, _ in pairs)  # linear: 13,500 names had taken 3.8 s
@@ -201,16 +218,53 @@ def _foreign_page(headers: list[tuple[bytes, bytes]]) -> str | None:
     return None if theirs is not None and theirs == own else "Origin"
 
 
-def redact_query(path: str) -> str:
+def _unlisted_host(headers: list[tuple[bytes, bytes]], allowed: tuple[str, ...]) -> str | None:
+    """The host name a browser's page sent a request to, if it is none this server answers
+    pages at (or None): DNS rebinding points another site's name at this server, and that
+    site's page is then same-origin with it, ``Sec-Fetch-Site`` and ``Origin`` included.
+    Answered: IP addresses (a page there is this server's own), ``localhost`` and its
+    subdomains (browsers resolve them to the loopback themselves), and ``allowed`` (``*``:
+    any; ``*.example.com``: every name under it). A request no page sent (no ``Origin``, no
+    ``Sec-Fetch-Site``, or ``Sec-Fetch-Site: none``: a typed address) is not concerned."""
+    given = {name: value.strip().lower() for name, value in headers}
+    site = given.get(b"sec-fetch-site")
+    if site == b"none" or (site is None and b"origin" not in given) or "*" in allowed:
+        return None
+    host = given.get(b"host", b"").decode("latin-1")
+    try:
+        name = (urlsplit("//" + host).hostname or "").rstrip(".")
+    except ValueError:  # not an address at all
+        return host
+    if not name:
+        return None
+    try:
+        ipaddress.ip_address(name)
+        return None
+    except ValueError:
+        pass
+    if name == "localhost" or name.endswith(".localhost"):
+        return None
+    for entry in allowed:
+        entry = entry.rstrip(".")
+        if name == entry or (entry.startswith("*.") and name.endswith(entry[1:])):
+            return None
+    return name
+
+
+def redact_query(path: str, secrets: tuple[str, ...] = ()) -> str:
     """``path`` with the values of its secret-named query parameters replaced by ``***``, and
-    the whole query if one of the service's tokens is still in it anywhere (``?q=Bearer
-    srdp_...``, ``?srdp_...``, ``?a=1;t=srdp_...``), and any segment of the path itself that
-    holds one (``/nosuch/srdp_...``)."""
+    the whole query if one of the service's tokens (or of ``secrets``: an operator token
+    chosen without the ``srda_`` prefix) is still in it anywhere (``?q=Bearer srdp_...``,
+    ``?srdp_...``, ``?a=1;t=srdp_...``), and any segment of the path itself that holds one
+    (``/nosuch/srdp_...``)."""
+
+    def secret_in(text: str) -> bool:
+        plain = unquote_plus(text)
+        return SECRET_VALUE.search(plain) is not None or any(each in plain for each in secrets)
+
     base, mark, query = path.partition("?")
     # a token put in the path (a mistyped address, a probe): that segment goes
-    base = "/".join(
-        "***" if SECRET_VALUE.search(unquote_plus(part)) else part for part in base.split("/")
-    )
+    base = "/".join("***" if secret_in(part) else part for part in base.split("/"))
     if not mark:
         return base
 
@@ -220,19 +274,24 @@ def redact_query(path: str) -> str:
         return f"{name}=***" if secret else match.group(0)
 
     query = _QUERY_PAIR.sub(blank, query)
-    if SECRET_VALUE.search(unquote_plus(query)):
+    if secret_in(query):
         query = "***"
     return base + mark + query
 
 
 class RedactQueryFilter(logging.Filter):
     """Blanks secret query parameters in uvicorn's access log records, whose arguments are
-    (client, method, path with query, HTTP version, status)."""
+    (client, method, path with query, HTTP version, status). ``secrets``: values blanked
+    besides the service's own tokens (the operator token, when chosen without its prefix)."""
+
+    def __init__(self, secrets: tuple[str, ...] = ()) -> None:
+        super().__init__()
+        self.secrets = secrets
 
     def filter(self, record: logging.LogRecord) -> bool:
         args = record.args
         if isinstance(args, tuple) and len(args) >= 3 and isinstance(args[2], str):
-            path = redact_query(args[2])
+            path = redact_query(args[2], self.secrets)
             if len(path) > MAX_LOGGED_PATH:
                 path = path[: MAX_LOGGED_PATH - 1] + "…"
             record.args = (*args[:2], path, *args[3:])
@@ -252,9 +311,10 @@ class SocketLinesFilter(logging.Filter):
     PROTOCOL = ("connection open", "connection closed", "connection rejected", "HTTP response sent")
     BAD_TEXT = "Invalid UTF-8 sequence received from client"
 
-    def __init__(self, *, handshakes: bool) -> None:
+    def __init__(self, *, handshakes: bool, secrets: tuple[str, ...] = ()) -> None:
         super().__init__()
         self.handshakes = handshakes
+        self.secrets = secrets
 
     def filter(self, record: logging.LogRecord) -> bool:
         message = record.msg
@@ -271,5 +331,5 @@ class SocketLinesFilter(logging.Filter):
             return True
         args = record.args
         if isinstance(args, tuple) and len(args) >= 2 and isinstance(args[1], str):
-            record.args = (args[0], redact_query(args[1]), *args[2:])
+            record.args = (args[0], redact_query(args[1], self.secrets), *args[2:])
         return not self.handshakes

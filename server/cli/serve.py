@@ -20,6 +20,9 @@ UNUSABLE = 2
 """The exit code of a server that cannot start with its settings (a variable's value)."""
 NOT_STARTED = 3
 """The exit code of a server that could not start: its database, its Ray cluster or its port."""
+LOGGED_SECRET_MIN = 8
+"""An operator token this long or longer, chosen without the ``srda_`` prefix, is blanked in
+the access log wherever it stands in a path or query."""
 YOUNG_COLLECTION_EVERY = 20_000
 """The API's cyclic garbage collector looks at its youngest objects after this many container
 allocations (Python's default is 700), at each older generation after 20 passes over the one
@@ -266,8 +269,12 @@ def command(host: str | None, port: int | None, log_level: str) -> None:
         proxy_headers=True,
         forwarded_allow_ips=settings.trusted_proxy_list,
     )
-    logging.getLogger("uvicorn.access").addFilter(RedactQueryFilter())  # after uvicorn's set-up
-    sockets = SocketLinesFilter(handshakes=not settings.access_log)
+    # the operator's token, when chosen without the prefix the filters know (long enough that
+    # blanking it cannot blank ordinary words)
+    chosen = settings.admin_token.get_secret_value() if settings.admin_token else ""
+    secrets = (chosen,) if len(chosen) >= LOGGED_SECRET_MIN else ()
+    logging.getLogger("uvicorn.access").addFilter(RedactQueryFilter(secrets))  # after uvicorn's
+    sockets = SocketLinesFilter(handshakes=not settings.access_log, secrets=secrets)
     logging.getLogger("uvicorn.error").addFilter(sockets)
     gc.collect()
     gc.freeze()  # what start-up built stays for the process's life: no collection rescans it

@@ -157,6 +157,14 @@ def test_the_api_trusts_forwarded_for_from_the_proxy_only():
     assert SERVICES["proxy"]["depends_on"]["api"]["condition"] == "service_healthy"
 
 
+def test_the_api_takes_the_web_views_writes_at_the_name_the_proxy_serves():
+    """Pages reach the API under the proxy's public name (nginx passes ``Host $host``); the
+    API takes browsers' writes at that name only, besides IP addresses and localhost."""
+    assert "Host $host" in nginx_directives("proxy_set_header")
+    public = SERVICES["proxy"]["environment"]["SRD_PUBLIC_HOST"]
+    assert environment("api")["SRD_ALLOWED_HOSTS"] == public == "${SRD_PUBLIC_HOST:-localhost}"
+
+
 def test_the_proxy_terminates_tls_and_limits_each_address():
     assert nginx_directives("listen") == ["80", "443 ssl"]
     assert nginx_directives("ssl_certificate") == ["/etc/nginx/certs/tls.crt"]

@@ -36,7 +36,7 @@ from server.store.db import Database
 from server.store.tables import RateEvent, participant_key
 from tests.support.factories import honest, unique
 from tests.support.live import create_unstarted_auction
-from tests.support.server import ADMIN, make_settings, module_server
+from tests.support.server import ADMIN, ADMIN_TOKEN, make_settings, module_server
 
 TRUSTED_PROXY = "127.0.0.2"
 SPOOFER = "127.0.0.3"
@@ -399,6 +399,9 @@ def test_tokens_in_the_url_are_refused_and_never_logged(server: ServerProcess) -
         for query in (f"x={secret}", f"q=Bearer%20{secret}", secret, f"a=1;t={secret}"):
             assert client.get(f"/livez?{query}").status_code in (200, 422)
         assert client.get(f"/nosuch/{secret}").status_code == 404  # or in the path itself
+        # the operator's token, chosen without the generated one's prefix, pasted by mistake
+        assert client.get(f"/participants/{ADMIN_TOKEN}").status_code == 404
+        assert client.get("/models", params={"participant": ADMIN_TOKEN}).status_code == 200
     for query in (f"token={secret}", f"api_key={secret}"):  # a WebSocket handshake's line
         with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
             sock.sendall(
@@ -408,7 +411,8 @@ def test_tokens_in_the_url_are_refused_and_never_logged(server: ServerProcess) -
             )
             assert sock.recv(65536).startswith(b"HTTP/1.1 ")
     log = server.log_path.read_text()
-    assert secret not in log
+    assert secret not in log and ADMIN_TOKEN not in log
+    assert '"GET /participants/*** HTTP/1.1" 404' in log and '"GET /models?*** ' in log
     assert "/healthz?token=*** " in log and "api_key=***" in log and "%74oken=***" in log
     assert all(f"/healthz?{name}=*** " in log for name in ("bearer", "session", "pw"))
     assert log.count("/livez?*** ") == 4

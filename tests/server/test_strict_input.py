@@ -7,15 +7,17 @@ import contextlib
 import json
 import re
 import time
+from pathlib import Path
 from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketDenialResponse
 
+from server.app import create_app
 from server.store.tables import Auction, Job, ModelVersion
 from tests.support.factories import honest, unique
-from tests.support.server import ADMIN, count, locs
+from tests.support.server import ADMIN, count, locs, make_settings
 
 JSON = {"Content-Type": "application/json"}
 
@@ -646,11 +648,11 @@ def test_a_write_another_site_sent_is_refused(client: TestClient) -> None:
     assert client.get("/models", headers={"Sec-Fetch-Site": "cross-site"}).status_code == 200
     for site in ("same-origin", "none"):  # the web view, a typed URL
         again = json.dumps(honest(unique("site"))).encode()
-        answer = client.post("/submit", content=again, headers={"Sec-Fetch-Site": site})
+        at_the_server = {"Sec-Fetch-Site": site, "Host": "127.0.0.1:8000"}
+        answer = client.post("/submit", content=again, headers=at_the_server)
         assert answer.status_code == 201, answer.text
     # a sibling subdomain's page (or another port's) is another site's too; and an older
     # browser that sends no Sec-Fetch-Site is judged by its Origin
-    host = client.base_url.host
     for headers, loc in (
         ({"Sec-Fetch-Site": "same-site"}, "Sec-Fetch-Site"),
         ({"Origin": "https://evil.example"}, "Origin"),
@@ -660,5 +662,52 @@ def test_a_write_another_site_sent_is_refused(client: TestClient) -> None:
         assert refused.status_code == 403 and locs(refused) == [["header", loc]], refused.text
     assert count(client, ModelVersion) == before + 2
     own = json.dumps(honest(unique("own"))).encode()
-    answer = client.post("/submit", content=own, headers={"Origin": f"http://{host}:8000"})
+    own_page = {"Origin": "http://localhost:8000", "Host": "localhost"}
+    answer = client.post("/submit", content=own, headers=own_page)
     assert answer.status_code == 201, answer.text  # its own page, whatever the port
+
+
+def test_a_page_at_a_host_name_the_server_does_not_answer_pages_at_writes_nothing(
+    client: TestClient, tmp_path: Path
+) -> None:
+    """DNS rebinding: another site's name made to resolve to the server makes that site's page
+    same-origin with it (``Sec-Fetch-Site: same-origin``, ``Origin`` naming the ``Host``), so
+    the cross-site rule lets its writes through. A page's write is taken at an IP address,
+    ``localhost`` and the names ``SRD_ALLOWED_HOSTS`` lists only; scripts, which send no
+    ``Origin``, are not concerned, nor are reads."""
+    before = count(client, ModelVersion)
+    body = json.dumps(honest(unique("rebound"))).encode()
+    rebound = {"Host": "attacker.example:8000", "Origin": "http://attacker.example:8000"}
+    for marks in ({"Sec-Fetch-Site": "same-origin"}, {}):  # a browser today, an older one
+        refused = client.post("/submit", content=body, headers={**rebound, **marks})
+        assert refused.status_code == 403, refused.text
+        (item,) = refused.json()["detail"]
+        assert item["loc"] == ["header", "Host"] and item["type"] == "host_not_allowed"
+        assert "'attacker.example'" in item["msg"] and "SRD_ALLOWED_HOSTS" in item["msg"]
+    assert count(client, ModelVersion) == before
+    page = {**rebound, "Sec-Fetch-Site": "same-origin"}
+    assert client.get("/models", headers=page).status_code == 200  # reading is not writing
+    typed = {"Host": "attacker.example", "Sec-Fetch-Site": "none"}  # no page sent it
+    assert client.post("/submit", content=body, headers=typed).status_code == 201
+    for name in ("[::1]", "10.0.0.7", "app.localhost", "localhost."):
+        at = {"Host": name, "Origin": f"http://{name}", "Sec-Fetch-Site": "same-origin"}
+        again = json.dumps(honest(unique("addressed"))).encode()
+        answer = client.post("/submit", content=again, headers=at)
+        assert answer.status_code == 201, (name, answer.text)
+    settings = make_settings(
+        f"sqlite:///{tmp_path / 'srd.db'}",
+        tmp_path / "data",
+        allowed_hosts="Auction.Example, *.example.org",
+    )
+    with TestClient(create_app(settings)) as listed:
+        for name, status in (
+            ("auction.example", 201),
+            ("a.b.example.org", 201),
+            ("example.org", 403),  # "*." names what is under it only
+            ("auction.example.evil", 403),
+        ):
+            at = {"Host": name, "Origin": f"https://{name}", "Sec-Fetch-Site": "same-origin"}
+            again = json.dumps(honest(unique("listed"))).encode()
+            assert listed.post("/submit", content=again, headers=at).status_code == status, name
+    with pytest.raises(ValueError, match=re.escape("'https://auction.example' is not a host name")):
+        make_settings("sqlite://", tmp_path, allowed_hosts="https://auction.example")

@@ -26,6 +26,14 @@ FISH_STEP_COST_S = 4e-4
 class FishConfig:
     """Robot fish 1D: FishNN on the ring tape, with or without SRD training."""
 
+    SCHEMA_RULES: ClassVar[tuple[dict[str, Any], ...]] = (
+        {  # training's options belong to a run that trains
+            "if": {"properties": {"srd": {"const": False}}, "required": ["srd"]},
+            "then": {"not": {"anyOf": [{"required": [n]} for n in ("lr", "memory")]}},
+        },
+    )
+    """``problems``'s rule across options, as JSON Schema (``sim.experiment.config_schema``)."""
+
     steps: Annotated[int, Field(ge=1, le=10_000_000)] = 12000
     """Simulation steps (the paper's figure uses 12000; the fish stops earlier only if it dies)."""
     srd: bool = True
@@ -42,6 +50,16 @@ class FishConfig:
     def cost(self) -> Cost:
         """Estimated compute: linear in the steps."""
         return Cost(self.steps * FISH_STEP_COST_S * (1.0 if self.srd else 0.5), "steps")
+
+    def problems(self, given: frozenset[str] = frozenset()) -> list[dict[str, str]]:
+        """Training's options ``given`` (named by the user) with no training (``srd`` off)."""
+        if self.srd:
+            return []
+        return [
+            {"field": name, "message": f"with srd off nothing is trained: it does not take {name}"}
+            for name in ("lr", "memory")
+            if name in given
+        ]
 
 
 # --- lavaland --------------------------------------------------------------------------------

@@ -213,7 +213,8 @@ def write_trace(path: Path, energy: np.ndarray, tile: np.ndarray) -> None:
     with path.open("w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(("step", "energy", "tile"))
-        writer.writerows(zip(range(len(energy)), energy.round(6), tile, strict=True))
+        rounded = energy.round(6) + 0.0  # a dead fish's -0.0 is written 0.0
+        writer.writerows(zip(range(len(energy)), rounded, tile, strict=True))
 
 
 def plot(path: Path, energy: np.ndarray, tile: np.ndarray, config: FishConfig) -> None:

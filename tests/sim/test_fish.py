@@ -154,6 +154,7 @@ def test_a_fish_that_dies_reports_its_lowest_energy_as_zero(tmp_path) -> None:
     result = run(FishConfig(steps=3000, lr=0.5), out_dir=tmp_path)  # trains itself to death
     assert result["died"] and result["died_at_step"] == 19
     assert result["min_energy"] == 0 and math.copysign(1.0, result["min_energy"]) == 1.0
+    assert (tmp_path / "energy.csv").read_text().splitlines()[-1] == "19,0.0,0.0"  # not -0.0
 
 
 def test_srd_first_improvement_stages(untrained: np.ndarray, trained: np.ndarray) -> None:

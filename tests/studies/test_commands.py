@@ -137,6 +137,8 @@ def test_a_supply_with_no_fish_on_sale_runs_as_the_reference_runs_it(tmp_path) -
             "0 rounds",
         ),
         ("lavaland", {"train_maps": 0, "lr": 0.5}, "lr", "with train-maps 0 nothing is trained"),
+        ("fish", {"srd": False, "lr": 0.5}, "lr", "with srd off nothing is trained"),
+        ("fish", {"srd": False, "memory": 4}, "memory", "with srd off nothing is trained"),
     ],
 )
 def test_an_option_that_would_change_nothing_is_refused_when_given(kind, params, field, words):

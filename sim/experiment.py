@@ -289,20 +289,32 @@ def config_schema(cls: type) -> dict[str, Any]:
     return schema
 
 
-def distinct(what: str, hint: str) -> AfterValidator:
+def distinct(
+    what: str, hint: str, key: Callable[[Any], Any] | None = None, apart: str = ""
+) -> AfterValidator:
     """A list option's validator: each value once (a repeated one would count its runs twice
-    in one cell's statistics); ``what`` names a value, ``hint`` says what to do instead."""
+    in one cell's statistics); ``what`` names a value, ``hint`` says what to do instead.
+    ``key``: what tells two values apart (two values of one key are one value given twice),
+    which ``apart`` says in words."""
 
     def check(values: tuple[Any, ...]) -> tuple[Any, ...]:
-        seen: set[Any] = set()
+        seen: dict[Any, Any] = {}
         for value in values:
-            if value in seen:
+            known = value if key is None else key(value)
+            if known in seen:
+                first = seen[known]
+                if value == first:
+                    template = "{value} is given twice: each {what} once ({hint})"
+                    shown = f"{value:g}"
+                else:
+                    template = "{value} are one {what}{apart}: each {what} once ({hint})"
+                    shown = f"{first!r} and {value!r}"
                 raise PydanticCustomError(
                     "duplicate_value",
-                    "{value} is given twice: each {what} once ({hint})",
-                    {"value": f"{value:g}", "what": what, "hint": hint},
+                    template,
+                    {"value": shown, "what": what, "hint": hint, "apart": apart},
                 )
-            seen.add(value)
+            seen[known] = value
         return values
 
     return AfterValidator(check)

@@ -46,6 +46,7 @@ from studies.config import (
     saboteur_count,
     settings_of,
     study_settings,
+    supply_key,
 )
 from studies.plots import plot_comparison, plot_study
 
@@ -119,7 +120,7 @@ def _rounded(value: float) -> float:
 
 def auction_streams(seed: int, rarity: float, trial: int) -> tuple[Any, Any, int]:
     """(honest rng, saboteur rng, market seed) of the auction keyed (seed, rarity, trial)."""
-    key = np.random.SeedSequence([seed, round(rarity * 1_000_000), trial])
+    key = np.random.SeedSequence([seed, supply_key(rarity), trial])
     honest, saboteurs, market = key.spawn(3)
     market_seed = int(market.generate_state(1, np.uint64)[0] >> np.uint64(1))
     return np.random.default_rng(honest), np.random.default_rng(saboteurs), market_seed

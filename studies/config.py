@@ -23,10 +23,26 @@ GRID_SABOTEURS = 0.5
 Rarity = Annotated[float, Field(gt=0, le=1)]
 
 
+SUPPLY_PARTS = 1_000_000
+"""Supplies are told apart to a millionth: an auction's random streams are keyed by its supply
+in millionths (``studies.auctions.auction_streams``), so two supplies closer than that would
+play the same auctions."""
+
+
+def supply_key(rarity: float) -> int:
+    """A supply in millionths: what keys its auctions' random streams."""
+    return round(rarity * SUPPLY_PARTS)
+
+
 Rarities = Annotated[
     tuple[Rarity, ...],
     Field(min_length=1, max_length=100, json_schema_extra={"uniqueItems": True}),
-    distinct("supply", "more trials: raise trials"),
+    distinct(
+        "supply",
+        "more trials: raise trials",
+        key=supply_key,
+        apart=" (supplies are told apart to a millionth)",
+    ),
 ]
 AUCTION_COST_S = 0.01
 """Compute of one auction of 64 patrons without fine-tuning, for the job budget: about twice

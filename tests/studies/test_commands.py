@@ -171,3 +171,15 @@ def test_the_command_line_names_only_the_options_it_was_given(tmp_path) -> None:
     result = CliRunner().invoke(cli, args)
     assert result.exit_code == 0, result.output
     assert {row["saboteurs"] for row in json.loads(result.stdout)["rows"]} == {0.0, 0.5}
+
+
+@pytest.mark.parametrize("kind", ["auction-study", "comparison"])
+def test_two_supplies_closer_than_a_millionth_are_one_supply_given_twice(kind) -> None:
+    # an auction's random streams are keyed by its supply in millionths: two supplies closer
+    # than that would play the very same auctions as two "independent" rows
+    with pytest.raises(ConfigError) as refused:
+        build_config(kind, {"rarities": "0.1,0.1000004"})
+    (error,) = refused.value.errors
+    assert error["field"] == "rarities"
+    assert error["message"].startswith("0.1 and 0.1000004 are one supply")
+    assert build_config(kind, {"rarities": "0.1,0.100001"}).rarities == (0.1, 0.100001)

@@ -389,7 +389,8 @@ class Manifest(_Strict):
 
 
 class ManifestError(ValueError):
-    """A manifest was refused; ``errors`` lists ``{"path": "a.b.c", "message": ...}``."""
+    """A manifest was refused; ``errors`` lists ``{"path": "a.b.c", "message": ...}``, with the
+    schema's error ``type`` (``float_type``, ``missing``, ...) where the schema refused it."""
 
     def __init__(self, errors: list[dict[str, str]]) -> None:
         self.errors = errors
@@ -416,7 +417,10 @@ def _json_path(loc: tuple[int | str, ...]) -> str:
 
 def _refused(exc: ValidationError) -> ManifestError:
     return ManifestError(
-        [{"path": _json_path(tuple(err["loc"])), "message": err["msg"]} for err in exc.errors()]
+        [
+            {"path": _json_path(tuple(err["loc"])), "message": err["msg"], "type": err["type"]}
+            for err in exc.errors()
+        ]
     )
 
 

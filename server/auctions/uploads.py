@@ -142,7 +142,8 @@ def _manifest(body: bytes) -> Manifest:
         if any(e["path"] == "$" for e in errors):  # JSON the fast parser cannot say where
             errors = _located(body) or errors  # (a lone surrogate escape): read it as /submit
         raise validation_error(
-            error_item(e["message"], loc=_body_loc(e["path"]), kind="manifest") for e in errors
+            error_item(e["message"], loc=_body_loc(e["path"]), kind=e.get("type", "manifest"))
+            for e in errors  # the schema's type, as POST /submit names it
         ) from exc
 
 

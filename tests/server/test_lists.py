@@ -151,6 +151,7 @@ def test_auctions_list_shows_what_a_person_scans(
     full = client.get(f"/auctions/{auction_id}").json()
     assert item["n_patrons"] == 2 and item["status"] == "finished"
     assert item["n_sold"] == len(full["buyers"]) == item["n_initial"] - item["n_available"]
+    assert full["n_sold"] == item["n_sold"]  # one name for one figure, in the list and the detail
     assert item["revenue"] == pytest.approx(full["revenue"])
     assert item["iteration"] == len(full["history"])
     assert item["stop_reason"] == full["stop_reason"]

@@ -253,6 +253,28 @@ def test_an_upload_that_is_not_an_object_is_refused_at_the_body(
         assert submitted.status_code == 422 and loc_of(submitted) == [["body"]], submitted.text
 
 
+def test_a_bad_field_is_refused_with_the_type_post_submit_gives_it(
+    client: TestClient, remote: dict[str, Any]
+) -> None:
+    """The same mistake gets the same answer at both doors: location, and the schema's error
+    type (before: ``manifest`` for every field of an upload)."""
+    auction_id, model_id, token, tuned = first_asked_upload(remote)
+    for field, value in (("bias", "x"), ("bias", None), ("weights", None)):
+        data = tuned.model_dump(mode="json")
+        if value is None:
+            del data["decision"]["B"][field]
+        else:
+            data["decision"]["B"][field] = value
+        upload = put(client, auction_id, 1, model_id, _json(data), token)
+        at_the_door = client.post(
+            "/submit", content=_json(data), headers={"Authorization": f"Bearer {token}"}
+        )
+        assert upload.status_code == at_the_door.status_code == 422, upload.text
+        assert upload.json()["detail"] == at_the_door.json()["detail"], upload.text
+        (item,) = upload.json()["detail"]
+        assert item["loc"] == ["body", "decision", "B", field] and item["type"] != "manifest"
+
+
 def stored_versions(client: TestClient, participant: str) -> int:
     return len(client.get("/models", params={"participant": participant}).json()["items"])
 

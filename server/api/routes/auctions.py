@@ -100,6 +100,7 @@ def auction_public(view: crud.AuctionView) -> AuctionPublic:
         price=auction.price,
         n_available=auction.n_available,
         n_initial=auction.n_initial,
+        n_sold=sold,
         history=[iteration_public(row) for row in view.history],
         buyers=[
             BuyerPublic(

@@ -211,6 +211,8 @@ class AuctionPublic(Schema):
     price: float
     n_available: int
     n_initial: int
+    n_sold: int
+    """Fish sold so far (``n_initial`` − ``n_available``), as the list and the end event name it."""
     history: list[IterationPublic]
     buyers: list[BuyerPublic]
     quitters: list[int]

@@ -78,6 +78,15 @@ export function firstRead(view, read, { use, missing, at, refused = () => false 
   const line = h("p", { class: "problem", role: "alert", id: "read-failed" }, words, " ", again);
   let timer = null;
   let left = false;
+  // What the page laid out after the line, hidden while nothing is read: its "none yet" would
+  // say something false about a subject the page could not read.
+  const unread = [];
+  const hideRest = () => {
+    for (let node = line.nextElementSibling; node; node = node.nextElementSibling) {
+      if (!node.hidden) unread.push(node);
+      node.hidden = true;
+    }
+  };
   const attempt = () => {
     clearTimeout(timer);
     if (document.visibilityState !== "visible") {
@@ -90,6 +99,7 @@ export function firstRead(view, read, { use, missing, at, refused = () => false 
       (answer) => {
         if (left) return;
         if (line.isConnected) line.replaceWith(at);
+        for (const node of unread.splice(0)) node.hidden = false;
         use(answer);
         if (pressed) view.root.querySelector("h1")?.focus(); // its button is gone
       },
@@ -102,6 +112,7 @@ export function firstRead(view, read, { use, missing, at, refused = () => false 
         again.disabled = false;
         if (pressed) again.focus();
         if (at.isConnected) at.replaceWith(line);
+        hideRest();
         timer = setTimeout(attempt, RETRY_MS);
       },
     );

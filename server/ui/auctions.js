@@ -198,24 +198,26 @@ function drawPriceChart(chart, rounds, nextPrice) {
     );
   });
   chart.setAttribute("data-points", String(prices.length));
-  chart.setAttribute("aria-label", priceSaid(rounds, prices, nextPrice));
+  chart.setAttribute("aria-label", priceSaid(rounds, nextPrice));
   fill(chart, svg("title", {}, "Price asked in each iteration"), parts);
 }
 
 // What the price chart shows, in words (its accessible name): where the price began and ended,
 // its range, the iterations that sold and the next price; the table below holds every value.
-function priceSaid(rounds, prices, nextPrice) {
+function priceSaid(rounds, nextPrice) {
   const next = nextPrice === null ? "" : `; the next price ${fixed(nextPrice)}`;
   if (!rounds.length) return `Price asked in each iteration: none yet${next}.`;
   const first = rounds[0];
   const last = rounds[rounds.length - 1];
   const sold = rounds.filter((r) => r.purchases.length).map((r) => `${r.iteration} (${r.purchases.length} sold)`);
   const sales = sold.length ? `fish sold in iteration ${sold.join(", ")}` : "no fish sold";
-  return (
-    `Price asked in each iteration: ${fixed(first.price)} at iteration ${first.iteration}, ` +
-    `${fixed(last.price)} at iteration ${last.iteration}, lowest ${fixed(Math.min(...prices))}, ` +
-    `highest ${fixed(Math.max(...prices))}; ${sales}${next}. Every iteration is in the table below.`
-  );
+  const asked = rounds.map((r) => r.price); // the range of prices asked, not the next one
+  const span =
+    rounds.length === 1
+      ? `${fixed(first.price)} at iteration ${first.iteration}`
+      : `${fixed(first.price)} at iteration ${first.iteration}, ${fixed(last.price)} at iteration ${last.iteration}, ` +
+        `lowest ${fixed(Math.min(...asked))}, highest ${fixed(Math.max(...asked))}`;
+  return `Price asked in each iteration: ${span}; ${sales}${next}. Every iteration is in the table below.`;
 }
 
 /** Buy, hold and quit votes of each iteration, stacked: each kind its colour and its texture
@@ -489,7 +491,7 @@ export function auctionView(view, id) {
       { "aria-labelledby": "price-heading" },
       h("h2", { id: "price-heading" }, "Price over the iterations"),
       priceNone,
-      h("figure", { hidden: true }, scrolling(priceChart, "The price chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, "Each point is the price asked in an iteration; filled larger points are iterations in which fish were sold; the last point is the next price.")),
+      h("figure", { hidden: true }, scrolling(priceChart, "The price chart (scrolls sideways on a narrow screen)"), h("figcaption", {}, "Each point is the price asked in an iteration; filled larger points are iterations in which fish were sold; while the auction plays, the last point is the next price.")),
     ),
     h(
       "section",
@@ -523,7 +525,7 @@ export function auctionView(view, id) {
           "table",
           { class: "list", id: "buyers" },
           h("caption", {}, "Who bought a fish, at what price, with which version"),
-          h("thead", {}, h("tr", {}, ["Participant", "Version", "Model", "Price", "Iteration"].map((t) => h("th", { scope: "col" }, t)))),
+          h("thead", {}, h("tr", {}, ["Participant", "Patron (model)", "Version that bought", "Price", "Iteration"].map((t) => h("th", { scope: "col" }, t)))),
           buyerRows,
         ),
         "Buyers (scrolls sideways)",
@@ -811,7 +813,10 @@ export function auctionView(view, id) {
     if (row.purchases.length) buyerRows.querySelector(".none-yet-row")?.remove();
     if (row.quits.length) quitterList.querySelector(".none-yet")?.remove();
     for (const p of row.purchases) {
-      buyerRows.append(tableRow([patronLink(p), String(p.version), link(`#/models/${p.version_id}`, String(p.version_id)), fixed(p.price), String(row.iteration)]));
+      // the patron (the auction's model_ids, the API's buyers' model_id), then the version that
+      // bought: after remote rounds an upload, a model of its own
+      const bought = link(`#/models/${p.version_id}`, `version ${p.version} (model ${p.version_id})`);
+      buyerRows.append(tableRow([patronLink(p), link(`#/models/${p.model_id}`, String(p.model_id)), bought, fixed(p.price), String(row.iteration)]));
     }
     for (const q of row.quits) quitterList.append(h("li", {}, patronLink(q), ` (version ${q.version}, iteration ${row.iteration})`));
     scheduleDraw();
@@ -834,7 +839,9 @@ export function auctionView(view, id) {
       none.hidden = true;
       none.nextElementSibling.hidden = false; // its figure
     }
-    drawPriceChart(priceChart, rounds, rounds[rounds.length - 1].next_price);
+    // the next price while it plays; once it ended, a price never asked is not drawn
+    const playing = ["pending", "running"].includes(head.status);
+    drawPriceChart(priceChart, rounds, playing ? rounds[rounds.length - 1].next_price : null);
     drawVotesChart(votesChart, rounds, head.n_patrons);
   }
   function scheduleDraw() {

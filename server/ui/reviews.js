@@ -203,7 +203,8 @@ function queueTable(rows, margin) {
         link(`#/reviews/${m.id}`, `Inspect model ${m.id}`),
         h("span", { class: "free-text" }, m.participant),
         String(m.version),
-        m.appeal !== null ? ["appealed: ", h("q", { class: "free-text" }, m.appeal)] : nearest(m.evidence, margin),
+        // an appealed model: the screener's refusal first, then the participant's words, quoted
+        m.appeal !== null ? [refusedFor(m.reasons), "; appealed: ", h("q", { class: "free-text description-preview", dir: "auto" }, m.appeal)] : nearest(m.evidence, margin),
         m.auction_id !== null ? link(`#/auctions/${m.auction_id}`, `auction ${m.auction_id}, fine-tuning round ${m.round}`) : "POST /submit",
         when(m.created_at),
       ]),
@@ -217,6 +218,13 @@ function queueTable(rows, margin) {
 
 /** The priced bar closest to its measurement, in words, and what the review margin made of
  * it (``margin``: the server's, in price). */
+/** Why the screener refused a model (an appealed one), in a few words: its first reason's. */
+function refusedFor(reasons) {
+  if (!reasons.length) return "refused by the screener";
+  const more = reasons.length > 1 ? ` and ${reasons.length - 1} more` : "";
+  return `refused by the screener: ${reasons[0].neuron} (${reasons[0].rule})${more}`;
+}
+
 function nearest(evidence, margin) {
   const priced = evidence.filter((e) => e.units === "price" && e.measured !== null && e.bar !== null);
   if (!priced.length) return "—";
@@ -246,7 +254,7 @@ export function reviewView(view, id) {
   };
   const use = (box, { item, model }) => {
     if (item) {
-      inspectorView({ root: box, onLeave: (stop) => view.onLeave(stop) }, id, { heading: "Inspect model", evidence: false, extra: (m) => [evidenceSection(m, item), decisionForm(m)] });
+      inspectorView({ root: box, onLeave: (stop) => view.onLeave(stop) }, id, { heading: "Inspect model", evidence: false, extra: (m) => [evidenceSection(m, item), decisionForm(m)].flat() });
       return;
     }
     if (!model) {
@@ -264,11 +272,21 @@ export function reviewView(view, id) {
 function evidenceSection(model, item) {
   const scan = model.evidence.find((e) => e.detail.clean && e.detail.noisy);
   const impacts = model.evidence.filter((e) => e.test === "market-impact");
-  return h(
+  // The appeal is the participant's words: set apart as a description is (quoted, in a dashed
+  // frame, in italics) and outside the screener's evidence, so it cannot pass for a finding.
+  const appeal =
+    item.appeal !== null
+      ? h(
+          "section",
+          { "aria-labelledby": "appeal-heading" },
+          h("h2", { id: "appeal-heading" }, "The appeal, in the participant's words"),
+          h("blockquote", { class: "description", id: "appeal", dir: "auto" }, item.appeal),
+        )
+      : null;
+  const evidence = h(
     "section",
     { "aria-labelledby": "evidence-heading", id: "evidence" },
     h("h2", { id: "evidence-heading" }, "The screener's evidence"),
-    item.appeal !== null ? h("p", { id: "appeal" }, h("strong", {}, "Appeal: "), item.appeal) : null,
     item.later_versions.length
       ? h(
           "p",
@@ -284,6 +302,7 @@ function evidenceSection(model, item) {
     populationsNote(impacts),
     evidenceTable(model),
   );
+  return appeal ? [appeal, evidence] : evidence;
 }
 
 /** Segments [decision, from, to] of words such as "buys 4.75-5.10, holds 5.11-5.11, ...". */

@@ -150,10 +150,14 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
             time.sleep(0.05)
     auction = api.get(f"/auctions/{auction_id}").json()
     rounds = len(auction["history"])
-    final = int(chart.get_attribute("data-points") or 0)
-    assert final == rounds + 1  # one point per iteration, and the next price
+    # one point per iteration; once it ended, no next price (a price never asked)
+    page.wait_for_function(
+        f"() => document.querySelector('#price-chart').dataset.points === '{rounds}'",
+        timeout=WAIT_MS,
+    )
     assert seen[0] <= 2, seen  # the page was open before most iterations were played
-    assert seen == sorted(seen) and len(seen) >= 3, seen  # the line grew while the auction ran
+    growing = seen if seen[-1] >= seen[-2] else seen[:-1]  # (the end's drop of the next price)
+    assert growing == sorted(growing) and len(growing) >= 3, seen  # it grew while the auction ran
     assert page.locator("#rounds tbody tr").count() == rounds
     # The chart in words, for a screen reader: where the price went and when fish sold.
     history, said = auction["history"], chart.get_attribute("aria-label") or ""
@@ -165,8 +169,9 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
         f"{history[-1]['price']:.3f} at iteration {history[-1]['iteration']}, lowest "
     ), said
     sales = ", ".join(f"{i} ({n} sold)" for i, n in sorted(sold.items()))
-    assert f"; fish sold in iteration {sales}; the next price " in said, said
-    assert f"the next price {history[-1]['next_price']:.3f}." in said, said
+    asked = [row["price"] for row in history]
+    assert f", highest {max(asked):.3f}; fish sold in iteration {sales}. Every " in said, said
+    assert "next price" not in said, said
     # Its labels are drawn at 12 px at least, on a phone too (the chart scrolls instead).
     smallest = """() => Math.min(...[
         ...document.querySelectorAll('.chart .tick, .chart .axis-label')]
@@ -194,6 +199,8 @@ def test_auction_page_draws_the_price_line_as_rounds_arrive_then_the_buyers(
     for row, buyer in zip(buyers.all(), auction["buyers"], strict=True):
         cells = [cell.text_content() for cell in row.locator("td").all()]
         assert cells[0] == names[buyer["model_id"]]
+        assert cells[1] == str(buyer["model_id"])  # the patron, as the API's model_id names it
+        assert cells[2] == f"version {buyer['version']} (model {buyer['version_id']})"
         assert cells[3] == f"{buyer['price']:.3f}" and cells[4] == str(buyer["iteration"])
     summary = page.text_content("#auction-summary") or ""
     assert "finished" in summary and "sold out" in summary
@@ -760,16 +767,18 @@ def test_user_supplied_strings_are_shown_as_text(
     assert page.evaluate("window.__pwned") is None
 
 
-def held_on_appeal(api: httpx.Client, prefix: str, description: str | None = None) -> int:
-    """A saboteur refused by the screener and appealed by its participant: held for an
-    inspector. Its id."""
+def held_on_appeal(
+    api: httpx.Client, prefix: str, description: str | None = None, note: str = "x"
+) -> int:
+    """A saboteur refused by the screener and appealed by its participant (``note``): held for
+    an inspector. Its id."""
     manifest = saboteur_manifest(unique(prefix))
     if description is not None:
         manifest["description"] = description
     refused = api.post("/submit", json=manifest).json()
     assert refused["status"] == "refused", refused
     auth = {"Authorization": f"Bearer {refused['token']}"}
-    appeal = api.post(f"/models/{refused['model_id']}/appeal", json={"note": "x"}, headers=auth)
+    appeal = api.post(f"/models/{refused['model_id']}/appeal", json={"note": note}, headers=auth)
     assert appeal.status_code == 200, appeal.text
     return int(refused["model_id"])
 
@@ -788,7 +797,9 @@ def test_a_participants_description_is_labelled_as_its_own_words(
     a heading naming it the participant's words, quoted, and styled unlike the verdict and the
     screener's reasons: on the model's page, its inspection page and in the models list."""
     spoof = "Accepted by the screener: no reason.\n\nReview history\nadmitted by inspector Ada"
-    model_id = held_on_appeal(api, "ui-spoof", description=spoof)
+    # an appeal written as the screener's evidence reads: the participant's words too
+    evidence = "market-impact: 5.1150 against 5.0918 (at least), passed by 0.0232: held for you"
+    model_id = held_on_appeal(api, "ui-spoof", description=spoof, note=evidence)
     participant = api.get(f"/models/{model_id}").json()["participant"]
 
     def labelled() -> None:
@@ -816,6 +827,12 @@ def test_a_participants_description_is_labelled_as_its_own_words(
         page.keyboard.press("Enter")
         page.wait_for_selector("#decision", timeout=WAIT_MS)
         labelled()
+        appeal = page.locator("#appeal")
+        assert appeal.text_content() == evidence
+        assert page.text_content("#appeal-heading") == "The appeal, in the participant's words"
+        assert page.locator("#evidence #appeal").count() == 0  # not among the screener's
+        framed = "(n) => [getComputedStyle(n).fontStyle, getComputedStyle(n).borderTopStyle]"
+        assert appeal.evaluate(framed) == ["italic", "dashed"]
         page.goto(f"{server.url}/ui/#/models?participant={participant}")
         row = page.locator(f"#model-list tr:has(a[href='#/models/{model_id}'])")
         row.wait_for(timeout=WAIT_MS)
@@ -1448,6 +1465,9 @@ def test_a_detail_page_whose_first_read_fails_shows_its_subject_once_the_server_
         page.goto(f"{server.url}/ui/#/{address}")
         failed = page.locator("p.problem:has-text('could not be reached')")
         failed.wait_for(timeout=WAIT_MS)
+        # nothing of the subject is said while it is unread: no "none yet" for an auction
+        # that has iterations, say
+        assert page.locator("main .none-yet:visible, main section:visible").count() == 0
         page.unroute(down)
         if pressed:  # at once, by the button
             assert "The page tries again every few seconds." in (failed.text_content() or "")
@@ -1736,7 +1756,8 @@ def test_the_review_queue_keeps_why_a_model_is_held_readable_on_a_phone(
         inspect.wait_for(timeout=WAIT_MS)
         assert inspect.evaluate("(a) => a.getClientRects().length") == 1  # one line
         why = page.locator(f"#review-list tr:has(a[href='#/reviews/{model_id}']) td").nth(3)
-        assert (why.text_content() or "").startswith("appealed: ")
+        said = why.text_content() or ""  # the screener's refusal, then the appeal, quoted
+        assert said.startswith("refused by the screener: ") and said.endswith("; appealed: x"), said
         assert why.evaluate("(td) => td.getBoundingClientRect().width") >= 300
         frame = page.locator("#review-list").locator("xpath=..")
         assert frame.evaluate("(f) => f.scrollWidth > f.clientWidth")  # the frame scrolls
@@ -1899,7 +1920,7 @@ def test_a_models_page_says_who_decided_and_keeps_the_review_history(
     page.reload()
     page.fill("#admin-token", ADMIN_TOKEN)
     page.keyboard.press("Enter")
-    page.wait_for_selector("#evidence #appeal", timeout=WAIT_MS)
+    page.wait_for_selector("#appeal", timeout=WAIT_MS)
     page.wait_for_function("() => document.activeElement.tagName === 'H1'", timeout=5000)
     decided = api.post(
         f"/models/{saboteur['model_id']}/review",

@@ -507,8 +507,7 @@ export function auctionView(view, id) {
       scrolling(
         h(
           "table",
-          { class: "list", id: "rounds" },
-          h("caption", {}, "Every committed iteration"),
+          { class: "list", id: "rounds", "aria-labelledby": "rounds-heading" }, // named once, by its heading
           h("thead", {}, h("tr", {}, ["Iteration", "Price", "Fish at its start", "Buy", "Hold", "Quit", "Sold", "Quit now", "Why the price moved", "Votes"].map((t) => h("th", { scope: "col" }, t)))),
           roundRows,
         ),

@@ -303,7 +303,10 @@ function weightTable(name, neuron, sourceLabel) {
 function activationText(activation) {
   if (!activation) return null;
   const { kind, ...numbers } = activation;
-  const parameters = Object.entries(numbers).map(([k, v]) => `${k} = ${v}`).join(", ");
+  // six significant digits, as a fine-tuned value reads (85.2289, not 85.22890989664344)
+  const parameters = Object.entries(numbers)
+    .map(([k, v]) => `${k} = ${typeof v === "number" ? Number(v.toPrecision(6)) : v}`)
+    .join(", ");
   return h("p", { class: "activation" }, `Activation: ${kind.replace("_", " ")} (${parameters})`);
 }
 
@@ -333,9 +336,10 @@ function verdictBanner(model, flagged) {
   const last = model.reviews[model.reviews.length - 1];
   const why = model.reasons.length ? `${model.reasons.length} reason${model.reasons.length === 1 ? "" : "s"}${flagged.length ? ` on ${flagged.join(", ")}` : ""}` : "no rule broken";
   if (model.status === "held") {
+    const decide = link(`#/reviews/${model.id}`, "Its inspection page (inspectors)");
     return last && last.decision === "appeal"
-      ? banner("held", "Held", " for an inspector: its participant appealed the screener's refusal (", why, "). It enters no auction until admitted.")
-      : banner("held", "Held", " for an inspector: the screener's deciding evidence lies within the review margin of its bar. It enters no auction until admitted.");
+      ? banner("held", "Held", " for an inspector: its participant appealed the screener's refusal (", why, "). It enters no auction until admitted. ", decide)
+      : banner("held", "Held", " for an inspector: the screener's deciding evidence lies within the review margin of its bar. It enters no auction until admitted. ", decide);
   }
   if (last && last.decision !== "appeal") {
     const who = [`${last.decision === "admit" ? "Admitted" : "Refused"} by inspector `, h("span", { class: "free-text" }, last.inspector), ` on ${when(last.at)}`];

@@ -767,6 +767,33 @@ def test_user_supplied_strings_are_shown_as_text(
     assert page.evaluate("window.__pwned") is None
 
 
+def test_a_held_models_page_links_its_inspection_and_reads_its_numbers_rounded(
+    page: Any, server: ServerProcess, api: httpx.Client
+) -> None:
+    """A held model's page links the page its inspector decides it on; an activation's
+    parameters read to six significant digits, as a fine-tuned value is shown elsewhere."""
+    manifest = saboteur_manifest(unique("ui-rounded"))
+    manifest["external_sensor"]["PG"]["activation"]["a"] = 20.000000123456789
+    model_id = held_on_appeal_of(api, manifest)
+    try:
+        page.goto(f"{server.url}/ui/#/models/{model_id}")
+        page.wait_for_selector(f"#verdict a[href='#/reviews/{model_id}']", timeout=WAIT_MS)
+        said = " ".join(page.locator(".activation").all_text_contents())
+        assert "a = 20," in said and "20.0000001" not in said, said
+    finally:
+        refuse(api, model_id)
+
+
+def held_on_appeal_of(api: httpx.Client, manifest: dict[str, Any], note: str = "x") -> int:
+    """``manifest``, refused by the screener and appealed by its participant: held. Its id."""
+    refused = api.post("/submit", json=manifest).json()
+    assert refused["status"] == "refused", refused
+    auth = {"Authorization": f"Bearer {refused['token']}"}
+    appeal = api.post(f"/models/{refused['model_id']}/appeal", json={"note": note}, headers=auth)
+    assert appeal.status_code == 200, appeal.text
+    return int(refused["model_id"])
+
+
 def held_on_appeal(
     api: httpx.Client, prefix: str, description: str | None = None, note: str = "x"
 ) -> int:
@@ -775,12 +802,7 @@ def held_on_appeal(
     manifest = saboteur_manifest(unique(prefix))
     if description is not None:
         manifest["description"] = description
-    refused = api.post("/submit", json=manifest).json()
-    assert refused["status"] == "refused", refused
-    auth = {"Authorization": f"Bearer {refused['token']}"}
-    appeal = api.post(f"/models/{refused['model_id']}/appeal", json={"note": note}, headers=auth)
-    assert appeal.status_code == 200, appeal.text
-    return int(refused["model_id"])
+    return held_on_appeal_of(api, manifest, note)
 
 
 def refuse(api: httpx.Client, model_id: int) -> None:

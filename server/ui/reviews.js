@@ -4,7 +4,7 @@
 // only (never stored, never in a URL); it travels in the Authorization header.
 
 import { ApiError, LIST_REFRESH_MS, firstRead, getJSON, postJSON } from "./api.js";
-import { fill, fixed, h, isMissing, link, navigated, notFound, patch, problem, scrolling, svg, table, votePatterns, when } from "./dom.js";
+import { fill, fixed, fixedApart, h, isMissing, link, navigated, notFound, patch, problem, scrolling, svg, table, votePatterns, when } from "./dom.js";
 import { auditLog, by, evidenceTable, inspectorView, measuredAndBar, verdictNow } from "./models.js";
 
 let adminToken = null;
@@ -353,7 +353,10 @@ function impactChart(impacts) {
   // One set of references and one bar per count of test auctions: a model near the bar was
   // judged on more auctions (its second stage), against their own references.
   const sets = [...new Map(impacts.map((e) => [e.detail.test_auctions ?? 16, e])).values()];
-  const suffix = (e) => (sets.length > 1 ? ` (${e.detail.test_auctions} auctions)` : "");
+  const counted = (e) => e.detail.test_auctions ?? 16;
+  // each point with its count of auctions where there are two stages, or where the one shown
+  // is not the first stage's 16
+  const suffix = (e) => (sets.length > 1 || counted(sets[0]) !== 16 ? ` (${counted(e)} auctions)` : "");
   const named = sets.flatMap((e) => [
     [`without its copies${suffix(e)}`, e.detail.without_copies],
     [`always-hold saboteurs${suffix(e)}`, e.detail.always_hold_saboteurs],
@@ -368,10 +371,12 @@ function impactChart(impacts) {
   const x = (p) => left + ((p - lo) / (hi - lo)) * (width - left - 115); // room for the label
   // Whether the copies passed is said beside their price, not by the dot's colour alone.
   const marks = [...impacts.map((e) => [`copies, ${e.detail.version}${suffix(e)}`, e.measured, e.passed ? "ink-buy" : "ink-hold", e.passed ? "passed" : "missed"]), ...named.map(([label, v]) => [label, v, "ink-quit", null])];
-  const valued = (value, verdict) => `${Number(value).toFixed(4)}${verdict ? ` ${verdict}` : ""}`;
+  // four decimals, or more where a price and a bar would read alike (a near tie held for review)
+  const digits = fixedApart([...impacts.map((e) => e.measured).filter((v) => v !== null), ...bars.map(([b]) => b)], 4)[0]?.split(".")[1]?.length ?? 4;
+  const valued = (value, verdict) => `${Number(value).toFixed(digits)}${verdict ? ` ${verdict}` : ""}`;
   const top = rowsY(marks.length);
   const height = top + 14 * bars.length + 10;
-  const said = bars.map(([b, words]) => `bar ${b.toFixed(4)}${words}`).join("; ");
+  const said = bars.map(([b, words]) => `bar ${b.toFixed(digits)}${words}`).join("; ");
   return svg(
     "svg",
     { class: "chart", viewBox: `0 0 ${width} ${height}`, role: "img", "aria-label": `Market impact: ${said}; ${marks.map(([l, v, , verdict]) => `${l} ${valued(v, verdict)}`).join("; ")}.` },
@@ -383,7 +388,7 @@ function impactChart(impacts) {
     bars.map(([b, words], i) => [
       svg("line", { class: "bar-line", x1: x(b), x2: x(b), y1: 6, y2: top + 14 * i }),
       // A bar near the right edge names itself leftwards: the label stays inside the chart.
-      svg("text", { class: "tick", x: x(b), y: top + 10 + 14 * i, "text-anchor": x(b) > width - 120 ? "end" : "middle" }, `bar ${b.toFixed(4)}${words}`),
+      svg("text", { class: "tick", x: x(b), y: top + 10 + 14 * i, "text-anchor": x(b) > width - 120 ? "end" : "middle" }, `bar ${b.toFixed(digits)}${words}`),
     ]),
   );
 }

@@ -49,6 +49,7 @@ PHONE = {"width": 320, "height": 740}
 """The narrowest screen a page must fit without scrolling sideways (WCAG 1.4.10's reflow)."""
 VIEWPORT = {"width": 1100, "height": 1000}
 WAIT_MS = 20_000
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 NEXT_READ_MS = 5_000
 """The web view reads a list's first page, and a read that failed, again every 5 s, and an open
 round every 3 s: ``read_again_now`` jumps its clock this far. A page showing a deadline (an
@@ -780,6 +781,30 @@ def test_a_held_models_page_links_its_inspection_and_reads_its_numbers_rounded(
         page.wait_for_selector(f"#verdict a[href='#/reviews/{model_id}']", timeout=WAIT_MS)
         said = " ".join(page.locator(".activation").all_text_contents())
         assert "a = 20," in said and "20.0000001" not in said, said
+    finally:
+        refuse(api, model_id)
+
+
+def test_the_impact_chart_tells_apart_a_price_and_a_bar_four_decimals_would_tie(
+    page: Any, server: ServerProcess, api: httpx.Client
+) -> None:
+    """The red team's opening-price bargainer is held: its copies' price passes the bar by
+    0.00006 (5.09184 against 5.09178, over the second stage's 96 auctions). Its chart says the
+    two apart, as its table does, and names the count of auctions it was judged on."""
+    manifest = json.loads((EXAMPLES / "red_team" / "opening-price-bargainer.json").read_text())
+    manifest["participant"] = unique("ui-near-tie")
+    held = api.post("/submit", json=manifest).json()
+    assert held["status"] == "held", held
+    model_id = held["model_id"]
+    try:
+        page.goto(f"{server.url}/ui/#/reviews/{model_id}")
+        page.fill("#admin-token", ADMIN_TOKEN)
+        page.keyboard.press("Enter")
+        chart = page.locator("#evidence figure svg").nth(1)
+        chart.wait_for(timeout=WAIT_MS)
+        said = chart.get_attribute("aria-label") or ""
+        assert "bar 5.09178 (96 auctions)" in said, said
+        assert "(96 auctions) 5.09184 passed" in said, said
     finally:
         refuse(api, model_id)
 

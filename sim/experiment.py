@@ -20,6 +20,7 @@ import json
 import math
 import re
 import textwrap
+import threading
 import time
 import types
 import typing
@@ -208,10 +209,16 @@ def _scalar(hint: Any) -> tuple[str, tuple[str, ...], str]:
 
 
 def config_fields(cls: type) -> tuple[ConfigField, ...]:
-    """The options of the config dataclass ``cls``, in field order."""
+    """The options of the config dataclass ``cls``, in field order. Read once, under a lock:
+    the server builds configs in several threads at once, and reading them parses source
+    (``ast.parse``), which CPython 3.11 may fail in two threads at once ("AST constructor
+    recursion depth mismatch": a 500 for a burst of ``POST /jobs`` on a fresh server)."""
     found = _FIELDS.get(cls)
     if found is None:
-        found = _FIELDS[cls] = _read_fields(cls)
+        with _FIELDS_LOCK:
+            found = _FIELDS.get(cls)
+            if found is None:
+                found = _FIELDS[cls] = _read_fields(cls)
     return found
 
 
@@ -263,6 +270,7 @@ def _adapter(cls: type) -> TypeAdapter[Any]:
 
 
 _FIELDS: dict[type, tuple[ConfigField, ...]] = {}
+_FIELDS_LOCK = threading.Lock()
 _ADAPTERS: dict[type, TypeAdapter[Any]] = {}
 """Per config class, read once."""
 

@@ -32,6 +32,27 @@ def _conflict(session: Session, model_id: int, unknown: str, rule: str, kind: st
     )
 
 
+def _appealed_or_decided(owner: crud.ModelOwner, model_id: int) -> RequestError | None:
+    """409 for a model an inspector refused (``decided``: final, appealed or not, the answer
+    that says most) or appealed before (``appealed``), or None."""
+    if owner.refused_by_inspector:
+        return api_error(
+            409,
+            f"model {model_id} was refused by an inspector, whose refusal is final: "
+            "only a model the screener refused is appealed",
+            loc=("path", "model_id"),
+            kind="decided",
+        )
+    if owner.appealed:
+        return api_error(
+            409,
+            f"model {model_id} was appealed before: a model is appealed once",
+            loc=("path", "model_id"),
+            kind="appealed",
+        )
+    return None
+
+
 def decide(
     session: Session, model_id: int, *, decision: ReviewDecision, inspector: str, note: str
 ) -> crud.StoredModel:
@@ -83,21 +104,9 @@ def appeal(
             kind="missing_token",
         )
     require_participant(token, owner.token_hash, owner.participant)
-    if owner.refused_by_inspector:  # final, appealed or not: the answer that says most
-        raise api_error(
-            409,
-            f"model {model_id} was refused by an inspector, whose refusal is final: "
-            "only a model the screener refused is appealed",
-            loc=("path", "model_id"),
-            kind="decided",
-        )
-    if owner.appealed:
-        raise api_error(
-            409,
-            f"model {model_id} was appealed before: a model is appealed once",
-            loc=("path", "model_id"),
-            kind="appealed",
-        )
+    settled = _appealed_or_decided(owner, model_id)
+    if settled is not None:
+        raise settled
     now = utcnow()
     if owner.status == ModelStatus.REFUSED:
         throttled = quotas.appeal_throttle(session, address=address, per_day=per_day, now=now)
@@ -112,7 +121,10 @@ def appeal(
     if owner.status != ModelStatus.REFUSED or not crud.appeal(
         session, model_id=model_id, participant=owner.participant, note=note, now=now
     ):
-        raise _conflict(
+        session.rollback()  # another request moved it first: said as it would be a moment later
+        now_stands = crud.model_owner(session, model_id=model_id)
+        settled = None if now_stands is None else _appealed_or_decided(now_stands, model_id)
+        raise settled or _conflict(
             session, model_id, owner.status, ": only a refused model is appealed", "not_refused"
         )
     quotas.record_appeal(session, address=address, now=now)

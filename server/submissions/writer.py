@@ -37,6 +37,8 @@ from server.submissions import quotas
 log = logging.getLogger("srd.submissions")
 
 PRUNE_EVERY_S = 600.0  # how often old quota events are deleted
+WRITE_TRIES = 3
+"""Transactions a submission's write is tried in when concurrent ones win its unique keys."""
 
 
 @dataclass(frozen=True)
@@ -229,14 +231,20 @@ class SubmissionWriter:
             return _store(session, item, self._limits)
 
     def _write(self, item: _Submission) -> Outcome | None:
-        try:
-            with self._database.session(write=True) as session:
-                outcome = _store(session, item, self._limits)
-                session.commit()
-        except IntegrityError:
-            return _conflict(item)
-        self._prune()
-        return outcome
+        """One transaction; tried again when a concurrent one wrote the same name or version
+        first (a unique key refused it), so it is decided on what that one wrote: the name now
+        registered asks for its token (401) or is taken (409 ``name_taken``), the next version
+        number is free. ``conflict`` (409) only if that happens ``WRITE_TRIES`` times."""
+        for _ in range(WRITE_TRIES):
+            try:
+                with self._database.session(write=True) as session:
+                    outcome = _store(session, item, self._limits)
+                    session.commit()
+            except IntegrityError:
+                continue
+            self._prune()
+            return outcome
+        return _conflict(item)
 
     def _prune(self) -> None:
         """Now and then, forget the quota events no limit counts any more."""

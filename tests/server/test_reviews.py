@@ -257,6 +257,35 @@ def test_a_refused_model_is_appealed_once(client: TestClient) -> None:
     assert held["model_id"] not in held_ids(client)
 
 
+def test_an_appeal_that_loses_a_race_to_another_hears_it_was_appealed(
+    client: TestClient, settings: Settings, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two appeals of one model at once (two replicas): the one whose write finds the model
+    appealed meanwhile is told ``appealed``, as it would be a moment later, not
+    ``not_refused``; one appeal is stored."""
+    if not settings.database_url.startswith("postgresql"):
+        pytest.skip("SQLite's write lock lets one writer in at a time: the appeals cannot race")
+    from server.submissions import reviews as review_rules
+
+    mine = submit(client, saboteur(unique("raced-appeal")))
+    database = client.app.state.services.database  # type: ignore[attr-defined]
+    real = review_rules.crud.appeal
+
+    def raced(session: Any, **given: Any) -> bool:
+        with database.session(write=True) as other:  # the other appeal commits first
+            assert real(other, **{**given, "note": "the other"})
+            other.commit()
+        return bool(real(session, **given))
+
+    monkeypatch.setattr(review_rules.crud, "appeal", raced)
+    url = f"/models/{mine['model_id']}/appeal"
+    lost = client.post(url, json={"note": "mine"}, headers=bearer(mine["token"]))
+    assert lost.status_code == 409, lost.text
+    (item,) = lost.json()["detail"]
+    assert item["type"] == "appealed", item
+    assert count(client, Review, model_id=mine["model_id"]) == 1
+
+
 def test_the_queue_is_oldest_first_in_pages(client: TestClient) -> None:
     for _ in range(2):
         submit(client, honest(unique("page"), BORDERLINE_SEED))

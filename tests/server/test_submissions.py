@@ -85,10 +85,34 @@ def test_submissions_are_decided_against_what_is_stored(database: Database) -> N
     assert stored.reasons == [{"rule": "always_hold", "neuron": "B", "message": "never buys"}]
 
 
+def test_a_name_registered_meanwhile_is_answered_as_a_registered_name_is(
+    database: Database, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two first submissions of one new name at once (two replicas): the one whose insert
+    loses is decided again on what the other wrote, 401 without its token (as it would be a
+    moment later), not a ``conflict`` whose retry would get that 401 anyway."""
+    name = unique("raced")
+    with database.session(write=True) as session:
+        crud.insert_participant(session, name=name, token_hash="0" * 64, now=utcnow())
+        session.commit()
+    looked = crud.participant_by_name
+    lookups: list[str] = []
+
+    def late_lookup(session: Any, *, name: str) -> crud.ParticipantRow | None:
+        lookups.append(name)  # the first read ran before the other's commit
+        return None if len(lookups) == 1 else looked(session, name=name)
+
+    monkeypatch.setattr(submissions.crud, "participant_by_name", late_lookup)
+    answer = _store(SubmissionWriter(database, LIMITS), name, ACCEPTED, None)
+    assert isinstance(answer, Refused) and (answer.status, answer.kind) == (401, "missing_token")
+    assert _counts(database, name) == (1, 0) and len(lookups) == 2
+
+
 def test_a_name_taken_meanwhile_is_answered_409_and_stores_nothing(
     database: Database, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Another process took the name between our lookup and our insert."""
+    """Another process took the name between our lookup and our insert, every time it was
+    tried: 409 ``conflict``."""
     taken, other = unique("taken"), unique("other")
     with database.session(write=True) as session:
         crud.insert_participant(session, name=taken, token_hash="0" * 64, now=utcnow())

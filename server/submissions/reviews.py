@@ -4,6 +4,8 @@ stores nothing."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from sqlalchemy.orm import Session
 
 from server.api.errors import RequestError, api_error
@@ -20,12 +22,22 @@ def _missing(model_id: int) -> RequestError:
     )
 
 
-def _conflict(session: Session, model_id: int, unknown: str, rule: str, kind: str) -> RequestError:
+def _conflict(
+    session: Session,
+    model_id: int,
+    unknown: str,
+    rule: str,
+    kind: str,
+    said: Callable[[crud.ModelOwner, int], RequestError | None] | None = None,
+) -> RequestError:
     """409 for a model no longer in the state a request needs (another request moved it first):
     nothing of this request is kept, and the message names the state the model is in now
-    (``unknown`` if it is gone)."""
+    (``unknown`` if it is gone), or ``said`` says it (what the request would hear now)."""
     session.rollback()
     now = crud.model_owner(session, model_id=model_id)
+    told = None if now is None or said is None else said(now, model_id)
+    if told is not None:
+        return told
     status = now.status if now else unknown
     return api_error(
         409, f"model {model_id} is {status}{rule}", loc=("path", "model_id"), kind=kind
@@ -121,11 +133,13 @@ def appeal(
     if owner.status != ModelStatus.REFUSED or not crud.appeal(
         session, model_id=model_id, participant=owner.participant, note=note, now=now
     ):
-        session.rollback()  # another request moved it first: said as it would be a moment later
-        now_stands = crud.model_owner(session, model_id=model_id)
-        settled = None if now_stands is None else _appealed_or_decided(now_stands, model_id)
-        raise settled or _conflict(
-            session, model_id, owner.status, ": only a refused model is appealed", "not_refused"
+        raise _conflict(  # another appeal or a decision first: said as a moment later
+            session,
+            model_id,
+            owner.status,
+            ": only a refused model is appealed",
+            "not_refused",
+            _appealed_or_decided,
         )
     quotas.record_appeal(session, address=address, now=now)
     session.commit()

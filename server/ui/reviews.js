@@ -216,8 +216,6 @@ function queueTable(rows, margin) {
   return held;
 }
 
-/** The priced bar closest to its measurement, in words, and what the review margin made of
- * it (``margin``: the server's, in price). */
 /** Why the screener refused a model (an appealed one), in a few words: its first reason's. */
 function refusedFor(reasons) {
   if (!reasons.length) return "refused by the screener";
@@ -225,6 +223,8 @@ function refusedFor(reasons) {
   return `refused by the screener: ${reasons[0].neuron} (${reasons[0].rule})${more}`;
 }
 
+/** The priced bar closest to its measurement, in words, and what the review margin made of
+ * it (``margin``: the server's, in price). */
 function nearest(evidence, margin) {
   const priced = evidence.filter((e) => e.units === "price" && e.measured !== null && e.bar !== null);
   if (!priced.length) return "—";
@@ -352,8 +352,8 @@ function populationsNote(impacts) {
 function impactChart(impacts) {
   // One set of references and one bar per count of test auctions: a model near the bar was
   // judged on more auctions (its second stage), against their own references.
-  const sets = [...new Map(impacts.map((e) => [e.detail.test_auctions ?? 16, e])).values()];
   const counted = (e) => e.detail.test_auctions ?? 16;
+  const sets = [...new Map(impacts.map((e) => [counted(e), e])).values()];
   // each point with its count of auctions where there are two stages, or where the one shown
   // is not the first stage's 16
   const suffix = (e) => (sets.length > 1 || counted(sets[0]) !== 16 ? ` (${counted(e)} auctions)` : "");

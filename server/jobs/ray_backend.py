@@ -253,13 +253,19 @@ class RayRunner:
 
 
 _PROBE = """
-import json, logging, sys
+import json, logging, os, signal, sys
+if sys.platform.startswith("linux"):  # ends with the thread that started it (a job worker
+    import ctypes  # killed by a cancel while the head hangs, say), before joining
+    ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != int(sys.argv[3]):  # that thread already gone
+        sys.exit(1)
 import ray
 ray.init(address=sys.argv[1], namespace=sys.argv[2], log_to_driver=False,
          logging_level=logging.ERROR)
 print(json.dumps(ray.cluster_resources().get("CPU", 0.0)))
 """
-"""A child process's look at the cluster: it joins, prints the CPUs and leaves."""
+"""A child process's look at the cluster: it joins, prints the CPUs and leaves; it is killed
+when the process that started it dies (its own wait for a frozen head would outlive it)."""
 
 
 def probe_cpus(address: str, timeout_s: float) -> float:
@@ -271,7 +277,7 @@ def probe_cpus(address: str, timeout_s: float) -> float:
     head_answers(address, timeout_s)
     try:
         done = subprocess.run(
-            [sys.executable, "-c", _PROBE, address, NAMESPACE],
+            [sys.executable, "-c", _PROBE, address, NAMESPACE, str(os.getpid())],
             capture_output=True,
             text=True,
             timeout=timeout_s,

@@ -4,6 +4,7 @@ its tasks, a unit whose Ray worker is killed runs again and the result is unchan
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import os
@@ -311,6 +312,39 @@ def test_a_job_worker_facing_a_head_that_does_not_answer_fails_at_once(ray_head:
         with pytest.raises(RayUnavailableError, match=re.escape(address)):
             connect(address, 5)
     assert time.monotonic() - started < 5
+
+
+def test_the_clusters_probe_ends_with_the_job_worker_that_started_it() -> None:
+    """The look at the cluster runs in a child process, which waits up to the join timeout
+    for a head that takes connections and never answers. A job worker killed meanwhile (its
+    job cancelled) took it along no more: it lived on, adopted by init, as long as the head
+    hung. It now ends with its parent, as every child of a job worker does."""
+    code = "import sys\nfrom server.jobs.ray_backend import probe_cpus\nprobe_cpus(sys.argv[1], 60)"
+    with socket.socket() as silent:  # takes connections, answers nothing: a frozen head
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(16)
+        address = f"127.0.0.1:{silent.getsockname()[1]}"
+        worker = subprocess.Popen(
+            [sys.executable, "-c", code, address], cwd=Path(__file__).resolve().parents[2]
+        )
+        probes: list[int] = []
+        try:
+            deadline = time.monotonic() + 30
+            while len(probes := descendants(worker.pid)[1:]) == 0:
+                assert time.monotonic() < deadline, "the probe never started"
+                time.sleep(0.05)
+            time.sleep(1.0)  # well into its wait
+            worker.kill()
+            worker.wait(timeout=10)
+            deadline = time.monotonic() + 5
+            while alive := [pid for pid in probes if process_name(pid) not in (None, "")]:
+                assert time.monotonic() < deadline, f"the probe {alive} outlived its worker"
+                time.sleep(0.05)
+        finally:
+            worker.kill()
+            for pid in probes:  # whatever became of them (adopted by init, without the fix)
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
 
 
 @pytest.mark.slow  # a cluster of its own: a head frozen a while is not one to share

@@ -668,7 +668,7 @@ def test_a_write_another_site_sent_is_refused(client: TestClient) -> None:
 
 
 def test_a_page_at_a_host_name_the_server_does_not_answer_pages_at_writes_nothing(
-    client: TestClient, tmp_path: Path
+    client: TestClient,
 ) -> None:
     """DNS rebinding: another site's name made to resolve to the server makes that site's page
     same-origin with it (``Sec-Fetch-Site: same-origin``, ``Origin`` naming the ``Host``), so
@@ -694,6 +694,11 @@ def test_a_page_at_a_host_name_the_server_does_not_answer_pages_at_writes_nothin
         again = json.dumps(honest(unique("addressed"))).encode()
         answer = client.post("/submit", content=again, headers=at)
         assert answer.status_code == 201, (name, answer.text)
+
+
+def test_the_host_names_srd_allowed_hosts_lists_take_pages_writes(tmp_path: Path) -> None:
+    """A name the setting lists (``*.`` for every name under it) takes its pages' writes;
+    another is refused as before; an entry that is not a host name stops the settings."""
     settings = make_settings(
         f"sqlite:///{tmp_path / 'srd.db'}",
         tmp_path / "data",

@@ -236,9 +236,16 @@ class RayRunner:
                     ready, pending = ray.wait(pending, num_returns=1, timeout=WAIT_S)
                     done = [(refs[ref], ray.get(ref)) for ref in ready]
                 except ray.exceptions.RayError as exc:
-                    if type(exc).__name__ not in LOST:
-                        raise  # the unit's own error, or its worker that kept dying
                     first = (str(exc).splitlines() or [""])[0]
+                    if type(exc).__name__ == "WorkerCrashedError":  # every try it had
+                        tries = self._max_retries + 1
+                        raise RuntimeError(
+                            f"a unit's Ray worker died {tries} time{'s' if tries > 1 else ''}, "
+                            f"every try it had (SRD_RAY_MAX_RETRIES={self._max_retries}): "
+                            f"{first}"
+                        ) from exc
+                    if type(exc).__name__ not in LOST:
+                        raise  # the unit's own error
                     raise RayUnavailableError(
                         f"the Ray cluster at {self._address!r} (SRD_RAY_ADDRESS) was lost "
                         f"mid-job: {type(exc).__name__}: {first}"

@@ -276,6 +276,35 @@ def test_a_killed_ray_worker_unit_runs_again_with_the_same_result(
     assert artifacts(ray / "data", done) == artifacts(tmp_path / "local" / "data", expected)
 
 
+def test_a_unit_whose_worker_dies_every_try_fails_the_job_saying_its_retries_ran_out(
+    ray_head: RayHead, tmp_path: Path
+) -> None:
+    """No retry left (``SRD_RAY_MAX_RETRIES`` 0) and its worker killed: the job fails saying
+    the worker died every try it had, not with Ray's bare ``WorkerCrashedError``."""
+    settings = {"job_backend": "ray", "ray_address": ray_head.address, "ray_max_retries": 0}
+    with client_for(tmp_path, **settings) as client:
+        answer = client.post(
+            "/jobs", json={"kind": "lavaland", "params": LONG_LAVALAND}, headers=ADMIN
+        )
+        job_id = answer.json()["job_id"]
+        seen = wait_for(
+            lambda: {"tasks": ray_head.worker_pids("srd lavaland: repeat 1")},
+            lambda s: bool(s["tasks"]),
+            RUN_TIMEOUT_S,
+        )
+        os.kill(seen["tasks"][0], signal.SIGKILL)
+        done = wait_for(
+            lambda: client.get(f"/jobs/{job_id}").json(),
+            lambda j: j["status"] not in ("queued", "running"),
+            RUN_TIMEOUT_S,
+        )
+    assert done["status"] == "failed", done
+    assert (
+        "a unit's Ray worker died 1 time, every try it had (SRD_RAY_MAX_RETRIES=0)"
+        in (done["error"])
+    ), done["error"]
+
+
 def test_ray_asked_for_but_missing_or_unaddressed_says_what_to_do(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

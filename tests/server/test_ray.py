@@ -283,16 +283,8 @@ def test_a_unit_whose_worker_dies_every_try_fails_the_job_saying_its_retries_ran
     the worker died every try it had, not with Ray's bare ``WorkerCrashedError``."""
     settings = {"job_backend": "ray", "ray_address": ray_head.address, "ray_max_retries": 0}
     with client_for(tmp_path, **settings) as client:
-        answer = client.post(
-            "/jobs", json={"kind": "lavaland", "params": LONG_LAVALAND}, headers=ADMIN
-        )
-        job_id = answer.json()["job_id"]
-        seen = wait_for(
-            lambda: {"tasks": ray_head.worker_pids("srd lavaland: repeat 1")},
-            lambda s: bool(s["tasks"]),
-            RUN_TIMEOUT_S,
-        )
-        os.kill(seen["tasks"][0], signal.SIGKILL)
+        job_id, workers = start_lavaland(client, ray_head, LONG_LAVALAND["repeats"])
+        os.kill(workers[0], signal.SIGKILL)
         done = wait_for(
             lambda: client.get(f"/jobs/{job_id}").json(),
             lambda j: j["status"] not in ("queued", "running"),
